@@ -1,0 +1,255 @@
+"""The ``ttl`` command: dispatches to science subcommands (here) and operations
+subcommands (``streamer.cli``, when that package is installed).
+
+Science subcommands: ``simulate``, ``info``.  Errors print one line naming the file,
+dataset or option at fault and exit with status 2; no tracebacks for user errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .conventions import COEFFICIENT_NAMES, DAY, parse_duration
+from .errors import TTLError
+
+log = logging.getLogger("ttl")
+
+
+class Progress:
+    """Minimal progress display on stderr (a bar on terminals, a line every 10 % otherwise)."""
+
+    def __init__(self, label: str, enabled: bool = True, stream=None):
+        self.label = label
+        self.enabled = enabled
+        self.stream = stream or sys.stderr
+        self.start = time.monotonic()
+        self._last_decile = -1
+        self._tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+
+    def __call__(self, done: int, total: int) -> None:
+        if not self.enabled or total <= 0:
+            return
+        frac = done / total
+        elapsed = time.monotonic() - self.start
+        eta = elapsed / frac - elapsed if frac > 0 else float("nan")
+        if self._tty:
+            bar = "#" * int(30 * frac)
+            self.stream.write(f"\r{self.label} [{bar:<30}] {100 * frac:5.1f}% {elapsed:6.1f}s elapsed, {eta:6.1f}s left")
+            if done >= total:
+                self.stream.write("\n")
+        else:
+            decile = int(10 * frac)
+            if decile > self._last_decile or done >= total:
+                self._last_decile = decile
+                self.stream.write(f"{self.label}: {100 * frac:.0f}% ({elapsed:.1f} s)\n")
+        self.stream.flush()
+
+
+def _parse_assignments(text: str, option: str) -> dict[str, float]:
+    """``"12.phi.rx=0.05,13.eta.tx=-0.02"`` -> mapping (values as given)."""
+    out = {}
+    for item in filter(None, (s.strip() for s in text.split(","))):
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise TTLError(f"{option}: expected NAME=VALUE, got {item!r}")
+        if name not in COEFFICIENT_NAMES:
+            raise TTLError(f"{option}: unknown coefficient {name!r}; names look like '12.phi.rx' ('<mosa>.<phi|eta>.<rx|tx>')")
+        try:
+            out[name] = float(value)
+        except ValueError:
+            raise TTLError(f"{option}: bad number {value!r} for {name}") from None
+    return out
+
+
+# ---------------------------------------------------------------------------
+# ttl simulate
+# ---------------------------------------------------------------------------
+
+def _add_simulate(sub) -> None:
+    p = sub.add_parser(
+        "simulate",
+        help="simulate mission telemetry (eta, DWS, delays) and its truth file",
+        description="Simulate LISA telemetry at the eta level with TTL coupling (PHYSICS.md). "
+        "Writes OUT and OUT's truth file (day.h5 -> day.truth.h5).",
+    )
+    p.add_argument("--duration", default="1d", help="length, e.g. 1d, 6h, 30min or seconds (default 1d)")
+    p.add_argument("--orbit", default="unequal", help="equal | unequal (paper's static arms) | keplerian | lisaorbits FILE (default unequal)")
+    p.add_argument("--coeffs", default="paper", help="paper (2.3 mm/rad) | lisainstrument | random | JSON FILE (default paper)")
+    p.add_argument("--seed", type=int, default=0, help="master random seed (default 0)")
+    p.add_argument("--out", required=True, help="telemetry file to write (HDF5)")
+    p.add_argument("--t0", type=float, default=0.0, help="mission time of the first sample [s] (default 0)")
+    p.add_argument("--fs", type=float, default=4.0, help="telemetry sampling rate [Hz] (default 4)")
+    p.add_argument("--noises", default="all", help="noises on: 'all', 'none', or a list like 'all,-laser,-dws' "
+                   "(laser, oms, backlink, telescope, test_mass, sc_jitter, mosa_jitter, dws, ttl)")
+    p.add_argument("--drift", default="", metavar="NAME=MM_PER_DAY,...", help="linear coefficient drifts in mm/rad per day")
+    p.add_argument("--step", action="append", default=[], metavar="T:NAME=MM,...",
+                   help="coefficient step at mission time T (s, or e.g. 1.5d) of MM mm/rad; repeatable")
+    p.add_argument("--truth-noises", default="", help="noise components to store alone in the truth file, "
+                   "comma-separated (laser, oms, backlink, telescope, test_mass, dws_phi, dws_eta) or 'all'")
+    p.add_argument("--order", type=int, default=31, help="Lagrange interpolation order of the delays (odd, default 31)")
+    p.add_argument("--chunk", default="3h", help="simulation chunk length (memory bound; the result does not depend on it)")
+    p.add_argument("--quiet", action="store_true", help="no progress display")
+    p.set_defaults(func=_cmd_simulate)
+
+
+def _cmd_simulate(args) -> int:
+    from .coefficients import make_coefficients
+    from .simulator import NoiseSwitches, SimulationConfig, simulate_to_file
+    from .truth import NOISE_COMPONENTS
+
+    try:
+        duration = parse_duration(args.duration)
+        chunk = parse_duration(args.chunk)
+    except ValueError as exc:
+        raise TTLError(f"--duration/--chunk: {exc}") from None
+    coeffs = make_coefficients(args.coeffs, seed=args.seed)
+    if args.drift:
+        coeffs = coeffs.with_drift({k: v * 1e-3 for k, v in _parse_assignments(args.drift, "--drift").items()})
+    for step in args.step:
+        when, sep, rest = step.partition(":")
+        if not sep:
+            raise TTLError(f"--step: expected T:NAME=MM,..., got {step!r}")
+        try:
+            t_step = parse_duration(when) if when.strip() not in ("0", "0.0") else 0.0
+        except ValueError as exc:
+            raise TTLError(f"--step: {exc}") from None
+        coeffs = coeffs.with_step(t_step, {k: v * 1e-3 for k, v in _parse_assignments(rest, "--step").items()})
+    truth_noises = tuple(NOISE_COMPONENTS) if args.truth_noises == "all" else tuple(
+        s.strip() for s in args.truth_noises.split(",") if s.strip()
+    )
+    out = Path(args.out)
+    if out.parent and not out.parent.exists():
+        raise TTLError(f"--out: directory {out.parent} does not exist")
+    from .orbits import make_orbit
+
+    make_orbit(args.orbit)  # validate early: clear error before any work
+    config = SimulationConfig(
+        duration=duration, t0=args.t0, fs=args.fs, orbit=args.orbit, coefficients=coeffs, seed=args.seed,
+        noises=NoiseSwitches.parse(args.noises), interpolation_order=args.order, truth_noises=truth_noises,
+    )
+    progress = Progress(f"simulate {out.name}", enabled=not args.quiet)
+    tpath, rpath = simulate_to_file(config, out, chunk_size=int(round(chunk * args.fs)), progress=progress)
+    print(f"wrote {tpath} ({config.size} samples, {duration / DAY:g} d at {args.fs:g} Hz) and {rpath}")
+    return 0
+
+
+# ---------------------------------------------------------------------------
+# ttl info
+# ---------------------------------------------------------------------------
+
+def _add_info(sub) -> None:
+    p = sub.add_parser("info", help="summarise a telemetry file (ours or lisainstrument's) or a truth file")
+    p.add_argument("file", help="HDF5 file")
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    p.set_defaults(func=_cmd_info)
+
+
+def _rms(x: np.ndarray) -> list[float]:
+    return [float(v) for v in np.sqrt(np.mean(np.square(x), axis=-1))]
+
+
+def summarise(path) -> dict:
+    """Summary of a telemetry or truth file as a JSON-serialisable dict."""
+    from .conventions import LINKS
+    from .telemetry import file_kind, read_telemetry
+    from .truth import read_truth, truth_path
+
+    kind = file_kind(path)
+    if kind == "truth":
+        tr = read_truth(path)
+        return {
+            "file": str(path), "kind": "truth", "t0": tr.t0, "fs": tr.fs, "size": tr.size, "duration_s": tr.size / tr.fs,
+            "datasets": ["ttl", "coefficients", "angles", "angular_velocity"] + [f"noises/{n}" for n in tr.noises],
+            "coefficients_mean_mm_per_rad": dict(zip(COEFFICIENT_NAMES, (1e3 * tr.mean_coefficients()).round(6).tolist())),
+            "ttl_rms": dict(zip(LINKS, _rms(tr.ttl))),
+        }
+    tm = read_telemetry(path)
+    summary = {
+        "file": str(path),
+        "kind": kind,
+        "t0": tm.t0,
+        "fs": tm.fs,
+        "size": tm.size,
+        "duration_s": tm.duration,
+        "eta_rms": dict(zip(LINKS, _rms(tm.eta))),
+        "dws_phi_rms_rad_per_s": dict(zip(LINKS, _rms(tm.dws_phi))),
+        "dws_eta_rms_rad_per_s": dict(zip(LINKS, _rms(tm.dws_eta))),
+        "ltt_min_s": dict(zip(LINKS, np.min(tm.ltt, axis=1).tolist())),
+        "ltt_max_s": dict(zip(LINKS, np.max(tm.ltt, axis=1).tolist())),
+        "config": tm.config,
+    }
+    tp = truth_path(path)
+    summary["truth_file"] = str(tp) if tp.exists() else None
+    return summary
+
+
+def _cmd_info(args) -> int:
+    s = summarise(args.file)
+    if args.json:
+        print(json.dumps(s, indent=2, default=str))
+        return 0
+    from .conventions import LINKS
+
+    print(f"{s['file']}: {s['kind']} file")
+    print(f"  t0 {s['t0']:.3f} s, fs {s['fs']:g} Hz, {s['size']} samples = {s['duration_s'] / 3600:.3f} h")
+    if s["kind"] == "truth":
+        print("  datasets: " + ", ".join(s["datasets"]))
+        print("  mean coefficients [mm/rad]: " + " ".join(f"{k}={v:+.4f}" for k, v in s["coefficients_mean_mm_per_rad"].items()))
+        return 0
+    cfg = s["config"]
+    if cfg.get("orbit"):
+        print(f"  orbit {cfg.get('orbit')}, seed {cfg.get('seed')}, noises on: "
+              + ", ".join(k for k, v in cfg.get("noises", {}).items() if v))
+    print("  link    eta RMS      DWS phi RMS   DWS eta RMS   ltt [s]")
+    for link in LINKS:
+        print(f"  {link}   {s['eta_rms'][link]:.3e}   {s['dws_phi_rms_rad_per_s'][link]:.3e}     "
+              f"{s['dws_eta_rms_rad_per_s'][link]:.3e}     {s['ltt_min_s'][link]:.6f} .. {s['ltt_max_s'][link]:.6f}")
+    print(f"  truth file: {s['truth_file'] or 'none beside it'}")
+    return 0
+
+
+# ---------------------------------------------------------------------------
+# entry point
+# ---------------------------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="ttl", description="Tilt-to-length noise subtraction for LISA")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    _add_simulate(sub)
+    _add_info(sub)
+    try:  # operations subcommands live beside the plumbing, if installed
+        from streamer import cli as streamer_cli  # type: ignore
+    except ImportError:
+        streamer_cli = None
+    if streamer_cli is not None:
+        streamer_cli.register(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        return int(args.func(args) or 0)
+    except (TTLError, ValueError, OSError) as exc:
+        print(f"ttl {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"ttl {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,186 @@
+"""Fractional time shifts by Lagrange interpolation.
+
+The delay operator of PHYSICS.md, ``D x(t) = x(t - tau(t))``, is evaluated on sampled data
+by centred Lagrange interpolation of odd order ``N`` (``N + 1`` taps), as in lisainstrument
+and pytdi.  For a read position ``p = k + eps`` (``k`` integer, ``0 <= eps < 1``) the
+interpolated value is
+
+    x(p) = sum_{m=-(N-1)/2}^{(N+1)/2} w_m(eps) x[k + m],
+    w_m(eps) = prod_{l != m} (eps - l) / (m - l),
+
+with the products formed from prefix and suffix products so that no division by
+``eps - m`` is needed (exact at integer positions).
+
+The taps depend only on the shifts, so one set of taps serves any number of channels:
+:func:`lagrange_taps` computes them once and :func:`apply_taps` applies them to an array
+of shape ``(..., n)``.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+#: Default interpolation order (odd), as in lisainstrument and pytdi.
+DEFAULT_ORDER = 31
+
+
+def _check_order(order: int) -> int:
+    order = int(order)
+    if order < 1 or order % 2 == 0:
+        raise ValueError(f"Lagrange interpolation order must be a positive odd integer, got {order}")
+    return order
+
+
+def lagrange_weights(eps: np.ndarray, order: int = DEFAULT_ORDER) -> np.ndarray:
+    """Lagrange weights ``w_m(eps)`` for stencil offsets ``m = -(N-1)/2 .. (N+1)/2``.
+
+    Parameters
+    ----------
+    eps : array_like, shape (n,)
+        Fractional part of the read position, in ``[0, 1)``.
+    order : int
+        Odd interpolation order ``N``.
+
+    Returns
+    -------
+    ndarray, shape (N + 1, n)
+        The weights, one row per stencil offset.
+    """
+    order = _check_order(order)
+    eps = np.asarray(eps, dtype=float)
+    offsets = np.arange(-(order - 1) // 2, (order + 1) // 2 + 1)
+    npts = offsets.size
+    diff = eps[None, :] - offsets[:, None]  # (npts, n): eps - l
+    prefix = np.ones_like(diff)
+    suffix = np.ones_like(diff)
+    for i in range(1, npts):
+        prefix[i] = prefix[i - 1] * diff[i - 1]
+        suffix[npts - 1 - i] = suffix[npts - i] * diff[npts - i]
+    # denominators prod_{l != m} (m - l), computed in log-free exact integer arithmetic
+    denom = np.array(
+        [np.prod([float(m - l) for l in offsets if l != m]) for m in offsets]
+    )
+    return prefix * suffix / denom[:, None]
+
+
+@dataclass(frozen=True)
+class Taps:
+    """Precomputed interpolation taps for a set of read positions.
+
+    Attributes
+    ----------
+    base : ndarray of int, shape (n,)
+        Index of the first stencil sample for each output sample.
+    weights : ndarray, shape (N + 1, n)
+        Lagrange weights.
+    """
+
+    base: np.ndarray
+    weights: np.ndarray
+
+    @property
+    def order(self) -> int:
+        return self.weights.shape[0] - 1
+
+    def __len__(self) -> int:
+        return self.base.size
+
+
+def lagrange_taps(positions: np.ndarray, order: int = DEFAULT_ORDER) -> Taps:
+    """Taps that read a series at fractional sample ``positions``.
+
+    Parameters
+    ----------
+    positions : array_like, shape (n,)
+        Read positions in samples of the input series (``0`` is its first sample).
+    order : int
+        Odd interpolation order.
+    """
+    order = _check_order(order)
+    positions = np.asarray(positions, dtype=float)
+    k = np.floor(positions)
+    eps = positions - k
+    base = k.astype(np.int64) - (order - 1) // 2
+    return Taps(base=base, weights=lagrange_weights(eps, order))
+
+
+def apply_taps(x: np.ndarray, taps: Taps, fill: float = np.nan) -> np.ndarray:
+    """Evaluate ``x`` (shape ``(..., m)``) at the positions the taps were built for.
+
+    Output samples whose stencil leaves ``[0, m)`` are set to ``fill``.
+
+    Returns
+    -------
+    ndarray, shape (..., n)
+    """
+    x = np.asarray(x)
+    m = x.shape[-1]
+    npts = taps.weights.shape[0]
+    valid = (taps.base >= 0) & (taps.base + npts <= m)
+    base = np.clip(taps.base, 0, max(m - npts, 0))
+    out = np.zeros(x.shape[:-1] + (taps.base.size,), dtype=np.result_type(x.dtype, float))
+    for j in range(npts):
+        out += taps.weights[j] * np.take(x, base + j, axis=-1)
+    if not np.all(valid):
+        out[..., ~valid] = fill
+    return out
+
+
+def timeshift(x: np.ndarray, shift, order: int = DEFAULT_ORDER, fill: float = np.nan) -> np.ndarray:
+    """Shift ``x`` in time by ``shift`` samples: ``y[k] = x(k + shift[k])``.
+
+    A delay by ``tau`` seconds at sampling rate ``fs`` is ``shift = -tau * fs``.
+
+    Parameters
+    ----------
+    x : array_like, shape (..., n)
+        Series sampled uniformly.
+    shift : float or array_like, shape (n,)
+        Shift in samples (negative for a delay).
+    order : int
+        Odd Lagrange order.
+    fill : float
+        Value of samples whose stencil leaves the data.
+    """
+    x = np.asarray(x)
+    return apply_taps(x, shift_taps(shift, x.shape[-1], order), fill=fill)
+
+
+def shift_taps(shift, n: int, order: int = DEFAULT_ORDER, offset: int = 0) -> Taps:
+    """Taps for ``y[k] = x(offset + k + shift[k])``, ``k = 0 .. n-1``.
+
+    The integer and fractional parts are taken from ``shift`` itself, not from
+    ``k + shift``, so the fractional part carries no rounding error that grows with ``k``.
+    ``offset`` (integer) lets the input start ``offset`` samples before the output,
+    e.g. a history buffer kept for delays.
+    """
+    order = _check_order(order)
+    shift = np.broadcast_to(np.asarray(shift, dtype=float), (n,))
+    whole = np.floor(shift)
+    eps = shift - whole
+    base = np.arange(n, dtype=np.int64) + int(offset) + whole.astype(np.int64) - (order - 1) // 2
+    return Taps(base=base, weights=lagrange_weights(eps, order))
+
+
+def delay(x: np.ndarray, tau, fs: float, order: int = DEFAULT_ORDER, fill: float = np.nan, history: int = 0) -> np.ndarray:
+    """Apply the delay operator ``D x(t) = x(t - tau(t))`` (``tau`` in seconds).
+
+    Parameters
+    ----------
+    x : ndarray, shape (..., history + n)
+        Input series; its first ``history`` samples precede the output window.
+    tau : float or ndarray, shape (n,)
+        Delay [s] at each output sample.
+    history : int
+        Number of leading samples of ``x`` before the first output sample.
+
+    Returns
+    -------
+    ndarray, shape (..., n)
+    """
+    x = np.asarray(x)
+    n = x.shape[-1] - int(history)
+    taps = shift_taps(-np.asarray(tau, dtype=float) * fs, n, order, offset=history)
+    return apply_taps(x, taps, fill=fill)
