@@ -158,6 +158,10 @@ def shift_taps(shift, n: int, order: int = DEFAULT_ORDER, offset: int = 0) -> Ta
     """
     order = _check_order(order)
     shift = np.broadcast_to(np.asarray(shift, dtype=float), (n,))
+    if not np.all(np.isfinite(shift)):
+        # undefined shifts (e.g. nested delays reaching before the data) read nothing:
+        # put their stencil far out of range so apply_taps fills them
+        shift = np.where(np.isfinite(shift), shift, -float(1 << 40))
     whole = np.floor(shift)
     eps = shift - whole
     base = np.arange(n, dtype=np.int64) + int(offset) + whole.astype(np.int64) - (order - 1) // 2
@@ -171,8 +175,8 @@ def delay(x: np.ndarray, tau, fs: float, order: int = DEFAULT_ORDER, fill: float
     ----------
     x : ndarray, shape (..., history + n)
         Input series; its first ``history`` samples precede the output window.
-    tau : float or ndarray, shape (n,)
-        Delay [s] at each output sample.
+    tau : float or ndarray, shape (n,) or (rows, n)
+        Delay [s] at each output sample; 2-D for one delay series per row of ``x``.
     history : int
         Number of leading samples of ``x`` before the first output sample.
 
@@ -182,5 +186,10 @@ def delay(x: np.ndarray, tau, fs: float, order: int = DEFAULT_ORDER, fill: float
     """
     x = np.asarray(x)
     n = x.shape[-1] - int(history)
-    taps = shift_taps(-np.asarray(tau, dtype=float) * fs, n, order, offset=history)
+    tau = np.asarray(tau, dtype=float)
+    if tau.ndim == 2:  # one delay series per row of x
+        if tau.shape[0] != x.shape[0]:
+            raise ValueError(f"{tau.shape[0]} delay series for {x.shape[0]} rows")
+        return np.stack([delay(row, t, fs, order, fill, history) for row, t in zip(x, tau)])
+    taps = shift_taps(-tau * fs, n, order, offset=history)
     return apply_taps(x, taps, fill=fill)

@@ -62,7 +62,7 @@ from .conventions import (
     local_spacecraft,
 )
 from .errors import ConfigError
-from .interpolation import DEFAULT_ORDER, delay
+from .interpolation import DEFAULT_ORDER, apply_taps, delay, shift_taps
 from .noise import NoiseStream
 from .orbits import Orbit, make_orbit
 from .telemetry import Telemetry, TelemetryWriter
@@ -312,12 +312,16 @@ class Simulator:
         eta_dot = self._cos * sc[:, 1] - self._sin * sc[:, 2] + self._get("mosa_jitter_eta", e0, e1, 6)
 
         coeffs = cfg.coefficients.values(t_ext)
-        order = cfg.interpolation_order
+        # D_ij for each link, shared by the TTL Tx terms and the remote test masses
+        taps = [shift_taps(-ltt[k] * fs, n, cfg.interpolation_order, offset=h) for k in range(6)]
+
+        def delayed_onto_links(x):  # x: (6 MOSAs/TMs, h + n) -> D_ij x_ji on each link ij
+            return np.stack([apply_taps(x[REVERSED_INDEX[k]], taps[k]) for k in range(6)])
+
         if cfg.noises.ttl:
             rx = coeffs[self._rx[0], h:] * phi_dot[:, h:] + coeffs[self._rx[1], h:] * eta_dot[:, h:]
             tx_source = coeffs[self._tx[0]] * phi_dot + coeffs[self._tx[1]] * eta_dot
-            tx = delay(tx_source[list(REVERSED_INDEX)], ltt, fs, order, history=h)
-            ttl = -(rx + tx) / C
+            ttl = -(rx + delayed_onto_links(tx_source)) / C
         else:
             ttl = np.zeros((6, n))
 
@@ -328,7 +332,7 @@ class Simulator:
             "oms": self._get("oms", n0, n0 + n, 6),
             "backlink": self._get("backlink", n0, n0 + n, 6),
             "telescope": self._get("telescope", n0, n0 + n, 6),
-            "test_mass": delta[:, h:] + delay(delta[list(REVERSED_INDEX)], ltt, fs, order, history=h),
+            "test_mass": delta[:, h:] + delayed_onto_links(delta),
         }
         eta = ttl + sum(components.values())
         tm = Telemetry(
