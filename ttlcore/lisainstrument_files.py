@@ -276,9 +276,9 @@ class _DatasetReader:
             raise TelemetryError(self.path, "expected a dataset, found a group", name)
         if ds.dtype.kind not in "fiu":
             raise TelemetryError(self.path, f"expected real numbers, found dtype {ds.dtype}", name)
-        rng = self._range(ds, name)
         if ds.shape not in ((), (self.size,)):
             raise TelemetryError(self.path, f"expected shape ({self.size},) from metadata size (or a scalar for a constant series), found {ds.shape}", name)
+        rng = self._range(ds, name)
         try:
             data = np.asarray(ds[()], dtype=float)
         except (OSError, RuntimeError, ValueError) as exc:
