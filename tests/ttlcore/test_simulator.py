@@ -85,28 +85,49 @@ def test_components_add_up_to_eta():
 # ---------------------------------------------------------------------------
 # Every noise and jitter series of a noise-only day against its ASD model
 # ---------------------------------------------------------------------------
+#
+# Estimator: a Hann-windowed periodogram of the whole day per channel, divided bin by bin
+# by the model PSD, averaged over the bins of a band and over the channels of one noise.
+# Hann sidelobes fall as f^-6 in power, faster than any model here rises towards low
+# frequencies, and the main-lobe smoothing biases an f^-2 spectrum by ~1.5 % at 0.1 mHz.
+# Statistics: a day holds ~BT independent bins in a band of width B (Hann correlates
+# neighbours: ENBW 1.5 bins).  The bands below are wide enough at low frequency that the
+# 1-sigma scatter of the band-averaged ASD ratio is at most 3.5 % (bands are merged until
+# it is), so the 10 % tolerance is at least 2.9 sigma.  The generator alone is checked to 3 % scatter
+# down to 0.1 mHz on 55-day series in test_noise.py.
 
-BANDS = np.geomspace(1e-4, 1.5, 22)  # 21 log-spaced bands, 5 per decade
+BANDS = np.geomspace(1e-4, 1.5, 22)  # 5 per decade; merged upwards from 0.1 mHz until wide enough
 
 
-def band_ratio(x, fs, model_psd, nperseg):
-    """Ratio of Welch PSD to model PSD, both averaged over the bins of each band; also the
-    expected relative standard deviation of the band-averaged estimate."""
-    f, p = signal.welch(x, fs=fs, window="nuttall", nperseg=nperseg, noverlap=nperseg // 2, axis=-1)
-    p = np.atleast_2d(p).mean(axis=0)
-    nch = np.atleast_2d(x).shape[0]
-    nseg = 2 * x.shape[-1] // nperseg - 1
-    out = []
-    for lo, hi in zip(BANDS[:-1], BANDS[1:]):
+def band_ratios(series, fs, model_psd, sources=None):
+    """Band-averaged ratio of periodogram to model and its 1-sigma ASD scatter.
+
+    ``sources`` is the number of independent noise sources behind the channels (e.g. 3
+    lasers behind the 6 laser terms); adjacent bands are merged, from the lowest up,
+    until the expected scatter is at most 3.5 %.
+    """
+    x = np.atleast_2d(series)
+    sources = sources or x.shape[0]
+    f, p = signal.periodogram(x, fs=fs, window="hann", detrend="linear", axis=-1)
+    keep = f > 0
+    f, r = f[keep], p[:, keep] / model_psd(f[keep])
+    out, lo = [], BANDS[0]
+    for hi in BANDS[1:]:
         sel = (f >= lo) & (f < hi)
-        if sel.sum() == 0:
-            continue
-        ratio = p[sel].mean() / model_psd(f[sel]).mean()
-        # Welch with 50 % overlap Nuttall: ~nseg independent averages per bin (overlap
-        # correlation for Nuttall is small); adjacent bins of a Nuttall window are ~1/2 correlated
-        dof = nch * nseg * max(sel.sum() / 2, 1)
-        out.append((lo, hi, ratio, 1 / np.sqrt(dof)))
+        sigma = 0.5 / np.sqrt(sources * sel.sum() / 1.5)
+        if sigma > 0.035 and hi < BANDS[-1]:
+            continue  # merge with the next band
+        out.append((lo, hi, r[:, sel].mean(), sigma))
+        lo = hi
     return out
+
+
+def assert_matches(series, fs, model_psd, label, sources=None):
+    bands = band_ratios(series, fs, model_psd, sources)
+    assert bands[0][0] == 1e-4 and bands[-1][1] == 1.5
+    for lo, hi, ratio, sigma_asd in bands:
+        err = abs(np.sqrt(ratio) - 1)
+        assert err < 0.10, f"{label}: ASD off by {100 * err:.1f} % in {lo:.2e}-{hi:.2e} Hz (1 sigma {100 * sigma_asd:.1f} %)"
 
 
 @pytest.fixture(scope="module")
@@ -116,44 +137,67 @@ def noise_day():
     return cfg, tm, truth
 
 
-def _check(series, fs, psd, label, nperseg):
-    for lo, hi, ratio, sigma in band_ratio(series, fs, psd, nperseg):
-        asd_err = abs(np.sqrt(ratio) - 1)
-        # the tolerance is 10 % in ASD; we also require it to exceed 3 sigma of the estimate
-        assert asd_err < 0.10, f"{label}: band {lo:.2e}-{hi:.2e} Hz ASD off by {100 * asd_err:.1f} % (sigma {100 * sigma / 2:.1f} %)"
-
-
-def _nperseg_for(lo):
-    return 1 << 16
-
-
 def test_secondary_noise_asds(noise_day):
     cfg, tm, truth = noise_day
-    fs = tm.fs
-    f_psd = lambda model: (lambda f: model(f) ** 2)
-    _check(truth["noises/oms"], fs, f_psd(noise_models.oms), "oms", 1 << 15)
-    _check(truth["noises/backlink"], fs, f_psd(noise_models.backlink), "backlink", 1 << 15)
-    _check(truth["noises/telescope"], fs, f_psd(noise_models.telescope), "telescope", 1 << 15)
-    # eta holds delta_ij + D_ij delta_ji: two independent test masses, PSD 2 S_acc
-    _check(truth["noises/test_mass"], fs, lambda f: 2 * noise_models.test_mass(f) ** 2, "test_mass", 1 << 15)
+    assert_matches(truth["noises/oms"], tm.fs, lambda f: noise_models.oms(f) ** 2, "oms")
+    assert_matches(truth["noises/backlink"], tm.fs, lambda f: noise_models.backlink(f) ** 2, "backlink")
+    assert_matches(truth["noises/telescope"], tm.fs, lambda f: noise_models.telescope(f) ** 2, "telescope")
+    # eta holds delta_ij + D_ij delta_ji of two independent test masses: PSD 2 S_acc
+    assert_matches(truth["noises/test_mass"], tm.fs, lambda f: 2 * noise_models.test_mass(f) ** 2, "test_mass")
 
 
-def test_laser_term_asd(noise_day):
+def test_laser_noise_asd(noise_day):
+    # The three laser noises p_i, as the simulator draws them at its 16-Hz physics rate.
+    # (The laser terms D_ij p_j - p_i of eta are checked by their cancellation in X2 below
+    # and by the component sum above; six terms of three lasers add no statistics.)
     cfg, tm, truth = noise_day
-    # D_ij p_j - p_i of two independent lasers: PSD 2 S_p, times the anti-alias filter's gain
-    h = anti_alias_filter(cfg.fs * cfg.laser_upsampling, cfg.laser_upsampling)
-    gain = lambda f: np.abs(signal.freqz(h, worN=f, fs=cfg.fs * cfg.laser_upsampling)[1]) ** 2
-    _check(truth["noises/laser"], tm.fs, lambda f: 2 * noise_models.laser(f) ** 2 * gain(f), "laser", 1 << 15)
+    sim = Simulator(cfg)
+    fsu = cfg.fs * cfg.laser_upsampling
+    p = sim.streams["laser"].get(0, int(DAY * fsu))
+    assert_matches(p, fsu, lambda f: noise_models.laser(f) ** 2, "laser")
 
 
 def test_jitter_and_dws_asds(noise_day):
     cfg, tm, truth = noise_day
     jit = cfg.jitter
-    sc = lambda f: (2 * np.pi * f * jit["sc"]) ** 2 * (1 + (jit["fknee"] / f) ** 4)
-    mphi = lambda f: (2 * np.pi * f * jit["mosa_phi"]) ** 2 * (1 + (jit["fknee"] / f) ** 4)
-    meta = lambda f: (2 * np.pi * f * jit["mosa_eta"]) ** 2 * (1 + (jit["fknee"] / f) ** 4)
-    # total phi_ij = phi_SC_i + phi_MOSA_ij; total eta_ij = cos a eta_SC - sin a theta_SC + eta_MOSA
-    _check(truth["angular_velocity/phi"], tm.fs, lambda f: sc(f) + mphi(f), "phi velocity", 1 << 15)
-    _check(truth["angular_velocity/eta"], tm.fs, lambda f: sc(f) + meta(f), "eta velocity", 1 << 15)
+    shape = lambda level: (lambda f: (2 * np.pi * f * level) ** 2 * (1 + (jit["fknee"] / f) ** 4))
+    # total phi_ij = phi_SC_i + phi_MOSA_ij; eta_ij = cos(a) eta_SC - sin(a) theta_SC + eta_MOSA
+    # (cos^2 + sin^2 = 1, SC angles of equal level): velocity PSDs add
+    assert_matches(truth["angular_velocity/phi"], tm.fs, lambda f: shape(jit["sc"])(f) + shape(jit["mosa_phi"])(f), "phi velocity")
+    assert_matches(truth["angular_velocity/eta"], tm.fs, lambda f: shape(jit["sc"])(f) + shape(jit["mosa_eta"])(f), "eta velocity")
     dws = lambda f: (2 * np.pi * f * jit["dws"]) ** 2
-    _check(np.vstack([truth["noises/dws_phi"], truth["noises/dws_eta"]]), tm.fs, dws, "dws noise", 1 << 15)
+    assert_matches(np.vstack([truth["noises/dws_phi"], truth["noises/dws_eta"]]), tm.fs, dws, "dws noise")
+
+
+def test_x2_suppresses_laser_noise_below_secondary_noises():
+    """Keplerian arms, every noise on: pytdi's X2 (order 31) of the laser terms stays below
+    10 % of the X2 of the secondary noises (in ASD) from 0.1 mHz to 0.9 Hz.
+
+    pytdi is evaluated with ``unit="phase"``: its delay operator is then exactly the
+    PHYSICS.md ``D x(t) = x(t - tau(t))`` our eta-level model uses (its "frequency"
+    evaluation adds the Doppler factor ``1 - dtau/dt`` that lisainstrument's beat notes carry).
+    By linearity, X2 of the laser terms alone is the laser-noise residual of X2(eta).
+    """
+    from pytdi.michelson import X2_ETA
+
+    cfg = SimulationConfig(duration=DAY, orbit="keplerian", seed=21,
+                           truth_noises=("laser", "oms", "backlink", "telescope", "test_mass"))
+    tm, truth = simulate(cfg)
+    delays = {f"d_{l}": tm.ltt[k] for k, l in enumerate(LINKS)}
+    x2 = X2_ETA.build(delays, tm.fs, order=5)
+
+    def X(series):
+        return x2({f"eta_{l}": series[k] for k, l in enumerate(LINKS)}, order=31, unit="phase")
+
+    laser = X(truth["noises/laser"])
+    secondary = X(sum(truth[f"noises/{k}"] for k in ("oms", "backlink", "telescope", "test_mass")))
+    skip = 400  # first 100 s: nested delays (7 x 8.3 s) reach before the data
+    f, p_laser = signal.periodogram(laser[skip:], fs=tm.fs, window="hann")
+    _, p_sec = signal.periodogram(secondary[skip:], fs=tm.fs, window="hann")
+    edges = np.geomspace(1e-4, 0.9, 31)
+    worst = 0.0
+    for lo, hi in zip(edges[:-1], edges[1:]):
+        sel = (f >= lo) & (f < hi)
+        ratio = np.sqrt(p_laser[sel].mean() / p_sec[sel].mean())
+        worst = max(worst, ratio)
+        assert ratio < 0.1, f"laser residual {ratio:.3f} of secondary ASD in {lo:.2e}-{hi:.2e} Hz"
