@@ -8,8 +8,7 @@ interpolated value is
     x(p) = sum_{m=-(N-1)/2}^{(N+1)/2} w_m(eps) x[k + m],
     w_m(eps) = prod_{l != m} (eps - l) / (m - l),
 
-with the products formed from prefix and suffix products so that no division by
-``eps - m`` is needed (exact at integer positions).
+evaluated in barycentric form (exact at integer positions).
 
 The taps depend only on the shifts, so one set of taps serves any number of channels:
 :func:`lagrange_taps` computes them once and :func:`apply_taps` applies them to an array
@@ -21,6 +20,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
 #: Default interpolation order (odd), as in lisainstrument and pytdi.
 DEFAULT_ORDER = 31
@@ -35,6 +35,10 @@ def _check_order(order: int) -> int:
 
 def lagrange_weights(eps: np.ndarray, order: int = DEFAULT_ORDER) -> np.ndarray:
     """Lagrange weights ``w_m(eps)`` for stencil offsets ``m = -(N-1)/2 .. (N+1)/2``.
+
+    Evaluated in barycentric form, ``w_m = P(eps) / ((eps - m) d_m)`` with
+    ``P(eps) = prod_l (eps - l)`` and ``d_m = prod_{l != m} (m - l)``; read positions on
+    the sample grid (``eps == 0``) get the exact weights ``w_m = delta_{m0}``.
 
     Parameters
     ----------
@@ -51,18 +55,32 @@ def lagrange_weights(eps: np.ndarray, order: int = DEFAULT_ORDER) -> np.ndarray:
     order = _check_order(order)
     eps = np.asarray(eps, dtype=float)
     offsets = np.arange(-(order - 1) // 2, (order + 1) // 2 + 1)
-    npts = offsets.size
-    diff = eps[None, :] - offsets[:, None]  # (npts, n): eps - l
-    prefix = np.ones_like(diff)
-    suffix = np.ones_like(diff)
-    for i in range(1, npts):
-        prefix[i] = prefix[i - 1] * diff[i - 1]
-        suffix[npts - 1 - i] = suffix[npts - i] * diff[npts - i]
-    # denominators prod_{l != m} (m - l), computed in log-free exact integer arithmetic
-    denom = np.array(
-        [np.prod([float(m - l) for l in offsets if l != m]) for m in offsets]
-    )
-    return prefix * suffix / denom[:, None]
+    denom = _denominators(order)[:, None]
+    w = np.empty((offsets.size, eps.size))
+    for b0 in range(0, eps.size, _BLOCK):  # blocks keep the temporaries in cache
+        e = eps[b0 : b0 + _BLOCK]
+        on_grid = e == 0.0
+        e = np.where(on_grid, 0.5, e)  # placeholder, replaced below
+        prod = np.ones_like(e)
+        for l in offsets:
+            prod *= e - l
+        diff = e[None, :] - offsets[:, None]
+        diff *= denom
+        np.divide(prod[None, :], diff, out=w[:, b0 : b0 + e.size])
+        if np.any(on_grid):
+            w[:, b0 + np.flatnonzero(on_grid)] = (offsets == 0)[:, None]
+    return w
+
+
+_DENOMINATORS: dict[int, np.ndarray] = {}
+
+
+def _denominators(order: int) -> np.ndarray:
+    """``d_m = prod_{l != m} (m - l)`` for the stencil of ``order`` (cached)."""
+    if order not in _DENOMINATORS:
+        offsets = np.arange(-(order - 1) // 2, (order + 1) // 2 + 1)
+        _DENOMINATORS[order] = np.array([np.prod([float(m - l) for l in offsets if l != m]) for m in offsets])
+    return _DENOMINATORS[order]
 
 
 @dataclass(frozen=True)
@@ -111,11 +129,44 @@ def apply_taps(x: np.ndarray, taps: Taps, fill: float = np.nan) -> np.ndarray:
 
     Output samples whose stencil leaves ``[0, m)`` are set to ``fill``.
 
+    Delays vary slowly, so the integer part of the shift is constant over long runs;
+    within a run the stencils are contiguous windows of ``x`` and the sum over taps is one
+    ``einsum`` over a sliding-window view (no gather).  Shifts that jump often fall back
+    to a gather per tap.
+
     Returns
     -------
     ndarray, shape (..., n)
     """
     x = np.asarray(x)
+    m = x.shape[-1]
+    npts, n = taps.weights.shape
+    out = np.empty(x.shape[:-1] + (n,), dtype=np.result_type(x.dtype, float))
+    if n == 0:
+        return out
+    base = taps.base
+    breaks = np.flatnonzero(np.diff(base)) if n > 1 else np.array([], dtype=int)
+    breaks = breaks[base[breaks + 1] - base[breaks] != 1] + 1  # where the integer shift changes
+    if breaks.size > n // 64:
+        return _apply_taps_gather(x, taps, fill)
+    for s0, s1 in zip(np.r_[0, breaks], np.r_[breaks, n]):
+        b0 = int(base[s0])
+        lo = min(max(s0, s0 - b0), s1)  # first k with base >= 0
+        hi = max(min(s1, s0 + m - npts - b0 + 1), lo)  # past the last k with base + npts <= m
+        out[..., s0:lo] = fill
+        out[..., hi:s1] = fill
+        for c0 in range(lo, hi, _BLOCK):  # blocks keep the working set in cache
+            c1 = min(c0 + _BLOCK, hi)
+            first = b0 + (c0 - s0)
+            window = sliding_window_view(x[..., first : first + (c1 - c0) + npts - 1], npts, axis=-1)
+            out[..., c0:c1] = np.einsum("...nj,jn->...n", window, taps.weights[:, c0:c1])
+    return out
+
+
+_BLOCK = 1 << 14
+
+
+def _apply_taps_gather(x: np.ndarray, taps: Taps, fill: float) -> np.ndarray:
     m = x.shape[-1]
     npts = taps.weights.shape[0]
     valid = (taps.base >= 0) & (taps.base + npts <= m)

@@ -80,7 +80,7 @@ class Combination:
 
     def build(self, ltt: np.ndarray, fs: float, order: int = DEFAULT_ORDER,
               delay_order: int = DEFAULT_DELAY_ORDER, history: int = 0) -> "BuiltCombination":
-        """Precompute nested delays and interpolation taps; see :func:`build`."""
+        """Bind to a delay series; see :func:`build`."""
         return build([self], ltt, fs, order=order, delay_order=delay_order, history=history)[0]
 
 
@@ -156,42 +156,108 @@ def nested_delays(chains, ltt: np.ndarray, fs: float, delay_order: int = DEFAULT
     return out
 
 
+class DelayTaps:
+    """Nested delays and interpolation taps for one light-travel-time series, computed
+    lazily per chain and shared by every combination and channel that needs them.
+
+    Parameters
+    ----------
+    ltt : ndarray, shape (6, history + n)
+        Light travel times [s] at every input sample (LINKS order).
+    fs : float
+    order : int
+        Lagrange order of the data interpolation.
+    delay_order : int
+        Lagrange order for reading delays at earlier times (nested delays).
+    history : int
+        Leading input samples before the first output sample.
+    """
+
+    def __init__(self, ltt: np.ndarray, fs: float, order: int = DEFAULT_ORDER,
+                 delay_order: int = DEFAULT_DELAY_ORDER, history: int = 0):
+        self.ltt = np.asarray(ltt, dtype=float)
+        self.fs = float(fs)
+        self.order = int(order)
+        self.delay_order = int(delay_order)
+        self.history = int(history)
+        self.n = self.ltt.shape[-1] - self.history
+        self._delays: dict[Chain, np.ndarray] = {(): np.zeros(self.ltt.shape[-1])}
+        self._taps: dict[Chain, Taps] = {}
+
+    def delay(self, chain: Chain) -> np.ndarray:
+        """Total delay [s] of ``chain`` at every input sample (see :func:`nested_delays`)."""
+        chain = tuple(chain)
+        if chain not in self._delays:
+            previous = self.delay(chain[:-1])
+            tau = self.ltt[LINKS.index(chain[-1])]
+            if not chain[:-1]:
+                self._delays[chain] = tau.copy()
+            else:
+                shifted = apply_taps(tau, shift_taps(-previous * self.fs, tau.size, self.delay_order))
+                self._delays[chain] = previous + shifted
+        return self._delays[chain]
+
+    def taps(self, chain: Chain) -> Taps:
+        """Interpolation taps reading ``x(t - Delta_chain(t))`` for the output samples."""
+        chain = tuple(chain)
+        if chain not in self._taps:
+            d = self.delay(chain)[self.history:]
+            self._taps[chain] = shift_taps(-d * self.fs, self.n, self.order, offset=self.history)
+        return self._taps[chain]
+
+    def predelay(self, x: np.ndarray, link: str) -> np.ndarray:
+        """``D_link x`` at every input sample (history included), e.g. a Tx witness before
+        it enters TDI; the first ``tau * fs + order/2`` samples are NaN."""
+        key = ("predelay", link)
+        if key not in self._taps:
+            total = self.ltt.shape[-1]
+            self._taps[key] = shift_taps(-self.ltt[LINKS.index(link)] * self.fs, total, self.order)
+        return apply_taps(x, self._taps[key])
+
+
 @dataclass
 class BuiltCombination:
-    """A combination with its nested delays and taps precomputed for one delay series.
+    """A combination bound to precomputed delays (:class:`DelayTaps`).
 
-    Call it on ``eta`` (shape ``(6, n)``) or use :meth:`apply_on_links` for witness
-    channels; samples whose delays reach before the start of the data are NaN.
+    Call it on ``eta`` (shape ``(6, history + n)``) or use :meth:`apply_on_links` for
+    witness channels; output samples whose delays reach before the data are NaN.
     """
 
     combination: Combination
-    fs: float
-    order: int
-    taps: dict = field(repr=False)
-    history: int = 0
+    delays: DelayTaps = field(repr=False)
+
+    @property
+    def fs(self) -> float:
+        return self.delays.fs
+
+    @property
+    def history(self) -> int:
+        return self.delays.history
 
     @cached_property
     def terms_by_link(self) -> dict:
         """``link -> [(factor, chain), ...]``: the delay polynomial acting on each link."""
         d: dict[str, list] = {link: [] for link in LINKS}
         for f, link, chain in self.combination.terms:
-            d[link].append((f, chain))
+            d[link].append((f, tuple(chain)))
         return d
 
     def __call__(self, eta: np.ndarray) -> np.ndarray:
         """Evaluate the combination on ``eta`` (shape ``(6, history + n)``); returns ``(n,)``."""
         eta = np.asarray(eta)
-        out = None
+        out = np.zeros(eta.shape[-1] - self.history)
         for link, poly in self.terms_by_link.items():
             if poly:
-                y = self._poly(eta[LINKS.index(link)], poly)
-                out = y if out is None else out + y
+                out = out + self._poly(eta[LINKS.index(link)], poly)
         return out
 
-    def _poly(self, x: np.ndarray, poly, extra: Chain = ()) -> np.ndarray:
+    def _poly(self, x: np.ndarray, poly) -> np.ndarray:
         out = None
         for f, chain in poly:
-            y = f * apply_taps(x, self.taps[chain + extra])
+            if chain:
+                y = f * apply_taps(x, self.delays.taps(chain))
+            else:  # the undelayed term: no interpolation, no stencil reaching ahead
+                y = f * x[..., self.history:]
             out = y if out is None else out + y
         return out
 
@@ -202,9 +268,10 @@ class BuiltCombination:
         ----------
         witnesses : dict
             ``(link, extra_chain) -> array (k, history + n)``: ``k`` channels placed on
-            ``link`` after the extra delays ``extra_chain`` (e.g. ``("12",)`` for a Tx
-            witness ``D_12 w``); the extra delay is folded into the nested delay, so a Tx
-            regressor costs no additional interpolation.
+            ``link`` after the extra delays ``extra_chain`` (``("12",)`` for a Tx witness
+            ``D_12 w``).  The extra delay is applied first, once, at every input sample
+            (:meth:`DelayTaps.predelay`) -- exactly as the TTL Tx term is formed before it
+            enters ``eta`` -- and then the link's delay polynomial.
 
         Returns
         -------
@@ -216,15 +283,17 @@ class BuiltCombination:
             poly = self.terms_by_link[link]
             x = np.asarray(x)
             if not poly:
-                out[(link, extra)] = np.zeros(x.shape[:-1] + (x.shape[-1] - self.history,))
-            else:
-                out[(link, tuple(extra))] = self._poly(x, poly, tuple(extra))
+                out[(link, tuple(extra))] = np.zeros(x.shape[:-1] + (x.shape[-1] - self.history,))
+                continue
+            for d in reversed(tuple(extra)):
+                x = self.delays.predelay(x, d)
+            out[(link, tuple(extra))] = self._poly(x, poly)
         return out
 
 
 def build(combinations, ltt: np.ndarray, fs: float, order: int = DEFAULT_ORDER,
-          delay_order: int = DEFAULT_DELAY_ORDER, history: int = 0, extra_chains=()) -> list:
-    """Build several combinations on one delay series, sharing nested delays and taps.
+          delay_order: int = DEFAULT_DELAY_ORDER, history: int = 0) -> list:
+    """Bind several combinations to one delay series, sharing nested delays and taps.
 
     Parameters
     ----------
@@ -240,24 +309,9 @@ def build(combinations, ltt: np.ndarray, fs: float, order: int = DEFAULT_ORDER,
     history : int
         Number of leading input samples that precede the first output sample (kept from
         the previous segment in streaming use).  Outputs have ``n`` samples.
-    extra_chains : iterable of tuple
-        Extra delays appended to every chain (e.g. ``[("12",), ("23",), ...]`` for Tx
-        witnesses), so their taps are built too.
     """
-    ltt = np.asarray(ltt, dtype=float)
-    total = ltt.shape[-1]
-    n = total - int(history)
-    chains = set()
-    for comb in combinations:
-        for chain in comb.chains:
-            chains.add(chain)
-            for extra in extra_chains:
-                chains.add(chain + tuple(extra))
-    delays = nested_delays(chains, ltt, fs, delay_order)
-    taps: dict[Chain, Taps] = {}
-    for chain in chains:
-        taps[chain] = shift_taps(-delays[chain][int(history):] * fs, n, order, offset=int(history))
-    return [BuiltCombination(comb, fs, order, taps, int(history)) for comb in combinations]
+    delays = DelayTaps(ltt, fs, order, delay_order, history)
+    return [BuiltCombination(comb, delays) for comb in combinations]
 
 
 def max_delay_samples(combination_or_list, ltt_max: float, fs: float, order: int = DEFAULT_ORDER) -> int:
@@ -265,3 +319,43 @@ def max_delay_samples(combination_or_list, ltt_max: float, fs: float, order: int
     combos = combination_or_list if isinstance(combination_or_list, (list, tuple)) else [combination_or_list]
     longest = max(c.max_chain_length for c in combos) + 1
     return int(np.ceil(longest * ltt_max * fs)) + order // 2 + 2
+
+
+def chain_delay_static(chain: Chain, ltt: dict) -> float:
+    """Total delay [s] of a chain for constant light travel times ``{link: tau}``."""
+    return float(sum(ltt[link] for link in chain))
+
+
+def link_responses(combination: Combination, f: np.ndarray, ltt, extra: Chain = ()) -> np.ndarray:
+    """Frequency response of a combination to a signal on each link, for static delays.
+
+    ``H_link(f) = sum_{terms on link} factor * exp(-2 pi i f Delta_{chain + extra})``, so
+    that a stationary process ``x`` placed on ``link`` (after the extra delays ``extra``)
+    appears in the combination with PSD ``|H_link(f)|^2 S_x(f)``.
+
+    Parameters
+    ----------
+    combination : Combination
+    f : ndarray, shape (m,)
+        Frequencies [Hz].
+    ltt : dict or array_like
+        Constant light travel times [s]: ``{link: tau}`` or six values in LINKS order
+        (time series are averaged).
+    extra : tuple of str
+        Extra delays applied to the signal before it enters the link.
+
+    Returns
+    -------
+    ndarray, shape (6, m), complex
+        One row per link in LINKS order.
+    """
+    if not isinstance(ltt, dict):
+        arr = np.asarray(ltt, dtype=float)
+        arr = arr.mean(axis=-1) if arr.ndim == 2 else arr
+        ltt = dict(zip(LINKS, arr))
+    f = np.asarray(f, dtype=float)
+    out = np.zeros((6, f.size), dtype=complex)
+    for factor, link, chain in combination.terms:
+        d = chain_delay_static(tuple(chain) + tuple(extra), ltt)
+        out[LINKS.index(link)] += factor * np.exp(-2j * np.pi * f * d)
+    return out

@@ -1,0 +1,78 @@
+"""Spectral estimates: segment FFTs for the fit, Welch ASDs and log-frequency averaging for plots.
+
+Normalisation of :func:`segment_fft`: for a stationary series with one-sided PSD ``S(f)``,
+
+    X(f_k) = sqrt(2 / (fs * sum(w^2))) * sum_n w_n x_n exp(-2 pi i k n / N)
+
+has ``E|X(f_k)|^2 = S(f_k)`` (away from leakage), so cross-spectral matrices of ``X`` are
+directly in PSD units and ``X^H S^-1 X`` is a chi^2-like quantity.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import fft as sp_fft
+from scipy import signal
+
+
+def window(name: str, n: int) -> np.ndarray:
+    """Window of length ``n``: ``"rect"``, ``"hann"``, ``"tukey:<alpha>"``, or any scipy name."""
+    if name in ("rect", "boxcar", "none"):
+        return np.ones(n)
+    if name.startswith("tukey"):
+        alpha = float(name.split(":", 1)[1]) if ":" in name else 0.1
+        return signal.windows.tukey(n, alpha)
+    return signal.get_window(name, n, fftbins=True)
+
+
+def segment_fft(x: np.ndarray, fs: float, win: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Windowed, PSD-normalised rFFT along the last axis.
+
+    Returns
+    -------
+    f : ndarray, shape (n // 2 + 1,)
+    X : ndarray, shape (..., n // 2 + 1), complex
+    """
+    x = np.asarray(x)
+    n = x.shape[-1]
+    scale = np.sqrt(2.0 / (fs * np.sum(win ** 2)))
+    return sp_fft.rfftfreq(n, 1 / fs), scale * sp_fft.rfft(x * win, axis=-1, workers=-1)
+
+
+def welch_asd(x, fs: float, nperseg: int | None = None, window_name: str = "hann"):
+    """One-sided Welch ASD (50 % overlap) along the last axis; returns ``(f, asd)``."""
+    x = np.asarray(x)
+    x = x[..., np.all(np.isfinite(np.atleast_2d(x)), axis=0)] if x.ndim > 1 else x[np.isfinite(x)]
+    nperseg = int(min(nperseg or x.shape[-1], x.shape[-1]))
+    f, p = signal.welch(x, fs=fs, window=window_name, nperseg=nperseg, noverlap=nperseg // 2, axis=-1)
+    return f, np.sqrt(p)
+
+
+def log_average(f: np.ndarray, y: np.ndarray, per_decade: int = 40, fmin: float | None = None):
+    """Average ``y`` (PSD or ASD^2-like, last axis over ``f``) in log-spaced frequency bins.
+
+    Used for plots: at low frequency each bin keeps its own value, at high frequency many
+    bins are averaged.  Returns ``(f_centres, y_averaged)`` for non-empty bins.
+    """
+    f = np.asarray(f)
+    y = np.asarray(y)
+    pos = f > 0
+    fmin = fmin or f[pos][0]
+    edges = 10 ** np.arange(np.log10(fmin), np.log10(f[-1]) + 1 / per_decade, 1 / per_decade)
+    idx = np.digitize(f, edges)
+    fc, out = [], []
+    for k in np.unique(idx[pos]):
+        sel = pos & (idx == k)
+        fc.append(np.exp(np.mean(np.log(f[sel]))))
+        out.append(np.mean(y[..., sel], axis=-1))
+    return np.array(fc), np.moveaxis(np.array(out), 0, -1)
+
+
+def smooth_csd(csd: np.ndarray, half_width: int) -> np.ndarray:
+    """Running mean of a (m, k, k) cross-spectral matrix over ``2 half_width + 1`` bins."""
+    if half_width <= 0:
+        return csd
+    kernel = np.ones(2 * half_width + 1)
+    num = signal.oaconvolve(csd, kernel[:, None, None], mode="same", axes=0)
+    den = np.convolve(np.ones(csd.shape[0]), kernel, mode="same")
+    return num / den[:, None, None]
