@@ -61,3 +61,31 @@ def dws_channel(name: str) -> tuple[str, str]:
     """``(mosa, angle)``: the DWS readout a regressor is made of (shared by its rx and tx)."""
     _, _, mosa, angle = placement(name)
     return mosa, angle
+
+
+def regressor_responses(f: np.ndarray, ltt, names=COEFFICIENT_NAMES, combinations=None, aet: bool = True) -> np.ndarray:
+    """Frequency response of each regressor's TDI output to its own DWS readout, static delays.
+
+    ``T[f, c, k]``: a unit-PSD perturbation of the DWS readout behind regressor ``k`` appears
+    in channel ``c`` with amplitude ``T`` (including the ``-1/c`` of the TTL term and, for Tx
+    regressors, the pre-delay ``D_ij``).  Used for the DWS-noise (errors-in-variables)
+    correction of the fit and for diagnostics.
+
+    Returns
+    -------
+    ndarray, shape (m, 3, P), complex
+    """
+    from .tdi import AET_MATRIX, MICHELSON, link_responses
+
+    combinations = combinations or MICHELSON
+    f = np.asarray(f, dtype=float)
+    out = np.zeros((f.size, len(combinations), len(names)), dtype=complex)
+    cache = {}
+    for k, name in enumerate(names):
+        link, extra, _, _ = placement(name)
+        if extra not in cache:
+            cache[extra] = np.stack([link_responses(comb, f, ltt, extra) for comb in combinations])  # (3, 6, m)
+        out[:, :, k] = cache[extra][:, LINKS.index(link), :].T * (-1.0 / C)
+    if aet:
+        out = np.einsum("ia,mak->mik", AET_MATRIX, out)
+    return out

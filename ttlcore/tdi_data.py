@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy import signal
 
 from .conventions import COEFFICIENT_NAMES, LINKS
 from .interpolation import DEFAULT_ORDER
@@ -77,9 +78,33 @@ class TDIData:
         return replace(self, t0=self.t0 + start / self.fs, data=self.data[:, start:stop],
                        regressors=self.regressors[:, :, start:stop])
 
+    def decimated(self, factor: int = 2, passband: float = 0.9, stopband: float = 1.1,
+                  attenuation_db: float = 180.0) -> "TDIData":
+        """Anti-alias low-pass and decimation of data and regressors alike (the paper fits at
+        2 Hz after such a filter).
+
+        A causal Kaiser-window FIR (``passband`` to ``stopband`` Hz, ``attenuation_db``) is
+        applied and every ``factor``-th sample kept; ``t0`` moves back by the filter's group
+        delay.  Besides aliasing, the filter removes what TDI leaves above 1 Hz (laser noise
+        that order-31 interpolation near Nyquist cannot cancel), which would otherwise leak
+        into the fit band of segment FFTs.  The filter is linear and the same for data and
+        regressors, so the TTL model stays exact.
+        """
+        h = lowpass_taps(self.fs, passband, stopband, attenuation_db)
+        data = signal.upfirdn(h, self.data, up=1, down=factor, axis=-1)[:, : self.size // factor]
+        regs = signal.upfirdn(h, self.regressors, up=1, down=factor, axis=-1)[:, :, : self.size // factor]
+        return replace(self, t0=self.t0 - (h.size - 1) / 2 / self.fs, fs=self.fs / factor, data=data, regressors=regs)
+
     def model(self, coefficients: np.ndarray) -> np.ndarray:
         """``sum_k C_k regressors[:, k]``: the TTL model in TDI, shape (3, n)."""
         return np.einsum("k,ckn->cn", np.asarray(coefficients), self.regressors)
+
+
+def lowpass_taps(fs: float, passband: float = 0.9, stopband: float = 1.1, attenuation_db: float = 180.0) -> np.ndarray:
+    """Kaiser-window low-pass FIR taps (odd length, linear phase)."""
+    numtaps, beta = signal.kaiserord(attenuation_db, (stopband - passband) / (fs / 2))
+    numtaps |= 1
+    return signal.firwin(numtaps, (passband + stopband) / 2, window=("kaiser", beta), fs=fs)
 
 
 def history_samples(fs: float, ltt_max: float = 8.6, order: int = DEFAULT_ORDER,
