@@ -216,6 +216,72 @@ def _cmd_info(args) -> int:
 
 
 # ---------------------------------------------------------------------------
+# ttl analyze
+# ---------------------------------------------------------------------------
+
+def _add_analyze(sub) -> None:
+    from .fit import DEFAULT_BAND, FitSettings
+
+    p = sub.add_parser(
+        "analyze",
+        help="fit the TTL coefficients of a telemetry file, subtract them, write fit.json and figures",
+        description="Batch analysis of one telemetry file (ours or lisainstrument's): TDI, fit of the 24 TTL "
+        "coefficients, subtraction in the time domain. Writes DIR/fit.json, DIR/asd_X.png and "
+        "DIR/coefficients.png. The truth (our truth file, or for lisainstrument data the lisainstrument "
+        "file itself) is only used for comparisons, never by the fit.",
+    )
+    p.add_argument("data", help="telemetry file (HDF5: ours or a lisainstrument measurement file)")
+    p.add_argument("--truth", default=None, help="truth file (day.truth.h5), or for lisainstrument data the "
+                   "lisainstrument file (its static coefficients; no TTL residual then)")
+    p.add_argument("--band", nargs=2, metavar=("FMIN", "FMAX"), default=None,
+                   help=f"fit band in Hz (default {DEFAULT_BAND[0]:g} {DEFAULT_BAND[1]:g})")
+    p.add_argument("--method", default="gls", help="gls (default) | mcmc")
+    p.add_argument("--segment", default=None, help="FFT segment length of the fit, e.g. 6h, 1h or seconds "
+                   f"(default {FitSettings().segment_duration:g} s)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created)")
+    p.add_argument("--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(func=_cmd_analyze)
+
+
+def _cmd_analyze(args) -> int:
+    from .analyze import analyze, check_band, check_method
+    from .fit import DEFAULT_BAND, FitSettings
+
+    method = check_method(args.method)
+    band = tuple(DEFAULT_BAND) if args.band is None else check_band(args.band)
+    settings = FitSettings(band=band)
+    if args.segment is not None:
+        try:
+            settings.segment_duration = parse_duration(args.segment)
+        except ValueError as exc:
+            raise TTLError(f"--segment: {exc}") from None
+    start = time.monotonic()
+
+    def progress(msg: str) -> None:
+        if not args.quiet:
+            print(f"ttl analyze: {msg} ({time.monotonic() - start:.1f} s)", file=sys.stderr, flush=True)
+
+    out = analyze(args.data, truth_path=args.truth, band=band, method=method, out_dir=args.out,
+                  settings=settings, progress=progress)
+    res, js = out["fit"], out["fit_json"]
+    print(f"{args.data}: {method} fit of {len(res.names)} coefficients over {res.n_segments} segments of "
+          f"{settings.segment_duration:g} s, {band[0]:g}-{band[1]:g} Hz: chi2/dof {res.chi2_dof:.3f}, "
+          f"median sigma {1e3 * np.median(res.sigma):.4f} mm/rad")
+    if "error" in js:
+        err = np.array(list(js["error"].values()))
+        worst = max(js["error"], key=lambda k: abs(js["error"][k]))
+        print(f"  truth ({js['truth_source']}): max |error| {1e3 * np.max(np.abs(err)):.4f} mm/rad ({worst}), "
+              f"RMS {1e3 * np.sqrt(np.mean(err ** 2)):.4f} mm/rad, normalised chi2 {js['normalised_chi2']:.1f} for {err.size}")
+    req = js.get("asd_x_vs_requirement", {}).get("residual")
+    if req:
+        print(f"  residual X / requirement in band: median {req['median']:.2f}, max {req['max']:.2f} at {req['f_max']:.3g} Hz")
+    for note in js.get("notes", []):
+        print(f"  note: {note}")
+    print("  wrote " + ", ".join(str(p) for p in out["paths"].values()))
+    return 0
+
+
+# ---------------------------------------------------------------------------
 # entry point
 # ---------------------------------------------------------------------------
 
@@ -225,6 +291,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     _add_simulate(sub)
     _add_info(sub)
+    _add_analyze(sub)
     try:  # operations subcommands live beside the plumbing, if installed
         from streamer import cli as streamer_cli  # type: ignore
     except ImportError:

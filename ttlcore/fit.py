@@ -53,6 +53,27 @@ DEFAULT_BAND = (3e-3, 0.9)
 DWS_ASD = 70e-9 / 335
 
 
+def dws_asd_from_config(config: dict, default: float = DWS_ASD) -> float:
+    """DWS readout-noise level [rad/sqrt(Hz)] the telemetry was made with, for the
+    errors-in-variables correction: 0 when the source says DWS noise was off.
+
+    Our files: ``config["noises"]["dws"]`` and ``config["jitter"]["dws"]``; lisainstrument
+    files: ``config["noises"]["dws"]`` and the metadata's ``dws_asds`` (mean over MOSAs).
+    Unknown sources get ``default`` (the paper's 70/335 nrad/sqrt(Hz)).
+    """
+    noises = config.get("noises") or {}
+    if noises.get("dws") is False:
+        return 0.0
+    if isinstance(config.get("jitter"), dict) and "dws" in config["jitter"]:
+        return float(config["jitter"]["dws"])
+    asds = (config.get("lisainstrument_metadata") or {}).get("dws_asds")
+    if isinstance(asds, dict) and asds:
+        return float(np.mean([float(v) for v in asds.values()]))
+    if isinstance(asds, (int, float)):
+        return float(asds)
+    return default
+
+
 # ---------------------------------------------------------------------------
 # Segment spectra
 # ---------------------------------------------------------------------------

@@ -109,10 +109,11 @@ def lowpass_taps(fs: float, passband: float = 0.9, stopband: float = 1.1, attenu
 
 def history_samples(fs: float, ltt_max: float = 8.6, order: int = DEFAULT_ORDER,
                     delay_order: int = DEFAULT_DELAY_ORDER, combinations=MICHELSON) -> int:
-    """Input samples the combinations reach back to: the longest chain plus one Tx delay,
-    times the largest light travel time, plus both interpolation stencils."""
+    """Input samples the combinations reach back to: the longest chain plus the Tx
+    pre-delay, times the largest light travel time, plus the stencils of both
+    interpolations (chain and pre-delay) and of the delay interpolation."""
     longest = max(c.max_chain_length for c in combinations) + 1
-    return int(np.ceil(longest * ltt_max * fs)) + order // 2 + delay_order // 2 + 4
+    return int(np.ceil(longest * ltt_max * fs)) + 2 * (order // 2 + 1) + delay_order + 8
 
 
 def compute_tdi_arrays(eta, dws_phi, dws_eta, ltt, fs: float, t0: float, *, history: int = 0,
