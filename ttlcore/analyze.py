@@ -75,6 +75,12 @@ def check_band(band, fs: float = 4.0, segment_duration: float | None = None) -> 
     return fmin, fmax
 
 
+def _check_segment(segment: float, duration: float, path) -> None:
+    if segment > duration:
+        raise TTLError(f"--segment: {segment:g} s segments need at least that much data, but {path} "
+                       f"holds {duration:g} s; give a shorter --segment")
+
+
 def check_method(method: str) -> str:
     m = str(method).strip().lower()
     if m not in METHODS:
@@ -247,14 +253,16 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
         raise TelemetryError(data_path, "this is a truth file; analyse the telemetry file beside it (pass this one with --truth)")
     if truth_path is not None:
         file_kind(truth_path)
+    if data_kind == "ttl":  # our files tell their length without reading the series
+        from .telemetry import read_header
+
+        _check_segment(s.segment_duration, read_header(data_path)["duration"], data_path)
 
     # --- read
     say(f"reading {data_path}")
     tm = read_telemetry(data_path)
     check_band(s.band, fs=tm.fs, segment_duration=s.segment_duration)
-    if s.segment_duration > tm.duration:
-        raise TTLError(f"--segment: {s.segment_duration:g} s segments need at least that much data, but {data_path} "
-                       f"holds {tm.duration:g} s; give a shorter --segment")
+    _check_segment(s.segment_duration, tm.duration, data_path)
     truth = load_truth(truth_path, tm, data_kind, data_path) if truth_path is not None else None
     out_dir.mkdir(parents=True, exist_ok=True)
     lap("read")
@@ -268,7 +276,7 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
     say(f"fit ({method}, {s.band[0]:g}-{s.band[1]:g} Hz, {s.segment_duration:g} s segments)")
     try:
         if method == "gls":
-            res, internals = fit_tdi(td, s, "gls")
+            res, _ = fit_tdi(td, s, "gls")
         else:
             res = _fit_mcmc(td, s, say, mcmc_options)
     except np.linalg.LinAlgError:

@@ -183,8 +183,8 @@ def plot_coefficients(names, coefficients, sigma, path, *, truth=None, title: st
 
     fig = Figure(figsize=(10, 4.8), layout="constrained")
     ax = fig.add_subplot()
-    ax.axhline(0, color="black", lw=0.8)
     if tru is not None:
+        ax.axhline(0, color="black", lw=0.8)
         r = COEFFICIENT_REQUIREMENT * 1e3
         ax.axhline(r, color="tab:red", lw=1, ls="--", label=f"±{r:g} mm/rad (paper's goal)")
         ax.axhline(-r, color="tab:red", lw=1, ls="--")
@@ -201,10 +201,13 @@ def plot_coefficients(names, coefficients, sigma, path, *, truth=None, title: st
         lim = max(0.15, 1.15 * np.max(np.abs(y) + e))
         ax.set_ylim(-lim, lim)
         ax.set_ylabel("C$_{fit}$ − C$_{true}$ [mm/rad]")
-    else:
+    else:  # values near the common size of the coefficients: zoom on them, the bars must show
+        lo, hi = np.min(y - e), np.max(y + e)
+        pad = max(0.15 * (hi - lo), 0.02)
+        ax.set_ylim(lo - pad, hi + pad)
         ax.set_ylabel("C$_{fit}$ [mm/rad]")
     ax.grid(True, axis="y", alpha=0.3)
-    ax.legend(loc="upper right", fontsize=8.5, framealpha=0.9)
+    ax.legend(loc="lower right", bbox_to_anchor=(1.0, 1.0), ncol=2, fontsize=8.5, frameon=False, borderaxespad=0.2)
     if title:
-        ax.set_title(title, fontsize=10)
+        ax.set_title(title, fontsize=10, loc="left")
     return _save(fig, path)
