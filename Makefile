@@ -32,6 +32,8 @@ test-science: $(STAMP)
 ## bench: benchmarks, each prints JSON
 bench: $(STAMP)
 	$(BIN)/python bench/simulate.py
+	$(BIN)/python bench/tdi.py
+	$(BIN)/python bench/fit.py
 
 clean:
 	rm -rf $(VENV) $(DEMO) *.egg-info

@@ -65,10 +65,10 @@ def profile_gls(td, settings) -> dict:
     stats = pstats.Stats(prof).stats
     out = {"iterations": int(res.iterations)}
     for label, func in PROFILE_STAGES.items():
-        cum = [v[3] for (fname, _, name), v in stats.items() if name == func and ("ttlcore" in fname or func == "inv")]
-        ncalls = [v[1] for (fname, _, name), v in stats.items() if name == func and ("ttlcore" in fname or func == "inv")]
-        if cum:
-            out[label.strip()] = {"cumulative_s": round(max(cum), 3), "calls": int(sum(ncalls))}
+        rows = [v for (fname, _, name), v in stats.items() if name == func and ("ttlcore" in fname or func == "inv")]
+        if rows:
+            out[label.strip()] = {"cumulative_s": round(max(v[3] for v in rows), 3),
+                                  "calls": int(sum(v[1] for v in rows))}
     total = sum(v[2] for v in stats.values())
     out["total_s"] = round(total, 3)
     return out
@@ -155,7 +155,8 @@ def main() -> int:
         if mc.noise_levels is not None:
             entry["noise_levels"] = [round(float(v), 4) for v in mc.noise_levels]
             entry["noise_levels_std"] = [round(float(v), 4) for v in mc.noise_levels_std]
-            entry["gls_chi2_dof_per_band"] = [round(float(c / d), 4) for c, d in zip(gls.chi2_per_band, gls.dof_per_band)]
+            entry["gls_chi2_dof_per_band"] = [round(float(c / d), 4)
+                                              for c, d in zip(gls.chi2_per_band, gls.dof_per_band)]
         result[key] = entry
     if args.profile or t_gls >= GLS_TARGET_S:
         result["gls_profile"] = profile_gls(td, settings)
