@@ -42,7 +42,7 @@ import numpy as np
 from .conventions import COEFFICIENT_NAMES
 from .noise_psd import tdi_noise_csd
 from .regressors import dws_channel, regressor_responses
-from .spectra import segment_fft, smooth_csd, window
+from .spectra import segment_fft, smooth_csd, smooth_csd_variable, window
 from .tdi_data import TDIData
 
 log = logging.getLogger(__name__)
@@ -206,12 +206,22 @@ def model_csd(f: np.ndarray, ltt_mean, s_oms=None, s_acc=None) -> np.ndarray:
     return regularise(tdi_noise_csd(f, ltt_mean, s_oms, s_acc))
 
 
-def residual_csd(spectra: list[SegmentSpectra], C: np.ndarray, half_width: int = 8) -> np.ndarray:
+def residual_csd(spectra: list[SegmentSpectra], C: np.ndarray, half_widths) -> np.ndarray:
     """Noise CSD re-estimated from the residual ``d - R C``: averaged over segments and
-    smoothed over ``2 half_width + 1`` bins."""
+    smoothed over ``2 w + 1`` bins, ``w`` per bin (``half_widths``: int or array)."""
     r = np.stack([sp.d - sp.R @ C for sp in spectra])  # (S, m, c)
     csd = np.einsum("smi,smj->mij", r, r.conj()) / len(spectra)
-    return regularise(smooth_csd(csd, half_width), floor=1e-6, half_width=half_width)
+    w = np.broadcast_to(np.asarray(half_widths, dtype=int), (csd.shape[0],))
+    return regularise(smooth_csd_variable(csd, w), floor=1e-6, half_width=int(np.max(w)))
+
+
+def smoothing_half_widths(f: np.ndarray, fraction: float = 0.02, max_hz: float = 1e-3, min_bins: int = 2) -> np.ndarray:
+    """Half-widths (bins) of the residual-CSD running mean: ``fraction * f`` in Hz, at least
+    ``min_bins`` and at most ``max_hz``.  A width growing with frequency follows the
+    steep low-frequency spectrum without bias and averages more where it is flat."""
+    df = float(np.median(np.diff(f)))
+    w = np.round(fraction * f / df)
+    return np.clip(w, min_bins, max(min_bins, round(max_hz / df))).astype(int)
 
 
 # ---------------------------------------------------------------------------
@@ -273,36 +283,47 @@ class NormalEquations:
 
 
 def accumulate(spectra: list[SegmentSpectra], weights: np.ndarray, band_edges, names,
-               eiv_response: np.ndarray | None = None, dws_psd: np.ndarray | None = None) -> NormalEquations:
-    """Sum the normal equations of ``spectra`` with per-bin weights ``S^-1`` (m, c, c).
+               eiv_response: np.ndarray | None = None, dws_psd: np.ndarray | None = None,
+               stacked: tuple | None = None) -> NormalEquations:
+    """Sum the normal equations of ``spectra`` with per-bin weights ``W = S^-1`` (m, c, c).
 
-    ``eiv_response`` (m, c, P) and ``dws_psd`` (m,) give the errors-in-variables term.
+    Each bin is whitened with the Cholesky factor ``W = L L^H`` (``x -> L^H x``), after
+    which the per-band sums are plain matrix products.  ``eiv_response`` (m, c, P) and
+    ``dws_psd`` (m,) give the errors-in-variables term.  ``stacked`` may pass the
+    already stacked ``(d (S, m, c), R (S, m, c, P))``.
     """
     f = spectra[0].f
     c = spectra[0].d.shape[1]
     band = np.clip(np.searchsorted(band_edges, f, side="right") - 1, 0, len(band_edges) - 2)
     neq = NormalEquations.zeros(names, band_edges, nchan=c)
-    d = np.stack([sp.d for sp in spectra])  # (S, m, c)
-    R = np.stack([sp.R for sp in spectra])  # (S, m, c, P)
-    WR = np.einsum("mij,smjp->smip", weights, R)
-    Wd = np.einsum("mij,smj->smi", weights, d)
-    N_f = np.real(np.einsum("smip,smiq->mpq", R.conj(), WR))
-    b_f = np.real(np.einsum("smip,smi->mp", R.conj(), Wd))
-    dd_f = np.real(np.einsum("smi,smi->m", d.conj(), Wd))
+    d, R = stacked if stacked is not None else stack_spectra(spectra)
+    Lh = np.conj(np.swapaxes(np.linalg.cholesky(weights), -1, -2))  # (m, c, c): W = L L^H
+    wd = np.einsum("mij,smj->msi", Lh, d)  # whitened, bins first
+    wR = np.einsum("mij,smjp->msip", Lh, R)
     G = len(band_edges) - 1
-    for g in range(G):
-        sel = band == g
-        neq.N[g] = N_f[sel].sum(axis=0)
-        neq.b[g] = b_f[sel].sum(axis=0)
-        neq.dd[g] = dd_f[sel].sum()
-        neq.nbins[g] = int(sel.sum()) * len(spectra)
+    same = None
     if eiv_response is not None and dws_psd is not None:
         same = np.array([[dws_channel(a) == dws_channel(b) for b in names] for a in names], dtype=float)
-        WT = np.einsum("mij,mjp->mip", weights, eiv_response)
-        E_f = np.real(np.einsum("mip,miq->mpq", eiv_response.conj(), WT)) * dws_psd[:, None, None] * same
-        for g in range(G):
-            neq.E[g] = E_f[band == g].sum(axis=0) * len(spectra)
+        wT = np.einsum("mij,mjp->mip", Lh, eiv_response) * np.sqrt(dws_psd)[:, None, None]
+    for g in range(G):
+        sel = band == g
+        if not sel.any():
+            continue
+        Rg = wR[sel].reshape(-1, len(names))
+        dg = wd[sel].reshape(-1)
+        neq.N[g] = np.real(Rg.conj().T @ Rg)
+        neq.b[g] = np.real(Rg.conj().T @ dg)
+        neq.dd[g] = float(np.real(np.vdot(dg, dg)))
+        neq.nbins[g] = int(sel.sum()) * len(spectra)
+        if same is not None:
+            Tg = wT[sel].reshape(-1, len(names))
+            neq.E[g] = np.real(Tg.conj().T @ Tg) * same * len(spectra)
     return neq
+
+
+def stack_spectra(spectra: list[SegmentSpectra]) -> tuple[np.ndarray, np.ndarray]:
+    """``(d (S, m, c), R (S, m, c, P))`` of a list of segment spectra."""
+    return np.stack([sp.d for sp in spectra]), np.stack([sp.R for sp in spectra])
 
 
 # ---------------------------------------------------------------------------
@@ -440,8 +461,12 @@ class FitSettings:
     tol: float = 1e-3
     n_bands: int = 8
     dws_asd: float = DWS_ASD
-    #: half-width of the running mean of the residual CSD, in Hz
-    smooth_hz: float = 2.2e-3
+    #: half-width of the running mean of the residual CSD: this fraction of the frequency,
+    #: between 2 bins and ``smooth_max_hz``
+    smooth_fraction: float = 0.02
+    smooth_max_hz: float = 1e-3
+    #: low-pass and decimate TDI outputs to 2 Hz before the segment FFTs (the paper does)
+    decimate: bool = False
 
 
 def fit_spectra(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings | None = None,
@@ -475,6 +500,8 @@ def fit_spectra(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings |
         cov = kappa * cov_unit * chi2.sum() / dof  # residual-variance scaled, as OLS reports it
         return _result(names, C, cov, chi2, neq, s, "ols", False, 0, True, spectra), {"normal_equations": neq, "weights": W}
     T = regressor_responses(f, ltt_mean, names) if s.eiv else None
+    stacked = stack_spectra(spectra)
+    half_widths = smoothing_half_widths(f, s.smooth_fraction, s.smooth_max_hz)
     dws_psd = (2 * np.pi * f * s.dws_asd) ** 2
     csd = model_csd(f, ltt_mean)
     C_prev, sig_prev = None, None
@@ -482,7 +509,7 @@ def fit_spectra(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings |
     it = 0
     for it in range(s.iterations + 1):
         W = np.linalg.inv(csd)
-        neq = accumulate(spectra, W, edges, names, T, dws_psd)
+        neq = accumulate(spectra, W, edges, names, T, dws_psd, stacked=stacked)
         C, cov = solve(neq, eiv=s.eiv)
         sig = np.sqrt(np.diag(cov))
         if C_prev is not None:
@@ -492,7 +519,7 @@ def fit_spectra(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings |
                 converged = True
                 break
         C_prev = C
-        csd = residual_csd(spectra, C, max(1, int(round(s.smooth_hz / (f[1] - f[0])))))
+        csd = residual_csd(spectra, C, half_widths)
     chi2 = neq.chi2_per_band(C, eiv=s.eiv)
     cov_model = kappa * cov
     cov_robust = kappa * sandwich_covariance(spectra, W, C, neq, s.eiv)
@@ -536,7 +563,7 @@ def _result(names, C, cov, chi2_bands, neq, s, method, eiv, it, converged, spect
 def fit_tdi(td: TDIData, settings: FitSettings | None = None, method: str = "gls") -> tuple[FitResult, dict]:
     """Fit the coefficients on TDI outputs (any of X/Y/Z or A/E/T; A, E, T are used)."""
     s = settings or FitSettings()
-    spectra = segment_spectra(td, s.band, s.segment_duration, s.window, s.overlap)
+    spectra = segment_spectra(td, s.band, s.segment_duration, s.window, s.overlap, s.decimate)
     res, internals = fit_spectra(spectra, td.ltt_mean, s, td.names, "ols" if method == "ols" else "gls")
     internals["spectra"] = spectra
     return res, internals

@@ -76,3 +76,14 @@ def smooth_csd(csd: np.ndarray, half_width: int) -> np.ndarray:
     num = signal.oaconvolve(csd, kernel[:, None, None], mode="same", axes=0)
     den = np.convolve(np.ones(csd.shape[0]), kernel, mode="same")
     return num / den[:, None, None]
+
+
+def smooth_csd_variable(csd: np.ndarray, half_widths: np.ndarray) -> np.ndarray:
+    """Running mean of a (m, k, k) matrix over bins ``[i - w_i, i + w_i]`` (clipped to the
+    data), with a half-width ``w_i`` per bin (e.g. growing with frequency)."""
+    m = csd.shape[0]
+    w = np.asarray(half_widths, dtype=int)
+    lo = np.clip(np.arange(m) - w, 0, m)
+    hi = np.clip(np.arange(m) + w + 1, 0, m)
+    cs = np.concatenate([np.zeros((1,) + csd.shape[1:], dtype=csd.dtype), np.cumsum(csd, axis=0)])
+    return (cs[hi] - cs[lo]) / (hi - lo)[:, None, None]

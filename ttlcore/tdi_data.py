@@ -13,6 +13,7 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy import fft as sp_fft
 from scipy import signal
 
 from .conventions import COEFFICIENT_NAMES, LINKS
@@ -91,8 +92,20 @@ class TDIData:
         regressors, so the TTL model stays exact.
         """
         h = lowpass_taps(self.fs, passband, stopband, attenuation_db)
-        data = signal.upfirdn(h, self.data, up=1, down=factor, axis=-1)[:, : self.size // factor]
-        regs = signal.upfirdn(h, self.regressors, up=1, down=factor, axis=-1)[:, :, : self.size // factor]
+        n = self.size
+        nfft = sp_fft.next_fast_len(n + h.size - 1, real=True)
+        response = sp_fft.rfft(h, nfft)
+
+        def filt(x):  # causal linear convolution by FFT (exact: nfft covers the full length)
+            x = np.nan_to_num(x, nan=0.0)  # NaN (delays before the data) -> 0, flagged below
+            y = sp_fft.irfft(sp_fft.rfft(x, nfft, axis=-1, workers=-1) * response, nfft, axis=-1, workers=-1)
+            return y[..., :n:factor]
+
+        bad = ~(np.isfinite(self.data).all(axis=0) & np.isfinite(self.regressors).all(axis=(0, 1)))
+        spoiled = np.convolve(bad.astype(float), np.ones(h.size))[:n:factor] > 0  # outputs touched by NaN input
+        data, regs = filt(self.data), filt(self.regressors)
+        data[:, spoiled] = np.nan
+        regs[:, :, spoiled] = np.nan
         return replace(self, t0=self.t0 - (h.size - 1) / 2 / self.fs, fs=self.fs / factor, data=data, regressors=regs)
 
     def model(self, coefficients: np.ndarray) -> np.ndarray:
