@@ -41,7 +41,7 @@ import numpy as np
 
 from .conventions import COEFFICIENT_NAMES, C
 from .errors import TelemetryError, TTLError
-from .fit import DEFAULT_BAND, FitSettings, fit_tdi
+from .fit import DEFAULT_BAND, FitSettings, dws_asd_from_config, fit_tdi
 from .hdf5 import temporary_path
 
 log = logging.getLogger(__name__)
@@ -263,6 +263,9 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
     tm = read_telemetry(data_path)
     check_band(s.band, fs=tm.fs, segment_duration=s.segment_duration)
     _check_segment(s.segment_duration, tm.duration, data_path)
+    if settings is None or settings.dws_asd is None:
+        # errors-in-variables term at the DWS noise level the data were made with (0 if off)
+        s = replace(s, dws_asd=dws_asd_from_config(tm.config))
     truth = load_truth(truth_path, tm, data_kind, data_path) if truth_path is not None else None
     out_dir.mkdir(parents=True, exist_ok=True)
     lap("read")
@@ -353,7 +356,7 @@ def _fit_mcmc(td, s: FitSettings, say, options: dict | None):
     except ImportError as exc:
         raise TTLError(f"--method mcmc: the MCMC fit (ttlcore.mcmc.fit_mcmc) is not available ({exc}); "
                        "use --method gls") from None
-    spectra = segment_spectra(td, s.band, s.segment_duration, s.window, s.overlap)
+    spectra = segment_spectra(td, s.band, s.segment_duration, s.window, s.overlap, s.decimate)
     last = [0.0]
 
     def report(n_steps, max_tau, target):

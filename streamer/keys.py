@@ -1,0 +1,210 @@
+"""Zenoh key expressions of a run.
+
+Every key of a run starts with ``ttl/<run>/``:
+
+``ttl/<run>/<topic>/<segment index>``
+    segment messages; ``topic`` is one of :data:`TOPICS`.  The errors topic may use
+    ``unknown`` in place of the index, for a message whose index could not be read.
+``ttl/<run>/alive/<stage>``
+    liveliness token of a running stage.
+``ttl/<run>/control/<...>``
+    commands (e.g. ``ttl/<run>/control/stop``, ``ttl/<run>/control/<stage>/stop``).
+
+Builders check every chunk they insert; parsers raise :class:`KeyExprError` naming the
+key at fault.
+"""
+
+from __future__ import annotations
+
+import re
+from dataclasses import dataclass
+
+#: First chunk of every key of this project.
+PREFIX = "ttl"
+#: Segment topics, in pipeline order.
+TOPICS = ("telemetry", "tdi", "fit", "residual", "monitor", "errors")
+#: Chunk used for the liveliness tokens of stages.
+ALIVE = "alive"
+#: Chunk under which commands live.
+CONTROL = "control"
+#: Index chunk of an error about a message whose segment index is unknown.
+UNKNOWN_INDEX = "unknown"
+
+_NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
+
+
+class KeyExprError(ValueError):
+    """A key expression (or a chunk to put in one) is malformed.
+
+    Parameters
+    ----------
+    key : str
+        The key (or chunk) at fault.
+    what : str
+        What is wrong with it.
+    """
+
+    def __init__(self, key: str, what: str):
+        self.key = key
+        self.what = what
+        super().__init__(f"key {key!r}: {what}")
+
+
+@dataclass(frozen=True)
+class SegmentKey:
+    """The parts of ``ttl/<run>/<topic>/<index>``.
+
+    Attributes
+    ----------
+    run : str
+        Run identifier.
+    topic : str
+        One of :data:`TOPICS`.
+    index : int or None
+        Segment index; None only for ``ttl/<run>/errors/unknown``.
+    """
+
+    run: str
+    topic: str
+    index: int | None
+
+    def __str__(self) -> str:
+        return segment_key(self.run, self.topic, self.index)
+
+
+def check_name(name: str, what: str = "name") -> str:
+    """Check that ``name`` can be one chunk of a key (run id, stage name).
+
+    Allowed: letters, digits, ``.``, ``_`` and ``-``, starting with a letter or digit.
+
+    Raises
+    ------
+    KeyExprError
+        If it cannot.
+    """
+    if not isinstance(name, str) or not _NAME.match(name):
+        raise KeyExprError(str(name), f"not a valid {what} (letters, digits, '.', '_', '-')")
+    return name
+
+
+def _check_topic(topic: str) -> str:
+    if topic not in TOPICS:
+        raise KeyExprError(str(topic), f"unknown topic (expected one of {', '.join(TOPICS)})")
+    return topic
+
+
+def segment_key(run: str, topic: str, index: int | None) -> str:
+    """``ttl/<run>/<topic>/<index>``.
+
+    Parameters
+    ----------
+    run : str
+        Run identifier.
+    topic : str
+        One of :data:`TOPICS`.
+    index : int or None
+        Segment index (>= 0); None is allowed on the errors topic only (``unknown``).
+    """
+    check_name(run, "run id")
+    _check_topic(topic)
+    if index is None:
+        if topic != "errors":
+            raise KeyExprError(f"{PREFIX}/{run}/{topic}/?", "a segment key needs an index")
+        chunk = UNKNOWN_INDEX
+    else:
+        if isinstance(index, bool) or not isinstance(index, int) or index < 0:
+            raise KeyExprError(f"{PREFIX}/{run}/{topic}/{index}", "segment index must be an integer >= 0")
+        chunk = str(index)
+    return f"{PREFIX}/{run}/{topic}/{chunk}"
+
+
+def topic_pattern(run: str, topic: str) -> str:
+    """``ttl/<run>/<topic>/*``: every segment of one topic."""
+    check_name(run, "run id")
+    return f"{PREFIX}/{run}/{_check_topic(topic)}/*"
+
+
+def errors_key(run: str, index: int | None) -> str:
+    """``ttl/<run>/errors/<index>`` (``unknown`` when the index is None)."""
+    return segment_key(run, "errors", index)
+
+
+def alive_key(run: str, stage: str) -> str:
+    """``ttl/<run>/alive/<stage>``: the liveliness token of one stage."""
+    return f"{PREFIX}/{check_name(run, 'run id')}/{ALIVE}/{check_name(stage, 'stage name')}"
+
+
+def alive_pattern(run: str) -> str:
+    """``ttl/<run>/alive/*``: the liveliness tokens of all stages of a run."""
+    return f"{PREFIX}/{check_name(run, 'run id')}/{ALIVE}/*"
+
+
+def control_key(run: str, *parts: str) -> str:
+    """``ttl/<run>/control/<part>/<part>...`` (at least one part)."""
+    if not parts:
+        raise KeyExprError(f"{PREFIX}/{run}/{CONTROL}", "a control key needs at least one part")
+    return "/".join([PREFIX, check_name(run, "run id"), CONTROL, *(check_name(p, "control part") for p in parts)])
+
+
+def control_pattern(run: str) -> str:
+    """``ttl/<run>/control/**``: every command of a run."""
+    return f"{PREFIX}/{check_name(run, 'run id')}/{CONTROL}/**"
+
+
+def _chunks(key: str) -> list[str]:
+    key = str(key)
+    chunks = key.split("/")
+    if len(chunks) < 3 or chunks[0] != PREFIX:
+        raise KeyExprError(key, f"expected '{PREFIX}/<run>/...'")
+    if not _NAME.match(chunks[1]):
+        raise KeyExprError(key, f"run id {chunks[1]!r} is not valid")
+    return chunks
+
+
+def parse_segment_key(key: str) -> SegmentKey:
+    """Split ``ttl/<run>/<topic>/<index>`` into its parts.
+
+    Raises
+    ------
+    KeyExprError
+        If ``key`` is not a segment key (message names the key).
+    """
+    chunks = _chunks(key)
+    if len(chunks) != 4:
+        raise KeyExprError(str(key), "expected 'ttl/<run>/<topic>/<segment index>'")
+    _, run, topic, chunk = chunks
+    if topic not in TOPICS:
+        raise KeyExprError(str(key), f"unknown topic {topic!r} (expected one of {', '.join(TOPICS)})")
+    if topic == "errors" and chunk == UNKNOWN_INDEX:
+        return SegmentKey(run, topic, None)
+    if not chunk.isdigit() or (len(chunk) > 1 and chunk.startswith("0")):
+        raise KeyExprError(str(key), f"segment index {chunk!r} is not a non-negative integer")
+    return SegmentKey(run, topic, int(chunk))
+
+
+def parse_alive_key(key: str) -> tuple[str, str]:
+    """``ttl/<run>/alive/<stage>`` -> ``(run, stage)``.
+
+    Raises
+    ------
+    KeyExprError
+        If ``key`` is not a liveliness key.
+    """
+    chunks = _chunks(key)
+    if len(chunks) != 4 or chunks[2] != ALIVE or not _NAME.match(chunks[3]):
+        raise KeyExprError(str(key), "expected 'ttl/<run>/alive/<stage>'")
+    return chunks[1], chunks[3]
+
+
+def parse_control_key(key: str) -> tuple[str, tuple[str, ...]]:
+    """``ttl/<run>/control/<parts...>`` -> ``(run, parts)``.
+
+    Raises
+    ------
+    KeyExprError
+        If ``key`` is not a control key.
+    """
+    chunks = _chunks(key)
+    if len(chunks) < 4 or chunks[2] != CONTROL:
+        raise KeyExprError(str(key), "expected 'ttl/<run>/control/<...>'")
+    return chunks[1], tuple(chunks[3:])

@@ -1,0 +1,576 @@
+"""MCAP recording of what a stage received and sent, and reading it back.
+
+Layout of a recording (``recordings/<run>/<stage>.mcap``)
+--------------------------------------------------------
+* JSON channels (message encoding ``json``, schema encoding ``jsonschema``, so Foxglove
+  and the ``mcap`` CLI can read them): ``errors`` (:data:`ERROR_SCHEMA`), ``events``
+  (:data:`EVENT_SCHEMA`), ``<topic>/header`` (segment headers, :data:`HEADER_SCHEMA`),
+  and summaries such as fits and diagnoses (:data:`FIT_SCHEMA`,
+  :data:`DIAGNOSIS_SCHEMA`, or any schema given by the writer).
+* A segment is two messages written back to back with the same ``sequence`` number and
+  log time: its JSON header on ``<topic>/header``, then its payload (the raw array bytes,
+  exactly as on the wire) on ``<topic>/payload`` (schema-less channel, message encoding
+  ``application/octet-stream``, channel metadata ``header_topic``).  The reader pairs
+  them by topic and sequence and decodes the arrays with :func:`streamer.codec.decode`,
+  which checks the payload against the header's checksum.
+* File metadata record ``ttl`` (run, stage, ...), given at creation.
+
+The file is written without chunks and flushed after every record, so a killed process
+leaves every record up to the last complete one readable; :func:`read_recording`
+salvages such files (no summary, no footer, maybe a truncated last record).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import logging
+import math
+import os
+import struct
+import time
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from mcap.data_stream import ReadDataStream
+from mcap.exceptions import McapError
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
+from mcap.stream_reader import StreamReader, breakup_chunk
+from mcap.writer import CompressionType, IndexType, Writer
+
+from .codec import CodecError, Expect, Header, decode
+
+log = logging.getLogger(__name__)
+
+MAGIC = b"\x89MCAP0\r\n"
+#: Message encoding of payload channels.
+PAYLOAD_ENCODING = "application/octet-stream"
+PROFILE = ""
+
+
+_NUMBER = {"type": "number"}
+_NUMBERS = {"type": "array", "items": _NUMBER}
+
+#: JSON schema of a segment header (:mod:`streamer.codec`).
+HEADER_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "ttl.SegmentHeader",
+    "type": "object",
+    "required": ["schema", "version", "run", "index", "t0", "fs", "channels", "producer",
+                 "arrays", "payload_bytes", "checksum", "meta"],
+    "properties": {
+        "schema": {"const": "ttl-segment"},
+        "version": {"type": "integer"},
+        "run": {"type": "string"},
+        "index": {"type": "integer", "minimum": 0},
+        "t0": {"type": "number", "description": "mission time of the first sample [s]"},
+        "fs": {"type": "number", "description": "sampling rate [Hz]"},
+        "channels": {"type": "array", "items": {"type": "string"}},
+        "producer": {"type": "string"},
+        "arrays": {"type": "array", "items": {
+            "type": "object",
+            "required": ["name", "dtype", "shape", "offset", "nbytes", "units", "channel_axis"],
+            "properties": {
+                "name": {"type": "string"}, "dtype": {"type": "string"},
+                "shape": {"type": "array", "items": {"type": "integer"}},
+                "offset": {"type": "integer"}, "nbytes": {"type": "integer"},
+                "units": {"type": "string"}, "channel_axis": {"type": ["integer", "null"]},
+            }}},
+        "payload_bytes": {"type": "integer"},
+        "checksum": {"type": "string"},
+        "meta": {"type": "object"},
+    },
+}
+#: JSON schema of an error (a rejected message, a failed segment, a gap).
+ERROR_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "ttl.Error",
+    "type": "object",
+    "required": ["run", "stage", "kind", "message", "time"],
+    "properties": {
+        "run": {"type": "string"},
+        "stage": {"type": "string"},
+        "kind": {"type": "string", "description": "rejected | failed | gap | ..."},
+        "index": {"type": ["integer", "null"]},
+        "key": {"type": ["string", "null"]},
+        "field": {"type": ["string", "null"], "description": "header field at fault"},
+        "message": {"type": "string"},
+        "time": {"type": "number", "description": "wall-clock time [s since epoch]"},
+        "details": {"type": "object"},
+    },
+}
+#: JSON schema of a lifecycle or bookkeeping event (start, stop, duplicate, ...).
+EVENT_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "ttl.Event",
+    "type": "object",
+    "required": ["run", "stage", "kind", "time"],
+    "properties": {
+        "run": {"type": "string"},
+        "stage": {"type": "string"},
+        "kind": {"type": "string"},
+        "index": {"type": ["integer", "null"]},
+        "message": {"type": "string"},
+        "time": {"type": "number"},
+        "details": {"type": "object"},
+    },
+}
+#: JSON schema of a fit of the TTL coefficients.
+FIT_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "ttl.Fit",
+    "type": "object",
+    "required": ["run", "index", "names", "coefficients"],
+    "properties": {
+        "run": {"type": "string"},
+        "index": {"type": "integer"},
+        "t_start": {"type": "number", "description": "start of the fitted window [s]"},
+        "t_end": {"type": "number", "description": "end of the fitted window [s]"},
+        "names": {"type": "array", "items": {"type": "string"}},
+        "coefficients": {**_NUMBERS, "description": "m/rad"},
+        "sigma": _NUMBERS,
+        "covariance": {"type": "array", "items": _NUMBERS},
+        "chi2": _NUMBER,
+        "dof": _NUMBER,
+    },
+}
+#: JSON schema of a model-adequacy diagnosis.
+DIAGNOSIS_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "ttl.Diagnosis",
+    "type": "object",
+    "required": ["run", "index", "verdict"],
+    "properties": {
+        "run": {"type": "string"},
+        "index": {"type": "integer"},
+        "verdict": {"type": "string"},
+        "checks": {"type": "object"},
+        "message": {"type": "string"},
+    },
+}
+#: Schemas known by name (``Recorder.write_json(..., schema="ttl.Fit")``).
+SCHEMAS = {s["title"]: s for s in (HEADER_SCHEMA, ERROR_SCHEMA, EVENT_SCHEMA, FIT_SCHEMA,
+                                   DIAGNOSIS_SCHEMA)}
+#: Schema of JSON channels with no schema given.
+OBJECT_SCHEMA = {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "ttl.Object",
+                 "type": "object"}
+SCHEMAS["ttl.Object"] = OBJECT_SCHEMA
+#: Default schema by topic.
+TOPIC_SCHEMAS = {"errors": "ttl.Error", "events": "ttl.Event"}
+
+
+class RecordingError(ValueError):
+    """A recording cannot be read at all (message names the file)."""
+
+
+def to_jsonable(obj):
+    """``obj`` with numpy types turned into Python ones and non-finite floats into None."""
+    if isinstance(obj, Mapping):
+        return {str(k): to_jsonable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [to_jsonable(v) for v in obj]
+    if isinstance(obj, np.ndarray):
+        return to_jsonable(obj.tolist())
+    if isinstance(obj, np.generic):
+        return to_jsonable(obj.item())
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, Path):
+        return str(obj)
+    return obj
+
+
+class Recorder:
+    """Write an MCAP recording (see the module docstring for the layout).
+
+    Parameters
+    ----------
+    path : str or Path
+        File to write (``.mcap``); its directory is created.  An existing file is replaced.
+    metadata : mapping of str to str, optional
+        Written as the file's ``ttl`` metadata record (run, stage, ...).
+    fsync : bool
+        Also ``os.fsync`` after every record (survives power loss, not just a kill).
+
+    Use as a context manager, or call :meth:`close`.
+    """
+
+    def __init__(self, path, metadata: Mapping[str, str] | None = None, fsync: bool = False):
+        self.path = Path(path)
+        self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._file = open(self.path, "wb")
+        self._fsync = fsync
+        self._writer = Writer(self._file, use_chunking=False, compression=CompressionType.NONE,
+                              index_types=IndexType.ATTACHMENT | IndexType.METADATA)
+        self._writer.start(profile=PROFILE, library="ttl-streamer")
+        self._schemas: dict[str, int] = {}
+        self._channels: dict[str, int] = {}
+        self._sequence = 0
+        self._closed = False
+        if metadata:
+            self._writer.add_metadata("ttl", {str(k): str(v) for k, v in metadata.items()})
+        self.flush()
+
+    def __enter__(self) -> "Recorder":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    # ------------------------------------------------------------------ channels
+    def _schema_id(self, name: str, schema: Mapping | None) -> int:
+        if name not in self._schemas:
+            schema = schema if schema is not None else SCHEMAS[name]
+            data = json.dumps(schema, separators=(",", ":")).encode()
+            self._schemas[name] = self._writer.register_schema(name=name, encoding="jsonschema", data=data)
+        return self._schemas[name]
+
+    def _json_channel(self, topic: str, schema) -> int:
+        if topic not in self._channels:
+            if schema is None:
+                schema = TOPIC_SCHEMAS.get(topic, "ttl.Object")
+            if isinstance(schema, str):
+                if schema not in SCHEMAS:
+                    raise KeyError(f"unknown schema {schema!r} (known: {', '.join(SCHEMAS)})")
+                name, body = schema, SCHEMAS[schema]
+            else:
+                body = dict(schema)
+                name = body.get("title", f"{topic}.schema")
+            schema_id = self._schema_id(name, body)
+            self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",
+                                                                  schema_id=schema_id)
+        return self._channels[topic]
+
+    def _payload_channel(self, topic: str) -> int:
+        name = f"{topic}/payload"
+        if name not in self._channels:
+            self._channels[name] = self._writer.register_channel(
+                topic=name, message_encoding=PAYLOAD_ENCODING, schema_id=0,
+                metadata={"header_topic": f"{topic}/header",
+                          "layout": "ttl-segment: raw arrays at the header's offsets, little endian, C order"})
+        return self._channels[name]
+
+    # ------------------------------------------------------------------ writing
+    def write_json(self, topic: str, obj, schema: str | Mapping | None = None,
+                   log_time: int | None = None) -> None:
+        """Write one JSON message on ``topic``.
+
+        Parameters
+        ----------
+        topic : str
+            MCAP topic (``errors``, ``events``, ``fit/summary``...).
+        obj : JSON-like
+            The message (numpy values converted; NaN and inf written as null).
+        schema : str or mapping, optional
+            Name in :data:`SCHEMAS` or a JSON schema (with a ``title``), used when the
+            channel is first written (default: by topic, else ``ttl.Object``).
+        log_time : int, optional
+            [ns since epoch]; default now.
+        """
+        channel = self._json_channel(topic, schema)
+        data = json.dumps(to_jsonable(obj), separators=(",", ":"), allow_nan=False).encode()
+        now = time.time_ns() if log_time is None else int(log_time)
+        self._sequence += 1
+        self._writer.add_message(channel_id=channel, log_time=now, publish_time=now, data=data,
+                                 sequence=self._sequence)
+        self.flush()
+
+    def write_segment(self, topic: str, header: Header | Mapping, payload,
+                      log_time: int | None = None) -> None:
+        """Write one segment: its header on ``<topic>/header``, its payload on ``<topic>/payload``."""
+        header_dict = header.to_dict() if isinstance(header, Header) else dict(header)
+        header_channel = self._json_channel(f"{topic}/header", "ttl.SegmentHeader")
+        payload_channel = self._payload_channel(topic)
+        now = time.time_ns() if log_time is None else int(log_time)
+        self._sequence += 1
+        data = json.dumps(header_dict, separators=(",", ":"), allow_nan=False).encode()
+        self._writer.add_message(channel_id=header_channel, log_time=now, publish_time=now,
+                                 data=data, sequence=self._sequence)
+        raw = payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload)
+        self._writer.add_message(channel_id=payload_channel, log_time=now, publish_time=now,
+                                 data=raw, sequence=self._sequence)
+        self.flush()
+
+    def flush(self) -> None:
+        """Push everything written so far to the OS (and to disk with ``fsync=True``)."""
+        self._file.flush()
+        if self._fsync:
+            os.fsync(self._file.fileno())
+
+    def close(self) -> None:
+        """Write the summary and footer, and close the file (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        try:
+            self._writer.finish()
+            self.flush()
+        finally:
+            self._file.close()
+
+
+# ---------------------------------------------------------------------------- reading
+
+@dataclass
+class RecordedMessage:
+    """One message of a recording.
+
+    Attributes
+    ----------
+    topic : str
+        For segments the segment topic (``tdi``), else the MCAP topic (``errors``).
+    log_time : int
+        [ns since epoch].
+    kind : {"json", "segment", "incomplete", "invalid", "raw"}
+        ``segment``: header and arrays decoded; ``incomplete``: a header whose payload
+        was never written (killed in between); ``invalid``: a segment whose payload does
+        not match its header (``error`` says why); ``raw``: a message of another encoding.
+    data : dict or None
+        The JSON message (for segments, the header as a dict).
+    header : Header or None
+    arrays : dict of str to ndarray, or None
+    sequence : int
+    error : str or None
+    raw : bytes or None
+        The bytes of ``raw`` messages.
+    """
+
+    topic: str
+    log_time: int
+    kind: str
+    data: dict | None = None
+    header: Header | None = None
+    arrays: dict | None = None
+    sequence: int = 0
+    error: str | None = None
+    raw: bytes | None = None
+
+
+@dataclass
+class Recording:
+    """What :func:`read_recording` found.
+
+    Attributes
+    ----------
+    path : Path
+    messages : list of RecordedMessage
+        In file order.
+    complete : bool
+        True when the file has its footer (closed properly).
+    records : int
+        MCAP records read (all kinds).
+    problem : str or None
+        Why reading stopped early (truncated or corrupt record), for salvaged files.
+    metadata : dict
+        Metadata records, name -> dict.
+    schemas : dict
+        Channel topic -> (schema name, schema encoding, message encoding).
+    """
+
+    path: Path
+    messages: list = field(default_factory=list)
+    complete: bool = False
+    records: int = 0
+    problem: str | None = None
+    metadata: dict = field(default_factory=dict)
+    schemas: dict = field(default_factory=dict)
+
+    def json(self, topic: str) -> list[dict]:
+        """The JSON messages of ``topic``."""
+        return [m.data for m in self.messages if m.topic == topic and m.kind == "json"]
+
+    def segments(self, topic: str) -> list[RecordedMessage]:
+        """The complete segments of ``topic``."""
+        return [m for m in self.messages if m.topic == topic and m.kind == "segment"]
+
+    def topics(self) -> list[str]:
+        return sorted({m.topic for m in self.messages})
+
+
+class _Assembler:
+    """Turns MCAP (schema, channel, message) records into :class:`RecordedMessage`."""
+
+    def __init__(self, recording: Recording):
+        self.rec = recording
+        self.channels: dict[int, Channel] = {}
+        self.schemas: dict[int, Schema] = {}
+        self.pending: dict[str, RecordedMessage] = {}  # segment topic -> header waiting for payload
+
+    def schema(self, schema: Schema) -> None:
+        self.schemas[schema.id] = schema
+
+    def channel(self, channel: Channel) -> None:
+        self.channels[channel.id] = channel
+        schema = self.schemas.get(channel.schema_id)
+        self.rec.schemas[channel.topic] = (schema.name if schema else "", schema.encoding if schema else "",
+                                           channel.message_encoding)
+
+    def message(self, msg: Message) -> None:
+        channel = self.channels.get(msg.channel_id)
+        if channel is None:
+            self.rec.messages.append(RecordedMessage(f"<channel {msg.channel_id}>", msg.log_time, "raw",
+                                                     sequence=msg.sequence, raw=bytes(msg.data),
+                                                     error="unknown channel"))
+            return
+        topic = channel.topic
+        if channel.message_encoding == "json" and topic.endswith("/header"):
+            seg = topic[: -len("/header")]
+            self._flush_pending(seg)
+            try:
+                data = json.loads(msg.data)
+            except ValueError as exc:
+                self.rec.messages.append(RecordedMessage(seg, msg.log_time, "invalid", sequence=msg.sequence,
+                                                         error=f"header is not JSON: {exc}"))
+                return
+            self.pending[seg] = RecordedMessage(seg, msg.log_time, "incomplete", data=data, sequence=msg.sequence)
+        elif channel.message_encoding == PAYLOAD_ENCODING and topic.endswith("/payload"):
+            seg = topic[: -len("/payload")]
+            head = self.pending.pop(seg, None)
+            if head is None or head.sequence != msg.sequence:
+                if head is not None:
+                    self.rec.messages.append(head)
+                self.rec.messages.append(RecordedMessage(seg, msg.log_time, "invalid", sequence=msg.sequence,
+                                                         raw=bytes(msg.data), error="payload without its header"))
+                return
+            try:
+                header, arrays = decode(msg.data, json.dumps(head.data).encode(),
+                                        Expect(allow_nonfinite=True))
+                head.kind, head.header, head.arrays = "segment", header, arrays
+            except CodecError as exc:
+                head.kind, head.error = "invalid", str(exc)
+            self.rec.messages.append(head)
+        elif channel.message_encoding == "json":
+            try:
+                data = json.loads(msg.data)
+                self.rec.messages.append(RecordedMessage(topic, msg.log_time, "json", data=data,
+                                                         sequence=msg.sequence))
+            except ValueError as exc:
+                self.rec.messages.append(RecordedMessage(topic, msg.log_time, "invalid", sequence=msg.sequence,
+                                                         raw=bytes(msg.data), error=f"not JSON: {exc}"))
+        else:
+            self.rec.messages.append(RecordedMessage(topic, msg.log_time, "raw", sequence=msg.sequence,
+                                                     raw=bytes(msg.data)))
+
+    def _flush_pending(self, seg: str) -> None:
+        head = self.pending.pop(seg, None)
+        if head is not None:
+            self.rec.messages.append(head)
+
+    def finish(self) -> None:
+        for seg in list(self.pending):
+            self._flush_pending(seg)
+
+
+def read_recording(path) -> Recording:
+    """Read an MCAP recording written by :class:`Recorder`, salvaging unfinished files.
+
+    A complete file is read with mcap's streaming reader (CRCs checked).  A file without footer (the process was
+    killed) is read record by record up to the first truncated or corrupt record;
+    ``complete`` is then False, ``records`` counts what was recovered and ``problem``
+    says where reading stopped.
+
+    Raises
+    ------
+    RecordingError
+        If the file is missing or not MCAP at all.
+    """
+    path = Path(path)
+    try:
+        with open(path, "rb") as f:
+            magic = f.read(len(MAGIC))
+            size = os.fstat(f.fileno()).st_size
+            f.seek(max(0, size - len(MAGIC)))
+            tail = f.read(len(MAGIC))
+    except OSError as exc:
+        raise RecordingError(f"{path}: cannot read: {exc}") from exc
+    if magic != MAGIC:
+        raise RecordingError(f"{path}: not an MCAP file (bad magic {magic!r})")
+    if size > 2 * len(MAGIC) and tail == MAGIC:
+        try:
+            return _read_complete(path)
+        except (McapError, struct.error, ValueError, EOFError) as exc:
+            log.warning("%s: reading with the index failed (%s); salvaging record by record", path, exc)
+    return _salvage(path, size)
+
+
+def _read_complete(path: Path) -> Recording:
+    """Read a closed file with mcap's streaming reader (CRCs checked)."""
+    rec = Recording(path, complete=True)
+    asm = _Assembler(rec)
+    with open(path, "rb") as f:
+        for record in StreamReader(f, validate_crcs=True).records:
+            rec.records += 1
+            if isinstance(record, Schema):
+                asm.schema(record)
+            elif isinstance(record, Channel):
+                asm.channel(record)
+            elif isinstance(record, Message):
+                asm.message(record)
+            elif isinstance(record, Metadata):
+                rec.metadata[record.name] = dict(record.metadata)
+    asm.finish()
+    return rec
+
+
+def _salvage(path: Path, size: int) -> Recording:
+    rec = Recording(path, complete=False)
+    asm = _Assembler(rec)
+    with open(path, "rb") as f:
+        f.seek(len(MAGIC))
+        pos = len(MAGIC)
+        while True:
+            if pos == size:
+                rec.problem = f"file ends after {rec.records} records without footer (not closed)"
+                break
+            if pos + 9 > size:
+                rec.problem = f"truncated record header at byte {pos} ({size - pos} of 9 bytes)"
+                break
+            opcode, length = struct.unpack("<BQ", f.read(9))
+            if pos + 9 + length > size:
+                rec.problem = (f"truncated record (opcode 0x{opcode:02x}) at byte {pos}: "
+                               f"{size - pos - 9} of {length} bytes present")
+                break
+            body = f.read(length)
+            try:
+                done = _salvage_record(asm, rec, opcode, body)
+            except Exception as exc:  # corrupt record: keep what came before
+                rec.problem = f"corrupt record (opcode 0x{opcode:02x}) at byte {pos}: {exc}"
+                break
+            rec.records += 1
+            pos += 9 + length
+            if done:
+                rec.complete = True
+                rec.problem = None
+                break
+    asm.finish()
+    if rec.problem:
+        log.warning("%s: salvaged %d records; %s", path, rec.records, rec.problem)
+    return rec
+
+
+def _salvage_record(asm: _Assembler, rec: Recording, opcode: int, body: bytes) -> bool:
+    stream = ReadDataStream(io.BytesIO(body))
+    if opcode == Opcode.SCHEMA:
+        asm.schema(Schema.read(stream))
+    elif opcode == Opcode.CHANNEL:
+        asm.channel(Channel.read(stream))
+    elif opcode == Opcode.MESSAGE:
+        asm.message(Message.read(stream, len(body)))
+    elif opcode == Opcode.METADATA:
+        meta = Metadata.read(stream)
+        rec.metadata[meta.name] = dict(meta.metadata)
+    elif opcode == Opcode.CHUNK:
+        for record in breakup_chunk(Chunk.read(stream), validate_crc=True):
+            if isinstance(record, Schema):
+                asm.schema(record)
+            elif isinstance(record, Channel):
+                asm.channel(record)
+            elif isinstance(record, Message):
+                asm.message(record)
+    elif opcode == Opcode.FOOTER:
+        Footer.read(stream)
+        return True
+    return False

@@ -1,0 +1,433 @@
+"""Zenoh sessions, segment publishers and subscribers, liveliness.
+
+Defaults (:class:`SessionSettings`): peer mode, listening on ``tcp/127.0.0.1:<free port>``
+only, multicast scouting off, optional connect endpoints.  Nothing listens on anything but
+127.0.0.1 unless configured.
+
+A Zenoh configuration file (JSON5, Zenoh's own format, see
+``streamer/configs/*.json5``) selects client or router mode and the endpoints of a
+deployment over several hosts; what the file leaves unset keeps the safe defaults above
+(loopback listening, no multicast scouting), and explicit :class:`SessionSettings`
+fields override the file.
+
+Segment data go through Zenoh's *advanced* publisher and subscriber (``zenoh.ext``,
+marked unstable in zenoh-python 1.x):
+
+* :class:`SegmentPublisher` publishes segment ``i`` of a topic on
+  ``ttl/<run>/<topic>/<i>`` with congestion control BLOCK (the default DROP silently
+  loses multi-megabyte messages) and reliable reliability.  An advanced publisher is bound
+  to one key, so there is one per segment key, with a one-sample cache, publisher
+  detection and sporadic heartbeats; the publishers of the last ``cache`` segments are kept
+  alive, and together their caches are the topic's history.
+* :func:`declare_segment_subscriber` declares an advanced subscriber on
+  ``ttl/<run>/<topic>/*`` that, on declaration and whenever a publisher appears later,
+  queries the caches (late joiners and restarted stages catch up), recovers a lost sample
+  from the heartbeats, and reports what it could not recover to a miss callback.
+
+:class:`Bus` wraps a session as a context manager that undeclares everything declared
+through it (a callback subscriber left declared otherwise hangs the interpreter at exit)
+and closes the session.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import socket
+from collections import OrderedDict
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+from zenoh import ext
+
+from .keys import alive_key, alive_pattern, parse_alive_key, segment_key
+
+log = logging.getLogger(__name__)
+
+#: The only address listened on by default.
+LOOPBACK = "127.0.0.1"
+#: Default router endpoint (Zenoh's customary port, on loopback).
+DEFAULT_ROUTER_LISTEN = ("tcp/127.0.0.1:7447",)
+#: Default number of segments kept in a topic's publisher caches.
+DEFAULT_CACHE = 4
+#: Period of the sporadic heartbeat of segment publishers [s].
+HEARTBEAT_PERIOD = 1.0
+MODES = ("peer", "client", "router")
+
+
+class SessionConfigError(ValueError):
+    """A session setting or configuration file is invalid (message names it)."""
+
+
+@dataclass(frozen=True)
+class SessionSettings:
+    """How to open a Zenoh session.
+
+    Every field left None takes its value from ``config_file`` when the file sets it,
+    else the safe default.
+
+    Attributes
+    ----------
+    mode : {"peer", "client", "router"}, optional
+        Default "peer".
+    listen : sequence of str, optional
+        Endpoints to listen on.  Default: ``tcp/127.0.0.1:<free port>`` (peer, router),
+        none (client).
+    connect : sequence of str, optional
+        Endpoints to connect to (routers or peers), e.g. ``tcp/127.0.0.1:7447``.
+    multicast_scouting : bool, optional
+        Default False.
+    shared_memory : bool, optional
+        Zenoh's shared-memory transport between processes on one host (default: Zenoh's,
+        enabled in zenoh 1.x).
+    config_file : str or Path, optional
+        Zenoh configuration file (JSON5).
+    """
+
+    mode: str | None = None
+    listen: tuple[str, ...] | None = None
+    connect: tuple[str, ...] | None = None
+    multicast_scouting: bool | None = None
+    shared_memory: bool | None = None
+    config_file: str | Path | None = None
+
+    def to_dict(self) -> dict:
+        """JSON-ready form (for passing to child processes)."""
+        return {"mode": self.mode, "listen": None if self.listen is None else list(self.listen),
+                "connect": None if self.connect is None else list(self.connect),
+                "multicast_scouting": self.multicast_scouting, "shared_memory": self.shared_memory,
+                "config_file": None if self.config_file is None else str(self.config_file)}
+
+    @classmethod
+    def from_dict(cls, d: dict | None) -> "SessionSettings":
+        """Inverse of :meth:`to_dict`; unknown keys raise :class:`SessionConfigError`."""
+        d = dict(d or {})
+        unknown = set(d) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise SessionConfigError(f"session settings: unknown field {sorted(unknown)[0]!r}")
+        for name in ("listen", "connect"):
+            if d.get(name) is not None:
+                d[name] = tuple(d[name])
+        return cls(**d)
+
+
+def free_port(host: str = LOOPBACK) -> int:
+    """A TCP port free on ``host`` right now (the OS picks it)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
+        s.bind((host, 0))
+        return s.getsockname()[1]
+
+
+def loopback_endpoint(port: int | None = None) -> str:
+    """``tcp/127.0.0.1:<port>`` (a free port when None)."""
+    return f"tcp/{LOOPBACK}:{free_port() if port is None else int(port)}"
+
+
+def _get(config: zenoh.Config, key: str):
+    """Value of ``key`` in a Zenoh config (None when unset)."""
+    value = config.get_json(key)
+    return json.loads(value) if isinstance(value, str) else value
+
+
+def _set(config: zenoh.Config, key: str, value) -> None:
+    config.insert_json5(key, json.dumps(value))
+
+
+def make_config(settings: SessionSettings | None = None) -> zenoh.Config:
+    """Build the :class:`zenoh.Config` of ``settings`` (see :class:`SessionSettings`).
+
+    Raises
+    ------
+    SessionConfigError
+        If the file is unreadable or a value invalid; the message names the file or field.
+    """
+    s = settings or SessionSettings()
+    if s.config_file is not None:
+        path = Path(s.config_file)
+        try:
+            config = zenoh.Config.from_file(str(path))
+        except Exception as exc:  # zenoh raises ZError with the parser's message
+            raise SessionConfigError(f"{path}: invalid Zenoh configuration: {exc}") from exc
+    else:
+        config = zenoh.Config()
+    try:
+        mode = s.mode or _get(config, "mode") or "peer"
+        if mode not in MODES:
+            raise SessionConfigError(f"mode: {mode!r} is not one of {', '.join(MODES)}")
+        _set(config, "mode", mode)
+        if s.listen is not None:
+            _set(config, "listen/endpoints", list(s.listen))
+        elif not isinstance(_get(config, "listen/endpoints"), list):
+            # unset in the file: Zenoh's default would listen on every interface
+            _set(config, "listen/endpoints", [] if mode == "client" else [loopback_endpoint()])
+        if s.connect is not None:
+            _set(config, "connect/endpoints", list(s.connect))
+        if s.multicast_scouting is not None:
+            _set(config, "scouting/multicast/enabled", bool(s.multicast_scouting))
+        elif _get(config, "scouting/multicast/enabled") is None:
+            _set(config, "scouting/multicast/enabled", False)
+        if s.shared_memory is not None:
+            _set(config, "transport/shared_memory/enabled", bool(s.shared_memory))
+    except zenoh.ZError as exc:
+        raise SessionConfigError(f"invalid Zenoh setting: {exc}") from exc
+    for endpoint in _endpoints(_get(config, "listen/endpoints")):
+        if LOOPBACK not in endpoint and "localhost" not in endpoint:
+            log.warning("Zenoh listens on %s (not loopback only), as configured", endpoint)
+    return config
+
+
+def _endpoints(value) -> list[str]:
+    if isinstance(value, dict):  # per-mode form {"peer": [...], "router": [...]}
+        return [e for v in value.values() for e in (v or [])]
+    return list(value or [])
+
+
+def open_session(settings: SessionSettings | None = None) -> zenoh.Session:
+    """Open a Zenoh session (see :class:`SessionSettings` for the defaults)."""
+    config = make_config(settings)
+    session = zenoh.open(config)
+    log.info("zenoh session %s open (mode %s, listen %s, connect %s)", session.zid(),
+             _get(config, "mode"), _get(config, "listen/endpoints"), _get(config, "connect/endpoints"))
+    return session
+
+
+def open_router(listen: Iterable[str] = DEFAULT_ROUTER_LISTEN, connect: Iterable[str] = (),
+                config_file: str | Path | None = None) -> zenoh.Session:
+    """Open a Zenoh router in this process (``mode="router"``).
+
+    Parameters
+    ----------
+    listen : sequence of str
+        Endpoints to listen on (default ``tcp/127.0.0.1:7447``).
+    connect : sequence of str
+        Other routers to connect to (several hosts).
+    config_file : path, optional
+        Zenoh configuration file; ``listen`` and ``connect`` override its endpoints.
+    """
+    return open_session(SessionSettings(mode="router", listen=tuple(listen), connect=tuple(connect),
+                                        config_file=config_file))
+
+
+# ---------------------------------------------------------------------------- publishers
+
+def declare_segment_publisher(session: zenoh.Session, key: str, cache: int = 1,
+                              heartbeat: float = HEARTBEAT_PERIOD) -> "ext.AdvancedPublisher":
+    """An advanced publisher for segment data on one key.
+
+    Congestion control BLOCK, reliable, a cache of the last ``cache`` samples (replied to
+    history queries with BLOCK too), sample-miss detection with a sporadic heartbeat of
+    period ``heartbeat`` [s], and publisher detection (a liveliness token that lets
+    advanced subscribers declared earlier query the cache).
+    """
+    block = zenoh.CongestionControl.BLOCK
+    return ext.declare_advanced_publisher(
+        session, key,
+        encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
+        congestion_control=block,
+        reliability=zenoh.Reliability.RELIABLE,
+        cache=ext.CacheConfig(max_samples=max(1, int(cache)),
+                              replies_config=ext.RepliesConfig(congestion_control=block)),
+        sample_miss_detection=ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=heartbeat),
+        publisher_detection=True,
+    )
+
+
+class SegmentPublisher:
+    """Publishes the segments of one topic, ``ttl/<run>/<topic>/<index>``.
+
+    One advanced publisher (:func:`declare_segment_publisher`) per segment key; the
+    publishers of the ``cache`` most recently published indices stay declared so that their
+    caches answer late joiners, older ones are undeclared.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+    run, topic : str
+    cache : int
+        Number of segments kept for late joiners (memory: ``cache`` payloads).
+    """
+
+    def __init__(self, session: zenoh.Session, run: str, topic: str, cache: int = DEFAULT_CACHE):
+        self.session = session
+        self.run = run
+        self.topic = topic
+        self.cache = max(1, int(cache))
+        self._publishers: OrderedDict[int, ext.AdvancedPublisher] = OrderedDict()
+
+    def put(self, index: int, payload, attachment) -> str:
+        """Publish one segment (blocks while the transport is congested); returns the key."""
+        pub = self._publishers.get(index)
+        if pub is None:
+            key = segment_key(self.run, self.topic, index)
+            pub = declare_segment_publisher(self.session, key)
+            self._publishers[index] = pub
+        self._publishers.move_to_end(index)
+        pub.put(payload, attachment=attachment)
+        while len(self._publishers) > self.cache:
+            _, old = self._publishers.popitem(last=False)
+            old.undeclare()
+        return str(pub.key_expr)
+
+    def undeclare(self) -> None:
+        """Undeclare every publisher (their caches go with them)."""
+        while self._publishers:
+            _, pub = self._publishers.popitem()
+            pub.undeclare()
+
+
+# ---------------------------------------------------------------------------- subscribers
+
+@dataclass
+class SegmentSubscription:
+    """An advanced subscriber and its miss listener; :meth:`undeclare` removes both."""
+
+    subscriber: object
+    miss_listener: object | None = None
+
+    def undeclare(self) -> None:
+        if self.miss_listener is not None:
+            self.miss_listener.undeclare()
+            self.miss_listener = None
+        if self.subscriber is not None:
+            self.subscriber.undeclare()
+            self.subscriber = None
+
+
+def declare_segment_subscriber(session: zenoh.Session, key_expr: str,
+                               callback: Callable[[zenoh.Sample], None], *,
+                               history: int = DEFAULT_CACHE,
+                               on_miss: Callable[[str, int], None] | None = None) -> SegmentSubscription:
+    """Subscribe to segment data with history and recovery.
+
+    Parameters
+    ----------
+    session : zenoh.Session
+    key_expr : str
+        Usually ``ttl/<run>/<topic>/*`` (:func:`streamer.keys.topic_pattern`).
+    callback : callable(zenoh.Sample)
+        Called on a Zenoh thread for every sample: keep it short (queue the sample).
+    history : int
+        Samples to query from each matching publisher's cache, on declaration and when a
+        publisher appears later (0: no history).
+    on_miss : callable(source: str, count: int), optional
+        Called when samples were lost beyond recovery; default logs a warning.
+    """
+    hist = ext.HistoryConfig(detect_late_publishers=True, max_samples=int(history)) if history > 0 else None
+    sub = ext.declare_advanced_subscriber(
+        session, key_expr, callback,
+        history=hist,
+        recovery=ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
+        subscriber_detection=True,
+    )
+
+    def missed(miss) -> None:
+        if on_miss is not None:
+            on_miss(str(miss.source), int(miss.nb))
+        else:
+            log.warning("%s: %d sample(s) missed from %s", key_expr, miss.nb, miss.source)
+
+    return SegmentSubscription(sub, sub.sample_miss_listener(missed))
+
+
+# ---------------------------------------------------------------------------- liveliness
+
+def declare_alive(session: zenoh.Session, run: str, stage: str):
+    """Declare the liveliness token ``ttl/<run>/alive/<stage>`` (undeclare it on exit)."""
+    return session.liveliness().declare_token(alive_key(run, stage))
+
+
+def alive_stages(session: zenoh.Session, run: str, timeout: float = 1.0) -> set[str]:
+    """Names of the stages of ``run`` whose liveliness token is present now."""
+    stages = set()
+    for reply in session.liveliness().get(alive_pattern(run), timeout=timeout):
+        if reply.ok is not None:
+            stages.add(parse_alive_key(str(reply.ok.key_expr))[1])
+    return stages
+
+
+def watch_alive(session: zenoh.Session, run: str, callback: Callable[[str, bool], None]):
+    """Call ``callback(stage, alive)`` whenever a stage of ``run`` appears or goes.
+
+    Stages alive at declaration are reported too.  Returns the liveliness subscriber
+    (undeclare it, or declare it through :meth:`Bus.watch_alive`).
+    """
+    def on_sample(sample) -> None:
+        _, stage = parse_alive_key(str(sample.key_expr))
+        callback(stage, sample.kind == zenoh.SampleKind.PUT)
+
+    return session.liveliness().declare_subscriber(alive_pattern(run), on_sample, history=True)
+
+
+# ---------------------------------------------------------------------------- the bus
+
+@dataclass
+class Bus:
+    """A Zenoh session and everything declared through it, closed together.
+
+    Use as a context manager::
+
+        with Bus.open(SessionSettings(connect=("tcp/127.0.0.1:7447",))) as bus:
+            pub = bus.segment_publisher(run, "tdi")
+            ...
+
+    On exit, every declared entity is undeclared (most recent first) and the session is
+    closed, even on error.
+    """
+
+    session: zenoh.Session
+    _declared: list = field(default_factory=list)
+
+    @classmethod
+    def open(cls, settings: SessionSettings | None = None) -> "Bus":
+        return cls(open_session(settings))
+
+    def __enter__(self) -> "Bus":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def track(self, entity):
+        """Undeclare ``entity`` when the bus closes; returns it."""
+        self._declared.append(entity)
+        return entity
+
+    def segment_publisher(self, run: str, topic: str, cache: int = DEFAULT_CACHE) -> SegmentPublisher:
+        return self.track(SegmentPublisher(self.session, run, topic, cache))
+
+    def segment_subscriber(self, key_expr: str, callback, *, history: int = DEFAULT_CACHE,
+                           on_miss=None) -> SegmentSubscription:
+        return self.track(declare_segment_subscriber(self.session, key_expr, callback,
+                                                     history=history, on_miss=on_miss))
+
+    def subscriber(self, key_expr: str, callback):
+        """A plain subscriber (control messages, errors)."""
+        return self.track(self.session.declare_subscriber(key_expr, callback))
+
+    def declare_alive(self, run: str, stage: str):
+        return self.track(declare_alive(self.session, run, stage))
+
+    def alive_stages(self, run: str, timeout: float = 1.0) -> set[str]:
+        return alive_stages(self.session, run, timeout)
+
+    def watch_alive(self, run: str, callback):
+        return self.track(watch_alive(self.session, run, callback))
+
+    def put_json(self, key: str, obj) -> None:
+        """Publish a small JSON message (BLOCK, reliable)."""
+        self.session.put(key, json.dumps(obj, allow_nan=False, default=str).encode(),
+                         encoding=zenoh.Encoding.APPLICATION_JSON,
+                         congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def close(self) -> None:
+        """Undeclare everything (most recent first), then close the session."""
+        while self._declared:
+            entity = self._declared.pop()
+            try:
+                entity.undeclare()
+            except Exception as exc:  # keep closing the rest
+                log.warning("undeclaring %r failed: %s", entity, exc)
+        if not self.session.is_closed():
+            self.session.close()

@@ -1,0 +1,483 @@
+"""The stage base: one process that turns input segments into output segments.
+
+A stage subclass sets :attr:`Stage.name` and :attr:`Stage.inputs` and implements
+:meth:`Stage.handle`; the base does the rest:
+
+* opens the Zenoh session (:class:`~streamer.session.SessionSettings`) and declares the
+  liveliness token ``ttl/<run>/alive/<stage>``;
+* subscribes to ``ttl/<run>/<topic>/*`` for each input topic with the advanced subscriber
+  (history from the publishers' caches, recovery, miss reports);
+* validates every message with the codec (:func:`streamer.codec.decode`) and the stage's
+  :meth:`Stage.expect`; a message that does not fit is reported on
+  ``ttl/<run>/errors/<index>`` and in the recording, and the stage goes on;
+* processes each segment index once per topic: a duplicate is ignored (an event is
+  recorded), a gap in the indices is reported on the errors topic;
+* calls :meth:`Stage.handle` inside ``try``: an exception is reported as an error of that
+  segment, not a crash;
+* publishes the returned :class:`Output` objects with the codec (BLOCK, cached for late
+  joiners) and records inputs and outputs in ``<recordings>/<run>/<stage>.mcap``;
+* stops gracefully on SIGINT, SIGTERM or ``ttl/<run>/control/stop`` (or
+  ``.../control/<stage>/stop``): recording closed with its summary, entities undeclared,
+  session closed, :meth:`Stage.run` returns 0.
+
+Source stages (no inputs, e.g. the replayer) implement :meth:`Stage.tick`, called whenever
+no message is waiting.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import queue
+import signal
+import sys
+import threading
+import time
+import traceback
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar
+
+import numpy as np
+
+from .codec import CodecError, Expect, Header, decode, encode
+from .keys import (KeyExprError, control_pattern, errors_key, parse_control_key,
+                   parse_segment_key, topic_pattern)
+from .recorder import Recorder
+from .session import DEFAULT_CACHE, Bus, SessionSettings
+
+log = logging.getLogger(__name__)
+
+#: Characters of a rejected attachment kept in the error report.
+PREVIEW_CHARS = 2000
+
+
+@dataclass
+class StageConfig:
+    """Configuration of one stage process.
+
+    Attributes
+    ----------
+    run : str
+        Run identifier (a key chunk: letters, digits, ``.``, ``_``, ``-``).
+    stage : str
+        Stage name (default: the class's :attr:`Stage.name`).
+    zenoh : SessionSettings
+        How to open the session (default: peer on loopback, no multicast scouting).
+    recordings : Path
+        Recordings directory; the stage writes ``<recordings>/<run>/<stage>.mcap``.
+    cache : int
+        Segments kept per output topic for late joiners.
+    history : int
+        Segments asked from each input publisher's cache at start and on publisher appearance.
+    record_inputs, record_outputs : bool
+        Record input / output segments (headers and payloads) in the MCAP file.
+    poll_interval : float
+        Longest wait for a message before checking for shutdown and calling :meth:`Stage.tick` [s].
+    options : dict
+        Stage-specific options.
+    """
+
+    run: str
+    stage: str = ""
+    zenoh: SessionSettings = field(default_factory=SessionSettings)
+    recordings: Path = Path("recordings")
+    cache: int = DEFAULT_CACHE
+    history: int = DEFAULT_CACHE
+    record_inputs: bool = True
+    record_outputs: bool = True
+    poll_interval: float = 0.2
+    options: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        return {"run": self.run, "stage": self.stage, "zenoh": self.zenoh.to_dict(),
+                "recordings": str(self.recordings), "cache": self.cache, "history": self.history,
+                "record_inputs": self.record_inputs, "record_outputs": self.record_outputs,
+                "poll_interval": self.poll_interval, "options": self.options}
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> "StageConfig":
+        d = dict(d)
+        unknown = set(d) - set(cls.__dataclass_fields__)
+        if unknown:
+            raise ValueError(f"stage configuration: unknown field {sorted(unknown)[0]!r}")
+        if "run" not in d:
+            raise ValueError("stage configuration: field 'run' missing")
+        d["zenoh"] = SessionSettings.from_dict(d.get("zenoh"))
+        if "recordings" in d:
+            d["recordings"] = Path(d["recordings"])
+        return cls(**d)
+
+
+@dataclass
+class Output:
+    """A segment message to publish.
+
+    Attributes
+    ----------
+    topic : str
+        Output topic (``tdi``, ``fit``, ...).
+    arrays : ndarray or mapping of str to ndarray
+        The arrays (see :func:`streamer.codec.encode`).
+    fields : dict
+        Header fields (``channels``, ``units``, ``channel_axis``, ``meta``, ``t0``,
+        ``fs``...); ``run``, ``producer`` are set by the stage, ``index``, ``t0`` and
+        ``fs`` default to the input segment's.
+    index : int, optional
+        Segment index (default: the input's).
+    summary : dict, optional
+        JSON record of this output (a fit, a diagnosis) written to the recording on
+        ``<topic>/summary`` with schema ``summary_schema``.
+    summary_schema : str or dict
+        Name in :data:`streamer.recorder.SCHEMAS` or a JSON schema.
+    allow_nonfinite : bool
+        Allow NaN/inf in the arrays (consumers must then expect them too).
+    """
+
+    topic: str
+    arrays: Any
+    fields: dict = field(default_factory=dict)
+    index: int | None = None
+    summary: dict | None = None
+    summary_schema: Any = "ttl.Object"
+    allow_nonfinite: bool = False
+
+
+class StageLogger(logging.LoggerAdapter):
+    """Attaches ``run`` and ``stage`` (and any ``extra``) to the records of a stage."""
+
+    def process(self, msg, kwargs):
+        kwargs["extra"] = {**self.extra, **kwargs.get("extra", {})}
+        return msg, kwargs
+
+
+class JsonFormatter(logging.Formatter):
+    """One JSON object per line: time, level, logger, message, and run/stage/index if set."""
+
+    def format(self, record: logging.LogRecord) -> str:
+        out = {"time": round(record.created, 6), "level": record.levelname, "logger": record.name,
+               "message": record.getMessage()}
+        for name in ("run", "stage", "index"):
+            if hasattr(record, name):
+                out[name] = getattr(record, name)
+        if record.exc_info:
+            out["exception"] = self.formatException(record.exc_info)
+        return json.dumps(out, default=str)
+
+
+def configure_logging(level: str | int = "INFO", json_lines: bool = False, stream=None) -> None:
+    """Set up the root logger of a stage process (plain text or JSON lines on stderr)."""
+    handler = logging.StreamHandler(stream or sys.stderr)
+    handler.setFormatter(JsonFormatter() if json_lines else
+                         logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    root = logging.getLogger()
+    root.handlers[:] = [handler]
+    root.setLevel(level)
+
+
+def recording_path(recordings: Path, run: str, stage: str) -> Path:
+    """``<recordings>/<run>/<stage>.mcap``; an existing file is first renamed ``<stage>.<n>.mcap``."""
+    path = Path(recordings) / run / f"{stage}.mcap"
+    if path.exists():
+        n = 1
+        while (old := path.with_name(f"{stage}.{n}.mcap")).exists():
+            n += 1
+        path.rename(old)
+        log.info("kept the previous recording as %s", old)
+    return path
+
+
+class Stage:
+    """Base class of the stage programs (see the module docstring).
+
+    Subclasses set :attr:`name` and :attr:`inputs`, implement :meth:`handle`, and may
+    override :meth:`expect`, :meth:`setup`, :meth:`teardown` and :meth:`tick`.
+    """
+
+    #: Default stage name (liveliness token, recording file, producer field).
+    name: ClassVar[str] = "stage"
+    #: Input topics.
+    inputs: ClassVar[tuple[str, ...]] = ()
+
+    def __init__(self, config: StageConfig):
+        self.config = config
+        self.stage_name = config.stage or self.name
+        self.run_id = config.run
+        self.log = StageLogger(logging.getLogger(f"streamer.stage.{self.stage_name}"),
+                               {"run": self.run_id, "stage": self.stage_name})
+        self.bus: Bus | None = None
+        self.recorder: Recorder | None = None
+        self.recording_path: Path | None = None
+        self._queue: queue.Queue = queue.Queue()
+        self._stop = threading.Event()
+        self._publishers: dict = {}
+        self._done: dict[str, set[int]] = {}
+        self._highest: dict[str, int] = {}
+
+    # ------------------------------------------------------------------ to override
+    def handle(self, header: Header, arrays: dict[str, np.ndarray]) -> Sequence[Output]:
+        """Process one validated input segment; return the outputs to publish.
+
+        ``header.topic`` says which input it came on.  Raise to report the segment as
+        failed (the stage keeps running).
+        """
+        raise NotImplementedError
+
+    def expect(self, topic: str, index: int) -> Expect:
+        """What an input message on ``topic`` with key index ``index`` must fit.
+
+        Default: this run, the key's index, finite values.  Override to require arrays,
+        dtypes and shapes.
+        """
+        return Expect(run=self.run_id, index=index)
+
+    def setup(self) -> None:
+        """Called once the session is open and before inputs are subscribed."""
+
+    def teardown(self) -> None:
+        """Called on shutdown, before the recording and the session are closed."""
+
+    def tick(self) -> Sequence[Output]:
+        """Called when no input is waiting (every ``poll_interval`` at most); source stages
+        return the outputs to publish now."""
+        return ()
+
+    # ------------------------------------------------------------------ lifecycle
+    def stop(self) -> None:
+        """Ask the stage to stop (thread- and signal-safe)."""
+        self._stop.set()
+
+    @property
+    def stopping(self) -> bool:
+        return self._stop.is_set()
+
+    def run(self) -> int:
+        """Run until stopped; returns the exit code (0 after a graceful stop)."""
+        restore = self._install_signal_handlers()
+        cfg = self.config
+        self.recording_path = recording_path(cfg.recordings, self.run_id, self.stage_name)
+        try:
+            with Bus.open(cfg.zenoh) as bus, Recorder(self.recording_path, metadata={
+                    "run": self.run_id, "stage": self.stage_name, "class": type(self).__qualname__,
+                    "config": json.dumps(cfg.to_dict())}) as recorder:
+                self.bus, self.recorder = bus, recorder
+                bus.declare_alive(self.run_id, self.stage_name)
+                bus.subscriber(control_pattern(self.run_id), self._on_control)
+                self.setup()
+                for topic in self.inputs:
+                    bus.segment_subscriber(topic_pattern(self.run_id, topic), self._on_sample,
+                                           history=cfg.history, on_miss=self._on_miss)
+                self.event("start", message=f"inputs {list(self.inputs)}")
+                self.log.info("running (inputs %s, recording %s)", list(self.inputs), self.recording_path)
+                self._loop()
+                self.log.info("stopping")
+                self.teardown()
+                self.event("stop")
+        finally:
+            self.bus = self.recorder = None
+            restore()
+        self.log.info("stopped")
+        return 0
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                item = self._queue.get(timeout=self.config.poll_interval)
+            except queue.Empty:
+                self._run_tick()
+                continue
+            if item[0] == "miss":
+                _, source, count = item
+                self.report_error("missed", f"{count} sample(s) lost beyond recovery from publisher {source}")
+            else:
+                self._process(*item[1:])
+
+    def _run_tick(self) -> None:
+        try:
+            outputs = list(self.tick() or ())
+            for out in outputs:
+                self.publish(out)
+        except Exception as exc:
+            self.log.exception("tick failed")
+            self.report_error("failed", f"{type(exc).__name__}: {exc}",
+                              details={"traceback": traceback.format_exc(limit=8)})
+
+    def _install_signal_handlers(self):
+        if threading.current_thread() is not threading.main_thread():
+            return lambda: None
+        previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+        def on_signal(signum, frame):
+            self.log.info("received %s", signal.Signals(signum).name)
+            self._stop.set()
+
+        for sig in previous:
+            signal.signal(sig, on_signal)
+
+        def restore():
+            for sig, handler in previous.items():
+                signal.signal(sig, handler)
+        return restore
+
+    # ------------------------------------------------------------------ callbacks (Zenoh threads)
+    def _on_sample(self, sample) -> None:
+        self._queue.put(("sample", str(sample.key_expr), sample.payload, sample.attachment))
+
+    def _on_miss(self, source: str, count: int) -> None:
+        self._queue.put(("miss", source, count))
+
+    def _on_control(self, sample) -> None:
+        try:
+            _, parts = parse_control_key(str(sample.key_expr))
+        except KeyExprError:
+            return
+        if parts in (("stop",), (self.stage_name, "stop")):
+            self.log.info("stop requested on %s", sample.key_expr)
+            self._stop.set()
+
+    # ------------------------------------------------------------------ processing
+    def _process(self, key: str, payload, attachment) -> None:
+        payload = payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload or b"")
+        try:
+            seg = parse_segment_key(key)
+        except KeyExprError as exc:
+            self.report_error("rejected", str(exc), key=key, field="key")
+            return
+        try:
+            header, arrays = decode(payload, attachment, self.expect(seg.topic, seg.index), key=key)
+        except CodecError as exc:
+            self.report_error("rejected", exc.what, index=seg.index, key=key, field=exc.field,
+                              details={"payload_bytes": len(payload),
+                                       "attachment": _preview(attachment)})
+            return
+        done = self._done.setdefault(seg.topic, set())
+        if seg.index in done:
+            self.log.info("%s: duplicate of a processed segment, ignored", key)
+            self.event("duplicate", index=seg.index, message=f"{key} already processed")
+            return
+        self._check_gap(seg.topic, seg.index)
+        if self.config.record_inputs:
+            self.recorder.write_segment(seg.topic, header, payload)
+        try:
+            outputs = list(self.handle(header, arrays) or ())
+            for out in outputs:
+                self.publish(out, source=header)
+        except Exception as exc:
+            self.log.exception("%s: processing failed", key)
+            self.report_error("failed", f"{type(exc).__name__}: {exc}", index=seg.index, key=key,
+                              details={"traceback": traceback.format_exc(limit=8)})
+            return
+        done.add(seg.index)
+        self.log.info("%s: processed, %d output(s)", key, len(outputs))
+
+    def _check_gap(self, topic: str, index: int) -> None:
+        highest = self._highest.get(topic)
+        if highest is not None and index > highest + 1:
+            first, last = highest + 1, index - 1
+            missing = f"{first}" if first == last else f"{first}..{last}"
+            self.report_error("gap", f"{topic} segment(s) {missing} missing before {index}", index=index,
+                              details={"topic": topic, "first_missing": first, "last_missing": last})
+        if highest is None or index > highest:
+            self._highest[topic] = index
+
+    # ------------------------------------------------------------------ outputs and reports
+    def publish(self, out: Output, source: Header | None = None) -> str:
+        """Encode, publish and record one output; returns its key."""
+        index = out.index if out.index is not None else (source.index if source else None)
+        if index is None:
+            raise ValueError(f"output on {out.topic!r}: no index and no input segment to take it from")
+        fields = {"index": index}
+        if source is not None:
+            fields.update(t0=source.t0, fs=source.fs)
+        fields.update(out.fields)
+        fields.update(run=self.run_id, producer=self.stage_name)
+        payload, attachment = encode(out.arrays, fields, allow_nonfinite=out.allow_nonfinite)
+        publisher = self._publishers.get(out.topic)
+        if publisher is None:
+            publisher = self.bus.segment_publisher(self.run_id, out.topic, cache=self.config.cache)
+            self._publishers[out.topic] = publisher
+        key = publisher.put(index, payload, attachment)
+        if self.config.record_outputs:
+            self.recorder.write_segment(out.topic, json.loads(attachment), payload)
+        if out.summary is not None:
+            self.recorder.write_json(f"{out.topic}/summary", out.summary, schema=out.summary_schema)
+        return key
+
+    def report_error(self, kind: str, message: str, *, index: int | None = None, key: str | None = None,
+                     field: str | None = None, details: dict | None = None) -> dict:
+        """Publish an error on ``ttl/<run>/errors/<index>``, record it, log it; returns it."""
+        error = {"run": self.run_id, "stage": self.stage_name, "kind": kind, "index": index, "key": key,
+                 "field": field, "message": message, "time": time.time(), "details": details or {}}
+        self.log.warning("%s%s%s: %s", kind, f" {key}" if key else "", f" field {field!r}" if field else "",
+                         message, extra={"index": index})
+        if self.bus is not None:
+            try:
+                self.bus.put_json(errors_key(self.run_id, index), error)
+            except Exception:
+                self.log.exception("could not publish the error")
+        if self.recorder is not None:
+            self.recorder.write_json("errors", error)
+        return error
+
+    def event(self, kind: str, *, index: int | None = None, message: str = "", **details) -> None:
+        """Record a lifecycle or bookkeeping event in the recording."""
+        if self.recorder is not None:
+            self.recorder.write_json("events", {"run": self.run_id, "stage": self.stage_name, "kind": kind,
+                                                "index": index, "message": message, "time": time.time(),
+                                                "details": details})
+
+
+def _preview(attachment) -> str:
+    if attachment is None:
+        return ""
+    raw = attachment.to_bytes() if hasattr(attachment, "to_bytes") else bytes(attachment)
+    return raw[:PREVIEW_CHARS].decode("utf-8", errors="replace")
+
+
+def stage_arguments(parser: argparse.ArgumentParser | None = None) -> argparse.ArgumentParser:
+    """Command-line options common to all stages."""
+    p = parser or argparse.ArgumentParser()
+    p.add_argument("--config", type=Path, help="stage configuration (JSON, StageConfig fields)")
+    p.add_argument("--run", help="run id")
+    p.add_argument("--name", help="stage name (default: the stage's)")
+    p.add_argument("--connect", action="append", default=None, help="Zenoh endpoint to connect to (repeatable)")
+    p.add_argument("--listen", action="append", default=None, help="Zenoh endpoint to listen on (repeatable)")
+    p.add_argument("--zenoh-config", type=Path, help="Zenoh configuration file (JSON5)")
+    p.add_argument("--recordings", type=Path, help="recordings directory")
+    p.add_argument("--log-level", default="INFO")
+    p.add_argument("--log-json", action="store_true", help="log JSON lines")
+    return p
+
+
+def config_from_args(args: argparse.Namespace) -> StageConfig:
+    """A :class:`StageConfig` from ``--config`` and the options overriding it."""
+    d = json.loads(args.config.read_text()) if args.config else {}
+    if args.run:
+        d["run"] = args.run
+    if args.name:
+        d["stage"] = args.name
+    if args.recordings:
+        d["recordings"] = str(args.recordings)
+    z = dict(d.get("zenoh") or {})
+    if args.connect:
+        z["connect"] = args.connect
+    if args.listen:
+        z["listen"] = args.listen
+    if args.zenoh_config:
+        z["config_file"] = str(args.zenoh_config)
+    d["zenoh"] = z
+    return StageConfig.from_dict(d)
+
+
+def main(stage_class: type[Stage], argv: Sequence[str] | None = None) -> int:
+    """Entry point of a stage process: parse options, set up logging, run the stage."""
+    args = stage_arguments(argparse.ArgumentParser(prog=f"ttl stage {stage_class.name}")).parse_args(argv)
+    configure_logging(args.log_level, args.log_json)
+    try:
+        config = config_from_args(args)
+    except (ValueError, OSError) as exc:
+        logging.getLogger(__name__).error("%s", exc)
+        return 2
+    return stage_class(config).run()

@@ -1,0 +1,165 @@
+"""The stage base, run in a child process against a driver (this process) over Zenoh."""
+
+import json
+import queue
+import signal
+import time
+
+import numpy as np
+import psutil
+import pytest
+from mcap.reader import make_reader
+
+from streamer.codec import encode
+from streamer.keys import errors_key, topic_pattern
+from streamer.recorder import read_recording
+from streamer.session import Bus, SessionSettings, free_port
+from streamer.stage import StageConfig
+from streamer_testutil import output_of, wait_for
+
+RUN = "stage-test"
+
+
+def good(index, n=4000, **meta):
+    data = np.random.default_rng(index).standard_normal((2, n))
+    payload, attachment = encode(data, {"run": RUN, "index": index, "t0": 3600.0 * index, "fs": 4.0,
+                                        "channels": ["a", "b"], "producer": "driver", "meta": meta})
+    return data, payload, attachment
+
+
+class Driver:
+    """This process's side: publishes telemetry, collects tdi outputs and errors."""
+
+    def __init__(self):
+        self.port = free_port()
+        self.bus = Bus.open(SessionSettings(listen=(f"tcp/127.0.0.1:{self.port}",)))
+        self.outputs: queue.Queue = queue.Queue()
+        self.errors: list = []
+        self.alive: list = []
+        self.bus.segment_subscriber(topic_pattern(RUN, "tdi"), lambda s: self.outputs.put(
+            (str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes())), history=0)
+        self.bus.subscriber(f"ttl/{RUN}/errors/*",
+                            lambda s: self.errors.append((str(s.key_expr), json.loads(s.payload.to_bytes()))))
+        self.bus.watch_alive(RUN, lambda stage, alive: self.alive.append((stage, alive)))
+        self.telemetry = self.bus.segment_publisher(RUN, "telemetry", cache=8)
+
+    def start_stage(self, children, tmp_path):
+        config = StageConfig(run=RUN, zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{self.port}",)),
+                             recordings=tmp_path / "recordings", poll_interval=0.05)
+        proc = children.start("stage", config=config.to_dict())
+        wait_for(lambda: "doubler" in self.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
+                 30, "the stage's liveliness token")
+        assert proc.poll() is None, output_of(proc)
+        return proc, tmp_path / "recordings" / RUN / "doubler.mcap"
+
+    def output(self, timeout=10):
+        from streamer.codec import decode
+        key, payload, attachment = self.outputs.get(timeout=timeout)
+        return decode(payload, attachment, key=key)
+
+    def close(self):
+        self.bus.close()
+
+
+@pytest.fixture
+def driver():
+    d = Driver()
+    yield d
+    d.close()
+
+
+def test_stage_validates_deduplicates_reports_and_stops_cleanly(driver, children, tmp_path):
+    proc, mcap_path = driver.start_stage(children, tmp_path)
+
+    # only loopback listening sockets in the default configuration
+    listening = [c for c in psutil.Process(proc.pid).net_connections(kind="inet") if c.status == psutil.CONN_LISTEN]
+    assert listening and all(c.laddr.ip == "127.0.0.1" for c in listening), listening
+    udp = [c for c in psutil.Process(proc.pid).net_connections(kind="udp")]
+    assert all(c.laddr.ip == "127.0.0.1" for c in udp), udp  # no multicast scouting socket
+
+    data0, p0, a0 = good(0)
+    driver.telemetry.put(0, p0, a0)
+    header, arrays = driver.output()
+    assert header.index == 0 and header.producer == "doubler" and header.key == f"ttl/{RUN}/tdi/0"
+    np.testing.assert_array_equal(arrays["data"], 2 * data0)
+
+    driver.telemetry.put(0, p0, a0)                                 # duplicate: ignored
+    data1, p1, a1 = good(1)
+    wrong = encode(np.ones((3, 10)), {"run": RUN, "index": 1, "t0": 0, "fs": 4, "channels": ["a", "b", "c"]})
+    nan = np.ones((2, 10))
+    nan[1, 3] = np.nan
+    nan = encode(nan, {"run": RUN, "index": 1, "t0": 0, "fs": 4, "channels": ["a", "b"]}, allow_nonfinite=True)
+    driver.telemetry.put(1, p1, b'{"schema": "ttl-segment", oops')  # bad header
+    driver.telemetry.put(1, *wrong)                                   # wrong shape
+    driver.telemetry.put(1, *nan)                                     # NaN
+    driver.telemetry.put(1, p1[:-1000], a1)                           # truncated payload
+    driver.telemetry.put(1, p1, a1)                                   # the good one
+    header, arrays = driver.output()
+    assert header.index == 1
+    np.testing.assert_array_equal(arrays["data"], 2 * data1)
+    _, p3, a3 = good(3)
+    driver.telemetry.put(3, p3, a3)                                   # gap: 2 missing
+    _, p4, a4 = good(4, fail=True)
+    driver.telemetry.put(4, p4, a4)                                   # handler raises
+    data5, p5, a5 = good(5)
+    driver.telemetry.put(5, p5, a5)                                   # and the stage goes on
+    assert driver.output()[0].index == 3
+    header, arrays = driver.output()
+    assert header.index == 5
+    np.testing.assert_array_equal(arrays["data"], 2 * data5)
+    with pytest.raises(queue.Empty):
+        driver.output(timeout=0.5)                                    # nothing for 0 again, 2 or 4
+
+    wait_for(lambda: len(driver.errors) >= 6, 10, "six error reports")
+    time.sleep(0.3)
+    kinds = [(e["kind"], e["index"], e["field"]) for _, e in driver.errors]
+    assert kinds == [("rejected", 1, "header"), ("rejected", 1, "arrays[data].shape"),
+                     ("rejected", 1, "arrays[data]"), ("rejected", 1, "payload"),
+                     ("gap", 3, None), ("failed", 4, None)], kinds
+    assert [k for k, _ in driver.errors][:1] == [errors_key(RUN, 1)]
+    assert "RuntimeError: asked to fail on segment 4" in driver.errors[-1][1]["message"]
+
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(20) == 0, output_of(proc)
+    wait_for(lambda: ("doubler", False) in driver.alive, 10, "the stage's token to go")
+    assert ("doubler", True) in driver.alive
+
+    rec = read_recording(mcap_path)
+    assert rec.complete and rec.problem is None
+    assert rec.metadata["ttl"]["stage"] == "doubler"
+    assert [s.header.index for s in rec.segments("telemetry")] == [0, 1, 3, 4, 5]
+    assert [s.header.index for s in rec.segments("tdi")] == [0, 1, 3, 5]
+    np.testing.assert_array_equal(rec.segments("tdi")[-1].arrays["data"], 2 * data5)
+    assert [(e["kind"], e["field"]) for e in rec.json("errors")] == [(k, f) for k, _, f in kinds]
+    events = [(e["kind"], e["index"]) for e in rec.json("events")]
+    assert events[0] == ("start", None) and ("duplicate", 0) in events and events[-1] == ("stop", None)
+    assert [s["index"] for s in rec.json("tdi/summary")] == [0, 1, 3, 5]
+
+    with open(mcap_path, "rb") as f:  # mcap's own reader: JSON channels with JSON schemas
+        for schema, channel, _ in make_reader(f).iter_messages():
+            if channel.message_encoding == "json":
+                assert schema is not None and schema.encoding == "jsonschema", channel.topic
+
+
+def test_killed_stage_leaves_a_salvageable_recording(driver, children, tmp_path):
+    proc, mcap_path = driver.start_stage(children, tmp_path)
+    data, payload, attachment = good(0)
+    driver.telemetry.put(0, payload, attachment)
+    assert driver.output()[0].index == 0
+    time.sleep(0.2)
+    proc.send_signal(signal.SIGKILL)
+    assert proc.wait(10) == -signal.SIGKILL
+    rec = read_recording(mcap_path)
+    assert not rec.complete and "without footer" in rec.problem and rec.records > 5
+    np.testing.assert_array_equal(rec.segments("telemetry")[0].arrays["data"], data)
+    np.testing.assert_array_equal(rec.segments("tdi")[0].arrays["data"], 2 * data)
+    assert rec.json("events")[0]["kind"] == "start"
+
+    # a restarted stage keeps the killed one's file and catches up from the publisher's cache
+    proc, mcap_path = driver.start_stage(children, tmp_path)
+    assert (mcap_path.parent / "doubler.1.mcap").exists()
+    header, _ = driver.output()
+    assert header.index == 0  # re-processed from history: the new process has no memory of it
+    driver.bus.session.put(f"ttl/{RUN}/control/doubler/stop", b"")
+    assert proc.wait(20) == 0, output_of(proc)
+    assert [s.header.index for s in read_recording(mcap_path).segments("telemetry")] == [0]
