@@ -154,7 +154,7 @@ def compute_tdi_arrays(eta, dws_phi, dws_eta, ltt, fs: float, t0: float, *, hist
             out = b.apply_on_links({link: stacked})[link]
             regressors[c, rows] = out
     return TDIData(t0=float(t0), fs=float(fs), channels=tuple(cb.name for cb in combinations), data=data,
-                   regressors=regressors, names=tuple(names), ltt_mean=np.nanmean(ltt, axis=-1))
+                   regressors=regressors, names=tuple(names), ltt_mean=np.nanmean(np.asarray(ltt)[:, history:], axis=-1))
 
 
 def compute_tdi(tm: Telemetry, names=COEFFICIENT_NAMES, order: int = DEFAULT_ORDER,
