@@ -6,7 +6,6 @@ well under two minutes on two cores.
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import struct
 import subprocess
@@ -32,23 +31,13 @@ from ttlcore.subtraction import (
 from ttlcore.tdi_data import compute_tdi
 from ttlcore.telemetry import read_telemetry
 from ttlcore.truth import read_truth, truth_path
+from lisainstrument_sim import simulate_lisainstrument
 
 REQUIRED_KEYS = {"names", "coefficients", "sigma", "covariance", "chi2_dof", "band", "method"}
 
 
 def ttl(*args, cwd=None):
     return subprocess.run([sys.executable, "-m", "ttlcore.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd)
-
-
-def _load_sim_helper():
-    # by path, as test_lisainstrument_files.py does: tests/ on sys.path would shadow ttlcore
-    name = "lisainstrument_sim"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parents[1] / f"{name}.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
 
 
 def png_size(path: Path) -> tuple[int, int]:
@@ -90,7 +79,7 @@ def ttl_only(tmp_path_factory):
 @pytest.fixture(scope="module")
 def li_file(tmp_path_factory):
     path = tmp_path_factory.mktemp("lisainstrument") / "measurements.h5"
-    _load_sim_helper().simulate_lisainstrument(path, duration=3600, ttl=True, ttl_coeffs="default", seed=1)
+    simulate_lisainstrument(path, duration=3600, ttl=True, ttl_coeffs="default", seed=1)
     return path
 
 

@@ -1,7 +1,6 @@
 """The TTL coefficient fit against truth: exactness, errors in variables, the paper's scenario,
 lisainstrument data, and the fit's statistics (chi^2 of the normalised errors)."""
 
-import importlib.util
 import sys
 from pathlib import Path
 
@@ -18,19 +17,10 @@ from ttlcore.simulator import NoiseSwitches, SimulationConfig, simulate
 from ttlcore.spectra import log_average
 from ttlcore.tdi_data import compute_tdi, compute_tdi_arrays
 from ttlcore.telemetry import read_telemetry
+from lisainstrument_sim import simulate_lisainstrument
 
 HOUR = 3600.0
 MM = 1e3  # m/rad -> mm/rad
-
-
-def _lisainstrument_sim():
-    name = "lisainstrument_sim"  # loaded by path: tests/ttlcore would shadow ttlcore on sys.path
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parents[1] / f"{name}.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name].simulate_lisainstrument
 
 
 def _fit(tm, settings=None, method="gls"):
@@ -59,7 +49,7 @@ def test_exact_recovery_on_lisainstrument_hour(tmp_path):
     # decimated 4-Hz DWS readouts; the two agree to ~3e-8 below 0.5 Hz but only to 1e-6 at
     # 1 Hz and 1 % at 1.5 Hz, where order-31 interpolation at 4 Hz runs out of accuracy.
     path = tmp_path / "ttl-only.h5"
-    _lisainstrument_sim()(path, duration=3600, orbits="static", ttl=True, jitter=True, dws_noise=False, laser=False,
+    simulate_lisainstrument(path, duration=3600, orbits="static", ttl=True, jitter=True, dws_noise=False, laser=False,
                           oms=False, testmass=False, backlink=False, reciprocal_backlink=False,
                           longitudinal_jitter=False, seed=2)
     tm = read_telemetry(path)
@@ -131,7 +121,7 @@ def test_paper_scenario_eight_seeds():
 @pytest.fixture(scope="module")
 def lisainstrument_day(tmp_path_factory):
     path = tmp_path_factory.mktemp("li-day") / "day.h5"
-    _lisainstrument_sim()(path, duration=DAY, orbits="static", seed=5)
+    simulate_lisainstrument(path, duration=DAY, orbits="static", seed=5)
     return path
 
 

@@ -7,7 +7,6 @@ ranging noise off) is simulated once for the module (about 7 s on 2 cores).
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import shutil
 import sys
@@ -31,21 +30,8 @@ from ttlcore.lisainstrument_files import (
     read_lisainstrument,
 )
 from ttlcore.telemetry import Telemetry, file_kind, read_telemetry, write_telemetry
+from lisainstrument_sim import simulate_lisainstrument
 
-
-def _load_sim_helper():
-    # Load tests/lisainstrument_sim.py by path: putting tests/ on sys.path would make
-    # tests/ttlcore shadow the (editable-installed) ttlcore package as a namespace package.
-    name = "lisainstrument_sim"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).resolve().parents[1] / f"{name}.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
-
-
-simulate_lisainstrument = _load_sim_helper().simulate_lisainstrument
 
 ORDER = 31
 DELAY_ORDER = 5
