@@ -298,8 +298,8 @@ def accumulate(spectra: list[SegmentSpectra], weights: np.ndarray, band_edges, n
     neq = NormalEquations.zeros(names, band_edges, nchan=c)
     d, R = stacked if stacked is not None else stack_spectra(spectra)
     Lh = np.conj(np.swapaxes(np.linalg.cholesky(weights), -1, -2))  # (m, c, c): W = L L^H
-    wd = np.einsum("mij,smj->msi", Lh, d)  # whitened, bins first
-    wR = np.einsum("mij,smjp->msip", Lh, R)
+    wd = np.swapaxes(np.matmul(Lh, d[..., None])[..., 0], 0, 1)  # whitened, bins first: (m, S, c)
+    wR = np.swapaxes(np.matmul(Lh, R), 0, 1)  # (m, S, c, P)
     G = len(band_edges) - 1
     same = None
     if eiv_response is not None and dws_psd is not None:
@@ -458,7 +458,8 @@ class FitSettings:
     robust_covariance: bool = True
     eiv: bool = True
     iterations: int = 10
-    tol: float = 1e-3
+    #: stop iterating when no coefficient moves by more than this many sigma
+    tol: float = 1e-2
     n_bands: int = 8
     #: DWS readout noise [rad/sqrt(Hz)] for the errors-in-variables term; None: the paper's
     #: level (``ttl analyze`` fills it from the telemetry, see :func:`dws_asd_from_config`)
