@@ -1,0 +1,509 @@
+"""Offline inspection of a run from its recordings: ``ttl inspect`` and ``ttl view``.
+
+``ttl inspect recordings/NAME [--json]``
+    From the MCAP files alone (``<stage>.mcap``, and ``<stage>.<n>.mcap`` kept by restarts,
+    oldest ``.1``): which stages ran; the segments each produced and received per topic,
+    with missing and duplicate indices; the coefficients and their trends with
+    uncertainties (the fitter's fit JSON, ``fit/summary``, schema ``ttl.Fit``); the
+    monitor's alerts; the errors of every stage; and interruptions: files without footer
+    (the process was killed; the reader salvages them), segments whose payload never made
+    it to disk, a stage's restarts, a recording that ends without a ``stop`` event.
+    Works on a run whose stages were killed.  ``--json``: the same as one JSON object
+    (:func:`inspect_run`).
+``ttl view recordings/NAME [--print]``
+    Opens ``monitor.rrd`` in the ``rerun`` viewer binary with ``--bind 127.0.0.1`` (its
+    gRPC server listens on loopback only; no web server is started); ``--print`` only
+    prints the command.
+
+Errors (no such directory, no recordings, no ``monitor.rrd``, no ``rerun`` binary) are one
+line naming the file or directory at fault (``ttl`` exits with status 2).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import re
+import shlex
+import subprocess
+import sys
+from collections import Counter, defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from .recorder import Recording, RecordingError, read_recording
+
+#: The pipeline's stages, in order (names of their recordings).
+KNOWN_STAGES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
+_FILE = re.compile(r"^(?P<stage>.+?)(?:\.(?P<n>\d+))?\.mcap$")
+#: Span of the drift rate in the report [days] (ttlcore.trends.TrendSettings.drift_lookback).
+LOOKBACK_DAYS = 3.0
+#: Errors listed in full by the text report (the rest are counted).
+MAX_LISTED = 20
+
+
+class InspectError(ValueError):
+    """The run cannot be inspected (message names the file or directory)."""
+
+
+# ---------------------------------------------------------------------------- reading
+
+def _ranges(indices) -> list[list[int]]:
+    out: list[list[int]] = []
+    for i in sorted(set(indices)):
+        if out and i == out[-1][1] + 1:
+            out[-1][1] = i
+        else:
+            out.append([i, i])
+    return out
+
+
+def _fmt_ranges(ranges) -> str:
+    if not ranges:
+        return "-"
+    return ",".join(f"{a}" if a == b else f"{a}-{b}" for a, b in ranges)
+
+
+def recording_files(run_dir) -> dict[str, list[Path]]:
+    """Stage -> its MCAP files, oldest first (``<stage>.1.mcap``, ``.2``, ..., ``<stage>.mcap``).
+
+    Raises
+    ------
+    InspectError
+        If ``run_dir`` is not a directory or holds no ``.mcap`` file.
+    """
+    run_dir = Path(run_dir)
+    if not run_dir.exists():
+        raise InspectError(f"{run_dir}: no such run directory")
+    if not run_dir.is_dir():
+        raise InspectError(f"{run_dir}: not a directory (give recordings/<run>)")
+    by_stage: dict[str, list[tuple[int, Path]]] = defaultdict(list)
+    for path in run_dir.iterdir():
+        m = _FILE.match(path.name)
+        if m and path.is_file():
+            n = int(m.group("n")) if m.group("n") else math.inf  # the current file is the newest
+            by_stage[m.group("stage")].append((n, path))
+    if not by_stage:
+        raise InspectError(f"{run_dir}: no MCAP recordings (*.mcap) in this directory")
+    order = {s: i for i, s in enumerate(KNOWN_STAGES)}
+    return {stage: [p for _, p in sorted(files, key=lambda x: x[0])]
+            for stage, files in sorted(by_stage.items(), key=lambda kv: (order.get(kv[0], 99), kv[0]))}
+
+
+def _file_summary(path: Path, stage: str) -> tuple[dict, Recording | None]:
+    try:
+        rec = read_recording(path)
+    except RecordingError as exc:
+        return {"file": path.name, "readable": False, "complete": False, "problem": str(exc), "records": 0}, None
+    events = rec.json("events")
+    kinds = Counter(e.get("kind") for e in events if isinstance(e, dict))
+    times = [e.get("time") for e in events if isinstance(e, dict) and isinstance(e.get("time"), (int, float))]
+    meta = rec.metadata.get("ttl", {})
+    info = {"file": path.name, "readable": True, "complete": rec.complete, "problem": rec.problem,
+            "records": rec.records, "run": meta.get("run"), "stage": meta.get("stage", stage),
+            "started": min(times) if times else None, "last_event": max(times) if times else None,
+            "stopped": "stop" in kinds, "completed": "complete" in kinds, "events": dict(kinds),
+            "incomplete_segments": [{"topic": m.topic, "index": (m.data or {}).get("index")}
+                                    for m in rec.messages if m.kind == "incomplete"],
+            "invalid_messages": [{"topic": m.topic, "error": m.error} for m in rec.messages if m.kind == "invalid"]}
+    return info, rec
+
+
+def _segment_table(per_file: list[dict[str, list[int]]]) -> dict:
+    """Topic -> count, indices, duplicates (within and across files), from per-file index lists."""
+    out = {}
+    for topic in sorted({t for f in per_file for t in f}):
+        all_idx = [i for f in per_file for i in f.get(topic, [])]
+        counts = Counter(all_idx)
+        out[topic] = {"count": len(all_idx), "distinct": len(counts), "indices": _ranges(counts),
+                      "duplicates": sorted(i for i, c in counts.items() if c > 1)}
+    return out
+
+
+def _stage_report(stage: str, files: list[Path]) -> tuple[dict, list[Recording]]:
+    infos, recs = [], []
+    outputs: list[dict[str, list[int]]] = []
+    inputs: list[dict[str, list[int]]] = []
+    totals = set()
+    for path in files:
+        info, rec = _file_summary(path, stage)
+        infos.append(info)
+        if rec is None:
+            continue
+        recs.append(rec)
+        name = info["stage"] or stage
+        out_f: dict[str, list[int]] = defaultdict(list)
+        in_f: dict[str, list[int]] = defaultdict(list)
+        for m in rec.messages:
+            if m.kind == "segment":
+                (out_f if m.header.producer == name else in_f)[m.topic].append(m.header.index)
+                t = m.header.meta.get("segments_total") if isinstance(m.header.meta, dict) else None
+                if isinstance(t, int) and t > 0:
+                    totals.add(t)
+            elif m.kind == "json" and m.topic.endswith("/input") and isinstance(m.data, dict) \
+                    and isinstance(m.data.get("index"), int):  # input headers recorded as JSON
+                in_f[m.topic[: -len("/input")]].append(m.data["index"])
+        outputs.append(out_f)
+        # inputs recorded both as segments and as header JSON count once per file
+        inputs.append({t: sorted(set(v)) for t, v in in_f.items()})
+    report = {"files": infos, "restarts": max(0, len(files) - 1),
+              "outputs": _segment_table(outputs), "inputs": _segment_table(inputs),
+              "errors": sum(len(r.json("errors")) for r in recs),
+              "segments_total": max(totals) if totals else None}
+    return report, recs
+
+
+def _fits(recs: list[Recording]) -> list[dict]:
+    """The fits of the fitter's recordings, one per index (a later file's fit wins)."""
+    fits: dict[int, dict] = {}
+    for rec in recs:
+        summaries = [d for d in rec.json("fit/summary") if isinstance(d, dict) and isinstance(d.get("index"), int)]
+        if summaries:
+            for d in summaries:
+                fit = d.get("fit") if isinstance(d.get("fit"), dict) else {}
+                names = d.get("names") or fit.get("names")
+                coeffs, sigma = d.get("coefficients"), d.get("sigma")
+                if isinstance(coeffs, dict):  # FitResult.to_json layout
+                    coeffs = [coeffs[n] for n in names]
+                if isinstance(sigma, dict):
+                    sigma = [sigma[n] for n in names]
+                window = fit.get("window", {}) if isinstance(fit.get("window"), dict) else {}
+                fits[d["index"]] = {
+                    "index": d["index"], "names": list(names or []),
+                    "t_start": d.get("t_start", window.get("t_start")),
+                    "t_stop": d.get("t_end", d.get("t_stop", window.get("t_stop"))),
+                    "chi2_dof": d.get("chi2_dof", fit.get("chi2_dof")),
+                    "converged": fit.get("converged", d.get("converged")),
+                    "coefficients": coeffs, "sigma": sigma}
+        else:  # no summaries: the fit segments themselves
+            for m in rec.segments("fit"):
+                a, meta = m.arrays, m.header.meta
+                if "coefficients" not in a:
+                    continue
+                fits[m.header.index] = {
+                    "index": m.header.index, "names": list(meta.get("names") or []),
+                    "t_start": meta.get("t_start"), "t_stop": meta.get("t_stop"),
+                    "chi2_dof": meta.get("chi2_dof"), "converged": meta.get("converged"),
+                    "coefficients": a["coefficients"].tolist(),
+                    "sigma": a["sigma"].tolist() if "sigma" in a else None}
+    good = []
+    for f in sorted(fits.values(), key=lambda f: f["index"]):
+        try:
+            c = np.asarray(f["coefficients"], dtype=float)
+            s = np.asarray(f["sigma"], dtype=float) if f["sigma"] is not None else np.full(c.shape, np.nan)
+        except (TypeError, ValueError):
+            continue
+        if c.ndim == 1 and c.shape == s.shape and c.size:
+            good.append(f)
+    return good
+
+
+def _trends(fits: list[dict]) -> dict:
+    """Per coefficient: latest value and sigma, range, and the GLS drift rate of ttlcore.trends [mm/rad]."""
+    if not fits:
+        return {}
+    names = fits[-1]["names"] or [f"c{i}" for i in range(len(fits[-1]["coefficients"]))]
+    same = [f for f in fits if len(f["coefficients"]) == len(names)]
+    C = np.array([f["coefficients"] for f in same], dtype=float) * 1e3
+    S = np.array([f["sigma"] for f in same], dtype=float) * 1e3
+    out = {n: {"latest": float(C[-1, p]), "sigma": float(S[-1, p]), "first": float(C[0, p]),
+               "min": float(np.nanmin(C[:, p])), "max": float(np.nanmax(C[:, p])),
+               "rate": None, "rate_se": None, "significance": None}
+           for p, n in enumerate(names)}
+    windows = [(f["t_start"], f["t_stop"]) for f in same]
+    ok = all(isinstance(a, (int, float)) and isinstance(b, (int, float)) and b > a for a, b in windows)
+    if ok and len(same) >= 3 and np.all(np.isfinite(S)):
+        try:
+            from ttlcore.trends import TrendSettings, trend_estimates
+
+            te = np.array([b for _, b in windows])
+            order = np.argsort(te, kind="stable")
+            keep = order[np.concatenate([[True], np.diff(te[order]) > 0])]
+            est = trend_estimates(te[keep], C[keep], S[keep], t_start=np.array([a for a, _ in windows])[keep],
+                                  names=names, units="mm/rad", settings=TrendSettings(drift_min_windows=3,
+                                                                                     drift_lookback=LOOKBACK_DAYS * 86400.0))
+            for p, n in enumerate(names):
+                if np.isfinite(est.rate[p]):
+                    out[n].update(rate=float(est.rate[p]), rate_se=float(est.se[p]),
+                                  significance=float(est.significance[p]))
+        except ValueError:
+            pass
+    return out
+
+
+def inspect_run(run_dir) -> dict:
+    """Everything ``ttl inspect`` reports, as a JSON-ready dict.
+
+    Keys: ``run``, ``directory``, ``stages`` (stage -> files, restarts, outputs and inputs
+    per topic with counts, index ranges, missing and duplicate indices, error count),
+    ``stages_missing`` (pipeline stages without a recording), ``segments_total``,
+    ``fits`` (count, index range, the table of fits in m/rad and ``trends`` per
+    coefficient in mm/rad and mm/rad/day), ``alerts`` (the monitor's), ``errors`` (all
+    stages'), ``interruptions``.
+
+    Raises
+    ------
+    InspectError
+        If ``run_dir`` is not a run directory.
+    """
+    run_dir = Path(run_dir)
+    files = recording_files(run_dir)
+    stages, recs_of = {}, {}
+    for stage, paths in files.items():
+        stages[stage], recs_of[stage] = _stage_report(stage, paths)
+    totals = [s["segments_total"] for s in stages.values() if s["segments_total"]]
+    total = max(totals) if totals else None
+    for s in stages.values():
+        for table in (s["outputs"], s["inputs"]):
+            for t in table.values():
+                seen = {i for a, b in t["indices"] for i in range(a, b + 1)}
+                top = (total - 1) if total else (max(seen) if seen else -1)
+                t["missing"] = _ranges(set(range(top + 1)) - seen)
+    runs = sorted({f.get("run") for s in stages.values() for f in s["files"] if f.get("run")})
+
+    errors = []
+    for stage, recs in recs_of.items():
+        for rec in recs:
+            for e in rec.json("errors"):
+                if isinstance(e, dict):
+                    errors.append({"stage": e.get("stage", stage), "file": rec.path.name, "kind": e.get("kind"),
+                                   "index": e.get("index"), "field": e.get("field"), "key": e.get("key"),
+                                   "message": e.get("message"), "time": e.get("time")})
+    alerts = [{**a, "file": rec.path.name} for stage, recs in recs_of.items() for rec in recs
+              for a in rec.json("alerts") if isinstance(a, dict)]
+
+    interruptions = []
+    for stage, s in stages.items():
+        names = [f["file"] for f in s["files"]]
+        if s["restarts"]:
+            interruptions.append({"stage": stage, "kind": "restart", "files": names,
+                                  "message": f"{stage} ran {len(names)} times (recordings {', '.join(names)})"})
+        for f in s["files"]:
+            if not f["readable"]:
+                interruptions.append({"stage": stage, "kind": "unreadable", "file": f["file"], "message": f["problem"]})
+                continue
+            if not f["complete"]:
+                interruptions.append({"stage": stage, "kind": "unfinished", "file": f["file"],
+                                      "message": f"{f['file']} was not closed (process killed?): salvaged "
+                                                 f"{f['records']} records; {f['problem']}"})
+            elif not f["stopped"]:
+                interruptions.append({"stage": stage, "kind": "no-stop", "file": f["file"],
+                                      "message": f"{f['file']} is closed but has no 'stop' event"})
+            for seg in f["incomplete_segments"]:
+                interruptions.append({"stage": stage, "kind": "incomplete-segment", "file": f["file"],
+                                      "message": f"{f['file']}: {seg['topic']} segment {seg['index']} has a header "
+                                                 "but no payload (cut off while writing)"})
+
+    fits = _fits(recs_of.get("fitter", []))
+    fit_report = {"count": len(fits), "indices": _ranges(f["index"] for f in fits),
+                  "names": fits[-1]["names"] if fits else [], "units": "m/rad",
+                  "table": [{k: f[k] for k in ("index", "t_start", "t_stop", "chi2_dof", "converged",
+                                               "coefficients", "sigma")} for f in fits],
+                  "trends": _trends(fits), "trend_units": {"values": "mm/rad", "rate": "mm/rad/day"}}
+    return {"run": runs[0] if len(runs) == 1 else (runs or [run_dir.name]), "directory": str(run_dir),
+            "stages": stages, "stages_missing": [s for s in KNOWN_STAGES if s not in stages],
+            "segments_total": total, "fits": fit_report, "alerts": alerts, "errors": errors,
+            "interruptions": interruptions}
+
+
+# ---------------------------------------------------------------------------- text
+
+def _topics_text(table: dict) -> str:
+    parts = []
+    for topic, t in table.items():
+        extra = ""
+        if t["missing"]:
+            extra += f" missing {_fmt_ranges(t['missing'])}"
+        if t["duplicates"]:
+            extra += f" dup {_fmt_ranges(_ranges(t['duplicates']))}"
+        parts.append(f"{topic} {t['distinct']} [{_fmt_ranges(t['indices'])}]{extra}")
+    return "; ".join(parts) or "-"
+
+
+def _days(t) -> str:
+    return f"{round(t / 86400.0, 3) + 0.0:.3f}" if isinstance(t, (int, float)) else "?"
+
+
+def _num(x) -> str:
+    return f"{x:.3f}" if isinstance(x, (int, float)) else "?"
+
+
+def format_report(r: dict) -> str:
+    """The text of ``ttl inspect``."""
+    lines = []
+    run = r["run"] if isinstance(r["run"], str) else ", ".join(r["run"])
+    total = f", {r['segments_total']} segments expected" if r["segments_total"] else ""
+    lines.append(f"run {run} ({r['directory']}): {len(r['stages'])} stage(s) recorded{total}")
+    if r["stages_missing"]:
+        lines.append(f"  no recording of: {', '.join(r['stages_missing'])}")
+    lines.append("")
+    lines.append("Stages")
+    for stage, s in r["stages"].items():
+        state = []
+        files = s["files"]
+        if s["restarts"]:
+            state.append(f"restarted {s['restarts']}x")
+        if any(not f["complete"] for f in files):
+            state.append("unfinished file")
+        if files and files[-1].get("completed"):
+            state.append("complete")
+        if files and files[-1].get("stopped"):
+            state.append("stopped")
+        lines.append(f"  {stage:<12} {len(files)} file(s)  errors {s['errors']}  {', '.join(state) or 'running or killed'}")
+        lines.append(f"  {'':<12} out: {_topics_text(s['outputs'])}")
+        if s["inputs"]:
+            lines.append(f"  {'':<12} in:  {_topics_text(s['inputs'])}")
+
+    f = r["fits"]
+    lines.append("")
+    if f["count"]:
+        last = f["table"][-1]
+        lines.append(f"Coefficient trends (fitter fit JSON: {f['count']} fits [{_fmt_ranges(f['indices'])}], "
+                     f"last window {_days(last['t_start'])}..{_days(last['t_stop'])} d, "
+                     f"chi2/dof {_num(last['chi2_dof'])})")
+        lines.append(f"  {'coefficient':<12} {'latest [mm/rad]':>19} {'first':>8} {'min':>8} {'max':>8} "
+                     f"{'rate [mm/rad/day]':>22}   (rate: GLS line over the last {LOOKBACK_DAYS:g} d of fits)")
+        for name, t in f["trends"].items():
+            rate = (f"{t['rate']:+8.4f} ± {t['rate_se']:.4f}" + (" *" if abs(t["significance"]) >= 5 else "  ")
+                    if t["rate"] is not None else f"{'-':>20}")
+            lines.append(f"  {name:<12} {t['latest']:+9.4f} ± {t['sigma']:.4f} {t['first']:+8.4f} "
+                         f"{t['min']:+8.4f} {t['max']:+8.4f} {rate:>22}")
+        lines.append("  (* rate significant at 5 sigma with the overlap covariance of the rolling windows)")
+    else:
+        lines.append("Coefficient trends: no fits recorded")
+
+    lines.append("")
+    lines.append(f"Alerts (monitor): {len(r['alerts'])}")
+    for a in r["alerts"]:
+        lines.append(f"  [{a.get('kind')}] {a.get('message')}")
+
+    lines.append("")
+    lines.append(f"Errors: {len(r['errors'])}")
+    by = Counter((e["stage"], e["kind"]) for e in r["errors"])
+    if by:
+        lines.append("  " + ", ".join(f"{stage} {kind} x{n}" for (stage, kind), n in sorted(by.items())))
+    for e in r["errors"][:MAX_LISTED]:
+        where = f" segment {e['index']}" if e["index"] is not None else ""
+        field = f" field {e['field']!r}" if e["field"] else ""
+        lines.append(f"  {e['stage']} {e['kind']}{where}{field}: {e['message']}")
+    if len(r["errors"]) > MAX_LISTED:
+        lines.append(f"  ... {len(r['errors']) - MAX_LISTED} more (--json for all)")
+
+    lines.append("")
+    lines.append(f"Interruptions: {len(r['interruptions'])}")
+    for i in r["interruptions"]:
+        lines.append(f"  {i['stage']}: {i['kind']}: {i['message']}")
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------- view
+
+def rerun_binary(explicit: str | None = None) -> str:
+    """The ``rerun`` executable itself (not the pip wrapper script, which would leave it
+    orphaned when stopped): ``explicit``, ``$RERUN_CLI_PATH``, the one bundled with
+    rerun-sdk (``rerun_cli``), else ``rerun`` on PATH.
+
+    Raises
+    ------
+    FileNotFoundError
+        If there is none.
+    """
+    import os
+    import shutil
+
+    if explicit:
+        return str(explicit)
+    if os.environ.get("RERUN_CLI_PATH"):
+        return os.environ["RERUN_CLI_PATH"]
+    try:
+        import rerun_cli
+
+        base = Path(rerun_cli.__file__).parent
+        for candidate in (base / "Rerun.app" / "Contents" / "MacOS" / "Rerun", base / "rerun", base / "rerun.exe"):
+            if candidate.exists():
+                return str(candidate)
+    except ImportError:
+        pass
+    found = shutil.which("rerun")
+    if not found:
+        raise FileNotFoundError("rerun: the Rerun viewer binary is not installed (pip install rerun-sdk)")
+    return found
+
+
+def view_command(target, binary: str | None = None) -> list[str]:
+    """The ``rerun`` command that opens a run's ``monitor.rrd`` bound to 127.0.0.1.
+
+    ``target`` is a run directory (its ``monitor.rrd``) or an ``.rrd`` file.
+
+    Raises
+    ------
+    InspectError
+        If there is no recording to open; FileNotFoundError if there is no viewer binary.
+    """
+    target = Path(target)
+    if target.is_dir():
+        rrd = target / "monitor.rrd"
+        if not rrd.exists():
+            older = sorted(target.glob("monitor*.rrd"))
+            if not older:
+                raise InspectError(f"{target}: no monitor.rrd in this run directory (did the monitor run?)")
+            rrd = older[-1]
+    elif target.exists():
+        if target.suffix != ".rrd":
+            raise InspectError(f"{target}: not a Rerun recording (.rrd) nor a run directory")
+        rrd = target
+    else:
+        raise InspectError(f"{target}: no such run directory or .rrd file")
+    binary = binary or rerun_binary()
+    # --bind: the viewer's own gRPC server listens on loopback only; --new: a new viewer on a free port
+    return [binary, "--bind", "127.0.0.1", "--new", str(rrd)]
+
+
+# ---------------------------------------------------------------------------- command line
+
+def _cmd_inspect(args) -> int:
+    import logging
+
+    # the reader's "salvaged ..." warnings are part of the report (interruptions)
+    reader_log = logging.getLogger("streamer.recorder")
+    level = reader_log.level
+    if not getattr(args, "verbose", 0):
+        reader_log.setLevel(logging.ERROR)
+    try:
+        report = inspect_run(args.run_dir)
+    finally:
+        reader_log.setLevel(level)
+    if args.json:
+        from .recorder import to_jsonable
+
+        print(json.dumps(to_jsonable(report), indent=1, allow_nan=False))
+    else:
+        print(format_report(report))
+    return 0
+
+
+def _cmd_view(args) -> int:
+    cmd = view_command(args.run_dir)
+    if args.print:
+        print(shlex.join(cmd))
+        return 0
+    return subprocess.call(cmd)
+
+
+def register(sub) -> None:
+    """Add ``inspect`` and ``view`` to the ``ttl`` subcommands."""
+    p = sub.add_parser("inspect", help="summarise a run from its MCAP recordings",
+                       description="Which stages ran, the segments each produced and received (missing, "
+                                   "duplicates), coefficient trends with uncertainties, the monitor's alerts, "
+                                   "errors, and interruptions (killed or restarted stages), from "
+                                   "recordings/<run>/*.mcap alone.")
+    p.add_argument("run_dir", metavar="recordings/NAME", help="run directory")
+    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.set_defaults(func=_cmd_inspect)
+    p = sub.add_parser("view", help="open a run's monitor.rrd in the Rerun viewer (bound to 127.0.0.1)",
+                       description="Open recordings/<run>/monitor.rrd (or an .rrd file) in the rerun viewer "
+                                   "binary, its server bound to 127.0.0.1 only.")
+    p.add_argument("run_dir", metavar="recordings/NAME", help="run directory or .rrd file")
+    p.add_argument("--print", action="store_true", help="only print the viewer command")
+    p.set_defaults(func=_cmd_view)

@@ -1,0 +1,324 @@
+"""The monitor stage in a child process against crafted messages on a loopback Zenoh session.
+
+This process publishes telemetry, TDI, fit and residual segments the way the pipeline
+stages do (part of them before the monitor starts: it must draw what the publishers'
+caches still hold), plus malformed ones; then reads ``monitor.rrd`` back with Rerun's
+RRD reader and the MCAP recording with :func:`streamer.recorder.read_recording`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import queue
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+import pytest
+
+from ttl_testutil import finish, output, wait_for  # noqa: F401  (also puts the project first on sys.path)
+
+from streamer.codec import decode, encode
+from streamer.keys import control_key, topic_pattern
+from streamer.recorder import read_recording
+from streamer.session import Bus, SessionSettings, free_port
+from streamer.stage import StageConfig
+
+from ttlcore.conventions import C, COEFFICIENT_NAMES, LINKS, MOSAS
+from ttlcore.truth import CORE_DATASETS, TruthWriter
+
+RUN = "monitor-test"
+HOUR = 3600.0
+FS = 4.0
+N_SAMPLES = 7200            # half-hour segments keep the test light; the monitor takes any length
+N_FITS = 36
+STEP_COEF = "23.phi.tx"
+STEP_FIT = 20               # the step enters the window of fit 20
+STEP = 0.3e-3               # [m/rad]
+SIGMA = 0.01e-3             # per-window uncertainty of a full window [m/rad]
+TRUTH_FS = 1 / 60.0
+
+
+def truth_coefficients(t):
+    """True coefficients [m/rad] at times ``t`` (24, n): constant, with a step at ``STEP_FIT`` h."""
+    base = np.linspace(-2e-3, 2e-3, 24)[:, None] * np.ones(np.size(t))
+    base[COEFFICIENT_NAMES.index(STEP_COEF)] += STEP * (np.asarray(t) >= STEP_FIT * HOUR)
+    return base
+
+
+def write_truth(path: Path, hours: int) -> Path:
+    size = int(hours * HOUR * TRUTH_FS)
+    t = np.arange(size) / TRUTH_FS
+    w = TruthWriter(path, t0=0.0, fs=TRUTH_FS, size=size, config={"test": True})
+    for name, (rows, _) in CORE_DATASETS.items():
+        w.append(name, truth_coefficients(t) if name == "coefficients" else np.zeros((len(rows), size)))
+    return w.close()
+
+
+def rolling_fits(seed=0):
+    """Hourly fits of growing then one-day windows over hourly segments: (t_start, t_stop, C, S)."""
+    rng = np.random.default_rng(seed)
+    seg_truth = np.array([truth_coefficients(np.arange(60) * 60.0 + h * HOUR).mean(axis=1) for h in range(N_FITS)])
+    seg = seg_truth + rng.normal(0.0, SIGMA * math.sqrt(24), seg_truth.shape)
+    out = []
+    for k in range(N_FITS):
+        a = max(0, k - 23)
+        n = k + 1 - a
+        out.append((a * HOUR, (k + 1) * HOUR, seg[a:k + 1].mean(axis=0), np.full(24, SIGMA * math.sqrt(24 / n))))
+    return out
+
+
+def message(topic, index, arrays, meta, t0=None, fs=FS):
+    fields = {"run": RUN, "index": index, "t0": index * HOUR if t0 is None else t0, "fs": fs, "producer": "driver",
+              "meta": meta}
+    if topic in ("tdi", "residual"):
+        fields.update(channels=["X2", "Y2", "Z2"], channel_axis=0)
+    return encode(arrays, fields, allow_nonfinite=True)
+
+
+class Driver:
+    def __init__(self, truth: Path):
+        self.port = free_port()
+        self.bus = Bus.open(SessionSettings(listen=(f"tcp/127.0.0.1:{self.port}",)))
+        self.pubs = {t: self.bus.segment_publisher(RUN, t, cache=64) for t in ("telemetry", "tdi", "fit", "residual")}
+        self.monitor: queue.Queue = queue.Queue()
+        self.errors: list = []
+        self.bus.segment_subscriber(topic_pattern(RUN, "monitor"), lambda s: self.monitor.put(
+            decode(s.payload.to_bytes(), s.attachment.to_bytes(), key=str(s.key_expr))), history=0)
+        self.bus.subscriber(f"ttl/{RUN}/errors/*", lambda s: self.errors.append(json.loads(s.payload.to_bytes())))
+        self.truth = truth
+        self.rng = np.random.default_rng(7)
+        self.fits = rolling_fits()
+
+    def telemetry(self, i):
+        ltt = np.full((6, N_SAMPLES), 2.5e9 / C) + np.arange(6)[:, None] * 1e-3
+        self.pubs["telemetry"].put(i, *message("telemetry", i, {"ltt": ltt}, {
+            "source": "test", "segments_total": N_FITS, "truth": str(self.truth), "segment_duration": N_SAMPLES / FS}))
+
+    def tdi_and_residual(self, i):
+        white = self.rng.normal(0.0, 1e-21, (3, N_SAMPLES))
+        ttl = np.cumsum(self.rng.normal(0.0, 1e-22, (3, N_SAMPLES)), axis=1)
+        data = white + ttl
+        data[:, :40] = np.nan  # the first samples of a stream are NaN
+        self.pubs["tdi"].put(i, *message("tdi", i, {"data": data}, {
+            "names": list(COEFFICIENT_NAMES), "ltt_mean": [2.5e9 / C] * 6, "segments_total": N_FITS}))
+        self.pubs["residual"].put(i, *message("residual", i, {"residual": data - ttl, "ttl_model": ttl}, {
+            "fit_index": i, "segments_total": N_FITS}))
+
+    def fit(self, k, **meta_override):
+        ts, te, c, s = self.fits[k]
+        meta = {"names": list(COEFFICIENT_NAMES), "chi2_dof": 1.0 + 0.01 * k, "t_start": ts, "t_stop": te,
+                "segments": k + 1, "band": [3e-3, 0.9], "converged": True, **meta_override}
+        arrays = {"coefficients": c, "sigma": s, "covariance": np.diag(s ** 2)}
+        self.pubs["fit"].put(k, *message("fit", k, arrays, meta, t0=te - HOUR, fs=1 / HOUR))
+
+    def close(self):
+        self.bus.close()
+
+
+def rrd_entities(path: Path) -> dict:
+    """Entity path -> list of (timeline values, {component: value}) rows of the recording store."""
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(path)
+    out: dict = {}
+    for chunk in reader.stream():
+        rb = chunk.to_record_batch()
+        cols = [n for n in rb.schema.names if ":" in n]
+        for r in range(rb.num_rows):
+            times = {t: rb.column(t)[r].as_py() for t in ("mission_time", "segment") if t in rb.schema.names}
+            out.setdefault(chunk.entity_path, []).append((times, {c: rb.column(c)[r].as_py() for c in cols}))
+    return out
+
+
+def blueprint_views(path: Path) -> list[tuple[str, str]]:
+    from rerun.chunk import RrdReader
+
+    reader = RrdReader(path)
+    views = []
+    for chunk in reader.stream(store=reader.blueprints()[0]):
+        rb = chunk.to_record_batch()
+        if "ViewBlueprint:class_identifier" in rb.schema.names:
+            cls = rb.column("ViewBlueprint:class_identifier").to_pylist()[0]
+            origin = rb.column("ViewBlueprint:space_origin").to_pylist()[0]
+            views.append((cls[0] if isinstance(cls, list) else cls, origin[0] if isinstance(origin, list) else origin))
+    return views
+
+
+@pytest.fixture
+def driver(tmp_path):
+    d = Driver(write_truth(tmp_path / "day.truth.h5", hours=N_FITS + 2))
+    yield d
+    d.close()
+
+
+def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
+    t_begin = time.monotonic()
+    # before the monitor starts: the first segment and ten fits (from the publishers' caches)
+    driver.telemetry(0)
+    driver.tdi_and_residual(0)
+    for k in range(10):
+        driver.fit(k)
+
+    config = StageConfig(run=RUN, zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
+                         recordings=tmp_path / "rec", history=64, poll_interval=0.05)
+    cfg = tmp_path / "monitor.json"
+    cfg.write_text(json.dumps(config.to_dict()))
+    proc = procs.stage("monitor", "--config", cfg)
+    wait_for(lambda: "monitor" in driver.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
+             60, "the monitor's liveliness token")
+    assert proc.poll() is None, output(proc)
+    tcp = [c for c in psutil.Process(proc.pid).net_connections(kind="inet") if c.status == psutil.CONN_LISTEN]
+    assert all(c.laddr.ip == "127.0.0.1" for c in tcp), tcp
+
+    first = driver.monitor.get(timeout=30)  # segment 0 came from the cache
+    assert first[0].index == 0 and first[0].producer == "monitor"
+    for i in (1, 2):
+        driver.telemetry(i)
+        driver.tdi_and_residual(i)
+    for k in range(10, N_FITS):
+        driver.fit(k)
+        time.sleep(0.01)
+    # malformed messages: rejected or failed, reported, and the monitor goes on
+    bad = message("fit", 40, {"coefficients": np.zeros(23), "sigma": np.zeros(23)}, {})
+    driver.pubs["fit"].put(40, *bad)
+    driver.fit(5, t_start=None)  # index 5 again (duplicate: ignored by the base)
+    ts, te, c, s = driver.fits[-1]
+    no_window = message("fit", 41, {"coefficients": c, "sigma": s}, {"names": list(COEFFICIENT_NAMES)})
+    driver.pubs["fit"].put(41, *no_window)
+
+    last = N_FITS - 1
+    driver.tdi_and_residual(last)  # the status of the last segment carries the alerts raised since
+    statuses = [first] + [driver.monitor.get(timeout=30) for _ in range(3)]
+    assert sorted(h.index for h, _ in statuses) == [0, 1, 2, last]
+    def reported():
+        return {(e["kind"], e["index"]) for e in driver.errors if e["stage"] == "monitor"} >= {
+            ("rejected", 40), ("failed", 41)}
+    wait_for(reported, 30, "the two error reports")
+    errors = [(e["kind"], e["index"], e["field"]) for e in driver.errors if e["stage"] == "monitor"]
+    assert ("rejected", 40, "arrays[coefficients].shape") in errors
+    assert any(kind == "failed" and index == 41 for kind, index, _ in errors), errors
+    rec_dir = tmp_path / "rec" / RUN
+
+    def fits_recorded():
+        return len(read_recording(rec_dir / "monitor.mcap").segments("fit")) >= N_FITS
+    wait_for(fits_recorded, 30, "every fit received")
+    time.sleep(0.5)
+    driver.bus.session.put(control_key(RUN, "stop"), b"")
+    assert finish(proc, 30) == 0, output(proc)
+
+    # ---- the MCAP recording: alerts as JSON, monitor messages, errors
+    rec = read_recording(rec_dir / "monitor.mcap")
+    assert rec.complete
+    alerts = rec.json("alerts")
+    steps = [a for a in alerts if a["kind"] == "step"]
+    assert [a["coefficient"] for a in steps] == [STEP_COEF], alerts
+    assert abs(steps[0]["t"] - STEP_FIT * HOUR) <= 3 * HOUR and steps[0]["units"] == "mm/rad"
+    assert steps[0]["value"] == pytest.approx(STEP * 1e3, abs=0.15)
+    assert [s.header.index for s in rec.segments("monitor")] == [0, 1, 2, last]
+    summaries = rec.json("monitor/summary")
+    assert summaries[-1]["index"] == last and summaries[-1]["fit"]["index"] == last
+    assert summaries[-1]["drift_windows"] >= N_FITS - 1
+    status, arrays = next((h, a) for h, a in statuses if h.index == last)
+    assert [a["coefficient"] for a in status.meta["alerts"] if a["kind"] == "step"] == [STEP_COEF]
+    assert arrays["drift_rate"].shape == (24,) and status.meta["drifting"] == []
+    assert {e["kind"] for e in rec.json("errors")} >= {"rejected", "failed"}
+    assert ("duplicate", 5) in [(e["kind"], e["index"]) for e in rec.json("events")]
+
+    # ---- the Rerun recording
+    rrd = rec_dir / "monitor.rrd"
+    ent = rrd_entities(rrd)
+    fit_rows = [row for row in ent["/coefficients/23/phi_tx/fit"] if "Scalars:scalars" in row[1]]
+    assert len(fit_rows) == N_FITS
+    by_time = {row[0]["segment"]: row[1]["Scalars:scalars"][0] for row in fit_rows}
+    p = COEFFICIENT_NAMES.index(STEP_COEF)
+    for k, (ts, te, c, s) in enumerate(driver.fits):
+        assert by_time[k] == pytest.approx(c[p] * 1e3)  # mm/rad
+    upper = {row[0]["segment"]: row[1]["Scalars:scalars"][0] for row in ent["/coefficients/23/phi_tx/plus_sigma"]
+             if "Scalars:scalars" in row[1]}
+    assert upper[N_FITS - 1] == pytest.approx((driver.fits[-1][2][p] + driver.fits[-1][3][p]) * 1e3)
+    # plotted at the centre of the window, on the mission-time timeline
+    centre = next(row[0]["mission_time"] for row in fit_rows if row[0]["segment"] == N_FITS - 1)
+    assert centre.total_seconds() == pytest.approx((driver.fits[-1][0] + driver.fits[-1][1]) / 2)
+    # truth averaged over each fit window (at least for the fits after the truth file was known)
+    truth = {row[0]["segment"]: row[1]["Scalars:scalars"][0] for row in ent["/coefficients/23/phi_tx/truth"]
+             if "Scalars:scalars" in row[1]}
+    assert len(truth) >= N_FITS - 10
+    for k, value in truth.items():
+        ts, te = driver.fits[k][:2]
+        t = np.arange(int(ts * TRUTH_FS), int(te * TRUTH_FS)) / TRUTH_FS
+        assert value == pytest.approx(truth_coefficients(t)[p].mean() * 1e3, abs=1e-9)
+    for mosa in MOSAS:
+        assert f"/coefficients/{mosa}/phi_rx/fit" in ent
+    chi2 = [row for row in ent["/adequacy/chi2_dof"] if "Scalars:scalars" in row[1]]
+    assert len(chi2) == N_FITS
+
+    # ASDs as log10 values vs log10 frequency, for each segment
+    for name in ("data", "residual", "ttl_model", "expected", "requirement"):
+        rows = [row for row in ent[f"/asd/plot/X2/{name}"] if "LineStrips2D:strips" in row[1]]
+        assert sorted(row[0]["segment"] for row in rows) == [0, 1, 2, N_FITS - 1], name
+        strip = np.array(rows[0][1]["LineStrips2D:strips"][0])
+        assert strip.shape[1] == 2 and len(strip) > 20
+        assert -3.5 < strip[0, 0] < -2 and -0.5 < strip[-1, 0] < 0.5  # log10 f
+        assert np.all(np.diff(strip[:, 0]) > 0)
+        assert np.all((strip[:, 1] > -16) & (strip[:, 1] < -6)), (name, strip[:, 1])  # log10 m/sqrt(Hz)
+    data = np.array([row for row in ent["/asd/plot/X2/data"] if "LineStrips2D:strips" in row[1]][0][1]
+                    ["LineStrips2D:strips"][0])
+    # the white fractional-frequency noise is 1/f in displacement: slope -1 in log-log at high f
+    hi = data[:, 0] > -1.5
+    assert np.polyfit(data[hi, 0], data[hi, 1], 1)[0] == pytest.approx(-1.0, abs=0.15)
+    assert "/asd/plot" in ent and "Transform3D:scale" in ent["/asd/plot"][0][1]
+    assert "/asd/plot/grid" in ent and "/asd/plot/ticks" in ent
+    ratio = [row for row in ent["/adequacy/log10_residual_over_expected"] if "Scalars:scalars" in row[1]]
+    assert len(ratio) == 4
+    texts = [row[1]["TextLog:text"][0] for row in ent["/alerts"] if "TextLog:text" in row[1]]
+    assert any("step" in t and STEP_COEF in t for t in texts), texts
+    log_texts = " ".join(row[1]["TextLog:text"][0] for row in ent["/log"] if "TextLog:text" in row[1])
+    assert "truth file" in log_texts and "error from monitor" in log_texts
+
+    views = blueprint_views(rrd)
+    kinds = sorted(k for k, _ in views)
+    assert kinds.count("TimeSeries") == 7 and "2D" in kinds and "TextLog" in kinds, views
+    views = [(k, o.lstrip("/")) for k, o in views]
+    assert ("2D", "asd") in views and ("TimeSeries", "coefficients/23") in views
+    print(f"monitor test: {time.monotonic() - t_begin:.1f} s")
+
+
+def test_monitor_options_are_checked(procs, tmp_path):
+    proc = procs.stage("monitor", "--run", RUN, "--live", "http://0.0.0.0:9090", "--check")
+    assert finish(proc, 60) == 2
+    assert "option live" in output(proc)
+    proc = procs.stage("monitor", "--run", RUN, "--live", "serve", "--check")
+    assert finish(proc, 60) == 0, output(proc)
+    assert "live serve" in output(proc)
+
+
+def test_live_viewer_server_listens_on_loopback_only(procs, tmp_path):
+    """``--live serve``: a headless ``rerun --serve-grpc --bind 127.0.0.1`` beside the file;
+    it goes away with the monitor."""
+    port = free_port()
+    proc = procs.stage("monitor", "--run", RUN, "--recordings", tmp_path / "rec", "--live", "serve",
+                       "--viewer-port", port)
+
+    def server():
+        try:
+            for child in psutil.Process(proc.pid).children(recursive=True):
+                conns = child.net_connections(kind="inet")
+                if any(c.status == psutil.CONN_LISTEN and c.laddr.port == port for c in conns):
+                    return child, conns
+        except psutil.Error:
+            return None
+        return None
+    child, conns = wait_for(server, 60, "the rerun gRPC server")
+    assert "--bind" in child.cmdline() and "127.0.0.1" in child.cmdline()
+    listening = [c for c in conns if c.status == psutil.CONN_LISTEN]
+    assert listening and all(c.laddr.ip == "127.0.0.1" for c in listening), listening
+    rec = tmp_path / "rec" / RUN / "monitor.mcap"
+    wait_for(lambda: rec.exists() and any(e["kind"] == "start" for e in read_recording(rec).json("events")),
+             30, "the monitor's start event")
+    proc.send_signal(2)  # SIGINT
+    assert finish(proc, 30) == 0, output(proc)
+    wait_for(lambda: not child.is_running() or child.status() == psutil.STATUS_ZOMBIE, 10, "the server to stop")
+    assert (tmp_path / "rec" / RUN / "monitor.rrd").exists()

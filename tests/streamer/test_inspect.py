@@ -1,0 +1,264 @@
+"""``ttl inspect`` and ``ttl view`` (streamer.inspect) on recordings of a run.
+
+Most recordings are written with :class:`streamer.recorder.Recorder` exactly as the stage
+base writes them (metadata record, ``events``, input and output segments, ``<topic>/summary``,
+``errors``, the monitor's ``alerts``), including a stage killed mid-write and restarted;
+one test kills and restarts a real stage process (the monitor).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from streamer_testutil import ROOT, wait_for
+
+from streamer.codec import encode
+from streamer.inspect import InspectError, format_report, inspect_run, view_command
+from streamer.recorder import FIT_SCHEMA, Recorder, read_recording
+from ttlcore.cli import main as ttl_main
+from ttlcore.conventions import COEFFICIENT_NAMES
+
+RUN = "r1"
+TOTAL = 6
+HOUR = 3600.0
+
+
+class StageFile:
+    """A recording in the stage base's layout."""
+
+    def __init__(self, run_dir: Path, stage: str, filename: str | None = None):
+        self.stage = stage
+        self.rec = Recorder(run_dir / (filename or f"{stage}.mcap"),
+                            metadata={"run": RUN, "stage": stage, "class": stage.title(), "config": "{}"})
+        self.event("start", message="inputs [...]")
+
+    def event(self, kind, index=None, message="", **details):
+        self.rec.write_json("events", {"run": RUN, "stage": self.stage, "kind": kind, "index": index,
+                                       "message": message, "time": time.time(), "details": details})
+
+    def error(self, kind, index, message, field=None):
+        self.rec.write_json("errors", {"run": RUN, "stage": self.stage, "kind": kind, "index": index,
+                                       "key": f"ttl/{RUN}/x/{index}", "field": field, "message": message,
+                                       "time": time.time(), "details": {}})
+
+    def segment(self, topic, index, arrays, producer=None, **meta):
+        payload, attachment = encode(arrays, {"run": RUN, "index": index, "t0": index * HOUR, "fs": 4.0,
+                                              "producer": producer or self.stage,
+                                              "meta": {"segments_total": TOTAL, **meta}})
+        self.rec.write_segment(topic, json.loads(attachment), payload)
+        return payload
+
+    def close(self, stop=True):
+        if stop:
+            self.event("stop")
+        self.rec.close()
+
+
+def fit_values(i):
+    c = np.linspace(-1e-3, 1e-3, 24) + 2e-5 * i  # every coefficient drifts by 0.02 mm/rad per fit
+    return c, np.full(24, 1e-5)
+
+
+def write_fit(f: StageFile, i):
+    c, s = fit_values(i)
+    f.segment("tdi", i, {"data": np.zeros((3, 8))}, producer="tdi_builder")
+    f.segment("fit", i, {"coefficients": c, "sigma": s, "covariance": np.diag(s ** 2)},
+              t_start=(i - 23) * HOUR, t_stop=(i + 1) * HOUR, names=list(COEFFICIENT_NAMES))
+    f.rec.write_json("fit/summary", {"run": RUN, "index": i, "names": list(COEFFICIENT_NAMES),
+                                     "coefficients": c, "sigma": s, "chi2": 10.0, "dof": 10.0, "chi2_dof": 1.0,
+                                     "t_start": (i - 23) * HOUR, "t_end": (i + 1) * HOUR,
+                                     "fit": {"converged": True}}, schema="ttl.Fit")
+
+
+@pytest.fixture
+def run_dir(tmp_path):
+    d = tmp_path / "recordings" / RUN
+    d.mkdir(parents=True)
+    tel = {"eta": np.zeros((6, 8)), "ltt": np.full((6, 8), 8.3)}
+
+    f = StageFile(d, "replayer")
+    for i in range(TOTAL):
+        f.segment("telemetry", i, tel)
+    f.event("complete", index=TOTAL - 1)
+    f.close()
+
+    f = StageFile(d, "tdi_builder")
+    for i in range(TOTAL):
+        f.segment("telemetry", i, tel, producer="replayer")
+        if i == 3:
+            f.error("rejected", 3, "shape (5, 8) does not match (6, None)", field="arrays[eta].shape")
+        f.segment("tdi", i, {"data": np.zeros((3, 8))})
+    f.event("duplicate", index=2, message="already processed")
+    f.close()
+
+    # the fitter, killed while writing fit 3 (header on disk, payload cut off), then restarted
+    f = StageFile(d, "fitter", "fitter.1.mcap")
+    for i in range(3):
+        write_fit(f, i)
+    payload = f.segment("fit", 3, {"coefficients": np.zeros(24), "sigma": np.ones(24)})
+    size = f.rec.path.stat().st_size
+    os.truncate(f.rec.path, size - len(payload) // 2)
+    f.rec._file.close()  # the process dies: no summary, no footer
+    f = StageFile(d, "fitter")
+    for i in range(TOTAL):
+        write_fit(f, i)
+    f.event("complete", index=TOTAL - 1)
+    f.close()
+
+    f = StageFile(d, "subtractor")
+    for i in range(TOTAL):
+        f.segment("tdi", i, {"data": np.zeros((3, 8))}, producer="tdi_builder")
+        if i == 4:
+            f.error("failed", 4, "RuntimeError: no fit covers segment 4")
+            continue
+        f.segment("residual", i, {"residual": np.zeros((3, 8)), "ttl_model": np.zeros((3, 8))})
+    f.close()
+
+    f = StageFile(d, "monitor")
+    for i in range(TOTAL):
+        f.segment("monitor", i, {"drift_rate": np.zeros(24), "drift_significance": np.zeros(24)})
+    f.rec.write_json("alerts", {"run": RUN, "kind": "step", "coefficient": "23.phi.tx", "t": 7200.0, "value": 0.3,
+                                "significance": 7.1, "message": "step of +0.300 mm/rad in 23.phi.tx at 0.083 d",
+                                "t_detected": 10800.0, "index": 2, "units": "mm/rad", "details": {}})
+    f.close()
+    (d / "monitor.rrd").write_bytes(b"")
+    return d
+
+
+def run_ttl(capsys, *args) -> tuple[int, str, str]:
+    code = ttl_main([str(a) for a in args])
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_inspect_json_report(run_dir, capsys):
+    code, out, err = run_ttl(capsys, "inspect", run_dir, "--json")
+    assert code == 0, err
+    r = json.loads(out)
+    assert r["run"] == RUN and r["segments_total"] == TOTAL and r["stages_missing"] == []
+    st = r["stages"]
+    assert list(st) == ["replayer", "tdi_builder", "fitter", "subtractor", "monitor"]
+    assert st["replayer"]["outputs"]["telemetry"]["distinct"] == TOTAL
+    assert st["tdi_builder"]["inputs"]["telemetry"]["distinct"] == TOTAL
+    assert st["tdi_builder"]["outputs"]["tdi"] == {"count": TOTAL, "distinct": TOTAL, "indices": [[0, TOTAL - 1]],
+                                                   "duplicates": [], "missing": []}
+    fit = st["fitter"]["outputs"]["fit"]
+    assert fit["distinct"] == TOTAL and fit["duplicates"] == [0, 1, 2] and fit["missing"] == []
+    assert st["fitter"]["restarts"] == 1
+    assert [f["file"] for f in st["fitter"]["files"]] == ["fitter.1.mcap", "fitter.mcap"]
+    assert [f["complete"] for f in st["fitter"]["files"]] == [False, True]
+    assert st["fitter"]["inputs"]["tdi"]["distinct"] == TOTAL
+    assert st["subtractor"]["outputs"]["residual"]["missing"] == [[4, 4]]
+    assert st["monitor"]["outputs"]["monitor"]["distinct"] == TOTAL
+    # errors of all stages
+    assert sorted((e["stage"], e["kind"], e["index"]) for e in r["errors"]) == [
+        ("subtractor", "failed", 4), ("tdi_builder", "rejected", 3)]
+    assert st["tdi_builder"]["errors"] == 1
+    # alerts of the monitor
+    assert [(a["kind"], a["coefficient"]) for a in r["alerts"]] == [("step", "23.phi.tx")]
+    # interruptions: the killed fitter, its restart, the fit cut off while written
+    kinds = sorted((i["stage"], i["kind"]) for i in r["interruptions"])
+    assert kinds == [("fitter", "incomplete-segment"), ("fitter", "restart"), ("fitter", "unfinished")]
+    # coefficient trends from the fit JSON: the restarted fitter's fits win, in mm/rad
+    f = r["fits"]
+    assert f["count"] == TOTAL and f["indices"] == [[0, TOTAL - 1]] and f["names"] == list(COEFFICIENT_NAMES)
+    c_last, s_last = fit_values(TOTAL - 1)
+    t = f["trends"]["12.phi.rx"]
+    assert t["latest"] == pytest.approx(c_last[0] * 1e3) and t["sigma"] == pytest.approx(0.01)
+    assert t["first"] == pytest.approx(fit_values(0)[0][0] * 1e3)
+    assert t["rate"] == pytest.approx(0.02 * 24, rel=1e-6)  # 0.02 mm/rad per hourly fit
+    assert t["rate_se"] > 0 and t["significance"] > 5
+
+
+def test_inspect_text_report(run_dir, capsys):
+    code, out, err = run_ttl(capsys, "inspect", run_dir)
+    assert code == 0, err
+    assert f"run {RUN}" in out and f"{TOTAL} segments expected" in out
+    assert "fitter       2 file(s)" in out and "restarted 1x" in out
+    assert "fit 6 [0-5] dup 0-2" in out
+    assert "residual 5 [0-3,5] missing 4" in out
+    assert "Errors: 2" in out and "tdi_builder rejected segment 3 field 'arrays[eta].shape'" in out
+    assert "subtractor failed segment 4: RuntimeError: no fit covers segment 4" in out
+    assert "Alerts (monitor): 1" in out and "step of +0.300 mm/rad in 23.phi.tx" in out
+    assert "fitter: unfinished: fitter.1.mcap was not closed" in out
+    assert "fitter: restart: fitter ran 2 times" in out
+    assert "Coefficient trends (fitter fit JSON: 6 fits [0-5]" in out
+    row = next(line for line in out.splitlines() if line.strip().startswith("21.eta.tx"))
+    assert "± 0.0100" in row and "+0.4800 ±" in row and row.rstrip().endswith("*")
+
+
+def test_inspect_errors_name_the_directory(tmp_path, capsys):
+    code, out, err = run_ttl(capsys, "inspect", tmp_path / "nope")
+    assert code == 2 and err.strip() == f"ttl inspect: error: {tmp_path / 'nope'}: no such run directory"
+    code, out, err = run_ttl(capsys, "inspect", tmp_path)
+    assert code == 2 and f"{tmp_path}: no MCAP recordings" in err and len(err.strip().splitlines()) == 1
+    bad = tmp_path / "bad"
+    bad.mkdir()
+    (bad / "fitter.mcap").write_bytes(b"not an mcap file")
+    r = inspect_run(bad)  # an unreadable file is reported, not fatal
+    assert r["stages"]["fitter"]["files"][0]["readable"] is False
+    assert [i["kind"] for i in r["interruptions"]] == ["unreadable"]
+    assert "fitter.mcap: not an MCAP file" in format_report(r)
+
+
+def test_view_prints_a_loopback_only_command(run_dir, tmp_path, capsys):
+    code, out, err = run_ttl(capsys, "view", run_dir, "--print")
+    assert code == 0, err
+    assert "--bind 127.0.0.1" in out and out.strip().endswith(str(run_dir / "monitor.rrd"))
+    assert "--serve-web" not in out and "--web-viewer" not in out
+    cmd = view_command(run_dir / "monitor.rrd", binary="rerun")
+    assert cmd == ["rerun", "--bind", "127.0.0.1", "--new", str(run_dir / "monitor.rrd")]
+    code, out, err = run_ttl(capsys, "view", tmp_path)
+    assert code == 2 and f"{tmp_path}: no monitor.rrd" in err
+    with pytest.raises(InspectError, match="no such run directory"):
+        view_command(tmp_path / "nope")
+
+
+def test_inspect_a_killed_and_restarted_stage_process(tmp_path):
+    """A real stage (the monitor, alone on its loopback session): SIGKILL, restart, SIGTERM."""
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    rec_dir = tmp_path / "rec"
+    cmd = [sys.executable, "-m", "stages.monitor", "--run", "r2", "--recordings", str(rec_dir)]
+    procs = []
+    try:
+        for sig in (signal.SIGKILL, signal.SIGTERM):
+            log = open(tmp_path / f"monitor-{len(procs)}.log", "wb")
+            procs.append(subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env, cwd=tmp_path))
+            log.close()
+            path = rec_dir / "r2" / "monitor.mcap"
+
+            def started():
+                if len(procs) == 2 and not path.with_name("monitor.1.mcap").exists():
+                    return False  # the killed process's file is still the current one
+                try:
+                    return any(e["kind"] == "start" for e in read_recording(path).json("events"))
+                except Exception:
+                    return False
+            wait_for(started, 60, "the monitor's start event")
+            procs[-1].send_signal(sig)
+            procs[-1].wait(30)
+        assert procs[-1].returncode == 0, (tmp_path / "monitor-1.log").read_text()
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait(10)
+    out = subprocess.run([sys.executable, "-m", "ttlcore.cli", "inspect", str(rec_dir / "r2"), "--json"],
+                         capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    r = json.loads(out.stdout)
+    files = r["stages"]["monitor"]["files"]
+    assert [(f["file"], f["complete"], f["stopped"]) for f in files] == [
+        ("monitor.1.mcap", False, False), ("monitor.mcap", True, True)]
+    assert sorted(i["kind"] for i in r["interruptions"]) == ["restart", "unfinished"]
+    assert set(r["stages_missing"]) == {"replayer", "tdi_builder", "fitter", "subtractor"}
+    assert (rec_dir / "r2" / "monitor.rrd").exists() and (rec_dir / "r2" / "monitor.1.rrd").exists()
