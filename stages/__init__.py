@@ -1,0 +1,426 @@
+"""The five stage programs of the streaming pipeline.
+
+==============  =============================  ==========================================
+module          inputs -> outputs              what
+==============  =============================  ==========================================
+``replayer``    files / simulation -> telemetry  telemetry segments in mission-time order
+``tdi_builder`` telemetry -> tdi               X2, Y2, Z2 of the data and 24 regressors
+``fitter``      tdi -> fit                     rolling one-day fit, refit on every segment
+``subtractor``  tdi + fit -> residual          residual and TTL model estimate
+``monitor``     ... -> monitor                 ASDs, trends, diagnosis, Rerun
+==============  =============================  ==========================================
+
+Each runs as its own process: ``python -m stages.<name> [options]`` or
+``ttl stage <name> [options]`` (options: :func:`streamer.stage.stage_arguments` plus the
+stage's own).  The science is in :mod:`ttlcore`, the plumbing in :mod:`streamer`; this
+module holds what the pipeline stages share on top of :class:`streamer.stage.Stage`.
+
+Progress protocol
+-----------------
+After handling segment ``i`` (output published, or given up), a :class:`PipelineStage`
+publishes its cumulative progress as JSON on ``ttl/<run>/control/progress/<stage>`` with an
+advanced publisher caching the latest message (late joiners get it from the cache)::
+
+    {"run", "stage", "pid", "time",
+     "index":          last handled index,
+     "done":           [[first, last], ...]  indices whose output was published,
+     "failed":         [[first, last], ...]  indices given up (error reported),
+     "segments_total": N or null (from the telemetry meta, passed down the pipeline),
+     "complete":       true once the last index is handled and nothing is pending,
+     ...stage extras (the fitter adds "fits": indices that produced a fit)}
+
+``done`` and ``failed`` cover what *this process* handled; a restarted stage starts afresh,
+so consumers (the launcher, the replayer) keep the union over everything they received.
+The replayer uses it for flow control (it runs at most ``window`` segments ahead of the
+slowest stage that reports progress), the subtractor to know that the fitter has passed a
+segment, the launcher to show progress and detect completion.  A stage also records a
+``complete`` event in its MCAP file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import os
+import sys
+import threading
+import time
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, field
+from typing import ClassVar
+
+from ttlcore.errors import TTLError
+
+from streamer.keys import check_name, control_key
+from streamer.session import declare_segment_publisher
+from streamer.stage import Stage, StageConfig, config_from_args, configure_logging, stage_arguments
+
+log = logging.getLogger(__name__)
+
+#: The stages of a run, in pipeline order (module ``stages.<name>``).
+STAGES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
+#: Output topic of each stage.
+OUTPUT_TOPIC = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit",
+                "subtractor": "residual", "monitor": "monitor"}
+#: Control chunk of progress messages.
+PROGRESS = "progress"
+#: TDI channels published by the pipeline.
+XYZ = ("X2", "Y2", "Z2")
+
+
+def progress_key(run: str, stage: str) -> str:
+    """``ttl/<run>/control/progress/<stage>``."""
+    return control_key(run, PROGRESS, stage)
+
+
+def progress_pattern(run: str) -> str:
+    """``ttl/<run>/control/progress/*``."""
+    return f"ttl/{check_name(run, 'run id')}/control/{PROGRESS}/*"
+
+
+def to_ranges(indices: Iterable[int]) -> list[list[int]]:
+    """``{0, 1, 2, 5}`` -> ``[[0, 2], [5, 5]]``."""
+    out: list[list[int]] = []
+    for i in sorted(set(indices)):
+        if out and i == out[-1][1] + 1:
+            out[-1][1] = i
+        else:
+            out.append([i, i])
+    return out
+
+
+def from_ranges(ranges) -> set[int]:
+    """Inverse of :func:`to_ranges` (ignores malformed entries)."""
+    out: set[int] = set()
+    for r in ranges or ():
+        try:
+            a, b = int(r[0]), int(r[1])
+        except (TypeError, ValueError, IndexError):
+            continue
+        out.update(range(a, b + 1))
+    return out
+
+
+def jsonable(value):
+    """JSON-ready copy: numpy scalars and arrays to Python, NaN and inf to None."""
+    from streamer.recorder import to_jsonable
+    return to_jsonable(value)
+
+
+@dataclass
+class PeerProgress:
+    """What is known of one stage's progress: the union over all its messages (and processes)."""
+
+    stage: str
+    done: set = field(default_factory=set)
+    failed: set = field(default_factory=set)
+    segments_total: int | None = None
+    complete: bool = False
+    last: dict = field(default_factory=dict)
+    pids: set = field(default_factory=set)
+    extra: dict = field(default_factory=dict)  # name -> union of index sets (e.g. "fits")
+    updated: float = 0.0
+
+    @property
+    def handled(self) -> set:
+        return self.done | self.failed
+
+    @property
+    def highest(self) -> int:
+        """Highest handled index (-1 when none)."""
+        h = self.handled
+        return max(h) if h else -1
+
+    def covers(self, total: int | None = None) -> bool:
+        """True when every index ``0 .. total-1`` was handled."""
+        total = self.segments_total if total is None else total
+        return total is not None and self.handled.issuperset(range(total))
+
+    def update(self, msg: dict) -> None:
+        self.done |= from_ranges(msg.get("done"))
+        self.failed |= from_ranges(msg.get("failed"))
+        if isinstance(msg.get("segments_total"), int):
+            self.segments_total = msg["segments_total"]
+        self.complete = self.complete or bool(msg.get("complete"))
+        if msg.get("pid") is not None:
+            self.pids.add(msg["pid"])
+        for name, value in msg.items():
+            if name.endswith("_ranges"):
+                self.extra.setdefault(name[: -len("_ranges")], set()).update(from_ranges(value))
+        self.last = msg
+        self.updated = time.monotonic()
+
+
+def parse_progress(payload) -> dict | None:
+    """A progress message as a dict (None when it is not one)."""
+    raw = payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload or b"")
+    try:
+        msg = json.loads(raw)
+    except ValueError:
+        return None
+    if not isinstance(msg, dict) or not isinstance(msg.get("stage"), str):
+        return None
+    return msg
+
+
+class ProgressBoard:
+    """Progress of the stages of a run, fed from the progress messages (thread-safe)."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self.stages: dict[str, PeerProgress] = {}
+        self.changed = threading.Event()
+
+    def feed(self, sample) -> None:
+        """Zenoh callback of the progress subscriber."""
+        msg = parse_progress(sample.payload)
+        if msg is None:
+            return
+        with self._lock:
+            self.stages.setdefault(msg["stage"], PeerProgress(msg["stage"])).update(msg)
+        self.changed.set()
+
+    def get(self, stage: str) -> PeerProgress | None:
+        with self._lock:
+            return self.stages.get(stage)
+
+    def snapshot(self) -> dict[str, PeerProgress]:
+        with self._lock:
+            return {k: PeerProgress(v.stage, set(v.done), set(v.failed), v.segments_total, v.complete,
+                                    dict(v.last), set(v.pids), {n: set(s) for n, s in v.extra.items()},
+                                    v.updated)
+                    for k, v in self.stages.items()}
+
+
+class InOrder:
+    """Reorder buffer: hands out items in index order.
+
+    The first index is 0 if it arrives first; otherwise (a stage joining late or restarted,
+    whose history comes from several publisher caches in any order) the lowest index
+    received within ``settle`` seconds of the first arrival.  A missing index is skipped when
+    ``skip(index)`` says it will not come (the producer gave it up), or after
+    ``gap_timeout`` seconds while later indices wait.
+    """
+
+    def __init__(self, settle: float = 1.0, gap_timeout: float = 60.0):
+        self.settle = float(settle)
+        self.gap_timeout = float(gap_timeout)
+        self.pending: dict[int, object] = {}
+        self.next: int | None = None
+        self._first_arrival: float | None = None
+        self._gap_since: float | None = None
+        self.skipped_reason = ""
+
+    def add(self, index: int, item) -> bool:
+        """Buffer ``item``; False when ``index`` is behind the current position (stale)."""
+        if self.next is not None and index < self.next:
+            return False
+        if self._first_arrival is None:
+            self._first_arrival = time.monotonic()
+        self.pending[index] = item
+        return True
+
+    def ready(self, skip: Callable[[int], bool] = lambda i: False, total: int | None = None):
+        """Yield ``(index, item)`` in order; ``item`` is None for an index given up, with
+        ``self.skipped_reason`` saying why."""
+        now = time.monotonic()
+        if self.next is None:
+            if not self.pending:
+                return
+            if 0 not in self.pending and now - self._first_arrival < self.settle:
+                return
+            self.next = min(self.pending)
+        while True:
+            if self.next in self.pending:
+                self._gap_since = None
+                index = self.next
+                self.next += 1
+                yield index, self.pending.pop(index)
+                continue
+            if total is not None and self.next >= total:
+                return
+            if skip(self.next):
+                self.skipped_reason = "given up upstream"
+                index = self.next
+                self.next += 1
+                yield index, None
+                continue
+            if self.pending:
+                if self._gap_since is None:
+                    self._gap_since = now
+                if now - self._gap_since >= self.gap_timeout:
+                    self.skipped_reason = f"not received within {self.gap_timeout:g} s while later segments waited"
+                    self._gap_since = None
+                    index = self.next
+                    self.next += 1
+                    yield index, None
+                    continue
+            return
+
+
+class PipelineStage(Stage):
+    """A :class:`streamer.stage.Stage` that reports progress and completion (module docstring).
+
+    Subclasses call :meth:`mark_done` / :meth:`mark_failed` for every segment they handle,
+    set :attr:`segments_total` from the input meta, and may list in :attr:`follow` the
+    stages whose progress they need (``"*"`` for all); :attr:`board` then holds it.
+    """
+
+    #: Stages whose progress messages this stage subscribes to ("*": all).
+    follow: ClassVar[tuple[str, ...]] = ()
+    #: Input topics whose gaps are not reported on arrival by the stage base: the stage puts
+    #: them back in order itself (:class:`InOrder`, which reports a segment once it is really
+    #: given up) or does not need them in order.  History from several publisher caches,
+    #: after a restart or a late join, arrives in any order without anything missing.
+    reorders: ClassVar[tuple[str, ...]] = ()
+    #: Default poll interval of the pipeline stages [s].
+    default_poll_interval: ClassVar[float] = 0.05
+
+    def __init__(self, config: StageConfig):
+        super().__init__(config)
+        self.options = dict(config.options or {})
+        self.done: set[int] = set()
+        self.failed: set[int] = set()
+        self.segments_total: int | None = None
+        self.progress_extra: dict = {}
+        self.board = ProgressBoard()
+        self._progress_pub = None
+        self._complete = False
+
+    # ------------------------------------------------------------------ lifecycle
+    def setup(self) -> None:
+        self._progress_pub = self.bus.track(
+            declare_segment_publisher(self.bus.session, progress_key(self.run_id, self.stage_name), cache=1))
+        if self.follow:
+            self.bus.segment_subscriber(progress_pattern(self.run_id), self._on_progress, history=1)
+
+    def _on_progress(self, sample) -> None:
+        key = str(sample.key_expr)
+        stage = key.rsplit("/", 1)[-1]
+        if "*" in self.follow or stage in self.follow:
+            self.board.feed(sample)
+
+    def pending(self) -> int:
+        """Segments received but not yet handled (override in buffering stages)."""
+        return 0
+
+    def _check_gap(self, topic: str, index: int) -> None:
+        if topic not in self.reorders:
+            super()._check_gap(topic, index)
+
+    # ------------------------------------------------------------------ bookkeeping
+    def note_meta(self, meta: dict) -> None:
+        """Take ``segments_total`` from an input's meta."""
+        total = meta.get("segments_total") if isinstance(meta, dict) else None
+        if isinstance(total, int) and total > 0:
+            self.segments_total = total
+
+    def mark_done(self, index: int, **extra) -> None:
+        """Segment ``index`` is handled (its output published); publish progress."""
+        self.done.add(index)
+        self.failed.discard(index)
+        self._after(index, extra)
+
+    def mark_failed(self, index: int, **extra) -> None:
+        """Segment ``index`` is given up (the error was reported); publish progress."""
+        if index not in self.done:
+            self.failed.add(index)
+        self._after(index, extra)
+
+    def _after(self, index: int, extra: dict) -> None:
+        self.progress_extra.update(extra)
+        self.check_complete(publish=False)
+        self.publish_progress(index)
+
+    def check_complete(self, publish: bool = True) -> bool:
+        """Record the ``complete`` event once the last segment is handled and nothing waits."""
+        total = self.segments_total
+        handled = self.done | self.failed
+        if (not self._complete and total is not None and (total - 1) in handled and self.pending() == 0):
+            self._complete = True
+            missing = sorted(set(range(total)) - handled)
+            self.event("complete", index=total - 1,
+                       message=f"handled {len(handled)} of {total} segments in this process",
+                       done=to_ranges(self.done), failed=to_ranges(self.failed), missing=to_ranges(missing))
+            self.log.info("complete: last segment %d handled (%d done, %d failed in this process)",
+                          total - 1, len(self.done), len(self.failed))
+            if publish:
+                self.publish_progress(None)
+        return self._complete
+
+    def publish_progress(self, index: int | None) -> None:
+        if self._progress_pub is None:
+            return
+        msg = {"run": self.run_id, "stage": self.stage_name, "pid": os.getpid(), "time": time.time(),
+               "index": index, "done": to_ranges(self.done), "failed": to_ranges(self.failed),
+               "segments_total": self.segments_total, "complete": self._complete,
+               **{f"{k}_ranges": to_ranges(v) if isinstance(v, (set, frozenset)) else v
+                  for k, v in self.progress_extra.items()}}
+        try:
+            self._progress_pub.put(json.dumps(jsonable(msg)).encode())
+        except Exception:
+            self.log.exception("could not publish progress")
+
+
+# ---------------------------------------------------------------------------- entry point
+
+def add_common_options(p: argparse.ArgumentParser) -> None:
+    """Options every pipeline stage accepts besides :func:`streamer.stage.stage_arguments`."""
+    p.add_argument("--cache", type=int, help="segments kept per output topic for late joiners")
+    p.add_argument("--history", type=int, help="segments asked from each input publisher's cache")
+    p.add_argument("--no-record-inputs", action="store_true", help="do not record input payloads")
+    p.add_argument("--poll-interval", type=float, help="longest wait before checking timers [s]")
+
+
+def stage_main(stage_class: type[Stage], argv: Sequence[str] | None,
+               add_options: Callable[[argparse.ArgumentParser], None] | None = None,
+               options: Callable[[argparse.Namespace], dict] | None = None,
+               check: Callable[[StageConfig], str] | None = None) -> int:
+    """Entry point of a pipeline stage process.
+
+    Parses :func:`streamer.stage.stage_arguments`, the common options and the stage's own
+    (``add_options``; ``options(args)`` returns the stage options they set, overriding the
+    ``--config`` file's), sets up logging and runs the stage.  With ``--check`` the options
+    are validated by ``check(config)`` (which returns a one-line description) and nothing
+    runs.  Errors: one line naming the problem on stderr, exit status 2.
+    """
+    parser = stage_arguments(argparse.ArgumentParser(prog=f"ttl stage {stage_class.name}",
+                                                     description=(stage_class.__doc__ or "").split("\n\n")[0]))
+    add_common_options(parser)
+    if check is not None:
+        parser.add_argument("--check", action="store_true", help="validate the options and exit")
+    if add_options is not None:
+        add_options(parser)
+    args = parser.parse_args(argv)
+    configure_logging(args.log_level, args.log_json)
+    try:
+        if not args.config and not args.run:
+            raise ValueError("--run (or --config with a 'run' field) is required")
+        config = config_from_args(args)
+        if args.cache is not None:
+            config.cache = args.cache
+        if args.history is not None:
+            config.history = args.history
+        if args.no_record_inputs:
+            config.record_inputs = False
+        if args.poll_interval is not None:
+            config.poll_interval = args.poll_interval
+        elif not (args.config and "poll_interval" in json.loads(args.config.read_text())):
+            config.poll_interval = getattr(stage_class, "default_poll_interval", config.poll_interval)
+        if options is not None:
+            config.options = {**config.options, **{k: v for k, v in options(args).items() if v is not None}}
+        check_name(config.run, "run id")
+        if check is not None and args.check:
+            print(check(config))
+            return 0
+        stage = stage_class(config)
+    except Exception as exc:  # noqa: BLE001 - one line, no traceback, for user errors
+        print(f"ttl stage {stage_class.name}: error: {exc}", file=sys.stderr)
+        return 2
+    try:
+        return stage.run()
+    except (TTLError, OSError, ValueError) as exc:
+        log.debug("stage failed", exc_info=True)
+        print(f"ttl stage {stage_class.name}: error: {exc}", file=sys.stderr)
+        return 2

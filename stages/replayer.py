@@ -1,0 +1,398 @@
+"""Replayer stage: telemetry segments in mission-time order, from files or a simulation.
+
+Sources (exactly one):
+
+``telemetry``
+    One or more telemetry files, ours or lisainstrument's (``ttlcore.telemetry.read_telemetry``
+    detects which).  They are replayed in order of their start time; a segment never spans
+    two files (the last one of a file may be shorter).  Our files are read one segment at a
+    time; lisainstrument files are reduced to ``eta`` once, at start.
+``simulate``
+    ``ttl simulate`` options (without ``--out``), e.g. ``"--duration 12h --orbit unequal
+    --seed 1"``: each segment is simulated when its turn comes
+    (:meth:`ttlcore.simulator.Simulator.chunk`, random access, so the result does not depend
+    on the segment length).
+
+Output ``ttl/<run>/telemetry/<i>``: arrays ``eta``, ``dws_phi``, ``dws_eta``, ``ltt``, each
+(6, n) float64 with channels the six links; header t0 (first sample) and fs; meta
+``source`` (path or ``"simulation"``), ``segments_total``, ``truth`` (the truth file
+beside the source file, else null), ``segment_duration`` [s] (nominal), ``dws_asd`` (DWS
+readout-noise level of the source, for the fitter's errors-in-variables term), ``file``.
+
+Pace
+----
+Segments go out as fast as the consumers take them: congestion control BLOCK holds a put
+while a live subscriber's transport is full, and, on top, the replayer stays at most
+``window`` segments ahead of the slowest stage that reports progress (``stages`` module
+docstring), so that a stage that dies finds what it missed in the publishers' caches when
+it is restarted (``cache`` > ``window`` + 1).  With ``pace`` X > 0, segment ``i`` goes
+out no earlier than ``i * segment_duration / X`` seconds after the first: X times real time.
+
+Before the first segment the replayer waits until the stages in ``wait_for`` are alive
+(liveliness tokens).  A restarted replayer resumes one segment before the first one that
+some stage reporting progress still lacks.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from streamer.stage import Output
+
+from ttlcore.conventions import LINKS, parse_duration
+from ttlcore.errors import ConfigError, TelemetryError
+from ttlcore.fit import dws_asd_from_config
+from ttlcore.telemetry import Telemetry, file_kind, read_header, read_telemetry
+from ttlcore.truth import truth_path
+
+from . import OUTPUT_TOPIC, PipelineStage, stage_main
+
+#: Units of the telemetry arrays.
+UNITS = {"eta": "fractional frequency", "dws_phi": "rad/s", "dws_eta": "rad/s", "ltt": "s"}
+#: Default segment length [s].
+DEFAULT_SEGMENT = 3600.0
+#: Default number of segments the replayer may run ahead of the slowest stage.
+DEFAULT_WINDOW = 4
+
+
+# ---------------------------------------------------------------------------- simulation options
+
+def _assignments(text: str, option: str) -> dict[str, float]:
+    """``"12.phi.rx=0.05,13.eta.tx=-0.02"`` -> mapping (as ``ttl simulate`` reads it)."""
+    from ttlcore.conventions import COEFFICIENT_NAMES
+
+    out = {}
+    for item in filter(None, (s.strip() for s in text.split(","))):
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise ConfigError(f"--simulate {option}: expected NAME=VALUE, got {item!r}")
+        if name not in COEFFICIENT_NAMES:
+            raise ConfigError(f"--simulate {option}: unknown coefficient {name!r} (names look like '12.phi.rx')")
+        try:
+            out[name] = float(value)
+        except ValueError:
+            raise ConfigError(f"--simulate {option}: bad number {value!r} for {name}") from None
+    return out
+
+
+def simulation_config(text: str):
+    """A :class:`ttlcore.simulator.SimulationConfig` from ``ttl simulate`` options (no ``--out``).
+
+    Raises
+    ------
+    ConfigError
+        Naming the option at fault.
+    """
+    from ttlcore.coefficients import make_coefficients
+    from ttlcore.orbits import make_orbit
+    from ttlcore.simulator import NoiseSwitches, SimulationConfig
+
+    p = argparse.ArgumentParser(prog="--simulate", add_help=False, exit_on_error=False)
+    p.add_argument("--duration", default="1d")
+    p.add_argument("--orbit", default="unequal")
+    p.add_argument("--coeffs", default="paper")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--t0", type=float, default=0.0)
+    p.add_argument("--fs", type=float, default=4.0)
+    p.add_argument("--noises", default="all")
+    p.add_argument("--drift", default="")
+    p.add_argument("--step", action="append", default=[])
+    p.add_argument("--order", type=int, default=31)
+    try:
+        words = shlex.split(text)
+        args, unknown = p.parse_known_args(words)
+    except (argparse.ArgumentError, ValueError) as exc:
+        raise ConfigError(f"--simulate: {exc}") from None
+    if unknown:
+        raise ConfigError(f"--simulate: unknown option(s) {' '.join(unknown)} "
+                          "(the options of 'ttl simulate' except --out, --chunk, --truth-noises, --quiet)")
+    try:
+        duration = parse_duration(args.duration)
+    except ValueError as exc:
+        raise ConfigError(f"--simulate --duration: {exc}") from None
+    coeffs = make_coefficients(args.coeffs, seed=args.seed)
+    if args.drift:
+        coeffs = coeffs.with_drift({k: v * 1e-3 for k, v in _assignments(args.drift, "--drift").items()})
+    for step in args.step:
+        when, sep, rest = step.partition(":")
+        if not sep:
+            raise ConfigError(f"--simulate --step: expected T:NAME=MM,..., got {step!r}")
+        try:
+            t_step = parse_duration(when) if when.strip() not in ("0", "0.0") else 0.0
+        except ValueError as exc:
+            raise ConfigError(f"--simulate --step: {exc}") from None
+        coeffs = coeffs.with_step(t_step, {k: v * 1e-3 for k, v in _assignments(rest, "--step").items()})
+    make_orbit(args.orbit)  # fail early, naming the orbit
+    return SimulationConfig(duration=duration, t0=args.t0, fs=args.fs, orbit=args.orbit, coefficients=coeffs,
+                            seed=args.seed, noises=NoiseSwitches.parse(args.noises),
+                            interpolation_order=args.order)
+
+
+# ---------------------------------------------------------------------------- sources
+
+@dataclass
+class _Piece:
+    file: int
+    start: int
+    stop: int
+
+
+class FileSource:
+    """Segments of one or more telemetry files, in mission-time order."""
+
+    def __init__(self, paths, segment_duration: float):
+        if not paths:
+            raise ConfigError("--telemetry: no file given")
+        self.files = []
+        for p in paths:
+            path = Path(p)
+            if not path.exists():
+                raise TelemetryError(path, "no such file")
+            kind = file_kind(path)
+            if kind == "truth":
+                raise TelemetryError(path, "this is a truth file; give the telemetry file beside it")
+            if kind == "ttl":
+                head = read_header(path)
+                entry = {"path": path, "kind": kind, "t0": head["t0"], "fs": head["fs"], "size": head["size"],
+                         "config": head["config"] or {}, "data": None}
+            else:  # lisainstrument: reduced to eta once
+                tm = read_telemetry(path)
+                entry = {"path": path, "kind": kind, "t0": tm.t0, "fs": tm.fs, "size": tm.size,
+                         "config": tm.config or {}, "data": tm}
+            tp = truth_path(path)
+            entry["truth"] = str(tp) if tp.exists() else None
+            self.files.append(entry)
+        self.files.sort(key=lambda e: e["t0"])
+        fs = self.files[0]["fs"]
+        for e in self.files[1:]:
+            if e["fs"] != fs:
+                raise TelemetryError(e["path"], f"sampling rate {e['fs']} Hz differs from {fs} Hz of {self.files[0]['path']}")
+        for a, b in zip(self.files, self.files[1:]):
+            if b["t0"] < a["t0"] + a["size"] / fs - 0.5 / fs:
+                raise TelemetryError(b["path"], f"starts at t0={b['t0']} s, before {a['path']} ends "
+                                                f"({a['t0'] + a['size'] / fs} s): overlapping files")
+        self.fs = fs
+        self.segment_duration = float(segment_duration)
+        n = int(round(self.segment_duration * fs))
+        if n < 1:
+            raise ConfigError(f"--segment: {segment_duration} s is less than one sample at {fs} Hz")
+        self.pieces = [_Piece(k, s, min(s + n, e["size"])) for k, e in enumerate(self.files)
+                       for s in range(0, e["size"], n)]
+
+    @property
+    def segments_total(self) -> int:
+        return len(self.pieces)
+
+    def describe(self) -> str:
+        names = ", ".join(str(e["path"]) for e in self.files)
+        return f"{self.segments_total} segments of {self.segment_duration:g} s from {names}"
+
+    def segment(self, i: int) -> tuple[Telemetry, dict]:
+        piece = self.pieces[i]
+        e = self.files[piece.file]
+        if e["data"] is not None:
+            tm = e["data"].slice(piece.start, piece.stop)
+        else:
+            tm = read_telemetry(e["path"], piece.start, piece.stop)
+        meta = {"source": str(e["path"]), "truth": e["truth"], "file": piece.file,
+                "dws_asd": dws_asd_from_config(e["config"])}
+        return tm, meta
+
+
+class SimulationSource:
+    """Segments simulated on demand (``ttl simulate`` options)."""
+
+    def __init__(self, options: str, segment_duration: float):
+        from ttlcore.simulator import Simulator
+
+        self.config = simulation_config(options)
+        self.sim = Simulator(self.config)
+        self.fs = self.config.fs
+        self.segment_duration = float(segment_duration)
+        self.n = int(round(self.segment_duration * self.fs))
+        if self.n < 1:
+            raise ConfigError(f"--segment: {segment_duration} s is less than one sample at {self.fs} Hz")
+        self.dws_asd = dws_asd_from_config(self.config.to_dict())
+
+    @property
+    def segments_total(self) -> int:
+        return -(-self.sim.size // self.n)
+
+    def describe(self) -> str:
+        return (f"{self.segments_total} segments of {self.segment_duration:g} s simulated on the fly "
+                f"({self.config.duration:g} s, orbit {self.config.orbit}, seed {self.config.seed})")
+
+    def segment(self, i: int) -> tuple[Telemetry, dict]:
+        n0 = i * self.n
+        tm, _ = self.sim.chunk(n0, min(self.n, self.sim.size - n0))
+        return tm, {"source": "simulation", "truth": None, "file": None, "dws_asd": self.dws_asd}
+
+
+def make_source(options: dict):
+    """The source described by the stage options (``telemetry`` or ``simulate``, ``segment``)."""
+    segment = options.get("segment", DEFAULT_SEGMENT)
+    try:
+        segment = parse_duration(segment)
+    except ValueError as exc:
+        raise ConfigError(f"--segment: {exc}") from None
+    files, simulate = options.get("telemetry"), options.get("simulate")
+    if files and simulate:
+        raise ConfigError("give either --telemetry or --simulate, not both")
+    if simulate:
+        return SimulationSource(simulate, segment)
+    if files:
+        return FileSource([files] if isinstance(files, str) else files, segment)
+    raise ConfigError("no telemetry source: give --telemetry FILE... or --simulate \"<ttl simulate options>\"")
+
+
+# ---------------------------------------------------------------------------- the stage
+
+class Replayer(PipelineStage):
+    """Publishes telemetry segments in mission-time order (files or simulation)."""
+
+    name = "replayer"
+    inputs = ()
+    follow = ("*",)
+    default_poll_interval = 0.01
+
+    def __init__(self, config):
+        super().__init__(config)
+        o = self.options
+        self.source = make_source(o)
+        self.segments_total = self.source.segments_total
+        self.segment_duration = self.source.segment_duration
+        self.pace = float(o.get("pace") or 0.0)
+        if self.pace < 0 or not np.isfinite(self.pace):
+            raise ConfigError(f"--pace: expected a multiple of real time > 0 (or 0: as fast as possible), got {self.pace}")
+        self.window = int(o.get("window", DEFAULT_WINDOW))
+        if self.window < 1:
+            raise ConfigError(f"--window: expected >= 1, got {self.window}")
+        self.wait_for = tuple(o.get("wait_for") or ())
+        self.pace_on = tuple(o.get("pace_on") or ())
+        self.next: int | None = None
+        self.first = 0
+        self._t_start = 0.0
+        self._last_check = 0.0
+        self._last_log = 0.0
+
+    def setup(self) -> None:
+        super().setup()
+        self.log.info("source: %s", self.source.describe())
+
+    # ------------------------------------------------------------------ flow control
+    def _consumers_alive(self) -> bool:
+        if not self.wait_for:
+            return True
+        alive = self.bus.alive_stages(self.run_id, timeout=0.3)
+        missing = [s for s in self.wait_for if s not in alive]
+        if missing and time.monotonic() - self._last_log > 10:
+            self._last_log = time.monotonic()
+            self.log.info("waiting for %s to be alive before the first segment", ", ".join(missing))
+        return not missing
+
+    def lagging(self, index: int) -> list[str]:
+        """Stages that have not yet handled ``index - window`` (the replayer waits for them)."""
+        board = self.board.snapshot()
+        names = (set(board) | set(self.pace_on)) - {self.stage_name}
+        need = index - self.window
+        out = []
+        for name in sorted(names):
+            peer = board.get(name)
+            if peer is not None and (peer.covers(self.segments_total) or peer.complete):
+                continue
+            if (peer.highest if peer is not None else -1) < need:
+                out.append(name)
+        return out
+
+    def _resume_index(self) -> int:
+        """Where a (re)started replayer begins: one before the first segment a stage lacks."""
+        board = self.board.snapshot()
+        peers = [p for name, p in board.items() if name != self.stage_name]
+        if not peers or any(name not in board for name in self.pace_on):
+            return 0
+        first_missing = min(min(set(range(self.segments_total)) - p.handled, default=self.segments_total)
+                            for p in peers)
+        return max(0, first_missing - 1)
+
+    # ------------------------------------------------------------------ source loop
+    def tick(self):
+        if self.next is None:
+            now = time.monotonic()
+            if now - self._last_check < 0.2:
+                return ()
+            self._last_check = now
+            if not self._consumers_alive():
+                return ()
+            time.sleep(0.2)  # let the progress caches of restarted runs arrive
+            self.first = self.next = self._resume_index()
+            if self.first:
+                self.log.info("resuming at segment %d (stages report %d.. missing)", self.first, self.first + 1)
+            self._t_start = time.monotonic()
+        if self.next >= self.segments_total:
+            self.check_complete()
+            return ()
+        i = self.next
+        if self.lagging(i):
+            return ()
+        if self.pace > 0:
+            due = self._t_start + (i - self.first) * self.segment_duration / self.pace
+            if time.monotonic() < due:
+                return ()
+        try:
+            tm, meta = self.source.segment(i)
+            out = Output(OUTPUT_TOPIC[self.name], {
+                "eta": tm.eta, "dws_phi": tm.dws_phi, "dws_eta": tm.dws_eta, "ltt": tm.ltt},
+                fields={"t0": float(tm.t0), "fs": float(tm.fs), "channels": list(LINKS), "units": UNITS,
+                        "meta": {**meta, "segments_total": self.segments_total,
+                                 "segment_duration": self.segment_duration}},
+                index=i)
+            self.publish(out)
+        except Exception as exc:  # reported, and the replay goes on
+            self.log.exception("segment %d failed", i)
+            self.report_error("failed", f"{type(exc).__name__}: {exc}", index=i)
+            self.next = i + 1
+            self.mark_failed(i)
+            return ()
+        self.next = i + 1
+        self.log.info("published telemetry segment %d/%d (t0=%.1f s)", i + 1, self.segments_total, tm.t0)
+        self.mark_done(i)
+        return ()
+
+
+# ---------------------------------------------------------------------------- entry point
+
+def add_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--telemetry", nargs="+", metavar="FILE", help="telemetry files (ours or lisainstrument's)")
+    p.add_argument("--simulate", metavar="OPTIONS", help="'ttl simulate' options, e.g. \"--duration 12h --seed 1\"")
+    p.add_argument("--segment", help="segment length, e.g. 1h, 30min or seconds (default 1h)")
+    p.add_argument("--pace", type=float, help="multiple of real time (default: as fast as consumers take them)")
+    p.add_argument("--window", type=int, help=f"segments the replay may run ahead of the slowest stage (default {DEFAULT_WINDOW})")
+    p.add_argument("--wait-for", help="stages to wait for (liveliness) before the first segment, comma-separated")
+    p.add_argument("--pace-on", help="stages reporting progress to stay within --window of, comma-separated "
+                   "(stages that report progress are followed anyway once seen)")
+
+
+def options(args) -> dict:
+    split = (lambda s: [x for x in s.split(",") if x] if s else None)
+    return {"telemetry": args.telemetry, "simulate": args.simulate, "segment": args.segment, "pace": args.pace,
+            "window": args.window, "wait_for": split(args.wait_for), "pace_on": split(args.pace_on)}
+
+
+def check(config) -> str:
+    """Validate the source options (``--check``): one line describing the replay."""
+    return make_source(config.options).describe()
+
+
+def main(argv=None) -> int:
+    return stage_main(Replayer, argv, add_options, options, check)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,174 @@
+"""Subtractor stage: applies the fit covering each segment and publishes the residual.
+
+Inputs ``ttl/<run>/tdi/<i>`` (tdi_builder) and ``ttl/<run>/fit/<j>`` (fitter).  Segment ``i``
+gets the latest fit whose window includes or precedes it: the fit made when segment ``i``
+arrived at the fitter (window ending with segment ``i``) if there is one, else the latest
+earlier fit.  To know that no fit ``i`` will come, the subtractor follows the fitter's
+progress messages (``fits_ranges``: the segments that produced a fit); a segment waits
+until the fitter has passed it.  A segment no fit covers yet (the fitter has not made one)
+is published unchanged: residual = data, model = 0, ``fit_index`` null.  Segments need not
+come in order (a late joiner's history does not); a segment waits only for its fit, and
+the first is chosen after ``settle`` seconds of history so that the output starts in order.
+
+Output ``ttl/<run>/residual/<i>``: arrays ``residual`` (3, n) and ``ttl_model`` (3, n),
+channels X2, Y2, Z2 (NaN where the TDI input is NaN), header t0 and fs those of the TDI
+segment; meta ``fit_index`` (the fit applied), ``coefficients_t_start``,
+``coefficients_t_stop`` (its window), ``segments_total``.  Residual = data - model, with
+:func:`ttlcore.subtraction.subtract`.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+
+import numpy as np
+
+from streamer.codec import Expect
+from streamer.stage import Output
+
+from ttlcore.conventions import COEFFICIENT_NAMES
+from ttlcore.subtraction import subtract
+
+from . import OUTPUT_TOPIC, XYZ, PipelineStage, jsonable, stage_main
+from .fitter import P, tdi_data, tdi_expect
+
+UNITS = {"residual": "fractional frequency", "ttl_model": "fractional frequency"}
+#: Wait for a fit announced by the fitter's progress before falling back to an earlier one [s].
+FIT_TIMEOUT = 30.0
+
+
+class Subtractor(PipelineStage):
+    """Subtracts the fitted TTL model from each TDI segment."""
+
+    name = "subtractor"
+    inputs = ("tdi", "fit")
+    follow = ("fitter",)
+    reorders = ("tdi", "fit")  # no gap reports on arrival: which fit applies comes from the fitter's progress
+
+    def __init__(self, config):
+        super().__init__(config)
+        self.fit_timeout = float(self.options.get("fit_timeout", FIT_TIMEOUT))
+        self.tdi: dict[int, tuple] = {}
+        self.fits: dict[int, dict] = {}
+        self._waiting_since: dict[int, float] = {}
+        # a late joiner gets its history from several publisher caches in any order: collect
+        # for `settle` seconds before the first segment (unless it is segment 0)
+        self.settle = float(self.options.get("settle", 1.0))
+        self._first_arrival: float | None = None
+
+    def expect(self, topic, index):
+        if topic == "fit":
+            return Expect(run=self.run_id, index=index,
+                          arrays={"coefficients": ("<f8", (P,)), "sigma": ("<f8", (P,)),
+                                  "covariance": ("<f8", (P, P))})
+        return tdi_expect(self.run_id, index)
+
+    def pending(self) -> int:
+        return len(self.tdi)
+
+    def handle(self, header, arrays):
+        self.note_meta(header.meta)
+        if header.topic == "fit":
+            names = tuple(header.meta.get("names") or COEFFICIENT_NAMES)
+            if len(names) != P:
+                raise ValueError(f"meta.names has {len(names)} names for {P} coefficients")
+            self.fits[header.index] = {"coefficients": dict(zip(names, map(float, arrays["coefficients"]))),
+                                       "t_start": header.meta.get("t_start"), "t_stop": header.meta.get("t_stop")}
+        else:
+            if not self.config.record_inputs:
+                self.recorder.write_json("tdi/input", header.to_dict(), schema="ttl.SegmentHeader")
+            if header.index in self.done:
+                return ()
+            self.tdi[header.index] = (header, tdi_data(header, arrays))
+            if self._first_arrival is None:
+                self._first_arrival = time.monotonic()
+        self.drain()
+        return ()
+
+    def tick(self):
+        self.drain()
+        self.check_complete()
+        return ()
+
+    # ------------------------------------------------------------------ which fit
+    def choose(self, index: int):
+        """``("wait", None)``, or ``("apply", j)`` with ``j`` the fit index (None: no fit yet)."""
+        fitter = self.board.get("fitter")
+        announced = set(fitter.extra.get("fits", ())) if fitter else set()
+        passed = (fitter is not None and index in fitter.handled) or any(j >= index for j in self.fits)
+        if not passed:
+            return "wait", None
+        known = [j for j in announced | set(self.fits) if j <= index]
+        if not known:
+            return "apply", None
+        best = max(known)
+        if best in self.fits:
+            return "apply", best
+        since = self._waiting_since.setdefault(index, time.monotonic())
+        if time.monotonic() - since < self.fit_timeout:
+            return "wait", None  # announced by the fitter's progress, still on its way
+        received = [j for j in self.fits if j <= index]
+        fallback = max(received) if received else None
+        self.report_error("missing-fit", f"fit {best} announced by the fitter never arrived; "
+                                         f"segment {index} gets fit {fallback}", index=index)
+        return "apply", fallback
+
+    def drain(self) -> None:
+        if (not self.done and 0 not in self.tdi and self._first_arrival is not None
+                and time.monotonic() - self._first_arrival < self.settle):
+            return
+        for index in sorted(self.tdi):
+            what, j = self.choose(index)
+            if what == "wait":
+                continue
+            header, td = self.tdi.pop(index)
+            self._waiting_since.pop(index, None)
+            try:
+                self.publish(self.subtract(header, td, j), source=header)
+            except Exception as exc:
+                self.log.exception("segment %d failed", index)
+                self.report_error("failed", f"{type(exc).__name__}: {exc}", index=index, key=header.key)
+                self.mark_failed(index)
+                continue
+            self.mark_done(index)
+
+    def subtract(self, header, td, fit_index: int | None) -> Output:
+        """The residual message of one TDI segment with fit ``fit_index`` (None: no fit)."""
+        if fit_index is None:
+            residual, model = np.array(td.data, dtype=float), np.zeros_like(td.data)
+            fit = {"t_start": None, "t_stop": None}
+        else:
+            fit = self.fits[fit_index]
+            coefficients = fit["coefficients"]
+            residual = subtract(td, coefficients)
+            model = td.model(np.array([coefficients[n] for n in td.names]))
+        with np.errstate(invalid="ignore"):
+            rms = {"data": np.sqrt(np.nanmean(td.data ** 2, axis=1)), "residual": np.sqrt(np.nanmean(residual ** 2, axis=1))}
+        meta = {"fit_index": fit_index, "coefficients_t_start": fit["t_start"], "coefficients_t_stop": fit["t_stop"],
+                "segments_total": self.segments_total}
+        self.log.info("segment %d: fit %s applied", header.index, fit_index)
+        return Output(OUTPUT_TOPIC[self.name], {"residual": residual, "ttl_model": model},
+                      fields={"channels": list(XYZ), "channel_axis": 0, "units": UNITS, "meta": jsonable(meta)},
+                      summary=jsonable({"run": self.run_id, "index": header.index, "fit_index": fit_index,
+                                        "channels": list(XYZ), "rms_data": rms["data"],
+                                        "rms_residual": rms["residual"]}),
+                      allow_nonfinite=True)
+
+
+def add_options(p) -> None:
+    p.add_argument("--fit-timeout", type=float,
+                   help=f"seconds to wait for a fit the fitter announced (default {FIT_TIMEOUT:g})")
+    p.add_argument("--settle", type=float, help="seconds to collect cached history before the first segment")
+
+
+def options(args) -> dict:
+    return {"fit_timeout": args.fit_timeout, "settle": args.settle}
+
+
+def main(argv=None) -> int:
+    return stage_main(Subtractor, argv, add_options, options)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

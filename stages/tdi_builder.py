@@ -1,0 +1,137 @@
+"""TDI builder stage: X2, Y2, Z2 of the data and of the 24 TTL regressors, segment by segment.
+
+Input ``ttl/<run>/telemetry/<i>`` (replayer); output ``ttl/<run>/tdi/<i>``: arrays ``data``
+(3, n) and ``regressors`` (3, 24, n), channels X2, Y2, Z2, the header's t0 and fs those of
+the telemetry segment; meta ``names`` (the 24 coefficient names), ``ltt_mean`` (6,), and,
+passed on from the telemetry, ``segments_total``, ``segment_duration``, ``source``,
+``truth``, ``dws_asd``; ``continuous`` is false when the stream restarted at this segment
+(its first samples are then NaN: the nested delays reach before the data, as on the very
+first segment).
+
+The delays and interpolation reach back about 70 s: :class:`ttlcore.tdi_data.TDIStream`
+keeps that tail of telemetry between segments, so the output for a day fed in segments
+equals the batch TDI of the whole day, and segments stay independent messages.  Segments
+are therefore processed in index order (:class:`stages.InOrder`); a segment whose t0 does
+not follow the previous one (files with a gap) restarts the stream, and so does a stage
+restarted mid-run, from the earliest segment the replayer's cache still holds (its output
+is a duplicate its consumers ignore, and it re-creates the tail the next segments need).
+"""
+
+from __future__ import annotations
+
+import sys
+
+from streamer.codec import Expect
+from streamer.stage import Output
+
+from ttlcore.conventions import COEFFICIENT_NAMES
+from ttlcore.telemetry import Telemetry
+from ttlcore.tdi_data import TDIStream
+
+from . import OUTPUT_TOPIC, XYZ, InOrder, PipelineStage, stage_main
+
+#: Units of the output arrays.
+UNITS = {"data": "fractional frequency", "regressors": "fractional frequency per m/rad"}
+_TELEMETRY = ("eta", "dws_phi", "dws_eta", "ltt")
+
+
+class TDIBuilder(PipelineStage):
+    """Builds TDI (X2, Y2, Z2) of the data and of the 24 regressors from telemetry segments."""
+
+    name = "tdi_builder"
+    inputs = ("telemetry",)
+    follow = ("replayer",)
+    reorders = ("telemetry",)
+
+    def __init__(self, config):
+        super().__init__(config)
+        o = self.options
+        kwargs = {}
+        if o.get("order") is not None:
+            kwargs["order"] = int(o["order"])
+        self.stream = TDIStream(**kwargs)
+        self.queue = InOrder(settle=float(o.get("settle", 1.0)), gap_timeout=float(o.get("gap_timeout", 60.0)))
+
+    def expect(self, topic, index):
+        return Expect(run=self.run_id, index=index, arrays={k: ("<f8", (6, None)) for k in _TELEMETRY})
+
+    def pending(self) -> int:
+        return len(self.queue.pending)
+
+    def handle(self, header, arrays):
+        # validated here, before buffering: a segment that raises is reported as failed and
+        # not marked processed, so a good copy of it is still accepted
+        tm = Telemetry(t0=header.t0, fs=header.fs, source=str(header.meta.get("source", "bus")),
+                       **{k: arrays[k] for k in _TELEMETRY})
+        self.note_meta(header.meta)
+        if not self.queue.add(header.index, (header, tm)):
+            self.event("stale", index=header.index, message=f"segment {header.index} arrived after the stream "
+                                                            f"moved past it (next is {self.queue.next}); ignored")
+            return ()
+        self.drain()
+        return ()
+
+    def tick(self):
+        self.drain()
+        self.check_complete()
+        return ()
+
+    def _upstream_failed(self, index: int) -> bool:
+        peer = self.board.get("replayer")
+        return peer is not None and index in peer.failed
+
+    def drain(self) -> None:
+        for index, item in self.queue.ready(self._upstream_failed, self.segments_total):
+            if item is None:
+                reason = getattr(self.queue, "skipped_reason", "")
+                self.report_error("gap", f"telemetry segment {index} skipped: {reason}", index=index)
+                self.stream.reset()
+                self.mark_failed(index)
+                continue
+            header, tm = item
+            try:
+                self.publish(self.build(header, tm), source=header)
+            except Exception as exc:
+                self.log.exception("segment %d failed", index)
+                self.report_error("failed", f"{type(exc).__name__}: {exc}", index=index, key=header.key)
+                self.stream.reset()
+                self.mark_failed(index)
+                continue
+            self.mark_done(index)
+
+    def build(self, header, tm: Telemetry) -> Output:
+        """TDI of one telemetry segment (the stream's tail makes it continuous)."""
+        continuous = self.stream.next_t0 is not None
+        if continuous and (abs(tm.t0 - self.stream.next_t0) > 0.5 / tm.fs or tm.fs != self.stream._tail.fs):
+            self.event("discontinuity", index=header.index,
+                       message=f"t0={tm.t0} s does not follow the previous segment (expected {self.stream.next_t0} s); "
+                               "TDI restarts here")
+            self.stream.reset()
+            continuous = False
+        td = self.stream.push(tm)
+        meta = {k: header.meta.get(k) for k in ("segments_total", "segment_duration", "source", "truth", "dws_asd")}
+        meta.update(names=list(td.names), ltt_mean=[float(x) for x in td.ltt_mean], continuous=continuous)
+        if tuple(td.names) != tuple(COEFFICIENT_NAMES) or tuple(td.channels) != XYZ:
+            raise ValueError(f"TDIStream gave channels {td.channels} and names {td.names[:2]}...; "
+                             f"expected {XYZ} and the 24 coefficients")
+        return Output(OUTPUT_TOPIC[self.name], {"data": td.data, "regressors": td.regressors},
+                      fields={"channels": list(td.channels), "channel_axis": 0, "units": UNITS, "meta": meta},
+                      allow_nonfinite=True)
+
+
+def add_options(p) -> None:
+    p.add_argument("--order", type=int, help="Lagrange interpolation order of the TDI delays (odd, default 31)")
+    p.add_argument("--settle", type=float, help="seconds to collect cached history before choosing the first segment")
+    p.add_argument("--gap-timeout", type=float, help="seconds to wait for a missing segment before skipping it")
+
+
+def options(args) -> dict:
+    return {"order": args.order, "settle": args.settle, "gap_timeout": args.gap_timeout}
+
+
+def main(argv=None) -> int:
+    return stage_main(TDIBuilder, argv, add_options, options)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

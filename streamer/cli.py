@@ -1,0 +1,253 @@
+"""Operations subcommands of ``ttl`` (attached by :func:`ttlcore.cli.build_parser`).
+
+``ttl run``
+    The whole pipeline: five stage processes on a loopback Zenoh, progress, supervision
+    (:mod:`streamer.launcher`).
+``ttl stage NAME [options]``
+    One stage process (``python -m stages.<name>``), e.g. on another host:
+    ``ttl stage fitter --run r1 --connect tcp/10.0.0.5:7447``; ``ttl stage NAME --help``.
+``ttl router``
+    A Zenoh router (for stages on several hosts).
+``ttl inspect``, ``ttl view``
+    Offline inspection of recordings, from :mod:`streamer.inspect` when it is installed.
+
+Errors print one line naming the option, file or stage at fault and exit non-zero.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import importlib.util
+import json
+import logging
+import signal
+import sys
+import threading
+import tomllib
+from pathlib import Path
+from typing import TYPE_CHECKING
+
+from ttlcore.errors import TTLError
+
+if TYPE_CHECKING:
+    from .launcher import RunOptions
+
+log = logging.getLogger(__name__)
+
+#: The stages ``ttl stage`` can run.
+STAGE_NAMES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
+
+
+def register(sub) -> None:
+    """Add ``run``, ``stage``, ``router`` (and ``inspect``/``view`` when available) to ``ttl``."""
+    _add_run(sub)
+    _add_stage(sub)
+    _add_router(sub)
+    try:
+        spec = importlib.util.find_spec("streamer.inspect")
+    except (ImportError, ValueError):
+        spec = None
+    if spec is not None:
+        try:
+            inspect_cli = importlib.import_module("streamer.inspect")
+        except Exception as exc:  # keep the other subcommands usable
+            log.warning("streamer.inspect could not be loaded (%s): no 'ttl inspect'/'ttl view'", exc)
+        else:
+            if hasattr(inspect_cli, "register"):
+                inspect_cli.register(sub)
+
+
+# ---------------------------------------------------------------------------- ttl run
+
+def _add_run(sub) -> None:
+    p = sub.add_parser(
+        "run", help="run the streaming pipeline (replayer, tdi_builder, fitter, subtractor, monitor)",
+        description="Start the five stages as separate processes on a loopback Zenoh (a router in this "
+                    "process on 127.0.0.1, the stages as peers connecting to it), show progress, supervise "
+                    "them, and stop them once every stage has handled every segment. Recordings go to "
+                    "RECORDINGS/RUN_ID/<stage>.mcap. Exit status 0 when the run completed.")
+    p.add_argument("--config", type=Path, help="run configuration (JSON or TOML) with these options as keys "
+                   "(run_id, telemetry, simulate, segment, ...) and 'stages': {name: {option: value}}; "
+                   "command-line options override it")
+    src = p.add_mutually_exclusive_group()
+    src.add_argument("--telemetry", nargs="+", metavar="FILE", help="telemetry files (ours or lisainstrument's)")
+    src.add_argument("--simulate", metavar="OPTIONS",
+                     help="simulate on the fly with 'ttl simulate' options, e.g. \"--duration 12h --orbit unequal --seed 1\"")
+    p.add_argument("--run-id", help="run identifier (letters, digits, '.', '_', '-')")
+    p.add_argument("--segment", help="segment length, e.g. 1h, 30min or seconds (default 1h)")
+    p.add_argument("--recordings", type=Path, help="recordings directory (default recordings)")
+    p.add_argument("--pace", type=float, help="replay at X times real time (default: as fast as the stages go)")
+    p.add_argument("--window", type=int, help="segments the replay may run ahead of the slowest stage (default 4)")
+    p.add_argument("--cache", type=int, help="segments each stage keeps per output for late joiners and "
+                   "restarted stages (default window + 4)")
+    p.add_argument("--skip", action="append", metavar="STAGE", help="do not run STAGE (repeatable)")
+    p.add_argument("--external", action="append", metavar="STAGE",
+                   help="STAGE runs elsewhere ('ttl stage'): expect it, do not start it (repeatable)")
+    p.add_argument("--restart", type=int, help="restart a stage that dies, up to N times per stage (default 0)")
+    p.add_argument("--listen", action="append", metavar="ENDPOINT",
+                   help="router endpoint (default tcp/127.0.0.1:<free port>; repeatable)")
+    p.add_argument("--zenoh-config", type=Path, help="Zenoh configuration file (JSON5) of the router")
+    p.add_argument("--fit-segment", help="fitter: FFT segment length (default: the segment length)")
+    p.add_argument("--fit-window", help="fitter: rolling window length (default 1d)")
+    p.add_argument("--band", nargs=2, type=float, metavar=("FMIN", "FMAX"), help="fitter: fit band [Hz]")
+    p.add_argument("--timeout", type=float, help="give up after this many seconds")
+    p.add_argument("--grace", type=float, help="seconds a stage without progress reports (the monitor) may "
+                   "stay quiet after the others are done before it is stopped (default 10)")
+    p.add_argument("--log-level", help="log level of the stages (default INFO)")
+    p.add_argument("--quiet", action="store_true", help="no progress display")
+    p.set_defaults(func=_cmd_run)
+
+
+def _read_config(path: Path) -> dict:
+    try:
+        text = path.read_text()
+    except OSError as exc:
+        raise TTLError(f"--config: {path}: {exc.strerror or exc}") from None
+    try:
+        data = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
+    except (ValueError, tomllib.TOMLDecodeError) as exc:
+        raise TTLError(f"--config: {path}: not valid {'TOML' if path.suffix.lower() == '.toml' else 'JSON'}: {exc}") from None
+    if not isinstance(data, dict):
+        raise TTLError(f"--config: {path}: expected an object of options")
+    return data
+
+
+def _split(values) -> tuple:
+    out = []
+    for v in values or ():
+        out.extend(x for x in str(v).split(",") if x)
+    return tuple(out)
+
+
+def run_options(args) -> "RunOptions":
+    """:class:`streamer.launcher.RunOptions` from ``--config`` and the command line."""
+    from .launcher import RunOptions
+
+    conf = _read_config(args.config) if args.config else {}
+    known = set(RunOptions.__dataclass_fields__) | {"stages", "fit_segment", "fit_window", "band"}
+    unknown = sorted(set(conf) - known)
+    if unknown:
+        raise TTLError(f"--config: {args.config}: unknown option {unknown[0]!r} (known: {', '.join(sorted(known))})")
+    stages = conf.pop("stages", {}) or {}
+    if not isinstance(stages, dict):
+        raise TTLError(f"--config: {args.config}: 'stages' must map stage names to options")
+    fitter = dict(stages.get("fitter") or {})
+    for key, name in (("fit_segment", "fit_segment"), ("fit_window", "window_duration"), ("band", "band")):
+        if key in conf:
+            fitter[name] = conf.pop(key)
+    cli = {"run_id": args.run_id, "telemetry": args.telemetry, "simulate": args.simulate, "segment": args.segment,
+           "recordings": args.recordings, "pace": args.pace, "window": args.window, "cache": args.cache,
+           "restart": args.restart, "zenoh_config": args.zenoh_config, "timeout": args.timeout,
+           "grace": args.grace, "log_level": args.log_level}
+    if args.skip:
+        cli["skip"] = _split(args.skip)
+    if args.external:
+        cli["external"] = _split(args.external)
+    if args.listen:
+        cli["listen"] = tuple(args.listen)
+    if args.telemetry or args.simulate:  # the command line's source replaces the file's
+        conf.pop("telemetry", None)
+        conf.pop("simulate", None)
+    merged = {**conf, **{k: v for k, v in cli.items() if v is not None}}
+    for key, name in (("fit_segment", "fit_segment"), ("fit_window", "window_duration"), ("band", "band")):
+        if getattr(args, key) is not None:
+            fitter[name] = getattr(args, key)
+    if fitter:
+        stages = {**stages, "fitter": fitter}
+    if not merged.get("run_id"):
+        raise TTLError("--run-id is required (or 'run_id' in --config)")
+    for key in ("skip", "external", "listen"):
+        if key in merged:
+            merged[key] = tuple(merged[key]) if not isinstance(merged[key], str) else (merged[key],)
+    if isinstance(merged.get("telemetry"), str):
+        merged["telemetry"] = [merged["telemetry"]]
+    for key in ("recordings", "zenoh_config"):
+        if merged.get(key) is not None:
+            merged[key] = Path(merged[key])
+    try:
+        return RunOptions(**merged, stage_options=stages, quiet=args.quiet)
+    except TypeError as exc:
+        raise TTLError(f"--config: {exc}") from None
+
+
+def _cmd_run(args) -> int:
+    from .launcher import run
+
+    return run(run_options(args))
+
+
+# ---------------------------------------------------------------------------- ttl stage
+
+def _add_stage(sub) -> None:
+    p = sub.add_parser("stage", help="run one stage process (for stages on several hosts)",
+                       description="Run one stage of the pipeline in this process; the options after NAME go "
+                                   "to the stage (see 'ttl stage NAME --help'), e.g. "
+                                   "'ttl stage fitter --run r1 --connect tcp/127.0.0.1:7447'.",
+                       add_help=True)
+    p.add_argument("name", choices=STAGE_NAMES, metavar="NAME", help=f"one of {', '.join(STAGE_NAMES)}")
+    p.add_argument("args", nargs=argparse.REMAINDER, help="stage options")
+    p.set_defaults(func=_cmd_stage)
+
+
+def _cmd_stage(args) -> int:
+    from .launcher import stage_module_exists
+
+    if not stage_module_exists(args.name):
+        raise TTLError(f"stage {args.name!r} is not installed (no module stages.{args.name})")
+    module = importlib.import_module(f"stages.{args.name}")
+    if hasattr(module, "main"):
+        return int(module.main(args.args) or 0)
+    from .stage import Stage, main
+
+    classes = [c for c in vars(module).values()
+               if isinstance(c, type) and issubclass(c, Stage) and c.__module__ == module.__name__]
+    if not classes:
+        raise TTLError(f"stage {args.name!r}: module stages.{args.name} has neither main() nor a Stage class")
+    return int(main(classes[0], args.args) or 0)
+
+
+# ---------------------------------------------------------------------------- ttl router
+
+def _add_router(sub) -> None:
+    p = sub.add_parser("router", help="open a Zenoh router (stages on several hosts)",
+                       description="Open a Zenoh router and keep it open until interrupted. Default: listen on "
+                                   "tcp/127.0.0.1:7447 only, multicast scouting off.")
+    p.add_argument("--listen", action="append", metavar="ENDPOINT",
+                   help="endpoint to listen on (repeatable; default tcp/127.0.0.1:7447)")
+    p.add_argument("--connect", action="append", metavar="ENDPOINT", help="other routers to connect to (repeatable)")
+    p.add_argument("--zenoh-config", type=Path, help="Zenoh configuration file (JSON5); --listen/--connect override it")
+    p.set_defaults(func=_cmd_router)
+
+
+def _cmd_router(args) -> int:
+    from .session import DEFAULT_ROUTER_LISTEN, SessionConfigError, SessionSettings, open_router, open_session
+
+    listen = tuple(args.listen) if args.listen else (None if args.zenoh_config else DEFAULT_ROUTER_LISTEN)
+    stop = threading.Event()
+    # handlers first: a SIGTERM right after the router starts listening still closes it cleanly
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        try:
+            if listen is None:  # the file's endpoints
+                session = open_session(SessionSettings(mode="router", config_file=args.zenoh_config,
+                                                       connect=tuple(args.connect) if args.connect else None))
+            else:
+                session = open_router(listen=listen, connect=tuple(args.connect or ()), config_file=args.zenoh_config)
+        except SessionConfigError as exc:
+            raise TTLError(str(exc)) from None
+        except Exception as exc:  # zenoh: address in use, bad endpoint
+            where = ", ".join(listen) if listen else f"the endpoints of {args.zenoh_config}"
+            raise TTLError(f"cannot open the router on {where}: {exc}") from None
+        try:
+            print(f"ttl router: zenoh router {session.zid()} listening on "
+                  f"{', '.join(listen) if listen else 'the endpoints of ' + str(args.zenoh_config)}; Ctrl-C to stop",
+                  file=sys.stderr, flush=True)
+            while not stop.wait(0.5):
+                pass
+        finally:
+            session.close()
+    finally:
+        for s, h in previous.items():
+            signal.signal(s, h)
+    return 0

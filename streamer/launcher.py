@@ -1,0 +1,532 @@
+"""The launcher of ``ttl run``: starts the five stages as processes, supervises them, stops them.
+
+Process model
+-------------
+* The launcher opens a Zenoh **router** in its own process, listening on
+  ``tcp/127.0.0.1:<free port>`` (or ``--listen``), multicast scouting off.
+* Each stage is a separate process, ``python -m stages.<name> --config
+  <recordings>/<run>/<name>.config.json``, a Zenoh **peer** that connects to the router and
+  listens on ``tcp/127.0.0.1:<free port>`` itself (peers gossip their loopback locators
+  through the router and then talk directly).  Nothing listens on anything but 127.0.0.1
+  unless configured (``--listen``, ``--zenoh-config``).
+* Stage logs go to ``<recordings>/<run>/<name>.log``, recordings to
+  ``<recordings>/<run>/<name>.mcap`` (and ``monitor.rrd``).
+
+Progress and completion
+-----------------------
+The pipeline stages publish cumulative progress on ``ttl/<run>/control/progress/<stage>``
+(see :mod:`stages`); the replayer's carries ``segments_total``.  The launcher keeps, per
+stage, the union of the indices handled over all its processes (a restarted stage starts
+afresh) and shows ``done/total`` per stage, with liveliness (``ttl/<run>/alive/<stage>``).
+A stage that reports no progress (the monitor, unless it adopts the protocol) counts as done
+when it has published ``ttl/<run>/monitor/<i>`` for every segment, or else ``grace``
+seconds after everything upstream is done and its last output.  When every stage is done,
+the launcher sends ``ttl/<run>/control/stop``; the stages close their recordings and exit
+0, and so does ``ttl run``.
+
+Supervision
+-----------
+A stage that exits before the stop is reported (exit status, last line of its log); with
+``restart`` > 0 it is restarted (up to that many times per stage) and catches up from the
+publishers' caches (the replayer stays within ``window`` segments of the slowest stage and
+the caches hold ``cache`` > ``window`` + 1 segments); otherwise the run is stopped and
+``ttl run`` exits 1.  ``external`` stages are expected but run elsewhere (``ttl stage``
+on another host, or started later: late joiners catch up from the caches).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import logging
+import os
+import queue
+import signal
+import subprocess
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import zenoh
+
+from ttlcore.errors import TTLError
+
+from .keys import check_name, control_key
+from .session import Bus, SessionSettings, declare_segment_subscriber, loopback_endpoint, open_router
+
+log = logging.getLogger(__name__)
+
+#: The stages of a run, in pipeline order.
+STAGES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
+#: Stages that publish progress messages (``stages.PipelineStage``); the replayer stays
+#: within ``window`` segments of them.  Any other stage that reports progress is followed too.
+PROGRESS_STAGES = frozenset({"replayer", "tdi_builder", "fitter", "subtractor", "monitor"})
+#: Output topic of each stage.
+OUTPUT_TOPIC = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit", "subtractor": "residual",
+                "monitor": "monitor"}
+#: Stages whose inputs would duplicate big TDI payloads already in the tdi_builder's file:
+#: they do not record input payloads (the fitter and subtractor record the input headers).
+HEADERS_ONLY = frozenset({"fitter", "subtractor", "monitor"})
+DEFAULT_WINDOW = 4
+
+
+class LaunchError(TTLError):
+    """The run cannot start (message names the option, file or stage at fault)."""
+
+
+@dataclass
+class RunOptions:
+    """What ``ttl run`` runs (command-line options, or a ``--config`` file with these keys).
+
+    Attributes
+    ----------
+    run_id : str
+    recordings : Path
+    telemetry : list of str, optional
+        Telemetry files (exclusive with ``simulate``).
+    simulate : str, optional
+        ``ttl simulate`` options.
+    segment : str
+        Segment length (``1h``, ``30min``, seconds).
+    pace : float
+        Multiple of real time (0: as fast as the consumers take the segments).
+    window : int
+        Segments the replayer may run ahead of the slowest stage.
+    cache : int, optional
+        Segments each stage keeps per output topic for late joiners (default window + 4).
+    skip : tuple of str
+        Stages not run at all.
+    external : tuple of str
+        Stages run elsewhere (expected, not started).
+    restart : int
+        Restarts allowed per stage.
+    listen : tuple of str
+        Router endpoints (default ``tcp/127.0.0.1:<free port>``).
+    zenoh_config : Path, optional
+        Zenoh configuration file of the router.
+    stage_options : dict
+        Stage name -> stage options (``options`` of its StageConfig), and the fitter
+        options ``fit_segment``, ``window_duration``, ``band``.
+    timeout : float, optional
+        Give up after this many seconds.
+    grace : float
+        See the module docstring.
+    """
+
+    run_id: str
+    recordings: Path = Path("recordings")
+    telemetry: list | None = None
+    simulate: str | None = None
+    segment: str = "1h"
+    pace: float = 0.0
+    window: int = DEFAULT_WINDOW
+    cache: int | None = None
+    skip: tuple = ()
+    external: tuple = ()
+    restart: int = 0
+    listen: tuple = ()
+    zenoh_config: Path | None = None
+    stage_options: dict = field(default_factory=dict)
+    timeout: float | None = None
+    grace: float = 10.0
+    stop_timeout: float = 60.0
+    log_level: str = "INFO"
+    quiet: bool = False
+    python: str = sys.executable
+
+
+def stage_module_exists(name: str) -> bool:
+    """True when ``stages/<name>.py`` is installed (without importing it)."""
+    spec = importlib.util.find_spec("stages")
+    if spec is None or not spec.submodule_search_locations:
+        return False
+    return any((Path(loc) / f"{name}.py").exists() or (Path(loc) / name / "__init__.py").exists()
+               for loc in spec.submodule_search_locations)
+
+
+@dataclass
+class _Child:
+    name: str
+    config: Path
+    log: Path
+    proc: subprocess.Popen | None = None
+    starts: int = 0
+    exit_codes: list = field(default_factory=list)
+
+
+class Launcher:
+    """Runs one pipeline (see the module docstring); :meth:`run` returns the exit status."""
+
+    def __init__(self, opts: RunOptions, out=None):
+        self.opts = opts
+        self.out = out or sys.stderr
+        self.children: dict[str, _Child] = {}
+        self.expected: list[str] = []
+        self.alive: dict[str, bool] = {}
+        self.progress: dict[str, dict] = {}  # stage -> {"done": set, "failed": set, "total": int|None}
+        self.outputs: dict[str, set] = {}  # silent stage -> indices seen on its topic
+        self.last_output: dict[str, float] = {}
+        self.errors: list[dict] = []
+        self.events: queue.Queue = queue.Queue()
+        self._t0 = time.monotonic()
+        self._last_line = ""
+        self._last_print = 0.0
+        self.endpoint = ""
+        self.run_dir = Path(opts.recordings) / opts.run_id
+
+    # ------------------------------------------------------------------ output
+    def say(self, text: str) -> None:
+        print(f"ttl run {self.opts.run_id}: {text}", file=self.out, flush=True)
+
+    # ------------------------------------------------------------------ validation
+    def plan(self) -> None:
+        o = self.opts
+        try:
+            check_name(o.run_id, "run id")
+        except ValueError as exc:
+            raise LaunchError(f"--run-id: {exc}") from None
+        for what, names in (("--skip", o.skip), ("--external", o.external)):
+            for n in names:
+                if n not in STAGES:
+                    raise LaunchError(f"{what}: unknown stage {n!r} (stages: {', '.join(STAGES)})")
+        if "replayer" in o.skip:
+            raise LaunchError("--skip: the replayer cannot be skipped (run it elsewhere with --external replayer)")
+        if not o.telemetry and not o.simulate and "replayer" not in o.external:
+            raise LaunchError("no telemetry source: give --telemetry FILE... or --simulate \"<ttl simulate options>\"")
+        if o.telemetry and o.simulate:
+            raise LaunchError("give either --telemetry or --simulate, not both")
+        for f in o.telemetry or ():
+            if not Path(f).is_file():
+                raise LaunchError(f"--telemetry: {f}: no such file")
+        if o.window < 1:
+            raise LaunchError(f"--window: expected >= 1, got {o.window}")
+        cache = self.cache
+        if cache < o.window + 2:
+            raise LaunchError(f"--cache: {cache} segments is too few for --window {o.window} "
+                              f"(a restarted stage needs at least window + 2 = {o.window + 2})")
+        skipped = set(o.skip)
+        if "monitor" not in skipped and "monitor" not in o.external and not stage_module_exists("monitor"):
+            self.say("the monitor stage (stages/monitor.py) is not installed: running without it")
+            skipped.add("monitor")
+        for name in STAGES:
+            if name not in skipped and name not in o.external and not stage_module_exists(name):
+                raise LaunchError(f"stage {name!r}: module stages.{name} not found")
+        self.expected = [n for n in STAGES if n not in skipped]
+
+    @property
+    def cache(self) -> int:
+        return self.opts.cache if self.opts.cache is not None else self.opts.window + 4
+
+    def stage_options(self, name: str) -> dict:
+        o = self.opts
+        opts = dict(o.stage_options.get(name) or {})
+        started = [n for n in self.expected if n not in o.external]
+        if name == "replayer":
+            # flow control on the stages started here that report progress, up to the first
+            # external one: a stage downstream of an external stage cannot progress before that
+            # one joins (it is followed once it reports progress)
+            first_external = min((STAGES.index(n) for n in o.external), default=len(STAGES))
+            opts.update({"telemetry": [str(Path(f).resolve()) for f in o.telemetry] if o.telemetry else None,
+                         "simulate": o.simulate, "segment": o.segment, "pace": o.pace, "window": o.window,
+                         "wait_for": [n for n in started if n != "replayer"],
+                         "pace_on": [n for n in started if n != "replayer" and n in PROGRESS_STAGES
+                                     and STAGES.index(n) < first_external]})
+        return {k: v for k, v in opts.items() if v is not None}
+
+    def stage_config(self, name: str) -> dict:
+        cfg = {"run": self.opts.run_id, "stage": name,
+               "zenoh": SessionSettings(connect=(self.endpoint,)).to_dict(),
+               "recordings": str(Path(self.opts.recordings).resolve()), "cache": self.cache,
+               "options": self.stage_options(name)}
+        if name in HEADERS_ONLY:
+            cfg["record_inputs"] = False
+        return cfg
+
+    def check_replayer(self) -> None:
+        """Validate the source options in a child (``stages.replayer --check``)."""
+        if "replayer" in self.opts.external:
+            return
+        path = self.run_dir / "replayer.config.json"
+        path.write_text(json.dumps(self.stage_config("replayer"), indent=2))
+        res = subprocess.run([self.opts.python, "-m", "stages.replayer", "--config", str(path), "--check",
+                              "--log-level", "WARNING"], capture_output=True, text=True, timeout=300)
+        if res.returncode != 0:
+            lines = [ln for ln in (res.stderr or res.stdout).strip().splitlines() if ln.strip()]
+            msg = lines[-1] if lines else f"exit status {res.returncode}"
+            raise LaunchError(msg.replace("ttl stage replayer: error: ", ""))
+        self.say(f"replay: {res.stdout.strip()}")
+
+    # ------------------------------------------------------------------ bus callbacks
+    def _on_progress(self, sample) -> None:
+        try:
+            msg = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            return
+        if isinstance(msg, dict) and isinstance(msg.get("stage"), str):
+            self.events.put(("progress", msg))
+
+    def _on_alive(self, stage: str, alive: bool) -> None:
+        self.events.put(("alive", stage, alive))
+
+    def _on_error(self, sample) -> None:
+        try:
+            self.events.put(("error", json.loads(sample.payload.to_bytes())))
+        except ValueError:
+            self.events.put(("error", {"message": "unreadable error message", "key": str(sample.key_expr)}))
+
+    def _on_output(self, sample) -> None:
+        parts = str(sample.key_expr).split("/")
+        if len(parts) == 4 and parts[3].isdigit():
+            self.events.put(("output", parts[2], int(parts[3])))
+
+    def _drain_events(self) -> bool:
+        changed = False
+        while True:
+            try:
+                ev = self.events.get_nowait()
+            except queue.Empty:
+                return changed
+            changed = True
+            if ev[0] == "progress":
+                msg = ev[1]
+                p = self.progress.setdefault(msg["stage"], {"done": set(), "failed": set(), "total": None})
+                for key in ("done", "failed"):
+                    for r in msg.get(key) or ():
+                        try:
+                            p[key].update(range(int(r[0]), int(r[1]) + 1))
+                        except (TypeError, ValueError, IndexError):
+                            pass
+                if isinstance(msg.get("segments_total"), int):
+                    p["total"] = msg["segments_total"]
+            elif ev[0] == "alive":
+                _, stage, alive = ev
+                if stage in self.expected and self.alive.get(stage) != alive:
+                    log.info("%s %s", stage, "alive" if alive else "gone")
+                self.alive[stage] = alive
+            elif ev[0] == "error":
+                err = ev[1]
+                self.errors.append(err)
+                where = f" segment {err.get('index')}" if err.get("index") is not None else ""
+                self.say(f"error from {err.get('stage', '?')}{where}: {err.get('kind', '')}: {err.get('message', '')}")
+            elif ev[0] == "output":
+                _, topic, index = ev
+                for stage, t in OUTPUT_TOPIC.items():
+                    if t == topic:
+                        self.outputs.setdefault(stage, set()).add(index)
+                        self.last_output[stage] = time.monotonic()
+
+    # ------------------------------------------------------------------ state
+    @property
+    def total(self) -> int | None:
+        totals = [p["total"] for p in self.progress.values() if p["total"]]
+        return max(totals) if totals else None
+
+    def handled(self, stage: str) -> set:
+        p = self.progress.get(stage)
+        if p is not None:
+            return p["done"] | p["failed"]
+        return set(self.outputs.get(stage, ()))
+
+    def stage_done(self, stage: str, others_done_at: float | None) -> bool:
+        total = self.total
+        if total is None:
+            return False
+        if self.handled(stage).issuperset(range(total)):
+            return True
+        if stage in self.progress:
+            return False
+        # a stage without progress messages: grace after upstream is done and its last output
+        if others_done_at is None or not self.alive.get(stage, False):
+            return False
+        quiet_since = max(others_done_at, self.last_output.get(stage, 0.0))
+        return time.monotonic() - quiet_since >= self.opts.grace
+
+    def status_line(self) -> str:
+        total = self.total
+        parts = []
+        for s in self.expected:
+            n = len(self.handled(s))
+            mark = "" if self.alive.get(s) else " (down)" if s in self.alive else " (not up)"
+            parts.append(f"{s} {n}/{total if total is not None else '?'}{mark}")
+        return " | ".join(parts) + f"  [{time.monotonic() - self._t0:.1f} s]"
+
+    def show(self, force: bool = False) -> None:
+        if self.opts.quiet:
+            return
+        line = self.status_line()
+        now = time.monotonic()
+        core = line.rsplit("  [", 1)[0]
+        if force or (core != self._last_line and now - self._last_print >= 1.0):
+            self._last_line, self._last_print = core, now
+            self.say(line)
+
+    # ------------------------------------------------------------------ children
+    def start(self, name: str) -> None:
+        child = self.children[name]
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        with open(child.log, "ab") as logf:
+            logf.write(f"--- start {child.starts + 1} of {name} at {time.ctime()} ---\n".encode())
+            logf.flush()
+            child.proc = subprocess.Popen(
+                [self.opts.python, "-m", f"stages.{name}", "--config", str(child.config),
+                 "--log-level", self.opts.log_level],
+                stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+        child.starts += 1
+        log.info("started %s (pid %d)", name, child.proc.pid)
+
+    def last_log_line(self, name: str) -> str:
+        try:
+            lines = [ln for ln in self.children[name].log.read_text(errors="replace").splitlines() if ln.strip()]
+        except OSError:
+            return ""
+        return lines[-1] if lines else ""
+
+    def supervise(self) -> str | None:
+        """Handle stages that exited; returns a reason to abort, or None."""
+        for name, child in self.children.items():
+            if child.proc is None or child.proc.poll() is None:
+                continue
+            code = child.proc.returncode
+            child.exit_codes.append(code)
+            child.proc = None
+            how = f"killed by {signal.Signals(-code).name}" if code < 0 and -code in signal.Signals._value2member_map_ \
+                else f"exit status {code}"
+            self.say(f"stage {name} died ({how}); log {child.log}: {self.last_log_line(name)}")
+            if child.starts <= self.opts.restart:
+                self.say(f"restarting {name} ({child.starts}/{self.opts.restart})")
+                self.start(name)
+            else:
+                return f"stage {name} died ({how})"
+        return None
+
+    def stop_all(self) -> None:
+        """Ask every stage to stop, wait, then terminate and kill what is left."""
+        try:
+            self.bus.session.put(control_key(self.opts.run_id, "stop"), b"{}",
+                                 congestion_control=zenoh.CongestionControl.BLOCK)
+        except Exception as exc:  # session closed
+            log.warning("could not send stop: %s", exc)
+        deadline = time.monotonic() + self.opts.stop_timeout
+        for sig, wait in ((None, None), (signal.SIGTERM, 15.0), (signal.SIGKILL, 10.0)):
+            running = [c for c in self.children.values() if c.proc is not None and c.proc.poll() is None]
+            if not running:
+                break
+            if sig is not None:
+                for c in running:
+                    self.say(f"stage {c.name} did not stop: sending {sig.name}")
+                    c.proc.send_signal(sig)
+                deadline = time.monotonic() + wait
+            for c in running:
+                try:
+                    c.proc.wait(max(0.1, deadline - time.monotonic()))
+                except subprocess.TimeoutExpired:
+                    pass
+        for c in self.children.values():
+            if c.proc is not None:
+                c.exit_codes.append(c.proc.returncode)
+                c.proc = None
+
+    # ------------------------------------------------------------------ the run
+    def run(self) -> int:
+        o = self.opts
+        self.plan()
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        listen = tuple(o.listen) or (loopback_endpoint(),)
+        self.endpoint = next((e for e in listen if "127.0.0.1" in e or "localhost" in e), listen[0])
+        self.check_replayer()
+        try:
+            router = open_router(listen=listen, config_file=o.zenoh_config)
+        except Exception as exc:
+            raise LaunchError(f"cannot open the Zenoh router on {', '.join(listen)}: {exc}") from None
+        with Bus(router) as bus:
+            self.bus = bus
+            bus.track(declare_segment_subscriber(bus.session, f"ttl/{o.run_id}/control/progress/*",
+                                                 self._on_progress, history=1))
+            bus.watch_alive(o.run_id, self._on_alive)
+            bus.subscriber(f"ttl/{o.run_id}/errors/*", self._on_error)
+            for stage in self.expected:
+                if stage not in PROGRESS_STAGES and stage in OUTPUT_TOPIC:
+                    bus.subscriber(f"ttl/{o.run_id}/{OUTPUT_TOPIC[stage]}/*", self._on_output)
+            self.say(f"router on {', '.join(listen)}; stages: {', '.join(self.expected)}"
+                     + (f" (external: {', '.join(o.external)})" if o.external else "")
+                     + f"; recordings in {self.run_dir}")
+            for name in reversed(self.expected):  # consumers first, the replayer last
+                if name in o.external:
+                    continue
+                cfg = self.run_dir / f"{name}.config.json"
+                cfg.write_text(json.dumps(self.stage_config(name), indent=2))
+                self.children[name] = _Child(name, cfg, self.run_dir / f"{name}.log")
+                self.start(name)
+            return self._supervise_loop()
+
+    def _supervise_loop(self) -> int:
+        o = self.opts
+        deadline = time.monotonic() + o.timeout if o.timeout else None
+        others_done_at = None
+        abort = None
+        terminated = []
+        previous = None
+        if threading.current_thread() is threading.main_thread():  # SIGTERM: stop the stages first
+            previous = signal.signal(signal.SIGTERM, lambda *_: terminated.append(True))
+        try:
+            while True:
+                if terminated:
+                    abort = "terminated"
+                    break
+                self._drain_events()
+                abort = self.supervise()
+                if abort:
+                    break
+                self.show()
+                progress_stages = [s for s in self.expected if s in self.progress or s in PROGRESS_STAGES]
+                if others_done_at is None and self.total is not None and all(
+                        self.handled(s).issuperset(range(self.total)) for s in progress_stages):
+                    others_done_at = time.monotonic()
+                if self.total is not None and all(self.stage_done(s, others_done_at) for s in self.expected):
+                    self.show(force=True)
+                    self.say("every stage has handled every segment: stopping")
+                    break
+                if deadline is not None and time.monotonic() > deadline:
+                    abort = f"timed out after {o.timeout:g} s"
+                    break
+                time.sleep(0.1)
+        except KeyboardInterrupt:
+            abort = "interrupted"
+        finally:
+            if previous is not None:
+                signal.signal(signal.SIGTERM, previous)
+        self.stop_all()
+        self._drain_events()
+        return self.report(abort)
+
+    def report(self, abort: str | None) -> int:
+        total = self.total
+        status = 0
+        for name, child in self.children.items():
+            bad = [c for c in child.exit_codes[-1:] if c != 0]
+            if bad:
+                self.say(f"stage {name} exited with status {bad[0]} (log {child.log})")
+                status = 1
+        for s in self.expected:
+            failed = sorted(self.progress.get(s, {}).get("failed", ()))
+            if failed:
+                self.say(f"stage {s} gave up segment(s) {failed}")
+                status = 1
+            if total is not None and s in self.progress and not self.handled(s).issuperset(range(total)):
+                missing = sorted(set(range(total)) - self.handled(s))
+                self.say(f"stage {s} did not handle segment(s) {missing[:20]}{' ...' if len(missing) > 20 else ''}")
+                status = 1
+        if abort:
+            self.say(f"run stopped: {abort}")
+            return {"interrupted": 130, "terminated": 143}.get(abort, 1)
+        if status == 0:
+            files = sorted(p.name for p in self.run_dir.glob("*.mcap")) + sorted(p.name for p in self.run_dir.glob("*.rrd"))
+            self.say(f"done: {total} segments, {len(self.errors)} error report(s); files in {self.run_dir}: {', '.join(files)}")
+        return status
+
+
+def run(opts: RunOptions, out=None) -> int:
+    """Run a pipeline (``ttl run``); returns the exit status."""
+    return Launcher(opts, out).run()

@@ -1,0 +1,166 @@
+"""The stages' bookkeeping without a bus: ranges, ordering, which fit applies, replay sources."""
+
+import json
+import time
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from stages import InOrder, PeerProgress, from_ranges, to_ranges
+from stages.replayer import FileSource, Replayer, make_source, simulation_config
+from stages.subtractor import Subtractor
+from streamer.stage import StageConfig
+from ttlcore.errors import ConfigError, TelemetryError
+from ttlcore.telemetry import Telemetry, write_telemetry
+from ttlcore.truth import truth_path
+
+
+def sample(msg: dict):
+    return SimpleNamespace(payload=json.dumps(msg).encode(), key_expr=f"ttl/u/control/progress/{msg['stage']}")
+
+
+def test_ranges_round_trip():
+    assert to_ranges([5, 0, 1, 2, 2]) == [[0, 2], [5, 5]]
+    assert from_ranges([[0, 2], [5, 5]]) == {0, 1, 2, 5}
+    assert to_ranges([]) == [] and from_ranges(None) == set() and from_ranges([["x"]]) == set()
+    p = PeerProgress("fitter")
+    p.update({"done": [[0, 3]], "failed": [[5, 5]], "segments_total": 7, "fits_ranges": [[1, 3]]})
+    p.update({"done": [[4, 4], [6, 6]], "pid": 2})  # a restarted process: union of both
+    assert p.handled == set(range(7)) and p.covers() and p.highest == 6 and p.extra["fits"] == {1, 2, 3}
+
+
+def test_in_order_settles_reorders_and_skips():
+    q = InOrder(settle=0.2, gap_timeout=0.3)
+    q.add(5, "e")
+    q.add(3, "c")
+    assert list(q.ready()) == []                      # still collecting history
+    time.sleep(0.25)
+    q.add(4, "d")
+    assert list(q.ready()) == [(3, "c"), (4, "d"), (5, "e")]
+    assert not q.add(2, "late")                       # behind the stream: stale
+    q.add(7, "g")
+    assert list(q.ready()) == []                      # 6 missing, 7 waits
+    assert list(q.ready(skip=lambda i: i == 6)) == [(6, None), (7, "g")]
+    q.add(9, "i")
+    assert list(q.ready()) == []
+    time.sleep(0.35)
+    assert list(q.ready()) == [(8, None), (9, "i")]   # gap timeout
+    q2 = InOrder(settle=10)
+    q2.add(0, "a")
+    assert list(q2.ready()) == [(0, "a")]             # index 0 needs no settling
+
+
+def test_subtractor_applies_the_latest_fit_covering_each_segment(tmp_path):
+    s = Subtractor(StageConfig(run="u", recordings=tmp_path))
+    fit = {"coefficients": {}, "t_start": 0.0, "t_stop": 1.0}
+    assert s.choose(0) == ("wait", None)             # the fitter has not passed segment 0
+    s.board.feed(sample({"stage": "fitter", "done": [[0, 1]], "fits_ranges": []}))
+    assert s.choose(0) == ("apply", None)            # passed, no fit yet: published unchanged
+    s.board.feed(sample({"stage": "fitter", "done": [[0, 3]], "fits_ranges": [[2, 3]]}))
+    assert s.choose(2) == ("wait", None)             # fit 2 announced, not received yet
+    s.fits[2] = fit
+    assert s.choose(2) == ("apply", 2)
+    assert s.choose(3) == ("wait", None)
+    s.fits[3] = fit
+    assert s.choose(3) == ("apply", 3)
+    s.board.feed(sample({"stage": "fitter", "done": [[0, 5]], "fits_ranges": [[2, 3]]}))
+    assert s.choose(5) == ("apply", 3)               # no refit at 4, 5: the latest earlier fit
+    assert s.choose(6) == ("wait", None)
+    s.fits[7] = fit
+    assert s.choose(6) == ("apply", 3)               # a later fit exists: the fitter passed 6
+
+
+def _file(path, t0, n, seed=0):
+    rng = np.random.default_rng(seed)
+    tm = Telemetry(t0=t0, fs=4.0, eta=rng.standard_normal((6, n)), dws_phi=rng.standard_normal((6, n)),
+                   dws_eta=rng.standard_normal((6, n)), ltt=np.full((6, n), 8.3),
+                   config={"noises": {"dws": False}})
+    write_telemetry(path, tm)
+    return tm
+
+
+def test_file_source_orders_files_and_cuts_segments(tmp_path):
+    a = _file(tmp_path / "a.h5", 0.0, 100)
+    b = _file(tmp_path / "b.h5", 25.0, 60, seed=1)
+    truth_path(tmp_path / "b.h5").write_bytes(b"")  # a truth file beside b
+    src = FileSource([tmp_path / "b.h5", tmp_path / "a.h5"], segment_duration=10.0)
+    assert src.segments_total == 3 + 2  # 100 = 40 + 40 + 20 samples, 60 = 40 + 20
+    tm, meta = src.segment(2)
+    np.testing.assert_array_equal(tm.eta, a.eta[:, 80:])
+    assert tm.t0 == 20.0 and meta["source"].endswith("a.h5") and meta["truth"] is None and meta["dws_asd"] == 0.0
+    tm, meta = src.segment(3)
+    np.testing.assert_array_equal(tm.eta, b.eta[:, :40])
+    assert tm.t0 == 25.0 and meta["truth"].endswith("b.truth.h5")
+    with pytest.raises(TelemetryError, match="overlapping"):
+        _file(tmp_path / "c.h5", 20.0, 10)
+        FileSource([tmp_path / "a.h5", tmp_path / "c.h5"], 10.0)
+    with pytest.raises(TelemetryError, match="missing.h5"):
+        FileSource([tmp_path / "missing.h5"], 10.0)
+
+
+def test_source_options_name_the_problem():
+    with pytest.raises(ConfigError, match="--bogus"):
+        simulation_config("--duration 1h --bogus 3")
+    with pytest.raises(ConfigError, match="--duration"):
+        simulation_config("--duration soon")
+    with pytest.raises(ConfigError, match="no telemetry source"):
+        make_source({})
+    with pytest.raises(ConfigError, match="--segment"):
+        make_source({"simulate": "--duration 1h", "segment": "later"})
+    cfg = simulation_config("--duration 2h --seed 7 --orbit equal --noises all,-laser")
+    assert cfg.duration == 7200 and cfg.seed == 7 and not cfg.noises.laser
+
+
+def test_replayer_stays_within_window_of_the_slowest_stage(tmp_path):
+    _file(tmp_path / "a.h5", 0.0, 400)
+    r = Replayer(StageConfig(run="u", recordings=tmp_path, options={
+        "telemetry": [str(tmp_path / "a.h5")], "segment": "10", "window": 2, "pace_on": ["tdi_builder", "fitter"]}))
+    assert r.segments_total == 10
+    assert r.lagging(1) == [] and r.lagging(2) == ["fitter", "tdi_builder"]
+    r.board.feed(sample({"stage": "tdi_builder", "done": [[0, 4]]}))
+    r.board.feed(sample({"stage": "fitter", "done": [[0, 1]]}))
+    assert r.lagging(3) == [] and r.lagging(4) == ["fitter"]
+    r.board.feed(sample({"stage": "subtractor", "done": []}))  # a late joiner registers: followed too
+    assert r.lagging(2) == ["subtractor"]
+    assert r._resume_index() == 0
+
+
+def test_replayer_paces_at_a_multiple_of_real_time(tmp_path, monkeypatch):
+    _file(tmp_path / "a.h5", 0.0, 400)
+    r = Replayer(StageConfig(run="u", recordings=tmp_path, options={
+        "telemetry": [str(tmp_path / "a.h5")], "segment": "10", "pace": 100}))  # 10 s segments: one per 0.1 s
+    published = []
+    monkeypatch.setattr(r, "publish", lambda out, source=None: published.append((time.monotonic(), out)))
+    deadline = time.monotonic() + 5
+    while len(published) < 5 and time.monotonic() < deadline:
+        r.tick()
+        time.sleep(0.005)
+    times = np.array([t for t, _ in published])
+    assert [o.index for _, o in published] == [0, 1, 2, 3, 4] and r.done == {0, 1, 2, 3, 4}
+    assert np.all(np.diff(times) > 0.09) and np.all(np.diff(times) < 0.2), np.diff(times)
+    out = published[1][1]
+    assert out.topic == "telemetry" and out.fields["t0"] == 10.0 and out.arrays["eta"].shape == (6, 40)
+    assert out.fields["meta"]["segments_total"] == 10 and out.fields["meta"]["segment_duration"] == 10.0
+
+
+def test_run_options_merge_config_file_and_command_line(tmp_path):
+    from pathlib import Path
+
+    from streamer.cli import run_options
+    from ttlcore.cli import build_parser
+
+    (tmp_path / "run.toml").write_text('run_id = "from-file"\nsimulate = "--duration 6h"\nsegment = "30min"\n'
+                                       'window = 3\nskip = ["monitor"]\nfit_window = "6h"\n'
+                                       '[stages.monitor]\nlive = "serve"\n')
+    args = build_parser().parse_args(["run", "--config", str(tmp_path / "run.toml"), "--segment", "1h",
+                                      "--band", "0.004", "0.5", "--external", "subtractor,fitter"])
+    o = run_options(args)
+    assert (o.run_id, o.simulate, o.segment, o.window, o.skip) == ("from-file", "--duration 6h", "1h", 3, ("monitor",))
+    assert o.external == ("subtractor", "fitter") and o.recordings == Path("recordings")
+    assert o.stage_options == {"monitor": {"live": "serve"}, "fitter": {"window_duration": "6h", "band": [0.004, 0.5]}}
+    (tmp_path / "bad.json").write_text('{"run_id": "x", "colour": "red"}')
+    with pytest.raises(Exception, match="colour"):
+        run_options(build_parser().parse_args(["run", "--config", str(tmp_path / "bad.json")]))
+    with pytest.raises(Exception, match="--run-id"):
+        run_options(build_parser().parse_args(["run", "--simulate", "--duration 1h"]))

@@ -1,0 +1,121 @@
+"""The tdi_builder stage as a real process, fed crafted telemetry messages over Zenoh."""
+
+import json
+import queue
+import signal
+import time
+
+import numpy as np
+import pytest
+from mcap.reader import make_reader
+
+from streamer.codec import Expect, decode, encode
+from streamer.keys import topic_pattern
+from streamer.recorder import read_recording
+from streamer.session import Bus, SessionSettings, free_port
+from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
+from ttlcore.tdi_data import TDIStream
+from ttlcore.telemetry import Telemetry
+from ttl_testutil import indices, output, wait_for
+
+RUN = "tdi-stage"
+FS = 4.0
+N = 2400  # 10 min segments
+
+
+def telemetry(index: int) -> Telemetry:
+    """Crafted telemetry (the stage does not care about physics): noise and ~8.3 s delays."""
+    rng = np.random.default_rng(100 + index)
+    ltt = 8.3 + 0.01 * np.arange(6)[:, None] + np.zeros((6, N))
+    return Telemetry(t0=index * N / FS, fs=FS, eta=1e-14 * rng.standard_normal((6, N)),
+                     dws_phi=1e-9 * rng.standard_normal((6, N)), dws_eta=1e-9 * rng.standard_normal((6, N)),
+                     ltt=ltt)
+
+
+def message(index: int, tm: Telemetry | None = None, **changes):
+    tm = tm or telemetry(index)
+    arrays = {"eta": tm.eta, "dws_phi": tm.dws_phi, "dws_eta": tm.dws_eta, "ltt": tm.ltt}
+    arrays.update(changes.pop("arrays", {}))
+    fields = {"run": RUN, "index": index, "t0": tm.t0, "fs": tm.fs, "channels": list(LINKS), "producer": "test",
+              "meta": {"segments_total": 4, "segment_duration": N / FS, "source": "crafted", "truth": None}}
+    fields.update(changes)
+    return encode(arrays, fields, allow_nonfinite=True)
+
+
+def test_tdi_builder_ignores_duplicates_reports_malformed_and_goes_on(procs, tmp_path):
+    port = free_port()
+    outputs, errors = queue.Queue(), []
+    with Bus.open(SessionSettings(listen=(f"tcp/127.0.0.1:{port}",))) as bus:
+        bus.segment_subscriber(topic_pattern(RUN, "tdi"), lambda s: outputs.put(
+            (str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes())), history=0)
+        bus.subscriber(f"ttl/{RUN}/errors/*", lambda s: errors.append(json.loads(s.payload.to_bytes())))
+        pub = bus.segment_publisher(RUN, "telemetry", cache=8)
+        stage = procs.stage("tdi_builder", "--run", RUN, "--connect", f"tcp/127.0.0.1:{port}",
+                            "--recordings", tmp_path / "rec", "--settle", "0.3")
+        wait_for(lambda: "tdi_builder" in bus.alive_stages(RUN, timeout=0.5) or stage.poll() is not None,
+                 60, "the tdi_builder's liveliness token")
+        assert stage.poll() is None, output(stage)
+        time.sleep(0.5)  # subscribers declared after the token
+
+        def got(timeout=20):
+            key, payload, attachment = outputs.get(timeout=timeout)
+            return decode(payload, attachment, Expect(allow_nonfinite=True), key=key)
+
+        pub.put(0, *message(0))
+        h0, a0 = got()
+        pub.put(0, *message(0))                                            # duplicate: ignored
+        p1, att1 = message(1)
+        pub.put(1, p1, b'{"schema": "ttl-segment", broken')               # unreadable header
+        bad = telemetry(1)
+        pub.put(1, *message(1, arrays={"eta": bad.eta[:5]}, channel_axis={"eta": None}))  # wrong shape
+        nan = telemetry(1).eta.copy()
+        nan[2, 7] = np.nan
+        pub.put(1, *message(1, arrays={"eta": nan}))                        # NaN in telemetry
+        pub.put(1, p1[:-8], att1)                                           # truncated payload
+        pub.put(1, *message(1, arrays={"ltt": bad.ltt[:, :-4]}))            # inconsistent lengths
+        pub.put(1, p1, att1)                                                # the good one
+        h1, a1 = got()
+        pub.put(3, *message(3))                                             # out of order: waits for 2
+        pub.put(2, *message(2))
+        h2, a2 = got()
+        h3, a3 = got()
+        with pytest.raises(queue.Empty):
+            got(timeout=1.0)                                                # nothing twice
+        assert [h.index for h in (h0, h1, h2, h3)] == [0, 1, 2, 3]
+
+        # the outputs are the streaming TDI of the four segments (tail carried between them)
+        ref = TDIStream()
+        for h, a, i in ((h0, a0, 0), (h1, a1, 1), (h2, a2, 2), (h3, a3, 3)):
+            td = ref.push(telemetry(i))
+            assert h.channels == ("X2", "Y2", "Z2") and h.producer == "tdi_builder"
+            assert h.t0 == i * N / FS and h.fs == FS
+            assert h.meta["names"] == list(COEFFICIENT_NAMES) and len(h.meta["ltt_mean"]) == 6
+            assert h.meta["segments_total"] == 4 and h.meta["continuous"] == (i > 0)
+            assert a["data"].shape == (3, N) and a["regressors"].shape == (3, 24, N)
+            np.testing.assert_array_equal(a["data"], td.data)
+            np.testing.assert_array_equal(a["regressors"], td.regressors)
+        assert np.isnan(a0["data"][:, 0]).all() and np.isfinite(a1["data"]).all()
+
+        wait_for(lambda: len([e for e in errors if e["kind"] == "rejected"]) >= 4, 10, "four rejections")
+        rejected = [(e["index"], e["field"]) for e in errors if e["kind"] == "rejected"]
+        assert rejected == [(1, "header"), (1, "arrays[eta].shape"), (1, "arrays[eta]"), (1, "payload")], rejected
+        failed = [e for e in errors if e["kind"] == "failed"]
+        assert len(failed) == 1 and failed[0]["index"] == 1 and "ltt" in failed[0]["message"], failed
+        assert all(e["stage"] == "tdi_builder" for e in errors)
+
+        stage.send_signal(signal.SIGTERM)
+        assert stage.wait(30) == 0, output(stage)
+
+    rec = read_recording(tmp_path / "rec" / RUN / "tdi_builder.mcap")
+    assert rec.complete and rec.problem is None
+    assert indices(rec, "tdi") == [0, 1, 2, 3]
+    # inputs are recorded as received: segment 1 twice (the one that failed and the good one)
+    assert sorted(indices(rec, "telemetry")) == [0, 1, 1, 2, 3]
+    assert [(e["index"], e["kind"]) for e in rec.json("errors") if e["kind"] == "failed"] == [(1, "failed")]
+    assert [(e["index"], e["field"]) for e in rec.json("errors") if e["kind"] == "rejected"] == rejected
+    events = [(e["kind"], e["index"]) for e in rec.json("events")]
+    assert ("duplicate", 0) in events and ("complete", 3) in events and events[-1] == ("stop", None)
+    with open(rec.path, "rb") as f:  # JSON channels carry JSON schemas
+        for schema, channel, _ in make_reader(f).iter_messages():
+            if channel.message_encoding == "json":
+                assert schema is not None and schema.encoding == "jsonschema", channel.topic

@@ -1,0 +1,127 @@
+"""Helpers of the stage and pipeline tests: ``ttl`` and stage processes, polling, recordings."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import psutil
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+# the project first: with tests/ on sys.path (pytest's rootdir insertion for tests/test_pipeline.py),
+# tests/stages would otherwise be imported as a namespace package named `stages`
+if sys.path[0] != str(ROOT):
+    sys.path.insert(0, str(ROOT))
+
+from streamer.recorder import read_recording  # noqa: E402
+
+_TTL = Path(sys.executable).with_name("ttl")
+#: The monitor stage is written separately; the pipeline tests run without it until it exists.
+MONITOR = (ROOT / "stages" / "monitor.py").exists()
+
+
+def ttl_command(*args: str) -> list[str]:
+    """The ``ttl`` command line (the installed script, else ``python -m ttlcore.cli``)."""
+    base = [str(_TTL)] if _TTL.exists() else [sys.executable, "-m", "ttlcore.cli"]
+    return base + [str(a) for a in args]
+
+
+class Procs:
+    """Child processes of a test, each in its own session; all killed (with their children) at the end."""
+
+    def __init__(self, tmp_path: Path):
+        self.tmp_path = tmp_path
+        self.procs: list[subprocess.Popen] = []
+
+    def start(self, cmd: list[str], name: str) -> subprocess.Popen:
+        log = open(self.tmp_path / f"{name}.out", "wb")
+        env = dict(os.environ, PYTHONUNBUFFERED="1")
+        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                                cwd=self.tmp_path, start_new_session=True)
+        log.close()
+        proc.out_path = self.tmp_path / f"{name}.out"
+        self.procs.append(proc)
+        return proc
+
+    def ttl(self, *args: str, name: str = "ttl") -> subprocess.Popen:
+        return self.start(ttl_command(*args), name)
+
+    def stage(self, stage: str, *args: str) -> subprocess.Popen:
+        return self.start([sys.executable, "-m", f"stages.{stage}", *map(str, args)], stage)
+
+    def close(self) -> None:
+        for proc in self.procs:
+            if proc.poll() is None:
+                try:
+                    os.killpg(proc.pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    pass
+                proc.wait(10)
+
+
+def output(proc) -> str:
+    return Path(proc.out_path).read_text(errors="replace")
+
+
+def wait_for(predicate, timeout: float, what: str, interval: float = 0.1):
+    """Poll ``predicate`` until it returns something true; fail naming ``what`` on timeout."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    pytest.fail(f"timed out after {timeout} s waiting for {what}")
+
+
+def finish(proc, timeout: float) -> int:
+    """Wait for ``proc``; fail with its output when it runs too long."""
+    try:
+        return proc.wait(timeout)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"{proc.args} still running after {timeout} s:\n{output(proc)[-4000:]}")
+
+
+def stage_processes(proc) -> dict[str, psutil.Process]:
+    """The stage children of a ``ttl run`` process, by stage name."""
+    out = {}
+    try:
+        kids = psutil.Process(proc.pid).children(recursive=True)
+    except psutil.NoSuchProcess:
+        return out
+    for p in kids:
+        try:
+            cmd = p.cmdline()
+        except psutil.Error:
+            continue
+        for i, word in enumerate(cmd[:-1]):
+            if word == "-m" and cmd[i + 1].startswith("stages."):
+                out[cmd[i + 1].split(".", 1)[1]] = p
+    return out
+
+
+def listening(proc: psutil.Process) -> tuple[list, list]:
+    """(TCP listening sockets, UDP sockets) of a process."""
+    conns = proc.net_connections(kind="inet")
+    return ([c for c in conns if c.status == psutil.CONN_LISTEN],
+            [c for c in conns if c.type == __import__("socket").SOCK_DGRAM])
+
+
+def indices(recording, topic: str) -> list[int]:
+    return [s.header.index for s in recording.segments(topic)]
+
+
+def recordings_of(run_dir: Path, stage: str) -> list:
+    """Every recording of ``stage`` in ``run_dir`` (``<stage>.mcap`` and kept ``<stage>.<n>.mcap``)."""
+    paths = sorted(run_dir.glob(f"{stage}.mcap")) + sorted(run_dir.glob(f"{stage}.[0-9]*.mcap"))
+    return [read_recording(p) for p in paths]
+
+
+def progress_messages(sample) -> dict:
+    return json.loads(sample.payload.to_bytes())

@@ -1,0 +1,281 @@
+"""End-to-end runs of ``ttl run``: real stage processes on a loopback Zenoh.
+
+* t1: a 12 h simulation in 1 h segments; every stage records every segment exactly once,
+  JSON channels carry JSON schemas, nothing listens beyond 127.0.0.1, and the streamed
+  results equal the batch computation (TDI of the whole stretch, fit over the window).
+* t2: the same run with the tdi_builder killed (SIGKILL) mid-run and restarted by the
+  launcher: no segment missing, and the fits and residuals equal t1's bit for bit.
+* t3: the subtractor started by hand (``ttl stage``) after half the replay catches up from
+  the publishers' caches (Zenoh advanced publisher/subscriber history).
+"""
+
+from __future__ import annotations
+
+import json
+import queue
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import psutil
+import pytest
+from mcap.reader import make_reader
+
+sys.path.insert(0, str(Path(__file__).with_name("stages")))
+
+from streamer.recorder import read_recording  # noqa: E402
+from streamer.session import Bus, SessionSettings, free_port  # noqa: E402
+from ttl_testutil import (MONITOR, Procs, finish, indices, listening, output, recordings_of,  # noqa: E402
+                          stage_processes, ttl_command, wait_for)
+
+SIM = "--duration 12h --orbit unequal --seed 1"
+SEGMENTS = 12
+STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if MONITOR else [])
+OUTPUT = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit", "subtractor": "residual",
+          "monitor": "monitor"}
+NO_MONITOR = [] if MONITOR else ["--skip", "monitor"]  # the monitor is written separately
+
+
+def run_args(run_id: str, rec: Path, *extra) -> list[str]:
+    return ["run", "--simulate", SIM, "--segment", "1h", "--run-id", run_id, "--recordings", str(rec),
+            "--timeout", "200", *NO_MONITOR, *extra]
+
+
+@pytest.fixture(scope="module")
+def t1(tmp_path_factory):
+    """The reference run, with the sockets of every process looked at while it runs."""
+    tmp = tmp_path_factory.mktemp("t1")
+    procs = Procs(tmp)
+    try:
+        t_start = time.monotonic()
+        proc = procs.ttl(*run_args("t1", tmp / "rec"))
+        sockets = {}
+
+        def all_up():
+            for name, p in stage_processes(proc).items():
+                try:
+                    tcp, udp = listening(p)
+                except psutil.Error:
+                    continue
+                if tcp:
+                    sockets[name] = (tcp, udp)
+            return set(sockets) >= set(STAGES)
+
+        wait_for(all_up, 120, "every stage listening")
+        sockets["launcher"] = listening(psutil.Process(proc.pid))
+        code = finish(proc, 240)
+        yield SimpleNamespace(code=code, out=output(proc), dir=tmp / "rec" / "t1", sockets=sockets,
+                              seconds=time.monotonic() - t_start)
+    finally:
+        procs.close()
+
+
+def test_run_exits_0_with_every_segment_exactly_once_per_stage(t1):
+    assert t1.code == 0, t1.out[-5000:]
+    assert "every stage has handled every segment" in t1.out and f"done: {SEGMENTS} segments" in t1.out
+    for stage in STAGES:
+        rec = read_recording(t1.dir / f"{stage}.mcap")
+        assert rec.complete and rec.problem is None, stage
+        assert indices(rec, OUTPUT[stage]) == list(range(SEGMENTS)), stage
+        assert rec.json("errors") == [], (stage, rec.json("errors"))
+        events = [(e["kind"], e["index"]) for e in rec.json("events")]
+        assert ("complete", SEGMENTS - 1) in events and events[-1] == ("stop", None), (stage, events)
+        with open(rec.path, "rb") as f:  # JSON channels carry JSON schemas (Foxglove, mcap CLI)
+            for schema, channel, _ in make_reader(f).iter_messages():
+                if channel.message_encoding == "json":
+                    assert schema is not None and schema.encoding == "jsonschema", (stage, channel.topic)
+    if MONITOR:
+        assert (t1.dir / "monitor.rrd").exists()
+    # inputs too: the tdi_builder's telemetry, the fitter's and subtractor's TDI headers
+    assert indices(read_recording(t1.dir / "tdi_builder.mcap"), "telemetry") == list(range(SEGMENTS))
+    for stage in ("fitter", "subtractor"):
+        assert [h["index"] for h in read_recording(t1.dir / f"{stage}.mcap").json("tdi/input")] == list(range(SEGMENTS))
+    print(f"t1: {SEGMENTS} segments in {t1.seconds:.1f} s")
+
+
+def test_nothing_listens_beyond_loopback(t1):
+    assert set(t1.sockets) >= set(STAGES) | {"launcher"}
+    for name, (tcp, udp) in t1.sockets.items():
+        assert tcp and all(c.laddr.ip == "127.0.0.1" for c in tcp), (name, tcp)
+        assert all(c.laddr.ip == "127.0.0.1" for c in udp), (name, udp)  # no multicast scouting
+
+
+def test_message_contracts_and_streaming_equals_batch(t1):
+    from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
+    from ttlcore.fit import FitSettings, fit_tdi
+    from ttlcore.tdi_data import TDIData, compute_tdi
+    from ttlcore.telemetry import Telemetry
+
+    tel = read_recording(t1.dir / "replayer.mcap").segments("telemetry")
+    h = tel[0].header
+    assert h.channels == LINKS and h.fs == 4.0 and h.t0 == 0.0
+    assert h.meta["source"] == "simulation" and h.meta["segments_total"] == SEGMENTS
+    assert h.meta["truth"] is None and h.meta["segment_duration"] == 3600.0
+    assert all(tel[i].arrays["eta"].shape == (6, 14400) and tel[i].header.t0 == 3600.0 * i for i in range(SEGMENTS))
+
+    # TDI streamed segment by segment equals TDI of the whole stretch
+    whole = Telemetry(t0=0.0, fs=4.0, **{k: np.concatenate([s.arrays[k] for s in tel], axis=1)
+                                         for k in ("eta", "dws_phi", "dws_eta", "ltt")})
+    batch = compute_tdi(whole)
+    tdi = read_recording(t1.dir / "tdi_builder.mcap").segments("tdi")
+    assert tdi[0].header.channels == ("X2", "Y2", "Z2") and tdi[0].header.meta["names"] == list(COEFFICIENT_NAMES)
+    data = np.concatenate([s.arrays["data"] for s in tdi], axis=1)
+    regs = np.concatenate([s.arrays["regressors"] for s in tdi], axis=2)
+    np.testing.assert_allclose(data, batch.data, rtol=1e-9, atol=1e-25)
+    np.testing.assert_allclose(regs, batch.regressors, rtol=1e-9, atol=1e-20)
+
+    # the last fit (its window covers the 12 h) equals the batch fit on the same TDI
+    fits = read_recording(t1.dir / "fitter.mcap")
+    last = fits.segments("fit")[-1]
+    meta = last.header.meta
+    assert meta["names"] == list(COEFFICIENT_NAMES) and meta["segments"] == SEGMENTS and meta["converged"]
+    assert {"chi2_dof", "t_start", "t_stop", "band"} <= set(meta)
+    assert last.arrays["coefficients"].shape == (24,) and last.arrays["covariance"].shape == (24, 24)
+    td = TDIData(t0=0.0, fs=4.0, channels=("X2", "Y2", "Z2"), data=data, regressors=regs,
+                 ltt_mean=np.asarray(tdi[0].header.meta["ltt_mean"]))
+    res, _ = fit_tdi(td, FitSettings(segment_duration=3600.0, dws_asd=tel[0].header.meta["dws_asd"]))
+    np.testing.assert_allclose(last.arrays["coefficients"], res.coefficients, rtol=1e-6, atol=1e-3 * res.sigma.min())
+    summary = fits.json("fit/summary")[-1]
+    assert summary["index"] == SEGMENTS - 1 and summary["fit"]["window"]["segments"] == SEGMENTS
+    assert fits.schemas["fit/summary"][0] == "ttl.Fit"
+    # coefficients near the truth (paper set, 2.3 mm/rad scale): within 5 sigma
+    from ttlcore.coefficients import paper_set
+    truth = np.asarray(paper_set(), dtype=float)
+    assert np.all(np.abs(last.arrays["coefficients"] - truth) < 5 * last.arrays["sigma"])
+
+    # residual = data - sum C_k regressors with the fit of the same segment
+    res_rec = read_recording(t1.dir / "subtractor.mcap").segments("residual")
+    for i in (0, SEGMENTS - 1):
+        r = res_rec[i]
+        assert r.header.meta["fit_index"] == i and r.header.meta["coefficients_t_stop"] == fits.segments("fit")[i].header.meta["t_stop"]
+        c = fits.segments("fit")[i].arrays["coefficients"]
+        model = np.einsum("k,ckn->cn", c, tdi[i].arrays["regressors"])
+        np.testing.assert_allclose(r.arrays["ttl_model"], model, rtol=1e-12, atol=1e-30)
+        np.testing.assert_allclose(r.arrays["residual"], tdi[i].arrays["data"] - model, rtol=1e-12, atol=1e-30)
+
+
+def _progress_watch(bus, run, stage):
+    from stages import progress_pattern
+    seen = queue.Queue()
+    bus.segment_subscriber(progress_pattern(run), lambda s: seen.put(json.loads(s.payload.to_bytes())), history=1)
+    state = {"done": set()}
+
+    def count():
+        while True:
+            try:
+                msg = seen.get_nowait()
+            except queue.Empty:
+                return len(state["done"])
+            if msg["stage"] == stage:
+                for a, b in msg["done"]:
+                    state["done"].update(range(a, b + 1))
+    return count
+
+
+def test_stage_killed_and_restarted_mid_run_misses_nothing(t1, tmp_path):
+    assert t1.code == 0
+    port = free_port()
+    procs = Procs(tmp_path)
+    try:
+        proc = procs.ttl(*run_args("t2", tmp_path / "rec", "--restart", "1", "--listen", f"tcp/127.0.0.1:{port}"))
+        with Bus.open(SessionSettings(connect=(f"tcp/127.0.0.1:{port}",))) as bus:
+            time.sleep(0.5)
+            done = _progress_watch(bus, "t2", "tdi_builder")
+            wait_for(lambda: done() >= 4 or proc.poll() is not None, 90, "4 segments through the tdi_builder")
+            assert proc.poll() is None, output(proc)[-3000:]
+            victim = stage_processes(proc)["tdi_builder"]
+            victim.send_signal(signal.SIGKILL)
+            killed_at = done()
+            code = finish(proc, 240)
+    finally:
+        procs.close()
+    out = output(proc)
+    assert code == 0, out[-5000:]
+    assert killed_at < SEGMENTS
+    assert "stage tdi_builder died (killed by SIGKILL)" in out and "restarting tdi_builder (1/1)" in out
+    # catching up from the caches out of order is not a gap: no error from the pipeline stages
+    assert not [ln for ln in out.splitlines() if any(f"error from {s}" in ln for s in STAGES if s != "monitor")], out
+    run = tmp_path / "rec" / "t2"
+    recs = recordings_of(run, "tdi_builder")
+    assert len(recs) == 2 and recs[0].complete and not recs[1].complete  # the killed process's file, salvaged
+    assert set(indices(recs[0], "tdi")) | set(indices(recs[1], "tdi")) == set(range(SEGMENTS))
+    # downstream: every segment exactly once, and the same numbers as the uninterrupted run
+    ref_fits = read_recording(t1.dir / "fitter.mcap").segments("fit")
+    ref_res = read_recording(t1.dir / "subtractor.mcap").segments("residual")
+    fits = read_recording(run / "fitter.mcap").segments("fit")
+    res = read_recording(run / "subtractor.mcap").segments("residual")
+    assert [f.header.index for f in fits] == list(range(SEGMENTS))
+    assert [r.header.index for r in res] == list(range(SEGMENTS))
+    for a, b in zip(fits, ref_fits, strict=True):
+        np.testing.assert_allclose(a.arrays["coefficients"], b.arrays["coefficients"], rtol=1e-12)
+    for a, b in zip(res, ref_res, strict=True):
+        np.testing.assert_allclose(a.arrays["residual"], b.arrays["residual"], rtol=1e-12, atol=1e-30)
+
+
+def test_late_joiner_catches_up_from_the_caches(tmp_path):
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    rec = tmp_path / "rec"
+    procs = Procs(tmp_path)
+    try:
+        proc = procs.ttl("run", "--simulate", "--duration 6h --orbit unequal --seed 2", "--segment", "30min",
+                         "--run-id", "t3", "--recordings", str(rec), "--external", "subtractor",
+                         "--cache", "16", "--listen", endpoint, "--timeout", "200", *NO_MONITOR)
+        with Bus.open(SessionSettings(connect=(endpoint,))) as bus:
+            time.sleep(0.5)
+            replayed = _progress_watch(bus, "t3", "replayer")
+            wait_for(lambda: replayed() >= SEGMENTS // 2 or proc.poll() is not None, 90, "half the replay")
+            assert proc.poll() is None, output(proc)[-3000:]
+            late = procs.ttl("stage", "subtractor", "--run", "t3", "--connect", endpoint, "--recordings", str(rec),
+                             name="subtractor")
+            code = finish(proc, 240)
+            assert finish(late, 60) == 0, output(late)[-3000:]
+    finally:
+        procs.close()
+    assert code == 0, output(proc)[-5000:]
+    # no error from the pipeline stages (history arrives out of order: that is not a gap)
+    assert not [ln for ln in output(proc).splitlines()
+                if any(f"error from {s}" in ln for s in STAGES if s != "monitor")], output(proc)[-5000:]
+    res = read_recording(rec / "t3" / "subtractor.mcap")
+    residuals = sorted(res.segments("residual"), key=lambda r: r.header.index)
+    assert [r.header.index for r in residuals] == list(range(SEGMENTS))  # every segment, once
+    assert [r.header.meta["fit_index"] for r in residuals] == list(range(SEGMENTS))
+    assert sorted(indices(res, "tdi")) == list(range(SEGMENTS))  # a stage run alone records its inputs
+    assert ("complete", SEGMENTS - 1) in [(e["kind"], e["index"]) for e in res.json("events")]
+
+
+def test_errors_name_the_problem_in_one_line(tmp_path):
+    def ttl(*args):
+        return subprocess.run(ttl_command(*args), capture_output=True, text=True, timeout=120, cwd=tmp_path)
+
+    r = ttl("run", "--telemetry", str(tmp_path / "missing.h5"), "--run-id", "x", "--recordings", str(tmp_path))
+    assert r.returncode == 2 and r.stderr.strip().count("\n") == 0 and "missing.h5" in r.stderr, r.stderr
+    r = ttl("run", "--simulate", "--duration 1h --bogus 2", "--run-id", "x", "--recordings", str(tmp_path))
+    assert r.returncode == 2 and "--bogus" in r.stderr.strip().splitlines()[-1], r.stderr
+    r = ttl("run", "--simulate", "--duration 1h", "--run-id", "bad id!", "--recordings", str(tmp_path))
+    assert r.returncode == 2 and "--run-id" in r.stderr and r.stderr.strip().count("\n") == 0, r.stderr
+    r = ttl("run", "--simulate", "--duration 1h", "--run-id", "x", "--skip", "fitterr", "--recordings", str(tmp_path))
+    assert r.returncode == 2 and "fitterr" in r.stderr, r.stderr
+    r = ttl("stage", "fitter", "--help")
+    assert r.returncode == 0 and "--fit-segment" in r.stdout
+    r = ttl("stage", "tdi_builder", "--recordings", str(tmp_path))
+    assert r.returncode == 2 and "--run" in r.stderr and r.stderr.strip().count("\n") == 0, r.stderr
+
+
+def test_router_listens_on_loopback_only(tmp_path):
+    port = free_port()
+    procs = Procs(tmp_path)
+    try:
+        router = procs.ttl("router", "--listen", f"tcp/127.0.0.1:{port}", name="router")
+        wait_for(lambda: router.poll() is not None or listening(psutil.Process(router.pid))[0], 30, "the router")
+        tcp, udp = listening(psutil.Process(router.pid))
+        assert [(c.laddr.ip, c.laddr.port) for c in tcp] == [("127.0.0.1", port)] and not udp
+        router.send_signal(signal.SIGTERM)
+        assert finish(router, 20) == 0, output(router)
+    finally:
+        procs.close()
+
