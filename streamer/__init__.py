@@ -13,4 +13,10 @@ recorder
     MCAP recording and salvaging reader.
 stage
     The stage base class: lifecycle, validation, idempotence, errors, recording.
+launcher
+    ``ttl run``: starts and supervises the five stage processes around a loopback router.
+inspect
+    ``ttl inspect`` / ``ttl view``: a run from its MCAP files and Rerun recording alone.
+cli
+    The operations subcommands of ``ttl`` (run, stage, router, inspect, view).
 """
