@@ -232,7 +232,21 @@ def _trends(fits: list[dict]) -> dict:
     return out
 
 
-def inspect_run(run_dir) -> dict:
+def truth_over_window(truth_path, t_start: float, t_stop: float, names) -> dict:
+    """True coefficients [mm/rad] averaged over ``[t_start, t_stop)`` from a truth file."""
+    from ttlcore.truth import read_truth
+
+    head = read_truth(truth_path, 0, 1)
+    i0 = max(0, int(np.floor((t_start - head.t0) * head.fs)))
+    i1 = max(i0 + 1, int(np.ceil((t_stop - head.t0) * head.fs)))
+    tr = read_truth(truth_path, i0, i1)
+    from ttlcore.conventions import COEFFICIENT_NAMES
+
+    mean = dict(zip(COEFFICIENT_NAMES, tr.coefficients.mean(axis=1) * 1e3))
+    return {n: float(mean[n]) for n in names if n in mean}
+
+
+def inspect_run(run_dir, truth=None) -> dict:
     """Everything ``ttl inspect`` reports, as a JSON-ready dict.
 
     Keys: ``run``, ``directory``, ``stages`` (stage -> files, restarts, outputs and inputs
@@ -301,6 +315,14 @@ def inspect_run(run_dir) -> dict:
                   "table": [{k: f[k] for k in ("index", "t_start", "t_stop", "chi2_dof", "converged",
                                                "coefficients", "sigma")} for f in fits],
                   "trends": _trends(fits), "trend_units": {"values": "mm/rad", "rate": "mm/rad/day"}}
+    if truth is not None and fits:
+        last = fits[-1]
+        true = truth_over_window(truth, last["t_start"], last["t_stop"], fit_report["trends"])
+        for name, t in fit_report["trends"].items():
+            if name in true:
+                t["truth_latest_window"] = true[name]
+                t["error_over_sigma"] = (t["latest"] - true[name]) / t["sigma"] if t["sigma"] > 0 else None
+        fit_report["truth_file"] = str(truth)
     return {"run": runs[0] if len(runs) == 1 else (runs or [run_dir.name]), "directory": str(run_dir),
             "stages": stages, "stages_missing": [s for s in KNOWN_STAGES if s not in stages],
             "segments_total": total, "fits": fit_report, "alerts": alerts, "errors": errors,
@@ -364,12 +386,20 @@ def format_report(r: dict) -> str:
                      f"chi2/dof {_num(last['chi2_dof'])})")
         lines.append(f"  {'coefficient':<12} {'latest [mm/rad]':>19} {'first':>8} {'min':>8} {'max':>8} "
                      f"{'rate [mm/rad/day]':>22}   (rate: GLS line over the last {LOOKBACK_DAYS:g} d of fits)")
+        with_truth = "truth_file" in f
+        if with_truth:
+            lines[-1] += "   truth(last window)  (latest-truth)/sigma"
         for name, t in f["trends"].items():
             rate = (f"{t['rate']:+8.4f} ± {t['rate_se']:.4f}" + (" *" if abs(t["significance"]) >= 5 else "  ")
                     if t["rate"] is not None else f"{'-':>20}")
-            lines.append(f"  {name:<12} {t['latest']:+9.4f} ± {t['sigma']:.4f} {t['first']:+8.4f} "
-                         f"{t['min']:+8.4f} {t['max']:+8.4f} {rate:>22}")
+            line = (f"  {name:<12} {t['latest']:+9.4f} ± {t['sigma']:.4f} {t['first']:+8.4f} "
+                    f"{t['min']:+8.4f} {t['max']:+8.4f} {rate:>22}")
+            if with_truth and "truth_latest_window" in t:
+                line += f"   {t['truth_latest_window']:+9.4f}   {t['error_over_sigma']:+6.2f}"
+            lines.append(line)
         lines.append("  (* rate significant at 5 sigma with the overlap covariance of the rolling windows)")
+        if with_truth:
+            lines.append(f"  truth: {f['truth_file']}, averaged over the last fit window")
     else:
         lines.append("Coefficient trends: no fits recorded")
 
@@ -471,7 +501,7 @@ def _cmd_inspect(args) -> int:
     if not getattr(args, "verbose", 0):
         reader_log.setLevel(logging.ERROR)
     try:
-        report = inspect_run(args.run_dir)
+        report = inspect_run(args.run_dir, truth=args.truth)
     finally:
         reader_log.setLevel(level)
     if args.json:
@@ -500,6 +530,8 @@ def register(sub) -> None:
                                    "recordings/<run>/*.mcap alone.")
     p.add_argument("run_dir", metavar="recordings/NAME", help="run directory")
     p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.add_argument("--truth", default=None, metavar="TRUTH.h5",
+                   help="a simulation's truth file: show the true coefficients over the last fit window")
     p.set_defaults(func=_cmd_inspect)
     p = sub.add_parser("view", help="open a run's monitor.rrd in the Rerun viewer (bound to 127.0.0.1)",
                        description="Open recordings/<run>/monitor.rrd (or an .rrd file) in the rerun viewer "
