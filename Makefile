@@ -47,6 +47,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/simulate.py
 	$(BIN)/python bench/tdi.py
 	$(BIN)/python bench/fit.py
+	$(BIN)/python bench/pipeline.py
 
 clean:
 	rm -rf $(VENV) $(DEMO) *.egg-info

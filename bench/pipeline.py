@@ -1,0 +1,117 @@
+"""Benchmark: seven mission days end to end through the five stage processes (``ttl run``).
+
+The telemetry is simulated first (not timed as pipeline), then replayed as fast as the
+stages take it. While the run goes, every stage process is sampled with psutil (CPU
+seconds, resident memory); afterwards the fitter's MCAP log gives its per-segment update
+time (from receiving a TDI segment to recording the refit).
+
+Prints one JSON object: wall time, real-time factor (target >= 2000), per-stage CPU
+seconds and peak memory (target < 1.5 GB each), the fitter's update time per one-hour
+segment (median and max; target < 0.2 s).
+
+Usage: ``.venv/bin/python bench/pipeline.py [--days 7]``
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+import psutil
+
+STAGES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
+
+
+def stage_of(proc: psutil.Process) -> str | None:
+    try:
+        cmd = " ".join(proc.cmdline())
+    except psutil.Error:
+        return None
+    for name in STAGES:
+        if f"stages.{name}" in cmd:
+            return name
+    return None
+
+
+def fitter_update_times(path: Path) -> list[float]:
+    """Seconds from each TDI input to the fit recorded for it (MCAP log times)."""
+    from mcap.reader import make_reader
+
+    received, fitted = {}, {}
+    with open(path, "rb") as f:
+        for schema, channel, message in make_reader(f).iter_messages():
+            if channel.topic not in ("tdi/input", "fit/summary"):
+                continue
+            try:
+                index = json.loads(message.data).get("index")
+            except (ValueError, AttributeError):
+                continue
+            target = received if channel.topic == "tdi/input" else fitted
+            target.setdefault(index, message.log_time)
+    return [(fitted[i] - received[i]) / 1e9 for i in fitted if i in received]
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--days", type=float, default=7.0)
+    args = ap.parse_args()
+    with tempfile.TemporaryDirectory() as tmp:
+        tmp = Path(tmp)
+        data = tmp / "mission.h5"
+        subprocess.run([sys.executable, "-m", "ttlcore.cli", "simulate", "--duration", f"{args.days}d", "--orbit",
+                        "keplerian", "--seed", "1", "--out", str(data), "--quiet"], check=True)
+        start = time.perf_counter()
+        launcher = subprocess.Popen([sys.executable, "-m", "ttlcore.cli", "run", "--telemetry", str(data), "--run-id",
+                                     "bench", "--recordings", str(tmp / "rec"), "--quiet", "--timeout", "7200"],
+                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        cpu, rss = {}, {}
+        parent = psutil.Process(launcher.pid)
+        while launcher.poll() is None:
+            for child in parent.children(recursive=True):
+                name = stage_of(child)
+                if name is None:
+                    continue
+                try:
+                    t = child.cpu_times()
+                    cpu[(name, child.pid)] = t.user + t.system
+                    rss[name] = max(rss.get(name, 0), child.memory_info().rss)
+                except psutil.Error:
+                    pass
+            time.sleep(0.5)
+        wall = time.perf_counter() - start
+        output = launcher.stdout.read()
+        if launcher.returncode != 0:
+            print(output, file=sys.stderr)
+            return launcher.returncode
+        per_stage_cpu = {s: round(sum(v for (n, _), v in cpu.items() if n == s), 1) for s in STAGES}
+        updates = fitter_update_times(tmp / "rec" / "bench" / "fitter.mcap")
+    result = {
+        "benchmark": "pipeline",
+        "days": args.days,
+        "segments": int(round(args.days * 24)),
+        "wall_time_s": round(wall, 1),
+        "real_time_factor": round(args.days * 86400 / wall, 0),
+        "target_real_time_factor": 2000,
+        "per_stage_cpu_s": per_stage_cpu,
+        "per_stage_peak_memory_gb": {s: round(rss.get(s, 0) / 1e9, 3) for s in STAGES},
+        "target_peak_memory_gb": 1.5,
+        "fitter_update_s": {"median": round(float(np.median(updates)), 3) if updates else None,
+                            "max": round(float(np.max(updates)), 3) if updates else None, "target": 0.2},
+    }
+    result["meets_targets"] = bool(
+        result["real_time_factor"] >= 2000
+        and all(v < 1.5 for v in result["per_stage_peak_memory_gb"].values())
+        and updates and result["fitter_update_s"]["median"] < 0.2
+    )
+    print(json.dumps(result, indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
