@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 DEMO   := demo-output
 
-.PHONY: demo test test-science bench clean
+.PHONY: demo demo-pipeline test test-science bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -17,22 +17,28 @@ $(STAMP): pyproject.toml
 	$(BIN)/python -m pip install --quiet --no-deps lisagwresponse healpy
 	touch $(STAMP)
 
-## demo: the main job on an embedded default. Simulate three mission days (Keplerian arms,
-## paper coefficients, a slow drift on two coefficients and a step on one), replay them through
-## the five stage processes (ttl run), then print the run's summary and coefficient trends
-## (ttl inspect) with the truth beside them, and say where to look.
+## demo: the batch job on an embedded default: simulate one mission day (Keplerian arms, all
+## noises, paper coefficients), fit the 24 coefficients, subtract, and write the paper-style figures.
 demo: $(STAMP)
 	rm -rf $(DEMO) && mkdir -p $(DEMO)
+	$(BIN)/ttl simulate --duration 1d --orbit keplerian --coeffs paper --seed 1 --out $(DEMO)/day.h5
+	$(BIN)/ttl info $(DEMO)/day.h5
+	$(BIN)/ttl analyze $(DEMO)/day.h5 --truth $(DEMO)/day.truth.h5 --out $(DEMO)/fit
+	@echo "figures: $(DEMO)/fit/asd_X.png $(DEMO)/fit/coefficients.png; numbers: $(DEMO)/fit/fit.json"
+	@echo "the streaming pipeline on three days with a drift and a step: make demo-pipeline"
+
+## demo-pipeline: three mission days (a slow drift on two coefficients, a step on one) replayed
+## through the five stage processes (ttl run), then ttl inspect against the truth.
+demo-pipeline: $(STAMP)
+	rm -rf $(DEMO)/pipeline && mkdir -p $(DEMO)/pipeline
 	$(BIN)/ttl simulate --duration 3d --orbit keplerian --coeffs paper --seed 1 \
-		--drift 12.phi.rx=0.05,13.eta.tx=-0.05 --step 1.5d:23.phi.tx=0.3 --out $(DEMO)/mission.h5
-	$(BIN)/ttl run --telemetry $(DEMO)/mission.h5 --run-id demo --recordings $(DEMO)/recordings
-	$(BIN)/ttl inspect $(DEMO)/recordings/demo --truth $(DEMO)/mission.truth.h5
+		--drift 12.phi.rx=0.05,13.eta.tx=-0.05 --step 1.5d:23.phi.tx=0.3 --out $(DEMO)/pipeline/mission.h5
+	$(BIN)/ttl run --telemetry $(DEMO)/pipeline/mission.h5 --run-id demo --recordings $(DEMO)/pipeline/recordings --timeout 900
+	$(BIN)/ttl inspect $(DEMO)/pipeline/recordings/demo --truth $(DEMO)/pipeline/mission.truth.h5
 	@echo ""
 	@echo "Where to look:"
-	@echo "  Rerun recording (ASDs, coefficient trends, alerts): $(BIN)/ttl view $(DEMO)/recordings/demo"
-	@echo "  MCAP logs of the five stages:                       $(DEMO)/recordings/demo/*.mcap"
-	@echo "  Batch analysis of the mission with paper-style figures:"
-	@echo "      $(BIN)/ttl analyze $(DEMO)/mission.h5 --truth $(DEMO)/mission.truth.h5 --out $(DEMO)/fit"
+	@echo "  Rerun recording (ASDs, coefficient trends, alerts): $(BIN)/ttl view $(DEMO)/pipeline/recordings/demo"
+	@echo "  MCAP logs of the five stages:                       $(DEMO)/pipeline/recordings/demo/*.mcap"
 
 ## test: the fast test suite (well under 20 minutes on 2 cores)
 test: $(STAMP)
