@@ -46,13 +46,13 @@ import os
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
 
 from ttlcore.errors import TTLError
 
-from streamer.keys import check_name, control_key
+from streamer.keys import check_name, control_key, from_ranges, to_ranges
 from streamer.session import declare_segment_publisher
 from streamer.stage import Stage, StageConfig, config_from_args, configure_logging, stage_arguments
 
@@ -77,29 +77,6 @@ def progress_key(run: str, stage: str) -> str:
 def progress_pattern(run: str) -> str:
     """``ttl/<run>/control/progress/*``."""
     return f"ttl/{check_name(run, 'run id')}/control/{PROGRESS}/*"
-
-
-def to_ranges(indices: Iterable[int]) -> list[list[int]]:
-    """``{0, 1, 2, 5}`` -> ``[[0, 2], [5, 5]]``."""
-    out: list[list[int]] = []
-    for i in sorted(set(indices)):
-        if out and i == out[-1][1] + 1:
-            out[-1][1] = i
-        else:
-            out.append([i, i])
-    return out
-
-
-def from_ranges(ranges) -> set[int]:
-    """Inverse of :func:`to_ranges` (ignores malformed entries)."""
-    out: set[int] = set()
-    for r in ranges or ():
-        try:
-            a, b = int(r[0]), int(r[1])
-        except (TypeError, ValueError, IndexError):
-            continue
-        out.update(range(a, b + 1))
-    return out
 
 
 def jsonable(value):

@@ -96,7 +96,7 @@ from streamer.keys import topic_pattern
 from streamer.session import free_port
 from streamer.stage import Output
 
-from ttlcore.conventions import ANGLES, ARM_LENGTH, C, COEFFICIENT_NAMES, DAY, LINKS, MOSAS, SIDES, ffd_to_displacement_asd
+from ttlcore.conventions import ARM_LENGTH, C, COEFFICIENT_NAMES, LINKS, MOSAS, ffd_to_displacement_asd
 from ttlcore.fit import DEFAULT_BAND
 from ttlcore.trends import Alert, TrendMonitor, TrendSettings
 

@@ -64,47 +64,20 @@ DEFAULT_WINDOW = 4
 
 # ---------------------------------------------------------------------------- simulation options
 
-def _assignments(text: str, option: str) -> dict[str, float]:
-    """``"12.phi.rx=0.05,13.eta.tx=-0.02"`` -> mapping (as ``ttl simulate`` reads it)."""
-    from ttlcore.conventions import COEFFICIENT_NAMES
-
-    out = {}
-    for item in filter(None, (s.strip() for s in text.split(","))):
-        name, sep, value = item.partition("=")
-        if not sep:
-            raise ConfigError(f"--simulate {option}: expected NAME=VALUE, got {item!r}")
-        if name not in COEFFICIENT_NAMES:
-            raise ConfigError(f"--simulate {option}: unknown coefficient {name!r} (names look like '12.phi.rx')")
-        try:
-            out[name] = float(value)
-        except ValueError:
-            raise ConfigError(f"--simulate {option}: bad number {value!r} for {name}") from None
-    return out
-
-
 def simulation_config(text: str):
-    """A :class:`ttlcore.simulator.SimulationConfig` from ``ttl simulate`` options (no ``--out``).
+    """A :class:`ttlcore.simulator.SimulationConfig` from ``ttl simulate`` options (no ``--out``),
+    parsed and translated by the same code as ``ttl simulate``.
 
     Raises
     ------
     ConfigError
         Naming the option at fault.
     """
-    from ttlcore.coefficients import make_coefficients
-    from ttlcore.orbits import make_orbit
-    from ttlcore.simulator import NoiseSwitches, SimulationConfig
+    from ttlcore.cli import add_simulation_options, simulation_config_from_args
+    from ttlcore.errors import TTLError
 
     p = argparse.ArgumentParser(prog="--simulate", add_help=False, exit_on_error=False)
-    p.add_argument("--duration", default="1d")
-    p.add_argument("--orbit", default="unequal")
-    p.add_argument("--coeffs", default="paper")
-    p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--t0", type=float, default=0.0)
-    p.add_argument("--fs", type=float, default=4.0)
-    p.add_argument("--noises", default="all")
-    p.add_argument("--drift", default="")
-    p.add_argument("--step", action="append", default=[])
-    p.add_argument("--order", type=int, default=31)
+    add_simulation_options(p)
     try:
         words = shlex.split(text)
         args, unknown = p.parse_known_args(words)
@@ -114,25 +87,9 @@ def simulation_config(text: str):
         raise ConfigError(f"--simulate: unknown option(s) {' '.join(unknown)} "
                           "(the options of 'ttl simulate' except --out, --chunk, --truth-noises, --quiet)")
     try:
-        duration = parse_duration(args.duration)
-    except ValueError as exc:
-        raise ConfigError(f"--simulate --duration: {exc}") from None
-    coeffs = make_coefficients(args.coeffs, seed=args.seed)
-    if args.drift:
-        coeffs = coeffs.with_drift({k: v * 1e-3 for k, v in _assignments(args.drift, "--drift").items()})
-    for step in args.step:
-        when, sep, rest = step.partition(":")
-        if not sep:
-            raise ConfigError(f"--simulate --step: expected T:NAME=MM,..., got {step!r}")
-        try:
-            t_step = parse_duration(when) if when.strip() not in ("0", "0.0") else 0.0
-        except ValueError as exc:
-            raise ConfigError(f"--simulate --step: {exc}") from None
-        coeffs = coeffs.with_step(t_step, {k: v * 1e-3 for k, v in _assignments(rest, "--step").items()})
-    make_orbit(args.orbit)  # fail early, naming the orbit
-    return SimulationConfig(duration=duration, t0=args.t0, fs=args.fs, orbit=args.orbit, coefficients=coeffs,
-                            seed=args.seed, noises=NoiseSwitches.parse(args.noises),
-                            interpolation_order=args.order)
+        return simulation_config_from_args(args)
+    except TTLError as exc:  # ConfigError included: the message names the option
+        raise ConfigError(f"--simulate {exc}") from None
 
 
 # ---------------------------------------------------------------------------- sources

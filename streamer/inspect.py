@@ -26,11 +26,12 @@ import math
 import re
 import shlex
 import subprocess
-import sys
 from collections import Counter, defaultdict
 from pathlib import Path
 
 import numpy as np
+
+from .keys import to_ranges
 
 from .recorder import Recording, RecordingError, read_recording
 
@@ -48,16 +49,6 @@ class InspectError(ValueError):
 
 
 # ---------------------------------------------------------------------------- reading
-
-def _ranges(indices) -> list[list[int]]:
-    out: list[list[int]] = []
-    for i in sorted(set(indices)):
-        if out and i == out[-1][1] + 1:
-            out[-1][1] = i
-        else:
-            out.append([i, i])
-    return out
-
 
 def _fmt_ranges(ranges) -> str:
     if not ranges:
@@ -116,7 +107,7 @@ def _segment_table(per_file: list[dict[str, list[int]]]) -> dict:
     for topic in sorted({t for f in per_file for t in f}):
         all_idx = [i for f in per_file for i in f.get(topic, [])]
         counts = Counter(all_idx)
-        out[topic] = {"count": len(all_idx), "distinct": len(counts), "indices": _ranges(counts),
+        out[topic] = {"count": len(all_idx), "distinct": len(counts), "indices": to_ranges(counts),
                       "duplicates": sorted(i for i, c in counts.items() if c > 1)}
     return out
 
@@ -273,7 +264,7 @@ def inspect_run(run_dir, truth=None) -> dict:
             for t in table.values():
                 seen = {i for a, b in t["indices"] for i in range(a, b + 1)}
                 top = (total - 1) if total else (max(seen) if seen else -1)
-                t["missing"] = _ranges(set(range(top + 1)) - seen)
+                t["missing"] = to_ranges(set(range(top + 1)) - seen)
     runs = sorted({f.get("run") for s in stages.values() for f in s["files"] if f.get("run")})
 
     errors = []
@@ -310,7 +301,7 @@ def inspect_run(run_dir, truth=None) -> dict:
                                                  "but no payload (cut off while writing)"})
 
     fits = _fits(recs_of.get("fitter", []))
-    fit_report = {"count": len(fits), "indices": _ranges(f["index"] for f in fits),
+    fit_report = {"count": len(fits), "indices": to_ranges(f["index"] for f in fits),
                   "names": fits[-1]["names"] if fits else [], "units": "m/rad",
                   "table": [{k: f[k] for k in ("index", "t_start", "t_stop", "chi2_dof", "converged",
                                                "coefficients", "sigma")} for f in fits],
@@ -338,7 +329,7 @@ def _topics_text(table: dict) -> str:
         if t["missing"]:
             extra += f" missing {_fmt_ranges(t['missing'])}"
         if t["duplicates"]:
-            extra += f" dup {_fmt_ranges(_ranges(t['duplicates']))}"
+            extra += f" dup {_fmt_ranges(to_ranges(t['duplicates']))}"
         parts.append(f"{topic} {t['distinct']} [{_fmt_ranges(t['indices'])}]{extra}")
     return "; ".join(parts) or "-"
 

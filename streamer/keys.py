@@ -16,6 +16,8 @@ key at fault.
 
 from __future__ import annotations
 
+from typing import Iterable
+
 import re
 from dataclasses import dataclass
 
@@ -208,3 +210,28 @@ def parse_control_key(key: str) -> tuple[str, tuple[str, ...]]:
     if len(chunks) < 4 or chunks[2] != CONTROL:
         raise KeyExprError(str(key), "expected 'ttl/<run>/control/<...>'")
     return chunks[1], tuple(chunks[3:])
+
+
+# ---------------------------------------------------------------------------- segment indices
+
+def to_ranges(indices: Iterable[int]) -> list[list[int]]:
+    """``{0, 1, 2, 5}`` -> ``[[0, 2], [5, 5]]``."""
+    out: list[list[int]] = []
+    for i in sorted(set(indices)):
+        if out and i == out[-1][1] + 1:
+            out[-1][1] = i
+        else:
+            out.append([i, i])
+    return out
+
+
+def from_ranges(ranges) -> set[int]:
+    """Inverse of :func:`to_ranges` (ignores malformed entries)."""
+    out: set[int] = set()
+    for r in ranges or ():
+        try:
+            a, b = int(r[0]), int(r[1])
+        except (TypeError, ValueError, IndexError):
+            continue
+        out.update(range(a, b + 1))
+    return out

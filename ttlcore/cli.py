@@ -72,18 +72,12 @@ def _parse_assignments(text: str, option: str) -> dict[str, float]:
 # ttl simulate
 # ---------------------------------------------------------------------------
 
-def _add_simulate(sub) -> None:
-    p = sub.add_parser(
-        "simulate",
-        help="simulate mission telemetry (eta, DWS, delays) and its truth file",
-        description="Simulate LISA telemetry at the eta level with TTL coupling (PHYSICS.md). "
-        "Writes OUT and OUT's truth file (day.h5 -> day.truth.h5).",
-    )
+def add_simulation_options(p) -> None:
+    """The options that define a simulation (``ttl simulate`` and ``ttl run --simulate``)."""
     p.add_argument("--duration", default="1d", help="length, e.g. 1d, 6h, 30min or seconds (default 1d)")
     p.add_argument("--orbit", default="unequal", help="equal | unequal (paper's static arms) | keplerian | lisaorbits FILE (default unequal)")
     p.add_argument("--coeffs", default="paper", help="paper (2.3 mm/rad) | lisainstrument | random | JSON FILE (default paper)")
     p.add_argument("--seed", type=int, default=0, help="master random seed (default 0)")
-    p.add_argument("--out", required=True, help="telemetry file to write (HDF5)")
     p.add_argument("--t0", type=float, default=0.0, help="mission time of the first sample [s] (default 0)")
     p.add_argument("--fs", type=float, default=4.0, help="telemetry sampling rate [Hz] (default 4)")
     p.add_argument("--noises", default="all", help="noises on: 'all', 'none', or a list like 'all,-laser,-dws' "
@@ -91,24 +85,20 @@ def _add_simulate(sub) -> None:
     p.add_argument("--drift", default="", metavar="NAME=MM_PER_DAY,...", help="linear coefficient drifts in mm/rad per day")
     p.add_argument("--step", action="append", default=[], metavar="T:NAME=MM,...",
                    help="coefficient step at mission time T (s, or e.g. 1.5d) of MM mm/rad; repeatable")
-    p.add_argument("--truth-noises", default="", help="noise components to store alone in the truth file, "
-                   "comma-separated (laser, oms, backlink, telescope, test_mass, dws_phi, dws_eta) or 'all'")
     p.add_argument("--order", type=int, default=31, help="Lagrange interpolation order of the delays (odd, default 31)")
-    p.add_argument("--chunk", default="3h", help="simulation chunk length (memory bound; the result does not depend on it)")
-    p.add_argument("--quiet", action="store_true", help="no progress display")
-    p.set_defaults(func=_cmd_simulate)
 
 
-def _cmd_simulate(args) -> int:
+def simulation_config_from_args(args, truth_noises=()):
+    """A :class:`~ttlcore.simulator.SimulationConfig` from the options of
+    :func:`add_simulation_options`; errors name the option at fault."""
     from .coefficients import make_coefficients
-    from .simulator import NoiseSwitches, SimulationConfig, simulate_to_file
-    from .truth import NOISE_COMPONENTS
+    from .orbits import make_orbit
+    from .simulator import NoiseSwitches, SimulationConfig
 
     try:
         duration = parse_duration(args.duration)
-        chunk = parse_duration(args.chunk)
     except ValueError as exc:
-        raise TTLError(f"--duration/--chunk: {exc}") from None
+        raise TTLError(f"--duration: {exc}") from None
     coeffs = make_coefficients(args.coeffs, seed=args.seed)
     if args.drift:
         coeffs = coeffs.with_drift({k: v * 1e-3 for k, v in _parse_assignments(args.drift, "--drift").items()})
@@ -121,19 +111,45 @@ def _cmd_simulate(args) -> int:
         except ValueError as exc:
             raise TTLError(f"--step: {exc}") from None
         coeffs = coeffs.with_step(t_step, {k: v * 1e-3 for k, v in _parse_assignments(rest, "--step").items()})
+    make_orbit(args.orbit)  # validate early: clear error before any work
+    return SimulationConfig(
+        duration=duration, t0=args.t0, fs=args.fs, orbit=args.orbit, coefficients=coeffs, seed=args.seed,
+        noises=NoiseSwitches.parse(args.noises), interpolation_order=args.order, truth_noises=tuple(truth_noises),
+    )
+
+
+def _add_simulate(sub) -> None:
+    p = sub.add_parser(
+        "simulate",
+        help="simulate mission telemetry (eta, DWS, delays) and its truth file",
+        description="Simulate LISA telemetry at the eta level with TTL coupling (PHYSICS.md). "
+        "Writes OUT and OUT's truth file (day.h5 -> day.truth.h5).",
+    )
+    add_simulation_options(p)
+    p.add_argument("--out", required=True, help="telemetry file to write (HDF5)")
+    p.add_argument("--truth-noises", default="", help="noise components to store alone in the truth file, "
+                   "comma-separated (laser, oms, backlink, telescope, test_mass, dws_phi, dws_eta) or 'all'")
+    p.add_argument("--chunk", default="3h", help="simulation chunk length (memory bound; the result does not depend on it)")
+    p.add_argument("--quiet", action="store_true", help="no progress display")
+    p.set_defaults(func=_cmd_simulate)
+
+
+def _cmd_simulate(args) -> int:
+    from .simulator import simulate_to_file
+    from .truth import NOISE_COMPONENTS
+
+    try:
+        chunk = parse_duration(args.chunk)
+    except ValueError as exc:
+        raise TTLError(f"--chunk: {exc}") from None
     truth_noises = tuple(NOISE_COMPONENTS) if args.truth_noises == "all" else tuple(
         s.strip() for s in args.truth_noises.split(",") if s.strip()
     )
     out = Path(args.out)
     if out.parent and not out.parent.exists():
         raise TTLError(f"--out: directory {out.parent} does not exist")
-    from .orbits import make_orbit
-
-    make_orbit(args.orbit)  # validate early: clear error before any work
-    config = SimulationConfig(
-        duration=duration, t0=args.t0, fs=args.fs, orbit=args.orbit, coefficients=coeffs, seed=args.seed,
-        noises=NoiseSwitches.parse(args.noises), interpolation_order=args.order, truth_noises=truth_noises,
-    )
+    config = simulation_config_from_args(args, truth_noises)
+    duration = config.duration
     progress = Progress(f"simulate {out.name}", enabled=not args.quiet)
     tpath, rpath = simulate_to_file(config, out, chunk_size=int(round(chunk * args.fs)), progress=progress)
     print(f"wrote {tpath} ({config.size} samples, {duration / DAY:g} d at {args.fs:g} Hz) and {rpath}")

@@ -509,7 +509,7 @@ def fit_spectra(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings |
     half_widths = smoothing_half_widths(f, s.smooth_fraction, s.smooth_max_hz)
     dws_psd = (2 * np.pi * f * (DWS_ASD if s.dws_asd is None else s.dws_asd)) ** 2
     csd = model_csd(f, ltt_mean)
-    C_prev, sig_prev = None, None
+    C_prev = None
     converged = False
     it = 0
     for it in range(s.iterations + 1):

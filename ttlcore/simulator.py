@@ -42,7 +42,7 @@ that delays reach back to).  The output is identical whatever the chunk size, an
 from __future__ import annotations
 
 import logging
-from dataclasses import asdict, dataclass, field, fields, replace
+from dataclasses import asdict, dataclass, field, fields
 from typing import Callable, Iterator
 
 import numpy as np

@@ -16,7 +16,7 @@ import numpy as np
 from scipy import fft as sp_fft
 from scipy import signal
 
-from .conventions import COEFFICIENT_NAMES, LINKS
+from .conventions import COEFFICIENT_NAMES
 from .interpolation import DEFAULT_ORDER
 from .regressors import ttl_witnesses
 from .tdi import DEFAULT_DELAY_ORDER, MICHELSON, aet, build

@@ -1,8 +1,6 @@
 """The TTL coefficient fit against truth: exactness, errors in variables, the paper's scenario,
 lisainstrument data, and the fit's statistics (chi^2 of the normalised errors)."""
 
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest

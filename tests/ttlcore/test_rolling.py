@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 
-from ttlcore.coefficients import make_coefficients
 from ttlcore.conventions import DAY
 from ttlcore.fit import FitSettings, fit_tdi
 from ttlcore.rolling import RollingFit, StreamingDecimator

@@ -9,7 +9,7 @@ from scipy import signal
 from ttlcore import noise_models
 from ttlcore.coefficients import make_coefficients
 from ttlcore.conventions import C, COEFFICIENT_NAMES, DAY, LINKS, reverse
-from ttlcore.simulator import NoiseSwitches, SimulationConfig, Simulator, anti_alias_filter, simulate
+from ttlcore.simulator import NoiseSwitches, SimulationConfig, Simulator, simulate
 
 HOUR = 3600.0
 

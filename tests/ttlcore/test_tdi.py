@@ -7,8 +7,8 @@ from scipy import signal
 
 from ttlcore.conventions import ARM_LENGTH, C, DAY, LINKS
 from ttlcore.noise_psd import simulated_single_link, tdi_noise_csd, x2_psd_equal_arms
-from ttlcore.simulator import NoiseSwitches, SimulationConfig, simulate
-from ttlcore.tdi import AET_MATRIX, X2, Y2, Z2, aet, build
+from ttlcore.simulator import SimulationConfig, simulate
+from ttlcore.tdi import AET_MATRIX, X2, Y2, Z2, aet
 from ttlcore.tdi_data import TDIStream, compute_tdi, compute_tdi_arrays
 
 HOUR = 3600.0
