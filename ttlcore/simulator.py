@@ -62,6 +62,7 @@ from .conventions import (
     local_spacecraft,
 )
 from .errors import ConfigError
+from .injection import ChunkContext, check_signal, injection_from_description
 from .interpolation import DEFAULT_ORDER, apply_taps, delay, shift_taps
 from .noise import NoiseStream
 from .orbits import Orbit, make_orbit
@@ -137,6 +138,9 @@ class SimulationConfig:
         Physics rate of the laser terms is ``fs * laser_upsampling``.
     truth_noises : tuple of str
         Noise components to store alone in the truth file (see :data:`ttlcore.truth.NOISE_COMPONENTS`).
+    injections : tuple of :class:`ttlcore.injection.Injection`
+        Extra signals added to ``eta`` (gravitational waves, model effects); each is
+        stored alone in the truth file as ``injections/<name>``.
     """
 
     duration: float = DAY
@@ -152,6 +156,7 @@ class SimulationConfig:
     interpolation_order: int = DEFAULT_ORDER
     laser_upsampling: int = 4
     truth_noises: tuple = ()
+    injections: tuple = ()
 
     def __post_init__(self):
         if not (np.isfinite(self.duration) and self.duration > 0):
@@ -165,6 +170,10 @@ class SimulationConfig:
         unknown = set(self.truth_noises) - set(NOISE_COMPONENTS)
         if unknown:
             raise ConfigError(f"unknown truth noise components {sorted(unknown)}; known: {', '.join(NOISE_COMPONENTS)}")
+        self.injections = tuple(self.injections)
+        names = [inj.name for inj in self.injections]
+        if len(set(names)) != len(names):
+            raise ConfigError(f"injection names must be unique, got {names}")
 
     @property
     def size(self) -> int:
@@ -185,6 +194,8 @@ class SimulationConfig:
             "laser_upsampling": self.laser_upsampling,
             "truth_noises": list(self.truth_noises),
         }
+        if self.injections:
+            d["injections"] = [inj.describe() for inj in self.injections]
         return d
 
     @classmethod
@@ -193,6 +204,7 @@ class SimulationConfig:
         d["coefficients"] = CoefficientModel.from_description(d["coefficients"])
         d["noises"] = NoiseSwitches(**d.get("noises", {}))
         d["truth_noises"] = tuple(d.get("truth_noises", ()))
+        d["injections"] = tuple(injection_from_description(x) for x in d.get("injections", ()))
         return cls(**{k: v for k, v in d.items() if k in {f.name for f in fields(cls)}})
 
 
@@ -335,6 +347,15 @@ class Simulator:
             "test_mass": delta[:, h:] + delayed_onto_links(delta),
         }
         eta = ttl + sum(components.values())
+        injected = {}
+        if cfg.injections:
+            ctx = ChunkContext(n0=n0, n=n, h=h, fs=fs, t=t, t_ext=t_ext, ltt=ltt, orbit=self.orbit,
+                               phi_dot=phi_dot, eta_dot=eta_dot, coefficients=coeffs,
+                               delayed_onto_links=delayed_onto_links,
+                               interpolation_order=cfg.interpolation_order)
+            for inj in cfg.injections:
+                injected[inj.name] = check_signal(inj, inj.link_signal(ctx), n)
+                eta = eta + injected[inj.name]
         tm = Telemetry(
             t0=float(t[0]),
             fs=fs,
@@ -354,6 +375,8 @@ class Simulator:
         components["dws_phi"], components["dws_eta"] = dws_noise[:6], dws_noise[6:]
         for name in cfg.truth_noises:
             truth[f"noises/{name}"] = components[name]
+        for name, values in injected.items():
+            truth[f"injections/{name}"] = values
         return tm, truth
 
     def chunks(self, chunk_size: int | None = None) -> Iterator[tuple[Telemetry, dict]]:
@@ -435,7 +458,8 @@ def simulate_to_file(config: SimulationConfig, out, *, chunk_size: int | None = 
     cfg_dict["orbit_description"] = sim.orbit.describe()
     tpath = truth_path(out)
     with TelemetryWriter(out, t0=config.t0, fs=config.fs, size=sim.size, config=cfg_dict) as tw, \
-            TruthWriter(tpath, t0=config.t0, fs=config.fs, size=sim.size, config=cfg_dict, noises=config.truth_noises) as rw:
+            TruthWriter(tpath, t0=config.t0, fs=config.fs, size=sim.size, config=cfg_dict, noises=config.truth_noises,
+                        injections=[inj.name for inj in config.injections]) as rw:
         done = 0
         for tm, truth in sim.chunks(chunk_size):
             tw.append_telemetry(tm)

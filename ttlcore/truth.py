@@ -51,12 +51,13 @@ def truth_path(telemetry_path) -> Path:
 class TruthWriter(AtomicSeriesWriter):
     """Atomic chunked writer of a truth file (see :class:`ttlcore.hdf5.AtomicSeriesWriter`)."""
 
-    def __init__(self, path, *, t0: float, fs: float, size: int, config: dict, noises=()):
+    def __init__(self, path, *, t0: float, fs: float, size: int, config: dict, noises=(), injections=()):
         unknown = set(noises) - set(NOISE_COMPONENTS)
         if unknown:
             raise ValueError(f"unknown noise components {sorted(unknown)}")
         datasets = dict(CORE_DATASETS)
         datasets.update({f"noises/{n}": NOISE_COMPONENTS[n] for n in noises})
+        datasets.update({f"injections/{n}": (LINKS, "fractional frequency") for n in injections})
         attrs = {
             "format": FORMAT,
             "schema_version": SCHEMA_VERSION,
@@ -80,6 +81,7 @@ class Truth:
     angles: dict
     angular_velocity: dict
     noises: dict = field(default_factory=dict)
+    injections: dict = field(default_factory=dict)
     config: dict = field(default_factory=dict)
     source: str = "memory"
 
@@ -110,6 +112,7 @@ def read_truth(path, start: int = 0, stop: int | None = None) -> Truth:
             for name in f["noises"]:
                 rows = NOISE_COMPONENTS.get(name, (LINKS, ""))[0]
                 noises[name] = get(f"noises/{name}", rows)
+        injections = {name: get(f"injections/{name}", LINKS) for name in f.get("injections", {})}
         return Truth(
             t0=t0 + start / fs,
             fs=fs,
@@ -118,6 +121,7 @@ def read_truth(path, start: int = 0, stop: int | None = None) -> Truth:
             angles={a: get(f"angles/{a}", MOSAS) for a in ("phi", "eta")},
             angular_velocity={a: get(f"angular_velocity/{a}", MOSAS) for a in ("phi", "eta")},
             noises=noises,
+            injections=injections,
             config=json_attr(f, path, "config"),
             source=str(path),
         )

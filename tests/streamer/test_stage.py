@@ -154,6 +154,10 @@ def test_killed_stage_leaves_a_salvageable_recording(driver, children, tmp_path)
     np.testing.assert_array_equal(rec.segments("telemetry")[0].arrays["data"], data)
     np.testing.assert_array_equal(rec.segments("tdi")[0].arrays["data"], 2 * data)
     assert rec.json("events")[0]["kind"] == "start"
+    # the killed session's liveliness token lingers until Zenoh notices the dead link; a
+    # restart must not mistake the old token for the new process's
+    wait_for(lambda: "doubler" not in driver.bus.alive_stages(RUN, timeout=0.5), 30,
+             "the killed stage's token to go")
 
     # a restarted stage keeps the killed one's file and catches up from the publisher's cache
     proc, mcap_path = driver.start_stage(children, tmp_path)
