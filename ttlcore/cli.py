@@ -86,6 +86,9 @@ def add_simulation_options(p) -> None:
     p.add_argument("--step", action="append", default=[], metavar="T:NAME=MM,...",
                    help="coefficient step at mission time T (s, or e.g. 1.5d) of MM mm/rad; repeatable")
     p.add_argument("--order", type=int, default=31, help="Lagrange interpolation order of the delays (odd, default 31)")
+    p.add_argument("--gw", default="", metavar="SOURCES", help="gravitational waves to inject, comma-separated: "
+                   "hmcnc, ztfj1539, vb, galaxy, sgwb, mbhb1, mbhb2 (merging mid-run), all, or a lisagwresponse "
+                   "FILE[:tps/y|tcb/y] (docs/gw.md)")
 
 
 def simulation_config_from_args(args, truth_noises=()):
@@ -112,9 +115,15 @@ def simulation_config_from_args(args, truth_noises=()):
             raise TTLError(f"--step: {exc}") from None
         coeffs = coeffs.with_step(t_step, {k: v * 1e-3 for k, v in _parse_assignments(rest, "--step").items()})
     make_orbit(args.orbit)  # validate early: clear error before any work
+    gw = ()
+    if getattr(args, "gw", ""):
+        from .gw_injection import parse_gw_spec
+
+        gw = parse_gw_spec(args.gw, t0=args.t0, duration=duration, seed=args.seed)
     return SimulationConfig(
         duration=duration, t0=args.t0, fs=args.fs, orbit=args.orbit, coefficients=coeffs, seed=args.seed,
         noises=NoiseSwitches.parse(args.noises), interpolation_order=args.order, truth_noises=tuple(truth_noises),
+        injections=gw,
     )
 
 
