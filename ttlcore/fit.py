@@ -303,7 +303,8 @@ def accumulate(spectra: list[SegmentSpectra], weights: np.ndarray, band_edges, n
     G = len(band_edges) - 1
     same = None
     if eiv_response is not None and dws_psd is not None:
-        same = np.array([[dws_channel(a) == dws_channel(b) for b in names] for a in names], dtype=float)
+        chans = [_eiv_channel(a) for a in names]
+        same = np.array([[a is not None and a == b for b in chans] for a in chans], dtype=float)
         wT = np.einsum("mij,mjp->mip", Lh, eiv_response) * np.sqrt(dws_psd)[:, None, None]
     for g in range(G):
         sel = band == g
@@ -319,6 +320,29 @@ def accumulate(spectra: list[SegmentSpectra], weights: np.ndarray, band_edges, n
             Tg = wT[sel].reshape(-1, len(names))
             neq.E[g] = np.real(Tg.conj().T @ Tg) * same * len(spectra)
     return neq
+
+
+def _eiv_channel(name: str):
+    """DWS channel of a TTL regressor, None for extra (effect) regressors: their
+    errors-in-variables term is not modelled (their coefficients are small, so the bias,
+    a fraction of order (DWS noise / jitter)^2 of them, is negligible)."""
+    try:
+        return dws_channel(name)
+    except ValueError:
+        return None
+
+
+def eiv_responses(f: np.ndarray, ltt_mean, names) -> np.ndarray:
+    """:func:`ttlcore.regressors.regressor_responses` for the TTL names among ``names``,
+    zero columns for extra (effect) regressors."""
+    names = tuple(names)
+    ttl = [k for k, n in enumerate(names) if _eiv_channel(n) is not None]
+    if len(ttl) == len(names):
+        return regressor_responses(f, ltt_mean, names)
+    out = np.zeros((np.size(f), 3, len(names)), dtype=complex)
+    if ttl:
+        out[:, :, ttl] = regressor_responses(f, ltt_mean, [names[k] for k in ttl])
+    return out
 
 
 def stack_spectra(spectra: list[SegmentSpectra]) -> tuple[np.ndarray, np.ndarray]:
@@ -504,7 +528,7 @@ def fit_spectra(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings |
         dof = neq.dof_per_band().sum() - len(names)
         cov = kappa * cov_unit * chi2.sum() / dof  # residual-variance scaled, as OLS reports it
         return _result(names, C, cov, chi2, neq, s, "ols", False, 0, True, spectra), {"normal_equations": neq, "weights": W}
-    T = regressor_responses(f, ltt_mean, names) if s.eiv else None
+    T = eiv_responses(f, ltt_mean, names) if s.eiv else None
     stacked = stack_spectra(spectra)
     half_widths = smoothing_half_widths(f, s.smooth_fraction, s.smooth_max_hz)
     dws_psd = (2 * np.pi * f * (DWS_ASD if s.dws_asd is None else s.dws_asd)) ** 2
@@ -565,10 +589,31 @@ def _result(names, C, cov, chi2_bands, neq, s, method, eiv, it, converged, spect
     )
 
 
-def fit_tdi(td: TDIData, settings: FitSettings | None = None, method: str = "gls") -> tuple[FitResult, dict]:
-    """Fit the coefficients on TDI outputs (any of X/Y/Z or A/E/T; A, E, T are used)."""
+def fit_tdi(td: TDIData, settings: FitSettings | None = None, method: str = "gls",
+            extra: TDIData | None = None) -> tuple[FitResult, dict]:
+    """Fit the coefficients on TDI outputs (any of X/Y/Z or A/E/T; A, E, T are used).
+
+    ``extra``: TDI of further regressors (model effects, :mod:`ttlcore.effects`) on the same
+    samples and channels, fitted jointly with ``td``'s (their names follow in the result).
+    """
     s = settings or FitSettings()
+    if extra is not None:
+        td = with_extra_regressors(td, extra)
     spectra = segment_spectra(td, s.band, s.segment_duration, s.window, s.overlap, s.decimate)
     res, internals = fit_spectra(spectra, td.ltt_mean, s, td.names, "ols" if method == "ols" else "gls")
     internals["spectra"] = spectra
     return res, internals
+
+
+def with_extra_regressors(td: TDIData, extra: TDIData) -> TDIData:
+    """``td`` with the regressor columns of ``extra`` appended (same time grid and channels)."""
+    from dataclasses import replace
+
+    if extra.channels != td.channels or extra.size != td.size or abs(extra.t0 - td.t0) > 0.5 / td.fs or extra.fs != td.fs:
+        raise ValueError(f"extra regressors do not match the TDI data (channels {extra.channels} vs {td.channels}, "
+                         f"{extra.size} vs {td.size} samples, t0 {extra.t0} vs {td.t0})")
+    clash = set(extra.names) & set(td.names)
+    if clash:
+        raise ValueError(f"extra regressor names already present: {sorted(clash)}")
+    return replace(td, regressors=np.concatenate([td.regressors, extra.regressors], axis=1),
+                   names=tuple(td.names) + tuple(extra.names))

@@ -1,0 +1,754 @@
+"""Model against measurement: fit a model (a list of effects), test it against the
+instrument noise model, rank the missing effects and the generic witnesses
+(MODEL-DIAGNOSTICS.md; ``ttl diagnose``).
+
+Everything here is the linear-Gaussian model of :mod:`ttlcore.fit` in the frequency domain,
+A, E, T jointly, with the noise CSD held *fixed* at the instrument model
+(:func:`ttlcore.adequacy.instrument_noise_csd`) - never re-estimated from the residual -
+so that chi^2 values of different models are comparable and an unmodelled effect shows
+as excess instead of being absorbed:
+
+    Q(theta) = theta^T (N - E) theta - 2 theta^T b + dd,    chi2 = 2 Q,
+
+with ``N = Re sum R^H S^-1 R``, ``b = Re sum R^H S^-1 d``, ``dd = sum d^H S^-1 d`` over the
+bins of each band and segment (:class:`Gram`), ``E`` the errors-in-variables term of the TTL
+regressors (:mod:`ttlcore.fit`).  For a candidate effect with columns ``K`` added to the
+model columns ``M``:
+
+- ``delta_chi2 = chi2_M - chi2_{M+K}`` at the GLS optima, divided by the variance factor
+  ``kappa`` of the tapered segments (:func:`ttlcore.fit.variance_factor`), distributed as
+  chi^2 with ``|K|`` degrees of freedom if the effect is absent;
+- the exact log Bayes factor of the linear-Gaussian model with a flat prior on the model
+  coefficients and a zero-mean Gaussian prior of standard deviation ``prior_scale`` on each
+  new parameter (:func:`log_bayes_factor`);
+- for effects with a searched nonlinear parameter (a step time) the Bayes factor is
+  marginalised over the search grid (uniform prior) and the Bayesian information criterion
+  change is reported too;
+- the share of the excess it explains, ``delta_chi2 / (chi2_M - dof_M)``.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy import special, stats
+
+from .adequacy import (
+    DEFAULT_ALPHA,
+    DEFAULT_TOLERANCE,
+    DIAGNOSIS_BAND,
+    band_table,
+    describe_failures,
+    describe_time_failures,
+    instrument_noise_csd,
+    p_value,
+)
+from .conventions import COEFFICIENT_NAMES
+from .effects import (
+    Effect,
+    Step,
+    available_effects,
+    columns_tdi,
+    effect_input_from_telemetry,
+    make_effects,
+)
+from .errors import ConfigError
+from .fit import (
+    DWS_ASD,
+    FitSettings,
+    SegmentSpectra,
+    default_band_edges,
+    dws_asd_from_config,
+    eiv_responses,
+    fit_spectra,
+    notch_mask,
+    variance_factor,
+)
+from .interpolation import DEFAULT_ORDER
+from .spectra import segment_fft, window
+from .tdi import DEFAULT_DELAY_ORDER, MICHELSON, aet, build
+from .tdi_data import TDIData, compute_tdi
+
+log = logging.getLogger(__name__)
+
+
+@dataclass
+class DiagnoseSettings:
+    """Settings of a diagnosis.
+
+    Attributes
+    ----------
+    band : tuple
+        Frequency band [Hz] (default :data:`ttlcore.adequacy.DIAGNOSIS_BAND`).
+    segment_duration : float or None
+        FFT segment length [s]; None: 6 h, or a quarter of shorter data.
+    n_bands : int
+        Log-spaced bands for the per-band tests.
+    time_segment : float
+        Length [s] of the time slices of the per-time adequacy (Hann-windowed residual).
+    tolerance, alpha : float
+        Noise-model tolerance and significance level (:mod:`ttlcore.adequacy`).
+    log_bf_threshold : float
+        A candidate is significant when its log Bayes factor exceeds this (2.3: odds 10:1)
+        *and* its delta chi^2 has p < alpha.
+    step_grid, step_refine : float
+        Coarse and fine spacing [s] of the step-time search.
+    witnesses : bool
+        Run the witness search.
+    dws_asd : float or None
+        DWS readout noise [rad/sqrt(Hz)]; None: from the telemetry's configuration.
+    """
+
+    band: tuple = DIAGNOSIS_BAND
+    segment_duration: float | None = None
+    window: str = "tukey:0.1"
+    n_bands: int = 8
+    time_segment: float = 3600.0
+    tolerance: float = DEFAULT_TOLERANCE
+    alpha: float = DEFAULT_ALPHA
+    log_bf_threshold: float = 2.3
+    step_grid: float = 3600.0
+    step_refine: float = 600.0
+    witnesses: bool = True
+    top_witnesses: int = 5
+    dws_asd: float | None = None
+    order: int = DEFAULT_ORDER
+    delay_order: int = DEFAULT_DELAY_ORDER
+
+
+# ---------------------------------------------------------------------------
+# Linear-Gaussian algebra
+# ---------------------------------------------------------------------------
+
+def log_bayes_factor(A: np.ndarray, beta: np.ndarray, prior_scale: np.ndarray) -> float:
+    """Exact log Bayes factor of adding parameters ``beta`` to a linear-Gaussian model.
+
+    With the other parameters marginalised under a flat prior, the likelihood of the new
+    parameters is Gaussian with precision ``A`` (the Schur complement of the Fisher matrix)
+    around ``beta``; with the prior ``N(0, D)``, ``D = diag(prior_scale^2)``,
+
+        log B = -1/2 log det(I + D^1/2 A D^1/2)
+                + 1/2 [beta^T A beta - beta^T A (I + D A)^-1 beta].
+
+    ``beta^T A beta`` is the delta chi^2.  Positive values favour the larger model.
+    """
+    d = np.asarray(prior_scale, dtype=float)
+    k = beta.size
+    M = np.eye(k) + d[:, None] * A * d[None, :]
+    sign, logdet = np.linalg.slogdet(M)
+    if sign <= 0:
+        return float("nan")
+    q1 = beta @ A @ beta
+    q2 = beta @ A @ np.linalg.solve(np.eye(k) + (d ** 2)[:, None] * A, beta)
+    return float(-0.5 * logdet + 0.5 * (q1 - q2))
+
+
+def _gram(wA: np.ndarray, wB: np.ndarray, band_index: np.ndarray, G: int) -> np.ndarray:
+    """``Re sum conj(A) B`` per segment and band: (S, m, 3, p) x (S, m, 3, q) -> (S, G, p, q)."""
+    S = wA.shape[0]
+    out = np.zeros((S, G, wA.shape[-1], wB.shape[-1]))
+    for g in range(G):
+        sel = band_index == g
+        if not sel.any():
+            continue
+        a = wA[:, sel].reshape(S, -1, wA.shape[-1])
+        b = wB[:, sel].reshape(S, -1, wB.shape[-1])
+        out[:, g] = np.real(np.matmul(np.conj(np.swapaxes(a, 1, 2)), b))
+    return out
+
+
+@dataclass
+class ModelFit:
+    """A model fitted under the fixed instrument noise model.
+
+    Attributes
+    ----------
+    effects : list of Effect
+    names : tuple
+        Column names (the 24 TTL names first when present).
+    theta : ndarray (P,)
+        GLS estimates (column units: m/rad for TTL).
+    covariance : ndarray (P, P)
+        ``kappa (2 (N - E))^-1``.
+    chi2_seg_band : ndarray (S, G)
+        chi^2 per segment and band against the noise model (plain ``N``: the residual's
+        DWS-noise part is in the noise model).
+    dof_band : ndarray (G,)
+    bands : :class:`ttlcore.adequacy.BandTable`
+    q_min : float
+        ``Q`` at the optimum on the EIV-corrected likelihood (for evidences).
+    """
+
+    effects: list
+    names: tuple
+    theta: np.ndarray
+    covariance: np.ndarray
+    chi2_seg_band: np.ndarray
+    dof_band: np.ndarray
+    bands: object
+    q_min: float
+    residual_w: np.ndarray = field(repr=False, default=None)
+    time_table: dict | None = None
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return np.sqrt(np.diag(self.covariance))
+
+    @property
+    def chi2(self) -> float:
+        return float(self.chi2_seg_band.sum())
+
+    @property
+    def dof(self) -> float:
+        return float(self.dof_band.sum())
+
+    @property
+    def chi2_dof(self) -> float:
+        return self.chi2 / self.dof
+
+    def ttl_coefficients(self) -> np.ndarray:
+        """The 24 linear coefficients (NaN for those not in the model)."""
+        out = np.full(len(COEFFICIENT_NAMES), np.nan)
+        for k, n in enumerate(COEFFICIENT_NAMES):
+            if n in self.names:
+                out[k] = self.theta[self.names.index(n)]
+        return out
+
+    def ttl_sigma(self) -> np.ndarray:
+        out = np.full(len(COEFFICIENT_NAMES), np.nan)
+        s = self.sigma
+        for k, n in enumerate(COEFFICIENT_NAMES):
+            if n in self.names:
+                out[k] = s[self.names.index(n)]
+        return out
+
+
+# ---------------------------------------------------------------------------
+# The engine
+# ---------------------------------------------------------------------------
+
+class Diagnoser:
+    """Whitened spectra of the data and of every column of every effect, under one fixed
+    noise model; fits models and evaluates candidates on them.
+
+    Build it from telemetry (:meth:`from_telemetry`: every effect available) or from TDI
+    outputs alone (:meth:`from_tdi`: the linear TTL and the effects derivable from its TDI
+    regressors, ``drift`` and ``step``, by modulating them in time - exact up to the
+    ~70 s span of the TDI delays).
+    """
+
+    def __init__(self, td: TDIData, settings: DiagnoseSettings | None = None, tm=None, effect_modules=(),
+                 dws_asd: float | None = None):
+        s = self.settings = settings or DiagnoseSettings()
+        self.tm = tm
+        self.effect_modules = tuple(effect_modules)
+        self.registry = available_effects(self.effect_modules)
+        self.dws_asd = float(dws_asd if dws_asd is not None else (s.dws_asd if s.dws_asd is not None else DWS_ASD))
+        self.ltt_mean = np.asarray(td.ltt_mean, dtype=float)
+        self.built = None
+        tda = td.to_aet()
+        factor = max(1, int(round(tda.fs / 2.0)))
+        self.decimation = factor
+        self.fs_in = tda.fs
+        self.t0_in = tda.t0
+        self.n_in = tda.size
+        dec = tda.decimated(factor) if factor > 1 else tda
+        self.fs = dec.fs
+        self.t0 = dec.t0
+        n = dec.size
+        ok = np.isfinite(dec.data).all(axis=0) & np.isfinite(dec.regressors).all(axis=(0, 1))
+        idx = np.flatnonzero(ok)
+        if idx.size < 2:
+            raise ConfigError("no valid TDI samples (data too short for the TDI delays)")
+        margin = int(round(120 * self.fs))  # room for the extra delays and derivative stencils of effects
+        lo, hi = idx[0] + margin, idx[-1] + 1 - margin
+        self.mask = np.zeros(n, dtype=bool)
+        self.mask[lo:hi] = True
+        self.mask &= ok
+        span = (hi - lo) / self.fs
+        seg = s.segment_duration or min(21600.0, span / 4)
+        if seg * self.fs < 256:
+            raise ConfigError(f"data too short for a diagnosis ({span:.0f} s of valid TDI)")
+        self.L = int(round(seg * self.fs))
+        self.starts = list(range(lo, hi - self.L + 1, self.L))
+        if not self.starts:
+            raise ConfigError(f"no FFT segment of {seg:g} s fits in {span:.0f} s of valid TDI")
+        self.seg_t0 = np.array([self.t0 + s0 / self.fs for s0 in self.starts])
+        self.seg_duration = self.L / self.fs
+        self.win = window(s.window, self.L)
+        f = np.fft.rfftfreq(self.L, 1 / self.fs)
+        sel = (f >= s.band[0]) & (f <= s.band[1])
+        keep = np.zeros_like(sel)
+        keep[sel] = notch_mask(f[sel], self.ltt_mean)
+        self.bins = np.flatnonzero(keep)
+        self.f = f[self.bins]
+        self.edges = default_band_edges(s.band, s.n_bands)
+        self.G = len(self.edges) - 1
+        self.band_index = np.clip(np.searchsorted(self.edges, self.f, side="right") - 1, 0, self.G - 1)
+        self.kappa = variance_factor(s.window, 4096, 0.0)
+        self.data_series = dec.data
+        self.series: dict[str, np.ndarray] = {}
+        d = self._spectra(dec.data[:, None, :])[..., 0]
+        R = self._spectra(dec.regressors)
+        for k, name in enumerate(dec.names):
+            self.series[name] = dec.regressors[:, k]
+        # noise model: secondary noises + DWS noise through a first estimate of the coefficients
+        # (the standard GLS fit of the TTL columns, used for nothing else)
+        ttl_names = [n for n in dec.names if n in COEFFICIENT_NAMES]
+        C0 = None
+        if len(ttl_names) == len(COEFFICIENT_NAMES):
+            sp = [SegmentSpectra(t, self.seg_duration, self.f, d[i], R[i]) for i, t in enumerate(self.seg_t0)]
+            res, _ = fit_spectra(sp, self.ltt_mean, FitSettings(band=s.band, notch=False, dws_asd=self.dws_asd,
+                                                                 robust_covariance=False, n_bands=s.n_bands),
+                                 names=tuple(dec.names))
+            C0 = res.coefficients[[dec.names.index(n) for n in COEFFICIENT_NAMES]]
+        self.noise_csd = instrument_noise_csd(self.f, self.ltt_mean, C0, self.dws_asd)
+        W = np.linalg.inv(self.noise_csd)
+        self.Lh = np.conj(np.swapaxes(np.linalg.cholesky(W), -1, -2))
+        self.wd = np.matmul(self.Lh, d[..., None])[..., 0]  # (S, m, 3)
+        self.wcols: dict[str, np.ndarray] = {}
+        self.col_info: dict[str, tuple] = {}
+        self._add_columns(list(dec.names), np.matmul(self.Lh, R), [(1.0, "m/rad", 2.3e-3)] * len(dec.names))
+        # errors-in-variables term of the TTL columns
+        T = eiv_responses(self.f, self.ltt_mean, ttl_names)
+        wT = np.matmul(self.Lh, T) * (2 * np.pi * self.f * self.dws_asd)[:, None, None]
+        from .fit import _eiv_channel
+
+        chans = [_eiv_channel(a) for a in ttl_names]
+        same = np.array([[a == b for b in chans] for a in chans], dtype=float)
+        self.E_ttl = np.zeros((self.G, len(ttl_names), len(ttl_names)))
+        for g in range(self.G):
+            sel = self.band_index == g
+            Tg = wT[sel]
+            self.E_ttl[g] = np.real(np.einsum("mip,miq->pq", Tg.conj(), Tg)) * same * len(self.starts)
+        self.ttl_names = ttl_names
+        self._gram_cache: dict = {}
+        self.dd = np.zeros((len(self.starts), self.G))
+        for g in range(self.G):
+            self.dd[:, g] = np.sum(np.abs(self.wd[:, self.band_index == g]) ** 2, axis=(1, 2))
+
+    # --- construction ------------------------------------------------------------------
+
+    @classmethod
+    def from_telemetry(cls, tm, settings: DiagnoseSettings | None = None, effect_modules=()) -> "Diagnoser":
+        """From a :class:`~ttlcore.telemetry.Telemetry` (ours or lisainstrument's)."""
+        s = settings or DiagnoseSettings()
+        td = compute_tdi(tm, order=s.order, delay_order=s.delay_order)
+        dws = s.dws_asd if s.dws_asd is not None else dws_asd_from_config(tm.config)
+        out = cls(td, s, tm=tm, effect_modules=effect_modules, dws_asd=dws)
+        return out
+
+    @classmethod
+    def from_tdi(cls, td: TDIData, settings: DiagnoseSettings | None = None, dws_asd: float | None = None,
+                 effect_modules=()) -> "Diagnoser":
+        """From TDI outputs only (no telemetry: effects needing DWS series are unavailable)."""
+        return cls(td, settings, tm=None, effect_modules=effect_modules, dws_asd=dws_asd)
+
+    # --- spectra -----------------------------------------------------------------------
+
+    def _spectra(self, x: np.ndarray) -> np.ndarray:
+        """(3, k, n_dec) decimated series -> band spectra (S, m, 3, k), masked like the data."""
+        out = np.empty((len(self.starts), self.f.size, x.shape[0], x.shape[1]), dtype=complex)
+        for i, s0 in enumerate(self.starts):
+            seg = x[:, :, s0:s0 + self.L]
+            m = self.mask[s0:s0 + self.L]
+            seg = np.where(m, np.nan_to_num(seg), 0.0)
+            bad = ~np.isfinite(x[:, :, s0:s0 + self.L]) & m
+            if bad.any():
+                raise ConfigError("a regressor column is not finite inside the analysed span")
+            _, X = segment_fft(seg, self.fs, self.win * m)
+            out[i] = np.moveaxis(X[:, :, self.bins], 2, 0)
+        return out
+
+    def _add_columns(self, names, wR, info):
+        for k, n in enumerate(names):
+            self.wcols[n] = wR[..., k]
+            self.col_info[n] = info[k]
+
+    def _decimate(self, xyz: np.ndarray) -> np.ndarray:
+        """XYZ TDI of columns (3, k, n_in) -> decimated A, E, T (3, k, n_dec), the data's filter."""
+        a = aet(xyz)
+        td = TDIData(t0=self.t0_in, fs=self.fs_in, channels=("A", "E", "T"), data=np.zeros((3, a.shape[-1])),
+                     regressors=a, names=tuple(f"c{k}" for k in range(a.shape[1])), ltt_mean=self.ltt_mean)
+        dec = td.decimated(self.decimation) if self.decimation > 1 else td
+        return dec.regressors
+
+    def effect_columns(self, effect: Effect, coefficients=None, keep_series: bool = False) -> list[str]:
+        """Compute (once) and register the columns of ``effect``; returns their names."""
+        if isinstance(effect, Step) and effect.options.get("t_step") is None:
+            raise ConfigError("effect 'step' needs t_step in a model (ttl diagnose reports the searched time)")
+        if effect.name == "linear-ttl":
+            names = [c.name for c in effect.columns(_names_input())]
+            missing = [n for n in names if n not in self.wcols]
+            if missing:
+                raise ConfigError(f"linear-ttl columns {missing[:3]} missing from the TDI data")
+            return names
+        key = (effect.name, repr(sorted(effect.options.items())), None if coefficients is None else tuple(np.round(coefficients, 12)))
+        if key in self._gram_cache:
+            names = self._gram_cache[key]
+            if keep_series:
+                missing = [n for n in names if n not in self.series]
+                if missing:
+                    self._gram_cache.pop(key)
+                    return self.effect_columns(effect, coefficients, keep_series)
+            return names
+        if self.tm is None:
+            names, series, info = self._columns_from_tdi(effect)
+        else:
+            if self.built is None:
+                self.built = build(MICHELSON, self.tm.ltt, self.tm.fs, order=self.settings.order,
+                                   delay_order=self.settings.delay_order)
+            data = effect_input_from_telemetry(self.tm, coefficients)
+            cols = effect.columns(data)
+            if not cols:
+                raise ConfigError(f"effect {effect.name!r} produced no column (check its options)")
+            names = [c.name for c in cols]
+            info = [(1.0, c.unit, c.prior_scale) for c in cols]
+            series = np.empty((3, len(cols), 0))
+            chunks = []
+            for j0 in range(0, len(cols), 24):  # bounded memory
+                chunks.append(self._decimate(columns_tdi(cols[j0:j0 + 24], self.built)))
+            series = np.concatenate(chunks, axis=1)
+        clash = [n for n in names if n in self.wcols and n not in self.series and self.tm is not None and False]
+        del clash
+        self._add_columns(names, np.matmul(self.Lh, self._spectra(series)), info)
+        if keep_series:
+            for k, n in enumerate(names):
+                self.series[n] = series[:, k]
+        self._gram_cache[key] = names
+        return names
+
+    def _columns_from_tdi(self, effect: Effect):
+        """Drift and step columns as time-modulated TDI regressors (no telemetry)."""
+        if effect.name not in ("drift", "step"):
+            raise ConfigError(f"effect {effect.name!r} needs the telemetry (DWS series); these segments carry TDI only")
+        t = self.t0 + np.arange(self.data_series.shape[-1]) / self.fs
+        if effect.name == "drift":
+            t_ref = effect.options.get("t_ref")
+            t_ref = 0.5 * (t[self.mask][0] + t[self.mask][-1]) if t_ref is None else float(t_ref)
+            mod, prefix, unit = (t - t_ref) / 86400.0, "drift", "m/rad/day"
+        else:
+            from .conventions import parse_duration
+
+            mod, prefix, unit = (t >= parse_duration(effect.options["t_step"])).astype(float), "step", "m/rad"
+        names, cols = [], []
+        for m in effect.mosas:
+            for a in effect.angles:
+                for sd in effect.sides:
+                    base = f"{m}.{a}.{sd}"
+                    names.append(f"{prefix}.{base}")
+                    cols.append(self.series[base] * mod)
+        series = np.stack(cols, axis=1)
+        return names, series, [(1.0, unit, 1e-3)] * len(names)
+
+    # --- normal equations ------------------------------------------------------------------
+
+    def _w(self, names) -> np.ndarray:
+        return np.stack([self.wcols[n] for n in names], axis=-1)
+
+    def gram(self, A, B) -> np.ndarray:
+        return _gram(self._w(A), self._w(B), self.band_index, self.G)
+
+    def rhs(self, names) -> np.ndarray:
+        """``b`` per segment and band, (S, G, p)."""
+        return _gram(self._w(names), self.wd[..., None], self.band_index, self.G)[..., 0]
+
+    def eiv(self, names) -> np.ndarray:
+        """Errors-in-variables term (G, p, p) of the columns (non-zero for TTL columns only)."""
+        p = len(names)
+        E = np.zeros((self.G, p, p))
+        idx = [(i, self.ttl_names.index(n)) for i, n in enumerate(names) if n in self.ttl_names]
+        if idx:
+            a = np.array([i for i, _ in idx])
+            b = np.array([j for _, j in idx])
+            E[:, a[:, None], a[None, :]] = self.E_ttl[:, b[:, None], b[None, :]]
+        return E
+
+    def fit(self, effects, coefficients_for_linearised=None, keep_series: bool = True, time_table: bool = True) -> ModelFit:
+        """Fit a model (list of effects or specs) under the fixed noise model."""
+        effects = make_effects(effects, self.effect_modules) if not all(isinstance(e, Effect) for e in effects) else list(effects)
+        names = self._model_names(effects, coefficients_for_linearised, keep_series)
+        N = self.gram(names, names)  # (S, G, P, P)
+        b = self.rhs(names)
+        E = self.eiv(names)
+        Ntot = N.sum(axis=(0, 1)) - E.sum(axis=0)
+        btot = b.sum(axis=(0, 1))
+        theta = np.linalg.solve(Ntot, btot)
+        cov = self.kappa * np.linalg.inv(2 * Ntot)
+        cov = 0.5 * (cov + cov.T)
+        chi2_sg = 2 * (np.einsum("p,sgpq,q->sg", theta, N, theta) - 2 * b @ theta + self.dd)
+        wr = self.wd - self._w(names) @ theta
+        bands = band_table(wr, self.band_index, self.edges, len(names), self.kappa, self.settings.tolerance,
+                           self.settings.alpha)
+        q_min = float(self.dd.sum() - btot @ theta)
+        fit = ModelFit(effects, tuple(names), theta, cov, chi2_sg, bands.dof, bands, q_min, residual_w=wr)
+        if time_table and all(n in self.series for n in names):
+            fit.time_table = self.time_adequacy(names, theta)
+        return fit
+
+    def _model_names(self, effects, coefficients, keep_series) -> list[str]:
+        names: list[str] = []
+        plain = [e for e in effects if not e.needs_coefficients]
+        for e in plain:
+            names += [n for n in self.effect_columns(e, keep_series=keep_series) if n not in names]
+        lin = [e for e in effects if e.needs_coefficients]
+        if lin:
+            C = coefficients
+            if C is None:
+                part = self.fit(plain, keep_series=False, time_table=False)
+                C = part.ttl_coefficients()
+                if np.isnan(C).any():
+                    raise ConfigError("linearised effects (timing-offset, ltt-error) need all 24 linear-ttl coefficients in the model")
+            for e in lin:
+                names += [n for n in self.effect_columns(e, C, keep_series=keep_series) if n not in names]
+        return names
+
+    # --- adequacy in time -----------------------------------------------------------------
+
+    def time_adequacy(self, names, theta) -> dict:
+        """chi^2 of the residual in Hann-windowed slices of ``settings.time_segment`` against
+        the same noise model (interpolated to the slice's frequency grid)."""
+        s = self.settings
+        resid = self.data_series - np.einsum("p,cpn->cn", theta, np.stack([self.series[n] for n in names], axis=1))
+        L = int(round(min(s.time_segment, self.seg_duration) * self.fs))
+        idx = np.flatnonzero(self.mask)
+        lo, hi = idx[0], idx[-1] + 1
+        f = np.fft.rfftfreq(L, 1 / self.fs)
+        sel = (f >= s.band[0]) & (f <= s.band[1])
+        keep = np.zeros_like(sel)
+        keep[sel] = notch_mask(f[sel], self.ltt_mean)
+        fb = f[keep]
+        csd = np.empty((fb.size, 3, 3), dtype=complex)
+        for i in range(3):  # interpolate the model CSD (smooth) from the segment grid
+            for j in range(3):
+                csd[:, i, j] = np.interp(fb, self.f, self.noise_csd[:, i, j].real) + 1j * np.interp(fb, self.f, self.noise_csd[:, i, j].imag)
+        Lh = np.conj(np.swapaxes(np.linalg.cholesky(np.linalg.inv(csd)), -1, -2))
+        bidx = np.clip(np.searchsorted(self.edges, fb, side="right") - 1, 0, self.G - 1)
+        win = window("hann", L)
+        kappa = variance_factor("hann", 4096, 0.0)
+        rows = []
+        for s0 in range(lo, hi - L + 1, L):
+            seg = resid[:, s0:s0 + L]
+            _, X = segment_fft(np.nan_to_num(seg), self.fs, win)
+            wr = np.matmul(Lh, X[:, keep].T[..., None])[..., 0][None]
+            tab = band_table(wr, bidx, self.edges, 0, kappa, s.tolerance, s.alpha)
+            chi2, dof = tab.chi2.sum(), tab.dof.sum()
+            rows.append({"t_start": self.t0 + s0 / self.fs, "t_stop": self.t0 + (s0 + L) / self.fs,
+                         "chi2": float(chi2), "dof": float(dof), "chi2_dof": float(chi2 / dof),
+                         "p_value": float(p_value(chi2, dof, kappa, s.tolerance)),
+                         "band_chi2_dof": [float(x) if np.isfinite(x) else None for x in tab.chi2_dof],
+                         "band_fails": [bool(x) for x in tab.fails]})
+        for r in rows:
+            r["fails"] = bool(r["p_value"] < s.alpha) or any(r["band_fails"])
+        t0 = self.t0_in
+        summary = describe_time_failures([r["t_start"] for r in rows], [r["t_stop"] for r in rows],
+                                         [r["fails"] for r in rows], t0)
+        return {"segment_duration": L / self.fs, "window": "hann", "variance_factor": kappa, "segments": rows,
+                "summary": summary}
+
+    # --- candidates -----------------------------------------------------------------------
+
+    def evaluate(self, model: ModelFit, cand_names: list[str], prior=None) -> dict:
+        """Evidence for adding the registered columns ``cand_names`` to ``model``."""
+        M = list(model.names)
+        K = list(cand_names)
+        N_MM = self.gram(M, M)
+        N_MK = self.gram(M, K)
+        N_KK = self.gram(K, K)
+        b_M, b_K = self.rhs(M), self.rhs(K)
+        return self._evidence(model, N_MM, N_MK, N_KK, b_M, b_K, K, prior)
+
+    def _evidence(self, model, N_MM, N_MK, N_KK, b_M, b_K, K, prior=None) -> dict:
+        P, k = N_MM.shape[-1], N_KK.shape[-1]
+        E = self.eiv(list(model.names))
+        full = np.zeros(N_MM.shape[:2] + (P + k, P + k))
+        full[..., :P, :P] = N_MM
+        full[..., :P, P:] = N_MK
+        full[..., P:, :P] = np.swapaxes(N_MK, -1, -2)
+        full[..., P:, P:] = N_KK
+        bb = np.concatenate([b_M, b_K], axis=-1)
+        Ef = np.zeros((self.G, P + k, P + k))
+        Ef[:, :P, :P] = E
+        Nt = full.sum(axis=(0, 1)) - Ef.sum(axis=0)
+        bt = bb.sum(axis=(0, 1))
+        try:
+            th = np.linalg.solve(Nt, bt)
+        except np.linalg.LinAlgError:
+            return {"delta_chi2": float("nan"), "log_bayes_factor": float("nan")}
+        NM = Nt[:P, :P]
+        thM = np.linalg.solve(NM, bt[:P])
+        dchi2 = 2 * (bt @ th - bt[:P] @ thM) / self.kappa
+        # Schur complement: precision of the new parameters with the model's marginalised
+        Sch = Nt[P:, P:] - Nt[P:, :P] @ np.linalg.solve(NM, Nt[:P, P:])
+        A = 2 * Sch / self.kappa
+        beta = th[P:]
+        prior = np.array([self.col_info[n][2] for n in K]) if prior is None else prior
+        lbf = log_bayes_factor(A, beta, prior)
+        # where: per band and per segment (chi2 with the plain N, as the adequacy)
+        thM_full = np.r_[thM, np.zeros(k)]
+        chi2_before = 2 * (np.einsum("p,sgpq,q->sg", thM_full, full, thM_full) - 2 * bb @ thM_full + self.dd)
+        chi2_after = 2 * (np.einsum("p,sgpq,q->sg", th, full, th) - 2 * bb @ th + self.dd)
+        try:
+            var = np.diag(np.linalg.inv(A))
+        except np.linalg.LinAlgError:
+            var = np.full(k, np.nan)
+        return {"delta_chi2": float(dchi2), "log_bayes_factor": lbf, "n_parameters": k, "beta": beta,
+                "sigma": np.sqrt(np.abs(var)), "band_delta": (chi2_before - chi2_after).sum(axis=0) / self.kappa,
+                "segment_delta": (chi2_before - chi2_after).sum(axis=1) / self.kappa, "names": K}
+
+    def step_search(self, model: ModelFit, step: Step | None = None) -> dict:
+        """Search the step time on a grid: step columns approximated as ``H(t - t_s)`` times the
+        TDI of the TTL regressors (exact but for the ~70 s the TDI delays span), Bayes factor
+        marginalised over the grid; returns the best time and the evidence there."""
+        s = self.settings
+        step = step or Step()
+        base = [f"{m}.{a}.{sd}" for m in step.mosas for a in step.angles for sd in step.sides]
+        M = list(model.names)
+        G_MB = self.gram(M, base)  # (S, G, P, k)
+        G_BB = self.gram(base, base)
+        b_M = self.rhs(M)
+        b_B = self.rhs(base)
+        N_MM = self.gram(M, M)
+        idx = np.flatnonzero(self.mask)
+        t_lo = self.t0 + idx[0] / self.fs
+        t_hi = self.t0 + (idx[-1] + 1) / self.fs
+        stack = np.stack([self.series[n] for n in base], axis=1)  # (3, k, n)
+
+        def evaluate_at(ts):
+            j = int(np.searchsorted(self.seg_t0, ts, side="right") - 1)
+            after = np.arange(len(self.starts)) > j
+            N_MK = np.where(after[:, None, None, None], G_MB, 0.0)
+            N_KK = np.where(after[:, None, None, None], G_BB, 0.0)
+            b_K = np.where(after[:, None, None], b_B, 0.0)
+            if 0 <= j < len(self.starts):
+                s0 = self.starts[j]
+                h = (self.t0 + (s0 + np.arange(self.L)) / self.fs >= ts).astype(float)
+                seg = np.zeros((3, len(base), self.data_series.shape[-1]))
+                seg[:, :, s0:s0 + self.L] = stack[:, :, s0:s0 + self.L] * h
+                # spectra of segment j only
+                m = self.mask[s0:s0 + self.L]
+                _, X = segment_fft(np.where(m, np.nan_to_num(seg[:, :, s0:s0 + self.L]), 0.0), self.fs, self.win * m)
+                wK = np.matmul(self.Lh, np.moveaxis(X[:, :, self.bins], 2, 0))[None]  # (1, m, 3, k)
+                wMj = self._w(M)[j:j + 1]
+                N_MK[j] = _gram(wMj, wK, self.band_index, self.G)[0]
+                N_KK[j] = _gram(wK, wK, self.band_index, self.G)[0]
+                b_K[j] = _gram(wK, self.wd[j:j + 1, ..., None], self.band_index, self.G)[0, ..., 0]
+            return self._evidence(model, N_MM, N_MK, N_KK, b_M, b_K, [f"step.{n}" for n in base],
+                                  prior=np.full(len(base), 1e-3))
+
+        coarse = np.arange(t_lo + s.step_grid, t_hi - s.step_grid / 2, s.step_grid)
+        if coarse.size == 0:
+            coarse = np.array([0.5 * (t_lo + t_hi)])
+        results = [(ts, evaluate_at(ts)) for ts in coarse]
+        lbfs = np.array([r["log_bayes_factor"] for _, r in results])
+        best = coarse[int(np.nanargmax(lbfs))]
+        fine = np.arange(best - s.step_grid + s.step_refine, best + s.step_grid, s.step_refine)
+        fine = fine[(fine > t_lo) & (fine < t_hi)]
+        results += [(ts, evaluate_at(ts)) for ts in fine if not np.any(np.isclose(ts, coarse))]
+        all_lbf = np.array([r["log_bayes_factor"] for _, r in results])
+        ts_best, ev = results[int(np.nanargmax(all_lbf))]
+        good = lbfs[np.isfinite(lbfs)]
+        marg = float(special.logsumexp(good) - math.log(len(good))) if good.size else float("nan")
+        return {"t_step": float(ts_best), "evidence_at_best": ev, "log_bayes_factor_marginal": marg,
+                "grid": [float(t) for t, _ in results], "grid_log_bayes_factor": [float(x) for x in all_lbf]}
+
+    def candidates(self, model: ModelFit, names=None) -> list[dict]:
+        """Try every available effect not in ``model``; ranked list (best first)."""
+        s = self.settings
+        in_model = {e.name for e in model.effects}
+        todo = [n for n in (names or self.registry) if n not in in_model]
+        C = model.ttl_coefficients()
+        excess = float(np.sum(np.maximum(model.bands.chi2 - model.bands.dof, 0.0))) / self.kappa
+        n_data = float(model.dof_band.sum())
+        out = []
+        for name in todo:
+            cls = self.registry[name]
+            effect = cls()
+            t_start = time.monotonic()
+            extra = {}
+            try:
+                if isinstance(effect, Step) and effect.options.get("t_step") is None:
+                    if not all(f"{m}.{a}.{sd}" in self.series for m in effect.mosas for a in effect.angles for sd in effect.sides):
+                        continue
+                    found = self.step_search(model, effect)
+                    effect = Step(t_step=round(found["t_step"], 1))
+                    cols = self.effect_columns(effect, keep_series=False)
+                    ev = self.evaluate(model, cols)
+                    extra = {"t_step": found["t_step"], "log_bayes_factor_at_best": ev["log_bayes_factor"]}
+                    ev["log_bayes_factor"] = found["log_bayes_factor_marginal"]
+                    ev["delta_bic"] = ev["delta_chi2"] - (ev["n_parameters"] + 1) * math.log(n_data)
+                else:
+                    if effect.needs_coefficients and np.isnan(C).any():
+                        continue
+                    cols = self.effect_columns(effect, C if effect.needs_coefficients else None, keep_series=False)
+                    ev = self.evaluate(model, cols)
+                    ev["delta_bic"] = ev["delta_chi2"] - ev["n_parameters"] * math.log(n_data)
+            except ConfigError as exc:
+                log.info("candidate %s skipped: %s", name, exc)
+                continue
+            k = ev["n_parameters"]
+            p = float(stats.chi2.sf(max(ev["delta_chi2"], 0.0), k))
+            significant = bool(p < s.alpha and ev["log_bayes_factor"] > s.log_bf_threshold)
+            out.append({
+                "effect": name,
+                "spec": effect.spec(),
+                "title": cls.title,
+                "physics": cls.physics,
+                "n_parameters": k,
+                "delta_chi2": float(ev["delta_chi2"]),
+                "p_value": p,
+                "log_bayes_factor": float(ev["log_bayes_factor"]),
+                "delta_bic": float(ev["delta_bic"]),
+                "explained_fraction": float(max(ev["delta_chi2"], 0.0) / excess) if excess > 0 else 0.0,
+                "significant": significant,
+                "where": self._where(ev, extra),
+                "parameters": _top_parameters(ev),
+                "seconds": round(time.monotonic() - t_start, 2),
+                **({"searched": extra} if extra else {}),
+            })
+        out.sort(key=lambda c: (not c["significant"], -np.nan_to_num(c["log_bayes_factor"], nan=-np.inf)))
+        return out
+
+    def _where(self, ev, extra) -> dict:
+        bd = ev["band_delta"]
+        sd = ev["segment_delta"]
+        tot = max(float(np.sum(np.maximum(bd, 0))), 1e-300)
+        bands = [{"f_lo": float(self.edges[g]), "f_hi": float(self.edges[g + 1]), "delta_chi2": float(bd[g]),
+                  "share": float(max(bd[g], 0) / tot)} for g in range(self.G)]
+        strong = [b for b in bands if b["share"] >= 0.1]
+        z2 = (ev["beta"] / np.where(ev["sigma"] > 0, ev["sigma"], np.inf)) ** 2
+        groups: dict = {}
+        for n, z in zip(ev["names"], z2):
+            parts = n.split(".")
+            groups[parts[1] if len(parts) > 1 else n] = groups.get(parts[1] if len(parts) > 1 else n, 0.0) + float(z)
+        links = sorted(groups.items(), key=lambda kv: -kv[1])
+        ztot = max(sum(groups.values()), 1e-300)
+        out = {
+            "bands": bands,
+            "main_bands": [[b["f_lo"], b["f_hi"]] for b in strong],
+            "segments": [{"t_start": float(t), "t_stop": float(t + self.seg_duration), "delta_chi2": float(x)}
+                         for t, x in zip(self.seg_t0, sd)],
+            "links": [{"group": g, "z2": z, "share": z / ztot} for g, z in links[:6]],
+        }
+        if "t_step" in extra:
+            out["t_step"] = extra["t_step"]
+        return out
+
+
+def _names_input():
+    from .effects import EffectInput
+
+    t = np.arange(64.0)
+    z = np.zeros((6, 64))
+    return EffectInput(t=t, fs=1.0, phi_dot=z, eta_dot=z, ltt=z + 8.3, coefficients=np.zeros(24), names_only=True)
+
+
+def _top_parameters(ev, n: int = 6) -> list[dict]:
+    beta, sig = ev["beta"], ev["sigma"]
+    z = np.abs(beta) / np.where(sig > 0, sig, np.inf)
+    order = np.argsort(-z)[:n]
+    return [{"name": ev["names"][i], "value": float(beta[i]), "sigma": float(sig[i]), "z": float(z[i])} for i in order]
