@@ -317,6 +317,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_simulate(sub)
     _add_info(sub)
     _add_analyze(sub)
+    from .scenarios import add_parser as _add_scenarios
+
+    _add_scenarios(sub)
     try:  # operations subcommands live beside the plumbing, if installed
         from streamer import cli as streamer_cli  # type: ignore
     except ImportError:
