@@ -89,6 +89,11 @@ def add_simulation_options(p) -> None:
     p.add_argument("--gw", default="", metavar="SOURCES", help="gravitational waves to inject, comma-separated: "
                    "hmcnc, ztfj1539, vb, galaxy, sgwb, mbhb1, mbhb2 (merging mid-run), all, or a lisagwresponse "
                    "FILE[:tps/y|tcb/y] (docs/gw.md)")
+    p.add_argument("--inject", action="append", default=[], metavar="EFFECT[:key=value,...]",
+                   help="model effect to inject (truth in the truth file only), e.g. drift:12.phi.rx=2e-3 or "
+                   "timing-offset:sc1.d1=0.05; repeatable (docs/diagnostics.md)")
+    p.add_argument("--effect-module", action="append", default=[], metavar="PATH",
+                   help="Python file (or module) defining user effects for --inject; repeatable")
 
 
 def simulation_config_from_args(args, truth_noises=()):
@@ -123,8 +128,23 @@ def simulation_config_from_args(args, truth_noises=()):
     return SimulationConfig(
         duration=duration, t0=args.t0, fs=args.fs, orbit=args.orbit, coefficients=coeffs, seed=args.seed,
         noises=NoiseSwitches.parse(args.noises), interpolation_order=args.order, truth_noises=tuple(truth_noises),
-        injections=gw,
+        injections=tuple(gw) + _effect_injections(args),
     )
+
+
+def _effect_injections(args) -> tuple:
+    """The ``--inject`` options as simulator injections (:mod:`ttlcore.effects`)."""
+    if not getattr(args, "inject", None):
+        return ()
+    from .effects import injection_from_spec
+
+    out = []
+    for spec in args.inject:
+        try:
+            out.append(injection_from_spec(spec, getattr(args, "effect_module", ()) or ()))
+        except TTLError as exc:
+            raise TTLError(f"--inject {spec}: {exc}") from None
+    return tuple(out)
 
 
 def _add_simulate(sub) -> None:
@@ -317,6 +337,9 @@ def build_parser() -> argparse.ArgumentParser:
     _add_simulate(sub)
     _add_info(sub)
     _add_analyze(sub)
+    from .diagnose_cli import add_parser as _add_diagnose
+
+    _add_diagnose(sub)
     from .scenarios import add_parser as _add_scenarios
 
     _add_scenarios(sub)

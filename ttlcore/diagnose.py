@@ -752,3 +752,241 @@ def _top_parameters(ev, n: int = 6) -> list[dict]:
     z = np.abs(beta) / np.where(sig > 0, sig, np.inf)
     order = np.argsort(-z)[:n]
     return [{"name": ev["names"][i], "value": float(beta[i]), "sigma": float(sig[i]), "z": float(z[i])} for i in order]
+
+
+# ---------------------------------------------------------------------------
+# Reports
+# ---------------------------------------------------------------------------
+
+def adequacy_json(dg: Diagnoser, model: ModelFit) -> dict:
+    """The ``adequacy`` part of the report for ``model``."""
+    s = dg.settings
+    bands = model.bands.to_json()
+    summary = describe_failures(model.bands)
+    time_part = model.time_table or {}
+    summary += time_part.get("summary", [])
+    return {
+        "noise_model": "analytic secondary noises of A, E, T for the mean arms (paper appendix levels) + DWS readout "
+                       "noise through the fitted linear coefficients; fixed, not re-estimated from the residual",
+        "tolerance": s.tolerance, "alpha": s.alpha, "variance_factor": dg.kappa,
+        "band": list(map(float, s.band)), "segment_duration": dg.seg_duration, "segments": len(dg.starts),
+        "chi2": model.chi2, "dof": model.dof, "chi2_dof": model.chi2_dof,
+        "bands": bands, "time": time_part,
+        "fails": bool(any(b["fails"] for b in bands) or any(r.get("fails") for r in time_part.get("segments", []))),
+        "summary": summary or ["no failure: the residual is consistent with the instrument noise model"],
+    }
+
+
+def coefficients_json(model: ModelFit, truth=None) -> dict:
+    """The fitted columns (value, sigma) and, with truth, the errors of the 24 linear ones."""
+    out = {"values": {n: float(v) for n, v in zip(model.names, model.theta)},
+           "sigma": {n: float(v) for n, v in zip(model.names, model.sigma)}}
+    if truth is not None:
+        C, sig = model.ttl_coefficients(), model.ttl_sigma()
+        err = C - np.asarray(truth, dtype=float)
+        z = err / sig
+        ok = np.isfinite(z)
+        out["truth"] = dict(zip(COEFFICIENT_NAMES, map(float, truth)))
+        out["error"] = {n: float(e) for n, e, k in zip(COEFFICIENT_NAMES, err, ok) if k}
+        out["max_abs_error"] = float(np.nanmax(np.abs(err)))
+        out["max_abs_error_over_sigma"] = float(np.nanmax(np.abs(z)))
+        out["rms_error"] = float(np.sqrt(np.nanmean(err ** 2)))
+    return out
+
+
+def model_json(dg: Diagnoser, model: ModelFit, truth=None) -> dict:
+    return {"effects": [e.spec() for e in model.effects], "n_parameters": len(model.names),
+            "chi2_dof": model.chi2_dof, "adequacy": adequacy_json(dg, model),
+            "coefficients": coefficients_json(model, truth)}
+
+
+def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None = None, effect_modules=(),
+             candidates=None, truth_coefficients=None, witnesses: bool | None = None, progress=None) -> dict:
+    """Full diagnosis of telemetry ``tm`` with a model (list of effect specs).
+
+    Fits the model under the instrument noise model, tests its adequacy per band and per
+    time slice, ranks every other available effect (named, entry points, ``effect_modules``)
+    and the witness library.  If the model holds more than ``linear-ttl``, the linear-only
+    model is fitted too and reported as ``before``, with the evidence for the change.
+    ``truth_coefficients`` (24,) only adds coefficient errors; nothing else reads truth.
+
+    Returns
+    -------
+    dict
+        The JSON report (schema in ``docs/diagnostics.md``); the key ``"_internals"`` holds
+        the :class:`Diagnoser` and fits (removed before writing).
+    """
+    s = settings or DiagnoseSettings()
+    say = progress or (lambda msg: None)
+    clock = time.monotonic()
+    timings = {}
+
+    def lap(name):
+        nonlocal clock
+        now = time.monotonic()
+        timings[name] = round(now - clock, 3)
+        clock = now
+
+    eff = make_effects(list(effects), effect_modules)
+    if not any(e.name == "linear-ttl" for e in eff):
+        log.warning("model without linear-ttl: the 24 linear coefficients are not fitted")
+    say("TDI and spectra")
+    dg = Diagnoser.from_telemetry(tm, s, effect_modules)
+    lap("tdi_and_spectra")
+    say("fit")
+    model = dg.fit(eff)
+    lap("fit")
+    report: dict = {"model": model_json(dg, model, truth_coefficients)}
+    report["adequacy"] = report["model"]["adequacy"]
+    if len(eff) > 1 or eff[0].name != "linear-ttl":
+        before = dg.fit(make_effects(["linear-ttl"]))
+        ev = dg.evaluate(before, [n for n in model.names if n not in before.names]) if set(before.names) <= set(model.names) else None
+        report["before"] = model_json(dg, before, truth_coefficients)
+        report["change"] = {
+            "added": [e.spec() for e in eff if e.name != "linear-ttl"],
+            "delta_chi2": None if ev is None else ev["delta_chi2"],
+            "log_bayes_factor": None if ev is None else ev["log_bayes_factor"],
+            "chi2_dof_before": before.chi2_dof, "chi2_dof_after": model.chi2_dof,
+            "bands_before": [b["chi2_dof"] for b in report["before"]["adequacy"]["bands"]],
+            "bands_after": [b["chi2_dof"] for b in report["adequacy"]["bands"]],
+        }
+        lap("before")
+    say("candidates")
+    report["candidates"] = dg.candidates(model, candidates)
+    lap("candidates")
+    if s.witnesses if witnesses is None else witnesses:
+        from .witnesses import witness_search
+
+        say("witness search")
+        report["witnesses"] = witness_search(tm, dg, model, s.top_witnesses)
+        lap("witnesses")
+    else:
+        report["witnesses"] = None
+    best = next((c for c in report["candidates"] if c["significant"]), None)
+    specs = [e.spec() for e in eff]
+    report["recommendation"] = None if best is None else {
+        "effect": best["effect"], "spec": best["spec"],
+        "option": "--effects " + ",".join(specs + [best["spec"]]),
+    }
+    report["settings"] = {"band": list(map(float, s.band)), "n_bands": s.n_bands, "segment_duration": dg.seg_duration,
+                          "time_segment": s.time_segment, "tolerance": s.tolerance, "alpha": s.alpha,
+                          "log_bf_threshold": s.log_bf_threshold, "dws_asd": dg.dws_asd}
+    report["timings_s"] = timings
+    report["_internals"] = {"diagnoser": dg, "model": model}
+    return report
+
+
+def refit(source, effects=("linear-ttl",), *, settings: DiagnoseSettings | None = None, effect_modules=(),
+          dws_asd: float | None = None, baseline=("linear-ttl",)) -> dict:
+    """Refit already-computed data with a given list of effects and report the change.
+
+    Parameters
+    ----------
+    source : Telemetry, TDIData, list of TDIData, or Diagnoser
+        - a :class:`~ttlcore.telemetry.Telemetry`: every effect is available;
+        - TDI outputs (one :class:`~ttlcore.tdi_data.TDIData`, or a list of contiguous
+          segments such as the pipeline's hourly TDI, concatenated here): ``linear-ttl``,
+          ``drift`` and ``step`` (modulated TDI regressors, no DWS series needed);
+        - a :class:`Diagnoser` already built (its spectra and columns are reused, so
+          successive refits with changing models cost only the new columns).
+    effects : sequence of str or Effect
+        The model, e.g. ``["linear-ttl", "drift", "step:t_step=50400"]``.
+    baseline : sequence
+        The model the change is measured against (default the linear TTL alone).
+
+    Returns
+    -------
+    dict
+        ``{"model": {effects, n_parameters, chi2_dof, adequacy, coefficients},
+        "baseline": {...}, "change": {"delta_chi2", "log_bayes_factor", "bands_before",
+        "bands_after"}, "_internals": {"diagnoser", "fit", "baseline_fit"}}``.
+    """
+    if isinstance(source, Diagnoser):
+        dg = source
+    elif isinstance(source, TDIData):
+        dg = Diagnoser.from_tdi(source, settings, dws_asd=dws_asd, effect_modules=effect_modules)
+    elif isinstance(source, (list, tuple)) and source and all(isinstance(x, TDIData) for x in source):
+        dg = Diagnoser.from_tdi(concatenate_tdi(source), settings, dws_asd=dws_asd, effect_modules=effect_modules)
+    elif hasattr(source, "dws_phi"):
+        dg = Diagnoser.from_telemetry(source, settings, effect_modules)
+    else:
+        raise ConfigError(f"refit: cannot refit a {type(source).__name__}; give telemetry, TDI data or a Diagnoser")
+    model = dg.fit(make_effects(list(effects), effect_modules))
+    base = dg.fit(make_effects(list(baseline), effect_modules))
+    added = [n for n in model.names if n not in base.names]
+    ev = dg.evaluate(base, added) if added and set(base.names) <= set(model.names) else None
+    return {
+        "model": model_json(dg, model), "baseline": model_json(dg, base),
+        "change": {"delta_chi2": None if ev is None else ev["delta_chi2"],
+                   "log_bayes_factor": None if ev is None else ev["log_bayes_factor"],
+                   "chi2_dof_before": base.chi2_dof, "chi2_dof_after": model.chi2_dof,
+                   "bands_before": [float(x) for x in base.bands.chi2_dof],
+                   "bands_after": [float(x) for x in model.bands.chi2_dof]},
+        "_internals": {"diagnoser": dg, "fit": model, "baseline_fit": base},
+    }
+
+
+def concatenate_tdi(segments) -> TDIData:
+    """Join contiguous TDI segments (same channels, names and rate) into one."""
+    first = segments[0]
+    for a, b in zip(segments[:-1], segments[1:]):
+        if b.channels != first.channels or b.names != first.names or b.fs != first.fs:
+            raise ConfigError("TDI segments differ in channels, regressor names or rate")
+        if abs(b.t0 - (a.t0 + a.size / a.fs)) > 0.5 / a.fs:
+            raise ConfigError(f"TDI segments are not contiguous: one ends at {a.t0 + a.size / a.fs} s, the next starts at {b.t0} s")
+    return replace(first, data=np.concatenate([x.data for x in segments], axis=-1),
+                   regressors=np.concatenate([x.regressors for x in segments], axis=-1),
+                   ltt_mean=np.mean([x.ltt_mean for x in segments], axis=0))
+
+
+def strip_internals(report: dict) -> dict:
+    """The report without its in-memory objects (what ``--json`` writes)."""
+    return {k: v for k, v in report.items() if not k.startswith("_")}
+
+
+def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
+    """The one-minute text report."""
+    lines = []
+    m = report["model"]
+    ad = report["adequacy"]
+    lines.append(f"{source}: model {', '.join(m['effects'])} ({m['n_parameters']} parameters), "
+                 f"chi2/dof {ad['chi2_dof']:.3f} against the instrument noise model "
+                 f"({1e3 * ad['band'][0]:.3g} mHz - {ad['band'][1]:.3g} Hz, tolerance {100 * ad['tolerance']:.0f} %)")
+    if "before" in report:
+        b = report["before"]
+        lines.append("  before -> after (" + ", ".join(report["change"]["added"]) + "):")
+        lines.append("    band [Hz]            chi2/dof before   after")
+        for bb, ba in zip(b["adequacy"]["bands"], ad["bands"]):
+            lines.append(f"    {bb['f_lo']:.4f} - {bb['f_hi']:.4f}      {bb['chi2_dof']:8.3f}{' FAIL' if bb['fails'] else '     '}"
+                         f"  {ba['chi2_dof']:8.3f}{' FAIL' if ba['fails'] else ''}")
+        ch = report["change"]
+        if ch.get("delta_chi2") is not None:
+            lines.append(f"    evidence for the change: delta chi2 {ch['delta_chi2']:.1f}, log Bayes factor {ch['log_bayes_factor']:.1f}")
+        if "max_abs_error" in b["coefficients"] and "max_abs_error" in m["coefficients"]:
+            lines.append(f"    max |coefficient error|: {1e3 * b['coefficients']['max_abs_error']:.4f} -> "
+                         f"{1e3 * m['coefficients']['max_abs_error']:.4f} mm/rad "
+                         f"({b['coefficients']['max_abs_error_over_sigma']:.1f} -> {m['coefficients']['max_abs_error_over_sigma']:.1f} sigma)")
+    elif "max_abs_error" in m["coefficients"]:
+        c = m["coefficients"]
+        lines.append(f"  truth: max |coefficient error| {1e3 * c['max_abs_error']:.4f} mm/rad ({c['max_abs_error_over_sigma']:.1f} sigma)")
+    lines.append("  where the model fails:")
+    lines += [f"    {x}" for x in ad["summary"]]
+    cands = report["candidates"]
+    lines.append("  candidates (effect: delta chi2 / dof, log Bayes factor, share of the excess, where):")
+    for c in cands[:max_candidates]:
+        where = c["where"]
+        bands = ", ".join(f"{lo:.3g}-{hi:.3g} Hz" for lo, hi in where["main_bands"][:3])
+        links = ", ".join(x["group"] for x in where["links"][:3])
+        extra = f", t_step {where['t_step'] / 3600:.2f} h" if "t_step" in where else ""
+        lines.append(f"    {'*' if c['significant'] else ' '} {c['effect']:<16} {c['delta_chi2']:10.1f} / {c['n_parameters']:<3d}"
+                     f" logB {c['log_bayes_factor']:9.1f}  {100 * c['explained_fraction']:5.0f} %  [{bands}; {links}{extra}]")
+    if not any(c["significant"] for c in cands):
+        lines.append("    no candidate is significant")
+    w = report.get("witnesses")
+    if w:
+        lines.append(f"  top witnesses ({w['n_witnesses']} tried): " +
+                     "; ".join(f"{x['name']} (delta chi2 {x['delta_chi2']:.0f})" for x in w["overall"][:3]))
+    rec = report.get("recommendation")
+    if rec:
+        lines.append(f"  best next step: add {rec['effect']}:  ttl diagnose DATA {rec['option']}")
+    return "\n".join(lines)
