@@ -9,9 +9,11 @@ Power-law energy density (the paper's stellar-origin black-hole background, Baba
 
 The strain spectrum follows from ``rho_GW = c^2 <dh_ab/dt dh^ab/dt> / (32 pi G)``:
 ``S_h(f) = 3 H_100^2 h^2 Omega_GW(f) / (2 pi^2 f^3)`` with ``H_100 = 100 km/s/Mpc``, where
-``S_h`` is the *sum* of the one-sided PSDs of ``h_plus`` and ``h_cross`` over the whole sky
-(Allen & Romano 1999, PRD 59, 102001, their eq. 3.?-3.? with our normalisation spelled out in
-``docs/gw.md``).
+``S_h`` is the *sum* of the one-sided PSDs of ``h_plus`` and ``h_cross`` over the whole sky:
+with ``h_ab h^ab = 2 (h_plus^2 + h_cross^2)`` and ``rho_c = 3 H_0^2 c^2 / 8 pi G``,
+``Omega(f) = (1 / rho_c) d rho / d ln f = (2 pi^2 / 3 H_0^2) f^3 S_h(f)`` (the standard
+relation, e.g. Allen & Romano 1999, PRD 59, 102001). Checked independently in the tests
+through the long-wavelength link PSD ``(4/15) (pi f L / c)^2 S_h``.
 
 Link cross-spectra (the correct correlations)
 ---------------------------------------------
