@@ -50,10 +50,13 @@ was not checked:
   (Munday et al. 2023; Strohmayer 2021) is quoted to 3 digits from memory of those papers,
   not re-read here; over one day it changes the phase by ~1e-5 rad, i.e. nothing.
   Polarisation angle and initial phase are unknown (set to 0).
-- ZTF J1539+5027: period 414.7915404 s, masses 0.610 + 0.210 Msun and inclination
-  84.15 deg from Burdge et al. (2019, Nature 571, 528); the distance 2.34 kpc and
-  dP/dt = -2.373e-11 s/s are that paper's values as remembered here (secondary sources
-  quote "2.3 kpc"), so A (~1.0e-22) carries that few-per-cent uncertainty.
+- ZTF J1539+5027: period 414.7915404(29) s, masses 0.610 (+0.017 -0.022) + 0.210
+  (+0.014 -0.015) Msun and inclination 84.15 (+0.64 -0.57) deg from Burdge et al. (2019,
+  Nature 571, 528), checked against a public summary of that paper (its infobox, citing
+  it). The distance is quoted there as "2.3 kpc" / 8000 ly; our 2.34 kpc agrees to those
+  digits but its third digit is from memory, so A (~1.0e-22) carries that ~2 % uncertainty.
+  dP/dt = -2.373e-11 s/s is from memory and was NOT re-checked (it changes the phase by
+  ~1e-5 rad over a day).
 - Positions: Gaia DR2 (epoch J2015.5, ICRS) as quoted by SIMBAD-derived pages; converted
   to ecliptic coordinates (mean ecliptic and equinox of J2000) by
   :func:`equatorial_to_ecliptic`.
