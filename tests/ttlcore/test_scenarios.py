@@ -20,10 +20,16 @@ from ttlcore.errors import TTLError
 from ttlcore.scenarios import PAPER_CASES, run_scenarios
 
 
-def test_short_merger_case(tmp_path):
-    s = run_scenarios(tmp_path, cases=["mbhb2"], variants=["paper"], duration=3 * 3600.0, seed=2)
+def test_short_merger_case(tmp_path, capsys):
+    from ttlcore.cli import main
+
+    rc = main(["scenarios", "--out", str(tmp_path), "--cases", "mbhb2", "--variants", "paper", "--duration", "3h",
+               "--seed", "2", "--quiet"])
+    assert rc == 0
+    assert "mbhb2" in capsys.readouterr().out
     assert (tmp_path / "summary.json").is_file() and (tmp_path / "summary.md").is_file()
-    assert json.loads((tmp_path / "summary.json").read_text())["variants"]["paper"]["cases"][0]["case"] == "mbhb2"
+    s = json.loads((tmp_path / "summary.json").read_text())
+    assert s["variants"]["paper"]["cases"][0]["case"] == "mbhb2"
     assert not list(tmp_path.glob(".*tmp*"))  # atomic writes leave no temporaries
     row = s["variants"]["paper"]["cases"][0]
     for key in ("asd", "gw_intact", "coefficients"):
@@ -53,6 +59,9 @@ def test_bad_options_are_named(tmp_path):
     f.write_text("")
     with pytest.raises(TTLError, match="--out"):
         run_scenarios(f, cases=["vb"], variants=["paper"])
+    from ttlcore.cli import main
+
+    assert main(["scenarios", "--out", str(tmp_path / "o"), "--duration", "soon"]) == 2
 
 
 @pytest.mark.science
