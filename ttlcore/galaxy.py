@@ -223,7 +223,6 @@ def binaries_link_signal(orbit, t, p: BinaryArrays, *, max_node_spacing: float =
     if n < 2:
         return np.real(complex_response(orbit, t, p).sum(axis=0)) if p.size else np.zeros((6, n))
     dt = (t[-1] - t[0]) / (n - 1)
-    fs = 1.0 / dt
     span = n * dt
     m_int = max(int(min_nodes), int(math.ceil(span / max_node_spacing)))
     delta = span / m_int

@@ -16,10 +16,9 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from ttlcore.conventions import ARM_LENGTH, C, LINKS
+from ttlcore.conventions import ARM_LENGTH, C
 from ttlcore.errors import ConfigError
 from ttlcore.galaxy import BinaryArrays, binaries_link_signal, draw_galaxy, galactic_to_ecliptic, galaxy_size
-from ttlcore.gw import link_response
 from ttlcore.gw_injection import (
     GWFileInjection,
     MBHBInjection,
@@ -29,7 +28,7 @@ from ttlcore.gw_injection import (
 )
 from ttlcore.mbhb import MBHB, PAPER_MBHBS, fd_amplitude, phenoma_parameters, time_domain
 from ttlcore.orbits import KeplerianOrbit, equal_arms
-from ttlcore.sgwb import StochasticBackgroundGenerator, fibonacci_sphere, link_transfer, strain_psd
+from ttlcore.sgwb import StochasticBackgroundGenerator, link_transfer, strain_psd
 from ttlcore.simulator import NoiseSwitches, SimulationConfig, simulate
 from ttlcore.sources import VERIFICATION_BINARIES, GalacticBinary
 from ttlcore.tdi import MICHELSON, build
