@@ -147,18 +147,38 @@ def log_bayes_factor(A: np.ndarray, beta: np.ndarray, prior_scale: np.ndarray) -
     return float(-0.5 * logdet + 0.5 * (q1 - q2))
 
 
+def _band_slices(band_index: np.ndarray, G: int) -> list[tuple[int, int]]:
+    """Contiguous bin ranges of the bands (frequencies ascend, so bands are contiguous)."""
+    out = []
+    for g in range(G):
+        idx = np.flatnonzero(band_index == g)
+        out.append((int(idx[0]), int(idx[-1]) + 1) if idx.size else (0, 0))
+    return out
+
+
+def _as_real(w: np.ndarray) -> np.ndarray:
+    """(S, m, 3, p) complex -> (p, S, m, 6) float (real and imaginary parts interleaved), so
+    that ``Re sum conj(a) b`` is a real dot product."""
+    return np.ascontiguousarray(np.moveaxis(w, -1, 0)).view(np.float64)
+
+
+def _gram_x(XA: np.ndarray, XB: np.ndarray, slices) -> np.ndarray:
+    """``Re sum conj(A) B`` per segment and band from :func:`_as_real` layouts -> (S, G, p, q)."""
+    p, S = XA.shape[:2]
+    q = XB.shape[0]
+    out = np.zeros((S, len(slices), p, q))
+    for g, (a, b) in enumerate(slices):
+        if b <= a:
+            continue
+        A = XA[:, :, a:b].reshape(p, S, -1).transpose(1, 0, 2)
+        B = XB[:, :, a:b].reshape(q, S, -1).transpose(1, 2, 0)
+        out[:, g] = np.matmul(A, B)
+    return out
+
+
 def _gram(wA: np.ndarray, wB: np.ndarray, band_index: np.ndarray, G: int) -> np.ndarray:
     """``Re sum conj(A) B`` per segment and band: (S, m, 3, p) x (S, m, 3, q) -> (S, G, p, q)."""
-    S = wA.shape[0]
-    out = np.zeros((S, G, wA.shape[-1], wB.shape[-1]))
-    for g in range(G):
-        sel = band_index == g
-        if not sel.any():
-            continue
-        a = wA[:, sel].reshape(S, -1, wA.shape[-1])
-        b = wB[:, sel].reshape(S, -1, wB.shape[-1])
-        out[:, g] = np.real(np.matmul(np.conj(np.swapaxes(a, 1, 2)), b))
-    return out
+    return _gram_x(_as_real(wA), _as_real(wB), _band_slices(band_index, G))
 
 
 @dataclass
@@ -193,6 +213,8 @@ class ModelFit:
     q_min: float
     residual_w: np.ndarray = field(repr=False, default=None)
     time_table: dict | None = None
+    #: per-segment, per-band normal equations (N (S, G, P, P), b (S, G, P)) of the model
+    normal: tuple | None = field(repr=False, default=None)
 
     @property
     def sigma(self) -> np.ndarray:
@@ -242,15 +264,17 @@ class Diagnoser:
     """
 
     def __init__(self, td: TDIData, settings: DiagnoseSettings | None = None, tm=None, effect_modules=(),
-                 dws_asd: float | None = None):
+                 dws_asd: float | None = None, built=None):
         s = self.settings = settings or DiagnoseSettings()
         self.tm = tm
+        self._have_derivatives = False
         self.effect_modules = tuple(effect_modules)
         self.registry = available_effects(self.effect_modules)
         self.dws_asd = float(dws_asd if dws_asd is not None else (s.dws_asd if s.dws_asd is not None else DWS_ASD))
         self.ltt_mean = np.asarray(td.ltt_mean, dtype=float)
-        self.built = None
+        self.built = built
         tda = td.to_aet()
+        self._td_in = tda
         factor = max(1, int(round(tda.fs / 2.0)))
         self.decimation = factor
         self.fs_in = tda.fs
@@ -270,7 +294,7 @@ class Diagnoser:
         self.mask[lo:hi] = True
         self.mask &= ok
         span = (hi - lo) / self.fs
-        seg = s.segment_duration or min(21600.0, span / 4)
+        seg = s.segment_duration or min(21600.0, np.floor(span / 4))
         if seg * self.fs < 256:
             raise ConfigError(f"data too short for a diagnosis ({span:.0f} s of valid TDI)")
         self.L = int(round(seg * self.fs))
@@ -289,6 +313,8 @@ class Diagnoser:
         self.edges = default_band_edges(s.band, s.n_bands)
         self.G = len(self.edges) - 1
         self.band_index = np.clip(np.searchsorted(self.edges, self.f, side="right") - 1, 0, self.G - 1)
+        self.slices = _band_slices(self.band_index, self.G)
+        self._x_cache: dict = {}
         self.kappa = variance_factor(s.window, 4096, 0.0)
         self.data_series = dec.data
         self.series: dict[str, np.ndarray] = {}
@@ -337,10 +363,16 @@ class Diagnoser:
     def from_telemetry(cls, tm, settings: DiagnoseSettings | None = None, effect_modules=()) -> "Diagnoser":
         """From a :class:`~ttlcore.telemetry.Telemetry` (ours or lisainstrument's)."""
         s = settings or DiagnoseSettings()
-        td = compute_tdi(tm, order=s.order, delay_order=s.delay_order)
+        # one set of delay taps for the data, the 24 TTL regressors and every effect column
+        built = build(MICHELSON, tm.ltt, tm.fs, order=s.order, delay_order=s.delay_order)
+        from .effects import LinearTTL
+
+        data = np.stack([b(tm.eta) for b in built])
+        regs = columns_tdi(LinearTTL().columns(effect_input_from_telemetry(tm)), built)
+        td = TDIData(t0=float(tm.t0), fs=float(tm.fs), channels=tuple(b.combination.name for b in built), data=data,
+                     regressors=regs, names=COEFFICIENT_NAMES, ltt_mean=np.nanmean(np.asarray(tm.ltt), axis=-1))
         dws = s.dws_asd if s.dws_asd is not None else dws_asd_from_config(tm.config)
-        out = cls(td, s, tm=tm, effect_modules=effect_modules, dws_asd=dws)
-        return out
+        return cls(td, s, tm=tm, effect_modules=effect_modules, dws_asd=dws, built=built)
 
     @classmethod
     def from_tdi(cls, td: TDIData, settings: DiagnoseSettings | None = None, dws_asd: float | None = None,
@@ -366,19 +398,73 @@ class Diagnoser:
 
     def _add_columns(self, names, wR, info):
         for k, n in enumerate(names):
-            self.wcols[n] = wR[..., k]
+            self.wcols[n] = np.ascontiguousarray(wR[..., k])
             self.col_info[n] = info[k]
+        self._x_cache.clear()
 
-    def _decimate(self, xyz: np.ndarray) -> np.ndarray:
+    def _decimate(self, xyz: np.ndarray, is_aet: bool = False) -> np.ndarray:
         """XYZ TDI of columns (3, k, n_in) -> decimated A, E, T (3, k, n_dec), the data's filter."""
-        a = aet(xyz)
+        a = xyz if is_aet else aet(xyz)
         td = TDIData(t0=self.t0_in, fs=self.fs_in, channels=("A", "E", "T"), data=np.zeros((3, a.shape[-1])),
                      regressors=a, names=tuple(f"c{k}" for k in range(a.shape[1])), ltt_mean=self.ltt_mean)
         dec = td.decimated(self.decimation) if self.decimation > 1 else td
         return dec.regressors
 
-    def effect_columns(self, effect: Effect, coefficients=None, keep_series: bool = False) -> list[str]:
-        """Compute (once) and register the columns of ``effect``; returns their names."""
+    def _derivatives(self):
+        """Whitened spectra and decimated series of the first and second time derivatives of
+        the TTL regressors' TDI (columns ``d1:<name>``, ``d2:<name>``), computed once."""
+        if self._have_derivatives:
+            return
+        from .effects import derivative
+
+        td = self._td_in
+        for order in (1, 2):
+            x = derivative(td.regressors, td.fs, order)
+            series = self._decimate(x, is_aet=True)
+            names = [f"d{order}:{n}" for n in td.names]
+            self._add_columns(names, np.matmul(self.Lh, self._spectra(series)), [(1.0, "", 1.0)] * len(names))
+            for k, n in enumerate(names):
+                self.series[n] = series[:, k]
+        self._have_derivatives = True
+
+    def effect_columns(self, effect: Effect, coefficients=None, keep_series: bool = False,
+                       exact: bool = True) -> list[str]:
+        """Compute (once) and register the columns of ``effect``; returns their names.
+
+        ``exact=False`` (candidate ranking) builds ``drift`` and ``step`` columns by modulating
+        the TDI regressors in time (``TDI(m w) = m TDI(w)`` but for the ~70 s the TDI delays
+        span, a relative error ~1e-3 on a drift column), saving a TDI per column.
+        Linearised effects (``timing-offset``, ``ltt-error``) always use the time derivatives
+        of the TDI regressors (:meth:`ttlcore.effects._Linearised.tdi_terms`)."""
+        if hasattr(effect, "tdi_terms") and all(n in self.series for n in self.ttl_names) and len(self.ttl_names) == 24:
+            if coefficients is None:
+                raise ConfigError(f"effect {effect.name!r} needs the linear coefficients")
+            key = (effect.name, repr(sorted(effect.options.items())), tuple(np.round(coefficients, 15)))
+            if key in self._gram_cache:
+                return self._gram_cache[key]
+            self._derivatives()
+            names, info = [], []
+            for cname, unit, prior, terms in effect.tdi_terms(coefficients):
+                w = sum(f * self.wcols[f"d{o}:{n}"] for n, o, f in terms)
+                self.wcols[cname] = np.ascontiguousarray(w)
+                self.series[cname] = sum(f * self.series[f"d{o}:{n}"] for n, o, f in terms)
+                self.col_info[cname] = (1.0, unit, prior)
+                names.append(cname)
+            self._x_cache.clear()
+            self._gram_cache[key] = names
+            return names
+        if not exact and effect.name in ("drift", "step") and all(
+                f"{m}.{a}.{sd}" in self.series for m in effect.mosas for a in effect.angles for sd in effect.sides):
+            key = ("approx", effect.name, repr(sorted(effect.options.items())))
+            if key not in self._gram_cache:
+                names, series, info = self._columns_from_tdi(effect)
+                self._add_columns(names, np.matmul(self.Lh, self._spectra(series)), info)
+                self._gram_cache[key] = names
+                self._gram_cache.pop(("exact", effect.name, repr(sorted(effect.options.items())), None), None)
+            return self._gram_cache[key]
+        return self._exact_columns(effect, coefficients, keep_series)
+
+    def _exact_columns(self, effect, coefficients, keep_series) -> list[str]:
         if isinstance(effect, Step) and effect.options.get("t_step") is None:
             raise ConfigError("effect 'step' needs t_step in a model (ttl diagnose reports the searched time)")
         if effect.name == "linear-ttl":
@@ -387,21 +473,19 @@ class Diagnoser:
             if missing:
                 raise ConfigError(f"linear-ttl columns {missing[:3]} missing from the TDI data")
             return names
-        key = (effect.name, repr(sorted(effect.options.items())), None if coefficients is None else tuple(np.round(coefficients, 12)))
+        key = ("exact", effect.name, repr(sorted(effect.options.items())), None if coefficients is None else tuple(np.round(coefficients, 12)))
         if key in self._gram_cache:
             names = self._gram_cache[key]
             if keep_series:
                 missing = [n for n in names if n not in self.series]
                 if missing:
                     self._gram_cache.pop(key)
-                    return self.effect_columns(effect, coefficients, keep_series)
+                    return self._exact_columns(effect, coefficients, keep_series)
             return names
+        self._gram_cache.pop(("approx", effect.name, repr(sorted(effect.options.items()))), None)
         if self.tm is None:
             names, series, info = self._columns_from_tdi(effect)
         else:
-            if self.built is None:
-                self.built = build(MICHELSON, self.tm.ltt, self.tm.fs, order=self.settings.order,
-                                   delay_order=self.settings.delay_order)
             data = effect_input_from_telemetry(self.tm, coefficients)
             cols = effect.columns(data)
             if not cols:
@@ -450,12 +534,21 @@ class Diagnoser:
     def _w(self, names) -> np.ndarray:
         return np.stack([self.wcols[n] for n in names], axis=-1)
 
+    def _x(self, names) -> np.ndarray:
+        """Real layout (p, S, m, 6) of the columns, cached for the last few name lists."""
+        key = tuple(names)
+        if key not in self._x_cache:
+            if len(self._x_cache) > 4:
+                self._x_cache.pop(next(iter(self._x_cache)))
+            self._x_cache[key] = np.stack([self.wcols[n] for n in names]).view(np.float64)
+        return self._x_cache[key]
+
     def gram(self, A, B) -> np.ndarray:
-        return _gram(self._w(A), self._w(B), self.band_index, self.G)
+        return _gram_x(self._x(A), self._x(B), self.slices)
 
     def rhs(self, names) -> np.ndarray:
         """``b`` per segment and band, (S, G, p)."""
-        return _gram(self._w(names), self.wd[..., None], self.band_index, self.G)[..., 0]
+        return _gram_x(self._x(names), self.wd[None].view(np.float64), self.slices)[..., 0]
 
     def eiv(self, names) -> np.ndarray:
         """Errors-in-variables term (G, p, p) of the columns (non-zero for TTL columns only)."""
@@ -486,6 +579,7 @@ class Diagnoser:
                            self.settings.alpha)
         q_min = float(self.dd.sum() - btot @ theta)
         fit = ModelFit(effects, tuple(names), theta, cov, chi2_sg, bands.dof, bands, q_min, residual_w=wr)
+        fit.normal = (N, b)
         if time_table and all(n in self.series for n in names):
             fit.time_table = self.time_adequacy(names, theta)
         return fit
@@ -556,10 +650,10 @@ class Diagnoser:
         """Evidence for adding the registered columns ``cand_names`` to ``model``."""
         M = list(model.names)
         K = list(cand_names)
-        N_MM = self.gram(M, M)
+        N_MM, b_M = model.normal if model.normal is not None else (self.gram(M, M), self.rhs(M))
         N_MK = self.gram(M, K)
         N_KK = self.gram(K, K)
-        b_M, b_K = self.rhs(M), self.rhs(K)
+        b_K = self.rhs(K)
         return self._evidence(model, N_MM, N_MK, N_KK, b_M, b_K, K, prior)
 
     def _evidence(self, model, N_MM, N_MK, N_KK, b_M, b_K, K, prior=None) -> dict:
@@ -610,9 +704,9 @@ class Diagnoser:
         M = list(model.names)
         G_MB = self.gram(M, base)  # (S, G, P, k)
         G_BB = self.gram(base, base)
-        b_M = self.rhs(M)
+        N_MM, b_M = model.normal if model.normal is not None else (self.gram(M, M), self.rhs(M))
         b_B = self.rhs(base)
-        N_MM = self.gram(M, M)
+        XM = self._x(M)
         idx = np.flatnonzero(self.mask)
         t_lo = self.t0 + idx[0] / self.fs
         t_hi = self.t0 + (idx[-1] + 1) / self.fs
@@ -633,10 +727,10 @@ class Diagnoser:
                 m = self.mask[s0:s0 + self.L]
                 _, X = segment_fft(np.where(m, np.nan_to_num(seg[:, :, s0:s0 + self.L]), 0.0), self.fs, self.win * m)
                 wK = np.matmul(self.Lh, np.moveaxis(X[:, :, self.bins], 2, 0))[None]  # (1, m, 3, k)
-                wMj = self._w(M)[j:j + 1]
-                N_MK[j] = _gram(wMj, wK, self.band_index, self.G)[0]
-                N_KK[j] = _gram(wK, wK, self.band_index, self.G)[0]
-                b_K[j] = _gram(wK, self.wd[j:j + 1, ..., None], self.band_index, self.G)[0, ..., 0]
+                XK = _as_real(wK)
+                N_MK[j] = _gram_x(XM[:, j:j + 1], XK, self.slices)[0]
+                N_KK[j] = _gram_x(XK, XK, self.slices)[0]
+                b_K[j] = _gram_x(XK, self.wd[j:j + 1][None].view(np.float64), self.slices)[0, ..., 0]
             return self._evidence(model, N_MM, N_MK, N_KK, b_M, b_K, [f"step.{n}" for n in base],
                                   prior=np.full(len(base), 1e-3))
 
@@ -676,7 +770,7 @@ class Diagnoser:
                         continue
                     found = self.step_search(model, effect)
                     effect = Step(t_step=round(found["t_step"], 1))
-                    cols = self.effect_columns(effect, keep_series=False)
+                    cols = self.effect_columns(effect, keep_series=False, exact=False)
                     ev = self.evaluate(model, cols)
                     extra = {"t_step": found["t_step"], "log_bayes_factor_at_best": ev["log_bayes_factor"]}
                     ev["log_bayes_factor"] = found["log_bayes_factor_marginal"]
@@ -684,7 +778,8 @@ class Diagnoser:
                 else:
                     if effect.needs_coefficients and np.isnan(C).any():
                         continue
-                    cols = self.effect_columns(effect, C if effect.needs_coefficients else None, keep_series=False)
+                    cols = self.effect_columns(effect, C if effect.needs_coefficients else None, keep_series=False,
+                                               exact=False)
                     ev = self.evaluate(model, cols)
                     ev["delta_bic"] = ev["delta_chi2"] - ev["n_parameters"] * math.log(n_data)
             except ConfigError as exc:

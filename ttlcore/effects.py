@@ -195,7 +195,7 @@ def derivative(x: np.ndarray, fs: float, order: int = 1) -> np.ndarray:
     from numpy.lib.stride_tricks import sliding_window_view
 
     win = sliding_window_view(x, w.size, axis=-1)
-    out[..., _FD_HALF:-_FD_HALF] = win @ w[::-1]
+    out[..., _FD_HALF:-_FD_HALF] = win @ w
     return out
 
 
@@ -249,6 +249,9 @@ class Effect:
             raise ConfigError(f"effect {self.name!r}: unknown option(s) {sorted(unknown)}; "
                               f"options: {', '.join(self.parameters) or 'none'}")
         self.options = {**self.parameters, **options}
+        for key in ("mosas", "angles", "sides"):  # validate the selections now, naming the option
+            if key in self.parameters:
+                getattr(self, key)
 
     # selections shared by the coefficient-based effects
     @property
@@ -464,6 +467,30 @@ class _Linearised(Effect):
     def _shifts_delay(self) -> bool:
         return False
 
+    #: sign of the first-order term (data hold w(t + sign * epsilon))
+    d1_sign = 1.0
+
+    def tdi_terms(self, coefficients) -> list[tuple]:
+        """The columns as combinations of time derivatives of the TTL regressors' TDI:
+        ``[(column, unit, prior_scale, [(ttl_name, derivative_order, factor), ...]), ...]``.
+
+        ``d/dt TDI(x) = TDI(dx/dt)`` up to the arms' rate of change (``dtau/dt ~ 1e-8``), so
+        these equal :meth:`columns` through TDI to that accuracy, at the cost of two
+        derivatives of the 24 TDI regressors instead of a TDI per column."""
+        out = []
+        for gname, members in self._groups().items():
+            for order in (1, 2):
+                terms = []
+                for cname in members:
+                    if self._shifts_delay() and not cname.endswith(".tx"):
+                        continue
+                    c = float(np.asarray(coefficients)[COEFFICIENT_NAMES.index(cname)])
+                    terms.append((cname, order, c * (self.d1_sign if order == 1 else 0.5)))
+                if terms:
+                    out.append((f"{self.name}.{gname}.d{order}", "s" if order == 1 else "s^2",
+                                0.1 if order == 1 else 0.01, terms))
+        return out
+
 
 class TimingOffset(_Linearised):
     name = "timing-offset"
@@ -495,6 +522,8 @@ class LightTravelTimeError(_Linearised):
                "place the tx witnesses (the telemetry's ranging) is off by eps on link ij, the fit misses "
                "C D_ij [w(t - eps) - w] = C D_ij [-eps w' + eps^2/2 w'']. One eps per link.")
     parameters = {"links": "all"}
+
+    d1_sign = -1.0
 
     def _shifts_delay(self):
         return True

@@ -147,15 +147,21 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
     omega = 2 * np.pi * dg.f
     dchi2 = np.zeros((len(lib), G))
     coh = np.zeros((len(lib), G))
+    per_series: dict = {}
+    for key, X in raw.items():  # the sums over segments, once per series and link
+        per_series[key] = (np.einsum("sm,sml->ml", np.conj(X), g_link), np.sum(np.abs(X) ** 2, axis=0))
     for i, w in enumerate(lib):
-        X = raw[w["series"]]
-        if w["derivative"]:
-            X = X * (1j * omega)
-        if w["delay"]:
-            X = X * np.exp(-1j * omega * w["delay"])
+        B, P = per_series[w["series"]]
         li = LINKS.index(w["link"])
-        bsum = (np.conj(X) * g_link[:, :, li]).sum(axis=0) @ onehot  # (G,)
-        nsum = ((np.abs(X) ** 2).sum(axis=0) * n_link[:, li]) @ onehot
+        b = B[:, li]
+        n = P * n_link[:, li]
+        if w["derivative"]:  # conj(i omega X) = -i omega conj(X)
+            b = b * (-1j * omega)
+            n = n * omega ** 2
+        if w["delay"]:  # conj(X exp(-i omega delay)) = conj(X) exp(+i omega delay)
+            b = b * np.exp(1j * omega * w["delay"])
+        bsum = b @ onehot
+        nsum = n @ onehot
         with np.errstate(invalid="ignore", divide="ignore"):
             dchi2[i] = np.where(nsum > 0, 2 * bsum.real ** 2 / nsum, 0.0) / dg.kappa
             coh[i] = np.where(nsum > 0, np.abs(bsum) ** 2 / (nsum * rr), 0.0)
@@ -172,17 +178,16 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
                 "coherence_max": float(coh[i].max())} for i in order]
     # coherence spectra of the top witnesses (running mean over ~2 % of f), for the figure
     spectra = {}
+    rrf = (np.abs(r) ** 2).sum(axis=(0, 2))
     for i in order[:coherence_of]:
         w = lib[i]
-        X = raw[w["series"]]
-        if w["derivative"]:
-            X = X * (1j * omega)
-        if w["delay"]:
-            X = X * np.exp(-1j * omega * w["delay"])
+        B, P = per_series[w["series"]]
         li = LINKS.index(w["link"])
-        b = (np.conj(X) * g_link[:, :, li]).sum(axis=0)
-        n = (np.abs(X) ** 2).sum(axis=0) * n_link[:, li]
-        rrf = (np.abs(r) ** 2).sum(axis=(0, 2))
+        b, n = B[:, li], P * n_link[:, li]
+        if w["derivative"]:
+            b, n = b * (-1j * omega), n * omega ** 2
+        if w["delay"]:
+            b = b * np.exp(1j * omega * w["delay"])
         spectra[w["name"]] = _smoothed_coherence(dg.f, b, n, rrf)
     return {"n_witnesses": len(lib), "families": sorted({w["family"] for w in lib}), "bands": bands,
             "overall": overall, "coherence_spectra": {"f": _log_grid(dg.f).tolist(), "curves": spectra}}
