@@ -63,7 +63,6 @@ from .fit import (
     SegmentSpectra,
     default_band_edges,
     dws_asd_from_config,
-    eiv_responses,
     fit_spectra,
     notch_mask,
     variance_factor,
@@ -218,7 +217,7 @@ class ModelFit:
 
     @property
     def sigma(self) -> np.ndarray:
-        return np.sqrt(np.diag(self.covariance))
+        return np.sqrt(np.abs(np.diag(self.covariance)))
 
     @property
     def chi2(self) -> float:
@@ -339,18 +338,14 @@ class Diagnoser:
         self.wcols: dict[str, np.ndarray] = {}
         self.col_info: dict[str, tuple] = {}
         self._add_columns(list(dec.names), np.matmul(self.Lh, R), [(1.0, "m/rad", 2.3e-3)] * len(dec.names))
-        # errors-in-variables term of the TTL columns
-        T = eiv_responses(self.f, self.ltt_mean, ttl_names)
-        wT = np.matmul(self.Lh, T) * (2 * np.pi * self.f * self.dws_asd)[:, None, None]
-        from .fit import _eiv_channel
+        # errors-in-variables: the DWS channel and placement of every plain-witness column
+        from .regressors import placement
 
-        chans = [_eiv_channel(a) for a in ttl_names]
-        same = np.array([[a == b for b in chans] for a in chans], dtype=float)
-        self.E_ttl = np.zeros((self.G, len(ttl_names), len(ttl_names)))
-        for g in range(self.G):
-            sel = self.band_index == g
-            Tg = wT[sel]
-            self.E_ttl[g] = np.real(np.einsum("mip,miq->pq", Tg.conj(), Tg)) * same * len(self.starts)
+        self._eiv_cache: dict = {}
+        self.eiv_parts: dict = {}
+        for n in ttl_names:
+            link, extra, mosa, angle = placement(n)
+            self.eiv_parts[n] = [((mosa, angle), link, tuple(extra))]
         self.ttl_names = ttl_names
         self._gram_cache: dict = {}
         self.dd = np.zeros((len(self.starts), self.G))
@@ -492,6 +487,11 @@ class Diagnoser:
                 raise ConfigError(f"effect {effect.name!r} produced no column (check its options)")
             names = [c.name for c in cols]
             info = [(1.0, c.unit, c.prior_scale) for c in cols]
+            for c in cols:
+                if c.parts and all(p.channel is not None for p in c.parts):
+                    self.eiv_parts[c.name] = [(p.channel, p.link, p.extra) for p in c.parts]
+                else:
+                    self.eiv_parts.pop(c.name, None)
             series = np.empty((3, len(cols), 0))
             chunks = []
             for j0 in range(0, len(cols), 24):  # bounded memory
@@ -551,15 +551,38 @@ class Diagnoser:
         return _gram_x(self._x(names), self.wd[None].view(np.float64), self.slices)[..., 0]
 
     def eiv(self, names) -> np.ndarray:
-        """Errors-in-variables term (G, p, p) of the columns (non-zero for TTL columns only)."""
+        """Errors-in-variables term (G, p, p) of the columns: ``E_kl = sum_ch Re sum_f
+        U_k,ch^H U_l,ch`` with ``U_k,ch`` the whitened response of column ``k`` to the readout
+        noise of DWS channel ``ch`` (columns whose parts are plain DWS witnesses: the TTL
+        regressors, cross-coupling; others, built from products or modulations of the
+        readouts, carry none - their bias is second order in the small readout noise)."""
         p = len(names)
         E = np.zeros((self.G, p, p))
-        idx = [(i, self.ttl_names.index(n)) for i, n in enumerate(names) if n in self.ttl_names]
-        if idx:
-            a = np.array([i for i, _ in idx])
-            b = np.array([j for _, j in idx])
-            E[:, a[:, None], a[None, :]] = self.E_ttl[:, b[:, None], b[None, :]]
+        by_channel: dict = {}
+        for i, n in enumerate(names):
+            for ch, link, extra in self.eiv_parts.get(n, ()):
+                by_channel.setdefault(ch, {}).setdefault(i, []).append((link, extra))
+        for ch, cols in by_channel.items():
+            idx = sorted(cols)
+            U = np.stack([sum(self._eiv_response(link, extra) for link, extra in cols[i]) for i in idx], axis=-1)
+            for g, (a, b) in enumerate(self.slices):
+                if b > a:
+                    Ug = U[a:b].reshape(-1, len(idx))
+                    E[g][np.ix_(idx, idx)] += np.real(Ug.conj().T @ Ug) * len(self.starts)
         return E
+
+    def _eiv_response(self, link, extra) -> np.ndarray:
+        """Whitened A, E, T response (m, 3) to the DWS readout noise of a witness ``-DWS/c``
+        placed on ``link`` after ``extra`` delays, times the noise's ASD (velocity)."""
+        key = (link, tuple(extra))
+        if key not in self._eiv_cache:
+            from .conventions import C as SPEED_OF_LIGHT, LINKS
+            from .tdi import AET_MATRIX, link_responses
+
+            h = np.stack([link_responses(c, self.f, self.ltt_mean, tuple(extra))[LINKS.index(link)] for c in MICHELSON])
+            T = (AET_MATRIX @ h).T * (-1.0 / SPEED_OF_LIGHT)  # (m, 3)
+            self._eiv_cache[key] = np.matmul(self.Lh, T[..., None])[..., 0] * (2 * np.pi * self.f * self.dws_asd)[:, None]
+        return self._eiv_cache[key]
 
     def fit(self, effects, coefficients_for_linearised=None, keep_series: bool = True, time_table: bool = True) -> ModelFit:
         """Fit a model (list of effects or specs) under the fixed noise model."""
@@ -756,7 +779,8 @@ class Diagnoser:
         in_model = {e.name for e in model.effects}
         todo = [n for n in (names or self.registry) if n not in in_model]
         C = model.ttl_coefficients()
-        excess = float(np.sum(np.maximum(model.bands.chi2 - model.bands.dof, 0.0))) / self.kappa
+        # the excess the noise model (with its tolerance) cannot explain
+        excess = float(np.sum(np.maximum(model.bands.chi2 - (1 + s.tolerance) * model.bands.dof, 0.0))) / self.kappa
         n_data = float(model.dof_band.sum())
         out = []
         for name in todo:
@@ -798,7 +822,7 @@ class Diagnoser:
                 "p_value": p,
                 "log_bayes_factor": float(ev["log_bayes_factor"]),
                 "delta_bic": float(ev["delta_bic"]),
-                "explained_fraction": float(max(ev["delta_chi2"], 0.0) / excess) if excess > 0 else 0.0,
+                "explained_fraction": float(min(1.0, max(ev["delta_chi2"], 0.0) / excess)) if excess > 0 else 0.0,
                 "significant": significant,
                 "where": self._where(ev, extra),
                 "parameters": _top_parameters(ev),

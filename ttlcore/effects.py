@@ -71,6 +71,9 @@ class Part:
     link: str
     series: np.ndarray
     delayed: bool = False
+    #: ``(mosa, angle)`` if the series is the plain witness ``-DWS/c`` of that channel: the
+    #: diagnosis then includes its readout noise in the errors-in-variables correction
+    channel: tuple | None = None
 
     @property
     def extra(self) -> tuple:
@@ -331,7 +334,7 @@ class LinearTTL(Effect):
                 for s in SIDES:
                     if m in self.mosas and a in self.angles and s in self.sides:
                         link, delayed = placement(m, s)
-                        cols.append(Column(f"{m}.{a}.{s}", [Part(link, data.witness(m, a), delayed)], "m/rad", 2.3e-3))
+                        cols.append(Column(f"{m}.{a}.{s}", [Part(link, data.witness(m, a), delayed, (m, a))], "m/rad", 2.3e-3))
         return cols
 
 
@@ -390,8 +393,17 @@ class CrossCoupling(Effect):
     physics = ("Stray light, the shared optical bench or mechanical coupling let the angle of the other MOSA on "
                "the same spacecraft (12 <-> 13, 23 <-> 21, 31 <-> 32) couple into a MOSA's received (rx) or "
                "transmitted (tx) beam path. Distinguishable from the linear TTL only through the MOSA jitter "
-               "(the spacecraft jitter is common to both MOSAs).")
-    parameters = {"mosas": "all", "angles": "all", "sides": "all"}
+               "(the spacecraft jitter is common to both MOSAs). Rx side only: a channel on both sides "
+               "of both MOSAs forms, with the linear rx and tx terms, the pattern of a laser's frequency noise "
+               "(-1 on the two undelayed links of its spacecraft, +1 delayed on the two links it feeds), "
+               "which TDI cancels - the tx cross terms are absorbed by the linear coefficients.")
+    parameters = {"mosas": "all", "angles": "all", "sides": "rx"}
+
+    def __init__(self, **options):
+        super().__init__(**options)
+        if set(self.sides) == {"rx", "tx"}:
+            raise ConfigError("effect 'cross-coupling': sides rx and tx together are unobservable with the linear TTL "
+                              "(they form a laser-noise pattern TDI cancels); use sides=rx or sides=tx")
 
     def columns(self, data):
         cols = []
@@ -399,7 +411,7 @@ class CrossCoupling(Effect):
             for a in self.angles:
                 for s in self.sides:
                     link, delayed = placement(m, s)
-                    cols.append(Column(f"cross.{m}.{a}.{s}", [Part(link, data.witness(partner(m), a), delayed)],
+                    cols.append(Column(f"cross.{m}.{a}.{s}", [Part(link, data.witness(partner(m), a), delayed, (partner(m), a))],
                                        "m/rad", 1e-3))
         return cols
 

@@ -34,7 +34,9 @@ def test_named_effects_and_parsing():
     assert eff.mosas == ("12", "13") and values == {"drift.12.phi.rx": 2e-3}
     eff, values = parse_effect_spec("timing-offset:sc1.d1=0.05")
     assert values == {"timing-offset.sc1.d1": 0.05}
-    assert len(parse_effect_spec("cross-coupling:all=1e-3")[1]) == 24
+    assert len(parse_effect_spec("cross-coupling:sides=tx,all=1e-3")[1]) == 12
+    with pytest.raises(ConfigError, match="unobservable"):
+        parse_effect_spec("cross-coupling:sides=rx+tx")
     with pytest.raises(ConfigError, match="unknown effect 'nope'"):
         parse_effect_spec("nope")
     with pytest.raises(ConfigError, match="unknown column"):
@@ -138,7 +140,7 @@ def test_ltt_error_injection_against_a_wrongly_delayed_tx_term():
     assert np.all(truth["injections/ltt-error"][np.arange(6) != LINKS.index("12")] == 0)
 
 
-@pytest.mark.parametrize("spec", ["drift:t_ref=0,all=5e-3", "cross-coupling:all=1e-3",
+@pytest.mark.parametrize("spec", ["drift:t_ref=0,all=5e-3", "cross-coupling:sides=tx,all=1e-3",
                                   "second-order:sides=rx+tx,quad.12.phieta.rx=3e5,quad.32.etaeta.tx=-2e5"])
 def test_effect_columns_through_tdi_reproduce_the_injected_signal(spec):
     # with jitter only and no readout noise, the TDI of the injected signal equals the
