@@ -211,9 +211,11 @@ def summarise(path) -> dict:
         tr = read_truth(path)
         return {
             "file": str(path), "kind": "truth", "t0": tr.t0, "fs": tr.fs, "size": tr.size, "duration_s": tr.size / tr.fs,
-            "datasets": ["ttl", "coefficients", "angles", "angular_velocity"] + [f"noises/{n}" for n in tr.noises],
+            "datasets": ["ttl", "coefficients", "angles", "angular_velocity"] + [f"noises/{n}" for n in tr.noises]
+            + [f"injections/{n}" for n in tr.injections],
             "coefficients_mean_mm_per_rad": dict(zip(COEFFICIENT_NAMES, (1e3 * tr.mean_coefficients()).round(6).tolist())),
             "ttl_rms": dict(zip(LINKS, _rms(tr.ttl))),
+            "injections_rms": {n: float(np.sqrt(np.mean(np.square(v)))) for n, v in tr.injections.items()},
         }
     tm = read_telemetry(path)
     summary = {

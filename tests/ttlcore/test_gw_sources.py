@@ -311,5 +311,10 @@ def test_cli_simulate_gw_writes_truth(tmp_path):
     tr = read_truth(tmp_path / "d.truth.h5")
     assert set(tr.injections) == {"hmcnc", "mbhb1"}
     assert np.max(np.abs(tr.injections["mbhb1"])) > 0
+    from ttlcore.cli import summarise
+
+    info = summarise(tmp_path / "d.truth.h5")
+    assert "injections/hmcnc" in info["datasets"]
+    assert info["injections_rms"]["mbhb1"] == pytest.approx(float(np.sqrt(np.mean(tr.injections["mbhb1"] ** 2))))
     rc = main(["simulate", "--duration", "600", "--gw", "bogus", "--out", str(tmp_path / "e.h5"), "--quiet"])
     assert rc == 2
