@@ -114,6 +114,12 @@ class DiagnoseSettings:
     step_refine: float = 600.0
     witnesses: bool = True
     top_witnesses: int = 5
+    #: Gauss-Newton passes of the linearised effects in a model (0: Taylor at zero only)
+    expansion_passes: int = 2
+    #: bands with fewer degrees of freedom are merged with their neighbour, so that the
+    #: statistical scatter of chi2/dof in a band (sqrt(2 kappa / dof) = 0.032 at 2000) stays
+    #: well inside the +-10 % a correct model must meet
+    min_band_dof: int = 2000
     dws_asd: float | None = None
     order: int = DEFAULT_ORDER
     delay_order: int = DEFAULT_DELAY_ORDER
@@ -144,6 +150,20 @@ def log_bayes_factor(A: np.ndarray, beta: np.ndarray, prior_scale: np.ndarray) -
     q1 = beta @ A @ beta
     q2 = beta @ A @ np.linalg.solve(np.eye(k) + (d ** 2)[:, None] * A, beta)
     return float(-0.5 * logdet + 0.5 * (q1 - q2))
+
+
+def merged_band_edges(f: np.ndarray, edges: np.ndarray, dof_per_bin: int, min_dof: int) -> np.ndarray:
+    """Merge adjacent bands (lowest first) until each holds at least ``min_dof`` degrees of
+    freedom (``dof_per_bin`` per frequency bin)."""
+    edges = list(np.asarray(edges, dtype=float))
+    while len(edges) > 2:
+        counts = np.histogram(f, bins=edges)[0] * dof_per_bin
+        low = np.flatnonzero(counts < min_dof)
+        if low.size == 0:
+            break
+        g = int(low[0])
+        del edges[g + 1 if g < len(counts) - 1 else g]  # merge with the upper neighbour (the last: lower)
+    return np.asarray(edges)
 
 
 def _band_slices(band_index: np.ndarray, G: int) -> list[tuple[int, int]]:
@@ -214,6 +234,10 @@ class ModelFit:
     time_table: dict | None = None
     #: per-segment, per-band normal equations (N (S, G, P, P), b (S, G, P)) of the model
     normal: tuple | None = field(repr=False, default=None)
+    #: whitened data power per segment and band, after the fixed columns
+    dd: np.ndarray | None = field(repr=False, default=None)
+    #: columns entering with coefficient one (Gauss-Newton expansion terms)
+    fixed: tuple = ()
 
     @property
     def sigma(self) -> np.ndarray:
@@ -267,6 +291,7 @@ class Diagnoser:
         s = self.settings = settings or DiagnoseSettings()
         self.tm = tm
         self._have_derivatives = False
+        self._expansion: dict = {}
         self.effect_modules = tuple(effect_modules)
         self.registry = available_effects(self.effect_modules)
         self.dws_asd = float(dws_asd if dws_asd is not None else (s.dws_asd if s.dws_asd is not None else DWS_ASD))
@@ -309,7 +334,7 @@ class Diagnoser:
         keep[sel] = notch_mask(f[sel], self.ltt_mean)
         self.bins = np.flatnonzero(keep)
         self.f = f[self.bins]
-        self.edges = default_band_edges(s.band, s.n_bands)
+        self.edges = merged_band_edges(self.f, default_band_edges(s.band, s.n_bands), 6 * len(self.starts), s.min_band_dof)
         self.G = len(self.edges) - 1
         self.band_index = np.clip(np.searchsorted(self.edges, self.f, side="right") - 1, 0, self.G - 1)
         self.slices = _band_slices(self.band_index, self.G)
@@ -588,24 +613,43 @@ class Diagnoser:
         """Fit a model (list of effects or specs) under the fixed noise model."""
         effects = make_effects(effects, self.effect_modules) if not all(isinstance(e, Effect) for e in effects) else list(effects)
         names = self._model_names(effects, coefficients_for_linearised, keep_series)
+        # columns ending in ".x0" (Gauss-Newton expansions) enter with their coefficient fixed
+        # at one: subtracted from the data, not fitted
+        fixed = [n for n in names if n.endswith(".x0")]
+        names = [n for n in names if not n.endswith(".x0")]
         N = self.gram(names, names)  # (S, G, P, P)
         b = self.rhs(names)
+        dd = self.dd
+        if fixed:
+            b = b - self.gram(names, fixed).sum(axis=-1)
+            dd = dd - 2 * self.rhs(fixed).sum(axis=-1) + self.gram(fixed, fixed).sum(axis=(-1, -2))
         E = self.eiv(names)
         Ntot = N.sum(axis=(0, 1)) - E.sum(axis=0)
         btot = b.sum(axis=(0, 1))
         theta = np.linalg.solve(Ntot, btot)
         cov = self.kappa * np.linalg.inv(2 * Ntot)
         cov = 0.5 * (cov + cov.T)
-        chi2_sg = 2 * (np.einsum("p,sgpq,q->sg", theta, N, theta) - 2 * b @ theta + self.dd)
+        chi2_sg = 2 * (np.einsum("p,sgpq,q->sg", theta, N, theta) - 2 * b @ theta + dd)
         wr = self.wd - self._w(names) @ theta
+        if fixed:
+            wr = wr - self._w(fixed).sum(axis=-1)
         bands = band_table(wr, self.band_index, self.edges, len(names), self.kappa, self.settings.tolerance,
                            self.settings.alpha)
-        q_min = float(self.dd.sum() - btot @ theta)
+        q_min = float(dd.sum() - btot @ theta)
         fit = ModelFit(effects, tuple(names), theta, cov, chi2_sg, bands.dof, bands, q_min, residual_w=wr)
         fit.normal = (N, b)
-        if time_table and all(n in self.series for n in names):
-            fit.time_table = self.time_adequacy(names, theta)
+        fit.dd = dd
+        fit.fixed = tuple(fixed)
+        if time_table and all(n in self.series for n in names + fixed):
+            fit.time_table = self.time_adequacy(names, theta, fixed)
         return fit
+
+    def _rhs_model(self, model, K) -> np.ndarray:
+        """``b`` of columns ``K`` against the data minus the model's fixed columns."""
+        b = self.rhs(K)
+        if model.fixed:
+            b = b - self.gram(K, list(model.fixed)).sum(axis=-1)
+        return b
 
     def _model_names(self, effects, coefficients, keep_series) -> list[str]:
         names: list[str] = []
@@ -620,17 +664,98 @@ class Diagnoser:
                 C = part.ttl_coefficients()
                 if np.isnan(C).any():
                     raise ConfigError("linearised effects (timing-offset, ltt-error) need all 24 linear-ttl coefficients in the model")
+            first = list(names)
+            self._expansion = {}
             for e in lin:
                 names += [n for n in self.effect_columns(e, C, keep_series=keep_series) if n not in names]
+            if self.settings.expansion_passes and all(n in self.series for n in self.ttl_names):
+                names = self._reexpand(first, lin, names, keep_series)
         return names
+
+    def _reexpand(self, first, lin, names, keep_series) -> list[str]:
+        """Gauss-Newton passes for the linearised effects: refit, then expand each group's
+        exact shifted term ``E_g(delta) = sum_k C_k [R_k(t + s delta) - R_k(t)]`` around the
+        estimate ``delta_0`` instead of zero (columns ``x0`` = E_g(delta_0) with a free
+        amplitude, ``d1``, ``d2`` = its first and second derivatives there).  The Taylor
+        error falls from O(delta^3) to O((delta - delta_0)^3), so offsets with
+        2 pi f delta ~ 1 at the top of the band are fitted exactly."""
+        expand = None
+        for _ in range(self.settings.expansion_passes):
+            fit, sig = self._solve_only(names)
+            C = np.array([fit[n] for n in COEFFICIENT_NAMES])
+            new = list(first)
+            for e in lin:
+                shifts = {}
+                for g in e._groups():
+                    key = f"{e.name}.{g}.d1"
+                    total = self._expansion.get((e.name, g), 0.0) + fit.get(key, 0.0)
+                    if expand is None or (e.name, g) not in expand:
+                        # expand only where the offset is clearly measured and large enough for
+                        # the Taylor error to matter (2 pi f delta > 0.05 at the band's top)
+                        big = abs(total) > max(0.05 / (2 * np.pi * self.settings.band[1]), 5 * sig.get(key, np.inf))
+                        expand = expand or {}
+                        expand[(e.name, g)] = bool(big)
+                    shifts[g] = total if expand[(e.name, g)] else 0.0
+                new += self._expanded_columns(e, C, shifts, keep_series)
+            names = new
+        return names
+
+    def _solve_only(self, names) -> tuple[dict, dict]:
+        fixed = [n for n in names if n.endswith(".x0")]
+        names = [n for n in names if not n.endswith(".x0")]
+        N = self.gram(names, names).sum(axis=(0, 1)) - self.eiv(names).sum(axis=0)
+        b = self.rhs(names).sum(axis=(0, 1))
+        if fixed:
+            b = b - self.gram(names, fixed).sum(axis=(0, 1, 3))
+        theta = np.linalg.solve(N, b)
+        sig = np.sqrt(np.abs(np.diag(np.linalg.inv(2 * N))) * self.kappa)
+        return dict(zip(names, theta)), dict(zip(names, sig))
+
+    def _expanded_columns(self, effect, C, shifts: dict, keep_series) -> list[str]:
+        """Columns ``x0, d1, d2`` of each group of a linearised effect expanded at
+        ``shifts[group]`` (see :meth:`_reexpand`); built from the 4-Hz TDI regressors."""
+        from .effects import derivative
+        from .interpolation import timeshift
+
+        td = self._td_in
+        names, series_list, info = [], [], []
+        for cname, unit, prior, terms in effect.tdi_terms(C):
+            if not cname.endswith(".d1"):
+                continue
+            g = cname[len(effect.name) + 1:-3]
+            d0 = float(shifts.get(g, 0.0))
+            self._expansion[(effect.name, g)] = d0
+            A = sum(float(C[COEFFICIENT_NAMES.index(k)]) * td.regressors[:, td.names.index(k)] for k, _, _ in terms)
+            sgn = effect.d1_sign
+            As = timeshift(A, sgn * d0 * td.fs) if d0 else A
+            cols = {"d1": sgn * derivative(As, td.fs, 1), "d2": 0.5 * derivative(As, td.fs, 2)}
+            if d0:
+                cols = {"x0": As - A, **cols}
+            for kind, x in cols.items():
+                names.append(f"{effect.name}.{g}.{kind}")
+                series_list.append(x)
+                info.append((1.0, {"x0": "", "d1": "s", "d2": "s^2"}[kind], {"x0": 1.0, "d1": 0.1, "d2": 0.01}[kind]))
+        series = self._decimate(np.stack(series_list, axis=1), is_aet=True)
+        self._add_columns(names, np.matmul(self.Lh, self._spectra(series)), info)
+        for k, n in enumerate(names):
+            self.series[n] = series[:, k]
+            self.eiv_parts.pop(n, None)
+        return names
+
+    def expansion_points(self) -> dict:
+        """``"effect.group" -> delta_0`` of the last Gauss-Newton expansion (the fitted
+        offset is ``delta_0`` plus the group's ``d1`` coefficient)."""
+        return {f"{e}.{g}": v for (e, g), v in self._expansion.items()}
 
     # --- adequacy in time -----------------------------------------------------------------
 
-    def time_adequacy(self, names, theta) -> dict:
+    def time_adequacy(self, names, theta, fixed=()) -> dict:
         """chi^2 of the residual in Hann-windowed slices of ``settings.time_segment`` against
         the same noise model (interpolated to the slice's frequency grid)."""
         s = self.settings
         resid = self.data_series - np.einsum("p,cpn->cn", theta, np.stack([self.series[n] for n in names], axis=1))
+        for n in fixed:
+            resid = resid - self.series[n]
         L = int(round(min(s.time_segment, self.seg_duration) * self.fs))
         idx = np.flatnonzero(self.mask)
         lo, hi = idx[0], idx[-1] + 1
@@ -676,7 +801,7 @@ class Diagnoser:
         N_MM, b_M = model.normal if model.normal is not None else (self.gram(M, M), self.rhs(M))
         N_MK = self.gram(M, K)
         N_KK = self.gram(K, K)
-        b_K = self.rhs(K)
+        b_K = self._rhs_model(model, K)
         return self._evidence(model, N_MM, N_MK, N_KK, b_M, b_K, K, prior)
 
     def _evidence(self, model, N_MM, N_MK, N_KK, b_M, b_K, K, prior=None) -> dict:
@@ -707,8 +832,9 @@ class Diagnoser:
         lbf = log_bayes_factor(A, beta, prior)
         # where: per band and per segment (chi2 with the plain N, as the adequacy)
         thM_full = np.r_[thM, np.zeros(k)]
-        chi2_before = 2 * (np.einsum("p,sgpq,q->sg", thM_full, full, thM_full) - 2 * bb @ thM_full + self.dd)
-        chi2_after = 2 * (np.einsum("p,sgpq,q->sg", th, full, th) - 2 * bb @ th + self.dd)
+        dd = model.dd if model.dd is not None else self.dd
+        chi2_before = 2 * (np.einsum("p,sgpq,q->sg", thM_full, full, thM_full) - 2 * bb @ thM_full + dd)
+        chi2_after = 2 * (np.einsum("p,sgpq,q->sg", th, full, th) - 2 * bb @ th + dd)
         try:
             var = np.diag(np.linalg.inv(A))
         except np.linalg.LinAlgError:
@@ -728,7 +854,8 @@ class Diagnoser:
         G_MB = self.gram(M, base)  # (S, G, P, k)
         G_BB = self.gram(base, base)
         N_MM, b_M = model.normal if model.normal is not None else (self.gram(M, M), self.rhs(M))
-        b_B = self.rhs(base)
+        b_B = self._rhs_model(model, base)
+        XF = self._x(list(model.fixed)) if model.fixed else None
         XM = self._x(M)
         idx = np.flatnonzero(self.mask)
         t_lo = self.t0 + idx[0] / self.fs
@@ -754,6 +881,8 @@ class Diagnoser:
                 N_MK[j] = _gram_x(XM[:, j:j + 1], XK, self.slices)[0]
                 N_KK[j] = _gram_x(XK, XK, self.slices)[0]
                 b_K[j] = _gram_x(XK, self.wd[j:j + 1][None].view(np.float64), self.slices)[0, ..., 0]
+                if XF is not None:
+                    b_K[j] -= _gram_x(XK, XF[:, j:j + 1], self.slices)[0].sum(axis=-1)
             return self._evidence(model, N_MM, N_MK, N_KK, b_M, b_K, [f"step.{n}" for n in base],
                                   prior=np.full(len(base), 1e-3))
 
@@ -768,6 +897,25 @@ class Diagnoser:
         results += [(ts, evaluate_at(ts)) for ts in fine if not np.any(np.isclose(ts, coarse))]
         all_lbf = np.array([r["log_bayes_factor"] for _, r in results])
         ts_best, ev = results[int(np.nanargmax(all_lbf))]
+        # golden-section search of the maximum within one fine step either side, to 1 s
+        a, b = max(ts_best - s.step_refine, t_lo), min(ts_best + s.step_refine, t_hi)
+        ratio = (math.sqrt(5) - 1) / 2
+        c, d = b - ratio * (b - a), a + ratio * (b - a)
+        ec, ed = evaluate_at(c), evaluate_at(d)
+        while b - a > 1.0:
+            if np.nan_to_num(ec["delta_chi2"], nan=-np.inf) >= np.nan_to_num(ed["delta_chi2"], nan=-np.inf):
+                b, d, ed = d, c, ec
+                c = b - ratio * (b - a)
+                ec = evaluate_at(c)
+            else:
+                a, c, ec = c, d, ed
+                d = a + ratio * (b - a)
+                ed = evaluate_at(d)
+        for ts, e in ((c, ec), (d, ed)):
+            results.append((ts, e))
+            if e["log_bayes_factor"] > ev["log_bayes_factor"]:
+                ts_best, ev = ts, e
+        all_lbf = np.array([r["log_bayes_factor"] for _, r in results])
         good = lbfs[np.isfinite(lbfs)]
         marg = float(special.logsumexp(good) - math.log(len(good))) if good.size else float("nan")
         return {"t_step": float(ts_best), "evidence_at_best": ev, "log_bayes_factor_marginal": marg,
@@ -896,10 +1044,18 @@ def adequacy_json(dg: Diagnoser, model: ModelFit) -> dict:
     }
 
 
-def coefficients_json(model: ModelFit, truth=None) -> dict:
-    """The fitted columns (value, sigma) and, with truth, the errors of the 24 linear ones."""
+def coefficients_json(model: ModelFit, truth=None, expansion: dict | None = None) -> dict:
+    """The fitted columns (value, sigma) and, with truth, the errors of the 24 linear ones;
+    ``offsets``: the fitted offsets of linearised effects (expansion point + ``d1``)."""
     out = {"values": {n: float(v) for n, v in zip(model.names, model.theta)},
            "sigma": {n: float(v) for n, v in zip(model.names, model.sigma)}}
+    offsets = {}
+    for n, v, sg in zip(model.names, model.theta, model.sigma):
+        if n.endswith(".d1"):
+            key = n[:-3]
+            offsets[key] = {"value": float(v) + float((expansion or {}).get(key, 0.0)), "sigma": float(sg), "unit": "s"}
+    if offsets:
+        out["offsets"] = offsets
     if truth is not None:
         C, sig = model.ttl_coefficients(), model.ttl_sigma()
         err = C - np.asarray(truth, dtype=float)
@@ -916,7 +1072,7 @@ def coefficients_json(model: ModelFit, truth=None) -> dict:
 def model_json(dg: Diagnoser, model: ModelFit, truth=None) -> dict:
     return {"effects": [e.spec() for e in model.effects], "n_parameters": len(model.names),
             "chi2_dof": model.chi2_dof, "adequacy": adequacy_json(dg, model),
-            "coefficients": coefficients_json(model, truth)}
+            "coefficients": coefficients_json(model, truth, dg.expansion_points())}
 
 
 def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None = None, effect_modules=(),
