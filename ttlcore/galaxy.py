@@ -172,12 +172,24 @@ def _geometry(orbit, t: np.ndarray):
     return x_rec, x_emit, nvec, t_emit
 
 
-def complex_response(orbit, t, p: BinaryArrays, geometry=None) -> np.ndarray:
+def complex_response(orbit, t, p: BinaryArrays, geometry=None, bases=None) -> np.ndarray:
     """Complex link responses ``Y_b,ij(t)`` of many binaries, shape (N, 6, m); ``Re Y`` is the
-    response of :func:`ttlcore.gw.link_response` to each binary (module docstring)."""
+    response of :func:`ttlcore.gw.link_response` to each binary (module docstring).
+    ``geometry`` (of :func:`_geometry`) and ``bases`` (of :func:`_bases`) may be passed
+    precomputed."""
     t = np.atleast_1d(np.asarray(t, dtype=float))
     x_rec, x_emit, nvec, t_emit = geometry if geometry is not None else _geometry(orbit, t)
-    k, u, v = _bases(p)  # (N, 3)
+    k, u, v = _bases(p) if bases is None else bases  # (N, 3)
+    ci = np.cos(p.inclination)
+    if t.size == 1:  # one node: plain matrix products, one exponential call
+        n0, xr, xe = nvec[:, 0, :], x_rec[:, 0, :], x_emit[:, 0, :]
+        un, vn, kn = u @ n0.T, v @ n0.T, k @ n0.T  # (N, 6)
+        tau = np.concatenate([t[0] - (k @ xr.T) / C, t_emit[:, 0][None, :] - (k @ xe.T) / C], axis=1) - p.t_init
+        ph = 2.0 * np.pi * tau * (p.f0[:, None] + 0.5 * p.fdot[:, None] * tau) - p.phi0[:, None]
+        e = np.exp(1j * ph)  # (N, 9): 3 receivers, then 6 emitters
+        num = (un * un - vn * vn) * (-p.amplitude * (1.0 + ci * ci))[:, None] \
+            + 1j * (2.0 * un * vn) * (2.0 * p.amplitude * ci)[:, None]
+        return (num * (e[:, 3:] - e[:, _RECEIVER]) / (2.0 * (1.0 - kn)))[:, :, None]
     un = np.einsum("lmc,nc->nlm", nvec, u)
     vn = np.einsum("lmc,nc->nlm", nvec, v)
     xi_p, xi_c = un * un - vn * vn, 2.0 * un * vn  # (N, 6, m)
@@ -192,7 +204,6 @@ def complex_response(orbit, t, p: BinaryArrays, geometry=None) -> np.ndarray:
 
     e_rec = np.exp(1j * phase(s_rec))[:, _RECEIVER]
     e_emit = np.exp(1j * phase(s_emit))
-    ci = np.cos(p.inclination)
     ap = (-p.amplitude * (1.0 + ci * ci))[:, None, None]
     ax = (2j * p.amplitude * ci)[:, None, None]
     return (xi_p * ap + xi_c * ax) * (e_emit - e_rec) / (2.0 * (1.0 - kn))
@@ -213,7 +224,7 @@ def _cubic_weights(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def binaries_link_signal(orbit, t, p: BinaryArrays, *, max_node_spacing: float = 900.0, min_nodes: int = 12,
-                         batch: int = 20000) -> np.ndarray:
+                         batch: int = 100_000) -> np.ndarray:
     """Sum of the link responses of all binaries ``p`` on the uniform times ``t``, shape (6, n).
 
     Uses the node-and-FFT scheme of the module docstring; ``t`` must be uniformly sampled.
@@ -240,6 +251,7 @@ def binaries_link_signal(orbit, t, p: BinaryArrays, *, max_node_spacing: float =
         kbin = kbin[keep]
     fk = kbin / span
     first, w = _cubic_weights((t - t_nodes[0]) / delta)
+    bases = _bases(p)
     for m in range(t_nodes.size):
         weight = np.zeros(n)
         for q in range(4):
@@ -253,7 +265,7 @@ def binaries_link_signal(orbit, t, p: BinaryArrays, *, max_node_spacing: float =
         acc = np.zeros((6, n), dtype=complex)
         for start in range(0, p.size, batch):
             sl = slice(start, start + batch)
-            y = complex_response(orbit, tm, p.subset(sl), geometry)[:, :, 0]  # (b, 6)
+            y = complex_response(orbit, tm, p.subset(sl), geometry, tuple(b[sl] for b in bases))[:, :, 0]  # (b, 6)
             y *= np.exp(-2j * np.pi * fk[sl] * (tm[0] - t[0]))[:, None]
             kb = kbin[sl]
             for link in range(6):
