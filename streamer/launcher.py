@@ -5,10 +5,12 @@ Process model
 * The launcher opens a Zenoh **router** in its own process, listening on
   ``tcp/127.0.0.1:<free port>`` (or ``--listen``), multicast scouting off.
 * Each stage is a separate process, ``python -m stages.<name> --config
-  <recordings>/<run>/<name>.config.json``, a Zenoh **peer** that connects to the router and
-  listens on ``tcp/127.0.0.1:<free port>`` itself (peers gossip their loopback locators
-  through the router and then talk directly).  Nothing listens on anything but 127.0.0.1
-  unless configured (``--listen``, ``--zenoh-config``).
+  <recordings>/<run>/<name>.config.json``, a Zenoh **client** of the router: every message
+  goes through the router, and a stage whose link closed (a stall beyond
+  :data:`streamer.session.BLOCK_WAIT_BEFORE_CLOSE`) reconnects and catches up from the
+  publishers' caches.  (Peers would talk directly, but Zenoh does not re-establish a closed
+  peer-to-peer link, and the router does not route between peers.)  Nothing listens on
+  anything but 127.0.0.1 unless configured (``--listen``, ``--zenoh-config``).
 * Stage logs go to ``<recordings>/<run>/<name>.log``, recordings to
   ``<recordings>/<run>/<name>.mcap`` (and ``monitor.rrd``).
 
@@ -237,7 +239,7 @@ class Launcher:
 
     def stage_config(self, name: str) -> dict:
         cfg = {"run": self.opts.run_id, "stage": name,
-               "zenoh": SessionSettings(connect=(self.endpoint,)).to_dict(),
+               "zenoh": SessionSettings(mode="client", connect=(self.endpoint,)).to_dict(),
                "recordings": str(Path(self.opts.recordings).resolve()), "cache": self.cache,
                "options": self.stage_options(name)}
         if name in HEADERS_ONLY:

@@ -2,7 +2,15 @@
 
 Defaults (:class:`SessionSettings`): peer mode, listening on ``tcp/127.0.0.1:<free port>``
 only, multicast scouting off, optional connect endpoints.  Nothing listens on anything but
-127.0.0.1 unless configured.
+127.0.0.1 unless configured.  Link timing: a BLOCK put waits up to
+:data:`BLOCK_WAIT_BEFORE_CLOSE` for a congested link and a link lives
+:data:`LEASE` without news (Zenoh's 5 s and 10 s lost stalled consumers).
+
+``ttl run`` starts its stages in **client** mode behind the launcher's router: every
+segment goes through the router, and a client whose link closed reconnects and
+re-declares its subscriptions.  Peers talking directly do not re-establish a closed
+peer-to-peer link, and a router does not route between two peers (measured with
+zenoh 1.10: a consumer stopped for 9 s never received another segment).
 
 A Zenoh configuration file (JSON5, Zenoh's own format, see
 ``streamer/configs/*.json5``) selects client or router mode and the endpoints of a
@@ -55,6 +63,14 @@ DEFAULT_CACHE = 4
 #: Period of the sporadic heartbeat of segment publishers [s].
 HEARTBEAT_PERIOD = 1.0
 MODES = ("peer", "client", "router")
+#: How long a BLOCK put may wait for a congested link before Zenoh closes the link [s].
+#: Zenoh's default, 5 s, closed the link of a consumer starved of CPU for a few seconds
+#: (a loaded 2-core machine), and a closed peer-to-peer link is never re-established.
+#: It must stay below the lease: zenoh 1.10 never wakes a BLOCK put whose link was closed
+#: by lease expiry while it waited (measured: the publisher hangs for ever).
+BLOCK_WAIT_BEFORE_CLOSE = 30.0
+#: Link lease [s] (Zenoh's default 10 s): a process silent that long loses its links.
+LEASE = 60.0
 
 
 class SessionConfigError(ValueError):
@@ -170,6 +186,12 @@ def make_config(settings: SessionSettings | None = None) -> zenoh.Config:
             _set(config, "scouting/multicast/enabled", False)
         if s.shared_memory is not None:
             _set(config, "transport/shared_memory/enabled", bool(s.shared_memory))
+        # Zenoh's defaults (5 s, 10 s) unless a configuration file changed them
+        wait_key = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+        if _get(config, wait_key) == 5_000_000:
+            _set(config, wait_key, int(BLOCK_WAIT_BEFORE_CLOSE * 1e6))   # microseconds
+        if _get(config, "transport/link/tx/lease") == 10_000:
+            _set(config, "transport/link/tx/lease", int(LEASE * 1e3))     # milliseconds
     except zenoh.ZError as exc:
         raise SessionConfigError(f"invalid Zenoh setting: {exc}") from exc
     for endpoint in _endpoints(_get(config, "listen/endpoints")):

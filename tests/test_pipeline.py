@@ -58,18 +58,19 @@ def t1(tmp_path_factory):
         proc = procs.ttl(*run_args("t1", tmp / "rec"))
         sockets = {}
 
-        def all_up():
+        def all_up():  # stages are Zenoh clients of the launcher's router: connected, not listening
             for name, p in stage_processes(proc).items():
                 try:
                     tcp, udp = listening(p)
+                    connected = [c for c in p.net_connections(kind="tcp") if c.status == psutil.CONN_ESTABLISHED]
                 except psutil.Error:
                     continue
-                if tcp:
-                    sockets[name] = (tcp, udp)
+                if connected:
+                    sockets[name] = (tcp, udp, connected)
             return set(sockets) >= set(STAGES)
 
-        wait_for(all_up, 120, "every stage listening")
-        sockets["launcher"] = listening(psutil.Process(proc.pid))
+        wait_for(all_up, 120, "every stage connected to the router")
+        sockets["launcher"] = (*listening(psutil.Process(proc.pid)), [])
         code = finish(proc, 240)
         yield SimpleNamespace(code=code, out=output(proc), dir=tmp / "rec" / "t1", sockets=sockets,
                               seconds=time.monotonic() - t_start)
@@ -102,9 +103,15 @@ def test_run_exits_0_with_every_segment_exactly_once_per_stage(t1):
 
 def test_nothing_listens_beyond_loopback(t1):
     assert set(t1.sockets) >= set(STAGES) | {"launcher"}
-    for name, (tcp, udp) in t1.sockets.items():
-        assert tcp and all(c.laddr.ip == "127.0.0.1" for c in tcp), (name, tcp)
+    launcher_tcp = t1.sockets["launcher"][0]
+    assert launcher_tcp and all(c.laddr.ip == "127.0.0.1" for c in launcher_tcp), launcher_tcp  # the router
+    router_ports = {c.laddr.port for c in launcher_tcp}
+    for name, (tcp, udp, connected) in t1.sockets.items():
+        assert all(c.laddr.ip == "127.0.0.1" for c in tcp), (name, tcp)
         assert all(c.laddr.ip == "127.0.0.1" for c in udp), (name, udp)  # no multicast scouting
+        if name != "launcher":
+            assert not tcp, (name, tcp)  # a client listens on nothing
+            assert all(c.raddr.ip == "127.0.0.1" and c.raddr.port in router_ports for c in connected), (name, connected)
 
 
 def test_message_contracts_and_streaming_equals_batch(t1):

@@ -41,7 +41,7 @@ def segment(index: int, size: int) -> np.ndarray:
 
 
 def settings(args: dict) -> SessionSettings:
-    return SessionSettings(listen=tuple(args["listen"]) if args.get("listen") else None,
+    return SessionSettings(mode=args.get("mode"), listen=tuple(args["listen"]) if args.get("listen") else None,
                            connect=tuple(args.get("connect") or ()),
                            shared_memory=args.get("shm"))
 
@@ -69,6 +69,7 @@ def publisher(args: dict) -> None:
             t = time.perf_counter()
             pub.put(i, payload, attachment)
             times.append(time.perf_counter() - t)
+            time.sleep(args.get("interval", 0))
         elapsed = time.perf_counter() - t_start
         bus.declare_alive(run, args.get("name", "publisher") + "-done")
         Path(args["out"]).write_text(json.dumps({"put_seconds": times, "elapsed": elapsed,

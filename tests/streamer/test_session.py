@@ -3,6 +3,7 @@
 import json
 import queue
 import time
+import signal
 
 import pytest
 
@@ -113,3 +114,34 @@ def test_big_segments_across_processes_no_drops_and_late_joiner(children, tmp_pa
         assert sorted(history) == list(range(n - cache, n))
         late.session.put(control_key("big", "stop"), b"")
     assert pub.wait(20) == 0, output_of(pub)
+
+
+def test_consumer_stalled_longer_than_zenohs_block_timeout_loses_nothing(children, tmp_path):
+    """A consumer stopped (SIGSTOP) for 12 s mid-stream - longer than Zenoh's default 5 s
+    BLOCK wait, after which Zenoh closed its link and, between peers, never re-opened it -
+    receives every segment once and intact after it resumes: clients behind a router, the
+    link timing of :mod:`streamer.session`."""
+    n, size = 24, 8 * MB
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    client = {"mode": "client", "connect": [endpoint]}
+    sub_out, pub_out = tmp_path / "sub.json", tmp_path / "pub.json"
+    with Bus(open_router(listen=(endpoint,))) as router:
+        sub = children.start("subscriber", run="stall", n=n, size=size, out=str(sub_out), timeout=120, **client)
+        wait_for(lambda: "subscriber" in router.alive_stages("stall", timeout=0.5), 30, "the subscriber")
+        pub = children.start("publisher", run="stall", n=n, size=size, out=str(pub_out), interval=0.2,
+                             wait_for="subscriber", **client)
+        time.sleep(3.0)  # the publisher is mid-stream (24 x 0.2 s)
+        sub.send_signal(signal.SIGSTOP)
+        time.sleep(12.0)
+        sub.send_signal(signal.SIGCONT)
+        try:
+            assert sub.wait(90) == 0, output_of(sub)
+        finally:
+            router.session.put(control_key("stall", "stop"), b"")
+        assert pub.wait(20) == 0, output_of(pub)
+    result = json.loads(sub_out.read_text())
+    assert result["errors"] == []
+    assert sorted(map(int, result["received"])) == list(range(n)), output_of(sub)
+    assert all(v == [True] for v in result["received"].values())
+    published = json.loads(pub_out.read_text())
+    assert max(published["put_seconds"]) > 5.0  # the publisher really was held up by the stall
