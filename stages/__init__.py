@@ -246,11 +246,6 @@ class PipelineStage(Stage):
 
     #: Stages whose progress messages this stage subscribes to ("*": all).
     follow: ClassVar[tuple[str, ...]] = ()
-    #: Input topics whose gaps are not reported on arrival by the stage base: the stage puts
-    #: them back in order itself (:class:`InOrder`, which reports a segment once it is really
-    #: given up) or does not need them in order.  History from several publisher caches,
-    #: after a restart or a late join, arrives in any order without anything missing.
-    reorders: ClassVar[tuple[str, ...]] = ()
     #: Default poll interval of the pipeline stages [s].
     default_poll_interval: ClassVar[float] = 0.05
 
@@ -281,10 +276,6 @@ class PipelineStage(Stage):
     def pending(self) -> int:
         """Segments received but not yet handled (override in buffering stages)."""
         return 0
-
-    def _check_gap(self, topic: str, index: int) -> None:
-        if topic not in self.reorders:
-            super()._check_gap(topic, index)
 
     # ------------------------------------------------------------------ bookkeeping
     def note_meta(self, meta: dict) -> None:
@@ -338,6 +329,85 @@ class PipelineStage(Stage):
             self._progress_pub.put(json.dumps(jsonable(msg)).encode())
         except Exception:
             self.log.exception("could not publish progress")
+
+
+class OrderedStage(PipelineStage):
+    """A pipeline stage that processes its input segments one by one in index order.
+
+    Subclasses implement :meth:`process` (one segment -> an output or None) and may
+    override :meth:`restart` (forget the state carried between segments, after a segment
+    was skipped or failed) and :meth:`progress_fields` (extras of the progress messages).
+    :meth:`handle` validates an input into an item and passes it to :meth:`enqueue`;
+    segments are buffered (:class:`InOrder`, options ``settle`` and ``gap_timeout``) and
+    processed as soon as they are next in order, or skipped when :attr:`upstream` gave them
+    up or they do not come within ``gap_timeout`` while later ones wait.
+    """
+
+    #: The stage producing the ordered input (its progress says which indices it gave up).
+    upstream: ClassVar[str] = ""
+
+    def __init__(self, config: StageConfig):
+        super().__init__(config)
+        self.queue = InOrder(settle=float(self.options.get("settle", 1.0)),
+                             gap_timeout=float(self.options.get("gap_timeout", 60.0)))
+
+    def process(self, header, item):
+        """Process the next segment in order; returns an :class:`streamer.stage.Output` or None."""
+        raise NotImplementedError
+
+    def restart(self) -> None:
+        """Forget the state carried from segment to segment (after a skip or a failure)."""
+
+    def progress_fields(self) -> dict:
+        """Extra fields of the progress messages (sets are sent as index ranges)."""
+        return {}
+
+    def published(self, index: int) -> None:
+        """Segment ``index`` produced an output, now published."""
+
+    def pending(self) -> int:
+        return len(self.queue.pending)
+
+    def enqueue(self, header, item) -> None:
+        """Buffer a validated input segment and process what is ready."""
+        self.note_meta(header.meta)
+        if not self.queue.add(header.index, (header, item)):
+            self.event("stale", index=header.index, message=f"{header.topic} segment {header.index} arrived after "
+                                                            f"the stream moved past it (next is {self.queue.next}); ignored")
+            return
+        self.drain()
+
+    def tick(self):
+        self.drain()
+        self.check_complete()
+        return ()
+
+    def upstream_failed(self, index: int) -> bool:
+        peer = self.board.get(self.upstream)
+        return peer is not None and index in peer.failed
+
+    def drain(self) -> None:
+        """Process every segment that is next in order (or give up the missing ones)."""
+        for index, entry in self.queue.ready(self.upstream_failed, self.segments_total):
+            if entry is None:
+                self.report_error("gap", f"{self.inputs[0]} segment {index} skipped: {self.queue.skipped_reason}",
+                                  index=index)
+                self.restart()
+                self.mark_failed(index, **self.progress_fields())
+                continue
+            header, item = entry
+            try:
+                out = self.process(header, item)
+                if out is not None:
+                    self.publish(out, source=header)
+                    self.published(index)
+            except Exception as exc:
+                self.log.exception("segment %d failed", index)
+                self.report_error("failed", f"{type(exc).__name__}: {exc}", index=index, key=header.key)
+                self.restart()
+                self.mark_failed(index, **self.progress_fields())
+                continue
+            self.mark_done(index, **self.progress_fields())
 
 
 # ---------------------------------------------------------------------------- entry point

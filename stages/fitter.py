@@ -32,7 +32,7 @@ from ttlcore.fit import FitSettings
 from ttlcore.rolling import RollingFit
 from ttlcore.tdi_data import TDIData
 
-from . import OUTPUT_TOPIC, XYZ, InOrder, PipelineStage, jsonable, stage_main
+from . import OUTPUT_TOPIC, XYZ, OrderedStage, jsonable, stage_main
 
 UNITS = {"coefficients": "m/rad", "sigma": "m/rad", "covariance": "m^2/rad^2"}
 P = len(COEFFICIENT_NAMES)
@@ -57,12 +57,13 @@ def tdi_data(header, arrays) -> TDIData:
                    regressors=arrays["regressors"], names=names, ltt_mean=ltt)
 
 
-class Fitter(PipelineStage):
+class Fitter(OrderedStage):
     """Rolling-window fit of the TTL coefficients (ttlcore.rolling.RollingFit)."""
 
     name = "fitter"
     inputs = ("tdi",)
     follow = ("tdi_builder",)
+    upstream = "tdi_builder"
     reorders = ("tdi",)
 
     def __init__(self, config):
@@ -80,13 +81,9 @@ class Fitter(PipelineStage):
         self.rolling: RollingFit | None = None
         self.fits: set[int] = set()
         self._next_t0: float | None = None
-        self.queue = InOrder(settle=float(o.get("settle", 1.0)), gap_timeout=float(o.get("gap_timeout", 60.0)))
 
     def expect(self, topic, index):
         return tdi_expect(self.run_id, index)
-
-    def pending(self) -> int:
-        return len(self.queue.pending)
 
     def settings(self, meta: dict) -> FitSettings:
         kwargs = {"segment_duration": self.fit_segment or float(meta.get("segment_duration") or 3600.0)}
@@ -100,44 +97,16 @@ class Fitter(PipelineStage):
         if not self.config.record_inputs:
             self.recorder.write_json("tdi/input", header.to_dict(), schema="ttl.SegmentHeader")
         td = tdi_data(header, arrays)  # before buffering: a segment that raises is not marked processed
-        self.note_meta(header.meta)
-        if not self.queue.add(header.index, (header, td)):
-            self.event("stale", index=header.index, message=f"tdi segment {header.index} arrived after the "
-                                                            f"window moved past it; ignored")
-            return ()
-        self.drain()
+        self.enqueue(header, td)
         return ()
 
-    def tick(self):
-        self.drain()
-        self.check_complete()
-        return ()
+    def progress_fields(self) -> dict:
+        return {"fits": self.fits}
 
-    def _upstream_failed(self, index: int) -> bool:
-        peer = self.board.get("tdi_builder")
-        return peer is not None and index in peer.failed
+    def published(self, index: int) -> None:
+        self.fits.add(index)
 
-    def drain(self) -> None:
-        for index, item in self.queue.ready(self._upstream_failed, self.segments_total):
-            if item is None:
-                self.report_error("gap", f"tdi segment {index} skipped: {getattr(self.queue, 'skipped_reason', '')}",
-                                  index=index)
-                self.mark_failed(index, fits=self.fits)
-                continue
-            header, td = item
-            try:
-                out = self.fit(header, td)
-                if out is not None:
-                    self.publish(out, source=header)
-                    self.fits.add(index)
-            except Exception as exc:
-                self.log.exception("segment %d failed", index)
-                self.report_error("failed", f"{type(exc).__name__}: {exc}", index=index, key=header.key)
-                self.mark_failed(index, fits=self.fits)
-                continue
-            self.mark_done(index, fits=self.fits)
-
-    def fit(self, header, td: TDIData) -> Output | None:
+    def process(self, header, td: TDIData) -> Output | None:
         """Push one TDI segment into the rolling fit; the fit message if it refitted."""
         if self.rolling is None:
             self.rolling = RollingFit(self.settings(header.meta), window_duration=self.window_duration, names=td.names)

@@ -11,7 +11,7 @@ first segment).
 The delays and interpolation reach back about 70 s: :class:`ttlcore.tdi_data.TDIStream`
 keeps that tail of telemetry between segments, so the output for a day fed in segments
 equals the batch TDI of the whole day, and segments stay independent messages.  Segments
-are therefore processed in index order (:class:`stages.InOrder`); a segment whose t0 does
+are therefore processed in index order (:class:`stages.OrderedStage`); a segment whose t0 does
 not follow the previous one (files with a gap) restarts the stream, and so does a stage
 restarted mid-run, from the earliest segment the replayer's cache still holds (its output
 is a duplicate its consumers ignore, and it re-creates the tail the next segments need).
@@ -28,19 +28,20 @@ from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.telemetry import Telemetry
 from ttlcore.tdi_data import TDIStream
 
-from . import OUTPUT_TOPIC, XYZ, InOrder, PipelineStage, stage_main
+from . import OUTPUT_TOPIC, XYZ, OrderedStage, stage_main
 
 #: Units of the output arrays.
 UNITS = {"data": "fractional frequency", "regressors": "fractional frequency per m/rad"}
 _TELEMETRY = ("eta", "dws_phi", "dws_eta", "ltt")
 
 
-class TDIBuilder(PipelineStage):
+class TDIBuilder(OrderedStage):
     """Builds TDI (X2, Y2, Z2) of the data and of the 24 regressors from telemetry segments."""
 
     name = "tdi_builder"
     inputs = ("telemetry",)
     follow = ("replayer",)
+    upstream = "replayer"
     reorders = ("telemetry",)
 
     def __init__(self, config):
@@ -50,56 +51,22 @@ class TDIBuilder(PipelineStage):
         if o.get("order") is not None:
             kwargs["order"] = int(o["order"])
         self.stream = TDIStream(**kwargs)
-        self.queue = InOrder(settle=float(o.get("settle", 1.0)), gap_timeout=float(o.get("gap_timeout", 60.0)))
 
     def expect(self, topic, index):
         return Expect(run=self.run_id, index=index, arrays={k: ("<f8", (6, None)) for k in _TELEMETRY})
-
-    def pending(self) -> int:
-        return len(self.queue.pending)
 
     def handle(self, header, arrays):
         # validated here, before buffering: a segment that raises is reported as failed and
         # not marked processed, so a good copy of it is still accepted
         tm = Telemetry(t0=header.t0, fs=header.fs, source=str(header.meta.get("source", "bus")),
                        **{k: arrays[k] for k in _TELEMETRY})
-        self.note_meta(header.meta)
-        if not self.queue.add(header.index, (header, tm)):
-            self.event("stale", index=header.index, message=f"segment {header.index} arrived after the stream "
-                                                            f"moved past it (next is {self.queue.next}); ignored")
-            return ()
-        self.drain()
+        self.enqueue(header, tm)
         return ()
 
-    def tick(self):
-        self.drain()
-        self.check_complete()
-        return ()
+    def restart(self) -> None:
+        self.stream.reset()
 
-    def _upstream_failed(self, index: int) -> bool:
-        peer = self.board.get("replayer")
-        return peer is not None and index in peer.failed
-
-    def drain(self) -> None:
-        for index, item in self.queue.ready(self._upstream_failed, self.segments_total):
-            if item is None:
-                reason = getattr(self.queue, "skipped_reason", "")
-                self.report_error("gap", f"telemetry segment {index} skipped: {reason}", index=index)
-                self.stream.reset()
-                self.mark_failed(index)
-                continue
-            header, tm = item
-            try:
-                self.publish(self.build(header, tm), source=header)
-            except Exception as exc:
-                self.log.exception("segment %d failed", index)
-                self.report_error("failed", f"{type(exc).__name__}: {exc}", index=index, key=header.key)
-                self.stream.reset()
-                self.mark_failed(index)
-                continue
-            self.mark_done(index)
-
-    def build(self, header, tm: Telemetry) -> Output:
+    def process(self, header, tm: Telemetry) -> Output:
         """TDI of one telemetry segment (the stream's tail makes it continuous)."""
         continuous = self.stream.next_t0 is not None
         if continuous and (abs(tm.t0 - self.stream.next_t0) > 0.5 / tm.fs or tm.fs != self.stream._tail.fs):

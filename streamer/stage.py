@@ -198,6 +198,11 @@ class Stage:
 
     #: Default stage name (liveliness token, recording file, producer field).
     name: ClassVar[str] = "stage"
+    #: Input topics whose gaps are not reported on arrival: the stage puts them back in
+    #: order itself (and reports a segment once it is really given up) or does not need
+    #: them in order.  History from several publisher caches, after a restart or a late
+    #: join, arrives in any order without anything missing.
+    reorders: ClassVar[tuple[str, ...]] = ()
     #: Input topics.
     inputs: ClassVar[tuple[str, ...]] = ()
 
@@ -373,6 +378,8 @@ class Stage:
         self.log.info("%s: processed, %d output(s)", key, len(outputs))
 
     def _check_gap(self, topic: str, index: int) -> None:
+        if topic in self.reorders:
+            return
         highest = self._highest.get(topic)
         if highest is not None and index > highest + 1:
             first, last = highest + 1, index - 1
@@ -444,6 +451,9 @@ def stage_arguments(parser: argparse.ArgumentParser | None = None) -> argparse.A
     p.add_argument("--name", help="stage name (default: the stage's)")
     p.add_argument("--connect", action="append", default=None, help="Zenoh endpoint to connect to (repeatable)")
     p.add_argument("--listen", action="append", default=None, help="Zenoh endpoint to listen on (repeatable)")
+    p.add_argument("--mode", choices=("peer", "client"),
+                   help="Zenoh mode (default: client when --connect is given without --listen, as behind "
+                        "the router of `ttl run`; else peer)")
     p.add_argument("--zenoh-config", type=Path, help="Zenoh configuration file (JSON5)")
     p.add_argument("--recordings", type=Path, help="recordings directory")
     p.add_argument("--log-level", default="INFO")
@@ -467,6 +477,10 @@ def config_from_args(args: argparse.Namespace) -> StageConfig:
         z["listen"] = args.listen
     if args.zenoh_config:
         z["config_file"] = str(args.zenoh_config)
+    if getattr(args, "mode", None):
+        z["mode"] = args.mode
+    elif args.connect and not args.listen and not z.get("mode") and not z.get("config_file"):
+        z["mode"] = "client"  # a router routes between its clients, not between peers
     d["zenoh"] = z
     return StageConfig.from_dict(d)
 

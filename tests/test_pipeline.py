@@ -226,22 +226,26 @@ def test_stage_killed_and_restarted_mid_run_misses_nothing(t1, tmp_path):
         np.testing.assert_allclose(a.arrays["residual"], b.arrays["residual"], rtol=1e-12, atol=1e-30)
 
 
-def test_late_joiner_catches_up_from_the_caches(tmp_path):
+@pytest.mark.parametrize("stage", ["subtractor", "monitor"])
+def test_late_joiner_catches_up_from_the_caches(stage, tmp_path):
+    if stage == "monitor" and not MONITOR:
+        pytest.skip("no monitor stage")
     port = free_port()
     endpoint = f"tcp/127.0.0.1:{port}"
     rec = tmp_path / "rec"
     procs = Procs(tmp_path)
+    others = ["--skip", "monitor"] if stage != "monitor" else []
     try:
         proc = procs.ttl("run", "--simulate", "--duration 6h --orbit unequal --seed 2", "--segment", "30min",
-                         "--run-id", "t3", "--recordings", str(rec), "--external", "subtractor",
-                         "--cache", "16", "--listen", endpoint, "--timeout", "200", *NO_MONITOR)
-        with Bus.open(SessionSettings(connect=(endpoint,))) as bus:
+                         "--run-id", "t3", "--recordings", str(rec), "--external", stage,
+                         "--cache", "16", "--listen", endpoint, "--timeout", "200", *others)
+        with Bus.open(SessionSettings(mode="client", connect=(endpoint,))) as bus:
             time.sleep(0.5)
             replayed = _progress_watch(bus, "t3", "replayer")
             wait_for(lambda: replayed() >= SEGMENTS // 2 or proc.poll() is not None, 90, "half the replay")
             assert proc.poll() is None, output(proc)[-3000:]
-            late = procs.ttl("stage", "subtractor", "--run", "t3", "--connect", endpoint, "--recordings", str(rec),
-                             name="subtractor")
+            late = procs.ttl("stage", stage, "--run", "t3", "--connect", endpoint, "--recordings", str(rec),
+                             name=stage)
             code = finish(proc, 240)
             assert finish(late, 60) == 0, output(late)[-3000:]
     finally:
@@ -250,12 +254,20 @@ def test_late_joiner_catches_up_from_the_caches(tmp_path):
     # no error from the pipeline stages (history arrives out of order: that is not a gap)
     assert not [ln for ln in output(proc).splitlines()
                 if any(f"error from {s}" in ln for s in STAGES if s != "monitor")], output(proc)[-5000:]
-    res = read_recording(rec / "t3" / "subtractor.mcap")
-    residuals = sorted(res.segments("residual"), key=lambda r: r.header.index)
-    assert [r.header.index for r in residuals] == list(range(SEGMENTS))  # every segment, once
-    assert [r.header.meta["fit_index"] for r in residuals] == list(range(SEGMENTS))
-    assert sorted(indices(res, "tdi")) == list(range(SEGMENTS))  # a stage run alone records its inputs
-    assert ("complete", SEGMENTS - 1) in [(e["kind"], e["index"]) for e in res.json("events")]
+    recording = read_recording(rec / "t3" / f"{stage}.mcap")
+    assert ("complete", SEGMENTS - 1) in [(e["kind"], e["index"]) for e in recording.json("events")]
+    if stage == "subtractor":
+        residuals = sorted(recording.segments("residual"), key=lambda r: r.header.index)
+        assert [r.header.index for r in residuals] == list(range(SEGMENTS))  # every segment, once
+        assert [r.header.meta["fit_index"] for r in residuals] == list(range(SEGMENTS))
+        assert sorted(indices(recording, "tdi")) == list(range(SEGMENTS))  # a stage run alone records its inputs
+    else:
+        # the monitor drew every segment of every input it follows, and its Rerun file holds them
+        assert sorted(indices(recording, "monitor")) == list(range(SEGMENTS))
+        from test_monitor import rrd_entities  # tests/stages: reads a .rrd with Rerun's reader
+        ent = rrd_entities(rec / "t3" / "monitor.rrd")
+        fits = [row[0]["segment"] for row in ent["/coefficients/12/phi_rx/fit"] if "Scalars:scalars" in row[1]]
+        assert sorted(fits) == list(range(SEGMENTS))
 
 
 def test_errors_name_the_problem_in_one_line(tmp_path):
