@@ -17,7 +17,8 @@ fractional frequency, added to ``eta`` and stored alone in the truth file as
 FILE          link responses of a lisagwresponse file (dataset ``tps/y``, or ``FILE:tcb/y``)
 ============  ===================================================================
 
-:func:`parse_gw_spec` turns the ``--gw`` option into injections.
+:func:`parse_gw_spec` turns the ``--gw`` option into injections; :func:`rebuild_from_truth`
+gives "TTL plus GW only" and "everything but TTL" from a telemetry file and its truth.
 """
 
 from __future__ import annotations
@@ -40,6 +41,8 @@ __all__ = [
     "parse_gw_spec",
     "GW_SOURCES",
     "is_gw",
+    "gw_names",
+    "rebuild_from_truth",
 ]
 
 #: Galaxy realisation used by ``--gw galaxy`` (the sky is the same in every run).
@@ -366,3 +369,31 @@ def is_gw(description_or_injection) -> bool:
     if not isinstance(d, dict):
         d = d.describe()
     return d.get("kind") == "gw"
+
+
+def gw_names(config: dict) -> list[str]:
+    """Names of the GW injections of a simulation configuration (a telemetry or truth file's ``config``)."""
+    return [d.get("name") for d in config.get("injections", []) if d.get("kind") == "gw"]
+
+
+def rebuild_from_truth(telemetry, truth) -> dict:
+    """The data sets of the paper's GW-intact check, from a telemetry and its truth.
+
+    Parameters
+    ----------
+    telemetry : :class:`ttlcore.telemetry.Telemetry`
+    truth : :class:`ttlcore.truth.Truth`
+        Same samples as ``telemetry``.
+
+    Returns
+    -------
+    dict of (6, n) arrays (``eta``-like, fractional frequency)
+        ``gw`` (sum of the GW injections), ``ttl_plus_gw`` (true TTL plus GW, no other
+        noise) and ``everything_but_ttl`` (``eta - ttl``). The DWS readouts of
+        ``telemetry`` are unchanged in all of them.
+    """
+    if truth.ttl.shape != telemetry.eta.shape:
+        raise ConfigError(f"truth {truth.source}: {truth.ttl.shape[-1]} samples, telemetry has {telemetry.eta.shape[-1]}")
+    names = [n for n in gw_names(truth.config or telemetry.config) if n in truth.injections]
+    gw = sum((truth.injections[n] for n in names), np.zeros_like(truth.ttl))
+    return {"gw": gw, "ttl_plus_gw": truth.ttl + gw, "everything_but_ttl": telemetry.eta - truth.ttl}

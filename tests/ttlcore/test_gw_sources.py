@@ -316,5 +316,18 @@ def test_cli_simulate_gw_writes_truth(tmp_path):
     info = summarise(tmp_path / "d.truth.h5")
     assert "injections/hmcnc" in info["datasets"]
     assert info["injections_rms"]["mbhb1"] == pytest.approx(float(np.sqrt(np.mean(tr.injections["mbhb1"] ** 2))))
+    # "TTL plus GW only" and "everything but TTL" from the files: with every noise off but
+    # the TTL and the GW, everything but TTL is the GW alone
+    from ttlcore.gw_injection import rebuild_from_truth
+    from ttlcore.telemetry import read_telemetry
+
+    rc = main(["simulate", "--duration", "600", "--orbit", "equal", "--gw", "hmcnc,mbhb1", "--out",
+               str(tmp_path / "t.h5"), "--quiet", "--noises", "ttl,sc_jitter,mosa_jitter"])
+    assert rc == 0
+    tm, tr2 = read_telemetry(tmp_path / "t.h5"), read_truth(tmp_path / "t.truth.h5")
+    r = rebuild_from_truth(tm, tr2)
+    np.testing.assert_allclose(r["ttl_plus_gw"], tm.eta, rtol=0, atol=1e-12 * np.max(np.abs(tm.eta)))
+    np.testing.assert_allclose(r["everything_but_ttl"], r["gw"], rtol=0, atol=1e-12 * np.max(np.abs(tm.eta)))
+    assert np.max(np.abs(tr2.ttl)) > 0 and np.max(np.abs(r["gw"])) > 0
     rc = main(["simulate", "--duration", "600", "--gw", "bogus", "--out", str(tmp_path / "e.h5"), "--quiet"])
     assert rc == 2
