@@ -33,6 +33,7 @@ the entry-point group ``ttl.effects`` (:func:`available_effects`); see
 
 from __future__ import annotations
 
+import functools
 import logging
 from dataclasses import dataclass, field
 from importlib import metadata
@@ -600,10 +601,10 @@ def load_effect_module(spec: str) -> list[type]:
     return out
 
 
-def available_effects(modules=()) -> dict[str, type]:
-    """Named effects, those of installed packages (entry points ``ttl.effects``) and those of
-    the given plugin modules (later ones override earlier ones with the same name)."""
-    out = dict(EFFECTS)
+@functools.lru_cache(maxsize=1)
+def _entry_point_effects() -> dict[str, type]:
+    """Effect classes registered by installed packages (scanned once per process)."""
+    out = {}
     try:
         eps = metadata.entry_points(group=ENTRY_POINT_GROUP)
     except TypeError:  # Python < 3.10 API
@@ -617,6 +618,14 @@ def available_effects(modules=()) -> dict[str, type]:
         for cls in obj if isinstance(obj, (list, tuple)) else [obj]:
             if isinstance(cls, type) and issubclass(cls, Effect):
                 out[cls.name] = cls
+    return out
+
+
+def available_effects(modules=()) -> dict[str, type]:
+    """Named effects, those of installed packages (entry points ``ttl.effects``) and those of
+    the given plugin modules (later ones override earlier ones with the same name)."""
+    out = dict(EFFECTS)
+    out.update(_entry_point_effects())
     for spec in modules:
         for cls in load_effect_module(spec):
             out[cls.name] = cls

@@ -64,10 +64,10 @@ def test_drift_and_step_injections_equal_the_simulators_own_coefficient_model(ki
         coeffs = make_coefficients("paper").with_drift(rates)  # m/rad per day
         spec = "drift:t_ref=0," + ",".join(f"{k}={v}" for k, v in rates.items())
     else:
-        coeffs = make_coefficients("paper").with_step(1000.0, rates)
-        spec = "step:t_step=1000," + ",".join(f"{k}={v}" for k, v in rates.items())
-    a, _ = simulate(SimulationConfig(duration=3000.0, coefficients=coeffs, **QUIET), chunk_size=1100)
-    b, tb = simulate(SimulationConfig(duration=3000.0, injections=(injection_from_spec(spec),), **QUIET), chunk_size=1100)
+        coeffs = make_coefficients("paper").with_step(700.0, rates)
+        spec = "step:t_step=700," + ",".join(f"{k}={v}" for k, v in rates.items())
+    a, _ = simulate(SimulationConfig(duration=1500.0, coefficients=coeffs, **QUIET), chunk_size=1100)
+    b, tb = simulate(SimulationConfig(duration=1500.0, injections=(injection_from_spec(spec),), **QUIET), chunk_size=1100)
     scale = np.max(np.abs(tb[f"injections/{kind}"]))
     assert scale > 0
     # the sums differ by rounding only (the simulator adds the terms in another order)
@@ -99,8 +99,8 @@ def test_timing_offset_injection_against_a_shifted_ttl():
 
 def test_timing_offset_injection_chunk_boundaries_are_local():
     spec = "timing-offset:sc2.d1=-0.04"
-    a = simulate(SimulationConfig(duration=3000.0, injections=(injection_from_spec(spec),), **QUIET), chunk_size=100000)[1]
-    b = simulate(SimulationConfig(duration=3000.0, injections=(injection_from_spec(spec),), **QUIET), chunk_size=1000)[1]
+    a = simulate(SimulationConfig(duration=2000.0, injections=(injection_from_spec(spec),), **QUIET), chunk_size=100000)[1]
+    b = simulate(SimulationConfig(duration=2000.0, injections=(injection_from_spec(spec),), **QUIET), chunk_size=1000)[1]
     d = a["injections/timing-offset"] - b["injections/timing-offset"]
     rms = np.std(a["injections/timing-offset"])
     bad = np.flatnonzero(np.any(np.abs(d) > 1e-6 * rms, axis=0))
