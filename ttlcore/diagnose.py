@@ -858,8 +858,10 @@ class Diagnoser:
         XF = self._x(list(model.fixed)) if model.fixed else None
         XM = self._x(M)
         idx = np.flatnonzero(self.mask)
-        t_lo = self.t0 + idx[0] / self.fs
-        t_hi = self.t0 + (idx[-1] + 1) / self.fs
+        # a step closer to the ends than half a coarse step is nearly collinear with the TTL
+        # columns themselves: search inside
+        t_lo = self.t0 + idx[0] / self.fs + s.step_grid / 2
+        t_hi = self.t0 + (idx[-1] + 1) / self.fs - s.step_grid / 2
         stack = np.stack([self.series[n] for n in base], axis=1)  # (3, k, n)
 
         def evaluate_at(ts):
@@ -886,7 +888,7 @@ class Diagnoser:
             return self._evidence(model, N_MM, N_MK, N_KK, b_M, b_K, [f"step.{n}" for n in base],
                                   prior=np.full(len(base), 1e-3))
 
-        coarse = np.arange(t_lo + s.step_grid, t_hi - s.step_grid / 2, s.step_grid)
+        coarse = np.arange(t_lo + s.step_grid / 2, t_hi, s.step_grid)
         if coarse.size == 0:
             coarse = np.array([0.5 * (t_lo + t_hi)])
         results = [(ts, evaluate_at(ts)) for ts in coarse]
