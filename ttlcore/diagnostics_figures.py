@@ -35,14 +35,19 @@ def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.05) -> Pat
         ax.legend(fontsize=7)
     ax = axes[2]
     edges = dg.edges
+    top = 1.2
     for label, fit in fits.items():
         vals = fit.bands.chi2_dof
-        ax.stairs(vals, edges, lw=1.5, label=label)
+        top = max(top, float(np.nanmax(vals)) * 1.1)
+        ax.stairs(vals, edges, lw=1.5, label=label, baseline=None, zorder=3)
         fails = fit.bands.fails
         centres = np.sqrt(edges[:-1] * edges[1:])
         ax.plot(centres[fails], vals[fails], "rx")
-    ax.axhspan(1 - tolerance, 1 + tolerance, color="0.85", label=f"1 +- tolerance ({100 * tolerance:.0f} %)")
+    ax.axhspan(1 - tolerance, 1 + tolerance, color="0.85", zorder=0, label=f"1 +- tolerance ({100 * tolerance:.0f} %)")
     ax.set_xscale("log")
+    ax.set_ylim(0.8, top)
+    if top > 5:
+        ax.set_yscale("log")
     ax.set_xlabel("frequency [Hz]")
     ax.set_ylabel("chi2/dof per band")
     ax.grid(True, which="both", alpha=0.3)
