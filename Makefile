@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 DEMO   := demo-output
 
-.PHONY: demo demo-pipeline test test-science test-e2e bench clean
+.PHONY: demo demo-pipeline test test-science bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -47,10 +47,6 @@ test: $(STAMP)
 ## test-science: slow full-day science checks
 test-science: $(STAMP)
 	$(BIN)/python -m pytest -q -m science
-
-## test-e2e: end-to-end runs of the five stage processes (ttl run); see issue 5 for the open stall
-test-e2e: $(STAMP)
-	$(BIN)/python -m pytest -q -m e2e
 
 ## bench: benchmarks, each prints JSON
 bench: $(STAMP)

@@ -71,6 +71,9 @@ MODES = ("peer", "client", "router")
 BLOCK_WAIT_BEFORE_CLOSE = 30.0
 #: Link lease [s] (Zenoh's default 10 s): a process silent that long loses its links.
 LEASE = 60.0
+#: How long a client keeps trying to reach its router when the session opens [s]
+#: (Zenoh's default for clients: one attempt), so that a stage may start before the router.
+CLIENT_CONNECT_TIMEOUT = 30.0
 
 
 class SessionConfigError(ValueError):
@@ -192,6 +195,8 @@ def make_config(settings: SessionSettings | None = None) -> zenoh.Config:
             _set(config, wait_key, int(BLOCK_WAIT_BEFORE_CLOSE * 1e6))   # microseconds
         if _get(config, "transport/link/tx/lease") == 10_000:
             _set(config, "transport/link/tx/lease", int(LEASE * 1e3))     # milliseconds
+        if mode == "client" and _get(config, "connect/timeout_ms") is None:
+            _set(config, "connect/timeout_ms", int(CLIENT_CONNECT_TIMEOUT * 1e3))
     except zenoh.ZError as exc:
         raise SessionConfigError(f"invalid Zenoh setting: {exc}") from exc
     for endpoint in _endpoints(_get(config, "listen/endpoints")):
