@@ -96,6 +96,7 @@ from streamer.keys import topic_pattern
 from streamer.session import free_port
 from streamer.stage import Output
 
+from ttlcore.coefficients import CoefficientModel
 from ttlcore.conventions import ARM_LENGTH, C, COEFFICIENT_NAMES, LINKS, MOSAS, ffd_to_displacement_asd
 from ttlcore.fit import DEFAULT_BAND
 from ttlcore.trends import Alert, TrendMonitor, TrendSettings
@@ -357,6 +358,19 @@ def band_ratio(f, a, f_ref, ref, band) -> float:
         return float("nan")
     r = np.interp(np.log10(f[sel]), np.log10(f_ref), np.log10(ref))
     return float(np.median(a[sel] / 10 ** r))
+
+
+class ModelTruth:
+    """True coefficients of a simulation on the fly, averaged over time spans from its
+    coefficient model (:meth:`ttlcore.coefficients.CoefficientModel.mean`)."""
+
+    path = "simulation"
+
+    def __init__(self, model):
+        self.model = model
+
+    def mean(self, t_start: float, t_stop: float) -> np.ndarray:
+        return self.model.mean(t_start, t_stop)
 
 
 class TruthAverager:
@@ -624,8 +638,12 @@ class Monitor(PipelineStage):
             self._truth_source = truth
             self._time(header.t0, header.index)
             try:
-                self._truth = TruthAverager(truth, block=float(header.meta.get("segment_duration") or 3600.0))
-                self.text("log", f"truth file {truth}: true coefficients drawn beside the fits")
+                if isinstance(truth, dict):  # a simulation on the fly: its coefficient model
+                    self._truth = ModelTruth(CoefficientModel.from_description(truth["coefficients"]))
+                    self.text("log", "simulated on the fly: the simulation's true coefficients drawn beside the fits")
+                else:
+                    self._truth = TruthAverager(truth, block=float(header.meta.get("segment_duration") or 3600.0))
+                    self.text("log", f"truth file {truth}: true coefficients drawn beside the fits")
             except Exception as exc:  # a bad truth file must not stop the monitor
                 self._truth = None
                 self.text("log", f"truth file {truth} unusable: {exc}", "WARN")

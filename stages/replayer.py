@@ -16,7 +16,8 @@ Sources (exactly one):
 Output ``ttl/<run>/telemetry/<i>``: arrays ``eta``, ``dws_phi``, ``dws_eta``, ``ltt``, each
 (6, n) float64 with channels the six links; header t0 (first sample) and fs; meta
 ``source`` (path or ``"simulation"``), ``segments_total``, ``truth`` (the truth file
-beside the source file, else null), ``segment_duration`` [s] (nominal), ``dws_asd`` (DWS
+beside the source file, ``{"coefficients": <coefficient model description>}`` for a
+simulation on the fly, else null; only the monitor reads it, to draw the truth), ``segment_duration`` [s] (nominal), ``dws_asd`` (DWS
 readout-noise level of the source, for the fitter's errors-in-variables term), ``file``.
 
 Pace
@@ -189,7 +190,10 @@ class SimulationSource:
     def segment(self, i: int) -> tuple[Telemetry, dict]:
         n0 = i * self.n
         tm, _ = self.sim.chunk(n0, min(self.n, self.sim.size - n0))
-        return tm, {"source": "simulation", "truth": None, "file": None, "dws_asd": self.dws_asd}
+        # truth of a simulation on the fly: its coefficient model (for the monitor's truth
+        # overlay; the fitter and subtractor never read it)
+        truth = {"coefficients": self.config.coefficients.describe()}
+        return tm, {"source": "simulation", "truth": truth, "file": None, "dws_asd": self.dws_asd}
 
 
 def make_source(options: dict):

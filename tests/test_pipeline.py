@@ -114,6 +114,7 @@ def test_nothing_listens_beyond_loopback(t1):
 
 
 def test_message_contracts_and_streaming_equals_batch(t1):
+    from ttlcore.coefficients import make_coefficients
     from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
     from ttlcore.fit import FitSettings, fit_tdi
     from ttlcore.tdi_data import TDIData, compute_tdi
@@ -123,7 +124,9 @@ def test_message_contracts_and_streaming_equals_batch(t1):
     h = tel[0].header
     assert h.channels == LINKS and h.fs == 4.0 and h.t0 == 0.0
     assert h.meta["source"] == "simulation" and h.meta["segments_total"] == SEGMENTS
-    assert h.meta["truth"] is None and h.meta["segment_duration"] == 3600.0
+    assert h.meta["segment_duration"] == 3600.0
+    # the truth of a simulation on the fly is its coefficient model (for the monitor only)
+    assert h.meta["truth"] == {"coefficients": make_coefficients("paper").describe()}
     assert all(tel[i].arrays["eta"].shape == (6, 14400) and tel[i].header.t0 == 3600.0 * i for i in range(SEGMENTS))
 
     # TDI streamed segment by segment equals TDI of the whole stretch
@@ -272,6 +275,10 @@ def test_late_joiner_catches_up_from_the_caches(stage, tmp_path):
         ent = rrd_entities(rec / "t3" / "monitor.rrd")
         fits = [row[0]["segment"] for row in ent["/coefficients/12/phi_rx/fit"] if "Scalars:scalars" in row[1]]
         assert sorted(fits) == list(range(SEGMENTS))
+        # a simulation on the fly: the truth drawn is the simulation's coefficient model (paper set)
+        from ttlcore.coefficients import paper_set
+        truth = [row[1]["Scalars:scalars"][0] for row in ent["/coefficients/12/phi_rx/truth"] if "Scalars:scalars" in row[1]]
+        assert len(truth) == SEGMENTS and np.allclose(truth, paper_set()[0] * 1e3)
 
 
 def test_errors_name_the_problem_in_one_line(tmp_path):
