@@ -151,15 +151,31 @@ DIAGNOSIS_SCHEMA = {
         "message": {"type": "string"},
     },
 }
+#: JSON schema of a control message received by a stage (``ttl/<run>/control/<stage>/<command>``).
+CONTROL_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "ttl.Control",
+    "type": "object",
+    "required": ["run", "stage", "command", "time"],
+    "properties": {
+        "run": {"type": "string"},
+        "stage": {"type": "string"},
+        "command": {"type": "string"},
+        "payload": {"description": "the message (JSON when it parses, else text)"},
+        "accepted": {"type": "boolean"},
+        "message": {"type": "string"},
+        "time": {"type": "number", "description": "wall-clock time [s since epoch]"},
+    },
+}
 #: Schemas known by name (``Recorder.write_json(..., schema="ttl.Fit")``).
 SCHEMAS = {s["title"]: s for s in (HEADER_SCHEMA, ERROR_SCHEMA, EVENT_SCHEMA, FIT_SCHEMA,
-                                   DIAGNOSIS_SCHEMA)}
+                                   DIAGNOSIS_SCHEMA, CONTROL_SCHEMA)}
 #: Schema of JSON channels with no schema given.
 OBJECT_SCHEMA = {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "ttl.Object",
                  "type": "object"}
 SCHEMAS["ttl.Object"] = OBJECT_SCHEMA
 #: Default schema by topic.
-TOPIC_SCHEMAS = {"errors": "ttl.Error", "events": "ttl.Event"}
+TOPIC_SCHEMAS = {"errors": "ttl.Error", "events": "ttl.Event", "control": "ttl.Control"}
 
 
 class RecordingError(ValueError):

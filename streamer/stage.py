@@ -43,7 +43,7 @@ from typing import Any, ClassVar
 import numpy as np
 
 from .codec import CodecError, Expect, Header, decode, encode
-from .keys import (KeyExprError, control_pattern, errors_key, parse_control_key,
+from .keys import (KeyExprError, control_key, control_pattern, errors_key, parse_control_key,
                    parse_segment_key, topic_pattern)
 from .recorder import Recorder
 from .session import DEFAULT_CACHE, Bus, SessionSettings
@@ -296,8 +296,40 @@ class Stage:
             if item[0] == "miss":
                 _, source, count = item
                 self.report_error("missed", f"{count} sample(s) lost beyond recovery from publisher {source}")
+            elif item[0] == "control":
+                self._control(item[1], item[2])
             else:
                 self._process(*item[1:])
+
+    def _control(self, command: str, payload: bytes) -> None:
+        """Handle ``ttl/<run>/control/<stage>/<command>`` on the main thread: record it, call
+        :meth:`control`; a rejected command is reported on ``errors`` and changes nothing."""
+        key = control_key(self.run_id, self.stage_name, command)
+        text = payload.decode("utf-8", errors="replace")
+        try:
+            shown = json.loads(text) if text.strip() else None
+        except ValueError:
+            shown = text
+        record = {"run": self.run_id, "stage": self.stage_name, "command": command, "payload": shown,
+                  "time": time.time()}
+        try:
+            outputs = list(self.control(command, payload) or ())
+        except Exception as exc:  # a bad command must not stop the stage
+            self.log.warning("control %s rejected: %s", command, exc)
+            self.recorder.write_json("control", {**record, "accepted": False, "message": str(exc)})
+            self.report_error("rejected", f"control message {command!r}: {exc}", key=key, field="payload")
+            return
+        self.recorder.write_json("control", {**record, "accepted": True})
+        self.event("control", message=f"{command} accepted")
+        for out in outputs:
+            self.publish(out)
+
+    def control(self, command: str, payload: bytes):
+        """A control command for this stage (override; may return outputs to publish).
+
+        Raise to reject it (the message names what is wrong); the default knows none.
+        """
+        raise ValueError(f"stage {self.stage_name} has no command {command!r}")
 
     def _run_tick(self) -> None:
         try:
@@ -341,6 +373,9 @@ class Stage:
         if parts in (("stop",), (self.stage_name, "stop")):
             self.log.info("stop requested on %s", sample.key_expr)
             self._stop.set()
+        elif len(parts) == 2 and parts[0] == self.stage_name:
+            payload = sample.payload.to_bytes() if sample.payload is not None else b""
+            self._queue.put(("control", parts[1], payload))
 
     # ------------------------------------------------------------------ processing
     def _process(self, key: str, payload, attachment) -> None:

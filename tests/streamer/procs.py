@@ -115,10 +115,20 @@ class Doubler(Stage):
     def expect(self, topic, index):
         return Expect(run=self.run_id, index=index, arrays={"data": ("<f8", (2, None))})
 
+    factor = 2.0
+
+    def control(self, command, payload):
+        if command != "factor":
+            return super().control(command, payload)
+        factor = json.loads(payload)["factor"]
+        if not isinstance(factor, (int, float)):
+            raise ValueError(f"factor: expected a number, got {factor!r}")
+        self.factor = float(factor)
+
     def handle(self, header, arrays):
         if header.meta.get("fail"):
             raise RuntimeError(f"asked to fail on segment {header.index}")
-        return [Output("tdi", {"data": 2 * arrays["data"]},
+        return [Output("tdi", {"data": self.factor * arrays["data"]},
                        fields={"channels": list(header.channels), "units": "test units"},
                        summary={"index": header.index, "mean": float(arrays["data"].mean())})]
 

@@ -167,3 +167,27 @@ def test_killed_stage_leaves_a_salvageable_recording(driver, children, tmp_path)
     driver.bus.session.put(f"ttl/{RUN}/control/doubler/stop", b"")
     assert proc.wait(20) == 0, output_of(proc)
     assert [s.header.index for s in read_recording(mcap_path).segments("telemetry")] == [0]
+
+
+def test_control_messages_change_a_stage_or_are_rejected_and_recorded(driver, children, tmp_path):
+    proc, mcap_path = driver.start_stage(children, tmp_path)
+    control = f"ttl/{RUN}/control/doubler"
+    driver.bus.session.put(f"{control}/factor", b'{"factor": 3}')
+    driver.bus.session.put(f"{control}/factor", b'{"factor": "x"}')    # bad value: rejected
+    driver.bus.session.put(f"{control}/factor", b'{oops')               # not JSON: rejected
+    driver.bus.session.put(f"{control}/explode", b"")                   # unknown command: rejected
+    wait_for(lambda: len(driver.errors) >= 3, 10, "three rejections")
+    data, payload, attachment = good(0)
+    driver.telemetry.put(0, payload, attachment)
+    header, arrays = driver.output()
+    np.testing.assert_array_equal(arrays["data"], 3 * data)              # the accepted factor holds
+    rejected = [e for _, e in driver.errors]
+    assert [(e["kind"], e["field"], e["key"]) for e in rejected] == [("rejected", "payload", f"{control}/factor")] * 2 + [
+        ("rejected", "payload", f"{control}/explode")]
+    assert "factor: expected a number" in rejected[0]["message"] and "no command 'explode'" in rejected[2]["message"]
+    driver.bus.session.put(f"{control}/stop", b"")
+    assert proc.wait(20) == 0, output_of(proc)
+    rec = read_recording(mcap_path)
+    assert [(c["command"], c["accepted"]) for c in rec.json("control")] == [
+        ("factor", True), ("factor", False), ("factor", False), ("explode", False)]
+    assert rec.json("control")[0]["payload"] == {"factor": 3}
