@@ -386,9 +386,12 @@ class OrderedStage(PipelineStage):
         peer = self.board.get(self.upstream)
         return peer is not None and index in peer.failed
 
-    def drain(self) -> None:
-        """Process every segment that is next in order (or give up the missing ones)."""
+    def drain(self, limit: int = 1) -> None:
+        """Process up to ``limit`` segments that are next in order (or give up missing ones);
+        one at a time by default, so that control messages are handled between segments."""
+        done = 0
         for index, entry in self.queue.ready(self.upstream_failed, self.segments_total):
+            done += 1
             if entry is None:
                 self.report_error("gap", f"{self.inputs[0]} segment {index} skipped: {self.queue.skipped_reason}",
                                   index=index)
@@ -408,6 +411,8 @@ class OrderedStage(PipelineStage):
                 self.mark_failed(index, **self.progress_fields())
                 continue
             self.mark_done(index, **self.progress_fields())
+            if done >= limit:
+                return
 
 
 # ---------------------------------------------------------------------------- entry point

@@ -15,20 +15,47 @@ full :meth:`ttlcore.fit.FitResult.to_json` goes into the recording on ``fit/summ
 
 The progress messages carry ``fits_ranges``: the segments that produced a fit, so that the
 subtractor knows, for each segment, which fit is the latest one covering it.
+
+Model and adequacy (``docs/diagnostics.md``)
+--------------------------------------------
+The model is a list of effects (option ``effects``, default ``linear-ttl``).  The fitter
+keeps the window's TDI segments; every ``adequacy_every`` segments (default 12), and on
+every segment while the model holds more than the linear TTL, it refits the window with
+:func:`ttlcore.diagnose.refit` under the *instrument* noise model and adds to the fit
+message's meta ``model`` (the effect specs) and ``adequacy`` (chi^2/dof, per-band chi^2/dof,
+p-value and failure flag; ``fails``).  With an extended model the published 24
+coefficients, sigmas and covariance are that model's; ``extra_parameters`` holds the
+others (value, sigma).  Every ``candidates_every`` segments (default 0: never) and on a
+model change the effects not in the model are ranked (``candidates``: the top 3 with delta chi^2, log Bayes factor,
+significance).
+
+A control message ``ttl/<run>/control/fitter/model`` with JSON ``{"effects": [...]}`` (or
+``"linear-ttl,drift"``) changes the model from the next segment on; that segment's fit
+message carries ``model_change``: both models refitted on the same window, with chi^2/dof
+and per-band chi^2/dof before and after, delta chi^2 and log Bayes factor, and
+``candidates``.  In the pipeline the fitter sees TDI outputs, not the DWS series, so the
+model may use the effects derived from the TDI regressors (``linear-ttl``, ``drift``,
+``step``); ``ttl diagnose`` and ``ttl refit`` offer the others.  Plugin modules
+(``effect_modules``) are loaded from the stage's configuration only, never from a message.
 """
 
 from __future__ import annotations
 
+import json
 import sys
+from collections import deque
 
 import numpy as np
 
 from streamer.codec import Expect
+from streamer.messages import tdi_of
 from streamer.stage import Output
 
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY, parse_duration
 from ttlcore.errors import ConfigError
 from ttlcore.fit import FitSettings
+from ttlcore.diagnose import DiagnoseSettings, refit
+from ttlcore.effects import make_effects
 from ttlcore.rolling import RollingFit
 from ttlcore.tdi_data import TDIData
 
@@ -36,25 +63,16 @@ from . import OUTPUT_TOPIC, XYZ, OrderedStage, jsonable, stage_main
 
 UNITS = {"coefficients": "m/rad", "sigma": "m/rad", "covariance": "m^2/rad^2"}
 P = len(COEFFICIENT_NAMES)
+#: Effects the fitter can add from TDI outputs alone (no DWS series on its input).
+TDI_EFFECTS = ("linear-ttl", "drift", "step")
+#: Candidates reported in a fit message.
+TOP_CANDIDATES = 3
 
 
 def tdi_expect(run: str, index: int) -> Expect:
     """What a ``tdi`` message must fit (NaN allowed: first samples of a stream)."""
     return Expect(run=run, index=index, channels=XYZ, allow_nonfinite=True,
                   arrays={"data": ("<f8", (3, None)), "regressors": ("<f8", (3, P, None))})
-
-
-def tdi_data(header, arrays) -> TDIData:
-    """The :class:`ttlcore.tdi_data.TDIData` of a ``tdi`` message."""
-    meta = header.meta
-    names = tuple(meta.get("names") or COEFFICIENT_NAMES)
-    if len(names) != arrays["regressors"].shape[1]:
-        raise ValueError(f"meta.names has {len(names)} names for {arrays['regressors'].shape[1]} regressors")
-    ltt = np.asarray(meta.get("ltt_mean", [np.nan] * 6), dtype=float)
-    if ltt.shape != (6,):
-        raise ValueError(f"meta.ltt_mean: expected 6 values, got shape {ltt.shape}")
-    return TDIData(t0=header.t0, fs=header.fs, channels=tuple(header.channels), data=arrays["data"],
-                   regressors=arrays["regressors"], names=names, ltt_mean=ltt)
 
 
 class Fitter(OrderedStage):
@@ -81,6 +99,13 @@ class Fitter(OrderedStage):
         self.rolling: RollingFit | None = None
         self.fits: set[int] = set()
         self._next_t0: float | None = None
+        self.effect_modules = tuple(o.get("effect_modules") or ())
+        self.effects = self.check_model(o.get("effects") or ["linear-ttl"])
+        self.adequacy_every = int(o.get("adequacy_every", 12))
+        self.candidates_every = int(o.get("candidates_every", 0))
+        self.window_tdi: deque[TDIData] = deque()
+        self._model_change: dict | None = None
+        self._segments_seen = 0
 
     def expect(self, topic, index):
         return tdi_expect(self.run_id, index)
@@ -96,7 +121,7 @@ class Fitter(OrderedStage):
     def handle(self, header, arrays):
         if not self.config.record_inputs:
             self.recorder.write_json("tdi/input", header.to_dict(), schema="ttl.SegmentHeader")
-        td = tdi_data(header, arrays)  # before buffering: a segment that raises is not marked processed
+        td = tdi_of(header, arrays)  # before buffering: a segment that raises is not marked processed
         self.enqueue(header, td)
         return ()
 
@@ -105,6 +130,96 @@ class Fitter(OrderedStage):
 
     def published(self, index: int) -> None:
         self.fits.add(index)
+
+    # ------------------------------------------------------------------ the model
+    def check_model(self, specs) -> list[str]:
+        """Validated effect specs of a model (a list, or one comma-separated string)."""
+        if isinstance(specs, str):
+            specs = [s for s in specs.split(",") if s.strip()]
+        if not isinstance(specs, (list, tuple)) or not specs or not all(isinstance(s, str) for s in specs):
+            raise ValueError(f"effects: expected a list of effect specs, got {specs!r}")
+        effects = make_effects(list(specs), self.effect_modules)
+        names = [e.name for e in effects]
+        if "linear-ttl" not in names:
+            raise ValueError("effects: the model must include linear-ttl")
+        beyond = [e.spec() for e in effects if e.name not in TDI_EFFECTS]
+        if beyond:
+            raise ValueError(f"effects {', '.join(beyond)} need the DWS series, which the fitter does not receive; "
+                             f"in the pipeline the model may use {', '.join(TDI_EFFECTS)} "
+                             "(ttl diagnose and ttl refit offer the others)")
+        return [e.spec() for e in effects]
+
+    def control(self, command: str, payload: bytes):
+        """``model``: ``{"effects": [...]}`` changes the model from the next segment on."""
+        if command != "model":
+            return super().control(command, payload)
+        try:
+            msg = json.loads(payload)
+        except ValueError as exc:
+            raise ValueError(f"not JSON: {exc}") from None
+        if not isinstance(msg, dict) or "effects" not in msg:
+            raise ValueError('expected {"effects": [...]}')
+        if set(msg) - {"effects"}:
+            raise ValueError(f"unknown field(s) {sorted(set(msg) - {'effects'})}; plugin modules come from the "
+                             "stage's configuration only")
+        new = self.check_model(msg["effects"])
+        self._model_change = {"before": list(self.effects), "after": new}
+        self.log.info("model change requested: %s -> %s", ",".join(self.effects), ",".join(new))
+        self.effects = new
+        return ()
+
+    def diagnosis(self, header) -> dict | None:
+        """Meta (and arrays) of the window refitted under the instrument noise model, when due:
+        on a model change, on every segment of an extended model, every ``adequacy_every``."""
+        change, extended = self._model_change, self.effects != ["linear-ttl"]
+        due = (change is not None or extended
+               or (self.adequacy_every > 0 and self._segments_seen % self.adequacy_every == 0))
+        if not due:
+            return None
+        r = self._window_refit(header.meta, change["before"] if change else ["linear-ttl"])
+        if r is None:
+            return None
+        self._model_change = None
+        dg, model = r["_internals"]["diagnoser"], r["_internals"]["fit"]
+        adequacy = r["model"]["adequacy"]
+        out: dict = {"adequacy": {
+            "noise_model": "instrument (analytic secondary noises + DWS readout noise), not re-estimated",
+            "chi2_dof": adequacy["chi2_dof"], "fails": adequacy["fails"], "summary": adequacy["summary"],
+            "bands": [{k: b[k] for k in ("f_lo", "f_hi", "chi2_dof", "p_value", "fails")} for b in adequacy["bands"]],
+        }}
+        if extended:
+            k = [model.names.index(n) for n in COEFFICIENT_NAMES]
+            out["arrays"] = {"coefficients": model.ttl_coefficients(), "sigma": model.ttl_sigma(),
+                             "covariance": model.covariance[np.ix_(k, k)]}
+            out["extra_parameters"] = {n: [float(v), float(s)] for n, v, s in zip(model.names, model.theta, model.sigma)
+                                       if n not in COEFFICIENT_NAMES}
+        if change is not None:
+            c = r["change"]
+            out["model_change"] = {
+                "before": change["before"], "after": change["after"],
+                "chi2_dof_before": c["chi2_dof_before"], "chi2_dof_after": c["chi2_dof_after"],
+                "bands_before": c["bands_before"], "bands_after": c["bands_after"],
+                "delta_chi2": c["delta_chi2"], "log_bayes_factor": c["log_bayes_factor"],
+                "band_edges": [b["f_lo"] for b in adequacy["bands"]] + [adequacy["bands"][-1]["f_hi"]],
+            }
+        if change is not None or (self.candidates_every > 0 and self._segments_seen % self.candidates_every == 0):
+            ranked = dg.candidates(model)
+            out["candidates"] = [{k: c.get(k) for k in ("effect", "spec", "delta_chi2", "log_bayes_factor",
+                                                       "explained_fraction", "significant")}
+                                 for c in ranked[:TOP_CANDIDATES]]
+        return out
+
+    def _window_refit(self, meta: dict, baseline: list[str]) -> dict | None:
+        """Refit the window's TDI with the model (and ``baseline``) under the instrument noise
+        model; None when the window is still too short for it."""
+        kwargs = {"band": self.band} if self.band else {}
+        try:
+            return refit(list(self.window_tdi), self.effects, settings=DiagnoseSettings(**kwargs),
+                         effect_modules=self.effect_modules, baseline=baseline,
+                         dws_asd=None if meta.get("dws_asd") is None else float(meta["dws_asd"]))
+        except ConfigError as exc:
+            self.log.info("no adequacy yet: %s", exc)
+            return None
 
     def process(self, header, td: TDIData) -> Output | None:
         """Push one TDI segment into the rolling fit; the fit message if it refitted."""
@@ -117,26 +232,40 @@ class Fitter(OrderedStage):
                        message=f"t0={td.t0} s does not follow the previous segment (expected {self._next_t0} s); "
                                "the window restarts here")
             self.rolling.reset()
+            self.window_tdi.clear()
         self._next_t0 = td.t0 + td.size / td.fs
+        self.window_tdi.append(td)
+        while self.window_tdi and self.window_tdi[0].t0 < self._next_t0 - self.window_duration - 0.5 / td.fs:
+            self.window_tdi.popleft()
+        self._segments_seen += 1
         res = self.rolling.push(td)
         if res is None:
             self.log.info("segment %d: no FFT segment completed, no refit", header.index)
             return None
+        diagnosis = self.diagnosis(header)
         meta = {"names": list(res.names), "chi2_dof": res.chi2_dof, "t_start": res.t_start, "t_stop": res.t_stop,
                 "segments": int(res.n_segments), "band": list(res.band), "converged": bool(res.converged),
                 "chi2": res.chi2, "dof": res.dof, "iterations": int(res.iterations), "method": res.method,
                 "window_duration": self.window_duration,
                 "fft_segment": self.rolling.settings.segment_duration,
-                "segments_total": self.segments_total}
+                "segments_total": self.segments_total, "model": list(self.effects)}
+        arrays = {"coefficients": res.coefficients, "sigma": res.sigma, "covariance": res.covariance}
+        if diagnosis is not None:
+            arrays.update(diagnosis.pop("arrays", {}))
+            meta.update(diagnosis)
         summary = {"run": self.run_id, "index": header.index, "names": list(res.names),
                    "coefficients": res.coefficients, "sigma": res.sigma, "covariance": res.covariance,
                    "chi2": res.chi2, "dof": res.dof, "chi2_dof": res.chi2_dof,
                    "t_start": res.t_start, "t_end": res.t_stop, "segments": int(res.n_segments),
-                   "fit": res.to_json()}
+                   "fit": res.to_json(), **{k: meta[k] for k in ("model", "adequacy", "model_change",
+                                                                 "candidates", "extra_parameters") if k in meta}}
         self.log.info("segment %d: fit over [%.0f, %.0f] s (%d FFT segments), chi2/dof %.3f", header.index,
                       res.t_start, res.t_stop, res.n_segments, res.chi2_dof)
-        return Output(OUTPUT_TOPIC[self.name],
-                      {"coefficients": res.coefficients, "sigma": res.sigma, "covariance": res.covariance},
+        if "adequacy" in meta:
+            self.log.info("segment %d: model %s, chi2/dof against the instrument noise model %.3f%s", header.index,
+                          ",".join(self.effects), meta["adequacy"]["chi2_dof"],
+                          " (fails)" if meta["adequacy"]["fails"] else "")
+        return Output(OUTPUT_TOPIC[self.name], arrays,
                       fields={"units": UNITS, "meta": jsonable(meta)},
                       summary=jsonable(summary), summary_schema="ttl.Fit")
 
@@ -147,11 +276,20 @@ def add_options(p) -> None:
     p.add_argument("--band", nargs=2, type=float, metavar=("FMIN", "FMAX"), help="fit band [Hz]")
     p.add_argument("--settle", type=float, help="seconds to collect cached history before choosing the first segment")
     p.add_argument("--gap-timeout", type=float, help="seconds to wait for a missing segment before skipping it")
+    p.add_argument("--effects", help=f"the model: effect specs, comma-separated (default linear-ttl; "
+                                     f"from TDI alone: {', '.join(TDI_EFFECTS)})")
+    p.add_argument("--effect-module", action="append", help="plugin module or .py file defining effects (repeatable)")
+    p.add_argument("--adequacy-every", type=int,
+                   help="refit the window under the instrument noise model every N segments (default 12; 0: never)")
+    p.add_argument("--candidates-every", type=int,
+                   help="rank the effects not in the model every N segments (default 0: on model changes only)")
 
 
 def options(args) -> dict:
     return {"fit_segment": args.fit_segment, "window_duration": args.window_duration, "band": args.band,
-            "settle": args.settle, "gap_timeout": args.gap_timeout}
+            "settle": args.settle, "gap_timeout": args.gap_timeout, "effects": args.effects,
+            "effect_modules": args.effect_module, "adequacy_every": args.adequacy_every,
+            "candidates_every": args.candidates_every}
 
 
 def main(argv=None) -> int:

@@ -47,9 +47,18 @@ entity                                 content
                                        segment; the view shows the latest)
 ``asd/plot`` (static)                  Transform3D flipping y, so larger ASDs go up
 ``asd/plot/grid``, ``asd/plot/ticks``  decade grid and its labels (Rerun has no log axes)
-``adequacy/chi2_dof``                  Scalars: the fit's chi^2/dof
+``adequacy/chi2_dof``                  Scalars: the fit's chi^2/dof (against the noise it
+                                       re-estimates: blind to a missing effect)
 ``adequacy/log10_residual_over_expected``
                                        Scalars: log10 of the in-band median ratio
+``adequacy/instrument/chi2_dof``       Scalars: chi^2/dof of the window's residual against
+                                       the instrument noise model (fits carrying ``adequacy``)
+``adequacy/instrument/band_<g>``       Scalars: the same per band (named by its range)
+``model/log``                          TextLog: the model of each fit when it changes, the
+                                       before/after of a model change, the top candidates
+``model/before``, ``model/after``      BarChart: chi^2/dof per band before and after the
+                                       latest model change (same window)
+``model/candidates``                   BarChart: delta chi^2 of the top candidate effects
 ``coefficients/<mosa>/<angle>_<side>/{fit,plus_sigma,minus_sigma,truth}``
                                        Scalars [mm/rad]
 ``alerts``                             TextLog (WARN) of step and drift alerts
@@ -290,11 +299,20 @@ def blueprint():
         rrb.Horizontal(
             rrb.Vertical(
                 rrb.Spatial2DView(origin="asd", name="ASD of X2: log10 [m/√Hz] vs log10 f [Hz]"),
-                series("adequacy", "Model adequacy: χ²/dof, log10 residual/expected"),
-                rrb.TextLogView(origin="/", contents=["+ /alerts", "+ /log"], name="Alerts and log"),
+                series("adequacy", "Model adequacy: χ²/dof (instrument noise model, per band), "
+                                   "log10 residual/expected"),
+                rrb.TextLogView(origin="/", contents=["+ /alerts", "+ /log", "+ /model/log"], name="Alerts and log"),
                 row_shares=[5, 3, 2],
             ),
-            rrb.Grid(*coefficients, grid_columns=2, name="Coefficient trends"),
+            rrb.Vertical(
+                rrb.Grid(*coefficients, grid_columns=2, name="Coefficient trends"),
+                rrb.Horizontal(
+                    rrb.BarChartView(origin="model/before", name="χ²/dof per band before the model change"),
+                    rrb.BarChartView(origin="model/after", name="χ²/dof per band after the model change"),
+                    rrb.BarChartView(origin="model/candidates", name="Top candidates: Δχ²"),
+                ),
+                row_shares=[4, 1],
+            ),
             column_shares=[1, 1],
         ),
         rrb.TimePanel(timeline="mission_time", play_state="following"),
@@ -446,6 +464,9 @@ class Monitor(PipelineStage):
         self._data_asd: dict[int, tuple] = {}
         self._ref: dict[int, dict] = {}
         self._truth: TruthAverager | None = None
+        self._model: list | None = None
+        self._fit_windows: dict[int, tuple[float, float]] = {}  # fit index -> window drawn
+        self._styled: set[str] = set()
         self._truth_source: str | None = None
         self._grid = [np.inf, -np.inf, np.inf, -np.inf]
         self._errors: queue.Queue = queue.Queue()
@@ -644,6 +665,7 @@ class Monitor(PipelineStage):
                 else:
                     self._truth = TruthAverager(truth, block=float(header.meta.get("segment_duration") or 3600.0))
                     self.text("log", f"truth file {truth}: true coefficients drawn beside the fits")
+                self._draw_truth(self._fit_windows)  # fits drawn before the truth was known (a late joiner)
             except Exception as exc:  # a bad truth file must not stop the monitor
                 self._truth = None
                 self.text("log", f"truth file {truth} unusable: {exc}", "WARN")
@@ -769,26 +791,20 @@ class Monitor(PipelineStage):
             raise ValueError(f"meta t_start/t_stop: the fitted window is needed, got {t_start!r}, {t_stop!r}")
         centre = 0.5 * (t_start + t_stop)
         self._time(centre, header.index)
-        truth = None
-        if self._truth is not None:
-            try:
-                truth = self._truth.mean(t_start, t_stop)
-            except Exception as exc:
-                self.text("log", f"truth file {self._truth.path}: {exc}; no more truth drawn", "WARN")
-                self._truth = None
         for p, name in enumerate(COEFFICIENT_NAMES):
             ent = _coefficient_entity(name)
             self.rec.log(f"{ent}/fit", rr.Scalars(C[p] * 1e3))
             self.rec.log(f"{ent}/plus_sigma", rr.Scalars((C[p] + S[p]) * 1e3))
             self.rec.log(f"{ent}/minus_sigma", rr.Scalars((C[p] - S[p]) * 1e3))
-            if truth is not None:
-                self.rec.log(f"{ent}/truth", rr.Scalars(truth[p] * 1e3))
+        self._fit_windows[header.index] = (float(t_start), float(t_stop))
+        self._draw_truth({header.index: (t_start, t_stop)})
         chi2 = meta.get("chi2_dof")
         chi2 = float(chi2) if isinstance(chi2, (int, float)) and math.isfinite(chi2) else None
         if chi2 is not None:
             self.rec.log("adequacy/chi2_dof", rr.Scalars(float(chi2)))
         if meta.get("converged") is False:
             self.text("log", f"fit {header.index}: did not converge", "WARN")
+        self.draw_model(header.index, meta)
 
         alerts = self.trends.add(header.index, float(t_start), float(t_stop), C, S)
         self._time(t_stop, header.index)
@@ -800,6 +816,70 @@ class Monitor(PipelineStage):
         self._last_fit = {"index": header.index, "chi2_dof": chi2,
                           "t_start": t_start, "t_stop": t_stop}
         return ()
+
+    def _draw_truth(self, windows: dict[int, tuple[float, float]]) -> None:
+        """The true coefficients averaged over each fit window, at the fit's time."""
+        import rerun as rr
+
+        if self._truth is None:
+            return
+        for index, (t_start, t_stop) in sorted(windows.items()):
+            try:
+                truth = self._truth.mean(t_start, t_stop)
+            except Exception as exc:
+                self.text("log", f"truth file {self._truth.path}: {exc}; no more truth drawn", "WARN")
+                self._truth = None
+                return
+            if truth is None:
+                continue
+            self._time(0.5 * (t_start + t_stop), index)
+            for p, name in enumerate(COEFFICIENT_NAMES):
+                self.rec.log(f"{_coefficient_entity(name)}/truth", rr.Scalars(truth[p] * 1e3))
+
+    def draw_model(self, index: int, meta: dict) -> None:
+        """Adequacy against the instrument noise model, model changes and candidates of a fit."""
+        import rerun as rr
+
+        model = meta.get("model")
+        if isinstance(model, list) and model != self._model:
+            if self._model is not None or model != ["linear-ttl"]:
+                self.text("model/log", f"fit {index}: model {','.join(map(str, model))}")
+            self._model = model
+        adequacy = meta.get("adequacy")
+        if isinstance(adequacy, dict) and isinstance(adequacy.get("chi2_dof"), (int, float)):
+            self.rec.log("adequacy/instrument/chi2_dof", rr.Scalars(float(adequacy["chi2_dof"])))
+            for g, band in enumerate(adequacy.get("bands") or ()):
+                if isinstance(band, dict) and isinstance(band.get("chi2_dof"), (int, float)):
+                    ent = f"adequacy/instrument/band_{g}"
+                    if ent not in self._styled:
+                        self._styled.add(ent)
+                        self.rec.log(ent, rr.SeriesLines(names=[f"χ²/dof {band.get('f_lo', 0):.3g}-"
+                                                                f"{band.get('f_hi', 0):.3g} Hz"], widths=[1.0]),
+                                     static=True)
+                    self.rec.log(ent, rr.Scalars(float(band["chi2_dof"])))
+            if adequacy.get("fails"):
+                self.text("model/log", f"fit {index}: the model fails against the instrument noise model: "
+                                       + "; ".join(map(str, adequacy.get("summary") or ())), "WARN")
+        change = meta.get("model_change")
+        if isinstance(change, dict):
+            def fmt(x):
+                return f"{x:.3f}" if isinstance(x, (int, float)) else "?"
+            self.text("model/log", f"fit {index}: model {','.join(change.get('before') or ())} -> "
+                                   f"{','.join(change.get('after') or ())}: χ²/dof {fmt(change.get('chi2_dof_before'))}"
+                                   f" -> {fmt(change.get('chi2_dof_after'))}, Δχ² {fmt(change.get('delta_chi2'))}, "
+                                   f"log Bayes factor {fmt(change.get('log_bayes_factor'))}")
+            for part in ("before", "after"):
+                values = change.get(f"bands_{part}")
+                if isinstance(values, list) and values:
+                    self.rec.log(f"model/{part}", rr.BarChart(np.array([v if isinstance(v, (int, float)) else np.nan
+                                                                         for v in values], dtype=float)))
+        candidates = meta.get("candidates")
+        if isinstance(candidates, list) and candidates:
+            lines = [f"{c.get('effect')}: Δχ² {c.get('delta_chi2', 0):.1f}, log BF {c.get('log_bayes_factor', 0):.1f}"
+                     f"{' (significant)' if c.get('significant') else ''}" for c in candidates if isinstance(c, dict)]
+            self.text("model/log", f"fit {index}: top candidates: " + "; ".join(lines))
+            self.rec.log("model/candidates", rr.BarChart(np.array([float(c.get("delta_chi2") or 0.0)
+                                                                   for c in candidates if isinstance(c, dict)])))
 
     def status(self, index: int) -> Output:
         """The ``monitor/<i>`` message of segment ``i``: trend state and the alerts raised since the last one."""

@@ -25,13 +25,14 @@ import time
 import numpy as np
 
 from streamer.codec import Expect
+from streamer.messages import tdi_of
 from streamer.stage import Output
 
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.subtraction import subtract
 
 from . import OUTPUT_TOPIC, XYZ, PipelineStage, jsonable, stage_main
-from .fitter import P, tdi_data, tdi_expect
+from .fitter import P, tdi_expect
 
 UNITS = {"residual": "fractional frequency", "ttl_model": "fractional frequency"}
 #: Wait for a fit announced by the fitter's progress before falling back to an earlier one [s].
@@ -80,7 +81,7 @@ class Subtractor(PipelineStage):
                 self.recorder.write_json("tdi/input", header.to_dict(), schema="ttl.SegmentHeader")
             if header.index in self.done:
                 return ()
-            self.tdi[header.index] = (header, tdi_data(header, arrays))
+            self.tdi[header.index] = (header, tdi_of(header, arrays))
             if self._first_arrival is None:
                 self._first_arrival = time.monotonic()
         self.drain()

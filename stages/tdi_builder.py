@@ -22,6 +22,7 @@ from __future__ import annotations
 import sys
 
 from streamer.codec import Expect
+from streamer.messages import TELEMETRY_ARRAYS, telemetry_of
 from streamer.stage import Output
 
 from ttlcore.conventions import COEFFICIENT_NAMES
@@ -32,7 +33,6 @@ from . import OUTPUT_TOPIC, XYZ, OrderedStage, stage_main
 
 #: Units of the output arrays.
 UNITS = {"data": "fractional frequency", "regressors": "fractional frequency per m/rad"}
-_TELEMETRY = ("eta", "dws_phi", "dws_eta", "ltt")
 
 
 class TDIBuilder(OrderedStage):
@@ -53,14 +53,12 @@ class TDIBuilder(OrderedStage):
         self.stream = TDIStream(**kwargs)
 
     def expect(self, topic, index):
-        return Expect(run=self.run_id, index=index, arrays={k: ("<f8", (6, None)) for k in _TELEMETRY})
+        return Expect(run=self.run_id, index=index, arrays={k: ("<f8", (6, None)) for k in TELEMETRY_ARRAYS})
 
     def handle(self, header, arrays):
         # validated here, before buffering: a segment that raises is reported as failed and
         # not marked processed, so a good copy of it is still accepted
-        tm = Telemetry(t0=header.t0, fs=header.fs, source=str(header.meta.get("source", "bus")),
-                       **{k: arrays[k] for k in _TELEMETRY})
-        self.enqueue(header, tm)
+        self.enqueue(header, telemetry_of(header, arrays))
         return ()
 
     def restart(self) -> None:

@@ -40,10 +40,13 @@ STAGE_NAMES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
 
 
 def register(sub) -> None:
-    """Add ``run``, ``stage``, ``router`` (and ``inspect``/``view`` when available) to ``ttl``."""
+    """Add ``run``, ``stage``, ``router``, ``control`` (and ``inspect``/``view`` when available) to ``ttl``."""
     _add_run(sub)
     _add_stage(sub)
     _add_router(sub)
+    _add_control(sub)
+    from . import refit
+    refit.register(sub)
     try:
         spec = importlib.util.find_spec("streamer.inspect")
     except (ImportError, ValueError):
@@ -205,6 +208,64 @@ def _cmd_stage(args) -> int:
     if not classes:
         raise TTLError(f"stage {args.name!r}: module stages.{args.name} has neither main() nor a Stage class")
     return int(main(classes[0], args.args) or 0)
+
+
+# ---------------------------------------------------------------------------- ttl control
+
+def _add_control(sub) -> None:
+    p = sub.add_parser("control", help="send a command to a stage of a running pipeline",
+                       description="Publish ttl/<run>/control/<stage>/<command> (for example the fitter's model: "
+                                   "ttl control --run day3 --connect tcp/127.0.0.1:PORT fitter model "
+                                   "'{\"effects\": [\"linear-ttl\", \"drift\"]}'), then report a rejection the "
+                                   "stage publishes on errors within --wait seconds.")
+    p.add_argument("stage", help="stage name")
+    p.add_argument("command", help="command (fitter: model; every stage: stop)")
+    p.add_argument("payload", nargs="?", default="", help="the message (JSON)")
+    p.add_argument("--run", required=True, help="run id")
+    p.add_argument("--connect", action="append", metavar="ENDPOINT", required=True,
+                   help="the run's router (ttl run prints it), e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--wait", type=float, default=10.0,
+                   help="seconds to listen for a rejection (default 10; a stage answers between segments)")
+    p.set_defaults(func=_cmd_control)
+
+
+def _cmd_control(args) -> int:
+    import json as _json
+    import queue
+
+    from .keys import check_name, control_key
+    from .session import Bus, SessionSettings
+
+    key = control_key(check_name(args.run, "run id"), check_name(args.stage, "stage"), check_name(args.command, "command"))
+    if args.payload:
+        try:
+            _json.loads(args.payload)
+        except ValueError as exc:
+            raise TTLError(f"payload: not JSON ({exc})") from None
+    rejections: queue.Queue = queue.Queue()
+    try:
+        bus = Bus.open(SessionSettings(mode="client", connect=tuple(args.connect)))
+    except Exception as exc:
+        raise TTLError(f"cannot reach the run's router at {', '.join(args.connect)}: {exc}") from None
+    with bus:
+        def on_error(sample):
+            try:
+                err = _json.loads(sample.payload.to_bytes())
+            except ValueError:
+                return
+            if err.get("key") == key:
+                rejections.put(err)
+
+        bus.subscriber(f"ttl/{args.run}/errors/*", on_error)
+        if args.stage not in bus.alive_stages(args.run, timeout=1.0):
+            raise TTLError(f"no stage {args.stage!r} alive in run {args.run!r}")
+        bus.session.put(key, args.payload.encode())
+        try:
+            err = rejections.get(timeout=max(0.0, args.wait))
+        except queue.Empty:
+            print(f"ttl control: sent {key}; no rejection within {args.wait:g} s")
+            return 0
+    raise TTLError(f"{args.stage} rejected {args.command}: {err.get('message')}")
 
 
 # ---------------------------------------------------------------------------- ttl router

@@ -216,6 +216,7 @@ class Stage:
         self.recorder: Recorder | None = None
         self.recording_path: Path | None = None
         self._queue: queue.Queue = queue.Queue()
+        self._controls: queue.Queue = queue.Queue()  # handled before queued segments
         self._stop = threading.Event()
         self._publishers: dict = {}
         self._done: dict[str, set[int]] = {}
@@ -288,6 +289,8 @@ class Stage:
 
     def _loop(self) -> None:
         while not self._stop.is_set():
+            while not self._controls.empty():
+                self._control(*self._controls.get_nowait())
             try:
                 item = self._queue.get(timeout=self.config.poll_interval)
             except queue.Empty:
@@ -296,8 +299,6 @@ class Stage:
             if item[0] == "miss":
                 _, source, count = item
                 self.report_error("missed", f"{count} sample(s) lost beyond recovery from publisher {source}")
-            elif item[0] == "control":
-                self._control(item[1], item[2])
             else:
                 self._process(*item[1:])
 
@@ -375,7 +376,7 @@ class Stage:
             self._stop.set()
         elif len(parts) == 2 and parts[0] == self.stage_name:
             payload = sample.payload.to_bytes() if sample.payload is not None else b""
-            self._queue.put(("control", parts[1], payload))
+            self._controls.put((parts[1], payload))
 
     # ------------------------------------------------------------------ processing
     def _process(self, key: str, payload, attachment) -> None:

@@ -1,0 +1,38 @@
+"""The pipeline's segment messages as :mod:`ttlcore` objects.
+
+A ``telemetry`` message (arrays ``eta``, ``dws_phi``, ``dws_eta``, ``ltt``, each (6, n)) is a
+:class:`ttlcore.telemetry.Telemetry`; a ``tdi`` message (arrays ``data`` (3, n) and
+``regressors`` (3, P, n), meta ``names`` and ``ltt_mean``) is a
+:class:`ttlcore.tdi_data.TDIData`.  Used by the stages on live messages and by the offline
+tools (``ttl refit``) on recorded ones.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ttlcore.conventions import COEFFICIENT_NAMES
+from ttlcore.tdi_data import TDIData
+from ttlcore.telemetry import Telemetry
+
+#: Arrays of a telemetry message.
+TELEMETRY_ARRAYS = ("eta", "dws_phi", "dws_eta", "ltt")
+
+
+def telemetry_of(header, arrays) -> Telemetry:
+    """The :class:`~ttlcore.telemetry.Telemetry` of a ``telemetry`` message."""
+    return Telemetry(t0=header.t0, fs=header.fs, source=str(header.meta.get("source", "bus")),
+                     **{k: arrays[k] for k in TELEMETRY_ARRAYS})
+
+
+def tdi_of(header, arrays) -> TDIData:
+    """The :class:`~ttlcore.tdi_data.TDIData` of a ``tdi`` message (errors name the field)."""
+    meta = header.meta
+    names = tuple(meta.get("names") or COEFFICIENT_NAMES)
+    if len(names) != arrays["regressors"].shape[1]:
+        raise ValueError(f"meta.names has {len(names)} names for {arrays['regressors'].shape[1]} regressors")
+    ltt = np.asarray(meta.get("ltt_mean", [np.nan] * 6), dtype=float)
+    if ltt.shape != (6,):
+        raise ValueError(f"meta.ltt_mean: expected 6 values, got shape {ltt.shape}")
+    return TDIData(t0=header.t0, fs=header.fs, channels=tuple(header.channels), data=arrays["data"],
+                   regressors=arrays["regressors"], names=names, ltt_mean=ltt)

@@ -1,0 +1,188 @@
+"""``ttl refit``: refit the recorded segments of a run with another model, offline.
+
+The segments come from the run's MCAP files alone: the telemetry the replayer published
+(``replayer.mcap``, or the inputs the TDI builder recorded), else the TDI outputs of the
+TDI builder (``tdi_builder.mcap``); files of restarted stages (``<stage>.<n>.mcap``) are
+merged, one copy per segment index.  With the telemetry every effect is available (the
+TDI is recomputed); from TDI outputs alone the model may use ``linear-ttl``, ``drift`` and
+``step``.  The refit is :func:`ttlcore.diagnose.refit`: the model and the baseline (default
+the linear TTL) fitted under the instrument noise model, side by side: chi^2/dof overall
+and per band, delta chi^2 and log Bayes factor of the change, the coefficients.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+from pathlib import Path
+
+import numpy as np
+
+from ttlcore.conventions import COEFFICIENT_NAMES
+from ttlcore.errors import TTLError
+from ttlcore.telemetry import Telemetry
+
+from .inspect import recording_files
+from .messages import tdi_of, telemetry_of
+from .recorder import RecordingError, read_recording
+
+log = logging.getLogger(__name__)
+
+
+class RefitError(TTLError):
+    """A run cannot be refitted (the message names the directory, file or option)."""
+
+
+def recorded_segments(run_dir, topic: str, stages=("replayer", "tdi_builder")) -> dict[int, tuple]:
+    """Index -> ``(header, arrays)`` of the ``topic`` segments recorded in a run directory
+    (the first stage of ``stages`` that holds any; every file of that stage merged)."""
+    files = recording_files(run_dir)
+    for stage in stages:
+        found: dict[int, tuple] = {}
+        for path in files.get(stage, ()):
+            try:
+                rec = read_recording(path)
+            except RecordingError as exc:
+                log.warning("%s: skipped (%s)", path, exc)
+                continue
+            for seg in rec.segments(topic):
+                found.setdefault(seg.header.index, (seg.header, seg.arrays))
+        if found:
+            return found
+    return {}
+
+
+def _select(found: dict[int, tuple], first: int | None, last: int | None) -> list[tuple]:
+    idx = sorted(i for i in found if (first is None or i >= first) and (last is None or i <= last))
+    if not idx:
+        raise RefitError("no recorded segment in the range asked")
+    gaps = [i for i in range(idx[0], idx[-1] + 1) if i not in found]
+    if gaps:
+        raise RefitError(f"segments {gaps[:5]}{'...' if len(gaps) > 5 else ''} are missing from the recordings: "
+                         "refit a contiguous range (--segments A:B)")
+    return [found[i] for i in idx]
+
+
+def load_run(run_dir, segments: tuple[int | None, int | None] = (None, None), source: str = "auto"):
+    """The data of a recorded run for a refit: a :class:`Telemetry` (``source="telemetry"``)
+    or a list of :class:`~ttlcore.tdi_data.TDIData` segments (``"tdi"``); ``"auto"`` prefers
+    telemetry.  Returns ``(data, description, dws_asd)`` (the DWS readout-noise level the
+    replayer passed down, None when not recorded)."""
+    first, last = segments
+    if source in ("auto", "telemetry"):
+        found = recorded_segments(run_dir, "telemetry")
+        if found:
+            parts = [telemetry_of(h, a) for h, a in _select(found, first, last)]
+            tm = Telemetry(t0=parts[0].t0, fs=parts[0].fs, source=str(run_dir),
+                           **{k: np.concatenate([getattr(p, k) for p in parts], axis=1)
+                              for k in ("eta", "dws_phi", "dws_eta", "ltt")})
+            return (tm, f"telemetry of {len(parts)} recorded segments ({tm.size / tm.fs / 3600:g} h)",
+                    found[min(found)][0].meta.get("dws_asd"))
+        if source == "telemetry":
+            raise RefitError(f"{run_dir}: no recorded telemetry (replayer.mcap, or tdi_builder.mcap inputs)")
+    found = recorded_segments(run_dir, "tdi", stages=("tdi_builder",))
+    if not found:
+        raise RefitError(f"{run_dir}: no recorded telemetry or TDI segments to refit")
+    parts = [tdi_of(h, a) for h, a in _select(found, first, last)]
+    return (parts, f"TDI of {len(parts)} recorded segments ({sum(p.size / p.fs for p in parts) / 3600:g} h)",
+            found[min(found)][0].meta.get("dws_asd"))
+
+
+def refit_run(run_dir, effects, *, baseline=("linear-ttl",), effect_modules=(), segments=(None, None),
+              source: str = "auto", band=None) -> dict:
+    """Refit a recorded run with ``effects`` against ``baseline`` (see the module docstring);
+    returns the JSON report (``source``, ``model``, ``baseline``, ``change``)."""
+    from ttlcore.diagnose import DiagnoseSettings, refit
+
+    data, what, dws = load_run(run_dir, segments, source)
+    dws = None if dws is None else float(dws)
+    settings = DiagnoseSettings(dws_asd=dws, **({"band": tuple(band)} if band else {}))
+    try:
+        report = refit(data, list(effects), settings=settings, effect_modules=tuple(effect_modules),
+                       baseline=list(baseline), dws_asd=dws)
+    except TTLError:
+        raise
+    except ValueError as exc:
+        raise RefitError(str(exc)) from None
+    report = {k: v for k, v in report.items() if not k.startswith("_")}
+    report["source"] = {"run": str(run_dir), "data": what}
+    return report
+
+
+def format_refit(report: dict) -> str:
+    """The side-by-side text report of :func:`refit_run`."""
+    m, b, c = report["model"], report["baseline"], report["change"]
+
+    def fmt(x, spec=".3f"):
+        return format(x, spec) if isinstance(x, (int, float)) else "-"
+
+    lines = [f"refit of {report['source']['run']}: {report['source']['data']}",
+             f"  model     {','.join(m['effects'])}: {m['n_parameters']} parameters, chi2/dof {fmt(m['chi2_dof'])}",
+             f"  baseline  {','.join(b['effects'])}: {b['n_parameters']} parameters, chi2/dof {fmt(b['chi2_dof'])}",
+             f"  change    delta chi2 {fmt(c['delta_chi2'], '.1f')}, log Bayes factor {fmt(c['log_bayes_factor'], '.1f')}",
+             "  chi2/dof against the instrument noise model per band:  baseline -> model"]
+    for band, before, after in zip(m["adequacy"]["bands"], c["bands_before"], c["bands_after"]):
+        flag = "  FAILS" if band.get("fails") else ""
+        lines.append(f"    {band['f_lo']:.3g}-{band['f_hi']:.3g} Hz   {fmt(before)} -> {fmt(after)}{flag}")
+    lines += [f"  {s}" for s in m["adequacy"].get("summary", [])]
+    values, sigma = m["coefficients"]["values"], m["coefficients"]["sigma"]
+    base_values = b["coefficients"]["values"]
+    shown = [n for n in COEFFICIENT_NAMES if n in values]
+    if shown:
+        lines.append("  linear coefficients [mm/rad]: baseline -> model (sigma)")
+        for n in shown:
+            lines.append(f"    {n:<12} {base_values.get(n, float('nan')) * 1e3:+8.4f} -> {values[n] * 1e3:+8.4f} "
+                         f"({sigma[n] * 1e3:.4f})")
+    extra = [n for n in values if n not in COEFFICIENT_NAMES]
+    if extra:
+        lines.append(f"  other parameters: {len(extra)} (in the JSON report)")
+    return "\n".join(lines)
+
+
+def _parse_range(text: str | None) -> tuple[int | None, int | None]:
+    if not text:
+        return None, None
+    a, sep, b = text.partition(":")
+    try:
+        return (int(a) if a else None, int(b) if b else None) if sep else (int(a), int(a))
+    except ValueError:
+        raise RefitError(f"--segments: expected A:B (segment indices), got {text!r}") from None
+
+
+def register(sub) -> None:
+    """Add ``refit`` to the ``ttl`` subcommands."""
+    p = sub.add_parser("refit", help="refit the recorded segments of a run with another model",
+                       description="Refit recordings/<run> (its MCAP files alone) with the model given by --effects "
+                                   "and compare with the baseline model under the instrument noise model.")
+    p.add_argument("run_dir", metavar="recordings/NAME", help="run directory")
+    p.add_argument("--effects", required=True, help="the model, comma-separated effect specs "
+                                                    "(e.g. linear-ttl,drift; docs/diagnostics.md lists them)")
+    p.add_argument("--baseline", default="linear-ttl", help="the model to compare with (default linear-ttl)")
+    p.add_argument("--effect-module", action="append", default=[], metavar="PATH",
+                   help="plugin module or .py file defining effects (repeatable)")
+    p.add_argument("--segments", metavar="A:B", help="segment indices to refit (default all, contiguous)")
+    p.add_argument("--source", choices=("auto", "telemetry", "tdi"), default="auto",
+                   help="refit from the recorded telemetry (every effect) or the TDI outputs (default: telemetry "
+                        "when recorded)")
+    p.add_argument("--band", nargs=2, type=float, metavar=("FMIN", "FMAX"), help="fit band [Hz]")
+    p.add_argument("--json", type=Path, metavar="OUT", help="also write the report as JSON")
+    p.set_defaults(func=_cmd_refit)
+
+
+def _cmd_refit(args) -> int:
+    from .inspect import InspectError
+
+    split = lambda s: [x for x in s.split(",") if x.strip()]  # noqa: E731
+    try:
+        report = refit_run(args.run_dir, split(args.effects), baseline=split(args.baseline),
+                           effect_modules=args.effect_module, segments=_parse_range(args.segments),
+                           source=args.source, band=args.band)
+    except InspectError as exc:
+        raise RefitError(str(exc)) from None
+    print(format_refit(report))
+    if args.json:
+        tmp = args.json.with_name(args.json.name + ".tmp")
+        tmp.write_text(json.dumps(report, indent=2, default=float))
+        os.replace(tmp, args.json)
+    return 0

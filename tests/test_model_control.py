@@ -1,0 +1,112 @@
+"""The pipeline changes its model on a control message mid-run (issue 6).
+
+Real processes: ``ttl run`` (router and five stages on
+127.0.0.1) on 12 simulated hours in which two coefficients drift, and ``ttl control``
+sending the fitter ``{"effects": ["linear-ttl", "drift"]}`` half-way.  The fitter's MCAP
+file must show the control message accepted and a fit whose ``model_change`` compares
+both models on the same window - the linear model failing against the instrument noise
+model, the drift model not - and every later fit with the new model; the monitor's Rerun
+recording must hold the adequacy series against the instrument noise model, falling after
+the change, and the before/after bar charts.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).with_name("stages")))
+
+from streamer.recorder import read_recording  # noqa: E402
+from streamer.session import Bus, SessionSettings, free_port  # noqa: E402
+from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for  # noqa: E402
+
+SEGMENTS = 12
+
+
+def test_fitter_changes_model_on_control_message_and_monitor_shows_before_after(tmp_path):
+    from test_pipeline import _progress_watch
+
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    (tmp_path / "run.toml").write_text('[stages.fitter]\nadequacy_every = 1\n')
+    procs = Procs(tmp_path)
+    try:
+        # 12 mm/rad/day on two coefficients (far beyond LISA's expectations, chosen so that
+        # the excess shows in chi^2/dof and not only in the evidence: at 3 mm/rad/day the
+        # linear model's chi^2/dof is 1.004 over ~10^6 degrees of freedom, delta chi^2 2000)
+        proc = procs.ttl("run", "--config", tmp_path / "run.toml", "--simulate",
+                         "--duration 12h --orbit unequal --seed 4 --drift 12.phi.rx=12,23.eta.tx=-12",
+                         "--segment", "1h", "--run-id", "m1", "--recordings", tmp_path / "rec",
+                         "--listen", endpoint, "--timeout", "400", *([] if MONITOR else ["--skip", "monitor"]))
+        with Bus.open(SessionSettings(mode="client", connect=(endpoint,))) as bus:
+            time.sleep(0.5)
+            fitted = _progress_watch(bus, "m1", "fitter")
+            wait_for(lambda: fitted() >= 6 or proc.poll() is not None, 180, "six segments through the fitter")
+            assert proc.poll() is None, output(proc)[-3000:]
+            bad = subprocess.run(ttl_command("control", "fitter", "model", '{"effects": ["linear-ttl", "tilt"]}',
+                                             "--run", "m1", "--connect", endpoint, "--wait", "60"),
+                                 capture_output=True, text=True, timeout=90)
+            assert bad.returncode != 0 and "tilt" in bad.stderr, (bad.stdout, bad.stderr)  # unknown effect: rejected
+            sent = subprocess.run(ttl_command("control", "fitter", "model", '{"effects": ["linear-ttl", "drift"]}',
+                                              "--run", "m1", "--connect", endpoint),
+                                  capture_output=True, text=True, timeout=60)
+            assert sent.returncode == 0, (sent.stdout, sent.stderr)
+            code = finish(proc, 400)
+    finally:
+        procs.close()
+    assert code == 0, output(proc)[-5000:]
+
+    run = tmp_path / "rec" / "m1"
+    fitter = read_recording(run / "fitter.mcap")
+    assert [(c["command"], c["accepted"]) for c in fitter.json("control")] == [("model", False), ("model", True)]
+    fits = sorted(fitter.segments("fit"), key=lambda s: s.header.index)
+    assert [f.header.index for f in fits] == list(range(SEGMENTS))
+    changed = [f for f in fits if "model_change" in f.header.meta]
+    assert len(changed) == 1, [f.header.meta.get("model") for f in fits]
+    k = fits.index(changed[0])
+    change = changed[0].header.meta["model_change"]
+    assert change["before"] == ["linear-ttl"] and change["after"] == ["linear-ttl", "drift"]
+    # the same window refitted with both models: the drift explains the excess
+    assert change["chi2_dof_before"] > 1.1 and 0.9 < change["chi2_dof_after"] < 1.1, change
+    assert change["delta_chi2"] > 100 and change["log_bayes_factor"] > 10, change
+    assert all(f.header.meta["model"] == ["linear-ttl"] for f in fits[:k])
+    assert all(f.header.meta["model"] == ["linear-ttl", "drift"] for f in fits[k:])
+    assert all("extra_parameters" in f.header.meta for f in fits[k:])
+    assert fits[k - 1].header.meta["adequacy"]["fails"] and not fits[-1].header.meta["adequacy"]["fails"]
+
+    if MONITOR:  # the monitor's Rerun recording: the excess before and after
+        from test_monitor import rrd_entities
+
+        ent = rrd_entities(run / "monitor.rrd")
+        series = {row[0]["segment"]: row[1]["Scalars:scalars"][0] for row in ent["/adequacy/instrument/chi2_dof"]
+                  if "Scalars:scalars" in row[1]}
+        assert sorted(series) == list(range(SEGMENTS))
+        assert series[k - 1] > 1.1 and series[SEGMENTS - 1] < 1.1, series
+        for part in ("before", "after"):
+            bars = [row[1] for row in ent[f"/model/{part}"] if any(c.startswith("BarChart:") for c in row[1])]
+            assert bars, part
+        log = [str(row[1]) for row in ent["/model/log"]]
+        assert any("linear-ttl -> linear-ttl,drift" in line for line in log), log
+
+    # offline: ttl refit of the recorded segments, from the telemetry and from the TDI alone
+    for source in ("telemetry", "tdi"):
+        out = tmp_path / f"refit-{source}.json"
+        r = subprocess.run(ttl_command("refit", run, "--effects", "linear-ttl,drift", "--source", source, "--json", out),
+                           capture_output=True, text=True, timeout=300)
+        assert r.returncode == 0, r.stderr
+        report = json.loads(out.read_text())
+        assert report["baseline"]["chi2_dof"] > 1.1 and 0.9 < report["model"]["chi2_dof"] < 1.1, report["change"]
+        assert report["change"]["log_bayes_factor"] > 10 and "linear-ttl,drift" in r.stdout
+        values = report["model"]["coefficients"]["values"]
+        # the window-average of the drifting coefficient: 2.3 + 12 mm/rad/day x 6 h
+        assert abs(values["12.phi.rx"] - 5.3e-3) < 5 * report["model"]["coefficients"]["sigma"]["12.phi.rx"]
+    r = subprocess.run(ttl_command("refit", run, "--effects", "linear-ttl,tilt"), capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "tilt" in r.stderr, r.stderr
+    r = subprocess.run(ttl_command("refit", tmp_path / "nope", "--effects", "drift"), capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2 and "no such run directory" in r.stderr, r.stderr
