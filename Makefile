@@ -36,6 +36,9 @@ demo-pipeline: $(STAMP)
 	$(BIN)/ttl run --telemetry $(DEMO)/pipeline/mission.h5 --run-id demo --recordings $(DEMO)/pipeline/recordings --timeout 900
 	$(BIN)/ttl inspect $(DEMO)/pipeline/recordings/demo --truth $(DEMO)/pipeline/mission.truth.h5
 	@echo ""
+	@echo "The monitor flagged a step at 1.5 d: refit the day around it with a step in the model"
+	$(BIN)/ttl refit $(DEMO)/pipeline/recordings/demo --effects linear-ttl,step:t_step=1.5d --segments 24:47
+	@echo ""
 	@echo "Where to look:"
 	@echo "  Rerun recording (ASDs, coefficient trends, alerts): $(BIN)/ttl view $(DEMO)/pipeline/recordings/demo"
 	@echo "  MCAP logs of the five stages:                       $(DEMO)/pipeline/recordings/demo/*.mcap"
