@@ -111,7 +111,7 @@ class DiagnoseSettings:
     alpha: float = DEFAULT_ALPHA
     log_bf_threshold: float = 2.3
     step_grid: float = 3600.0
-    step_refine: float = 600.0
+    step_refine: float = 900.0
     witnesses: bool = True
     top_witnesses: int = 5
     #: Gauss-Newton passes of the linearised effects in a model (0: Taylor at zero only)
@@ -238,6 +238,8 @@ class ModelFit:
     dd: np.ndarray | None = field(repr=False, default=None)
     #: columns entering with coefficient one (Gauss-Newton expansion terms)
     fixed: tuple = ()
+    #: errors-in-variables term (G, P, P) of the model's columns (cached)
+    eiv_term: np.ndarray | None = field(repr=False, default=None)
 
     @property
     def sigma(self) -> np.ndarray:
@@ -439,8 +441,8 @@ class Diagnoser:
 
         td = self._td_in
         for order in (1, 2):
-            x = derivative(td.regressors, td.fs, order)
-            series = self._decimate(x, is_aet=True)
+            series = np.concatenate([self._decimate(derivative(td.regressors[:, j0:j0 + 8], td.fs, order), is_aet=True)
+                                     for j0 in range(0, len(td.names), 8)], axis=1)
             names = [f"d{order}:{n}" for n in td.names]
             self._add_columns(names, np.matmul(self.Lh, self._spectra(series)), [(1.0, "", 1.0)] * len(names))
             for k, n in enumerate(names):
@@ -519,8 +521,8 @@ class Diagnoser:
                     self.eiv_parts.pop(c.name, None)
             series = np.empty((3, len(cols), 0))
             chunks = []
-            for j0 in range(0, len(cols), 24):  # bounded memory
-                chunks.append(self._decimate(columns_tdi(cols[j0:j0 + 24], self.built)))
+            for j0 in range(0, len(cols), 8):  # bounded memory (a day: ~70 MB per column in flight)
+                chunks.append(self._decimate(columns_tdi(cols[j0:j0 + 8], self.built)))
             series = np.concatenate(chunks, axis=1)
         clash = [n for n in names if n in self.wcols and n not in self.series and self.tm is not None and False]
         del clash
@@ -563,7 +565,7 @@ class Diagnoser:
         """Real layout (p, S, m, 6) of the columns, cached for the last few name lists."""
         key = tuple(names)
         if key not in self._x_cache:
-            if len(self._x_cache) > 4:
+            if len(self._x_cache) > 1:  # bounded memory: a day's stack is ~100 MB per 30 columns
                 self._x_cache.pop(next(iter(self._x_cache)))
             self._x_cache[key] = np.stack([self.wcols[n] for n in names]).view(np.float64)
         return self._x_cache[key]
@@ -638,6 +640,7 @@ class Diagnoser:
         q_min = float(dd.sum() - btot @ theta)
         fit = ModelFit(effects, tuple(names), theta, cov, chi2_sg, bands.dof, bands, q_min, residual_w=wr)
         fit.normal = (N, b)
+        fit.eiv_term = E
         fit.dd = dd
         fit.fixed = tuple(fixed)
         if time_table and all(n in self.series for n in names + fixed):
@@ -806,7 +809,9 @@ class Diagnoser:
 
     def _evidence(self, model, N_MM, N_MK, N_KK, b_M, b_K, K, prior=None) -> dict:
         P, k = N_MM.shape[-1], N_KK.shape[-1]
-        E = self.eiv(list(model.names))
+        if model.eiv_term is None:
+            model.eiv_term = self.eiv(list(model.names))
+        E = model.eiv_term
         full = np.zeros(N_MM.shape[:2] + (P + k, P + k))
         full[..., :P, :P] = N_MM
         full[..., :P, P:] = N_MK
@@ -862,7 +867,7 @@ class Diagnoser:
         # columns themselves: search inside
         t_lo = self.t0 + idx[0] / self.fs + s.step_grid / 2
         t_hi = self.t0 + (idx[-1] + 1) / self.fs - s.step_grid / 2
-        stack = np.stack([self.series[n] for n in base], axis=1)  # (3, k, n)
+        stack = np.nan_to_num(np.stack([self.series[n] for n in base], axis=1))  # (3, k, n)
 
         def evaluate_at(ts):
             j = int(np.searchsorted(self.seg_t0, ts, side="right") - 1)
@@ -873,11 +878,9 @@ class Diagnoser:
             if 0 <= j < len(self.starts):
                 s0 = self.starts[j]
                 h = (self.t0 + (s0 + np.arange(self.L)) / self.fs >= ts).astype(float)
-                seg = np.zeros((3, len(base), self.data_series.shape[-1]))
-                seg[:, :, s0:s0 + self.L] = stack[:, :, s0:s0 + self.L] * h
-                # spectra of segment j only
                 m = self.mask[s0:s0 + self.L]
-                _, X = segment_fft(np.where(m, np.nan_to_num(seg[:, :, s0:s0 + self.L]), 0.0), self.fs, self.win * m)
+                # spectra of segment j only
+                _, X = segment_fft(stack[:, :, s0:s0 + self.L] * (h * m), self.fs, self.win * m)
                 wK = np.matmul(self.Lh, np.moveaxis(X[:, :, self.bins], 2, 0))[None]  # (1, m, 3, k)
                 XK = _as_real(wK)
                 N_MK[j] = _gram_x(XM[:, j:j + 1], XK, self.slices)[0]

@@ -246,10 +246,10 @@ def test_command_line_errors_name_the_option(tmp_path, capsys):
 DAY_CASES = {
     "drift": ("drift:t_ref=43200,12.phi.rx=0.03,21.eta.tx=-0.03", True),
     "step": ("step:t_step=50000,12.phi.rx=1e-2,13.eta.tx=-1e-2", True),
-    "cross-coupling": ("cross-coupling:12.phi.rx=4e-3,31.eta.rx=4e-3", False),
+    "cross-coupling": ("cross-coupling:12.phi.rx=8e-3,31.eta.rx=8e-3", False),
     "timing-offset": ("timing-offset:sc1.d1=0.25", False),
     "second-order": ("second-order:quad.12.phiphi.rx=1500,quad.23.phieta.rx=1500", False),
-    "ltt-error": ("ltt-error:12.d1=0.15,31.d1=-0.15", False),
+    "ltt-error": ("ltt-error:12.d1=0.25,31.d1=-0.25", False),
 }
 
 
