@@ -57,6 +57,8 @@ bench: $(STAMP)
 	$(BIN)/python bench/tdi.py
 	$(BIN)/python bench/fit.py
 	$(BIN)/python bench/pipeline.py
+	$(BIN)/python bench/gw.py
+	$(BIN)/python bench/diagnose.py
 
 clean:
 	rm -rf $(VENV) $(DEMO) *.egg-info
