@@ -46,9 +46,9 @@ Per case (``summary.json``; ``summary.md`` is the same as tables)
 
 Variants (beyond the paper): ``paper`` (2.3 mm/rad, white jitter above 0.8 mHz),
 ``lisainstrument`` (lisainstrument's default coefficient set) and ``coloured`` (jitter ASDs
-with their knee at 8 mHz instead of 0.8 mHz, so the jitter - and the TTL noise - is red,
-``~ f^-2``, over the lower part of the fit band; the paper's open question. A jitter that
-rolls off at high frequency needs a shape the simulator does not offer yet).
+with their knee at 8 mHz instead of 0.8 mHz and a high-frequency corner at 0.1 Hz, so the
+jitter - and the TTL noise - falls as ``f^-2`` over the lower and the upper part of the
+fit band and is white only between; the paper's open question).
 
 Figures per case and variant: ``<variant>/<case>_asd.png`` (X2 ASDs: data, residual, TTL
 residual, noise without TTL, GW, requirement), ``<case>_coefficients.png`` (deviations with
@@ -105,12 +105,13 @@ PAPER_CASES = (
          tc_offset=0.04e6, merger=True),
 )
 
-#: Variants: coefficient set and jitter knee [Hz].
+#: Variants: coefficient set, jitter knee and high-frequency corner [Hz] (None: white above the knee).
 VARIANTS = {
-    "paper": {"coeffs": "paper", "fknee": 0.8e-3, "title": "paper: 2.3 mm/rad, white jitter in the band"},
-    "lisainstrument": {"coeffs": "lisainstrument", "fknee": 0.8e-3,
+    "paper": {"coeffs": "paper", "fknee": 0.8e-3, "fhigh": None, "title": "paper: 2.3 mm/rad, white jitter in the band"},
+    "lisainstrument": {"coeffs": "lisainstrument", "fknee": 0.8e-3, "fhigh": None,
                        "title": "lisainstrument default coefficients, white jitter"},
-    "coloured": {"coeffs": "paper", "fknee": 8e-3, "title": "2.3 mm/rad, coloured jitter (knee 8 mHz, f^-2 below)"},
+    "coloured": {"coeffs": "paper", "fknee": 8e-3, "fhigh": 0.1,
+                 "title": "2.3 mm/rad, coloured jitter (f^-2 below 8 mHz and above 0.1 Hz)"},
 }
 
 #: Acceptance thresholds of the issue / paper [m/rad] and the GW-intact tolerance.
@@ -168,6 +169,8 @@ class _Runner:
         cfg = SimulationConfig(duration=self.duration, t0=t0, orbit=orbit, seed=self.seed,
                                coefficients=make_coefficients(variant["coeffs"], seed=self.seed))
         cfg.jitter = dict(cfg.jitter, fknee=variant["fknee"])
+        if variant.get("fhigh"):
+            cfg.jitter["fhigh"] = variant["fhigh"]
         self.say(f"simulate {orbit} t0={t0:g} s ({self.duration:g} s, {variant['coeffs']} coefficients, "
                  f"jitter knee {1e3 * variant['fknee']:g} mHz)")
         tm, truth = simulate(cfg)
@@ -497,7 +500,8 @@ def run_scenarios(out_dir, *, cases=None, variants=("paper", "lisainstrument", "
             del base
         rows.sort(key=lambda r: cases.index(r["case"]))
         summary["variants"][vname] = {"title": variant["title"], "coefficients": variant["coeffs"],
-                                      "jitter_fknee_hz": variant["fknee"], "cases": rows}
+                                      "jitter_fknee_hz": variant["fknee"],
+                                      "jitter_fhigh_hz": variant.get("fhigh"), "cases": rows}
         summary["timings_s"][vname] = round(time.monotonic() - t_var, 1)
     summary["timings_s"]["total"] = round(time.monotonic() - start, 1)
     summary["all_within_limits"] = all(r["error_within_limit"] for v in summary["variants"].values() for r in v["cases"])

@@ -131,7 +131,8 @@ class SimulationConfig:
     noises : NoiseSwitches
     jitter : dict
         Angle ASD levels [rad/sqrt(Hz)] and knee: ``sc``, ``mosa_phi``, ``mosa_eta``,
-        ``fknee`` [Hz], ``dws`` (readout noise).
+        ``fknee`` [Hz], optionally ``fhigh`` [Hz] (a high-frequency corner above which the
+        jitter falls as ``f^-2``), ``dws`` (readout noise).
     interpolation_order : int
         Lagrange order of the delays.
     laser_upsampling : int
@@ -241,7 +242,7 @@ class Simulator:
             return NoiseStream(model, rate, seed=cfg.seed, key=key, n_channels=n) if on else None
 
         def jitter_model(level):
-            return vel(_Jitter(level, jit["fknee"]))
+            return vel(_Jitter(level, jit["fknee"], jit.get("fhigh")))
 
         self.streams = {
             "laser": stream(sw.laser, "laser", noise_models.laser, 3, self.fs_physics),
@@ -399,14 +400,18 @@ class Simulator:
 
 @dataclass(frozen=True)
 class _Jitter:
-    """Angle ASD ``level * sqrt(1 + (fknee/f)^4)`` [rad/sqrt(Hz)] (picklable)."""
+    """Angle ASD ``level * sqrt(1 + (fknee/f)^4) / sqrt(1 + (f/fhigh)^4)`` [rad/sqrt(Hz)]:
+    white between the knees, ``f^-2`` below ``fknee`` and, with ``fhigh``, ``f^-2`` above it
+    (picklable)."""
 
     level: float
     fknee: float
+    fhigh: float | None = None
 
     def __call__(self, f):
         f = np.asarray(f, dtype=float)
-        return self.level * np.sqrt(1 + (self.fknee / f) ** 4)
+        asd = self.level * np.sqrt(1 + (self.fknee / f) ** 4)
+        return asd if self.fhigh is None else asd / np.sqrt(1 + (f / self.fhigh) ** 4)
 
 
 @dataclass(frozen=True)

@@ -201,3 +201,18 @@ def test_x2_suppresses_laser_noise_below_secondary_noises():
         ratio = np.sqrt(p_laser[sel].mean() / p_sec[sel].mean())
         worst = max(worst, ratio)
         assert ratio < 0.1, f"laser residual {ratio:.3f} of secondary ASD in {lo:.2e}-{hi:.2e} Hz"
+
+
+def test_coloured_jitter_follows_its_shape():
+    # knees at 8 mHz and 0.1 Hz: f^-2 below and above, white between (the coloured-jitter
+    # variant of `ttl scenarios`); same tolerance as the white case above
+    jitter = {"sc": 5e-9, "mosa_phi": 2e-9, "mosa_eta": 1e-9, "fknee": 8e-3, "fhigh": 0.1, "dws": 70e-9 / 335}
+    cfg = SimulationConfig(duration=DAY / 2, orbit="equal", seed=12, jitter=jitter,
+                           noises=NoiseSwitches.parse("none,sc_jitter,mosa_jitter"))
+    tm, truth = simulate(cfg)
+
+    def shape(level):  # velocity PSD of the angle ASD level * sqrt(1 + (fk/f)^4) / sqrt(1 + (f/fh)^4)
+        return lambda f: (2 * np.pi * f * level) ** 2 * (1 + (8e-3 / f) ** 4) / (1 + (f / 0.1) ** 4)
+
+    assert_matches(truth["angular_velocity/phi"], tm.fs, lambda f: shape(5e-9)(f) + shape(2e-9)(f), "phi velocity")
+    assert_matches(truth["angular_velocity/eta"], tm.fs, lambda f: shape(5e-9)(f) + shape(1e-9)(f), "eta velocity")
