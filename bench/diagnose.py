@@ -43,7 +43,9 @@ def main() -> int:
     args = ap.parse_args()
     inj = () if args.clean else (injection_from_spec(INJECTION),)
     t = time.perf_counter()
-    tm, _ = simulate(SimulationConfig(duration=args.duration, orbit="keplerian", seed=args.seed, injections=inj))
+    # one chunk: no chunk-boundary approximation in the timing-offset injection
+    tm, _ = simulate(SimulationConfig(duration=args.duration, orbit="keplerian", seed=args.seed, injections=inj),
+                     chunk_size=int(args.duration * 4))
     t_sim = time.perf_counter() - t
     prof = cProfile.Profile() if args.profile else None
     if prof:

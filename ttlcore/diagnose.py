@@ -879,8 +879,16 @@ class Diagnoser:
                 s0 = self.starts[j]
                 h = (self.t0 + (s0 + np.arange(self.L)) / self.fs >= ts).astype(float)
                 m = self.mask[s0:s0 + self.L]
+                seg = stack[:, :, s0:s0 + self.L] * h
+                corr = self._step_correction(ts, base)
+                if corr is not None:  # exact TDI of the step near t_s (the delays straddle it)
+                    k0, c = corr
+                    lo, hi = max(k0 - s0, 0), min(k0 - s0 + c.shape[-1], self.L)
+                    if hi > lo:
+                        seg = seg.copy()
+                        seg[:, :, lo:hi] += c[:, :, lo - (k0 - s0):hi - (k0 - s0)]
                 # spectra of segment j only
-                _, X = segment_fft(stack[:, :, s0:s0 + self.L] * (h * m), self.fs, self.win * m)
+                _, X = segment_fft(seg * m, self.fs, self.win * m)
                 wK = np.matmul(self.Lh, np.moveaxis(X[:, :, self.bins], 2, 0))[None]  # (1, m, 3, k)
                 XK = _as_real(wK)
                 N_MK[j] = _gram_x(XM[:, j:j + 1], XK, self.slices)[0]
@@ -925,6 +933,49 @@ class Diagnoser:
         marg = float(special.logsumexp(good) - math.log(len(good))) if good.size else float("nan")
         return {"t_step": float(ts_best), "evidence_at_best": ev, "log_bayes_factor_marginal": marg,
                 "grid": [float(t) for t, _ in results], "grid_log_bayes_factor": [float(x) for x in all_lbf]}
+
+    def _step_correction(self, ts: float, base: list) -> tuple | None:
+        """``TDI(H(t - t_s) w) - H(t - t_s) TDI(w)`` for the TTL witnesses ``base``, decimated:
+        non-zero only where the TDI delays straddle ``t_s`` (about 70 s, spread by the
+        anti-alias filter), computed exactly on a short stretch of telemetry around ``t_s``.
+
+        Returns ``(first decimated sample index, array (3, k, n))`` or None without telemetry.
+        """
+        if self.tm is None:
+            return None
+        from .effects import LinearTTL
+        from .tdi_data import history_samples, lowpass_taps
+
+        tm, fs = self.tm, self.tm.fs
+        taps = lowpass_taps(fs) if self.decimation > 1 else np.ones(1)
+        hist = history_samples(fs, float(np.max(tm.ltt)))
+        i_ts = int(np.floor((ts - tm.t0) * fs))
+        a = max(i_ts - hist - 8, 0)
+        b = min(i_ts + hist + taps.size + 8, tm.size)
+        sub = tm.slice(a, b)
+        data = effect_input_from_telemetry(sub)
+        step = (data.t >= ts).astype(float)
+        cols = {c.name: c for c in LinearTTL().columns(data)}
+        cols = [cols[n] for n in base]
+        for c in cols:
+            for p in c.parts:
+                p.series = p.series * step
+        built = build(MICHELSON, sub.ltt, fs, order=self.settings.order, delay_order=self.settings.delay_order)
+        exact = aet(columns_tdi(cols, built))  # (3, k, b - a); NaN where delays leave the stretch
+        # before t_s - 8 s the step column is exactly zero (NaN only where the delays leave
+        # the stretch), and so is the signal before the stretch
+        exact = np.nan_to_num(exact)
+        exact[..., : hist + 4] = 0.0
+        # causal FIR then decimation on the global sample grid, as TDIData.decimated: output i
+        # of the local convolution is global sample a + i; keep those inside the stretch
+        full = np.apply_along_axis(lambda x: np.convolve(x, taps)[: b - a], -1, exact)
+        first = (-a) % self.decimation
+        dec = full[..., first::self.decimation]
+        k0 = (a + first) // self.decimation  # decimated index of global sample a + first
+        n = dec.shape[-1]
+        t_dec = self.t0 + (k0 + np.arange(n)) / self.fs
+        modulated = np.stack([self.series[nm][:, k0:k0 + n] for nm in base], axis=1) * (t_dec >= ts)
+        return k0, dec - np.nan_to_num(modulated)
 
     def candidates(self, model: ModelFit, names=None) -> list[dict]:
         """Try every available effect not in ``model``; ranked list (best first)."""
