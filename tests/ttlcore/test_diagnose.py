@@ -31,7 +31,7 @@ HOURS6 = 6 * 3600.0
 
 #: effect spec -> (injection at 6 h, time-dependent)
 FAST_CASES = {
-    "timing-offset": ("timing-offset:sc1.d1=0.25", False),
+    "timing-offset": ("timing-offset:sc1.d1=0.35", False),
     "drift": ("drift:t_ref=10800,12.phi.rx=0.13,21.eta.tx=-0.13", True),
     "cross-coupling": ("cross-coupling:12.phi.rx=8e-3,31.eta.rx=8e-3", False),
 }
@@ -250,7 +250,7 @@ DAY_CASES = {
     "drift": ("drift:t_ref=43200,12.phi.rx=0.03,21.eta.tx=-0.03", True),
     "step": ("step:t_step=50000,12.phi.rx=1e-2,13.eta.tx=-1e-2", True),
     "cross-coupling": ("cross-coupling:12.phi.rx=8e-3,31.eta.rx=8e-3", False),
-    "timing-offset": ("timing-offset:sc1.d1=0.25", False),
+    "timing-offset": ("timing-offset:sc1.d1=0.35", False),
     "second-order": ("second-order:quad.12.phiphi.rx=1500,quad.23.phieta.rx=1500", False),
     "ltt-error": ("ltt-error:12.d1=0.25,31.d1=-0.25", False),
 }
