@@ -115,7 +115,7 @@ class DiagnoseSettings:
     witnesses: bool = True
     top_witnesses: int = 5
     #: Gauss-Newton passes of the linearised effects in a model (0: Taylor at zero only)
-    expansion_passes: int = 2
+    expansion_passes: int = 3
     #: bands with fewer degrees of freedom are merged with their neighbour, so that the
     #: statistical scatter of chi2/dof in a band (sqrt(2 kappa / dof) = 0.032 at 2000) stays
     #: well inside the +-10 % a correct model must meet
@@ -915,7 +915,7 @@ class Diagnoser:
         ratio = (math.sqrt(5) - 1) / 2
         c, d = b - ratio * (b - a), a + ratio * (b - a)
         ec, ed = evaluate_at(c), evaluate_at(d)
-        while b - a > 1.0:
+        while b - a > 0.05:  # a step between two samples: the profile is flat within 0.25 s
             if np.nan_to_num(ec["delta_chi2"], nan=-np.inf) >= np.nan_to_num(ed["delta_chi2"], nan=-np.inf):
                 b, d, ed = d, c, ec
                 c = b - ratio * (b - a)
@@ -997,7 +997,7 @@ class Diagnoser:
                     if not all(f"{m}.{a}.{sd}" in self.series for m in effect.mosas for a in effect.angles for sd in effect.sides):
                         continue
                     found = self.step_search(model, effect)
-                    effect = Step(t_step=round(found["t_step"], 1))
+                    effect = Step(t_step=round(found["t_step"], 3))
                     cols = self.effect_columns(effect, keep_series=False, exact=False)
                     ev = self.evaluate(model, cols)
                     extra = {"t_step": found["t_step"], "log_bayes_factor_at_best": ev["log_bayes_factor"]}

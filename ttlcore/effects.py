@@ -806,7 +806,7 @@ class ShiftInjection(EffectInjection):
                     m, a, _ = cname.split(".")
                     src += coeffs[COEFFICIENT_NAMES.index(cname)] * vel[a][MOSAS.index(m)]
                 tau = ctx.ltt[k]
-                if (tau.max() + abs(eps)) * fs + order // 2 + 2 > h:
+                if (tau.max() + abs(eps)) * fs + (order - 1) // 2 > h:
                     raise ConfigError(f"injection {self.name!r}: |eps| = {abs(eps)} s too large for the simulator's history")
                 pos_true = h + np.arange(n) - tau * fs
                 pos_wrong = pos_true - eps * fs

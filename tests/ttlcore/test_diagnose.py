@@ -252,7 +252,7 @@ DAY_CASES = {
     "cross-coupling": ("cross-coupling:12.phi.rx=8e-3,31.eta.rx=8e-3", False),
     "timing-offset": ("timing-offset:sc1.d1=0.35", False),
     "second-order": ("second-order:quad.12.phiphi.rx=1500,quad.23.phieta.rx=1500", False),
-    "ltt-error": ("ltt-error:12.d1=0.25,31.d1=-0.25", False),
+    "ltt-error": ("ltt-error:12.d1=0.6,31.d1=-0.6,23.d1=0.6", False),
 }
 
 
