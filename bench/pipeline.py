@@ -8,7 +8,7 @@ time (from receiving a TDI segment to recording the refit).
 Prints one JSON object: wall time, real-time factor (target >= 2000), per-stage CPU
 seconds and peak memory (target < 1.5 GB each), the fitter's update time per one-hour
 segment (median, 90th percentile and max; target < 0.2 s), and apart the updates that also
-refitted the window under the instrument noise model (every 12th segment).
+refitted the window under the instrument noise model (every 24th segment).
 
 Usage: ``.venv/bin/python bench/pipeline.py [--days 7]``
 """
@@ -43,7 +43,7 @@ def stage_of(proc: psutil.Process) -> str | None:
 def fitter_update_times(path: Path) -> tuple[list[float], list[float]]:
     """Seconds from each TDI input to the fit recorded for it (MCAP log times): the rolling
     refits alone, and those that also refitted the window under the instrument noise model
-    (``adequacy``, every 12th segment by default)."""
+    (``adequacy``, every 24th segment by default)."""
     from mcap.reader import make_reader
 
     received, fitted, with_adequacy = {}, {}, set()

@@ -19,7 +19,7 @@ subtractor knows, for each segment, which fit is the latest one covering it.
 Model and adequacy (``docs/diagnostics.md``)
 --------------------------------------------
 The model is a list of effects (option ``effects``, default ``linear-ttl``).  The fitter
-keeps the window's TDI segments; every ``adequacy_every`` segments (default 12), and on
+keeps the window's TDI segments; every ``adequacy_every`` segments (default 24), and on
 every segment while the model holds more than the linear TTL, it refits the window with
 :func:`ttlcore.diagnose.refit` under the *instrument* noise model and adds to the fit
 message's meta ``model`` (the effect specs) and ``adequacy`` (chi^2/dof, per-band chi^2/dof,
@@ -101,7 +101,7 @@ class Fitter(OrderedStage):
         self._next_t0: float | None = None
         self.effect_modules = tuple(o.get("effect_modules") or ())
         self.effects = self.check_model(o.get("effects") or ["linear-ttl"])
-        self.adequacy_every = int(o.get("adequacy_every", 12))
+        self.adequacy_every = int(o.get("adequacy_every", 24))
         self.candidates_every = int(o.get("candidates_every", 0))
         self.window_tdi: deque[TDIData] = deque()
         self._model_change: dict | None = None
@@ -280,7 +280,7 @@ def add_options(p) -> None:
                                      f"from TDI alone: {', '.join(TDI_EFFECTS)})")
     p.add_argument("--effect-module", action="append", help="plugin module or .py file defining effects (repeatable)")
     p.add_argument("--adequacy-every", type=int,
-                   help="refit the window under the instrument noise model every N segments (default 12; 0: never)")
+                   help="refit the window under the instrument noise model every N segments (default 24; 0: never)")
     p.add_argument("--candidates-every", type=int,
                    help="rank the effects not in the model every N segments (default 0: on model changes only)")
 

@@ -535,7 +535,11 @@ def fit_spectra(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings |
     -------
     FitResult
     dict
-        Internals: the final ``normal_equations``, ``weights`` (m, c, c) and ``noise_csd``.
+        Internals: the final ``normal_equations``, ``weights`` (m, c, c) and ``noise_csd``
+        on the bins kept, the ``notch`` mask of the bins kept (None without notches), the
+        ``eiv_response`` and ``dws_psd`` of the errors-in-variables term, the
+        ``band_edges`` and the ``variance_factor`` (what an update with these weights needs,
+        see :class:`ttlcore.rolling.RollingFit`).
     """
     s = settings or FitSettings()
     f = spectra[0].f
@@ -582,7 +586,8 @@ def fit_spectra(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings |
     res.extra["variance_factor"] = kappa
     res.extra["covariance_model_based"] = cov_model.tolist()
     res.extra["sigma_ratio_robust_to_model"] = float(np.median(np.sqrt(np.diag(cov_robust) / np.diag(cov_model))))
-    return res, {"normal_equations": neq, "weights": W, "noise_csd": csd}
+    return res, {"normal_equations": neq, "weights": W, "noise_csd": csd, "notch": keep if s.notch else None,
+                 "eiv_response": T, "dws_psd": dws_psd, "band_edges": edges, "variance_factor": kappa}
 
 
 def sandwich_covariance(spectra: list[SegmentSpectra], weights: np.ndarray, C: np.ndarray,
@@ -596,14 +601,20 @@ def sandwich_covariance(spectra: list[SegmentSpectra], weights: np.ndarray, C: n
     """
     N, _, _ = neq.total(eiv)
     Ninv = np.linalg.inv(N)
+    cov = Ninv @ score_matrix(spectra, weights, C, stacked) @ Ninv
+    return 0.5 * (cov + cov.T)
+
+
+def score_matrix(spectra: list[SegmentSpectra], weights: np.ndarray, C: np.ndarray,
+                 stacked: tuple | None = None) -> np.ndarray:
+    """``sum_{s,f} Re(u) Re(u)^T`` of the per-bin scores ``u = R^H W (d - R C)`` (the middle
+    of :func:`sandwich_covariance`; additive over segments)."""
     _, wd, wR = whiten(weights, *(stacked if stacked is not None else stack_spectra(spectra)))
     wr = wd - wR @ C  # whitened residual L^H r, (m, S, c)
     # Re(R^H W r) = Re((L^H R)^H L^H r), one row per bin and segment
     u = (np.einsum("mscp,msc->msp", wR.real, wr.real)
          + np.einsum("mscp,msc->msp", wR.imag, wr.imag)).reshape(-1, C.size)
-    M = u.T @ u
-    cov = Ninv @ M @ Ninv
-    return 0.5 * (cov + cov.T)
+    return u.T @ u
 
 
 def _result(names, C, cov, chi2_bands, neq, s, method, eiv, it, converged, spectra) -> FitResult:

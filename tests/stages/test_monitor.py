@@ -189,6 +189,12 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
     no_window = message("fit", 41, {"coefficients": c, "sigma": s}, {"names": list(COEFFICIENT_NAMES)})
     driver.pubs["fit"].put(41, *no_window)
 
+    rec_dir = tmp_path / "rec" / RUN
+
+    def fits_recorded():
+        return len(read_recording(rec_dir / "monitor.mcap").segments("fit")) >= N_FITS
+    # messages on different keys may arrive in any order: let every fit in before the last segment
+    wait_for(fits_recorded, 30, "every fit received")
     last = N_FITS - 1
     driver.tdi_and_residual(last)  # the status of the last segment carries the alerts raised since
     statuses = [first] + [driver.monitor.get(timeout=30) for _ in range(3)]
@@ -200,11 +206,6 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
     errors = [(e["kind"], e["index"], e["field"]) for e in driver.errors if e["stage"] == "monitor"]
     assert ("rejected", 40, "arrays[coefficients].shape") in errors
     assert any(kind == "failed" and index == 41 for kind, index, _ in errors), errors
-    rec_dir = tmp_path / "rec" / RUN
-
-    def fits_recorded():
-        return len(read_recording(rec_dir / "monitor.mcap").segments("fit")) >= N_FITS
-    wait_for(fits_recorded, 30, "every fit received")
     time.sleep(0.5)
     driver.bus.session.put(control_key(RUN, "stop"), b"")
     assert finish(proc, 30) == 0, output(proc)
