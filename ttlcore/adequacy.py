@@ -57,8 +57,9 @@ def instrument_noise_csd(f: np.ndarray, ltt_mean, coefficients=None, dws_asd: fl
         Frequencies [Hz].
     ltt_mean : array_like (6,)
         Mean light travel times [s].
-    coefficients : ndarray, optional
-        Fitted TTL coefficients [m/rad] for ``names`` (the DWS term is left out if None).
+    coefficients : ndarray (P,) or (P, n_t), optional
+        Fitted TTL coefficients [m/rad] for ``names`` (the DWS term is left out if None);
+        with a time axis (a model with drifts or steps) the DWS term is averaged over it.
     dws_asd : float
         DWS readout noise, angle ASD [rad/sqrt(Hz)].
     """
@@ -72,9 +73,15 @@ def instrument_noise_csd(f: np.ndarray, ltt_mean, coefficients=None, dws_asd: fl
     for k, n in enumerate(names):
         groups.setdefault(dws_channel(n), []).append(k)
     C = np.asarray(coefficients, dtype=float)
+    # time-varying coefficients (24, n_t): the noise of a stationary readout through
+    # coefficients that change is, on average, the mean of |sum_k C_k(t) T_k|^2
+    Cs = C.T if C.ndim == 2 else C[None, :]
     for ks in groups.values():
-        g = T[:, :, ks] @ C[ks]  # (m, 3)
-        csd = csd + np.einsum("mi,mj->mij", g, g.conj()) * dws_psd[:, None, None]
+        acc = np.zeros((np.size(f), 3, 3), dtype=complex)
+        for Ct in Cs:
+            g = T[:, :, ks] @ Ct[ks]  # (m, 3)
+            acc += np.einsum("mi,mj->mij", g, g.conj())
+        csd = csd + acc / len(Cs) * dws_psd[:, None, None]
     return csd
 
 

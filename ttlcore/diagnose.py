@@ -612,8 +612,24 @@ class Diagnoser:
         return self._eiv_cache[key]
 
     def fit(self, effects, coefficients_for_linearised=None, keep_series: bool = True, time_table: bool = True) -> ModelFit:
-        """Fit a model (list of effects or specs) under the fixed noise model."""
+        """Fit a model (list of effects or specs) under the fixed noise model.
+
+        A model whose coefficients change in time (drift, step) changes the readout noise the
+        subtraction lets through: the DWS term of the noise model is then re-evaluated with
+        the model's own coefficient history (time average of ``|sum C_k(t) T_k|^2``) and the
+        model refitted once; the new noise model stays for what follows."""
         effects = make_effects(effects, self.effect_modules) if not all(isinstance(e, Effect) for e in effects) else list(effects)
+        fit = self._fit(effects, coefficients_for_linearised, keep_series, False)
+        hist = self.coefficient_history(fit)
+        if hist is not None and self.dws_asd > 0:
+            self.set_noise_model(instrument_noise_csd(self.f, self.ltt_mean, hist, self.dws_asd))
+            fit = self._fit(effects, coefficients_for_linearised, keep_series, False)
+        names = list(fit.names) + list(fit.fixed)
+        if time_table and all(n in self.series for n in names):
+            fit.time_table = self.time_adequacy(list(fit.names), fit.theta, fit.fixed)
+        return fit
+
+    def _fit(self, effects, coefficients_for_linearised, keep_series, time_table) -> ModelFit:
         names = self._model_names(effects, coefficients_for_linearised, keep_series)
         # columns ending in ".x0" (Gauss-Newton expansions) enter with their coefficient fixed
         # at one: subtracted from the data, not fitted
@@ -646,6 +662,41 @@ class Diagnoser:
         if time_table and all(n in self.series for n in names + fixed):
             fit.time_table = self.time_adequacy(names, theta, fixed)
         return fit
+
+    def coefficient_history(self, model: ModelFit, n_t: int = 97) -> np.ndarray | None:
+        """The model's linear coefficients on a time grid over the data, (24, n_t), when it
+        holds drift or step columns (None otherwise)."""
+        vals = dict(zip(model.names, model.theta))
+        if not any(n.startswith(("drift.", "step.")) for n in vals):
+            return None
+        idx = np.flatnonzero(self.mask)
+        t = self.t0 + np.linspace(idx[0], idx[-1], n_t) / self.fs
+        t_ref = 0.5 * (t[0] + t[-1])
+        C = np.tile(model.ttl_coefficients()[:, None], (1, n_t))
+        steps = {e.name: e for e in model.effects}
+        for k, name in enumerate(COEFFICIENT_NAMES):
+            if f"drift.{name}" in vals:
+                ref = steps["drift"].options.get("t_ref") if "drift" in steps else None
+                C[k] += vals[f"drift.{name}"] * (t - (t_ref if ref is None else float(ref))) / 86400.0
+            if f"step.{name}" in vals and "step" in steps:
+                from .conventions import parse_duration
+
+                C[k] += vals[f"step.{name}"] * (t >= parse_duration(steps["step"].options["t_step"]))
+        return C
+
+    def set_noise_model(self, csd: np.ndarray) -> None:
+        """Replace the noise model: every whitened spectrum is transformed by
+        ``L_new^H (L_old^H)^-1`` per bin (no spectra recomputed)."""
+        Lh = np.conj(np.swapaxes(np.linalg.cholesky(np.linalg.inv(csd)), -1, -2))
+        M = Lh @ np.linalg.inv(self.Lh)
+        self.wd = np.einsum("mij,smj->smi", M, self.wd)
+        for n in list(self.wcols):
+            self.wcols[n] = np.ascontiguousarray(np.einsum("mij,smj->smi", M, self.wcols[n]))
+        self.Lh, self.noise_csd = Lh, csd
+        self._x_cache.clear()
+        self._eiv_cache.clear()
+        for g, (a, b) in enumerate(self.slices):
+            self.dd[:, g] = np.sum(np.abs(self.wd[:, a:b]) ** 2, axis=(1, 2))
 
     def _rhs_model(self, model, K) -> np.ndarray:
         """``b`` of columns ``K`` against the data minus the model's fixed columns."""
