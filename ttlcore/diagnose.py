@@ -979,6 +979,22 @@ class Diagnoser:
             results.append((ts, e))
             if e["log_bayes_factor"] > ev["log_bayes_factor"]:
                 ts_best, ev = ts, e
+        # the profile has secondary maxima one or more light travel times from the true step
+        # (the TDI terms see the step delayed): try those, then refine around the best
+        tau = float(np.mean(self.ltt_mean))
+        for k in (-4, -3, -2, -1, 1, 2, 3, 4):
+            ts = ts_best + k * tau
+            if t_lo < ts < t_hi:
+                e = evaluate_at(ts)
+                results.append((ts, e))
+                if e["log_bayes_factor"] > ev["log_bayes_factor"]:
+                    ts_best, ev = ts, e
+        for ts in ts_best + np.arange(-2.0, 2.01, 0.25):
+            if t_lo < ts < t_hi:
+                e = evaluate_at(ts)
+                results.append((ts, e))
+                if e["log_bayes_factor"] > ev["log_bayes_factor"]:
+                    ts_best, ev = ts, e
         all_lbf = np.array([r["log_bayes_factor"] for _, r in results])
         good = lbfs[np.isfinite(lbfs)]
         marg = float(special.logsumexp(good) - math.log(len(good))) if good.size else float("nan")
@@ -1049,8 +1065,9 @@ class Diagnoser:
                         continue
                     found = self.step_search(model, effect)
                     effect = Step(t_step=round(found["t_step"], 3))
-                    cols = self.effect_columns(effect, keep_series=False, exact=False)
-                    ev = self.evaluate(model, cols)
+                    # the evidence at the best time, with the exact step near t_s (the merely
+                    # modulated columns lose much of a large step's delta chi2 there)
+                    ev = dict(found["evidence_at_best"])
                     extra = {"t_step": found["t_step"], "log_bayes_factor_at_best": ev["log_bayes_factor"]}
                     ev["log_bayes_factor"] = found["log_bayes_factor_marginal"]
                     ev["delta_bic"] = ev["delta_chi2"] - (ev["n_parameters"] + 1) * math.log(n_data)
