@@ -234,11 +234,14 @@ class Fitter(OrderedStage):
             self.rolling.reset()
             self.window_tdi.clear()
         self._next_t0 = td.t0 + td.size / td.fs
-        self.window_tdi.append(td)
-        while self.window_tdi and self.window_tdi[0].t0 < self._next_t0 - self.window_duration - 0.5 / td.fs:
-            self.window_tdi.popleft()
         self._segments_seen += 1
         res = self.rolling.push(td)
+        # the window's TDI for the adequacy refits, as the rolling fit low-passed and decimated
+        # it (A, E, T at 2 Hz: half the memory, and the refit need not decimate again)
+        dec = self.rolling.last_decimated
+        self.window_tdi.append(dec)
+        while self.window_tdi and self.window_tdi[0].t0 < dec.t0 + dec.size / dec.fs - self.window_duration - 1.0:
+            self.window_tdi.popleft()
         if res is None:
             self.log.info("segment %d: no FFT segment completed, no refit", header.index)
             return None

@@ -153,6 +153,7 @@ class RollingFit:
         self._sums: deque[tuple[NormalEquations, np.ndarray]] = deque()  # per segment, lagged weights
         self._weights: dict | None = None  # internals of the last full refit
         self.last: FitResult | None = None
+        self.last_decimated: TDIData | None = None
 
     @property
     def n_segments(self) -> int:
@@ -187,11 +188,16 @@ class RollingFit:
             raise ValueError(f"segment at t0={td.t0}: fs {td.fs} differs from {self._fs_in}")
         stacked = np.concatenate([td.data[:, None, :], td.regressors], axis=1)  # (3, 1 + P, n)
         out = self._decimator.push(stacked)
+        fs_out = self._fs_in / self._factor
+        ltt_seg = np.asarray(ltt_mean if ltt_mean is not None else td.ltt_mean)
+        #: the segment low-passed and decimated (A, E, T; NaN where the filter saw invalid input)
+        self.last_decimated = TDIData(t0=self._t0_out + (self._n_out + self._pending.n) / fs_out, fs=fs_out,
+                                      channels=("A", "E", "T"), data=out[:, 0], regressors=out[:, 1:],
+                                      names=td.names, ltt_mean=ltt_seg)
         self._pending.data.append(out[:, 0])
         self._pending.regressors.append(out[:, 1:])
         self._pending.n += out.shape[-1]
-        self._ltt_blocks.append((np.asarray(ltt_mean if ltt_mean is not None else td.ltt_mean), td.size))
-        fs_out = self._fs_in / self._factor
+        self._ltt_blocks.append((ltt_seg, td.size))
         L = int(round(s.segment_duration * fs_out))
         result = None
         while self._pending.n >= L:
