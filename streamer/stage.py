@@ -76,6 +76,9 @@ class StageConfig:
         Record input / output segments (headers and payloads) in the MCAP file.
     poll_interval : float
         Longest wait for a message before checking for shutdown and calling :meth:`Stage.tick` [s].
+    gap_grace : float
+        A segment index skipped on arrival is reported as a gap only if it has not come
+        within this many seconds [s] (segments of different keys may arrive out of order).
     options : dict
         Stage-specific options.
     """
@@ -89,13 +92,14 @@ class StageConfig:
     record_inputs: bool = True
     record_outputs: bool = True
     poll_interval: float = 0.2
+    gap_grace: float = 10.0
     options: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         return {"run": self.run, "stage": self.stage, "zenoh": self.zenoh.to_dict(),
                 "recordings": str(self.recordings), "cache": self.cache, "history": self.history,
                 "record_inputs": self.record_inputs, "record_outputs": self.record_outputs,
-                "poll_interval": self.poll_interval, "options": self.options}
+                "poll_interval": self.poll_interval, "gap_grace": self.gap_grace, "options": self.options}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "StageConfig":
@@ -221,6 +225,7 @@ class Stage:
         self._publishers: dict = {}
         self._done: dict[str, set[int]] = {}
         self._highest: dict[str, int] = {}
+        self._suspected: dict[tuple[str, int], tuple[float, int]] = {}  # (topic, index) -> (since, revealed by)
 
     # ------------------------------------------------------------------ to override
     def handle(self, header: Header, arrays: dict[str, np.ndarray]) -> Sequence[Output]:
@@ -333,6 +338,7 @@ class Stage:
         raise ValueError(f"stage {self.stage_name} has no command {command!r}")
 
     def _run_tick(self) -> None:
+        self._report_gaps()
         try:
             outputs = list(self.tick() or ())
             for out in outputs:
@@ -414,16 +420,37 @@ class Stage:
         self.log.info("%s: processed, %d output(s)", key, len(outputs))
 
     def _check_gap(self, topic: str, index: int) -> None:
+        """Note the indices an arrival skips; :meth:`_report_gaps` reports those that do not
+        come within ``gap_grace`` (messages of different keys may arrive out of order)."""
         if topic in self.reorders:
             return
+        self._suspected.pop((topic, index), None)
         highest = self._highest.get(topic)
         if highest is not None and index > highest + 1:
-            first, last = highest + 1, index - 1
-            missing = f"{first}" if first == last else f"{first}..{last}"
-            self.report_error("gap", f"{topic} segment(s) {missing} missing before {index}", index=index,
-                              details={"topic": topic, "first_missing": first, "last_missing": last})
+            now = time.monotonic()
+            for i in range(highest + 1, index):
+                self._suspected.setdefault((topic, i), (now, index))
         if highest is None or index > highest:
             self._highest[topic] = index
+
+    def _report_gaps(self) -> None:
+        if not self._suspected:
+            return
+        now = time.monotonic()
+        due = sorted(k for k, (since, _) in self._suspected.items() if now - since >= self.config.gap_grace)
+        while due:
+            topic, first = due[0]
+            last = first
+            while (topic, last + 1) in due:
+                last += 1
+            revealed = self._suspected[(topic, first)][1]
+            for i in range(first, last + 1):
+                del self._suspected[(topic, i)]
+                due.remove((topic, i))
+            missing = f"{first}" if first == last else f"{first}..{last}"
+            self.report_error("gap", f"{topic} segment(s) {missing} missing before {revealed} "
+                                     f"(not received within {self.config.gap_grace:g} s)", index=revealed,
+                              details={"topic": topic, "first_missing": first, "last_missing": last})
 
     # ------------------------------------------------------------------ outputs and reports
     def publish(self, out: Output, source: Header | None = None) -> str:

@@ -45,7 +45,8 @@ class Driver:
 
     def start_stage(self, children, tmp_path):
         config = StageConfig(run=RUN, zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{self.port}",)),
-                             recordings=tmp_path / "recordings", poll_interval=0.05)
+                             recordings=tmp_path / "recordings", poll_interval=0.05,
+                             gap_grace=0.5)
         proc = children.start("stage", config=config.to_dict())
         wait_for(lambda: "doubler" in self.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
                  30, "the stage's liveliness token")
@@ -98,7 +99,7 @@ def test_stage_validates_deduplicates_reports_and_stops_cleanly(driver, children
     assert header.index == 1
     np.testing.assert_array_equal(arrays["data"], 2 * data1)
     _, p3, a3 = good(3)
-    driver.telemetry.put(3, p3, a3)                                   # gap: 2 missing
+    driver.telemetry.put(3, p3, a3)                                   # gap: 2 missing (reported after 0.5 s)
     _, p4, a4 = good(4, fail=True)
     driver.telemetry.put(4, p4, a4)                                   # handler raises
     data5, p5, a5 = good(5)
@@ -115,9 +116,10 @@ def test_stage_validates_deduplicates_reports_and_stops_cleanly(driver, children
     kinds = [(e["kind"], e["index"], e["field"]) for _, e in driver.errors]
     assert kinds == [("rejected", 1, "header"), ("rejected", 1, "arrays[data].shape"),
                      ("rejected", 1, "arrays[data]"), ("rejected", 1, "payload"),
-                     ("gap", 3, None), ("failed", 4, None)], kinds
+                     ("failed", 4, None), ("gap", 3, None)], kinds
     assert [k for k, _ in driver.errors][:1] == [errors_key(RUN, 1)]
-    assert "RuntimeError: asked to fail on segment 4" in driver.errors[-1][1]["message"]
+    assert "RuntimeError: asked to fail on segment 4" in driver.errors[-2][1]["message"]
+    assert "not received within 0.5 s" in driver.errors[-1][1]["message"]
 
     proc.send_signal(signal.SIGTERM)
     assert proc.wait(20) == 0, output_of(proc)
