@@ -781,16 +781,20 @@ class ShiftInjection(EffectInjection):
     light travel time.  Values: the ``.d1`` column of a group gives its ``delta`` or ``eps``
     [s]; ``.d2`` values are ignored (they are ``delta^2``, implied).
 
-    Reading at ``t + delta`` needs samples after the chunk: within the last
-    ``order/2`` samples of each chunk the Lagrange stencil (order 31, the simulator's) is
-    moved back inside the chunk (off-centre), a local error confined to those samples.
+    Reading at ``t + delta`` needs samples after the chunk: the simulator passes the next
+    :data:`ttlcore.injection.LOOKAHEAD` samples (``ChunkContext.*_ahead``), so the Lagrange
+    stencils (order 31, the simulator's) stay centred and chunking is invisible for
+    ``|delta|`` up to about 12 s at 4 Hz; beyond, the stencil moves back inside (off-centre).
     """
 
     def link_signal(self, ctx: ChunkContext) -> np.ndarray:
         eff = self.effect
         n, h, fs = ctx.n, ctx.h, ctx.fs
-        coeffs = ctx.coefficients  # (24, h + n)
-        vel = {"phi": ctx.phi_dot, "eta": ctx.eta_dot}
+        # (24 or 6, h + n + look-ahead): the samples after the chunk keep the stencils centred
+        ahead = ctx.phi_dot_ahead is not None
+        coeffs = np.concatenate([ctx.coefficients, ctx.coefficients_ahead], axis=1) if ahead else ctx.coefficients
+        vel = {"phi": np.concatenate([ctx.phi_dot, ctx.phi_dot_ahead], axis=1) if ahead else ctx.phi_dot,
+               "eta": np.concatenate([ctx.eta_dot, ctx.eta_dot_ahead], axis=1) if ahead else ctx.eta_dot}
         shifts = {g: self.values.get(f"{eff.name}.{g}.d1", 0.0) for g in eff._groups()}
         order = min(31, ctx.interpolation_order)
         out = np.zeros((6, n))
@@ -801,7 +805,7 @@ class ShiftInjection(EffectInjection):
             if isinstance(eff, LightTravelTimeError):
                 link = g
                 k = LINKS.index(link)
-                src = np.zeros(h + n)
+                src = np.zeros(coeffs.shape[1])
                 for cname in members:
                     m, a, _ = cname.split(".")
                     src += coeffs[COEFFICIENT_NAMES.index(cname)] * vel[a][MOSAS.index(m)]

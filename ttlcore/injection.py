@@ -34,6 +34,10 @@ import numpy as np
 
 from .errors import ConfigError
 
+#: Samples past the chunk given to injections (``ChunkContext.*_ahead``): 64 samples,
+#: 16 s at 4 Hz, for reading angles a few seconds ahead with centred Lagrange stencils.
+LOOKAHEAD = 64
+
 #: kind -> module defining ``injection_from_description(description)``.
 KIND_MODULES = {"effect": "ttlcore.effects", "gw": "ttlcore.gw_injection"}
 
@@ -69,6 +73,11 @@ class ChunkContext:
         interpolation).
     interpolation_order : int
         Lagrange order of the simulator's delays.
+    phi_dot_ahead, eta_dot_ahead : ndarray (6, LOOKAHEAD)
+        The true angular velocities of the :data:`LOOKAHEAD` samples after the chunk (the
+        next chunk's first samples, drawn from the same random-access noise streams).
+    coefficients_ahead : ndarray (24, LOOKAHEAD)
+        The true coefficients there.
     """
 
     n0: int
@@ -84,6 +93,9 @@ class ChunkContext:
     coefficients: np.ndarray
     delayed_onto_links: Callable[[np.ndarray], np.ndarray]
     interpolation_order: int
+    phi_dot_ahead: np.ndarray | None = None
+    eta_dot_ahead: np.ndarray | None = None
+    coefficients_ahead: np.ndarray | None = None
 
 
 @runtime_checkable

@@ -62,7 +62,7 @@ from .conventions import (
     local_spacecraft,
 )
 from .errors import ConfigError
-from .injection import ChunkContext, check_signal, injection_from_description
+from .injection import LOOKAHEAD, ChunkContext, check_signal, injection_from_description
 from .interpolation import DEFAULT_ORDER, apply_taps, delay, shift_taps
 from .noise import NoiseStream
 from .orbits import Orbit, make_orbit
@@ -320,9 +320,13 @@ class Simulator:
         t_ext = cfg.t0 + np.arange(e0, e1) / fs
 
         # angular velocities of the total MOSA angles (rad/s), with history for delays
-        sc = self._get("sc_jitter", e0, e1, 9).reshape(3, 3, -1)[self._sc_of_mosa]
-        phi_dot = sc[:, 0] + self._get("mosa_jitter_phi", e0, e1, 6)
-        eta_dot = self._cos * sc[:, 1] - self._sin * sc[:, 2] + self._get("mosa_jitter_eta", e0, e1, 6)
+        # (and LOOKAHEAD samples past the chunk, for injections that read ahead)
+        ea = e1 + LOOKAHEAD if cfg.injections else e1
+        sc = self._get("sc_jitter", e0, ea, 9).reshape(3, 3, -1)[self._sc_of_mosa]
+        phi_dot = sc[:, 0] + self._get("mosa_jitter_phi", e0, ea, 6)
+        eta_dot = self._cos * sc[:, 1] - self._sin * sc[:, 2] + self._get("mosa_jitter_eta", e0, ea, 6)
+        phi_ahead, eta_ahead = phi_dot[:, h + n:], eta_dot[:, h + n:]
+        phi_dot, eta_dot = phi_dot[:, : h + n], eta_dot[:, : h + n]
 
         coeffs = cfg.coefficients.values(t_ext)
         # D_ij for each link, shared by the TTL Tx terms and the remote test masses
@@ -353,7 +357,9 @@ class Simulator:
             ctx = ChunkContext(n0=n0, n=n, h=h, fs=fs, t=t, t_ext=t_ext, ltt=ltt, orbit=self.orbit,
                                phi_dot=phi_dot, eta_dot=eta_dot, coefficients=coeffs,
                                delayed_onto_links=delayed_onto_links,
-                               interpolation_order=cfg.interpolation_order)
+                               interpolation_order=cfg.interpolation_order,
+                               phi_dot_ahead=phi_ahead, eta_dot_ahead=eta_ahead,
+                               coefficients_ahead=cfg.coefficients.values(cfg.t0 + np.arange(e1, ea) / fs))
             for inj in cfg.injections:
                 injected[inj.name] = check_signal(inj, inj.link_signal(ctx), n)
                 eta = eta + injected[inj.name]
