@@ -12,13 +12,12 @@ and per band, delta chi^2 and log Bayes factor of the change, the coefficients.
 
 from __future__ import annotations
 
-import json
 import logging
-import os
 from pathlib import Path
 
 import numpy as np
 
+from ttlcore.atomic import write_json
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.errors import TTLError
 from ttlcore.telemetry import Telemetry
@@ -182,7 +181,5 @@ def _cmd_refit(args) -> int:
         raise RefitError(str(exc)) from None
     print(format_refit(report))
     if args.json:
-        tmp = args.json.with_name(args.json.name + ".tmp")
-        tmp.write_text(json.dumps(report, indent=2, default=float))
-        os.replace(tmp, args.json)
+        write_json(args.json, report)
     return 0

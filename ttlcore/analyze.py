@@ -29,10 +29,8 @@ atomically (temporary name, then rename).
 
 from __future__ import annotations
 
-import json
 import logging
 import math
-import os
 import time
 from dataclasses import replace
 from pathlib import Path
@@ -42,7 +40,7 @@ import numpy as np
 from .conventions import COEFFICIENT_NAMES, C
 from .errors import TelemetryError, TTLError
 from .fit import DEFAULT_BAND, FitSettings, dws_asd_from_config, fit_tdi
-from .hdf5 import temporary_path
+from .atomic import write_json
 
 log = logging.getLogger(__name__)
 
@@ -86,30 +84,6 @@ def check_method(method: str) -> str:
     if m not in METHODS:
         raise TTLError(f"--method: unknown method {method!r}; use one of {', '.join(METHODS)}")
     return m
-
-
-def _write_json_atomic(path: Path, content: dict) -> Path:
-    path = Path(path)
-    tmp = temporary_path(path)
-    try:
-        with open(tmp, "w") as fh:
-            json.dump(content, fh, indent=2, allow_nan=True, default=_json_default)
-            fh.write("\n")
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
-
-
-def _json_default(obj):
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, (np.floating, np.integer, np.bool_)):
-        return obj.item()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
 # ---------------------------------------------------------------------------
@@ -341,7 +315,7 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
                           title=f"{title}, chi2/dof {res.chi2_dof:.3f}")
         lap("figures")
     content["timings_s"] = timings
-    _write_json_atomic(paths["fit_json"], content)
+    write_json(paths["fit_json"], content)
     return {"fit": res, "fit_json": content, "subtraction": sub, "tdi": td, "paths": paths, "timings": timings,
             "notes": notes}
 

@@ -70,7 +70,7 @@ from .fit import (
 from .interpolation import DEFAULT_ORDER
 from .spectra import segment_fft, window
 from .tdi import DEFAULT_DELAY_ORDER, MICHELSON, aet, build
-from .tdi_data import TDIData, compute_tdi
+from .tdi_data import TDIData
 
 log = logging.getLogger(__name__)
 

@@ -57,7 +57,8 @@ def split_effects(text: str) -> list[str]:
 
 
 def run(args) -> int:
-    from .analyze import _write_json_atomic, load_truth
+    from .analyze import load_truth
+    from .atomic import write_json
     from .diagnose import DiagnoseSettings, diagnose, strip_internals, text_report
     from .effects import available_effects, make_effects
     from .telemetry import file_kind, read_telemetry
@@ -125,7 +126,7 @@ def run(args) -> int:
         if report.get("witnesses"):
             paths["witness_coherence"] = str(plot_witness_coherence(report["witnesses"], out / "witness_coherence.png"))
         report["figures"] = paths
-    _write_json_atomic(json_path, report)
+    write_json(json_path, report)
     print(text_report(report, str(data)))
     print(f"  wrote {json_path}" + (", " + ", ".join(report["figures"].values()) if report.get("figures") else ""))
     return 0

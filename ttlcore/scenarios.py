@@ -58,9 +58,7 @@ plus GW only" after subtraction, noise without TTL, residual of the data).
 
 from __future__ import annotations
 
-import json
 import math
-import os
 import time
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -70,7 +68,7 @@ import numpy as np
 from .conventions import C, COEFFICIENT_NAMES, DAY, ffd_to_displacement_asd
 from .errors import TTLError
 from .fit import DEFAULT_BAND, FitSettings, fit_tdi
-from .hdf5 import temporary_path
+from .atomic import write_json, write_text
 
 __all__ = ["Case", "PAPER_CASES", "VARIANTS", "run_scenarios", "add_parser"]
 
@@ -119,27 +117,6 @@ MAX_ERROR = 0.1e-3
 MAX_ERROR_NO_MERGER = 0.06e-3
 GW_INTACT_TOLERANCE = 0.05
 GW_INTACT_FACTOR = 10.0
-
-
-def _atomic_write_text(path: Path, text: str) -> Path:
-    tmp = temporary_path(path)
-    try:
-        tmp.write_text(text)
-        os.replace(tmp, path)
-    except BaseException:
-        tmp.unlink(missing_ok=True)
-        raise
-    return path
-
-
-def _json_default(obj):
-    if isinstance(obj, (np.floating, np.integer)):
-        return obj.item()
-    if isinstance(obj, np.bool_):
-        return bool(obj)
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
 
 
 def _welch(x: np.ndarray, fs: float, nperseg: int):
@@ -505,7 +482,7 @@ def run_scenarios(out_dir, *, cases=None, variants=("paper", "lisainstrument", "
         summary["timings_s"][vname] = round(time.monotonic() - t_var, 1)
     summary["timings_s"]["total"] = round(time.monotonic() - start, 1)
     summary["all_within_limits"] = all(r["error_within_limit"] for v in summary["variants"].values() for r in v["cases"])
-    _atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=1, default=_json_default))
+    write_json(out_dir / "summary.json", summary, indent=1)
     md = ["# TTL subtraction with GW signals: scenario summary\n",
           f"{duration:g} s per case, seed {seed}, total {summary['timings_s']['total']:.0f} s. "
           "Errors in mm/rad; limit 0.06 mm/rad without merger, 0.1 with (the paper's). "
@@ -516,7 +493,7 @@ def run_scenarios(out_dir, *, cases=None, variants=("paper", "lisainstrument", "
     for vname, v in summary["variants"].items():
         md.append(f"\n## {vname}: {v['title']}\n\n")
         md.append(_md_table(v["cases"]))
-    _atomic_write_text(out_dir / "summary.md", "".join(md))
+    write_text(out_dir / "summary.md", "".join(md))
     return summary
 
 
