@@ -59,6 +59,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/tdi.py
 	$(BIN)/python bench/fit.py
 	$(BIN)/python bench/pipeline.py
+	$(BIN)/python bench/rolling.py
 	$(BIN)/python bench/gw.py
 	$(BIN)/python bench/diagnose.py
 

@@ -100,8 +100,6 @@ def refit_run(run_dir, effects, *, baseline=("linear-ttl",), effect_modules=(), 
     try:
         report = refit(data, list(effects), settings=settings, effect_modules=tuple(effect_modules),
                        baseline=list(baseline), dws_asd=dws)
-    except TTLError:
-        raise
     except ValueError as exc:
         raise RefitError(str(exc)) from None
     report = {k: v for k, v in report.items() if not k.startswith("_")}
