@@ -96,6 +96,9 @@ class DiagnoseSettings:
         *and* its delta chi^2 has p < alpha.
     step_grid, step_refine : float
         Coarse and fine spacing [s] of the step-time search.
+    expansion_passes, shift_span : int, float
+        Gauss-Newton passes of the shifted-witness effects (``timing-offset``,
+        ``ltt-error``), and the half-width [s] of the offset search that starts them.
     witnesses : bool
         Run the witness search.
     dws_asd : float or None
@@ -116,6 +119,9 @@ class DiagnoseSettings:
     top_witnesses: int = 5
     #: Gauss-Newton passes of the linearised effects in a model (0: Taylor at zero only)
     expansion_passes: int = 3
+    #: half-width [s] of the profile search of the offsets of ``timing-offset`` and
+    #: ``ltt-error`` (:meth:`Diagnoser.shift_search`) that starts those passes
+    shift_span: float = 5.0
     #: bands with fewer degrees of freedom are merged with their neighbour, so that the
     #: statistical scatter of chi2/dof in a band (sqrt(2 kappa / dof) = 0.032 at 2000) stays
     #: well inside the +-10 % a correct model must meet
@@ -234,10 +240,8 @@ class ModelFit:
     time_table: dict | None = None
     #: per-segment, per-band normal equations (N (S, G, P, P), b (S, G, P)) of the model
     normal: tuple | None = field(repr=False, default=None)
-    #: whitened data power per segment and band, after the fixed columns
+    #: whitened data power per segment and band
     dd: np.ndarray | None = field(repr=False, default=None)
-    #: columns entering with coefficient one (Gauss-Newton expansion terms)
-    fixed: tuple = ()
     #: errors-in-variables term (G, P, P) of the model's columns (cached)
     eiv_term: np.ndarray | None = field(repr=False, default=None)
 
@@ -257,21 +261,33 @@ class ModelFit:
     def chi2_dof(self) -> float:
         return self.chi2 / self.dof
 
+    @property
+    def parameter_names(self) -> tuple:
+        """The physical parameter of each column: a linear coefficient whose witness a
+        shifted-witness effect moved (column ``"21.phi.tx@ltt-error.12"``) is still
+        ``"21.phi.tx"``."""
+        return tuple(parameter_name(n) for n in self.names)
+
     def ttl_coefficients(self) -> np.ndarray:
         """The 24 linear coefficients (NaN for those not in the model)."""
-        out = np.full(len(COEFFICIENT_NAMES), np.nan)
-        for k, n in enumerate(COEFFICIENT_NAMES):
-            if n in self.names:
-                out[k] = self.theta[self.names.index(n)]
-        return out
+        return self._ttl(self.theta)
 
     def ttl_sigma(self) -> np.ndarray:
+        return self._ttl(self.sigma)
+
+    def _ttl(self, values) -> np.ndarray:
         out = np.full(len(COEFFICIENT_NAMES), np.nan)
-        s = self.sigma
+        names = self.parameter_names
         for k, n in enumerate(COEFFICIENT_NAMES):
-            if n in self.names:
-                out[k] = s[self.names.index(n)]
+            if n in names:
+                out[k] = values[names.index(n)]
         return out
+
+
+def parameter_name(column: str) -> str:
+    """The parameter a column's coefficient is: the column name up to ``@`` (shifted
+    witnesses of :meth:`Diagnoser._shifted_columns` carry ``@effect.group``)."""
+    return column.split("@", 1)[0]
 
 
 # ---------------------------------------------------------------------------
@@ -581,17 +597,20 @@ class Diagnoser:
         """Errors-in-variables term (G, p, p) of the columns: ``E_kl = sum_ch Re sum_f
         U_k,ch^H U_l,ch`` with ``U_k,ch`` the whitened response of column ``k`` to the readout
         noise of DWS channel ``ch`` (columns whose parts are plain DWS witnesses: the TTL
-        regressors, cross-coupling; others, built from products or modulations of the
-        readouts, carry none - their bias is second order in the small readout noise)."""
+        regressors, cross-coupling, the TTL witnesses a shifted-witness effect moved by ``s``
+        seconds, whose response gains the phase ``exp(2 pi i f s)``; others, built from
+        products or modulations of the readouts, carry none - their bias is second order in
+        the small readout noise)."""
         p = len(names)
         E = np.zeros((self.G, p, p))
         by_channel: dict = {}
         for i, n in enumerate(names):
-            for ch, link, extra in self.eiv_parts.get(n, ()):
-                by_channel.setdefault(ch, {}).setdefault(i, []).append((link, extra))
+            for ch, link, extra, *shift in self.eiv_parts.get(n, ()):
+                by_channel.setdefault(ch, {}).setdefault(i, []).append((link, extra, shift[0] if shift else 0.0))
         for ch, cols in by_channel.items():
             idx = sorted(cols)
-            U = np.stack([sum(self._eiv_response(link, extra) for link, extra in cols[i]) for i in idx], axis=-1)
+            U = np.stack([sum(self._eiv_response(link, extra) * (np.exp(2j * np.pi * self.f * shift)[:, None] if shift else 1.0)
+                              for link, extra, shift in cols[i]) for i in idx], axis=-1)
             for g, (a, b) in enumerate(self.slices):
                 if b > a:
                     Ug = U[a:b].reshape(-1, len(idx))
@@ -624,23 +643,15 @@ class Diagnoser:
         if hist is not None and self.dws_asd > 0:
             self.set_noise_model(instrument_noise_csd(self.f, self.ltt_mean, hist, self.dws_asd))
             fit = self._fit(effects, coefficients_for_linearised, keep_series, False)
-        names = list(fit.names) + list(fit.fixed)
-        if time_table and all(n in self.series for n in names):
-            fit.time_table = self.time_adequacy(list(fit.names), fit.theta, fit.fixed)
+        if time_table and all(n in self.series for n in fit.names):
+            fit.time_table = self.time_adequacy(list(fit.names), fit.theta)
         return fit
 
     def _fit(self, effects, coefficients_for_linearised, keep_series, time_table) -> ModelFit:
         names = self._model_names(effects, coefficients_for_linearised, keep_series)
-        # columns ending in ".x0" (Gauss-Newton expansions) enter with their coefficient fixed
-        # at one: subtracted from the data, not fitted
-        fixed = [n for n in names if n.endswith(".x0")]
-        names = [n for n in names if not n.endswith(".x0")]
         N = self.gram(names, names)  # (S, G, P, P)
         b = self.rhs(names)
         dd = self.dd
-        if fixed:
-            b = b - self.gram(names, fixed).sum(axis=-1)
-            dd = dd - 2 * self.rhs(fixed).sum(axis=-1) + self.gram(fixed, fixed).sum(axis=(-1, -2))
         E = self.eiv(names)
         Ntot = N.sum(axis=(0, 1)) - E.sum(axis=0)
         btot = b.sum(axis=(0, 1))
@@ -649,8 +660,6 @@ class Diagnoser:
         cov = 0.5 * (cov + cov.T)
         chi2_sg = 2 * (np.einsum("p,sgpq,q->sg", theta, N, theta) - 2 * b @ theta + dd)
         wr = self.wd - self._w(names) @ theta
-        if fixed:
-            wr = wr - self._w(fixed).sum(axis=-1)
         bands = band_table(wr, self.band_index, self.edges, len(names), self.kappa, self.settings.tolerance,
                            self.settings.alpha)
         q_min = float(dd.sum() - btot @ theta)
@@ -658,9 +667,8 @@ class Diagnoser:
         fit.normal = (N, b)
         fit.eiv_term = E
         fit.dd = dd
-        fit.fixed = tuple(fixed)
-        if time_table and all(n in self.series for n in names + fixed):
-            fit.time_table = self.time_adequacy(names, theta, fixed)
+        if time_table and all(n in self.series for n in names):
+            fit.time_table = self.time_adequacy(names, theta)
         return fit
 
     def coefficient_history(self, model: ModelFit, n_t: int = 97) -> np.ndarray | None:
@@ -698,13 +706,6 @@ class Diagnoser:
         for g, (a, b) in enumerate(self.slices):
             self.dd[:, g] = np.sum(np.abs(self.wd[:, a:b]) ** 2, axis=(1, 2))
 
-    def _rhs_model(self, model, K) -> np.ndarray:
-        """``b`` of columns ``K`` against the data minus the model's fixed columns."""
-        b = self.rhs(K)
-        if model.fixed:
-            b = b - self.gram(K, list(model.fixed)).sum(axis=-1)
-        return b
-
     def _model_names(self, effects, coefficients, keep_series) -> list[str]:
         names: list[str] = []
         plain = [e for e in effects if not e.needs_coefficients]
@@ -727,74 +728,219 @@ class Diagnoser:
         return names
 
     def _reexpand(self, first, lin, names, keep_series) -> list[str]:
-        """Gauss-Newton passes for the linearised effects: refit, then expand each group's
-        exact shifted term ``E_g(delta) = sum_k C_k [R_k(t + s delta) - R_k(t)]`` around the
-        estimate ``delta_0`` instead of zero (columns ``x0`` = E_g(delta_0) with a free
-        amplitude, ``d1``, ``d2`` = its first and second derivatives there).  The Taylor
-        error falls from O(delta^3) to O((delta - delta_0)^3), so offsets with
-        2 pi f delta ~ 1 at the top of the band are fitted exactly."""
-        expand = None
-        for _ in range(self.settings.expansion_passes):
-            fit, sig = self._solve_only(names)
-            C = np.array([fit[n] for n in COEFFICIENT_NAMES])
-            new = list(first)
+        """The exact model of the linearised effects where their offsets are large.
+
+        Each group's offset is found by :meth:`shift_search` (no Taylor expansion, so offsets
+        with 2 pi f delta >> 1 at the top of the band are found).  Where it is clearly
+        measured (delta chi^2 > 25) and large enough for the Taylor error to matter
+        (2 pi f delta > 0.05 at the band's top), the model holds the group's TTL columns
+        with their witnesses shifted by ``s delta_0`` (exact, the linear coefficients
+        fitted as before) and a ``d1`` column, the derivative there: its fitted coefficient
+        is the remaining offset ``delta - delta_0``, moved into ``delta_0`` by Gauss-Newton
+        passes until it is below a hundredth of its sigma.  Other groups keep the Taylor
+        columns ``d1``, ``d2`` at zero."""
+        small = 0.05 / (2 * np.pi * self.settings.band[1])
+        shifts, C, moved_names = {}, None, set()
+        for e in lin:
+            found, gain, theta = self.shift_search(e, first)
+            if C is None:
+                C = self._ttl_vector(theta)
+            shifts[e.name] = {}
+            for g, members in e.shifted_members().items():
+                big = g in found and gain[g] > 25.0 and abs(found[g]) > small and not moved_names & set(members)
+                if big:
+                    moved_names |= set(members)
+                    shifts[e.name][g] = found[g]
+        if not moved_names:
+            return names  # the Taylor columns at zero are the model
+        model = names
+        for k in range(max(1, self.settings.expansion_passes)):
+            model, replaced = list(first), {}
             for e in lin:
-                shifts = {}
-                for g in e._groups():
-                    key = f"{e.name}.{g}.d1"
-                    total = self._expansion.get((e.name, g), 0.0) + fit.get(key, 0.0)
-                    if expand is None or (e.name, g) not in expand:
-                        # expand only where the offset is clearly measured and large enough for
-                        # the Taylor error to matter (2 pi f delta > 0.05 at the band's top)
-                        big = abs(total) > max(0.05 / (2 * np.pi * self.settings.band[1]), 5 * sig.get(key, np.inf))
-                        expand = expand or {}
-                        expand[(e.name, g)] = bool(big)
-                    shifts[g] = total if expand[(e.name, g)] else 0.0
-                new += self._expanded_columns(e, C, shifts, keep_series)
-            names = new
-        return names
+                repl, cols = self._shifted_columns(e, C, shifts[e.name], keep_series)
+                replaced.update(repl)
+                model = [repl.get(n, n) for n in model] + cols
+            fit, sig = self._solve_only(model)
+            C = self._ttl_vector(fit)
+            step = {(e.name, g): fit[f"{e.name}.{g}.d1"] for e in lin for g in shifts[e.name]}
+            if all(abs(v) < 0.01 * sig[f"{e}.{g}.d1"] for (e, g), v in step.items()):
+                break
+            for (e, g), v in step.items():
+                shifts[e][g] += v
+        return model
+
+    @staticmethod
+    def _ttl_vector(values: dict) -> np.ndarray:
+        """The 24 linear coefficients from a dict column -> value (shifted columns resolved)."""
+        by = {parameter_name(n): v for n, v in values.items()}
+        return np.array([by[n] for n in COEFFICIENT_NAMES])
+
+    def shift_search(self, effect, names, span: float | None = None, passes: int = 4) -> tuple[dict, dict, dict]:
+        """Profile-likelihood search of the offsets of a shifted-witness effect.
+
+        The exact model of ``timing-offset`` and ``ltt-error`` replaces the witnesses of the
+        coefficients of group ``g`` (:meth:`~ttlcore.effects._Linearised.shifted_members`) by
+        the same witnesses shifted by ``s delta_g`` (``s`` =
+        :attr:`~ttlcore.effects._Linearised.d1_sign`).  A shift is the phase
+        ``exp(2 pi i f s delta_g)`` of the whitened spectra (TDI commutes with it up to the
+        arms' rate of change, ~1e-8; the segment taper changes by ``delta / T`` ~ 1e-4), so
+        the chi^2 profiled over the linear parameters ``theta`` of ``names``,
+
+            Q(delta) = dd - b(delta)^T [N(delta) - E]^-1 b(delta),     chi2 = 2 Q,
+
+        is cheap to evaluate for many offsets.  Each group's offset is scanned on a grid of
+        spacing ``1 / (8 f_max)`` over ``[-span, span]`` with the other groups held, the best
+        point refined by bounded Brent minimisation; groups are visited in turn (coordinate
+        descent) until no offset moves by more than 1 ms, at most ``passes`` rounds.
+
+        Parameters
+        ----------
+        effect : ttlcore.effects._Linearised
+            ``timing-offset``, ``ltt-error`` or a plugin with the same interface.
+        names : list of str
+            Columns of the model without the effect; must hold the shifted coefficients'.
+        span : float, optional
+            Half-width [s] of the search (default ``settings.shift_span``).
+
+        Returns
+        -------
+        shifts : dict
+            Group -> offset [s] at the profile optimum.
+        delta_chi2 : dict
+            Group -> chi^2 gain (over ``kappa``) of its offset against zero, the others at
+            their optimum.
+        theta : dict
+            Column name -> linear parameter at the optimum.
+        """
+        from scipy.optimize import minimize_scalar
+
+        span = float(self.settings.shift_span if span is None else span)
+        members = {g: [names.index(n) for n in mem] for g, mem in effect.shifted_members().items()
+                   if all(n in names for n in mem)}
+        P = len(names)
+        X = self._w(names)  # (S, m, 3, P)
+        S, m = X.shape[:2]
+        X = np.ascontiguousarray(X.transpose(1, 0, 2, 3)).reshape(m, S * 3, P)
+        d = np.ascontiguousarray(self.wd.transpose(1, 0, 2)).reshape(m, S * 3)
+        w = 2 * np.pi * self.f * float(effect.d1_sign)  # phase [rad] per second of offset
+        E = self.eiv(names).sum(axis=0)
+        dd = float(self.dd.sum())
+        delta = {g: 0.0 for g in members}
+        step = 1.0 / (8.0 * self.f[-1])
+        grid = np.arange(-span, span + 0.5 * step, step)
+
+        def profile(g):
+            """Q(delta_g) on an array of offsets, the other groups at ``delta``."""
+            J = members[g]
+            R = [i for i in range(P) if i not in J]
+            col = np.zeros(P)
+            for h, idx in members.items():
+                if h != g:
+                    col[idx] = delta[h]
+            Xs = X * np.exp(1j * w[:, None] * col[None, :])[:, None, :]
+            flat = Xs.reshape(-1, P)
+            N = (flat.conj().T @ flat).real - E
+            b = (flat.conj().T @ d.reshape(-1)).real
+            XJ = Xs[:, :, J].conj()
+            Q = np.concatenate([np.einsum("mkj,mkr->mjr", XJ, Xs[:, :, R]).reshape(m, -1),
+                                np.einsum("mkj,mk->mj", XJ, d)], axis=1)  # (m, |J| (|R| + 1))
+
+            def q(x):
+                x = np.atleast_1d(np.asarray(x, dtype=float))
+                A = (np.exp(-1j * np.outer(x, w)) @ Q).real  # (K, |J| (|R| + 1))
+                NJR = A[:, :len(J) * len(R)].reshape(-1, len(J), len(R))
+                Nk = np.broadcast_to(N, (x.size, P, P)).copy()
+                bk = np.broadcast_to(b, (x.size, P)).copy()
+                Nk[:, np.ix_(J, R)[0], np.ix_(J, R)[1]] = NJR
+                Nk[:, np.ix_(R, J)[0], np.ix_(R, J)[1]] = np.swapaxes(NJR, 1, 2)
+                bk[:, J] = A[:, len(J) * len(R):]
+                th = np.linalg.solve(Nk, bk[..., None])[..., 0]
+                return dd - np.einsum("kp,kp->k", bk, th), th
+
+            return q
+
+        for _ in range(passes):
+            moved = 0.0
+            for g in members:
+                q = profile(g)
+                Qg, _ = q(grid)
+                x0 = float(grid[int(np.argmin(Qg))])
+                res = minimize_scalar(lambda x: float(q(x)[0][0]), bounds=(x0 - step, x0 + step),
+                                      method="bounded", options={"xatol": 1e-4})
+                best = float(res.x) if res.fun <= Qg.min() else x0
+                moved = max(moved, abs(best - delta[g]))
+                delta[g] = best
+            if moved < 1e-3:
+                break
+        gain, theta = {}, None
+        for g in members:
+            q = profile(g)
+            (q0, q1), th = q(np.array([0.0, delta[g]]))
+            gain[g] = 2.0 * (q0 - q1) / self.kappa
+            theta = th[1]
+        if theta is None:
+            theta = np.linalg.solve(self.gram(names, names).sum(axis=(0, 1)) - E, self.rhs(names).sum(axis=(0, 1)))
+        log.debug("shift search %s: %s", effect.name, {g: round(v, 4) for g, v in delta.items()})
+        return delta, gain, dict(zip(names, theta))
 
     def _solve_only(self, names) -> tuple[dict, dict]:
-        fixed = [n for n in names if n.endswith(".x0")]
-        names = [n for n in names if not n.endswith(".x0")]
         N = self.gram(names, names).sum(axis=(0, 1)) - self.eiv(names).sum(axis=0)
         b = self.rhs(names).sum(axis=(0, 1))
-        if fixed:
-            b = b - self.gram(names, fixed).sum(axis=(0, 1, 3))
         theta = np.linalg.solve(N, b)
         sig = np.sqrt(np.abs(np.diag(np.linalg.inv(2 * N))) * self.kappa)
         return dict(zip(names, theta)), dict(zip(names, sig))
 
-    def _expanded_columns(self, effect, C, shifts: dict, keep_series) -> list[str]:
-        """Columns ``x0, d1, d2`` of each group of a linearised effect expanded at
-        ``shifts[group]`` (see :meth:`_reexpand`); built from the 4-Hz TDI regressors."""
+    def _shifted_columns(self, effect, C, shifts: dict, keep_series) -> tuple[dict, list[str]]:
+        """Columns of a linearised effect expanded at ``shifts[group]`` (see :meth:`_reexpand`).
+
+        For each group with an offset ``delta_0``: its TTL columns with the witnesses shifted,
+        ``R_k(t + s delta_0)``, named ``"<coefficient>@<effect>.<group>"``, and the column
+        ``<effect>.<group>.d1 = s sum_k C_k R_k'(t + s delta_0)`` (parameter: the offset
+        beyond ``delta_0`` [s]).  Groups without one: the Taylor columns ``d1``, ``d2`` at
+        zero.  The shifted series are built from the 4-Hz TDI regressors (TDI commutes with
+        the shift up to the arms' rate of change, ~1e-8).
+
+        Returns
+        -------
+        replaced : dict
+            TTL column name -> the name of its shifted column.
+        names : list of str
+            The effect's own columns.
+        """
         from .effects import derivative
         from .interpolation import timeshift
 
         td = self._td_in
-        names, series_list, info = [], [], []
-        for cname, unit, prior, terms in effect.tdi_terms(C):
-            if not cname.endswith(".d1"):
-                continue
-            g = cname[len(effect.name) + 1:-3]
+        sgn = float(effect.d1_sign)
+        replaced, names, series_list, info = {}, [], [], []
+        for g, members in effect.shifted_members().items():
             d0 = float(shifts.get(g, 0.0))
             self._expansion[(effect.name, g)] = d0
-            A = sum(float(C[COEFFICIENT_NAMES.index(k)]) * td.regressors[:, td.names.index(k)] for k, _, _ in terms)
-            sgn = effect.d1_sign
-            As = timeshift(A, sgn * d0 * td.fs) if d0 else A
-            cols = {"d1": sgn * derivative(As, td.fs, 1), "d2": 0.5 * derivative(As, td.fs, 2)}
+            R = np.stack([td.regressors[:, td.names.index(k)] for k in members], axis=1)  # (3, k, n)
             if d0:
-                cols = {"x0": As - A, **cols}
+                R = timeshift(R, sgn * d0 * td.fs)
+                for k, cname in enumerate(members):
+                    new = f"{cname}@{effect.name}.{g}"
+                    replaced[cname] = new
+                    names.append(new)
+                    series_list.append(R[:, k])
+                    info.append(self.col_info[cname])
+                    self.eiv_parts[new] = [(*part, sgn * d0) for part in self.eiv_parts.get(cname, ())]
+            A = np.einsum("k,ckn->cn", [float(C[COEFFICIENT_NAMES.index(k)]) for k in members], R)
+            cols = {"d1": sgn * derivative(A, td.fs, 1)}
+            if not d0:
+                cols["d2"] = 0.5 * derivative(A, td.fs, 2)
             for kind, x in cols.items():
-                names.append(f"{effect.name}.{g}.{kind}")
+                n = f"{effect.name}.{g}.{kind}"
+                names.append(n)
                 series_list.append(x)
-                info.append((1.0, {"x0": "", "d1": "s", "d2": "s^2"}[kind], {"x0": 1.0, "d1": 0.1, "d2": 0.01}[kind]))
+                info.append((1.0, {"d1": "s", "d2": "s^2"}[kind], {"d1": 0.1, "d2": 0.01}[kind]))
+                self.eiv_parts.pop(n, None)
         series = self._decimate(np.stack(series_list, axis=1), is_aet=True)
         self._add_columns(names, np.matmul(self.Lh, self._spectra(series)), info)
         for k, n in enumerate(names):
             self.series[n] = series[:, k]
-            self.eiv_parts.pop(n, None)
-        return names
+        return replaced, [n for n in names if "@" not in n]
 
     def expansion_points(self) -> dict:
         """``"effect.group" -> delta_0`` of the last Gauss-Newton expansion (the fitted
@@ -803,13 +949,11 @@ class Diagnoser:
 
     # --- adequacy in time -----------------------------------------------------------------
 
-    def time_adequacy(self, names, theta, fixed=()) -> dict:
+    def time_adequacy(self, names, theta) -> dict:
         """chi^2 of the residual in Hann-windowed slices of ``settings.time_segment`` against
         the same noise model (interpolated to the slice's frequency grid)."""
         s = self.settings
         resid = self.data_series - np.einsum("p,cpn->cn", theta, np.stack([self.series[n] for n in names], axis=1))
-        for n in fixed:
-            resid = resid - self.series[n]
         L = int(round(min(s.time_segment, self.seg_duration) * self.fs))
         idx = np.flatnonzero(self.mask)
         lo, hi = idx[0], idx[-1] + 1
@@ -855,8 +999,38 @@ class Diagnoser:
         N_MM, b_M = model.normal if model.normal is not None else (self.gram(M, M), self.rhs(M))
         N_MK = self.gram(M, K)
         N_KK = self.gram(K, K)
-        b_K = self._rhs_model(model, K)
+        b_K = self.rhs(K)
         return self._evidence(model, N_MM, N_MK, N_KK, b_M, b_K, K, prior)
+
+    def compare(self, base: ModelFit, model: ModelFit) -> dict:
+        """Evidence of ``model`` against ``base`` when they are not nested (a shifted-witness
+        effect moved some TTL columns; nested pairs: :meth:`evaluate`, exact).
+
+        ``delta_chi2 = 2 (Q_base - Q_model) / kappa`` at the optima; the log Bayes factor by
+        Laplace's method on ``log L = -Q / kappa``: with a flat prior on the parameters both
+        models share (by :func:`parameter_name`) and the Gaussian prior ``N(0, prior_scale)``
+        on each new one, evaluated at its estimate (offsets: expansion point plus ``d1``),
+
+            log B = -(Q_model - Q_base) / kappa - 1/2 [log det H_model - log det H_base]
+                    + sum_new [1/2 log 2 pi + log N(theta_k; 0, prior_k)],
+
+        ``H = 2 (N - E) / kappa`` the Hessians.  For a nested pair whose new parameters lie
+        well inside their prior this equals :func:`log_bayes_factor`."""
+        def logdet(fit):
+            H = 2 * (fit.normal[0].sum(axis=(0, 1)) - fit.eiv_term.sum(axis=0)) / self.kappa
+            sign, value = np.linalg.slogdet(H)
+            return value if sign > 0 else float("nan")
+
+        shared = set(base.parameter_names)
+        lbf = -(model.q_min - base.q_min) / self.kappa - 0.5 * (logdet(model) - logdet(base))
+        expansion = self.expansion_points()
+        for n, v in zip(model.names, model.theta):
+            if parameter_name(n) in shared:
+                continue
+            p = float(self.col_info[n][2])
+            v = float(v) + (float(expansion.get(n[:-3], 0.0)) if n.endswith(".d1") else 0.0)
+            lbf += -np.log(p) - 0.5 * (v / p) ** 2
+        return {"delta_chi2": float(2 * (base.q_min - model.q_min) / self.kappa), "log_bayes_factor": float(lbf)}
 
     def _evidence(self, model, N_MM, N_MK, N_KK, b_M, b_K, K, prior=None) -> dict:
         P, k = N_MM.shape[-1], N_KK.shape[-1]
@@ -910,8 +1084,7 @@ class Diagnoser:
         G_MB = self.gram(M, base)  # (S, G, P, k)
         G_BB = self.gram(base, base)
         N_MM, b_M = model.normal if model.normal is not None else (self.gram(M, M), self.rhs(M))
-        b_B = self._rhs_model(model, base)
-        XF = self._x(list(model.fixed)) if model.fixed else None
+        b_B = self.rhs(base)
         XM = self._x(M)
         idx = np.flatnonzero(self.mask)
         # a step closer to the ends than half a coarse step is nearly collinear with the TTL
@@ -945,8 +1118,6 @@ class Diagnoser:
                 N_MK[j] = _gram_x(XM[:, j:j + 1], XK, self.slices)[0]
                 N_KK[j] = _gram_x(XK, XK, self.slices)[0]
                 b_K[j] = _gram_x(XK, self.wd[j:j + 1][None].view(np.float64), self.slices)[0, ..., 0]
-                if XF is not None:
-                    b_K[j] -= _gram_x(XK, XF[:, j:j + 1], self.slices)[0].sum(axis=-1)
             return self._evidence(model, N_MM, N_MK, N_KK, b_M, b_K, [f"step.{n}" for n in base],
                                   prior=np.full(len(base), 1e-3))
 
@@ -1077,6 +1248,8 @@ class Diagnoser:
                     cols = self.effect_columns(effect, C if effect.needs_coefficients else None, keep_series=False,
                                                exact=False)
                     ev = self.evaluate(model, cols)
+                    if hasattr(effect, "shifted_members") and stats.chi2.sf(max(ev["delta_chi2"], 0.0), len(cols)) < s.alpha:
+                        ev, extra = self._shifted_evidence(model, effect, ev)
                     ev["delta_bic"] = ev["delta_chi2"] - ev["n_parameters"] * math.log(n_data)
             except ConfigError as exc:
                 log.info("candidate %s skipped: %s", name, exc)
@@ -1104,6 +1277,27 @@ class Diagnoser:
         out.sort(key=lambda c: (not c["significant"], -np.nan_to_num(c["log_bayes_factor"], nan=-np.inf)))
         return out
 
+    def _shifted_evidence(self, model: ModelFit, effect, taylor: dict) -> tuple[dict, dict]:
+        """Evidence of a shifted-witness candidate with its offsets searched (the exact model
+        of :meth:`_reexpand`) instead of the Taylor columns at zero, which lose most of a
+        large offset's delta chi^2 where ``2 pi f delta`` nears one.  Falls back to the Taylor
+        evidence when no group's offset needs the exact model."""
+        if self.settings.expansion_passes == 0 or not all(n in self.series for n in self.ttl_names):
+            return taylor, {}
+        exact = self._fit(list(model.effects) + [effect], None, False, False)
+        if all("@" not in n for n in exact.names):
+            return taylor, {}
+        ev = self.compare(model, exact)
+        new = [i for i, n in enumerate(exact.names) if parameter_name(n) not in set(model.parameter_names)]
+        expansion = self.expansion_points()
+        names = [exact.names[i] for i in new]
+        beta = np.array([exact.theta[i] + (expansion.get(exact.names[i][:-3], 0.0) if exact.names[i].endswith(".d1") else 0.0)
+                         for i in new])
+        ev.update({"n_parameters": len(new), "names": names, "beta": beta, "sigma": exact.sigma[new],
+                   "band_delta": (model.chi2_seg_band - exact.chi2_seg_band).sum(axis=0) / self.kappa,
+                   "segment_delta": (model.chi2_seg_band - exact.chi2_seg_band).sum(axis=1) / self.kappa})
+        return ev, {"offsets": {n[:-3]: float(b) for n, b in zip(names, beta) if n.endswith(".d1")}}
+
     def _where(self, ev, extra) -> dict:
         bd = ev["band_delta"]
         sd = ev["segment_delta"]
@@ -1127,6 +1321,8 @@ class Diagnoser:
         }
         if "t_step" in extra:
             out["t_step"] = extra["t_step"]
+        if "offsets" in extra:  # searched offsets [s] of a shifted-witness effect, per group
+            out["offsets"] = extra["offsets"]
         return out
 
 
@@ -1171,8 +1367,8 @@ def adequacy_json(dg: Diagnoser, model: ModelFit) -> dict:
 def coefficients_json(model: ModelFit, truth=None, expansion: dict | None = None) -> dict:
     """The fitted columns (value, sigma) and, with truth, the errors of the 24 linear ones;
     ``offsets``: the fitted offsets of linearised effects (expansion point + ``d1``)."""
-    out = {"values": {n: float(v) for n, v in zip(model.names, model.theta)},
-           "sigma": {n: float(v) for n, v in zip(model.names, model.sigma)}}
+    out = {"values": {n: float(v) for n, v in zip(model.parameter_names, model.theta)},
+           "sigma": {n: float(v) for n, v in zip(model.parameter_names, model.sigma)}}
     offsets = {}
     for n, v, sg in zip(model.names, model.theta, model.sigma):
         if n.endswith(".d1"):
@@ -1313,7 +1509,12 @@ def refit(source, effects=("linear-ttl",), *, settings: DiagnoseSettings | None 
     model = dg.fit(make_effects(list(effects), effect_modules))
     base = dg.fit(make_effects(list(baseline), effect_modules))
     added = [n for n in model.names if n not in base.names]
-    ev = dg.evaluate(base, added) if added and set(base.names) <= set(model.names) else None
+    if not added:
+        ev = None
+    elif set(base.names) <= set(model.names):
+        ev = dg.evaluate(base, added)
+    else:  # a shifted-witness effect moved TTL columns: not nested
+        ev = dg.compare(base, model)
     return {
         "model": model_json(dg, model), "baseline": model_json(dg, base),
         "change": {"delta_chi2": None if ev is None else ev["delta_chi2"],
@@ -1377,6 +1578,9 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
         bands = ", ".join(f"{lo:.3g}-{hi:.3g} Hz" for lo, hi in where["main_bands"][:3])
         links = ", ".join(x["group"] for x in where["links"][:3])
         extra = f", t_step {where['t_step'] / 3600:.2f} h" if "t_step" in where else ""
+        if "offsets" in where:
+            top = sorted(where["offsets"].items(), key=lambda kv: -abs(kv[1]))[:3]
+            extra += ", offsets " + ", ".join(f"{k.rsplit('.', 1)[-1]} {v:+.3g} s" for k, v in top)
         lines.append(f"    {'*' if c['significant'] else ' '} {c['effect']:<16} {c['delta_chi2']:10.1f} / {c['n_parameters']:<3d}"
                      f" logB {c['log_bayes_factor']:9.1f}  {100 * c['explained_fraction']:5.0f} %  [{bands}; {links}{extra}]")
     if not any(c["significant"] for c in cands):

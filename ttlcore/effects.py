@@ -483,6 +483,16 @@ class _Linearised(Effect):
     #: sign of the first-order term (data hold w(t + sign * epsilon))
     d1_sign = 1.0
 
+    def shifted_members(self) -> dict[str, list[str]]:
+        """Group -> names of the linear coefficients whose witnesses the group's offset
+        shifts (``ltt-error``: the tx terms only); groups without one are left out."""
+        out = {}
+        for gname, members in self._groups().items():
+            kept = [c for c in members if not (self._shifts_delay() and not c.endswith(".tx"))]
+            if kept:
+                out[gname] = kept
+        return out
+
     def tdi_terms(self, coefficients) -> list[tuple]:
         """The columns as combinations of time derivatives of the TTL regressors' TDI:
         ``[(column, unit, prior_scale, [(ttl_name, derivative_order, factor), ...]), ...]``.
@@ -491,12 +501,10 @@ class _Linearised(Effect):
         these equal :meth:`columns` through TDI to that accuracy, at the cost of two
         derivatives of the 24 TDI regressors instead of a TDI per column."""
         out = []
-        for gname, members in self._groups().items():
+        for gname, members in self.shifted_members().items():
             for order in (1, 2):
                 terms = []
                 for cname in members:
-                    if self._shifts_delay() and not cname.endswith(".tx"):
-                        continue
                     c = float(np.asarray(coefficients)[COEFFICIENT_NAMES.index(cname)])
                     terms.append((cname, order, c * (self.d1_sign if order == 1 else 0.5)))
                 if terms:
