@@ -8,7 +8,8 @@ every named effect as a candidate (the step time searched) and the whole witness
 Target: under 60 s on this machine.
 
 Prints one JSON object: wall time and target, the per-stage times, the number of
-candidates and witnesses tried, the top candidate and whether it is the injected one.
+candidates and witnesses tried, the top candidate and whether it is the injected one, and
+the process's peak resident memory.
 
 Usage: ``.venv/bin/python bench/diagnose.py [--duration SECONDS] [--seed N] [--clean] [--profile]``
 """
@@ -20,6 +21,7 @@ import cProfile
 import json
 import os
 import pstats
+import resource
 import sys
 import time
 from pathlib import Path
@@ -67,6 +69,8 @@ def main() -> int:
         "meets_target": wall < TARGET_S,
         "stages_s": report["timings_s"],
         "candidate_seconds": {c["effect"]: c["seconds"] for c in cands},
+        # the process's peak resident memory (simulation and diagnosis; ru_maxrss in KiB)
+        "peak_rss_gb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9, 2),
         "candidates_tried": len(cands),
         "witnesses_tried": report["witnesses"]["n_witnesses"],
         "segments": report["adequacy"]["segments"],

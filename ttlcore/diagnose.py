@@ -386,6 +386,12 @@ class Diagnoser:
 
         self._eiv_cache: dict = {}
         self.eiv_parts: dict = {}
+        #: column -> slowly varying factor (decimated samples) multiplying its witnesses, and
+        #: so their readout noise (drift, step); absent: 1
+        self.eiv_modulation: dict = {}
+        # each segment's normalised squared taper: the weight of a modulation product
+        w2 = np.stack([(self.win * self.mask[s0:s0 + self.L]) ** 2 for s0 in self.starts])
+        self._w2 = w2 / w2.sum(axis=1, keepdims=True)  # (S, L)
         for n in ttl_names:
             link, extra, mosa, angle = placement(n)
             self.eiv_parts[n] = [((mosa, angle), link, tuple(extra))]
@@ -531,23 +537,35 @@ class Diagnoser:
             names = [c.name for c in cols]
             info = [(1.0, c.unit, c.prior_scale) for c in cols]
             for c in cols:
-                if c.parts and all(p.channel is not None for p in c.parts):
-                    self.eiv_parts[c.name] = [(p.channel, p.link, p.extra) for p in c.parts]
-                else:
-                    self.eiv_parts.pop(c.name, None)
+                self._register_eiv(c)
             series = np.empty((3, len(cols), 0))
             chunks = []
             for j0 in range(0, len(cols), 8):  # bounded memory (a day: ~70 MB per column in flight)
                 chunks.append(self._decimate(columns_tdi(cols[j0:j0 + 8], self.built)))
             series = np.concatenate(chunks, axis=1)
-        clash = [n for n in names if n in self.wcols and n not in self.series and self.tm is not None and False]
-        del clash
         self._add_columns(names, np.matmul(self.Lh, self._spectra(series)), info)
         if keep_series:
             for k, n in enumerate(names):
                 self.series[n] = series[:, k]
         self._gram_cache[key] = names
         return names
+
+    def _register_eiv(self, column) -> None:
+        """Errors-in-variables parts of an effect's column: plain (or slowly modulated) DWS
+        witnesses carry their channel's readout noise; other columns none."""
+        self.eiv_parts.pop(column.name, None)
+        self.eiv_modulation.pop(column.name, None)
+        parts = column.parts
+        if not parts or any(p.channel is None for p in parts):
+            return
+        mods = [p.modulation for p in parts]
+        if any(m is not None for m in mods):
+            if any(m is None or not np.array_equal(m, mods[0]) for m in mods):
+                return  # parts modulated differently: not modelled
+            t_tm = float(self.tm.t0) + np.arange(len(mods[0])) / float(self.tm.fs)
+            t_dec = self.t0 + np.arange(self.mask.size) / self.fs
+            self.eiv_modulation[column.name] = np.interp(t_dec, t_tm, np.asarray(mods[0], dtype=float))
+        self.eiv_parts[column.name] = [(p.channel, p.link, p.extra) for p in parts]
 
     def _columns_from_tdi(self, effect: Effect):
         """Drift and step columns as time-modulated TDI regressors (no telemetry)."""
@@ -569,6 +587,9 @@ class Diagnoser:
                     base = f"{m}.{a}.{sd}"
                     names.append(f"{prefix}.{base}")
                     cols.append(self.series[base] * mod)
+                    if base in self.eiv_parts:
+                        self.eiv_parts[names[-1]] = list(self.eiv_parts[base])
+                        self.eiv_modulation[names[-1]] = mod
         series = np.stack(cols, axis=1)
         return names, series, [(1.0, unit, 1e-3)] * len(names)
 
@@ -593,19 +614,27 @@ class Diagnoser:
         """``b`` per segment and band, (S, G, p)."""
         return _gram_x(self._x(names), self.wd[None].view(np.float64), self.slices)[..., 0]
 
-    def eiv(self, names) -> np.ndarray:
-        """Errors-in-variables term (G, p, p) of the columns: ``E_kl = sum_ch Re sum_f
-        U_k,ch^H U_l,ch`` with ``U_k,ch`` the whitened response of column ``k`` to the readout
-        noise of DWS channel ``ch`` (columns whose parts are plain DWS witnesses: the TTL
-        regressors, cross-coupling, the TTL witnesses a shifted-witness effect moved by ``s``
-        seconds, whose response gains the phase ``exp(2 pi i f s)``; others, built from
-        products or modulations of the readouts, carry none - their bias is second order in
-        the small readout noise)."""
+    def eiv(self, names, parts: dict | None = None, modulation: dict | None = None) -> np.ndarray:
+        """Errors-in-variables term (G, p, p) of the columns, summed over segments:
+        ``E_kl = W_kl sum_ch Re sum_f U_k,ch^H U_l,ch`` (:meth:`eiv_products`, one segment)
+        with ``W_kl`` the segments' taper-weighted means of the product of the columns'
+        modulations (:meth:`eiv_weights`; the number of segments for unmodulated columns).
+        ``parts`` and ``modulation`` (name -> value) add or override columns' entries."""
+        return self.eiv_products(names, parts) * self.eiv_weights(names, modulation)[None]
+
+    def eiv_products(self, names, parts: dict | None = None) -> np.ndarray:
+        """One segment's errors-in-variables products (G, p, p): ``Re sum_f U_k,ch^H U_l,ch``
+        summed over the DWS channels ``ch``, ``U_k,ch`` the whitened response of column ``k``
+        to the readout noise of channel ``ch``.  Columns whose parts are plain (or slowly
+        modulated) DWS witnesses carry it: the TTL regressors, cross-coupling, drift and
+        step, the TTL witnesses a shifted-witness effect moved by ``s`` seconds (response
+        times ``exp(2 pi i f s)``); others, built from products of the readouts, carry none -
+        their bias is second order in the small readout noise."""
         p = len(names)
         E = np.zeros((self.G, p, p))
         by_channel: dict = {}
         for i, n in enumerate(names):
-            for ch, link, extra, *shift in self.eiv_parts.get(n, ()):
+            for ch, link, extra, *shift in (parts or {}).get(n, self.eiv_parts.get(n, ())):
                 by_channel.setdefault(ch, {}).setdefault(i, []).append((link, extra, shift[0] if shift else 0.0))
         for ch, cols in by_channel.items():
             idx = sorted(cols)
@@ -614,8 +643,23 @@ class Diagnoser:
             for g, (a, b) in enumerate(self.slices):
                 if b > a:
                     Ug = U[a:b].reshape(-1, len(idx))
-                    E[g][np.ix_(idx, idx)] += np.real(Ug.conj().T @ Ug) * len(self.starts)
+                    E[g][np.ix_(idx, idx)] += np.real(Ug.conj().T @ Ug)
         return E
+
+    def eiv_weights(self, names, modulation: dict | None = None) -> np.ndarray:
+        """``W_kl = sum_s <m_k m_l>_s`` (p, p): per segment the mean of the product of the
+        columns' modulations weighted by the squared taper (the readout noise is white on the
+        modulations' time scale), ``m = 1`` for unmodulated columns."""
+        mods = [(modulation or {}).get(n, self.eiv_modulation.get(n)) for n in names]
+        W = np.full((len(names), len(names)), float(len(self.starts)))
+        idx = [i for i, m in enumerate(mods) if m is not None]
+        if idx:
+            A = np.stack([np.stack([mods[i][s0:s0 + self.L] for s0 in self.starts]) for i in idx])  # (q, S, L)
+            cross = np.einsum("qsl,sl->q", A, self._w2)  # against m = 1
+            W[idx, :] = cross[:, None]
+            W[:, idx] = cross[None, :]
+            W[np.ix_(idx, idx)] = np.einsum("qsl,rsl,sl->qr", A, A, self._w2)
+        return W
 
     def _eiv_response(self, link, extra) -> np.ndarray:
         """Whitened A, E, T response (m, 3) to the DWS readout noise of a witness ``-DWS/c``
@@ -1000,7 +1044,7 @@ class Diagnoser:
         N_MK = self.gram(M, K)
         N_KK = self.gram(K, K)
         b_K = self.rhs(K)
-        return self._evidence(model, N_MM, N_MK, N_KK, b_M, b_K, K, prior)
+        return self._evidence(model, N_MM, N_MK, N_KK, b_M, b_K, K, prior, self.eiv(M + K))
 
     def compare(self, base: ModelFit, model: ModelFit) -> dict:
         """Evidence of ``model`` against ``base`` when they are not nested (a shifted-witness
@@ -1032,20 +1076,19 @@ class Diagnoser:
             lbf += -np.log(p) - 0.5 * (v / p) ** 2
         return {"delta_chi2": float(2 * (base.q_min - model.q_min) / self.kappa), "log_bayes_factor": float(lbf)}
 
-    def _evidence(self, model, N_MM, N_MK, N_KK, b_M, b_K, K, prior=None) -> dict:
+    def _evidence(self, model, N_MM, N_MK, N_KK, b_M, b_K, K, prior, E_full) -> dict:
+        """Evidence for the columns ``K`` added to ``model`` from the per-segment, per-band
+        normal equations and the errors-in-variables term ``E_full`` (G, P + k, P + k) of all
+        the columns: the candidates' readout noise correlates with the model's where they
+        share a DWS channel, and left out, that correlation would pass for a signal."""
         P, k = N_MM.shape[-1], N_KK.shape[-1]
-        if model.eiv_term is None:
-            model.eiv_term = self.eiv(list(model.names))
-        E = model.eiv_term
         full = np.zeros(N_MM.shape[:2] + (P + k, P + k))
         full[..., :P, :P] = N_MM
         full[..., :P, P:] = N_MK
         full[..., P:, :P] = np.swapaxes(N_MK, -1, -2)
         full[..., P:, P:] = N_KK
         bb = np.concatenate([b_M, b_K], axis=-1)
-        Ef = np.zeros((self.G, P + k, P + k))
-        Ef[:, :P, :P] = E
-        Nt = full.sum(axis=(0, 1)) - Ef.sum(axis=0)
+        Nt = full.sum(axis=(0, 1)) - E_full.sum(axis=0)
         bt = bb.sum(axis=(0, 1))
         try:
             th = np.linalg.solve(Nt, bt)
@@ -1086,6 +1129,26 @@ class Diagnoser:
         N_MM, b_M = model.normal if model.normal is not None else (self.gram(M, M), self.rhs(M))
         b_B = self.rhs(base)
         XM = self._x(M)
+        # errors-in-variables of the step columns H(t - t_s) x witness: one segment's products
+        # times the taper-weighted share of each segment after t_s (tail sums over the samples)
+        nM, nK = len(M), len(base)
+        E_products = self.eiv_products(M + base)
+        W_MM = self.eiv_weights(M)
+        t_flat = np.concatenate([self.t0 + (s0 + np.arange(self.L)) / self.fs for s0 in self.starts])
+        w2 = self._w2.reshape(-1)
+        prof = np.stack([w2 if m is None else w2 * np.concatenate([m[s0:s0 + self.L] for s0 in self.starts])
+                         for m in (self.eiv_modulation.get(n) for n in M)] + [w2])
+        tail = np.concatenate([np.cumsum(prof[:, ::-1], axis=1)[:, ::-1], np.zeros((nM + 1, 1))], axis=1)
+
+        def eiv_at(ts):
+            j = int(np.searchsorted(t_flat, ts))  # the first sample at or after t_s
+            W = np.empty((nM + nK, nM + nK))
+            W[:nM, :nM] = W_MM
+            W[:nM, nM:] = tail[:nM, j][:, None]
+            W[nM:, :nM] = tail[:nM, j][None, :]
+            W[nM:, nM:] = tail[nM, j]
+            return E_products * W[None]
+
         idx = np.flatnonzero(self.mask)
         # a step closer to the ends than half a coarse step is nearly collinear with the TTL
         # columns themselves: search inside
@@ -1119,7 +1182,7 @@ class Diagnoser:
                 N_KK[j] = _gram_x(XK, XK, self.slices)[0]
                 b_K[j] = _gram_x(XK, self.wd[j:j + 1][None].view(np.float64), self.slices)[0, ..., 0]
             return self._evidence(model, N_MM, N_MK, N_KK, b_M, b_K, [f"step.{n}" for n in base],
-                                  prior=np.full(len(base), 1e-3))
+                                  np.full(len(base), 1e-3), eiv_at(ts))
 
         coarse = np.arange(t_lo + s.step_grid / 2, t_hi, s.step_grid)
         if coarse.size == 0:

@@ -75,6 +75,10 @@ class Part:
     #: ``(mosa, angle)`` if the series is the plain witness ``-DWS/c`` of that channel: the
     #: diagnosis then includes its readout noise in the errors-in-variables correction
     channel: tuple | None = None
+    #: with ``channel``: the series is ``modulation * witness`` for a slowly varying factor
+    #: (a drift's ``(t - t_ref) / day``, a step's ``H(t - t_step)``, same samples), and the
+    #: readout noise enters modulated alike
+    modulation: np.ndarray | None = None
 
     @property
     def extra(self) -> tuple:
@@ -355,7 +359,7 @@ class Drift(Effect):
             for a in self.angles:
                 for s in self.sides:
                     link, delayed = placement(m, s)
-                    cols.append(Column(f"drift.{m}.{a}.{s}", [Part(link, tau * data.witness(m, a), delayed)],
+                    cols.append(Column(f"drift.{m}.{a}.{s}", [Part(link, tau * data.witness(m, a), delayed, (m, a), tau)],
                                        "m/rad/day", 1e-3))
         return cols
 
@@ -384,7 +388,8 @@ class Step(Effect):
             for a in self.angles:
                 for s in self.sides:
                     link, delayed = placement(m, s)
-                    cols.append(Column(f"step.{m}.{a}.{s}", [Part(link, h * data.witness(m, a), delayed)], "m/rad", 1e-3))
+                    cols.append(Column(f"step.{m}.{a}.{s}", [Part(link, h * data.witness(m, a), delayed, (m, a), h)],
+                                       "m/rad", 1e-3))
         return cols
 
 
