@@ -903,6 +903,7 @@ class Diagnoser:
 
             return q
 
+        gain, theta, moved = {}, None, np.inf
         for _ in range(passes):
             moved = 0.0
             for g in members:
@@ -914,14 +915,14 @@ class Diagnoser:
                 best = float(res.x) if res.fun <= Qg.min() else x0
                 moved = max(moved, abs(best - delta[g]))
                 delta[g] = best
-            if moved < 1e-3:
+                (q0, q1), th = q(np.array([0.0, best]))
+                gain[g], theta = 2.0 * (q0 - q1) / self.kappa, th[1]
+            if moved < 1e-3:  # the gains of this pass hold: no other offset moved since
                 break
-        gain, theta = {}, None
-        for g in members:
-            q = profile(g)
-            (q0, q1), th = q(np.array([0.0, delta[g]]))
-            gain[g] = 2.0 * (q0 - q1) / self.kappa
-            theta = th[1]
+        if moved >= 1e-3:
+            for g in members:
+                (q0, q1), th = profile(g)(np.array([0.0, delta[g]]))
+                gain[g], theta = 2.0 * (q0 - q1) / self.kappa, th[1]
         if theta is None:
             theta = np.linalg.solve(self.gram(names, names).sum(axis=(0, 1)) - E, self.rhs(names).sum(axis=(0, 1)))
         log.debug("shift search %s: %s", effect.name, {g: round(v, 4) for g, v in delta.items()})
