@@ -55,6 +55,7 @@ from .effects import (
     columns_tdi,
     effect_input_from_telemetry,
     make_effects,
+    tdi_in_blocks,
 )
 from .errors import ConfigError
 from .fit import (
@@ -305,7 +306,7 @@ class Diagnoser:
     """
 
     def __init__(self, td: TDIData, settings: DiagnoseSettings | None = None, tm=None, effect_modules=(),
-                 dws_asd: float | None = None, built=None):
+                 dws_asd: float | None = None):
         s = self.settings = settings or DiagnoseSettings()
         self.tm = tm
         self._have_derivatives = False
@@ -314,7 +315,6 @@ class Diagnoser:
         self.registry = available_effects(self.effect_modules)
         self.dws_asd = float(dws_asd if dws_asd is not None else (s.dws_asd if s.dws_asd is not None else DWS_ASD))
         self.ltt_mean = np.asarray(td.ltt_mean, dtype=float)
-        self.built = built
         tda = td.to_aet()
         self._td_in = tda
         factor = max(1, int(round(tda.fs / 2.0)))
@@ -407,16 +407,15 @@ class Diagnoser:
     def from_telemetry(cls, tm, settings: DiagnoseSettings | None = None, effect_modules=()) -> "Diagnoser":
         """From a :class:`~ttlcore.telemetry.Telemetry` (ours or lisainstrument's)."""
         s = settings or DiagnoseSettings()
-        # one set of delay taps for the data, the 24 TTL regressors and every effect column
-        built = build(MICHELSON, tm.ltt, tm.fs, order=s.order, delay_order=s.delay_order)
         from .effects import LinearTTL
 
-        data = np.stack([b(tm.eta) for b in built])
-        regs = columns_tdi(LinearTTL().columns(effect_input_from_telemetry(tm)), built)
-        td = TDIData(t0=float(tm.t0), fs=float(tm.fs), channels=tuple(b.combination.name for b in built), data=data,
+        # TDI in 3-h blocks (tdi_in_blocks): the interpolation taps of a day would hold ~4 GB
+        data, regs = tdi_in_blocks(tm.ltt, tm.fs, LinearTTL().columns(effect_input_from_telemetry(tm)), tm.eta,
+                                   order=s.order, delay_order=s.delay_order)
+        td = TDIData(t0=float(tm.t0), fs=float(tm.fs), channels=tuple(c.name for c in MICHELSON), data=data,
                      regressors=regs, names=COEFFICIENT_NAMES, ltt_mean=np.nanmean(np.asarray(tm.ltt), axis=-1))
         dws = s.dws_asd if s.dws_asd is not None else dws_asd_from_config(tm.config)
-        return cls(td, s, tm=tm, effect_modules=effect_modules, dws_asd=dws, built=built)
+        return cls(td, s, tm=tm, effect_modules=effect_modules, dws_asd=dws)
 
     @classmethod
     def from_tdi(cls, td: TDIData, settings: DiagnoseSettings | None = None, dws_asd: float | None = None,
@@ -541,7 +540,9 @@ class Diagnoser:
             series = np.empty((3, len(cols), 0))
             chunks = []
             for j0 in range(0, len(cols), 8):  # bounded memory (a day: ~70 MB per column in flight)
-                chunks.append(self._decimate(columns_tdi(cols[j0:j0 + 8], self.built)))
+                _, xyz = tdi_in_blocks(self.tm.ltt, self.tm.fs, cols[j0:j0 + 8], order=self.settings.order,
+                                       delay_order=self.settings.delay_order)
+                chunks.append(self._decimate(xyz))
             series = np.concatenate(chunks, axis=1)
         self._add_columns(names, np.matmul(self.Lh, self._spectra(series)), info)
         if keep_series:

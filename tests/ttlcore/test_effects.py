@@ -14,6 +14,7 @@ from ttlcore.effects import (
     effect_input_from_telemetry,
     injection_from_spec,
     parse_effect_spec,
+    tdi_in_blocks,
 )
 from ttlcore.errors import ConfigError
 from ttlcore.fit import FitSettings, fit_tdi
@@ -159,6 +160,24 @@ def test_effect_columns_through_tdi_reproduce_the_injected_signal(spec):
     scale = np.max(np.abs(data[:, ok]))
     # the simulator delays with its own taps, TDI with its nested ones: both order-31 Lagrange
     np.testing.assert_allclose(model[:, ok], data[:, ok], rtol=0, atol=1e-6 * scale)
+
+
+def test_tdi_in_blocks_equals_one_block():
+    # the diagnosis computes TDI in blocks, each with the history its delays reach back to:
+    # the result must be the one-block TDI (same taps, same samples) to rounding, NaN alike
+    inj = injection_from_spec("cross-coupling:sides=tx,all=1e-3")
+    tm, _ = simulate(SimulationConfig(duration=1800.0, orbit="keplerian", seed=4, injections=(inj,)))
+    cols = inj.effect.columns(effect_input_from_telemetry(tm))
+    built = build(MICHELSON, tm.ltt, tm.fs)
+    whole_cols = columns_tdi(cols, built)
+    whole_data = np.stack([b(tm.eta) for b in built])
+    data, blocks = tdi_in_blocks(tm.ltt, tm.fs, cols, tm.eta, order=31, delay_order=5, block=1000)
+    np.testing.assert_array_equal(np.isnan(blocks), np.isnan(whole_cols))
+    np.testing.assert_array_equal(np.isnan(data), np.isnan(whole_data))
+    ok = np.isfinite(whole_data).all(axis=0) & np.isfinite(whole_cols).all(axis=(0, 1))
+    assert ok.sum() > 0.9 * tm.size
+    np.testing.assert_allclose(blocks[..., ok], whole_cols[..., ok], rtol=0, atol=1e-12 * np.abs(whole_cols[..., ok]).max())
+    np.testing.assert_allclose(data[:, ok], whole_data[:, ok], rtol=0, atol=1e-12 * np.abs(whole_data[:, ok]).max())
 
 
 def test_derivative_is_accurate_in_band():
