@@ -23,7 +23,6 @@ from ttlcore.interpolation import timeshift
 from ttlcore.simulator import NoiseSwitches, SimulationConfig, simulate
 from ttlcore.tdi import MICHELSON, build
 from ttlcore.tdi_data import TDIData, compute_tdi
-from ttlcore.telemetry import read_telemetry
 
 #: jitter and TTL only (no readout noise): the DWS readouts are the true velocities
 QUIET = dict(orbit="equal", seed=7, noises=NoiseSwitches.parse("none,ttl,sc_jitter,mosa_jitter"))
