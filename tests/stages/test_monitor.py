@@ -26,7 +26,7 @@ from streamer.recorder import read_recording
 from streamer.session import Bus, SessionSettings, free_port
 from streamer.stage import StageConfig
 
-from ttlcore.conventions import C, COEFFICIENT_NAMES, LINKS, MOSAS
+from ttlcore.conventions import C, COEFFICIENT_NAMES, MOSAS
 from ttlcore.truth import CORE_DATASETS, TruthWriter
 
 RUN = "monitor-test"

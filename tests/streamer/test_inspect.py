@@ -23,7 +23,7 @@ from streamer_testutil import ROOT, wait_for
 
 from streamer.codec import encode
 from streamer.inspect import InspectError, format_report, inspect_run, view_command
-from streamer.recorder import FIT_SCHEMA, Recorder, read_recording
+from streamer.recorder import Recorder, read_recording
 from ttlcore.cli import main as ttl_main
 from ttlcore.conventions import COEFFICIENT_NAMES
 

@@ -91,7 +91,6 @@ def test_big_segments_across_processes_no_drops_and_late_joiner(children, tmp_pa
     assert sorted(map(int, result["received"])) == list(range(n)), output_of(pub)
     assert all(v == [True] for v in result["received"].values())  # once each, intact
     published = json.loads(pub_out.read_text())
-    rate = published["bytes"] / MB / (result["t_last"] - result["t_first"]) if n > 1 else 0
     print(f"\n{n} x {size / MB:.0f} MB: publisher put {published['bytes'] / MB / published['elapsed']:.0f} MB/s, "
           f"max put {max(published['put_seconds']):.3f} s; subscriber arrivals span "
           f"{result['t_last'] - result['t_first']:.2f} s")
