@@ -29,6 +29,7 @@ model columns ``M``:
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import math
 import time
@@ -283,6 +284,13 @@ class ModelFit:
             if n in names:
                 out[k] = values[names.index(n)]
         return out
+
+
+def total_offset(column: str, value: float, expansion: dict) -> float:
+    """The parameter of a shifted-witness effect's ``<effect>.<group>.d1`` column is the
+    offset beyond its expansion point (:meth:`Diagnoser.expansion_points`): the offset is
+    their sum.  Other columns: ``value``."""
+    return float(value) + (float(expansion.get(column[:-3], 0.0)) if column.endswith(".d1") else 0.0)
 
 
 def parameter_name(column: str) -> str:
@@ -615,15 +623,14 @@ class Diagnoser:
         """``b`` per segment and band, (S, G, p)."""
         return _gram_x(self._x(names), self.wd[None].view(np.float64), self.slices)[..., 0]
 
-    def eiv(self, names, parts: dict | None = None, modulation: dict | None = None) -> np.ndarray:
+    def eiv(self, names) -> np.ndarray:
         """Errors-in-variables term (G, p, p) of the columns, summed over segments:
         ``E_kl = W_kl sum_ch Re sum_f U_k,ch^H U_l,ch`` (:meth:`eiv_products`, one segment)
         with ``W_kl`` the segments' taper-weighted means of the product of the columns'
-        modulations (:meth:`eiv_weights`; the number of segments for unmodulated columns).
-        ``parts`` and ``modulation`` (name -> value) add or override columns' entries."""
-        return self.eiv_products(names, parts) * self.eiv_weights(names, modulation)[None]
+        modulations (:meth:`eiv_weights`; the number of segments for unmodulated columns)."""
+        return self.eiv_products(names) * self.eiv_weights(names)[None]
 
-    def eiv_products(self, names, parts: dict | None = None) -> np.ndarray:
+    def eiv_products(self, names) -> np.ndarray:
         """One segment's errors-in-variables products (G, p, p): ``Re sum_f U_k,ch^H U_l,ch``
         summed over the DWS channels ``ch``, ``U_k,ch`` the whitened response of column ``k``
         to the readout noise of channel ``ch``.  Columns whose parts are plain (or slowly
@@ -635,7 +642,7 @@ class Diagnoser:
         E = np.zeros((self.G, p, p))
         by_channel: dict = {}
         for i, n in enumerate(names):
-            for ch, link, extra, *shift in (parts or {}).get(n, self.eiv_parts.get(n, ())):
+            for ch, link, extra, *shift in self.eiv_parts.get(n, ()):
                 by_channel.setdefault(ch, {}).setdefault(i, []).append((link, extra, shift[0] if shift else 0.0))
         for ch, cols in by_channel.items():
             idx = sorted(cols)
@@ -647,11 +654,11 @@ class Diagnoser:
                     E[g][np.ix_(idx, idx)] += np.real(Ug.conj().T @ Ug)
         return E
 
-    def eiv_weights(self, names, modulation: dict | None = None) -> np.ndarray:
+    def eiv_weights(self, names) -> np.ndarray:
         """``W_kl = sum_s <m_k m_l>_s`` (p, p): per segment the mean of the product of the
         columns' modulations weighted by the squared taper (the readout noise is white on the
         modulations' time scale), ``m = 1`` for unmodulated columns."""
-        mods = [(modulation or {}).get(n, self.eiv_modulation.get(n)) for n in names]
+        mods = [self.eiv_modulation.get(n) for n in names]
         W = np.full((len(names), len(names)), float(len(self.starts)))
         idx = [i for i, m in enumerate(mods) if m is not None]
         if idx:
@@ -683,16 +690,16 @@ class Diagnoser:
         the model's own coefficient history (time average of ``|sum C_k(t) T_k|^2``) and the
         model refitted once; the new noise model stays for what follows."""
         effects = make_effects(effects, self.effect_modules) if not all(isinstance(e, Effect) for e in effects) else list(effects)
-        fit = self._fit(effects, coefficients_for_linearised, keep_series, False)
+        fit = self._fit(effects, coefficients_for_linearised, keep_series)
         hist = self.coefficient_history(fit)
         if hist is not None and self.dws_asd > 0:
             self.set_noise_model(instrument_noise_csd(self.f, self.ltt_mean, hist, self.dws_asd))
-            fit = self._fit(effects, coefficients_for_linearised, keep_series, False)
+            fit = self._fit(effects, coefficients_for_linearised, keep_series)
         if time_table and all(n in self.series for n in fit.names):
             fit.time_table = self.time_adequacy(list(fit.names), fit.theta)
         return fit
 
-    def _fit(self, effects, coefficients_for_linearised, keep_series, time_table) -> ModelFit:
+    def _fit(self, effects, coefficients_for_linearised, keep_series) -> ModelFit:
         names = self._model_names(effects, coefficients_for_linearised, keep_series)
         N = self.gram(names, names)  # (S, G, P, P)
         b = self.rhs(names)
@@ -712,8 +719,6 @@ class Diagnoser:
         fit.normal = (N, b)
         fit.eiv_term = E
         fit.dd = dd
-        if time_table and all(n in self.series for n in names):
-            fit.time_table = self.time_adequacy(names, theta)
         return fit
 
     def coefficient_history(self, model: ModelFit, n_t: int = 97) -> np.ndarray | None:
@@ -769,10 +774,10 @@ class Diagnoser:
             for e in lin:
                 names += [n for n in self.effect_columns(e, C, keep_series=keep_series) if n not in names]
             if self.settings.expansion_passes and all(n in self.series for n in self.ttl_names):
-                names = self._reexpand(first, lin, names, keep_series)
+                names = self._reexpand(first, lin, names)
         return names
 
-    def _reexpand(self, first, lin, names, keep_series) -> list[str]:
+    def _reexpand(self, first, lin, names) -> list[str]:
         """The exact model of the linearised effects where their offsets are large.
 
         Each group's offset is found by :meth:`shift_search` (no Taylor expansion, so offsets
@@ -798,12 +803,10 @@ class Diagnoser:
                     shifts[e.name][g] = found[g]
         if not moved_names:
             return names  # the Taylor columns at zero are the model
-        model = names
-        for k in range(max(1, self.settings.expansion_passes)):
-            model, replaced = list(first), {}
+        for _ in range(max(1, self.settings.expansion_passes)):
+            model = list(first)
             for e in lin:
-                repl, cols = self._shifted_columns(e, C, shifts[e.name], keep_series)
-                replaced.update(repl)
+                repl, cols = self._shifted_columns(e, C, shifts[e.name])
                 model = [repl.get(n, n) for n in model] + cols
             fit, sig = self._solve_only(model)
             C = self._ttl_vector(fit)
@@ -936,7 +939,7 @@ class Diagnoser:
         sig = np.sqrt(np.abs(np.diag(np.linalg.inv(2 * N))) * self.kappa)
         return dict(zip(names, theta)), dict(zip(names, sig))
 
-    def _shifted_columns(self, effect, C, shifts: dict, keep_series) -> tuple[dict, list[str]]:
+    def _shifted_columns(self, effect, C, shifts: dict) -> tuple[dict, list[str]]:
         """Columns of a linearised effect expanded at ``shifts[group]`` (see :meth:`_reexpand`).
 
         For each group with an offset ``delta_0``: its TTL columns with the witnesses shifted,
@@ -1048,7 +1051,18 @@ class Diagnoser:
         b_K = self.rhs(K)
         return self._evidence(model, N_MM, N_MK, N_KK, b_M, b_K, K, prior, self.eiv(M + K))
 
-    def compare(self, base: ModelFit, model: ModelFit) -> dict:
+    def change(self, base: ModelFit, model: ModelFit) -> dict | None:
+        """Evidence for ``model`` against ``base``: :meth:`evaluate` (exact) when ``base``'s
+        columns are among ``model``'s, :meth:`compare` (Laplace) when a shifted-witness
+        effect moved TTL columns; None when ``model`` adds nothing."""
+        added = [n for n in model.names if n not in base.names]
+        if not added:
+            return None
+        if set(base.names) <= set(model.names):
+            return self.evaluate(base, added)
+        return self.compare(base, model)
+
+    def compare(self, base: ModelFit, model: ModelFit, expansion: dict | None = None) -> dict:
         """Evidence of ``model`` against ``base`` when they are not nested (a shifted-witness
         effect moved some TTL columns; nested pairs: :meth:`evaluate`, exact).
 
@@ -1061,7 +1075,8 @@ class Diagnoser:
                     + sum_new [1/2 log 2 pi + log N(theta_k; 0, prior_k)],
 
         ``H = 2 (N - E) / kappa`` the Hessians.  For a nested pair whose new parameters lie
-        well inside their prior this equals :func:`log_bayes_factor`."""
+        well inside their prior this equals :func:`log_bayes_factor`.  ``expansion``: the
+        expansion points of ``model`` (default: the last fit's)."""
         def logdet(fit):
             H = 2 * (fit.normal[0].sum(axis=(0, 1)) - fit.eiv_term.sum(axis=0)) / self.kappa
             sign, value = np.linalg.slogdet(H)
@@ -1069,13 +1084,12 @@ class Diagnoser:
 
         shared = set(base.parameter_names)
         lbf = -(model.q_min - base.q_min) / self.kappa - 0.5 * (logdet(model) - logdet(base))
-        expansion = self.expansion_points()
+        expansion = self.expansion_points() if expansion is None else expansion
         for n, v in zip(model.names, model.theta):
             if parameter_name(n) in shared:
                 continue
             p = float(self.col_info[n][2])
-            v = float(v) + (float(expansion.get(n[:-3], 0.0)) if n.endswith(".d1") else 0.0)
-            lbf += -np.log(p) - 0.5 * (v / p) ** 2
+            lbf += -np.log(p) - 0.5 * (total_offset(n, v, expansion) / p) ** 2
         return {"delta_chi2": float(2 * (base.q_min - model.q_min) / self.kappa), "log_bayes_factor": float(lbf)}
 
     def _evidence(self, model, N_MM, N_MK, N_KK, b_M, b_K, K, prior, E_full) -> dict:
@@ -1349,19 +1363,35 @@ class Diagnoser:
         evidence when no group's offset needs the exact model."""
         if self.settings.expansion_passes == 0 or not all(n in self.series for n in self.ttl_names):
             return taylor, {}
-        exact = self._fit(list(model.effects) + [effect], None, False, False)
+        with self._columns_kept():  # the model's own shifted columns stay as they are
+            exact = self._fit(list(model.effects) + [effect], None, False)
+            expansion = self.expansion_points()
         if all("@" not in n for n in exact.names):
             return taylor, {}
-        ev = self.compare(model, exact)
+        ev = self.compare(model, exact, expansion)
         new = [i for i, n in enumerate(exact.names) if parameter_name(n) not in set(model.parameter_names)]
-        expansion = self.expansion_points()
         names = [exact.names[i] for i in new]
-        beta = np.array([exact.theta[i] + (expansion.get(exact.names[i][:-3], 0.0) if exact.names[i].endswith(".d1") else 0.0)
-                         for i in new])
+        beta = np.array([total_offset(exact.names[i], exact.theta[i], expansion) for i in new])
         ev.update({"n_parameters": len(new), "names": names, "beta": beta, "sigma": exact.sigma[new],
                    "band_delta": (model.chi2_seg_band - exact.chi2_seg_band).sum(axis=0) / self.kappa,
                    "segment_delta": (model.chi2_seg_band - exact.chi2_seg_band).sum(axis=1) / self.kappa})
         return ev, {"offsets": {n[:-3]: float(b) for n, b in zip(names, beta) if n.endswith(".d1")}}
+
+    @contextlib.contextmanager
+    def _columns_kept(self):
+        """Restore the registered columns and expansion points on exit: a trial fit with a
+        shifted-witness effect re-registers columns under names a fitted model may hold
+        (``ltt-error.12.d1``, ``21.phi.tx@ltt-error.12``) with other offsets and weights."""
+        kept = {a: dict(getattr(self, a)) for a in ("wcols", "series", "col_info", "eiv_parts", "eiv_modulation",
+                                                     "_gram_cache", "_expansion")}
+        have_derivatives = self._have_derivatives
+        try:
+            yield
+        finally:
+            for a, v in kept.items():
+                setattr(self, a, v)
+            self._have_derivatives = have_derivatives
+            self._x_cache.clear()
 
     def _where(self, ev, extra) -> dict:
         bd = ev["band_delta"]
@@ -1437,8 +1467,7 @@ def coefficients_json(model: ModelFit, truth=None, expansion: dict | None = None
     offsets = {}
     for n, v, sg in zip(model.names, model.theta, model.sigma):
         if n.endswith(".d1"):
-            key = n[:-3]
-            offsets[key] = {"value": float(v) + float((expansion or {}).get(key, 0.0)), "sigma": float(sg), "unit": "s"}
+            offsets[n[:-3]] = {"value": total_offset(n, v, expansion or {}), "sigma": float(sg), "unit": "s"}
     if offsets:
         out["offsets"] = offsets
     if truth is not None:
@@ -1500,7 +1529,7 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
     report["adequacy"] = report["model"]["adequacy"]
     if len(eff) > 1 or eff[0].name != "linear-ttl":
         before = dg.fit(make_effects(["linear-ttl"]))
-        ev = dg.evaluate(before, [n for n in model.names if n not in before.names]) if set(before.names) <= set(model.names) else None
+        ev = dg.change(before, model)
         report["before"] = model_json(dg, before, truth_coefficients)
         report["change"] = {
             "added": [e.spec() for e in eff if e.name != "linear-ttl"],
@@ -1573,13 +1602,7 @@ def refit(source, effects=("linear-ttl",), *, settings: DiagnoseSettings | None 
         raise ConfigError(f"refit: cannot refit a {type(source).__name__}; give telemetry, TDI data or a Diagnoser")
     model = dg.fit(make_effects(list(effects), effect_modules))
     base = dg.fit(make_effects(list(baseline), effect_modules))
-    added = [n for n in model.names if n not in base.names]
-    if not added:
-        ev = None
-    elif set(base.names) <= set(model.names):
-        ev = dg.evaluate(base, added)
-    else:  # a shifted-witness effect moved TTL columns: not nested
-        ev = dg.compare(base, model)
+    ev = dg.change(base, model)
     return {
         "model": model_json(dg, model), "baseline": model_json(dg, base),
         "change": {"delta_chi2": None if ev is None else ev["delta_chi2"],

@@ -920,7 +920,7 @@ def tdi_in_blocks(ltt: np.ndarray, fs: float, columns=(), eta: np.ndarray | None
         if eta is not None:
             data[:, a:b] = [combination(np.asarray(eta)[:, lo:b]) for combination in built]
         if columns:
-            part = [Column(c.name, [replace(p, series=p.series[lo:b], modulation=None) for p in c.parts], c.unit,
+            part = [Column(c.name, [replace(p, series=p.series[lo:b]) for p in c.parts], c.unit,
                            c.prior_scale) for c in columns]
             out[:, :, a:b] = columns_tdi(part, built)
     return data, out

@@ -22,7 +22,7 @@ from diagnose_helpers import injected_asd_ratio  # noqa: E402
 from ttlcore.cli import main  # noqa: E402
 from ttlcore.conventions import COEFFICIENT_NAMES  # noqa: E402
 from ttlcore.diagnose import Diagnoser, diagnose, log_bayes_factor, refit, text_report  # noqa: E402
-from ttlcore.effects import injection_from_spec  # noqa: E402
+from ttlcore.effects import injection_from_spec, make_effects  # noqa: E402
 from ttlcore.interpolation import timeshift  # noqa: E402
 from ttlcore.simulator import SimulationConfig, simulate  # noqa: E402
 from ttlcore.tdi_data import compute_tdi  # noqa: E402
@@ -132,6 +132,12 @@ def test_hidden_effect_is_found_added_and_the_error_falls_6h(effect):
             if n.endswith(".d1"):
                 truth_eps = 0.6 if n.split(".")[1] in ("12", "23", "31") else -0.6
                 assert abs(offsets.get(n[:-3], 0.0) + v - truth_eps) < 3 * sg, (n, offsets, v, sg)
+        # scoring another shifted-witness candidate refits with this model's effects too: the
+        # model's own shifted columns and expansion points must come out of it unchanged
+        kept = {n: dg.wcols[n].copy() for n in after.names}
+        dg._shifted_evidence(after, make_effects(["timing-offset"])[0], {})
+        assert dg.expansion_points() == offsets
+        assert all(np.array_equal(dg.wcols[n], kept[n]) for n in after.names)
 
 
 def test_refit_from_tdi_only_adds_a_drift():
