@@ -5,7 +5,7 @@
     ttl reprocess DAY.h5... --out DIR [--effects ...] [--scheduler ADDRESS | --workers N]
     ttl reprocess --from-recordings recordings/RUN --out DIR ...
 
-The science (per-day job, summary table, trends) is :mod:`ttlcore.reprocess`; this module
+The science (per-day job, summary table, trends) is :mod:`ttlcore.estimate.reprocess`; this module
 adds the days of a recorded run (:func:`recorded_days`: the telemetry segments the replayer
 recorded in ``replayer.mcap``, read back with :func:`streamer.recorder.read_recording` and
 reassembled into one telemetry file per day) and the command line.  It lives beside the
@@ -23,9 +23,15 @@ from pathlib import Path
 
 import numpy as np
 
+from ttlcore.cli.diagnose import split_effects
 from ttlcore.conventions import DAY, parse_duration
+from ttlcore.diagnose.effects import make_effects
 from ttlcore.errors import TTLError
-from ttlcore.telemetry import Telemetry, write_telemetry
+from ttlcore.estimate.analyze import check_band
+from ttlcore.estimate.reprocess import dask_client, jobs_for_files, reprocess
+from ttlcore.io.telemetry import Telemetry, write_telemetry
+
+from .refit import recorded_segments
 
 log = logging.getLogger(__name__)
 
@@ -40,8 +46,6 @@ def recorded_days(run_dir, out_dir, *, day_length: float = DAY) -> list[Path]:
     TTLError
         No recorded telemetry, or missing or non-contiguous segments (named).
     """
-    from .refit import recorded_segments
-
     run_dir = Path(run_dir)
     if not run_dir.is_dir():
         raise TTLError(f"--from-recordings: {run_dir} is not a directory")
@@ -78,7 +82,7 @@ def recorded_days(run_dir, out_dir, *, day_length: float = DAY) -> list[Path]:
         dws = meta.get("dws_asd")
         config = {"source": "recording", "run": run_dir.name, "segments": [idx[0], idx[-1]],
                   "recorded_source": meta.get("source")}
-        if dws is not None:  # the fit's errors-in-variables level (ttlcore.fit.dws_asd_from_config)
+        if dws is not None:  # the fit's errors-in-variables level (ttlcore.estimate.fit.dws_asd_from_config)
             config["jitter"] = {"dws": float(dws)}
             config["noises"] = {"dws": float(dws) > 0}
         tm = Telemetry(t0=parts[0].t0, fs=parts[0].fs, config=config, source=str(run_dir),
@@ -135,8 +139,6 @@ def add_parser(sub) -> None:
 
 
 def _job_options(args) -> dict:
-    from ttlcore.analyze import check_band
-
     opts = {"effects": tuple(_split_effects(args.effects, args.effect_module)), "effect_modules": tuple(args.effect_module),
             "diagnosis": not args.no_diagnosis, "witnesses": not args.no_witnesses, "figures": not args.no_figures}
     if args.candidates:
@@ -153,9 +155,6 @@ def _job_options(args) -> dict:
 
 def _split_effects(text: str, modules) -> list[str]:
     """``--effects`` as effect specs, validated before any work."""
-    from ttlcore.diagnose_cli import split_effects
-    from ttlcore.effects import make_effects
-
     specs = split_effects(text)
     try:
         make_effects(specs, list(modules))
@@ -165,8 +164,6 @@ def _split_effects(text: str, modules) -> list[str]:
 
 
 def run(args) -> int:
-    from ttlcore.reprocess import dask_client, jobs_for_files, reprocess
-
     if bool(args.days) == bool(args.from_recordings):
         raise TTLError("give either DAY files or --from-recordings RUN")
     if args.retries < 0:

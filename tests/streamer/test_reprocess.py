@@ -1,4 +1,4 @@
-"""Tests of ``ttl reprocess`` (streamer.reprocess, ttlcore.reprocess) on real Dask clusters.
+"""Tests of ``ttl reprocess`` (streamer.reprocess, ttlcore.estimate.reprocess) on real Dask clusters.
 
 Days are one hour long (14 400 samples at 4 Hz, fits on 15-min segments) so the suite stays
 quick; the per-day job is the same code whatever the length.
@@ -39,8 +39,8 @@ BIN = Path(sys.executable).parent
 def days(tmp_path_factory) -> list[Path]:
     """Three consecutive one-hour days, cut from one 3-h simulation (its noise is made in
     fixed blocks, so 3 h cost what 1 h does).  Laser noise off: TDI removes it anyway."""
-    from ttlcore.simulator import NoiseSwitches, SimulationConfig, simulate
-    from ttlcore.telemetry import write_telemetry
+    from ttlcore.sim.simulator import NoiseSwitches, SimulationConfig, simulate
+    from ttlcore.io.telemetry import write_telemetry
 
     d = tmp_path_factory.mktemp("days")
     tm, _ = simulate(SimulationConfig(duration=3 * HOUR, seed=10, noises=NoiseSwitches.parse("all,-laser")))
@@ -53,9 +53,9 @@ def _ttl(*args, timeout=300):
 
 
 def test_reprocess_equals_analyze_and_reports_a_failed_day(days, tmp_path):
-    from ttlcore.analyze import analyze
-    from ttlcore.cli import main
-    from ttlcore.fit import FitSettings
+    from ttlcore.estimate.analyze import analyze
+    from ttlcore.cli.main import main
+    from ttlcore.estimate.fit import FitSettings
 
     bad = tmp_path / "broken.h5"
     bad.write_bytes(b"not an HDF5 file" * 100)
@@ -163,7 +163,7 @@ def test_days_from_recordings_equal_the_source(days, tmp_path):
     from streamer.recorder import Recorder
     from streamer.reprocess import recorded_days
     from ttlcore.errors import TTLError
-    from ttlcore.telemetry import read_telemetry
+    from ttlcore.io.reader import read_telemetry
 
     run_dir = tmp_path / "recordings" / "r1"
     run_dir.mkdir(parents=True)
