@@ -28,7 +28,7 @@ from ttlcore.conventions import DAY, parse_duration
 from ttlcore.diagnose.effects import make_effects
 from ttlcore.errors import TTLError
 from ttlcore.estimate.analyze import check_band
-from ttlcore.estimate.reprocess import dask_client, jobs_for_files, reprocess
+from ttlcore.estimate.reprocess import DEFAULT_MEMORY_LIMIT, dask_client, jobs_for_files, reprocess
 from ttlcore.io.telemetry import Telemetry, write_telemetry
 
 from .refit import recorded_segments
@@ -131,7 +131,8 @@ def add_parser(sub) -> None:
                    help="a running Dask scheduler (tcp://host:8786, or its --scheduler-file); default: a "
                    "LocalCluster on 127.0.0.1")
     p.add_argument("--workers", type=int, default=2, help="worker processes of the LocalCluster (default 2)")
-    p.add_argument("--memory-limit", default="4GiB", help="memory limit per local worker (default 4GiB)")
+    p.add_argument("--memory-limit", default=DEFAULT_MEMORY_LIMIT,
+                   help=f"memory limit per local worker (default {DEFAULT_MEMORY_LIMIT})")
     p.add_argument("--dashboard", action="store_true", help="serve the Dask dashboard on 127.0.0.1 (LocalCluster)")
     p.add_argument("--retries", type=int, default=2, help="retries of a failed day (default 2)")
     p.add_argument("--quiet", action="store_true", help="no progress display")

@@ -67,8 +67,8 @@ log = logging.getLogger(__name__)
 #: Trend thresholds for one fit per day (see the module docstring): the live monitor's
 #: step test, a drift line over the last 30 days of fits (at least 5).
 DAY_TRENDS = TrendSettings(drift_lookback=30 * DAY, drift_min_windows=5)
-#: Default memory limit of a local worker (a full day's diagnosis peaks near 3 GB).
-DEFAULT_MEMORY_LIMIT = "4GiB"
+#: Default memory limit of a local worker: a full day's `ttl analyze` peaks near 5 GB (its diagnosis near 3 GB).
+DEFAULT_MEMORY_LIMIT = "6GiB"
 
 
 @dataclass(frozen=True)
