@@ -31,6 +31,8 @@ from ttlcore.io.telemetry import write_telemetry
 from ttlcore.sim.simulator import SimulationConfig, simulate
 
 BIN = Path(sys.executable).parent
+#: as the LocalCluster of ttl reprocess: no MALLOC_TRIM_THRESHOLD_ in the workers (docs/reprocessing.md)
+WORKER_ENV = {"DASK_DISTRIBUTED__NANNY__PRE_SPAWN_ENVIRON": '{"MALLOC_TRIM_THRESHOLD_": None}'}
 
 
 def make_days(d: Path, n: int, hours: float) -> list[Path]:
@@ -101,7 +103,7 @@ def main() -> None:
         procs.append(subprocess.Popen([str(BIN / "dask"), "worker", "--scheduler-file", str(sched_file),
                                        "--nworkers", "2", "--nthreads", "1", "--host", "127.0.0.1",
                                        "--memory-limit", "3GiB", "--no-dashboard"], stdout=log,
-                                      stderr=subprocess.STDOUT))
+                                      stderr=subprocess.STDOUT, env=dict(os.environ, **WORKER_ENV)))
         results["dask_scheduler_2_workers"] = run_config("external", jobs_of, args.days, scheduler=str(sched_file),
                                                          workers=2)
         ref = results["serial"]["days_per_hour"]
