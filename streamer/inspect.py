@@ -244,7 +244,7 @@ def inspect_run(run_dir, truth=None) -> dict:
     per topic with counts, index ranges, missing and duplicate indices, error count),
     ``stages_missing`` (pipeline stages without a recording), ``segments_total``,
     ``fits`` (count, index range, the table of fits in m/rad and ``trends`` per
-    coefficient in mm/rad and mm/rad/day), ``alerts`` (the monitor's), ``errors`` (all
+    coefficient in mm/rad and mm/rad/day), ``alerts`` (the monitor's), ``warnings`` (all stages: a fit that did not converge...), ``errors`` (all
     stages'), ``interruptions``.
 
     Raises
@@ -277,6 +277,8 @@ def inspect_run(run_dir, truth=None) -> dict:
                                    "message": e.get("message"), "time": e.get("time")})
     alerts = [{**a, "file": rec.path.name} for stage, recs in recs_of.items() for rec in recs
               for a in rec.json("alerts") if isinstance(a, dict)]
+    warnings = [{**w, "file": rec.path.name} for stage, recs in recs_of.items() for rec in recs
+                for w in rec.json("warnings") if isinstance(w, dict)]
 
     interruptions = []
     for stage, s in stages.items():
@@ -316,7 +318,7 @@ def inspect_run(run_dir, truth=None) -> dict:
         fit_report["truth_file"] = str(truth)
     return {"run": runs[0] if len(runs) == 1 else (runs or [run_dir.name]), "directory": str(run_dir),
             "stages": stages, "stages_missing": [s for s in KNOWN_STAGES if s not in stages],
-            "segments_total": total, "fits": fit_report, "alerts": alerts, "errors": errors,
+            "segments_total": total, "fits": fit_report, "alerts": alerts, "warnings": warnings, "errors": errors,
             "interruptions": interruptions}
 
 
@@ -398,6 +400,11 @@ def format_report(r: dict) -> str:
     lines.append(f"Alerts (monitor): {len(r['alerts'])}")
     for a in r["alerts"]:
         lines.append(f"  [{a.get('kind')}] {a.get('message')}")
+
+    lines.append("")
+    lines.append(f"Warnings: {len(r['warnings'])}")
+    for w in r["warnings"][:MAX_LISTED]:
+        lines.append(f"  {w.get('stage')} [{w.get('kind')}] {w.get('message')}")
 
     lines.append("")
     lines.append(f"Errors: {len(r['errors'])}")
