@@ -307,8 +307,9 @@ def _cmd_credentials(args) -> int:
 
 def _add_router(sub) -> None:
     p = sub.add_parser("router", help="open a Zenoh router (stages on several hosts)",
-                       description="Open a Zenoh router and keep it open until interrupted. Default: listen on "
-                                   "tcp/127.0.0.1:7447 only, multicast scouting off.")
+                       description="Open a Zenoh router and keep it open until interrupted. With --credentials DIR: "
+                                   "mutual TLS, listening on tls/127.0.0.1:7447 only by default, the pipeline's "
+                                   "access-control list enforced, refusals logged on stderr. Multicast scouting off.")
     p.add_argument("--listen", action="append", metavar="ENDPOINT",
                    help="endpoint to listen on (repeatable; default tcp/127.0.0.1:7447)")
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="other routers to connect to (repeatable)")
@@ -317,12 +318,17 @@ def _add_router(sub) -> None:
                    help="credentials directory (ttl credentials): mutual TLS with DIR/router.pem, tls/ endpoints only "
                         "(default tls/127.0.0.1:7447), and the access-control list of the pipeline; refused peers and "
                         "publications are logged on stderr")
+    p.add_argument("--insecure", action="store_true",
+                   help="plain TCP, no authentication, no access control (default tcp/127.0.0.1:7447)")
     p.set_defaults(func=_cmd_router)
 
 
 def _cmd_router(args) -> int:
     from .session import DEFAULT_ROUTER_LISTEN, SessionConfigError, SessionSettings, open_router, open_session
 
+    if (args.credentials is None) == (not args.insecure):
+        raise TTLError("give --credentials DIR (mutual TLS and access control; 'ttl credentials DIR' makes it) "
+                       "or --insecure (plain TCP, anyone reaching the port may publish)")
     default = DEFAULT_ROUTER_LISTEN
     if args.credentials is not None:
         import zenoh

@@ -297,8 +297,9 @@ def access_control(run: str = "*") -> dict:
         {"id": "forward", "messages": _ALL, "flows": ["ingress"], "permission": "allow", "key_exprs": everything},
         {"id": "commands", "messages": ["put"], "flows": ["ingress"], "permission": "allow",
          "key_exprs": [f"{r}/control/**"]},
+        # (the subscriber tokens of a progress subscriber, .../@adv/sub/..., stay allowed)
         {"id": "no-forged-progress", "messages": _WRITE, "flows": ["ingress"], "permission": "deny",
-         "key_exprs": _keys(f"{r}/control/progress/**")},
+         "key_exprs": [f"{r}/control/progress/**", f"{r}/control/progress/**/@adv/pub/**"]},
         {"id": "launcher-token", "messages": ["liveliness_token"], "flows": ["ingress"], "permission": "allow",
          "key_exprs": [f"{r}/alive/launcher"]},
     ]
@@ -347,7 +348,7 @@ class RefusalParser:
 
     def __init__(self):
         self.names: dict[str, str] = {}      # zid -> common name
-        self._caching: dict[str, str] = {}   # thread -> key whose permissions are being cached
+        self._caching: dict[str, tuple] = {}  # thread -> (key being cached, actions seen)
 
     def feed(self, lines) -> list[dict]:
         out = []
@@ -359,15 +360,18 @@ class RefusalParser:
             thread = th.group(1) if th else ""
             c = _CACHING.search(line)
             if c:
-                self._caching[thread] = c.group("key")
+                self._caching[thread] = (c.group("key"), set())
                 continue
             m = _DENIED.search(line)
             if m:
                 cn = _CN.search(m.group("subject"))
                 name = cn.group(1) if cn else m.group("subject")
                 self.names[m.group("zid")] = name
-                if self._caching.get(thread) == m.group("key"):
-                    continue  # a permission computed for a declared key, not a message
+                key, seen = self._caching.get(thread, (None, set()))
+                if key == m.group("key") and m.group("action") not in seen:
+                    seen.add(m.group("action"))  # a permission computed for a declared key, not a message
+                    continue
+                self._caching.pop(thread, None)
                 out.append({"kind": "forbidden", "subject": name, "action": m.group("action"),
                             "key": m.group("key"), "time": when})
                 continue

@@ -199,3 +199,61 @@ def test_intruders_against_a_live_run_change_nothing(tmp_path):
             assert stat.S_IMODE(key.stat().st_mode) == 0o600, key
     finally:
         procs.close()
+
+
+def test_credentials_make_every_link_mutual_tls_and_routers_enforce_the_acl(tmp_path):
+    from streamer.session import SessionConfigError, _get, make_config
+    from streamer_testutil import ROOT
+
+    creds = security.ensure_credentials(tmp_path / "creds")
+    stage = make_config(SessionSettings(mode="client", connect=("tls/127.0.0.1:7447",), credentials=creds,
+                                        identity="fitter"))
+    tls = _get(stage, "transport/link/tls")
+    assert tls["enable_mtls"] and tls["connect_certificate"].endswith("fitter.pem") and tls["verify_name_on_connect"]
+    assert _get(stage, "transport/link/protocols") == ["tls"] and _get(stage, "listen/endpoints") == []
+    assert not (_get(stage, "access_control") or {}).get("enabled")  # a client enforces nothing
+    # the example router of a deployment: TLS endpoints, and the pipeline's ACL added
+    router = make_config(SessionSettings(config_file=ROOT / "streamer/configs/router.json5", credentials=creds,
+                                         identity="router"))
+    assert all(e.startswith("tls/") for e in _get(router, "listen/endpoints") + _get(router, "connect/endpoints"))
+    assert _get(router, "transport/link/tls/listen_certificate") == str((creds / "router.pem").resolve())
+    acl = _get(router, "access_control")
+    assert acl["enabled"] and acl["default_permission"] == "deny"
+    assert {s["cert_common_names"][0] for s in acl["subjects"]} == set(security.ROLES)
+    # a peer with credentials listens on TLS, on loopback only; plain endpoints are refused
+    peer = make_config(SessionSettings(credentials=creds, identity="router"))
+    assert [e.split(":")[0] for e in _get(peer, "listen/endpoints")] == ["tls/127.0.0.1"]
+    with pytest.raises(SessionConfigError, match="tcp/127.0.0.1:7447.*tls/127.0.0.1:7447"):
+        make_config(SessionSettings(mode="client", connect=("tcp/127.0.0.1:7447",), credentials=creds, identity="fitter"))
+    with pytest.raises(SessionConfigError, match="identity"):
+        make_config(SessionSettings(mode="client", credentials=creds))
+    with pytest.raises(SessionConfigError, match="nobody.pem: missing"):
+        make_config(SessionSettings(mode="client", credentials=creds, identity="nobody"))
+
+
+def test_router_needs_credentials_or_insecure(tmp_path):
+    r = subprocess.run(ttl_command("router", "--listen", "tcp/127.0.0.1:1"), capture_output=True, text=True, timeout=60)
+    assert r.returncode != 0 and "--credentials" in r.stderr and "--insecure" in r.stderr, r.stderr
+    r = subprocess.run(ttl_command("run", "--simulate", "--duration 1h", "--run-id", "x", "--listen",
+                                   "tcp/127.0.0.1:7447", "--recordings", str(tmp_path)),
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode != 0 and "tls/127.0.0.1:7447" in r.stderr and "--insecure" in r.stderr, r.stderr
+
+
+def test_refusals_are_read_from_zenoh_log_lines():
+    # the formats of zenoh 1.10 (access_control at trace level, zenoh_link_tls at debug/warn)
+    zid = "4760c7ae5a5a15441e795c87c7f0e941"
+    subject = f"Interface(lo)+CertCommonName(monitor)+Transport(Tls)+{zid}"
+    head = "2026-11-23T21:38:19.46{}Z TRACE  rx-0 ThreadId(09) zenoh::net::routing::interceptor::access_control: "
+    lines = [head.format(1) + "ACL (ingress): caching permissions for `ttl/r1/fit/0` ...",
+             head.format(2) + f"{zid} on {subject} is unauthorized to Put (ingress) on ttl/r1/fit/0",  # precomputed
+             head.format(3) + f"{zid} on {subject} is unauthorized to Put (ingress) on ttl/r1/telemetry/3",
+             head.format(4) + f"Using cached result: {zid} is unauthorized to Put (ingress) on ttl/r1/fit/0",
+             head.format(5) + f"{zid} on {subject} is authorized to Put (egress) on ttl/r1/fit/0",
+             "2026-11-23T21:39:34.12Z  WARN acc-0 ThreadId(05) zenoh_link_tls::unicast: peer sent no certificates. "
+             "Hint: increase the system open file limit."]
+    got = security.refusals(lines)
+    assert [(r["kind"], r.get("subject"), r.get("key")) for r in got] == [
+        ("forbidden", "monitor", "ttl/r1/telemetry/3"), ("forbidden", "monitor", "ttl/r1/fit/0"),
+        ("unauthenticated", None, None)]
+    assert got[2]["message"] == "peer sent no certificates"
