@@ -559,7 +559,7 @@ class Launcher:
         finally:
             self.stop_router()
             self.watch_refusals()
-            if self._watcher is not None:
+            if self._watcher is not None and self.credentials is not None:
                 security.dump(self.refused, self.run_dir / "security.jsonl")
 
     def _run_on(self, bus: Bus) -> int:
