@@ -67,8 +67,8 @@ def register(sub) -> None:
 def _add_run(sub) -> None:
     p = sub.add_parser(
         "run", help="run the streaming pipeline (replayer, tdi_builder, fitter, subtractor, monitor)",
-        description="Start the five stages as separate processes on a loopback Zenoh (a router in this "
-                    "process on 127.0.0.1, the stages as peers connecting to it), show progress, supervise "
+        description="Start the five stages as separate processes on a loopback Zenoh (a router process on "
+                    "127.0.0.1, the stages as its clients, all with mutual TLS), show progress, supervise "
                     "them, and stop them once every stage has handled every segment. Recordings go to "
                     "RECORDINGS/RUN_ID/<stage>.mcap. Exit status 0 when the run completed.")
     p.add_argument("--config", type=Path, help="run configuration (JSON or TOML) with these options as keys "
@@ -90,14 +90,12 @@ def _add_run(sub) -> None:
                    help="STAGE runs elsewhere ('ttl stage'): expect it, do not start it (repeatable)")
     p.add_argument("--restart", type=int, help="restart a stage that dies, up to N times per stage (default 0)")
     p.add_argument("--listen", action="append", metavar="ENDPOINT",
-                   help="router endpoint (default tcp/127.0.0.1:<free port>; repeatable)")
+                   help="router endpoint (default tls/127.0.0.1:<free port>; repeatable)")
     p.add_argument("--zenoh-config", type=Path, help="Zenoh configuration file (JSON5) of the router")
-    p.add_argument("--credentials", type=Path, metavar="DIR",
-                   help="credentials directory (CA and one certificate per stage, 'ttl credentials'); default "
-                        "RECORDINGS/RUN_ID/credentials, made on first use. Every session talks mutual TLS and the "
-                        "router enforces who may publish what")
-    p.add_argument("--insecure", action="store_true",
-                   help="no TLS and no access control (plain TCP on loopback): any local process may publish into the run")
+    _add_security(p, "credentials directory (CA and one certificate per stage, 'ttl credentials'); default "
+                     "RECORDINGS/RUN_ID/credentials, made on first use. Every session talks mutual TLS and the "
+                     "router enforces who may publish what",
+                  "no TLS and no access control (plain TCP on loopback): any local process may publish into the run")
     p.add_argument("--fit-segment", help="fitter: FFT segment length (default: the segment length)")
     p.add_argument("--fit-window", help="fitter: rolling window length (default 1d)")
     p.add_argument("--band", nargs=2, type=float, metavar=("FMIN", "FMAX"), help="fitter: fit band [Hz]")
@@ -314,13 +312,17 @@ def _add_router(sub) -> None:
                    help="endpoint to listen on (repeatable; default tcp/127.0.0.1:7447)")
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="other routers to connect to (repeatable)")
     p.add_argument("--zenoh-config", type=Path, help="Zenoh configuration file (JSON5); --listen/--connect override it")
-    p.add_argument("--credentials", type=Path, metavar="DIR",
-                   help="credentials directory (ttl credentials): mutual TLS with DIR/router.pem, tls/ endpoints only "
-                        "(default tls/127.0.0.1:7447), and the access-control list of the pipeline; refused peers and "
-                        "publications are logged on stderr")
-    p.add_argument("--insecure", action="store_true",
-                   help="plain TCP, no authentication, no access control (default tcp/127.0.0.1:7447)")
+    _add_security(p, "credentials directory (ttl credentials): mutual TLS with DIR/router.pem, tls/ endpoints only "
+                     "(default tls/127.0.0.1:7447), and the access-control list of the pipeline; refused peers and "
+                     "publications are logged on stderr",
+                  "plain TCP, no authentication, no access control (default tcp/127.0.0.1:7447)")
     p.set_defaults(func=_cmd_router)
+
+
+def _add_security(p, credentials_help: str, insecure_help: str) -> None:
+    """``--credentials DIR`` and ``--insecure`` (see :mod:`streamer.security`)."""
+    p.add_argument("--credentials", type=Path, metavar="DIR", help=credentials_help)
+    p.add_argument("--insecure", action="store_true", help=insecure_help)
 
 
 def _cmd_router(args) -> int:

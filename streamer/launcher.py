@@ -305,8 +305,7 @@ class Launcher:
             cmd += ["--listen", e]
         if o.zenoh_config is not None:
             cmd += ["--zenoh-config", str(o.zenoh_config)]
-        if self.credentials is not None:
-            cmd += ["--credentials", str(self.credentials)]
+        cmd += ["--credentials", str(self.credentials)] if self.credentials is not None else ["--insecure"]
         env = dict(os.environ, PYTHONUNBUFFERED="1", NO_COLOR="1")
         env.pop("RUST_LOG", None)
         with open(path, "ab") as logf:

@@ -257,3 +257,14 @@ def test_refusals_are_read_from_zenoh_log_lines():
         ("forbidden", "monitor", "ttl/r1/telemetry/3"), ("forbidden", "monitor", "ttl/r1/fit/0"),
         ("unauthenticated", None, None)]
     assert got[2]["message"] == "peer sent no certificates"
+
+
+@pytest.mark.ops
+def test_insecure_run_is_plain_tcp_and_says_so(tmp_path):
+    r = subprocess.run(ttl_command("run", "--simulate", "--duration 1h", "--segment", "30min", "--run-id", "ins",
+                                   "--recordings", str(tmp_path), "--insecure", "--skip", "monitor",
+                                   "--timeout", "120", "--quiet"),
+                       capture_output=True, text=True, timeout=200)
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert "--insecure: no TLS, no access control" in r.stderr and "router on tcp/127.0.0.1:" in r.stderr
+    assert not (tmp_path / "ins" / "credentials").exists() and not (tmp_path / "ins" / "security.jsonl").exists()
