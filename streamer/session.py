@@ -12,6 +12,11 @@ re-declares its subscriptions.  Peers talking directly do not re-establish a clo
 peer-to-peer link, and a router does not route between two peers (measured with
 zenoh 1.10: a consumer stopped for 9 s never received another segment).
 
+With ``credentials`` (a directory of :mod:`streamer.security`) and an ``identity``, a
+session talks mutual TLS only (``transport/link/tls``, ``enable_mtls``, TLS the only link
+protocol) with that identity's certificate, and a router also enforces the pipeline's
+access-control list; ``ttl run`` does this for every session of a run.
+
 A Zenoh configuration file (JSON5, Zenoh's own format, see
 ``streamer/configs/*.json5``) selects client or router mode and the endpoints of a
 deployment over several hosts; what the file leaves unset keeps the safe defaults above
