@@ -68,6 +68,7 @@ import numpy as np
 from .conventions import C, COEFFICIENT_NAMES, DAY, ffd_to_displacement_asd
 from .errors import TTLError
 from .fit import DEFAULT_BAND, FitSettings, fit_tdi
+from .spectra import welch_asd
 from .atomic import write_json, write_text
 
 __all__ = ["Case", "PAPER_CASES", "VARIANTS", "run_scenarios", "add_parser"]
@@ -120,9 +121,8 @@ GW_INTACT_FACTOR = 10.0
 
 
 def _welch(x: np.ndarray, fs: float, nperseg: int):
-    from .figures import welch_asd_weighted_mean
-
-    f, asd = welch_asd_weighted_mean(x, fs, nperseg)
+    """Welch PSD (:func:`ttlcore.spectra.welch_asd` squared)."""
+    f, asd = welch_asd(x, fs, nperseg)
     return f, asd**2
 
 
