@@ -6,7 +6,7 @@ delay order 5) and evaluated (its default order 31, ``unit="phase"``, i.e.
 ``D x(t) = x(t - tau(t))`` as in docs/physics.md) on the data and on each regressor's
 witness placed on its link, with the scalar 0 for the five other links; Tx witnesses are
 first delayed with ``pytdi.dsp.timeshift`` (order 31), as the simulator forms them.  Ours is
-:func:`ttlcore.tdi_data.compute_tdi` (the block engine :mod:`ttlcore.tdi_engine`).
+:func:`ttlcore.tdi.data.compute_tdi` (the block engine :mod:`ttlcore.tdi.engine`).
 
 Accuracy, reported for each duration:
 
@@ -16,7 +16,7 @@ Accuracy, reported for each duration:
   pre-delay folded into the nested delay): both are order-31 Lagrange, whose error near
   the 2 Hz Nyquist frequency is of order one.
 - ``fit_band``: the same after the fit's anti-alias low-pass (0.9-1.1 Hz Kaiser FIR,
-  :func:`ttlcore.tdi_data.lowpass_taps`) and decimation to 2 Hz, i.e. what the fit uses.
+  :func:`ttlcore.tdi.data.lowpass_taps`) and decimation to 2 Hz, i.e. what the fit uses.
 
 Prints one JSON object with, per duration, both wall times, the ratio pytdi/ours (target
 >= 10, aim 20) and the agreement; and the growth of our time per sample from the shortest
@@ -42,7 +42,7 @@ def pytdi_natural(tm):
     from pytdi.michelson import X2_ETA, Y2_ETA, Z2_ETA
 
     from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
-    from ttlcore.regressors import ttl_witnesses
+    from ttlcore.tdi.regressors import ttl_witnesses
 
     delays = {f"d_{l}": tm.ltt[k] for k, l in enumerate(LINKS)}
     built = [c.build(delays, tm.fs) for c in (X2_ETA, Y2_ETA, Z2_ETA)]
@@ -73,8 +73,8 @@ def relative_rms(a, b, skip):
 
 
 def run(duration: float) -> dict:
-    from ttlcore.simulator import SimulationConfig, simulate
-    from ttlcore.tdi_data import compute_tdi
+    from ttlcore.sim.simulator import SimulationConfig, simulate
+    from ttlcore.tdi.data import compute_tdi
 
     tm, _ = simulate(SimulationConfig(duration=duration, orbit="keplerian", seed=1))
 
