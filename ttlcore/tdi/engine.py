@@ -78,18 +78,6 @@ def history_samples(fs: float, ltt_max: float = 8.6, order: int = DEFAULT_ORDER,
     return int(np.ceil(longest * ltt_max * fs)) + 2 * (order // 2 + 1) + delay_order + 8
 
 
-def _read_ltt(ltt: np.ndarray, pos: np.ndarray, delay_order: int) -> np.ndarray:
-    """Light travel times (rows of ``ltt``, shape (6, m)) at fractional sample positions
-    ``pos`` by Lagrange interpolation of order ``delay_order``; stencils leaving the data
-    are clamped to its edge samples (only outputs that are NaN anyway use them)."""
-    pos = np.asarray(pos, dtype=float)
-    k = np.floor(pos)
-    w = lagrange_weights(pos - k, delay_order)  # (order + 1, npos)
-    idx = k.astype(np.int64)[None, :] + np.arange(-(delay_order - 1) // 2, (delay_order + 1) // 2 + 1)[:, None]
-    idx = np.clip(idx, 0, ltt.shape[-1] - 1)
-    return np.einsum("jp,rjp->rp", w, ltt[:, idx])
-
-
 def _chebyshev_nodes(degree: int) -> np.ndarray:
     return np.cos(np.pi * (np.arange(degree + 1) + 0.5) / (degree + 1))
 
@@ -125,15 +113,22 @@ class _Plan:
 
 
 def _nested_delays(chains, ltt: np.ndarray, pos: np.ndarray, fs: float, delay_order: int) -> dict:
-    """``Delta_chain`` [s] at input positions ``pos`` (prefixes shared)."""
+    """``Delta_chain`` [s] at input positions ``pos`` for every chain and prefix, one chain
+    length at a time (all prefixes of a length in one interpolation)."""
     out: dict[Chain, np.ndarray] = {(): np.zeros(pos.size)}
-    for chain in chains:
-        for m in range(1, len(chain) + 1):
-            prefix = chain[:m]
-            if prefix not in out:
-                prev = out[prefix[:-1]]
-                row = ltt[LINKS.index(prefix[-1])][None, :]
-                out[prefix] = prev + _read_ltt(row, pos - prev * fs, delay_order)[0]
+    prefixes = {chain[:m] for chain in chains for m in range(1, len(chain) + 1)}
+    for length in range(1, max((len(c) for c in chains), default=0) + 1):
+        level = sorted(p for p in prefixes if len(p) == length)
+        prev = np.stack([out[p[:-1]] for p in level])                      # (k, nodes)
+        rows = np.array([LINKS.index(p[-1]) for p in level])
+        read = (pos[None, :] - prev * fs).ravel()
+        k = np.floor(read)
+        w = lagrange_weights(read - k, delay_order)                         # (order + 1, k * nodes)
+        idx = k.astype(np.int64)[None, :] + np.arange(-(delay_order - 1) // 2, (delay_order + 1) // 2 + 1)[:, None]
+        idx = np.clip(idx, 0, ltt.shape[-1] - 1)  # clamped stencils only serve outputs that are NaN anyway
+        tau = np.einsum("jp,jp->p", w, ltt[np.repeat(rows, pos.size)[None, :], idx]).reshape(prev.shape)
+        for i, p in enumerate(level):
+            out[p] = prev[i] + tau[i]
     return out
 
 
@@ -221,16 +216,14 @@ def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, history: in
         u = (np.arange(p0, p1) - centre) / halfw
         tq = np.polynomial.chebyshev.chebvander(u, degree).T  # (q, nb)
 
-        # per chain: integer shift, Chebyshev coefficients of the weights, first valid output
-        taps = {}
-        for chain in plan.chains:
-            if not chain:
-                continue
-            shift = -delays[chain] * fs                         # read at pos + shift
-            s_int = int(np.floor(np.mean(shift)))
-            w = lagrange_weights(shift - s_int, order).T        # (nodes, order + 1)
-            A = _chebyshev_coefficients(w, degree)              # (q, order + 1)
-            taps[chain] = (s_int, A)
+        # per chain: integer shift and Chebyshev coefficients of the weights (all chains at once)
+        delayed = [chain for chain in plan.chains if chain]
+        shifts = -np.stack([delays[chain] for chain in delayed]) * fs      # (chains, nodes): read at pos + shift
+        s_ints = np.floor(shifts.mean(axis=1)).astype(np.int64)
+        w = lagrange_weights((shifts - s_ints[:, None]).ravel(), order)   # (order + 1, chains * nodes)
+        w = w.reshape(order + 1, len(delayed), degree + 1).transpose(2, 1, 0)  # (nodes, chains, order + 1)
+        A = _chebyshev_coefficients(w, degree)                              # (q, chains, order + 1)
+        taps = {chain: (int(s_ints[i]), A[:, i]) for i, chain in enumerate(delayed)}
 
         j0 = p0 - i0                            # block index of the first output
         spectra: dict = {}                      # (c, column) -> (q, nf) spectrum of the output
