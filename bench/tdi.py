@@ -32,31 +32,22 @@ import json
 import sys
 import time
 from dataclasses import replace
+from pathlib import Path
 
 import numpy as np
 
 
-def pytdi_natural(tm):
-    """X2, Y2, Z2 of the data and of the 24 regressors, pytdi's natural usage; ``(data, regressors)``."""
-    from pytdi.dsp import timeshift
-    from pytdi.michelson import X2_ETA, Y2_ETA, Z2_ETA
 
-    from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
-    from ttlcore.tdi.regressors import ttl_witnesses
+def _load_reference():
+    """``tests/pytdi_reference.py`` loaded by path (the same reference as the tests; putting
+    ``tests/`` on ``sys.path`` would shadow the ``ttlcore`` package)."""
+    import importlib.util
 
-    delays = {f"d_{l}": tm.ltt[k] for k, l in enumerate(LINKS)}
-    built = [c.build(delays, tm.fs) for c in (X2_ETA, Y2_ETA, Z2_ETA)]
-    data = np.stack([b({f"eta_{l}": tm.eta[k] for k, l in enumerate(LINKS)}, unit="phase") for b in built])
-    witnesses, index = ttl_witnesses(tm.dws_phi, tm.dws_eta)
-    regs = np.zeros((3, len(COEFFICIENT_NAMES), tm.size))
-    for (link, extra), w in witnesses.items():
-        for row, k in zip(w, index[(link, extra)]):
-            if extra:
-                row = timeshift(row, -tm.ltt[LINKS.index(extra[0])] * tm.fs, 31)
-            meas = {f"eta_{l}": (row if l == link else 0.0) for l in LINKS}
-            for c, b in enumerate(built):
-                regs[c, k] = b(meas, unit="phase")
-    return data, regs
+    spec = importlib.util.spec_from_file_location("pytdi_reference",
+                                                  Path(__file__).resolve().parents[1] / "tests" / "pytdi_reference.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module.pytdi_natural
 
 
 def relative_rms(a, b, skip):
@@ -83,7 +74,7 @@ def run(duration: float) -> dict:
     t_ours = time.perf_counter() - start
 
     start = time.perf_counter()
-    ref_data, ref_regs = pytdi_natural(tm)
+    ref_data, ref_regs = _load_reference()(tm)
     t_pytdi = time.perf_counter() - start
 
     skip = int(120 * tm.fs)  # pytdi pads before the data with zeros, we give NaN

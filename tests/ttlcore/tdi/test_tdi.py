@@ -45,26 +45,14 @@ def test_xyz_agree_with_pytdi(orbit):
 
 
 def test_regressors_agree_with_pytdi_natural_usage():
-    # pytdi as a user would call it: each combination built once, the regressor's witness
-    # on its link and the scalar 0 elsewhere, Tx witnesses pre-delayed with its timeshift
+    # pytdi as a user would call it (tests/pytdi_reference.py)
     from dataclasses import replace
 
-    from pytdi.dsp import timeshift
-
-    from ttlcore.tdi.regressors import ttl_witnesses
+    from pytdi_reference import pytdi_natural
 
     tm, _ = simulate(SimulationConfig(duration=HOUR, orbit="keplerian", seed=5))
     ours = compute_tdi(tm)
-    delays = {f"d_{l}": tm.ltt[k] for k, l in enumerate(LINKS)}
-    built = [c.build(delays, tm.fs) for c in (X2_ETA, Y2_ETA, Z2_ETA)]
-    witnesses, index = ttl_witnesses(tm.dws_phi, tm.dws_eta)
-    ref = np.zeros_like(ours.regressors)
-    for (link, extra), w in witnesses.items():
-        for row, k in zip(w, index[(link, extra)]):
-            if extra:
-                row = timeshift(row, -tm.ltt[LINKS.index(extra[0])] * tm.fs, 31)
-            for c, b in enumerate(built):
-                ref[c, k] = b({f"eta_{l}": (row if l == link else 0.0) for l in LINKS}, unit="phase")
+    _, ref = pytdi_natural(tm)
     skip = int(120 * tm.fs)  # pytdi pads before the data with zeros, we give NaN
     rx = np.array([n.endswith(".rx") for n in ours.names])
     used = np.any(ref[..., skip:] != 0, axis=-1)
