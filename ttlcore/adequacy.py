@@ -37,7 +37,9 @@ from .fit import model_csd
 from .regressors import dws_channel, regressor_responses
 
 #: Relative tolerance on the noise model's PSD (see the module docstring).
-DEFAULT_TOLERANCE = 0.05
+DEFAULT_TOLERANCE = 0.02
+#: Tolerance advised with the fixed noise model (``--noise-model fixed``).
+FIXED_MODEL_TOLERANCE = 0.05
 #: Significance level of a failure.
 DEFAULT_ALPHA = 1e-3
 #: Default diagnosis band [Hz]: above ~0.8 Hz the residual laser noise of TDI at 4 Hz
@@ -48,7 +50,7 @@ DIAGNOSIS_BAND = (3e-3, 0.8)
 
 
 def instrument_noise_csd(f: np.ndarray, ltt_mean, coefficients=None, dws_asd: float = 0.0,
-                         names=COEFFICIENT_NAMES) -> np.ndarray:
+                         names=COEFFICIENT_NAMES, secondary: np.ndarray | None = None) -> np.ndarray:
     """The instrument noise model ``S(f)`` of the module docstring, shape (m, 3, 3) (A, E, T).
 
     Parameters
@@ -62,8 +64,11 @@ def instrument_noise_csd(f: np.ndarray, ltt_mean, coefficients=None, dws_asd: fl
         with a time axis (a model with drifts or steps) the DWS term is averaged over it.
     dws_asd : float
         DWS readout noise, angle ASD [rad/sqrt(Hz)].
+    secondary : ndarray (m, 3, 3), optional
+        The secondary-noise CSD to use instead of the fixed ``S_sec`` (a fitted
+        :class:`ttlcore.noise_model.NoiseModel`'s ``csd(f)``).
     """
-    csd = model_csd(f, ltt_mean)
+    csd = model_csd(f, ltt_mean) if secondary is None else np.asarray(secondary)
     if coefficients is None or dws_asd <= 0:
         return csd
     names = [n for n in names]

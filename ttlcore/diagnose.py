@@ -70,6 +70,7 @@ from .fit import (
     variance_factor,
 )
 from .interpolation import DEFAULT_ORDER
+from .noise_model import noise_model_json, profile_noise_model
 from .spectra import segment_fft, window
 from .tdi import DEFAULT_DELAY_ORDER, MICHELSON, aet, build
 from .tdi_data import TDIData
@@ -93,6 +94,10 @@ class DiagnoseSettings:
         Length [s] of the time slices of the per-time adequacy (Hann-windowed residual).
     tolerance, alpha : float
         Noise-model tolerance and significance level (:mod:`ttlcore.adequacy`).
+    noise_model : str
+        ``"fitted"``: the secondary-noise levels are fitted with the model
+        (:mod:`ttlcore.noise_model`, default); ``"fixed"``: the paper's levels (then a
+        tolerance of 0.05 is advisable, see docs/diagnostics.md).
     log_bf_threshold : float
         A candidate is significant when its log Bayes factor exceeds this (2.3: odds 10:1)
         *and* its delta chi^2 has p < alpha.
@@ -114,6 +119,7 @@ class DiagnoseSettings:
     time_segment: float = 3600.0
     tolerance: float = DEFAULT_TOLERANCE
     alpha: float = DEFAULT_ALPHA
+    noise_model: str = "fitted"
     log_bf_threshold: float = 2.3
     step_grid: float = 3600.0
     step_refine: float = 900.0
@@ -383,6 +389,8 @@ class Diagnoser:
                                  names=tuple(dec.names))
             C0 = res.coefficients[[dec.names.index(n) for n in COEFFICIENT_NAMES]]
         self.noise_csd = instrument_noise_csd(self.f, self.ltt_mean, C0, self.dws_asd)
+        #: fitted secondary-noise levels (:func:`ttlcore.noise_model.profile_noise_model`); None: fixed
+        self.noise_parameters = None
         W = np.linalg.inv(self.noise_csd)
         self.Lh = np.conj(np.swapaxes(np.linalg.cholesky(W), -1, -2))
         self.wd = np.matmul(self.Lh, d[..., None])[..., 0]  # (S, m, 3)
@@ -693,7 +701,9 @@ class Diagnoser:
         fit = self._fit(effects, coefficients_for_linearised, keep_series)
         hist = self.coefficient_history(fit)
         if hist is not None and self.dws_asd > 0:
-            self.set_noise_model(instrument_noise_csd(self.f, self.ltt_mean, hist, self.dws_asd))
+            nm = self.noise_parameters
+            self.set_noise_model(instrument_noise_csd(self.f, self.ltt_mean, hist, self.dws_asd,
+                                                      secondary=None if nm is None else nm.csd(self.f)))
             fit = self._fit(effects, coefficients_for_linearised, keep_series)
         if time_table and all(n in self.series for n in fit.names):
             fit.time_table = self.time_adequacy(list(fit.names), fit.theta)
@@ -712,7 +722,8 @@ class Diagnoser:
         cov = 0.5 * (cov + cov.T)
         chi2_sg = 2 * (np.einsum("p,sgpq,q->sg", theta, N, theta) - 2 * b @ theta + dd)
         wr = self.wd - self._w(names) @ theta
-        bands = band_table(wr, self.band_index, self.edges, len(names), self.kappa, self.settings.tolerance,
+        n_noise = 0 if self.noise_parameters is None else self.noise_parameters.n_parameters
+        bands = band_table(wr, self.band_index, self.edges, len(names) + n_noise, self.kappa, self.settings.tolerance,
                            self.settings.alpha)
         q_min = float(dd.sum() - btot @ theta)
         fit = ModelFit(effects, tuple(names), theta, cov, chi2_sg, bands.dof, bands, q_min, residual_w=wr)
@@ -1448,8 +1459,7 @@ def adequacy_json(dg: Diagnoser, model: ModelFit) -> dict:
     time_part = model.time_table or {}
     summary += time_part.get("summary", [])
     return {
-        "noise_model": "analytic secondary noises of A, E, T for the mean arms (paper appendix levels) + DWS readout "
-                       "noise through the fitted linear coefficients; fixed, not re-estimated from the residual",
+        "noise_model": noise_model_json(dg.noise_parameters),
         "tolerance": s.tolerance, "alpha": s.alpha, "variance_factor": dg.kappa,
         "band": list(map(float, s.band)), "segment_duration": dg.seg_duration, "segments": len(dg.starts),
         "chi2": model.chi2, "dof": model.dof, "chi2_dof": model.chi2_dof,
@@ -1524,6 +1534,9 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
     lap("tdi_and_spectra")
     say("fit")
     model = dg.fit(eff)
+    if s.noise_model == "fitted":
+        say("noise model")
+        _, model = profile_noise_model(dg, eff, first=model)
     lap("fit")
     report: dict = {"model": model_json(dg, model, truth_coefficients)}
     report["adequacy"] = report["model"]["adequacy"]
@@ -1601,6 +1614,8 @@ def refit(source, effects=("linear-ttl",), *, settings: DiagnoseSettings | None 
     else:
         raise ConfigError(f"refit: cannot refit a {type(source).__name__}; give telemetry, TDI data or a Diagnoser")
     model = dg.fit(make_effects(list(effects), effect_modules))
+    if dg.settings.noise_model == "fitted":
+        _, model = profile_noise_model(dg, model.effects, first=model)
     base = dg.fit(make_effects(list(baseline), effect_modules))
     ev = dg.change(base, model)
     return {

@@ -16,6 +16,7 @@ import sys
 import time
 from pathlib import Path
 
+from .adequacy import FIXED_MODEL_TOLERANCE
 from .conventions import parse_duration
 from .errors import TTLError
 
@@ -39,7 +40,10 @@ def add_parser(sub) -> None:
     p.add_argument("--truth", default=None, help="truth file (or the lisainstrument file itself): adds coefficient errors only")
     p.add_argument("--band", nargs=2, metavar=("FMIN", "FMAX"), default=None, help="band in Hz (default 0.003 0.8)")
     p.add_argument("--segment", default=None, help="FFT segment length (default 6 h, or a quarter of shorter data)")
-    p.add_argument("--tolerance", type=float, default=None, help="relative tolerance of the noise model (default 0.05)")
+    p.add_argument("--tolerance", type=float, default=None,
+                   help="relative tolerance of the noise model (default 0.02; 0.05 with --noise-model fixed)")
+    p.add_argument("--noise-model", choices=("fitted", "fixed"), default="fitted",
+                   help="secondary-noise levels fitted with the model (default) or fixed at the paper's levels")
     p.add_argument("--no-witnesses", action="store_true", help="skip the witness search")
     p.add_argument("--json", required=True, metavar="OUT", help="JSON report to write")
     p.add_argument("--out", default=None, metavar="DIR", help="directory for the figures (created)")
@@ -97,6 +101,9 @@ def run(args) -> int:
             s.segment_duration = parse_duration(args.segment)
         except ValueError as exc:
             raise TTLError(f"--segment: {exc}") from None
+    s.noise_model = args.noise_model
+    if s.noise_model == "fixed":
+        s.tolerance = FIXED_MODEL_TOLERANCE
     if args.tolerance is not None:
         if not (0 <= args.tolerance < 1):
             raise TTLError(f"--tolerance: expected a fraction in [0, 1), got {args.tolerance}")
