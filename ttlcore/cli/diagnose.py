@@ -63,7 +63,7 @@ def split_effects(text: str) -> list[str]:
 def run(args) -> int:
     from ..estimate.analyze import load_truth
     from ..io.atomic import write_json
-    from ..diagnose.diagnoser import DiagnoseSettings, diagnose, strip_internals, text_report
+    from ..diagnose.diagnoser import DiagnoseSettings, diagnose, fine_band_table, strip_internals, text_report
     from ..diagnose.effects import available_effects, make_effects
     from ..io.reader import file_kind, read_telemetry
 
@@ -129,7 +129,8 @@ def run(args) -> int:
         fits = {"model": model}
         if "before" in report:
             fits = {"linear-ttl": dg.fit(make_effects(["linear-ttl"]), time_table=False), "model": model}
-        paths = {"residual_vs_noise": str(plot_residual_vs_noise(dg, fits, out / "residual_vs_noise.png", s.tolerance))}
+        fine = {label: fine_band_table(dg, fit) for label, fit in fits.items()}
+        paths = {"residual_vs_noise": str(plot_residual_vs_noise(dg, fits, out / "residual_vs_noise.png", s.tolerance, fine))}
         if report.get("witnesses"):
             paths["witness_coherence"] = str(plot_witness_coherence(report["witnesses"], out / "witness_coherence.png"))
         report["figures"] = paths

@@ -39,6 +39,7 @@ import numpy as np
 from scipy import special, stats
 
 from .adequacy import (
+    _hz,
     DEFAULT_ALPHA,
     DEFAULT_TOLERANCE,
     DIAGNOSIS_BAND,
@@ -46,7 +47,9 @@ from .adequacy import (
     describe_failures,
     describe_time_failures,
     instrument_noise_csd,
+    merged_band_edges,
     p_value,
+    third_octave_table,
 )
 from ..conventions import COEFFICIENT_NAMES
 from .effects import (
@@ -164,20 +167,6 @@ def log_bayes_factor(A: np.ndarray, beta: np.ndarray, prior_scale: np.ndarray) -
     q1 = beta @ A @ beta
     q2 = beta @ A @ np.linalg.solve(np.eye(k) + (d ** 2)[:, None] * A, beta)
     return float(-0.5 * logdet + 0.5 * (q1 - q2))
-
-
-def merged_band_edges(f: np.ndarray, edges: np.ndarray, dof_per_bin: int, min_dof: int) -> np.ndarray:
-    """Merge adjacent bands (lowest first) until each holds at least ``min_dof`` degrees of
-    freedom (``dof_per_bin`` per frequency bin)."""
-    edges = list(np.asarray(edges, dtype=float))
-    while len(edges) > 2:
-        counts = np.histogram(f, bins=edges)[0] * dof_per_bin
-        low = np.flatnonzero(counts < min_dof)
-        if low.size == 0:
-            break
-        g = int(low[0])
-        del edges[g + 1 if g < len(counts) - 1 else g]  # merge with the upper neighbour (the last: lower)
-    return np.asarray(edges)
 
 
 def _band_slices(band_index: np.ndarray, G: int) -> list[tuple[int, int]]:
@@ -1451,11 +1440,22 @@ def _top_parameters(ev, n: int = 6) -> list[dict]:
 # Reports
 # ---------------------------------------------------------------------------
 
+def fine_band_table(dg: Diagnoser, model: ModelFit):
+    """``model``'s adequacy in third-octave bands where the data allow it
+    (:func:`ttlcore.diagnose.adequacy.third_octave_table`), its fitted parameters (linear
+    and noise) counted as in its band table."""
+    s = dg.settings
+    n_fitted = 6 * dg.f.size * len(dg.starts) - float(model.bands.dof.sum())
+    return third_octave_table(model.residual_w, dg.f, s.band, n_fitted, dg.kappa, s.tolerance, s.alpha, s.min_band_dof)
+
+
 def adequacy_json(dg: Diagnoser, model: ModelFit) -> dict:
     """The ``adequacy`` part of the report for ``model``."""
     s = dg.settings
     bands = model.bands.to_json()
     summary = describe_failures(model.bands)
+    fine = fine_band_table(dg, model)
+    summary += [f"localised (third-octave bands): {x}" for x in describe_failures(fine)]
     time_part = model.time_table or {}
     summary += time_part.get("summary", [])
     return {
@@ -1463,7 +1463,7 @@ def adequacy_json(dg: Diagnoser, model: ModelFit) -> dict:
         "tolerance": s.tolerance, "alpha": s.alpha, "variance_factor": dg.kappa,
         "band": list(map(float, s.band)), "segment_duration": dg.seg_duration, "segments": len(dg.starts),
         "chi2": model.chi2, "dof": model.dof, "chi2_dof": model.chi2_dof,
-        "bands": bands, "time": time_part,
+        "bands": bands, "fine_bands": fine.to_json(), "time": time_part,
         "fails": bool(any(b["fails"] for b in bands) or any(r.get("fails") for r in time_part.get("segments", []))),
         "summary": summary or ["no failure: the residual is consistent with the instrument noise model"],
     }
@@ -1691,7 +1691,8 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
     w = report.get("witnesses")
     if w:
         lines.append(f"  top witnesses ({w['n_witnesses']} tried): " +
-                     "; ".join(f"{x['name']} (delta chi2 {x['delta_chi2']:.0f})" for x in w["overall"][:3]))
+                     "; ".join(f"{x['name']} (delta chi2 {x['delta_chi2']:.0f}, coherence peaks at "
+                               f"{_hz(x['peak_frequency'])})" for x in w["overall"][:3]))
     rec = report.get("recommendation")
     if rec:
         lines.append(f"  best next step: add {rec['effect']}:  ttl diagnose DATA {rec['option']}")

@@ -34,26 +34,28 @@ def test_nominal_model_is_the_fixed_model_and_components_add_up():
 
 def test_whittle_fit_recovers_levels_within_fisher_sigmas():
     # complex Gaussian spectra drawn from a CSD with known levels: the estimates scatter
-    # around the truth with the Fisher sigmas (pulls of 40 realisations: mean ~0, rms ~1)
-    f = np.linspace(3e-3, 0.8, 3000)
+    # around the truth with the Fisher sigmas (pulls of 16 realisations: mean ~0, rms ~1)
+    f = np.linspace(3e-3, 0.8, 1500)
     truth = np.array([1.3, 0.7, 1.5, 0.004])
     names = ("oms", "tm_acc", "tm_rise", "floor")
     B = basis_csds(f, LTT, names)
     L = np.linalg.cholesky(np.einsum("k,kmij->mij", truth, B))
     rng = np.random.default_rng(3)
     pulls = []
-    for _ in range(40):
-        x = (rng.standard_normal((4, f.size, 3)) + 1j * rng.standard_normal((4, f.size, 3))) / np.sqrt(2)
+    for _ in range(16):
+        # 32 segments: enough information for the Fisher sigmas of the low-frequency test-mass
+        # levels to be accurate (the likelihood near Gaussian in them)
+        x = (rng.standard_normal((32, f.size, 3)) + 1j * rng.standard_normal((32, f.size, 3))) / np.sqrt(2)
         r = np.einsum("mij,smj->smi", L, x)
-        nm = fit_noise_model(f, np.einsum("smi,smj->mij", r, r.conj()), 4, LTT, names=names)
+        nm = fit_noise_model(f, np.einsum("smi,smj->mij", r, r.conj()), 32, LTT, names=names)
         assert nm.converged
         pulls.append((np.array(nm.levels) - truth) / nm.sigma)
     pulls = np.array(pulls)
-    # 40 draws: the mean of unit-variance pulls is within 3/sqrt(40) = 0.47 of 0, the rms
-    # within [0.7, 1.3]
-    assert np.all(np.abs(pulls.mean(axis=0)) < 0.5), pulls.mean(axis=0)
+    # 16 draws: the mean of unit-variance pulls is within 3/sqrt(16) = 0.75 of 0, the rms
+    # within [0.55, 1.45] (the 3-sigma range of the rms of 16 chi^2_1 draws)
+    assert np.all(np.abs(pulls.mean(axis=0)) < 0.75), pulls.mean(axis=0)
     rms = np.sqrt((pulls ** 2).mean(axis=0))
-    assert np.all((rms > 0.7) & (rms < 1.3)), rms
+    assert np.all((rms > 0.55) & (rms < 1.45)), rms
 
 
 def _scaled(tm, truth, k_oms: float, k_tm: float) -> Telemetry:
@@ -63,17 +65,19 @@ def _scaled(tm, truth, k_oms: float, k_tm: float) -> Telemetry:
     return replace(tm, eta=eta)
 
 
+HOURS = 3 * 3600.0
+
+
 @pytest.fixture(scope="module")
-def day4h():
-    cfg = SimulationConfig(duration=4 * 3600.0, orbit="keplerian", seed=41,
-                           truth_noises=SECONDARY + ("test_mass",))
-    return simulate(cfg, chunk_size=4 * 3600 * 4)
+def short_day():
+    cfg = SimulationConfig(duration=HOURS, orbit="keplerian", seed=41, truth_noises=SECONDARY + ("test_mass",))
+    return simulate(cfg, chunk_size=int(HOURS * 4))
 
 
-def test_fitted_levels_recover_scaled_simulator_noises(day4h):
+def test_fitted_levels_recover_scaled_simulator_noises(short_day):
     # OMS-type noises x 1.25 in amplitude (PSD x 1.5625), test masses x 1.5 (PSD x 2.25):
     # the fitted PSD scale factors recover them within 3 Fisher sigmas
-    tm, truth = day4h
+    tm, truth = short_day
     k_oms, k_tm = 1.25, 1.5
     dg = Diagnoser.from_telemetry(_scaled(tm, truth, k_oms, k_tm), DiagnoseSettings(noise_model="fitted"))
     nm, fit = profile_noise_model(dg, make_effects(["linear-ttl"]))
@@ -90,19 +94,59 @@ def test_fitted_levels_recover_scaled_simulator_noises(day4h):
     assert fit.bands.dof.sum() == pytest.approx(dof_raw - 24 - nm.n_parameters)
 
 
-def test_null_day_passes_and_injected_effect_still_fails(day4h):
-    tm, truth = day4h
+def test_short_null_day_passes_at_two_percent(short_day):
+    tm, _ = short_day
     s = DiagnoseSettings()
     assert s.noise_model == "fitted" and s.tolerance == 0.02
     rep = diagnose(tm, settings=s, witnesses=False, candidates=["drift"])
     ad = rep["adequacy"]
     assert ad["noise_model"]["kind"] == "fitted" and ad["tolerance"] == 0.02
+    assert set(ad["noise_model"]["parameters"]) == {"oms", "tm_acc", "tm_rise", "floor"}
     assert not ad["fails"], ad["summary"]
-    # a timing offset of SC1 (MODEL-DIAGNOSTICS' named effect), well above the noise: the
-    # fitted levels must not absorb it, the adequacy test fails with the fitted model
+
+
+@pytest.mark.science
+def test_injected_effect_still_fails_with_the_fitted_noise_model():
+    # a timing offset of SC1 (a named effect), well above the noise: the fitted levels
+    # must not absorb it; the adequacy test fails with the fitted model, and the effect is
+    # found; the null day of the same seed passes (test above)
     inj = injection_from_spec("timing-offset:sc1.d1=0.35")
-    cfg = SimulationConfig(duration=4 * 3600.0, orbit="keplerian", seed=41, injections=(inj,))
-    tm2, _ = simulate(cfg, chunk_size=4 * 3600 * 4)
-    rep2 = diagnose(tm2, settings=s, witnesses=False, candidates=["timing-offset"])
-    assert rep2["adequacy"]["fails"], rep2["adequacy"]["summary"]
-    assert rep2["candidates"][0]["significant"]
+    tm, _ = simulate(SimulationConfig(duration=6 * 3600.0, orbit="keplerian", seed=41, injections=(inj,)),
+                     chunk_size=6 * 3600 * 4)
+    rep = diagnose(tm, witnesses=False, candidates=["timing-offset"])
+    assert rep["adequacy"]["noise_model"]["kind"] == "fitted"
+    assert rep["adequacy"]["fails"], rep["adequacy"]["summary"]
+    assert rep["candidates"][0]["significant"]
+
+
+@pytest.mark.science
+def test_lisainstrument_null_day_passes_at_two_percent(tmp_path):
+    # outside data: a lisainstrument day (Keplerian orbits, every default noise and the TTL
+    # coupling on); the fixed model reads chi2/dof 1.07 at low and 0.93 at high frequency,
+    # the fitted one passes the 2 % test in every band and reads 1 within the scatter
+    from lisainstrument_sim import simulate_lisainstrument
+    from ttlcore.io.reader import read_telemetry
+
+    path = tmp_path / "null.h5"
+    simulate_lisainstrument(path, duration=86400, orbits="keplerian", seed=6)
+    rep = diagnose(read_telemetry(path), witnesses=False, candidates=["drift"])
+    ad = rep["adequacy"]
+    assert ad["noise_model"]["kind"] == "fitted" and ad["tolerance"] == 0.02
+    assert not ad["fails"], ad["summary"]
+    for b in ad["bands"]:  # within 2 % plus three times the statistical scatter of the band
+        assert abs(b["chi2_dof"] - 1) < 0.02 + 3 * np.sqrt(2 * ad["variance_factor"] / b["dof"]), ad["bands"]
+    assert abs(ad["chi2_dof"] - 1) < 0.01
+
+
+@pytest.mark.science
+def test_simulator_null_day_passes_at_two_percent():
+    tm, _ = simulate(SimulationConfig(duration=86400.0, orbit="keplerian", seed=32), chunk_size=86400 * 4)
+    rep = diagnose(tm, witnesses=False, candidates=["drift"])
+    ad = rep["adequacy"]
+    assert not ad["fails"], ad["summary"]
+    for b in ad["bands"]:
+        assert abs(b["chi2_dof"] - 1) < 0.02 + 3 * np.sqrt(2 * ad["variance_factor"] / b["dof"]), ad["bands"]
+    # the simulator's levels are the paper's: the OMS level (it dominates above 10 mHz) within
+    # 3 % of 1 (measured 0.983 +- 0.006 on this seed: the floor term shares its high-frequency
+    # shape)
+    assert abs(ad["noise_model"]["parameters"]["oms"]["psd_scale"] - 1) < 0.03
