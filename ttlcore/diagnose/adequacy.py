@@ -185,9 +185,9 @@ def merged_band_edges(f: np.ndarray, edges: np.ndarray, dof_per_bin: int, min_do
 
 def third_octave_edges(band) -> np.ndarray:
     """Band edges [Hz] a third of an octave apart (ratio ``2^(1/3)``) from ``band[0]``, the
-    last band ending at ``band[1]``."""
+    last band (between 2/3 and 4/3 of a third of an octave) ending at ``band[1]``."""
     lo, hi = float(band[0]), float(band[1])
-    n = max(1, int(np.ceil(np.log2(hi / lo) * 3 - 1e-9)))
+    n = max(1, int(round(np.log2(hi / lo) * 3)))
     edges = lo * 2.0 ** (np.arange(n + 1) / 3.0)
     edges[-1] = hi * (1 + 1e-9)
     return edges

@@ -1653,7 +1653,8 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
     m = report["model"]
     ad = report["adequacy"]
     lines.append(f"{source}: model {', '.join(m['effects'])} ({m['n_parameters']} parameters), "
-                 f"chi2/dof {ad['chi2_dof']:.3f} against the instrument noise model "
+                 f"chi2/dof {ad['chi2_dof']:.3f} against the instrument noise model"
+                 f"{' (fitted levels)' if ad['noise_model'].get('kind') == 'fitted' else ''} "
                  f"({1e3 * ad['band'][0]:.3g} mHz - {ad['band'][1]:.3g} Hz, tolerance {100 * ad['tolerance']:.0f} %)")
     if "before" in report:
         b = report["before"]
