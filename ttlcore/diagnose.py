@@ -1672,8 +1672,7 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
         say("witness search")
         report["witnesses"] = witness_search(tm, dg, model, s.top_witnesses)
         lap("witnesses")
-        if candidates is None:
-            extra = witness_candidates(report["witnesses"], s.witness_candidates, effect_modules)
+        extra = witness_candidates(report["witnesses"], s.witness_candidates, effect_modules)
     else:
         report["witnesses"] = None
     say("candidates")

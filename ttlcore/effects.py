@@ -693,6 +693,39 @@ class _Placed(Effect):
     def placement_label(source, link, n) -> str:
         return f"{source}>{link}" + (f"+{n}L" if n else "")
 
+    def modulation(self, data) -> np.ndarray | None:
+        """Time variation of the effect's coupling (option ``vary``): ``drift`` multiplies
+        the witness by ``(t - t_ref) / day`` (the coefficients are the rate, per day),
+        ``step`` by ``H(t - t_step)`` (the jump); None for a constant coupling.  A slow
+        modulation commutes with the filters of ``fd-coupling`` to ``1 / (f T)``."""
+        vary = self.options.get("vary") or "none"
+        if vary == "none":
+            return None
+        if data.names_only:
+            return None
+        if vary == "drift":
+            t_ref = data.t_ref if self.options.get("t_ref") is None else float(self.options["t_ref"])
+            return (data.t - t_ref) / DAY
+        if vary == "step":
+            from .conventions import parse_duration
+
+            if self.options.get("t_step") is None:
+                raise ConfigError(f"effect {self.name!r} vary=step needs t_step")
+            return (data.t >= parse_duration(self.options["t_step"])).astype(float)
+        raise ConfigError(f"effect {self.name!r} vary: expected none, drift or step, got {vary!r}")
+
+    def _series(self, data, src):
+        series, channel, unit = witness_series(data, src, 0)
+        mod = self.modulation(data)
+        if mod is not None:
+            series = series * mod
+        return series, channel, unit, mod
+
+    def _label(self, label) -> str:
+        vary = self.options.get("vary") or "none"
+        at = {"drift": self.options.get("t_ref"), "step": self.options.get("t_step")}.get(vary)
+        return label if vary == "none" else f"{label}~{vary}" + (f"@{at}" if at is not None else "")
+
 
 class WitnessEffect(_Placed):
     name = "witness"
@@ -703,7 +736,7 @@ class WitnessEffect(_Placed):
                "the exact time-varying TDI delays; a plain DWS channel carries its readout noise into the "
                "errors-in-variables term.")
     parameters = {"source": None, "link": None, "delay": 0, "derivative": 0, "mosas": None, "angles": "all",
-                  "sides": "rx", "links": "all"}
+                  "sides": "rx", "links": "all", "vary": "none", "t_ref": None, "t_step": None}
 
     def columns(self, data):
         der = _int_option(self, "derivative", (0, 1))
@@ -711,11 +744,11 @@ class WitnessEffect(_Placed):
         for src, link, n in self.placements():
             if der and src.split(".")[1] not in ANGLES:
                 raise ConfigError(f"effect 'witness' source {src!r}: products have no derivative option")
-            series, channel, unit = witness_series(data, src, 0)
-            label = ("d/dt:" if der else "") + self.placement_label(src, link, n)
+            series, channel, unit, mod = self._series(data, src)
+            label = self._label(("d/dt:" if der else "") + self.placement_label(src, link, n))
             prior = {"m/rad": 1e-3, "m/rad^2": 1e3}[unit]
             # the time derivative as the filter 2 pi i f: its readout noise follows exactly
-            cols.append(Column(f"witness.{label}", [Part(link, series, n, channel)], "m s/rad" if der else unit,
+            cols.append(Column(f"witness.{label}", [Part(link, series, n, channel, mod)], "m s/rad" if der else unit,
                                prior * 10 if der else prior, response=_derivative_response if der else None))
         return cols
 
@@ -755,7 +788,8 @@ class FrequencyCoupling(_Placed):
                "(f0, q or fc) are searched by the diagnosis when not given. Place it with source=, link=, "
                "delay= (a library witness) or mosas=, angles=, sides=, links=.")
     parameters = {"source": None, "link": None, "delay": 0, "mosas": None, "angles": "all", "sides": "rx",
-                  "links": "all", "filter": "pole2", "f0": None, "q": None, "fc": None}
+                  "links": "all", "filter": "pole2", "f0": None, "q": None, "fc": None, "vary": "none", "t_ref": None,
+                  "t_step": None}
 
     @property
     def kind(self) -> str:
@@ -792,10 +826,11 @@ class FrequencyCoupling(_Placed):
             if data.names_only:  # names and responses only (the searches evaluate many poles)
                 series, channel = None, None
                 unit = "m/rad" if src.partition(".")[2] in ANGLES else "m/rad^2"
+                mod = None
             else:
-                series, channel, unit = witness_series(data, src, 0)
-            label = self.placement_label(src, link, n)
-            parts = [Part(link, series, n, channel)]
+                series, channel, unit, mod = self._series(data, src)
+            label = self._label(self.placement_label(src, link, n))
+            parts = [Part(link, series, n, channel, mod)]
             for j in range(n_basis):
                 cols.append(Column(f"fd.{label}.b{j}", parts, unit, 1e-3 if unit == "m/rad" else 1e3,
                                    response=resp[j], base=label))

@@ -143,8 +143,8 @@ class _Spectral:
         N = np.block([[self.NM, NMK], [NMK.T, NKK]])
         b = np.r_[self.bM, bK]
         th = stable_solve(N, b)
-        if th is None:
-            return -np.inf, -np.inf
+        if th is None:  # collinear: no gain (a finite value keeps the simplex well defined)
+            return 0.0, -1e300
         kappa = dg.kappa
         dchi2 = 2 * (b @ th - self.bM @ self.thM) / kappa
         A = 2 * (NKK - NMK.T @ np.linalg.solve(self.NM, NMK)) / kappa
@@ -238,9 +238,9 @@ def profile_search(dg, model, effect, coefficients=None) -> SearchResult:
     order = np.argsort(-np.nan_to_num(values, nan=-np.inf))
     best_x, best = grid[order[0]], values[order[0]]
     # local refinement from the best few grid points (the profile may have several maxima)
-    for start in grid[order[:3]]:
+    for start in grid[order[:2]]:
         res = optimize.minimize(lambda x: -score(x)[0], start, method="Nelder-Mead",
-                                options={"xatol": 1e-4, "fatol": 1e-3, "maxfev": 200 * len(names)})
+                                options={"xatol": 1e-3, "fatol": 1e-2, "maxfev": 100 * len(names)})
         if -res.fun > best:
             best, best_x = -res.fun, np.clip(res.x, lo, hi)
     dchi2, lbf_best = score(best_x)

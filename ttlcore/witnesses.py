@@ -238,6 +238,8 @@ def witness_candidates(report: dict, top: int = 3, modules=()) -> list:
             specs.append(f"fd-coupling:{where}" + (f";delay={d}" if d else ""))
         if i == 0:
             specs.append(f"fd-coupling:{where}" + (f";delay={n}" if n else "") + ";filter=pole1")
+            # a coupling that changes in time (composition with a drift)
+            specs.append(f"witness:{where}" + (f";delay={n}" if n else "") + ";vary=drift")
     return make_effects([s.replace(";", ",") for s in dict.fromkeys(specs)], modules)
 
 

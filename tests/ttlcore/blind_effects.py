@@ -16,7 +16,8 @@ chunk by the tests), with the analog responses written out independently of
 
 import numpy as np
 
-from ttlcore.effects import Column, Effect, Part
+from ttlcore.effects import Column, Effect, EffectInjection, Part
+from ttlcore.errors import ConfigError
 
 
 def _filter(x, fs, h):
@@ -25,8 +26,18 @@ def _filter(x, fs, h):
     return np.fft.irfft(np.fft.rfft(x, 2 * n) * h(f), 2 * n)[:n]
 
 
+class _OneChunk(EffectInjection):
+    def link_signal(self, ctx):
+        if ctx.n0 != 0:
+            raise ConfigError(f"{self.name}: filtered through the FFT of one chunk; simulate with --chunk covering the run")
+        return super().link_signal(ctx)
+
+
 class _Blind(Effect):
     parameters = {"source": "12.phi", "link": "12", "delay": 0, "f0": 0.1, "q": 10.0, "fc": 0.05}
+
+    def injection(self, values, name=None):
+        return _OneChunk(self, values, name)
 
     def response(self, f):
         return np.ones_like(f, dtype=complex)
