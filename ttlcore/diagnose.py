@@ -554,8 +554,6 @@ class Diagnoser:
                 raise ConfigError(f"effect {effect.name!r} produced no column (check its options)")
             if any(c.response is not None for c in cols):
                 names = self._filtered_columns(cols)
-                if keep_series:
-                    self._filtered_series(cols)
                 self._gram_cache[key] = names
                 self._owner.update(dict.fromkeys(names, key))
                 return names
@@ -594,14 +592,29 @@ class Diagnoser:
             self._register_eiv(plain)
         return key
 
+    def filtered_spectra(self, base: str, responses) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened spectra (S, m, 3, k) and decimated series (3, k, n) of the registered
+        column ``base`` through the filters ``responses`` (callables ``f -> complex``),
+        filtered in the time domain before the segments are windowed
+        (:func:`ttlcore.effects.filtered`): multiplying the windowed segment's spectrum
+        instead misses the filter's ringing across the taper, a few tens of per cent of a
+        strong resonance's excess at the segment ends.  Pure: nothing is registered."""
+        x = self.series[base]
+        ok = np.isfinite(x)
+        series = np.stack([np.where(ok, filtered(x, self.fs, r), np.nan) for r in responses], axis=1)
+        return np.matmul(self.Lh, self._spectra(series)), series
+
     def _filtered_columns(self, cols) -> list[str]:
-        """Columns carrying a frequency response: the base column's whitened spectra times
-        the response (and so its readout noise response, in the errors-in-variables term)."""
-        names, info = [], []
+        """Columns carrying a frequency response: the base column (its parts through the
+        exact TDI, once) filtered in time (:meth:`filtered_spectra`); the readout noise
+        response is the base column's times the response (errors-in-variables term)."""
+        names = []
         for c in cols:
             base = self.base_column(c)
             resp = np.ones(self.f.size, dtype=complex) if c.response is None else np.asarray(c.response(self.f), dtype=complex)
-            self.wcols[c.name] = np.ascontiguousarray(self.wcols[base] * resp[None, :, None])
+            w, series = self.filtered_spectra(base, [c.response or (lambda f: np.ones(np.shape(f)))])
+            self.wcols[c.name] = np.ascontiguousarray(w[..., 0])
+            self.series[c.name] = series[:, 0]
             self.col_info[c.name] = (1.0, c.unit, c.prior_scale)
             self.eiv_parts.pop(c.name, None)
             self.eiv_modulation.pop(c.name, None)
@@ -609,17 +622,9 @@ class Diagnoser:
                 self.eiv_parts[c.name] = [(ch, link, extra, resp) for ch, link, extra, *_ in self.eiv_parts[base]]
             if base in self.eiv_modulation:
                 self.eiv_modulation[c.name] = self.eiv_modulation[base]
-            self.series.pop(c.name, None)
             names.append(c.name)
         self._x_cache.clear()
         return names
-
-    def _filtered_series(self, cols) -> None:
-        """Decimated time series of filtered columns (for the adequacy in time)."""
-        for c in cols:
-            base = self.series[self.base_column(c)]
-            x = base if c.response is None else filtered(base, self.fs, c.response)
-            self.series[c.name] = np.where(np.isfinite(base), x, np.nan)
 
     def _register_eiv(self, column) -> None:
         """Errors-in-variables parts of an effect's column: plain (or slowly modulated) DWS

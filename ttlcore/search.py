@@ -105,7 +105,7 @@ class _Spectral:
             b = dg.base_column(c)
             if b not in self.bases:
                 self.bases.append(b)
-        wM = dg._w(M)  # (S, m, 3, P)
+        wM = self.wM = dg._w(M)  # (S, m, 3, P)
         U = dg._w(self.bases)  # (S, m, 3, nb)
         self.PM = np.einsum("smcp,smcb->mpb", wM.conj(), U)
         self.Pud = np.einsum("smcb,smc->mb", U.conj(), dg.wd)
@@ -128,17 +128,27 @@ class _Spectral:
         self.bM = model.normal[1].sum(axis=(0, 1))
         self.thM = np.linalg.solve(self.NM, self.bM)
 
-    def evaluate(self, cols, idx) -> tuple[float, float]:
+    def evaluate(self, cols, idx, exact: bool = False) -> tuple[float, float]:
         """Evidence of the columns ``cols`` (only their responses and prior scales are
-        used) on the bases ``idx``."""
+        used) on the bases ``idx``.  Fast: the filters applied to the base columns' segment
+        spectra (products over bins only); ``exact``: the base series filtered in time and
+        then windowed (:meth:`ttlcore.diagnose.Diagnoser.filtered_spectra`, as the fit)."""
         from .diagnose import log_bayes_factor
 
         dg = self.dg
         R = np.stack([np.ones(dg.f.size, complex) if c.response is None else np.asarray(c.response(dg.f), complex)
                       for c in cols], axis=1)  # (m, k)
-        NMK = np.einsum("mpk,mk->pk", self.PM[:, :, idx] - self.eMB[:, :, idx], R).real
-        NKK = np.einsum("mj,mjk,mk->jk", R.conj(), self.Puu[:, idx][:, :, idx] - self.eBB[:, idx][:, :, idx], R).real
-        bK = np.einsum("mk,mk->k", R.conj(), self.Pud[:, idx]).real
+        eMK = np.einsum("mpk,mk->pk", self.eMB[:, :, idx], R).real
+        eKK = np.einsum("mj,mjk,mk->jk", R.conj(), self.eBB[:, idx][:, :, idx], R).real
+        if exact:
+            wK = np.concatenate([dg.filtered_spectra(self.bases[i], [c.response])[0] for c, i in zip(cols, idx)], axis=-1)
+            NMK = np.einsum("smcp,smck->pk", self.wM.conj(), wK).real - eMK
+            NKK = np.einsum("smcj,smck->jk", wK.conj(), wK).real - eKK
+            bK = np.einsum("smck,smc->k", wK.conj(), dg.wd).real
+        else:
+            NMK = np.einsum("mpk,mk->pk", self.PM[:, :, idx], R).real - eMK
+            NKK = np.einsum("mj,mjk,mk->jk", R.conj(), self.Puu[:, idx][:, :, idx], R).real - eKK
+            bK = np.einsum("mk,mk->k", R.conj(), self.Pud[:, idx]).real
         P = self.NM.shape[0]
         N = np.block([[self.NM, NMK], [NMK.T, NKK]])
         b = np.r_[self.bM, bK]
@@ -210,6 +220,7 @@ def profile_search(dg, model, effect, coefficients=None) -> SearchResult:
         names_only = _names_input()
         # the responses of the columns at x: built on the names-only input (no series)
         evaluate = lambda x: sp.evaluate(effect_at(x).columns(names_only), idx)  # noqa: E731
+        exact = lambda x: sp.evaluate(effect_at(x).columns(names_only), idx, exact=True)  # noqa: E731
         per_decade = 30
     else:
         gen = _generic_evaluator(dg, model, effect_at)
@@ -243,8 +254,28 @@ def profile_search(dg, model, effect, coefficients=None) -> SearchResult:
                                 options={"xatol": 1e-3, "fatol": 1e-2, "maxfev": 100 * len(names)})
         if -res.fun > best:
             best, best_x = -res.fun, np.clip(res.x, lo, hi)
-    dchi2, lbf_best = score(best_x)
-    # curvature of l = delta_chi2 / 2 in the scaled parameters
+    if spectral:
+        # the fast products miss the filter's ringing across the segment tapers: refine
+        # with the columns the fit uses (filtered in time, then windowed)
+        exact_cache: dict = {}
+
+        def exact_score(x):
+            key = tuple(np.round(np.clip(x, lo, hi), 9))
+            if key not in exact_cache:
+                exact_cache[key] = exact(np.array(key))
+            return exact_cache[key]
+
+        res = optimize.minimize(lambda x: -exact_score(x)[0], best_x, method="Nelder-Mead",
+                                options={"xatol": 1e-3, "fatol": 1e-2, "maxfev": 30 * len(names),
+                                         "initial_simplex": np.vstack([best_x, best_x + 0.01 * np.eye(len(names))])})
+        best_x = np.clip(res.x, lo, hi)
+        dchi2, lbf_best = exact_score(best_x)
+        n_exact = len(exact_cache)
+    else:
+        n_exact = 0
+        dchi2, lbf_best = score(best_x)
+    # curvature of l = delta_chi2 / 2 in the scaled parameters (the fast profile for
+    # filters: its shape near the optimum is the exact one's to a few per cent)
     d = len(names)
     h = 1e-3 * np.maximum(hi - lo, 1e-12)
     H = np.zeros((d, d))
@@ -277,5 +308,5 @@ def profile_search(dg, model, effect, coefficients=None) -> SearchResult:
     found = effect_at(best_x)
     log.debug("profile search %s: %s, delta chi2 %.1f", effect.name, dict(zip(names, est)), dchi2)
     return SearchResult(found, {k: float(found.options[k]) for k in names}, intervals, float(dchi2),
-                        float(lbf_best), marg, len(cache), grid=[(list(map(float, back(x))), float(v))
+                        float(lbf_best), marg, len(cache) + n_exact, grid=[(list(map(float, back(x))), float(v))
                                                                for x, v in zip(grid, values)])
