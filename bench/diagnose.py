@@ -2,7 +2,7 @@
 
 Simulates one day (Keplerian arms, all noises, paper coefficients) with a hidden DWS timing
 offset of 50 ms on spacecraft 1 (``--inject``-equivalent; ``--clean`` for none), then times
-:func:`ttlcore.diagnose.diagnose` with the linear TTL model: TDI of data and regressors,
+:func:`ttlcore.diagnose.diagnoser.diagnose` with the linear TTL model: TDI of data and regressors,
 segment spectra, the fit under the instrument noise model, adequacy per band and per hour,
 every named effect as a candidate (the step time searched), the whole witness library, and
 the witness candidates (witness effects, frequency-dependent couplings with their poles
@@ -32,9 +32,9 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from ttlcore.diagnose import diagnose  # noqa: E402
-from ttlcore.effects import injection_from_spec  # noqa: E402
-from ttlcore.simulator import SimulationConfig, simulate  # noqa: E402
+from ttlcore.diagnose.diagnoser import diagnose  # noqa: E402
+from ttlcore.diagnose.effects import injection_from_spec  # noqa: E402
+from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
 
 TARGET_S = 60.0
 INJECTION = "timing-offset:sc1.d1=0.05"

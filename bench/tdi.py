@@ -5,7 +5,7 @@ pytdi gets the same work in its natural form: each combination is built once
 (``X2_ETA.build``) and evaluated on the data and on each regressor's witness placed on its
 link (zeros elsewhere); Tx witnesses are first delayed with ``pytdi.dsp.timeshift``.
 Both use Lagrange order 31 for the data and 5 for nested delays, ``unit="phase"``
-(``D x(t) = x(t - tau(t))``, PHYSICS.md).
+(``D x(t) = x(t - tau(t))``, docs/physics.md).
 
 Prints one JSON object: both wall times, the ratio pytdi/ours (target >= 20), and the
 agreement (max relative RMS difference over all outputs).
@@ -32,9 +32,9 @@ def main() -> int:
     from pytdi.michelson import X2_ETA, Y2_ETA, Z2_ETA
 
     from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
-    from ttlcore.regressors import ttl_witnesses
-    from ttlcore.simulator import SimulationConfig, simulate
-    from ttlcore.tdi_data import compute_tdi
+    from ttlcore.tdi.regressors import ttl_witnesses
+    from ttlcore.sim.simulator import SimulationConfig, simulate
+    from ttlcore.tdi.data import compute_tdi
 
     tm, _ = simulate(SimulationConfig(duration=args.duration, orbit="keplerian", seed=1))
 

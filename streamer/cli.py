@@ -1,4 +1,4 @@
-"""Operations subcommands of ``ttl`` (attached by :func:`ttlcore.cli.build_parser`).
+"""Operations subcommands of ``ttl`` (attached by :func:`ttlcore.cli.main.build_parser`).
 
 ``ttl run``
     The whole pipeline: five stage processes on a loopback Zenoh, progress, supervision

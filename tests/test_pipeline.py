@@ -114,11 +114,11 @@ def test_nothing_listens_beyond_loopback(t1):
 
 
 def test_message_contracts_and_streaming_equals_batch(t1):
-    from ttlcore.coefficients import make_coefficients
+    from ttlcore.sim.coefficients import make_coefficients
     from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
-    from ttlcore.fit import FitSettings, fit_tdi
-    from ttlcore.tdi_data import TDIData, compute_tdi
-    from ttlcore.telemetry import Telemetry
+    from ttlcore.estimate.fit import FitSettings, fit_tdi
+    from ttlcore.tdi.data import TDIData, compute_tdi
+    from ttlcore.io.telemetry import Telemetry
 
     tel = read_recording(t1.dir / "replayer.mcap").segments("telemetry")
     h = tel[0].header
@@ -158,7 +158,7 @@ def test_message_contracts_and_streaming_equals_batch(t1):
     assert summary["index"] == SEGMENTS - 1 and summary["fit"]["window"]["segments"] == SEGMENTS
     assert fits.schemas["fit/summary"][0] == "ttl.Fit"
     # coefficients near the truth (paper set, 2.3 mm/rad scale): within 5 sigma
-    from ttlcore.coefficients import paper_set
+    from ttlcore.sim.coefficients import paper_set
     truth = np.asarray(paper_set(), dtype=float)
     assert np.all(np.abs(last.arrays["coefficients"] - truth) < 5 * last.arrays["sigma"])
 
@@ -279,7 +279,7 @@ def test_late_joiner_catches_up_from_the_caches(stage, tmp_path):
         fits = [row[0]["segment"] for row in ent["/coefficients/12/phi_rx/fit"] if "Scalars:scalars" in row[1]]
         assert sorted(fits) == list(range(SEGMENTS))
         # a simulation on the fly: the truth drawn is the simulation's coefficient model (paper set)
-        from ttlcore.coefficients import paper_set
+        from ttlcore.sim.coefficients import paper_set
         truth = [row[1]["Scalars:scalars"][0] for row in ent["/coefficients/12/phi_rx/truth"] if "Scalars:scalars" in row[1]]
         assert len(truth) == SEGMENTS and np.allclose(truth, paper_set()[0] * 1e3)
 
