@@ -7,7 +7,7 @@ segment spectra, the fit under the instrument noise model, adequacy per band and
 every named effect as a candidate (the step time searched), the whole witness library, and
 the witness candidates (witness effects, frequency-dependent couplings with their poles
 searched) of the top witnesses.  ``--unknown`` injects instead a resonance the code does not
-name (``tests/ttlcore/blind_effects.py``, Q 15 at 80 mHz on eta of MOSA 23 into link 31),
+name (``tests/ttlcore/diagnose/blind_effects.py``, Q 15 at 80 mHz on eta of MOSA 23 into link 31),
 for which the recommendation must be the fd-coupling on that placement.
 Target: under 60 s and 2.5 GB on this machine.
 
@@ -39,7 +39,7 @@ from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
 TARGET_S = 60.0
 INJECTION = "timing-offset:sc1.d1=0.05"
 UNKNOWN = "blind-resonance:source=23.eta,link=31,f0=0.08,q=15,gain=3e-3"
-BLIND_MODULE = str(Path(__file__).resolve().parents[1] / "tests" / "ttlcore" / "blind_effects.py")
+BLIND_MODULE = str(Path(__file__).resolve().parents[1] / "tests" / "ttlcore" / "diagnose" / "blind_effects.py")
 
 
 def main() -> int:

@@ -596,7 +596,7 @@ class Diagnoser:
         """Whitened spectra (S, m, 3, k) and decimated series (3, k, n) of the registered
         column ``base`` through the filters ``responses`` (callables ``f -> complex``),
         filtered in the time domain before the segments are windowed
-        (:func:`ttlcore.effects.filtered`): multiplying the windowed segment's spectrum
+        (:func:`ttlcore.diagnose.effects.filtered`): multiplying the windowed segment's spectrum
         instead misses the filter's ringing across the taper, a few tens of per cent of a
         strong resonance's excess at the segment ends.  Pure: nothing is registered."""
         x = self.series[base]
@@ -770,8 +770,8 @@ class Diagnoser:
         return fit
 
     def resolve(self, effects, coefficients_for_linearised=None) -> tuple[list, dict]:
-        """Effects with unset searched parameters (:attr:`ttlcore.effects.Effect.searched`)
-        replaced by the same effect at the estimates of :func:`ttlcore.search.profile_search`,
+        """Effects with unset searched parameters (:attr:`ttlcore.diagnose.effects.Effect.searched`)
+        replaced by the same effect at the estimates of :func:`ttlcore.diagnose.search.profile_search`,
         profiled against the model of the other effects; returns the effects and the
         searches (``cli spec -> result``)."""
         from .search import profile_search

@@ -198,7 +198,7 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
 
 def witness_spec(source: str, link: str, n_delay: int = 0, derivative: bool = False) -> str:
     """The ``--effects`` spelling of a library witness as an effect
-    (:class:`ttlcore.effects.WitnessEffect`): ``witness:source=12.phi;link=23;delay=1``."""
+    (:class:`ttlcore.diagnose.effects.WitnessEffect`): ``witness:source=12.phi;link=23;delay=1``."""
     opts = [f"source={source}"]
     if link != source.split(".")[0]:
         opts.append(f"link={link}")

@@ -1,6 +1,6 @@
 """Searched nonlinear parameters of any effect: profile chi^2 over them, marginal evidence.
 
-An effect declares the options the diagnosis may search (:attr:`ttlcore.effects.Effect.searched`,
+An effect declares the options the diagnosis may search (:attr:`ttlcore.diagnose.effects.Effect.searched`,
 ``option -> (low, high, scale)``); left unset, :func:`profile_search` finds them against a
 fitted model:
 
@@ -16,7 +16,7 @@ fitted model:
    evidence at the best point.
 
 For effects whose columns are filters applied to fixed base columns
-(:attr:`ttlcore.effects.Column.response`, e.g. ``fd-coupling``), a point costs a few
+(:attr:`ttlcore.diagnose.effects.Column.response`, e.g. ``fd-coupling``), a point costs a few
 products over frequency bins: the base columns' cross-products with the model's columns,
 the data and each other (and their readout-noise responses) are computed once per search.
 Other effects (a plugin whose columns change with the parameter) are evaluated by building
@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import optimize, special
 
-from .errors import ConfigError
+from ..errors import ConfigError
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +96,7 @@ class _Spectral:
     """Per-bin products of the base columns of a filtered effect (built once per search)."""
 
     def __init__(self, dg, model, cols):
-        from .diagnose import _eiv_factor
+        from .diagnoser import _eiv_factor
 
         self.dg = dg
         M = list(model.names)
@@ -132,8 +132,8 @@ class _Spectral:
         """Evidence of the columns ``cols`` (only their responses and prior scales are
         used) on the bases ``idx``.  Fast: the filters applied to the base columns' segment
         spectra (products over bins only); ``exact``: the base series filtered in time and
-        then windowed (:meth:`ttlcore.diagnose.Diagnoser.filtered_spectra`, as the fit)."""
-        from .diagnose import log_bayes_factor
+        then windowed (:meth:`ttlcore.diagnose.diagnoser.Diagnoser.filtered_spectra`, as the fit)."""
+        from .diagnoser import log_bayes_factor
 
         dg = self.dg
         R = np.stack([np.ones(dg.f.size, complex) if c.response is None else np.asarray(c.response(dg.f), complex)
@@ -190,8 +190,8 @@ def _generic_evaluator(dg, model, effect_at):
 
 
 def profile_search(dg, model, effect, coefficients=None) -> SearchResult:
-    """Search the unset :attr:`~ttlcore.effects.Effect.searched` options of ``effect``
-    against ``model`` (a :class:`ttlcore.diagnose.ModelFit`); see the module docstring.
+    """Search the unset :attr:`~ttlcore.diagnose.effects.Effect.searched` options of ``effect``
+    against ``model`` (a :class:`ttlcore.diagnose.diagnoser.ModelFit`); see the module docstring.
 
     Raises ConfigError when the diagnoser has no telemetry (the columns need DWS series)."""
     from .effects import effect_input_from_telemetry
@@ -208,7 +208,7 @@ def profile_search(dg, model, effect, coefficients=None) -> SearchResult:
         v = back(np.clip(np.asarray(x, dtype=float), lo, hi))
         return effect.with_options(**{k: float(f"{float(val):.6g}") for k, val in zip(names, v)})
 
-    from .diagnose import _names_input
+    from .diagnoser import _names_input
 
     data = effect_input_from_telemetry(dg.tm, coefficients)
     mid = effect_at(0.5 * (lo + hi))

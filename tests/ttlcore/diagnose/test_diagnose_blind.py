@@ -26,11 +26,11 @@ sys.path.insert(0, str(Path(__file__).parent))
 
 from diagnose_helpers import injected_asd_ratio  # noqa: E402
 
-from ttlcore.cli import main  # noqa: E402
+from ttlcore.cli.main import main  # noqa: E402
 from ttlcore.conventions import ANGLES, COEFFICIENT_NAMES, LINKS, MOSAS  # noqa: E402
-from ttlcore.diagnose import Diagnoser, refit  # noqa: E402
-from ttlcore.truth import read_truth  # noqa: E402
-from ttlcore.telemetry import read_telemetry  # noqa: E402
+from ttlcore.diagnose.diagnoser import Diagnoser, refit  # noqa: E402
+from ttlcore.io.truth import read_truth  # noqa: E402
+from ttlcore.io.telemetry import read_telemetry  # noqa: E402
 
 BLIND = str(Path(__file__).parent / "blind_effects.py")
 #: the acceptance of issue 10
