@@ -171,7 +171,7 @@ def register(sub) -> None:
 def _cmd_refit(args) -> int:
     from .inspect import InspectError
 
-    split = lambda s: [x for x in s.split(",") if x.strip()]  # noqa: E731
+    from ttlcore.cli.diagnose import split_effects as split  # ',' between effects, ';' inside one (as ttl diagnose)
     try:
         report = refit_run(args.run_dir, split(args.effects), baseline=split(args.baseline),
                            effect_modules=args.effect_module, segments=_parse_range(args.segments),

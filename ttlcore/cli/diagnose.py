@@ -36,7 +36,8 @@ def add_parser(sub) -> None:
                    "(e.g. linear-ttl,drift,step:t_step=50400;mosas=12+13); default linear-ttl")
     p.add_argument("--effect-module", action="append", default=[], metavar="PATH",
                    help="Python file (or importable module) defining user effects; repeatable")
-    p.add_argument("--candidates", default=None, metavar="EFFECT,...", help="effects to try (default: all available)")
+    p.add_argument("--candidates", default=None, metavar="EFFECT,...", help="named effects and plugins to try (default: all available); the witness effects and "
+                   "frequency-dependent couplings of the top witnesses are tried as well")
     p.add_argument("--truth", default=None, help="truth file (or the lisainstrument file itself): adds coefficient errors only")
     p.add_argument("--band", nargs=2, metavar=("FMIN", "FMAX"), default=None, help="band in Hz (default 0.003 0.8)")
     p.add_argument("--segment", default=None, help="FFT segment length (default 6 h, or a quarter of shorter data)")
