@@ -69,6 +69,7 @@ from ..conventions import C, COEFFICIENT_NAMES, DAY, ffd_to_displacement_asd
 from ..errors import TTLError
 from ..estimate.fit import DEFAULT_BAND, FitSettings, fit_tdi
 from ..estimate.reprocess import dask_client
+from ..estimate.spectra import welch_asd
 from ..io.atomic import write_json, write_text
 
 __all__ = ["Case", "PAPER_CASES", "VARIANTS", "run_scenarios", "add_parser"]
@@ -121,9 +122,8 @@ GW_INTACT_FACTOR = 10.0
 
 
 def _welch(x: np.ndarray, fs: float, nperseg: int):
-    from ..plots.batch import welch_asd_weighted_mean
-
-    f, asd = welch_asd_weighted_mean(x, fs, nperseg)
+    """Welch PSD (:func:`ttlcore.estimate.spectra.welch_asd` squared)."""
+    f, asd = welch_asd(x, fs, nperseg)
     return f, asd**2
 
 
