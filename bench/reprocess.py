@@ -26,7 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from ttlcore.estimate.reprocess import dask_client, jobs_for_files, process_day, reprocess
+from ttlcore.diagnose.reprocess import dask_client, jobs_for_files, process_day, reprocess
 from ttlcore.io.telemetry import write_telemetry
 from ttlcore.sim.simulator import SimulationConfig, simulate
 
@@ -45,7 +45,7 @@ def make_days(d: Path, n: int, hours: float) -> list[Path]:
 def _warm_up() -> None:
     """Import what a day's job imports on first use (as the serial reference's warm-up day)."""
     import ttlcore.diagnose.witnesses  # noqa: F401
-    import ttlcore.estimate.reprocess  # noqa: F401
+    import ttlcore.diagnose.reprocess  # noqa: F401
     import ttlcore.estimate.subtraction  # noqa: F401
     import ttlcore.io.reader  # noqa: F401
     import ttlcore.tdi.data  # noqa: F401

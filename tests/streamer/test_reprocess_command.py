@@ -1,4 +1,4 @@
-"""Tests of ``ttl reprocess`` (streamer.reprocess, ttlcore.estimate.reprocess) on real Dask clusters.
+"""Tests of ``ttl reprocess`` (streamer.reprocess, ttlcore.diagnose.reprocess) on real Dask clusters.
 
 Days are one hour long (14 400 samples at 4 Hz, fits on 15-min segments) so the suite stays
 quick; the per-day job is the same code whatever the length.

@@ -68,7 +68,7 @@ import numpy as np
 from ..conventions import C, COEFFICIENT_NAMES, DAY, ffd_to_displacement_asd
 from ..errors import TTLError
 from ..estimate.fit import DEFAULT_BAND, FitSettings, fit_tdi
-from ..estimate.reprocess import dask_client
+from ..diagnose.reprocess import dask_client
 from ..estimate.spectra import welch_asd
 from ..io.atomic import write_json, write_text
 
@@ -450,7 +450,7 @@ def run_scenarios(out_dir, *, cases=None, variants=("paper", "lisainstrument", "
         Noise seed, shared by every case (same realisation with and without GW).
     client : distributed.Client, optional
         Run the cases on this Dask cluster, one task per variant and base simulation
-        (:func:`ttlcore.estimate.reprocess.dask_client`); the summary equals the serial run's except
+        (:func:`ttlcore.diagnose.reprocess.dask_client`); the summary equals the serial run's except
         ``timings_s`` (per variant: the wait for its tasks).
 
     Returns

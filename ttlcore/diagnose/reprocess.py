@@ -2,7 +2,7 @@
 
 ::
 
-    from ttlcore.estimate.reprocess import DayJob, dask_client, reprocess
+    from ttlcore.diagnose.reprocess import DayJob, dask_client, reprocess
     jobs = [DayJob(name=p.stem, data=str(p), out_dir=f"out/{p.stem}") for p in days]
     with dask_client(workers=2) as client:
         summary = reprocess(jobs, "out", client=client)
@@ -53,14 +53,14 @@ from pathlib import Path
 import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES, DAY
-from ..diagnose.diagnoser import DiagnoseSettings, diagnose, strip_internals
-from ..diagnose.trends import TrendMonitor, TrendSettings
 from ..errors import TTLError
+from ..estimate.analyze import analyze
+from ..estimate.fit import DEFAULT_BAND, FitSettings
 from ..io.atomic import write_json, write_text
 from ..io.reader import read_telemetry
 from ..io.truth import truth_path
-from .analyze import analyze
-from .fit import DEFAULT_BAND, FitSettings
+from .diagnoser import DiagnoseSettings, diagnose, strip_internals
+from .trends import TrendMonitor, TrendSettings
 
 log = logging.getLogger(__name__)
 
