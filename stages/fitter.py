@@ -106,6 +106,7 @@ class Fitter(OrderedStage):
         self.window_tdi: deque[TDIData] = deque()
         self._model_change: dict | None = None
         self._segments_seen = 0
+        self._last_td: TDIData | None = None
 
     def expect(self, topic, index):
         return tdi_expect(self.run_id, index)
@@ -130,6 +131,22 @@ class Fitter(OrderedStage):
 
     def published(self, index: int) -> None:
         self.fits.add(index)
+
+    def fill_gap(self, index: int) -> None:
+        """A TDI segment that will not come: push NaN over its planned span, so that the
+        window keeps what it has and the next segment follows in time (RollingFit masks NaN:
+        an FFT segment less than half valid is left out, ttlcore.fit.spectra_of_segment)."""
+        last = self._last_td
+        if self.rolling is None or last is None or self._next_t0 is None:
+            return
+        plan = self.validator.plan
+        n = plan.segment(index)[1] if plan is not None else last.size
+        nan = np.full((3, n), np.nan)
+        td = TDIData(t0=self._next_t0, fs=last.fs, channels=last.channels, data=nan,
+                     regressors=np.full((3, len(last.names), n), np.nan), names=last.names, ltt_mean=last.ltt_mean)
+        self.rolling.push(td)
+        self._next_t0 = td.t0 + n / td.fs
+        self.event("gap", index=index, message=f"tdi segment {index} missing: {n} NaN samples pushed, window kept")
 
     # ------------------------------------------------------------------ the model
     def check_model(self, specs) -> list[str]:
@@ -234,6 +251,7 @@ class Fitter(OrderedStage):
             self.rolling.reset()
             self.window_tdi.clear()
         self._next_t0 = td.t0 + td.size / td.fs
+        self._last_td = td
         self._segments_seen += 1
         res = self.rolling.push(td)
         # the window's TDI for the adequacy refits, as the rolling fit low-passed and decimated

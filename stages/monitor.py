@@ -607,7 +607,7 @@ class Monitor(PipelineStage):
         tdi = board.get("tdi_builder")
         if tdi is not None:
             for i in sorted(tdi.failed - self.done - self.failed - self._drawn["tdi"]):
-                self.mark_failed(i)
+                (self.mark_gap if i in tdi.gaps else self.mark_failed)(i)
         self.check_complete()
         if changed:
             self.flush()

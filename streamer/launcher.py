@@ -55,8 +55,10 @@ import zenoh
 
 from ttlcore.errors import TTLError
 
-from .keys import check_name, control_key
-from .session import Bus, SessionSettings, declare_segment_subscriber, loopback_endpoint, open_router
+from .keys import check_name, control_key, from_ranges, to_ranges
+from .stage import BOARD, LAUNCHER
+from .session import (Bus, SessionSettings, declare_segment_publisher, declare_segment_subscriber, loopback_endpoint,
+                      open_router)
 
 log = logging.getLogger(__name__)
 
@@ -72,6 +74,11 @@ OUTPUT_TOPIC = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit", 
 #: they do not record input payloads (the fitter and subtractor record the input headers).
 HEADERS_ONLY = frozenset({"fitter", "subtractor", "monitor"})
 DEFAULT_WINDOW = 4
+#: The stage whose progress bounds each stage's claims (a stage handles only what it got).
+UPSTREAM = {"tdi_builder": "replayer", "fitter": "tdi_builder", "subtractor": "tdi_builder",
+            "monitor": "tdi_builder"}
+#: Seconds a progress message claiming more than its upstream waits for the upstream's progress.
+HOLD_PROGRESS = 30.0
 
 
 class LaunchError(TTLError):
@@ -156,6 +163,7 @@ class _Child:
     proc: subprocess.Popen | None = None
     starts: int = 0
     exit_codes: list = field(default_factory=list)
+    pids: set = field(default_factory=set)
 
 
 class Launcher:
@@ -177,6 +185,10 @@ class Launcher:
         self._last_print = 0.0
         self.endpoint = ""
         self.run_dir = Path(opts.recordings) / opts.run_id
+        self.plan: dict | None = None
+        self.refused: list[dict] = []  # progress messages refused (forged or inconsistent)
+        self._held: list[tuple[dict, float]] = []
+        self._boards: dict = {}
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:
@@ -241,7 +253,8 @@ class Launcher:
         cfg = {"run": self.opts.run_id, "stage": name,
                "zenoh": SessionSettings(mode="client", connect=(self.endpoint,)).to_dict(),
                "recordings": str(Path(self.opts.recordings).resolve()), "cache": self.cache,
-               "options": self.stage_options(name)}
+               "options": self.stage_options(name), "plan": self.plan, "launcher_pid": os.getpid(),
+               "progress_from": "launcher"}
         if name in HEADERS_ONLY:
             cfg["record_inputs"] = False
         return cfg
@@ -251,13 +264,16 @@ class Launcher:
         if "replayer" in self.opts.external:
             return
         path = self.run_dir / "replayer.config.json"
+        plan_path = self.run_dir / "plan.json"
         path.write_text(json.dumps(self.stage_config("replayer"), indent=2))
         res = subprocess.run([self.opts.python, "-m", "stages.replayer", "--config", str(path), "--check",
-                              "--log-level", "WARNING"], capture_output=True, text=True, timeout=300)
+                              "--plan-out", str(plan_path), "--log-level", "WARNING"],
+                             capture_output=True, text=True, timeout=300)
         if res.returncode != 0:
             lines = [ln for ln in (res.stderr or res.stdout).strip().splitlines() if ln.strip()]
             msg = lines[-1] if lines else f"exit status {res.returncode}"
             raise LaunchError(msg.replace("ttl stage replayer: error: ", ""))
+        self.plan = json.loads(plan_path.read_text())
         self.say(f"replay: {res.stdout.strip()}")
 
     # ------------------------------------------------------------------ bus callbacks
@@ -292,16 +308,26 @@ class Launcher:
                 return changed
             changed = True
             if ev[0] == "progress":
-                msg = ev[1]
-                p = self.progress.setdefault(msg["stage"], {"done": set(), "failed": set(), "total": None})
-                for key in ("done", "failed"):
-                    for r in msg.get(key) or ():
-                        try:
-                            p[key].update(range(int(r[0]), int(r[1]) + 1))
-                        except (TypeError, ValueError, IndexError):
-                            pass
+                msg, since = ev[1], (ev[2] if len(ev) > 2 else time.monotonic())
+                why = self.progress_refused(msg)
+                if why and "has not handled" in why and time.monotonic() - since < HOLD_PROGRESS:
+                    self._held.append((msg, since))
+                    continue
+                if why:
+                    self.refuse_progress(msg, why)
+                    continue
+                p = self.progress.setdefault(msg["stage"], {"done": set(), "failed": set(), "gaps": set(),
+                                                            "total": None})
+                limit = self.plan["segments_total"] if self.plan else None
+                for key in ("done", "failed", "gaps"):
+                    p[key] |= from_ranges(msg.get(key), limit)
+                for name, value in msg.items():
+                    if name.endswith("_ranges"):
+                        p.setdefault("extra", {}).setdefault(name, set()).update(from_ranges(value, limit))
+                p["complete"] = p.get("complete", False) or bool(msg.get("complete"))
                 if isinstance(msg.get("segments_total"), int):
                     p["total"] = msg["segments_total"]
+                self.publish_board(msg["stage"])
             elif ev[0] == "alive":
                 _, stage, alive = ev
                 if stage in self.expected and self.alive.get(stage) != alive:
@@ -319,9 +345,69 @@ class Launcher:
                         self.outputs.setdefault(stage, set()).add(index)
                         self.last_output[stage] = time.monotonic()
 
+    def progress_refused(self, msg: dict) -> str | None:
+        """Why a progress message is not believed, or None.  A stage started here must report
+        with its own process id; ``segments_total`` must be the plan's; a stage may not claim
+        a segment its upstream has not handled (progress of a stage started here is checked
+        against the one before it in the pipeline)."""
+        stage = msg["stage"]
+        if stage not in self.expected:
+            return f"progress of unknown stage {stage!r}"
+        child = self.children.get(stage)
+        if child is not None and child.proc is not None and msg.get("pid") not in child.pids:
+            return f"pid {msg.get('pid')!r} is not the {stage} process started by this launcher"
+        if self.plan and msg.get("segments_total") not in (None, self.plan["segments_total"]):
+            return f"segments_total {msg.get('segments_total')!r} differs from the plan's {self.plan['segments_total']}"
+        upstream = UPSTREAM.get(stage)
+        if upstream in self.expected:
+            limit = self.plan["segments_total"] if self.plan else None
+            claimed = from_ranges(msg.get("done"), limit) | from_ranges(msg.get("failed"), limit)
+            beyond = claimed - self.handled(upstream)
+            if beyond:
+                return f"claims segment(s) {to_ranges(beyond)[:5]} that {upstream} has not handled"
+        return None
+
+    def _recheck_held(self) -> None:
+        """Progress held back for claiming more than its upstream: believed once the upstream's
+        progress catches up (messages of different keys may arrive out of order), refused after
+        ``HOLD_PROGRESS`` seconds."""
+        held, self._held = self._held, []
+        for msg, since in held:
+            self.events.put(("progress", msg, since))
+
+    def publish_board(self, stage: str) -> None:
+        """Publish what the launcher believes of ``stage``'s progress (the union over its
+        processes of the messages it accepted) on ``ttl/<run>/control/board/<stage>``: the
+        pipeline stages of a launched run follow these, not the stages' own messages."""
+        p = self.progress[stage]
+        msg = {"run": self.opts.run_id, "stage": stage, "time": time.time(),
+               "done": to_ranges(p["done"]), "failed": to_ranges(p["failed"]), "gaps": to_ranges(p["gaps"]),
+               "segments_total": p["total"], "complete": p.get("complete", False),
+               **{name: to_ranges(v) for name, v in p.get("extra", {}).items()}}
+        pub = self._boards.get(stage)
+        if pub is None:
+            pub = self._boards[stage] = self.bus.track(
+                declare_segment_publisher(self.bus.session, control_key(self.opts.run_id, BOARD, stage), cache=1))
+        pub.put(json.dumps(msg).encode())
+
+    def refuse_progress(self, msg: dict, why: str) -> None:
+        """Record a refused progress message (shown, kept for the report, put on errors)."""
+        err = {"run": self.opts.run_id, "stage": "launcher", "kind": "forged", "index": None,
+               "key": f"ttl/{self.opts.run_id}/control/progress/{msg.get('stage')}", "field": "progress",
+               "message": f"progress message refused: {why}", "time": time.time(), "details": {"pid": msg.get("pid")}}
+        self.refused.append(err)
+        if len(self.refused) <= 20:
+            self.say(err["message"])
+        try:
+            self.bus.put_json(f"ttl/{self.opts.run_id}/errors/unknown", err)
+        except Exception:  # noqa: BLE001 - the session may be closing
+            pass
+
     # ------------------------------------------------------------------ state
     @property
     def total(self) -> int | None:
+        if self.plan:
+            return self.plan["segments_total"]
         totals = [p["total"] for p in self.progress.values() if p["total"]]
         return max(totals) if totals else None
 
@@ -376,6 +462,7 @@ class Launcher:
                  "--log-level", self.opts.log_level],
                 stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
         child.starts += 1
+        child.pids.add(child.proc.pid)
         log.info("started %s (pid %d)", name, child.proc.pid)
 
     def last_log_line(self, name: str) -> str:
@@ -447,6 +534,8 @@ class Launcher:
             bus.track(declare_segment_subscriber(bus.session, f"ttl/{o.run_id}/control/progress/*",
                                                  self._on_progress, history=1))
             bus.watch_alive(o.run_id, self._on_alive)
+            # the stages stop when this token goes (streamer.stage.Stage.orphaned)
+            bus.declare_alive(o.run_id, LAUNCHER)
             bus.subscriber(f"ttl/{o.run_id}/errors/*", self._on_error)
             for stage in self.expected:
                 if stage not in PROGRESS_STAGES and stage in OUTPUT_TOPIC:
@@ -478,6 +567,7 @@ class Launcher:
                     abort = "terminated"
                     break
                 self._drain_events()
+                self._recheck_held()
                 abort = self.supervise()
                 if abort:
                     break
@@ -512,7 +602,11 @@ class Launcher:
                 self.say(f"stage {name} exited with status {bad[0]} (log {child.log})")
                 status = 1
         for s in self.expected:
-            failed = sorted(self.progress.get(s, {}).get("failed", ()))
+            p = self.progress.get(s, {})
+            gaps = sorted(p.get("gaps", ()))
+            failed = sorted(set(p.get("failed", ())) - set(gaps))
+            if gaps:
+                self.say(f"stage {s}: gap(s) in the data at segment(s) {to_ranges(gaps)} (no data; reported)")
             if failed:
                 self.say(f"stage {s} gave up segment(s) {failed}")
                 status = 1
@@ -525,7 +619,8 @@ class Launcher:
             return {"interrupted": 130, "terminated": 143}.get(abort, 1)
         if status == 0:
             files = sorted(p.name for p in self.run_dir.glob("*.mcap")) + sorted(p.name for p in self.run_dir.glob("*.rrd"))
-            self.say(f"done: {total} segments, {len(self.errors)} error report(s); files in {self.run_dir}: {', '.join(files)}")
+            self.say(f"done: {total} segments, {len(self.errors)} error report(s), "
+                     f"{len(self.refused)} progress message(s) refused; files in {self.run_dir}: {', '.join(files)}")
         return status
 
 
