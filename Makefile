@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 DEMO   := demo-output
 
-.PHONY: demo demo-batch test test-science bench clean
+.PHONY: demo demo-batch test test-science test-ops bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -52,6 +52,11 @@ test: $(STAMP)
 ## test-science: slow full-day science checks
 test-science: $(STAMP)
 	$(BIN)/python -m pytest -q -m science
+
+## test-ops: long operations runs (hostile-message fuzz, NaN gap, kills of each stage and of
+## the launcher, restarts): real `ttl run` processes on 127.0.0.1, about 20 minutes on 2 cores
+test-ops: $(STAMP)
+	$(BIN)/python -m pytest -q -m ops
 
 ## bench: benchmarks, each prints JSON
 bench: $(STAMP)

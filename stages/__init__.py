@@ -299,13 +299,21 @@ class PipelineStage(Stage):
     def _on_progress(self, sample) -> None:
         key = str(sample.key_expr)
         stage = key.rsplit("/", 1)[-1]
-        if "*" in self.follow or stage in self.follow:
+        if "*" in self.follow or stage in self.follow or stage == self.stage_name:
             plan = self.validator.plan
             self.board.feed(sample, self.run_id, plan.segments_total if plan is not None else None)
 
     def pending(self) -> int:
         """Segments received but not yet handled (override in buffering stages)."""
         return 0
+
+    def handled_before(self, index: int) -> bool:
+        """True when an earlier process of this stage already handled ``index`` (its output is
+        out): a restarted stage processes it again to rebuild its state, publishes nothing."""
+        if index in self.done or index in self.failed:
+            return False
+        own = self.board.get(self.stage_name)
+        return own is not None and index in own.handled
 
     # ------------------------------------------------------------------ bookkeeping
     def note_meta(self, meta: dict) -> None:
@@ -448,8 +456,12 @@ class OrderedStage(PipelineStage):
                 continue
             header, item = entry
             try:
+                again = self.handled_before(index)
                 out = self.process(header, item)
-                if out is not None:
+                if again:
+                    self.event("replayed", index=index, message=f"segment {index} processed again to rebuild the "
+                                                                "state after a restart; its output was out already")
+                elif out is not None:
                     self.publish(out, source=header)
                     self.published(index)
             except Exception as exc:

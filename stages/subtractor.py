@@ -135,6 +135,10 @@ class Subtractor(PipelineStage):
                 continue
             header, td = self.tdi.pop(index)
             self._waiting_since.pop(index, None)
+            if self.handled_before(index):  # a restarted subtractor: that residual is out already
+                self.event("replayed", index=index, message=f"segment {index} handled by an earlier process")
+                self.mark_done(index)
+                continue
             try:
                 self.publish(self.subtract(header, td, j), source=header)
             except Exception as exc:

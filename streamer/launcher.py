@@ -185,7 +185,7 @@ class Launcher:
         self._last_print = 0.0
         self.endpoint = ""
         self.run_dir = Path(opts.recordings) / opts.run_id
-        self.plan: dict | None = None
+        self.run_plan: dict | None = None
         self.refused: list[dict] = []  # progress messages refused (forged or inconsistent)
         self._held: list[tuple[dict, float]] = []
         self._boards: dict = {}
@@ -253,7 +253,7 @@ class Launcher:
         cfg = {"run": self.opts.run_id, "stage": name,
                "zenoh": SessionSettings(mode="client", connect=(self.endpoint,)).to_dict(),
                "recordings": str(Path(self.opts.recordings).resolve()), "cache": self.cache,
-               "options": self.stage_options(name), "plan": self.plan, "launcher_pid": os.getpid(),
+               "options": self.stage_options(name), "plan": self.run_plan, "launcher_pid": os.getpid(),
                "progress_from": "launcher"}
         if name in HEADERS_ONLY:
             cfg["record_inputs"] = False
@@ -273,7 +273,7 @@ class Launcher:
             lines = [ln for ln in (res.stderr or res.stdout).strip().splitlines() if ln.strip()]
             msg = lines[-1] if lines else f"exit status {res.returncode}"
             raise LaunchError(msg.replace("ttl stage replayer: error: ", ""))
-        self.plan = json.loads(plan_path.read_text())
+        self.run_plan = json.loads(plan_path.read_text())
         self.say(f"replay: {res.stdout.strip()}")
 
     # ------------------------------------------------------------------ bus callbacks
@@ -318,7 +318,7 @@ class Launcher:
                     continue
                 p = self.progress.setdefault(msg["stage"], {"done": set(), "failed": set(), "gaps": set(),
                                                             "total": None})
-                limit = self.plan["segments_total"] if self.plan else None
+                limit = self.run_plan["segments_total"] if self.run_plan else None
                 for key in ("done", "failed", "gaps"):
                     p[key] |= from_ranges(msg.get(key), limit)
                 for name, value in msg.items():
@@ -356,11 +356,11 @@ class Launcher:
         child = self.children.get(stage)
         if child is not None and child.proc is not None and msg.get("pid") not in child.pids:
             return f"pid {msg.get('pid')!r} is not the {stage} process started by this launcher"
-        if self.plan and msg.get("segments_total") not in (None, self.plan["segments_total"]):
-            return f"segments_total {msg.get('segments_total')!r} differs from the plan's {self.plan['segments_total']}"
+        if self.run_plan and msg.get("segments_total") not in (None, self.run_plan["segments_total"]):
+            return f"segments_total {msg.get('segments_total')!r} differs from the plan's {self.run_plan['segments_total']}"
         upstream = UPSTREAM.get(stage)
         if upstream in self.expected:
-            limit = self.plan["segments_total"] if self.plan else None
+            limit = self.run_plan["segments_total"] if self.run_plan else None
             claimed = from_ranges(msg.get("done"), limit) | from_ranges(msg.get("failed"), limit)
             beyond = claimed - self.handled(upstream)
             if beyond:
@@ -406,8 +406,8 @@ class Launcher:
     # ------------------------------------------------------------------ state
     @property
     def total(self) -> int | None:
-        if self.plan:
-            return self.plan["segments_total"]
+        if self.run_plan:
+            return self.run_plan["segments_total"]
         totals = [p["total"] for p in self.progress.values() if p["total"]]
         return max(totals) if totals else None
 
