@@ -454,6 +454,8 @@ class Launcher:
     def start(self, name: str) -> None:
         child = self.children[name]
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+        if name == "monitor":  # small linear algebra: threaded BLAS only fights the other stages for the cores
+            env.setdefault("OPENBLAS_NUM_THREADS", "1")
         with open(child.log, "ab") as logf:
             logf.write(f"--- start {child.starts + 1} of {name} at {time.ctime()} ---\n".encode())
             logf.flush()

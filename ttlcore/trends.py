@@ -102,6 +102,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+from scipy.linalg import solve_triangular
 
 from .conventions import COEFFICIENT_NAMES, DAY
 
@@ -535,6 +536,14 @@ def trend_estimates(times, coefficients, sigma, *, t_start=None, window: float |
     for a in steps:
         if a.kind == STEP and math.isfinite(a.t):
             by_name.setdefault(a.coefficient, []).append(float(a.t))
+    # cov_p = D_p rho D_p with D_p = diag(S[:, p]): one Cholesky factor of rho serves every
+    # coefficient (L_p = D_p L_rho, whitening = triangular solves, O(n^2) each)
+    rho_j = rho.copy()
+    rho_j[np.diag_indices(n)] *= 1.0 + 1e-9
+    try:
+        L_rho = np.linalg.cholesky(rho_j)
+    except np.linalg.LinAlgError:
+        L_rho = None
     for p in range(P):
         cols = [np.ones(n), x]
         for t_step in sorted(by_name.get(names[p], ())):
@@ -543,15 +552,16 @@ def trend_estimates(times, coefficients, sigma, *, t_start=None, window: float |
                 cols.append(col)
                 modelled.setdefault(names[p], []).append(t_step)
         X = np.stack(cols, axis=1)
-        cov = rho * np.outer(S[:, p], S[:, p])
-        cov[np.diag_indices(n)] *= 1.0 + 1e-9
-        try:
-            L = np.linalg.cholesky(cov)
-        except np.linalg.LinAlgError:
+        if L_rho is not None and np.all(S[:, p] > 0):
+            Xw = solve_triangular(L_rho, X / S[:, p, None], lower=True)
+            yw = solve_triangular(L_rho, C[:, p] / S[:, p], lower=True)
+        else:
+            cov = rho * np.outer(S[:, p], S[:, p])
+            cov[np.diag_indices(n)] *= 1.0 + 1e-9
             w, V = np.linalg.eigh(cov)
             L = V * np.sqrt(np.clip(w, w.max() * 1e-12, None))
-        Xw = np.linalg.solve(L, X)
-        yw = np.linalg.solve(L, C[:, p])
+            Xw = np.linalg.solve(L, X)
+            yw = np.linalg.solve(L, C[:, p])
         beta, *_ = np.linalg.lstsq(Xw, yw, rcond=None)
         A = Xw.T @ Xw
         if np.linalg.cond(A) > 1e12:  # a step that cannot be told from the trend: drop steps
