@@ -53,8 +53,8 @@ test: $(STAMP)
 test-science: $(STAMP)
 	$(BIN)/python -m pytest -q -m science
 
-## test-ops: long operations runs (hostile-message fuzz, NaN gap, kills of each stage and of
-## the launcher, restarts): real `ttl run` processes on 127.0.0.1, about 20 minutes on 2 cores
+## test-ops: long operations tests (live runs under attack: hostile-message fuzz, NaN gap, kills of each
+## stage and of the launcher; three hosts in network namespaces): about 20-30 minutes on 2 cores
 test-ops: $(STAMP)
 	$(BIN)/python -m pytest -q -m ops
 

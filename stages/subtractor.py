@@ -14,7 +14,7 @@ Output ``ttl/<run>/residual/<i>``: arrays ``residual`` (3, n) and ``ttl_model`` 
 channels X2, Y2, Z2 (NaN where the TDI input is NaN), header t0 and fs those of the TDI
 segment; meta ``fit_index`` (the fit applied), ``coefficients_t_start``,
 ``coefficients_t_stop`` (its window), ``segments_total``.  Residual = data - model, with
-:func:`ttlcore.subtraction.subtract`.
+:func:`ttlcore.estimate.subtraction.subtract`.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from streamer.messages import tdi_of
 from streamer.stage import Output
 
 from ttlcore.conventions import COEFFICIENT_NAMES
-from ttlcore.subtraction import subtract
+from ttlcore.estimate.subtraction import subtract
 
 from . import OUTPUT_TOPIC, XYZ, PipelineStage, jsonable, stage_main
 from .fitter import P, tdi_expect
@@ -77,8 +77,6 @@ class Subtractor(PipelineStage):
             self.fits[header.index] = {"coefficients": dict(zip(names, map(float, arrays["coefficients"]))),
                                        "t_start": header.meta.get("t_start"), "t_stop": header.meta.get("t_stop")}
         else:
-            if not self.config.record_inputs:
-                self.recorder.write_json("tdi/input", header.to_dict(), schema="ttl.SegmentHeader")
             if header.index in self.done:
                 return ()
             self.tdi[header.index] = (header, tdi_of(header, arrays))

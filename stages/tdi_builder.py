@@ -8,7 +8,7 @@ passed on from the telemetry, ``segments_total``, ``segment_duration``, ``source
 (its first samples are then NaN: the nested delays reach before the data, as on the very
 first segment).
 
-The delays and interpolation reach back about 70 s: :class:`ttlcore.tdi_data.TDIStream`
+The delays and interpolation reach back about 70 s: :class:`ttlcore.tdi.data.TDIStream`
 keeps that tail of telemetry between segments, so the output for a day fed in segments
 equals the batch TDI of the whole day, and segments stay independent messages.  Segments
 are therefore processed in index order (:class:`stages.OrderedStage`); a segment whose t0 does
@@ -26,11 +26,14 @@ from streamer.messages import TELEMETRY_ARRAYS, telemetry_of
 from streamer.stage import Output
 
 from ttlcore.conventions import COEFFICIENT_NAMES
-from ttlcore.telemetry import Telemetry
-from ttlcore.tdi_data import TDIStream
+from ttlcore.io.telemetry import Telemetry
+from ttlcore.tdi.data import TDIStream
 
 from . import OUTPUT_TOPIC, XYZ, OrderedStage, stage_main
 
+#: Arrays kept in the recording: the regressors (72 channels, two thirds of a day's MCAP)
+#: are rebuilt from the replayer's recorded telemetry by :func:`ttlcore` TDI when needed.
+RECORDED = ("data",)
 #: Units of the output arrays.
 UNITS = {"data": "fractional frequency", "regressors": "fractional frequency per m/rad"}
 
@@ -85,7 +88,7 @@ class TDIBuilder(OrderedStage):
                              f"expected {XYZ} and the 24 coefficients")
         return Output(OUTPUT_TOPIC[self.name], {"data": td.data, "regressors": td.regressors},
                       fields={"channels": list(td.channels), "channel_axis": 0, "units": UNITS, "meta": meta},
-                      allow_nonfinite=True)
+                      allow_nonfinite=True, record_arrays=RECORDED)
 
 
 def add_options(p) -> None:
