@@ -8,6 +8,9 @@
     ``ttl stage fitter --run r1 --connect tcp/10.0.0.5:7447``; ``ttl stage NAME --help``.
 ``ttl router``
     A Zenoh router (for stages on several hosts).
+``ttl reprocess``
+    Analysis and diagnosis of many days (files or a recorded run) on Dask
+    (:mod:`streamer.reprocess`).
 ``ttl inspect``, ``ttl view``
     Offline inspection of recordings, from :mod:`streamer.inspect` when it is installed.
 
@@ -48,6 +51,8 @@ def register(sub) -> None:
     _add_credentials(sub)
     from . import refit
     refit.register(sub)
+    from . import reprocess
+    reprocess.add_parser(sub)
     try:
         spec = importlib.util.find_spec("streamer.inspect")
     except (ImportError, ValueError):

@@ -76,9 +76,9 @@ PROGRESS_STAGES = frozenset({"replayer", "tdi_builder", "fitter", "subtractor", 
 #: Output topic of each stage.
 OUTPUT_TOPIC = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit", "subtractor": "residual",
                 "monitor": "monitor"}
-#: Stages whose inputs would duplicate big TDI payloads already in the tdi_builder's file:
-#: they do not record input payloads (the fitter and subtractor record the input headers).
-HEADERS_ONLY = frozenset({"fitter", "subtractor", "monitor"})
+#: Stages that record the headers of their inputs only (a reference to the payload in the
+#: producer's file): all of them, so that each payload is stored once per run.
+HEADERS_ONLY = frozenset(STAGES)
 DEFAULT_WINDOW = 4
 
 
