@@ -132,7 +132,7 @@ def compute_tdi_arrays(eta, dws_phi, dws_eta, ltt, fs: float, t0: float, *, hist
 
     One call of the block engine :func:`ttlcore.tdi.engine.tdi_columns`: column 0 is
     ``eta`` (one part per link), column ``1 + k`` the witness of regressor ``k`` on its link
-    (Tx witnesses with their pre-delay folded into the nested delays)."""
+    (Tx witnesses pre-delayed at every input sample first, :func:`ttlcore.tdi.engine.predelayed`)."""
     witnesses, index = ttl_witnesses(dws_phi, dws_eta, names)
     eta = np.asarray(eta)
     parts = [Part(0, link, (), eta[k]) for k, link in enumerate(LINKS)]

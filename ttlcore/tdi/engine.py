@@ -5,7 +5,9 @@ the streaming :class:`~ttlcore.tdi.data.TDIStream`, the diagnosis' effect column
 through :func:`tdi_columns`.  A *column* is a sum of *parts*, each a series placed on a link
 after extra delays (a TTL Tx witness ``D_ij w`` sits on link ``ij`` with extra chain
 ``("ij",)``; ``eta`` is the column with one part per link and no extra delay).  Because TDI
-is linear, the output of a column is ``sum_parts sum_terms f D_{chain + extra} x_part``.
+is linear, the output of a column is ``sum_parts sum_terms f D_chain (D_extra x_part)``, the
+extra delays applied first at every input sample (:func:`predelayed`), as the simulator
+forms the Tx TTL term.
 
 How it is evaluated (the operator is the one of docs/physics.md and of pytdi's
 ``unit="phase"``: ``D_{a_1..a_m} x(t) = x(t - Delta_{a_1..a_m}(t))`` with nested delays
@@ -132,6 +134,37 @@ def _nested_delays(chains, ltt: np.ndarray, pos: np.ndarray, fs: float, delay_or
     return out
 
 
+def predelayed(parts, ltt: np.ndarray, fs: float, **options) -> list:
+    """The parts with their extra delays applied at every input sample, extra chains emptied.
+
+    A Tx witness ``D_ij w`` is formed as the simulator (and lisainstrument) form the Tx TTL
+    term: ``w`` delayed by ``tau_ij`` at every sample first, then placed on link ``ij`` -- two
+    Lagrange interpolations, which the TDI chain then reads.  (Folding the pre-delay into the
+    nested delay would be one interpolation: equal in the fit band, but above 1 Hz, where
+    order-31 interpolation of 4 Hz data errs by 1e-5..1, it would not reproduce the data.)
+    The first ``tau * fs + order / 2`` samples are NaN.  ``options`` go to :func:`tdi_columns`.
+    """
+    from .combinations import Combination
+
+    out = [p for p in parts if not p.extra]
+    pending = [(p, tuple(p.extra)) for p in parts if p.extra]
+    while pending:
+        by_delay: dict = {}
+        for i, (p, extra) in enumerate(pending):
+            by_delay.setdefault(extra[-1], []).append(i)  # innermost delay first
+        done = [None] * len(pending)
+        for d, idx in by_delay.items():
+            shift = Combination(f"D{d}", ((1.0, d, (d,)),))
+            moved = tdi_columns([Part(j, d, (), pending[i][0].series) for j, i in enumerate(idx)], len(idx), ltt, fs,
+                                combinations=(shift,), **options)[0]
+            for j, i in enumerate(idx):
+                p, extra = pending[i]
+                done[i] = (Part(p.column, p.link, extra[:-1], moved[j]), extra[:-1])
+        out += [p for p, extra in done if not extra]
+        pending = [(p, extra) for p, extra in done if extra]
+    return out
+
+
 def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, history: int = 0, combinations=None,
                 order: int = DEFAULT_ORDER, delay_order: int = DEFAULT_DELAY_ORDER,
                 degree: int = DEFAULT_DEGREE, nfft: int = DEFAULT_NFFT, out: np.ndarray | None = None) -> np.ndarray:
@@ -182,13 +215,13 @@ def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, history: in
     parts = list(parts)
     if n <= 0 or not parts:
         return out
-    groups: dict = {}
     for p in parts:
-        series = np.asarray(p.series, dtype=float)
-        if series.shape[-1] != total:
-            raise ValueError(f"part of column {p.column} on link {p.link} has {series.shape[-1]} samples, "
+        if np.shape(p.series)[-1] != total:
+            raise ValueError(f"part of column {p.column} on link {p.link} has {np.shape(p.series)[-1]} samples, "
                              f"the delays {total}")
-        groups.setdefault((p.link, tuple(p.extra)), []).append((p.column, series))
+    groups: dict = {}
+    for p in predelayed(parts, ltt, fs, order=order, delay_order=delay_order, degree=degree, nfft=nfft):
+        groups.setdefault((p.link, ()), []).append((p.column, np.asarray(p.series, dtype=float)))
     plan = _Plan(combinations, groups)
 
     ltt_max = float(np.nanmax(ltt))
