@@ -114,6 +114,22 @@ class _Plan:
         self.chains = sorted(chains, key=lambda ch: (len(ch), ch))
 
 
+def _edge_lines(ltt: np.ndarray, fs: float):
+    """``f(rows, positions)``: the least-squares straight lines of each row of ``ltt`` over
+    its first and last minute, evaluated at positions before and after the data."""
+    m = ltt.shape[-1]
+    k = max(2, min(m, int(60 * fs)))
+    x = np.arange(k, dtype=float)
+    head = np.polynomial.polynomial.polyfit(x, ltt[:, :k].T, 1)             # (2, rows)
+    tail = np.polynomial.polynomial.polyfit(x + (m - k), ltt[:, m - k:].T, 1)
+
+    def line(rows, pos):
+        c = np.where(pos < m / 2, head[:, rows], tail[:, rows])
+        return c[0] + c[1] * pos
+
+    return line
+
+
 def _nested_delays(chains, ltt: np.ndarray, pos: np.ndarray, fs: float, delay_order: int) -> dict:
     """``Delta_chain`` [s] at input positions ``pos`` for every chain and prefix, one chain
     length at a time (all prefixes of a length in one interpolation)."""
@@ -127,8 +143,17 @@ def _nested_delays(chains, ltt: np.ndarray, pos: np.ndarray, fs: float, delay_or
         k = np.floor(read)
         w = lagrange_weights(read - k, delay_order)                         # (order + 1, k * nodes)
         idx = k.astype(np.int64)[None, :] + np.arange(-(delay_order - 1) // 2, (delay_order + 1) // 2 + 1)[:, None]
-        idx = np.clip(idx, 0, ltt.shape[-1] - 1)  # clamped stencils only serve outputs that are NaN anyway
-        tau = np.einsum("jp,jp->p", w, ltt[np.repeat(rows, pos.size)[None, :], idx]).reshape(prev.shape)
+        m = ltt.shape[-1]
+        outside = (idx[0] < 0) | (idx[-1] > m - 1)
+        idx = np.clip(idx, 0, m - 1)
+        every = np.repeat(rows, pos.size)
+        tau = np.einsum("jp,jp->p", w, ltt[every[None, :], idx])
+        if outside.any():
+            # reads before (after) the data, at the nodes of a first (last) block: outputs that
+            # need them are NaN, but the nodes shape the block's Chebyshev weights, so the
+            # light travel time is continued by its straight line over the first (last) minute
+            tau[outside] = _edge_lines(ltt, fs)(every[outside], read[outside])
+        tau = tau.reshape(prev.shape)
         for i, p in enumerate(level):
             out[p] = prev[i] + tau[i]
     return out
