@@ -119,8 +119,6 @@ class Fitter(OrderedStage):
         return FitSettings(**kwargs)
 
     def handle(self, header, arrays):
-        if not self.config.record_inputs:
-            self.recorder.write_json("tdi/input", header.to_dict(), schema="ttl.SegmentHeader")
         td = tdi_of(header, arrays)  # before buffering: a segment that raises is not marked processed
         self.enqueue(header, td)
         return ()
@@ -264,6 +262,9 @@ class Fitter(OrderedStage):
                                                                  "candidates", "extra_parameters") if k in meta}}
         self.log.info("segment %d: fit over [%.0f, %.0f] s (%d FFT segments), chi2/dof %.3f", header.index,
                       res.t_start, res.t_stop, res.n_segments, res.chi2_dof)
+        if not res.converged:
+            self.warn("not-converged", f"fit {header.index} did not converge in {res.iterations} iterations",
+                      index=header.index, iterations=int(res.iterations))
         if "adequacy" in meta:
             self.log.info("segment %d: model %s, chi2/dof against the instrument noise model %.3f%s", header.index,
                           ",".join(self.effects), meta["adequacy"]["chi2_dof"],

@@ -77,8 +77,6 @@ class Subtractor(PipelineStage):
             self.fits[header.index] = {"coefficients": dict(zip(names, map(float, arrays["coefficients"]))),
                                        "t_start": header.meta.get("t_start"), "t_stop": header.meta.get("t_stop")}
         else:
-            if not self.config.record_inputs:
-                self.recorder.write_json("tdi/input", header.to_dict(), schema="ttl.SegmentHeader")
             if header.index in self.done:
                 return ()
             self.tdi[header.index] = (header, tdi_of(header, arrays))

@@ -31,6 +31,9 @@ from ttlcore.tdi.data import TDIStream
 
 from . import OUTPUT_TOPIC, XYZ, OrderedStage, stage_main
 
+#: Arrays kept in the recording: the regressors (72 channels, two thirds of a day's MCAP)
+#: are rebuilt from the replayer's recorded telemetry by :func:`ttlcore` TDI when needed.
+RECORDED = ("data",)
 #: Units of the output arrays.
 UNITS = {"data": "fractional frequency", "regressors": "fractional frequency per m/rad"}
 
@@ -81,7 +84,7 @@ class TDIBuilder(OrderedStage):
                              f"expected {XYZ} and the 24 coefficients")
         return Output(OUTPUT_TOPIC[self.name], {"data": td.data, "regressors": td.regressors},
                       fields={"channels": list(td.channels), "channel_axis": 0, "units": UNITS, "meta": meta},
-                      allow_nonfinite=True)
+                      allow_nonfinite=True, record_arrays=RECORDED)
 
 
 def add_options(p) -> None:

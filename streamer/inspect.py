@@ -10,8 +10,10 @@
     it to disk, a stage's restarts, a recording that ends without a ``stop`` event.
     Works on a run whose stages were killed.  ``--json``: the same as one JSON object
     (:func:`inspect_run`).
-``ttl view recordings/NAME [--print]``
-    Opens ``monitor.rrd`` in the ``rerun`` viewer binary with ``--bind 127.0.0.1`` (its
+``ttl view recordings/NAME [--web [--port P]] [--print]``
+    ``--web`` serves ``monitor.rrd`` in Rerun's web viewer on 127.0.0.1 and prints the URL
+    (a machine without a display, :mod:`streamer.webview`); otherwise opens it in the ``rerun`` viewer binary with
+    ``--bind 127.0.0.1`` (its
     gRPC server listens on loopback only; no web server is started); ``--print`` only
     prints the command.
 
@@ -25,6 +27,7 @@ import json
 import math
 import re
 import shlex
+import signal
 import subprocess
 from collections import Counter, defaultdict
 from pathlib import Path
@@ -244,7 +247,7 @@ def inspect_run(run_dir, truth=None) -> dict:
     per topic with counts, index ranges, missing and duplicate indices, error count),
     ``stages_missing`` (pipeline stages without a recording), ``segments_total``,
     ``fits`` (count, index range, the table of fits in m/rad and ``trends`` per
-    coefficient in mm/rad and mm/rad/day), ``alerts`` (the monitor's), ``errors`` (all
+    coefficient in mm/rad and mm/rad/day), ``alerts`` (the monitor's), ``warnings`` (all stages: a fit that did not converge...), ``errors`` (all
     stages'), ``interruptions``.
 
     Raises
@@ -277,6 +280,8 @@ def inspect_run(run_dir, truth=None) -> dict:
                                    "message": e.get("message"), "time": e.get("time")})
     alerts = [{**a, "file": rec.path.name} for stage, recs in recs_of.items() for rec in recs
               for a in rec.json("alerts") if isinstance(a, dict)]
+    warnings = [{**w, "file": rec.path.name} for stage, recs in recs_of.items() for rec in recs
+                for w in rec.json("warnings") if isinstance(w, dict)]
 
     interruptions = []
     for stage, s in stages.items():
@@ -316,7 +321,7 @@ def inspect_run(run_dir, truth=None) -> dict:
         fit_report["truth_file"] = str(truth)
     return {"run": runs[0] if len(runs) == 1 else (runs or [run_dir.name]), "directory": str(run_dir),
             "stages": stages, "stages_missing": [s for s in KNOWN_STAGES if s not in stages],
-            "segments_total": total, "fits": fit_report, "alerts": alerts, "errors": errors,
+            "segments_total": total, "fits": fit_report, "alerts": alerts, "warnings": warnings, "errors": errors,
             "interruptions": interruptions}
 
 
@@ -400,6 +405,11 @@ def format_report(r: dict) -> str:
         lines.append(f"  [{a.get('kind')}] {a.get('message')}")
 
     lines.append("")
+    lines.append(f"Warnings: {len(r['warnings'])}")
+    for w in r["warnings"][:MAX_LISTED]:
+        lines.append(f"  {w.get('stage')} [{w.get('kind')}] {w.get('message')}")
+
+    lines.append("")
     lines.append(f"Errors: {len(r['errors'])}")
     by = Counter((e["stage"], e["kind"]) for e in r["errors"])
     if by:
@@ -462,6 +472,15 @@ def view_command(target, binary: str | None = None) -> list[str]:
     InspectError
         If there is no recording to open; FileNotFoundError if there is no viewer binary.
     """
+    rrd = recording_to_view(target)
+    binary = binary or rerun_binary()
+    # --bind: the viewer's own gRPC server listens on loopback only; --new: a new viewer on a free port
+    return [binary, "--bind", "127.0.0.1", "--new", str(rrd)]
+
+
+def recording_to_view(target) -> Path:
+    """The ``.rrd`` file of ``target``: a run directory's ``monitor.rrd`` (else its newest
+    ``monitor.<n>.rrd``) or the ``.rrd`` file itself (:class:`InspectError` otherwise)."""
     target = Path(target)
     if target.is_dir():
         rrd = target / "monitor.rrd"
@@ -476,9 +495,7 @@ def view_command(target, binary: str | None = None) -> list[str]:
         rrd = target
     else:
         raise InspectError(f"{target}: no such run directory or .rrd file")
-    binary = binary or rerun_binary()
-    # --bind: the viewer's own gRPC server listens on loopback only; --new: a new viewer on a free port
-    return [binary, "--bind", "127.0.0.1", "--new", str(rrd)]
+    return rrd
 
 
 # ---------------------------------------------------------------------------- command line
@@ -505,6 +522,18 @@ def _cmd_inspect(args) -> int:
 
 
 def _cmd_view(args) -> int:
+    if args.web:
+        from .webview import WebView
+
+        view = WebView(args.run_dir, args.port)
+        print(f"Rerun web viewer of {view.rrd}: {view.url}  (Ctrl-C to stop)", flush=True)
+        signal.signal(signal.SIGTERM, signal.default_int_handler)  # stop the servers on SIGTERM too
+        try:
+            return view.wait()
+        except KeyboardInterrupt:
+            return 0
+        finally:
+            view.close()
     cmd = view_command(args.run_dir)
     if args.print:
         print(shlex.join(cmd))
@@ -528,5 +557,8 @@ def register(sub) -> None:
                        description="Open recordings/<run>/monitor.rrd (or an .rrd file) in the rerun viewer "
                                    "binary, its server bound to 127.0.0.1 only.")
     p.add_argument("run_dir", metavar="recordings/NAME", help="run directory or .rrd file")
-    p.add_argument("--print", action="store_true", help="only print the viewer command")
+    p.add_argument("--web", action="store_true",
+                   help="serve the web viewer on 127.0.0.1 instead (no display needed) and print its URL")
+    p.add_argument("--port", type=int, help="with --web: the web viewer's HTTP port (default: a free one)")
+    p.add_argument("--print", action="store_true", help="only print the viewer command (not with --web)")
     p.set_defaults(func=_cmd_view)

@@ -80,9 +80,10 @@ def load_run(run_dir, segments: tuple[int | None, int | None] = (None, None), so
                     found[min(found)][0].meta.get("dws_asd"))
         if source == "telemetry":
             raise RefitError(f"{run_dir}: no recorded telemetry (replayer.mcap, or tdi_builder.mcap inputs)")
-    found = recorded_segments(run_dir, "tdi", stages=("tdi_builder",))
+    found = {i: (h, a) for i, (h, a) in recorded_segments(run_dir, "tdi", stages=("tdi_builder",)).items()
+             if "regressors" in a}  # a tdi_builder under `ttl run` records X2, Y2, Z2 only
     if not found:
-        raise RefitError(f"{run_dir}: no recorded telemetry or TDI segments to refit")
+        raise RefitError(f"{run_dir}: no recorded telemetry, nor TDI segments with their regressors, to refit")
     parts = [tdi_of(h, a) for h, a in _select(found, first, last)]
     return (parts, f"TDI of {len(parts)} recorded segments ({sum(p.size / p.fs for p in parts) / 3600:g} h)",
             found[min(found)][0].meta.get("dws_asd"))
@@ -170,7 +171,7 @@ def register(sub) -> None:
 def _cmd_refit(args) -> int:
     from .inspect import InspectError
 
-    split = lambda s: [x for x in s.split(",") if x.strip()]  # noqa: E731
+    from ttlcore.cli.diagnose import split_effects as split  # ',' between effects, ';' inside one (as ttl diagnose)
     try:
         report = refit_run(args.run_dir, split(args.effects), baseline=split(args.baseline),
                            effect_modules=args.effect_module, segments=_parse_range(args.segments),

@@ -45,7 +45,7 @@ import numpy as np
 from .codec import CodecError, Expect, Header, decode, encode
 from .keys import (KeyExprError, control_key, control_pattern, errors_key, parse_control_key,
                    parse_segment_key, topic_pattern)
-from .recorder import Recorder
+from .recorder import Recorder, mission_ns
 from .session import DEFAULT_CACHE, Bus, SessionSettings
 
 log = logging.getLogger(__name__)
@@ -72,8 +72,12 @@ class StageConfig:
         Segments kept per output topic for late joiners.
     history : int
         Segments asked from each input publisher's cache at start and on publisher appearance.
-    record_inputs, record_outputs : bool
-        Record input / output segments (headers and payloads) in the MCAP file.
+    record_inputs : bool
+        Record input segments whole (header and payload) in the MCAP file; when False
+        (``ttl run``: the producer's file holds the payload) only their headers, on
+        ``<topic>/input``, whose checksum refers to the payload in the producer's file.
+    record_outputs : bool
+        Record output segments (header and payload, see :attr:`Output.record_arrays`).
     poll_interval : float
         Longest wait for a message before checking for shutdown and calling :meth:`Stage.tick` [s].
     gap_grace : float
@@ -138,6 +142,10 @@ class Output:
         Name in :data:`streamer.recorder.SCHEMAS` or a JSON schema.
     allow_nonfinite : bool
         Allow NaN/inf in the arrays (consumers must then expect them too).
+    record_arrays : tuple of str, optional
+        Arrays kept in the recording (default all): derived arrays a reader can rebuild
+        from other recorded payloads are left out; the recorded header then carries
+        ``meta.recorded`` with the arrays kept and the published checksum and size.
     """
 
     topic: str
@@ -147,6 +155,7 @@ class Output:
     summary: dict | None = None
     summary_schema: Any = "ttl.Object"
     allow_nonfinite: bool = False
+    record_arrays: tuple | None = None
 
 
 class StageLogger(logging.LoggerAdapter):
@@ -407,6 +416,9 @@ class Stage:
         self._check_gap(seg.topic, seg.index)
         if self.config.record_inputs:
             self.recorder.write_segment(seg.topic, header, payload)
+        else:  # a reference: the payload is in the producer's recording, named by its checksum
+            self.recorder.write_json(f"{seg.topic}/input", header.to_dict(), schema="ttl.SegmentHeader",
+                                     log_time=mission_ns(header.t0))
         try:
             outputs = list(self.handle(header, arrays) or ())
             for out in outputs:
@@ -469,11 +481,31 @@ class Stage:
             publisher = self.bus.segment_publisher(self.run_id, out.topic, cache=self.config.cache)
             self._publishers[out.topic] = publisher
         key = publisher.put(index, payload, attachment)
+        header = json.loads(attachment)
         if self.config.record_outputs:
-            self.recorder.write_segment(out.topic, json.loads(attachment), payload)
+            self._record_output(out, fields, header, payload)
         if out.summary is not None:
-            self.recorder.write_json(f"{out.topic}/summary", out.summary, schema=out.summary_schema)
+            self.recorder.write_json(f"{out.topic}/summary", out.summary, schema=out.summary_schema,
+                                     log_time=mission_ns(header["t0"]))
         return key
+
+    def _record_output(self, out: Output, fields: dict, header: dict, payload) -> None:
+        """Record an output, whole or with the arrays of :attr:`Output.record_arrays` only."""
+        arrays = out.arrays if isinstance(out.arrays, Mapping) else None
+        if out.record_arrays is None or arrays is None or set(out.record_arrays) >= set(arrays):
+            self.recorder.write_segment(out.topic, header, payload)
+            return
+        kept = {name: arrays[name] for name in out.record_arrays}
+        meta = dict(fields.get("meta") or {})
+        meta["recorded"] = {"arrays": list(kept), "published_checksum": header["checksum"],
+                            "published_bytes": header["payload_bytes"],
+                            "published_arrays": [a["name"] for a in header["arrays"]]}
+        units = fields.get("units")
+        sub = {**fields, "meta": meta}
+        if isinstance(units, Mapping):
+            sub["units"] = {k: v for k, v in units.items() if k in kept}
+        part, attachment = encode(kept, sub, allow_nonfinite=out.allow_nonfinite)
+        self.recorder.write_segment(out.topic, json.loads(attachment), part)
 
     def report_error(self, kind: str, message: str, *, index: int | None = None, key: str | None = None,
                      field: str | None = None, details: dict | None = None) -> dict:
@@ -490,6 +522,14 @@ class Stage:
         if self.recorder is not None:
             self.recorder.write_json("errors", error)
         return error
+
+    def warn(self, kind: str, message: str, *, index: int | None = None, **details) -> None:
+        """Log and record a warning (topic ``warnings``): not an error, but for the operator's eyes."""
+        self.log.warning("%s: %s", kind, message, extra={"index": index})
+        if self.recorder is not None:
+            self.recorder.write_json("warnings", {"run": self.run_id, "stage": self.stage_name, "kind": kind,
+                                                  "index": index, "message": message, "time": time.time(),
+                                                  "details": details})
 
     def event(self, kind: str, *, index: int | None = None, message: str = "", **details) -> None:
         """Record a lifecycle or bookkeeping event in the recording."""
@@ -518,6 +558,8 @@ def stage_arguments(parser: argparse.ArgumentParser | None = None) -> argparse.A
                    help="Zenoh mode (default: client when --connect is given without --listen, as behind "
                         "the router of `ttl run`; else peer)")
     p.add_argument("--zenoh-config", type=Path, help="Zenoh configuration file (JSON5)")
+    p.add_argument("--credentials", type=Path, metavar="DIR",
+                   help="credentials directory: mutual TLS with DIR/<stage>.pem (endpoints tls/...)")
     p.add_argument("--recordings", type=Path, help="recordings directory")
     p.add_argument("--log-level", default="INFO")
     p.add_argument("--log-json", action="store_true", help="log JSON lines")
@@ -540,10 +582,14 @@ def config_from_args(args: argparse.Namespace) -> StageConfig:
         z["listen"] = args.listen
     if args.zenoh_config:
         z["config_file"] = str(args.zenoh_config)
+    if getattr(args, "credentials", None):
+        z["credentials"] = str(args.credentials)
     if getattr(args, "mode", None):
         z["mode"] = args.mode
     elif args.connect and not args.listen and not z.get("mode") and not z.get("config_file"):
         z["mode"] = "client"  # a router routes between its clients, not between peers
+    if z.get("credentials") and not z.get("identity"):
+        z["identity"] = d.get("stage") or getattr(args, "identity", None)  # this stage's certificate
     d["zenoh"] = z
     return StageConfig.from_dict(d)
 
@@ -551,6 +597,7 @@ def config_from_args(args: argparse.Namespace) -> StageConfig:
 def main(stage_class: type[Stage], argv: Sequence[str] | None = None) -> int:
     """Entry point of a stage process: parse options, set up logging, run the stage."""
     args = stage_arguments(argparse.ArgumentParser(prog=f"ttl stage {stage_class.name}")).parse_args(argv)
+    args.identity = stage_class.name
     configure_logging(args.log_level, args.log_json)
     try:
         config = config_from_args(args)

@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 
 from ..conventions import parse_duration
+from ..diagnose.adequacy import FIXED_MODEL_TOLERANCE
 from ..errors import TTLError
 
 
@@ -35,11 +36,15 @@ def add_parser(sub) -> None:
                    "(e.g. linear-ttl,drift,step:t_step=50400;mosas=12+13); default linear-ttl")
     p.add_argument("--effect-module", action="append", default=[], metavar="PATH",
                    help="Python file (or importable module) defining user effects; repeatable")
-    p.add_argument("--candidates", default=None, metavar="EFFECT,...", help="effects to try (default: all available)")
+    p.add_argument("--candidates", default=None, metavar="EFFECT,...", help="named effects and plugins to try (default: all available); the witness effects and "
+                   "frequency-dependent couplings of the top witnesses are tried as well")
     p.add_argument("--truth", default=None, help="truth file (or the lisainstrument file itself): adds coefficient errors only")
     p.add_argument("--band", nargs=2, metavar=("FMIN", "FMAX"), default=None, help="band in Hz (default 0.003 0.8)")
     p.add_argument("--segment", default=None, help="FFT segment length (default 6 h, or a quarter of shorter data)")
-    p.add_argument("--tolerance", type=float, default=None, help="relative tolerance of the noise model (default 0.05)")
+    p.add_argument("--tolerance", type=float, default=None,
+                   help="relative tolerance of the noise model (default 0.02; 0.05 with --noise-model fixed)")
+    p.add_argument("--noise-model", choices=("fitted", "fixed"), default="fitted",
+                   help="secondary-noise levels fitted with the model (default) or fixed at the paper's levels")
     p.add_argument("--no-witnesses", action="store_true", help="skip the witness search")
     p.add_argument("--json", required=True, metavar="OUT", help="JSON report to write")
     p.add_argument("--out", default=None, metavar="DIR", help="directory for the figures (created)")
@@ -59,7 +64,7 @@ def split_effects(text: str) -> list[str]:
 def run(args) -> int:
     from ..estimate.analyze import load_truth
     from ..io.atomic import write_json
-    from ..diagnose.diagnoser import DiagnoseSettings, diagnose, strip_internals, text_report
+    from ..diagnose.diagnoser import DiagnoseSettings, diagnose, fine_band_table, strip_internals, text_report
     from ..diagnose.effects import available_effects, make_effects
     from ..io.reader import file_kind, read_telemetry
 
@@ -97,6 +102,9 @@ def run(args) -> int:
             s.segment_duration = parse_duration(args.segment)
         except ValueError as exc:
             raise TTLError(f"--segment: {exc}") from None
+    s.noise_model = args.noise_model
+    if s.noise_model == "fixed":
+        s.tolerance = FIXED_MODEL_TOLERANCE
     if args.tolerance is not None:
         if not (0 <= args.tolerance < 1):
             raise TTLError(f"--tolerance: expected a fraction in [0, 1), got {args.tolerance}")
@@ -122,7 +130,8 @@ def run(args) -> int:
         fits = {"model": model}
         if "before" in report:
             fits = {"linear-ttl": dg.fit(make_effects(["linear-ttl"]), time_table=False), "model": model}
-        paths = {"residual_vs_noise": str(plot_residual_vs_noise(dg, fits, out / "residual_vs_noise.png", s.tolerance))}
+        fine = {label: fine_band_table(dg, fit) for label, fit in fits.items()}
+        paths = {"residual_vs_noise": str(plot_residual_vs_noise(dg, fits, out / "residual_vs_noise.png", s.tolerance, fine))}
         if report.get("witnesses"):
             paths["witness_coherence"] = str(plot_witness_coherence(report["witnesses"], out / "witness_coherence.png"))
         report["figures"] = paths
