@@ -8,8 +8,8 @@ the regressor of coefficient
   readout delayed along the link it transmits on.
 
 so that ``eta = sum_k C_k w_k + (other terms)``.  A witness is described by the link it sits
-on and the extra delay chain applied before it enters that link; TDI folds that extra
-delay into its nested delays (:meth:`ttlcore.tdi.combinations.BuiltCombination.apply_on_links`).
+on and the extra delay chain applied before it enters that link; TDI applies that extra
+delay first, at every sample (:func:`ttlcore.tdi.engine.predelayed`), then the link's chains.
 """
 
 from __future__ import annotations
