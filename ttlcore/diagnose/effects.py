@@ -43,6 +43,7 @@ import numpy as np
 from ..conventions import ANGLES, C, COEFFICIENT_NAMES, DAY, LINKS, MOSAS, SIDES, local_spacecraft, reverse
 from ..errors import ConfigError
 from ..sim.injection import ChunkContext, load_module
+from ..tdi.combinations import MICHELSON
 from ..tdi.engine import tdi_columns
 from ..tdi.engine import Part as EnginePart
 
@@ -1172,7 +1173,7 @@ def tdi_in_blocks(ltt: np.ndarray, fs: float, columns=(), eta: np.ndarray | None
     parts = _engine_parts(columns, first=1)
     if eta is not None:
         parts += [EnginePart(0, link, (), np.asarray(eta)[k]) for k, link in enumerate(LINKS)]
-    out = tdi_columns(parts, 1 + len(columns), ltt, fs, order=order, delay_order=delay_order)
+    out = tdi_columns(parts, 1 + len(columns), ltt, fs, combinations=MICHELSON, order=order, delay_order=delay_order)
     return (None if eta is None else out[:, 0]), out[:, 1:]
 
 

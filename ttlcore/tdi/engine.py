@@ -68,16 +68,22 @@ class Part:
     series: np.ndarray
 
 
-def history_samples(fs: float, ltt_max: float = 8.6, order: int = DEFAULT_ORDER,
-                    delay_order: int = DEFAULT_DELAY_ORDER, combinations=None) -> int:
-    """Input samples the combinations reach back to: the longest chain plus the Tx
-    pre-delay, times the largest light travel time, plus the stencils of the data and of
-    the delay interpolation (and a margin)."""
-    from .combinations import MICHELSON
-
-    combinations = MICHELSON if combinations is None else combinations
-    longest = max(c.max_chain_length for c in combinations) + 1
+def _history(chains, ltt_max: float, fs: float, order: int, delay_order: int) -> int:
+    """Input samples the chains reach back to: the longest chain times the largest light
+    travel time, plus the stencils of the data and of the delay interpolation (and a margin)."""
+    longest = max((len(c) for c in chains), default=0)
     return int(np.ceil(longest * ltt_max * fs)) + 2 * (order // 2 + 1) + delay_order + 8
+
+
+@dataclass(frozen=True)
+class _Delay:
+    """The one-term combination ``D_link x`` on ``link`` (a pre-delay)."""
+
+    link: str
+
+    @property
+    def terms(self) -> tuple:
+        return ((1.0, self.link, (self.link,)),)
 
 
 def _chebyshev_nodes(degree: int) -> np.ndarray:
@@ -169,8 +175,6 @@ def predelayed(parts, ltt: np.ndarray, fs: float, **options) -> list:
     order-31 interpolation of 4 Hz data errs by 1e-5..1, it would not reproduce the data.)
     The first ``tau * fs + order / 2`` samples are NaN.  ``options`` go to :func:`tdi_columns`.
     """
-    from .combinations import Combination
-
     out = [p for p in parts if not p.extra]
     pending = [(p, tuple(p.extra)) for p in parts if p.extra]
     while pending:
@@ -179,9 +183,8 @@ def predelayed(parts, ltt: np.ndarray, fs: float, **options) -> list:
             by_delay.setdefault(extra[-1], []).append(i)  # innermost delay first
         done = [None] * len(pending)
         for d, idx in by_delay.items():
-            shift = Combination(f"D{d}", ((1.0, d, (d,)),))
             moved = tdi_columns([Part(j, d, (), pending[i][0].series) for j, i in enumerate(idx)], len(idx), ltt, fs,
-                                combinations=(shift,), **options)[0]
+                                combinations=(_Delay(d),), **options)[0]
             for j, i in enumerate(idx):
                 p, extra = pending[i]
                 done[i] = (Part(p.column, p.link, extra[:-1], moved[j]), extra[:-1])
@@ -190,7 +193,7 @@ def predelayed(parts, ltt: np.ndarray, fs: float, **options) -> list:
     return out
 
 
-def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, history: int = 0, combinations=None,
+def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, combinations, history: int = 0,
                 order: int = DEFAULT_ORDER, delay_order: int = DEFAULT_DELAY_ORDER,
                 degree: int = DEFAULT_DEGREE, nfft: int = DEFAULT_NFFT, out: np.ndarray | None = None) -> np.ndarray:
     """TDI of columns made of parts placed on links (see the module docstring).
@@ -208,7 +211,7 @@ def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, history: in
     history : int
         Leading input samples before the first output sample.
     combinations : sequence of Combination
-        Default X2, Y2, Z2.
+        E.g. :data:`ttlcore.tdi.combinations.MICHELSON` (anything with ``terms``).
     order, delay_order : int
         Lagrange orders of the data and of the light-travel-time interpolation.
     degree : int
@@ -224,9 +227,7 @@ def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, history: in
         Zero for columns whose links a combination does not use; NaN where a stencil
         reaches before the data or touches a non-finite input.
     """
-    from .combinations import MICHELSON
-
-    combinations = MICHELSON if combinations is None else tuple(combinations)
+    combinations = tuple(combinations)
     order = _check_order(order)
     ltt = np.asarray(ltt, dtype=float)
     total = ltt.shape[-1]
@@ -250,7 +251,7 @@ def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, history: in
     plan = _Plan(combinations, groups)
 
     ltt_max = float(np.nanmax(ltt))
-    hist = history_samples(fs, ltt_max, order, delay_order, combinations)
+    hist = _history(plan.chains, ltt_max, fs, order, delay_order)
     lead = order // 2 + 1  # stencil samples after the read position
     nfft = max(int(nfft), sp_fft.next_fast_len(2 * (hist + lead + 1), real=True))
     block = nfft - hist - lead - 1

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .combinations import AET_MATRIX, MICHELSON, link_responses
 from ..conventions import C, COEFFICIENT_NAMES, LINKS, parse_coefficient_name, reverse
 
 
@@ -75,8 +76,6 @@ def regressor_responses(f: np.ndarray, ltt, names=COEFFICIENT_NAMES, combination
     -------
     ndarray, shape (m, 3, P), complex
     """
-    from .combinations import AET_MATRIX, MICHELSON, link_responses
-
     combinations = combinations or MICHELSON
     f = np.asarray(f, dtype=float)
     out = np.zeros((f.size, len(combinations), len(names)), dtype=complex)
