@@ -62,6 +62,7 @@ test-ops: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python bench/simulate.py
 	$(BIN)/python bench/tdi.py
+	$(BIN)/python bench/analyze.py
 	$(BIN)/python bench/fit.py
 	$(BIN)/python bench/pipeline.py
 	$(BIN)/python bench/rolling.py
