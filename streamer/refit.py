@@ -134,7 +134,9 @@ def format_refit(report: dict) -> str:
                          f"({sigma[n] * 1e3:.4f})")
     extra = [n for n in values if n not in COEFFICIENT_NAMES]
     if extra:
-        lines.append(f"  other parameters: {len(extra)} (in the JSON report)")
+        lines.append("  other parameters of the model, in their columns' units (docs/diagnostics.md): value (sigma)")
+        for n in extra:
+            lines.append(f"    {n:<28} {values[n]:+.4g} ({sigma.get(n, float('nan')):.2g})")
     return "\n".join(lines)
 
 
