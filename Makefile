@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 DEMO   := demo-output
 
-.PHONY: demo demo-batch test test-science bench clean
+.PHONY: demo demo-batch test test-science test-ops bench clean
 
 $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
@@ -52,6 +52,10 @@ test: $(STAMP)
 ## test-science: slow full-day science checks
 test-science: $(STAMP)
 	$(BIN)/python -m pytest -q -m science
+
+## test-ops: long operations tests (live runs under attack, three hosts in network namespaces)
+test-ops: $(STAMP)
+	$(BIN)/python -m pytest -q -m ops
 
 ## bench: benchmarks, each prints JSON
 bench: $(STAMP)

@@ -3,9 +3,9 @@
 Simulates one mission day (static unequal arms, all noises, paper coefficients), computes
 TDI once (timed separately, not part of the fit), then times
 
-(a) the GLS fit :func:`ttlcore.fit.fit_tdi` with default :class:`FitSettings`
+(a) the GLS fit :func:`ttlcore.estimate.fit.fit_tdi` with default :class:`FitSettings`
     (decimation, segment spectra, whitening iterations, sandwich covariance); target 2 s;
-(b) :func:`ttlcore.mcmc.fit_mcmc` on the same segment spectra to 50 autocorrelation
+(b) :func:`ttlcore.estimate.mcmc.fit_mcmc` on the same segment spectra to 50 autocorrelation
     times, without and with free per-band noise levels; target 60 s each.
 
 Prints one JSON object: the wall times and targets, the coefficient error
@@ -32,11 +32,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from ttlcore.coefficients import make_coefficients  # noqa: E402
-from ttlcore.fit import FitSettings, fit_tdi  # noqa: E402
-from ttlcore.mcmc import fit_mcmc  # noqa: E402
-from ttlcore.simulator import SimulationConfig, simulate  # noqa: E402
-from ttlcore.tdi_data import compute_tdi  # noqa: E402
+from ttlcore.sim.coefficients import make_coefficients  # noqa: E402
+from ttlcore.estimate.fit import FitSettings, fit_tdi  # noqa: E402
+from ttlcore.estimate.mcmc import fit_mcmc  # noqa: E402
+from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
+from ttlcore.tdi.data import compute_tdi  # noqa: E402
 
 GLS_TARGET_S = 2.0
 MCMC_TARGET_S = 60.0

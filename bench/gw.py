@@ -18,8 +18,8 @@ import numpy as np
 
 
 def main() -> None:
-    from ttlcore.gw_injection import parse_gw_spec
-    from ttlcore.simulator import NoiseSwitches, SimulationConfig, Simulator
+    from ttlcore.gw.injection import parse_gw_spec
+    from ttlcore.sim.simulator import NoiseSwitches, SimulationConfig, Simulator
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--duration", type=float, default=86400.0)

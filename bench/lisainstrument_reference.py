@@ -6,7 +6,7 @@ wall time and the child's own peak resident memory (``os.wait4``), so the number
 depend on what the calling process has already loaded or allocated.
 
 Configuration (the effects our simulator has): laser, OMS, test-mass, backlink noise,
-spacecraft and MOSA angular jitter (PHYSICS.md levels), DWS noise and TTL (the paper's
+spacecraft and MOSA angular jitter (docs/physics.md levels), DWS noise and TTL (the paper's
 2.3 mm/rad for all 24 coefficients) on; clock, modulation and ranging noise off, and the
 two lisainstrument effects we do not model (reciprocal backlink noise, longitudinal MOSA
 jitter) off.  Everything else is lisainstrument's default (4 Hz output, physics at 16 Hz,

@@ -72,10 +72,10 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         data = tmp / "mission.h5"
-        subprocess.run([sys.executable, "-m", "ttlcore.cli", "simulate", "--duration", f"{args.days}d", "--orbit",
+        subprocess.run([sys.executable, "-m", "ttlcore.cli.main", "simulate", "--duration", f"{args.days}d", "--orbit",
                         "keplerian", "--seed", "1", "--out", str(data), "--quiet"], check=True)
         start = time.perf_counter()
-        launcher = subprocess.Popen([sys.executable, "-m", "ttlcore.cli", "run", "--telemetry", str(data), "--run-id",
+        launcher = subprocess.Popen([sys.executable, "-m", "ttlcore.cli.main", "run", "--telemetry", str(data), "--run-id",
                                      "bench", "--recordings", str(tmp / "rec"), "--quiet", "--timeout", "7200"],
                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         cpu, rss = {}, {}

@@ -1,4 +1,4 @@
-"""Benchmark: incremental against full updates of the rolling fit (ttlcore.rolling.RollingFit).
+"""Benchmark: incremental against full updates of the rolling fit (ttlcore.estimate.rolling.RollingFit).
 
 Simulates a day and a half (Keplerian arms, all noises, paper coefficients), streams it hour
 by hour through TDIStream into two RollingFits with a one-day window and 1-h FFT segments:
@@ -23,10 +23,10 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from ttlcore.conventions import DAY  # noqa: E402
-from ttlcore.fit import FitSettings  # noqa: E402
-from ttlcore.rolling import RollingFit  # noqa: E402
-from ttlcore.simulator import SimulationConfig, simulate  # noqa: E402
-from ttlcore.tdi_data import TDIStream  # noqa: E402
+from ttlcore.estimate.fit import FitSettings  # noqa: E402
+from ttlcore.estimate.rolling import RollingFit  # noqa: E402
+from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
+from ttlcore.tdi.data import TDIStream  # noqa: E402
 
 
 def main() -> int:

@@ -1,7 +1,7 @@
 """Fitter stage: rolling one-day fit of the 24 TTL coefficients, refit on every new segment.
 
 Input ``ttl/<run>/tdi/<i>`` (tdi_builder).  The TDI segments go, in index order, into
-:class:`ttlcore.rolling.RollingFit` -- the batch estimator of :func:`ttlcore.fit.fit_tdi`
+:class:`ttlcore.estimate.rolling.RollingFit` -- the batch estimator of :func:`ttlcore.estimate.fit.fit_tdi`
 over a rolling window (default one day) of FFT segments.  The FFT segment defaults to the
 telemetry segment length (``segment_duration`` of the input meta), so every new segment
 completes one FFT segment and triggers a refit; a longer FFT segment refits less often.
@@ -10,7 +10,7 @@ Output ``ttl/<run>/fit/<i>`` when segment ``i`` produced a fit: arrays ``coeffic
 (24,) [m/rad], ``sigma`` (24,), ``covariance`` (24, 24); meta ``names``, ``chi2_dof``,
 ``t_start``, ``t_stop`` (the window fitted), ``segments`` (FFT segments in it), ``band``,
 ``converged``, plus ``chi2``, ``dof``, ``iterations``, ``method``, ``segments_total``.  The
-full :meth:`ttlcore.fit.FitResult.to_json` goes into the recording on ``fit/summary``
+full :meth:`ttlcore.estimate.fit.FitResult.to_json` goes into the recording on ``fit/summary``
 (schema ``ttl.Fit``: the schema's fields, and the whole result under ``fit``).
 
 The progress messages carry ``fits_ranges``: the segments that produced a fit, so that the
@@ -21,7 +21,7 @@ Model and adequacy (``docs/diagnostics.md``)
 The model is a list of effects (option ``effects``, default ``linear-ttl``).  The fitter
 keeps the window's TDI segments; every ``adequacy_every`` segments (default 24), and on
 every segment while the model holds more than the linear TTL, it refits the window with
-:func:`ttlcore.diagnose.refit` under the *instrument* noise model and adds to the fit
+:func:`ttlcore.diagnose.diagnoser.refit` under the *instrument* noise model and adds to the fit
 message's meta ``model`` (the effect specs) and ``adequacy`` (chi^2/dof, per-band chi^2/dof,
 p-value and failure flag; ``fails``).  With an extended model the published 24
 coefficients, sigmas and covariance are that model's; ``extra_parameters`` holds the
@@ -53,11 +53,11 @@ from streamer.stage import Output
 
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY, parse_duration
 from ttlcore.errors import ConfigError
-from ttlcore.fit import FitSettings
-from ttlcore.diagnose import DiagnoseSettings, refit
-from ttlcore.effects import make_effects
-from ttlcore.rolling import RollingFit
-from ttlcore.tdi_data import TDIData
+from ttlcore.estimate.fit import FitSettings
+from ttlcore.diagnose.diagnoser import DiagnoseSettings, refit
+from ttlcore.diagnose.effects import make_effects
+from ttlcore.estimate.rolling import RollingFit
+from ttlcore.tdi.data import TDIData
 
 from . import OUTPUT_TOPIC, XYZ, OrderedStage, jsonable, stage_main
 
@@ -76,7 +76,7 @@ def tdi_expect(run: str, index: int) -> Expect:
 
 
 class Fitter(OrderedStage):
-    """Rolling-window fit of the TTL coefficients (ttlcore.rolling.RollingFit)."""
+    """Rolling-window fit of the TTL coefficients (ttlcore.estimate.rolling.RollingFit)."""
 
     name = "fitter"
     inputs = ("tdi",)

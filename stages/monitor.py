@@ -10,14 +10,14 @@ What it computes
 ----------------
 * ASD of X2 per segment (Welch, Hann, log-averaged 20 per decade, in displacement
   m/sqrt(Hz)): the data (with TTL), the residual, the TTL model, the expected secondary
-  noise (:func:`ttlcore.noise_psd.tdi_noise_csd` for the segment's mean arms, X channel)
+  noise (:func:`ttlcore.estimate.noise_psd.tdi_noise_csd` for the segment's mean arms, X channel)
   and the LISA requirement; and per segment the in-band (fit band) median of
   residual / expected, a one-number adequacy check beside the fit's chi^2/dof.
 * Coefficient trends: every fit's 24 coefficients with +-1 sigma, at the centre of its
   window (the estimate is the window's average); when the telemetry meta names a truth
   file, the true coefficients averaged over the same window.
-* Step and drift alerts from :class:`ttlcore.trends.TrendMonitor` (thresholds and their
-  false-alarm reasoning in :mod:`ttlcore.trends`).  Each alert is logged as a Rerun text
+* Step and drift alerts from :class:`ttlcore.diagnose.trends.TrendMonitor` (thresholds and their
+  false-alarm reasoning in :mod:`ttlcore.diagnose.trends`).  Each alert is logged as a Rerun text
   entry, written to the MCAP recording as JSON (topic ``alerts``, schema ``ttl.Alert``)
   and published with the fit's index on ``ttl/<run>/monitor/<i>``.
 
@@ -29,7 +29,7 @@ skipped or not started blocks nothing).  The segment is then done for the progre
 it has drawn everything.  Arrays ``drift_rate`` (24,) [mm/rad/day] and
 ``drift_significance`` (24,) of the latest trend evaluation (0 where not yet defined, see
 meta ``drift_windows``); meta ``names``, ``alerts`` (the alerts raised since the previous
-monitor message, each :meth:`ttlcore.trends.Alert.to_json` with the index of the fit that
+monitor message, each :meth:`ttlcore.diagnose.trends.Alert.to_json` with the index of the fit that
 raised it), ``drifting``, ``drift_windows``, ``residual_over_expected`` (latest in-band
 median ASD ratio and its segment), ``fit`` (index, chi2_dof and window of the latest fit),
 ``segments_total``.  The same goes to the recording on ``monitor/summary``.
@@ -52,7 +52,7 @@ viewer that cannot start (no display), is unreachable or goes away is dropped wi
 warning and the file goes on.
 
 Options (``StageConfig.options`` or the command line): ``rrd`` (path), ``live``,
-``viewer_port``, ``rerun_binary``, ``trends`` (:class:`ttlcore.trends.TrendSettings`
+``viewer_port``, ``rerun_binary``, ``trends`` (:class:`ttlcore.diagnose.trends.TrendSettings`
 fields), ``asd_per_decade`` (20), ``band`` ([fmin, fmax], default the fit band),
 ``settle_timeout`` (60 s).
 """
@@ -76,10 +76,10 @@ from streamer.keys import topic_pattern
 from streamer.session import free_port
 from streamer.stage import Output
 
-from ttlcore.coefficients import CoefficientModel
+from ttlcore.sim.coefficients import CoefficientModel
 from ttlcore.conventions import ARM_LENGTH, C, COEFFICIENT_NAMES, LINKS, MOSAS, ffd_to_displacement_asd
-from ttlcore.fit import DEFAULT_BAND
-from ttlcore.trends import Alert, TrendMonitor, TrendSettings
+from ttlcore.estimate.fit import DEFAULT_BAND
+from ttlcore.diagnose.trends import Alert, TrendMonitor, TrendSettings
 
 from . import OUTPUT_TOPIC, PipelineStage, jsonable, stage_main
 from . import monitor_views as views
@@ -252,8 +252,8 @@ def x_asd(x: np.ndarray, fs: float, per_decade: int = 20):
     Returns ``(f [Hz], asd [m/sqrt(Hz)], f_welch)`` (``f_welch`` the Welch grid without DC,
     for curves that must be averaged on the same bins).
     """
-    from ttlcore.figures import default_nperseg, welch_asd_weighted_mean
-    from ttlcore.spectra import log_average
+    from ttlcore.plots.batch import default_nperseg, welch_asd_weighted_mean
+    from ttlcore.estimate.spectra import log_average
 
     x = finite_stretch(np.asarray(x, dtype=float))
     if x.size < 64:
@@ -267,8 +267,8 @@ def x_asd(x: np.ndarray, fs: float, per_decade: int = 20):
 def reference_curves(f_welch: np.ndarray, ltt, per_decade: int = 20) -> dict:
     """Expected secondary noise of X2 for the arms ``ltt`` (six values [s]) and the
     requirement, log-averaged like the data: ``{name: (f, asd [m/sqrt(Hz)])}``."""
-    from ttlcore.noise_psd import requirement_x2, tdi_noise_csd
-    from ttlcore.spectra import log_average
+    from ttlcore.estimate.noise_psd import requirement_x2, tdi_noise_csd
+    from ttlcore.estimate.spectra import log_average
 
     expected = np.real(tdi_noise_csd(f_welch, ltt, aet=False)[:, 0, 0])
     out = {}
@@ -290,7 +290,7 @@ def band_ratio(f, a, f_ref, ref, band) -> float:
 
 class ModelTruth:
     """True coefficients of a simulation on the fly, averaged over time spans from its
-    coefficient model (:meth:`ttlcore.coefficients.CoefficientModel.mean`)."""
+    coefficient model (:meth:`ttlcore.sim.coefficients.CoefficientModel.mean`)."""
 
     path = "simulation"
 
@@ -304,12 +304,12 @@ class ModelTruth:
 class TruthAverager:
     """True coefficients averaged over time spans, read block by block from a truth file.
 
-    Blocks of ``block`` seconds are read once with :func:`ttlcore.truth.read_truth` and
+    Blocks of ``block`` seconds are read once with :func:`ttlcore.io.truth.read_truth` and
     kept as sums; a span's average adds whole blocks and reads its partial edges.
     """
 
     def __init__(self, path, block: float = 3600.0):
-        from ttlcore.truth import read_truth
+        from ttlcore.io.truth import read_truth
 
         self.path = Path(path)
         head = read_truth(self.path, 0, 1)
@@ -318,7 +318,7 @@ class TruthAverager:
         self._sums: dict[int, tuple[np.ndarray, int]] = {}
 
     def _read(self, a: int, b: int) -> tuple[np.ndarray, int]:
-        from ttlcore.truth import read_truth
+        from ttlcore.io.truth import read_truth
 
         if b <= a:
             return np.zeros(P), 0

@@ -3,14 +3,14 @@
 Sources (exactly one):
 
 ``telemetry``
-    One or more telemetry files, ours or lisainstrument's (``ttlcore.telemetry.read_telemetry``
+    One or more telemetry files, ours or lisainstrument's (``ttlcore.io.reader.read_telemetry``
     detects which).  They are replayed in order of their start time; a segment never spans
     two files (the last one of a file may be shorter).  Our files are read one segment at a
     time; lisainstrument files are reduced to ``eta`` once, at start.
 ``simulate``
     ``ttl simulate`` options (without ``--out``), e.g. ``"--duration 12h --orbit unequal
     --seed 1"``: each segment is simulated when its turn comes
-    (:meth:`ttlcore.simulator.Simulator.chunk`, random access, so the result does not depend
+    (:meth:`ttlcore.sim.simulator.Simulator.chunk`, random access, so the result does not depend
     on the segment length).
 
 Output ``ttl/<run>/telemetry/<i>``: arrays ``eta``, ``dws_phi``, ``dws_eta``, ``ltt``, each
@@ -49,9 +49,10 @@ from streamer.stage import Output
 
 from ttlcore.conventions import LINKS, parse_duration
 from ttlcore.errors import ConfigError, TelemetryError
-from ttlcore.fit import dws_asd_from_config
-from ttlcore.telemetry import Telemetry, file_kind, read_header, read_telemetry
-from ttlcore.truth import truth_path
+from ttlcore.estimate.fit import dws_asd_from_config
+from ttlcore.io.telemetry import Telemetry, read_header
+from ttlcore.io.reader import file_kind, read_telemetry
+from ttlcore.io.truth import truth_path
 
 from . import OUTPUT_TOPIC, PipelineStage, stage_main
 
@@ -66,7 +67,7 @@ DEFAULT_WINDOW = 4
 # ---------------------------------------------------------------------------- simulation options
 
 def simulation_config(text: str):
-    """A :class:`ttlcore.simulator.SimulationConfig` from ``ttl simulate`` options (no ``--out``),
+    """A :class:`ttlcore.sim.simulator.SimulationConfig` from ``ttl simulate`` options (no ``--out``),
     parsed and translated by the same code as ``ttl simulate``.
 
     Raises
@@ -74,7 +75,7 @@ def simulation_config(text: str):
     ConfigError
         Naming the option at fault.
     """
-    from ttlcore.cli import add_simulation_options, simulation_config_from_args
+    from ttlcore.cli.main import add_simulation_options, simulation_config_from_args
     from ttlcore.errors import TTLError
 
     p = argparse.ArgumentParser(prog="--simulate", add_help=False, exit_on_error=False)
@@ -168,7 +169,7 @@ class SimulationSource:
     """Segments simulated on demand (``ttl simulate`` options)."""
 
     def __init__(self, options: str, segment_duration: float):
-        from ttlcore.simulator import Simulator
+        from ttlcore.sim.simulator import Simulator
 
         self.config = simulation_config(options)
         self.sim = Simulator(self.config)

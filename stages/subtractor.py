@@ -14,7 +14,7 @@ Output ``ttl/<run>/residual/<i>``: arrays ``residual`` (3, n) and ``ttl_model`` 
 channels X2, Y2, Z2 (NaN where the TDI input is NaN), header t0 and fs those of the TDI
 segment; meta ``fit_index`` (the fit applied), ``coefficients_t_start``,
 ``coefficients_t_stop`` (its window), ``segments_total``.  Residual = data - model, with
-:func:`ttlcore.subtraction.subtract`.
+:func:`ttlcore.estimate.subtraction.subtract`.
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from streamer.messages import tdi_of
 from streamer.stage import Output
 
 from ttlcore.conventions import COEFFICIENT_NAMES
-from ttlcore.subtraction import subtract
+from ttlcore.estimate.subtraction import subtract
 
 from . import OUTPUT_TOPIC, XYZ, PipelineStage, jsonable, stage_main
 from .fitter import P, tdi_expect

@@ -8,7 +8,7 @@ passed on from the telemetry, ``segments_total``, ``segment_duration``, ``source
 (its first samples are then NaN: the nested delays reach before the data, as on the very
 first segment).
 
-The delays and interpolation reach back about 70 s: :class:`ttlcore.tdi_data.TDIStream`
+The delays and interpolation reach back about 70 s: :class:`ttlcore.tdi.data.TDIStream`
 keeps that tail of telemetry between segments, so the output for a day fed in segments
 equals the batch TDI of the whole day, and segments stay independent messages.  Segments
 are therefore processed in index order (:class:`stages.OrderedStage`); a segment whose t0 does
@@ -26,8 +26,8 @@ from streamer.messages import TELEMETRY_ARRAYS, telemetry_of
 from streamer.stage import Output
 
 from ttlcore.conventions import COEFFICIENT_NAMES
-from ttlcore.telemetry import Telemetry
-from ttlcore.tdi_data import TDIStream
+from ttlcore.io.telemetry import Telemetry
+from ttlcore.tdi.data import TDIStream
 
 from . import OUTPUT_TOPIC, XYZ, OrderedStage, stage_main
 

@@ -41,7 +41,7 @@ from .recorder import Recording, RecordingError, read_recording
 #: The pipeline's stages, in order (names of their recordings).
 KNOWN_STAGES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
 _FILE = re.compile(r"^(?P<stage>.+?)(?:\.(?P<n>\d+))?\.mcap$")
-#: Span of the drift rate in the report [days] (ttlcore.trends.TrendSettings.drift_lookback).
+#: Span of the drift rate in the report [days] (ttlcore.diagnose.trends.TrendSettings.drift_lookback).
 LOOKBACK_DAYS = 3.0
 #: Errors listed in full by the text report (the rest are counted).
 MAX_LISTED = 20
@@ -194,7 +194,7 @@ def _fits(recs: list[Recording]) -> list[dict]:
 
 
 def _trends(fits: list[dict]) -> dict:
-    """Per coefficient: latest value and sigma, range, and the GLS drift rate of ttlcore.trends [mm/rad]."""
+    """Per coefficient: latest value and sigma, range, and the GLS drift rate of ttlcore.diagnose.trends [mm/rad]."""
     if not fits:
         return {}
     names = fits[-1]["names"] or [f"c{i}" for i in range(len(fits[-1]["coefficients"]))]
@@ -209,7 +209,7 @@ def _trends(fits: list[dict]) -> dict:
     ok = all(isinstance(a, (int, float)) and isinstance(b, (int, float)) and b > a for a, b in windows)
     if ok and len(same) >= 3 and np.all(np.isfinite(S)):
         try:
-            from ttlcore.trends import TrendSettings, trend_estimates
+            from ttlcore.diagnose.trends import TrendSettings, trend_estimates
 
             te = np.array([b for _, b in windows])
             order = np.argsort(te, kind="stable")
@@ -228,7 +228,7 @@ def _trends(fits: list[dict]) -> dict:
 
 def truth_over_window(truth_path, t_start: float, t_stop: float, names) -> dict:
     """True coefficients [mm/rad] averaged over ``[t_start, t_stop)`` from a truth file."""
-    from ttlcore.truth import read_truth
+    from ttlcore.io.truth import read_truth
 
     head = read_truth(truth_path, 0, 1)
     i0 = max(0, int(np.floor((t_start - head.t0) * head.fs)))

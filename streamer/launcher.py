@@ -2,8 +2,15 @@
 
 Process model
 -------------
-* The launcher opens a Zenoh **router** in its own process, listening on
-  ``tcp/127.0.0.1:<free port>`` (or ``--listen``), multicast scouting off.
+* The launcher starts a Zenoh **router** process (``ttl router``, log in
+  ``<recordings>/<run>/router.log``) listening on ``tls/127.0.0.1:<free port>`` (or
+  ``--listen``), multicast scouting off, and talks to it as a client itself.
+* Security (:mod:`streamer.security`): unless ``--insecure``, every session of the run uses
+  mutual TLS with a certificate of the run's CA, taken from ``--credentials DIR`` or made on
+  first use in ``<recordings>/<run>/credentials`` (keys mode 0600); the router enforces an
+  access-control list (each stage publishes only its own topics, the launcher the
+  commands).  Peers refused by the router and publications it dropped are read back from
+  its log, reported and written to ``<recordings>/<run>/security.jsonl``.
 * Each stage is a separate process, ``python -m stages.<name> --config
   <recordings>/<run>/<name>.config.json``, a Zenoh **client** of the router: every message
   goes through the router, and a stage whose link closed (a stall beyond
@@ -55,8 +62,9 @@ import zenoh
 
 from ttlcore.errors import TTLError
 
+from . import security
 from .keys import check_name, control_key
-from .session import Bus, SessionSettings, declare_segment_subscriber, loopback_endpoint, open_router
+from .session import Bus, SessionSettings, declare_segment_subscriber, loopback_endpoint
 
 log = logging.getLogger(__name__)
 
@@ -108,6 +116,10 @@ class RunOptions:
         Router endpoints (default ``tcp/127.0.0.1:<free port>``).
     zenoh_config : Path, optional
         Zenoh configuration file of the router.
+    credentials : Path, optional
+        Credentials directory (default ``<recordings>/<run>/credentials``, made on first use).
+    insecure : bool
+        No TLS, no access control (plain TCP): any process reaching the router may publish.
     stage_options : dict
         Stage name -> stage options (``options`` of its StageConfig), and the fitter
         options ``fit_segment``, ``window_duration``, ``band``.
@@ -130,6 +142,8 @@ class RunOptions:
     restart: int = 0
     listen: tuple = ()
     zenoh_config: Path | None = None
+    credentials: Path | None = None
+    insecure: bool = False
     stage_options: dict = field(default_factory=dict)
     timeout: float | None = None
     grace: float = 10.0
@@ -177,6 +191,10 @@ class Launcher:
         self._last_print = 0.0
         self.endpoint = ""
         self.run_dir = Path(opts.recordings) / opts.run_id
+        self.credentials: Path | None = None
+        self.router: subprocess.Popen | None = None
+        self.refused: list[dict] = []
+        self._watcher: security.RefusalWatcher | None = None
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:
@@ -202,6 +220,13 @@ class Launcher:
         for f in o.telemetry or ():
             if not Path(f).is_file():
                 raise LaunchError(f"--telemetry: {f}: no such file")
+        secure = not o.insecure
+        for e in o.listen:
+            if secure and not str(e).startswith("tls/"):
+                raise LaunchError(f"--listen {e}: the run talks mutual TLS: write tls/{str(e).split('/', 1)[-1]} "
+                                  "(or give --insecure)")
+        if o.insecure and o.credentials is not None:
+            raise LaunchError("give either --credentials or --insecure, not both")
         if o.window < 1:
             raise LaunchError(f"--window: expected >= 1, got {o.window}")
         cache = self.cache
@@ -239,12 +264,89 @@ class Launcher:
 
     def stage_config(self, name: str) -> dict:
         cfg = {"run": self.opts.run_id, "stage": name,
-               "zenoh": SessionSettings(mode="client", connect=(self.endpoint,)).to_dict(),
+               "zenoh": self.session_settings(name).to_dict(),
                "recordings": str(Path(self.opts.recordings).resolve()), "cache": self.cache,
                "options": self.stage_options(name)}
         if name in HEADERS_ONLY:
             cfg["record_inputs"] = False
         return cfg
+
+    def session_settings(self, identity: str) -> SessionSettings:
+        """How ``identity`` (a stage, the launcher) connects to the run's router."""
+        return SessionSettings(mode="client", connect=(self.endpoint,), credentials=self.credentials,
+                               identity=identity if self.credentials is not None else None)
+
+    # ------------------------------------------------------------------ router and credentials
+    def make_credentials(self, listen) -> None:
+        """The run's credentials (``--credentials`` or made in the run directory), unless insecure."""
+        o = self.opts
+        if o.insecure:
+            self.say("--insecure: no TLS, no access control; any process reaching the router may publish")
+            return
+        hosts = [security.endpoint_host(e) for e in listen]
+        hosts = [h for h in hosts if h and h not in security.LOCAL_HOSTS and h not in ("0.0.0.0", "[::]", "::")]
+        directory = Path(o.credentials) if o.credentials is not None else self.run_dir / "credentials"
+        fresh = not (directory / "ca.pem").exists()
+        try:
+            self.credentials = security.ensure_credentials(directory, hosts=hosts).resolve()
+            for role in ("router", "launcher", *self.expected):
+                security.Identity(self.credentials, role).check()
+        except security.CredentialsError as exc:
+            raise LaunchError(f"--credentials: {exc}") from None
+        if fresh:
+            self.say(f"credentials made in {directory} (CA and one certificate per stage)")
+
+    def start_router(self, listen) -> None:
+        """Start ``ttl router`` (log ``router.log``) and wait until it listens."""
+        o = self.opts
+        path = self.run_dir / "router.log"
+        cmd = [o.python, "-c", "import sys; from ttlcore.cli.main import main; sys.exit(main())", "router"]
+        for e in listen:
+            cmd += ["--listen", e]
+        if o.zenoh_config is not None:
+            cmd += ["--zenoh-config", str(o.zenoh_config)]
+        cmd += ["--credentials", str(self.credentials)] if self.credentials is not None else ["--insecure"]
+        env = dict(os.environ, PYTHONUNBUFFERED="1", NO_COLOR="1")
+        env.pop("RUST_LOG", None)
+        with open(path, "ab") as logf:
+            start = logf.tell()
+            self.router = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                           env=env, preexec_fn=_die_with_parent)
+        self._watcher = security.RefusalWatcher(path, offset=start)
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline:
+            text = path.read_text(errors="replace")[start:]
+            if "ttl router: zenoh router" in text:
+                return
+            if self.router.poll() is not None:
+                lines = [ln for ln in text.splitlines() if ln.strip()]
+                raise LaunchError(f"cannot open the Zenoh router on {', '.join(listen)}: "
+                                  f"{lines[-1] if lines else 'exit status %d' % self.router.returncode}")
+            time.sleep(0.05)
+        raise LaunchError(f"the Zenoh router did not start within 60 s (log {path})")
+
+    def stop_router(self) -> None:
+        if self.router is None:
+            return
+        if self.router.poll() is None:
+            self.router.send_signal(signal.SIGTERM)
+            try:
+                self.router.wait(15.0)
+            except subprocess.TimeoutExpired:
+                self.router.kill()
+                self.router.wait()
+        self.router = None
+
+    def watch_refusals(self) -> None:
+        """Report peers and publications the router refused (from its log)."""
+        if self._watcher is None:
+            return
+        for r in self._watcher.poll():
+            self.refused.append(r)
+            if r["kind"] == "forbidden":
+                self.say(f"refused: {r['subject']} may not {r['action']} on {r['key']}")
+            else:
+                self.say(f"refused a connection: {r['message']}")
 
     def check_replayer(self) -> None:
         """Validate the source options in a child (``stages.replayer --check``)."""
@@ -266,7 +368,12 @@ class Launcher:
             msg = json.loads(sample.payload.to_bytes())
         except ValueError:
             return
+        key_stage = str(sample.key_expr).rsplit("/", 1)[-1]
         if isinstance(msg, dict) and isinstance(msg.get("stage"), str):
+            if msg["stage"] != key_stage:  # the key is what the access-control list vouches for
+                self.events.put(("error", {"stage": key_stage, "kind": "forged-progress", "key": str(sample.key_expr),
+                                           "message": f"progress of {msg['stage']!r} published as {key_stage!r}"}))
+                return
             self.events.put(("progress", msg))
 
     def _on_alive(self, stage: str, alive: bool) -> None:
@@ -435,33 +542,47 @@ class Launcher:
         o = self.opts
         self.plan()
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        listen = tuple(o.listen) or (loopback_endpoint(),)
+        listen = tuple(o.listen) or (loopback_endpoint(protocol="tcp" if o.insecure else "tls"),)
         self.endpoint = next((e for e in listen if "127.0.0.1" in e or "localhost" in e), listen[0])
+        self.listen = listen
+        self.make_credentials(listen)
         self.check_replayer()
+        self.start_router(listen)
         try:
-            router = open_router(listen=listen, config_file=o.zenoh_config)
-        except Exception as exc:
-            raise LaunchError(f"cannot open the Zenoh router on {', '.join(listen)}: {exc}") from None
-        with Bus(router) as bus:
-            self.bus = bus
-            bus.track(declare_segment_subscriber(bus.session, f"ttl/{o.run_id}/control/progress/*",
-                                                 self._on_progress, history=1))
-            bus.watch_alive(o.run_id, self._on_alive)
-            bus.subscriber(f"ttl/{o.run_id}/errors/*", self._on_error)
-            for stage in self.expected:
-                if stage not in PROGRESS_STAGES and stage in OUTPUT_TOPIC:
-                    bus.subscriber(f"ttl/{o.run_id}/{OUTPUT_TOPIC[stage]}/*", self._on_output)
-            self.say(f"router on {', '.join(listen)}; stages: {', '.join(self.expected)}"
-                     + (f" (external: {', '.join(o.external)})" if o.external else "")
-                     + f"; recordings in {self.run_dir}")
-            for name in reversed(self.expected):  # consumers first, the replayer last
-                if name in o.external:
-                    continue
-                cfg = self.run_dir / f"{name}.config.json"
-                cfg.write_text(json.dumps(self.stage_config(name), indent=2))
-                self.children[name] = _Child(name, cfg, self.run_dir / f"{name}.log")
-                self.start(name)
-            return self._supervise_loop()
+            try:
+                bus = Bus.open(self.session_settings("launcher"))
+            except Exception as exc:
+                raise LaunchError(f"cannot reach the run's router at {self.endpoint}: {exc}") from None
+            with bus:
+                return self._run_on(bus)
+        finally:
+            self.stop_router()
+            self.watch_refusals()
+            if self._watcher is not None and self.credentials is not None:
+                security.dump(self.refused, self.run_dir / "security.jsonl")
+
+    def _run_on(self, bus: Bus) -> int:
+        o = self.opts
+        self.bus = bus
+        bus.track(declare_segment_subscriber(bus.session, f"ttl/{o.run_id}/control/progress/*",
+                                             self._on_progress, history=1))
+        bus.watch_alive(o.run_id, self._on_alive)
+        bus.subscriber(f"ttl/{o.run_id}/errors/*", self._on_error)
+        for stage in self.expected:
+            if stage not in PROGRESS_STAGES and stage in OUTPUT_TOPIC:
+                bus.subscriber(f"ttl/{o.run_id}/{OUTPUT_TOPIC[stage]}/*", self._on_output)
+        security_note = "" if self.credentials is None else f" (mutual TLS, credentials {self.credentials})"
+        self.say(f"router on {', '.join(self.listen)}{security_note}; stages: {', '.join(self.expected)}"
+                 + (f" (external: {', '.join(o.external)})" if o.external else "")
+                 + f"; recordings in {self.run_dir}")
+        for name in reversed(self.expected):  # consumers first, the replayer last
+            if name in o.external:
+                continue
+            cfg = self.run_dir / f"{name}.config.json"
+            cfg.write_text(json.dumps(self.stage_config(name), indent=2))
+            self.children[name] = _Child(name, cfg, self.run_dir / f"{name}.log")
+            self.start(name)
+        return self._supervise_loop()
 
     def _supervise_loop(self) -> int:
         o = self.opts
@@ -478,7 +599,10 @@ class Launcher:
                     abort = "terminated"
                     break
                 self._drain_events()
+                self.watch_refusals()
                 abort = self.supervise()
+                if not abort and self.router is not None and self.router.poll() is not None:
+                    abort = f"the Zenoh router died (exit status {self.router.returncode}; log {self.run_dir / 'router.log'})"
                 if abort:
                     break
                 self.show()
@@ -525,8 +649,21 @@ class Launcher:
             return {"interrupted": 130, "terminated": 143}.get(abort, 1)
         if status == 0:
             files = sorted(p.name for p in self.run_dir.glob("*.mcap")) + sorted(p.name for p in self.run_dir.glob("*.rrd"))
-            self.say(f"done: {total} segments, {len(self.errors)} error report(s); files in {self.run_dir}: {', '.join(files)}")
+            refused = f", {len(self.refused)} refusal(s) by the router (security.jsonl)" if self.refused else ""
+            self.say(f"done: {total} segments, {len(self.errors)} error report(s){refused}; "
+                     f"files in {self.run_dir}: {', '.join(files)}")
         return status
+
+
+def _die_with_parent() -> None:
+    """In a child before exec: receive SIGTERM when the launcher dies (Linux), so that a
+    killed launcher leaves no router behind."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
 
 
 def run(opts: RunOptions, out=None) -> int:

@@ -1,9 +1,9 @@
 """The pipeline's segment messages as :mod:`ttlcore` objects.
 
 A ``telemetry`` message (arrays ``eta``, ``dws_phi``, ``dws_eta``, ``ltt``, each (6, n)) is a
-:class:`ttlcore.telemetry.Telemetry`; a ``tdi`` message (arrays ``data`` (3, n) and
+:class:`ttlcore.io.telemetry.Telemetry`; a ``tdi`` message (arrays ``data`` (3, n) and
 ``regressors`` (3, P, n), meta ``names`` and ``ltt_mean``) is a
-:class:`ttlcore.tdi_data.TDIData`.  Used by the stages on live messages and by the offline
+:class:`ttlcore.tdi.data.TDIData`.  Used by the stages on live messages and by the offline
 tools (``ttl refit``) on recorded ones.
 """
 
@@ -12,21 +12,21 @@ from __future__ import annotations
 import numpy as np
 
 from ttlcore.conventions import COEFFICIENT_NAMES
-from ttlcore.tdi_data import TDIData
-from ttlcore.telemetry import Telemetry
+from ttlcore.tdi.data import TDIData
+from ttlcore.io.telemetry import Telemetry
 
 #: Arrays of a telemetry message.
 TELEMETRY_ARRAYS = ("eta", "dws_phi", "dws_eta", "ltt")
 
 
 def telemetry_of(header, arrays) -> Telemetry:
-    """The :class:`~ttlcore.telemetry.Telemetry` of a ``telemetry`` message."""
+    """The :class:`~ttlcore.io.telemetry.Telemetry` of a ``telemetry`` message."""
     return Telemetry(t0=header.t0, fs=header.fs, source=str(header.meta.get("source", "bus")),
                      **{k: arrays[k] for k in TELEMETRY_ARRAYS})
 
 
 def tdi_of(header, arrays) -> TDIData:
-    """The :class:`~ttlcore.tdi_data.TDIData` of a ``tdi`` message (errors name the field)."""
+    """The :class:`~ttlcore.tdi.data.TDIData` of a ``tdi`` message (errors name the field)."""
     meta = header.meta
     names = tuple(meta.get("names") or COEFFICIENT_NAMES)
     if len(names) != arrays["regressors"].shape[1]:

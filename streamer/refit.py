@@ -5,7 +5,7 @@ The segments come from the run's MCAP files alone: the telemetry the replayer pu
 TDI builder (``tdi_builder.mcap``); files of restarted stages (``<stage>.<n>.mcap``) are
 merged, one copy per segment index.  With the telemetry every effect is available (the
 TDI is recomputed); from TDI outputs alone the model may use ``linear-ttl``, ``drift`` and
-``step``.  The refit is :func:`ttlcore.diagnose.refit`: the model and the baseline (default
+``step``.  The refit is :func:`ttlcore.diagnose.diagnoser.refit`: the model and the baseline (default
 the linear TTL) fitted under the instrument noise model, side by side: chi^2/dof overall
 and per band, delta chi^2 and log Bayes factor of the change, the coefficients.
 """
@@ -17,10 +17,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ttlcore.atomic import write_json
+from ttlcore.io.atomic import write_json
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.errors import TTLError
-from ttlcore.telemetry import Telemetry
+from ttlcore.io.telemetry import Telemetry
 
 from .inspect import recording_files
 from .messages import tdi_of, telemetry_of
@@ -65,7 +65,7 @@ def _select(found: dict[int, tuple], first: int | None, last: int | None) -> lis
 
 def load_run(run_dir, segments: tuple[int | None, int | None] = (None, None), source: str = "auto"):
     """The data of a recorded run for a refit: a :class:`Telemetry` (``source="telemetry"``)
-    or a list of :class:`~ttlcore.tdi_data.TDIData` segments (``"tdi"``); ``"auto"`` prefers
+    or a list of :class:`~ttlcore.tdi.data.TDIData` segments (``"tdi"``); ``"auto"`` prefers
     telemetry.  Returns ``(data, description, dws_asd)`` (the DWS readout-noise level the
     replayer passed down, None when not recorded)."""
     first, last = segments
@@ -93,7 +93,7 @@ def refit_run(run_dir, effects, *, baseline=("linear-ttl",), effect_modules=(), 
               source: str = "auto", band=None) -> dict:
     """Refit a recorded run with ``effects`` against ``baseline`` (see the module docstring);
     returns the JSON report (``source``, ``model``, ``baseline``, ``change``)."""
-    from ttlcore.diagnose import DiagnoseSettings, refit
+    from ttlcore.diagnose.diagnoser import DiagnoseSettings, refit
 
     data, what, dws = load_run(run_dir, segments, source)
     dws = None if dws is None else float(dws)
@@ -173,7 +173,7 @@ def register(sub) -> None:
 def _cmd_refit(args) -> int:
     from .inspect import InspectError
 
-    split = lambda s: [x for x in s.split(",") if x.strip()]  # noqa: E731
+    from ttlcore.cli.diagnose import split_effects as split  # ',' between effects, ';' inside one (as ttl diagnose)
     try:
         report = refit_run(args.run_dir, split(args.effects), baseline=split(args.baseline),
                            effect_modules=args.effect_module, segments=_parse_range(args.segments),

@@ -558,6 +558,8 @@ def stage_arguments(parser: argparse.ArgumentParser | None = None) -> argparse.A
                    help="Zenoh mode (default: client when --connect is given without --listen, as behind "
                         "the router of `ttl run`; else peer)")
     p.add_argument("--zenoh-config", type=Path, help="Zenoh configuration file (JSON5)")
+    p.add_argument("--credentials", type=Path, metavar="DIR",
+                   help="credentials directory: mutual TLS with DIR/<stage>.pem (endpoints tls/...)")
     p.add_argument("--recordings", type=Path, help="recordings directory")
     p.add_argument("--log-level", default="INFO")
     p.add_argument("--log-json", action="store_true", help="log JSON lines")
@@ -580,10 +582,14 @@ def config_from_args(args: argparse.Namespace) -> StageConfig:
         z["listen"] = args.listen
     if args.zenoh_config:
         z["config_file"] = str(args.zenoh_config)
+    if getattr(args, "credentials", None):
+        z["credentials"] = str(args.credentials)
     if getattr(args, "mode", None):
         z["mode"] = args.mode
     elif args.connect and not args.listen and not z.get("mode") and not z.get("config_file"):
         z["mode"] = "client"  # a router routes between its clients, not between peers
+    if z.get("credentials") and not z.get("identity"):
+        z["identity"] = d.get("stage") or getattr(args, "identity", None)  # this stage's certificate
     d["zenoh"] = z
     return StageConfig.from_dict(d)
 
@@ -591,6 +597,7 @@ def config_from_args(args: argparse.Namespace) -> StageConfig:
 def main(stage_class: type[Stage], argv: Sequence[str] | None = None) -> int:
     """Entry point of a stage process: parse options, set up logging, run the stage."""
     args = stage_arguments(argparse.ArgumentParser(prog=f"ttl stage {stage_class.name}")).parse_args(argv)
+    args.identity = stage_class.name
     configure_logging(args.log_level, args.log_json)
     try:
         config = config_from_args(args)

@@ -26,10 +26,10 @@ import time
 import warnings
 from pathlib import Path
 
-#: Jitter ASDs of PHYSICS.md [rad/sqrt(Hz)]: SC (phi, eta, theta) and MOSA (phi, eta).
+#: Jitter ASDs of docs/physics.md [rad/sqrt(Hz)]: SC (phi, eta, theta) and MOSA (phi, eta).
 SC_JITTER_ASDS = (5e-9, 5e-9, 5e-9)
 MOSA_JITTER_ASDS = (2e-9, 1e-9)
-#: lisainstrument's default DWS noise, 70/335 nrad/sqrt(Hz) (as PHYSICS.md).
+#: lisainstrument's default DWS noise, 70/335 nrad/sqrt(Hz) (as docs/physics.md).
 DWS_ASD = 7e-8 / 335
 #: Margin lisainstrument adds to the orbit file's t0 when ``t0="orbits"`` [s].
 ORBIT_T0_MARGIN = 75.0
@@ -120,7 +120,7 @@ def simulate_lisainstrument(
     longitudinal_jitter, clock, modulation, ranging : bool
         Which effects are on.  Clock, modulation and ranging noises are off by default
         (the eta/TDI pipeline does not correct them); everything else follows
-        lisainstrument's "realistic" defaults, with the jitter ASDs of PHYSICS.md.
+        lisainstrument's "realistic" defaults, with the jitter ASDs of docs/physics.md.
     seed : int
         lisainstrument's random seed.
     ttl_coeffs

@@ -18,7 +18,7 @@ import pytest
 from mcap.reader import make_reader
 
 from streamer.recorder import read_recording
-from ttlcore.coefficients import make_coefficients
+from ttlcore.sim.coefficients import make_coefficients
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY
 
 STEP_T = 1.5 * DAY
@@ -27,7 +27,7 @@ STEPPED = ("23.phi.tx", 0.3e-3)
 
 
 def ttl(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "ttlcore.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd)
+    return subprocess.run([sys.executable, "-m", "ttlcore.cli.main", *map(str, args)], capture_output=True, text=True, cwd=cwd)
 
 
 @pytest.fixture(scope="module")
@@ -96,8 +96,8 @@ def test_every_stage_file_holds_every_segment_once_and_reads_back(run):
 
 def test_fit_of_a_window_covering_the_first_day_equals_the_batch_fit(run):
     from streamer.messages import tdi_of
-    from ttlcore.diagnose import concatenate_tdi
-    from ttlcore.fit import FitSettings, fit_tdi
+    from ttlcore.diagnose.diagnoser import concatenate_tdi
+    from ttlcore.estimate.fit import FitSettings, fit_tdi
 
     tdi = sorted(read_recording(run / "tdi_builder.mcap").segments("tdi"), key=lambda s: s.header.index)[:24]
     day = concatenate_tdi([tdi_of(s.header, s.arrays) for s in tdi])

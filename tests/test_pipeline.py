@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import json
 import queue
+import re
 import signal
 import subprocess
 import sys
@@ -30,6 +31,7 @@ from mcap.reader import make_reader
 sys.path.insert(0, str(Path(__file__).with_name("stages")))
 
 from streamer.recorder import read_recording  # noqa: E402
+from streamer.security import ensure_credentials  # noqa: E402
 from streamer.session import Bus, SessionSettings, free_port  # noqa: E402
 from ttl_testutil import (MONITOR, Procs, finish, indices, listening, output, recordings_of,  # noqa: E402
                           stage_processes, ttl_command, wait_for)
@@ -70,6 +72,7 @@ def t1(tmp_path_factory):
 
         wait_for(all_up, 120, "every stage connected to the router")
         sockets["launcher"] = (*listening(psutil.Process(proc.pid)), [])
+        sockets["router"] = (*listening(router_process(proc)), [])
         code = finish(proc, 240)
         yield SimpleNamespace(code=code, out=output(proc), dir=tmp / "rec" / "t1", sockets=sockets,
                               seconds=time.monotonic() - t_start)
@@ -121,25 +124,34 @@ def test_recordings_fit_the_size_budget(t1):
     assert [m.log_time for m in tel] == [int(3600e9) * i for i in range(SEGMENTS)]
 
 
+def router_process(proc) -> psutil.Process:
+    """The Zenoh router child (``ttl router``) of a ``ttl run`` process."""
+    for p in psutil.Process(proc.pid).children():
+        if "router" in p.cmdline():
+            return p
+    raise AssertionError("ttl run started no router process")
+
+
 def test_nothing_listens_beyond_loopback(t1):
-    assert set(t1.sockets) >= set(STAGES) | {"launcher"}
-    launcher_tcp = t1.sockets["launcher"][0]
-    assert launcher_tcp and all(c.laddr.ip == "127.0.0.1" for c in launcher_tcp), launcher_tcp  # the router
-    router_ports = {c.laddr.port for c in launcher_tcp}
+    assert set(t1.sockets) >= set(STAGES) | {"launcher", "router"}
+    router_tcp = t1.sockets["router"][0]
+    assert router_tcp and all(c.laddr.ip == "127.0.0.1" for c in router_tcp), router_tcp
+    router_ports = {c.laddr.port for c in router_tcp}
+    assert re.search(rf"router on tls/127\.0\.0\.1:{router_ports.pop()} \(mutual TLS", t1.out), t1.out[:2000]
     for name, (tcp, udp, connected) in t1.sockets.items():
         assert all(c.laddr.ip == "127.0.0.1" for c in tcp), (name, tcp)
         assert all(c.laddr.ip == "127.0.0.1" for c in udp), (name, udp)  # no multicast scouting
-        if name != "launcher":
+        if name != "router":
             assert not tcp, (name, tcp)  # a client listens on nothing
             assert all(c.raddr.ip == "127.0.0.1" and c.raddr.port in router_ports for c in connected), (name, connected)
 
 
 def test_message_contracts_and_streaming_equals_batch(t1):
-    from ttlcore.coefficients import make_coefficients
+    from ttlcore.sim.coefficients import make_coefficients
     from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
-    from ttlcore.fit import FitSettings, fit_tdi
-    from ttlcore.tdi_data import TDIData, compute_tdi
-    from ttlcore.telemetry import Telemetry
+    from ttlcore.estimate.fit import FitSettings, fit_tdi
+    from ttlcore.tdi.data import TDIData, compute_tdi
+    from ttlcore.io.telemetry import Telemetry
 
     tel = read_recording(t1.dir / "replayer.mcap").segments("telemetry")
     h = tel[0].header
@@ -181,7 +193,7 @@ def test_message_contracts_and_streaming_equals_batch(t1):
     assert summary["index"] == SEGMENTS - 1 and summary["fit"]["window"]["segments"] == SEGMENTS
     assert fits.schemas["fit/summary"][0] == "ttl.Fit"
     # coefficients near the truth (paper set, 2.3 mm/rad scale): within 5 sigma
-    from ttlcore.coefficients import paper_set
+    from ttlcore.sim.coefficients import paper_set
     truth = np.asarray(paper_set(), dtype=float)
     assert np.all(np.abs(last.arrays["coefficients"] - truth) < 5 * last.arrays["sigma"])
 
@@ -218,11 +230,13 @@ def _progress_watch(bus, run, stage):
 
 def test_stage_killed_and_restarted_mid_run_misses_nothing(t1, tmp_path):
     assert t1.code == 0
-    port = free_port()
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    creds = ensure_credentials(tmp_path / "creds")
     procs = Procs(tmp_path)
     try:
-        proc = procs.ttl(*run_args("t2", tmp_path / "rec", "--restart", "1", "--listen", f"tcp/127.0.0.1:{port}"))
-        with Bus.open(SessionSettings(connect=(f"tcp/127.0.0.1:{port}",))) as bus:
+        proc = procs.ttl(*run_args("t2", tmp_path / "rec", "--restart", "1", "--listen", endpoint,
+                                   "--credentials", creds))
+        with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="control")) as bus:
             time.sleep(0.5)
             done = _progress_watch(bus, "t2", "tdi_builder")
             wait_for(lambda: done() >= 4 or proc.poll() is not None, 90, "4 segments through the tdi_builder")
@@ -265,22 +279,22 @@ def test_stage_killed_and_restarted_mid_run_misses_nothing(t1, tmp_path):
 def test_late_joiner_catches_up_from_the_caches(stage, tmp_path):
     if stage == "monitor" and not MONITOR:
         pytest.skip("no monitor stage")
-    port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    creds = ensure_credentials(tmp_path / "creds")
     rec = tmp_path / "rec"
     procs = Procs(tmp_path)
     others = ["--skip", "monitor"] if stage != "monitor" else []
     try:
         proc = procs.ttl("run", "--simulate", "--duration 6h --orbit unequal --seed 2", "--segment", "30min",
                          "--run-id", "t3", "--recordings", str(rec), "--external", stage,
-                         "--cache", "16", "--listen", endpoint, "--timeout", "200", *others)
-        with Bus.open(SessionSettings(mode="client", connect=(endpoint,))) as bus:
+                         "--cache", "16", "--listen", endpoint, "--credentials", creds, "--timeout", "200", *others)
+        with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="control")) as bus:
             time.sleep(0.5)
             replayed = _progress_watch(bus, "t3", "replayer")
             wait_for(lambda: replayed() >= SEGMENTS // 2 or proc.poll() is not None, 90, "half the replay")
             assert proc.poll() is None, output(proc)[-3000:]
             late = procs.ttl("stage", stage, "--run", "t3", "--connect", endpoint, "--recordings", str(rec),
-                             name=stage)
+                             "--credentials", creds, name=stage)
             code = finish(proc, 240)
             assert finish(late, 60) == 0, output(late)[-3000:]
     finally:
@@ -304,7 +318,7 @@ def test_late_joiner_catches_up_from_the_caches(stage, tmp_path):
         fits = [row[0]["segment"] for row in ent["/coefficients/12/phi_rx/fit"] if "Scalars:scalars" in row[1]]
         assert sorted(fits) == list(range(SEGMENTS))
         # a simulation on the fly: the truth drawn is the simulation's coefficient model (paper set)
-        from ttlcore.coefficients import paper_set
+        from ttlcore.sim.coefficients import paper_set
         truth = [row[1]["Scalars:scalars"][0] for row in ent["/coefficients/12/phi_rx/truth"] if "Scalars:scalars" in row[1]]
         assert len(truth) == SEGMENTS and np.allclose(truth, paper_set()[0] * 1e3)
 
@@ -329,9 +343,10 @@ def test_errors_name_the_problem_in_one_line(tmp_path):
 
 def test_router_listens_on_loopback_only(tmp_path):
     port = free_port()
+    creds = ensure_credentials(tmp_path / "creds")
     procs = Procs(tmp_path)
     try:
-        router = procs.ttl("router", "--listen", f"tcp/127.0.0.1:{port}", name="router")
+        router = procs.ttl("router", "--listen", f"tls/127.0.0.1:{port}", "--credentials", creds, name="router")
         wait_for(lambda: router.poll() is not None or listening(psutil.Process(router.pid))[0], 30, "the router")
         tcp, udp = listening(psutil.Process(router.pid))
         assert [(c.laddr.ip, c.laddr.port) for c in tcp] == [("127.0.0.1", port)] and not udp

@@ -26,8 +26,9 @@ OUTPUT = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit", "subtr
 
 
 def test_lisainstrument_file_replayed_through_the_pipeline(tmp_path):
-    from ttlcore.tdi_data import compute_tdi
-    from ttlcore.telemetry import Telemetry, read_telemetry
+    from ttlcore.tdi.data import compute_tdi
+    from ttlcore.io.telemetry import Telemetry
+    from ttlcore.io.reader import read_telemetry
 
     li = tmp_path / "measurements.h5"
     simulate_lisainstrument(li, duration=2 * 3600 + 600, orbits="static", seed=5)  # margin for its t0 handling

@@ -1,6 +1,6 @@
 """Index conventions, physical constants and unit conversions.
 
-Everything here follows ``PHYSICS.md`` (and therefore lisainstrument and pytdi):
+Everything here follows ``docs/physics.md`` (and therefore lisainstrument and pytdi):
 
 - Spacecraft 1, 2, 3.  MOSA ``ij`` sits on spacecraft ``i`` and points at ``j``.
 - Link ``ij`` is the beam received at spacecraft ``i`` from ``j``; its light travel
@@ -112,7 +112,7 @@ def ffd_to_hz(y):
 def ffd_to_displacement_asd(asd_y, f):
     """ASD of fractional frequency [1/sqrt(Hz)] -> displacement ASD [m/sqrt(Hz)].
 
-    ``ASD_x(f) = c * ASD_y(f) / (2 pi f)`` (PHYSICS.md, units).
+    ``ASD_x(f) = c * ASD_y(f) / (2 pi f)`` (docs/physics.md, units).
     """
     return C * np.asarray(asd_y) / (2 * np.pi * np.asarray(f))
 

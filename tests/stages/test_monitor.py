@@ -27,8 +27,8 @@ from streamer.session import Bus, SessionSettings, free_port
 from streamer.stage import StageConfig
 
 from ttlcore.conventions import C, COEFFICIENT_NAMES, MOSAS
-from ttlcore.fit import DEFAULT_BAND
-from ttlcore.truth import CORE_DATASETS, TruthWriter
+from ttlcore.estimate.fit import DEFAULT_BAND
+from ttlcore.io.truth import CORE_DATASETS, TruthWriter
 
 RUN = "monitor-test"
 HOUR = 3600.0

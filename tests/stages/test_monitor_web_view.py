@@ -42,11 +42,11 @@ def draw_recording(path: Path) -> None:
 
     from stages import monitor_views as views
     from stages.monitor import band_ratio, reference_curves, x_asd
-    from ttlcore.coefficients import paper_set
     from ttlcore.conventions import COEFFICIENT_NAMES
-    from ttlcore.fit import DEFAULT_BAND
-    from ttlcore.simulator import SimulationConfig, simulate
-    from ttlcore.tdi_data import compute_tdi
+    from ttlcore.sim.coefficients import paper_set
+    from ttlcore.estimate.fit import DEFAULT_BAND
+    from ttlcore.sim.simulator import SimulationConfig, simulate
+    from ttlcore.tdi.data import compute_tdi
 
     tm, _ = simulate(SimulationConfig(duration=3 * 3600, orbit="keplerian", seed=3))
     td = compute_tdi(tm)

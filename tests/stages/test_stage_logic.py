@@ -12,8 +12,8 @@ from stages.replayer import FileSource, Replayer, make_source, simulation_config
 from stages.subtractor import Subtractor
 from streamer.stage import StageConfig
 from ttlcore.errors import ConfigError, TelemetryError
-from ttlcore.telemetry import Telemetry, write_telemetry
-from ttlcore.truth import truth_path
+from ttlcore.io.telemetry import Telemetry, write_telemetry
+from ttlcore.io.truth import truth_path
 
 
 def sample(msg: dict):
@@ -151,7 +151,7 @@ def test_run_options_merge_config_file_and_command_line(tmp_path):
     from pathlib import Path
 
     from streamer.cli import run_options
-    from ttlcore.cli import build_parser
+    from ttlcore.cli.main import build_parser
 
     (tmp_path / "run.toml").write_text('run_id = "from-file"\nsimulate = "--duration 6h"\nsegment = "30min"\n'
                                        'window = 3\nskip = ["monitor"]\nfit_window = "6h"\n'

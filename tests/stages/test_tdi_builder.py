@@ -14,8 +14,8 @@ from streamer.keys import topic_pattern
 from streamer.recorder import read_recording
 from streamer.session import Bus, SessionSettings, free_port
 from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
-from ttlcore.tdi_data import TDIStream
-from ttlcore.telemetry import Telemetry
+from ttlcore.tdi.data import TDIStream
+from ttlcore.io.telemetry import Telemetry
 from ttl_testutil import indices, output, wait_for
 
 RUN = "tdi-stage"

@@ -24,7 +24,7 @@ from streamer_testutil import ROOT, wait_for
 from streamer.codec import encode
 from streamer.inspect import InspectError, format_report, inspect_run, view_command
 from streamer.recorder import Recorder, read_recording
-from ttlcore.cli import main as ttl_main
+from ttlcore.cli.main import main as ttl_main
 from ttlcore.conventions import COEFFICIENT_NAMES
 
 RUN = "r1"
@@ -252,7 +252,7 @@ def test_inspect_a_killed_and_restarted_stage_process(tmp_path):
             if p.poll() is None:
                 p.kill()
                 p.wait(10)
-    out = subprocess.run([sys.executable, "-m", "ttlcore.cli", "inspect", str(rec_dir / "r2"), "--json"],
+    out = subprocess.run([sys.executable, "-m", "ttlcore.cli.main", "inspect", str(rec_dir / "r2"), "--json"],
                          capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stderr
     r = json.loads(out.stdout)

@@ -1,0 +1,130 @@
+"""The import graph of the three packages: layered and without cycles.
+
+``ttlcore`` is the science library and must be usable without the bus: it imports neither
+``streamer`` nor ``stages``; ``streamer`` (the plumbing) does not import ``stages`` (the
+programs).  No module imports, directly or through others, a module that imports it back:
+every import is followed, at module level and inside functions alike, so a cycle cannot be
+hidden by moving an import into a function.  Imports inside functions are allowed only for
+optional or heavy outside packages (figures, viewers, outside references).
+"""
+
+from __future__ import annotations
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+PACKAGES = ("ttlcore", "streamer", "stages")
+#: outside packages that may be imported inside a function (optional, or slow to import)
+LAZY_ALLOWED = {"matplotlib", "rerun", "rerun_cli", "lisainstrument", "lisaorbits", "lisagwresponse", "healpy",
+                "pytdi", "dask", "distributed", "emcee", "tqdm", "rich", "cryptography"}
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for pkg in PACKAGES:
+        for path in (ROOT / pkg).rglob("*.py"):
+            parts = list(path.relative_to(ROOT).with_suffix("").parts)
+            if parts[-1] == "__main__":
+                continue
+            if parts[-1] == "__init__":
+                parts = parts[:-1]
+            out[".".join(parts)] = path
+    return out
+
+
+def _resolve(module: str, is_package: bool, node: ast.ImportFrom) -> str:
+    if node.level == 0:
+        return node.module or ""
+    base = module.split(".") if is_package else module.split(".")[:-1]
+    base = base[: len(base) - (node.level - 1)]
+    return ".".join(base + ([node.module] if node.module else []))
+
+
+def _imports(modules: dict[str, Path]):
+    """(module, imported internal module, line, inside a function) for every import."""
+    for name, path in modules.items():
+        tree = ast.parse(path.read_text(), str(path))
+        is_package = path.name == "__init__.py"
+        in_function = set()
+        for fn in ast.walk(tree):
+            if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                in_function.update(id(n) for n in ast.walk(fn) if n is not fn)
+        for node in ast.walk(tree):
+            targets = []
+            if isinstance(node, ast.Import):
+                targets = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom):
+                base = _resolve(name, is_package, node)
+                targets = [f"{base}.{a.name}" if f"{base}.{a.name}" in modules else base for a in node.names]
+            for target in targets:
+                yield name, target, node.lineno, id(node) in in_function
+
+
+def test_layers():
+    modules = _modules()
+    wrong = [f"{modules[m].relative_to(ROOT)}:{line} imports {t}" for m, t, line, _ in _imports(modules)
+             if (m.split(".")[0] == "ttlcore" and t.split(".")[0] in ("streamer", "stages"))
+             or (m.split(".")[0] == "streamer" and t.split(".")[0] == "stages")]
+    assert not wrong, "layering broken:\n" + "\n".join(wrong)
+
+
+def test_no_cycles():
+    modules = _modules()
+    graph: dict[str, set[str]] = {m: set() for m in modules}
+    for m, t, _, _ in _imports(modules):
+        # importing a.b.c runs a/__init__ and a/b/__init__ first: those are edges too
+        parts = t.split(".")
+        for k in range(1, len(parts) + 1):
+            target = ".".join(parts[:k])
+            if target in modules and target != m and not m.startswith(target + "."):
+                graph[m].add(target)
+    # Tarjan's strongly connected components
+    index, low, stack, on, sccs, counter = {}, {}, [], set(), [], [0]
+
+    def visit(v):
+        index[v] = low[v] = counter[0]
+        counter[0] += 1
+        stack.append(v)
+        on.add(v)
+        for w in graph[v]:
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                sccs.append(sorted(comp))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    assert not sccs, "import cycles:\n" + "\n".join(" <-> ".join(c) for c in sccs)
+
+
+def test_imports_at_the_top():
+    modules = _modules()
+    lazy = []
+    for name, path in modules.items():
+        tree = ast.parse(path.read_text(), str(path))
+        for fn in ast.walk(tree):
+            if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for node in ast.walk(fn):
+                if isinstance(node, ast.Import):
+                    heads = [a.name.split(".")[0] for a in node.names]
+                elif isinstance(node, ast.ImportFrom):
+                    heads = [(node.module or "").split(".")[0] if node.level == 0 else "(relative)"]
+                else:
+                    continue
+                if any(h not in LAZY_ALLOWED for h in heads):
+                    lazy.append(f"{path.relative_to(ROOT)}:{node.lineno}")
+    assert not lazy, f"{len(lazy)} imports inside functions (move them to the top):\n" + "\n".join(lazy)

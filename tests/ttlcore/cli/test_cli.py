@@ -1,0 +1,97 @@
+"""The `ttl` command line: simulate, info, and one-line errors for bad input."""
+
+import subprocess
+import sys
+
+import h5py
+import numpy as np
+import pytest
+
+from ttlcore.io.reader import read_telemetry
+from ttlcore.io.truth import read_truth
+
+
+def ttl(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "ttlcore.cli.main", *map(str, args)], capture_output=True, text=True, cwd=cwd)
+
+
+@pytest.fixture(scope="module")
+def hour_file(tmp_path_factory):
+    out = tmp_path_factory.mktemp("sim") / "hour.h5"
+    r = ttl("simulate", "--duration", "1h", "--orbit", "keplerian", "--coeffs", "lisainstrument",
+            "--seed", 4, "--out", out, "--drift", "12.phi.rx=0.05", "--step", "30min:13.eta.tx=0.3")
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+def test_simulate_writes_telemetry_and_truth(hour_file):
+    tm = read_telemetry(hour_file)
+    assert tm.size == 14400 and tm.fs == 4.0
+    assert np.all(np.isfinite(tm.eta))
+    truth = read_truth(hour_file.with_name("hour.truth.h5"))
+    from ttlcore.conventions import COEFFICIENT_NAMES
+    j = COEFFICIENT_NAMES.index("13.eta.tx")
+    assert truth.coefficients[j, 0] == pytest.approx(-0.0 + 1.960050e-03)
+    assert truth.coefficients[j, -1] == pytest.approx(1.960050e-03 + 0.3e-3)
+    assert tm.config["orbit"] == "keplerian"
+    # no leftover temporary files
+    assert sorted(p.name for p in hour_file.parent.iterdir()) == ["hour.h5", "hour.truth.h5"]
+
+
+def test_info_text_and_json(hour_file):
+    r = ttl("info", hour_file)
+    assert r.returncode == 0 and "14400 samples" in r.stdout and "truth file" in r.stdout
+    r = ttl("info", "--json", hour_file)
+    assert r.returncode == 0 and '"kind": "ttl"' in r.stdout
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["simulate", "--duration", "abc", "--out", "x.h5"], "duration"),
+        (["simulate", "--orbit", "moon", "--out", "x.h5"], "moon"),
+        (["simulate", "--coeffs", "nope", "--out", "x.h5"], "nope"),
+        (["simulate", "--noises", "all,-lazer", "--out", "x.h5"], "lazer"),
+        (["simulate", "--drift", "12.phi.xx=1", "--out", "x.h5"], "12.phi.xx"),
+        (["info", "does-not-exist.h5"], "does-not-exist.h5"),
+    ],
+)
+def test_bad_arguments_give_one_line(tmp_path, args, needle):
+    r = ttl(*args, cwd=tmp_path)
+    assert r.returncode == 2
+    assert needle in r.stderr
+    assert "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert not any(tmp_path.iterdir())  # nothing half-written
+
+
+def _copy(src, dst):
+    dst.write_bytes(src.read_bytes())
+    return dst
+
+
+def test_truncated_file(hour_file, tmp_path):
+    bad = tmp_path / "truncated.h5"
+    data = hour_file.read_bytes()
+    bad.write_bytes(data[: len(data) // 2])
+    r = ttl("info", bad)
+    assert r.returncode == 2 and "truncated.h5" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_missing_dataset(hour_file, tmp_path):
+    bad = _copy(hour_file, tmp_path / "missing.h5")
+    with h5py.File(bad, "a") as f:
+        del f["dws/phi"]
+    r = ttl("info", bad)
+    assert r.returncode == 2 and "missing.h5" in r.stderr and "dws/phi" in r.stderr
+
+
+def test_wrong_sampling_attribute(hour_file, tmp_path):
+    bad = _copy(hour_file, tmp_path / "fs.h5")
+    with h5py.File(bad, "a") as f:
+        f.attrs["fs"] = 2.0  # duration and size say 4 Hz
+    r = ttl("info", bad)
+    assert r.returncode == 2 and "fs.h5" in r.stderr and "@fs" in r.stderr
+    with h5py.File(bad, "a") as f:
+        f.attrs["fs"] = -4.0
+    r = ttl("info", bad)
+    assert r.returncode == 2 and "@fs" in r.stderr

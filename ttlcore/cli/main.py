@@ -1,0 +1,375 @@
+"""The ``ttl`` command: dispatches to science subcommands (here) and operations
+subcommands (``streamer.cli``, when that package is installed).
+
+Science subcommands: ``simulate``, ``info``.  Errors print one line naming the file,
+dataset or option at fault and exit with status 2; no tracebacks for user errors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from ..conventions import COEFFICIENT_NAMES, DAY, parse_duration
+from ..errors import TTLError
+
+log = logging.getLogger("ttl")
+
+
+class Progress:
+    """Minimal progress display on stderr (a bar on terminals, a line every 10 % otherwise)."""
+
+    def __init__(self, label: str, enabled: bool = True, stream=None):
+        self.label = label
+        self.enabled = enabled
+        self.stream = stream or sys.stderr
+        self.start = time.monotonic()
+        self._last_decile = -1
+        self._tty = hasattr(self.stream, "isatty") and self.stream.isatty()
+
+    def __call__(self, done: int, total: int) -> None:
+        if not self.enabled or total <= 0:
+            return
+        frac = done / total
+        elapsed = time.monotonic() - self.start
+        eta = elapsed / frac - elapsed if frac > 0 else float("nan")
+        if self._tty:
+            bar = "#" * int(30 * frac)
+            self.stream.write(f"\r{self.label} [{bar:<30}] {100 * frac:5.1f}% {elapsed:6.1f}s elapsed, {eta:6.1f}s left")
+            if done >= total:
+                self.stream.write("\n")
+        else:
+            decile = int(10 * frac)
+            if decile > self._last_decile or done >= total:
+                self._last_decile = decile
+                self.stream.write(f"{self.label}: {100 * frac:.0f}% ({elapsed:.1f} s)\n")
+        self.stream.flush()
+
+
+def _parse_assignments(text: str, option: str) -> dict[str, float]:
+    """``"12.phi.rx=0.05,13.eta.tx=-0.02"`` -> mapping (values as given)."""
+    out = {}
+    for item in filter(None, (s.strip() for s in text.split(","))):
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise TTLError(f"{option}: expected NAME=VALUE, got {item!r}")
+        if name not in COEFFICIENT_NAMES:
+            raise TTLError(f"{option}: unknown coefficient {name!r}; names look like '12.phi.rx' ('<mosa>.<phi|eta>.<rx|tx>')")
+        try:
+            out[name] = float(value)
+        except ValueError:
+            raise TTLError(f"{option}: bad number {value!r} for {name}") from None
+    return out
+
+
+# ---------------------------------------------------------------------------
+# ttl simulate
+# ---------------------------------------------------------------------------
+
+def add_simulation_options(p) -> None:
+    """The options that define a simulation (``ttl simulate`` and ``ttl run --simulate``)."""
+    p.add_argument("--duration", default="1d", help="length, e.g. 1d, 6h, 30min or seconds (default 1d)")
+    p.add_argument("--orbit", default="unequal", help="equal | unequal (paper's static arms) | keplerian | lisaorbits FILE (default unequal)")
+    p.add_argument("--coeffs", default="paper", help="paper (2.3 mm/rad) | lisainstrument | random | JSON FILE (default paper)")
+    p.add_argument("--seed", type=int, default=0, help="master random seed (default 0)")
+    p.add_argument("--t0", type=float, default=0.0, help="mission time of the first sample [s] (default 0)")
+    p.add_argument("--fs", type=float, default=4.0, help="telemetry sampling rate [Hz] (default 4)")
+    p.add_argument("--noises", default="all", help="noises on: 'all', 'none', or a list like 'all,-laser,-dws' "
+                   "(laser, oms, backlink, telescope, test_mass, sc_jitter, mosa_jitter, dws, ttl)")
+    p.add_argument("--drift", default="", metavar="NAME=MM_PER_DAY,...", help="linear coefficient drifts in mm/rad per day")
+    p.add_argument("--step", action="append", default=[], metavar="T:NAME=MM,...",
+                   help="coefficient step at mission time T (s, or e.g. 1.5d) of MM mm/rad; repeatable")
+    p.add_argument("--order", type=int, default=31, help="Lagrange interpolation order of the delays (odd, default 31)")
+    p.add_argument("--gw", default="", metavar="SOURCES", help="gravitational waves to inject, comma-separated: "
+                   "hmcnc, ztfj1539, vb, galaxy, sgwb, mbhb1, mbhb2 (merging mid-run), all, or a lisagwresponse "
+                   "FILE[:tps/y|tcb/y] (docs/gw.md)")
+    p.add_argument("--inject", action="append", default=[], metavar="EFFECT[:key=value,...]",
+                   help="model effect to inject (truth in the truth file only), e.g. drift:12.phi.rx=2e-3 or "
+                   "timing-offset:sc1.d1=0.05; repeatable (docs/diagnostics.md)")
+    p.add_argument("--effect-module", action="append", default=[], metavar="PATH",
+                   help="Python file (or module) defining user effects for --inject; repeatable")
+
+
+def simulation_config_from_args(args, truth_noises=()):
+    """A :class:`~ttlcore.sim.simulator.SimulationConfig` from the options of
+    :func:`add_simulation_options`; errors name the option at fault."""
+    from ..sim.coefficients import make_coefficients
+    from ..sim.orbits import make_orbit
+    from ..sim.simulator import NoiseSwitches, SimulationConfig
+
+    try:
+        duration = parse_duration(args.duration)
+    except ValueError as exc:
+        raise TTLError(f"--duration: {exc}") from None
+    coeffs = make_coefficients(args.coeffs, seed=args.seed)
+    if args.drift:
+        coeffs = coeffs.with_drift({k: v * 1e-3 for k, v in _parse_assignments(args.drift, "--drift").items()})
+    for step in args.step:
+        when, sep, rest = step.partition(":")
+        if not sep:
+            raise TTLError(f"--step: expected T:NAME=MM,..., got {step!r}")
+        try:
+            t_step = parse_duration(when) if when.strip() not in ("0", "0.0") else 0.0
+        except ValueError as exc:
+            raise TTLError(f"--step: {exc}") from None
+        coeffs = coeffs.with_step(t_step, {k: v * 1e-3 for k, v in _parse_assignments(rest, "--step").items()})
+    make_orbit(args.orbit)  # validate early: clear error before any work
+    gw = ()
+    if getattr(args, "gw", ""):
+        from ..gw.injection import parse_gw_spec
+
+        gw = parse_gw_spec(args.gw, t0=args.t0, duration=duration, seed=args.seed)
+    return SimulationConfig(
+        duration=duration, t0=args.t0, fs=args.fs, orbit=args.orbit, coefficients=coeffs, seed=args.seed,
+        noises=NoiseSwitches.parse(args.noises), interpolation_order=args.order, truth_noises=tuple(truth_noises),
+        injections=tuple(gw) + _effect_injections(args),
+    )
+
+
+def _effect_injections(args) -> tuple:
+    """The ``--inject`` options as simulator injections (:mod:`ttlcore.diagnose.effects`)."""
+    if not getattr(args, "inject", None):
+        return ()
+    from ..diagnose.effects import injection_from_spec
+
+    out = []
+    for spec in args.inject:
+        try:
+            out.append(injection_from_spec(spec, getattr(args, "effect_module", ()) or ()))
+        except TTLError as exc:
+            raise TTLError(f"--inject {spec}: {exc}") from None
+    return tuple(out)
+
+
+def _add_simulate(sub) -> None:
+    p = sub.add_parser(
+        "simulate",
+        help="simulate mission telemetry (eta, DWS, delays) and its truth file",
+        description="Simulate LISA telemetry at the eta level with TTL coupling (docs/physics.md). "
+        "Writes OUT and OUT's truth file (day.h5 -> day.truth.h5).",
+    )
+    add_simulation_options(p)
+    p.add_argument("--out", required=True, help="telemetry file to write (HDF5)")
+    p.add_argument("--truth-noises", default="", help="noise components to store alone in the truth file, "
+                   "comma-separated (laser, oms, backlink, telescope, test_mass, dws_phi, dws_eta) or 'all'")
+    p.add_argument("--chunk", default="3h", help="simulation chunk length (memory bound; the result does not depend on it)")
+    p.add_argument("--quiet", action="store_true", help="no progress display")
+    p.set_defaults(func=_cmd_simulate)
+
+
+def _cmd_simulate(args) -> int:
+    from ..sim.simulator import simulate_to_file
+    from ..io.truth import NOISE_COMPONENTS
+
+    try:
+        chunk = parse_duration(args.chunk)
+    except ValueError as exc:
+        raise TTLError(f"--chunk: {exc}") from None
+    truth_noises = tuple(NOISE_COMPONENTS) if args.truth_noises == "all" else tuple(
+        s.strip() for s in args.truth_noises.split(",") if s.strip()
+    )
+    out = Path(args.out)
+    if out.parent and not out.parent.exists():
+        raise TTLError(f"--out: directory {out.parent} does not exist")
+    config = simulation_config_from_args(args, truth_noises)
+    duration = config.duration
+    progress = Progress(f"simulate {out.name}", enabled=not args.quiet)
+    tpath, rpath = simulate_to_file(config, out, chunk_size=int(round(chunk * args.fs)), progress=progress)
+    print(f"wrote {tpath} ({config.size} samples, {duration / DAY:g} d at {args.fs:g} Hz) and {rpath}")
+    return 0
+
+
+# ---------------------------------------------------------------------------
+# ttl info
+# ---------------------------------------------------------------------------
+
+def _add_info(sub) -> None:
+    p = sub.add_parser("info", help="summarise a telemetry file (ours or lisainstrument's) or a truth file")
+    p.add_argument("file", help="HDF5 file")
+    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    p.set_defaults(func=_cmd_info)
+
+
+def _rms(x: np.ndarray) -> list[float]:
+    return [float(v) for v in np.sqrt(np.mean(np.square(x), axis=-1))]
+
+
+def summarise(path) -> dict:
+    """Summary of a telemetry or truth file as a JSON-serialisable dict."""
+    from ..conventions import LINKS
+    from ..io.reader import file_kind, read_telemetry
+    from ..io.truth import read_truth, truth_path
+
+    kind = file_kind(path)
+    if kind == "truth":
+        tr = read_truth(path)
+        return {
+            "file": str(path), "kind": "truth", "t0": tr.t0, "fs": tr.fs, "size": tr.size, "duration_s": tr.size / tr.fs,
+            "datasets": ["ttl", "coefficients", "angles", "angular_velocity"] + [f"noises/{n}" for n in tr.noises]
+            + [f"injections/{n}" for n in tr.injections],
+            "coefficients_mean_mm_per_rad": dict(zip(COEFFICIENT_NAMES, (1e3 * tr.mean_coefficients()).round(6).tolist())),
+            "ttl_rms": dict(zip(LINKS, _rms(tr.ttl))),
+            "injections_rms": {n: float(np.sqrt(np.mean(np.square(v)))) for n, v in tr.injections.items()},
+        }
+    tm = read_telemetry(path)
+    summary = {
+        "file": str(path),
+        "kind": kind,
+        "t0": tm.t0,
+        "fs": tm.fs,
+        "size": tm.size,
+        "duration_s": tm.duration,
+        "eta_rms": dict(zip(LINKS, _rms(tm.eta))),
+        "dws_phi_rms_rad_per_s": dict(zip(LINKS, _rms(tm.dws_phi))),
+        "dws_eta_rms_rad_per_s": dict(zip(LINKS, _rms(tm.dws_eta))),
+        "ltt_min_s": dict(zip(LINKS, np.min(tm.ltt, axis=1).tolist())),
+        "ltt_max_s": dict(zip(LINKS, np.max(tm.ltt, axis=1).tolist())),
+        "config": tm.config,
+    }
+    tp = truth_path(path)
+    summary["truth_file"] = str(tp) if tp.exists() else None
+    return summary
+
+
+def _cmd_info(args) -> int:
+    s = summarise(args.file)
+    if args.json:
+        print(json.dumps(s, indent=2, default=str))
+        return 0
+    from ..conventions import LINKS
+
+    print(f"{s['file']}: {s['kind']} file")
+    print(f"  t0 {s['t0']:.3f} s, fs {s['fs']:g} Hz, {s['size']} samples = {s['duration_s'] / 3600:.3f} h")
+    if s["kind"] == "truth":
+        print("  datasets: " + ", ".join(s["datasets"]))
+        print("  mean coefficients [mm/rad]: " + " ".join(f"{k}={v:+.4f}" for k, v in s["coefficients_mean_mm_per_rad"].items()))
+        return 0
+    cfg = s["config"]
+    if cfg.get("orbit"):
+        print(f"  orbit {cfg.get('orbit')}, seed {cfg.get('seed')}, noises on: "
+              + ", ".join(k for k, v in cfg.get("noises", {}).items() if v))
+    print("  link    eta RMS      DWS phi RMS   DWS eta RMS   ltt [s]")
+    for link in LINKS:
+        print(f"  {link}   {s['eta_rms'][link]:.3e}   {s['dws_phi_rms_rad_per_s'][link]:.3e}     "
+              f"{s['dws_eta_rms_rad_per_s'][link]:.3e}     {s['ltt_min_s'][link]:.6f} .. {s['ltt_max_s'][link]:.6f}")
+    print(f"  truth file: {s['truth_file'] or 'none beside it'}")
+    return 0
+
+
+# ---------------------------------------------------------------------------
+# ttl analyze
+# ---------------------------------------------------------------------------
+
+def _add_analyze(sub) -> None:
+    from ..estimate.fit import DEFAULT_BAND, FitSettings
+
+    p = sub.add_parser(
+        "analyze",
+        help="fit the TTL coefficients of a telemetry file, subtract them, write fit.json and figures",
+        description="Batch analysis of one telemetry file (ours or lisainstrument's): TDI, fit of the 24 TTL "
+        "coefficients, subtraction in the time domain. Writes DIR/fit.json, DIR/asd_X.png and "
+        "DIR/coefficients.png. The truth (our truth file, or for lisainstrument data the lisainstrument "
+        "file itself) is only used for comparisons, never by the fit.",
+    )
+    p.add_argument("data", help="telemetry file (HDF5: ours or a lisainstrument measurement file)")
+    p.add_argument("--truth", default=None, help="truth file (day.truth.h5), or for lisainstrument data the "
+                   "lisainstrument file (its static coefficients; no TTL residual then)")
+    p.add_argument("--band", nargs=2, metavar=("FMIN", "FMAX"), default=None,
+                   help=f"fit band in Hz (default {DEFAULT_BAND[0]:g} {DEFAULT_BAND[1]:g})")
+    p.add_argument("--method", default="gls", help="gls (default) | mcmc")
+    p.add_argument("--segment", default=None, help="FFT segment length of the fit, e.g. 6h, 1h or seconds "
+                   f"(default {FitSettings().segment_duration:g} s)")
+    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created)")
+    p.add_argument("--quiet", action="store_true", help="no progress messages")
+    p.set_defaults(func=_cmd_analyze)
+
+
+def _cmd_analyze(args) -> int:
+    from ..estimate.analyze import analyze, check_band, check_method
+    from ..estimate.fit import DEFAULT_BAND, FitSettings
+
+    method = check_method(args.method)
+    band = tuple(DEFAULT_BAND) if args.band is None else check_band(args.band)
+    settings = FitSettings(band=band)
+    if args.segment is not None:
+        try:
+            settings.segment_duration = parse_duration(args.segment)
+        except ValueError as exc:
+            raise TTLError(f"--segment: {exc}") from None
+    start = time.monotonic()
+
+    def progress(msg: str) -> None:
+        if not args.quiet:
+            print(f"ttl analyze: {msg} ({time.monotonic() - start:.1f} s)", file=sys.stderr, flush=True)
+
+    out = analyze(args.data, truth_path=args.truth, band=band, method=method, out_dir=args.out,
+                  settings=settings, progress=progress)
+    res, js = out["fit"], out["fit_json"]
+    print(f"{args.data}: {method} fit of {len(res.names)} coefficients over {res.n_segments} segments of "
+          f"{settings.segment_duration:g} s, {band[0]:g}-{band[1]:g} Hz: chi2/dof {res.chi2_dof:.3f}, "
+          f"median sigma {1e3 * np.median(res.sigma):.4f} mm/rad")
+    if "error" in js:
+        err = np.array(list(js["error"].values()))
+        worst = max(js["error"], key=lambda k: abs(js["error"][k]))
+        print(f"  truth ({js['truth_source']}): max |error| {1e3 * np.max(np.abs(err)):.4f} mm/rad ({worst}), "
+              f"RMS {1e3 * np.sqrt(np.mean(err ** 2)):.4f} mm/rad, normalised chi2 {js['normalised_chi2']:.1f} for {err.size}")
+    req = js.get("asd_x_vs_requirement", {}).get("residual")
+    if req:
+        print(f"  residual X / requirement in band: median {req['median']:.2f}, max {req['max']:.2f} at {req['f_max']:.3g} Hz")
+    for note in js.get("notes", []):
+        print(f"  note: {note}")
+    print("  wrote " + ", ".join(str(p) for p in out["paths"].values()))
+    return 0
+
+
+# ---------------------------------------------------------------------------
+# entry point
+# ---------------------------------------------------------------------------
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="ttl", description="Tilt-to-length noise subtraction for LISA")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    _add_simulate(sub)
+    _add_info(sub)
+    _add_analyze(sub)
+    from .diagnose import add_parser as _add_diagnose
+
+    _add_diagnose(sub)
+    from ..gw.scenarios import add_parser as _add_scenarios
+
+    _add_scenarios(sub)
+    try:  # operations subcommands live beside the plumbing, if installed
+        from streamer import cli as streamer_cli  # type: ignore
+    except ImportError:
+        streamer_cli = None
+    if streamer_cli is not None:
+        streamer_cli.register(sub)
+    return parser
+
+
+def main(argv=None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    try:
+        return int(args.func(args) or 0)
+    except (TTLError, ValueError, OSError) as exc:
+        print(f"ttl {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print(f"ttl {args.command}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

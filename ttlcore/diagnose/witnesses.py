@@ -1,0 +1,271 @@
+"""Witness search: which series built from the telemetry explain the fit residual?
+
+(docs/diagnostics.md), in the spirit of LIGO's brute-force coherence tool.  A
+generic library of candidate witnesses (:func:`witness_library`) is built from the DWS
+readouts, ``w = -DWS / c`` for each of the 12 channels (6 MOSAs x phi, eta):
+
+- ``dws``: each channel placed on each of the six links, undelayed and delayed by one and
+  two light travel times of that link;
+- ``derivative``: the time derivative of each channel on each link, undelayed and delayed
+  by one light travel time;
+- ``product``: ``d/dt (a b)`` for the angle pairs of each MOSA (phi phi, eta eta, phi eta,
+  angles integrated from the DWS), on the MOSA's rx and tx placements;
+- ``time``: ``(t - t_mid) / T w`` on the rx and tx placements (a drift);
+- ``step``: ``H(t - t_s) w`` on the rx and tx placements, ``t_s`` at the segment
+  boundaries and midpoints (a step).
+
+Each witness goes through TDI with the static-arm frequency response of its link
+(:func:`ttlcore.tdi.combinations.link_responses`, with the extra delay as a phase factor) - exact for
+static arms and good to ``2 pi f dtau ~ 1e-3`` over a segment for Keplerian ones, ample for
+ranking - and is compared with the *whitened* fit residual ``L^H r`` (the same noise model
+as the adequacy test).  Per band ``g`` and witness ``x`` with whitened TDI spectrum ``u``:
+
+    b_g = sum_{s, f in g} u^H r,   n_g = sum |u|^2,   rr_g = sum |r|^2,
+    delta_chi2_g = 2 (Re b_g)^2 / n_g,      coherence_g = |b_g|^2 / (n_g rr_g),
+
+the drop in chi^2 when the witness is added alone with one real coefficient per band,
+and the band-averaged coherence (any phase).  The search needs no noise level: the
+coherence is scale-free.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..conventions import ANGLES, C, LINKS, MOSAS, reverse
+from ..estimate.spectra import segment_fft
+from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
+
+
+def _responses(f, ltt_mean) -> np.ndarray:
+    """A, E, T response to a unit signal on each link: (m, 3, 6)."""
+    h = np.stack([link_responses(c, f, ltt_mean) for c in MICHELSON])  # (3, 6, m)
+    return np.einsum("ia,alm->mil", AET_MATRIX, h)
+
+
+def witness_library(tm, dg) -> tuple[list[dict], dict]:
+    """The witness descriptions and the raw segment spectra they are built from.
+
+    Parameters
+    ----------
+    tm : Telemetry
+    dg : :class:`ttlcore.diagnose.diagnoser.Diagnoser`
+        Gives the segments (times, length, window, bins) of the residual spectra.
+
+    Returns
+    -------
+    list of dict
+        ``{"name", "family", "series", "link", "delay" [s], "derivative"}``.
+    dict
+        ``series key -> spectra (S, m)`` (4-Hz telemetry over the residual's segments).
+    """
+    fs = tm.fs
+    t = tm.t0 + np.arange(tm.size) / fs
+    L = int(round(dg.seg_duration * fs))
+    from ..estimate.spectra import window
+
+    win = window(dg.settings.window, L)
+    ltt = dict(zip(LINKS, dg.ltt_mean))
+
+    def spectra(x):
+        out = np.zeros((len(dg.seg_t0), dg.f.size), dtype=complex)
+        for i, t0 in enumerate(dg.seg_t0):
+            i0 = int(round((t0 - tm.t0) * fs))
+            seg = np.zeros(L)
+            a, b = max(i0, 0), min(i0 + L, tm.size)
+            if b > a:
+                seg[a - i0:b - i0] = x[a:b]
+            f, X = segment_fft(seg, fs, win)
+            out[i] = np.interp(dg.f, f, X.real) + 1j * np.interp(dg.f, f, X.imag)
+        return out
+
+    raw: dict = {}
+    lib: list[dict] = []
+    vel = {"phi": np.asarray(tm.dws_phi), "eta": np.asarray(tm.dws_eta)}
+    angles = {a: np.cumsum(vel[a], axis=1) / fs for a in ANGLES}
+    t_mid = 0.5 * (t[0] + t[-1])
+    T = max(t[-1] - t[0], 1.0)
+    boundaries = list(dg.seg_t0[1:]) + [t0 + dg.seg_duration / 2 for t0 in dg.seg_t0]
+    for m in MOSAS:
+        k = MOSAS.index(m)
+        for a in ANGLES:
+            key = f"{m}.{a}"
+            w = -vel[a][k] / C
+            raw[key] = spectra(w)
+            for link in LINKS:
+                for n_delay in (0, 1, 2):
+                    lib.append({"name": f"dws {key} on {link}" + (f" delayed {n_delay}L" if n_delay else ""), "family": "dws",
+                                "series": key, "link": link, "delay": n_delay * ltt[link], "derivative": False,
+                                "spec": witness_spec(key, link, n_delay)})
+                for n_delay in (0, 1):
+                    lib.append({"name": f"d/dt dws {key} on {link}" + (" delayed 1L" if n_delay else ""),
+                                "family": "derivative", "series": key, "link": link, "delay": n_delay * ltt[link],
+                                "derivative": True, "spec": witness_spec(key, link, n_delay, derivative=True)})
+            raw[f"time {key}"] = spectra((t - t_mid) / T * w)
+            for side, link, dl in (("rx", m, 0.0), ("tx", reverse(m), ltt[reverse(m)])):
+                lib.append({"name": f"t x dws {key} ({side})", "family": "time", "series": f"time {key}", "link": link,
+                            "delay": dl, "derivative": False, "spec": f"drift:mosas={m};angles={a};sides={side}"})
+                for ts in boundaries:
+                    skey = f"step {ts:.0f} {key}"
+                    if skey not in raw:
+                        raw[skey] = spectra((t >= ts) * w)
+                    lib.append({"name": f"H(t - {(ts - tm.t0) / 3600:.1f} h) x dws {key} ({side})", "family": "step",
+                                "series": skey, "link": link, "delay": dl, "derivative": False, "t_step": float(ts),
+                                "spec": f"step:t_step={ts:.0f};mosas={m};angles={a};sides={side}"})
+        for pair in ("phiphi", "etaeta", "phieta"):
+            a, b = pair[:3], pair[3:]
+            x = -(vel[a][k] * angles[b][k] + angles[a][k] * vel[b][k]) / C
+            key = f"{m}.{pair}"
+            raw[key] = spectra(x)
+            for side, link, dl in (("rx", m, 0.0), ("tx", reverse(m), ltt[reverse(m)])):
+                lib.append({"name": f"d/dt({a} {b}) {m} ({side})", "family": "product", "series": key, "link": link,
+                            "delay": dl, "derivative": False, "spec": witness_spec(key, link, 0 if side == "rx" else 1)})
+    return lib, raw
+
+
+def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
+    """Rank the witness library against ``model``'s whitened residual, per band.
+
+    Returns
+    -------
+    dict
+        ``{"n_witnesses", "bands": [{"f_lo", "f_hi", "top": [{"name", "family",
+        "delta_chi2", "coherence"}]}], "overall": [...], "coherence_spectra": {...}}``;
+        each ``overall`` entry holds ``peak_frequency`` [Hz] and ``peak_coherence``, the
+        maximum of its coherence with the residual smoothed over ~2 % of ``f`` (30 log bins
+        per decade);
+        ``overall`` ranks by the sum of the per-band delta chi^2 (divided by the segments'
+        variance factor, so that a witness unrelated to the residual gives about one per
+        band).
+    """
+    lib, raw = witness_library(tm, dg)
+    H = _responses(dg.f, dg.ltt_mean)  # (m, 3, 6)
+    hw = np.matmul(dg.Lh, H)  # whitened responses (m, 3, 6)
+    r = model.residual_w  # (S, m, 3)
+    g_link = np.einsum("mil,smi->sml", hw.conj(), r)  # (S, m, 6)
+    n_link = np.sum(np.abs(hw) ** 2, axis=1)  # (m, 6)
+    G = dg.G
+    bidx = dg.band_index
+    onehot = np.zeros((dg.f.size, G))
+    onehot[np.arange(dg.f.size), bidx] = 1.0
+    rr = np.einsum("smi,mg->g", np.abs(r) ** 2, onehot)
+    omega = 2 * np.pi * dg.f
+    dchi2 = np.zeros((len(lib), G))
+    coh = np.zeros((len(lib), G))
+    per_series: dict = {}
+    for key, X in raw.items():  # the sums over segments, once per series and link
+        per_series[key] = (np.einsum("sm,sml->ml", np.conj(X), g_link), np.sum(np.abs(X) ** 2, axis=0))
+    for i, w in enumerate(lib):
+        B, P = per_series[w["series"]]
+        li = LINKS.index(w["link"])
+        b = B[:, li]
+        n = P * n_link[:, li]
+        if w["derivative"]:  # conj(i omega X) = -i omega conj(X)
+            b = b * (-1j * omega)
+            n = n * omega ** 2
+        if w["delay"]:  # conj(X exp(-i omega delay)) = conj(X) exp(+i omega delay)
+            b = b * np.exp(1j * omega * w["delay"])
+        bsum = b @ onehot
+        nsum = n @ onehot
+        with np.errstate(invalid="ignore", divide="ignore"):
+            dchi2[i] = np.where(nsum > 0, 2 * bsum.real ** 2 / nsum, 0.0) / dg.kappa
+            coh[i] = np.where(nsum > 0, np.abs(bsum) ** 2 / (nsum * rr), 0.0)
+    bands = []
+    for g in range(G):
+        order = np.argsort(-dchi2[:, g])[:top]
+        bands.append({"f_lo": float(dg.edges[g]), "f_hi": float(dg.edges[g + 1]),
+                      "top": [{"name": lib[i]["name"], "family": lib[i]["family"], "spec": lib[i]["spec"],
+                               "delta_chi2": float(dchi2[i, g]),
+                               "coherence": float(coh[i, g])} for i in order]})
+    total = dchi2.sum(axis=1)
+    order = np.argsort(-total)[:top]
+    overall = [{"name": lib[i]["name"], "family": lib[i]["family"], "spec": lib[i]["spec"], "delta_chi2": float(total[i]),
+                "best_band": [float(dg.edges[int(np.argmax(dchi2[i]))]), float(dg.edges[int(np.argmax(dchi2[i])) + 1])],
+                "coherence_max": float(coh[i].max())} for i in order]
+    # coherence spectra of the top witnesses (running mean over ~2 % of f): the frequency of
+    # each one's peak, and the curves of the first ``coherence_of`` for the figure
+    spectra = {}
+    rrf = (np.abs(r) ** 2).sum(axis=(0, 2))
+    grid = _log_grid(dg.f)
+    for k, i in enumerate(order):
+        w = lib[i]
+        B, P = per_series[w["series"]]
+        li = LINKS.index(w["link"])
+        b, n = B[:, li], P * n_link[:, li]
+        if w["derivative"]:
+            b, n = b * (-1j * omega), n * omega ** 2
+        if w["delay"]:
+            b = b * np.exp(1j * omega * w["delay"])
+        curve = _smoothed_coherence(dg.f, b, n, rrf)
+        vals = np.array([-1.0 if v is None else v for v in curve])
+        overall[k]["peak_frequency"] = float(grid[int(np.argmax(vals))])
+        overall[k]["peak_coherence"] = float(vals.max())
+        if k < coherence_of:
+            spectra[w["name"]] = curve
+    return {"n_witnesses": len(lib), "families": sorted({w["family"] for w in lib}), "bands": bands,
+            "overall": overall, "coherence_spectra": {"f": _log_grid(dg.f).tolist(), "curves": spectra}}
+
+
+def witness_spec(source: str, link: str, n_delay: int = 0, derivative: bool = False) -> str:
+    """The ``--effects`` spelling of a library witness as an effect
+    (:class:`ttlcore.diagnose.effects.WitnessEffect`): ``witness:source=12.phi;link=23;delay=1``."""
+    opts = [f"source={source}"]
+    if link != source.split(".")[0]:
+        opts.append(f"link={link}")
+    if n_delay:
+        opts.append(f"delay={n_delay}")
+    if derivative:
+        opts.append("derivative=1")
+    return "witness:" + ";".join(opts)
+
+
+def witness_candidates(report: dict, top: int = 3, modules=()) -> list:
+    """Effects to try from a witness search (:func:`witness_search`).
+
+    The overall ranking's first ``top`` witnesses as witness effects (time and step
+    witnesses as ``drift`` and ``step`` restricted to their channel and side); for the
+    DWS channel and link of the best DWS witness, frequency-dependent couplings with a
+    searched pole pair placed undelayed and after one and two light travel times (a
+    coupling's phase and a delay look alike over a band: the evidence decides), and with a
+    searched real pole at the witness's own delay; for the second DWS channel and link in
+    the ranking, the pole pair at its delay."""
+    from .effects import make_effects
+
+    specs: list = []
+    placements: list = []
+    for w in report.get("overall", []):
+        spec = w.get("spec")
+        if spec and len(specs) < top and spec not in specs:
+            specs.append(spec)
+        if w["family"] in ("dws", "derivative") and spec:
+            opts = dict(o.split("=", 1) for o in spec.split(":", 1)[1].split(";"))
+            key = (opts["source"], opts.get("link", opts["source"].split(".")[0]))
+            if key not in [p[:2] for p in placements]:
+                placements.append((*key, int(opts.get("delay", 0))))
+    for i, (src, link, n) in enumerate(placements[:2]):
+        where = f"source={src}" + (f";link={link}" if link != src.split(".")[0] else "")
+        for d in ((0, 1, 2) if i == 0 else (n,)):
+            specs.append(f"fd-coupling:{where}" + (f";delay={d}" if d else ""))
+        if i == 0:
+            specs.append(f"fd-coupling:{where}" + (f";delay={n}" if n else "") + ";filter=pole1")
+            # a coupling that changes in time (composition with a drift)
+            specs.append(f"witness:{where}" + (f";delay={n}" if n else "") + ";vary=drift")
+    return make_effects([s.replace(";", ",") for s in dict.fromkeys(specs)], modules)
+
+
+def _log_grid(f, per_decade: int = 30):
+    return np.geomspace(f[0], f[-1], int(np.log10(f[-1] / f[0]) * per_decade) + 1)
+
+
+def _smoothed_coherence(f, b, n, rr, per_decade: int = 30) -> list:
+    grid = _log_grid(f, per_decade)
+    idx = np.clip(np.searchsorted(grid, f) , 0, grid.size - 1)
+    out = []
+    for k in range(grid.size):
+        sel = idx == k
+        if not sel.any():
+            out.append(None)
+            continue
+        den = n[sel].sum() * rr[sel].sum()
+        out.append(float(np.abs(b[sel].sum()) ** 2 / den) if den > 0 else None)
+    return out

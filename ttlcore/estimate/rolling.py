@@ -1,0 +1,291 @@
+"""Rolling-window fit for streaming operations: the same estimator as the batch analysis.
+
+:class:`RollingFit` takes TDI outputs one telemetry segment at a time (as the streaming
+TDI builder produces them), and keeps, for the last ``window_duration`` seconds, the
+band-limited spectra of fixed FFT segments.  Each new FFT segment triggers a refit with
+:func:`ttlcore.estimate.fit.fit_spectra` over the window -- the very function the batch
+:func:`ttlcore.estimate.fit.fit_tdi` calls -- so a window covering exactly the span of a batch
+analysis (same settings) gives the same result to rounding.
+
+To make that hold sample for sample, the streaming path reproduces the batch
+preprocessing exactly:
+
+- A, E, T from X2, Y2, Z2;
+- the anti-alias low-pass and decimation of :meth:`ttlcore.tdi.data.TDIData.decimated`
+  (same causal FIR, outputs on the same global sample grid, the filter's memory carried
+  between segments, outputs touched by invalid input marked invalid);
+- FFT segments on the same grid (every ``segment_duration`` of decimated samples from
+  the first one), spectra by :func:`ttlcore.estimate.fit.spectra_of_segment`;
+- the mean light travel times of the window (segment means, equal-length segments).
+
+Update cost
+-----------
+Two kinds of refit (``FitResult.extra["update"]``):
+
+- **full**: :func:`ttlcore.estimate.fit.fit_spectra` over the window's stored spectra - the batch
+  estimator, noise CSD re-estimated and iterated; its cost grows with the window.
+- **incremental**: the new FFT segment's normal equations and sandwich scores with the
+  weights (inverse noise CSD) and notches of the last full refit are added to per-segment
+  sums, those of the segment leaving the window subtracted, and the sums solved - the work
+  of one segment whatever the window's length.  The estimate is the GLS estimate of the
+  window with weights lagging by up to ``full_every``: unbiased, within a small fraction of
+  sigma of the full refit (weights change slowly), its covariance the sandwich of the sums
+  (each segment's scores taken at the estimate when it entered the window).
+
+A full refit runs when the window's end lies a multiple of ``full_every`` seconds after the
+start of the stream (default 6 h: at the end of every day of data, so that a window
+covering exactly a day equals the batch fit of that day to rounding), while the window
+holds fewer than 6 FFT segments, and whenever the weights no longer fit (another frequency
+grid); ``full_every=None`` makes every refit full.  ``bench/rolling.py`` measures, on a
+Keplerian day and a half (1-h FFT segments, one-day window), the CPU time of both kinds of
+update and how far the incremental estimates are from full refits of the same windows
+(measured: 0.041 s against 0.39 s for a full refit, medians; within 0.31 sigma once the
+window holds half a day, 0.38 sigma while it fills; sigmas within 1.9 %).  No time series of the window are kept or re-transformed.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+from scipy import signal
+
+from ..conventions import COEFFICIENT_NAMES
+from .fit import (FitResult, FitSettings, NormalEquations, SegmentSpectra, _result, accumulate, fit_spectra,
+                  score_matrix, solve, spectra_of_segment)
+from ..tdi.data import TDIData, lowpass_taps
+
+log = logging.getLogger(__name__)
+
+
+class StreamingDecimator:
+    """Causal FIR low-pass and decimation by ``factor`` of consecutive blocks.
+
+    Output ``k`` is ``sum_j h[j] x[factor * k - j]`` on the global input index, exactly as
+    the batch filter; inputs that are not finite are taken as zero and every output whose
+    filter span touches one is set to NaN.
+    """
+
+    def __init__(self, taps: np.ndarray, factor: int):
+        self.h = np.asarray(taps, dtype=float)
+        self.factor = int(factor)
+        self.n_in = 0  # global index of the next input sample
+        self._tail = None  # last len(h) - 1 inputs (zeros before the start)
+        self._bad_tail = None
+
+    def push(self, x: np.ndarray) -> np.ndarray:
+        """Filter the block ``x`` (shape ``(..., m)``); returns its decimated outputs."""
+        x = np.asarray(x, dtype=float)
+        m = x.shape[-1]
+        L = self.h.size
+        bad = ~np.isfinite(x).reshape(-1, m).all(axis=0)
+        x = np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
+        if self._tail is None:
+            self._tail = np.zeros(x.shape[:-1] + (L - 1,))
+            self._bad_tail = np.zeros(L - 1, dtype=bool)
+        ext = np.concatenate([self._tail, x], axis=-1)
+        bad_ext = np.concatenate([self._bad_tail, bad])
+        y = signal.oaconvolve(ext, self.h.reshape((1,) * (x.ndim - 1) + (-1,)), mode="valid", axes=-1)
+        spoiled = np.convolve(bad_ext.astype(float), np.ones(L), mode="valid") > 0
+        first = (-self.n_in) % self.factor  # first output on the global decimation grid
+        y = y[..., first :: self.factor]
+        spoiled = spoiled[first :: self.factor]
+        y[..., spoiled] = np.nan
+        self._tail = ext[..., -(L - 1) :]
+        self._bad_tail = bad_ext[-(L - 1) :]
+        self.n_in += m
+        return y
+
+
+@dataclass
+class _Pending:
+    data: list
+    regressors: list
+    n: int = 0
+
+
+class RollingFit:
+    """Rolling one-day (by default) TTL fit fed with TDI segments.
+
+    Parameters
+    ----------
+    settings : FitSettings
+        As for the batch fit; ``segment_duration`` is the FFT segment (a refit follows
+        each completed one) and should divide the telemetry segments' length.
+    window_duration : float
+        Length of the window [s] (default one day).
+    names : sequence of str
+        Regressor names (default the 24 coefficients).
+    full_every : float or None
+        Mission-time period [s] of the full refits (module docstring); None: always full.
+
+    Example
+    -------
+    >>> rf = RollingFit(FitSettings(segment_duration=3600))
+    >>> for td in tdi_segments:          # TDIData of consecutive telemetry segments
+    ...     result = rf.push(td)          # FitResult over the window, or None
+    """
+
+    #: Full refits while the window holds fewer FFT segments than this.
+    MIN_INCREMENTAL = 6
+
+    def __init__(self, settings: FitSettings | None = None, window_duration: float = 86400.0,
+                 names=COEFFICIENT_NAMES, full_every: float | None = 21600.0):
+        self.settings = settings or FitSettings(segment_duration=3600.0)
+        self.window_duration = float(window_duration)
+        self.names = tuple(names)
+        if full_every is not None and not full_every > 0:
+            raise ValueError(f"full_every must be positive or None, got {full_every}")
+        self.full_every = full_every
+        self.reset()
+
+    def reset(self) -> None:
+        """Forget everything (after a gap in the data)."""
+        self._decimator: StreamingDecimator | None = None
+        self._fs_in = None
+        self._t0_out = None  # time of decimated output sample 0
+        self._n_out = 0  # decimated samples produced so far
+        self._pending = _Pending([], [])
+        self._spectra: deque[SegmentSpectra] = deque()
+        self._ltt: deque[np.ndarray] = deque()
+        self._ltt_blocks: list = []
+        self._sums: deque[tuple[NormalEquations, np.ndarray]] = deque()  # per segment, lagged weights
+        self._weights: dict | None = None  # internals of the last full refit
+        self.last: FitResult | None = None
+        self.last_decimated: TDIData | None = None
+
+    @property
+    def n_segments(self) -> int:
+        """FFT segments currently in the window."""
+        return len(self._spectra)
+
+    def push(self, td: TDIData, ltt_mean: np.ndarray | None = None) -> FitResult | None:
+        """Add one TDI segment; refit if an FFT segment was completed.
+
+        Parameters
+        ----------
+        td : TDIData
+            TDI outputs of the next telemetry segment (X2/Y2/Z2 or A/E/T).
+        ltt_mean : ndarray (6,), optional
+            Mean light travel times over this segment (default ``td.ltt_mean``).
+
+        Returns
+        -------
+        FitResult or None
+            The fit over the current window, or None when no FFT segment completed.
+        """
+        s = self.settings
+        td = td.to_aet()
+        if self._decimator is None:
+            self._fs_in = td.fs
+            factor = int(round(td.fs / 2.0)) if (s.decimate and td.fs > 2.0) else 1
+            taps = lowpass_taps(td.fs) if factor > 1 else np.ones(1)
+            self._decimator = StreamingDecimator(taps, factor)
+            self._factor = factor
+            self._t0_out = td.t0 - (taps.size - 1) / 2 / td.fs
+        elif td.fs != self._fs_in:
+            raise ValueError(f"segment at t0={td.t0}: fs {td.fs} differs from {self._fs_in}")
+        stacked = np.concatenate([td.data[:, None, :], td.regressors], axis=1)  # (3, 1 + P, n)
+        out = self._decimator.push(stacked)
+        fs_out = self._fs_in / self._factor
+        ltt_seg = np.asarray(ltt_mean if ltt_mean is not None else td.ltt_mean)
+        #: the segment low-passed and decimated (A, E, T; NaN where the filter saw invalid input)
+        self.last_decimated = TDIData(t0=self._t0_out + (self._n_out + self._pending.n) / fs_out, fs=fs_out,
+                                      channels=("A", "E", "T"), data=out[:, 0], regressors=out[:, 1:],
+                                      names=td.names, ltt_mean=ltt_seg)
+        self._pending.data.append(out[:, 0])
+        self._pending.regressors.append(out[:, 1:])
+        self._pending.n += out.shape[-1]
+        self._ltt_blocks.append((ltt_seg, td.size))
+        L = int(round(s.segment_duration * fs_out))
+        result = None
+        while self._pending.n >= L:
+            data = np.concatenate(self._pending.data, axis=-1)
+            regs = np.concatenate(self._pending.regressors, axis=-1)
+            t0 = self._t0_out + self._n_out / fs_out
+            sp = spectra_of_segment(data[:, :L], regs[:, :, :L], t0, fs_out, s.band, s.window)
+            self._n_out += L
+            self._pending = _Pending([data[:, L:]], [regs[:, :, L:]], data.shape[-1] - L)
+            weights = np.array([n for _, n in self._ltt_blocks], dtype=float)
+            self._ltt.append(np.average(np.stack([m for m, _ in self._ltt_blocks]), axis=0, weights=weights))
+            self._ltt_blocks = []
+            if sp is None:
+                log.info("FFT segment at t0=%.1f has less than half valid samples: skipped", t0)
+                continue
+            self._spectra.append(sp)
+            while self._spectra and self._spectra[-1].t0 + self._spectra[-1].duration - self._spectra[0].t0 > self.window_duration + 1e-6:
+                self._spectra.popleft()
+                if len(self._sums) > len(self._spectra) - 1:
+                    self._sums.popleft()
+            while len(self._ltt) > len(self._spectra):
+                self._ltt.popleft()
+            result = self._refit()
+        return result
+
+    def _full_due(self) -> bool:
+        if self.full_every is None or self._weights is None or len(self._spectra) < self.MIN_INCREMENTAL:
+            return True
+        if len(self._sums) != len(self._spectra) - 1 or self._spectra[-1].f.size != self._weights["f_size"]:
+            return True
+        # FFT segments tile the time from the first output sample of the stream (t0 of the
+        # telemetry minus the low-pass delay): count from there
+        elapsed = self._spectra[-1].t0 + self._spectra[-1].duration - self._t0_out
+        return abs(elapsed / self.full_every - round(elapsed / self.full_every)) * self.full_every < 1e-3
+
+    def _refit(self) -> FitResult:
+        ltt_mean = np.mean(np.stack(self._ltt), axis=0)
+        if self._full_due():
+            res, internals = fit_spectra(list(self._spectra), ltt_mean, self.settings, self.names)
+            res.extra["update"] = "full"
+            if self.full_every is not None:
+                self._keep_weights(internals, res.coefficients)
+        else:
+            res = self._update()
+        self.last = res
+        return res
+
+    # ---------------------------------------------------------------- incremental updates
+    def _masked(self, sp: SegmentSpectra) -> SegmentSpectra:
+        keep = self._weights["notch"]
+        if keep is None:
+            return sp
+        return SegmentSpectra(sp.t0, sp.duration, sp.f[keep], sp.d[keep], sp.R[keep], sp.valid_fraction)
+
+    def _segment_sums(self, sp: SegmentSpectra, C: np.ndarray) -> tuple[NormalEquations, np.ndarray]:
+        """Normal equations and sandwich scores of one segment with the kept weights."""
+        w = self._weights
+        sp = self._masked(sp)
+        neq = accumulate([sp], w["weights"], w["band_edges"], self.names, w["eiv_response"], w["dws_psd"])
+        return neq, score_matrix([sp], w["weights"], C)
+
+    def _keep_weights(self, internals: dict, C: np.ndarray) -> None:
+        """After a full refit: its weights, and the per-segment sums of the window with them."""
+        self._weights = {k: internals[k] for k in ("weights", "notch", "eiv_response", "dws_psd", "band_edges",
+                                                   "variance_factor")}
+        self._weights["f_size"] = self._spectra[-1].f.size
+        self._sums = deque(self._segment_sums(sp, C) for sp in self._spectra)
+
+    def _update(self) -> FitResult:
+        """GLS of the window from the per-segment sums with the lagged weights (one segment's work)."""
+        s, w = self.settings, self._weights
+        C_prev = self.last.coefficients if self.last is not None else np.zeros(len(self.names))
+        self._sums.append(self._segment_sums(self._spectra[-1], C_prev))
+        total = self._sums[0][0]
+        M = self._sums[0][1]
+        for neq, m in list(self._sums)[1:]:
+            total, M = total + neq, M + m
+        C, cov = solve(total, eiv=s.eiv)
+        kappa = w["variance_factor"]
+        cov_model = kappa * cov
+        N, _, _ = total.total(s.eiv)
+        Ninv = np.linalg.inv(N)
+        cov_robust = kappa * Ninv @ M @ Ninv
+        cov_robust = 0.5 * (cov_robust + cov_robust.T)
+        chi2 = total.chi2_per_band(C, eiv=s.eiv)
+        res = _result(self.names, C, cov_robust if s.robust_covariance else cov_model, chi2, total, s, "gls",
+                      s.eiv, 0, True, list(self._spectra))
+        res.extra.update(update="incremental", variance_factor=kappa, covariance_model_based=cov_model.tolist(),
+                         sigma_ratio_robust_to_model=float(np.median(np.sqrt(np.diag(cov_robust) / np.diag(cov_model)))))
+        return res

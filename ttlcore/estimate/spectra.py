@@ -1,0 +1,124 @@
+"""Spectral estimates: segment FFTs for the fit, the Welch ASD (the one estimator of the
+package: figures, scenarios, monitor) and log-frequency averaging for plots.
+
+Normalisation of :func:`segment_fft`: for a stationary series with one-sided PSD ``S(f)``,
+
+    X(f_k) = sqrt(2 / (fs * sum(w^2))) * sum_n w_n x_n exp(-2 pi i k n / N)
+
+has ``E|X(f_k)|^2 = S(f_k)`` (away from leakage), so cross-spectral matrices of ``X`` are
+directly in PSD units and ``X^H S^-1 X`` is a chi^2-like quantity.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy import fft as sp_fft
+from scipy import signal
+
+
+def window(name: str, n: int) -> np.ndarray:
+    """Window of length ``n``: ``"rect"``, ``"hann"``, ``"tukey:<alpha>"``, or any scipy name."""
+    if name in ("rect", "boxcar", "none"):
+        return np.ones(n)
+    if name.startswith("tukey"):
+        alpha = float(name.split(":", 1)[1]) if ":" in name else 0.1
+        return signal.windows.tukey(n, alpha)
+    return signal.get_window(name, n, fftbins=True)
+
+
+def segment_fft(x: np.ndarray, fs: float, win: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Windowed, PSD-normalised rFFT along the last axis.
+
+    Returns
+    -------
+    f : ndarray, shape (n // 2 + 1,)
+    X : ndarray, shape (..., n // 2 + 1), complex
+    """
+    x = np.asarray(x)
+    n = x.shape[-1]
+    scale = np.sqrt(2.0 / (fs * np.sum(win ** 2)))
+    return sp_fft.rfftfreq(n, 1 / fs), scale * sp_fft.rfft(x * win, axis=-1, workers=-1)
+
+
+def default_nperseg(n: int, fs: float, max_seconds: float = 16384.0) -> int:
+    """Welch segment: 2^16 samples at 4 Hz (4.6 h) or the largest power of two giving at
+    least three half-overlapping segments."""
+    cap = int(2 ** np.floor(np.log2(max(max_seconds * fs, 16))))
+    fit = int(2 ** np.floor(np.log2(max(n / 2, 16))))
+    return max(16, min(cap, fit))
+
+
+def welch_asd(x, fs: float, nperseg: int | None = None, window_name: str = "hann"):
+    """One-sided Welch ASD (50 % overlap) along the last axis; returns ``(f, asd)``.
+
+    Samples (columns) that are not finite in every row are dropped first.  Each segment
+    loses its *window-weighted* mean: scipy's default ``detrend="constant"`` removes the
+    plain mean, which for TDI outputs (no power at DC, large power at high frequency) is
+    dominated by the segment edges' high-frequency content; the window then leaks that
+    spurious offset into the first bins, which after the ``1/f`` displacement conversion
+    stand orders of magnitude above the true ASD.  The weighted mean zeroes the windowed
+    DC exactly instead.
+
+    Parameters
+    ----------
+    x : array_like, shape (..., n)
+    fs : float
+        Sampling rate [Hz].
+    nperseg : int, optional
+        Segment length in samples (default: the whole series).
+    window_name : str
+        scipy window name.
+    """
+    x = np.asarray(x)
+    x = x[..., np.all(np.isfinite(np.atleast_2d(x)), axis=0)] if x.ndim > 1 else x[np.isfinite(x)]
+    nperseg = int(min(nperseg or x.shape[-1], x.shape[-1]))
+    w = signal.get_window(window_name, nperseg)
+    w = w / w.sum()
+
+    def detrend(seg):
+        return seg - np.tensordot(seg, w, axes=(-1, 0))[..., None]
+
+    f, p = signal.welch(x, fs=fs, window=window_name, nperseg=nperseg, noverlap=nperseg // 2, detrend=detrend,
+                        axis=-1)
+    return f, np.sqrt(p)
+
+
+def log_average(f: np.ndarray, y: np.ndarray, per_decade: int = 40, fmin: float | None = None):
+    """Average ``y`` (PSD or ASD^2-like, last axis over ``f``) in log-spaced frequency bins.
+
+    Used for plots: at low frequency each bin keeps its own value, at high frequency many
+    bins are averaged.  Returns ``(f_centres, y_averaged)`` for non-empty bins.
+    """
+    f = np.asarray(f)
+    y = np.asarray(y)
+    pos = f > 0
+    fmin = fmin or f[pos][0]
+    edges = 10 ** np.arange(np.log10(fmin), np.log10(f[-1]) + 1 / per_decade, 1 / per_decade)
+    idx = np.digitize(f, edges)
+    fc, out = [], []
+    for k in np.unique(idx[pos]):
+        sel = pos & (idx == k)
+        fc.append(np.exp(np.mean(np.log(f[sel]))))
+        out.append(np.mean(y[..., sel], axis=-1))
+    return np.array(fc), np.moveaxis(np.array(out), 0, -1)
+
+
+def smooth_csd(csd: np.ndarray, half_width: int) -> np.ndarray:
+    """Running mean of a (m, k, k) cross-spectral matrix over ``2 half_width + 1`` bins."""
+    if half_width <= 0:
+        return csd
+    kernel = np.ones(2 * half_width + 1)
+    num = signal.oaconvolve(csd, kernel[:, None, None], mode="same", axes=0)
+    den = np.convolve(np.ones(csd.shape[0]), kernel, mode="same")
+    return num / den[:, None, None]
+
+
+def smooth_csd_variable(csd: np.ndarray, half_widths: np.ndarray) -> np.ndarray:
+    """Running mean of a (m, k, k) matrix over bins ``[i - w_i, i + w_i]`` (clipped to the
+    data), with a half-width ``w_i`` per bin (e.g. growing with frequency)."""
+    m = csd.shape[0]
+    w = np.asarray(half_widths, dtype=int)
+    lo = np.clip(np.arange(m) - w, 0, m)
+    hi = np.clip(np.arange(m) + w + 1, 0, m)
+    cs = np.concatenate([np.zeros((1,) + csd.shape[1:], dtype=csd.dtype), np.cumsum(csd, axis=0)])
+    return (cs[hi] - cs[lo]) / (hi - lo)[:, None, None]

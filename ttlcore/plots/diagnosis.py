@@ -1,0 +1,88 @@
+"""Figures of ``ttl diagnose``: residual against the expected noise per band, coherence of
+the top witnesses (docs/diagnostics.md)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..conventions import ffd_to_displacement_asd
+from .batch import _save
+from ..estimate.spectra import log_average
+
+
+def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.02, fine: dict | None = None) -> Path:
+    """Residual ASD of A, E and T (displacement) against the noise model (fitted or fixed),
+    and chi^2/dof per band, for each fitted model in ``fits`` (label -> ModelFit); ``fine``
+    (label -> :class:`~ttlcore.diagnose.adequacy.BandTable`, third-octave bands) adds the
+    finer localisation of the failures."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9, 10))
+    axes = [fig.add_subplot(4, 1, k + 1) for k in range(4)]
+    f = dg.f
+    for ci, ch in enumerate(("A", "E", "T")):
+        ax = axes[ci]
+        model = np.real(dg.noise_csd[:, ci, ci])
+        fc, mm = log_average(f, model)
+        label = "noise model (fitted levels)" if getattr(dg, "noise_parameters", None) is not None else "instrument noise model"
+        ax.loglog(fc, ffd_to_displacement_asd(np.sqrt(mm), fc), "k--", lw=1.2, label=label)
+        for label, fit in fits.items():
+            r = np.linalg.solve(dg.Lh[None], fit.residual_w[..., None])[..., 0]  # unwhiten: r = (L^H)^-1 wr
+            p = np.mean(np.abs(r[:, :, ci]) ** 2, axis=0)
+            fc, pp = log_average(f, p)
+            ax.loglog(fc, ffd_to_displacement_asd(np.sqrt(pp), fc), lw=1, label=f"residual ({label})")
+        ax.set_ylabel(f"ASD {ch} [m/sqrt(Hz)]")
+        ax.grid(True, which="both", alpha=0.3)
+        ax.legend(fontsize=7)
+    ax = axes[3]
+    edges = dg.edges
+    top = 1.2
+    for label, fit in fits.items():
+        vals = fit.bands.chi2_dof
+        top = max(top, float(np.nanmax(vals)) * 1.1)
+        ax.stairs(vals, edges, lw=1.5, label=label, baseline=None, zorder=3)
+        fails = fit.bands.fails
+        centres = np.sqrt(edges[:-1] * edges[1:])
+        ax.plot(centres[fails], vals[fails], "rx")
+    for label, tab in (fine or {}).items():
+        vals = tab.chi2_dof
+        top = max(top, float(np.nanmax(vals)) * 1.1)
+        ax.stairs(vals, tab.edges, lw=0.8, ls=":", label=f"{label}, third-octave", baseline=None, zorder=2)
+        fails = tab.fails
+        centres = np.sqrt(tab.edges[:-1] * tab.edges[1:])
+        ax.plot(centres[fails], vals[fails], "r+")
+    ax.axhspan(1 - tolerance, 1 + tolerance, color="0.85", zorder=0, label=f"1 +- tolerance ({100 * tolerance:.0f} %)")
+    ax.set_xscale("log")
+    ax.set_ylim(0.8, top)
+    if top > 5:
+        ax.set_yscale("log")
+    ax.set_xlabel("frequency [Hz]")
+    ax.set_ylabel("chi2/dof per band")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    fig.suptitle("Fit residual against the noise model (x, +: failing band)")
+    fig.tight_layout()
+    return _save(fig, path)
+
+
+def plot_witness_coherence(witnesses: dict, path) -> Path:
+    """Band-averaged coherence of the top witnesses with the whitened residual."""
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9, 4.5))
+    ax = fig.add_subplot(1, 1, 1)
+    spec = witnesses["coherence_spectra"]
+    f = np.asarray(spec["f"])
+    for name, curve in spec["curves"].items():
+        y = np.array([np.nan if v is None else v for v in curve])
+        ax.semilogx(f, y, lw=1, label=name)
+    ax.set_ylim(0, 1)
+    ax.set_xlabel("frequency [Hz]")
+    ax.set_ylabel("coherence with the residual")
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+    ax.set_title("Top witnesses (whitened, A+E+T)")
+    fig.tight_layout()
+    return _save(fig, path)
