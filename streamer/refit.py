@@ -174,10 +174,14 @@ def _cmd_refit(args) -> int:
     from .inspect import InspectError
 
     from ttlcore.cli.diagnose import split_effects as split  # ',' between effects, ';' inside one (as ttl diagnose)
+    from ttlcore.cli.progress import status_line
+
     try:
-        report = refit_run(args.run_dir, split(args.effects), baseline=split(args.baseline),
-                           effect_modules=args.effect_module, segments=_parse_range(args.segments),
-                           source=args.source, band=args.band)
+        with status_line("ttl refit") as say:  # in place on a terminal
+            say(f"reading the recorded segments of {args.run_dir} and refitting with {args.effects}")
+            report = refit_run(args.run_dir, split(args.effects), baseline=split(args.baseline),
+                               effect_modules=args.effect_module, segments=_parse_range(args.segments),
+                               source=args.source, band=args.band)
     except InspectError as exc:
         raise RefitError(str(exc)) from None
     print(format_refit(report))
