@@ -34,6 +34,7 @@ import tomllib
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from ttlcore.cli.main import main as science_main
 from ttlcore.errors import TTLError
 
 if TYPE_CHECKING:
@@ -384,9 +385,7 @@ def _cmd_router(args) -> int:
 
 def main(argv=None) -> int:
     """The ``ttl`` command: science subcommands (:mod:`ttlcore.cli`) and these."""
-    from ttlcore.cli.main import main as ttl_main
-
-    return ttl_main(argv, registrars=(register,))
+    return science_main(argv, registrars=(register,))
 
 
 if __name__ == "__main__":

@@ -38,6 +38,7 @@ from ttlcore.io.atomic import write_json
 
 from .keys import to_ranges
 from .recorder import Recording, RecordingError, read_recording, to_jsonable
+from .webview import WebView
 
 #: The pipeline's stages, in order (names of their recordings).
 KNOWN_STAGES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
@@ -524,9 +525,7 @@ def _cmd_inspect(args) -> int:
 
 def _cmd_view(args) -> int:
     if args.web:
-        from .webview import WebView
-
-        view = WebView(args.run_dir, args.port)
+        view = WebView(recording_to_view(args.run_dir), rerun_binary(), args.port)
         print(f"Rerun web viewer of {view.rrd}: {view.url}  (Ctrl-C to stop)", flush=True)
         signal.signal(signal.SIGTERM, signal.default_int_handler)  # stop the servers on SIGTERM too
         try:

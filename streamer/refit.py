@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ttlcore.cli.progress import status_line
 from ttlcore.io.atomic import write_json
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.errors import TTLError
@@ -174,8 +175,6 @@ def _cmd_refit(args) -> int:
     from .inspect import InspectError
 
     from ttlcore.cli.diagnose import split_effects as split  # ',' between effects, ';' inside one (as ttl diagnose)
-    from ttlcore.cli.progress import status_line
-
     try:
         with status_line("ttl refit") as say:  # in place on a terminal
             say(f"reading the recorded segments of {args.run_dir} and refitting with {args.effects}")

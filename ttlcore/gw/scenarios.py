@@ -66,6 +66,7 @@ from pathlib import Path
 import numpy as np
 
 from ..conventions import C, COEFFICIENT_NAMES, DAY, ffd_to_displacement_asd
+from ..cli.progress import status_line
 from ..errors import TTLError
 from ..estimate.fit import DEFAULT_BAND, FitSettings, fit_tdi
 from ..estimate.reprocess import dask_client
@@ -573,8 +574,6 @@ def _cmd_scenarios(args) -> int:
 
     if args.workers < 0:
         raise TTLError(f"--workers: must be >= 0, got {args.workers}")
-    from ..cli.progress import status_line
-
     with status_line("ttl scenarios", args.quiet) as progress:  # in place on a terminal
         options = dict(cases=cases, variants=variants, duration=duration, seed=args.seed,
                        figures=not args.no_figures, progress=progress)
