@@ -269,7 +269,7 @@ def test_stage_killed_and_restarted_mid_run_misses_nothing(t1, tmp_path):
     for a, b in zip(res, ref_res, strict=True):
         np.testing.assert_allclose(a.arrays["residual"], b.arrays["residual"], rtol=1e-12, atol=1e-30)
     # ttl inspect, from the recordings alone, reports the interruption
-    report = subprocess.run(ttl_command("inspect", run, "--json"), capture_output=True, text=True, timeout=120)
+    report = subprocess.run(ttl_command("inspect", run, "--json", "-"), capture_output=True, text=True, timeout=120)
     assert report.returncode == 0, report.stderr
     kinds = {(i["stage"], i["kind"]) for i in json.loads(report.stdout)["interruptions"]}
     assert {("tdi_builder", "restart"), ("tdi_builder", "unfinished")} <= kinds, kinds
