@@ -54,7 +54,7 @@ def _ttl(*args, timeout=300):
 
 def test_reprocess_equals_analyze_and_reports_a_failed_day(days, tmp_path, capsys):
     from ttlcore.estimate.analyze import analyze
-    from ttlcore.cli.main import main
+    from streamer.cli import main
     from ttlcore.estimate.fit import FitSettings
 
     bad = tmp_path / "broken.h5"
