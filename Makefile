@@ -53,7 +53,8 @@ test: $(STAMP)
 test-science: $(STAMP)
 	$(BIN)/python -m pytest -q -m science
 
-## test-ops: long operations tests (live runs under attack, three hosts in network namespaces)
+## test-ops: long operations tests (live runs under attack: hostile-message fuzz, NaN gap, kills of each
+## stage and of the launcher; three hosts in network namespaces): about 20-30 minutes on 2 cores
 test-ops: $(STAMP)
 	$(BIN)/python -m pytest -q -m ops
 
@@ -61,6 +62,7 @@ test-ops: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python bench/simulate.py
 	$(BIN)/python bench/tdi.py
+	$(BIN)/python bench/analyze.py
 	$(BIN)/python bench/fit.py
 	$(BIN)/python bench/pipeline.py
 	$(BIN)/python bench/rolling.py

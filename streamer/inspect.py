@@ -102,7 +102,8 @@ def _file_summary(path: Path, stage: str) -> tuple[dict, Recording | None]:
             "stopped": "stop" in kinds, "completed": "complete" in kinds, "events": dict(kinds),
             "incomplete_segments": [{"topic": m.topic, "index": (m.data or {}).get("index")}
                                     for m in rec.messages if m.kind == "incomplete"],
-            "invalid_messages": [{"topic": m.topic, "error": m.error} for m in rec.messages if m.kind == "invalid"]}
+            "invalid_messages": [{"topic": m.topic, "error": m.error} for m in rec.messages if m.kind == "invalid"],
+            "stop_event": next((e for e in reversed(events) if isinstance(e, dict) and e.get("kind") == "stop"), None)}
     return info, rec
 
 
@@ -307,6 +308,32 @@ def inspect_run(run_dir, truth=None) -> dict:
                                       "message": f"{f['file']}: {seg['topic']} segment {seg['index']} has a header "
                                                  "but no payload (cut off while writing)"})
 
+        for f in s["files"]:
+            stop = f.get("stop_event") or {}
+            if (stop.get("details") or {}).get("orphaned"):
+                interruptions.append({"stage": stage, "kind": "orphaned", "file": f["file"],
+                                      "message": f"{f['file']}: stopped by itself: {stop.get('message')}"})
+        for rec in recs_of.get(stage, []):
+            for e in rec.json("events"):
+                if isinstance(e, dict) and e.get("kind") == "restored":
+                    interruptions.append({"stage": stage, "kind": "restored", "file": rec.path.name,
+                                          "message": e.get("message")})
+    for e in errors:
+        if e["kind"] == "window-shortened":
+            interruptions.append({"stage": e["stage"], "kind": "window-shortened", "file": e["file"],
+                                  "message": e["message"]})
+    plan = _plan(run_dir)
+    if plan is not None:
+        total = plan["segments_total"]
+        for stage, s in stages.items():
+            out = next(iter(s["outputs"].values()), None) if s["outputs"] else None
+            last = s["files"][-1] if s["files"] else {}
+            if out is not None and out["missing"] and not last.get("completed"):
+                interruptions.append({"stage": stage, "kind": "unfinished", "file": last.get("file"),
+                                      "message": f"{stage} did not finish: segment(s) {_fmt_ranges(out['missing'])} "
+                                                 f"of {total} not handled"})
+    gaps = _gaps(recs_of, errors, plan)
+
     fits = _fits(recs_of.get("fitter", []))
     fit_report = {"count": len(fits), "indices": to_ranges(f["index"] for f in fits),
                   "names": fits[-1]["names"] if fits else [], "units": "m/rad",
@@ -324,7 +351,33 @@ def inspect_run(run_dir, truth=None) -> dict:
     return {"run": runs[0] if len(runs) == 1 else (runs or [run_dir.name]), "directory": str(run_dir),
             "stages": stages, "stages_missing": [s for s in KNOWN_STAGES if s not in stages],
             "segments_total": total, "fits": fit_report, "alerts": alerts, "warnings": warnings, "errors": errors,
-            "interruptions": interruptions}
+            "interruptions": interruptions, "gaps": gaps}
+
+
+def _plan(run_dir: Path) -> dict | None:
+    """The run's plan (``plan.json`` written by ``ttl run``), or None."""
+    try:
+        return json.loads((run_dir / "plan.json").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _gaps(recs_of: dict, errors: list[dict], plan: dict | None) -> list[dict]:
+    """Every gap of the run: NaN stretches the replayer published flagged (``gap`` events,
+    sample ranges in the segment) and segments with no data or skipped (``gap`` errors)."""
+    fs = plan["fs"] if plan else None
+    out = []
+    for rec in recs_of.get("replayer", []):
+        for e in rec.json("events"):
+            if isinstance(e, dict) and e.get("kind") == "gap":
+                stretches = (e.get("details") or {}).get("stretches") or []
+                samples = sum(b - a for a, b in stretches)
+                out.append({"stage": "replayer", "kind": "nan-stretch", "index": e.get("index"), "stretches": stretches,
+                            "seconds": samples / fs if fs else None, "message": e.get("message")})
+    for e in errors:
+        if e["kind"] == "gap":
+            out.append({"stage": e["stage"], "kind": "missing", "index": e["index"], "message": e["message"]})
+    return out
 
 
 # ---------------------------------------------------------------------------- text
@@ -369,7 +422,9 @@ def format_report(r: dict) -> str:
         if files and files[-1].get("completed"):
             state.append("complete")
         if files and files[-1].get("stopped"):
-            state.append("stopped")
+            stop = files[-1].get("stop_event") or {}
+            state.append("stopped: orphaned (launcher gone)" if (stop.get("details") or {}).get("orphaned")
+                         else "stopped")
         lines.append(f"  {stage:<12} {len(files)} file(s)  errors {s['errors']}  {', '.join(state) or 'running or killed'}")
         lines.append(f"  {'':<12} out: {_topics_text(s['outputs'])}")
         if s["inputs"]:
@@ -422,6 +477,12 @@ def format_report(r: dict) -> str:
         lines.append(f"  {e['stage']} {e['kind']}{where}{field}: {e['message']}")
     if len(r["errors"]) > MAX_LISTED:
         lines.append(f"  ... {len(r['errors']) - MAX_LISTED} more (--json FILE for all)")
+
+    lines.append("")
+    lines.append(f"Gaps: {len(r.get('gaps', []))}")
+    for g in r.get("gaps", [])[:MAX_LISTED]:
+        span = f" ({g['seconds'] / 60:.1f} min of NaN)" if g.get("seconds") else ""
+        lines.append(f"  {g['stage']} {g['kind']} segment {g['index']}{span}: {g['message']}")
 
     lines.append("")
     lines.append(f"Interruptions: {len(r['interruptions'])}")
