@@ -588,7 +588,8 @@ def _cmd_view(args) -> int:
     if args.web:
         view = WebView(recording_to_view(args.run_dir), rerun_binary(), args.port)
         print(f"Rerun web viewer of {view.rrd}: {view.url}  (Ctrl-C to stop)", flush=True)
-        signal.signal(signal.SIGTERM, signal.default_int_handler)  # stop the servers on SIGTERM too
+        for sig in (signal.SIGINT, signal.SIGTERM):  # stop the servers (SIGINT too when started in the background)
+            signal.signal(sig, signal.default_int_handler)
         try:
             return view.wait()
         except KeyboardInterrupt:

@@ -130,21 +130,9 @@ ERROR_SCHEMA = {
 }
 #: JSON schema of a warning: something an operator should see that is not an error
 #: (a fit that did not converge, ...).
-WARNING_SCHEMA = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": "ttl.Warning",
-    "type": "object",
-    "required": ["run", "stage", "kind", "message", "time"],
-    "properties": {
-        "run": {"type": "string"},
-        "stage": {"type": "string"},
-        "kind": {"type": "string", "description": "not-converged | ..."},
-        "index": {"type": ["integer", "null"]},
-        "message": {"type": "string"},
-        "time": {"type": "number", "description": "wall-clock time [s since epoch]"},
-        "details": {"type": "object"},
-    },
-}
+WARNING_SCHEMA = {**ERROR_SCHEMA, "title": "ttl.Warning",
+                  "properties": {**{k: v for k, v in ERROR_SCHEMA["properties"].items() if k not in ("key", "field")},
+                                 "kind": {"type": "string", "description": "not-converged | ..."}}}
 #: JSON schema of a lifecycle or bookkeeping event (start, stop, duplicate, ...).
 EVENT_SCHEMA = {
     "$schema": "https://json-schema.org/draft/2020-12/schema",

@@ -29,6 +29,7 @@ import pytest
 from ttl_testutil import wait_for  # noqa: F401  (also puts the project first on sys.path)
 
 from streamer.session import free_port
+from streamer.webview import stop_process
 
 CHROMIUM = next((shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome") if shutil.which(n)),
                 None)
@@ -133,12 +134,7 @@ class DevTools:
             self.ws.close()
         except Exception:
             pass
-        self.proc.terminate()
-        try:
-            self.proc.wait(10)
-        except subprocess.TimeoutExpired:
-            self.proc.kill()
-            self.proc.wait(10)
+        stop_process(self.proc)
 
 
 def pixels(png: bytes) -> np.ndarray:

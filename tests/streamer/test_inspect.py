@@ -112,6 +112,8 @@ def run_dir(tmp_path):
     f = StageFile(d, "fitter")
     for i in range(TOTAL):
         write_fit(f, i)
+    f.rec.write_json("warnings", {"run": RUN, "stage": "fitter", "kind": "not-converged", "index": 5,
+                                  "message": "fit 5 did not converge in 8 iterations", "time": 1.0})
     f.event("complete", index=TOTAL - 1)
     f.close()
 
@@ -166,6 +168,8 @@ def test_inspect_json_report(run_dir, capsys):
     assert st["tdi_builder"]["errors"] == 1
     # alerts of the monitor
     assert [(a["kind"], a["coefficient"]) for a in r["alerts"]] == [("step", "23.phi.tx")]
+    # warnings of every stage (a fit that did not converge)
+    assert [(w["stage"], w["kind"], w["index"]) for w in r["warnings"]] == [("fitter", "not-converged", 5)]
     # interruptions: the killed fitter, its restart, the fit cut off while written
     kinds = sorted((i["stage"], i["kind"]) for i in r["interruptions"])
     # (a chunk is whole or lost: the cut-off fit 3 leaves no half-written segment behind)
@@ -191,6 +195,7 @@ def test_inspect_text_report(run_dir, capsys):
     assert "Errors: 2" in out and "tdi_builder rejected segment 3 field 'arrays[eta].shape'" in out
     assert "subtractor failed segment 4: RuntimeError: no fit covers segment 4" in out
     assert "Alerts (monitor): 1" in out and "step of +0.300 mm/rad in 23.phi.tx" in out
+    assert "Warnings: 1" in out and "fitter [not-converged] fit 5 did not converge" in out
     assert "fitter: unfinished: fitter.1.mcap was not closed" in out
     assert "fitter: restart: fitter ran 2 times" in out
     assert "Coefficient trends (fitter fit JSON: 6 fits [0-5]" in out
