@@ -12,12 +12,12 @@ then only to add coefficient errors.
 
 from __future__ import annotations
 
-import sys
-import time
 from pathlib import Path
 
 from ..conventions import parse_duration
+from ..diagnose.adequacy import FIXED_MODEL_TOLERANCE
 from ..errors import TTLError
+from .progress import status_line
 
 
 def add_parser(sub) -> None:
@@ -40,7 +40,10 @@ def add_parser(sub) -> None:
     p.add_argument("--truth", default=None, help="truth file (or the lisainstrument file itself): adds coefficient errors only")
     p.add_argument("--band", nargs=2, metavar=("FMIN", "FMAX"), default=None, help="band in Hz (default 0.003 0.8)")
     p.add_argument("--segment", default=None, help="FFT segment length (default 6 h, or a quarter of shorter data)")
-    p.add_argument("--tolerance", type=float, default=None, help="relative tolerance of the noise model (default 0.05)")
+    p.add_argument("--tolerance", type=float, default=None,
+                   help="relative tolerance of the noise model (default 0.02; 0.05 with --noise-model fixed)")
+    p.add_argument("--noise-model", choices=("fitted", "fixed"), default="fitted",
+                   help="secondary-noise levels fitted with the model (default) or fixed at the paper's levels")
     p.add_argument("--no-witnesses", action="store_true", help="skip the witness search")
     p.add_argument("--json", required=True, metavar="OUT", help="JSON report to write")
     p.add_argument("--out", default=None, metavar="DIR", help="directory for the figures (created)")
@@ -60,15 +63,9 @@ def split_effects(text: str) -> list[str]:
 def run(args) -> int:
     from ..estimate.analyze import load_truth
     from ..io.atomic import write_json
-    from ..diagnose.diagnoser import DiagnoseSettings, diagnose, strip_internals, text_report
+    from ..diagnose.diagnoser import DiagnoseSettings, diagnose, fine_band_table, strip_internals, text_report
     from ..diagnose.effects import available_effects, make_effects
     from ..io.reader import file_kind, read_telemetry
-
-    start = time.monotonic()
-
-    def say(msg: str) -> None:
-        if not args.quiet:
-            print(f"ttl diagnose: {msg} ({time.monotonic() - start:.1f} s)", file=sys.stderr, flush=True)
 
     data = Path(args.data)
     if not data.exists():
@@ -98,18 +95,22 @@ def run(args) -> int:
             s.segment_duration = parse_duration(args.segment)
         except ValueError as exc:
             raise TTLError(f"--segment: {exc}") from None
+    s.noise_model = args.noise_model
+    if s.noise_model == "fixed":
+        s.tolerance = FIXED_MODEL_TOLERANCE
     if args.tolerance is not None:
         if not (0 <= args.tolerance < 1):
             raise TTLError(f"--tolerance: expected a fraction in [0, 1), got {args.tolerance}")
         s.tolerance = args.tolerance
-    say(f"reading {data}")
-    tm = read_telemetry(data)
-    truth = None
-    if args.truth:
-        tr = load_truth(args.truth, tm, file_kind(data), data)
-        truth, _ = tr.mean_coefficients(tm.t0, tm.t0 + tm.duration)
-    report = diagnose(tm, effects, settings=s, effect_modules=modules, candidates=candidates,
-                      truth_coefficients=truth, witnesses=not args.no_witnesses, progress=say)
+    with status_line("ttl diagnose", args.quiet) as say:  # in place on a terminal
+        say(f"reading {data}")
+        tm = read_telemetry(data)
+        truth = None
+        if args.truth:
+            tr = load_truth(args.truth, tm, file_kind(data), data)
+            truth, _ = tr.mean_coefficients(tm.t0, tm.t0 + tm.duration)
+        report = diagnose(tm, effects, settings=s, effect_modules=modules, candidates=candidates,
+                          truth_coefficients=truth, witnesses=not args.no_witnesses, progress=say)
     internals = report["_internals"]
     report = strip_internals(report)
     report["file"] = str(data)
@@ -123,7 +124,8 @@ def run(args) -> int:
         fits = {"model": model}
         if "before" in report:
             fits = {"linear-ttl": dg.fit(make_effects(["linear-ttl"]), time_table=False), "model": model}
-        paths = {"residual_vs_noise": str(plot_residual_vs_noise(dg, fits, out / "residual_vs_noise.png", s.tolerance))}
+        fine = {label: fine_band_table(dg, fit) for label, fit in fits.items()}
+        paths = {"residual_vs_noise": str(plot_residual_vs_noise(dg, fits, out / "residual_vs_noise.png", s.tolerance, fine))}
         if report.get("witnesses"):
             paths["witness_coherence"] = str(plot_witness_coherence(report["witnesses"], out / "witness_coherence.png"))
         report["figures"] = paths

@@ -39,6 +39,7 @@ import numpy as np
 from scipy import special, stats
 
 from .adequacy import (
+    _hz,
     DEFAULT_ALPHA,
     DEFAULT_TOLERANCE,
     DIAGNOSIS_BAND,
@@ -46,7 +47,9 @@ from .adequacy import (
     describe_failures,
     describe_time_failures,
     instrument_noise_csd,
+    merged_band_edges,
     p_value,
+    third_octave_table,
 )
 from ..conventions import COEFFICIENT_NAMES
 from .effects import (
@@ -75,6 +78,7 @@ from ..tdi.interpolation import DEFAULT_ORDER
 from ..estimate.spectra import segment_fft, window
 from ..tdi.combinations import DEFAULT_DELAY_ORDER, MICHELSON, aet, build
 from ..tdi.data import TDIData
+from .noise_model import noise_model_json, profile_noise_model
 
 log = logging.getLogger(__name__)
 
@@ -95,6 +99,10 @@ class DiagnoseSettings:
         Length [s] of the time slices of the per-time adequacy (Hann-windowed residual).
     tolerance, alpha : float
         Noise-model tolerance and significance level (:mod:`ttlcore.diagnose.adequacy`).
+    noise_model : str
+        ``"fitted"``: the secondary-noise levels are fitted with the model
+        (:mod:`ttlcore.diagnose.noise_model`, default); ``"fixed"``: the paper's levels (then a
+        tolerance of 0.05 is advisable, see docs/diagnostics.md).
     log_bf_threshold : float
         A candidate is significant when its log Bayes factor exceeds this (2.3: odds 10:1)
         *and* its delta chi^2 has p < alpha.
@@ -116,6 +124,7 @@ class DiagnoseSettings:
     time_segment: float = 3600.0
     tolerance: float = DEFAULT_TOLERANCE
     alpha: float = DEFAULT_ALPHA
+    noise_model: str = "fitted"
     log_bf_threshold: float = 2.3
     step_grid: float = 3600.0
     step_refine: float = 900.0
@@ -163,20 +172,6 @@ def log_bayes_factor(A: np.ndarray, beta: np.ndarray, prior_scale: np.ndarray) -
     q1 = beta @ A @ beta
     q2 = beta @ A @ np.linalg.solve(np.eye(k) + (d ** 2)[:, None] * A, beta)
     return float(-0.5 * logdet + 0.5 * (q1 - q2))
-
-
-def merged_band_edges(f: np.ndarray, edges: np.ndarray, dof_per_bin: int, min_dof: int) -> np.ndarray:
-    """Merge adjacent bands (lowest first) until each holds at least ``min_dof`` degrees of
-    freedom (``dof_per_bin`` per frequency bin)."""
-    edges = list(np.asarray(edges, dtype=float))
-    while len(edges) > 2:
-        counts = np.histogram(f, bins=edges)[0] * dof_per_bin
-        low = np.flatnonzero(counts < min_dof)
-        if low.size == 0:
-            break
-        g = int(low[0])
-        del edges[g + 1 if g < len(counts) - 1 else g]  # merge with the upper neighbour (the last: lower)
-    return np.asarray(edges)
 
 
 def _band_slices(band_index: np.ndarray, G: int) -> list[tuple[int, int]]:
@@ -390,6 +385,8 @@ class Diagnoser:
                                  names=tuple(dec.names))
             C0 = res.coefficients[[dec.names.index(n) for n in COEFFICIENT_NAMES]]
         self.noise_csd = instrument_noise_csd(self.f, self.ltt_mean, C0, self.dws_asd)
+        #: fitted secondary-noise levels (:func:`ttlcore.diagnose.noise_model.profile_noise_model`); None: fixed
+        self.noise_parameters = None
         W = np.linalg.inv(self.noise_csd)
         self.Lh = np.conj(np.swapaxes(np.linalg.cholesky(W), -1, -2))
         self.wd = np.matmul(self.Lh, d[..., None])[..., 0]  # (S, m, 3)
@@ -762,7 +759,9 @@ class Diagnoser:
         fit.searches = searches
         hist = self.coefficient_history(fit)
         if hist is not None and self.dws_asd > 0:
-            self.set_noise_model(instrument_noise_csd(self.f, self.ltt_mean, hist, self.dws_asd))
+            nm = self.noise_parameters
+            self.set_noise_model(instrument_noise_csd(self.f, self.ltt_mean, hist, self.dws_asd,
+                                                      secondary=None if nm is None else nm.csd(self.f)))
             fit = self._fit(effects, coefficients_for_linearised, keep_series)
         fit.searches = searches
         if time_table and all(n in self.series for n in fit.names):
@@ -800,7 +799,8 @@ class Diagnoser:
         cov = 0.5 * (cov + cov.T)
         chi2_sg = 2 * (np.einsum("p,sgpq,q->sg", theta, N, theta) - 2 * b @ theta + dd)
         wr = self.wd - self._w(names) @ theta
-        bands = band_table(wr, self.band_index, self.edges, len(names), self.kappa, self.settings.tolerance,
+        n_noise = 0 if self.noise_parameters is None else self.noise_parameters.n_parameters
+        bands = band_table(wr, self.band_index, self.edges, len(names) + n_noise, self.kappa, self.settings.tolerance,
                            self.settings.alpha)
         q_min = float(dd.sum() - btot @ theta)
         fit = ModelFit(effects, tuple(names), theta, cov, chi2_sg, bands.dof, bands, q_min, residual_w=wr)
@@ -1571,20 +1571,34 @@ def _top_parameters(ev, n: int = 6) -> list[dict]:
 # Reports
 # ---------------------------------------------------------------------------
 
+def fine_band_table(dg: Diagnoser, model: ModelFit):
+    """``model``'s adequacy in third-octave bands where the data allow it
+    (:func:`ttlcore.diagnose.adequacy.third_octave_table`), its fitted parameters (linear
+    and noise) counted as in its band table."""
+    s = dg.settings
+    n_fitted = 6 * dg.f.size * len(dg.starts) - float(model.bands.dof.sum())
+    return third_octave_table(model.residual_w, dg.f, s.band, n_fitted, dg.kappa, s.tolerance, s.alpha, s.min_band_dof)
+
+
 def adequacy_json(dg: Diagnoser, model: ModelFit) -> dict:
     """The ``adequacy`` part of the report for ``model``."""
     s = dg.settings
     bands = model.bands.to_json()
     summary = describe_failures(model.bands)
+    fine = fine_band_table(dg, model)
+    summary += [f"localised (third-octave bands): {x}" for x in describe_failures(fine)]
+    nm = dg.noise_parameters
+    if nm is not None and nm.at_bound:
+        summary.append(f"noise level(s) {', '.join(nm.at_bound)} at the bound of their allowed range: more (or less) "
+                       "noise of that shape than the instrument is known to have, or an unmodelled effect of that shape")
     time_part = model.time_table or {}
     summary += time_part.get("summary", [])
     return {
-        "noise_model": "analytic secondary noises of A, E, T for the mean arms (paper appendix levels) + DWS readout "
-                       "noise through the fitted linear coefficients; fixed, not re-estimated from the residual",
+        "noise_model": noise_model_json(dg.noise_parameters),
         "tolerance": s.tolerance, "alpha": s.alpha, "variance_factor": dg.kappa,
         "band": list(map(float, s.band)), "segment_duration": dg.seg_duration, "segments": len(dg.starts),
         "chi2": model.chi2, "dof": model.dof, "chi2_dof": model.chi2_dof,
-        "bands": bands, "time": time_part,
+        "bands": bands, "fine_bands": fine.to_json(), "time": time_part,
         "fails": bool(any(b["fails"] for b in bands) or any(r.get("fails") for r in time_part.get("segments", []))),
         "summary": summary or ["no failure: the residual is consistent with the instrument noise model"],
     }
@@ -1656,6 +1670,9 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
     lap("tdi_and_spectra")
     say("fit")
     model = dg.fit(eff)
+    if s.noise_model == "fitted":
+        say("noise model")
+        _, model = profile_noise_model(dg, eff, first=model)
     lap("fit")
     report: dict = {"model": model_json(dg, model, truth_coefficients)}
     report["adequacy"] = report["model"]["adequacy"]
@@ -1765,6 +1782,8 @@ def refit(source, effects=("linear-ttl",), *, settings: DiagnoseSettings | None 
     else:
         raise ConfigError(f"refit: cannot refit a {type(source).__name__}; give telemetry, TDI data or a Diagnoser")
     model = dg.fit(make_effects(list(effects), effect_modules))
+    if dg.settings.noise_model == "fitted":
+        _, model = profile_noise_model(dg, model.effects, first=model)
     base = dg.fit(make_effects(list(baseline), effect_modules))
     ev = dg.change(base, model)
     return {
@@ -1802,7 +1821,8 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
     m = report["model"]
     ad = report["adequacy"]
     lines.append(f"{source}: model {', '.join(m['effects'])} ({m['n_parameters']} parameters), "
-                 f"chi2/dof {ad['chi2_dof']:.3f} against the instrument noise model "
+                 f"chi2/dof {ad['chi2_dof']:.3f} against the instrument noise model"
+                 f"{' (fitted levels)' if ad['noise_model'].get('kind') == 'fitted' else ''} "
                  f"({1e3 * ad['band'][0]:.3g} mHz - {ad['band'][1]:.3g} Hz, tolerance {100 * ad['tolerance']:.0f} %)")
     if "before" in report:
         b = report["before"]
@@ -1844,7 +1864,8 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
     w = report.get("witnesses")
     if w:
         lines.append(f"  top witnesses ({w['n_witnesses']} tried): " +
-                     "; ".join(f"{x['name']} (delta chi2 {x['delta_chi2']:.0f})" for x in w["overall"][:3]))
+                     "; ".join(f"{x['name']} (delta chi2 {x['delta_chi2']:.0f}, coherence peaks at "
+                               f"{_hz(x['peak_frequency'])})" for x in w["overall"][:3]))
     rec = report.get("recommendation")
     if rec and rec.get("option"):
         lines.append(f"  best next step: add {rec['cli_spec']}:  ttl diagnose {source or 'DATA'} {rec['option']}")

@@ -43,6 +43,9 @@ import numpy as np
 from ..conventions import ANGLES, C, COEFFICIENT_NAMES, DAY, LINKS, MOSAS, SIDES, local_spacecraft, reverse
 from ..errors import ConfigError
 from ..sim.injection import ChunkContext, load_module
+from ..tdi.combinations import MICHELSON
+from ..tdi.engine import tdi_columns
+from ..tdi.engine import Part as EnginePart
 
 log = logging.getLogger(__name__)
 
@@ -1142,10 +1145,8 @@ def effect_input_from_telemetry(tm, coefficients=None) -> EffectInput:
 def tdi_in_blocks(ltt: np.ndarray, fs: float, columns=(), eta: np.ndarray | None = None, *, order: int,
                   delay_order: int, block: int = 43200) -> tuple:
     """TDI (X2, Y2, Z2) of regressor columns (:func:`columns_tdi`) and optionally of ``eta``,
-    computed in blocks of ``block`` output samples (3 h at 4 Hz), each with the history its
-    delays reach back to (:func:`ttlcore.tdi.data.history_samples`): one block's
-    interpolation taps are held at a time (a day at 4 Hz: ~0.5 GB instead of ~4 GB).  Equal
-    to the one-block result to rounding; the first ~70 s are NaN alike.
+    by the block engine :func:`ttlcore.tdi.engine.tdi_columns` (each block with the history
+    its delays reach back to; memory does not grow with the data).  The first ~70 s are NaN.
 
     Parameters
     ----------
@@ -1159,6 +1160,9 @@ def tdi_in_blocks(ltt: np.ndarray, fs: float, columns=(), eta: np.ndarray | None
         Link readouts.
     order, delay_order : int
         Lagrange orders of the data and of the delay interpolation.
+    block : int
+        Kept for callers; the engine chooses its own blocks (~2.2 h at 4 Hz), which bound
+        the memory, so the result equals the one-call :func:`columns_tdi` exactly.
 
     Returns
     -------
@@ -1166,50 +1170,28 @@ def tdi_in_blocks(ltt: np.ndarray, fs: float, columns=(), eta: np.ndarray | None
         TDI of ``eta``.
     regressors : ndarray (3, len(columns), n)
     """
-    from dataclasses import replace
+    parts = _engine_parts(columns, first=1)
+    if eta is not None:
+        parts += [EnginePart(0, link, (), np.asarray(eta)[k]) for k, link in enumerate(LINKS)]
+    out = tdi_columns(parts, 1 + len(columns), ltt, fs, combinations=MICHELSON, order=order, delay_order=delay_order)
+    return (None if eta is None else out[:, 0]), out[:, 1:]
 
-    from ..tdi.combinations import MICHELSON, build
-    from ..tdi.data import history_samples
 
-    ltt = np.asarray(ltt, dtype=float)
-    n = ltt.shape[-1]
-    hist = history_samples(fs, float(np.nanmax(ltt)), order, delay_order, MICHELSON)
-    data = None if eta is None else np.empty((len(MICHELSON), n))
-    out = np.empty((len(MICHELSON), len(columns), n))
-    for a in range(0, n, int(block)):
-        b = min(a + int(block), n)
-        lo = max(0, a - hist)
-        built = build(MICHELSON, ltt[:, lo:b], fs, order=order, delay_order=delay_order, history=a - lo)
-        if eta is not None:
-            data[:, a:b] = [combination(np.asarray(eta)[:, lo:b]) for combination in built]
-        if columns:
-            part = [Column(c.name, [replace(p, series=p.series[lo:b]) for p in c.parts], c.unit,
-                           c.prior_scale) for c in columns]
-            out[:, :, a:b] = columns_tdi(part, built)
-    return data, out
+def _engine_parts(columns, first: int = 0) -> list:
+    """The parts of ``columns`` as :class:`ttlcore.tdi.engine.Part` (column ``first + j``)."""
+    return [EnginePart(first + j, p.link, p.extra, p.series) for j, col in enumerate(columns) for p in col.parts]
 
 
 def columns_tdi(columns: list[Column], built) -> np.ndarray:
-    """TDI (the combinations of ``built``, :func:`ttlcore.tdi.combinations.build`) of regressor columns.
-
-    Parts are grouped by (link, extra delay) and pushed through
-    :meth:`ttlcore.tdi.combinations.BuiltCombination.apply_on_links` - the code path of the 24 TTL
-    regressors - then summed into their columns.
+    """TDI (the combinations of ``built``, :func:`ttlcore.tdi.combinations.build`) of
+    regressor columns: each column is the sum of its parts placed on their links, through
+    the block engine :func:`ttlcore.tdi.engine.tdi_columns` - the code path of the 24 TTL
+    regressors.
 
     Returns
     -------
     ndarray, shape (len(built), len(columns), n)
     """
-    groups: dict = {}
-    for j, col in enumerate(columns):
-        for p in col.parts:
-            groups.setdefault((p.link, p.extra), []).append((j, p.series))
-    n = built[0].delays.n
-    out = np.zeros((len(built), len(columns), n))
-    for key, items in groups.items():
-        stacked = np.stack([s for _, s in items])
-        rows = np.array([j for j, _ in items])
-        for c, b in enumerate(built):
-            res = b.apply_on_links({key: stacked})[key]
-            np.add.at(out[c], rows, res)
-    return out
+    b = built[0]
+    return tdi_columns(_engine_parts(columns), len(columns), b.ltt, b.fs, history=b.history,
+                       combinations=[x.combination for x in built], order=b.order, delay_order=b.delay_order)

@@ -131,6 +131,9 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
     dict
         ``{"n_witnesses", "bands": [{"f_lo", "f_hi", "top": [{"name", "family",
         "delta_chi2", "coherence"}]}], "overall": [...], "coherence_spectra": {...}}``;
+        each ``overall`` entry holds ``peak_frequency`` [Hz] and ``peak_coherence``, the
+        maximum of its coherence with the residual smoothed over ~2 % of ``f`` (30 log bins
+        per decade);
         ``overall`` ranks by the sum of the per-band delta chi^2 (divided by the segments'
         variance factor, so that a witness unrelated to the residual gives about one per
         band).
@@ -179,10 +182,12 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
     overall = [{"name": lib[i]["name"], "family": lib[i]["family"], "spec": lib[i]["spec"], "delta_chi2": float(total[i]),
                 "best_band": [float(dg.edges[int(np.argmax(dchi2[i]))]), float(dg.edges[int(np.argmax(dchi2[i])) + 1])],
                 "coherence_max": float(coh[i].max())} for i in order]
-    # coherence spectra of the top witnesses (running mean over ~2 % of f), for the figure
+    # coherence spectra of the top witnesses (running mean over ~2 % of f): the frequency of
+    # each one's peak, and the curves of the first ``coherence_of`` for the figure
     spectra = {}
     rrf = (np.abs(r) ** 2).sum(axis=(0, 2))
-    for i in order[:coherence_of]:
+    grid = _log_grid(dg.f)
+    for k, i in enumerate(order):
         w = lib[i]
         B, P = per_series[w["series"]]
         li = LINKS.index(w["link"])
@@ -191,7 +196,12 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
             b, n = b * (-1j * omega), n * omega ** 2
         if w["delay"]:
             b = b * np.exp(1j * omega * w["delay"])
-        spectra[w["name"]] = _smoothed_coherence(dg.f, b, n, rrf)
+        curve = _smoothed_coherence(dg.f, b, n, rrf)
+        vals = np.array([-1.0 if v is None else v for v in curve])
+        overall[k]["peak_frequency"] = float(grid[int(np.argmax(vals))])
+        overall[k]["peak_coherence"] = float(vals.max())
+        if k < coherence_of:
+            spectra[w["name"]] = curve
     return {"n_witnesses": len(lib), "families": sorted({w["family"] for w in lib}), "bands": bands,
             "overall": overall, "coherence_spectra": {"f": _log_grid(dg.f).tolist(), "curves": spectra}}
 

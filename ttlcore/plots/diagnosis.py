@@ -12,19 +12,22 @@ from .batch import _save
 from ..estimate.spectra import log_average
 
 
-def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.05) -> Path:
-    """Residual ASD of A and E (displacement) against the instrument noise model, and
-    chi^2/dof per band, for each fitted model in ``fits`` (label -> ModelFit)."""
+def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.02, fine: dict | None = None) -> Path:
+    """Residual ASD of A, E and T (displacement) against the noise model (fitted or fixed),
+    and chi^2/dof per band, for each fitted model in ``fits`` (label -> ModelFit); ``fine``
+    (label -> :class:`~ttlcore.diagnose.adequacy.BandTable`, third-octave bands) adds the
+    finer localisation of the failures."""
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(9, 8))
-    axes = [fig.add_subplot(3, 1, k + 1) for k in range(3)]
+    fig = Figure(figsize=(9, 10))
+    axes = [fig.add_subplot(4, 1, k + 1) for k in range(4)]
     f = dg.f
-    for ci, ch in enumerate(("A", "E")):
+    for ci, ch in enumerate(("A", "E", "T")):
         ax = axes[ci]
         model = np.real(dg.noise_csd[:, ci, ci])
         fc, mm = log_average(f, model)
-        ax.loglog(fc, ffd_to_displacement_asd(np.sqrt(mm), fc), "k--", lw=1.2, label="instrument noise model")
+        label = "noise model (fitted levels)" if getattr(dg, "noise_parameters", None) is not None else "instrument noise model"
+        ax.loglog(fc, ffd_to_displacement_asd(np.sqrt(mm), fc), "k--", lw=1.2, label=label)
         for label, fit in fits.items():
             r = np.linalg.solve(dg.Lh[None], fit.residual_w[..., None])[..., 0]  # unwhiten: r = (L^H)^-1 wr
             p = np.mean(np.abs(r[:, :, ci]) ** 2, axis=0)
@@ -33,7 +36,7 @@ def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.05) -> Pat
         ax.set_ylabel(f"ASD {ch} [m/sqrt(Hz)]")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
-    ax = axes[2]
+    ax = axes[3]
     edges = dg.edges
     top = 1.2
     for label, fit in fits.items():
@@ -43,6 +46,13 @@ def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.05) -> Pat
         fails = fit.bands.fails
         centres = np.sqrt(edges[:-1] * edges[1:])
         ax.plot(centres[fails], vals[fails], "rx")
+    for label, tab in (fine or {}).items():
+        vals = tab.chi2_dof
+        top = max(top, float(np.nanmax(vals)) * 1.1)
+        ax.stairs(vals, tab.edges, lw=0.8, ls=":", label=f"{label}, third-octave", baseline=None, zorder=2)
+        fails = tab.fails
+        centres = np.sqrt(tab.edges[:-1] * tab.edges[1:])
+        ax.plot(centres[fails], vals[fails], "r+")
     ax.axhspan(1 - tolerance, 1 + tolerance, color="0.85", zorder=0, label=f"1 +- tolerance ({100 * tolerance:.0f} %)")
     ax.set_xscale("log")
     ax.set_ylim(0.8, top)
@@ -52,7 +62,7 @@ def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.05) -> Pat
     ax.set_ylabel("chi2/dof per band")
     ax.grid(True, which="both", alpha=0.3)
     ax.legend(fontsize=7)
-    fig.suptitle("Fit residual against the instrument noise model (x: failing band)")
+    fig.suptitle("Fit residual against the noise model (x, +: failing band)")
     fig.tight_layout()
     return _save(fig, path)
 

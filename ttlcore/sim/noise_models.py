@@ -85,6 +85,9 @@ TELESCOPE_LINK = float(np.sqrt(TELESCOPE_IN**2 + TELESCOPE_OUT**2 + TELESCOPE_CO
 
 #: Corner frequency of the OMS-type (readout, backlink) noises [Hz].
 OMS_FKNEE = 2e-3
+#: Break frequency [Hz] above which the test-mass acceleration noise rises as ``(f / fbreak)^2``
+#: in ASD (:func:`test_mass`).
+TM_FBREAK = 8e-3
 #: Corner frequency of the jitters [Hz].
 JITTER_FKNEE = 0.8e-3
 
@@ -230,7 +233,7 @@ def telescope(f):
     return displacement_to_ffd_asd(TELESCOPE_LINK * np.ones_like(f), f)
 
 
-def test_mass(f, asd: float = 2.4e-15, fknee: float = 0.4e-3, fbreak: float = 8e-3):
+def test_mass(f, asd: float = 2.4e-15, fknee: float = 0.4e-3, fbreak: float = TM_FBREAK):
     """Acceleration noise of ONE test mass, as a fractional-frequency (velocity / c) ASD.
 
     ``S^{1/2}(f) = asd / (2 pi f c) * sqrt(1 + (fknee / f)^2) * sqrt(1 + (f / fbreak)^4)``

@@ -4,9 +4,10 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from ttlcore.diagnose.adequacy import band_table, describe_failures, describe_time_failures, instrument_noise_csd, p_value
+from ttlcore.diagnose.adequacy import (band_table, describe_failures, describe_time_failures, instrument_noise_csd,
+                                       merged_band_edges, p_value)
 from ttlcore.conventions import COEFFICIENT_NAMES
-from ttlcore.diagnose.diagnoser import log_bayes_factor, merged_band_edges
+from ttlcore.diagnose.diagnoser import log_bayes_factor
 from ttlcore.estimate.fit import model_csd
 from ttlcore.tdi.regressors import regressor_responses
 
@@ -105,3 +106,27 @@ def test_band_merging_reaches_the_minimum_dof():
     counts = np.histogram(f, bins=out)[0] * 24
     assert counts.min() >= 2000 and out[0] == edges[0] and out[-1] == edges[-1]
     assert len(out) < len(edges)
+
+
+def test_third_octave_bands_localise_a_narrow_excess_and_merge_thin_bands():
+    from ttlcore.diagnose.adequacy import third_octave_edges, third_octave_table
+
+    edges = third_octave_edges((3e-3, 0.8))
+    # a third of an octave apart, covering the band exactly
+    assert np.allclose(edges[1:-1] / edges[:-2], 2 ** (1 / 3)) and edges[0] == 3e-3
+    assert edges[-1] == pytest.approx(0.8) and edges[-2] < 0.8
+    rng = np.random.default_rng(2)
+    S = 4
+    f = np.arange(int(3e-3 / 2e-5), int(0.8 / 2e-5)) * 2e-5  # a 50000 s segment's bins
+    wr = (rng.standard_normal((S, f.size, 3)) + 1j * rng.standard_normal((S, f.size, 3))) / np.sqrt(2)
+    sel = (f >= 0.2) & (f < 0.25)  # 10 % excess in E between 0.2 and 0.25 Hz
+    wr[:, sel, 1] *= np.sqrt(1.3)
+    tab = third_octave_table(wr, f, (3e-3, 0.8), min_dof=2000)
+    dof = np.histogram(f, bins=tab.edges)[0] * 6 * S
+    assert dof.min() >= 2000  # thin low-frequency bands merged
+    assert len(tab.edges) > 20  # third-octave above ~10 mHz: finer than the 8 default bands
+    failing = np.flatnonzero(tab.fails)
+    assert failing.size >= 1
+    for g in failing:  # every failing band overlaps the excess
+        assert tab.edges[g] < 0.25 and tab.edges[g + 1] > 0.2
+    assert tab.channel_fails()[failing].any(axis=0).tolist() == [False, True, False]
