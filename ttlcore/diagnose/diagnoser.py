@@ -1449,7 +1449,10 @@ class Diagnoser:
                 log.info("candidate %s skipped: %s", name, exc)
                 continue
             k = ev["n_parameters"]
-            p = float(stats.chi2.sf(max(ev["delta_chi2"], 0.0), k))
+            # a searched nonlinear parameter counts as one more degree of freedom (a rough
+            # allowance for the look-elsewhere effect of the search; the evidence is marginal)
+            k_eff = k + len(extra.get("search", {}).get("estimates", {}))
+            p = float(stats.chi2.sf(max(ev["delta_chi2"], 0.0), k_eff))
             significant = bool(p < s.alpha and ev["log_bayes_factor"] > s.log_bf_threshold)
             out.append({
                 "effect": name,

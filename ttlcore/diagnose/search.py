@@ -226,13 +226,20 @@ def profile_search(dg, model, effect, coefficients=None) -> SearchResult:
         gen = _generic_evaluator(dg, model, effect_at)
         evaluate = gen
         per_decade = 6
-    cache: dict = {}
+    def memoised(function):
+        """``function`` of the scaled parameters, clipped to the range, evaluated once per point."""
+        memo: dict = {}
 
-    def score(x):
-        key = tuple(np.round(np.clip(x, lo, hi), 9))
-        if key not in cache:
-            cache[key] = evaluate(np.array(key))
-        return cache[key]
+        def call(x):
+            key = tuple(np.round(np.clip(x, lo, hi), 9))
+            if key not in memo:
+                memo[key] = function(np.array(key))
+            return memo[key]
+
+        call.memo = memo
+        return call
+
+    score = memoised(evaluate)
 
     axes = []
     for j in range(len(names)):
@@ -257,20 +264,14 @@ def profile_search(dg, model, effect, coefficients=None) -> SearchResult:
     if spectral:
         # the fast products miss the filter's ringing across the segment tapers: refine
         # with the columns the fit uses (filtered in time, then windowed)
-        exact_cache: dict = {}
-
-        def exact_score(x):
-            key = tuple(np.round(np.clip(x, lo, hi), 9))
-            if key not in exact_cache:
-                exact_cache[key] = exact(np.array(key))
-            return exact_cache[key]
+        exact_score = memoised(exact)
 
         res = optimize.minimize(lambda x: -exact_score(x)[0], best_x, method="Nelder-Mead",
                                 options={"xatol": 1e-3, "fatol": 1e-2, "maxfev": 30 * len(names),
                                          "initial_simplex": np.vstack([best_x, best_x + 0.01 * np.eye(len(names))])})
         best_x = np.clip(res.x, lo, hi)
         dchi2, lbf_best = exact_score(best_x)
-        n_exact = len(exact_cache)
+        n_exact = len(exact_score.memo)
     else:
         n_exact = 0
         dchi2, lbf_best = score(best_x)
@@ -308,5 +309,5 @@ def profile_search(dg, model, effect, coefficients=None) -> SearchResult:
     found = effect_at(best_x)
     log.debug("profile search %s: %s, delta chi2 %.1f", effect.name, dict(zip(names, est)), dchi2)
     return SearchResult(found, {k: float(found.options[k]) for k in names}, intervals, float(dchi2),
-                        float(lbf_best), marg, len(cache) + n_exact, grid=[(list(map(float, back(x))), float(v))
+                        float(lbf_best), marg, len(score.memo) + n_exact, grid=[(list(map(float, back(x))), float(v))
                                                                for x, v in zip(grid, values)])
