@@ -12,9 +12,9 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'
-	# lisagwresponse (outside reference of the GW response tests) pins lisaconstants < 2,
-	# which lisainstrument cannot use; it only needs a few constants, so install it alone
-	$(BIN)/python -m pip install --quiet --no-deps lisagwresponse healpy
+	# the `gw` extra of pyproject.toml (lisagwresponse, healpy) without dependencies:
+	# lisagwresponse pins lisaconstants < 2, which lisainstrument cannot use (pyproject says why)
+	$(BIN)/python -m pip install --quiet --no-deps 'lisagwresponse>=2.5' 'healpy>=1.16'
 	touch $(STAMP)
 
 ## demo: the main job on an embedded default: three mission days (Keplerian arms, all noises,
@@ -53,7 +53,8 @@ test: $(STAMP)
 test-science: $(STAMP)
 	$(BIN)/python -m pytest -q -m science
 
-## test-ops: long operations tests (live runs under attack, three hosts in network namespaces)
+## test-ops: long operations tests (live runs under attack: hostile-message fuzz, NaN gap, kills of each
+## stage and of the launcher; three hosts in network namespaces): about 20-30 minutes on 2 cores
 test-ops: $(STAMP)
 	$(BIN)/python -m pytest -q -m ops
 

@@ -54,7 +54,8 @@ warning and the file goes on.
 Options (``StageConfig.options`` or the command line): ``rrd`` (path), ``live``,
 ``viewer_port``, ``rerun_binary``, ``trends`` (:class:`ttlcore.diagnose.trends.TrendSettings`
 fields), ``asd_per_decade`` (20), ``band`` ([fmin, fmax], default the fit band),
-``settle_timeout`` (60 s).
+``settle_timeout`` (60 s), ``trend_spacing`` (3600 s: the trends get at most one fit per
+hour of window end, so that their cost per segment stays bounded with short segments).
 """
 
 from __future__ import annotations
@@ -386,6 +387,8 @@ class Monitor(PipelineStage):
         self._tdi_at: dict[int, float] = {}
         self._segment_time: dict[int, tuple[float, float]] = {}
         self.settle_timeout = float(o.get("settle_timeout", 60.0))
+        self.trend_spacing = float(o.get("trend_spacing", 3600.0))
+        self._trend_t: float | None = None
 
     # ------------------------------------------------------------------ lifecycle
     def setup(self) -> None:
@@ -516,7 +519,7 @@ class Monitor(PipelineStage):
         tdi = board.get("tdi_builder")
         if tdi is not None:
             for i in sorted(tdi.failed - self.done - self.failed - self._drawn["tdi"]):
-                self.mark_failed(i)
+                (self.mark_gap if i in tdi.gaps else self.mark_failed)(i)
         self.check_complete()
         if changed:
             self.flush()
@@ -667,7 +670,13 @@ class Monitor(PipelineStage):
             self.text("alerts", f"fit {header.index}: did not converge", "WARN")
         self.draw_model(header.index, meta)
 
-        alerts = self.trends.add(header.index, float(t_start), float(t_stop), C, S)
+        # the trend monitor gets at most one fit per trend_spacing of window end (10-min segments
+        # give six nearly identical one-day windows an hour): its work per fit stays bounded
+        if self._trend_t is None or t_stop >= self._trend_t + self.trend_spacing - 1e-6:
+            self._trend_t = float(t_stop)
+            alerts = self.trends.add(header.index, float(t_start), float(t_stop), C, S)
+        else:
+            alerts = []
         self._time(t_stop, header.index)
         for a in alerts:
             self.text("alerts", a.message, "WARN")

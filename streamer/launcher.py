@@ -63,8 +63,9 @@ import zenoh
 from ttlcore.errors import TTLError
 
 from . import security
-from .keys import check_name, control_key
-from .session import Bus, SessionSettings, declare_segment_subscriber, loopback_endpoint
+from .keys import check_name, control_key, from_ranges, to_ranges
+from .session import Bus, SessionSettings, declare_segment_publisher, declare_segment_subscriber, loopback_endpoint
+from .stage import BOARD, LAUNCHER
 
 log = logging.getLogger(__name__)
 
@@ -80,6 +81,11 @@ OUTPUT_TOPIC = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit", 
 #: producer's file): all of them, so that each payload is stored once per run.
 HEADERS_ONLY = frozenset(STAGES)
 DEFAULT_WINDOW = 4
+#: The stage whose progress bounds each stage's claims (a stage handles only what it got).
+UPSTREAM = {"tdi_builder": "replayer", "fitter": "tdi_builder", "subtractor": "tdi_builder",
+            "monitor": "tdi_builder"}
+#: Seconds a progress message claiming more than its upstream waits for the upstream's progress.
+HOLD_PROGRESS = 30.0
 
 
 class LaunchError(TTLError):
@@ -170,6 +176,7 @@ class _Child:
     proc: subprocess.Popen | None = None
     starts: int = 0
     exit_codes: list = field(default_factory=list)
+    pids: set = field(default_factory=set)
 
 
 class Launcher:
@@ -191,6 +198,10 @@ class Launcher:
         self._last_print = 0.0
         self.endpoint = ""
         self.run_dir = Path(opts.recordings) / opts.run_id
+        self.run_plan: dict | None = None
+        self.refused_progress: list[dict] = []  # progress messages refused (forged or inconsistent)
+        self._held: list[tuple[dict, float]] = []
+        self._boards: dict = {}
         self.credentials: Path | None = None
         self.router: subprocess.Popen | None = None
         self.refused: list[dict] = []
@@ -266,7 +277,8 @@ class Launcher:
         cfg = {"run": self.opts.run_id, "stage": name,
                "zenoh": self.session_settings(name).to_dict(),
                "recordings": str(Path(self.opts.recordings).resolve()), "cache": self.cache,
-               "options": self.stage_options(name)}
+               "options": self.stage_options(name), "plan": self.run_plan, "launcher_pid": os.getpid(),
+               "progress_from": "launcher"}
         if name in HEADERS_ONLY:
             cfg["record_inputs"] = False
         return cfg
@@ -300,7 +312,7 @@ class Launcher:
         """Start ``ttl router`` (log ``router.log``) and wait until it listens."""
         o = self.opts
         path = self.run_dir / "router.log"
-        cmd = [o.python, "-c", "import sys; from ttlcore.cli.main import main; sys.exit(main())", "router"]
+        cmd = [o.python, "-c", "import sys; from streamer.cli import main; sys.exit(main())", "router"]
         for e in listen:
             cmd += ["--listen", e]
         if o.zenoh_config is not None:
@@ -353,13 +365,16 @@ class Launcher:
         if "replayer" in self.opts.external:
             return
         path = self.run_dir / "replayer.config.json"
+        plan_path = self.run_dir / "plan.json"
         path.write_text(json.dumps(self.stage_config("replayer"), indent=2))
         res = subprocess.run([self.opts.python, "-m", "stages.replayer", "--config", str(path), "--check",
-                              "--log-level", "WARNING"], capture_output=True, text=True, timeout=300)
+                              "--plan-out", str(plan_path), "--log-level", "WARNING"],
+                             capture_output=True, text=True, timeout=300)
         if res.returncode != 0:
             lines = [ln for ln in (res.stderr or res.stdout).strip().splitlines() if ln.strip()]
             msg = lines[-1] if lines else f"exit status {res.returncode}"
             raise LaunchError(msg.replace("ttl stage replayer: error: ", ""))
+        self.run_plan = json.loads(plan_path.read_text())
         self.say(f"replay: {res.stdout.strip()}")
 
     # ------------------------------------------------------------------ bus callbacks
@@ -399,16 +414,26 @@ class Launcher:
                 return changed
             changed = True
             if ev[0] == "progress":
-                msg = ev[1]
-                p = self.progress.setdefault(msg["stage"], {"done": set(), "failed": set(), "total": None})
-                for key in ("done", "failed"):
-                    for r in msg.get(key) or ():
-                        try:
-                            p[key].update(range(int(r[0]), int(r[1]) + 1))
-                        except (TypeError, ValueError, IndexError):
-                            pass
+                msg, since = ev[1], (ev[2] if len(ev) > 2 else time.monotonic())
+                why = self.progress_refused(msg)
+                if why and "has not handled" in why and time.monotonic() - since < HOLD_PROGRESS:
+                    self._held.append((msg, since))
+                    continue
+                if why:
+                    self.refuse_progress(msg, why)
+                    continue
+                p = self.progress.setdefault(msg["stage"], {"done": set(), "failed": set(), "gaps": set(),
+                                                            "total": None})
+                limit = self.run_plan["segments_total"] if self.run_plan else None
+                for key in ("done", "failed", "gaps"):
+                    p[key] |= from_ranges(msg.get(key), limit)
+                for name, value in msg.items():
+                    if name.endswith("_ranges"):
+                        p.setdefault("extra", {}).setdefault(name, set()).update(from_ranges(value, limit))
+                p["complete"] = p.get("complete", False) or bool(msg.get("complete"))
                 if isinstance(msg.get("segments_total"), int):
                     p["total"] = msg["segments_total"]
+                self.publish_board(msg["stage"])
             elif ev[0] == "alive":
                 _, stage, alive = ev
                 if stage in self.expected and self.alive.get(stage) != alive:
@@ -426,9 +451,69 @@ class Launcher:
                         self.outputs.setdefault(stage, set()).add(index)
                         self.last_output[stage] = time.monotonic()
 
+    def progress_refused(self, msg: dict) -> str | None:
+        """Why a progress message is not believed, or None.  A stage started here must report
+        with its own process id; ``segments_total`` must be the plan's; a stage may not claim
+        a segment its upstream has not handled (progress of a stage started here is checked
+        against the one before it in the pipeline)."""
+        stage = msg["stage"]
+        if stage not in self.expected:
+            return f"progress of unknown stage {stage!r}"
+        child = self.children.get(stage)
+        if child is not None and child.proc is not None and msg.get("pid") not in child.pids:
+            return f"pid {msg.get('pid')!r} is not the {stage} process started by this launcher"
+        if self.run_plan and msg.get("segments_total") not in (None, self.run_plan["segments_total"]):
+            return f"segments_total {msg.get('segments_total')!r} differs from the plan's {self.run_plan['segments_total']}"
+        upstream = UPSTREAM.get(stage)
+        if upstream in self.expected:
+            limit = self.run_plan["segments_total"] if self.run_plan else None
+            claimed = from_ranges(msg.get("done"), limit) | from_ranges(msg.get("failed"), limit)
+            beyond = claimed - self.handled(upstream)
+            if beyond:
+                return f"claims segment(s) {to_ranges(beyond)[:5]} that {upstream} has not handled"
+        return None
+
+    def _recheck_held(self) -> None:
+        """Progress held back for claiming more than its upstream: believed once the upstream's
+        progress catches up (messages of different keys may arrive out of order), refused after
+        ``HOLD_PROGRESS`` seconds."""
+        held, self._held = self._held, []
+        for msg, since in held:
+            self.events.put(("progress", msg, since))
+
+    def publish_board(self, stage: str) -> None:
+        """Publish what the launcher believes of ``stage``'s progress (the union over its
+        processes of the messages it accepted) on ``ttl/<run>/control/board/<stage>``: the
+        pipeline stages of a launched run follow these, not the stages' own messages."""
+        p = self.progress[stage]
+        msg = {"run": self.opts.run_id, "stage": stage, "time": time.time(),
+               "done": to_ranges(p["done"]), "failed": to_ranges(p["failed"]), "gaps": to_ranges(p["gaps"]),
+               "segments_total": p["total"], "complete": p.get("complete", False),
+               **{name: to_ranges(v) for name, v in p.get("extra", {}).items()}}
+        pub = self._boards.get(stage)
+        if pub is None:
+            pub = self._boards[stage] = self.bus.track(
+                declare_segment_publisher(self.bus.session, control_key(self.opts.run_id, BOARD, stage), cache=1))
+        pub.put(json.dumps(msg).encode())
+
+    def refuse_progress(self, msg: dict, why: str) -> None:
+        """Record a refused progress message (shown, kept for the report, put on errors)."""
+        err = {"run": self.opts.run_id, "stage": "launcher", "kind": "forged", "index": None,
+               "key": f"ttl/{self.opts.run_id}/control/progress/{msg.get('stage')}", "field": "progress",
+               "message": f"progress message refused: {why}", "time": time.time(), "details": {"pid": msg.get("pid")}}
+        self.refused_progress.append(err)
+        if len(self.refused_progress) <= 20:
+            self.say(err["message"])
+        try:
+            self.bus.put_json(f"ttl/{self.opts.run_id}/errors/unknown", err)
+        except Exception:  # noqa: BLE001 - the session may be closing
+            pass
+
     # ------------------------------------------------------------------ state
     @property
     def total(self) -> int | None:
+        if self.run_plan:
+            return self.run_plan["segments_total"]
         totals = [p["total"] for p in self.progress.values() if p["total"]]
         return max(totals) if totals else None
 
@@ -475,6 +560,8 @@ class Launcher:
     def start(self, name: str) -> None:
         child = self.children[name]
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+        if name == "monitor":  # small linear algebra: threaded BLAS only fights the other stages for the cores
+            env.setdefault("OPENBLAS_NUM_THREADS", "1")
         with open(child.log, "ab") as logf:
             logf.write(f"--- start {child.starts + 1} of {name} at {time.ctime()} ---\n".encode())
             logf.flush()
@@ -483,6 +570,7 @@ class Launcher:
                  "--log-level", self.opts.log_level],
                 stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
         child.starts += 1
+        child.pids.add(child.proc.pid)
         log.info("started %s (pid %d)", name, child.proc.pid)
 
     def last_log_line(self, name: str) -> str:
@@ -567,6 +655,8 @@ class Launcher:
         bus.track(declare_segment_subscriber(bus.session, f"ttl/{o.run_id}/control/progress/*",
                                              self._on_progress, history=1))
         bus.watch_alive(o.run_id, self._on_alive)
+        # the stages stop when this token goes (streamer.stage.Stage.orphaned)
+        bus.declare_alive(o.run_id, LAUNCHER)
         bus.subscriber(f"ttl/{o.run_id}/errors/*", self._on_error)
         for stage in self.expected:
             if stage not in PROGRESS_STAGES and stage in OUTPUT_TOPIC:
@@ -599,6 +689,7 @@ class Launcher:
                     abort = "terminated"
                     break
                 self._drain_events()
+                self._recheck_held()
                 self.watch_refusals()
                 abort = self.supervise()
                 if not abort and self.router is not None and self.router.poll() is not None:
@@ -636,7 +727,11 @@ class Launcher:
                 self.say(f"stage {name} exited with status {bad[0]} (log {child.log})")
                 status = 1
         for s in self.expected:
-            failed = sorted(self.progress.get(s, {}).get("failed", ()))
+            p = self.progress.get(s, {})
+            gaps = sorted(p.get("gaps", ()))
+            failed = sorted(set(p.get("failed", ())) - set(gaps))
+            if gaps:
+                self.say(f"stage {s}: gap(s) in the data at segment(s) {to_ranges(gaps)} (no data; reported)")
             if failed:
                 self.say(f"stage {s} gave up segment(s) {failed}")
                 status = 1
@@ -650,8 +745,8 @@ class Launcher:
         if status == 0:
             files = sorted(p.name for p in self.run_dir.glob("*.mcap")) + sorted(p.name for p in self.run_dir.glob("*.rrd"))
             refused = f", {len(self.refused)} refusal(s) by the router (security.jsonl)" if self.refused else ""
-            self.say(f"done: {total} segments, {len(self.errors)} error report(s){refused}; "
-                     f"files in {self.run_dir}: {', '.join(files)}")
+            self.say(f"done: {total} segments, {len(self.errors)} error report(s){refused}, "
+                     f"{len(self.refused_progress)} progress message(s) refused; files in {self.run_dir}: {', '.join(files)}")
         return status
 
 

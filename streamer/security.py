@@ -11,7 +11,8 @@ certificate's common name (``access_control`` of Zenoh's configuration, see
     (``ttl/<run>/control/progress/<stage>``), its own liveliness token
     (``ttl/<run>/alive/<stage>``) and errors (``ttl/<run>/errors/<i>``);
 ``launcher``
-    ``ttl run``: may publish commands (``ttl/<run>/control/...``, progress excepted) and its
+    ``ttl run``: may publish commands (``ttl/<run>/control/...``, progress excepted), the
+    progress it verified (``ttl/<run>/control/board/<stage>``, advanced publishers) and its
     own liveliness token ``ttl/<run>/alive/launcher``;
 ``control``
     ``ttl control`` (an operator): commands to stages, progress excepted;
@@ -302,12 +303,17 @@ def access_control(run: str = "*") -> dict:
          "key_exprs": [f"{r}/control/progress/**", f"{r}/control/progress/**/@adv/pub/**"]},
         {"id": "launcher-token", "messages": ["liveliness_token"], "flows": ["ingress"], "permission": "allow",
          "key_exprs": [f"{r}/alive/launcher"]},
+        # the progress the launcher verified, which the stages follow (docs/operations.md)
+        {"id": "launcher-board", "messages": _WRITE, "flows": ["ingress"], "permission": "allow",
+         "key_exprs": _keys(f"{r}/control/board/*")},
+        {"id": "no-forged-board", "messages": _WRITE, "flows": ["ingress"], "permission": "deny",
+         "key_exprs": _keys(f"{r}/control/board/*")},
     ]
     # one subject per common name: a transport matches exactly one subject, so the router
     # logs one decision per message (refusals() relies on it)
     common = ["read", "subscriber-tokens", "deliver"]
-    grants = {"router": ["forward"], "launcher": ["commands", "no-forged-progress", "launcher-token"],
-              "control": ["commands", "no-forged-progress"]}
+    grants = {"router": ["forward"], "launcher": ["commands", "no-forged-progress", "launcher-token", "launcher-board"],
+              "control": ["commands", "no-forged-progress", "no-forged-board"]}
     for stage, topic in STAGE_TOPICS.items():
         rules.append({"id": f"{stage}-publishes", "messages": _WRITE, "flows": ["ingress"], "permission": "allow",
                       "key_exprs": _keys(f"{r}/{topic}/*", f"{r}/errors/*", f"{r}/control/progress/{stage}")

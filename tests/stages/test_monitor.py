@@ -96,7 +96,7 @@ class Driver:
     def telemetry(self, i):
         ltt = np.full((6, N_SAMPLES), 2.5e9 / C) + np.arange(6)[:, None] * 1e-3
         self.pubs["telemetry"].put(i, *message("telemetry", i, {"ltt": ltt}, {
-            "source": "test", "segments_total": N_FITS, "truth": str(self.truth), "segment_duration": N_SAMPLES / FS}))
+            "source": "test", "segments_total": N_FITS + 10, "truth": str(self.truth), "segment_duration": N_SAMPLES / FS}))
 
     def tdi_and_residual(self, i):
         white = self.rng.normal(0.0, 1e-21, (3, N_SAMPLES))
@@ -104,9 +104,9 @@ class Driver:
         data = white + ttl
         data[:, :40] = np.nan  # the first samples of a stream are NaN
         self.pubs["tdi"].put(i, *message("tdi", i, {"data": data}, {
-            "names": list(COEFFICIENT_NAMES), "ltt_mean": [2.5e9 / C] * 6, "segments_total": N_FITS}))
+            "names": list(COEFFICIENT_NAMES), "ltt_mean": [2.5e9 / C] * 6, "segments_total": N_FITS + 10}))
         self.pubs["residual"].put(i, *message("residual", i, {"residual": data - ttl, "ttl_model": ttl}, {
-            "fit_index": i, "segments_total": N_FITS}))
+            "fit_index": i, "segments_total": N_FITS + 10}))
 
     def fit(self, k, **meta_override):
         ts, te, c, s = self.fits[k]
@@ -187,7 +187,8 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
     driver.pubs["fit"].put(40, *bad)
     driver.fit(5, t_start=None)  # index 5 again (duplicate: ignored by the base)
     ts, te, c, s = driver.fits[-1]
-    no_window = message("fit", 41, {"coefficients": c, "sigma": s}, {"names": list(COEFFICIENT_NAMES)})
+    no_window = message("fit", 41, {"coefficients": c, "sigma": s}, {"names": list(COEFFICIENT_NAMES)},
+                        t0=te, fs=1 / HOUR)
     driver.pubs["fit"].put(41, *no_window)
 
     rec_dir = tmp_path / "rec" / RUN

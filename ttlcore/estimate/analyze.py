@@ -82,6 +82,20 @@ def check_band(band, fs: float = 4.0, segment_duration: float | None = None) -> 
     return fmin, fmax
 
 
+def data_loss(tm, td) -> dict:
+    """The data lost to gaps: NaN stretches of the telemetry (eta or DWS, sample ranges
+    ``[start, stop)``) and the fraction of TDI samples they spoil (the interpolation and the
+    nested delays spread each gap by about 70 s; ``ttlcore.estimate.fit.spectra_of_segment`` masks
+    those samples and drops an FFT segment less than half valid)."""
+    bad = ~(np.isfinite(tm.eta).all(axis=0) & np.isfinite(tm.dws_phi).all(axis=0)
+            & np.isfinite(tm.dws_eta).all(axis=0))
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], bad.astype(np.int8), [0]])))
+    stretches = [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2])]
+    tdi_bad = ~(np.isfinite(td.data).all(axis=0) & np.isfinite(td.regressors).all(axis=(0, 1)))
+    return {"telemetry_samples_missing": int(bad.sum()), "stretches": stretches,
+            "seconds_missing": float(bad.sum() / tm.fs), "tdi_fraction_lost": float(tdi_bad.mean())}
+
+
 def _check_segment(segment: float, duration: float, path) -> None:
     if segment > duration:
         raise TTLError(f"--segment: {segment:g} s segments need at least that much data, but {path} "
@@ -248,6 +262,11 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
     # --- TDI
     say(f"TDI of data and 24 regressors ({tm.size} samples at {tm.fs:g} Hz)")
     td = compute_tdi(tm)
+    loss = data_loss(tm, td)
+    if loss["telemetry_samples_missing"]:
+        say(f"gaps: {loss['telemetry_samples_missing']} telemetry samples missing (NaN) in "
+            f"{len(loss['stretches'])} stretch(es); {100 * loss['tdi_fraction_lost']:.2f} % of the TDI samples lost "
+            "(the fit masks them)")
     lap("tdi")
 
     # --- fit (truth never enters here)
@@ -293,6 +312,7 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
     content["units"] = "m/rad"
     content["data"] = {"file": str(data_path), "kind": data_kind, "t0": tm.t0, "fs": tm.fs, "size": tm.size,
                        "duration_s": tm.duration}
+    content["data_loss"] = loss
     content["truth_file"] = None if truth is None else str(truth.path)
     content["truth_source"] = None if truth is None else truth.source
     content["ttl_residual_available"] = sub.ttl_residual is not None

@@ -60,10 +60,19 @@ def asd_x_curves(sub, channel: str = "X2", nperseg: int | None = None, per_decad
     -------
     dict
         ``{series name: (f, asd)}`` for the series present, plus ``"requirement"``; all on
-        the same log-spaced frequencies.  Only samples where every series is finite are used.
+        the same log-spaced frequencies.  Only samples where every series is finite are used:
+        the longest stretch of them (splicing across a gap would put a step in the series and
+        leak its power over the band).
     """
     series = sub.channel(channel)
     ok = np.all([np.isfinite(v) for v in series.values()], axis=0)
+    if not ok.all():
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
+        if edges.size:
+            starts, stops = edges[::2], edges[1::2]
+            k = int(np.argmax(stops - starts))
+            ok = np.zeros_like(ok)
+            ok[starts[k]:stops[k]] = True
     n = int(ok.sum())
     if n < 64:
         raise ValueError(f"too few valid samples ({n}) for an ASD")
