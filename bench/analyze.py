@@ -32,7 +32,7 @@ def main() -> int:
     ap.add_argument("--keep", type=Path, help="directory for the simulated day and the outputs (kept)")
     args = ap.parse_args()
 
-    ttl = Path(sys.executable).with_name("ttl")
+    ttl = [sys.executable, "-m", "ttlcore.cli.main"]  # the `ttl` command of this interpreter's ttlcore
     tmp = tempfile.TemporaryDirectory(prefix="bench-analyze-") if args.keep is None else None
     work = Path(tmp.name) if tmp else args.keep
     work.mkdir(parents=True, exist_ok=True)
@@ -40,10 +40,10 @@ def main() -> int:
     if data is None:
         data = work / "day.h5"
         if not data.exists():
-            subprocess.run([str(ttl), "simulate", "--duration", args.duration, "--orbit", "keplerian", "--seed", "1",
+            subprocess.run([*ttl, "simulate", "--duration", args.duration, "--orbit", "keplerian", "--seed", "1",
                             "--out", str(data), "--quiet"], check=True)
     truth = data.with_name(data.name.replace(".h5", ".truth.h5"))
-    cmd = [str(ttl), "analyze", str(data), "--out", str(work / "analysis")]
+    cmd = [*ttl, "analyze", str(data), "--out", str(work / "analysis")]
     if truth.exists():
         cmd += ["--truth", str(truth)]
     start = time.perf_counter()
