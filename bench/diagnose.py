@@ -4,14 +4,18 @@ Simulates one day (Keplerian arms, all noises, paper coefficients) with a hidden
 offset of 50 ms on spacecraft 1 (``--inject``-equivalent; ``--clean`` for none), then times
 :func:`ttlcore.diagnose.diagnoser.diagnose` with the linear TTL model: TDI of data and regressors,
 segment spectra, the fit under the instrument noise model, adequacy per band and per hour,
-every named effect as a candidate (the step time searched) and the whole witness library.
-Target: under 60 s on this machine.
+every named effect as a candidate (the step time searched), the whole witness library, and
+the witness candidates (witness effects, frequency-dependent couplings with their poles
+searched) of the top witnesses.  ``--unknown`` injects instead a resonance the code does not
+name (``tests/ttlcore/diagnose/blind_effects.py``, Q 15 at 80 mHz on eta of MOSA 23 into link 31),
+for which the recommendation must be the fd-coupling on that placement.
+Target: under 60 s and 2.5 GB on this machine.
 
 Prints one JSON object: wall time and target, the per-stage times, the number of
 candidates and witnesses tried, the top candidate and whether it is the injected one, and
 the process's peak resident memory.
 
-Usage: ``.venv/bin/python bench/diagnose.py [--duration SECONDS] [--seed N] [--clean] [--profile]``
+Usage: ``.venv/bin/python bench/diagnose.py [--duration SECONDS] [--seed N] [--clean|--unknown] [--profile]``
 """
 
 from __future__ import annotations
@@ -34,6 +38,8 @@ from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
 
 TARGET_S = 60.0
 INJECTION = "timing-offset:sc1.d1=0.05"
+UNKNOWN = "blind-resonance:source=23.eta,link=31,f0=0.08,q=15,gain=3e-3"
+BLIND_MODULE = str(Path(__file__).resolve().parents[1] / "tests" / "ttlcore" / "diagnose" / "blind_effects.py")
 
 
 def main() -> int:
@@ -41,9 +47,11 @@ def main() -> int:
     ap.add_argument("--duration", type=float, default=86400.0, help="simulated seconds (default one day)")
     ap.add_argument("--seed", type=int, default=1)
     ap.add_argument("--clean", action="store_true", help="no injected effect")
+    ap.add_argument("--unknown", action="store_true", help="inject a resonance the diagnosis does not name")
     ap.add_argument("--profile", action="store_true", help="add the ten most expensive functions")
     args = ap.parse_args()
-    inj = () if args.clean else (injection_from_spec(INJECTION),)
+    spec = None if args.clean else (UNKNOWN if args.unknown else INJECTION)
+    inj = () if spec is None else (injection_from_spec(spec, [BLIND_MODULE] if args.unknown else []),)
     t = time.perf_counter()
     # one chunk: no chunk-boundary approximation in the timing-offset injection
     tm, _ = simulate(SimulationConfig(duration=args.duration, orbit="keplerian", seed=args.seed, injections=inj),
@@ -63,12 +71,13 @@ def main() -> int:
         "duration_s": args.duration,
         "cpu_count": os.cpu_count(),
         "simulate_s": round(t_sim, 2),
-        "injected": None if args.clean else INJECTION,
+        "injected": spec,
         "diagnose_wall_time_s": round(wall, 2),
         "target_s": TARGET_S,
         "meets_target": wall < TARGET_S,
         "stages_s": report["timings_s"],
-        "candidate_seconds": {c["effect"]: c["seconds"] for c in cands},
+        "candidate_seconds": {c["cli_spec"]: c["seconds"] for c in cands},
+        "recommendation": (report["recommendation"] or {}).get("option"),
         # the process's peak resident memory (simulation and diagnosis; ru_maxrss in KiB)
         "peak_rss_gb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9, 2),
         "candidates_tried": len(cands),
@@ -77,7 +86,9 @@ def main() -> int:
         "chi2_dof": round(report["adequacy"]["chi2_dof"], 4),
         "top_candidate": cands[0]["effect"] if cands else None,
         "top_significant": bool(cands and cands[0]["significant"]),
-        "top_is_injected": (not args.clean) and bool(cands) and cands[0]["effect"] == INJECTION.split(":")[0],
+        "top_is_injected": (not args.clean) and bool(cands) and (
+            cands[0]["cli_spec"].startswith("fd-coupling:source=23.eta;link=31;f0") if args.unknown
+            else cands[0]["effect"] == INJECTION.split(":")[0]),
     }
     if prof:
         st = pstats.Stats(prof)

@@ -41,7 +41,7 @@ def stage_of(proc: psutil.Process) -> str | None:
 
 
 def fitter_update_times(path: Path) -> tuple[list[float], list[float]]:
-    """Seconds from each TDI input to the fit recorded for it (MCAP log times): the rolling
+    """Seconds from each TDI input to the fit recorded for it (MCAP publish times: wall clock): the rolling
     refits alone, and those that also refitted the window under the instrument noise model
     (``adequacy``, every 24th segment by default)."""
     from mcap.reader import make_reader
@@ -57,7 +57,7 @@ def fitter_update_times(path: Path) -> tuple[list[float], list[float]]:
             except (ValueError, AttributeError):
                 continue
             target = received if channel.topic == "tdi/input" else fitted
-            target.setdefault(index, message.log_time)
+            target.setdefault(index, message.publish_time)
             if channel.topic == "fit/summary" and "adequacy" in msg:
                 with_adequacy.add(index)
     times = {i: (fitted[i] - received[i]) / 1e9 for i in fitted if i in received}
@@ -75,7 +75,7 @@ def main() -> int:
         subprocess.run([sys.executable, "-m", "ttlcore.cli.main", "simulate", "--duration", f"{args.days}d", "--orbit",
                         "keplerian", "--seed", "1", "--out", str(data), "--quiet"], check=True)
         start = time.perf_counter()
-        launcher = subprocess.Popen([sys.executable, "-m", "ttlcore.cli.main", "run", "--telemetry", str(data), "--run-id",
+        launcher = subprocess.Popen([sys.executable, "-m", "streamer.cli", "run", "--telemetry", str(data), "--run-id",
                                      "bench", "--recordings", str(tmp / "rec"), "--quiet", "--timeout", "7200"],
                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         cpu, rss = {}, {}

@@ -25,6 +25,8 @@ advanced publisher caching the latest message (late joiners get it from the cach
      "index":          last handled index,
      "done":           [[first, last], ...]  indices whose output was published,
      "failed":         [[first, last], ...]  indices given up (error reported),
+     "gaps":           [[first, last], ...]  of those, the ones with no data upstream (a gap in
+                                             the data, reported, not a failure of the run),
      "segments_total": N or null (from the telemetry meta, passed down the pipeline),
      "complete":       true once the last index is handled and nothing is pending,
      ...stage extras (the fitter adds "fits": indices that produced a fit)}
@@ -53,8 +55,9 @@ from typing import ClassVar
 from ttlcore.errors import TTLError
 
 from streamer.keys import check_name, control_key, from_ranges, to_ranges
+from streamer.plan import MAX_SEGMENTS
 from streamer.session import declare_segment_publisher
-from streamer.stage import Stage, StageConfig, config_from_args, configure_logging, stage_arguments
+from streamer.stage import BOARD, Stage, StageConfig, config_from_args, configure_logging, stage_arguments
 
 log = logging.getLogger(__name__)
 
@@ -79,6 +82,11 @@ def progress_pattern(run: str) -> str:
     return f"ttl/{check_name(run, 'run id')}/control/{PROGRESS}/*"
 
 
+def board_pattern(run: str) -> str:
+    """``ttl/<run>/control/board/*``: progress as verified and republished by the launcher."""
+    return f"ttl/{check_name(run, 'run id')}/control/{BOARD}/*"
+
+
 def jsonable(value):
     """JSON-ready copy: numpy scalars and arrays to Python, NaN and inf to None."""
     from streamer.recorder import to_jsonable
@@ -93,6 +101,7 @@ class PeerProgress:
     done: set = field(default_factory=set)
     failed: set = field(default_factory=set)
     segments_total: int | None = None
+    gaps: set = field(default_factory=set)
     complete: bool = False
     last: dict = field(default_factory=dict)
     pids: set = field(default_factory=set)
@@ -115,16 +124,18 @@ class PeerProgress:
         return total is not None and self.handled.issuperset(range(total))
 
     def update(self, msg: dict) -> None:
-        self.done |= from_ranges(msg.get("done"))
-        self.failed |= from_ranges(msg.get("failed"))
-        if isinstance(msg.get("segments_total"), int):
+        if isinstance(msg.get("segments_total"), int) and 0 < msg["segments_total"] <= MAX_SEGMENTS:
             self.segments_total = msg["segments_total"]
+        limit = self.segments_total or MAX_SEGMENTS
+        self.done |= from_ranges(msg.get("done"), limit)
+        self.failed |= from_ranges(msg.get("failed"), limit)
+        self.gaps |= from_ranges(msg.get("gaps"), limit)
         self.complete = self.complete or bool(msg.get("complete"))
         if msg.get("pid") is not None:
             self.pids.add(msg["pid"])
         for name, value in msg.items():
             if name.endswith("_ranges"):
-                self.extra.setdefault(name[: -len("_ranges")], set()).update(from_ranges(value))
+                self.extra.setdefault(name[: -len("_ranges")], set()).update(from_ranges(value, limit))
         self.last = msg
         self.updated = time.monotonic()
 
@@ -141,6 +152,20 @@ def parse_progress(payload) -> dict | None:
     return msg
 
 
+def progress_consistent(msg: dict, key: str, run: str | None, total: int | None) -> bool:
+    """A progress message is believable: its stage is the key's last chunk, its run the
+    run's, its ``segments_total`` the plan's (when known).  (Who may publish it at all is the
+    access control's business; what it claims against what was published is the launcher's.)"""
+    if key.rsplit("/", 1)[-1] != msg.get("stage"):
+        return False
+    if run is not None and msg.get("run") != run:
+        return False
+    t = msg.get("segments_total")
+    if total is not None and t is not None and t != total:
+        return False
+    return True
+
+
 class ProgressBoard:
     """Progress of the stages of a run, fed from the progress messages (thread-safe)."""
 
@@ -149,10 +174,11 @@ class ProgressBoard:
         self.stages: dict[str, PeerProgress] = {}
         self.changed = threading.Event()
 
-    def feed(self, sample) -> None:
-        """Zenoh callback of the progress subscriber."""
+    def feed(self, sample, run: str | None = None, total: int | None = None) -> None:
+        """Zenoh callback of the progress subscriber: messages of another run, of a stage
+        other than the key's, or claiming more segments than the plan are dropped."""
         msg = parse_progress(sample.payload)
-        if msg is None:
+        if msg is None or not progress_consistent(msg, str(sample.key_expr), run, total):
             return
         with self._lock:
             self.stages.setdefault(msg["stage"], PeerProgress(msg["stage"])).update(msg)
@@ -164,8 +190,8 @@ class ProgressBoard:
 
     def snapshot(self) -> dict[str, PeerProgress]:
         with self._lock:
-            return {k: PeerProgress(v.stage, set(v.done), set(v.failed), v.segments_total, v.complete,
-                                    dict(v.last), set(v.pids), {n: set(s) for n, s in v.extra.items()},
+            return {k: PeerProgress(v.stage, set(v.done), set(v.failed), v.segments_total, set(v.gaps),
+                                    v.complete, dict(v.last), set(v.pids), {n: set(s) for n, s in v.extra.items()},
                                     v.updated)
                     for k, v in self.stages.items()}
 
@@ -254,7 +280,8 @@ class PipelineStage(Stage):
         self.options = dict(config.options or {})
         self.done: set[int] = set()
         self.failed: set[int] = set()
-        self.segments_total: int | None = None
+        self.gaps: set[int] = set()
+        self.segments_total: int | None = self.validator.plan.segments_total if self.validator.plan else None
         self.progress_extra: dict = {}
         self.board = ProgressBoard()
         self._progress_pub = None
@@ -265,23 +292,36 @@ class PipelineStage(Stage):
         self._progress_pub = self.bus.track(
             declare_segment_publisher(self.bus.session, progress_key(self.run_id, self.stage_name), cache=1))
         if self.follow:
-            self.bus.segment_subscriber(progress_pattern(self.run_id), self._on_progress, history=1)
+            pattern = (board_pattern(self.run_id) if self.config.progress_from == "launcher"
+                       else progress_pattern(self.run_id))
+            self.bus.segment_subscriber(pattern, self._on_progress, history=1)
 
     def _on_progress(self, sample) -> None:
         key = str(sample.key_expr)
         stage = key.rsplit("/", 1)[-1]
-        if "*" in self.follow or stage in self.follow:
-            self.board.feed(sample)
+        if "*" in self.follow or stage in self.follow or stage == self.stage_name:
+            plan = self.validator.plan
+            self.board.feed(sample, self.run_id, plan.segments_total if plan is not None else None)
 
     def pending(self) -> int:
         """Segments received but not yet handled (override in buffering stages)."""
         return 0
 
+    def handled_before(self, index: int) -> bool:
+        """True when an earlier process of this stage already handled ``index`` (its output is
+        out): a restarted stage processes it again to rebuild its state, publishes nothing."""
+        if index in self.done or index in self.failed:
+            return False
+        own = self.board.get(self.stage_name)
+        return own is not None and index in own.handled
+
     # ------------------------------------------------------------------ bookkeeping
     def note_meta(self, meta: dict) -> None:
         """Take ``segments_total`` from an input's meta."""
+        if self.validator.plan is not None:
+            return  # the plan says it
         total = meta.get("segments_total") if isinstance(meta, dict) else None
-        if isinstance(total, int) and total > 0:
+        if isinstance(total, int) and 0 < total <= MAX_SEGMENTS:
             self.segments_total = total
 
     def mark_done(self, index: int, **extra) -> None:
@@ -295,6 +335,12 @@ class PipelineStage(Stage):
         if index not in self.done:
             self.failed.add(index)
         self._after(index, extra)
+
+    def mark_gap(self, index: int, **extra) -> None:
+        """Segment ``index`` has no data (a gap upstream, reported): given up, as a gap."""
+        if index not in self.done:
+            self.gaps.add(index)
+        self.mark_failed(index, **extra)
 
     def _after(self, index: int, extra: dict) -> None:
         self.progress_extra.update(extra)
@@ -322,6 +368,7 @@ class PipelineStage(Stage):
             return
         msg = {"run": self.run_id, "stage": self.stage_name, "pid": os.getpid(), "time": time.time(),
                "index": index, "done": to_ranges(self.done), "failed": to_ranges(self.failed),
+               "gaps": to_ranges(self.gaps),
                "segments_total": self.segments_total, "complete": self._complete,
                **{f"{k}_ranges": to_ranges(v) if isinstance(v, (set, frozenset)) else v
                   for k, v in self.progress_extra.items()}}
@@ -357,6 +404,11 @@ class OrderedStage(PipelineStage):
 
     def restart(self) -> None:
         """Forget the state carried from segment to segment (after a skip or a failure)."""
+
+    def fill_gap(self, index: int) -> None:
+        """Segment ``index`` will not come (a gap): carry the state over it.  Default:
+        :meth:`restart`; the fitter keeps its window instead."""
+        self.restart()
 
     def progress_fields(self) -> dict:
         """Extra fields of the progress messages (sets are sent as index ranges)."""
@@ -395,19 +447,27 @@ class OrderedStage(PipelineStage):
             if entry is None:
                 self.report_error("gap", f"{self.inputs[0]} segment {index} skipped: {self.queue.skipped_reason}",
                                   index=index)
-                self.restart()
-                self.mark_failed(index, **self.progress_fields())
+                self.fill_gap(index)
+                peer = self.board.get(self.upstream)
+                if peer is not None and index in peer.gaps:
+                    self.mark_gap(index, **self.progress_fields())
+                else:
+                    self.mark_failed(index, **self.progress_fields())
                 continue
             header, item = entry
             try:
+                again = self.handled_before(index)
                 out = self.process(header, item)
-                if out is not None:
+                if again:
+                    self.event("replayed", index=index, message=f"segment {index} processed again to rebuild the "
+                                                                "state after a restart; its output was out already")
+                elif out is not None:
                     self.publish(out, source=header)
                     self.published(index)
             except Exception as exc:
                 self.log.exception("segment %d failed", index)
                 self.report_error("failed", f"{type(exc).__name__}: {exc}", index=index, key=header.key)
-                self.restart()
+                self.fill_gap(index)
                 self.mark_failed(index, **self.progress_fields())
                 continue
             self.mark_done(index, **self.progress_fields())

@@ -49,6 +49,7 @@ import numpy as np
 
 from streamer.codec import Expect
 from streamer.messages import tdi_of
+from streamer.keys import to_ranges
 from streamer.stage import Output
 
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY, parse_duration
@@ -106,9 +107,17 @@ class Fitter(OrderedStage):
         self.window_tdi: deque[TDIData] = deque()
         self._model_change: dict | None = None
         self._segments_seen = 0
+        self._last_td: TDIData | None = None
+        self._restarted = False
+        self._caught_up = False
 
     def expect(self, topic, index):
         return tdi_expect(self.run_id, index)
+
+    def setup(self) -> None:
+        super().setup()
+        # an earlier process of this stage left its recording (kept as fitter.<n>.mcap)
+        self._restarted = any((self.config.recordings / self.run_id).glob(f"{self.stage_name}.*.mcap"))
 
     def settings(self, meta: dict) -> FitSettings:
         kwargs = {"segment_duration": self.fit_segment or float(meta.get("segment_duration") or 3600.0)}
@@ -119,8 +128,6 @@ class Fitter(OrderedStage):
         return FitSettings(**kwargs)
 
     def handle(self, header, arrays):
-        if not self.config.record_inputs:
-            self.recorder.write_json("tdi/input", header.to_dict(), schema="ttl.SegmentHeader")
         td = tdi_of(header, arrays)  # before buffering: a segment that raises is not marked processed
         self.enqueue(header, td)
         return ()
@@ -130,6 +137,22 @@ class Fitter(OrderedStage):
 
     def published(self, index: int) -> None:
         self.fits.add(index)
+
+    def fill_gap(self, index: int) -> None:
+        """A TDI segment that will not come: push NaN over its planned span, so that the
+        window keeps what it has and the next segment follows in time (RollingFit masks NaN:
+        an FFT segment less than half valid is left out, ttlcore.estimate.fit.spectra_of_segment)."""
+        last = self._last_td
+        if self.rolling is None or last is None or self._next_t0 is None:
+            return
+        plan = self.validator.plan
+        n = plan.segment(index)[1] if plan is not None else last.size
+        nan = np.full((3, n), np.nan)
+        td = TDIData(t0=self._next_t0, fs=last.fs, channels=last.channels, data=nan,
+                     regressors=np.full((3, len(last.names), n), np.nan), names=last.names, ltt_mean=last.ltt_mean)
+        self.rolling.push(td)
+        self._next_t0 = td.t0 + n / td.fs
+        self.event("gap", index=index, message=f"tdi segment {index} missing: {n} NaN samples pushed, window kept")
 
     # ------------------------------------------------------------------ the model
     def check_model(self, specs) -> list[str]:
@@ -221,8 +244,43 @@ class Fitter(OrderedStage):
             self.log.info("no adequacy yet: %s", exc)
             return None
 
+    def catch_up(self, first: int) -> None:
+        """A restarted fitter whose first segment is ``first`` > 0: rebuild the rolling window
+        by pushing again the TDI segments before it, read from the tdi_builder's recordings
+        (``<recordings>/<run>/tdi_builder*.mcap``; the publishers' caches hold only a few
+        segments, the window a day).  From the start of the run when the recordings have it,
+        so that the state (window, weights of the full refits) is the uninterrupted run's."""
+        from streamer.recorder import read_recording
+
+        run_dir = self.config.recordings / self.run_id
+        segments = {}
+        for path in sorted(run_dir.glob("tdi_builder*.mcap")):
+            try:
+                for m in read_recording(path).segments("tdi"):
+                    if m.header.index < first:
+                        segments.setdefault(m.header.index, m)
+            except Exception as exc:  # noqa: BLE001 - a damaged file: use what the others have
+                self.log.warning("cannot read %s: %s", path, exc)
+        have = sorted(segments)
+        start = first
+        while start - 1 in segments:
+            start -= 1
+        if start > 0:
+            self.report_error("window-shortened", f"restart: TDI segments before {start} are not in the recordings; "
+                                                  f"the window restarts at {start} instead of the run's start",
+                              index=first, details={"recorded": to_ranges(have)})
+        for i in range(start, first):
+            m = segments[i]
+            self.process(m.header, tdi_of(m.header, m.arrays))
+        self.event("restored", index=first, message=f"window rebuilt from the tdi_builder's recordings: segments "
+                                                     f"{start}..{first - 1} pushed again", first=start, last=first - 1)
+        self.log.info("restart: window rebuilt from segments %d..%d of the recordings", start, first - 1)
+
     def process(self, header, td: TDIData) -> Output | None:
         """Push one TDI segment into the rolling fit; the fit message if it refitted."""
+        if self.rolling is None and header.index > 0 and self._restarted and not self._caught_up:
+            self._caught_up = True
+            self.catch_up(header.index)
         if self.rolling is None:
             self.rolling = RollingFit(self.settings(header.meta), window_duration=self.window_duration, names=td.names)
             self.log.info("rolling fit: FFT segment %g s, window %g s, band %s",
@@ -234,7 +292,8 @@ class Fitter(OrderedStage):
             self.rolling.reset()
             self.window_tdi.clear()
         self._next_t0 = td.t0 + td.size / td.fs
-        self._segments_seen += 1
+        self._last_td = td
+        self._segments_seen = header.index + 1  # by index: the same after a restart
         res = self.rolling.push(td)
         # the window's TDI for the adequacy refits, as the rolling fit low-passed and decimated
         # it (A, E, T at 2 Hz: half the memory, and the refit need not decimate again)
@@ -264,6 +323,9 @@ class Fitter(OrderedStage):
                                                                  "candidates", "extra_parameters") if k in meta}}
         self.log.info("segment %d: fit over [%.0f, %.0f] s (%d FFT segments), chi2/dof %.3f", header.index,
                       res.t_start, res.t_stop, res.n_segments, res.chi2_dof)
+        if not res.converged:
+            self.warn("not-converged", f"fit {header.index} did not converge in {res.iterations} iterations",
+                      index=header.index, iterations=int(res.iterations))
         if "adequacy" in meta:
             self.log.info("segment %d: model %s, chi2/dof against the instrument noise model %.3f%s", header.index,
                           ",".join(self.effects), meta["adequacy"]["chi2_dof"],

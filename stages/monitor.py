@@ -36,39 +36,10 @@ median ASD ratio and its segment), ``fit`` (index, chi2_dof and window of the la
 
 Rerun recording ``<recordings>/<run>/monitor.rrd`` (an existing one is kept as
 ``monitor.<n>.rrd``, like the MCAP files), flushed after every message, with a blueprint
-that shows everything at once:
-
-=====================================  ===================================================
-entity                                 content
-=====================================  ===================================================
-``asd/plot/X2/{data,residual,ttl_model,expected,requirement}``
-                                       LineStrips2D of (log10 f [Hz], log10 ASD [m/sqrt(Hz)])
-                                       at the segment's time (scrub the time to see any
-                                       segment; the view shows the latest)
-``asd/plot`` (static)                  Transform3D flipping y, so larger ASDs go up
-``asd/plot/grid``, ``asd/plot/ticks``  decade grid and its labels (Rerun has no log axes)
-``adequacy/chi2_dof``                  Scalars: the fit's chi^2/dof (against the noise it
-                                       re-estimates: blind to a missing effect)
-``adequacy/log10_residual_over_expected``
-                                       Scalars: log10 of the in-band median ratio
-``adequacy/instrument/chi2_dof``       Scalars: chi^2/dof of the window's residual against
-                                       the instrument noise model (fits carrying ``adequacy``)
-``adequacy/instrument/band_<g>``       Scalars: the same per band (named by its range)
-``model/log``                          TextLog: the model of each fit when it changes, the
-                                       before/after of a model change, the top candidates
-``model/before``, ``model/after``      BarChart: chi^2/dof per band before and after the
-                                       latest model change (same window)
-``model/candidates``                   BarChart: delta chi^2 of the top candidate effects
-``coefficients/<mosa>/<angle>_<side>/{fit,plus_sigma,minus_sigma,truth}``
-                                       Scalars [mm/rad]
-``alerts``                             TextLog (WARN) of step and drift alerts
-``log``                                TextLog of what the monitor noticed (truth file, errors)
-=====================================  ===================================================
-
-Timelines: ``mission_time`` (duration, seconds of mission time) and ``segment`` (sequence).
-Blueprint: left column the ASD view (2D), the model-adequacy plot and the alerts log;
-right a grid of six coefficient plots (one per MOSA); time series show the whole time
-range; the time panel follows the latest data.
+that shows everything at once; the views, their entities and the drawing functions are in
+:mod:`stages.monitor_views`.  Timelines: ``mission_time`` (duration, seconds of mission
+time) and ``segment`` (sequence).  A fit that did not converge is a WARN entry of the
+alerts log here, and a ``warnings`` message in the fitter's MCAP file (``ttl inspect``).
 
 Live viewing (option ``live``): ``"spawn"`` starts the ``rerun`` viewer binary with
 ``--bind 127.0.0.1`` on a free (or ``viewer_port``) port and streams to it as well (the
@@ -83,7 +54,8 @@ warning and the file goes on.
 Options (``StageConfig.options`` or the command line): ``rrd`` (path), ``live``,
 ``viewer_port``, ``rerun_binary``, ``trends`` (:class:`ttlcore.diagnose.trends.TrendSettings`
 fields), ``asd_per_decade`` (20), ``band`` ([fmin, fmax], default the fit band),
-``settle_timeout`` (60 s).
+``settle_timeout`` (60 s), ``trend_spacing`` (3600 s: the trends get at most one fit per
+hour of window end, so that their cost per segment stays bounded with short segments).
 """
 
 from __future__ import annotations
@@ -111,6 +83,7 @@ from ttlcore.estimate.fit import DEFAULT_BAND
 from ttlcore.diagnose.trends import Alert, TrendMonitor, TrendSettings
 
 from . import OUTPUT_TOPIC, PipelineStage, jsonable, stage_main
+from . import monitor_views as views
 
 P = len(COEFFICIENT_NAMES)
 LOOPBACK = "127.0.0.1"
@@ -136,28 +109,6 @@ ALERT_SCHEMA = {
         "details": {"type": "object"},
     },
 }
-#: Curves of the ASD panel: name -> (label, RGB).
-CURVES = {
-    "data": ("X2 data (with TTL)", (31, 119, 180)),
-    "residual": ("X2 residual", (44, 160, 44)),
-    "ttl_model": ("X2 TTL model", (255, 127, 14)),
-    "expected": ("expected noise (mean arms)", (120, 120, 120)),
-    "requirement": ("LISA requirement", (214, 39, 40)),
-}
-#: Colours of the four coefficients of a MOSA.
-COEFFICIENT_COLORS = {("phi", "rx"): (31, 119, 180), ("phi", "tx"): (255, 127, 14),
-                      ("eta", "rx"): (44, 160, 44), ("eta", "tx"): (148, 103, 189)}
-
-
-def _coefficient_entity(name: str) -> str:
-    mosa, angle, side = name.split(".")
-    return f"coefficients/{mosa}/{angle}_{side}"
-
-
-def _lighter(rgb, amount: float = 0.55):
-    return tuple(int(c + (255 - c) * amount) for c in rgb)
-
-
 def _wait_port(port: int, timeout: float = 10.0, proc=None) -> bool:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
@@ -279,46 +230,6 @@ def rrd_path(recordings: Path, run: str, explicit=None) -> Path:
         path.rename(old)
     path.parent.mkdir(parents=True, exist_ok=True)
     return path
-
-
-def blueprint():
-    """The layout of the monitor's recording (see the module docstring)."""
-    import rerun as rr
-    import rerun.blueprint as rrb
-
-    everything = rrb.TimeRangeBoundary.infinite()
-    whole = [rrb.VisibleTimeRange(t, start=everything, end=everything) for t in ("mission_time", "segment")]
-
-    def series(origin: str, name: str, **kw):
-        return rrb.TimeSeriesView(origin=origin, name=name, time_ranges=whole,
-                                  axis_x=rrb.TimeAxis(view_range=rr.TimeRange(start=everything, end=everything)),
-                                  **kw)
-
-    coefficients = [series(f"coefficients/{m}", f"MOSA {m} coefficients [mm/rad] (±1σ, truth)") for m in MOSAS]
-    return rrb.Blueprint(
-        rrb.Horizontal(
-            rrb.Vertical(
-                rrb.Spatial2DView(origin="asd", name="ASD of X2: log10 [m/√Hz] vs log10 f [Hz]"),
-                series("adequacy", "Model adequacy: χ²/dof (instrument noise model, per band), "
-                                   "log10 residual/expected"),
-                rrb.TextLogView(origin="/", contents=["+ /alerts", "+ /log", "+ /model/log"], name="Alerts and log"),
-                row_shares=[5, 3, 2],
-            ),
-            rrb.Vertical(
-                rrb.Grid(*coefficients, grid_columns=2, name="Coefficient trends"),
-                rrb.Horizontal(
-                    rrb.BarChartView(origin="model/before", name="χ²/dof per band before the model change"),
-                    rrb.BarChartView(origin="model/after", name="χ²/dof per band after the model change"),
-                    rrb.BarChartView(origin="model/candidates", name="Top candidates: Δχ²"),
-                ),
-                row_shares=[4, 1],
-            ),
-            column_shares=[1, 1],
-        ),
-        rrb.TimePanel(timeline="mission_time", play_state="following"),
-        rrb.BlueprintPanel(state="collapsed"),
-        rrb.SelectionPanel(state="collapsed"),
-    )
 
 
 # ---------------------------------------------------------------------------- science helpers
@@ -468,7 +379,6 @@ class Monitor(PipelineStage):
         self._fit_windows: dict[int, tuple[float, float]] = {}  # fit index -> window drawn
         self._styled: set[str] = set()
         self._truth_source: str | None = None
-        self._grid = [np.inf, -np.inf, np.inf, -np.inf]
         self._errors: queue.Queue = queue.Queue()
         self._pending_alerts: list[Alert] = []
         self._last_fit: dict | None = None
@@ -477,6 +387,8 @@ class Monitor(PipelineStage):
         self._tdi_at: dict[int, float] = {}
         self._segment_time: dict[int, tuple[float, float]] = {}
         self.settle_timeout = float(o.get("settle_timeout", 60.0))
+        self.trend_spacing = float(o.get("trend_spacing", 3600.0))
+        self._trend_t: float | None = None
 
     # ------------------------------------------------------------------ lifecycle
     def setup(self) -> None:
@@ -486,7 +398,7 @@ class Monitor(PipelineStage):
         self.rrd = rrd_path(self.config.recordings, self.run_id, self.options.get("rrd"))
         recording_id = f"{self.run_id}-{os.getpid()}-{int(time.time())}"
         file_rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
-        file_rec.set_sinks(rr.FileSink(str(self.rrd)), default_blueprint=blueprint())
+        file_rec.set_sinks(rr.FileSink(str(self.rrd)), default_blueprint=views.blueprint(self.band))
         viewer_problem = None
         if self.live in ("spawn", "serve"):
             try:
@@ -504,7 +416,7 @@ class Monitor(PipelineStage):
         live_rec = None
         if self.viewer_url:  # a stream of its own: a viewer that goes away must not stall the file
             live_rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
-            live_rec.set_sinks(rr.GrpcSink(self.viewer_url), default_blueprint=blueprint())
+            live_rec.set_sinks(rr.GrpcSink(self.viewer_url), default_blueprint=views.blueprint(self.band))
         self.rec = Fanout(file_rec, live_rec, on_live_failure=self._live_failed)
         self.rec.send_recording_name(f"ttl {self.run_id}")
         self._static_styles()
@@ -607,7 +519,7 @@ class Monitor(PipelineStage):
         tdi = board.get("tdi_builder")
         if tdi is not None:
             for i in sorted(tdi.failed - self.done - self.failed - self._drawn["tdi"]):
-                self.mark_failed(i)
+                (self.mark_gap if i in tdi.gaps else self.mark_failed)(i)
         self.check_complete()
         if changed:
             self.flush()
@@ -690,13 +602,7 @@ class Monitor(PipelineStage):
         return np.full(6, ARM_LENGTH / C)
 
     def _curve(self, name: str, f, asd) -> None:
-        import rerun as rr
-
-        label, color = CURVES[name]
-        pts = np.column_stack([np.log10(f), np.log10(asd)]).astype(np.float32)
-        self.rec.log(f"asd/plot/X2/{name}", rr.LineStrips2D([pts], colors=[color], labels=[label],
-                                                           radii=rr.Radius.ui_points(1.5)))
-        self._extend_grid(pts)
+        views.noise_curve(self.rec, name, f, asd, self.band)
 
     def _references(self, header, f_welch) -> dict:
         ref = self._ref.get(header.index)
@@ -735,47 +641,9 @@ class Monitor(PipelineStage):
         self._ratio = (header.index, ratio if math.isfinite(ratio) else None)
         return ()
 
-    def _extend_grid(self, pts: np.ndarray) -> None:
-        """Decade grid and labels covering everything drawn so far (re-logged when it grows)."""
-        import rerun as rr
-
-        g = self._grid
-        x0, x1 = math.floor(float(pts[:, 0].min())), math.ceil(float(pts[:, 0].max()))
-        y0, y1 = math.floor(float(pts[:, 1].min())), math.ceil(float(pts[:, 1].max()))
-        new = [min(g[0], x0), max(g[1], x1), min(g[2], y0), max(g[3], y1)]
-        if new == g:
-            return
-        self._grid = new
-        x0, x1, y0, y1 = new
-        lines = [[(x, y0), (x, y1)] for x in range(x0, x1 + 1)] + [[(x0, y), (x1, y)] for y in range(y0, y1 + 1)]
-        self.rec.log("asd/plot/grid", rr.LineStrips2D(lines, colors=[(200, 200, 200)],
-                                                      radii=rr.Radius.ui_points(0.5)), static=True)
-        ticks = [(x, y0 - 0.25) for x in range(x0, x1 + 1)] + [(x0 - 0.35, y) for y in range(y0, y1 + 1)]
-        labels = [f"1e{x} Hz" for x in range(x0, x1 + 1)] + [f"1e{y} m/√Hz" for y in range(y0, y1 + 1)]
-        self.rec.log("asd/plot/ticks", rr.Points2D(ticks, labels=labels, radii=rr.Radius.ui_points(1.0),
-                                                   colors=[(120, 120, 120)], show_labels=True), static=True)
-
     # ------------------------------------------------------------------ fits and trends
     def _static_styles(self) -> None:
-        import rerun as rr
-
-        # Rerun draws y downwards in 2D; flip so that larger ASDs go up
-        self.rec.log("asd/plot", rr.Transform3D(scale=[1.0, -1.0, 1.0]), static=True)
-        for name in COEFFICIENT_NAMES:
-            _, angle, side = name.split(".")
-            color = COEFFICIENT_COLORS[(angle, side)]
-            ent = _coefficient_entity(name)
-            self.rec.log(f"{ent}/fit", rr.SeriesLines(colors=[color], widths=[2.0], names=[name]), static=True)
-            for part, label in (("plus_sigma", "+1σ"), ("minus_sigma", "-1σ")):
-                self.rec.log(f"{ent}/{part}", rr.SeriesLines(colors=[_lighter(color)], widths=[0.75],
-                                                              names=[f"{name} {label}"]), static=True)
-            self.rec.log(f"{ent}/truth", rr.SeriesLines(colors=[tuple(c // 2 for c in color)], widths=[1.0],
-                                                        names=[f"{name} truth"]), static=True)
-        self.rec.log("adequacy/chi2_dof", rr.SeriesLines(colors=[(0, 0, 0)], widths=[2.0], names=["χ²/dof"]),
-                     static=True)
-        self.rec.log("adequacy/log10_residual_over_expected",
-                     rr.SeriesLines(colors=CURVES["residual"][1:], widths=[1.5],
-                                    names=["log10 residual/expected (band median)"]), static=True)
+        views.static_styles(self.rec, self.band)
 
     def on_fit(self, header, arrays):
         import rerun as rr
@@ -791,22 +659,24 @@ class Monitor(PipelineStage):
             raise ValueError(f"meta t_start/t_stop: the fitted window is needed, got {t_start!r}, {t_stop!r}")
         centre = 0.5 * (t_start + t_stop)
         self._time(centre, header.index)
-        for p, name in enumerate(COEFFICIENT_NAMES):
-            ent = _coefficient_entity(name)
-            self.rec.log(f"{ent}/fit", rr.Scalars(C[p] * 1e3))
-            self.rec.log(f"{ent}/plus_sigma", rr.Scalars((C[p] + S[p]) * 1e3))
-            self.rec.log(f"{ent}/minus_sigma", rr.Scalars((C[p] - S[p]) * 1e3))
+        views.fit_point(self.rec, C, S)
         self._fit_windows[header.index] = (float(t_start), float(t_stop))
         self._draw_truth({header.index: (t_start, t_stop)})
         chi2 = meta.get("chi2_dof")
         chi2 = float(chi2) if isinstance(chi2, (int, float)) and math.isfinite(chi2) else None
         if chi2 is not None:
             self.rec.log("adequacy/chi2_dof", rr.Scalars(float(chi2)))
-        if meta.get("converged") is False:
-            self.text("log", f"fit {header.index}: did not converge", "WARN")
+        if meta.get("converged") is False:  # the fitter records it in its MCAP too (warnings)
+            self.text("alerts", f"fit {header.index}: did not converge", "WARN")
         self.draw_model(header.index, meta)
 
-        alerts = self.trends.add(header.index, float(t_start), float(t_stop), C, S)
+        # the trend monitor gets at most one fit per trend_spacing of window end (10-min segments
+        # give six nearly identical one-day windows an hour): its work per fit stays bounded
+        if self._trend_t is None or t_stop >= self._trend_t + self.trend_spacing - 1e-6:
+            self._trend_t = float(t_stop)
+            alerts = self.trends.add(header.index, float(t_start), float(t_stop), C, S)
+        else:
+            alerts = []
         self._time(t_stop, header.index)
         for a in alerts:
             self.text("alerts", a.message, "WARN")
@@ -833,8 +703,7 @@ class Monitor(PipelineStage):
             if truth is None:
                 continue
             self._time(0.5 * (t_start + t_stop), index)
-            for p, name in enumerate(COEFFICIENT_NAMES):
-                self.rec.log(f"{_coefficient_entity(name)}/truth", rr.Scalars(truth[p] * 1e3))
+            views.truth_point(self.rec, truth)
 
     def draw_model(self, index: int, meta: dict) -> None:
         """Adequacy against the instrument noise model, model changes and candidates of a fit."""
@@ -850,13 +719,7 @@ class Monitor(PipelineStage):
             self.rec.log("adequacy/instrument/chi2_dof", rr.Scalars(float(adequacy["chi2_dof"])))
             for g, band in enumerate(adequacy.get("bands") or ()):
                 if isinstance(band, dict) and isinstance(band.get("chi2_dof"), (int, float)):
-                    ent = f"adequacy/instrument/band_{g}"
-                    if ent not in self._styled:
-                        self._styled.add(ent)
-                        self.rec.log(ent, rr.SeriesLines(names=[f"χ²/dof {band.get('f_lo', 0):.3g}-"
-                                                                f"{band.get('f_hi', 0):.3g} Hz"], widths=[1.0]),
-                                     static=True)
-                    self.rec.log(ent, rr.Scalars(float(band["chi2_dof"])))
+                    views.band_series(self.rec, g, band, self._styled)
             if adequacy.get("fails"):
                 self.text("model/log", f"fit {index}: the model fails against the instrument noise model: "
                                        + "; ".join(map(str, adequacy.get("summary") or ())), "WARN")

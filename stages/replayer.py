@@ -37,6 +37,7 @@ some stage reporting progress still lacks.
 from __future__ import annotations
 
 import argparse
+import json
 import shlex
 import sys
 import time
@@ -45,6 +46,7 @@ from pathlib import Path
 
 import numpy as np
 
+from streamer.plan import Plan
 from streamer.stage import Output
 
 from ttlcore.conventions import LINKS, parse_duration
@@ -149,6 +151,16 @@ class FileSource:
     def segments_total(self) -> int:
         return len(self.pieces)
 
+    def plan(self) -> Plan:
+        """The run's plan (:class:`streamer.plan.Plan`): regular for one file, a table of the
+        segments' starts and lengths for several."""
+        first = self.files[0]
+        n = int(round(self.segment_duration * self.fs))
+        table = None
+        if len(self.files) > 1:
+            table = tuple((self.files[p.file]["t0"] + p.start / self.fs, p.stop - p.start) for p in self.pieces)
+        return Plan(self.segments_total, self.fs, float(first["t0"]), n, int(first["size"]), table)
+
     def describe(self) -> str:
         names = ", ".join(str(e["path"]) for e in self.files)
         return f"{self.segments_total} segments of {self.segment_duration:g} s from {names}"
@@ -184,6 +196,10 @@ class SimulationSource:
     def segments_total(self) -> int:
         return -(-self.sim.size // self.n)
 
+    def plan(self) -> Plan:
+        """The run's plan (:class:`streamer.plan.Plan`), regular."""
+        return Plan(self.segments_total, self.fs, float(self.config.t0), self.n, int(self.sim.size))
+
     def describe(self) -> str:
         return (f"{self.segments_total} segments of {self.segment_duration:g} s simulated on the fly "
                 f"({self.config.duration:g} s, orbit {self.config.orbit}, seed {self.config.seed})")
@@ -212,6 +228,18 @@ def make_source(options: dict):
     if files:
         return FileSource([files] if isinstance(files, str) else files, segment)
     raise ConfigError("no telemetry source: give --telemetry FILE... or --simulate \"<ttl simulate options>\"")
+
+
+# ---------------------------------------------------------------------------- gaps
+
+def nan_stretches(tm: Telemetry) -> list[list[int]]:
+    """Sample ranges ``[start, stop)`` where any eta or DWS series is not finite (a gap)."""
+    bad = ~(np.isfinite(tm.eta).all(axis=0) & np.isfinite(tm.dws_phi).all(axis=0)
+            & np.isfinite(tm.dws_eta).all(axis=0))
+    if not bad.any():
+        return []
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], bad.astype(np.int8), [0]])))
+    return [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2])]
 
 
 # ---------------------------------------------------------------------------- the stage
@@ -309,12 +337,26 @@ class Replayer(PipelineStage):
                 return ()
         try:
             tm, meta = self.source.segment(i)
+            gaps = nan_stretches(tm)
+            if not np.isfinite(tm.eta).any():
+                # no data at all in this segment: a gap, reported; downstream moves on
+                self.report_error("gap", f"telemetry segment {i} (t0={tm.t0} s) has no finite eta sample: "
+                                         "no data, published as a gap", index=i)
+                self.next = i + 1
+                self.mark_gap(i)
+                return ()
+            if not np.isfinite(tm.ltt).all():
+                raise ValueError("light travel times (ltt) are not finite everywhere")
+            if gaps:
+                self.event("gap", index=i, message=f"telemetry segment {i}: {len(gaps)} NaN stretch(es) "
+                                                    f"({sum(b - a for a, b in gaps)} samples), published flagged",
+                           stretches=gaps)
             out = Output(OUTPUT_TOPIC[self.name], {
                 "eta": tm.eta, "dws_phi": tm.dws_phi, "dws_eta": tm.dws_eta, "ltt": tm.ltt},
                 fields={"t0": float(tm.t0), "fs": float(tm.fs), "channels": list(LINKS), "units": UNITS,
                         "meta": {**meta, "segments_total": self.segments_total,
-                                 "segment_duration": self.segment_duration}},
-                index=i)
+                                 "segment_duration": self.segment_duration, "gaps": gaps}},
+                index=i, allow_nonfinite=bool(gaps))
             self.publish(out)
         except Exception as exc:  # reported, and the replay goes on
             self.log.exception("segment %d failed", i)
@@ -337,6 +379,7 @@ def add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--pace", type=float, help="multiple of real time (default: as fast as consumers take them)")
     p.add_argument("--window", type=int, help=f"segments the replay may run ahead of the slowest stage (default {DEFAULT_WINDOW})")
     p.add_argument("--wait-for", help="stages to wait for (liveliness) before the first segment, comma-separated")
+    p.add_argument("--plan-out", help="with --check: write the run's plan (JSON) to this file")
     p.add_argument("--pace-on", help="stages reporting progress to stay within --window of, comma-separated "
                    "(stages that report progress are followed anyway once seen)")
 
@@ -344,12 +387,18 @@ def add_options(p: argparse.ArgumentParser) -> None:
 def options(args) -> dict:
     split = (lambda s: [x for x in s.split(",") if x] if s else None)
     return {"telemetry": args.telemetry, "simulate": args.simulate, "segment": args.segment, "pace": args.pace,
-            "window": args.window, "wait_for": split(args.wait_for), "pace_on": split(args.pace_on)}
+            "window": args.window, "wait_for": split(args.wait_for), "pace_on": split(args.pace_on),
+            "plan_out": args.plan_out}
 
 
 def check(config) -> str:
-    """Validate the source options (``--check``): one line describing the replay."""
-    return make_source(config.options).describe()
+    """Validate the source options (``--check``): one line describing the replay; with option
+    ``plan_out`` the run's plan is written there as JSON (``ttl run`` gives it to every stage)."""
+    source = make_source(config.options)
+    if config.options.get("plan_out"):
+        from ttlcore.io.atomic import write_text
+        write_text(Path(config.options["plan_out"]), json.dumps(source.plan().to_dict()))
+    return source.describe()
 
 
 def main(argv=None) -> int:

@@ -44,7 +44,7 @@ class Subtractor(PipelineStage):
 
     name = "subtractor"
     inputs = ("tdi", "fit")
-    follow = ("fitter",)
+    follow = ("fitter", "tdi_builder")
     reorders = ("tdi", "fit")  # no gap reports on arrival: which fit applies comes from the fitter's progress
 
     def __init__(self, config):
@@ -77,8 +77,6 @@ class Subtractor(PipelineStage):
             self.fits[header.index] = {"coefficients": dict(zip(names, map(float, arrays["coefficients"]))),
                                        "t_start": header.meta.get("t_start"), "t_stop": header.meta.get("t_stop")}
         else:
-            if not self.config.record_inputs:
-                self.recorder.write_json("tdi/input", header.to_dict(), schema="ttl.SegmentHeader")
             if header.index in self.done:
                 return ()
             self.tdi[header.index] = (header, tdi_of(header, arrays))
@@ -89,8 +87,18 @@ class Subtractor(PipelineStage):
 
     def tick(self):
         self.drain()
+        self.give_up_gaps()
         self.check_complete()
         return ()
+
+    def give_up_gaps(self) -> None:
+        """Segments the tdi_builder gave up will not come: handled here as given up too
+        (as gaps when they were gaps), so the run can end."""
+        peer = self.board.get("tdi_builder")
+        if peer is None:
+            return
+        for i in sorted(peer.failed - self.done - self.failed - set(self.tdi)):
+            (self.mark_gap if i in peer.gaps else self.mark_failed)(i)
 
     # ------------------------------------------------------------------ which fit
     def choose(self, index: int):
@@ -125,6 +133,10 @@ class Subtractor(PipelineStage):
                 continue
             header, td = self.tdi.pop(index)
             self._waiting_since.pop(index, None)
+            if self.handled_before(index):  # a restarted subtractor: that residual is out already
+                self.event("replayed", index=index, message=f"segment {index} handled by an earlier process")
+                self.mark_done(index)
+                continue
             try:
                 self.publish(self.subtract(header, td, j), source=header)
             except Exception as exc:

@@ -31,6 +31,9 @@ from ttlcore.tdi.data import TDIStream
 
 from . import OUTPUT_TOPIC, XYZ, OrderedStage, stage_main
 
+#: Arrays kept in the recording: the regressors (72 channels, two thirds of a day's MCAP)
+#: are rebuilt from the replayer's recorded telemetry by :func:`ttlcore` TDI when needed.
+RECORDED = ("data",)
 #: Units of the output arrays.
 UNITS = {"data": "fractional frequency", "regressors": "fractional frequency per m/rad"}
 
@@ -53,7 +56,10 @@ class TDIBuilder(OrderedStage):
         self.stream = TDIStream(**kwargs)
 
     def expect(self, topic, index):
-        return Expect(run=self.run_id, index=index, arrays={k: ("<f8", (6, None)) for k in TELEMETRY_ARRAYS})
+        # NaN stretches in eta / DWS are data with a gap (the replayer flags them in meta.gaps);
+        # ltt must be finite and eta finite somewhere (streamer.plan.Validator)
+        return Expect(run=self.run_id, index=index, arrays={k: ("<f8", (6, None)) for k in TELEMETRY_ARRAYS},
+                      allow_nonfinite=True)
 
     def handle(self, header, arrays):
         # validated here, before buffering: a segment that raises is reported as failed and
@@ -74,14 +80,15 @@ class TDIBuilder(OrderedStage):
             self.stream.reset()
             continuous = False
         td = self.stream.push(tm)
-        meta = {k: header.meta.get(k) for k in ("segments_total", "segment_duration", "source", "truth", "dws_asd")}
+        meta = {k: header.meta.get(k) for k in ("segments_total", "segment_duration", "source", "truth", "dws_asd",
+                                                "gaps")}
         meta.update(names=list(td.names), ltt_mean=[float(x) for x in td.ltt_mean], continuous=continuous)
         if tuple(td.names) != tuple(COEFFICIENT_NAMES) or tuple(td.channels) != XYZ:
             raise ValueError(f"TDIStream gave channels {td.channels} and names {td.names[:2]}...; "
                              f"expected {XYZ} and the 24 coefficients")
         return Output(OUTPUT_TOPIC[self.name], {"data": td.data, "regressors": td.regressors},
                       fields={"channels": list(td.channels), "channel_axis": 0, "units": UNITS, "meta": meta},
-                      allow_nonfinite=True)
+                      allow_nonfinite=True, record_arrays=RECORDED)
 
 
 def add_options(p) -> None:

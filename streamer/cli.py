@@ -1,4 +1,7 @@
-"""Operations subcommands of ``ttl`` (attached by :func:`ttlcore.cli.main.build_parser`).
+"""The ``ttl`` entry point (:func:`main`) and its operations subcommands.
+
+:func:`main` builds the science parser of :mod:`ttlcore.cli.main` with :func:`register`
+added: the operations layer imports the science, never the reverse.
 
 ``ttl run``
     The whole pipeline: five stage processes on a loopback Zenoh, progress, supervision
@@ -8,6 +11,9 @@
     ``ttl stage fitter --run r1 --connect tcp/10.0.0.5:7447``; ``ttl stage NAME --help``.
 ``ttl router``
     A Zenoh router (for stages on several hosts).
+``ttl reprocess``
+    Analysis and diagnosis of many days (files or a recorded run) on Dask
+    (:mod:`streamer.reprocess`).
 ``ttl inspect``, ``ttl view``
     Offline inspection of recordings, from :mod:`streamer.inspect` when it is installed.
 
@@ -28,6 +34,7 @@ import tomllib
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from ttlcore.cli.main import main as science_main
 from ttlcore.errors import TTLError
 
 if TYPE_CHECKING:
@@ -45,8 +52,11 @@ def register(sub) -> None:
     _add_stage(sub)
     _add_router(sub)
     _add_control(sub)
+    _add_credentials(sub)
     from . import refit
     refit.register(sub)
+    from . import reprocess
+    reprocess.add_parser(sub)
     try:
         spec = importlib.util.find_spec("streamer.inspect")
     except (ImportError, ValueError):
@@ -66,8 +76,8 @@ def register(sub) -> None:
 def _add_run(sub) -> None:
     p = sub.add_parser(
         "run", help="run the streaming pipeline (replayer, tdi_builder, fitter, subtractor, monitor)",
-        description="Start the five stages as separate processes on a loopback Zenoh (a router in this "
-                    "process on 127.0.0.1, the stages as peers connecting to it), show progress, supervise "
+        description="Start the five stages as separate processes on a loopback Zenoh (a router process on "
+                    "127.0.0.1, the stages as its clients, all with mutual TLS), show progress, supervise "
                     "them, and stop them once every stage has handled every segment. Recordings go to "
                     "RECORDINGS/RUN_ID/<stage>.mcap. Exit status 0 when the run completed.")
     p.add_argument("--config", type=Path, help="run configuration (JSON or TOML) with these options as keys "
@@ -89,8 +99,12 @@ def _add_run(sub) -> None:
                    help="STAGE runs elsewhere ('ttl stage'): expect it, do not start it (repeatable)")
     p.add_argument("--restart", type=int, help="restart a stage that dies, up to N times per stage (default 0)")
     p.add_argument("--listen", action="append", metavar="ENDPOINT",
-                   help="router endpoint (default tcp/127.0.0.1:<free port>; repeatable)")
+                   help="router endpoint (default tls/127.0.0.1:<free port>; repeatable)")
     p.add_argument("--zenoh-config", type=Path, help="Zenoh configuration file (JSON5) of the router")
+    _add_security(p, "credentials directory (CA and one certificate per stage, 'ttl credentials'); default "
+                     "RECORDINGS/RUN_ID/credentials, made on first use. Every session talks mutual TLS and the "
+                     "router enforces who may publish what",
+                  "no TLS and no access control (plain TCP on loopback): any local process may publish into the run")
     p.add_argument("--fit-segment", help="fitter: FFT segment length (default: the segment length)")
     p.add_argument("--fit-window", help="fitter: rolling window length (default 1d)")
     p.add_argument("--band", nargs=2, type=float, metavar=("FMIN", "FMAX"), help="fitter: fit band [Hz]")
@@ -142,7 +156,8 @@ def run_options(args) -> "RunOptions":
     cli = {"run_id": args.run_id, "telemetry": args.telemetry, "simulate": args.simulate, "segment": args.segment,
            "recordings": args.recordings, "pace": args.pace, "window": args.window, "cache": args.cache,
            "restart": args.restart, "zenoh_config": args.zenoh_config, "timeout": args.timeout,
-           "grace": args.grace, "log_level": args.log_level}
+           "grace": args.grace, "log_level": args.log_level, "credentials": args.credentials,
+           "insecure": args.insecure or None}
     if args.skip:
         cli["skip"] = _split(args.skip)
     if args.external:
@@ -165,7 +180,7 @@ def run_options(args) -> "RunOptions":
             merged[key] = tuple(merged[key]) if not isinstance(merged[key], str) else (merged[key],)
     if isinstance(merged.get("telemetry"), str):
         merged["telemetry"] = [merged["telemetry"]]
-    for key in ("recordings", "zenoh_config"):
+    for key in ("recordings", "zenoh_config", "credentials"):
         if merged.get(key) is not None:
             merged[key] = Path(merged[key])
     try:
@@ -224,6 +239,9 @@ def _add_control(sub) -> None:
     p.add_argument("--run", required=True, help="run id")
     p.add_argument("--connect", action="append", metavar="ENDPOINT", required=True,
                    help="the run's router (ttl run prints it), e.g. tcp/127.0.0.1:7447")
+    p.add_argument("--credentials", type=Path, metavar="DIR",
+                   help="credentials directory of the run (RECORDINGS/RUN/credentials by default for ttl run): "
+                        "connect with mutual TLS as the 'control' identity (endpoints tls/...)")
     p.add_argument("--wait", type=float, default=10.0,
                    help="seconds to listen for a rejection (default 10; a stage answers between segments)")
     p.set_defaults(func=_cmd_control)
@@ -244,7 +262,8 @@ def _cmd_control(args) -> int:
             raise TTLError(f"payload: not JSON ({exc})") from None
     rejections: queue.Queue = queue.Queue()
     try:
-        bus = Bus.open(SessionSettings(mode="client", connect=tuple(args.connect)))
+        bus = Bus.open(SessionSettings(mode="client", connect=tuple(args.connect), credentials=args.credentials,
+                                       identity="control" if args.credentials else None))
     except Exception as exc:
         raise TTLError(f"cannot reach the run's router at {', '.join(args.connect)}: {exc}") from None
     with bus:
@@ -268,23 +287,70 @@ def _cmd_control(args) -> int:
     raise TTLError(f"{args.stage} rejected {args.command}: {err.get('message')}")
 
 
+# ---------------------------------------------------------------------------- ttl credentials
+
+def _add_credentials(sub) -> None:
+    p = sub.add_parser("credentials", help="make the TLS credentials of a deployment (CA, one certificate per role)",
+                       description="Create what is missing in DIR: a certificate authority (ca.pem, ca.key) and one "
+                                   "certificate and key per role (replayer, tdi_builder, fitter, subtractor, monitor, "
+                                   "launcher, control, router), keys mode 0600. The router certificate names "
+                                   "127.0.0.1, localhost and every --host. Copy ca.pem and a role's .pem/.key to the "
+                                   "host that runs it; keep ca.key where certificates are issued.")
+    p.add_argument("directory", type=Path, metavar="DIR")
+    p.add_argument("--host", action="append", default=[], metavar="ADDRESS",
+                   help="address (IP or DNS name) a router listens on for other hosts (repeatable)")
+    p.set_defaults(func=_cmd_credentials)
+
+
+def _cmd_credentials(args) -> int:
+    from .security import ROLES, ensure_credentials
+
+    d = ensure_credentials(args.directory, hosts=tuple(args.host))
+    print(f"ttl credentials: {d}: ca.pem and {', '.join(ROLES)} (.pem, .key)")
+    return 0
+
+
 # ---------------------------------------------------------------------------- ttl router
 
 def _add_router(sub) -> None:
     p = sub.add_parser("router", help="open a Zenoh router (stages on several hosts)",
-                       description="Open a Zenoh router and keep it open until interrupted. Default: listen on "
-                                   "tcp/127.0.0.1:7447 only, multicast scouting off.")
+                       description="Open a Zenoh router and keep it open until interrupted. With --credentials DIR: "
+                                   "mutual TLS, listening on tls/127.0.0.1:7447 only by default, the pipeline's "
+                                   "access-control list enforced, refusals logged on stderr. Multicast scouting off.")
     p.add_argument("--listen", action="append", metavar="ENDPOINT",
                    help="endpoint to listen on (repeatable; default tcp/127.0.0.1:7447)")
     p.add_argument("--connect", action="append", metavar="ENDPOINT", help="other routers to connect to (repeatable)")
     p.add_argument("--zenoh-config", type=Path, help="Zenoh configuration file (JSON5); --listen/--connect override it")
+    _add_security(p, "credentials directory (ttl credentials): mutual TLS with DIR/router.pem, tls/ endpoints only "
+                     "(default tls/127.0.0.1:7447), and the access-control list of the pipeline; refused peers and "
+                     "publications are logged on stderr",
+                  "plain TCP, no authentication, no access control (default tcp/127.0.0.1:7447)")
     p.set_defaults(func=_cmd_router)
+
+
+def _add_security(p, credentials_help: str, insecure_help: str) -> None:
+    """``--credentials DIR`` and ``--insecure`` (see :mod:`streamer.security`)."""
+    p.add_argument("--credentials", type=Path, metavar="DIR", help=credentials_help)
+    p.add_argument("--insecure", action="store_true", help=insecure_help)
 
 
 def _cmd_router(args) -> int:
     from .session import DEFAULT_ROUTER_LISTEN, SessionConfigError, SessionSettings, open_router, open_session
 
-    listen = tuple(args.listen) if args.listen else (None if args.zenoh_config else DEFAULT_ROUTER_LISTEN)
+    if (args.credentials is None) == (not args.insecure):
+        raise TTLError("give --credentials DIR (mutual TLS and access control; 'ttl credentials DIR' makes it) "
+                       "or --insecure (plain TCP, anyone reaching the port may publish)")
+    default = DEFAULT_ROUTER_LISTEN
+    if args.credentials is not None:
+        import zenoh
+
+        from .security import ROUTER_LOG_FILTER, filter_log
+
+        # the router's log (stderr) is the record of refused peers and publications
+        filter_log()
+        zenoh.init_log_from_env_or(ROUTER_LOG_FILTER)
+        default = tuple(e.replace("tcp/", "tls/", 1) for e in DEFAULT_ROUTER_LISTEN)
+    listen = tuple(args.listen) if args.listen else (None if args.zenoh_config else default)
     stop = threading.Event()
     # handlers first: a SIGTERM right after the router starts listening still closes it cleanly
     previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
@@ -292,9 +358,12 @@ def _cmd_router(args) -> int:
         try:
             if listen is None:  # the file's endpoints
                 session = open_session(SessionSettings(mode="router", config_file=args.zenoh_config,
-                                                       connect=tuple(args.connect) if args.connect else None))
+                                                       connect=tuple(args.connect) if args.connect else None,
+                                                       credentials=args.credentials,
+                                                       identity="router" if args.credentials else None))
             else:
-                session = open_router(listen=listen, connect=tuple(args.connect or ()), config_file=args.zenoh_config)
+                session = open_router(listen=listen, connect=tuple(args.connect or ()), config_file=args.zenoh_config,
+                                      credentials=args.credentials)
         except SessionConfigError as exc:
             raise TTLError(str(exc)) from None
         except Exception as exc:  # zenoh: address in use, bad endpoint
@@ -312,3 +381,12 @@ def _cmd_router(args) -> int:
         for s, h in previous.items():
             signal.signal(s, h)
     return 0
+
+
+def main(argv=None) -> int:
+    """The ``ttl`` command: science subcommands (:mod:`ttlcore.cli`) and these."""
+    return science_main(argv, registrars=(register,))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,6 +1,6 @@
 """Offline inspection of a run from its recordings: ``ttl inspect`` and ``ttl view``.
 
-``ttl inspect recordings/NAME [--json]``
+``ttl inspect recordings/NAME [--json FILE]``
     From the MCAP files alone (``<stage>.mcap``, and ``<stage>.<n>.mcap`` kept by restarts,
     oldest ``.1``): which stages ran; the segments each produced and received per topic,
     with missing and duplicate indices; the coefficients and their trends with
@@ -8,10 +8,12 @@
     monitor's alerts; the errors of every stage; and interruptions: files without footer
     (the process was killed; the reader salvages them), segments whose payload never made
     it to disk, a stage's restarts, a recording that ends without a ``stop`` event.
-    Works on a run whose stages were killed.  ``--json``: the same as one JSON object
-    (:func:`inspect_run`).
-``ttl view recordings/NAME [--print]``
-    Opens ``monitor.rrd`` in the ``rerun`` viewer binary with ``--bind 127.0.0.1`` (its
+    Works on a run whose stages were killed.  ``--json FILE``: the same as one JSON object
+    (:func:`inspect_run`) written to FILE (``-``: standard output).
+``ttl view recordings/NAME [--web [--port P]] [--print]``
+    ``--web`` serves ``monitor.rrd`` in Rerun's web viewer on 127.0.0.1 and prints the URL
+    (a machine without a display, :mod:`streamer.webview`); otherwise opens it in the ``rerun`` viewer binary with
+    ``--bind 127.0.0.1`` (its
     gRPC server listens on loopback only; no web server is started); ``--print`` only
     prints the command.
 
@@ -25,15 +27,18 @@ import json
 import math
 import re
 import shlex
+import signal
 import subprocess
 from collections import Counter, defaultdict
 from pathlib import Path
 
 import numpy as np
 
-from .keys import to_ranges
+from ttlcore.io.atomic import write_json
 
-from .recorder import Recording, RecordingError, read_recording
+from .keys import to_ranges
+from .recorder import Recording, RecordingError, read_recording, to_jsonable
+from .webview import WebView
 
 #: The pipeline's stages, in order (names of their recordings).
 KNOWN_STAGES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
@@ -97,7 +102,8 @@ def _file_summary(path: Path, stage: str) -> tuple[dict, Recording | None]:
             "stopped": "stop" in kinds, "completed": "complete" in kinds, "events": dict(kinds),
             "incomplete_segments": [{"topic": m.topic, "index": (m.data or {}).get("index")}
                                     for m in rec.messages if m.kind == "incomplete"],
-            "invalid_messages": [{"topic": m.topic, "error": m.error} for m in rec.messages if m.kind == "invalid"]}
+            "invalid_messages": [{"topic": m.topic, "error": m.error} for m in rec.messages if m.kind == "invalid"],
+            "stop_event": next((e for e in reversed(events) if isinstance(e, dict) and e.get("kind") == "stop"), None)}
     return info, rec
 
 
@@ -244,7 +250,7 @@ def inspect_run(run_dir, truth=None) -> dict:
     per topic with counts, index ranges, missing and duplicate indices, error count),
     ``stages_missing`` (pipeline stages without a recording), ``segments_total``,
     ``fits`` (count, index range, the table of fits in m/rad and ``trends`` per
-    coefficient in mm/rad and mm/rad/day), ``alerts`` (the monitor's), ``errors`` (all
+    coefficient in mm/rad and mm/rad/day), ``alerts`` (the monitor's), ``warnings`` (all stages: a fit that did not converge...), ``errors`` (all
     stages'), ``interruptions``.
 
     Raises
@@ -277,6 +283,8 @@ def inspect_run(run_dir, truth=None) -> dict:
                                    "message": e.get("message"), "time": e.get("time")})
     alerts = [{**a, "file": rec.path.name} for stage, recs in recs_of.items() for rec in recs
               for a in rec.json("alerts") if isinstance(a, dict)]
+    warnings = [{**w, "file": rec.path.name} for stage, recs in recs_of.items() for rec in recs
+                for w in rec.json("warnings") if isinstance(w, dict)]
 
     interruptions = []
     for stage, s in stages.items():
@@ -300,6 +308,32 @@ def inspect_run(run_dir, truth=None) -> dict:
                                       "message": f"{f['file']}: {seg['topic']} segment {seg['index']} has a header "
                                                  "but no payload (cut off while writing)"})
 
+        for f in s["files"]:
+            stop = f.get("stop_event") or {}
+            if (stop.get("details") or {}).get("orphaned"):
+                interruptions.append({"stage": stage, "kind": "orphaned", "file": f["file"],
+                                      "message": f"{f['file']}: stopped by itself: {stop.get('message')}"})
+        for rec in recs_of.get(stage, []):
+            for e in rec.json("events"):
+                if isinstance(e, dict) and e.get("kind") == "restored":
+                    interruptions.append({"stage": stage, "kind": "restored", "file": rec.path.name,
+                                          "message": e.get("message")})
+    for e in errors:
+        if e["kind"] == "window-shortened":
+            interruptions.append({"stage": e["stage"], "kind": "window-shortened", "file": e["file"],
+                                  "message": e["message"]})
+    plan = _plan(run_dir)
+    if plan is not None:
+        total = plan["segments_total"]
+        for stage, s in stages.items():
+            out = next(iter(s["outputs"].values()), None) if s["outputs"] else None
+            last = s["files"][-1] if s["files"] else {}
+            if out is not None and out["missing"] and not last.get("completed"):
+                interruptions.append({"stage": stage, "kind": "unfinished", "file": last.get("file"),
+                                      "message": f"{stage} did not finish: segment(s) {_fmt_ranges(out['missing'])} "
+                                                 f"of {total} not handled"})
+    gaps = _gaps(recs_of, errors, plan)
+
     fits = _fits(recs_of.get("fitter", []))
     fit_report = {"count": len(fits), "indices": to_ranges(f["index"] for f in fits),
                   "names": fits[-1]["names"] if fits else [], "units": "m/rad",
@@ -316,8 +350,34 @@ def inspect_run(run_dir, truth=None) -> dict:
         fit_report["truth_file"] = str(truth)
     return {"run": runs[0] if len(runs) == 1 else (runs or [run_dir.name]), "directory": str(run_dir),
             "stages": stages, "stages_missing": [s for s in KNOWN_STAGES if s not in stages],
-            "segments_total": total, "fits": fit_report, "alerts": alerts, "errors": errors,
-            "interruptions": interruptions}
+            "segments_total": total, "fits": fit_report, "alerts": alerts, "warnings": warnings, "errors": errors,
+            "interruptions": interruptions, "gaps": gaps}
+
+
+def _plan(run_dir: Path) -> dict | None:
+    """The run's plan (``plan.json`` written by ``ttl run``), or None."""
+    try:
+        return json.loads((run_dir / "plan.json").read_text())
+    except (OSError, ValueError):
+        return None
+
+
+def _gaps(recs_of: dict, errors: list[dict], plan: dict | None) -> list[dict]:
+    """Every gap of the run: NaN stretches the replayer published flagged (``gap`` events,
+    sample ranges in the segment) and segments with no data or skipped (``gap`` errors)."""
+    fs = plan["fs"] if plan else None
+    out = []
+    for rec in recs_of.get("replayer", []):
+        for e in rec.json("events"):
+            if isinstance(e, dict) and e.get("kind") == "gap":
+                stretches = (e.get("details") or {}).get("stretches") or []
+                samples = sum(b - a for a, b in stretches)
+                out.append({"stage": "replayer", "kind": "nan-stretch", "index": e.get("index"), "stretches": stretches,
+                            "seconds": samples / fs if fs else None, "message": e.get("message")})
+    for e in errors:
+        if e["kind"] == "gap":
+            out.append({"stage": e["stage"], "kind": "missing", "index": e["index"], "message": e["message"]})
+    return out
 
 
 # ---------------------------------------------------------------------------- text
@@ -362,7 +422,9 @@ def format_report(r: dict) -> str:
         if files and files[-1].get("completed"):
             state.append("complete")
         if files and files[-1].get("stopped"):
-            state.append("stopped")
+            stop = files[-1].get("stop_event") or {}
+            state.append("stopped: orphaned (launcher gone)" if (stop.get("details") or {}).get("orphaned")
+                         else "stopped")
         lines.append(f"  {stage:<12} {len(files)} file(s)  errors {s['errors']}  {', '.join(state) or 'running or killed'}")
         lines.append(f"  {'':<12} out: {_topics_text(s['outputs'])}")
         if s["inputs"]:
@@ -400,6 +462,11 @@ def format_report(r: dict) -> str:
         lines.append(f"  [{a.get('kind')}] {a.get('message')}")
 
     lines.append("")
+    lines.append(f"Warnings: {len(r['warnings'])}")
+    for w in r["warnings"][:MAX_LISTED]:
+        lines.append(f"  {w.get('stage')} [{w.get('kind')}] {w.get('message')}")
+
+    lines.append("")
     lines.append(f"Errors: {len(r['errors'])}")
     by = Counter((e["stage"], e["kind"]) for e in r["errors"])
     if by:
@@ -409,7 +476,13 @@ def format_report(r: dict) -> str:
         field = f" field {e['field']!r}" if e["field"] else ""
         lines.append(f"  {e['stage']} {e['kind']}{where}{field}: {e['message']}")
     if len(r["errors"]) > MAX_LISTED:
-        lines.append(f"  ... {len(r['errors']) - MAX_LISTED} more (--json for all)")
+        lines.append(f"  ... {len(r['errors']) - MAX_LISTED} more (--json FILE for all)")
+
+    lines.append("")
+    lines.append(f"Gaps: {len(r.get('gaps', []))}")
+    for g in r.get("gaps", [])[:MAX_LISTED]:
+        span = f" ({g['seconds'] / 60:.1f} min of NaN)" if g.get("seconds") else ""
+        lines.append(f"  {g['stage']} {g['kind']} segment {g['index']}{span}: {g['message']}")
 
     lines.append("")
     lines.append(f"Interruptions: {len(r['interruptions'])}")
@@ -462,6 +535,15 @@ def view_command(target, binary: str | None = None) -> list[str]:
     InspectError
         If there is no recording to open; FileNotFoundError if there is no viewer binary.
     """
+    rrd = recording_to_view(target)
+    binary = binary or rerun_binary()
+    # --bind: the viewer's own gRPC server listens on loopback only; --new: a new viewer on a free port
+    return [binary, "--bind", "127.0.0.1", "--new", str(rrd)]
+
+
+def recording_to_view(target) -> Path:
+    """The ``.rrd`` file of ``target``: a run directory's ``monitor.rrd`` (else its newest
+    ``monitor.<n>.rrd``) or the ``.rrd`` file itself (:class:`InspectError` otherwise)."""
     target = Path(target)
     if target.is_dir():
         rrd = target / "monitor.rrd"
@@ -476,9 +558,7 @@ def view_command(target, binary: str | None = None) -> list[str]:
         rrd = target
     else:
         raise InspectError(f"{target}: no such run directory or .rrd file")
-    binary = binary or rerun_binary()
-    # --bind: the viewer's own gRPC server listens on loopback only; --new: a new viewer on a free port
-    return [binary, "--bind", "127.0.0.1", "--new", str(rrd)]
+    return rrd
 
 
 # ---------------------------------------------------------------------------- command line
@@ -495,16 +575,26 @@ def _cmd_inspect(args) -> int:
         report = inspect_run(args.run_dir, truth=args.truth)
     finally:
         reader_log.setLevel(level)
-    if args.json:
-        from .recorder import to_jsonable
-
+    if args.json == "-":
         print(json.dumps(to_jsonable(report), indent=1, allow_nan=False))
-    else:
-        print(format_report(report))
+        return 0
+    if args.json:
+        write_json(args.json, to_jsonable(report))
+    print(format_report(report))
     return 0
 
 
 def _cmd_view(args) -> int:
+    if args.web:
+        view = WebView(recording_to_view(args.run_dir), rerun_binary(), args.port)
+        print(f"Rerun web viewer of {view.rrd}: {view.url}  (Ctrl-C to stop)", flush=True)
+        signal.signal(signal.SIGTERM, signal.default_int_handler)  # stop the servers on SIGTERM too
+        try:
+            return view.wait()
+        except KeyboardInterrupt:
+            return 0
+        finally:
+            view.close()
     cmd = view_command(args.run_dir)
     if args.print:
         print(shlex.join(cmd))
@@ -520,7 +610,8 @@ def register(sub) -> None:
                                    "errors, and interruptions (killed or restarted stages), from "
                                    "recordings/<run>/*.mcap alone.")
     p.add_argument("run_dir", metavar="recordings/NAME", help="run directory")
-    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.add_argument("--json", metavar="FILE", help="write the report as JSON to FILE ('-': to standard output, "
+                                                  "instead of the text)")
     p.add_argument("--truth", default=None, metavar="TRUTH.h5",
                    help="a simulation's truth file: show the true coefficients over the last fit window")
     p.set_defaults(func=_cmd_inspect)
@@ -528,5 +619,8 @@ def register(sub) -> None:
                        description="Open recordings/<run>/monitor.rrd (or an .rrd file) in the rerun viewer "
                                    "binary, its server bound to 127.0.0.1 only.")
     p.add_argument("run_dir", metavar="recordings/NAME", help="run directory or .rrd file")
-    p.add_argument("--print", action="store_true", help="only print the viewer command")
+    p.add_argument("--web", action="store_true",
+                   help="serve the web viewer on 127.0.0.1 instead (no display needed) and print its URL")
+    p.add_argument("--port", type=int, help="with --web: the web viewer's HTTP port (default: a free one)")
+    p.add_argument("--print", action="store_true", help="only print the viewer command (not with --web)")
     p.set_defaults(func=_cmd_view)

@@ -225,13 +225,19 @@ def to_ranges(indices: Iterable[int]) -> list[list[int]]:
     return out
 
 
-def from_ranges(ranges) -> set[int]:
-    """Inverse of :func:`to_ranges` (ignores malformed entries)."""
+#: Largest index :func:`from_ranges` expands without a limit.
+MAX_EXPANDED = 10_000_000
+
+
+def from_ranges(ranges, limit: int | None = None) -> set[int]:
+    """Inverse of :func:`to_ranges` (ignores malformed entries), clipped to ``[0, limit)``
+    (default :data:`MAX_EXPANDED`): a hostile ``[[0, 2**40]]`` cannot allocate 2^40 entries."""
+    limit = MAX_EXPANDED if limit is None else min(int(limit), MAX_EXPANDED)
     out: set[int] = set()
     for r in ranges or ():
         try:
-            a, b = int(r[0]), int(r[1])
-        except (TypeError, ValueError, IndexError):
+            a, b = max(int(r[0]), 0), min(int(r[1]), limit - 1)
+        except (TypeError, ValueError, IndexError, OverflowError):
             continue
         out.update(range(a, b + 1))
     return out

@@ -2,8 +2,15 @@
 
 Process model
 -------------
-* The launcher opens a Zenoh **router** in its own process, listening on
-  ``tcp/127.0.0.1:<free port>`` (or ``--listen``), multicast scouting off.
+* The launcher starts a Zenoh **router** process (``ttl router``, log in
+  ``<recordings>/<run>/router.log``) listening on ``tls/127.0.0.1:<free port>`` (or
+  ``--listen``), multicast scouting off, and talks to it as a client itself.
+* Security (:mod:`streamer.security`): unless ``--insecure``, every session of the run uses
+  mutual TLS with a certificate of the run's CA, taken from ``--credentials DIR`` or made on
+  first use in ``<recordings>/<run>/credentials`` (keys mode 0600); the router enforces an
+  access-control list (each stage publishes only its own topics, the launcher the
+  commands).  Peers refused by the router and publications it dropped are read back from
+  its log, reported and written to ``<recordings>/<run>/security.jsonl``.
 * Each stage is a separate process, ``python -m stages.<name> --config
   <recordings>/<run>/<name>.config.json``, a Zenoh **client** of the router: every message
   goes through the router, and a stage whose link closed (a stall beyond
@@ -55,8 +62,10 @@ import zenoh
 
 from ttlcore.errors import TTLError
 
-from .keys import check_name, control_key
-from .session import Bus, SessionSettings, declare_segment_subscriber, loopback_endpoint, open_router
+from . import security
+from .keys import check_name, control_key, from_ranges, to_ranges
+from .session import Bus, SessionSettings, declare_segment_publisher, declare_segment_subscriber, loopback_endpoint
+from .stage import BOARD, LAUNCHER
 
 log = logging.getLogger(__name__)
 
@@ -68,10 +77,15 @@ PROGRESS_STAGES = frozenset({"replayer", "tdi_builder", "fitter", "subtractor", 
 #: Output topic of each stage.
 OUTPUT_TOPIC = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit", "subtractor": "residual",
                 "monitor": "monitor"}
-#: Stages whose inputs would duplicate big TDI payloads already in the tdi_builder's file:
-#: they do not record input payloads (the fitter and subtractor record the input headers).
-HEADERS_ONLY = frozenset({"fitter", "subtractor", "monitor"})
+#: Stages that record the headers of their inputs only (a reference to the payload in the
+#: producer's file): all of them, so that each payload is stored once per run.
+HEADERS_ONLY = frozenset(STAGES)
 DEFAULT_WINDOW = 4
+#: The stage whose progress bounds each stage's claims (a stage handles only what it got).
+UPSTREAM = {"tdi_builder": "replayer", "fitter": "tdi_builder", "subtractor": "tdi_builder",
+            "monitor": "tdi_builder"}
+#: Seconds a progress message claiming more than its upstream waits for the upstream's progress.
+HOLD_PROGRESS = 30.0
 
 
 class LaunchError(TTLError):
@@ -108,6 +122,10 @@ class RunOptions:
         Router endpoints (default ``tcp/127.0.0.1:<free port>``).
     zenoh_config : Path, optional
         Zenoh configuration file of the router.
+    credentials : Path, optional
+        Credentials directory (default ``<recordings>/<run>/credentials``, made on first use).
+    insecure : bool
+        No TLS, no access control (plain TCP): any process reaching the router may publish.
     stage_options : dict
         Stage name -> stage options (``options`` of its StageConfig), and the fitter
         options ``fit_segment``, ``window_duration``, ``band``.
@@ -130,6 +148,8 @@ class RunOptions:
     restart: int = 0
     listen: tuple = ()
     zenoh_config: Path | None = None
+    credentials: Path | None = None
+    insecure: bool = False
     stage_options: dict = field(default_factory=dict)
     timeout: float | None = None
     grace: float = 10.0
@@ -156,6 +176,7 @@ class _Child:
     proc: subprocess.Popen | None = None
     starts: int = 0
     exit_codes: list = field(default_factory=list)
+    pids: set = field(default_factory=set)
 
 
 class Launcher:
@@ -177,6 +198,14 @@ class Launcher:
         self._last_print = 0.0
         self.endpoint = ""
         self.run_dir = Path(opts.recordings) / opts.run_id
+        self.run_plan: dict | None = None
+        self.refused_progress: list[dict] = []  # progress messages refused (forged or inconsistent)
+        self._held: list[tuple[dict, float]] = []
+        self._boards: dict = {}
+        self.credentials: Path | None = None
+        self.router: subprocess.Popen | None = None
+        self.refused: list[dict] = []
+        self._watcher: security.RefusalWatcher | None = None
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:
@@ -202,6 +231,13 @@ class Launcher:
         for f in o.telemetry or ():
             if not Path(f).is_file():
                 raise LaunchError(f"--telemetry: {f}: no such file")
+        secure = not o.insecure
+        for e in o.listen:
+            if secure and not str(e).startswith("tls/"):
+                raise LaunchError(f"--listen {e}: the run talks mutual TLS: write tls/{str(e).split('/', 1)[-1]} "
+                                  "(or give --insecure)")
+        if o.insecure and o.credentials is not None:
+            raise LaunchError("give either --credentials or --insecure, not both")
         if o.window < 1:
             raise LaunchError(f"--window: expected >= 1, got {o.window}")
         cache = self.cache
@@ -239,25 +275,106 @@ class Launcher:
 
     def stage_config(self, name: str) -> dict:
         cfg = {"run": self.opts.run_id, "stage": name,
-               "zenoh": SessionSettings(mode="client", connect=(self.endpoint,)).to_dict(),
+               "zenoh": self.session_settings(name).to_dict(),
                "recordings": str(Path(self.opts.recordings).resolve()), "cache": self.cache,
-               "options": self.stage_options(name)}
+               "options": self.stage_options(name), "plan": self.run_plan, "launcher_pid": os.getpid(),
+               "progress_from": "launcher"}
         if name in HEADERS_ONLY:
             cfg["record_inputs"] = False
         return cfg
+
+    def session_settings(self, identity: str) -> SessionSettings:
+        """How ``identity`` (a stage, the launcher) connects to the run's router."""
+        return SessionSettings(mode="client", connect=(self.endpoint,), credentials=self.credentials,
+                               identity=identity if self.credentials is not None else None)
+
+    # ------------------------------------------------------------------ router and credentials
+    def make_credentials(self, listen) -> None:
+        """The run's credentials (``--credentials`` or made in the run directory), unless insecure."""
+        o = self.opts
+        if o.insecure:
+            self.say("--insecure: no TLS, no access control; any process reaching the router may publish")
+            return
+        hosts = [security.endpoint_host(e) for e in listen]
+        hosts = [h for h in hosts if h and h not in security.LOCAL_HOSTS and h not in ("0.0.0.0", "[::]", "::")]
+        directory = Path(o.credentials) if o.credentials is not None else self.run_dir / "credentials"
+        fresh = not (directory / "ca.pem").exists()
+        try:
+            self.credentials = security.ensure_credentials(directory, hosts=hosts).resolve()
+            for role in ("router", "launcher", *self.expected):
+                security.Identity(self.credentials, role).check()
+        except security.CredentialsError as exc:
+            raise LaunchError(f"--credentials: {exc}") from None
+        if fresh:
+            self.say(f"credentials made in {directory} (CA and one certificate per stage)")
+
+    def start_router(self, listen) -> None:
+        """Start ``ttl router`` (log ``router.log``) and wait until it listens."""
+        o = self.opts
+        path = self.run_dir / "router.log"
+        cmd = [o.python, "-c", "import sys; from streamer.cli import main; sys.exit(main())", "router"]
+        for e in listen:
+            cmd += ["--listen", e]
+        if o.zenoh_config is not None:
+            cmd += ["--zenoh-config", str(o.zenoh_config)]
+        cmd += ["--credentials", str(self.credentials)] if self.credentials is not None else ["--insecure"]
+        env = dict(os.environ, PYTHONUNBUFFERED="1", NO_COLOR="1")
+        env.pop("RUST_LOG", None)
+        with open(path, "ab") as logf:
+            start = logf.tell()
+            self.router = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
+                                           env=env, preexec_fn=_die_with_parent)
+        self._watcher = security.RefusalWatcher(path, offset=start)
+        deadline = time.monotonic() + 60.0
+        while time.monotonic() < deadline:
+            text = path.read_text(errors="replace")[start:]
+            if "ttl router: zenoh router" in text:
+                return
+            if self.router.poll() is not None:
+                lines = [ln for ln in text.splitlines() if ln.strip()]
+                raise LaunchError(f"cannot open the Zenoh router on {', '.join(listen)}: "
+                                  f"{lines[-1] if lines else 'exit status %d' % self.router.returncode}")
+            time.sleep(0.05)
+        raise LaunchError(f"the Zenoh router did not start within 60 s (log {path})")
+
+    def stop_router(self) -> None:
+        if self.router is None:
+            return
+        if self.router.poll() is None:
+            self.router.send_signal(signal.SIGTERM)
+            try:
+                self.router.wait(15.0)
+            except subprocess.TimeoutExpired:
+                self.router.kill()
+                self.router.wait()
+        self.router = None
+
+    def watch_refusals(self) -> None:
+        """Report peers and publications the router refused (from its log)."""
+        if self._watcher is None:
+            return
+        for r in self._watcher.poll():
+            self.refused.append(r)
+            if r["kind"] == "forbidden":
+                self.say(f"refused: {r['subject']} may not {r['action']} on {r['key']}")
+            else:
+                self.say(f"refused a connection: {r['message']}")
 
     def check_replayer(self) -> None:
         """Validate the source options in a child (``stages.replayer --check``)."""
         if "replayer" in self.opts.external:
             return
         path = self.run_dir / "replayer.config.json"
+        plan_path = self.run_dir / "plan.json"
         path.write_text(json.dumps(self.stage_config("replayer"), indent=2))
         res = subprocess.run([self.opts.python, "-m", "stages.replayer", "--config", str(path), "--check",
-                              "--log-level", "WARNING"], capture_output=True, text=True, timeout=300)
+                              "--plan-out", str(plan_path), "--log-level", "WARNING"],
+                             capture_output=True, text=True, timeout=300)
         if res.returncode != 0:
             lines = [ln for ln in (res.stderr or res.stdout).strip().splitlines() if ln.strip()]
             msg = lines[-1] if lines else f"exit status {res.returncode}"
             raise LaunchError(msg.replace("ttl stage replayer: error: ", ""))
+        self.run_plan = json.loads(plan_path.read_text())
         self.say(f"replay: {res.stdout.strip()}")
 
     # ------------------------------------------------------------------ bus callbacks
@@ -266,7 +383,12 @@ class Launcher:
             msg = json.loads(sample.payload.to_bytes())
         except ValueError:
             return
+        key_stage = str(sample.key_expr).rsplit("/", 1)[-1]
         if isinstance(msg, dict) and isinstance(msg.get("stage"), str):
+            if msg["stage"] != key_stage:  # the key is what the access-control list vouches for
+                self.events.put(("error", {"stage": key_stage, "kind": "forged-progress", "key": str(sample.key_expr),
+                                           "message": f"progress of {msg['stage']!r} published as {key_stage!r}"}))
+                return
             self.events.put(("progress", msg))
 
     def _on_alive(self, stage: str, alive: bool) -> None:
@@ -292,16 +414,26 @@ class Launcher:
                 return changed
             changed = True
             if ev[0] == "progress":
-                msg = ev[1]
-                p = self.progress.setdefault(msg["stage"], {"done": set(), "failed": set(), "total": None})
-                for key in ("done", "failed"):
-                    for r in msg.get(key) or ():
-                        try:
-                            p[key].update(range(int(r[0]), int(r[1]) + 1))
-                        except (TypeError, ValueError, IndexError):
-                            pass
+                msg, since = ev[1], (ev[2] if len(ev) > 2 else time.monotonic())
+                why = self.progress_refused(msg)
+                if why and "has not handled" in why and time.monotonic() - since < HOLD_PROGRESS:
+                    self._held.append((msg, since))
+                    continue
+                if why:
+                    self.refuse_progress(msg, why)
+                    continue
+                p = self.progress.setdefault(msg["stage"], {"done": set(), "failed": set(), "gaps": set(),
+                                                            "total": None})
+                limit = self.run_plan["segments_total"] if self.run_plan else None
+                for key in ("done", "failed", "gaps"):
+                    p[key] |= from_ranges(msg.get(key), limit)
+                for name, value in msg.items():
+                    if name.endswith("_ranges"):
+                        p.setdefault("extra", {}).setdefault(name, set()).update(from_ranges(value, limit))
+                p["complete"] = p.get("complete", False) or bool(msg.get("complete"))
                 if isinstance(msg.get("segments_total"), int):
                     p["total"] = msg["segments_total"]
+                self.publish_board(msg["stage"])
             elif ev[0] == "alive":
                 _, stage, alive = ev
                 if stage in self.expected and self.alive.get(stage) != alive:
@@ -319,9 +451,69 @@ class Launcher:
                         self.outputs.setdefault(stage, set()).add(index)
                         self.last_output[stage] = time.monotonic()
 
+    def progress_refused(self, msg: dict) -> str | None:
+        """Why a progress message is not believed, or None.  A stage started here must report
+        with its own process id; ``segments_total`` must be the plan's; a stage may not claim
+        a segment its upstream has not handled (progress of a stage started here is checked
+        against the one before it in the pipeline)."""
+        stage = msg["stage"]
+        if stage not in self.expected:
+            return f"progress of unknown stage {stage!r}"
+        child = self.children.get(stage)
+        if child is not None and child.proc is not None and msg.get("pid") not in child.pids:
+            return f"pid {msg.get('pid')!r} is not the {stage} process started by this launcher"
+        if self.run_plan and msg.get("segments_total") not in (None, self.run_plan["segments_total"]):
+            return f"segments_total {msg.get('segments_total')!r} differs from the plan's {self.run_plan['segments_total']}"
+        upstream = UPSTREAM.get(stage)
+        if upstream in self.expected:
+            limit = self.run_plan["segments_total"] if self.run_plan else None
+            claimed = from_ranges(msg.get("done"), limit) | from_ranges(msg.get("failed"), limit)
+            beyond = claimed - self.handled(upstream)
+            if beyond:
+                return f"claims segment(s) {to_ranges(beyond)[:5]} that {upstream} has not handled"
+        return None
+
+    def _recheck_held(self) -> None:
+        """Progress held back for claiming more than its upstream: believed once the upstream's
+        progress catches up (messages of different keys may arrive out of order), refused after
+        ``HOLD_PROGRESS`` seconds."""
+        held, self._held = self._held, []
+        for msg, since in held:
+            self.events.put(("progress", msg, since))
+
+    def publish_board(self, stage: str) -> None:
+        """Publish what the launcher believes of ``stage``'s progress (the union over its
+        processes of the messages it accepted) on ``ttl/<run>/control/board/<stage>``: the
+        pipeline stages of a launched run follow these, not the stages' own messages."""
+        p = self.progress[stage]
+        msg = {"run": self.opts.run_id, "stage": stage, "time": time.time(),
+               "done": to_ranges(p["done"]), "failed": to_ranges(p["failed"]), "gaps": to_ranges(p["gaps"]),
+               "segments_total": p["total"], "complete": p.get("complete", False),
+               **{name: to_ranges(v) for name, v in p.get("extra", {}).items()}}
+        pub = self._boards.get(stage)
+        if pub is None:
+            pub = self._boards[stage] = self.bus.track(
+                declare_segment_publisher(self.bus.session, control_key(self.opts.run_id, BOARD, stage), cache=1))
+        pub.put(json.dumps(msg).encode())
+
+    def refuse_progress(self, msg: dict, why: str) -> None:
+        """Record a refused progress message (shown, kept for the report, put on errors)."""
+        err = {"run": self.opts.run_id, "stage": "launcher", "kind": "forged", "index": None,
+               "key": f"ttl/{self.opts.run_id}/control/progress/{msg.get('stage')}", "field": "progress",
+               "message": f"progress message refused: {why}", "time": time.time(), "details": {"pid": msg.get("pid")}}
+        self.refused_progress.append(err)
+        if len(self.refused_progress) <= 20:
+            self.say(err["message"])
+        try:
+            self.bus.put_json(f"ttl/{self.opts.run_id}/errors/unknown", err)
+        except Exception:  # noqa: BLE001 - the session may be closing
+            pass
+
     # ------------------------------------------------------------------ state
     @property
     def total(self) -> int | None:
+        if self.run_plan:
+            return self.run_plan["segments_total"]
         totals = [p["total"] for p in self.progress.values() if p["total"]]
         return max(totals) if totals else None
 
@@ -368,6 +560,8 @@ class Launcher:
     def start(self, name: str) -> None:
         child = self.children[name]
         env = dict(os.environ, PYTHONUNBUFFERED="1")
+        if name == "monitor":  # small linear algebra: threaded BLAS only fights the other stages for the cores
+            env.setdefault("OPENBLAS_NUM_THREADS", "1")
         with open(child.log, "ab") as logf:
             logf.write(f"--- start {child.starts + 1} of {name} at {time.ctime()} ---\n".encode())
             logf.flush()
@@ -376,6 +570,7 @@ class Launcher:
                  "--log-level", self.opts.log_level],
                 stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
         child.starts += 1
+        child.pids.add(child.proc.pid)
         log.info("started %s (pid %d)", name, child.proc.pid)
 
     def last_log_line(self, name: str) -> str:
@@ -435,33 +630,49 @@ class Launcher:
         o = self.opts
         self.plan()
         self.run_dir.mkdir(parents=True, exist_ok=True)
-        listen = tuple(o.listen) or (loopback_endpoint(),)
+        listen = tuple(o.listen) or (loopback_endpoint(protocol="tcp" if o.insecure else "tls"),)
         self.endpoint = next((e for e in listen if "127.0.0.1" in e or "localhost" in e), listen[0])
+        self.listen = listen
+        self.make_credentials(listen)
         self.check_replayer()
+        self.start_router(listen)
         try:
-            router = open_router(listen=listen, config_file=o.zenoh_config)
-        except Exception as exc:
-            raise LaunchError(f"cannot open the Zenoh router on {', '.join(listen)}: {exc}") from None
-        with Bus(router) as bus:
-            self.bus = bus
-            bus.track(declare_segment_subscriber(bus.session, f"ttl/{o.run_id}/control/progress/*",
-                                                 self._on_progress, history=1))
-            bus.watch_alive(o.run_id, self._on_alive)
-            bus.subscriber(f"ttl/{o.run_id}/errors/*", self._on_error)
-            for stage in self.expected:
-                if stage not in PROGRESS_STAGES and stage in OUTPUT_TOPIC:
-                    bus.subscriber(f"ttl/{o.run_id}/{OUTPUT_TOPIC[stage]}/*", self._on_output)
-            self.say(f"router on {', '.join(listen)}; stages: {', '.join(self.expected)}"
-                     + (f" (external: {', '.join(o.external)})" if o.external else "")
-                     + f"; recordings in {self.run_dir}")
-            for name in reversed(self.expected):  # consumers first, the replayer last
-                if name in o.external:
-                    continue
-                cfg = self.run_dir / f"{name}.config.json"
-                cfg.write_text(json.dumps(self.stage_config(name), indent=2))
-                self.children[name] = _Child(name, cfg, self.run_dir / f"{name}.log")
-                self.start(name)
-            return self._supervise_loop()
+            try:
+                bus = Bus.open(self.session_settings("launcher"))
+            except Exception as exc:
+                raise LaunchError(f"cannot reach the run's router at {self.endpoint}: {exc}") from None
+            with bus:
+                return self._run_on(bus)
+        finally:
+            self.stop_router()
+            self.watch_refusals()
+            if self._watcher is not None and self.credentials is not None:
+                security.dump(self.refused, self.run_dir / "security.jsonl")
+
+    def _run_on(self, bus: Bus) -> int:
+        o = self.opts
+        self.bus = bus
+        bus.track(declare_segment_subscriber(bus.session, f"ttl/{o.run_id}/control/progress/*",
+                                             self._on_progress, history=1))
+        bus.watch_alive(o.run_id, self._on_alive)
+        # the stages stop when this token goes (streamer.stage.Stage.orphaned)
+        bus.declare_alive(o.run_id, LAUNCHER)
+        bus.subscriber(f"ttl/{o.run_id}/errors/*", self._on_error)
+        for stage in self.expected:
+            if stage not in PROGRESS_STAGES and stage in OUTPUT_TOPIC:
+                bus.subscriber(f"ttl/{o.run_id}/{OUTPUT_TOPIC[stage]}/*", self._on_output)
+        security_note = "" if self.credentials is None else f" (mutual TLS, credentials {self.credentials})"
+        self.say(f"router on {', '.join(self.listen)}{security_note}; stages: {', '.join(self.expected)}"
+                 + (f" (external: {', '.join(o.external)})" if o.external else "")
+                 + f"; recordings in {self.run_dir}")
+        for name in reversed(self.expected):  # consumers first, the replayer last
+            if name in o.external:
+                continue
+            cfg = self.run_dir / f"{name}.config.json"
+            cfg.write_text(json.dumps(self.stage_config(name), indent=2))
+            self.children[name] = _Child(name, cfg, self.run_dir / f"{name}.log")
+            self.start(name)
+        return self._supervise_loop()
 
     def _supervise_loop(self) -> int:
         o = self.opts
@@ -478,7 +689,11 @@ class Launcher:
                     abort = "terminated"
                     break
                 self._drain_events()
+                self._recheck_held()
+                self.watch_refusals()
                 abort = self.supervise()
+                if not abort and self.router is not None and self.router.poll() is not None:
+                    abort = f"the Zenoh router died (exit status {self.router.returncode}; log {self.run_dir / 'router.log'})"
                 if abort:
                     break
                 self.show()
@@ -512,7 +727,11 @@ class Launcher:
                 self.say(f"stage {name} exited with status {bad[0]} (log {child.log})")
                 status = 1
         for s in self.expected:
-            failed = sorted(self.progress.get(s, {}).get("failed", ()))
+            p = self.progress.get(s, {})
+            gaps = sorted(p.get("gaps", ()))
+            failed = sorted(set(p.get("failed", ())) - set(gaps))
+            if gaps:
+                self.say(f"stage {s}: gap(s) in the data at segment(s) {to_ranges(gaps)} (no data; reported)")
             if failed:
                 self.say(f"stage {s} gave up segment(s) {failed}")
                 status = 1
@@ -525,8 +744,21 @@ class Launcher:
             return {"interrupted": 130, "terminated": 143}.get(abort, 1)
         if status == 0:
             files = sorted(p.name for p in self.run_dir.glob("*.mcap")) + sorted(p.name for p in self.run_dir.glob("*.rrd"))
-            self.say(f"done: {total} segments, {len(self.errors)} error report(s); files in {self.run_dir}: {', '.join(files)}")
+            refused = f", {len(self.refused)} refusal(s) by the router (security.jsonl)" if self.refused else ""
+            self.say(f"done: {total} segments, {len(self.errors)} error report(s){refused}, "
+                     f"{len(self.refused_progress)} progress message(s) refused; files in {self.run_dir}: {', '.join(files)}")
         return status
+
+
+def _die_with_parent() -> None:
+    """In a child before exec: receive SIGTERM when the launcher dies (Linux), so that a
+    killed launcher leaves no router behind."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
 
 
 def run(opts: RunOptions, out=None) -> int:

@@ -3,7 +3,8 @@
 Layout of a recording (``recordings/<run>/<stage>.mcap``)
 --------------------------------------------------------
 * JSON channels (message encoding ``json``, schema encoding ``jsonschema``, so Foxglove
-  and the ``mcap`` CLI can read them): ``errors`` (:data:`ERROR_SCHEMA`), ``events``
+  and the ``mcap`` CLI can read them): ``errors`` (:data:`ERROR_SCHEMA`), ``warnings``
+  (:data:`WARNING_SCHEMA`), ``events``
   (:data:`EVENT_SCHEMA`), ``<topic>/header`` (segment headers, :data:`HEADER_SCHEMA`),
   and summaries such as fits and diagnoses (:data:`FIT_SCHEMA`,
   :data:`DIAGNOSIS_SCHEMA`, or any schema given by the writer).
@@ -15,9 +16,19 @@ Layout of a recording (``recordings/<run>/<stage>.mcap``)
   which checks the payload against the header's checksum.
 * File metadata record ``ttl`` (run, stage, ...), given at creation.
 
-The file is written without chunks and flushed after every record, so a killed process
-leaves every record up to the last complete one readable; :func:`read_recording`
-salvages such files (no summary, no footer, maybe a truncated last record).
+Each payload is stored once, by the stage that published it: a consumer records the
+headers of what it received (``<topic>/input``, JSON), whose ``checksum`` names the
+payload in the producer's file, and a producer may leave derived arrays out of its file
+(the header then carries ``meta.recorded``: the arrays kept and the published checksum).
+
+Time: a message's ``log_time`` is *mission* time [ns] (the segment's ``t0``, or the latest
+mission time the recorder has seen for messages without one), so Foxglove and the ``mcap``
+tools plot mission days; ``publish_time`` is the wall-clock time of the write [ns since epoch].
+
+The file is chunked and compressed (zstd by default).  A chunk is closed after every
+segment, after every message on :data:`FLUSHED_TOPICS` (errors, events, warnings) and whenever it has been open for :data:`MAX_CHUNK_AGE` seconds at a write, so a
+killed process loses at most the chunk it was filling; :func:`read_recording` salvages
+such files (no summary, no footer, maybe a truncated last chunk).
 """
 
 from __future__ import annotations
@@ -49,6 +60,21 @@ MAGIC = b"\x89MCAP0\r\n"
 #: Message encoding of payload channels.
 PAYLOAD_ENCODING = "application/octet-stream"
 PROFILE = ""
+#: Compression of the chunks (``"zstd"``, ``"lz4"`` or ``""``).
+COMPRESSION = "zstd"
+#: A chunk is closed once it holds this many bytes (segments close theirs anyway) [bytes].
+CHUNK_SIZE = 1 << 20
+#: A chunk open for longer than this is closed at the next write [s].
+MAX_CHUNK_AGE = 2.0
+#: JSON topics whose messages close the chunk at once (rare, and wanted after a kill).
+FLUSHED_TOPICS = frozenset({"errors", "events", "warnings"})
+_COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "": CompressionType.NONE,
+                "none": CompressionType.NONE}
+
+
+def mission_ns(t: float) -> int:
+    """Mission time ``t`` [s] as an MCAP ``log_time`` [ns] (clipped at 0: log times are unsigned)."""
+    return max(0, int(round(float(t) * 1e9))) if math.isfinite(float(t)) else 0
 
 
 _NUMBER = {"type": "number"}
@@ -97,6 +123,23 @@ ERROR_SCHEMA = {
         "index": {"type": ["integer", "null"]},
         "key": {"type": ["string", "null"]},
         "field": {"type": ["string", "null"], "description": "header field at fault"},
+        "message": {"type": "string"},
+        "time": {"type": "number", "description": "wall-clock time [s since epoch]"},
+        "details": {"type": "object"},
+    },
+}
+#: JSON schema of a warning: something an operator should see that is not an error
+#: (a fit that did not converge, ...).
+WARNING_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "ttl.Warning",
+    "type": "object",
+    "required": ["run", "stage", "kind", "message", "time"],
+    "properties": {
+        "run": {"type": "string"},
+        "stage": {"type": "string"},
+        "kind": {"type": "string", "description": "not-converged | ..."},
+        "index": {"type": ["integer", "null"]},
         "message": {"type": "string"},
         "time": {"type": "number", "description": "wall-clock time [s since epoch]"},
         "details": {"type": "object"},
@@ -168,14 +211,14 @@ CONTROL_SCHEMA = {
     },
 }
 #: Schemas known by name (``Recorder.write_json(..., schema="ttl.Fit")``).
-SCHEMAS = {s["title"]: s for s in (HEADER_SCHEMA, ERROR_SCHEMA, EVENT_SCHEMA, FIT_SCHEMA,
+SCHEMAS = {s["title"]: s for s in (HEADER_SCHEMA, ERROR_SCHEMA, WARNING_SCHEMA, EVENT_SCHEMA, FIT_SCHEMA,
                                    DIAGNOSIS_SCHEMA, CONTROL_SCHEMA)}
 #: Schema of JSON channels with no schema given.
 OBJECT_SCHEMA = {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "ttl.Object",
                  "type": "object"}
 SCHEMAS["ttl.Object"] = OBJECT_SCHEMA
 #: Default schema by topic.
-TOPIC_SCHEMAS = {"errors": "ttl.Error", "events": "ttl.Event", "control": "ttl.Control"}
+TOPIC_SCHEMAS = {"errors": "ttl.Error", "warnings": "ttl.Warning", "events": "ttl.Event", "control": "ttl.Control"}
 
 
 class RecordingError(ValueError):
@@ -214,18 +257,26 @@ class Recorder:
     Use as a context manager, or call :meth:`close`.
     """
 
-    def __init__(self, path, metadata: Mapping[str, str] | None = None, fsync: bool = False):
+    def __init__(self, path, metadata: Mapping[str, str] | None = None, fsync: bool = False,
+                 compression: str = COMPRESSION, chunk_size: int = CHUNK_SIZE,
+                 max_chunk_age: float = MAX_CHUNK_AGE):
+        if compression not in _COMPRESSION:
+            raise ValueError(f"compression: expected one of zstd, lz4, none, got {compression!r}")
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._file = open(self.path, "wb")
         self._fsync = fsync
-        self._writer = Writer(self._file, use_chunking=False, compression=CompressionType.NONE,
-                              index_types=IndexType.ATTACHMENT | IndexType.METADATA)
+        self._writer = Writer(self._file, use_chunking=True, chunk_size=int(chunk_size),
+                              compression=_COMPRESSION[compression])
         self._writer.start(profile=PROFILE, library="ttl-streamer")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
         self._sequence = 0
         self._closed = False
+        self._max_chunk_age = float(max_chunk_age)
+        self._chunk_opened: float | None = None
+        #: Latest mission time seen [ns]: the log time of messages that carry none.
+        self.mission_time_ns = 0
         if metadata:
             self._writer.add_metadata("ttl", {str(k): str(v) for k, v in metadata.items()})
         self.flush()
@@ -284,35 +335,45 @@ class Recorder:
             Name in :data:`SCHEMAS` or a JSON schema (with a ``title``), used when the
             channel is first written (default: by topic, else ``ttl.Object``).
         log_time : int, optional
-            [ns since epoch]; default now.
+            Mission time [ns] (:func:`mission_ns`); default the latest mission time seen.
         """
         channel = self._json_channel(topic, schema)
         data = json.dumps(to_jsonable(obj), separators=(",", ":"), allow_nan=False).encode()
-        now = time.time_ns() if log_time is None else int(log_time)
-        self._sequence += 1
-        self._writer.add_message(channel_id=channel, log_time=now, publish_time=now, data=data,
-                                 sequence=self._sequence)
-        self.flush()
+        self._add(channel, data, log_time)
+        if topic in FLUSHED_TOPICS or time.monotonic() - self._chunk_opened >= self._max_chunk_age:
+            self.flush()
 
     def write_segment(self, topic: str, header: Header | Mapping, payload,
                       log_time: int | None = None) -> None:
-        """Write one segment: its header on ``<topic>/header``, its payload on ``<topic>/payload``."""
+        """Write one segment: its header on ``<topic>/header``, its payload on ``<topic>/payload``
+        (log time: the segment's mission time ``t0`` unless given); the chunk is then closed."""
         header_dict = header.to_dict() if isinstance(header, Header) else dict(header)
         header_channel = self._json_channel(f"{topic}/header", "ttl.SegmentHeader")
         payload_channel = self._payload_channel(topic)
-        now = time.time_ns() if log_time is None else int(log_time)
-        self._sequence += 1
+        if log_time is None:
+            log_time = mission_ns(header_dict.get("t0", 0.0))
         data = json.dumps(header_dict, separators=(",", ":"), allow_nan=False).encode()
-        self._writer.add_message(channel_id=header_channel, log_time=now, publish_time=now,
-                                 data=data, sequence=self._sequence)
         raw = payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload)
-        self._writer.add_message(channel_id=payload_channel, log_time=now, publish_time=now,
-                                 data=raw, sequence=self._sequence)
+        self._add(header_channel, data, log_time)
+        self._add(payload_channel, raw, log_time, new_sequence=False)
         self.flush()
 
+    def _add(self, channel: int, data: bytes, log_time: int | None, new_sequence: bool = True) -> None:
+        if log_time is None:
+            log_time = self.mission_time_ns
+        else:
+            self.mission_time_ns = max(self.mission_time_ns, int(log_time))
+        if new_sequence:
+            self._sequence += 1
+        if self._chunk_opened is None:
+            self._chunk_opened = time.monotonic()
+        self._writer.add_message(channel_id=channel, log_time=int(log_time), publish_time=time.time_ns(),
+                                 data=data, sequence=self._sequence)
+
     def flush(self) -> None:
-        """Push everything written so far to the OS (and to disk with ``fsync=True``)."""
-        self._file.flush()
+        """Close the open chunk and push it to the OS (and to disk with ``fsync=True``)."""
+        self._writer.flush()
+        self._chunk_opened = None
         if self._fsync:
             os.fsync(self._file.fileno())
 
@@ -323,7 +384,7 @@ class Recorder:
         self._closed = True
         try:
             self._writer.finish()
-            self.flush()
+            self._file.flush()
         finally:
             self._file.close()
 
@@ -339,7 +400,7 @@ class RecordedMessage:
     topic : str
         For segments the segment topic (``tdi``), else the MCAP topic (``errors``).
     log_time : int
-        [ns since epoch].
+        Mission time [ns] (see the module docstring).
     kind : {"json", "segment", "incomplete", "invalid", "raw"}
         ``segment``: header and arrays decoded; ``incomplete``: a header whose payload
         was never written (killed in between); ``invalid``: a segment whose payload does
@@ -352,6 +413,8 @@ class RecordedMessage:
     error : str or None
     raw : bytes or None
         The bytes of ``raw`` messages.
+    publish_time : int
+        Wall-clock time of the write [ns since epoch].
     """
 
     topic: str
@@ -363,6 +426,7 @@ class RecordedMessage:
     sequence: int = 0
     error: str | None = None
     raw: bytes | None = None
+    publish_time: int = 0
 
 
 @dataclass
@@ -425,6 +489,14 @@ class _Assembler:
                                            channel.message_encoding)
 
     def message(self, msg: Message) -> None:
+        before = len(self.rec.messages)
+        self._message(msg)
+        for m in self.rec.messages[before:]:
+            m.publish_time = m.publish_time or msg.publish_time
+        for m in self.pending.values():
+            m.publish_time = m.publish_time or msg.publish_time
+
+    def _message(self, msg: Message) -> None:
         channel = self.channels.get(msg.channel_id)
         if channel is None:
             self.rec.messages.append(RecordedMessage(f"<channel {msg.channel_id}>", msg.log_time, "raw",

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ttlcore.cli.progress import status_line
 from ttlcore.io.atomic import write_json
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.errors import TTLError
@@ -80,9 +81,10 @@ def load_run(run_dir, segments: tuple[int | None, int | None] = (None, None), so
                     found[min(found)][0].meta.get("dws_asd"))
         if source == "telemetry":
             raise RefitError(f"{run_dir}: no recorded telemetry (replayer.mcap, or tdi_builder.mcap inputs)")
-    found = recorded_segments(run_dir, "tdi", stages=("tdi_builder",))
+    found = {i: (h, a) for i, (h, a) in recorded_segments(run_dir, "tdi", stages=("tdi_builder",)).items()
+             if "regressors" in a}  # a tdi_builder under `ttl run` records X2, Y2, Z2 only
     if not found:
-        raise RefitError(f"{run_dir}: no recorded telemetry or TDI segments to refit")
+        raise RefitError(f"{run_dir}: no recorded telemetry, nor TDI segments with their regressors, to refit")
     parts = [tdi_of(h, a) for h, a in _select(found, first, last)]
     return (parts, f"TDI of {len(parts)} recorded segments ({sum(p.size / p.fs for p in parts) / 3600:g} h)",
             found[min(found)][0].meta.get("dws_asd"))
@@ -133,7 +135,9 @@ def format_refit(report: dict) -> str:
                          f"({sigma[n] * 1e3:.4f})")
     extra = [n for n in values if n not in COEFFICIENT_NAMES]
     if extra:
-        lines.append(f"  other parameters: {len(extra)} (in the JSON report)")
+        lines.append("  other parameters of the model, in their columns' units (docs/diagnostics.md): value (sigma)")
+        for n in extra:
+            lines.append(f"    {n:<28} {values[n]:+.4g} ({sigma.get(n, float('nan')):.2g})")
     return "\n".join(lines)
 
 
@@ -170,11 +174,13 @@ def register(sub) -> None:
 def _cmd_refit(args) -> int:
     from .inspect import InspectError
 
-    split = lambda s: [x for x in s.split(",") if x.strip()]  # noqa: E731
+    from ttlcore.cli.diagnose import split_effects as split  # ',' between effects, ';' inside one (as ttl diagnose)
     try:
-        report = refit_run(args.run_dir, split(args.effects), baseline=split(args.baseline),
-                           effect_modules=args.effect_module, segments=_parse_range(args.segments),
-                           source=args.source, band=args.band)
+        with status_line("ttl refit") as say:  # in place on a terminal
+            say(f"reading the recorded segments of {args.run_dir} and refitting with {args.effects}")
+            report = refit_run(args.run_dir, split(args.effects), baseline=split(args.baseline),
+                               effect_modules=args.effect_module, segments=_parse_range(args.segments),
+                               source=args.source, band=args.band)
     except InspectError as exc:
         raise RefitError(str(exc)) from None
     print(format_refit(report))

@@ -12,6 +12,11 @@ re-declares its subscriptions.  Peers talking directly do not re-establish a clo
 peer-to-peer link, and a router does not route between two peers (measured with
 zenoh 1.10: a consumer stopped for 9 s never received another segment).
 
+With ``credentials`` (a directory of :mod:`streamer.security`) and an ``identity``, a
+session talks mutual TLS only (``transport/link/tls``, ``enable_mtls``, TLS the only link
+protocol) with that identity's certificate, and a router also enforces the pipeline's
+access-control list; ``ttl run`` does this for every session of a run.
+
 A Zenoh configuration file (JSON5, Zenoh's own format, see
 ``streamer/configs/*.json5``) selects client or router mode and the endpoints of a
 deployment over several hosts; what the file leaves unset keeps the safe defaults above
@@ -103,6 +108,14 @@ class SessionSettings:
         enabled in zenoh 1.x).
     config_file : str or Path, optional
         Zenoh configuration file (JSON5).
+    credentials : str or Path, optional
+        Credentials directory (:mod:`streamer.security`): the session talks mutual TLS
+        only (``tls/`` endpoints; default listen ``tls/127.0.0.1:<free port>``) with the
+        certificate of ``identity``; a router also enforces the access-control list of
+        :func:`streamer.security.access_control` (unless the file sets ``access_control``).
+    identity : str, optional
+        Role whose certificate the session presents (``fitter``, ``launcher``, ``router``...);
+        required with ``credentials``.
     """
 
     mode: str | None = None
@@ -111,13 +124,17 @@ class SessionSettings:
     multicast_scouting: bool | None = None
     shared_memory: bool | None = None
     config_file: str | Path | None = None
+    credentials: str | Path | None = None
+    identity: str | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready form (for passing to child processes)."""
         return {"mode": self.mode, "listen": None if self.listen is None else list(self.listen),
                 "connect": None if self.connect is None else list(self.connect),
                 "multicast_scouting": self.multicast_scouting, "shared_memory": self.shared_memory,
-                "config_file": None if self.config_file is None else str(self.config_file)}
+                "config_file": None if self.config_file is None else str(self.config_file),
+                "credentials": None if self.credentials is None else str(self.credentials),
+                "identity": self.identity}
 
     @classmethod
     def from_dict(cls, d: dict | None) -> "SessionSettings":
@@ -139,9 +156,9 @@ def free_port(host: str = LOOPBACK) -> int:
         return s.getsockname()[1]
 
 
-def loopback_endpoint(port: int | None = None) -> str:
-    """``tcp/127.0.0.1:<port>`` (a free port when None)."""
-    return f"tcp/{LOOPBACK}:{free_port() if port is None else int(port)}"
+def loopback_endpoint(port: int | None = None, protocol: str = "tcp") -> str:
+    """``<protocol>/127.0.0.1:<port>`` (a free port when None)."""
+    return f"{protocol}/{LOOPBACK}:{free_port() if port is None else int(port)}"
 
 
 def _get(config: zenoh.Config, key: str):
@@ -176,11 +193,12 @@ def make_config(settings: SessionSettings | None = None) -> zenoh.Config:
         if mode not in MODES:
             raise SessionConfigError(f"mode: {mode!r} is not one of {', '.join(MODES)}")
         _set(config, "mode", mode)
+        protocol = "tls" if s.credentials is not None else "tcp"
         if s.listen is not None:
             _set(config, "listen/endpoints", list(s.listen))
         elif not isinstance(_get(config, "listen/endpoints"), list):
             # unset in the file: Zenoh's default would listen on every interface
-            _set(config, "listen/endpoints", [] if mode == "client" else [loopback_endpoint()])
+            _set(config, "listen/endpoints", [] if mode == "client" else [loopback_endpoint(protocol=protocol)])
         if s.connect is not None:
             _set(config, "connect/endpoints", list(s.connect))
         if s.multicast_scouting is not None:
@@ -197,12 +215,36 @@ def make_config(settings: SessionSettings | None = None) -> zenoh.Config:
             _set(config, "transport/link/tx/lease", int(LEASE * 1e3))     # milliseconds
         if mode == "client" and _get(config, "connect/timeout_ms") is None:
             _set(config, "connect/timeout_ms", int(CLIENT_CONNECT_TIMEOUT * 1e3))
+        if s.credentials is not None:
+            _secure(config, s, mode)
     except zenoh.ZError as exc:
         raise SessionConfigError(f"invalid Zenoh setting: {exc}") from exc
     for endpoint in _endpoints(_get(config, "listen/endpoints")):
         if LOOPBACK not in endpoint and "localhost" not in endpoint:
             log.warning("Zenoh listens on %s (not loopback only), as configured", endpoint)
     return config
+
+
+def _secure(config: zenoh.Config, s: SessionSettings, mode: str) -> None:
+    """Mutual TLS with the identity's certificate, TLS links only, and (router) the ACL."""
+    from .security import CredentialsError, Identity, access_control
+
+    if not s.identity:
+        raise SessionConfigError("credentials given without an identity (the role whose certificate to use)")
+    try:
+        tls = Identity(Path(s.credentials), s.identity).tls(listen=mode != "client")
+    except CredentialsError as exc:
+        raise SessionConfigError(str(exc)) from None
+    for name, value in tls.items():
+        _set(config, f"transport/link/tls/{name}", value)
+    for what in ("listen", "connect"):
+        plain = [e for e in _endpoints(_get(config, f"{what}/endpoints")) if not e.startswith("tls/")]
+        if plain:
+            raise SessionConfigError(f"{what} endpoint {plain[0]!r}: with credentials every link is TLS "
+                                     f"(write tls/{plain[0].split('/', 1)[-1]})")
+    _set(config, "transport/link/protocols", ["tls"])
+    if mode == "router" and not (_get(config, "access_control") or {}).get("enabled"):
+        _set(config, "access_control", access_control())
 
 
 def _endpoints(value) -> list[str]:
@@ -221,7 +263,7 @@ def open_session(settings: SessionSettings | None = None) -> zenoh.Session:
 
 
 def open_router(listen: Iterable[str] = DEFAULT_ROUTER_LISTEN, connect: Iterable[str] = (),
-                config_file: str | Path | None = None) -> zenoh.Session:
+                config_file: str | Path | None = None, credentials: str | Path | None = None) -> zenoh.Session:
     """Open a Zenoh router in this process (``mode="router"``).
 
     Parameters
@@ -232,9 +274,13 @@ def open_router(listen: Iterable[str] = DEFAULT_ROUTER_LISTEN, connect: Iterable
         Other routers to connect to (several hosts).
     config_file : path, optional
         Zenoh configuration file; ``listen`` and ``connect`` override its endpoints.
+    credentials : path, optional
+        Credentials directory: mutual TLS with the ``router`` certificate and the run's
+        access-control list (:mod:`streamer.security`).
     """
     return open_session(SessionSettings(mode="router", listen=tuple(listen), connect=tuple(connect),
-                                        config_file=config_file))
+                                        config_file=config_file, credentials=credentials,
+                                        identity="router" if credentials is not None else None))
 
 
 # ---------------------------------------------------------------------------- publishers

@@ -27,8 +27,10 @@ no message is waiting.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
+import os
 import queue
 import signal
 import sys
@@ -45,11 +47,16 @@ import numpy as np
 from .codec import CodecError, Expect, Header, decode, encode
 from .keys import (KeyExprError, control_key, control_pattern, errors_key, parse_control_key,
                    parse_segment_key, topic_pattern)
-from .recorder import Recorder
+from .plan import Plan, RangeSet, Rejected, Validator
+from .recorder import Recorder, mission_ns
 from .session import DEFAULT_CACHE, Bus, SessionSettings
 
 log = logging.getLogger(__name__)
 
+#: Name of the launcher's liveliness token (``ttl/<run>/alive/launcher``).
+LAUNCHER = "launcher"
+#: Control chunk of the progress the launcher has verified (``ttl/<run>/control/board/<stage>``).
+BOARD = "board"
 #: Characters of a rejected attachment kept in the error report.
 PREVIEW_CHARS = 2000
 
@@ -72,8 +79,12 @@ class StageConfig:
         Segments kept per output topic for late joiners.
     history : int
         Segments asked from each input publisher's cache at start and on publisher appearance.
-    record_inputs, record_outputs : bool
-        Record input / output segments (headers and payloads) in the MCAP file.
+    record_inputs : bool
+        Record input segments whole (header and payload) in the MCAP file; when False
+        (``ttl run``: the producer's file holds the payload) only their headers, on
+        ``<topic>/input``, whose checksum refers to the payload in the producer's file.
+    record_outputs : bool
+        Record output segments (header and payload, see :attr:`Output.record_arrays`).
     poll_interval : float
         Longest wait for a message before checking for shutdown and calling :meth:`Stage.tick` [s].
     gap_grace : float
@@ -81,6 +92,19 @@ class StageConfig:
         within this many seconds [s] (segments of different keys may arrive out of order).
     options : dict
         Stage-specific options.
+    plan : dict, optional
+        The run's plan (:class:`streamer.plan.Plan`); every input message is checked
+        against it (:class:`streamer.plan.Validator`).  None: learned from the messages.
+    launcher_pid : int, optional
+        Process id of the launcher that started this stage: the stage stops (exit status
+        3, recording closed) as soon as its parent is no longer that process.
+    progress_from : {"stages", "launcher"}
+        Whose progress messages a pipeline stage follows: the stages' own
+        (``control/progress/<stage>``), or, in a run of ``ttl run``, the launcher's verified
+        board (``control/board/<stage>``: only what the launcher believed).
+    orphan_grace : float
+        Once the launcher's liveliness token ``ttl/<run>/alive/launcher`` has been seen, the
+        stage stops when it has been gone this long [s] (a launcher on another host).
     """
 
     run: str
@@ -94,12 +118,18 @@ class StageConfig:
     poll_interval: float = 0.2
     gap_grace: float = 10.0
     options: dict = field(default_factory=dict)
+    plan: dict | None = None
+    launcher_pid: int | None = None
+    orphan_grace: float = 60.0
+    progress_from: str = "stages"
 
     def to_dict(self) -> dict:
         return {"run": self.run, "stage": self.stage, "zenoh": self.zenoh.to_dict(),
                 "recordings": str(self.recordings), "cache": self.cache, "history": self.history,
                 "record_inputs": self.record_inputs, "record_outputs": self.record_outputs,
-                "poll_interval": self.poll_interval, "gap_grace": self.gap_grace, "options": self.options}
+                "poll_interval": self.poll_interval, "gap_grace": self.gap_grace, "options": self.options,
+                "plan": self.plan, "launcher_pid": self.launcher_pid, "orphan_grace": self.orphan_grace,
+                "progress_from": self.progress_from}
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> "StageConfig":
@@ -138,6 +168,10 @@ class Output:
         Name in :data:`streamer.recorder.SCHEMAS` or a JSON schema.
     allow_nonfinite : bool
         Allow NaN/inf in the arrays (consumers must then expect them too).
+    record_arrays : tuple of str, optional
+        Arrays kept in the recording (default all): derived arrays a reader can rebuild
+        from other recorded payloads are left out; the recorded header then carries
+        ``meta.recorded`` with the arrays kept and the published checksum and size.
     """
 
     topic: str
@@ -147,6 +181,7 @@ class Output:
     summary: dict | None = None
     summary_schema: Any = "ttl.Object"
     allow_nonfinite: bool = False
+    record_arrays: tuple | None = None
 
 
 class StageLogger(logging.LoggerAdapter):
@@ -211,8 +246,10 @@ class Stage:
     inputs: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, config: StageConfig):
-        self.config = config
         self.stage_name = config.stage or self.name
+        if config.zenoh.credentials is not None and not config.zenoh.identity:  # this stage's certificate
+            config = dataclasses.replace(config, zenoh=dataclasses.replace(config.zenoh, identity=self.stage_name))
+        self.config = config
         self.run_id = config.run
         self.log = StageLogger(logging.getLogger(f"streamer.stage.{self.stage_name}"),
                                {"run": self.run_id, "stage": self.stage_name})
@@ -223,9 +260,15 @@ class Stage:
         self._controls: queue.Queue = queue.Queue()  # handled before queued segments
         self._stop = threading.Event()
         self._publishers: dict = {}
-        self._done: dict[str, set[int]] = {}
+        self._done: dict[str, RangeSet] = {}
         self._highest: dict[str, int] = {}
-        self._suspected: dict[tuple[str, int], tuple[float, int]] = {}  # (topic, index) -> (since, revealed by)
+        # suspected gaps, in ranges: topic -> [[first, last, since, revealed by], ...]
+        self._suspected: dict[str, list[list]] = {}
+        self.validator = Validator(Plan.from_dict(config.plan) if config.plan else None)
+        self.rejections = 0
+        self._launcher_seen = False
+        self._launcher_gone_at: float | None = None
+        self.exit_reason: str | None = None
 
     # ------------------------------------------------------------------ to override
     def handle(self, header: Header, arrays: dict[str, np.ndarray]) -> Sequence[Output]:
@@ -276,6 +319,7 @@ class Stage:
                 self.bus, self.recorder = bus, recorder
                 bus.declare_alive(self.run_id, self.stage_name)
                 bus.subscriber(control_pattern(self.run_id), self._on_control)
+                bus.watch_alive(self.run_id, self._on_alive)
                 self.setup()
                 for topic in self.inputs:
                     bus.segment_subscriber(topic_pattern(self.run_id, topic), self._on_sample,
@@ -285,15 +329,50 @@ class Stage:
                 self._loop()
                 self.log.info("stopping")
                 self.teardown()
-                self.event("stop")
+                self.event("stop", message=self.exit_reason or "", orphaned=bool(self.exit_reason),
+                           rejections=self.rejections)
         finally:
             self.bus = self.recorder = None
             restore()
         self.log.info("stopped")
-        return 0
+        return 3 if self.exit_reason else 0
+
+    def _on_alive(self, stage: str, alive: bool) -> None:  # Zenoh thread
+        if stage != LAUNCHER:
+            return
+        if alive:
+            self._launcher_seen, self._launcher_gone_at = True, None
+        elif self._launcher_seen:
+            self._launcher_gone_at = time.monotonic()
+
+    def orphaned(self) -> str | None:
+        """Why this stage has lost its launcher, or None: its parent process is no longer the
+        launcher that started it, or the launcher's liveliness token has been gone for
+        ``orphan_grace`` seconds."""
+        pid = self.config.launcher_pid
+        if pid is not None and os.getppid() != pid:
+            return f"the launcher (pid {pid}) is gone"
+        gone = self._launcher_gone_at
+        if gone is not None and time.monotonic() - gone >= self.config.orphan_grace:
+            return f"the launcher's liveliness token has been gone for {self.config.orphan_grace:g} s"
+        return None
+
+    def _check_orphaned(self) -> None:
+        now = time.monotonic()
+        if now - self._orphan_checked < 0.5:
+            return
+        self._orphan_checked = now
+        why = self.orphaned()
+        if why:
+            self.exit_reason = why
+            self.log.error("%s: stopping (exit status 3)", why)
+            self.report_error("orphaned", f"{why}: stage stops")
+            self._stop.set()
 
     def _loop(self) -> None:
+        self._orphan_checked = 0.0
         while not self._stop.is_set():
+            self._check_orphaned()
             while not self._controls.empty():
                 self._control(*self._controls.get_nowait())
             try:
@@ -399,14 +478,25 @@ class Stage:
                               details={"payload_bytes": len(payload),
                                        "attachment": _preview(attachment)})
             return
-        done = self._done.setdefault(seg.topic, set())
-        if seg.index in done:
-            self.log.info("%s: duplicate of a processed segment, ignored", key)
-            self.event("duplicate", index=seg.index, message=f"{key} already processed")
+        try:
+            verdict = self.validator.check(seg.topic, header, arrays)
+        except Rejected as exc:
+            self.rejections += 1
+            self.report_error(exc.kind, exc.what, index=seg.index, key=key, field=exc.field,
+                              details={"producer": header.producer, "t0": header.t0, "fs": header.fs,
+                                       "checksum": header.checksum})
+            return
+        done = self._done.setdefault(seg.topic, RangeSet())
+        if verdict == "duplicate" or seg.index in done:
+            self.log.info("%s: identical copy of a processed segment, ignored", key)
+            self.event("duplicate", index=seg.index, message=f"{key} already processed (identical copy)")
             return
         self._check_gap(seg.topic, seg.index)
         if self.config.record_inputs:
             self.recorder.write_segment(seg.topic, header, payload)
+        else:  # a reference: the payload is in the producer's recording, named by its checksum
+            self.recorder.write_json(f"{seg.topic}/input", header.to_dict(), schema="ttl.SegmentHeader",
+                                     log_time=mission_ns(header.t0))
         try:
             outputs = list(self.handle(header, arrays) or ())
             for out in outputs:
@@ -416,41 +506,39 @@ class Stage:
             self.report_error("failed", f"{type(exc).__name__}: {exc}", index=seg.index, key=key,
                               details={"traceback": traceback.format_exc(limit=8)})
             return
+        self.validator.accepted(seg.topic, header)
         done.add(seg.index)
         self.log.info("%s: processed, %d output(s)", key, len(outputs))
 
     def _check_gap(self, topic: str, index: int) -> None:
-        """Note the indices an arrival skips; :meth:`_report_gaps` reports those that do not
-        come within ``gap_grace`` (messages of different keys may arrive out of order)."""
+        """Note the indices an arrival skips, as ranges; :meth:`_report_gaps` reports those
+        that do not come within ``gap_grace`` (messages of different keys may arrive out of
+        order).  Memory: one entry per gap, whatever its length."""
         if topic in self.reorders:
             return
-        self._suspected.pop((topic, index), None)
+        gaps = self._suspected.setdefault(topic, [])
+        for k, (first, last, since, revealed) in enumerate(gaps):
+            if first <= index <= last:  # a suspected index came: split the range
+                parts = [[a, b, since, revealed] for a, b in ((first, index - 1), (index + 1, last)) if a <= b]
+                gaps[k:k + 1] = parts
+                break
         highest = self._highest.get(topic)
         if highest is not None and index > highest + 1:
-            now = time.monotonic()
-            for i in range(highest + 1, index):
-                self._suspected.setdefault((topic, i), (now, index))
+            gaps.append([highest + 1, index - 1, time.monotonic(), index])
         if highest is None or index > highest:
             self._highest[topic] = index
 
     def _report_gaps(self) -> None:
-        if not self._suspected:
-            return
         now = time.monotonic()
-        due = sorted(k for k, (since, _) in self._suspected.items() if now - since >= self.config.gap_grace)
-        while due:
-            topic, first = due[0]
-            last = first
-            while (topic, last + 1) in due:
-                last += 1
-            revealed = self._suspected[(topic, first)][1]
-            for i in range(first, last + 1):
-                del self._suspected[(topic, i)]
-                due.remove((topic, i))
-            missing = f"{first}" if first == last else f"{first}..{last}"
-            self.report_error("gap", f"{topic} segment(s) {missing} missing before {revealed} "
-                                     f"(not received within {self.config.gap_grace:g} s)", index=revealed,
-                              details={"topic": topic, "first_missing": first, "last_missing": last})
+        for topic, gaps in self._suspected.items():
+            due = [g for g in gaps if now - g[2] >= self.config.gap_grace]
+            for first, last, _, revealed in due:
+                missing = f"{first}" if first == last else f"{first}..{last}"
+                self.report_error("gap", f"{topic} segment(s) {missing} missing before {revealed} "
+                                         f"(not received within {self.config.gap_grace:g} s)", index=revealed,
+                                  details={"topic": topic, "first_missing": first, "last_missing": last})
+            if due:
+                gaps[:] = [g for g in gaps if now - g[2] < self.config.gap_grace]
 
     # ------------------------------------------------------------------ outputs and reports
     def publish(self, out: Output, source: Header | None = None) -> str:
@@ -469,11 +557,31 @@ class Stage:
             publisher = self.bus.segment_publisher(self.run_id, out.topic, cache=self.config.cache)
             self._publishers[out.topic] = publisher
         key = publisher.put(index, payload, attachment)
+        header = json.loads(attachment)
         if self.config.record_outputs:
-            self.recorder.write_segment(out.topic, json.loads(attachment), payload)
+            self._record_output(out, fields, header, payload)
         if out.summary is not None:
-            self.recorder.write_json(f"{out.topic}/summary", out.summary, schema=out.summary_schema)
+            self.recorder.write_json(f"{out.topic}/summary", out.summary, schema=out.summary_schema,
+                                     log_time=mission_ns(header["t0"]))
         return key
+
+    def _record_output(self, out: Output, fields: dict, header: dict, payload) -> None:
+        """Record an output, whole or with the arrays of :attr:`Output.record_arrays` only."""
+        arrays = out.arrays if isinstance(out.arrays, Mapping) else None
+        if out.record_arrays is None or arrays is None or set(out.record_arrays) >= set(arrays):
+            self.recorder.write_segment(out.topic, header, payload)
+            return
+        kept = {name: arrays[name] for name in out.record_arrays}
+        meta = dict(fields.get("meta") or {})
+        meta["recorded"] = {"arrays": list(kept), "published_checksum": header["checksum"],
+                            "published_bytes": header["payload_bytes"],
+                            "published_arrays": [a["name"] for a in header["arrays"]]}
+        units = fields.get("units")
+        sub = {**fields, "meta": meta}
+        if isinstance(units, Mapping):
+            sub["units"] = {k: v for k, v in units.items() if k in kept}
+        part, attachment = encode(kept, sub, allow_nonfinite=out.allow_nonfinite)
+        self.recorder.write_segment(out.topic, json.loads(attachment), part)
 
     def report_error(self, kind: str, message: str, *, index: int | None = None, key: str | None = None,
                      field: str | None = None, details: dict | None = None) -> dict:
@@ -490,6 +598,14 @@ class Stage:
         if self.recorder is not None:
             self.recorder.write_json("errors", error)
         return error
+
+    def warn(self, kind: str, message: str, *, index: int | None = None, **details) -> None:
+        """Log and record a warning (topic ``warnings``): not an error, but for the operator's eyes."""
+        self.log.warning("%s: %s", kind, message, extra={"index": index})
+        if self.recorder is not None:
+            self.recorder.write_json("warnings", {"run": self.run_id, "stage": self.stage_name, "kind": kind,
+                                                  "index": index, "message": message, "time": time.time(),
+                                                  "details": details})
 
     def event(self, kind: str, *, index: int | None = None, message: str = "", **details) -> None:
         """Record a lifecycle or bookkeeping event in the recording."""
@@ -518,6 +634,8 @@ def stage_arguments(parser: argparse.ArgumentParser | None = None) -> argparse.A
                    help="Zenoh mode (default: client when --connect is given without --listen, as behind "
                         "the router of `ttl run`; else peer)")
     p.add_argument("--zenoh-config", type=Path, help="Zenoh configuration file (JSON5)")
+    p.add_argument("--credentials", type=Path, metavar="DIR",
+                   help="credentials directory: mutual TLS with DIR/<stage>.pem (endpoints tls/...)")
     p.add_argument("--recordings", type=Path, help="recordings directory")
     p.add_argument("--log-level", default="INFO")
     p.add_argument("--log-json", action="store_true", help="log JSON lines")
@@ -540,6 +658,8 @@ def config_from_args(args: argparse.Namespace) -> StageConfig:
         z["listen"] = args.listen
     if args.zenoh_config:
         z["config_file"] = str(args.zenoh_config)
+    if getattr(args, "credentials", None):
+        z["credentials"] = str(args.credentials)
     if getattr(args, "mode", None):
         z["mode"] = args.mode
     elif args.connect and not args.listen and not z.get("mode") and not z.get("config_file"):

@@ -21,6 +21,7 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).with_name("stages")))
 
 from streamer.recorder import read_recording  # noqa: E402
+from streamer.security import ensure_credentials  # noqa: E402
 from streamer.session import Bus, SessionSettings, free_port  # noqa: E402
 from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for  # noqa: E402
 
@@ -30,8 +31,8 @@ SEGMENTS = 12
 def test_fitter_changes_model_on_control_message_and_monitor_shows_before_after(tmp_path):
     from test_pipeline import _progress_watch
 
-    port = free_port()
-    endpoint = f"tcp/127.0.0.1:{port}"
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    creds = ensure_credentials(tmp_path / "creds")
     (tmp_path / "run.toml").write_text('[stages.fitter]\nadequacy_every = 1\n')
     procs = Procs(tmp_path)
     try:
@@ -41,18 +42,20 @@ def test_fitter_changes_model_on_control_message_and_monitor_shows_before_after(
         proc = procs.ttl("run", "--config", tmp_path / "run.toml", "--simulate",
                          "--duration 12h --orbit unequal --seed 4 --drift 12.phi.rx=12,23.eta.tx=-12",
                          "--segment", "1h", "--run-id", "m1", "--recordings", tmp_path / "rec",
-                         "--listen", endpoint, "--timeout", "400", *([] if MONITOR else ["--skip", "monitor"]))
-        with Bus.open(SessionSettings(mode="client", connect=(endpoint,))) as bus:
+                         "--listen", endpoint, "--credentials", creds, "--timeout", "400",
+                         *([] if MONITOR else ["--skip", "monitor"]))
+        with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="control")) as bus:
             time.sleep(0.5)
             fitted = _progress_watch(bus, "m1", "fitter")
             wait_for(lambda: fitted() >= 6 or proc.poll() is not None, 180, "six segments through the fitter")
             assert proc.poll() is None, output(proc)[-3000:]
             bad = subprocess.run(ttl_command("control", "fitter", "model", '{"effects": ["linear-ttl", "tilt"]}',
-                                             "--run", "m1", "--connect", endpoint, "--wait", "60"),
+                                             "--run", "m1", "--connect", endpoint, "--credentials", str(creds),
+                                             "--wait", "60"),
                                  capture_output=True, text=True, timeout=90)
             assert bad.returncode != 0 and "tilt" in bad.stderr, (bad.stdout, bad.stderr)  # unknown effect: rejected
             sent = subprocess.run(ttl_command("control", "fitter", "model", '{"effects": ["linear-ttl", "drift"]}',
-                                              "--run", "m1", "--connect", endpoint),
+                                              "--run", "m1", "--connect", endpoint, "--credentials", str(creds)),
                                   capture_output=True, text=True, timeout=60)
             assert sent.returncode == 0, (sent.stdout, sent.stderr)
             code = finish(proc, 400)

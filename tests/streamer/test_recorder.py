@@ -1,6 +1,12 @@
 """MCAP recording: round trip, JSON schemas, and salvaging unfinished files."""
 
 import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -87,23 +93,115 @@ def test_unclosed_file_is_salvaged(tmp_path):
     rec.close()
 
 
-def test_truncated_file_stops_at_the_truncated_record(tmp_path):
+def _segment_chunks(path):
+    """Start offsets of the chunks holding a segment payload (the big ones)."""
+    with open(path, "rb") as f:
+        return [c.chunk_start_offset for c in make_reader(f).get_summary().chunk_indexes
+                if c.uncompressed_size > 100_000]
+
+
+def test_truncated_file_stops_at_the_truncated_chunk(tmp_path):
     path = tmp_path / "full.mcap"
     write_sample(path)
     data = path.read_bytes()
     full = read_recording(path)
-    # cut inside the payload of the last segment (the biggest record)
+    # a chunk per segment: cut inside the chunk of the last segment
+    starts = _segment_chunks(path)
+    assert len(starts) == 3
+    last = starts[-1]
     cut = tmp_path / "cut.mcap"
-    last_payload = data.rfind(segment(2)[2][:64])
-    cut.write_bytes(data[: last_payload + 1000])
+    cut.write_bytes(data[: last + 1000])
     got = read_recording(cut)
     assert not got.complete and "truncated record" in got.problem
     assert got.records < full.records
     assert [s.header.index for s in got.segments("tdi")] == [0, 1]
-    assert [m.kind for m in got.messages if m.topic == "tdi"] == ["segment", "segment", "incomplete"]
     # cut inside a record header
-    cut.write_bytes(data[: last_payload - 20])
+    cut.write_bytes(data[: last + 5])
     assert read_recording(cut).segments("tdi")[-1].header.index == 1
+
+
+def test_chunked_compressed_mission_time(tmp_path):
+    """Chunks are zstd-compressed, each segment closes its chunk, log_time is mission time."""
+    path = tmp_path / "t.mcap"
+    rec = Recorder(path)
+    for i in range(3):
+        arrays, header, payload = segment(i)
+        header = header.to_dict() | {"t0": 3600.0 * i}
+        rec.write_segment("tdi", header, payload)
+        rec.write_json("fit/summary", {"index": i})
+    rec.close()
+    with open(path, "rb") as f:
+        summary = make_reader(f).get_summary()
+    assert {c.compression for c in summary.chunk_indexes} == {"zstd"}
+    assert len(summary.chunk_indexes) >= 3
+    got = read_recording(path)
+    times = [(m.topic, m.log_time) for m in got.messages]
+    assert times == [("tdi", 0), ("fit/summary", 0), ("tdi", 3600 * 10**9), ("fit/summary", 3600 * 10**9),
+                     ("tdi", 7200 * 10**9), ("fit/summary", 7200 * 10**9)]
+    assert all(abs(m.publish_time / 1e9 - time.time()) < 60 for m in got.messages)  # wall clock kept
+
+
+def test_lz4_and_bad_compression(tmp_path):
+    rec = Recorder(tmp_path / "l.mcap", compression="lz4")
+    arrays, header, payload = segment(0)
+    rec.write_segment("tdi", header, payload)
+    rec.close()
+    np.testing.assert_array_equal(read_recording(tmp_path / "l.mcap").segments("tdi")[0].arrays["data"],
+                                  arrays["data"])
+    with pytest.raises(ValueError, match="compression"):
+        Recorder(tmp_path / "b.mcap", compression="gzip")
+
+
+WRITER = """
+import sys, time
+import numpy as np
+from streamer.codec import encode, parse_header
+from streamer.recorder import Recorder
+rec = Recorder(sys.argv[1], max_chunk_age=3600)
+rng = np.random.default_rng(0)
+i = 0
+while True:
+    arrays = {"data": rng.standard_normal((3, 2000)), "regressors": rng.standard_normal((3, 24, 2000))}
+    payload, att = encode(arrays, {"run": "r", "t0": 500.0 * i, "fs": 4.0, "channels": ["X2", "Y2", "Z2"],
+                                   "producer": "w", "index": i})
+    rec.write_segment("tdi", parse_header(att), payload)
+    rec.write_json("fit/summary", {"index": i})
+    print(i, flush=True)
+    i += 1
+    time.sleep(0.02)
+"""
+
+
+def test_sigkill_loses_at_most_the_open_chunk(tmp_path):
+    """A real recording process killed with SIGKILL mid-run: every segment it reported written
+    is read back by the salvage reader; what is lost is the chunk it was filling (here the
+    fit summary written after the last closed segment chunk)."""
+    path = tmp_path / "killed.mcap"
+    proc = subprocess.Popen([sys.executable, "-c", WRITER, str(path)], stdout=subprocess.PIPE, text=True,
+                            cwd=Path(__file__).resolve().parents[2])
+    try:
+        written = -1
+        deadline = time.monotonic() + 60
+        while written < 20 and time.monotonic() < deadline:
+            line = proc.stdout.readline()
+            if not line:
+                break
+            written = int(line.split()[0])
+        assert written >= 20, "the writer did not get going"
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait(10)
+    got = read_recording(path)
+    assert not got.complete and got.problem
+    indices = [s.header.index for s in got.segments("tdi")]
+    assert indices == list(range(len(indices))) and indices[-1] >= written  # nothing reported written is lost
+    summaries = [m["index"] for m in got.json("fit/summary")]
+    # the fit summary of segment k sits in the chunk closed by segment k + 1: at most the last is lost
+    assert summaries == list(range(len(summaries))) and len(summaries) >= len(indices) - 1
+    assert all(m.kind in ("segment", "json") for m in got.messages)
 
 
 def test_not_mcap(tmp_path):

@@ -31,9 +31,9 @@ def test_default_config_is_loopback_peer_without_multicast():
 def test_config_files_select_mode_and_endpoints(tmp_path):
     client = make_config(SessionSettings(config_file=ROOT / "streamer/configs/client.json5"))
     assert _get(client, "mode") == "client" and _get(client, "listen/endpoints") == []
-    assert _get(client, "connect/endpoints") == ["tcp/127.0.0.1:7447"]
+    assert _get(client, "connect/endpoints") == ["tls/127.0.0.1:7447"]
     router = make_config(SessionSettings(config_file=ROOT / "streamer/configs/router.json5"))
-    assert _get(router, "mode") == "router" and "tcp/192.0.2.10:7447" in _get(router, "listen/endpoints")
+    assert _get(router, "mode") == "router" and "tls/192.0.2.10:7447" in _get(router, "listen/endpoints")
     # a file that leaves listening and scouting unset keeps the safe defaults
     minimal = tmp_path / "minimal.json5"
     minimal.write_text('{ mode: "peer", /* comment */ connect: { endpoints: ["tcp/127.0.0.1:7447"] } }')

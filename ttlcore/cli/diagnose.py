@@ -12,13 +12,12 @@ then only to add coefficient errors.
 
 from __future__ import annotations
 
-import sys
-import time
 from pathlib import Path
 
 from ..conventions import parse_duration
 from ..diagnose.adequacy import FIXED_MODEL_TOLERANCE
 from ..errors import TTLError
+from .progress import status_line
 
 
 def add_parser(sub) -> None:
@@ -36,7 +35,8 @@ def add_parser(sub) -> None:
                    "(e.g. linear-ttl,drift,step:t_step=50400;mosas=12+13); default linear-ttl")
     p.add_argument("--effect-module", action="append", default=[], metavar="PATH",
                    help="Python file (or importable module) defining user effects; repeatable")
-    p.add_argument("--candidates", default=None, metavar="EFFECT,...", help="effects to try (default: all available)")
+    p.add_argument("--candidates", default=None, metavar="EFFECT,...", help="named effects and plugins to try (default: all available); the witness effects and "
+                   "frequency-dependent couplings of the top witnesses are tried as well")
     p.add_argument("--truth", default=None, help="truth file (or the lisainstrument file itself): adds coefficient errors only")
     p.add_argument("--band", nargs=2, metavar=("FMIN", "FMAX"), default=None, help="band in Hz (default 0.003 0.8)")
     p.add_argument("--segment", default=None, help="FFT segment length (default 6 h, or a quarter of shorter data)")
@@ -66,12 +66,6 @@ def run(args) -> int:
     from ..diagnose.diagnoser import DiagnoseSettings, diagnose, fine_band_table, strip_internals, text_report
     from ..diagnose.effects import available_effects, make_effects
     from ..io.reader import file_kind, read_telemetry
-
-    start = time.monotonic()
-
-    def say(msg: str) -> None:
-        if not args.quiet:
-            print(f"ttl diagnose: {msg} ({time.monotonic() - start:.1f} s)", file=sys.stderr, flush=True)
 
     data = Path(args.data)
     if not data.exists():
@@ -108,14 +102,15 @@ def run(args) -> int:
         if not (0 <= args.tolerance < 1):
             raise TTLError(f"--tolerance: expected a fraction in [0, 1), got {args.tolerance}")
         s.tolerance = args.tolerance
-    say(f"reading {data}")
-    tm = read_telemetry(data)
-    truth = None
-    if args.truth:
-        tr = load_truth(args.truth, tm, file_kind(data), data)
-        truth, _ = tr.mean_coefficients(tm.t0, tm.t0 + tm.duration)
-    report = diagnose(tm, effects, settings=s, effect_modules=modules, candidates=candidates,
-                      truth_coefficients=truth, witnesses=not args.no_witnesses, progress=say)
+    with status_line("ttl diagnose", args.quiet) as say:  # in place on a terminal
+        say(f"reading {data}")
+        tm = read_telemetry(data)
+        truth = None
+        if args.truth:
+            tr = load_truth(args.truth, tm, file_kind(data), data)
+            truth, _ = tr.mean_coefficients(tm.t0, tm.t0 + tm.duration)
+        report = diagnose(tm, effects, settings=s, effect_modules=modules, candidates=candidates,
+                          truth_coefficients=truth, witnesses=not args.no_witnesses, progress=say)
     internals = report["_internals"]
     report = strip_internals(report)
     report["file"] = str(data)

@@ -53,11 +53,13 @@ from .adequacy import (
 )
 from ..conventions import COEFFICIENT_NAMES
 from .effects import (
+    Column,
     Effect,
     Step,
     available_effects,
     columns_tdi,
     effect_input_from_telemetry,
+    filtered,
     make_effects,
     tdi_in_blocks,
 )
@@ -128,6 +130,9 @@ class DiagnoseSettings:
     step_refine: float = 900.0
     witnesses: bool = True
     top_witnesses: int = 5
+    #: distinct top witnesses turned into candidates (witness effect; for DWS witnesses
+    #: also fd-coupling with a searched pole pair and with a searched real pole)
+    witness_candidates: int = 3
     #: Gauss-Newton passes of the linearised effects in a model (0: Taylor at zero only)
     expansion_passes: int = 3
     #: half-width [s] of the profile search of the offsets of ``timing-offset`` and
@@ -241,6 +246,8 @@ class ModelFit:
     dd: np.ndarray | None = field(repr=False, default=None)
     #: errors-in-variables term (G, P, P) of the model's columns (cached)
     eiv_term: np.ndarray | None = field(repr=False, default=None)
+    #: searched nonlinear parameters of the model's effects: effect spec -> SearchResult.to_json()
+    searches: dict = field(default_factory=dict)
 
     @property
     def sigma(self) -> np.ndarray:
@@ -402,6 +409,8 @@ class Diagnoser:
             self.eiv_parts[n] = [((mosa, angle), link, tuple(extra))]
         self.ttl_names = ttl_names
         self._gram_cache: dict = {}
+        #: column name -> the cache key of the effect that registered it last
+        self._owner: dict = {}
         self.dd = np.zeros((len(self.starts), self.G))
         for g in range(self.G):
             self.dd[:, g] = np.sum(np.abs(self.wd[:, self.band_index == g]) ** 2, axis=(1, 2))
@@ -522,6 +531,8 @@ class Diagnoser:
                 raise ConfigError(f"linear-ttl columns {missing[:3]} missing from the TDI data")
             return names
         key = ("exact", effect.name, repr(sorted(effect.options.items())), None if coefficients is None else tuple(np.round(coefficients, 12)))
+        if key in self._gram_cache and any(self._owner.get(n) != key for n in self._gram_cache[key]):
+            self._gram_cache.pop(key)  # another option set re-registered these names since
         if key in self._gram_cache:
             names = self._gram_cache[key]
             if keep_series:
@@ -538,11 +549,15 @@ class Diagnoser:
             cols = effect.columns(data)
             if not cols:
                 raise ConfigError(f"effect {effect.name!r} produced no column (check its options)")
+            if any(c.response is not None for c in cols):
+                names = self._filtered_columns(cols)
+                self._gram_cache[key] = names
+                self._owner.update(dict.fromkeys(names, key))
+                return names
             names = [c.name for c in cols]
             info = [(1.0, c.unit, c.prior_scale) for c in cols]
             for c in cols:
                 self._register_eiv(c)
-            series = np.empty((3, len(cols), 0))
             chunks = []
             for j0 in range(0, len(cols), 8):  # bounded memory (a day: ~70 MB per column in flight)
                 _, xyz = tdi_in_blocks(self.tm.ltt, self.tm.fs, cols[j0:j0 + 8], order=self.settings.order,
@@ -554,6 +569,58 @@ class Diagnoser:
             for k, n in enumerate(names):
                 self.series[n] = series[:, k]
         self._gram_cache[key] = names
+        self._owner.update(dict.fromkeys(names, key))
+        return names
+
+    def base_column(self, column) -> str:
+        """Register (once) the unfiltered column of a filtered one: its parts through the
+        exact TDI, whitened spectra under ``base:<key>`` (transformed with the noise model
+        like every column); returns that name.  The key is the parts' placement and source,
+        so that witness and frequency-dependent candidates on one placement share it."""
+        key = "base:" + (column.base or column.name.split(".", 1)[-1])
+        key += "|" + ";".join(f"{p.link}/{int(p.delayed)}/{p.channel}" for p in column.parts)
+        if key not in self.wcols:
+            plain = Column(key, column.parts, column.unit, column.prior_scale)
+            _, xyz = tdi_in_blocks(self.tm.ltt, self.tm.fs, [plain], order=self.settings.order,
+                                   delay_order=self.settings.delay_order)
+            series = self._decimate(xyz)
+            self._add_columns([key], np.matmul(self.Lh, self._spectra(series)), [(1.0, column.unit, column.prior_scale)])
+            self.series[key] = series[:, 0]
+            self._register_eiv(plain)
+        return key
+
+    def filtered_spectra(self, base: str, responses) -> tuple[np.ndarray, np.ndarray]:
+        """Whitened spectra (S, m, 3, k) and decimated series (3, k, n) of the registered
+        column ``base`` through the filters ``responses`` (callables ``f -> complex``),
+        filtered in the time domain before the segments are windowed
+        (:func:`ttlcore.diagnose.effects.filtered`): multiplying the windowed segment's spectrum
+        instead misses the filter's ringing across the taper, a few tens of per cent of a
+        strong resonance's excess at the segment ends.  Pure: nothing is registered."""
+        x = self.series[base]
+        ok = np.isfinite(x)
+        series = np.stack([np.where(ok, filtered(x, self.fs, r), np.nan) for r in responses], axis=1)
+        return np.matmul(self.Lh, self._spectra(series)), series
+
+    def _filtered_columns(self, cols) -> list[str]:
+        """Columns carrying a frequency response: the base column (its parts through the
+        exact TDI, once) filtered in time (:meth:`filtered_spectra`); the readout noise
+        response is the base column's times the response (errors-in-variables term)."""
+        names = []
+        for c in cols:
+            base = self.base_column(c)
+            resp = np.ones(self.f.size, dtype=complex) if c.response is None else np.asarray(c.response(self.f), dtype=complex)
+            w, series = self.filtered_spectra(base, [c.response or (lambda f: np.ones(np.shape(f)))])
+            self.wcols[c.name] = np.ascontiguousarray(w[..., 0])
+            self.series[c.name] = series[:, 0]
+            self.col_info[c.name] = (1.0, c.unit, c.prior_scale)
+            self.eiv_parts.pop(c.name, None)
+            self.eiv_modulation.pop(c.name, None)
+            if base in self.eiv_parts:
+                self.eiv_parts[c.name] = [(ch, link, extra, resp) for ch, link, extra, *_ in self.eiv_parts[base]]
+            if base in self.eiv_modulation:
+                self.eiv_modulation[c.name] = self.eiv_modulation[base]
+            names.append(c.name)
+        self._x_cache.clear()
         return names
 
     def _register_eiv(self, column) -> None:
@@ -643,7 +710,7 @@ class Diagnoser:
                 by_channel.setdefault(ch, {}).setdefault(i, []).append((link, extra, shift[0] if shift else 0.0))
         for ch, cols in by_channel.items():
             idx = sorted(cols)
-            U = np.stack([sum(self._eiv_response(link, extra) * (np.exp(2j * np.pi * self.f * shift)[:, None] if shift else 1.0)
+            U = np.stack([sum(self._eiv_response(link, extra) * _eiv_factor(self.f, shift)
                               for link, extra, shift in cols[i]) for i in idx], axis=-1)
             for g, (a, b) in enumerate(self.slices):
                 if b > a:
@@ -687,16 +754,37 @@ class Diagnoser:
         the model's own coefficient history (time average of ``|sum C_k(t) T_k|^2``) and the
         model refitted once; the new noise model stays for what follows."""
         effects = make_effects(effects, self.effect_modules) if not all(isinstance(e, Effect) for e in effects) else list(effects)
+        effects, searches = self.resolve(effects, coefficients_for_linearised)
         fit = self._fit(effects, coefficients_for_linearised, keep_series)
+        fit.searches = searches
         hist = self.coefficient_history(fit)
         if hist is not None and self.dws_asd > 0:
             nm = self.noise_parameters
             self.set_noise_model(instrument_noise_csd(self.f, self.ltt_mean, hist, self.dws_asd,
                                                       secondary=None if nm is None else nm.csd(self.f)))
             fit = self._fit(effects, coefficients_for_linearised, keep_series)
+        fit.searches = searches
         if time_table and all(n in self.series for n in fit.names):
             fit.time_table = self.time_adequacy(list(fit.names), fit.theta)
         return fit
+
+    def resolve(self, effects, coefficients_for_linearised=None) -> tuple[list, dict]:
+        """Effects with unset searched parameters (:attr:`ttlcore.diagnose.effects.Effect.searched`)
+        replaced by the same effect at the estimates of :func:`ttlcore.diagnose.search.profile_search`,
+        profiled against the model of the other effects; returns the effects and the
+        searches (``cli spec -> result``)."""
+        from .search import profile_search
+
+        out, searches = list(effects), {}
+        for i, e in enumerate(effects):
+            if not e.unresolved():
+                continue
+            rest = [x for x in out if x is not e and not x.unresolved()]
+            base = self._fit(rest, coefficients_for_linearised, False)
+            res = profile_search(self, base, e, base.ttl_coefficients())
+            out[i] = res.effect
+            searches[res.effect.cli_spec()] = res.to_json()
+        return out, searches
 
     def _fit(self, effects, coefficients_for_linearised, keep_series) -> ModelFit:
         names = self._model_names(effects, coefficients_for_linearised, keep_series)
@@ -1106,10 +1194,11 @@ class Diagnoser:
         bb = np.concatenate([b_M, b_K], axis=-1)
         Nt = full.sum(axis=(0, 1)) - E_full.sum(axis=0)
         bt = bb.sum(axis=(0, 1))
-        try:
-            th = np.linalg.solve(Nt, bt)
-        except np.linalg.LinAlgError:
-            return {"delta_chi2": float("nan"), "log_bayes_factor": float("nan")}
+        from .search import stable_solve
+
+        th = stable_solve(Nt, bt)
+        if th is None:
+            raise ConfigError(f"columns {K[:2]} are (nearly) collinear with the model's: no evidence")
         NM = Nt[:P, :P]
         thM = np.linalg.solve(NM, bt[:P])
         dchi2 = 2 * (bt @ th - bt[:P] @ thM) / self.kappa
@@ -1294,23 +1383,44 @@ class Diagnoser:
         modulated = np.stack([self.series[nm][:, k0:k0 + n] for nm in base], axis=1) * (t_dec >= ts)
         return k0, dec - np.nan_to_num(modulated)
 
-    def candidates(self, model: ModelFit, names=None) -> list[dict]:
-        """Try every available effect not in ``model``; ranked list (best first)."""
+    def candidates(self, model: ModelFit, names=None, extra=()) -> list[dict]:
+        """Try every available effect not in ``model`` and the effect instances ``extra``
+        (witness effects and frequency-dependent couplings of the top witnesses,
+        :func:`witness_candidates`); ranked list (best first).  Effects that need options to
+        mean anything (``witness``, ``fd-coupling``) are tried through ``extra`` only."""
         s = self.settings
         in_model = {e.name for e in model.effects}
-        todo = [n for n in (names or self.registry) if n not in in_model]
+        todo = [n for n in (names or self.registry) if n not in in_model and n not in ("witness", "fd-coupling")]
+        todo += list(extra)
         C = model.ttl_coefficients()
         # the excess the noise model (with its tolerance) cannot explain
         excess = float(np.sum(np.maximum(model.bands.chi2 - (1 + s.tolerance) * model.bands.dof, 0.0))) / self.kappa
         n_data = float(model.dof_band.sum())
         out = []
+        in_specs = {e.spec() for e in model.effects}
         for name in todo:
-            cls = self.registry[name]
-            effect = cls()
+            if isinstance(name, Effect):
+                effect, cls, name = name, type(name), name.name
+                if effect.spec() in in_specs:
+                    continue
+            else:
+                cls = self.registry[name]
+                effect = cls()
             t_start = time.monotonic()
             extra = {}
             try:
-                if isinstance(effect, Step) and effect.options.get("t_step") is None:
+                if effect.unresolved() and not isinstance(effect, Step):
+                    from .search import profile_search
+
+                    with self._columns_kept():
+                        found = profile_search(self, model, effect, C)
+                        effect = found.effect
+                        cols = self.effect_columns(effect, C if effect.needs_coefficients else None, keep_series=False)
+                        ev = self.evaluate(model, cols)
+                    extra = {"search": found.to_json(), "log_bayes_factor_at_best": ev["log_bayes_factor"]}
+                    ev["log_bayes_factor"] = found.log_bayes_factor
+                    ev["delta_bic"] = ev["delta_chi2"] - (ev["n_parameters"] + len(found.estimates)) * math.log(n_data)
+                elif isinstance(effect, Step) and effect.options.get("t_step") is None:
                     if not all(f"{m}.{a}.{sd}" in self.series for m in effect.mosas for a in effect.angles for sd in effect.sides):
                         continue
                     found = self.step_search(model, effect)
@@ -1321,6 +1431,11 @@ class Diagnoser:
                     extra = {"t_step": found["t_step"], "log_bayes_factor_at_best": ev["log_bayes_factor"]}
                     ev["log_bayes_factor"] = found["log_bayes_factor_marginal"]
                     ev["delta_bic"] = ev["delta_chi2"] - (ev["n_parameters"] + 1) * math.log(n_data)
+                elif name in ("witness", "fd-coupling") or any(c.startswith(("witness.", "fd.")) for c in effect.column_names()):
+                    with self._columns_kept():  # trial columns leave the model's as they are
+                        cols = self.effect_columns(effect, C if effect.needs_coefficients else None, keep_series=False)
+                        ev = self.evaluate(model, cols)
+                    ev["delta_bic"] = ev["delta_chi2"] - ev["n_parameters"] * math.log(n_data)
                 else:
                     if effect.needs_coefficients and np.isnan(C).any():
                         continue
@@ -1339,6 +1454,7 @@ class Diagnoser:
             out.append({
                 "effect": name,
                 "spec": effect.spec(),
+                "cli_spec": effect.cli_spec(),
                 "title": cls.title,
                 "physics": cls.physics,
                 "n_parameters": k,
@@ -1383,12 +1499,16 @@ class Diagnoser:
         shifted-witness effect re-registers columns under names a fitted model may hold
         (``ltt-error.12.d1``, ``21.phi.tx@ltt-error.12``) with other offsets and weights."""
         kept = {a: dict(getattr(self, a)) for a in ("wcols", "series", "col_info", "eiv_parts", "eiv_modulation",
-                                                     "_gram_cache", "_expansion")}
+                                                     "_gram_cache", "_expansion", "_owner")}
         have_derivatives = self._have_derivatives
         try:
             yield
         finally:
+            bases = [n for n in self.wcols if n.startswith("base:") and n not in kept["wcols"]]
             for a, v in kept.items():
+                for n in bases if a in ("wcols", "series", "col_info", "eiv_parts", "eiv_modulation") else ():
+                    if n in getattr(self, a):
+                        v[n] = getattr(self, a)[n]
                 setattr(self, a, v)
             self._have_derivatives = have_derivatives
             self._x_cache.clear()
@@ -1419,6 +1539,14 @@ class Diagnoser:
         if "offsets" in extra:  # searched offsets [s] of a shifted-witness effect, per group
             out["offsets"] = extra["offsets"]
         return out
+
+
+def _eiv_factor(f, shift):
+    """Factor of a part's readout-noise response: a time shift [s] (the phase
+    ``exp(2 pi i f shift)``) or a frequency response (m,) of a filtered column."""
+    if isinstance(shift, np.ndarray):
+        return shift[:, None]
+    return np.exp(2j * np.pi * f * shift)[:, None] if shift else 1.0
 
 
 def _names_input():
@@ -1499,6 +1627,7 @@ def coefficients_json(model: ModelFit, truth=None, expansion: dict | None = None
 
 def model_json(dg: Diagnoser, model: ModelFit, truth=None) -> dict:
     return {"effects": [e.spec() for e in model.effects], "n_parameters": len(model.names),
+            "cli_effects": ",".join(e.cli_spec() for e in model.effects), "searched": dict(model.searches),
             "chi2_dof": model.chi2_dof, "adequacy": adequacy_json(dg, model),
             "coefficients": coefficients_json(model, truth, dg.expansion_points())}
 
@@ -1557,29 +1686,61 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
             "bands_after": [b["chi2_dof"] for b in report["adequacy"]["bands"]],
         }
         lap("before")
-    say("candidates")
-    report["candidates"] = dg.candidates(model, candidates)
-    lap("candidates")
-    if s.witnesses if witnesses is None else witnesses:
-        from .witnesses import witness_search
+    use_witnesses = s.witnesses if witnesses is None else witnesses
+    extra = []
+    if use_witnesses:
+        from .witnesses import witness_candidates, witness_search
 
         say("witness search")
         report["witnesses"] = witness_search(tm, dg, model, s.top_witnesses)
         lap("witnesses")
+        extra = witness_candidates(report["witnesses"], s.witness_candidates, effect_modules)
     else:
         report["witnesses"] = None
-    best = next((c for c in report["candidates"] if c["significant"]), None)
-    specs = [e.spec() for e in eff]
-    report["recommendation"] = None if best is None else {
-        "effect": best["effect"], "spec": best["spec"],
-        "option": "--effects " + ",".join(specs + [best["spec"]]),
-    }
+    say("candidates")
+    report["candidates"] = dg.candidates(model, candidates, extra)
+    lap("candidates")
+    report["recommendation"] = recommendation(report, eff, s)
     report["settings"] = {"band": list(map(float, s.band)), "n_bands": s.n_bands, "segment_duration": dg.seg_duration,
                           "time_segment": s.time_segment, "tolerance": s.tolerance, "alpha": s.alpha,
                           "log_bf_threshold": s.log_bf_threshold, "dws_asd": dg.dws_asd}
     report["timings_s"] = timings
     report["_internals"] = {"diagnoser": dg, "model": model}
     return report
+
+
+def recommendation(report: dict, effects, settings: DiagnoseSettings) -> dict | None:
+    """The next step: the significant candidate with the largest (marginal) log Bayes
+    factor over everything tried (named effects, witness effects, frequency-dependent
+    couplings, plugins), its ``--effects`` option runnable as printed (quoted when it holds
+    ``;``), and whether it explains the excess (at least half of the chi^2 beyond the
+    tolerance).  None when the model is adequate and nothing is significant; when nothing
+    explains the excess, ``pointers`` lists what the top witnesses point at."""
+    cands = report["candidates"]
+    best = next((c for c in cands if c["significant"]), None)
+    fails = bool(report["adequacy"]["fails"])
+    if best is None and not fails:
+        return None
+    pointers = []
+    for w in (report.get("witnesses") or {}).get("overall", [])[:3]:
+        pointers.append({"witness": w["name"], "spec": w.get("spec"), "band_hz": w["best_band"],
+                         "delta_chi2": w["delta_chi2"]})
+    if best is None:
+        return {"effect": None, "explains": False, "pointers": pointers,
+                "message": "no candidate is significant; the witnesses point at: " +
+                           "; ".join(f"{p['witness']} ({p['band_hz'][0]:.3g}-{p['band_hz'][1]:.3g} Hz)" for p in pointers)}
+    specs = [e.cli_spec() for e in effects] + [best["cli_spec"]]
+    value = ",".join(specs)
+    option = "--effects " + (f'"{value}"' if any(ch in value for ch in ';|&<> ') else value)
+    explains = best["explained_fraction"] >= 0.5 or not fails
+    out = {"effect": best["effect"], "spec": best["spec"], "cli_spec": best["cli_spec"], "option": option,
+           "explains": bool(explains), "explained_fraction": best["explained_fraction"]}
+    if not explains:
+        out["pointers"] = pointers
+        out["message"] = (f"no candidate explains the excess (the best, {best['cli_spec']}, explains "
+                          f"{100 * best['explained_fraction']:.0f} %); the witnesses point at: " +
+                          "; ".join(f"{p['witness']} ({p['band_hz'][0]:.3g}-{p['band_hz'][1]:.3g} Hz)" for p in pointers))
+    return out
 
 
 def refit(source, effects=("linear-ttl",), *, settings: DiagnoseSettings | None = None, effect_modules=(),
@@ -1689,7 +1850,11 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
         if "offsets" in where:
             top = sorted(where["offsets"].items(), key=lambda kv: -abs(kv[1]))[:3]
             extra += ", offsets " + ", ".join(f"{k.rsplit('.', 1)[-1]} {v:+.3g} s" for k, v in top)
-        lines.append(f"    {'*' if c['significant'] else ' '} {c['effect']:<16} {c['delta_chi2']:10.1f} / {c['n_parameters']:<3d}"
+        if "search" in c.get("searched", {}):
+            est = c["searched"]["search"]["estimates"]
+            extra += ", " + ", ".join(f"{k} {v:.4g}" for k, v in est.items())
+        label = c["effect"] if c["cli_spec"] == c["effect"] else c["cli_spec"]
+        lines.append(f"    {'*' if c['significant'] else ' '} {label:<16} {c['delta_chi2']:10.1f} / {c['n_parameters']:<3d}"
                      f" logB {c['log_bayes_factor']:9.1f}  {100 * c['explained_fraction']:5.0f} %  [{bands}; {links}{extra}]")
     if not any(c["significant"] for c in cands):
         lines.append("    no candidate is significant")
@@ -1699,6 +1864,8 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
                      "; ".join(f"{x['name']} (delta chi2 {x['delta_chi2']:.0f}, coherence peaks at "
                                f"{_hz(x['peak_frequency'])})" for x in w["overall"][:3]))
     rec = report.get("recommendation")
-    if rec:
-        lines.append(f"  best next step: add {rec['effect']}:  ttl diagnose DATA {rec['option']}")
+    if rec and rec.get("option"):
+        lines.append(f"  best next step: add {rec['cli_spec']}:  ttl diagnose {source or 'DATA'} {rec['option']}")
+    if rec and rec.get("message"):
+        lines.append(f"  {rec['message']}")
     return "\n".join(lines)

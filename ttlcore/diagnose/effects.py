@@ -43,6 +43,9 @@ import numpy as np
 from ..conventions import ANGLES, C, COEFFICIENT_NAMES, DAY, LINKS, MOSAS, SIDES, local_spacecraft, reverse
 from ..errors import ConfigError
 from ..sim.injection import ChunkContext, load_module
+from ..tdi.combinations import MICHELSON
+from ..tdi.engine import tdi_columns
+from ..tdi.engine import Part as EnginePart
 
 log = logging.getLogger(__name__)
 
@@ -71,7 +74,9 @@ class Part:
 
     link: str
     series: np.ndarray
-    delayed: bool = False
+    #: False/0: undelayed; True/1: ``D_link series``; an integer n: n delays of the link
+    #: (``D_link ... D_link series``, the witness library's "delayed nL")
+    delayed: bool | int = False
     #: ``(mosa, angle)`` if the series is the plain witness ``-DWS/c`` of that channel: the
     #: diagnosis then includes its readout noise in the errors-in-variables correction
     channel: tuple | None = None
@@ -82,7 +87,7 @@ class Part:
 
     @property
     def extra(self) -> tuple:
-        return (self.link,) if self.delayed else ()
+        return (self.link,) * int(self.delayed)
 
 
 @dataclass
@@ -95,6 +100,14 @@ class Column:
     parts: list
     unit: str = ""
     prior_scale: float = 1.0
+    #: optional frequency response ``f [Hz] -> complex (m,)`` of a filter applied to the
+    #: column's witness before it enters the link (a frequency-dependent coupling); the
+    #: diagnosis multiplies the column's spectrum, and its readout noise, by it (a linear
+    #: time-invariant filter commutes with TDI up to the arms' rate of change, ~1e-8)
+    response: object = None
+    #: columns of one effect with the same ``base`` share their parts (only the response
+    #: differs): their TDI is computed once
+    base: str = ""
 
 
 @dataclass
@@ -162,6 +175,17 @@ class EffectInput:
         if self.coefficients is None:
             raise ConfigError("this effect needs the linear TTL coefficients (fit linear-ttl first)")
         return np.asarray(self.coefficients)[COEFFICIENT_NAMES.index(name)]
+
+
+def filtered(x: np.ndarray, fs: float, response) -> np.ndarray:
+    """``x`` through the filter of frequency response ``response(f)``, applied on the
+    series' own FFT grid (zero-padded to twice its length: no wrap-around for impulse
+    responses shorter than the series).  NaN samples count as zero."""
+    x = np.nan_to_num(np.asarray(x, dtype=float))
+    n = x.shape[-1]
+    nfft = 2 * n
+    f = np.fft.rfftfreq(nfft, 1.0 / fs)
+    return np.fft.irfft(np.fft.rfft(x, nfft) * response(f), nfft)[..., :n]
 
 
 def placement(mosa: str, side: str) -> tuple[str, bool]:
@@ -293,12 +317,31 @@ class Effect:
             d["effect_module"] = module
         return d
 
-    def spec(self) -> str:
-        """The command-line spelling ``name[:key=value,...]`` of this effect."""
+    def spec(self, sep: str = ",") -> str:
+        """The spelling ``name[:key=value,...]`` of this effect (:func:`parse_effect_spec`);
+        ``sep=";"`` gives the command line's (``--effects``, where ``,`` separates effects)."""
         opts = {k: v for k, v in self.options.items() if v != self.parameters.get(k)}
         if not opts:
             return self.name
-        return self.name + ":" + ",".join(f"{k}={'+'.join(v) if isinstance(v, (list, tuple)) else v}" for k, v in opts.items())
+        return self.name + ":" + sep.join(f"{k}={'+'.join(v) if isinstance(v, (list, tuple)) else v}" for k, v in opts.items())
+
+    def cli_spec(self) -> str:
+        """The ``--effects`` spelling (options separated by ``;``)."""
+        return self.spec(";")
+
+    #: nonlinear parameters the diagnosis searches when their option is not given:
+    #: ``option -> (low, high, scale)`` with scale ``"log"`` or ``"linear"``
+    #: (:func:`ttlcore.diagnose.search.profile_search`)
+    searched: dict = {}
+
+    def unresolved(self) -> list[str]:
+        """Searched options without a value (the diagnosis finds them)."""
+        return [k for k in self.searched if self.options.get(k) is None]
+
+    def with_options(self, **options) -> "Effect":
+        """A copy with some options replaced (searched parameters filled in)."""
+        new = type(self)(**{**{k: v for k, v in self.options.items() if v != self.parameters.get(k)}, **options})
+        return new
 
     def injection(self, values: dict, name: str | None = None) -> "EffectInjection":
         """Simulator injection adding ``sum_col values[col] * col`` (true angles) to eta."""
@@ -316,10 +359,13 @@ class Effect:
             if v == 0.0:
                 continue
             for p in col.parts:
+                series = p.series if col.response is None else filtered(p.series, data.fs, col.response)
+                if int(p.delayed) > 1:
+                    raise ConfigError(f"effect {self.name!r}: the simulator injects one delay per part, not {int(p.delayed)}")
                 if p.delayed:  # D_ij x_ji: row of the transmitting MOSA ji
-                    tx[LINKS.index(reverse(p.link))] += v * p.series
+                    tx[LINKS.index(reverse(p.link))] += v * series
                 else:
-                    out[LINKS.index(p.link)] += v * p.series[history:]
+                    out[LINKS.index(p.link)] += v * series[history:]
         if np.any(tx):
             out += delayed_onto_links(tx)
         return out
@@ -575,9 +621,229 @@ class LightTravelTimeError(_Linearised):
         return ShiftInjection(self, values, name)
 
 
+def witness_series(data: EffectInput, source: str, derivative_order: int = 0) -> tuple[np.ndarray, tuple | None, str]:
+    """A witness series of the library (:mod:`ttlcore.witnesses`) from ``data``.
+
+    ``source`` is ``"<mosa>.<phi|eta>"`` (the witness ``-DWS/c``, its time derivative with
+    ``derivative_order=1``) or ``"<mosa>.<phiphi|etaeta|phieta>"`` (``-d/dt(a b) / c``, angles
+    integrated from the DWS, as :class:`SecondOrder`).
+
+    Returns
+    -------
+    series : ndarray (n,)
+    channel : tuple or None
+        ``(mosa, angle)`` of a plain witness (its readout noise enters the
+        errors-in-variables term), None for products.
+    unit : str
+        Unit of the coefficient.
+    """
+    mosa, _, kind = str(source).partition(".")
+    if mosa not in MOSAS or kind not in ANGLES + SecondOrder.TERMS:
+        raise ConfigError(f"witness source {source!r}: expected <mosa>.<phi|eta> or <mosa>.<phiphi|etaeta|phieta> "
+                          f"with mosa in {', '.join(MOSAS)}")
+    if kind in ANGLES:
+        w = data.witness(mosa, kind)
+        if derivative_order:
+            return derivative(w, data.fs, 1), (mosa, kind), "m s/rad"
+        return w, (mosa, kind), "m/rad"
+    if derivative_order:
+        raise ConfigError(f"witness source {source!r}: products have no derivative option")
+    k = MOSAS.index(mosa)
+    ang = dict(zip(ANGLES, data.angles))
+    a, b = kind[:3], kind[3:]
+    return -(data.velocity(a)[k] * ang[b][k] + ang[a][k] * data.velocity(b)[k]) / C, None, "m/rad^2"
+
+
+def _int_option(effect, key, allowed) -> int:
+    try:
+        v = int(float(effect.options.get(key) or 0))
+    except ValueError:
+        raise ConfigError(f"effect {effect.name!r} {key}: expected an integer, got {effect.options.get(key)!r}") from None
+    if v not in allowed:
+        raise ConfigError(f"effect {effect.name!r} {key}: expected one of {sorted(allowed)}, got {v}")
+    return v
+
+
+class _Placed(Effect):
+    """Effects built on witness series placed on links: either one ``source`` (a library
+    witness: channel, link, delay) or the standard placements of ``mosas``/``angles``/``sides``
+    (rx: the MOSA's own link, undelayed; tx: the link it transmits on, one delay), optionally
+    restricted to ``links``."""
+
+    def placements(self) -> list[tuple[str, str, int]]:
+        """``[(source, link, n_delays), ...]``."""
+        src = self.options.get("source")
+        links = _split_list(self.options.get("links"), LINKS, f"effect {self.name!r} links")
+        if src:
+            mosa = str(src).split(".")[0]
+            link = self.options.get("link") or mosa
+            if link not in LINKS:
+                raise ConfigError(f"effect {self.name!r} link: unknown {link!r}; known: {', '.join(LINKS)}")
+            out = [(str(src), link, _int_option(self, "delay", (0, 1, 2)))]
+        elif self.options.get("mosas") is not None:
+            out = []
+            for m in self.mosas:
+                for a in self.angles:
+                    for sd in self.sides:
+                        link, delayed = placement(m, sd)
+                        out.append((f"{m}.{a}", link, int(delayed)))
+        else:
+            raise ConfigError(f"effect {self.name!r} needs source=<mosa>.<angle> (with link=, delay=) "
+                              f"or mosas= (with angles=, sides=)")
+        return [p for p in out if p[1] in links]
+
+    @staticmethod
+    def placement_label(source, link, n) -> str:
+        return f"{source}>{link}" + (f"+{n}L" if n else "")
+
+    def modulation(self, data) -> np.ndarray | None:
+        """Time variation of the effect's coupling (option ``vary``): ``drift`` multiplies
+        the witness by ``(t - t_ref) / day`` (the coefficients are the rate, per day),
+        ``step`` by ``H(t - t_step)`` (the jump); None for a constant coupling.  A slow
+        modulation commutes with the filters of ``fd-coupling`` to ``1 / (f T)``."""
+        vary = self.options.get("vary") or "none"
+        if vary == "none":
+            return None
+        if data.names_only:
+            return None
+        if vary == "drift":
+            t_ref = data.t_ref if self.options.get("t_ref") is None else float(self.options["t_ref"])
+            return (data.t - t_ref) / DAY
+        if vary == "step":
+            from .conventions import parse_duration
+
+            if self.options.get("t_step") is None:
+                raise ConfigError(f"effect {self.name!r} vary=step needs t_step")
+            return (data.t >= parse_duration(self.options["t_step"])).astype(float)
+        raise ConfigError(f"effect {self.name!r} vary: expected none, drift or step, got {vary!r}")
+
+    def _series(self, data, src):
+        series, channel, unit = witness_series(data, src, 0)
+        mod = self.modulation(data)
+        if mod is not None:
+            series = series * mod
+        return series, channel, unit, mod
+
+    def _label(self, label) -> str:
+        vary = self.options.get("vary") or "none"
+        at = {"drift": self.options.get("t_ref"), "step": self.options.get("t_step")}.get(vary)
+        return label if vary == "none" else f"{label}~{vary}" + (f"@{at}" if at is not None else "")
+
+
+class WitnessEffect(_Placed):
+    name = "witness"
+    title = "a witness series of the library, fitted with one coefficient each"
+    physics = ("Any series of the witness library (ttlcore.witnesses: a DWS channel on any link, undelayed or "
+               "delayed by one or two light travel times, its time derivative, a product of angles) can couple "
+               "into the data with a constant coefficient. The column is the series placed on the link through "
+               "the exact time-varying TDI delays; a plain DWS channel carries its readout noise into the "
+               "errors-in-variables term.")
+    parameters = {"source": None, "link": None, "delay": 0, "derivative": 0, "mosas": None, "angles": "all",
+                  "sides": "rx", "links": "all", "vary": "none", "t_ref": None, "t_step": None}
+
+    def columns(self, data):
+        der = _int_option(self, "derivative", (0, 1))
+        cols = []
+        for src, link, n in self.placements():
+            if der and src.split(".")[1] not in ANGLES:
+                raise ConfigError(f"effect 'witness' source {src!r}: products have no derivative option")
+            series, channel, unit, mod = self._series(data, src)
+            label = self._label(("d/dt:" if der else "") + self.placement_label(src, link, n))
+            prior = {"m/rad": 1e-3, "m/rad^2": 1e3}[unit]
+            # the time derivative as the filter 2 pi i f: its readout noise follows exactly
+            cols.append(Column(f"witness.{label}", [Part(link, series, n, channel, mod)], "m s/rad" if der else unit,
+                               prior * 10 if der else prior, response=_derivative_response if der else None))
+        return cols
+
+
+def _derivative_response(f):
+    return 2j * np.pi * np.asarray(f, dtype=float)
+
+
+def rational_basis(kind: str, f: np.ndarray, f0: float, q: float | None = None) -> list[np.ndarray]:
+    """The frequency-dependent coupling basis: one real pole or one complex pole pair
+    with a numerator of full degree, ``x = i f / f0``,
+
+    - ``pole1``: ``1/(1 + x)``, ``x/(1 + x)`` (a first-order path of corner ``f0``: low-pass,
+      high-pass and constant couplings are combinations);
+    - ``pole2``: ``1/D``, ``x/D``, ``x^2/D`` with ``D = 1 + x/q + x^2`` (a resonance at ``f0``
+      of quality factor ``q``: its low-pass, band-pass, high-pass and notch forms and the
+      constant coupling ``D/D`` are combinations).
+
+    Any coupling ``H(f)`` that is a ratio of polynomials of that order in ``i f`` is fitted
+    linearly once the poles are known; the poles are searched (:data:`Effect.searched`).
+    """
+    x = 1j * np.asarray(f, dtype=float) / float(f0)
+    if kind == "pole1":
+        D = 1.0 + x
+        return [1.0 / D, x / D]
+    D = 1.0 + x / float(q) + x * x
+    return [1.0 / D, x / D, x * x / D]
+
+
+class FrequencyCoupling(_Placed):
+    name = "fd-coupling"
+    title = "frequency-dependent coupling of a witness (resonance, first-order path)"
+    physics = ("A witness couples through a path whose gain varies with frequency: a mechanical resonance of "
+               "unknown frequency and quality factor (filter=pole2, the default: 1/D, x/D, x^2/D with "
+               "D = 1 + x/q + x^2, x = i f/f0) or a first-order low- or high-pass path of unknown corner "
+               "(filter=pole1: 1/(1+x), x/(1+x), x = i f/fc). Linear in the numerator coefficients; the poles "
+               "(f0, q or fc) are searched by the diagnosis when not given. Place it with source=, link=, "
+               "delay= (a library witness) or mosas=, angles=, sides=, links=.")
+    parameters = {"source": None, "link": None, "delay": 0, "mosas": None, "angles": "all", "sides": "rx",
+                  "links": "all", "filter": "pole2", "f0": None, "q": None, "fc": None, "vary": "none", "t_ref": None,
+                  "t_step": None}
+
+    @property
+    def kind(self) -> str:
+        k = self.options.get("filter") or "pole2"
+        if k not in ("pole1", "pole2"):
+            raise ConfigError(f"effect 'fd-coupling' filter: expected pole1 or pole2, got {k!r}")
+        return k
+
+    @property
+    def searched(self) -> dict:
+        if self.kind == "pole1":
+            return {"fc": (1e-3, 2.0, "log")}
+        return {"f0": (1e-3, 2.0, "log"), "q": (0.5, 300.0, "log")}
+
+    def response_functions(self) -> list:
+        """The basis responses ``f -> complex`` for the current poles."""
+        if self.kind == "pole1":
+            fc = float(self.options["fc"])
+            return [functools.partial(lambda f, j: rational_basis("pole1", f, fc)[j], j=j) for j in range(2)]
+        f0, q = float(self.options["f0"]), float(self.options["q"])
+        return [functools.partial(lambda f, j: rational_basis("pole2", f, f0, q)[j], j=j) for j in range(3)]
+
+    def columns(self, data):
+        n_basis = 2 if self.kind == "pole1" else 3
+        if self.unresolved():
+            if not data.names_only:
+                raise ConfigError(f"effect 'fd-coupling': {', '.join(self.unresolved())} not given "
+                                  "(the diagnosis searches them: ttl diagnose, refit)")
+            resp = [None] * n_basis
+        else:
+            resp = self.response_functions()
+        cols = []
+        for src, link, n in self.placements():
+            if data.names_only:  # names and responses only (the searches evaluate many poles)
+                series, channel = None, None
+                unit = "m/rad" if src.partition(".")[2] in ANGLES else "m/rad^2"
+                mod = None
+            else:
+                series, channel, unit, mod = self._series(data, src)
+            label = self._label(self.placement_label(src, link, n))
+            parts = [Part(link, series, n, channel, mod)]
+            for j in range(n_basis):
+                cols.append(Column(f"fd.{label}.b{j}", parts, unit, 1e-3 if unit == "m/rad" else 1e3,
+                                   response=resp[j], base=label))
+        return cols
+
+
 #: The named effects.
 EFFECTS: dict[str, type] = {cls.name: cls for cls in
-                            (LinearTTL, Drift, Step, CrossCoupling, TimingOffset, SecondOrder, LightTravelTimeError)}
+                            (LinearTTL, Drift, Step, CrossCoupling, TimingOffset, SecondOrder, LightTravelTimeError,
+                             WitnessEffect, FrequencyCoupling)}
 
 
 # ---------------------------------------------------------------------------
@@ -879,10 +1145,8 @@ def effect_input_from_telemetry(tm, coefficients=None) -> EffectInput:
 def tdi_in_blocks(ltt: np.ndarray, fs: float, columns=(), eta: np.ndarray | None = None, *, order: int,
                   delay_order: int, block: int = 43200) -> tuple:
     """TDI (X2, Y2, Z2) of regressor columns (:func:`columns_tdi`) and optionally of ``eta``,
-    computed in blocks of ``block`` output samples (3 h at 4 Hz), each with the history its
-    delays reach back to (:func:`ttlcore.tdi.data.history_samples`): one block's
-    interpolation taps are held at a time (a day at 4 Hz: ~0.5 GB instead of ~4 GB).  Equal
-    to the one-block result to rounding; the first ~70 s are NaN alike.
+    by the block engine :func:`ttlcore.tdi.engine.tdi_columns` (each block with the history
+    its delays reach back to; memory does not grow with the data).  The first ~70 s are NaN.
 
     Parameters
     ----------
@@ -896,6 +1160,9 @@ def tdi_in_blocks(ltt: np.ndarray, fs: float, columns=(), eta: np.ndarray | None
         Link readouts.
     order, delay_order : int
         Lagrange orders of the data and of the delay interpolation.
+    block : int
+        Kept for callers; the engine chooses its own blocks (~2.2 h at 4 Hz), which bound
+        the memory, so the result equals the one-call :func:`columns_tdi` exactly.
 
     Returns
     -------
@@ -903,50 +1170,28 @@ def tdi_in_blocks(ltt: np.ndarray, fs: float, columns=(), eta: np.ndarray | None
         TDI of ``eta``.
     regressors : ndarray (3, len(columns), n)
     """
-    from dataclasses import replace
+    parts = _engine_parts(columns, first=1)
+    if eta is not None:
+        parts += [EnginePart(0, link, (), np.asarray(eta)[k]) for k, link in enumerate(LINKS)]
+    out = tdi_columns(parts, 1 + len(columns), ltt, fs, combinations=MICHELSON, order=order, delay_order=delay_order)
+    return (None if eta is None else out[:, 0]), out[:, 1:]
 
-    from ..tdi.combinations import MICHELSON, build
-    from ..tdi.data import history_samples
 
-    ltt = np.asarray(ltt, dtype=float)
-    n = ltt.shape[-1]
-    hist = history_samples(fs, float(np.nanmax(ltt)), order, delay_order, MICHELSON)
-    data = None if eta is None else np.empty((len(MICHELSON), n))
-    out = np.empty((len(MICHELSON), len(columns), n))
-    for a in range(0, n, int(block)):
-        b = min(a + int(block), n)
-        lo = max(0, a - hist)
-        built = build(MICHELSON, ltt[:, lo:b], fs, order=order, delay_order=delay_order, history=a - lo)
-        if eta is not None:
-            data[:, a:b] = [combination(np.asarray(eta)[:, lo:b]) for combination in built]
-        if columns:
-            part = [Column(c.name, [replace(p, series=p.series[lo:b]) for p in c.parts], c.unit,
-                           c.prior_scale) for c in columns]
-            out[:, :, a:b] = columns_tdi(part, built)
-    return data, out
+def _engine_parts(columns, first: int = 0) -> list:
+    """The parts of ``columns`` as :class:`ttlcore.tdi.engine.Part` (column ``first + j``)."""
+    return [EnginePart(first + j, p.link, p.extra, p.series) for j, col in enumerate(columns) for p in col.parts]
 
 
 def columns_tdi(columns: list[Column], built) -> np.ndarray:
-    """TDI (the combinations of ``built``, :func:`ttlcore.tdi.combinations.build`) of regressor columns.
-
-    Parts are grouped by (link, extra delay) and pushed through
-    :meth:`ttlcore.tdi.combinations.BuiltCombination.apply_on_links` - the code path of the 24 TTL
-    regressors - then summed into their columns.
+    """TDI (the combinations of ``built``, :func:`ttlcore.tdi.combinations.build`) of
+    regressor columns: each column is the sum of its parts placed on their links, through
+    the block engine :func:`ttlcore.tdi.engine.tdi_columns` - the code path of the 24 TTL
+    regressors.
 
     Returns
     -------
     ndarray, shape (len(built), len(columns), n)
     """
-    groups: dict = {}
-    for j, col in enumerate(columns):
-        for p in col.parts:
-            groups.setdefault((p.link, p.extra), []).append((j, p.series))
-    n = built[0].delays.n
-    out = np.zeros((len(built), len(columns), n))
-    for key, items in groups.items():
-        stacked = np.stack([s for _, s in items])
-        rows = np.array([j for j, _ in items])
-        for c, b in enumerate(built):
-            res = b.apply_on_links({key: stacked})[key]
-            np.add.at(out[c], rows, res)
-    return out
+    b = built[0]
+    return tdi_columns(_engine_parts(columns), len(columns), b.ltt, b.fs, history=b.history,
+                       combinations=[x.combination for x in built], order=b.order, delay_order=b.delay_order)

@@ -102,6 +102,7 @@ from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 
 import numpy as np
+from scipy.linalg import solve_triangular
 
 from ..conventions import COEFFICIENT_NAMES, DAY
 
@@ -341,62 +342,89 @@ def detect_steps(times, coefficients, sigma, *, t_start=None, window: float | No
     """
     s = settings or TrendSettings()
     ts, te, C, S, names = _prepare(times, coefficients, sigma, t_start, window, names, units)
-    k_total, P = C.shape
-    if k_total < 2:
+    if C.shape[0] < 2:
         return []
-    idx = list(range(k_total)) if indices is None else [int(i) for i in indices]
-    d, sd = consecutive_differences(ts, te, C, S)  # row j is the difference into window j + 1
-    n = d.shape[0]
-    excluded = np.zeros((n, P), dtype=bool)
-    hold = np.full(P, -1)
-    s_plus = np.zeros(P)
-    s_minus = np.zeros(P)
-    start_plus = np.zeros(P, dtype=int)
-    start_minus = np.zeros(P, dtype=int)
-    alerts: list[Alert] = []
-    h, k_allow, B = s.step_threshold, s.step_allowance, max(2, int(s.baseline_windows))
-    for j in range(n):
-        lo = max(0, j - B)
-        past_d = np.where(excluded[lo:j], np.nan, d[lo:j])
-        count = np.sum(~np.isnan(past_d), axis=0)
-        enough = count >= s.min_history
-        mu = np.zeros(P)
-        factor = np.ones(P)
-        if np.any(enough):
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns
-                med_d = np.nanmedian(past_d, axis=0)
-                wts = np.where(np.isnan(past_d), 0.0, 1.0 / sd[lo:j] ** 2)
-                mean_d = np.sum(wts * np.nan_to_num(past_d), axis=0) / np.where(wts.sum(0) > 0, wts.sum(0), 1.0)
-                zc = (past_d - med_d) / sd[lo:j]
-                mad = _MAD * np.nanmedian(np.abs(zc - np.nanmedian(zc, axis=0)), axis=0)
-            mu = np.where(enough, mean_d, 0.0)
-            factor = np.where(enough & np.isfinite(mad), np.maximum(1.0, mad), 1.0)
-        z = (d[j] - mu) / (factor * sd[j])
-        for p in range(P):
-            if j <= hold[p] or not enough[p]:
-                continue
-            if s_plus[p] == 0.0:
-                start_plus[p] = j
-            if s_minus[p] == 0.0:
-                start_minus[p] = j
-            s_plus[p] = max(0.0, s_plus[p] + z[p] - k_allow)
-            s_minus[p] = max(0.0, s_minus[p] - z[p] - k_allow)
-            if s_plus[p] < h and s_minus[p] < h:
-                continue
-            up = s_plus[p] >= h
-            run_start = int(start_plus[p] if up else start_minus[p])
-            stat = float(s_plus[p] if up else s_minus[p])
-            j0 = _change_point(ts, te, d, sd, mu, factor, p, run_start, j)
-            alert = _step_alert(ts, te, d, sd, mu, factor, p, j0, j, names[p], idx, stat, k_allow, h)
-            alerts.append(alert)
-            # hold off until the ramp has passed: until a window lies wholly after the
-            # latest possible step time (the end of the alarm's older window, te[j])
-            ramp_end = int(np.searchsorted(ts, te[j], side="left"))  # first window starting after it
-            hold[p] = max(j, min(n - 1, ramp_end))  # difference rows up to that window
-            excluded[min(j0, run_start): hold[p] + 1, p] = True
-            s_plus[p] = s_minus[p] = 0.0
-    return alerts
+    idx = list(range(C.shape[0])) if indices is None else [int(i) for i in indices]
+    return _StepScan(C.shape[1]).run(ts, te, C, S, names, idx, s)
+
+
+class _StepScan:
+    """The state of the CUSUM scan of :func:`detect_steps` over the rows (consecutive
+    differences) seen so far, so that a longer sequence of the same fits is scanned from
+    where it stopped: the scan is causal (row ``j`` depends on rows up to ``j``), so the
+    alerts are the same as a scan from the start, at O(baseline) work per new fit instead of
+    O(history)."""
+
+    def __init__(self, P: int):
+        self.rows = 0
+        self.excluded = np.zeros((0, P), dtype=bool)
+        self.hold = np.full(P, -1)  # rows up to here are held off (scanned already)
+        self.hold_time = np.full(P, -np.inf)  # and later rows while their older window starts before this
+        self.s_plus = np.zeros(P)
+        self.s_minus = np.zeros(P)
+        self.start_plus = np.zeros(P, dtype=int)
+        self.start_minus = np.zeros(P, dtype=int)
+
+    def run(self, ts, te, C, S, names, idx, s: TrendSettings) -> list[Alert]:
+        """Scan the rows not scanned yet; returns their alerts."""
+        P = C.shape[1]
+        d, sd = consecutive_differences(ts, te, C, S)  # row j is the difference into window j + 1
+        n = d.shape[0]
+        if self.excluded.shape[0] < n:
+            self.excluded = np.vstack([self.excluded, np.zeros((n - self.excluded.shape[0], P), dtype=bool)])
+        excluded, hold = self.excluded, self.hold
+        s_plus, s_minus, start_plus, start_minus = self.s_plus, self.s_minus, self.start_plus, self.start_minus
+        alerts: list[Alert] = []
+        h, k_allow, B = s.step_threshold, s.step_allowance, max(2, int(s.baseline_windows))
+        for j in range(self.rows, n):
+            lo = max(0, j - B)
+            past_d = np.where(excluded[lo:j], np.nan, d[lo:j])
+            count = np.sum(~np.isnan(past_d), axis=0)
+            enough = count >= s.min_history
+            mu = np.zeros(P)
+            factor = np.ones(P)
+            if np.any(enough):
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns
+                    med_d = np.nanmedian(past_d, axis=0)
+                    wts = np.where(np.isnan(past_d), 0.0, 1.0 / sd[lo:j] ** 2)
+                    mean_d = np.sum(wts * np.nan_to_num(past_d), axis=0) / np.where(wts.sum(0) > 0, wts.sum(0), 1.0)
+                    zc = (past_d - med_d) / sd[lo:j]
+                    mad = _MAD * np.nanmedian(np.abs(zc - np.nanmedian(zc, axis=0)), axis=0)
+                mu = np.where(enough, mean_d, 0.0)
+                factor = np.where(enough & np.isfinite(mad), np.maximum(1.0, mad), 1.0)
+            z = (d[j] - mu) / (factor * sd[j])
+            for p in range(P):
+                if j > hold[p] and j > 0 and ts[j - 1] < self.hold_time[p]:
+                    # the ramp of the last step has not passed (batch: j <= ramp_end): held off
+                    excluded[j, p] = True
+                    continue
+                if j <= hold[p] or not enough[p]:
+                    continue
+                if s_plus[p] == 0.0:
+                    start_plus[p] = j
+                if s_minus[p] == 0.0:
+                    start_minus[p] = j
+                s_plus[p] = max(0.0, s_plus[p] + z[p] - k_allow)
+                s_minus[p] = max(0.0, s_minus[p] - z[p] - k_allow)
+                if s_plus[p] < h and s_minus[p] < h:
+                    continue
+                up = s_plus[p] >= h
+                run_start = int(start_plus[p] if up else start_minus[p])
+                stat = float(s_plus[p] if up else s_minus[p])
+                j0 = _change_point(ts, te, d, sd, mu, factor, p, run_start, j)
+                alert = _step_alert(ts, te, d, sd, mu, factor, p, j0, j, names[p], idx, stat, k_allow, h)
+                alerts.append(alert)
+                # hold off until the ramp has passed: until a window lies wholly after the
+                # latest possible step time (the end of the alarm's older window, te[j]):
+                # the rows up to the first window starting after it, those to come included
+                ramp_end = int(np.searchsorted(ts, te[j], side="left"))  # first window starting after it
+                hold[p] = max(j, min(n - 1, ramp_end))  # difference rows up to that window
+                self.hold_time[p] = te[j]
+                excluded[min(j0, run_start): hold[p] + 1, p] = True
+                s_plus[p] = s_minus[p] = 0.0
+        self.rows = n
+        return alerts
 
 
 def _ramp(ts, te, j0: int, rows: slice) -> np.ndarray:
@@ -508,6 +536,14 @@ def trend_estimates(times, coefficients, sigma, *, t_start=None, window: float |
     for a in steps:
         if a.kind == STEP and math.isfinite(a.t):
             by_name.setdefault(a.coefficient, []).append(float(a.t))
+    # cov_p = D_p rho D_p with D_p = diag(S[:, p]): one Cholesky factor of rho serves every
+    # coefficient (L_p = D_p L_rho, whitening = triangular solves, O(n^2) each)
+    rho_j = rho.copy()
+    rho_j[np.diag_indices(n)] *= 1.0 + 1e-9
+    try:
+        L_rho = np.linalg.cholesky(rho_j)
+    except np.linalg.LinAlgError:
+        L_rho = None
     for p in range(P):
         cols = [np.ones(n), x]
         for t_step in sorted(by_name.get(names[p], ())):
@@ -516,15 +552,16 @@ def trend_estimates(times, coefficients, sigma, *, t_start=None, window: float |
                 cols.append(col)
                 modelled.setdefault(names[p], []).append(t_step)
         X = np.stack(cols, axis=1)
-        cov = rho * np.outer(S[:, p], S[:, p])
-        cov[np.diag_indices(n)] *= 1.0 + 1e-9
-        try:
-            L = np.linalg.cholesky(cov)
-        except np.linalg.LinAlgError:
+        if L_rho is not None and np.all(S[:, p] > 0):
+            Xw = solve_triangular(L_rho, X / S[:, p, None], lower=True)
+            yw = solve_triangular(L_rho, C[:, p] / S[:, p], lower=True)
+        else:
+            cov = rho * np.outer(S[:, p], S[:, p])
+            cov[np.diag_indices(n)] *= 1.0 + 1e-9
             w, V = np.linalg.eigh(cov)
             L = V * np.sqrt(np.clip(w, w.max() * 1e-12, None))
-        Xw = np.linalg.solve(L, X)
-        yw = np.linalg.solve(L, C[:, p])
+            Xw = np.linalg.solve(L, X)
+            yw = np.linalg.solve(L, C[:, p])
         beta, *_ = np.linalg.lstsq(Xw, yw, rcond=None)
         A = Xw.T @ Xw
         if np.linalg.cond(A) > 1e12:  # a step that cannot be told from the trend: drop steps
@@ -610,6 +647,8 @@ class TrendMonitor:
         self._drifting: set[str] = set()
         self.estimates: TrendEstimates | None = None
         self.cusum = np.zeros(len(self.names))
+        self._scan: _StepScan | None = None
+        self._scanned: list = []
 
     def add(self, index: int, t_start: float, t_stop: float, coefficients, sigma) -> list[Alert]:
         """Store one fit and return the alerts it raises (possibly none)."""
@@ -637,8 +676,17 @@ class TrendMonitor:
         Cs = np.array([self._fits[i][2] for i in order])
         Ss = np.array([self._fits[i][3] for i in order])
         new: list[Alert] = []
-        for a in detect_steps(te, Cs, Ss, t_start=ts, names=self.names, units=self.units, indices=order,
-                              settings=self.settings):
+        # steps: the causal scan goes on from the fits scanned before (O(baseline) per fit);
+        # from the start again when the history changed otherwise (a refit, trimmed history)
+        keys = [(i, self._fits[i][1]) for i in order]
+        if self._scan is None or keys[:len(self._scanned)] != self._scanned or len(keys) < 2:
+            self._scan, self._scanned = _StepScan(len(self.names)), []
+        found = []
+        if len(keys) >= 2:
+            ts_, te_, C_, S_, names_ = _prepare(te, Cs, Ss, ts, None, self.names, self.units)
+            found = self._scan.run(ts_, te_, C_, S_, names_, order, self.settings)
+            self._scanned = keys
+        for a in found:
             if not self._known_step(a):
                 self.alerts.append(a)
                 new.append(a)

@@ -95,21 +95,23 @@ def witness_library(tm, dg) -> tuple[list[dict], dict]:
             for link in LINKS:
                 for n_delay in (0, 1, 2):
                     lib.append({"name": f"dws {key} on {link}" + (f" delayed {n_delay}L" if n_delay else ""), "family": "dws",
-                                "series": key, "link": link, "delay": n_delay * ltt[link], "derivative": False})
+                                "series": key, "link": link, "delay": n_delay * ltt[link], "derivative": False,
+                                "spec": witness_spec(key, link, n_delay)})
                 for n_delay in (0, 1):
                     lib.append({"name": f"d/dt dws {key} on {link}" + (" delayed 1L" if n_delay else ""),
                                 "family": "derivative", "series": key, "link": link, "delay": n_delay * ltt[link],
-                                "derivative": True})
+                                "derivative": True, "spec": witness_spec(key, link, n_delay, derivative=True)})
             raw[f"time {key}"] = spectra((t - t_mid) / T * w)
             for side, link, dl in (("rx", m, 0.0), ("tx", reverse(m), ltt[reverse(m)])):
                 lib.append({"name": f"t x dws {key} ({side})", "family": "time", "series": f"time {key}", "link": link,
-                            "delay": dl, "derivative": False})
+                            "delay": dl, "derivative": False, "spec": f"drift:mosas={m};angles={a};sides={side}"})
                 for ts in boundaries:
                     skey = f"step {ts:.0f} {key}"
                     if skey not in raw:
                         raw[skey] = spectra((t >= ts) * w)
                     lib.append({"name": f"H(t - {(ts - tm.t0) / 3600:.1f} h) x dws {key} ({side})", "family": "step",
-                                "series": skey, "link": link, "delay": dl, "derivative": False, "t_step": float(ts)})
+                                "series": skey, "link": link, "delay": dl, "derivative": False, "t_step": float(ts),
+                                "spec": f"step:t_step={ts:.0f};mosas={m};angles={a};sides={side}"})
         for pair in ("phiphi", "etaeta", "phieta"):
             a, b = pair[:3], pair[3:]
             x = -(vel[a][k] * angles[b][k] + angles[a][k] * vel[b][k]) / C
@@ -117,7 +119,7 @@ def witness_library(tm, dg) -> tuple[list[dict], dict]:
             raw[key] = spectra(x)
             for side, link, dl in (("rx", m, 0.0), ("tx", reverse(m), ltt[reverse(m)])):
                 lib.append({"name": f"d/dt({a} {b}) {m} ({side})", "family": "product", "series": key, "link": link,
-                            "delay": dl, "derivative": False})
+                            "delay": dl, "derivative": False, "spec": witness_spec(key, link, 0 if side == "rx" else 1)})
     return lib, raw
 
 
@@ -172,11 +174,12 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
     for g in range(G):
         order = np.argsort(-dchi2[:, g])[:top]
         bands.append({"f_lo": float(dg.edges[g]), "f_hi": float(dg.edges[g + 1]),
-                      "top": [{"name": lib[i]["name"], "family": lib[i]["family"], "delta_chi2": float(dchi2[i, g]),
+                      "top": [{"name": lib[i]["name"], "family": lib[i]["family"], "spec": lib[i]["spec"],
+                               "delta_chi2": float(dchi2[i, g]),
                                "coherence": float(coh[i, g])} for i in order]})
     total = dchi2.sum(axis=1)
     order = np.argsort(-total)[:top]
-    overall = [{"name": lib[i]["name"], "family": lib[i]["family"], "delta_chi2": float(total[i]),
+    overall = [{"name": lib[i]["name"], "family": lib[i]["family"], "spec": lib[i]["spec"], "delta_chi2": float(total[i]),
                 "best_band": [float(dg.edges[int(np.argmax(dchi2[i]))]), float(dg.edges[int(np.argmax(dchi2[i])) + 1])],
                 "coherence_max": float(coh[i].max())} for i in order]
     # coherence spectra of the top witnesses (running mean over ~2 % of f): the frequency of
@@ -201,6 +204,53 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
             spectra[w["name"]] = curve
     return {"n_witnesses": len(lib), "families": sorted({w["family"] for w in lib}), "bands": bands,
             "overall": overall, "coherence_spectra": {"f": _log_grid(dg.f).tolist(), "curves": spectra}}
+
+
+def witness_spec(source: str, link: str, n_delay: int = 0, derivative: bool = False) -> str:
+    """The ``--effects`` spelling of a library witness as an effect
+    (:class:`ttlcore.diagnose.effects.WitnessEffect`): ``witness:source=12.phi;link=23;delay=1``."""
+    opts = [f"source={source}"]
+    if link != source.split(".")[0]:
+        opts.append(f"link={link}")
+    if n_delay:
+        opts.append(f"delay={n_delay}")
+    if derivative:
+        opts.append("derivative=1")
+    return "witness:" + ";".join(opts)
+
+
+def witness_candidates(report: dict, top: int = 3, modules=()) -> list:
+    """Effects to try from a witness search (:func:`witness_search`).
+
+    The overall ranking's first ``top`` witnesses as witness effects (time and step
+    witnesses as ``drift`` and ``step`` restricted to their channel and side); for the
+    DWS channel and link of the best DWS witness, frequency-dependent couplings with a
+    searched pole pair placed undelayed and after one and two light travel times (a
+    coupling's phase and a delay look alike over a band: the evidence decides), and with a
+    searched real pole at the witness's own delay; for the second DWS channel and link in
+    the ranking, the pole pair at its delay."""
+    from .effects import make_effects
+
+    specs: list = []
+    placements: list = []
+    for w in report.get("overall", []):
+        spec = w.get("spec")
+        if spec and len(specs) < top and spec not in specs:
+            specs.append(spec)
+        if w["family"] in ("dws", "derivative") and spec:
+            opts = dict(o.split("=", 1) for o in spec.split(":", 1)[1].split(";"))
+            key = (opts["source"], opts.get("link", opts["source"].split(".")[0]))
+            if key not in [p[:2] for p in placements]:
+                placements.append((*key, int(opts.get("delay", 0))))
+    for i, (src, link, n) in enumerate(placements[:2]):
+        where = f"source={src}" + (f";link={link}" if link != src.split(".")[0] else "")
+        for d in ((0, 1, 2) if i == 0 else (n,)):
+            specs.append(f"fd-coupling:{where}" + (f";delay={d}" if d else ""))
+        if i == 0:
+            specs.append(f"fd-coupling:{where}" + (f";delay={n}" if n else "") + ";filter=pole1")
+            # a coupling that changes in time (composition with a drift)
+            specs.append(f"witness:{where}" + (f";delay={n}" if n else "") + ";vary=drift")
+    return make_effects([s.replace(";", ",") for s in dict.fromkeys(specs)], modules)
 
 
 def _log_grid(f, per_decade: int = 30):

@@ -39,8 +39,17 @@ import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES, C
 from ..errors import TelemetryError, TTLError
-from .fit import DEFAULT_BAND, FitSettings, dws_asd_from_config, fit_tdi
 from ..io.atomic import write_json
+from ..io.lisainstrument import lisainstrument_truth
+from ..io.reader import file_kind, read_telemetry
+from ..io.telemetry import read_header
+from ..io.truth import read_truth
+from ..io.truth import truth_path as default_truth_path
+from ..plots.batch import asd_x_curves, plot_asd_x, plot_coefficients
+from ..tdi.data import compute_tdi
+from .fit import DEFAULT_BAND, FitSettings, dws_asd_from_config, fit_tdi, segment_spectra
+from .mcmc import fit_mcmc
+from .subtraction import analyse_subtraction
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +80,20 @@ def check_band(band, fs: float = 4.0, segment_duration: float | None = None) -> 
             raise TTLError(f"--band: {fmin:g}-{fmax:g} Hz holds only {max(nbins, 0)} frequency bins of "
                            f"{segment_duration:g} s segments; widen the band or lengthen --segment")
     return fmin, fmax
+
+
+def data_loss(tm, td) -> dict:
+    """The data lost to gaps: NaN stretches of the telemetry (eta or DWS, sample ranges
+    ``[start, stop)``) and the fraction of TDI samples they spoil (the interpolation and the
+    nested delays spread each gap by about 70 s; ``ttlcore.estimate.fit.spectra_of_segment`` masks
+    those samples and drops an FFT segment less than half valid)."""
+    bad = ~(np.isfinite(tm.eta).all(axis=0) & np.isfinite(tm.dws_phi).all(axis=0)
+            & np.isfinite(tm.dws_eta).all(axis=0))
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], bad.astype(np.int8), [0]])))
+    stretches = [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2])]
+    tdi_bad = ~(np.isfinite(td.data).all(axis=0) & np.isfinite(td.regressors).all(axis=(0, 1)))
+    return {"telemetry_samples_missing": int(bad.sum()), "stretches": stretches,
+            "seconds_missing": float(bad.sum() / tm.fs), "tdi_fraction_lost": float(tdi_bad.mean())}
 
 
 def _check_segment(segment: float, duration: float, path) -> None:
@@ -119,10 +142,6 @@ _SIMULATION_KEYS = ("seed", "orbit", "coefficients", "noises", "t0", "fs")
 
 def load_truth(path, tm, data_kind: str, data_path) -> _Truth:
     """Truth for telemetry ``tm`` from ``path`` (our truth file or a lisainstrument file)."""
-    from ..io.lisainstrument import lisainstrument_truth
-    from ..io.reader import file_kind
-    from ..io.truth import read_truth
-    from ..io.truth import truth_path as default_truth_path
 
     path = Path(path)
     kind = file_kind(path)
@@ -197,9 +216,6 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
     TTLError, TelemetryError
         One-line messages naming the file or option at fault.
     """
-    from .subtraction import analyse_subtraction
-    from ..tdi.data import compute_tdi
-    from ..io.reader import file_kind, read_telemetry
 
     say = progress or (lambda msg: None)
     timings: dict[str, float] = {}
@@ -228,7 +244,6 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
     if truth_path is not None:
         file_kind(truth_path)
     if data_kind == "ttl":  # our files tell their length without reading the series
-        from ..io.telemetry import read_header
 
         _check_segment(s.segment_duration, read_header(data_path)["duration"], data_path)
 
@@ -247,6 +262,11 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
     # --- TDI
     say(f"TDI of data and 24 regressors ({tm.size} samples at {tm.fs:g} Hz)")
     td = compute_tdi(tm)
+    loss = data_loss(tm, td)
+    if loss["telemetry_samples_missing"]:
+        say(f"gaps: {loss['telemetry_samples_missing']} telemetry samples missing (NaN) in "
+            f"{len(loss['stretches'])} stretch(es); {100 * loss['tdi_fraction_lost']:.2f} % of the TDI samples lost "
+            "(the fit masks them)")
     lap("tdi")
 
     # --- fit (truth never enters here)
@@ -292,6 +312,7 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
     content["units"] = "m/rad"
     content["data"] = {"file": str(data_path), "kind": data_kind, "t0": tm.t0, "fs": tm.fs, "size": tm.size,
                        "duration_s": tm.duration}
+    content["data_loss"] = loss
     content["truth_file"] = None if truth is None else str(truth.path)
     content["truth_source"] = None if truth is None else truth.source
     content["ttl_residual_available"] = sub.ttl_residual is not None
@@ -303,7 +324,6 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
 
     # --- figures
     if figures:
-        from ..plots.batch import asd_x_curves, plot_asd_x, plot_coefficients
 
         say("ASDs and figures")
         arm = C * float(np.mean(td.ltt_mean))
@@ -323,13 +343,6 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
 def _fit_mcmc(td, s: FitSettings, say, options: dict | None):
     """MCMC over the same likelihood (:func:`ttlcore.estimate.mcmc.fit_mcmc`, which runs its own GLS
     first for the noise weights and keeps its coefficients in ``extra``)."""
-    from .fit import segment_spectra
-
-    try:
-        from .mcmc import fit_mcmc
-    except ImportError as exc:
-        raise TTLError(f"--method mcmc: the MCMC fit (ttlcore.estimate.mcmc.fit_mcmc) is not available ({exc}); "
-                       "use --method gls") from None
     spectra = segment_spectra(td, s.band, s.segment_duration, s.window, s.overlap, s.decimate)
     last = [0.0]
 

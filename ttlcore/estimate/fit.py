@@ -106,20 +106,47 @@ class SegmentSpectra:
     valid_fraction: float = 1.0
 
 
+#: Length of the half-cosine tapers at the edges of a gap inside a segment [s].
+GAP_TAPER = 300.0
+
+
+def gap_taper(ok: np.ndarray, samples: int) -> np.ndarray:
+    """Weights that go to zero smoothly into each gap *inside* a segment: 0 in the gap, a
+    half-cosine ramp of ``samples`` on each valid side of it, 1 elsewhere.  Gaps touching
+    the segment's ends (the delays before the data) are left to the segment window.  A
+    sharp edge would multiply the series by a step and leak its (red) low-frequency power
+    over the band; the ramp keeps that leakage down (data and regressors get the same
+    weights, so the model stays exact)."""
+    w = ok.astype(float)
+    n = ok.size
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], (~ok).astype(np.int8), [0]])))
+    ramp = 0.5 * (1 - np.cos(np.pi * (np.arange(1, samples + 1)) / (samples + 1)))  # rising, (0, 1)
+    for start, stop in zip(edges[::2], edges[1::2]):
+        if start == 0 or stop == n or samples <= 0:
+            continue
+        a = max(0, start - samples)
+        w[a:start] = np.minimum(w[a:start], ramp[::-1][samples - (start - a):])
+        b = min(n, stop + samples)
+        w[stop:b] = np.minimum(w[stop:b], ramp[: b - stop])
+    return w
+
+
 def spectra_of_segment(data: np.ndarray, regressors: np.ndarray, t0: float, fs: float,
                        band=DEFAULT_BAND, window_name: str = "rect") -> SegmentSpectra | None:
     """Spectra of one segment of TDI outputs (data (c, n), regressors (c, P, n)).
 
     Samples where data or any regressor are not finite (delays reaching before the start of
-    the data) are set to zero in all series alike, which keeps the model exact; the PSD
-    normalisation uses the valid samples only.  Returns None if less than half is valid.
+    the data, a gap in the telemetry) are set to zero in all series alike, which keeps the
+    model exact, with tapers of :data:`GAP_TAPER` into the gaps inside the segment
+    (:func:`gap_taper`); the PSD normalisation uses the window's power.  Returns None if
+    less than half is valid.
     """
     n = data.shape[-1]
     ok = np.isfinite(data).all(axis=0) & np.isfinite(regressors).all(axis=(0, 1))
     frac = ok.mean() if n else 0.0
     if frac < 0.5:
         return None
-    w = window(window_name, n) * ok
+    w = window(window_name, n) * (gap_taper(ok, int(round(GAP_TAPER * fs))) if not ok.all() else 1.0)
     d = np.where(ok, data, 0.0)
     R = np.where(ok, regressors, 0.0)
     f, D = segment_fft(d, fs, w)

@@ -1,4 +1,5 @@
-"""Spectral estimates: segment FFTs for the fit, Welch ASDs and log-frequency averaging for plots.
+"""Spectral estimates: segment FFTs for the fit, the Welch ASD (the one estimator of the
+package: figures, scenarios, monitor) and log-frequency averaging for plots.
 
 Normalisation of :func:`segment_fft`: for a stationary series with one-sided PSD ``S(f)``,
 
@@ -39,12 +40,46 @@ def segment_fft(x: np.ndarray, fs: float, win: np.ndarray) -> tuple[np.ndarray, 
     return sp_fft.rfftfreq(n, 1 / fs), scale * sp_fft.rfft(x * win, axis=-1, workers=-1)
 
 
+def default_nperseg(n: int, fs: float, max_seconds: float = 16384.0) -> int:
+    """Welch segment: 2^16 samples at 4 Hz (4.6 h) or the largest power of two giving at
+    least three half-overlapping segments."""
+    cap = int(2 ** np.floor(np.log2(max(max_seconds * fs, 16))))
+    fit = int(2 ** np.floor(np.log2(max(n / 2, 16))))
+    return max(16, min(cap, fit))
+
+
 def welch_asd(x, fs: float, nperseg: int | None = None, window_name: str = "hann"):
-    """One-sided Welch ASD (50 % overlap) along the last axis; returns ``(f, asd)``."""
+    """One-sided Welch ASD (50 % overlap) along the last axis; returns ``(f, asd)``.
+
+    Samples (columns) that are not finite in every row are dropped first.  Each segment
+    loses its *window-weighted* mean: scipy's default ``detrend="constant"`` removes the
+    plain mean, which for TDI outputs (no power at DC, large power at high frequency) is
+    dominated by the segment edges' high-frequency content; the window then leaks that
+    spurious offset into the first bins, which after the ``1/f`` displacement conversion
+    stand orders of magnitude above the true ASD.  The weighted mean zeroes the windowed
+    DC exactly instead.
+
+    Parameters
+    ----------
+    x : array_like, shape (..., n)
+    fs : float
+        Sampling rate [Hz].
+    nperseg : int, optional
+        Segment length in samples (default: the whole series).
+    window_name : str
+        scipy window name.
+    """
     x = np.asarray(x)
     x = x[..., np.all(np.isfinite(np.atleast_2d(x)), axis=0)] if x.ndim > 1 else x[np.isfinite(x)]
     nperseg = int(min(nperseg or x.shape[-1], x.shape[-1]))
-    f, p = signal.welch(x, fs=fs, window=window_name, nperseg=nperseg, noverlap=nperseg // 2, axis=-1)
+    w = signal.get_window(window_name, nperseg)
+    w = w / w.sum()
+
+    def detrend(seg):
+        return seg - np.tensordot(seg, w, axes=(-1, 0))[..., None]
+
+    f, p = signal.welch(x, fs=fs, window=window_name, nperseg=nperseg, noverlap=nperseg // 2, detrend=detrend,
+                        axis=-1)
     return f, np.sqrt(p)
 
 

@@ -66,8 +66,11 @@ from pathlib import Path
 import numpy as np
 
 from ..conventions import C, COEFFICIENT_NAMES, DAY, ffd_to_displacement_asd
+from ..cli.progress import status_line
 from ..errors import TTLError
 from ..estimate.fit import DEFAULT_BAND, FitSettings, fit_tdi
+from ..estimate.reprocess import dask_client
+from ..estimate.spectra import welch_asd
 from ..io.atomic import write_json, write_text
 
 __all__ = ["Case", "PAPER_CASES", "VARIANTS", "run_scenarios", "add_parser"]
@@ -120,9 +123,8 @@ GW_INTACT_FACTOR = 10.0
 
 
 def _welch(x: np.ndarray, fs: float, nperseg: int):
-    from ..plots.batch import welch_asd_weighted_mean
-
-    f, asd = welch_asd_weighted_mean(x, fs, nperseg)
+    """Welch PSD (:func:`ttlcore.estimate.spectra.welch_asd` squared)."""
+    f, asd = welch_asd(x, fs, nperseg)
     return f, asd**2
 
 
@@ -412,8 +414,28 @@ def _md_table(rows: list[dict]) -> str:
     return head + "\n".join(lines) + "\n"
 
 
+def _run_group(runner: _Runner, vname: str, names, vdir: Path, figures: bool) -> list[dict]:
+    """The rows of the cases ``names`` (sharing one orbit and t0) of variant ``vname``."""
+    by_name = {c.name: c for c in PAPER_CASES}
+    group = [by_name[n] for n in names]
+    variant = VARIANTS[vname]
+    base = runner.base(group[0].orbit, group[0].t0, variant)
+    rows = []
+    for c in group:
+        runner.say(f"[{vname}] case {c.name}")
+        rows.append(analyse_case(c, base, runner, variant, vdir, figures=figures))
+    return rows
+
+
+def _group_task(duration, seed, fit_settings, vname, names, vdir, figures) -> list[dict]:
+    """:func:`_run_group` as a Dask task (its own runner; the caches only hold
+    deterministic results, so the rows equal those of the serial run)."""
+    return _run_group(_Runner(duration, seed, lambda msg: None, fit_settings), vname, names, Path(vdir), figures)
+
+
 def run_scenarios(out_dir, *, cases=None, variants=("paper", "lisainstrument", "coloured"), duration: float = DAY,
-                  seed: int = 1, figures: bool = True, progress=None, fit_settings: FitSettings | None = None) -> dict:
+                  seed: int = 1, figures: bool = True, progress=None, fit_settings: FitSettings | None = None,
+                  client=None) -> dict:
     """Run the scenarios, write ``summary.json``, ``summary.md`` and figures to ``out_dir``.
 
     Parameters
@@ -427,6 +449,10 @@ def run_scenarios(out_dir, *, cases=None, variants=("paper", "lisainstrument", "
         Length of each simulated stretch [s] (the paper: one day).
     seed : int
         Noise seed, shared by every case (same realisation with and without GW).
+    client : distributed.Client, optional
+        Run the cases on this Dask cluster, one task per variant and base simulation
+        (:func:`ttlcore.estimate.reprocess.dask_client`); the summary equals the serial run's except
+        ``timings_s`` (per variant: the wait for its tasks).
 
     Returns
     -------
@@ -459,22 +485,30 @@ def run_scenarios(out_dir, *, cases=None, variants=("paper", "lisainstrument", "
 
     runner = _Runner(duration, seed, say, fit_settings)
     summary = {"duration_s": duration, "seed": seed, "cases": cases, "variants": {}, "timings_s": {}}
+    groups: dict = {}  # cases sharing a base simulation (orbit, t0)
+    for cname in cases:
+        c = by_name[cname]
+        groups.setdefault((c.orbit, c.t0), []).append(c.name)
+    futures = {}
+    if client is not None:  # one task per (variant, base simulation), results gathered below
+        for vname in variants:
+            (out_dir / vname).mkdir(exist_ok=True)
+            for key, names in groups.items():
+                futures[vname, key] = client.submit(_group_task, duration, seed, fit_settings, vname, names,
+                                                    str(out_dir / vname), figures, pure=False, retries=1)
+        say(f"{len(futures)} tasks submitted to {client.scheduler.address}")
     for vname in variants:
         variant = VARIANTS[vname]
         vdir = out_dir / vname
         vdir.mkdir(exist_ok=True)
         rows = []
-        groups: dict = {}
-        for cname in cases:
-            c = by_name[cname]
-            groups.setdefault((c.orbit, c.t0), []).append(c)
         t_var = time.monotonic()
-        for (orbit, t0), group in groups.items():
-            base = runner.base(orbit, t0, variant)
-            for c in group:
-                say(f"[{vname}] case {c.name}")
-                rows.append(analyse_case(c, base, runner, variant, vdir, figures=figures))
-            del base
+        for key, names in groups.items():
+            if client is not None:
+                rows += futures[vname, key].result()
+                say(f"[{vname}] cases {', '.join(names)} done")
+            else:
+                rows += _run_group(runner, vname, names, vdir, figures)
         rows.sort(key=lambda r: cases.index(r["case"]))
         summary["variants"][vname] = {"title": variant["title"], "coefficients": variant["coeffs"],
                                       "jitter_fknee_hz": variant["fknee"],
@@ -520,13 +554,15 @@ def add_parser(sub) -> None:
     p.add_argument("--duration", default="1d", help="length of each case, e.g. 1d or 6h (default 1d, as the paper)")
     p.add_argument("--seed", type=int, default=1, help="noise seed shared by all cases (default 1)")
     p.add_argument("--no-figures", action="store_true", help="skip the figures")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run the cases on this Dask scheduler (tcp://host:8786 or its --scheduler-file)")
+    p.add_argument("--workers", type=int, default=0,
+                   help="run the cases on a local Dask cluster of N worker processes (default 0: in this process)")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=_cmd_scenarios)
 
 
 def _cmd_scenarios(args) -> int:
-    import sys
-
     from ..conventions import parse_duration
 
     try:
@@ -536,12 +572,16 @@ def _cmd_scenarios(args) -> int:
     cases = None if args.cases in ("all-cases", "") else [c.strip() for c in args.cases.split(",") if c.strip()]
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
 
-    def progress(msg):
-        if not args.quiet:
-            print(f"ttl scenarios: {msg}", file=sys.stderr, flush=True)
-
-    s = run_scenarios(args.out, cases=cases, variants=variants, duration=duration, seed=args.seed,
-                      figures=not args.no_figures, progress=progress)
+    if args.workers < 0:
+        raise TTLError(f"--workers: must be >= 0, got {args.workers}")
+    with status_line("ttl scenarios", args.quiet) as progress:  # in place on a terminal
+        options = dict(cases=cases, variants=variants, duration=duration, seed=args.seed,
+                       figures=not args.no_figures, progress=progress)
+        if args.scheduler or args.workers:
+            with dask_client(args.scheduler, workers=args.workers or 2) as client:
+                s = run_scenarios(args.out, client=client, **options)
+        else:
+            s = run_scenarios(args.out, **options)
     for vname, v in s["variants"].items():
         print(f"[{vname}] {v['title']}")
         for r in v["cases"]:

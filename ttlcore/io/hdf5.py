@@ -147,8 +147,12 @@ def json_attr(f: h5py.File, path, name: str) -> dict:
         raise TelemetryError(path, f"not valid JSON ({exc})", f"@{name}") from None
 
 
-def read_series(f: h5py.File, path, name: str, rows: int, size: int, start: int = 0, stop: int | None = None) -> np.ndarray:
-    """Read ``f[name][:, start:stop]`` checking presence, shape and finiteness."""
+def read_series(f: h5py.File, path, name: str, rows: int, size: int, start: int = 0, stop: int | None = None,
+                allow_nan: bool = False) -> np.ndarray:
+    """Read ``f[name][:, start:stop]`` checking presence, shape and finiteness.
+
+    With ``allow_nan`` NaN (a gap in the data: no sample) is accepted, infinities are not.
+    """
     if name not in f:
         raise TelemetryError(path, "missing dataset", name)
     ds = f[name]
@@ -160,7 +164,7 @@ def read_series(f: h5py.File, path, name: str, rows: int, size: int, start: int 
         values = np.asarray(ds[:, max(int(start), 0) : stop], dtype=float)
     except (OSError, RuntimeError, ValueError) as exc:
         raise TelemetryError(path, f"cannot read data ({exc}); truncated file?", name) from None
-    finite = np.isfinite(values)
+    finite = np.isfinite(values) | (np.isnan(values) if allow_nan else False)
     if not finite.all():
         bad = int(np.argmax(~finite.all(axis=0))) + max(int(start), 0)
         raise TelemetryError(path, f"non-finite values (first at sample {bad})", name)

@@ -185,7 +185,10 @@ def read_ttl_telemetry(path, start: int = 0, stop: int | None = None) -> Telemet
         head = _header(f, path)
         size = head["size"]
         start, stop, _ = slice(start, stop).indices(size)
-        arrays = {fieldname: read_series(f, path, name, 6, size, start, stop) for name, fieldname in _FIELDS.items()}
+        # NaN in eta and the DWS series is a gap in the data (no sample): read as such, the
+        # consumers mask it; the light travel times must be finite
+        arrays = {fieldname: read_series(f, path, name, 6, size, start, stop, allow_nan=fieldname != "ltt")
+                  for name, fieldname in _FIELDS.items()}
     return Telemetry(
         t0=head["t0"] + start / head["fs"], fs=head["fs"], config=head["config"], source=str(path), **arrays
     )

@@ -23,7 +23,10 @@ import numpy as np
 from ..conventions import ARM_LENGTH, PAPER_ORDER, ffd_to_displacement_asd, paper_ordered_names
 from ..io.hdf5 import temporary_path
 from ..estimate.noise_psd import requirement_x2
-from ..estimate.spectra import log_average
+from ..estimate.spectra import default_nperseg, log_average, welch_asd
+
+#: The Welch estimator of :mod:`ttlcore.estimate.spectra` (name kept for the monitor stage).
+welch_asd_weighted_mean = welch_asd
 
 #: Coefficient requirement of the paper [m/rad]: |C_fit - C_true| < 0.1 mm/rad.
 COEFFICIENT_REQUIREMENT = 0.1e-3
@@ -37,36 +40,6 @@ ASD_CURVES = {
     "ttl_residual": ("TTL residual (true TTL - fitted model)", dict(color="tab:green", lw=1.3, ls="-.")),
 }
 REQUIREMENT_STYLE = dict(color="0.4", lw=1.2, ls="--")
-
-
-def default_nperseg(n: int, fs: float, max_seconds: float = 16384.0) -> int:
-    """Welch segment: 2^16 samples at 4 Hz (4.6 h) or the largest power of two giving at
-    least three half-overlapping segments."""
-    cap = int(2 ** np.floor(np.log2(max(max_seconds * fs, 16))))
-    fit = int(2 ** np.floor(np.log2(max(n / 2, 16))))
-    return max(16, min(cap, fit))
-
-
-def welch_asd_weighted_mean(x: np.ndarray, fs: float, nperseg: int) -> tuple[np.ndarray, np.ndarray]:
-    """One-sided Welch ASD (Hann, 50 % overlap) of a 1-D series, removing from each segment
-    its *Hann-weighted* mean.
-
-    scipy's default ``detrend="constant"`` removes the plain mean, which for TDI outputs
-    (no power at DC, large power at high frequency) is dominated by the rectangular edges'
-    high-frequency leakage; the Hann window then leaks that spurious offset into the first
-    bin, which after the ``1/f`` displacement conversion stands orders of magnitude above
-    the true ASD.  The weighted mean zeroes the windowed DC exactly instead.
-    """
-    from scipy import signal
-
-    w = signal.get_window("hann", nperseg)
-    w = w / w.sum()
-
-    def detrend(seg):
-        return seg - np.tensordot(seg, w, axes=(-1, 0))[..., None]
-
-    f, p = signal.welch(x, fs=fs, window="hann", nperseg=nperseg, noverlap=nperseg // 2, detrend=detrend)
-    return f, np.sqrt(p)
 
 
 def asd_x_curves(sub, channel: str = "X2", nperseg: int | None = None, per_decade: int = 40,
@@ -87,10 +60,19 @@ def asd_x_curves(sub, channel: str = "X2", nperseg: int | None = None, per_decad
     -------
     dict
         ``{series name: (f, asd)}`` for the series present, plus ``"requirement"``; all on
-        the same log-spaced frequencies.  Only samples where every series is finite are used.
+        the same log-spaced frequencies.  Only samples where every series is finite are used:
+        the longest stretch of them (splicing across a gap would put a step in the series and
+        leak its power over the band).
     """
     series = sub.channel(channel)
     ok = np.all([np.isfinite(v) for v in series.values()], axis=0)
+    if not ok.all():
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
+        if edges.size:
+            starts, stops = edges[::2], edges[1::2]
+            k = int(np.argmax(stops - starts))
+            ok = np.zeros_like(ok)
+            ok[starts[k]:stops[k]] = True
     n = int(ok.sum())
     if n < 64:
         raise ValueError(f"too few valid samples ({n}) for an ASD")
@@ -98,7 +80,7 @@ def asd_x_curves(sub, channel: str = "X2", nperseg: int | None = None, per_decad
     out = {}
     f = None
     for name, x in series.items():
-        f, asd = welch_asd_weighted_mean(x[ok], sub.fs, nperseg)
+        f, asd = welch_asd(x[ok], sub.fs, nperseg)
         fc, psd = log_average(f[1:], asd[1:] ** 2, per_decade=per_decade)
         out[name] = (fc, ffd_to_displacement_asd(np.sqrt(psd), fc))
     fc, req = log_average(f[1:], requirement_x2(f[1:], arm_length), per_decade=per_decade)

@@ -15,12 +15,12 @@ with ``D_121 = D_12 D_21`` and so on; Y2 and Z2 follow by the cyclic permutation
 1 -> 2 -> 3 -> 1, and ``A = (Z - X)/sqrt(2)``, ``E = (X - 2Y + Z)/sqrt(6)``,
 ``T = (X + Y + Z)/sqrt(3)`` (Hartig et al., eqs. 5-7).
 
-:meth:`Combination.build` computes the total delay of every distinct chain once (nested
-delays from the light-travel-time series, interpolated with a low Lagrange order as
-pytdi does) and the interpolation taps once; the built object then applies the
-combination to any number of channels sharing those taps.  Because TDI is linear, the
-same built combination turns witness series placed on links (the TTL regressors) into
-regressor columns (:meth:`BuiltCombination.apply_on_links`).
+:meth:`Combination.build` binds a combination to a light-travel-time series; evaluating it
+runs the block engine :func:`ttlcore.tdi.engine.tdi_columns` (nested delays at a few nodes
+per block, interpolation weights as Chebyshev polynomials in time, all terms of a link as
+one FIR applied by FFT).  Because TDI is linear, the same engine turns witness series
+placed on links (the TTL regressors) into regressor columns
+(:meth:`BuiltCombination.apply_on_links`, :func:`ttlcore.tdi.data.compute_tdi`).
 
 Delays carry no Doppler factor here: ``D x(t) = x(t - tau(t))``, the operator of docs/physics.md
 and of pytdi's ``unit="phase"`` evaluation.
@@ -34,13 +34,10 @@ from functools import cached_property
 import numpy as np
 
 from ..conventions import LINKS
-from .interpolation import DEFAULT_ORDER, Taps, apply_taps, shift_taps
+from .interpolation import DEFAULT_ORDER, apply_taps, shift_taps
+from .engine import DEFAULT_DELAY_ORDER, Part, tdi_columns
 
 Chain = tuple[str, ...]
-
-#: Lagrange order used to interpolate light travel times inside nested delays (pytdi's default).
-DEFAULT_DELAY_ORDER = 5
-
 
 def _permute_link(link: str, mapping: dict[str, str]) -> str:
     return "".join(mapping[c] for c in link)
@@ -156,83 +153,26 @@ def nested_delays(chains, ltt: np.ndarray, fs: float, delay_order: int = DEFAULT
     return out
 
 
-class DelayTaps:
-    """Nested delays and interpolation taps for one light-travel-time series, computed
-    lazily per chain and shared by every combination and channel that needs them.
-
-    Parameters
-    ----------
-    ltt : ndarray, shape (6, history + n)
-        Light travel times [s] at every input sample (LINKS order).
-    fs : float
-    order : int
-        Lagrange order of the data interpolation.
-    delay_order : int
-        Lagrange order for reading delays at earlier times (nested delays).
-    history : int
-        Leading input samples before the first output sample.
-    """
-
-    def __init__(self, ltt: np.ndarray, fs: float, order: int = DEFAULT_ORDER,
-                 delay_order: int = DEFAULT_DELAY_ORDER, history: int = 0):
-        self.ltt = np.asarray(ltt, dtype=float)
-        self.fs = float(fs)
-        self.order = int(order)
-        self.delay_order = int(delay_order)
-        self.history = int(history)
-        self.n = self.ltt.shape[-1] - self.history
-        self._delays: dict[Chain, np.ndarray] = {(): np.zeros(self.ltt.shape[-1])}
-        self._taps: dict[Chain, Taps] = {}
-
-    def delay(self, chain: Chain) -> np.ndarray:
-        """Total delay [s] of ``chain`` at every input sample (see :func:`nested_delays`)."""
-        chain = tuple(chain)
-        if chain not in self._delays:
-            previous = self.delay(chain[:-1])
-            tau = self.ltt[LINKS.index(chain[-1])]
-            if not chain[:-1]:
-                self._delays[chain] = tau.copy()
-            else:
-                shifted = apply_taps(tau, shift_taps(-previous * self.fs, tau.size, self.delay_order))
-                self._delays[chain] = previous + shifted
-        return self._delays[chain]
-
-    def taps(self, chain: Chain) -> Taps:
-        """Interpolation taps reading ``x(t - Delta_chain(t))`` for the output samples."""
-        chain = tuple(chain)
-        if chain not in self._taps:
-            d = self.delay(chain)[self.history:]
-            self._taps[chain] = shift_taps(-d * self.fs, self.n, self.order, offset=self.history)
-        return self._taps[chain]
-
-    def predelay(self, x: np.ndarray, link: str) -> np.ndarray:
-        """``D_link x`` at every input sample (history included), e.g. a Tx witness before
-        it enters TDI; the first ``tau * fs + order/2`` samples are NaN."""
-        key = ("predelay", link)
-        if key not in self._taps:
-            total = self.ltt.shape[-1]
-            self._taps[key] = shift_taps(-self.ltt[LINKS.index(link)] * self.fs, total, self.order)
-        return apply_taps(x, self._taps[key])
-
-
 @dataclass
 class BuiltCombination:
-    """A combination bound to precomputed delays (:class:`DelayTaps`).
+    """A combination bound to a light-travel-time series (see :func:`build`).
 
     Call it on ``eta`` (shape ``(6, history + n)``) or use :meth:`apply_on_links` for
-    witness channels; output samples whose delays reach before the data are NaN.
+    witness channels; both run the block engine :func:`ttlcore.tdi.engine.tdi_columns`.
+    Output samples whose delays reach before the data are NaN.
     """
 
     combination: Combination
-    delays: DelayTaps = field(repr=False)
+    ltt: np.ndarray = field(repr=False)
+    fs: float
+    order: int = DEFAULT_ORDER
+    delay_order: int = DEFAULT_DELAY_ORDER
+    history: int = 0
 
     @property
-    def fs(self) -> float:
-        return self.delays.fs
-
-    @property
-    def history(self) -> int:
-        return self.delays.history
+    def n(self) -> int:
+        """Number of output samples."""
+        return self.ltt.shape[-1] - self.history
 
     @cached_property
     def terms_by_link(self) -> dict:
@@ -242,24 +182,15 @@ class BuiltCombination:
             d[link].append((f, tuple(chain)))
         return d
 
+    def columns(self, parts, ncolumns: int) -> np.ndarray:
+        """:func:`~ttlcore.tdi.engine.tdi_columns` of ``parts`` for this combination: ``(ncolumns, n)``."""
+        return tdi_columns(parts, ncolumns, self.ltt, self.fs, history=self.history, combinations=(self.combination,),
+                           order=self.order, delay_order=self.delay_order)[0]
+
     def __call__(self, eta: np.ndarray) -> np.ndarray:
         """Evaluate the combination on ``eta`` (shape ``(6, history + n)``); returns ``(n,)``."""
         eta = np.asarray(eta)
-        out = np.zeros(eta.shape[-1] - self.history)
-        for link, poly in self.terms_by_link.items():
-            if poly:
-                out = out + self._poly(eta[LINKS.index(link)], poly)
-        return out
-
-    def _poly(self, x: np.ndarray, poly) -> np.ndarray:
-        out = None
-        for f, chain in poly:
-            if chain:
-                y = f * apply_taps(x, self.delays.taps(chain))
-            else:  # the undelayed term: no interpolation, no stencil reaching ahead
-                y = f * x[..., self.history:]
-            out = y if out is None else out + y
-        return out
+        return self.columns([Part(0, link, (), eta[k]) for k, link in enumerate(LINKS)], 1)[0]
 
     def apply_on_links(self, witnesses: dict) -> dict:
         """TDI of witness channels that each live on one link.
@@ -269,9 +200,8 @@ class BuiltCombination:
         witnesses : dict
             ``(link, extra_chain) -> array (k, history + n)``: ``k`` channels placed on
             ``link`` after the extra delays ``extra_chain`` (``("12",)`` for a Tx witness
-            ``D_12 w``).  The extra delay is applied first, once, at every input sample
-            (:meth:`DelayTaps.predelay`) -- exactly as the TTL Tx term is formed before it
-            enters ``eta`` -- and then the link's delay polynomial.
+            ``D_12 w``); the extra delay is applied first at every input sample
+            (:func:`ttlcore.tdi.engine.predelayed`), as the simulator forms the Tx term.
 
         Returns
         -------
@@ -280,20 +210,16 @@ class BuiltCombination:
         """
         out = {}
         for (link, extra), x in witnesses.items():
-            poly = self.terms_by_link[link]
             x = np.asarray(x)
-            if not poly:
-                out[(link, tuple(extra))] = np.zeros(x.shape[:-1] + (x.shape[-1] - self.history,))
-                continue
-            for d in reversed(tuple(extra)):
-                x = self.delays.predelay(x, d)
-            out[(link, tuple(extra))] = self._poly(x, poly)
+            rows = x.reshape(-1, x.shape[-1])
+            res = self.columns([Part(j, link, tuple(extra), r) for j, r in enumerate(rows)], rows.shape[0])
+            out[(link, tuple(extra))] = res.reshape(x.shape[:-1] + (self.n,))
         return out
 
 
 def build(combinations, ltt: np.ndarray, fs: float, order: int = DEFAULT_ORDER,
           delay_order: int = DEFAULT_DELAY_ORDER, history: int = 0) -> list:
-    """Bind several combinations to one delay series, sharing nested delays and taps.
+    """Bind several combinations to one delay series.
 
     Parameters
     ----------
@@ -310,8 +236,8 @@ def build(combinations, ltt: np.ndarray, fs: float, order: int = DEFAULT_ORDER,
         Number of leading input samples that precede the first output sample (kept from
         the previous segment in streaming use).  Outputs have ``n`` samples.
     """
-    delays = DelayTaps(ltt, fs, order, delay_order, history)
-    return [BuiltCombination(comb, delays) for comb in combinations]
+    ltt = np.asarray(ltt, dtype=float)
+    return [BuiltCombination(comb, ltt, float(fs), int(order), int(delay_order), int(history)) for comb in combinations]
 
 
 def max_delay_samples(combination_or_list, ltt_max: float, fs: float, order: int = DEFAULT_ORDER) -> int:

@@ -1,9 +1,8 @@
 """TDI of telemetry: the data and every TTL regressor through X2, Y2, Z2 (and A, E, T).
 
 :func:`compute_tdi` turns a :class:`~ttlcore.io.telemetry.Telemetry` into a :class:`TDIData`:
-``data`` (3, n) and ``regressors`` (3, P, n) for the combinations, sharing one set of
-nested delays and interpolation taps (:class:`ttlcore.tdi.combinations.DelayTaps`) between the data
-and all regressors.  :class:`TDIStream` does the same one segment at a time, keeping the
+``data`` (3, n) and ``regressors`` (3, P, n) for the combinations, sharing the nested delays
+between the data and all regressors (the block engine :func:`ttlcore.tdi.engine.tdi_columns`).  :class:`TDIStream` does the same one segment at a time, keeping the
 tail of telemetry the nested delays reach back to, so that a day fed in hourly pieces
 gives the same result as the whole day.
 """
@@ -16,10 +15,11 @@ import numpy as np
 from scipy import fft as sp_fft
 from scipy import signal
 
-from ..conventions import COEFFICIENT_NAMES
+from ..conventions import COEFFICIENT_NAMES, LINKS
 from .interpolation import DEFAULT_ORDER
 from .regressors import ttl_witnesses
-from .combinations import DEFAULT_DELAY_ORDER, MICHELSON, aet, build
+from .combinations import MICHELSON, aet
+from .engine import DEFAULT_DELAY_ORDER, Part, tdi_columns
 from ..io.telemetry import Telemetry
 
 
@@ -97,9 +97,13 @@ class TDIData:
         response = sp_fft.rfft(h, nfft)
 
         def filt(x):  # causal linear convolution by FFT (exact: nfft covers the full length)
-            x = np.nan_to_num(x, nan=0.0)  # NaN (delays before the data) -> 0, flagged below
-            y = sp_fft.irfft(sp_fft.rfft(x, nfft, axis=-1, workers=-1) * response, nfft, axis=-1, workers=-1)
-            return y[..., :n:factor]
+            rows = x.reshape(-1, n)
+            out = np.empty((rows.shape[0], len(range(0, n, factor))))
+            for r0 in range(0, rows.shape[0], 8):  # a few rows at a time: bounded temporaries
+                chunk = np.nan_to_num(rows[r0 : r0 + 8], nan=0.0)  # NaN (delays before the data) -> 0, flagged below
+                y = sp_fft.irfft(sp_fft.rfft(chunk, nfft, axis=-1, workers=-1) * response, nfft, axis=-1, workers=-1)
+                out[r0 : r0 + 8] = y[..., :n:factor]
+            return out.reshape(x.shape[:-1] + (out.shape[-1],))
 
         bad = ~(np.isfinite(self.data).all(axis=0) & np.isfinite(self.regressors).all(axis=(0, 1)))
         spoiled = np.convolve(bad.astype(float), np.ones(h.size))[:n:factor] > 0  # outputs touched by NaN input
@@ -133,28 +137,21 @@ def compute_tdi_arrays(eta, dws_phi, dws_eta, ltt, fs: float, t0: float, *, hist
                        names=COEFFICIENT_NAMES, order: int = DEFAULT_ORDER,
                        delay_order: int = DEFAULT_DELAY_ORDER, combinations=MICHELSON) -> TDIData:
     """TDI of ``eta`` and of the regressors ``names``, on arrays whose first ``history``
-    samples precede the output (``t0`` is the time of the first output sample)."""
-    built = build(combinations, ltt, fs, order=order, delay_order=delay_order, history=history)
-    delays = built[0].delays
+    samples precede the output (``t0`` is the time of the first output sample).
+
+    One call of the block engine :func:`ttlcore.tdi.engine.tdi_columns`: column 0 is
+    ``eta`` (one part per link), column ``1 + k`` the witness of regressor ``k`` on its link
+    (Tx witnesses pre-delayed at every input sample first, :func:`ttlcore.tdi.engine.predelayed`)."""
     witnesses, index = ttl_witnesses(dws_phi, dws_eta, names)
-    # Tx witnesses D_ij w_ji: delayed once at every input sample, shared by X, Y and Z
-    placed = {}
+    eta = np.asarray(eta)
+    parts = [Part(0, link, (), eta[k]) for k, link in enumerate(LINKS)]
     for (link, extra), w in witnesses.items():
-        for d in reversed(extra):
-            w = delays.predelay(w, d)
-        placed[(link, ())] = placed.get((link, ()), []) + [(w, index[(link, extra)])]
-    n = np.shape(eta)[-1] - history
-    data = np.empty((len(combinations), n))
-    regressors = np.zeros((len(combinations), len(names), n))
-    for c, b in enumerate(built):
-        data[c] = b(eta)
-        for link, groups in placed.items():
-            stacked = np.concatenate([w for w, _ in groups], axis=0)
-            rows = [k for _, idx in groups for k in idx]
-            out = b.apply_on_links({link: stacked})[link]
-            regressors[c, rows] = out
-    return TDIData(t0=float(t0), fs=float(fs), channels=tuple(cb.name for cb in combinations), data=data,
-                   regressors=regressors, names=tuple(names), ltt_mean=np.nanmean(np.asarray(ltt)[:, history:], axis=-1))
+        parts += [Part(1 + k, link, extra, row) for row, k in zip(w, index[(link, extra)])]
+    out = tdi_columns(parts, 1 + len(names), ltt, fs, history=history, combinations=combinations, order=order,
+                      delay_order=delay_order)
+    return TDIData(t0=float(t0), fs=float(fs), channels=tuple(cb.name for cb in combinations), data=out[:, 0],
+                   regressors=out[:, 1:], names=tuple(names),
+                   ltt_mean=np.nanmean(np.asarray(ltt)[:, history:], axis=-1))
 
 
 def compute_tdi(tm: Telemetry, names=COEFFICIENT_NAMES, order: int = DEFAULT_ORDER,

@@ -250,3 +250,28 @@ class StrayLight(Effect):
 
 EFFECTS = [StrayLight]
 '''
+
+
+def test_rational_basis_spans_the_resonance_the_first_order_path_and_a_constant():
+    # pole2: the resonance 1 / (1 - (f/f0)^2 + i f / (f0 q)) is b0; the constant coupling is
+    # b0 + b1 / q + b2; pole1: the low-pass 1 / (1 + i f / fc) is b0, the constant b0 + b1
+    from ttlcore.diagnose.effects import rational_basis
+
+    f = np.geomspace(1e-3, 1.0, 200)
+    f0, q = 0.08, 15.0
+    b = rational_basis("pole2", f, f0, q)
+    np.testing.assert_allclose(b[0], 1 / (1 - (f / f0) ** 2 + 1j * f / (f0 * q)), rtol=1e-12)
+    np.testing.assert_allclose(b[0] + b[1] / q + b[2], 1.0, rtol=1e-12)
+    p = rational_basis("pole1", f, 0.03)
+    np.testing.assert_allclose(p[0], 1 / (1 + 1j * f / 0.03), rtol=1e-12)
+    np.testing.assert_allclose(p[0] + p[1], 1.0, rtol=1e-12)
+
+
+def test_fd_coupling_declares_its_searched_poles_and_holds_given_ones():
+    from ttlcore.diagnose.effects import make_effects
+
+    searched, held = make_effects(["fd-coupling:source=12.phi,link=23,delay=1", "fd-coupling:mosas=12,filter=pole1,fc=0.05"])
+    assert searched.unresolved() == ["f0", "q"] and held.unresolved() == []
+    assert searched.column_names() == ["fd.12.phi>23+1L.b0", "fd.12.phi>23+1L.b1", "fd.12.phi>23+1L.b2"]
+    assert held.column_names() == ["fd.12.phi>12.b0", "fd.12.phi>12.b1", "fd.12.eta>12.b0", "fd.12.eta>12.b1"]
+    assert searched.with_options(f0=0.1, q=5).cli_spec() == "fd-coupling:source=12.phi;link=23;delay=1;f0=0.1;q=5"

@@ -182,3 +182,36 @@ def test_alert_json_round_trip_and_input_errors():
         detect_drifts(t, np.zeros((4, 24)), np.ones((5, 24)), window=10)
     with pytest.raises(ValueError, match="unknown field"):
         TrendSettings.from_dict({"step_treshold": 5})
+
+
+def test_monitor_scans_steps_incrementally_with_the_batch_alerts():
+    """TrendMonitor scans each new fit from where it stopped (O(baseline) per fit, not
+    O(history)): its alerts are those of detect_steps run on the whole history at every fit
+    (the scan is causal), and a fit costs the same late in a long run as early."""
+    import time as _time
+
+    from ttlcore.diagnose.trends import TrendMonitor, detect_steps
+
+    rng = np.random.default_rng(3)
+    hour, k = 3600.0, 120
+    te = (np.arange(k) + 1) * hour
+    ts = np.maximum(0.0, te - 86400.0)
+    C = 2.3e-3 + 1e-6 * rng.standard_normal((k, 24)).cumsum(axis=0) * 0.1
+    S = np.full((k, 24), 1e-5)
+    frac = np.clip((te - 40 * hour) / (te - ts), 0, 1)  # a 0.2 mm/rad step at 40 h, seen by the windows
+    C[:, 5] += 2e-4 * frac
+    C[:, 17] -= 3e-4 * np.clip((te - 80 * hour) / (te - ts), 0, 1)
+    tm = TrendMonitor()
+    online, costs = [], []
+    for i in range(k):
+        t = _time.perf_counter()
+        online += tm.add(i, ts[i], te[i], C[i], S[i])
+        costs.append(_time.perf_counter() - t)
+    batch = []
+    for i in range(2, k + 1):  # what re-running the batch at every fit reports, deduplicated as before
+        for a in detect_steps(te[:i], C[:i], S[:i], t_start=ts[:i], indices=list(range(i))):
+            if not any(b.coefficient == a.coefficient and abs(b.t - a.t) <= 86400.0 for b in batch):
+                batch.append(a)
+    steps = [(a.coefficient, a.t, a.value) for a in online if a.kind == "step"]
+    assert steps == [(a.coefficient, a.t, a.value) for a in batch] and len(steps) >= 2, (steps, batch)
+    assert np.median(costs[-20:]) < 3 * np.median(costs[30:50]) + 0.01, (costs[30:50], costs[-20:])

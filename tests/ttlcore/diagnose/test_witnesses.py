@@ -46,3 +46,21 @@ def test_no_witness_stands_out_without_an_effect():
     # (540 witnesses x bands, correlated) stays below ~25 (p ~ 6e-7 each)
     best = max(t["delta_chi2"] for b in w["bands"] for t in b["top"])
     assert best < 25, w["overall"][:3]
+
+
+def test_every_library_witness_is_an_effect_spelled_as_the_report_prints_it():
+    # the report prints each witness's spec (witness_spec); --effects parses it back into
+    # one column of the witness effect, whatever the channel, link, delay or derivative
+    from ttlcore.cli.diagnose import split_effects
+    from ttlcore.conventions import ANGLES, LINKS, MOSAS
+    from ttlcore.diagnose.effects import make_effects
+    from ttlcore.diagnose.witnesses import witness_spec
+
+    specs = [witness_spec(f"{m}.{a}", link, n, d) for m in MOSAS for a in ANGLES for link in LINKS
+             for n in (0, 1, 2) for d in (False, True) if not (d and n == 2)]
+    specs += [witness_spec(f"{m}.{p}", link, n) for m in MOSAS for p in ("phiphi", "etaeta", "phieta")
+              for link, n in ((m, 0), (m[::-1], 1))]
+    for spec in specs:
+        (effect,) = make_effects(split_effects(spec))
+        assert effect.cli_spec() == spec
+        assert len(effect.column_names()) == 1

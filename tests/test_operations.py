@@ -1,0 +1,389 @@
+"""Operations under faults and bad actors (``make test-ops``; marker ``ops``): real ``ttl run``
+processes on a loopback Zenoh, real MCAP files read back.
+
+* clean: a 6 h simulation in 1 h segments, the reference.
+* fuzz: the same run while a hostile client of the run's router publishes >= 1000 malformed
+  or hostile messages (random bytes, wrong checksums, huge declared sizes and indices, wrong
+  dtypes, NaN payloads, identical and altered duplicates, forged producers, wrong fs / t0 /
+  length, forged progress): no stage crashes or stalls, every message is recorded as
+  rejected (or, an identical copy, as a duplicate) by every stage it reached, and the fits and
+  residuals equal the clean run's bit for bit.
+* NaN gap: ten minutes of NaN in eta: the run ends on its own, the gap is reported, and the
+  fit after the gap is within 1 sigma of the clean run's.
+* launcher killed: every stage stops by itself (exit status 3, recording closed with the
+  reason), nothing orphaned.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import signal
+import sys
+import threading
+import time
+import zlib
+from pathlib import Path
+
+import numpy as np
+import psutil
+import pytest
+import zenoh
+
+sys.path.insert(0, str(Path(__file__).with_name("stages")))
+
+from streamer.codec import encode  # noqa: E402
+from streamer.recorder import read_recording  # noqa: E402
+from streamer.session import Bus, SessionSettings, free_port  # noqa: E402
+from ttl_testutil import MONITOR, Procs, finish, indices, output, stage_processes, ttl_command, wait_for  # noqa: E402
+
+pytestmark = pytest.mark.ops
+
+SEGMENTS = 6
+SIM = f"--duration {SEGMENTS}h --orbit unequal --seed 1"
+STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if MONITOR else [])
+INPUTS = {"tdi_builder": ("telemetry",), "fitter": ("tdi",), "subtractor": ("tdi", "fit"),
+          "monitor": ("telemetry", "tdi", "fit", "residual")}
+REFUSALS = ("rejected", "forged", "conflict")
+
+
+def run_args(run_id: str, rec: Path, *extra, sim: str = SIM) -> list[str]:
+    return ["run", "--simulate", sim, "--segment", "1h", "--run-id", run_id, "--recordings", str(rec),
+            "--timeout", "600", *extra]
+
+
+def results(run_dir: Path) -> dict:
+    """Fits and residuals of a run, by index."""
+    fits = {s.header.index: s.arrays for s in read_recording(run_dir / "fitter.mcap").segments("fit")}
+    res = {s.header.index: s.arrays for s in read_recording(run_dir / "subtractor.mcap").segments("residual")}
+    return {"fit": fits, "residual": res}
+
+
+def assert_same_results(a: dict, b: dict, rtol: float = 0.0) -> None:
+    for topic in ("fit", "residual"):
+        assert sorted(a[topic]) == sorted(b[topic]), topic
+        for i in a[topic]:
+            for name, arr in a[topic][i].items():
+                np.testing.assert_allclose(b[topic][i][name], arr, rtol=rtol, atol=0, equal_nan=True,
+                                           err_msg=f"{topic} {i} {name}")
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("clean")
+    procs = Procs(tmp)
+    try:
+        proc = procs.ttl(*run_args("clean", tmp / "rec"))
+        code = finish(proc, 900)
+        assert code == 0, output(proc)[-3000:]
+        yield tmp / "rec" / "clean"
+    finally:
+        procs.close()
+
+
+# ---------------------------------------------------------------------------- the hostile client
+
+class Fuzzer:
+    """A client of the run's router that publishes hostile messages, built from the genuine
+    ones it sees (so that they look right but for the one thing that is wrong)."""
+
+    KINDS = ("random_bytes", "bad_checksum", "huge_size", "huge_index", "wrong_dtype", "nan_payload",
+             "identical_duplicate", "altered_duplicate", "forged_producer", "wrong_fs", "wrong_t0",
+             "short_segment", "bad_key", "forged_progress")
+
+    def __init__(self, bus: Bus, run: str, seed: int = 7):
+        self.bus, self.run = bus, run
+        self.rng = np.random.default_rng(seed)
+        self.genuine: dict[str, list] = {t: [] for t in ("telemetry", "tdi", "fit", "residual")}
+        self.sent: dict[str, int] = {}  # topic -> hostile messages sent on it
+        self.identical: dict[str, int] = {}
+        self.progress = 0
+        self.lock = threading.Lock()
+        self.mine: set = set()
+        self.by_kind: dict[str, int] = {}
+        self.kind = ""
+        for topic in self.genuine:
+            bus.subscriber(f"ttl/{run}/{topic}/*", self._keep(topic))
+
+    def _keep(self, topic):
+        def on_sample(sample):
+            key, payload = str(sample.key_expr), sample.payload.to_bytes()
+            attachment = sample.attachment.to_bytes() if sample.attachment is not None else b""
+            with self.lock:
+                if (key, zlib.crc32(payload), zlib.crc32(attachment)) in self.mine:
+                    return  # one of ours
+                self.genuine[topic].append((key, payload, attachment))
+        return on_sample
+
+    def put(self, topic: str, index, payload: bytes, attachment: bytes | None, identical: bool = False) -> None:
+        key = f"ttl/{self.run}/{topic}/{index}"
+        with self.lock:
+            self.mine.add((key, zlib.crc32(payload), zlib.crc32(attachment or b"")))
+        self.bus.session.put(key, payload, attachment=attachment, congestion_control=zenoh.CongestionControl.BLOCK)
+        self.sent[topic] = self.sent.get(topic, 0) + 1
+        self.by_kind[f"{topic}/{self.kind}"] = self.by_kind.get(f"{topic}/{self.kind}", 0) + 1
+        if identical:
+            self.identical[topic] = self.identical.get(topic, 0) + 1
+
+    def one(self, k: int) -> None:
+        kind = self.KINDS[k % len(self.KINDS)]
+        self.kind = kind
+        with self.lock:
+            # small messages mostly: the fit; a telemetry / tdi copy now and then
+            topics = [t for t in ("fit", "residual", "telemetry", "tdi") if self.genuine[t]]
+            if not topics:
+                return
+            heavy = [t for t in topics if t != "tdi" or k % 100 == 0]  # a TDI copy is 8.6 MB
+            topic = topics[0] if k % 10 else heavy[int(self.rng.integers(len(heavy)))]
+            key, payload, attachment = self.genuine[topic][-1]
+        index = int(key.rsplit("/", 1)[1])
+        header = json.loads(attachment)
+        getattr(self, kind)(topic, index, payload, header)
+
+    # each builder publishes one message that some rule must refuse
+    def _reencode(self, topic, index, payload, header, **changes):
+        h = {**header, **changes}
+        return payload, json.dumps(h).encode()
+
+    def random_bytes(self, topic, index, payload, header):
+        self.put(topic, index, self.rng.bytes(int(self.rng.integers(0, 4096))), self.rng.bytes(64))
+
+    def bad_checksum(self, topic, index, payload, header):
+        p = bytearray(payload)
+        p[len(p) // 2] ^= 0xFF
+        self.put(topic, index, bytes(p), json.dumps(header).encode())
+
+    def huge_size(self, topic, index, payload, header):
+        arrays = [{**a, "shape": [2 ** 40], "nbytes": 2 ** 43} for a in header["arrays"]]
+        self.put(topic, index, payload[:64], json.dumps({**header, "payload_bytes": 2 ** 50, "arrays": arrays}).encode())
+
+    def huge_index(self, topic, index, payload, header):
+        big = int(2 ** 40 + self.rng.integers(1000))
+        self.put(topic, big, payload, json.dumps({**header, "index": big}).encode())
+
+    def _arrays(self, payload, header):
+        return {a["name"]: np.frombuffer(payload, dtype=a["dtype"], count=int(np.prod(a["shape"])),
+                                         offset=a["offset"]).reshape(a["shape"]) for a in header["arrays"]}
+
+    def _publish(self, topic, index, arrays, header, allow_nonfinite=False, **changes):
+        fields = {k: header[k] for k in ("run", "index", "t0", "fs", "channels", "producer", "meta")}
+        fields.update(units={a["name"]: a["units"] for a in header["arrays"]},
+                      channel_axis={a["name"]: a["channel_axis"] for a in header["arrays"]})
+        fields.update(changes)
+        self.put(topic, fields["index"], *encode(arrays, fields, allow_nonfinite=True))
+
+    def wrong_dtype(self, topic, index, payload, header):
+        self._publish(topic, index, {k: v.astype("<f4") for k, v in self._arrays(payload, header).items()}, header)
+
+    def nan_payload(self, topic, index, payload, header):
+        self._publish(topic, index, {k: np.full(v.shape, np.nan) for k, v in self._arrays(payload, header).items()},
+                      header)
+
+    def identical_duplicate(self, topic, index, payload, header):
+        self.put(topic, index, payload, json.dumps(header, separators=(",", ":")).encode(), identical=True)
+
+    def altered_duplicate(self, topic, index, payload, header):
+        arrays = {k: v * (1.0 + 1e-3) for k, v in self._arrays(payload, header).items()}
+        self._publish(topic, index, arrays, header)
+
+    def forged_producer(self, topic, index, payload, header):
+        self._publish(topic, index + 1, self._arrays(payload, header), header, producer="intruder")
+
+    def wrong_fs(self, topic, index, payload, header):
+        self._publish(topic, index + 1, self._arrays(payload, header), header, fs=1e6)
+
+    def wrong_t0(self, topic, index, payload, header):
+        self._publish(topic, index + 1, self._arrays(payload, header), header, t0=header["t0"])
+
+    def short_segment(self, topic, index, payload, header):
+        arrays = self._arrays(payload, header)
+        if topic == "fit":  # the fit has no time axis: a fit of 23 coefficients instead
+            arrays = {k: v[..., :23] for k, v in arrays.items()}
+        else:
+            arrays = {k: v[..., :10] for k, v in arrays.items()}
+        cut = {**header, "channels": header["channels"]}
+        self._publish(topic, index + 1, arrays, cut)
+
+    def bad_key(self, topic, index, payload, header):
+        self.put(topic, "x" + str(index), payload, json.dumps(header).encode())
+
+    def forged_progress(self, topic, index, payload, header):
+        stage = ["replayer", "tdi_builder", "fitter", "subtractor", "monitor"][self.progress % 5]
+        msg = {"run": self.run, "stage": stage, "pid": 1, "time": time.time(), "index": SEGMENTS - 1,
+               "done": [[0, SEGMENTS - 1]], "failed": [], "gaps": [], "segments_total": SEGMENTS,
+               "complete": True, "fits_ranges": [[0, 2 ** 40]]}
+        if self.progress % 3 == 1:
+            msg["segments_total"] = 3
+        self.bus.session.put(f"ttl/{self.run}/control/progress/{stage}", json.dumps(msg).encode(),
+                             congestion_control=zenoh.CongestionControl.BLOCK)
+        self.progress += 1
+
+
+def test_fuzz_of_hostile_messages_changes_nothing(clean, tmp_path):
+    port = free_port()
+    procs = Procs(tmp_path)
+    n_messages = 1400
+    try:
+        # paced (a segment every 8 s) so that the hostile messages meet a run in progress
+        proc = procs.ttl(*run_args("fuzz", tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--pace", "450"))
+        with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
+            fuzz = Fuzzer(bus, "fuzz")
+            wait_for(lambda: fuzz.genuine["fit"] or proc.poll() is not None, 600, "the first fit")
+            k = 0
+            while k < n_messages and proc.poll() is None:
+                fuzz.one(k)
+                k += 1
+                if k % 50 == 0:
+                    time.sleep(0.05)
+            code = finish(proc, 900)
+            out = output(proc)
+        assert k == n_messages, f"the run ended after {k} hostile messages: {out[-2000:]}"
+    finally:
+        procs.close()
+    assert code == 0, out[-4000:]
+    run_dir = tmp_path / "rec" / "fuzz"
+    # every stage recorded every hostile message that reached it: refused, or ignored as identical
+    for stage, topics in INPUTS.items():
+        if stage not in STAGES:
+            continue
+        rec = read_recording(run_dir / f"{stage}.mcap")
+        assert rec.complete and rec.problem is None, stage
+        refused = [e for e in rec.json("errors") if e["kind"] in REFUSALS]
+        dup = [e for e in rec.json("events") if e["kind"] == "duplicate"]
+        for topic in topics:
+            on_topic = [e for e in refused if f"/{topic}/" in (e.get("key") or "")]
+            dups = [e for e in dup if f"/{topic}/" in e["message"]]
+            sent = fuzz.sent.get(topic, 0)
+            assert len(on_topic) + len(dups) >= sent, (stage, topic, len(on_topic), len(dups), sent, fuzz.by_kind,
+                                                       sorted({e["field"] for e in on_topic}))
+        assert not [e for e in rec.json("errors") if e["kind"] == "failed"], (stage, rec.json("errors")[:3])
+    assert sum(fuzz.sent.values()) + fuzz.progress >= 1000
+    m = re.search(r"(\d+) progress message\(s\) refused", out)
+    assert m and int(m.group(1)) >= fuzz.progress, out[-2000:]
+    # and the science is untouched
+    assert_same_results(results(clean), results(run_dir))
+    print(json.dumps({"hostile": fuzz.sent, "identical": fuzz.identical, "forged_progress": fuzz.progress}))
+
+
+# ---------------------------------------------------------------------------- kills and restarts
+
+def _handled(board: dict, stage: str) -> int:
+    msg = board.get(stage)
+    return sum(b - a + 1 for a, b in (msg or {}).get("done", ())) if msg else 0
+
+
+def _watch_board(bus: Bus, run: str) -> dict:
+    board: dict = {}
+
+    def on_sample(sample):
+        msg = json.loads(sample.payload.to_bytes())
+        board[msg["stage"]] = msg
+    bus.segment_subscriber(f"ttl/{run}/control/board/*", on_sample, history=1)
+    return board
+
+
+@pytest.mark.parametrize("stage", STAGES)
+def test_stage_killed_mid_run_restarts_exactly(stage, clean, tmp_path):
+    """SIGKILL of one stage after it handled 3 segments: restarted by the launcher, it
+    recovers its state (the fitter its window, from the tdi_builder's recordings) and the
+    fits and residuals equal the clean run's to 1e-9."""
+    port = free_port()
+    procs = Procs(tmp_path)
+    run = f"kill-{stage.replace('_', '-')}"
+    try:
+        proc = procs.ttl(*run_args(run, tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--restart", "1",
+                                   "--pace", "450"))
+        with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
+            board = _watch_board(bus, run)
+            wait_for(lambda: _handled(board, stage) >= 3 or proc.poll() is not None, 600, f"{stage} at segment 3")
+            victim = stage_processes(proc)[stage]
+            victim.send_signal(signal.SIGKILL)
+            code = finish(proc, 900)
+        out = output(proc)
+    finally:
+        procs.close()
+    assert code == 0, out[-4000:]
+    assert f"stage {stage} died (killed by SIGKILL)" in out and f"restarting {stage}" in out
+    run_dir = tmp_path / "rec" / run
+    assert (run_dir / f"{stage}.1.mcap").exists() and read_recording(run_dir / f"{stage}.mcap").complete
+    assert_same_results(results(clean), results(run_dir), rtol=1e-9)
+    if stage == "fitter":
+        events = [e["kind"] for e in read_recording(run_dir / "fitter.mcap").json("events")]
+        assert "restored" in events, events
+    # nothing orphaned: no stage process of this run is left
+    assert not [p for p in psutil.process_iter(["cmdline"]) if run in " ".join(p.info["cmdline"] or ())]
+
+
+def test_launcher_killed_stages_stop_with_a_clear_error(tmp_path):
+    port = free_port()
+    procs = Procs(tmp_path)
+    try:
+        proc = procs.ttl(*run_args("orphans", tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}",
+                                   "--pace", "450"))
+        with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
+            board = _watch_board(bus, "orphans")
+            wait_for(lambda: _handled(board, "fitter") >= 1 or proc.poll() is not None, 600, "the first fit")
+        children = stage_processes(proc)
+        assert set(children) == set(STAGES), children
+        os.kill(proc.pid, signal.SIGKILL)
+        proc.wait(10)
+        gone, alive = psutil.wait_procs(list(children.values()), timeout=60)
+        assert not alive, f"stages left running after the launcher died: {alive}"
+    finally:
+        for p in psutil.process_iter(["cmdline"]):
+            if "orphans" in " ".join(p.info["cmdline"] or ()) and p.pid != os.getpid():
+                p.kill()
+        procs.close()
+    run_dir = tmp_path / "rec" / "orphans"
+    for stage in STAGES:
+        rec = read_recording(run_dir / f"{stage}.mcap")
+        assert rec.complete, (stage, rec.problem)  # closed by the stage itself
+        stop = [e for e in rec.json("events") if e["kind"] == "stop"]
+        assert stop and stop[-1]["details"]["orphaned"] and "launcher" in stop[-1]["message"], (stage, stop)
+        assert [e for e in rec.json("errors") if e["kind"] == "orphaned"], stage
+    res = __import__("subprocess").run(ttl_command("inspect", str(run_dir)), capture_output=True, text=True, timeout=300)
+    assert "orphaned" in res.stdout and "launcher" in res.stdout, res.stdout[-3000:]
+
+
+# ---------------------------------------------------------------------------- gaps
+
+def test_nan_gap_ends_the_run_with_the_gap_reported(tmp_path):
+    """Ten minutes of NaN in eta: the run ends by itself (exit 0), the gap is reported, and
+    the fit after the gap is within 1 sigma of the clean run's over the same data."""
+    import h5py
+    import subprocess
+
+    clean_file = tmp_path / "clean.h5"
+    res = subprocess.run(ttl_command("simulate", *SIM.split(), "--out", str(clean_file)), capture_output=True,
+                         text=True, timeout=600)
+    assert res.returncode == 0, res.stderr
+    gap_file = tmp_path / "gap.h5"
+    gap_file.write_bytes(clean_file.read_bytes())
+    with h5py.File(gap_file, "r+") as f:
+        fs = 4.0
+        a = int(2.5 * 3600 * fs)
+        f["eta"][:, a:a + int(600 * fs)] = np.nan  # 10 min in the middle of hour 2
+    procs = Procs(tmp_path)
+    try:
+        runs = {}
+        for name, path in (("clean", clean_file), ("gap", gap_file)):
+            proc = procs.start(ttl_command("run", "--telemetry", str(path), "--segment", "1h", "--run-id", name,
+                                           "--recordings", str(tmp_path / "rec"), "--timeout", "900"), name)
+            runs[name] = (finish(proc, 900), output(proc))
+    finally:
+        procs.close()
+    for name, (code, out) in runs.items():
+        assert code == 0, (name, out[-3000:])
+    run_dir = tmp_path / "rec" / "gap"
+    events = read_recording(run_dir / "replayer.mcap").json("events")
+    gaps = [e for e in events if e["kind"] == "gap"]
+    assert [(e["index"], e["details"]["stretches"]) for e in gaps] == [(2, [[7200, 9600]])], gaps
+    fits = {n: read_recording(tmp_path / "rec" / n / "fitter.mcap").segments("fit") for n in runs}
+    assert [f.header.index for f in fits["gap"]] == [f.header.index for f in fits["clean"]]
+    last_gap, last_clean = fits["gap"][-1].arrays, fits["clean"][-1].arrays
+    diff = np.abs(last_gap["coefficients"] - last_clean["coefficients"]) / last_clean["sigma"]
+    assert np.all(diff < 1.0), diff
+    assert not np.allclose(last_gap["coefficients"], last_clean["coefficients"])  # the gap was seen
+    res = subprocess.run(ttl_command("inspect", str(run_dir)), capture_output=True, text=True, timeout=300)
+    assert "gap" in res.stdout and "segment 2" in res.stdout, res.stdout[-3000:]
