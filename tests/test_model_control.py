@@ -88,7 +88,10 @@ def test_fitter_changes_model_on_control_message_and_monitor_shows_before_after(
         series = {row[0]["segment"]: row[1]["Scalars:scalars"][0] for row in ent["/adequacy/instrument/chi2_dof"]
                   if "Scalars:scalars" in row[1]}
         assert sorted(series) == list(range(SEGMENTS))
-        assert series[k - 1] > 1.1 and series[SEGMENTS - 1] < 1.1, series
+        # with the noise levels fitted (docs/diagnostics.md, "Noise model") a TTL-shaped excess is
+        # partly taken up by the OMS level within its allowed +-5 %: the drift's excess reads
+        # ~1.07 here (1.1+ under the fixed levels); the failure flag asserted above is the test
+        assert series[k - 1] > 1.05 and series[SEGMENTS - 1] < 1.05, series
         for part in ("before", "after"):
             bars = [row[1] for row in ent[f"/model/{part}"] if any(c.startswith("BarChart:") for c in row[1])]
             assert bars, part
