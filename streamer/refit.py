@@ -84,7 +84,8 @@ def load_run(run_dir, segments: tuple[int | None, int | None] = (None, None), so
     found = {i: (h, a) for i, (h, a) in recorded_segments(run_dir, "tdi", stages=("tdi_builder",)).items()
              if "regressors" in a}  # a tdi_builder under `ttl run` records X2, Y2, Z2 only
     if not found:
-        raise RefitError(f"{run_dir}: no recorded telemetry, nor TDI segments with their regressors, to refit")
+        raise RefitError(f"{run_dir}: no recorded telemetry, nor TDI segments with their regressors, to refit "
+                         "(a tdi_builder records X2, Y2, Z2 only: refit from the replayer's telemetry)")
     parts = [tdi_of(h, a) for h, a in _select(found, first, last)]
     return (parts, f"TDI of {len(parts)} recorded segments ({sum(p.size / p.fs for p in parts) / 3600:g} h)",
             found[min(found)][0].meta.get("dws_asd"))
