@@ -173,7 +173,10 @@ def test_message_contracts_and_streaming_equals_batch(t1):
     assert set(tdi[0].arrays) == {"data"} and tdi[0].header.meta["recorded"]["published_arrays"] == ["data", "regressors"]
     data = np.concatenate([s.arrays["data"] for s in tdi], axis=1)
     regs = batch.regressors
-    np.testing.assert_allclose(data, batch.data, rtol=1e-9, atol=1e-25)
+    # to 1e-9 of the largest sample: streamed and batch TDI cut the engine's blocks at different
+    # places (ttlcore.tdi.engine, polynomial-in-time weights: 5e-11 measured), so a sample near a
+    # zero crossing is not equal to 1e-9 of itself
+    np.testing.assert_allclose(data, batch.data, rtol=1e-9, atol=1e-9 * np.max(np.abs(batch.data)))
 
     # the last fit (its window covers the 12 h) equals the batch fit on the same TDI
     fits = read_recording(t1.dir / "fitter.mcap")
@@ -205,7 +208,7 @@ def test_message_contracts_and_streaming_equals_batch(t1):
         c = fits.segments("fit")[i].arrays["coefficients"]
         n = tdi[i].arrays["data"].shape[1]
         model = np.einsum("k,ckn->cn", c, regs[:, :, i * n:(i + 1) * n])  # streamed regressors = batch (1e-9)
-        np.testing.assert_allclose(r.arrays["ttl_model"], model, rtol=1e-9, atol=1e-25)
+        np.testing.assert_allclose(r.arrays["ttl_model"], model, rtol=1e-9, atol=1e-9 * np.max(np.abs(model)))
         np.testing.assert_allclose(r.arrays["residual"], tdi[i].arrays["data"] - r.arrays["ttl_model"],
                                    rtol=1e-12, atol=1e-30)
 
