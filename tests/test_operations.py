@@ -49,8 +49,10 @@ REFUSALS = ("rejected", "forged", "conflict")
 
 
 def run_args(run_id: str, rec: Path, *extra, sim: str = SIM) -> list[str]:
+    # plain TCP (--insecure): the plan checks must hold without the access control, and the
+    # hostile client of the fuzz must reach the stages
     return ["run", "--simulate", sim, "--segment", "1h", "--run-id", run_id, "--recordings", str(rec),
-            "--timeout", "600", *extra]
+            "--timeout", "600", "--insecure", *extra]
 
 
 def results(run_dir: Path) -> dict:
@@ -369,7 +371,8 @@ def test_nan_gap_ends_the_run_with_the_gap_reported(tmp_path):
         runs = {}
         for name, path in (("clean", clean_file), ("gap", gap_file)):
             proc = procs.start(ttl_command("run", "--telemetry", str(path), "--segment", "1h", "--run-id", name,
-                                           "--recordings", str(tmp_path / "rec"), "--timeout", "900"), name)
+                                           "--recordings", str(tmp_path / "rec"), "--timeout", "900", "--insecure"),
+                               name)
             runs[name] = (finish(proc, 900), output(proc))
     finally:
         procs.close()
