@@ -56,10 +56,15 @@ def run_args(run_id: str, rec: Path, *extra, sim: str = SIM) -> list[str]:
 
 
 def results(run_dir: Path) -> dict:
-    """Fits and residuals of a run, by index."""
-    fits = {s.header.index: s.arrays for s in read_recording(run_dir / "fitter.mcap").segments("fit")}
-    res = {s.header.index: s.arrays for s in read_recording(run_dir / "subtractor.mcap").segments("residual")}
-    return {"fit": fits, "residual": res}
+    """Fits and residuals of a run, by index, from every process's recording (a restarted
+    stage leaves ``<stage>.<n>.mcap``)."""
+    out = {}
+    for stage, topic in (("fitter", "fit"), ("subtractor", "residual")):
+        out[topic] = {}
+        for path in sorted(run_dir.glob(f"{stage}*.mcap")):
+            for s in read_recording(path).segments(topic):
+                out[topic].setdefault(s.header.index, s.arrays)
+    return out
 
 
 def assert_same_results(a: dict, b: dict, rtol: float = 0.0) -> None:
