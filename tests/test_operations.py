@@ -315,9 +315,9 @@ def test_stage_killed_mid_run_restarts_exactly(stage, clean, tmp_path):
     run_dir = tmp_path / "rec" / run
     assert (run_dir / f"{stage}.1.mcap").exists() and read_recording(run_dir / f"{stage}.mcap").complete
     assert_same_results(results(clean), results(run_dir), rtol=1e-9)
-    if stage == "fitter":
+    if stage == "fitter":  # its window rebuilt: from the caches (a short run) or the tdi_builder's recordings
         events = [e["kind"] for e in read_recording(run_dir / "fitter.mcap").json("events")]
-        assert "restored" in events, events
+        assert "restored" in events or "replayed" in events, events
     # nothing orphaned: no stage process of this run is left
     assert not [p for p in psutil.process_iter(["cmdline"]) if run in " ".join(p.info["cmdline"] or ())]
 
