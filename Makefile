@@ -12,9 +12,9 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'
-	# lisagwresponse (outside reference of the GW response tests) pins lisaconstants < 2,
-	# which lisainstrument cannot use; it only needs a few constants, so install it alone
-	$(BIN)/python -m pip install --quiet --no-deps lisagwresponse healpy
+	# the `gw` extra of pyproject.toml (lisagwresponse, healpy) without dependencies:
+	# lisagwresponse pins lisaconstants < 2, which lisainstrument cannot use (pyproject says why)
+	$(BIN)/python -m pip install --quiet --no-deps 'lisagwresponse>=2.5' 'healpy>=1.16'
 	touch $(STAMP)
 
 ## demo: the main job on an embedded default: three mission days (Keplerian arms, all noises,
@@ -62,6 +62,7 @@ test-ops: $(STAMP)
 bench: $(STAMP)
 	$(BIN)/python bench/simulate.py
 	$(BIN)/python bench/tdi.py
+	$(BIN)/python bench/analyze.py
 	$(BIN)/python bench/fit.py
 	$(BIN)/python bench/pipeline.py
 	$(BIN)/python bench/rolling.py

@@ -75,7 +75,7 @@ def main() -> int:
         subprocess.run([sys.executable, "-m", "ttlcore.cli.main", "simulate", "--duration", f"{args.days}d", "--orbit",
                         "keplerian", "--seed", "1", "--out", str(data), "--quiet"], check=True)
         start = time.perf_counter()
-        launcher = subprocess.Popen([sys.executable, "-m", "ttlcore.cli.main", "run", "--telemetry", str(data), "--run-id",
+        launcher = subprocess.Popen([sys.executable, "-m", "streamer.cli", "run", "--telemetry", str(data), "--run-id",
                                      "bench", "--recordings", str(tmp / "rec"), "--quiet", "--timeout", "7200"],
                                     stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
         cpu, rss = {}, {}

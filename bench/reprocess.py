@@ -1,9 +1,9 @@
 """Throughput of ``ttl reprocess`` (days per hour) on Dask: serial, LocalCluster of 1 and 2
 workers, and a separately started ``dask scheduler`` with ``dask worker`` processes.
 
-    .venv/bin/python bench/reprocess.py [--days 4] [--hours 2] [--diagnosis] [--witnesses]
+    .venv/bin/python bench/reprocess.py [--days 6] [--hours 2] [--diagnosis] [--witnesses]
 
-Short days (default 4 days of 2 h, cut from one simulation) keep the bench to a few
+Short days (default 6 days of 2 h, cut from one simulation) keep the bench to a few
 minutes; the JSON says so (``day_hours``).  The job per day is that of ``ttl reprocess``:
 ``ttl analyze`` (TDI, GLS fit, subtraction, fit.json; no figures) and, with
 ``--diagnosis``, ``ttl diagnose`` (no witness search unless ``--witnesses``).  The outside
@@ -31,6 +31,8 @@ from ttlcore.io.telemetry import write_telemetry
 from ttlcore.sim.simulator import SimulationConfig, simulate
 
 BIN = Path(sys.executable).parent
+#: as the LocalCluster of ttl reprocess: no MALLOC_TRIM_THRESHOLD_ in the workers (docs/reprocessing.md)
+WORKER_ENV = {"DASK_DISTRIBUTED__NANNY__PRE_SPAWN_ENVIRON": '{"MALLOC_TRIM_THRESHOLD_": None}'}
 
 
 def make_days(d: Path, n: int, hours: float) -> list[Path]:
@@ -40,13 +42,22 @@ def make_days(d: Path, n: int, hours: float) -> list[Path]:
     return [write_telemetry(d / f"day{i:02d}.h5", tm.slice(i * m, (i + 1) * m)) for i in range(n)]
 
 
+def _warm_up() -> None:
+    """Import what a day's job imports on first use (as the serial reference's warm-up day)."""
+    import ttlcore.diagnose.witnesses  # noqa: F401
+    import ttlcore.estimate.reprocess  # noqa: F401
+    import ttlcore.estimate.subtraction  # noqa: F401
+    import ttlcore.io.reader  # noqa: F401
+    import ttlcore.tdi.data  # noqa: F401
+
+
 def run_config(name, jobs_of, n_days, scheduler=None, workers=None) -> dict:
     t0 = time.monotonic()
     with dask_client(scheduler, workers=workers or 1, memory_limit="3GiB") as client:
         if scheduler:
             client.wait_for_workers(workers, timeout=120)
-        # the first task imports ttlcore on each worker: warm the workers up outside the timing
-        client.run(lambda: __import__("ttlcore.estimate.reprocess"))
+        # the first task imports the analysis' modules on each worker: warm up outside the timing
+        client.run(_warm_up)
         startup = time.monotonic() - t0
         out, jobs = jobs_of(name)
         t1 = time.monotonic()
@@ -60,7 +71,7 @@ def run_config(name, jobs_of, n_days, scheduler=None, workers=None) -> dict:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--days", type=int, default=4)
+    ap.add_argument("--days", type=int, default=6)
     ap.add_argument("--hours", type=float, default=2.0, help="length of a day [h] (default 2)")
     ap.add_argument("--segment", default=1800.0, type=float, help="FFT segment [s] (default 1800)")
     ap.add_argument("--diagnosis", action="store_true", help="add ttl diagnose to each day's job")
@@ -101,7 +112,7 @@ def main() -> None:
         procs.append(subprocess.Popen([str(BIN / "dask"), "worker", "--scheduler-file", str(sched_file),
                                        "--nworkers", "2", "--nthreads", "1", "--host", "127.0.0.1",
                                        "--memory-limit", "3GiB", "--no-dashboard"], stdout=log,
-                                      stderr=subprocess.STDOUT))
+                                      stderr=subprocess.STDOUT, env=dict(os.environ, **WORKER_ENV)))
         results["dask_scheduler_2_workers"] = run_config("external", jobs_of, args.days, scheduler=str(sched_file),
                                                          workers=2)
         ref = results["serial"]["days_per_hour"]

@@ -5,16 +5,14 @@ pytdi is used the natural way: each combination built once (``X2_ETA.build``, it
 delay order 5) and evaluated (its default order 31, ``unit="phase"``, i.e.
 ``D x(t) = x(t - tau(t))`` as in docs/physics.md) on the data and on each regressor's
 witness placed on its link, with the scalar 0 for the five other links; Tx witnesses are
-first delayed with ``pytdi.dsp.timeshift`` (order 31), as the simulator forms them.  Ours is
+first delayed with ``pytdi.dsp.timeshift`` (order 31), as the simulator forms them
+(``tests/pytdi_reference.py``).  Ours is
 :func:`ttlcore.tdi.data.compute_tdi` (the block engine :mod:`ttlcore.tdi.engine`).
 
 Accuracy, reported for each duration:
 
 - ``full_band``: largest relative RMS difference over the outputs (data, Rx and Tx
-  regressors separately), all frequencies up to Nyquist.  Tx witnesses differ above 1 Hz
-  only because pytdi interpolates twice (pre-delay, then the chain) and we once (the
-  pre-delay folded into the nested delay): both are order-31 Lagrange, whose error near
-  the 2 Hz Nyquist frequency is of order one.
+  regressors separately), all frequencies up to Nyquist.
 - ``fit_band``: the same after the fit's anti-alias low-pass (0.9-1.1 Hz Kaiser FIR,
   :func:`ttlcore.tdi.data.lowpass_taps`) and decimation to 2 Hz, i.e. what the fit uses.
 

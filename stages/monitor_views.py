@@ -161,7 +161,7 @@ def noise_axes(rec, band) -> None:
                                           colors=[(110, 110, 110)], show_labels=True), static=True)
     names = list(CURVES)
     step = 0.22
-    pts = [(x1 - 0.55, y1 - 0.12 - step * k) for k in range(len(names))]  # top right, clear of the y ticks
+    pts = [(x0 + 0.08, y0 + 0.95 - step * k) for k in range(len(names))]  # bottom left: below the noise
     rec.log("asd/plot/legend", rr.Points2D(pts, labels=[CURVES[n][0] for n in names],
                                            colors=[CURVES[n][1] for n in names],
                                            radii=rr.Radius.ui_points(5.0), show_labels=True), static=True)

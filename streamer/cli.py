@@ -1,4 +1,7 @@
-"""Operations subcommands of ``ttl`` (attached by :func:`ttlcore.cli.main.build_parser`).
+"""The ``ttl`` entry point (:func:`main`) and its operations subcommands.
+
+:func:`main` builds the science parser of :mod:`ttlcore.cli.main` with :func:`register`
+added: the operations layer imports the science, never the reverse.
 
 ``ttl run``
     The whole pipeline: five stage processes on a loopback Zenoh, progress, supervision
@@ -31,6 +34,7 @@ import tomllib
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from ttlcore.cli.main import main as science_main
 from ttlcore.errors import TTLError
 
 if TYPE_CHECKING:
@@ -377,3 +381,12 @@ def _cmd_router(args) -> int:
         for s, h in previous.items():
             signal.signal(s, h)
     return 0
+
+
+def main(argv=None) -> int:
+    """The ``ttl`` command: science subcommands (:mod:`ttlcore.cli`) and these."""
+    return science_main(argv, registrars=(register,))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,6 +1,6 @@
 """Offline inspection of a run from its recordings: ``ttl inspect`` and ``ttl view``.
 
-``ttl inspect recordings/NAME [--json]``
+``ttl inspect recordings/NAME [--json FILE]``
     From the MCAP files alone (``<stage>.mcap``, and ``<stage>.<n>.mcap`` kept by restarts,
     oldest ``.1``): which stages ran; the segments each produced and received per topic,
     with missing and duplicate indices; the coefficients and their trends with
@@ -8,8 +8,8 @@
     monitor's alerts; the errors of every stage; and interruptions: files without footer
     (the process was killed; the reader salvages them), segments whose payload never made
     it to disk, a stage's restarts, a recording that ends without a ``stop`` event.
-    Works on a run whose stages were killed.  ``--json``: the same as one JSON object
-    (:func:`inspect_run`).
+    Works on a run whose stages were killed.  ``--json FILE``: the same as one JSON object
+    (:func:`inspect_run`) written to FILE (``-``: standard output).
 ``ttl view recordings/NAME [--web [--port P]] [--print]``
     ``--web`` serves ``monitor.rrd`` in Rerun's web viewer on 127.0.0.1 and prints the URL
     (a machine without a display, :mod:`streamer.webview`); otherwise opens it in the ``rerun`` viewer binary with
@@ -34,9 +34,11 @@ from pathlib import Path
 
 import numpy as np
 
-from .keys import to_ranges
+from ttlcore.io.atomic import write_json
 
-from .recorder import Recording, RecordingError, read_recording
+from .keys import to_ranges
+from .recorder import Recording, RecordingError, read_recording, to_jsonable
+from .webview import WebView
 
 #: The pipeline's stages, in order (names of their recordings).
 KNOWN_STAGES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
@@ -474,7 +476,7 @@ def format_report(r: dict) -> str:
         field = f" field {e['field']!r}" if e["field"] else ""
         lines.append(f"  {e['stage']} {e['kind']}{where}{field}: {e['message']}")
     if len(r["errors"]) > MAX_LISTED:
-        lines.append(f"  ... {len(r['errors']) - MAX_LISTED} more (--json for all)")
+        lines.append(f"  ... {len(r['errors']) - MAX_LISTED} more (--json FILE for all)")
 
     lines.append("")
     lines.append(f"Gaps: {len(r.get('gaps', []))}")
@@ -573,20 +575,18 @@ def _cmd_inspect(args) -> int:
         report = inspect_run(args.run_dir, truth=args.truth)
     finally:
         reader_log.setLevel(level)
-    if args.json:
-        from .recorder import to_jsonable
-
+    if args.json == "-":
         print(json.dumps(to_jsonable(report), indent=1, allow_nan=False))
-    else:
-        print(format_report(report))
+        return 0
+    if args.json:
+        write_json(args.json, to_jsonable(report))
+    print(format_report(report))
     return 0
 
 
 def _cmd_view(args) -> int:
     if args.web:
-        from .webview import WebView
-
-        view = WebView(args.run_dir, args.port)
+        view = WebView(recording_to_view(args.run_dir), rerun_binary(), args.port)
         print(f"Rerun web viewer of {view.rrd}: {view.url}  (Ctrl-C to stop)", flush=True)
         signal.signal(signal.SIGTERM, signal.default_int_handler)  # stop the servers on SIGTERM too
         try:
@@ -610,7 +610,8 @@ def register(sub) -> None:
                                    "errors, and interruptions (killed or restarted stages), from "
                                    "recordings/<run>/*.mcap alone.")
     p.add_argument("run_dir", metavar="recordings/NAME", help="run directory")
-    p.add_argument("--json", action="store_true", help="print the report as JSON")
+    p.add_argument("--json", metavar="FILE", help="write the report as JSON to FILE ('-': to standard output, "
+                                                  "instead of the text)")
     p.add_argument("--truth", default=None, metavar="TRUTH.h5",
                    help="a simulation's truth file: show the true coefficients over the last fit window")
     p.set_defaults(func=_cmd_inspect)

@@ -312,7 +312,7 @@ class Launcher:
         """Start ``ttl router`` (log ``router.log``) and wait until it listens."""
         o = self.opts
         path = self.run_dir / "router.log"
-        cmd = [o.python, "-c", "import sys; from ttlcore.cli.main import main; sys.exit(main())", "router"]
+        cmd = [o.python, "-c", "import sys; from streamer.cli import main; sys.exit(main())", "router"]
         for e in listen:
             cmd += ["--listen", e]
         if o.zenoh_config is not None:

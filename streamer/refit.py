@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from ttlcore.cli.progress import status_line
 from ttlcore.io.atomic import write_json
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.errors import TTLError
@@ -134,7 +135,9 @@ def format_refit(report: dict) -> str:
                          f"({sigma[n] * 1e3:.4f})")
     extra = [n for n in values if n not in COEFFICIENT_NAMES]
     if extra:
-        lines.append(f"  other parameters: {len(extra)} (in the JSON report)")
+        lines.append("  other parameters of the model, in their columns' units (docs/diagnostics.md): value (sigma)")
+        for n in extra:
+            lines.append(f"    {n:<28} {values[n]:+.4g} ({sigma.get(n, float('nan')):.2g})")
     return "\n".join(lines)
 
 
@@ -173,9 +176,11 @@ def _cmd_refit(args) -> int:
 
     from ttlcore.cli.diagnose import split_effects as split  # ',' between effects, ';' inside one (as ttl diagnose)
     try:
-        report = refit_run(args.run_dir, split(args.effects), baseline=split(args.baseline),
-                           effect_modules=args.effect_module, segments=_parse_range(args.segments),
-                           source=args.source, band=args.band)
+        with status_line("ttl refit") as say:  # in place on a terminal
+            say(f"reading the recorded segments of {args.run_dir} and refitting with {args.effects}")
+            report = refit_run(args.run_dir, split(args.effects), baseline=split(args.baseline),
+                               effect_modules=args.effect_module, segments=_parse_range(args.segments),
+                               source=args.source, band=args.band)
     except InspectError as exc:
         raise RefitError(str(exc)) from None
     print(format_refit(report))

@@ -27,6 +27,7 @@ no message is waiting.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import os
@@ -245,8 +246,10 @@ class Stage:
     inputs: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, config: StageConfig):
-        self.config = config
         self.stage_name = config.stage or self.name
+        if config.zenoh.credentials is not None and not config.zenoh.identity:  # this stage's certificate
+            config = dataclasses.replace(config, zenoh=dataclasses.replace(config.zenoh, identity=self.stage_name))
+        self.config = config
         self.run_id = config.run
         self.log = StageLogger(logging.getLogger(f"streamer.stage.{self.stage_name}"),
                                {"run": self.run_id, "stage": self.stage_name})
@@ -661,8 +664,6 @@ def config_from_args(args: argparse.Namespace) -> StageConfig:
         z["mode"] = args.mode
     elif args.connect and not args.listen and not z.get("mode") and not z.get("config_file"):
         z["mode"] = "client"  # a router routes between its clients, not between peers
-    if z.get("credentials") and not z.get("identity"):
-        z["identity"] = d.get("stage") or getattr(args, "identity", None)  # this stage's certificate
     d["zenoh"] = z
     return StageConfig.from_dict(d)
 
@@ -670,7 +671,6 @@ def config_from_args(args: argparse.Namespace) -> StageConfig:
 def main(stage_class: type[Stage], argv: Sequence[str] | None = None) -> int:
     """Entry point of a stage process: parse options, set up logging, run the stage."""
     args = stage_arguments(argparse.ArgumentParser(prog=f"ttl stage {stage_class.name}")).parse_args(argv)
-    args.identity = stage_class.name
     configure_logging(args.log_level, args.log_json)
     try:
         config = config_from_args(args)

@@ -20,7 +20,6 @@ import threading
 from pathlib import Path
 from urllib.parse import quote
 
-from .inspect import recording_to_view, rerun_binary
 from .session import LOOPBACK, free_port
 
 
@@ -34,7 +33,8 @@ class _CorsHandler(http.server.SimpleHTTPRequestHandler):
 
 
 class WebView:
-    """The web viewer of ``target`` (run directory or ``.rrd`` file) served on 127.0.0.1.
+    """The web viewer of the recording ``rrd`` served on 127.0.0.1 by the ``rerun``
+    executable ``binary`` (:func:`streamer.inspect.rerun_binary`).
 
     Attributes
     ----------
@@ -42,15 +42,15 @@ class WebView:
         Where to point a browser.
     """
 
-    def __init__(self, target, web_port: int | None = None, binary: str | None = None):
-        self.rrd = recording_to_view(target)
+    def __init__(self, rrd, binary: str, web_port: int | None = None):
+        self.rrd = Path(rrd)
         self.web_port = int(web_port or free_port())
         handler = functools.partial(_CorsHandler, directory=str(self.rrd.parent))
         self.files = http.server.ThreadingHTTPServer((LOOPBACK, 0), handler)
         self._thread = threading.Thread(target=self.files.serve_forever, name="rrd-http", daemon=True)
         self._thread.start()
         file_url = f"http://{LOOPBACK}:{self.files.server_address[1]}/{quote(self.rrd.name)}"
-        self.command = [binary or rerun_binary(), "--serve-web", "--bind", LOOPBACK, "--port", str(free_port()),
+        self.command = [str(binary), "--serve-web", "--bind", LOOPBACK, "--port", str(free_port()),
                         "--web-viewer-port", str(self.web_port)]
         self.proc = subprocess.Popen(self.command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self.url = f"http://{LOOPBACK}:{self.web_port}/?url={quote(file_url, safe='')}"

@@ -27,7 +27,7 @@ STEPPED = ("23.phi.tx", 0.3e-3)
 
 
 def ttl(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "ttlcore.cli.main", *map(str, args)], capture_output=True, text=True, cwd=cwd)
+    return subprocess.run([sys.executable, "-m", "streamer.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd)
 
 
 @pytest.fixture(scope="module")

@@ -42,6 +42,7 @@ def draw_recording(path: Path) -> None:
 
     from stages import monitor_views as views
     from stages.monitor import band_ratio, reference_curves, x_asd
+    from ttlcore.conventions import COEFFICIENT_NAMES
     from ttlcore.sim.coefficients import paper_set
     from ttlcore.estimate.fit import DEFAULT_BAND
     from ttlcore.sim.simulator import SimulationConfig, simulate
@@ -55,6 +56,7 @@ def draw_recording(path: Path) -> None:
     views.static_styles(rec, DEFAULT_BAND)
     rng = np.random.default_rng(1)
     styled: set = set()
+    step = 3e-4 * (np.arange(24) == COEFFICIENT_NAMES.index("23.phi.tx"))
     data = td.data[0]
     residual = (td.data - td.model(truth))[0]
     f, asd, f_welch = x_asd(data, td.fs)
@@ -69,8 +71,8 @@ def draw_recording(path: Path) -> None:
         for name, (fc, a) in ref.items():
             views.noise_curve(rec, name, fc, a, DEFAULT_BAND)
         sigma = np.full(24, 3e-5)
-        views.fit_point(rec, truth + sigma * rng.standard_normal(24) + (i > 6) * 3e-4 * (np.arange(24) == 9), sigma)
-        views.truth_point(rec, truth + (i > 6) * 3e-4 * (np.arange(24) == 9))
+        views.fit_point(rec, truth + sigma * rng.standard_normal(24) + (i > 6) * step, sigma)
+        views.truth_point(rec, truth + (i > 6) * step)
         rec.log("adequacy/chi2_dof", rr.Scalars(1.0 + 0.05 * rng.standard_normal()))
         rec.log("adequacy/instrument/chi2_dof", rr.Scalars(1.1 + 0.05 * rng.standard_normal()))
         rec.log("adequacy/log10_residual_over_expected",

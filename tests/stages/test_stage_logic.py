@@ -151,12 +151,13 @@ def test_run_options_merge_config_file_and_command_line(tmp_path):
     from pathlib import Path
 
     from streamer.cli import run_options
+    from streamer.cli import register
     from ttlcore.cli.main import build_parser
 
     (tmp_path / "run.toml").write_text('run_id = "from-file"\nsimulate = "--duration 6h"\nsegment = "30min"\n'
                                        'window = 3\nskip = ["monitor"]\nfit_window = "6h"\n'
                                        '[stages.monitor]\nlive = "serve"\n')
-    args = build_parser().parse_args(["run", "--config", str(tmp_path / "run.toml"), "--segment", "1h",
+    args = build_parser(register).parse_args(["run", "--config", str(tmp_path / "run.toml"), "--segment", "1h",
                                       "--band", "0.004", "0.5", "--external", "subtractor,fitter"])
     o = run_options(args)
     assert (o.run_id, o.simulate, o.segment, o.window, o.skip) == ("from-file", "--duration 6h", "1h", 3, ("monitor",))
@@ -164,6 +165,6 @@ def test_run_options_merge_config_file_and_command_line(tmp_path):
     assert o.stage_options == {"monitor": {"live": "serve"}, "fitter": {"window_duration": "6h", "band": [0.004, 0.5]}}
     (tmp_path / "bad.json").write_text('{"run_id": "x", "colour": "red"}')
     with pytest.raises(Exception, match="colour"):
-        run_options(build_parser().parse_args(["run", "--config", str(tmp_path / "bad.json")]))
+        run_options(build_parser(register).parse_args(["run", "--config", str(tmp_path / "bad.json")]))
     with pytest.raises(Exception, match="--run-id"):
-        run_options(build_parser().parse_args(["run", "--simulate", "--duration 1h"]))
+        run_options(build_parser(register).parse_args(["run", "--simulate", "--duration 1h"]))

@@ -27,8 +27,8 @@ MONITOR = (ROOT / "stages" / "monitor.py").exists()
 
 
 def ttl_command(*args: str) -> list[str]:
-    """The ``ttl`` command line (the installed script, else ``python -m ttlcore.cli.main``)."""
-    base = [str(_TTL)] if _TTL.exists() else [sys.executable, "-m", "ttlcore.cli.main"]
+    """The ``ttl`` command line (the installed script, else ``python -m streamer.cli``)."""
+    base = [str(_TTL)] if _TTL.exists() else [sys.executable, "-m", "streamer.cli"]
     return base + [str(a) for a in args]
 
 

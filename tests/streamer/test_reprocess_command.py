@@ -52,18 +52,20 @@ def _ttl(*args, timeout=300):
     return subprocess.run([str(BIN / "ttl"), *map(str, args)], capture_output=True, text=True, timeout=timeout)
 
 
-def test_reprocess_equals_analyze_and_reports_a_failed_day(days, tmp_path):
+def test_reprocess_equals_analyze_and_reports_a_failed_day(days, tmp_path, capsys):
     from ttlcore.estimate.analyze import analyze
-    from ttlcore.cli.main import main
+    from streamer.cli import main
     from ttlcore.estimate.fit import FitSettings
 
     bad = tmp_path / "broken.h5"
     bad.write_bytes(b"not an HDF5 file" * 100)
     out = tmp_path / "out"
     rc = main(["reprocess", *map(str, days), str(bad), "--out", str(out), "--workers", "2", "--memory-limit", "2GiB",
-               "--segment", SEGMENT, "--no-figures", "--no-witnesses", "--candidates", "drift", "--retries", "1",
-               "--quiet"])
+               "--segment", SEGMENT, "--no-figures", "--no-witnesses", "--candidates", "drift", "--retries", "1"])
     assert rc == 1  # one day failed
+    err = capsys.readouterr().err
+    assert "ttl reprocess: 100%" in err and "4/4" in err  # the progress bar
+    assert "day broken FAILED" in err
     summary = json.loads((out / "summary.json").read_text())
     assert summary["n_days"] == 4 and summary["n_ok"] == 3 and summary["failed"] == ["broken"]
     failed = [r for r in summary["days"] if r["status"] == "failed"]

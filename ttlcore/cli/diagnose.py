@@ -12,13 +12,12 @@ then only to add coefficient errors.
 
 from __future__ import annotations
 
-import sys
-import time
 from pathlib import Path
 
 from ..conventions import parse_duration
 from ..diagnose.adequacy import FIXED_MODEL_TOLERANCE
 from ..errors import TTLError
+from .progress import status_line
 
 
 def add_parser(sub) -> None:
@@ -68,12 +67,6 @@ def run(args) -> int:
     from ..diagnose.effects import available_effects, make_effects
     from ..io.reader import file_kind, read_telemetry
 
-    start = time.monotonic()
-
-    def say(msg: str) -> None:
-        if not args.quiet:
-            print(f"ttl diagnose: {msg} ({time.monotonic() - start:.1f} s)", file=sys.stderr, flush=True)
-
     data = Path(args.data)
     if not data.exists():
         raise TTLError(f"{data}: no such file")
@@ -109,14 +102,15 @@ def run(args) -> int:
         if not (0 <= args.tolerance < 1):
             raise TTLError(f"--tolerance: expected a fraction in [0, 1), got {args.tolerance}")
         s.tolerance = args.tolerance
-    say(f"reading {data}")
-    tm = read_telemetry(data)
-    truth = None
-    if args.truth:
-        tr = load_truth(args.truth, tm, file_kind(data), data)
-        truth, _ = tr.mean_coefficients(tm.t0, tm.t0 + tm.duration)
-    report = diagnose(tm, effects, settings=s, effect_modules=modules, candidates=candidates,
-                      truth_coefficients=truth, witnesses=not args.no_witnesses, progress=say)
+    with status_line("ttl diagnose", args.quiet) as say:  # in place on a terminal
+        say(f"reading {data}")
+        tm = read_telemetry(data)
+        truth = None
+        if args.truth:
+            tr = load_truth(args.truth, tm, file_kind(data), data)
+            truth, _ = tr.mean_coefficients(tm.t0, tm.t0 + tm.duration)
+        report = diagnose(tm, effects, settings=s, effect_modules=modules, candidates=candidates,
+                          truth_coefficients=truth, witnesses=not args.no_witnesses, progress=say)
     internals = report["_internals"]
     report = strip_internals(report)
     report["file"] = str(data)

@@ -1,5 +1,9 @@
-"""The ``ttl`` command: dispatches to science subcommands (here) and operations
-subcommands (``streamer.cli``, when that package is installed).
+"""The science subcommands of ``ttl`` (simulate, info, analyze, diagnose, scenarios).
+
+The ``ttl`` entry point is :func:`streamer.cli.main`: it builds this parser with the
+operations subcommands added (``build_parser(streamer.cli.register)``), so this package
+never imports the operations layer; ``python -m ttlcore.cli`` gives the science commands
+alone.
 
 Science subcommands: ``simulate``, ``info``.  Errors print one line naming the file,
 dataset or option at fault and exit with status 2; no tracebacks for user errors.
@@ -18,6 +22,9 @@ import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES, DAY, parse_duration
 from ..errors import TTLError
+from ..io.atomic import write_json
+from ..gw.scenarios import add_parser as _add_scenarios
+from .diagnose import add_parser as _add_diagnose
 
 log = logging.getLogger("ttl")
 
@@ -192,7 +199,8 @@ def _cmd_simulate(args) -> int:
 def _add_info(sub) -> None:
     p = sub.add_parser("info", help="summarise a telemetry file (ours or lisainstrument's) or a truth file")
     p.add_argument("file", help="HDF5 file")
-    p.add_argument("--json", action="store_true", help="print JSON instead of text")
+    p.add_argument("--json", metavar="FILE", help="write the summary as JSON to FILE ('-': to standard output, "
+                                                  "instead of the text)")
     p.set_defaults(func=_cmd_info)
 
 
@@ -239,9 +247,11 @@ def summarise(path) -> dict:
 
 def _cmd_info(args) -> int:
     s = summarise(args.file)
-    if args.json:
+    if args.json == "-":
         print(json.dumps(s, indent=2, default=str))
         return 0
+    if args.json:
+        write_json(args.json, s)
     from ..conventions import LINKS
 
     print(f"{s['file']}: {s['kind']} file")
@@ -332,30 +342,29 @@ def _cmd_analyze(args) -> int:
 # entry point
 # ---------------------------------------------------------------------------
 
-def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="ttl", description="Tilt-to-length noise subtraction for LISA")
-    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+def register(sub) -> None:
+    """Add the science subcommands (simulate, info, analyze, diagnose, scenarios) to ``sub``."""
     _add_simulate(sub)
     _add_info(sub)
     _add_analyze(sub)
-    from .diagnose import add_parser as _add_diagnose
-
     _add_diagnose(sub)
-    from ..gw.scenarios import add_parser as _add_scenarios
-
     _add_scenarios(sub)
-    try:  # operations subcommands live beside the plumbing, if installed
-        from streamer import cli as streamer_cli  # type: ignore
-    except ImportError:
-        streamer_cli = None
-    if streamer_cli is not None:
-        streamer_cli.register(sub)
+
+
+def build_parser(*registrars) -> argparse.ArgumentParser:
+    """The ``ttl`` parser: the science subcommands, plus those each of ``registrars`` adds
+    (the operations package passes its own: ``ttlcore`` never imports it)."""
+    parser = argparse.ArgumentParser(prog="ttl", description="Tilt-to-length noise subtraction for LISA")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for add in (register, *registrars):
+        add(sub)
     return parser
 
 
-def main(argv=None) -> int:
-    parser = build_parser()
+def main(argv=None, registrars=()) -> int:
+    """Run one ``ttl`` subcommand; ``registrars`` add subcommands beyond the science ones."""
+    parser = build_parser(*registrars)
     args = parser.parse_args(argv)
     logging.basicConfig(
         level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],

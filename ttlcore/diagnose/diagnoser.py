@@ -1584,6 +1584,10 @@ def adequacy_json(dg: Diagnoser, model: ModelFit) -> dict:
     summary = describe_failures(model.bands)
     fine = fine_band_table(dg, model)
     summary += [f"localised (third-octave bands): {x}" for x in describe_failures(fine)]
+    nm = dg.noise_parameters
+    if nm is not None and nm.at_bound:
+        summary.append(f"noise level(s) {', '.join(nm.at_bound)} at the bound of their allowed range: more (or less) "
+                       "noise of that shape than the instrument is known to have, or an unmodelled effect of that shape")
     time_part = model.time_table or {}
     summary += time_part.get("summary", [])
     return {

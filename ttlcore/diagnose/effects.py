@@ -44,7 +44,7 @@ from ..conventions import ANGLES, C, COEFFICIENT_NAMES, DAY, LINKS, MOSAS, SIDES
 from ..errors import ConfigError
 from ..sim.injection import ChunkContext, load_module
 from ..tdi.combinations import MICHELSON
-from ..tdi.engine import DEFAULT_NFFT, history_samples, tdi_columns
+from ..tdi.engine import tdi_columns
 from ..tdi.engine import Part as EnginePart
 
 log = logging.getLogger(__name__)
@@ -1161,7 +1161,8 @@ def tdi_in_blocks(ltt: np.ndarray, fs: float, columns=(), eta: np.ndarray | None
     order, delay_order : int
         Lagrange orders of the data and of the delay interpolation.
     block : int
-        Output samples per block at most (the engine's own block length is used if smaller).
+        Kept for callers; the engine chooses its own blocks (~2.2 h at 4 Hz), which bound
+        the memory, so the result equals the one-call :func:`columns_tdi` exactly.
 
     Returns
     -------
@@ -1169,13 +1170,10 @@ def tdi_in_blocks(ltt: np.ndarray, fs: float, columns=(), eta: np.ndarray | None
         TDI of ``eta``.
     regressors : ndarray (3, len(columns), n)
     """
-    ltt = np.asarray(ltt, dtype=float)
-    hist = history_samples(fs, float(np.nanmax(ltt)), order, delay_order, MICHELSON)
-    nfft = min(DEFAULT_NFFT, int(block) + hist + order + 2)
     parts = _engine_parts(columns, first=1)
     if eta is not None:
         parts += [EnginePart(0, link, (), np.asarray(eta)[k]) for k, link in enumerate(LINKS)]
-    out = tdi_columns(parts, 1 + len(columns), ltt, fs, order=order, delay_order=delay_order, nfft=nfft)
+    out = tdi_columns(parts, 1 + len(columns), ltt, fs, combinations=MICHELSON, order=order, delay_order=delay_order)
     return (None if eta is None else out[:, 0]), out[:, 1:]
 
 

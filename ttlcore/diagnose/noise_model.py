@@ -76,6 +76,15 @@ NOMINAL: dict = {"oms": 1.0, "tm": 1.0, "tm_acc": 1.0, "tm_rise": 1.0, "local": 
 FLOOR_HALF_WIDTH = 10
 #: Lower bound of a PSD scale factor during the fit (levels stay positive).
 MIN_LEVEL = 1e-5
+#: Allowed range of each component's PSD scale: the prior knowledge of the instrument's
+#: noise levels.  The readout (OMS) level is bounded tightly (+-5 % in PSD, 2.5 % in ASD):
+#: a TTL-type residual (a drift, a step, a wrong coupling) has nearly the OMS shape and
+#: TDI structure (DWS in velocity, like OMS in fractional frequency, both ~f), so only
+#: this knowledge keeps the level from absorbing it (measured: a drift giving chi2/dof 13
+#: under the fixed model pulls a free OMS level to 14.4).  The test-mass levels, which act
+#: below ~10 mHz only, and the floor may move more.
+BOUNDS: dict = {"oms": (0.95, 1.05), "tm_acc": (0.25, 4.0), "tm_rise": (MIN_LEVEL, 4.0), "local": (MIN_LEVEL, 1.0),
+                "floor": (MIN_LEVEL, 0.02)}
 
 
 def local_readout_psd(f) -> np.ndarray:
@@ -157,6 +166,11 @@ class NoiseModel:
         Whittle log-likelihood at ``levels`` (up to a constant).
     n_segments, n_bins : int
         Segments and bins the fit used.
+    iterations, converged : int, bool
+        Of the likelihood maximisation.
+    at_bound : tuple of str
+        Components whose level stopped at a bound of its allowed range (:data:`BOUNDS`): the
+        data ask for more (or less) noise of that shape than the instrument is known to have.
     """
 
     ltt_mean: tuple
@@ -168,6 +182,7 @@ class NoiseModel:
     n_bins: int = 0
     iterations: int = 0
     converged: bool = True
+    at_bound: tuple = ()
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
@@ -204,7 +219,8 @@ class NoiseModel:
         return {"parameters": {n: {"psd_scale": float(v), "sigma": float(s) if np.isfinite(s) else None}
                                for n, v, s in zip(self.names, self.levels, sig)},
                 "n_parameters": self.n_parameters, "log_likelihood": self.log_likelihood,
-                "iterations": self.iterations, "converged": self.converged}
+                "iterations": self.iterations, "converged": self.converged, "at_bound": list(self.at_bound),
+                "bounds": {n: list(BOUNDS[n.split(".")[0]]) for n in self.names}}
 
 
 def whittle_terms(levels, B, P, n_segments, fixed=None):
@@ -237,7 +253,7 @@ def whittle_terms(levels, B, P, n_segments, fixed=None):
 
 
 def fit_noise_model(f, P, n_segments, ltt_mean, *, names=PARAMETERS, fixed=None, start=None,
-                    kappa: float = 1.0, max_iter: int = 200, tol: float = 1e-4) -> NoiseModel:
+                    kappa: float = 1.0, max_iter: int = 200, tol: float = 1e-4, bounded: bool = True) -> NoiseModel:
     """Maximum Whittle likelihood levels of the components for residual spectra.
 
     Parameters
@@ -258,6 +274,8 @@ def fit_noise_model(f, P, n_segments, ltt_mean, *, names=PARAMETERS, fixed=None,
         Starting levels (default: nominal).
     kappa : float
         Variance factor of the tapered segments (scales the covariance).
+    bounded : bool
+        Keep each level within its :data:`BOUNDS` (default); False: only positive.
     max_iter, tol : int, float
         Iterations of the bounded quasi-Newton search (L-BFGS-B, analytic score, variables
         scaled by their Fisher sigmas at the start) and its tolerance on the scaled score.
@@ -271,17 +289,18 @@ def fit_noise_model(f, P, n_segments, ltt_mean, *, names=PARAMETERS, fixed=None,
     names = tuple(names)
     model = start if start is not None and tuple(start.names) == names else NoiseModel.nominal(ltt_mean, names)
     B = model.basis(f)
+    lim = [BOUNDS[n.split(".")[0]] if bounded else (MIN_LEVEL, None) for n in names]
     a0 = np.maximum(np.asarray(model.levels, dtype=float), 10 * MIN_LEVEL)
-    _, grad, F = whittle_terms(a0, B, P, n_segments, fixed)
+    a0 = np.array([np.clip(v, lo, np.inf if hi is None else hi) for v, (lo, hi) in zip(a0, lim)])
+    nll0, _, F = whittle_terms(a0, B, P, n_segments, fixed)
     # scaled variables x = (a - a0) / sigma0: the problem is then near-isotropic
     scale = 1.0 / np.sqrt(np.maximum(np.diag(F), 1e-300))
-    nll0 = whittle_terms(a0, B, P, n_segments, fixed)[0]
 
     def objective(x):
         nll, g, _ = whittle_terms(a0 + scale * x, B, P, n_segments, fixed)
         return nll - nll0, g * scale
 
-    bounds = [((MIN_LEVEL - v) / sc, None) for v, sc in zip(a0, scale)]
+    bounds = [((lo - v) / sc, None if hi is None else (hi - v) / sc) for v, sc, (lo, hi) in zip(a0, scale, lim)]
     res = optimize.minimize(objective, np.zeros(len(a0)), jac=True, method="L-BFGS-B", bounds=bounds,
                             options={"maxiter": max_iter, "gtol": tol, "ftol": 1e-12})
     a = a0 + scale * res.x
@@ -291,8 +310,10 @@ def fit_noise_model(f, P, n_segments, ltt_mean, *, names=PARAMETERS, fixed=None,
         log.warning("noise-model fit: %s after %d iterations", res.message, it)
     cov = kappa * np.linalg.inv(F)
     cov = 0.5 * (cov + cov.T)
+    at_bound = tuple(n for n, v, (lo, hi) in zip(names, a, lim)
+                     if (hi is not None and v >= hi * (1 - 1e-6)) or (lo > MIN_LEVEL and v <= lo * (1 + 1e-6)))
     return NoiseModel(tuple(map(float, ltt_mean)), names, tuple(map(float, a)),
-                      tuple(map(tuple, cov)), -nll, int(n_segments), int(f.size), it, converged,
+                      tuple(map(tuple, cov)), -nll, int(n_segments), int(f.size), it, converged, at_bound,
                       _cache={k: v for k, v in model._cache.items()})
 
 

@@ -39,8 +39,17 @@ import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES, C
 from ..errors import TelemetryError, TTLError
-from .fit import DEFAULT_BAND, FitSettings, dws_asd_from_config, fit_tdi
 from ..io.atomic import write_json
+from ..io.lisainstrument import lisainstrument_truth
+from ..io.reader import file_kind, read_telemetry
+from ..io.telemetry import read_header
+from ..io.truth import read_truth
+from ..io.truth import truth_path as default_truth_path
+from ..plots.batch import asd_x_curves, plot_asd_x, plot_coefficients
+from ..tdi.data import compute_tdi
+from .fit import DEFAULT_BAND, FitSettings, dws_asd_from_config, fit_tdi, segment_spectra
+from .mcmc import fit_mcmc
+from .subtraction import analyse_subtraction
 
 log = logging.getLogger(__name__)
 
@@ -133,10 +142,6 @@ _SIMULATION_KEYS = ("seed", "orbit", "coefficients", "noises", "t0", "fs")
 
 def load_truth(path, tm, data_kind: str, data_path) -> _Truth:
     """Truth for telemetry ``tm`` from ``path`` (our truth file or a lisainstrument file)."""
-    from ..io.lisainstrument import lisainstrument_truth
-    from ..io.reader import file_kind
-    from ..io.truth import read_truth
-    from ..io.truth import truth_path as default_truth_path
 
     path = Path(path)
     kind = file_kind(path)
@@ -211,9 +216,6 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
     TTLError, TelemetryError
         One-line messages naming the file or option at fault.
     """
-    from .subtraction import analyse_subtraction
-    from ..tdi.data import compute_tdi
-    from ..io.reader import file_kind, read_telemetry
 
     say = progress or (lambda msg: None)
     timings: dict[str, float] = {}
@@ -242,7 +244,6 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
     if truth_path is not None:
         file_kind(truth_path)
     if data_kind == "ttl":  # our files tell their length without reading the series
-        from ..io.telemetry import read_header
 
         _check_segment(s.segment_duration, read_header(data_path)["duration"], data_path)
 
@@ -323,7 +324,6 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
 
     # --- figures
     if figures:
-        from ..plots.batch import asd_x_curves, plot_asd_x, plot_coefficients
 
         say("ASDs and figures")
         arm = C * float(np.mean(td.ltt_mean))
@@ -343,13 +343,6 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
 def _fit_mcmc(td, s: FitSettings, say, options: dict | None):
     """MCMC over the same likelihood (:func:`ttlcore.estimate.mcmc.fit_mcmc`, which runs its own GLS
     first for the noise weights and keeps its coefficients in ``extra``)."""
-    from .fit import segment_spectra
-
-    try:
-        from .mcmc import fit_mcmc
-    except ImportError as exc:
-        raise TTLError(f"--method mcmc: the MCMC fit (ttlcore.estimate.mcmc.fit_mcmc) is not available ({exc}); "
-                       "use --method gls") from None
     spectra = segment_spectra(td, s.band, s.segment_duration, s.window, s.overlap, s.decimate)
     last = [0.0]
 

@@ -67,6 +67,8 @@ log = logging.getLogger(__name__)
 #: Trend thresholds for one fit per day (see the module docstring): the live monitor's
 #: step test, a drift line over the last 30 days of fits (at least 5).
 DAY_TRENDS = TrendSettings(drift_lookback=30 * DAY, drift_min_windows=5)
+#: Dask configuration key of the environment a nanny gives its worker processes.
+SPAWN_ENV = "distributed.nanny.pre-spawn-environ"
 #: Default memory limit of a local worker: a full day's `ttl analyze` peaks near 5 GB (its diagnosis near 3 GB).
 DEFAULT_MEMORY_LIMIT = "6GiB"
 
@@ -196,6 +198,7 @@ def dask_client(scheduler: str | None = None, *, workers: int = 2, threads_per_w
     ``dask scheduler``, or the path of its ``--scheduler-file``) or to a new
     :class:`distributed.LocalCluster` of ``workers`` processes bound to 127.0.0.1
     (dashboard off, or on 127.0.0.1 with ``dashboard=True``).  Closed on exit."""
+    import dask
     from distributed import Client, LocalCluster
 
     if scheduler:
@@ -210,9 +213,14 @@ def dask_client(scheduler: str | None = None, *, workers: int = 2, threads_per_w
         return
     if int(workers) < 1:
         raise TTLError(f"--workers: at least one worker, got {workers}")
-    cluster = LocalCluster(n_workers=int(workers), threads_per_worker=int(threads_per_worker), processes=True,
-                           host="127.0.0.1", dashboard_address="127.0.0.1:0" if dashboard else None,
-                           memory_limit=memory_limit)
+    # Dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536 in its workers, which fixes glibc's mmap
+    # threshold at 128 kB: every array of a day is then a fresh mmap, zeroed page by page, and
+    # a day's analysis takes twice the CPU time (measured: 0.82 s against 0.43 s for 1 h).
+    # The worker memory is bounded by memory_limit anyway.
+    with dask.config.set({f"{SPAWN_ENV}.MALLOC_TRIM_THRESHOLD_": None}):
+        cluster = LocalCluster(n_workers=int(workers), threads_per_worker=int(threads_per_worker), processes=True,
+                               host="127.0.0.1", dashboard_address="127.0.0.1:0" if dashboard else None,
+                               memory_limit=memory_limit)
     client = Client(cluster)
     try:
         yield client

@@ -66,6 +66,7 @@ from pathlib import Path
 import numpy as np
 
 from ..conventions import C, COEFFICIENT_NAMES, DAY, ffd_to_displacement_asd
+from ..cli.progress import status_line
 from ..errors import TTLError
 from ..estimate.fit import DEFAULT_BAND, FitSettings, fit_tdi
 from ..estimate.reprocess import dask_client
@@ -562,8 +563,6 @@ def add_parser(sub) -> None:
 
 
 def _cmd_scenarios(args) -> int:
-    import sys
-
     from ..conventions import parse_duration
 
     try:
@@ -573,19 +572,16 @@ def _cmd_scenarios(args) -> int:
     cases = None if args.cases in ("all-cases", "") else [c.strip() for c in args.cases.split(",") if c.strip()]
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
 
-    def progress(msg):
-        if not args.quiet:
-            print(f"ttl scenarios: {msg}", file=sys.stderr, flush=True)
-
     if args.workers < 0:
         raise TTLError(f"--workers: must be >= 0, got {args.workers}")
-    options = dict(cases=cases, variants=variants, duration=duration, seed=args.seed, figures=not args.no_figures,
-                   progress=progress)
-    if args.scheduler or args.workers:
-        with dask_client(args.scheduler, workers=args.workers or 2) as client:
-            s = run_scenarios(args.out, client=client, **options)
-    else:
-        s = run_scenarios(args.out, **options)
+    with status_line("ttl scenarios", args.quiet) as progress:  # in place on a terminal
+        options = dict(cases=cases, variants=variants, duration=duration, seed=args.seed,
+                       figures=not args.no_figures, progress=progress)
+        if args.scheduler or args.workers:
+            with dask_client(args.scheduler, workers=args.workers or 2) as client:
+                s = run_scenarios(args.out, client=client, **options)
+        else:
+            s = run_scenarios(args.out, **options)
     for vname, v in s["variants"].items():
         print(f"[{vname}] {v['title']}")
         for r in v["cases"]:

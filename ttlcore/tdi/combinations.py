@@ -200,7 +200,8 @@ class BuiltCombination:
         witnesses : dict
             ``(link, extra_chain) -> array (k, history + n)``: ``k`` channels placed on
             ``link`` after the extra delays ``extra_chain`` (``("12",)`` for a Tx witness
-            ``D_12 w``); the extra delay is folded into the nested delays of the chains.
+            ``D_12 w``); the extra delay is applied first at every input sample
+            (:func:`ttlcore.tdi.engine.predelayed`), as the simulator forms the Tx term.
 
         Returns
         -------

@@ -19,7 +19,7 @@ from ..conventions import COEFFICIENT_NAMES, LINKS
 from .interpolation import DEFAULT_ORDER
 from .regressors import ttl_witnesses
 from .combinations import MICHELSON, aet
-from .engine import DEFAULT_DELAY_ORDER, Part, history_samples, tdi_columns
+from .engine import DEFAULT_DELAY_ORDER, Part, tdi_columns
 from ..io.telemetry import Telemetry
 
 
@@ -124,6 +124,15 @@ def lowpass_taps(fs: float, passband: float = 0.9, stopband: float = 1.1, attenu
     return signal.firwin(numtaps, (passband + stopband) / 2, window=("kaiser", beta), fs=fs)
 
 
+def history_samples(fs: float, ltt_max: float = 8.6, order: int = DEFAULT_ORDER,
+                    delay_order: int = DEFAULT_DELAY_ORDER, combinations=MICHELSON) -> int:
+    """Input samples the combinations reach back to: the longest chain plus the Tx
+    pre-delay, times the largest light travel time, plus the stencils of both
+    interpolations (chain and pre-delay) and of the delay interpolation."""
+    longest = max(c.max_chain_length for c in combinations) + 1
+    return int(np.ceil(longest * ltt_max * fs)) + 2 * (order // 2 + 1) + delay_order + 8
+
+
 def compute_tdi_arrays(eta, dws_phi, dws_eta, ltt, fs: float, t0: float, *, history: int = 0,
                        names=COEFFICIENT_NAMES, order: int = DEFAULT_ORDER,
                        delay_order: int = DEFAULT_DELAY_ORDER, combinations=MICHELSON) -> TDIData:
@@ -132,7 +141,7 @@ def compute_tdi_arrays(eta, dws_phi, dws_eta, ltt, fs: float, t0: float, *, hist
 
     One call of the block engine :func:`ttlcore.tdi.engine.tdi_columns`: column 0 is
     ``eta`` (one part per link), column ``1 + k`` the witness of regressor ``k`` on its link
-    (Tx witnesses with their pre-delay folded into the nested delays)."""
+    (Tx witnesses pre-delayed at every input sample first, :func:`ttlcore.tdi.engine.predelayed`)."""
     witnesses, index = ttl_witnesses(dws_phi, dws_eta, names)
     eta = np.asarray(eta)
     parts = [Part(0, link, (), eta[k]) for k, link in enumerate(LINKS)]

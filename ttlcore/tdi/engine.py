@@ -5,7 +5,9 @@ the streaming :class:`~ttlcore.tdi.data.TDIStream`, the diagnosis' effect column
 through :func:`tdi_columns`.  A *column* is a sum of *parts*, each a series placed on a link
 after extra delays (a TTL Tx witness ``D_ij w`` sits on link ``ij`` with extra chain
 ``("ij",)``; ``eta`` is the column with one part per link and no extra delay).  Because TDI
-is linear, the output of a column is ``sum_parts sum_terms f D_{chain + extra} x_part``.
+is linear, the output of a column is ``sum_parts sum_terms f D_chain (D_extra x_part)``, the
+extra delays applied first at every input sample (:func:`predelayed`), as the simulator
+forms the Tx TTL term.
 
 How it is evaluated (the operator is the one of docs/physics.md and of pytdi's
 ``unit="phase"``: ``D_{a_1..a_m} x(t) = x(t - Delta_{a_1..a_m}(t))`` with nested delays
@@ -66,16 +68,22 @@ class Part:
     series: np.ndarray
 
 
-def history_samples(fs: float, ltt_max: float = 8.6, order: int = DEFAULT_ORDER,
-                    delay_order: int = DEFAULT_DELAY_ORDER, combinations=None) -> int:
-    """Input samples the combinations reach back to: the longest chain plus the Tx
-    pre-delay, times the largest light travel time, plus the stencils of the data and of
-    the delay interpolation (and a margin)."""
-    from .combinations import MICHELSON
-
-    combinations = MICHELSON if combinations is None else combinations
-    longest = max(c.max_chain_length for c in combinations) + 1
+def _history(chains, ltt_max: float, fs: float, order: int, delay_order: int) -> int:
+    """Input samples the chains reach back to: the longest chain times the largest light
+    travel time, plus the stencils of the data and of the delay interpolation (and a margin)."""
+    longest = max((len(c) for c in chains), default=0)
     return int(np.ceil(longest * ltt_max * fs)) + 2 * (order // 2 + 1) + delay_order + 8
+
+
+@dataclass(frozen=True)
+class _Delay:
+    """The one-term combination ``D_link x`` on ``link`` (a pre-delay)."""
+
+    link: str
+
+    @property
+    def terms(self) -> tuple:
+        return ((1.0, self.link, (self.link,)),)
 
 
 def _chebyshev_nodes(degree: int) -> np.ndarray:
@@ -112,6 +120,22 @@ class _Plan:
         self.chains = sorted(chains, key=lambda ch: (len(ch), ch))
 
 
+def _edge_lines(ltt: np.ndarray, fs: float):
+    """``f(rows, positions)``: the least-squares straight lines of each row of ``ltt`` over
+    its first and last minute, evaluated at positions before and after the data."""
+    m = ltt.shape[-1]
+    k = max(2, min(m, int(60 * fs)))
+    x = np.arange(k, dtype=float)
+    head = np.polynomial.polynomial.polyfit(x, ltt[:, :k].T, 1)             # (2, rows)
+    tail = np.polynomial.polynomial.polyfit(x + (m - k), ltt[:, m - k:].T, 1)
+
+    def line(rows, pos):
+        c = np.where(pos < m / 2, head[:, rows], tail[:, rows])
+        return c[0] + c[1] * pos
+
+    return line
+
+
 def _nested_delays(chains, ltt: np.ndarray, pos: np.ndarray, fs: float, delay_order: int) -> dict:
     """``Delta_chain`` [s] at input positions ``pos`` for every chain and prefix, one chain
     length at a time (all prefixes of a length in one interpolation)."""
@@ -125,14 +149,51 @@ def _nested_delays(chains, ltt: np.ndarray, pos: np.ndarray, fs: float, delay_or
         k = np.floor(read)
         w = lagrange_weights(read - k, delay_order)                         # (order + 1, k * nodes)
         idx = k.astype(np.int64)[None, :] + np.arange(-(delay_order - 1) // 2, (delay_order + 1) // 2 + 1)[:, None]
-        idx = np.clip(idx, 0, ltt.shape[-1] - 1)  # clamped stencils only serve outputs that are NaN anyway
-        tau = np.einsum("jp,jp->p", w, ltt[np.repeat(rows, pos.size)[None, :], idx]).reshape(prev.shape)
+        m = ltt.shape[-1]
+        outside = (idx[0] < 0) | (idx[-1] > m - 1)
+        idx = np.clip(idx, 0, m - 1)
+        every = np.repeat(rows, pos.size)
+        tau = np.einsum("jp,jp->p", w, ltt[every[None, :], idx])
+        if outside.any():
+            # reads before (after) the data, at the nodes of a first (last) block: outputs that
+            # need them are NaN, but the nodes shape the block's Chebyshev weights, so the
+            # light travel time is continued by its straight line over the first (last) minute
+            tau[outside] = _edge_lines(ltt, fs)(every[outside], read[outside])
+        tau = tau.reshape(prev.shape)
         for i, p in enumerate(level):
             out[p] = prev[i] + tau[i]
     return out
 
 
-def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, history: int = 0, combinations=None,
+def predelayed(parts, ltt: np.ndarray, fs: float, **options) -> list:
+    """The parts with their extra delays applied at every input sample, extra chains emptied.
+
+    A Tx witness ``D_ij w`` is formed as the simulator (and lisainstrument) form the Tx TTL
+    term: ``w`` delayed by ``tau_ij`` at every sample first, then placed on link ``ij`` -- two
+    Lagrange interpolations, which the TDI chain then reads.  (Folding the pre-delay into the
+    nested delay would be one interpolation: equal in the fit band, but above 1 Hz, where
+    order-31 interpolation of 4 Hz data errs by 1e-5..1, it would not reproduce the data.)
+    The first ``tau * fs + order / 2`` samples are NaN.  ``options`` go to :func:`tdi_columns`.
+    """
+    out = [p for p in parts if not p.extra]
+    pending = [(p, tuple(p.extra)) for p in parts if p.extra]
+    while pending:
+        by_delay: dict = {}
+        for i, (p, extra) in enumerate(pending):
+            by_delay.setdefault(extra[-1], []).append(i)  # innermost delay first
+        done = [None] * len(pending)
+        for d, idx in by_delay.items():
+            moved = tdi_columns([Part(j, d, (), pending[i][0].series) for j, i in enumerate(idx)], len(idx), ltt, fs,
+                                combinations=(_Delay(d),), **options)[0]
+            for j, i in enumerate(idx):
+                p, extra = pending[i]
+                done[i] = (Part(p.column, p.link, extra[:-1], moved[j]), extra[:-1])
+        out += [p for p, extra in done if not extra]
+        pending = [(p, extra) for p, extra in done if extra]
+    return out
+
+
+def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, combinations, history: int = 0,
                 order: int = DEFAULT_ORDER, delay_order: int = DEFAULT_DELAY_ORDER,
                 degree: int = DEFAULT_DEGREE, nfft: int = DEFAULT_NFFT, out: np.ndarray | None = None) -> np.ndarray:
     """TDI of columns made of parts placed on links (see the module docstring).
@@ -150,7 +211,7 @@ def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, history: in
     history : int
         Leading input samples before the first output sample.
     combinations : sequence of Combination
-        Default X2, Y2, Z2.
+        E.g. :data:`ttlcore.tdi.combinations.MICHELSON` (anything with ``terms``).
     order, delay_order : int
         Lagrange orders of the data and of the light-travel-time interpolation.
     degree : int
@@ -166,9 +227,7 @@ def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, history: in
         Zero for columns whose links a combination does not use; NaN where a stencil
         reaches before the data or touches a non-finite input.
     """
-    from .combinations import MICHELSON
-
-    combinations = MICHELSON if combinations is None else tuple(combinations)
+    combinations = tuple(combinations)
     order = _check_order(order)
     ltt = np.asarray(ltt, dtype=float)
     total = ltt.shape[-1]
@@ -182,17 +241,17 @@ def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, history: in
     parts = list(parts)
     if n <= 0 or not parts:
         return out
-    groups: dict = {}
     for p in parts:
-        series = np.asarray(p.series, dtype=float)
-        if series.shape[-1] != total:
-            raise ValueError(f"part of column {p.column} on link {p.link} has {series.shape[-1]} samples, "
+        if np.shape(p.series)[-1] != total:
+            raise ValueError(f"part of column {p.column} on link {p.link} has {np.shape(p.series)[-1]} samples, "
                              f"the delays {total}")
-        groups.setdefault((p.link, tuple(p.extra)), []).append((p.column, series))
+    groups: dict = {}
+    for p in predelayed(parts, ltt, fs, order=order, delay_order=delay_order, degree=degree, nfft=nfft):
+        groups.setdefault((p.link, ()), []).append((p.column, np.asarray(p.series, dtype=float)))
     plan = _Plan(combinations, groups)
 
     ltt_max = float(np.nanmax(ltt))
-    hist = history_samples(fs, ltt_max, order, delay_order, combinations)
+    hist = _history(plan.chains, ltt_max, fs, order, delay_order)
     lead = order // 2 + 1  # stencil samples after the read position
     nfft = max(int(nfft), sp_fft.next_fast_len(2 * (hist + lead + 1), real=True))
     block = nfft - hist - lead - 1

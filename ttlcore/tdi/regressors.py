@@ -8,14 +8,15 @@ the regressor of coefficient
   readout delayed along the link it transmits on.
 
 so that ``eta = sum_k C_k w_k + (other terms)``.  A witness is described by the link it sits
-on and the extra delay chain applied before it enters that link; TDI folds that extra
-delay into its nested delays (:meth:`ttlcore.tdi.combinations.BuiltCombination.apply_on_links`).
+on and the extra delay chain applied before it enters that link; TDI applies that extra
+delay first, at every sample (:func:`ttlcore.tdi.engine.predelayed`), then the link's chains.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from .combinations import AET_MATRIX, MICHELSON, link_responses
 from ..conventions import C, COEFFICIENT_NAMES, LINKS, parse_coefficient_name, reverse
 
 
@@ -75,8 +76,6 @@ def regressor_responses(f: np.ndarray, ltt, names=COEFFICIENT_NAMES, combination
     -------
     ndarray, shape (m, 3, P), complex
     """
-    from .combinations import AET_MATRIX, MICHELSON, link_responses
-
     combinations = combinations or MICHELSON
     f = np.asarray(f, dtype=float)
     out = np.zeros((f.size, len(combinations), len(names)), dtype=complex)

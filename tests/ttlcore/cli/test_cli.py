@@ -41,7 +41,7 @@ def test_simulate_writes_telemetry_and_truth(hour_file):
 def test_info_text_and_json(hour_file):
     r = ttl("info", hour_file)
     assert r.returncode == 0 and "14400 samples" in r.stdout and "truth file" in r.stdout
-    r = ttl("info", "--json", hour_file)
+    r = ttl("info", "--json", "-", hour_file)
     assert r.returncode == 0 and '"kind": "ttl"' in r.stdout
 
 
