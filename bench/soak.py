@@ -58,7 +58,8 @@ def main(argv=None) -> int:
     run = "soak"
     cmd = [str(Path(sys.executable).with_name("ttl")), "run", "--simulate",
            f"--duration {args.days * 24:g}h --orbit unequal --seed {args.seed}", "--segment", args.segment,
-           "--run-id", run, "--recordings", str(rec), "--listen", f"tcp/127.0.0.1:{port}", "--quiet"]
+           "--run-id", run, "--recordings", str(rec), "--listen", f"tcp/127.0.0.1:{port}", "--quiet",
+           "--insecure"]  # plain TCP on loopback: the bench's own client only reads
     t_start = time.monotonic()
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT)
     done_at: dict[str, dict[int, float]] = {}
@@ -73,14 +74,17 @@ def main(argv=None) -> int:
                 seen.setdefault(i, now)
 
     rss: dict[str, list[tuple[int, float]]] = {}
-    with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
-        time.sleep(1.0)
-        while proc.poll() is None:
-            try:
-                bus.segment_subscriber(f"ttl/{run}/control/board/*", on_board, history=1)
-                break
-            except Exception:  # noqa: BLE001 - the router is not up yet
-                time.sleep(1.0)
+    bus = None
+    while bus is None and proc.poll() is None:
+        try:
+            bus = Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",)))
+        except Exception:  # noqa: BLE001 - the router is not up yet
+            time.sleep(1.0)
+    if bus is None:
+        print(json.dumps({"exit_status": proc.wait(), "output_tail": proc.stdout.read().decode(errors="replace")[-2000:]}))
+        return 1
+    with bus:
+        bus.segment_subscriber(f"ttl/{run}/control/board/*", on_board, history=1)
         while proc.poll() is None:
             with lock:
                 index = max(done_at.get("replayer", {0: 0}) or [0])

@@ -61,6 +61,7 @@ hour of window end, so that their cost per segment stays bounded with short segm
 from __future__ import annotations
 
 import math
+from collections import deque
 import os
 import queue
 import socket
@@ -388,7 +389,7 @@ class Monitor(PipelineStage):
         self._segment_time: dict[int, tuple[float, float]] = {}
         self.settle_timeout = float(o.get("settle_timeout", 60.0))
         self.trend_spacing = float(o.get("trend_spacing", 3600.0))
-        self._trend_t: float | None = None
+        self._trend_t: deque = deque(maxlen=64)  # window ends given to the trends lately
 
     # ------------------------------------------------------------------ lifecycle
     def setup(self) -> None:
@@ -672,8 +673,9 @@ class Monitor(PipelineStage):
 
         # the trend monitor gets at most one fit per trend_spacing of window end (10-min segments
         # give six nearly identical one-day windows an hour): its work per fit stays bounded
-        if self._trend_t is None or t_stop >= self._trend_t + self.trend_spacing - 1e-6:
-            self._trend_t = float(t_stop)
+        near = [t for t in self._trend_t if abs(t - t_stop) < self.trend_spacing - 1e-6]
+        if not near:
+            self._trend_t.append(float(t_stop))
             alerts = self.trends.add(header.index, float(t_start), float(t_stop), C, S)
         else:
             alerts = []

@@ -49,15 +49,22 @@ REFUSALS = ("rejected", "forged", "conflict")
 
 
 def run_args(run_id: str, rec: Path, *extra, sim: str = SIM) -> list[str]:
+    # plain TCP (--insecure): the plan checks must hold without the access control, and the
+    # hostile client of the fuzz must reach the stages
     return ["run", "--simulate", sim, "--segment", "1h", "--run-id", run_id, "--recordings", str(rec),
-            "--timeout", "600", *extra]
+            "--timeout", "600", "--insecure", *extra]
 
 
 def results(run_dir: Path) -> dict:
-    """Fits and residuals of a run, by index."""
-    fits = {s.header.index: s.arrays for s in read_recording(run_dir / "fitter.mcap").segments("fit")}
-    res = {s.header.index: s.arrays for s in read_recording(run_dir / "subtractor.mcap").segments("residual")}
-    return {"fit": fits, "residual": res}
+    """Fits and residuals of a run, by index, from every process's recording (a restarted
+    stage leaves ``<stage>.<n>.mcap``)."""
+    out = {}
+    for stage, topic in (("fitter", "fit"), ("subtractor", "residual")):
+        out[topic] = {}
+        for path in sorted(run_dir.glob(f"{stage}*.mcap")):
+            for s in read_recording(path).segments(topic):
+                out[topic].setdefault(s.header.index, s.arrays)
+    return out
 
 
 def assert_same_results(a: dict, b: dict, rtol: float = 0.0) -> None:
@@ -308,9 +315,9 @@ def test_stage_killed_mid_run_restarts_exactly(stage, clean, tmp_path):
     run_dir = tmp_path / "rec" / run
     assert (run_dir / f"{stage}.1.mcap").exists() and read_recording(run_dir / f"{stage}.mcap").complete
     assert_same_results(results(clean), results(run_dir), rtol=1e-9)
-    if stage == "fitter":
+    if stage == "fitter":  # its window rebuilt: from the caches (a short run) or the tdi_builder's recordings
         events = [e["kind"] for e in read_recording(run_dir / "fitter.mcap").json("events")]
-        assert "restored" in events, events
+        assert "restored" in events or "replayed" in events, events
     # nothing orphaned: no stage process of this run is left
     assert not [p for p in psutil.process_iter(["cmdline"]) if run in " ".join(p.info["cmdline"] or ())]
 
@@ -369,7 +376,8 @@ def test_nan_gap_ends_the_run_with_the_gap_reported(tmp_path):
         runs = {}
         for name, path in (("clean", clean_file), ("gap", gap_file)):
             proc = procs.start(ttl_command("run", "--telemetry", str(path), "--segment", "1h", "--run-id", name,
-                                           "--recordings", str(tmp_path / "rec"), "--timeout", "900"), name)
+                                           "--recordings", str(tmp_path / "rec"), "--timeout", "900", "--insecure"),
+                               name)
             runs[name] = (finish(proc, 900), output(proc))
     finally:
         procs.close()

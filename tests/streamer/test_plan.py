@@ -32,6 +32,11 @@ def check(v, msg):
     return v.check("tdi", *msg)
 
 
+def accept(v, msg):
+    assert check(v, msg) == "new"
+    v.accepted("tdi", msg[0])
+
+
 def test_range_set_keeps_ranges_not_indices():
     s = RangeSet()
     for i in (5, 3, 4, 10, 2 ** 40, 11, 0):
@@ -81,9 +86,7 @@ def test_nan_stretch_is_data_and_window_bounds_the_index():
     v = Validator(Plan.from_dict({**PLAN.to_dict(), "window": 4}))
     data = np.random.default_rng(0).standard_normal((3, N))
     data[:, 100:700] = np.nan  # 150 s with no data: a gap, still a message
-    msg = tdi(2, data=data)
-    assert check(v, msg) == "new"
-    v.accepted("tdi", msg[0])
+    accept(v, tdi(2, data=data))
     assert check(v, tdi(6)) == "new"
     with pytest.raises(Rejected, match="more than 4 ahead"):
         check(v, tdi(7))
@@ -91,9 +94,7 @@ def test_nan_stretch_is_data_and_window_bounds_the_index():
 
 def test_duplicates_resolved_by_content():
     v = Validator(PLAN)
-    first = tdi(3)
-    assert check(v, first) == "new"
-    v.accepted("tdi", first[0])
+    accept(v, tdi(3))
     assert check(v, tdi(3)) == "duplicate"  # identical copy: ignored
     other = tdi(3, data=np.zeros((3, N)))
     with pytest.raises(Rejected) as err:
@@ -105,9 +106,7 @@ def test_duplicates_resolved_by_content():
 
 def test_without_a_plan_the_first_message_fixes_producer_rate_and_length():
     v = Validator(None)
-    first = tdi(0)
-    assert check(v, first) == "new"
-    v.accepted("tdi", first[0])
+    accept(v, tdi(0))
     with pytest.raises(Rejected, match="producer"):
         check(v, tdi(1, producer="intruder"))
     with pytest.raises(Rejected, match="fs"):
