@@ -3,4 +3,4 @@ instrument noise model, the diagnosis (candidates ranked by evidence), the witne
 and the coefficient trends (drift and step detection).
 """
 
-__all__ = ['adequacy', 'diagnoser', 'effects', 'reprocess', 'trends', 'witnesses']
+__all__ = ['adequacy', 'diagnoser', 'effects', 'evidence', 'noise_model', 'reprocess', 'search', 'trends', 'witnesses']
