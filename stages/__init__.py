@@ -52,12 +52,19 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import ClassVar
 
-from ttlcore.errors import TTLError
-
 from streamer.keys import check_name, control_key, from_ranges, to_ranges
 from streamer.plan import MAX_SEGMENTS
+from streamer.recorder import to_jsonable
 from streamer.session import declare_segment_publisher
-from streamer.stage import BOARD, Stage, StageConfig, config_from_args, configure_logging, stage_arguments
+from streamer.stage import (
+    BOARD,
+    Stage,
+    StageConfig,
+    config_from_args,
+    configure_logging,
+    stage_arguments,
+)
+from ttlcore.errors import TTLError
 
 log = logging.getLogger(__name__)
 
@@ -89,7 +96,6 @@ def board_pattern(run: str) -> str:
 
 def jsonable(value):
     """JSON-ready copy: numpy scalars and arrays to Python, NaN and inf to None."""
-    from streamer.recorder import to_jsonable
     return to_jsonable(value)
 
 

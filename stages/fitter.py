@@ -48,15 +48,15 @@ from collections import deque
 import numpy as np
 
 from streamer.codec import Expect
-from streamer.messages import tdi_of
 from streamer.keys import to_ranges
+from streamer.messages import tdi_of
+from streamer.recorder import read_recording
 from streamer.stage import Output
-
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY, parse_duration
-from ttlcore.errors import ConfigError
-from ttlcore.estimate.fit import FitSettings
 from ttlcore.diagnose.diagnoser import DiagnoseSettings, refit
 from ttlcore.diagnose.effects import make_effects
+from ttlcore.errors import ConfigError
+from ttlcore.estimate.fit import FitSettings
 from ttlcore.estimate.rolling import RollingFit
 from ttlcore.tdi.data import TDIData
 
@@ -250,7 +250,6 @@ class Fitter(OrderedStage):
         (``<recordings>/<run>/tdi_builder*.mcap``; the publishers' caches hold only a few
         segments, the window a day).  From the start of the run when the recordings have it,
         so that the state (window, weights of the full refits) is the uninterrupted run's."""
-        from streamer.recorder import read_recording
 
         run_dir = self.config.recordings / self.run_id
         segments = {}

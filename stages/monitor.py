@@ -60,15 +60,20 @@ hour of window end, so that their cost per segment stays bounded with short segm
 
 from __future__ import annotations
 
+import ctypes
+import json
 import math
-from collections import deque
 import os
 import queue
+import signal
 import socket
 import subprocess
 import sys
+import threading
 import time
+from collections import deque
 from pathlib import Path
+from urllib.parse import urlparse
 
 import numpy as np
 
@@ -77,11 +82,20 @@ from streamer.inspect import rerun_binary
 from streamer.keys import topic_pattern
 from streamer.session import free_port
 from streamer.stage import Output
-
-from ttlcore.sim.coefficients import CoefficientModel
-from ttlcore.conventions import ARM_LENGTH, C, COEFFICIENT_NAMES, LINKS, MOSAS, ffd_to_displacement_asd
-from ttlcore.estimate.fit import DEFAULT_BAND
+from ttlcore.conventions import (
+    ARM_LENGTH,
+    COEFFICIENT_NAMES,
+    LINKS,
+    C,
+    ffd_to_displacement_asd,
+)
 from ttlcore.diagnose.trends import Alert, TrendMonitor, TrendSettings
+from ttlcore.estimate.fit import DEFAULT_BAND
+from ttlcore.estimate.noise_psd import requirement_x2, tdi_noise_csd
+from ttlcore.estimate.spectra import log_average
+from ttlcore.io.truth import read_truth
+from ttlcore.plots.batch import default_nperseg, welch_asd_weighted_mean
+from ttlcore.sim.coefficients import CoefficientModel
 
 from . import OUTPUT_TOPIC, PipelineStage, jsonable, stage_main
 from . import monitor_views as views
@@ -125,7 +139,6 @@ def _wait_port(port: int, timeout: float = 10.0, proc=None) -> bool:
 
 def _reachable(url: str, timeout: float = 1.0) -> bool:
     """Whether something listens at the host and port of a ``rerun+http://host:port/proxy`` URL."""
-    from urllib.parse import urlparse
 
     u = urlparse(url.replace("rerun+", "", 1).replace("rerun://", "https://", 1))
     port = u.port or (443 if u.scheme == "https" else 9876)
@@ -172,7 +185,6 @@ class Fanout:
                 self._drop_live(exc)
 
     def _drop_live(self, exc) -> None:
-        import threading
 
         live, self.live = self.live, None
         threading.Thread(target=live.disconnect, daemon=True).start()  # may wait for a last attempt
@@ -191,8 +203,6 @@ class Fanout:
 
 def _die_with_parent() -> None:  # in the child, before exec (Linux): SIGTERM when the monitor dies
     try:
-        import ctypes
-        import signal
 
         ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
     except Exception:
@@ -254,8 +264,6 @@ def x_asd(x: np.ndarray, fs: float, per_decade: int = 20):
     Returns ``(f [Hz], asd [m/sqrt(Hz)], f_welch)`` (``f_welch`` the Welch grid without DC,
     for curves that must be averaged on the same bins).
     """
-    from ttlcore.plots.batch import default_nperseg, welch_asd_weighted_mean
-    from ttlcore.estimate.spectra import log_average
 
     x = finite_stretch(np.asarray(x, dtype=float))
     if x.size < 64:
@@ -269,8 +277,6 @@ def x_asd(x: np.ndarray, fs: float, per_decade: int = 20):
 def reference_curves(f_welch: np.ndarray, ltt, per_decade: int = 20) -> dict:
     """Expected secondary noise of X2 for the arms ``ltt`` (six values [s]) and the
     requirement, log-averaged like the data: ``{name: (f, asd [m/sqrt(Hz)])}``."""
-    from ttlcore.estimate.noise_psd import requirement_x2, tdi_noise_csd
-    from ttlcore.estimate.spectra import log_average
 
     expected = np.real(tdi_noise_csd(f_welch, ltt, aet=False)[:, 0, 0])
     out = {}
@@ -311,7 +317,6 @@ class TruthAverager:
     """
 
     def __init__(self, path, block: float = 3600.0):
-        from ttlcore.io.truth import read_truth
 
         self.path = Path(path)
         head = read_truth(self.path, 0, 1)
@@ -320,7 +325,6 @@ class TruthAverager:
         self._sums: dict[int, tuple[np.ndarray, int]] = {}
 
     def _read(self, a: int, b: int) -> tuple[np.ndarray, int]:
-        from ttlcore.io.truth import read_truth
 
         if b <= a:
             return np.zeros(P), 0
@@ -544,7 +548,6 @@ class Monitor(PipelineStage):
             pass
 
     def _drain_errors(self) -> None:
-        import json
 
         while True:
             try:
@@ -691,7 +694,6 @@ class Monitor(PipelineStage):
 
     def _draw_truth(self, windows: dict[int, tuple[float, float]]) -> None:
         """The true coefficients averaged over each fit window, at the fit's time."""
-        import rerun as rr
 
         if self._truth is None:
             return

@@ -48,13 +48,15 @@ import numpy as np
 
 from streamer.plan import Plan
 from streamer.stage import Output
-
+from ttlcore.cli.main import add_simulation_options, simulation_config_from_args
 from ttlcore.conventions import LINKS, parse_duration
-from ttlcore.errors import ConfigError, TelemetryError
+from ttlcore.errors import ConfigError, TelemetryError, TTLError
 from ttlcore.estimate.fit import dws_asd_from_config
-from ttlcore.io.telemetry import Telemetry, read_header
+from ttlcore.io.atomic import write_text
 from ttlcore.io.reader import file_kind, read_telemetry
+from ttlcore.io.telemetry import Telemetry, read_header
 from ttlcore.io.truth import truth_path
+from ttlcore.sim.simulator import Simulator
 
 from . import OUTPUT_TOPIC, PipelineStage, stage_main
 
@@ -77,8 +79,6 @@ def simulation_config(text: str):
     ConfigError
         Naming the option at fault.
     """
-    from ttlcore.cli.main import add_simulation_options, simulation_config_from_args
-    from ttlcore.errors import TTLError
 
     p = argparse.ArgumentParser(prog="--simulate", add_help=False, exit_on_error=False)
     add_simulation_options(p)
@@ -181,7 +181,6 @@ class SimulationSource:
     """Segments simulated on demand (``ttl simulate`` options)."""
 
     def __init__(self, options: str, segment_duration: float):
-        from ttlcore.sim.simulator import Simulator
 
         self.config = simulation_config(options)
         self.sim = Simulator(self.config)
@@ -396,7 +395,6 @@ def check(config) -> str:
     ``plan_out`` the run's plan is written there as JSON (``ttl run`` gives it to every stage)."""
     source = make_source(config.options)
     if config.options.get("plan_out"):
-        from ttlcore.io.atomic import write_text
         write_text(Path(config.options["plan_out"]), json.dumps(source.plan().to_dict()))
     return source.describe()
 

@@ -26,19 +26,34 @@ import argparse
 import importlib
 import importlib.util
 import json
+import json as _json
 import logging
+import queue
 import signal
 import sys
 import threading
 import tomllib
 from pathlib import Path
-from typing import TYPE_CHECKING
+
+import zenoh
 
 from ttlcore.cli.main import main as science_main
 from ttlcore.errors import TTLError
 
-if TYPE_CHECKING:
-    from .launcher import RunOptions
+from . import refit, reprocess
+from .keys import check_name, control_key
+from .launcher import RunOptions, run, stage_module_exists
+from .security import ROLES, ROUTER_LOG_FILTER, ensure_credentials, filter_log
+from .session import (
+    DEFAULT_ROUTER_LISTEN,
+    Bus,
+    SessionConfigError,
+    SessionSettings,
+    open_router,
+    open_session,
+)
+from .stage import Stage
+from .stage import main as run_stage
 
 log = logging.getLogger(__name__)
 
@@ -53,9 +68,7 @@ def register(sub) -> None:
     _add_router(sub)
     _add_control(sub)
     _add_credentials(sub)
-    from . import refit
     refit.register(sub)
-    from . import reprocess
     reprocess.add_parser(sub)
     try:
         spec = importlib.util.find_spec("streamer.inspect")
@@ -139,7 +152,6 @@ def _split(values) -> tuple:
 
 def run_options(args) -> "RunOptions":
     """:class:`streamer.launcher.RunOptions` from ``--config`` and the command line."""
-    from .launcher import RunOptions
 
     conf = _read_config(args.config) if args.config else {}
     known = set(RunOptions.__dataclass_fields__) | {"stages", "fit_segment", "fit_window", "band"}
@@ -190,7 +202,6 @@ def run_options(args) -> "RunOptions":
 
 
 def _cmd_run(args) -> int:
-    from .launcher import run
 
     return run(run_options(args))
 
@@ -209,20 +220,17 @@ def _add_stage(sub) -> None:
 
 
 def _cmd_stage(args) -> int:
-    from .launcher import stage_module_exists
 
     if not stage_module_exists(args.name):
         raise TTLError(f"stage {args.name!r} is not installed (no module stages.{args.name})")
     module = importlib.import_module(f"stages.{args.name}")
     if hasattr(module, "main"):
         return int(module.main(args.args) or 0)
-    from .stage import Stage, main
-
     classes = [c for c in vars(module).values()
                if isinstance(c, type) and issubclass(c, Stage) and c.__module__ == module.__name__]
     if not classes:
         raise TTLError(f"stage {args.name!r}: module stages.{args.name} has neither main() nor a Stage class")
-    return int(main(classes[0], args.args) or 0)
+    return int(run_stage(classes[0], args.args) or 0)
 
 
 # ---------------------------------------------------------------------------- ttl control
@@ -248,11 +256,7 @@ def _add_control(sub) -> None:
 
 
 def _cmd_control(args) -> int:
-    import json as _json
-    import queue
 
-    from .keys import check_name, control_key
-    from .session import Bus, SessionSettings
 
     key = control_key(check_name(args.run, "run id"), check_name(args.stage, "stage"), check_name(args.command, "command"))
     if args.payload:
@@ -303,7 +307,6 @@ def _add_credentials(sub) -> None:
 
 
 def _cmd_credentials(args) -> int:
-    from .security import ROLES, ensure_credentials
 
     d = ensure_credentials(args.directory, hosts=tuple(args.host))
     print(f"ttl credentials: {d}: ca.pem and {', '.join(ROLES)} (.pem, .key)")
@@ -335,16 +338,13 @@ def _add_security(p, credentials_help: str, insecure_help: str) -> None:
 
 
 def _cmd_router(args) -> int:
-    from .session import DEFAULT_ROUTER_LISTEN, SessionConfigError, SessionSettings, open_router, open_session
 
     if (args.credentials is None) == (not args.insecure):
         raise TTLError("give --credentials DIR (mutual TLS and access control; 'ttl credentials DIR' makes it) "
                        "or --insecure (plain TCP, anyone reaching the port may publish)")
     default = DEFAULT_ROUTER_LISTEN
     if args.credentials is not None:
-        import zenoh
 
-        from .security import ROUTER_LOG_FILTER, filter_log
 
         # the router's log (stderr) is the record of refused peers and publications
         filter_log()

@@ -43,6 +43,8 @@ from typing import Any
 
 import numpy as np
 
+from .keys import parse_segment_key
+
 #: Value of the header field ``schema``.
 SCHEMA = "ttl-segment"
 #: Header version understood by this module (bumped on incompatible change).
@@ -143,7 +145,6 @@ class Header:
         """Topic of :attr:`key` (None when the key is unknown)."""
         if self.key is None:
             return None
-        from .keys import parse_segment_key
         return parse_segment_key(self.key).topic
 
     def array(self, name: str) -> ArraySpec:

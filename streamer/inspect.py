@@ -24,9 +24,12 @@ line naming the file or directory at fault (``ttl`` exits with status 2).
 from __future__ import annotations
 
 import json
+import logging
 import math
+import os
 import re
 import shlex
+import shutil
 import signal
 import subprocess
 from collections import Counter, defaultdict
@@ -34,7 +37,10 @@ from pathlib import Path
 
 import numpy as np
 
+from ttlcore.conventions import COEFFICIENT_NAMES
+from ttlcore.diagnose.trends import TrendSettings, trend_estimates
 from ttlcore.io.atomic import write_json
+from ttlcore.io.truth import read_truth
 
 from .keys import to_ranges
 from .recorder import Recording, RecordingError, read_recording, to_jsonable
@@ -212,7 +218,6 @@ def _trends(fits: list[dict]) -> dict:
     ok = all(isinstance(a, (int, float)) and isinstance(b, (int, float)) and b > a for a, b in windows)
     if ok and len(same) >= 3 and np.all(np.isfinite(S)):
         try:
-            from ttlcore.diagnose.trends import TrendSettings, trend_estimates
 
             te = np.array([b for _, b in windows])
             order = np.argsort(te, kind="stable")
@@ -231,13 +236,11 @@ def _trends(fits: list[dict]) -> dict:
 
 def truth_over_window(truth_path, t_start: float, t_stop: float, names) -> dict:
     """True coefficients [mm/rad] averaged over ``[t_start, t_stop)`` from a truth file."""
-    from ttlcore.io.truth import read_truth
 
     head = read_truth(truth_path, 0, 1)
     i0 = max(0, int(np.floor((t_start - head.t0) * head.fs)))
     i1 = max(i0 + 1, int(np.ceil((t_stop - head.t0) * head.fs)))
     tr = read_truth(truth_path, i0, i1)
-    from ttlcore.conventions import COEFFICIENT_NAMES
 
     mean = dict(zip(COEFFICIENT_NAMES, tr.coefficients.mean(axis=1) * 1e3))
     return {n: float(mean[n]) for n in names if n in mean}
@@ -503,8 +506,6 @@ def rerun_binary(explicit: str | None = None) -> str:
     FileNotFoundError
         If there is none.
     """
-    import os
-    import shutil
 
     if explicit:
         return str(explicit)
@@ -564,7 +565,6 @@ def recording_to_view(target) -> Path:
 # ---------------------------------------------------------------------------- command line
 
 def _cmd_inspect(args) -> int:
-    import logging
 
     # the reader's "salvaged ..." warnings are part of the report (interruptions)
     reader_log = logging.getLogger("streamer.recorder")

@@ -45,6 +45,7 @@ on another host, or started later: late joiners catch up from the caches).
 
 from __future__ import annotations
 
+import ctypes
 import importlib.util
 import json
 import logging
@@ -64,7 +65,13 @@ from ttlcore.errors import TTLError
 
 from . import security
 from .keys import check_name, control_key, from_ranges, to_ranges
-from .session import Bus, SessionSettings, declare_segment_publisher, declare_segment_subscriber, loopback_endpoint
+from .session import (
+    Bus,
+    SessionSettings,
+    declare_segment_publisher,
+    declare_segment_subscriber,
+    loopback_endpoint,
+)
 from .stage import BOARD, LAUNCHER
 
 log = logging.getLogger(__name__)
@@ -754,7 +761,6 @@ def _die_with_parent() -> None:
     """In a child before exec: receive SIGTERM when the launcher dies (Linux), so that a
     killed launcher leaves no router behind."""
     try:
-        import ctypes
 
         ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
     except (OSError, AttributeError):

@@ -17,13 +17,15 @@ from pathlib import Path
 
 import numpy as np
 
+from ttlcore.cli.diagnose import split_effects as split
 from ttlcore.cli.progress import status_line
-from ttlcore.io.atomic import write_json
 from ttlcore.conventions import COEFFICIENT_NAMES
+from ttlcore.diagnose.diagnoser import DiagnoseSettings, refit
 from ttlcore.errors import TTLError
+from ttlcore.io.atomic import write_json
 from ttlcore.io.telemetry import Telemetry
 
-from .inspect import recording_files
+from .inspect import InspectError, recording_files
 from .messages import tdi_of, telemetry_of
 from .recorder import RecordingError, read_recording
 
@@ -95,7 +97,6 @@ def refit_run(run_dir, effects, *, baseline=("linear-ttl",), effect_modules=(), 
               source: str = "auto", band=None) -> dict:
     """Refit a recorded run with ``effects`` against ``baseline`` (see the module docstring);
     returns the JSON report (``source``, ``model``, ``baseline``, ``change``)."""
-    from ttlcore.diagnose.diagnoser import DiagnoseSettings, refit
 
     data, what, dws = load_run(run_dir, segments, source)
     dws = None if dws is None else float(dws)
@@ -173,9 +174,7 @@ def register(sub) -> None:
 
 
 def _cmd_refit(args) -> int:
-    from .inspect import InspectError
 
-    from ttlcore.cli.diagnose import split_effects as split  # ',' between effects, ';' inside one (as ttl diagnose)
     try:
         with status_line("ttl refit") as say:  # in place on a terminal
             say(f"reading the recorded segments of {args.run_dir} and refitting with {args.effects}")

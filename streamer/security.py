@@ -41,6 +41,7 @@ import json
 import os
 import re
 import stat
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -431,7 +432,6 @@ def filter_log() -> None:
     """Pass this process's stdout and stderr (where Zenoh logs) through threads that drop
     the allowed-message decisions (:data:`_ALLOWED`), so that a router's log keeps its
     refusals without growing with every message."""
-    import threading
 
     for fd in (1, 2):
         read_fd, write_fd = os.pipe()

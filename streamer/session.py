@@ -56,6 +56,7 @@ import zenoh
 from zenoh import ext
 
 from .keys import alive_key, alive_pattern, parse_alive_key, segment_key
+from .security import CredentialsError, Identity, access_control
 
 log = logging.getLogger(__name__)
 
@@ -227,7 +228,6 @@ def make_config(settings: SessionSettings | None = None) -> zenoh.Config:
 
 def _secure(config: zenoh.Config, s: SessionSettings, mode: str) -> None:
     """Mutual TLS with the identity's certificate, TLS links only, and (router) the ACL."""
-    from .security import CredentialsError, Identity, access_control
 
     if not s.identity:
         raise SessionConfigError("credentials given without an identity (the role whose certificate to use)")

@@ -16,7 +16,19 @@ from pathlib import Path
 
 from ..conventions import parse_duration
 from ..diagnose.adequacy import FIXED_MODEL_TOLERANCE
+from ..diagnose.diagnoser import (
+    DiagnoseSettings,
+    diagnose,
+    fine_band_table,
+    strip_internals,
+    text_report,
+)
+from ..diagnose.effects import available_effects, make_effects
 from ..errors import TTLError
+from ..estimate.analyze import check_band, load_truth
+from ..io.atomic import write_json
+from ..io.reader import file_kind, read_telemetry
+from ..plots.diagnosis import plot_residual_vs_noise, plot_witness_coherence
 from .progress import status_line
 
 
@@ -61,11 +73,6 @@ def split_effects(text: str) -> list[str]:
 
 
 def run(args) -> int:
-    from ..estimate.analyze import load_truth
-    from ..io.atomic import write_json
-    from ..diagnose.diagnoser import DiagnoseSettings, diagnose, fine_band_table, strip_internals, text_report
-    from ..diagnose.effects import available_effects, make_effects
-    from ..io.reader import file_kind, read_telemetry
 
     data = Path(args.data)
     if not data.exists():
@@ -87,7 +94,6 @@ def run(args) -> int:
             raise TTLError(f"--candidates: unknown effect(s) {bad}; known: {', '.join(sorted(known))}")
     s = DiagnoseSettings()
     if args.band is not None:
-        from ..estimate.analyze import check_band
 
         s.band = check_band(args.band)
     if args.segment is not None:
@@ -118,7 +124,6 @@ def run(args) -> int:
     if args.out:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
-        from ..plots.diagnosis import plot_residual_vs_noise, plot_witness_coherence
 
         dg, model = internals["diagnoser"], internals["model"]
         fits = {"model": model}

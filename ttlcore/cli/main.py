@@ -20,10 +20,19 @@ from pathlib import Path
 
 import numpy as np
 
-from ..conventions import COEFFICIENT_NAMES, DAY, parse_duration
+from ..conventions import COEFFICIENT_NAMES, DAY, LINKS, parse_duration
+from ..diagnose.effects import injection_from_spec
 from ..errors import TTLError
-from ..io.atomic import write_json
+from ..estimate.analyze import analyze, check_band, check_method
+from ..estimate.fit import DEFAULT_BAND, FitSettings
+from ..gw.injection import parse_gw_spec
 from ..gw.scenarios import add_parser as _add_scenarios
+from ..io.atomic import write_json
+from ..io.reader import file_kind, read_telemetry
+from ..io.truth import NOISE_COMPONENTS, read_truth, truth_path
+from ..sim.coefficients import make_coefficients
+from ..sim.orbits import make_orbit
+from ..sim.simulator import NoiseSwitches, SimulationConfig, simulate_to_file
 from .diagnose import add_parser as _add_diagnose
 
 log = logging.getLogger("ttl")
@@ -106,9 +115,6 @@ def add_simulation_options(p) -> None:
 def simulation_config_from_args(args, truth_noises=()):
     """A :class:`~ttlcore.sim.simulator.SimulationConfig` from the options of
     :func:`add_simulation_options`; errors name the option at fault."""
-    from ..sim.coefficients import make_coefficients
-    from ..sim.orbits import make_orbit
-    from ..sim.simulator import NoiseSwitches, SimulationConfig
 
     try:
         duration = parse_duration(args.duration)
@@ -129,7 +135,6 @@ def simulation_config_from_args(args, truth_noises=()):
     make_orbit(args.orbit)  # validate early: clear error before any work
     gw = ()
     if getattr(args, "gw", ""):
-        from ..gw.injection import parse_gw_spec
 
         gw = parse_gw_spec(args.gw, t0=args.t0, duration=duration, seed=args.seed)
     return SimulationConfig(
@@ -143,7 +148,6 @@ def _effect_injections(args) -> tuple:
     """The ``--inject`` options as simulator injections (:mod:`ttlcore.diagnose.effects`)."""
     if not getattr(args, "inject", None):
         return ()
-    from ..diagnose.effects import injection_from_spec
 
     out = []
     for spec in args.inject:
@@ -171,8 +175,6 @@ def _add_simulate(sub) -> None:
 
 
 def _cmd_simulate(args) -> int:
-    from ..sim.simulator import simulate_to_file
-    from ..io.truth import NOISE_COMPONENTS
 
     try:
         chunk = parse_duration(args.chunk)
@@ -210,9 +212,6 @@ def _rms(x: np.ndarray) -> list[float]:
 
 def summarise(path) -> dict:
     """Summary of a telemetry or truth file as a JSON-serialisable dict."""
-    from ..conventions import LINKS
-    from ..io.reader import file_kind, read_telemetry
-    from ..io.truth import read_truth, truth_path
 
     kind = file_kind(path)
     if kind == "truth":
@@ -252,7 +251,6 @@ def _cmd_info(args) -> int:
         return 0
     if args.json:
         write_json(args.json, s)
-    from ..conventions import LINKS
 
     print(f"{s['file']}: {s['kind']} file")
     print(f"  t0 {s['t0']:.3f} s, fs {s['fs']:g} Hz, {s['size']} samples = {s['duration_s'] / 3600:.3f} h")
@@ -277,7 +275,6 @@ def _cmd_info(args) -> int:
 # ---------------------------------------------------------------------------
 
 def _add_analyze(sub) -> None:
-    from ..estimate.fit import DEFAULT_BAND, FitSettings
 
     p = sub.add_parser(
         "analyze",
@@ -301,8 +298,6 @@ def _add_analyze(sub) -> None:
 
 
 def _cmd_analyze(args) -> int:
-    from ..estimate.analyze import analyze, check_band, check_method
-    from ..estimate.fit import DEFAULT_BAND, FitSettings
 
     method = check_method(args.method)
     band = tuple(DEFAULT_BAND) if args.band is None else check_band(args.band)

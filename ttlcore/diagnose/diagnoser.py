@@ -37,32 +37,10 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import special, stats
+from scipy.optimize import minimize_scalar
 
-from .adequacy import (
-    _hz,
-    DEFAULT_ALPHA,
-    DEFAULT_TOLERANCE,
-    DIAGNOSIS_BAND,
-    band_table,
-    describe_failures,
-    describe_time_failures,
-    instrument_noise_csd,
-    merged_band_edges,
-    p_value,
-    third_octave_table,
-)
-from ..conventions import COEFFICIENT_NAMES
-from .effects import (
-    Column,
-    Effect,
-    Step,
-    available_effects,
-    columns_tdi,
-    effect_input_from_telemetry,
-    filtered,
-    make_effects,
-    tdi_in_blocks,
-)
+from ..conventions import COEFFICIENT_NAMES, LINKS, parse_duration
+from ..conventions import C as SPEED_OF_LIGHT
 from ..errors import ConfigError
 from ..estimate.fit import (
     DWS_ASD,
@@ -74,11 +52,50 @@ from ..estimate.fit import (
     notch_mask,
     variance_factor,
 )
-from ..tdi.interpolation import DEFAULT_ORDER
 from ..estimate.spectra import segment_fft, window
-from ..tdi.combinations import DEFAULT_DELAY_ORDER, MICHELSON, aet, build
-from ..tdi.data import TDIData
+from ..tdi.combinations import (
+    AET_MATRIX,
+    DEFAULT_DELAY_ORDER,
+    MICHELSON,
+    aet,
+    build,
+    link_responses,
+)
+from ..tdi.data import TDIData, history_samples, lowpass_taps
+from ..tdi.interpolation import DEFAULT_ORDER, timeshift
+from ..tdi.regressors import placement
+from .adequacy import (
+    DEFAULT_ALPHA,
+    DEFAULT_TOLERANCE,
+    DIAGNOSIS_BAND,
+    _hz,
+    band_table,
+    describe_failures,
+    describe_time_failures,
+    instrument_noise_csd,
+    merged_band_edges,
+    p_value,
+    third_octave_table,
+)
+from .effects import (
+    Column,
+    Effect,
+    LinearTTL,
+    Step,
+    available_effects,
+    columns_tdi,
+    derivative,
+    effect_input_from_telemetry,
+    filtered,
+    make_effects,
+    names_only_input,
+    readout_noise_factor,
+    tdi_in_blocks,
+)
+from .evidence import log_bayes_factor
 from .noise_model import noise_model_json, profile_noise_model
+from .search import profile_search, stable_solve
+from .witnesses import witness_candidates, witness_search
 
 log = logging.getLogger(__name__)
 
@@ -150,29 +167,6 @@ class DiagnoseSettings:
 # ---------------------------------------------------------------------------
 # Linear-Gaussian algebra
 # ---------------------------------------------------------------------------
-
-def log_bayes_factor(A: np.ndarray, beta: np.ndarray, prior_scale: np.ndarray) -> float:
-    """Exact log Bayes factor of adding parameters ``beta`` to a linear-Gaussian model.
-
-    With the other parameters marginalised under a flat prior, the likelihood of the new
-    parameters is Gaussian with precision ``A`` (the Schur complement of the Fisher matrix)
-    around ``beta``; with the prior ``N(0, D)``, ``D = diag(prior_scale^2)``,
-
-        log B = -1/2 log det(I + D^1/2 A D^1/2)
-                + 1/2 [beta^T A beta - beta^T A (I + D A)^-1 beta].
-
-    ``beta^T A beta`` is the delta chi^2.  Positive values favour the larger model.
-    """
-    d = np.asarray(prior_scale, dtype=float)
-    k = beta.size
-    M = np.eye(k) + d[:, None] * A * d[None, :]
-    sign, logdet = np.linalg.slogdet(M)
-    if sign <= 0:
-        return float("nan")
-    q1 = beta @ A @ beta
-    q2 = beta @ A @ np.linalg.solve(np.eye(k) + (d ** 2)[:, None] * A, beta)
-    return float(-0.5 * logdet + 0.5 * (q1 - q2))
-
 
 def _band_slices(band_index: np.ndarray, G: int) -> list[tuple[int, int]]:
     """Contiguous bin ranges of the bands (frequencies ascend, so bands are contiguous)."""
@@ -394,7 +388,6 @@ class Diagnoser:
         self.col_info: dict[str, tuple] = {}
         self._add_columns(list(dec.names), np.matmul(self.Lh, R), [(1.0, "m/rad", 2.3e-3)] * len(dec.names))
         # errors-in-variables: the DWS channel and placement of every plain-witness column
-        from ..tdi.regressors import placement
 
         self._eiv_cache: dict = {}
         self.eiv_parts: dict = {}
@@ -421,7 +414,6 @@ class Diagnoser:
     def from_telemetry(cls, tm, settings: DiagnoseSettings | None = None, effect_modules=()) -> "Diagnoser":
         """From a :class:`~ttlcore.io.telemetry.Telemetry` (ours or lisainstrument's)."""
         s = settings or DiagnoseSettings()
-        from .effects import LinearTTL
 
         # TDI in 3-h blocks (tdi_in_blocks): the interpolation taps of a day would hold ~4 GB
         data, regs = tdi_in_blocks(tm.ltt, tm.fs, LinearTTL().columns(effect_input_from_telemetry(tm)), tm.eta,
@@ -472,7 +464,6 @@ class Diagnoser:
         the TTL regressors' TDI (columns ``d1:<name>``, ``d2:<name>``), computed once."""
         if self._have_derivatives:
             return
-        from .effects import derivative
 
         td = self._td_in
         for order in (1, 2):
@@ -525,7 +516,7 @@ class Diagnoser:
         if isinstance(effect, Step) and effect.options.get("t_step") is None:
             raise ConfigError("effect 'step' needs t_step in a model (ttl diagnose reports the searched time)")
         if effect.name == "linear-ttl":
-            names = [c.name for c in effect.columns(_names_input())]
+            names = [c.name for c in effect.columns(names_only_input())]
             missing = [n for n in names if n not in self.wcols]
             if missing:
                 raise ConfigError(f"linear-ttl columns {missing[:3]} missing from the TDI data")
@@ -650,7 +641,6 @@ class Diagnoser:
             t_ref = 0.5 * (t[self.mask][0] + t[self.mask][-1]) if t_ref is None else float(t_ref)
             mod, prefix, unit = (t - t_ref) / 86400.0, "drift", "m/rad/day"
         else:
-            from ..conventions import parse_duration
 
             mod, prefix, unit = (t >= parse_duration(effect.options["t_step"])).astype(float), "step", "m/rad"
         names, cols = [], []
@@ -710,7 +700,7 @@ class Diagnoser:
                 by_channel.setdefault(ch, {}).setdefault(i, []).append((link, extra, shift[0] if shift else 0.0))
         for ch, cols in by_channel.items():
             idx = sorted(cols)
-            U = np.stack([sum(self._eiv_response(link, extra) * _eiv_factor(self.f, shift)
+            U = np.stack([sum(self._eiv_response(link, extra) * readout_noise_factor(self.f, shift)
                               for link, extra, shift in cols[i]) for i in idx], axis=-1)
             for g, (a, b) in enumerate(self.slices):
                 if b > a:
@@ -738,8 +728,6 @@ class Diagnoser:
         placed on ``link`` after ``extra`` delays, times the noise's ASD (velocity)."""
         key = (link, tuple(extra))
         if key not in self._eiv_cache:
-            from ..conventions import C as SPEED_OF_LIGHT, LINKS
-            from ..tdi.combinations import AET_MATRIX, link_responses
 
             h = np.stack([link_responses(c, self.f, self.ltt_mean, tuple(extra))[LINKS.index(link)] for c in MICHELSON])
             T = (AET_MATRIX @ h).T * (-1.0 / SPEED_OF_LIGHT)  # (m, 3)
@@ -773,7 +761,6 @@ class Diagnoser:
         replaced by the same effect at the estimates of :func:`ttlcore.diagnose.search.profile_search`,
         profiled against the model of the other effects; returns the effects and the
         searches (``cli spec -> result``)."""
-        from .search import profile_search
 
         out, searches = list(effects), {}
         for i, e in enumerate(effects):
@@ -825,7 +812,6 @@ class Diagnoser:
                 ref = steps["drift"].options.get("t_ref") if "drift" in steps else None
                 C[k] += vals[f"drift.{name}"] * (t - (t_ref if ref is None else float(ref))) / 86400.0
             if f"step.{name}" in vals and "step" in steps:
-                from ..conventions import parse_duration
 
                 C[k] += vals[f"step.{name}"] * (t >= parse_duration(steps["step"].options["t_step"]))
         return C
@@ -948,7 +934,6 @@ class Diagnoser:
         theta : dict
             Column name -> linear parameter at the optimum.
         """
-        from scipy.optimize import minimize_scalar
 
         span = float(self.settings.shift_span if span is None else span)
         members = {g: [names.index(n) for n in mem] for g, mem in effect.shifted_members().items()
@@ -1044,8 +1029,6 @@ class Diagnoser:
         names : list of str
             The effect's own columns.
         """
-        from .effects import derivative
-        from ..tdi.interpolation import timeshift
 
         td = self._td_in
         sgn = float(effect.d1_sign)
@@ -1194,7 +1177,6 @@ class Diagnoser:
         bb = np.concatenate([b_M, b_K], axis=-1)
         Nt = full.sum(axis=(0, 1)) - E_full.sum(axis=0)
         bt = bb.sum(axis=(0, 1))
-        from .search import stable_solve
 
         th = stable_solve(Nt, bt)
         if th is None:
@@ -1349,8 +1331,6 @@ class Diagnoser:
         """
         if self.tm is None:
             return None
-        from .effects import LinearTTL
-        from ..tdi.data import history_samples, lowpass_taps
 
         tm, fs = self.tm, self.tm.fs
         taps = lowpass_taps(fs) if self.decimation > 1 else np.ones(1)
@@ -1410,7 +1390,6 @@ class Diagnoser:
             extra = {}
             try:
                 if effect.unresolved() and not isinstance(effect, Step):
-                    from .search import profile_search
 
                     with self._columns_kept():
                         found = profile_search(self, model, effect, C)
@@ -1542,22 +1521,6 @@ class Diagnoser:
         if "offsets" in extra:  # searched offsets [s] of a shifted-witness effect, per group
             out["offsets"] = extra["offsets"]
         return out
-
-
-def _eiv_factor(f, shift):
-    """Factor of a part's readout-noise response: a time shift [s] (the phase
-    ``exp(2 pi i f shift)``) or a frequency response (m,) of a filtered column."""
-    if isinstance(shift, np.ndarray):
-        return shift[:, None]
-    return np.exp(2j * np.pi * f * shift)[:, None] if shift else 1.0
-
-
-def _names_input():
-    from .effects import EffectInput
-
-    t = np.arange(64.0)
-    z = np.zeros((6, 64))
-    return EffectInput(t=t, fs=1.0, phi_dot=z, eta_dot=z, ltt=z + 8.3, coefficients=np.zeros(24), names_only=True)
 
 
 def _top_parameters(ev, n: int = 6) -> list[dict]:
@@ -1692,7 +1655,6 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
     use_witnesses = s.witnesses if witnesses is None else witnesses
     extra = []
     if use_witnesses:
-        from .witnesses import witness_candidates, witness_search
 
         say("witness search")
         report["witnesses"] = witness_search(tm, dg, model, s.top_witnesses)

@@ -37,15 +37,30 @@ import functools
 import logging
 from dataclasses import dataclass, field
 from importlib import metadata
+from math import factorial
+from pathlib import Path
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 
-from ..conventions import ANGLES, C, COEFFICIENT_NAMES, DAY, LINKS, MOSAS, SIDES, local_spacecraft, reverse
+from ..conventions import (
+    ANGLES,
+    COEFFICIENT_NAMES,
+    DAY,
+    LINKS,
+    MOSAS,
+    SIDES,
+    C,
+    local_spacecraft,
+    parse_duration,
+    reverse,
+)
 from ..errors import ConfigError
 from ..sim.injection import ChunkContext, load_module
 from ..tdi.combinations import MICHELSON
-from ..tdi.engine import tdi_columns
 from ..tdi.engine import Part as EnginePart
+from ..tdi.engine import tdi_columns
+from ..tdi.interpolation import apply_taps, shift_taps
 
 log = logging.getLogger(__name__)
 
@@ -207,7 +222,6 @@ _FD_HALF = 12
 
 def _fd_weights(order: int, half: int = _FD_HALF) -> np.ndarray:
     j = np.arange(1, half + 1)
-    from math import factorial
 
     base = np.array([factorial(half) ** 2 / (factorial(half - k) * factorial(half + k)) for k in j]) * (-1.0) ** (j + 1)
     if order == 1:
@@ -224,7 +238,6 @@ def derivative(x: np.ndarray, fs: float, order: int = 1) -> np.ndarray:
     w = _fd_weights(order) * fs ** order
     x = np.asarray(x, dtype=float)
     out = np.full(x.shape, np.nan)
-    from numpy.lib.stride_tricks import sliding_window_view
 
     win = sliding_window_view(x, w.size, axis=-1)
     out[..., _FD_HALF:-_FD_HALF] = win @ w
@@ -425,7 +438,6 @@ class Step(Effect):
         if self.options.get("t_step") is None:
             raise ConfigError("effect 'step' needs t_step (a time, e.g. step:t_step=50000) or a search "
                               "(ttl diagnose searches it)")
-        from ..conventions import parse_duration
 
         ts = parse_duration(self.options["t_step"])
         h = (data.t >= ts).astype(float)
@@ -710,7 +722,6 @@ class _Placed(Effect):
             t_ref = data.t_ref if self.options.get("t_ref") is None else float(self.options["t_ref"])
             return (data.t - t_ref) / DAY
         if vary == "step":
-            from .conventions import parse_duration
 
             if self.options.get("t_step") is None:
                 raise ConfigError(f"effect {self.name!r} vary=step needs t_step")
@@ -871,7 +882,6 @@ def load_effect_module(spec: str) -> list[type]:
         if not (isinstance(cls, type) and issubclass(cls, Effect)) or not getattr(cls, "name", None) or cls.name == "effect":
             raise ConfigError(f"{spec}: {cls!r} is not an Effect subclass with a name")
         if spec.endswith(".py"):
-            from pathlib import Path
 
             cls._ttl_module_path = str(Path(spec).resolve())
         else:
@@ -1025,7 +1035,6 @@ FALLBACK_ORDER = 3
 def _read_at(x: np.ndarray, pos: np.ndarray, order: int) -> np.ndarray:
     """``x`` (m,) at fractional sample positions ``pos``: centred Lagrange taps
     (:func:`ttlcore.tdi.interpolation.shift_taps`), off-centre stencils where those leave the data."""
-    from ..tdi.interpolation import apply_taps, shift_taps
 
     out = apply_taps(x, shift_taps(pos - np.arange(pos.size), pos.size, order))
     bad = ~np.isfinite(out)
@@ -1195,3 +1204,18 @@ def columns_tdi(columns: list[Column], built) -> np.ndarray:
     b = built[0]
     return tdi_columns(_engine_parts(columns), len(columns), b.ltt, b.fs, history=b.history,
                        combinations=[x.combination for x in built], order=b.order, delay_order=b.delay_order)
+
+
+def readout_noise_factor(f, shift):
+    """Factor of a part's readout-noise response: a time shift [s] (the phase
+    ``exp(2 pi i f shift)``) or a frequency response (m,) of a filtered column."""
+    if isinstance(shift, np.ndarray):
+        return shift[:, None]
+    return np.exp(2j * np.pi * f * shift)[:, None] if shift else 1.0
+
+
+def names_only_input() -> "EffectInput":
+    """A tiny input with ``names_only=True``: enough for an effect to name its columns."""
+    t = np.arange(64.0)
+    z = np.zeros((6, 64))
+    return EffectInput(t=t, fs=1.0, phi_dot=z, eta_dot=z, ltt=z + 8.3, coefficients=np.zeros(24), names_only=True)

@@ -33,6 +33,8 @@ import numpy as np
 from scipy import optimize, special
 
 from ..errors import ConfigError
+from .effects import effect_input_from_telemetry, names_only_input, readout_noise_factor
+from .evidence import log_bayes_factor
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +98,6 @@ class _Spectral:
     """Per-bin products of the base columns of a filtered effect (built once per search)."""
 
     def __init__(self, dg, model, cols):
-        from .diagnoser import _eiv_factor
 
         self.dg = dg
         M = list(model.names)
@@ -116,7 +117,7 @@ class _Spectral:
         for i, n in enumerate(names):
             for ch, link, extra, *shift in dg.eiv_parts.get(n, ()):
                 r = resp.setdefault(ch, np.zeros((dg.f.size, 3, len(names)), dtype=complex))
-                r[:, :, i] += dg._eiv_response(link, extra) * _eiv_factor(dg.f, shift[0] if shift else 0.0)
+                r[:, :, i] += dg._eiv_response(link, extra) * readout_noise_factor(dg.f, shift[0] if shift else 0.0)
         W = dg.eiv_weights(names)
         P = len(M)
         self.eMB = np.zeros((dg.f.size, P, len(self.bases)))
@@ -133,7 +134,6 @@ class _Spectral:
         used) on the bases ``idx``.  Fast: the filters applied to the base columns' segment
         spectra (products over bins only); ``exact``: the base series filtered in time and
         then windowed (:meth:`ttlcore.diagnose.diagnoser.Diagnoser.filtered_spectra`, as the fit)."""
-        from .diagnoser import log_bayes_factor
 
         dg = self.dg
         R = np.stack([np.ones(dg.f.size, complex) if c.response is None else np.asarray(c.response(dg.f), complex)
@@ -194,7 +194,6 @@ def profile_search(dg, model, effect, coefficients=None) -> SearchResult:
     against ``model`` (a :class:`ttlcore.diagnose.diagnoser.ModelFit`); see the module docstring.
 
     Raises ConfigError when the diagnoser has no telemetry (the columns need DWS series)."""
-    from .effects import effect_input_from_telemetry
 
     names = effect.unresolved()
     if not names:
@@ -208,7 +207,6 @@ def profile_search(dg, model, effect, coefficients=None) -> SearchResult:
         v = back(np.clip(np.asarray(x, dtype=float), lo, hi))
         return effect.with_options(**{k: float(f"{float(val):.6g}") for k, val in zip(names, v)})
 
-    from .diagnoser import _names_input
 
     data = effect_input_from_telemetry(dg.tm, coefficients)
     mid = effect_at(0.5 * (lo + hi))
@@ -217,7 +215,7 @@ def profile_search(dg, model, effect, coefficients=None) -> SearchResult:
     if spectral:
         sp = _Spectral(dg, model, cols0)
         idx = [sp.bases.index(dg.base_column(c)) for c in cols0]
-        names_only = _names_input()
+        names_only = names_only_input()
         # the responses of the columns at x: built on the names-only input (no series)
         evaluate = lambda x: sp.evaluate(effect_at(x).columns(names_only), idx)  # noqa: E731
         exact = lambda x: sp.evaluate(effect_at(x).columns(names_only), idx, exact=True)  # noqa: E731

@@ -32,9 +32,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..conventions import ANGLES, C, LINKS, MOSAS, reverse
-from ..estimate.spectra import segment_fft
+from ..conventions import ANGLES, LINKS, MOSAS, C, reverse
+from ..estimate.spectra import segment_fft, window
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
+from .effects import make_effects
 
 
 def _responses(f, ltt_mean) -> np.ndarray:
@@ -62,7 +63,6 @@ def witness_library(tm, dg) -> tuple[list[dict], dict]:
     fs = tm.fs
     t = tm.t0 + np.arange(tm.size) / fs
     L = int(round(dg.seg_duration * fs))
-    from ..estimate.spectra import window
 
     win = window(dg.settings.window, L)
     ltt = dict(zip(LINKS, dg.ltt_mean))
@@ -229,7 +229,6 @@ def witness_candidates(report: dict, top: int = 3, modules=()) -> list:
     coupling's phase and a delay look alike over a band: the evidence decides), and with a
     searched real pole at the witness's own delay; for the second DWS channel and link in
     the ranking, the pole pair at its delay."""
-    from .effects import make_effects
 
     specs: list = []
     placements: list = []

@@ -35,15 +35,15 @@ segment and drop the oldest, and the batch fit uses exactly the same sums.
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES
-from .noise_psd import tdi_noise_csd
-from ..tdi.regressors import dws_channel, regressor_responses
-from .spectra import segment_fft, smooth_csd, smooth_csd_variable, window
 from ..tdi.data import TDIData
+from ..tdi.regressors import dws_channel, regressor_responses
+from .noise_psd import tdi_noise_csd
+from .spectra import segment_fft, smooth_csd, smooth_csd_variable, window
 
 log = logging.getLogger(__name__)
 
@@ -672,7 +672,6 @@ def fit_tdi(td: TDIData, settings: FitSettings | None = None, method: str = "gls
 
 def with_extra_regressors(td: TDIData, extra: TDIData) -> TDIData:
     """``td`` with the regressor columns of ``extra`` appended (same time grid and channels)."""
-    from dataclasses import replace
 
     if extra.channels != td.channels or extra.size != td.size or abs(extra.t0 - td.t0) > 0.5 / td.fs or extra.fs != td.fs:
         raise ValueError(f"extra regressors do not match the TDI data (channels {extra.channels} vs {td.channels}, "

@@ -26,10 +26,16 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import h5py
 import numpy as np
+from scipy.interpolate import CubicSpline
 
 from ..errors import ConfigError
+from .galaxy import GALAXY_DEFAULTS, binaries_link_signal, draw_galaxy
+from .mbhb import MBHB, PAPER_MBHBS, MBHBWaveform
 from .response import link_response
+from .sgwb import StochasticBackgroundGenerator
+from .sources import VERIFICATION_BINARIES, GalacticBinary
 
 __all__ = [
     "BinariesInjection",
@@ -60,7 +66,6 @@ class BinariesInjection:
     """
 
     def __init__(self, name: str, binaries):
-        from .sources import GalacticBinary
 
         self.name = str(name)
         self.binaries = [b if isinstance(b, GalacticBinary) else GalacticBinary(**b) for b in binaries]
@@ -68,7 +73,6 @@ class BinariesInjection:
     @classmethod
     def catalogue(cls, names, name: str | None = None) -> "BinariesInjection":
         """From catalogue keys (``"HM Cnc"``, ``"ZTF J1539"``)."""
-        from .sources import VERIFICATION_BINARIES
 
         return cls(name or "_".join(n.replace(" ", "").lower() for n in names),
                    [VERIFICATION_BINARIES[n] for n in names])
@@ -101,7 +105,6 @@ class GalaxyInjection:
     """
 
     def __init__(self, name: str = "galaxy", seed: int = GALAXY_SEED, t_init: float = 0.0, model: dict | None = None):
-        from .galaxy import GALAXY_DEFAULTS
 
         self.name = str(name)
         self.seed = int(seed)
@@ -115,7 +118,6 @@ class GalaxyInjection:
     @property
     def binaries(self):
         if self._binaries is None:
-            from .galaxy import draw_galaxy
 
             self._binaries = draw_galaxy(self.seed, t_init=self.t_init, **self.model)
         return self._binaries
@@ -125,7 +127,6 @@ class GalaxyInjection:
                 "model": self.model}
 
     def link_signal(self, ctx) -> np.ndarray:
-        from .galaxy import binaries_link_signal
 
         return binaries_link_signal(ctx.orbit, ctx.t, self.binaries)
 
@@ -157,7 +158,6 @@ class SGWBInjection:
                 "f_ref": self.f_ref, "alpha": self.alpha, "n_pix": self.n_pix, "filter_length": self.filter_length}
 
     def generator(self, orbit, t: float, fs: float):
-        from .sgwb import StochasticBackgroundGenerator
 
         if self._gen is None:
             pos = np.asarray(orbit.positions(np.array([t])), dtype=float)[:, 0, :]
@@ -184,7 +184,6 @@ class MBHBInjection:
     """A massive black-hole binary merger (:class:`ttlcore.gw.mbhb.MBHB`, closed-form IMR waveform)."""
 
     def __init__(self, name: str, **params):
-        from .mbhb import MBHB
 
         self.name = str(name)
         params["name"] = self.name
@@ -196,7 +195,6 @@ class MBHBInjection:
 
     @classmethod
     def paper(cls, which: str, t_c: float | None = None) -> "MBHBInjection":
-        from .mbhb import PAPER_MBHBS
 
         params = dict(PAPER_MBHBS[which])
         params.pop("name", None)
@@ -207,7 +205,6 @@ class MBHBInjection:
     @property
     def waveform(self):
         if self._wave is None:
-            from .mbhb import MBHBWaveform
 
             self._wave = MBHBWaveform(self.source)
         return self._wave
@@ -229,7 +226,6 @@ class GWFileInjection:
     Times outside the file are an error."""
 
     def __init__(self, path, dataset: str = "tps/y", name: str | None = None):
-        import h5py
 
         self.path = Path(path)
         self.dataset = str(dataset)
@@ -257,7 +253,6 @@ class GWFileInjection:
         return {"kind": "gw", "source": "file", "name": self.name, "path": str(self.path), "dataset": self.dataset}
 
     def link_signal(self, ctx) -> np.ndarray:
-        import h5py
 
         t = np.asarray(ctx.t, dtype=float)
         pos = (t - self.t0) / self.dt
@@ -271,7 +266,6 @@ class GWFileInjection:
                 i0, i1 = idx[0], idx[-1] + 1
                 block = ds[i0:i1]
                 return np.ascontiguousarray(block[idx - i0].T)
-            from scipy.interpolate import CubicSpline
 
             i0 = max(int(math.floor(pos[0])) - 3, 0)
             i1 = min(int(math.ceil(pos[-1])) + 4, self.size)

@@ -65,13 +65,29 @@ from pathlib import Path
 
 import numpy as np
 
-from ..conventions import C, COEFFICIENT_NAMES, DAY, ffd_to_displacement_asd
 from ..cli.progress import status_line
+from ..conventions import (
+    COEFFICIENT_NAMES,
+    DAY,
+    PAPER_ORDER,
+    C,
+    ffd_to_displacement_asd,
+    paper_ordered_names,
+    parse_duration,
+)
+from ..diagnose.reprocess import dask_client
 from ..errors import TTLError
 from ..estimate.fit import DEFAULT_BAND, FitSettings, fit_tdi
-from ..diagnose.reprocess import dask_client
-from ..estimate.spectra import welch_asd
+from ..estimate.noise_psd import requirement_x2
+from ..estimate.spectra import log_average, welch_asd
+from ..estimate.subtraction import ttl_in_tdi
 from ..io.atomic import write_json, write_text
+from ..plots.batch import _save
+from ..sim.coefficients import make_coefficients
+from ..sim.simulator import NoiseSwitches, SimulationConfig, simulate
+from ..tdi.combinations import MICHELSON, build
+from ..tdi.data import compute_tdi
+from .injection import parse_gw_spec
 
 __all__ = ["Case", "PAPER_CASES", "VARIANTS", "run_scenarios", "add_parser"]
 
@@ -140,10 +156,6 @@ class _Runner:
 
     # -- simulation ---------------------------------------------------------------------
     def base(self, orbit: str, t0: float, variant: dict) -> dict:
-        from ..sim.coefficients import make_coefficients
-        from ..sim.simulator import SimulationConfig, simulate
-        from ..estimate.subtraction import ttl_in_tdi
-        from ..tdi.data import compute_tdi
 
         cfg = SimulationConfig(duration=self.duration, t0=t0, orbit=orbit, seed=self.seed,
                                coefficients=make_coefficients(variant["coeffs"], seed=self.seed))
@@ -160,8 +172,6 @@ class _Runner:
 
     def gw(self, case: Case, base: dict) -> tuple[np.ndarray, dict]:
         """GW link responses (6, n) of a case (sum) and per source, by the simulator's injection hook."""
-        from .injection import parse_gw_spec
-        from ..sim.simulator import NoiseSwitches, SimulationConfig, simulate
 
         t_c = None
         if case.tc_offset is not None:
@@ -185,7 +195,6 @@ class _Runner:
 
 
 def _tdi_of_links(y: np.ndarray, tm) -> np.ndarray:
-    from ..tdi.combinations import MICHELSON, build
 
     built = build(MICHELSON, tm.ltt, tm.fs)
     return np.stack([b(y) for b in built])
@@ -202,8 +211,6 @@ def _snr_band(f, p_gw, p_noise, band, duration) -> float:
 def analyse_case(case: Case, base: dict, runner: _Runner, variant: dict, out_dir: Path | None,
                  figures: bool = True) -> dict:
     """Fit with and without GW, subtraction, the summary metrics and (optionally) figures of one case."""
-    from ..estimate.noise_psd import requirement_x2
-    from ..estimate.spectra import log_average
 
     td, tm, cfg = base["td"], base["tm"], base["config"]
     band = tuple(case.band)
@@ -314,8 +321,6 @@ def analyse_case(case: Case, base: dict, runner: _Runner, variant: dict, out_dir
 def _figures(case, summary, f, P, fc, req, band, arm, res, ref, truth, out_dir: Path) -> dict:
     from matplotlib.figure import Figure
 
-    from ..plots.batch import _save
-    from ..estimate.spectra import log_average
 
     paths = {}
     names = ["data", "noise_without_ttl", "residual", "ttl_residual", "gw", "ttl_plus_gw_residual"]
@@ -363,7 +368,6 @@ def _figures(case, summary, f, P, fc, req, band, arm, res, ref, truth, out_dir: 
         paths["gw_intact"] = str(draw(["data", "noise_without_ttl", "residual", "gw", "ttl_plus_gw_residual"],
                                       out_dir / f"{case.name}_gw_intact.png", 1e-4, 3e-2, t2))
     # coefficients: with GW (fit - truth) and the reference
-    from ..conventions import PAPER_ORDER, paper_ordered_names
 
     order = list(paper_ordered_names())
     idx = [COEFFICIENT_NAMES.index(n) for n in order]
@@ -563,7 +567,6 @@ def add_parser(sub) -> None:
 
 
 def _cmd_scenarios(args) -> int:
-    from ..conventions import parse_duration
 
     try:
         duration = parse_duration(args.duration)

@@ -70,6 +70,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..conventions import C
+from .response import link_response
 
 __all__ = [
     "GM_SUN",
@@ -246,7 +247,6 @@ class GalacticBinary:
 
     def response(self, orbit, t) -> np.ndarray:
         """Six link responses ``(6, n)`` [fractional frequency] (:func:`ttlcore.gw.response.link_response`)."""
-        from .response import link_response
 
         return link_response(orbit, t, self.hplus, self.hcross, self.beta, self.lam, self.psi)
 

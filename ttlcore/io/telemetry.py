@@ -18,9 +18,17 @@ from pathlib import Path
 
 import numpy as np
 
+from .. import __version__
 from ..conventions import LINKS, MOSAS
 from ..errors import TelemetryError
-from .hdf5 import AtomicSeriesWriter, json_attr, number_attr, open_h5, read_series, text_attr
+from .hdf5 import (
+    AtomicSeriesWriter,
+    json_attr,
+    number_attr,
+    open_h5,
+    read_series,
+    text_attr,
+)
 
 log = logging.getLogger(__name__)
 
@@ -115,7 +123,6 @@ class TelemetryWriter(AtomicSeriesWriter):
     """
 
     def __init__(self, path, *, t0: float, fs: float, size: int, config: dict):
-        from .. import __version__
 
         attrs = {
             "format": FORMAT,

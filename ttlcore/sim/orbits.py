@@ -39,9 +39,11 @@ import math
 import os
 from collections.abc import Mapping, Sequence
 
+import h5py
 import numpy as np
+from scipy.interpolate import make_interp_spline
 
-from ..conventions import ARM_LENGTH, ASTRONOMICAL_UNIT, C, LINKS
+from ..conventions import ARM_LENGTH, ASTRONOMICAL_UNIT, LINKS, C
 from ..errors import ConfigError, TelemetryError
 
 logger = logging.getLogger(__name__)
@@ -701,7 +703,6 @@ class OrbitFile(Orbit):
 
     @staticmethod
     def _h5py():
-        import h5py
 
         return h5py
 
@@ -732,7 +733,6 @@ class OrbitFile(Orbit):
 
     def _spline(self, name: str, trailing: tuple[int, ...]):
         if name not in self._splines:
-            from scipy.interpolate import make_interp_spline
 
             data = self._load(name, trailing)
             k = min(self.order, self.size - 1)
