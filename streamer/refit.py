@@ -21,6 +21,7 @@ from ttlcore.cli.diagnose import split_effects as split
 from ttlcore.cli.progress import status_line
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.diagnoser import DiagnoseSettings, refit
+from ttlcore.diagnose.effects import make_effects
 from ttlcore.errors import TTLError
 from ttlcore.io.atomic import write_json
 from ttlcore.io.telemetry import Telemetry
@@ -175,6 +176,10 @@ def register(sub) -> None:
 
 def _cmd_refit(args) -> int:
 
+    # bad input fails in one line before any work starts: the effects, then the run directory
+    make_effects(split(args.effects) + split(args.baseline), args.effect_module)
+    if not Path(args.run_dir).is_dir():
+        raise RefitError(f"{args.run_dir}: no such run directory")
     try:
         with status_line("ttl refit") as say:  # in place on a terminal
             say(f"reading the recorded segments of {args.run_dir} and refitting with {args.effects}")
