@@ -92,9 +92,8 @@ from ttlcore.conventions import (
 from ttlcore.diagnose.trends import Alert, TrendMonitor, TrendSettings
 from ttlcore.estimate.fit import DEFAULT_BAND
 from ttlcore.estimate.noise_psd import requirement_x2, tdi_noise_csd
-from ttlcore.estimate.spectra import log_average
+from ttlcore.estimate.spectra import default_nperseg, log_average, welch_asd
 from ttlcore.io.truth import read_truth
-from ttlcore.plots.batch import default_nperseg, welch_asd_weighted_mean
 from ttlcore.sim.coefficients import CoefficientModel
 
 from . import OUTPUT_TOPIC, PipelineStage, jsonable, stage_main
@@ -268,7 +267,7 @@ def x_asd(x: np.ndarray, fs: float, per_decade: int = 20):
     x = finite_stretch(np.asarray(x, dtype=float))
     if x.size < 64:
         raise ValueError(f"too few finite samples ({x.size}) for an ASD")
-    f, asd = welch_asd_weighted_mean(x, fs, default_nperseg(x.size, fs))
+    f, asd = welch_asd(x, fs, default_nperseg(x.size, fs))
     fc, psd = log_average(f[1:], asd[1:] ** 2, per_decade=per_decade)
     good = psd > 0
     return fc[good], ffd_to_displacement_asd(np.sqrt(psd[good]), fc[good]), f[1:]

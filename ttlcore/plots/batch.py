@@ -25,9 +25,6 @@ from ..io.hdf5 import temporary_path
 from ..estimate.noise_psd import requirement_x2
 from ..estimate.spectra import default_nperseg, log_average, welch_asd
 
-#: The Welch estimator of :mod:`ttlcore.estimate.spectra` (name kept for the monitor stage).
-welch_asd_weighted_mean = welch_asd
-
 #: Coefficient requirement of the paper [m/rad]: |C_fit - C_true| < 0.1 mm/rad.
 COEFFICIENT_REQUIREMENT = 0.1e-3
 

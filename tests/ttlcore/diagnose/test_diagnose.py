@@ -21,7 +21,8 @@ from diagnose_helpers import injected_asd_ratio  # noqa: E402
 
 from ttlcore.cli.main import main  # noqa: E402
 from ttlcore.conventions import COEFFICIENT_NAMES  # noqa: E402
-from ttlcore.diagnose.diagnoser import Diagnoser, diagnose, log_bayes_factor, refit, text_report  # noqa: E402
+from ttlcore.diagnose.diagnoser import Diagnoser, diagnose, refit, text_report  # noqa: E402
+from ttlcore.diagnose.evidence import log_bayes_factor  # noqa: E402
 from ttlcore.diagnose.effects import injection_from_spec, make_effects  # noqa: E402
 from ttlcore.tdi.interpolation import timeshift  # noqa: E402
 from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
