@@ -53,6 +53,7 @@ from streamer.messages import tdi_of
 from streamer.recorder import read_recording
 from streamer.stage import Output
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY, parse_duration
+from ttlcore.diagnose.candidates import candidates
 from ttlcore.diagnose.diagnoser import DiagnoseSettings, refit
 from ttlcore.diagnose.effects import make_effects
 from ttlcore.errors import ConfigError
@@ -203,7 +204,7 @@ class Fitter(OrderedStage):
         if r is None:
             return None
         self._model_change = None
-        dg, model = r["_internals"]["diagnoser"], r["_internals"]["fit"]
+        model = r["_internals"]["fit"]
         adequacy = r["model"]["adequacy"]
         out: dict = {"adequacy": {
             "noise_model": "instrument (analytic secondary noises + DWS readout noise), not re-estimated",
@@ -226,7 +227,7 @@ class Fitter(OrderedStage):
                 "band_edges": [b["f_lo"] for b in adequacy["bands"]] + [adequacy["bands"][-1]["f_hi"]],
             }
         if change is not None or (self.candidates_every > 0 and self._segments_seen % self.candidates_every == 0):
-            ranked = dg.candidates(model)
+            ranked = candidates(model)
             out["candidates"] = [{k: c.get(k) for k in ("effect", "spec", "delta_chi2", "log_bayes_factor",
                                                        "explained_fraction", "significant")}
                                  for c in ranked[:TOP_CANDIDATES]]

@@ -24,6 +24,7 @@ from ..diagnose.diagnoser import (
     text_report,
 )
 from ..diagnose.effects import available_effects, make_effects
+from ..diagnose.fitting import fit_model
 from ..errors import TTLError
 from ..estimate.analyze import check_band, load_truth
 from ..io.atomic import write_json
@@ -125,12 +126,13 @@ def run(args) -> int:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
 
-        dg, model = internals["diagnoser"], internals["model"]
+        data, model = internals["data"], internals["model"]
         fits = {"model": model}
         if "before" in report:
-            fits = {"linear-ttl": dg.fit(make_effects(["linear-ttl"]), time_table=False), "model": model}
-        fine = {label: fine_band_table(dg, fit) for label, fit in fits.items()}
-        paths = {"residual_vs_noise": str(plot_residual_vs_noise(dg, fits, out / "residual_vs_noise.png", s.tolerance, fine))}
+            fits = {"linear-ttl": fit_model(data, make_effects(["linear-ttl"]), time_table=False), "model": model}
+        fine = {label: fine_band_table(fit) for label, fit in fits.items()}
+        paths = {"residual_vs_noise": str(plot_residual_vs_noise(data, fits, out / "residual_vs_noise.png", s.tolerance,
+                                                                 fine))}
         if report.get("witnesses"):
             paths["witness_coherence"] = str(plot_witness_coherence(report["witnesses"], out / "witness_coherence.png"))
         report["figures"] = paths

@@ -274,8 +274,9 @@ class Effect:
         to a subset of MOSAs, angles and sides where meaningful).
     needs_coefficients : bool
         Columns use the linear coefficients (linearised effects).
-    searchable : dict
-        ``option -> description`` of options the diagnosis may search over (nonlinear).
+    searched : dict
+        ``option -> (low, high, "log"|"linear")``: nonlinear parameters the diagnosis
+        searches when the option is not given (:func:`ttlcore.diagnose.search.profile_search`).
 
     Instances hold the option values (``Effect(**options)``); :meth:`columns` builds the
     regressor columns, :meth:`injection` the simulator injection.
@@ -286,7 +287,6 @@ class Effect:
     physics = ""
     parameters: dict = {}
     needs_coefficients = False
-    searchable: dict = {}
 
     def __init__(self, **options):
         unknown = set(options) - set(self.parameters)
@@ -429,7 +429,8 @@ class Step(Effect):
     physics = ("A realignment, a thermal event or a micrometeoroid hit changes the coupling abruptly at t_step: "
                "C(t) = C + J H(t - t_step). The jump J multiplies the witness from t_step on (tx: emission time).")
     parameters = {"mosas": "all", "angles": "all", "sides": "all", "t_step": None}
-    searchable = {"t_step": "step time, searched on a grid when not given"}
+    #: the step time [s], searched over the data (its own evaluator: :func:`ttlcore.diagnose.search.step_time_search`)
+    searched = {"t_step": (-np.inf, np.inf, "linear")}
 
     def columns(self, data):
         if self.options.get("t_step") is None and data.names_only:
@@ -676,6 +677,13 @@ def _int_option(effect, key, allowed) -> int:
     return v
 
 
+#: Time variations of a placed effect's coupling (option ``vary``, :meth:`_Placed.modulations`).
+VARY = ("none", "drift", "step", "cycle")
+#: Searched range of the period [s] of ``vary=cycle``: 1 h to 4 days (clipped to twice the
+#: analysed span; a longer period is a drift), log scale.
+CYCLE_PERIOD = (3600.0, 4 * DAY, "log")
+
+
 class _Placed(Effect):
     """Effects built on witness series placed on links: either one ``source`` (a library
     witness: channel, link, delay) or the standard placements of ``mosas``/``angles``/``sides``
@@ -708,37 +716,68 @@ class _Placed(Effect):
     def placement_label(source, link, n) -> str:
         return f"{source}>{link}" + (f"+{n}L" if n else "")
 
-    def modulation(self, data) -> np.ndarray | None:
-        """Time variation of the effect's coupling (option ``vary``): ``drift`` multiplies
-        the witness by ``(t - t_ref) / day`` (the coefficients are the rate, per day),
-        ``step`` by ``H(t - t_step)`` (the jump); None for a constant coupling.  A slow
-        modulation commutes with the filters of ``fd-coupling`` to ``1 / (f T)``."""
-        vary = self.options.get("vary") or "none"
+    @property
+    def vary(self) -> str:
+        v = self.options.get("vary") or "none"
+        if v not in VARY:
+            raise ConfigError(f"effect {self.name!r} vary: expected one of {', '.join(VARY)}, got {v!r}")
+        return v
+
+    @property
+    def searched(self) -> dict:
+        """The filter's searched poles (:meth:`filter_searched`) and, with ``vary=cycle``,
+        the period [s] of the cycle (:data:`CYCLE_PERIOD`)."""
+        out = dict(self.filter_searched())
+        if self.vary == "cycle":
+            out["period"] = CYCLE_PERIOD
+        return out
+
+    def filter_searched(self) -> dict:
+        return {}
+
+    def modulations(self, data) -> list[tuple[str, np.ndarray | None]]:
+        """Time variation of the effect's coupling (option ``vary``): ``(suffix, factor)``
+        pairs, one column per pair and placement.  ``none``: one constant coupling;
+        ``drift`` multiplies the witness by ``(t - t_ref) / day`` (the coefficients are the
+        rate, per day); ``step`` by ``H(t - t_step)`` (the jump); ``cycle`` by
+        ``sin(2 pi (t - t_ref) / period)`` and ``cos(...)`` (a slow periodic variation such
+        as a thermal cycle: amplitude and phase are the two linear coefficients, the period
+        is searched when not given).  A slow modulation commutes with the filters of
+        ``fd-coupling`` to ``1 / (f T)``.  Factors are None on a names-only input."""
+        vary = self.vary
         if vary == "none":
-            return None
+            return [("", None)]
+        if vary == "cycle":
+            suffixes = (".sin", ".cos")
+            if data.names_only:
+                return [(x, None) for x in suffixes]
+            if self.options.get("period") is None:
+                raise ConfigError(f"effect {self.name!r} vary=cycle: period not given (the diagnosis searches it: "
+                                  "ttl diagnose, refit)")
+            t_ref = data.t_ref if self.options.get("t_ref") is None else float(self.options["t_ref"])
+            phase = 2 * np.pi * (data.t - t_ref) / parse_duration(self.options["period"])
+            return [(".sin", np.sin(phase)), (".cos", np.cos(phase))]
         if data.names_only:
-            return None
+            return [("", None)]
         if vary == "drift":
             t_ref = data.t_ref if self.options.get("t_ref") is None else float(self.options["t_ref"])
-            return (data.t - t_ref) / DAY
-        if vary == "step":
+            return [("", (data.t - t_ref) / DAY)]
+        if self.options.get("t_step") is None:
+            raise ConfigError(f"effect {self.name!r} vary=step needs t_step")
+        return [("", (data.t >= parse_duration(self.options["t_step"])).astype(float))]
 
-            if self.options.get("t_step") is None:
-                raise ConfigError(f"effect {self.name!r} vary=step needs t_step")
-            return (data.t >= parse_duration(self.options["t_step"])).astype(float)
-        raise ConfigError(f"effect {self.name!r} vary: expected none, drift or step, got {vary!r}")
-
-    def _series(self, data, src):
+    @staticmethod
+    def _series(data, src, mod):
         series, channel, unit = witness_series(data, src, 0)
-        mod = self.modulation(data)
         if mod is not None:
             series = series * mod
-        return series, channel, unit, mod
+        return series, channel, unit
 
-    def _label(self, label) -> str:
-        vary = self.options.get("vary") or "none"
-        at = {"drift": self.options.get("t_ref"), "step": self.options.get("t_step")}.get(vary)
-        return label if vary == "none" else f"{label}~{vary}" + (f"@{at}" if at is not None else "")
+    def _label(self, label, suffix="") -> str:
+        vary = self.vary
+        at = {"drift": self.options.get("t_ref"), "step": self.options.get("t_step"),
+              "cycle": self.options.get("period")}.get(vary)
+        return (label if vary == "none" else f"{label}~{vary}" + (f"@{at}" if at is not None else "")) + suffix
 
 
 class WitnessEffect(_Placed):
@@ -750,7 +789,7 @@ class WitnessEffect(_Placed):
                "the exact time-varying TDI delays; a plain DWS channel carries its readout noise into the "
                "errors-in-variables term.")
     parameters = {"source": None, "link": None, "delay": 0, "derivative": 0, "mosas": None, "angles": "all",
-                  "sides": "rx", "links": "all", "vary": "none", "t_ref": None, "t_step": None}
+                  "sides": "rx", "links": "all", "vary": "none", "t_ref": None, "t_step": None, "period": None}
 
     def columns(self, data):
         der = _int_option(self, "derivative", (0, 1))
@@ -758,12 +797,14 @@ class WitnessEffect(_Placed):
         for src, link, n in self.placements():
             if der and src.split(".")[1] not in ANGLES:
                 raise ConfigError(f"effect 'witness' source {src!r}: products have no derivative option")
-            series, channel, unit, mod = self._series(data, src)
-            label = self._label(("d/dt:" if der else "") + self.placement_label(src, link, n))
-            prior = {"m/rad": 1e-3, "m/rad^2": 1e3}[unit]
-            # the time derivative as the filter 2 pi i f: its readout noise follows exactly
-            cols.append(Column(f"witness.{label}", [Part(link, series, n, channel, mod)], "m s/rad" if der else unit,
-                               prior * 10 if der else prior, response=_derivative_response if der else None))
+            for suffix, mod in self.modulations(data):
+                series, channel, unit = self._series(data, src, mod)
+                label = self._label(("d/dt:" if der else "") + self.placement_label(src, link, n), suffix)
+                prior = {"m/rad": 1e-3, "m/rad^2": 1e3}[unit]
+                # the time derivative as the filter 2 pi i f: its readout noise follows exactly
+                cols.append(Column(f"witness.{label}", [Part(link, series, n, channel, mod)],
+                                   "m s/rad" if der else unit, prior * 10 if der else prior,
+                                   response=_derivative_response if der else None))
         return cols
 
 
@@ -803,7 +844,7 @@ class FrequencyCoupling(_Placed):
                "delay= (a library witness) or mosas=, angles=, sides=, links=.")
     parameters = {"source": None, "link": None, "delay": 0, "mosas": None, "angles": "all", "sides": "rx",
                   "links": "all", "filter": "pole2", "f0": None, "q": None, "fc": None, "vary": "none", "t_ref": None,
-                  "t_step": None}
+                  "t_step": None, "period": None}
 
     @property
     def kind(self) -> str:
@@ -812,8 +853,7 @@ class FrequencyCoupling(_Placed):
             raise ConfigError(f"effect 'fd-coupling' filter: expected pole1 or pole2, got {k!r}")
         return k
 
-    @property
-    def searched(self) -> dict:
+    def filter_searched(self) -> dict:
         if self.kind == "pole1":
             return {"fc": (1e-3, 2.0, "log")}
         return {"f0": (1e-3, 2.0, "log"), "q": (0.5, 300.0, "log")}
@@ -828,26 +868,27 @@ class FrequencyCoupling(_Placed):
 
     def columns(self, data):
         n_basis = 2 if self.kind == "pole1" else 3
-        if self.unresolved():
+        poles = [k for k in self.unresolved() if k != "period"]
+        if poles:
             if not data.names_only:
-                raise ConfigError(f"effect 'fd-coupling': {', '.join(self.unresolved())} not given "
+                raise ConfigError(f"effect 'fd-coupling': {', '.join(poles)} not given "
                                   "(the diagnosis searches them: ttl diagnose, refit)")
             resp = [None] * n_basis
         else:
             resp = self.response_functions()
         cols = []
         for src, link, n in self.placements():
-            if data.names_only:  # names and responses only (the searches evaluate many poles)
-                series, channel = None, None
-                unit = "m/rad" if src.partition(".")[2] in ANGLES else "m/rad^2"
-                mod = None
-            else:
-                series, channel, unit, mod = self._series(data, src)
-            label = self._label(self.placement_label(src, link, n))
-            parts = [Part(link, series, n, channel, mod)]
-            for j in range(n_basis):
-                cols.append(Column(f"fd.{label}.b{j}", parts, unit, 1e-3 if unit == "m/rad" else 1e3,
-                                   response=resp[j], base=label))
+            for suffix, mod in self.modulations(data):
+                if data.names_only:  # names and responses only (the searches evaluate many poles)
+                    series, channel = None, None
+                    unit = "m/rad" if src.partition(".")[2] in ANGLES else "m/rad^2"
+                else:
+                    series, channel, unit = self._series(data, src, mod)
+                label = self._label(self.placement_label(src, link, n), suffix)
+                parts = [Part(link, series, n, channel, mod)]
+                for j in range(n_basis):
+                    cols.append(Column(f"fd.{label}.b{j}", parts, unit, 1e-3 if unit == "m/rad" else 1e3,
+                                       response=resp[j], base=label))
         return cols
 
 

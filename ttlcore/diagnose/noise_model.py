@@ -40,8 +40,8 @@ with a bounded quasi-Newton search (levels stay positive) on the score
 ``F_kl = n_s sum_f tr(S^-1 B_k S^-1 B_l)``.  Neighbouring bins of a tapered segment are
 correlated, so the covariance of ``a`` is ``kappa F^-1`` (``kappa`` of
 :func:`ttlcore.estimate.fit.variance_factor`).  :func:`profile_noise_model` alternates this with the
-linear fit of a :class:`ttlcore.diagnose.diagnoser.Diagnoser` until the levels move by less than a
-tenth of their sigma.  The fitted parameters count against the degrees of freedom of the
+linear fit of the diagnosis (:func:`ttlcore.diagnose.fitting.fit_model`) until the levels move by
+less than a tenth of their sigma.  The fitted parameters count against the degrees of freedom of the
 adequacy test like the linear ones.
 
 Why it cannot absorb a missing effect: every component has a fixed broadband spectral shape
@@ -63,6 +63,7 @@ from ..conventions import LINKS, displacement_to_ffd_asd
 from ..estimate.spectra import smooth_csd
 from ..sim import noise_models
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
+from .fitting import fit_model
 
 log = logging.getLogger(__name__)
 
@@ -324,19 +325,20 @@ def residual_periodogram(residual_w: np.ndarray, Lh: np.ndarray) -> np.ndarray:
     return np.einsum("smi,smj->mij", r, r.conj())
 
 
-def profile_noise_model(dg, effects, *, names=PARAMETERS, passes: int = 4, first=None):
+def profile_noise_model(data, effects, *, names=PARAMETERS, passes: int = 4, first=None):
     """Profile the noise levels with the linear fit of a diagnosis (module docstring).
 
     Alternates the linear fit of ``effects`` under the current noise model and
     :func:`fit_noise_model` on its residual, until the levels move by less than a tenth of
     their sigma (at most ``passes`` times); the DWS term of the noise model stays the one
-    the diagnosis derives from the fitted coefficients.  The diagnosis ``dg``
-    (:class:`ttlcore.diagnose.diagnoser.Diagnoser`) is left whitened with the fitted model, its
-    ``noise_parameters`` set (counted in the degrees of freedom of its adequacy tests).
+    the diagnosis derives from the fitted coefficients.  ``data`` is left as it is: the
+    returned fit's ``data`` (:class:`ttlcore.diagnose.whitened.WhitenedData`) is whitened
+    with the fitted model, its ``noise_parameters`` set (counted in the degrees of freedom
+    of its adequacy tests).
 
     Parameters
     ----------
-    dg : Diagnoser
+    data : WhitenedData
     effects : list of Effect
         The model whose residual is described.
     names : sequence of str
@@ -344,31 +346,30 @@ def profile_noise_model(dg, effects, *, names=PARAMETERS, passes: int = 4, first
     passes : int
         Maximum alternations.
     first : ModelFit, optional
-        The fit of ``effects`` under the current noise model, if already done.
+        The fit of ``effects`` on ``data``, if already done.
 
     Returns
     -------
     (NoiseModel, ModelFit)
         The fitted noise model and the final fit of ``effects`` under it.
     """
-    nm = dg.noise_parameters if dg.noise_parameters is not None and tuple(dg.noise_parameters.names) == tuple(names) \
-        else NoiseModel.nominal(dg.ltt_mean, names)
-    fit = first if first is not None else dg.fit(effects, time_table=False)
+    nm = data.noise_parameters if data.noise_parameters is not None and tuple(data.noise_parameters.names) == tuple(names) \
+        else NoiseModel.nominal(data.ltt_mean, names)
+    fit = first if first is not None else fit_model(data, effects, time_table=False)
     for k in range(max(1, passes)):
-        P = residual_periodogram(fit.residual_w, dg.Lh)
-        secondary = dg.noise_parameters.csd(dg.f) if dg.noise_parameters is not None else nm.csd(dg.f)
-        dws = dg.noise_csd - secondary
-        new = fit_noise_model(dg.f, P, len(dg.starts), dg.ltt_mean, names=names, fixed=dws, start=nm, kappa=dg.kappa)
+        d = fit.data
+        P = residual_periodogram(fit.residual_w, d.Lh)
+        secondary = d.noise_parameters.csd(d.f) if d.noise_parameters is not None else nm.csd(d.f)
+        dws = d.noise_csd - secondary
+        new = fit_noise_model(d.f, P, len(d.starts), d.ltt_mean, names=names, fixed=dws, start=nm, kappa=d.kappa)
         moved = np.abs(np.subtract(new.levels, nm.levels)) / np.maximum(new.sigma, 1e-300)
         nm = new
-        dg.noise_parameters = nm
-        dg.set_noise_model(nm.csd(dg.f) + dws)
-        fit = dg.fit(effects, time_table=False)
+        fit = fit_model(d.with_noise(nm.csd(d.f) + dws, noise_parameters=nm), effects, time_table=False)
         log.info("noise model pass %d: levels %s (moved %.2g sigma)", k + 1,
                  dict(zip(nm.names, np.round(nm.levels, 4))), float(np.max(moved)))
         if np.all(moved < 0.1):
             break
-    return nm, dg.fit(effects)
+    return nm, fit_model(fit.data, effects)
 
 
 def noise_model_json(model: "NoiseModel | None") -> dict:

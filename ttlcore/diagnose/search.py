@@ -2,60 +2,106 @@
 
 An effect declares the options the diagnosis may search (:attr:`ttlcore.diagnose.effects.Effect.searched`,
 ``option -> (low, high, scale)``); left unset, :func:`profile_search` finds them against a
-fitted model:
+fitted model and returns a :class:`SearchResult` (the effect at the estimates, estimates,
+intervals, delta chi^2, log Bayes factors at the best point and marginalised).  One
+mechanism - chi^2 profiled over every linear parameter on a grid, refined locally, the
+evidence marginalised over the searched range - with an evaluator chosen by the kind of
+column:
 
-1. the chi^2 of the model plus the effect, profiled over every linear parameter, on a grid
-   (log-spaced for ``scale="log"``; 40 points per decade for one parameter, a 40-per-decade
-   by 5 grid for two), clipped to the diagnosis band for frequencies;
-2. local refinement from the best grid point (Nelder-Mead in the scaled parameters);
-3. the estimate with a 1-sigma interval from the curvature of the profile log-likelihood
-   ``l = delta_chi2 / 2`` (in the scaled parameters: relative for ``log``);
-4. the evidence marginalised over the searched parameters under a uniform prior in the
-   scaled parameters over the declared range (Laplace's method around the optimum:
-   ``log B = log B(best) + d/2 log 2 pi + 1/2 log det Sigma - log V``), never above the
-   evidence at the best point.
+- filters on fixed base columns (:attr:`ttlcore.diagnose.effects.Column.response`, e.g.
+  ``fd-coupling``): a point costs a few products over frequency bins (the base columns'
+  cross-products with the model's columns, the data and each other, and their
+  readout-noise responses, computed once per search); a grid (30 points per decade for a
+  frequency, 5 quality factors), Nelder-Mead from the two best points, then a Nelder-Mead
+  refinement with the columns the fit uses (the base series filtered in time, then
+  windowed);
+- the step time of ``step`` (:func:`step_time_search`): the step columns are ``H(t - t_s)``
+  times the TDI of the TTL regressors, so a point recomputes one segment's spectra (the
+  exact TDI of the step patched in where the delays straddle it); a 1-h grid, a 15-min
+  grid around the best, golden section to 0.05 s, the profile's secondary maxima one to
+  four light travel times away;
+- the time offsets of the shifted-witness effects ``timing-offset`` and ``ltt-error``
+  (:func:`offset_search`): a shift is a phase of the whitened spectra, a grid of spacing
+  ``1 / (8 f_max)`` over ``+-shift_span`` and Brent's method, groups in turn;
+- anything else (a plugin whose columns change with the parameter, a ``vary=cycle``
+  period): the columns built at each point - correct but slower, a coarser grid.
 
-For effects whose columns are filters applied to fixed base columns
-(:attr:`ttlcore.diagnose.effects.Column.response`, e.g. ``fd-coupling``), a point costs a few
-products over frequency bins: the base columns' cross-products with the model's columns,
-the data and each other (and their readout-noise responses) are computed once per search.
-Other effects (a plugin whose columns change with the parameter) are evaluated by building
-their columns at each point - correct but slower; their grid is coarser.
+Then (filters and generic): a 1-sigma interval from the curvature of the profile
+log-likelihood ``l = delta_chi2 / 2`` in the scaled parameters (relative for ``log``), and
+the evidence marginalised over the searched parameters under a uniform prior in the scaled
+parameters over the declared range (Laplace around the optimum:
+``log B = log B(best) + d/2 log 2 pi + 1/2 log det Sigma - log V``), never above the
+evidence at the best point.  For the step time, the marginal is the grid average (uniform
+prior over the coarse grid).
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy import optimize, special
+from scipy.optimize import minimize_scalar
 
 from ..errors import ConfigError
-from .effects import effect_input_from_telemetry, names_only_input, readout_noise_factor
-from .evidence import log_bayes_factor
+from ..estimate.spectra import segment_fft
+from ..tdi.combinations import MICHELSON, aet, build
+from ..tdi.data import history_samples, lowpass_taps
+from .columns import (
+    ColumnSet,
+    base_column,
+    concat,
+    effect_columns,
+    eiv,
+    eiv_products,
+    eiv_weights,
+    filtered_spectra,
+    ttl_columns,
+)
+from .effects import (
+    LinearTTL,
+    Step,
+    columns_tdi,
+    effect_input_from_telemetry,
+    names_only_input,
+    readout_noise_factor,
+)
+from .evidence import Evidence, added_evidence, evidence_from_normal, log_bayes_factor, stable_solve
+from .model_fit import ModelFit, as_real, gram, gram_x, rhs
 
 log = logging.getLogger(__name__)
 
 
 @dataclass(frozen=True)
 class SearchResult:
-    """Outcome of :func:`profile_search`.
+    """Outcome of a profile search.
 
     Attributes
     ----------
     effect : Effect
         The effect with the searched options set to their estimates.
     estimates : dict
-        Option -> estimate.
+        Parameter -> estimate.
     intervals : dict
-        Option -> (low, high), one sigma from the profile's curvature.
+        Parameter -> (low, high), one sigma from the profile's curvature (empty when not
+        measured).
     delta_chi2 : float
         Profiled chi^2 gain at the estimate (over ``kappa``).
     log_bayes_factor_best, log_bayes_factor : float
         At the estimate, and marginalised over the searched parameters.
     n_evaluations : int
+    grid : list
+        ``(parameters, value)`` of the grid points.
+    evidence : Evidence or None
+        The evidence at the estimate when the search computed it with columns more exact
+        than those :func:`ttlcore.diagnose.columns.effect_columns` gives (the step time).
+    gains : dict
+        Per searched parameter, the chi^2 gain of its estimate against zero, the others at
+        their estimates (offsets).
+    theta : dict
+        Column -> linear parameter at the optimum (offsets).
     """
 
     effect: object
@@ -66,6 +112,9 @@ class SearchResult:
     log_bayes_factor: float
     n_evaluations: int
     grid: list = field(default_factory=list, repr=False)
+    evidence: Evidence | None = field(default=None, repr=False)
+    gains: dict = field(default_factory=dict)
+    theta: dict = field(default_factory=dict, repr=False)
 
     def to_json(self) -> dict:
         return {"estimates": {k: float(v) for k, v in self.estimates.items()},
@@ -83,13 +132,20 @@ def _scaled(ranges, names):
     return fwd(lo), fwd(hi), fwd, back, log_
 
 
-def search_ranges(dg, effect) -> dict:
+def search_ranges(data, effect) -> dict:
     """The declared ranges, frequencies (``f0``, ``fc``, names starting with ``f``) clipped
-    to the diagnosis band widened by a third of an octave."""
+    to the diagnosis band widened by a third of an octave, periods (names starting with
+    ``period``) to twice the analysed span."""
     out = {}
+    idx = np.flatnonzero(data.mask)
+    span = (idx[-1] - idx[0]) / data.fs
     for k, (lo, hi, scale) in effect.searched.items():
         if k.startswith("f"):
-            lo, hi = max(lo, dg.f[0] / 1.26), min(hi, dg.f[-1] * 1.26)
+            lo, hi = max(lo, data.f[0] / 1.26), min(hi, data.f[-1] * 1.26)
+        if k.startswith("period"):
+            hi = min(hi, 2 * span)
+        if lo >= hi:
+            raise ConfigError(f"effect {effect.name!r}: the range of {k} does not fit these data")
         out[k] = (float(lo), float(hi), scale)
     return out
 
@@ -97,31 +153,32 @@ def search_ranges(dg, effect) -> dict:
 class _Spectral:
     """Per-bin products of the base columns of a filtered effect (built once per search)."""
 
-    def __init__(self, dg, model, cols):
-
-        self.dg = dg
-        M = list(model.names)
-        self.bases = []
+    def __init__(self, model: ModelFit, cols):
+        data = self.data = model.data
+        bases: list[ColumnSet] = []
         for c in cols:
-            b = dg.base_column(c)
-            if b not in self.bases:
-                self.bases.append(b)
-        wM = self.wM = dg._w(M)  # (S, m, 3, P)
-        U = dg._w(self.bases)  # (S, m, 3, nb)
+            b = base_column(data, c)
+            if b.names[0] not in [x.names[0] for x in bases]:
+                bases.append(b)
+        self.bases = bases
+        self.base_names = [b.names[0] for b in bases]
+        B = concat(*bases)
+        wM = self.wM = model.columns.w  # (S, m, 3, P)
+        U = B.w  # (S, m, 3, nb)
         self.PM = np.einsum("smcp,smcb->mpb", wM.conj(), U)
-        self.Pud = np.einsum("smcb,smc->mb", U.conj(), dg.wd)
+        self.Pud = np.einsum("smcb,smc->mb", U.conj(), data.wd)
         self.Puu = np.einsum("smcb,smce->mbe", U.conj(), U)
         # errors-in-variables: readout-noise responses per DWS channel
-        names = M + self.bases
+        both = concat(model.columns, B)
         resp: dict = {}
-        for i, n in enumerate(names):
-            for ch, link, extra, *shift in dg.eiv_parts.get(n, ()):
-                r = resp.setdefault(ch, np.zeros((dg.f.size, 3, len(names)), dtype=complex))
-                r[:, :, i] += dg._eiv_response(link, extra) * readout_noise_factor(dg.f, shift[0] if shift else 0.0)
-        W = dg.eiv_weights(names)
-        P = len(M)
-        self.eMB = np.zeros((dg.f.size, P, len(self.bases)))
-        self.eBB = np.zeros((dg.f.size, len(self.bases), len(self.bases)), dtype=complex)
+        for i, parts in enumerate(both.eiv):
+            for ch, link, extra, factor in parts:
+                r = resp.setdefault(ch, np.zeros((data.f.size, 3, len(both)), dtype=complex))
+                r[:, :, i] += data.store.eiv_response(data, link, extra) * readout_noise_factor(data.f, factor)
+        W = eiv_weights(data, both)
+        P = len(model.columns)
+        self.eMB = np.zeros((data.f.size, P, len(bases)))
+        self.eBB = np.zeros((data.f.size, len(bases), len(bases)), dtype=complex)
         for r in resp.values():
             self.eMB = self.eMB + np.einsum("mcp,mcb->mpb", r[:, :, :P].conj(), r[:, :, P:]) * W[:P, P:][None]
             self.eBB = self.eBB + np.einsum("mcb,mce->mbe", r[:, :, P:].conj(), r[:, :, P:]) * W[P:, P:][None]
@@ -133,18 +190,18 @@ class _Spectral:
         """Evidence of the columns ``cols`` (only their responses and prior scales are
         used) on the bases ``idx``.  Fast: the filters applied to the base columns' segment
         spectra (products over bins only); ``exact``: the base series filtered in time and
-        then windowed (:meth:`ttlcore.diagnose.diagnoser.Diagnoser.filtered_spectra`, as the fit)."""
-
-        dg = self.dg
-        R = np.stack([np.ones(dg.f.size, complex) if c.response is None else np.asarray(c.response(dg.f), complex)
+        then windowed (:func:`ttlcore.diagnose.columns.filtered_spectra`, as the fit)."""
+        data = self.data
+        R = np.stack([np.ones(data.f.size, complex) if c.response is None else np.asarray(c.response(data.f), complex)
                       for c in cols], axis=1)  # (m, k)
         eMK = np.einsum("mpk,mk->pk", self.eMB[:, :, idx], R).real
         eKK = np.einsum("mj,mjk,mk->jk", R.conj(), self.eBB[:, idx][:, :, idx], R).real
         if exact:
-            wK = np.concatenate([dg.filtered_spectra(self.bases[i], [c.response])[0] for c, i in zip(cols, idx)], axis=-1)
+            wK = np.concatenate([filtered_spectra(data, self.bases[i], [c.response])[0] for c, i in zip(cols, idx)],
+                                axis=-1)
             NMK = np.einsum("smcp,smck->pk", self.wM.conj(), wK).real - eMK
             NKK = np.einsum("smcj,smck->jk", wK.conj(), wK).real - eKK
-            bK = np.einsum("smck,smc->k", wK.conj(), dg.wd).real
+            bK = np.einsum("smck,smc->k", wK.conj(), data.wd).real
         else:
             NMK = np.einsum("mpk,mk->pk", self.PM[:, :, idx], R).real - eMK
             NKK = np.einsum("mj,mjk,mk->jk", R.conj(), self.Puu[:, idx][:, :, idx], R).real - eKK
@@ -155,75 +212,100 @@ class _Spectral:
         th = stable_solve(N, b)
         if th is None:  # collinear: no gain (a finite value keeps the simplex well defined)
             return 0.0, -1e300
-        kappa = dg.kappa
+        kappa = data.kappa
         dchi2 = 2 * (b @ th - self.bM @ self.thM) / kappa
         A = 2 * (NKK - NMK.T @ np.linalg.solve(self.NM, NMK)) / kappa
         lbf = log_bayes_factor(A, th[P:], np.array([c.prior_scale for c in cols]))
         return float(dchi2), float(lbf)
 
 
-def stable_solve(N: np.ndarray, b: np.ndarray, max_condition: float = 1e12) -> np.ndarray | None:
-    """``N^-1 b`` for a symmetric normal matrix, with Jacobi scaling (columns of very
-    different norms: a filter basis far from its pole); None when the scaled matrix is not
-    positive definite or its condition number exceeds ``max_condition`` (columns nearly
-    collinear: no evidence can be read from them)."""
-    d = np.sqrt(np.abs(np.diag(N)))
-    if not np.all(d > 0):
-        return None
-    Ns = N / d[:, None] / d[None, :]
-    w = np.linalg.eigvalsh(Ns)
-    if w[0] <= 0 or w[-1] / w[0] > max_condition:
-        return None
-    return np.linalg.solve(Ns, b / d) / d
-
-
-def _generic_evaluator(dg, model, effect_at):
-    """Evidence of an effect whose columns change with its parameters: built at each point."""
+def _generic_evaluator(model: ModelFit, effect_at):
+    """Evidence of an effect whose columns change with its parameters: built at each point
+    (not cached)."""
     def evaluate(params):
         eff = effect_at(params)
-        with dg._columns_kept():
-            C = model.ttl_coefficients()
-            names = dg.effect_columns(eff, C if eff.needs_coefficients else None, keep_series=False)
-            ev = dg.evaluate(model, names)
-        return float(ev["delta_chi2"]), float(ev["log_bayes_factor"])
+        C = model.ttl_coefficients()
+        cs = effect_columns(model.data, eff, C if eff.needs_coefficients else None, cache=False)
+        ev = added_evidence(model, cs)
+        return float(ev.delta_chi2), float(ev.log_bayes_factor)
     return evaluate
 
 
-def profile_search(dg, model, effect, coefficients=None) -> SearchResult:
-    """Search the unset :attr:`~ttlcore.diagnose.effects.Effect.searched` options of ``effect``
-    against ``model`` (a :class:`ttlcore.diagnose.diagnoser.ModelFit`); see the module docstring.
+def _modulated_evaluator(model: ModelFit, effect, effect_at):
+    """Evidence of a ``vary=cycle`` effect without filters (a witness effect) at a period:
+    its columns are the unmodulated witness columns (exact TDI, computed once) times
+    ``sin``/``cos`` of the decimated time - ``TDI(m w) = m TDI(w)`` up to the ~70 s the TDI
+    delays span (a relative error ``2 pi 70 s / period``: 0.12 at 1 h, 0.015 at 8 h), enough
+    to locate the period; the estimate is then scored with the exact columns.  None when
+    the effect is not of that kind."""
+    data = model.data
+    plain = effect.with_options(vary="none", period=None)
+    inp = effect_input_from_telemetry(data.tm)
+    cols = plain.columns(inp)
+    if any(c.response is not None for c in cols) or plain.needs_coefficients:
+        return None
+    bases = [base_column(data, c) for c in cols]
+    t_dec = data.t0 + np.arange(data.mask.size) / data.fs
+    t_ref = inp.t_ref if effect.options.get("t_ref") is None else float(effect.options["t_ref"])
+    names_only = names_only_input()
 
-    Raises ConfigError when the diagnoser has no telemetry (the columns need DWS series)."""
+    def evaluate(x):
+        eff = effect_at(x)
+        phase = 2 * np.pi * (t_dec - t_ref) / float(eff.options["period"])
+        mods = (np.sin(phase), np.cos(phase))
+        named = eff.columns(names_only)
+        series = np.stack([b.series[:, 0] * m for b in bases for m in mods], axis=1)
+        k = series.shape[1]
+        w = data.whiten(data.spectra(series))
+        cs = ColumnSet(tuple(c.name for c in named), np.stack([np.ascontiguousarray(w[..., j]) for j in range(k)])
+                       .view(np.float64), data.noise_key, tuple(c.unit for c in named),
+                       tuple(c.prior_scale for c in named), tuple(b.eiv[0] for b in bases for _ in mods),
+                       tuple(m if b.eiv[0] else None for b in bases for m in mods))
+        ev = added_evidence(model, cs)
+        return float(ev.delta_chi2), float(ev.log_bayes_factor)
 
+    return evaluate
+
+
+def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
+    """Search the unset :attr:`~ttlcore.diagnose.effects.Effect.searched` options of
+    ``effect`` against ``model`` (see the module docstring): the step time by
+    :func:`step_time_search`, filters and other parameters by a grid and local refinement.
+
+    Raises ConfigError when the data have no telemetry and the columns need DWS series."""
     names = effect.unresolved()
     if not names:
         raise ConfigError(f"effect {effect.name!r}: nothing to search")
-    if dg.tm is None:
+    if isinstance(effect, Step):
+        return step_time_search(model, effect)
+    data = model.data
+    if data.tm is None:
         raise ConfigError(f"effect {effect.name!r}: searching {', '.join(names)} needs the telemetry")
-    ranges = search_ranges(dg, effect)
+    ranges = search_ranges(data, effect)
     lo, hi, fwd, back, is_log = _scaled(ranges, names)
 
     def effect_at(x):
         v = back(np.clip(np.asarray(x, dtype=float), lo, hi))
         return effect.with_options(**{k: float(f"{float(val):.6g}") for k, val in zip(names, v)})
 
-
-    data = effect_input_from_telemetry(dg.tm, coefficients)
     mid = effect_at(0.5 * (lo + hi))
-    cols0 = mid.columns(data)
-    spectral = all(c.response is not None for c in cols0) and not mid.needs_coefficients
+    cols0 = mid.columns(effect_input_from_telemetry(data.tm, coefficients))
+    spectral = all(c.response is not None for c in cols0) and not mid.needs_coefficients \
+        and not any(k.startswith("period") for k in names)
+    modulated = None
     if spectral:
-        sp = _Spectral(dg, model, cols0)
-        idx = [sp.bases.index(dg.base_column(c)) for c in cols0]
+        sp = _Spectral(model, cols0)
+        idx = [sp.base_names.index(base_column(data, c).names[0]) for c in cols0]
         names_only = names_only_input()
         # the responses of the columns at x: built on the names-only input (no series)
         evaluate = lambda x: sp.evaluate(effect_at(x).columns(names_only), idx)  # noqa: E731
         exact = lambda x: sp.evaluate(effect_at(x).columns(names_only), idx, exact=True)  # noqa: E731
         per_decade = 30
     else:
-        gen = _generic_evaluator(dg, model, effect_at)
-        evaluate = gen
-        per_decade = 6
+        modulated = _modulated_evaluator(model, effect, effect_at) if names == ["period"] else None
+        evaluate = modulated or _generic_evaluator(model, effect_at)
+        per_decade = 12 if modulated else 6
+
     def memoised(function):
         """``function`` of the scaled parameters, clipped to the range, evaluated once per point."""
         memo: dict = {}
@@ -263,11 +345,15 @@ def profile_search(dg, model, effect, coefficients=None) -> SearchResult:
         # the fast products miss the filter's ringing across the segment tapers: refine
         # with the columns the fit uses (filtered in time, then windowed)
         exact_score = memoised(exact)
-
         res = optimize.minimize(lambda x: -exact_score(x)[0], best_x, method="Nelder-Mead",
                                 options={"xatol": 1e-3, "fatol": 1e-2, "maxfev": 30 * len(names),
                                          "initial_simplex": np.vstack([best_x, best_x + 0.01 * np.eye(len(names))])})
         best_x = np.clip(res.x, lo, hi)
+        dchi2, lbf_best = exact_score(best_x)
+        n_exact = len(exact_score.memo)
+    elif modulated:
+        # the estimate scored with the exact columns (the modulated TDI only located it)
+        exact_score = memoised(_generic_evaluator(model, effect_at))
         dchi2, lbf_best = exact_score(best_x)
         n_exact = len(exact_score.memo)
     else:
@@ -307,5 +393,294 @@ def profile_search(dg, model, effect, coefficients=None) -> SearchResult:
     found = effect_at(best_x)
     log.debug("profile search %s: %s, delta chi2 %.1f", effect.name, dict(zip(names, est)), dchi2)
     return SearchResult(found, {k: float(found.options[k]) for k in names}, intervals, float(dchi2),
-                        float(lbf_best), marg, len(score.memo) + n_exact, grid=[(list(map(float, back(x))), float(v))
-                                                               for x, v in zip(grid, values)])
+                        float(lbf_best), marg, len(score.memo) + n_exact,
+                        grid=[(list(map(float, back(x))), float(v)) for x, v in zip(grid, values)])
+
+
+# ---------------------------------------------------------------------------
+# The step time
+# ---------------------------------------------------------------------------
+
+def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
+    """Search the step time of ``step`` against ``model``: step columns approximated as
+    ``H(t - t_s)`` times the TDI of the TTL regressors (exact but for the ~70 s the TDI
+    delays span, which :func:`_step_correction` patches in from the telemetry), Bayes factor
+    marginalised over the coarse grid (uniform prior); the evidence at the best time is
+    :attr:`SearchResult.evidence`."""
+    data = model.data
+    s = data.settings
+    step = step or Step()
+    base = [f"{m}.{a}.{sd}" for m in step.mosas for a in step.angles for sd in step.sides]
+    if not all(n in data.regressor_names for n in base):
+        raise ConfigError(f"effect 'step': the TDI data lack the regressors {base[:2]}...")
+    M = model.columns
+    Bcs = ttl_columns(data).select(base)
+    G_MB = gram(data, M, Bcs)  # (S, G, P, k)
+    G_BB = gram(data, Bcs, Bcs)
+    N_MM, b_M = model.normal
+    b_B = rhs(data, Bcs)
+    XM = M.x
+    # errors-in-variables of the step columns H(t - t_s) x witness: one segment's products
+    # times the taper-weighted share of each segment after t_s (tail sums over the samples)
+    nM, nK = len(M), len(base)
+    E_products = eiv_products(data, concat(M, replace(Bcs, names=tuple(f"step.{n}" for n in base))))
+    W_MM = eiv_weights(data, M)
+    t_flat = np.concatenate([data.t0 + (s0 + np.arange(data.L)) / data.fs for s0 in data.starts])
+    w2 = data.w2.reshape(-1)
+    prof = np.stack([w2 if m is None else w2 * np.concatenate([m[s0:s0 + data.L] for s0 in data.starts])
+                     for m in M.modulation] + [w2])
+    tail = np.concatenate([np.cumsum(prof[:, ::-1], axis=1)[:, ::-1], np.zeros((nM + 1, 1))], axis=1)
+
+    def eiv_at(ts):
+        j = int(np.searchsorted(t_flat, ts))  # the first sample at or after t_s
+        W = np.empty((nM + nK, nM + nK))
+        W[:nM, :nM] = W_MM
+        W[:nM, nM:] = tail[:nM, j][:, None]
+        W[nM:, :nM] = tail[:nM, j][None, :]
+        W[nM:, nM:] = tail[nM, j]
+        return E_products * W[None]
+
+    idx = np.flatnonzero(data.mask)
+    # a step closer to the ends than half a coarse step is nearly collinear with the TTL
+    # columns themselves: search inside
+    t_lo = data.t0 + idx[0] / data.fs + s.step_grid / 2
+    t_hi = data.t0 + (idx[-1] + 1) / data.fs - s.step_grid / 2
+    stack = np.nan_to_num(np.stack([data.regressor_series[:, data.regressor_names.index(n)] for n in base], axis=1))
+    names = [f"step.{n}" for n in base]
+
+    def evaluate_at(ts) -> Evidence:
+        j = int(np.searchsorted(data.seg_t0, ts, side="right") - 1)
+        after = np.arange(len(data.starts)) > j
+        N_MK = np.where(after[:, None, None, None], G_MB, 0.0)
+        N_KK = np.where(after[:, None, None, None], G_BB, 0.0)
+        b_K = np.where(after[:, None, None], b_B, 0.0)
+        if 0 <= j < len(data.starts):
+            s0 = data.starts[j]
+            h = (data.t0 + (s0 + np.arange(data.L)) / data.fs >= ts).astype(float)
+            m = data.mask[s0:s0 + data.L]
+            seg = stack[:, :, s0:s0 + data.L] * h
+            corr = _step_correction(data, ts, base)
+            if corr is not None:  # exact TDI of the step near t_s (the delays straddle it)
+                k0, c = corr
+                lo, hi = max(k0 - s0, 0), min(k0 - s0 + c.shape[-1], data.L)
+                if hi > lo:
+                    seg = seg.copy()
+                    seg[:, :, lo:hi] += c[:, :, lo - (k0 - s0):hi - (k0 - s0)]
+            # spectra of segment j only
+            _, X = segment_fft(seg * m, data.fs, data.win * m)
+            wK = np.matmul(data.Lh, np.moveaxis(X[:, :, data.bins], 2, 0))[None]  # (1, m, 3, k)
+            XK = as_real(wK)
+            N_MK[j] = gram_x(XM[:, j:j + 1], XK, data.slices)[0]
+            N_KK[j] = gram_x(XK, XK, data.slices)[0]
+            b_K[j] = gram_x(XK, data.wd[j:j + 1][None].view(np.float64), data.slices)[0, ..., 0]
+        return evidence_from_normal(model, N_MM, N_MK, N_KK, b_M, b_K, names, np.full(len(base), 1e-3), eiv_at(ts))
+
+    coarse = np.arange(t_lo + s.step_grid / 2, t_hi, s.step_grid)
+    if coarse.size == 0:
+        coarse = np.array([0.5 * (t_lo + t_hi)])
+    results = [(ts, evaluate_at(ts)) for ts in coarse]
+    lbfs = np.array([r.log_bayes_factor for _, r in results])
+    best = coarse[int(np.nanargmax(lbfs))]
+    fine = np.arange(best - s.step_grid + s.step_refine, best + s.step_grid, s.step_refine)
+    fine = fine[(fine > t_lo) & (fine < t_hi)]
+    results += [(ts, evaluate_at(ts)) for ts in fine if not np.any(np.isclose(ts, coarse))]
+    all_lbf = np.array([r.log_bayes_factor for _, r in results])
+    ts_best, ev = results[int(np.nanargmax(all_lbf))]
+    # golden-section search of the maximum within one fine step either side, to 0.05 s
+    a, b = max(ts_best - s.step_refine, t_lo), min(ts_best + s.step_refine, t_hi)
+    ratio = (math.sqrt(5) - 1) / 2
+    c, d = b - ratio * (b - a), a + ratio * (b - a)
+    ec, ed = evaluate_at(c), evaluate_at(d)
+    while b - a > 0.05:  # a step between two samples: the profile is flat within 0.25 s
+        if np.nan_to_num(ec.delta_chi2, nan=-np.inf) >= np.nan_to_num(ed.delta_chi2, nan=-np.inf):
+            b, d, ed = d, c, ec
+            c = b - ratio * (b - a)
+            ec = evaluate_at(c)
+        else:
+            a, c, ec = c, d, ed
+            d = a + ratio * (b - a)
+            ed = evaluate_at(d)
+    for ts, e in ((c, ec), (d, ed)):
+        results.append((ts, e))
+        if e.log_bayes_factor > ev.log_bayes_factor:
+            ts_best, ev = ts, e
+    # the profile has secondary maxima one or more light travel times from the true step
+    # (the TDI terms see the step delayed): try those, then refine around the best
+    tau = float(np.mean(data.ltt_mean))
+    for k in (-4, -3, -2, -1, 1, 2, 3, 4):
+        ts = ts_best + k * tau
+        if t_lo < ts < t_hi:
+            e = evaluate_at(ts)
+            results.append((ts, e))
+            if e.log_bayes_factor > ev.log_bayes_factor:
+                ts_best, ev = ts, e
+    for ts in ts_best + np.arange(-2.0, 2.01, 0.25):
+        if t_lo < ts < t_hi:
+            e = evaluate_at(ts)
+            results.append((ts, e))
+            if e.log_bayes_factor > ev.log_bayes_factor:
+                ts_best, ev = ts, e
+    good = lbfs[np.isfinite(lbfs)]
+    marg = float(special.logsumexp(good) - math.log(len(good))) if good.size else float("nan")
+    found = step.with_options(t_step=round(float(ts_best), 3))
+    log.debug("step time search: %.3f s, delta chi2 %.1f", ts_best, ev.delta_chi2)
+    return SearchResult(found, {"t_step": float(ts_best)}, {}, float(ev.delta_chi2), float(ev.log_bayes_factor), marg,
+                        len(results), grid=[([float(t)], float(e.log_bayes_factor)) for t, e in results], evidence=ev)
+
+
+def _step_correction(data, ts: float, base: list) -> tuple | None:
+    """``TDI(H(t - t_s) w) - H(t - t_s) TDI(w)`` for the TTL witnesses ``base``, decimated:
+    non-zero only where the TDI delays straddle ``t_s`` (about 70 s, spread by the
+    anti-alias filter), computed exactly on a short stretch of telemetry around ``t_s``.
+
+    Returns ``(first decimated sample index, array (3, k, n))`` or None without telemetry.
+    """
+    if data.tm is None:
+        return None
+    tm, fs = data.tm, data.tm.fs
+    taps = lowpass_taps(fs) if data.decimation > 1 else np.ones(1)
+    hist = history_samples(fs, float(np.max(tm.ltt)))
+    i_ts = int(np.floor((ts - tm.t0) * fs))
+    a = max(i_ts - hist - 8, 0)
+    b = min(i_ts + hist + taps.size + 8, tm.size)
+    sub = tm.slice(a, b)
+    inp = effect_input_from_telemetry(sub)
+    step = (inp.t >= ts).astype(float)
+    cols = {c.name: c for c in LinearTTL().columns(inp)}
+    cols = [cols[n] for n in base]
+    for c in cols:
+        for p in c.parts:
+            p.series = p.series * step
+    built = build(MICHELSON, sub.ltt, fs, order=data.settings.order, delay_order=data.settings.delay_order)
+    exact = aet(columns_tdi(cols, built))  # (3, k, b - a); NaN where delays leave the stretch
+    # before t_s - 8 s the step column is exactly zero (NaN only where the delays leave
+    # the stretch), and so is the signal before the stretch
+    exact = np.nan_to_num(exact)
+    exact[..., : hist + 4] = 0.0
+    # causal FIR then decimation on the global sample grid, as TDIData.decimated: output i
+    # of the local convolution is global sample a + i; keep those inside the stretch
+    full = np.apply_along_axis(lambda x: np.convolve(x, taps)[: b - a], -1, exact)
+    first = (-a) % data.decimation
+    dec = full[..., first::data.decimation]
+    k0 = (a + first) // data.decimation  # decimated index of global sample a + first
+    n = dec.shape[-1]
+    t_dec = data.t0 + (k0 + np.arange(n)) / data.fs
+    idx = [data.regressor_names.index(nm) for nm in base]
+    modulated = data.regressor_series[:, idx, k0:k0 + n] * (t_dec >= ts)
+    return k0, dec - np.nan_to_num(modulated)
+
+
+# ---------------------------------------------------------------------------
+# Time offsets of the shifted-witness effects
+# ---------------------------------------------------------------------------
+
+def offset_search(data, effect, columns: ColumnSet, span: float | None = None, passes: int = 4) -> SearchResult:
+    """Profile-likelihood search of the offsets of a shifted-witness effect.
+
+    The exact model of ``timing-offset`` and ``ltt-error`` replaces the witnesses of the
+    coefficients of group ``g`` (:meth:`~ttlcore.diagnose.effects._Linearised.shifted_members`) by
+    the same witnesses shifted by ``s delta_g`` (``s`` =
+    :attr:`~ttlcore.diagnose.effects._Linearised.d1_sign`).  A shift is the phase
+    ``exp(2 pi i f s delta_g)`` of the whitened spectra (TDI commutes with it up to the
+    arms' rate of change, ~1e-8; the segment taper changes by ``delta / T`` ~ 1e-4), so
+    the chi^2 profiled over the linear parameters ``theta`` of ``columns``,
+
+        Q(delta) = dd - b(delta)^T [N(delta) - E]^-1 b(delta),     chi2 = 2 Q,
+
+    is cheap to evaluate for many offsets.  Each group's offset is scanned on a grid of
+    spacing ``1 / (8 f_max)`` over ``[-span, span]`` with the other groups held, the best
+    point refined by bounded Brent minimisation; groups are visited in turn (coordinate
+    descent) until no offset moves by more than 1 ms, at most ``passes`` rounds.
+
+    Parameters
+    ----------
+    data : WhitenedData
+    effect : ttlcore.diagnose.effects._Linearised
+        ``timing-offset``, ``ltt-error`` or a plugin with the same interface.
+    columns : ColumnSet
+        Columns of the model without the effect; must hold the shifted coefficients'.
+    span : float, optional
+        Half-width [s] of the search (default ``settings.shift_span``).
+
+    Returns
+    -------
+    SearchResult
+        ``estimates``: group -> offset [s] at the profile optimum; ``gains``: group ->
+        chi^2 gain (over ``kappa``) of its offset against zero, the others at their
+        optimum; ``theta``: column -> linear parameter at the optimum.
+    """
+    span = float(data.settings.shift_span if span is None else span)
+    names = list(columns.names)
+    members = {g: [names.index(n) for n in mem] for g, mem in effect.shifted_members().items()
+               if all(n in names for n in mem)}
+    P = len(names)
+    X = columns.w  # (S, m, 3, P)
+    S, m = X.shape[:2]
+    X = np.ascontiguousarray(X.transpose(1, 0, 2, 3)).reshape(m, S * 3, P)
+    d = np.ascontiguousarray(data.wd.transpose(1, 0, 2)).reshape(m, S * 3)
+    w = 2 * np.pi * data.f * float(effect.d1_sign)  # phase [rad] per second of offset
+    E = eiv(data, columns).sum(axis=0)
+    dd = float(data.dd.sum())
+    delta = {g: 0.0 for g in members}
+    step = 1.0 / (8.0 * data.f[-1])
+    grid = np.arange(-span, span + 0.5 * step, step)
+    n_eval = 0
+
+    def profile(g):
+        """Q(delta_g) on an array of offsets, the other groups at ``delta``."""
+        J = members[g]
+        R = [i for i in range(P) if i not in J]
+        col = np.zeros(P)
+        for h, idx in members.items():
+            if h != g:
+                col[idx] = delta[h]
+        Xs = X * np.exp(1j * w[:, None] * col[None, :])[:, None, :]
+        flat = Xs.reshape(-1, P)
+        N = (flat.conj().T @ flat).real - E
+        b = (flat.conj().T @ d.reshape(-1)).real
+        XJ = Xs[:, :, J].conj()
+        Q = np.concatenate([np.einsum("mkj,mkr->mjr", XJ, Xs[:, :, R]).reshape(m, -1),
+                            np.einsum("mkj,mk->mj", XJ, d)], axis=1)  # (m, |J| (|R| + 1))
+
+        def q(x):
+            nonlocal n_eval
+            x = np.atleast_1d(np.asarray(x, dtype=float))
+            n_eval += x.size
+            A = (np.exp(-1j * np.outer(x, w)) @ Q).real  # (K, |J| (|R| + 1))
+            NJR = A[:, :len(J) * len(R)].reshape(-1, len(J), len(R))
+            Nk = np.broadcast_to(N, (x.size, P, P)).copy()
+            bk = np.broadcast_to(b, (x.size, P)).copy()
+            Nk[:, np.ix_(J, R)[0], np.ix_(J, R)[1]] = NJR
+            Nk[:, np.ix_(R, J)[0], np.ix_(R, J)[1]] = np.swapaxes(NJR, 1, 2)
+            bk[:, J] = A[:, len(J) * len(R):]
+            th = np.linalg.solve(Nk, bk[..., None])[..., 0]
+            return dd - np.einsum("kp,kp->k", bk, th), th
+
+        return q
+
+    gain, theta, moved = {}, None, np.inf
+    for _ in range(passes):
+        moved = 0.0
+        for g in members:
+            q = profile(g)
+            Qg, _ = q(grid)
+            x0 = float(grid[int(np.argmin(Qg))])
+            res = minimize_scalar(lambda x: float(q(x)[0][0]), bounds=(x0 - step, x0 + step),
+                                  method="bounded", options={"xatol": 1e-4})
+            best = float(res.x) if res.fun <= Qg.min() else x0
+            moved = max(moved, abs(best - delta[g]))
+            delta[g] = best
+            (q0, q1), th = q(np.array([0.0, best]))
+            gain[g], theta = 2.0 * (q0 - q1) / data.kappa, th[1]
+        if moved < 1e-3:  # the gains of this pass hold: no other offset moved since
+            break
+    if moved >= 1e-3:
+        for g in members:
+            (q0, q1), th = profile(g)(np.array([0.0, delta[g]]))
+            gain[g], theta = 2.0 * (q0 - q1) / data.kappa, th[1]
+    if theta is None:
+        theta = np.linalg.solve(gram(data, columns, columns).sum(axis=(0, 1)) - E, rhs(data, columns).sum(axis=(0, 1)))
+    log.debug("offset search %s: %s", effect.name, {g: round(v, 4) for g, v in delta.items()})
+    total = float(sum(gain.values()))
+    return SearchResult(effect, dict(delta), {}, total, float("nan"), float("nan"), n_eval, gains=dict(gain),
+                        theta=dict(zip(names, theta)))

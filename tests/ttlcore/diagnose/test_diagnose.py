@@ -21,8 +21,11 @@ from diagnose_helpers import injected_asd_ratio  # noqa: E402
 
 from ttlcore.cli.main import main  # noqa: E402
 from ttlcore.conventions import COEFFICIENT_NAMES  # noqa: E402
-from ttlcore.diagnose.diagnoser import Diagnoser, diagnose, refit, text_report  # noqa: E402
-from ttlcore.diagnose.evidence import log_bayes_factor  # noqa: E402
+from ttlcore.diagnose.candidates import shifted_evidence  # noqa: E402
+from ttlcore.diagnose.diagnoser import diagnose, refit, text_report  # noqa: E402
+from ttlcore.diagnose.evidence import laplace_evidence, log_bayes_factor  # noqa: E402
+from ttlcore.diagnose.fitting import fit_model  # noqa: E402
+from ttlcore.diagnose.whitened import whiten_telemetry  # noqa: E402
 from ttlcore.diagnose.effects import injection_from_spec, make_effects  # noqa: E402
 from ttlcore.tdi.interpolation import timeshift  # noqa: E402
 from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
@@ -36,7 +39,7 @@ FAST_CASES = {
     "drift": ("drift:t_ref=10800,12.phi.rx=0.13,21.eta.tx=-0.13", True),
     "cross-coupling": ("cross-coupling:12.phi.rx=8e-3,31.eta.rx=8e-3", False),
     # 2 pi f eps ~ 3 rad at the band's top: beyond any Taylor expansion at zero, the offsets
-    # must be searched (Diagnoser.shift_search)
+    # must be searched (ttlcore.diagnose.search.offset_search)
     "ltt-error": ("ltt-error:12.d1=0.6,23.d1=0.6,31.d1=0.6,13.d1=-0.6,32.d1=-0.6,21.d1=-0.6", False),
 }
 
@@ -76,7 +79,7 @@ def check_loop(tm, truth, name, effect, time_dependent, witnesses=False):
     # add it (refit on the same spectra, as `ttl diagnose --effects linear-ttl,EFFECT` does):
     # every band within [0.9, 1.1] against the instrument noise model, every linear
     # coefficient within 3 sigma of the truth
-    out = refit(rep["_internals"]["diagnoser"], ["linear-ttl", top["spec"]])
+    out = refit(rep["_internals"]["data"], ["linear-ttl", top["spec"]])
     after = out["_internals"]["fit"]
     bands = after.bands.chi2_dof
     assert np.all((bands >= 0.9) & (bands <= 1.1)), (bands, out["change"])
@@ -131,18 +134,18 @@ def test_hidden_effect_is_found_added_and_the_error_falls_6h(effect):
         # the candidate's searched offsets and the refitted ones: the injected eps per link
         # (+0.6 s on 12, 23, 31; -0.6 s on 13, 32, 21) within 3 sigma of the refit's sigma
         assert rep["candidates"][0]["where"]["offsets"]["ltt-error.12"] == pytest.approx(0.6, abs=0.01)
-        dg = rep["_internals"]["diagnoser"]
-        offsets = dg.expansion_points()
+        offsets = dict(after.expansion)
         for n, v, sg in zip(after.names, after.theta, after.sigma):
             if n.endswith(".d1"):
                 truth_eps = 0.6 if n.split(".")[1] in ("12", "23", "31") else -0.6
                 assert abs(offsets.get(n[:-3], 0.0) + v - truth_eps) < 3 * sg, (n, offsets, v, sg)
         # scoring another shifted-witness candidate refits with this model's effects too: the
         # model's own shifted columns and expansion points must come out of it unchanged
-        kept = {n: dg.wcols[n].copy() for n in after.names}
-        dg._shifted_evidence(after, make_effects(["timing-offset"])[0], {})
-        assert dg.expansion_points() == offsets
-        assert all(np.array_equal(dg.wcols[n], kept[n]) for n in after.names)
+        kept = after.columns.x.copy()
+        ev, found = shifted_evidence(after, make_effects(["timing-offset"])[0], None)
+        assert after.expansion == offsets
+        assert np.array_equal(after.columns.x, kept)
+        assert "offsets" in found and np.isfinite(ev.log_bayes_factor)
 
 
 def test_refit_from_tdi_only_adds_a_drift():
@@ -158,7 +161,7 @@ def test_refit_from_tdi_only_adds_a_drift():
     assert np.all((bands > 0.9) & (bands < 1.1)), bands
     assert max(out["change"]["bands_before"]) > 2
     with pytest.raises(Exception, match="needs the telemetry"):
-        refit(out["_internals"]["diagnoser"], ["linear-ttl", "cross-coupling"])
+        refit(out["_internals"]["data"], ["linear-ttl", "cross-coupling"])
 
 
 def test_lisainstrument_day_with_shifted_dws_channels(tmp_path):
@@ -311,14 +314,14 @@ def test_lisainstrument_full_day_with_shifted_dws(tmp_path):
 
 
 def test_laplace_evidence_matches_the_exact_bayes_factor_on_nested_models(null6h):
-    # Diagnoser.compare (Laplace, for models that are not nested) against the exact
+    # laplace_evidence (for models that are not nested) against the exact
     # linear-Gaussian log Bayes factor (log_bayes_factor, from the Schur complement of the
     # larger model's EIV-corrected normal matrix) on a nested pair: the two differ by
     # O(sigma^2 / prior^2) ~ 1e-5 here (sigma ~ 6e-6 m/rad against a prior of 1e-3)
     tm, _ = null6h
-    dg = Diagnoser.from_telemetry(tm)
-    base = dg.fit(["linear-ttl"])
-    model = dg.fit(["linear-ttl", "cross-coupling"])
+    dg = whiten_telemetry(tm)
+    base = fit_model(dg, ["linear-ttl"])
+    model = fit_model(dg, ["linear-ttl", "cross-coupling"])
     P = len(base.names)
     assert list(model.names[:P]) == list(base.names)
     N = model.normal[0].sum(axis=(0, 1)) - model.eiv_term.sum(axis=0)
@@ -327,14 +330,14 @@ def test_laplace_evidence_matches_the_exact_bayes_factor_on_nested_models(null6h
     delta_chi2 = 2 * (b @ theta - b[:P] @ theta_base) / dg.kappa
     A = 2 * (N[P:, P:] - N[P:, :P] @ np.linalg.solve(N[:P, :P], N[:P, P:])) / dg.kappa
     exact = log_bayes_factor(A, theta[P:], np.full(len(theta) - P, 1e-3))
-    laplace = dg.compare(base, model)
-    assert laplace["delta_chi2"] == pytest.approx(delta_chi2, rel=1e-6, abs=1e-6)
-    assert laplace["log_bayes_factor"] == pytest.approx(exact, abs=0.05)
+    laplace_dchi2, laplace_lbf = laplace_evidence(base, model)
+    assert laplace_dchi2 == pytest.approx(delta_chi2, rel=1e-6, abs=1e-6)
+    assert laplace_lbf == pytest.approx(exact, abs=0.05)
 
 
-def test_diagnoser_reuse_for_successive_refits(null6h):
+def test_whitened_data_reused_for_successive_refits(null6h):
     tm, _ = null6h
-    dg = Diagnoser.from_telemetry(tm)
+    dg = whiten_telemetry(tm)
     a = refit(dg, ["linear-ttl"])
     b = refit(dg, ["linear-ttl", "drift"])
     assert a["model"]["n_parameters"] == 24 and b["model"]["n_parameters"] == 48

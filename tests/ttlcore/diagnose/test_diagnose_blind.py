@@ -28,7 +28,8 @@ from diagnose_helpers import injected_asd_ratio  # noqa: E402
 
 from ttlcore.cli.main import main  # noqa: E402
 from ttlcore.conventions import ANGLES, COEFFICIENT_NAMES, LINKS, MOSAS  # noqa: E402
-from ttlcore.diagnose.diagnoser import Diagnoser, refit  # noqa: E402
+from ttlcore.diagnose.diagnoser import refit  # noqa: E402
+from ttlcore.diagnose.whitened import whiten_telemetry  # noqa: E402
 from ttlcore.io.truth import read_truth  # noqa: E402
 from ttlcore.io.reader import read_telemetry  # noqa: E402
 
@@ -139,7 +140,7 @@ def test_fd_coupling_with_wrong_fixed_poles_fails_the_adequacy_test_and_searched
     # coupling's phase turns by pi over f0 / Q = 5 mHz), searched it does
     spec = "blind-resonance:source=23.eta,link=31,f0=0.08,q=15,gain=3e-3"
     path, truth = simulate_case(tmp_path, spec, "3h", 3)
-    dg = Diagnoser.from_telemetry(read_telemetry(path))
+    dg = whiten_telemetry(read_telemetry(path))
     wrong = refit(dg, ["linear-ttl", "fd-coupling:source=23.eta,link=31,f0=0.06,q=15"])
     assert wrong["model"]["adequacy"]["fails"]
     searched = refit(dg, ["linear-ttl", "fd-coupling:source=23.eta,link=31"])

@@ -6,7 +6,8 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from ttlcore.diagnose.diagnoser import DiagnoseSettings, Diagnoser, diagnose
+from ttlcore.diagnose.diagnoser import DiagnoseSettings, diagnose
+from ttlcore.diagnose.whitened import whiten_telemetry
 from ttlcore.diagnose.effects import injection_from_spec, make_effects
 from ttlcore.diagnose.noise_model import BOUNDS, NoiseModel, basis_csds, fit_noise_model, profile_noise_model
 from ttlcore.estimate.fit import model_csd
@@ -97,7 +98,7 @@ def test_fitted_levels_recover_scaled_simulator_noises(short_day):
     # sigmas
     tm, truth = short_day
     k_oms, k_tm = 1.02, 1.5
-    dg = Diagnoser.from_telemetry(_scaled(tm, truth, k_oms, k_tm), DiagnoseSettings(noise_model="fitted"))
+    dg = whiten_telemetry(_scaled(tm, truth, k_oms, k_tm), DiagnoseSettings(noise_model="fitted"))
     nm, fit = profile_noise_model(dg, make_effects(["linear-ttl"]))
     lv, sg = dict(zip(nm.names, nm.levels)), dict(zip(nm.names, nm.sigma))
     assert abs(lv["oms"] - k_oms ** 2) < 3 * sg["oms"], (lv, sg)

@@ -2,7 +2,8 @@
 
 import numpy as np
 
-from ttlcore.diagnose.diagnoser import Diagnoser
+from ttlcore.diagnose.fitting import fit_model
+from ttlcore.diagnose.whitened import whiten_telemetry
 from ttlcore.diagnose.effects import Column, Effect, Part
 from ttlcore.sim.simulator import SimulationConfig, simulate
 from ttlcore.diagnose.witnesses import witness_search
@@ -21,8 +22,8 @@ class _Leak(Effect):
 def test_injected_path_is_the_top_witness():
     inj = _Leak().injection({"test-leak.k": 6e-3})
     tm, _ = simulate(SimulationConfig(duration=2 * 3600.0, orbit="keplerian", seed=8, injections=(inj,)))
-    dg = Diagnoser.from_telemetry(tm)
-    model = dg.fit(["linear-ttl"], time_table=False)
+    dg = whiten_telemetry(tm)
+    model = fit_model(dg, ["linear-ttl"], time_table=False)
     w = witness_search(tm, dg, model)
     assert w["n_witnesses"] > 500  # 6 x 2 channels x (6 links x 5 placements + time + steps) + products
     assert w["overall"][0]["name"] == "dws 13.eta on 23", w["overall"][:3]
@@ -39,8 +40,8 @@ def test_injected_path_is_the_top_witness():
 
 def test_no_witness_stands_out_without_an_effect():
     tm, _ = simulate(SimulationConfig(duration=2 * 3600.0, orbit="keplerian", seed=9))
-    dg = Diagnoser.from_telemetry(tm)
-    model = dg.fit(["linear-ttl"], time_table=False)
+    dg = whiten_telemetry(tm)
+    model = fit_model(dg, ["linear-ttl"], time_table=False)
     w = witness_search(tm, dg, model)
     # delta chi2 of an unrelated witness is chi^2_1-like per band: the largest of ~4000
     # (540 witnesses x bands, correlated) stays below ~25 (p ~ 6e-7 each)

@@ -1,0 +1,184 @@
+"""Candidates: every effect that could be added to a fitted model, scored by evidence.
+
+Each candidate goes through the same steps (docs/diagnostics.md, "Candidates"): its
+searched parameters, if any, are profiled (:func:`ttlcore.diagnose.search.profile_search`:
+the step time, the poles of a frequency-dependent coupling, a plugin's parameters); its
+columns are built at the estimates (:func:`ttlcore.diagnose.columns.effect_columns`) and
+its evidence computed against the model (:func:`ttlcore.diagnose.evidence.added_evidence`,
+the errors-in-variables term of model and candidate together); a shifted-witness effect
+whose Taylor columns are significant is scored with its offsets searched, as the model
+would hold it (:func:`ttlcore.diagnose.fitting.fit_model`, Laplace evidence).  Nothing a
+candidate builds changes the model or the data (both are values).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import replace
+
+import numpy as np
+from scipy import stats
+
+from ..errors import ConfigError
+from .columns import effect_columns
+from .effects import Effect
+from .evidence import Evidence, added_evidence, laplace_evidence
+from .fitting import _fit
+from .model_fit import ModelFit, parameter_name, total_offset
+from .search import profile_search
+
+log = logging.getLogger(__name__)
+
+
+def candidates(model: ModelFit, names=None, extra=()) -> list[dict]:
+    """Try every available effect not in ``model`` and the effect instances ``extra``
+    (witness effects and frequency-dependent couplings of the top witnesses,
+    :func:`ttlcore.diagnose.witnesses.witness_candidates`); ranked list (best first).
+    Effects that need options to mean anything (``witness``, ``fd-coupling``) are tried
+    through ``extra`` only."""
+    data = model.data
+    s = data.settings
+    in_model = {e.name for e in model.effects}
+    todo = [n for n in (names or data.registry) if n not in in_model and n not in ("witness", "fd-coupling")]
+    todo += list(extra)
+    C = model.ttl_coefficients()
+    # the excess the noise model (with its tolerance) cannot explain
+    excess = float(np.sum(np.maximum(model.bands.chi2 - (1 + s.tolerance) * model.bands.dof, 0.0))) / data.kappa
+    n_data = float(model.dof_band.sum())
+    out = []
+    in_specs = {e.spec() for e in model.effects}
+    for name in todo:
+        if isinstance(name, Effect):
+            effect, cls, name = name, type(name), name.name
+            if effect.spec() in in_specs:
+                continue
+        else:
+            cls = data.registry[name]
+            effect = cls()
+        t_start = time.monotonic()
+        try:
+            ev, extra_json = score(model, effect, C)
+        except ConfigError as exc:
+            log.info("candidate %s skipped: %s", name, exc)
+            continue
+        n_searched = len(extra_json.get("search", {}).get("estimates", {})) + ("t_step" in extra_json)
+        ev = replace(ev, delta_bic=ev.delta_chi2 - (ev.n_parameters + n_searched) * math.log(n_data))
+        k = ev.n_parameters
+        # a searched nonlinear parameter counts as one more degree of freedom (a rough
+        # allowance for the look-elsewhere effect of the search; the evidence is marginal)
+        k_eff = k + len(extra_json.get("search", {}).get("estimates", {}))
+        p = float(stats.chi2.sf(max(ev.delta_chi2, 0.0), k_eff))
+        significant = bool(p < s.alpha and ev.log_bayes_factor > s.log_bf_threshold)
+        found = extra_json.pop("_effect", effect)
+        out.append({
+            "effect": name,
+            "spec": found.spec(),
+            "cli_spec": found.cli_spec(),
+            "title": cls.title,
+            "physics": cls.physics,
+            "n_parameters": k,
+            "delta_chi2": float(ev.delta_chi2),
+            "p_value": p,
+            "log_bayes_factor": float(ev.log_bayes_factor),
+            "delta_bic": float(ev.delta_bic),
+            "explained_fraction": float(min(1.0, max(ev.delta_chi2, 0.0) / excess)) if excess > 0 else 0.0,
+            "significant": significant,
+            "where": where(data, ev, extra_json),
+            "parameters": top_parameters(ev),
+            "seconds": round(time.monotonic() - t_start, 2),
+            **({"searched": extra_json} if extra_json else {}),
+        })
+    out.sort(key=lambda c: (not c["significant"], -np.nan_to_num(c["log_bayes_factor"], nan=-np.inf)))
+    return out
+
+
+def score(model: ModelFit, effect, C) -> tuple[Evidence, dict]:
+    """The evidence for adding ``effect`` to ``model`` and what its search found
+    (``{"search": ...}``, ``{"t_step": ...}`` or ``{"offsets": ...}``; the key ``_effect``
+    holds the effect at the estimates).  ConfigError when it cannot be scored here."""
+    data = model.data
+    extra: dict = {}
+    if effect.unresolved():
+        found = profile_search(model, effect, C)
+        effect = found.effect
+        if found.evidence is not None:  # the step time: the evidence with the exact step near t_s
+            ev = found.evidence
+            extra = {"t_step": found.estimates["t_step"], "log_bayes_factor_at_best": ev.log_bayes_factor}
+        else:
+            cs = effect_columns(data, effect, C if effect.needs_coefficients else None, cache=False)
+            ev = added_evidence(model, cs)
+            extra = {"search": found.to_json(), "log_bayes_factor_at_best": ev.log_bayes_factor}
+        ev = replace(ev, log_bayes_factor=found.log_bayes_factor)
+        extra["_effect"] = effect
+        return ev, extra
+    if effect.needs_coefficients and np.isnan(C).any():
+        raise ConfigError(f"effect {effect.name!r} needs the 24 linear coefficients in the model")
+    trial = effect.name in ("witness", "fd-coupling") or any(
+        c.startswith(("witness.", "fd.")) for c in effect.column_names())
+    # trial columns of witness effects are not kept; drift and step ranked from modulated
+    # TDI regressors (exact=False)
+    cs = effect_columns(data, effect, C if effect.needs_coefficients else None, exact=trial, cache=not trial)
+    ev = added_evidence(model, cs)
+    if hasattr(effect, "shifted_members") and stats.chi2.sf(max(ev.delta_chi2, 0.0), len(cs)) < data.settings.alpha:
+        ev, extra = shifted_evidence(model, effect, ev)
+    return ev, extra
+
+
+def shifted_evidence(model: ModelFit, effect, taylor: Evidence) -> tuple[Evidence, dict]:
+    """Evidence of a shifted-witness candidate with its offsets searched (the exact model
+    of :func:`ttlcore.diagnose.fitting.expand_linearised`) instead of the Taylor columns at
+    zero, which lose most of a large offset's delta chi^2 where ``2 pi f delta`` nears one.
+    Falls back to the Taylor evidence when no group's offset needs the exact model."""
+    data = model.data
+    if data.settings.expansion_passes == 0 or len(data.ttl_names) != 24:
+        return taylor, {}
+    exact = _fit(data, list(model.effects) + [effect], None, False)
+    if all("@" not in n for n in exact.names):
+        return taylor, {}
+    dchi2, lbf = laplace_evidence(model, exact)
+    new = [i for i, n in enumerate(exact.names) if parameter_name(n) not in set(model.parameter_names)]
+    names = [exact.names[i] for i in new]
+    beta = np.array([total_offset(exact.names[i], exact.theta[i], exact.expansion) for i in new])
+    ev = Evidence(dchi2, lbf, len(new), tuple(names), beta, exact.sigma[new],
+                  (model.chi2_seg_band - exact.chi2_seg_band).sum(axis=0) / data.kappa,
+                  (model.chi2_seg_band - exact.chi2_seg_band).sum(axis=1) / data.kappa)
+    return ev, {"offsets": {n[:-3]: float(b) for n, b in zip(names, beta) if n.endswith(".d1")}}
+
+
+def where(data, ev: Evidence, extra: dict) -> dict:
+    """Where a candidate acts: delta chi^2 per band and per segment, per group of its
+    parameters (link, MOSA, spacecraft), the step time or offsets it was scored at."""
+    bd = ev.band_delta
+    sd = ev.segment_delta
+    tot = max(float(np.sum(np.maximum(bd, 0))), 1e-300)
+    bands = [{"f_lo": float(data.edges[g]), "f_hi": float(data.edges[g + 1]), "delta_chi2": float(bd[g]),
+              "share": float(max(bd[g], 0) / tot)} for g in range(data.G)]
+    strong = [b for b in bands if b["share"] >= 0.1]
+    z2 = (ev.beta / np.where(ev.sigma > 0, ev.sigma, np.inf)) ** 2
+    groups: dict = {}
+    for n, z in zip(ev.names, z2):
+        parts = n.split(".")
+        groups[parts[1] if len(parts) > 1 else n] = groups.get(parts[1] if len(parts) > 1 else n, 0.0) + float(z)
+    links = sorted(groups.items(), key=lambda kv: -kv[1])
+    ztot = max(sum(groups.values()), 1e-300)
+    out = {
+        "bands": bands,
+        "main_bands": [[b["f_lo"], b["f_hi"]] for b in strong],
+        "segments": [{"t_start": float(t), "t_stop": float(t + data.seg_duration), "delta_chi2": float(x)}
+                     for t, x in zip(data.seg_t0, sd)],
+        "links": [{"group": g, "z2": z, "share": z / ztot} for g, z in links[:6]],
+    }
+    if "t_step" in extra:
+        out["t_step"] = extra["t_step"]
+    if "offsets" in extra:  # searched offsets [s] of a shifted-witness effect, per group
+        out["offsets"] = extra["offsets"]
+    return out
+
+
+def top_parameters(ev: Evidence, n: int = 6) -> list[dict]:
+    beta, sig = ev.beta, ev.sigma
+    z = np.abs(beta) / np.where(sig > 0, sig, np.inf)
+    order = np.argsort(-z)[:n]
+    return [{"name": ev.names[i], "value": float(beta[i]), "sigma": float(sig[i]), "z": float(z[i])} for i in order]

@@ -1,0 +1,523 @@
+"""Regressor columns of effects, whitened: pure functions of (effect, parameters, data).
+
+A :class:`ColumnSet` is an immutable value: the names of some columns, their whitened
+segment spectra (under the noise model of the :class:`~ttlcore.diagnose.whitened.WhitenedData`
+they were built for), units and prior scales, their errors-in-variables description (the
+DWS channels whose readout noise they carry, with placement and response) and optionally
+their decimated series.  :func:`effect_columns` builds an effect's columns (the exact TDI of
+its parts, :func:`ttlcore.diagnose.effects.tdi_in_blocks`; or the modulated TDI regressors
+for a quick ranking of ``drift`` and ``step``; or combinations of the time derivatives of
+the TDI regressors for the linearised ``timing-offset`` and ``ltt-error``).
+
+Columns are cached in a :class:`ColumnStore` under immutable keys: the effect's name and
+options, the coefficients it was built with and the kind of construction.  An entry
+whitened under another noise model is transformed to the current one (``L_new^H
+(L_old^H)^-1`` per bin) when it is read.  A column set never changes once built, so trial
+fits (candidates, searches) cannot change what a model sees.
+
+The errors-in-variables term of a set of columns (:func:`eiv`) is the bias of the normal
+matrix by the DWS readout noise the columns share (docs/diagnostics.md, "The loop").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from ..conventions import COEFFICIENT_NAMES, LINKS, parse_duration
+from ..conventions import C as SPEED_OF_LIGHT
+from ..errors import ConfigError
+from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
+from ..tdi.interpolation import timeshift
+from ..tdi.regressors import placement
+from .effects import (
+    Column,
+    Step,
+    derivative,
+    effect_input_from_telemetry,
+    filtered,
+    names_only_input,
+    readout_noise_factor,
+    tdi_in_blocks,
+)
+
+#: Unit and prior scale of the TTL regressor columns (m/rad; 2.3 mm/rad).
+TTL_INFO = ("m/rad", 2.3e-3)
+
+
+@dataclass(frozen=True, eq=False)
+class ColumnSet:
+    """Whitened regressor columns.
+
+    Attributes
+    ----------
+    names : tuple of str
+    x : ndarray (k, S, m, 6)
+        Whitened segment spectra, real and imaginary parts interleaved (so that
+        ``Re sum conj(a) b`` is a real dot product).
+    noise_key : str
+        Digest of the noise model they are whitened with.
+    units, priors : tuple
+        Unit and prior scale (standard deviation of the zero-mean Gaussian prior of the
+        Bayes factor) of each column's parameter.
+    eiv : tuple
+        Per column, the DWS channels whose readout noise it carries:
+        ``((mosa, angle), link, extra_delays, factor)`` with ``factor`` a time shift [s]
+        (0: none) or a frequency response (m,) (filtered columns).
+    modulation : tuple
+        Per column, the slowly varying factor (decimated samples) multiplying its witness
+        and so its readout noise (drift, step), or None.
+    series : ndarray (3, k, n) or None
+        Decimated A, E, T of the columns, when kept.
+    """
+
+    names: tuple
+    x: np.ndarray
+    noise_key: str
+    units: tuple
+    priors: tuple
+    eiv: tuple
+    modulation: tuple
+    series: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return len(self.names)
+
+    @property
+    def w(self) -> np.ndarray:
+        """Whitened spectra (S, m, 3, k), complex."""
+        return np.ascontiguousarray(np.moveaxis(self.x.view(complex), 0, -1))
+
+    def column(self, name: str) -> np.ndarray:
+        """One column's whitened spectra (S, m, 3)."""
+        return self.x[self.names.index(name)].view(complex)
+
+    def select(self, names) -> "ColumnSet":
+        """The columns ``names`` (in that order)."""
+        return assemble(names, self)
+
+
+def empty_set(noise_key: str) -> ColumnSet:
+    return ColumnSet((), np.zeros((0, 0, 0, 6)), noise_key, (), (), (), (), None)
+
+
+def assemble(names, *sets: ColumnSet) -> ColumnSet:
+    """The columns ``names`` taken from ``sets`` (a name in several: the last set's), in
+    the order of ``names``; series only when every set has them."""
+    where = {}
+    for s in sets:
+        for i, n in enumerate(s.names):
+            where[n] = (s, i)
+    missing = [n for n in names if n not in where]
+    if missing:
+        raise ConfigError(f"columns {missing[:3]} are not built")
+    keys = {s.noise_key for s in sets if len(s)}
+    if len(keys) > 1:
+        raise ValueError("columns whitened with different noise models cannot be combined")
+    picks = [where[n] for n in names]
+    x = np.stack([s.x[i] for s, i in picks]) if picks else np.zeros((0, 0, 0, 6))
+    have_series = all(s.series is not None for s, _ in picks)
+    series = np.stack([s.series[:, i] for s, i in picks], axis=1) if picks and have_series else None
+    return ColumnSet(tuple(names), x, next(iter(keys)) if keys else "", tuple(s.units[i] for s, i in picks),
+                     tuple(s.priors[i] for s, i in picks), tuple(s.eiv[i] for s, i in picks),
+                     tuple(s.modulation[i] for s, i in picks), series)
+
+
+def concat(*sets: ColumnSet) -> ColumnSet:
+    """The columns of ``sets`` one after the other (names must not repeat)."""
+    names = [n for s in sets for n in s.names]
+    if len(set(names)) != len(names):
+        raise ValueError("repeated column names")
+    return assemble(names, *sets)
+
+
+def rewhitened(cs: ColumnSet, Lh_from: np.ndarray, data) -> ColumnSet:
+    """``cs`` (whitened with ``Lh_from``) whitened with ``data``'s noise model instead:
+    ``L_new^H (L_old^H)^-1`` per bin, no spectra recomputed."""
+    if cs.noise_key == data.noise_key or not len(cs):
+        return cs
+    M = data.Lh @ np.linalg.inv(Lh_from)
+    w = cs.x.view(complex)
+    x = np.stack([np.ascontiguousarray(np.einsum("mij,smj->smi", M, w[k])) for k in range(len(cs))])
+    return replace(cs, x=x.view(np.float64), noise_key=data.noise_key)
+
+
+def _whitened_set(data, names, spectra, units, priors, eiv=None, modulation=None, series=None) -> ColumnSet:
+    """A set from raw spectra (S, m, 3, k), whitened with ``data``'s noise model."""
+    w = data.whiten(spectra)
+    x = np.stack([np.ascontiguousarray(w[..., k]) for k in range(len(names))]).view(np.float64)
+    k = len(names)
+    return ColumnSet(tuple(names), x, data.noise_key, tuple(units), tuple(priors),
+                     tuple(eiv) if eiv is not None else ((),) * k,
+                     tuple(modulation) if modulation is not None else (None,) * k, series)
+
+
+class ColumnStore:
+    """Cache of column sets (and readout-noise responses) of one diagnosis.
+
+    Keys are immutable descriptions of what was built (see the module docstring); an entry
+    whitened under another noise model is transformed to the one asked for, and replaced."""
+
+    def __init__(self):
+        self._sets: dict = {}
+        self._eiv: dict = {}
+        self._latest: dict = {}  # family -> its latest key (columns built with fitted coefficients)
+
+    def get(self, key, data) -> ColumnSet | None:
+        entry = self._sets.get(key)
+        if entry is None:
+            return None
+        Lh, cs = entry
+        if cs.noise_key != data.noise_key:
+            cs = rewhitened(cs, Lh, data)
+            self._sets[key] = (data.Lh, cs)
+        return cs
+
+    def put(self, key, data, cs: ColumnSet, family=None) -> ColumnSet:
+        """Store ``cs`` under ``key``; with ``family`` (the key without the coefficients the
+        columns were built with) the family's previous entry is dropped: a model's
+        coefficients move with every pass of the noise-model fit, and only the last
+        columns are asked for again."""
+        if family is not None:
+            old = self._latest.get(family)
+            if old is not None and old != key:
+                self._sets.pop(old, None)
+            self._latest[family] = key
+        self._sets[key] = (data.Lh, cs)
+        return cs
+
+    def eiv_response(self, data, link, extra) -> np.ndarray:
+        """Whitened A, E, T response (m, 3) to the DWS readout noise of a witness ``-DWS/c``
+        placed on ``link`` after ``extra`` delays, times the noise's ASD (velocity)."""
+        key = (data.noise_key, link, tuple(extra))
+        if key not in self._eiv:
+            if len(self._eiv) > 64:
+                self._eiv.clear()
+            h = np.stack([link_responses(c, data.f, data.ltt_mean, tuple(extra))[LINKS.index(link)] for c in MICHELSON])
+            T = (AET_MATRIX @ h).T * (-1.0 / SPEED_OF_LIGHT)  # (m, 3)
+            self._eiv[key] = np.matmul(data.Lh, T[..., None])[..., 0] * (2 * np.pi * data.f * data.dws_asd)[:, None]
+        return self._eiv[key]
+
+
+# ---------------------------------------------------------------------------
+# Building columns
+# ---------------------------------------------------------------------------
+
+def ttl_columns(data) -> ColumnSet:
+    """The TDI regressor columns of the data (the 24 TTL ones, with their readout noise)."""
+    key = ("regressors",)
+    cs = data.store.get(key, data)
+    if cs is None:  # put there by whiten_tdi; recomputed only if a user's store was cleared
+        cs = data.store.put(key, data, regressor_columns(data, data.spectra(data.regressor_series)))
+    return cs
+
+
+def regressor_columns(data, R: np.ndarray) -> ColumnSet:
+    """The TDI regressor columns from their raw band spectra ``R`` (S, m, 3, k), whitened."""
+    eiv = []
+    for n in data.regressor_names:
+        if n in COEFFICIENT_NAMES:
+            link, extra, mosa, angle = placement(n)
+            eiv.append((((mosa, angle), link, tuple(extra), 0.0),))
+        else:
+            eiv.append(())
+    k = len(data.regressor_names)
+    return _whitened_set(data, data.regressor_names, R, [TTL_INFO[0]] * k, [TTL_INFO[1]] * k, eiv, None,
+                         data.regressor_series)
+
+
+def derivative_columns(data) -> ColumnSet:
+    """Whitened spectra and decimated series of the first and second time derivatives of
+    the TDI regressors (columns ``d1:<name>``, ``d2:<name>``), computed once."""
+    key = ("derivatives",)
+    cs = data.store.get(key, data)
+    if cs is not None:
+        return cs
+    td = data.td_in
+    parts = []
+    for order in (1, 2):
+        series = np.concatenate([data.decimate(derivative(td.regressors[:, j0:j0 + 8], td.fs, order), is_aet=True)
+                                 for j0 in range(0, len(td.names), 8)], axis=1)
+        names = [f"d{order}:{n}" for n in td.names]
+        parts.append(_whitened_set(data, names, data.spectra(series), [""] * len(names), [1.0] * len(names),
+                                   series=series))
+    return data.store.put(key, data, concat(*parts))
+
+
+def _options_key(effect) -> str:
+    return repr(sorted(effect.options.items()))
+
+
+def effect_columns(data, effect, coefficients=None, keep_series: bool = False, exact: bool = True,
+                   cache: bool = True) -> ColumnSet:
+    """The whitened columns of ``effect`` (cached; see the module docstring).
+
+    ``exact=False`` (candidate ranking) builds ``drift`` and ``step`` columns by modulating
+    the TDI regressors in time (``TDI(m w) = m TDI(w)`` but for the ~70 s the TDI delays
+    span, a relative error ~1e-3 on a drift column), saving a TDI per column.  Linearised
+    effects (``timing-offset``, ``ltt-error``) always use the time derivatives of the TDI
+    regressors (:meth:`ttlcore.diagnose.effects._Linearised.tdi_terms`) when the data hold
+    the 24 of them.  ``keep_series``: the decimated series are kept (time-domain adequacy,
+    filters in time); ``cache=False``: the columns are not kept in the store (trial
+    columns of a search or a candidate; the unfiltered base columns are kept)."""
+    names_in = set(data.regressor_names)
+    if hasattr(effect, "tdi_terms") and len(data.ttl_names) == 24 and all(n in names_in for n in data.ttl_names):
+        if coefficients is None:
+            raise ConfigError(f"effect {effect.name!r} needs the linear coefficients")
+        key = ("tdi_terms", effect.name, _options_key(effect), tuple(np.round(coefficients, 15)))
+        cs = data.store.get(key, data)
+        if cs is None:
+            d = derivative_columns(data)
+            names, x, series, units, priors = [], [], [], [], []
+            for cname, unit, prior, terms in effect.tdi_terms(coefficients):
+                x.append(np.ascontiguousarray(sum(f * d.column(f"d{o}:{n}") for n, o, f in terms)))
+                series.append(sum(f * d.series[:, d.names.index(f"d{o}:{n}")] for n, o, f in terms))
+                names.append(cname)
+                units.append(unit)
+                priors.append(prior)
+            k = len(names)
+            cs = data.store.put(key, data, ColumnSet(tuple(names), np.stack(x).view(np.float64), data.noise_key,
+                                                     tuple(units), tuple(priors), ((),) * k, (None,) * k,
+                                                     np.stack(series, axis=1)), family=key[:3])
+        return cs
+    if not exact and effect.name in ("drift", "step") and all(
+            f"{m}.{a}.{sd}" in names_in for m in effect.mosas for a in effect.angles for sd in effect.sides):
+        key = ("approx", effect.name, _options_key(effect))
+        cs = data.store.get(key, data)
+        if cs is None:
+            cs = data.store.put(key, data, _modulated_regressors(data, effect))
+        return cs
+    return _exact_columns(data, effect, coefficients, keep_series, cache)
+
+
+def _exact_columns(data, effect, coefficients, keep_series, cache=True) -> ColumnSet:
+    if isinstance(effect, Step) and effect.options.get("t_step") is None:
+        raise ConfigError("effect 'step' needs t_step in a model (ttl diagnose reports the searched time)")
+    if effect.name == "linear-ttl":
+        names = [c.name for c in effect.columns(names_only_input())]
+        missing = [n for n in names if n not in data.regressor_names]
+        if missing:
+            raise ConfigError(f"linear-ttl columns {missing[:3]} missing from the TDI data")
+        return ttl_columns(data).select(names)
+    key = ("exact", effect.name, _options_key(effect), None if coefficients is None else tuple(np.round(coefficients, 12)))
+    cs = data.store.get(key, data)
+    if cs is not None and (not keep_series or cs.series is not None):
+        return cs
+    if data.tm is None:
+        cs = _modulated_regressors(data, effect)
+    else:
+        cols = effect.columns(effect_input_from_telemetry(data.tm, coefficients))
+        if not cols:
+            raise ConfigError(f"effect {effect.name!r} produced no column (check its options)")
+        if any(c.response is not None for c in cols):
+            cs = filtered_columns(data, cols)
+            return data.store.put(key, data, cs, family=key[:3]) if cache else cs
+        eiv, mods = zip(*[column_eiv(data, c) for c in cols])
+        chunks = []
+        for j0 in range(0, len(cols), 8):  # bounded memory (a day: ~70 MB per column in flight)
+            _, xyz = tdi_in_blocks(data.tm.ltt, data.tm.fs, cols[j0:j0 + 8], order=data.settings.order,
+                                   delay_order=data.settings.delay_order)
+            chunks.append(data.decimate(xyz))
+        series = np.concatenate(chunks, axis=1)
+        cs = _whitened_set(data, [c.name for c in cols], data.spectra(series), [c.unit for c in cols],
+                           [c.prior_scale for c in cols], eiv, mods, series if keep_series else None)
+    return data.store.put(key, data, cs, family=key[:3]) if cache else cs
+
+
+def column_eiv(data, column) -> tuple:
+    """Errors-in-variables description of an effect's column ``(parts, modulation)``:
+    plain (or slowly modulated) DWS witnesses carry their channel's readout noise (the
+    modulation resampled to the decimated grid); other columns none."""
+    parts = column.parts
+    if not parts or any(p.channel is None for p in parts):
+        return (), None
+    mods = [p.modulation for p in parts]
+    mod = None
+    if any(m is not None for m in mods):
+        if any(m is None or not np.array_equal(m, mods[0]) for m in mods):
+            return (), None  # parts modulated differently: not modelled
+        t_tm = float(data.tm.t0) + np.arange(len(mods[0])) / float(data.tm.fs)
+        t_dec = data.t0 + np.arange(data.mask.size) / data.fs
+        mod = np.interp(t_dec, t_tm, np.asarray(mods[0], dtype=float))
+    return tuple((p.channel, p.link, tuple(p.extra), 0.0) for p in parts), mod
+
+
+def _modulated_regressors(data, effect) -> ColumnSet:
+    """Drift and step columns as time-modulated TDI regressors (no telemetry needed)."""
+    if effect.name not in ("drift", "step"):
+        raise ConfigError(f"effect {effect.name!r} needs the telemetry (DWS series); these segments carry TDI only")
+    t = data.t0 + np.arange(data.data_series.shape[-1]) / data.fs
+    if effect.name == "drift":
+        t_ref = effect.options.get("t_ref")
+        t_ref = 0.5 * (t[data.mask][0] + t[data.mask][-1]) if t_ref is None else float(t_ref)
+        mod, prefix, unit = (t - t_ref) / 86400.0, "drift", "m/rad/day"
+    else:
+        mod, prefix, unit = (t >= parse_duration(effect.options["t_step"])).astype(float), "step", "m/rad"
+    base = ttl_columns(data)
+    names, cols, eiv, mods = [], [], [], []
+    for m in effect.mosas:
+        for a in effect.angles:
+            for sd in effect.sides:
+                b = f"{m}.{a}.{sd}"
+                i = base.names.index(b)
+                names.append(f"{prefix}.{b}")
+                cols.append(data.regressor_series[:, i] * mod)
+                eiv.append(base.eiv[i])
+                mods.append(mod if base.eiv[i] else None)
+    series = np.stack(cols, axis=1)
+    k = len(names)
+    return _whitened_set(data, names, data.spectra(series), [unit] * k, [1e-3] * k, eiv, mods)
+
+
+def base_column(data, column) -> ColumnSet:
+    """The unfiltered column of a filtered one (cached): its parts through the exact TDI,
+    whitened, with series.  Keyed by the parts' placement and source, so that witness and
+    frequency-dependent candidates on one placement share it."""
+    key = "base:" + (column.base or column.name.split(".", 1)[-1])
+    key += "|" + ";".join(f"{p.link}/{int(p.delayed)}/{p.channel}" for p in column.parts)
+    cs = data.store.get(("base", key), data)
+    if cs is None:
+        plain = Column(key, column.parts, column.unit, column.prior_scale)
+        _, xyz = tdi_in_blocks(data.tm.ltt, data.tm.fs, [plain], order=data.settings.order,
+                               delay_order=data.settings.delay_order)
+        series = data.decimate(xyz)
+        eiv, mod = column_eiv(data, plain)
+        cs = data.store.put(("base", key), data, _whitened_set(data, [key], data.spectra(series), [column.unit],
+                                                               [column.prior_scale], [eiv], [mod], series))
+    return cs
+
+
+def filtered_spectra(data, base: ColumnSet, responses) -> tuple[np.ndarray, np.ndarray]:
+    """Whitened spectra (S, m, 3, k) and decimated series (3, k, n) of the one-column set
+    ``base`` through the filters ``responses`` (callables ``f -> complex``), filtered in the
+    time domain before the segments are windowed (:func:`ttlcore.diagnose.effects.filtered`):
+    multiplying the windowed segment's spectrum instead misses the filter's ringing across
+    the taper, a few tens of per cent of a strong resonance's excess at the segment ends."""
+    x = base.series[:, 0]
+    ok = np.isfinite(x)
+    series = np.stack([np.where(ok, filtered(x, data.fs, r), np.nan) for r in responses], axis=1)
+    return data.whiten(data.spectra(series)), series
+
+
+def filtered_columns(data, cols) -> ColumnSet:
+    """Columns carrying a frequency response: the base column (its parts through the exact
+    TDI, once) filtered in time (:func:`filtered_spectra`); the readout-noise response is the
+    base column's times the response (errors-in-variables term)."""
+    x, series, eiv, mods = [], [], [], []
+    for c in cols:
+        base = base_column(data, c)
+        resp = np.ones(data.f.size, dtype=complex) if c.response is None else np.asarray(c.response(data.f), dtype=complex)
+        w, s = filtered_spectra(data, base, [c.response or (lambda f: np.ones(np.shape(f)))])
+        x.append(np.ascontiguousarray(w[..., 0]))
+        series.append(s[:, 0])
+        eiv.append(tuple((ch, link, extra, resp) for ch, link, extra, *_ in base.eiv[0]))
+        mods.append(base.modulation[0])
+    return ColumnSet(tuple(c.name for c in cols), np.stack(x).view(np.float64), data.noise_key,
+                     tuple(c.unit for c in cols), tuple(c.prior_scale for c in cols), tuple(eiv), tuple(mods),
+                     np.stack(series, axis=1))
+
+
+def shifted_columns(data, effect, C, shifts: dict) -> tuple[dict, ColumnSet, dict]:
+    """Columns of a linearised effect expanded at ``shifts[group]`` (the exact model of
+    :func:`ttlcore.diagnose.fitting.expand_linearised`).
+
+    For each group with an offset ``delta_0``: its TTL columns with the witnesses shifted,
+    ``R_k(t + s delta_0)``, named ``"<coefficient>@<effect>.<group>"``, and the column
+    ``<effect>.<group>.d1 = s sum_k C_k R_k'(t + s delta_0)`` (parameter: the offset beyond
+    ``delta_0`` [s]).  Groups without one: the Taylor columns ``d1``, ``d2`` at zero.  The
+    shifted series are built from the 4-Hz TDI regressors (TDI commutes with the shift up to
+    the arms' rate of change, ~1e-8).
+
+    Returns
+    -------
+    replaced : dict
+        TTL column name -> the name of its shifted column.
+    columns : ColumnSet
+        The shifted TTL columns and the effect's own (``d1``, ``d2``), with series.
+    expansion : dict
+        ``"effect.group" -> delta_0``.
+    """
+    td = data.td_in
+    base = ttl_columns(data)
+    sgn = float(effect.d1_sign)
+    replaced, names, series_list, units, priors, eiv, expansion = {}, [], [], [], [], [], {}
+    for g, members in effect.shifted_members().items():
+        d0 = float(shifts.get(g, 0.0))
+        expansion[f"{effect.name}.{g}"] = d0
+        R = np.stack([td.regressors[:, td.names.index(k)] for k in members], axis=1)  # (3, k, n)
+        if d0:
+            R = timeshift(R, sgn * d0 * td.fs)
+            for k, cname in enumerate(members):
+                new = f"{cname}@{effect.name}.{g}"
+                replaced[cname] = new
+                names.append(new)
+                series_list.append(R[:, k])
+                i = base.names.index(cname)
+                units.append(base.units[i])
+                priors.append(base.priors[i])
+                eiv.append(tuple((ch, link, extra, sgn * d0) for ch, link, extra, *_ in base.eiv[i]))
+        A = np.einsum("k,ckn->cn", [float(C[COEFFICIENT_NAMES.index(k)]) for k in members], R)
+        cols = {"d1": sgn * derivative(A, td.fs, 1)}
+        if not d0:
+            cols["d2"] = 0.5 * derivative(A, td.fs, 2)
+        for kind, x in cols.items():
+            names.append(f"{effect.name}.{g}.{kind}")
+            series_list.append(x)
+            units.append({"d1": "s", "d2": "s^2"}[kind])
+            priors.append({"d1": 0.1, "d2": 0.01}[kind])
+            eiv.append(())
+    series = data.decimate(np.stack(series_list, axis=1), is_aet=True)
+    cs = _whitened_set(data, names, data.spectra(series), units, priors, eiv, None, series)
+    return replaced, cs, expansion
+
+
+# ---------------------------------------------------------------------------
+# Errors in variables
+# ---------------------------------------------------------------------------
+
+def eiv(data, cs: ColumnSet) -> np.ndarray:
+    """Errors-in-variables term (G, p, p) of the columns, summed over segments:
+    ``E_kl = W_kl sum_ch Re sum_f U_k,ch^H U_l,ch`` (:func:`eiv_products`, one segment)
+    with ``W_kl`` the segments' taper-weighted means of the product of the columns'
+    modulations (:func:`eiv_weights`; the number of segments for unmodulated columns)."""
+    return eiv_products(data, cs) * eiv_weights(data, cs)[None]
+
+
+def eiv_products(data, cs: ColumnSet) -> np.ndarray:
+    """One segment's errors-in-variables products (G, p, p): ``Re sum_f U_k,ch^H U_l,ch``
+    summed over the DWS channels ``ch``, ``U_k,ch`` the whitened response of column ``k``
+    to the readout noise of channel ``ch``.  Columns whose parts are plain (or slowly
+    modulated, shifted or filtered) DWS witnesses carry it; others, built from products of
+    the readouts, carry none - their bias is second order in the small readout noise."""
+    p = len(cs)
+    E = np.zeros((data.G, p, p))
+    by_channel: dict = {}
+    for i, parts in enumerate(cs.eiv):
+        for ch, link, extra, factor in parts:
+            by_channel.setdefault(ch, {}).setdefault(i, []).append((link, extra, factor))
+    for ch, cols in by_channel.items():
+        idx = sorted(cols)
+        U = np.stack([sum(data.store.eiv_response(data, link, extra) * readout_noise_factor(data.f, factor)
+                          for link, extra, factor in cols[i]) for i in idx], axis=-1)
+        for g, (a, b) in enumerate(data.slices):
+            if b > a:
+                Ug = U[a:b].reshape(-1, len(idx))
+                E[g][np.ix_(idx, idx)] += np.real(Ug.conj().T @ Ug)
+    return E
+
+
+def eiv_weights(data, cs: ColumnSet) -> np.ndarray:
+    """``W_kl = sum_s <m_k m_l>_s`` (p, p): per segment the mean of the product of the
+    columns' modulations weighted by the squared taper (the readout noise is white on the
+    modulations' time scale), ``m = 1`` for unmodulated columns."""
+    mods = cs.modulation
+    W = np.full((len(cs), len(cs)), float(len(data.starts)))
+    idx = [i for i, m in enumerate(mods) if m is not None]
+    if idx:
+        A = np.stack([np.stack([mods[i][s0:s0 + data.L] for s0 in data.starts]) for i in idx])  # (q, S, L)
+        cross = np.einsum("qsl,sl->q", A, data.w2)  # against m = 1
+        W[idx, :] = cross[:, None]
+        W[:, idx] = cross[None, :]
+        W[np.ix_(idx, idx)] = np.einsum("qsl,rsl,sl->qr", A, A, data.w2)
+    return W

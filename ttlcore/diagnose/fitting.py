@@ -1,0 +1,244 @@
+"""Fit a model (a list of effects) to whitened data: one code path for the diagnosed
+model, the candidates' trial models, the ``before`` model and the pipeline's refits.
+
+:func:`fit_model` resolves the effects' searched parameters
+(:func:`ttlcore.diagnose.search.profile_search` against the model of the other effects),
+builds the columns (:mod:`ttlcore.diagnose.columns`), expands the shifted-witness effects
+at their searched offsets (:func:`expand_linearised`), solves
+(:func:`ttlcore.diagnose.model_fit.solve`), and for a model whose coefficients change in
+time re-evaluates the DWS readout-noise term of the noise model with the model's own
+coefficient history (the returned fit's ``data`` is then a new
+:class:`~ttlcore.diagnose.whitened.WhitenedData`; the input is left as it is).
+"""
+
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from ..conventions import COEFFICIENT_NAMES, parse_duration
+from ..errors import ConfigError
+from ..estimate.fit import notch_mask, variance_factor
+from ..estimate.spectra import segment_fft, window
+from .adequacy import band_table, describe_time_failures, instrument_noise_csd, p_value
+from .columns import ColumnSet, assemble, effect_columns, empty_set, rewhitened, shifted_columns
+from .effects import Effect, make_effects
+from .model_fit import ModelFit, normal_solution, parameter_name, solve
+from .search import offset_search, profile_search
+
+
+def as_effects(data, effects) -> list:
+    """Effect instances from specs or instances (plugins of ``data.effect_modules``)."""
+    if all(isinstance(e, Effect) for e in effects):
+        return list(effects)
+    return make_effects(list(effects), data.effect_modules)
+
+
+def fit_model(data, effects, coefficients_for_linearised=None, keep_series: bool = True,
+              time_table: bool = True) -> ModelFit:
+    """Fit a model (list of effects or specs) to ``data`` under its noise model.
+
+    A model whose coefficients change in time (drift, step) changes the readout noise the
+    subtraction lets through: the DWS term of the noise model is then re-evaluated with the
+    model's own coefficient history (time average of ``|sum C_k(t) T_k|^2``) and the model
+    refitted once, on the new :class:`~ttlcore.diagnose.whitened.WhitenedData` (the fit's
+    ``data``)."""
+    effects = as_effects(data, effects)
+    effects, searches = resolve(data, effects, coefficients_for_linearised)
+    fit = _fit(data, effects, coefficients_for_linearised, keep_series)
+    hist = coefficient_history(fit)
+    if hist is not None and fit.data.dws_asd > 0:
+        d = fit.data
+        nm = d.noise_parameters
+        d = d.with_noise(instrument_noise_csd(d.f, d.ltt_mean, hist, d.dws_asd,
+                                              secondary=None if nm is None else nm.csd(d.f)))
+        fit = _fit(d, effects, coefficients_for_linearised, keep_series)
+    table = None
+    if time_table and fit.columns.series is not None:
+        table = time_adequacy(fit)
+    return replace(fit, searches=searches, time_table=table)
+
+
+def resolve(data, effects, coefficients_for_linearised=None) -> tuple[list, dict]:
+    """Effects with unset searched parameters (:attr:`ttlcore.diagnose.effects.Effect.searched`)
+    replaced by the same effect at the estimates of :func:`ttlcore.diagnose.search.profile_search`,
+    profiled against the model of the other effects; returns the effects and the searches
+    (``cli spec -> result``)."""
+    out, searches = list(effects), {}
+    for i, e in enumerate(effects):
+        if not e.unresolved():
+            continue
+        rest = [x for x in out if x is not e and not x.unresolved()]
+        base = _fit(data, rest, coefficients_for_linearised, False)
+        res = profile_search(base, e, base.ttl_coefficients())
+        out[i] = res.effect
+        searches[res.effect.cli_spec()] = res.to_json()
+    return out, searches
+
+
+def _fit(data, effects, coefficients_for_linearised, keep_series) -> ModelFit:
+    data, columns, expansion = model_columns(data, effects, coefficients_for_linearised, keep_series)
+    return solve(data, columns, effects, expansion)
+
+
+def model_columns(data, effects, coefficients=None, keep_series: bool = True) -> tuple:
+    """The columns of a model: ``(data, ColumnSet, expansion points)``.  ``data`` is the
+    input unless the linear fit that gives the coefficients of linearised effects changed
+    the noise model (a drifting model)."""
+    sets: list[ColumnSet] = []
+    names: list[str] = []
+    plain = [e for e in effects if not e.needs_coefficients]
+    for e in plain:
+        cs = effect_columns(data, e, keep_series=keep_series)
+        sets.append(cs)
+        names += [n for n in cs.names if n not in names]
+    lin = [e for e in effects if e.needs_coefficients]
+    expansion: dict = {}
+    if lin:
+        C = coefficients
+        if C is None:
+            part = fit_model(data, plain, keep_series=False, time_table=False)
+            if part.data.noise_key != data.noise_key:  # a drifting model changed the noise model
+                sets = [rewhitened(cs, data.Lh, part.data) for cs in sets]
+            data = part.data
+            C = part.ttl_coefficients()
+            if np.isnan(C).any():
+                raise ConfigError("linearised effects (timing-offset, ltt-error) need all 24 linear-ttl coefficients "
+                                  "in the model")
+        first = list(names)
+        for e in lin:
+            cs = effect_columns(data, e, C, keep_series=keep_series)
+            sets.append(cs)
+            names += [n for n in cs.names if n not in names]
+        if data.settings.expansion_passes and len(data.ttl_names) == 24:
+            base = assemble(first, *sets)
+            exp = expand_linearised(data, base, lin)
+            if exp is not None:
+                return data, exp[0], exp[1]
+    if not names:
+        return data, empty_set(data.noise_key), expansion
+    return data, assemble(names, *sets), expansion
+
+
+def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet, dict] | None:
+    """The exact model of the linearised effects where their offsets are large; None when
+    the Taylor columns at zero are the model.
+
+    Each group's offset is found by :func:`ttlcore.diagnose.search.offset_search` (no
+    Taylor expansion, so offsets with 2 pi f delta >> 1 at the top of the band are found).
+    Where it is clearly measured (delta chi^2 > 25) and large enough for the Taylor error
+    to matter (2 pi f delta > 0.05 at the band's top), the model holds the group's TTL
+    columns with their witnesses shifted by ``s delta_0`` (exact, the linear coefficients
+    fitted as before) and a ``d1`` column, the derivative there: its fitted coefficient is
+    the remaining offset ``delta - delta_0``, moved into ``delta_0`` by Gauss-Newton passes
+    until it is below a hundredth of its sigma.  Other groups keep the Taylor columns
+    ``d1``, ``d2`` at zero.
+
+    Returns
+    -------
+    (ColumnSet, dict) or None
+        The model's columns and the expansion points ``"effect.group" -> delta_0``.
+    """
+    small = 0.05 / (2 * np.pi * data.settings.band[1])
+    shifts, C, moved_names = {}, None, set()
+    for e in lin:
+        found = offset_search(data, e, first)
+        if C is None:
+            C = _ttl_vector(found.theta)
+        shifts[e.name] = {}
+        for g, members in e.shifted_members().items():
+            big = (g in found.estimates and found.gains[g] > 25.0 and abs(found.estimates[g]) > small
+                   and not moved_names & set(members))
+            if big:
+                moved_names |= set(members)
+                shifts[e.name][g] = found.estimates[g]
+    if not moved_names:
+        return None
+    model, expansion = first, {}
+    for _ in range(max(1, data.settings.expansion_passes)):
+        names, sets, expansion = list(first.names), [first], {}
+        for e in lin:
+            repl, cs, exp = shifted_columns(data, e, C, shifts[e.name])
+            expansion.update(exp)
+            names = [repl.get(n, n) for n in names] + [n for n in cs.names if "@" not in n]
+            sets.append(cs)
+        model = assemble(names, *sets)
+        theta, sig = normal_solution(data, model)
+        C = _ttl_vector(theta)
+        step = {(e.name, g): theta[f"{e.name}.{g}.d1"] for e in lin for g in shifts[e.name]}
+        if all(abs(v) < 0.01 * sig[f"{e}.{g}.d1"] for (e, g), v in step.items()):
+            break
+        for (e, g), v in step.items():
+            shifts[e][g] += v
+    return model, expansion
+
+
+def _ttl_vector(values: dict) -> np.ndarray:
+    """The 24 linear coefficients from a dict column -> value (shifted columns resolved)."""
+    by = {parameter_name(n): v for n, v in values.items()}
+    return np.array([by[n] for n in COEFFICIENT_NAMES])
+
+
+def coefficient_history(model: ModelFit, n_t: int = 97) -> np.ndarray | None:
+    """The model's linear coefficients on a time grid over the data, (24, n_t), when it
+    holds drift or step columns (None otherwise)."""
+    data = model.data
+    vals = dict(zip(model.names, model.theta))
+    if not any(n.startswith(("drift.", "step.")) for n in vals):
+        return None
+    idx = np.flatnonzero(data.mask)
+    t = data.t0 + np.linspace(idx[0], idx[-1], n_t) / data.fs
+    t_ref = 0.5 * (t[0] + t[-1])
+    C = np.tile(model.ttl_coefficients()[:, None], (1, n_t))
+    steps = {e.name: e for e in model.effects}
+    for k, name in enumerate(COEFFICIENT_NAMES):
+        if f"drift.{name}" in vals:
+            ref = steps["drift"].options.get("t_ref") if "drift" in steps else None
+            C[k] += vals[f"drift.{name}"] * (t - (t_ref if ref is None else float(ref))) / 86400.0
+        if f"step.{name}" in vals and "step" in steps:
+            C[k] += vals[f"step.{name}"] * (t >= parse_duration(steps["step"].options["t_step"]))
+    return C
+
+
+def time_adequacy(model: ModelFit) -> dict:
+    """chi^2 of the residual in Hann-windowed slices of ``settings.time_segment`` against
+    the same noise model (interpolated to the slice's frequency grid)."""
+    data = model.data
+    s = data.settings
+    resid = data.data_series - np.einsum("p,cpn->cn", model.theta, model.columns.series)
+    L = int(round(min(s.time_segment, data.seg_duration) * data.fs))
+    idx = np.flatnonzero(data.mask)
+    lo, hi = idx[0], idx[-1] + 1
+    f = np.fft.rfftfreq(L, 1 / data.fs)
+    sel = (f >= s.band[0]) & (f <= s.band[1])
+    keep = np.zeros_like(sel)
+    keep[sel] = notch_mask(f[sel], data.ltt_mean)
+    fb = f[keep]
+    csd = np.empty((fb.size, 3, 3), dtype=complex)
+    for i in range(3):  # interpolate the model CSD (smooth) from the segment grid
+        for j in range(3):
+            csd[:, i, j] = (np.interp(fb, data.f, data.noise_csd[:, i, j].real)
+                            + 1j * np.interp(fb, data.f, data.noise_csd[:, i, j].imag))
+    Lh = np.conj(np.swapaxes(np.linalg.cholesky(np.linalg.inv(csd)), -1, -2))
+    bidx = np.clip(np.searchsorted(data.edges, fb, side="right") - 1, 0, data.G - 1)
+    win = window("hann", L)
+    kappa = variance_factor("hann", 4096, 0.0)
+    rows = []
+    for s0 in range(lo, hi - L + 1, L):
+        seg = resid[:, s0:s0 + L]
+        _, X = segment_fft(np.nan_to_num(seg), data.fs, win)
+        wr = np.matmul(Lh, X[:, keep].T[..., None])[..., 0][None]
+        tab = band_table(wr, bidx, data.edges, 0, kappa, s.tolerance, s.alpha)
+        chi2, dof = tab.chi2.sum(), tab.dof.sum()
+        rows.append({"t_start": data.t0 + s0 / data.fs, "t_stop": data.t0 + (s0 + L) / data.fs,
+                     "chi2": float(chi2), "dof": float(dof), "chi2_dof": float(chi2 / dof),
+                     "p_value": float(p_value(chi2, dof, kappa, s.tolerance)),
+                     "band_chi2_dof": [float(x) if np.isfinite(x) else None for x in tab.chi2_dof],
+                     "band_fails": [bool(x) for x in tab.fails]})
+    for r in rows:
+        r["fails"] = bool(r["p_value"] < s.alpha) or any(r["band_fails"])
+    summary = describe_time_failures([r["t_start"] for r in rows], [r["t_stop"] for r in rows],
+                                     [r["fails"] for r in rows], data.t0_in)
+    return {"segment_duration": L / data.fs, "window": "hann", "variance_factor": kappa, "segments": rows,
+            "summary": summary}

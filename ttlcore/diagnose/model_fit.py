@@ -1,0 +1,210 @@
+"""A model fitted to whitened data: generalised least squares with errors in variables.
+
+Everything here is the linear-Gaussian model of :mod:`ttlcore.estimate.fit` in the frequency
+domain, A, E, T jointly, with the noise CSD held at the noise model of the
+:class:`~ttlcore.diagnose.whitened.WhitenedData` - never re-estimated from the residual - so
+that chi^2 values of different models are comparable and an unmodelled effect shows as
+excess instead of being absorbed:
+
+    Q(theta) = theta^T (N - E) theta - 2 theta^T b + dd,    chi2 = 2 Q,
+
+with ``N = Re sum R^H S^-1 R``, ``b = Re sum R^H S^-1 d``, ``dd = sum d^H S^-1 d`` over the
+bins of each band and segment (:func:`gram`), ``E`` the errors-in-variables term of the
+columns (:func:`ttlcore.diagnose.columns.eiv`).  :func:`solve` is pure: whitened data and
+columns in, a :class:`ModelFit` out.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ..conventions import COEFFICIENT_NAMES
+from .adequacy import band_table
+from .columns import ColumnSet, eiv
+
+
+def gram_x(XA: np.ndarray, XB: np.ndarray, slices) -> np.ndarray:
+    """``Re sum conj(A) B`` per segment and band from real layouts (p, S, m, 6) and
+    (q, S, m, 6) -> (S, G, p, q)."""
+    p, S = XA.shape[:2]
+    q = XB.shape[0]
+    out = np.zeros((S, len(slices), p, q))
+    for g, (a, b) in enumerate(slices):
+        if b <= a:
+            continue
+        A = XA[:, :, a:b].reshape(p, S, -1).transpose(1, 0, 2)
+        B = XB[:, :, a:b].reshape(q, S, -1).transpose(1, 2, 0)
+        out[:, g] = np.matmul(A, B)
+    return out
+
+
+def as_real(w: np.ndarray) -> np.ndarray:
+    """(S, m, 3, p) complex -> (p, S, m, 6) float (real and imaginary parts interleaved)."""
+    return np.ascontiguousarray(np.moveaxis(w, -1, 0)).view(np.float64)
+
+
+def gram(data, A: ColumnSet, B: ColumnSet) -> np.ndarray:
+    """``N`` per segment and band (S, G, p, q) of two column sets."""
+    return gram_x(A.x, B.x, data.slices)
+
+
+def rhs(data, A: ColumnSet) -> np.ndarray:
+    """``b`` per segment and band, (S, G, p)."""
+    return gram_x(A.x, data.wd[None].view(np.float64), data.slices)[..., 0]
+
+
+def parameter_name(column: str) -> str:
+    """The parameter a column's coefficient is: for the shifted TTL witnesses of
+    :func:`ttlcore.diagnose.columns.shifted_columns` (``"21.phi.tx@ltt-error.12"``) the
+    linear coefficient before the ``@``; any other column is its own parameter (an ``@``
+    in a time-varying witness's label, ``witness.12.phi>12~cycle@7200.sin``, stays)."""
+    head, sep, _ = column.partition("@")
+    return head if sep and head in COEFFICIENT_NAMES else column
+
+
+def total_offset(column: str, value: float, expansion: dict) -> float:
+    """The parameter of a shifted-witness effect's ``<effect>.<group>.d1`` column is the
+    offset beyond its expansion point (:attr:`ModelFit.expansion`): the offset is their
+    sum.  Other columns: ``value``."""
+    return float(value) + (float(expansion.get(column[:-3], 0.0)) if column.endswith(".d1") else 0.0)
+
+
+@dataclass(frozen=True, eq=False)
+class ModelFit:
+    """A model fitted under the noise model of its data.
+
+    Attributes
+    ----------
+    effects : tuple of Effect
+        The effects, searched parameters filled in.
+    columns : ColumnSet
+        Its whitened columns (the 24 TTL names first when present).
+    data : WhitenedData
+        The data (and noise model) it was fitted on.
+    theta : ndarray (P,)
+        GLS estimates (column units: m/rad for TTL).
+    covariance : ndarray (P, P)
+        ``kappa (2 (N - E))^-1``.
+    chi2_seg_band : ndarray (S, G)
+        chi^2 per segment and band against the noise model (plain ``N``: the residual's
+        DWS-noise part is in the noise model).
+    bands : :class:`ttlcore.diagnose.adequacy.BandTable`
+    q_min : float
+        ``Q`` at the optimum on the EIV-corrected likelihood (for evidences).
+    residual_w : ndarray (S, m, 3)
+        Whitened residual.
+    normal : tuple
+        Per-segment, per-band normal equations ``(N (S, G, P, P), b (S, G, P))``.
+    eiv_term : ndarray (G, P, P)
+        Errors-in-variables term of the columns.
+    expansion : dict
+        ``"effect.group" -> delta_0``: expansion points of shifted-witness effects (the
+        fitted offset is ``delta_0`` plus the group's ``d1`` coefficient).
+    searches : dict
+        Searched nonlinear parameters of the effects: effect spec -> search JSON.
+    time_table : dict or None
+        Adequacy in time slices (:func:`ttlcore.diagnose.fitting.time_adequacy`).
+    """
+
+    effects: tuple
+    columns: ColumnSet
+    data: object
+    theta: np.ndarray
+    covariance: np.ndarray
+    chi2_seg_band: np.ndarray
+    bands: object
+    q_min: float
+    residual_w: np.ndarray = field(repr=False, default=None)
+    normal: tuple | None = field(repr=False, default=None)
+    eiv_term: np.ndarray | None = field(repr=False, default=None)
+    expansion: dict = field(default_factory=dict)
+    searches: dict = field(default_factory=dict)
+    time_table: dict | None = None
+
+    @property
+    def names(self) -> tuple:
+        return self.columns.names
+
+    @property
+    def dof_band(self) -> np.ndarray:
+        return self.bands.dof
+
+    @property
+    def dd(self) -> np.ndarray:
+        return self.data.dd
+
+    @property
+    def sigma(self) -> np.ndarray:
+        return np.sqrt(np.abs(np.diag(self.covariance)))
+
+    @property
+    def chi2(self) -> float:
+        return float(self.chi2_seg_band.sum())
+
+    @property
+    def dof(self) -> float:
+        return float(self.dof_band.sum())
+
+    @property
+    def chi2_dof(self) -> float:
+        return self.chi2 / self.dof
+
+    @property
+    def parameter_names(self) -> tuple:
+        """The physical parameter of each column: a linear coefficient whose witness a
+        shifted-witness effect moved (column ``"21.phi.tx@ltt-error.12"``) is still
+        ``"21.phi.tx"``."""
+        return tuple(parameter_name(n) for n in self.names)
+
+    def ttl_coefficients(self) -> np.ndarray:
+        """The 24 linear coefficients (NaN for those not in the model)."""
+        return self._ttl(self.theta)
+
+    def ttl_sigma(self) -> np.ndarray:
+        return self._ttl(self.sigma)
+
+    def _ttl(self, values) -> np.ndarray:
+        out = np.full(len(COEFFICIENT_NAMES), np.nan)
+        names = self.parameter_names
+        for k, n in enumerate(COEFFICIENT_NAMES):
+            if n in names:
+                out[k] = values[names.index(n)]
+        return out
+
+    def offsets(self) -> dict:
+        """``"effect.group" -> (offset [s], sigma [s])`` of the shifted-witness effects."""
+        return {n[:-3]: (total_offset(n, v, self.expansion), float(s))
+                for n, v, s in zip(self.names, self.theta, self.sigma) if n.endswith(".d1")}
+
+
+def solve(data, columns: ColumnSet, effects=(), expansion=None) -> ModelFit:
+    """The GLS fit of ``columns`` to ``data`` (errors in variables removed from the normal
+    matrix), with its adequacy per band."""
+    N = gram(data, columns, columns)  # (S, G, P, P)
+    b = rhs(data, columns)
+    dd = data.dd
+    E = eiv(data, columns)
+    Ntot = N.sum(axis=(0, 1)) - E.sum(axis=0)
+    btot = b.sum(axis=(0, 1))
+    theta = np.linalg.solve(Ntot, btot)
+    cov = data.kappa * np.linalg.inv(2 * Ntot)
+    cov = 0.5 * (cov + cov.T)
+    chi2_sg = 2 * (np.einsum("p,sgpq,q->sg", theta, N, theta) - 2 * b @ theta + dd)
+    wr = data.wd - columns.w @ theta
+    n_noise = 0 if data.noise_parameters is None else data.noise_parameters.n_parameters
+    s = data.settings
+    bands = band_table(wr, data.band_index, data.edges, len(columns) + n_noise, data.kappa, s.tolerance, s.alpha)
+    q_min = float(dd.sum() - btot @ theta)
+    return ModelFit(tuple(effects), columns, data, theta, cov, chi2_sg, bands, q_min, residual_w=wr, normal=(N, b),
+                    eiv_term=E, expansion=dict(expansion or {}))
+
+
+def normal_solution(data, columns: ColumnSet) -> tuple[dict, dict]:
+    """``(theta, sigma)`` of the GLS fit of ``columns`` (column -> value), nothing else."""
+    N = gram(data, columns, columns).sum(axis=(0, 1)) - eiv(data, columns).sum(axis=0)
+    b = rhs(data, columns).sum(axis=(0, 1))
+    theta = np.linalg.solve(N, b)
+    sig = np.sqrt(np.abs(np.diag(np.linalg.inv(2 * N))) * data.kappa)
+    return dict(zip(columns.names, theta)), dict(zip(columns.names, sig))

@@ -1,0 +1,175 @@
+"""Reports of a diagnosis: the JSON parts (model, adequacy, coefficients), the
+recommendation, and the one-minute text report (docs/diagnostics.md, "JSON report")."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..conventions import COEFFICIENT_NAMES
+from .adequacy import _hz, describe_failures, third_octave_table
+from .model_fit import ModelFit
+from .noise_model import noise_model_json
+
+
+def fine_band_table(model: ModelFit):
+    """``model``'s adequacy in third-octave bands where the data allow it
+    (:func:`ttlcore.diagnose.adequacy.third_octave_table`), its fitted parameters (linear
+    and noise) counted as in its band table."""
+    data = model.data
+    s = data.settings
+    n_fitted = 6 * data.f.size * len(data.starts) - float(model.bands.dof.sum())
+    return third_octave_table(model.residual_w, data.f, s.band, n_fitted, data.kappa, s.tolerance, s.alpha, s.min_band_dof)
+
+
+def adequacy_json(model: ModelFit) -> dict:
+    """The ``adequacy`` part of the report for ``model``."""
+    data = model.data
+    s = data.settings
+    bands = model.bands.to_json()
+    summary = describe_failures(model.bands)
+    fine = fine_band_table(model)
+    summary += [f"localised (third-octave bands): {x}" for x in describe_failures(fine)]
+    nm = data.noise_parameters
+    if nm is not None and nm.at_bound:
+        summary.append(f"noise level(s) {', '.join(nm.at_bound)} at the bound of their allowed range: more (or less) "
+                       "noise of that shape than the instrument is known to have, or an unmodelled effect of that shape")
+    time_part = model.time_table or {}
+    summary += time_part.get("summary", [])
+    return {
+        "noise_model": noise_model_json(data.noise_parameters),
+        "tolerance": s.tolerance, "alpha": s.alpha, "variance_factor": data.kappa,
+        "band": list(map(float, s.band)), "segment_duration": data.seg_duration, "segments": len(data.starts),
+        "chi2": model.chi2, "dof": model.dof, "chi2_dof": model.chi2_dof,
+        "bands": bands, "fine_bands": fine.to_json(), "time": time_part,
+        "fails": bool(any(b["fails"] for b in bands) or any(r.get("fails") for r in time_part.get("segments", []))),
+        "summary": summary or ["no failure: the residual is consistent with the instrument noise model"],
+    }
+
+
+def coefficients_json(model: ModelFit, truth=None) -> dict:
+    """The fitted columns (value, sigma) and, with truth, the errors of the 24 linear ones;
+    ``offsets``: the fitted offsets of linearised effects (expansion point + ``d1``)."""
+    out = {"values": {n: float(v) for n, v in zip(model.parameter_names, model.theta)},
+           "sigma": {n: float(v) for n, v in zip(model.parameter_names, model.sigma)}}
+    offsets = {k: {"value": v, "sigma": sg, "unit": "s"} for k, (v, sg) in model.offsets().items()}
+    if offsets:
+        out["offsets"] = offsets
+    if truth is not None:
+        C, sig = model.ttl_coefficients(), model.ttl_sigma()
+        err = C - np.asarray(truth, dtype=float)
+        z = err / sig
+        ok = np.isfinite(z)
+        out["truth"] = dict(zip(COEFFICIENT_NAMES, map(float, truth)))
+        out["error"] = {n: float(e) for n, e, k in zip(COEFFICIENT_NAMES, err, ok) if k}
+        out["max_abs_error"] = float(np.nanmax(np.abs(err)))
+        out["max_abs_error_over_sigma"] = float(np.nanmax(np.abs(z)))
+        out["rms_error"] = float(np.sqrt(np.nanmean(err ** 2)))
+    return out
+
+
+def model_json(model: ModelFit, truth=None) -> dict:
+    """The ``model`` (or ``before``, ``baseline``) part of a report."""
+    return {"effects": [e.spec() for e in model.effects], "n_parameters": len(model.names),
+            "cli_effects": ",".join(e.cli_spec() for e in model.effects), "searched": dict(model.searches),
+            "chi2_dof": model.chi2_dof, "adequacy": adequacy_json(model),
+            "coefficients": coefficients_json(model, truth)}
+
+
+
+def recommendation(report: dict, effects) -> dict | None:
+    """The next step: the significant candidate with the largest (marginal) log Bayes
+    factor over everything tried (named effects, witness effects, frequency-dependent
+    couplings, plugins), its ``--effects`` option runnable as printed (quoted when it holds
+    ``;``), and whether it explains the excess (at least half of the chi^2 beyond the
+    tolerance).  None when the model is adequate and nothing is significant; when nothing
+    explains the excess, ``pointers`` lists what the top witnesses point at."""
+    cands = report["candidates"]
+    best = next((c for c in cands if c["significant"]), None)
+    fails = bool(report["adequacy"]["fails"])
+    if best is None and not fails:
+        return None
+    pointers = []
+    for w in (report.get("witnesses") or {}).get("overall", [])[:3]:
+        pointers.append({"witness": w["name"], "spec": w.get("spec"), "band_hz": w["best_band"],
+                         "delta_chi2": w["delta_chi2"]})
+    if best is None:
+        return {"effect": None, "explains": False, "pointers": pointers,
+                "message": "no candidate is significant; the witnesses point at: " +
+                           "; ".join(f"{p['witness']} ({p['band_hz'][0]:.3g}-{p['band_hz'][1]:.3g} Hz)" for p in pointers)}
+    specs = [e.cli_spec() for e in effects] + [best["cli_spec"]]
+    value = ",".join(specs)
+    option = "--effects " + (f'"{value}"' if any(ch in value for ch in ';|&<> ') else value)
+    explains = best["explained_fraction"] >= 0.5 or not fails
+    out = {"effect": best["effect"], "spec": best["spec"], "cli_spec": best["cli_spec"], "option": option,
+           "explains": bool(explains), "explained_fraction": best["explained_fraction"]}
+    if not explains:
+        out["pointers"] = pointers
+        out["message"] = (f"no candidate explains the excess (the best, {best['cli_spec']}, explains "
+                          f"{100 * best['explained_fraction']:.0f} %); the witnesses point at: " +
+                          "; ".join(f"{p['witness']} ({p['band_hz'][0]:.3g}-{p['band_hz'][1]:.3g} Hz)" for p in pointers))
+    return out
+
+
+
+def strip_internals(report: dict) -> dict:
+    """The report without its in-memory objects (what ``--json`` writes)."""
+    return {k: v for k, v in report.items() if not k.startswith("_")}
+
+
+def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
+    """The one-minute text report."""
+    lines = []
+    m = report["model"]
+    ad = report["adequacy"]
+    lines.append(f"{source}: model {', '.join(m['effects'])} ({m['n_parameters']} parameters), "
+                 f"chi2/dof {ad['chi2_dof']:.3f} against the instrument noise model"
+                 f"{' (fitted levels)' if ad['noise_model'].get('kind') == 'fitted' else ''} "
+                 f"({1e3 * ad['band'][0]:.3g} mHz - {ad['band'][1]:.3g} Hz, tolerance {100 * ad['tolerance']:.0f} %)")
+    if "before" in report:
+        b = report["before"]
+        lines.append("  before -> after (" + ", ".join(report["change"]["added"]) + "):")
+        lines.append("    band [Hz]            chi2/dof before   after")
+        for bb, ba in zip(b["adequacy"]["bands"], ad["bands"]):
+            lines.append(f"    {bb['f_lo']:.4f} - {bb['f_hi']:.4f}      {bb['chi2_dof']:8.3f}{' FAIL' if bb['fails'] else '     '}"
+                         f"  {ba['chi2_dof']:8.3f}{' FAIL' if ba['fails'] else ''}")
+        ch = report["change"]
+        if ch.get("delta_chi2") is not None:
+            lines.append(f"    evidence for the change: delta chi2 {ch['delta_chi2']:.1f}, log Bayes factor {ch['log_bayes_factor']:.1f}")
+        if "max_abs_error" in b["coefficients"] and "max_abs_error" in m["coefficients"]:
+            lines.append(f"    max |coefficient error|: {1e3 * b['coefficients']['max_abs_error']:.4f} -> "
+                         f"{1e3 * m['coefficients']['max_abs_error']:.4f} mm/rad "
+                         f"({b['coefficients']['max_abs_error_over_sigma']:.1f} -> {m['coefficients']['max_abs_error_over_sigma']:.1f} sigma)")
+    elif "max_abs_error" in m["coefficients"]:
+        c = m["coefficients"]
+        lines.append(f"  truth: max |coefficient error| {1e3 * c['max_abs_error']:.4f} mm/rad ({c['max_abs_error_over_sigma']:.1f} sigma)")
+    lines.append("  where the model fails:")
+    lines += [f"    {x}" for x in ad["summary"]]
+    cands = report["candidates"]
+    lines.append("  candidates (effect: delta chi2 / dof, log Bayes factor, share of the excess, where):")
+    for c in cands[:max_candidates]:
+        where = c["where"]
+        bands = ", ".join(f"{lo:.3g}-{hi:.3g} Hz" for lo, hi in where["main_bands"][:3])
+        links = ", ".join(x["group"] for x in where["links"][:3])
+        extra = f", t_step {where['t_step'] / 3600:.2f} h" if "t_step" in where else ""
+        if "offsets" in where:
+            top = sorted(where["offsets"].items(), key=lambda kv: -abs(kv[1]))[:3]
+            extra += ", offsets " + ", ".join(f"{k.rsplit('.', 1)[-1]} {v:+.3g} s" for k, v in top)
+        if "search" in c.get("searched", {}):
+            est = c["searched"]["search"]["estimates"]
+            extra += ", " + ", ".join(f"{k} {v:.4g}" for k, v in est.items())
+        label = c["effect"] if c["cli_spec"] == c["effect"] else c["cli_spec"]
+        lines.append(f"    {'*' if c['significant'] else ' '} {label:<16} {c['delta_chi2']:10.1f} / {c['n_parameters']:<3d}"
+                     f" logB {c['log_bayes_factor']:9.1f}  {100 * c['explained_fraction']:5.0f} %  [{bands}; {links}{extra}]")
+    if not any(c["significant"] for c in cands):
+        lines.append("    no candidate is significant")
+    w = report.get("witnesses")
+    if w:
+        lines.append(f"  top witnesses ({w['n_witnesses']} tried): " +
+                     "; ".join(f"{x['name']} (delta chi2 {x['delta_chi2']:.0f}, coherence peaks at "
+                               f"{_hz(x['peak_frequency'])})" for x in w["overall"][:3]))
+    rec = report.get("recommendation")
+    if rec and rec.get("option"):
+        lines.append(f"  best next step: add {rec['cli_spec']}:  ttl diagnose {source or 'DATA'} {rec['option']}")
+    if rec and rec.get("message"):
+        lines.append(f"  {rec['message']}")
+    return "\n".join(lines)

@@ -1,0 +1,288 @@
+"""The whitened data of a diagnosis: an immutable value built once.
+
+:class:`WhitenedData` holds what every fit, candidate and search of a diagnosis works on
+(docs/diagnostics.md, "The loop"): the A, E, T TDI of the data decimated to 2 Hz, its
+6-hour Tukey-windowed segments (a quarter of shorter data), the analysis bins (band and
+arm notches), the bands of the adequacy test, the noise CSD ``S(f)`` and its whitening
+``L^H`` (``S^-1 = L L^H``), and the whitened data spectra ``L^H d``.  It is built by
+:func:`whiten_telemetry` or :func:`whiten_tdi` and never changes:
+:meth:`WhitenedData.with_noise` returns a new value under another noise model (the fitted
+noise levels, the DWS readout noise of a drifting model).
+
+Regressor columns are computed from it by :mod:`ttlcore.diagnose.columns` (pure functions
+of the effect and its parameters); their cache (:class:`ttlcore.diagnose.columns.ColumnStore`)
+is shared by the values derived from one another with :meth:`~WhitenedData.with_noise`, its
+keys immutable (the effect's spelling, the coefficients it was built with, the noise model's
+digest), so that no trial fit can change what another fit sees.
+"""
+
+from __future__ import annotations
+
+import hashlib
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..conventions import COEFFICIENT_NAMES
+from ..errors import ConfigError
+from ..estimate.fit import (
+    DWS_ASD,
+    FitSettings,
+    SegmentSpectra,
+    default_band_edges,
+    dws_asd_from_config,
+    fit_spectra,
+    notch_mask,
+    variance_factor,
+)
+from ..estimate.spectra import segment_fft, window
+from ..tdi.combinations import MICHELSON, aet
+from ..tdi.data import TDIData
+from .adequacy import instrument_noise_csd, merged_band_edges
+from .columns import ColumnStore, regressor_columns
+from .effects import LinearTTL, available_effects, effect_input_from_telemetry, tdi_in_blocks
+from .settings import DiagnoseSettings
+
+
+def band_slices(band_index: np.ndarray, G: int) -> tuple:
+    """Contiguous bin ranges of the bands (frequencies ascend, so bands are contiguous)."""
+    out = []
+    for g in range(G):
+        idx = np.flatnonzero(band_index == g)
+        out.append((int(idx[0]), int(idx[-1]) + 1) if idx.size else (0, 0))
+    return tuple(out)
+
+
+def whitening(csd: np.ndarray) -> np.ndarray:
+    """``L^H`` (m, 3, 3) with ``S^-1 = L L^H`` (Cholesky of the inverse CSD)."""
+    return np.conj(np.swapaxes(np.linalg.cholesky(np.linalg.inv(csd)), -1, -2))
+
+
+def noise_digest(csd: np.ndarray) -> str:
+    """A digest of a noise CSD: the cache key of spectra whitened with it."""
+    return hashlib.blake2b(np.ascontiguousarray(csd).tobytes(), digest_size=16).hexdigest()
+
+
+@dataclass(frozen=True, eq=False)
+class WhitenedData:
+    """Segment spectra of the data, analysis grid and noise model of one diagnosis.
+
+    Attributes
+    ----------
+    settings : DiagnoseSettings
+    tm : Telemetry or None
+        The telemetry (every effect available), None for TDI outputs only.
+    td_in : TDIData
+        A, E, T TDI of the data and the 24 TTL regressors at the input rate.
+    effect_modules : tuple
+        Plugin modules; ``registry`` the effects available (name -> class).
+    dws_asd : float
+        DWS readout noise [rad/sqrt(Hz)].
+    ltt_mean : ndarray (6,)
+        Mean light travel times [s].
+    fs, t0 : float
+        Rate [Hz] and first time [s] of the decimated series (``decimation`` the factor,
+        ``fs_in``, ``t0_in`` those of the input).
+    mask : ndarray (n,)
+        Valid decimated samples (the TDI delays' start-up and a 120-s margin removed).
+    L, starts : int, tuple
+        Segment length and first samples (decimated); ``seg_t0`` their times [s].
+    win : ndarray (L,)
+        Segment taper.
+    f, bins : ndarray
+        Analysis frequencies [Hz] and their indices in the segment's rfft grid.
+    edges, band_index, slices : ndarray, ndarray, tuple
+        Band edges [Hz] of the adequacy test, band of each bin, bin range of each band.
+    kappa : float
+        Variance factor of the tapered segments (:func:`ttlcore.estimate.fit.variance_factor`).
+    w2 : ndarray (S, L)
+        Each segment's normalised squared taper (weights of modulation products).
+    data_series : ndarray (3, n)
+        Decimated A, E, T of the data; ``d`` its band spectra (S, m, 3).
+    regressor_series : ndarray (3, 24, n)
+        Decimated A, E, T of the TTL regressors (names ``regressor_names``; their whitened
+        spectra are :func:`ttlcore.diagnose.columns.ttl_columns`).
+    noise_csd, Lh : ndarray (m, 3, 3)
+        Noise CSD and its whitening; ``noise_key`` their digest; ``noise_parameters`` the
+        fitted secondary-noise levels (:class:`ttlcore.diagnose.noise_model.NoiseModel`) or
+        None for the fixed model.
+    wd, dd : ndarray
+        Whitened data spectra (S, m, 3) and their power per segment and band (S, G).
+    store : ColumnStore
+        The column cache (:mod:`ttlcore.diagnose.columns`), shared with derived values.
+    """
+
+    settings: DiagnoseSettings
+    tm: object
+    td_in: TDIData
+    effect_modules: tuple
+    registry: dict
+    dws_asd: float
+    ltt_mean: np.ndarray
+    decimation: int
+    fs_in: float
+    t0_in: float
+    fs: float
+    t0: float
+    mask: np.ndarray
+    L: int
+    starts: tuple
+    seg_t0: np.ndarray
+    seg_duration: float
+    win: np.ndarray
+    f: np.ndarray
+    bins: np.ndarray
+    edges: np.ndarray
+    G: int
+    band_index: np.ndarray
+    slices: tuple
+    kappa: float
+    w2: np.ndarray
+    data_series: np.ndarray
+    d: np.ndarray
+    regressor_names: tuple
+    regressor_series: np.ndarray
+    ttl_names: tuple
+    noise_csd: np.ndarray
+    Lh: np.ndarray
+    noise_key: str
+    wd: np.ndarray
+    dd: np.ndarray
+    noise_parameters: object = None
+    store: object = field(default=None, repr=False)
+
+    @property
+    def has_telemetry(self) -> bool:
+        return self.tm is not None
+
+    @property
+    def n_segments(self) -> int:
+        return len(self.starts)
+
+    def spectra(self, x: np.ndarray) -> np.ndarray:
+        """(3, k, n) decimated series -> band spectra (S, m, 3, k), masked like the data."""
+        out = np.empty((len(self.starts), self.f.size, x.shape[0], x.shape[1]), dtype=complex)
+        for i, s0 in enumerate(self.starts):
+            seg = x[:, :, s0:s0 + self.L]
+            m = self.mask[s0:s0 + self.L]
+            seg = np.where(m, np.nan_to_num(seg), 0.0)
+            bad = ~np.isfinite(x[:, :, s0:s0 + self.L]) & m
+            if bad.any():
+                raise ConfigError("a regressor column is not finite inside the analysed span")
+            _, X = segment_fft(seg, self.fs, self.win * m)
+            out[i] = np.moveaxis(X[:, :, self.bins], 2, 0)
+        return out
+
+    def whiten(self, X: np.ndarray) -> np.ndarray:
+        """``L^H X`` for spectra (S, m, 3, k)."""
+        return np.matmul(self.Lh, X)
+
+    def decimate(self, xyz: np.ndarray, is_aet: bool = False) -> np.ndarray:
+        """XYZ (or A, E, T) TDI of columns (3, k, n_in) -> decimated A, E, T (3, k, n), the
+        data's anti-alias filter."""
+        a = xyz if is_aet else aet(xyz)
+        td = TDIData(t0=self.t0_in, fs=self.fs_in, channels=("A", "E", "T"), data=np.zeros((3, a.shape[-1])),
+                     regressors=a, names=tuple(f"c{k}" for k in range(a.shape[1])), ltt_mean=self.ltt_mean)
+        dec = td.decimated(self.decimation) if self.decimation > 1 else td
+        return dec.regressors
+
+    def with_noise(self, csd: np.ndarray, noise_parameters=...) -> "WhitenedData":
+        """The same data under another noise CSD (m, 3, 3): a new value (``self`` is left as
+        it is); ``noise_parameters`` (default: kept) the fitted levels it comes from."""
+        Lh = whitening(csd)
+        M = Lh @ np.linalg.inv(self.Lh)
+        wd = np.einsum("mij,smj->smi", M, self.wd)
+        dd = np.empty_like(self.dd)
+        for g, (a, b) in enumerate(self.slices):
+            dd[:, g] = np.sum(np.abs(wd[:, a:b]) ** 2, axis=(1, 2))
+        return replace(self, noise_csd=csd, Lh=Lh, noise_key=noise_digest(csd), wd=wd, dd=dd,
+                       noise_parameters=self.noise_parameters if noise_parameters is ... else noise_parameters)
+
+
+def whiten_tdi(td: TDIData, settings: DiagnoseSettings | None = None, tm=None, effect_modules=(),
+               dws_asd: float | None = None) -> WhitenedData:
+    """Build the :class:`WhitenedData` of TDI outputs (with the telemetry they come from,
+    when there is one).
+
+    The noise model is the instrument's (:func:`ttlcore.diagnose.adequacy.instrument_noise_csd`):
+    secondary noises plus the DWS readout noise through a first estimate of the linear
+    coefficients (the standard GLS fit of the TTL columns, used for nothing else).
+    """
+    s = settings or DiagnoseSettings()
+    dws = float(dws_asd if dws_asd is not None else (s.dws_asd if s.dws_asd is not None else DWS_ASD))
+    ltt_mean = np.asarray(td.ltt_mean, dtype=float)
+    tda = td.to_aet()
+    factor = max(1, int(round(tda.fs / 2.0)))
+    dec = tda.decimated(factor) if factor > 1 else tda
+    fs, t0, n = dec.fs, dec.t0, dec.size
+    ok = np.isfinite(dec.data).all(axis=0) & np.isfinite(dec.regressors).all(axis=(0, 1))
+    idx = np.flatnonzero(ok)
+    if idx.size < 2:
+        raise ConfigError("no valid TDI samples (data too short for the TDI delays)")
+    margin = int(round(120 * fs))  # room for the extra delays and derivative stencils of effects
+    lo, hi = idx[0] + margin, idx[-1] + 1 - margin
+    mask = np.zeros(n, dtype=bool)
+    mask[lo:hi] = True
+    mask &= ok
+    span = (hi - lo) / fs
+    seg = s.segment_duration or min(21600.0, np.floor(span / 4))
+    if seg * fs < 256:
+        raise ConfigError(f"data too short for a diagnosis ({span:.0f} s of valid TDI)")
+    L = int(round(seg * fs))
+    starts = tuple(range(lo, hi - L + 1, L))
+    if not starts:
+        raise ConfigError(f"no FFT segment of {seg:g} s fits in {span:.0f} s of valid TDI")
+    seg_t0 = np.array([t0 + s0 / fs for s0 in starts])
+    win = window(s.window, L)
+    f = np.fft.rfftfreq(L, 1 / fs)
+    sel = (f >= s.band[0]) & (f <= s.band[1])
+    keep = np.zeros_like(sel)
+    keep[sel] = notch_mask(f[sel], ltt_mean)
+    bins = np.flatnonzero(keep)
+    f = f[bins]
+    edges = merged_band_edges(f, default_band_edges(s.band, s.n_bands), 6 * len(starts), s.min_band_dof)
+    G = len(edges) - 1
+    band_index = np.clip(np.searchsorted(edges, f, side="right") - 1, 0, G - 1)
+    w2 = np.stack([(win * mask[s0:s0 + L]) ** 2 for s0 in starts])
+    data = WhitenedData(
+        settings=s, tm=tm, td_in=tda, effect_modules=tuple(effect_modules),
+        registry=available_effects(tuple(effect_modules)), dws_asd=dws, ltt_mean=ltt_mean, decimation=factor,
+        fs_in=tda.fs, t0_in=tda.t0, fs=fs, t0=t0, mask=mask, L=L, starts=starts, seg_t0=seg_t0,
+        seg_duration=L / fs, win=win, f=f, bins=bins, edges=edges, G=G, band_index=band_index,
+        slices=band_slices(band_index, G), kappa=variance_factor(s.window, 4096, 0.0),
+        w2=w2 / w2.sum(axis=1, keepdims=True), data_series=dec.data, d=np.empty(0), regressor_names=tuple(dec.names),
+        regressor_series=dec.regressors,
+        ttl_names=tuple(nm for nm in dec.names if nm in COEFFICIENT_NAMES), noise_csd=np.empty(0), Lh=np.empty(0),
+        noise_key="", wd=np.empty(0), dd=np.empty(0), store=ColumnStore())
+    d = data.spectra(dec.data[:, None, :])[..., 0]
+    R = data.spectra(dec.regressors)
+    C0 = None
+    if len(data.ttl_names) == len(COEFFICIENT_NAMES):
+        sp = [SegmentSpectra(t, data.seg_duration, f, d[i], R[i]) for i, t in enumerate(seg_t0)]
+        res, _ = fit_spectra(sp, ltt_mean, FitSettings(band=s.band, notch=False, dws_asd=dws,
+                                                        robust_covariance=False, n_bands=s.n_bands),
+                             names=tuple(dec.names))
+        C0 = res.coefficients[[dec.names.index(nm) for nm in COEFFICIENT_NAMES]]
+    csd = instrument_noise_csd(f, ltt_mean, C0, dws)
+    Lh = whitening(csd)
+    wd = np.matmul(Lh, d[..., None])[..., 0]  # (S, m, 3)
+    dd = np.zeros((len(starts), G))
+    for g in range(G):
+        dd[:, g] = np.sum(np.abs(wd[:, band_index == g]) ** 2, axis=(1, 2))
+    data = replace(data, d=d, noise_csd=csd, Lh=Lh, noise_key=noise_digest(csd), wd=wd, dd=dd)
+    data.store.put(("regressors",), data, regressor_columns(data, R))
+    return data
+
+
+def whiten_telemetry(tm, settings: DiagnoseSettings | None = None, effect_modules=()) -> WhitenedData:
+    """:class:`WhitenedData` of a :class:`~ttlcore.io.telemetry.Telemetry` (ours or
+    lisainstrument's): every effect available.  TDI in blocks
+    (:func:`ttlcore.diagnose.effects.tdi_in_blocks`): the interpolation taps of a day would
+    hold ~4 GB."""
+    s = settings or DiagnoseSettings()
+    data, regs = tdi_in_blocks(tm.ltt, tm.fs, LinearTTL().columns(effect_input_from_telemetry(tm)), tm.eta,
+                               order=s.order, delay_order=s.delay_order)
+    td = TDIData(t0=float(tm.t0), fs=float(tm.fs), channels=tuple(c.name for c in MICHELSON), data=data,
+                 regressors=regs, names=COEFFICIENT_NAMES, ltt_mean=np.nanmean(np.asarray(tm.ltt), axis=-1))
+    dws = s.dws_asd if s.dws_asd is not None else dws_asd_from_config(tm.config)
+    return whiten_tdi(td, s, tm=tm, effect_modules=effect_modules, dws_asd=dws)
