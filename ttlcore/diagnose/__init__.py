@@ -4,9 +4,13 @@ evidence), the profile search of effects' nonlinear parameters, the witness sear
 coefficient trends (drift and step detection) and the reprocessing of many days on Dask.
 
 ``effects`` (named effects, witness and frequency-dependent couplings, plugins), ``adequacy``
-and ``noise_model`` (the reference the residual is tested against), ``diagnoser`` (fits,
-candidates, the report), ``search`` (profile likelihood over nonlinear parameters),
-``evidence`` (Bayes factors), ``witnesses``, ``trends``, ``reprocess``.
+and ``noise_model`` (the reference the residual is tested against), ``settings``,
+``whitened`` (the whitened data, an immutable value), ``columns`` (an effect's whitened
+columns), ``model_fit`` (the GLS fit with errors in variables), ``fitting`` (a model of
+effects fitted), ``evidence`` (Bayes factors), ``search`` (profile likelihood over nonlinear
+parameters: step time, offsets, poles, periods), ``candidates``, ``report``, ``diagnoser``
+(``diagnose``, ``refit``), ``witnesses``, ``trends``, ``reprocess``.
 """
 
-__all__ = ['adequacy', 'diagnoser', 'effects', 'evidence', 'noise_model', 'reprocess', 'search', 'trends', 'witnesses']
+__all__ = ['adequacy', 'candidates', 'columns', 'diagnoser', 'effects', 'evidence', 'fitting', 'model_fit',
+           'noise_model', 'report', 'reprocess', 'search', 'settings', 'trends', 'whitened', 'witnesses']

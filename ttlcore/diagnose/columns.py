@@ -476,24 +476,26 @@ def shifted_columns(data, effect, C, shifts: dict) -> tuple[dict, ColumnSet, dic
 # Errors in variables
 # ---------------------------------------------------------------------------
 
-def eiv(data, cs: ColumnSet) -> np.ndarray:
-    """Errors-in-variables term (G, p, p) of the columns, summed over segments:
-    ``E_kl = W_kl sum_ch Re sum_f U_k,ch^H U_l,ch`` (:func:`eiv_products`, one segment)
-    with ``W_kl`` the segments' taper-weighted means of the product of the columns'
-    modulations (:func:`eiv_weights`; the number of segments for unmodulated columns)."""
-    return eiv_products(data, cs) * eiv_weights(data, cs)[None]
+def eiv(data, *sets: ColumnSet) -> np.ndarray:
+    """Errors-in-variables term (G, p, p) of the columns of ``sets`` (one after the other),
+    summed over segments: ``E_kl = W_kl sum_ch Re sum_f U_k,ch^H U_l,ch``
+    (:func:`eiv_products`, one segment) with ``W_kl`` the segments' taper-weighted means of
+    the product of the columns' modulations (:func:`eiv_weights`; the number of segments for
+    unmodulated columns)."""
+    return eiv_products(data, *sets) * eiv_weights(data, *sets)[None]
 
 
-def eiv_products(data, cs: ColumnSet) -> np.ndarray:
+def eiv_products(data, *sets: ColumnSet) -> np.ndarray:
     """One segment's errors-in-variables products (G, p, p): ``Re sum_f U_k,ch^H U_l,ch``
     summed over the DWS channels ``ch``, ``U_k,ch`` the whitened response of column ``k``
     to the readout noise of channel ``ch``.  Columns whose parts are plain (or slowly
     modulated, shifted or filtered) DWS witnesses carry it; others, built from products of
     the readouts, carry none - their bias is second order in the small readout noise."""
-    p = len(cs)
+    parts_of = [parts for cs in sets for parts in cs.eiv]
+    p = len(parts_of)
     E = np.zeros((data.G, p, p))
     by_channel: dict = {}
-    for i, parts in enumerate(cs.eiv):
+    for i, parts in enumerate(parts_of):
         for ch, link, extra, factor in parts:
             by_channel.setdefault(ch, {}).setdefault(i, []).append((link, extra, factor))
     for ch, cols in by_channel.items():
@@ -507,12 +509,12 @@ def eiv_products(data, cs: ColumnSet) -> np.ndarray:
     return E
 
 
-def eiv_weights(data, cs: ColumnSet) -> np.ndarray:
+def eiv_weights(data, *sets: ColumnSet) -> np.ndarray:
     """``W_kl = sum_s <m_k m_l>_s`` (p, p): per segment the mean of the product of the
     columns' modulations weighted by the squared taper (the readout noise is white on the
     modulations' time scale), ``m = 1`` for unmodulated columns."""
-    mods = cs.modulation
-    W = np.full((len(cs), len(cs)), float(len(data.starts)))
+    mods = [m for cs in sets for m in cs.modulation]
+    W = np.full((len(mods), len(mods)), float(len(data.starts)))
     idx = [i for i, m in enumerate(mods) if m is not None]
     if idx:
         A = np.stack([np.stack([mods[i][s0:s0 + data.L] for s0 in data.starts]) for i in idx])  # (q, S, L)

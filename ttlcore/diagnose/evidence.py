@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError
-from .columns import ColumnSet, concat, eiv, rewhitened
+from .columns import ColumnSet, eiv, rewhitened
 from .model_fit import ModelFit, gram, parameter_name, rhs, total_offset
 
 __all__ = ["Evidence", "log_bayes_factor", "added_evidence", "evidence_from_normal", "laplace_evidence", "change",
@@ -148,7 +148,7 @@ def added_evidence(model: ModelFit, cand: ColumnSet, priors=None) -> Evidence:
     M = model.columns
     N_MM, b_M = model.normal
     return evidence_from_normal(model, N_MM, gram(data, M, cand), gram(data, cand, cand), b_M, rhs(data, cand),
-                                cand.names, cand.priors if priors is None else priors, eiv(data, concat(M, cand)))
+                                cand.names, cand.priors if priors is None else priors, eiv(data, M, cand))
 
 
 def laplace_evidence(base: ModelFit, model: ModelFit) -> tuple[float, float]:

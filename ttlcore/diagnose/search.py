@@ -39,7 +39,7 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 
 import numpy as np
 from scipy import optimize, special
@@ -169,13 +169,13 @@ class _Spectral:
         self.Pud = np.einsum("smcb,smc->mb", U.conj(), data.wd)
         self.Puu = np.einsum("smcb,smce->mbe", U.conj(), U)
         # errors-in-variables: readout-noise responses per DWS channel
-        both = concat(model.columns, B)
+        parts_of = model.columns.eiv + B.eiv
         resp: dict = {}
-        for i, parts in enumerate(both.eiv):
+        for i, parts in enumerate(parts_of):
             for ch, link, extra, factor in parts:
-                r = resp.setdefault(ch, np.zeros((data.f.size, 3, len(both)), dtype=complex))
+                r = resp.setdefault(ch, np.zeros((data.f.size, 3, len(parts_of)), dtype=complex))
                 r[:, :, i] += data.store.eiv_response(data, link, extra) * readout_noise_factor(data.f, factor)
-        W = eiv_weights(data, both)
+        W = eiv_weights(data, model.columns, B)
         P = len(model.columns)
         self.eMB = np.zeros((data.f.size, P, len(bases)))
         self.eBB = np.zeros((data.f.size, len(bases), len(bases)), dtype=complex)
@@ -423,7 +423,7 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
     # errors-in-variables of the step columns H(t - t_s) x witness: one segment's products
     # times the taper-weighted share of each segment after t_s (tail sums over the samples)
     nM, nK = len(M), len(base)
-    E_products = eiv_products(data, concat(M, replace(Bcs, names=tuple(f"step.{n}" for n in base))))
+    E_products = eiv_products(data, M, Bcs)
     W_MM = eiv_weights(data, M)
     t_flat = np.concatenate([data.t0 + (s0 + np.arange(data.L)) / data.fs for s0 in data.starts])
     w2 = data.w2.reshape(-1)

@@ -50,7 +50,7 @@ def witness_library(tm, dg) -> tuple[list[dict], dict]:
     Parameters
     ----------
     tm : Telemetry
-    dg : :class:`ttlcore.diagnose.diagnoser.Diagnoser`
+    dg : :class:`ttlcore.diagnose.whitened.WhitenedData`
         Gives the segments (times, length, window, bins) of the residual spectra.
 
     Returns
