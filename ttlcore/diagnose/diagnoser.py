@@ -35,7 +35,13 @@ from .evidence import change
 from .fitting import fit_model
 from .model_fit import ModelFit
 from .noise_model import profile_noise_model
-from .report import fine_band_table, model_json, recommendation, strip_internals, text_report
+from .report import (
+    fine_band_table,
+    model_json,
+    recommendation,
+    strip_internals,
+    text_report,
+)
 from .settings import DiagnoseSettings
 from .whitened import WhitenedData, whiten_tdi, whiten_telemetry
 from .witnesses import witness_candidates, witness_search
@@ -184,19 +190,6 @@ def refit(source, effects=("linear-ttl",), *, settings: DiagnoseSettings | None 
                    "bands_after": [float(x) for x in model.bands.chi2_dof]},
         "_internals": {"data": model.data, "fit": model, "baseline_fit": base},
     }
-
-
-def concatenate_tdi(segments) -> TDIData:
-    """Join contiguous TDI segments (same channels, names and rate) into one."""
-    first = segments[0]
-    for a, b in zip(segments[:-1], segments[1:]):
-        if b.channels != first.channels or b.names != first.names or b.fs != first.fs:
-            raise ConfigError("TDI segments differ in channels, regressor names or rate")
-        if abs(b.t0 - (a.t0 + a.size / a.fs)) > 0.5 / a.fs:
-            raise ConfigError(f"TDI segments are not contiguous: one ends at {a.t0 + a.size / a.fs} s, the next starts at {b.t0} s")
-    return replace(first, data=np.concatenate([x.data for x in segments], axis=-1),
-                   regressors=np.concatenate([x.regressors for x in segments], axis=-1),
-                   ltt_mean=np.mean([x.ltt_mean for x in segments], axis=0))
 
 
 def concatenate_tdi(segments) -> TDIData:

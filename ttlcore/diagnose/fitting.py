@@ -22,7 +22,14 @@ from ..errors import ConfigError
 from ..estimate.fit import notch_mask, variance_factor
 from ..estimate.spectra import segment_fft, window
 from .adequacy import band_table, describe_time_failures, instrument_noise_csd, p_value
-from .columns import ColumnSet, assemble, effect_columns, empty_set, rewhitened, shifted_columns
+from .columns import (
+    ColumnSet,
+    assemble,
+    effect_columns,
+    empty_set,
+    rewhitened,
+    shifted_columns,
+)
 from .effects import Effect, make_effects
 from .model_fit import ModelFit, normal_solution, parameter_name, solve
 from .search import offset_search, profile_search

@@ -68,7 +68,13 @@ from .effects import (
     names_only_input,
     readout_noise_factor,
 )
-from .evidence import Evidence, added_evidence, evidence_from_normal, log_bayes_factor, stable_solve
+from .evidence import (
+    Evidence,
+    added_evidence,
+    evidence_from_normal,
+    log_bayes_factor,
+    stable_solve,
+)
 from .model_fit import ModelFit, as_real, gram, gram_x, rhs
 
 log = logging.getLogger(__name__)

@@ -40,7 +40,12 @@ from ..tdi.combinations import MICHELSON, aet
 from ..tdi.data import TDIData
 from .adequacy import instrument_noise_csd, merged_band_edges
 from .columns import ColumnStore, regressor_columns
-from .effects import LinearTTL, available_effects, effect_input_from_telemetry, tdi_in_blocks
+from .effects import (
+    LinearTTL,
+    available_effects,
+    effect_input_from_telemetry,
+    tdi_in_blocks,
+)
 from .settings import DiagnoseSettings
 
 

@@ -21,7 +21,7 @@ from diagnose_helpers import injected_asd_ratio  # noqa: E402
 
 from ttlcore.cli.main import main  # noqa: E402
 from ttlcore.conventions import COEFFICIENT_NAMES  # noqa: E402
-from ttlcore.diagnose.candidates import shifted_evidence  # noqa: E402
+from ttlcore.diagnose.candidates import candidates, shifted_evidence  # noqa: E402
 from ttlcore.diagnose.diagnoser import diagnose, refit, text_report  # noqa: E402
 from ttlcore.diagnose.evidence import laplace_evidence, log_bayes_factor  # noqa: E402
 from ttlcore.diagnose.fitting import fit_model  # noqa: E402
@@ -160,6 +160,13 @@ def test_refit_from_tdi_only_adds_a_drift():
     bands = np.array(out["change"]["bands_after"])
     assert np.all((bands > 0.9) & (bands < 1.1)), bands
     assert max(out["change"]["bands_before"]) > 2
+    # the pipeline's candidates on TDI outputs (stages/fitter.py): the effects TDI allows
+    # (drift and step from modulated regressors, the step time searched without telemetry;
+    # the linearised effects from the regressors' derivatives), not those needing DWS series
+    ranked = candidates(out["_internals"]["baseline_fit"])
+    tried = {c["effect"] for c in ranked}
+    assert {"drift", "step", "timing-offset"} <= tried and "cross-coupling" not in tried
+    assert ranked[0]["effect"] == "drift" and ranked[0]["significant"]
     with pytest.raises(Exception, match="needs the telemetry"):
         refit(out["_internals"]["data"], ["linear-ttl", "cross-coupling"])
 
