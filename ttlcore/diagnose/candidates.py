@@ -25,7 +25,7 @@ from ..errors import ConfigError
 from .columns import effect_columns
 from .effects import Effect
 from .evidence import Evidence, added_evidence, laplace_evidence
-from .fitting import _fit
+from .fitting import fit_resolved
 from .model_fit import ModelFit, parameter_name, total_offset
 from .search import profile_search
 
@@ -134,7 +134,7 @@ def shifted_evidence(model: ModelFit, effect, taylor: Evidence) -> tuple[Evidenc
     data = model.data
     if data.settings.expansion_passes == 0 or len(data.ttl_names) != 24:
         return taylor, {}
-    exact = _fit(data, list(model.effects) + [effect], None, False)
+    exact = fit_resolved(data, list(model.effects) + [effect], None, False)
     if all("@" not in n for n in exact.names):
         return taylor, {}
     dchi2, lbf = laplace_evidence(model, exact)

@@ -53,14 +53,14 @@ def fit_model(data, effects, coefficients_for_linearised=None, keep_series: bool
     ``data``)."""
     effects = as_effects(data, effects)
     effects, searches = resolve(data, effects, coefficients_for_linearised)
-    fit = _fit(data, effects, coefficients_for_linearised, keep_series)
+    fit = fit_resolved(data, effects, coefficients_for_linearised, keep_series)
     hist = coefficient_history(fit)
     if hist is not None and fit.data.dws_asd > 0:
         d = fit.data
         nm = d.noise_parameters
         d = d.with_noise(instrument_noise_csd(d.f, d.ltt_mean, hist, d.dws_asd,
                                               secondary=None if nm is None else nm.csd(d.f)))
-        fit = _fit(d, effects, coefficients_for_linearised, keep_series)
+        fit = fit_resolved(d, effects, coefficients_for_linearised, keep_series)
     table = None
     if time_table and fit.columns.series is not None:
         table = time_adequacy(fit)
@@ -77,14 +77,17 @@ def resolve(data, effects, coefficients_for_linearised=None) -> tuple[list, dict
         if not e.unresolved():
             continue
         rest = [x for x in out if x is not e and not x.unresolved()]
-        base = _fit(data, rest, coefficients_for_linearised, False)
+        base = fit_resolved(data, rest, coefficients_for_linearised, False)
         res = profile_search(base, e, base.ttl_coefficients())
         out[i] = res.effect
         searches[res.effect.cli_spec()] = res.to_json()
     return out, searches
 
 
-def _fit(data, effects, coefficients_for_linearised, keep_series) -> ModelFit:
+def fit_resolved(data, effects, coefficients_for_linearised=None, keep_series: bool = False) -> ModelFit:
+    """The fit of effects whose searched parameters are set (no search, and the noise model
+    changed only if the linear fit that gives a linearised effect's coefficients drifts):
+    the trial model of a candidate, the base model of a search."""
     data, columns, expansion = model_columns(data, effects, coefficients_for_linearised, keep_series)
     return solve(data, columns, effects, expansion)
 
@@ -119,13 +122,13 @@ def model_columns(data, effects, coefficients=None, keep_series: bool = True) ->
             sets.append(cs)
             names += [n for n in cs.names if n not in names]
         if data.settings.expansion_passes and len(data.ttl_names) == 24:
-            base = assemble(first, *sets)
+            base = assemble(first, *sets, series=keep_series)
             exp = expand_linearised(data, base, lin)
             if exp is not None:
                 return data, exp[0], exp[1]
     if not names:
         return data, empty_set(data.noise_key), expansion
-    return data, assemble(names, *sets), expansion
+    return data, assemble(names, *sets, series=keep_series), expansion
 
 
 def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet, dict] | None:
@@ -170,7 +173,7 @@ def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet, dict] | N
             expansion.update(exp)
             names = [repl.get(n, n) for n in names] + [n for n in cs.names if "@" not in n]
             sets.append(cs)
-        model = assemble(names, *sets)
+        model = assemble(names, *sets, series=False)
         theta, sig = normal_solution(data, model)
         C = _ttl_vector(theta)
         step = {(e.name, g): theta[f"{e.name}.{g}.d1"] for e in lin for g in shifts[e.name]}
@@ -178,6 +181,8 @@ def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet, dict] | N
             break
         for (e, g), v in step.items():
             shifts[e][g] += v
+    if first.series is not None:  # with series (time-domain adequacy) when ``first`` has them
+        model = assemble(model.names, *sets)
     return model, expansion
 
 

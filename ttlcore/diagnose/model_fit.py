@@ -22,7 +22,7 @@ import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES
 from .adequacy import band_table
-from .columns import ColumnSet, eiv
+from .columns import ColumnSet, eiv, read_only
 
 
 def gram_x(XA: np.ndarray, XB: np.ndarray, slices) -> np.ndarray:
@@ -122,6 +122,10 @@ class ModelFit:
     expansion: dict = field(default_factory=dict)
     searches: dict = field(default_factory=dict)
     time_table: dict | None = None
+
+    def __post_init__(self):
+        read_only(self.theta, self.covariance, self.chi2_seg_band, self.residual_w, self.eiv_term,
+                  *(self.normal or ()))
 
     @property
     def names(self) -> tuple:

@@ -39,7 +39,7 @@ from ..estimate.spectra import segment_fft, window
 from ..tdi.combinations import MICHELSON, aet
 from ..tdi.data import TDIData
 from .adequacy import instrument_noise_csd, merged_band_edges
-from .columns import ColumnStore, regressor_columns
+from .columns import ColumnStore, read_only, regressor_columns
 from .effects import (
     LinearTTL,
     available_effects,
@@ -155,6 +155,9 @@ class WhitenedData:
     dd: np.ndarray
     noise_parameters: object = None
     store: object = field(default=None, repr=False)
+
+    def __post_init__(self):
+        read_only(*(v for v in vars(self).values() if isinstance(v, np.ndarray)))
 
     @property
     def has_telemetry(self) -> bool:
