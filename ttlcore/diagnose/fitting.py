@@ -53,10 +53,12 @@ def fit_model(data, effects, coefficients_for_linearised=None, keep_series: bool
     ``data``)."""
     effects = as_effects(data, effects)
     effects, searches = resolve(data, effects, coefficients_for_linearised)
+    keep_series = keep_series and time_table  # the series serve the time-domain adequacy only
     fit = fit_resolved(data, effects, coefficients_for_linearised, keep_series)
     hist = coefficient_history(fit)
     if hist is not None and fit.data.dws_asd > 0:
         d = fit.data
+        fit = None  # not kept while the model is refitted (a day's columns are large)
         nm = d.noise_parameters
         d = d.with_noise(instrument_noise_csd(d.f, d.ltt_mean, hist, d.dws_asd,
                                               secondary=None if nm is None else nm.csd(d.f)))
@@ -64,7 +66,9 @@ def fit_model(data, effects, coefficients_for_linearised=None, keep_series: bool
     table = None
     if time_table and fit.columns.series is not None:
         table = time_adequacy(fit)
-    return replace(fit, searches=searches, time_table=table)
+    # the fit keeps its whitened columns (evidence of candidates against it), not their series
+    columns = replace(fit.columns, series=None) if fit.columns.series is not None else fit.columns
+    return replace(fit, columns=columns, searches=searches, time_table=table)
 
 
 def resolve(data, effects, coefficients_for_linearised=None) -> tuple[list, dict]:
@@ -99,8 +103,10 @@ def model_columns(data, effects, coefficients=None, keep_series: bool = True) ->
     sets: list[ColumnSet] = []
     names: list[str] = []
     plain = [e for e in effects if not e.needs_coefficients]
+    # the store keeps a model's series (built once: the time-domain adequacy of a later fit
+    # needs them); a fit copies them only when it keeps them
     for e in plain:
-        cs = effect_columns(data, e, keep_series=keep_series)
+        cs = effect_columns(data, e, keep_series=True)
         sets.append(cs)
         names += [n for n in cs.names if n not in names]
     lin = [e for e in effects if e.needs_coefficients]
@@ -118,7 +124,7 @@ def model_columns(data, effects, coefficients=None, keep_series: bool = True) ->
                                   "in the model")
         first = list(names)
         for e in lin:
-            cs = effect_columns(data, e, C, keep_series=keep_series)
+            cs = effect_columns(data, e, C, keep_series=True)
             sets.append(cs)
             names += [n for n in cs.names if n not in names]
         if data.settings.expansion_passes and len(data.ttl_names) == 24:

@@ -196,7 +196,7 @@ def solve(data, columns: ColumnSet, effects=(), expansion=None) -> ModelFit:
     cov = data.kappa * np.linalg.inv(2 * Ntot)
     cov = 0.5 * (cov + cov.T)
     chi2_sg = 2 * (np.einsum("p,sgpq,q->sg", theta, N, theta) - 2 * b @ theta + dd)
-    wr = data.wd - columns.w @ theta
+    wr = data.wd - np.tensordot(theta, columns.x.view(complex), axes=(0, 0))  # no (S, m, 3, P) copy
     n_noise = 0 if data.noise_parameters is None else data.noise_parameters.n_parameters
     s = data.settings
     bands = band_table(wr, data.band_index, data.edges, len(columns) + n_noise, data.kappa, s.tolerance, s.alpha)

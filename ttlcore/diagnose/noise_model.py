@@ -364,6 +364,7 @@ def profile_noise_model(data, effects, *, names=PARAMETERS, passes: int = 4, fir
         new = fit_noise_model(d.f, P, len(d.starts), d.ltt_mean, names=names, fixed=dws, start=nm, kappa=d.kappa)
         moved = np.abs(np.subtract(new.levels, nm.levels)) / np.maximum(new.sigma, 1e-300)
         nm = new
+        fit = None  # the previous pass's fit is not kept while the next is made
         fit = fit_model(d.with_noise(nm.csd(d.f) + dws, noise_parameters=nm), effects, time_table=False)
         log.info("noise model pass %d: levels %s (moved %.2g sigma)", k + 1,
                  dict(zip(nm.names, np.round(nm.levels, 4))), float(np.max(moved)))

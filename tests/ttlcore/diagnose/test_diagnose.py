@@ -167,6 +167,12 @@ def test_refit_from_tdi_only_adds_a_drift():
     tried = {c["effect"] for c in ranked}
     assert {"drift", "step", "timing-offset"} <= tried and "cross-coupling" not in tried
     assert ranked[0]["effect"] == "drift" and ranked[0]["significant"]
+    # the step time is a searched parameter in a model too (not given: searched, the same
+    # search as the candidate's), from TDI alone
+    st = refit(out["_internals"]["data"], ["linear-ttl", "step"])
+    (spec, found), = st["model"]["searched"].items()
+    assert st["model"]["effects"] == ["linear-ttl", spec] and spec == f"step:t_step={round(found['estimates']['t_step'], 3)}"
+    assert st["model"]["n_parameters"] == 48
     with pytest.raises(Exception, match="needs the telemetry"):
         refit(out["_internals"]["data"], ["linear-ttl", "cross-coupling"])
 
