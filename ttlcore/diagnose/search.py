@@ -23,8 +23,10 @@ column:
 - the time offsets of the shifted-witness effects ``timing-offset`` and ``ltt-error``
   (:func:`offset_search`): a shift is a phase of the whitened spectra, a grid of spacing
   ``1 / (8 f_max)`` over ``+-shift_span`` and Brent's method, groups in turn;
-- anything else (a plugin whose columns change with the parameter, a ``vary=cycle``
-  period): the columns built at each point - correct but slower, a coarser grid.
+- the period of a ``vary=cycle`` witness effect: the unmodulated witness's TDI (once)
+  times the modulation at each point, the estimate scored with the exact columns;
+- anything else (a plugin whose columns change with the parameter, a cycle on a filtered
+  coupling): the columns built at each point - correct but slower, a coarser grid.
 
 Then (filters and generic): a 1-sigma interval from the curvature of the profile
 log-likelihood ``l = delta_chi2 / 2`` in the scaled parameters (relative for ``log``), and
