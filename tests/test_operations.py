@@ -7,7 +7,10 @@ processes on a loopback Zenoh, real MCAP files read back.
   dtypes, NaN payloads, identical and altered duplicates, forged producers, wrong fs / t0 /
   length, forged progress): no stage crashes or stalls, every message is recorded as
   rejected (or, an identical copy, as a duplicate) by every stage it reached, and the fits and
-  residuals equal the clean run's bit for bit.
+  residuals equal the clean run's bit for bit.  Altered duplicates are sent of segments every
+  stage has handled (a conflict within the hold keeps the genuine copy out too, which
+  tests/streamer/test_stage.py checks): each is recorded as a conflict whose first copy
+  had been used.
 * NaN gap: ten minutes of NaN in eta: the run ends on its own, the gap is reported, and the
   fit after the gap is within 1 sigma of the clean run's.
 * launcher killed: every stage stops by itself (exit status 3, recording closed with the
@@ -110,6 +113,7 @@ class Fuzzer:
         self.mine: set = set()
         self.by_kind: dict[str, int] = {}
         self.kind = ""
+        self.board = _watch_board(bus, run)
         for topic in self.genuine:
             bus.subscriber(f"ttl/{run}/{topic}/*", self._keep(topic))
 
@@ -190,9 +194,25 @@ class Fuzzer:
     def identical_duplicate(self, topic, index, payload, header):
         self.put(topic, index, payload, json.dumps(header, separators=(",", ":")).encode(), identical=True)
 
+    def settled(self) -> int:
+        """Highest index every stage has handled (-1: none yet)."""
+        return min(_handled(self.board, s) for s in STAGES) - 1
+
     def altered_duplicate(self, topic, index, payload, header):
+        # of a segment every stage has handled: the genuine copy was used (a conflict within
+        # the hold would keep it out, and the results would differ from the clean run's)
+        settled = self.settled()
+        with self.lock:
+            old = [g for g in self.genuine[topic] if int(g[0].rsplit("/", 1)[1]) <= settled]
+        if not old:  # none yet: another hostile message instead
+            if header:
+                self.kind = "forged_producer"
+                self.forged_producer(topic, index, payload, header)
+            return
+        key, payload, attachment = old[-1]
+        header = json.loads(attachment)
         arrays = {k: v * (1.0 + 1e-3) for k, v in self._arrays(payload, header).items()}
-        self._publish(topic, index, arrays, header)
+        self._publish(topic, header["index"], arrays, header)
 
     def forged_producer(self, topic, index, payload, header):
         self._publish(topic, index + 1, self._arrays(payload, header), header, producer="intruder")
@@ -243,6 +263,11 @@ def test_fuzz_of_hostile_messages_changes_nothing(clean, tmp_path):
                 k += 1
                 if k % 50 == 0:
                     time.sleep(0.05)
+            # altered duplicates of segments every stage has handled (the loop may come too early)
+            wait_for(lambda: fuzz.settled() >= 0 or proc.poll() is not None, 600, "a segment every stage handled")
+            for j in range(24):
+                fuzz.kind = "altered_duplicate"
+                fuzz.altered_duplicate(("fit", "residual", "telemetry", "fit")[j % 4], 0, b"", {})
             code = finish(proc, 900)
             out = output(proc)
         assert k == n_messages, f"the run ended after {k} hostile messages: {out[-2000:]}"
@@ -265,7 +290,10 @@ def test_fuzz_of_hostile_messages_changes_nothing(clean, tmp_path):
             assert len(on_topic) + len(dups) >= sent, (stage, topic, len(on_topic), len(dups), sent, fuzz.by_kind,
                                                        sorted({e["field"] for e in on_topic}))
         assert not [e for e in rec.json("errors") if e["kind"] == "failed"], (stage, rec.json("errors")[:3])
+        first = [e for e in refused if e["kind"] == "conflict" and e["field"] == "payload"]
+        assert all(e["details"]["first_copy"] == "used" for e in first), (stage, first[:3])
     assert sum(fuzz.sent.values()) + fuzz.progress >= 1000
+    assert sum(n for k, n in fuzz.by_kind.items() if k.endswith("/altered_duplicate")) >= 20, fuzz.by_kind
     m = re.search(r"(\d+) progress message\(s\) refused", out)
     assert m and int(m.group(1)) >= fuzz.progress, out[-2000:]
     # and the science is untouched

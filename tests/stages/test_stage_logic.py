@@ -49,6 +49,19 @@ def test_in_order_settles_reorders_and_skips():
     q2 = InOrder(settle=10)
     q2.add(0, "a")
     assert list(q2.ready()) == [(0, "a")]             # index 0 needs no settling
+    # conflicting copies: a buffered or future index is withdrawn and skipped in its turn
+    q2.add(2, "c")
+    assert q2.withdraw(2, "conflict") and q2.withdraw(3, "conflict") and not q2.withdraw(0, "conflict")
+    q2.add(1, "b")
+    q2.add(4, "e")
+    out = []
+    for i, item in q2.ready():
+        out.append((i, item, q2.skipped_reason if item is None else ""))
+    assert out == [(1, "b", ""), (2, None, "conflict"), (3, None, "conflict"), (4, "e", "")]
+    q3 = InOrder(settle=0)
+    q3.withdraw(0, "conflict")
+    q3.add(1, "b")
+    assert list(q3.ready()) == [(0, None), (1, "b")]  # a withdrawn first index is still accounted for
 
 
 def test_subtractor_applies_the_latest_fit_covering_each_segment(tmp_path):
