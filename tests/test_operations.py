@@ -350,6 +350,49 @@ def test_stage_killed_mid_run_restarts_exactly(stage, clean, tmp_path):
     assert not [p for p in psutil.process_iter(["cmdline"]) if run in " ".join(p.info["cmdline"] or ())]
 
 
+def test_restarted_fitter_keeps_the_model_changed_by_control(tmp_path):
+    """``ttl control fitter model`` mid-run, then SIGKILL of the fitter: the restarted fitter
+    fits with the model in force (from its earlier recording), not the configured one."""
+    import subprocess
+
+    port = free_port()
+    procs = Procs(tmp_path)
+    run = "kill-model"
+    effects = ["linear-ttl", "drift"]
+    try:
+        proc = procs.ttl(*run_args(run, tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--restart", "1",
+                                   "--pace", "450"))
+        with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
+            board = _watch_board(bus, run)
+            wait_for(lambda: _handled(board, "fitter") >= 2 or proc.poll() is not None, 600, "fitter at segment 2")
+            sent = subprocess.run(ttl_command("control", "fitter", "model", json.dumps({"effects": effects}),
+                                              "--run", run, "--connect", f"tcp/127.0.0.1:{port}"),
+                                  capture_output=True, text=True, timeout=90)
+            assert sent.returncode == 0, (sent.stdout, sent.stderr)
+            wait_for(lambda: _handled(board, "fitter") >= 4 or proc.poll() is not None, 600, "fitter at segment 4")
+            stage_processes(proc)["fitter"].send_signal(signal.SIGKILL)
+            code = finish(proc, 900)
+        out = output(proc)
+    finally:
+        procs.close()
+    assert code == 0 and "restarting fitter" in out, out[-4000:]
+    run_dir = tmp_path / "rec" / run
+    before, after = read_recording(run_dir / "fitter.1.mcap"), read_recording(run_dir / "fitter.mcap")
+    changed = [e for e in before.json("events") if e["kind"] == "model"]
+    assert len(changed) == 1 and changed[0]["details"]["effects"] == effects, changed
+    start = changed[0]["details"]["from_index"]
+    old = {f.header.index: f.header.meta for f in before.segments("fit")}
+    new = {f.header.index: f.header.meta for f in after.segments("fit")}
+    assert [old[i]["model"] for i in sorted(old) if i >= start] and new, (sorted(old), sorted(new), start)
+    assert all(old[i]["model"] == (effects if i >= start else ["linear-ttl"]) for i in old), old
+    assert all(m["model"] == effects for m in new.values()), {i: m["model"] for i, m in new.items()}
+    restored = [e for e in after.json("events") if e["kind"] == "model-restored"]
+    assert restored and restored[0]["details"]["effects"] == effects, restored
+    # the change is reported once, by the process that made it (a fit from `start` on is in its file)
+    assert not restored[0]["details"]["change_due"]
+    assert not [i for i, m in new.items() if "model_change" in m], new
+
+
 def test_launcher_killed_stages_stop_with_a_clear_error(tmp_path):
     port = free_port()
     procs = Procs(tmp_path)
