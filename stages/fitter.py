@@ -139,6 +139,8 @@ class Fitter(OrderedStage):
                 continue
             models = [e for e in rec.json("events") if e.get("kind") == "model"]
             last = models[-1] if models else last
+            # the fit's segment is written before its summary: a kill between leaves only the former
+            fits.update(m.header.index for m in rec.segments("fit"))
             fits.update(s["index"] for s in rec.json("fit/summary") if isinstance(s.get("index"), int))
         if last is None:
             return

@@ -369,18 +369,26 @@ def test_restarted_fitter_keeps_the_model_changed_by_control(tmp_path):
                                               "--run", run, "--connect", f"tcp/127.0.0.1:{port}"),
                                   capture_output=True, text=True, timeout=90)
             assert sent.returncode == 0, (sent.stdout, sent.stderr)
-            wait_for(lambda: _handled(board, "fitter") >= 4 or proc.poll() is not None, 600, "fitter at segment 4")
+            # the segment the change applies from (its 'model' event), then one fit beyond it
+            run_dir = tmp_path / "rec" / run
+
+            def model_event():
+                found = [e for e in read_recording(run_dir / "fitter.mcap").json("events") if e["kind"] == "model"]
+                return found[0]["details"]["from_index"] if found else None
+            wait_for(lambda: model_event() is not None or proc.poll() is not None, 120, "the model event")
+            start = model_event()
+            assert start is not None and start < SEGMENTS - 1, (start, output(proc)[-3000:])
+            wait_for(lambda: _handled(board, "fitter") >= start + 1 or proc.poll() is not None, 600,
+                     f"fitter past segment {start}")
             stage_processes(proc)["fitter"].send_signal(signal.SIGKILL)
             code = finish(proc, 900)
         out = output(proc)
     finally:
         procs.close()
     assert code == 0 and "restarting fitter" in out, out[-4000:]
-    run_dir = tmp_path / "rec" / run
     before, after = read_recording(run_dir / "fitter.1.mcap"), read_recording(run_dir / "fitter.mcap")
     changed = [e for e in before.json("events") if e["kind"] == "model"]
     assert len(changed) == 1 and changed[0]["details"]["effects"] == effects, changed
-    start = changed[0]["details"]["from_index"]
     old = {f.header.index: f.header.meta for f in before.segments("fit")}
     new = {f.header.index: f.header.meta for f in after.segments("fit")}
     assert [old[i]["model"] for i in sorted(old) if i >= start] and new, (sorted(old), sorted(new), start)
@@ -391,9 +399,13 @@ def test_restarted_fitter_keeps_the_model_changed_by_control(tmp_path):
     # the change is reported once, by the process that made it (a fit from `start` on is in its file)
     assert not restored[0]["details"]["change_due"]
     assert not [i for i, m in new.items() if "model_change" in m], new
+    assert len([i for i, m in old.items() if "model_change" in m]) <= 1, old
 
 
-def test_launcher_killed_stages_stop_with_a_clear_error(tmp_path):
+def test_launcher_killed_stages_stop_with_a_clear_error(clean, tmp_path):
+    """SIGKILL of the launcher mid-run: every stage and the router stop by themselves
+    (nothing orphaned), each stage's recording closed with the reason, ``ttl inspect`` says
+    so, and what was produced before equals the clean run's to 1e-9."""
     port = free_port()
     procs = Procs(tmp_path)
     try:
@@ -404,10 +416,11 @@ def test_launcher_killed_stages_stop_with_a_clear_error(tmp_path):
             wait_for(lambda: _handled(board, "fitter") >= 1 or proc.poll() is not None, 600, "the first fit")
         children = stage_processes(proc)
         assert set(children) == set(STAGES), children
+        everything = psutil.Process(proc.pid).children(recursive=True)  # the router too
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(10)
-        gone, alive = psutil.wait_procs(list(children.values()), timeout=60)
-        assert not alive, f"stages left running after the launcher died: {alive}"
+        gone, alive = psutil.wait_procs(everything, timeout=90)
+        assert not alive, f"processes left running after the launcher died: {[p.cmdline() for p in alive]}"
     finally:
         for p in psutil.process_iter(["cmdline"]):
             if "orphans" in " ".join(p.info["cmdline"] or ()) and p.pid != os.getpid():
@@ -422,6 +435,13 @@ def test_launcher_killed_stages_stop_with_a_clear_error(tmp_path):
         assert [e for e in rec.json("errors") if e["kind"] == "orphaned"], stage
     res = __import__("subprocess").run(ttl_command("inspect", str(run_dir)), capture_output=True, text=True, timeout=300)
     assert "orphaned" in res.stdout and "launcher" in res.stdout, res.stdout[-3000:]
+    # what the run produced before it stopped is the clean run's
+    partial, reference = results(run_dir), results(clean)
+    assert partial["fit"], "no fit recorded before the launcher died"
+    for topic in ("fit", "residual"):
+        assert set(partial[topic]) <= set(reference[topic]), topic
+    assert_same_results({t: {i: reference[t][i] for i in partial[t]} for t in ("fit", "residual")}, partial,
+                        rtol=1e-9)
 
 
 # ---------------------------------------------------------------------------- gaps
