@@ -15,28 +15,8 @@ Each runs as its own process: ``python -m stages.<name> [options]`` or
 stage's own).  The science is in :mod:`ttlcore`, the plumbing in :mod:`streamer`; this
 module holds what the pipeline stages share on top of :class:`streamer.stage.Stage`.
 
-Progress protocol
------------------
-After handling segment ``i`` (output published, or given up), a :class:`PipelineStage`
-publishes its cumulative progress as JSON on ``ttl/<run>/control/progress/<stage>`` with an
-advanced publisher caching the latest message (late joiners get it from the cache)::
-
-    {"run", "stage", "pid", "time",
-     "index":          last handled index,
-     "done":           [[first, last], ...]  indices whose output was published,
-     "failed":         [[first, last], ...]  indices given up (error reported),
-     "gaps":           [[first, last], ...]  of those, the ones with no data upstream (a gap in
-                                             the data, reported, not a failure of the run),
-     "segments_total": N or null (from the telemetry meta, passed down the pipeline),
-     "complete":       true once the last index is handled and nothing is pending,
-     ...stage extras (the fitter adds "fits": indices that produced a fit)}
-
-``done`` and ``failed`` cover what *this process* handled; a restarted stage starts afresh,
-so consumers (the launcher, the replayer) keep the union over everything they received.
-The replayer uses it for flow control (it runs at most ``window`` segments ahead of the
-slowest stage that reports progress), the subtractor to know that the fitter has passed a
-segment, the launcher to show progress and detect completion.  A stage also records a
-``complete`` event in its MCAP file.
+Progress protocol: :mod:`streamer.progress`.  The shape of the pipeline (stages, output
+topics, upstreams): :mod:`streamer.topology`.
 """
 
 from __future__ import annotations
@@ -46,160 +26,34 @@ import json
 import logging
 import os
 import sys
-import threading
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
 from typing import ClassVar
 
-from streamer.keys import check_name, control_key, from_ranges, to_ranges
+from streamer.keys import check_name, progress_key, progress_pattern, to_ranges
 from streamer.plan import MAX_SEGMENTS
+from streamer.progress import Progress, ProgressBoard, key_stage
 from streamer.recorder import to_jsonable
 from streamer.session import declare_segment_publisher
 from streamer.stage import (
-    BOARD,
     Stage,
     StageConfig,
     config_from_args,
     configure_logging,
     stage_arguments,
 )
+from streamer.topology import OUTPUT_TOPIC  # noqa: F401 - imported by the stage modules
 from ttlcore.errors import TTLError
 
 log = logging.getLogger(__name__)
 
-#: The stages of a run, in pipeline order (module ``stages.<name>``).
-STAGES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
-#: Output topic of each stage.
-OUTPUT_TOPIC = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit",
-                "subtractor": "residual", "monitor": "monitor"}
-#: Control chunk of progress messages.
-PROGRESS = "progress"
 #: TDI channels published by the pipeline.
 XYZ = ("X2", "Y2", "Z2")
-
-
-def progress_key(run: str, stage: str) -> str:
-    """``ttl/<run>/control/progress/<stage>``."""
-    return control_key(run, PROGRESS, stage)
-
-
-def progress_pattern(run: str) -> str:
-    """``ttl/<run>/control/progress/*``."""
-    return f"ttl/{check_name(run, 'run id')}/control/{PROGRESS}/*"
-
-
-def board_pattern(run: str) -> str:
-    """``ttl/<run>/control/board/*``: progress as verified and republished by the launcher."""
-    return f"ttl/{check_name(run, 'run id')}/control/{BOARD}/*"
 
 
 def jsonable(value):
     """JSON-ready copy: numpy scalars and arrays to Python, NaN and inf to None."""
     return to_jsonable(value)
-
-
-@dataclass
-class PeerProgress:
-    """What is known of one stage's progress: the union over all its messages (and processes)."""
-
-    stage: str
-    done: set = field(default_factory=set)
-    failed: set = field(default_factory=set)
-    segments_total: int | None = None
-    gaps: set = field(default_factory=set)
-    complete: bool = False
-    last: dict = field(default_factory=dict)
-    pids: set = field(default_factory=set)
-    extra: dict = field(default_factory=dict)  # name -> union of index sets (e.g. "fits")
-    updated: float = 0.0
-
-    @property
-    def handled(self) -> set:
-        return self.done | self.failed
-
-    @property
-    def highest(self) -> int:
-        """Highest handled index (-1 when none)."""
-        h = self.handled
-        return max(h) if h else -1
-
-    def covers(self, total: int | None = None) -> bool:
-        """True when every index ``0 .. total-1`` was handled."""
-        total = self.segments_total if total is None else total
-        return total is not None and self.handled.issuperset(range(total))
-
-    def update(self, msg: dict) -> None:
-        if isinstance(msg.get("segments_total"), int) and 0 < msg["segments_total"] <= MAX_SEGMENTS:
-            self.segments_total = msg["segments_total"]
-        limit = self.segments_total or MAX_SEGMENTS
-        self.done |= from_ranges(msg.get("done"), limit)
-        self.failed |= from_ranges(msg.get("failed"), limit)
-        self.gaps |= from_ranges(msg.get("gaps"), limit)
-        self.complete = self.complete or bool(msg.get("complete"))
-        if msg.get("pid") is not None:
-            self.pids.add(msg["pid"])
-        for name, value in msg.items():
-            if name.endswith("_ranges"):
-                self.extra.setdefault(name[: -len("_ranges")], set()).update(from_ranges(value, limit))
-        self.last = msg
-        self.updated = time.monotonic()
-
-
-def parse_progress(payload) -> dict | None:
-    """A progress message as a dict (None when it is not one)."""
-    raw = payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload or b"")
-    try:
-        msg = json.loads(raw)
-    except ValueError:
-        return None
-    if not isinstance(msg, dict) or not isinstance(msg.get("stage"), str):
-        return None
-    return msg
-
-
-def progress_consistent(msg: dict, key: str, run: str | None, total: int | None) -> bool:
-    """A progress message is believable: its stage is the key's last chunk, its run the
-    run's, its ``segments_total`` the plan's (when known).  (Who may publish it at all is the
-    access control's business; what it claims against what was published is the launcher's.)"""
-    if key.rsplit("/", 1)[-1] != msg.get("stage"):
-        return False
-    if run is not None and msg.get("run") != run:
-        return False
-    t = msg.get("segments_total")
-    if total is not None and t is not None and t != total:
-        return False
-    return True
-
-
-class ProgressBoard:
-    """Progress of the stages of a run, fed from the progress messages (thread-safe)."""
-
-    def __init__(self):
-        self._lock = threading.Lock()
-        self.stages: dict[str, PeerProgress] = {}
-        self.changed = threading.Event()
-
-    def feed(self, sample, run: str | None = None, total: int | None = None) -> None:
-        """Zenoh callback of the progress subscriber: messages of another run, of a stage
-        other than the key's, or claiming more segments than the plan are dropped."""
-        msg = parse_progress(sample.payload)
-        if msg is None or not progress_consistent(msg, str(sample.key_expr), run, total):
-            return
-        with self._lock:
-            self.stages.setdefault(msg["stage"], PeerProgress(msg["stage"])).update(msg)
-        self.changed.set()
-
-    def get(self, stage: str) -> PeerProgress | None:
-        with self._lock:
-            return self.stages.get(stage)
-
-    def snapshot(self) -> dict[str, PeerProgress]:
-        with self._lock:
-            return {k: PeerProgress(v.stage, set(v.done), set(v.failed), v.segments_total, set(v.gaps),
-                                    v.complete, dict(v.last), set(v.pids), {n: set(s) for n, s in v.extra.items()},
-                                    v.updated)
-                    for k, v in self.stages.items()}
 
 
 class InOrder:
@@ -284,27 +138,45 @@ class PipelineStage(Stage):
     def __init__(self, config: StageConfig):
         super().__init__(config)
         self.options = dict(config.options or {})
-        self.done: set[int] = set()
-        self.failed: set[int] = set()
-        self.gaps: set[int] = set()
-        self.segments_total: int | None = self.validator.plan.segments_total if self.validator.plan else None
-        self.progress_extra: dict = {}
+        #: This process's progress (what it published and gave up), published after every segment.
+        self.progress = Progress(self.stage_name,
+                                 segments_total=self.validator.plan.segments_total if self.validator.plan else None)
         self.board = ProgressBoard()
         self._progress_pub = None
-        self._complete = False
+
+    @property
+    def done(self) -> set[int]:
+        """Segments whose output this process published."""
+        return self.progress.done
+
+    @property
+    def failed(self) -> set[int]:
+        """Segments this process gave up (gaps included)."""
+        return self.progress.failed
+
+    @property
+    def gaps(self) -> set[int]:
+        """Segments given up for lack of data upstream."""
+        return self.progress.gaps
+
+    @property
+    def segments_total(self) -> int | None:
+        return self.progress.segments_total
+
+    @segments_total.setter
+    def segments_total(self, total: int | None) -> None:
+        self.progress.segments_total = total
 
     # ------------------------------------------------------------------ lifecycle
     def setup(self) -> None:
         self._progress_pub = self.bus.track(
             declare_segment_publisher(self.bus.session, progress_key(self.run_id, self.stage_name), cache=1))
         if self.follow:
-            pattern = (board_pattern(self.run_id) if self.config.progress_from == "launcher"
-                       else progress_pattern(self.run_id))
+            pattern = progress_pattern(self.run_id, board=self.config.progress_from == "launcher")
             self.bus.segment_subscriber(pattern, self._on_progress, history=1)
 
     def _on_progress(self, sample) -> None:
-        key = str(sample.key_expr)
-        stage = key.rsplit("/", 1)[-1]
+        stage = key_stage(str(sample.key_expr))
         if "*" in self.follow or stage in self.follow or stage == self.stage_name:
             plan = self.validator.plan
             self.board.feed(sample, self.run_id, plan.segments_total if plan is not None else None)
@@ -349,7 +221,7 @@ class PipelineStage(Stage):
         self.mark_failed(index, **extra)
 
     def _after(self, index: int, extra: dict) -> None:
-        self.progress_extra.update(extra)
+        self.progress.extra.update(extra)
         self.check_complete(publish=False)
         self.publish_progress(index)
 
@@ -357,8 +229,8 @@ class PipelineStage(Stage):
         """Record the ``complete`` event once the last segment is handled and nothing waits."""
         total = self.segments_total
         handled = self.done | self.failed
-        if (not self._complete and total is not None and (total - 1) in handled and self.pending() == 0):
-            self._complete = True
+        if (not self.progress.complete and total is not None and (total - 1) in handled and self.pending() == 0):
+            self.progress.complete = True
             missing = sorted(set(range(total)) - handled)
             self.event("complete", index=total - 1,
                        message=f"handled {len(handled)} of {total} segments in this process",
@@ -367,19 +239,14 @@ class PipelineStage(Stage):
                           total - 1, len(self.done), len(self.failed))
             if publish:
                 self.publish_progress(None)
-        return self._complete
+        return self.progress.complete
 
     def publish_progress(self, index: int | None) -> None:
         if self._progress_pub is None:
             return
-        msg = {"run": self.run_id, "stage": self.stage_name, "pid": os.getpid(), "time": time.time(),
-               "index": index, "done": to_ranges(self.done), "failed": to_ranges(self.failed),
-               "gaps": to_ranges(self.gaps),
-               "segments_total": self.segments_total, "complete": self._complete,
-               **{f"{k}_ranges": to_ranges(v) if isinstance(v, (set, frozenset)) else v
-                  for k, v in self.progress_extra.items()}}
+        msg = self.progress.message(self.run_id, pid=os.getpid(), index=index)
         try:
-            self._progress_pub.put(json.dumps(jsonable(msg)).encode())
+            self._progress_pub.put(json.dumps(msg).encode())
         except Exception:
             self.log.exception("could not publish progress")
 

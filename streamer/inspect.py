@@ -44,10 +44,9 @@ from ttlcore.io.truth import read_truth
 
 from .keys import to_ranges
 from .recorder import Recording, RecordingError, read_recording, to_jsonable
+from .topology import STAGES
 from .webview import WebView
 
-#: The pipeline's stages, in order (names of their recordings).
-KNOWN_STAGES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
 _FILE = re.compile(r"^(?P<stage>.+?)(?:\.(?P<n>\d+))?\.mcap$")
 #: Span of the drift rate in the report [days] (ttlcore.diagnose.trends.TrendSettings.drift_lookback).
 LOOKBACK_DAYS = 3.0
@@ -88,7 +87,7 @@ def recording_files(run_dir) -> dict[str, list[Path]]:
             by_stage[m.group("stage")].append((n, path))
     if not by_stage:
         raise InspectError(f"{run_dir}: no MCAP recordings (*.mcap) in this directory")
-    order = {s: i for i, s in enumerate(KNOWN_STAGES)}
+    order = {s: i for i, s in enumerate(STAGES)}
     return {stage: [p for _, p in sorted(files, key=lambda x: x[0])]
             for stage, files in sorted(by_stage.items(), key=lambda kv: (order.get(kv[0], 99), kv[0]))}
 
@@ -352,7 +351,7 @@ def inspect_run(run_dir, truth=None) -> dict:
                 t["error_over_sigma"] = (t["latest"] - true[name]) / t["sigma"] if t["sigma"] > 0 else None
         fit_report["truth_file"] = str(truth)
     return {"run": runs[0] if len(runs) == 1 else (runs or [run_dir.name]), "directory": str(run_dir),
-            "stages": stages, "stages_missing": [s for s in KNOWN_STAGES if s not in stages],
+            "stages": stages, "stages_missing": [s for s in STAGES if s not in stages],
             "segments_total": total, "fits": fit_report, "alerts": alerts, "warnings": warnings, "errors": errors,
             "interruptions": interruptions, "gaps": gaps}
 

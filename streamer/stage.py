@@ -55,8 +55,6 @@ log = logging.getLogger(__name__)
 
 #: Name of the launcher's liveliness token (``ttl/<run>/alive/launcher``).
 LAUNCHER = "launcher"
-#: Control chunk of the progress the launcher has verified (``ttl/<run>/control/board/<stage>``).
-BOARD = "board"
 #: Characters of a rejected attachment kept in the error report.
 PREVIEW_CHARS = 2000
 

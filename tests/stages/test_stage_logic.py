@@ -7,7 +7,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from stages import InOrder, PeerProgress, from_ranges, to_ranges
+from stages import InOrder
+from streamer.keys import from_ranges, to_ranges
+from streamer.progress import Progress
 from stages.replayer import FileSource, Replayer, make_source, simulation_config
 from stages.subtractor import Subtractor
 from streamer.stage import StageConfig
@@ -24,7 +26,7 @@ def test_ranges_round_trip():
     assert to_ranges([5, 0, 1, 2, 2]) == [[0, 2], [5, 5]]
     assert from_ranges([[0, 2], [5, 5]]) == {0, 1, 2, 5}
     assert to_ranges([]) == [] and from_ranges(None) == set() and from_ranges([["x"]]) == set()
-    p = PeerProgress("fitter")
+    p = Progress("fitter")
     p.update({"done": [[0, 3]], "failed": [[5, 5]], "segments_total": 7, "fits_ranges": [[1, 3]]})
     p.update({"done": [[4, 4], [6, 6]], "pid": 2})  # a restarted process: union of both
     assert p.handled == set(range(7)) and p.covers() and p.highest == 6 and p.extra["fits"] == {1, 2, 3}
