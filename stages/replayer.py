@@ -47,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 from streamer.plan import Plan
+from streamer.progress import REPLAY_WINDOW
 from streamer.stage import Output
 from ttlcore.cli.main import add_simulation_options, simulation_config_from_args
 from ttlcore.conventions import LINKS, parse_duration
@@ -64,8 +65,6 @@ from . import OUTPUT_TOPIC, PipelineStage, stage_main
 UNITS = {"eta": "fractional frequency", "dws_phi": "rad/s", "dws_eta": "rad/s", "ltt": "s"}
 #: Default segment length [s].
 DEFAULT_SEGMENT = 3600.0
-#: Default number of segments the replayer may run ahead of the slowest stage.
-DEFAULT_WINDOW = 4
 
 
 # ---------------------------------------------------------------------------- simulation options
@@ -260,7 +259,7 @@ class Replayer(PipelineStage):
         self.pace = float(o.get("pace") or 0.0)
         if self.pace < 0 or not np.isfinite(self.pace):
             raise ConfigError(f"--pace: expected a multiple of real time > 0 (or 0: as fast as possible), got {self.pace}")
-        self.window = int(o.get("window", DEFAULT_WINDOW))
+        self.window = int(o.get("window", REPLAY_WINDOW))
         if self.window < 1:
             raise ConfigError(f"--window: expected >= 1, got {self.window}")
         self.wait_for = tuple(o.get("wait_for") or ())
@@ -376,7 +375,7 @@ def add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--simulate", metavar="OPTIONS", help="'ttl simulate' options, e.g. \"--duration 12h --seed 1\"")
     p.add_argument("--segment", help="segment length, e.g. 1h, 30min or seconds (default 1h)")
     p.add_argument("--pace", type=float, help="multiple of real time (default: as fast as consumers take them)")
-    p.add_argument("--window", type=int, help=f"segments the replay may run ahead of the slowest stage (default {DEFAULT_WINDOW})")
+    p.add_argument("--window", type=int, help=f"segments the replay may run ahead of the slowest stage (default {REPLAY_WINDOW})")
     p.add_argument("--wait-for", help="stages to wait for (liveliness) before the first segment, comma-separated")
     p.add_argument("--plan-out", help="with --check: write the run's plan (JSON) to this file")
     p.add_argument("--pace-on", help="stages reporting progress to stay within --window of, comma-separated "
