@@ -25,7 +25,7 @@ Output ``ttl/<run>/monitor/<i>``, one per segment, once the segment is drawn: it
 its fit and residual from a fitter / subtractor that reports progress (they are waited for
 until that stage has passed the segment, at most ``settle_timeout`` = 60 s; a stage that is
 skipped or not started blocks nothing).  The segment is then done for the progress protocol
-(:mod:`stages`), so the replayer paces on the monitor too and ``ttl run`` stops it only once
+(:mod:`streamer.progress`), so the replayer paces on the monitor too and ``ttl run`` stops it only once
 it has drawn everything.  Arrays ``drift_rate`` (24,) [mm/rad/day] and
 ``drift_significance`` (24,) of the latest trend evaluation (0 where not yet defined, see
 meta ``drift_windows``); meta ``names``, ``alerts`` (the alerts raised since the previous
@@ -80,8 +80,10 @@ import numpy as np
 from streamer.codec import Expect
 from streamer.inspect import rerun_binary
 from streamer.keys import topic_pattern
+from streamer.pipeline_stage import PipelineStage
+from streamer.recorder import to_jsonable
 from streamer.session import free_port
-from streamer.stage import Output
+from streamer.stage import Output, stage_main
 from ttlcore.conventions import (
     ARM_LENGTH,
     COEFFICIENT_NAMES,
@@ -96,7 +98,6 @@ from ttlcore.estimate.spectra import default_nperseg, log_average, welch_asd
 from ttlcore.io.truth import read_truth
 from ttlcore.sim.coefficients import CoefficientModel
 
-from . import OUTPUT_TOPIC, PipelineStage, jsonable, stage_main
 from . import monitor_views as views
 
 P = len(COEFFICIENT_NAMES)
@@ -520,7 +521,7 @@ class Monitor(PipelineStage):
             self.publish(self.status(i))
             self.mark_done(i)  # after the output is out (progress protocol)
             changed = True
-        tdi = board.get("tdi_builder")
+        tdi = board.get(self.upstream)
         if tdi is not None:
             for i in sorted(tdi.failed - self.done - self.failed - self._drawn["tdi"]):
                 (self.mark_gap if i in tdi.gaps else self.mark_failed)(i)
@@ -758,10 +759,10 @@ class Monitor(PipelineStage):
                 "drifting": sorted(self.trends.drifting), "drift_windows": est.windows if est else 0,
                 "residual_over_expected": {"index": self._ratio[0], "ratio": self._ratio[1]} if self._ratio else None,
                 "fit": self._last_fit, "segments_total": self.segments_total}
-        return Output(OUTPUT_TOPIC[self.name], {"drift_rate": rate, "drift_significance": sig}, index=index,
+        return Output(self.output_topic, {"drift_rate": rate, "drift_significance": sig}, index=index,
                       fields={"t0": t0, "fs": fs, "units": {"drift_rate": "mm/rad/day", "drift_significance": ""},
-                              "meta": jsonable(meta)},
-                      summary=jsonable({"run": self.run_id, "index": index, **meta,
+                              "meta": to_jsonable(meta)},
+                      summary=to_jsonable({"run": self.run_id, "index": index, **meta,
                                         "drift_rate": rate, "drift_significance": sig}))
 
     @staticmethod

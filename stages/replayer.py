@@ -24,8 +24,8 @@ Pace
 ----
 Segments go out as fast as the consumers take them: congestion control BLOCK holds a put
 while a live subscriber's transport is full, and, on top, the replayer stays at most
-``window`` segments ahead of the slowest stage that reports progress (``stages`` module
-docstring), so that a stage that dies finds what it missed in the publishers' caches when
+``window`` segments ahead of the slowest stage that reports progress
+(:mod:`streamer.progress`), so that a stage that dies finds what it missed in the publishers' caches when
 it is restarted (``cache`` > ``window`` + 1).  With ``pace`` X > 0, segment ``i`` goes
 out no earlier than ``i * segment_duration / X`` seconds after the first: X times real time.
 
@@ -46,9 +46,10 @@ from pathlib import Path
 
 import numpy as np
 
+from streamer.pipeline_stage import PipelineStage
 from streamer.plan import Plan
 from streamer.progress import REPLAY_WINDOW
-from streamer.stage import Output
+from streamer.stage import Output, stage_main
 from ttlcore.cli.main import add_simulation_options, simulation_config_from_args
 from ttlcore.conventions import LINKS, parse_duration
 from ttlcore.errors import ConfigError, TelemetryError, TTLError
@@ -58,8 +59,6 @@ from ttlcore.io.reader import file_kind, read_telemetry
 from ttlcore.io.telemetry import Telemetry, read_header
 from ttlcore.io.truth import truth_path
 from ttlcore.sim.simulator import Simulator
-
-from . import OUTPUT_TOPIC, PipelineStage, stage_main
 
 #: Units of the telemetry arrays.
 UNITS = {"eta": "fractional frequency", "dws_phi": "rad/s", "dws_eta": "rad/s", "ltt": "s"}
@@ -349,7 +348,7 @@ class Replayer(PipelineStage):
                 self.event("gap", index=i, message=f"telemetry segment {i}: {len(gaps)} NaN stretch(es) "
                                                     f"({sum(b - a for a, b in gaps)} samples), published flagged",
                            stretches=gaps)
-            out = Output(OUTPUT_TOPIC[self.name], {
+            out = Output(self.output_topic, {
                 "eta": tm.eta, "dws_phi": tm.dws_phi, "dws_eta": tm.dws_eta, "ltt": tm.ltt},
                 fields={"t0": float(tm.t0), "fs": float(tm.fs), "channels": list(LINKS), "units": UNITS,
                         "meta": {**meta, "segments_total": self.segments_total,

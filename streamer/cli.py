@@ -52,8 +52,7 @@ from .session import (
     open_router,
     open_session,
 )
-from .stage import Stage
-from .stage import main as run_stage
+from .stage import Stage, stage_main
 from .topology import STAGES, stage_module
 
 log = logging.getLogger(__name__)
@@ -226,7 +225,7 @@ def _cmd_stage(args) -> int:
                if isinstance(c, type) and issubclass(c, Stage) and c.__module__ == module.__name__]
     if not classes:
         raise TTLError(f"stage {args.name!r}: module {stage_module(args.name)} has neither main() nor a Stage class")
-    return int(run_stage(classes[0], args.args) or 0)
+    return int(stage_main(classes[0], args.args) or 0)
 
 
 # ---------------------------------------------------------------------------- ttl control

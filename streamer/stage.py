@@ -37,15 +37,17 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 
+from ttlcore.errors import TTLError
+
 from .codec import CodecError, Expect, Header, decode, encode
-from .keys import (KeyExprError, control_key, control_pattern, errors_key, parse_control_key,
+from .keys import (KeyExprError, check_name, control_key, control_pattern, errors_key, parse_control_key,
                    parse_segment_key, topic_pattern)
 from .plan import Plan, RangeSet, Rejected, Validator
 from .recorder import Recorder, mission_ns
@@ -242,6 +244,8 @@ class Stage:
     reorders: ClassVar[tuple[str, ...]] = ()
     #: Input topics.
     inputs: ClassVar[tuple[str, ...]] = ()
+    #: Poll interval [s] when neither the command line nor the configuration file sets one.
+    default_poll_interval: ClassVar[float] = StageConfig.poll_interval
 
     def __init__(self, config: StageConfig):
         self.stage_name = config.stage or self.name
@@ -666,13 +670,63 @@ def config_from_args(args: argparse.Namespace) -> StageConfig:
     return StageConfig.from_dict(d)
 
 
-def main(stage_class: type[Stage], argv: Sequence[str] | None = None) -> int:
-    """Entry point of a stage process: parse options, set up logging, run the stage."""
-    args = stage_arguments(argparse.ArgumentParser(prog=f"ttl stage {stage_class.name}")).parse_args(argv)
+def add_common_options(p: argparse.ArgumentParser) -> None:
+    """Options of a stage process that override :class:`StageConfig` fields, besides
+    :func:`stage_arguments`."""
+    p.add_argument("--cache", type=int, help="segments kept per output topic for late joiners")
+    p.add_argument("--history", type=int, help="segments asked from each input publisher's cache")
+    p.add_argument("--no-record-inputs", action="store_true", help="do not record input payloads")
+    p.add_argument("--poll-interval", type=float, help="longest wait before checking timers [s]")
+
+
+def stage_main(stage_class: type[Stage], argv: Sequence[str] | None = None,
+               add_options: Callable[[argparse.ArgumentParser], None] | None = None,
+               options: Callable[[argparse.Namespace], dict] | None = None,
+               check: Callable[[StageConfig], str] | None = None) -> int:
+    """Entry point of a stage process.
+
+    Parses :func:`stage_arguments`, :func:`add_common_options` and the stage's own
+    (``add_options``; ``options(args)`` returns the stage options they set, overriding the
+    ``--config`` file's), sets up logging and runs the stage.  With ``--check`` the options
+    are validated by ``check(config)`` (which returns a one-line description) and nothing
+    runs.  Errors: one line naming the problem on stderr, exit status 2.
+    """
+    parser = stage_arguments(argparse.ArgumentParser(prog=f"ttl stage {stage_class.name}",
+                                                     description=(stage_class.__doc__ or "").split("\n\n")[0]))
+    add_common_options(parser)
+    if check is not None:
+        parser.add_argument("--check", action="store_true", help="validate the options and exit")
+    if add_options is not None:
+        add_options(parser)
+    args = parser.parse_args(argv)
     configure_logging(args.log_level, args.log_json)
     try:
+        if not args.config and not args.run:
+            raise ValueError("--run (or --config with a 'run' field) is required")
         config = config_from_args(args)
-    except (ValueError, OSError) as exc:
-        logging.getLogger(__name__).error("%s", exc)
+        if args.cache is not None:
+            config.cache = args.cache
+        if args.history is not None:
+            config.history = args.history
+        if args.no_record_inputs:
+            config.record_inputs = False
+        if args.poll_interval is not None:
+            config.poll_interval = args.poll_interval
+        elif not (args.config and "poll_interval" in json.loads(args.config.read_text())):
+            config.poll_interval = stage_class.default_poll_interval
+        if options is not None:
+            config.options = {**config.options, **{k: v for k, v in options(args).items() if v is not None}}
+        check_name(config.run, "run id")
+        if check is not None and args.check:
+            print(check(config))
+            return 0
+        stage = stage_class(config)
+    except Exception as exc:  # noqa: BLE001 - one line, no traceback, for user errors
+        print(f"ttl stage {stage_class.name}: error: {exc}", file=sys.stderr)
         return 2
-    return stage_class(config).run()
+    try:
+        return stage.run()
+    except (TTLError, OSError, ValueError) as exc:
+        log.debug("stage failed", exc_info=True)
+        print(f"ttl stage {stage_class.name}: error: {exc}", file=sys.stderr)
+        return 2

@@ -7,11 +7,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from stages import InOrder
-from streamer.keys import from_ranges, to_ranges
-from streamer.progress import Progress
 from stages.replayer import FileSource, Replayer, make_source, simulation_config
 from stages.subtractor import Subtractor
+from streamer.keys import from_ranges, to_ranges
+from streamer.pipeline_stage import InOrder
+from streamer.progress import Progress
 from streamer.stage import StageConfig
 from ttlcore.errors import ConfigError, TelemetryError
 from ttlcore.io.telemetry import Telemetry, write_telemetry
@@ -152,8 +152,7 @@ def test_replayer_paces_at_a_multiple_of_real_time(tmp_path, monkeypatch):
 def test_run_options_merge_config_file_and_command_line(tmp_path):
     from pathlib import Path
 
-    from streamer.cli import run_options
-    from streamer.cli import register
+    from streamer.cli import register, run_options
     from ttlcore.cli.main import build_parser
 
     (tmp_path / "run.toml").write_text('run_id = "from-file"\nsimulate = "--duration 6h"\nsegment = "30min"\n'

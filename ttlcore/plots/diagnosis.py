@@ -10,6 +10,7 @@ import numpy as np
 from ..conventions import ffd_to_displacement_asd
 from .batch import _save
 from ..estimate.spectra import log_average
+from ..tdi.combinations import AET
 
 
 def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.02, fine: dict | None = None) -> Path:
@@ -22,7 +23,7 @@ def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.02, fine: 
     fig = Figure(figsize=(9, 10))
     axes = [fig.add_subplot(4, 1, k + 1) for k in range(4)]
     f = dg.f
-    for ci, ch in enumerate(("A", "E", "T")):
+    for ci, ch in enumerate(AET):
         ax = axes[ci]
         model = np.real(dg.noise_csd[:, ci, ci])
         fc, mm = log_average(f, model)
