@@ -227,18 +227,6 @@ def make_source(options: dict):
     raise ConfigError("no telemetry source: give --telemetry FILE... or --simulate \"<ttl simulate options>\"")
 
 
-# ---------------------------------------------------------------------------- gaps
-
-def nan_stretches(tm: Telemetry) -> list[list[int]]:
-    """Sample ranges ``[start, stop)`` where any eta or DWS series is not finite (a gap)."""
-    bad = ~(np.isfinite(tm.eta).all(axis=0) & np.isfinite(tm.dws_phi).all(axis=0)
-            & np.isfinite(tm.dws_eta).all(axis=0))
-    if not bad.any():
-        return []
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], bad.astype(np.int8), [0]])))
-    return [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2])]
-
-
 # ---------------------------------------------------------------------------- the stage
 
 class Replayer(PipelineStage):
@@ -334,7 +322,7 @@ class Replayer(PipelineStage):
                 return ()
         try:
             tm, meta = self.source.segment(i)
-            gaps = nan_stretches(tm)
+            gaps = tm.nan_stretches()
             if not np.isfinite(tm.eta).any():
                 # no data at all in this segment: a gap, reported; downstream moves on
                 self.report_error("gap", f"telemetry segment {i} (t0={tm.t0} s) has no finite eta sample: "

@@ -45,7 +45,6 @@ on another host, or started later: late joiners catch up from the caches).
 
 from __future__ import annotations
 
-import ctypes
 import importlib.util
 import json
 import logging
@@ -75,6 +74,7 @@ from .keys import (
     to_ranges,
     topic_pattern,
 )
+from .processes import die_with_parent, stop_process
 from .progress import REPLAY_WINDOW, Progress, key_stage, parse_progress
 from .session import (
     Bus,
@@ -322,7 +322,7 @@ class Launcher:
         with open(path, "ab") as logf:
             start = logf.tell()
             self.router = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                           env=env, preexec_fn=_die_with_parent)
+                                           env=env, preexec_fn=die_with_parent)
         self._watcher = security.RefusalWatcher(path, offset=start)
         deadline = time.monotonic() + 60.0
         while time.monotonic() < deadline:
@@ -339,13 +339,7 @@ class Launcher:
     def stop_router(self) -> None:
         if self.router is None:
             return
-        if self.router.poll() is None:
-            self.router.send_signal(signal.SIGTERM)
-            try:
-                self.router.wait(15.0)
-            except subprocess.TimeoutExpired:
-                self.router.kill()
-                self.router.wait()
+        stop_process(self.router, 15.0)
         self.router = None
 
     def watch_refusals(self) -> None:
@@ -700,16 +694,6 @@ class Launcher:
             self.say(f"done: {total} segments, {len(self.errors)} error report(s){refused}, "
                      f"{len(self.refused_progress)} progress message(s) refused; files in {self.run_dir}: {', '.join(files)}")
         return status
-
-
-def _die_with_parent() -> None:
-    """In a child before exec: receive SIGTERM when the launcher dies (Linux), so that a
-    killed launcher leaves no router behind."""
-    try:
-
-        ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
 
 
 def run(opts: RunOptions, out=None) -> int:

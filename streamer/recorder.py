@@ -198,15 +198,36 @@ CONTROL_SCHEMA = {
         "time": {"type": "number", "description": "wall-clock time [s since epoch]"},
     },
 }
+#: JSON schema of a step or drift alert of the monitor (``alerts``).
+ALERT_SCHEMA = {
+    "$schema": "https://json-schema.org/draft/2020-12/schema",
+    "title": "ttl.Alert",
+    "type": "object",
+    "required": ["kind", "coefficient", "t", "value", "significance", "message"],
+    "properties": {
+        "run": {"type": "string"},
+        "kind": {"type": "string", "description": "step | drift"},
+        "coefficient": {"type": "string"},
+        "t": {"type": ["number", "null"], "description": "step time or end of the drift span [s]"},
+        "value": {"type": ["number", "null"], "description": "step [mm/rad] or drift rate [mm/rad/day]"},
+        "significance": {"type": ["number", "null"]},
+        "message": {"type": "string"},
+        "t_detected": {"type": ["number", "null"]},
+        "index": {"type": ["integer", "null"], "description": "fit that raised it"},
+        "units": {"type": "string"},
+        "details": {"type": "object"},
+    },
+}
 #: Schemas known by name (``Recorder.write_json(..., schema="ttl.Fit")``).
 SCHEMAS = {s["title"]: s for s in (HEADER_SCHEMA, ERROR_SCHEMA, WARNING_SCHEMA, EVENT_SCHEMA, FIT_SCHEMA,
-                                   DIAGNOSIS_SCHEMA, CONTROL_SCHEMA)}
+                                   DIAGNOSIS_SCHEMA, CONTROL_SCHEMA, ALERT_SCHEMA)}
 #: Schema of JSON channels with no schema given.
 OBJECT_SCHEMA = {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "ttl.Object",
                  "type": "object"}
 SCHEMAS["ttl.Object"] = OBJECT_SCHEMA
 #: Default schema by topic.
-TOPIC_SCHEMAS = {"errors": "ttl.Error", "warnings": "ttl.Warning", "events": "ttl.Event", "control": "ttl.Control"}
+TOPIC_SCHEMAS = {"errors": "ttl.Error", "warnings": "ttl.Warning", "events": "ttl.Event", "control": "ttl.Control",
+                 "alerts": "ttl.Alert"}
 
 
 class RecordingError(ValueError):

@@ -26,9 +26,14 @@ import numpy as np
 from ttlcore.cli.diagnose import split_effects
 from ttlcore.conventions import DAY, parse_duration
 from ttlcore.diagnose.effects import make_effects
+from ttlcore.diagnose.reprocess import (
+    DEFAULT_MEMORY_LIMIT,
+    dask_client,
+    jobs_for_files,
+    reprocess,
+)
 from ttlcore.errors import TTLError
 from ttlcore.estimate.analyze import check_band
-from ttlcore.diagnose.reprocess import DEFAULT_MEMORY_LIMIT, dask_client, jobs_for_files, reprocess
 from ttlcore.io.telemetry import Telemetry, write_telemetry
 
 from .refit import recorded_segments

@@ -47,8 +47,16 @@ import numpy as np
 from ttlcore.errors import TTLError
 
 from .codec import CodecError, Expect, Header, decode, encode
-from .keys import (KeyExprError, check_name, control_key, control_pattern, errors_key, parse_control_key,
-                   parse_segment_key, topic_pattern)
+from .keys import (
+    KeyExprError,
+    check_name,
+    control_key,
+    control_pattern,
+    errors_key,
+    parse_control_key,
+    parse_segment_key,
+    topic_pattern,
+)
 from .plan import Plan, RangeSet, Rejected, Validator
 from .recorder import Recorder, mission_ns
 from .session import DEFAULT_CACHE, Bus, SessionSettings
@@ -216,16 +224,22 @@ def configure_logging(level: str | int = "INFO", json_lines: bool = False, strea
     root.setLevel(level)
 
 
-def recording_path(recordings: Path, run: str, stage: str) -> Path:
-    """``<recordings>/<run>/<stage>.mcap``; an existing file is first renamed ``<stage>.<n>.mcap``."""
-    path = Path(recordings) / run / f"{stage}.mcap"
+def set_aside(path: Path) -> Path:
+    """``path``, free to write: an existing file is first renamed ``<stem>.<n><suffix>``
+    (the lowest ``n`` free), so that a restarted process keeps its predecessor's recording."""
+    path = Path(path)
     if path.exists():
         n = 1
-        while (old := path.with_name(f"{stage}.{n}.mcap")).exists():
+        while (old := path.with_name(f"{path.stem}.{n}{path.suffix}")).exists():
             n += 1
         path.rename(old)
         log.info("kept the previous recording as %s", old)
     return path
+
+
+def recording_path(recordings: Path, run: str, stage: str) -> Path:
+    """``<recordings>/<run>/<stage>.mcap``; an existing file is first renamed ``<stage>.<n>.mcap``."""
+    return set_aside(Path(recordings) / run / f"{stage}.mcap")
 
 
 class Stage:
