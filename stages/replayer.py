@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
 import sys
 import time
 from dataclasses import dataclass
@@ -50,48 +49,20 @@ from streamer.pipeline_stage import PipelineStage
 from streamer.plan import Plan
 from streamer.progress import REPLAY_WINDOW
 from streamer.stage import Output, stage_main
-from ttlcore.cli.main import add_simulation_options, simulation_config_from_args
 from ttlcore.conventions import LINKS, parse_duration
-from ttlcore.errors import ConfigError, TelemetryError, TTLError
+from ttlcore.errors import ConfigError, TelemetryError
 from ttlcore.estimate.fit import dws_asd_from_config
 from ttlcore.io.atomic import write_text
 from ttlcore.io.reader import file_kind, read_telemetry
 from ttlcore.io.telemetry import Telemetry, read_header
 from ttlcore.io.truth import truth_path
 from ttlcore.sim.simulator import Simulator
+from ttlcore.sim.spec import simulation_config
 
 #: Units of the telemetry arrays.
 UNITS = {"eta": "fractional frequency", "dws_phi": "rad/s", "dws_eta": "rad/s", "ltt": "s"}
 #: Default segment length [s].
 DEFAULT_SEGMENT = 3600.0
-
-
-# ---------------------------------------------------------------------------- simulation options
-
-def simulation_config(text: str):
-    """A :class:`ttlcore.sim.simulator.SimulationConfig` from ``ttl simulate`` options (no ``--out``),
-    parsed and translated by the same code as ``ttl simulate``.
-
-    Raises
-    ------
-    ConfigError
-        Naming the option at fault.
-    """
-
-    p = argparse.ArgumentParser(prog="--simulate", add_help=False, exit_on_error=False)
-    add_simulation_options(p)
-    try:
-        words = shlex.split(text)
-        args, unknown = p.parse_known_args(words)
-    except (argparse.ArgumentError, ValueError) as exc:
-        raise ConfigError(f"--simulate: {exc}") from None
-    if unknown:
-        raise ConfigError(f"--simulate: unknown option(s) {' '.join(unknown)} "
-                          "(the options of 'ttl simulate' except --out, --chunk, --truth-noises, --quiet)")
-    try:
-        return simulation_config_from_args(args)
-    except TTLError as exc:  # ConfigError included: the message names the option
-        raise ConfigError(f"--simulate {exc}") from None
 
 
 # ---------------------------------------------------------------------------- sources

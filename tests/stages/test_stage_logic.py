@@ -7,7 +7,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from stages.replayer import FileSource, Replayer, make_source, simulation_config
+from stages.replayer import FileSource, Replayer, make_source
 from stages.subtractor import Subtractor
 from streamer.keys import from_ranges, to_ranges
 from streamer.pipeline_stage import InOrder
@@ -16,6 +16,7 @@ from streamer.stage import StageConfig
 from ttlcore.errors import ConfigError, TelemetryError
 from ttlcore.io.telemetry import Telemetry, write_telemetry
 from ttlcore.io.truth import truth_path
+from ttlcore.sim.spec import simulation_config
 
 
 def sample(msg: dict):
