@@ -184,10 +184,7 @@ class SimulationSource:
 def make_source(options: dict):
     """The source described by the stage options (``telemetry`` or ``simulate``, ``segment``)."""
     segment = options.get("segment", DEFAULT_SEGMENT)
-    try:
-        segment = parse_duration(segment)
-    except ValueError as exc:
-        raise ConfigError(f"--segment: {exc}") from None
+    segment = parse_duration(segment, "--segment")
     files, simulate = options.get("telemetry"), options.get("simulate")
     if files and simulate:
         raise ConfigError("give either --telemetry or --simulate, not both")

@@ -76,6 +76,7 @@ from .keys import (
 )
 from .processes import die_with_parent, stop_process
 from .progress import REPLAY_WINDOW, Progress, key_stage, parse_progress
+from .recorder import stage_record
 from .session import (
     Bus,
     SessionSettings,
@@ -464,9 +465,9 @@ class Launcher:
 
     def refuse_progress(self, msg: dict, why: str) -> None:
         """Record a refused progress message (shown, kept for the report, put on errors)."""
-        err = {"run": self.opts.run_id, "stage": "launcher", "kind": "forged", "index": None,
-               "key": progress_key(self.opts.run_id, msg["stage"]), "field": "progress",
-               "message": f"progress message refused: {why}", "time": time.time(), "details": {"pid": msg.get("pid")}}
+        err = stage_record(self.opts.run_id, LAUNCHER, "forged", f"progress message refused: {why}",
+                           details={"pid": msg.get("pid")}, key=progress_key(self.opts.run_id, msg["stage"]),
+                           field="progress")
         self.refused_progress.append(err)
         if len(self.refused_progress) <= 20:
             self.say(err["message"])

@@ -58,7 +58,7 @@ from .keys import (
     topic_pattern,
 )
 from .plan import Plan, RangeSet, Rejected, Validator
-from .recorder import Recorder, mission_ns
+from .recorder import Recorder, mission_ns, stage_record
 from .session import DEFAULT_CACHE, Bus, SessionSettings
 
 log = logging.getLogger(__name__)
@@ -602,8 +602,8 @@ class Stage:
     def report_error(self, kind: str, message: str, *, index: int | None = None, key: str | None = None,
                      field: str | None = None, details: dict | None = None) -> dict:
         """Publish an error on ``ttl/<run>/errors/<index>``, record it, log it; returns it."""
-        error = {"run": self.run_id, "stage": self.stage_name, "kind": kind, "index": index, "key": key,
-                 "field": field, "message": message, "time": time.time(), "details": details or {}}
+        error = stage_record(self.run_id, self.stage_name, kind, message, index=index, details=details, key=key,
+                             field=field)
         self.log.warning("%s%s%s: %s", kind, f" {key}" if key else "", f" field {field!r}" if field else "",
                          message, extra={"index": index})
         if self.bus is not None:
@@ -619,16 +619,14 @@ class Stage:
         """Log and record a warning (topic ``warnings``): not an error, but for the operator's eyes."""
         self.log.warning("%s: %s", kind, message, extra={"index": index})
         if self.recorder is not None:
-            self.recorder.write_json("warnings", {"run": self.run_id, "stage": self.stage_name, "kind": kind,
-                                                  "index": index, "message": message, "time": time.time(),
-                                                  "details": details})
+            self.recorder.write_json("warnings", stage_record(self.run_id, self.stage_name, kind, message,
+                                                              index=index, details=details))
 
     def event(self, kind: str, *, index: int | None = None, message: str = "", **details) -> None:
         """Record a lifecycle or bookkeeping event in the recording."""
         if self.recorder is not None:
-            self.recorder.write_json("events", {"run": self.run_id, "stage": self.stage_name, "kind": kind,
-                                                "index": index, "message": message, "time": time.time(),
-                                                "details": details})
+            self.recorder.write_json("events", stage_record(self.run_id, self.stage_name, kind, message,
+                                                            index=index, details=details))
 
 
 def _preview(attachment) -> str:
@@ -661,24 +659,15 @@ def stage_arguments(parser: argparse.ArgumentParser | None = None) -> argparse.A
 def config_from_args(args: argparse.Namespace) -> StageConfig:
     """A :class:`StageConfig` from ``--config`` and the options overriding it."""
     d = json.loads(args.config.read_text()) if args.config else {}
-    if args.run:
-        d["run"] = args.run
-    if args.name:
-        d["stage"] = args.name
-    if args.recordings:
-        d["recordings"] = str(args.recordings)
+    for key, value in (("run", args.run), ("stage", args.name), ("recordings", args.recordings)):
+        if value:
+            d[key] = str(value)
     z = dict(d.get("zenoh") or {})
-    if args.connect:
-        z["connect"] = args.connect
-    if args.listen:
-        z["listen"] = args.listen
-    if args.zenoh_config:
-        z["config_file"] = str(args.zenoh_config)
-    if getattr(args, "credentials", None):
-        z["credentials"] = str(args.credentials)
-    if getattr(args, "mode", None):
-        z["mode"] = args.mode
-    elif args.connect and not args.listen and not z.get("mode") and not z.get("config_file"):
+    for key, value in (("connect", args.connect), ("listen", args.listen), ("config_file", args.zenoh_config),
+                       ("credentials", getattr(args, "credentials", None)), ("mode", getattr(args, "mode", None))):
+        if value:
+            z[key] = value if isinstance(value, list) else str(value)
+    if args.connect and not args.listen and not z.get("mode") and not z.get("config_file"):
         z["mode"] = "client"  # a router routes between its clients, not between peers
     d["zenoh"] = z
     return StageConfig.from_dict(d)

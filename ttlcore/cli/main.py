@@ -87,10 +87,7 @@ def _add_simulate(sub) -> None:
 
 def _cmd_simulate(args) -> int:
 
-    try:
-        chunk = parse_duration(args.chunk)
-    except ValueError as exc:
-        raise TTLError(f"--chunk: {exc}") from None
+    chunk = parse_duration(args.chunk, "--chunk")
     truth_noises = tuple(NOISE_COMPONENTS) if args.truth_noises == "all" else tuple(
         s.strip() for s in args.truth_noises.split(",") if s.strip()
     )
@@ -214,10 +211,7 @@ def _cmd_analyze(args) -> int:
     band = tuple(DEFAULT_BAND) if args.band is None else check_band(args.band)
     settings = FitSettings(band=band)
     if args.segment is not None:
-        try:
-            settings.segment_duration = parse_duration(args.segment)
-        except ValueError as exc:
-            raise TTLError(f"--segment: {exc}") from None
+        settings.segment_duration = parse_duration(args.segment, "--segment")
     start = time.monotonic()
 
     def progress(msg: str) -> None:

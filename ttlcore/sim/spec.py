@@ -66,10 +66,7 @@ def simulation_config_from_args(args, truth_noises=()):
     """A :class:`~ttlcore.sim.simulator.SimulationConfig` from the options of
     :func:`add_simulation_options`; errors name the option at fault."""
 
-    try:
-        duration = parse_duration(args.duration)
-    except ValueError as exc:
-        raise TTLError(f"--duration: {exc}") from None
+    duration = parse_duration(args.duration, "--duration")
     coeffs = make_coefficients(args.coeffs, seed=args.seed)
     if args.drift:
         coeffs = coeffs.with_drift({k: v * 1e-3 for k, v in _parse_assignments(args.drift, "--drift").items()})
@@ -77,10 +74,7 @@ def simulation_config_from_args(args, truth_noises=()):
         when, sep, rest = step.partition(":")
         if not sep:
             raise TTLError(f"--step: expected T:NAME=MM,..., got {step!r}")
-        try:
-            t_step = parse_duration(when) if when.strip() not in ("0", "0.0") else 0.0
-        except ValueError as exc:
-            raise TTLError(f"--step: {exc}") from None
+        t_step = parse_duration(when, "--step") if when.strip() not in ("0", "0.0") else 0.0
         coeffs = coeffs.with_step(t_step, {k: v * 1e-3 for k, v in _parse_assignments(rest, "--step").items()})
     make_orbit(args.orbit)  # validate early: clear error before any work
     gw = ()
