@@ -453,6 +453,17 @@ class _Assembler:
         self.schemas: dict[int, Schema] = {}
         self.pending: dict[str, RecordedMessage] = {}  # segment topic -> header waiting for payload
 
+    def record(self, record) -> None:
+        """Take one parsed record: a schema, channel, message or metadata (others are skipped)."""
+        if isinstance(record, Schema):
+            self.schema(record)
+        elif isinstance(record, Channel):
+            self.channel(record)
+        elif isinstance(record, Message):
+            self.message(record)
+        elif isinstance(record, Metadata):
+            self.rec.metadata[record.name] = dict(record.metadata)
+
     def schema(self, schema: Schema) -> None:
         self.schemas[schema.id] = schema
 
@@ -565,14 +576,7 @@ def _read_complete(path: Path) -> Recording:
     with open(path, "rb") as f:
         for record in StreamReader(f, validate_crcs=True).records:
             rec.records += 1
-            if isinstance(record, Schema):
-                asm.schema(record)
-            elif isinstance(record, Channel):
-                asm.channel(record)
-            elif isinstance(record, Message):
-                asm.message(record)
-            elif isinstance(record, Metadata):
-                rec.metadata[record.name] = dict(record.metadata)
+            asm.record(record)
     asm.finish()
     return rec
 
@@ -597,7 +601,7 @@ def _salvage(path: Path, size: int) -> Recording:
                 break
             body = f.read(length)
             try:
-                done = _salvage_record(asm, rec, opcode, body)
+                done = _salvage_record(asm, opcode, body)
             except Exception as exc:  # corrupt record: keep what came before
                 rec.problem = f"corrupt record (opcode 0x{opcode:02x}) at byte {pos}: {exc}"
                 break
@@ -613,25 +617,19 @@ def _salvage(path: Path, size: int) -> Recording:
     return rec
 
 
-def _salvage_record(asm: _Assembler, rec: Recording, opcode: int, body: bytes) -> bool:
+def _salvage_record(asm: _Assembler, opcode: int, body: bytes) -> bool:
     stream = ReadDataStream(io.BytesIO(body))
     if opcode == Opcode.SCHEMA:
-        asm.schema(Schema.read(stream))
+        asm.record(Schema.read(stream))
     elif opcode == Opcode.CHANNEL:
-        asm.channel(Channel.read(stream))
+        asm.record(Channel.read(stream))
     elif opcode == Opcode.MESSAGE:
-        asm.message(Message.read(stream, len(body)))
+        asm.record(Message.read(stream, len(body)))
     elif opcode == Opcode.METADATA:
-        meta = Metadata.read(stream)
-        rec.metadata[meta.name] = dict(meta.metadata)
+        asm.record(Metadata.read(stream))
     elif opcode == Opcode.CHUNK:
         for record in breakup_chunk(Chunk.read(stream), validate_crc=True):
-            if isinstance(record, Schema):
-                asm.schema(record)
-            elif isinstance(record, Channel):
-                asm.channel(record)
-            elif isinstance(record, Message):
-                asm.message(record)
+            asm.record(record)
     elif opcode == Opcode.FOOTER:
         Footer.read(stream)
         return True
