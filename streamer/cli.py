@@ -41,7 +41,7 @@ from ttlcore.cli.main import main as science_main
 from ttlcore.errors import TTLError
 
 from . import refit, reprocess
-from .keys import check_name, control_key
+from .keys import ERRORS, check_name, control_key, topic_pattern
 from .launcher import RunOptions, run, stage_module_exists
 from .security import ROLES, ROUTER_LOG_FILTER, ensure_credentials, filter_log
 from .session import (
@@ -274,7 +274,7 @@ def _cmd_control(args) -> int:
             if err.get("key") == key:
                 rejections.put(err)
 
-        bus.subscriber(f"ttl/{args.run}/errors/*", on_error)
+        bus.subscriber(topic_pattern(args.run, ERRORS), on_error)
         if args.stage not in bus.alive_stages(args.run, timeout=1.0):
             raise TTLError(f"no stage {args.stage!r} alive in run {args.run!r}")
         bus.session.put(key, args.payload.encode())
