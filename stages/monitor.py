@@ -128,6 +128,7 @@ class Monitor(PipelineStage):
         self._last_fit: dict | None = None
         self._ratio: tuple | None = None
         self._drawn: dict[str, set[int]] = {t: set() for t in self.inputs}
+        self._refused: dict[str, set[int]] = {t: set() for t in self.inputs}  # withdrawn: not waited for
         self._tdi_at: dict[int, float] = {}
         self._segment_time: dict[int, tuple[float, float]] = {}
         self.settle_timeout = float(o.get("settle_timeout", 60.0))
@@ -205,6 +206,14 @@ class Monitor(PipelineStage):
         self._settle()
         return out
 
+    def withdraw(self, topic, index, held):
+        """Conflicting copies: not drawn if still held, not waited for; a TDI segment (what the
+        monitor's progress counts) not drawn is given up (failed)."""
+        self._refused[topic].add(index)
+        if topic == "tdi" and index not in self._drawn["tdi"] and index not in self.done | self.failed:
+            self.mark_failed(index)
+        return index not in self._drawn[topic]
+
     # ------------------------------------------------------------------ progress
     def _waiting_for(self, i: int, board: dict) -> str | None:
         """What segment ``i`` (its TDI drawn) still waits for before it is done, or None.
@@ -219,7 +228,7 @@ class Monitor(PipelineStage):
             peer = board.get(stage)
             if peer is None:
                 continue
-            if i in made(peer) and i not in self._drawn[topic]:
+            if i in made(peer) and i not in self._drawn[topic] and i not in self._refused[topic]:
                 return topic
             if not peer.complete and i not in peer.handled:
                 return topic

@@ -53,6 +53,8 @@ class Subtractor(PipelineStage):
         self.fit_timeout = float(self.options.get("fit_timeout", FIT_TIMEOUT))
         self.tdi: dict[int, tuple] = {}
         self.fits: dict[int, dict] = {}
+        self.applied: set[int] = set()  # fits applied to a segment
+        self.refused_fits: set[int] = set()  # fits withdrawn (conflicting copies): never waited for
         self._waiting_since: dict[int, float] = {}
         # a late joiner gets its history from several publisher caches in any order: collect
         # for `settle` seconds before the first segment (unless it is segment 0)
@@ -68,6 +70,19 @@ class Subtractor(PipelineStage):
 
     def pending(self) -> int:
         return len(self.tdi)
+
+    def withdraw(self, topic, index, held):
+        """Conflicting copies: a fit is forgotten (the segments it would cover get an earlier
+        one), a TDI segment not yet subtracted is given up (failed)."""
+        if topic == "fit":
+            self.fits.pop(index, None)
+            self.refused_fits.add(index)
+            return index not in self.applied
+        if index in self.done or index in self.failed:
+            return False
+        self.tdi.pop(index, None)
+        self.mark_failed(index)
+        return True
 
     def handle(self, header, arrays):
         self.note_meta(header.meta)
@@ -105,7 +120,7 @@ class Subtractor(PipelineStage):
     def choose(self, index: int):
         """``("wait", None)``, or ``("apply", j)`` with ``j`` the fit index (None: no fit yet)."""
         fitter = self.board.get("fitter")
-        announced = set(fitter.extra.get("fits", ())) if fitter else set()
+        announced = (set(fitter.extra.get("fits", ())) if fitter else set()) - self.refused_fits
         passed = (fitter is not None and index in fitter.handled) or any(j >= index for j in self.fits)
         if not passed:
             return "wait", None
@@ -154,6 +169,7 @@ class Subtractor(PipelineStage):
             fit = {"t_start": None, "t_stop": None}
         else:
             fit = self.fits[fit_index]
+            self.applied.add(fit_index)
             coefficients = fit["coefficients"]
             residual = subtract(td, coefficients)
             model = td.model(np.array([coefficients[n] for n in td.names]))

@@ -5,7 +5,9 @@
     oldest ``.1``): which stages ran; the segments each produced and received per topic,
     with missing and duplicate indices; the coefficients and their trends with
     uncertainties (the fitter's fit JSON, ``fit/summary``, schema ``ttl.Fit``); the
-    monitor's alerts; the errors of every stage; and interruptions: files without footer
+    monitor's alerts; the errors of every stage; the router's refusals (``security.jsonl``:
+    unauthenticated peers and forbidden publications, counted per kind with the first few);
+    and interruptions: files without footer
     (the process was killed; the reader salvages them), segments whose payload never made
     it to disk, a stage's restarts, a recording that ends without a ``stop`` event.
     Works on a run whose stages were killed.  ``--json FILE``: the same as one JSON object
@@ -51,6 +53,8 @@ _FILE = re.compile(r"^(?P<stage>.+?)(?:\.(?P<n>\d+))?\.mcap$")
 LOOKBACK_DAYS = 3.0
 #: Errors listed in full by the text report (the rest are counted).
 MAX_LISTED = 20
+#: Refusals of each kind kept in the report (``security.jsonl``; the rest are counted).
+MAX_REFUSALS = 5
 
 
 class InspectError(ValueError):
@@ -251,7 +255,7 @@ def inspect_run(run_dir, truth=None) -> dict:
     ``stages_missing`` (pipeline stages without a recording), ``segments_total``,
     ``fits`` (count, index range, the table of fits in m/rad and ``trends`` per
     coefficient in mm/rad and mm/rad/day), ``alerts`` (the monitor's), ``warnings`` (all stages: a fit that did not converge...), ``errors`` (all
-    stages'), ``interruptions``.
+    stages'), ``interruptions``, ``gaps``, ``security`` (:func:`security_report`).
 
     Raises
     ------
@@ -351,7 +355,50 @@ def inspect_run(run_dir, truth=None) -> dict:
     return {"run": runs[0] if len(runs) == 1 else (runs or [run_dir.name]), "directory": str(run_dir),
             "stages": stages, "stages_missing": [s for s in STAGES if s not in stages],
             "segments_total": total, "fits": fit_report, "alerts": alerts, "warnings": warnings, "errors": errors,
-            "interruptions": interruptions, "gaps": gaps}
+            "interruptions": interruptions, "gaps": gaps, "security": security_report(run_dir)}
+
+
+def security_report(run_dir: Path) -> dict:
+    """The router's refusals of a run (``security.jsonl``, written by ``ttl run`` with
+    credentials when the run ends; :func:`streamer.security.refusals`).
+
+    Returns ``{"file", "present", "count", "kinds": {kind: {"count", "first": [the first
+    MAX_REFUSALS records]}}, "unreadable": [line numbers]}``; ``present`` is False when the
+    file is absent (a run with ``--insecure``, or whose launcher did not end).  A line that is
+    not a JSON object with a ``kind`` is counted in ``unreadable``, not fatal (the file of a
+    damaged run is still reported).
+    """
+    path = Path(run_dir) / "security.jsonl"
+    out = {"file": str(path), "present": path.exists(), "count": 0, "kinds": {}, "unreadable": []}
+    if not out["present"]:
+        return out
+    try:
+        text = path.read_text(errors="replace")
+    except OSError as exc:
+        raise InspectError(f"{path}: cannot read: {exc}") from None
+    for n, line in enumerate(text.splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except ValueError:
+            record = None
+        if not isinstance(record, dict) or not isinstance(record.get("kind"), str):
+            out["unreadable"].append(n)
+            continue
+        kind = out["kinds"].setdefault(record["kind"], {"count": 0, "first": []})
+        kind["count"] += 1
+        out["count"] += 1
+        if len(kind["first"]) < MAX_REFUSALS:
+            kind["first"].append(record)
+    return out
+
+
+def _refusal_text(r: dict) -> str:
+    when = f" at {r['time']}" if r.get("time") else ""
+    if r.get("kind") == "forbidden":
+        return f"{r.get('subject')} may not {r.get('action')} on {r.get('key')}{when}"
+    return f"{r.get('message', json.dumps(r))}{when}"
 
 
 def _plan(run_dir: Path) -> dict | None:
@@ -483,6 +530,23 @@ def format_report(r: dict) -> str:
     for g in r.get("gaps", [])[:MAX_LISTED]:
         span = f" ({g['seconds'] / 60:.1f} min of NaN)" if g.get("seconds") else ""
         lines.append(f"  {g['stage']} {g['kind']} segment {g['index']}{span}: {g['message']}")
+
+    sec = r.get("security")
+    if sec is not None:
+        lines.append("")
+        if not sec["present"]:
+            lines.append("Security: no security.jsonl (a run with --insecure, or its launcher did not end)")
+        else:
+            lines.append(f"Security (security.jsonl): {sec['count']} refusal(s) by the router"
+                         + (", " + ", ".join(f"{k} x{v['count']}" for k, v in sorted(sec["kinds"].items()))
+                            if sec["kinds"] else ""))
+            for kind, v in sorted(sec["kinds"].items()):
+                for rec in v["first"]:
+                    lines.append(f"  {kind}: {_refusal_text(rec)}")
+                if v["count"] > len(v["first"]):
+                    lines.append(f"  {kind}: ... {v['count'] - len(v['first'])} more")
+            if sec["unreadable"]:
+                lines.append(f"  unreadable line(s) {_fmt_ranges(to_ranges(sec['unreadable']))}")
 
     lines.append("")
     lines.append(f"Interruptions: {len(r['interruptions'])}")

@@ -32,7 +32,8 @@ class InOrder:
     whose history comes from several publisher caches in any order) the lowest index
     received within ``settle`` seconds of the first arrival.  A missing index is skipped when
     ``skip(index)`` says it will not come (the producer gave it up), or after
-    ``gap_timeout`` seconds while later indices wait.
+    ``gap_timeout`` seconds while later indices wait, and at once when it was withdrawn
+    (:meth:`withdraw`).
     """
 
     def __init__(self, settle: float = 1.0, gap_timeout: float = 60.0):
@@ -43,6 +44,16 @@ class InOrder:
         self._first_arrival: float | None = None
         self._gap_since: float | None = None
         self.skipped_reason = ""
+        self.withdrawn: dict[int, str] = {}  # index -> why it is skipped
+
+    def withdraw(self, index: int, reason: str) -> bool:
+        """Skip ``index`` (dropping its item if buffered) when its turn comes; False when it
+        was handed out already."""
+        if self.next is not None and index < self.next:
+            return False
+        self.pending.pop(index, None)
+        self.withdrawn[index] = reason
+        return True
 
     def add(self, index: int, item) -> bool:
         """Buffer ``item``; False when ``index`` is behind the current position (stale)."""
@@ -62,8 +73,14 @@ class InOrder:
                 return
             if 0 not in self.pending and now - self._first_arrival < self.settle:
                 return
-            self.next = min(self.pending)
+            self.next = min(self.pending.keys() | self.withdrawn.keys())
         while True:
+            if self.next in self.withdrawn:
+                self.skipped_reason = self.withdrawn.pop(self.next)
+                index = self.next
+                self.next += 1
+                yield index, None
+                continue
             if self.next in self.pending:
                 self._gap_since = None
                 index = self.next
@@ -265,6 +282,11 @@ class OrderedStage(PipelineStage):
     def progress_fields(self) -> dict:
         """Extra fields of the progress messages (sets are sent as index ranges)."""
         return {}
+
+    def withdraw(self, topic: str, index: int, held: bool) -> bool:
+        """Conflicting copies: a segment not processed yet is skipped in its turn (a
+        failed segment, reported)."""
+        return self.queue.withdraw(index, "conflicting copies of it were received (both kept out)")
 
     def published(self, index: int) -> None:
         """Segment ``index`` produced an output, now published."""

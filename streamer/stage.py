@@ -12,6 +12,9 @@ A stage subclass sets :attr:`Stage.name` and :attr:`Stage.inputs` and implements
   ``ttl/<run>/errors/<index>`` and in the recording, and the stage goes on;
 * processes each segment index once per topic: a duplicate is ignored (an event is
   recorded), a gap in the indices is reported on the errors topic;
+* holds every accepted segment ``hold`` seconds before using it: a different copy of it
+  arriving meanwhile keeps both out (:class:`streamer.plan.Holdback`; a later one withdraws
+  the first from the stage if it can, :meth:`Stage.withdraw`);
 * calls :meth:`Stage.handle` inside ``try``: an exception is reported as an error of that
   segment, not a crash;
 * publishes the returned :class:`Output` objects with the codec (BLOCK, cached for late
@@ -57,7 +60,7 @@ from .keys import (
     parse_segment_key,
     topic_pattern,
 )
-from .plan import Plan, RangeSet, Rejected, Validator
+from .plan import Holdback, Plan, RangeSet, Rejected, Validator
 from .recorder import Recorder, mission_ns, stage_record
 from .session import DEFAULT_CACHE, Bus, SessionSettings
 
@@ -98,6 +101,10 @@ class StageConfig:
     gap_grace : float
         A segment index skipped on arrival is reported as a gap only if it has not come
         within this many seconds [s] (segments of different keys may arrive out of order).
+    hold : float
+        Seconds an accepted input segment waits before the stage uses it [s]: a different
+        copy of the same segment arriving meanwhile keeps both out (``docs/operations.md``).
+        0: used at once (a conflicting copy then refuses only the later one).
     options : dict
         Stage-specific options.
     plan : dict, optional
@@ -125,6 +132,7 @@ class StageConfig:
     record_outputs: bool = True
     poll_interval: float = 0.2
     gap_grace: float = 10.0
+    hold: float = 1.0
     options: dict = field(default_factory=dict)
     plan: dict | None = None
     launcher_pid: int | None = None
@@ -135,7 +143,7 @@ class StageConfig:
         return {"run": self.run, "stage": self.stage, "zenoh": self.zenoh.to_dict(),
                 "recordings": str(self.recordings), "cache": self.cache, "history": self.history,
                 "record_inputs": self.record_inputs, "record_outputs": self.record_outputs,
-                "poll_interval": self.poll_interval, "gap_grace": self.gap_grace, "options": self.options,
+                "poll_interval": self.poll_interval, "gap_grace": self.gap_grace, "hold": self.hold, "options": self.options,
                 "plan": self.plan, "launcher_pid": self.launcher_pid, "orphan_grace": self.orphan_grace,
                 "progress_from": self.progress_from}
 
@@ -281,6 +289,7 @@ class Stage:
         # suspected gaps, in ranges: topic -> [[first, last, since, revealed by], ...]
         self._suspected: dict[str, list[list]] = {}
         self.validator = Validator(Plan.from_dict(config.plan) if config.plan else None)
+        self.held = Holdback(config.hold)
         self.rejections = 0
         self._launcher_seen = False
         self._launcher_gone_at: float | None = None
@@ -308,6 +317,17 @@ class Stage:
 
     def teardown(self) -> None:
         """Called on shutdown, before the recording and the session are closed."""
+
+    def withdraw(self, topic: str, index: int, held: bool) -> bool:
+        """Copies of segment ``index`` of ``topic`` conflict: keep the first one out too.
+
+        ``held``: the first copy was still held (:attr:`StageConfig.hold`) and is dropped;
+        otherwise :meth:`handle` has had it.  Treat the index as missing from now on and
+        return True if the first copy has changed no output, False if it has (too late).
+        Default: True when it was held.  Override in stages that keep segments before using
+        them (a reorder buffer) and in stages that must account for every index.
+        """
+        return held
 
     def tick(self) -> Sequence[Output]:
         """Called when no input is waiting (every ``poll_interval`` at most); source stages
@@ -389,6 +409,7 @@ class Stage:
         self._orphan_checked = 0.0
         while not self._stop.is_set():
             self._check_orphaned()
+            self._release_held()
             while not self._controls.empty():
                 self._control(*self._controls.get_nowait())
             try:
@@ -498,15 +519,34 @@ class Stage:
             verdict = self.validator.check(seg.topic, header, arrays)
         except Rejected as exc:
             self.rejections += 1
-            self.report_error(exc.kind, exc.what, index=seg.index, key=key, field=exc.field,
-                              details={"producer": header.producer, "t0": header.t0, "fs": header.fs,
-                                       "checksum": header.checksum})
+            details = {"producer": header.producer, "t0": header.t0, "fs": header.fs, "checksum": header.checksum}
+            what = exc.what
+            if exc.kind == "conflict" and exc.field == "payload":  # the first conflicting copy: the other goes too
+                held = self.held.withdraw(seg.topic, seg.index)
+                kept_out = self.withdraw(seg.topic, seg.index, held)
+                details["first_copy"] = "withdrawn" if kept_out else "used"
+                what += ("; the first copy is withdrawn, the segment is missing" if kept_out else
+                         "; the first copy had been used already")
+            self.report_error(exc.kind, what, index=seg.index, key=key, field=exc.field, details=details)
             return
         done = self._done.setdefault(seg.topic, RangeSet())
         if verdict == "duplicate" or seg.index in done:
             self.log.info("%s: identical copy of a processed segment, ignored", key)
             self.event("duplicate", index=seg.index, message=f"{key} already processed (identical copy)")
             return
+        self.validator.accepted(seg.topic, header)  # from now on a different copy is a conflict
+        if not self.held.put(seg.topic, seg.index, (key, header, arrays, payload), time.monotonic()):
+            self._use(key, header, arrays, payload)
+
+    def _release_held(self) -> None:
+        """Use the held segments whose wait is over (no conflicting copy came)."""
+        for key, header, arrays, payload in self.held.due(time.monotonic()):
+            self._use(key, header, arrays, payload)
+
+    def _use(self, key: str, header: Header, arrays: dict, payload: bytes) -> None:
+        """Record an accepted input segment and hand it to :meth:`handle`."""
+        seg = parse_segment_key(key)
+        done = self._done.setdefault(seg.topic, RangeSet())
         self._check_gap(seg.topic, seg.index)
         if self.config.record_inputs:
             self.recorder.write_segment(seg.topic, header, payload)
@@ -522,7 +562,6 @@ class Stage:
             self.report_error("failed", f"{type(exc).__name__}: {exc}", index=seg.index, key=key,
                               details={"traceback": traceback.format_exc(limit=8)})
             return
-        self.validator.accepted(seg.topic, header)
         done.add(seg.index)
         self.log.info("%s: processed, %d output(s)", key, len(outputs))
 

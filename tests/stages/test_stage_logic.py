@@ -52,6 +52,19 @@ def test_in_order_settles_reorders_and_skips():
     q2 = InOrder(settle=10)
     q2.add(0, "a")
     assert list(q2.ready()) == [(0, "a")]             # index 0 needs no settling
+    # conflicting copies: a buffered or future index is withdrawn and skipped in its turn
+    q2.add(2, "c")
+    assert q2.withdraw(2, "conflict") and q2.withdraw(3, "conflict") and not q2.withdraw(0, "conflict")
+    q2.add(1, "b")
+    q2.add(4, "e")
+    out = []
+    for i, item in q2.ready():
+        out.append((i, item, q2.skipped_reason if item is None else ""))
+    assert out == [(1, "b", ""), (2, None, "conflict"), (3, None, "conflict"), (4, "e", "")]
+    q3 = InOrder(settle=0)
+    q3.withdraw(0, "conflict")
+    q3.add(1, "b")
+    assert list(q3.ready()) == [(0, None), (1, "b")]  # a withdrawn first index is still accounted for
 
 
 def test_subtractor_applies_the_latest_fit_covering_each_segment(tmp_path):
@@ -170,3 +183,42 @@ def test_run_options_merge_config_file_and_command_line(tmp_path):
         run_options(build_parser(register).parse_args(["run", "--config", str(tmp_path / "bad.json")]))
     with pytest.raises(Exception, match="--run-id"):
         run_options(build_parser(register).parse_args(["run", "--simulate", "--duration 1h"]))
+
+
+def test_restarted_fitter_recovers_the_model_in_force(tmp_path):
+    """A model changed by a control message survives a restart: taken from the earlier
+    process's recording, its model_change still due when no fit followed it."""
+    from stages.fitter import Fitter
+    from streamer.recorder import Recorder
+
+    run_dir = tmp_path / "u"
+    first = Fitter(StageConfig(run="u", recordings=tmp_path))
+    first.queue.next = 5  # segments 0..4 handled
+    with Recorder(run_dir / "fitter.1.mcap") as rec:
+        first.recorder = rec
+        for i in range(5):
+            rec.write_json("fit/summary", {"index": i})
+        first.control("model", b'{"effects": ["linear-ttl", "drift"]}')
+    first.recorder = None
+    assert len(first.effects) == 2 and first.effects[1].startswith("drift")
+
+    second = Fitter(StageConfig(run="u", recordings=tmp_path, options={"effects": ["linear-ttl"]}))
+    second.restore_model()
+    assert second.effects == first.effects != ["linear-ttl"]
+    assert second._model_change == {"before": ["linear-ttl"], "after": first.effects, "from_index": 5}
+
+    # killed again after fit 5 was out: the model holds, its change was reported already
+    with Recorder(run_dir / "fitter.2.mcap") as rec:
+        rec.write_json("fit/summary", {"index": 5})
+    third = Fitter(StageConfig(run="u", recordings=tmp_path))
+    third.restore_model()
+    assert third.effects == first.effects and third._model_change is None
+
+    # no model event in the earlier recordings: the configured model stays
+    (run_dir / "fitter.1.mcap").unlink()
+    (run_dir / "fitter.2.mcap").unlink()
+    with Recorder(run_dir / "fitter.1.mcap") as rec:
+        rec.write_json("fit/summary", {"index": 0})
+    fourth = Fitter(StageConfig(run="u", recordings=tmp_path, options={"effects": ["linear-ttl", "step"]}))
+    fourth.restore_model()
+    assert fourth.effects == Fitter(StageConfig(run="u", options={"effects": ["linear-ttl", "step"]})).effects
