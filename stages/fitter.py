@@ -52,17 +52,17 @@ import numpy as np
 from streamer.codec import Expect
 from streamer.keys import to_ranges
 from streamer.messages import tdi_of
-from streamer.recorder import read_recording
-from streamer.stage import Output
+from streamer.pipeline_stage import OrderedStage
+from streamer.recorder import read_recording, to_jsonable
+from streamer.stage import Output, stage_main
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY, parse_duration
 from ttlcore.diagnose.diagnoser import DiagnoseSettings, refit
 from ttlcore.diagnose.effects import make_effects
 from ttlcore.errors import ConfigError
 from ttlcore.estimate.fit import FitSettings
 from ttlcore.estimate.rolling import RollingFit
+from ttlcore.tdi.combinations import XYZ
 from ttlcore.tdi.data import TDIData
-
-from . import OUTPUT_TOPIC, XYZ, OrderedStage, jsonable, stage_main
 
 UNITS = {"coefficients": "m/rad", "sigma": "m/rad", "covariance": "m^2/rad^2"}
 P = len(COEFFICIENT_NAMES)
@@ -84,7 +84,6 @@ class Fitter(OrderedStage):
     name = "fitter"
     inputs = ("tdi",)
     follow = ("tdi_builder",)
-    upstream = "tdi_builder"
     reorders = ("tdi",)
 
     def __init__(self, config):
@@ -380,9 +379,9 @@ class Fitter(OrderedStage):
             self.log.info("segment %d: model %s, chi2/dof against the instrument noise model %.3f%s", header.index,
                           ",".join(self.effects), meta["adequacy"]["chi2_dof"],
                           " (fails)" if meta["adequacy"]["fails"] else "")
-        return Output(OUTPUT_TOPIC[self.name], arrays,
-                      fields={"units": UNITS, "meta": jsonable(meta)},
-                      summary=jsonable(summary), summary_schema="ttl.Fit")
+        return Output(self.output_topic, arrays,
+                      fields={"units": UNITS, "meta": to_jsonable(meta)},
+                      summary=to_jsonable(summary), summary_schema="ttl.Fit")
 
 
 def _file_number(path, stage: str) -> int:

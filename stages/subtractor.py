@@ -26,12 +26,13 @@ import numpy as np
 
 from streamer.codec import Expect
 from streamer.messages import tdi_of
-from streamer.stage import Output
-
+from streamer.pipeline_stage import PipelineStage
+from streamer.recorder import to_jsonable
+from streamer.stage import Output, stage_main
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.estimate.subtraction import subtract
+from ttlcore.tdi.combinations import XYZ
 
-from . import OUTPUT_TOPIC, XYZ, PipelineStage, jsonable, stage_main
 from .fitter import P, tdi_expect
 
 UNITS = {"residual": "fractional frequency", "ttl_model": "fractional frequency"}
@@ -109,7 +110,7 @@ class Subtractor(PipelineStage):
     def give_up_gaps(self) -> None:
         """Segments the tdi_builder gave up will not come: handled here as given up too
         (as gaps when they were gaps), so the run can end."""
-        peer = self.board.get("tdi_builder")
+        peer = self.board.get(self.upstream)
         if peer is None:
             return
         for i in sorted(peer.failed - self.done - self.failed - set(self.tdi)):
@@ -177,9 +178,9 @@ class Subtractor(PipelineStage):
         meta = {"fit_index": fit_index, "coefficients_t_start": fit["t_start"], "coefficients_t_stop": fit["t_stop"],
                 "segments_total": self.segments_total}
         self.log.info("segment %d: fit %s applied", header.index, fit_index)
-        return Output(OUTPUT_TOPIC[self.name], {"residual": residual, "ttl_model": model},
-                      fields={"channels": list(XYZ), "channel_axis": 0, "units": UNITS, "meta": jsonable(meta)},
-                      summary=jsonable({"run": self.run_id, "index": header.index, "fit_index": fit_index,
+        return Output(self.output_topic, {"residual": residual, "ttl_model": model},
+                      fields={"channels": list(XYZ), "channel_axis": 0, "units": UNITS, "meta": to_jsonable(meta)},
+                      summary=to_jsonable({"run": self.run_id, "index": header.index, "fit_index": fit_index,
                                         "channels": list(XYZ), "rms_data": rms["data"],
                                         "rms_residual": rms["residual"]}),
                       allow_nonfinite=True)

@@ -28,10 +28,8 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import re
 import shlex
-import shutil
 import signal
 import subprocess
 from collections import Counter, defaultdict
@@ -41,15 +39,15 @@ import numpy as np
 
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.trends import TrendSettings, trend_estimates
+from ttlcore.estimate.monitoring import FileTruth
 from ttlcore.io.atomic import write_json
-from ttlcore.io.truth import read_truth
 
 from .keys import to_ranges
 from .recorder import Recording, RecordingError, read_recording, to_jsonable
+from .topology import STAGES
+from .viewer import rerun_binary
 from .webview import WebView
 
-#: The pipeline's stages, in order (names of their recordings).
-KNOWN_STAGES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
 _FILE = re.compile(r"^(?P<stage>.+?)(?:\.(?P<n>\d+))?\.mcap$")
 #: Span of the drift rate in the report [days] (ttlcore.diagnose.trends.TrendSettings.drift_lookback).
 LOOKBACK_DAYS = 3.0
@@ -92,7 +90,7 @@ def recording_files(run_dir) -> dict[str, list[Path]]:
             by_stage[m.group("stage")].append((n, path))
     if not by_stage:
         raise InspectError(f"{run_dir}: no MCAP recordings (*.mcap) in this directory")
-    order = {s: i for i, s in enumerate(KNOWN_STAGES)}
+    order = {s: i for i, s in enumerate(STAGES)}
     return {stage: [p for _, p in sorted(files, key=lambda x: x[0])]
             for stage, files in sorted(by_stage.items(), key=lambda kv: (order.get(kv[0], 99), kv[0]))}
 
@@ -239,14 +237,13 @@ def _trends(fits: list[dict]) -> dict:
 
 
 def truth_over_window(truth_path, t_start: float, t_stop: float, names) -> dict:
-    """True coefficients [mm/rad] averaged over ``[t_start, t_stop)`` from a truth file."""
-
-    head = read_truth(truth_path, 0, 1)
-    i0 = max(0, int(np.floor((t_start - head.t0) * head.fs)))
-    i1 = max(i0 + 1, int(np.ceil((t_stop - head.t0) * head.fs)))
-    tr = read_truth(truth_path, i0, i1)
-
-    mean = dict(zip(COEFFICIENT_NAMES, tr.coefficients.mean(axis=1) * 1e3))
+    """True coefficients [mm/rad] averaged over ``[t_start, t_stop)`` from a truth file
+    (:class:`ttlcore.estimate.monitoring.FileTruth`, as the monitor draws them); empty when
+    the window is outside the file."""
+    mean = FileTruth(truth_path).mean(t_start, t_stop)
+    if mean is None:
+        return {}
+    mean = dict(zip(COEFFICIENT_NAMES, mean * 1e3))
     return {n: float(mean[n]) for n in names if n in mean}
 
 
@@ -356,7 +353,7 @@ def inspect_run(run_dir, truth=None) -> dict:
                 t["error_over_sigma"] = (t["latest"] - true[name]) / t["sigma"] if t["sigma"] > 0 else None
         fit_report["truth_file"] = str(truth)
     return {"run": runs[0] if len(runs) == 1 else (runs or [run_dir.name]), "directory": str(run_dir),
-            "stages": stages, "stages_missing": [s for s in KNOWN_STAGES if s not in stages],
+            "stages": stages, "stages_missing": [s for s in STAGES if s not in stages],
             "segments_total": total, "fits": fit_report, "alerts": alerts, "warnings": warnings, "errors": errors,
             "interruptions": interruptions, "gaps": gaps, "security": security_report(run_dir)}
 
@@ -559,36 +556,6 @@ def format_report(r: dict) -> str:
 
 
 # ---------------------------------------------------------------------------- view
-
-def rerun_binary(explicit: str | None = None) -> str:
-    """The ``rerun`` executable itself (not the pip wrapper script, which would leave it
-    orphaned when stopped): ``explicit``, ``$RERUN_CLI_PATH``, the one bundled with
-    rerun-sdk (``rerun_cli``), else ``rerun`` on PATH.
-
-    Raises
-    ------
-    FileNotFoundError
-        If there is none.
-    """
-
-    if explicit:
-        return str(explicit)
-    if os.environ.get("RERUN_CLI_PATH"):
-        return os.environ["RERUN_CLI_PATH"]
-    try:
-        import rerun_cli
-
-        base = Path(rerun_cli.__file__).parent
-        for candidate in (base / "Rerun.app" / "Contents" / "MacOS" / "Rerun", base / "rerun", base / "rerun.exe"):
-            if candidate.exists():
-                return str(candidate)
-    except ImportError:
-        pass
-    found = shutil.which("rerun")
-    if not found:
-        raise FileNotFoundError("rerun: the Rerun viewer binary is not installed (pip install rerun-sdk)")
-    return found
-
 
 def view_command(target, binary: str | None = None) -> list[str]:
     """The ``rerun`` command that opens a run's ``monitor.rrd`` bound to 127.0.0.1.

@@ -40,9 +40,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-#: The stage that owns (publishes) each segment topic.
-PRODUCERS = {"telemetry": "replayer", "tdi": "tdi_builder", "fit": "fitter", "residual": "subtractor",
-             "monitor": "monitor"}
+from .topology import PRODUCERS
+
 #: Arrays whose last axis is time (one sample per telemetry sample), per topic.
 TIME_ARRAYS = {"telemetry": ("eta", "dws_phi", "dws_eta", "ltt"), "tdi": ("data", "regressors"),
                "residual": ("residual", "ttl_model")}

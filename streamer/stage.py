@@ -40,26 +40,34 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 
+from ttlcore.errors import TTLError
+
 from .codec import CodecError, Expect, Header, decode, encode
-from .keys import (KeyExprError, control_key, control_pattern, errors_key, parse_control_key,
-                   parse_segment_key, topic_pattern)
+from .keys import (
+    KeyExprError,
+    check_name,
+    control_key,
+    control_pattern,
+    errors_key,
+    parse_control_key,
+    parse_segment_key,
+    topic_pattern,
+)
 from .plan import Holdback, Plan, RangeSet, Rejected, Validator
-from .recorder import Recorder, mission_ns
+from .recorder import Recorder, mission_ns, stage_record
 from .session import DEFAULT_CACHE, Bus, SessionSettings
 
 log = logging.getLogger(__name__)
 
 #: Name of the launcher's liveliness token (``ttl/<run>/alive/launcher``).
 LAUNCHER = "launcher"
-#: Control chunk of the progress the launcher has verified (``ttl/<run>/control/board/<stage>``).
-BOARD = "board"
 #: Characters of a rejected attachment kept in the error report.
 PREVIEW_CHARS = 2000
 
@@ -224,16 +232,22 @@ def configure_logging(level: str | int = "INFO", json_lines: bool = False, strea
     root.setLevel(level)
 
 
-def recording_path(recordings: Path, run: str, stage: str) -> Path:
-    """``<recordings>/<run>/<stage>.mcap``; an existing file is first renamed ``<stage>.<n>.mcap``."""
-    path = Path(recordings) / run / f"{stage}.mcap"
+def set_aside(path: Path) -> Path:
+    """``path``, free to write: an existing file is first renamed ``<stem>.<n><suffix>``
+    (the lowest ``n`` free), so that a restarted process keeps its predecessor's recording."""
+    path = Path(path)
     if path.exists():
         n = 1
-        while (old := path.with_name(f"{stage}.{n}.mcap")).exists():
+        while (old := path.with_name(f"{path.stem}.{n}{path.suffix}")).exists():
             n += 1
         path.rename(old)
         log.info("kept the previous recording as %s", old)
     return path
+
+
+def recording_path(recordings: Path, run: str, stage: str) -> Path:
+    """``<recordings>/<run>/<stage>.mcap``; an existing file is first renamed ``<stage>.<n>.mcap``."""
+    return set_aside(Path(recordings) / run / f"{stage}.mcap")
 
 
 class Stage:
@@ -252,6 +266,8 @@ class Stage:
     reorders: ClassVar[tuple[str, ...]] = ()
     #: Input topics.
     inputs: ClassVar[tuple[str, ...]] = ()
+    #: Poll interval [s] when neither the command line nor the configuration file sets one.
+    default_poll_interval: ClassVar[float] = StageConfig.poll_interval
 
     def __init__(self, config: StageConfig):
         self.stage_name = config.stage or self.name
@@ -625,8 +641,8 @@ class Stage:
     def report_error(self, kind: str, message: str, *, index: int | None = None, key: str | None = None,
                      field: str | None = None, details: dict | None = None) -> dict:
         """Publish an error on ``ttl/<run>/errors/<index>``, record it, log it; returns it."""
-        error = {"run": self.run_id, "stage": self.stage_name, "kind": kind, "index": index, "key": key,
-                 "field": field, "message": message, "time": time.time(), "details": details or {}}
+        error = stage_record(self.run_id, self.stage_name, kind, message, index=index, details=details, key=key,
+                             field=field)
         self.log.warning("%s%s%s: %s", kind, f" {key}" if key else "", f" field {field!r}" if field else "",
                          message, extra={"index": index})
         if self.bus is not None:
@@ -642,16 +658,14 @@ class Stage:
         """Log and record a warning (topic ``warnings``): not an error, but for the operator's eyes."""
         self.log.warning("%s: %s", kind, message, extra={"index": index})
         if self.recorder is not None:
-            self.recorder.write_json("warnings", {"run": self.run_id, "stage": self.stage_name, "kind": kind,
-                                                  "index": index, "message": message, "time": time.time(),
-                                                  "details": details})
+            self.recorder.write_json("warnings", stage_record(self.run_id, self.stage_name, kind, message,
+                                                              index=index, details=details))
 
     def event(self, kind: str, *, index: int | None = None, message: str = "", **details) -> None:
         """Record a lifecycle or bookkeeping event in the recording."""
         if self.recorder is not None:
-            self.recorder.write_json("events", {"run": self.run_id, "stage": self.stage_name, "kind": kind,
-                                                "index": index, "message": message, "time": time.time(),
-                                                "details": details})
+            self.recorder.write_json("events", stage_record(self.run_id, self.stage_name, kind, message,
+                                                            index=index, details=details))
 
 
 def _preview(attachment) -> str:
@@ -684,36 +698,77 @@ def stage_arguments(parser: argparse.ArgumentParser | None = None) -> argparse.A
 def config_from_args(args: argparse.Namespace) -> StageConfig:
     """A :class:`StageConfig` from ``--config`` and the options overriding it."""
     d = json.loads(args.config.read_text()) if args.config else {}
-    if args.run:
-        d["run"] = args.run
-    if args.name:
-        d["stage"] = args.name
-    if args.recordings:
-        d["recordings"] = str(args.recordings)
+    for key, value in (("run", args.run), ("stage", args.name), ("recordings", args.recordings)):
+        if value:
+            d[key] = str(value)
     z = dict(d.get("zenoh") or {})
-    if args.connect:
-        z["connect"] = args.connect
-    if args.listen:
-        z["listen"] = args.listen
-    if args.zenoh_config:
-        z["config_file"] = str(args.zenoh_config)
-    if getattr(args, "credentials", None):
-        z["credentials"] = str(args.credentials)
-    if getattr(args, "mode", None):
-        z["mode"] = args.mode
-    elif args.connect and not args.listen and not z.get("mode") and not z.get("config_file"):
+    for key, value in (("connect", args.connect), ("listen", args.listen), ("config_file", args.zenoh_config),
+                       ("credentials", getattr(args, "credentials", None)), ("mode", getattr(args, "mode", None))):
+        if value:
+            z[key] = value if isinstance(value, list) else str(value)
+    if args.connect and not args.listen and not z.get("mode") and not z.get("config_file"):
         z["mode"] = "client"  # a router routes between its clients, not between peers
     d["zenoh"] = z
     return StageConfig.from_dict(d)
 
 
-def main(stage_class: type[Stage], argv: Sequence[str] | None = None) -> int:
-    """Entry point of a stage process: parse options, set up logging, run the stage."""
-    args = stage_arguments(argparse.ArgumentParser(prog=f"ttl stage {stage_class.name}")).parse_args(argv)
+def add_common_options(p: argparse.ArgumentParser) -> None:
+    """Options of a stage process that override :class:`StageConfig` fields, besides
+    :func:`stage_arguments`."""
+    p.add_argument("--cache", type=int, help="segments kept per output topic for late joiners")
+    p.add_argument("--history", type=int, help="segments asked from each input publisher's cache")
+    p.add_argument("--no-record-inputs", action="store_true", help="do not record input payloads")
+    p.add_argument("--poll-interval", type=float, help="longest wait before checking timers [s]")
+
+
+def stage_main(stage_class: type[Stage], argv: Sequence[str] | None = None,
+               add_options: Callable[[argparse.ArgumentParser], None] | None = None,
+               options: Callable[[argparse.Namespace], dict] | None = None,
+               check: Callable[[StageConfig], str] | None = None) -> int:
+    """Entry point of a stage process.
+
+    Parses :func:`stage_arguments`, :func:`add_common_options` and the stage's own
+    (``add_options``; ``options(args)`` returns the stage options they set, overriding the
+    ``--config`` file's), sets up logging and runs the stage.  With ``--check`` the options
+    are validated by ``check(config)`` (which returns a one-line description) and nothing
+    runs.  Errors: one line naming the problem on stderr, exit status 2.
+    """
+    parser = stage_arguments(argparse.ArgumentParser(prog=f"ttl stage {stage_class.name}",
+                                                     description=(stage_class.__doc__ or "").split("\n\n")[0]))
+    add_common_options(parser)
+    if check is not None:
+        parser.add_argument("--check", action="store_true", help="validate the options and exit")
+    if add_options is not None:
+        add_options(parser)
+    args = parser.parse_args(argv)
     configure_logging(args.log_level, args.log_json)
     try:
+        if not args.config and not args.run:
+            raise ValueError("--run (or --config with a 'run' field) is required")
         config = config_from_args(args)
-    except (ValueError, OSError) as exc:
-        logging.getLogger(__name__).error("%s", exc)
+        if args.cache is not None:
+            config.cache = args.cache
+        if args.history is not None:
+            config.history = args.history
+        if args.no_record_inputs:
+            config.record_inputs = False
+        if args.poll_interval is not None:
+            config.poll_interval = args.poll_interval
+        elif not (args.config and "poll_interval" in json.loads(args.config.read_text())):
+            config.poll_interval = stage_class.default_poll_interval
+        if options is not None:
+            config.options = {**config.options, **{k: v for k, v in options(args).items() if v is not None}}
+        check_name(config.run, "run id")
+        if check is not None and args.check:
+            print(check(config))
+            return 0
+        stage = stage_class(config)
+    except Exception as exc:  # noqa: BLE001 - one line, no traceback, for user errors
+        print(f"ttl stage {stage_class.name}: error: {exc}", file=sys.stderr)
         return 2
-    return stage_class(config).run()
+    try:
+        return stage.run()
+    except (TTLError, OSError, ValueError) as exc:
+        log.debug("stage failed", exc_info=True)
+        print(f"ttl stage {stage_class.name}: error: {exc}", file=sys.stderr)
+        return 2

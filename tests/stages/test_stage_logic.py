@@ -7,13 +7,16 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from stages import InOrder, PeerProgress, from_ranges, to_ranges
-from stages.replayer import FileSource, Replayer, make_source, simulation_config
+from stages.replayer import FileSource, Replayer, make_source
 from stages.subtractor import Subtractor
+from streamer.keys import from_ranges, to_ranges
+from streamer.pipeline_stage import InOrder
+from streamer.progress import Progress
 from streamer.stage import StageConfig
 from ttlcore.errors import ConfigError, TelemetryError
 from ttlcore.io.telemetry import Telemetry, write_telemetry
 from ttlcore.io.truth import truth_path
+from ttlcore.sim.spec import simulation_config
 
 
 def sample(msg: dict):
@@ -24,7 +27,7 @@ def test_ranges_round_trip():
     assert to_ranges([5, 0, 1, 2, 2]) == [[0, 2], [5, 5]]
     assert from_ranges([[0, 2], [5, 5]]) == {0, 1, 2, 5}
     assert to_ranges([]) == [] and from_ranges(None) == set() and from_ranges([["x"]]) == set()
-    p = PeerProgress("fitter")
+    p = Progress("fitter")
     p.update({"done": [[0, 3]], "failed": [[5, 5]], "segments_total": 7, "fits_ranges": [[1, 3]]})
     p.update({"done": [[4, 4], [6, 6]], "pid": 2})  # a restarted process: union of both
     assert p.handled == set(range(7)) and p.covers() and p.highest == 6 and p.extra["fits"] == {1, 2, 3}
@@ -163,8 +166,7 @@ def test_replayer_paces_at_a_multiple_of_real_time(tmp_path, monkeypatch):
 def test_run_options_merge_config_file_and_command_line(tmp_path):
     from pathlib import Path
 
-    from streamer.cli import run_options
-    from streamer.cli import register
+    from streamer.cli import register, run_options
     from ttlcore.cli.main import build_parser
 
     (tmp_path / "run.toml").write_text('run_id = "from-file"\nsimulate = "--duration 6h"\nsegment = "30min"\n'
