@@ -15,7 +15,6 @@ import argparse
 import json
 import logging
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
@@ -31,38 +30,9 @@ from ..io.truth import NOISE_COMPONENTS, read_truth, truth_path
 from ..sim.simulator import simulate_to_file
 from ..sim.spec import add_simulation_options, simulation_config_from_args
 from .diagnose import add_parser as _add_diagnose
+from .progress import progress_bar, status_line
 
 log = logging.getLogger("ttl")
-
-
-class Progress:
-    """Minimal progress display on stderr (a bar on terminals, a line every 10 % otherwise)."""
-
-    def __init__(self, label: str, enabled: bool = True, stream=None):
-        self.label = label
-        self.enabled = enabled
-        self.stream = stream or sys.stderr
-        self.start = time.monotonic()
-        self._last_decile = -1
-        self._tty = hasattr(self.stream, "isatty") and self.stream.isatty()
-
-    def __call__(self, done: int, total: int) -> None:
-        if not self.enabled or total <= 0:
-            return
-        frac = done / total
-        elapsed = time.monotonic() - self.start
-        eta = elapsed / frac - elapsed if frac > 0 else float("nan")
-        if self._tty:
-            bar = "#" * int(30 * frac)
-            self.stream.write(f"\r{self.label} [{bar:<30}] {100 * frac:5.1f}% {elapsed:6.1f}s elapsed, {eta:6.1f}s left")
-            if done >= total:
-                self.stream.write("\n")
-        else:
-            decile = int(10 * frac)
-            if decile > self._last_decile or done >= total:
-                self._last_decile = decile
-                self.stream.write(f"{self.label}: {100 * frac:.0f}% ({elapsed:.1f} s)\n")
-        self.stream.flush()
 
 
 # ---------------------------------------------------------------------------
@@ -96,8 +66,8 @@ def _cmd_simulate(args) -> int:
         raise TTLError(f"--out: directory {out.parent} does not exist")
     config = simulation_config_from_args(args, truth_noises)
     duration = config.duration
-    progress = Progress(f"simulate {out.name}", enabled=not args.quiet)
-    tpath, rpath = simulate_to_file(config, out, chunk_size=int(round(chunk * args.fs)), progress=progress)
+    with progress_bar(f"simulate {out.name}", quiet=args.quiet) as progress:
+        tpath, rpath = simulate_to_file(config, out, chunk_size=int(round(chunk * args.fs)), progress=progress)
     print(f"wrote {tpath} ({config.size} samples, {duration / DAY:g} d at {args.fs:g} Hz) and {rpath}")
     return 0
 
@@ -212,14 +182,9 @@ def _cmd_analyze(args) -> int:
     settings = FitSettings(band=band)
     if args.segment is not None:
         settings.segment_duration = parse_duration(args.segment, "--segment")
-    start = time.monotonic()
-
-    def progress(msg: str) -> None:
-        if not args.quiet:
-            print(f"ttl analyze: {msg} ({time.monotonic() - start:.1f} s)", file=sys.stderr, flush=True)
-
-    out = analyze(args.data, truth_path=args.truth, band=band, method=method, out_dir=args.out,
-                  settings=settings, progress=progress)
+    with status_line("ttl analyze", quiet=args.quiet) as progress:
+        out = analyze(args.data, truth_path=args.truth, band=band, method=method, out_dir=args.out,
+                      settings=settings, progress=progress)
     res, js = out["fit"], out["fit_json"]
     print(f"{args.data}: {method} fit of {len(res.names)} coefficients over {res.n_segments} segments of "
           f"{settings.segment_duration:g} s, {band[0]:g}-{band[1]:g} Hz: chi2/dof {res.chi2_dof:.3f}, "
