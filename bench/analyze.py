@@ -17,7 +17,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import resource
 import subprocess
 import sys
 import tempfile
@@ -47,9 +46,13 @@ def main() -> int:
     if truth.exists():
         cmd += ["--truth", str(truth)]
     start = time.perf_counter()
-    subprocess.run(cmd, check=True, stdout=subprocess.DEVNULL, env=dict(os.environ))
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, env=dict(os.environ))
+    # the rusage of this one child (RUSAGE_CHILDREN would also hold the simulation's peak)
+    _, status, usage = os.wait4(proc.pid, 0)
     wall = time.perf_counter() - start
-    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode != 0:
+        raise SystemExit(f"ttl analyze failed with exit code {proc.returncode}: {' '.join(cmd)}")
     peak_bytes = usage.ru_maxrss * 1024  # Linux: kB
     fit = json.loads((work / "analysis" / "fit.json").read_text())
     result = {

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 
-STAGES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
+from streamer.topology import STAGES
 
 
 def stage_of(proc: psutil.Process) -> str | None:

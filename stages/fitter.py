@@ -30,13 +30,15 @@ model change the effects not in the model are ranked (``candidates``: the top 3 
 significance).
 
 A control message ``ttl/<run>/control/fitter/model`` with JSON ``{"effects": [...]}`` (or
-``"linear-ttl,drift"``) changes the model from the next segment on; that segment's fit
-message carries ``model_change``: both models refitted on the same window, with chi^2/dof
+``"linear-ttl,drift"``) changes the model from the next segment on (a ``model`` event in the
+recording says from which); that segment's fit message carries ``model_change``: both models refitted on the same window, with chi^2/dof
 and per-band chi^2/dof before and after, delta chi^2 and log Bayes factor, and
 ``candidates``.  In the pipeline the fitter sees TDI outputs, not the DWS series, so the
 model may use the effects derived from the TDI regressors (``linear-ttl``, ``drift``,
 ``step``); ``ttl diagnose`` and ``ttl refit`` offer the others.  Plugin modules
 (``effect_modules``) are loaded from the stage's configuration only, never from a message.
+A restarted fitter takes the model in force from the ``model`` events of its earlier
+processes' recordings (:meth:`Fitter.restore_model`), not the configured one.
 """
 
 from __future__ import annotations
@@ -50,8 +52,9 @@ import numpy as np
 from streamer.codec import Expect
 from streamer.keys import to_ranges
 from streamer.messages import tdi_of
-from streamer.recorder import read_recording
-from streamer.stage import Output
+from streamer.pipeline_stage import OrderedStage
+from streamer.recorder import read_recording, to_jsonable
+from streamer.stage import Output, stage_main
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY, parse_duration
 from ttlcore.diagnose.candidates import candidates
 from ttlcore.diagnose.diagnoser import DiagnoseSettings, refit
@@ -59,9 +62,8 @@ from ttlcore.diagnose.effects import make_effects
 from ttlcore.errors import ConfigError
 from ttlcore.estimate.fit import FitSettings
 from ttlcore.estimate.rolling import RollingFit
+from ttlcore.tdi.combinations import XYZ
 from ttlcore.tdi.data import TDIData
-
-from . import OUTPUT_TOPIC, XYZ, OrderedStage, jsonable, stage_main
 
 UNITS = {"coefficients": "m/rad", "sigma": "m/rad", "covariance": "m^2/rad^2"}
 P = len(COEFFICIENT_NAMES)
@@ -83,7 +85,6 @@ class Fitter(OrderedStage):
     name = "fitter"
     inputs = ("tdi",)
     follow = ("tdi_builder",)
-    upstream = "tdi_builder"
     reorders = ("tdi",)
 
     def __init__(self, config):
@@ -119,6 +120,47 @@ class Fitter(OrderedStage):
         super().setup()
         # an earlier process of this stage left its recording (kept as fitter.<n>.mcap)
         self._restarted = any((self.config.recordings / self.run_id).glob(f"{self.stage_name}.*.mcap"))
+        if self._restarted:
+            self.restore_model()
+
+    def restore_model(self) -> None:
+        """A restarted fitter: the model in force is the last one an earlier process of this
+        stage accepted (``model`` events of ``<stage>.<n>.mcap``, oldest file first), and its
+        ``model_change`` is still due when no fit was recorded from the segment it applies
+        from on.  A damaged or unreadable file is skipped (warned)."""
+        run_dir = self.config.recordings / self.run_id
+        files = sorted(run_dir.glob(f"{self.stage_name}.*.mcap"), key=lambda p: _file_number(p, self.stage_name))
+        last, fits = None, set()
+        for path in files:
+            try:
+                rec = read_recording(path)
+            except Exception as exc:  # noqa: BLE001 - a damaged file: use what the others have
+                self.log.warning("cannot read %s: %s", path, exc)
+                continue
+            models = [e for e in rec.json("events") if e.get("kind") == "model"]
+            last = models[-1] if models else last
+            # the fit's segment is written before its summary: a kill between leaves only the former
+            fits.update(m.header.index for m in rec.segments("fit"))
+            fits.update(s["index"] for s in rec.json("fit/summary") if isinstance(s.get("index"), int))
+        if last is None:
+            return
+        d = last.get("details") or {}
+        try:
+            effects, before = self.check_model(d["effects"]), list(d["before"])
+            start = int(d["from_index"])
+        except (KeyError, TypeError, ValueError) as exc:
+            self.report_error("failed", f"restart: the recorded model change cannot be restored ({exc}); "
+                                        f"the configured model {','.join(self.effects)} stays", field="model")
+            return
+        self.effects = effects
+        due = not any(i >= start for i in fits)
+        if due:
+            self._model_change = {"before": before, "after": effects, "from_index": start}
+        self.event("model-restored", index=start, message=f"model {','.join(effects)} restored from the earlier "
+                                                          f"process (in force from segment {start}"
+                                                          f"{'; its model change is still to be reported' if due else ''})",
+                   effects=effects, from_index=start, change_due=due)
+        self.log.info("restart: model %s restored (from segment %d)", ",".join(effects), start)
 
     def settings(self, meta: dict) -> FitSettings:
         kwargs = {"segment_duration": self.fit_segment or float(meta.get("segment_duration") or 3600.0)}
@@ -187,8 +229,11 @@ class Fitter(OrderedStage):
             raise ValueError(f"unknown field(s) {sorted(set(msg) - {'effects'})}; plugin modules come from the "
                              "stage's configuration only")
         new = self.check_model(msg["effects"])
-        self._model_change = {"before": list(self.effects), "after": new}
+        start = self.queue.next if self.queue.next is not None else 0
+        self._model_change = {"before": list(self.effects), "after": new, "from_index": start}
         self.log.info("model change requested: %s -> %s", ",".join(self.effects), ",".join(new))
+        self.event("model", index=start, message=f"model {','.join(new)} from segment {start} on",
+                   effects=new, before=list(self.effects), from_index=start)
         self.effects = new
         return ()
 
@@ -196,6 +241,8 @@ class Fitter(OrderedStage):
         """Meta (and arrays) of the window refitted under the instrument noise model, when due:
         on a model change, on every segment of an extended model, every ``adequacy_every``."""
         change, extended = self._model_change, self.effects != ["linear-ttl"]
+        if change is not None and header.index < change["from_index"]:
+            change = None  # a segment replayed after a restart, before the change
         due = (change is not None or extended
                or (self.adequacy_every > 0 and self._segments_seen % self.adequacy_every == 0))
         if not due:
@@ -203,7 +250,8 @@ class Fitter(OrderedStage):
         r = self._window_refit(header.meta, change["before"] if change else ["linear-ttl"])
         if r is None:
             return None
-        self._model_change = None
+        if change is not None:
+            self._model_change = None
         model = r["_internals"]["fit"]
         adequacy = r["model"]["adequacy"]
         out: dict = {"adequacy": {
@@ -304,7 +352,9 @@ class Fitter(OrderedStage):
         if res is None:
             self.log.info("segment %d: no FFT segment completed, no refit", header.index)
             return None
-        diagnosis = self.diagnosis(header)
+        # a segment an earlier process published the fit of (replayed, or pushed again to
+        # rebuild the window): its diagnosis would be thrown away
+        diagnosis = None if self.handled_before(header.index) else self.diagnosis(header)
         meta = {"names": list(res.names), "chi2_dof": res.chi2_dof, "t_start": res.t_start, "t_stop": res.t_stop,
                 "segments": int(res.n_segments), "band": list(res.band), "converged": bool(res.converged),
                 "chi2": res.chi2, "dof": res.dof, "iterations": int(res.iterations), "method": res.method,
@@ -330,9 +380,17 @@ class Fitter(OrderedStage):
             self.log.info("segment %d: model %s, chi2/dof against the instrument noise model %.3f%s", header.index,
                           ",".join(self.effects), meta["adequacy"]["chi2_dof"],
                           " (fails)" if meta["adequacy"]["fails"] else "")
-        return Output(OUTPUT_TOPIC[self.name], arrays,
-                      fields={"units": UNITS, "meta": jsonable(meta)},
-                      summary=jsonable(summary), summary_schema="ttl.Fit")
+        return Output(self.output_topic, arrays,
+                      fields={"units": UNITS, "meta": to_jsonable(meta)},
+                      summary=to_jsonable(summary), summary_schema="ttl.Fit")
+
+
+def _file_number(path, stage: str) -> int:
+    """``n`` of ``<stage>.<n>.mcap`` (the order the processes ran in)."""
+    try:
+        return int(path.name[len(stage) + 1:-len(".mcap")])
+    except ValueError:
+        return 0
 
 
 def add_options(p) -> None:

@@ -6,16 +6,17 @@ or miss a topic.  A message that does not fit is rejected by the stage base (rep
 ``errors``); an exception while drawing one is reported as that segment's failure; the
 monitor goes on in both cases.
 
-What it computes
-----------------
+What it draws (the numbers come from :mod:`ttlcore.estimate.monitoring`)
+------------------------------------------------------------------------
 * ASD of X2 per segment (Welch, Hann, log-averaged 20 per decade, in displacement
   m/sqrt(Hz)): the data (with TTL), the residual, the TTL model, the expected secondary
-  noise (:func:`ttlcore.estimate.noise_psd.tdi_noise_csd` for the segment's mean arms, X channel)
-  and the LISA requirement; and per segment the in-band (fit band) median of
-  residual / expected, a one-number adequacy check beside the fit's chi^2/dof.
+  noise for the segment's mean arms and the LISA requirement; and per segment the in-band
+  (fit band) median of residual / expected, a one-number adequacy check beside the fit's
+  chi^2/dof.
 * Coefficient trends: every fit's 24 coefficients with +-1 sigma, at the centre of its
   window (the estimate is the window's average); when the telemetry meta names a truth
-  file, the true coefficients averaged over the same window.
+  (a truth file, or a simulation's coefficient model), the true coefficients averaged over
+  the same window.
 * Step and drift alerts from :class:`ttlcore.diagnose.trends.TrendMonitor` (thresholds and their
   false-alarm reasoning in :mod:`ttlcore.diagnose.trends`).  Each alert is logged as a Rerun text
   entry, written to the MCAP recording as JSON (topic ``alerts``, schema ``ttl.Alert``)
@@ -25,7 +26,7 @@ Output ``ttl/<run>/monitor/<i>``, one per segment, once the segment is drawn: it
 its fit and residual from a fitter / subtractor that reports progress (they are waited for
 until that stage has passed the segment, at most ``settle_timeout`` = 60 s; a stage that is
 skipped or not started blocks nothing).  The segment is then done for the progress protocol
-(:mod:`stages`), so the replayer paces on the monitor too and ``ttl run`` stops it only once
+(:mod:`streamer.progress`), so the replayer paces on the monitor too and ``ttl run`` stops it only once
 it has drawn everything.  Arrays ``drift_rate`` (24,) [mm/rad/day] and
 ``drift_significance`` (24,) of the latest trend evaluation (0 where not yet defined, see
 meta ``drift_windows``); meta ``names``, ``alerts`` (the alerts raised since the previous
@@ -41,15 +42,12 @@ that shows everything at once; the views, their entities and the drawing functio
 time) and ``segment`` (sequence).  A fit that did not converge is a WARN entry of the
 alerts log here, and a ``warnings`` message in the fitter's MCAP file (``ttl inspect``).
 
-Live viewing (option ``live``): ``"spawn"`` starts the ``rerun`` viewer binary with
-``--bind 127.0.0.1`` on a free (or ``viewer_port``) port and streams to it as well (the
-window outlives the monitor); ``"serve"`` starts ``rerun --serve-grpc --bind 127.0.0.1``
-(headless, stopped with the monitor; a viewer connects with ``rerun --connect
-rerun+http://127.0.0.1:<port>/proxy``); a ``rerun+http://`` URL streams to a viewer already
-running there.  The SDK's own web-viewer server (which listens on every interface) is never
-used.  The live stream is a recording stream of its own, flushed with a short timeout: a
-viewer that cannot start (no display), is unreachable or goes away is dropped with a
-warning and the file goes on.
+Live viewing (option ``live``, :mod:`streamer.viewer`): ``"spawn"`` starts the ``rerun``
+viewer binary on 127.0.0.1 on a free (or ``viewer_port``) port and streams to it as well
+(the window outlives the monitor); ``"serve"`` starts a headless ``rerun`` gRPC server on
+127.0.0.1 (stopped with the monitor); a ``rerun+http://`` URL streams to a viewer already
+running there.  A viewer that cannot start (no display), is unreachable or goes away is
+dropped with a warning and the file goes on.
 
 Options (``StageConfig.options`` or the command line): ``rrd`` (path), ``live``,
 ``viewer_port``, ``rerun_binary``, ``trends`` (:class:`ttlcore.diagnose.trends.TrendSettings`
@@ -60,300 +58,43 @@ hour of window end, so that their cost per segment stays bounded with short segm
 
 from __future__ import annotations
 
-import ctypes
 import json
 import math
 import os
 import queue
-import signal
-import socket
-import subprocess
 import sys
-import threading
 import time
 from collections import deque
 from pathlib import Path
-from urllib.parse import urlparse
 
 import numpy as np
 
 from streamer.codec import Expect
-from streamer.inspect import rerun_binary
-from streamer.keys import topic_pattern
-from streamer.session import free_port
-from streamer.stage import Output
-from ttlcore.conventions import (
-    ARM_LENGTH,
-    COEFFICIENT_NAMES,
-    LINKS,
-    C,
-    ffd_to_displacement_asd,
-)
+from streamer.keys import ERRORS, topic_pattern
+from streamer.pipeline_stage import PipelineStage
+from streamer.processes import stop_process
+from streamer.recorder import to_jsonable
+from streamer.stage import Output, set_aside, stage_main
+from streamer.viewer import LiveFanout, check_live, start_live
+from ttlcore.conventions import ARM_LENGTH, COEFFICIENT_NAMES, LINKS, C
 from ttlcore.diagnose.trends import Alert, TrendMonitor, TrendSettings
 from ttlcore.estimate.fit import DEFAULT_BAND
-from ttlcore.estimate.noise_psd import requirement_x2, tdi_noise_csd
-from ttlcore.estimate.spectra import default_nperseg, log_average, welch_asd
-from ttlcore.io.truth import read_truth
-from ttlcore.sim.coefficients import CoefficientModel
+from ttlcore.estimate.monitoring import (
+    MIN_SAMPLES,
+    band_ratio,
+    channel_asd,
+    reference_curves,
+    window_truth,
+)
+from ttlcore.estimate.spectra import longest_run
 
-from . import OUTPUT_TOPIC, PipelineStage, jsonable, stage_main
 from . import monitor_views as views
 
 P = len(COEFFICIENT_NAMES)
-LOOPBACK = "127.0.0.1"
 #: Application id of the Rerun recording.
 APPLICATION_ID = "ttl_monitor"
-#: JSON schema of an alert in the MCAP recording.
-ALERT_SCHEMA = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": "ttl.Alert",
-    "type": "object",
-    "required": ["kind", "coefficient", "t", "value", "significance", "message"],
-    "properties": {
-        "run": {"type": "string"},
-        "kind": {"type": "string", "description": "step | drift"},
-        "coefficient": {"type": "string"},
-        "t": {"type": ["number", "null"], "description": "step time or end of the drift span [s]"},
-        "value": {"type": ["number", "null"], "description": "step [mm/rad] or drift rate [mm/rad/day]"},
-        "significance": {"type": ["number", "null"]},
-        "message": {"type": "string"},
-        "t_detected": {"type": ["number", "null"]},
-        "index": {"type": ["integer", "null"], "description": "fit that raised it"},
-        "units": {"type": "string"},
-        "details": {"type": "object"},
-    },
-}
-def _wait_port(port: int, timeout: float = 10.0, proc=None) -> bool:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        if proc is not None and proc.poll() is not None:
-            return False
-        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
-            s.settimeout(0.2)
-            if s.connect_ex((LOOPBACK, port)) == 0:
-                return True
-        time.sleep(0.1)
-    return False
 
 
-def _reachable(url: str, timeout: float = 1.0) -> bool:
-    """Whether something listens at the host and port of a ``rerun+http://host:port/proxy`` URL."""
-
-    u = urlparse(url.replace("rerun+", "", 1).replace("rerun://", "https://", 1))
-    port = u.port or (443 if u.scheme == "https" else 9876)
-    try:
-        with socket.create_connection((u.hostname or LOOPBACK, port), timeout=timeout):
-            return True
-    except OSError:
-        return False
-
-
-class Fanout:
-    """Logs to the file recording and, while it works, to a live viewer's recording.
-
-    The live stream is flushed with a short timeout; when it fails (the viewer closed or
-    unreachable) it is dropped, so a lost viewer never stalls the monitor or the file.
-    """
-
-    def __init__(self, file_rec, live_rec=None, on_live_failure=None, live_timeout: float = 2.0):
-        self.file = file_rec
-        self.live = live_rec
-        self.on_live_failure = on_live_failure
-        self.live_timeout = live_timeout
-
-    def _both(self, name, *args, **kwargs):
-        getattr(self.file, name)(*args, **kwargs)
-        if self.live is not None:
-            getattr(self.live, name)(*args, **kwargs)
-
-    def log(self, *args, **kwargs):
-        self._both("log", *args, **kwargs)
-
-    def set_time(self, *args, **kwargs):
-        self._both("set_time", *args, **kwargs)
-
-    def send_recording_name(self, name: str):
-        self._both("send_recording_name", name)
-
-    def flush(self) -> None:
-        self.file.flush()
-        if self.live is not None:
-            try:
-                self.live.flush(timeout_sec=self.live_timeout)
-            except RuntimeError as exc:
-                self._drop_live(exc)
-
-    def _drop_live(self, exc) -> None:
-
-        live, self.live = self.live, None
-        threading.Thread(target=live.disconnect, daemon=True).start()  # may wait for a last attempt
-        if self.on_live_failure is not None:
-            self.on_live_failure(exc)
-
-    def disconnect(self) -> None:
-        self.file.disconnect()  # writes the file's footer
-        if self.live is not None:
-            try:
-                self.live.flush(timeout_sec=self.live_timeout)
-            except RuntimeError:
-                pass
-            self.live.disconnect()
-
-
-def _die_with_parent() -> None:  # in the child, before exec (Linux): SIGTERM when the monitor dies
-    try:
-
-        ctypes.CDLL("libc.so.6", use_errno=True).prctl(1, int(signal.SIGTERM))  # PR_SET_PDEATHSIG
-    except Exception:
-        pass
-
-
-def spawn_viewer(mode: str, port: int | None = None, binary: str | None = None):
-    """Start the ``rerun`` binary on 127.0.0.1 only; returns ``(process, url)``.
-
-    ``mode`` ``"spawn"``: the native viewer (which serves gRPC on ``port``);
-    ``"serve"``: a headless gRPC server that viewers connect to later.
-    """
-    port = int(port or free_port(LOOPBACK))
-    cmd = [rerun_binary(binary), "--bind", LOOPBACK, "--port", str(port)]
-    cmd += ["--serve-grpc"] if mode == "serve" else ["--expect-data-soon"]
-    # the viewer window outlives the monitor (its own session); the headless server dies with it
-    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True,
-                            preexec_fn=_die_with_parent if mode == "serve" else None)
-    if not _wait_port(port, proc=proc):
-        code = proc.poll()
-        if code is None:
-            proc.terminate()
-        raise RuntimeError(f"{cmd[0]}: the Rerun viewer did not listen on {LOOPBACK}:{port}"
-                           + (f" (exited with status {code}; no display?)" if code is not None else " within 10 s"))
-    return proc, f"rerun+http://{LOOPBACK}:{port}/proxy"
-
-
-def rrd_path(recordings: Path, run: str, explicit=None) -> Path:
-    """``<recordings>/<run>/monitor.rrd``; an existing file is first renamed ``monitor.<n>.rrd``."""
-    path = Path(explicit) if explicit else Path(recordings) / run / "monitor.rrd"
-    if path.exists():
-        n = 1
-        while (old := path.with_name(f"{path.stem}.{n}{path.suffix}")).exists():
-            n += 1
-        path.rename(old)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    return path
-
-
-# ---------------------------------------------------------------------------- science helpers
-
-def finite_stretch(x: np.ndarray) -> np.ndarray:
-    """The longest run of finite samples of a 1-D series."""
-    ok = np.isfinite(x)
-    if ok.all():
-        return x
-    edges = np.diff(np.concatenate([[0], ok.astype(np.int8), [0]]))
-    starts, stops = np.flatnonzero(edges == 1), np.flatnonzero(edges == -1)
-    if starts.size == 0:
-        return x[:0]
-    k = int(np.argmax(stops - starts))
-    return x[starts[k]:stops[k]]
-
-
-def x_asd(x: np.ndarray, fs: float, per_decade: int = 20):
-    """Log-averaged displacement ASD of one TDI channel in fractional frequency.
-
-    Returns ``(f [Hz], asd [m/sqrt(Hz)], f_welch)`` (``f_welch`` the Welch grid without DC,
-    for curves that must be averaged on the same bins).
-    """
-
-    x = finite_stretch(np.asarray(x, dtype=float))
-    if x.size < 64:
-        raise ValueError(f"too few finite samples ({x.size}) for an ASD")
-    f, asd = welch_asd(x, fs, default_nperseg(x.size, fs))
-    fc, psd = log_average(f[1:], asd[1:] ** 2, per_decade=per_decade)
-    good = psd > 0
-    return fc[good], ffd_to_displacement_asd(np.sqrt(psd[good]), fc[good]), f[1:]
-
-
-def reference_curves(f_welch: np.ndarray, ltt, per_decade: int = 20) -> dict:
-    """Expected secondary noise of X2 for the arms ``ltt`` (six values [s]) and the
-    requirement, log-averaged like the data: ``{name: (f, asd [m/sqrt(Hz)])}``."""
-
-    expected = np.real(tdi_noise_csd(f_welch, ltt, aet=False)[:, 0, 0])
-    out = {}
-    for name, psd in (("expected", expected), ("requirement", requirement_x2(f_welch))):
-        fc, p = log_average(f_welch, psd, per_decade=per_decade)
-        good = p > 0
-        out[name] = (fc[good], ffd_to_displacement_asd(np.sqrt(p[good]), fc[good]))
-    return out
-
-
-def band_ratio(f, a, f_ref, ref, band) -> float:
-    """Median of ``a / ref`` over ``band`` (``ref`` interpolated in log-log onto ``f``)."""
-    sel = (f >= band[0]) & (f <= band[1])
-    if not sel.any():
-        return float("nan")
-    r = np.interp(np.log10(f[sel]), np.log10(f_ref), np.log10(ref))
-    return float(np.median(a[sel] / 10 ** r))
-
-
-class ModelTruth:
-    """True coefficients of a simulation on the fly, averaged over time spans from its
-    coefficient model (:meth:`ttlcore.sim.coefficients.CoefficientModel.mean`)."""
-
-    path = "simulation"
-
-    def __init__(self, model):
-        self.model = model
-
-    def mean(self, t_start: float, t_stop: float) -> np.ndarray:
-        return self.model.mean(t_start, t_stop)
-
-
-class TruthAverager:
-    """True coefficients averaged over time spans, read block by block from a truth file.
-
-    Blocks of ``block`` seconds are read once with :func:`ttlcore.io.truth.read_truth` and
-    kept as sums; a span's average adds whole blocks and reads its partial edges.
-    """
-
-    def __init__(self, path, block: float = 3600.0):
-
-        self.path = Path(path)
-        head = read_truth(self.path, 0, 1)
-        self.t0, self.fs = float(head.t0), float(head.fs)
-        self.block = max(1, int(round(block * self.fs)))
-        self._sums: dict[int, tuple[np.ndarray, int]] = {}
-
-    def _read(self, a: int, b: int) -> tuple[np.ndarray, int]:
-
-        if b <= a:
-            return np.zeros(P), 0
-        c = read_truth(self.path, a, b).coefficients
-        return c.sum(axis=1), c.shape[1]
-
-    def mean(self, t_start: float, t_stop: float) -> np.ndarray | None:
-        """Average true coefficients over ``[t_start, t_stop)`` [m/rad], None if outside the file."""
-        a = max(0, int(math.ceil((t_start - self.t0) * self.fs - 1e-9)))
-        b = int(math.ceil((t_stop - self.t0) * self.fs - 1e-9))
-        total, count = np.zeros(P), 0
-        first_full = -(-a // self.block)
-        last_full = b // self.block
-        if first_full >= last_full:
-            s, n = self._read(a, b)
-            total, count = total + s, count + n
-        else:
-            s, n = self._read(a, first_full * self.block)
-            total, count = total + s, count + n
-            for k in range(first_full, last_full):
-                if k not in self._sums:
-                    self._sums[k] = self._read(k * self.block, (k + 1) * self.block)
-                s, n = self._sums[k]
-                total, count = total + s, count + n
-            s, n = self._read(last_full * self.block, b)
-            total, count = total + s, count + n
-        return total / count if count else None
-
-
-# ---------------------------------------------------------------------------- the stage
 
 class Monitor(PipelineStage):
     """Draws ASDs, coefficient trends, chi^2/dof and alerts in Rerun (module docstring)."""
@@ -366,8 +107,7 @@ class Monitor(PipelineStage):
         super().__init__(config)
         o = self.options
         self.live = o.get("live")
-        if self.live not in (None, "", "spawn", "serve") and not str(self.live).startswith(("rerun://", "rerun+http://", "rerun+https://")):
-            raise ValueError(f"option live: {self.live!r} is not 'spawn', 'serve' or a rerun+http:// URL")
+        check_live(self.live)
         self.per_decade = int(o.get("asd_per_decade", 20))
         self.band = tuple(float(x) for x in (o.get("band") or DEFAULT_BAND))
         self.trends = TrendMonitor(settings=TrendSettings.from_dict(o.get("trends")))
@@ -378,7 +118,7 @@ class Monitor(PipelineStage):
         self._ltt: dict[int, np.ndarray] = {}
         self._data_asd: dict[int, tuple] = {}
         self._ref: dict[int, dict] = {}
-        self._truth: TruthAverager | None = None
+        self._truth = None  # ttlcore.estimate.monitoring.ModelTruth or FileTruth
         self._model: list | None = None
         self._fit_windows: dict[int, tuple[float, float]] = {}  # fit index -> window drawn
         self._styled: set[str] = set()
@@ -388,6 +128,7 @@ class Monitor(PipelineStage):
         self._last_fit: dict | None = None
         self._ratio: tuple | None = None
         self._drawn: dict[str, set[int]] = {t: set() for t in self.inputs}
+        self._refused: dict[str, set[int]] = {t: set() for t in self.inputs}  # withdrawn: not waited for
         self._tdi_at: dict[int, float] = {}
         self._segment_time: dict[int, tuple[float, float]] = {}
         self.settle_timeout = float(o.get("settle_timeout", 60.0))
@@ -396,39 +137,24 @@ class Monitor(PipelineStage):
 
     # ------------------------------------------------------------------ lifecycle
     def setup(self) -> None:
-        import rerun as rr
-
         super().setup()
-        self.rrd = rrd_path(self.config.recordings, self.run_id, self.options.get("rrd"))
-        recording_id = f"{self.run_id}-{os.getpid()}-{int(time.time())}"
-        file_rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
-        file_rec.set_sinks(rr.FileSink(str(self.rrd)), default_blueprint=views.blueprint(self.band))
-        viewer_problem = None
-        if self.live in ("spawn", "serve"):
-            try:
-                self.viewer, self.viewer_url = spawn_viewer(self.live, self.options.get("viewer_port"),
-                                                            self.options.get("rerun_binary"))
-            except (OSError, RuntimeError) as exc:  # no display, no binary: the file is still written
-                viewer_problem = f"live viewer not started: {exc}"
-                self.log.warning("%s", viewer_problem)
-        elif self.live:
-            self.viewer_url = str(self.live)
-            if not _reachable(self.viewer_url):
-                viewer_problem = f"live viewer {self.viewer_url} not reachable: writing the file only"
-                self.log.warning("%s", viewer_problem)
-                self.viewer_url = None
-        live_rec = None
-        if self.viewer_url:  # a stream of its own: a viewer that goes away must not stall the file
-            live_rec = rr.RecordingStream(APPLICATION_ID, recording_id=recording_id)
-            live_rec.set_sinks(rr.GrpcSink(self.viewer_url), default_blueprint=views.blueprint(self.band))
-        self.rec = Fanout(file_rec, live_rec, on_live_failure=self._live_failed)
+        rrd = self.options.get("rrd") or Path(self.config.recordings) / self.run_id / "monitor.rrd"
+        self.rrd = set_aside(Path(rrd))
+        self.rrd.parent.mkdir(parents=True, exist_ok=True)
+        # no display, no binary, nothing listening: the file is still written
+        self.viewer, self.viewer_url, viewer_problem = start_live(self.live, self.options.get("viewer_port"),
+                                                                  self.options.get("rerun_binary"))
+        if viewer_problem:
+            self.log.warning("%s", viewer_problem)
+        self.rec = LiveFanout.open(APPLICATION_ID, f"{self.run_id}-{os.getpid()}-{int(time.time())}", self.rrd,
+                                   self.viewer_url, views.blueprint(self.band), on_live_failure=self._live_failed)
         self.rec.send_recording_name(f"ttl {self.run_id}")
         self._static_styles()
         self.text("log", f"monitor of run {self.run_id} started; recording {self.rrd}"
                   + (f", live viewer {self.viewer_url}" if self.viewer_url else ""))
         if viewer_problem:
             self.text("log", viewer_problem, "WARN")
-        self.bus.subscriber(topic_pattern(self.run_id, "errors"), self._on_error)
+        self.bus.subscriber(topic_pattern(self.run_id, ERRORS), self._on_error)
         self.flush()
         self.log.info("rerun recording %s%s", self.rrd, f", live {self.viewer_url}" if self.viewer_url else "")
 
@@ -443,11 +169,7 @@ class Monitor(PipelineStage):
             self.flush()
             self.rec.disconnect()  # writes the file's footer
         if self.viewer is not None and self.live == "serve":
-            self.viewer.terminate()  # the headless server; a spawned viewer window stays for the user
-            try:
-                self.viewer.wait(5)
-            except subprocess.TimeoutExpired:
-                self.viewer.kill()
+            stop_process(self.viewer, 5.0)  # the headless server; a spawned viewer window stays for the user
 
     def tick(self):
         self._drain_errors()
@@ -484,6 +206,14 @@ class Monitor(PipelineStage):
         self._settle()
         return out
 
+    def withdraw(self, topic, index, held):
+        """Conflicting copies: not drawn if still held, not waited for; a TDI segment (what the
+        monitor's progress counts) not drawn is given up (failed)."""
+        self._refused[topic].add(index)
+        if topic == "tdi" and index not in self._drawn["tdi"] and index not in self.done | self.failed:
+            self.mark_failed(index)
+        return index not in self._drawn[topic]
+
     # ------------------------------------------------------------------ progress
     def _waiting_for(self, i: int, board: dict) -> str | None:
         """What segment ``i`` (its TDI drawn) still waits for before it is done, or None.
@@ -498,7 +228,7 @@ class Monitor(PipelineStage):
             peer = board.get(stage)
             if peer is None:
                 continue
-            if i in made(peer) and i not in self._drawn[topic]:
+            if i in made(peer) and i not in self._drawn[topic] and i not in self._refused[topic]:
                 return topic
             if not peer.complete and i not in peer.handled:
                 return topic
@@ -520,7 +250,7 @@ class Monitor(PipelineStage):
             self.publish(self.status(i))
             self.mark_done(i)  # after the output is out (progress protocol)
             changed = True
-        tdi = board.get("tdi_builder")
+        tdi = board.get(self.upstream)
         if tdi is not None:
             for i in sorted(tdi.failed - self.done - self.failed - self._drawn["tdi"]):
                 (self.mark_gap if i in tdi.gaps else self.mark_failed)(i)
@@ -574,11 +304,10 @@ class Monitor(PipelineStage):
             self._truth_source = truth
             self._time(header.t0, header.index)
             try:
+                self._truth = window_truth(truth, block=float(header.meta.get("segment_duration") or 3600.0))
                 if isinstance(truth, dict):  # a simulation on the fly: its coefficient model
-                    self._truth = ModelTruth(CoefficientModel.from_description(truth["coefficients"]))
                     self.text("log", "simulated on the fly: the simulation's true coefficients drawn beside the fits")
                 else:
-                    self._truth = TruthAverager(truth, block=float(header.meta.get("segment_duration") or 3600.0))
                     self.text("log", f"truth file {truth}: true coefficients drawn beside the fits")
                 self._draw_truth(self._fit_windows)  # fits drawn before the truth was known (a late joiner)
             except Exception as exc:  # a bad truth file must not stop the monitor
@@ -619,7 +348,7 @@ class Monitor(PipelineStage):
 
     def on_tdi(self, header, arrays):
         self._segment_time[header.index] = (header.t0, header.fs)
-        f, asd, f_welch = x_asd(arrays["data"][0], header.fs, self.per_decade)
+        f, asd, f_welch = channel_asd(arrays["data"][0], header.fs, self.per_decade)
         self._time(header.t0, header.index)
         self._curve("data", f, asd)
         self._references(header, f_welch)
@@ -630,12 +359,13 @@ class Monitor(PipelineStage):
     def on_residual(self, header, arrays):
         import rerun as rr
 
-        f, asd, f_welch = x_asd(arrays["residual"][0], header.fs, self.per_decade)
+        f, asd, f_welch = channel_asd(arrays["residual"][0], header.fs, self.per_decade)
         self._time(header.t0, header.index)
         self._curve("residual", f, asd)
-        model = finite_stretch(arrays["ttl_model"][0])
-        if model.size >= 64 and np.any(model != 0):
-            fm, am, _ = x_asd(model, header.fs, self.per_decade)
+        model = arrays["ttl_model"][0]
+        model = model[longest_run(np.isfinite(model))]
+        if model.size >= MIN_SAMPLES and np.any(model != 0):
+            fm, am, _ = channel_asd(model, header.fs, self.per_decade)
             self._curve("ttl_model", fm, am)
         ref = self._references(header, f_welch)
         ratio = band_ratio(f, asd, *ref["expected"], self.band)
@@ -684,7 +414,7 @@ class Monitor(PipelineStage):
         self._time(t_stop, header.index)
         for a in alerts:
             self.text("alerts", a.message, "WARN")
-            self.recorder.write_json("alerts", {"run": self.run_id, **a.to_json()}, schema=ALERT_SCHEMA)
+            self.recorder.write_json("alerts", {"run": self.run_id, **a.to_json()}, schema="ttl.Alert")
             self.log.warning("alert: %s", a.message)
         self._pending_alerts.extend(alerts)
         self._last_fit = {"index": header.index, "chi2_dof": chi2,
@@ -758,10 +488,10 @@ class Monitor(PipelineStage):
                 "drifting": sorted(self.trends.drifting), "drift_windows": est.windows if est else 0,
                 "residual_over_expected": {"index": self._ratio[0], "ratio": self._ratio[1]} if self._ratio else None,
                 "fit": self._last_fit, "segments_total": self.segments_total}
-        return Output(OUTPUT_TOPIC[self.name], {"drift_rate": rate, "drift_significance": sig}, index=index,
+        return Output(self.output_topic, {"drift_rate": rate, "drift_significance": sig}, index=index,
                       fields={"t0": t0, "fs": fs, "units": {"drift_rate": "mm/rad/day", "drift_significance": ""},
-                              "meta": jsonable(meta)},
-                      summary=jsonable({"run": self.run_id, "index": index, **meta,
+                              "meta": to_jsonable(meta)},
+                      summary=to_jsonable({"run": self.run_id, "index": index, **meta,
                                         "drift_rate": rate, "drift_significance": sig}))
 
     @staticmethod

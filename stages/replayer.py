@@ -24,8 +24,8 @@ Pace
 ----
 Segments go out as fast as the consumers take them: congestion control BLOCK holds a put
 while a live subscriber's transport is full, and, on top, the replayer stays at most
-``window`` segments ahead of the slowest stage that reports progress (``stages`` module
-docstring), so that a stage that dies finds what it missed in the publishers' caches when
+``window`` segments ahead of the slowest stage that reports progress
+(:mod:`streamer.progress`), so that a stage that dies finds what it missed in the publishers' caches when
 it is restarted (``cache`` > ``window`` + 1).  With ``pace`` X > 0, segment ``i`` goes
 out no earlier than ``i * segment_duration / X`` seconds after the first: X times real time.
 
@@ -38,7 +38,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import shlex
 import sys
 import time
 from dataclasses import dataclass
@@ -46,54 +45,24 @@ from pathlib import Path
 
 import numpy as np
 
+from streamer.pipeline_stage import PipelineStage
 from streamer.plan import Plan
-from streamer.stage import Output
-from ttlcore.cli.main import add_simulation_options, simulation_config_from_args
+from streamer.progress import REPLAY_WINDOW
+from streamer.stage import Output, stage_main
 from ttlcore.conventions import LINKS, parse_duration
-from ttlcore.errors import ConfigError, TelemetryError, TTLError
+from ttlcore.errors import ConfigError, TelemetryError
 from ttlcore.estimate.fit import dws_asd_from_config
 from ttlcore.io.atomic import write_text
 from ttlcore.io.reader import file_kind, read_telemetry
 from ttlcore.io.telemetry import Telemetry, read_header
 from ttlcore.io.truth import truth_path
 from ttlcore.sim.simulator import Simulator
-
-from . import OUTPUT_TOPIC, PipelineStage, stage_main
+from ttlcore.sim.spec import simulation_config
 
 #: Units of the telemetry arrays.
 UNITS = {"eta": "fractional frequency", "dws_phi": "rad/s", "dws_eta": "rad/s", "ltt": "s"}
 #: Default segment length [s].
 DEFAULT_SEGMENT = 3600.0
-#: Default number of segments the replayer may run ahead of the slowest stage.
-DEFAULT_WINDOW = 4
-
-
-# ---------------------------------------------------------------------------- simulation options
-
-def simulation_config(text: str):
-    """A :class:`ttlcore.sim.simulator.SimulationConfig` from ``ttl simulate`` options (no ``--out``),
-    parsed and translated by the same code as ``ttl simulate``.
-
-    Raises
-    ------
-    ConfigError
-        Naming the option at fault.
-    """
-
-    p = argparse.ArgumentParser(prog="--simulate", add_help=False, exit_on_error=False)
-    add_simulation_options(p)
-    try:
-        words = shlex.split(text)
-        args, unknown = p.parse_known_args(words)
-    except (argparse.ArgumentError, ValueError) as exc:
-        raise ConfigError(f"--simulate: {exc}") from None
-    if unknown:
-        raise ConfigError(f"--simulate: unknown option(s) {' '.join(unknown)} "
-                          "(the options of 'ttl simulate' except --out, --chunk, --truth-noises, --quiet)")
-    try:
-        return simulation_config_from_args(args)
-    except TTLError as exc:  # ConfigError included: the message names the option
-        raise ConfigError(f"--simulate {exc}") from None
 
 
 # ---------------------------------------------------------------------------- sources
@@ -215,10 +184,7 @@ class SimulationSource:
 def make_source(options: dict):
     """The source described by the stage options (``telemetry`` or ``simulate``, ``segment``)."""
     segment = options.get("segment", DEFAULT_SEGMENT)
-    try:
-        segment = parse_duration(segment)
-    except ValueError as exc:
-        raise ConfigError(f"--segment: {exc}") from None
+    segment = parse_duration(segment, "--segment")
     files, simulate = options.get("telemetry"), options.get("simulate")
     if files and simulate:
         raise ConfigError("give either --telemetry or --simulate, not both")
@@ -227,18 +193,6 @@ def make_source(options: dict):
     if files:
         return FileSource([files] if isinstance(files, str) else files, segment)
     raise ConfigError("no telemetry source: give --telemetry FILE... or --simulate \"<ttl simulate options>\"")
-
-
-# ---------------------------------------------------------------------------- gaps
-
-def nan_stretches(tm: Telemetry) -> list[list[int]]:
-    """Sample ranges ``[start, stop)`` where any eta or DWS series is not finite (a gap)."""
-    bad = ~(np.isfinite(tm.eta).all(axis=0) & np.isfinite(tm.dws_phi).all(axis=0)
-            & np.isfinite(tm.dws_eta).all(axis=0))
-    if not bad.any():
-        return []
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], bad.astype(np.int8), [0]])))
-    return [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2])]
 
 
 # ---------------------------------------------------------------------------- the stage
@@ -260,7 +214,7 @@ class Replayer(PipelineStage):
         self.pace = float(o.get("pace") or 0.0)
         if self.pace < 0 or not np.isfinite(self.pace):
             raise ConfigError(f"--pace: expected a multiple of real time > 0 (or 0: as fast as possible), got {self.pace}")
-        self.window = int(o.get("window", DEFAULT_WINDOW))
+        self.window = int(o.get("window", REPLAY_WINDOW))
         if self.window < 1:
             raise ConfigError(f"--window: expected >= 1, got {self.window}")
         self.wait_for = tuple(o.get("wait_for") or ())
@@ -336,7 +290,7 @@ class Replayer(PipelineStage):
                 return ()
         try:
             tm, meta = self.source.segment(i)
-            gaps = nan_stretches(tm)
+            gaps = tm.nan_stretches()
             if not np.isfinite(tm.eta).any():
                 # no data at all in this segment: a gap, reported; downstream moves on
                 self.report_error("gap", f"telemetry segment {i} (t0={tm.t0} s) has no finite eta sample: "
@@ -350,7 +304,7 @@ class Replayer(PipelineStage):
                 self.event("gap", index=i, message=f"telemetry segment {i}: {len(gaps)} NaN stretch(es) "
                                                     f"({sum(b - a for a, b in gaps)} samples), published flagged",
                            stretches=gaps)
-            out = Output(OUTPUT_TOPIC[self.name], {
+            out = Output(self.output_topic, {
                 "eta": tm.eta, "dws_phi": tm.dws_phi, "dws_eta": tm.dws_eta, "ltt": tm.ltt},
                 fields={"t0": float(tm.t0), "fs": float(tm.fs), "channels": list(LINKS), "units": UNITS,
                         "meta": {**meta, "segments_total": self.segments_total,
@@ -376,7 +330,7 @@ def add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--simulate", metavar="OPTIONS", help="'ttl simulate' options, e.g. \"--duration 12h --seed 1\"")
     p.add_argument("--segment", help="segment length, e.g. 1h, 30min or seconds (default 1h)")
     p.add_argument("--pace", type=float, help="multiple of real time (default: as fast as consumers take them)")
-    p.add_argument("--window", type=int, help=f"segments the replay may run ahead of the slowest stage (default {DEFAULT_WINDOW})")
+    p.add_argument("--window", type=int, help=f"segments the replay may run ahead of the slowest stage (default {REPLAY_WINDOW})")
     p.add_argument("--wait-for", help="stages to wait for (liveliness) before the first segment, comma-separated")
     p.add_argument("--plan-out", help="with --check: write the run's plan (JSON) to this file")
     p.add_argument("--pace-on", help="stages reporting progress to stay within --window of, comma-separated "

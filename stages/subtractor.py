@@ -26,12 +26,13 @@ import numpy as np
 
 from streamer.codec import Expect
 from streamer.messages import tdi_of
-from streamer.stage import Output
-
+from streamer.pipeline_stage import PipelineStage
+from streamer.recorder import to_jsonable
+from streamer.stage import Output, stage_main
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.estimate.subtraction import subtract
+from ttlcore.tdi.combinations import XYZ
 
-from . import OUTPUT_TOPIC, XYZ, PipelineStage, jsonable, stage_main
 from .fitter import P, tdi_expect
 
 UNITS = {"residual": "fractional frequency", "ttl_model": "fractional frequency"}
@@ -52,6 +53,8 @@ class Subtractor(PipelineStage):
         self.fit_timeout = float(self.options.get("fit_timeout", FIT_TIMEOUT))
         self.tdi: dict[int, tuple] = {}
         self.fits: dict[int, dict] = {}
+        self.applied: set[int] = set()  # fits applied to a segment
+        self.refused_fits: set[int] = set()  # fits withdrawn (conflicting copies): never waited for
         self._waiting_since: dict[int, float] = {}
         # a late joiner gets its history from several publisher caches in any order: collect
         # for `settle` seconds before the first segment (unless it is segment 0)
@@ -67,6 +70,19 @@ class Subtractor(PipelineStage):
 
     def pending(self) -> int:
         return len(self.tdi)
+
+    def withdraw(self, topic, index, held):
+        """Conflicting copies: a fit is forgotten (the segments it would cover get an earlier
+        one), a TDI segment not yet subtracted is given up (failed)."""
+        if topic == "fit":
+            self.fits.pop(index, None)
+            self.refused_fits.add(index)
+            return index not in self.applied
+        if index in self.done or index in self.failed:
+            return False
+        self.tdi.pop(index, None)
+        self.mark_failed(index)
+        return True
 
     def handle(self, header, arrays):
         self.note_meta(header.meta)
@@ -94,7 +110,7 @@ class Subtractor(PipelineStage):
     def give_up_gaps(self) -> None:
         """Segments the tdi_builder gave up will not come: handled here as given up too
         (as gaps when they were gaps), so the run can end."""
-        peer = self.board.get("tdi_builder")
+        peer = self.board.get(self.upstream)
         if peer is None:
             return
         for i in sorted(peer.failed - self.done - self.failed - set(self.tdi)):
@@ -104,7 +120,7 @@ class Subtractor(PipelineStage):
     def choose(self, index: int):
         """``("wait", None)``, or ``("apply", j)`` with ``j`` the fit index (None: no fit yet)."""
         fitter = self.board.get("fitter")
-        announced = set(fitter.extra.get("fits", ())) if fitter else set()
+        announced = (set(fitter.extra.get("fits", ())) if fitter else set()) - self.refused_fits
         passed = (fitter is not None and index in fitter.handled) or any(j >= index for j in self.fits)
         if not passed:
             return "wait", None
@@ -153,6 +169,7 @@ class Subtractor(PipelineStage):
             fit = {"t_start": None, "t_stop": None}
         else:
             fit = self.fits[fit_index]
+            self.applied.add(fit_index)
             coefficients = fit["coefficients"]
             residual = subtract(td, coefficients)
             model = td.model(np.array([coefficients[n] for n in td.names]))
@@ -161,9 +178,9 @@ class Subtractor(PipelineStage):
         meta = {"fit_index": fit_index, "coefficients_t_start": fit["t_start"], "coefficients_t_stop": fit["t_stop"],
                 "segments_total": self.segments_total}
         self.log.info("segment %d: fit %s applied", header.index, fit_index)
-        return Output(OUTPUT_TOPIC[self.name], {"residual": residual, "ttl_model": model},
-                      fields={"channels": list(XYZ), "channel_axis": 0, "units": UNITS, "meta": jsonable(meta)},
-                      summary=jsonable({"run": self.run_id, "index": header.index, "fit_index": fit_index,
+        return Output(self.output_topic, {"residual": residual, "ttl_model": model},
+                      fields={"channels": list(XYZ), "channel_axis": 0, "units": UNITS, "meta": to_jsonable(meta)},
+                      summary=to_jsonable({"run": self.run_id, "index": header.index, "fit_index": fit_index,
                                         "channels": list(XYZ), "rms_data": rms["data"],
                                         "rms_residual": rms["residual"]}),
                       allow_nonfinite=True)

@@ -11,7 +11,7 @@ first segment).
 The delays and interpolation reach back about 70 s: :class:`ttlcore.tdi.data.TDIStream`
 keeps that tail of telemetry between segments, so the output for a day fed in segments
 equals the batch TDI of the whole day, and segments stay independent messages.  Segments
-are therefore processed in index order (:class:`stages.OrderedStage`); a segment whose t0 does
+are therefore processed in index order (:class:`streamer.pipeline_stage.OrderedStage`); a segment whose t0 does
 not follow the previous one (files with a gap) restarts the stream, and so does a stage
 restarted mid-run, from the earliest segment the replayer's cache still holds (its output
 is a duplicate its consumers ignore, and it re-creates the tail the next segments need).
@@ -23,13 +23,12 @@ import sys
 
 from streamer.codec import Expect
 from streamer.messages import TELEMETRY_ARRAYS, telemetry_of
-from streamer.stage import Output
-
+from streamer.pipeline_stage import OrderedStage
+from streamer.stage import Output, stage_main
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.io.telemetry import Telemetry
+from ttlcore.tdi.combinations import XYZ
 from ttlcore.tdi.data import TDIStream
-
-from . import OUTPUT_TOPIC, XYZ, OrderedStage, stage_main
 
 #: Arrays kept in the recording: the regressors (72 channels, two thirds of a day's MCAP)
 #: are rebuilt from the replayer's recorded telemetry by :func:`ttlcore` TDI when needed.
@@ -44,7 +43,6 @@ class TDIBuilder(OrderedStage):
     name = "tdi_builder"
     inputs = ("telemetry",)
     follow = ("replayer",)
-    upstream = "replayer"
     reorders = ("telemetry",)
 
     def __init__(self, config):
@@ -86,7 +84,7 @@ class TDIBuilder(OrderedStage):
         if tuple(td.names) != tuple(COEFFICIENT_NAMES) or tuple(td.channels) != XYZ:
             raise ValueError(f"TDIStream gave channels {td.channels} and names {td.names[:2]}...; "
                              f"expected {XYZ} and the 24 coefficients")
-        return Output(OUTPUT_TOPIC[self.name], {"data": td.data, "regressors": td.regressors},
+        return Output(self.output_topic, {"data": td.data, "regressors": td.regressors},
                       fields={"channels": list(td.channels), "channel_axis": 0, "units": UNITS, "meta": meta},
                       allow_nonfinite=True, record_arrays=RECORDED)
 

@@ -2,8 +2,10 @@
 
 Modules
 -------
+topology
+    The shape of the pipeline, written once: stages in order, their output topics, upstreams.
 keys
-    Key expressions ``ttl/<run>/<topic>/<index>``, liveliness and control keys.
+    Key expressions ``ttl/<run>/<topic>/<index>``, liveliness, control and progress keys.
 codec
     The segment codec: JSON header (attachment) plus raw array bytes (payload).
 session
@@ -12,7 +14,13 @@ session
 recorder
     MCAP recording and salvaging reader.
 stage
-    The stage base class: lifecycle, validation, idempotence, errors, recording.
+    The stage base class: lifecycle, validation, idempotence, errors, recording; the entry
+    point of a stage process (``stage_main``).
+progress
+    The progress protocol and its bookkeeping (``Progress``), for the stages and the launcher.
+pipeline_stage
+    The base classes of the stage programs: ``PipelineStage`` (reports progress) and
+    ``OrderedStage`` (handles its input in index order).
 launcher
     ``ttl run``: starts and supervises the five stage processes around a loopback router.
 inspect

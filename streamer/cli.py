@@ -41,7 +41,7 @@ from ttlcore.cli.main import main as science_main
 from ttlcore.errors import TTLError
 
 from . import refit, reprocess
-from .keys import check_name, control_key
+from .keys import ERRORS, check_name, control_key, topic_pattern
 from .launcher import RunOptions, run, stage_module_exists
 from .security import ROLES, ROUTER_LOG_FILTER, ensure_credentials, filter_log
 from .session import (
@@ -52,13 +52,10 @@ from .session import (
     open_router,
     open_session,
 )
-from .stage import Stage
-from .stage import main as run_stage
+from .stage import Stage, stage_main
+from .topology import STAGES, stage_module
 
 log = logging.getLogger(__name__)
-
-#: The stages ``ttl stage`` can run.
-STAGE_NAMES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
 
 
 def register(sub) -> None:
@@ -88,7 +85,7 @@ def register(sub) -> None:
 
 def _add_run(sub) -> None:
     p = sub.add_parser(
-        "run", help="run the streaming pipeline (replayer, tdi_builder, fitter, subtractor, monitor)",
+        "run", help=f"run the streaming pipeline ({', '.join(STAGES)})",
         description="Start the five stages as separate processes on a loopback Zenoh (a router process on "
                     "127.0.0.1, the stages as its clients, all with mutual TLS), show progress, supervise "
                     "them, and stop them once every stage has handled every segment. Recordings go to "
@@ -122,8 +119,6 @@ def _add_run(sub) -> None:
     p.add_argument("--fit-window", help="fitter: rolling window length (default 1d)")
     p.add_argument("--band", nargs=2, type=float, metavar=("FMIN", "FMAX"), help="fitter: fit band [Hz]")
     p.add_argument("--timeout", type=float, help="give up after this many seconds")
-    p.add_argument("--grace", type=float, help="seconds a stage without progress reports (the monitor) may "
-                   "stay quiet after the others are done before it is stopped (default 10)")
     p.add_argument("--log-level", help="log level of the stages (default INFO)")
     p.add_argument("--quiet", action="store_true", help="no progress display")
     p.set_defaults(func=_cmd_run)
@@ -168,7 +163,7 @@ def run_options(args) -> "RunOptions":
     cli = {"run_id": args.run_id, "telemetry": args.telemetry, "simulate": args.simulate, "segment": args.segment,
            "recordings": args.recordings, "pace": args.pace, "window": args.window, "cache": args.cache,
            "restart": args.restart, "zenoh_config": args.zenoh_config, "timeout": args.timeout,
-           "grace": args.grace, "log_level": args.log_level, "credentials": args.credentials,
+           "log_level": args.log_level, "credentials": args.credentials,
            "insecure": args.insecure or None}
     if args.skip:
         cli["skip"] = _split(args.skip)
@@ -214,7 +209,7 @@ def _add_stage(sub) -> None:
                                    "to the stage (see 'ttl stage NAME --help'), e.g. "
                                    "'ttl stage fitter --run r1 --connect tcp/127.0.0.1:7447'.",
                        add_help=True)
-    p.add_argument("name", choices=STAGE_NAMES, metavar="NAME", help=f"one of {', '.join(STAGE_NAMES)}")
+    p.add_argument("name", choices=STAGES, metavar="NAME", help=f"one of {', '.join(STAGES)}")
     p.add_argument("args", nargs=argparse.REMAINDER, help="stage options")
     p.set_defaults(func=_cmd_stage)
 
@@ -222,15 +217,15 @@ def _add_stage(sub) -> None:
 def _cmd_stage(args) -> int:
 
     if not stage_module_exists(args.name):
-        raise TTLError(f"stage {args.name!r} is not installed (no module stages.{args.name})")
-    module = importlib.import_module(f"stages.{args.name}")
+        raise TTLError(f"stage {args.name!r} is not installed (no module {stage_module(args.name)})")
+    module = importlib.import_module(stage_module(args.name))
     if hasattr(module, "main"):
         return int(module.main(args.args) or 0)
     classes = [c for c in vars(module).values()
                if isinstance(c, type) and issubclass(c, Stage) and c.__module__ == module.__name__]
     if not classes:
-        raise TTLError(f"stage {args.name!r}: module stages.{args.name} has neither main() nor a Stage class")
-    return int(run_stage(classes[0], args.args) or 0)
+        raise TTLError(f"stage {args.name!r}: module {stage_module(args.name)} has neither main() nor a Stage class")
+    return int(stage_main(classes[0], args.args) or 0)
 
 
 # ---------------------------------------------------------------------------- ttl control
@@ -279,7 +274,7 @@ def _cmd_control(args) -> int:
             if err.get("key") == key:
                 rejections.put(err)
 
-        bus.subscriber(f"ttl/{args.run}/errors/*", on_error)
+        bus.subscriber(topic_pattern(args.run, ERRORS), on_error)
         if args.stage not in bus.alive_stages(args.run, timeout=1.0):
             raise TTLError(f"no stage {args.stage!r} alive in run {args.run!r}")
         bus.session.put(key, args.payload.encode())
@@ -296,8 +291,7 @@ def _cmd_control(args) -> int:
 def _add_credentials(sub) -> None:
     p = sub.add_parser("credentials", help="make the TLS credentials of a deployment (CA, one certificate per role)",
                        description="Create what is missing in DIR: a certificate authority (ca.pem, ca.key) and one "
-                                   "certificate and key per role (replayer, tdi_builder, fitter, subtractor, monitor, "
-                                   "launcher, control, router), keys mode 0600. The router certificate names "
+                                   f"certificate and key per role ({', '.join(ROLES)}), keys mode 0600. The router certificate names "
                                    "127.0.0.1, localhost and every --host. Copy ca.pem and a role's .pem/.key to the "
                                    "host that runs it; keep ca.key where certificates are issued.")
     p.add_argument("directory", type=Path, metavar="DIR")

@@ -5,7 +5,9 @@
     oldest ``.1``): which stages ran; the segments each produced and received per topic,
     with missing and duplicate indices; the coefficients and their trends with
     uncertainties (the fitter's fit JSON, ``fit/summary``, schema ``ttl.Fit``); the
-    monitor's alerts; the errors of every stage; and interruptions: files without footer
+    monitor's alerts; the errors of every stage; the router's refusals (``security.jsonl``:
+    unauthenticated peers and forbidden publications, counted per kind with the first few);
+    and interruptions: files without footer
     (the process was killed; the reader salvages them), segments whose payload never made
     it to disk, a stage's restarts, a recording that ends without a ``stop`` event.
     Works on a run whose stages were killed.  ``--json FILE``: the same as one JSON object
@@ -26,10 +28,8 @@ from __future__ import annotations
 import json
 import logging
 import math
-import os
 import re
 import shlex
-import shutil
 import signal
 import subprocess
 from collections import Counter, defaultdict
@@ -39,20 +39,22 @@ import numpy as np
 
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.trends import TrendSettings, trend_estimates
+from ttlcore.estimate.monitoring import FileTruth
 from ttlcore.io.atomic import write_json
-from ttlcore.io.truth import read_truth
 
 from .keys import to_ranges
 from .recorder import Recording, RecordingError, read_recording, to_jsonable
+from .topology import STAGES
+from .viewer import rerun_binary
 from .webview import WebView
 
-#: The pipeline's stages, in order (names of their recordings).
-KNOWN_STAGES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
 _FILE = re.compile(r"^(?P<stage>.+?)(?:\.(?P<n>\d+))?\.mcap$")
 #: Span of the drift rate in the report [days] (ttlcore.diagnose.trends.TrendSettings.drift_lookback).
 LOOKBACK_DAYS = 3.0
 #: Errors listed in full by the text report (the rest are counted).
 MAX_LISTED = 20
+#: Refusals of each kind kept in the report (``security.jsonl``; the rest are counted).
+MAX_REFUSALS = 5
 
 
 class InspectError(ValueError):
@@ -88,7 +90,7 @@ def recording_files(run_dir) -> dict[str, list[Path]]:
             by_stage[m.group("stage")].append((n, path))
     if not by_stage:
         raise InspectError(f"{run_dir}: no MCAP recordings (*.mcap) in this directory")
-    order = {s: i for i, s in enumerate(KNOWN_STAGES)}
+    order = {s: i for i, s in enumerate(STAGES)}
     return {stage: [p for _, p in sorted(files, key=lambda x: x[0])]
             for stage, files in sorted(by_stage.items(), key=lambda kv: (order.get(kv[0], 99), kv[0]))}
 
@@ -235,14 +237,13 @@ def _trends(fits: list[dict]) -> dict:
 
 
 def truth_over_window(truth_path, t_start: float, t_stop: float, names) -> dict:
-    """True coefficients [mm/rad] averaged over ``[t_start, t_stop)`` from a truth file."""
-
-    head = read_truth(truth_path, 0, 1)
-    i0 = max(0, int(np.floor((t_start - head.t0) * head.fs)))
-    i1 = max(i0 + 1, int(np.ceil((t_stop - head.t0) * head.fs)))
-    tr = read_truth(truth_path, i0, i1)
-
-    mean = dict(zip(COEFFICIENT_NAMES, tr.coefficients.mean(axis=1) * 1e3))
+    """True coefficients [mm/rad] averaged over ``[t_start, t_stop)`` from a truth file
+    (:class:`ttlcore.estimate.monitoring.FileTruth`, as the monitor draws them); empty when
+    the window is outside the file."""
+    mean = FileTruth(truth_path).mean(t_start, t_stop)
+    if mean is None:
+        return {}
+    mean = dict(zip(COEFFICIENT_NAMES, mean * 1e3))
     return {n: float(mean[n]) for n in names if n in mean}
 
 
@@ -254,7 +255,7 @@ def inspect_run(run_dir, truth=None) -> dict:
     ``stages_missing`` (pipeline stages without a recording), ``segments_total``,
     ``fits`` (count, index range, the table of fits in m/rad and ``trends`` per
     coefficient in mm/rad and mm/rad/day), ``alerts`` (the monitor's), ``warnings`` (all stages: a fit that did not converge...), ``errors`` (all
-    stages'), ``interruptions``.
+    stages'), ``interruptions``, ``gaps``, ``security`` (:func:`security_report`).
 
     Raises
     ------
@@ -352,9 +353,52 @@ def inspect_run(run_dir, truth=None) -> dict:
                 t["error_over_sigma"] = (t["latest"] - true[name]) / t["sigma"] if t["sigma"] > 0 else None
         fit_report["truth_file"] = str(truth)
     return {"run": runs[0] if len(runs) == 1 else (runs or [run_dir.name]), "directory": str(run_dir),
-            "stages": stages, "stages_missing": [s for s in KNOWN_STAGES if s not in stages],
+            "stages": stages, "stages_missing": [s for s in STAGES if s not in stages],
             "segments_total": total, "fits": fit_report, "alerts": alerts, "warnings": warnings, "errors": errors,
-            "interruptions": interruptions, "gaps": gaps}
+            "interruptions": interruptions, "gaps": gaps, "security": security_report(run_dir)}
+
+
+def security_report(run_dir: Path) -> dict:
+    """The router's refusals of a run (``security.jsonl``, written by ``ttl run`` with
+    credentials when the run ends; :func:`streamer.security.refusals`).
+
+    Returns ``{"file", "present", "count", "kinds": {kind: {"count", "first": [the first
+    MAX_REFUSALS records]}}, "unreadable": [line numbers]}``; ``present`` is False when the
+    file is absent (a run with ``--insecure``, or whose launcher did not end).  A line that is
+    not a JSON object with a ``kind`` is counted in ``unreadable``, not fatal (the file of a
+    damaged run is still reported).
+    """
+    path = Path(run_dir) / "security.jsonl"
+    out = {"file": str(path), "present": path.exists(), "count": 0, "kinds": {}, "unreadable": []}
+    if not out["present"]:
+        return out
+    try:
+        text = path.read_text(errors="replace")
+    except OSError as exc:
+        raise InspectError(f"{path}: cannot read: {exc}") from None
+    for n, line in enumerate(text.splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except ValueError:
+            record = None
+        if not isinstance(record, dict) or not isinstance(record.get("kind"), str):
+            out["unreadable"].append(n)
+            continue
+        kind = out["kinds"].setdefault(record["kind"], {"count": 0, "first": []})
+        kind["count"] += 1
+        out["count"] += 1
+        if len(kind["first"]) < MAX_REFUSALS:
+            kind["first"].append(record)
+    return out
+
+
+def _refusal_text(r: dict) -> str:
+    when = f" at {r['time']}" if r.get("time") else ""
+    if r.get("kind") == "forbidden":
+        return f"{r.get('subject')} may not {r.get('action')} on {r.get('key')}{when}"
+    return f"{r.get('message', json.dumps(r))}{when}"
 
 
 def _plan(run_dir: Path) -> dict | None:
@@ -487,6 +531,23 @@ def format_report(r: dict) -> str:
         span = f" ({g['seconds'] / 60:.1f} min of NaN)" if g.get("seconds") else ""
         lines.append(f"  {g['stage']} {g['kind']} segment {g['index']}{span}: {g['message']}")
 
+    sec = r.get("security")
+    if sec is not None:
+        lines.append("")
+        if not sec["present"]:
+            lines.append("Security: no security.jsonl (a run with --insecure, or its launcher did not end)")
+        else:
+            lines.append(f"Security (security.jsonl): {sec['count']} refusal(s) by the router"
+                         + (", " + ", ".join(f"{k} x{v['count']}" for k, v in sorted(sec["kinds"].items()))
+                            if sec["kinds"] else ""))
+            for kind, v in sorted(sec["kinds"].items()):
+                for rec in v["first"]:
+                    lines.append(f"  {kind}: {_refusal_text(rec)}")
+                if v["count"] > len(v["first"]):
+                    lines.append(f"  {kind}: ... {v['count'] - len(v['first'])} more")
+            if sec["unreadable"]:
+                lines.append(f"  unreadable line(s) {_fmt_ranges(to_ranges(sec['unreadable']))}")
+
     lines.append("")
     lines.append(f"Interruptions: {len(r['interruptions'])}")
     for i in r["interruptions"]:
@@ -495,36 +556,6 @@ def format_report(r: dict) -> str:
 
 
 # ---------------------------------------------------------------------------- view
-
-def rerun_binary(explicit: str | None = None) -> str:
-    """The ``rerun`` executable itself (not the pip wrapper script, which would leave it
-    orphaned when stopped): ``explicit``, ``$RERUN_CLI_PATH``, the one bundled with
-    rerun-sdk (``rerun_cli``), else ``rerun`` on PATH.
-
-    Raises
-    ------
-    FileNotFoundError
-        If there is none.
-    """
-
-    if explicit:
-        return str(explicit)
-    if os.environ.get("RERUN_CLI_PATH"):
-        return os.environ["RERUN_CLI_PATH"]
-    try:
-        import rerun_cli
-
-        base = Path(rerun_cli.__file__).parent
-        for candidate in (base / "Rerun.app" / "Contents" / "MacOS" / "Rerun", base / "rerun", base / "rerun.exe"):
-            if candidate.exists():
-                return str(candidate)
-    except ImportError:
-        pass
-    found = shutil.which("rerun")
-    if not found:
-        raise FileNotFoundError("rerun: the Rerun viewer binary is not installed (pip install rerun-sdk)")
-    return found
-
 
 def view_command(target, binary: str | None = None) -> list[str]:
     """The ``rerun`` command that opens a run's ``monitor.rrd`` bound to 127.0.0.1.

@@ -8,7 +8,10 @@ Every key of a run starts with ``ttl/<run>/``:
 ``ttl/<run>/alive/<stage>``
     liveliness token of a running stage.
 ``ttl/<run>/control/<...>``
-    commands (e.g. ``ttl/<run>/control/stop``, ``ttl/<run>/control/<stage>/stop``).
+    commands (e.g. ``ttl/<run>/control/stop``, ``ttl/<run>/control/<stage>/stop``), and the
+    progress of the stages: ``control/progress/<stage>`` as each stage reports it,
+    ``control/board/<stage>`` as the launcher believed and republished it
+    (:mod:`streamer.progress`).
 
 Builders check every chunk they insert; parsers raise :class:`KeyExprError` naming the
 key at fault.
@@ -16,21 +19,28 @@ key at fault.
 
 from __future__ import annotations
 
-from typing import Iterable
-
 import re
 from dataclasses import dataclass
+from typing import Iterable
+
+from .topology import OUTPUT_TOPIC
 
 #: First chunk of every key of this project.
 PREFIX = "ttl"
-#: Segment topics, in pipeline order.
-TOPICS = ("telemetry", "tdi", "fit", "residual", "monitor", "errors")
+#: Topic of the error reports (any stage publishes there).
+ERRORS = "errors"
+#: Segment topics: the stages' outputs in pipeline order, then the errors.
+TOPICS = (*OUTPUT_TOPIC.values(), ERRORS)
 #: Chunk used for the liveliness tokens of stages.
 ALIVE = "alive"
 #: Chunk under which commands live.
 CONTROL = "control"
 #: Index chunk of an error about a message whose segment index is unknown.
 UNKNOWN_INDEX = "unknown"
+#: Control chunk of the progress a stage reports (``ttl/<run>/control/progress/<stage>``).
+PROGRESS = "progress"
+#: Control chunk of the progress the launcher has verified (``ttl/<run>/control/board/<stage>``).
+BOARD = "board"
 
 _NAME = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._-]*$")
 
@@ -110,7 +120,7 @@ def segment_key(run: str, topic: str, index: int | None) -> str:
     check_name(run, "run id")
     _check_topic(topic)
     if index is None:
-        if topic != "errors":
+        if topic != ERRORS:
             raise KeyExprError(f"{PREFIX}/{run}/{topic}/?", "a segment key needs an index")
         chunk = UNKNOWN_INDEX
     else:
@@ -128,7 +138,7 @@ def topic_pattern(run: str, topic: str) -> str:
 
 def errors_key(run: str, index: int | None) -> str:
     """``ttl/<run>/errors/<index>`` (``unknown`` when the index is None)."""
-    return segment_key(run, "errors", index)
+    return segment_key(run, ERRORS, index)
 
 
 def alive_key(run: str, stage: str) -> str:
@@ -151,6 +161,35 @@ def control_key(run: str, *parts: str) -> str:
 def control_pattern(run: str) -> str:
     """``ttl/<run>/control/**``: every command of a run."""
     return f"{PREFIX}/{check_name(run, 'run id')}/{CONTROL}/**"
+
+
+def progress_key(run: str, stage: str) -> str:
+    """``ttl/<run>/control/progress/<stage>``: the progress ``stage`` reports."""
+    return control_key(run, PROGRESS, stage)
+
+
+def board_key(run: str, stage: str) -> str:
+    """``ttl/<run>/control/board/<stage>``: ``stage``'s progress as the launcher verified it."""
+    return control_key(run, BOARD, stage)
+
+
+def progress_pattern(run: str, board: bool = False) -> str:
+    """``ttl/<run>/control/progress/*`` (``.../board/*`` with ``board``): every stage's progress."""
+    return f"{PREFIX}/{check_name(run, 'run id')}/{CONTROL}/{BOARD if board else PROGRESS}/*"
+
+
+def parse_progress_key(key: str) -> tuple[str, str]:
+    """``ttl/<run>/control/progress/<stage>`` (or ``.../board/<stage>``) -> ``(run, stage)``.
+
+    Raises
+    ------
+    KeyExprError
+        If ``key`` is not a progress key.
+    """
+    run, parts = parse_control_key(key)
+    if len(parts) != 2 or parts[0] not in (PROGRESS, BOARD) or not _NAME.match(parts[1]):
+        raise KeyExprError(str(key), f"expected 'ttl/<run>/control/{PROGRESS}/<stage>'")
+    return run, parts[1]
 
 
 def _chunks(key: str) -> list[str]:
@@ -177,7 +216,7 @@ def parse_segment_key(key: str) -> SegmentKey:
     _, run, topic, chunk = chunks
     if topic not in TOPICS:
         raise KeyExprError(str(key), f"unknown topic {topic!r} (expected one of {', '.join(TOPICS)})")
-    if topic == "errors" and chunk == UNKNOWN_INDEX:
+    if topic == ERRORS and chunk == UNKNOWN_INDEX:
         return SegmentKey(run, topic, None)
     if not chunk.isdigit() or (len(chunk) > 1 and chunk.startswith("0")):
         raise KeyExprError(str(key), f"segment index {chunk!r} is not a non-negative integer")

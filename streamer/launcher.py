@@ -24,14 +24,14 @@ Process model
 Progress and completion
 -----------------------
 The pipeline stages publish cumulative progress on ``ttl/<run>/control/progress/<stage>``
-(see :mod:`stages`); the replayer's carries ``segments_total``.  The launcher keeps, per
-stage, the union of the indices handled over all its processes (a restarted stage starts
-afresh) and shows ``done/total`` per stage, with liveliness (``ttl/<run>/alive/<stage>``).
-A stage that reports no progress (the monitor, unless it adopts the protocol) counts as done
-when it has published ``ttl/<run>/monitor/<i>`` for every segment, or else ``grace``
-seconds after everything upstream is done and its last output.  When every stage is done,
-the launcher sends ``ttl/<run>/control/stop``; the stages close their recordings and exit
-0, and so does ``ttl run``.
+(:mod:`streamer.progress`); the replayer's carries ``segments_total``.  The launcher keeps,
+per stage, a :class:`streamer.progress.Progress`: the union of the indices handled over all
+its processes (a restarted stage starts afresh), of the messages it believed (a stage may
+not claim a segment its upstream has not handled, :data:`streamer.topology.UPSTREAM`).  It
+republishes it on ``ttl/<run>/control/board/<stage>`` for the stages to follow, and shows
+``done/total`` per stage, with liveliness (``ttl/<run>/alive/<stage>``).  When every stage
+has handled every segment, the launcher sends ``ttl/<run>/control/stop``; the stages close
+their recordings and exit 0, and so does ``ttl run``.
 
 Supervision
 -----------
@@ -45,7 +45,6 @@ on another host, or started later: late joiners catch up from the caches).
 
 from __future__ import annotations
 
-import ctypes
 import importlib.util
 import json
 import logging
@@ -64,7 +63,20 @@ import zenoh
 from ttlcore.errors import TTLError
 
 from . import security
-from .keys import check_name, control_key, from_ranges, to_ranges
+from .keys import (
+    ERRORS,
+    board_key,
+    check_name,
+    control_key,
+    errors_key,
+    progress_key,
+    progress_pattern,
+    to_ranges,
+    topic_pattern,
+)
+from .processes import die_with_parent, stop_process
+from .progress import REPLAY_WINDOW, Progress, key_stage, parse_progress
+from .recorder import stage_record
 from .session import (
     Bus,
     SessionSettings,
@@ -72,25 +84,11 @@ from .session import (
     declare_segment_subscriber,
     loopback_endpoint,
 )
-from .stage import BOARD, LAUNCHER
+from .stage import LAUNCHER
+from .topology import STAGE_PACKAGE, STAGES, UPSTREAM, stage_module
 
 log = logging.getLogger(__name__)
 
-#: The stages of a run, in pipeline order.
-STAGES = ("replayer", "tdi_builder", "fitter", "subtractor", "monitor")
-#: Stages that publish progress messages (``stages.PipelineStage``); the replayer stays
-#: within ``window`` segments of them.  Any other stage that reports progress is followed too.
-PROGRESS_STAGES = frozenset({"replayer", "tdi_builder", "fitter", "subtractor", "monitor"})
-#: Output topic of each stage.
-OUTPUT_TOPIC = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit", "subtractor": "residual",
-                "monitor": "monitor"}
-#: Stages that record the headers of their inputs only (a reference to the payload in the
-#: producer's file): all of them, so that each payload is stored once per run.
-HEADERS_ONLY = frozenset(STAGES)
-DEFAULT_WINDOW = 4
-#: The stage whose progress bounds each stage's claims (a stage handles only what it got).
-UPSTREAM = {"tdi_builder": "replayer", "fitter": "tdi_builder", "subtractor": "tdi_builder",
-            "monitor": "tdi_builder"}
 #: Seconds a progress message claiming more than its upstream waits for the upstream's progress.
 HOLD_PROGRESS = 30.0
 
@@ -138,8 +136,6 @@ class RunOptions:
         options ``fit_segment``, ``window_duration``, ``band``.
     timeout : float, optional
         Give up after this many seconds.
-    grace : float
-        See the module docstring.
     """
 
     run_id: str
@@ -148,7 +144,7 @@ class RunOptions:
     simulate: str | None = None
     segment: str = "1h"
     pace: float = 0.0
-    window: int = DEFAULT_WINDOW
+    window: int = REPLAY_WINDOW
     cache: int | None = None
     skip: tuple = ()
     external: tuple = ()
@@ -159,7 +155,6 @@ class RunOptions:
     insecure: bool = False
     stage_options: dict = field(default_factory=dict)
     timeout: float | None = None
-    grace: float = 10.0
     stop_timeout: float = 60.0
     log_level: str = "INFO"
     quiet: bool = False
@@ -168,7 +163,7 @@ class RunOptions:
 
 def stage_module_exists(name: str) -> bool:
     """True when ``stages/<name>.py`` is installed (without importing it)."""
-    spec = importlib.util.find_spec("stages")
+    spec = importlib.util.find_spec(STAGE_PACKAGE)
     if spec is None or not spec.submodule_search_locations:
         return False
     return any((Path(loc) / f"{name}.py").exists() or (Path(loc) / name / "__init__.py").exists()
@@ -195,9 +190,7 @@ class Launcher:
         self.children: dict[str, _Child] = {}
         self.expected: list[str] = []
         self.alive: dict[str, bool] = {}
-        self.progress: dict[str, dict] = {}  # stage -> {"done": set, "failed": set, "total": int|None}
-        self.outputs: dict[str, set] = {}  # silent stage -> indices seen on its topic
-        self.last_output: dict[str, float] = {}
+        self.progress: dict[str, Progress] = {}  # stage -> what the launcher believed of it
         self.errors: list[dict] = []
         self.events: queue.Queue = queue.Queue()
         self._t0 = time.monotonic()
@@ -276,8 +269,7 @@ class Launcher:
             opts.update({"telemetry": [str(Path(f).resolve()) for f in o.telemetry] if o.telemetry else None,
                          "simulate": o.simulate, "segment": o.segment, "pace": o.pace, "window": o.window,
                          "wait_for": [n for n in started if n != "replayer"],
-                         "pace_on": [n for n in started if n != "replayer" and n in PROGRESS_STAGES
-                                     and STAGES.index(n) < first_external]})
+                         "pace_on": [n for n in started if n != "replayer" and STAGES.index(n) < first_external]})
         return {k: v for k, v in opts.items() if v is not None}
 
     def stage_config(self, name: str) -> dict:
@@ -285,9 +277,10 @@ class Launcher:
                "zenoh": self.session_settings(name).to_dict(),
                "recordings": str(Path(self.opts.recordings).resolve()), "cache": self.cache,
                "options": self.stage_options(name), "plan": self.run_plan, "launcher_pid": os.getpid(),
-               "progress_from": "launcher"}
-        if name in HEADERS_ONLY:
-            cfg["record_inputs"] = False
+               "progress_from": "launcher",
+               # inputs recorded as headers only (a reference to the payload in the producer's
+               # file): each payload is stored once per run
+               "record_inputs": False}
         return cfg
 
     def session_settings(self, identity: str) -> SessionSettings:
@@ -330,7 +323,7 @@ class Launcher:
         with open(path, "ab") as logf:
             start = logf.tell()
             self.router = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                           env=env, preexec_fn=_die_with_parent)
+                                           env=env, preexec_fn=die_with_parent)
         self._watcher = security.RefusalWatcher(path, offset=start)
         deadline = time.monotonic() + 60.0
         while time.monotonic() < deadline:
@@ -347,13 +340,7 @@ class Launcher:
     def stop_router(self) -> None:
         if self.router is None:
             return
-        if self.router.poll() is None:
-            self.router.send_signal(signal.SIGTERM)
-            try:
-                self.router.wait(15.0)
-            except subprocess.TimeoutExpired:
-                self.router.kill()
-                self.router.wait()
+        stop_process(self.router, 15.0)
         self.router = None
 
     def watch_refusals(self) -> None:
@@ -374,7 +361,7 @@ class Launcher:
         path = self.run_dir / "replayer.config.json"
         plan_path = self.run_dir / "plan.json"
         path.write_text(json.dumps(self.stage_config("replayer"), indent=2))
-        res = subprocess.run([self.opts.python, "-m", "stages.replayer", "--config", str(path), "--check",
+        res = subprocess.run([self.opts.python, "-m", stage_module("replayer"), "--config", str(path), "--check",
                               "--plan-out", str(plan_path), "--log-level", "WARNING"],
                              capture_output=True, text=True, timeout=300)
         if res.returncode != 0:
@@ -386,17 +373,15 @@ class Launcher:
 
     # ------------------------------------------------------------------ bus callbacks
     def _on_progress(self, sample) -> None:
-        try:
-            msg = json.loads(sample.payload.to_bytes())
-        except ValueError:
+        msg = parse_progress(sample.payload)
+        if msg is None:
             return
-        key_stage = str(sample.key_expr).rsplit("/", 1)[-1]
-        if isinstance(msg, dict) and isinstance(msg.get("stage"), str):
-            if msg["stage"] != key_stage:  # the key is what the access-control list vouches for
-                self.events.put(("error", {"stage": key_stage, "kind": "forged-progress", "key": str(sample.key_expr),
-                                           "message": f"progress of {msg['stage']!r} published as {key_stage!r}"}))
-                return
-            self.events.put(("progress", msg))
+        stage = key_stage(str(sample.key_expr))
+        if msg["stage"] != stage:  # the key is what the access-control list vouches for
+            self.events.put(("error", {"stage": stage, "kind": "forged-progress", "key": str(sample.key_expr),
+                                       "message": f"progress of {msg['stage']!r} published as {stage!r}"}))
+            return
+        self.events.put(("progress", msg))
 
     def _on_alive(self, stage: str, alive: bool) -> None:
         self.events.put(("alive", stage, alive))
@@ -406,11 +391,6 @@ class Launcher:
             self.events.put(("error", json.loads(sample.payload.to_bytes())))
         except ValueError:
             self.events.put(("error", {"message": "unreadable error message", "key": str(sample.key_expr)}))
-
-    def _on_output(self, sample) -> None:
-        parts = str(sample.key_expr).split("/")
-        if len(parts) == 4 and parts[3].isdigit():
-            self.events.put(("output", parts[2], int(parts[3])))
 
     def _drain_events(self) -> bool:
         changed = False
@@ -429,17 +409,8 @@ class Launcher:
                 if why:
                     self.refuse_progress(msg, why)
                     continue
-                p = self.progress.setdefault(msg["stage"], {"done": set(), "failed": set(), "gaps": set(),
-                                                            "total": None})
-                limit = self.run_plan["segments_total"] if self.run_plan else None
-                for key in ("done", "failed", "gaps"):
-                    p[key] |= from_ranges(msg.get(key), limit)
-                for name, value in msg.items():
-                    if name.endswith("_ranges"):
-                        p.setdefault("extra", {}).setdefault(name, set()).update(from_ranges(value, limit))
-                p["complete"] = p.get("complete", False) or bool(msg.get("complete"))
-                if isinstance(msg.get("segments_total"), int):
-                    p["total"] = msg["segments_total"]
+                self.progress.setdefault(msg["stage"], Progress(msg["stage"])).update(
+                    msg, self.run_plan["segments_total"] if self.run_plan else None)
                 self.publish_board(msg["stage"])
             elif ev[0] == "alive":
                 _, stage, alive = ev
@@ -451,12 +422,6 @@ class Launcher:
                 self.errors.append(err)
                 where = f" segment {err.get('index')}" if err.get("index") is not None else ""
                 self.say(f"error from {err.get('stage', '?')}{where}: {err.get('kind', '')}: {err.get('message', '')}")
-            elif ev[0] == "output":
-                _, topic, index = ev
-                for stage, t in OUTPUT_TOPIC.items():
-                    if t == topic:
-                        self.outputs.setdefault(stage, set()).add(index)
-                        self.last_output[stage] = time.monotonic()
 
     def progress_refused(self, msg: dict) -> str | None:
         """Why a progress message is not believed, or None.  A stage started here must report
@@ -473,9 +438,9 @@ class Launcher:
             return f"segments_total {msg.get('segments_total')!r} differs from the plan's {self.run_plan['segments_total']}"
         upstream = UPSTREAM.get(stage)
         if upstream in self.expected:
-            limit = self.run_plan["segments_total"] if self.run_plan else None
-            claimed = from_ranges(msg.get("done"), limit) | from_ranges(msg.get("failed"), limit)
-            beyond = claimed - self.handled(upstream)
+            claims = Progress(stage)
+            claims.update(msg, self.run_plan["segments_total"] if self.run_plan else None)
+            beyond = claims.handled - self.handled(upstream)
             if beyond:
                 return f"claims segment(s) {to_ranges(beyond)[:5]} that {upstream} has not handled"
         return None
@@ -492,27 +457,22 @@ class Launcher:
         """Publish what the launcher believes of ``stage``'s progress (the union over its
         processes of the messages it accepted) on ``ttl/<run>/control/board/<stage>``: the
         pipeline stages of a launched run follow these, not the stages' own messages."""
-        p = self.progress[stage]
-        msg = {"run": self.opts.run_id, "stage": stage, "time": time.time(),
-               "done": to_ranges(p["done"]), "failed": to_ranges(p["failed"]), "gaps": to_ranges(p["gaps"]),
-               "segments_total": p["total"], "complete": p.get("complete", False),
-               **{name: to_ranges(v) for name, v in p.get("extra", {}).items()}}
         pub = self._boards.get(stage)
         if pub is None:
             pub = self._boards[stage] = self.bus.track(
-                declare_segment_publisher(self.bus.session, control_key(self.opts.run_id, BOARD, stage), cache=1))
-        pub.put(json.dumps(msg).encode())
+                declare_segment_publisher(self.bus.session, board_key(self.opts.run_id, stage), cache=1))
+        pub.put(json.dumps(self.progress[stage].message(self.opts.run_id)).encode())
 
     def refuse_progress(self, msg: dict, why: str) -> None:
         """Record a refused progress message (shown, kept for the report, put on errors)."""
-        err = {"run": self.opts.run_id, "stage": "launcher", "kind": "forged", "index": None,
-               "key": f"ttl/{self.opts.run_id}/control/progress/{msg.get('stage')}", "field": "progress",
-               "message": f"progress message refused: {why}", "time": time.time(), "details": {"pid": msg.get("pid")}}
+        err = stage_record(self.opts.run_id, LAUNCHER, "forged", f"progress message refused: {why}",
+                           details={"pid": msg.get("pid")}, key=progress_key(self.opts.run_id, msg["stage"]),
+                           field="progress")
         self.refused_progress.append(err)
         if len(self.refused_progress) <= 20:
             self.say(err["message"])
         try:
-            self.bus.put_json(f"ttl/{self.opts.run_id}/errors/unknown", err)
+            self.bus.put_json(errors_key(self.opts.run_id, None), err)
         except Exception:  # noqa: BLE001 - the session may be closing
             pass
 
@@ -521,28 +481,17 @@ class Launcher:
     def total(self) -> int | None:
         if self.run_plan:
             return self.run_plan["segments_total"]
-        totals = [p["total"] for p in self.progress.values() if p["total"]]
+        totals = [p.segments_total for p in self.progress.values() if p.segments_total]
         return max(totals) if totals else None
 
     def handled(self, stage: str) -> set:
         p = self.progress.get(stage)
-        if p is not None:
-            return p["done"] | p["failed"]
-        return set(self.outputs.get(stage, ()))
+        return p.handled if p is not None else set()
 
-    def stage_done(self, stage: str, others_done_at: float | None) -> bool:
-        total = self.total
-        if total is None:
-            return False
-        if self.handled(stage).issuperset(range(total)):
-            return True
-        if stage in self.progress:
-            return False
-        # a stage without progress messages: grace after upstream is done and its last output
-        if others_done_at is None or not self.alive.get(stage, False):
-            return False
-        quiet_since = max(others_done_at, self.last_output.get(stage, 0.0))
-        return time.monotonic() - quiet_since >= self.opts.grace
+    def stage_done(self, stage: str) -> bool:
+        """``stage`` has handled every segment of the run."""
+        p = self.progress.get(stage)
+        return p is not None and p.covers(self.total)
 
     def status_line(self) -> str:
         total = self.total
@@ -573,7 +522,7 @@ class Launcher:
             logf.write(f"--- start {child.starts + 1} of {name} at {time.ctime()} ---\n".encode())
             logf.flush()
             child.proc = subprocess.Popen(
-                [self.opts.python, "-m", f"stages.{name}", "--config", str(child.config),
+                [self.opts.python, "-m", stage_module(name), "--config", str(child.config),
                  "--log-level", self.opts.log_level],
                 stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
         child.starts += 1
@@ -659,15 +608,11 @@ class Launcher:
     def _run_on(self, bus: Bus) -> int:
         o = self.opts
         self.bus = bus
-        bus.track(declare_segment_subscriber(bus.session, f"ttl/{o.run_id}/control/progress/*",
-                                             self._on_progress, history=1))
+        bus.track(declare_segment_subscriber(bus.session, progress_pattern(o.run_id), self._on_progress, history=1))
         bus.watch_alive(o.run_id, self._on_alive)
         # the stages stop when this token goes (streamer.stage.Stage.orphaned)
         bus.declare_alive(o.run_id, LAUNCHER)
-        bus.subscriber(f"ttl/{o.run_id}/errors/*", self._on_error)
-        for stage in self.expected:
-            if stage not in PROGRESS_STAGES and stage in OUTPUT_TOPIC:
-                bus.subscriber(f"ttl/{o.run_id}/{OUTPUT_TOPIC[stage]}/*", self._on_output)
+        bus.subscriber(topic_pattern(o.run_id, ERRORS), self._on_error)
         security_note = "" if self.credentials is None else f" (mutual TLS, credentials {self.credentials})"
         self.say(f"router on {', '.join(self.listen)}{security_note}; stages: {', '.join(self.expected)}"
                  + (f" (external: {', '.join(o.external)})" if o.external else "")
@@ -684,7 +629,6 @@ class Launcher:
     def _supervise_loop(self) -> int:
         o = self.opts
         deadline = time.monotonic() + o.timeout if o.timeout else None
-        others_done_at = None
         abort = None
         terminated = []
         previous = None
@@ -704,11 +648,7 @@ class Launcher:
                 if abort:
                     break
                 self.show()
-                progress_stages = [s for s in self.expected if s in self.progress or s in PROGRESS_STAGES]
-                if others_done_at is None and self.total is not None and all(
-                        self.handled(s).issuperset(range(self.total)) for s in progress_stages):
-                    others_done_at = time.monotonic()
-                if self.total is not None and all(self.stage_done(s, others_done_at) for s in self.expected):
+                if self.total is not None and all(self.stage_done(s) for s in self.expected):
                     self.show(force=True)
                     self.say("every stage has handled every segment: stopping")
                     break
@@ -734,9 +674,9 @@ class Launcher:
                 self.say(f"stage {name} exited with status {bad[0]} (log {child.log})")
                 status = 1
         for s in self.expected:
-            p = self.progress.get(s, {})
-            gaps = sorted(p.get("gaps", ()))
-            failed = sorted(set(p.get("failed", ())) - set(gaps))
+            p = self.progress.get(s) or Progress(s)
+            gaps = sorted(p.gaps)
+            failed = sorted(p.failed - p.gaps)
             if gaps:
                 self.say(f"stage {s}: gap(s) in the data at segment(s) {to_ranges(gaps)} (no data; reported)")
             if failed:
@@ -755,16 +695,6 @@ class Launcher:
             self.say(f"done: {total} segments, {len(self.errors)} error report(s){refused}, "
                      f"{len(self.refused_progress)} progress message(s) refused; files in {self.run_dir}: {', '.join(files)}")
         return status
-
-
-def _die_with_parent() -> None:
-    """In a child before exec: receive SIGTERM when the launcher dies (Linux), so that a
-    killed launcher leaves no router behind."""
-    try:
-
-        ctypes.CDLL(None).prctl(1, signal.SIGTERM)  # PR_SET_PDEATHSIG
-    except (OSError, AttributeError):
-        pass
 
 
 def run(opts: RunOptions, out=None) -> int:

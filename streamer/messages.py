@@ -12,8 +12,8 @@ from __future__ import annotations
 import numpy as np
 
 from ttlcore.conventions import COEFFICIENT_NAMES
-from ttlcore.tdi.data import TDIData
 from ttlcore.io.telemetry import Telemetry
+from ttlcore.tdi.data import TDIData
 
 #: Arrays of a telemetry message.
 TELEMETRY_ARRAYS = ("eta", "dws_phi", "dws_eta", "ltt")

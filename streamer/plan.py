@@ -18,7 +18,10 @@ it before the stage hands the message on (``docs/operations.md`` lists the rules
   segment is no data; a NaN stretch is data with a gap and goes through);
 * duplicates by content: a copy identical to the accepted one (producer, t0, fs and the
   payload checksum) is ignored; a different one is refused and the conflict recorded,
-  and so is any later copy of that index.
+  and so is any later copy of that index.  The first copy is kept out too when it has not
+  been used yet: every accepted message waits in a :class:`Holdback` for ``hold`` seconds
+  before the stage uses it, and a conflict withdraws it from there (or from the stage's own
+  reorder buffer); the stage then treats the index as missing.
 
 Without a plan (a stage run on its own), the first accepted message of a topic fixes its
 producer, fs and the samples per segment (trust on first use), ``segments_total`` comes from the
@@ -37,9 +40,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-#: The stage that owns (publishes) each segment topic.
-PRODUCERS = {"telemetry": "replayer", "tdi": "tdi_builder", "fit": "fitter", "residual": "subtractor",
-             "monitor": "monitor"}
+from .topology import PRODUCERS
+
 #: Arrays whose last axis is time (one sample per telemetry sample), per topic.
 TIME_ARRAYS = {"telemetry": ("eta", "dws_phi", "dws_eta", "ltt"), "tdi": ("data", "regressors"),
                "residual": ("residual", "ttl_model")}
@@ -318,7 +320,8 @@ class Validator:
                 return "duplicate"
             self.conflicted.setdefault(topic, RangeSet()).add(index)
             raise Rejected("conflict", "payload", f"{topic} segment {index} differs from the copy accepted "
-                                                  f"before (producer {seen[0]!r}, checksum {seen[3]}); refused")
+                                                  f"before (producer {seen[0]!r}, checksum {seen[3]}): both copies "
+                                                  "refused")
         return "new"
 
     def accepted(self, topic: str, header) -> None:
@@ -330,6 +333,47 @@ class Validator:
             t = header.meta.get("segments_total") if isinstance(header.meta, dict) else None
             if self.segments_total is None and isinstance(t, int) and 0 < t <= MAX_SEGMENTS:
                 self.segments_total = t
+
+
+class Holdback:
+    """Accepted messages held ``hold`` seconds before the stage uses them.
+
+    A different copy of a held segment (a conflict, :meth:`Validator.check`) withdraws it, so
+    that both copies are kept out; a message that waited ``hold`` seconds with no contender
+    is handed to the stage.  Keyed by ``(topic, index)``; the wait is the same for every
+    message, so they come out in arrival order.  Memory: the messages of ``hold`` seconds
+    (the index window bounds them).
+    """
+
+    def __init__(self, hold: float):
+        if not (math.isfinite(hold) and hold >= 0):
+            raise ValueError(f"hold: {hold!r} is not a duration >= 0 s")
+        self.hold = float(hold)
+        self._items: dict[tuple[str, int], tuple[float, object]] = {}
+
+    def put(self, topic: str, index: int, item, now: float) -> bool:
+        """Hold ``item`` until ``now + hold``; False (not held: use it now) when ``hold`` is 0."""
+        if self.hold <= 0:
+            return False
+        self._items[(topic, int(index))] = (now + self.hold, item)
+        return True
+
+    def due(self, now: float) -> list:
+        """The items whose wait is over, in arrival order (taken out)."""
+        out = []
+        for key, (deadline, item) in list(self._items.items()):
+            if deadline > now:
+                break
+            del self._items[key]
+            out.append(item)
+        return out
+
+    def withdraw(self, topic: str, index: int) -> bool:
+        """Drop the held copy of ``(topic, index)``; False when none is held (already used)."""
+        return self._items.pop((topic, int(index)), None) is not None
+
+    def __len__(self) -> int:
+        return len(self._items)
 
 
 def _time_length(topic: str, header) -> int | None:

@@ -50,7 +50,7 @@ from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
-from mcap.writer import CompressionType, IndexType, Writer
+from mcap.writer import CompressionType, Writer
 
 from .codec import CodecError, Expect, Header, decode
 
@@ -79,134 +79,120 @@ def mission_ns(t: float) -> int:
 
 _NUMBER = {"type": "number"}
 _NUMBERS = {"type": "array", "items": _NUMBER}
+_STRING = {"type": "string"}
+_INTEGER = {"type": "integer"}
+_OBJECT = {"type": "object"}
+_TIME = {"type": "number", "description": "wall-clock time [s since epoch]"}
+
+
+def _object_schema(title: str, required, properties: dict) -> dict:
+    """A JSON schema (draft 2020-12) of an object named ``title``."""
+    return {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": title, "type": "object",
+            "required": list(required), "properties": properties}
+
 
 #: JSON schema of a segment header (:mod:`streamer.codec`).
-HEADER_SCHEMA = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": "ttl.SegmentHeader",
-    "type": "object",
-    "required": ["schema", "version", "run", "index", "t0", "fs", "channels", "producer",
-                 "arrays", "payload_bytes", "checksum", "meta"],
-    "properties": {
+HEADER_SCHEMA = _object_schema(
+    "ttl.SegmentHeader",
+    ["schema", "version", "run", "index", "t0", "fs", "channels", "producer", "arrays", "payload_bytes", "checksum",
+     "meta"],
+    {
         "schema": {"const": "ttl-segment"},
-        "version": {"type": "integer"},
-        "run": {"type": "string"},
+        "version": _INTEGER,
+        "run": _STRING,
         "index": {"type": "integer", "minimum": 0},
         "t0": {"type": "number", "description": "mission time of the first sample [s]"},
         "fs": {"type": "number", "description": "sampling rate [Hz]"},
-        "channels": {"type": "array", "items": {"type": "string"}},
-        "producer": {"type": "string"},
+        "channels": {"type": "array", "items": _STRING},
+        "producer": _STRING,
         "arrays": {"type": "array", "items": {
             "type": "object",
             "required": ["name", "dtype", "shape", "offset", "nbytes", "units", "channel_axis"],
             "properties": {
-                "name": {"type": "string"}, "dtype": {"type": "string"},
-                "shape": {"type": "array", "items": {"type": "integer"}},
-                "offset": {"type": "integer"}, "nbytes": {"type": "integer"},
-                "units": {"type": "string"}, "channel_axis": {"type": ["integer", "null"]},
+                "name": _STRING, "dtype": _STRING,
+                "shape": {"type": "array", "items": _INTEGER},
+                "offset": _INTEGER, "nbytes": _INTEGER,
+                "units": _STRING, "channel_axis": {"type": ["integer", "null"]},
             }}},
-        "payload_bytes": {"type": "integer"},
-        "checksum": {"type": "string"},
-        "meta": {"type": "object"},
-    },
-}
+        "payload_bytes": _INTEGER,
+        "checksum": _STRING,
+        "meta": _OBJECT,
+    })
+#: Fields of a stage's error, warning and event records (:func:`stage_record`).
+_RECORD = {"run": _STRING, "stage": _STRING, "kind": _STRING, "index": {"type": ["integer", "null"]},
+           "message": _STRING, "time": _TIME, "details": _OBJECT}
 #: JSON schema of an error (a rejected message, a failed segment, a gap).
-ERROR_SCHEMA = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": "ttl.Error",
-    "type": "object",
-    "required": ["run", "stage", "kind", "message", "time"],
-    "properties": {
-        "run": {"type": "string"},
-        "stage": {"type": "string"},
-        "kind": {"type": "string", "description": "rejected | failed | gap | ..."},
-        "index": {"type": ["integer", "null"]},
-        "key": {"type": ["string", "null"]},
-        "field": {"type": ["string", "null"], "description": "header field at fault"},
-        "message": {"type": "string"},
-        "time": {"type": "number", "description": "wall-clock time [s since epoch]"},
-        "details": {"type": "object"},
-    },
-}
+ERROR_SCHEMA = _object_schema("ttl.Error", ["run", "stage", "kind", "message", "time"], {
+    **_RECORD,
+    "kind": {"type": "string", "description": "rejected | failed | gap | ..."},
+    "key": {"type": ["string", "null"]},
+    "field": {"type": ["string", "null"], "description": "header field at fault"},
+})
 #: JSON schema of a warning: something an operator should see that is not an error
 #: (a fit that did not converge, ...).
-WARNING_SCHEMA = {**ERROR_SCHEMA, "title": "ttl.Warning",
-                  "properties": {**{k: v for k, v in ERROR_SCHEMA["properties"].items() if k not in ("key", "field")},
-                                 "kind": {"type": "string", "description": "not-converged | ..."}}}
+WARNING_SCHEMA = _object_schema("ttl.Warning", ["run", "stage", "kind", "message", "time"], {
+    **_RECORD, "kind": {"type": "string", "description": "not-converged | ..."}})
 #: JSON schema of a lifecycle or bookkeeping event (start, stop, duplicate, ...).
-EVENT_SCHEMA = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": "ttl.Event",
-    "type": "object",
-    "required": ["run", "stage", "kind", "time"],
-    "properties": {
-        "run": {"type": "string"},
-        "stage": {"type": "string"},
-        "kind": {"type": "string"},
-        "index": {"type": ["integer", "null"]},
-        "message": {"type": "string"},
-        "time": {"type": "number"},
-        "details": {"type": "object"},
-    },
-}
+EVENT_SCHEMA = _object_schema("ttl.Event", ["run", "stage", "kind", "time"], _RECORD)
 #: JSON schema of a fit of the TTL coefficients.
-FIT_SCHEMA = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": "ttl.Fit",
-    "type": "object",
-    "required": ["run", "index", "names", "coefficients"],
-    "properties": {
-        "run": {"type": "string"},
-        "index": {"type": "integer"},
-        "t_start": {"type": "number", "description": "start of the fitted window [s]"},
-        "t_end": {"type": "number", "description": "end of the fitted window [s]"},
-        "names": {"type": "array", "items": {"type": "string"}},
-        "coefficients": {**_NUMBERS, "description": "m/rad"},
-        "sigma": _NUMBERS,
-        "covariance": {"type": "array", "items": _NUMBERS},
-        "chi2": _NUMBER,
-        "dof": _NUMBER,
-    },
-}
+FIT_SCHEMA = _object_schema("ttl.Fit", ["run", "index", "names", "coefficients"], {
+    "run": _STRING,
+    "index": _INTEGER,
+    "t_start": {"type": "number", "description": "start of the fitted window [s]"},
+    "t_end": {"type": "number", "description": "end of the fitted window [s]"},
+    "names": {"type": "array", "items": _STRING},
+    "coefficients": {**_NUMBERS, "description": "m/rad"},
+    "sigma": _NUMBERS,
+    "covariance": {"type": "array", "items": _NUMBERS},
+    "chi2": _NUMBER,
+    "dof": _NUMBER,
+})
 #: JSON schema of a model-adequacy diagnosis.
-DIAGNOSIS_SCHEMA = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": "ttl.Diagnosis",
-    "type": "object",
-    "required": ["run", "index", "verdict"],
-    "properties": {
-        "run": {"type": "string"},
-        "index": {"type": "integer"},
-        "verdict": {"type": "string"},
-        "checks": {"type": "object"},
-        "message": {"type": "string"},
-    },
-}
+DIAGNOSIS_SCHEMA = _object_schema("ttl.Diagnosis", ["run", "index", "verdict"], {
+    "run": _STRING, "index": _INTEGER, "verdict": _STRING, "checks": _OBJECT, "message": _STRING})
 #: JSON schema of a control message received by a stage (``ttl/<run>/control/<stage>/<command>``).
-CONTROL_SCHEMA = {
-    "$schema": "https://json-schema.org/draft/2020-12/schema",
-    "title": "ttl.Control",
-    "type": "object",
-    "required": ["run", "stage", "command", "time"],
-    "properties": {
-        "run": {"type": "string"},
-        "stage": {"type": "string"},
-        "command": {"type": "string"},
-        "payload": {"description": "the message (JSON when it parses, else text)"},
-        "accepted": {"type": "boolean"},
-        "message": {"type": "string"},
-        "time": {"type": "number", "description": "wall-clock time [s since epoch]"},
-    },
-}
+CONTROL_SCHEMA = _object_schema("ttl.Control", ["run", "stage", "command", "time"], {
+    "run": _STRING,
+    "stage": _STRING,
+    "command": _STRING,
+    "payload": {"description": "the message (JSON when it parses, else text)"},
+    "accepted": {"type": "boolean"},
+    "message": _STRING,
+    "time": _TIME,
+})
+#: JSON schema of a step or drift alert of the monitor (``alerts``).
+ALERT_SCHEMA = _object_schema("ttl.Alert", ["kind", "coefficient", "t", "value", "significance", "message"], {
+    "run": _STRING,
+    "kind": {"type": "string", "description": "step | drift"},
+    "coefficient": _STRING,
+    "t": {"type": ["number", "null"], "description": "step time or end of the drift span [s]"},
+    "value": {"type": ["number", "null"], "description": "step [mm/rad] or drift rate [mm/rad/day]"},
+    "significance": {"type": ["number", "null"]},
+    "message": _STRING,
+    "t_detected": {"type": ["number", "null"]},
+    "index": {"type": ["integer", "null"], "description": "fit that raised it"},
+    "units": _STRING,
+    "details": _OBJECT,
+})
 #: Schemas known by name (``Recorder.write_json(..., schema="ttl.Fit")``).
 SCHEMAS = {s["title"]: s for s in (HEADER_SCHEMA, ERROR_SCHEMA, WARNING_SCHEMA, EVENT_SCHEMA, FIT_SCHEMA,
-                                   DIAGNOSIS_SCHEMA, CONTROL_SCHEMA)}
+                                   DIAGNOSIS_SCHEMA, CONTROL_SCHEMA, ALERT_SCHEMA)}
 #: Schema of JSON channels with no schema given.
 OBJECT_SCHEMA = {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "ttl.Object",
                  "type": "object"}
 SCHEMAS["ttl.Object"] = OBJECT_SCHEMA
+
+
+def stage_record(run: str, stage: str, kind: str, message: str = "", *, index: int | None = None,
+                 details: dict | None = None, **fields) -> dict:
+    """An error, warning or event of a stage (or the launcher), as :data:`ERROR_SCHEMA`,
+    :data:`WARNING_SCHEMA` and :data:`EVENT_SCHEMA` describe it; ``fields`` (``key``,
+    ``field`` of an error) are added, the time is now."""
+    return {"run": run, "stage": stage, "kind": kind, "index": index, **fields, "message": message,
+            "time": time.time(), "details": details or {}}
 #: Default schema by topic.
-TOPIC_SCHEMAS = {"errors": "ttl.Error", "warnings": "ttl.Warning", "events": "ttl.Event", "control": "ttl.Control"}
+TOPIC_SCHEMAS = {"errors": "ttl.Error", "warnings": "ttl.Warning", "events": "ttl.Event", "control": "ttl.Control",
+                 "alerts": "ttl.Alert"}
 
 
 class RecordingError(ValueError):
@@ -467,6 +453,17 @@ class _Assembler:
         self.schemas: dict[int, Schema] = {}
         self.pending: dict[str, RecordedMessage] = {}  # segment topic -> header waiting for payload
 
+    def record(self, record) -> None:
+        """Take one parsed record: a schema, channel, message or metadata (others are skipped)."""
+        if isinstance(record, Schema):
+            self.schema(record)
+        elif isinstance(record, Channel):
+            self.channel(record)
+        elif isinstance(record, Message):
+            self.message(record)
+        elif isinstance(record, Metadata):
+            self.rec.metadata[record.name] = dict(record.metadata)
+
     def schema(self, schema: Schema) -> None:
         self.schemas[schema.id] = schema
 
@@ -579,14 +576,7 @@ def _read_complete(path: Path) -> Recording:
     with open(path, "rb") as f:
         for record in StreamReader(f, validate_crcs=True).records:
             rec.records += 1
-            if isinstance(record, Schema):
-                asm.schema(record)
-            elif isinstance(record, Channel):
-                asm.channel(record)
-            elif isinstance(record, Message):
-                asm.message(record)
-            elif isinstance(record, Metadata):
-                rec.metadata[record.name] = dict(record.metadata)
+            asm.record(record)
     asm.finish()
     return rec
 
@@ -611,7 +601,7 @@ def _salvage(path: Path, size: int) -> Recording:
                 break
             body = f.read(length)
             try:
-                done = _salvage_record(asm, rec, opcode, body)
+                done = _salvage_record(asm, opcode, body)
             except Exception as exc:  # corrupt record: keep what came before
                 rec.problem = f"corrupt record (opcode 0x{opcode:02x}) at byte {pos}: {exc}"
                 break
@@ -627,25 +617,19 @@ def _salvage(path: Path, size: int) -> Recording:
     return rec
 
 
-def _salvage_record(asm: _Assembler, rec: Recording, opcode: int, body: bytes) -> bool:
+def _salvage_record(asm: _Assembler, opcode: int, body: bytes) -> bool:
     stream = ReadDataStream(io.BytesIO(body))
     if opcode == Opcode.SCHEMA:
-        asm.schema(Schema.read(stream))
+        asm.record(Schema.read(stream))
     elif opcode == Opcode.CHANNEL:
-        asm.channel(Channel.read(stream))
+        asm.record(Channel.read(stream))
     elif opcode == Opcode.MESSAGE:
-        asm.message(Message.read(stream, len(body)))
+        asm.record(Message.read(stream, len(body)))
     elif opcode == Opcode.METADATA:
-        meta = Metadata.read(stream)
-        rec.metadata[meta.name] = dict(meta.metadata)
+        asm.record(Metadata.read(stream))
     elif opcode == Opcode.CHUNK:
         for record in breakup_chunk(Chunk.read(stream), validate_crc=True):
-            if isinstance(record, Schema):
-                asm.schema(record)
-            elif isinstance(record, Channel):
-                asm.channel(record)
-            elif isinstance(record, Message):
-                asm.message(record)
+            asm.record(record)
     elif opcode == Opcode.FOOTER:
         Footer.read(stream)
         return True

@@ -29,6 +29,7 @@ from ttlcore.io.telemetry import Telemetry
 from .inspect import InspectError, recording_files
 from .messages import tdi_of, telemetry_of
 from .recorder import RecordingError, read_recording
+from .topology import PRODUCERS, STAGES, UPSTREAM
 
 log = logging.getLogger(__name__)
 
@@ -37,9 +38,12 @@ class RefitError(TTLError):
     """A run cannot be refitted (the message names the directory, file or option)."""
 
 
-def recorded_segments(run_dir, topic: str, stages=("replayer", "tdi_builder")) -> dict[int, tuple]:
+def recorded_segments(run_dir, topic: str, stages: tuple[str, ...] | None = None) -> dict[int, tuple]:
     """Index -> ``(header, arrays)`` of the ``topic`` segments recorded in a run directory
-    (the first stage of ``stages`` that holds any; every file of that stage merged)."""
+    (the first stage of ``stages`` that holds any; every file of that stage merged).  Default
+    stages: the topic's producer, then the stages that consume it (:mod:`streamer.topology`)."""
+    if stages is None:
+        stages = (PRODUCERS[topic], *(s for s in STAGES if UPSTREAM.get(s) == PRODUCERS[topic]))
     files = recording_files(run_dir)
     for stage in stages:
         found: dict[int, tuple] = {}
@@ -84,7 +88,7 @@ def load_run(run_dir, segments: tuple[int | None, int | None] = (None, None), so
                     found[min(found)][0].meta.get("dws_asd"))
         if source == "telemetry":
             raise RefitError(f"{run_dir}: no recorded telemetry (replayer.mcap, or tdi_builder.mcap inputs)")
-    found = {i: (h, a) for i, (h, a) in recorded_segments(run_dir, "tdi", stages=("tdi_builder",)).items()
+    found = {i: (h, a) for i, (h, a) in recorded_segments(run_dir, "tdi", stages=(PRODUCERS["tdi"],)).items()
              if "regressors" in a}  # a tdi_builder under `ttl run` records X2, Y2, Z2 only
     if not found:
         raise RefitError(f"{run_dir}: no recorded telemetry, nor TDI segments with their regressors, to refit "

@@ -26,9 +26,14 @@ import numpy as np
 from ttlcore.cli.diagnose import split_effects
 from ttlcore.conventions import DAY, parse_duration
 from ttlcore.diagnose.effects import make_effects
+from ttlcore.diagnose.reprocess import (
+    DEFAULT_MEMORY_LIMIT,
+    dask_client,
+    jobs_for_files,
+    reprocess,
+)
 from ttlcore.errors import TTLError
 from ttlcore.estimate.analyze import check_band
-from ttlcore.diagnose.reprocess import DEFAULT_MEMORY_LIMIT, dask_client, jobs_for_files, reprocess
 from ttlcore.io.telemetry import Telemetry, write_telemetry
 
 from .refit import recorded_segments
@@ -147,10 +152,7 @@ def _job_options(args) -> dict:
     if args.band is not None:
         opts["band"] = check_band(args.band)
     if args.segment is not None:
-        try:
-            opts["segment_duration"] = parse_duration(args.segment)
-        except ValueError as exc:
-            raise TTLError(f"--segment: {exc}") from None
+        opts["segment_duration"] = parse_duration(args.segment, "--segment")
     return opts
 
 
@@ -175,10 +177,7 @@ def run(args) -> int:
     opts = _job_options(args)
     start = time.monotonic()
     if args.from_recordings:
-        try:
-            day_length = parse_duration(args.day_length)
-        except ValueError as exc:
-            raise TTLError(f"--day-length: {exc}") from None
+        day_length = parse_duration(args.day_length, "--day-length")
         if not args.quiet:
             print(f"ttl reprocess: reading the recordings of {args.from_recordings}", file=sys.stderr, flush=True)
         files = recorded_days(args.from_recordings, out / "days", day_length=day_length)

@@ -47,11 +47,10 @@ from pathlib import Path
 
 from ttlcore.errors import TTLError
 
-#: Stages (each publishes one output topic).
-STAGE_TOPICS = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit", "subtractor": "residual",
-                "monitor": "monitor"}
+from .topology import OUTPUT_TOPIC, STAGES
+
 #: Every identity a credentials directory holds a certificate for.
-ROLES = (*STAGE_TOPICS, "launcher", "control", "router")
+ROLES = (*STAGES, "launcher", "control", "router")
 #: Addresses always in the router certificate.
 LOCAL_HOSTS = ("127.0.0.1", "localhost")
 #: Validity of generated certificates [days].
@@ -315,7 +314,7 @@ def access_control(run: str = "*") -> dict:
     common = ["read", "subscriber-tokens", "deliver"]
     grants = {"router": ["forward"], "launcher": ["commands", "no-forged-progress", "launcher-token", "launcher-board"],
               "control": ["commands", "no-forged-progress", "no-forged-board"]}
-    for stage, topic in STAGE_TOPICS.items():
+    for stage, topic in OUTPUT_TOPIC.items():
         rules.append({"id": f"{stage}-publishes", "messages": _WRITE, "flows": ["ingress"], "permission": "allow",
                       "key_exprs": _keys(f"{r}/{topic}/*", f"{r}/errors/*", f"{r}/control/progress/{stage}")
                       + [f"{r}/alive/{stage}"]})

@@ -12,6 +12,9 @@ A stage subclass sets :attr:`Stage.name` and :attr:`Stage.inputs` and implements
   ``ttl/<run>/errors/<index>`` and in the recording, and the stage goes on;
 * processes each segment index once per topic: a duplicate is ignored (an event is
   recorded), a gap in the indices is reported on the errors topic;
+* holds every accepted segment ``hold`` seconds before using it: a different copy of it
+  arriving meanwhile keeps both out (:class:`streamer.plan.Holdback`; a later one withdraws
+  the first from the stage if it can, :meth:`Stage.withdraw`);
 * calls :meth:`Stage.handle` inside ``try``: an exception is reported as an error of that
   segment, not a crash;
 * publishes the returned :class:`Output` objects with the codec (BLOCK, cached for late
@@ -37,26 +40,34 @@ import sys
 import threading
 import time
 import traceback
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, ClassVar
 
 import numpy as np
 
+from ttlcore.errors import TTLError
+
 from .codec import CodecError, Expect, Header, decode, encode
-from .keys import (KeyExprError, control_key, control_pattern, errors_key, parse_control_key,
-                   parse_segment_key, topic_pattern)
-from .plan import Plan, RangeSet, Rejected, Validator
-from .recorder import Recorder, mission_ns
+from .keys import (
+    KeyExprError,
+    check_name,
+    control_key,
+    control_pattern,
+    errors_key,
+    parse_control_key,
+    parse_segment_key,
+    topic_pattern,
+)
+from .plan import Holdback, Plan, RangeSet, Rejected, Validator
+from .recorder import Recorder, mission_ns, stage_record
 from .session import DEFAULT_CACHE, Bus, SessionSettings
 
 log = logging.getLogger(__name__)
 
 #: Name of the launcher's liveliness token (``ttl/<run>/alive/launcher``).
 LAUNCHER = "launcher"
-#: Control chunk of the progress the launcher has verified (``ttl/<run>/control/board/<stage>``).
-BOARD = "board"
 #: Characters of a rejected attachment kept in the error report.
 PREVIEW_CHARS = 2000
 
@@ -90,6 +101,10 @@ class StageConfig:
     gap_grace : float
         A segment index skipped on arrival is reported as a gap only if it has not come
         within this many seconds [s] (segments of different keys may arrive out of order).
+    hold : float
+        Seconds an accepted input segment waits before the stage uses it [s]: a different
+        copy of the same segment arriving meanwhile keeps both out (``docs/operations.md``).
+        0: used at once (a conflicting copy then refuses only the later one).
     options : dict
         Stage-specific options.
     plan : dict, optional
@@ -117,6 +132,7 @@ class StageConfig:
     record_outputs: bool = True
     poll_interval: float = 0.2
     gap_grace: float = 10.0
+    hold: float = 1.0
     options: dict = field(default_factory=dict)
     plan: dict | None = None
     launcher_pid: int | None = None
@@ -127,7 +143,7 @@ class StageConfig:
         return {"run": self.run, "stage": self.stage, "zenoh": self.zenoh.to_dict(),
                 "recordings": str(self.recordings), "cache": self.cache, "history": self.history,
                 "record_inputs": self.record_inputs, "record_outputs": self.record_outputs,
-                "poll_interval": self.poll_interval, "gap_grace": self.gap_grace, "options": self.options,
+                "poll_interval": self.poll_interval, "gap_grace": self.gap_grace, "hold": self.hold, "options": self.options,
                 "plan": self.plan, "launcher_pid": self.launcher_pid, "orphan_grace": self.orphan_grace,
                 "progress_from": self.progress_from}
 
@@ -216,16 +232,22 @@ def configure_logging(level: str | int = "INFO", json_lines: bool = False, strea
     root.setLevel(level)
 
 
-def recording_path(recordings: Path, run: str, stage: str) -> Path:
-    """``<recordings>/<run>/<stage>.mcap``; an existing file is first renamed ``<stage>.<n>.mcap``."""
-    path = Path(recordings) / run / f"{stage}.mcap"
+def set_aside(path: Path) -> Path:
+    """``path``, free to write: an existing file is first renamed ``<stem>.<n><suffix>``
+    (the lowest ``n`` free), so that a restarted process keeps its predecessor's recording."""
+    path = Path(path)
     if path.exists():
         n = 1
-        while (old := path.with_name(f"{stage}.{n}.mcap")).exists():
+        while (old := path.with_name(f"{path.stem}.{n}{path.suffix}")).exists():
             n += 1
         path.rename(old)
         log.info("kept the previous recording as %s", old)
     return path
+
+
+def recording_path(recordings: Path, run: str, stage: str) -> Path:
+    """``<recordings>/<run>/<stage>.mcap``; an existing file is first renamed ``<stage>.<n>.mcap``."""
+    return set_aside(Path(recordings) / run / f"{stage}.mcap")
 
 
 class Stage:
@@ -244,6 +266,8 @@ class Stage:
     reorders: ClassVar[tuple[str, ...]] = ()
     #: Input topics.
     inputs: ClassVar[tuple[str, ...]] = ()
+    #: Poll interval [s] when neither the command line nor the configuration file sets one.
+    default_poll_interval: ClassVar[float] = StageConfig.poll_interval
 
     def __init__(self, config: StageConfig):
         self.stage_name = config.stage or self.name
@@ -265,6 +289,7 @@ class Stage:
         # suspected gaps, in ranges: topic -> [[first, last, since, revealed by], ...]
         self._suspected: dict[str, list[list]] = {}
         self.validator = Validator(Plan.from_dict(config.plan) if config.plan else None)
+        self.held = Holdback(config.hold)
         self.rejections = 0
         self._launcher_seen = False
         self._launcher_gone_at: float | None = None
@@ -292,6 +317,17 @@ class Stage:
 
     def teardown(self) -> None:
         """Called on shutdown, before the recording and the session are closed."""
+
+    def withdraw(self, topic: str, index: int, held: bool) -> bool:
+        """Copies of segment ``index`` of ``topic`` conflict: keep the first one out too.
+
+        ``held``: the first copy was still held (:attr:`StageConfig.hold`) and is dropped;
+        otherwise :meth:`handle` has had it.  Treat the index as missing from now on and
+        return True if the first copy has changed no output, False if it has (too late).
+        Default: True when it was held.  Override in stages that keep segments before using
+        them (a reorder buffer) and in stages that must account for every index.
+        """
+        return held
 
     def tick(self) -> Sequence[Output]:
         """Called when no input is waiting (every ``poll_interval`` at most); source stages
@@ -373,6 +409,7 @@ class Stage:
         self._orphan_checked = 0.0
         while not self._stop.is_set():
             self._check_orphaned()
+            self._release_held()
             while not self._controls.empty():
                 self._control(*self._controls.get_nowait())
             try:
@@ -482,15 +519,34 @@ class Stage:
             verdict = self.validator.check(seg.topic, header, arrays)
         except Rejected as exc:
             self.rejections += 1
-            self.report_error(exc.kind, exc.what, index=seg.index, key=key, field=exc.field,
-                              details={"producer": header.producer, "t0": header.t0, "fs": header.fs,
-                                       "checksum": header.checksum})
+            details = {"producer": header.producer, "t0": header.t0, "fs": header.fs, "checksum": header.checksum}
+            what = exc.what
+            if exc.kind == "conflict" and exc.field == "payload":  # the first conflicting copy: the other goes too
+                held = self.held.withdraw(seg.topic, seg.index)
+                kept_out = self.withdraw(seg.topic, seg.index, held)
+                details["first_copy"] = "withdrawn" if kept_out else "used"
+                what += ("; the first copy is withdrawn, the segment is missing" if kept_out else
+                         "; the first copy had been used already")
+            self.report_error(exc.kind, what, index=seg.index, key=key, field=exc.field, details=details)
             return
         done = self._done.setdefault(seg.topic, RangeSet())
         if verdict == "duplicate" or seg.index in done:
             self.log.info("%s: identical copy of a processed segment, ignored", key)
             self.event("duplicate", index=seg.index, message=f"{key} already processed (identical copy)")
             return
+        self.validator.accepted(seg.topic, header)  # from now on a different copy is a conflict
+        if not self.held.put(seg.topic, seg.index, (key, header, arrays, payload), time.monotonic()):
+            self._use(key, header, arrays, payload)
+
+    def _release_held(self) -> None:
+        """Use the held segments whose wait is over (no conflicting copy came)."""
+        for key, header, arrays, payload in self.held.due(time.monotonic()):
+            self._use(key, header, arrays, payload)
+
+    def _use(self, key: str, header: Header, arrays: dict, payload: bytes) -> None:
+        """Record an accepted input segment and hand it to :meth:`handle`."""
+        seg = parse_segment_key(key)
+        done = self._done.setdefault(seg.topic, RangeSet())
         self._check_gap(seg.topic, seg.index)
         if self.config.record_inputs:
             self.recorder.write_segment(seg.topic, header, payload)
@@ -506,7 +562,6 @@ class Stage:
             self.report_error("failed", f"{type(exc).__name__}: {exc}", index=seg.index, key=key,
                               details={"traceback": traceback.format_exc(limit=8)})
             return
-        self.validator.accepted(seg.topic, header)
         done.add(seg.index)
         self.log.info("%s: processed, %d output(s)", key, len(outputs))
 
@@ -586,8 +641,8 @@ class Stage:
     def report_error(self, kind: str, message: str, *, index: int | None = None, key: str | None = None,
                      field: str | None = None, details: dict | None = None) -> dict:
         """Publish an error on ``ttl/<run>/errors/<index>``, record it, log it; returns it."""
-        error = {"run": self.run_id, "stage": self.stage_name, "kind": kind, "index": index, "key": key,
-                 "field": field, "message": message, "time": time.time(), "details": details or {}}
+        error = stage_record(self.run_id, self.stage_name, kind, message, index=index, details=details, key=key,
+                             field=field)
         self.log.warning("%s%s%s: %s", kind, f" {key}" if key else "", f" field {field!r}" if field else "",
                          message, extra={"index": index})
         if self.bus is not None:
@@ -603,16 +658,14 @@ class Stage:
         """Log and record a warning (topic ``warnings``): not an error, but for the operator's eyes."""
         self.log.warning("%s: %s", kind, message, extra={"index": index})
         if self.recorder is not None:
-            self.recorder.write_json("warnings", {"run": self.run_id, "stage": self.stage_name, "kind": kind,
-                                                  "index": index, "message": message, "time": time.time(),
-                                                  "details": details})
+            self.recorder.write_json("warnings", stage_record(self.run_id, self.stage_name, kind, message,
+                                                              index=index, details=details))
 
     def event(self, kind: str, *, index: int | None = None, message: str = "", **details) -> None:
         """Record a lifecycle or bookkeeping event in the recording."""
         if self.recorder is not None:
-            self.recorder.write_json("events", {"run": self.run_id, "stage": self.stage_name, "kind": kind,
-                                                "index": index, "message": message, "time": time.time(),
-                                                "details": details})
+            self.recorder.write_json("events", stage_record(self.run_id, self.stage_name, kind, message,
+                                                            index=index, details=details))
 
 
 def _preview(attachment) -> str:
@@ -645,36 +698,77 @@ def stage_arguments(parser: argparse.ArgumentParser | None = None) -> argparse.A
 def config_from_args(args: argparse.Namespace) -> StageConfig:
     """A :class:`StageConfig` from ``--config`` and the options overriding it."""
     d = json.loads(args.config.read_text()) if args.config else {}
-    if args.run:
-        d["run"] = args.run
-    if args.name:
-        d["stage"] = args.name
-    if args.recordings:
-        d["recordings"] = str(args.recordings)
+    for key, value in (("run", args.run), ("stage", args.name), ("recordings", args.recordings)):
+        if value:
+            d[key] = str(value)
     z = dict(d.get("zenoh") or {})
-    if args.connect:
-        z["connect"] = args.connect
-    if args.listen:
-        z["listen"] = args.listen
-    if args.zenoh_config:
-        z["config_file"] = str(args.zenoh_config)
-    if getattr(args, "credentials", None):
-        z["credentials"] = str(args.credentials)
-    if getattr(args, "mode", None):
-        z["mode"] = args.mode
-    elif args.connect and not args.listen and not z.get("mode") and not z.get("config_file"):
+    for key, value in (("connect", args.connect), ("listen", args.listen), ("config_file", args.zenoh_config),
+                       ("credentials", getattr(args, "credentials", None)), ("mode", getattr(args, "mode", None))):
+        if value:
+            z[key] = value if isinstance(value, list) else str(value)
+    if args.connect and not args.listen and not z.get("mode") and not z.get("config_file"):
         z["mode"] = "client"  # a router routes between its clients, not between peers
     d["zenoh"] = z
     return StageConfig.from_dict(d)
 
 
-def main(stage_class: type[Stage], argv: Sequence[str] | None = None) -> int:
-    """Entry point of a stage process: parse options, set up logging, run the stage."""
-    args = stage_arguments(argparse.ArgumentParser(prog=f"ttl stage {stage_class.name}")).parse_args(argv)
+def add_common_options(p: argparse.ArgumentParser) -> None:
+    """Options of a stage process that override :class:`StageConfig` fields, besides
+    :func:`stage_arguments`."""
+    p.add_argument("--cache", type=int, help="segments kept per output topic for late joiners")
+    p.add_argument("--history", type=int, help="segments asked from each input publisher's cache")
+    p.add_argument("--no-record-inputs", action="store_true", help="do not record input payloads")
+    p.add_argument("--poll-interval", type=float, help="longest wait before checking timers [s]")
+
+
+def stage_main(stage_class: type[Stage], argv: Sequence[str] | None = None,
+               add_options: Callable[[argparse.ArgumentParser], None] | None = None,
+               options: Callable[[argparse.Namespace], dict] | None = None,
+               check: Callable[[StageConfig], str] | None = None) -> int:
+    """Entry point of a stage process.
+
+    Parses :func:`stage_arguments`, :func:`add_common_options` and the stage's own
+    (``add_options``; ``options(args)`` returns the stage options they set, overriding the
+    ``--config`` file's), sets up logging and runs the stage.  With ``--check`` the options
+    are validated by ``check(config)`` (which returns a one-line description) and nothing
+    runs.  Errors: one line naming the problem on stderr, exit status 2.
+    """
+    parser = stage_arguments(argparse.ArgumentParser(prog=f"ttl stage {stage_class.name}",
+                                                     description=(stage_class.__doc__ or "").split("\n\n")[0]))
+    add_common_options(parser)
+    if check is not None:
+        parser.add_argument("--check", action="store_true", help="validate the options and exit")
+    if add_options is not None:
+        add_options(parser)
+    args = parser.parse_args(argv)
     configure_logging(args.log_level, args.log_json)
     try:
+        if not args.config and not args.run:
+            raise ValueError("--run (or --config with a 'run' field) is required")
         config = config_from_args(args)
-    except (ValueError, OSError) as exc:
-        logging.getLogger(__name__).error("%s", exc)
+        if args.cache is not None:
+            config.cache = args.cache
+        if args.history is not None:
+            config.history = args.history
+        if args.no_record_inputs:
+            config.record_inputs = False
+        if args.poll_interval is not None:
+            config.poll_interval = args.poll_interval
+        elif not (args.config and "poll_interval" in json.loads(args.config.read_text())):
+            config.poll_interval = stage_class.default_poll_interval
+        if options is not None:
+            config.options = {**config.options, **{k: v for k, v in options(args).items() if v is not None}}
+        check_name(config.run, "run id")
+        if check is not None and args.check:
+            print(check(config))
+            return 0
+        stage = stage_class(config)
+    except Exception as exc:  # noqa: BLE001 - one line, no traceback, for user errors
+        print(f"ttl stage {stage_class.name}: error: {exc}", file=sys.stderr)
         return 2
-    return stage_class(config).run()
+    try:
+        return stage.run()
+    except (TTLError, OSError, ValueError) as exc:
+        log.debug("stage failed", exc_info=True)
+        print(f"ttl stage {stage_class.name}: error: {exc}", file=sys.stderr)
+        return 2

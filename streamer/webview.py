@@ -20,18 +20,8 @@ import threading
 from pathlib import Path
 from urllib.parse import quote
 
+from .processes import stop_process
 from .session import LOOPBACK, free_port
-
-
-def stop_process(proc: subprocess.Popen, timeout: float = 10.0) -> None:
-    """Terminate ``proc`` (a child we started), kill it if it does not exit in ``timeout`` s."""
-    if proc.poll() is None:
-        proc.terminate()
-        try:
-            proc.wait(timeout)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait(timeout)
 
 
 class _CorsHandler(http.server.SimpleHTTPRequestHandler):
@@ -45,7 +35,7 @@ class _CorsHandler(http.server.SimpleHTTPRequestHandler):
 
 class WebView:
     """The web viewer of the recording ``rrd`` served on 127.0.0.1 by the ``rerun``
-    executable ``binary`` (:func:`streamer.inspect.rerun_binary`).
+    executable ``binary`` (:func:`streamer.viewer.rerun_binary`).
 
     Attributes
     ----------

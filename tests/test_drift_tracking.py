@@ -7,7 +7,14 @@ Rerun recording the coefficient series and ASDs; the fit whose window covers exa
 first day equals the batch fit of that day to 1e-9.  The hourly rolling estimates must follow the truth averaged over the same window within
 3 sigma (outside the 24 h after the step, when the window straddles it), the monitor must
 raise a step alert within 3 segments of the step on that coefficient, and drift alerts for
-the drifting ones (and none for the others)."""
+the drifting ones (and none for the others).
+
+A science check (``make test-science``; about 100 s on 2 cores): the fast suite covers its
+parts on less data - every stage recording every segment once and streaming equal to batch
+in ``tests/test_pipeline.py``, the rolling window against the batch fit of a day in
+``tests/ttlcore/estimate/test_rolling.py``, the step and drift alerts on realistic fit
+sequences in ``tests/ttlcore/diagnose/test_trends.py`` and through a real monitor process in
+``tests/stages/test_monitor.py`` - and ``make demo`` runs this very scenario."""
 
 import subprocess
 import sys
@@ -24,6 +31,8 @@ from ttlcore.conventions import COEFFICIENT_NAMES, DAY
 STEP_T = 1.5 * DAY
 DRIFTING = {"12.phi.rx": 0.05e-3, "13.eta.tx": -0.05e-3}
 STEPPED = ("23.phi.tx", 0.3e-3)
+
+pytestmark = pytest.mark.science
 
 
 def ttl(*args, cwd=None):

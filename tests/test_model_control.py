@@ -1,7 +1,7 @@
 """The pipeline changes its model on a control message mid-run (issue 6).
 
 Real processes: ``ttl run`` (router and five stages on
-127.0.0.1) on 12 simulated hours in which two coefficients drift, and ``ttl control``
+127.0.0.1) on 6 simulated hours in which two coefficients drift, and ``ttl control``
 sending the fitter ``{"effects": ["linear-ttl", "drift"]}`` half-way.  The fitter's MCAP
 file must show the control message accepted and a fit whose ``model_change`` compares
 both models on the same window - the linear model failing against the instrument noise
@@ -27,7 +27,7 @@ from streamer.security import ensure_credentials  # noqa: E402
 from streamer.session import Bus, SessionSettings, free_port  # noqa: E402
 from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for  # noqa: E402
 
-SEGMENTS = 12
+SEGMENTS = 6
 
 
 def test_fitter_changes_model_on_control_message_and_monitor_shows_before_after(tmp_path):
@@ -38,18 +38,20 @@ def test_fitter_changes_model_on_control_message_and_monitor_shows_before_after(
     (tmp_path / "run.toml").write_text('[stages.fitter]\nadequacy_every = 1\n')
     procs = Procs(tmp_path)
     try:
-        # 12 mm/rad/day on two coefficients (far beyond LISA's expectations, chosen so that
-        # the excess shows in chi^2/dof and not only in the evidence: at 3 mm/rad/day the
+        # 24 mm/rad/day on two coefficients (far beyond LISA's expectations, chosen so that
+        # the excess shows in chi^2/dof and not only in the evidence: chi^2/dof grows with the
+        # square of the drift over the window, rate x duration; at 3 mm/rad/day over 12 h the
         # linear model's chi^2/dof is 1.004 over ~10^6 degrees of freedom, delta chi^2 2000)
         proc = procs.ttl("run", "--config", tmp_path / "run.toml", "--simulate",
-                         "--duration 12h --orbit unequal --seed 4 --drift 12.phi.rx=12,23.eta.tx=-12",
-                         "--segment", "1h", "--run-id", "m1", "--recordings", tmp_path / "rec",
+                         "--duration 6h --orbit unequal --seed 4 --drift 12.phi.rx=24,23.eta.tx=-24",
+                         # paced at 4 s a segment: the control messages reach the fitter mid-run
+                         "--segment", "1h", "--pace", "900", "--run-id", "m1", "--recordings", tmp_path / "rec",
                          "--listen", endpoint, "--credentials", creds, "--timeout", "400",
                          *([] if MONITOR else ["--skip", "monitor"]))
         with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="control")) as bus:
             time.sleep(0.5)
             fitted = _progress_watch(bus, "m1", "fitter")
-            wait_for(lambda: fitted() >= 6 or proc.poll() is not None, 180, "six segments through the fitter")
+            wait_for(lambda: fitted() >= 3 or proc.poll() is not None, 180, "three segments through the fitter")
             assert proc.poll() is None, output(proc)[-3000:]
             bad = subprocess.run(ttl_command("control", "fitter", "model", '{"effects": ["linear-ttl", "tilt"]}',
                                              "--run", "m1", "--connect", endpoint, "--credentials", str(creds),
@@ -117,7 +119,7 @@ def test_fitter_changes_model_on_control_message_and_monitor_shows_before_after(
         assert report["baseline"]["chi2_dof"] > 1.1 and 0.9 < report["model"]["chi2_dof"] < 1.1, report["change"]
         assert report["change"]["log_bayes_factor"] > 10 and "linear-ttl,drift" in r.stdout
         values = report["model"]["coefficients"]["values"]
-        # the window-average of the drifting coefficient: 2.3 + 12 mm/rad/day x 6 h
+        # the window-average of the drifting coefficient: 2.3 + 24 mm/rad/day x 3 h
         assert abs(values["12.phi.rx"] - 5.3e-3) < 5 * report["model"]["coefficients"]["sigma"]["12.phi.rx"]
     r = subprocess.run(ttl_command("refit", run, "--effects", "linear-ttl,tilt"), capture_output=True, text=True,
                        timeout=120)

@@ -7,7 +7,10 @@ processes on a loopback Zenoh, real MCAP files read back.
   dtypes, NaN payloads, identical and altered duplicates, forged producers, wrong fs / t0 /
   length, forged progress): no stage crashes or stalls, every message is recorded as
   rejected (or, an identical copy, as a duplicate) by every stage it reached, and the fits and
-  residuals equal the clean run's bit for bit.
+  residuals equal the clean run's bit for bit.  Altered duplicates are sent of segments every
+  stage has handled (a conflict within the hold keeps the genuine copy out too, which
+  tests/streamer/test_stage.py checks): each is recorded as a conflict whose first copy
+  had been used.
 * NaN gap: ten minutes of NaN in eta: the run ends on its own, the gap is reported, and the
   fit after the gap is within 1 sigma of the clean run's.
 * launcher killed: every stage stops by itself (exit status 3, recording closed with the
@@ -110,6 +113,7 @@ class Fuzzer:
         self.mine: set = set()
         self.by_kind: dict[str, int] = {}
         self.kind = ""
+        self.board = _watch_board(bus, run)
         for topic in self.genuine:
             bus.subscriber(f"ttl/{run}/{topic}/*", self._keep(topic))
 
@@ -190,9 +194,25 @@ class Fuzzer:
     def identical_duplicate(self, topic, index, payload, header):
         self.put(topic, index, payload, json.dumps(header, separators=(",", ":")).encode(), identical=True)
 
+    def settled(self) -> int:
+        """Highest index every stage has handled (-1: none yet)."""
+        return min(_handled(self.board, s) for s in STAGES) - 1
+
     def altered_duplicate(self, topic, index, payload, header):
+        # of a segment every stage has handled: the genuine copy was used (a conflict within
+        # the hold would keep it out, and the results would differ from the clean run's)
+        settled = self.settled()
+        with self.lock:
+            old = [g for g in self.genuine[topic] if int(g[0].rsplit("/", 1)[1]) <= settled]
+        if not old:  # none yet: another hostile message instead
+            if header:
+                self.kind = "forged_producer"
+                self.forged_producer(topic, index, payload, header)
+            return
+        key, payload, attachment = old[-1]
+        header = json.loads(attachment)
         arrays = {k: v * (1.0 + 1e-3) for k, v in self._arrays(payload, header).items()}
-        self._publish(topic, index, arrays, header)
+        self._publish(topic, header["index"], arrays, header)
 
     def forged_producer(self, topic, index, payload, header):
         self._publish(topic, index + 1, self._arrays(payload, header), header, producer="intruder")
@@ -243,6 +263,11 @@ def test_fuzz_of_hostile_messages_changes_nothing(clean, tmp_path):
                 k += 1
                 if k % 50 == 0:
                     time.sleep(0.05)
+            # altered duplicates of segments every stage has handled (the loop may come too early)
+            wait_for(lambda: fuzz.settled() >= 0 or proc.poll() is not None, 600, "a segment every stage handled")
+            for j in range(24):
+                fuzz.kind = "altered_duplicate"
+                fuzz.altered_duplicate(("fit", "residual", "telemetry", "fit")[j % 4], 0, b"", {})
             code = finish(proc, 900)
             out = output(proc)
         assert k == n_messages, f"the run ended after {k} hostile messages: {out[-2000:]}"
@@ -265,7 +290,10 @@ def test_fuzz_of_hostile_messages_changes_nothing(clean, tmp_path):
             assert len(on_topic) + len(dups) >= sent, (stage, topic, len(on_topic), len(dups), sent, fuzz.by_kind,
                                                        sorted({e["field"] for e in on_topic}))
         assert not [e for e in rec.json("errors") if e["kind"] == "failed"], (stage, rec.json("errors")[:3])
+        first = [e for e in refused if e["kind"] == "conflict" and e["field"] == "payload"]
+        assert all(e["details"]["first_copy"] == "used" for e in first), (stage, first[:3])
     assert sum(fuzz.sent.values()) + fuzz.progress >= 1000
+    assert sum(n for k, n in fuzz.by_kind.items() if k.endswith("/altered_duplicate")) >= 20, fuzz.by_kind
     m = re.search(r"(\d+) progress message\(s\) refused", out)
     assert m and int(m.group(1)) >= fuzz.progress, out[-2000:]
     # and the science is untouched
@@ -322,7 +350,62 @@ def test_stage_killed_mid_run_restarts_exactly(stage, clean, tmp_path):
     assert not [p for p in psutil.process_iter(["cmdline"]) if run in " ".join(p.info["cmdline"] or ())]
 
 
-def test_launcher_killed_stages_stop_with_a_clear_error(tmp_path):
+def test_restarted_fitter_keeps_the_model_changed_by_control(tmp_path):
+    """``ttl control fitter model`` mid-run, then SIGKILL of the fitter: the restarted fitter
+    fits with the model in force (from its earlier recording), not the configured one."""
+    import subprocess
+
+    port = free_port()
+    procs = Procs(tmp_path)
+    run = "kill-model"
+    effects = ["linear-ttl", "drift"]
+    try:
+        proc = procs.ttl(*run_args(run, tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--restart", "1",
+                                   "--pace", "450"))
+        with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
+            board = _watch_board(bus, run)
+            wait_for(lambda: _handled(board, "fitter") >= 2 or proc.poll() is not None, 600, "fitter at segment 2")
+            sent = subprocess.run(ttl_command("control", "fitter", "model", json.dumps({"effects": effects}),
+                                              "--run", run, "--connect", f"tcp/127.0.0.1:{port}"),
+                                  capture_output=True, text=True, timeout=90)
+            assert sent.returncode == 0, (sent.stdout, sent.stderr)
+            # the segment the change applies from (its 'model' event), then one fit beyond it
+            run_dir = tmp_path / "rec" / run
+
+            def model_event():
+                found = [e for e in read_recording(run_dir / "fitter.mcap").json("events") if e["kind"] == "model"]
+                return found[0]["details"]["from_index"] if found else None
+            wait_for(lambda: model_event() is not None or proc.poll() is not None, 120, "the model event")
+            start = model_event()
+            assert start is not None and start < SEGMENTS - 1, (start, output(proc)[-3000:])
+            wait_for(lambda: _handled(board, "fitter") >= start + 1 or proc.poll() is not None, 600,
+                     f"fitter past segment {start}")
+            stage_processes(proc)["fitter"].send_signal(signal.SIGKILL)
+            code = finish(proc, 900)
+        out = output(proc)
+    finally:
+        procs.close()
+    assert code == 0 and "restarting fitter" in out, out[-4000:]
+    before, after = read_recording(run_dir / "fitter.1.mcap"), read_recording(run_dir / "fitter.mcap")
+    changed = [e for e in before.json("events") if e["kind"] == "model"]
+    assert len(changed) == 1 and changed[0]["details"]["effects"] == effects, changed
+    old = {f.header.index: f.header.meta for f in before.segments("fit")}
+    new = {f.header.index: f.header.meta for f in after.segments("fit")}
+    assert [old[i]["model"] for i in sorted(old) if i >= start] and new, (sorted(old), sorted(new), start)
+    assert all(old[i]["model"] == (effects if i >= start else ["linear-ttl"]) for i in old), old
+    assert all(m["model"] == effects for m in new.values()), {i: m["model"] for i, m in new.items()}
+    restored = [e for e in after.json("events") if e["kind"] == "model-restored"]
+    assert restored and restored[0]["details"]["effects"] == effects, restored
+    # the change is reported once, by the process that made it (a fit from `start` on is in its file)
+    assert not restored[0]["details"]["change_due"]
+    assert not [i for i, m in new.items() if "model_change" in m], new
+    assert len([i for i, m in old.items() if "model_change" in m]) <= 1, old
+
+
+def test_launcher_killed_stages_stop_with_a_clear_error(clean, tmp_path):
+    """SIGKILL of the launcher mid-run: every stage and the router stop by themselves
+    (nothing orphaned), each stage's recording closed with the reason, ``ttl inspect`` says
+    so, and what was produced before equals the clean run's to 1e-9."""
     port = free_port()
     procs = Procs(tmp_path)
     try:
@@ -333,10 +416,11 @@ def test_launcher_killed_stages_stop_with_a_clear_error(tmp_path):
             wait_for(lambda: _handled(board, "fitter") >= 1 or proc.poll() is not None, 600, "the first fit")
         children = stage_processes(proc)
         assert set(children) == set(STAGES), children
+        everything = psutil.Process(proc.pid).children(recursive=True)  # the router too
         os.kill(proc.pid, signal.SIGKILL)
         proc.wait(10)
-        gone, alive = psutil.wait_procs(list(children.values()), timeout=60)
-        assert not alive, f"stages left running after the launcher died: {alive}"
+        gone, alive = psutil.wait_procs(everything, timeout=90)
+        assert not alive, f"processes left running after the launcher died: {[p.cmdline() for p in alive]}"
     finally:
         for p in psutil.process_iter(["cmdline"]):
             if "orphans" in " ".join(p.info["cmdline"] or ()) and p.pid != os.getpid():
@@ -351,6 +435,13 @@ def test_launcher_killed_stages_stop_with_a_clear_error(tmp_path):
         assert [e for e in rec.json("errors") if e["kind"] == "orphaned"], stage
     res = __import__("subprocess").run(ttl_command("inspect", str(run_dir)), capture_output=True, text=True, timeout=300)
     assert "orphaned" in res.stdout and "launcher" in res.stdout, res.stdout[-3000:]
+    # what the run produced before it stopped is the clean run's
+    partial, reference = results(run_dir), results(clean)
+    assert partial["fit"], "no fit recorded before the launcher died"
+    for topic in ("fit", "residual"):
+        assert set(partial[topic]) <= set(reference[topic]), topic
+    assert_same_results({t: {i: reference[t][i] for i in partial[t]} for t in ("fit", "residual")}, partial,
+                        rtol=1e-9)
 
 
 # ---------------------------------------------------------------------------- gaps

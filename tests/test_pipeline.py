@@ -215,7 +215,7 @@ def test_message_contracts_and_streaming_equals_batch(t1):
 
 
 def _progress_watch(bus, run, stage):
-    from stages import progress_pattern
+    from streamer.keys import progress_pattern
     seen = queue.Queue()
     bus.segment_subscriber(progress_pattern(run), lambda s: seen.put(json.loads(s.payload.to_bytes())), history=1)
     state = {"done": set()}

@@ -14,7 +14,11 @@ Everything here follows ``docs/physics.md`` (and therefore lisainstrument and py
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
+
+from .errors import ConfigError
 
 #: Speed of light in vacuum [m/s].
 C = 299_792_458.0
@@ -137,8 +141,44 @@ def angular_velocity_to_angle_asd(asd_velocity, f):
     return np.asarray(asd_velocity) / (2 * np.pi * np.asarray(f))
 
 
-def parse_duration(text: str | float | int) -> float:
-    """Parse a duration such as ``"1d"``, ``"6h"``, ``"30min"``, ``"90s"`` or ``3600`` into seconds."""
+def finite_number(value, what: str, *, positive: bool = False, unit: str = "",
+                  error: type[Exception] = ConfigError) -> float:
+    """``float(value)``, checked finite (and > 0 with ``positive``).
+
+    Raises
+    ------
+    ConfigError (or ``error``)
+        Naming ``what`` (e.g. ``"orbit 'ltt[12]'"``): "orbit 'ltt[12]' must be a positive
+        finite number of seconds, got 'x'".
+    """
+    try:
+        number = float(value)
+    except (TypeError, ValueError):
+        number = math.nan
+    if not math.isfinite(number) or (positive and number <= 0):
+        kind = ("a positive finite number" if positive else "a finite number") + (f" of {unit}" if unit else "")
+        raise error(f"{what} must be {kind}, got {value!r}")
+    return number
+
+
+def parse_duration(text: str | float | int, option: str | None = None) -> float:
+    """Parse a duration such as ``"1d"``, ``"6h"``, ``"30min"``, ``"90s"`` or ``3600`` into seconds.
+
+    Raises
+    ------
+    ValueError
+        If ``text`` is not a positive duration; with ``option`` (the option or field it came
+        from), a :class:`~ttlcore.errors.ConfigError` whose message starts with it.
+    """
+    try:
+        return _parse_duration(text)
+    except ValueError as exc:
+        if option is None:
+            raise
+        raise ConfigError(f"{option}: {exc}") from None
+
+
+def _parse_duration(text: str | float | int) -> float:
     if isinstance(text, (int, float)):
         value = float(text)
     else:

@@ -25,11 +25,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from ttl_testutil import wait_for  # noqa: F401  (also puts the project first on sys.path)
 
+from streamer.processes import stop_process
 from streamer.session import free_port
-from streamer.webview import stop_process
 
 CHROMIUM = next((shutil.which(n) for n in ("chromium", "chromium-browser", "google-chrome") if shutil.which(n)),
                 None)
@@ -42,10 +41,10 @@ def draw_recording(path: Path) -> None:
     import rerun as rr
 
     from stages import monitor_views as views
-    from stages.monitor import band_ratio, reference_curves, x_asd
     from ttlcore.conventions import COEFFICIENT_NAMES
-    from ttlcore.sim.coefficients import paper_set
     from ttlcore.estimate.fit import DEFAULT_BAND
+    from ttlcore.estimate.monitoring import band_ratio, channel_asd, reference_curves
+    from ttlcore.sim.coefficients import paper_set
     from ttlcore.sim.simulator import SimulationConfig, simulate
     from ttlcore.tdi.data import compute_tdi
 
@@ -60,8 +59,8 @@ def draw_recording(path: Path) -> None:
     step = 3e-4 * (np.arange(24) == COEFFICIENT_NAMES.index("23.phi.tx"))
     data = td.data[0]
     residual = (td.data - td.model(truth))[0]
-    f, asd, f_welch = x_asd(data, td.fs)
-    fr, ar, _ = x_asd(residual, td.fs)
+    f, asd, f_welch = channel_asd(data, td.fs)
+    fr, ar, _ = channel_asd(residual, td.fs)
     ref = reference_curves(f_welch, tm.ltt.mean(axis=1))
     for i in range(12):
         rec.set_time("mission_time", duration=3600.0 * i + 1800.0)

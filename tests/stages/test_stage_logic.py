@@ -7,13 +7,16 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from stages import InOrder, PeerProgress, from_ranges, to_ranges
-from stages.replayer import FileSource, Replayer, make_source, simulation_config
+from stages.replayer import FileSource, Replayer, make_source
 from stages.subtractor import Subtractor
+from streamer.keys import from_ranges, to_ranges
+from streamer.pipeline_stage import InOrder
+from streamer.progress import Progress
 from streamer.stage import StageConfig
 from ttlcore.errors import ConfigError, TelemetryError
 from ttlcore.io.telemetry import Telemetry, write_telemetry
 from ttlcore.io.truth import truth_path
+from ttlcore.sim.spec import simulation_config
 
 
 def sample(msg: dict):
@@ -24,7 +27,7 @@ def test_ranges_round_trip():
     assert to_ranges([5, 0, 1, 2, 2]) == [[0, 2], [5, 5]]
     assert from_ranges([[0, 2], [5, 5]]) == {0, 1, 2, 5}
     assert to_ranges([]) == [] and from_ranges(None) == set() and from_ranges([["x"]]) == set()
-    p = PeerProgress("fitter")
+    p = Progress("fitter")
     p.update({"done": [[0, 3]], "failed": [[5, 5]], "segments_total": 7, "fits_ranges": [[1, 3]]})
     p.update({"done": [[4, 4], [6, 6]], "pid": 2})  # a restarted process: union of both
     assert p.handled == set(range(7)) and p.covers() and p.highest == 6 and p.extra["fits"] == {1, 2, 3}
@@ -49,6 +52,19 @@ def test_in_order_settles_reorders_and_skips():
     q2 = InOrder(settle=10)
     q2.add(0, "a")
     assert list(q2.ready()) == [(0, "a")]             # index 0 needs no settling
+    # conflicting copies: a buffered or future index is withdrawn and skipped in its turn
+    q2.add(2, "c")
+    assert q2.withdraw(2, "conflict") and q2.withdraw(3, "conflict") and not q2.withdraw(0, "conflict")
+    q2.add(1, "b")
+    q2.add(4, "e")
+    out = []
+    for i, item in q2.ready():
+        out.append((i, item, q2.skipped_reason if item is None else ""))
+    assert out == [(1, "b", ""), (2, None, "conflict"), (3, None, "conflict"), (4, "e", "")]
+    q3 = InOrder(settle=0)
+    q3.withdraw(0, "conflict")
+    q3.add(1, "b")
+    assert list(q3.ready()) == [(0, None), (1, "b")]  # a withdrawn first index is still accounted for
 
 
 def test_subtractor_applies_the_latest_fit_covering_each_segment(tmp_path):
@@ -150,8 +166,7 @@ def test_replayer_paces_at_a_multiple_of_real_time(tmp_path, monkeypatch):
 def test_run_options_merge_config_file_and_command_line(tmp_path):
     from pathlib import Path
 
-    from streamer.cli import run_options
-    from streamer.cli import register
+    from streamer.cli import register, run_options
     from ttlcore.cli.main import build_parser
 
     (tmp_path / "run.toml").write_text('run_id = "from-file"\nsimulate = "--duration 6h"\nsegment = "30min"\n'
@@ -168,3 +183,42 @@ def test_run_options_merge_config_file_and_command_line(tmp_path):
         run_options(build_parser(register).parse_args(["run", "--config", str(tmp_path / "bad.json")]))
     with pytest.raises(Exception, match="--run-id"):
         run_options(build_parser(register).parse_args(["run", "--simulate", "--duration 1h"]))
+
+
+def test_restarted_fitter_recovers_the_model_in_force(tmp_path):
+    """A model changed by a control message survives a restart: taken from the earlier
+    process's recording, its model_change still due when no fit followed it."""
+    from stages.fitter import Fitter
+    from streamer.recorder import Recorder
+
+    run_dir = tmp_path / "u"
+    first = Fitter(StageConfig(run="u", recordings=tmp_path))
+    first.queue.next = 5  # segments 0..4 handled
+    with Recorder(run_dir / "fitter.1.mcap") as rec:
+        first.recorder = rec
+        for i in range(5):
+            rec.write_json("fit/summary", {"index": i})
+        first.control("model", b'{"effects": ["linear-ttl", "drift"]}')
+    first.recorder = None
+    assert len(first.effects) == 2 and first.effects[1].startswith("drift")
+
+    second = Fitter(StageConfig(run="u", recordings=tmp_path, options={"effects": ["linear-ttl"]}))
+    second.restore_model()
+    assert second.effects == first.effects != ["linear-ttl"]
+    assert second._model_change == {"before": ["linear-ttl"], "after": first.effects, "from_index": 5}
+
+    # killed again after fit 5 was out: the model holds, its change was reported already
+    with Recorder(run_dir / "fitter.2.mcap") as rec:
+        rec.write_json("fit/summary", {"index": 5})
+    third = Fitter(StageConfig(run="u", recordings=tmp_path))
+    third.restore_model()
+    assert third.effects == first.effects and third._model_change is None
+
+    # no model event in the earlier recordings: the configured model stays
+    (run_dir / "fitter.1.mcap").unlink()
+    (run_dir / "fitter.2.mcap").unlink()
+    with Recorder(run_dir / "fitter.1.mcap") as rec:
+        rec.write_json("fit/summary", {"index": 0})
+    fourth = Fitter(StageConfig(run="u", recordings=tmp_path, options={"effects": ["linear-ttl", "step"]}))
+    fourth.restore_model()
+    assert fourth.effects == Fitter(StageConfig(run="u", options={"effects": ["linear-ttl", "step"]})).effects

@@ -3,21 +3,19 @@
 from __future__ import annotations
 
 import json
-import os
-import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import psutil
-import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
 # the project first: with tests/ on sys.path (pytest's rootdir insertion for tests/test_pipeline.py),
 # tests/stages would otherwise be imported as a namespace package named `stages`
 if sys.path[0] != str(ROOT):
     sys.path.insert(0, str(ROOT))
+
+from proc_testutil import ChildProcesses, finish, output, wait_for  # noqa: E402,F401 - the tests import them from here
 
 from streamer.recorder import read_recording  # noqa: E402
 
@@ -32,60 +30,14 @@ def ttl_command(*args: str) -> list[str]:
     return base + [str(a) for a in args]
 
 
-class Procs:
-    """Child processes of a test, each in its own session; all killed (with their children) at the end."""
-
-    def __init__(self, tmp_path: Path):
-        self.tmp_path = tmp_path
-        self.procs: list[subprocess.Popen] = []
-
-    def start(self, cmd: list[str], name: str) -> subprocess.Popen:
-        log = open(self.tmp_path / f"{name}.out", "wb")
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
-                                cwd=self.tmp_path, start_new_session=True)
-        log.close()
-        proc.out_path = self.tmp_path / f"{name}.out"
-        self.procs.append(proc)
-        return proc
+class Procs(ChildProcesses):
+    """Child processes of a test: ``ttl`` commands and stage processes (:class:`proc_testutil.ChildProcesses`)."""
 
     def ttl(self, *args: str, name: str = "ttl") -> subprocess.Popen:
         return self.start(ttl_command(*args), name)
 
     def stage(self, stage: str, *args: str) -> subprocess.Popen:
         return self.start([sys.executable, "-m", f"stages.{stage}", *map(str, args)], stage)
-
-    def close(self) -> None:
-        for proc in self.procs:
-            if proc.poll() is None:
-                try:
-                    os.killpg(proc.pid, signal.SIGKILL)
-                except ProcessLookupError:
-                    pass
-                proc.wait(10)
-
-
-def output(proc) -> str:
-    return Path(proc.out_path).read_text(errors="replace")
-
-
-def wait_for(predicate, timeout: float, what: str, interval: float = 0.1):
-    """Poll ``predicate`` until it returns something true; fail naming ``what`` on timeout."""
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(interval)
-    pytest.fail(f"timed out after {timeout} s waiting for {what}")
-
-
-def finish(proc, timeout: float) -> int:
-    """Wait for ``proc``; fail with its output when it runs too long."""
-    try:
-        return proc.wait(timeout)
-    except subprocess.TimeoutExpired:
-        pytest.fail(f"{proc.args} still running after {timeout} s:\n{output(proc)[-4000:]}")
 
 
 def stage_processes(proc) -> dict[str, psutil.Process]:

@@ -134,6 +134,13 @@ def run_dir(tmp_path):
                                 "t_detected": 10800.0, "index": 2, "units": "mm/rad", "details": {}})
     f.close()
     (d / "monitor.rrd").write_bytes(b"")
+    # the router's refusals (streamer.security.refusals): 7 forbidden publications, 2 peers
+    # without a valid certificate, and a line cut off
+    refusals = [{"kind": "forbidden", "subject": "subtractor", "action": "Put", "key": f"ttl/{RUN}/fit/{i}",
+                 "time": f"2025-01-01T00:00:0{i}Z"} for i in range(7)]
+    refusals[2:2] = [{"kind": "unauthenticated", "message": "invalid peer certificate: UnknownIssuer",
+                      "time": "2025-01-01T00:00:10Z"}] * 2
+    (d / "security.jsonl").write_text("".join(json.dumps(r) + "\n" for r in refusals) + '{"kind": "forb')
     return d
 
 
@@ -183,6 +190,16 @@ def test_inspect_json_report(run_dir, capsys):
     assert t["first"] == pytest.approx(fit_values(0)[0][0] * 1e3)
     assert t["rate"] == pytest.approx(0.02 * 24, rel=1e-6)  # 0.02 mm/rad per hourly fit
     assert t["rate_se"] > 0 and t["significance"] > 5
+    # the router's refusals: counted per kind, the first few kept
+    sec = r["security"]
+    assert sec["present"] and sec["count"] == 9 and sec["unreadable"] == [10]
+    assert {k: v["count"] for k, v in sec["kinds"].items()} == {"forbidden": 7, "unauthenticated": 2}
+    assert [x["key"] for x in sec["kinds"]["forbidden"]["first"]] == [f"ttl/{RUN}/fit/{i}" for i in range(5)]
+    assert len(sec["kinds"]["unauthenticated"]["first"]) == 2
+    (run_dir / "security.jsonl").unlink()  # a run with --insecure has none
+    code, out, err = run_ttl(capsys, "inspect", run_dir, "--json", "-")
+    assert json.loads(out)["security"] == {"file": str(run_dir / "security.jsonl"), "present": False, "count": 0,
+                                           "kinds": {}, "unreadable": []}
 
 
 def test_inspect_text_report(run_dir, capsys):
@@ -199,6 +216,11 @@ def test_inspect_text_report(run_dir, capsys):
     assert "fitter: unfinished: fitter.1.mcap was not closed" in out
     assert "fitter: restart: fitter ran 2 times" in out
     assert "Coefficient trends (fitter fit JSON: 6 fits [0-5]" in out
+    assert "Security (security.jsonl): 9 refusal(s) by the router, forbidden x7, unauthenticated x2" in out
+    assert f"  forbidden: subtractor may not Put on ttl/{RUN}/fit/4 at 2025-01-01T00:00:04Z" in out
+    assert f"ttl/{RUN}/fit/5" not in out and "  forbidden: ... 2 more" in out
+    assert "  unauthenticated: invalid peer certificate: UnknownIssuer at 2025-01-01T00:00:10Z" in out
+    assert "  unreadable line(s) 10" in out
     row = next(line for line in out.splitlines() if line.strip().startswith("21.eta.tx"))
     assert "± 0.0100" in row and "+0.4800 ±" in row and row.rstrip().endswith("*")
 

@@ -47,3 +47,39 @@ def test_alive_and_control_errors():
         parse_control_key("ttl/r/alive/x")
     with pytest.raises(KeyExprError):
         control_key("r")
+
+
+def test_progress_keys_and_the_one_topology():
+    from streamer.keys import TOPICS, board_key, parse_progress_key, progress_key, progress_pattern
+    from streamer.plan import PRODUCERS
+    from streamer.progress import Progress, key_stage
+    from streamer.security import ROLES
+    from streamer.topology import OUTPUT_TOPIC, STAGES, UPSTREAM
+
+    assert progress_key("r", "fitter") == "ttl/r/control/progress/fitter"
+    assert board_key("r", "fitter") == "ttl/r/control/board/fitter"
+    assert progress_pattern("r") == "ttl/r/control/progress/*"
+    assert progress_pattern("r", board=True) == "ttl/r/control/board/*"
+    assert parse_progress_key(board_key("r", "monitor")) == ("r", "monitor")
+    assert key_stage("ttl/r/control/progress/fitter") == "fitter"
+    for bad in ("ttl/r/control/stop", "ttl/r/control/progress", "ttl/r/control/progress/a/b", "ttl/r/fit/1"):
+        assert key_stage(bad) is None
+        with pytest.raises(KeyExprError):
+            parse_progress_key(bad)
+    # every list of stages and topics is the topology's
+    assert TOPICS == (*(OUTPUT_TOPIC[s] for s in STAGES), "errors")
+    assert {PRODUCERS[t]: t for t in PRODUCERS} == OUTPUT_TOPIC
+    assert ROLES[:len(STAGES)] == STAGES and set(UPSTREAM) == set(STAGES) - {"replayer"}
+    # a progress message read back is the progress it was made from (the launcher's board)
+    p = Progress("fitter", done={0, 1, 2, 5}, failed={3, 4}, gaps={4}, segments_total=8, extra={"fits": {1, 2, 5}})
+    msg = p.message("r", pid=7, index=5)
+    assert msg["done"] == [[0, 2], [5, 5]] and msg["fits_ranges"] == [[1, 2], [5, 5]] and msg["pid"] == 7
+    q = Progress("fitter")
+    q.update(msg)
+    assert (q.done, q.failed, q.gaps, q.segments_total, q.extra, q.pids) == (p.done, p.failed, p.gaps, 8,
+                                                                            {"fits": {1, 2, 5}}, {7})
+    assert not q.covers() and q.highest == 5
+    q.update({"done": [[6, 7]], "stage": "fitter", "complete": True})
+    assert q.covers() and q.complete
+    q.update({"done": [[0, 2 ** 40]], "stage": "fitter"}, limit=8)  # clipped, not 2^40 entries
+    assert max(q.done) == 7

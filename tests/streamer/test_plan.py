@@ -9,7 +9,7 @@ import pytest
 
 from streamer.codec import Expect, decode, encode
 from streamer.keys import from_ranges
-from streamer.plan import Plan, RangeSet, Rejected, Validator
+from streamer.plan import Holdback, Plan, RangeSet, Rejected, Validator
 
 FS = 4.0
 N = 2400  # 10 min segments
@@ -102,6 +102,33 @@ def test_duplicates_resolved_by_content():
     assert err.value.kind == "conflict"
     with pytest.raises(Rejected, match="conflicting copies"):  # from then on no copy gets in
         check(v, tdi(3))
+
+
+def test_conflicting_copies_keep_both_out_while_held():
+    """A different copy within the hold withdraws the first; after the hold the first was used."""
+    v, held = Validator(PLAN), Holdback(1.0)
+    first = tdi(3)
+    assert check(v, first) == "new"
+    v.accepted("tdi", first[0])
+    assert held.put("tdi", 3, first, now=10.0) and held.due(now=10.5) == []
+    with pytest.raises(Rejected) as err:
+        check(v, tdi(3, data=np.zeros((3, N))))
+    assert (err.value.kind, err.value.field) == ("conflict", "payload") and "both copies refused" in str(err.value)
+    assert held.withdraw("tdi", 3) and held.due(now=20.0) == []  # the first copy never reaches the stage
+    with pytest.raises(Rejected, match="conflicting copies"):
+        check(v, first)                                         # nor does any later copy
+    # no contender within the hold: the copy comes out, a later different copy cannot withdraw it
+    second = tdi(4)
+    assert check(v, second) == "new"
+    v.accepted("tdi", second[0])
+    held.put("tdi", 4, second, now=30.0)
+    assert held.due(now=30.99) == [] and held.due(now=31.0) == [second] and len(held) == 0
+    with pytest.raises(Rejected, match="both copies refused"):
+        check(v, tdi(4, data=np.ones((3, N))))
+    assert not held.withdraw("tdi", 4)                          # used already: the stage is told so
+    assert not Holdback(0).put("tdi", 5, tdi(5), now=0.0)       # no hold: used at once
+    with pytest.raises(ValueError, match="hold"):
+        Holdback(-1)
 
 
 def test_without_a_plan_the_first_message_fixes_producer_rate_and_length():

@@ -20,8 +20,8 @@ from streamer_testutil import output_of, wait_for
 RUN = "stage-test"
 
 
-def good(index, n=4000, **meta):
-    data = np.random.default_rng(index).standard_normal((2, n))
+def good(index, n=4000, scale=1.0, **meta):
+    data = scale * np.random.default_rng(index).standard_normal((2, n))
     payload, attachment = encode(data, {"run": RUN, "index": index, "t0": 3600.0 * index, "fs": 4.0,
                                         "channels": ["a", "b"], "producer": "driver", "meta": meta})
     return data, payload, attachment
@@ -43,10 +43,10 @@ class Driver:
         self.bus.watch_alive(RUN, lambda stage, alive: self.alive.append((stage, alive)))
         self.telemetry = self.bus.segment_publisher(RUN, "telemetry", cache=8)
 
-    def start_stage(self, children, tmp_path):
+    def start_stage(self, children, tmp_path, **fields):
         config = StageConfig(run=RUN, zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{self.port}",)),
                              recordings=tmp_path / "recordings", poll_interval=0.05,
-                             gap_grace=0.5)
+                             gap_grace=0.5, **fields)
         proc = children.start("stage", config=config.to_dict())
         wait_for(lambda: "doubler" in self.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
                  30, "the stage's liveliness token")
@@ -141,6 +141,34 @@ def test_stage_validates_deduplicates_reports_and_stops_cleanly(driver, children
         for schema, channel, _ in make_reader(f).iter_messages():
             if channel.message_encoding == "json":
                 assert schema is not None and schema.encoding == "jsonschema", channel.topic
+
+
+def test_conflicting_copies_within_the_hold_are_both_kept_out(driver, children, tmp_path):
+    """Two different copies of a segment within the hold: neither is used, the conflict is
+    recorded; a different copy after the first was used is refused and says so."""
+    proc, mcap_path = driver.start_stage(children, tmp_path, hold=1.5)
+    data0, p0, a0 = good(0)
+    _, q0, b0 = good(0, scale=1.001)  # same index, t0, fs, producer: different content
+    driver.telemetry.put(0, p0, a0)
+    driver.telemetry.put(0, q0, b0)
+    driver.telemetry.put(0, p0, a0)  # and the first again: refused as well
+    data1, p1, a1 = good(1)
+    driver.telemetry.put(1, p1, a1)
+    header, arrays = driver.output(timeout=10)
+    assert header.index == 1, header  # nothing for 0
+    np.testing.assert_array_equal(arrays["data"], 2 * data1)
+    _, q1, b1 = good(1, scale=1.001)
+    driver.telemetry.put(1, q1, b1)  # after the hold: too late to withdraw segment 1
+    wait_for(lambda: len([e for _, e in driver.errors if e["kind"] == "conflict"]) >= 3, 10, "three conflicts")
+    with pytest.raises(queue.Empty):
+        driver.output(timeout=0.5)
+    driver.bus.session.put(f"ttl/{RUN}/control/doubler/stop", b"")
+    assert proc.wait(20) == 0, output_of(proc)
+    conflicts = [e for e in read_recording(mcap_path).json("errors") if e["kind"] == "conflict"]
+    assert [(e["index"], e["field"], e["details"].get("first_copy")) for e in conflicts] == [
+        (0, "payload", "withdrawn"), (0, "index", None), (1, "payload", "used")], conflicts
+    assert "first copy is withdrawn" in conflicts[0]["message"] and "had been used" in conflicts[2]["message"]
+    assert [s.header.index for s in read_recording(mcap_path).segments("tdi")] == [1]
 
 
 def test_killed_stage_leaves_a_salvageable_recording(driver, children, tmp_path):

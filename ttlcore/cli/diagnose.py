@@ -98,10 +98,7 @@ def run(args) -> int:
 
         s.band = check_band(args.band)
     if args.segment is not None:
-        try:
-            s.segment_duration = parse_duration(args.segment)
-        except ValueError as exc:
-            raise TTLError(f"--segment: {exc}") from None
+        s.segment_duration = parse_duration(args.segment, "--segment")
     s.noise_model = args.noise_model
     if s.noise_model == "fixed":
         s.tolerance = FIXED_MODEL_TOLERANCE

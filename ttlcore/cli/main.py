@@ -15,148 +15,29 @@ import argparse
 import json
 import logging
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES, DAY, LINKS, parse_duration
-from ..diagnose.effects import injection_from_spec
 from ..errors import TTLError
 from ..estimate.analyze import analyze, check_band, check_method
 from ..estimate.fit import DEFAULT_BAND, FitSettings
-from ..gw.injection import parse_gw_spec
 from ..gw.scenarios import add_parser as _add_scenarios
 from ..io.atomic import write_json
 from ..io.reader import file_kind, read_telemetry
 from ..io.truth import NOISE_COMPONENTS, read_truth, truth_path
-from ..sim.coefficients import make_coefficients
-from ..sim.orbits import make_orbit
-from ..sim.simulator import NoiseSwitches, SimulationConfig, simulate_to_file
+from ..sim.simulator import simulate_to_file
+from ..sim.spec import add_simulation_options, simulation_config_from_args
 from .diagnose import add_parser as _add_diagnose
+from .progress import progress_bar, status_line
 
 log = logging.getLogger("ttl")
-
-
-class Progress:
-    """Minimal progress display on stderr (a bar on terminals, a line every 10 % otherwise)."""
-
-    def __init__(self, label: str, enabled: bool = True, stream=None):
-        self.label = label
-        self.enabled = enabled
-        self.stream = stream or sys.stderr
-        self.start = time.monotonic()
-        self._last_decile = -1
-        self._tty = hasattr(self.stream, "isatty") and self.stream.isatty()
-
-    def __call__(self, done: int, total: int) -> None:
-        if not self.enabled or total <= 0:
-            return
-        frac = done / total
-        elapsed = time.monotonic() - self.start
-        eta = elapsed / frac - elapsed if frac > 0 else float("nan")
-        if self._tty:
-            bar = "#" * int(30 * frac)
-            self.stream.write(f"\r{self.label} [{bar:<30}] {100 * frac:5.1f}% {elapsed:6.1f}s elapsed, {eta:6.1f}s left")
-            if done >= total:
-                self.stream.write("\n")
-        else:
-            decile = int(10 * frac)
-            if decile > self._last_decile or done >= total:
-                self._last_decile = decile
-                self.stream.write(f"{self.label}: {100 * frac:.0f}% ({elapsed:.1f} s)\n")
-        self.stream.flush()
-
-
-def _parse_assignments(text: str, option: str) -> dict[str, float]:
-    """``"12.phi.rx=0.05,13.eta.tx=-0.02"`` -> mapping (values as given)."""
-    out = {}
-    for item in filter(None, (s.strip() for s in text.split(","))):
-        name, sep, value = item.partition("=")
-        if not sep:
-            raise TTLError(f"{option}: expected NAME=VALUE, got {item!r}")
-        if name not in COEFFICIENT_NAMES:
-            raise TTLError(f"{option}: unknown coefficient {name!r}; names look like '12.phi.rx' ('<mosa>.<phi|eta>.<rx|tx>')")
-        try:
-            out[name] = float(value)
-        except ValueError:
-            raise TTLError(f"{option}: bad number {value!r} for {name}") from None
-    return out
 
 
 # ---------------------------------------------------------------------------
 # ttl simulate
 # ---------------------------------------------------------------------------
-
-def add_simulation_options(p) -> None:
-    """The options that define a simulation (``ttl simulate`` and ``ttl run --simulate``)."""
-    p.add_argument("--duration", default="1d", help="length, e.g. 1d, 6h, 30min or seconds (default 1d)")
-    p.add_argument("--orbit", default="unequal", help="equal | unequal (paper's static arms) | keplerian | lisaorbits FILE (default unequal)")
-    p.add_argument("--coeffs", default="paper", help="paper (2.3 mm/rad) | lisainstrument | random | JSON FILE (default paper)")
-    p.add_argument("--seed", type=int, default=0, help="master random seed (default 0)")
-    p.add_argument("--t0", type=float, default=0.0, help="mission time of the first sample [s] (default 0)")
-    p.add_argument("--fs", type=float, default=4.0, help="telemetry sampling rate [Hz] (default 4)")
-    p.add_argument("--noises", default="all", help="noises on: 'all', 'none', or a list like 'all,-laser,-dws' "
-                   "(laser, oms, backlink, telescope, test_mass, sc_jitter, mosa_jitter, dws, ttl)")
-    p.add_argument("--drift", default="", metavar="NAME=MM_PER_DAY,...", help="linear coefficient drifts in mm/rad per day")
-    p.add_argument("--step", action="append", default=[], metavar="T:NAME=MM,...",
-                   help="coefficient step at mission time T (s, or e.g. 1.5d) of MM mm/rad; repeatable")
-    p.add_argument("--order", type=int, default=31, help="Lagrange interpolation order of the delays (odd, default 31)")
-    p.add_argument("--gw", default="", metavar="SOURCES", help="gravitational waves to inject, comma-separated: "
-                   "hmcnc, ztfj1539, vb, galaxy, sgwb, mbhb1, mbhb2 (merging mid-run), all, or a lisagwresponse "
-                   "FILE[:tps/y|tcb/y] (docs/gw.md)")
-    p.add_argument("--inject", action="append", default=[], metavar="EFFECT[:key=value,...]",
-                   help="model effect to inject (truth in the truth file only), e.g. drift:12.phi.rx=2e-3 or "
-                   "timing-offset:sc1.d1=0.05; repeatable (docs/diagnostics.md)")
-    p.add_argument("--effect-module", action="append", default=[], metavar="PATH",
-                   help="Python file (or module) defining user effects for --inject; repeatable")
-
-
-def simulation_config_from_args(args, truth_noises=()):
-    """A :class:`~ttlcore.sim.simulator.SimulationConfig` from the options of
-    :func:`add_simulation_options`; errors name the option at fault."""
-
-    try:
-        duration = parse_duration(args.duration)
-    except ValueError as exc:
-        raise TTLError(f"--duration: {exc}") from None
-    coeffs = make_coefficients(args.coeffs, seed=args.seed)
-    if args.drift:
-        coeffs = coeffs.with_drift({k: v * 1e-3 for k, v in _parse_assignments(args.drift, "--drift").items()})
-    for step in args.step:
-        when, sep, rest = step.partition(":")
-        if not sep:
-            raise TTLError(f"--step: expected T:NAME=MM,..., got {step!r}")
-        try:
-            t_step = parse_duration(when) if when.strip() not in ("0", "0.0") else 0.0
-        except ValueError as exc:
-            raise TTLError(f"--step: {exc}") from None
-        coeffs = coeffs.with_step(t_step, {k: v * 1e-3 for k, v in _parse_assignments(rest, "--step").items()})
-    make_orbit(args.orbit)  # validate early: clear error before any work
-    gw = ()
-    if getattr(args, "gw", ""):
-
-        gw = parse_gw_spec(args.gw, t0=args.t0, duration=duration, seed=args.seed)
-    return SimulationConfig(
-        duration=duration, t0=args.t0, fs=args.fs, orbit=args.orbit, coefficients=coeffs, seed=args.seed,
-        noises=NoiseSwitches.parse(args.noises), interpolation_order=args.order, truth_noises=tuple(truth_noises),
-        injections=tuple(gw) + _effect_injections(args),
-    )
-
-
-def _effect_injections(args) -> tuple:
-    """The ``--inject`` options as simulator injections (:mod:`ttlcore.diagnose.effects`)."""
-    if not getattr(args, "inject", None):
-        return ()
-
-    out = []
-    for spec in args.inject:
-        try:
-            out.append(injection_from_spec(spec, getattr(args, "effect_module", ()) or ()))
-        except TTLError as exc:
-            raise TTLError(f"--inject {spec}: {exc}") from None
-    return tuple(out)
-
 
 def _add_simulate(sub) -> None:
     p = sub.add_parser(
@@ -176,10 +57,7 @@ def _add_simulate(sub) -> None:
 
 def _cmd_simulate(args) -> int:
 
-    try:
-        chunk = parse_duration(args.chunk)
-    except ValueError as exc:
-        raise TTLError(f"--chunk: {exc}") from None
+    chunk = parse_duration(args.chunk, "--chunk")
     truth_noises = tuple(NOISE_COMPONENTS) if args.truth_noises == "all" else tuple(
         s.strip() for s in args.truth_noises.split(",") if s.strip()
     )
@@ -188,8 +66,8 @@ def _cmd_simulate(args) -> int:
         raise TTLError(f"--out: directory {out.parent} does not exist")
     config = simulation_config_from_args(args, truth_noises)
     duration = config.duration
-    progress = Progress(f"simulate {out.name}", enabled=not args.quiet)
-    tpath, rpath = simulate_to_file(config, out, chunk_size=int(round(chunk * args.fs)), progress=progress)
+    with progress_bar(f"simulate {out.name}", quiet=args.quiet) as progress:
+        tpath, rpath = simulate_to_file(config, out, chunk_size=int(round(chunk * args.fs)), progress=progress)
     print(f"wrote {tpath} ({config.size} samples, {duration / DAY:g} d at {args.fs:g} Hz) and {rpath}")
     return 0
 
@@ -303,18 +181,10 @@ def _cmd_analyze(args) -> int:
     band = tuple(DEFAULT_BAND) if args.band is None else check_band(args.band)
     settings = FitSettings(band=band)
     if args.segment is not None:
-        try:
-            settings.segment_duration = parse_duration(args.segment)
-        except ValueError as exc:
-            raise TTLError(f"--segment: {exc}") from None
-    start = time.monotonic()
-
-    def progress(msg: str) -> None:
-        if not args.quiet:
-            print(f"ttl analyze: {msg} ({time.monotonic() - start:.1f} s)", file=sys.stderr, flush=True)
-
-    out = analyze(args.data, truth_path=args.truth, band=band, method=method, out_dir=args.out,
-                  settings=settings, progress=progress)
+        settings.segment_duration = parse_duration(args.segment, "--segment")
+    with status_line("ttl analyze", quiet=args.quiet) as progress:
+        out = analyze(args.data, truth_path=args.truth, band=band, method=method, out_dir=args.out,
+                      settings=settings, progress=progress)
     res, js = out["fit"], out["fit_json"]
     print(f"{args.data}: {method} fit of {len(res.names)} coefficients over {res.n_segments} segments of "
           f"{settings.segment_duration:g} s, {band[0]:g}-{band[1]:g} Hz: chi2/dof {res.chi2_dof:.3f}, "

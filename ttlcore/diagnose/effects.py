@@ -61,6 +61,7 @@ from ..tdi.combinations import MICHELSON
 from ..tdi.engine import Part as EnginePart
 from ..tdi.engine import tdi_columns
 from ..tdi.interpolation import apply_taps, shift_taps
+from ..tdi.regressors import witness_placement as placement
 
 log = logging.getLogger(__name__)
 
@@ -201,12 +202,6 @@ def filtered(x: np.ndarray, fs: float, response) -> np.ndarray:
     nfft = 2 * n
     f = np.fft.rfftfreq(nfft, 1.0 / fs)
     return np.fft.irfft(np.fft.rfft(x, nfft) * response(f), nfft)[..., :n]
-
-
-def placement(mosa: str, side: str) -> tuple[str, bool]:
-    """``(link, delayed)`` of a witness of MOSA ``mosa`` on side ``rx`` (its own link,
-    undelayed) or ``tx`` (the link it transmits on, ``D_ji``)."""
-    return (mosa, False) if side == "rx" else (reverse(mosa), True)
 
 
 def partner(mosa: str) -> str:

@@ -87,10 +87,8 @@ def data_loss(tm, td) -> dict:
     ``[start, stop)``) and the fraction of TDI samples they spoil (the interpolation and the
     nested delays spread each gap by about 70 s; ``ttlcore.estimate.fit.spectra_of_segment`` masks
     those samples and drops an FFT segment less than half valid)."""
-    bad = ~(np.isfinite(tm.eta).all(axis=0) & np.isfinite(tm.dws_phi).all(axis=0)
-            & np.isfinite(tm.dws_eta).all(axis=0))
-    edges = np.flatnonzero(np.diff(np.concatenate([[0], bad.astype(np.int8), [0]])))
-    stretches = [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2])]
+    bad = tm.missing()
+    stretches = tm.nan_stretches()
     tdi_bad = ~(np.isfinite(td.data).all(axis=0) & np.isfinite(td.regressors).all(axis=(0, 1)))
     return {"telemetry_samples_missing": int(bad.sum()), "stretches": stretches,
             "seconds_missing": float(bad.sum() / tm.fs), "tdi_fraction_lost": float(tdi_bad.mean())}

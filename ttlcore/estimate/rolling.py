@@ -55,6 +55,7 @@ from scipy import signal
 from ..conventions import COEFFICIENT_NAMES
 from .fit import (FitResult, FitSettings, NormalEquations, SegmentSpectra, _result, accumulate, fit_spectra,
                   score_matrix, solve, spectra_of_segment)
+from ..tdi.combinations import AET
 from ..tdi.data import TDIData, lowpass_taps
 
 log = logging.getLogger(__name__)
@@ -193,7 +194,7 @@ class RollingFit:
         ltt_seg = np.asarray(ltt_mean if ltt_mean is not None else td.ltt_mean)
         #: the segment low-passed and decimated (A, E, T; NaN where the filter saw invalid input)
         self.last_decimated = TDIData(t0=self._t0_out + (self._n_out + self._pending.n) / fs_out, fs=fs_out,
-                                      channels=("A", "E", "T"), data=out[:, 0], regressors=out[:, 1:],
+                                      channels=AET, data=out[:, 0], regressors=out[:, 1:],
                                       names=td.names, ltt_mean=ltt_seg)
         self._pending.data.append(out[:, 0])
         self._pending.regressors.append(out[:, 1:])

@@ -1,5 +1,6 @@
 """Spectral estimates: segment FFTs for the fit, the Welch ASD (the one estimator of the
-package: figures, scenarios, monitor) and log-frequency averaging for plots.
+package: figures, scenarios, monitor), log-frequency averaging for plots and the
+log-averaged displacement ASD that figures and the monitor draw.
 
 Normalisation of :func:`segment_fft`: for a stationary series with one-sided PSD ``S(f)``,
 
@@ -14,6 +15,8 @@ from __future__ import annotations
 import numpy as np
 from scipy import fft as sp_fft
 from scipy import signal
+
+from ..conventions import ffd_to_displacement_asd
 
 
 def window(name: str, n: int) -> np.ndarray:
@@ -101,6 +104,52 @@ def log_average(f: np.ndarray, y: np.ndarray, per_decade: int = 40, fmin: float 
         fc.append(np.exp(np.mean(np.log(f[sel]))))
         out.append(np.mean(y[..., sel], axis=-1))
     return np.array(fc), np.moveaxis(np.array(out), 0, -1)
+
+
+def log_displacement_asd(f: np.ndarray, psd: np.ndarray, per_decade: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """A fractional-frequency PSD [1/Hz] on ``f`` (no DC), log-averaged (:func:`log_average`,
+    on the PSD) and converted to a displacement ASD [m/sqrt(Hz)]: ``(f_centres, asd)``."""
+    fc, p = log_average(f, psd, per_decade=per_decade)
+    return fc, ffd_to_displacement_asd(np.sqrt(p), fc)
+
+
+def displacement_asd(x, fs: float, nperseg: int | None = None,
+                     per_decade: int = 40) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Log-averaged displacement ASD of a fractional-frequency series (a TDI channel).
+
+    Welch (:func:`welch_asd`, segments of ``nperseg`` samples, default
+    :func:`default_nperseg`), the DC bin dropped, then :func:`log_displacement_asd`.
+
+    Returns
+    -------
+    f : ndarray
+        Centres of the log-spaced bins [Hz].
+    asd : ndarray
+        Displacement ASD [m/sqrt(Hz)] there.
+    f_welch : ndarray
+        The Welch grid without DC, for curves that must be averaged on the same bins.
+    """
+    x = np.asarray(x, dtype=float)
+    f, a = welch_asd(x, fs, nperseg or default_nperseg(x.shape[-1], fs))
+    fc, asd = log_displacement_asd(f[1:], a[..., 1:] ** 2, per_decade)
+    return fc, asd, f[1:]
+
+
+def longest_run(ok: np.ndarray) -> slice:
+    """The longest run of True in a 1-D boolean mask, as a slice (empty when there is none).
+
+    For spectra of series with gaps: splicing the valid stretches together would put a step
+    in the series and leak its power over the band.
+    """
+    ok = np.asarray(ok, dtype=bool)
+    if ok.all():
+        return slice(0, ok.size)
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
+    if edges.size == 0:
+        return slice(0, 0)
+    starts, stops = edges[::2], edges[1::2]
+    k = int(np.argmax(stops - starts))
+    return slice(int(starts[k]), int(stops[k]))
 
 
 def smooth_csd(csd: np.ndarray, half_width: int) -> np.ndarray:

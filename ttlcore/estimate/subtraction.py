@@ -32,12 +32,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..tdi.interpolation import DEFAULT_ORDER
-from ..tdi.combinations import AET_MATRIX, DEFAULT_DELAY_ORDER, MICHELSON
+from ..tdi.combinations import AET, AET_MATRIX, DEFAULT_DELAY_ORDER, MICHELSON, XYZ
 from ..tdi.data import TDIData, compute_tdi_arrays
-
-#: Channel names of the two channel sets.
-XYZ = ("X2", "Y2", "Z2")
-AET = ("A", "E", "T")
 
 
 def _coefficients(td: TDIData, coefficients) -> np.ndarray:

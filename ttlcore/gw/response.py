@@ -74,7 +74,7 @@ from collections.abc import Callable
 import numpy as np
 
 from ..conventions import C, LINKS
-from ..sim.orbits import Orbit
+from ..sim.orbits import Orbit, as_times
 
 __all__ = ["propagation_basis", "antenna_patterns", "link_response"]
 
@@ -117,15 +117,6 @@ def antenna_patterns(n: np.ndarray, u: np.ndarray, v: np.ndarray) -> tuple[np.nd
     return un * un - vn * vn, 2.0 * un * vn
 
 
-def _as_times(t) -> np.ndarray:
-    t = np.asarray(t, dtype=float)
-    if t.ndim == 0:
-        t = t.reshape(1)
-    if t.ndim != 1:
-        raise ValueError(f"times must be a scalar or a 1-D array, got shape {t.shape}")
-    return t
-
-
 def _strain(h: Callable, s: np.ndarray, name: str) -> np.ndarray:
     out = np.asarray(h(s), dtype=float)
     if out.shape != s.shape:
@@ -166,7 +157,7 @@ def link_response(
     ndarray, shape (6, n)
         Fractional-frequency response of the links ``12, 23, 31, 13, 32, 21``.
     """
-    t = _as_times(t)
+    t = as_times(t)
     k, u, v = propagation_basis(beta, lam, psi)
     out = np.empty((6, t.size))
     for start in range(0, t.size, _CHUNK):

@@ -568,10 +568,7 @@ def add_parser(sub) -> None:
 
 def _cmd_scenarios(args) -> int:
 
-    try:
-        duration = parse_duration(args.duration)
-    except ValueError as exc:
-        raise TTLError(f"--duration: {exc}") from None
+    duration = parse_duration(args.duration, "--duration")
     cases = None if args.cases in ("all-cases", "") else [c.strip() for c in args.cases.split(",") if c.strip()]
     variants = [v.strip() for v in args.variants.split(",") if v.strip()]
 

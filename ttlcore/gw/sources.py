@@ -69,7 +69,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..conventions import C
+from ..conventions import C, finite_number
 from .response import link_response
 
 __all__ = [
@@ -214,14 +214,7 @@ class GalacticBinary:
 
     def __post_init__(self):
         for key in ("f0", "fdot", "amplitude", "inclination", "psi", "phi0", "beta", "lam", "t_init"):
-            value = getattr(self, key)
-            try:
-                value = float(value)
-            except (TypeError, ValueError):
-                raise ValueError(f"GalacticBinary {key} must be a number, got {value!r}") from None
-            if not math.isfinite(value):
-                raise ValueError(f"GalacticBinary {key} must be finite, got {value!r}")
-            object.__setattr__(self, key, value)
+            object.__setattr__(self, key, finite_number(getattr(self, key), f"GalacticBinary {key}", error=ValueError))
         if self.f0 <= 0:
             raise ValueError(f"GalacticBinary f0 must be positive, got {self.f0!r}")
         if self.amplitude < 0:

@@ -100,6 +100,16 @@ class Telemetry:
         """Sample times [s]."""
         return self.t0 + np.arange(self.size) / self.fs
 
+    def missing(self) -> np.ndarray:
+        """Samples where an eta or DWS series is not finite (a gap in the data), shape (n,)."""
+        return ~(np.isfinite(self.eta).all(axis=0) & np.isfinite(self.dws_phi).all(axis=0)
+                 & np.isfinite(self.dws_eta).all(axis=0))
+
+    def nan_stretches(self) -> list[list[int]]:
+        """Sample ranges ``[start, stop)`` of the gaps (:meth:`missing`)."""
+        edges = np.flatnonzero(np.diff(np.concatenate([[0], self.missing().astype(np.int8), [0]])))
+        return [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2])]
+
     def slice(self, start: int, stop: int) -> "Telemetry":
         """Samples ``start:stop`` as a new :class:`Telemetry` (views, no copy)."""
         start, stop, _ = slice(start, stop).indices(self.size)

@@ -20,10 +20,10 @@ from pathlib import Path
 
 import numpy as np
 
-from ..conventions import ARM_LENGTH, PAPER_ORDER, ffd_to_displacement_asd, paper_ordered_names
+from ..conventions import ARM_LENGTH, PAPER_ORDER, paper_ordered_names
 from ..io.hdf5 import temporary_path
 from ..estimate.noise_psd import requirement_x2
-from ..estimate.spectra import default_nperseg, log_average, welch_asd
+from ..estimate.spectra import default_nperseg, displacement_asd, log_displacement_asd, longest_run
 
 #: Coefficient requirement of the paper [m/rad]: |C_fit - C_true| < 0.1 mm/rad.
 COEFFICIENT_REQUIREMENT = 0.1e-3
@@ -62,26 +62,17 @@ def asd_x_curves(sub, channel: str = "X2", nperseg: int | None = None, per_decad
         leak its power over the band).
     """
     series = sub.channel(channel)
-    ok = np.all([np.isfinite(v) for v in series.values()], axis=0)
-    if not ok.all():
-        edges = np.flatnonzero(np.diff(np.concatenate([[0], ok.astype(np.int8), [0]])))
-        if edges.size:
-            starts, stops = edges[::2], edges[1::2]
-            k = int(np.argmax(stops - starts))
-            ok = np.zeros_like(ok)
-            ok[starts[k]:stops[k]] = True
-    n = int(ok.sum())
+    ok = longest_run(np.all([np.isfinite(v) for v in series.values()], axis=0))
+    n = ok.stop - ok.start
     if n < 64:
         raise ValueError(f"too few valid samples ({n}) for an ASD")
     nperseg = nperseg or default_nperseg(n, sub.fs)
     out = {}
     f = None
     for name, x in series.items():
-        f, asd = welch_asd(x[ok], sub.fs, nperseg)
-        fc, psd = log_average(f[1:], asd[1:] ** 2, per_decade=per_decade)
-        out[name] = (fc, ffd_to_displacement_asd(np.sqrt(psd), fc))
-    fc, req = log_average(f[1:], requirement_x2(f[1:], arm_length), per_decade=per_decade)
-    out["requirement"] = (fc, ffd_to_displacement_asd(np.sqrt(req), fc))
+        fc, asd, f = displacement_asd(x[ok], sub.fs, nperseg, per_decade)
+        out[name] = (fc, asd)
+    out["requirement"] = log_displacement_asd(f, requirement_x2(f, arm_length), per_decade)
     return out
 
 

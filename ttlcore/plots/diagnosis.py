@@ -7,9 +7,17 @@ from pathlib import Path
 
 import numpy as np
 
-from ..conventions import ffd_to_displacement_asd
+from ..estimate.spectra import log_displacement_asd
+from ..tdi.combinations import AET
 from .batch import _save
-from ..estimate.spectra import log_average
+
+
+def _band_stairs(ax, chi2_dof, edges, fails, marker: str, **style) -> float:
+    """chi^2/dof per band as stairs, failing bands marked; returns the top of the values."""
+    ax.stairs(chi2_dof, edges, baseline=None, **style)
+    centres = np.sqrt(edges[:-1] * edges[1:])
+    ax.plot(centres[fails], chi2_dof[fails], marker)
+    return float(np.nanmax(chi2_dof))
 
 
 def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.02, fine: dict | None = None) -> Path:
@@ -22,17 +30,14 @@ def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.02, fine: 
     fig = Figure(figsize=(9, 10))
     axes = [fig.add_subplot(4, 1, k + 1) for k in range(4)]
     f = dg.f
-    for ci, ch in enumerate(("A", "E", "T")):
+    for ci, ch in enumerate(AET):
         ax = axes[ci]
-        model = np.real(dg.noise_csd[:, ci, ci])
-        fc, mm = log_average(f, model)
         label = "noise model (fitted levels)" if getattr(dg, "noise_parameters", None) is not None else "instrument noise model"
-        ax.loglog(fc, ffd_to_displacement_asd(np.sqrt(mm), fc), "k--", lw=1.2, label=label)
+        ax.loglog(*log_displacement_asd(f, np.real(dg.noise_csd[:, ci, ci])), "k--", lw=1.2, label=label)
         for label, fit in fits.items():
             r = np.linalg.solve(dg.Lh[None], fit.residual_w[..., None])[..., 0]  # unwhiten: r = (L^H)^-1 wr
             p = np.mean(np.abs(r[:, :, ci]) ** 2, axis=0)
-            fc, pp = log_average(f, p)
-            ax.loglog(fc, ffd_to_displacement_asd(np.sqrt(pp), fc), lw=1, label=f"residual ({label})")
+            ax.loglog(*log_displacement_asd(f, p), lw=1, label=f"residual ({label})")
         ax.set_ylabel(f"ASD {ch} [m/sqrt(Hz)]")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
@@ -40,19 +45,11 @@ def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.02, fine: 
     edges = dg.edges
     top = 1.2
     for label, fit in fits.items():
-        vals = fit.bands.chi2_dof
-        top = max(top, float(np.nanmax(vals)) * 1.1)
-        ax.stairs(vals, edges, lw=1.5, label=label, baseline=None, zorder=3)
-        fails = fit.bands.fails
-        centres = np.sqrt(edges[:-1] * edges[1:])
-        ax.plot(centres[fails], vals[fails], "rx")
+        top = max(top, 1.1 * _band_stairs(ax, fit.bands.chi2_dof, edges, fit.bands.fails, "rx",
+                                          lw=1.5, label=label, zorder=3))
     for label, tab in (fine or {}).items():
-        vals = tab.chi2_dof
-        top = max(top, float(np.nanmax(vals)) * 1.1)
-        ax.stairs(vals, tab.edges, lw=0.8, ls=":", label=f"{label}, third-octave", baseline=None, zorder=2)
-        fails = tab.fails
-        centres = np.sqrt(tab.edges[:-1] * tab.edges[1:])
-        ax.plot(centres[fails], vals[fails], "r+")
+        top = max(top, 1.1 * _band_stairs(ax, tab.chi2_dof, tab.edges, tab.fails, "r+",
+                                          lw=0.8, ls=":", label=f"{label}, third-octave", zorder=2))
     ax.axhspan(1 - tolerance, 1 + tolerance, color="0.85", zorder=0, label=f"1 +- tolerance ({100 * tolerance:.0f} %)")
     ax.set_xscale("log")
     ax.set_ylim(0.8, top)

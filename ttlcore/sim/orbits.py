@@ -43,7 +43,7 @@ import h5py
 import numpy as np
 from scipy.interpolate import make_interp_spline
 
-from ..conventions import ARM_LENGTH, ASTRONOMICAL_UNIT, LINKS, C
+from ..conventions import ARM_LENGTH, ASTRONOMICAL_UNIT, LINKS, C, finite_number
 from ..errors import ConfigError, TelemetryError
 
 logger = logging.getLogger(__name__)
@@ -86,7 +86,7 @@ ORBIT_FILE_DATASETS: tuple[str, ...] = ("tps/ppr", "tcb/ltt")
 _CHUNK = 1 << 15
 
 
-def _as_times(t) -> np.ndarray:
+def as_times(t) -> np.ndarray:
     """Times as a 1-D float array (a scalar becomes shape ``(1,)``)."""
     t = np.asarray(t, dtype=float)
     if t.ndim == 0:
@@ -116,13 +116,7 @@ def _ltt_mapping(ltt) -> dict[str, float]:
         values = dict(zip(LINKS, seq))
     out = {}
     for link, value in values.items():
-        try:
-            value = float(value)
-        except (TypeError, ValueError):
-            raise ConfigError(f"orbit 'ltt[{link}]' must be a number of seconds, got {value!r}") from None
-        if not np.isfinite(value) or value <= 0:
-            raise ConfigError(f"orbit 'ltt[{link}]' must be a positive number of seconds, got {value!r}")
-        out[link] = value
+        out[link] = finite_number(value, f"orbit 'ltt[{link}]'", positive=True, unit="seconds")
     return out
 
 
@@ -167,7 +161,7 @@ class Orbit:
         whose truncation error ``h^4 tau^(5) / 30`` is negligible for orbital motion.
         Subclasses override it with exact expressions.
         """
-        t = _as_times(t)
+        t = as_times(t)
         h = 1.0
         return (8.0 * (self.ltt(t + h) - self.ltt(t - h)) - (self.ltt(t + 2 * h) - self.ltt(t - 2 * h))) / (12.0 * h)
 
@@ -258,21 +252,21 @@ class StaticOrbit(Orbit):
 
     def ltt(self, t) -> np.ndarray:
         """Constant light travel times, shape ``(6, n)`` [s]."""
-        t = _as_times(t)
+        t = as_times(t)
         return np.repeat(self._values[:, None], t.size, axis=1)
 
     def ltt_rate(self, t) -> np.ndarray:
         """Zeros, shape ``(6, n)`` [s/s]."""
-        return np.zeros((6, _as_times(t).size))
+        return np.zeros((6, as_times(t).size))
 
     def positions(self, t) -> np.ndarray:
         """Fixed triangle (see class docstring), shape ``(3, n, 3)`` [m]."""
-        t = _as_times(t)
+        t = as_times(t)
         return np.repeat(self.sc_positions[:, None, :], t.size, axis=1)
 
     def velocities(self, t) -> np.ndarray:
         """Zeros, shape ``(3, n, 3)`` [m/s]."""
-        return np.zeros((3, _as_times(t).size, 3))
+        return np.zeros((3, as_times(t).size, 3))
 
     def describe(self) -> dict:
         return {"type": "static", "name": self.name, "ltt": dict(self._ltt)}
@@ -286,12 +280,7 @@ def equal_arms(arm_length: float = ARM_LENGTH) -> StaticOrbit:
     arm_length : float
         Arm length ``L`` [m]; default the nominal 2.5e9 m (``tau = 8.339 s``).
     """
-    try:
-        arm_length = float(arm_length)
-    except (TypeError, ValueError):
-        raise ConfigError(f"orbit 'arm_length' must be a number of metres, got {arm_length!r}") from None
-    if not np.isfinite(arm_length) or arm_length <= 0:
-        raise ConfigError(f"orbit 'arm_length' must be positive, got {arm_length!r}")
+    arm_length = finite_number(arm_length, "orbit 'arm_length'", positive=True, unit="metres")
     return StaticOrbit({link: arm_length / C for link in LINKS}, name="equal")
 
 
@@ -404,13 +393,7 @@ class KeplerianOrbit(Orbit):
             ("semi_major_axis", semi_major_axis),
             ("delta", delta),
         ):
-            try:
-                value = float(value)
-            except (TypeError, ValueError):
-                raise ConfigError(f"orbit '{key}' must be a number, got {value!r}") from None
-            if not np.isfinite(value):
-                raise ConfigError(f"orbit '{key}' must be finite, got {value!r}")
-            params[key] = value
+            params[key] = finite_number(value, f"orbit '{key}'")
         if params["semi_major_axis"] <= 0:
             raise ConfigError(f"orbit 'semi_major_axis' must be positive, got {semi_major_axis!r}")
         if not 0 < params["arm_length"] < 0.1 * params["semi_major_axis"]:
@@ -453,7 +436,7 @@ class KeplerianOrbit(Orbit):
         ``E0 = M + (e - e^3/8) sin M + e^2/2 sin 2M + 3 e^3/8 sin 3M``; see
         :meth:`_kepler` for the convergence criterion.
         """
-        E, _, _ = self._kepler(_as_times(t))
+        E, _, _ = self._kepler(as_times(t))
         return E
 
     def _kepler(self, t: np.ndarray):
@@ -497,7 +480,7 @@ class KeplerianOrbit(Orbit):
         return X, V
 
     def _chunked_states(self, t, which: int) -> np.ndarray:
-        t = _as_times(t)
+        t = as_times(t)
         out = np.empty((3, t.size, 3))
         for start in range(0, t.size, _CHUNK):
             sl = slice(start, start + _CHUNK)
@@ -574,7 +557,7 @@ class KeplerianOrbit(Orbit):
         return tau, rate
 
     def _solve(self, t, rates: bool):
-        t = _as_times(t)
+        t = as_times(t)
         tau = np.empty((6, t.size))
         rate = np.empty((6, t.size)) if rates else None
         for start in range(0, t.size, _CHUNK):
@@ -756,7 +739,7 @@ class OrbitFile(Orbit):
 
     def _evaluate(self, name: str, trailing: tuple[int, ...], t, nu: int = 0) -> np.ndarray:
         """Interpolate ``name`` (or its ``nu``-th derivative) at ``t``: shape ``(n, *trailing)``."""
-        t = _as_times(t)
+        t = as_times(t)
         self._check_range(t, name)
         spline = self._spline(name, trailing)
         out = spline(t, nu=nu) if nu else spline(t)

@@ -102,6 +102,9 @@ X2 = _michelson_x2()
 Y2 = X2.rotated("Y2")
 Z2 = Y2.rotated("Z2")
 MICHELSON = (X2, Y2, Z2)
+#: Channel names of the Michelson combinations and of the orthogonal ones made from them.
+XYZ = tuple(c.name for c in MICHELSON)
+AET = ("A", "E", "T")
 
 #: Orthogonal combinations from X, Y, Z: rows give the weights of (X, Y, Z).
 AET_MATRIX = np.array(

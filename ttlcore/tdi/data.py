@@ -18,7 +18,7 @@ from scipy import signal
 from ..conventions import COEFFICIENT_NAMES, LINKS
 from .interpolation import DEFAULT_ORDER
 from .regressors import ttl_witnesses
-from .combinations import MICHELSON, aet
+from .combinations import AET, MICHELSON, aet
 from .engine import DEFAULT_DELAY_ORDER, Part, tdi_columns
 from ..io.telemetry import Telemetry
 
@@ -64,9 +64,9 @@ class TDIData:
 
     def to_aet(self) -> "TDIData":
         """A, E, T from X2, Y2, Z2."""
-        if self.channels == ("A", "E", "T"):
+        if self.channels == AET:
             return self
-        return replace(self, channels=("A", "E", "T"), data=aet(self.data), regressors=aet(self.regressors))
+        return replace(self, channels=AET, data=aet(self.data), regressors=aet(self.regressors))
 
     def valid_slice(self) -> slice:
         """Samples where data and all regressors are finite (delays inside the data)."""

@@ -20,13 +20,23 @@ from .combinations import AET_MATRIX, MICHELSON, link_responses
 from ..conventions import C, COEFFICIENT_NAMES, LINKS, parse_coefficient_name, reverse
 
 
+def witness_placement(mosa: str, side: str) -> tuple[str, bool]:
+    """``(link, delayed)``: where a witness of MOSA ``mosa`` enters the data.
+
+    Side ``rx``: on the MOSA's own link ``mosa``, undelayed.  Side ``tx``: on the link it
+    transmits on, ``reverse(mosa)``, after that link's delay ``D_ij`` (``delayed`` True).
+    The TTL regressors (:func:`placement`) and the diagnosis's witness columns
+    (:mod:`ttlcore.diagnose.effects`) are both placed so.
+    """
+    return (mosa, False) if side == "rx" else (reverse(mosa), True)
+
+
 def placement(name: str) -> tuple[str, tuple[str, ...], str, str]:
-    """``(link, extra_chain, mosa, angle)`` of the regressor of coefficient ``name``."""
+    """``(link, extra_chain, mosa, angle)`` of the regressor of coefficient ``name``
+    (:func:`witness_placement`; the extra chain is ``(link,)`` when delayed)."""
     mosa, angle, side = parse_coefficient_name(name)
-    if side == "rx":
-        return mosa, (), mosa, angle
-    link = reverse(mosa)
-    return link, (link,), mosa, angle
+    link, delayed = witness_placement(mosa, side)
+    return link, ((link,) if delayed else ()), mosa, angle
 
 
 def ttl_witnesses(dws_phi: np.ndarray, dws_eta: np.ndarray, names=COEFFICIENT_NAMES) -> tuple[dict, dict]:

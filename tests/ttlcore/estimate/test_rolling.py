@@ -63,12 +63,12 @@ def test_incremental_updates_track_the_full_refits():
 
     tm, _ = simulate(SimulationConfig(duration=1.25 * DAY, orbit="keplerian", seed=5))
     settings = FitSettings(segment_duration=HOUR)
-    sa, sb = TDIStream(), TDIStream()
+    stream = TDIStream()
     inc, full = RollingFit(settings, window_duration=DAY), RollingFit(settings, window_duration=DAY, full_every=None)
     kinds = []
     for k in range(30):
-        piece = tm.slice(k * 14400, (k + 1) * 14400)
-        r_inc, r_full = inc.push(sa.push(piece)), full.push(sb.push(piece))
+        td = stream.push(tm.slice(k * 14400, (k + 1) * 14400))  # one TDI segment feeds both fits
+        r_inc, r_full = inc.push(td), full.push(td)
         kinds.append(r_inc.extra["update"])
         if kinds[-1] == "incremental":
             limit = 0.5 if r_full.n_segments >= 12 else 1.0

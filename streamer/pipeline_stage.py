@@ -1,0 +1,349 @@
+"""Pipeline stages: stages that report progress, and stages that handle segments in index order.
+
+A :class:`PipelineStage` is a :class:`streamer.stage.Stage` that publishes its progress after
+every segment it handles (published or given up) and follows the progress of the stages it
+names in :attr:`PipelineStage.follow` (:mod:`streamer.progress`: the protocol, and the
+:class:`~streamer.progress.Progress` bookkeeping).  An :class:`OrderedStage` puts its input
+back in index order (:class:`InOrder`) before processing it, as TDI with history and the
+rolling fit need.  The stage programs (:mod:`stages`) subclass these; what a stage publishes
+and whom it follows by default comes from :mod:`streamer.topology`.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Callable
+from typing import ClassVar
+
+from .keys import progress_key, progress_pattern, to_ranges
+from .plan import MAX_SEGMENTS
+from .progress import Progress, ProgressBoard, key_stage
+from .session import declare_segment_publisher
+from .stage import Stage, StageConfig
+from .topology import OUTPUT_TOPIC, UPSTREAM
+
+
+class InOrder:
+    """Reorder buffer: hands out items in index order.
+
+    The first index is 0 if it arrives first; otherwise (a stage joining late or restarted,
+    whose history comes from several publisher caches in any order) the lowest index
+    received within ``settle`` seconds of the first arrival.  A missing index is skipped when
+    ``skip(index)`` says it will not come (the producer gave it up), or after
+    ``gap_timeout`` seconds while later indices wait, and at once when it was withdrawn
+    (:meth:`withdraw`).
+    """
+
+    def __init__(self, settle: float = 1.0, gap_timeout: float = 60.0):
+        self.settle = float(settle)
+        self.gap_timeout = float(gap_timeout)
+        self.pending: dict[int, object] = {}
+        self.next: int | None = None
+        self._first_arrival: float | None = None
+        self._gap_since: float | None = None
+        self.skipped_reason = ""
+        self.withdrawn: dict[int, str] = {}  # index -> why it is skipped
+
+    def withdraw(self, index: int, reason: str) -> bool:
+        """Skip ``index`` (dropping its item if buffered) when its turn comes; False when it
+        was handed out already."""
+        if self.next is not None and index < self.next:
+            return False
+        self.pending.pop(index, None)
+        self.withdrawn[index] = reason
+        return True
+
+    def add(self, index: int, item) -> bool:
+        """Buffer ``item``; False when ``index`` is behind the current position (stale)."""
+        if self.next is not None and index < self.next:
+            return False
+        if self._first_arrival is None:
+            self._first_arrival = time.monotonic()
+        self.pending[index] = item
+        return True
+
+    def ready(self, skip: Callable[[int], bool] = lambda i: False, total: int | None = None):
+        """Yield ``(index, item)`` in order; ``item`` is None for an index given up, with
+        ``self.skipped_reason`` saying why."""
+        now = time.monotonic()
+        if self.next is None:
+            if not self.pending:
+                return
+            if 0 not in self.pending and now - self._first_arrival < self.settle:
+                return
+            self.next = min(self.pending.keys() | self.withdrawn.keys())
+        while True:
+            if self.next in self.withdrawn:
+                self.skipped_reason = self.withdrawn.pop(self.next)
+                index = self.next
+                self.next += 1
+                yield index, None
+                continue
+            if self.next in self.pending:
+                self._gap_since = None
+                index = self.next
+                self.next += 1
+                yield index, self.pending.pop(index)
+                continue
+            if total is not None and self.next >= total:
+                return
+            if skip(self.next):
+                self.skipped_reason = "given up upstream"
+                index = self.next
+                self.next += 1
+                yield index, None
+                continue
+            if self.pending:
+                if self._gap_since is None:
+                    self._gap_since = now
+                if now - self._gap_since >= self.gap_timeout:
+                    self.skipped_reason = f"not received within {self.gap_timeout:g} s while later segments waited"
+                    self._gap_since = None
+                    index = self.next
+                    self.next += 1
+                    yield index, None
+                    continue
+            return
+
+
+class PipelineStage(Stage):
+    """A :class:`streamer.stage.Stage` that reports progress and completion (module docstring).
+
+    Subclasses call :meth:`mark_done` / :meth:`mark_failed` for every segment they handle,
+    set :attr:`segments_total` from the input meta, and may list in :attr:`follow` the
+    stages whose progress they need (``"*"`` for all); :attr:`board` then holds it.
+    They publish on :attr:`output_topic` and handle the segments of :attr:`upstream`.
+    """
+
+    #: Stages whose progress messages this stage subscribes to ("*": all).
+    follow: ClassVar[tuple[str, ...]] = ()
+    #: Default poll interval of the pipeline stages [s].
+    default_poll_interval: ClassVar[float] = 0.05
+
+    def __init__(self, config: StageConfig):
+        super().__init__(config)
+        self.options = dict(config.options or {})
+        #: This process's progress (what it published and gave up), published after every segment.
+        self.progress = Progress(self.stage_name,
+                                 segments_total=self.validator.plan.segments_total if self.validator.plan else None)
+        self.board = ProgressBoard()
+        self._progress_pub = None
+
+    @property
+    def done(self) -> set[int]:
+        """Segments whose output this process published."""
+        return self.progress.done
+
+    @property
+    def failed(self) -> set[int]:
+        """Segments this process gave up (gaps included)."""
+        return self.progress.failed
+
+    @property
+    def gaps(self) -> set[int]:
+        """Segments given up for lack of data upstream."""
+        return self.progress.gaps
+
+    @property
+    def segments_total(self) -> int | None:
+        """Segments of the run, once known (the plan, or the inputs' meta)."""
+        return self.progress.segments_total
+
+    @segments_total.setter
+    def segments_total(self, total: int | None) -> None:
+        self.progress.segments_total = total
+
+    @property
+    def output_topic(self) -> str:
+        """The topic this stage publishes (:data:`streamer.topology.OUTPUT_TOPIC`)."""
+        return OUTPUT_TOPIC[self.name]
+
+    @property
+    def upstream(self) -> str | None:
+        """The stage whose segments this stage handles (:data:`streamer.topology.UPSTREAM`):
+        its progress says which segments were given up before reaching this one."""
+        return UPSTREAM.get(self.name)
+
+    # ------------------------------------------------------------------ lifecycle
+    def setup(self) -> None:
+        self._progress_pub = self.bus.track(
+            declare_segment_publisher(self.bus.session, progress_key(self.run_id, self.stage_name), cache=1))
+        if self.follow:
+            pattern = progress_pattern(self.run_id, board=self.config.progress_from == "launcher")
+            self.bus.segment_subscriber(pattern, self._on_progress, history=1)
+
+    def _on_progress(self, sample) -> None:
+        stage = key_stage(str(sample.key_expr))
+        if "*" in self.follow or stage in self.follow or stage == self.stage_name:
+            plan = self.validator.plan
+            self.board.feed(sample, self.run_id, plan.segments_total if plan is not None else None)
+
+    def pending(self) -> int:
+        """Segments received but not yet handled (override in buffering stages)."""
+        return 0
+
+    def handled_before(self, index: int) -> bool:
+        """True when an earlier process of this stage already handled ``index`` (its output is
+        out): a restarted stage processes it again to rebuild its state, publishes nothing."""
+        if index in self.done or index in self.failed:
+            return False
+        own = self.board.get(self.stage_name)
+        return own is not None and index in own.handled
+
+    # ------------------------------------------------------------------ bookkeeping
+    def note_meta(self, meta: dict) -> None:
+        """Take ``segments_total`` from an input's meta."""
+        if self.validator.plan is not None:
+            return  # the plan says it
+        total = meta.get("segments_total") if isinstance(meta, dict) else None
+        if isinstance(total, int) and 0 < total <= MAX_SEGMENTS:
+            self.segments_total = total
+
+    def mark_done(self, index: int, **extra) -> None:
+        """Segment ``index`` is handled (its output published); publish progress."""
+        self.done.add(index)
+        self.failed.discard(index)
+        self._after(index, extra)
+
+    def mark_failed(self, index: int, **extra) -> None:
+        """Segment ``index`` is given up (the error was reported); publish progress."""
+        if index not in self.done:
+            self.failed.add(index)
+        self._after(index, extra)
+
+    def mark_gap(self, index: int, **extra) -> None:
+        """Segment ``index`` has no data (a gap upstream, reported): given up, as a gap."""
+        if index not in self.done:
+            self.gaps.add(index)
+        self.mark_failed(index, **extra)
+
+    def _after(self, index: int, extra: dict) -> None:
+        self.progress.extra.update(extra)
+        self.check_complete(publish=False)
+        self.publish_progress(index)
+
+    def check_complete(self, publish: bool = True) -> bool:
+        """Record the ``complete`` event once the last segment is handled and nothing waits."""
+        total = self.segments_total
+        handled = self.done | self.failed
+        if (not self.progress.complete and total is not None and (total - 1) in handled and self.pending() == 0):
+            self.progress.complete = True
+            missing = sorted(set(range(total)) - handled)
+            self.event("complete", index=total - 1,
+                       message=f"handled {len(handled)} of {total} segments in this process",
+                       done=to_ranges(self.done), failed=to_ranges(self.failed), missing=to_ranges(missing))
+            self.log.info("complete: last segment %d handled (%d done, %d failed in this process)",
+                          total - 1, len(self.done), len(self.failed))
+            if publish:
+                self.publish_progress(None)
+        return self.progress.complete
+
+    def publish_progress(self, index: int | None) -> None:
+        if self._progress_pub is None:
+            return
+        msg = self.progress.message(self.run_id, pid=os.getpid(), index=index)
+        try:
+            self._progress_pub.put(json.dumps(msg).encode())
+        except Exception:
+            self.log.exception("could not publish progress")
+
+
+class OrderedStage(PipelineStage):
+    """A pipeline stage that processes its input segments one by one in index order.
+
+    Subclasses implement :meth:`process` (one segment -> an output or None) and may
+    override :meth:`restart` (forget the state carried between segments, after a segment
+    was skipped or failed) and :meth:`progress_fields` (extras of the progress messages).
+    :meth:`handle` validates an input into an item and passes it to :meth:`enqueue`;
+    segments are buffered (:class:`InOrder`, options ``settle`` and ``gap_timeout``) and
+    processed as soon as they are next in order, or skipped when :attr:`upstream` gave them
+    up or they do not come within ``gap_timeout`` while later ones wait.
+    """
+
+    def __init__(self, config: StageConfig):
+        super().__init__(config)
+        self.queue = InOrder(settle=float(self.options.get("settle", 1.0)),
+                             gap_timeout=float(self.options.get("gap_timeout", 60.0)))
+
+    def process(self, header, item):
+        """Process the next segment in order; returns an :class:`streamer.stage.Output` or None."""
+        raise NotImplementedError
+
+    def restart(self) -> None:
+        """Forget the state carried from segment to segment (after a skip or a failure)."""
+
+    def fill_gap(self, index: int) -> None:
+        """Segment ``index`` will not come (a gap): carry the state over it.  Default:
+        :meth:`restart`; the fitter keeps its window instead."""
+        self.restart()
+
+    def progress_fields(self) -> dict:
+        """Extra fields of the progress messages (sets are sent as index ranges)."""
+        return {}
+
+    def withdraw(self, topic: str, index: int, held: bool) -> bool:
+        """Conflicting copies: a segment not processed yet is skipped in its turn (a
+        failed segment, reported)."""
+        return self.queue.withdraw(index, "conflicting copies of it were received (both kept out)")
+
+    def published(self, index: int) -> None:
+        """Segment ``index`` produced an output, now published."""
+
+    def pending(self) -> int:
+        return len(self.queue.pending)
+
+    def enqueue(self, header, item) -> None:
+        """Buffer a validated input segment and process what is ready."""
+        self.note_meta(header.meta)
+        if not self.queue.add(header.index, (header, item)):
+            self.event("stale", index=header.index, message=f"{header.topic} segment {header.index} arrived after "
+                                                            f"the stream moved past it (next is {self.queue.next}); ignored")
+            return
+        self.drain()
+
+    def tick(self):
+        self.drain()
+        self.check_complete()
+        return ()
+
+    def upstream_failed(self, index: int) -> bool:
+        peer = self.board.get(self.upstream)
+        return peer is not None and index in peer.failed
+
+    def drain(self, limit: int = 1) -> None:
+        """Process up to ``limit`` segments that are next in order (or give up missing ones);
+        one at a time by default, so that control messages are handled between segments."""
+        done = 0
+        for index, entry in self.queue.ready(self.upstream_failed, self.segments_total):
+            done += 1
+            if entry is None:
+                self.report_error("gap", f"{self.inputs[0]} segment {index} skipped: {self.queue.skipped_reason}",
+                                  index=index)
+                self.fill_gap(index)
+                peer = self.board.get(self.upstream)
+                if peer is not None and index in peer.gaps:
+                    self.mark_gap(index, **self.progress_fields())
+                else:
+                    self.mark_failed(index, **self.progress_fields())
+                continue
+            header, item = entry
+            try:
+                again = self.handled_before(index)
+                out = self.process(header, item)
+                if again:
+                    self.event("replayed", index=index, message=f"segment {index} processed again to rebuild the "
+                                                                "state after a restart; its output was out already")
+                elif out is not None:
+                    self.publish(out, source=header)
+                    self.published(index)
+            except Exception as exc:
+                self.log.exception("segment %d failed", index)
+                self.report_error("failed", f"{type(exc).__name__}: {exc}", index=index, key=header.key)
+                self.fill_gap(index)
+                self.mark_failed(index, **self.progress_fields())
+                continue
+            self.mark_done(index, **self.progress_fields())
+            if done >= limit:
+                return

@@ -1,0 +1,188 @@
+"""Rerun viewer processes, on 127.0.0.1 only: the binary, a spawned viewer or headless
+server, and a live stream that a lost viewer cannot stall.
+
+The monitor (``stages/monitor.py``) writes its recording to a file and, on request, streams
+it live as well (:class:`LiveFanout`): to a native viewer it starts (``"spawn"``: the window
+outlives the monitor), to a headless gRPC server it starts (``"serve"``: stopped with the
+monitor; a viewer connects later with ``rerun --connect rerun+http://127.0.0.1:<port>/proxy``),
+or to a viewer already running at a ``rerun+http://`` URL.  The SDK's own web-viewer server
+(which listens on every interface) is never used; ``ttl view --web`` is
+:mod:`streamer.webview`.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import socket
+import subprocess
+import threading
+from pathlib import Path
+from urllib.parse import urlparse
+
+from .processes import die_with_parent, wait_port
+from .session import LOOPBACK, free_port
+
+#: Live modes that start a ``rerun`` process (else a ``rerun+http://`` URL is expected).
+SPAWN_MODES = ("spawn", "serve")
+
+
+def rerun_binary(explicit: str | None = None) -> str:
+    """The ``rerun`` executable itself (not the pip wrapper script, which would leave it
+    orphaned when stopped): ``explicit``, ``$RERUN_CLI_PATH``, the one bundled with
+    rerun-sdk (``rerun_cli``), else ``rerun`` on PATH.
+
+    Raises
+    ------
+    FileNotFoundError
+        If there is none.
+    """
+    if explicit:
+        return str(explicit)
+    if os.environ.get("RERUN_CLI_PATH"):
+        return os.environ["RERUN_CLI_PATH"]
+    try:
+        import rerun_cli
+
+        base = Path(rerun_cli.__file__).parent
+        for candidate in (base / "Rerun.app" / "Contents" / "MacOS" / "Rerun", base / "rerun", base / "rerun.exe"):
+            if candidate.exists():
+                return str(candidate)
+    except ImportError:
+        pass
+    found = shutil.which("rerun")
+    if not found:
+        raise FileNotFoundError("rerun: the Rerun viewer binary is not installed (pip install rerun-sdk)")
+    return found
+
+
+def check_live(live) -> None:
+    """Raise ValueError unless ``live`` is empty, ``"spawn"``, ``"serve"`` or a Rerun URL."""
+    if live not in (None, "", *SPAWN_MODES) and not str(live).startswith(("rerun://", "rerun+http://",
+                                                                           "rerun+https://")):
+        raise ValueError(f"option live: {live!r} is not 'spawn', 'serve' or a rerun+http:// URL")
+
+
+def reachable(url: str, timeout: float = 1.0) -> bool:
+    """Whether something listens at the host and port of a ``rerun+http://host:port/proxy`` URL."""
+    u = urlparse(url.replace("rerun+", "", 1).replace("rerun://", "https://", 1))
+    port = u.port or (443 if u.scheme == "https" else 9876)
+    try:
+        with socket.create_connection((u.hostname or LOOPBACK, port), timeout=timeout):
+            return True
+    except OSError:
+        return False
+
+
+def spawn_viewer(mode: str, port: int | None = None, binary: str | None = None):
+    """Start the ``rerun`` binary on 127.0.0.1 only; returns ``(process, url)``.
+
+    ``mode`` ``"spawn"``: the native viewer (which serves gRPC on ``port``), in a session of
+    its own so that its window outlives the caller; ``"serve"``: a headless gRPC server that
+    viewers connect to later, which dies with the caller.
+
+    Raises
+    ------
+    RuntimeError
+        If it does not listen within 10 s (no display, for a native viewer).
+    """
+    port = int(port or free_port(LOOPBACK))
+    cmd = [rerun_binary(binary), "--bind", LOOPBACK, "--port", str(port)]
+    cmd += ["--serve-grpc"] if mode == "serve" else ["--expect-data-soon"]
+    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
+                            stderr=subprocess.DEVNULL, start_new_session=True,
+                            preexec_fn=die_with_parent if mode == "serve" else None)
+    if not wait_port(port, proc=proc):
+        code = proc.poll()
+        if code is None:
+            proc.terminate()
+        raise RuntimeError(f"{cmd[0]}: the Rerun viewer did not listen on {LOOPBACK}:{port}"
+                           + (f" (exited with status {code}; no display?)" if code is not None else " within 10 s"))
+    return proc, f"rerun+http://{LOOPBACK}:{port}/proxy"
+
+
+def start_live(live, port: int | None = None, binary: str | None = None):
+    """The live viewer of option ``live`` (:func:`check_live`): ``(process, url, problem)``.
+
+    ``"spawn"``/``"serve"`` start one (:func:`spawn_viewer`); a URL is used if something
+    listens there.  When that fails (no display, no binary, nothing listening), ``url`` is
+    None and ``problem`` says why: the caller goes on with its file alone.
+    """
+    if not live:
+        return None, None, None
+    if live in SPAWN_MODES:
+        try:
+            proc, url = spawn_viewer(live, port, binary)
+        except (OSError, RuntimeError) as exc:
+            return None, None, f"live viewer not started: {exc}"
+        return proc, url, None
+    if not reachable(str(live)):
+        return None, None, f"live viewer {live} not reachable: writing the file only"
+    return None, str(live), None
+
+
+class LiveFanout:
+    """Logs to the file recording and, while it works, to a live viewer's recording.
+
+    Both are Rerun recording streams (``rerun.RecordingStream``).  The live stream is
+    flushed with a short timeout; when it fails (the viewer closed or unreachable) it is
+    dropped, so a lost viewer never stalls the caller or the file.
+    """
+
+    def __init__(self, file_rec, live_rec=None, on_live_failure=None, live_timeout: float = 2.0):
+        self.file = file_rec
+        self.live = live_rec
+        self.on_live_failure = on_live_failure
+        self.live_timeout = live_timeout
+
+    @classmethod
+    def open(cls, application_id: str, recording_id: str, rrd: Path, url: str | None = None, blueprint=None,
+             on_live_failure=None) -> "LiveFanout":
+        """A recording written to ``rrd`` and, when ``url`` is given, streamed to the viewer
+        there as a stream of its own (both with the default ``blueprint``)."""
+        import rerun as rr
+
+        file_rec = rr.RecordingStream(application_id, recording_id=recording_id)
+        file_rec.set_sinks(rr.FileSink(str(rrd)), default_blueprint=blueprint)
+        live_rec = None
+        if url:  # a stream of its own: a viewer that goes away must not stall the file
+            live_rec = rr.RecordingStream(application_id, recording_id=recording_id)
+            live_rec.set_sinks(rr.GrpcSink(url), default_blueprint=blueprint)
+        return cls(file_rec, live_rec, on_live_failure=on_live_failure)
+
+    def _both(self, name, *args, **kwargs):
+        getattr(self.file, name)(*args, **kwargs)
+        if self.live is not None:
+            getattr(self.live, name)(*args, **kwargs)
+
+    def log(self, *args, **kwargs):
+        self._both("log", *args, **kwargs)
+
+    def set_time(self, *args, **kwargs):
+        self._both("set_time", *args, **kwargs)
+
+    def send_recording_name(self, name: str):
+        self._both("send_recording_name", name)
+
+    def flush(self) -> None:
+        self.file.flush()
+        if self.live is not None:
+            try:
+                self.live.flush(timeout_sec=self.live_timeout)
+            except RuntimeError as exc:
+                self._drop_live(exc)
+
+    def _drop_live(self, exc) -> None:
+        live, self.live = self.live, None
+        threading.Thread(target=live.disconnect, daemon=True).start()  # may wait for a last attempt
+        if self.on_live_failure is not None:
+            self.on_live_failure(exc)
+
+    def disconnect(self) -> None:
+        self.file.disconnect()  # writes the file's footer
+        if self.live is not None:
+            try:
+                self.live.flush(timeout_sec=self.live_timeout)
+            except RuntimeError:
+                pass
+            self.live.disconnect()

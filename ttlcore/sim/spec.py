@@ -1,0 +1,128 @@
+"""A simulation described in words: the options of ``ttl simulate``, and the
+:class:`~ttlcore.sim.simulator.SimulationConfig` they describe.
+
+The same options serve ``ttl simulate`` (:mod:`ttlcore.cli.main`) and a replay simulated on
+the fly (``ttl run --simulate "<options>"``, the replayer stage): :func:`add_simulation_options`
+declares them on any :mod:`argparse` parser, :func:`simulation_config_from_args` turns the
+parsed options into a configuration, and :func:`simulation_config` does both for a string of
+words.  Errors name the option at fault.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+
+from ..conventions import COEFFICIENT_NAMES, parse_duration
+from ..diagnose.effects import injection_from_spec
+from ..errors import ConfigError, TTLError
+from ..gw.injection import parse_gw_spec
+from .coefficients import make_coefficients
+from .orbits import make_orbit
+from .simulator import NoiseSwitches, SimulationConfig
+
+
+def _parse_assignments(text: str, option: str) -> dict[str, float]:
+    """``"12.phi.rx=0.05,13.eta.tx=-0.02"`` -> mapping (values as given)."""
+    out = {}
+    for item in filter(None, (s.strip() for s in text.split(","))):
+        name, sep, value = item.partition("=")
+        if not sep:
+            raise TTLError(f"{option}: expected NAME=VALUE, got {item!r}")
+        if name not in COEFFICIENT_NAMES:
+            raise TTLError(f"{option}: unknown coefficient {name!r}; names look like '12.phi.rx' ('<mosa>.<phi|eta>.<rx|tx>')")
+        try:
+            out[name] = float(value)
+        except ValueError:
+            raise TTLError(f"{option}: bad number {value!r} for {name}") from None
+    return out
+
+
+def add_simulation_options(p) -> None:
+    """The options that define a simulation (``ttl simulate`` and ``ttl run --simulate``)."""
+    p.add_argument("--duration", default="1d", help="length, e.g. 1d, 6h, 30min or seconds (default 1d)")
+    p.add_argument("--orbit", default="unequal", help="equal | unequal (paper's static arms) | keplerian | lisaorbits FILE (default unequal)")
+    p.add_argument("--coeffs", default="paper", help="paper (2.3 mm/rad) | lisainstrument | random | JSON FILE (default paper)")
+    p.add_argument("--seed", type=int, default=0, help="master random seed (default 0)")
+    p.add_argument("--t0", type=float, default=0.0, help="mission time of the first sample [s] (default 0)")
+    p.add_argument("--fs", type=float, default=4.0, help="telemetry sampling rate [Hz] (default 4)")
+    p.add_argument("--noises", default="all", help="noises on: 'all', 'none', or a list like 'all,-laser,-dws' "
+                   "(laser, oms, backlink, telescope, test_mass, sc_jitter, mosa_jitter, dws, ttl)")
+    p.add_argument("--drift", default="", metavar="NAME=MM_PER_DAY,...", help="linear coefficient drifts in mm/rad per day")
+    p.add_argument("--step", action="append", default=[], metavar="T:NAME=MM,...",
+                   help="coefficient step at mission time T (s, or e.g. 1.5d) of MM mm/rad; repeatable")
+    p.add_argument("--order", type=int, default=31, help="Lagrange interpolation order of the delays (odd, default 31)")
+    p.add_argument("--gw", default="", metavar="SOURCES", help="gravitational waves to inject, comma-separated: "
+                   "hmcnc, ztfj1539, vb, galaxy, sgwb, mbhb1, mbhb2 (merging mid-run), all, or a lisagwresponse "
+                   "FILE[:tps/y|tcb/y] (docs/gw.md)")
+    p.add_argument("--inject", action="append", default=[], metavar="EFFECT[:key=value,...]",
+                   help="model effect to inject (truth in the truth file only), e.g. drift:12.phi.rx=2e-3 or "
+                   "timing-offset:sc1.d1=0.05; repeatable (docs/diagnostics.md)")
+    p.add_argument("--effect-module", action="append", default=[], metavar="PATH",
+                   help="Python file (or module) defining user effects for --inject; repeatable")
+
+
+def simulation_config_from_args(args, truth_noises=()):
+    """A :class:`~ttlcore.sim.simulator.SimulationConfig` from the options of
+    :func:`add_simulation_options`; errors name the option at fault."""
+
+    duration = parse_duration(args.duration, "--duration")
+    coeffs = make_coefficients(args.coeffs, seed=args.seed)
+    if args.drift:
+        coeffs = coeffs.with_drift({k: v * 1e-3 for k, v in _parse_assignments(args.drift, "--drift").items()})
+    for step in args.step:
+        when, sep, rest = step.partition(":")
+        if not sep:
+            raise TTLError(f"--step: expected T:NAME=MM,..., got {step!r}")
+        t_step = parse_duration(when, "--step") if when.strip() not in ("0", "0.0") else 0.0
+        coeffs = coeffs.with_step(t_step, {k: v * 1e-3 for k, v in _parse_assignments(rest, "--step").items()})
+    make_orbit(args.orbit)  # validate early: clear error before any work
+    gw = ()
+    if getattr(args, "gw", ""):
+
+        gw = parse_gw_spec(args.gw, t0=args.t0, duration=duration, seed=args.seed)
+    return SimulationConfig(
+        duration=duration, t0=args.t0, fs=args.fs, orbit=args.orbit, coefficients=coeffs, seed=args.seed,
+        noises=NoiseSwitches.parse(args.noises), interpolation_order=args.order, truth_noises=tuple(truth_noises),
+        injections=tuple(gw) + _effect_injections(args),
+    )
+
+
+def _effect_injections(args) -> tuple:
+    """The ``--inject`` options as simulator injections (:mod:`ttlcore.diagnose.effects`)."""
+    if not getattr(args, "inject", None):
+        return ()
+
+    out = []
+    for spec in args.inject:
+        try:
+            out.append(injection_from_spec(spec, getattr(args, "effect_module", ()) or ()))
+        except TTLError as exc:
+            raise TTLError(f"--inject {spec}: {exc}") from None
+    return tuple(out)
+
+
+def simulation_config(text: str) -> SimulationConfig:
+    """A :class:`~ttlcore.sim.simulator.SimulationConfig` from ``ttl simulate`` options
+    (without ``--out``) in one string, e.g. ``"--duration 12h --orbit unequal --seed 1"``,
+    parsed and translated by the same code as ``ttl simulate``.
+
+    Raises
+    ------
+    ConfigError
+        Naming the option at fault.
+    """
+    p = argparse.ArgumentParser(prog="--simulate", add_help=False, exit_on_error=False)
+    add_simulation_options(p)
+    try:
+        words = shlex.split(text)
+        args, unknown = p.parse_known_args(words)
+    except (argparse.ArgumentError, ValueError) as exc:
+        raise ConfigError(f"--simulate: {exc}") from None
+    if unknown:
+        raise ConfigError(f"--simulate: unknown option(s) {' '.join(unknown)} "
+                          "(the options of 'ttl simulate' except --out, --chunk, --truth-noises, --quiet)")
+    try:
+        return simulation_config_from_args(args)
+    except TTLError as exc:  # ConfigError included: the message names the option
+        raise ConfigError(f"--simulate {exc}") from None
