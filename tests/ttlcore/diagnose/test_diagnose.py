@@ -118,7 +118,14 @@ def test_nothing_injected_nothing_significant(null6h):
     json.dumps({k: v for k, v in rep.items() if not k.startswith("_")})  # serialisable
 
 
-@pytest.mark.parametrize("effect", list(FAST_CASES))
+#: the 6-h loops of these two are science checks: the fast suite has the timing-offset loop on
+#: outside data (test_lisainstrument_day_with_shifted_dws_channels) and the witness search
+#: that cross-coupling exercises in test_plugin_through_the_command_line and the blind tests
+SCIENCE_ONLY = ("timing-offset", "cross-coupling")
+
+
+@pytest.mark.parametrize("effect", [pytest.param(e, marks=pytest.mark.science) if e in SCIENCE_ONLY else e
+                                    for e in FAST_CASES])
 def test_hidden_effect_is_found_added_and_the_error_falls_6h(effect):
     spec, time_dependent = FAST_CASES[effect]
     tm, truth, name = _simulate_cached(spec, HOURS6, seed=22)
