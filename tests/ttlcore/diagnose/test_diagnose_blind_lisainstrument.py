@@ -38,7 +38,9 @@ from ttlcore.io.reader import read_telemetry  # noqa: E402
 from ttlcore.io.telemetry import write_telemetry  # noqa: E402
 from ttlcore.tdi.interpolation import timeshift  # noqa: E402
 
-pytestmark = pytest.mark.science
+# a day-long diagnosis runs once per printed step (up to four times a case): beyond the
+# suite's 900 s per test on a loaded 2-core machine
+pytestmark = [pytest.mark.science, pytest.mark.timeout(3600)]
 
 
 def parse_case(spec: str) -> tuple[str, dict]:
