@@ -15,7 +15,12 @@ Prints one JSON object: wall time and target, the per-stage times, the number of
 candidates and witnesses tried, the top candidate and whether it is the injected one, and
 the process's peak resident memory.
 
-Usage: ``.venv/bin/python bench/diagnose.py [--duration SECONDS] [--seed N] [--clean|--unknown] [--profile]``
+``--keep FILE`` writes the simulated telemetry to FILE, ``--data FILE`` diagnoses such a file
+instead of simulating (the same day for runs before and after a change); ``--report FILE``
+writes the full JSON report (``ttl diagnose --json``'s content) for comparisons.
+
+Usage: ``.venv/bin/python bench/diagnose.py [--duration SECONDS] [--seed N] [--clean|--unknown]
+[--keep FILE | --data FILE] [--report FILE] [--profile]``
 """
 
 from __future__ import annotations
@@ -32,8 +37,10 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from ttlcore.diagnose.diagnoser import diagnose  # noqa: E402
+from ttlcore.diagnose.diagnoser import diagnose, strip_internals  # noqa: E402
 from ttlcore.diagnose.effects import injection_from_spec  # noqa: E402
+from ttlcore.io.atomic import write_json  # noqa: E402
+from ttlcore.io.telemetry import read_ttl_telemetry, write_telemetry  # noqa: E402
 from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
 
 TARGET_S = 60.0
@@ -49,13 +56,22 @@ def main() -> int:
     ap.add_argument("--clean", action="store_true", help="no injected effect")
     ap.add_argument("--unknown", action="store_true", help="inject a resonance the diagnosis does not name")
     ap.add_argument("--profile", action="store_true", help="add the ten most expensive functions")
+    ap.add_argument("--keep", type=Path, help="write the simulated telemetry to this file")
+    ap.add_argument("--data", type=Path, help="diagnose this telemetry file (from --keep) instead of simulating; "
+                    "--duration, --seed and --clean/--unknown must match the run that wrote it")
+    ap.add_argument("--report", type=Path, help="write the full JSON report to this file")
     args = ap.parse_args()
     spec = None if args.clean else (UNKNOWN if args.unknown else INJECTION)
     inj = () if spec is None else (injection_from_spec(spec, [BLIND_MODULE] if args.unknown else []),)
     t = time.perf_counter()
-    # one chunk: no chunk-boundary approximation in the timing-offset injection
-    tm, _ = simulate(SimulationConfig(duration=args.duration, orbit="keplerian", seed=args.seed, injections=inj),
-                     chunk_size=int(args.duration * 4))
+    if args.data is not None:
+        tm = read_ttl_telemetry(args.data)
+    else:
+        # one chunk: no chunk-boundary approximation in the timing-offset injection
+        tm, _ = simulate(SimulationConfig(duration=args.duration, orbit="keplerian", seed=args.seed, injections=inj),
+                         chunk_size=int(args.duration * 4))
+        if args.keep is not None:
+            write_telemetry(args.keep, tm)
     t_sim = time.perf_counter() - t
     prof = cProfile.Profile() if args.profile else None
     if prof:
@@ -66,11 +82,14 @@ def main() -> int:
     if prof:
         prof.disable()
     cands = report["candidates"]
+    if args.report is not None:
+        write_json(args.report, strip_internals(report))
     out = {
         "benchmark": "diagnose",
         "duration_s": args.duration,
         "cpu_count": os.cpu_count(),
-        "simulate_s": round(t_sim, 2),
+        "simulate_s" if args.data is None else "read_s": round(t_sim, 2),
+        "load_average_1min": round(os.getloadavg()[0], 2),
         "injected": spec,
         "diagnose_wall_time_s": round(wall, 2),
         "target_s": TARGET_S,

@@ -36,7 +36,7 @@ from .effects import (
     Step,
     derivative,
     effect_input_from_telemetry,
-    filtered,
+    filtered_many,
     names_only_input,
     readout_noise_factor,
     tdi_in_blocks,
@@ -420,7 +420,7 @@ def filtered_spectra(data, base: ColumnSet, responses) -> tuple[np.ndarray, np.n
     the taper, a few tens of per cent of a strong resonance's excess at the segment ends."""
     x = base.series[:, 0]
     ok = np.isfinite(x)
-    series = np.stack([np.where(ok, filtered(x, data.fs, r), np.nan) for r in responses], axis=1)
+    series = np.stack([np.where(ok, y, np.nan) for y in filtered_many(x, data.fs, responses)], axis=1)
     return data.whiten(data.spectra(series)), series
 
 

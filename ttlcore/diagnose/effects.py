@@ -197,11 +197,18 @@ def filtered(x: np.ndarray, fs: float, response) -> np.ndarray:
     """``x`` through the filter of frequency response ``response(f)``, applied on the
     series' own FFT grid (zero-padded to twice its length: no wrap-around for impulse
     responses shorter than the series).  NaN samples count as zero."""
+    return filtered_many(x, fs, [response])[0]
+
+
+def filtered_many(x: np.ndarray, fs: float, responses) -> list[np.ndarray]:
+    """``x`` through each filter of ``responses`` (:func:`filtered`), the series'
+    transform computed once."""
     x = np.nan_to_num(np.asarray(x, dtype=float))
     n = x.shape[-1]
     nfft = 2 * n
     f = np.fft.rfftfreq(nfft, 1.0 / fs)
-    return np.fft.irfft(np.fft.rfft(x, nfft) * response(f), nfft)[..., :n]
+    X = np.fft.rfft(x, nfft)
+    return [np.fft.irfft(X * r(f), nfft)[..., :n] for r in responses]
 
 
 def partner(mosa: str) -> str:

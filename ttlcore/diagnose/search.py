@@ -81,6 +81,9 @@ from .model_fit import ModelFit, as_real, gram, gram_x, rhs
 
 log = logging.getLogger(__name__)
 
+#: The log Bayes factor a search gives a point where the columns are collinear with the model's.
+COLLINEAR = -1e300
+
 
 @dataclass(frozen=True)
 class SearchResult:
@@ -190,9 +193,26 @@ class _Spectral:
         for r in resp.values():
             self.eMB = self.eMB + np.einsum("mcp,mcb->mpb", r[:, :, :P].conj(), r[:, :, P:]) * W[:P, P:][None]
             self.eBB = self.eBB + np.einsum("mcb,mce->mbe", r[:, :, P:].conj(), r[:, :, P:]) * W[P:, P:][None]
+        self.wMc = np.ascontiguousarray(wM.reshape(-1, wM.shape[-1]).conj().T)  # (P, S m 3)
+        self.wdc = data.wd.reshape(-1).conj()
+        self._cache: dict = {}
         self.NM = model.normal[0].sum(axis=(0, 1)) - model.eiv_term.sum(axis=0)
         self.bM = model.normal[1].sum(axis=(0, 1))
         self.thM = np.linalg.solve(self.NM, self.bM)
+
+    def _products(self, idx) -> tuple:
+        """The per-bin products of the bases ``idx`` (fixed during a search), taken once:
+        ``(N_MB, N_BB, b_B)`` with the readout-noise terms subtracted, the model's whitened
+        columns conjugated as a matrix (S m 3, P) for the exact path."""
+        key = tuple(idx)
+        if key not in self._cache:
+            i = list(idx)
+            NMB = np.ascontiguousarray((self.PM[:, :, i] - self.eMB[:, :, i]).transpose(2, 1, 0))  # (k, P, m)
+            NBB = np.ascontiguousarray(self.Puu[:, i][:, :, i] - self.eBB[:, i][:, :, i])  # (m, k, k)
+            eMB = np.ascontiguousarray(self.eMB[:, :, i].transpose(2, 1, 0))  # (k, P, m)
+            eBB = np.ascontiguousarray(self.eBB[:, i][:, :, i])
+            self._cache[key] = (NMB, NBB, np.ascontiguousarray(self.Pud[:, i].T), eMB, eBB)
+        return self._cache[key]
 
     def evaluate(self, cols, idx, exact: bool = False) -> tuple[float, float]:
         """Evidence of the columns ``cols`` (only their responses and prior scales are
@@ -202,29 +222,41 @@ class _Spectral:
         data = self.data
         R = np.stack([np.ones(data.f.size, complex) if c.response is None else np.asarray(c.response(data.f), complex)
                       for c in cols], axis=1)  # (m, k)
-        eMK = np.einsum("mpk,mk->pk", self.eMB[:, :, idx], R).real
-        eKK = np.einsum("mj,mjk,mk->jk", R.conj(), self.eBB[:, idx][:, :, idx], R).real
+        NMB, NBB, Pud, eMB, eBB = self._products(idx)
+        k = R.shape[1]
         if exact:
-            wK = np.concatenate([filtered_spectra(data, self.bases[i], [c.response])[0] for c, i in zip(cols, idx)],
-                                axis=-1)
-            NMK = np.einsum("smcp,smck->pk", self.wM.conj(), wK).real - eMK
-            NKK = np.einsum("smcj,smck->jk", wK.conj(), wK).real - eKK
-            bK = np.einsum("smck,smc->k", wK.conj(), data.wd).real
+            eMK = np.stack([(eMB[j] @ R[:, j]).real for j in range(k)], axis=1)
+            eKK = np.einsum("mj,mjk,mk->jk", R.conj(), eBB, R).real
+            wK = self._exact_spectra(cols, idx)  # (S m 3, k)
+            NMK = (self.wMc @ wK).real - eMK
+            NKK = (wK.conj().T @ wK).real - eKK
+            bK = (wK.T @ self.wdc).real
         else:
-            NMK = np.einsum("mpk,mk->pk", self.PM[:, :, idx], R).real - eMK
-            NKK = np.einsum("mj,mjk,mk->jk", R.conj(), self.Puu[:, idx][:, :, idx], R).real - eKK
-            bK = np.einsum("mk,mk->k", R.conj(), self.Pud[:, idx]).real
+            NMK = np.stack([(NMB[j] @ R[:, j]).real for j in range(k)], axis=1)
+            NKK = np.einsum("mj,mjk,mk->jk", R.conj(), NBB, R).real
+            bK = np.einsum("km,mk->k", Pud, R.conj()).real
         P = self.NM.shape[0]
         N = np.block([[self.NM, NMK], [NMK.T, NKK]])
         b = np.r_[self.bM, bK]
         th = stable_solve(N, b)
         if th is None:  # collinear: no gain (a finite value keeps the simplex well defined)
-            return 0.0, -1e300
+            return 0.0, COLLINEAR
         kappa = data.kappa
         dchi2 = 2 * (b @ th - self.bM @ self.thM) / kappa
         A = 2 * (NKK - NMK.T @ np.linalg.solve(self.NM, NMK)) / kappa
         lbf = log_bayes_factor(A, th[P:], np.array([c.prior_scale for c in cols]))
         return float(dchi2), float(lbf)
+
+    def _exact_spectra(self, cols, idx) -> np.ndarray:
+        """Whitened spectra (S m 3, k) of the columns filtered in time (as the fit's), each
+        base's series transformed once for all its columns."""
+        data = self.data
+        out = np.empty((self.wMc.shape[1], len(cols)), dtype=complex)
+        for i in dict.fromkeys(idx):
+            js = [j for j, ii in enumerate(idx) if ii == i]
+            w, _ = filtered_spectra(data, self.bases[i], [cols[j].response for j in js])
+            out[:, js] = w.reshape(-1, len(js))
+        return out
 
 
 def _generic_evaluator(model: ModelFit, effect_at):
@@ -343,6 +375,11 @@ def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
     values = np.array([score(x)[0] for x in grid])
     order = np.argsort(-np.nan_to_num(values, nan=-np.inf))
     best_x, best = grid[order[0]], values[order[0]]
+    if spectral and all(score(x)[1] == COLLINEAR for x in grid) and exact(best_x)[1] == COLLINEAR:
+        # e.g. a coupling placed as a TTL witness: its constant combination is the model's
+        # column at every pole, so no refinement can find evidence
+        raise ConfigError(f"effect {effect.name!r}: columns collinear with the model's at every grid point: "
+                          "no evidence")
     # local refinement from the best few grid points (the profile may have several maxima)
     for start in grid[order[:2]]:
         res = optimize.minimize(lambda x: -score(x)[0], start, method="Nelder-Mead",
@@ -633,6 +670,43 @@ def offset_search(data, effect, columns: ColumnSet, span: float | None = None, p
     step = 1.0 / (8.0 * data.f[-1])
     grid = np.arange(-span, span + 0.5 * step, step)
     n_eval = 0
+    # a shift is a phase per bin and column: the normal equations at any offsets are
+    # phase-weighted sums over bins of the products of each group's columns with all the
+    # columns and the data, taken once here (the unshifted products: the normal equations
+    # at zero offsets)
+    flat = X.reshape(-1, P)
+    N0 = (flat.conj().T @ flat).real
+    b0 = (flat.conj().T @ d.reshape(-1)).real
+    del flat
+    QX, Qd = {}, {}
+    for g, J in members.items():
+        XJh = np.ascontiguousarray(np.swapaxes(X[:, :, J], 1, 2).conj())  # (m, |J|, S 3)
+        QX[g] = np.matmul(XJh, X)  # (m, |J|, P)
+        Qd[g] = np.matmul(XJh, d[:, :, None])[..., 0]  # (m, |J|)
+    del X, d
+    # the columns' classes: 0 unshifted, 1 + i the i-th group's
+    groups = list(members)
+    cls = np.zeros(P, dtype=int)
+    for i, g in enumerate(groups):
+        cls[members[g]] = i + 1
+
+    def phases(col):
+        """``exp(i w c)`` per bin and class (m, 1 + groups) at the offsets ``col`` [s]."""
+        return np.exp(1j * np.outer(w, np.r_[0.0, [col[members[g][0]] for g in groups]]))
+
+    def normal_at(col):
+        """``(N, b)`` with the columns shifted by ``col`` [s] (the groups' columns only)."""
+        N, b = N0.copy(), b0.copy()
+        if not col.any():
+            return N, b
+        T = phases(col)
+        for i, (h, J) in enumerate(members.items()):
+            rel = T * T[:, i + 1].conj()[:, None]  # exp(i w (c_u - c_h))
+            rows = np.einsum("mjp,mp->jp", QX[h], rel[:, cls]).real
+            N[J, :] = rows
+            N[:, J] = rows.T
+            b[J] = (T[:, i + 1].conj() @ Qd[h]).real
+        return N, b
 
     def profile(g):
         """Q(delta_g) on an array of offsets, the other groups at ``delta``."""
@@ -642,19 +716,19 @@ def offset_search(data, effect, columns: ColumnSet, span: float | None = None, p
         for h, idx in members.items():
             if h != g:
                 col[idx] = delta[h]
-        Xs = X * np.exp(1j * w[:, None] * col[None, :])[:, None, :]
-        flat = Xs.reshape(-1, P)
-        N = (flat.conj().T @ flat).real - E
-        b = (flat.conj().T @ d.reshape(-1)).real
-        XJ = Xs[:, :, J].conj()
-        Q = np.concatenate([np.einsum("mkj,mkr->mjr", XJ, Xs[:, :, R]).reshape(m, -1),
-                            np.einsum("mkj,mk->mj", XJ, d)], axis=1)  # (m, |J| (|R| + 1))
+        N, b = normal_at(col)
+        N = N - E
+        ph = phases(col)[:, cls[R]]  # exp(i w c_R)
+        Q = np.concatenate([(QX[g][:, :, R] * ph[:, None, :]).reshape(m, -1), Qd[g]], axis=1)  # (m, |J| (|R| + 1))
+        QQ = np.concatenate([Q.real, Q.imag], axis=0)  # Re(exp(-i x w) Q) = cos(x w) Re Q + sin(x w) Im Q
+        del Q
 
         def q(x):
             nonlocal n_eval
             x = np.atleast_1d(np.asarray(x, dtype=float))
             n_eval += x.size
-            A = (np.exp(-1j * np.outer(x, w)) @ Q).real  # (K, |J| (|R| + 1))
+            xw = np.outer(x, w)
+            A = np.concatenate([np.cos(xw), np.sin(xw)], axis=1) @ QQ  # (K, |J| (|R| + 1))
             NJR = A[:, :len(J) * len(R)].reshape(-1, len(J), len(R))
             Nk = np.broadcast_to(N, (x.size, P, P)).copy()
             bk = np.broadcast_to(b, (x.size, P)).copy()
