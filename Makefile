@@ -47,7 +47,7 @@ demo-batch: $(STAMP)
 
 ## test: the fast test suite, on every core (pytest-xdist; a module's tests stay on one worker).
 ## One BLAS thread per process: the workers already fill the cores, and OpenBLAS threads that
-## wait for a busy core spin (a Gram product measured 280 times slower with two threads than one)
+## wait for a busy core spin (measured on a loaded machine: docs/diagnostics.md, "Measured")
 test: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadscope
 

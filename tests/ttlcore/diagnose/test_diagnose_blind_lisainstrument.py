@@ -13,8 +13,8 @@ telemetry format and the user's loop is followed exactly as in the simulator's b
 
 Acceptance (issue 10): no band fails, max ``|C_fit - C_true|`` < 0.05 mm/rad against
 lisainstrument's own coefficients, pull RMS < 1.5; and the untouched day passes with
-nothing significant.  About three minutes a case (lisainstrument's day dominates), hence
-the science marker.
+nothing significant.  5 to 13 minutes a case on a loaded 2-core machine (a day-long
+diagnosis per printed step), hence the science marker.
 """
 
 import json
