@@ -130,7 +130,13 @@ def shifted_evidence(model: ModelFit, effect, taylor: Evidence) -> tuple[Evidenc
     """Evidence of a shifted-witness candidate with its offsets searched (the exact model
     of :func:`ttlcore.diagnose.fitting.expand_linearised`) instead of the Taylor columns at
     zero, which lose most of a large offset's delta chi^2 where ``2 pi f delta`` nears one.
-    Falls back to the Taylor evidence when no group's offset needs the exact model."""
+    Falls back to the Taylor evidence when no group's offset needs the exact model.
+
+    The extra holds ``offsets`` (``"effect.group"`` -> fitted offset [s]), ``offset_search``
+    (the search of the offsets, :meth:`ttlcore.diagnose.search.SearchResult.to_json`: profile
+    estimates with their 1-sigma intervals, marginal evidence) and ``_effect``: the effect
+    with the offsets of its expanded groups given (``offset.<group>``, 6 significant
+    digits), whose ``--effects`` spelling fits the same model."""
     data = model.data
     if data.settings.expansion_passes == 0 or len(data.ttl_names) != 24:
         return taylor, {}
@@ -144,7 +150,14 @@ def shifted_evidence(model: ModelFit, effect, taylor: Evidence) -> tuple[Evidenc
     ev = Evidence(dchi2, lbf, len(new), tuple(names), beta, exact.sigma[new],
                   (model.chi2_seg_band - exact.chi2_seg_band).sum(axis=0) / data.kappa,
                   (model.chi2_seg_band - exact.chi2_seg_band).sum(axis=1) / data.kappa)
-    return ev, {"offsets": {n[:-3]: float(b) for n, b in zip(names, beta) if n.endswith(".d1")}}
+    offsets = {n[:-3]: float(b) for n, b in zip(names, beta) if n.endswith(".d1")}
+    prefix = effect.name + "."
+    expanded = {f"offset.{k[len(prefix):]}": float(f"{v:.6g}") for k, v in offsets.items()
+                if k.startswith(prefix) and exact.expansion.get(k, 0.0) != 0.0}
+    extra = {"offsets": offsets, "_effect": effect.with_options(**expanded)}
+    if effect.cli_spec() in exact.searches:
+        extra["offset_search"] = exact.searches[effect.cli_spec()]
+    return ev, extra
 
 
 def where(data, ev: Evidence, extra: dict) -> dict:

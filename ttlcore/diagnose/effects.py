@@ -515,12 +515,73 @@ class SecondOrder(Effect):
         return cols
 
 
+#: prefix of the option that gives a shifted-witness group's offset [s] (``offset.sc1``)
+OFFSET_OPTION = "offset."
+
+
+def _offset_parameters(groups) -> dict:
+    """The offset options ``offset.<group>`` of a shifted-witness effect (unset: searched)."""
+    return {f"{OFFSET_OPTION}{g}": None for g in groups}
+
+
 class _Linearised(Effect):
     """Effects whose exact form is ``w(t + epsilon)`` (shifted witnesses); the fit uses
     ``epsilon w' + (epsilon^2 / 2) w''`` (columns ``.d1`` with parameter epsilon [s] and
-    ``.d2`` with parameter epsilon^2 [s^2]), built with the fitted linear coefficients."""
+    ``.d2`` with parameter epsilon^2 [s^2]), built with the fitted linear coefficients.
+
+    Each group's offset is a searched parameter (:attr:`searched`): the option
+    ``offset.<group>`` [s] (``timing-offset:offset.sc1=0.35``), declared over ``(-inf, inf)``
+    and searched over ``+-settings.shift_span`` (:func:`ttlcore.diagnose.search.search_ranges`).
+    Unset, the diagnosis searches it where it builds the model's columns
+    (:func:`ttlcore.diagnose.fitting.expand_linearised`, through
+    :func:`ttlcore.diagnose.search.profile_search`); given, it is the group's expansion point
+    (the exact model holds the group's witnesses shifted by it, the fitted ``d1`` the rest).
+    A plugin with this interface (:meth:`_groups`, :attr:`d1_sign`) gets the options too;
+    listing them in ``parameters`` (:func:`_offset_parameters`) lets ``--effects`` set them.
+    """
 
     needs_coefficients = True
+
+    def __init__(self, **options):
+        # offset options a plugin does not list in ``parameters`` (its groups depend on options)
+        offsets = {k: options.pop(k) for k in list(options) if k.startswith(OFFSET_OPTION) and k not in self.parameters}
+        super().__init__(**options)
+        self.options.update(offsets)
+        groups = self.shifted_members()
+        for key in [k for k, v in self.options.items() if k.startswith(OFFSET_OPTION) and v is not None]:
+            if key[len(OFFSET_OPTION):] not in groups:
+                raise ConfigError(f"effect {self.name!r}: option {key} names no group of this effect; its offsets: "
+                                  f"{', '.join(OFFSET_OPTION + g for g in groups)}")
+            try:
+                self.options[key] = float(self.options[key])
+            except (TypeError, ValueError):
+                raise ConfigError(f"effect {self.name!r}: {key}={self.options[key]!r} is not an offset in seconds") from None
+
+    @property
+    def searched(self) -> dict:
+        """``offset.<group> -> (-inf, inf, "linear")``: one offset [s] per group of
+        :meth:`shifted_members` (the search's span comes from the settings)."""
+        return {f"{OFFSET_OPTION}{g}": (-np.inf, np.inf, "linear") for g in self.shifted_members()}
+
+    def unresolved(self) -> list[str]:
+        """The searched options resolved before the fit: none of the offsets, which are
+        searched where the model's columns are built (they need the fitted linear
+        coefficients and the model's other columns; :meth:`open_offsets`)."""
+        return [k for k in super().unresolved() if not k.startswith(OFFSET_OPTION)]
+
+    def fixed_offsets(self) -> dict[str, float]:
+        """Group -> offset [s] given as an option (the group's expansion point)."""
+        return {g: float(self.options[f"{OFFSET_OPTION}{g}"]) for g in self.shifted_members()
+                if self.options.get(f"{OFFSET_OPTION}{g}") is not None}
+
+    def open_offsets(self) -> list[str]:
+        """Groups whose offset is not given (searched)."""
+        fixed = self.fixed_offsets()
+        return [g for g in self.shifted_members() if g not in fixed]
+
+    def without_offsets(self) -> _Linearised:
+        """The same effect with every offset unset (its Taylor columns do not depend on them)."""
+        return self.with_options(**dict.fromkeys(self.searched))
 
     def _groups(self) -> dict:
         raise NotImplementedError
@@ -585,7 +646,7 @@ class TimingOffset(_Linearised):
     physics = ("The DWS samples of a spacecraft are time-stamped delta late with respect to the phasemeter "
                "(a processing latency, a misaligned data stream): the length readout holds C DWS(t + delta). "
                "To second order C [w + delta w' + delta^2/2 w''], with the fitted C.")
-    parameters = {"per": "sc", "delta": None}
+    parameters = {"per": "sc", **_offset_parameters(["sc1", "sc2", "sc3", *MOSAS, "all"])}
 
     def _groups(self):
         per = self.options.get("per", "sc")
@@ -608,7 +669,7 @@ class LightTravelTimeError(_Linearised):
     physics = ("The tx jitter reaches the receiver one light travel time after emission; if the delay used to "
                "place the tx witnesses (the telemetry's ranging) is off by eps on link ij, the fit misses "
                "C D_ij [w(t - eps) - w] = C D_ij [-eps w' + eps^2/2 w'']. One eps per link.")
-    parameters = {"links": "all"}
+    parameters = {"links": "all", **_offset_parameters(LINKS)}
 
     d1_sign = -1.0
 

@@ -4,7 +4,8 @@ model, the candidates' trial models, the ``before`` model and the pipeline's ref
 :func:`fit_model` resolves the effects' searched parameters
 (:func:`ttlcore.diagnose.search.profile_search` against the model of the other effects),
 builds the columns (:mod:`ttlcore.diagnose.columns`), expands the shifted-witness effects
-at their searched offsets (:func:`expand_linearised`), solves
+at their given or searched offsets (:func:`expand_linearised`, the same
+:func:`~ttlcore.diagnose.search.profile_search` against the model's other columns), solves
 (:func:`ttlcore.diagnose.model_fit.solve`), and for a model whose coefficients change in
 time re-evaluates the DWS readout-noise term of the noise model with the model's own
 coefficient history (the returned fit's ``data`` is then a new
@@ -30,9 +31,9 @@ from .columns import (
     rewhitened,
     shifted_columns,
 )
-from .effects import Effect, make_effects
+from .effects import OFFSET_OPTION, Effect, make_effects
 from .model_fit import ModelFit, normal_solution, parameter_name, solve
-from .search import offset_search, profile_search
+from .search import profile_search
 
 
 def as_effects(data, effects) -> list:
@@ -68,7 +69,8 @@ def fit_model(data, effects, coefficients_for_linearised=None, keep_series: bool
         table = time_adequacy(fit)
     # the fit keeps its whitened columns (evidence of candidates against it), not their series
     columns = replace(fit.columns, series=None) if fit.columns.series is not None else fit.columns
-    return replace(fit, columns=columns, searches=searches, time_table=table)
+    # the searches before the fit and those of the offsets, made while building its columns
+    return replace(fit, columns=columns, searches={**searches, **fit.searches}, time_table=table)
 
 
 def resolve(data, effects, coefficients_for_linearised=None) -> tuple[list, dict]:
@@ -89,17 +91,22 @@ def resolve(data, effects, coefficients_for_linearised=None) -> tuple[list, dict
 
 
 def fit_resolved(data, effects, coefficients_for_linearised=None, keep_series: bool = False) -> ModelFit:
-    """The fit of effects whose searched parameters are set (no search, and the noise model
-    changed only if the linear fit that gives a linearised effect's coefficients drifts):
-    the trial model of a candidate, the base model of a search."""
-    data, columns, expansion = model_columns(data, effects, coefficients_for_linearised, keep_series)
-    return solve(data, columns, effects, expansion)
+    """The fit of effects whose searched parameters are set (no search but that of the open
+    offsets of shifted-witness effects, made with their columns, :func:`expand_linearised`;
+    the noise model changed only if the linear fit that gives a linearised effect's
+    coefficients drifts): the trial model of a candidate, the base model of a search.  Its
+    ``searches`` hold the offsets' (effect spec -> search JSON)."""
+    data, columns, expansion, searches = model_columns(data, effects, coefficients_for_linearised, keep_series)
+    fit = solve(data, columns, effects, expansion)
+    return replace(fit, searches=searches) if searches else fit
 
 
 def model_columns(data, effects, coefficients=None, keep_series: bool = True) -> tuple:
-    """The columns of a model: ``(data, ColumnSet, expansion points)``.  ``data`` is the
-    input unless the linear fit that gives the coefficients of linearised effects changed
-    the noise model (a drifting model)."""
+    """The columns of a model: ``(data, ColumnSet, expansion points, offset searches)``.
+    ``data`` is the input unless the linear fit that gives the coefficients of linearised
+    effects changed the noise model (a drifting model).  ConfigError when a linearised
+    effect's offset is given but the model cannot be expanded (``expansion_passes`` 0, or
+    not all 24 linear coefficients in the model)."""
     sets: list[ColumnSet] = []
     names: list[str] = []
     plain = [e for e in effects if not e.needs_coefficients]
@@ -124,53 +131,83 @@ def model_columns(data, effects, coefficients=None, keep_series: bool = True) ->
                                   "in the model")
         first = list(names)
         for e in lin:
-            cs = effect_columns(data, e, C, keep_series=True)
+            # the Taylor columns at zero do not depend on the given offsets (one cache entry)
+            cs = effect_columns(data, e.without_offsets(), C, keep_series=True)
             sets.append(cs)
             names += [n for n in cs.names if n not in names]
         if data.settings.expansion_passes and len(data.ttl_names) == 24:
             base = assemble(first, *sets, series=keep_series)
-            exp = expand_linearised(data, base, lin)
-            if exp is not None:
-                return data, exp[0], exp[1]
+            columns, expansion, searches = expand_linearised(data, base, lin)
+            if columns is not None:
+                return data, columns, expansion, searches
+            return data, assemble(names, *sets, series=keep_series), {}, searches
+        given = [f"{e.name}:{OFFSET_OPTION}{g}" for e in lin for g in e.fixed_offsets()]
+        if given:
+            raise ConfigError(f"offsets given ({', '.join(given)}) but this model is not expanded at offsets "
+                              f"({'expansion_passes is 0' if not data.settings.expansion_passes else 'it lacks some of the 24 linear-ttl coefficients'})")
     if not names:
-        return data, empty_set(data.noise_key), expansion
-    return data, assemble(names, *sets, series=keep_series), expansion
+        return data, empty_set(data.noise_key), expansion, {}
+    return data, assemble(names, *sets, series=keep_series), expansion, {}
 
 
-def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet, dict] | None:
-    """The exact model of the linearised effects where their offsets are large; None when
-    the Taylor columns at zero are the model.
+def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet | None, dict, dict]:
+    """The exact model of the linearised effects at their offsets (given or searched), or
+    None when the Taylor columns at zero are the model.
 
-    Each group's offset is found by :func:`ttlcore.diagnose.search.offset_search` (no
-    Taylor expansion, so offsets with 2 pi f delta >> 1 at the top of the band are found).
-    Where it is clearly measured (delta chi^2 > 25) and large enough for the Taylor error
-    to matter (2 pi f delta > 0.05 at the band's top), the model holds the group's TTL
-    columns with their witnesses shifted by ``s delta_0`` (exact, the linear coefficients
-    fitted as before) and a ``d1`` column, the derivative there: its fitted coefficient is
-    the remaining offset ``delta - delta_0``, moved into ``delta_0`` by Gauss-Newton passes
-    until it is below a hundredth of its sigma.  Other groups keep the Taylor columns
-    ``d1``, ``d2`` at zero.
+    The open offsets of each effect (``offset.<group>`` unset) are found by
+    :func:`ttlcore.diagnose.search.profile_search` against the model of ``first`` (the other
+    effects' columns; :func:`ttlcore.diagnose.search.offset_search`: no Taylor expansion, so
+    offsets with 2 pi f delta >> 1 at the top of the band are found), the given ones held.
+    A group whose offset is given is expanded there (at zero: the Taylor columns); a
+    searched one where its offset is clearly measured (delta chi^2 > 25) and large enough
+    for the Taylor error to matter (2 pi f delta > 0.05 at the band's top).  The model
+    holds an expanded group's TTL columns with their witnesses shifted by ``s delta_0``
+    (exact, the linear coefficients fitted as before) and a ``d1`` column, the derivative
+    there: its fitted coefficient is the remaining offset ``delta - delta_0``, moved into
+    ``delta_0`` by Gauss-Newton passes until it is below a hundredth of its sigma (a given
+    offset too: it chooses the expansion point, the fit still measures the offset).  Other
+    groups keep the Taylor columns ``d1``, ``d2`` at zero.  A coefficient is shifted by
+    one group only: given offsets first, then the searched ones in order.
 
     Returns
     -------
-    (ColumnSet, dict) or None
-        The model's columns and the expansion points ``"effect.group" -> delta_0``.
+    (ColumnSet or None, dict, dict)
+        The model's columns, the expansion points ``"effect.group" -> delta_0``, and the
+        searches (the effect's ``--effects`` spec -> :meth:`SearchResult.to_json`).
     """
     small = 0.05 / (2 * np.pi * data.settings.band[1])
-    shifts, C, moved_names = {}, None, set()
+    shifts, C, moved_names, searches = {e.name: {} for e in lin}, None, set(), {}
+    for e in lin:  # the given offsets
+        for g, d0 in e.fixed_offsets().items():
+            members = set(e.shifted_members()[g])
+            if d0 == 0.0:
+                continue
+            if moved_names & members:
+                raise ConfigError(f"{e.name}:{OFFSET_OPTION}{g}: another given offset shifts the same linear "
+                                  f"coefficients ({', '.join(sorted(moved_names & members))})")
+            moved_names |= members
+            shifts[e.name][g] = d0
+    base = None
     for e in lin:
-        found = offset_search(data, e, first)
+        if not e.open_offsets():
+            continue
+        if base is None:
+            base = solve(data, first)
+        found = profile_search(base, e)
+        searches[e.cli_spec()] = found.to_json()
         if C is None:
             C = _ttl_vector(found.theta)
-        shifts[e.name] = {}
         for g, members in e.shifted_members().items():
-            big = (g in found.estimates and found.gains[g] > 25.0 and abs(found.estimates[g]) > small
+            k = f"{OFFSET_OPTION}{g}"
+            big = (k in found.estimates and found.gains[k] > 25.0 and abs(found.estimates[k]) > small
                    and not moved_names & set(members))
             if big:
                 moved_names |= set(members)
-                shifts[e.name][g] = found.estimates[g]
+                shifts[e.name][g] = found.estimates[k]
     if not moved_names:
-        return None
+        return None, {}, searches
+    if C is None:  # every offset given: the linear coefficients of the unshifted model to start
+        C = _ttl_vector(normal_solution(data, first)[0])
     model, expansion = first, {}
     for _ in range(max(1, data.settings.expansion_passes)):
         names, sets, expansion = list(first.names), [first], {}
@@ -189,7 +226,7 @@ def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet, dict] | N
             shifts[e][g] += v
     if first.series is not None:  # with series (time-domain adequacy) when ``first`` has them
         model = assemble(model.names, *sets)
-    return model, expansion
+    return model, expansion, searches
 
 
 def _ttl_vector(values: dict) -> np.ndarray:

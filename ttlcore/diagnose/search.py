@@ -21,20 +21,26 @@ column:
   grid around the best, golden section to 0.05 s, the profile's secondary maxima one to
   four light travel times away;
 - the time offsets of the shifted-witness effects ``timing-offset`` and ``ltt-error``
-  (:func:`offset_search`): a shift is a phase of the whitened spectra, a grid of spacing
-  ``1 / (8 f_max)`` over ``+-shift_span`` and Brent's method, groups in turn;
+  (declared ``offset.<group>``, one per group; :func:`offset_search`): a shift is a phase
+  of the whitened spectra, a grid of spacing ``1 / (8 f_max)`` over ``+-shift_span`` and
+  Brent's method, groups in turn, the given offsets held; each group's interval from the
+  curvature of its profile (the others held), the marginal evidence by the Laplace rule
+  below.  They are searched where a model's columns are built
+  (:func:`ttlcore.diagnose.fitting.expand_linearised`: they need the fitted linear
+  coefficients), not before the fit (``Effect.unresolved()`` leaves them out);
 - the period of a ``vary=cycle`` witness effect: the unmodulated witness's TDI (once)
   times the modulation at each point, the estimate scored with the exact columns;
 - anything else (a plugin whose columns change with the parameter, a cycle on a filtered
   coupling): the columns built at each point - correct but slower, a coarser grid.
 
-Then (filters and generic): a 1-sigma interval from the curvature of the profile
+Then (filters, generic and offsets): a 1-sigma interval from the curvature of the profile
 log-likelihood ``l = delta_chi2 / 2`` in the scaled parameters (relative for ``log``), and
 the evidence marginalised over the searched parameters under a uniform prior in the scaled
 parameters over the declared range (Laplace around the optimum:
 ``log B = log B(best) + d/2 log 2 pi + 1/2 log det Sigma - log V``), never above the
-evidence at the best point.  For the step time, the marginal is the grid average (uniform
-prior over the coarse grid).
+evidence at the best point; for the offsets ``Sigma`` is diagonal, each group's variance
+with the others held.  For the step time, the marginal is the grid average (uniform prior
+over the coarse grid).
 """
 
 from __future__ import annotations
@@ -56,13 +62,13 @@ from .columns import (
     base_column,
     concat,
     effect_columns,
-    eiv,
     eiv_products,
     eiv_weights,
     filtered_spectra,
     ttl_columns,
 )
 from .effects import (
+    OFFSET_OPTION,
     LinearTTL,
     Step,
     columns_tdi,
@@ -146,7 +152,8 @@ def _scaled(ranges, names):
 def search_ranges(data, effect) -> dict:
     """The declared ranges, frequencies (``f0``, ``fc``, names starting with ``f``) clipped
     to the diagnosis band widened by a third of an octave, periods (names starting with
-    ``period``) to twice the analysed span."""
+    ``period``) to twice the analysed span, the offsets of shifted-witness effects (names
+    starting with ``offset.``) to ``+-settings.shift_span``."""
     out = {}
     idx = np.flatnonzero(data.mask)
     span = (idx[-1] - idx[0]) / data.fs
@@ -155,6 +162,8 @@ def search_ranges(data, effect) -> dict:
             lo, hi = max(lo, data.f[0] / 1.26), min(hi, data.f[-1] * 1.26)
         if k.startswith("period"):
             hi = min(hi, 2 * span)
+        if k.startswith(OFFSET_OPTION):
+            lo, hi = max(lo, -float(data.settings.shift_span)), min(hi, float(data.settings.shift_span))
         if lo >= hi:
             raise ConfigError(f"effect {effect.name!r}: the range of {k} does not fit these data")
         out[k] = (float(lo), float(hi), scale)
@@ -310,9 +319,14 @@ def _modulated_evaluator(model: ModelFit, effect, effect_at):
 def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
     """Search the unset :attr:`~ttlcore.diagnose.effects.Effect.searched` options of
     ``effect`` against ``model`` (see the module docstring): the step time by
-    :func:`step_time_search`, filters and other parameters by a grid and local refinement.
+    :func:`step_time_search`, the open offsets of a shifted-witness effect
+    (:meth:`~ttlcore.diagnose.effects._Linearised.open_offsets`) by :func:`offset_search`
+    against the model's columns, filters and other parameters by a grid and local
+    refinement.
 
     Raises ConfigError when the data have no telemetry and the columns need DWS series."""
+    if hasattr(effect, "shifted_members"):
+        return offset_search(model, effect)
     names = effect.unresolved()
     if not names:
         raise ConfigError(f"effect {effect.name!r}: nothing to search")
@@ -619,8 +633,8 @@ def _step_correction(data, ts: float, base: list) -> tuple | None:
 # Time offsets of the shifted-witness effects
 # ---------------------------------------------------------------------------
 
-def offset_search(data, effect, columns: ColumnSet, span: float | None = None, passes: int = 4) -> SearchResult:
-    """Profile-likelihood search of the offsets of a shifted-witness effect.
+def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
+    """Profile-likelihood search of the open offsets of a shifted-witness effect.
 
     The exact model of ``timing-offset`` and ``ltt-error`` replaces the witnesses of the
     coefficients of group ``g`` (:meth:`~ttlcore.diagnose.effects._Linearised.shifted_members`) by
@@ -628,56 +642,80 @@ def offset_search(data, effect, columns: ColumnSet, span: float | None = None, p
     :attr:`~ttlcore.diagnose.effects._Linearised.d1_sign`).  A shift is the phase
     ``exp(2 pi i f s delta_g)`` of the whitened spectra (TDI commutes with it up to the
     arms' rate of change, ~1e-8; the segment taper changes by ``delta / T`` ~ 1e-4), so
-    the chi^2 profiled over the linear parameters ``theta`` of ``columns``,
+    the chi^2 profiled over the linear parameters ``theta`` of the model's columns,
 
-        Q(delta) = dd - b(delta)^T [N(delta) - E]^-1 b(delta),     chi2 = 2 Q,
+        Q(delta) = dd - b(delta)^T [N(delta) - E]^-1 b(delta),     chi2 = 2 Q / kappa,
 
-    is cheap to evaluate for many offsets.  Each group's offset is scanned on a grid of
-    spacing ``1 / (8 f_max)`` over ``[-span, span]`` with the other groups held, the best
+    is cheap to evaluate for many offsets.  Each open group's offset (option
+    ``offset.<group>`` unset, :meth:`~ttlcore.diagnose.effects._Linearised.open_offsets`) is
+    scanned on a grid of spacing ``1 / (8 f_max)`` over its range
+    (:func:`search_ranges`: ``+-settings.shift_span``) with the other groups held, the best
     point refined by bounded Brent minimisation; groups are visited in turn (coordinate
-    descent) until no offset moves by more than 1 ms, at most ``passes`` rounds.
+    descent) until no offset moves by more than 1 ms, at most ``passes`` rounds.  Groups
+    whose offset is given are held at it.
+
+    Then, per open group with the others held at their estimates (one group at a time: a
+    conditional interval, which the groups' weak correlation makes close to the marginal
+    one), the 1-sigma interval from the curvature of the profile at the optimum,
+    ``sigma^2 = kappa / Q''`` (a central difference with a step of about sigma); and the
+    evidence: at the optimum, ``log B = delta_chi2 / 2 - 1/2 [log det(N - E)(delta) - log
+    det(N - E)(0)]`` against the open offsets at zero (the shifted model has the same
+    linear parameters as the unshifted one, flat prior on them), marginalised over a
+    uniform prior on each open offset's range by Laplace's rule,
+    ``+ sum_g [1/2 log 2 pi + log sigma_g - log(high_g - low_g)]`` (the groups' profile
+    integrated on the grid where its curvature is not positive), never above the value at
+    the optimum.
 
     Parameters
     ----------
-    data : WhitenedData
+    model : ModelFit
+        The model without the effect; its columns must hold the shifted coefficients'
+        (its normal equations and errors-in-variables term are the unshifted ones).
     effect : ttlcore.diagnose.effects._Linearised
         ``timing-offset``, ``ltt-error`` or a plugin with the same interface.
-    columns : ColumnSet
-        Columns of the model without the effect; must hold the shifted coefficients'.
-    span : float, optional
-        Half-width [s] of the search (default ``settings.shift_span``).
 
     Returns
     -------
     SearchResult
-        ``estimates``: group -> offset [s] at the profile optimum; ``gains``: group ->
-        chi^2 gain (over ``kappa``) of its offset against zero, the others at their
-        optimum; ``theta``: column -> linear parameter at the optimum.
+        ``effect`` with the open offsets set to the estimates (6 significant digits);
+        ``estimates``, ``intervals``: option ``offset.<group>`` -> offset [s] at the profile
+        optimum, and its 1-sigma interval; ``gains``: option -> chi^2 gain (over ``kappa``)
+        of the group's offset against zero, the others at their optimum; ``delta_chi2``:
+        the joint gain of the open offsets against zero; ``theta``: column -> linear
+        parameter at the optimum.
+
+    Raises ConfigError when the effect has no open offset or the model lacks the columns.
     """
-    span = float(data.settings.shift_span if span is None else span)
+    data, columns = model.data, model.columns
+    option = {g: f"{OFFSET_OPTION}{g}" for g in effect.shifted_members()}
+    open_groups = effect.open_offsets()
+    if not open_groups:
+        raise ConfigError(f"effect {effect.name!r}: every offset is given; nothing to search")
+    ranges = search_ranges(data, effect)
     names = list(columns.names)
     members = {g: [names.index(n) for n in mem] for g, mem in effect.shifted_members().items()
                if all(n in names for n in mem)}
+    held = {g: v for g, v in effect.fixed_offsets().items() if g in members}
+    searched = [g for g in open_groups if g in members]
+    if not searched:
+        raise ConfigError(f"effect {effect.name!r}: the model lacks the linear-ttl columns its offsets shift")
     P = len(names)
     X = columns.w  # (S, m, 3, P)
     S, m = X.shape[:2]
     X = np.ascontiguousarray(X.transpose(1, 0, 2, 3)).reshape(m, S * 3, P)
     d = np.ascontiguousarray(data.wd.transpose(1, 0, 2)).reshape(m, S * 3)
     w = 2 * np.pi * data.f * float(effect.d1_sign)  # phase [rad] per second of offset
-    E = eiv(data, columns).sum(axis=0)
+    E = model.eiv_term.sum(axis=0)
     dd = float(data.dd.sum())
-    delta = {g: 0.0 for g in members}
+    delta = {g: held.get(g, 0.0) for g in members}
     step = 1.0 / (8.0 * data.f[-1])
-    grid = np.arange(-span, span + 0.5 * step, step)
+    grids = {g: np.arange(ranges[option[g]][0], ranges[option[g]][1] + 0.5 * step, step) for g in searched}
     n_eval = 0
     # a shift is a phase per bin and column: the normal equations at any offsets are
     # phase-weighted sums over bins of the products of each group's columns with all the
-    # columns and the data, taken once here (the unshifted products: the normal equations
-    # at zero offsets)
-    flat = X.reshape(-1, P)
-    N0 = (flat.conj().T @ flat).real
-    b0 = (flat.conj().T @ d.reshape(-1)).real
-    del flat
+    # columns and the data, taken once here; at zero offsets they are the model's
+    N0 = model.normal[0].sum(axis=(0, 1))
+    b0 = model.normal[1].sum(axis=(0, 1))
     QX, Qd = {}, {}
     for g, J in members.items():
         XJh = np.ascontiguousarray(np.swapaxes(X[:, :, J], 1, 2).conj())  # (m, |J|, S 3)
@@ -708,14 +746,18 @@ def offset_search(data, effect, columns: ColumnSet, span: float | None = None, p
             b[J] = (T[:, i + 1].conj() @ Qd[h]).real
         return N, b
 
+    def columns_at(offsets):
+        """Per column, the offset [s] of its group in ``offsets`` (0 for unshifted columns)."""
+        col = np.zeros(P)
+        for h, idx in members.items():
+            col[idx] = offsets[h]
+        return col
+
     def profile(g):
         """Q(delta_g) on an array of offsets, the other groups at ``delta``."""
         J = members[g]
         R = [i for i in range(P) if i not in J]
-        col = np.zeros(P)
-        for h, idx in members.items():
-            if h != g:
-                col[idx] = delta[h]
+        col = columns_at({h: (0.0 if h == g else delta[h]) for h in members})
         N, b = normal_at(col)
         N = N - E
         ph = phases(col)[:, cls[R]]  # exp(i w c_R)
@@ -741,13 +783,16 @@ def offset_search(data, effect, columns: ColumnSet, span: float | None = None, p
         return q
 
     gain, theta, moved = {}, None, np.inf
+    profiles: dict = {}
     for _ in range(passes):
         moved = 0.0
-        for g in members:
+        for g in searched:
             q = profile(g)
-            Qg, _ = q(grid)
-            x0 = float(grid[int(np.argmin(Qg))])
-            res = minimize_scalar(lambda x: float(q(x)[0][0]), bounds=(x0 - step, x0 + step),
+            Qg, _ = q(grids[g])
+            profiles[g] = Qg
+            x0 = float(grids[g][int(np.argmin(Qg))])
+            lo, hi = ranges[option[g]][:2]
+            res = minimize_scalar(lambda x: float(q(x)[0][0]), bounds=(max(x0 - step, lo), min(x0 + step, hi)),
                                   method="bounded", options={"xatol": 1e-4})
             best = float(res.x) if res.fun <= Qg.min() else x0
             moved = max(moved, abs(best - delta[g]))
@@ -756,13 +801,53 @@ def offset_search(data, effect, columns: ColumnSet, span: float | None = None, p
             gain[g], theta = 2.0 * (q0 - q1) / data.kappa, th[1]
         if moved < 1e-3:  # the gains of this pass hold: no other offset moved since
             break
-    if moved >= 1e-3:
-        for g in members:
-            (q0, q1), th = profile(g)(np.array([0.0, delta[g]]))
+    # the gains (if the last pass moved an offset) and the curvature, each group with the
+    # others at their estimates
+    sigma = {}
+    for g in searched:
+        q = profile(g)
+        if moved >= 1e-3:
+            (q0, q1), th = q(np.array([0.0, delta[g]]))
             gain[g], theta = 2.0 * (q0 - q1) / data.kappa, th[1]
-    if theta is None:
-        theta = np.linalg.solve(gram(data, columns, columns).sum(axis=(0, 1)) - E, rhs(data, columns).sum(axis=(0, 1)))
+        sigma[g] = _offset_sigma(q, delta[g], data.kappa, step)
+    # the joint gain and the evidence against the open offsets at zero (the given ones held)
+    logdet, q_at = [], []
+    for offsets in ({g: held.get(g, 0.0) for g in members}, delta):
+        N, b = normal_at(columns_at(offsets))
+        N = N - E
+        q_at.append(dd - b @ np.linalg.solve(N, b))
+        logdet.append(np.linalg.slogdet(N)[1])
+    dchi2 = 2.0 * (q_at[0] - q_at[1]) / data.kappa
+    lbf_best = 0.5 * dchi2 - 0.5 * (logdet[1] - logdet[0])
+    marg = lbf_best
+    for g in searched:
+        lo, hi = ranges[option[g]][:2]
+        if np.isfinite(sigma[g]):
+            marg += 0.5 * math.log(2 * math.pi) + math.log(sigma[g]) - math.log(hi - lo)
+        else:  # a flat or multimodal profile: its likelihood averaged over the grid
+            marg += float(special.logsumexp(-(profiles[g] - profiles[g].min()) / data.kappa) - math.log(profiles[g].size))
+    marg = float(min(marg, lbf_best))
     log.debug("offset search %s: %s", effect.name, {g: round(v, 4) for g, v in delta.items()})
-    total = float(sum(gain.values()))
-    return SearchResult(effect, dict(delta), {}, total, float("nan"), float("nan"), n_eval, gains=dict(gain),
-                        theta=dict(zip(names, theta)))
+    est = {option[g]: float(delta[g]) for g in searched}
+    found = effect.with_options(**{k: float(f"{v:.6g}") for k, v in est.items()})
+    intervals = {option[g]: (delta[g] - sigma[g], delta[g] + sigma[g]) for g in searched if np.isfinite(sigma[g])}
+    return SearchResult(found, est, intervals, float(dchi2), float(lbf_best), marg, n_eval,
+                        gains={option[g]: float(v) for g, v in gain.items()}, theta=dict(zip(names, theta)))
+
+
+def _offset_sigma(q, x0: float, kappa: float, grid_step: float) -> float:
+    """One sigma [s] of an offset from the curvature of the profile ``q`` (``Q``, chi^2 =
+    ``2 Q / kappa``) at its optimum ``x0``: ``sigma^2 = kappa / Q''``, by a central
+    difference with a step of a hundredth of the grid's, then again with a step of the
+    sigma found (the profile is quadratic over a sigma; rounding in ``Q`` matters for much
+    smaller steps).  NaN where the curvature is not positive (a flat profile)."""
+    h = grid_step / 100.0
+    sigma = float("nan")
+    for _ in range(2):
+        (qm, q0, qp), _ = q(np.array([x0 - h, x0, x0 + h]))
+        curv = (qp - 2.0 * q0 + qm) / h ** 2
+        if not curv > 0:
+            return float("nan")
+        sigma = math.sqrt(kappa / curv)
+        h = min(max(sigma, 1e-7), grid_step)
+    return sigma
