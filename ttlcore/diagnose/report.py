@@ -111,6 +111,18 @@ def recommendation(report: dict, effects) -> dict | None:
 
 
 
+def _offset_text(group: str, value: float, intervals: dict) -> str:
+    """``"sc1 +0.35025 +- 0.00088 s"``: a candidate's offset [s] with the half-width of its
+    searched interval (``offset.<group>``), to the sigma's second digit; without an
+    interval, three significant digits."""
+    lo_hi = intervals.get(f"offset.{group}")
+    if not lo_hi:
+        return f"{group} {value:+.3g} s"
+    sigma = 0.5 * (lo_hi[1] - lo_hi[0])
+    digits = max(0, 1 - int(np.floor(np.log10(sigma)))) if sigma > 0 else 3
+    return f"{group} {value:+.{digits}f} +- {sigma:.2g} s"
+
+
 def strip_internals(report: dict) -> dict:
     """The report without its in-memory objects (what ``--json`` writes)."""
     return {k: v for k, v in report.items() if not k.startswith("_")}
@@ -153,7 +165,8 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
         extra = f", t_step {where['t_step'] / 3600:.2f} h" if "t_step" in where else ""
         if "offsets" in where:
             top = sorted(where["offsets"].items(), key=lambda kv: -abs(kv[1]))[:3]
-            extra += ", offsets " + ", ".join(f"{k.rsplit('.', 1)[-1]} {v:+.3g} s" for k, v in top)
+            intervals = c.get("searched", {}).get("offset_search", {}).get("intervals", {})
+            extra += ", offsets " + ", ".join(_offset_text(k[len(c["effect"]) + 1:], v, intervals) for k, v in top)
         if "search" in c.get("searched", {}):
             est = c["searched"]["search"]["estimates"]
             extra += ", " + ", ".join(f"{k} {v:.4g}" for k, v in est.items())
