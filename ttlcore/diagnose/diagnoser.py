@@ -133,9 +133,11 @@ def _with_noise_levels(model: ModelFit) -> ModelFit:
     """``model`` refitted with the secondary-noise levels profiled (``noise_model="fitted"``).
 
     The model's searched parameters stay at the estimates the search found (``model.effects``
-    holds the effects at those estimates), and the search results are carried over."""
+    holds the effects at those estimates), and the search results are carried over; the
+    offsets of shifted-witness effects, searched again with each fit's columns, are the
+    refit's."""
     _, fitted = profile_noise_model(model.data, list(model.effects), first=model)
-    return replace(fitted, searches=dict(model.searches))
+    return replace(fitted, searches={**model.searches, **fitted.searches})
 
 
 def refit(source, effects=("linear-ttl",), *, settings: DiagnoseSettings | None = None, effect_modules=(),

@@ -141,10 +141,11 @@ def model_columns(data, effects, coefficients=None, keep_series: bool = True) ->
             if columns is not None:
                 return data, columns, expansion, searches
             return data, assemble(names, *sets, series=keep_series), {}, searches
-        given = [f"{e.name}:{OFFSET_OPTION}{g}" for e in lin for g in e.fixed_offsets()]
+        given = [f"{e.name}:{OFFSET_OPTION}{g}" for e in lin for g, v in e.fixed_offsets().items() if v != 0.0]
         if given:
-            raise ConfigError(f"offsets given ({', '.join(given)}) but this model is not expanded at offsets "
-                              f"({'expansion_passes is 0' if not data.settings.expansion_passes else 'it lacks some of the 24 linear-ttl coefficients'})")
+            why = ("expansion_passes is 0" if not data.settings.expansion_passes
+                   else "it lacks some of the 24 linear-ttl coefficients")
+            raise ConfigError(f"offsets given ({', '.join(given)}) but this model is not expanded at offsets ({why})")
     if not names:
         return data, empty_set(data.noise_key), expansion, {}
     return data, assemble(names, *sets, series=keep_series), expansion, {}
@@ -206,8 +207,16 @@ def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet | None, di
                 shifts[e.name][g] = found.estimates[k]
     if not moved_names:
         return None, {}, searches
-    if C is None:  # every offset given: the linear coefficients of the unshifted model to start
-        C = _ttl_vector(normal_solution(data, first)[0])
+    if C is None:
+        # every offset given: the linear coefficients at the given offsets (the model with
+        # the shifted TTL columns, which do not depend on C, and without the d1 columns);
+        # those of the unshifted model are biased by large offsets and misdirect the d1 steps
+        names, sets = list(first.names), [first]
+        for e in lin:
+            repl, cs, _ = shifted_columns(data, e, np.zeros(len(COEFFICIENT_NAMES)), shifts[e.name])
+            names = [repl.get(n, n) for n in names]
+            sets.append(cs)
+        C = _ttl_vector(normal_solution(data, assemble(names, *sets, series=False))[0])
     model, expansion = first, {}
     for _ in range(max(1, data.settings.expansion_passes)):
         names, sets, expansion = list(first.names), [first], {}

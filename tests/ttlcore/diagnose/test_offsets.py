@@ -149,6 +149,9 @@ def test_given_offset_is_held_and_is_the_expansion_point(late3h):
     # every offset given: no search at all
     held = fit_model(dg, ["linear-ttl", "timing-offset:offset.sc1=0.35,offset.sc2=0,offset.sc3=0"])
     assert held.searches == {} and held.offsets()["timing-offset.sc1"][0] == pytest.approx(value, abs=0.1 * sigma)
+    # two given offsets that shift the same coefficients (SC 2's tx witnesses, link 12's)
+    with pytest.raises(ConfigError, match="ltt-error:offset.12: another given offset"):
+        fit_model(dg, ["linear-ttl", "timing-offset:offset.sc2=0.1", "ltt-error:offset.12=0.1"])
     # a given offset the model cannot be expanded at is an error, not ignored
     taylor_only = replace(dg, settings=replace(dg.settings, expansion_passes=0))
     with pytest.raises(ConfigError, match="timing-offset:offset.sc1.*expansion_passes is 0"):
