@@ -20,9 +20,13 @@ import pytest
 from ttlcore.cli.diagnose import split_effects
 from ttlcore.cli.main import main
 from ttlcore.conventions import COEFFICIENT_NAMES
-from ttlcore.diagnose.candidates import candidates
 from ttlcore.diagnose.diagnoser import diagnose, text_report
-from ttlcore.diagnose.effects import _Linearised, injection_from_spec, make_effects, parse_effect_spec
+from ttlcore.diagnose.effects import (
+    _Linearised,
+    injection_from_spec,
+    make_effects,
+    parse_effect_spec,
+)
 from ttlcore.diagnose.fitting import fit_model
 from ttlcore.diagnose.report import model_json, recommendation
 from ttlcore.diagnose.search import profile_search, search_ranges
@@ -38,7 +42,7 @@ class _Shifted(_Linearised):
     """A plugin with the shifted-witness interface whose parameters do not list its offsets."""
 
     name = "shifted-12"
-    parameters = {}
+    parameters: dict = {}
 
     def _groups(self):
         return {"a": [n for n in COEFFICIENT_NAMES if n.startswith("12.")]}
@@ -159,7 +163,7 @@ def test_given_offset_is_held_and_is_the_expansion_point(late3h):
 
 
 def test_candidate_with_offsets_runs_exactly_as_printed(late3h, tmp_path):
-    tm, dg, fit = late3h
+    tm, _, fit = late3h
     path = tmp_path / "late.h5"
     write_telemetry(path, tm)
     rep = diagnose(tm, witnesses=False, candidates=["timing-offset", "ltt-error"])
@@ -189,6 +193,6 @@ def test_candidate_with_offsets_runs_exactly_as_printed(late3h, tmp_path):
     several = next(c for c in rep["candidates"] if c["cli_spec"].count("offset.") > 1)
     rec = recommendation({"candidates": [several], "adequacy": {"fails": True}}, make_effects(["linear-ttl"]))
     assert rec["option"].startswith('--effects "linear-ttl,')
-    flag, value_text = shlex.split(rec["option"])
+    _, value_text = shlex.split(rec["option"])
     parsed = make_effects(split_effects(value_text))[1]
     assert parsed.cli_spec() == several["cli_spec"] and len(parsed.fixed_offsets()) > 1
