@@ -123,8 +123,8 @@ def model_columns(data, effects, coefficients=None, keep_series: bool = True) ->
                 raise ConfigError("linearised effects (timing-offset, ltt-error) need all 24 linear-ttl coefficients "
                                   "in the model")
         first = list(names)
-        for e in lin:
-            cs = effect_columns(data, e, C, keep_series=True)
+        for e in lin:  # their series (~400 MB a day through the derivatives) only when kept
+            cs = effect_columns(data, e, C, keep_series=keep_series)
             sets.append(cs)
             names += [n for n in cs.names if n not in names]
         if data.settings.expansion_passes and len(data.ttl_names) == 24:
