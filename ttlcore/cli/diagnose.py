@@ -60,6 +60,9 @@ def add_parser(sub) -> None:
     p.add_argument("--no-witnesses", action="store_true", help="skip the witness search")
     p.add_argument("--json", required=True, metavar="OUT", help="JSON report to write")
     p.add_argument("--out", default=None, metavar="DIR", help="directory for the figures (created)")
+    p.add_argument("--workers", type=int, default=None, metavar="N",
+                   help="threads scoring the candidates side by side (default: one per core, at most 4; "
+                        "the report does not depend on it)")
     p.add_argument("--quiet", action="store_true", help="no progress messages")
     p.set_defaults(func=run)
 
@@ -106,6 +109,10 @@ def run(args) -> int:
         if not (0 <= args.tolerance < 1):
             raise TTLError(f"--tolerance: expected a fraction in [0, 1), got {args.tolerance}")
         s.tolerance = args.tolerance
+    if args.workers is not None:
+        if args.workers < 1:
+            raise TTLError(f"--workers: expected at least 1, got {args.workers}")
+        s.workers = args.workers
     with status_line("ttl diagnose", args.quiet) as say:  # in place on a terminal
         say(f"reading {data}")
         tm = read_telemetry(data)

@@ -16,10 +16,12 @@ from __future__ import annotations
 import logging
 import math
 import time
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
 from scipy import stats
+from threadpoolctl import threadpool_limits
 
 from ..errors import ConfigError
 from .columns import effect_columns
@@ -32,39 +34,106 @@ from .search import profile_search
 log = logging.getLogger(__name__)
 
 
-def candidates(model: ModelFit, names=None, extra=()) -> list[dict]:
+def candidates(model: ModelFit, names=None, extra=(), workers: int = 1) -> list[dict]:
     """Try every available effect not in ``model`` and the effect instances ``extra``
     (witness effects and frequency-dependent couplings of the top witnesses,
     :func:`ttlcore.diagnose.witnesses.witness_candidates`); ranked list (best first).
     Effects that need options to mean anything (``witness``, ``fd-coupling``) are tried
-    through ``extra`` only."""
+    through ``extra`` only.  ``workers`` threads score candidates side by side
+    (:class:`CandidatePool`; the result does not depend on it)."""
+    with CandidatePool(model, workers) as pool:
+        pool.submit(named_candidates(model, names))
+        pool.submit(extra)
+        return pool.ranked()
+
+
+def named_candidates(model: ModelFit, names=None) -> list:
+    """The named effects (registry names, or ``names``) that could be added to ``model``,
+    as effect instances with their default options; the costly searches first (the step
+    time, the offsets, any searched parameter), so that parallel scoring ends together."""
     data = model.data
-    s = data.settings
     in_model = {e.name for e in model.effects}
     todo = [n for n in (names or data.registry) if n not in in_model and n not in ("witness", "fd-coupling")]
-    todo += list(extra)
-    C = model.ttl_coefficients()
-    # the excess the noise model (with its tolerance) cannot explain
-    excess = float(np.sum(np.maximum(model.bands.chi2 - (1 + s.tolerance) * model.bands.dof, 0.0))) / data.kappa
-    n_data = float(model.dof_band.sum())
-    out = []
-    in_specs = {e.spec() for e in model.effects}
-    for name in todo:
-        if isinstance(name, Effect):
-            effect, cls, name = name, type(name), name.name
-            if effect.spec() in in_specs:
+    effects = [data.registry[n]() for n in todo]
+    return sorted(effects, key=lambda e: not (e.unresolved() or hasattr(e, "shifted_members")))
+
+
+class CandidatePool:
+    """Candidates scored against one model, ``workers`` at a time (threads).
+
+    Scoring only reads the model and the data (values: their arrays are read-only), and
+    the expensive parts are numpy, FFT and BLAS calls that release the GIL, so threads
+    share the data instead of copying it.  With more than one worker, BLAS runs one
+    thread per call while the pool is open (threadpoolctl): two threads each asking
+    OpenBLAS for every core spin against each other (docs/diagnostics.md, "Measured").
+
+    Use as a context manager: :meth:`submit` effects (names or instances) as they become
+    known - the witness candidates after the witness search, while the named ones are
+    being scored - then :meth:`ranked`.
+    """
+
+    def __init__(self, model: ModelFit, workers: int = 1):
+        self.model = model
+        data = model.data
+        s = data.settings
+        self.C = model.ttl_coefficients()
+        # the excess the noise model (with its tolerance) cannot explain
+        self.excess = float(np.sum(np.maximum(model.bands.chi2 - (1 + s.tolerance) * model.bands.dof, 0.0))) / data.kappa
+        self.n_data = float(model.dof_band.sum())
+        self.workers = max(1, int(workers))
+        self._seen = {e.spec() for e in model.effects}
+        self._futures: list = []
+        self._executor = None
+        self._limits = None
+
+    def __enter__(self):
+        if self.workers > 1:
+            self._limits = threadpool_limits(limits=1, user_api="blas")
+            self._executor = ThreadPoolExecutor(self.workers, thread_name_prefix="candidate")
+        return self
+
+    def __exit__(self, *exc):
+        if self._executor is not None:
+            self._executor.shutdown(wait=True, cancel_futures=exc[0] is not None)
+        if self._limits is not None:
+            self._limits.restore_original_limits()
+        return False
+
+    def submit(self, effects) -> None:
+        """Queue effects (registry names or :class:`~ttlcore.diagnose.effects.Effect`
+        instances) for scoring; one already in the model or queued is skipped."""
+        registry = self.model.data.registry
+        for effect in effects:
+            if not isinstance(effect, Effect):
+                effect = registry[effect]()
+            if effect.spec() in self._seen:
                 continue
-        else:
-            cls = data.registry[name]
-            effect = cls()
+            self._seen.add(effect.spec())
+            if self._executor is None:
+                self._futures.append(_Done(self.score(effect)))
+            else:
+                self._futures.append(self._executor.submit(self.score, effect))
+
+    def ranked(self) -> list[dict]:
+        """Every submitted candidate that could be scored, best first (significant ones
+        first, then by log Bayes factor)."""
+        out = [r for r in (f.result() for f in self._futures) if r is not None]
+        out.sort(key=lambda c: (not c["significant"], -np.nan_to_num(c["log_bayes_factor"], nan=-np.inf)))
+        return out
+
+    def score(self, effect) -> dict | None:
+        """One candidate's entry of the ranking (None when it cannot be scored here)."""
+        model, data = self.model, self.model.data
+        s = data.settings
+        cls, name = type(effect), effect.name
         t_start = time.monotonic()
         try:
-            ev, extra_json = score(model, effect, C)
+            ev, extra_json = score(model, effect, self.C)
         except ConfigError as exc:
             log.info("candidate %s skipped: %s", name, exc)
-            continue
+            return None
         n_searched = len(extra_json.get("search", {}).get("estimates", {})) + ("t_step" in extra_json)
-        ev = replace(ev, delta_bic=ev.delta_chi2 - (ev.n_parameters + n_searched) * math.log(n_data))
+        ev = replace(ev, delta_bic=ev.delta_chi2 - (ev.n_parameters + n_searched) * math.log(self.n_data))
         k = ev.n_parameters
         # a searched nonlinear parameter counts as one more degree of freedom (a rough
         # allowance for the look-elsewhere effect of the search; the evidence is marginal)
@@ -72,7 +141,7 @@ def candidates(model: ModelFit, names=None, extra=()) -> list[dict]:
         p = float(stats.chi2.sf(max(ev.delta_chi2, 0.0), k_eff))
         significant = bool(p < s.alpha and ev.log_bayes_factor > s.log_bf_threshold)
         found = extra_json.pop("_effect", effect)
-        out.append({
+        return {
             "effect": name,
             "spec": found.spec(),
             "cli_spec": found.cli_spec(),
@@ -83,15 +152,23 @@ def candidates(model: ModelFit, names=None, extra=()) -> list[dict]:
             "p_value": p,
             "log_bayes_factor": float(ev.log_bayes_factor),
             "delta_bic": float(ev.delta_bic),
-            "explained_fraction": float(min(1.0, max(ev.delta_chi2, 0.0) / excess)) if excess > 0 else 0.0,
+            "explained_fraction": float(min(1.0, max(ev.delta_chi2, 0.0) / self.excess)) if self.excess > 0 else 0.0,
             "significant": significant,
             "where": where(data, ev, extra_json),
             "parameters": top_parameters(ev),
             "seconds": round(time.monotonic() - t_start, 2),
             **({"searched": extra_json} if extra_json else {}),
-        })
-    out.sort(key=lambda c: (not c["significant"], -np.nan_to_num(c["log_bayes_factor"], nan=-np.inf)))
-    return out
+        }
+
+
+class _Done:
+    """A result already computed (the serial path), with the interface of a future."""
+
+    def __init__(self, value):
+        self._value = value
+
+    def result(self):
+        return self._value
 
 
 def score(model: ModelFit, effect, C) -> tuple[Evidence, dict]:

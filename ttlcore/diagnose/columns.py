@@ -172,7 +172,10 @@ class ColumnStore:
     """Cache of column sets (and readout-noise responses) of one diagnosis.
 
     Keys are immutable descriptions of what was built (see the module docstring); an entry
-    whitened under another noise model is transformed to the one asked for, and replaced."""
+    whitened under another noise model is transformed to the one asked for, and replaced.
+    Candidates scored in threads share a store: every method reads an entry once and
+    returns what it read or built, so a concurrent put or eviction costs at most a
+    recomputation, never a wrong or missing entry."""
 
     def __init__(self):
         self._sets: dict = {}
@@ -206,13 +209,14 @@ class ColumnStore:
         """Whitened A, E, T response (m, 3) to the DWS readout noise of a witness ``-DWS/c``
         placed on ``link`` after ``extra`` delays, times the noise's ASD (velocity)."""
         key = (data.noise_key, link, tuple(extra))
-        if key not in self._eiv:
+        r = self._eiv.get(key)  # one lookup: candidates scored in threads share the store
+        if r is None:
             if len(self._eiv) > 64:
                 self._eiv.clear()
             h = np.stack([link_responses(c, data.f, data.ltt_mean, tuple(extra))[LINKS.index(link)] for c in MICHELSON])
             T = (AET_MATRIX @ h).T * (-1.0 / SPEED_OF_LIGHT)  # (m, 3)
-            self._eiv[key] = np.matmul(data.Lh, T[..., None])[..., 0] * (2 * np.pi * data.f * data.dws_asd)[:, None]
-        return self._eiv[key]
+            r = self._eiv[key] = np.matmul(data.Lh, T[..., None])[..., 0] * (2 * np.pi * data.f * data.dws_asd)[:, None]
+        return r
 
 
 # ---------------------------------------------------------------------------
@@ -242,30 +246,33 @@ def regressor_columns(data, R: np.ndarray) -> ColumnSet:
                          data.regressor_series)
 
 
-def derivative_columns(data) -> ColumnSet:
-    """Whitened spectra and decimated series of the first and second time derivatives of
-    the TDI regressors (columns ``d1:<name>``, ``d2:<name>``), computed once."""
+def derivative_columns(data, series: bool = False) -> ColumnSet:
+    """Whitened spectra of the first and second time derivatives of the TDI regressors
+    (columns ``d1:<name>``, ``d2:<name>``), computed once; with ``series`` their decimated
+    series too (a day's 48 columns: ~400 MB, so kept only when a model asks for them)."""
     key = ("derivatives",)
     cs = data.store.get(key, data)
-    if cs is not None:
+    if cs is not None and (not series or cs.series is not None):
         return cs
     td = data.td_in
     k = len(td.names)
     names = [f"d{order}:{n}" for order in (1, 2) for n in td.names]
     # filled order by order, no concatenation (a day's 48 columns: ~160 MB of spectra)
     x = np.empty((2 * k, len(data.starts), data.f.size, 6))
-    series = np.empty((3, 2 * k, data.mask.size))
+    kept = np.empty((3, 2 * k, data.mask.size)) if series else None
     for o, order in enumerate((1, 2)):
         s = np.concatenate([data.decimate(derivative(td.regressors[:, j0:j0 + 8], td.fs, order), is_aet=True)
                             for j0 in range(0, k, 8)], axis=1)
-        series[:, o * k:(o + 1) * k] = s
+        if series:
+            kept[:, o * k:(o + 1) * k] = s
         w = data.whiten(data.spectra(s))
+        del s
         xc = x.view(complex)  # (2k, S, m, 3)
         for j in range(k):
             xc[o * k + j] = w[..., j]
         del w
     cs = ColumnSet(tuple(names), x, data.noise_key, ("",) * (2 * k), (1.0,) * (2 * k), ((),) * (2 * k),
-                   (None,) * (2 * k), series)
+                   (None,) * (2 * k), kept)
     return data.store.put(key, data, cs)
 
 
@@ -291,19 +298,21 @@ def effect_columns(data, effect, coefficients=None, keep_series: bool = False, e
             raise ConfigError(f"effect {effect.name!r} needs the linear coefficients")
         key = ("tdi_terms", effect.name, _options_key(effect), tuple(np.round(coefficients, 15)))
         cs = data.store.get(key, data)
-        if cs is None:
-            d = derivative_columns(data)
+        if cs is None or (keep_series and cs.series is None):
+            d = derivative_columns(data, series=keep_series)
             names, x, series, units, priors = [], [], [], [], []
             for cname, unit, prior, terms in effect.tdi_terms(coefficients):
                 x.append(np.ascontiguousarray(sum(f * d.column(f"d{o}:{n}") for n, o, f in terms)))
-                series.append(sum(f * d.series[:, d.names.index(f"d{o}:{n}")] for n, o, f in terms))
+                if keep_series:
+                    series.append(sum(f * d.series[:, d.names.index(f"d{o}:{n}")] for n, o, f in terms))
                 names.append(cname)
                 units.append(unit)
                 priors.append(prior)
             k = len(names)
             cs = data.store.put(key, data, ColumnSet(tuple(names), np.stack(x).view(np.float64), data.noise_key,
                                                      tuple(units), tuple(priors), ((),) * k, (None,) * k,
-                                                     np.stack(series, axis=1)), family=key[:3])
+                                                     np.stack(series, axis=1) if keep_series else None),
+                                 family=key[:3])
         return cs
     if not exact and effect.name in ("drift", "step") and all(
             f"{m}.{a}.{sd}" in names_in for m in effect.mosas for a in effect.angles for sd in effect.sides):

@@ -29,7 +29,7 @@ import numpy as np
 
 from ..errors import ConfigError
 from ..tdi.data import TDIData
-from .candidates import candidates as rank_candidates
+from .candidates import CandidatePool, named_candidates
 from .effects import make_effects
 from .evidence import change
 from .fitting import fit_model
@@ -108,17 +108,19 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
         }
         lap("before")
     use_witnesses = s.witnesses if witnesses is None else witnesses
-    extra = []
-    if use_witnesses:
-
-        say("witness search")
-        report["witnesses"] = witness_search(tm, model.data, model, s.top_witnesses)
-        lap("witnesses")
-        extra = witness_candidates(report["witnesses"], s.witness_candidates, effect_modules)
-    else:
-        report["witnesses"] = None
-    say("candidates")
-    report["candidates"] = rank_candidates(model, candidates, extra)
+    # the named candidates are scored (by the pool's workers) while the witness search
+    # runs here; the witness candidates join them when it ends
+    with CandidatePool(model, s.n_workers()) as pool:
+        pool.submit(named_candidates(model, candidates))
+        if use_witnesses:
+            say("witness search")
+            report["witnesses"] = witness_search(tm, model.data, model, s.top_witnesses)
+            lap("witnesses")
+            pool.submit(witness_candidates(report["witnesses"], s.witness_candidates, effect_modules))
+        else:
+            report["witnesses"] = None
+        say("candidates")
+        report["candidates"] = pool.ranked()
     lap("candidates")
     report["recommendation"] = recommendation(report, eff)
     report["settings"] = {"band": list(map(float, s.band)), "n_bands": s.n_bands, "segment_duration": model.data.seg_duration,

@@ -130,9 +130,9 @@ def model_columns(data, effects, coefficients=None, keep_series: bool = True) ->
                 raise ConfigError("linearised effects (timing-offset, ltt-error) need all 24 linear-ttl coefficients "
                                   "in the model")
         first = list(names)
-        for e in lin:
+        for e in lin:  # their series (~400 MB a day through the derivatives) only when kept
             # the Taylor columns at zero do not depend on the given offsets (one cache entry)
-            cs = effect_columns(data, e.without_offsets(), C, keep_series=True)
+            cs = effect_columns(data, e.without_offsets(), C, keep_series=keep_series)
             sets.append(cs)
             names += [n for n in cs.names if n not in names]
         if data.settings.expansion_passes and len(data.ttl_names) == 24:

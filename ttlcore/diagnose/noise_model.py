@@ -206,10 +206,11 @@ class NoiseModel:
         """:func:`basis_csds` on ``f`` (cached for the last grid)."""
         f = np.asarray(f, dtype=float)
         key = (f.size, float(f[0]), float(f[-1])) if f.size else (0,)
-        if key not in self._cache:
+        b = self._cache.get(key)  # one lookup: safe when threads share the model
+        if b is None:
             self._cache.clear()
-            self._cache[key] = basis_csds(f, self.ltt_mean, self.names)
-        return self._cache[key]
+            b = self._cache[key] = basis_csds(f, self.ltt_mean, self.names)
+        return b
 
     def csd(self, f) -> np.ndarray:
         """Secondary-noise CSD (m, 3, 3) of A, E, T [1/Hz] (without the DWS term)."""

@@ -148,7 +148,8 @@ def process_day(job: DayJob) -> dict:
     del res  # the TDI of a day is hundreds of MB: free it before the diagnosis
     diagnosis = None
     if job.diagnosis:
-        ds = DiagnoseSettings(band=tuple(s.band))
+        # one candidate thread: the cluster's workers already run days side by side
+        ds = DiagnoseSettings(band=tuple(s.band), workers=1)
         if job.segment_duration is not None:
             ds.segment_duration = float(job.segment_duration)
         tm = read_telemetry(job.data)

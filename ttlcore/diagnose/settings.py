@@ -2,11 +2,19 @@
 
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 
+from ..errors import ConfigError
 from ..tdi.combinations import DEFAULT_DELAY_ORDER
 from ..tdi.interpolation import DEFAULT_ORDER
 from .adequacy import DEFAULT_ALPHA, DEFAULT_TOLERANCE, DIAGNOSIS_BAND
+
+#: at most this many candidate-scoring threads by default: each holds one candidate's
+#: temporaries (a search's products, a segment's spectra), and beyond a few the
+#: candidates' lengths, not the threads, set the time (the step-time search alone is a
+#: fifth of the total)
+MAX_WORKERS = 4
 
 
 @dataclass
@@ -41,6 +49,10 @@ class DiagnoseSettings:
         Run the witness search.
     dws_asd : float or None
         DWS readout noise [rad/sqrt(Hz)]; None: from the telemetry's configuration.
+    workers : int or None
+        Threads scoring the candidates side by side
+        (:class:`ttlcore.diagnose.candidates.CandidatePool`; the report does not depend on
+        it); None: one per core, at most :data:`MAX_WORKERS`.
     """
 
     band: tuple = DIAGNOSIS_BAND
@@ -71,3 +83,13 @@ class DiagnoseSettings:
     dws_asd: float | None = None
     order: int = DEFAULT_ORDER
     delay_order: int = DEFAULT_DELAY_ORDER
+    workers: int | None = None
+
+    def n_workers(self) -> int:
+        """The number of candidate-scoring threads: :attr:`workers`, or one per core (at
+        most :data:`MAX_WORKERS`)."""
+        if self.workers is not None:
+            if int(self.workers) < 1:
+                raise ConfigError(f"workers must be at least 1, not {self.workers}")
+            return int(self.workers)
+        return max(1, min(os.cpu_count() or 1, MAX_WORKERS))

@@ -10,8 +10,9 @@ the printed option exactly as printed (at most three steps, no user code).  Acce
 every band's chi^2/dof within the tolerance of the noise model (no band fails), max
 |C_fit - C_true| < 0.05 mm/rad and the RMS of the coefficient pulls below 1.5.
 
-The levels put the injected signal at about 3 to 10 times the secondary noise in ASD in
-its band (checked with the independent Welch estimate of ``diagnose_helpers``).
+The levels put the injected signal at 3 to 10 times the secondary noise in ASD in its
+strongest band (checked with the independent Welch estimate of ``diagnose_helpers``; a draw
+outside is rescaled to a random level of 3 to 8 and simulated again).
 """
 
 import json
@@ -94,13 +95,27 @@ def check_accepted(rep, max_error=MAX_ERROR):
     assert np.sqrt(np.mean((err / sig) ** 2)) < MAX_PULL_RMS
 
 
+def with_gain(spec: str, factor: float) -> str:
+    """``spec`` with its ``gain`` multiplied by ``factor`` (the injection is linear in it)."""
+    name, _, rest = spec.partition(":")
+    opts = [kv.split("=") for kv in rest.split(",")]
+    return name + ":" + ",".join(f"{k}={float(v) * factor:.4g}" if k == "gain" else f"{k}={v}" for k, v in opts)
+
+
 def run_blind(tmp_path, seed, duration, args=()):
     spec = blind_case(seed)
     path, truth = simulate_case(tmp_path, spec, duration, seed)
-    tr = read_truth(truth)
     name = spec.split(":")[0]
-    ratio = injected_asd_ratio(read_telemetry(path), tr.injections[name])
-    assert ratio.max() >= 3.0, (spec, np.round(ratio, 2))
+    ratio = injected_asd_ratio(read_telemetry(path), read_truth(truth).injections[name])
+    if not 3.0 <= ratio.max() <= 10.0:
+        # the generator's gains suit most draws; one outside the regime the acceptance is
+        # for (plainly there, not dominant) is rescaled to a random level of 3 to 8 in its
+        # strongest band and simulated again (same seed: the same noise)
+        level = 10 ** np.random.default_rng(1000 + seed).uniform(np.log10(3), np.log10(8))
+        spec = with_gain(spec, level / ratio.max())
+        path, truth = simulate_case(tmp_path, spec, duration, seed)
+        ratio = injected_asd_ratio(read_telemetry(path), read_truth(truth).injections[name])
+    assert 3.0 <= ratio.max() <= 10.0, (spec, np.round(ratio, 2))
     reports = follow_advice(path, truth, tmp_path, args=args)
     first = reports[0]
     assert first["adequacy"]["fails"], spec
