@@ -904,10 +904,13 @@ class FrequencyCoupling(_Placed):
                "D = 1 + x/q + x^2, x = i f/f0) or a first-order low- or high-pass path of unknown corner "
                "(filter=pole1: 1/(1+x), x/(1+x), x = i f/fc). Linear in the numerator coefficients; the poles "
                "(f0, q or fc) are searched by the diagnosis when not given. Place it with source=, link=, "
-               "delay= (a library witness) or mosas=, angles=, sides=, links=.")
+               "delay= (a library witness) or mosas=, angles=, sides=, links=. On the placement of a linear TTL "
+               "coefficient (its own link undelayed, or the link it transmits on after one delay) the constant "
+               "coupling is that coefficient: the basis drops one column there (flat=auto, the default; "
+               "flat=keep for a model without linear-ttl).")
     parameters = {"source": None, "link": None, "delay": 0, "mosas": None, "angles": "all", "sides": "rx",
                   "links": "all", "filter": "pole2", "f0": None, "q": None, "fc": None, "vary": "none", "t_ref": None,
-                  "t_step": None, "period": None}
+                  "t_step": None, "period": None, "flat": "auto"}
 
     @property
     def kind(self) -> str:
@@ -929,6 +932,26 @@ class FrequencyCoupling(_Placed):
         f0, q = float(self.options["f0"]), float(self.options["q"])
         return [functools.partial(lambda f, j: rational_basis("pole2", f, f0, q)[j], j=j) for j in range(3)]
 
+    def holds_flat(self, source: str, link: str, n_delays: int) -> bool:
+        """Whether the basis keeps all its columns on this placement.
+
+        The basis spans the constant coupling (``1/(1+x) + x/(1+x) = 1``;
+        ``1/D + (x/D)/q + x^2/D = 1``).  On the placement of a linear TTL coefficient
+        (:func:`ttlcore.tdi.regressors.witness_placement`: rx on the MOSA's own link,
+        undelayed; tx on the link it transmits on, one delay) that constant coupling *is*
+        the coefficient's column, so with ``linear-ttl`` in the model the full basis would
+        be collinear with it: with ``flat=auto`` (default) and no time variation the last
+        basis column is dropped there (the remaining ones and the coefficient span the
+        same couplings); ``flat=keep`` keeps it (a model without ``linear-ttl``)."""
+        flat = self.options.get("flat") or "auto"
+        if flat not in ("auto", "keep"):
+            raise ConfigError(f"effect 'fd-coupling' flat: expected auto or keep, got {flat!r}")
+        if flat == "keep" or self.vary != "none":
+            return True
+        mosa, _, angle = source.partition(".")
+        return angle not in ANGLES or (link, bool(n_delays)) not in (placement(mosa, "rx"), placement(mosa, "tx")) \
+            or n_delays > 1
+
     def columns(self, data):
         n_basis = 2 if self.kind == "pole1" else 3
         poles = [k for k in self.unresolved() if k != "period"]
@@ -949,7 +972,7 @@ class FrequencyCoupling(_Placed):
                     series, channel, unit = self._series(data, src, mod)
                 label = self._label(self.placement_label(src, link, n), suffix)
                 parts = [Part(link, series, n, channel, mod)]
-                for j in range(n_basis):
+                for j in range(n_basis if self.holds_flat(src, link, n) else n_basis - 1):
                     cols.append(Column(f"fd.{label}.b{j}", parts, unit, 1e-3 if unit == "m/rad" else 1e3,
                                        response=resp[j], base=label))
         return cols

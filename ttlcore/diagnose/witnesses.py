@@ -225,10 +225,11 @@ def witness_candidates(report: dict, top: int = 3, modules=()) -> list:
     The overall ranking's first ``top`` witnesses as witness effects (time and step
     witnesses as ``drift`` and ``step`` restricted to their channel and side); for the
     DWS channel and link of the best DWS witness, frequency-dependent couplings with a
-    searched pole pair placed undelayed and after one and two light travel times (a
-    coupling's phase and a delay look alike over a band: the evidence decides), and with a
-    searched real pole at the witness's own delay; for the second DWS channel and link in
-    the ranking, the pole pair at its delay."""
+    searched pole pair and with a searched real pole, each placed undelayed and after one
+    and two light travel times (a coupling's phase and a delay look alike over a band, and
+    the library ranks the delays of a path whose constant part the linear TTL model already
+    absorbs - its own TTL placement - below the others: the evidence decides); for the
+    second DWS channel and link in the ranking, the pole pair at its delay."""
 
     specs: list = []
     placements: list = []
@@ -246,7 +247,7 @@ def witness_candidates(report: dict, top: int = 3, modules=()) -> list:
         for d in ((0, 1, 2) if i == 0 else (n,)):
             specs.append(f"fd-coupling:{where}" + (f";delay={d}" if d else ""))
         if i == 0:
-            specs.append(f"fd-coupling:{where}" + (f";delay={n}" if n else "") + ";filter=pole1")
+            specs += [f"fd-coupling:{where}" + (f";delay={d}" if d else "") + ";filter=pole1" for d in (0, 1, 2)]
             # a coupling that changes in time (composition with a drift)
             specs.append(f"witness:{where}" + (f";delay={n}" if n else "") + ";vary=drift")
     return make_effects([s.replace(";", ",") for s in dict.fromkeys(specs)], modules)

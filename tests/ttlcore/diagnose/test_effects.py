@@ -273,5 +273,14 @@ def test_fd_coupling_declares_its_searched_poles_and_holds_given_ones():
     searched, held = make_effects(["fd-coupling:source=12.phi,link=23,delay=1", "fd-coupling:mosas=12,filter=pole1,fc=0.05"])
     assert searched.unresolved() == ["f0", "q"] and held.unresolved() == []
     assert searched.column_names() == ["fd.12.phi>23+1L.b0", "fd.12.phi>23+1L.b1", "fd.12.phi>23+1L.b2"]
-    assert held.column_names() == ["fd.12.phi>12.b0", "fd.12.phi>12.b1", "fd.12.eta>12.b0", "fd.12.eta>12.b1"]
+    # the rx placement of MOSA 12 is that of the linear coefficients 12.phi.rx and 12.eta.rx:
+    # their constant coupling is the coefficient's, so the basis drops a column there
+    assert held.column_names() == ["fd.12.phi>12.b0", "fd.12.eta>12.b0"]
+    kept = held.with_options(flat="keep")
+    assert kept.column_names() == ["fd.12.phi>12.b0", "fd.12.phi>12.b1", "fd.12.eta>12.b0", "fd.12.eta>12.b1"]
+    # tx of MOSA 13: link 31 after one delay; delay 2 or a time variation keep the full basis
+    on_tx, = make_effects(["fd-coupling:source=13.eta,link=31,delay=1"])
+    assert on_tx.column_names() == ["fd.13.eta>31+1L.b0", "fd.13.eta>31+1L.b1"]
+    assert on_tx.with_options(delay=2).column_names()[-1].endswith("+2L.b2")
+    assert len(on_tx.with_options(vary="drift").column_names()) == 3
     assert searched.with_options(f0=0.1, q=5).cli_spec() == "fd-coupling:source=12.phi;link=23;delay=1;f0=0.1;q=5"
