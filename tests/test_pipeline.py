@@ -5,8 +5,9 @@
   results equal the batch computation (TDI of the whole stretch, fit over the window).
 * t2: the same run with the tdi_builder killed (SIGKILL) mid-run and restarted by the
   launcher: no segment missing, and the fits and residuals equal t1's bit for bit.
-* t3: the subtractor started by hand (``ttl stage``) after half the replay catches up from
-  the publishers' caches (Zenoh advanced publisher/subscriber history).
+* t3: the subtractor started by hand (``ttl stage``) after half the replay, and the monitor
+  after the subtractor is done, catch up from the publishers' caches (Zenoh advanced
+  publisher/subscriber history).
 """
 
 from __future__ import annotations
@@ -279,44 +280,59 @@ def test_stage_killed_and_restarted_mid_run_misses_nothing(t1, tmp_path):
     assert {("tdi_builder", "restart"), ("tdi_builder", "unfinished")} <= kinds, kinds
 
 
-@pytest.mark.parametrize("stage", ["subtractor", "monitor"])
-def test_late_joiner_catches_up_from_the_caches(stage, tmp_path):
-    if stage == "monitor" and not MONITOR:
-        pytest.skip("no monitor stage")
+def test_late_joiners_catch_up_from_the_caches(tmp_path):
+    """The subtractor and the monitor started by hand (``ttl stage``), both late: the
+    subtractor after half the replay (it catches up its tdi and fit inputs from the
+    publishers' caches, the rest live), the monitor once the subtractor has handled every
+    segment (it catches up everything - tdi, fit and the subtractor's residuals - from the
+    caches).  One run serves both late joiners (it used to be one run each, the monitor
+    joining while an internal subtractor ran: its catch-up was partly live, here it is all
+    history)."""
+    late_stages = ["subtractor"] + (["monitor"] if MONITOR else [])
     endpoint = f"tls/127.0.0.1:{free_port()}"
     creds = ensure_credentials(tmp_path / "creds")
     rec = tmp_path / "rec"
     procs = Procs(tmp_path)
-    others = ["--skip", "monitor"] if stage != "monitor" else []
+    late = {}
     try:
         proc = procs.ttl("run", "--simulate", "--duration 6h --orbit unequal --seed 2", "--segment", "30min",
-                         "--run-id", "t3", "--recordings", str(rec), "--external", stage,
-                         "--cache", "16", "--listen", endpoint, "--credentials", creds, "--timeout", "200", *others)
+                         "--run-id", "t3", "--recordings", str(rec), *[a for s in late_stages for a in ("--external", s)],
+                         "--cache", "16", "--listen", endpoint, "--credentials", creds, "--timeout", "200",
+                         *NO_MONITOR)
         with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="control")) as bus:
             time.sleep(0.5)
             replayed = _progress_watch(bus, "t3", "replayer")
+            subtracted = _progress_watch(bus, "t3", "subtractor")
             wait_for(lambda: replayed() >= SEGMENTS // 2 or proc.poll() is not None, 90, "half the replay")
             assert proc.poll() is None, output(proc)[-3000:]
-            late = procs.ttl("stage", stage, "--run", "t3", "--connect", endpoint, "--recordings", str(rec),
-                             "--credentials", creds, name=stage)
+            late["subtractor"] = procs.ttl("stage", "subtractor", "--run", "t3", "--connect", endpoint,
+                                           "--recordings", str(rec), "--credentials", creds, name="subtractor")
+            if MONITOR:
+                wait_for(lambda: subtracted() >= SEGMENTS or proc.poll() is not None, 120,
+                         "every segment through the late subtractor")
+                assert proc.poll() is None, output(proc)[-3000:]
+                late["monitor"] = procs.ttl("stage", "monitor", "--run", "t3", "--connect", endpoint,
+                                            "--recordings", str(rec), "--credentials", creds, name="monitor")
             code = finish(proc, 240)
-            assert finish(late, 60) == 0, output(late)[-3000:]
+            for stage, p in late.items():
+                assert finish(p, 60) == 0, (stage, output(p)[-3000:])
     finally:
         procs.close()
     assert code == 0, output(proc)[-5000:]
     # no error from the pipeline stages (history arrives out of order: that is not a gap)
     assert not [ln for ln in output(proc).splitlines()
                 if any(f"error from {s}" in ln for s in STAGES if s != "monitor")], output(proc)[-5000:]
-    recording = read_recording(rec / "t3" / f"{stage}.mcap")
-    assert ("complete", SEGMENTS - 1) in [(e["kind"], e["index"]) for e in recording.json("events")]
-    if stage == "subtractor":
-        residuals = sorted(recording.segments("residual"), key=lambda r: r.header.index)
-        assert [r.header.index for r in residuals] == list(range(SEGMENTS))  # every segment, once
-        assert [r.header.meta["fit_index"] for r in residuals] == list(range(SEGMENTS))
-        assert sorted(indices(recording, "tdi")) == list(range(SEGMENTS))  # a stage run alone records its inputs
-    else:
+    recordings = {stage: read_recording(rec / "t3" / f"{stage}.mcap") for stage in late_stages}
+    for stage, recording in recordings.items():
+        assert ("complete", SEGMENTS - 1) in [(e["kind"], e["index"]) for e in recording.json("events")], stage
+
+    residuals = sorted(recordings["subtractor"].segments("residual"), key=lambda r: r.header.index)
+    assert [r.header.index for r in residuals] == list(range(SEGMENTS))  # every segment, once
+    assert [r.header.meta["fit_index"] for r in residuals] == list(range(SEGMENTS))
+    assert sorted(indices(recordings["subtractor"], "tdi")) == list(range(SEGMENTS))  # a stage run alone records its inputs
+    if MONITOR:
         # the monitor drew every segment of every input it follows, and its Rerun file holds them
-        assert sorted(indices(recording, "monitor")) == list(range(SEGMENTS))
+        assert sorted(indices(recordings["monitor"], "monitor")) == list(range(SEGMENTS))
         from test_monitor import rrd_entities  # tests/stages: reads a .rrd with Rerun's reader
         ent = rrd_entities(rec / "t3" / "monitor.rrd")
         fits = [row[0]["segment"] for row in ent["/coefficients/12/phi_rx/fit"] if "Scalars:scalars" in row[1]]

@@ -26,16 +26,25 @@ def test_streaming_decimator_equals_batch_filter():
     np.testing.assert_allclose(pieces, batch, rtol=0, atol=1e-12, equal_nan=True)
 
 
-@pytest.mark.parametrize("orbit", ["keplerian"])
-def test_rolling_window_over_a_day_equals_batch_analysis(orbit):
+@pytest.fixture(scope="module")
+def streamed():
+    """1.25 days (Keplerian arms, all noises) and their TDI streamed hour by hour: (telemetry,
+    30 TDI segments).  Both tests below feed the same segments to their rolling fits (the
+    simulation and the streaming TDI are most of their cost; they used to make one each)."""
+    tm, _ = simulate(SimulationConfig(duration=1.25 * DAY, orbit="keplerian", seed=5))
+    stream = TDIStream()
+    return tm, [stream.push(tm.slice(k * 14400, (k + 1) * 14400)) for k in range(30)]
+
+
+def test_rolling_window_over_a_day_equals_batch_analysis(streamed):
     # Telemetry fed hour by hour through the streaming TDI and the rolling fitter; when the
-    # window covers exactly the simulated day, the result equals the batch fit of that day
-    # with the same settings (1-h FFT segments) to 1e-9 relative.
-    tm, _ = simulate(SimulationConfig(duration=DAY, orbit=orbit, seed=3))
+    # window covers exactly the first simulated day, the result equals the batch fit of that
+    # day with the same settings (1-h FFT segments) to 1e-9 relative.
+    tm, segments = streamed
     settings = FitSettings(segment_duration=HOUR)
-    batch, _ = fit_tdi(compute_tdi(tm), settings)
-    stream, rolling = TDIStream(), RollingFit(settings, window_duration=DAY)
-    results = [rolling.push(stream.push(tm.slice(k * 14400, (k + 1) * 14400))) for k in range(24)]
+    batch, _ = fit_tdi(compute_tdi(tm.slice(0, 24 * 14400)), settings)
+    rolling = RollingFit(settings, window_duration=DAY)
+    results = [rolling.push(td) for td in segments[:24]]
     assert all(r is not None for r in results)
     last = results[-1]
     assert last.n_segments == batch.n_segments == 24
@@ -51,7 +60,7 @@ def test_rolling_window_over_a_day_equals_batch_analysis(orbit):
     assert abs(last.chi2 - batch.chi2) < 1e-6 * batch.chi2
 
 
-def test_incremental_updates_track_the_full_refits():
+def test_incremental_updates_track_the_full_refits(streamed):
     # Between the full refits (every 6 h of data), the rolling fit adds the new segment's
     # normal equations with the weights of the last full refit and drops the oldest: the
     # bookkeeping must equal a from-scratch sum with those weights (to rounding), and the
@@ -61,13 +70,11 @@ def test_incremental_updates_track_the_full_refits():
     # fills, 0.1-0.3 sigma after, sigmas 0.1-2.5 %).
     from ttlcore.estimate.fit import accumulate
 
-    tm, _ = simulate(SimulationConfig(duration=1.25 * DAY, orbit="keplerian", seed=5))
+    _, segments = streamed
     settings = FitSettings(segment_duration=HOUR)
-    stream = TDIStream()
     inc, full = RollingFit(settings, window_duration=DAY), RollingFit(settings, window_duration=DAY, full_every=None)
     kinds = []
-    for k in range(30):
-        td = stream.push(tm.slice(k * 14400, (k + 1) * 14400))  # one TDI segment feeds both fits
+    for td in segments:  # one TDI segment feeds both fits
         r_inc, r_full = inc.push(td), full.push(td)
         kinds.append(r_inc.extra["update"])
         if kinds[-1] == "incremental":
