@@ -16,6 +16,7 @@ from streamer.stage import StageConfig
 from ttlcore.errors import ConfigError, TelemetryError
 from ttlcore.io.telemetry import Telemetry, write_telemetry
 from ttlcore.io.truth import truth_path
+from ttlcore.sim.simulator import Simulator
 from ttlcore.sim.spec import simulation_config
 
 
@@ -222,3 +223,20 @@ def test_restarted_fitter_recovers_the_model_in_force(tmp_path):
     fourth = Fitter(StageConfig(run="u", recordings=tmp_path, options={"effects": ["linear-ttl", "step"]}))
     fourth.restore_model()
     assert fourth.effects == Fitter(StageConfig(run="u", options={"effects": ["linear-ttl", "step"]})).effects
+
+
+def test_simulation_source_keeps_one_noise_block_and_equals_the_simulator():
+    """The replayer reads in order: its noise cache holds one block per stream, so its memory
+    does not step up when the second block (~36 h in) comes; the segments are the simulator's."""
+    src = make_source({"simulate": "--duration 2d --fs 2 --noises all,-laser --seed 3", "segment": "4h"})
+    ref = Simulator(src.config)  # default caching
+    cached = []
+    for i in range(src.segments_total):
+        tm, _ = src.segment(i)
+        expected, _ = ref.chunk(i * src.n, min(src.n, src.sim.size - i * src.n))
+        np.testing.assert_array_equal(tm.eta, expected.eta)
+        np.testing.assert_array_equal(tm.dws_phi, expected.dws_phi)
+        cached.append(sum(s.cache_nbytes for s in src.sim.streams.values() if s is not None))
+    blocks = {s.block_length for s in src.sim.streams.values() if s is not None}
+    assert src.segments_total * src.n > 1.1 * max(blocks)  # the run crosses a block boundary
+    assert max(cached) == cached[0], cached
