@@ -9,7 +9,10 @@ segment it handles, logs one line (INFO, logger ``streamer.memtrace``)::
     memory after segment 17: rss 412.3 MB, traced 180.2 MB (peak 260.1 MB)
 
 and every ``N`` segments the ten source lines whose traced memory grew most since the
-previous such report, with their size and count of live blocks.  ``rss`` is the resident
+previous such report, with their size and count of live blocks.  An allocation is charged
+to the innermost line of the project (``ttlcore``, ``streamer``, ``stages``) on its
+stack, so that an array that numpy or scipy allocated for a stage names the stage's line;
+one with no project line on its stack (a library's own thread) to its innermost line.  ``rss`` is the resident
 set size of the process (``/proc/self/statm``; None where there is no ``/proc``);
 ``traced`` is what Python and numpy allocated and still hold (numpy reports its buffers
 to tracemalloc), so ``rss - traced`` is the interpreter, the extension modules' own heaps
@@ -23,6 +26,7 @@ from __future__ import annotations
 import logging
 import os
 import tracemalloc
+from pathlib import Path
 
 log = logging.getLogger(__name__)
 
@@ -30,8 +34,11 @@ log = logging.getLogger(__name__)
 ENV = "TTL_MEMTRACE"
 #: Source lines listed in a growth report.
 TOP_LINES = 10
-#: Frames kept per traced allocation (1: the line that allocated).
-FRAMES = 1
+#: Frames kept per traced allocation: enough to find, below numpy's and scipy's own frames,
+#: the line of the project that asked for the memory.
+FRAMES = 16
+#: Where the project's packages are: an allocation is charged to the innermost frame there.
+PACKAGES = tuple(str(Path(__file__).resolve().parents[1] / name) + os.sep for name in ("ttlcore", "streamer", "stages"))
 
 
 def rss_mb() -> float | None:
@@ -96,10 +103,19 @@ class MemoryTrace:
         return self.every > 0
 
     @staticmethod
-    def _take():
-        # the trace's own frames (this module, tracemalloc) are left out of the comparison
-        return tracemalloc.take_snapshot().filter_traces((
-            tracemalloc.Filter(False, tracemalloc.__file__), tracemalloc.Filter(False, __file__)))
+    def _take() -> dict:
+        """Live traced memory per charged line (module docstring): ``{(file, line): [bytes, blocks]}``."""
+        out: dict = {}
+        for trace in tracemalloc.take_snapshot().traces:
+            frames = trace.traceback  # oldest first
+            frame = next((f for f in reversed(frames) if f.filename.startswith(PACKAGES)
+                          and f.filename != __file__), frames[-1])
+            if frame.filename in (__file__, tracemalloc.__file__):
+                continue  # the trace's own bookkeeping
+            entry = out.setdefault((frame.filename, frame.lineno), [0, 0])
+            entry[0] += trace.size
+            entry[1] += 1
+        return out
 
     def segment(self, index: int | None) -> dict | None:
         """After a handled segment: log the memory line (and the growth report when due);
@@ -113,12 +129,11 @@ class MemoryTrace:
         self.log.info("memory after segment %s: rss %s, traced %.1f MB (peak %.1f MB)", index, rss,
                       out["traced_mb"], out["peak_mb"])
         if self.count % self.every == 0:
-            snap = self._take()
-            lines = snap.compare_to(self._snapshot, "lineno")[:TOP_LINES]
+            snap, before = self._take(), self._snapshot
+            growth = sorted(((size - before.get(where, (0, 0))[0], where, size, blocks)
+                             for where, (size, blocks) in snap.items()), reverse=True)[:TOP_LINES]
             self._snapshot = snap
-            for stat in lines:
-                frame = stat.traceback[0]
+            for diff, (filename, lineno), size, blocks in growth:
                 self.log.info("memory growth over the last %d segments: %s:%d %+.2f MB (now %.2f MB in %d blocks)",
-                              self.every, frame.filename, frame.lineno, stat.size_diff / 2**20, stat.size / 2**20,
-                              stat.count)
+                              self.every, filename, lineno, diff / 2**20, size / 2**20, blocks)
         return out

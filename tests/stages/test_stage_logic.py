@@ -240,3 +240,28 @@ def test_simulation_source_keeps_one_noise_block_and_equals_the_simulator():
     blocks = {s.block_length for s in src.sim.streams.values() if s is not None}
     assert src.segments_total * src.n > 1.1 * max(blocks)  # the run crosses a block boundary
     assert max(cached) == cached[0], cached
+
+
+def test_fitter_window_keeps_only_the_decimated_samples(tmp_path):
+    """The fitter's window of decimated TDI (for the adequacy refits) holds copies, not strided
+    views that would keep the decimator's full-rate output alive (twice the memory), and no
+    more than the window."""
+    from stages.fitter import Fitter
+    from ttlcore.conventions import COEFFICIENT_NAMES
+    from ttlcore.tdi.data import TDIData
+
+    fitter = Fitter(StageConfig(run="u", recordings=tmp_path, options={
+        "window_duration": "1800", "adequacy_every": 0}))
+    rng = np.random.default_rng(1)
+    fs, n = 4.0, 2400
+    for i in range(6):
+        header = SimpleNamespace(index=i, t0=i * n / fs, meta={"segment_duration": n / fs})
+        td = TDIData(t0=header.t0, fs=fs, channels=("X2", "Y2", "Z2"), data=rng.standard_normal((3, n)),
+                     regressors=rng.standard_normal((3, len(COEFFICIENT_NAMES), n)), ltt_mean=np.full(6, 8.3))
+        fitter.process(header, td)
+        last, kept = fitter.rolling.last_decimated, fitter.window_tdi[-1]
+        np.testing.assert_array_equal(kept.regressors, last.regressors)
+        assert kept.fs == 2.0 and kept.regressors.shape[-1] == n // 2
+        for dec in fitter.window_tdi:
+            assert dec.data.flags.owndata and dec.regressors.flags.owndata
+    assert sum(d.size for d in fitter.window_tdi) / 2.0 <= 1800 + 600  # one window (and the segment it ends with)
