@@ -167,7 +167,7 @@ class Monitor(PipelineStage):
         if self.rec is not None:
             self.text("log", "monitor stopped")
             self.flush()
-            self.rec.disconnect()  # writes the file's footer
+            self.rec.disconnect()  # flushes and closes the file
         if self.viewer is not None and self.live == "serve":
             stop_process(self.viewer, 5.0)  # the headless server; a spawned viewer window stays for the user
 
@@ -249,6 +249,8 @@ class Monitor(PipelineStage):
                 self.text("log", f"segment {i}: its {waiting} did not come within {self.settle_timeout:g} s", "WARN")
             self.publish(self.status(i))
             self.mark_done(i)  # after the output is out (progress protocol)
+            self._tdi_at.pop(i, None)  # settled: its bookkeeping goes (memory flat in a long run)
+            self._segment_time.pop(i, None)
             changed = True
         tdi = board.get(self.upstream)
         if tdi is not None:
