@@ -108,10 +108,9 @@ class MemoryTrace:
         out: dict = {}
         for trace in tracemalloc.take_snapshot().traces:
             frames = trace.traceback  # oldest first
-            frame = next((f for f in reversed(frames) if f.filename.startswith(PACKAGES)
-                          and f.filename != __file__), frames[-1])
-            if frame.filename in (__file__, tracemalloc.__file__):
+            if any(f.filename in (__file__, tracemalloc.__file__) for f in frames):
                 continue  # the trace's own bookkeeping
+            frame = next((f for f in reversed(frames) if f.filename.startswith(PACKAGES)), frames[-1])
             entry = out.setdefault((frame.filename, frame.lineno), [0, 0])
             entry[0] += trace.size
             entry[1] += 1

@@ -88,6 +88,30 @@ def test_subtractor_applies_the_latest_fit_covering_each_segment(tmp_path):
     assert s.choose(6) == ("apply", 3)               # a later fit exists: the fitter passed 6
 
 
+def test_subtractor_keeps_only_the_fits_segments_to_come_can_get(tmp_path):
+    """Memory flat in a long run: fits older than the latest one before the segments still to
+    come (less the message window, for late arrivals) are forgotten; choices are unchanged."""
+    s = Subtractor(StageConfig(run="u", recordings=tmp_path))
+    fit = {"coefficients": {}, "t_start": 0.0, "t_stop": 1.0}
+    window = s.validator.window
+    for i in range(0, 1000, 10):  # a fit every 10th segment
+        s.fits[i] = fit
+    s.board.feed(sample({"stage": "fitter", "done": [[0, 999]], "fits_ranges": [[i, i] for i in range(0, 1000, 10)]}))
+    before = {i: s.choose(i) for i in range(600, 1000)}
+    for i in range(600):
+        if i != 580:
+            s.mark_done(i)
+    s.tdi[580] = None  # a segment still waiting holds its fit (and the window before it)
+    s._prune_fits()
+    assert min(s.fits) == 510
+    del s.tdi[580]
+    s.mark_done(580)
+    s._prune_fits()
+    assert min(s.fits) == 530 and len(s.fits) == 47  # the latest fit at or before 600 - 64, and the later ones
+    assert {i: s.choose(i) for i in range(600 - window, 1000)} == {
+        **{i: ("apply", i - i % 10) for i in range(600 - window, 600)}, **before}
+
+
 def _file(path, t0, n, seed=0):
     rng = np.random.default_rng(seed)
     tm = Telemetry(t0=t0, fs=4.0, eta=rng.standard_normal((6, n)), dws_phi=rng.standard_normal((6, n)),
