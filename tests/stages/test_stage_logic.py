@@ -289,3 +289,20 @@ def test_fitter_window_keeps_only_the_decimated_samples(tmp_path):
         for dec in fitter.window_tdi:
             assert dec.data.flags.owndata and dec.regressors.flags.owndata
     assert sum(d.size for d in fitter.window_tdi) / 2.0 <= 1800 + 600  # one window (and the segment it ends with)
+
+
+def test_monitor_waits_for_an_alive_fitter_that_has_not_reported_yet(tmp_path):
+    """A fitter still on its first segment (alive, no progress yet) is waited for; one that is
+    not running blocks nothing; one that reported is waited for until it passed the segment."""
+    from stages.monitor import Monitor
+
+    m = Monitor(StageConfig(run="u", recordings=tmp_path))
+    assert m._waiting_for(0, {}) is None                  # neither fitter nor subtractor running
+    m.alive_peers = {"fitter", "subtractor"}
+    assert m._waiting_for(0, {}) == "fit"                 # started, not reported yet
+    fitter = Progress("fitter", done={0}, extra={"fits": {0}})
+    assert m._waiting_for(0, {"fitter": fitter}) == "fit"  # fit 0 announced, not drawn
+    m._drawn["fit"].add(0)
+    assert m._waiting_for(0, {"fitter": fitter}) == "residual"
+    m.alive_peers = {"fitter"}                            # no subtractor after all
+    assert m._waiting_for(0, {"fitter": fitter}) is None
