@@ -4,21 +4,23 @@ Off by default.  With the environment variable :data:`ENV` (``TTL_MEMTRACE``) se
 positive integer ``N`` (``ttl run`` passes its environment to the stages;
 ``bench/soak.py --memtrace N`` sets it), every pipeline stage
 (:class:`streamer.pipeline_stage.PipelineStage`) starts :mod:`tracemalloc` and, after every
-segment it handles, logs one line (INFO, logger ``streamer.memtrace``)::
+segment it handles, logs one line (INFO, on the stage's logger)::
 
     memory after segment 17: rss 412.3 MB, traced 180.2 MB (peak 260.1 MB)
 
 and every ``N`` segments the ten source lines whose traced memory grew most since the
 previous such report, with their size and count of live blocks.  An allocation is charged
-to the innermost line of the project (``ttlcore``, ``streamer``, ``stages``) on its
-stack, so that an array that numpy or scipy allocated for a stage names the stage's line;
-one with no project line on its stack (a library's own thread) to its innermost line.  ``rss`` is the resident
-set size of the process (``/proc/self/statm``; None where there is no ``/proc``);
-``traced`` is what Python and numpy allocated and still hold (numpy reports its buffers
-to tracemalloc), so ``rss - traced`` is the interpreter, the extension modules' own heaps
-(Zenoh, Rerun, BLAS) and the allocator's free pages.  Tracing costs time (a few per cent on
-numpy-heavy stages, more on the monitor's many small objects): a diagnosis tool, not for
-production runs.
+to the innermost line of the project (``ttlcore``, ``streamer``, ``stages``) on its stack,
+so that an array that numpy or scipy allocated for a stage names the stage's line; one
+with no project line on its stack (a library's own thread) to its innermost line.
+
+``rss`` is the resident set size of the process (``/proc/self/statm``; None where there is
+no ``/proc``); ``traced`` is what Python and numpy allocated and still hold (numpy reports
+its buffers to tracemalloc), so ``rss - traced`` is the interpreter, the extension
+modules' own heaps (Zenoh, Rerun, BLAS) and the allocator's free pages.  Tracing costs
+time and memory (a traced soak ran 2-3 times slower per segment, under load): a diagnosis
+tool, not for production runs, and not for measuring the slopes themselves
+(``docs/operations.md``, Measuring).
 """
 
 from __future__ import annotations
