@@ -23,9 +23,9 @@ What it draws (the numbers come from :mod:`ttlcore.estimate.monitoring`)
   and published with the fit's index on ``ttl/<run>/monitor/<i>``.
 
 Output ``ttl/<run>/monitor/<i>``, one per segment, once the segment is drawn: its TDI, and
-its fit and residual from a fitter / subtractor that reports progress (they are waited for
-until that stage has passed the segment, at most ``settle_timeout`` = 60 s; a stage that is
-skipped or not started blocks nothing).  The segment is then done for the progress protocol
+its fit and residual from a fitter / subtractor that reports progress or is alive (they are
+waited for until that stage has passed the segment, at most ``settle_timeout`` = 60 s; a
+stage that is skipped or not started blocks nothing).  The segment is then done for the progress protocol
 (:mod:`streamer.progress`), so the replayer paces on the monitor too and ``ttl run`` stops it only once
 it has drawn everything.  Arrays ``drift_rate`` (24,) [mm/rad/day] and
 ``drift_significance`` (24,) of the latest trend evaluation (0 where not yet defined, see
@@ -167,7 +167,7 @@ class Monitor(PipelineStage):
         if self.rec is not None:
             self.text("log", "monitor stopped")
             self.flush()
-            self.rec.disconnect()  # writes the file's footer
+            self.rec.disconnect()  # flushes and closes the file
         if self.viewer is not None and self.live == "serve":
             stop_process(self.viewer, 5.0)  # the headless server; a spawned viewer window stays for the user
 
@@ -219,14 +219,19 @@ class Monitor(PipelineStage):
         """What segment ``i`` (its TDI drawn) still waits for before it is done, or None.
 
         The fit and the residual of ``i`` are waited for only from a fitter / subtractor
-        that reports progress, so a skipped or not yet started stage blocks nothing: until
-        it has passed ``i``, and then for what it published (the subtractor's residual, the
-        fitter's fit if it made one, ``fits`` of its progress).
+        that reports progress or is alive (its liveliness token), so a skipped or not started
+        stage blocks nothing: until it has passed ``i``, and then for what it published (the
+        subtractor's residual, the fitter's fit if it made one, ``fits`` of its progress).
+        A stage that is alive but has not reported yet (a fitter still on its first segment)
+        is waited for: the monitor would otherwise settle the first segments without their
+        fits and residuals.
         """
         for stage, topic, made in (("fitter", "fit", lambda p: p.extra.get("fits", set())),
                                    ("subtractor", "residual", lambda p: p.done)):
             peer = board.get(stage)
             if peer is None:
+                if stage in self.alive_peers and i not in self._refused[topic]:
+                    return topic
                 continue
             if i in made(peer) and i not in self._drawn[topic] and i not in self._refused[topic]:
                 return topic
@@ -249,6 +254,8 @@ class Monitor(PipelineStage):
                 self.text("log", f"segment {i}: its {waiting} did not come within {self.settle_timeout:g} s", "WARN")
             self.publish(self.status(i))
             self.mark_done(i)  # after the output is out (progress protocol)
+            self._tdi_at.pop(i, None)  # settled: its bookkeeping goes (memory flat in a long run)
+            self._segment_time.pop(i, None)
             changed = True
         tdi = board.get(self.upstream)
         if tdi is not None:

@@ -153,6 +153,17 @@ class SimulationSource:
 
         self.config = simulation_config(options)
         self.sim = Simulator(self.config)
+        # Segments are read in order, each reaching back into the previous one only by the
+        # delays' history (about a minute): one cached output block per noise stream is
+        # enough.  The default two (for random access) double the noise cache when the
+        # second block (~36 h into the run) is computed, ~280 MB at 4 Hz, a step in the
+        # replayer's memory a day and a half into every run.  The output does not change
+        # (a block is a function of its index alone); a block is computed again only when a
+        # segment's history reaches back across a block boundary the previous segment
+        # crossed, at most once per block.
+        for stream in self.sim.streams.values():
+            if stream is not None:
+                stream.cache_blocks = 1
         self.fs = self.config.fs
         self.segment_duration = float(segment_duration)
         self.n = int(round(self.segment_duration * self.fs))

@@ -27,6 +27,7 @@ import numpy as np
 from streamer.codec import Expect
 from streamer.messages import tdi_of
 from streamer.pipeline_stage import PipelineStage
+from streamer.plan import RangeSet
 from streamer.recorder import to_jsonable
 from streamer.stage import Output, stage_main
 from ttlcore.conventions import COEFFICIENT_NAMES
@@ -52,8 +53,9 @@ class Subtractor(PipelineStage):
         super().__init__(config)
         self.fit_timeout = float(self.options.get("fit_timeout", FIT_TIMEOUT))
         self.tdi: dict[int, tuple] = {}
-        self.fits: dict[int, dict] = {}
-        self.applied: set[int] = set()  # fits applied to a segment
+        self.fits: dict[int, dict] = {}  # the fits segments still to come may get (_prune_fits)
+        self.applied = RangeSet()  # fits applied to a segment
+        self._highest = -1  # highest segment handled (done or given up)
         self.refused_fits: set[int] = set()  # fits withdrawn (conflicting copies): never waited for
         self._waiting_since: dict[int, float] = {}
         # a late joiner gets its history from several publisher caches in any order: collect
@@ -105,7 +107,31 @@ class Subtractor(PipelineStage):
         self.drain()
         self.give_up_gaps()
         self.check_complete()
+        self._prune_fits()
         return ()
+
+    def mark_done(self, index: int, **extra) -> None:
+        self._highest = max(self._highest, index)
+        super().mark_done(index, **extra)
+
+    def mark_failed(self, index: int, **extra) -> None:
+        self._highest = max(self._highest, index)
+        super().mark_failed(index, **extra)
+
+    def _prune_fits(self) -> None:
+        """Forget the fits no segment still to come will get, so that memory stays flat in a
+        long run.  A segment gets the latest fit at or before it: the fits older than the
+        latest one at or before ``lo`` are never chosen again for a segment at or after
+        ``lo``, the lowest segment waiting here or the one after the highest handled, minus
+        the index window of the messages (``Validator.window``, 64 segments) for segments
+        that arrive late (a late joiner's history comes in any order)."""
+        lo = min([self._highest + 1, *self.tdi]) - self.validator.window
+        older = [j for j in self.fits if j <= lo]
+        if len(older) > 1:
+            keep = max(older)
+            for j in older:
+                if j != keep:
+                    del self.fits[j]
 
     def give_up_gaps(self) -> None:
         """Segments the tdi_builder gave up will not come: handled here as given up too

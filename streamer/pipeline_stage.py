@@ -18,6 +18,7 @@ from collections.abc import Callable
 from typing import ClassVar
 
 from .keys import progress_key, progress_pattern, to_ranges
+from .memtrace import MemoryTrace
 from .plan import MAX_SEGMENTS
 from .progress import Progress, ProgressBoard, key_stage
 from .session import declare_segment_publisher
@@ -130,6 +131,8 @@ class PipelineStage(Stage):
                                  segments_total=self.validator.plan.segments_total if self.validator.plan else None)
         self.board = ProgressBoard()
         self._progress_pub = None
+        #: Memory per segment, logged when ``TTL_MEMTRACE`` is set (:mod:`streamer.memtrace`).
+        self.memtrace = MemoryTrace.from_env(self.log)
 
     @property
     def done(self) -> set[int]:
@@ -223,6 +226,7 @@ class PipelineStage(Stage):
         self.progress.extra.update(extra)
         self.check_complete(publish=False)
         self.publish_progress(index)
+        self.memtrace.segment(index)
 
     def check_complete(self, publish: bool = True) -> bool:
         """Record the ``complete`` event once the last segment is handled and nothing waits."""

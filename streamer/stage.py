@@ -293,6 +293,8 @@ class Stage:
         self.rejections = 0
         self._launcher_seen = False
         self._launcher_gone_at: float | None = None
+        #: Stages of the run whose liveliness token is present (updated from a Zenoh thread).
+        self.alive_peers: set[str] = set()
         self.exit_reason: str | None = None
 
     # ------------------------------------------------------------------ to override
@@ -375,6 +377,7 @@ class Stage:
 
     def _on_alive(self, stage: str, alive: bool) -> None:  # Zenoh thread
         if stage != LAUNCHER:
+            (self.alive_peers.add if alive else self.alive_peers.discard)(stage)
             return
         if alive:
             self._launcher_seen, self._launcher_gone_at = True, None

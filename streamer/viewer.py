@@ -139,11 +139,20 @@ class LiveFanout:
     def open(cls, application_id: str, recording_id: str, rrd: Path, url: str | None = None, blueprint=None,
              on_live_failure=None) -> "LiveFanout":
         """A recording written to ``rrd`` and, when ``url`` is given, streamed to the viewer
-        there as a stream of its own (both with the default ``blueprint``)."""
+        there as a stream of its own (both with the default ``blueprint``).
+
+        The file is written without an RRD footer: a footer's manifest lists every chunk
+        written, and the sink keeps it in memory until the file is closed, which grows the
+        process by ~65 kB per monitor segment (one chunk per entity and flush), for ever in a
+        long run (measured in ``docs/operations.md``, Measuring).  The file is still a valid
+        RRD that the viewer and ``rerun.chunk.RrdReader(...).stream()`` read whole (as they read a
+        file whose writer was killed); ``rerun rrd optimize`` adds a footer afterwards if
+        random access into a large file is wanted.
+        """
         import rerun as rr
 
         file_rec = rr.RecordingStream(application_id, recording_id=recording_id)
-        file_rec.set_sinks(rr.FileSink(str(rrd)), default_blueprint=blueprint)
+        file_rec.set_sinks(rr.FileSink(str(rrd), write_footer=False), default_blueprint=blueprint)
         live_rec = None
         if url:  # a stream of its own: a viewer that goes away must not stall the file
             live_rec = rr.RecordingStream(application_id, recording_id=recording_id)
@@ -179,7 +188,7 @@ class LiveFanout:
             self.on_live_failure(exc)
 
     def disconnect(self) -> None:
-        self.file.disconnect()  # writes the file's footer
+        self.file.disconnect()  # flushes and closes the file
         if self.live is not None:
             try:
                 self.live.flush(timeout_sec=self.live_timeout)

@@ -16,6 +16,7 @@ from streamer.stage import StageConfig
 from ttlcore.errors import ConfigError, TelemetryError
 from ttlcore.io.telemetry import Telemetry, write_telemetry
 from ttlcore.io.truth import truth_path
+from ttlcore.sim.simulator import Simulator
 from ttlcore.sim.spec import simulation_config
 
 
@@ -85,6 +86,30 @@ def test_subtractor_applies_the_latest_fit_covering_each_segment(tmp_path):
     assert s.choose(6) == ("wait", None)
     s.fits[7] = fit
     assert s.choose(6) == ("apply", 3)               # a later fit exists: the fitter passed 6
+
+
+def test_subtractor_keeps_only_the_fits_segments_to_come_can_get(tmp_path):
+    """Memory flat in a long run: fits older than the latest one before the segments still to
+    come (less the message window, for late arrivals) are forgotten; choices are unchanged."""
+    s = Subtractor(StageConfig(run="u", recordings=tmp_path))
+    fit = {"coefficients": {}, "t_start": 0.0, "t_stop": 1.0}
+    window = s.validator.window
+    for i in range(0, 1000, 10):  # a fit every 10th segment
+        s.fits[i] = fit
+    s.board.feed(sample({"stage": "fitter", "done": [[0, 999]], "fits_ranges": [[i, i] for i in range(0, 1000, 10)]}))
+    before = {i: s.choose(i) for i in range(600, 1000)}
+    for i in range(600):
+        if i != 580:
+            s.mark_done(i)
+    s.tdi[580] = None  # a segment still waiting holds its fit (and the window before it)
+    s._prune_fits()
+    assert min(s.fits) == 510
+    del s.tdi[580]
+    s.mark_done(580)
+    s._prune_fits()
+    assert min(s.fits) == 530 and len(s.fits) == 47  # the latest fit at or before 600 - 64, and the later ones
+    assert {i: s.choose(i) for i in range(600 - window, 1000)} == {
+        **{i: ("apply", i - i % 10) for i in range(600 - window, 600)}, **before}
 
 
 def _file(path, t0, n, seed=0):
@@ -222,3 +247,62 @@ def test_restarted_fitter_recovers_the_model_in_force(tmp_path):
     fourth = Fitter(StageConfig(run="u", recordings=tmp_path, options={"effects": ["linear-ttl", "step"]}))
     fourth.restore_model()
     assert fourth.effects == Fitter(StageConfig(run="u", options={"effects": ["linear-ttl", "step"]})).effects
+
+
+def test_simulation_source_keeps_one_noise_block_and_equals_the_simulator():
+    """The replayer reads in order: its noise cache holds one block per stream, so its memory
+    does not step up when the second block (~36 h in) comes; the segments are the simulator's."""
+    src = make_source({"simulate": "--duration 2d --fs 2 --noises all,-laser --seed 3", "segment": "4h"})
+    ref = Simulator(src.config)  # default caching
+    cached = []
+    for i in range(src.segments_total):
+        tm, _ = src.segment(i)
+        expected, _ = ref.chunk(i * src.n, min(src.n, src.sim.size - i * src.n))
+        np.testing.assert_array_equal(tm.eta, expected.eta)
+        np.testing.assert_array_equal(tm.dws_phi, expected.dws_phi)
+        cached.append(sum(s.cache_nbytes for s in src.sim.streams.values() if s is not None))
+    blocks = {s.block_length for s in src.sim.streams.values() if s is not None}
+    assert src.segments_total * src.n > 1.1 * max(blocks)  # the run crosses a block boundary
+    assert max(cached) == cached[0], cached
+
+
+def test_fitter_window_keeps_only_the_decimated_samples(tmp_path):
+    """The fitter's window of decimated TDI (for the adequacy refits) holds copies, not strided
+    views that would keep the decimator's full-rate output alive (twice the memory), and no
+    more than the window."""
+    from stages.fitter import Fitter
+    from ttlcore.conventions import COEFFICIENT_NAMES
+    from ttlcore.tdi.data import TDIData
+
+    fitter = Fitter(StageConfig(run="u", recordings=tmp_path, options={
+        "window_duration": "1800", "adequacy_every": 0}))
+    rng = np.random.default_rng(1)
+    fs, n = 4.0, 2400
+    for i in range(6):
+        header = SimpleNamespace(index=i, t0=i * n / fs, meta={"segment_duration": n / fs})
+        td = TDIData(t0=header.t0, fs=fs, channels=("X2", "Y2", "Z2"), data=rng.standard_normal((3, n)),
+                     regressors=rng.standard_normal((3, len(COEFFICIENT_NAMES), n)), ltt_mean=np.full(6, 8.3))
+        fitter.process(header, td)
+        last, kept = fitter.rolling.last_decimated, fitter.window_tdi[-1]
+        np.testing.assert_array_equal(kept.regressors, last.regressors)
+        assert kept.fs == 2.0 and kept.regressors.shape[-1] == n // 2
+        for dec in fitter.window_tdi:
+            assert dec.data.flags.owndata and dec.regressors.flags.owndata
+    assert sum(d.size for d in fitter.window_tdi) / 2.0 <= 1800 + 600  # one window (and the segment it ends with)
+
+
+def test_monitor_waits_for_an_alive_fitter_that_has_not_reported_yet(tmp_path):
+    """A fitter still on its first segment (alive, no progress yet) is waited for; one that is
+    not running blocks nothing; one that reported is waited for until it passed the segment."""
+    from stages.monitor import Monitor
+
+    m = Monitor(StageConfig(run="u", recordings=tmp_path))
+    assert m._waiting_for(0, {}) is None                  # neither fitter nor subtractor running
+    m.alive_peers = {"fitter", "subtractor"}
+    assert m._waiting_for(0, {}) == "fit"                 # started, not reported yet
+    fitter = Progress("fitter", done={0}, extra={"fits": {0}})
+    assert m._waiting_for(0, {"fitter": fitter}) == "fit"  # fit 0 announced, not drawn
+    m._drawn["fit"].add(0)
+    assert m._waiting_for(0, {"fitter": fitter}) == "residual"
+    m.alive_peers = {"fitter"}                            # no subtractor after all
+    assert m._waiting_for(0, {"fitter": fitter}) is None
