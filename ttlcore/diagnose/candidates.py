@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import replace
 
 import numpy as np
@@ -109,8 +109,10 @@ class CandidatePool:
             if effect.spec() in self._seen:
                 continue
             self._seen.add(effect.spec())
-            if self._executor is None:
-                self._futures.append(_Done(self.score(effect)))
+            if self._executor is None:  # serial: scored now, held as a finished future
+                done = Future()
+                done.set_result(self.score(effect))
+                self._futures.append(done)
             else:
                 self._futures.append(self._executor.submit(self.score, effect))
 
@@ -159,16 +161,6 @@ class CandidatePool:
             "seconds": round(time.monotonic() - t_start, 2),
             **({"searched": extra_json} if extra_json else {}),
         }
-
-
-class _Done:
-    """A result already computed (the serial path), with the interface of a future."""
-
-    def __init__(self, value):
-        self._value = value
-
-    def result(self):
-        return self._value
 
 
 def score(model: ModelFit, effect, C) -> tuple[Evidence, dict]:
