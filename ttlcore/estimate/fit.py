@@ -38,6 +38,7 @@ import logging
 from dataclasses import dataclass, field, replace
 
 import numpy as np
+from scipy import ndimage
 
 from ..conventions import COEFFICIENT_NAMES
 from ..tdi.data import TDIData
@@ -182,24 +183,49 @@ def segment_spectra(td: TDIData, band=DEFAULT_BAND, segment_duration: float = 21
 # Noise models
 # ---------------------------------------------------------------------------
 
-def notch_mask(f: np.ndarray, ltt_mean, depth: float = 0.1, half_width: int = 20) -> np.ndarray:
-    """Bins to keep: False near the zeros of the TDI response, where the secondary-noise
-    model of any one channel (A, E or T) drops below ``depth`` times its own local running
-    mean over ``2 half_width + 1`` bins.
+def notch_mask(f: np.ndarray, ltt_mean, depth: float = 0.1, half_width: int = 20,
+               channel_depth: float = 0.3, max_half_width: float = 7.5e-3) -> np.ndarray:
+    """Bins to keep: False near the zeros of the TDI response.
 
     At those zeros (near multiples of ``c / 4L``, about 30 mHz) signal and noise both
-    vanish, so they carry little information, but what the model leaves out fills them:
-    a segment's finite resolution leaks power from the neighbouring bins, and the residual
+    vanish, so they carry little information, but what the model leaves out fills them: a
+    segment's finite resolution leaks power from the neighbouring bins, and the residual
     laser noise of unequal arms does not vanish there. Weighting them by the model would
-    overstate their information. The test is per channel because with unequal arms the
-    channels' zeros part: above ~0.4 Hz the trace over A, E, T no longer dips at a zero of
-    A or T alone, while those bins, weighted by the model, showed 3-9 times the expected
-    residual power on a simulated null day and let a narrow-line candidate (q 300 at
-    0.72 Hz) look significant (``docs/diagnostics.md``, Known limits).
+    overstate their information. A bin is left out when either test finds a zero:
+
+    1. the secondary-noise model summed over A, E and T drops below ``depth`` times its
+       running mean over ``2 half_width + 1`` bins (the mean, pulled up by the response's
+       peaks, makes the exclusion wide where the resolution is coarse and leakage large);
+    2. the model of one channel drops below ``channel_depth`` times the running median of
+       that channel over the same bins, the window kept within ``+-max_half_width`` [Hz]
+       (and at least two bins either side).
+
+    The second test is needed because with unequal arms the channels' zeros part: above
+    ~0.4 Hz the sum no longer dips at a zero of T (or A) alone, while those bins, weighted
+    by the model, showed 3-9 times the expected residual power on a simulated null day
+    (6-h segments, Keplerian arms) and let a narrow-line candidate (q 300 at 0.72 Hz) look
+    significant; bins whose channel model fell to 0.1-0.3 of the median still carried
+    1.6-2.6 times the expected power above 0.4 Hz, those above 0.3 at most 1.3 times. It
+    uses a median of the log PSD because a mean over a few dozen coarse bins of a spectrum
+    as steep as T's at low frequency lies far above its lowest bins, while the median of a
+    monotonic stretch is its middle value and a zero a few bins wide does not move it; at
+    the ends of ``f`` the log PSD is continued by point reflection (``2 log S_0 - log S_k``,
+    monotonic stays monotonic), so that the first and last bins are compared with
+    themselves. The limit in Hz keeps the window inside a quarter of the response's period
+    on coarse grids (41 bins of a 10-min segment would span two periods).
+
+    ``f`` is a contiguous stretch of a uniform frequency grid [Hz].
     """
     psd = np.real(np.einsum("mii->mi", tdi_noise_csd(f, ltt_mean)))  # (m, 3)
-    local = smooth_csd(psd[:, :, None], half_width)[:, :, 0]
-    return np.all(psd >= depth * local, axis=1)
+    total = psd.sum(axis=1)
+    keep = total >= depth * smooth_csd(total[:, None, None], half_width)[:, 0, 0]
+    m = psd.shape[0]
+    df = float(f[1] - f[0]) if m > 1 else 1.0
+    w = min(half_width, max(2, int(max_half_width / df)), m - 1)
+    log_psd = np.log(np.maximum(psd, np.finfo(float).tiny))
+    ext = np.concatenate([2 * log_psd[:1] - log_psd[w:0:-1], log_psd, 2 * log_psd[-1:] - log_psd[-2:-w - 2:-1]])
+    local = ndimage.median_filter(ext, size=(2 * w + 1, 1), mode="nearest")[w:w + m]
+    return keep & np.all(log_psd >= np.log(channel_depth) + local, axis=1)
 
 
 def variance_factor(window_name: str, n: int, overlap: float) -> float:

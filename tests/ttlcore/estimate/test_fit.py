@@ -8,9 +8,9 @@ from scipy import signal
 
 from ttlcore.sim.coefficients import make_coefficients
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY
-from ttlcore.estimate.fit import FitSettings, dws_asd_from_config, fit_tdi
+from ttlcore.estimate.fit import FitSettings, dws_asd_from_config, fit_tdi, notch_mask
 from ttlcore.io.lisainstrument import lisainstrument_truth
-from ttlcore.estimate.noise_psd import requirement_x2
+from ttlcore.estimate.noise_psd import requirement_x2, tdi_noise_csd
 from ttlcore.sim.simulator import NoiseSwitches, SimulationConfig, simulate
 from ttlcore.estimate.spectra import log_average
 from ttlcore.tdi.data import compute_tdi, compute_tdi_arrays
@@ -166,3 +166,43 @@ def test_ttl_residual_far_below_other_noises():
     _, p_oth = signal.welch(others[ok], fs=tm.fs, nperseg=1 << 15)
     band = (f >= 3e-3) & (f <= 0.9)
     assert np.median(np.sqrt(p_oth[band] / p_res[band])) > 5
+
+
+# mean light travel times [s] of a Keplerian day (the simulated null day of the blind tests)
+KEPLERIAN_LTT = np.array([8.33256729, 8.30282346, 8.33227867, 8.33146216, 8.30446928, 8.33172602])
+
+
+@pytest.mark.parametrize("segment", [3600.0, 21600.0])
+def test_notch_mask_keeps_the_steep_low_band_and_every_bin_far_from_a_zero(segment):
+    # the first zero of the TDI response is at c / 4L ~ 30 mHz: between 5 and 25 mHz
+    # nothing is a zero, however steep T's PSD (it rises as ~f^6 there; the sum's test,
+    # with its running mean, leaves out the lowest bins of coarse grids: 3-5 mHz of 1-h
+    # segments, 3-10 mHz of 10-min ones);
+    # and no bin more than 4 mHz from a multiple of c / 4L is left out either
+    f = np.fft.rfftfreq(int(segment * 2), 0.5)
+    f = f[(f >= 3e-3) & (f <= 0.8)]
+    keep = notch_mask(f, KEPLERIAN_LTT)
+    assert keep[(f > 5e-3) & (f < 0.025)].all()
+    if segment >= 21600:
+        assert keep[f < 0.025].all()
+    zero_spacing = 1 / (4 * KEPLERIAN_LTT.mean())
+    dist = np.abs(f / zero_spacing - np.round(f / zero_spacing)) * zero_spacing
+    assert keep[(dist > 4e-3) & (f > 5e-3)].all()
+
+
+def test_notch_mask_leaves_out_a_zero_of_one_channel_that_the_sum_does_not_show():
+    # with unequal arms A, E and T have their zeros near 6 c / L ~ 0.721 Hz at different
+    # frequencies; the bin of each channel's own minimum is left out, although the sum of
+    # the three does not dip as deep (the earlier rule tested the sum alone)
+    f = np.fft.rfftfreq(43200, 0.5)
+    f = f[(f >= 0.70) & (f <= 0.74)]
+    psd = np.real(np.einsum("mii->mi", tdi_noise_csd(f, KEPLERIAN_LTT)))
+    keep = notch_mask(f, KEPLERIAN_LTT)
+    total = psd.sum(axis=1)
+    for c in range(3):
+        k = int(np.argmin(psd[:, c]))
+        assert not keep[k], c
+    # T's zero there is deep (1 % of its median), the sum's is not (above 0.3 of its median)
+    k = int(np.argmin(psd[:, 2]))
+    assert psd[k, 2] < 0.05 * np.median(psd[k - 20:k + 21, 2])
+    assert total[k] > 0.3 * np.median(total[k - 20:k + 21])
