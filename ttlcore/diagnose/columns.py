@@ -421,15 +421,17 @@ def base_column(data, column) -> ColumnSet:
     return cs
 
 
-def filtered_spectra(data, base: ColumnSet, responses) -> tuple[np.ndarray, np.ndarray]:
+def filtered_spectra(data, base: ColumnSet, responses, transform: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Whitened spectra (S, m, 3, k) and decimated series (3, k, n) of the one-column set
     ``base`` through the filters ``responses`` (callables ``f -> complex``), filtered in the
     time domain before the segments are windowed (:func:`ttlcore.diagnose.effects.filtered`):
     multiplying the windowed segment's spectrum instead misses the filter's ringing across
-    the taper, a few tens of per cent of a strong resonance's excess at the segment ends."""
+    the taper, a few tens of per cent of a strong resonance's excess at the segment ends.
+    ``transform``: :func:`ttlcore.diagnose.effects.filter_transform` of the base series,
+    when it is filtered many times (a search)."""
     x = base.series[:, 0]
     ok = np.isfinite(x)
-    series = np.stack([np.where(ok, y, np.nan) for y in filtered_many(x, data.fs, responses)], axis=1)
+    series = np.stack([np.where(ok, y, np.nan) for y in filtered_many(x, data.fs, responses, transform)], axis=1)
     return data.whiten(data.spectra(series)), series
 
 
