@@ -184,16 +184,24 @@ class _Spectral:
         self.bases = bases
         self.base_names = [b.names[0] for b in bases]
         B = concat(*bases)
-        wM = self.wM = model.columns.w  # (S, m, 3, P)
+        wM = model.columns.w  # (S, m, 3, P)
+        wMconj = wM.conj()
+        del wM
         U = B.w  # (S, m, 3, nb)
-        self.PM = np.einsum("smcp,smcb->mpb", wM.conj(), U)
-        self.Pud = np.einsum("smcb,smc->mb", U.conj(), data.wd)
-        self.Puu = np.einsum("smcb,smce->mbe", U.conj(), U)
-        # errors-in-variables: readout-noise responses per DWS channel
+        Uconj = U.conj()
+        self.PM = np.einsum("smcp,smcb->mpb", wMconj, U)
+        self.Pud = np.einsum("smcb,smc->mb", Uconj, data.wd)
+        self.Puu = np.einsum("smcb,smce->mbe", Uconj, U)
+        del U, Uconj
+        # errors-in-variables: readout-noise responses per DWS channel; only the channels
+        # of the base columns add to their products with the model's columns and each other
         parts_of = model.columns.eiv + B.eiv
+        touched = {ch for parts in B.eiv for ch, *_ in parts}
         resp: dict = {}
         for i, parts in enumerate(parts_of):
             for ch, link, extra, factor in parts:
+                if ch not in touched:
+                    continue
                 r = resp.setdefault(ch, np.zeros((data.f.size, 3, len(parts_of)), dtype=complex))
                 r[:, :, i] += data.store.eiv_response(data, link, extra) * readout_noise_factor(data.f, factor)
         W = eiv_weights(data, model.columns, B)
@@ -203,7 +211,7 @@ class _Spectral:
         for r in resp.values():
             self.eMB = self.eMB + np.einsum("mcp,mcb->mpb", r[:, :, :P].conj(), r[:, :, P:]) * W[:P, P:][None]
             self.eBB = self.eBB + np.einsum("mcb,mce->mbe", r[:, :, P:].conj(), r[:, :, P:]) * W[P:, P:][None]
-        self.wMc = np.ascontiguousarray(wM.reshape(-1, wM.shape[-1]).conj().T)  # (P, S m 3)
+        self.wMc = np.ascontiguousarray(wMconj.reshape(-1, wMconj.shape[-1]).T)  # (P, S m 3)
         self.wdc = data.wd.reshape(-1).conj()
         self._cache: dict = {}
         self._transforms: dict = {}
@@ -244,7 +252,8 @@ class _Spectral:
             NKK = (wK.conj().T @ wK).real - eKK
             bK = (wK.T @ self.wdc).real
         else:
-            NMK = np.stack([(NMB[j] @ R[:, j]).real for j in range(k)], axis=1)
+            RT = np.ascontiguousarray(R.T)  # (k, m): the same products as with the strided columns
+            NMK = np.stack([(NMB[j] @ RT[j]).real for j in range(k)], axis=1)
             NKK = np.einsum("mj,mjk,mk->jk", Rc, NBB, R).real
             bK = np.einsum("km,mk->k", Pud, Rc).real
         P = self.NM.shape[0]
