@@ -120,7 +120,10 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
             say("witness search")
             report["witnesses"] = witness_search(tm, model.data, model, s.top_witnesses)
             lap("witnesses")
-            pool.submit(witness_candidates(report["witnesses"], s.witness_candidates, effect_modules))
+            # the searched ones (pole searches, seconds each) first, so that the threads end
+            # together instead of one running the last search alone
+            extra = witness_candidates(report["witnesses"], s.witness_candidates, effect_modules)
+            pool.submit(sorted(extra, key=lambda e: not e.unresolved()))
         else:
             report["witnesses"] = None
         say("candidates")
