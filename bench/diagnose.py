@@ -81,6 +81,7 @@ def main() -> int:
     prof = cProfile.Profile() if args.profile else None
     if prof:
         prof.enable()
+    load_before = os.getloadavg()[0]
     t = time.perf_counter()
     ru = resource.getrusage(resource.RUSAGE_SELF)
     report = diagnose(tm, settings=DiagnoseSettings(workers=args.workers))
@@ -97,6 +98,8 @@ def main() -> int:
         "duration_s": args.duration,
         "cpu_count": os.cpu_count(),
         "simulate_s" if args.data is None else "read_s": round(t_sim, 2),
+        # the machine is shared: its load before and after the diagnosis (wall times scale with it)
+        "load_average_1min_before": round(load_before, 2),
         "load_average_1min": round(os.getloadavg()[0], 2),
         "injected": spec,
         "diagnose_wall_time_s": round(wall, 2),

@@ -180,6 +180,9 @@ class ColumnStore:
     def __init__(self):
         self._sets: dict = {}
         self._eiv: dict = {}
+        # (combination, extra delays) -> (f, ltt_mean, link_responses): the unwhitened
+        # responses do not change with the noise model (one diagnosis: one f, one ltt_mean)
+        self._links: dict = {}
         self._latest: dict = {}  # family -> its latest key (columns built with fitted coefficients)
 
     def get(self, key, data) -> ColumnSet | None:
@@ -205,6 +208,15 @@ class ColumnStore:
         self._sets[key] = (data.Lh, cs)
         return cs
 
+    def _link_responses(self, data, combination, extra: tuple) -> np.ndarray:
+        """:func:`ttlcore.tdi.combinations.link_responses` of ``combination`` on ``data.f``
+        (every link), computed once per diagnosis and extra delays."""
+        entry = self._links.get((combination.name, extra))
+        if entry is None or entry[0] is not data.f or entry[1] is not data.ltt_mean:
+            entry = (data.f, data.ltt_mean, link_responses(combination, data.f, data.ltt_mean, extra))
+            self._links[(combination.name, extra)] = entry
+        return entry[2]
+
     def eiv_response(self, data, link, extra) -> np.ndarray:
         """Whitened A, E, T response (m, 3) to the DWS readout noise of a witness ``-DWS/c``
         placed on ``link`` after ``extra`` delays, times the noise's ASD (velocity)."""
@@ -213,7 +225,7 @@ class ColumnStore:
         if r is None:
             if len(self._eiv) > 64:
                 self._eiv.clear()
-            h = np.stack([link_responses(c, data.f, data.ltt_mean, tuple(extra))[LINKS.index(link)] for c in MICHELSON])
+            h = np.stack([self._link_responses(data, c, tuple(extra))[LINKS.index(link)] for c in MICHELSON])
             T = (AET_MATRIX @ h).T * (-1.0 / SPEED_OF_LIGHT)  # (m, 3)
             r = self._eiv[key] = np.matmul(data.Lh, T[..., None])[..., 0] * (2 * np.pi * data.f * data.dws_asd)[:, None]
         return r
@@ -421,15 +433,17 @@ def base_column(data, column) -> ColumnSet:
     return cs
 
 
-def filtered_spectra(data, base: ColumnSet, responses) -> tuple[np.ndarray, np.ndarray]:
+def filtered_spectra(data, base: ColumnSet, responses, transform: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Whitened spectra (S, m, 3, k) and decimated series (3, k, n) of the one-column set
     ``base`` through the filters ``responses`` (callables ``f -> complex``), filtered in the
     time domain before the segments are windowed (:func:`ttlcore.diagnose.effects.filtered`):
     multiplying the windowed segment's spectrum instead misses the filter's ringing across
-    the taper, a few tens of per cent of a strong resonance's excess at the segment ends."""
+    the taper, a few tens of per cent of a strong resonance's excess at the segment ends.
+    ``transform``: :func:`ttlcore.diagnose.effects.filter_transform` of the base series,
+    when it is filtered many times (a search)."""
     x = base.series[:, 0]
     ok = np.isfinite(x)
-    series = np.stack([np.where(ok, y, np.nan) for y in filtered_many(x, data.fs, responses)], axis=1)
+    series = np.stack([np.where(ok, y, np.nan) for y in filtered_many(x, data.fs, responses, transform)], axis=1)
     return data.whiten(data.spectra(series)), series
 
 

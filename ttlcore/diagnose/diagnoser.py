@@ -26,6 +26,7 @@ import time
 from dataclasses import replace
 
 import numpy as np
+from scipy import fft as sp_fft
 
 from ..errors import ConfigError
 from ..tdi.data import TDIData
@@ -83,15 +84,18 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
     eff = make_effects(list(effects), effect_modules)
     if not any(e.name == "linear-ttl" for e in eff):
         log.warning("model without linear-ttl: the 24 linear coefficients are not fitted")
-    say("TDI and spectra")
-    data = whiten_telemetry(tm, s, effect_modules)
-    lap("tdi_and_spectra")
-    say("fit")
-    model = fit_model(data, eff)
-    if s.noise_model == "fitted":
-        say("noise model")
-        model = _with_noise_levels(model)
-    lap("fit")
+    # FFTs on every core while nothing else runs; one per thread once the candidates'
+    # threads start (the diagnosis' transforms take the calling thread's default)
+    with sp_fft.set_workers(-1):
+        say("TDI and spectra")
+        data = whiten_telemetry(tm, s, effect_modules)
+        lap("tdi_and_spectra")
+        say("fit")
+        model = fit_model(data, eff)
+        if s.noise_model == "fitted":
+            say("noise model")
+            model = _with_noise_levels(model)
+        lap("fit")
     report: dict = {"model": model_json(model, truth_coefficients)}
     report["adequacy"] = report["model"]["adequacy"]
     if len(eff) > 1 or eff[0].name != "linear-ttl":
@@ -116,7 +120,10 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
             say("witness search")
             report["witnesses"] = witness_search(tm, model.data, model, s.top_witnesses)
             lap("witnesses")
-            pool.submit(witness_candidates(report["witnesses"], s.witness_candidates, effect_modules))
+            # the searched ones (pole searches, seconds each) first, so that the threads end
+            # together instead of one running the last search alone
+            extra = witness_candidates(report["witnesses"], s.witness_candidates, effect_modules)
+            pool.submit(sorted(extra, key=lambda e: not e.unresolved()))
         else:
             report["witnesses"] = None
         say("candidates")
@@ -169,6 +176,11 @@ def refit(source, effects=("linear-ttl",), *, settings: DiagnoseSettings | None 
         "bands_after"}, "_internals": {"data", "fit", "baseline_fit"}}`` (``data``: the
         :class:`~ttlcore.diagnose.whitened.WhitenedData` of the model's final noise model).
     """
+    with sp_fft.set_workers(-1):  # serial: the FFTs on every core
+        return _refit(source, effects, settings, effect_modules, dws_asd, baseline)
+
+
+def _refit(source, effects, settings, effect_modules, dws_asd, baseline) -> dict:
     if isinstance(source, WhitenedData):
         data = source
     elif isinstance(source, TDIData):

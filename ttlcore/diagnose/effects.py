@@ -200,15 +200,21 @@ def filtered(x: np.ndarray, fs: float, response) -> np.ndarray:
     return filtered_many(x, fs, [response])[0]
 
 
-def filtered_many(x: np.ndarray, fs: float, responses) -> list[np.ndarray]:
+def filtered_many(x: np.ndarray, fs: float, responses, transform: tuple | None = None) -> list[np.ndarray]:
     """``x`` through each filter of ``responses`` (:func:`filtered`), the series'
-    transform computed once."""
+    transform computed once (or given: ``transform``, :func:`filter_transform` of ``x``,
+    for many calls on one series)."""
+    f, X, n = transform if transform is not None else filter_transform(x, fs)
+    return [np.fft.irfft(X * r(f), 2 * n)[..., :n] for r in responses]
+
+
+def filter_transform(x: np.ndarray, fs: float) -> tuple[np.ndarray, np.ndarray, int]:
+    """The transform :func:`filtered_many` filters ``x`` with: ``(f, X, n)``, the series
+    (NaN as zero) zero-padded to twice its length ``n``."""
     x = np.nan_to_num(np.asarray(x, dtype=float))
     n = x.shape[-1]
     nfft = 2 * n
-    f = np.fft.rfftfreq(nfft, 1.0 / fs)
-    X = np.fft.rfft(x, nfft)
-    return [np.fft.irfft(X * r(f), nfft)[..., :n] for r in responses]
+    return np.fft.rfftfreq(nfft, 1.0 / fs), np.fft.rfft(x, nfft), n
 
 
 def partner(mosa: str) -> str:
@@ -925,12 +931,21 @@ class FrequencyCoupling(_Placed):
         return {"f0": (1e-3, 2.0, "log"), "q": (0.5, 300.0, "log")}
 
     def response_functions(self) -> list:
-        """The basis responses ``f -> complex`` for the current poles."""
+        """The basis responses ``f -> complex`` for the current poles.  They share the
+        basis: computed once for the frequency array they are called with in turn (the same
+        array object, which must not change in place between the calls)."""
         if self.kind == "pole1":
-            fc = float(self.options["fc"])
-            return [functools.partial(lambda f, j: rational_basis("pole1", f, fc)[j], j=j) for j in range(2)]
-        f0, q = float(self.options["f0"]), float(self.options["q"])
-        return [functools.partial(lambda f, j: rational_basis("pole2", f, f0, q)[j], j=j) for j in range(3)]
+            poles, n = (float(self.options["fc"]),), 2
+        else:
+            poles, n = (float(self.options["f0"]), float(self.options["q"])), 3
+        last: list = []  # [(f, basis)]: the last frequency array and its basis
+
+        def basis(f):
+            if not (last and last[0][0] is f):
+                last[:] = [(f, rational_basis(self.kind, f, *poles))]
+            return last[0][1]
+
+        return [functools.partial(lambda f, j: basis(f)[j], j=j) for j in range(n)]
 
     def holds_flat(self, source: str, link: str, n_delays: int) -> bool:
         """Whether the basis keeps all its columns on this placement.

@@ -291,7 +291,7 @@ def time_adequacy(model: ModelFit) -> dict:
     rows = []
     for s0 in range(lo, hi - L + 1, L):
         seg = resid[:, s0:s0 + L]
-        _, X = segment_fft(np.nan_to_num(seg), data.fs, win)
+        _, X = segment_fft(np.nan_to_num(seg), data.fs, win, workers=None)
         wr = np.matmul(Lh, X[:, keep].T[..., None])[..., 0][None]
         tab = band_table(wr, bidx, data.edges, 0, kappa, s.tolerance, s.alpha)
         chi2, dof = tab.chi2.sum(), tab.dof.sum()

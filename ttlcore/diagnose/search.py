@@ -50,11 +50,11 @@ import math
 from dataclasses import dataclass, field
 
 import numpy as np
+from scipy import fft as sp_fft
 from scipy import optimize, special
 from scipy.optimize import minimize_scalar
 
 from ..errors import ConfigError
-from ..estimate.spectra import segment_fft
 from ..tdi.combinations import MICHELSON, aet, build
 from ..tdi.data import history_samples, lowpass_taps
 from .columns import (
@@ -73,6 +73,7 @@ from .effects import (
     Step,
     columns_tdi,
     effect_input_from_telemetry,
+    filter_transform,
     names_only_input,
     readout_noise_factor,
 )
@@ -183,16 +184,24 @@ class _Spectral:
         self.bases = bases
         self.base_names = [b.names[0] for b in bases]
         B = concat(*bases)
-        wM = self.wM = model.columns.w  # (S, m, 3, P)
+        wM = model.columns.w  # (S, m, 3, P)
+        wMconj = wM.conj()
+        del wM
         U = B.w  # (S, m, 3, nb)
-        self.PM = np.einsum("smcp,smcb->mpb", wM.conj(), U)
-        self.Pud = np.einsum("smcb,smc->mb", U.conj(), data.wd)
-        self.Puu = np.einsum("smcb,smce->mbe", U.conj(), U)
-        # errors-in-variables: readout-noise responses per DWS channel
+        Uconj = U.conj()
+        self.PM = np.einsum("smcp,smcb->mpb", wMconj, U)
+        self.Pud = np.einsum("smcb,smc->mb", Uconj, data.wd)
+        self.Puu = np.einsum("smcb,smce->mbe", Uconj, U)
+        del U, Uconj
+        # errors-in-variables: readout-noise responses per DWS channel; only the channels
+        # of the base columns add to their products with the model's columns and each other
         parts_of = model.columns.eiv + B.eiv
+        touched = {ch for parts in B.eiv for ch, *_ in parts}
         resp: dict = {}
         for i, parts in enumerate(parts_of):
             for ch, link, extra, factor in parts:
+                if ch not in touched:
+                    continue
                 r = resp.setdefault(ch, np.zeros((data.f.size, 3, len(parts_of)), dtype=complex))
                 r[:, :, i] += data.store.eiv_response(data, link, extra) * readout_noise_factor(data.f, factor)
         W = eiv_weights(data, model.columns, B)
@@ -202,9 +211,10 @@ class _Spectral:
         for r in resp.values():
             self.eMB = self.eMB + np.einsum("mcp,mcb->mpb", r[:, :, :P].conj(), r[:, :, P:]) * W[:P, P:][None]
             self.eBB = self.eBB + np.einsum("mcb,mce->mbe", r[:, :, P:].conj(), r[:, :, P:]) * W[P:, P:][None]
-        self.wMc = np.ascontiguousarray(wM.reshape(-1, wM.shape[-1]).conj().T)  # (P, S m 3)
+        self.wMc = np.ascontiguousarray(wMconj.reshape(-1, wMconj.shape[-1]).T)  # (P, S m 3)
         self.wdc = data.wd.reshape(-1).conj()
         self._cache: dict = {}
+        self._transforms: dict = {}
         self.NM = model.normal[0].sum(axis=(0, 1)) - model.eiv_term.sum(axis=0)
         self.bM = model.normal[1].sum(axis=(0, 1))
         self.thM = np.linalg.solve(self.NM, self.bM)
@@ -231,19 +241,21 @@ class _Spectral:
         data = self.data
         R = np.stack([np.ones(data.f.size, complex) if c.response is None else np.asarray(c.response(data.f), complex)
                       for c in cols], axis=1)  # (m, k)
+        Rc = R.conj()
         NMB, NBB, Pud, eMB, eBB = self._products(idx)
         k = R.shape[1]
         if exact:
             eMK = np.stack([(eMB[j] @ R[:, j]).real for j in range(k)], axis=1)
-            eKK = np.einsum("mj,mjk,mk->jk", R.conj(), eBB, R).real
+            eKK = np.einsum("mj,mjk,mk->jk", Rc, eBB, R).real
             wK = self._exact_spectra(cols, idx)  # (S m 3, k)
             NMK = (self.wMc @ wK).real - eMK
             NKK = (wK.conj().T @ wK).real - eKK
             bK = (wK.T @ self.wdc).real
         else:
-            NMK = np.stack([(NMB[j] @ R[:, j]).real for j in range(k)], axis=1)
-            NKK = np.einsum("mj,mjk,mk->jk", R.conj(), NBB, R).real
-            bK = np.einsum("km,mk->k", Pud, R.conj()).real
+            RT = np.ascontiguousarray(R.T)  # (k, m): the same products as with the strided columns
+            NMK = np.stack([(NMB[j] @ RT[j]).real for j in range(k)], axis=1)
+            NKK = np.einsum("mj,mjk,mk->jk", Rc, NBB, R).real
+            bK = np.einsum("km,mk->k", Pud, Rc).real
         P = self.NM.shape[0]
         N = np.block([[self.NM, NMK], [NMK.T, NKK]])
         b = np.r_[self.bM, bK]
@@ -263,7 +275,9 @@ class _Spectral:
         out = np.empty((self.wMc.shape[1], len(cols)), dtype=complex)
         for i in dict.fromkeys(idx):
             js = [j for j, ii in enumerate(idx) if ii == i]
-            w, _ = filtered_spectra(data, self.bases[i], [cols[j].response for j in js])
+            if i not in self._transforms:  # the base series' transform, once per search
+                self._transforms[i] = filter_transform(self.bases[i].series[:, 0], data.fs)
+            w, _ = filtered_spectra(data, self.bases[i], [cols[j].response for j in js], self._transforms[i])
             out[:, js] = w.reshape(-1, len(js))
         return out
 
@@ -506,8 +520,25 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
     t_hi = data.t0 + (idx[-1] + 1) / data.fs - s.step_grid / 2
     stack = np.nan_to_num(np.stack([data.regressor_series[:, data.regressor_names.index(n)] for n in base], axis=1))
     names = [f"step.{n}" for n in base]
+    # evaluate_at(ts) is piecewise constant in ts: it reads ts only through comparisons with
+    # the decimated sample times (the step columns, their readout noise), the segments'
+    # starts and, for the correction, the telemetry's sample times; one evaluation per
+    # cell of those grids (the same numbers: the golden section ends inside one cell, and
+    # the scan and the light-travel-time multiples meet cells already evaluated)
+    t_dec = data.t0 + np.arange(data.mask.size) / data.fs  # as evaluate_at, eiv_at, _step_correction
+    memo: dict = {}
+
+    def cell(ts) -> tuple:
+        return (int(np.searchsorted(data.seg_t0, ts, side="right")), int(np.searchsorted(t_dec, ts)),
+                _correction_cell(data, ts))
 
     def evaluate_at(ts) -> Evidence:
+        key = cell(ts)
+        if key not in memo:
+            memo[key] = _evaluate_at(ts)
+        return memo[key]
+
+    def _evaluate_at(ts) -> Evidence:
         j = int(np.searchsorted(data.seg_t0, ts, side="right") - 1)
         after = np.arange(len(data.starts)) > j
         N_MK = np.where(after[:, None, None, None], G_MB, 0.0)
@@ -516,18 +547,21 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
         if 0 <= j < len(data.starts):
             s0 = data.starts[j]
             h = (data.t0 + (s0 + np.arange(data.L)) / data.fs >= ts).astype(float)
-            m = data.mask[s0:s0 + data.L]
-            seg = stack[:, :, s0:s0 + data.L] * h
+            wm = data.win * data.mask[s0:s0 + data.L]  # the taper on the valid samples (mask: 0 or 1)
+            seg = stack[:, :, s0:s0 + data.L] * h  # a new array: patched in place
             corr = _step_correction(data, ts, base)
             if corr is not None:  # exact TDI of the step near t_s (the delays straddle it)
                 k0, c = corr
                 lo, hi = max(k0 - s0, 0), min(k0 - s0 + c.shape[-1], data.L)
                 if hi > lo:
-                    seg = seg.copy()
                     seg[:, :, lo:hi] += c[:, :, lo - (k0 - s0):hi - (k0 - s0)]
-            # spectra of segment j only
-            _, X = segment_fft(seg * m, data.fs, data.win * m)
-            wK = np.matmul(data.Lh, np.moveaxis(X[:, :, data.bins], 2, 0))[None]  # (1, m, 3, k)
+            # spectra of segment j only: segment_fft(seg * m, fs, win * m) with m in {0, 1}
+            # (the same products), the taper applied in place, only the analysis bins scaled
+            seg *= wm
+            X = sp_fft.rfft(seg, axis=-1, workers=None)
+            del seg
+            X = np.sqrt(2.0 / (data.fs * np.sum(wm ** 2))) * X[:, :, data.bins]
+            wK = np.matmul(data.Lh, np.moveaxis(X, 2, 0))[None]  # (1, m, 3, k)
             XK = as_real(wK)
             N_MK[j] = gram_x(XM[:, j:j + 1], XK, data.slices)[0]
             N_KK[j] = gram_x(XK, XK, data.slices)[0]
@@ -587,21 +621,39 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
                         len(results), grid=[([float(t)], float(e.log_bayes_factor)) for t, e in results], evidence=ev)
 
 
+def _correction_stretch(data, ts: float) -> tuple[int, int, np.ndarray]:
+    """The telemetry samples ``[a, b)`` around ``t_s`` over which :func:`_step_correction`
+    computes the exact TDI of the step, the FIR taps of the decimation."""
+    tm, fs = data.tm, data.tm.fs
+    taps = lowpass_taps(fs) if data.decimation > 1 else np.ones(1)
+    hist = history_samples(fs, float(np.max(tm.ltt)))
+    i_ts = int(np.floor((ts - tm.t0) * fs))
+    return max(i_ts - hist - 8, 0), min(i_ts + hist + taps.size + 8, tm.size), taps
+
+
+def _correction_cell(data, ts: float) -> tuple | None:
+    """What :func:`_step_correction` reads of ``t_s``: its stretch of telemetry and the
+    number of the stretch's samples before ``t_s`` (None without telemetry)."""
+    if data.tm is None:
+        return None
+    a, b, _ = _correction_stretch(data, ts)
+    t = (data.tm.t0 + a / data.tm.fs) + np.arange(b - a) / data.tm.fs  # as the stretch's EffectInput.t
+    return a, b, int(np.count_nonzero(t < ts))
+
+
 def _step_correction(data, ts: float, base: list) -> tuple | None:
     """``TDI(H(t - t_s) w) - H(t - t_s) TDI(w)`` for the TTL witnesses ``base``, decimated:
     non-zero only where the TDI delays straddle ``t_s`` (about 70 s, spread by the
-    anti-alias filter), computed exactly on a short stretch of telemetry around ``t_s``.
+    anti-alias filter), computed exactly on a short stretch of telemetry around ``t_s``
+    (:func:`_correction_stretch`).
 
     Returns ``(first decimated sample index, array (3, k, n))`` or None without telemetry.
     """
     if data.tm is None:
         return None
     tm, fs = data.tm, data.tm.fs
-    taps = lowpass_taps(fs) if data.decimation > 1 else np.ones(1)
+    a, b, taps = _correction_stretch(data, ts)
     hist = history_samples(fs, float(np.max(tm.ltt)))
-    i_ts = int(np.floor((ts - tm.t0) * fs))
-    a = max(i_ts - hist - 8, 0)
-    b = min(i_ts + hist + taps.size + 8, tm.size)
     sub = tm.slice(a, b)
     inp = effect_input_from_telemetry(sub)
     step = (inp.t >= ts).astype(float)

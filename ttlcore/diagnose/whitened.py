@@ -37,7 +37,7 @@ from ..estimate.fit import (
 )
 from ..estimate.spectra import segment_fft, window
 from ..tdi.combinations import MICHELSON, aet
-from ..tdi.data import TDIData
+from ..tdi.data import TDIData, lowpass_decimate, lowpass_taps
 from .adequacy import instrument_noise_csd, merged_band_edges
 from .columns import ColumnStore, read_only, regressor_columns
 from .effects import (
@@ -177,7 +177,7 @@ class WhitenedData:
             bad = ~np.isfinite(x[:, :, s0:s0 + self.L]) & m
             if bad.any():
                 raise ConfigError("a regressor column is not finite inside the analysed span")
-            _, X = segment_fft(seg, self.fs, self.win * m)
+            _, X = segment_fft(seg, self.fs, self.win * m, workers=None)
             out[i] = np.moveaxis(X[:, :, self.bins], 2, 0)
         return out
 
@@ -187,12 +187,12 @@ class WhitenedData:
 
     def decimate(self, xyz: np.ndarray, is_aet: bool = False) -> np.ndarray:
         """XYZ (or A, E, T) TDI of columns (3, k, n_in) -> decimated A, E, T (3, k, n), the
-        data's anti-alias filter."""
+        data's anti-alias filter (:meth:`ttlcore.tdi.data.TDIData.decimated`; FFT threads:
+        the calling thread's default, one in the candidates' threads)."""
         a = xyz if is_aet else aet(xyz)
-        td = TDIData(t0=self.t0_in, fs=self.fs_in, channels=("A", "E", "T"), data=np.zeros((3, a.shape[-1])),
-                     regressors=a, names=tuple(f"c{k}" for k in range(a.shape[1])), ltt_mean=self.ltt_mean)
-        dec = td.decimated(self.decimation) if self.decimation > 1 else td
-        return dec.regressors
+        if self.decimation == 1:
+            return a
+        return lowpass_decimate([a], lowpass_taps(self.fs_in), self.decimation, workers=None)[0]
 
     def with_noise(self, csd: np.ndarray, noise_parameters=...) -> "WhitenedData":
         """The same data under another noise CSD (m, 3, 3): a new value (``self`` is left as

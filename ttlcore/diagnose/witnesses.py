@@ -75,7 +75,7 @@ def witness_library(tm, dg) -> tuple[list[dict], dict]:
             a, b = max(i0, 0), min(i0 + L, tm.size)
             if b > a:
                 seg[a - i0:b - i0] = x[a:b]
-            f, X = segment_fft(seg, fs, win)
+            f, X = segment_fft(seg, fs, win, workers=None)
             out[i] = np.interp(dg.f, f, X.real) + 1j * np.interp(dg.f, f, X.imag)
         return out
 

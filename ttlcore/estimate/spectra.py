@@ -29,8 +29,13 @@ def window(name: str, n: int) -> np.ndarray:
     return signal.get_window(name, n, fftbins=True)
 
 
-def segment_fft(x: np.ndarray, fs: float, win: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def segment_fft(x: np.ndarray, fs: float, win: np.ndarray, workers: int | None = -1) -> tuple[np.ndarray, np.ndarray]:
     """Windowed, PSD-normalised rFFT along the last axis.
+
+    ``workers``: threads of the transform (scipy.fft's: -1 one per core; None the calling
+    thread's default, ``scipy.fft.set_workers``, 1 unless set).  The transforms of a batch
+    are split between the threads, so the result does not depend on it; code that already
+    runs in several threads (the diagnosis' candidates) asks for one.
 
     Returns
     -------
@@ -40,7 +45,7 @@ def segment_fft(x: np.ndarray, fs: float, win: np.ndarray) -> tuple[np.ndarray, 
     x = np.asarray(x)
     n = x.shape[-1]
     scale = np.sqrt(2.0 / (fs * np.sum(win ** 2)))
-    return sp_fft.rfftfreq(n, 1 / fs), scale * sp_fft.rfft(x * win, axis=-1, workers=-1)
+    return sp_fft.rfftfreq(n, 1 / fs), scale * sp_fft.rfft(x * win, axis=-1, workers=workers)
 
 
 def default_nperseg(n: int, fs: float, max_seconds: float = 16384.0) -> int:

@@ -80,7 +80,7 @@ class TDIData:
                        regressors=self.regressors[:, :, start:stop])
 
     def decimated(self, factor: int = 2, passband: float = 0.9, stopband: float = 1.1,
-                  attenuation_db: float = 180.0) -> "TDIData":
+                  attenuation_db: float = 180.0, workers: int | None = -1) -> "TDIData":
         """Anti-alias low-pass and decimation of data and regressors alike (the paper fits at
         2 Hz after such a filter).
 
@@ -89,27 +89,11 @@ class TDIData:
         delay.  Besides aliasing, the filter removes what TDI leaves above 1 Hz (laser noise
         that order-31 interpolation near Nyquist cannot cancel), which would otherwise leak
         into the fit band of segment FFTs.  The filter is linear and the same for data and
-        regressors, so the TTL model stays exact.
+        regressors, so the TTL model stays exact.  ``workers``: FFT threads
+        (:func:`lowpass_decimate`).
         """
         h = lowpass_taps(self.fs, passband, stopband, attenuation_db)
-        n = self.size
-        nfft = sp_fft.next_fast_len(n + h.size - 1, real=True)
-        response = sp_fft.rfft(h, nfft)
-
-        def filt(x):  # causal linear convolution by FFT (exact: nfft covers the full length)
-            rows = x.reshape(-1, n)
-            out = np.empty((rows.shape[0], len(range(0, n, factor))))
-            for r0 in range(0, rows.shape[0], 8):  # a few rows at a time: bounded temporaries
-                chunk = np.nan_to_num(rows[r0 : r0 + 8], nan=0.0)  # NaN (delays before the data) -> 0, flagged below
-                y = sp_fft.irfft(sp_fft.rfft(chunk, nfft, axis=-1, workers=-1) * response, nfft, axis=-1, workers=-1)
-                out[r0 : r0 + 8] = y[..., :n:factor]
-            return out.reshape(x.shape[:-1] + (out.shape[-1],))
-
-        bad = ~(np.isfinite(self.data).all(axis=0) & np.isfinite(self.regressors).all(axis=(0, 1)))
-        spoiled = np.convolve(bad.astype(float), np.ones(h.size))[:n:factor] > 0  # outputs touched by NaN input
-        data, regs = filt(self.data), filt(self.regressors)
-        data[:, spoiled] = np.nan
-        regs[:, :, spoiled] = np.nan
+        data, regs = lowpass_decimate([self.data, self.regressors], h, factor, workers)
         return replace(self, t0=self.t0 - (h.size - 1) / 2 / self.fs, fs=self.fs / factor, data=data, regressors=regs)
 
     def model(self, coefficients: np.ndarray) -> np.ndarray:
@@ -122,6 +106,56 @@ def lowpass_taps(fs: float, passband: float = 0.9, stopband: float = 1.1, attenu
     numtaps, beta = signal.kaiserord(attenuation_db, (stopband - passband) / (fs / 2))
     numtaps |= 1
     return signal.firwin(numtaps, (passband + stopband) / 2, window=("kaiser", beta), fs=fs)
+
+
+def lowpass_decimate(arrays, taps: np.ndarray, factor: int, workers: int | None = -1) -> list[np.ndarray]:
+    """Series through the causal FIR ``taps`` and decimated by ``factor`` along the last axis
+    (:meth:`TDIData.decimated`); NaN samples count as zero, and an output that a NaN sample
+    reaches is NaN in every array (a sample time where any series is not finite).
+
+    Parameters
+    ----------
+    arrays : list of ndarray
+        Series of one length ``n`` on one time grid, shapes ``(..., n)``.
+    taps : ndarray
+        FIR taps (:func:`lowpass_taps`).
+    factor : int
+        Decimation factor.
+    workers : int or None
+        FFT threads (scipy.fft's: -1 one per core, None the calling thread's default); each
+        row is transformed alone, so the result does not depend on it.
+
+    Returns
+    -------
+    list of ndarray
+        Shapes ``(..., len(range(0, n, factor)))``: output ``i`` is the convolution at
+        input sample ``factor * i``.
+    """
+    n = arrays[0].shape[-1]
+    nfft = sp_fft.next_fast_len(n + taps.size - 1, real=True)
+    response = sp_fft.rfft(taps, nfft)
+
+    def filt(x):  # causal linear convolution by FFT (exact: nfft covers the full length)
+        rows = x.reshape(-1, n)
+        out = np.empty((rows.shape[0], len(range(0, n, factor))))
+        for r0 in range(0, rows.shape[0], 8):  # a few rows at a time: bounded temporaries
+            chunk = np.nan_to_num(rows[r0 : r0 + 8], nan=0.0)  # NaN (delays before the data) -> 0, flagged below
+            spec = sp_fft.rfft(chunk, nfft, axis=-1, workers=workers)
+            del chunk
+            spec *= response
+            out[r0 : r0 + 8] = sp_fft.irfft(spec, nfft, axis=-1, workers=workers)[..., :n:factor]
+        return out.reshape(x.shape[:-1] + (out.shape[-1],))
+
+    ok = np.ones(n, dtype=bool)
+    for x in arrays:
+        ok &= np.isfinite(x).reshape(-1, n).all(axis=0)
+    spoiled = np.convolve((~ok).astype(float), np.ones(taps.size))[:n:factor] > 0  # outputs touched by NaN input
+    out = []
+    for x in arrays:
+        y = filt(x)
+        y[..., spoiled] = np.nan
+        out.append(y)
+    return out
 
 
 def history_samples(fs: float, ltt_max: float = 8.6, order: int = DEFAULT_ORDER,

@@ -284,3 +284,21 @@ def test_fd_coupling_declares_its_searched_poles_and_holds_given_ones():
     assert on_tx.with_options(delay=2).column_names()[-1].endswith("+2L.b2")
     assert len(on_tx.with_options(vary="drift").column_names()) == 3
     assert searched.with_options(f0=0.1, q=5).cli_spec() == "fd-coupling:source=12.phi;link=23;delay=1;f0=0.1;q=5"
+
+
+def test_fd_coupling_responses_share_the_basis_per_frequency_array():
+    # the columns' responses compute the basis once per frequency array they are called
+    # with in turn; another array (or the same values in a new array) gets its own basis
+    from ttlcore.diagnose.effects import make_effects, rational_basis
+
+    eff, = make_effects(["fd-coupling:source=12.phi,link=23,delay=1,f0=0.08,q=15"])
+    resp = eff.response_functions()
+    f1, f2 = np.geomspace(1e-3, 1.0, 50), np.linspace(0.01, 0.9, 70)
+    for f in (f1, f2, f1.copy(), f1):
+        ref = rational_basis("pole2", f, 0.08, 15.0)
+        for j, r in enumerate(resp):
+            np.testing.assert_array_equal(r(f), ref[j])
+    one, = make_effects(["fd-coupling:mosas=12,filter=pole1,fc=0.05"])
+    r1 = one.response_functions()
+    assert len(r1) == 2
+    np.testing.assert_array_equal(r1[1](f2), rational_basis("pole1", f2, 0.05)[1])

@@ -9,7 +9,7 @@ from ttlcore.conventions import ARM_LENGTH, C, DAY, LINKS
 from ttlcore.estimate.noise_psd import simulated_single_link, tdi_noise_csd, x2_psd_equal_arms
 from ttlcore.sim.simulator import SimulationConfig, simulate
 from ttlcore.tdi.combinations import AET_MATRIX, X2, Y2, Z2, aet
-from ttlcore.tdi.data import TDIStream, compute_tdi, compute_tdi_arrays
+from ttlcore.tdi.data import TDIData, TDIStream, compute_tdi, compute_tdi_arrays, lowpass_decimate, lowpass_taps
 
 HOUR = 3600.0
 SECONDARY = ("oms", "backlink", "telescope", "test_mass")
@@ -74,6 +74,30 @@ def test_regressors_agree_with_pytdi_natural_usage():
     # what the fit uses: after its 0.9-1.1 Hz low-pass and decimation to 2 Hz (measured 6e-12)
     low, low_ref = ours.decimated(2), replace(ours, regressors=ref).decimated(2)
     assert rel(low.regressors, low_ref.regressors) < 1e-9
+
+
+def test_lowpass_decimate_is_the_causal_fir_and_flags_nan_in_every_array():
+    # the FFT convolution equals the direct causal FIR, every second sample kept; an output a
+    # NaN sample of any array reaches is NaN in all; data and regressors of TDIData.decimated
+    # are those of the arrays decimated alone (one FFT worker or two: the same numbers)
+    rng = np.random.default_rng(3)
+    n, fs = 3001, 4.0
+    a, b = rng.standard_normal((2, n)), rng.standard_normal((3, 2, n))
+    b[1, 0, 1500] = np.nan
+    h = lowpass_taps(fs)
+    da, db = lowpass_decimate([a, b], h, 2)
+    direct = np.stack([np.convolve(x, h)[:n:2] for x in a])
+    spoiled = np.zeros(len(range(0, n, 2)), dtype=bool)
+    spoiled[750:(1500 + h.size - 1) // 2 + 1] = True
+    assert np.array_equal(np.isnan(da), np.broadcast_to(spoiled, da.shape))
+    assert np.array_equal(np.isnan(db), np.broadcast_to(spoiled, db.shape))
+    np.testing.assert_allclose(da[:, ~spoiled], direct[:, ~spoiled], rtol=0, atol=1e-12)
+    td = TDIData(t0=0.0, fs=fs, channels=("X2", "Y2", "Z2"), data=b[:, 0], regressors=b[:, 1:])
+    dec = td.decimated(2, workers=1)
+    alone, = lowpass_decimate([b], h, 2, workers=2)
+    assert np.array_equal(dec.data, alone[:, 0], equal_nan=True)
+    assert np.array_equal(dec.regressors, alone[:, 1:], equal_nan=True)
+    assert dec.t0 == -(h.size - 1) / 2 / fs and dec.fs == fs / 2
 
 
 def test_combinations_are_rotations_and_aet_is_orthonormal():
