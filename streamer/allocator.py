@@ -26,7 +26,6 @@ import ctypes
 import ctypes.util
 import logging
 import os
-import platform
 
 log = logging.getLogger(__name__)
 
@@ -42,7 +41,10 @@ ENV_ARENA_MAX = "MALLOC_ARENA_MAX"
 
 def _glibc():
     """The C library as a :class:`ctypes.CDLL` when it is glibc, else None."""
-    if platform.libc_ver()[0] != "glibc":
+    try:
+        if not os.confstr("CS_GNU_LIBC_VERSION").startswith("glibc"):
+            return None
+    except (AttributeError, ValueError, OSError):  # no confstr, or not glibc
         return None
     try:
         libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)

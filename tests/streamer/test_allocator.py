@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import platform
 import subprocess
 import sys
 from pathlib import Path
@@ -12,7 +11,7 @@ import pytest
 from streamer import allocator
 
 ROOT = Path(__file__).resolve().parents[2]
-GLIBC = platform.libc_ver()[0] == "glibc"
+GLIBC = allocator._glibc() is not None
 
 
 def test_bad_values_name_the_setting():
