@@ -9,8 +9,9 @@ per stage: flat or growing.
 
 What is measured
 ----------------
-* **RSS per segment.**  Every stage process is sampled with psutil every ``--interval``
-  seconds; a sample belongs to the segment the stage handled last (its own progress, as the
+* **RSS per segment.**  Every stage process, and the run's Zenoh router (``ttl router``,
+  against the replayer's segments: every message goes through it), is sampled with psutil
+  every ``--interval`` seconds; a sample belongs to the segment the stage handled last (its own progress, as the
   launcher verified it on ``ttl/<run>/control/board/<stage>``), and a segment's RSS is the
   median of its samples.  Samples before the first segment (imports, set-up) and after the
   last one (waiting for the stop, closing the files) are left out.
@@ -73,6 +74,9 @@ from streamer.session import Bus, SessionSettings, free_port  # noqa: E402
 from ttlcore.conventions import DAY, parse_duration  # noqa: E402
 
 UPSTREAM = {"tdi_builder": "replayer", "fitter": "tdi_builder", "subtractor": "fitter", "monitor": "subtractor"}
+#: Processes that are not stages, sampled against the progress of a stage: the router's RSS
+#: against the segments the replayer has published.
+CLOCK = {"router": "replayer"}
 #: Noise of a series: this many standard deviations of its residuals about the fitted line.
 NOISE_SIGMAS = 2.0
 
@@ -204,11 +208,14 @@ def main(argv=None) -> int:
             loads.append(os.getloadavg()[0])
             for k in kids:
                 try:
-                    name = next((w.split(".", 1)[1] for w in k.cmdline() if w.startswith("stages.")), None)
+                    cmdline = k.cmdline()
+                    name = next((w.split(".", 1)[1] for w in cmdline if w.startswith("stages.")), None)
+                    if name is None and cmdline[3:4] == ["router"]:  # python -c "..." router ...
+                        name = "router"  # the run's Zenoh router (ttl router): every segment goes through it
                     if name:
                         mb = k.memory_info().rss / 2 ** 20
                         with lock:
-                            index = max(done_at.get(name, {}), default=-1)
+                            index = max(done_at.get(CLOCK.get(name, name), {}), default=-1)
                         rss.setdefault(name, []).append((index, mb))
                 except psutil.Error:
                     continue

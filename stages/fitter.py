@@ -54,6 +54,7 @@ from streamer.codec import Expect
 from streamer.keys import to_ranges
 from streamer.messages import tdi_of
 from streamer.pipeline_stage import OrderedStage
+from streamer.plan import RangeSet
 from streamer.recorder import read_recording, to_jsonable
 from streamer.stage import Output, stage_main
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY, parse_duration
@@ -101,7 +102,7 @@ class Fitter(OrderedStage):
             raise ConfigError(f"--band: expected FMIN FMAX with 0 < FMIN < FMAX, got {band}")
         self.band = tuple(float(b) for b in band) if band else None
         self.rolling: RollingFit | None = None
-        self.fits: set[int] = set()
+        self.fits = RangeSet()
         self._next_t0: float | None = None
         self.effect_modules = tuple(o.get("effect_modules") or ())
         self.effects = self.check_model(o.get("effects") or ["linear-ttl"])

@@ -18,7 +18,10 @@ it before the stage hands the message on (``docs/operations.md`` lists the rules
   segment is no data; a NaN stretch is data with a gap and goes through);
 * duplicates by content: a copy identical to the accepted one (producer, t0, fs and the
   payload checksum) is ignored; a different one is refused and the conflict recorded,
-  and so is any later copy of that index.  The first copy is kept out too when it has not
+  and so is any later copy of that index.  What the accepted copies were is remembered
+  within the index window only (memory bounded whatever the run's length): a copy more than
+  ``window`` segments behind the highest accepted index is refused as too late, identical
+  or not, without comparing it.  The first copy is kept out too when it has not
   been used yet: every accepted message waits in a :class:`Holdback` for ``hold`` seconds
   before the stage uses it, and a conflict withdraws it from there (or from the stage's own
   reorder buffer); the stage then treats the index as missing.
@@ -150,6 +153,65 @@ class RangeSet:
             out.append([pos, b])
         return out
 
+    def update(self, items: Iterable[int]) -> None:
+        """Add every index of ``items`` (a :class:`RangeSet` range by range)."""
+        if isinstance(items, RangeSet):
+            for a, b in zip(items._starts, items._ends):
+                self.add_range(a, b)
+        else:
+            for i in items:
+                self.add(i)
+
+    def copy(self) -> "RangeSet":
+        out = RangeSet()
+        out._starts, out._ends = list(self._starts), list(self._ends)
+        return out
+
+    def __or__(self, other) -> "RangeSet":
+        out = self.copy()
+        out.update(other)
+        return out
+
+    __ror__ = __or__
+
+    def __ior__(self, other) -> "RangeSet":
+        self.update(other)
+        return self
+
+    def __sub__(self, other) -> "RangeSet":
+        """The indices of this set not in ``other`` (a RangeSet or any container)."""
+        if isinstance(other, RangeSet):
+            out = RangeSet()
+            for a, b in zip(self._starts, self._ends):
+                for x, y in other.missing(a, b):
+                    out.add_range(x, y)
+            return out
+        out = self.copy()
+        for i in other:
+            out.discard(i)
+        return out
+
+    def __rsub__(self, other) -> set:
+        """``other - self`` for a plain set (or any iterable): a set."""
+        return {i for i in other if i not in self}
+
+    def issuperset(self, items) -> bool:
+        """True when every index of ``items`` is in the set (a ``range`` of step 1: in one look-up)."""
+        if isinstance(items, range) and items.step == 1:
+            return len(items) == 0 or self.covers(items.start, items.stop - 1)
+        if isinstance(items, RangeSet):
+            return all(self.covers(a, b) for a, b in zip(items._starts, items._ends))
+        return all(i in self for i in items)
+
+    def __eq__(self, other) -> bool:
+        if isinstance(other, RangeSet):
+            return self._starts == other._starts and self._ends == other._ends
+        if isinstance(other, (set, frozenset)):
+            return len(self) == len(other) and all(i in self for i in other)
+        return NotImplemented
+
+    __hash__ = None
+
     def __repr__(self) -> str:
         return f"RangeSet({self.ranges()})"
 
@@ -265,12 +327,20 @@ class Validator:
     def set_highest(self, index: int) -> None:
         """Move the window (e.g. to a checkpoint's position)."""
         self.highest = max(self.highest, int(index))
+        self._forget_old()
 
-    def forget(self, topic: str, before: int) -> None:
-        """Drop the digests of indices below ``before`` (bounded memory; later copies of those
-        are stale for the stage anyway)."""
-        for key in [k for k in self.digests if k[0] == topic and k[1] < before]:
-            del self.digests[key]
+    @property
+    def floor(self) -> int:
+        """Lowest index still compared with its accepted copy: ``highest - window`` (copies of
+        lower indices are refused as too late, their digests forgotten)."""
+        return self.highest - self.window
+
+    def _forget_old(self) -> None:
+        """Drop the digests below :attr:`floor`, once they are as many as those kept (amortized
+        O(1) per message; memory O(window) per topic)."""
+        floor = self.floor
+        if len(self.digests) > 2 * (self.window + 1) * max(1, len({t for t, _ in self.digests})):
+            self.digests = {k: v for k, v in self.digests.items() if k[1] >= floor}
 
     def check(self, topic: str, header, arrays: Mapping[str, np.ndarray]) -> str:
         plan, index = self.plan, header.index
@@ -286,6 +356,10 @@ class Validator:
         if self.highest >= 0 and index > self.highest + self.window:
             raise Rejected("rejected", "index", f"segment {index} is more than {self.window} ahead of the "
                                                f"highest accepted segment {self.highest}")
+        if index < self.floor:
+            raise Rejected("rejected", "index", f"segment {index} is more than {self.window} behind the "
+                                               f"highest accepted segment {self.highest}: too late (a copy that "
+                                               "old is not compared with the one accepted before)")
         if self.highest < 0 and plan is None and index > self.window and total is None:
             raise Rejected("rejected", "index", f"first segment {index} with no plan and no segments_total")
         if plan is not None:
@@ -327,6 +401,7 @@ class Validator:
     def accepted(self, topic: str, header) -> None:
         self.digests[(topic, header.index)] = content_digest(header)
         self.highest = max(self.highest, header.index)
+        self._forget_old()
         if self.plan is None:
             self._learned.setdefault(topic, (header.fs, _time_length(topic, header)))
             self._producers.setdefault(topic, header.producer)

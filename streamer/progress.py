@@ -34,8 +34,8 @@ import threading
 import time
 from dataclasses import dataclass, field
 
-from .keys import KeyExprError, from_ranges, parse_progress_key, to_ranges
-from .plan import MAX_SEGMENTS
+from .keys import KeyExprError, parse_progress_key
+from .plan import MAX_SEGMENTS, RangeSet
 
 #: Default number of segments the replayer may run ahead of the slowest stage.
 REPLAY_WINDOW = 4
@@ -46,20 +46,22 @@ class Progress:
     """What is known of one stage's progress: the union over all its messages (and processes).
 
     A pipeline stage keeps its own progress in one too (:attr:`done`, :attr:`failed`,
-    :attr:`gaps` of this process) and publishes :meth:`message`.
+    :attr:`gaps` of this process) and publishes :meth:`message`.  Index sets are
+    :class:`streamer.plan.RangeSet` (memory by ranges, not by index: a run's progress is a
+    few ranges however long the run); sets given to the constructor are converted.
 
     Attributes
     ----------
     stage : str
         Stage name.
-    done, failed, gaps : set of int
+    done, failed, gaps : RangeSet
         Segment indices whose output was published, given up, given up for lack of data.
     segments_total : int or None
         Segments of the run, once known.
     complete : bool
         The stage said it handled its last segment with nothing pending.
     extra : dict
-        Name -> set of indices, the stage's extras (``"fits"``: indices that produced a fit).
+        Name -> RangeSet of indices, the stage's extras (``"fits"``: indices that produced a fit).
     last : dict
         The last message taken.
     pids : set of int
@@ -69,25 +71,31 @@ class Progress:
     """
 
     stage: str
-    done: set = field(default_factory=set)
-    failed: set = field(default_factory=set)
+    done: RangeSet = field(default_factory=RangeSet)
+    failed: RangeSet = field(default_factory=RangeSet)
     segments_total: int | None = None
-    gaps: set = field(default_factory=set)
+    gaps: RangeSet = field(default_factory=RangeSet)
     complete: bool = False
     last: dict = field(default_factory=dict)
     pids: set = field(default_factory=set)
     extra: dict = field(default_factory=dict)
     updated: float = 0.0
 
+    def __post_init__(self):
+        for name in ("done", "failed", "gaps"):
+            value = getattr(self, name)
+            if not isinstance(value, RangeSet):
+                setattr(self, name, RangeSet(value))
+        self.extra = {n: v if isinstance(v, RangeSet) else RangeSet(v) for n, v in self.extra.items()}
+
     @property
-    def handled(self) -> set:
+    def handled(self) -> RangeSet:
         return self.done | self.failed
 
     @property
     def highest(self) -> int:
         """Highest handled index (-1 when none)."""
-        h = self.handled
-        return max(h) if h else -1
+        return max(self.done.max(), self.failed.max())
 
     def covers(self, total: int | None = None) -> bool:
         """True when every index ``0 .. total-1`` was handled."""
@@ -100,30 +108,36 @@ class Progress:
         if isinstance(msg.get("segments_total"), int) and 0 < msg["segments_total"] <= MAX_SEGMENTS:
             self.segments_total = msg["segments_total"]
         limit = limit or self.segments_total or MAX_SEGMENTS
-        self.done |= from_ranges(msg.get("done"), limit)
-        self.failed |= from_ranges(msg.get("failed"), limit)
-        self.gaps |= from_ranges(msg.get("gaps"), limit)
+        self.done |= RangeSet.from_ranges(msg.get("done"), limit)
+        self.failed |= RangeSet.from_ranges(msg.get("failed"), limit)
+        self.gaps |= RangeSet.from_ranges(msg.get("gaps"), limit)
         self.complete = self.complete or bool(msg.get("complete"))
         if msg.get("pid") is not None:
             self.pids.add(msg["pid"])
         for name, value in msg.items():
             if name.endswith("_ranges"):
-                self.extra.setdefault(name[: -len("_ranges")], set()).update(from_ranges(value, limit))
+                self.extra.setdefault(name[: -len("_ranges")], RangeSet()).update(RangeSet.from_ranges(value, limit))
         self.last = msg
         self.updated = time.monotonic()
 
     def message(self, run: str, **fields) -> dict:
         """This progress as a message (module docstring); ``fields`` (``pid``, ``index``) added."""
         return {"run": run, "stage": self.stage, "time": time.time(), **fields,
-                "done": to_ranges(self.done), "failed": to_ranges(self.failed), "gaps": to_ranges(self.gaps),
+                "done": self.done.ranges(), "failed": self.failed.ranges(), "gaps": self.gaps.ranges(),
                 "segments_total": self.segments_total, "complete": self.complete,
-                **{f"{name}_ranges": to_ranges(v) for name, v in self.extra.items()}}
+                **{f"{name}_ranges": _ranges(v) for name, v in self.extra.items()}}
 
     def copy(self) -> "Progress":
         """A copy that shares no set with this one."""
-        return Progress(self.stage, set(self.done), set(self.failed), self.segments_total, set(self.gaps),
+        return Progress(self.stage, self.done.copy(), self.failed.copy(), self.segments_total, self.gaps.copy(),
                         self.complete, dict(self.last), set(self.pids),
-                        {n: set(s) for n, s in self.extra.items()}, self.updated)
+                        {n: RangeSet(s) if not isinstance(s, RangeSet) else s.copy() for n, s in self.extra.items()},
+                        self.updated)
+
+
+def _ranges(indices) -> list[list[int]]:
+    """``[[first, last], ...]`` of a RangeSet or of any iterable of indices."""
+    return indices.ranges() if isinstance(indices, RangeSet) else RangeSet(indices).ranges()
 
 
 def parse_progress(payload) -> dict | None:

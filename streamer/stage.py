@@ -49,6 +49,7 @@ import numpy as np
 
 from ttlcore.errors import TTLError
 
+from . import allocator
 from .codec import CodecError, Expect, Header, decode, encode
 from .keys import (
     KeyExprError,
@@ -745,6 +746,9 @@ def stage_main(stage_class: type[Stage], argv: Sequence[str] | None = None,
         add_options(parser)
     args = parser.parse_args(argv)
     configure_logging(args.log_level, args.log_json)
+    # before the stage allocates anything or starts threads: freed multi-megabyte blocks go
+    # back to the system (streamer/allocator.py; docs/operations.md, Measured)
+    allocator.configure()
     try:
         if not args.config and not args.run:
             raise ValueError("--run (or --config with a 'run' field) is required")

@@ -5,6 +5,8 @@ import pytest
 from streamer.keys import (KeyExprError, SegmentKey, alive_key, alive_pattern, control_key,
                            errors_key, parse_alive_key, parse_control_key, parse_segment_key,
                            segment_key, topic_pattern)
+from streamer.plan import RangeSet
+from streamer.progress import Progress
 
 
 def test_build_and_parse_round_trip():
@@ -83,3 +85,19 @@ def test_progress_keys_and_the_one_topology():
     assert q.covers() and q.complete
     q.update({"done": [[0, 2 ** 40]], "stage": "fitter"}, limit=8)  # clipped, not 2^40 entries
     assert max(q.done) == 7
+
+
+def test_progress_is_ranges_however_long_the_run():
+    """A stage's progress after 100000 segments is one range per set, not one entry per
+    segment, and the message it publishes stays one line long."""
+    p = Progress("fitter", segments_total=100_000)
+    follower = Progress("fitter")
+    for i in range(100_000):
+        p.done.add(i)
+        if i % 7 == 3:
+            p.extra.setdefault("fits", RangeSet()).add(i)
+        if i % 1000 == 999:
+            follower.update(p.message("r", index=i))
+    assert p.done.n_ranges == 1 and follower.done.n_ranges == 1 and follower.covers()
+    assert p.message("r")["done"] == [[0, 99_999]] and len(follower.extra["fits"]) == len(range(3, 100_000, 7))
+    assert isinstance(p.copy().done, RangeSet) and p.copy().done == p.done and p.copy().done is not p.done

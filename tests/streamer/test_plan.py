@@ -56,6 +56,41 @@ def test_range_set_keeps_ranges_not_indices():
     assert from_ranges([[0, 2 ** 40]], limit=30) == set(range(30)) and from_ranges([[-5, 2]]) == {0, 1, 2}
 
 
+def test_range_set_operations_as_sets():
+    """The set operations the progress bookkeeping uses give what plain sets give."""
+    rng = np.random.default_rng(3)
+    for _ in range(50):
+        a, b = (set(rng.integers(0, 40, rng.integers(0, 30)).tolist()) for _ in range(2))
+        ra, rb = RangeSet(a), RangeSet(b)
+        assert ra | rb == a | b and (ra | b) == a | b and (a | rb) == a | b
+        assert ra - rb == a - b and ra - b == a - b and (a - rb) == a - b and isinstance(a - rb, set)
+        assert ra.issuperset(b) == a.issuperset(b) and ra.issuperset(rb) == a.issuperset(b)
+        assert ra.issuperset(range(5, 12)) == a.issuperset(range(5, 12))
+        c = ra.copy()
+        c |= rb
+        assert c == a | b and ra == a and (ra == RangeSet(a)) and ra.max() == max(a, default=-1)
+    assert RangeSet([1, 2]) != {1, 2, 3} and RangeSet().issuperset(range(0))
+
+
+def test_remembered_copies_bounded_by_the_window():
+    """The validator remembers the copies it accepted within the index window only; an older
+    copy, identical or not, is refused as too late (nothing of it compared or kept)."""
+    plan = Plan(segments_total=1000, fs=FS, t0=100.0, samples=N, samples_total=1000 * N, window=4)
+    v = Validator(plan)
+    msgs = {}
+    for i in range(1000):
+        t0, _ = plan.segment(i)
+        msgs[i] = m = tdi(i, t0=t0, n=N)
+        assert v.check("tdi", *m) == "new"
+        v.accepted("tdi", m[0])
+        assert len(v.digests) <= 2 * (plan.window + 1)
+    assert v.check("tdi", *msgs[999 - 4]) == "duplicate"  # inside the window: compared
+    for late in (msgs[999 - 5], tdi(10, t0=plan.segment(10)[0], n=N, data=np.zeros((3, N)))):
+        with pytest.raises(Rejected, match="behind the highest accepted segment 999: too late") as err:
+            v.check("tdi", *late)
+        assert (err.value.kind, err.value.field) == ("rejected", "index")
+
+
 def test_plan_segments_regular_and_table():
     assert PLAN.segment(0) == (100.0, N) and PLAN.segment(29) == (100.0 + 29 * N / FS, 600)
     p = Plan.from_dict({**PLAN.to_dict(), "segments_total": 2, "table": [[0.0, 10], [50.0, 7]]})
