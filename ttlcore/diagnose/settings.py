@@ -26,7 +26,8 @@ class DiagnoseSettings:
     band : tuple
         Frequency band [Hz] (default :data:`ttlcore.diagnose.adequacy.DIAGNOSIS_BAND`).
     segment_duration : float or None
-        FFT segment length [s]; None: 6 h, or a quarter of shorter data.
+        FFT segment length [s]; None: 6 h, or a quarter of shorter data (shortened by a
+        few samples to a length whose prime factors are 2, 3, 5 and 7: fast transforms).
     n_bands : int
         Log-spaced bands for the per-band tests.
     time_segment : float

@@ -58,6 +58,29 @@ def band_slices(band_index: np.ndarray, G: int) -> tuple:
     return tuple(out)
 
 
+def fft_length(n: int) -> int:
+    """The largest length ``<= n`` whose prime factors are 2, 3, 5 and 7.
+
+    Every search of a diagnosis transforms segments of the default length again and again;
+    at a length with a large prime factor the transform costs several times more (a day's
+    quarter at 2 Hz, 43012 = 4 x 10753 samples: 1.2 ms against 0.19 ms for 43008 =
+    2^11 x 3 x 7), and near such lengths these numbers are a few samples apart."""
+    best, p2 = 1, 1
+    while p2 <= n:
+        p3 = p2
+        while p3 <= n:
+            p5 = p3
+            while p5 <= n:
+                p7 = p5
+                while p7 <= n:
+                    best = max(best, p7)
+                    p7 *= 7
+                p5 *= 5
+            p3 *= 3
+        p2 *= 2
+    return best
+
+
 def whitening(csd: np.ndarray) -> np.ndarray:
     """``L^H`` (m, 3, 3) with ``S^-1 = L L^H`` (Cholesky of the inverse CSD)."""
     return np.conj(np.swapaxes(np.linalg.cholesky(np.linalg.inv(csd)), -1, -2))
@@ -236,8 +259,12 @@ def whiten_tdi(td: TDIData, settings: DiagnoseSettings | None = None, tm=None, e
     seg = s.segment_duration or min(21600.0, np.floor(span / 4))
     if seg * fs < 256:
         raise ConfigError(f"data too short for a diagnosis ({span:.0f} s of valid TDI)")
-    L = int(round(seg * fs))
-    starts = tuple(range(lo, hi - L + 1, L))
+    step = int(round(seg * fs))
+    # segments start every ``step`` samples; the default length is shortened to one the FFT
+    # handles fast, the last few samples of each segment left out (the segments stay where
+    # they were: the tapers move by those few samples only)
+    L = step if s.segment_duration else fft_length(step)
+    starts = tuple(range(lo, hi - step + 1, step))
     if not starts:
         raise ConfigError(f"no FFT segment of {seg:g} s fits in {span:.0f} s of valid TDI")
     seg_t0 = np.array([t0 + s0 / fs for s0 in starts])

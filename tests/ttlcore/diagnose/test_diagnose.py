@@ -26,7 +26,7 @@ from ttlcore.diagnose.diagnoser import diagnose, refit, text_report  # noqa: E40
 from ttlcore.diagnose.settings import DiagnoseSettings  # noqa: E402
 from ttlcore.diagnose.evidence import laplace_evidence, log_bayes_factor  # noqa: E402
 from ttlcore.diagnose.fitting import fit_model  # noqa: E402
-from ttlcore.diagnose.whitened import whiten_telemetry  # noqa: E402
+from ttlcore.diagnose.whitened import fft_length, whiten_telemetry  # noqa: E402
 from ttlcore.diagnose.effects import injection_from_spec, make_effects  # noqa: E402
 from ttlcore.tdi.interpolation import timeshift  # noqa: E402
 from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
@@ -298,6 +298,19 @@ def test_plugin_through_the_command_line(tmp_path, capsys):
     assert vals["stray-12-on-23.eta"] == pytest.approx(-4e-3, rel=0.05)
 
 
+def test_fft_length_is_the_largest_seven_smooth_length_not_above():
+    def smooth(n):
+        for p in (2, 3, 5, 7):
+            while n % p == 0:
+                n //= p
+        return n == 1
+
+    for n in (1, 2, 11, 257, 10753, 43012, 43200, 86024, 172049):
+        m = fft_length(n)
+        assert m <= n and smooth(m) and not any(smooth(k) for k in range(m + 1, n + 1))
+    assert fft_length(43012) == 43008 and fft_length(86024) == 86016
+
+
 def test_command_line_errors_name_the_option(tmp_path, capsys):
     assert main(["simulate", "--duration", "10min", "--inject", "nope:x=1", "--out", str(tmp_path / "a.h5")]) == 2
     assert "--inject nope:x=1" in capsys.readouterr().err
@@ -382,6 +395,11 @@ def test_laplace_evidence_matches_the_exact_bayes_factor_on_nested_models(null6h
 def test_whitened_data_reused_for_successive_refits(null6h):
     tm, _ = null6h
     dg = whiten_telemetry(tm)
+    # the default segments: a quarter of the data apart, each of a length whose prime
+    # factors are 2, 3, 5, 7 (fast transforms), a few samples shorter than the spacing
+    spacing = np.diff(dg.starts)
+    assert np.all(spacing == spacing[0]) and 0 <= spacing[0] - dg.L < 0.01 * dg.L
+    assert dg.L == fft_length(dg.L) and fft_length(spacing[0]) == dg.L
     a = refit(dg, ["linear-ttl"])
     b = refit(dg, ["linear-ttl", "drift"])
     assert a["model"]["n_parameters"] == 24 and b["model"]["n_parameters"] == 48
