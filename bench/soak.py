@@ -32,7 +32,8 @@ standard deviation of the residuals: allocator churn, the fitter's periodic adeq
 GC, the machine's load).
 
 The **growth over the run** is the post-warm-up slope extrapolated over the whole run,
-``G = b * N`` (``N`` segments), and the **noise** is ``2 s``.  The verdict:
+``G = b * N`` (``N`` segments), and the **noise** is ``2 s`` (at least 0.1 MB for the RSS:
+:data:`MIN_NOISE`).  The verdict:
 
 * ``"flat"`` when ``G <= 2 s``: over a run as long as this one the series would not climb
   out of its own scatter (a series that falls is flat);
@@ -79,6 +80,11 @@ UPSTREAM = {"tdi_builder": "replayer", "fitter": "tdi_builder", "subtractor": "f
 CLOCK = {"router": "replayer"}
 #: Noise of a series: this many standard deviations of its residuals about the fitted line.
 NOISE_SIGMAS = 2.0
+#: Smallest noise of an RSS series [MB]: a process whose RSS hardly moves (the router: 10 kB
+#: over the 3-day run) has a spread of a few kB, and a growth of a few pages over the whole
+#: run would otherwise count as "growing".  0.1 MB over a run is 0.2 kB per segment of the
+#: 3-day, 10-min run (11 MB over a year of 10-min segments).
+MIN_NOISE = {"mb": 0.1, "s": 0.0}
 
 
 def line_fit(x, y) -> dict | None:
@@ -109,7 +115,7 @@ def assess(series: dict[int, float], warmup: int, total: int, unit: str, digits:
            f"slope_after_warmup_stderr_{unit}_per_segment": after["slope_stderr"] if after else None,
            f"spread_after_warmup_{unit}": after["spread"] if after else None,
            f"growth_over_run_{unit}": after["slope"] * total if after else None,
-           f"noise_{unit}": NOISE_SIGMAS * after["spread"] if after else None,
+           f"noise_{unit}": max(NOISE_SIGMAS * after["spread"], MIN_NOISE[unit]) if after else None,
            "verdict": None}
     if after:
         if out[f"growth_over_run_{unit}"] <= out[f"noise_{unit}"]:
@@ -234,7 +240,7 @@ def main(argv=None) -> int:
         lat = latencies(stage, done_at)
         ks = sorted(mem)
         result["stages"][stage] = {
-            "segments": len(done_at.get(stage, {})),
+            "segments": len(done_at.get(CLOCK.get(stage, stage), {})),
             "rss_mb": {"first_segment": round(mem[ks[0]], 1) if ks else None,
                        "at_warmup": round(mem[min(ks, key=lambda k: abs(k - warmup))], 1) if ks else None,
                        "last_segment": round(mem[ks[-1]], 1) if ks else None,

@@ -251,7 +251,9 @@ class Monitor(PipelineStage):
             if waiting is not None and now - since < self.settle_timeout:
                 continue
             if waiting is not None:
-                self.text("log", f"segment {i}: its {waiting} did not come within {self.settle_timeout:g} s", "WARN")
+                late = f"segment {i}: its {waiting} did not come within {self.settle_timeout:g} s"
+                self.text("log", late, "WARN")
+                self.log.warning("%s", late)
             self.publish(self.status(i))
             self.mark_done(i)  # after the output is out (progress protocol)
             self._tdi_at.pop(i, None)  # settled: its bookkeeping goes (memory flat in a long run)

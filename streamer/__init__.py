@@ -5,7 +5,7 @@ Modules
 topology
     The shape of the pipeline, written once: stages in order, their output topics, upstreams.
 keys
-    Key expressions ``ttl/<run>/<topic>/<index>``, liveliness, control and progress keys.
+    Key expressions: ``ttl/<run>/<topic>`` (segment data), liveliness, control and progress keys.
 codec
     The segment codec: JSON header (attachment) plus raw array bytes (payload).
 session

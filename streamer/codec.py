@@ -43,7 +43,7 @@ from typing import Any
 
 import numpy as np
 
-from .keys import parse_segment_key
+from .keys import parse_segment_key, parse_stream_key
 
 #: Value of the header field ``schema``.
 SCHEMA = "ttl-segment"
@@ -145,6 +145,8 @@ class Header:
         """Topic of :attr:`key` (None when the key is unknown)."""
         if self.key is None:
             return None
+        if self.key.count("/") == 2:  # a stream key ttl/<run>/<topic>
+            return parse_stream_key(self.key)
         return parse_segment_key(self.key).topic
 
     def array(self, name: str) -> ArraySpec:

@@ -2,9 +2,15 @@
 
 Every key of a run starts with ``ttl/<run>/``:
 
+``ttl/<run>/<topic>``
+    the segment messages of a stage's output topic (:data:`DATA_TOPICS`), one stream per
+    topic: the segment index travels in the message header.  One long-lived publisher per
+    topic keeps a stage's memory flat; a publisher per segment key grew every subscriber
+    and the router by 13-38 kB per segment (``bench/soak.py``, docs/operations.md).
 ``ttl/<run>/<topic>/<segment index>``
-    segment messages; ``topic`` is one of :data:`TOPICS`.  The errors topic may use
-    ``unknown`` in place of the index, for a message whose index could not be read.
+    the *name* of one segment, used in logs, error reports and recordings; and the key of
+    the error reports (``ttl/<run>/errors/<index>``), which may use ``unknown`` in place of
+    the index, for a message whose index could not be read.
 ``ttl/<run>/alive/<stage>``
     liveliness token of a running stage.
 ``ttl/<run>/control/<...>``
@@ -29,8 +35,10 @@ from .topology import OUTPUT_TOPIC
 PREFIX = "ttl"
 #: Topic of the error reports (any stage publishes there).
 ERRORS = "errors"
-#: Segment topics: the stages' outputs in pipeline order, then the errors.
-TOPICS = (*OUTPUT_TOPIC.values(), ERRORS)
+#: Data topics: the stages' outputs in pipeline order, each one stream ``ttl/<run>/<topic>``.
+DATA_TOPICS = tuple(OUTPUT_TOPIC.values())
+#: Segment topics: the data topics, then the errors.
+TOPICS = (*DATA_TOPICS, ERRORS)
 #: Chunk used for the liveliness tokens of stages.
 ALIVE = "alive"
 #: Chunk under which commands live.
@@ -130,10 +138,24 @@ def segment_key(run: str, topic: str, index: int | None) -> str:
     return f"{PREFIX}/{run}/{topic}/{chunk}"
 
 
-def topic_pattern(run: str, topic: str) -> str:
-    """``ttl/<run>/<topic>/*``: every segment of one topic."""
+def stream_key(run: str, topic: str) -> str:
+    """``ttl/<run>/<topic>``: the key every segment of a data topic is published on."""
     check_name(run, "run id")
-    return f"{PREFIX}/{run}/{_check_topic(topic)}/*"
+    if _check_topic(topic) == ERRORS:
+        raise KeyExprError(f"{PREFIX}/{run}/{topic}", "error reports go on ttl/<run>/errors/<index>")
+    return f"{PREFIX}/{run}/{topic}"
+
+
+def topic_pattern(run: str, topic: str) -> str:
+    """Every message of one topic.
+
+    ``ttl/<run>/<topic>/**`` for a data topic (the stream key and, so that a stray message
+    is seen and refused rather than missed, any key under it); ``ttl/<run>/errors/*``.
+    """
+    check_name(run, "run id")
+    if _check_topic(topic) == ERRORS:
+        return f"{PREFIX}/{run}/{ERRORS}/*"
+    return f"{PREFIX}/{run}/{topic}/**"
 
 
 def errors_key(run: str, index: int | None) -> str:
@@ -200,6 +222,20 @@ def _chunks(key: str) -> list[str]:
     if not _NAME.match(chunks[1]):
         raise KeyExprError(key, f"run id {chunks[1]!r} is not valid")
     return chunks
+
+
+def parse_stream_key(key: str) -> str:
+    """The topic of a data-topic stream key ``ttl/<run>/<topic>``.
+
+    Raises
+    ------
+    KeyExprError
+        If ``key`` is not a stream key (message names the key).
+    """
+    chunks = _chunks(key)
+    if len(chunks) != 3 or chunks[2] not in DATA_TOPICS:
+        raise KeyExprError(str(key), f"expected 'ttl/<run>/<topic>' with a topic of {', '.join(DATA_TOPICS)}")
+    return chunks[2]
 
 
 def parse_segment_key(key: str) -> SegmentKey:

@@ -7,7 +7,7 @@ certificate's common name (``access_control`` of Zenoh's configuration, see
 ``DEFAULT_CONFIG.json5`` of eclipse-zenoh).  Identities (common names, :data:`ROLES`):
 
 ``replayer``, ``tdi_builder``, ``fitter``, ``subtractor``, ``monitor``
-    a stage: may publish its own output topic (``ttl/<run>/<topic>/<i>``), its own progress
+    a stage: may publish its own output topic (``ttl/<run>/<topic>``), its own progress
     (``ttl/<run>/control/progress/<stage>``), its own liveliness token
     (``ttl/<run>/alive/<stage>``) and errors (``ttl/<run>/errors/<i>``);
 ``launcher``
@@ -316,7 +316,7 @@ def access_control(run: str = "*") -> dict:
               "control": ["commands", "no-forged-progress", "no-forged-board"]}
     for stage, topic in OUTPUT_TOPIC.items():
         rules.append({"id": f"{stage}-publishes", "messages": _WRITE, "flows": ["ingress"], "permission": "allow",
-                      "key_exprs": _keys(f"{r}/{topic}/*", f"{r}/errors/*", f"{r}/control/progress/{stage}")
+                      "key_exprs": _keys(f"{r}/{topic}", f"{r}/errors/*", f"{r}/control/progress/{stage}")
                       + [f"{r}/alive/{stage}"]})
         grants[stage] = [f"{stage}-publishes"]
     subjects = [{"id": role, "cert_common_names": [role]} for role in ROLES]

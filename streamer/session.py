@@ -26,14 +26,15 @@ fields override the file.
 Segment data go through Zenoh's *advanced* publisher and subscriber (``zenoh.ext``,
 marked unstable in zenoh-python 1.x):
 
-* :class:`SegmentPublisher` publishes segment ``i`` of a topic on
-  ``ttl/<run>/<topic>/<i>`` with congestion control BLOCK (the default DROP silently
-  loses multi-megabyte messages) and reliable reliability.  An advanced publisher is bound
-  to one key, so there is one per segment key, with a one-sample cache, publisher
-  detection and sporadic heartbeats; the publishers of the last ``cache`` segments are kept
-  alive, and together their caches are the topic's history.
+* :class:`SegmentPublisher` publishes every segment of a topic on one key,
+  ``ttl/<run>/<topic>`` (the segment index is in the message header), with congestion
+  control BLOCK (the default DROP silently loses multi-megabyte messages), reliable
+  reliability, a cache of the last ``cache`` segments, publisher detection and sporadic
+  heartbeats.  One long-lived publisher per topic: an advanced publisher is bound to one
+  key, and declaring one per segment key grew the memory of every subscriber and of the
+  router with the number of segments (``bench/soak.py``).
 * :func:`declare_segment_subscriber` declares an advanced subscriber on
-  ``ttl/<run>/<topic>/*`` that, on declaration and whenever a publisher appears later,
+  ``ttl/<run>/<topic>/**`` that, on declaration and whenever a publisher appears later,
   queries the caches (late joiners and restarted stages catch up), recovers a lost sample
   from the heartbeats, and reports what it could not recover to a miss callback.
 
@@ -47,7 +48,6 @@ from __future__ import annotations
 import json
 import logging
 import socket
-from collections import OrderedDict
 from collections.abc import Callable, Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -55,7 +55,7 @@ from pathlib import Path
 import zenoh
 from zenoh import ext
 
-from .keys import alive_key, alive_pattern, parse_alive_key, segment_key
+from .keys import alive_key, alive_pattern, parse_alive_key, segment_key, stream_key
 from .security import CredentialsError, Identity, access_control
 
 log = logging.getLogger(__name__)
@@ -308,11 +308,10 @@ def declare_segment_publisher(session: zenoh.Session, key: str, cache: int = 1,
 
 
 class SegmentPublisher:
-    """Publishes the segments of one topic, ``ttl/<run>/<topic>/<index>``.
+    """Publishes the segments of one topic on ``ttl/<run>/<topic>``.
 
-    One advanced publisher (:func:`declare_segment_publisher`) per segment key; the
-    publishers of the ``cache`` most recently published indices stay declared so that their
-    caches answer late joiners, older ones are undeclared.
+    One advanced publisher (:func:`declare_segment_publisher`), declared on the first put,
+    whose cache of the last ``cache`` segments answers late joiners.
 
     Parameters
     ----------
@@ -327,27 +326,26 @@ class SegmentPublisher:
         self.run = run
         self.topic = topic
         self.cache = max(1, int(cache))
-        self._publishers: OrderedDict[int, ext.AdvancedPublisher] = OrderedDict()
+        self.key = stream_key(run, topic)
+        self._publisher: ext.AdvancedPublisher | None = None
 
     def put(self, index: int, payload, attachment) -> str:
-        """Publish one segment (blocks while the transport is congested); returns the key."""
-        pub = self._publishers.get(index)
-        if pub is None:
-            key = segment_key(self.run, self.topic, index)
-            pub = declare_segment_publisher(self.session, key)
-            self._publishers[index] = pub
-        self._publishers.move_to_end(index)
-        pub.put(payload, attachment=attachment)
-        while len(self._publishers) > self.cache:
-            _, old = self._publishers.popitem(last=False)
-            old.undeclare()
-        return str(pub.key_expr)
+        """Publish segment ``index`` (blocks while the transport is congested).
+
+        The header in ``attachment`` carries the index; returns the segment's name
+        ``ttl/<run>/<topic>/<index>``.
+        """
+        name = segment_key(self.run, self.topic, index)
+        if self._publisher is None:
+            self._publisher = declare_segment_publisher(self.session, self.key, cache=self.cache)
+        self._publisher.put(payload, attachment=attachment)
+        return name
 
     def undeclare(self) -> None:
-        """Undeclare every publisher (their caches go with them)."""
-        while self._publishers:
-            _, pub = self._publishers.popitem()
-            pub.undeclare()
+        """Undeclare the publisher (its cache goes with it)."""
+        if self._publisher is not None:
+            self._publisher.undeclare()
+            self._publisher = None
 
 
 # ---------------------------------------------------------------------------- subscribers
@@ -370,7 +368,7 @@ class SegmentSubscription:
 
 def declare_segment_subscriber(session: zenoh.Session, key_expr: str,
                                callback: Callable[[zenoh.Sample], None], *,
-                               history: int = DEFAULT_CACHE,
+                               history: int | None = None,
                                on_miss: Callable[[str, int], None] | None = None) -> SegmentSubscription:
     """Subscribe to segment data with history and recovery.
 
@@ -378,16 +376,22 @@ def declare_segment_subscriber(session: zenoh.Session, key_expr: str,
     ----------
     session : zenoh.Session
     key_expr : str
-        Usually ``ttl/<run>/<topic>/*`` (:func:`streamer.keys.topic_pattern`).
+        Usually ``ttl/<run>/<topic>/**`` (:func:`streamer.keys.topic_pattern`).
     callback : callable(zenoh.Sample)
         Called on a Zenoh thread for every sample: keep it short (queue the sample).
-    history : int
-        Samples to query from each matching publisher's cache, on declaration and when a
-        publisher appears later (0: no history).
+    history : int or None
+        Samples to query from each matching publisher's cache (the last ``history`` of a
+        key), on declaration and when a publisher appears later; None: all it holds; 0: no
+        history.
     on_miss : callable(source: str, count: int), optional
         Called when samples were lost beyond recovery; default logs a warning.
     """
-    hist = ext.HistoryConfig(detect_late_publishers=True, max_samples=int(history)) if history > 0 else None
+    if history is None:
+        hist = ext.HistoryConfig(detect_late_publishers=True)
+    elif history > 0:
+        hist = ext.HistoryConfig(detect_late_publishers=True, max_samples=int(history))
+    else:
+        hist = None
     sub = ext.declare_advanced_subscriber(
         session, key_expr, callback,
         history=hist,
@@ -470,7 +474,7 @@ class Bus:
     def segment_publisher(self, run: str, topic: str, cache: int = DEFAULT_CACHE) -> SegmentPublisher:
         return self.track(SegmentPublisher(self.session, run, topic, cache))
 
-    def segment_subscriber(self, key_expr: str, callback, *, history: int = DEFAULT_CACHE,
+    def segment_subscriber(self, key_expr: str, callback, *, history: int | None = None,
                            on_miss=None) -> SegmentSubscription:
         return self.track(declare_segment_subscriber(self.session, key_expr, callback,
                                                      history=history, on_miss=on_miss))

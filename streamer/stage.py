@@ -50,15 +50,18 @@ import numpy as np
 from ttlcore.errors import TTLError
 
 from . import allocator
-from .codec import CodecError, Expect, Header, decode, encode
+from .codec import CodecError, Expect, Header, decode, encode, parse_header
 from .keys import (
     KeyExprError,
+    SegmentKey,
     check_name,
     control_key,
     control_pattern,
     errors_key,
     parse_control_key,
     parse_segment_key,
+    parse_stream_key,
+    segment_key,
     topic_pattern,
 )
 from .plan import Holdback, Plan, RangeSet, Rejected, Validator
@@ -89,8 +92,9 @@ class StageConfig:
         Recordings directory; the stage writes ``<recordings>/<run>/<stage>.mcap``.
     cache : int
         Segments kept per output topic for late joiners.
-    history : int
-        Segments asked from each input publisher's cache at start and on publisher appearance.
+    history : int or None
+        Segments asked from each input topic's publisher cache at start and on publisher
+        appearance (the last ``history``); None: everything the cache holds.
     record_inputs : bool
         Record input segments whole (header and payload) in the MCAP file; when False
         (``ttl run``: the producer's file holds the payload) only their headers, on
@@ -128,7 +132,7 @@ class StageConfig:
     zenoh: SessionSettings = field(default_factory=SessionSettings)
     recordings: Path = Path("recordings")
     cache: int = DEFAULT_CACHE
-    history: int = DEFAULT_CACHE
+    history: int | None = None
     record_inputs: bool = True
     record_outputs: bool = True
     poll_interval: float = 0.2
@@ -308,9 +312,9 @@ class Stage:
         raise NotImplementedError
 
     def expect(self, topic: str, index: int) -> Expect:
-        """What an input message on ``topic`` with key index ``index`` must fit.
+        """What an input message on ``topic`` with header index ``index`` must fit.
 
-        Default: this run, the key's index, finite values.  Override to require arrays,
+        Default: this run, that index, finite values.  Override to require arrays,
         dtypes and shapes.
         """
         return Expect(run=self.run_id, index=index)
@@ -506,19 +510,28 @@ class Stage:
 
     # ------------------------------------------------------------------ processing
     def _process(self, key: str, payload, attachment) -> None:
+        """Validate one message that came on Zenoh key ``key`` and use it (or refuse it).
+
+        Data come on the stream key ``ttl/<run>/<topic>``, the index in the header; from
+        the header on, the segment is named ``ttl/<run>/<topic>/<index>``.
+        """
         payload = payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload or b"")
         try:
-            seg = parse_segment_key(key)
+            topic = parse_stream_key(key)
         except KeyExprError as exc:
             self.report_error("rejected", str(exc), key=key, field="key")
             return
+        index = None
         try:
-            header, arrays = decode(payload, attachment, self.expect(seg.topic, seg.index), key=key)
+            index = parse_header(attachment, key).index
+            key = segment_key(self.run_id, topic, index)
+            header, arrays = decode(payload, attachment, self.expect(topic, index), key=key)
         except CodecError as exc:
-            self.report_error("rejected", exc.what, index=seg.index, key=key, field=exc.field,
+            self.report_error("rejected", exc.what, index=index, key=key, field=exc.field,
                               details={"payload_bytes": len(payload),
                                        "attachment": _preview(attachment)})
             return
+        seg = SegmentKey(self.run_id, topic, index)
         try:
             verdict = self.validator.check(seg.topic, header, arrays)
         except Rejected as exc:
@@ -720,7 +733,7 @@ def add_common_options(p: argparse.ArgumentParser) -> None:
     """Options of a stage process that override :class:`StageConfig` fields, besides
     :func:`stage_arguments`."""
     p.add_argument("--cache", type=int, help="segments kept per output topic for late joiners")
-    p.add_argument("--history", type=int, help="segments asked from each input publisher's cache")
+    p.add_argument("--history", type=int, help="segments asked from each input topic's publisher cache (default: all it holds)")
     p.add_argument("--no-record-inputs", action="store_true", help="do not record input payloads")
     p.add_argument("--poll-interval", type=float, help="longest wait before checking timers [s]")
 

@@ -22,7 +22,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 import zenoh  # noqa: E402
 
 from streamer.codec import encode  # noqa: E402
-from streamer.keys import control_key, segment_key  # noqa: E402
+from streamer.keys import control_key, stream_key  # noqa: E402
 from streamer.session import SessionSettings, make_config  # noqa: E402
 
 
@@ -65,11 +65,11 @@ def main(args: dict) -> None:
                                           "dws": rng.standard_normal((6, 2, 14400))},
                                          {"run": run, "index": index, "t0": 3600.0 * index, "fs": 4.0,
                                           "producer": "replayer"})
-            session.put(segment_key(run, "telemetry", index), payload, attachment=attachment)
+            session.put(stream_key(run, "telemetry"), payload, attachment=attachment)
             payload, attachment = encode(10.0 * rng.standard_normal(24), {"run": run, "index": index,
                                                                          "t0": 3600.0 * index, "fs": 4.0,
                                                                          "producer": "fitter"})
-            session.put(segment_key(run, "fit", index), payload, attachment=attachment)
+            session.put(stream_key(run, "fit"), payload, attachment=attachment)
             session.put(control_key(run, "progress", "replayer"),
                         json.dumps({"stage": "replayer", "segments_total": 3, "done": [[0, 2]], "failed": []}))
             session.put(control_key(run, "stop"), b"{}")

@@ -4,7 +4,7 @@ import pytest
 
 from streamer.keys import (KeyExprError, SegmentKey, alive_key, alive_pattern, control_key,
                            errors_key, parse_alive_key, parse_control_key, parse_segment_key,
-                           segment_key, topic_pattern)
+                           parse_stream_key, segment_key, stream_key, topic_pattern)
 from streamer.plan import RangeSet
 from streamer.progress import Progress
 
@@ -13,7 +13,9 @@ def test_build_and_parse_round_trip():
     assert segment_key("run-1", "tdi", 12) == "ttl/run-1/tdi/12"
     assert parse_segment_key("ttl/run-1/tdi/12") == SegmentKey("run-1", "tdi", 12)
     assert str(SegmentKey("r", "fit", 3)) == "ttl/r/fit/3"
-    assert topic_pattern("r", "residual") == "ttl/r/residual/*"
+    assert stream_key("r", "residual") == "ttl/r/residual" and parse_stream_key("ttl/r/residual") == "residual"
+    assert topic_pattern("r", "residual") == "ttl/r/residual/**"   # the stream key and strays under it
+    assert topic_pattern("r", "errors") == "ttl/r/errors/*"
     assert errors_key("r", None) == "ttl/r/errors/unknown"
     assert parse_segment_key("ttl/r/errors/unknown").index is None
     assert alive_key("r", "fitter") == "ttl/r/alive/fitter"
@@ -40,6 +42,15 @@ def test_parse_errors_name_the_key(key):
 def test_builders_reject_bad_chunks(run, topic, index):
     with pytest.raises(KeyExprError):
         segment_key(run, topic, index)
+
+
+@pytest.mark.parametrize("key", ["ttl/r/tdi/1", "ttl/r/errors", "ttl/r/bogus", "ttl/r*/tdi", "xyz/r/tdi", "ttl/r"])
+def test_stream_key_errors_name_the_key(key):
+    with pytest.raises(KeyExprError) as err:
+        parse_stream_key(key)
+    assert repr(key) in str(err.value)
+    with pytest.raises(KeyExprError):
+        stream_key("r", "errors")   # error reports are per index
 
 
 def test_alive_and_control_errors():

@@ -106,7 +106,7 @@ def check_intruders(started: dict) -> dict:
 
 def check_refusals(refused: list[dict], run: str) -> None:
     forbidden = {(r["subject"], r["key"]) for r in refused if r["kind"] == "forbidden"}
-    for key in (f"ttl/{run}/telemetry/0", f"ttl/{run}/fit/0", f"ttl/{run}/control/progress/replayer",
+    for key in (f"ttl/{run}/telemetry", f"ttl/{run}/fit", f"ttl/{run}/control/progress/replayer",
                 f"ttl/{run}/control/stop"):
         assert ("subtractor", key) in forbidden, (key, sorted(forbidden)[:20])
     assert {s for s, _ in forbidden} == {"subtractor"}, forbidden  # no genuine message refused
@@ -131,13 +131,13 @@ def test_router_refuses_and_records_intruders(tmp_path):
             reader.subscriber("ttl/r1/**", lambda s: got.put((str(s.key_expr), s.payload.to_bytes())))
             time.sleep(0.5)
             started = intruders(procs, tmp_path, creds, endpoint, "r1", duration=3.0)
-            fitter.session.put("ttl/r1/fit/0", b"genuine")   # a stage publishes its own topic
+            fitter.session.put("ttl/r1/fit", b"genuine")   # a stage publishes its own topic
             check_intruders(started)
             time.sleep(0.5)
             received = []
             while not got.empty():
                 received.append(got.get())
-        assert received == [("ttl/r1/fit/0", b"genuine")], received[:5]
+        assert received == [("ttl/r1/fit", b"genuine")], received[:5]
         router.send_signal(signal.SIGTERM)
         assert finish(router, 20) == 0, output(router)
         log = output(router)
