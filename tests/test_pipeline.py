@@ -305,8 +305,10 @@ def test_late_joiners_catch_up_from_the_caches(tmp_path):
             subtracted = _progress_watch(bus, "t3", "subtractor")
             wait_for(lambda: replayed() >= SEGMENTS // 2 or proc.poll() is not None, 90, "half the replay")
             assert proc.poll() is None, output(proc)[-3000:]
+            # its cache holds every residual, so that the late monitor gets them all from history
             late["subtractor"] = procs.ttl("stage", "subtractor", "--run", "t3", "--connect", endpoint,
-                                           "--recordings", str(rec), "--credentials", creds, name="subtractor")
+                                           "--recordings", str(rec), "--credentials", creds, "--cache", "16",
+                                           name="subtractor")
             if MONITOR:
                 wait_for(lambda: subtracted() >= SEGMENTS or proc.poll() is not None, 120,
                          "every segment through the late subtractor")
@@ -333,6 +335,8 @@ def test_late_joiners_catch_up_from_the_caches(tmp_path):
     if MONITOR:
         # the monitor drew every segment of every input it follows, and its Rerun file holds them
         assert sorted(indices(recordings["monitor"], "monitor")) == list(range(SEGMENTS))
+        # all from the caches: no segment waited for an input that did not come
+        assert "did not come within" not in output(late["monitor"]), output(late["monitor"])[-3000:]
         from test_monitor import rrd_entities  # tests/stages: reads a .rrd with Rerun's reader
         ent = rrd_entities(rec / "t3" / "monitor.rrd")
         fits = [row[0]["segment"] for row in ent["/coefficients/12/phi_rx/fit"] if "Scalars:scalars" in row[1]]
