@@ -55,6 +55,7 @@ from scipy import optimize, special
 from scipy.optimize import minimize_scalar
 
 from ..errors import ConfigError
+from ..estimate.spectra import psd_scale
 from ..tdi.combinations import MICHELSON, aet, build
 from ..tdi.data import history_samples, lowpass_taps
 from .columns import (
@@ -560,7 +561,7 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
             seg *= wm
             X = sp_fft.rfft(seg, axis=-1, workers=None)
             del seg
-            X = np.sqrt(2.0 / (data.fs * np.sum(wm ** 2))) * X[:, :, data.bins]
+            X = psd_scale(data.fs, wm) * X[:, :, data.bins]
             wK = np.matmul(data.Lh, np.moveaxis(X, 2, 0))[None]  # (1, m, 3, k)
             XK = as_real(wK)
             N_MK[j] = gram_x(XM[:, j:j + 1], XK, data.slices)[0]
@@ -621,14 +622,15 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
                         len(results), grid=[([float(t)], float(e.log_bayes_factor)) for t, e in results], evidence=ev)
 
 
-def _correction_stretch(data, ts: float) -> tuple[int, int, np.ndarray]:
+def _correction_stretch(data, ts: float) -> tuple[int, int, np.ndarray, int]:
     """The telemetry samples ``[a, b)`` around ``t_s`` over which :func:`_step_correction`
-    computes the exact TDI of the step, the FIR taps of the decimation."""
+    computes the exact TDI of the step, the FIR taps of the decimation and the delays'
+    history [samples]."""
     tm, fs = data.tm, data.tm.fs
     taps = lowpass_taps(fs) if data.decimation > 1 else np.ones(1)
     hist = history_samples(fs, float(np.max(tm.ltt)))
     i_ts = int(np.floor((ts - tm.t0) * fs))
-    return max(i_ts - hist - 8, 0), min(i_ts + hist + taps.size + 8, tm.size), taps
+    return max(i_ts - hist - 8, 0), min(i_ts + hist + taps.size + 8, tm.size), taps, hist
 
 
 def _correction_cell(data, ts: float) -> tuple | None:
@@ -636,7 +638,7 @@ def _correction_cell(data, ts: float) -> tuple | None:
     number of the stretch's samples before ``t_s`` (None without telemetry)."""
     if data.tm is None:
         return None
-    a, b, _ = _correction_stretch(data, ts)
+    a, b, _, _ = _correction_stretch(data, ts)
     t = (data.tm.t0 + a / data.tm.fs) + np.arange(b - a) / data.tm.fs  # as the stretch's EffectInput.t
     return a, b, int(np.count_nonzero(t < ts))
 
@@ -652,8 +654,7 @@ def _step_correction(data, ts: float, base: list) -> tuple | None:
     if data.tm is None:
         return None
     tm, fs = data.tm, data.tm.fs
-    a, b, taps = _correction_stretch(data, ts)
-    hist = history_samples(fs, float(np.max(tm.ltt)))
+    a, b, taps, hist = _correction_stretch(data, ts)
     sub = tm.slice(a, b)
     inp = effect_input_from_telemetry(sub)
     step = (inp.t >= ts).astype(float)

@@ -44,8 +44,13 @@ def segment_fft(x: np.ndarray, fs: float, win: np.ndarray, workers: int | None =
     """
     x = np.asarray(x)
     n = x.shape[-1]
-    scale = np.sqrt(2.0 / (fs * np.sum(win ** 2)))
-    return sp_fft.rfftfreq(n, 1 / fs), scale * sp_fft.rfft(x * win, axis=-1, workers=workers)
+    return sp_fft.rfftfreq(n, 1 / fs), psd_scale(fs, win) * sp_fft.rfft(x * win, axis=-1, workers=workers)
+
+
+def psd_scale(fs: float, win: np.ndarray) -> float:
+    """The factor of :func:`segment_fft`, ``sqrt(2 / (fs sum(win^2)))``: ``|X|^2`` of the
+    scaled transform of a series windowed by ``win`` is its one-sided PSD [unit^2/Hz]."""
+    return np.sqrt(2.0 / (fs * np.sum(win ** 2)))
 
 
 def default_nperseg(n: int, fs: float, max_seconds: float = 16384.0) -> int:
