@@ -16,35 +16,45 @@ full :meth:`ttlcore.estimate.fit.FitResult.to_json` goes into the recording on `
 The progress messages carry ``fits_ranges``: the segments that produced a fit, so that the
 subtractor knows, for each segment, which fit is the latest one covering it.
 
-Model and adequacy (``docs/diagnostics.md``)
---------------------------------------------
-The model is a list of effects (option ``effects``, default ``linear-ttl``).  The fitter
-keeps the window's TDI segments; every ``adequacy_every`` segments (default 24), and on
-every segment while the model holds more than the linear TTL, it refits the window with
-:func:`ttlcore.diagnose.diagnoser.refit` under the *instrument* noise model and adds to the fit
-message's meta ``model`` (the effect specs) and ``adequacy`` (chi^2/dof, per-band chi^2/dof,
-p-value and failure flag; ``fails``).  With an extended model the published 24
-coefficients, sigmas and covariance are that model's; ``extra_parameters`` holds the
-others (value, sigma).  Every ``candidates_every`` segments (default 0: never) and on a
-model change the effects not in the model are ranked (``candidates``: the top 3 with delta chi^2, log Bayes factor,
-significance).
+Model, adequacy and the live loop (``docs/diagnostics.md``, "The loop in the live pipeline")
+----------------------------------------------------------------------------------------
+The model is a list of effects (option ``effects``, default ``linear-ttl``): any effect
+``ttl diagnose`` can fit - named effects, witness effects, fd-couplings, ``vary=``, and
+plugins from the stage's configuration (``effect_modules``, never from a message).  The TDI
+builder forwards each segment's telemetry (``eta``, ``dws_phi``, ``dws_eta``, ``ltt``) with
+its TDI, and the fitter keeps the window's telemetry.  With the linear TTL alone the
+published fit is the rolling fit's; with more, every segment refits the window's telemetry
+with the model by :func:`ttlcore.diagnose.diagnoser.refit` - exactly what ``ttl refit
+--segments A:B`` does offline on the same segments (searched parameters searched again on
+the window) - and the fit message carries that model's 24 coefficients, ``extra_parameters``
+and, for the newest segment, each other effect's contribution to X2, Y2, Z2 (array
+``model_parts`` (k, 3, n), meta ``model_parts``: the effect specs;
+:func:`ttlcore.diagnose.prediction.effect_predictions`), which the subtractor subtracts.
+Every ``adequacy_every`` segments (default 24), and on every segment of an extended model,
+the meta holds ``adequacy`` (chi^2/dof per band against the instrument noise model).
+
+Every ``diagnose_every`` segments (default 24, counted by index) and on the first segment of
+a new model, the window is diagnosed as ``ttl diagnose`` would (:func:`ttlcore.diagnose.diagnoser.diagnose`,
+the witness search included): meta ``diagnosis`` holds the failing bands and hours, the top
+witnesses and candidates, the recommendation with the ``ttl control`` command that applies
+it, and the text report.  With ``adopt`` ``auto`` a recommendation that explains the excess
+(:func:`adoptable`) becomes the model from the next segment on (a ``model`` event records
+why); ``ask`` (default) only recommends, ``never`` does not diagnose.
 
 A control message ``ttl/<run>/control/fitter/model`` with JSON ``{"effects": [...]}`` (or
 ``"linear-ttl,drift"``) changes the model from the next segment on (a ``model`` event in the
-recording says from which); that segment's fit message carries ``model_change``: both models refitted on the same window, with chi^2/dof
-and per-band chi^2/dof before and after, delta chi^2 and log Bayes factor, and
-``candidates``.  In the pipeline the fitter sees TDI outputs, not the DWS series, so the
-model may use the effects derived from the TDI regressors (``linear-ttl``, ``drift``,
-``step``); ``ttl diagnose`` and ``ttl refit`` offer the others.  Plugin modules
-(``effect_modules``) are loaded from the stage's configuration only, never from a message.
-A restarted fitter takes the model in force from the ``model`` events of its earlier
-processes' recordings (:meth:`Fitter.restore_model`), not the configured one.
+recording says from which); that segment's fit message carries ``model_change``: both models
+refitted on the same window, with chi^2/dof and per-band chi^2/dof before and after, delta
+chi^2 and log Bayes factor, and ``candidates``.  A restarted fitter takes the model in force
+from the ``model`` events of its earlier processes' recordings (:meth:`Fitter.restore_model`),
+not the configured one, and rebuilds its window from the replayer's recorded telemetry
+(:meth:`Fitter.catch_up`).
 """
 
 from __future__ import annotations
 
-import dataclasses
 import json
+import shlex
 import sys
 from collections import deque
 
@@ -52,37 +62,65 @@ import numpy as np
 
 from streamer.codec import Expect
 from streamer.keys import to_ranges
-from streamer.messages import tdi_of
+from streamer.messages import TELEMETRY_ARRAYS, concatenate_telemetry, tdi_of, telemetry_of
 from streamer.pipeline_stage import OrderedStage
 from streamer.plan import RangeSet
 from streamer.recorder import read_recording, to_jsonable
+from streamer.refit import refit_settings
 from streamer.stage import Output, stage_main
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY, parse_duration
 from ttlcore.diagnose.candidates import candidates
-from ttlcore.diagnose.diagnoser import DiagnoseSettings, refit
+from ttlcore.diagnose.diagnoser import diagnose, refit, text_report
 from ttlcore.diagnose.effects import make_effects
+from ttlcore.diagnose.prediction import effect_predictions
 from ttlcore.errors import ConfigError
 from ttlcore.estimate.fit import FitSettings
 from ttlcore.estimate.rolling import RollingFit
+from ttlcore.io.telemetry import Telemetry
 from ttlcore.tdi.combinations import XYZ
-from ttlcore.tdi.data import TDIData
+from ttlcore.tdi.data import TDIData, TDIStream
 
-UNITS = {"coefficients": "m/rad", "sigma": "m/rad", "covariance": "m^2/rad^2"}
+UNITS = {"coefficients": "m/rad", "sigma": "m/rad", "covariance": "m^2/rad^2",
+         "model_parts": "fractional frequency"}
 P = len(COEFFICIENT_NAMES)
-#: Effects the fitter can add from TDI outputs alone (no DWS series on its input).
-TDI_EFFECTS = ("linear-ttl", "drift", "step")
 #: Candidates reported in a fit message.
 TOP_CANDIDATES = 3
+#: Adoption modes of ``--adopt``.
+ADOPT_MODES = ("ask", "auto", "never")
 
 
 def tdi_expect(run: str, index: int) -> Expect:
-    """What a ``tdi`` message must fit (NaN allowed: first samples of a stream)."""
+    """What a ``tdi`` message must fit (NaN allowed: first samples of a stream, gaps): X2, Y2,
+    Z2 of the data and of the 24 regressors, and the telemetry they were computed from."""
     return Expect(run=run, index=index, channels=XYZ, allow_nonfinite=True,
-                  arrays={"data": ("<f8", (3, None)), "regressors": ("<f8", (3, P, None))})
+                  arrays={"data": ("<f8", (3, None)), "regressors": ("<f8", (3, P, None)),
+                          **{k: ("<f8", (6, None)) for k in TELEMETRY_ARRAYS}})
+
+
+def adoptable(recommendation: dict | None, log_bf_threshold: float = 2.3) -> tuple[bool, str]:
+    """Whether a diagnosis' recommendation may be adopted without a person, and why.
+
+    Adopted only when every one of these holds: a candidate is recommended (``option`` set),
+    the diagnosis says it explains the excess (``explains``: at least half of the chi^2
+    beyond the tolerance, :func:`ttlcore.diagnose.report.recommendation`), and its evidence
+    is decisive (log Bayes factor above ``log_bf_threshold`` - the diagnosis' own
+    significance threshold, odds 10:1 - as the candidate's ``significant`` flag already
+    requires together with p < alpha)."""
+    if not recommendation or not recommendation.get("option") or not recommendation.get("spec"):
+        return False, "nothing recommended"
+    if not recommendation.get("explains"):
+        return False, (f"the best candidate explains {100 * float(recommendation.get('explained_fraction') or 0):.0f} % "
+                       "of the excess: not adopted")
+    lbf = recommendation.get("log_bayes_factor")
+    if lbf is not None and float(lbf) < log_bf_threshold:
+        return False, f"log Bayes factor {float(lbf):.1f} below {log_bf_threshold:g}: not adopted"
+    return True, (f"explains {100 * float(recommendation.get('explained_fraction') or 0):.0f} % of the excess"
+                  + (f", log Bayes factor {float(lbf):.1f}" if lbf is not None else ""))
 
 
 class Fitter(OrderedStage):
-    """Rolling-window fit of the TTL coefficients (ttlcore.estimate.rolling.RollingFit)."""
+    """Rolling-window fit of the TTL coefficients (ttlcore.estimate.rolling.RollingFit), and
+    of any extended model on the window's telemetry (ttlcore.diagnose.diagnoser.refit)."""
 
     name = "fitter"
     inputs = ("tdi",)
@@ -105,11 +143,20 @@ class Fitter(OrderedStage):
         self.fits = RangeSet()
         self._next_t0: float | None = None
         self.effect_modules = tuple(o.get("effect_modules") or ())
-        self.effects = self.check_model(o.get("effects") or ["linear-ttl"])
-        self.adequacy_every = int(o.get("adequacy_every", 24))
-        self.candidates_every = int(o.get("candidates_every", 0))
-        self.window_tdi: deque[TDIData] = deque()
+        try:
+            self.effects = self.check_model(o.get("effects") or ["linear-ttl"])
+        except (ValueError, ConfigError) as exc:
+            raise ConfigError(f"fitter --effects: {exc}") from None
+        self.adequacy_every = int(o.get("adequacy_every", 24) or 0)
+        self.candidates_every = int(o.get("candidates_every", 0) or 0)
+        self.diagnose_every = int(o.get("diagnose_every", 24) if o.get("diagnose_every") is not None else 24)
+        self.adopt = o.get("adopt") or "ask"
+        if self.adopt not in ADOPT_MODES:
+            raise ConfigError(f"fitter --adopt: expected one of {', '.join(ADOPT_MODES)}, got {self.adopt!r}")
+        #: the window's telemetry, (index, Telemetry) in index order
+        self.window_tm: deque[tuple[int, Telemetry]] = deque()
         self._model_change: dict | None = None
+        self._diagnose_model = False  # the first segment of a new model is diagnosed
         self._segments_seen = 0
         self._last_td: TDIData | None = None
         self._restarted = False
@@ -150,7 +197,7 @@ class Fitter(OrderedStage):
         try:
             effects, before = self.check_model(d["effects"]), list(d["before"])
             start = int(d["from_index"])
-        except (KeyError, TypeError, ValueError) as exc:
+        except (KeyError, TypeError, ValueError, ConfigError) as exc:
             self.report_error("failed", f"restart: the recorded model change cannot be restored ({exc}); "
                                         f"the configured model {','.join(self.effects)} stays", field="model")
             return
@@ -158,6 +205,7 @@ class Fitter(OrderedStage):
         due = not any(i >= start for i in fits)
         if due:
             self._model_change = {"before": before, "after": effects, "from_index": start}
+            self._diagnose_model = True
         self.event("model-restored", index=start, message=f"model {','.join(effects)} restored from the earlier "
                                                           f"process (in force from segment {start}"
                                                           f"{'; its model change is still to be reported' if due else ''})",
@@ -173,8 +221,9 @@ class Fitter(OrderedStage):
         return FitSettings(**kwargs)
 
     def handle(self, header, arrays):
-        td = tdi_of(header, arrays)  # before buffering: a segment that raises is not marked processed
-        self.enqueue(header, td)
+        # before buffering: a segment that raises is not marked processed
+        td, tm = tdi_of(header, arrays), telemetry_of(header, arrays)
+        self.enqueue(header, (td, tm))
         return ()
 
     def progress_fields(self) -> dict:
@@ -186,7 +235,8 @@ class Fitter(OrderedStage):
     def fill_gap(self, index: int) -> None:
         """A TDI segment that will not come: push NaN over its planned span, so that the
         window keeps what it has and the next segment follows in time (RollingFit masks NaN:
-        an FFT segment less than half valid is left out, ttlcore.estimate.fit.spectra_of_segment)."""
+        an FFT segment less than half valid is left out, ttlcore.estimate.fit.spectra_of_segment;
+        the telemetry window gets NaN readouts and the last light travel times held)."""
         last = self._last_td
         if self.rolling is None or last is None or self._next_t0 is None:
             return
@@ -196,26 +246,35 @@ class Fitter(OrderedStage):
         td = TDIData(t0=self._next_t0, fs=last.fs, channels=last.channels, data=nan,
                      regressors=np.full((3, len(last.names), n), np.nan), names=last.names, ltt_mean=last.ltt_mean)
         self.rolling.push(td)
+        if self.window_tm:
+            prev = self.window_tm[-1][1]
+            blank = np.full((6, n), np.nan)
+            self.window_tm.append((index, Telemetry(t0=td.t0, fs=td.fs, eta=blank, dws_phi=blank, dws_eta=blank,
+                                                    ltt=np.repeat(prev.ltt[:, -1:], n, axis=1), source=prev.source)))
         self._next_t0 = td.t0 + n / td.fs
         self.event("gap", index=index, message=f"tdi segment {index} missing: {n} NaN samples pushed, window kept")
 
     # ------------------------------------------------------------------ the model
     def check_model(self, specs) -> list[str]:
         """Validated effect specs of a model (a list, or one comma-separated string)."""
-        if isinstance(specs, str):
+        if isinstance(specs, str):  # the command line's form: ';' between one effect's options
             specs = [s for s in specs.split(",") if s.strip()]
         if not isinstance(specs, (list, tuple)) or not specs or not all(isinstance(s, str) for s in specs):
             raise ValueError(f"effects: expected a list of effect specs, got {specs!r}")
-        effects = make_effects(list(specs), self.effect_modules)
-        names = [e.name for e in effects]
-        if "linear-ttl" not in names:
+        effects = make_effects([s.strip().replace(";", ",") for s in specs], self.effect_modules)
+        if "linear-ttl" not in [e.name for e in effects]:
             raise ValueError("effects: the model must include linear-ttl")
-        beyond = [e.spec() for e in effects if e.name not in TDI_EFFECTS]
-        if beyond:
-            raise ValueError(f"effects {', '.join(beyond)} need the DWS series, which the fitter does not receive; "
-                             f"in the pipeline the model may use {', '.join(TDI_EFFECTS)} "
-                             "(ttl diagnose and ttl refit offer the others)")
         return [e.spec() for e in effects]
+
+    def change_model(self, new: list[str], **why) -> None:
+        """The model ``new`` from the next segment on (a ``model`` event records it and why)."""
+        start = self.queue.next if self.queue.next is not None else 0
+        self._model_change = {"before": list(self.effects), "after": new, "from_index": start}
+        self._diagnose_model = True
+        self.log.info("model change: %s -> %s from segment %d", ",".join(self.effects), ",".join(new), start)
+        self.event("model", index=start, message=f"model {','.join(new)} from segment {start} on",
+                   effects=new, before=list(self.effects), from_index=start, **why)
+        self.effects = new
 
     def control(self, command: str, payload: bytes):
         """``model``: ``{"effects": [...]}`` changes the model from the next segment on."""
@@ -230,16 +289,19 @@ class Fitter(OrderedStage):
         if set(msg) - {"effects"}:
             raise ValueError(f"unknown field(s) {sorted(set(msg) - {'effects'})}; plugin modules come from the "
                              "stage's configuration only")
-        new = self.check_model(msg["effects"])
-        start = self.queue.next if self.queue.next is not None else 0
-        self._model_change = {"before": list(self.effects), "after": new, "from_index": start}
-        self.log.info("model change requested: %s -> %s", ",".join(self.effects), ",".join(new))
-        self.event("model", index=start, message=f"model {','.join(new)} from segment {start} on",
-                   effects=new, before=list(self.effects), from_index=start)
-        self.effects = new
+        try:
+            new = self.check_model(msg["effects"])
+        except ConfigError as exc:
+            raise ValueError(str(exc)) from None
+        self.change_model(new, by="control")
         return ()
 
-    def diagnosis(self, header) -> dict | None:
+    def window_telemetry(self) -> Telemetry:
+        """The window's telemetry, one series (:func:`streamer.messages.concatenate_telemetry`:
+        the same as ``ttl refit`` builds from the recorded segments)."""
+        return concatenate_telemetry([tm for _, tm in self.window_tm], source=str(self.config.recordings / self.run_id))
+
+    def window_fit(self, header) -> dict | None:
         """Meta (and arrays) of the window refitted under the instrument noise model, when due:
         on a model change, on every segment of an extended model, every ``adequacy_every``."""
         change, extended = self._model_change, self.effects != ["linear-ttl"]
@@ -262,11 +324,17 @@ class Fitter(OrderedStage):
             "bands": [{k: b[k] for k in ("f_lo", "f_hi", "chi2_dof", "p_value", "fails")} for b in adequacy["bands"]],
         }}
         if extended:
-            k = [model.names.index(n) for n in COEFFICIENT_NAMES]
+            k = [model.parameter_names.index(n) for n in COEFFICIENT_NAMES]
             out["arrays"] = {"coefficients": model.ttl_coefficients(), "sigma": model.ttl_sigma(),
                              "covariance": model.covariance[np.ix_(k, k)]}
             out["extra_parameters"] = {n: [float(v), float(s)] for n, v, s in zip(model.names, model.theta, model.sigma)
                                        if n not in COEFFICIENT_NAMES}
+            predictions = effect_predictions(model)
+            n = self.window_tm[-1][1].size
+            if predictions:
+                out["arrays"]["model_parts"] = np.stack([p[:, -n:] for p in predictions.values()])
+                out["model_parts"] = list(predictions)
+            out["window"] = {"first": self.window_tm[0][0], "last": self.window_tm[-1][0]}
         if change is not None:
             c = r["change"]
             out["model_change"] = {
@@ -284,30 +352,90 @@ class Fitter(OrderedStage):
         return out
 
     def _window_refit(self, meta: dict, baseline: list[str]) -> dict | None:
-        """Refit the window's TDI with the model (and ``baseline``) under the instrument noise
-        model; None when the window is still too short for it."""
-        kwargs = {"band": self.band} if self.band else {}
+        """Refit the window's telemetry with the model (and ``baseline``) under the instrument
+        noise model, as ``ttl refit`` does; None when the window is still too short for it."""
         try:
-            return refit(list(self.window_tdi), self.effects, settings=DiagnoseSettings(**kwargs),
-                         effect_modules=self.effect_modules, baseline=baseline,
-                         dws_asd=None if meta.get("dws_asd") is None else float(meta["dws_asd"]))
+            return refit(self.window_telemetry(), self.effects, settings=refit_settings(meta.get("dws_asd"), self.band),
+                         effect_modules=self.effect_modules, baseline=baseline)
         except ConfigError as exc:
-            self.log.info("no adequacy yet: %s", exc)
+            self.log.info("no window refit yet: %s", exc)
             return None
 
+    # ------------------------------------------------------------------ the live diagnosis
+    def diagnosis_due(self, index: int) -> bool:
+        if self.adopt == "never" or self.diagnose_every <= 0:
+            return False
+        return self._diagnose_model or (index + 1) % self.diagnose_every == 0
+
+    def live_diagnosis(self, header) -> dict | None:
+        """The window diagnosed as ``ttl diagnose`` would (meta ``diagnosis``); with ``adopt``
+        auto, its recommendation adopted when :func:`adoptable`.  None when the window is too
+        short for a diagnosis."""
+        try:
+            report = diagnose(self.window_telemetry(), self.effects, settings=refit_settings(header.meta.get("dws_asd"), self.band),
+                              effect_modules=self.effect_modules)
+        except ConfigError as exc:
+            self.log.info("no diagnosis yet: %s", exc)
+            return None
+        self._diagnose_model = False
+        rec = report.get("recommendation")
+        first, last = self.window_tm[0][0], self.window_tm[-1][0]
+        out = {"index": header.index, "segments": [first, last], "model": list(self.effects),
+               "chi2_dof": report["adequacy"]["chi2_dof"], "fails": bool(report["adequacy"]["fails"]),
+               "bands": [{k: b[k] for k in ("f_lo", "f_hi", "chi2_dof", "fails")} for b in report["adequacy"]["bands"]],
+               "failing_hours": [[s["t_start"], s["t_stop"]] for s in (report["adequacy"].get("time") or {}).get("segments", [])
+                                 if s.get("fails")],
+               "summary": report["adequacy"]["summary"],
+               "witnesses": [{k: w.get(k) for k in ("name", "spec", "delta_chi2", "best_band")}
+                             for w in ((report.get("witnesses") or {}).get("overall") or [])[:3]],
+               "candidates": [{k: c.get(k) for k in ("spec", "cli_spec", "delta_chi2", "log_bayes_factor",
+                                                      "explained_fraction", "significant")}
+                              for c in report["candidates"][:5]],
+               "text": text_report(report, source=f"window {first}..{last}")}
+        if rec:
+            rec = dict(rec)
+            best = next((c for c in report["candidates"] if c.get("spec") == rec.get("spec")), None)
+            if best is not None:
+                rec["log_bayes_factor"] = best.get("log_bayes_factor")
+            if rec.get("spec"):
+                rec["effects"] = [*self.effects, rec["spec"]]
+                rec["command"] = self.control_command(rec["effects"])
+        out["recommendation"] = rec
+        ok, why = adoptable(rec)
+        out["adoption"] = {"mode": self.adopt, "adopted": False, "reason": why}
+        if self.adopt == "auto" and ok:
+            out["adoption"]["adopted"] = True
+            self.change_model(self.check_model(rec["effects"]), by="adopt auto", diagnosis_index=header.index,
+                              reason=why, recommendation=to_jsonable(rec))
+        self.event("diagnosis", index=header.index, message=out["text"].splitlines()[0] if out["text"] else "",
+                   recommendation=to_jsonable(rec), adoption=out["adoption"])
+        return out
+
+    def control_command(self, effects: list[str]) -> str:
+        """The ``ttl control`` command that puts ``effects`` in this fitter's model."""
+        z = self.config.zenoh
+        parts = ["ttl", "control", "--run", self.run_id]
+        if getattr(z, "connect", None):
+            parts += ["--connect", str(list(z.connect)[0])]
+        if getattr(z, "credentials", None):
+            parts += ["--credentials", str(z.credentials)]
+        return shlex.join(parts + [self.stage_name, "model", json.dumps({"effects": list(effects)})])
+
+    # ------------------------------------------------------------------ restarts
     def catch_up(self, first: int) -> None:
         """A restarted fitter whose first segment is ``first`` > 0: rebuild the rolling window
-        by pushing again the TDI segments before it, read from the tdi_builder's recordings
-        (``<recordings>/<run>/tdi_builder*.mcap``; the publishers' caches hold only a few
-        segments, the window a day).  From the start of the run when the recordings have it,
+        and the telemetry window by pushing again the segments before it, their TDI computed
+        again from the replayer's recorded telemetry (``<recordings>/<run>/replayer*.mcap``;
+        the same TDI stream as the TDI builder's, from the run's first segment), never from
+        the publishers' caches alone.  From the start of the run when the recordings have it,
         so that the state (window, weights of the full refits) is the uninterrupted run's."""
 
         run_dir = self.config.recordings / self.run_id
         segments = {}
-        for path in sorted(run_dir.glob("tdi_builder*.mcap")):
+        for path in sorted(run_dir.glob("replayer*.mcap")):
             try:
-                for m in read_recording(path).segments("tdi"):
-                    if m.header.index < first:
+                for m in read_recording(path).segments("telemetry"):
+                    if m.header.index < first and "eta" in m.arrays:
                         segments.setdefault(m.header.index, m)
             except Exception as exc:  # noqa: BLE001 - a damaged file: use what the others have
                 self.log.warning("cannot read %s: %s", path, exc)
@@ -316,18 +444,24 @@ class Fitter(OrderedStage):
         while start - 1 in segments:
             start -= 1
         if start > 0:
-            self.report_error("window-shortened", f"restart: TDI segments before {start} are not in the recordings; "
-                                                  f"the window restarts at {start} instead of the run's start",
+            self.report_error("window-shortened", f"restart: telemetry segments before {start} are not in the "
+                                                  f"recordings; the window restarts at {start} instead of the run's start",
                               index=first, details={"recorded": to_ranges(have)})
+        stream = TDIStream()
         for i in range(start, first):
             m = segments[i]
-            self.process(m.header, tdi_of(m.header, m.arrays))
-        self.event("restored", index=first, message=f"window rebuilt from the tdi_builder's recordings: segments "
+            tm = telemetry_of(m.header, m.arrays)
+            if stream.next_t0 is not None and abs(tm.t0 - stream.next_t0) > 0.5 / tm.fs:
+                stream.reset()
+            self.process(m.header, (stream.push(tm), tm))
+        self.event("restored", index=first, message=f"window rebuilt from the replayer's recorded telemetry: segments "
                                                      f"{start}..{first - 1} pushed again", first=start, last=first - 1)
         self.log.info("restart: window rebuilt from segments %d..%d of the recordings", start, first - 1)
 
-    def process(self, header, td: TDIData) -> Output | None:
-        """Push one TDI segment into the rolling fit; the fit message if it refitted."""
+    def process(self, header, item) -> Output | None:
+        """Push one segment into the rolling fit and the telemetry window; the fit message if
+        it refitted."""
+        td, tm = item
         if self.rolling is None and header.index > 0 and self._restarted and not self._caught_up:
             self._caught_up = True
             self.catch_up(header.index)
@@ -340,44 +474,44 @@ class Fitter(OrderedStage):
                        message=f"t0={td.t0} s does not follow the previous segment (expected {self._next_t0} s); "
                                "the window restarts here")
             self.rolling.reset()
-            self.window_tdi.clear()
+            self.window_tm.clear()
         self._next_t0 = td.t0 + td.size / td.fs
         self._last_td = td
         self._segments_seen = header.index + 1  # by index: the same after a restart
         res = self.rolling.push(td)
-        # the window's TDI for the adequacy refits, as the rolling fit low-passed and decimated
-        # it (A, E, T at 2 Hz: half the memory, and the refit need not decimate again); copied,
-        # because the decimator's outputs are strided views of its full-rate convolution, which
-        # they would keep alive for the whole window (twice the memory: ~100 MB for a day of
-        # 4-Hz data, measured with TTL_MEMTRACE)
-        dec = self.rolling.last_decimated
-        dec = dataclasses.replace(dec, data=np.ascontiguousarray(dec.data),
-                                  regressors=np.ascontiguousarray(dec.regressors))
-        self.window_tdi.append(dec)
-        while self.window_tdi and self.window_tdi[0].t0 < dec.t0 + dec.size / dec.fs - self.window_duration - 1.0:
-            self.window_tdi.popleft()
+        self.window_tm.append((header.index, tm))
+        end = tm.t0 + tm.size / tm.fs
+        while self.window_tm and self.window_tm[0][1].t0 < end - self.window_duration - 1.0:
+            self.window_tm.popleft()
         if res is None:
             self.log.info("segment %d: no FFT segment completed, no refit", header.index)
             return None
         # a segment an earlier process published the fit of (replayed, or pushed again to
-        # rebuild the window): its diagnosis would be thrown away
-        diagnosis = None if self.handled_before(header.index) else self.diagnosis(header)
+        # rebuild the window): its window fit and diagnosis would be thrown away
+        replayed = self.handled_before(header.index)
+        window = None if replayed else self.window_fit(header)
+        live = None if replayed or not self.diagnosis_due(header.index) else self.live_diagnosis(header)
         meta = {"names": list(res.names), "chi2_dof": res.chi2_dof, "t_start": res.t_start, "t_stop": res.t_stop,
                 "segments": int(res.n_segments), "band": list(res.band), "converged": bool(res.converged),
                 "chi2": res.chi2, "dof": res.dof, "iterations": int(res.iterations), "method": res.method,
                 "window_duration": self.window_duration,
                 "fft_segment": self.rolling.settings.segment_duration,
                 "segments_total": self.segments_total, "model": list(self.effects)}
+        if live is not None and live["adoption"]["adopted"]:
+            meta["model"] = live["model"]  # the model of this fit; the adopted one applies from the next segment
         arrays = {"coefficients": res.coefficients, "sigma": res.sigma, "covariance": res.covariance}
-        if diagnosis is not None:
-            arrays.update(diagnosis.pop("arrays", {}))
-            meta.update(diagnosis)
+        if window is not None:
+            arrays.update(window.pop("arrays", {}))
+            meta.update(window)
+        if live is not None:
+            meta["diagnosis"] = live
         summary = {"run": self.run_id, "index": header.index, "names": list(res.names),
-                   "coefficients": res.coefficients, "sigma": res.sigma, "covariance": res.covariance,
+                   "coefficients": arrays["coefficients"], "sigma": arrays["sigma"], "covariance": arrays["covariance"],
                    "chi2": res.chi2, "dof": res.dof, "chi2_dof": res.chi2_dof,
                    "t_start": res.t_start, "t_end": res.t_stop, "segments": int(res.n_segments),
-                   "fit": res.to_json(), **{k: meta[k] for k in ("model", "adequacy", "model_change",
-                                                                 "candidates", "extra_parameters") if k in meta}}
+                   "fit": res.to_json(), **{k: meta[k] for k in ("model", "adequacy", "model_change", "candidates",
+                                                                 "extra_parameters", "model_parts", "diagnosis")
+                                              if k in meta}}
         self.log.info("segment %d: fit over [%.0f, %.0f] s (%d FFT segments), chi2/dof %.3f", header.index,
                       res.t_start, res.t_stop, res.n_segments, res.chi2_dof)
         if not res.converged:
@@ -385,11 +519,16 @@ class Fitter(OrderedStage):
                       index=header.index, iterations=int(res.iterations))
         if "adequacy" in meta:
             self.log.info("segment %d: model %s, chi2/dof against the instrument noise model %.3f%s", header.index,
-                          ",".join(self.effects), meta["adequacy"]["chi2_dof"],
+                          ",".join(meta["model"]), meta["adequacy"]["chi2_dof"],
                           " (fails)" if meta["adequacy"]["fails"] else "")
+            if meta["adequacy"]["fails"]:
+                self.warn("model-inadequate", f"fit {header.index}: the model {','.join(meta['model'])} fails against "
+                                              f"the instrument noise model (chi2/dof {meta['adequacy']['chi2_dof']:.3f}; "
+                                              + "; ".join(meta["adequacy"]["summary"]) + ")",
+                          index=header.index, chi2_dof=meta["adequacy"]["chi2_dof"])
         return Output(self.output_topic, arrays,
                       fields={"units": UNITS, "meta": to_jsonable(meta)},
-                      summary=to_jsonable(summary), summary_schema="ttl.Fit")
+                      summary=to_jsonable(summary), summary_schema="ttl.Fit", allow_nonfinite=True)
 
 
 def _file_number(path, stage: str) -> int:
@@ -406,20 +545,25 @@ def add_options(p) -> None:
     p.add_argument("--band", nargs=2, type=float, metavar=("FMIN", "FMAX"), help="fit band [Hz]")
     p.add_argument("--settle", type=float, help="seconds to collect cached history before choosing the first segment")
     p.add_argument("--gap-timeout", type=float, help="seconds to wait for a missing segment before skipping it")
-    p.add_argument("--effects", help=f"the model: effect specs, comma-separated (default linear-ttl; "
-                                     f"from TDI alone: {', '.join(TDI_EFFECTS)})")
+    p.add_argument("--effects", help="the model: effect specs, comma-separated (default linear-ttl; any effect "
+                                     "ttl diagnose can fit, e.g. 'linear-ttl,witness:source=12.eta;link=23;delay=2')")
     p.add_argument("--effect-module", action="append", help="plugin module or .py file defining effects (repeatable)")
     p.add_argument("--adequacy-every", type=int,
                    help="refit the window under the instrument noise model every N segments (default 24; 0: never)")
     p.add_argument("--candidates-every", type=int,
                    help="rank the effects not in the model every N segments (default 0: on model changes only)")
+    p.add_argument("--diagnose-every", type=int,
+                   help="diagnose the window as ttl diagnose would every N segments (default 24; 0: never)")
+    p.add_argument("--adopt", choices=ADOPT_MODES,
+                   help="ask (default): recommend what to add; auto: adopt a recommendation that explains the excess; "
+                        "never: no live diagnosis")
 
 
 def options(args) -> dict:
     return {"fit_segment": args.fit_segment, "window_duration": args.window_duration, "band": args.band,
             "settle": args.settle, "gap_timeout": args.gap_timeout, "effects": args.effects,
             "effect_modules": args.effect_module, "adequacy_every": args.adequacy_every,
-            "candidates_every": args.candidates_every}
+            "candidates_every": args.candidates_every, "diagnose_every": args.diagnose_every, "adopt": args.adopt}
 
 
 def main(argv=None) -> int:

@@ -13,8 +13,14 @@ the first is chosen after ``settle`` seconds of history so that the output start
 Output ``ttl/<run>/residual/<i>``: arrays ``residual`` (3, n) and ``ttl_model`` (3, n),
 channels X2, Y2, Z2 (NaN where the TDI input is NaN), header t0 and fs those of the TDI
 segment; meta ``fit_index`` (the fit applied), ``coefficients_t_start``,
-``coefficients_t_stop`` (its window), ``segments_total``.  Residual = data - model, with
-:func:`ttlcore.estimate.subtraction.subtract`.
+``coefficients_t_stop`` (its window), ``segments_total``.  Residual = data - model: the
+linear TTL ``sum_k C_k R_k`` (:func:`ttlcore.estimate.subtraction.subtract`) and, when the
+fitter's model holds more (the fit of this very segment carries ``model_parts``: each other
+effect's contribution to X2, Y2, Z2 on this segment's samples), those too
+(:func:`ttlcore.diagnose.prediction.model_residual`); they are published as
+``effect_model`` (k, 3, n) with meta ``effects`` (their specs), so that the monitor can draw
+each.  A segment whose own fit did not come gets the latest earlier fit's linear
+coefficients only (meta ``model_parts_missing`` lists what could not be subtracted).
 """
 
 from __future__ import annotations
@@ -31,12 +37,13 @@ from streamer.plan import RangeSet
 from streamer.recorder import to_jsonable
 from streamer.stage import Output, stage_main
 from ttlcore.conventions import COEFFICIENT_NAMES
-from ttlcore.estimate.subtraction import subtract
+from ttlcore.diagnose.prediction import model_residual
 from ttlcore.tdi.combinations import XYZ
 
 from .fitter import P, tdi_expect
 
-UNITS = {"residual": "fractional frequency", "ttl_model": "fractional frequency"}
+UNITS = {"residual": "fractional frequency", "ttl_model": "fractional frequency",
+         "effect_model": "fractional frequency"}
 #: Wait for a fit announced by the fitter's progress before falling back to an earlier one [s].
 FIT_TIMEOUT = 30.0
 
@@ -65,7 +72,9 @@ class Subtractor(PipelineStage):
 
     def expect(self, topic, index):
         if topic == "fit":
-            return Expect(run=self.run_id, index=index,
+            # NaN allowed for the model parts (TDI delays at the window's start); the
+            # coefficients are checked finite in handle()
+            return Expect(run=self.run_id, index=index, allow_nonfinite=True,
                           arrays={"coefficients": ("<f8", (P,)), "sigma": ("<f8", (P,)),
                                   "covariance": ("<f8", (P, P))})
         return tdi_expect(self.run_id, index)
@@ -92,8 +101,18 @@ class Subtractor(PipelineStage):
             names = tuple(header.meta.get("names") or COEFFICIENT_NAMES)
             if len(names) != P:
                 raise ValueError(f"meta.names has {len(names)} names for {P} coefficients")
+            if not np.isfinite(arrays["coefficients"]).all():
+                raise ValueError("arrays.coefficients: not all finite")
+            parts = header.meta.get("model_parts") or []
+            x = arrays.get("model_parts")
+            if parts or x is not None:
+                if (x is None or not isinstance(parts, list) or not all(isinstance(p, str) for p in parts)
+                        or x.ndim != 3 or x.shape[:2] != (len(parts), 3)):
+                    raise ValueError(f"arrays.model_parts: expected (k, 3, n) with meta.model_parts naming k effects, "
+                                     f"got {None if x is None else x.shape} for {parts!r}")
             self.fits[header.index] = {"coefficients": dict(zip(names, map(float, arrays["coefficients"]))),
-                                       "t_start": header.meta.get("t_start"), "t_stop": header.meta.get("t_stop")}
+                                       "t_start": header.meta.get("t_start"), "t_stop": header.meta.get("t_stop"),
+                                       "parts": dict(zip(parts, x)) if parts else {}}
         else:
             if header.index in self.done:
                 return ()
@@ -190,22 +209,38 @@ class Subtractor(PipelineStage):
 
     def subtract(self, header, td, fit_index: int | None) -> Output:
         """The residual message of one TDI segment with fit ``fit_index`` (None: no fit)."""
+        parts: dict = {}
+        missing: list = []
         if fit_index is None:
             residual, model = np.array(td.data, dtype=float), np.zeros_like(td.data)
             fit = {"t_start": None, "t_stop": None}
         else:
             fit = self.fits[fit_index]
             self.applied.add(fit_index)
-            coefficients = fit["coefficients"]
-            residual = subtract(td, coefficients)
-            model = td.model(np.array([coefficients[n] for n in td.names]))
+            C = np.array([fit["coefficients"][n] for n in td.names])
+            if fit["parts"] and fit_index == header.index and all(p.shape[-1] == td.size for p in fit["parts"].values()):
+                parts = fit["parts"]
+            elif fit["parts"]:
+                missing = list(fit["parts"])
+                self.warn("model-parts-missing", f"segment {header.index} gets fit {fit_index}: its effects "
+                                                 f"{', '.join(missing)} are not subtracted (linear TTL only)",
+                          index=header.index)
+            residual = model_residual(td.data, td.regressors, C, parts.values())
+            model = td.model(C)
         with np.errstate(invalid="ignore"):
             rms = {"data": np.sqrt(np.nanmean(td.data ** 2, axis=1)), "residual": np.sqrt(np.nanmean(residual ** 2, axis=1))}
         meta = {"fit_index": fit_index, "coefficients_t_start": fit["t_start"], "coefficients_t_stop": fit["t_stop"],
-                "segments_total": self.segments_total}
-        self.log.info("segment %d: fit %s applied", header.index, fit_index)
-        return Output(self.output_topic, {"residual": residual, "ttl_model": model},
-                      fields={"channels": list(XYZ), "channel_axis": 0, "units": UNITS, "meta": to_jsonable(meta)},
+                "segments_total": self.segments_total, "effects": list(parts)}
+        if missing:
+            meta["model_parts_missing"] = missing
+        arrays = {"residual": residual, "ttl_model": model}
+        if parts:
+            arrays["effect_model"] = np.stack(list(parts.values()))
+        self.log.info("segment %d: fit %s applied%s", header.index, fit_index,
+                      f" with {', '.join(parts)}" if parts else "")
+        return Output(self.output_topic, arrays,
+                      fields={"channels": list(XYZ), "channel_axis": {"residual": 0, "ttl_model": 0, "effect_model": 1},
+                              "units": UNITS, "meta": to_jsonable(meta)},
                       summary=to_jsonable({"run": self.run_id, "index": header.index, "fit_index": fit_index,
                                         "channels": list(XYZ), "rms_data": rms["data"],
                                         "rms_residual": rms["residual"]}),

@@ -2,7 +2,9 @@
 
 Input ``ttl/<run>/telemetry/<i>`` (replayer); output ``ttl/<run>/tdi/<i>``: arrays ``data``
 (3, n) and ``regressors`` (3, 24, n), channels X2, Y2, Z2, the header's t0 and fs those of
-the telemetry segment; meta ``names`` (the 24 coefficient names), ``ltt_mean`` (6,), and,
+the telemetry segment, and the segment's telemetry itself (``eta``, ``dws_phi``,
+``dws_eta``, ``ltt``, (6, n) each: the live fitter builds the columns of any model's effects
+from the DWS readouts, and keeps them for its window); meta ``names`` (the 24 coefficient names), ``ltt_mean`` (6,), and,
 passed on from the telemetry, ``segments_total``, ``segment_duration``, ``source``,
 ``truth``, ``dws_asd``; ``continuous`` is false when the stream restarted at this segment
 (its first samples are then NaN: the nested delays reach before the data, as on the very
@@ -31,10 +33,14 @@ from ttlcore.tdi.combinations import XYZ
 from ttlcore.tdi.data import TDIStream
 
 #: Arrays kept in the recording: the regressors (72 channels, two thirds of a day's MCAP)
-#: are rebuilt from the replayer's recorded telemetry by :func:`ttlcore` TDI when needed.
+#: are rebuilt from the replayer's recorded telemetry by :func:`ttlcore` TDI when needed,
+#: and the forwarded telemetry is the replayer's (recorded there).
 RECORDED = ("data",)
 #: Units of the output arrays.
-UNITS = {"data": "fractional frequency", "regressors": "fractional frequency per m/rad"}
+UNITS = {"data": "fractional frequency", "regressors": "fractional frequency per m/rad",
+         "eta": "fractional frequency", "dws_phi": "rad/s", "dws_eta": "rad/s", "ltt": "s"}
+#: Axis labelled by the channels (X2, Y2, Z2) per array: none for the forwarded telemetry (links, MOSAs).
+CHANNEL_AXIS = {"data": 0, "regressors": 0, **dict.fromkeys(TELEMETRY_ARRAYS)}
 
 
 class TDIBuilder(OrderedStage):
@@ -84,8 +90,9 @@ class TDIBuilder(OrderedStage):
         if tuple(td.names) != tuple(COEFFICIENT_NAMES) or tuple(td.channels) != XYZ:
             raise ValueError(f"TDIStream gave channels {td.channels} and names {td.names[:2]}...; "
                              f"expected {XYZ} and the 24 coefficients")
-        return Output(self.output_topic, {"data": td.data, "regressors": td.regressors},
-                      fields={"channels": list(td.channels), "channel_axis": 0, "units": UNITS, "meta": meta},
+        return Output(self.output_topic, {"data": td.data, "regressors": td.regressors,
+                                          **{k: getattr(tm, k) for k in TELEMETRY_ARRAYS}},
+                      fields={"channels": list(td.channels), "channel_axis": CHANNEL_AXIS, "units": UNITS, "meta": meta},
                       allow_nonfinite=True, record_arrays=RECORDED)
 
 

@@ -118,6 +118,16 @@ def _add_run(sub) -> None:
     p.add_argument("--fit-segment", help="fitter: FFT segment length (default: the segment length)")
     p.add_argument("--fit-window", help="fitter: rolling window length (default 1d)")
     p.add_argument("--band", nargs=2, type=float, metavar=("FMIN", "FMAX"), help="fitter: fit band [Hz]")
+    p.add_argument("--effects", help="fitter: the model, effect specs comma-separated, ';' between one effect's "
+                                     "options (default linear-ttl; any effect ttl diagnose can fit)")
+    p.add_argument("--effect-module", action="append", metavar="PATH",
+                   help="fitter: plugin module or .py file defining effects (repeatable)")
+    p.add_argument("--adopt", choices=("ask", "auto", "never"),
+                   help="fitter: what to do with the live diagnosis' recommendation: ask (default: recommend, with "
+                        "the ttl control command that applies it), auto (adopt what explains the excess), never "
+                        "(no live diagnosis)")
+    p.add_argument("--diagnose-every", type=int, metavar="N",
+                   help="fitter: diagnose the window every N segments (default 24) and after every model change")
     p.add_argument("--timeout", type=float, help="give up after this many seconds")
     p.add_argument("--log-level", help="log level of the stages (default INFO)")
     p.add_argument("--quiet", action="store_true", help="no progress display")
@@ -138,6 +148,12 @@ def _read_config(path: Path) -> dict:
     return data
 
 
+#: ``ttl run`` options (and ``--config`` keys) that go to the fitter: option -> fitter option.
+FITTER_OPTIONS = {"fit_segment": "fit_segment", "fit_window": "window_duration", "band": "band",
+                  "effects": "effects", "effect_module": "effect_modules", "adopt": "adopt",
+                  "diagnose_every": "diagnose_every"}
+
+
 def _split(values) -> tuple:
     out = []
     for v in values or ():
@@ -149,7 +165,7 @@ def run_options(args) -> "RunOptions":
     """:class:`streamer.launcher.RunOptions` from ``--config`` and the command line."""
 
     conf = _read_config(args.config) if args.config else {}
-    known = set(RunOptions.__dataclass_fields__) | {"stages", "fit_segment", "fit_window", "band"}
+    known = set(RunOptions.__dataclass_fields__) | {"stages", *FITTER_OPTIONS}
     unknown = sorted(set(conf) - known)
     if unknown:
         raise TTLError(f"--config: {args.config}: unknown option {unknown[0]!r} (known: {', '.join(sorted(known))})")
@@ -157,7 +173,7 @@ def run_options(args) -> "RunOptions":
     if not isinstance(stages, dict):
         raise TTLError(f"--config: {args.config}: 'stages' must map stage names to options")
     fitter = dict(stages.get("fitter") or {})
-    for key, name in (("fit_segment", "fit_segment"), ("fit_window", "window_duration"), ("band", "band")):
+    for key, name in FITTER_OPTIONS.items():
         if key in conf:
             fitter[name] = conf.pop(key)
     cli = {"run_id": args.run_id, "telemetry": args.telemetry, "simulate": args.simulate, "segment": args.segment,
@@ -175,7 +191,7 @@ def run_options(args) -> "RunOptions":
         conf.pop("telemetry", None)
         conf.pop("simulate", None)
     merged = {**conf, **{k: v for k, v in cli.items() if v is not None}}
-    for key, name in (("fit_segment", "fit_segment"), ("fit_window", "window_duration"), ("band", "band")):
+    for key, name in FITTER_OPTIONS.items():
         if getattr(args, key) is not None:
             fitter[name] = getattr(args, key)
     if fitter:

@@ -60,6 +60,7 @@ from pathlib import Path
 
 import zenoh
 
+from ttlcore.diagnose.effects import make_effects
 from ttlcore.errors import TTLError
 
 from . import security
@@ -251,7 +252,24 @@ class Launcher:
         for name in STAGES:
             if name not in skipped and name not in o.external and not stage_module_exists(name):
                 raise LaunchError(f"stage {name!r}: module stages.{name} not found")
+        self.check_model()
         self.expected = [n for n in STAGES if n not in skipped]
+
+    def check_model(self) -> None:
+        """The fitter's model (``--effects``, ``--effect-module``) parsed here, before any
+        work: a bad spec is refused in one line instead of a fitter that dies at start."""
+        fitter = self.opts.stage_options.get("fitter") or {}
+        effects = fitter.get("effects")
+        if not effects:
+            return
+        specs = [x.strip().replace(";", ",") for x in effects.split(",") if x.strip()] \
+            if isinstance(effects, str) else list(effects)
+        try:
+            names = [e.name for e in make_effects(specs, tuple(fitter.get("effect_modules") or ()))]
+        except TTLError as exc:
+            raise LaunchError(f"--effects: {exc}") from None
+        if "linear-ttl" not in names:
+            raise LaunchError("--effects: the model must include linear-ttl")
 
     @property
     def cache(self) -> int:

@@ -25,6 +25,17 @@ def telemetry_of(header, arrays) -> Telemetry:
                      **{k: arrays[k] for k in TELEMETRY_ARRAYS})
 
 
+def concatenate_telemetry(parts, source: str = "bus") -> Telemetry:
+    """Contiguous telemetry segments as one :class:`~ttlcore.io.telemetry.Telemetry` (the
+    first segment's t0 and rate): the live fitter's window and ``ttl refit``'s input are
+    built by this one function, so that both fit the same numbers."""
+    parts = list(parts)
+    if not parts:
+        raise ValueError("no telemetry segments to join")
+    return Telemetry(t0=parts[0].t0, fs=parts[0].fs, source=source,
+                     **{k: np.concatenate([getattr(p, k) for p in parts], axis=1) for k in TELEMETRY_ARRAYS})
+
+
 def tdi_of(header, arrays) -> TDIData:
     """The :class:`~ttlcore.tdi.data.TDIData` of a ``tdi`` message (errors name the field)."""
     meta = header.meta

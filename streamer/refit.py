@@ -15,19 +15,19 @@ from __future__ import annotations
 import logging
 from pathlib import Path
 
-import numpy as np
+import h5py
 
 from ttlcore.cli.diagnose import split_effects as split
 from ttlcore.cli.progress import status_line
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.diagnoser import DiagnoseSettings, refit
 from ttlcore.diagnose.effects import make_effects
+from ttlcore.diagnose.prediction import fit_residual
 from ttlcore.errors import TTLError
 from ttlcore.io.atomic import write_json
-from ttlcore.io.telemetry import Telemetry
 
 from .inspect import InspectError, recording_files
-from .messages import tdi_of, telemetry_of
+from .messages import concatenate_telemetry, tdi_of, telemetry_of
 from .recorder import RecordingError, read_recording
 from .topology import PRODUCERS, STAGES, UPSTREAM
 
@@ -81,9 +81,7 @@ def load_run(run_dir, segments: tuple[int | None, int | None] = (None, None), so
         found = recorded_segments(run_dir, "telemetry")
         if found:
             parts = [telemetry_of(h, a) for h, a in _select(found, first, last)]
-            tm = Telemetry(t0=parts[0].t0, fs=parts[0].fs, source=str(run_dir),
-                           **{k: np.concatenate([getattr(p, k) for p in parts], axis=1)
-                              for k in ("eta", "dws_phi", "dws_eta", "ltt")})
+            tm = concatenate_telemetry(parts, source=str(run_dir))
             return (tm, f"telemetry of {len(parts)} recorded segments ({tm.size / tm.fs / 3600:g} h)",
                     found[min(found)][0].meta.get("dws_asd"))
         if source == "telemetry":
@@ -98,21 +96,39 @@ def load_run(run_dir, segments: tuple[int | None, int | None] = (None, None), so
             found[min(found)][0].meta.get("dws_asd"))
 
 
+def refit_settings(dws_asd=None, band=None) -> DiagnoseSettings:
+    """The diagnosis settings of a refit of recorded (or live) segments: the DWS readout
+    noise the replayer passed down (None: the telemetry's or the paper's) and the band
+    (None: the diagnosis default).  The live fitter uses the same, so that its window fits
+    equal ``ttl refit``'s."""
+    return DiagnoseSettings(dws_asd=None if dws_asd is None else float(dws_asd),
+                            **({"band": tuple(float(b) for b in band)} if band else {}))
+
+
 def refit_run(run_dir, effects, *, baseline=("linear-ttl",), effect_modules=(), segments=(None, None),
-              source: str = "auto", band=None) -> dict:
+              source: str = "auto", band=None, residual: bool = False) -> dict:
     """Refit a recorded run with ``effects`` against ``baseline`` (see the module docstring);
-    returns the JSON report (``source``, ``model``, ``baseline``, ``change``)."""
+    returns the JSON report (``source``, ``model``, ``baseline``, ``change``).  With
+    ``residual`` (telemetry only) the key ``"_residual"`` holds the whole model's residual
+    ``(t0, fs, residual (3, n) X2/Y2/Z2, predictions)``
+    (:func:`ttlcore.diagnose.prediction.fit_residual`): what the live subtractor publishes
+    for the last segment of the same window."""
 
     data, what, dws = load_run(run_dir, segments, source)
     dws = None if dws is None else float(dws)
-    settings = DiagnoseSettings(dws_asd=dws, **({"band": tuple(band)} if band else {}))
+    settings = refit_settings(dws, band)
     try:
         report = refit(data, list(effects), settings=settings, effect_modules=tuple(effect_modules),
                        baseline=list(baseline), dws_asd=dws)
     except ValueError as exc:
         raise RefitError(str(exc)) from None
+    fit = report["_internals"]["fit"]
     report = {k: v for k, v in report.items() if not k.startswith("_")}
     report["source"] = {"run": str(run_dir), "data": what}
+    if residual:
+        if fit.data.tm is None:
+            raise RefitError("--residual needs the recorded telemetry (the replayer's recording)")
+        report["_residual"] = fit_residual(fit)
     return report
 
 
@@ -175,6 +191,9 @@ def register(sub) -> None:
                         "when recorded)")
     p.add_argument("--band", nargs=2, type=float, metavar=("FMIN", "FMAX"), help="fit band [Hz]")
     p.add_argument("--json", type=Path, metavar="OUT", help="also write the report as JSON")
+    p.add_argument("--residual", type=Path, metavar="FILE.h5",
+                   help="also write the whole model's residual (X2, Y2, Z2 on the telemetry's samples, and each "
+                        "effect's contribution) to an HDF5 file")
     p.set_defaults(func=_cmd_refit)
 
 
@@ -189,10 +208,32 @@ def _cmd_refit(args) -> int:
             say(f"reading the recorded segments of {args.run_dir} and refitting with {args.effects}")
             report = refit_run(args.run_dir, split(args.effects), baseline=split(args.baseline),
                                effect_modules=args.effect_module, segments=_parse_range(args.segments),
-                               source=args.source, band=args.band)
+                               source=args.source, band=args.band, residual=args.residual is not None)
     except InspectError as exc:
         raise RefitError(str(exc)) from None
     print(format_refit(report))
+    if args.residual is not None:
+        write_residual(args.residual, *report.pop("_residual"))
+        print(f"wrote {args.residual}")
     if args.json:
         write_json(args.json, report)
     return 0
+
+
+def write_residual(path, t0: float, fs: float, residual, predictions: dict) -> None:
+    """The residual file of ``ttl refit --residual``: datasets ``residual`` (3, n) and
+    ``predictions/<i>`` (3, n, attribute ``effect``), attributes ``t0`` [s], ``fs`` [Hz],
+    ``channels`` (X2, Y2, Z2); written under a temporary name, then renamed."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    try:
+        with h5py.File(tmp, "w") as f:
+            f.attrs.update(t0=t0, fs=fs, channels=["X2", "Y2", "Z2"], units="fractional frequency")
+            f["residual"] = residual
+            for i, (spec, x) in enumerate(predictions.items()):
+                f[f"predictions/{i}"] = x
+                f[f"predictions/{i}"].attrs["effect"] = spec
+        tmp.replace(path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        raise RefitError(f"--residual {path}: {exc.strerror or exc}") from None

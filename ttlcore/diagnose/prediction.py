@@ -1,0 +1,167 @@
+"""The time-domain prediction of a fitted model: what each effect adds to the TDI data.
+
+The fit (:mod:`ttlcore.diagnose.model_fit`) works on whitened segment spectra; subtracting
+the model from the data needs it back in time, on the telemetry's own samples and in the
+channels the pipeline publishes (X2, Y2, Z2).  For a model fitted to telemetry
+(:func:`ttlcore.diagnose.whitened.whiten_telemetry`) each effect beyond the linear TTL
+contributes
+
+- a column effect (drift, step, cross-coupling, second order, witness, fd-coupling,
+  plugins): ``sum_k theta_k TDI(col_k)``, the exact TDI of the column's parts
+  (:func:`ttlcore.diagnose.effects.tdi_in_blocks`, the code path of the 24 regressors),
+  filtered in time by the column's frequency response when it has one (an LTI filter
+  commutes with TDI up to the arms' rate of change, ~1e-8, as the fit assumes);
+- a shifted-witness effect (timing offset, light-travel-time error) of total offset
+  ``delta_g`` per group: ``sum_k C_k [R_k(t + s delta_g) - R_k(t)]`` over the group's
+  regressors ``R_k`` (``s`` the effect's ``d1_sign``), the exact shift the Taylor columns of
+  the fit approximate, with the fitted linear coefficients ``C_k``.
+
+The linear TTL itself is ``sum_k C_k R_k`` with the 24 coefficients
+(:meth:`ttlcore.tdi.data.TDIData.model`), left to the caller, who has the regressors.  So
+the residual of the whole model is ``d - sum_k C_k R_k - sum_e prediction_e``
+(:func:`model_residual`).
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ..conventions import COEFFICIENT_NAMES
+from ..tdi.combinations import AET_MATRIX
+from ..tdi.interpolation import timeshift
+from .effects import effect_input_from_telemetry, filtered_many, tdi_in_blocks
+
+__all__ = ["effect_predictions", "fit_residual", "model_residual", "xyz_regressors"]
+
+log = logging.getLogger(__name__)
+
+
+def xyz_regressors(data) -> np.ndarray:
+    """The 24 TTL regressors' X2, Y2, Z2 (3, 24, n) on the telemetry samples of a
+    :class:`~ttlcore.diagnose.whitened.WhitenedData` (its ``td_in`` holds A, E, T; the
+    A, E, T matrix is orthogonal, so X, Y, Z are its transpose times A, E, T)."""
+    td = data.td_in
+    R = np.stack([td.regressors[:, td.names.index(n)] for n in COEFFICIENT_NAMES], axis=1)
+    return np.einsum("ac,akn->ckn", AET_MATRIX, R)
+
+
+def effect_predictions(fit) -> dict[str, np.ndarray]:
+    """What each effect of ``fit`` beyond ``linear-ttl`` adds to X2, Y2, Z2.
+
+    Parameters
+    ----------
+    fit : ModelFit
+        A model fitted to telemetry (``fit.data.tm`` set).
+
+    Returns
+    -------
+    dict
+        Effect spec (:meth:`Effect.spec`) -> (3, n) [fractional frequency] on the
+        telemetry's samples, NaN where the TDI delays (or a shift's interpolation stencil)
+        reach beyond the data.
+    """
+    data = fit.data
+    tm = data.tm
+    if tm is None:
+        raise ValueError("effect_predictions: the model was fitted to TDI outputs alone; the prediction of its "
+                         "effects needs the telemetry (DWS series)")
+    theta = dict(zip(fit.names, map(float, fit.theta)))
+    out: dict[str, np.ndarray] = {}
+    for effect in fit.effects:
+        if effect.name == "linear-ttl":
+            continue
+        if getattr(effect, "needs_coefficients", False):
+            out[effect.spec()] = _shift_prediction(fit, effect, data)
+        else:
+            out[effect.spec()] = _column_prediction(effect, theta, data, tm)
+    return out
+
+
+def _column_prediction(effect, theta: dict, data, tm) -> np.ndarray:
+    """``sum_k theta_k TDI(col_k)`` (filtered by each column's response) of a column effect."""
+    cols = [c for c in effect.columns(effect_input_from_telemetry(tm)) if c.name in theta]
+    n = tm.size
+    total = np.zeros((3, n))
+    s = data.settings
+    # columns sharing their parts (an fd-coupling's b0..b2) go through TDI once
+    groups: dict[str, list] = {}
+    for c in cols:
+        groups.setdefault(c.base or c.name, []).append(c)
+    for members in groups.values():
+        _, xyz = tdi_in_blocks(tm.ltt, tm.fs, [members[0]], order=s.order, delay_order=s.delay_order)
+        x = xyz[:, 0]  # (3, n)
+        if all(c.response is None for c in members):
+            total += sum(theta[c.name] for c in members) * x
+            continue
+        ok = np.isfinite(x).all(axis=0)
+        for c in members:
+            response = c.response or (lambda f: np.ones(np.shape(f), dtype=complex))
+            y = np.stack([filtered_many(x[ch], tm.fs, [response])[0] for ch in range(3)])
+            total += theta[c.name] * np.where(ok, y, np.nan)
+    return total
+
+
+def _shift_prediction(fit, effect, data) -> np.ndarray:
+    """``sum_k C_k [R_k(t + s delta_g) - R_k(t)]`` over the groups of a shifted-witness effect."""
+    R = xyz_regressors(data)
+    C = fit.ttl_coefficients()
+    offsets = fit.offsets()
+    fs = float(data.td_in.fs)
+    sign = float(effect.d1_sign)
+    total = np.zeros(R[:, 0].shape)
+    for group, members in effect.shifted_members().items():
+        delta = offsets.get(f"{effect.name}.{group}", (0.0, 0.0))[0]
+        if not delta:
+            continue
+        k = [COEFFICIENT_NAMES.index(m) for m in members]
+        A = np.einsum("k,ckn->cn", C[k], R[:, k])
+        total += timeshift(A, sign * delta * fs, order=data.settings.order) - A
+    return total
+
+
+def model_residual(data_xyz: np.ndarray, regressors_xyz: np.ndarray, coefficients: np.ndarray,
+                   predictions=()) -> np.ndarray:
+    """``d - sum_k C_k R_k - sum_e prediction_e``: the residual of the whole model (3, n).
+
+    Parameters
+    ----------
+    data_xyz : ndarray (3, n)
+        TDI of the data.
+    regressors_xyz : ndarray (3, 24, n)
+        TDI of the 24 regressors.
+    coefficients : ndarray (24,)
+        Linear coefficients [m/rad].
+    predictions : iterable of ndarray (3, n)
+        The other effects' predictions (:func:`effect_predictions`).
+    """
+    r = np.asarray(data_xyz, dtype=float) - np.einsum("k,ckn->cn", np.asarray(coefficients, dtype=float),
+                                                      regressors_xyz)
+    for p in predictions:
+        r = r - p
+    return r
+
+
+def fit_residual(fit) -> tuple[float, float, np.ndarray, dict]:
+    """The residual of the whole model ``fit`` on its own telemetry, in X2, Y2, Z2.
+
+    Returns
+    -------
+    t0 : float
+        Time of the first sample [s].
+    fs : float
+        Sampling rate [Hz] (the telemetry's).
+    residual : ndarray (3, n)
+        :func:`model_residual` of the data with the fit's 24 linear coefficients and its
+        other effects' predictions.
+    predictions : dict
+        :func:`effect_predictions`.
+    """
+    td = fit.data.td_in
+    C = fit.ttl_coefficients()
+    if np.isnan(C).any():
+        raise ValueError("fit_residual: the model does not hold the 24 linear coefficients (add linear-ttl)")
+    predictions = effect_predictions(fit)
+    d = np.einsum("ac,an->cn", AET_MATRIX, td.data)
+    return float(td.t0), float(td.fs), model_residual(d, xyz_regressors(fit.data), C, predictions.values()), predictions
