@@ -247,6 +247,39 @@ def truth_over_window(truth_path, t_start: float, t_stop: float, names) -> dict:
     return {n: float(mean[n]) for n in names if n in mean}
 
 
+def model_report(recs: list[Recording]) -> dict:
+    """The fitter's model over the run: its changes (``model`` events: from which segment,
+    by whom - a control message or ``--adopt auto`` - and why) and the live diagnoses (the
+    ``diagnosis`` of the fit summaries: window, chi^2/dof, failing bands, recommendation and
+    the ``ttl control`` command applying it, adoption)."""
+    changes, diagnoses, last_model = [], {}, None
+    for rec in recs:
+        for e in rec.json("events"):
+            if isinstance(e, dict) and e.get("kind") == "model":
+                d = e.get("details") or {}
+                changes.append({"from_index": d.get("from_index"), "effects": d.get("effects"), "before": d.get("before"),
+                                "by": d.get("by"), "reason": d.get("reason"), "file": rec.path.name})
+        for d in rec.json("fit/summary"):
+            if not isinstance(d, dict) or not isinstance(d.get("index"), int):
+                continue
+            if isinstance(d.get("model"), list):
+                last_model = (d["index"], d["model"])
+            diag = d.get("diagnosis")
+            if isinstance(diag, dict):
+                rec_ = diag.get("recommendation") if isinstance(diag.get("recommendation"), dict) else {}
+                diagnoses[d["index"]] = {
+                    "index": d["index"], "segments": diag.get("segments"), "model": diag.get("model"),
+                    "chi2_dof": diag.get("chi2_dof"), "fails": diag.get("fails"),
+                    "failing_bands": [[b.get("f_lo"), b.get("f_hi"), b.get("chi2_dof")]
+                                      for b in diag.get("bands") or [] if isinstance(b, dict) and b.get("fails")],
+                    "failing_hours": diag.get("failing_hours"), "summary": diag.get("summary"),
+                    "recommendation": rec_.get("spec"), "explains": rec_.get("explains"),
+                    "command": rec_.get("command"), "message": rec_.get("message"),
+                    "adoption": diag.get("adoption"), "text": diag.get("text")}
+    return {"model": None if last_model is None else {"index": last_model[0], "effects": last_model[1]},
+            "changes": changes, "diagnoses": [diagnoses[i] for i in sorted(diagnoses)]}
+
+
 def inspect_run(run_dir, truth=None) -> dict:
     """Everything ``ttl inspect`` reports, as a JSON-ready dict.
 
@@ -339,6 +372,7 @@ def inspect_run(run_dir, truth=None) -> dict:
     gaps = _gaps(recs_of, errors, plan)
 
     fits = _fits(recs_of.get("fitter", []))
+    model = model_report(recs_of.get("fitter", []))
     fit_report = {"count": len(fits), "indices": to_ranges(f["index"] for f in fits),
                   "names": fits[-1]["names"] if fits else [], "units": "m/rad",
                   "table": [{k: f[k] for k in ("index", "t_start", "t_stop", "chi2_dof", "converged",
@@ -354,7 +388,7 @@ def inspect_run(run_dir, truth=None) -> dict:
         fit_report["truth_file"] = str(truth)
     return {"run": runs[0] if len(runs) == 1 else (runs or [run_dir.name]), "directory": str(run_dir),
             "stages": stages, "stages_missing": [s for s in STAGES if s not in stages],
-            "segments_total": total, "fits": fit_report, "alerts": alerts, "warnings": warnings, "errors": errors,
+            "segments_total": total, "fits": fit_report, "model": model, "alerts": alerts, "warnings": warnings, "errors": errors,
             "interruptions": interruptions, "gaps": gaps, "security": security_report(run_dir)}
 
 
@@ -502,6 +536,32 @@ def format_report(r: dict) -> str:
             lines.append(f"  truth: {f['truth_file']}, averaged over the last fit window")
     else:
         lines.append("Coefficient trends: no fits recorded")
+
+    m = r.get("model") or {}
+    if m.get("model") or m.get("changes") or m.get("diagnoses"):
+        lines.append("")
+        current = m.get("model") or {}
+        lines.append(f"Model (fitter): {','.join(current.get('effects') or ['?'])} at fit {current.get('index')}; "
+                     f"{len(m['changes'])} change(s), {len(m['diagnoses'])} live diagnos{'i' if len(m['diagnoses']) == 1 else 'e'}s")
+        for c in m["changes"]:
+            lines.append(f"  from segment {c['from_index']}: {','.join(c['before'] or [])} -> {','.join(c['effects'] or [])}"
+                         f" ({c.get('by') or 'control'}{': ' + c['reason'] if c.get('reason') else ''})")
+        for d in m["diagnoses"]:
+            seg = d.get("segments") or ["?", "?"]
+            bands = ", ".join(f"{lo:.3g}-{hi:.3g} Hz ({chi:.3f})" for lo, hi, chi in d["failing_bands"]) or "none"
+            lines.append(f"  diagnosis at segment {d['index']} (window {seg[0]}..{seg[1]}, model "
+                         f"{','.join(d.get('model') or [])}): chi2/dof {_num(d.get('chi2_dof'))}, failing bands {bands}")
+            if d.get("recommendation"):
+                adopted = (d.get("adoption") or {}).get("adopted")
+                lines.append(f"    recommends {d['recommendation']}"
+                             f"{' (explains the excess)' if d.get('explains') else ' (does not explain the excess)'}"
+                             f"{': adopted' if adopted else ''}")
+                if d.get("command") and not adopted:
+                    lines.append(f"    apply it: {d['command']}")
+            elif d.get("message"):
+                lines.append(f"    {d['message']}")
+            elif not d.get("fails"):
+                lines.append("    the model is adequate: nothing to add")
 
     lines.append("")
     lines.append(f"Alerts (monitor): {len(r['alerts'])}")

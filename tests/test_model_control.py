@@ -36,7 +36,8 @@ def test_fitter_changes_model_on_control_message_and_monitor_shows_before_after(
 
     endpoint = f"tls/127.0.0.1:{free_port()}"
     creds = ensure_credentials(tmp_path / "creds")
-    (tmp_path / "run.toml").write_text('[stages.fitter]\nadequacy_every = 1\n')
+    # the live diagnosis (tests/test_live_loop.py) is off: this test is about the control message
+    (tmp_path / "run.toml").write_text('[stages.fitter]\nadequacy_every = 1\ndiagnose_every = 0\n')
     procs = Procs(tmp_path)
     try:
         # 24 mm/rad/day on two coefficients (far beyond LISA's expectations, chosen so that

@@ -266,29 +266,49 @@ def test_simulation_source_keeps_one_noise_block_and_equals_the_simulator():
     assert max(cached) == cached[0], cached
 
 
-def test_fitter_window_keeps_only_the_decimated_samples(tmp_path):
-    """The fitter's window of decimated TDI (for the adequacy refits) holds copies, not strided
-    views that would keep the decimator's full-rate output alive (twice the memory), and no
-    more than the window."""
+def test_fitter_window_keeps_one_window_of_telemetry(tmp_path):
+    """The fitter's telemetry window (for the refits of extended models and the live
+    diagnosis) holds the segments of one window and joins them as ``ttl refit`` would."""
     from stages.fitter import Fitter
+    from streamer.messages import concatenate_telemetry
     from ttlcore.conventions import COEFFICIENT_NAMES
+    from ttlcore.io.telemetry import Telemetry
     from ttlcore.tdi.data import TDIData
 
     fitter = Fitter(StageConfig(run="u", recordings=tmp_path, options={
-        "window_duration": "1800", "adequacy_every": 0}))
+        "window_duration": "1800", "adequacy_every": 0, "diagnose_every": 0}))
     rng = np.random.default_rng(1)
     fs, n = 4.0, 2400
+    segments = []
     for i in range(6):
         header = SimpleNamespace(index=i, t0=i * n / fs, meta={"segment_duration": n / fs})
         td = TDIData(t0=header.t0, fs=fs, channels=("X2", "Y2", "Z2"), data=rng.standard_normal((3, n)),
                      regressors=rng.standard_normal((3, len(COEFFICIENT_NAMES), n)), ltt_mean=np.full(6, 8.3))
-        fitter.process(header, td)
-        last, kept = fitter.rolling.last_decimated, fitter.window_tdi[-1]
-        np.testing.assert_array_equal(kept.regressors, last.regressors)
-        assert kept.fs == 2.0 and kept.regressors.shape[-1] == n // 2
-        for dec in fitter.window_tdi:
-            assert dec.data.flags.owndata and dec.regressors.flags.owndata
-    assert sum(d.size for d in fitter.window_tdi) / 2.0 <= 1800 + 600  # one window (and the segment it ends with)
+        tm = Telemetry(t0=header.t0, fs=fs, eta=rng.standard_normal((6, n)), dws_phi=rng.standard_normal((6, n)),
+                       dws_eta=rng.standard_normal((6, n)), ltt=np.full((6, n), 8.3))
+        segments.append(tm)
+        fitter.process(header, (td, tm))
+        assert [j for j, _ in fitter.window_tm] == list(range(max(0, i - 2), i + 1))  # 1800 s: three segments
+    joined = fitter.window_telemetry()
+    expected = concatenate_telemetry(segments[3:])
+    assert joined.t0 == expected.t0 == 3 * n / fs
+    np.testing.assert_array_equal(joined.dws_eta, expected.dws_eta)
+    np.testing.assert_array_equal(joined.dws_eta[:, -n:], segments[-1].dws_eta)
+
+
+def test_adoption_needs_a_recommendation_that_explains_the_excess():
+    """--adopt auto takes only what the diagnosis recommends, says explains the excess, with
+    decisive evidence."""
+    from stages.fitter import adoptable
+
+    rec = {"option": "--effects linear-ttl,drift", "spec": "drift", "explains": True, "explained_fraction": 0.93,
+           "log_bayes_factor": 40.0}
+    assert adoptable(rec)[0]
+    assert not adoptable(None)[0] and not adoptable({"effect": None, "explains": False})[0]
+    assert not adoptable({**rec, "option": ""})[0]       # nothing recommended (the option left empty)
+    no, why = adoptable({**rec, "explains": False, "explained_fraction": 0.2})
+    assert not no and "20 %" in why
+    assert not adoptable({**rec, "log_bayes_factor": 1.0})[0]
 
 
 def test_monitor_waits_for_an_alive_fitter_that_has_not_reported_yet(tmp_path):

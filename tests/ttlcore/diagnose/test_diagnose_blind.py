@@ -102,7 +102,9 @@ def with_gain(spec: str, factor: float) -> str:
     return name + ":" + ",".join(f"{k}={float(v) * factor:.4g}" if k == "gain" else f"{k}={v}" for k, v in opts)
 
 
-def run_blind(tmp_path, seed, duration, args=()):
+def run_blind_day_file(tmp_path, seed, duration="1d"):
+    """The blind case of ``seed`` simulated (rescaled into the acceptance's regime when the
+    draw is outside it): ``(spec, telemetry path, truth path)``."""
     spec = blind_case(seed)
     path, truth = simulate_case(tmp_path, spec, duration, seed)
     name = spec.split(":")[0]
@@ -116,6 +118,11 @@ def run_blind(tmp_path, seed, duration, args=()):
         path, truth = simulate_case(tmp_path, spec, duration, seed)
         ratio = injected_asd_ratio(read_telemetry(path), read_truth(truth).injections[name])
     assert 3.0 <= ratio.max() <= 10.0, (spec, np.round(ratio, 2))
+    return spec, path, truth
+
+
+def run_blind(tmp_path, seed, duration, args=()):
+    spec, path, truth = run_blind_day_file(tmp_path, seed, duration)
     reports = follow_advice(path, truth, tmp_path, args=args)
     first = reports[0]
     assert first["adequacy"]["fails"], spec
