@@ -261,13 +261,17 @@ def extended_day(tmp_path_factory):
 def test_kill_with_an_extended_model_changes_nothing(extended_day, tmp_path, stage):
     """SIGKILL of the fitter or the subtractor at segment 3 of 6 while the model holds a
     witness and an fd-coupling: restarted, the results equal the clean run's to 1e-9 (the
-    fitter rebuilds its telemetry window from the replayer's recording)."""
+    fitter rebuilds its telemetry window from the replayer's recording: the caches hold 3
+    segments)."""
     data, clean = extended_day
     procs = Procs(tmp_path)
     try:
         proc = procs.ttl("run", "--telemetry", data, "--run-id", "killed", "--recordings", tmp_path / "rec",
                          "--timeout", "3000", "--quiet", "--skip", "monitor", "--effects", EXTENDED, "--adopt", "never",
-                         "--restart", "1", "--listen", f"tls/127.0.0.1:{free_port()}")
+                         "--restart", "1", "--listen", f"tls/127.0.0.1:{free_port()}",
+                         # caches smaller than the window: the restarted fitter must rebuild its
+                         # window from the recordings, not from the publishers' caches
+                         "--window", "1", "--cache", "3")
         run_dir = tmp_path / "rec" / "killed"
 
         def handled():
@@ -284,6 +288,9 @@ def test_kill_with_an_extended_model_changes_nothing(extended_day, tmp_path, sta
     finally:
         procs.close()
     assert code == 0 and f"restarting {stage}" in out, out[-4000:]
+    if stage == "fitter":
+        events = [e for e in read_recording(run_dir / "fitter.mcap").json("events") if e.get("kind") == "restored"]
+        assert events and events[0]["details"]["first"] == 0, events
     for get in (fits_of, residuals_of):
         a, b = get(clean), get(run_dir)
         assert sorted(a) == sorted(b)
