@@ -34,7 +34,6 @@ sys.path.insert(0, str(Path(__file__).parent / "ttlcore" / "diagnose"))
 from streamer.recorder import RecordingError, read_recording  # noqa: E402
 from streamer.session import free_port  # noqa: E402
 from ttl_testutil import Procs, finish, output, stage_processes, ttl_command, wait_for  # noqa: E402
-from ttlcore.cli.main import main as ttl_main  # noqa: E402
 from ttlcore.conventions import COEFFICIENT_NAMES  # noqa: E402
 from ttlcore.io.truth import read_truth  # noqa: E402
 
@@ -45,13 +44,10 @@ MAX_PULL_RMS = 1.5
 
 
 def simulate(tmp_path: Path, duration: str, seed: int, inject: str | None = None) -> tuple[Path, Path]:
-    path = tmp_path / "day.h5"
-    args = ["simulate", "--duration", duration, "--orbit", "keplerian", "--seed", str(seed), "--out", str(path),
-            "--chunk", "7d", "--quiet"]
-    if inject:
-        args += ["--effect-module", BLIND, "--inject", inject]
-    assert ttl_main(args) == 0
-    return path, tmp_path / "day.truth.h5"
+    """A Keplerian day (``tmp_path/day.h5`` and its truth) with ``inject`` from the blind plugin."""
+    from test_diagnose_blind import simulate_case
+
+    return simulate_case(tmp_path, inject, duration, seed)
 
 
 def live_run(tmp_path: Path, data: Path, run: str, *extra, timeout: float = 3000) -> tuple[int, str, Path]:
@@ -66,21 +62,22 @@ def live_run(tmp_path: Path, data: Path, run: str, *extra, timeout: float = 3000
     return code, out, tmp_path / "rec" / run
 
 
-def fits_of(run_dir: Path) -> dict:
-    """Fit segments by index, from every process's recording (a later file's copy kept)."""
+def segments_of(run_dir: Path, stage: str, topic: str) -> dict:
+    """The ``topic`` segments by index, from every process's recording of ``stage`` (a
+    restarted stage leaves ``<stage>.<n>.mcap``; the first copy of an index kept)."""
     out = {}
-    for path in sorted(run_dir.glob("fitter*.mcap")):
-        for s in read_recording(path).segments("fit"):
+    for path in sorted(run_dir.glob(f"{stage}*.mcap")):
+        for s in read_recording(path).segments(topic):
             out.setdefault(s.header.index, s)
     return out
+
+
+def fits_of(run_dir: Path) -> dict:
+    return segments_of(run_dir, "fitter", "fit")
 
 
 def residuals_of(run_dir: Path) -> dict:
-    out = {}
-    for path in sorted(run_dir.glob("subtractor*.mcap")):
-        for s in read_recording(path).segments("residual"):
-            out.setdefault(s.header.index, s)
-    return out
+    return segments_of(run_dir, "subtractor", "residual")
 
 
 def model_events(run_dir: Path) -> list[dict]:
