@@ -168,7 +168,13 @@ def blind_day(tmp_path: Path, seed: int) -> tuple[str, Path, Path]:
     return run_blind_day_file(tmp_path, seed)
 
 
+#: a day replayed with the extended model refitted every segment and four live diagnoses:
+#: 15-40 min on two cores
+DAY_TIMEOUT = 3600
+
+
 @pytest.mark.science
+@pytest.mark.timeout(DAY_TIMEOUT)
 @pytest.mark.parametrize("seed", [2, 9])
 def test_live_loop_fixes_a_blind_day_by_itself(tmp_path, seed):
     spec, data, truth = blind_day(tmp_path, seed)
@@ -187,6 +193,7 @@ def test_live_loop_fixes_a_blind_day_by_itself(tmp_path, seed):
 
 
 @pytest.mark.science
+@pytest.mark.timeout(DAY_TIMEOUT)
 def test_live_loop_applies_the_printed_control_command(tmp_path):
     """--adopt ask: the fitter recommends; the test runs the printed ``ttl control`` command as
     an operator would, and the run ends as with --adopt auto."""
@@ -228,6 +235,7 @@ def test_live_loop_applies_the_printed_control_command(tmp_path):
 
 
 @pytest.mark.science
+@pytest.mark.timeout(DAY_TIMEOUT)
 def test_live_loop_adopts_nothing_on_a_null_day(tmp_path):
     data, _ = simulate(tmp_path, "1d", 11)
     code, out, run_dir = live_run(tmp_path, data, "null", "--adopt", "auto", "--diagnose-every", "6")
@@ -254,6 +262,7 @@ def extended_day(tmp_path_factory):
 
 
 @pytest.mark.ops
+@pytest.mark.timeout(DAY_TIMEOUT)
 @pytest.mark.parametrize("stage", ["fitter", "subtractor"])
 def test_kill_with_an_extended_model_changes_nothing(extended_day, tmp_path, stage):
     """SIGKILL of the fitter or the subtractor at segment 3 of 6 while the model holds a
