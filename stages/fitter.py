@@ -490,6 +490,10 @@ class Fitter(OrderedStage):
         # rebuild the window): its window fit and diagnosis would be thrown away
         replayed = self.handled_before(header.index)
         window = None if replayed else self.window_fit(header)
+        if window is None and not replayed and self.effects != ["linear-ttl"]:
+            self.warn("model-not-fitted", f"fit {header.index}: the model {','.join(self.effects)} could not be fitted "
+                                          "on the window (too short for its spectra): the linear rolling fit is "
+                                          "published, and only the linear TTL is subtracted", index=header.index)
         live = None if replayed or not self.diagnosis_due(header.index) else self.live_diagnosis(header)
         meta = {"names": list(res.names), "chi2_dof": res.chi2_dof, "t_start": res.t_start, "t_stop": res.t_stop,
                 "segments": int(res.n_segments), "band": list(res.band), "converged": bool(res.converged),
