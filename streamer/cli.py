@@ -1,7 +1,5 @@
-"""The ``ttl`` entry point (:func:`main`) and its operations subcommands.
-
-:func:`main` builds the science parser of :mod:`ttlcore.cli.main` with :func:`register`
-added: the operations layer imports the science, never the reverse.
+"""The operations subcommands of ``ttl``: what runs them (their options are declared in
+:mod:`streamer.parsers`; the entry point is :func:`streamer.main.main`).
 
 ``ttl run``
     The whole pipeline: five stage processes on a loopback Zenoh, progress, supervision
@@ -14,17 +12,15 @@ added: the operations layer imports the science, never the reverse.
 ``ttl reprocess``
     Analysis and diagnosis of many days (files or a recorded run) on Dask
     (:mod:`streamer.reprocess`).
-``ttl inspect``, ``ttl view``
-    Offline inspection of recordings, from :mod:`streamer.inspect` when it is installed.
+``ttl inspect``, ``ttl view``, ``ttl refit``
+    Offline inspection of recordings (:mod:`streamer.inspect`, :mod:`streamer.refit`).
 
 Errors print one line naming the option, file or stage at fault and exit non-zero.
 """
 
 from __future__ import annotations
 
-import argparse
 import importlib
-import importlib.util
 import json
 import json as _json
 import logging
@@ -37,10 +33,8 @@ from pathlib import Path
 
 import zenoh
 
-from ttlcore.cli.main import main as science_main
 from ttlcore.errors import TTLError
 
-from . import refit, reprocess
 from .keys import ERRORS, check_name, control_key, topic_pattern
 from .launcher import RunOptions, run, stage_module_exists
 from .security import ROLES, ROUTER_LOG_FILTER, ensure_credentials, filter_log
@@ -53,86 +47,14 @@ from .session import (
     open_session,
 )
 from .stage import Stage, stage_main
-from .topology import STAGES, stage_module
+from .main import main as ttl_main
+from .parsers import register  # noqa: F401  (the operations parsers, for build_parser(register))
+from .topology import stage_module
 
 log = logging.getLogger(__name__)
 
 
-def register(sub) -> None:
-    """Add ``run``, ``stage``, ``router``, ``control`` (and ``inspect``/``view`` when available) to ``ttl``."""
-    _add_run(sub)
-    _add_stage(sub)
-    _add_router(sub)
-    _add_control(sub)
-    _add_credentials(sub)
-    refit.register(sub)
-    reprocess.add_parser(sub)
-    try:
-        spec = importlib.util.find_spec("streamer.inspect")
-    except (ImportError, ValueError):
-        spec = None
-    if spec is not None:
-        try:
-            inspect_cli = importlib.import_module("streamer.inspect")
-        except Exception as exc:  # keep the other subcommands usable
-            log.warning("streamer.inspect could not be loaded (%s): no 'ttl inspect'/'ttl view'", exc)
-        else:
-            if hasattr(inspect_cli, "register"):
-                inspect_cli.register(sub)
-
-
 # ---------------------------------------------------------------------------- ttl run
-
-def _add_run(sub) -> None:
-    p = sub.add_parser(
-        "run", help=f"run the streaming pipeline ({', '.join(STAGES)})",
-        description="Start the five stages as separate processes on a loopback Zenoh (a router process on "
-                    "127.0.0.1, the stages as its clients, all with mutual TLS), show progress, supervise "
-                    "them, and stop them once every stage has handled every segment. Recordings go to "
-                    "RECORDINGS/RUN_ID/<stage>.mcap. Exit status 0 when the run completed.")
-    p.add_argument("--config", type=Path, help="run configuration (JSON or TOML) with these options as keys "
-                   "(run_id, telemetry, simulate, segment, ...) and 'stages': {name: {option: value}}; "
-                   "command-line options override it")
-    src = p.add_mutually_exclusive_group()
-    src.add_argument("--telemetry", nargs="+", metavar="FILE", help="telemetry files (ours or lisainstrument's)")
-    src.add_argument("--simulate", metavar="OPTIONS",
-                     help="simulate on the fly with 'ttl simulate' options, e.g. \"--duration 12h --orbit unequal --seed 1\"")
-    p.add_argument("--run-id", help="run identifier (letters, digits, '.', '_', '-')")
-    p.add_argument("--segment", help="segment length, e.g. 1h, 30min or seconds (default 1h)")
-    p.add_argument("--recordings", type=Path, help="recordings directory (default recordings)")
-    p.add_argument("--pace", type=float, help="replay at X times real time (default: as fast as the stages go)")
-    p.add_argument("--window", type=int, help="segments the replay may run ahead of the slowest stage (default 4)")
-    p.add_argument("--cache", type=int, help="segments each stage keeps per output for late joiners and "
-                   "restarted stages (default window + 4)")
-    p.add_argument("--skip", action="append", metavar="STAGE", help="do not run STAGE (repeatable)")
-    p.add_argument("--external", action="append", metavar="STAGE",
-                   help="STAGE runs elsewhere ('ttl stage'): expect it, do not start it (repeatable)")
-    p.add_argument("--restart", type=int, help="restart a stage that dies, up to N times per stage (default 0)")
-    p.add_argument("--listen", action="append", metavar="ENDPOINT",
-                   help="router endpoint (default tls/127.0.0.1:<free port>; repeatable)")
-    p.add_argument("--zenoh-config", type=Path, help="Zenoh configuration file (JSON5) of the router")
-    _add_security(p, "credentials directory (CA and one certificate per stage, 'ttl credentials'); default "
-                     "RECORDINGS/RUN_ID/credentials, made on first use. Every session talks mutual TLS and the "
-                     "router enforces who may publish what",
-                  "no TLS and no access control (plain TCP on loopback): any local process may publish into the run")
-    p.add_argument("--fit-segment", help="fitter: FFT segment length (default: the segment length)")
-    p.add_argument("--fit-window", help="fitter: rolling window length (default 1d)")
-    p.add_argument("--band", nargs=2, type=float, metavar=("FMIN", "FMAX"), help="fitter: fit band [Hz]")
-    p.add_argument("--effects", help="fitter: the model, effect specs comma-separated, ';' between one effect's "
-                                     "options (default linear-ttl; any effect ttl diagnose can fit)")
-    p.add_argument("--effect-module", action="append", metavar="PATH",
-                   help="fitter: plugin module or .py file defining effects (repeatable)")
-    p.add_argument("--adopt", choices=("ask", "auto", "never"),
-                   help="fitter: what to do with the live diagnosis' recommendation: ask (default: recommend, with "
-                        "the ttl control command that applies it), auto (adopt what explains the excess), never "
-                        "(no live diagnosis)")
-    p.add_argument("--diagnose-every", type=int, metavar="N",
-                   help="fitter: diagnose the window every N segments (default 24) and after every model change")
-    p.add_argument("--timeout", type=float, help="give up after this many seconds")
-    p.add_argument("--log-level", help="log level of the stages (default INFO)")
-    p.add_argument("--quiet", action="store_true", help="no progress display")
-    p.set_defaults(func=_cmd_run)
-
 
 def _read_config(path: Path) -> dict:
     try:
@@ -219,17 +141,6 @@ def _cmd_run(args) -> int:
 
 # ---------------------------------------------------------------------------- ttl stage
 
-def _add_stage(sub) -> None:
-    p = sub.add_parser("stage", help="run one stage process (for stages on several hosts)",
-                       description="Run one stage of the pipeline in this process; the options after NAME go "
-                                   "to the stage (see 'ttl stage NAME --help'), e.g. "
-                                   "'ttl stage fitter --run r1 --connect tcp/127.0.0.1:7447'.",
-                       add_help=True)
-    p.add_argument("name", choices=STAGES, metavar="NAME", help=f"one of {', '.join(STAGES)}")
-    p.add_argument("args", nargs=argparse.REMAINDER, help="stage options")
-    p.set_defaults(func=_cmd_stage)
-
-
 def _cmd_stage(args) -> int:
 
     if not stage_module_exists(args.name):
@@ -245,26 +156,6 @@ def _cmd_stage(args) -> int:
 
 
 # ---------------------------------------------------------------------------- ttl control
-
-def _add_control(sub) -> None:
-    p = sub.add_parser("control", help="send a command to a stage of a running pipeline",
-                       description="Publish ttl/<run>/control/<stage>/<command> (for example the fitter's model: "
-                                   "ttl control --run day3 --connect tcp/127.0.0.1:PORT fitter model "
-                                   "'{\"effects\": [\"linear-ttl\", \"drift\"]}'), then report a rejection the "
-                                   "stage publishes on errors within --wait seconds.")
-    p.add_argument("stage", help="stage name")
-    p.add_argument("command", help="command (fitter: model; every stage: stop)")
-    p.add_argument("payload", nargs="?", default="", help="the message (JSON)")
-    p.add_argument("--run", required=True, help="run id")
-    p.add_argument("--connect", action="append", metavar="ENDPOINT", required=True,
-                   help="the run's router (ttl run prints it), e.g. tcp/127.0.0.1:7447")
-    p.add_argument("--credentials", type=Path, metavar="DIR",
-                   help="credentials directory of the run (RECORDINGS/RUN/credentials by default for ttl run): "
-                        "connect with mutual TLS as the 'control' identity (endpoints tls/...)")
-    p.add_argument("--wait", type=float, default=10.0,
-                   help="seconds to listen for a rejection (default 10; a stage answers between segments)")
-    p.set_defaults(func=_cmd_control)
-
 
 def _cmd_control(args) -> int:
 
@@ -304,18 +195,6 @@ def _cmd_control(args) -> int:
 
 # ---------------------------------------------------------------------------- ttl credentials
 
-def _add_credentials(sub) -> None:
-    p = sub.add_parser("credentials", help="make the TLS credentials of a deployment (CA, one certificate per role)",
-                       description="Create what is missing in DIR: a certificate authority (ca.pem, ca.key) and one "
-                                   f"certificate and key per role ({', '.join(ROLES)}), keys mode 0600. The router certificate names "
-                                   "127.0.0.1, localhost and every --host. Copy ca.pem and a role's .pem/.key to the "
-                                   "host that runs it; keep ca.key where certificates are issued.")
-    p.add_argument("directory", type=Path, metavar="DIR")
-    p.add_argument("--host", action="append", default=[], metavar="ADDRESS",
-                   help="address (IP or DNS name) a router listens on for other hosts (repeatable)")
-    p.set_defaults(func=_cmd_credentials)
-
-
 def _cmd_credentials(args) -> int:
 
     d = ensure_credentials(args.directory, hosts=tuple(args.host))
@@ -324,28 +203,6 @@ def _cmd_credentials(args) -> int:
 
 
 # ---------------------------------------------------------------------------- ttl router
-
-def _add_router(sub) -> None:
-    p = sub.add_parser("router", help="open a Zenoh router (stages on several hosts)",
-                       description="Open a Zenoh router and keep it open until interrupted. With --credentials DIR: "
-                                   "mutual TLS, listening on tls/127.0.0.1:7447 only by default, the pipeline's "
-                                   "access-control list enforced, refusals logged on stderr. Multicast scouting off.")
-    p.add_argument("--listen", action="append", metavar="ENDPOINT",
-                   help="endpoint to listen on (repeatable; default tcp/127.0.0.1:7447)")
-    p.add_argument("--connect", action="append", metavar="ENDPOINT", help="other routers to connect to (repeatable)")
-    p.add_argument("--zenoh-config", type=Path, help="Zenoh configuration file (JSON5); --listen/--connect override it")
-    _add_security(p, "credentials directory (ttl credentials): mutual TLS with DIR/router.pem, tls/ endpoints only "
-                     "(default tls/127.0.0.1:7447), and the access-control list of the pipeline; refused peers and "
-                     "publications are logged on stderr",
-                  "plain TCP, no authentication, no access control (default tcp/127.0.0.1:7447)")
-    p.set_defaults(func=_cmd_router)
-
-
-def _add_security(p, credentials_help: str, insecure_help: str) -> None:
-    """``--credentials DIR`` and ``--insecure`` (see :mod:`streamer.security`)."""
-    p.add_argument("--credentials", type=Path, metavar="DIR", help=credentials_help)
-    p.add_argument("--insecure", action="store_true", help=insecure_help)
-
 
 def _cmd_router(args) -> int:
 
@@ -394,8 +251,8 @@ def _cmd_router(args) -> int:
 
 
 def main(argv=None) -> int:
-    """The ``ttl`` command: science subcommands (:mod:`ttlcore.cli`) and these."""
-    return science_main(argv, registrars=(register,))
+    """The ``ttl`` command (:func:`streamer.main.main`; kept here for ``python -m streamer.cli``)."""
+    return ttl_main(argv)
 
 
 if __name__ == "__main__":

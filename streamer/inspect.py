@@ -694,25 +694,3 @@ def _cmd_view(args) -> int:
     return subprocess.call(cmd)
 
 
-def register(sub) -> None:
-    """Add ``inspect`` and ``view`` to the ``ttl`` subcommands."""
-    p = sub.add_parser("inspect", help="summarise a run from its MCAP recordings",
-                       description="Which stages ran, the segments each produced and received (missing, "
-                                   "duplicates), coefficient trends with uncertainties, the monitor's alerts, "
-                                   "errors, and interruptions (killed or restarted stages), from "
-                                   "recordings/<run>/*.mcap alone.")
-    p.add_argument("run_dir", metavar="recordings/NAME", help="run directory")
-    p.add_argument("--json", metavar="FILE", help="write the report as JSON to FILE ('-': to standard output, "
-                                                  "instead of the text)")
-    p.add_argument("--truth", default=None, metavar="TRUTH.h5",
-                   help="a simulation's truth file: show the true coefficients over the last fit window")
-    p.set_defaults(func=_cmd_inspect)
-    p = sub.add_parser("view", help="open a run's monitor.rrd in the Rerun viewer (bound to 127.0.0.1)",
-                       description="Open recordings/<run>/monitor.rrd (or an .rrd file) in the rerun viewer "
-                                   "binary, its server bound to 127.0.0.1 only.")
-    p.add_argument("run_dir", metavar="recordings/NAME", help="run directory or .rrd file")
-    p.add_argument("--web", action="store_true",
-                   help="serve the web viewer on 127.0.0.1 instead (no display needed) and print its URL")
-    p.add_argument("--port", type=int, help="with --web: the web viewer's HTTP port (default: a free one)")
-    p.add_argument("--print", action="store_true", help="only print the viewer command (not with --web)")
-    p.set_defaults(func=_cmd_view)

@@ -53,6 +53,7 @@ import queue
 import signal
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from dataclasses import dataclass, field
@@ -376,17 +377,19 @@ class Launcher:
         """Validate the source options in a child (``stages.replayer --check``)."""
         if "replayer" in self.opts.external:
             return
-        path = self.run_dir / "replayer.config.json"
-        plan_path = self.run_dir / "plan.json"
-        path.write_text(json.dumps(self.stage_config("replayer"), indent=2))
-        res = subprocess.run([self.opts.python, "-m", stage_module("replayer"), "--config", str(path), "--check",
-                              "--plan-out", str(plan_path), "--log-level", "WARNING"],
-                             capture_output=True, text=True, timeout=300)
-        if res.returncode != 0:
-            lines = [ln for ln in (res.stderr or res.stdout).strip().splitlines() if ln.strip()]
-            msg = lines[-1] if lines else f"exit status {res.returncode}"
-            raise LaunchError(msg.replace("ttl stage replayer: error: ", ""))
-        self.run_plan = json.loads(plan_path.read_text())
+        # in a scratch directory: nothing is written into the run's directory before the check passes
+        with tempfile.TemporaryDirectory(prefix="ttl-check-") as scratch:
+            path = Path(scratch) / "replayer.config.json"
+            plan_path = Path(scratch) / "plan.json"
+            path.write_text(json.dumps(self.stage_config("replayer"), indent=2))
+            res = subprocess.run([self.opts.python, "-m", stage_module("replayer"), "--config", str(path), "--check",
+                                  "--plan-out", str(plan_path), "--log-level", "WARNING"],
+                                 capture_output=True, text=True, timeout=300)
+            if res.returncode != 0:
+                lines = [ln for ln in (res.stderr or res.stdout).strip().splitlines() if ln.strip()]
+                msg = lines[-1] if lines else f"exit status {res.returncode}"
+                raise LaunchError(msg.replace("ttl stage replayer: error: ", ""))
+            self.run_plan = json.loads(plan_path.read_text())
         self.say(f"replay: {res.stdout.strip()}")
 
     # ------------------------------------------------------------------ bus callbacks
@@ -603,12 +606,16 @@ class Launcher:
     def run(self) -> int:
         o = self.opts
         self.plan()
-        self.run_dir.mkdir(parents=True, exist_ok=True)
         listen = tuple(o.listen) or (loopback_endpoint(protocol="tcp" if o.insecure else "tls"),)
         self.endpoint = next((e for e in listen if "127.0.0.1" in e or "localhost" in e), listen[0])
         self.listen = listen
-        self.make_credentials(listen)
+        # the source (--simulate, --telemetry) is checked before the run directory, its
+        # credentials or configs are made: a refused run leaves nothing behind
         self.check_replayer()
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        if self.run_plan is not None:
+            (self.run_dir / "plan.json").write_text(json.dumps(self.run_plan, indent=2))
+        self.make_credentials(listen)
         self.start_router(listen)
         try:
             try:

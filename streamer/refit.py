@@ -19,12 +19,12 @@ import h5py
 
 from ttlcore.cli.diagnose import split_effects as split
 from ttlcore.cli.progress import status_line
+from ttlcore.cli.report import to_stdout, write_report
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.diagnoser import DiagnoseSettings, refit
 from ttlcore.diagnose.effects import make_effects
 from ttlcore.diagnose.prediction import fit_residual
 from ttlcore.errors import TTLError
-from ttlcore.io.atomic import write_json
 
 from .inspect import InspectError, recording_files
 from .messages import concatenate_telemetry, tdi_of, telemetry_of
@@ -106,17 +106,22 @@ def refit_settings(dws_asd=None, band=None) -> DiagnoseSettings:
 
 
 def refit_run(run_dir, effects, *, baseline=("linear-ttl",), effect_modules=(), segments=(None, None),
-              source: str = "auto", band=None, residual: bool = False) -> dict:
+              source: str = "auto", band=None, residual: bool = False, progress=None) -> dict:
     """Refit a recorded run with ``effects`` against ``baseline`` (see the module docstring);
     returns the JSON report (``source``, ``model``, ``baseline``, ``change``).  With
     ``residual`` (telemetry only) the key ``"_residual"`` holds the whole model's residual
     ``(t0, fs, residual (3, n) X2/Y2/Z2, predictions)``
     (:func:`ttlcore.diagnose.prediction.fit_residual`): what the live subtractor publishes
-    for the last segment of the same window."""
+    for the last segment of the same window.  ``progress`` (a ``say(message)`` callable)
+    hears of each step."""
 
+    say = progress or (lambda msg: None)
+    say(f"reading the recorded segments of {run_dir}")
     data, what, dws = load_run(run_dir, segments, source)
     dws = None if dws is None else float(dws)
     settings = refit_settings(dws, band)
+    say(f"refitting the {what} with {','.join(effects)} and {','.join(baseline)}, "
+        f"band {settings.band[0]:g}-{settings.band[1]:g} Hz")
     try:
         report = refit(data, list(effects), settings=settings, effect_modules=tuple(effect_modules),
                        baseline=list(baseline), dws_asd=dws)
@@ -158,10 +163,29 @@ def format_refit(report: dict) -> str:
                          f"({sigma[n] * 1e3:.4f})")
     extra = [n for n in values if n not in COEFFICIENT_NAMES]
     if extra:
-        lines.append("  other parameters of the model, in their columns' units (docs/diagnostics.md): value (sigma)")
+        lines.append("  other parameters of the model: value (sigma) [unit]")
         for n in extra:
-            lines.append(f"    {n:<28} {values[n]:+.4g} ({sigma.get(n, float('nan')):.2g})")
+            scale, unit = parameter_unit(n)
+            lines.append(f"    {n:<28} {values[n] * scale:+.4g} ({sigma.get(n, float('nan')) * scale:.2g}) [{unit}]")
     return "\n".join(lines)
+
+
+#: display unit of the parameters of the named effects, by column-name prefix (the columns'
+#: own units in ttlcore.diagnose.effects, scaled like the coefficients: m/rad shown in mm/rad)
+_PARAMETER_UNITS = (("drift.", 1e3, "mm/rad/day"), ("step.", 1e3, "mm/rad"), ("cross.", 1e3, "mm/rad"),
+                    ("quad.", 1.0, "m/rad^2"))
+
+
+def parameter_unit(name: str) -> tuple[float, str]:
+    """``(scale, unit)`` to print the parameter ``name`` of a refit (value * scale in unit)."""
+    for prefix, scale, unit in _PARAMETER_UNITS:
+        if name.startswith(prefix):
+            return scale, unit
+    if name.endswith(".d1"):  # timing offsets and light-travel-time errors: delays
+        return 1.0, "s"
+    if name.endswith(".d2"):
+        return 1.0, "s^2"
+    return 1.0, "column unit, docs/diagnostics.md"
 
 
 def _parse_range(text: str | None) -> tuple[int | None, int | None]:
@@ -174,49 +198,29 @@ def _parse_range(text: str | None) -> tuple[int | None, int | None]:
         raise RefitError(f"--segments: expected A:B (segment indices), got {text!r}") from None
 
 
-def register(sub) -> None:
-    """Add ``refit`` to the ``ttl`` subcommands."""
-    p = sub.add_parser("refit", help="refit the recorded segments of a run with another model",
-                       description="Refit recordings/<run> (its MCAP files alone) with the model given by --effects "
-                                   "and compare with the baseline model under the instrument noise model.")
-    p.add_argument("run_dir", metavar="recordings/NAME", help="run directory")
-    p.add_argument("--effects", required=True, help="the model, comma-separated effect specs "
-                                                    "(e.g. linear-ttl,drift; docs/diagnostics.md lists them)")
-    p.add_argument("--baseline", default="linear-ttl", help="the model to compare with (default linear-ttl)")
-    p.add_argument("--effect-module", action="append", default=[], metavar="PATH",
-                   help="plugin module or .py file defining effects (repeatable)")
-    p.add_argument("--segments", metavar="A:B", help="segment indices to refit (default all, contiguous)")
-    p.add_argument("--source", choices=("auto", "telemetry", "tdi"), default="auto",
-                   help="refit from the recorded telemetry (every effect) or the TDI outputs (default: telemetry "
-                        "when recorded)")
-    p.add_argument("--band", nargs=2, type=float, metavar=("FMIN", "FMAX"), help="fit band [Hz]")
-    p.add_argument("--json", type=Path, metavar="OUT", help="also write the report as JSON")
-    p.add_argument("--residual", type=Path, metavar="FILE.h5",
-                   help="also write the whole model's residual (X2, Y2, Z2 on the telemetry's samples, and each "
-                        "effect's contribution) to an HDF5 file")
-    p.set_defaults(func=_cmd_refit)
-
-
 def _cmd_refit(args) -> int:
 
     # bad input fails in one line before any work starts: the effects, then the run directory
     make_effects(split(args.effects) + split(args.baseline), args.effect_module)
     if not Path(args.run_dir).is_dir():
         raise RefitError(f"{args.run_dir}: no such run directory")
+    segments = _parse_range(args.segments)
     try:
-        with status_line("ttl refit") as say:  # in place on a terminal
-            say(f"reading the recorded segments of {args.run_dir} and refitting with {args.effects}")
+        with status_line("ttl refit", args.quiet) as say:  # in place on a terminal
             report = refit_run(args.run_dir, split(args.effects), baseline=split(args.baseline),
-                               effect_modules=args.effect_module, segments=_parse_range(args.segments),
-                               source=args.source, band=args.band, residual=args.residual is not None)
+                               effect_modules=args.effect_module, segments=segments, source=args.source,
+                               band=args.band, residual=args.residual is not None, progress=say)
     except InspectError as exc:
         raise RefitError(str(exc)) from None
-    print(format_refit(report))
-    if args.residual is not None:
-        write_residual(args.residual, *report.pop("_residual"))
-        print(f"wrote {args.residual}")
-    if args.json:
-        write_json(args.json, report)
+    residual = report.pop("_residual", None)
+    write_report(args.json, report)
+    text = not to_stdout(args.json)  # with --json -, standard output holds the JSON alone
+    if text:
+        print(format_refit(report))
+    if residual is not None:
+        write_residual(args.residual, *residual)
+        if text:
+            print(f"wrote {args.residual}")
     return 0
 
 

@@ -27,7 +27,6 @@ from ttlcore.cli.diagnose import split_effects
 from ttlcore.conventions import DAY, parse_duration
 from ttlcore.diagnose.effects import make_effects
 from ttlcore.diagnose.reprocess import (
-    DEFAULT_MEMORY_LIMIT,
     dask_client,
     jobs_for_files,
     reprocess,
@@ -98,50 +97,6 @@ def recorded_days(run_dir, out_dir, *, day_length: float = DAY) -> list[Path]:
         log.info("day %d of %s: segments %d-%d, %.3f h -> %s", k, run_dir, idx[0], idx[-1], tm.duration / 3600,
                  paths[-1])
     return paths
-
-
-# ---------------------------------------------------------------------------- ttl reprocess
-
-def add_parser(sub) -> None:
-    """Register ``ttl reprocess``."""
-    p = sub.add_parser(
-        "reprocess",
-        help="analyse and diagnose many days in parallel on Dask (a local cluster or any scheduler)",
-        description="Analysis (ttl analyze) and diagnosis (ttl diagnose) of many telemetry files, or of the days "
-        "of a recorded run, in parallel on Dask distributed: a LocalCluster on 127.0.0.1 by default, or the "
-        "cluster of --scheduler. Writes DIR/<day>/fit.json (+ figures), DIR/<day>/diagnosis.json, "
-        "DIR/summary.json and DIR/summary.md (coefficients per day with sigmas, chi2/dof, recommendations, "
-        "steps and drifts across days). A failed day is retried, then reported; exit status 1 if any "
-        "day failed. See docs/reprocessing.md.",
-    )
-    p.add_argument("days", nargs="*", metavar="DAY", help="telemetry files (ours or lisainstrument's), one per day")
-    p.add_argument("--from-recordings", metavar="RUN", default=None,
-                   help="a recorded run (recordings/<run>): its telemetry segments reassembled into days")
-    p.add_argument("--day-length", default="1d", help="length of a day cut from --from-recordings (default 1d)")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created)")
-    p.add_argument("--effects", default="linear-ttl", metavar="EFFECT[:opt=v],...",
-                   help="the diagnosis model, as ttl diagnose --effects (default linear-ttl)")
-    p.add_argument("--effect-module", action="append", default=[], metavar="PATH",
-                   help="Python file (or module) defining user effects; repeatable (must be readable by the workers)")
-    p.add_argument("--candidates", default=None, metavar="EFFECT,...", help="effects the diagnosis ranks (default all)")
-    p.add_argument("--band", nargs=2, metavar=("FMIN", "FMAX"), default=None, help="fit band in Hz")
-    p.add_argument("--segment", default=None, help="FFT segment length, e.g. 6h or 15min (default that of "
-                   "ttl analyze, 6 h; give a shorter one for days shorter than 6 h)")
-    p.add_argument("--truth-beside", action="store_true",
-                   help="compare with the truth file beside each day file when there is one (day.truth.h5)")
-    p.add_argument("--no-diagnosis", action="store_true", help="analysis only")
-    p.add_argument("--no-witnesses", action="store_true", help="skip the diagnosis' witness search")
-    p.add_argument("--no-figures", action="store_true", help="skip the figures of the analysis")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="a running Dask scheduler (tcp://host:8786, or its --scheduler-file); default: a "
-                   "LocalCluster on 127.0.0.1")
-    p.add_argument("--workers", type=int, default=2, help="worker processes of the LocalCluster (default 2)")
-    p.add_argument("--memory-limit", default=DEFAULT_MEMORY_LIMIT,
-                   help=f"memory limit per local worker (default {DEFAULT_MEMORY_LIMIT})")
-    p.add_argument("--dashboard", action="store_true", help="serve the Dask dashboard on 127.0.0.1 (LocalCluster)")
-    p.add_argument("--retries", type=int, default=2, help="retries of a failed day (default 2)")
-    p.add_argument("--quiet", action="store_true", help="no progress display")
-    p.set_defaults(func=run)
 
 
 def _job_options(args) -> dict:

@@ -18,18 +18,58 @@ Conventions (indices, units, signs: ``docs/physics.md``) live in :mod:`ttlcore.c
 
 __version__ = "0.1.0"
 
-from .conventions import COEFFICIENT_NAMES, LINKS, MOSAS
-from .diagnose.diagnoser import diagnose, refit, text_report
-from .diagnose.effects import make_effects
-from .errors import ConfigError, TelemetryError, TTLError
-from .estimate.fit import FitResult, FitSettings, fit_tdi
-from .estimate.rolling import RollingFit
-from .estimate.subtraction import residual_aet, subtract
-from .io.telemetry import Telemetry, write_telemetry
-from .io.reader import read_telemetry
-from .io.truth import Truth, read_truth
-from .sim.simulator import SimulationConfig, simulate
-from .tdi.data import TDIData, compute_tdi
+import importlib
+import sys
+import types
+
+#: where each name of the notebook API lives; imported on first use (PEP 562) so that
+#: ``import ttlcore.cli...`` or ``ttlcore.conventions`` does not pull in scipy and the whole
+#: science stack (``ttl --help`` must start in well under a second)
+_EXPORTS = {
+    "COEFFICIENT_NAMES": "conventions", "LINKS": "conventions", "MOSAS": "conventions",
+    "diagnose": "diagnose.diagnoser", "refit": "diagnose.diagnoser", "text_report": "diagnose.diagnoser",
+    "make_effects": "diagnose.effects",
+    "ConfigError": "errors", "TelemetryError": "errors", "TTLError": "errors",
+    "FitResult": "estimate.fit", "FitSettings": "estimate.fit", "fit_tdi": "estimate.fit",
+    "RollingFit": "estimate.rolling",
+    "residual_aet": "estimate.subtraction", "subtract": "estimate.subtraction",
+    "Telemetry": "io.telemetry", "write_telemetry": "io.telemetry",
+    "read_telemetry": "io.reader",
+    "Truth": "io.truth", "read_truth": "io.truth",
+    "SimulationConfig": "sim.simulator", "simulate": "sim.simulator",
+    "TDIData": "tdi.data", "compute_tdi": "tdi.data",
+}
+
+
+def __getattr__(name):
+    try:
+        module = _EXPORTS[name]
+    except KeyError:
+        raise AttributeError(f"module 'ttlcore' has no attribute {name!r}") from None
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value  # later look-ups do not come back here
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_EXPORTS))
+
+
+class _Module(types.ModuleType):
+    """``ttlcore.diagnose`` is the function of the notebook API, as it always was, although a
+    subpackage of that name exists: importing the subpackage binds it here, which is ignored."""
+
+    @property
+    def diagnose(self):
+        return importlib.import_module(".diagnose.diagnoser", __name__).diagnose
+
+    @diagnose.setter
+    def diagnose(self, value):
+        pass
+
+
+sys.modules[__name__].__class__ = _Module
+
 
 __all__ = [
     "COEFFICIENT_NAMES", "LINKS", "MOSAS",

@@ -1,4 +1,4 @@
 """The science commands of ``ttl``: simulate, info, analyze, diagnose, scenarios.
 """
 
-__all__ = ['diagnose', 'main', 'progress']
+__all__ = ['analyze', 'diagnose', 'info', 'main', 'progress', 'report', 'simulate']

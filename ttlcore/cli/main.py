@@ -1,42 +1,138 @@
-"""The science subcommands of ``ttl`` (simulate, info, analyze, diagnose, scenarios).
+"""The ``ttl`` command line: its parser, the science subcommands' options, and the dispatch.
 
-The ``ttl`` entry point is :func:`streamer.cli.main`: it builds this parser with the
-operations subcommands added (``build_parser(streamer.cli.register)``), so this package
-never imports the operations layer; ``python -m ttlcore.cli`` gives the science commands
-alone.
+The ``ttl`` entry point is :func:`streamer.main.main`: it builds this parser with the
+operations subcommands added (``build_parser(streamer.parsers.register)``), so this package
+never imports the operations layer; ``python -m ttlcore.cli`` gives the science commands alone.
 
-Science subcommands: ``simulate``, ``info``.  Errors print one line naming the file,
-dataset or option at fault and exit with status 2; no tracebacks for user errors.
+This module imports no science: every subcommand's options are declared here (argparse
+only), and each names the module that runs it (``handler="ttlcore.cli.simulate:run"``),
+imported only once the arguments have parsed.  ``ttl --help`` and an argument error thus
+answer in a fraction of a second, and a command imports only what it uses.
+
+The conventions every subcommand follows are in ``docs/cli.md``: one-line errors naming the
+option, file or field at fault with exit status 2 (no usage dump, no traceback), output
+paths checked before any work, ``--json FILE|-``, ``--out DIR``, ``--quiet``, a quiet exit on
+a closed pipe.
 """
 
 from __future__ import annotations
 
 import argparse
-import json
+import importlib
 import logging
+import os
 import sys
 from pathlib import Path
 
-import numpy as np
-
-from ..conventions import COEFFICIENT_NAMES, DAY, LINKS, parse_duration
+from .. import __version__
 from ..errors import TTLError
-from ..estimate.analyze import analyze, check_band, check_method
-from ..estimate.fit import DEFAULT_BAND, FitSettings
-from ..gw.scenarios import add_parser as _add_scenarios
-from ..io.atomic import write_json
-from ..io.reader import file_kind, read_telemetry
-from ..io.truth import NOISE_COMPONENTS, read_truth, truth_path
-from ..sim.simulator import simulate_to_file
-from ..sim.spec import add_simulation_options, simulation_config_from_args
-from .diagnose import add_parser as _add_diagnose
-from .progress import progress_bar, status_line
+from ..sim.options import add_simulation_options, duration
 
 log = logging.getLogger("ttl")
 
+#: default fit band of ``ttl analyze`` [Hz] (``ttlcore.estimate.fit.DEFAULT_BAND``, which the
+#: parser must not import; tests/ttlcore/cli/test_conventions.py checks they agree)
+ANALYZE_BAND = (3e-3, 0.9)
+#: default band of ``ttl diagnose`` [Hz] (``DiagnoseSettings().band``): the residual is tested
+#: against the noise model, which lacks TDI's residual laser noise above 0.8 Hz (docs/cli.md)
+DIAGNOSE_BAND = (3e-3, 0.8)
+#: the paper's scenarios and variants (``ttlcore.gw.scenarios``; checked by the same test)
+SCENARIO_CASES = ("static_unequal", "keplerian", "vb", "sgwb", "gb1", "gb2", "mbhb1", "mbhb2", "all", "mbhb2_200mhz")
+SCENARIO_VARIANTS = ("paper", "lisainstrument", "coloured")
+
+
+class Parser(argparse.ArgumentParser):
+    """An :class:`argparse.ArgumentParser` whose errors are one line, exit status 2:
+    ``ttl simulate: error: argument --out: expected one argument (ttl simulate --help)``."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
+
 
 # ---------------------------------------------------------------------------
-# ttl simulate
+# argument types: checked at parse time, before any work or heavy import
+# ---------------------------------------------------------------------------
+
+def output_file(text: str) -> str:
+    """A file to write: ``-`` (standard output) or a path whose directory exists."""
+    if text == "-":
+        return text
+    path = Path(text)
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a directory, expected a file name")
+    parent = path.parent
+    if not parent.exists():
+        raise argparse.ArgumentTypeError(f"directory {parent} does not exist")
+    if not parent.is_dir():
+        raise argparse.ArgumentTypeError(f"{parent} is not a directory")
+    if not os.access(parent, os.W_OK):
+        raise argparse.ArgumentTypeError(f"directory {parent} is not writable")
+    return text
+
+
+def output_dir(text: str) -> str:
+    """A directory to write into (created by the command): not an existing file, and under a
+    directory that exists or can be created."""
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} exists and is not a directory")
+    for parent in path.absolute().parents:
+        if parent.exists():
+            if not parent.is_dir():
+                raise argparse.ArgumentTypeError(f"{parent} is not a directory")
+            if not os.access(parent, os.W_OK) and not path.exists():
+                raise argparse.ArgumentTypeError(f"cannot create {text}: {parent} is not writable")
+            break
+    return text
+
+
+def input_file(text: str) -> str:
+    """A file to read: it must exist and not be a directory."""
+    path = Path(text)
+    if not path.exists():
+        raise argparse.ArgumentTypeError(f"{text}: no such file")
+    if path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text} is a directory, expected a file")
+    return text
+
+
+def positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected at least 1, got {value}")
+    return value
+
+
+def frequency(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a frequency in Hz, got {text!r}") from None
+    if not (value > 0 and value < float("inf")):
+        raise argparse.ArgumentTypeError(f"expected a positive frequency in Hz, got {text}")
+    return value
+
+
+def add_json(p, what: str = "the report", required: bool = False) -> None:
+    """``--json FILE|-``, the same in every command."""
+    p.add_argument("--json", metavar="FILE|-", type=output_file, required=required,
+                   help=f"write {what} as JSON to FILE ('-': to standard output, instead of the text)")
+
+
+def add_quiet(p, what: str = "no progress display") -> None:
+    p.add_argument("--quiet", action="store_true", help=what)
+
+
+def add_band(p, default) -> None:
+    p.add_argument("--band", nargs=2, type=frequency, metavar=("FMIN", "FMAX"), default=None,
+                   help=f"band in Hz (default {default[0]:g} {default[1]:g})")
+
+
+# ---------------------------------------------------------------------------
+# the science subcommands
 # ---------------------------------------------------------------------------
 
 def _add_simulate(sub) -> None:
@@ -44,116 +140,32 @@ def _add_simulate(sub) -> None:
         "simulate",
         help="simulate mission telemetry (eta, DWS, delays) and its truth file",
         description="Simulate LISA telemetry at the eta level with TTL coupling (docs/physics.md). "
-        "Writes OUT and OUT's truth file (day.h5 -> day.truth.h5).",
+        "Writes the telemetry FILE and its truth file beside it (day.h5 -> day.truth.h5).",
     )
     add_simulation_options(p)
-    p.add_argument("--out", required=True, help="telemetry file to write (HDF5)")
+    out = p.add_mutually_exclusive_group(required=True)
+    out.add_argument("--telemetry", metavar="FILE", type=output_file,
+                     help="telemetry file to write (HDF5); the truth file goes beside it")
+    # before the convention (--out is a directory in every command) this option named the file:
+    # still accepted, with a note, so that existing scripts keep working
+    out.add_argument("--out", metavar="FILE", type=output_file, help=argparse.SUPPRESS)
     p.add_argument("--truth-noises", default="", help="noise components to store alone in the truth file, "
                    "comma-separated (laser, oms, backlink, telescope, test_mass, dws_phi, dws_eta) or 'all'")
-    p.add_argument("--chunk", default="3h", help="simulation chunk length (memory bound; the result does not depend on it)")
-    p.add_argument("--quiet", action="store_true", help="no progress display")
-    p.set_defaults(func=_cmd_simulate)
+    p.add_argument("--chunk", default="3h", type=duration,
+                   help="simulation chunk length (memory bound; the result does not depend on it)")
+    add_quiet(p)
+    p.set_defaults(handler="ttlcore.cli.simulate:run")
 
-
-def _cmd_simulate(args) -> int:
-
-    chunk = parse_duration(args.chunk, "--chunk")
-    truth_noises = tuple(NOISE_COMPONENTS) if args.truth_noises == "all" else tuple(
-        s.strip() for s in args.truth_noises.split(",") if s.strip()
-    )
-    out = Path(args.out)
-    if out.parent and not out.parent.exists():
-        raise TTLError(f"--out: directory {out.parent} does not exist")
-    config = simulation_config_from_args(args, truth_noises)
-    duration = config.duration
-    with progress_bar(f"simulate {out.name}", quiet=args.quiet) as progress:
-        tpath, rpath = simulate_to_file(config, out, chunk_size=int(round(chunk * args.fs)), progress=progress)
-    print(f"wrote {tpath} ({config.size} samples, {duration / DAY:g} d at {args.fs:g} Hz) and {rpath}")
-    return 0
-
-
-# ---------------------------------------------------------------------------
-# ttl info
-# ---------------------------------------------------------------------------
 
 def _add_info(sub) -> None:
     p = sub.add_parser("info", help="summarise a telemetry file (ours or lisainstrument's) or a truth file")
-    p.add_argument("file", help="HDF5 file")
-    p.add_argument("--json", metavar="FILE", help="write the summary as JSON to FILE ('-': to standard output, "
-                                                  "instead of the text)")
-    p.set_defaults(func=_cmd_info)
+    p.add_argument("file", type=input_file, help="HDF5 file")
+    add_json(p, "the summary")
+    add_quiet(p, "accepted for uniformity (info shows no progress)")
+    p.set_defaults(handler="ttlcore.cli.info:run")
 
-
-def _rms(x: np.ndarray) -> list[float]:
-    return [float(v) for v in np.sqrt(np.mean(np.square(x), axis=-1))]
-
-
-def summarise(path) -> dict:
-    """Summary of a telemetry or truth file as a JSON-serialisable dict."""
-
-    kind = file_kind(path)
-    if kind == "truth":
-        tr = read_truth(path)
-        return {
-            "file": str(path), "kind": "truth", "t0": tr.t0, "fs": tr.fs, "size": tr.size, "duration_s": tr.size / tr.fs,
-            "datasets": ["ttl", "coefficients", "angles", "angular_velocity"] + [f"noises/{n}" for n in tr.noises]
-            + [f"injections/{n}" for n in tr.injections],
-            "coefficients_mean_mm_per_rad": dict(zip(COEFFICIENT_NAMES, (1e3 * tr.mean_coefficients()).round(6).tolist())),
-            "ttl_rms": dict(zip(LINKS, _rms(tr.ttl))),
-            "injections_rms": {n: float(np.sqrt(np.mean(np.square(v)))) for n, v in tr.injections.items()},
-        }
-    tm = read_telemetry(path)
-    summary = {
-        "file": str(path),
-        "kind": kind,
-        "t0": tm.t0,
-        "fs": tm.fs,
-        "size": tm.size,
-        "duration_s": tm.duration,
-        "eta_rms": dict(zip(LINKS, _rms(tm.eta))),
-        "dws_phi_rms_rad_per_s": dict(zip(LINKS, _rms(tm.dws_phi))),
-        "dws_eta_rms_rad_per_s": dict(zip(LINKS, _rms(tm.dws_eta))),
-        "ltt_min_s": dict(zip(LINKS, np.min(tm.ltt, axis=1).tolist())),
-        "ltt_max_s": dict(zip(LINKS, np.max(tm.ltt, axis=1).tolist())),
-        "config": tm.config,
-    }
-    tp = truth_path(path)
-    summary["truth_file"] = str(tp) if tp.exists() else None
-    return summary
-
-
-def _cmd_info(args) -> int:
-    s = summarise(args.file)
-    if args.json == "-":
-        print(json.dumps(s, indent=2, default=str))
-        return 0
-    if args.json:
-        write_json(args.json, s)
-
-    print(f"{s['file']}: {s['kind']} file")
-    print(f"  t0 {s['t0']:.3f} s, fs {s['fs']:g} Hz, {s['size']} samples = {s['duration_s'] / 3600:.3f} h")
-    if s["kind"] == "truth":
-        print("  datasets: " + ", ".join(s["datasets"]))
-        print("  mean coefficients [mm/rad]: " + " ".join(f"{k}={v:+.4f}" for k, v in s["coefficients_mean_mm_per_rad"].items()))
-        return 0
-    cfg = s["config"]
-    if cfg.get("orbit"):
-        print(f"  orbit {cfg.get('orbit')}, seed {cfg.get('seed')}, noises on: "
-              + ", ".join(k for k, v in cfg.get("noises", {}).items() if v))
-    print("  link    eta RMS      DWS phi RMS   DWS eta RMS   ltt [s]")
-    for link in LINKS:
-        print(f"  {link}   {s['eta_rms'][link]:.3e}   {s['dws_phi_rms_rad_per_s'][link]:.3e}     "
-              f"{s['dws_eta_rms_rad_per_s'][link]:.3e}     {s['ltt_min_s'][link]:.6f} .. {s['ltt_max_s'][link]:.6f}")
-    print(f"  truth file: {s['truth_file'] or 'none beside it'}")
-    return 0
-
-
-# ---------------------------------------------------------------------------
-# ttl analyze
-# ---------------------------------------------------------------------------
 
 def _add_analyze(sub) -> None:
-
     p = sub.add_parser(
         "analyze",
         help="fit the TTL coefficients of a telemetry file, subtract them, write fit.json and figures",
@@ -162,50 +174,82 @@ def _add_analyze(sub) -> None:
         "DIR/coefficients.png. The truth (our truth file, or for lisainstrument data the lisainstrument "
         "file itself) is only used for comparisons, never by the fit.",
     )
-    p.add_argument("data", help="telemetry file (HDF5: ours or a lisainstrument measurement file)")
-    p.add_argument("--truth", default=None, help="truth file (day.truth.h5), or for lisainstrument data the "
+    p.add_argument("data", type=input_file, help="telemetry file (HDF5: ours or a lisainstrument measurement file)")
+    p.add_argument("--truth", default=None, type=input_file,
+                   help="truth file (day.truth.h5), or for lisainstrument data the "
                    "lisainstrument file (its static coefficients; no TTL residual then)")
-    p.add_argument("--band", nargs=2, metavar=("FMIN", "FMAX"), default=None,
-                   help=f"fit band in Hz (default {DEFAULT_BAND[0]:g} {DEFAULT_BAND[1]:g})")
-    p.add_argument("--method", default="gls", help="gls (default) | mcmc")
-    p.add_argument("--segment", default=None, help="FFT segment length of the fit, e.g. 6h, 1h or seconds "
-                   f"(default {FitSettings().segment_duration:g} s)")
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created)")
-    p.add_argument("--quiet", action="store_true", help="no progress messages")
-    p.set_defaults(func=_cmd_analyze)
+    add_band(p, ANALYZE_BAND)
+    p.add_argument("--method", default="gls", choices=("gls", "mcmc"), help="gls (default) | mcmc")
+    p.add_argument("--segment", default=None, type=duration,
+                   help="FFT segment length of the fit, e.g. 6h, 1h or seconds (default 21600 s)")
+    p.add_argument("--out", required=True, metavar="DIR", type=output_dir, help="output directory (created)")
+    add_json(p, "fit.json")
+    add_quiet(p)
+    p.set_defaults(handler="ttlcore.cli.analyze:run")
 
 
-def _cmd_analyze(args) -> int:
+def _add_diagnose(sub) -> None:
+    p = sub.add_parser(
+        "diagnose",
+        help="test the TTL model against the data: where it fails, which effect is missing, how to add it",
+        description="Fit a model (a list of effects) under the instrument noise model, test the residual per band "
+        "and per time slice, rank every effect not in the model (named effects, entry points, --effect-module) and "
+        "a library of generic witnesses. With --effects linear-ttl,EFFECT the linear-only model is shown beside it. "
+        "Works on our telemetry and on lisainstrument files. See docs/diagnostics.md.",
+    )
+    p.add_argument("data", type=input_file, help="telemetry file (ours or a lisainstrument measurement file)")
+    p.add_argument("--effects", default="linear-ttl", metavar="EFFECT[:opt=v],...",
+                   help="the model: comma-separated effects, options after ':' separated by ';' "
+                   "(e.g. linear-ttl,drift,step:t_step=50400;mosas=12+13); default linear-ttl")
+    p.add_argument("--effect-module", action="append", default=[], metavar="PATH",
+                   help="Python file (or importable module) defining user effects; repeatable")
+    p.add_argument("--candidates", default=None, metavar="EFFECT,...",
+                   help="named effects and plugins to try (default: all available); the witness effects and "
+                   "frequency-dependent couplings of the top witnesses are tried as well")
+    p.add_argument("--truth", default=None, type=input_file,
+                   help="truth file (or the lisainstrument file itself): adds coefficient errors only")
+    add_band(p, DIAGNOSE_BAND)
+    p.add_argument("--segment", default=None, type=duration,
+                   help="FFT segment length (default 6 h, or a quarter of shorter data)")
+    p.add_argument("--tolerance", type=float, default=None,
+                   help="relative tolerance of the noise model (default 0.02; 0.05 with --noise-model fixed)")
+    p.add_argument("--noise-model", choices=("fitted", "fixed"), default="fitted",
+                   help="secondary-noise levels fitted with the model (default) or fixed at the paper's levels")
+    p.add_argument("--no-witnesses", action="store_true", help="skip the witness search")
+    add_json(p, "the report")
+    p.add_argument("--out", default=None, metavar="DIR", type=output_dir, help="directory for the figures (created)")
+    p.add_argument("--workers", type=positive_int, default=None, metavar="N",
+                   help="threads scoring the candidates side by side (default: one per core, at most 4; "
+                        "the report does not depend on it)")
+    add_quiet(p)
+    p.set_defaults(handler="ttlcore.cli.diagnose:run")
 
-    method = check_method(args.method)
-    band = tuple(DEFAULT_BAND) if args.band is None else check_band(args.band)
-    settings = FitSettings(band=band)
-    if args.segment is not None:
-        settings.segment_duration = parse_duration(args.segment, "--segment")
-    with status_line("ttl analyze", quiet=args.quiet) as progress:
-        out = analyze(args.data, truth_path=args.truth, band=band, method=method, out_dir=args.out,
-                      settings=settings, progress=progress)
-    res, js = out["fit"], out["fit_json"]
-    print(f"{args.data}: {method} fit of {len(res.names)} coefficients over {res.n_segments} segments of "
-          f"{settings.segment_duration:g} s, {band[0]:g}-{band[1]:g} Hz: chi2/dof {res.chi2_dof:.3f}, "
-          f"median sigma {1e3 * np.median(res.sigma):.4f} mm/rad")
-    if "error" in js:
-        err = np.array(list(js["error"].values()))
-        worst = max(js["error"], key=lambda k: abs(js["error"][k]))
-        print(f"  truth ({js['truth_source']}): max |error| {1e3 * np.max(np.abs(err)):.4f} mm/rad ({worst}), "
-              f"RMS {1e3 * np.sqrt(np.mean(err ** 2)):.4f} mm/rad, normalised chi2 {js['normalised_chi2']:.1f} for {err.size}")
-    req = js.get("asd_x_vs_requirement", {}).get("residual")
-    if req:
-        print(f"  residual X / requirement in band: median {req['median']:.2f}, max {req['max']:.2f} at {req['f_max']:.3g} Hz")
-    for note in js.get("notes", []):
-        print(f"  note: {note}")
-    print("  wrote " + ", ".join(str(p) for p in out["paths"].values()))
-    return 0
 
+def _add_scenarios(sub) -> None:
+    p = sub.add_parser(
+        "scenarios",
+        help="run the paper's scenarios with and without GW signals; write summary.md/json and figures",
+        description="The paper's cases (static unequal arms, Keplerian arms, verification binaries, stochastic "
+        "background, galactic binaries at two epochs, each merger, all sources, MBHB2 with the band ending at "
+        "0.2 Hz), each also without GW on the same noise realisation, for the paper's coefficients and beyond "
+        "(lisainstrument's coefficient set, coloured jitter). Writes DIR/summary.json, DIR/summary.md and "
+        "DIR/<variant>/<case>_*.png.",
+    )
+    p.add_argument("--out", required=True, metavar="DIR", type=output_dir, help="output directory (created)")
+    p.add_argument("--cases", default="all-cases", help="comma-separated cases (default all): " + ", ".join(SCENARIO_CASES))
+    p.add_argument("--variants", default=",".join(SCENARIO_VARIANTS),
+                   help="comma-separated variants: " + ", ".join(SCENARIO_VARIANTS) + " (default all three)")
+    p.add_argument("--duration", default="1d", type=duration,
+                   help="length of each case, e.g. 1d or 6h (default 1d, as the paper)")
+    p.add_argument("--seed", type=int, default=1, help="noise seed shared by all cases (default 1)")
+    p.add_argument("--no-figures", action="store_true", help="skip the figures")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run the cases on this Dask scheduler (tcp://host:8786 or its --scheduler-file)")
+    p.add_argument("--workers", type=int, default=0,
+                   help="run the cases on a local Dask cluster of N worker processes (default 0: in this process)")
+    add_quiet(p)
+    p.set_defaults(handler="ttlcore.gw.scenarios:_cmd_scenarios")
 
-# ---------------------------------------------------------------------------
-# entry point
-# ---------------------------------------------------------------------------
 
 def register(sub) -> None:
     """Add the science subcommands (simulate, info, analyze, diagnose, scenarios) to ``sub``."""
@@ -216,27 +260,61 @@ def register(sub) -> None:
     _add_scenarios(sub)
 
 
+# ---------------------------------------------------------------------------
+# entry point
+# ---------------------------------------------------------------------------
+
 def build_parser(*registrars) -> argparse.ArgumentParser:
     """The ``ttl`` parser: the science subcommands, plus those each of ``registrars`` adds
     (the operations package passes its own: ``ttlcore`` never imports it)."""
-    parser = argparse.ArgumentParser(prog="ttl", description="Tilt-to-length noise subtraction for LISA")
+    parser = Parser(prog="ttl", description="Tilt-to-length noise subtraction for LISA. Conventions shared by "
+                    "every command: docs/cli.md.")
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
-    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    parser.add_argument("--version", action="version", version=f"ttl {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=Parser)
     for add in (register, *registrars):
         add(sub)
     return parser
 
 
+def handler(args):
+    """The function that runs the parsed command (``"module:function"``, imported now)."""
+    module, _, name = args.handler.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+def _quiet_stdout() -> None:
+    """After a closed pipe (``ttl info day.h5 | head -1``): send what is left to /dev/null, so
+    that the interpreter's final flush does not complain either."""
+    try:
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+    except (OSError, ValueError):
+        pass
+
+
 def main(argv=None, registrars=()) -> int:
-    """Run one ``ttl`` subcommand; ``registrars`` add subcommands beyond the science ones."""
+    """Run one ``ttl`` subcommand; ``registrars`` add subcommands beyond the science ones.
+
+    Exit status: 0 done, 1 the command's own verdict (e.g. failed days), 2 bad arguments or
+    input (one line on standard error), 130 interrupted.  A reader that closed the pipe
+    (``| head``) ends the command quietly with status 0.
+    """
     parser = build_parser(*registrars)
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except BrokenPipeError:  # ttl --help | head -1
+        _quiet_stdout()
+        return 0
     logging.basicConfig(
         level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
     try:
-        return int(args.func(args) or 0)
+        return int(handler(args)(args) or 0)
+    except BrokenPipeError:
+        _quiet_stdout()
+        return 0
     except (TTLError, ValueError, OSError) as exc:
         print(f"ttl {args.command}: error: {exc}", file=sys.stderr)
         return 2

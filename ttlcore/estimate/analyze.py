@@ -254,7 +254,6 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
         # errors-in-variables term at the DWS noise level the data were made with (0 if off)
         s = replace(s, dws_asd=dws_asd_from_config(tm.config))
     truth = load_truth(truth_path, tm, data_kind, data_path) if truth_path is not None else None
-    out_dir.mkdir(parents=True, exist_ok=True)
     lap("read")
 
     # --- TDI
@@ -319,6 +318,9 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
                            "fit_fs": FIT_FS}
     content["notes"] = notes
     content["files"] = {k: str(v) for k, v in paths.items()}
+    # made only now that the fit has succeeded: a failed analysis (all data NaN, a singular
+    # fit) leaves no empty directory behind
+    out_dir.mkdir(parents=True, exist_ok=True)
 
     # --- figures
     if figures:

@@ -539,34 +539,8 @@ def run_scenarios(out_dir, *, cases=None, variants=("paper", "lisainstrument", "
 # ttl scenarios
 # ---------------------------------------------------------------------------
 
-def add_parser(sub) -> None:
-    """Register ``ttl scenarios``."""
-    p = sub.add_parser(
-        "scenarios",
-        help="run the paper's scenarios with and without GW signals; write summary.md/json and figures",
-        description="The paper's cases (static unequal arms, Keplerian arms, verification binaries, stochastic "
-        "background, galactic binaries at two epochs, each merger, all sources, MBHB2 with the band ending at "
-        "0.2 Hz), each also without GW on the same noise realisation, for the paper's coefficients and beyond "
-        "(lisainstrument's coefficient set, coloured jitter). Writes DIR/summary.json, DIR/summary.md and "
-        "DIR/<variant>/<case>_*.png.",
-    )
-    p.add_argument("--out", required=True, metavar="DIR", help="output directory (created)")
-    p.add_argument("--cases", default="all-cases", help="comma-separated cases (default all): "
-                   + ", ".join(c.name for c in PAPER_CASES))
-    p.add_argument("--variants", default="paper,lisainstrument,coloured",
-                   help="comma-separated variants: " + ", ".join(VARIANTS) + " (default all three)")
-    p.add_argument("--duration", default="1d", help="length of each case, e.g. 1d or 6h (default 1d, as the paper)")
-    p.add_argument("--seed", type=int, default=1, help="noise seed shared by all cases (default 1)")
-    p.add_argument("--no-figures", action="store_true", help="skip the figures")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="run the cases on this Dask scheduler (tcp://host:8786 or its --scheduler-file)")
-    p.add_argument("--workers", type=int, default=0,
-                   help="run the cases on a local Dask cluster of N worker processes (default 0: in this process)")
-    p.add_argument("--quiet", action="store_true", help="no progress messages")
-    p.set_defaults(func=_cmd_scenarios)
-
-
 def _cmd_scenarios(args) -> int:
+    """``ttl scenarios`` (options: :mod:`ttlcore.cli.main`)."""
 
     duration = parse_duration(args.duration, "--duration")
     cases = None if args.cases in ("all-cases", "") else [c.strip() for c in args.cases.split(",") if c.strip()]

@@ -19,7 +19,7 @@ def ttl(*args, cwd=None):
 def hour_file(tmp_path_factory):
     out = tmp_path_factory.mktemp("sim") / "hour.h5"
     r = ttl("simulate", "--duration", "1h", "--orbit", "keplerian", "--coeffs", "lisainstrument",
-            "--seed", 4, "--out", out, "--drift", "12.phi.rx=0.05", "--step", "30min:13.eta.tx=0.3")
+            "--seed", 4, "--telemetry", out, "--drift", "12.phi.rx=0.05", "--step", "30min:13.eta.tx=0.3")
     assert r.returncode == 0, r.stderr
     return out
 
@@ -48,11 +48,11 @@ def test_info_text_and_json(hour_file):
 @pytest.mark.parametrize(
     "args, needle",
     [
-        (["simulate", "--duration", "abc", "--out", "x.h5"], "duration"),
-        (["simulate", "--orbit", "moon", "--out", "x.h5"], "moon"),
-        (["simulate", "--coeffs", "nope", "--out", "x.h5"], "nope"),
-        (["simulate", "--noises", "all,-lazer", "--out", "x.h5"], "lazer"),
-        (["simulate", "--drift", "12.phi.xx=1", "--out", "x.h5"], "12.phi.xx"),
+        (["simulate", "--duration", "abc", "--telemetry", "x.h5"], "duration"),
+        (["simulate", "--orbit", "moon", "--telemetry", "x.h5"], "moon"),
+        (["simulate", "--coeffs", "nope", "--telemetry", "x.h5"], "nope"),
+        (["simulate", "--noises", "all,-lazer", "--telemetry", "x.h5"], "lazer"),
+        (["simulate", "--drift", "12.phi.xx=1", "--telemetry", "x.h5"], "12.phi.xx"),
         (["info", "does-not-exist.h5"], "does-not-exist.h5"),
     ],
 )

@@ -311,7 +311,7 @@ def test_cli_simulate_gw_writes_truth(tmp_path):
     tr = read_truth(tmp_path / "d.truth.h5")
     assert set(tr.injections) == {"hmcnc", "mbhb1"}
     assert np.max(np.abs(tr.injections["mbhb1"])) > 0
-    from ttlcore.cli.main import summarise
+    from ttlcore.cli.info import summarise
 
     info = summarise(tmp_path / "d.truth.h5")
     assert "injections/hmcnc" in info["datasets"]
