@@ -61,6 +61,8 @@ from pathlib import Path
 
 import zenoh
 
+from tqdm import tqdm
+
 from ttlcore.diagnose.effects import make_effects
 from ttlcore.errors import TTLError
 
@@ -198,6 +200,7 @@ class Launcher:
         self._t0 = time.monotonic()
         self._last_line = ""
         self._last_print = 0.0
+        self._live: tqdm | None = None  # the status line, in place on a terminal
         self.endpoint = ""
         self.run_dir = Path(opts.recordings) / opts.run_id
         self.run_plan: dict | None = None
@@ -211,7 +214,11 @@ class Launcher:
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:
-        print(f"ttl run {self.opts.run_id}: {text}", file=self.out, flush=True)
+        msg = f"ttl run {self.opts.run_id}: {text}"
+        if self._live is not None:  # above the status line, which stays at the bottom
+            self._live.write(msg, file=self.out)
+        else:
+            print(msg, file=self.out, flush=True)
 
     # ------------------------------------------------------------------ validation
     def plan(self) -> None:
@@ -524,14 +531,29 @@ class Launcher:
         return " | ".join(parts) + f"  [{time.monotonic() - self._t0:.1f} s]"
 
     def show(self, force: bool = False) -> None:
+        """The stages' progress: one line updated in place on a terminal, a new line at most
+        every second when it changed in a log (``force``: the final state, printed to stay)."""
         if self.opts.quiet:
             return
         line = self.status_line()
+        if self._live is not None or (hasattr(self.out, "isatty") and self.out.isatty()):
+            if self._live is None:
+                self._live = tqdm(total=None, file=self.out, bar_format="{desc}", leave=True, dynamic_ncols=True)
+            self._live.set_description_str(f"ttl run {self.opts.run_id}: {line}")
+            if force:
+                self.end_status_line()
+            return
         now = time.monotonic()
         core = line.rsplit("  [", 1)[0]
         if force or (core != self._last_line and now - self._last_print >= 1.0):
             self._last_line, self._last_print = core, now
             self.say(line)
+
+    def end_status_line(self) -> None:
+        """Leave the in-place status line as it is and go on below it."""
+        if self._live is not None:
+            self._live.close()
+            self._live = None
 
     # ------------------------------------------------------------------ children
     def start(self, name: str) -> None:
@@ -691,6 +713,7 @@ class Launcher:
         return self.report(abort)
 
     def report(self, abort: str | None) -> int:
+        self.end_status_line()
         total = self.total
         status = 0
         for name, child in self.children.items():

@@ -144,7 +144,9 @@ def format_refit(report: dict) -> str:
     def fmt(x, spec=".3f"):
         return format(x, spec) if isinstance(x, (int, float)) else "-"
 
-    lines = [f"refit of {report['source']['run']}: {report['source']['data']}",
+    bands = m["adequacy"]["bands"]
+    band = f", band {bands[0]['f_lo']:.3g}-{bands[-1]['f_hi']:.3g} Hz" if bands else ""
+    lines = [f"refit of {report['source']['run']}: {report['source']['data']}{band}",
              f"  model     {','.join(m['effects'])}: {m['n_parameters']} parameters, chi2/dof {fmt(m['chi2_dof'])}",
              f"  baseline  {','.join(b['effects'])}: {b['n_parameters']} parameters, chi2/dof {fmt(b['chi2_dof'])}",
              f"  change    delta chi2 {fmt(c['delta_chi2'], '.1f')}, log Bayes factor {fmt(c['log_bayes_factor'], '.1f')}",

@@ -36,6 +36,18 @@ ROOT = Path(__file__).resolve().parents[1]
 #: the target is 0.5 s; the bound leaves room for a machine shared by several test runs
 START_BOUND_S = 2.0
 
+
+def start_bound() -> float:
+    """:data:`START_BOUND_S`, or on a machine so loaded that a bare interpreter importing
+    numpy (what the parsers need) takes long, four times that: the entry point that imported
+    the whole science stack took ten times as long as numpy alone."""
+    runs = []
+    for _ in range(2):
+        start = time.perf_counter()
+        subprocess.run([sys.executable, "-c", "import argparse, numpy"], check=True)
+        runs.append(time.perf_counter() - start)
+    return max(START_BOUND_S, 4 * min(runs))
+
 #: one bad argument per subcommand and a word the one-line error must contain
 BAD = {
     "simulate": (["--duration", "abc", "--telemetry", "x.h5"], "--duration"),
@@ -85,8 +97,10 @@ def test_help_of_every_subcommand_is_fast(tmp_path):
         assert r.returncode == 0, (command, r.stderr)
         assert "usage: ttl " + command in r.stdout
     worst = max(times, key=times.get)
-    print(f"\nhelp start-up: max {times[worst]:.2f} s ({worst}), median {np.median(list(times.values())):.2f} s")
-    assert times[worst] < START_BOUND_S, times
+    bound = start_bound()
+    print(f"\nhelp start-up: max {times[worst]:.2f} s ({worst}), median {np.median(list(times.values())):.2f} s "
+          f"(bound {bound:.2f} s)")
+    assert times[worst] < bound, times
     assert not list(tmp_path.iterdir())
 
 
@@ -99,7 +113,7 @@ def test_bad_argument_is_one_line_exit_2_and_fast(tmp_path, command):
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and lines[0].startswith(f"ttl {command}: error: ") and needle in lines[0], r.stderr
     assert "Traceback" not in r.stderr and r.stdout == ""
-    assert elapsed < START_BOUND_S
+    assert elapsed < START_BOUND_S or elapsed < start_bound()
     assert not list(tmp_path.iterdir()), "a failed command left files behind"
 
 

@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import sys
-
 import numpy as np
 
 from ..conventions import parse_duration
@@ -23,9 +21,9 @@ def run(args) -> int:
                       settings=settings, progress=progress)
     res, js = out["fit"], out["fit_json"]
     write_report(args.json, js)
-    # with --json - the text goes to standard error: standard output holds the JSON alone
-    stream = sys.stderr if to_stdout(args.json) else sys.stdout
-    say = lambda text: print(text, file=stream)  # noqa: E731
+    if to_stdout(args.json):  # the JSON instead of the text
+        return 0
+    say = print
     say(f"{args.data}: {args.method} fit of {len(res.names)} coefficients over {res.n_segments} segments of "
         f"{settings.segment_duration:g} s, band {band[0]:g}-{band[1]:g} Hz: chi2/dof {res.chi2_dof:.3f}, "
         f"median sigma {1e3 * np.median(res.sigma):.4f} mm/rad")

@@ -484,8 +484,8 @@ def run_scenarios(out_dir, *, cases=None, variants=("paper", "lisainstrument", "
     start = time.monotonic()
 
     def say(msg):
-        if progress is not None:
-            progress(f"{msg} ({time.monotonic() - start:.0f} s)")
+        if progress is not None:  # the command's status line shows the elapsed time itself
+            progress(msg)
 
     runner = _Runner(duration, seed, say, fit_settings)
     summary = {"duration_s": duration, "seed": seed, "cases": cases, "variants": {}, "timings_s": {}}
