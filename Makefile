@@ -6,16 +6,26 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 DEMO   := demo-output
 
-.PHONY: demo demo-batch test test-science test-ops bench clean
+.PHONY: demo demo-batch test test-science test-ops bench clean lock
 
-$(STAMP): pyproject.toml
+# the project with its test and gw extras, every package at the version pinned in
+# constraints.txt (resolved by pip with dependencies; `pip check` must be clean)
+$(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
-	$(BIN)/python -m pip install --quiet -e '.[test]'
-	# the `gw` extra of pyproject.toml (lisagwresponse, healpy) without dependencies:
-	# lisagwresponse pins lisaconstants < 2, which lisainstrument cannot use (pyproject says why)
-	$(BIN)/python -m pip install --quiet --no-deps 'lisagwresponse>=2.5' 'healpy>=1.16'
+	$(BIN)/python -m pip install --quiet -c constraints.txt -e '.[test,gw]'
+	$(BIN)/python -m pip check
 	touch $(STAMP)
+
+## lock: refresh constraints.txt: the newest versions pip resolves for pyproject.toml in a fresh
+## venv (then `make clean test` before committing the new pins)
+lock:
+	rm -rf .venv-lock && $(PYTHON) -m venv .venv-lock
+	.venv-lock/bin/python -m pip install --quiet --upgrade pip
+	.venv-lock/bin/python -m pip install --quiet -e '.[test,gw]'
+	.venv-lock/bin/python -m pip check
+	{ sed -n '/^#/p' constraints.txt; .venv-lock/bin/python -m pip freeze --exclude-editable; } > constraints.txt.new
+	mv constraints.txt.new constraints.txt && rm -rf .venv-lock
 
 ## demo: the main job on an embedded default: three mission days (Keplerian arms, all noises,
 ## paper coefficients, a slow drift on two coefficients and a 0.3 mm/rad step on one at 1.5 d)
@@ -24,7 +34,7 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	rm -rf $(DEMO)/pipeline && mkdir -p $(DEMO)/pipeline
 	$(BIN)/ttl simulate --duration 3d --orbit keplerian --coeffs paper --seed 1 \
-		--drift 12.phi.rx=0.05,13.eta.tx=-0.05 --step 1.5d:23.phi.tx=0.3 --out $(DEMO)/pipeline/mission.h5
+		--drift 12.phi.rx=0.05,13.eta.tx=-0.05 --step 1.5d:23.phi.tx=0.3 --telemetry $(DEMO)/pipeline/mission.h5
 	$(BIN)/ttl run --telemetry $(DEMO)/pipeline/mission.h5 --run-id demo --recordings $(DEMO)/pipeline/recordings --timeout 900
 	$(BIN)/ttl inspect $(DEMO)/pipeline/recordings/demo --truth $(DEMO)/pipeline/mission.truth.h5
 	@echo ""
@@ -40,7 +50,7 @@ demo: $(STAMP)
 ## the paper-style figures written (about 30 s).
 demo-batch: $(STAMP)
 	rm -rf $(DEMO)/batch && mkdir -p $(DEMO)/batch
-	$(BIN)/ttl simulate --duration 1d --orbit keplerian --coeffs paper --seed 1 --out $(DEMO)/batch/day.h5
+	$(BIN)/ttl simulate --duration 1d --orbit keplerian --coeffs paper --seed 1 --telemetry $(DEMO)/batch/day.h5
 	$(BIN)/ttl info $(DEMO)/batch/day.h5
 	$(BIN)/ttl analyze $(DEMO)/batch/day.h5 --truth $(DEMO)/batch/day.truth.h5 --out $(DEMO)/batch/fit
 	@echo "figures: $(DEMO)/batch/fit/asd_X.png $(DEMO)/batch/fit/coefficients.png; numbers: $(DEMO)/batch/fit/fit.json"
@@ -72,4 +82,4 @@ bench: $(STAMP)
 	$(BIN)/python bench/diagnose.py
 
 clean:
-	rm -rf $(VENV) $(DEMO) *.egg-info
+	rm -rf $(VENV) .venv-lock $(DEMO) *.egg-info
