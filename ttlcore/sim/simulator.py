@@ -42,6 +42,7 @@ that delays reach back to).  The output is identical whatever the chunk size, an
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import asdict, dataclass, field, fields
 from typing import Callable, Iterator
 
@@ -64,12 +65,16 @@ from ..conventions import (
 from ..errors import ConfigError
 from .injection import LOOKAHEAD, ChunkContext, check_signal, injection_from_description
 from ..tdi.interpolation import DEFAULT_ORDER, apply_taps, delay, shift_taps
-from .noise import NoiseStream
+from .noise import NoiseStream, default_filter_length, run_block_length
 from .orbits import Orbit, make_orbit
 from ..io.telemetry import Telemetry, TelemetryWriter
 from ..io.truth import NOISE_COMPONENTS, TruthWriter, truth_path
 
 log = logging.getLogger(__name__)
+
+#: Noise read around a run beyond its samples [s] (delay history, interpolation stencils,
+#: the anti-alias filter): the noise blocks are sized to hold the run and this margin
+BLOCK_MARGIN_S = 600.0
 
 
 @dataclass
@@ -239,7 +244,15 @@ class Simulator:
         vel = noise_models.as_velocity
 
         def stream(on, key, model, n, rate=fs):
-            return NoiseStream(model, rate, seed=cfg.seed, key=key, n_channels=n) if on else None
+            if not on:
+                return None
+            # output blocks sized to the run (a short run computes one short block, not 1.5
+            # filter lengths); the samples do not depend on it beyond rounding (noise.py)
+            taps = default_filter_length(rate)
+            block = run_block_length(int(math.ceil(cfg.duration * rate)), taps,
+                                     margin=int(math.ceil(BLOCK_MARGIN_S * rate)))
+            return NoiseStream(model, rate, seed=cfg.seed, key=key, n_channels=n, block_length=block,
+                               keep_white=block >= taps // 2)
 
         def jitter_model(level):
             return vel(_Jitter(level, jit["fknee"], jit.get("fhigh")))

@@ -23,7 +23,14 @@ import scipy.stats
 
 from ttlcore.sim import noise_models as nm
 from ttlcore.conventions import C, NU0
-from ttlcore.sim.noise import WHITE_BLOCK, NoiseFilter, NoiseStream, default_filter_length, generate
+from ttlcore.sim.noise import (
+    WHITE_BLOCK,
+    NoiseFilter,
+    NoiseStream,
+    default_filter_length,
+    generate,
+    run_block_length,
+)
 
 DAY = 86_400
 FS = 4.0
@@ -253,6 +260,24 @@ def test_matches_direct_convolution(block_length):
     for c in range(2):
         ref = np.convolve(w[c], flt.taps, mode="valid")
         np.testing.assert_allclose(y[c], ref, rtol=0, atol=1e-12 * np.abs(ref).max())
+
+
+def test_run_sized_blocks_give_the_same_noise():
+    """A short run's blocks (run_block_length) hold the whole run in block 0, and the noise
+    is that of the default blocks to rounding: the simulator sizes its blocks to the run
+    without changing a seeded realisation."""
+    taps, n, margin = 2**16, 3000, 100
+    block = run_block_length(n, taps, margin)
+    assert block % 4096 == 0 and block < taps // 2 and block // 16 >= margin
+    assert block - block // 16 >= n + margin
+    assert run_block_length(10 * taps, taps, margin) == taps // 2  # long runs: the default
+    flt = NoiseFilter(nm.test_mass, FS, fmin=1e-3, length=taps)
+    short = NoiseStream(flt, FS, seed=7, key="sized", n_channels=2, block_length=block, keep_white=False)
+    default = NoiseStream(flt, FS, seed=7, key="sized", n_channels=2)
+    a, b = short.get(-margin, n + margin), default.get(-margin, n + margin)
+    np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.abs(b).max())
+    assert len(short._blocks) == 1  # the run in one block
+    assert len(short._white) == 1  # and no white noise kept for a next block that never comes
 
 
 # ---------------------------------------------------------------------------
