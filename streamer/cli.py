@@ -37,6 +37,8 @@ from ttlcore.errors import TTLError
 
 from .keys import ERRORS, check_name, control_key, topic_pattern
 from .launcher import RunOptions, run, stage_module_exists
+from .main import main as ttl_main
+from .parsers import register  # noqa: F401  (the operations parsers, for build_parser(register))
 from .security import ROLES, ROUTER_LOG_FILTER, ensure_credentials, filter_log
 from .session import (
     DEFAULT_ROUTER_LISTEN,
@@ -47,8 +49,6 @@ from .session import (
     open_session,
 )
 from .stage import Stage, stage_main
-from .main import main as ttl_main
-from .parsers import register  # noqa: F401  (the operations parsers, for build_parser(register))
 from .topology import stage_module
 
 log = logging.getLogger(__name__)

@@ -17,6 +17,7 @@ from pathlib import Path
 
 import h5py
 
+from ttlcore.cli.diagnose import check_step_times
 from ttlcore.cli.diagnose import split_effects as split
 from ttlcore.cli.progress import status_line
 from ttlcore.cli.report import to_stdout, write_report
@@ -118,6 +119,9 @@ def refit_run(run_dir, effects, *, baseline=("linear-ttl",), effect_modules=(), 
     say = progress or (lambda msg: None)
     say(f"reading the recorded segments of {run_dir}")
     data, what, dws = load_run(run_dir, segments, source)
+    parts = data if isinstance(data, list) else [data]
+    check_step_times(make_effects(list(effects), list(effect_modules)), parts[0].t0,
+                     parts[-1].t0 + parts[-1].size / parts[-1].fs)
     dws = None if dws is None else float(dws)
     settings = refit_settings(dws, band)
     say(f"refitting the {what} with {','.join(effects)} and {','.join(baseline)}, "

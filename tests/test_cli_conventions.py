@@ -209,3 +209,11 @@ def test_refused_run_makes_no_credentials(tmp_path):
                cwd=tmp_path, timeout=300)
     assert r.returncode == 2 and "moon" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert not list(tmp_path.iterdir())
+
+
+def test_step_outside_the_data_is_refused(tiny_file, tmp_path):
+    """A step time outside the data would fit an empty column and pass without a word."""
+    r, _ = ttl("diagnose", tiny_file, "--effects", "linear-ttl,step:t_step=1d", "--quiet", cwd=tmp_path)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "t_step=1d" in r.stderr and "outside the data (0 - 600 s)" in r.stderr
+    assert [p.name for p in tmp_path.iterdir()] == ["tiny.h5"]

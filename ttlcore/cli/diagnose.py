@@ -43,6 +43,22 @@ def split_effects(text: str) -> list[str]:
     return out
 
 
+def check_step_times(effects, t_start: float, t_stop: float, option: str = "--effects") -> None:
+    """Refuse a step whose time ``t_step`` lies outside the data [s, mission time]: its column
+    would be empty, or the linear coupling itself, and the fit would say nothing about it."""
+    for effect in effects:
+        text = getattr(effect, "options", {}).get("t_step")
+        if text is None:  # searched over the data
+            continue
+        try:
+            t = float(text)
+        except (TypeError, ValueError):
+            t = parse_duration(text, option)
+        if not t_start < t < t_stop:
+            raise TTLError(f"{option}: {effect.name} at t_step={text} ({t:g} s) is outside the data "
+                           f"({t_start:g} - {t_stop:g} s)")
+
+
 def run(args) -> int:
 
     data = Path(args.data)
@@ -76,6 +92,7 @@ def run(args) -> int:
     with status_line("ttl diagnose", args.quiet) as say:  # in place on a terminal
         say(f"reading {data}")
         tm = read_telemetry(data)
+        check_step_times(effects, tm.t0, tm.t0 + tm.duration)
         truth = None
         if args.truth:
             tr = load_truth(args.truth, tm, file_kind(data), data)

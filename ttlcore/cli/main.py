@@ -306,6 +306,8 @@ def main(argv=None, registrars=()) -> int:
     except BrokenPipeError:  # ttl --help | head -1
         _quiet_stdout()
         return 0
+    except SystemExit as exc:  # --help, --version or an argument error, already printed
+        return exc.code if isinstance(exc.code, int) else 2
     logging.basicConfig(
         level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
