@@ -60,7 +60,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import zenoh
-
 from tqdm import tqdm
 
 from ttlcore.diagnose.effects import make_effects
