@@ -32,6 +32,7 @@ import re
 import shlex
 import signal
 import subprocess
+import sys
 from collections import Counter, defaultdict
 from pathlib import Path
 
@@ -666,13 +667,18 @@ def _cmd_inspect(args) -> int:
         report = inspect_run(args.run_dir, truth=args.truth)
     finally:
         reader_log.setLevel(level)
+    # a recording that is not an MCAP file at all is reported, and the exit status says so
+    unreadable = [f"{f['file']}" for s in report["stages"].values() for f in s["files"] if not f.get("readable", True)]
+    status = 1 if unreadable else 0
     if args.json == "-":
         print(json.dumps(to_jsonable(report), indent=1, allow_nan=False))
-        return 0
+        return status
     if args.json:
         write_json(args.json, to_jsonable(report))
     print(format_report(report))
-    return 0
+    if unreadable:
+        print(f"ttl inspect: not readable as MCAP: {', '.join(unreadable)} (exit status 1)", file=sys.stderr)
+    return status
 
 
 def _cmd_view(args) -> int:

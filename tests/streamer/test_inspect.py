@@ -237,6 +237,9 @@ def test_inspect_errors_name_the_directory(tmp_path, capsys):
     assert r["stages"]["fitter"]["files"][0]["readable"] is False
     assert [i["kind"] for i in r["interruptions"]] == ["unreadable"]
     assert "fitter.mcap: not an MCAP file" in format_report(r)
+    code, out, err = run_ttl(capsys, "inspect", bad)  # the report, and a status that says it
+    assert code == 1 and "fitter.mcap: not an MCAP file" in out
+    assert err.strip() == "ttl inspect: not readable as MCAP: fitter.mcap (exit status 1)"
 
 
 def test_view_prints_a_loopback_only_command(run_dir, tmp_path, capsys):
