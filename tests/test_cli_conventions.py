@@ -230,3 +230,10 @@ def test_step_outside_the_data_is_refused(tiny_file, tmp_path):
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "t_step=1d" in r.stderr and "outside the data (0 - 600 s)" in r.stderr
     assert [p.name for p in tmp_path.iterdir()] == ["tiny.h5"]
+
+
+def test_step_after_the_end_of_a_simulation_is_refused(tmp_path):
+    r, _ = ttl("simulate", "--duration", "1h", "--step", "2h:12.phi.rx=0.1", "--telemetry", "x.h5", cwd=tmp_path)
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert "--step 2h:12.phi.rx=0.1" in r.stderr and "after the end of the simulation (3600 s)" in r.stderr
+    assert not list(tmp_path.iterdir())

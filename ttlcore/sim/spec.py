@@ -52,6 +52,9 @@ def simulation_config_from_args(args, truth_noises=()):
         if not sep:
             raise TTLError(f"--step: expected T:NAME=MM,..., got {step!r}")
         t_step = parse_duration(when, "--step") if when.strip() not in ("0", "0.0") else 0.0
+        if t_step >= args.t0 + duration:  # would change nothing in the data: surely not what was meant
+            raise TTLError(f"--step {step}: {t_step:g} s is at or after the end of the simulation "
+                           f"({args.t0 + duration:g} s)")
         coeffs = coeffs.with_step(t_step, {k: v * 1e-3 for k, v in _parse_assignments(rest, "--step").items()})
     make_orbit(args.orbit)  # validate early: clear error before any work
     gw = ()
