@@ -35,7 +35,7 @@ from streamer.recorder import RecordingError, read_recording  # noqa: E402
 from streamer.session import free_port  # noqa: E402
 from ttl_testutil import Procs, finish, output, stage_processes, ttl_command, wait_for  # noqa: E402
 from ttlcore.conventions import COEFFICIENT_NAMES  # noqa: E402
-from ttlcore.io.truth import read_truth  # noqa: E402
+from ttlcore.estimate.monitoring import FileTruth  # noqa: E402
 
 BLIND = str(Path(__file__).parent / "ttlcore" / "diagnose" / "blind_effects.py")
 #: the acceptance of the live-loop issue: the last fit's coefficients against the truth
@@ -112,8 +112,9 @@ def check_residual_equals_refit(tmp_path: Path, run_dir: Path, effects: list[str
 
 
 def check_against_truth(fit, truth_path: Path) -> tuple[float, float]:
-    truth = read_truth(truth_path)
-    c_true = truth.coefficients.values(np.array([0.5 * (fit.header.meta["t_start"] + fit.header.meta["t_stop"])]))[:, 0]
+    """Max |C_fit - C_true| [m/rad] and the pulls' RMS of a fit, the truth averaged over the
+    fit's window (as ``ttl inspect --truth`` and the monitor compare them)."""
+    c_true = FileTruth(truth_path).mean(fit.header.meta["t_start"], fit.header.meta["t_stop"])
     err = fit.arrays["coefficients"] - c_true
     pull = err / fit.arrays["sigma"]
     return float(np.max(np.abs(err))), float(np.sqrt(np.mean(pull ** 2)))
