@@ -513,8 +513,26 @@ class Stage:
         """Validate one message that came on Zenoh key ``key`` and use it (or refuse it).
 
         Data come on the stream key ``ttl/<run>/<topic>``, the index in the header; from
-        the header on, the segment is named ``ttl/<run>/<topic>/<index>``.
+        the header on, the segment is named ``ttl/<run>/<topic>/<index>``.  Nothing a
+        message holds can stop the stage: an exception that escapes the checks (a bug met
+        by an unforeseen message) is a recorded rejection of that message (``field:
+        message``), and the stage goes on.  An ``OSError`` (the recording's disk) is not the
+        message's doing and still stops the stage.
         """
+        try:
+            self._check_and_use(key, payload, attachment)
+        except OSError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - the loop must outlive any message
+            self.rejections += 1
+            self.log.exception("%s: unexpected failure while checking a message", key)
+            self.report_error("rejected", f"unexpected {type(exc).__name__} while checking the message: {exc}",
+                              key=key, field="message",
+                              details={"traceback": traceback.format_exc(limit=8),
+                                       "attachment": _preview(attachment)})
+
+    def _check_and_use(self, key: str, payload, attachment) -> None:
+        """The body of :meth:`_process`."""
         payload = payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload or b"")
         try:
             topic = parse_stream_key(key)
@@ -558,7 +576,14 @@ class Stage:
     def _release_held(self) -> None:
         """Use the held segments whose wait is over (no conflicting copy came)."""
         for key, header, arrays, payload in self.held.due(time.monotonic()):
-            self._use(key, header, arrays, payload)
+            try:
+                self._use(key, header, arrays, payload)
+            except OSError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - as in _process: the loop goes on
+                self.log.exception("%s: unexpected failure while using a held segment", key)
+                self.report_error("failed", f"unexpected {type(exc).__name__}: {exc}", index=header.index, key=key,
+                                  details={"traceback": traceback.format_exc(limit=8)})
 
     def _use(self, key: str, header: Header, arrays: dict, payload: bytes) -> None:
         """Record an accepted input segment and hand it to :meth:`handle`."""

@@ -227,3 +227,36 @@ def test_control_messages_change_a_stage_or_are_rejected_and_recorded(driver, ch
     assert [(c["command"], c["accepted"]) for c in rec.json("control")] == [
         ("factor", True), ("factor", False), ("factor", False), ("explode", False)]
     assert rec.json("control")[0]["payload"] == {"factor": 3}
+
+
+def test_no_message_content_stops_the_stage(driver, children, tmp_path):
+    """A header nested 100000 deep (under the 1 MiB limit: RecursionError in Python's JSON
+    parser), huge numbers, long strings, and a message whose checks raise something other
+    than a CodecError: each one a recorded rejection naming the field, and the stage goes on."""
+    proc, mcap_path = driver.start_stage(children, tmp_path)
+    data0, p0, a0 = good(0)
+    text = a0.decode()
+    deep = text.replace('"meta":{}', '"meta":{"x":' + "[" * 100_000 + "]" * 100_000 + "}")
+    assert len(deep) < (1 << 20) and deep != text
+    driver.telemetry.put(0, p0, deep.encode())
+    driver.telemetry.put(0, p0, text.replace('"meta":{}', '"meta":{"x":1e999999}').encode())
+    driver.telemetry.put(0, p0, text.replace('"index":0', '"index":' + "9" * 5000).encode())
+    driver.telemetry.put(0, p0, text.replace('"meta":{}', '"meta":{"s":"' + "a" * 500_000 + '"}').encode())
+    _, p99, a99 = good(99)
+    driver.telemetry.put(99, p99, a99)                                 # Doubler.expect raises LookupError
+    driver.telemetry.put(0, p0, a0)                                    # and the stage goes on
+    header, arrays = driver.output()
+    assert header.index == 0
+    np.testing.assert_array_equal(arrays["data"], 2 * data0)
+    wait_for(lambda: len(driver.errors) >= 5, 10, "five error reports")
+    got = [(e["kind"], e["field"]) for _, e in driver.errors]
+    assert got == [("rejected", "header"), ("rejected", "meta.x"), ("rejected", "index"), ("rejected", "meta.s"),
+                   ("rejected", "message")], got
+    assert "nested 100002 levels deep" in driver.errors[0][1]["message"]
+    assert "LookupError" in driver.errors[4][1]["message"]
+    assert proc.poll() is None
+    driver.bus.session.put(f"ttl/{RUN}/control/doubler/stop", b"")
+    assert proc.wait(20) == 0, output_of(proc)
+    rec = read_recording(mcap_path)
+    assert [(e["kind"], e["field"]) for e in rec.json("errors")] == got
+    assert rec.json("events")[-1]["kind"] == "stop"
