@@ -295,7 +295,7 @@ class Monitor(PipelineStage):
             try:
                 e = json.loads(raw)
                 msg = f"error from {e.get('stage')}: {e.get('kind')} segment {e.get('index')}: {e.get('message')}"
-            except ValueError:
+            except (ValueError, RecursionError, AttributeError):  # not JSON, nested too deep, not an object
                 msg = f"unreadable error message ({len(raw)} bytes)"
             if self.rec is not None:
                 self.text("log", msg, "ERROR")

@@ -389,7 +389,7 @@ class Launcher:
     def _on_error(self, sample) -> None:
         try:
             self.events.put(("error", json.loads(sample.payload.to_bytes())))
-        except ValueError:
+        except (ValueError, RecursionError):  # RecursionError: nested too deep for the parser
             self.events.put(("error", {"message": "unreadable error message", "key": str(sample.key_expr)}))
 
     def _drain_events(self) -> bool:

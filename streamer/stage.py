@@ -438,7 +438,7 @@ class Stage:
         text = payload.decode("utf-8", errors="replace")
         try:
             shown = json.loads(text) if text.strip() else None
-        except ValueError:
+        except (ValueError, RecursionError):  # RecursionError: nested too deep for the parser
             shown = text
         record = {"run": self.run_id, "stage": self.stage_name, "command": command, "payload": shown,
                   "time": time.time()}
