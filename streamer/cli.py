@@ -29,9 +29,7 @@ import json
 import json as _json
 import logging
 import queue
-import signal
 import sys
-import threading
 import tomllib
 from pathlib import Path
 
@@ -43,6 +41,7 @@ from ttlcore.errors import TTLError
 from . import refit, reprocess
 from .keys import ERRORS, check_name, control_key, topic_pattern
 from .launcher import RunOptions, run, stage_module_exists
+from .processes import SignalFlag
 from .security import ROLES, ROUTER_LOG_FILTER, ensure_credentials, filter_log
 from .session import (
     DEFAULT_ROUTER_LISTEN,
@@ -345,9 +344,10 @@ def _cmd_router(args) -> int:
         zenoh.init_log_from_env_or(ROUTER_LOG_FILTER)
         default = tuple(e.replace("tcp/", "tls/", 1) for e in DEFAULT_ROUTER_LISTEN)
     listen = tuple(args.listen) if args.listen else (None if args.zenoh_config else default)
-    stop = threading.Event()
-    # handlers first: a SIGTERM right after the router starts listening still closes it cleanly
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    # handlers first: a SIGTERM right after the router starts listening still closes it
+    # cleanly; a flag, not a threading.Event: Event.set() in a handler can deadlock on the
+    # Event's own lock (streamer.processes.SignalFlag)
+    stop = SignalFlag().install()
     try:
         try:
             if listen is None:  # the file's endpoints
@@ -369,11 +369,11 @@ def _cmd_router(args) -> int:
                   file=sys.stderr, flush=True)
             while not stop.wait(0.5):
                 pass
+            print(f"ttl router: {stop.name}: closing", file=sys.stderr, flush=True)
         finally:
             session.close()
     finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
+        stop.restore()
     return 0
 
 

@@ -53,7 +53,6 @@ import queue
 import signal
 import subprocess
 import sys
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -74,7 +73,7 @@ from .keys import (
     to_ranges,
     topic_pattern,
 )
-from .processes import die_with_parent, stop_process
+from .processes import SignalFlag, stop_process, tied_to_parent
 from .progress import REPLAY_WINDOW, Progress, key_stage, parse_progress
 from .recorder import stage_record
 from .session import (
@@ -323,7 +322,7 @@ class Launcher:
         with open(path, "ab") as logf:
             start = logf.tell()
             self.router = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                           env=env, preexec_fn=die_with_parent)
+                                           env=env, preexec_fn=tied_to_parent(signal.SIGKILL))
         self._watcher = security.RefusalWatcher(path, offset=start)
         deadline = time.monotonic() + 60.0
         while time.monotonic() < deadline:
@@ -363,7 +362,9 @@ class Launcher:
         path.write_text(json.dumps(self.stage_config("replayer"), indent=2))
         res = subprocess.run([self.opts.python, "-m", stage_module("replayer"), "--config", str(path), "--check",
                               "--plan-out", str(plan_path), "--log-level", "WARNING"],
-                             capture_output=True, text=True, timeout=300)
+                             capture_output=True, text=True, timeout=300,
+                             # nothing to save: killed with a killed or terminated launcher
+                             preexec_fn=tied_to_parent(signal.SIGKILL))
         if res.returncode != 0:
             lines = [ln for ln in (res.stderr or res.stdout).strip().splitlines() if ln.strip()]
             msg = lines[-1] if lines else f"exit status {res.returncode}"
@@ -524,7 +525,10 @@ class Launcher:
             child.proc = subprocess.Popen(
                 [self.opts.python, "-m", stage_module(name), "--config", str(child.config),
                  "--log-level", self.opts.log_level],
-                stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+                stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                # SIGTERM when the launcher dies, even while importing or opening its session
+                # (the stage then closes its recording, saying it was orphaned)
+                preexec_fn=tied_to_parent(signal.SIGTERM))
         child.starts += 1
         child.pids.add(child.proc.pid)
         log.info("started %s (pid %d)", name, child.proc.pid)
@@ -630,10 +634,8 @@ class Launcher:
         o = self.opts
         deadline = time.monotonic() + o.timeout if o.timeout else None
         abort = None
-        terminated = []
-        previous = None
-        if threading.current_thread() is threading.main_thread():  # SIGTERM: stop the stages first
-            previous = signal.signal(signal.SIGTERM, lambda *_: terminated.append(True))
+        # SIGTERM: stop the stages first (a flag: no lock taken in the handler)
+        terminated = SignalFlag((signal.SIGTERM,)).install()
         try:
             while True:
                 if terminated:
@@ -659,8 +661,7 @@ class Launcher:
         except KeyboardInterrupt:
             abort = "interrupted"
         finally:
-            if previous is not None:
-                signal.signal(signal.SIGTERM, previous)
+            terminated.restore()
         self.stop_all()
         self._drain_events()
         return self.report(abort)

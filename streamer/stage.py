@@ -65,6 +65,7 @@ from .keys import (
     topic_pattern,
 )
 from .plan import Holdback, Plan, RangeSet, Rejected, Validator
+from .processes import SignalFlag, set_parent_death_signal
 from .recorder import Recorder, mission_ns, stage_record
 from .session import DEFAULT_CACHE, Bus, SessionSettings
 
@@ -288,6 +289,7 @@ class Stage:
         self._queue: queue.Queue = queue.Queue()
         self._controls: queue.Queue = queue.Queue()  # handled before queued segments
         self._stop = threading.Event()
+        self._signals = SignalFlag(())  # replaced by the installed one in run()
         self._publishers: dict = {}
         self._done: dict[str, RangeSet] = {}
         self._highest: dict[str, int] = {}
@@ -343,22 +345,27 @@ class Stage:
 
     # ------------------------------------------------------------------ lifecycle
     def stop(self) -> None:
-        """Ask the stage to stop (thread- and signal-safe)."""
+        """Ask the stage to stop (thread-safe; not from a signal handler: SIGINT and SIGTERM
+        go through :class:`streamer.processes.SignalFlag`)."""
         self._stop.set()
 
     @property
     def stopping(self) -> bool:
-        return self._stop.is_set()
+        return self._stop.is_set() or bool(self._signals)
 
     def run(self) -> int:
         """Run until stopped; returns the exit code (0 after a graceful stop)."""
-        restore = self._install_signal_handlers()
         cfg = self.config
         self.recording_path = recording_path(cfg.recordings, self.run_id, self.stage_name)
+        restore = None
         try:
             with Bus.open(cfg.zenoh) as bus, Recorder(self.recording_path, metadata={
                     "run": self.run_id, "stage": self.stage_name, "class": type(self).__qualname__,
                     "config": json.dumps(cfg.to_dict())}) as recorder:
+                # only now: zenoh.open blocks (up to 30 s for a client whose router is gone)
+                # without returning to Python, where a handler would run; until then a
+                # signal's default action ends the process, which has nothing to close yet
+                restore = self._install_signal_handlers()
                 self.bus, self.recorder = bus, recorder
                 bus.declare_alive(self.run_id, self.stage_name)
                 bus.subscriber(control_pattern(self.run_id), self._on_control)
@@ -370,13 +377,21 @@ class Stage:
                 self.event("start", message=f"inputs {list(self.inputs)}")
                 self.log.info("running (inputs %s, recording %s)", list(self.inputs), self.recording_path)
                 self._loop()
+                if self._signals:
+                    self.log.info("received %s", self._signals.name)
+                if self.exit_reason is None and (why := self.orphaned()):
+                    # a signal sent because the launcher died (die-with-parent): say so
+                    self.exit_reason = why
+                    self.log.error("%s: stopping (exit status 3)", why)
+                    self.report_error("orphaned", f"{why}: stage stops")
                 self.log.info("stopping")
                 self.teardown()
                 self.event("stop", message=self.exit_reason or "", orphaned=bool(self.exit_reason),
                            rejections=self.rejections)
         finally:
             self.bus = self.recorder = None
-            restore()
+            if restore is not None:
+                restore()
         self.log.info("stopped")
         return 3 if self.exit_reason else 0
 
@@ -415,7 +430,7 @@ class Stage:
 
     def _loop(self) -> None:
         self._orphan_checked = 0.0
-        while not self._stop.is_set():
+        while not self.stopping:
             self._check_orphaned()
             self._release_held()
             while not self._controls.empty():
@@ -473,21 +488,11 @@ class Stage:
                               details={"traceback": traceback.format_exc(limit=8)})
 
     def _install_signal_handlers(self):
-        if threading.current_thread() is not threading.main_thread():
-            return lambda: None
-        previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-
-        def on_signal(signum, frame):
-            self.log.info("received %s", signal.Signals(signum).name)
-            self._stop.set()
-
-        for sig in previous:
-            signal.signal(sig, on_signal)
-
-        def restore():
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
-        return restore
+        """SIGINT and SIGTERM stop the loop through a flag (no lock, no logging in the
+        handler: :class:`streamer.processes.SignalFlag`); returns the function restoring the
+        previous handlers."""
+        self._signals = SignalFlag().install()
+        return self._signals.restore
 
     # ------------------------------------------------------------------ callbacks (Zenoh threads)
     def _on_sample(self, sample) -> None:
@@ -807,6 +812,11 @@ def stage_main(stage_class: type[Stage], argv: Sequence[str] | None = None,
         if check is not None and args.check:
             print(check(config))
             return 0
+        if config.launcher_pid is not None:
+            # die with the launcher: SIGTERM when it dies, so the stage closes its recording at
+            # once (Stage.run then says "orphaned"); a launcher already gone is noticed by
+            # Stage.orphaned on the first turn of the loop
+            set_parent_death_signal(signal.SIGTERM)
         stage = stage_class(config)
     except Exception as exc:  # noqa: BLE001 - one line, no traceback, for user errors
         print(f"ttl stage {stage_class.name}: error: {exc}", file=sys.stderr)
