@@ -77,13 +77,30 @@ def foreign_certificate(tmp_path: Path) -> str:
     return str(other / "fitter")
 
 
+def stranger_certificate(tmp_path: Path) -> str:
+    """A ``fitter`` certificate of a CA of another name (prefix of its .pem/.key; its CA in
+    ``ca.pem`` beside it)."""
+    original = security._name
+    security._name = lambda cn: original(f"stranger {cn}")
+    try:
+        other = security.ensure_credentials(tmp_path / "stranger-ca", roles=("fitter",))
+    finally:
+        security._name = original
+    return str(other / "fitter")
+
+
 def intruders(procs: Procs, tmp_path: Path, creds: Path, endpoint: str, run: str, duration: float) -> dict:
-    """Start the four intruders; returns name -> (process, report path)."""
+    """Start the six intruders; returns name -> (process, report path).  The last two trust
+    another CA than the run's, so they refuse the router's certificate themselves (the
+    router logs the alert they send: DecryptError for a CA of the same name, UnknownCA)."""
     base = {"run": run, "endpoint": endpoint, "duration": duration, "ca": str(creds / "ca.pem")}
+    foreign, stranger = foreign_certificate(tmp_path), stranger_certificate(tmp_path)
     kinds = {"other-stage": {"credentials": str(creds), "identity": "subtractor"},
              "no-certificate": {},
-             "foreign-ca": {"foreign": foreign_certificate(tmp_path)},
-             "plain-tcp": {"plain": True}}
+             "foreign-ca": {"foreign": foreign},
+             "plain-tcp": {"plain": True},
+             "trusts-foreign-ca": {"foreign": foreign, "ca": str(Path(foreign).with_name("ca.pem"))},
+             "trusts-stranger-ca": {"foreign": stranger, "ca": str(Path(stranger).with_name("ca.pem"))}}
     out = {}
     for name, extra in kinds.items():
         report = tmp_path / f"{name}.json"
@@ -99,7 +116,7 @@ def check_intruders(started: dict) -> dict:
         reports[name] = json.loads(report.read_text())
     # only the holder of a certificate of the run's CA gets in (and is then bound by the ACL)
     assert reports["other-stage"]["connected"] and reports["other-stage"]["puts"] > 0
-    for name in ("no-certificate", "foreign-ca", "plain-tcp"):
+    for name in ("no-certificate", "foreign-ca", "plain-tcp", "trusts-foreign-ca", "trusts-stranger-ca"):
         assert not reports[name]["connected"], (name, reports[name])
     return reports
 
@@ -115,6 +132,8 @@ def check_refusals(refused: list[dict], run: str) -> None:
     assert any("corrupt message" in m for m in unauth), unauth           # plain TCP on the TLS port
     assert any("no certificate" in m.lower() or "certificaterequired" in m.lower().replace(" ", "")
                for m in unauth), unauth                                   # a TLS peer without certificate
+    assert any("fatal alert: DecryptError" in m for m in unauth), unauth  # a peer trusting a same-named CA
+    assert any("fatal alert: UnknownCA" in m for m in unauth), unauth     # a peer trusting another CA
 
 
 def test_router_refuses_and_records_intruders(tmp_path):
@@ -251,12 +270,19 @@ def test_refusals_are_read_from_zenoh_log_lines():
              head.format(4) + f"Using cached result: {zid} is unauthorized to Put (ingress) on ttl/r1/fit/0",
              head.format(5) + f"{zid} on {subject} is authorized to Put (egress) on ttl/r1/fit/0",
              "2026-11-23T21:39:34.12Z  WARN acc-0 ThreadId(05) zenoh_link_tls::unicast: peer sent no certificates. "
+             "Hint: increase the system open file limit.",
+             # a peer refusing the router's certificate (it trusts another CA), as zenoh 1.10 logs it
+             "\x1b[2m2026-11-26T03:44:32.188356Z\x1b[0m \x1b[33m WARN\x1b[0m acc-0 ThreadId(05) \x1b[2mzenoh_link_tls::unicast"
+             "\x1b[0m\x1b[2m:\x1b[0m received fatal alert: DecryptError. Hint: increase the system open file limit.",
+             "2026-11-26T03:44:33.19Z  WARN acc-0 ThreadId(05) zenoh_link_tls::unicast: received fatal alert: UnknownCA. "
              "Hint: increase the system open file limit."]
     got = security.refusals(lines)
     assert [(r["kind"], r.get("subject"), r.get("key")) for r in got] == [
         ("forbidden", "monitor", "ttl/r1/telemetry/3"), ("forbidden", "monitor", "ttl/r1/fit/0"),
-        ("unauthenticated", None, None)]
-    assert got[2]["message"] == "peer sent no certificates"
+        ("unauthenticated", None, None), ("unauthenticated", None, None), ("unauthenticated", None, None)]
+    assert [r["message"] for r in got[2:]] == ["peer sent no certificates", "received fatal alert: DecryptError",
+                                               "received fatal alert: UnknownCA"]
+    assert got[3]["time"] == "2026-11-26T03:44:32.188356Z"
 
 
 @pytest.mark.ops
