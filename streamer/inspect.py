@@ -9,7 +9,9 @@
     unauthenticated peers and forbidden publications, counted per kind with the first few);
     and interruptions: files without footer
     (the process was killed; the reader salvages them), segments whose payload never made
-    it to disk, a stage's restarts, a recording that ends without a ``stop`` event.
+    it to disk, a stage's restarts, a recording that ends without a ``stop`` event, a
+    closed file damaged afterwards (flipped bytes: read past the damage, what was skipped
+    listed), a file that is not MCAP at all (``unreadable``: exit status 1).
     Works on a run whose stages were killed.  ``--json FILE``: the same as one JSON object
     (:func:`inspect_run`) written to FILE (``-``: standard output).
 ``ttl view recordings/NAME [--web [--port P]] [--print]``
@@ -304,7 +306,11 @@ def inspect_run(run_dir, truth=None) -> dict:
                 interruptions.append({"stage": stage, "kind": "unfinished", "file": f["file"],
                                       "message": f"{f['file']} was not closed (process killed?): salvaged "
                                                  f"{f['records']} records; {f['problem']}"})
-            elif not f["stopped"]:
+            elif f["problem"]:  # closed, then damaged (flipped bytes): read past the damage
+                interruptions.append({"stage": stage, "kind": "damaged", "file": f["file"],
+                                      "message": f"{f['file']} is damaged: salvaged {f['records']} records; "
+                                                 f"{f['problem']}"})
+            if f["complete"] and not f["stopped"]:
                 interruptions.append({"stage": stage, "kind": "no-stop", "file": f["file"],
                                       "message": f"{f['file']} is closed but has no 'stop' event"})
             for seg in f["incomplete_segments"]:
@@ -606,13 +612,15 @@ def _cmd_inspect(args) -> int:
         report = inspect_run(args.run_dir, truth=args.truth)
     finally:
         reader_log.setLevel(level)
+    # a stage's recording that is not MCAP at all: the report lists it, the exit status says it
+    status = 1 if any(i["kind"] == "unreadable" for i in report["interruptions"]) else 0
     if args.json == "-":
         print(json.dumps(to_jsonable(report), indent=1, allow_nan=False))
-        return 0
+        return status
     if args.json:
         write_json(args.json, to_jsonable(report))
     print(format_report(report))
-    return 0
+    return status
 
 
 def _cmd_view(args) -> int:

@@ -431,6 +431,9 @@ class Recording:
     problem: str | None = None
     metadata: dict = field(default_factory=dict)
     schemas: dict = field(default_factory=dict)
+    #: Corrupt stretches skipped while salvaging (``{"start", "stop", "why"}``, byte offsets):
+    #: a damaged file (flipped bytes) is read past them, from the next record that checks out.
+    skipped: list = field(default_factory=list)
 
     def json(self, topic: str) -> list[dict]:
         """The JSON messages of ``topic``."""
@@ -559,13 +562,14 @@ def read_recording(path) -> Recording:
             tail = f.read(len(MAGIC))
     except OSError as exc:
         raise RecordingError(f"{path}: cannot read: {exc}") from exc
-    if magic != MAGIC:
+    if magic != MAGIC:  # not even a damaged MCAP file: nothing to salvage
         raise RecordingError(f"{path}: not an MCAP file (bad magic {magic!r})")
     if size > 2 * len(MAGIC) and tail == MAGIC:
         try:
             return _read_complete(path)
-        except (McapError, struct.error, ValueError, EOFError) as exc:
-            log.warning("%s: reading with the index failed (%s); salvaging record by record", path, exc)
+        except Exception as exc:  # noqa: BLE001 - McapError, ZstdError, struct.error...: damaged
+            log.warning("%s: reading the closed file failed (%s: %s); salvaging record by record",
+                        path, type(exc).__name__, exc)
     return _salvage(path, size)
 
 
@@ -582,39 +586,91 @@ def _read_complete(path: Path) -> Recording:
 
 
 def _salvage(path: Path, size: int) -> Recording:
+    """Read ``path`` record by record, keeping every record that checks out.
+
+    A record that does not parse (a chunk whose CRC or zstd frame fails: flipped bytes) is
+    skipped when its length is plausible; when the length itself is damaged, reading resumes
+    at the next chunk that parses and passes its CRC (:func:`_resync`).  Each skipped
+    stretch is listed in ``rec.skipped``; ``problem`` says what was lost.  A file that merely
+    ends early (a killed process) stops at its last whole record, as before.
+    """
+    import mmap
+
     rec = Recording(path, complete=False)
     asm = _Assembler(rec)
-    with open(path, "rb") as f:
-        f.seek(len(MAGIC))
+    with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
         pos = len(MAGIC)
+        end_problem = None
         while True:
             if pos == size:
-                rec.problem = f"file ends after {rec.records} records without footer (not closed)"
+                end_problem = f"file ends after {rec.records} records without footer (not closed)"
                 break
             if pos + 9 > size:
-                rec.problem = f"truncated record header at byte {pos} ({size - pos} of 9 bytes)"
+                end_problem = f"truncated record header at byte {pos} ({size - pos} of 9 bytes)"
                 break
-            opcode, length = struct.unpack("<BQ", f.read(9))
+            opcode, length = struct.unpack_from("<BQ", data, pos)
             if pos + 9 + length > size:
-                rec.problem = (f"truncated record (opcode 0x{opcode:02x}) at byte {pos}: "
-                               f"{size - pos - 9} of {length} bytes present")
-                break
-            body = f.read(length)
+                why = (f"truncated record (opcode 0x{opcode:02x}) at byte {pos}: "
+                       f"{size - pos - 9} of {length} bytes present")
+                nxt = _resync(data, pos + 1, size)
+                if nxt is None:
+                    end_problem = why
+                    break
+                rec.skipped.append({"start": pos, "stop": nxt, "why": f"damaged record length ({why})"})
+                pos = nxt
+                continue
+            body = data[pos + 9:pos + 9 + length]
             try:
                 done = _salvage_record(asm, opcode, body)
-            except Exception as exc:  # corrupt record: keep what came before
-                rec.problem = f"corrupt record (opcode 0x{opcode:02x}) at byte {pos}: {exc}"
-                break
+            except Exception as exc:  # noqa: BLE001 - a corrupt record: skip it, keep the rest
+                rec.skipped.append({"start": pos, "stop": pos + 9 + length,
+                                    "why": f"corrupt record (opcode 0x{opcode:02x}): {type(exc).__name__}: {exc}"})
+                pos += 9 + length
+                continue
             rec.records += 1
             pos += 9 + length
             if done:
                 rec.complete = True
-                rec.problem = None
                 break
     asm.finish()
+    parts = []
+    if rec.skipped:
+        lost = sum(s["stop"] - s["start"] for s in rec.skipped)
+        parts.append(f"{len(rec.skipped)} corrupt stretch(es) skipped ({lost} bytes, first at byte "
+                     f"{rec.skipped[0]['start']}: {rec.skipped[0]['why']})")
+    if end_problem:
+        parts.append(end_problem)
+    rec.problem = "; ".join(parts) or None
     if rec.problem:
         log.warning("%s: salvaged %d records; %s", path, rec.records, rec.problem)
     return rec
+
+
+#: Longest record :func:`_resync` accepts as the next chunk [bytes] (the recorder closes a
+#: chunk after every segment; a day-long segment of telemetry is ~50 MB).
+_RESYNC_MAX = 1 << 30
+
+
+def _resync(data, start: int, size: int) -> int | None:
+    """Offset of the first chunk record at or after ``start`` that parses and passes its
+    CRC, or None.  Used when a record's length field is damaged: the stream can only be
+    picked up again at a record that proves itself."""
+    pos = start
+    opcode = bytes([Opcode.CHUNK])
+    while True:
+        pos = data.find(opcode, pos, size - 9)
+        if pos < 0:
+            return None
+        (length,) = struct.unpack_from("<Q", data, pos + 1)
+        if 0 < length <= min(_RESYNC_MAX, size - pos - 9):
+            try:
+                chunk = Chunk.read(ReadDataStream(io.BytesIO(data[pos + 9:pos + 9 + length])))
+                for _ in breakup_chunk(chunk, validate_crc=True):
+                    pass
+                return pos
+            except Exception:  # noqa: BLE001 - not a chunk after all
+                pass
+        pos += 1
 
 
 def _salvage_record(asm: _Assembler, opcode: int, body: bytes) -> bool:
