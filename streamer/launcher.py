@@ -666,6 +666,16 @@ class Launcher:
         self._drain_events()
         return self.report(abort)
 
+    def conflicts(self) -> list[str]:
+        """The segments (``topic/index``, by first report) of which a stage reported
+        conflicting copies (error ``kind: conflict`` on the errors topic)."""
+        seen: dict[str, None] = {}
+        for err in self.errors:
+            if isinstance(err, dict) and err.get("kind") == "conflict":
+                key = str(err.get("key") or "")
+                seen.setdefault("/".join(key.split("/")[2:]) or f"segment {err.get('index')}", None)
+        return list(seen)
+
     def report(self, abort: str | None) -> int:
         total = self.total
         status = 0
@@ -687,6 +697,13 @@ class Launcher:
                 missing = sorted(set(range(total)) - self.handled(s))
                 self.say(f"stage {s} did not handle segment(s) {missing[:20]}{' ...' if len(missing) > 20 else ''}")
                 status = 1
+        conflicts = self.conflicts()
+        if conflicts:
+            # two different copies of a segment were published: one of them was not the
+            # producer's (docs/operations.md, "Conflicting copies"), whatever was used
+            self.say(f"conflicting copies of {len(conflicts)} segment(s) received: "
+                     + ", ".join(conflicts[:10]) + (" ..." if len(conflicts) > 10 else ""))
+            status = 1
         if abort:
             self.say(f"run stopped: {abort}")
             return {"interrupted": 130, "terminated": 143}.get(abort, 1)
