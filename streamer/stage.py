@@ -303,6 +303,8 @@ class Stage:
         #: Stages of the run whose liveliness token is present (updated from a Zenoh thread).
         self.alive_peers: set[str] = set()
         self.exit_reason: str | None = None
+        #: When a sample was last lost beyond recovery (``missed``), monotonic [s], or None.
+        self.last_miss: float | None = None
 
     # ------------------------------------------------------------------ to override
     def handle(self, header: Header, arrays: dict[str, np.ndarray]) -> Sequence[Output]:
@@ -442,6 +444,7 @@ class Stage:
                 continue
             if item[0] == "miss":
                 _, source, count = item
+                self.last_miss = time.monotonic()
                 self.report_error("missed", f"{count} sample(s) lost beyond recovery from publisher {source}")
             else:
                 self._process(*item[1:])
