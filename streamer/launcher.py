@@ -549,7 +549,7 @@ class Launcher:
             child.exit_codes.append(code)
             child.proc = None
             how = f"killed by {signal.Signals(-code).name}" if code < 0 and -code in signal.Signals._value2member_map_ \
-                else f"exit status {code}"
+                else f"exit status {code}" + {3: ": orphaned", 4: ": disk full"}.get(code, "")
             self.say(f"stage {name} died ({how}); log {child.log}: {self.last_log_line(name)}")
             if child.starts <= self.opts.restart:
                 self.say(f"restarting {name} ({child.starts}/{self.opts.restart})")

@@ -216,6 +216,11 @@ def to_jsonable(obj):
     return obj
 
 
+#: Bytes a :class:`Recorder` sets aside for its last words on a full disk (the stop note, the
+#: error and stop event, the summary written on close).
+RESERVE_BYTES = 1 << 20
+
+
 class Recorder:
     """Write an MCAP recording (see the module docstring for the layout).
 
@@ -227,17 +232,24 @@ class Recorder:
         Written as the file's ``ttl`` metadata record (run, stage, ...).
     fsync : bool
         Also ``os.fsync`` after every record (survives power loss, not just a kill).
+    reserve : int
+        Bytes set aside beside the file (``<path>.reserve``, allocated, deleted on close):
+        when the disk fills up, :meth:`release_reserve` frees them so that the stop can
+        still be written down (:meth:`note_stop`) and the file closed.
 
     Use as a context manager, or call :meth:`close`.
     """
 
     def __init__(self, path, metadata: Mapping[str, str] | None = None, fsync: bool = False,
                  compression: str = COMPRESSION, chunk_size: int = CHUNK_SIZE,
-                 max_chunk_age: float = MAX_CHUNK_AGE):
+                 max_chunk_age: float = MAX_CHUNK_AGE, reserve: int = RESERVE_BYTES):
         if compression not in _COMPRESSION:
             raise ValueError(f"compression: expected one of zstd, lz4, none, got {compression!r}")
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._reserve = self.path.with_name(self.path.name + ".reserve")
+        _allocate(self._reserve, reserve)
+        stop_note_path(self.path).unlink(missing_ok=True)  # a note of an earlier file at this path
         self._file = open(self.path, "wb")
         self._fsync = fsync
         self._writer = Writer(self._file, use_chunking=True, chunk_size=int(chunk_size),
@@ -351,6 +363,19 @@ class Recorder:
         if self._fsync:
             os.fsync(self._file.fileno())
 
+    def release_reserve(self) -> None:
+        """Free the bytes set aside at open (the disk is full: make room for the last words)."""
+        self._reserve.unlink(missing_ok=True)
+
+    def note_stop(self, reason: str, message: str, **details) -> Path:
+        """Write ``<path>.stop.json`` (atomically): why the recording stopped when the file
+        itself may be unable to say so (a full disk).  ``ttl inspect`` reads it."""
+        note = stop_note_path(self.path)
+        tmp = note.with_name(note.name + ".tmp")
+        tmp.write_text(json.dumps({"reason": reason, "message": message, "time": time.time(), **details}))
+        os.replace(tmp, note)
+        return note
+
     def close(self) -> None:
         """Write the summary and footer, and close the file (idempotent)."""
         if self._closed:
@@ -360,7 +385,39 @@ class Recorder:
             self._writer.finish()
             self._file.flush()
         finally:
-            self._file.close()
+            try:
+                self._file.close()
+            finally:
+                self.release_reserve()
+
+
+def stop_note_path(path) -> Path:
+    """``<recording>.stop.json``: the note :meth:`Recorder.note_stop` leaves beside ``path``."""
+    path = Path(path)
+    return path.with_name(path.name + ".stop.json")
+
+
+def read_stop_note(path) -> dict | None:
+    """The stop note of recording ``path`` (:meth:`Recorder.note_stop`), or None."""
+    try:
+        note = json.loads(stop_note_path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    return note if isinstance(note, dict) else None
+
+
+def _allocate(path: Path, size: int) -> None:
+    """Create ``path`` with ``size`` bytes really allocated (not a sparse file)."""
+    if size <= 0:
+        return
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    try:
+        try:
+            os.posix_fallocate(fd, 0, size)
+        except (AttributeError, OSError):  # not supported here: write the bytes
+            os.write(fd, b"\0" * size)
+    finally:
+        os.close(fd)
 
 
 # ---------------------------------------------------------------------------- reading

@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import errno
 import json
 import logging
 import os
@@ -66,7 +67,7 @@ from .keys import (
 )
 from .plan import Holdback, Plan, RangeSet, Rejected, Validator
 from .processes import SignalFlag, set_parent_death_signal
-from .recorder import Recorder, mission_ns, stage_record
+from .recorder import Recorder, mission_ns, stage_record, stop_note_path
 from .session import DEFAULT_CACHE, Bus, SessionSettings
 
 log = logging.getLogger(__name__)
@@ -240,13 +241,17 @@ def configure_logging(level: str | int = "INFO", json_lines: bool = False, strea
 
 def set_aside(path: Path) -> Path:
     """``path``, free to write: an existing file is first renamed ``<stem>.<n><suffix>``
-    (the lowest ``n`` free), so that a restarted process keeps its predecessor's recording."""
+    (the lowest ``n`` free), so that a restarted process keeps its predecessor's recording
+    (and its stop note, :func:`streamer.recorder.stop_note_path`)."""
     path = Path(path)
     if path.exists():
         n = 1
         while (old := path.with_name(f"{path.stem}.{n}{path.suffix}")).exists():
             n += 1
         path.rename(old)
+        note = stop_note_path(path)
+        if note.exists():
+            note.rename(stop_note_path(old))
         log.info("kept the previous recording as %s", old)
     return path
 
@@ -305,6 +310,8 @@ class Stage:
         self.exit_reason: str | None = None
         #: When a sample was last lost beyond recovery (``missed``), monotonic [s], or None.
         self.last_miss: float | None = None
+        #: Why the stage stopped on a full disk (:meth:`_on_disk_full`), or None.
+        self.disk_full: str | None = None
 
     # ------------------------------------------------------------------ to override
     def handle(self, header: Header, arrays: dict[str, np.ndarray]) -> Sequence[Output]:
@@ -378,7 +385,12 @@ class Stage:
                                            history=cfg.history, on_miss=self._on_miss)
                 self.event("start", message=f"inputs {list(self.inputs)}")
                 self.log.info("running (inputs %s, recording %s)", list(self.inputs), self.recording_path)
-                self._loop()
+                try:
+                    self._loop()
+                except OSError as exc:
+                    if not disk_full(exc):
+                        raise
+                    self._on_disk_full(exc)
                 if self._signals:
                     self.log.info("received %s", self._signals.name)
                 if self.exit_reason is None and (why := self.orphaned()):
@@ -387,15 +399,46 @@ class Stage:
                     self.log.error("%s: stopping (exit status 3)", why)
                     self.report_error("orphaned", f"{why}: stage stops")
                 self.log.info("stopping")
-                self.teardown()
-                self.event("stop", message=self.exit_reason or "", orphaned=bool(self.exit_reason),
-                           rejections=self.rejections)
+                self._last_words(self.teardown)
+                self._last_words(lambda: self.event(
+                    "stop", message=self.disk_full or self.exit_reason or "", orphaned=bool(self.exit_reason),
+                    disk_full=self.disk_full is not None, rejections=self.rejections))
+        except OSError as exc:
+            if self.disk_full is None or not disk_full(exc):
+                raise
+            self.log.error("could not close the recording on the full disk: %s", exc)
         finally:
             self.bus = self.recorder = None
             if restore is not None:
                 restore()
         self.log.info("stopped")
-        return 3 if self.exit_reason else 0
+        return 4 if self.disk_full else 3 if self.exit_reason else 0
+
+    def _on_disk_full(self, exc: OSError) -> None:
+        """The recording's disk is full: free the recorder's reserve, leave the stop note
+        beside the file (``ttl inspect`` names the cause), report it on the bus; the stage
+        then stops (exit status 4)."""
+        where = self.recording_path.parent if self.recording_path else "?"
+        self.disk_full = f"disk full: {exc.strerror or exc} (writing under {where})"
+        self.log.error("%s: stopping (exit status 4)", self.disk_full)
+        if self.recorder is not None:
+            self.recorder.release_reserve()
+            try:
+                self.recorder.note_stop("disk-full", self.disk_full, run=self.run_id, stage=self.stage_name,
+                                        errno=exc.errno)
+            except OSError as again:
+                self.log.error("could not write the stop note: %s", again)
+        self._last_words(lambda: self.report_error("disk-full", f"{self.disk_full}: stage stops"))
+
+    def _last_words(self, write) -> None:
+        """Call ``write``; once the disk is full, a failure to write is logged, not raised."""
+        if self.disk_full is None:
+            write()
+            return
+        try:
+            write()
+        except OSError as exc:
+            self.log.error("on the full disk: %s", exc)
 
     def _on_alive(self, stage: str, alive: bool) -> None:  # Zenoh thread
         if stage != LAUNCHER:
@@ -485,6 +528,12 @@ class Stage:
             outputs = list(self.tick() or ())
             for out in outputs:
                 self.publish(out)
+        except OSError as exc:
+            if disk_full(exc):
+                raise
+            self.log.exception("tick failed")
+            self.report_error("failed", f"{type(exc).__name__}: {exc}",
+                              details={"traceback": traceback.format_exc(limit=8)})
         except Exception as exc:
             self.log.exception("tick failed")
             self.report_error("failed", f"{type(exc).__name__}: {exc}",
@@ -607,13 +656,21 @@ class Stage:
             outputs = list(self.handle(header, arrays) or ())
             for out in outputs:
                 self.publish(out, source=header)
+        except OSError as exc:
+            if disk_full(exc):
+                raise
+            self._handle_failed(key, seg.index, exc)
+            return
         except Exception as exc:
-            self.log.exception("%s: processing failed", key)
-            self.report_error("failed", f"{type(exc).__name__}: {exc}", index=seg.index, key=key,
-                              details={"traceback": traceback.format_exc(limit=8)})
+            self._handle_failed(key, seg.index, exc)
             return
         done.add(seg.index)
         self.log.info("%s: processed, %d output(s)", key, len(outputs))
+
+    def _handle_failed(self, key: str, index: int, exc: Exception) -> None:
+        self.log.exception("%s: processing failed", key)
+        self.report_error("failed", f"{type(exc).__name__}: {exc}", index=index, key=key,
+                          details={"traceback": traceback.format_exc(limit=8)})
 
     def _check_gap(self, topic: str, index: int) -> None:
         """Note the indices an arrival skips, as ranges; :meth:`_report_gaps` reports those
@@ -716,6 +773,11 @@ class Stage:
         if self.recorder is not None:
             self.recorder.write_json("events", stage_record(self.run_id, self.stage_name, kind, message,
                                                             index=index, details=details))
+
+
+def disk_full(exc: BaseException) -> bool:
+    """True for the error of a write to a full disk (or a full quota)."""
+    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
 
 
 def _preview(attachment) -> str:

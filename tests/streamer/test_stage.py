@@ -260,3 +260,52 @@ def test_no_message_content_stops_the_stage(driver, children, tmp_path):
     rec = read_recording(mcap_path)
     assert [(e["kind"], e["field"]) for e in rec.json("errors")] == got
     assert rec.json("events")[-1]["kind"] == "stop"
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 3 MB tmpfs (a real file system that fills up); skipped where mounting is not allowed."""
+    import subprocess
+
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(disk)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], capture_output=True)
+
+
+def test_full_disk_stops_the_stage_and_says_so(driver, children, small_disk):
+    """Recording onto a disk that fills up: the stage frees its reserve, leaves a stop note,
+    reports ``disk-full`` on the bus, closes its recording and exits 4; ``ttl inspect`` names
+    the cause ("disk full"), not "process killed?"."""
+    from streamer.inspect import format_report, inspect_run
+
+    config = StageConfig(run=RUN, zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
+                         recordings=small_disk / "recordings", poll_interval=0.05, hold=0.0)
+    proc = children.start("stage", config=config.to_dict())
+    wait_for(lambda: "doubler" in driver.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
+             30, "the stage's liveliness token")
+    for i in range(60):  # 128 kB recorded per segment (input and output): 2 MB free
+        if proc.poll() is not None:
+            break
+        driver.telemetry.put(i, *good(i)[1:])
+        time.sleep(0.05)
+    assert proc.wait(30) == 4, output_of(proc)
+    wait_for(lambda: [e for _, e in driver.errors if e["kind"] == "disk-full"], 10, "the disk-full report")
+    full = [e for _, e in driver.errors if e["kind"] == "disk-full"][0]
+    assert "disk full: No space left on device" in full["message"], full
+    run_dir = small_disk / "recordings" / RUN
+    note = json.loads((run_dir / "doubler.mcap.stop.json").read_text())
+    assert note["reason"] == "disk-full" and note["errno"] == 28, note
+    assert not (run_dir / "doubler.mcap.reserve").exists()
+    report = inspect_run(run_dir)
+    kinds = [(i["kind"], i["message"]) for i in report["interruptions"]]
+    assert [k for k, _ in kinds] == ["disk-full"], kinds
+    assert "disk full" in kinds[0][1] and "killed" not in format_report(report), kinds
+    rec = read_recording(run_dir / "doubler.mcap")
+    assert rec.segments("tdi"), "nothing recorded before the disk filled up"
+    print(f"recorded {len(rec.segments('tdi'))} segments; file complete: {rec.complete}; {kinds[0][1]}")
