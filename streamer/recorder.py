@@ -37,6 +37,7 @@ import io
 import json
 import logging
 import math
+import mmap
 import os
 import struct
 import time
@@ -651,7 +652,6 @@ def _salvage(path: Path, size: int) -> Recording:
     stretch is listed in ``rec.skipped``; ``problem`` says what was lost.  A file that merely
     ends early (a killed process) stops at its last whole record, as before.
     """
-    import mmap
 
     rec = Recording(path, complete=False)
     asm = _Assembler(rec)
