@@ -652,7 +652,6 @@ def _salvage(path: Path, size: int) -> Recording:
     stretch is listed in ``rec.skipped``; ``problem`` says what was lost.  A file that merely
     ends early (a killed process) stops at its last whole record, as before.
     """
-
     rec = Recording(path, complete=False)
     asm = _Assembler(rec)
     with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:

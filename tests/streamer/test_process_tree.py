@@ -9,6 +9,7 @@ import random
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -49,7 +50,6 @@ def test_signal_flag_handler_takes_no_lock():
     the main thread could hold is held (a threading.Event's handler would block here)."""
     flag = SignalFlag((signal.SIGUSR1,)).install()
     try:
-        import threading
         event = threading.Event()
         with event._cond:  # what Event.wait() holds when a signal lands inside it
             os.kill(os.getpid(), signal.SIGUSR1)
