@@ -112,6 +112,7 @@ def test_killed_launcher_leaves_nothing_alive(when, tmp_path):
     proc = children.start(ttl("run", "--simulate", sim, "--segment", "1h", "--run-id", f"kill-{when}",
                               "--recordings", str(tmp_path / "rec"), "--insecure",
                               "--listen", f"tcp/127.0.0.1:{port}", "--timeout", "300"), "ttl-run", cwd=ROOT)
+    everything: list[psutil.Process] = []
     try:
         def ready():
             if proc.poll() is not None:
@@ -138,7 +139,10 @@ def test_killed_launcher_leaves_nothing_alive(when, tmp_path):
             rec = read_recording(path)
             stop = [e for e in rec.json("events") if e["kind"] == "stop"]
             assert rec.complete and stop and stop[-1]["details"]["orphaned"], (path.name, rec.problem, stop)
-    finally:
-        for p in descendants(proc.pid):
-            p.kill()
+    finally:  # whatever the outcome, nothing of this test runs on (a 30-day simulation would)
+        for p in everything + descendants(proc.pid):
+            try:
+                p.kill()
+            except psutil.Error:
+                pass
         children.close()
