@@ -14,8 +14,8 @@ from __future__ import annotations
 
 import os
 import shutil
-import socket
 import signal
+import socket
 import subprocess
 import threading
 from pathlib import Path
