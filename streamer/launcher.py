@@ -707,11 +707,12 @@ class Launcher:
         if abort:
             self.say(f"run stopped: {abort}")
             return {"interrupted": 130, "terminated": 143}.get(abort, 1)
-        if status == 0:
-            files = sorted(p.name for p in self.run_dir.glob("*.mcap")) + sorted(p.name for p in self.run_dir.glob("*.rrd"))
-            refused = f", {len(self.refused)} refusal(s) by the router (security.jsonl)" if self.refused else ""
-            self.say(f"done: {total} segments, {len(self.errors)} error report(s){refused}, "
-                     f"{len(self.refused_progress)} progress message(s) refused; files in {self.run_dir}: {', '.join(files)}")
+        files = sorted(p.name for p in self.run_dir.glob("*.mcap")) + sorted(p.name for p in self.run_dir.glob("*.rrd"))
+        refused = f", {len(self.refused)} refusal(s) by the router (security.jsonl)" if self.refused else ""
+        # the counts also when the run failed (exit 1): what went wrong is above, how much here
+        self.say(f"{'done' if status == 0 else 'ended (exit status 1)'}: {total} segments, "
+                 f"{len(self.errors)} error report(s){refused}, {len(self.refused_progress)} progress message(s) "
+                 f"refused; files in {self.run_dir}: {', '.join(files)}")
         return status
 
 

@@ -40,3 +40,4 @@ def test_conflicting_copies_make_the_run_exit_1_even_when_the_first_copy_was_use
     assert la.report(None) == 1
     text = out.getvalue()
     assert "conflicting copies of 2 segment(s) received: tdi/1, tdi/2" in text and "done:" not in text, text
+    assert "ended (exit status 1): 3 segments, 3 error report(s)" in text and "0 progress message(s) refused" in text
