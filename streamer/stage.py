@@ -393,7 +393,7 @@ class Stage:
                     self._on_disk_full(exc)
                 if self._signals:
                     self.log.info("received %s", self._signals.name)
-                if self.exit_reason is None and (why := self.orphaned()):
+                if self.exit_reason is None and (why := self._orphaned_by_signal()):
                     # a signal sent because the launcher died (die-with-parent): say so
                     self.exit_reason = why
                     self.log.error("%s: stopping (exit status 3)", why)
@@ -459,6 +459,25 @@ class Stage:
         gone = self._launcher_gone_at
         if gone is not None and time.monotonic() - gone >= self.config.orphan_grace:
             return f"the launcher's liveliness token has been gone for {self.config.orphan_grace:g} s"
+        return None
+
+    def _orphaned_by_signal(self, wait: float = 2.0) -> str | None:
+        """:meth:`orphaned`, after a signal that may be the launcher's death (die-with-parent).
+
+        Linux sends that signal when the launcher's thread that started this process exits;
+        the other threads of a killed launcher may still be going, and this process is
+        reparented only once the last has: ``getppid()`` is then still the launcher's pid
+        for a moment.  So a signal with the launcher seemingly alive is given ``wait``
+        seconds to show whether the launcher is going.
+        """
+        why = self.orphaned()
+        if why or not self._signals or self.config.launcher_pid is None:
+            return why
+        deadline = time.monotonic() + wait
+        while time.monotonic() < deadline:
+            time.sleep(0.05)
+            if os.getppid() != self.config.launcher_pid:
+                return self.orphaned()
         return None
 
     def _check_orphaned(self) -> None:
