@@ -24,8 +24,12 @@ What it draws (the numbers come from :mod:`ttlcore.estimate.monitoring`)
 
 Output ``ttl/<run>/monitor/<i>``, one per segment, once the segment is drawn: its TDI, and
 its fit and residual from a fitter / subtractor that reports progress or is alive (they are
-waited for until that stage has passed the segment, at most ``settle_timeout`` = 60 s; a
-stage that is skipped or not started blocks nothing).  The segment is then done for the progress protocol
+waited for until that stage has passed the segment, for as long as it is alive: a loaded
+machine may take minutes; a stage that is skipped or not started blocks nothing).  A
+segment whose fit or residual could not be drawn, or will not come (its producer gone for
+``settle_timeout`` = 60 s, or a sample lost beyond recovery and ``settle_timeout`` passed),
+is a recorded failure (``failed`` error, ``failed`` in the progress: ``ttl run`` exits 1),
+never a silently incomplete "done".  The segment is then done for the progress protocol
 (:mod:`streamer.progress`), so the replayer paces on the monitor too and ``ttl run`` stops it only once
 it has drawn everything.  Arrays ``drift_rate`` (24,) [mm/rad/day] and
 ``drift_significance`` (24,) of the latest trend evaluation (0 where not yet defined, see
@@ -52,7 +56,7 @@ dropped with a warning and the file goes on.
 Options (``StageConfig.options`` or the command line): ``rrd`` (path), ``live``,
 ``viewer_port``, ``rerun_binary``, ``trends`` (:class:`ttlcore.diagnose.trends.TrendSettings`
 fields), ``asd_per_decade`` (20), ``band`` ([fmin, fmax], default the fit band),
-``settle_timeout`` (60 s), ``trend_spacing`` (3600 s: the trends get at most one fit per
+``settle_timeout`` (60 s: how long a gone producer is waited for), ``trend_spacing`` (3600 s: the trends get at most one fit per
 hour of window end, so that their cost per segment stays bounded with short segments).
 """
 
@@ -102,6 +106,10 @@ class Monitor(PipelineStage):
     name = "monitor"
     inputs = ("telemetry", "tdi", "fit", "residual")
     follow = ("tdi_builder", "fitter", "subtractor")
+    # no gap reports on arrival: the monitor needs no order, and settles each segment from its
+    # producers' progress (_waiting_for); an arrival order says nothing (a forged fit 9 ahead
+    # of the stream recorded "fit segments 1..8 missing" for fits that came later)
+    reorders = inputs
 
     def __init__(self, config):
         super().__init__(config)
@@ -129,6 +137,7 @@ class Monitor(PipelineStage):
         self._ratio: tuple | None = None
         self._drawn: dict[str, set[int]] = {t: set() for t in self.inputs}
         self._refused: dict[str, set[int]] = {t: set() for t in self.inputs}  # withdrawn: not waited for
+        self._unhandled: dict[str, set[int]] = {t: set() for t in self.inputs}  # handle() raised: not waited for
         self._tdi_at: dict[int, float] = {}
         self._segment_time: dict[int, tuple[float, float]] = {}
         self.settle_timeout = float(o.get("settle_timeout", 60.0))
@@ -199,6 +208,8 @@ class Monitor(PipelineStage):
         except Exception:
             if topic == "tdi":
                 self.mark_failed(header.index)
+            else:  # the segment is settled as failed, not waited for (the error is recorded)
+                self._unhandled[topic].add(header.index)
             raise
         finally:
             self._drain_errors()
@@ -233,31 +244,67 @@ class Monitor(PipelineStage):
                 if stage in self.alive_peers and i not in self._refused[topic]:
                     return topic
                 continue
-            if i in made(peer) and i not in self._drawn[topic] and i not in self._refused[topic]:
+            settled = self._drawn[topic] | self._refused[topic] | self._unhandled[topic]
+            if i in made(peer) and i not in settled:
                 return topic
             if not peer.complete and i not in peer.handled:
                 return topic
         return None
 
+    #: Producer of each topic the monitor waits for.
+    PRODUCERS = {"fit": "fitter", "residual": "subtractor"}
+
+    def _give_up(self, i: int, waiting: str, since: float, now: float) -> str | None:
+        """Why segment ``i`` stops waiting for its ``waiting`` input, or None to go on.
+
+        Never while the producer is alive and nothing was lost (a loaded machine may take
+        minutes; the publisher's cache and Zenoh's recovery deliver it): only when the
+        producer's liveliness token has been gone for ``settle_timeout`` seconds, or when a
+        sample was lost beyond recovery (a ``missed`` error) since the wait began and
+        ``settle_timeout`` has passed since.
+        """
+        stage = self.PRODUCERS[waiting]
+        if now - since < self.settle_timeout:
+            return None
+        if stage not in self.alive_peers:
+            return f"{stage} gone for {self.settle_timeout:g} s"
+        if self.last_miss is not None and self.last_miss >= since - self.settle_timeout:
+            return f"lost beyond recovery ({self.settle_timeout:g} s after a missed-samples report)"
+        return None
+
     def _settle(self) -> None:
-        """Publish the status of every drawn segment that waits for nothing more (or waited
-        longer than ``settle_timeout``), mark it done; give up segments upstream gave up."""
+        """Publish the status of every drawn segment that waits for nothing more, mark it
+        done; fail a segment whose input could not be handled or will not come
+        (:meth:`_give_up`); give up segments upstream gave up."""
         now = time.monotonic()
         board = self.board.snapshot()
         changed = False
         for i in sorted(self._drawn["tdi"] - self.done - self.failed):
-            since = self._tdi_at.setdefault(i, now)
             waiting = self._waiting_for(i, board)
-            if waiting is not None and now - since < self.settle_timeout:
-                continue
             if waiting is not None:
-                late = f"segment {i}: its {waiting} did not come within {self.settle_timeout:g} s"
-                self.text("log", late, "WARN")
-                self.log.warning("%s", late)
+                since = self._tdi_at.setdefault(i, now)
+                if self.PRODUCERS[waiting] in self.alive_peers and self.last_miss is None:
+                    self._tdi_at[i] = now  # the producer is there: the wait is not over
+                    continue
+                why = self._give_up(i, waiting, since, now)
+                if why is None:
+                    continue
+                self.report_error("failed", f"segment {i}: its {waiting} did not come: {why}", index=i,
+                                  details={"waiting_for": waiting})
+                self.text("log", f"segment {i}: its {waiting} did not come: {why}", "WARN")
+                self._forget(i)
+                self.mark_failed(i)
+                changed = True
+                continue
+            unhandled = [t for t in ("fit", "residual") if i in self._unhandled[t]]
+            if unhandled:  # its fit or residual could not be drawn (error recorded): a failed segment
+                self._forget(i)
+                self.mark_failed(i)
+                changed = True
+                continue
             self.publish(self.status(i))
             self.mark_done(i)  # after the output is out (progress protocol)
-            self._tdi_at.pop(i, None)  # settled: its bookkeeping goes (memory flat in a long run)
-            self._segment_time.pop(i, None)
+            self._forget(i)
             changed = True
         tdi = board.get(self.upstream)
         if tdi is not None:
@@ -266,6 +313,13 @@ class Monitor(PipelineStage):
         self.check_complete()
         if changed:
             self.flush()
+
+    def _forget(self, i: int) -> None:
+        """Segment ``i`` is settled: its bookkeeping goes (memory flat in a long run)."""
+        self._tdi_at.pop(i, None)
+        self._segment_time.pop(i, None)
+        for topic in ("fit", "residual"):
+            self._unhandled[topic].discard(i)
 
     def pending(self) -> int:
         return len(self._drawn["tdi"] - self.done - self.failed)
@@ -295,7 +349,7 @@ class Monitor(PipelineStage):
             try:
                 e = json.loads(raw)
                 msg = f"error from {e.get('stage')}: {e.get('kind')} segment {e.get('index')}: {e.get('message')}"
-            except ValueError:
+            except (ValueError, RecursionError, AttributeError):  # not JSON, nested too deep, not an object
                 msg = f"unreadable error message ({len(raw)} bytes)"
             if self.rec is not None:
                 self.text("log", msg, "ERROR")

@@ -25,9 +25,7 @@ import json
 import json as _json
 import logging
 import queue
-import signal
 import sys
-import threading
 import tomllib
 from pathlib import Path
 
@@ -39,6 +37,7 @@ from .keys import ERRORS, check_name, control_key, topic_pattern
 from .launcher import RunOptions, run, stage_module_exists
 from .main import main as ttl_main
 from .parsers import register  # noqa: F401  (the operations parsers, for build_parser(register))
+from .processes import SignalFlag
 from .security import ROLES, ROUTER_LOG_FILTER, ensure_credentials, filter_log
 from .session import (
     DEFAULT_ROUTER_LISTEN,
@@ -218,9 +217,10 @@ def _cmd_router(args) -> int:
         zenoh.init_log_from_env_or(ROUTER_LOG_FILTER)
         default = tuple(e.replace("tcp/", "tls/", 1) for e in DEFAULT_ROUTER_LISTEN)
     listen = tuple(args.listen) if args.listen else (None if args.zenoh_config else default)
-    stop = threading.Event()
-    # handlers first: a SIGTERM right after the router starts listening still closes it cleanly
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    # handlers first: a SIGTERM right after the router starts listening still closes it
+    # cleanly; a flag, not a threading.Event: Event.set() in a handler can deadlock on the
+    # Event's own lock (streamer.processes.SignalFlag)
+    stop = SignalFlag().install()
     try:
         try:
             if listen is None:  # the file's endpoints
@@ -242,11 +242,11 @@ def _cmd_router(args) -> int:
                   file=sys.stderr, flush=True)
             while not stop.wait(0.5):
                 pass
+            print(f"ttl router: {stop.name}: closing", file=sys.stderr, flush=True)
         finally:
             session.close()
     finally:
-        for s, h in previous.items():
-            signal.signal(s, h)
+        stop.restore()
     return 0
 
 

@@ -36,6 +36,7 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import re
 import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -67,6 +68,20 @@ ALIGNMENT = 8
 MAX_HEADER_BYTES = 1 << 20
 #: Name of the array of a single-array message.
 DEFAULT_NAME = "data"
+#: Deepest nesting of JSON objects and lists in a header (the header itself is level 1; the
+#: producers' deepest ``meta`` reaches 5).  Python's JSON parser recurses once per level, so a
+#: deeper header is refused before it is parsed.
+MAX_DEPTH = 32
+#: Longest string anywhere in a header (a key or a value) [characters].
+MAX_STRING_CHARS = 1 << 16
+#: Longest name, unit, run id, producer, dtype or checksum string [characters].
+MAX_NAME_CHARS = 256
+#: Longest number literal in a header [characters]; integers must also lie within
+#: ``[-2**63, 2**64)``.  Longer literals are refused unconverted (Python refuses to convert
+#: integers of more than 4300 digits with a ValueError, and 2000-digit ones take time).
+MAX_NUMBER_CHARS = 40
+#: Most axes of an array (numpy's limit is 32 or 64, the messages have at most 3).
+MAX_NDIM = 16
 
 _HEADER_FIELDS = ("schema", "version", "run", "index", "t0", "fs", "channels", "producer",
                   "arrays", "payload_bytes", "checksum", "meta")
@@ -88,7 +103,12 @@ class CodecError(ValueError):
         The Zenoh key the message came on, when known.
     """
 
+    #: Longest ``what`` kept [characters]: a refused value is quoted, and may be huge.
+    MAX_WHAT = 500
+
     def __init__(self, field: str, what: str, key: str | None = None):
+        if len(what) > self.MAX_WHAT:
+            what = f"{what[:self.MAX_WHAT]}... ({len(what)} characters)"
         self.field = field
         self.what = what
         self.key = key
@@ -354,17 +374,117 @@ def parse_header(attachment, key: str | None = None) -> Header:
     """
     if attachment is None:
         _fail("attachment", "missing (a segment message carries its JSON header as attachment)", key)
-    raw = _to_bytes(attachment)
+    raw = bytes(_to_bytes(attachment))
     if len(raw) > MAX_HEADER_BYTES:
         _fail("header", f"{len(raw)} bytes, larger than the limit of {MAX_HEADER_BYTES}", key)
-    try:
-        obj = json.loads(bytes(raw).decode("utf-8"),
-                         parse_constant=lambda c: _fail("header", f"non-finite number {c} in JSON", key))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        _fail("header", f"not valid JSON: {exc}", key)
+    obj = _load_bounded(raw, key)
     if not isinstance(obj, dict):
         _fail("header", f"expected a JSON object, got {type(obj).__name__}", key)
     return _header_from_dict(obj, key)
+
+
+class _BadNumber:
+    """A number literal refused by the parser's hooks, kept as a marker so that the walk
+    over the parsed header (:func:`_check_values`) can name the field it sits in."""
+
+    __slots__ = ("text", "why")
+
+    def __init__(self, text: str, why: str):
+        self.text, self.why = text, why
+
+
+def _parse_int(text: str):
+    if len(text) > MAX_NUMBER_CHARS:
+        return _BadNumber(text, f"an integer of {len(text)} characters (at most {MAX_NUMBER_CHARS})")
+    value = int(text)
+    if not -(1 << 63) <= value < (1 << 64):
+        return _BadNumber(text, "an integer outside [-2**63, 2**64)")
+    return value
+
+
+def _parse_float(text: str):
+    if len(text) > MAX_NUMBER_CHARS:
+        return _BadNumber(text, f"a number of {len(text)} characters (at most {MAX_NUMBER_CHARS})")
+    value = float(text)
+    if not math.isfinite(value):  # 1e999 parses as inf
+        return _BadNumber(text, f"{text} overflows to a non-finite number")
+    return value
+
+
+def _parse_constant(text: str):
+    return _BadNumber(text, f"non-finite number {text} in JSON")
+
+
+_BRACKET = np.zeros(256, dtype=np.int8)
+_BRACKET[[ord("["), ord("{")]] = 1
+_BRACKET[[ord("]"), ord("}")]] = -1
+
+
+def _nesting_depth(raw: bytes) -> int:
+    """Deepest nesting of objects and lists in JSON text ``raw``, without parsing it.
+
+    Linear and vectorised (a hostile header is up to :data:`MAX_HEADER_BYTES`): a quote
+    preceded by an odd run of backslashes is escaped; the others open and close strings,
+    and brackets count only outside strings.  For text that is not valid JSON the count is
+    exact up to the first error, which is as far as the parser gets.
+    """
+    a = np.frombuffer(raw, dtype=np.uint8)
+    if a.size == 0:
+        return 0
+    pos = np.arange(a.size)
+    # position of the last character that is not a backslash, at or before each position
+    last_plain = np.maximum.accumulate(np.where(a != ord("\\"), pos, -1))
+    quotes = np.flatnonzero(a == ord('"'))
+    before = np.where(quotes > 0, last_plain[np.maximum(quotes - 1, 0)], 0)
+    run = np.where(quotes > 0, quotes - 1 - before, 0)  # backslashes right before each quote
+    toggles = np.zeros(a.size, dtype=np.int32)
+    toggles[quotes[run % 2 == 0]] = 1
+    outside = np.cumsum(toggles) % 2 == 0  # a closing quote itself counts as outside
+    steps = np.where(outside, _BRACKET[a], 0).astype(np.int32)
+    return int(np.cumsum(steps).max(initial=0))
+
+
+def _load_bounded(raw: bytes, key: str | None):
+    """``json.loads`` of a header with every size bounded: nesting depth (checked before
+    parsing: the parser recurses), number literals, string lengths.  Every failure is a
+    :class:`CodecError` naming the field."""
+    depth = _nesting_depth(raw)
+    if depth > MAX_DEPTH:
+        _fail("header", f"JSON nested {depth} levels deep (at most {MAX_DEPTH})", key)
+    try:
+        obj = json.loads(raw.decode("utf-8"), parse_int=_parse_int, parse_float=_parse_float,
+                         parse_constant=_parse_constant)
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        _fail("header", f"not valid JSON: {exc}", key)
+    except (ValueError, RecursionError, MemoryError) as exc:  # belt and braces: nothing else escapes
+        _fail("header", f"unreadable JSON: {type(exc).__name__}: {exc}", key)
+    _check_values(obj, "", key)
+    return obj
+
+
+def _check_values(value, path: str, key: str | None) -> None:
+    """Refuse a marked number or an over-long string anywhere in ``value``, naming its field
+    (``meta.truth.coefficients[3]``).  Recursion is bounded by :data:`MAX_DEPTH`."""
+    if isinstance(value, _BadNumber):
+        _fail(path or "header", value.why, key)
+    if isinstance(value, str):
+        if len(value) > MAX_STRING_CHARS:
+            _fail(path or "header", f"a string of {len(value)} characters (at most {MAX_STRING_CHARS})", key)
+    elif isinstance(value, dict):
+        for name, item in value.items():
+            where = f"{path}.{name[:40]}" if path else name[:40]
+            if len(name) > MAX_STRING_CHARS:
+                _fail(path or "header", f"a key of {len(name)} characters (at most {MAX_STRING_CHARS})", key)
+            _check_values(item, where, key)
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            _check_values(item, f"{path}[{i}]", key)
+
+
+def _check_name(value, field: str, key: str | None) -> None:
+    """A short identifier string (run id, producer, array name, units, channel)."""
+    if isinstance(value, str) and len(value) > MAX_NAME_CHARS:
+        _fail(field, f"a string of {len(value)} characters (at most {MAX_NAME_CHARS})", key)
 
 
 def _header_from_dict(obj: dict, key: str | None) -> Header:
@@ -385,6 +505,8 @@ def _header_from_dict(obj: dict, key: str | None) -> Header:
     if missing:
         _fail(missing[0], "missing", key)
 
+    for name in ("run", "producer", "checksum"):
+        _check_name(obj[name], name, key)
     run = obj["run"]
     if not isinstance(run, str) or not run:
         _fail("run", f"expected a non-empty string, got {run!r}", key)
@@ -400,6 +522,8 @@ def _header_from_dict(obj: dict, key: str | None) -> Header:
     channels = obj["channels"]
     if not isinstance(channels, list) or not all(isinstance(c, str) for c in channels):
         _fail("channels", f"expected a list of strings, got {channels!r}", key)
+    for i, c in enumerate(channels):
+        _check_name(c, f"channels[{i}]", key)
     if len(set(channels)) != len(channels):
         _fail("channels", f"duplicate channel names in {channels!r}", key)
     producer = obj["producer"]
@@ -435,6 +559,7 @@ def _array_spec(i: int, a, channels: list, payload_bytes: int, key: str | None) 
     if not isinstance(a, dict):
         _fail(f"arrays[{i}]", "expected a JSON object", key)
     name = a.get("name")
+    _check_name(name, f"arrays[{i}].name", key)
     if not isinstance(name, str) or not name:
         _fail(f"arrays[{i}].name", f"expected a non-empty string, got {name!r}", key)
     where = f"arrays[{name}]"
@@ -445,11 +570,13 @@ def _array_spec(i: int, a, channels: list, payload_bytes: int, key: str | None) 
         if f not in a:
             _fail(f"{where}.{f}", "missing", key)
     dtype = a["dtype"]
-    if dtype not in ALLOWED_DTYPES:
+    if not isinstance(dtype, str) or dtype not in ALLOWED_DTYPES:
         _fail(f"{where}.dtype", f"dtype {dtype!r} is not allowed (allowed: {', '.join(sorted(ALLOWED_DTYPES))})", key)
     shape = a["shape"]
     if not isinstance(shape, list) or not all(_is_int(s) and s >= 0 for s in shape):
         _fail(f"{where}.shape", f"expected a list of integers >= 0, got {shape!r}", key)
+    if len(shape) > MAX_NDIM:
+        _fail(f"{where}.shape", f"{len(shape)} axes (at most {MAX_NDIM})", key)
     offset, nbytes = a["offset"], a["nbytes"]
     if not _is_int(offset) or offset < 0:
         _fail(f"{where}.offset", f"expected an integer >= 0, got {offset!r}", key)
@@ -459,6 +586,7 @@ def _array_spec(i: int, a, channels: list, payload_bytes: int, key: str | None) 
     if offset + nbytes > payload_bytes:
         _fail(f"{where}.offset", f"bytes {offset}..{offset + nbytes} lie beyond payload_bytes={payload_bytes}", key)
     units = a["units"]
+    _check_name(units, f"{where}.units", key)
     if not isinstance(units, str):
         _fail(f"{where}.units", f"expected a string, got {units!r}", key)
     axis = a["channel_axis"]

@@ -9,7 +9,9 @@
     unauthenticated peers and forbidden publications, counted per kind with the first few);
     and interruptions: files without footer
     (the process was killed; the reader salvages them), segments whose payload never made
-    it to disk, a stage's restarts, a recording that ends without a ``stop`` event.
+    it to disk, a stage's restarts, a recording that ends without a ``stop`` event, a
+    closed file damaged afterwards (flipped bytes: read past the damage, what was skipped
+    listed), a file that is not MCAP at all (``unreadable``: exit status 1).
     Works on a run whose stages were killed.  ``--json FILE``: the same as one JSON object
     (:func:`inspect_run`) written to FILE (``-``: standard output).
 ``ttl view recordings/NAME [--web [--port P]] [--print]``
@@ -44,7 +46,7 @@ from ttlcore.estimate.monitoring import FileTruth
 from ttlcore.io.atomic import write_json
 
 from .keys import to_ranges
-from .recorder import Recording, RecordingError, read_recording, to_jsonable
+from .recorder import Recording, RecordingError, read_recording, read_stop_note, to_jsonable
 from .topology import STAGES
 from .viewer import rerun_binary
 from .webview import WebView
@@ -112,7 +114,8 @@ def _file_summary(path: Path, stage: str) -> tuple[dict, Recording | None]:
             "incomplete_segments": [{"topic": m.topic, "index": (m.data or {}).get("index")}
                                     for m in rec.messages if m.kind == "incomplete"],
             "invalid_messages": [{"topic": m.topic, "error": m.error} for m in rec.messages if m.kind == "invalid"],
-            "stop_event": next((e for e in reversed(events) if isinstance(e, dict) and e.get("kind") == "stop"), None)}
+            "stop_event": next((e for e in reversed(events) if isinstance(e, dict) and e.get("kind") == "stop"), None),
+            "stop_note": read_stop_note(path)}
     return info, rec
 
 
@@ -334,11 +337,20 @@ def inspect_run(run_dir, truth=None) -> dict:
             if not f["readable"]:
                 interruptions.append({"stage": stage, "kind": "unreadable", "file": f["file"], "message": f["problem"]})
                 continue
-            if not f["complete"]:
+            note = f.get("stop_note") or {}
+            if note.get("reason") == "disk-full":  # the stage said why it stopped (Recorder.note_stop)
+                closed = "closed" if f["complete"] else f"not closed: salvaged {f['records']} records; {f['problem']}"
+                interruptions.append({"stage": stage, "kind": "disk-full", "file": f["file"],
+                                      "message": f"{f['file']}: stopped: {note.get('message')} ({closed})"})
+            elif not f["complete"]:
                 interruptions.append({"stage": stage, "kind": "unfinished", "file": f["file"],
                                       "message": f"{f['file']} was not closed (process killed?): salvaged "
                                                  f"{f['records']} records; {f['problem']}"})
-            elif not f["stopped"]:
+            elif f["problem"]:  # closed, then damaged (flipped bytes): read past the damage
+                interruptions.append({"stage": stage, "kind": "damaged", "file": f["file"],
+                                      "message": f"{f['file']} is damaged: salvaged {f['records']} records; "
+                                                 f"{f['problem']}"})
+            if f["complete"] and not f["stopped"]:
                 interruptions.append({"stage": stage, "kind": "no-stop", "file": f["file"],
                                       "message": f"{f['file']} is closed but has no 'stop' event"})
             for seg in f["incomplete_segments"]:
@@ -505,8 +517,9 @@ def format_report(r: dict) -> str:
             state.append("complete")
         if files and files[-1].get("stopped"):
             stop = files[-1].get("stop_event") or {}
-            state.append("stopped: orphaned (launcher gone)" if (stop.get("details") or {}).get("orphaned")
-                         else "stopped")
+            details = stop.get("details") or {}
+            state.append("stopped: disk full" if details.get("disk_full") else
+                         "stopped: orphaned (launcher gone)" if details.get("orphaned") else "stopped")
         lines.append(f"  {stage:<12} {len(files)} file(s)  errors {s['errors']}  {', '.join(state) or 'running or killed'}")
         lines.append(f"  {'':<12} out: {_topics_text(s['outputs'])}")
         if s["inputs"]:

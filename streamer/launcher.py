@@ -54,7 +54,6 @@ import signal
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -77,7 +76,7 @@ from .keys import (
     to_ranges,
     topic_pattern,
 )
-from .processes import die_with_parent, stop_process
+from .processes import SignalFlag, stop_process, tied_to_parent
 from .progress import REPLAY_WINDOW, Progress, key_stage, parse_progress
 from .recorder import stage_record
 from .session import (
@@ -348,7 +347,7 @@ class Launcher:
         with open(path, "ab") as logf:
             start = logf.tell()
             self.router = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                           env=env, preexec_fn=die_with_parent)
+                                           env=env, preexec_fn=tied_to_parent(signal.SIGKILL))
         self._watcher = security.RefusalWatcher(path, offset=start)
         deadline = time.monotonic() + 60.0
         while time.monotonic() < deadline:
@@ -390,7 +389,9 @@ class Launcher:
             path.write_text(json.dumps(self.stage_config("replayer"), indent=2))
             res = subprocess.run([self.opts.python, "-m", stage_module("replayer"), "--config", str(path), "--check",
                                   "--plan-out", str(plan_path), "--log-level", "WARNING"],
-                                 capture_output=True, text=True, timeout=300)
+                                 capture_output=True, text=True, timeout=300,
+                                 # nothing to save: killed with a killed or terminated launcher
+                                 preexec_fn=tied_to_parent(signal.SIGKILL))
             if res.returncode != 0:
                 lines = [ln for ln in (res.stderr or res.stdout).strip().splitlines() if ln.strip()]
                 msg = lines[-1] if lines else f"exit status {res.returncode}"
@@ -416,7 +417,7 @@ class Launcher:
     def _on_error(self, sample) -> None:
         try:
             self.events.put(("error", json.loads(sample.payload.to_bytes())))
-        except ValueError:
+        except (ValueError, RecursionError):  # RecursionError: nested too deep for the parser
             self.events.put(("error", {"message": "unreadable error message", "key": str(sample.key_expr)}))
 
     def _drain_events(self) -> bool:
@@ -566,7 +567,10 @@ class Launcher:
             child.proc = subprocess.Popen(
                 [self.opts.python, "-m", stage_module(name), "--config", str(child.config),
                  "--log-level", self.opts.log_level],
-                stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env)
+                stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                # SIGTERM when the launcher dies, even while importing or opening its session
+                # (the stage then closes its recording, saying it was orphaned)
+                preexec_fn=tied_to_parent(signal.SIGTERM))
         child.starts += 1
         child.pids.add(child.proc.pid)
         log.info("started %s (pid %d)", name, child.proc.pid)
@@ -587,7 +591,7 @@ class Launcher:
             child.exit_codes.append(code)
             child.proc = None
             how = f"killed by {signal.Signals(-code).name}" if code < 0 and -code in signal.Signals._value2member_map_ \
-                else f"exit status {code}"
+                else f"exit status {code}" + {3: ": orphaned", 4: ": disk full"}.get(code, "")
             self.say(f"stage {name} died ({how}); log {child.log}: {self.last_log_line(name)}")
             if child.starts <= self.opts.restart:
                 self.say(f"restarting {name} ({child.starts}/{self.opts.restart})")
@@ -676,10 +680,8 @@ class Launcher:
         o = self.opts
         deadline = time.monotonic() + o.timeout if o.timeout else None
         abort = None
-        terminated = []
-        previous = None
-        if threading.current_thread() is threading.main_thread():  # SIGTERM: stop the stages first
-            previous = signal.signal(signal.SIGTERM, lambda *_: terminated.append(True))
+        # SIGTERM: stop the stages first (a flag: no lock taken in the handler)
+        terminated = SignalFlag((signal.SIGTERM,)).install()
         try:
             while True:
                 if terminated:
@@ -705,11 +707,20 @@ class Launcher:
         except KeyboardInterrupt:
             abort = "interrupted"
         finally:
-            if previous is not None:
-                signal.signal(signal.SIGTERM, previous)
+            terminated.restore()
         self.stop_all()
         self._drain_events()
         return self.report(abort)
+
+    def conflicts(self) -> list[str]:
+        """The segments (``topic/index``, by first report) of which a stage reported
+        conflicting copies (error ``kind: conflict`` on the errors topic)."""
+        seen: dict[str, None] = {}
+        for err in self.errors:
+            if isinstance(err, dict) and err.get("kind") == "conflict":
+                key = str(err.get("key") or "")
+                seen.setdefault("/".join(key.split("/")[2:]) or f"segment {err.get('index')}", None)
+        return list(seen)
 
     def report(self, abort: str | None) -> int:
         self.end_status_line()
@@ -733,14 +744,22 @@ class Launcher:
                 missing = sorted(set(range(total)) - self.handled(s))
                 self.say(f"stage {s} did not handle segment(s) {missing[:20]}{' ...' if len(missing) > 20 else ''}")
                 status = 1
+        conflicts = self.conflicts()
+        if conflicts:
+            # two different copies of a segment were published: one of them was not the
+            # producer's (docs/operations.md, "Conflicting copies"), whatever was used
+            self.say(f"conflicting copies of {len(conflicts)} segment(s) received: "
+                     + ", ".join(conflicts[:10]) + (" ..." if len(conflicts) > 10 else ""))
+            status = 1
         if abort:
             self.say(f"run stopped: {abort}")
             return {"interrupted": 130, "terminated": 143}.get(abort, 1)
-        if status == 0:
-            files = sorted(p.name for p in self.run_dir.glob("*.mcap")) + sorted(p.name for p in self.run_dir.glob("*.rrd"))
-            refused = f", {len(self.refused)} refusal(s) by the router (security.jsonl)" if self.refused else ""
-            self.say(f"done: {total} segments, {len(self.errors)} error report(s){refused}, "
-                     f"{len(self.refused_progress)} progress message(s) refused; files in {self.run_dir}: {', '.join(files)}")
+        files = sorted(p.name for p in self.run_dir.glob("*.mcap")) + sorted(p.name for p in self.run_dir.glob("*.rrd"))
+        refused = f", {len(self.refused)} refusal(s) by the router (security.jsonl)" if self.refused else ""
+        # the counts also when the run failed (exit 1): what went wrong is above, how much here
+        self.say(f"{'done' if status == 0 else 'ended (exit status 1)'}: {total} segments, "
+                 f"{len(self.errors)} error report(s){refused}, {len(self.refused_progress)} progress message(s) "
+                 f"refused; files in {self.run_dir}: {', '.join(files)}")
         return status
 
 

@@ -22,7 +22,7 @@ from .memtrace import MemoryTrace
 from .plan import MAX_SEGMENTS
 from .progress import Progress, ProgressBoard, key_stage
 from .session import declare_segment_publisher
-from .stage import Stage, StageConfig
+from .stage import Stage, StageConfig, disk_full
 from .topology import OUTPUT_TOPIC, UPSTREAM
 
 
@@ -343,6 +343,8 @@ class OrderedStage(PipelineStage):
                     self.publish(out, source=header)
                     self.published(index)
             except Exception as exc:
+                if disk_full(exc):  # not the segment's doing: the stage stops (Stage.run)
+                    raise
                 self.log.exception("segment %d failed", index)
                 self.report_error("failed", f"{type(exc).__name__}: {exc}", index=index, key=header.key)
                 self.fill_gap(index)

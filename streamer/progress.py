@@ -145,7 +145,7 @@ def parse_progress(payload) -> dict | None:
     raw = payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload or b"")
     try:
         msg = json.loads(raw)
-    except ValueError:
+    except (ValueError, RecursionError):  # RecursionError: nested too deep for the parser
         return None
     if not isinstance(msg, dict) or not isinstance(msg.get("stage"), str):
         return None

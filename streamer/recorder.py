@@ -37,6 +37,7 @@ import io
 import json
 import logging
 import math
+import mmap
 import os
 import struct
 import time
@@ -216,6 +217,11 @@ def to_jsonable(obj):
     return obj
 
 
+#: Bytes a :class:`Recorder` sets aside for its last words on a full disk (the stop note, the
+#: error and stop event, the summary written on close).
+RESERVE_BYTES = 1 << 20
+
+
 class Recorder:
     """Write an MCAP recording (see the module docstring for the layout).
 
@@ -227,17 +233,24 @@ class Recorder:
         Written as the file's ``ttl`` metadata record (run, stage, ...).
     fsync : bool
         Also ``os.fsync`` after every record (survives power loss, not just a kill).
+    reserve : int
+        Bytes set aside beside the file (``<path>.reserve``, allocated, deleted on close):
+        when the disk fills up, :meth:`release_reserve` frees them so that the stop can
+        still be written down (:meth:`note_stop`) and the file closed.
 
     Use as a context manager, or call :meth:`close`.
     """
 
     def __init__(self, path, metadata: Mapping[str, str] | None = None, fsync: bool = False,
                  compression: str = COMPRESSION, chunk_size: int = CHUNK_SIZE,
-                 max_chunk_age: float = MAX_CHUNK_AGE):
+                 max_chunk_age: float = MAX_CHUNK_AGE, reserve: int = RESERVE_BYTES):
         if compression not in _COMPRESSION:
             raise ValueError(f"compression: expected one of zstd, lz4, none, got {compression!r}")
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
+        self._reserve = self.path.with_name(self.path.name + ".reserve")
+        _allocate(self._reserve, reserve)
+        stop_note_path(self.path).unlink(missing_ok=True)  # a note of an earlier file at this path
         self._file = open(self.path, "wb")
         self._fsync = fsync
         self._writer = Writer(self._file, use_chunking=True, chunk_size=int(chunk_size),
@@ -351,6 +364,19 @@ class Recorder:
         if self._fsync:
             os.fsync(self._file.fileno())
 
+    def release_reserve(self) -> None:
+        """Free the bytes set aside at open (the disk is full: make room for the last words)."""
+        self._reserve.unlink(missing_ok=True)
+
+    def note_stop(self, reason: str, message: str, **details) -> Path:
+        """Write ``<path>.stop.json`` (atomically): why the recording stopped when the file
+        itself may be unable to say so (a full disk).  ``ttl inspect`` reads it."""
+        note = stop_note_path(self.path)
+        tmp = note.with_name(note.name + ".tmp")
+        tmp.write_text(json.dumps({"reason": reason, "message": message, "time": time.time(), **details}))
+        os.replace(tmp, note)
+        return note
+
     def close(self) -> None:
         """Write the summary and footer, and close the file (idempotent)."""
         if self._closed:
@@ -360,7 +386,39 @@ class Recorder:
             self._writer.finish()
             self._file.flush()
         finally:
-            self._file.close()
+            try:
+                self._file.close()
+            finally:
+                self.release_reserve()
+
+
+def stop_note_path(path) -> Path:
+    """``<recording>.stop.json``: the note :meth:`Recorder.note_stop` leaves beside ``path``."""
+    path = Path(path)
+    return path.with_name(path.name + ".stop.json")
+
+
+def read_stop_note(path) -> dict | None:
+    """The stop note of recording ``path`` (:meth:`Recorder.note_stop`), or None."""
+    try:
+        note = json.loads(stop_note_path(path).read_text())
+    except (OSError, ValueError):
+        return None
+    return note if isinstance(note, dict) else None
+
+
+def _allocate(path: Path, size: int) -> None:
+    """Create ``path`` with ``size`` bytes really allocated (not a sparse file)."""
+    if size <= 0:
+        return
+    fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
+    try:
+        try:
+            os.posix_fallocate(fd, 0, size)
+        except (AttributeError, OSError):  # not supported here: write the bytes
+            os.write(fd, b"\0" * size)
+    finally:
+        os.close(fd)
 
 
 # ---------------------------------------------------------------------------- reading
@@ -431,6 +489,9 @@ class Recording:
     problem: str | None = None
     metadata: dict = field(default_factory=dict)
     schemas: dict = field(default_factory=dict)
+    #: Corrupt stretches skipped while salvaging (``{"start", "stop", "why"}``, byte offsets):
+    #: a damaged file (flipped bytes) is read past them, from the next record that checks out.
+    skipped: list = field(default_factory=list)
 
     def json(self, topic: str) -> list[dict]:
         """The JSON messages of ``topic``."""
@@ -559,13 +620,14 @@ def read_recording(path) -> Recording:
             tail = f.read(len(MAGIC))
     except OSError as exc:
         raise RecordingError(f"{path}: cannot read: {exc}") from exc
-    if magic != MAGIC:
+    if magic != MAGIC:  # not even a damaged MCAP file: nothing to salvage
         raise RecordingError(f"{path}: not an MCAP file (bad magic {magic!r})")
     if size > 2 * len(MAGIC) and tail == MAGIC:
         try:
             return _read_complete(path)
-        except (McapError, struct.error, ValueError, EOFError) as exc:
-            log.warning("%s: reading with the index failed (%s); salvaging record by record", path, exc)
+        except Exception as exc:  # noqa: BLE001 - McapError, ZstdError, struct.error...: damaged
+            log.warning("%s: reading the closed file failed (%s: %s); salvaging record by record",
+                        path, type(exc).__name__, exc)
     return _salvage(path, size)
 
 
@@ -582,39 +644,89 @@ def _read_complete(path: Path) -> Recording:
 
 
 def _salvage(path: Path, size: int) -> Recording:
+    """Read ``path`` record by record, keeping every record that checks out.
+
+    A record that does not parse (a chunk whose CRC or zstd frame fails: flipped bytes) is
+    skipped when its length is plausible; when the length itself is damaged, reading resumes
+    at the next chunk that parses and passes its CRC (:func:`_resync`).  Each skipped
+    stretch is listed in ``rec.skipped``; ``problem`` says what was lost.  A file that merely
+    ends early (a killed process) stops at its last whole record, as before.
+    """
     rec = Recording(path, complete=False)
     asm = _Assembler(rec)
-    with open(path, "rb") as f:
-        f.seek(len(MAGIC))
+    with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
         pos = len(MAGIC)
+        end_problem = None
         while True:
             if pos == size:
-                rec.problem = f"file ends after {rec.records} records without footer (not closed)"
+                end_problem = f"file ends after {rec.records} records without footer (not closed)"
                 break
             if pos + 9 > size:
-                rec.problem = f"truncated record header at byte {pos} ({size - pos} of 9 bytes)"
+                end_problem = f"truncated record header at byte {pos} ({size - pos} of 9 bytes)"
                 break
-            opcode, length = struct.unpack("<BQ", f.read(9))
+            opcode, length = struct.unpack_from("<BQ", data, pos)
             if pos + 9 + length > size:
-                rec.problem = (f"truncated record (opcode 0x{opcode:02x}) at byte {pos}: "
-                               f"{size - pos - 9} of {length} bytes present")
-                break
-            body = f.read(length)
+                why = (f"truncated record (opcode 0x{opcode:02x}) at byte {pos}: "
+                       f"{size - pos - 9} of {length} bytes present")
+                nxt = _resync(data, pos + 1, size)
+                if nxt is None:
+                    end_problem = why
+                    break
+                rec.skipped.append({"start": pos, "stop": nxt, "why": f"damaged record length ({why})"})
+                pos = nxt
+                continue
+            body = data[pos + 9:pos + 9 + length]
             try:
                 done = _salvage_record(asm, opcode, body)
-            except Exception as exc:  # corrupt record: keep what came before
-                rec.problem = f"corrupt record (opcode 0x{opcode:02x}) at byte {pos}: {exc}"
-                break
+            except Exception as exc:  # noqa: BLE001 - a corrupt record: skip it, keep the rest
+                rec.skipped.append({"start": pos, "stop": pos + 9 + length,
+                                    "why": f"corrupt record (opcode 0x{opcode:02x}): {type(exc).__name__}: {exc}"})
+                pos += 9 + length
+                continue
             rec.records += 1
             pos += 9 + length
             if done:
                 rec.complete = True
-                rec.problem = None
                 break
     asm.finish()
+    parts = []
+    if rec.skipped:
+        lost = sum(s["stop"] - s["start"] for s in rec.skipped)
+        parts.append(f"{len(rec.skipped)} corrupt stretch(es) skipped ({lost} bytes, first at byte "
+                     f"{rec.skipped[0]['start']}: {rec.skipped[0]['why']})")
+    if end_problem:
+        parts.append(end_problem)
+    rec.problem = "; ".join(parts) or None
     if rec.problem:
         log.warning("%s: salvaged %d records; %s", path, rec.records, rec.problem)
     return rec
+
+
+#: Longest record :func:`_resync` accepts as the next chunk [bytes] (the recorder closes a
+#: chunk after every segment; a day-long segment of telemetry is ~50 MB).
+_RESYNC_MAX = 1 << 30
+
+
+def _resync(data, start: int, size: int) -> int | None:
+    """Offset of the first chunk record at or after ``start`` that parses and passes its
+    CRC, or None.  Used when a record's length field is damaged: the stream can only be
+    picked up again at a record that proves itself."""
+    pos = start
+    opcode = bytes([Opcode.CHUNK])
+    while True:
+        pos = data.find(opcode, pos, size - 9)
+        if pos < 0:
+            return None
+        (length,) = struct.unpack_from("<Q", data, pos + 1)
+        if 0 < length <= min(_RESYNC_MAX, size - pos - 9):
+            try:
+                chunk = Chunk.read(ReadDataStream(io.BytesIO(data[pos + 9:pos + 9 + length])))
+                for _ in breakup_chunk(chunk, validate_crc=True):
+                    pass
+                return pos
+            except Exception:  # noqa: BLE001 - not a chunk after all
+                pass
+        pos += 1
 
 
 def _salvage_record(asm: _Assembler, opcode: int, body: bytes) -> bool:

@@ -335,8 +335,12 @@ _THREAD = re.compile(r"ThreadId\((\d+)\)")
 _CN = re.compile(r"CertCommonName\(([^)]*)\)")
 _TIME = re.compile(r"^(\d{4}-\d\d-\d\dT[0-9:.]+Z)")
 #: Handshake failures of zenoh_link_tls (a peer without a valid certificate, or not TLS).
+#: "received fatal alert" is the peer refusing the router's certificate: ``UnknownCA`` (it
+#: trusts another CA), ``DecryptError`` (it trusts another CA of the same name: the signature
+#: does not verify), ``BadCertificate``...  (A peer presenting a certificate of the run's CA
+#: with another key is refused without a log line from zenoh 1.10: not recorded.)
 _HANDSHAKE = ("invalid peer certificate", "Can not accept TLS connection", "received corrupt message",
-              "peer sent no certificates", "CertificateRequired")
+              "peer sent no certificates", "CertificateRequired", "received fatal alert")
 
 
 class RefusalParser:

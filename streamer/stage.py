@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import errno
 import json
 import logging
 import os
@@ -65,7 +66,8 @@ from .keys import (
     topic_pattern,
 )
 from .plan import Holdback, Plan, RangeSet, Rejected, Validator
-from .recorder import Recorder, mission_ns, stage_record
+from .processes import SignalFlag, set_parent_death_signal
+from .recorder import Recorder, mission_ns, stage_record, stop_note_path
 from .session import DEFAULT_CACHE, Bus, SessionSettings
 
 log = logging.getLogger(__name__)
@@ -239,13 +241,17 @@ def configure_logging(level: str | int = "INFO", json_lines: bool = False, strea
 
 def set_aside(path: Path) -> Path:
     """``path``, free to write: an existing file is first renamed ``<stem>.<n><suffix>``
-    (the lowest ``n`` free), so that a restarted process keeps its predecessor's recording."""
+    (the lowest ``n`` free), so that a restarted process keeps its predecessor's recording
+    (and its stop note, :func:`streamer.recorder.stop_note_path`)."""
     path = Path(path)
     if path.exists():
         n = 1
         while (old := path.with_name(f"{path.stem}.{n}{path.suffix}")).exists():
             n += 1
         path.rename(old)
+        note = stop_note_path(path)
+        if note.exists():
+            note.rename(stop_note_path(old))
         log.info("kept the previous recording as %s", old)
     return path
 
@@ -288,6 +294,7 @@ class Stage:
         self._queue: queue.Queue = queue.Queue()
         self._controls: queue.Queue = queue.Queue()  # handled before queued segments
         self._stop = threading.Event()
+        self._signals = SignalFlag(())  # replaced by the installed one in run()
         self._publishers: dict = {}
         self._done: dict[str, RangeSet] = {}
         self._highest: dict[str, int] = {}
@@ -301,6 +308,10 @@ class Stage:
         #: Stages of the run whose liveliness token is present (updated from a Zenoh thread).
         self.alive_peers: set[str] = set()
         self.exit_reason: str | None = None
+        #: When a sample was last lost beyond recovery (``missed``), monotonic [s], or None.
+        self.last_miss: float | None = None
+        #: Why the stage stopped on a full disk (:meth:`_on_disk_full`), or None.
+        self.disk_full: str | None = None
 
     # ------------------------------------------------------------------ to override
     def handle(self, header: Header, arrays: dict[str, np.ndarray]) -> Sequence[Output]:
@@ -343,22 +354,27 @@ class Stage:
 
     # ------------------------------------------------------------------ lifecycle
     def stop(self) -> None:
-        """Ask the stage to stop (thread- and signal-safe)."""
+        """Ask the stage to stop (thread-safe; not from a signal handler: SIGINT and SIGTERM
+        go through :class:`streamer.processes.SignalFlag`)."""
         self._stop.set()
 
     @property
     def stopping(self) -> bool:
-        return self._stop.is_set()
+        return self._stop.is_set() or bool(self._signals)
 
     def run(self) -> int:
         """Run until stopped; returns the exit code (0 after a graceful stop)."""
-        restore = self._install_signal_handlers()
         cfg = self.config
         self.recording_path = recording_path(cfg.recordings, self.run_id, self.stage_name)
+        restore = None
         try:
             with Bus.open(cfg.zenoh) as bus, Recorder(self.recording_path, metadata={
                     "run": self.run_id, "stage": self.stage_name, "class": type(self).__qualname__,
                     "config": json.dumps(cfg.to_dict())}) as recorder:
+                # only now: zenoh.open blocks (up to 30 s for a client whose router is gone)
+                # without returning to Python, where a handler would run; until then a
+                # signal's default action ends the process, which has nothing to close yet
+                restore = self._install_signal_handlers()
                 self.bus, self.recorder = bus, recorder
                 bus.declare_alive(self.run_id, self.stage_name)
                 bus.subscriber(control_pattern(self.run_id), self._on_control)
@@ -369,16 +385,60 @@ class Stage:
                                            history=cfg.history, on_miss=self._on_miss)
                 self.event("start", message=f"inputs {list(self.inputs)}")
                 self.log.info("running (inputs %s, recording %s)", list(self.inputs), self.recording_path)
-                self._loop()
+                try:
+                    self._loop()
+                except OSError as exc:
+                    if not disk_full(exc):
+                        raise
+                    self._on_disk_full(exc)
+                if self._signals:
+                    self.log.info("received %s", self._signals.name)
+                if self.exit_reason is None and (why := self._orphaned_by_signal()):
+                    # a signal sent because the launcher died (die-with-parent): say so
+                    self.exit_reason = why
+                    self.log.error("%s: stopping (exit status 3)", why)
+                    self.report_error("orphaned", f"{why}: stage stops")
                 self.log.info("stopping")
-                self.teardown()
-                self.event("stop", message=self.exit_reason or "", orphaned=bool(self.exit_reason),
-                           rejections=self.rejections)
+                self._last_words(self.teardown)
+                self._last_words(lambda: self.event(
+                    "stop", message=self.disk_full or self.exit_reason or "", orphaned=bool(self.exit_reason),
+                    disk_full=self.disk_full is not None, rejections=self.rejections))
+        except OSError as exc:
+            if self.disk_full is None or not disk_full(exc):
+                raise
+            self.log.error("could not close the recording on the full disk: %s", exc)
         finally:
             self.bus = self.recorder = None
-            restore()
+            if restore is not None:
+                restore()
         self.log.info("stopped")
-        return 3 if self.exit_reason else 0
+        return 4 if self.disk_full else 3 if self.exit_reason else 0
+
+    def _on_disk_full(self, exc: OSError) -> None:
+        """The recording's disk is full: free the recorder's reserve, leave the stop note
+        beside the file (``ttl inspect`` names the cause), report it on the bus; the stage
+        then stops (exit status 4)."""
+        where = self.recording_path.parent if self.recording_path else "?"
+        self.disk_full = f"disk full: {exc.strerror or exc} (writing under {where})"
+        self.log.error("%s: stopping (exit status 4)", self.disk_full)
+        if self.recorder is not None:
+            self.recorder.release_reserve()
+            try:
+                self.recorder.note_stop("disk-full", self.disk_full, run=self.run_id, stage=self.stage_name,
+                                        errno=exc.errno)
+            except OSError as again:
+                self.log.error("could not write the stop note: %s", again)
+        self._last_words(lambda: self.report_error("disk-full", f"{self.disk_full}: stage stops"))
+
+    def _last_words(self, write) -> None:
+        """Call ``write``; once the disk is full, a failure to write is logged, not raised."""
+        if self.disk_full is None:
+            write()
+            return
+        try:
+            write()
+        except OSError as exc:
+            self.log.error("on the full disk: %s", exc)
 
     def _on_alive(self, stage: str, alive: bool) -> None:  # Zenoh thread
         if stage != LAUNCHER:
@@ -401,6 +461,25 @@ class Stage:
             return f"the launcher's liveliness token has been gone for {self.config.orphan_grace:g} s"
         return None
 
+    def _orphaned_by_signal(self, wait: float = 2.0) -> str | None:
+        """:meth:`orphaned`, after a signal that may be the launcher's death (die-with-parent).
+
+        Linux sends that signal when the launcher's thread that started this process exits;
+        the other threads of a killed launcher may still be going, and this process is
+        reparented only once the last has: ``getppid()`` is then still the launcher's pid
+        for a moment.  So a signal with the launcher seemingly alive is given ``wait``
+        seconds to show whether the launcher is going.
+        """
+        why = self.orphaned()
+        if why or not self._signals or self.config.launcher_pid is None:
+            return why
+        deadline = time.monotonic() + wait
+        while time.monotonic() < deadline:
+            time.sleep(0.05)
+            if os.getppid() != self.config.launcher_pid:
+                return self.orphaned()
+        return None
+
     def _check_orphaned(self) -> None:
         now = time.monotonic()
         if now - self._orphan_checked < 0.5:
@@ -415,7 +494,7 @@ class Stage:
 
     def _loop(self) -> None:
         self._orphan_checked = 0.0
-        while not self._stop.is_set():
+        while not self.stopping:
             self._check_orphaned()
             self._release_held()
             while not self._controls.empty():
@@ -427,6 +506,7 @@ class Stage:
                 continue
             if item[0] == "miss":
                 _, source, count = item
+                self.last_miss = time.monotonic()
                 self.report_error("missed", f"{count} sample(s) lost beyond recovery from publisher {source}")
             else:
                 self._process(*item[1:])
@@ -438,7 +518,7 @@ class Stage:
         text = payload.decode("utf-8", errors="replace")
         try:
             shown = json.loads(text) if text.strip() else None
-        except ValueError:
+        except (ValueError, RecursionError):  # RecursionError: nested too deep for the parser
             shown = text
         record = {"run": self.run_id, "stage": self.stage_name, "command": command, "payload": shown,
                   "time": time.time()}
@@ -467,27 +547,23 @@ class Stage:
             outputs = list(self.tick() or ())
             for out in outputs:
                 self.publish(out)
+        except OSError as exc:
+            if disk_full(exc):
+                raise
+            self.log.exception("tick failed")
+            self.report_error("failed", f"{type(exc).__name__}: {exc}",
+                              details={"traceback": traceback.format_exc(limit=8)})
         except Exception as exc:
             self.log.exception("tick failed")
             self.report_error("failed", f"{type(exc).__name__}: {exc}",
                               details={"traceback": traceback.format_exc(limit=8)})
 
     def _install_signal_handlers(self):
-        if threading.current_thread() is not threading.main_thread():
-            return lambda: None
-        previous = {sig: signal.getsignal(sig) for sig in (signal.SIGINT, signal.SIGTERM)}
-
-        def on_signal(signum, frame):
-            self.log.info("received %s", signal.Signals(signum).name)
-            self._stop.set()
-
-        for sig in previous:
-            signal.signal(sig, on_signal)
-
-        def restore():
-            for sig, handler in previous.items():
-                signal.signal(sig, handler)
-        return restore
+        """SIGINT and SIGTERM stop the loop through a flag (no lock, no logging in the
+        handler: :class:`streamer.processes.SignalFlag`); returns the function restoring the
+        previous handlers."""
+        self._signals = SignalFlag().install()
+        return self._signals.restore
 
     # ------------------------------------------------------------------ callbacks (Zenoh threads)
     def _on_sample(self, sample) -> None:
@@ -513,8 +589,26 @@ class Stage:
         """Validate one message that came on Zenoh key ``key`` and use it (or refuse it).
 
         Data come on the stream key ``ttl/<run>/<topic>``, the index in the header; from
-        the header on, the segment is named ``ttl/<run>/<topic>/<index>``.
+        the header on, the segment is named ``ttl/<run>/<topic>/<index>``.  Nothing a
+        message holds can stop the stage: an exception that escapes the checks (a bug met
+        by an unforeseen message) is a recorded rejection of that message (``field:
+        message``), and the stage goes on.  An ``OSError`` (the recording's disk) is not the
+        message's doing and still stops the stage.
         """
+        try:
+            self._check_and_use(key, payload, attachment)
+        except OSError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - the loop must outlive any message
+            self.rejections += 1
+            self.log.exception("%s: unexpected failure while checking a message", key)
+            self.report_error("rejected", f"unexpected {type(exc).__name__} while checking the message: {exc}",
+                              key=key, field="message",
+                              details={"traceback": traceback.format_exc(limit=8),
+                                       "attachment": _preview(attachment)})
+
+    def _check_and_use(self, key: str, payload, attachment) -> None:
+        """The body of :meth:`_process`."""
         payload = payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload or b"")
         try:
             topic = parse_stream_key(key)
@@ -558,7 +652,14 @@ class Stage:
     def _release_held(self) -> None:
         """Use the held segments whose wait is over (no conflicting copy came)."""
         for key, header, arrays, payload in self.held.due(time.monotonic()):
-            self._use(key, header, arrays, payload)
+            try:
+                self._use(key, header, arrays, payload)
+            except OSError:
+                raise
+            except Exception as exc:  # noqa: BLE001 - as in _process: the loop goes on
+                self.log.exception("%s: unexpected failure while using a held segment", key)
+                self.report_error("failed", f"unexpected {type(exc).__name__}: {exc}", index=header.index, key=key,
+                                  details={"traceback": traceback.format_exc(limit=8)})
 
     def _use(self, key: str, header: Header, arrays: dict, payload: bytes) -> None:
         """Record an accepted input segment and hand it to :meth:`handle`."""
@@ -574,13 +675,21 @@ class Stage:
             outputs = list(self.handle(header, arrays) or ())
             for out in outputs:
                 self.publish(out, source=header)
+        except OSError as exc:
+            if disk_full(exc):
+                raise
+            self._handle_failed(key, seg.index, exc)
+            return
         except Exception as exc:
-            self.log.exception("%s: processing failed", key)
-            self.report_error("failed", f"{type(exc).__name__}: {exc}", index=seg.index, key=key,
-                              details={"traceback": traceback.format_exc(limit=8)})
+            self._handle_failed(key, seg.index, exc)
             return
         done.add(seg.index)
         self.log.info("%s: processed, %d output(s)", key, len(outputs))
+
+    def _handle_failed(self, key: str, index: int, exc: Exception) -> None:
+        self.log.exception("%s: processing failed", key)
+        self.report_error("failed", f"{type(exc).__name__}: {exc}", index=index, key=key,
+                          details={"traceback": traceback.format_exc(limit=8)})
 
     def _check_gap(self, topic: str, index: int) -> None:
         """Note the indices an arrival skips, as ranges; :meth:`_report_gaps` reports those
@@ -685,6 +794,11 @@ class Stage:
                                                             index=index, details=details))
 
 
+def disk_full(exc: BaseException) -> bool:
+    """True for the error of a write to a full disk (or a full quota)."""
+    return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)
+
+
 def _preview(attachment) -> str:
     if attachment is None:
         return ""
@@ -782,6 +896,11 @@ def stage_main(stage_class: type[Stage], argv: Sequence[str] | None = None,
         if check is not None and args.check:
             print(check(config))
             return 0
+        if config.launcher_pid is not None:
+            # die with the launcher: SIGTERM when it dies, so the stage closes its recording at
+            # once (Stage.run then says "orphaned"); a launcher already gone is noticed by
+            # Stage.orphaned on the first turn of the loop
+            set_parent_death_signal(signal.SIGTERM)
         stage = stage_class(config)
     except Exception as exc:  # noqa: BLE001 - one line, no traceback, for user errors
         print(f"ttl stage {stage_class.name}: error: {exc}", file=sys.stderr)

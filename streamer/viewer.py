@@ -14,13 +14,14 @@ from __future__ import annotations
 
 import os
 import shutil
+import signal
 import socket
 import subprocess
 import threading
 from pathlib import Path
 from urllib.parse import urlparse
 
-from .processes import die_with_parent, wait_port
+from .processes import tied_to_parent, wait_port
 from .session import LOOPBACK, free_port
 
 #: Live modes that start a ``rerun`` process (else a ``rerun+http://`` URL is expected).
@@ -91,7 +92,7 @@ def spawn_viewer(mode: str, port: int | None = None, binary: str | None = None):
     cmd += ["--serve-grpc"] if mode == "serve" else ["--expect-data-soon"]
     proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
                             stderr=subprocess.DEVNULL, start_new_session=True,
-                            preexec_fn=die_with_parent if mode == "serve" else None)
+                            preexec_fn=tied_to_parent(signal.SIGTERM) if mode == "serve" else None)
     if not wait_port(port, proc=proc):
         code = proc.poll()
         if code is None:

@@ -15,12 +15,13 @@ from __future__ import annotations
 
 import functools
 import http.server
+import signal
 import subprocess
 import threading
 from pathlib import Path
 from urllib.parse import quote
 
-from .processes import stop_process
+from .processes import stop_process, tied_to_parent
 from .session import LOOPBACK, free_port
 
 
@@ -53,7 +54,9 @@ class WebView:
         file_url = f"http://{LOOPBACK}:{self.files.server_address[1]}/{quote(self.rrd.name)}"
         self.command = [str(binary), "--serve-web", "--bind", LOOPBACK, "--port", str(free_port()),
                         "--web-viewer-port", str(self.web_port)]
-        self.proc = subprocess.Popen(self.command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        # the viewer server goes with `ttl view --web`, however that ends (SIGKILL included)
+        self.proc = subprocess.Popen(self.command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                     preexec_fn=tied_to_parent(signal.SIGTERM))
         self.url = f"http://{LOOPBACK}:{self.web_port}/?url={quote(file_url, safe='')}"
 
     def wait(self) -> int:

@@ -10,7 +10,7 @@ processes on a loopback Zenoh, real MCAP files read back.
   residuals equal the clean run's bit for bit.  Altered duplicates are sent of segments every
   stage has handled (a conflict within the hold keeps the genuine copy out too, which
   tests/streamer/test_stage.py checks): each is recorded as a conflict whose first copy
-  had been used.
+  had been used, and ``ttl run`` exits 1 for them.
 * NaN gap: ten minutes of NaN in eta: the run ends on its own, the gap is reported, and the
   fit after the gap is within 1 sigma of the clean run's.
 * launcher killed: every stage stops by itself (exit status 3, recording closed with the
@@ -276,7 +276,10 @@ def test_fuzz_of_hostile_messages_changes_nothing(clean, tmp_path):
         assert k == n_messages, f"the run ended after {k} hostile messages: {out[-2000:]}"
     finally:
         procs.close()
-    assert code == 0, out[-4000:]
+    # the altered duplicates are conflicting copies: the run exits 1 (docs/operations.md), and
+    # nothing else goes wrong (no stage died, none gave up a segment)
+    assert code == 1 and "conflicting copies of" in out, out[-4000:]
+    assert "died" not in out and "gave up" not in out and "did not handle" not in out, out[-4000:]
     run_dir = tmp_path / "rec" / "fuzz"
     # every stage recorded every hostile message that reached it: refused, or ignored as identical
     for stage, topics in INPUTS.items():

@@ -368,3 +368,67 @@ def test_monitor_recording_memory_does_not_grow_with_the_chunks_written(tmp_path
         warnings.simplefilter("ignore")  # "no footer/manifest": read by a whole-file scan
         reader = RrdReader(tmp_path / "m.rrd")
     assert sum(c.to_record_batch().num_rows for c in reader.stream()) >= rows * entities
+
+
+def test_monitor_waits_for_an_alive_producer_and_fails_what_will_not_come(driver, procs, tmp_path):
+    """No silent loss: a fit its fitter announced is waited for as long as the fitter is
+    alive (here 3 x ``settle_timeout``; it used to be dropped after 60 s and the segment
+    settled as done); once the fitter is gone for ``settle_timeout``, a segment whose fit
+    never came is a recorded failure in the monitor's progress, not a done segment."""
+    from streamer.keys import progress_key
+    from streamer.progress import Progress
+    from streamer.session import declare_segment_publisher
+
+    settle = 2.0
+    producers = Bus.open(SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)))
+    try:
+        producers.declare_alive(RUN, "fitter")
+        producers.declare_alive(RUN, "subtractor")
+        pubs = {s: declare_segment_publisher(producers.session, progress_key(RUN, s), cache=1)
+                for s in ("fitter", "subtractor")}
+
+        def progress(fits):
+            fitter = Progress("fitter", done=set(fits), extra={"fits": set(fits)})
+            pubs["fitter"].put(json.dumps(fitter.message(RUN)).encode())
+            pubs["subtractor"].put(json.dumps(Progress("subtractor", done=set(fits)).message(RUN)).encode())
+
+        for i in (0, 1):
+            driver.telemetry(i)
+            driver.tdi_and_residual(i)
+        driver.fit(0)            # fit 1 announced below, published late
+        driver.fit(9)            # far ahead of the others (a forged copy sent ahead would be)
+        progress({0, 1})
+        config = StageConfig(run=RUN, zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
+                             recordings=tmp_path / "rec", history=64, poll_interval=0.05, gap_grace=0.5,
+                             options={"settle_timeout": settle})
+        cfg = tmp_path / "monitor.json"
+        cfg.write_text(json.dumps(config.to_dict()))
+        proc = procs.stage("monitor", "--config", cfg)
+        assert driver.monitor.get(timeout=60)[0].index == 0
+        with pytest.raises(queue.Empty):  # fit 1 is announced by a live fitter: segment 1 waits
+            driver.monitor.get(timeout=3 * settle)
+        driver.fit(1)
+        assert driver.monitor.get(timeout=30)[0].index == 1  # and is drawn whole when it comes
+
+        driver.telemetry(2)
+        driver.tdi_and_residual(2)
+        progress({0, 1, 2})      # fit 2 announced, never published; then the fitter goes
+        time.sleep(1.0)
+        producers.close()
+        wait_for(lambda: [e for e in driver.errors if e["kind"] == "failed" and e["index"] == 2] or proc.poll() is not None,
+                 30, "segment 2 failed")
+        failed = [e for e in driver.errors if e["kind"] == "failed" and e["index"] == 2]
+        assert "its fit did not come: fitter gone" in failed[0]["message"], failed
+        with pytest.raises(queue.Empty):
+            driver.monitor.get(timeout=1.0)   # no status published for the failed segment
+        driver.bus.session.put(control_key(RUN, "stop"), b"")
+        assert finish(proc, 60) == 0, output(proc)[-3000:]
+    finally:
+        producers.close()
+    rec = read_recording(tmp_path / "rec" / RUN / "monitor.mcap")
+    assert [s.header.index for s in rec.segments("monitor")] == [0, 1]
+    assert [(e["kind"], e["index"]) for e in rec.json("errors")] == [("failed", 2)], rec.json("errors")
+    # no gap is reported from the arrival order of any input (fit 9 came before fits 1..8;
+    # the monitor settles each segment from its producers' progress): it reported "fit
+    # segment(s) 1..8 missing before 9" for fits that came later
+    assert not [e for e in driver.errors if e["kind"] == "gap"], driver.errors

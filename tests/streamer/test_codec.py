@@ -1,6 +1,7 @@
 """The segment codec: round trips, and each malformed message rejected naming its field."""
 
 import json
+import time
 import zlib
 
 import numpy as np
@@ -144,3 +145,100 @@ def test_parse_header_alone():
     _, (_, attachment) = tdi_message()
     header = parse_header(attachment)
     assert header.to_json() and json.loads(header.to_json())["arrays"][1]["name"] == "regressors"
+
+
+# ---------------------------------------------------------------------------- bounded parsing
+
+def _raw_header(edit_text) -> tuple[bytes, bytes]:
+    """A valid message whose header text is rewritten by ``edit_text(str) -> str``."""
+    _, (payload, attachment) = tdi_message()
+    return payload, edit_text(attachment.decode()).encode()
+
+
+def _meta(text: str):
+    """Edit: the header's ``meta`` replaced by JSON text ``text``."""
+    return lambda h: h.replace('"meta":{"note":"test"}', f'"meta":{text}')
+
+
+def _hostile_cases():
+    deep = "[" * 100_000 + "]" * 100_000
+    yield "deep-list", "header", _meta('{"x":' + deep + "}")
+    yield "deep-object", "header", _meta('{"a":' * 50_000 + "1" + "}" * 50_000)
+    yield "deep-33", "header", _meta('{"x":' + "[" * 31 + "]" * 31 + "}")
+    yield "huge-exponent", "meta.x", _meta('{"x":1e999999}')
+    yield "huge-negative-exponent-t0", "t0", lambda h: h.replace('"t0":15000000.0', '"t0":-1e400')
+    yield "huge-int-index", "index", lambda h: h.replace('"index":7', '"index":' + "9" * 5000)
+    yield "int-beyond-64-bits", "payload_bytes", lambda h: h.replace('"payload_bytes":', '"payload_bytes":1' + "0" * 20 + ",\"x\":")
+    yield "long-float", "fs", lambda h: h.replace('"fs":4.0', '"fs":4.' + "0" * 100)
+    yield "nan", "meta.x", _meta('{"x":NaN}')
+    yield "long-string-in-meta", "meta.s", _meta('{"s":"' + "a" * 900_000 + '"}')
+    yield "long-key-in-meta", "meta", _meta('{"' + "k" * 70_000 + '":1}')
+    yield "long-run", "run", lambda h: h.replace('"run":"r1"', '"run":"' + "r" * 5000 + '"')
+    yield "long-producer", "producer", lambda h: h.replace('"producer":"tdi_builder"', '"producer":"' + "p" * 5000 + '"')
+    yield "long-channel", "channels[0]", lambda h: h.replace('"X2"', '"' + "X" * 5000 + '"', 1)
+    yield "long-units", "arrays[data].units", lambda h: h.replace('"units":"1"', '"units":"' + "u" * 5000 + '"', 1)
+    yield "escaped-quotes", "header", lambda h: h[:-1] + ',"z":"' + '\\"' * 400_000 + "}"
+    yield "dtype-a-list", "arrays[data].dtype", lambda h: h.replace('"dtype":"<f8"', '"dtype":["<f8"]', 1)
+    yield "dtype-an-object", "arrays[data].dtype", lambda h: h.replace('"dtype":"<f8"', '"dtype":{"a":1}', 1)
+    yield "too-many-axes", "arrays[data].shape", lambda h: h.replace('"shape":[3,64]', '"shape":[' + "1," * 40 + "3,64]", 1)
+
+
+@pytest.mark.parametrize("name, field, edit", list(_hostile_cases()), ids=[c[0] for c in _hostile_cases()])
+def test_hostile_headers_are_refused_quickly_naming_the_field(name, field, edit):
+    """Deep nesting, huge numbers and long strings: a CodecError naming the field, never a
+    RecursionError or a ValueError from Python's JSON parser, in well under a second."""
+    payload, attachment = _raw_header(edit)
+    assert len(attachment) <= (1 << 20)  # under the size limit: the parser has to deal with it
+    t = time.perf_counter()
+    with pytest.raises(CodecError) as err:
+        decode(payload, attachment, key="ttl/r1/tdi/7")
+    assert time.perf_counter() - t < 1.0
+    assert err.value.field == field, err.value
+    assert len(str(err.value)) < 700  # the refused value is not quoted whole
+
+
+def test_legitimate_nesting_and_sizes_pass():
+    meta = {"a": [{"b": [{"c": [[1, 2], [3.5e300, -2.5e-300]]}]}], "path": "/x" * 2000, "big": 2 ** 63,
+            "quote": 'a "[{" b \\ c'}
+    payload, attachment = encode(np.ones((3, 4)), {**FIELDS, "meta": meta})
+    header, _ = decode(payload, attachment)
+    assert header.meta == meta
+
+
+JSON_VALUES = [None, True, False, 0, -1, 2 ** 63, 1.5, -1e308, 1e-308, "", "x", "<f8", [], [1], [[]], ["a"],
+               {}, {"a": 1}, {"name": "data"}]
+
+
+def _every_field_every_type():
+    _, (payload, attachment) = tdi_message()
+    header = json.loads(attachment)
+    for name in header:
+        for value in JSON_VALUES:
+            h = json.loads(attachment)
+            h[name] = value
+            yield f"{name}={json.dumps(value)}", payload, json.dumps(h).encode()
+    for name in header["arrays"][0]:
+        for value in JSON_VALUES:
+            h = json.loads(attachment)
+            h["arrays"][0][name] = value
+            yield f"arrays[0].{name}={json.dumps(value)}", payload, json.dumps(h).encode()
+    for value in JSON_VALUES:
+        h = json.loads(attachment)
+        h["arrays"][0] = value
+        yield f"arrays[0]={json.dumps(value)}", payload, json.dumps(h).encode()
+        yield f"header={json.dumps(value)}", payload, json.dumps(value).encode()
+
+
+def test_every_json_type_in_every_field_is_decoded_or_refused_by_field():
+    """The only outcomes of any value in any field: a decoded message, or a CodecError."""
+    outcomes = {}
+    for case, payload, attachment in _every_field_every_type():
+        try:
+            decode(payload, attachment, key="ttl/r1/tdi/7")
+            outcomes[case] = "ok"
+        except CodecError as exc:
+            outcomes[case] = exc.field
+    assert len(outcomes) > 300
+    assert outcomes["meta={}"] == "ok" and outcomes["index=0"] == "ok"
+    assert outcomes["arrays[0].dtype=[]"] == "arrays[data].dtype"
+    assert outcomes["header=[1]"] == "header" and outcomes["run=0"] == "run"

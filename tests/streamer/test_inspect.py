@@ -242,6 +242,29 @@ def test_inspect_errors_name_the_directory(tmp_path, capsys):
     assert err.strip() == "ttl inspect: not readable as MCAP: fitter.mcap (exit status 1)"
 
 
+def test_inspect_salvages_a_damaged_closed_file(run_dir, tmp_path, capsys):
+    """A closed stage recording with flipped bytes in one chunk: ``ttl inspect`` reads past
+    the damage (no ZstdError traceback), exits 0 and says what it salvaged and skipped."""
+    import shutil
+
+    from mcap.reader import make_reader
+
+    damaged = tmp_path / "damaged"
+    shutil.copytree(run_dir, damaged)
+    path = damaged / "tdi_builder.mcap"
+    with open(path, "rb") as f:
+        chunks = [c for c in make_reader(f).get_summary().chunk_indexes if c.compressed_size > 500]
+    data = bytearray(path.read_bytes())
+    target = chunks[len(chunks) // 2]
+    for k in range(50):  # inside the compressed records (the chunk's fixed fields take ~60 bytes)
+        data[target.chunk_start_offset + 100 + 5 * k] ^= 0x55
+    path.write_bytes(bytes(data))
+    code, out, err = run_ttl(capsys, "inspect", damaged)
+    assert code == 0 and "Traceback" not in out + err, (out, err)
+    assert "tdi_builder: damaged: tdi_builder.mcap is damaged: salvaged" in out
+    assert "1 corrupt stretch(es) skipped" in out, out
+
+
 def test_view_prints_a_loopback_only_command(run_dir, tmp_path, capsys):
     code, out, err = run_ttl(capsys, "view", run_dir, "--print")
     assert code == 0, err

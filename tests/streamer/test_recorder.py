@@ -211,3 +211,60 @@ def test_not_mcap(tmp_path):
         read_recording(path)
     with pytest.raises(RecordingError, match="missing.mcap"):
         read_recording(tmp_path / "missing.mcap")
+
+
+def write_many(path, n=12):
+    """A closed recording of ``n`` segments (a chunk each) with a fit summary each."""
+    rec = Recorder(path, metadata={"run": "r", "stage": "test"})
+    for i in range(n):
+        _, header, payload = segment(i, n=300)
+        rec.write_segment("tdi", header, payload)
+        rec.write_json("fit/summary", {"run": "r", "index": i}, schema="ttl.Fit")
+    rec.close()
+
+
+def test_flipped_bytes_inside_one_chunk_lose_that_chunk_only(tmp_path):
+    path = tmp_path / "damaged.mcap"
+    write_many(path)
+    starts = _segment_chunks(path)
+    data = bytearray(path.read_bytes())
+    for k in range(50):  # inside the compressed body of the 5th segment's chunk
+        data[starts[4] + 200 + 7 * k] ^= 0xFF
+    path.write_bytes(bytes(data))
+    got = read_recording(path)  # no ZstdError, no exception at all
+    indices = [s.header.index for s in got.segments("tdi")]
+    assert indices == [0, 1, 2, 3, 5, 6, 7, 8, 9, 10, 11], indices
+    assert got.complete and len(got.skipped) == 1 and got.skipped[0]["start"] == starts[4]
+    assert "1 corrupt stretch(es) skipped" in got.problem
+
+
+def test_2000_flipped_bytes_are_salvaged_not_raised(tmp_path):
+    """A closed file with 2000 flipped bytes (the issue's case): read past every damaged
+    stretch, damaged record lengths included, keeping every chunk that passes its CRC."""
+    path = tmp_path / "damaged.mcap"
+    write_many(path, n=40)
+    clean = read_recording(path)
+    data = bytearray(path.read_bytes())
+    rng = np.random.default_rng(3)
+    for pos in rng.choice(np.arange(8, len(data) - 8), size=2000, replace=False):
+        data[pos] ^= 1 << int(rng.integers(8))
+    path.write_bytes(bytes(data))
+    got = read_recording(path)  # before: ZstdError or CRCValidationError out of mcap's reader
+    # about 50 flips per chunk: every chunk is lost (each fails its CRC), the footer is read
+    assert got.complete and got.records > 0 and len(got.skipped) >= 30, (got.records, got.skipped[:2])
+    assert "corrupt stretch" in got.problem
+    good = {s.header.index: s.arrays for s in clean.segments("tdi")}
+    for s in got.segments("tdi"):  # what is kept is intact
+        np.testing.assert_array_equal(s.arrays["data"], good[s.header.index]["data"])
+
+
+def test_a_damaged_record_length_is_skipped_by_resynchronising(tmp_path):
+    path = tmp_path / "damaged.mcap"
+    write_many(path)
+    starts = _segment_chunks(path)
+    data = bytearray(path.read_bytes())
+    data[starts[3] + 8] = 0x7F  # the top byte of the chunk's length: far beyond the file
+    path.write_bytes(bytes(data))
+    got = read_recording(path)
+    assert [s.header.index for s in got.segments("tdi")] == [0, 1, 2, 4, 5, 6, 7, 8, 9, 10, 11]
+    assert "damaged record length" in got.skipped[0]["why"] and got.skipped[0]["start"] == starts[3]

@@ -24,6 +24,7 @@ import time
 from pathlib import Path
 
 import numpy as np
+import zenoh
 import psutil
 import pytest
 from cryptography import x509
@@ -77,13 +78,30 @@ def foreign_certificate(tmp_path: Path) -> str:
     return str(other / "fitter")
 
 
+def stranger_certificate(tmp_path: Path) -> str:
+    """A ``fitter`` certificate of a CA of another name (prefix of its .pem/.key; its CA in
+    ``ca.pem`` beside it)."""
+    original = security._name
+    security._name = lambda cn: original(f"stranger {cn}")
+    try:
+        other = security.ensure_credentials(tmp_path / "stranger-ca", roles=("fitter",))
+    finally:
+        security._name = original
+    return str(other / "fitter")
+
+
 def intruders(procs: Procs, tmp_path: Path, creds: Path, endpoint: str, run: str, duration: float) -> dict:
-    """Start the four intruders; returns name -> (process, report path)."""
+    """Start the six intruders; returns name -> (process, report path).  The last two trust
+    another CA than the run's, so they refuse the router's certificate themselves (the
+    router logs the alert they send: DecryptError for a CA of the same name, UnknownCA)."""
     base = {"run": run, "endpoint": endpoint, "duration": duration, "ca": str(creds / "ca.pem")}
+    foreign, stranger = foreign_certificate(tmp_path), stranger_certificate(tmp_path)
     kinds = {"other-stage": {"credentials": str(creds), "identity": "subtractor"},
              "no-certificate": {},
-             "foreign-ca": {"foreign": foreign_certificate(tmp_path)},
-             "plain-tcp": {"plain": True}}
+             "foreign-ca": {"foreign": foreign},
+             "plain-tcp": {"plain": True},
+             "trusts-foreign-ca": {"foreign": foreign, "ca": str(Path(foreign).with_name("ca.pem"))},
+             "trusts-stranger-ca": {"foreign": stranger, "ca": str(Path(stranger).with_name("ca.pem"))}}
     out = {}
     for name, extra in kinds.items():
         report = tmp_path / f"{name}.json"
@@ -99,7 +117,7 @@ def check_intruders(started: dict) -> dict:
         reports[name] = json.loads(report.read_text())
     # only the holder of a certificate of the run's CA gets in (and is then bound by the ACL)
     assert reports["other-stage"]["connected"] and reports["other-stage"]["puts"] > 0
-    for name in ("no-certificate", "foreign-ca", "plain-tcp"):
+    for name in ("no-certificate", "foreign-ca", "plain-tcp", "trusts-foreign-ca", "trusts-stranger-ca"):
         assert not reports[name]["connected"], (name, reports[name])
     return reports
 
@@ -115,6 +133,8 @@ def check_refusals(refused: list[dict], run: str) -> None:
     assert any("corrupt message" in m for m in unauth), unauth           # plain TCP on the TLS port
     assert any("no certificate" in m.lower() or "certificaterequired" in m.lower().replace(" ", "")
                for m in unauth), unauth                                   # a TLS peer without certificate
+    assert any("fatal alert: DecryptError" in m for m in unauth), unauth  # a peer trusting a same-named CA
+    assert any("fatal alert: UnknownCA" in m for m in unauth), unauth     # a peer trusting another CA
 
 
 def test_router_refuses_and_records_intruders(tmp_path):
@@ -251,12 +271,19 @@ def test_refusals_are_read_from_zenoh_log_lines():
              head.format(4) + f"Using cached result: {zid} is unauthorized to Put (ingress) on ttl/r1/fit/0",
              head.format(5) + f"{zid} on {subject} is authorized to Put (egress) on ttl/r1/fit/0",
              "2026-11-23T21:39:34.12Z  WARN acc-0 ThreadId(05) zenoh_link_tls::unicast: peer sent no certificates. "
+             "Hint: increase the system open file limit.",
+             # a peer refusing the router's certificate (it trusts another CA), as zenoh 1.10 logs it
+             "\x1b[2m2026-11-26T03:44:32.188356Z\x1b[0m \x1b[33m WARN\x1b[0m acc-0 ThreadId(05) \x1b[2mzenoh_link_tls::unicast"
+             "\x1b[0m\x1b[2m:\x1b[0m received fatal alert: DecryptError. Hint: increase the system open file limit.",
+             "2026-11-26T03:44:33.19Z  WARN acc-0 ThreadId(05) zenoh_link_tls::unicast: received fatal alert: UnknownCA. "
              "Hint: increase the system open file limit."]
     got = security.refusals(lines)
     assert [(r["kind"], r.get("subject"), r.get("key")) for r in got] == [
         ("forbidden", "monitor", "ttl/r1/telemetry/3"), ("forbidden", "monitor", "ttl/r1/fit/0"),
-        ("unauthenticated", None, None)]
-    assert got[2]["message"] == "peer sent no certificates"
+        ("unauthenticated", None, None), ("unauthenticated", None, None), ("unauthenticated", None, None)]
+    assert [r["message"] for r in got[2:]] == ["peer sent no certificates", "received fatal alert: DecryptError",
+                                               "received fatal alert: UnknownCA"]
+    assert got[3]["time"] == "2026-11-26T03:44:32.188356Z"
 
 
 @pytest.mark.ops
@@ -268,3 +295,140 @@ def test_insecure_run_is_plain_tcp_and_says_so(tmp_path):
     assert r.returncode == 0, r.stderr[-3000:]
     assert "--insecure: no TLS, no access control" in r.stderr and "router on tcp/127.0.0.1:" in r.stderr
     assert not (tmp_path / "ins" / "credentials").exists() and not (tmp_path / "ins" / "security.jsonl").exists()
+
+
+# ---------------------------------------------------------------------------- hostile content from every identity
+
+#: Consumers of each topic (who must record every hostile message on it).
+CONSUMERS = {"telemetry": ("tdi_builder", "monitor"), "tdi": ("fitter", "subtractor", "monitor"),
+             "fit": ("subtractor", "monitor"), "residual": ("monitor",)}
+JSON_VALUES = [None, True, False, 0, -1, 2 ** 63, 1.5, -1e308, "", "x", "<f8", [], [1], [[]], ["a"], {}, {"a": 1}]
+
+
+def _with_text(attachment: bytes, old: str, new: str) -> bytes:
+    text = attachment.decode()
+    assert old in text, old
+    return text.replace(old, new, 1).encode()
+
+
+def hostile_variants(payload: bytes, attachment: bytes):
+    """(kind, payload, attachment) of hostile messages built from a genuine one: parsing
+    bombs, every JSON type in every header and array field, and a conflicting copy."""
+    import zlib
+
+    header = json.loads(attachment)
+    small = payload if len(payload) <= 65536 else b""  # the every-type cases need no big payload
+    meta = '"meta":' + json.dumps(header["meta"], separators=(",", ":"))
+    compact = json.dumps(header, separators=(",", ":")).encode()
+    yield "deep", b"", _with_text(compact, meta, '"meta":{"x":' + "[" * 100_000 + "]" * 100_000 + "}")
+    yield "deep-33", b"", _with_text(compact, meta, '"meta":{"x":' + "[" * 32 + "]" * 32 + "}")
+    yield "huge-exponent", small, _with_text(compact, meta, '"meta":{"x":1e999999}')
+    yield "huge-exponent-t0", small, _with_text(compact, f'"t0":{json.dumps(header["t0"])}', '"t0":-1e400')
+    yield "huge-int", small, _with_text(compact, f'"index":{header["index"]}', '"index":' + "9" * 5000)
+    yield "long-string", b"", _with_text(compact, meta, '"meta":{"s":"' + "a" * 900_000 + '"}')
+    yield "long-name", small, _with_text(compact, f'"producer":"{header["producer"]}"', '"producer":"' + "p" * 5000 + '"')
+    for name in header:
+        for value in JSON_VALUES:
+            yield "every-type", small, json.dumps({**header, name: value}).encode()
+    for name in header["arrays"][0]:
+        for value in JSON_VALUES:
+            arrays = [dict(header["arrays"][0], **{name: value})] + header["arrays"][1:]
+            yield "every-type", small, json.dumps({**header, "arrays": arrays}).encode()
+    # a different copy of a segment every stage has used: a conflict, the first copy kept
+    altered = bytearray(payload)
+    altered[-1] ^= 0x01
+    yield "conflict-after-use", bytes(altered), json.dumps(
+        {**header, "checksum": f"crc32:{zlib.crc32(bytes(altered)) & 0xFFFFFFFF:08x}"}).encode()
+
+
+@pytest.mark.ops
+def test_hostile_content_from_each_identity_changes_nothing(tmp_path):
+    """With each stage's own certificate (the access control lets it publish its topic, its
+    errors and its progress), hostile content: headers nested 100000 deep, huge exponents and
+    integers, long strings, every JSON type in every field, a conflicting copy of a segment
+    already used; error and progress messages nested 100000 deep; and from the launcher's
+    certificate, control messages of the same kind.  No stage crashes or stalls, every
+    message is recorded by every stage it reached, the fits and residuals are the clean
+    run's bit for bit, and ``ttl run`` exits 1 for the conflicting copies."""
+    from streamer.keys import control_key, errors_key, progress_key
+
+    procs = Procs(tmp_path)
+    rec = tmp_path / "rec"
+    port = free_port()
+    sent: dict[str, int] = {}
+    try:
+        clean = procs.start(run_cmd("clean", rec), "clean")
+        assert finish(clean, 500) == 0, output(clean)[-3000:]
+        # paced (a segment every 12 s): the attack meets the run in progress
+        attacked = procs.start(run_cmd("hostile", rec, "--listen", f"tls/127.0.0.1:{port}", "--pace", "300"),
+                               "hostile")
+        endpoint = f"tls/127.0.0.1:{port}"
+        wait_for(lambda: "router on" in output(attacked) or attacked.poll() is not None, 120, "the run's router")
+        creds = rec / "hostile" / "credentials"
+        genuine: dict[str, dict] = {t: {} for t in CONSUMERS}
+        with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="monitor")) as reader:
+            for topic in CONSUMERS:
+                reader.subscriber(f"ttl/hostile/{topic}", lambda s, t=topic: genuine[t].setdefault(
+                    json.loads(s.attachment.to_bytes())["index"], (s.payload.to_bytes(), s.attachment.to_bytes())))
+            # segment 1 of every topic published, and (progress) used by every consumer
+            wait_for(lambda: all(1 in g for g in genuine.values()) or attacked.poll() is not None, 600,
+                     "segment 1 of every topic")
+            wait_for(lambda: "monitor 2/" in output(attacked) or attacked.poll() is not None, 600,
+                     "the monitor past segment 1")
+            assert attacked.poll() is None, output(attacked)[-3000:]
+            for stage, topic in (("replayer", "telemetry"), ("tdi_builder", "tdi"), ("fitter", "fit"),
+                                 ("subtractor", "residual")):
+                with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds,
+                                              identity=stage)) as bus:
+                    put = bus.session.put
+                    for kind, payload, attachment in hostile_variants(*genuine[topic][1]):
+                        put(f"ttl/hostile/{topic}", payload, attachment=attachment,
+                            congestion_control=zenoh.CongestionControl.BLOCK)
+                        sent[topic] = sent.get(topic, 0) + 1
+                        sent[f"{topic}/{kind}"] = sent.get(f"{topic}/{kind}", 0) + 1
+                        time.sleep(0.002)
+                    bomb = b'{"stage":' + b"[" * 100_000 + b"]" * 100_000 + b"}"
+                    put(errors_key("hostile", 1), bomb)
+                    put(progress_key("hostile", stage), bomb)
+            with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds,
+                                          identity="launcher")) as bus:
+                for payload in (b'{"effects":' + b"[" * 100_000 + b"]" * 100_000 + b"}",
+                                b'{"effects": [1e999999]}', b'{"effects": ["' + b"a" * 900_000 + b'"]}'):
+                    bus.session.put(control_key("hostile", "fitter", "model"), payload)
+            code = finish(attacked, 600)
+        out = output(attacked)
+    finally:
+        procs.close()
+    print(json.dumps(sent))
+    assert "died" not in out, out[-4000:]
+    assert code == 1 and "conflicting copies of" in out and "gave up" not in out and "did not handle" not in out, \
+        out[-4000:]
+    run_dir = rec / "hostile"
+    for topic, consumers in CONSUMERS.items():
+        for stage in consumers:
+            r = read_recording(run_dir / f"{stage}.mcap")
+            assert r.complete and r.problem is None, stage
+            errors = r.json("errors")
+            on_topic = [e for e in errors if (e.get("key") or "").split("/")[2:3] == [topic]
+                        and e["kind"] in ("rejected", "forged", "conflict")]
+            dups = [e for e in r.json("events") if e["kind"] == "duplicate" and f"/{topic}/" in e["message"]]
+            assert len(on_topic) + len(dups) >= sent[topic], (stage, topic, len(on_topic), len(dups), sent[topic])
+            assert not [e for e in errors if e["kind"] == "failed"], (stage, [e for e in errors if e["kind"] == "failed"][:3])
+            conflicts = [e for e in on_topic if e["kind"] == "conflict" and e["field"] == "payload"]
+            assert conflicts and all(e["details"]["first_copy"] == "used" for e in conflicts), (stage, conflicts[:3])
+            deep = [e for e in on_topic if "levels deep" in e["message"]]
+            assert deep, (stage, topic)
+    control = read_recording(run_dir / "fitter.mcap").json("control")
+    assert [c["accepted"] for c in control] == [False, False, False], control
+    a, b = fits(rec / "clean"), fits(run_dir)
+    assert sorted(a) == sorted(b) == list(range(SEGMENTS))
+    for i in a:
+        for k in a[i]:
+            np.testing.assert_array_equal(a[i][k], b[i][k], err_msg=f"fit {i} {k}")
+    residual = {}
+    for name in ("clean", "hostile"):
+        residual[name] = {s.header.index: s.arrays for s in read_recording(rec / name / "subtractor.mcap").segments("residual")}
+    assert sorted(residual["clean"]) == sorted(residual["hostile"]) == list(range(SEGMENTS))
+    for i, arrays in residual["clean"].items():
+        for k, v in arrays.items():
+            np.testing.assert_array_equal(v, residual["hostile"][i][k], err_msg=f"residual {i} {k}")

@@ -227,3 +227,85 @@ def test_control_messages_change_a_stage_or_are_rejected_and_recorded(driver, ch
     assert [(c["command"], c["accepted"]) for c in rec.json("control")] == [
         ("factor", True), ("factor", False), ("factor", False), ("explode", False)]
     assert rec.json("control")[0]["payload"] == {"factor": 3}
+
+
+def test_no_message_content_stops_the_stage(driver, children, tmp_path):
+    """A header nested 100000 deep (under the 1 MiB limit: RecursionError in Python's JSON
+    parser), huge numbers, long strings, and a message whose checks raise something other
+    than a CodecError: each one a recorded rejection naming the field, and the stage goes on."""
+    proc, mcap_path = driver.start_stage(children, tmp_path)
+    data0, p0, a0 = good(0)
+    text = a0.decode()
+    deep = text.replace('"meta":{}', '"meta":{"x":' + "[" * 100_000 + "]" * 100_000 + "}")
+    assert len(deep) < (1 << 20) and deep != text
+    driver.telemetry.put(0, p0, deep.encode())
+    driver.telemetry.put(0, p0, text.replace('"meta":{}', '"meta":{"x":1e999999}').encode())
+    driver.telemetry.put(0, p0, text.replace('"index":0', '"index":' + "9" * 5000).encode())
+    driver.telemetry.put(0, p0, text.replace('"meta":{}', '"meta":{"s":"' + "a" * 500_000 + '"}').encode())
+    _, p99, a99 = good(99)
+    driver.telemetry.put(99, p99, a99)                                 # Doubler.expect raises LookupError
+    driver.telemetry.put(0, p0, a0)                                    # and the stage goes on
+    header, arrays = driver.output()
+    assert header.index == 0
+    np.testing.assert_array_equal(arrays["data"], 2 * data0)
+    wait_for(lambda: len(driver.errors) >= 5, 10, "five error reports")
+    got = [(e["kind"], e["field"]) for _, e in driver.errors]
+    assert got == [("rejected", "header"), ("rejected", "meta.x"), ("rejected", "index"), ("rejected", "meta.s"),
+                   ("rejected", "message")], got
+    assert "nested 100002 levels deep" in driver.errors[0][1]["message"]
+    assert "LookupError" in driver.errors[4][1]["message"]
+    assert proc.poll() is None
+    driver.bus.session.put(f"ttl/{RUN}/control/doubler/stop", b"")
+    assert proc.wait(20) == 0, output_of(proc)
+    rec = read_recording(mcap_path)
+    assert [(e["kind"], e["field"]) for e in rec.json("errors")] == got
+    assert rec.json("events")[-1]["kind"] == "stop"
+
+
+@pytest.fixture
+def small_disk(tmp_path):
+    """A 3 MB tmpfs (a real file system that fills up); skipped where mounting is not allowed."""
+    import subprocess
+
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    r = subprocess.run(["mount", "-t", "tmpfs", "-o", "size=3m", "tmpfs", str(disk)], capture_output=True, text=True)
+    if r.returncode != 0:
+        pytest.skip(f"cannot mount a tmpfs here: {r.stderr.strip()}")
+    try:
+        yield disk
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], capture_output=True)
+
+
+def test_full_disk_stops_the_stage_and_says_so(driver, children, small_disk):
+    """Recording onto a disk that fills up: the stage frees its reserve, leaves a stop note,
+    reports ``disk-full`` on the bus, closes its recording and exits 4; ``ttl inspect`` names
+    the cause ("disk full"), not "process killed?"."""
+    from streamer.inspect import format_report, inspect_run
+
+    config = StageConfig(run=RUN, zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
+                         recordings=small_disk / "recordings", poll_interval=0.05, hold=0.0)
+    proc = children.start("stage", config=config.to_dict())
+    wait_for(lambda: "doubler" in driver.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
+             30, "the stage's liveliness token")
+    for i in range(60):  # 128 kB recorded per segment (input and output): 2 MB free
+        if proc.poll() is not None:
+            break
+        driver.telemetry.put(i, *good(i)[1:])
+        time.sleep(0.05)
+    assert proc.wait(30) == 4, output_of(proc)
+    wait_for(lambda: [e for _, e in driver.errors if e["kind"] == "disk-full"], 10, "the disk-full report")
+    full = [e for _, e in driver.errors if e["kind"] == "disk-full"][0]
+    assert "disk full: No space left on device" in full["message"], full
+    run_dir = small_disk / "recordings" / RUN
+    note = json.loads((run_dir / "doubler.mcap.stop.json").read_text())
+    assert note["reason"] == "disk-full" and note["errno"] == 28, note
+    assert not (run_dir / "doubler.mcap.reserve").exists()
+    report = inspect_run(run_dir)
+    kinds = [(i["kind"], i["message"]) for i in report["interruptions"]]
+    assert [k for k, _ in kinds] == ["disk-full"], kinds
+    assert "disk full" in kinds[0][1] and "killed" not in format_report(report), kinds
+    rec = read_recording(run_dir / "doubler.mcap")
+    assert rec.segments("tdi"), "nothing recorded before the disk filled up"
+    print(f"recorded {len(rec.segments('tdi'))} segments; file complete: {rec.complete}; {kinds[0][1]}")
