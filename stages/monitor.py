@@ -36,9 +36,13 @@ median ASD ratio and its segment), ``fit`` (index, chi2_dof and window of the la
 ``segments_total``.  The same goes to the recording on ``monitor/summary``.
 
 Rerun recording ``<recordings>/<run>/monitor.rrd`` (an existing one is kept as
-``monitor.<n>.rrd``, like the MCAP files), flushed after every message, with a blueprint
-that shows everything at once; the views, their entities and the drawing functions are in
-:mod:`stages.monitor_views`.  Timelines: ``mission_time`` (duration, seconds of mission
+``monitor.<n>.rrd``, like the MCAP files), its rows gathered and written a chunk per entity
+every 60 s of wall clock (:class:`streamer.viewer.LiveFanout`), and closed with its RRD
+footer however the monitor ends, so that the web viewer opens a week of it in seconds; a
+blueprint shows everything at once: the views, their entities and the drawing functions
+are in :mod:`stages.monitor_views`.  Besides the plots, a run summary (progress, every
+alert) and the live diagnosis of the fit messages (meta ``diagnosis``: ``text``,
+``recommendation``) are text documents.  Timelines: ``mission_time`` (duration, seconds of mission
 time) and ``segment`` (sequence).  A fit that did not converge is a WARN entry of the
 alerts log here, and a ``warnings`` message in the fitter's MCAP file (``ttl inspect``).
 
@@ -75,7 +79,7 @@ from streamer.pipeline_stage import PipelineStage
 from streamer.processes import stop_process
 from streamer.recorder import to_jsonable
 from streamer.stage import Output, set_aside, stage_main
-from streamer.viewer import LiveFanout, check_live, start_live
+from streamer.viewer import LiveFanout, check_live, compact_rrd, start_live
 from ttlcore.conventions import ARM_LENGTH, COEFFICIENT_NAMES, LINKS, C
 from ttlcore.diagnose.trends import Alert, TrendMonitor, TrendSettings
 from ttlcore.estimate.fit import DEFAULT_BAND
@@ -183,14 +187,20 @@ class Monitor(PipelineStage):
             self._close_recording("monitor ended abnormally")
 
     def _close_recording(self, message: str) -> None:
-        """Write the last batch and the RRD footer (once; the viewer then opens the file
-        from its manifest instead of scanning it)."""
+        """Write the last batch and the RRD footer, then merge the file's chunks (once; the
+        viewer then opens the file from its manifest instead of scanning it)."""
         if self.rec is None or self.rec.closed:
             return
         try:
             self.text("log", message)
         finally:
             self.rec.disconnect()
+        started = time.monotonic()
+        problem = compact_rrd(self.rrd, self.options.get("rerun_binary"))
+        if problem:
+            self.log.warning("%s: %s (the file is complete, its chunks not merged)", self.rrd, problem)
+        else:
+            self.log.info("rerun recording %s: chunks merged in %.1f s", self.rrd, time.monotonic() - started)
 
     def tick(self):
         self._drain_errors()

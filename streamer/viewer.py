@@ -143,6 +143,33 @@ def file_batcher(seconds: float = FILE_BATCH_SECONDS):
                                  flush_num_bytes=8 << 20, flush_num_rows=65536)
 
 
+def compact_rrd(rrd: Path, binary: str | None = None, timeout: float = 300.0) -> str | None:
+    """Rewrite the closed recording ``rrd`` with its chunks merged (``rerun rrd optimize``:
+    one chunk per entity as far as the size limits allow, and a footer); returns None, or
+    why the file was left as it was.
+
+    Batching bounds the chunks by the wall-clock time a run takes; a run whose segments come
+    slower than a batch (real time: an hour a segment) still writes a chunk per entity and
+    segment.  Merged, a week of 1-h segments is a few hundred chunks whatever the pace
+    (~1 s for a week's file).  The file is replaced atomically, only once the merged copy is
+    whole; a failure leaves the original, which is complete and has its footer.
+    """
+    rrd = Path(rrd)
+    tmp = rrd.with_name(rrd.name + ".optimizing")
+    try:
+        cmd = [rerun_binary(binary), "rrd", "optimize", str(rrd), "-o", str(tmp)]
+        done = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=timeout)
+        if done.returncode != 0 or not tmp.exists() or tmp.stat().st_size == 0:
+            last = (done.stderr or done.stdout).strip().splitlines()[-1:] or [f"exit status {done.returncode}"]
+            return f"rerun rrd optimize failed: {last[0]}"
+        os.replace(tmp, rrd)
+        return None
+    except (OSError, subprocess.SubprocessError) as exc:
+        return f"rerun rrd optimize: {exc}"
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 class LiveFanout:
     """Logs to the file recording and, while it works, to a live viewer's recording.
 

@@ -293,8 +293,9 @@ def ocr(img: np.ndarray, box: tuple[float, float, float, float], scale: int = 2,
 #: Where the views are on a 1920x1080 screenshot (fractions; the blueprint's shares in
 #: :func:`stages.monitor_views.blueprint`, with some margin).
 TIME_FIELD = (0.86, 1 - 34 / HEIGHT, 1.0, 1.0)   # the time panel's current time, bottom right
-NOISE_PANEL = (0.0, 0.05, 0.44, 0.66)
-SUMMARY_PANEL = (0.45, 0.70, 0.73, 0.97)
+NOISE_PANEL = (0.0, 0.05, 0.49, 0.66)
+COEFFICIENT_GRID = (0.5, 0.04, 1.0, 0.70)        # 4 columns of plots
+SUMMARY_PANEL = (0.5, 0.73, 0.75, 0.97)
 
 
 def time_shown(img: np.ndarray) -> int | None:
@@ -385,6 +386,17 @@ def check_screenshot(png: bytes, alerts: list[dict], segments: int) -> str:
     for name in ("data", "residual", "requirement"):
         n = colour_pixels(img, NOISE_PANEL, CURVES[name][1])
         assert n > 400, f"the {CURVES[name][0]} curve is not drawn in the noise panel ({n} pixels of its colour)"
+    # the fits drawn over the time range: in every column of coefficient plots, from the left
+    # of the x axis to past its middle (a fit is drawn at the centre of its one-day window, so
+    # the lines end half a day before the axis does)
+    from stages.monitor_views import FIT_COLOR
+
+    x0, y0, x1, y1 = COEFFICIENT_GRID
+    cell = (x1 - x0) / 4
+    for c in range(4):
+        left = colour_pixels(img, (x0 + c * cell + 0.10 * cell, y0, x0 + c * cell + 0.25 * cell, y1), FIT_COLOR)
+        mid = colour_pixels(img, (x0 + c * cell + 0.50 * cell, y0, x0 + c * cell + 0.70 * cell, y1), FIT_COLOR)
+        assert left > 50 and mid > 50, f"coefficient plots of column {c}: fit pixels {left} left, {mid} middle"
     summary = ocr(img, SUMMARY_PANEL)
     assert f"segment {segments - 1}" in summary, summary
     assert f"Alerts ({len(alerts)})" in summary, (summary, alerts)
