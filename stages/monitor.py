@@ -520,7 +520,7 @@ class Monitor(PipelineStage):
             if adequacy.get("fails"):
                 self.text("model/log", f"fit {index}: the model fails against the instrument noise model: "
                                        + "; ".join(map(str, adequacy.get("summary") or ())), "WARN")
-        views.diagnosis_document(self.rec, index, meta.get("diagnosis"))  # the live diagnosis, when the fitter sends one
+        views.diagnosis_document(self.rec, index, meta.get("diagnosis"))  # the live diagnosis, when there is one
         change = meta.get("model_change")
         if isinstance(change, dict):
             def fmt(x):

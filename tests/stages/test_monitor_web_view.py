@@ -230,6 +230,11 @@ class DevTools:
         self.proc = subprocess.Popen(
             [CHROMIUM, "--headless=new", "--no-sandbox", "--disable-dev-shm-usage", "--no-first-run",
              "--use-angle=swiftshader", "--enable-unsafe-swiftshader", f"--window-size={WIDTH},{HEIGHT}",
+             # frames as in a browser on a desk: a headless page is otherwise treated as hidden
+             # and its animation frames throttled, and the viewer then ingests only when
+             # something (a screenshot, an input event) asks for a frame
+             "--disable-background-timer-throttling", "--disable-renderer-backgrounding",
+             "--disable-backgrounding-occluded-windows",
              f"--remote-debugging-port={port}", "--remote-debugging-address=127.0.0.1",
              f"--user-data-dir={tmp / 'chromium-profile'}", "about:blank"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -327,23 +332,30 @@ def open_in_browser(rrd: Path, tmp: Path, last_time: float, timeout: float):
         browser.call("Page.enable")
         browser.call("Emulation.setDeviceMetricsOverride", width=WIDTH, height=HEIGHT, deviceScaleFactor=1,
                      mobile=False)
+        browser.call("Emulation.setFocusEmulationEnabled", enabled=True)
         target = int(round(last_time))
         start = time.monotonic()
         browser.call("Page.navigate", url=url)
         shots: list[tuple[float, np.ndarray, bytes, bool]] = []
         while time.monotonic() - start < timeout:
-            # the pointer on the top bar: it makes the viewer repaint, and shows no tooltip over a plot
+            # the pointer on the top bar (no tooltip over a plot) makes the viewer draw a frame;
+            # it loads and lays out a little more in each frame. More moves between screenshots
+            # do not help: on a loaded machine each frame, drawn in software, takes seconds
             browser.call("Input.dispatchMouseEvent", type="mouseMoved", x=WIDTH // 2 + len(shots) % 2, y=4)
             png = browser.screenshot()
             t = time.monotonic() - start
             img = pixels(png)
             shots.append((t, img, png, time_shown(img) == target))
+            keep(f"{rrd.stem}-{t:05.1f}s.png", png)  # how the view fills in
             if len(shots) >= 2 and shots[-1][3] and shots[-2][3] and same(shots[-1][1], shots[-2][1]):
                 break
         final = shots[-1]
         done = final[3] and len(shots) >= 2 and shots[-2][3] and same(shots[-2][1], final[1])
         first = next((s for s in shots if s[3] and same(s[1], final[1])), None)
         per_shot = shots[-1][0] / len(shots) if shots else float("nan")
+        print("screenshots (s, time cursor at the end, grey std, difference to the last):",
+              [(round(t, 1), at_end, round(float(img.mean(axis=2).std()), 1),
+                round(float(np.abs(img - final[1]).mean()), 2)) for t, img, _, at_end in shots])
         return (first[0] if done else None), final[2], per_shot
     finally:
         if browser is not None:
