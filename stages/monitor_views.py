@@ -35,6 +35,7 @@ Views (entity paths in brackets), laid out for a 1920x1080 screen:
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -288,9 +289,9 @@ def diagnosis_document(rec, index: int, diagnosis) -> bool:
         return False
     lines = [f"**Fit {index}**", "", diagnosis["text"].strip()]
     recommendation = diagnosis.get("recommendation")
-    if isinstance(recommendation, str) and recommendation.strip():
+    if not isinstance(recommendation, str) and recommendation is not None:  # e.g. a model to refit with
+        recommendation = json.dumps(recommendation, default=str)
+    if recommendation and recommendation.strip():
         lines += ["", f"**Recommendation:** {recommendation.strip()}"]
-    elif recommendation is not None and not isinstance(recommendation, str):
-        lines += ["", f"**Recommendation:** {recommendation}"]
     rec.log(DIAGNOSIS, rr.TextDocument("\n".join(lines), media_type="text/markdown"))
     return True

@@ -264,7 +264,19 @@ class DevTools:
                 return msg.get("result", {})
 
     def screenshot(self) -> bytes:
-        return base64.b64decode(self.call("Page.captureScreenshot", format="png")["data"])
+        return base64.b64decode(self.settled("Page.captureScreenshot", format="png")["data"])
+
+    def settled(self, method: str, **params) -> dict:
+        """:meth:`call`, retried while the page is between renderer processes (right after a
+        navigation away from about:blank, Chromium answers "Not attached to an active page")."""
+        for _ in range(40):
+            try:
+                return self.call(method, **params)
+            except RuntimeError as exc:
+                if "Not attached to an active page" not in str(exc):
+                    raise
+                time.sleep(0.5)
+        return self.call(method, **params)
 
     def close(self) -> None:
         try:
@@ -341,7 +353,7 @@ def open_in_browser(rrd: Path, tmp: Path, last_time: float, timeout: float):
             # the pointer on the top bar (no tooltip over a plot) makes the viewer draw a frame;
             # it loads and lays out a little more in each frame. More moves between screenshots
             # do not help: on a loaded machine each frame, drawn in software, takes seconds
-            browser.call("Input.dispatchMouseEvent", type="mouseMoved", x=WIDTH // 2 + len(shots) % 2, y=4)
+            browser.settled("Input.dispatchMouseEvent", type="mouseMoved", x=WIDTH // 2 + len(shots) % 2, y=4)
             png = browser.screenshot()
             t = time.monotonic() - start
             img = pixels(png)
