@@ -38,7 +38,7 @@ median ASD ratio and its segment), ``fit`` (index, chi2_dof and window of the la
 Rerun recording ``<recordings>/<run>/monitor.rrd`` (an existing one is kept as
 ``monitor.<n>.rrd``, like the MCAP files), its rows gathered and written a chunk per entity
 every 60 s of wall clock (:class:`streamer.viewer.LiveFanout`), and closed with its RRD
-footer however the monitor ends, so that the web viewer opens a week of it in seconds; a
+footer however the monitor ends, then its chunks merged (a week: ~300 chunks, not ~17,600); a
 blueprint shows everything at once: the views, their entities and the drawing functions
 are in :mod:`stages.monitor_views`.  Besides the plots, a run summary (progress, every
 alert) and the live diagnosis of the fit messages (meta ``diagnosis``: ``text``,
