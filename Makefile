@@ -42,7 +42,7 @@ demo: $(STAMP)
 	$(BIN)/ttl refit $(DEMO)/pipeline/recordings/demo --effects linear-ttl,step:t_step=1.5d --segments 24:47
 	@echo ""
 	@echo "Where to look:"
-	@echo "  Rerun recording (ASDs, coefficient trends, adequacy, alerts): $(BIN)/ttl view $(DEMO)/pipeline/recordings/demo"
+	@echo "  Rerun recording (noise vs requirement, coefficient trends, adequacy, alerts, diagnosis): $(BIN)/ttl view $(DEMO)/pipeline/recordings/demo (--web without a display)"
 	@echo "  MCAP logs of the five stages:                                 $(DEMO)/pipeline/recordings/demo/*.mcap"
 	@echo "  the batch analysis of one day, with the paper's figures:       make demo-batch"
 

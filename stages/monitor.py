@@ -40,9 +40,13 @@ median ASD ratio and its segment), ``fit`` (index, chi2_dof and window of the la
 ``segments_total``.  The same goes to the recording on ``monitor/summary``.
 
 Rerun recording ``<recordings>/<run>/monitor.rrd`` (an existing one is kept as
-``monitor.<n>.rrd``, like the MCAP files), flushed after every message, with a blueprint
-that shows everything at once; the views, their entities and the drawing functions are in
-:mod:`stages.monitor_views`.  Timelines: ``mission_time`` (duration, seconds of mission
+``monitor.<n>.rrd``, like the MCAP files), its rows gathered and written a chunk per entity
+every 60 s of wall clock (:class:`streamer.viewer.LiveFanout`), and closed with its RRD
+footer however the monitor ends, then its chunks merged (a week: ~300 chunks, not ~17,600); a
+blueprint shows everything at once: the views, their entities and the drawing functions
+are in :mod:`stages.monitor_views`.  Besides the plots, a run summary (progress, every
+alert) and the live diagnosis of the fit messages (meta ``diagnosis``: ``text``,
+``recommendation``) are text documents.  Timelines: ``mission_time`` (duration, seconds of mission
 time) and ``segment`` (sequence).  A fit that did not converge is a WARN entry of the
 alerts log here, and a ``warnings`` message in the fitter's MCAP file (``ttl inspect``).
 
@@ -79,7 +83,7 @@ from streamer.pipeline_stage import PipelineStage
 from streamer.processes import stop_process
 from streamer.recorder import to_jsonable
 from streamer.stage import Output, set_aside, stage_main
-from streamer.viewer import LiveFanout, check_live, start_live
+from streamer.viewer import LiveFanout, check_live, compact_rrd, start_live
 from ttlcore.conventions import ARM_LENGTH, COEFFICIENT_NAMES, LINKS, C
 from ttlcore.diagnose.trends import Alert, TrendMonitor, TrendSettings
 from ttlcore.estimate.fit import DEFAULT_BAND
@@ -143,6 +147,9 @@ class Monitor(PipelineStage):
         self.settle_timeout = float(o.get("settle_timeout", 60.0))
         self.trend_spacing = float(o.get("trend_spacing", 3600.0))
         self._trend_t: deque = deque(maxlen=64)  # window ends given to the trends lately
+        self._alert_lines: list[str] = []  # every alert so far, for the run summary
+        self._band_labels: list[str] = []  # the adequacy bands, for the run summary's key
+        self._drawn_to: tuple[int, float] | None = None  # latest segment drawn and its end [s]
 
     # ------------------------------------------------------------------ lifecycle
     def setup(self) -> None:
@@ -159,6 +166,8 @@ class Monitor(PipelineStage):
                                    self.viewer_url, views.blueprint(self.band), on_live_failure=self._live_failed)
         self.rec.send_recording_name(f"ttl {self.run_id}")
         self._static_styles()
+        self._time(0.0, 0)
+        views.first_texts(self.rec)
         self.text("log", f"monitor of run {self.run_id} started; recording {self.rrd}"
                   + (f", live viewer {self.viewer_url}" if self.viewer_url else ""))
         if viewer_problem:
@@ -173,12 +182,34 @@ class Monitor(PipelineStage):
 
     def teardown(self) -> None:
         self._drain_errors()
-        if self.rec is not None:
-            self.text("log", "monitor stopped")
-            self.flush()
-            self.rec.disconnect()  # flushes and closes the file
+        self._close_recording("monitor stopped")
         if self.viewer is not None and self.live == "serve":
             stop_process(self.viewer, 5.0)  # the headless server; a spawned viewer window stays for the user
+
+    def run(self) -> int:
+        """The stage's run, and the Rerun file closed on every way out: a stop (control
+        message, SIGINT, SIGTERM) goes through :meth:`teardown`; an exception that ends the
+        loop does not, and would leave the file without its last batch and its footer."""
+        try:
+            return super().run()
+        finally:
+            self._close_recording("monitor ended abnormally")
+
+    def _close_recording(self, message: str) -> None:
+        """Write the last batch and the RRD footer, then merge the file's chunks (once; the
+        viewer then opens the file from its manifest instead of scanning it)."""
+        if self.rec is None or self.rec.closed:
+            return
+        try:
+            self.text("log", message)
+        finally:
+            self.rec.disconnect()
+        started = time.monotonic()
+        problem = compact_rrd(self.rrd, self.options.get("rerun_binary"))
+        if problem:
+            self.log.warning("%s: %s (the file is complete, its chunks not merged)", self.rrd, problem)
+        else:
+            self.log.info("rerun recording %s: chunks merged in %.1f s", self.rrd, time.monotonic() - started)
 
     def tick(self):
         self._drain_errors()
@@ -417,7 +448,22 @@ class Monitor(PipelineStage):
         self._references(header, f_welch)
         self._data_asd[header.index] = (f, asd)
         self._trim(self._data_asd)
+        end = header.t0 + arrays["data"].shape[-1] / header.fs
+        if self._drawn_to is None or header.index > self._drawn_to[0]:
+            self._drawn_to = (header.index, end)
+            self._summary()
         return ()
+
+    def _summary(self) -> None:
+        """The run summary document (progress, every alert, the bands' key), at the current time."""
+        total = self.segments_total
+        if self._drawn_to is None:
+            progress = "no segment drawn yet"
+        else:
+            i, end = self._drawn_to
+            progress = (f"Drawn to segment {i}" + (f" of {total - 1}" if total else "")
+                        + f", mission time {views.days(end)}")
+        views.summary_document(self.rec, progress, self._alert_lines, self._band_labels)
 
     def on_residual(self, header, arrays):
         import rerun as rr
@@ -477,8 +523,12 @@ class Monitor(PipelineStage):
         self._time(t_stop, header.index)
         for a in alerts:
             self.text("alerts", a.message, "WARN")
+            raised = a.t_detected if math.isfinite(a.t_detected) else t_stop
+            self._alert_lines.append(f"raised at {views.days(raised)}: {a.message}")
             self.recorder.write_json("alerts", {"run": self.run_id, **a.to_json()}, schema="ttl.Alert")
             self.log.warning("alert: %s", a.message)
+        if alerts:
+            self._summary()
         self._pending_alerts.extend(alerts)
         self._last_fit = {"index": header.index, "chi2_dof": chi2,
                           "t_start": t_start, "t_stop": t_stop}
@@ -513,12 +563,18 @@ class Monitor(PipelineStage):
         adequacy = meta.get("adequacy")
         if isinstance(adequacy, dict) and isinstance(adequacy.get("chi2_dof"), (int, float)):
             self.rec.log("adequacy/instrument/chi2_dof", rr.Scalars(float(adequacy["chi2_dof"])))
-            for g, band in enumerate(adequacy.get("bands") or ()):
-                if isinstance(band, dict) and isinstance(band.get("chi2_dof"), (int, float)):
-                    views.band_series(self.rec, g, band, self._styled)
+            bands = [b for b in adequacy.get("bands") or () if isinstance(b, dict)]
+            for g, band in enumerate(bands):
+                if isinstance(band.get("chi2_dof"), (int, float)):
+                    views.band_series(self.rec, g, band, self._styled, len(bands))
+            labels = [views.band_label(b) for b in bands]
+            if labels and labels != self._band_labels:
+                self._band_labels = labels
+                self._summary()
             if adequacy.get("fails"):
                 self.text("model/log", f"fit {index}: the model fails against the instrument noise model: "
                                        + "; ".join(map(str, adequacy.get("summary") or ())), "WARN")
+        views.diagnosis_document(self.rec, index, meta.get("diagnosis"))  # the live diagnosis, when there is one
         change = meta.get("model_change")
         if isinstance(change, dict):
             def fmt(x):

@@ -4,31 +4,38 @@ The monitor's state (what arrived, the trends) lives in :mod:`stages.monitor`; t
 lives here, in functions of a recording stream ``rec`` (an ``rr.RecordingStream`` or
 anything with its ``log``), so that a view can be changed without touching the stage.
 
-Views (entity paths in brackets):
+Views (entity paths in brackets), laid out for a 1920x1080 screen:
 
-* **Noise in the fit band** (``asd``, a 2-D view): ASDs of X2 in displacement
+* **Noise** (``asd``, a 2-D view, the largest panel): ASDs of X2 in displacement
   [m/sqrt(Hz)] of the latest segment, drawn as log10 values (Rerun has no log axes)
   against log10 f, only inside the fit band and with the y range held on the science range
   (1e-13 to 1e-9 m/sqrt(Hz)): the data (with TTL), the residual after subtraction, the
   fitted TTL, the noise without TTL the instrument model expects for the segment's arms, and
-  the LISA requirement. A decade grid, tick labels on the edges and a legend in the corner
-  (no labels on the curves).
-* **chi2/dof** (``adequacy/chi2_dof``, ``adequacy/instrument/chi2_dof``): alone on its
-  axis, 1 is a model that explains the data.
-* **Residual over expected** (``adequacy/log10_residual_over_expected``): log10 of the
-  in-band median ratio of the residual's ASD to the expected noise (0 = as expected).
-* **chi2/dof per band** (``adequacy/bands/<g>``) against the instrument noise model.
-* **Coefficients** (``coefficients/<mosa>/<angle>_<side>/{fit,plus_sigma,minus_sigma,truth}``):
-  one small plot per coefficient [mm/rad], the fit at the centre of its window with
-  +-1 sigma and the truth averaged over the same window; same colours everywhere, so no
-  legend covers the plots.
-* **Alerts** (``alerts``), **Model and candidates** (``model/log``, bar charts
-  ``model/before``, ``model/after``, ``model/candidates``) and the monitor's **log** (``log``):
-  text logs.
+  the LISA requirement.  A decade grid with tick labels in real units (``0.01 Hz``,
+  ``1e-12``) on the left and bottom edges, axis titles saying the axes are log10, and the
+  legend above the plot, outside the data.  The x axis is stretched (``ASD_X_STRETCH``) so
+  that the plot fills a landscape panel (a 2-D view keeps one unit the same length on both
+  axes: unstretched, 2.5 decades of frequency against 4 of ASD filled a quarter of it).
+* **χ²/dof** (``adequacy/chi2_dof``, ``adequacy/instrument/chi2_dof``): 1 is a model that
+  explains the data.  **Residual / expected** (``adequacy/log10_residual_over_expected``):
+  log10 of the in-band median ratio of the residual's ASD to the expected noise.
+  **χ²/dof per band** (``adequacy/bands/<g>``) against the instrument noise model, coloured
+  from blue (lowest band) to red (highest).  No legend over the data: the series are named
+  in the view titles and in the run summary.
+* **Coefficients** (``coefficients/<mosa>/<angle>_<side>/{fit,truth}``): one small plot per
+  coefficient [mm/rad]; ``fit`` holds three series, the fit at the centre of its window and
+  fit +-1 sigma, ``truth`` the truth averaged over the same window; same colours everywhere.
+* **Run and alerts** (``summary``, a text document): how far the run has been drawn and
+  every alert so far, word-wrapped.  **Diagnosis** (``diagnosis``, a text document): the
+  text and recommendation of the latest fit message whose meta carries a ``diagnosis``.
+  Tabs beside them: the alerts as a log (``alerts``), **Model and candidates**
+  (``model/log``, bar charts ``model/before``, ``model/after``, ``model/candidates``) and the
+  monitor's **log** (``log``).
 """
 
 from __future__ import annotations
 
+import json
 import math
 
 import numpy as np
@@ -42,18 +49,26 @@ CURVES = {
     "data": ("X2 data (with TTL)", (31, 119, 180)),
     "residual": ("X2 residual (TTL subtracted)", (44, 160, 44)),
     "ttl_model": ("fitted TTL", (255, 127, 14)),
-    "expected": ("noise without TTL (instrument model)", (90, 90, 90)),
+    "expected": ("expected noise without TTL", (90, 90, 90)),
     "requirement": ("LISA requirement", (214, 39, 40)),
 }
 #: Science range of the noise view: log10 ASD [m/sqrt(Hz)] shown (the requirement in the
 #: fit band lies between 1e-12 and 1e-10).
 SCIENCE_LOG10 = (-13.0, -9.0)
+#: How much longer a decade of frequency is drawn than a decade of ASD (see the module doc).
+ASD_X_STRETCH = 2.4
 #: Colours of a coefficient plot's series.
 FIT_COLOR = (31, 119, 180)
 SIGMA_COLOR = (158, 190, 224)
 TRUTH_COLOR = (30, 30, 30)
+#: chi^2/dof lines: the fit's own (re-estimated noise) and against the instrument noise model.
+CHI2_COLOR = (30, 30, 30)
+INSTRUMENT_COLOR = (214, 39, 40)
 #: Greek letters of the angles, for view titles.
 _ANGLE = {"phi": "φ", "eta": "η"}
+#: Entities of the text documents.
+SUMMARY = "summary"
+DIAGNOSIS = "diagnosis"
 
 
 def coefficient_entity(name: str) -> str:
@@ -71,51 +86,67 @@ def _log_band(band) -> tuple[float, float]:
     return math.log10(band[0]), math.log10(band[1])
 
 
+def band_color(g: int, n: int = 8) -> tuple[int, int, int]:
+    """Colour of adequacy band ``g`` (0 = lowest frequency): blue through purple to red."""
+    s = min(max(g / max(n - 1, 1), 0.0), 1.0)
+    return int(31 + s * (214 - 31)), int(119 - s * (119 - 39)), int(180 - s * (180 - 40))
+
+
 # ---------------------------------------------------------------------------- blueprint
 
-def blueprint(band) -> rrb.Blueprint:
-    """The layout: noise and adequacy on the left, the 24 coefficient plots on the right,
-    the text logs below; time series show the whole mission time range."""
+def _series(name: str, contents, **kw) -> rrb.TimeSeriesView:
+    """A time series over the whole mission time range, without a legend over its data."""
     everything = rrb.TimeRangeBoundary.infinite()
     whole = [rrb.VisibleTimeRange(t, start=everything, end=everything) for t in ("mission_time", "segment")]
-    no_legend = rrb.PlotLegend(visible=False)
+    return rrb.TimeSeriesView(name=name, contents=contents, time_ranges=whole,
+                              axis_x=rrb.TimeAxis(view_range=rr.TimeRange(start=everything, end=everything)),
+                              plot_legend=rrb.PlotLegend(visible=False), **kw)
 
-    def series(name: str, contents, **kw):
-        return rrb.TimeSeriesView(name=name, contents=contents, time_ranges=whole,
-                                  axis_x=rrb.TimeAxis(view_range=rr.TimeRange(start=everything, end=everything)),
-                                  **kw)
 
-    order = [n for m in PAPER_ORDER for n in COEFFICIENT_NAMES if n.startswith(m + ".")]
-    coefficients = [series(coefficient_title(n), [f"+ /{coefficient_entity(n)}/**"], plot_legend=no_legend)
-                    for n in order]
+def noise_view(band) -> rrb.Spatial2DView:
+    """The residual ASD against the requirement, with room for ticks, axis titles and legend."""
     x0, x1 = _log_band(band)
     y0, y1 = SCIENCE_LOG10
-    noise = rrb.Spatial2DView(
-        origin="asd", name="Noise in the fit band: log10 ASD of X2 [m/√Hz] vs log10 f [Hz]",
-        # the plot is flipped (larger ASD up): its y is -log10 ASD
-        visual_bounds=rrb.VisualBounds2D(x_range=[x0 - 0.45, x1 + 0.05], y_range=[-y1 - 0.45, -y0 + 0.35]))
+    s = ASD_X_STRETCH
+    # the plot is flipped (larger ASD up): its y is -log10 ASD; margins: tick labels and the
+    # y-axis title on the left, frequency labels and x-axis title below, the legend above
+    return rrb.Spatial2DView(
+        origin="asd", name="Noise of X2: ASD [m/√Hz] vs frequency [Hz], both log10 scales",
+        visual_bounds=rrb.VisualBounds2D(x_range=[s * x0 - 0.75, s * x1 + 0.15],
+                                         y_range=[-y1 - 1.05, -y0 + 0.6]))
+
+
+def blueprint(band) -> rrb.Blueprint:
+    """The layout: the noise and adequacy on the left, the 24 coefficient plots on the right,
+    the run summary with the alerts and the diagnosis below them; time series show the whole
+    mission time range."""
+    order = [n for m in PAPER_ORDER for n in COEFFICIENT_NAMES if n.startswith(m + ".")]
+    coefficients = [_series(coefficient_title(n), [f"+ /{coefficient_entity(n)}/**"]) for n in order]
     adequacy = rrb.Horizontal(
-        series("χ²/dof (1 = model explains the data)",
-               ["+ /adequacy/chi2_dof", "+ /adequacy/instrument/chi2_dof"],
-               plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop)),
-        series("log10 residual / expected noise (in band)", ["+ /adequacy/log10_residual_over_expected"],
-               plot_legend=no_legend),
-        series("χ²/dof per band (instrument noise model)", ["+ /adequacy/bands/**"],
-               plot_legend=rrb.PlotLegend(corner=rrb.Corner2D.LeftTop)),
+        _series("χ²/dof: fit black, model red", ["+ /adequacy/chi2_dof", "+ /adequacy/instrument/chi2_dof"]),
+        _series("log10 residual/expected", ["+ /adequacy/log10_residual_over_expected"]),
+        _series("χ²/dof per band, f: blue→red", ["+ /adequacy/bands/**"]),
     )
-    logs = rrb.Tabs(
-        rrb.TextLogView(origin="/alerts", name="Alerts"),
-        rrb.TextLogView(origin="/model", contents=["+ /model/log"], name="Model and candidates"),
-        rrb.BarChartView(origin="model/candidates", name="Top candidates: Δχ²"),
-        rrb.BarChartView(origin="model/before", name="χ²/dof per band before the model change"),
-        rrb.BarChartView(origin="model/after", name="χ²/dof per band after"),
-        rrb.TextLogView(origin="/log", name="Monitor log"),
+    texts = rrb.Horizontal(
+        rrb.TextDocumentView(origin=f"/{SUMMARY}", name="Run and alerts"),
+        rrb.Tabs(
+            rrb.TextDocumentView(origin=f"/{DIAGNOSIS}", name="Diagnosis"),
+            rrb.TextLogView(origin="/alerts", name="Alert log"),
+            rrb.TextLogView(origin="/model", contents=["+ /model/log"], name="Model"),
+            rrb.BarChartView(origin="model/candidates", name="Candidates Δχ²"),
+            rrb.BarChartView(origin="model/before", name="χ²/dof per band before"),
+            rrb.BarChartView(origin="model/after", name="after"),
+            rrb.TextLogView(origin="/log", name="Monitor log"),
+        ),
+        column_shares=[1, 1],
     )
     return rrb.Blueprint(
         rrb.Horizontal(
-            rrb.Vertical(noise, adequacy, logs, row_shares=[5, 3, 2]),
-            rrb.Grid(*coefficients, grid_columns=4, name="Coefficients: fit ±1σ (blue), truth (black)"),
-            column_shares=[2, 3],
+            rrb.Vertical(noise_view(band), adequacy, row_shares=[7, 3]),
+            rrb.Vertical(
+                rrb.Grid(*coefficients, grid_columns=4, name="Coefficients: fit ±1σ (blue), truth (black)"),
+                texts, row_shares=[13, 5]),
+            column_shares=[1, 1],
         ),
         rrb.TimePanel(timeline="mission_time", play_state="following", state="collapsed"),
         rrb.BlueprintPanel(state="collapsed"),
@@ -126,42 +157,54 @@ def blueprint(band) -> rrb.Blueprint:
 # ---------------------------------------------------------------------------- static parts
 
 def static_styles(rec, band) -> None:
-    """Axes of the noise view, its legend, and the series styles (once, static)."""
-    rec.log("asd/plot", rr.Transform3D(scale=[1.0, -1.0, 1.0]), static=True)  # larger ASD up
+    """Axes of the noise view, its legend, the series styles and empty text panels (once, static)."""
+    rec.log("asd/plot", rr.Transform3D(scale=[ASD_X_STRETCH, -1.0, 1.0]), static=True)  # larger ASD up
     noise_axes(rec, band)
     for name in COEFFICIENT_NAMES:
         ent = coefficient_entity(name)
-        rec.log(f"{ent}/fit", rr.SeriesLines(colors=[FIT_COLOR], widths=[2.0], names=["fit"]), static=True)
-        for part, label in (("plus_sigma", "+1σ"), ("minus_sigma", "−1σ")):
-            rec.log(f"{ent}/{part}", rr.SeriesLines(colors=[SIGMA_COLOR], widths=[1.0], names=[label]), static=True)
+        rec.log(f"{ent}/fit", rr.SeriesLines(colors=[FIT_COLOR, SIGMA_COLOR, SIGMA_COLOR], widths=[2.0, 1.0, 1.0],
+                                             names=["fit", "+1σ", "−1σ"]), static=True)
         rec.log(f"{ent}/truth", rr.SeriesLines(colors=[TRUTH_COLOR], widths=[1.0], names=["truth"]), static=True)
-    rec.log("adequacy/chi2_dof", rr.SeriesLines(colors=[(30, 30, 30)], widths=[2.0],
+    rec.log("adequacy/chi2_dof", rr.SeriesLines(colors=[CHI2_COLOR], widths=[2.0],
                                                 names=["fit (re-estimated noise)"]), static=True)
-    rec.log("adequacy/instrument/chi2_dof", rr.SeriesLines(colors=[(214, 39, 40)], widths=[2.0],
+    rec.log("adequacy/instrument/chi2_dof", rr.SeriesLines(colors=[INSTRUMENT_COLOR], widths=[2.0],
                                                            names=["instrument noise model"]), static=True)
     rec.log("adequacy/log10_residual_over_expected",
             rr.SeriesLines(colors=[CURVES["residual"][1]], widths=[1.5], names=["log10 residual/expected"]),
             static=True)
 
 
+def first_texts(rec) -> None:
+    """The text panels before anything is drawn, at the current time (mission time 0: not
+    static, which would hide every later document of the entity)."""
+    summary_document(rec, "No segment drawn yet", [], [])
+    rec.log(DIAGNOSIS, rr.TextDocument("No diagnosis yet: it appears here when a fit message carries one.",
+                                       media_type="text/markdown"))
+
+
 def noise_axes(rec, band) -> None:
     """Decade grid of the noise view over the fit band and the science range, tick labels
-    on the left and bottom edges, and the legend in the top-left corner."""
+    on the left and bottom edges, axis titles, and the legend above the plot."""
     x0, x1 = _log_band(band)
     y0, y1 = SCIENCE_LOG10
+    s = ASD_X_STRETCH
     xt = list(range(math.ceil(x0), math.floor(x1) + 1))
     yt = list(range(int(y0), int(y1) + 1))
     lines = [[(x, y0), (x, y1)] for x in xt] + [[(x0, y), (x1, y)] for y in yt]
     lines += [[(x0, y0), (x0, y1)], [(x1, y0), (x1, y1)]]  # the band's edges
     rec.log("asd/plot/grid", rr.LineStrips2D(lines, colors=[(210, 210, 210)], radii=rr.Radius.ui_points(0.5)),
             static=True)
-    ticks = [(x, y0 - 0.18) for x in xt] + [(x0 - 0.22, y) for y in yt]
+    # label positions in data units; the x stretch makes a data unit of x longer on screen
+    ticks = [(x, y0 - 0.12) for x in xt] + [(x0 - 0.16 / s, y) for y in yt]
     labels = [f"{10.0 ** x:g} Hz" for x in xt] + [f"1e{y}" for y in yt]
-    rec.log("asd/plot/ticks", rr.Points2D(ticks, labels=labels, radii=rr.Radius.ui_points(0.1),
-                                          colors=[(110, 110, 110)], show_labels=True), static=True)
+    titles = [(0.5 * (x0 + x1), y0 - 0.32), (x0 + 0.1, y1 + 0.2)]
+    rec.log("asd/plot/ticks", rr.Points2D(ticks + titles, labels=labels + ["frequency [Hz], log10 scale",
+                                                                          "ASD [m/√Hz], log10 scale"],
+                                          radii=rr.Radius.ui_points(0.1), colors=[(90, 90, 90)],
+                                          show_labels=True), static=True)
     names = list(CURVES)
-    step = 0.22
-    pts = [(x0 + 0.75, y0 + 0.95 - step * k) for k in range(len(names))]  # below the noise, clear of the ticks
+    # the legend in two rows of three above the plot (y above the science range): outside the data
+    pts = [(x0 + (0.12 + 0.36 * (k % 3)) * (x1 - x0), y1 + 0.85 - 0.3 * (k // 3)) for k in range(len(names))]
     rec.log("asd/plot/legend", rr.Points2D(pts, labels=[CURVES[n][0] for n in names],
                                            colors=[CURVES[n][1] for n in names],
                                            radii=rr.Radius.ui_points(5.0), show_labels=True), static=True)
@@ -192,12 +235,11 @@ def noise_curve(rec, name: str, f, asd, band) -> None:
 
 
 def fit_point(rec, C, S) -> None:
-    """The 24 coefficients [m/rad] with their sigma, in mm/rad."""
+    """The 24 coefficients [m/rad] with their sigma, in mm/rad: one row of three series
+    (fit, fit + sigma, fit - sigma) per coefficient."""
     for p, name in enumerate(COEFFICIENT_NAMES):
-        ent = coefficient_entity(name)
-        rec.log(f"{ent}/fit", rr.Scalars(C[p] * 1e3))
-        rec.log(f"{ent}/plus_sigma", rr.Scalars((C[p] + S[p]) * 1e3))
-        rec.log(f"{ent}/minus_sigma", rr.Scalars((C[p] - S[p]) * 1e3))
+        c, s = C[p] * 1e3, S[p] * 1e3
+        rec.log(f"{coefficient_entity(name)}/fit", rr.Scalars([c, c + s, c - s]))
 
 
 def truth_point(rec, truth) -> None:
@@ -206,15 +248,50 @@ def truth_point(rec, truth) -> None:
         rec.log(f"{coefficient_entity(name)}/truth", rr.Scalars(truth[p] * 1e3))
 
 
-def band_series(rec, g: int, band: dict, styled: set) -> None:
-    """chi2/dof of band ``g`` against the instrument noise model."""
+def band_label(band: dict) -> str:
+    return f"{band.get('f_lo', 0):.3g}-{band.get('f_hi', 0):.3g} Hz"
+
+
+def band_series(rec, g: int, band: dict, styled: set, n_bands: int = 8) -> None:
+    """chi2/dof of band ``g`` (of ``n_bands``) against the instrument noise model."""
     ent = f"adequacy/bands/{g}"
     if ent not in styled:
         styled.add(ent)
-        rec.log(ent, rr.SeriesLines(names=[f"{band.get('f_lo', 0):.3g}-{band.get('f_hi', 0):.3g} Hz"],
-                                    widths=[1.0]), static=True)
+        rec.log(ent, rr.SeriesLines(names=[band_label(band)], colors=[band_color(g, n_bands)], widths=[1.5]),
+                static=True)
     rec.log(ent, rr.Scalars(float(band["chi2_dof"])))
 
 
 def text(rec, entity: str, message: str, level: str = "INFO") -> None:
     rec.log(entity, rr.TextLog(message, level=level))
+
+
+def days(t: float) -> str:
+    """Mission time [s] for people: ``3.50 d``."""
+    return f"{t / 86400.0:.2f} d"
+
+
+def summary_document(rec, progress: str, alerts: list[str], bands: list[str]) -> None:
+    """The run summary: how far the run is drawn, every alert so far (newest last) and the
+    key of the per-band chi^2/dof plot, as a word-wrapped markdown document."""
+    lines = [f"**{progress}**", ""]
+    lines += [f"**Alerts ({len(alerts)})**", ""] + ([f"- {a}" for a in alerts] or ["- none"])
+    if bands:
+        lines += ["", "**χ²/dof bands** (blue → red): " + ", ".join(bands)]
+    rec.log(SUMMARY, rr.TextDocument("\n".join(lines), media_type="text/markdown"))
+
+
+def diagnosis_document(rec, index: int, diagnosis) -> bool:
+    """The live diagnosis of fit ``index`` (its meta ``diagnosis``: ``text`` and, when
+    present, ``recommendation``) as a markdown document; False (nothing drawn) when the
+    meta has no usable text."""
+    if not isinstance(diagnosis, dict) or not isinstance(diagnosis.get("text"), str) or not diagnosis["text"].strip():
+        return False
+    lines = [f"**Fit {index}**", "", diagnosis["text"].strip()]
+    recommendation = diagnosis.get("recommendation")
+    if not isinstance(recommendation, str) and recommendation is not None:  # e.g. a model to refit with
+        recommendation = json.dumps(recommendation, default=str)
+    if recommendation and recommendation.strip():
+        lines += ["", f"**Recommendation:** {recommendation.strip()}"]
+    rec.log(DIAGNOSIS, rr.TextDocument("\n".join(lines), media_type="text/markdown"))
+    return True

@@ -122,12 +122,63 @@ def start_live(live, port: int | None = None, binary: str | None = None):
     return None, str(live), None
 
 
+#: Wall-clock time for which the file stream gathers rows before it writes them as chunks
+#: (one chunk per entity and batch, not one per logged row). What a killed monitor loses
+#: at most; every stage's MCAP file keeps what the monitor was drawing from.
+FILE_BATCH_SECONDS = 60.0
+
+
+def file_batcher(seconds: float = FILE_BATCH_SECONDS):
+    """The chunk batcher of a recording file: rows gathered for ``seconds`` of wall clock
+    (or 8 MiB, or 65536 rows), then written as one chunk per entity.
+
+    Rerun's default (a chunk every 200 ms, or at every ``flush``) wrote one-row chunks:
+    7,722 of them for a 3-day monitor run, which the web viewer ingested at about 2 hours of
+    mission time a minute.
+    """
+    import datetime
+
+    import rerun as rr
+
+    return rr.ChunkBatcherConfig(flush_tick=datetime.timedelta(seconds=float(seconds)),
+                                 flush_num_bytes=8 << 20, flush_num_rows=65536)
+
+
+def compact_rrd(rrd: Path, binary: str | None = None, timeout: float = 300.0) -> str | None:
+    """Rewrite the closed recording ``rrd`` with its chunks merged (``rerun rrd optimize``:
+    one chunk per entity as far as the size limits allow, and a footer); returns None, or
+    why the file was left as it was.
+
+    Batching bounds the chunks by the wall-clock time a run takes; a run whose segments come
+    slower than a batch (real time: an hour a segment) still writes a chunk per entity and
+    segment.  Merged, a week of 1-h segments is a few hundred chunks whatever the pace
+    (~1 s for a week's file).  The file is replaced atomically, only once the merged copy is
+    whole; a failure leaves the original, which is complete and has its footer.
+    """
+    rrd = Path(rrd)
+    tmp = rrd.with_name(rrd.name + ".optimizing")
+    try:
+        cmd = [rerun_binary(binary), "rrd", "optimize", str(rrd), "-o", str(tmp)]
+        done = subprocess.run(cmd, stdin=subprocess.DEVNULL, capture_output=True, text=True, timeout=timeout)
+        if done.returncode != 0 or not tmp.exists() or tmp.stat().st_size == 0:
+            last = (done.stderr or done.stdout).strip().splitlines()[-1:] or [f"exit status {done.returncode}"]
+            return f"rerun rrd optimize failed: {last[0]}"
+        os.replace(tmp, rrd)
+        return None
+    except (OSError, subprocess.SubprocessError) as exc:
+        return f"rerun rrd optimize: {exc}"
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
 class LiveFanout:
     """Logs to the file recording and, while it works, to a live viewer's recording.
 
-    Both are Rerun recording streams (``rerun.RecordingStream``).  The live stream is
-    flushed with a short timeout; when it fails (the viewer closed or unreachable) it is
-    dropped, so a lost viewer never stalls the caller or the file.
+    Both are Rerun recording streams (``rerun.RecordingStream``).  The file stream batches
+    its rows (:func:`file_batcher`) and writes an RRD footer when closed
+    (:meth:`disconnect`); the live stream is flushed at every :meth:`flush` with a short
+    timeout, and when it fails (the viewer closed or unreachable) it is dropped, so a lost
+    viewer never stalls the caller or the file.
     """
 
     def __init__(self, file_rec, live_rec=None, on_live_failure=None, live_timeout: float = 2.0):
@@ -135,25 +186,28 @@ class LiveFanout:
         self.live = live_rec
         self.on_live_failure = on_live_failure
         self.live_timeout = live_timeout
+        self.closed = False
 
     @classmethod
     def open(cls, application_id: str, recording_id: str, rrd: Path, url: str | None = None, blueprint=None,
-             on_live_failure=None) -> "LiveFanout":
+             on_live_failure=None, batch_seconds: float = FILE_BATCH_SECONDS) -> "LiveFanout":
         """A recording written to ``rrd`` and, when ``url`` is given, streamed to the viewer
         there as a stream of its own (both with the default ``blueprint``).
 
-        The file is written without an RRD footer: a footer's manifest lists every chunk
-        written, and the sink keeps it in memory until the file is closed, which grows the
-        process by ~65 kB per monitor segment (one chunk per entity and flush), for ever in a
-        long run (measured in ``docs/operations.md``, Measuring).  The file is still a valid
-        RRD that the viewer and ``rerun.chunk.RrdReader(...).stream()`` read whole (as they read a
-        file whose writer was killed); ``rerun rrd optimize`` adds a footer afterwards if
-        random access into a large file is wanted.
+        The file's rows are gathered for ``batch_seconds`` and written as one chunk per entity
+        (:func:`file_batcher`), and the file ends with an RRD footer (a manifest of its chunks,
+        which lets a viewer open it without a scan) written by :meth:`disconnect`.  The sink
+        keeps that manifest in memory until then, ~0.3 kB per chunk: batching keeps it small
+        (a 7-day run of 1-h segments replayed at full speed: a few hundred chunks; replayed in
+        real time, about one chunk per drawn entity and segment, ~15 kB per segment).  A file
+        whose writer was killed has no footer and lacks the last batch; the viewer and
+        ``rerun.chunk.RrdReader(...).stream()`` still read it whole.
         """
         import rerun as rr
 
-        file_rec = rr.RecordingStream(application_id, recording_id=recording_id)
-        file_rec.set_sinks(rr.FileSink(str(rrd), write_footer=False), default_blueprint=blueprint)
+        file_rec = rr.RecordingStream(application_id, recording_id=recording_id,
+                                      batcher_config=file_batcher(batch_seconds))
+        file_rec.set_sinks(rr.FileSink(str(rrd), write_footer=True), default_blueprint=blueprint)
         live_rec = None
         if url:  # a stream of its own: a viewer that goes away must not stall the file
             live_rec = rr.RecordingStream(application_id, recording_id=recording_id)
@@ -168,6 +222,9 @@ class LiveFanout:
     def log(self, *args, **kwargs):
         self._both("log", *args, **kwargs)
 
+    def send_columns(self, *args, **kwargs):
+        self._both("send_columns", *args, **kwargs)
+
     def set_time(self, *args, **kwargs):
         self._both("set_time", *args, **kwargs)
 
@@ -175,7 +232,8 @@ class LiveFanout:
         self._both("send_recording_name", name)
 
     def flush(self) -> None:
-        self.file.flush()
+        """Send what was logged to the live viewer now.  The file is left to its batcher:
+        flushing it here would write a chunk per entity and message again."""
         if self.live is not None:
             try:
                 self.live.flush(timeout_sec=self.live_timeout)
@@ -189,7 +247,13 @@ class LiveFanout:
             self.on_live_failure(exc)
 
     def disconnect(self) -> None:
-        self.file.disconnect()  # flushes and closes the file
+        """Write the last batch and the footer, close the file; let the live viewer go.
+        Idempotent (the monitor calls it on every way out)."""
+        if self.closed:
+            return
+        self.closed = True
+        self.file.flush()
+        self.file.disconnect()  # closes the file sink: the RRD footer is written here
         if self.live is not None:
             try:
                 self.live.flush(timeout_sec=self.live_timeout)
