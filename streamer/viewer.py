@@ -12,6 +12,7 @@ or to a viewer already running at a ``rerun+http://`` URL.  The SDK's own web-vi
 
 from __future__ import annotations
 
+import datetime
 import os
 import shutil
 import signal
@@ -136,9 +137,7 @@ def file_batcher(seconds: float = FILE_BATCH_SECONDS):
     7,722 of them for a 3-day monitor run, which the web viewer ingested at about 2 hours of
     mission time a minute.
     """
-    import datetime
-
-    import rerun as rr
+    import rerun as rr  # the viewer's SDK, loaded by the processes that draw only
 
     return rr.ChunkBatcherConfig(flush_tick=datetime.timedelta(seconds=float(seconds)),
                                  flush_num_bytes=8 << 20, flush_num_rows=65536)

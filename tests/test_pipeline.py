@@ -171,7 +171,9 @@ def test_message_contracts_and_streaming_equals_batch(t1):
     assert tdi[0].header.channels == ("X2", "Y2", "Z2") and tdi[0].header.meta["names"] == list(COEFFICIENT_NAMES)
     # the recording keeps X2, Y2, Z2; the regressors (rebuilt from the telemetry) are checked
     # below through the subtractor's TTL model, which the tdi_builder's published regressors make
-    assert set(tdi[0].arrays) == {"data"} and tdi[0].header.meta["recorded"]["published_arrays"] == ["data", "regressors"]
+    # (and the forwarded telemetry, which the replayer's recording holds)
+    assert set(tdi[0].arrays) == {"data"} and tdi[0].header.meta["recorded"]["published_arrays"] == [
+        "data", "regressors", "eta", "dws_phi", "dws_eta", "ltt"]
     data = np.concatenate([s.arrays["data"] for s in tdi], axis=1)
     regs = batch.regressors
     # to 1e-9 of the largest sample: streamed and batch TDI cut the engine's blocks at different
