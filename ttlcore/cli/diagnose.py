@@ -30,6 +30,7 @@ from ..estimate.analyze import check_band, load_truth
 from ..io.atomic import write_json
 from ..io.reader import file_kind, read_telemetry
 from ..plots.diagnosis import plot_residual_vs_noise, plot_witness_coherence
+from ..plots.transients import plot_time_frequency
 from .progress import status_line
 
 
@@ -123,6 +124,7 @@ def run(args) -> int:
         report = diagnose(tm, effects, settings=s, effect_modules=modules, candidates=candidates,
                           truth_coefficients=truth, witnesses=not args.no_witnesses, progress=say)
     internals = report["_internals"]
+    tf_map = (report.get("transients") or {}).get("_map")
     report = strip_internals(report)
     report["file"] = str(data)
     report["truth_file"] = str(args.truth) if args.truth else None
@@ -130,15 +132,17 @@ def run(args) -> int:
         out = Path(args.out)
         out.mkdir(parents=True, exist_ok=True)
 
-        data, model = internals["data"], internals["model"]
+        wdata, model = internals["data"], internals["model"]  # not ``data``: the file name, printed below
         fits = {"model": model}
         if "before" in report:
-            fits = {"linear-ttl": fit_model(data, make_effects(["linear-ttl"]), time_table=False), "model": model}
+            fits = {"linear-ttl": fit_model(wdata, make_effects(["linear-ttl"]), time_table=False), "model": model}
         fine = {label: fine_band_table(fit) for label, fit in fits.items()}
-        paths = {"residual_vs_noise": str(plot_residual_vs_noise(data, fits, out / "residual_vs_noise.png", s.tolerance,
+        paths = {"residual_vs_noise": str(plot_residual_vs_noise(wdata, fits, out / "residual_vs_noise.png", s.tolerance,
                                                                  fine))}
         if report.get("witnesses"):
             paths["witness_coherence"] = str(plot_witness_coherence(report["witnesses"], out / "witness_coherence.png"))
+        if tf_map is not None:
+            paths["time_frequency"] = str(plot_time_frequency(tf_map, report["transients"], out / "time_frequency.png"))
         report["figures"] = paths
     write_json(json_path, report)
     print(text_report(report, str(data)))

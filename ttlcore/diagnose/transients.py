@@ -22,8 +22,8 @@ adequacy test does.
 
 **Background.**  A transient is an excess *against the rest of the data*: each channel and
 band has a background level ``B[c, b]``, the median over the tiles of ``chi2/dof`` divided
-by the median of ``chi^2_k / k`` (``k = dof / kappa``; Wilson-Hilferty,
-``(1 - 2 / (9 k))^3``), and never below 1 (the noise model).  A stationary excess (a missing
+by the median of ``chi^2_k / k`` (``k = dof``; Wilson-Hilferty, ``(1 - 2 / (9 k))^3``), and
+never below 1 (the noise model).  A stationary excess (a missing
 coupling, a wrong noise level) raises ``B`` and is not a transient; a loud hour does not
 move a median.
 
@@ -246,7 +246,9 @@ def time_frequency_map(residual, fs: float, t0: float, f_psd, psd, band, *, tile
     kappa = variance_factor("hann", min(L, 4096), 0.0)
     use = ok if ok.any() else np.ones_like(ok)
     med = np.median(chi2[:, use], axis=1) / dof[None, :]
-    background = np.maximum(med / median_factor(dof / kappa)[None, :], 1.0)
+    # the median of chi2/dof: the bins' correlation inflates the variance, not the mean; the
+    # median of a sum of a few correlated exponentials stays close to chi^2 with dof degrees
+    background = np.maximum(med / median_factor(dof)[None, :], 1.0)
     return TimeFrequencyMap(t0 + starts / fs, L / fs, hop / fs, edges, chi2, dof, kappa, background, tolerance, ok)
 
 
@@ -599,8 +601,13 @@ def quiet_adequacy(tf: TimeFrequencyMap, events, alpha: float) -> dict:
     chi2 = tf.chi2[:, idx].sum(axis=(0, 1))
     dof = 3 * tf.dof * idx.size
     p = _p(chi2, dof, 1.0, tf.kappa, tf.tolerance)
+    ch = tf.chi2[:, idx].sum(axis=(1, 2))
+    ch_dof = tf.dof.sum() * idx.size
+    ex = np.maximum(ch - ch_dof, 0.0)
     return {"tiles": int(idx.size), "hours": float(idx.size * tf.duration / 3600),
             "chi2_dof": float(chi2.sum() / dof.sum()), "band_chi2_dof": [float(x) for x in chi2 / dof],
+            "channel_chi2_dof": {c: float(ch[i] / ch_dof) for i, c in enumerate(CHANNELS)},
+            "t_share": float(ex[2] / ex.sum()) if ex.sum() > 0 else None,
             "fails": bool((p < alpha / G).any())}
 
 
