@@ -124,7 +124,6 @@ def run(args) -> int:
         report = diagnose(tm, effects, settings=s, effect_modules=modules, candidates=candidates,
                           truth_coefficients=truth, witnesses=not args.no_witnesses, progress=say)
     internals = report["_internals"]
-    tf_map = (report.get("transients") or {}).get("_map")
     report = strip_internals(report)
     report["file"] = str(data)
     report["truth_file"] = str(args.truth) if args.truth else None
@@ -141,8 +140,9 @@ def run(args) -> int:
                                                                  fine))}
         if report.get("witnesses"):
             paths["witness_coherence"] = str(plot_witness_coherence(report["witnesses"], out / "witness_coherence.png"))
-        if tf_map is not None:
-            paths["time_frequency"] = str(plot_time_frequency(tf_map, report["transients"], out / "time_frequency.png"))
+        if internals.get("transient_map") is not None:
+            paths["time_frequency"] = str(plot_time_frequency(internals["transient_map"], report["transients"],
+                                                              out / "time_frequency.png"))
         report["figures"] = paths
     write_json(json_path, report)
     print(text_report(report, str(data)))

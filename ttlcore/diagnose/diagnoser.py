@@ -137,7 +137,7 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
                           "time_segment": s.time_segment, "tolerance": s.tolerance, "alpha": s.alpha,
                           "log_bf_threshold": s.log_bf_threshold, "dws_asd": model.data.dws_asd}
     report["timings_s"] = timings
-    report["_internals"] = {"data": model.data, "model": model}
+    report["_internals"] = {"data": model.data, "model": model, "transient_map": report["transients"].pop("_map")}
     return report
 
 

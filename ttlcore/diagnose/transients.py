@@ -31,7 +31,9 @@ move a median.
 n_tests`` (Bonferroni over every tile and channel and every tile's broadband sum, so that a
 day of noise raises a false event with probability ``alpha``, default 1e-3); a slice is hot
 when one of its tiles or its broadband sum (all bands of one channel) is.  Contiguous hot
-slices form an *event*: start and stop (the first and last hot slice's centre -+ half a
+slices form the core of an event, which grows over the neighbouring slices whose sum over
+the core's significant bands (A, E, T) has p < ``alpha`` (hysteresis: the weak start of a
+chirp belongs to it).  An *event* has: start and stop (the first and last hot slice's centre -+ half a
 hop), the channels that carry it (a channel whose most significant tile or broadband sum in
 the event passes the same threshold), its band (the bands whose summed excess over the
 event is significant at ``alpha`` per band), its time-frequency track (per hot slice the
@@ -305,7 +307,11 @@ def find_events(tf: TimeFrequencyMap, alpha: float = MAP_ALPHA) -> list[Event]:
     pb = np.where(tf.valid[None, :], tf.broadband_p(), 1.0)
     hot = (pt < thr).any(axis=(0, 2)) | (pb < thr).any(axis=0)
     ex = tf.excess()
-    events = []
+    # cores: contiguous hot tiles; then each core grows (hysteresis) over the neighbouring
+    # tiles whose sum over the core's significant bands (A, E, T) has p < alpha: the weak
+    # start of a chirp or the tail of a ringing glitch belong to the event, not to the quiet
+    # tiles
+    member = np.zeros(n_t, dtype=bool)
     k = 0
     while k < n_t:
         if not hot[k]:
@@ -314,8 +320,30 @@ def find_events(tf: TimeFrequencyMap, alpha: float = MAP_ALPHA) -> list[Event]:
         j = k
         while j + 1 < n_t and hot[j + 1]:
             j += 1
-        sl = np.arange(k, j + 1)
-        events.append(_event(tf, sl, pt, pb, ex, n_tests, alpha))
+        core = _event(tf, np.arange(k, j + 1), pt, pb, ex, n_tests, alpha)
+        bands = np.arange(min(core.significant_bands), max(core.significant_bands) + 1)
+        level = (tf.background[:, bands] * tf.dof[None, bands]).sum()
+        dof = 3 * tf.dof[bands].sum()
+
+        def weak(i):
+            return bool(tf.valid[i]) and _p(tf.chi2[:, i][:, bands].sum(), dof, level / dof, tf.kappa, tf.tolerance) < alpha
+        lo, hi = k, j
+        while lo - 1 >= 0 and weak(lo - 1):
+            lo -= 1
+        while hi + 1 < n_t and weak(hi + 1):
+            hi += 1
+        member[lo:hi + 1] = True
+        k = j + 1
+    events = []
+    k = 0
+    while k < n_t:
+        if not member[k]:
+            k += 1
+            continue
+        j = k
+        while j + 1 < n_t and member[j + 1]:
+            j += 1
+        events.append(_event(tf, np.arange(k, j + 1), pt, pb, ex, n_tests, alpha))
         k = j + 1
     events.sort(key=lambda e: -e.snr)
     return events
@@ -327,8 +355,10 @@ def _event(tf, sl, pt, pb, ex, n_tests, alpha) -> Event:
     # channels: the smallest p of a tile or broadband sum in the event, Bonferroni over the map
     ch_p = {c: float(min(pt[i, sl].min(), pb[i, sl].min()) * n_tests) for i, c in enumerate(CHANNELS)}
     carries = tuple(c for c in CHANNELS if ch_p[c] < alpha)
-    # independent slices only (every other one: the tiles overlap by half) for sums
-    ind = sl[::2]
+    # independent slices only (every other one: the tiles overlap by half), the loudest among
+    # them, for sums
+    peak = sl[int(np.argmax(np.maximum(ex[:, sl], 0).sum(axis=(0, 2))))]
+    ind = sl[(sl - peak) % 2 == 0]
     exc = ex[:, ind].sum(axis=1)  # (3, G)
     bg_dof = tf.background * tf.dof[None, :]
     band_chi2 = tf.chi2[:, ind].sum(axis=(0, 1))
@@ -358,7 +388,6 @@ def _event(tf, sl, pt, pb, ex, n_tests, alpha) -> Event:
     exc_c = np.maximum(exc.sum(axis=1), 0.0)
     total = float(exc_c.sum())
     t_share = float(exc_c[2] / total) if total > 0 else 0.0
-    peak = sl[int(np.argmax(np.maximum(ex[:, sl], 0).sum(axis=(0, 2))))]
     return Event(t_start=float(centres[0] - 0.5 * tf.hop), t_stop=float(centres[-1] + 0.5 * tf.hop),
                  t_peak=float(tf.t_mid[peak]), slices=tuple(int(i) for i in sl), channels=carries, channel_p=ch_p,
                  f_lo=f_lo, f_hi=f_hi, band_excess=tuple(float(x) for x in exc.sum(axis=0)),
@@ -424,7 +453,9 @@ def witness_coherence(residual, witnesses, fs: float, tf: TimeFrequencyMap, even
     win = window("hann", L)
     bands = np.clip(np.searchsorted(tf.edges, fb, side="right") - 1, 0, len(tf.edges) - 2)
     ys, Xs = [], []  # whitened per channel
-    for i in event.slices[::2]:  # independent tiles
+    sl = np.asarray(event.slices)
+    peak = sl[int(np.argmin(np.abs(tf.t_mid[sl] - event.t_peak)))]
+    for i in sl[(sl - peak) % 2 == 0]:  # independent tiles, the loudest among them
         s0 = int(round((tf.t_start[i] - t0) * fs))
         _, Y = segment_fft(np.nan_to_num(x[:, s0:s0 + L]), fs, win, workers=None)
         _, X = segment_fft(np.nan_to_num(W[:, :, s0:s0 + L]), fs, win, workers=None)
@@ -628,7 +659,8 @@ def transient_report(model, report: dict | None = None, tile: float = TILE_DURAT
 
     ``report`` (the diagnosis' report so far: adequacy, candidates) decides between a
     missing coupling and an unexplained stationary excess when the quiet tiles fail.
-    The key ``_map`` holds the :class:`TimeFrequencyMap` (for the figure).
+    The key ``_map`` holds the :class:`TimeFrequencyMap` (for the figure; the diagnosis moves
+    it to the report's ``_internals["transient_map"]``).
     """
     data = model.data
     s = data.settings
@@ -679,7 +711,9 @@ def excess_classification(report: dict, events: list, quiet: dict) -> dict:
       effect is recommended);
     - otherwise the excess is in the quiet tiles too (or coherent with the witnesses):
       ``"missing-coupling"`` when an event is witness-coherent or the best candidate
-      explains at least half of the excess, else ``"stationary-excess"`` (nothing named
+      explains at least half of the excess; ``"gravitational-wave"`` (``signal``) when T
+      carries less than ``T_SHARE_INSTRUMENTAL`` of the quiet tiles' excess (a long-lived
+      source in band over the whole span); else ``"stationary-excess"`` (nothing named
       explains it).
     """
     ad = report.get("adequacy") or {}
@@ -700,4 +734,15 @@ def excess_classification(report: dict, events: list, quiet: dict) -> dict:
         if best is not None:
             ev.append(f"the best candidate, {best['cli_spec']}, explains {100 * best['explained_fraction']:.0f} % of the excess")
         return {"class": "missing-coupling", "signal": False, "classes": sorted(set(kinds)), "evidence": ev}
+    share = quiet.get("t_share")
+    if quiet.get("fails") and share is not None and share < T_SHARE_INSTRUMENTAL:
+        # in every hour, T nearly empty, nothing named explains it: a long-lived signal (an
+        # inspiral in band over the whole span, binaries), not a coupling (a link signal
+        # puts 1/6 to 1/2 of its whitened excess into T)
+        ev.append(f"stationary in time, T carries {100 * share:.1f} % of the excess outside any transient "
+                  f"(threshold {100 * T_SHARE_INSTRUMENTAL:.0f} %): a long-lived gravitational-wave signal")
+        if best is not None:
+            ev.append(f"the best candidate, {best['cli_spec']}, explains {100 * best['explained_fraction']:.0f} %")
+        return {"class": "gravitational-wave", "signal": True, "classes": sorted(set(kinds) | {"gravitational-wave"}),
+                "evidence": ev}
     return {"class": "stationary-excess", "signal": False, "classes": sorted(set(kinds)), "evidence": ev}
