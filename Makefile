@@ -12,9 +12,9 @@ $(STAMP): pyproject.toml
 	test -x $(BIN)/python || $(PYTHON) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install --quiet -e '.[test]'
-	# the `gw` extra of pyproject.toml (lisagwresponse, healpy) without dependencies:
+	# the `gw` extra of pyproject.toml (lisagwresponse, healpy, lisaglitch, lisa-gap) without dependencies:
 	# lisagwresponse pins lisaconstants < 2, which lisainstrument cannot use (pyproject says why)
-	$(BIN)/python -m pip install --quiet --no-deps 'lisagwresponse>=2.5' 'healpy>=1.16'
+	$(BIN)/python -m pip install --quiet --no-deps 'lisagwresponse>=2.5' 'healpy>=1.16' 'lisaglitch>=2.0' 'lisa-gap>=0.4'
 	touch $(STAMP)
 
 ## demo: the main job on an embedded default: three mission days (Keplerian arms, all noises,

@@ -115,7 +115,8 @@ def excess_description(report: dict) -> str:
         parts = [f"{e['class']} {e['t_start'] / 3600:.2f}-{e['t_stop'] / 3600:.2f} h ({e['f_lo'] * 1e3:.3g}-"
                  f"{e['f_hi'] * 1e3:.3g} mHz, {', '.join(e['channels'])}, T share {100 * e['t_share']:.1f} %, "
                  f"track {e['track_kind']})" for e in ev[:3]]
-        text = f"the excess is a transient, not a missing effect: {'; '.join(parts)}"
+        parts += [f"missing data {a / 3600:.2f}-{b / 3600:.2f} h" for a, b in (tr.get("gaps") or [])[:3]]
+        text = f"the excess is a transient or a gap, not a missing effect: {'; '.join(parts)}"
         q = tr.get("quiet") or {}
         if q.get("chi2_dof") is not None:
             text += f"; outside it the residual reads chi2/dof {q['chi2_dof']:.3f} ({q['hours']:.1f} h)"

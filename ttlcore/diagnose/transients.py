@@ -41,11 +41,16 @@ band with the largest excess in A + E, and the excess-weighted mean log frequenc
 ``t_share``: the fraction of the event's whitened excess power that T carries.
 
 **T as a null channel.**  Noises enter the six links independently; whitened by the noise
-model, a signal on one link or one test mass puts about a third of its excess power in T
-(a sixth to a half, by link: ``tests/ttlcore/diagnose/test_transients.py`` computes it from
-the link responses).  A gravitational wave at the low frequencies of a merger leaves T
-nearly empty (T is the Sagnac-type null stream; an MBHB merger gave A, E chi2/dof 14 and 36
-in 3-12 mHz against T 1.04).  ``T_SHARE_INSTRUMENTAL`` (0.1) separates the two.
+model, a signal on one link puts between a sixth and a half of its excess power in T where
+link noises dominate every channel (a third on average: the links share each channel's
+noise; ``tests/ttlcore/diagnose/test_transients.py`` computes it from the link responses),
+and a test-mass signal at a few mHz, where the test-mass noise dominates A and E but not
+T, a few per cent (2.7 % measured for a glitch on test mass 21 at 3-11 mHz).  A
+gravitational wave at the low frequencies of a merger leaves T nearly empty (T is the
+Sagnac-type null stream; 0.1 % for MBHB2 at 3-21 mHz).  :func:`instrumental_t_share`
+computes, for the event's band and the diagnosis' noise CSD, the smallest share any single
+link or test mass would give (a velocity-step spectrum); the event is instrumental when its
+T share reaches a third of that (``T_SHARE_FRACTION``), gravitational-wave-like below.
 
 **Witness coherence.**  Over an event's independent tiles (every other one) and band, the
 whitened residual tiles (A, E, T, each over its own noise PSD) are regressed on the
@@ -62,8 +67,8 @@ freedom divided by ``kappa``).  ``coherent`` when the witnesses explain at least
 runs of zeros or NaN in the data); ``missing-coupling`` (witness-coherent);
 ``noise-change`` (at least ``NOISE_CHANGE_HOURS`` long and broadband: excess significant in
 at least ``BROADBAND_FRACTION`` of the bands, T carrying its share); ``gravitational-wave``
-(A or E carry it, T share below ``T_SHARE_INSTRUMENTAL``, not coherent; its track chirping,
-rising in frequency, or stationary); ``glitch`` (T share at least ``T_SHARE_INSTRUMENTAL``,
+(A or E carry it, T share below the instrumental threshold, not coherent; its track chirping,
+rising in frequency, or stationary); ``glitch`` (T share at least the threshold,
 shorter than ``NOISE_CHANGE_HOURS``); otherwise ``unclassified``.  Each class comes with the
 evidence (numbers) that decided it.
 """
@@ -90,9 +95,12 @@ TILE_DURATION = 900.0
 MIN_TILE_DOF = 4
 #: False-alarm probability of the whole map (Bonferroni over its tests).
 MAP_ALPHA = 1e-3
-#: Whitened excess share of T above which an event is instrumental (a link or test-mass
-#: signal puts 1/6 to 1/2 of it there, a low-frequency gravitational wave nearly none).
+#: Whitened excess share of T above which an event is instrumental when the noise model
+#: gives no expectation (:func:`instrumental_t_share` gives one in the diagnosis).
 T_SHARE_INSTRUMENTAL = 0.1
+#: An event is instrumental when T carries at least this fraction of the smallest share a
+#: signal on one link or one test mass would give it (:func:`instrumental_t_share`).
+T_SHARE_FRACTION = 1.0 / 3.0
 #: Share of an event's excess the witnesses must explain for it to be a missing coupling.
 COHERENT_FRACTION = 0.5
 #: An event at least this long [h] and broadband is a change of the noise level.
@@ -255,12 +263,17 @@ def time_frequency_map(residual, fs: float, t0: float, f_psd, psd, band, *, tile
 
 
 def data_gaps(series, fs: float, t0: float, valid=None, min_gap: float = MIN_GAP) -> list[tuple[float, float]]:
-    """Runs of missing data [s]: samples that are NaN or exactly zero in every channel of
-    ``series`` (3, n) for at least ``min_gap`` seconds, inside ``valid``."""
+    """Runs of missing data [s]: samples that are NaN in a channel or exactly zero in every
+    channel of ``series`` (3, n) for at least ``min_gap`` seconds, between the first and
+    the last sample of ``valid`` (the analysed span)."""
     x = np.asarray(series)
     bad = ~np.isfinite(x).all(axis=0) | (x == 0).all(axis=0)
     if valid is not None:
-        bad &= np.asarray(valid, dtype=bool)
+        idx = np.flatnonzero(valid)
+        inside = np.zeros_like(bad)
+        if idx.size:
+            inside[idx[0]:idx[-1] + 1] = True
+        bad &= inside
     out = []
     d = np.diff(np.concatenate([[0], bad.astype(np.int8), [0]]))
     for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)):
@@ -290,6 +303,15 @@ class Event:
     track_kind: str  # "chirp", "stationary", "falling", "irregular" or "single"
     coherence: dict = field(default_factory=dict)  # witness coherence (witness_coherence)
     gap: tuple | None = None  # (start, stop) of missing data it overlaps
+    #: the smallest T share a signal on one link or one test mass would have in the event's
+    #: band under the noise model (:func:`instrumental_t_share`); None: T_SHARE_INSTRUMENTAL
+    t_share_expected: float | None = None
+
+    @property
+    def t_share_threshold(self) -> float:
+        """T share separating a gravitational wave from an instrumental signal: a third of
+        :attr:`t_share_expected`, or :data:`T_SHARE_INSTRUMENTAL` without it."""
+        return T_SHARE_INSTRUMENTAL if self.t_share_expected is None else T_SHARE_FRACTION * self.t_share_expected
 
     @property
     def duration(self) -> float:
@@ -481,15 +503,56 @@ def witness_coherence(residual, witnesses, fs: float, tf: TimeFrequencyMap, even
             "coherent": bool(frac >= COHERENT_FRACTION and p < alpha)}
 
 
+def instrumental_t_share(f, noise_csd, ltt_mean, f_lo: float, f_hi: float, slope: float = -2.0) -> float:
+    """The smallest whitened T share of a signal on one link (the OMS placement, ``eta_ij``)
+    or one test mass (``eta_ij`` and ``D_ji eta_ji``) in ``[f_lo, f_hi)``:
+
+        share = sum_f |x_T|^2 / S_TT / sum_f sum_c |x_c|^2 / S_cc,
+
+    ``x_c`` the response of channel ``c`` to the placement (static mean arms,
+    :func:`ttlcore.tdi.combinations.link_responses`) times a signal spectrum ``f^slope``
+    (default ``f^-2`` in power: a velocity step, the shape of a glitch, in fractional
+    frequency), ``S`` the diagnosis' noise CSD.  Under a noise made of independent link
+    noises of one kind, the shares of the links add up to a third (each channel's noise is
+    the sum over links); where the test-mass noise dominates A and E but not T (a few mHz)
+    a test-mass signal's share falls to a few per cent, still far above a
+    gravitational wave's (0.1 % for a merger at 3-20 mHz)."""
+    from ..conventions import LINKS
+    from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
+
+    f = np.asarray(f, dtype=float)
+    sel = (f >= f_lo) & (f < f_hi)
+    if not sel.any():
+        return float("nan")
+    fb = f[sel]
+    S = np.real(np.einsum("mii->mi", np.asarray(noise_csd)[sel]))  # (m, 3)
+    ltt = np.asarray(ltt_mean, dtype=float)
+    h = np.stack([link_responses(c, fb, ltt) for c in MICHELSON])
+    h = np.einsum("ia,alm->lmi", AET_MATRIX, h)  # (6 links, m, 3)
+    rev = [LINKS.index(k[::-1]) for k in LINKS]
+    g = np.stack([h[k] + h[rev[k]] * np.exp(-2j * np.pi * fb * ltt[rev[k]])[:, None] for k in range(6)])
+    w = fb ** slope
+    shares = []
+    for x in np.concatenate([h, g]):
+        p = np.abs(x) ** 2 / S * w[:, None]  # (m, 3)
+        tot = p.sum()
+        if tot > 0:
+            shares.append(float(p[:, 2].sum() / tot))
+    return float(min(shares)) if shares else float("nan")
+
+
 def classify(event: Event) -> tuple[str, list[str]]:
     """The class of an event and the evidence for it (module docstring)."""
     ev = []
     hours = event.duration / 3600.0
     ev.append(f"{hours:.2f} h long ({_clock(event.t_start)}-{_clock(event.t_stop)}), "
               f"{_f(event.f_lo)}-{_f(event.f_hi)}, carried by {', '.join(event.channels) or 'no single channel'}")
+    thr = event.t_share_threshold
     ev.append(f"T carries {100 * event.t_share:.1f} % of its whitened excess "
-              f"({'instrumental' if event.t_share >= T_SHARE_INSTRUMENTAL else 'T consistent with a null stream'}: "
-              f"threshold {100 * T_SHARE_INSTRUMENTAL:.0f} %)")
+              f"({'instrumental' if event.t_share >= thr else 'T consistent with a null stream'}: threshold "
+              f"{100 * thr:.2g} %" + ("" if event.t_share_expected is None else
+                                     f", a third of the {100 * event.t_share_expected:.2g} % a single link or "
+                                     "test mass would give") + ")")
     coh = event.coherence or {}
     if coh:
         ev.append(f"witnesses (24 TTL regressors) explain {100 * coh['explained_fraction']:.0f} % of the excess "
@@ -506,9 +569,9 @@ def classify(event: Event) -> tuple[str, list[str]]:
         ev.append(f"broadband: excess significant in {len(event.significant_bands)} of {nb} bands")
         return "noise-change", ev
     ae = any(c in event.channels for c in ("A", "E"))
-    if ae and event.t_share < T_SHARE_INSTRUMENTAL and event.track_kind in ("chirp", "stationary", "single"):
+    if ae and event.t_share < thr and event.track_kind in ("chirp", "stationary", "single"):
         return "gravitational-wave", ev
-    if event.t_share >= T_SHARE_INSTRUMENTAL and hours < NOISE_CHANGE_HOURS:
+    if event.t_share >= thr and hours < NOISE_CHANGE_HOURS:
         return "glitch", ev
     return "unclassified", ev
 
@@ -646,7 +709,8 @@ def event_json(e: Event, cls: str, evidence: list) -> dict:
     return {"class": cls, "evidence": evidence, "t_start": e.t_start, "t_stop": e.t_stop, "t_peak": e.t_peak,
             "duration": e.duration, "channels": list(e.channels), "channel_p": e.channel_p,
             "f_lo": e.f_lo, "f_hi": e.f_hi, "track": [list(x) for x in e.track], "track_kind": e.track_kind,
-            "t_share": e.t_share, "excess": e.excess, "snr": e.snr, "coherence": e.coherence,
+            "t_share": e.t_share, "t_share_expected": e.t_share_expected, "t_share_threshold": e.t_share_threshold,
+            "excess": e.excess, "snr": e.snr, "coherence": e.coherence,
             "gap": list(e.gap) if e.gap else None}
 
 
@@ -676,12 +740,18 @@ def transient_report(model, report: dict | None = None, tile: float = TILE_DURAT
     for e in events:
         coh = witness_coherence(resid, data.regressor_series, data.fs, tf, e, data.f, psd, data.t0, keep, alpha)
         gap = next(((a, b) for a, b in gaps if a < e.t_stop and b > e.t_start), None)
-        e = Event(**{**e.__dict__, "coherence": coh, "gap": gap})
+        expected = instrumental_t_share(data.f, data.noise_csd, data.ltt_mean, e.f_lo, e.f_hi)
+        e = Event(**{**e.__dict__, "coherence": coh, "gap": gap,
+                     "t_share_expected": expected if np.isfinite(expected) else None})
         cls, evidence = classify(e)
         classes.append(cls)
         out_events.append(event_json(e, cls, evidence))
     quiet = quiet_adequacy(tf, events, alpha)
-    verdict = excess_classification(report or {}, out_events, quiet)
+    fb = [(b["f_lo"], b["f_hi"]) for b in ((report or {}).get("adequacy") or {}).get("bands", []) if b.get("fails")]
+    lo, hi = (min(a for a, _ in fb), max(b for _, b in fb)) if fb else tuple(band)
+    expected = instrumental_t_share(data.f, data.noise_csd, data.ltt_mean, lo, hi)
+    quiet["t_share_expected"] = float(expected) if np.isfinite(expected) else None
+    verdict = excess_classification(report or {}, out_events, quiet, gaps)
     robust = None
     signal_spans = [(e["t_start"] - tf.hop, e["t_stop"] + tf.hop) for e in out_events if e["class"] in NOT_AN_EFFECT]
     signal_spans += [(a, b) for a, b in gaps if not any(x[0] <= a and b <= x[1] for x in signal_spans)]
@@ -702,17 +772,19 @@ def transient_report(model, report: dict | None = None, tile: float = TILE_DURAT
             "robustness": robust, "summary": summary, "map": tf.to_json(), "_map": tf}
 
 
-def excess_classification(report: dict, events: list, quiet: dict) -> dict:
+def excess_classification(report: dict, events: list, quiet: dict, gaps=()) -> dict:
     """The class of the model's excess as a whole, with its evidence.
 
     - no failure and no event: ``"none"``;
     - every event a signal or a defect of the data (:data:`NOT_AN_EFFECT`) and the quiet
       tiles consistent with the noise model: the loudest event's class (``signal``: no
-      effect is recommended);
+      effect is recommended); no event but missing data (``gaps``) and the quiet tiles
+      consistent: ``"gap"``;
     - otherwise the excess is in the quiet tiles too (or coherent with the witnesses):
       ``"missing-coupling"`` when an event is witness-coherent or the best candidate
       explains at least half of the excess; ``"gravitational-wave"`` (``signal``) when T
-      carries less than ``T_SHARE_INSTRUMENTAL`` of the quiet tiles' excess (a long-lived
+      carries less than a third of the share a link or test-mass signal would have in the
+      failing bands (:func:`instrumental_t_share`) of the quiet tiles' excess (a long-lived
       source in band over the whole span); else ``"stationary-excess"`` (nothing named
       explains it).
     """
@@ -727,6 +799,10 @@ def excess_classification(report: dict, events: list, quiet: dict) -> dict:
     if not fails:
         return {"class": "none", "signal": False, "classes": [], "evidence": ev}
     kinds = [e["class"] for e in events]
+    if not events and gaps and not quiet.get("fails"):
+        return {"class": "gap", "signal": True, "classes": ["gap"],
+                "evidence": ev + ["missing data " + ", ".join(f"{a / 3600:.2f}-{b / 3600:.2f} h" for a, b in gaps) +
+                                  "; no transient outside it"]}
     if events and all(k in NOT_AN_EFFECT for k in kinds) and not quiet.get("fails"):
         return {"class": kinds[0], "signal": True, "classes": sorted(set(kinds)),
                 "evidence": ev + [f"{len(events)} event(s): " + ", ".join(kinds)] + events[0]["evidence"]}
@@ -735,12 +811,14 @@ def excess_classification(report: dict, events: list, quiet: dict) -> dict:
             ev.append(f"the best candidate, {best['cli_spec']}, explains {100 * best['explained_fraction']:.0f} % of the excess")
         return {"class": "missing-coupling", "signal": False, "classes": sorted(set(kinds)), "evidence": ev}
     share = quiet.get("t_share")
-    if quiet.get("fails") and share is not None and share < T_SHARE_INSTRUMENTAL:
+    expected = quiet.get("t_share_expected")
+    thr = T_SHARE_INSTRUMENTAL if expected is None else T_SHARE_FRACTION * expected
+    if quiet.get("fails") and share is not None and share < thr:
         # in every hour, T nearly empty, nothing named explains it: a long-lived signal (an
         # inspiral in band over the whole span, binaries), not a coupling (a link signal
         # puts 1/6 to 1/2 of its whitened excess into T)
         ev.append(f"stationary in time, T carries {100 * share:.1f} % of the excess outside any transient "
-                  f"(threshold {100 * T_SHARE_INSTRUMENTAL:.0f} %): a long-lived gravitational-wave signal")
+                  f"(threshold {100 * thr:.2g} %): a long-lived gravitational-wave signal")
         if best is not None:
             ev.append(f"the best candidate, {best['cli_spec']}, explains {100 * best['explained_fraction']:.0f} %")
         return {"class": "gravitational-wave", "signal": True, "classes": sorted(set(kinds) | {"gravitational-wave"}),

@@ -9,7 +9,7 @@
 - test-mass glitches from lisaglitch (``IntegratedShapeletGlitch``: the LISA Pathfinder
   model, velocity [m/s]), placed as docs/physics.md places a test mass: ``2 v / c`` into
   ``eta_ij`` and, delayed by ``L_ji``, into ``eta_ji``;
-- gaps from lisa-gap (``GapMaskGenerator``, zeros);
+- gaps from lisa-gap (``GapMaskGenerator``: NaN, missing data);
 - a noise level that doubles: extra Gaussian OMS-shaped noise (the paper's 15 pm/sqrt(Hz)
   with its 2 mHz corner, written here) on every link for a few hours, which doubles the
   OMS part of the PSD there.
@@ -126,24 +126,26 @@ def glitch_eta(t, ltt, glitches) -> np.ndarray:
     return out
 
 
-def gap_mask(t, n_gaps_per_day: float, duration_hr: float, seed: int) -> np.ndarray:
-    """A lisa-gap planned-gap mask (1 valid, 0 in a gap) on ``t`` [s]."""
+def gap_mask(t, n_gaps_per_day: float, duration_hr: float, seed: int, nan: bool = True) -> np.ndarray:
+    """A lisa-gap planned-gap mask (1 valid; NaN, or 0 with ``nan=False``, in a gap) on ``t`` [s]."""
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         import lisagap
     defs = {"planned": {"blind": {"rate_per_year": n_gaps_per_day * 365.25, "duration_hr": duration_hr}},
             "unplanned": {}}
-    gen = lisagap.GapMaskGenerator(np.asarray(t, dtype=float), defs, treat_as_nan=False, planseed=seed)
+    gen = lisagap.GapMaskGenerator(np.asarray(t, dtype=float), defs, treat_as_nan=nan, planseed=seed)
     return np.asarray(gen.generate_mask(), dtype=float)
 
 
-def oms_noise_eta(n: int, fs: float, seed: int) -> np.ndarray:
-    """Gaussian noise (6, n) [fractional frequency] with the OMS PSD of the paper on every
-    link: displacement ASD ``15 pm/sqrt(Hz) sqrt(1 + (2 mHz / f)^4)``, times ``2 pi f / c``."""
+def oms_noise_eta(n: int, fs: float, seed: int, scale: float = 0.5) -> np.ndarray:
+    """Gaussian noise (6, n) [fractional frequency] with an OMS-shaped PSD on every link:
+    displacement ASD ``scale x 15 pm/sqrt(Hz) sqrt(1 + (2 mHz / f)^4)``, times ``2 pi f / c``
+    (at ``scale`` 1 the hours holding it read chi2/dof 4.5-4.8 on a simulated day: the
+    simulator's summed OMS noise is below 15 pm; 0.5 about doubles it)."""
     rng = np.random.default_rng(seed)
     f = np.fft.rfftfreq(n, 1 / fs)
     f[0] = f[1]
-    asd = 15e-12 * np.sqrt(1 + (2e-3 / f) ** 4) * 2 * np.pi * f / C
+    asd = scale * 15e-12 * np.sqrt(1 + (2e-3 / f) ** 4) * 2 * np.pi * f / C
     w = rng.standard_normal((6, n))
     W = np.fft.rfft(w, axis=1) * asd * np.sqrt(fs / 2)
     return np.fft.irfft(W, n=n, axis=1)

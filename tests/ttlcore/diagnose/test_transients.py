@@ -107,6 +107,15 @@ def test_a_link_signal_puts_its_share_in_t():
     assert np.mean(share) == pytest.approx(1 / 3, abs=0.05)
     assert share.min() > T.T_SHARE_INSTRUMENTAL
     assert len(LINKS) == 6
+    # the diagnosis' expectation (links and test masses, f^-2 spectrum) under this noise: at
+    # most the smallest link share (it also tries the test masses), and for a flat spectrum
+    # on the links alone it is the band-summed share of the weakest link
+    csd = np.zeros((f.size, 3, 3), dtype=complex)
+    for c in range(3):
+        csd[:, c, c] = S[:, c]
+    exp = T.instrumental_t_share(f, csd, ltt, 3e-3, 3e-2)
+    band_share = (w[..., 2] * f[None, :] ** -2).sum(axis=1) / (w.sum(axis=-1) * f[None, :] ** -2).sum(axis=1)
+    assert 0 < exp <= band_share.min() + 1e-12
 
 
 def test_glitch_carried_by_t_is_a_glitch():
