@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES
+from .transients import NOT_AN_EFFECT
 from .adequacy import _hz, describe_failures, third_octave_table
 from .model_fit import ModelFit
 from .noise_model import noise_model_json
@@ -150,8 +151,10 @@ def recommendation(report: dict, effects) -> dict | None:
 
     Keys: ``effect``, ``spec``, ``cli_spec`` (the best candidate, None without one),
     ``option`` (``--effects ...`` or ``""``), ``explains``, ``explained_fraction``,
-    ``band_explained`` (per failing band), ``excess_class`` (the transient finder's class
-    of the excess), ``signal``, ``description``, ``pointers``, ``message``.
+    ``band_explained`` (per failing band), ``explained_fraction_outside_transients`` (when
+    signals share the data with a stationary excess: the share of the excess outside them,
+    which then decides), ``excess_class`` (the transient finder's class of the excess),
+    ``signal``, ``description``, ``pointers``, ``message``.
     """
     cands = report["candidates"]
     best = next((c for c in cands if c["significant"]), None)
@@ -179,10 +182,22 @@ def recommendation(report: dict, effects) -> dict | None:
     per_band = band_explained(report, best) if fails else []
     explains = not fails or (best["explained_fraction"] >= MIN_EXPLAINED and
                              (not per_band or max(per_band) >= MIN_EXPLAINED))
+    # with signals in the data (a merger, glitches) their excess is no candidate's to
+    # explain: the share is then that of the excess outside them, the quiet tiles' level
+    # over the whole span (transients.quiet.excess_chi2_full_span, divided by kappa as the
+    # candidates' excess)
+    q = tr.get("quiet") or {}
+    outside = q.get("excess_chi2_full_span")
+    kappa = float(report["adequacy"].get("variance_factor") or 1.0)
+    beside = [e for e in tr.get("events", []) if e["class"] in NOT_AN_EFFECT]
+    frac_outside = None
+    if fails and beside and q.get("fails") and outside:
+        frac_outside = float(min(1.0, max(best["delta_chi2"], 0.0) / (outside / kappa)))
+        explains = frac_outside >= MIN_EXPLAINED
     out = {"effect": best["effect"], "spec": best["spec"], "cli_spec": best["cli_spec"],
            "option": option if explains and not signal else "",
            "explains": bool(explains and not signal), "explained_fraction": best["explained_fraction"],
-           "band_explained": per_band, **common}
+           "band_explained": per_band, "explained_fraction_outside_transients": frac_outside, **common}
     if signal:
         out["pointers"] = pointers
         out["message"] = f"no effect recommended: {description} (the best candidate, {best['cli_spec']}, would fit it)"

@@ -691,17 +691,25 @@ def quiet_adequacy(tf: TimeFrequencyMap, events, alpha: float) -> dict:
     idx = idx[(idx - (idx[0] if idx.size else 0)) % 2 == 0]
     G = tf.chi2.shape[2]
     if idx.size == 0:
-        return {"tiles": 0, "hours": 0.0, "chi2_dof": None, "band_chi2_dof": [None] * G, "fails": False}
+        return {"tiles": 0, "hours": 0.0, "chi2_dof": None, "band_chi2_dof": [None] * G, "fails": False,
+                "excess_chi2_full_span": None}
     chi2 = tf.chi2[:, idx].sum(axis=(0, 1))
     dof = 3 * tf.dof * idx.size
     p = _p(chi2, dof, 1.0, tf.kappa, tf.tolerance)
     ch = tf.chi2[:, idx].sum(axis=(1, 2))
     ch_dof = tf.dof.sum() * idx.size
     ex = np.maximum(ch - ch_dof, 0.0)
+    # the excess beyond the tolerance the quiet tiles' level would give over the whole span
+    # (a tile of length T holds dof 2 n_b per channel and band; the span T_s / T tiles' worth),
+    # in the units of the candidates' explained fraction (divided by the segments' kappa
+    # there, by the caller)
+    n_span = (tf.valid.sum() + 1) / 2.0
+    full = float(np.sum(np.maximum(chi2 / dof - (1 + tf.tolerance), 0.0) * 3 * tf.dof * n_span))
     return {"tiles": int(idx.size), "hours": float(idx.size * tf.duration / 3600),
             "chi2_dof": float(chi2.sum() / dof.sum()), "band_chi2_dof": [float(x) for x in chi2 / dof],
             "channel_chi2_dof": {c: float(ch[i] / ch_dof) for i, c in enumerate(CHANNELS)},
             "t_share": float(ex[2] / ex.sum()) if ex.sum() > 0 else None,
+            "excess_chi2_full_span": full,
             "fails": bool((p < alpha / G).any())}
 
 

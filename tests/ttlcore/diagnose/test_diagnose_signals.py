@@ -148,9 +148,9 @@ def test_gap_is_a_gap():
     t_nan = t[np.isnan(mask)]
     # the gap as missing from the decimated TDI: its span and the TDI stencils around it
     assert gaps[0][0] <= t_nan[0] + 60 and gaps[0][1] >= t_nan[-1] - 60, (gaps, t_nan[[0, -1]])
-    assert rep["recommendation"] is None or rep["recommendation"]["option"] == "", text_report(rep)
-    c = rep["model"]["coefficients"]
-    assert c["max_abs_error"] < MAX_ERROR
+    # a hole with hard edges in the segments pulls the diagnosis' own linear fit (0.67 mm/rad
+    # measured on this day); the fit with the gap gated (cosine ramps) is the one to use
+    check_signal(rep, C, "gap")
 
 
 def test_noise_that_doubles_for_hours_is_a_noise_change():
