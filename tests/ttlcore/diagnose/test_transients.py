@@ -250,3 +250,39 @@ def test_recommendation_only_for_what_explains_the_excess():
     rec = recommendation(_report(0.9, 900.0, signal=True), [_Lin()])  # a signal: nothing to add
     assert rec["option"] == "" and rec["signal"] and rec["excess_class"] == "gravitational-wave"
     assert "transient" in rec["description"]
+
+
+def test_coupling_beside_a_signal_is_recommended_on_the_excess_outside_it():
+    """A merger's excess is no candidate's to explain: with a stationary excess beside it
+    (the quiet tiles fail), the share that decides is the candidate's delta chi2 over the
+    excess outside the transient (quiet level over the span, divided by kappa)."""
+    rep = _report(0.01, 10.0, signal=True)
+    rep["transients"]["classification"] = {"class": "missing-coupling", "signal": False}
+    rep["transients"]["quiet"].update({"fails": True, "excess_chi2_full_span": 1000.0})
+    rep["adequacy"]["variance_factor"] = 1.06
+    rep["candidates"][0]["delta_chi2"] = 800.0  # 800 / (1000 / 1.06) = 0.85
+    rec = recommendation(rep, [_Lin()])
+    assert rec["explained_fraction_outside_transients"] == pytest.approx(800 / (1000 / 1.06))
+    assert rec["option"] == "--effects linear-ttl,drift"
+    rep["candidates"][0]["delta_chi2"] = 300.0  # 0.32: not enough
+    rec = recommendation(rep, [_Lin()])
+    assert rec["option"] == ""
+
+
+def test_excess_classification_rules():
+    quiet_ok = {"chi2_dof": 1.0, "hours": 10.0, "fails": False}
+    quiet_bad = {"chi2_dof": 1.2, "hours": 10.0, "fails": True, "t_share": 0.3, "t_share_expected": 0.05}
+    ev_gw = [{"class": "gravitational-wave", "evidence": ["x"]}]
+    ad = {"adequacy": {"fails": True}}
+    assert T.excess_classification({"adequacy": {"fails": False}}, [], quiet_ok)["class"] == "none"
+    v = T.excess_classification(ad, ev_gw, quiet_ok)
+    assert v["class"] == "gravitational-wave" and v["signal"]
+    v = T.excess_classification(ad, ev_gw, quiet_bad)  # excess outside the event too
+    assert v["class"] == "stationary-excess" and not v["signal"]
+    cands = {"adequacy": {"fails": True}, "candidates": [{"significant": True, "explained_fraction": 0.7, "cli_spec": "drift"}]}
+    assert T.excess_classification(cands, ev_gw, quiet_bad)["class"] == "missing-coupling"
+    # in every hour with T nearly empty (below a third of a link's share): a long-lived wave
+    v = T.excess_classification(ad, [], {**quiet_bad, "t_share": 0.01})
+    assert v["class"] == "gravitational-wave" and v["signal"]
+    v = T.excess_classification(ad, [], quiet_ok, gaps=[(3600.0, 5400.0)])
+    assert v["class"] == "gap" and v["signal"]
