@@ -67,8 +67,9 @@ freedom divided by ``kappa``).  ``coherent`` when the witnesses explain at least
 runs of zeros or NaN in the data); ``missing-coupling`` (witness-coherent);
 ``noise-change`` (at least ``NOISE_CHANGE_HOURS`` long and broadband: excess significant in
 at least ``BROADBAND_FRACTION`` of the bands, T carrying its share); ``gravitational-wave``
-(A or E carry it, T share below the instrumental threshold, not coherent; its track chirping,
-rising in frequency, or stationary); ``glitch`` (T share at least the threshold,
+(A or E carry it, T share below the instrumental threshold, not coherent, its track not
+falling: a merger's 900-s tiles read chirp, stationary or, with its leakage, irregular);
+``glitch`` (T share at least the threshold,
 shorter than ``NOISE_CHANGE_HOURS``); otherwise ``unclassified``.  Each class comes with the
 evidence (numbers) that decided it.
 """
@@ -569,7 +570,7 @@ def classify(event: Event) -> tuple[str, list[str]]:
         ev.append(f"broadband: excess significant in {len(event.significant_bands)} of {nb} bands")
         return "noise-change", ev
     ae = any(c in event.channels for c in ("A", "E"))
-    if ae and event.t_share < thr and event.track_kind in ("chirp", "stationary", "single"):
+    if ae and event.t_share < thr and event.track_kind != "falling":
         return "gravitational-wave", ev
     if event.t_share >= thr and hours < NOISE_CHANGE_HOURS:
         return "glitch", ev
@@ -814,9 +815,16 @@ def excess_classification(report: dict, events: list, quiet: dict, gaps=()) -> d
     if events and all(k in NOT_AN_EFFECT for k in kinds) and not quiet.get("fails"):
         return {"class": kinds[0], "signal": True, "classes": sorted(set(kinds)),
                 "evidence": ev + [f"{len(events)} event(s): " + ", ".join(kinds)] + events[0]["evidence"]}
-    if "missing-coupling" in kinds or (best is not None and best.get("explained_fraction", 0) >= 0.5):
+    frac = best.get("explained_fraction", 0.0) if best is not None else 0.0
+    outside = quiet.get("excess_chi2_full_span")
+    if best is not None and quiet.get("fails") and outside and any(k in NOT_AN_EFFECT for k in kinds):
+        # signals beside a stationary excess: the share of the excess outside them decides
+        kappa = float(ad.get("variance_factor") or 1.0)
+        frac = float(min(1.0, max(best.get("delta_chi2", 0.0), 0.0) / (outside / kappa)))
+    if "missing-coupling" in kinds or frac >= 0.5:
         if best is not None:
-            ev.append(f"the best candidate, {best['cli_spec']}, explains {100 * best['explained_fraction']:.0f} % of the excess")
+            ev.append(f"the best candidate, {best['cli_spec']}, explains {100 * frac:.0f} % of the excess"
+                      + (" outside the transients" if frac != best.get("explained_fraction") else ""))
         return {"class": "missing-coupling", "signal": False, "classes": sorted(set(kinds)), "evidence": ev}
     share = quiet.get("t_share")
     expected = quiet.get("t_share_expected")

@@ -216,7 +216,13 @@ def test_outlying_segment_is_left_out_and_alike_ones_are_not():
     chi2[2, 1] *= 1.5  # a transient in one segment and band
     assert outlying_segments(chi2, dof, kappa, 0.02).tolist() == [False, False, True, False]
     # a missing effect fills every segment alike: not an outlier
-    assert not outlying_segments(chi2 * 3, dof, kappa, 0.02)[[0, 1, 3]].any()
+    alike = dof * 3 * (1 + rng.standard_normal((4, 7)) * np.sqrt(2 * kappa / dof))
+    assert not outlying_segments(alike, dof, kappa, 0.02).any()
+    # a transient in three of four segments (a chirp in band for hours): all three, the
+    # quietest segment being the reference
+    chi2 = dof * (1 + rng.standard_normal((4, 7)) * np.sqrt(2 * kappa / dof))
+    chi2[1:, 0] *= [1.3, 2.0, 5.0]
+    assert outlying_segments(chi2, dof, kappa, 0.02).tolist() == [False, True, True, True]
 
 
 def _report(explained, band_delta, signal=False):
@@ -274,6 +280,11 @@ def test_excess_classification_rules():
     quiet_bad = {"chi2_dof": 1.2, "hours": 10.0, "fails": True, "t_share": 0.3, "t_share_expected": 0.05}
     ev_gw = [{"class": "gravitational-wave", "evidence": ["x"]}]
     ad = {"adequacy": {"fails": True}}
+    # beside a signal the share of the excess outside it decides (1000 / 1.06 outside)
+    outside = {"adequacy": {"fails": True, "variance_factor": 1.06},
+               "candidates": [{"significant": True, "explained_fraction": 0.01, "delta_chi2": 800.0, "cli_spec": "drift"}]}
+    v = T.excess_classification(outside, ev_gw, {**quiet_bad, "excess_chi2_full_span": 1000.0})
+    assert v["class"] == "missing-coupling", v
     assert T.excess_classification({"adequacy": {"fails": False}}, [], quiet_ok)["class"] == "none"
     v = T.excess_classification(ad, ev_gw, quiet_ok)
     assert v["class"] == "gravitational-wave" and v["signal"]
