@@ -98,7 +98,7 @@ def orbit_file(tmp_path_factory):
     pytest.param(101, marks=pytest.mark.xfail(strict=False, reason=(
         "quiet hours 0.969 (3 % low): the chirp (6.5-10.9 h, SNR ~1000) pulls the linear fit by 5 sigma, whose "
         "mis-subtracted TTL noise in every hour drives tm_acc to its bound although the three segments holding the "
-        "chirp are left out of the levels; the gated fit is right (class, no option, coefficients pass). Needs the "
+        "chirp are left out of the levels; the class and the empty option are right. Needs the "
         "levels fitted on the gated residual (issue 24, item 4)"))),
     102])
 def test_chirp_is_a_gravitational_wave(seed, orbit_file):
