@@ -86,8 +86,10 @@ def band_explained(report: dict, candidate: dict) -> list[float]:
     """Per failing band of the model, the share of its excess (chi^2 beyond ``(1 + tol)
     dof``, divided by ``kappa``) that ``candidate``'s delta chi^2 in that band explains."""
     ad = report["adequacy"]
+    if "bands" not in ad or "bands" not in candidate.get("where", {}):
+        return []  # a report without its band table (a partial one built by hand)
     kappa = float(ad.get("variance_factor") or 1.0)
-    tol = float(ad["tolerance"])
+    tol = float(ad.get("tolerance", 0.0))
     out = []
     for b, cb in zip(ad["bands"], candidate["where"]["bands"]):
         if not b["fails"]:
@@ -104,7 +106,7 @@ def excess_description(report: dict) -> str:
     tr = report.get("transients") or {}
     verdict = tr.get("classification") or {}
     cls = verdict.get("class")
-    failing = [s for s in report["adequacy"]["summary"] if s.startswith("fails between")]
+    failing = [s for s in report["adequacy"].get("summary", []) if s.startswith("fails between")]
     where = failing[0] if failing else "no band fails"
     q = (tr.get("quiet") or {})
     if verdict.get("signal") and q.get("fails"):  # in every hour, T nearly empty
