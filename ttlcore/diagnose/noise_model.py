@@ -57,7 +57,7 @@ import logging
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy import optimize
+from scipy import optimize, stats
 
 from ..conventions import LINKS, displacement_to_ffd_asd
 from ..estimate.spectra import smooth_csd
@@ -357,8 +357,6 @@ def outlying_segments(chi2_seg_band, dof_seg_band, kappa: float, tolerance: floa
     dof_seg_band : ndarray (G,) or (S, G)
         Its degrees of freedom.
     """
-    from scipy import stats
-
     chi2 = np.asarray(chi2_seg_band, dtype=float)
     S, G = chi2.shape
     dof = np.broadcast_to(np.asarray(dof_seg_band, dtype=float), chi2.shape)

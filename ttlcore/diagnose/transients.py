@@ -82,9 +82,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy import stats
 
+from ..conventions import LINKS
 from ..estimate.fit import variance_factor
 from ..estimate.spectra import segment_fft, window
+from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 from .adequacy import merged_band_edges, third_octave_edges
+from .fitting import fit_resolved
 
 log = logging.getLogger(__name__)
 
@@ -518,9 +521,6 @@ def instrumental_t_share(f, noise_csd, ltt_mean, f_lo: float, f_hi: float, slope
     the sum over links); where the test-mass noise dominates A and E but not T (a few mHz)
     a test-mass signal's share falls to a few per cent, still far above a
     gravitational wave's (0.1 % for a merger at 3-20 mHz)."""
-    from ..conventions import LINKS
-    from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
-
     f = np.asarray(f, dtype=float)
     sel = (f >= f_lo) & (f < f_hi)
     if not sel.any():
@@ -674,7 +674,6 @@ def model_residual(model) -> np.ndarray:
     with them, :func:`ttlcore.diagnose.fitting.fit_resolved`)."""
     data = model.data
     if model.columns.series is None:  # a fitted model keeps its whitened columns only
-        from .fitting import fit_resolved
         model = fit_resolved(data, list(model.effects), None, True)
     return data.data_series - np.einsum("p,cpn->cn", model.theta, model.columns.series)
 
