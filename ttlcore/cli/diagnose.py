@@ -30,6 +30,7 @@ from ..errors import TTLError
 from ..estimate.analyze import check_band, load_truth
 from ..io.reader import file_kind, read_telemetry
 from ..plots.diagnosis import plot_residual_vs_noise, plot_witness_coherence
+from ..plots.transients import plot_time_frequency
 from .progress import status_line
 from .report import to_stdout, write_report
 
@@ -117,6 +118,9 @@ def run(args) -> int:
                                                                  s.tolerance, fine))}
         if report.get("witnesses"):
             paths["witness_coherence"] = str(plot_witness_coherence(report["witnesses"], out / "witness_coherence.png"))
+        if internals.get("transient_map") is not None:
+            paths["time_frequency"] = str(plot_time_frequency(internals["transient_map"], report["transients"],
+                                                              out / "time_frequency.png"))
         report["figures"] = paths
     written = write_report(args.json, report)
     if to_stdout(args.json):

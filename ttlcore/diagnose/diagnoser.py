@@ -44,6 +44,7 @@ from .report import (
     text_report,
 )
 from .settings import DiagnoseSettings
+from .transients import transient_report
 from .whitened import WhitenedData, whiten_tdi, whiten_telemetry
 from .witnesses import witness_candidates, witness_search
 
@@ -129,12 +130,14 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
         say("candidates")
         report["candidates"] = pool.ranked()
     lap("candidates")
+    report["transients"] = transient_report(model, report)
+    lap("transients")
     report["recommendation"] = recommendation(report, eff)
     report["settings"] = {"band": list(map(float, s.band)), "n_bands": s.n_bands, "segment_duration": model.data.seg_duration,
                           "time_segment": s.time_segment, "tolerance": s.tolerance, "alpha": s.alpha,
                           "log_bf_threshold": s.log_bf_threshold, "dws_asd": model.data.dws_asd}
     report["timings_s"] = timings
-    report["_internals"] = {"data": model.data, "model": model}
+    report["_internals"] = {"data": model.data, "model": model, "transient_map": report["transients"].pop("_map")}
     return report
 
 

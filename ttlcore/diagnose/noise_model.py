@@ -54,10 +54,10 @@ with injected effects).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy import optimize
+from scipy import optimize, stats
 
 from ..conventions import LINKS, displacement_to_ffd_asd
 from ..estimate.spectra import smooth_csd
@@ -184,6 +184,8 @@ class NoiseModel:
     iterations: int = 0
     converged: bool = True
     at_bound: tuple = ()
+    #: start times [s] of the segments left out of the fit as outliers (:func:`outlying_segments`)
+    excluded_segments: tuple = ()
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
@@ -222,6 +224,7 @@ class NoiseModel:
                                for n, v, s in zip(self.names, self.levels, sig)},
                 "n_parameters": self.n_parameters, "log_likelihood": self.log_likelihood,
                 "iterations": self.iterations, "converged": self.converged, "at_bound": list(self.at_bound),
+                "excluded_segments": [float(t) for t in self.excluded_segments],
                 "bounds": {n: list(BOUNDS[n.split(".")[0]]) for n in self.names}}
 
 
@@ -319,14 +322,53 @@ def fit_noise_model(f, P, n_segments, ltt_mean, *, names=PARAMETERS, fixed=None,
                       _cache={k: v for k, v in model._cache.items()})
 
 
-def residual_periodogram(residual_w: np.ndarray, Lh: np.ndarray) -> np.ndarray:
+def residual_periodogram(residual_w: np.ndarray, Lh: np.ndarray, keep=None) -> np.ndarray:
     """``P = sum_s r_s r_s^H`` (m, 3, 3) of residual spectra given whitened, ``w = L^H r``
-    (S, m, 3), with ``L^H`` (m, 3, 3) the whitening of the noise model they were taken with."""
+    (S, m, 3), with ``L^H`` (m, 3, 3) the whitening of the noise model they were taken with;
+    ``keep`` (S,) of bool: the segments summed (default all)."""
+    if keep is not None:
+        residual_w = residual_w[np.asarray(keep, dtype=bool)]
     r = np.linalg.solve(Lh[None], residual_w[..., None])[..., 0]
     return np.einsum("smi,smj->mij", r, r.conj())
 
 
-def profile_noise_model(data, effects, *, names=PARAMETERS, passes: int = 4, first=None):
+#: Significance (over all segments and bands, Bonferroni) at which a segment's chi^2 in a
+#: band is an outlier against the other segments (:func:`outlying_segments`).
+OUTLIER_ALPHA = 1e-3
+
+
+def outlying_segments(chi2_seg_band, dof_seg_band, kappa: float, tolerance: float,
+                      alpha: float = OUTLIER_ALPHA) -> np.ndarray:
+    """Segments whose residual is an outlier against the others, (S,) of bool.
+
+    Per band ``g`` the reference level is that of the quietest segment, ``min_s chi2 /
+    dof``, at least 1 (the noise model); segment ``s`` is an outlier when, in some band,
+    ``chi2_sg / (level_g (1 + tol) kappa)`` has p < ``alpha / (S G)`` with ``dof / kappa``
+    degrees of freedom.  A loud transient (a merger, glitches, a chirp in band for hours)
+    fills the segments it falls in; a missing effect or a wrong level fills every segment
+    alike and is not an outlier; the quietest segment never is.  (The median of the
+    segments as reference let a chirp in band for six of twelve hours - three of four
+    segments - pin the levels at their bounds: the quiet hours read 0.89.)
+
+    Parameters
+    ----------
+    chi2_seg_band : ndarray (S, G)
+        chi^2 of the whitened residual per segment and band.
+    dof_seg_band : ndarray (G,) or (S, G)
+        Its degrees of freedom.
+    """
+    chi2 = np.asarray(chi2_seg_band, dtype=float)
+    S, G = chi2.shape
+    dof = np.broadcast_to(np.asarray(dof_seg_band, dtype=float), chi2.shape)
+    if S < 3:
+        return np.zeros(S, dtype=bool)
+    k = dof / kappa
+    level = np.maximum(np.min(chi2 / dof, axis=0), 1.0)
+    p = stats.chi2.sf(chi2 / (level[None, :] * (1 + tolerance) * kappa), k)
+    return (p < alpha / (S * G)).any(axis=1)
+
+
+def profile_noise_model(data, effects, *, names=PARAMETERS, passes: int = 4, first=None, robust: bool = True):
     """Profile the noise levels with the linear fit of a diagnosis (module docstring).
 
     Alternates the linear fit of ``effects`` under the current noise model and
@@ -348,6 +390,11 @@ def profile_noise_model(data, effects, *, names=PARAMETERS, passes: int = 4, fir
         Maximum alternations.
     first : ModelFit, optional
         The fit of ``effects`` on ``data``, if already done.
+    robust : bool
+        Leave the segments whose residual is an outlier against the others
+        (:func:`outlying_segments`: a merger, loud glitches) out of the levels' fit, so that
+        a transient changes nothing outside it (default); the levels' ``excluded_segments``
+        name them.
 
     Returns
     -------
@@ -359,10 +406,17 @@ def profile_noise_model(data, effects, *, names=PARAMETERS, passes: int = 4, fir
     fit = first if first is not None else fit_model(data, effects, time_table=False)
     for k in range(max(1, passes)):
         d = fit.data
-        P = residual_periodogram(fit.residual_w, d.Lh)
+        dof = np.array([6.0 * (b - a) for a, b in d.slices])
+        out = outlying_segments(fit.chi2_seg_band, dof, d.kappa, d.settings.tolerance) if robust else \
+            np.zeros(len(d.starts), dtype=bool)
+        P = residual_periodogram(fit.residual_w, d.Lh, ~out)
         secondary = d.noise_parameters.csd(d.f) if d.noise_parameters is not None else nm.csd(d.f)
         dws = d.noise_csd - secondary
-        new = fit_noise_model(d.f, P, len(d.starts), d.ltt_mean, names=names, fixed=dws, start=nm, kappa=d.kappa)
+        new = fit_noise_model(d.f, P, int((~out).sum()), d.ltt_mean, names=names, fixed=dws, start=nm, kappa=d.kappa)
+        new = replace(new, excluded_segments=tuple(float(t) for t in np.asarray(d.seg_t0)[out]))
+        if out.any():
+            log.info("noise model pass %d: segments starting at %s h left out as outliers", k + 1,
+                     [round(float(t) / 3600, 2) for t in np.asarray(d.seg_t0)[out]])
         moved = np.abs(np.subtract(new.levels, nm.levels)) / np.maximum(new.sigma, 1e-300)
         nm = new
         fit = None  # the previous pass's fit is not kept while the next is made

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES
+from .transients import NOT_AN_EFFECT
 from .adequacy import _hz, describe_failures, third_octave_table
 from .model_fit import ModelFit
 from .noise_model import noise_model_json
@@ -76,39 +77,140 @@ def model_json(model: ModelFit, truth=None) -> dict:
 
 
 
+#: A candidate is recommended only when it explains at least this share of the excess (chi^2
+#: beyond the tolerance, over all bands) and of the excess of at least one failing band.
+MIN_EXPLAINED = 0.5
+
+
+def band_explained(report: dict, candidate: dict) -> list[float]:
+    """Per failing band of the model, the share of its excess (chi^2 beyond ``(1 + tol)
+    dof``, divided by ``kappa``) that ``candidate``'s delta chi^2 in that band explains."""
+    ad = report["adequacy"]
+    if "bands" not in ad or "bands" not in candidate.get("where", {}):
+        return []  # a report without its band table (a partial one built by hand)
+    kappa = float(ad.get("variance_factor") or 1.0)
+    tol = float(ad.get("tolerance", 0.0))
+    out = []
+    for b, cb in zip(ad["bands"], candidate["where"]["bands"]):
+        if not b["fails"]:
+            continue
+        excess = (b["chi2"] - (1 + tol) * b["dof"]) / kappa
+        out.append(float(max(cb["delta_chi2"], 0.0) / excess) if excess > 0 else 1.0)
+    return out
+
+
+def excess_description(report: dict) -> str:
+    """What the excess looks like, in one sentence, from the transient finder's
+    classification (:func:`ttlcore.diagnose.transients.transient_report`) and the failing
+    bands."""
+    tr = report.get("transients") or {}
+    verdict = tr.get("classification") or {}
+    cls = verdict.get("class")
+    failing = [s for s in report["adequacy"].get("summary", []) if s.startswith("fails between")]
+    where = failing[0] if failing else "no band fails"
+    q = (tr.get("quiet") or {})
+    if verdict.get("signal") and q.get("fails"):  # in every hour, T nearly empty
+        return (f"the excess is a long-lived gravitational-wave-like signal, not a missing effect: in every hour "
+                f"(outside any transient chi2/dof {q.get('chi2_dof', float('nan')):.3f}), {where}, T carrying "
+                f"{100 * (q.get('t_share') or 0.0):.1f} % of it")
+    if verdict.get("signal"):
+        ev = tr["events"]
+        parts = [f"{e['class']} {e['t_start'] / 3600:.2f}-{e['t_stop'] / 3600:.2f} h ({e['f_lo'] * 1e3:.3g}-"
+                 f"{e['f_hi'] * 1e3:.3g} mHz, {', '.join(e['channels'])}, T share {100 * e['t_share']:.1f} %, "
+                 f"track {e['track_kind']})" for e in ev[:3]]
+        parts += [f"missing data {a / 3600:.2f}-{b / 3600:.2f} h" for a, b in (tr.get("gaps") or [])[:3]]
+        text = f"the excess is a transient or a gap, not a missing effect: {'; '.join(parts)}"
+        q = tr.get("quiet") or {}
+        if q.get("chi2_dof") is not None:
+            text += f"; outside it the residual reads chi2/dof {q['chi2_dof']:.3f} ({q['hours']:.1f} h)"
+        rb = tr.get("robustness")
+        if rb:
+            text += f"; the TTL fit without those hours moves by at most {rb['max_abs_shift_sigma']:.2f} sigma"
+        return text
+    if cls == "stationary-excess":
+        share = q.get("t_share")
+        return (f"the excess is stationary (every hour; outside any transient chi2/dof "
+                f"{q.get('chi2_dof', float('nan')):.3f}), {where}" +
+                (f", T carrying {100 * share:.0f} % of it" if share is not None else "") +
+                ": no named effect or witness explains it")
+    return f"{where}"
+
+
 def recommendation(report: dict, effects) -> dict | None:
     """The next step: the significant candidate with the largest (marginal) log Bayes
     factor over everything tried (named effects, witness effects, frequency-dependent
     couplings, plugins), its ``--effects`` option runnable as printed (quoted when it holds
-    ``;``), and whether it explains the excess (at least half of the chi^2 beyond the
-    tolerance).  None when the model is adequate and nothing is significant; when nothing
-    explains the excess, ``pointers`` lists what the top witnesses point at."""
+    ``;``).
+
+    The option is given only when the candidate *explains* the excess: at least
+    :data:`MIN_EXPLAINED` of the excess over all bands and of at least one failing band's
+    (:func:`band_explained`), and the excess is not a signal or a defect of the data (the
+    transient finder's ``classification.signal``: a gravitational wave, glitches, a gap or
+    a change of the noise level, for which no effect is recommended).  Otherwise ``option``
+    is empty and ``message`` says what the excess looks like (:func:`excess_description`);
+    ``pointers`` lists what the top witnesses point at.  None when the model is adequate,
+    nothing is significant and no transient was found.
+
+    Keys: ``effect``, ``spec``, ``cli_spec`` (the best candidate, None without one),
+    ``option`` (``--effects ...`` or ``""``), ``explains``, ``explained_fraction``,
+    ``band_explained`` (per failing band), ``explained_fraction_outside_transients`` (when
+    signals share the data with a stationary excess: the share of the excess outside them,
+    which then decides), ``excess_class`` (the transient finder's class of the excess),
+    ``signal``, ``description``, ``pointers``, ``message``.
+    """
     cands = report["candidates"]
     best = next((c for c in cands if c["significant"]), None)
     fails = bool(report["adequacy"]["fails"])
-    if best is None and not fails:
+    tr = report.get("transients") or {}
+    verdict = tr.get("classification") or {}
+    signal = bool(verdict.get("signal"))
+    if best is None and not fails and not tr.get("events"):
         return None
     pointers = []
     for w in (report.get("witnesses") or {}).get("overall", [])[:3]:
         pointers.append({"witness": w["name"], "spec": w.get("spec"), "band_hz": w["best_band"],
                          "delta_chi2": w["delta_chi2"]})
+    point_text = "; ".join(f"{p['witness']} ({p['band_hz'][0]:.3g}-{p['band_hz'][1]:.3g} Hz)" for p in pointers)
+    description = excess_description(report) if (fails or signal) else ""
+    common = {"excess_class": verdict.get("class"), "signal": signal, "description": description}
     if best is None:
-        return {"effect": None, "explains": False, "pointers": pointers,
-                "message": "no candidate is significant; the witnesses point at: " +
-                           "; ".join(f"{p['witness']} ({p['band_hz'][0]:.3g}-{p['band_hz'][1]:.3g} Hz)" for p in pointers)}
+        msg = "no candidate is significant"
+        msg += f"; {description}" if description else ""
+        msg += f"; the witnesses point at: {point_text}" if pointers else ""
+        return {"effect": None, "option": "", "explains": False, "pointers": pointers, "message": msg, **common}
     specs = [e.cli_spec() for e in effects] + [best["cli_spec"]]
     value = ",".join(specs)
     option = "--effects " + (f'"{value}"' if any(ch in value for ch in ';|&<> ') else value)
-    explains = best["explained_fraction"] >= 0.5 or not fails
-    out = {"effect": best["effect"], "spec": best["spec"], "cli_spec": best["cli_spec"], "option": option,
-           "explains": bool(explains), "explained_fraction": best["explained_fraction"]}
-    if not explains:
+    per_band = band_explained(report, best) if fails else []
+    explains = not fails or (best["explained_fraction"] >= MIN_EXPLAINED and
+                             (not per_band or max(per_band) >= MIN_EXPLAINED))
+    # with signals in the data (a merger, glitches) their excess is no candidate's to
+    # explain: the share is then that of the excess outside them, the quiet tiles' level
+    # over the whole span (transients.quiet.excess_chi2_full_span, divided by kappa as the
+    # candidates' excess)
+    q = tr.get("quiet") or {}
+    outside = q.get("excess_chi2_full_span")
+    kappa = float(report["adequacy"].get("variance_factor") or 1.0)
+    beside = [e for e in tr.get("events", []) if e["class"] in NOT_AN_EFFECT]
+    frac_outside = None
+    if fails and beside and q.get("fails") and outside:
+        frac_outside = float(min(1.0, max(best["delta_chi2"], 0.0) / (outside / kappa)))
+        explains = frac_outside >= MIN_EXPLAINED
+    out = {"effect": best["effect"], "spec": best["spec"], "cli_spec": best["cli_spec"],
+           "option": option if explains and not signal else "",
+           "explains": bool(explains and not signal), "explained_fraction": best["explained_fraction"],
+           "band_explained": per_band, "explained_fraction_outside_transients": frac_outside, **common}
+    if signal:
+        out["pointers"] = pointers
+        out["message"] = f"no effect recommended: {description} (the best candidate, {best['cli_spec']}, would fit it)"
+    elif not explains:
         out["pointers"] = pointers
         out["message"] = (f"no candidate explains the excess (the best, {best['cli_spec']}, explains "
-                          f"{100 * best['explained_fraction']:.0f} %); the witnesses point at: " +
-                          "; ".join(f"{p['witness']} ({p['band_hz'][0]:.3g}-{p['band_hz'][1]:.3g} Hz)" for p in pointers))
+                          f"{100 * best['explained_fraction']:.0f} %, at most "
+                          f"{100 * max(per_band or [0.0]):.0f} % of a failing band's; {100 * MIN_EXPLAINED:.0f} % needed)"
+                          + (f"; {description}" if description else "") +
+                          (f"; the witnesses point at: {point_text}" if pointers else ""))
     return out
-
 
 
 def _offset_text(group: str, value: float, intervals: dict) -> str:
@@ -124,8 +226,10 @@ def _offset_text(group: str, value: float, intervals: dict) -> str:
 
 
 def strip_internals(report: dict) -> dict:
-    """The report without its in-memory objects (what ``--json`` writes)."""
-    return {k: v for k, v in report.items() if not k.startswith("_")}
+    """The report without its in-memory objects (what ``--json`` writes): top-level keys
+    starting with ``_``, and those of its parts (``transients["_map"]``)."""
+    return {k: ({kk: vv for kk, vv in v.items() if not kk.startswith("_")} if isinstance(v, dict) else v)
+            for k, v in report.items() if not k.startswith("_")}
 
 
 def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
@@ -180,9 +284,44 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
         lines.append(f"  top witnesses ({w['n_witnesses']} tried): " +
                      "; ".join(f"{x['name']} (delta chi2 {x['delta_chi2']:.0f}, coherence peaks at "
                                f"{_hz(x['peak_frequency'])})" for x in w["overall"][:3]))
+    tr = report.get("transients")
+    if tr:
+        lines += transient_lines(tr)
     rec = report.get("recommendation")
     if rec and rec.get("option"):
         lines.append(f"  best next step: add {rec['cli_spec']}:  ttl diagnose {source or 'DATA'} {rec['option']}")
     if rec and rec.get("message"):
         lines.append(f"  {rec['message']}")
     return "\n".join(lines)
+
+
+def transient_lines(tr: dict) -> list[str]:
+    """The text report's lines on transients (:mod:`ttlcore.diagnose.transients`)."""
+    lines = []
+    ev = tr.get("events") or []
+    q = tr.get("quiet") or {}
+    if ev or tr.get("gaps"):
+        lines.append(f"  transients ({tr['tile_duration']:.0f}-s tiles of the whitened residual per channel):")
+        for e in ev[:5]:
+            lines.append(f"    {e['class']:<18} {e['t_start'] / 3600:6.2f}-{e['t_stop'] / 3600:.2f} h  "
+                         f"{e['f_lo'] * 1e3:.3g}-{e['f_hi'] * 1e3:.3g} mHz  in {', '.join(e['channels']) or '-'}  "
+                         f"T share {100 * e['t_share']:.1f} %  track {e['track_kind']}  SNR {e['snr']:.0f}  "
+                         f"witnesses {100 * e['coherence'].get('explained_fraction', 0):.0f} %")
+        if len(ev) > 5:
+            lines.append(f"    ... {len(ev) - 5} more")
+        for a, b in tr.get("gaps") or []:
+            lines.append(f"    missing data {a / 3600:.2f}-{b / 3600:.2f} h")
+    if q.get("chi2_dof") is not None and (ev or tr.get("gaps")):
+        lines.append(f"    outside them ({q['hours']:.1f} h): chi2/dof {q['chi2_dof']:.3f} against the noise model"
+                     f" ({'fails' if q['fails'] else 'consistent'})")
+    verdict = tr.get("classification") or {}
+    if verdict.get("class") not in (None, "none"):
+        lines.append(f"  the excess: {verdict['class']}" + ("" if not verdict.get("evidence") else
+                                                           " (" + "; ".join(verdict["evidence"][:4]) + ")"))
+    rb = tr.get("robustness")
+    if rb:
+        names, sh = rb["names"], np.abs(rb["shift_sigma"])
+        top = np.argsort(-sh)[:3]
+        lines.append("  TTL fit with and without those hours: largest shifts " +
+                     ", ".join(f"{names[i]} {rb['shift_sigma'][i]:+.2f} sigma" for i in top))
+    return lines

@@ -1,0 +1,841 @@
+"""Transients in the residual: excess localised in time, and what it looks like.
+
+docs/diagnostics.md, "Signals, glitches, gaps and changing noise".  The adequacy test says
+*that* the model fails in a band and an hour; this module says *what the excess looks
+like*, so that a gravitational wave, a glitch, a gap or a change of the noise level is not
+read as a missing coupling.
+
+**Time-frequency map.**  The residual of the model (A, E, T, fractional frequency) is cut
+into Hann-windowed tiles of ``tile`` seconds (default 900 s) overlapping by half, each
+PSD-normalised (:func:`ttlcore.estimate.spectra.segment_fft`, ``E|X|^2 = S``), and each
+channel is divided by its own noise PSD ``S_cc(f)`` (the diagonal of the diagnosis' noise
+model).  Per tile, channel ``c`` and log-spaced band ``b`` (third-octave bands merged until
+each holds ``MIN_TILE_DOF`` degrees of freedom per channel),
+
+    chi2[c, t, b] = 2 sum_{f in b} |X_c(t, f)|^2 / S_cc(f),     dof[b] = 2 n_b,
+
+is chi^2 with ``dof`` degrees of freedom under the noise model; the bins of one Hann tile
+are correlated, which inflates its variance by ``kappa``
+(:func:`ttlcore.estimate.fit.variance_factor`, 1.94 for Hann), so ``chi2 / kappa`` is
+compared with chi^2 of ``dof / kappa`` degrees of freedom (Satterthwaite), as the per-hour
+adequacy test does.
+
+**Background.**  A transient is an excess *against the rest of the data*: each channel and
+band has a background level ``B[c, b]``, the median over the tiles of ``chi2/dof`` divided
+by the median of ``chi^2_k / k`` (``k = dof``; Wilson-Hilferty, ``(1 - 2 / (9 k))^3``), and
+never below 1 (the noise model).  A stationary excess (a missing
+coupling, a wrong noise level) raises ``B`` and is not a transient; a loud hour does not
+move a median.
+
+**Detection.**  A tile is *hot* when ``chi2 / (B (1 + tol) kappa)`` has p < ``alpha /
+n_tests`` (Bonferroni over every tile and channel and every tile's broadband sum, so that a
+day of noise raises a false event with probability ``alpha``, default 1e-3); a slice is hot
+when one of its tiles or its broadband sum (all bands of one channel) is.  Contiguous hot
+slices form the core of an event, which grows over the neighbouring slices whose sum over
+the core's significant bands (A, E, T) has p < ``alpha`` (hysteresis: the weak start of a
+chirp belongs to it).  An *event* has: start and stop (the first and last hot slice's centre -+ half a
+hop), the channels that carry it (a channel whose most significant tile or broadband sum in
+the event passes the same threshold), its band (the bands whose summed excess over the
+event is significant at ``alpha`` per band), its time-frequency track (per hot slice the
+band with the largest excess in A + E, and the excess-weighted mean log frequency), and
+``t_share``: the fraction of the event's whitened excess power that T carries.
+
+**T as a null channel.**  Noises enter the six links independently; whitened by the noise
+model, a signal on one link puts between a sixth and a half of its excess power in T where
+link noises dominate every channel (a third on average: the links share each channel's
+noise; ``tests/ttlcore/diagnose/test_transients.py`` computes it from the link responses),
+and a test-mass signal at a few mHz, where the test-mass noise dominates A and E but not
+T, a few per cent (2.7 % measured for a glitch on test mass 21 at 3-11 mHz).  A
+gravitational wave at the low frequencies of a merger leaves T nearly empty (T is the
+Sagnac-type null stream; 0.1 % for MBHB2 at 3-21 mHz).  :func:`instrumental_t_share`
+computes, for the event's band and the diagnosis' noise CSD, the smallest share any single
+link or test mass would give (a velocity-step spectrum); the event is instrumental when its
+T share reaches a third of that (``T_SHARE_FRACTION``), gravitational-wave-like below.
+
+**Witness coherence.**  Over an event's independent tiles (every other one) and band, the
+whitened residual tiles (A, E, T, each over its own noise PSD) are regressed on the
+whitened tiles of the 24 TTL regressors (every DWS channel on its rx and tx placements,
+through TDI), one complex coefficient per regressor (a coupling with a gain and a phase):
+``delta chi2 = 2 |X beta|^2``.  A projection on ``k`` directions of ``N`` complex rows takes
+``k / N`` of the power of a residual independent of the witnesses, signal or noise, so
+``delta chi2 - (k / N) chi2_total`` is the excess the witnesses explain; its significance
+is the F test ``(delta chi2 / 2k) / ((chi2_total - delta chi2) / 2(N - k))`` (degrees of
+freedom divided by ``kappa``).  ``coherent`` when the witnesses explain at least
+``COHERENT_FRACTION`` (0.5) of the event's excess in those bands with p < alpha.
+
+**Classes** (:func:`classify`), first match: ``gap`` (the event overlaps missing data:
+runs of zeros or NaN in the data); ``missing-coupling`` (witness-coherent);
+``noise-change`` (at least ``NOISE_CHANGE_HOURS`` long and broadband: excess significant in
+at least ``BROADBAND_FRACTION`` of the bands, T carrying its share); ``gravitational-wave``
+(A or E carry it, T share below the instrumental threshold, not coherent, its track not
+falling: a merger's 900-s tiles read chirp, stationary or, with its leakage, irregular);
+``glitch`` (T share at least the threshold,
+shorter than ``NOISE_CHANGE_HOURS``); otherwise ``unclassified``.  Each class comes with the
+evidence (numbers) that decided it.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy import stats
+
+from ..conventions import LINKS
+from ..estimate.fit import variance_factor
+from ..estimate.spectra import segment_fft, window
+from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
+from .adequacy import merged_band_edges, third_octave_edges
+from .fitting import fit_resolved
+
+log = logging.getLogger(__name__)
+
+CHANNELS = ("A", "E", "T")
+#: Tile length [s] of the time-frequency map (hop: half of it).
+TILE_DURATION = 900.0
+#: Degrees of freedom per channel a tile's band must hold (bands merged up to it): two
+#: bins, so that a 900-s tile still resolves the track of a merger at a few mHz.
+MIN_TILE_DOF = 4
+#: False-alarm probability of the whole map (Bonferroni over its tests).
+MAP_ALPHA = 1e-3
+#: Whitened excess share of T above which an event is instrumental when the noise model
+#: gives no expectation (:func:`instrumental_t_share` gives one in the diagnosis).
+T_SHARE_INSTRUMENTAL = 0.1
+#: An event is instrumental when T carries at least this fraction of the smallest share a
+#: signal on one link or one test mass would give it (:func:`instrumental_t_share`).
+T_SHARE_FRACTION = 1.0 / 3.0
+#: Share of an event's excess the witnesses must explain for it to be a missing coupling.
+COHERENT_FRACTION = 0.5
+#: An event at least this long [h] and broadband is a change of the noise level.
+NOISE_CHANGE_HOURS = 2.0
+#: Share of the bands whose excess must be significant for "broadband".
+BROADBAND_FRACTION = 0.6
+#: A track whose frequency rises by at least this factor over the event is a chirp; one
+#: that stays within it (both ways) is stationary.
+CHIRP_RATIO = 1.5
+#: Shortest run of zeros or NaN [s] taken as missing data.
+MIN_GAP = 10.0
+
+CLASSES = ("gravitational-wave", "glitch", "missing-coupling", "noise-change", "gap", "unclassified")
+#: The classes that are signals or data defects, for which no effect is recommended.
+NOT_AN_EFFECT = ("gravitational-wave", "glitch", "noise-change", "gap")
+
+
+@dataclass(frozen=True)
+class TimeFrequencyMap:
+    """Whitened residual power per channel, time tile and band.
+
+    Attributes
+    ----------
+    t_start : ndarray (n_t,)
+        Start of each tile [s].
+    duration, hop : float
+        Tile length and hop [s].
+    edges : ndarray (n_f + 1,)
+        Band edges [Hz].
+    chi2 : ndarray (3, n_t, n_f)
+        ``2 sum |X_c|^2 / S_cc`` per channel (A, E, T), tile and band.
+    dof : ndarray (n_f,)
+        Degrees of freedom of one channel, tile and band (``2 n_b``).
+    kappa : float
+        Variance factor of the bins of one Hann tile.
+    background : ndarray (3, n_f)
+        The background level ``B`` (module docstring), at least 1.
+    tolerance : float
+        Relative tolerance of the noise model.
+    valid : ndarray (n_t,) of bool
+        Tiles fully inside the analysed span.
+    """
+
+    t_start: np.ndarray
+    duration: float
+    hop: float
+    edges: np.ndarray
+    chi2: np.ndarray
+    dof: np.ndarray
+    kappa: float
+    background: np.ndarray
+    tolerance: float
+    valid: np.ndarray
+
+    @property
+    def t_mid(self) -> np.ndarray:
+        return self.t_start + 0.5 * self.duration
+
+    @property
+    def ratio(self) -> np.ndarray:
+        """chi2/dof over the background, (3, n_t, n_f): 1 for noise."""
+        return self.chi2 / (self.dof[None, None, :] * self.background[:, None, :])
+
+    def excess(self) -> np.ndarray:
+        """chi2 beyond the background's expectation ``B dof`` (3, n_t, n_f)."""
+        return self.chi2 - self.background[:, None, :] * self.dof[None, None, :]
+
+    def tile_p(self) -> np.ndarray:
+        """p-value of every tile (3, n_t, n_f) against ``B (1 + tol)``."""
+        return _p(self.chi2, self.dof[None, None, :], self.background[:, None, :], self.kappa, self.tolerance)
+
+    def broadband_p(self) -> np.ndarray:
+        """p-value of every tile's sum over bands, per channel (3, n_t)."""
+        bd = self.background[:, None, :] * self.dof[None, None, :]
+        return _p(self.chi2.sum(axis=2), self.dof.sum(), bd.sum(axis=2) / self.dof.sum(), self.kappa, self.tolerance)
+
+    def to_json(self) -> dict:
+        return {"tile_duration": self.duration, "hop": self.hop, "t_start": [float(x) for x in self.t_start],
+                "edges": [float(x) for x in self.edges], "dof": [float(x) for x in self.dof], "kappa": self.kappa,
+                "background": {c: [float(x) for x in self.background[i]] for i, c in enumerate(CHANNELS)}}
+
+
+def _p(chi2, dof, level, kappa, tol):
+    """Upper-tail p of ``chi2`` against a noise level ``level (1 + tol)`` with bins
+    correlated by ``kappa`` (Satterthwaite, as :func:`ttlcore.diagnose.adequacy.p_value`)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return stats.chi2.sf(np.asarray(chi2) / (np.asarray(level) * (1 + tol) * kappa), np.asarray(dof) / kappa)
+
+
+def median_factor(k) -> np.ndarray:
+    """Median of ``chi^2_k / k`` (Wilson-Hilferty): ``(1 - 2 / (9 k))^3``."""
+    k = np.asarray(k, dtype=float)
+    return (1 - 2 / (9 * k)) ** 3
+
+
+def time_frequency_map(residual, fs: float, t0: float, f_psd, psd, band, *, tile: float = TILE_DURATION,
+                       valid=None, keep=None, tolerance: float = 0.02, min_dof: int = MIN_TILE_DOF
+                       ) -> TimeFrequencyMap:
+    """The time-frequency map of the module docstring.
+
+    Parameters
+    ----------
+    residual : ndarray (3, n)
+        A, E, T residual series (any unit; ``psd`` in the same unit squared per Hz).
+    fs, t0 : float
+        Rate [Hz] and time of the first sample [s].
+    f_psd, psd : ndarray (m,), ndarray (m, 3)
+        The noise model's PSD of each channel at ``f_psd`` [Hz], interpolated (linearly in
+        log-log) to each tile's bins.
+    band : tuple
+        Frequencies [Hz] analysed.
+    tile : float
+        Tile length [s] (hop: half).
+    valid : ndarray (n,) of bool, optional
+        Samples inside the analysed span (tiles must lie within it).
+    keep : callable, optional
+        ``keep(f) -> bool mask`` of the bins to use (the notches of the TDI response).
+    tolerance : float
+        Relative tolerance of the noise model.
+    """
+    x = np.asarray(residual, dtype=float)
+    n = x.shape[-1]
+    L = int(round(tile * fs))
+    hop = max(1, L // 2)
+    if valid is None:
+        valid = np.isfinite(x).all(axis=0)
+    idx = np.flatnonzero(valid)
+    if idx.size < L:
+        raise ValueError(f"the analysed span ({idx.size / fs:.0f} s) is shorter than one tile ({tile:.0f} s)")
+    lo, hi = int(idx[0]), int(idx[-1]) + 1
+    starts = np.arange(lo, hi - L + 1, hop)
+    f = np.fft.rfftfreq(L, 1 / fs)
+    sel = (f >= band[0]) & (f <= band[1])
+    if keep is not None:
+        sel[sel] = keep(f[sel])
+    fb = f[sel]
+    S = np.stack([np.exp(np.interp(np.log(fb), np.log(f_psd), np.log(np.maximum(psd[:, c], 1e-300))))
+                  for c in range(3)])  # (3, nb)
+    edges = merged_band_edges(fb, third_octave_edges(band), 2, min_dof)
+    bidx = np.clip(np.searchsorted(edges, fb, side="right") - 1, 0, len(edges) - 2)
+    G = len(edges) - 1
+    win = window("hann", L)
+    chi2 = np.zeros((3, starts.size, G))
+    ok = np.zeros(starts.size, dtype=bool)
+    for k, s0 in enumerate(starts):
+        seg = x[:, s0:s0 + L]
+        ok[k] = bool(valid[s0:s0 + L].all())
+        _, X = segment_fft(np.nan_to_num(seg), fs, win, workers=None)
+        z = 2 * np.abs(X[:, sel]) ** 2 / S
+        for c in range(3):
+            chi2[c, k] = np.bincount(bidx, weights=z[c], minlength=G)
+    dof = 2.0 * np.bincount(bidx, minlength=G)
+    kappa = variance_factor("hann", min(L, 4096), 0.0)
+    use = ok if ok.any() else np.ones_like(ok)
+    med = np.median(chi2[:, use], axis=1) / dof[None, :]
+    # the median of chi2/dof: the bins' correlation inflates the variance, not the mean; the
+    # median of a sum of a few correlated exponentials stays close to chi^2 with dof degrees
+    background = np.maximum(med / median_factor(dof)[None, :], 1.0)
+    return TimeFrequencyMap(t0 + starts / fs, L / fs, hop / fs, edges, chi2, dof, kappa, background, tolerance, ok)
+
+
+def data_gaps(series, fs: float, t0: float, valid=None, min_gap: float = MIN_GAP) -> list[tuple[float, float]]:
+    """Runs of missing data [s]: samples that are NaN in a channel or exactly zero in every
+    channel of ``series`` (3, n) for at least ``min_gap`` seconds, between the first and
+    the last sample of ``valid`` (the analysed span)."""
+    x = np.asarray(series)
+    bad = ~np.isfinite(x).all(axis=0) | (x == 0).all(axis=0)
+    if valid is not None:
+        idx = np.flatnonzero(valid)
+        inside = np.zeros_like(bad)
+        if idx.size:
+            inside[idx[0]:idx[-1] + 1] = True
+        bad &= inside
+    out = []
+    d = np.diff(np.concatenate([[0], bad.astype(np.int8), [0]]))
+    for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)):
+        if (b - a) / fs >= min_gap:
+            out.append((t0 + a / fs, t0 + b / fs))
+    return out
+
+
+@dataclass(frozen=True)
+class Event:
+    """One transient (module docstring); times [s], frequencies [Hz]."""
+
+    t_start: float
+    t_stop: float
+    t_peak: float
+    slices: tuple  # indices of its hot tiles in the map
+    channels: tuple  # channels that carry it
+    channel_p: dict  # channel -> smallest tile/broadband p (times the tests made)
+    f_lo: float
+    f_hi: float
+    band_excess: tuple  # per band of the map: summed excess chi2 (A+E+T) over the event
+    significant_bands: tuple  # indices of the bands whose excess is significant
+    track: tuple  # ((t_mid, f_peak, f_mean), ...) per hot slice
+    excess: dict  # channel -> excess chi2 over the event
+    t_share: float
+    snr: float  # sqrt of the total excess chi2 (A+E+T): a rough matched-filter SNR
+    track_kind: str  # "chirp", "stationary", "falling", "irregular" or "single"
+    coherence: dict = field(default_factory=dict)  # witness coherence (witness_coherence)
+    gap: tuple | None = None  # (start, stop) of missing data it overlaps
+    #: the smallest T share a signal on one link or one test mass would have in the event's
+    #: band under the noise model (:func:`instrumental_t_share`); None: T_SHARE_INSTRUMENTAL
+    t_share_expected: float | None = None
+
+    @property
+    def t_share_threshold(self) -> float:
+        """T share separating a gravitational wave from an instrumental signal: a third of
+        :attr:`t_share_expected`, or :data:`T_SHARE_INSTRUMENTAL` without it."""
+        return T_SHARE_INSTRUMENTAL if self.t_share_expected is None else T_SHARE_FRACTION * self.t_share_expected
+
+    @property
+    def duration(self) -> float:
+        return self.t_stop - self.t_start
+
+
+def find_events(tf: TimeFrequencyMap, alpha: float = MAP_ALPHA) -> list[Event]:
+    """The events of the module docstring, loudest first."""
+    n_c, n_t, G = tf.chi2.shape
+    if n_t == 0:
+        return []
+    n_tests = n_c * n_t * (G + 1)
+    thr = alpha / n_tests
+    pt = np.where(tf.valid[None, :, None], tf.tile_p(), 1.0)
+    pb = np.where(tf.valid[None, :], tf.broadband_p(), 1.0)
+    hot = (pt < thr).any(axis=(0, 2)) | (pb < thr).any(axis=0)
+    ex = tf.excess()
+    # cores: contiguous hot tiles; then each core grows (hysteresis) over the neighbouring
+    # tiles whose sum over the core's significant bands (A, E, T) has p < alpha: the weak
+    # start of a chirp or the tail of a ringing glitch belong to the event, not to the quiet
+    # tiles
+    member = np.zeros(n_t, dtype=bool)
+    k = 0
+    while k < n_t:
+        if not hot[k]:
+            k += 1
+            continue
+        j = k
+        while j + 1 < n_t and hot[j + 1]:
+            j += 1
+        core = _event(tf, np.arange(k, j + 1), pt, pb, ex, n_tests, alpha)
+        bands = np.arange(min(core.significant_bands), max(core.significant_bands) + 1)
+        level = (tf.background[:, bands] * tf.dof[None, bands]).sum()
+        dof = 3 * tf.dof[bands].sum()
+
+        def weak(i):
+            return bool(tf.valid[i]) and _p(tf.chi2[:, i][:, bands].sum(), dof, level / dof, tf.kappa, tf.tolerance) < alpha
+        lo, hi = k, j
+        while lo - 1 >= 0 and weak(lo - 1):
+            lo -= 1
+        while hi + 1 < n_t and weak(hi + 1):
+            hi += 1
+        member[lo:hi + 1] = True
+        k = j + 1
+    events = []
+    k = 0
+    while k < n_t:
+        if not member[k]:
+            k += 1
+            continue
+        j = k
+        while j + 1 < n_t and member[j + 1]:
+            j += 1
+        events.append(_event(tf, np.arange(k, j + 1), pt, pb, ex, n_tests, alpha))
+        k = j + 1
+    events.sort(key=lambda e: -e.snr)
+    return events
+
+
+def _event(tf, sl, pt, pb, ex, n_tests, alpha) -> Event:
+    G = tf.chi2.shape[2]
+    centres = tf.t_mid[sl]
+    # channels: the smallest p of a tile or broadband sum in the event, Bonferroni over the map
+    ch_p = {c: float(min(pt[i, sl].min(), pb[i, sl].min()) * n_tests) for i, c in enumerate(CHANNELS)}
+    carries = tuple(c for c in CHANNELS if ch_p[c] < alpha)
+    # independent slices only (every other one: the tiles overlap by half), the loudest among
+    # them, for sums
+    peak = sl[int(np.argmax(np.maximum(ex[:, sl], 0).sum(axis=(0, 2))))]
+    ind = sl[(sl - peak) % 2 == 0]
+    exc = ex[:, ind].sum(axis=1)  # (3, G)
+    bg_dof = tf.background * tf.dof[None, :]
+    band_chi2 = tf.chi2[:, ind].sum(axis=(0, 1))
+    band_level = (bg_dof.sum(axis=0)) * ind.size
+    band_p = _p(band_chi2, 3 * tf.dof * ind.size, band_level / (3 * tf.dof * ind.size), tf.kappa, tf.tolerance)
+    sig = np.flatnonzero(band_p < alpha / G)
+    if sig.size == 0:
+        sig = np.array([int(np.argmax(exc.sum(axis=0)))])
+    f_lo, f_hi = float(tf.edges[sig.min()]), float(tf.edges[sig.max() + 1])
+    # track: per slice, among its significant tiles (p < alpha per tile, A + E summed), the
+    # band with the most excess and the excess-weighted mean log frequency; T alone where
+    # A and E have none
+    fc = np.sqrt(tf.edges[:-1] * tf.edges[1:])
+    bg = tf.background * tf.dof[None, :]
+    track = []
+    for i in sl:
+        for chans in ((0, 1), (0, 1, 2)):
+            ch = list(chans)
+            p_ae = _p(tf.chi2[ch, i].sum(axis=0), len(ch) * tf.dof, bg[ch].sum(axis=0) / (len(ch) * tf.dof),
+                      tf.kappa, tf.tolerance)
+            e = np.where(p_ae < alpha, np.maximum(ex[ch, i].sum(axis=0), 0.0), 0.0)
+            if e.sum() > 0:
+                break
+        if e.sum() <= 0:
+            continue
+        track.append((float(tf.t_mid[i]), float(fc[int(np.argmax(e))]), float(np.exp(np.sum(e * np.log(fc)) / e.sum()))))
+    exc_c = np.maximum(exc.sum(axis=1), 0.0)
+    total = float(exc_c.sum())
+    t_share = float(exc_c[2] / total) if total > 0 else 0.0
+    return Event(t_start=float(centres[0] - 0.5 * tf.hop), t_stop=float(centres[-1] + 0.5 * tf.hop),
+                 t_peak=float(tf.t_mid[peak]), slices=tuple(int(i) for i in sl), channels=carries, channel_p=ch_p,
+                 f_lo=f_lo, f_hi=f_hi, band_excess=tuple(float(x) for x in exc.sum(axis=0)),
+                 significant_bands=tuple(int(g) for g in sig), track=tuple(track),
+                 excess={c: float(exc_c[i]) for i, c in enumerate(CHANNELS)}, t_share=t_share,
+                 snr=float(np.sqrt(total)), track_kind=track_kind([t for t, _, _ in track], [m for _, _, m in track]))
+
+
+def track_kind(t, f, ratio: float = CHIRP_RATIO) -> str:
+    """``"chirp"`` when the excess-weighted frequency ``f`` rises over the event by at
+    least ``ratio`` (from the first third of the track to its last third, means of log f)
+    and ends at its highest; ``"falling"`` when it falls by as much; ``"stationary"`` when
+    every point stays within ``ratio`` of the track's median; ``"single"`` for one point;
+    else ``"irregular"``."""
+    f = np.asarray(f, dtype=float)
+    if f.size <= 1:
+        return "single"
+    lf = np.log(f)
+    n3 = max(1, f.size // 3)
+    rise = float(np.exp(lf[-n3:].mean() - lf[:n3].mean()))
+    if rise >= ratio:
+        return "chirp"
+    if rise <= 1 / ratio:
+        return "falling"
+    if np.all(np.abs(lf - np.median(lf)) <= np.log(ratio)):
+        return "stationary"
+    return "irregular"
+
+
+def witness_coherence(residual, witnesses, fs: float, tf: TimeFrequencyMap, event: Event, f_psd, psd,
+                      t0: float, keep=None, alpha: float = MAP_ALPHA) -> dict:
+    """How much of ``event``'s excess the witnesses explain (module docstring).
+
+    Parameters
+    ----------
+    residual : ndarray (3, n)
+        A, E, T residual series.
+    witnesses : ndarray (3, k, n)
+        A, E, T of the ``k`` witness series (the 24 TTL regressors) on the same samples.
+    f_psd, psd : ndarray (m,), (m, 3)
+        The channels' noise PSD (as :func:`time_frequency_map`).
+
+    Returns
+    -------
+    dict
+        ``delta_chi2`` of the regression, ``expected`` (``2 k G_e`` on noise),
+        ``explained_fraction`` of the event's excess, ``p_value``, ``coherent``.
+    """
+    x = np.asarray(residual, dtype=float)
+    W = np.asarray(witnesses, dtype=float)
+    L = int(round(tf.duration * fs))
+    f = np.fft.rfftfreq(L, 1 / fs)
+    sel = (f >= tf.edges[0]) & (f <= tf.edges[-1])
+    if keep is not None:  # the notches, found over the whole band as for the map
+        sel[sel] = keep(f[sel])
+    sel &= (f >= event.f_lo) & (f < event.f_hi)
+    if not sel.any() or W.shape[1] == 0:
+        return {"delta_chi2": 0.0, "expected": 0.0, "explained_fraction": 0.0, "p_value": 1.0, "coherent": False}
+    fb = f[sel]
+    S = np.stack([np.exp(np.interp(np.log(fb), np.log(f_psd), np.log(np.maximum(psd[:, c], 1e-300))))
+                  for c in range(3)])
+    sq = np.sqrt(S)
+    win = window("hann", L)
+    bands = np.clip(np.searchsorted(tf.edges, fb, side="right") - 1, 0, len(tf.edges) - 2)
+    ys, Xs = [], []  # whitened per channel
+    sl = np.asarray(event.slices)
+    peak = sl[int(np.argmin(np.abs(tf.t_mid[sl] - event.t_peak)))]
+    for i in sl[(sl - peak) % 2 == 0]:  # independent tiles, the loudest among them
+        s0 = int(round((tf.t_start[i] - t0) * fs))
+        _, Y = segment_fft(np.nan_to_num(x[:, s0:s0 + L]), fs, win, workers=None)
+        _, X = segment_fft(np.nan_to_num(W[:, :, s0:s0 + L]), fs, win, workers=None)
+        ys.append(Y[:, sel] / sq)  # (3, nb)
+        Xs.append(X[:, :, sel] / sq[:, None, :])  # (3, k, nb)
+    y = np.stack(ys).reshape(-1)  # (ns, 3, nb) -> N complex rows
+    X = np.moveaxis(np.stack(Xs), 2, -1).reshape(-1, np.shape(W)[1])  # (N, k)
+    N, k = X.shape
+    if N <= 2 * k:
+        return {"delta_chi2": 0.0, "expected": 0.0, "explained_fraction": 0.0, "p_value": 1.0, "coherent": False}
+    beta, *_ = np.linalg.lstsq(X, y, rcond=None)
+    dchi2 = 2 * float(np.sum(np.abs(X @ beta) ** 2))
+    total = 2 * float(np.sum(np.abs(y) ** 2))
+    # a k-dimensional projection of a residual independent of the witnesses takes k / N of
+    # its power, whatever that power is (signal or noise): the chance expectation
+    expected = total * k / N
+    F = (dchi2 / (2 * k)) / max((total - dchi2) / (2 * (N - k)), 1e-300)
+    p = float(stats.f.sf(F, 2 * k / tf.kappa, 2 * (N - k) / tf.kappa))
+    # the event's excess in the bands regressed (the same independent tiles)
+    exc = max(sum(event.band_excess[g] for g in np.unique(bands)), 1e-300)
+    frac = float(np.clip((dchi2 - expected) / exc, 0.0, 1.0))
+    return {"delta_chi2": dchi2, "expected": expected, "explained_fraction": frac, "p_value": p,
+            "coherent": bool(frac >= COHERENT_FRACTION and p < alpha)}
+
+
+def instrumental_t_share(f, noise_csd, ltt_mean, f_lo: float, f_hi: float, slope: float = -2.0) -> float:
+    """The smallest whitened T share of a signal on one link (the OMS placement, ``eta_ij``)
+    or one test mass (``eta_ij`` and ``D_ji eta_ji``) in ``[f_lo, f_hi)``:
+
+        share = sum_f |x_T|^2 / S_TT / sum_f sum_c |x_c|^2 / S_cc,
+
+    ``x_c`` the response of channel ``c`` to the placement (static mean arms,
+    :func:`ttlcore.tdi.combinations.link_responses`) times a signal spectrum ``f^slope``
+    (default ``f^-2`` in power: a velocity step, the shape of a glitch, in fractional
+    frequency), ``S`` the diagnosis' noise CSD.  Under a noise made of independent link
+    noises of one kind, the shares of the links add up to a third (each channel's noise is
+    the sum over links); where the test-mass noise dominates A and E but not T (a few mHz)
+    a test-mass signal's share falls to a few per cent, still far above a
+    gravitational wave's (0.1 % for a merger at 3-20 mHz)."""
+    f = np.asarray(f, dtype=float)
+    sel = (f >= f_lo) & (f < f_hi)
+    if not sel.any():
+        return float("nan")
+    fb = f[sel]
+    S = np.real(np.einsum("mii->mi", np.asarray(noise_csd)[sel]))  # (m, 3)
+    ltt = np.asarray(ltt_mean, dtype=float)
+    h = np.stack([link_responses(c, fb, ltt) for c in MICHELSON])
+    h = np.einsum("ia,alm->lmi", AET_MATRIX, h)  # (6 links, m, 3)
+    rev = [LINKS.index(k[::-1]) for k in LINKS]
+    g = np.stack([h[k] + h[rev[k]] * np.exp(-2j * np.pi * fb * ltt[rev[k]])[:, None] for k in range(6)])
+    w = fb ** slope
+    shares = []
+    for x in np.concatenate([h, g]):
+        p = np.abs(x) ** 2 / S * w[:, None]  # (m, 3)
+        tot = p.sum()
+        if tot > 0:
+            shares.append(float(p[:, 2].sum() / tot))
+    return float(min(shares)) if shares else float("nan")
+
+
+def classify(event: Event) -> tuple[str, list[str]]:
+    """The class of an event and the evidence for it (module docstring)."""
+    ev = []
+    hours = event.duration / 3600.0
+    ev.append(f"{hours:.2f} h long ({_clock(event.t_start)}-{_clock(event.t_stop)}), "
+              f"{_f(event.f_lo)}-{_f(event.f_hi)}, carried by {', '.join(event.channels) or 'no single channel'}")
+    thr = event.t_share_threshold
+    ev.append(f"T carries {100 * event.t_share:.1f} % of its whitened excess "
+              f"({'instrumental' if event.t_share >= thr else 'T consistent with a null stream'}: threshold "
+              f"{100 * thr:.2g} %" + ("" if event.t_share_expected is None else
+                                     f", a third of the {100 * event.t_share_expected:.2g} % a single link or "
+                                     "test mass would give") + ")")
+    coh = event.coherence or {}
+    if coh:
+        ev.append(f"witnesses (24 TTL regressors) explain {100 * coh['explained_fraction']:.0f} % of the excess "
+                  f"(delta chi2 {coh['delta_chi2']:.0f} for {coh['expected']:.0f} expected on noise)")
+    ev.append(f"track: {event.track_kind}" + (f", {_f(event.track[0][2])} -> {_f(event.track[-1][2])}" if event.track else ""))
+    nb = len(event.band_excess)
+    broad = len(event.significant_bands) >= BROADBAND_FRACTION * nb
+    if event.gap is not None:
+        ev.insert(0, f"overlaps missing data {_clock(event.gap[0])}-{_clock(event.gap[1])}")
+        return "gap", ev
+    if coh.get("coherent"):
+        return "missing-coupling", ev
+    if hours >= NOISE_CHANGE_HOURS and broad:
+        ev.append(f"broadband: excess significant in {len(event.significant_bands)} of {nb} bands")
+        return "noise-change", ev
+    ae = any(c in event.channels for c in ("A", "E"))
+    if ae and event.t_share < thr and event.track_kind != "falling":
+        return "gravitational-wave", ev
+    if event.t_share >= thr and hours < NOISE_CHANGE_HOURS:
+        return "glitch", ev
+    return "unclassified", ev
+
+
+def _clock(t: float) -> str:
+    return f"{t / 3600:.2f} h"
+
+
+def _f(f: float) -> str:
+    return f"{1e3 * f:.3g} mHz" if f < 0.1 else f"{f:.3g} Hz"
+
+
+# ---------------------------------------------------------------------------
+# the diagnosis' use: the model's residual, the quiet hours, the class of the excess
+# ---------------------------------------------------------------------------
+
+#: Taper [s] of each side of a gate (a cosine, as lisa-gap's smoothed gaps).
+GATE_TAPER = 300.0
+
+
+def gate(n: int, fs: float, t0: float, spans, taper: float = GATE_TAPER) -> np.ndarray:
+    """A gate (n,): 0 inside each ``(start, stop)`` span [s], 1 outside, with cosine ramps of
+    ``taper`` seconds outside the spans."""
+    t = t0 + np.arange(n) / fs
+    g = np.ones(n)
+    for a, b in spans:
+        d = np.maximum(np.maximum(a - t, t - b), 0.0)  # distance outside the span [s]
+        ramp = np.where(d >= taper, 1.0, 0.5 - 0.5 * np.cos(np.pi * np.clip(d / taper, 0, 1)))
+        g = np.minimum(g, ramp)
+    return g
+
+
+def gated_ttl_fit(data, spans, names=None) -> dict:
+    """The linear TTL coefficients with and without the data in ``spans`` [s].
+
+    A plain GLS of the data's A, E, T on the 24 TTL regressors under the diagnosis' noise
+    model (whitened segment spectra, ``theta = (W^H W)^-1 W^H w``, sigma from
+    ``kappa (2 Re W^H W)^-1``), once on all data and once with data and regressors
+    multiplied by :func:`gate` (the span and a 300-s cosine taper each side, as lisa-gap
+    smooths a gap).  The errors-in-variables term of the diagnosis' fit is left out of
+    both, so the difference measures what the gated hours pull (in sigma of the full fit).
+
+    Parameters
+    ----------
+    data : WhitenedData
+    spans : list of (start, stop)
+        Times [s] to leave out.
+
+    Returns
+    -------
+    dict
+        ``names``, ``full``, ``gated``, ``sigma_full``, ``sigma_gated`` (m/rad),
+        ``shift_sigma`` ((gated - full) / sigma_full), ``max_abs_shift_sigma``, ``spans``.
+    """
+    names = list(names or data.ttl_names or data.regressor_names)
+    cols = [list(data.regressor_names).index(n) for n in names]
+    y = np.asarray(data.data_series, dtype=float)
+    R = np.asarray(data.regressor_series[:, cols], dtype=float)
+    g = gate(y.shape[-1], data.fs, data.t0, spans)
+    out = {}
+    for label, w in (("full", None), ("gated", g)):
+        yy = y if w is None else y * w
+        RR = R if w is None else R * w
+        Y = data.whiten(data.spectra(yy[:, None, :]))[..., 0]  # (S, m, 3)
+        X = data.whiten(data.spectra(RR))  # (S, m, 3, P)
+        Xf = X.reshape(-1, X.shape[-1])
+        A = 2 * np.real(Xf.conj().T @ Xf)
+        b = 2 * np.real(Xf.conj().T @ Y.reshape(-1))
+        theta = np.linalg.solve(A, b)
+        sigma = np.sqrt(np.diag(np.linalg.inv(A)) * data.kappa)
+        out[label] = (theta, sigma)
+        del X, Xf
+    shift = (out["gated"][0] - out["full"][0]) / out["full"][1]
+    return {"names": names, "full": out["full"][0].tolist(), "gated": out["gated"][0].tolist(),
+            "sigma_full": out["full"][1].tolist(), "sigma_gated": out["gated"][1].tolist(),
+            "shift_sigma": shift.tolist(), "max_abs_shift_sigma": float(np.max(np.abs(shift))),
+            "spans": [[float(a), float(b)] for a, b in spans]}
+
+
+def kept_like(f_kept, df_fine: float, df_tile: float, lobe: float = 2.0):
+    """``keep(f)`` for a tile's bins: those whose Hann main lobe (``+-lobe`` tile bins of
+    width ``df_tile``) holds only kept fine bins (spacing ``df_fine``) of ``f_kept``, the
+    diagnosis' analysis bins (the notches of the TDI response and the band already
+    applied).  Bins that only half-avoid a notch leak its excess (measured on a 12-h
+    simulated day, quiet tiles of 900 s: chi2/dof 1.072 keeping bins with half of their
+    width clear, 1.007 with the main lobe clear, 1.002 with three bins either side)."""
+    fk = np.sort(np.asarray(f_kept, dtype=float))
+
+    def keep(f):
+        f = np.asarray(f, dtype=float)
+        n = np.searchsorted(fk, f + lobe * df_tile) - np.searchsorted(fk, f - lobe * df_tile)
+        return n >= 0.99 * 2 * lobe * df_tile / df_fine
+    return keep
+
+
+def model_residual(model) -> np.ndarray:
+    """The model's residual series (3, n): decimated A, E, T of the data minus the fitted
+    columns (``ModelFit.columns.series``; when the fit kept no series, the model refitted
+    with them, :func:`ttlcore.diagnose.fitting.fit_resolved`)."""
+    data = model.data
+    if model.columns.series is None:  # a fitted model keeps its whitened columns only
+        model = fit_resolved(data, list(model.effects), None, True)
+    return data.data_series - np.einsum("p,cpn->cn", model.theta, model.columns.series)
+
+
+def quiet_adequacy(tf: TimeFrequencyMap, events, alpha: float) -> dict:
+    """The residual of the tiles outside every event against the noise model itself (not
+    the background): chi2/dof per band over independent tiles (every other one), A, E, T
+    summed; ``fails`` when a band fails at ``alpha`` (divided by the bands)."""
+    n_t = tf.chi2.shape[1]
+    busy = np.zeros(n_t, dtype=bool)
+    for e in events:
+        lo, hi = min(e.slices), max(e.slices)
+        busy[max(0, lo - 1):hi + 2] = True  # the tiles overlapping an event's
+    idx = np.flatnonzero(tf.valid & ~busy)
+    idx = idx[(idx - (idx[0] if idx.size else 0)) % 2 == 0]
+    G = tf.chi2.shape[2]
+    if idx.size == 0:
+        return {"tiles": 0, "hours": 0.0, "chi2_dof": None, "band_chi2_dof": [None] * G, "fails": False,
+                "excess_chi2_full_span": None}
+    chi2 = tf.chi2[:, idx].sum(axis=(0, 1))
+    dof = 3 * tf.dof * idx.size
+    p = _p(chi2, dof, 1.0, tf.kappa, tf.tolerance)
+    ch = tf.chi2[:, idx].sum(axis=(1, 2))
+    ch_dof = tf.dof.sum() * idx.size
+    ex = np.maximum(ch - ch_dof, 0.0)
+    # the excess beyond the tolerance the quiet tiles' level would give over the whole span
+    # (a tile of length T holds dof 2 n_b per channel and band; the span T_s / T tiles' worth),
+    # in the units of the candidates' explained fraction (divided by the segments' kappa
+    # there, by the caller)
+    n_span = (tf.valid.sum() + 1) / 2.0
+    full = float(np.sum(np.maximum(chi2 / dof - (1 + tf.tolerance), 0.0) * 3 * tf.dof * n_span))
+    return {"tiles": int(idx.size), "hours": float(idx.size * tf.duration / 3600),
+            "chi2_dof": float(chi2.sum() / dof.sum()), "band_chi2_dof": [float(x) for x in chi2 / dof],
+            "channel_chi2_dof": {c: float(ch[i] / ch_dof) for i, c in enumerate(CHANNELS)},
+            "t_share": float(ex[2] / ex.sum()) if ex.sum() > 0 else None,
+            "excess_chi2_full_span": full,
+            "fails": bool((p < alpha / G).any())}
+
+
+def event_json(e: Event, cls: str, evidence: list) -> dict:
+    return {"class": cls, "evidence": evidence, "t_start": e.t_start, "t_stop": e.t_stop, "t_peak": e.t_peak,
+            "duration": e.duration, "channels": list(e.channels), "channel_p": e.channel_p,
+            "f_lo": e.f_lo, "f_hi": e.f_hi, "track": [list(x) for x in e.track], "track_kind": e.track_kind,
+            "t_share": e.t_share, "t_share_expected": e.t_share_expected, "t_share_threshold": e.t_share_threshold,
+            "excess": e.excess, "snr": e.snr, "coherence": e.coherence,
+            "gap": list(e.gap) if e.gap else None}
+
+
+def transient_report(model, report: dict | None = None, tile: float = TILE_DURATION, alpha: float = MAP_ALPHA) -> dict:
+    """The ``transients`` part of a diagnosis report (docs/diagnostics.md): the
+    time-frequency map of the model's residual, its events with their class and evidence,
+    the missing data, the quiet tiles against the noise model, the class of the excess as
+    a whole (``classification``) and, when the excess is a signal or a defect of the data,
+    the TTL fit's robustness to it (:func:`gated_ttl_fit`).
+
+    ``report`` (the diagnosis' report so far: adequacy, candidates) decides between a
+    missing coupling and an unexplained stationary excess when the quiet tiles fail.
+    The key ``_map`` holds the :class:`TimeFrequencyMap` (for the figure; the diagnosis moves
+    it to the report's ``_internals["transient_map"]``).
+    """
+    data = model.data
+    s = data.settings
+    resid = model_residual(model)
+    psd = np.real(np.einsum("mii->mi", data.noise_csd))
+    keep = kept_like(data.f, 1.0 / data.seg_duration, 1.0 / tile)
+    band = (max(s.band[0], 3.0 / tile), s.band[1])  # the Hann main lobe clear of zero frequency
+    tf = time_frequency_map(resid, data.fs, data.t0, data.f, psd, band, tile=tile, valid=data.mask, keep=keep,
+                            tolerance=s.tolerance)
+    gaps = data_gaps(data.data_series, data.fs, data.t0, data.mask)
+    events = find_events(tf, alpha)
+    out_events, classes = [], []
+    for e in events:
+        coh = witness_coherence(resid, data.regressor_series, data.fs, tf, e, data.f, psd, data.t0, keep, alpha)
+        gap = next(((a, b) for a, b in gaps if a < e.t_stop and b > e.t_start), None)
+        expected = instrumental_t_share(data.f, data.noise_csd, data.ltt_mean, e.f_lo, e.f_hi)
+        e = Event(**{**e.__dict__, "coherence": coh, "gap": gap,
+                     "t_share_expected": expected if np.isfinite(expected) else None})
+        cls, evidence = classify(e)
+        classes.append(cls)
+        out_events.append(event_json(e, cls, evidence))
+    quiet = quiet_adequacy(tf, events, alpha)
+    fb = [(b["f_lo"], b["f_hi"]) for b in ((report or {}).get("adequacy") or {}).get("bands", []) if b.get("fails")]
+    lo, hi = (min(a for a, _ in fb), max(b for _, b in fb)) if fb else tuple(band)
+    expected = instrumental_t_share(data.f, data.noise_csd, data.ltt_mean, lo, hi)
+    quiet["t_share_expected"] = float(expected) if np.isfinite(expected) else None
+    verdict = excess_classification(report or {}, out_events, quiet, gaps)
+    robust = None
+    signal_spans = [(e["t_start"] - tf.hop, e["t_stop"] + tf.hop) for e in out_events if e["class"] in NOT_AN_EFFECT]
+    signal_spans += [(a, b) for a, b in gaps if not any(x[0] <= a and b <= x[1] for x in signal_spans)]
+    if signal_spans and data.regressor_series is not None:
+        robust = gated_ttl_fit(data, signal_spans, model.data.ttl_names or None)
+        robust["model"] = model.ttl_coefficients().tolist()
+    summary = []
+    for e in out_events:
+        summary.append(f"{e['class']}: {e['t_start'] / 3600:.2f}-{e['t_stop'] / 3600:.2f} h, {_f(e['f_lo'])}-{_f(e['f_hi'])} "
+                       f"in {', '.join(e['channels']) or '-'} (T share {100 * e['t_share']:.1f} %, track {e['track_kind']}, "
+                       f"SNR {e['snr']:.0f})")
+    for a, b in gaps:
+        summary.append(f"missing data {a / 3600:.2f}-{b / 3600:.2f} h")
+    if robust is not None:
+        summary.append(f"TTL fit without those hours: largest coefficient shift {robust['max_abs_shift_sigma']:.2f} sigma")
+    return {"tile_duration": tf.duration, "hop": tf.hop, "alpha": alpha, "t_share_threshold": T_SHARE_INSTRUMENTAL,
+            "events": out_events, "gaps": [[a, b] for a, b in gaps], "quiet": quiet, "classification": verdict,
+            "robustness": robust, "summary": summary, "map": tf.to_json(), "_map": tf}
+
+
+def excess_classification(report: dict, events: list, quiet: dict, gaps=()) -> dict:
+    """The class of the model's excess as a whole, with its evidence.
+
+    - no failure and no event: ``"none"``;
+    - every event a signal or a defect of the data (:data:`NOT_AN_EFFECT`) and the quiet
+      tiles consistent with the noise model: the loudest event's class (``signal``: no
+      effect is recommended); no event but missing data (``gaps``) and the quiet tiles
+      consistent: ``"gap"``;
+    - otherwise the excess is in the quiet tiles too (or coherent with the witnesses):
+      ``"missing-coupling"`` when an event is witness-coherent or the best candidate
+      explains at least half of the excess; ``"gravitational-wave"`` (``signal``) when T
+      carries less than a third of the share a link or test-mass signal would have in the
+      failing bands (:func:`instrumental_t_share`) of the quiet tiles' excess (a long-lived
+      source in band over the whole span); else ``"stationary-excess"`` (nothing named
+      explains it).
+    """
+    ad = report.get("adequacy") or {}
+    fails = bool(ad.get("fails")) or bool(events)
+    cands = report.get("candidates") or []
+    best = next((c for c in cands if c.get("significant")), None)
+    ev = []
+    if quiet.get("chi2_dof") is not None:
+        ev.append(f"tiles outside the events ({quiet['hours']:.1f} h): chi2/dof {quiet['chi2_dof']:.3f} against the "
+                  f"noise model, {'failing' if quiet['fails'] else 'consistent'}")
+    if not fails:
+        return {"class": "none", "signal": False, "classes": [], "evidence": ev}
+    kinds = [e["class"] for e in events]
+    if not events and gaps and not quiet.get("fails"):
+        return {"class": "gap", "signal": True, "classes": ["gap"],
+                "evidence": ev + ["missing data " + ", ".join(f"{a / 3600:.2f}-{b / 3600:.2f} h" for a, b in gaps) +
+                                  "; no transient outside it"]}
+    if events and all(k in NOT_AN_EFFECT for k in kinds) and not quiet.get("fails"):
+        return {"class": kinds[0], "signal": True, "classes": sorted(set(kinds)),
+                "evidence": ev + [f"{len(events)} event(s): " + ", ".join(kinds)] + events[0]["evidence"]}
+    frac = best.get("explained_fraction", 0.0) if best is not None else 0.0
+    outside = quiet.get("excess_chi2_full_span")
+    if best is not None and quiet.get("fails") and outside and any(k in NOT_AN_EFFECT for k in kinds):
+        # signals beside a stationary excess: the share of the excess outside them decides
+        kappa = float(ad.get("variance_factor") or 1.0)
+        frac = float(min(1.0, max(best.get("delta_chi2", 0.0), 0.0) / (outside / kappa)))
+    if "missing-coupling" in kinds or frac >= 0.5:
+        if best is not None:
+            ev.append(f"the best candidate, {best['cli_spec']}, explains {100 * frac:.0f} % of the excess"
+                      + (" outside the transients" if frac != best.get("explained_fraction") else ""))
+        return {"class": "missing-coupling", "signal": False, "classes": sorted(set(kinds)), "evidence": ev}
+    share = quiet.get("t_share")
+    expected = quiet.get("t_share_expected")
+    thr = T_SHARE_INSTRUMENTAL if expected is None else T_SHARE_FRACTION * expected
+    if quiet.get("fails") and share is not None and share < thr:
+        # in every hour, T nearly empty, nothing named explains it: a long-lived signal (an
+        # inspiral in band over the whole span, binaries), not a coupling (a link signal
+        # puts 1/6 to 1/2 of its whitened excess into T)
+        ev.append(f"stationary in time, T carries {100 * share:.1f} % of the excess outside any transient "
+                  f"(threshold {100 * thr:.2g} %): a long-lived gravitational-wave signal")
+        if best is not None:
+            ev.append(f"the best candidate, {best['cli_spec']}, explains {100 * best['explained_fraction']:.0f} %")
+        return {"class": "gravitational-wave", "signal": True, "classes": sorted(set(kinds) | {"gravitational-wave"}),
+                "evidence": ev}
+    return {"class": "stationary-excess", "signal": False, "classes": sorted(set(kinds)), "evidence": ev}
