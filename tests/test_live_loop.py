@@ -33,7 +33,7 @@ sys.path.insert(0, str(Path(__file__).parent / "ttlcore" / "diagnose"))
 
 from streamer.recorder import RecordingError, read_recording  # noqa: E402
 from streamer.session import free_port  # noqa: E402
-from ttl_testutil import Procs, finish, output, stage_processes, ttl_command, wait_for  # noqa: E402
+from ttl_testutil import MONITOR, Procs, finish, output, stage_processes, ttl_command, wait_for  # noqa: E402
 from ttlcore.estimate.monitoring import FileTruth  # noqa: E402
 
 BLIND = str(Path(__file__).parent / "ttlcore" / "diagnose" / "blind_effects.py")
@@ -49,11 +49,12 @@ def simulate(tmp_path: Path, duration: str, seed: int, inject: str | None = None
     return simulate_case(tmp_path, inject, duration, seed)
 
 
-def live_run(tmp_path: Path, data: Path, run: str, *extra, timeout: float = 3000) -> tuple[int, str, Path]:
+def live_run(tmp_path: Path, data: Path, run: str, *extra, timeout: float = 3000,
+             monitor: bool = False) -> tuple[int, str, Path]:
     procs = Procs(tmp_path)
     try:
         proc = procs.ttl("run", "--telemetry", data, "--run-id", run, "--recordings", tmp_path / "rec",
-                         "--timeout", str(timeout), "--quiet", "--skip", "monitor", *extra)
+                         "--timeout", str(timeout), "--quiet", *([] if monitor else ["--skip", "monitor"]), *extra)
         code = finish(proc, timeout + 60)
         out = output(proc)
     finally:
@@ -125,8 +126,9 @@ def test_live_loop_adopts_an_unnamed_effect_and_subtracts_the_whole_model(tmp_pa
     fits after hold it with its prediction, and the subtractor's last residual equals
     ``ttl refit --residual`` of the same window to 1e-9."""
     data, _ = simulate(tmp_path, "3h", 3, "blind-witness:source=12.eta,link=23,delay=2,gain=5e-3")
+    # with the monitor: it reads the extended fits and draws the diagnosis
     code, out, run_dir = live_run(tmp_path, data, "loop", "--segment", "30min", "--adopt", "auto",
-                                  "--diagnose-every", "3", timeout=900)
+                                  "--diagnose-every", "3", timeout=900, monitor=MONITOR)
     assert code == 0, out[-4000:]
     fits = fits_of(run_dir)
     assert sorted(fits) == list(range(6))
@@ -147,6 +149,11 @@ def test_live_loop_adopts_an_unnamed_effect_and_subtracts_the_whole_model(tmp_pa
     assert again["model"] == ["linear-ttl", adopted] and not again["adoption"]["adopted"]
     residuals = residuals_of(run_dir)
     assert residuals[5].header.meta["effects"] == [adopted] and residuals[1].header.meta["effects"] == []
+    if MONITOR:  # the monitor drew every segment, and the live diagnosis in its text panel
+        from test_monitor import rrd_entities
+
+        texts = [str(row[1]) for row in rrd_entities(run_dir / "monitor.rrd")["/diagnosis"]]
+        assert any(adopted.split(",")[0] in t for t in texts), texts[-1:]
     check_residual_equals_refit(tmp_path, run_dir, ["linear-ttl", adopted])
     # ttl inspect reports the change, who made it, and the diagnoses
     r = subprocess.run(ttl_command("inspect", run_dir, "--json", tmp_path / "inspect.json"),

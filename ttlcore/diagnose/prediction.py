@@ -59,8 +59,10 @@ def effect_predictions(fit) -> dict[str, np.ndarray]:
     -------
     dict
         Effect spec (:meth:`Effect.spec`) -> (3, n) [fractional frequency] on the
-        telemetry's samples, NaN where the TDI delays (or a shift's interpolation stencil)
-        reach beyond the data.
+        telemetry's samples; zero where it cannot be computed (the TDI delays or a shift's
+        interpolation stencil reach beyond the data: the first ~70 s, where the data's TDI
+        is not finite either, and the last few samples of a shift), so that a residual is
+        the data less what is known of the model, and no consumer meets NaN in a fit.
     """
     data = fit.data
     tm = data.tm
@@ -76,7 +78,7 @@ def effect_predictions(fit) -> dict[str, np.ndarray]:
             out[effect.spec()] = _shift_prediction(fit, effect, data)
         else:
             out[effect.spec()] = _column_prediction(effect, theta, data, tm)
-    return out
+    return {spec: np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0) for spec, x in out.items()}
 
 
 def _column_prediction(effect, theta: dict, data, tm) -> np.ndarray:

@@ -62,7 +62,8 @@ def test_prediction_equals_the_tdi_of_the_injected_signal(inject, model, orbit):
     (spec, predicted), = effect_predictions(fit).items()
     assert spec.split(":")[0] == model.split(":")[0]
     truth, _ = tdi_in_blocks(tm.ltt, tm.fs, (), injected, order=31, delay_order=fit.data.settings.delay_order)
-    ok = np.isfinite(predicted).all(axis=0) & np.isfinite(truth).all(axis=0)
+    assert np.isfinite(predicted).all()  # zero where it cannot be computed
+    ok = np.isfinite(truth).all(axis=0)
     assert ok.mean() > 0.95
     # the samples the shift's and the filter's stencils leave out are the data's first and last
     # few; 400 samples more at each end leave the filters' start-up out (3 s for fc 0.05 Hz)
