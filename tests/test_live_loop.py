@@ -228,7 +228,7 @@ def test_live_loop_applies_the_printed_control_command(tmp_path):
         assert proc.poll() is None, output(proc)[-3000:]
         argv = command["argv"]
         assert argv[:2] == ["ttl", "control"]
-        r = subprocess.run(ttl_command(*argv[2:]), capture_output=True, text=True, timeout=120)
+        r = subprocess.run(ttl_command(*argv[1:]), capture_output=True, text=True, timeout=120)
         assert r.returncode == 0, r.stderr
         code = finish(proc, 3000)
     finally:
