@@ -210,7 +210,7 @@ def test_live_loop_applies_the_printed_control_command(tmp_path):
     try:
         proc = procs.ttl("run", "--telemetry", data, "--run-id", "ask", "--recordings", tmp_path / "rec",
                          "--timeout", "3000", "--quiet", "--skip", "monitor", "--adopt", "ask", "--diagnose-every", "6",
-                         "--pace", "60")
+                         "--pace", "240")
         command = {}
 
         def recommended():
