@@ -72,9 +72,9 @@ from ttlcore.conventions import COEFFICIENT_NAMES, DAY, parse_duration
 from ttlcore.diagnose.candidates import candidates
 from ttlcore.diagnose.diagnoser import diagnose, refit, text_report
 from ttlcore.diagnose.effects import make_effects
-from ttlcore.diagnose.prediction import effect_predictions
+from ttlcore.diagnose.prediction import column_regressors, effect_predictions
 from ttlcore.errors import ConfigError
-from ttlcore.estimate.fit import FitSettings
+from ttlcore.estimate.fit import FitSettings, with_extra_regressors
 from ttlcore.estimate.rolling import RollingFit
 from ttlcore.io.telemetry import Telemetry
 from ttlcore.tdi.combinations import XYZ
@@ -87,6 +87,13 @@ P = len(COEFFICIENT_NAMES)
 TOP_CANDIDATES = 3
 #: Adoption modes of ``--adopt``.
 ADOPT_MODES = ("ask", "auto", "never")
+#: How an extended model is fitted between the window refits of ``--model-update``.
+MODEL_UPDATES = ("rolling", "refit")
+#: Telemetry [s] before a segment from which the rolling model's columns of that segment are
+#: computed: the TDI delays (~70 s), a witness' delay of a few light travel times and the
+#: ring-in of a column's filter (an fd-coupling pole at 1 mHz decays in 160 s: 1e-5 of it
+#: is left after 1800 s).
+COLUMN_HISTORY = 1800.0
 
 
 def tdi_expect(run: str, index: int) -> Expect:
@@ -151,6 +158,14 @@ class Fitter(OrderedStage):
         self.candidates_every = int(o.get("candidates_every", 0) or 0)
         self.diagnose_every = int(o.get("diagnose_every", 24) if o.get("diagnose_every") is not None else 24)
         self.adopt = o.get("adopt") or "ask"
+        self.model_update = o.get("model_update") or "rolling"
+        if self.model_update not in MODEL_UPDATES:
+            raise ConfigError(f"fitter --model-update: expected one of {', '.join(MODEL_UPDATES)}, "
+                              f"got {self.model_update!r}")
+        #: the configured model and the recorded changes (from_index, effects) of earlier
+        #: processes: a restarted fitter replays the window under the model of each segment
+        self._initial_effects = list(self.effects)
+        self._model_history: list[tuple[int, list[str]]] = []
         if self.adopt not in ADOPT_MODES:
             raise ConfigError(f"fitter --adopt: expected one of {', '.join(ADOPT_MODES)}, got {self.adopt!r}")
         #: the window's telemetry, (index, Telemetry) in index order
@@ -179,7 +194,7 @@ class Fitter(OrderedStage):
         from on.  A damaged or unreadable file is skipped (warned)."""
         run_dir = self.config.recordings / self.run_id
         files = sorted(run_dir.glob(f"{self.stage_name}.*.mcap"), key=lambda p: _file_number(p, self.stage_name))
-        last, fits = None, set()
+        last, fits, history = None, set(), []
         for path in files:
             try:
                 rec = read_recording(path)
@@ -188,6 +203,7 @@ class Fitter(OrderedStage):
                 continue
             models = [e for e in rec.json("events") if e.get("kind") == "model"]
             last = models[-1] if models else last
+            history += models
             # the fit's segment is written before its summary: a kill between leaves only the former
             fits.update(m.header.index for m in rec.segments("fit"))
             fits.update(s["index"] for s in rec.json("fit/summary") if isinstance(s.get("index"), int))
@@ -202,6 +218,12 @@ class Fitter(OrderedStage):
                                         f"the configured model {','.join(self.effects)} stays", field="model")
             return
         self.effects = effects
+        for e in history:
+            try:
+                d_e = e.get("details") or {}
+                self._model_history.append((int(d_e["from_index"]), self.check_model(d_e["effects"])))
+            except (KeyError, TypeError, ValueError, ConfigError):
+                continue  # a change that cannot be restored: the segments before it use the model before
         due = not any(i >= start for i in fits)
         if due:
             self._model_change = {"before": before, "after": effects, "from_index": start}
@@ -243,8 +265,9 @@ class Fitter(OrderedStage):
         plan = self.validator.plan
         n = plan.segment(index)[1] if plan is not None else last.size
         nan = np.full((3, n), np.nan)
+        names = self.rolling.names  # the 24 regressors, and the rolling model's columns when it has any
         td = TDIData(t0=self._next_t0, fs=last.fs, channels=last.channels, data=nan,
-                     regressors=np.full((3, len(last.names), n), np.nan), names=last.names, ltt_mean=last.ltt_mean)
+                     regressors=np.full((3, len(names), n), np.nan), names=names, ltt_mean=last.ltt_mean)
         self.rolling.push(td)
         if self.window_tm:
             prev = self.window_tm[-1][1]
@@ -307,7 +330,7 @@ class Fitter(OrderedStage):
         change, extended = self._model_change, self.effects != ["linear-ttl"]
         if change is not None and header.index < change["from_index"]:
             change = None  # a segment replayed after a restart, before the change
-        due = (change is not None or extended
+        due = (change is not None or (extended and self.rolling_model() is None)
                or (self.adequacy_every > 0 and self._segments_seen % self.adequacy_every == 0))
         if not due:
             return None
@@ -335,6 +358,7 @@ class Fitter(OrderedStage):
                 out["arrays"]["model_parts"] = np.stack([p[:, -n:] for p in predictions.values()])
                 out["model_parts"] = list(predictions)
             out["window"] = {"first": self.window_tm[0][0], "last": self.window_tm[-1][0]}
+            out["model_update"] = "window refit"
         if change is not None:
             c = r["change"]
             out["model_change"] = {
@@ -360,6 +384,92 @@ class Fitter(OrderedStage):
         except ConfigError as exc:
             self.log.info("no window refit yet: %s", exc)
             return None
+
+    # ------------------------------------------------------------------ the rolling model
+    def rolling_model(self) -> list | None:
+        """The effects beyond ``linear-ttl`` whose columns the rolling fit carries, or None
+        when it carries the 24 regressors alone: under ``--model-update rolling``, an extended
+        model whose parameters are all given and whose columns come from the telemetry (not
+        the linearised shifts of ``timing-offset`` and ``ltt-error``).  Other extended models
+        are refitted on the window every segment."""
+        if self.model_update != "rolling" or self.effects == ["linear-ttl"]:
+            return None
+        key = tuple(self.effects)
+        if getattr(self, "_rolling_key", None) != key:
+            effects = make_effects(list(self.effects), self.effect_modules)
+            ok = all(not e.needs_coefficients and not e.unresolved() for e in effects)
+            self._rolling_effects = [e for e in effects if e.name != "linear-ttl"] if ok else None
+            self._rolling_key = key
+        return self._rolling_effects
+
+    def with_model_columns(self, td: TDIData, history: list[Telemetry], tm: Telemetry) -> tuple[TDIData, dict, np.ndarray]:
+        """``td`` with the rolling model's columns appended to its 24 regressors.
+
+        The columns' X2, Y2, Z2 (:func:`ttlcore.diagnose.prediction.column_regressors`) are
+        computed on ``tm`` with up to :data:`COLUMN_HISTORY` of the contiguous telemetry
+        before it (``history``, oldest first), and kept on ``tm``'s samples.  Returns the
+        extended TDI, effect spec -> its column names, and the columns (3, k, n)."""
+        parts, have = [tm], 0.0
+        for prev in reversed(history):
+            if have >= COLUMN_HISTORY:
+                break
+            parts.insert(0, prev)
+            have += prev.duration
+        tail = concatenate_telemetry(parts) if len(parts) > 1 else tm
+        s = refit_settings(None, self.band)
+        owners: dict[str, tuple] = {}
+        columns = []
+        for effect in self._rolling_effects:
+            names, xyz = column_regressors(tail, effect, order=s.order, delay_order=s.delay_order)
+            owners[effect.spec()] = names
+            columns.append(xyz[:, :, -tm.size:])
+        xyz = np.concatenate(columns, axis=1)
+        names = tuple(n for ns in owners.values() for n in ns)
+        extra = TDIData(t0=td.t0, fs=td.fs, channels=td.channels, data=td.data, regressors=xyz, names=names,
+                        ltt_mean=td.ltt_mean)
+        return with_extra_regressors(td, extra), owners, xyz
+
+    def rebuild_rolling(self, header, names: tuple) -> None:
+        """A new rolling fit for the regressors ``names``, the window pushed into it again from
+        the window's telemetry (TDI from a new stream, the model's columns with their history):
+        when the rolling model's columns change (a model change)."""
+        self.rolling = RollingFit(self.settings(header.meta), window_duration=self.window_duration, names=names)
+        stream = TDIStream()
+        window = [tm for _, tm in self.window_tm]
+        for j, tm in enumerate(window):
+            td = stream.push(tm)
+            if self._rolling_effects:
+                td = self.with_model_columns(td, window[:j], tm)[0]
+            self.rolling.push(td)
+        self.event("rolling-rebuilt", index=header.index,
+                   message=f"rolling fit rebuilt for {len(names)} regressors from the window's {len(window)} "
+                           f"telemetry segments", names=list(names), segments=len(window))
+
+    def replay_model(self, index: int) -> None:
+        """While a restarted fitter catches up: the model in force at segment ``index`` (the
+        configured one, then each recorded change from its segment on), so that the rolling
+        fit is rebuilt where the uninterrupted run rebuilt it."""
+        effects = self._initial_effects
+        for start, changed in sorted(self._model_history, key=lambda c: c[0]):
+            if start <= index:
+                effects = changed
+        self.effects = list(effects)
+
+    def rolling_outputs(self, res, td: TDIData, owners: dict, xyz: np.ndarray) -> tuple[dict, dict]:
+        """Arrays and meta of a fit of the rolling model: the 24 coefficients (and their
+        covariance), ``extra_parameters`` and, for this segment, each effect's contribution
+        ``sum_k theta_k TDI(col_k)`` (``model_parts``; zero where a column is not computable)."""
+        k = [res.names.index(n) for n in td.names]
+        arrays = {"coefficients": res.coefficients[k], "sigma": res.sigma[k],
+                  "covariance": res.covariance[np.ix_(k, k)]}
+        theta = dict(zip(res.names, map(float, res.coefficients)))
+        extra = {n: [float(v), float(s)] for n, v, s in zip(res.names, res.coefficients, res.sigma)
+                 if n not in td.names}
+        col = {n: j for j, n in enumerate(n for ns in owners.values() for n in ns)}
+        parts = [np.nan_to_num(sum(theta[n] * xyz[:, col[n]] for n in names), nan=0.0, posinf=0.0, neginf=0.0)
+                 for names in owners.values()]
+        arrays["model_parts"] = np.stack(parts)
+        return arrays, {"extra_parameters": extra, "model_parts": list(owners), "model_update": "rolling"}
 
     # ------------------------------------------------------------------ the live diagnosis
     def diagnosis_due(self, index: int) -> bool:
@@ -448,12 +558,18 @@ class Fitter(OrderedStage):
                                                   f"recordings; the window restarts at {start} instead of the run's start",
                               index=first, details={"recorded": to_ranges(have)})
         stream = TDIStream()
-        for i in range(start, first):
-            m = segments[i]
-            tm = telemetry_of(m.header, m.arrays)
-            if stream.next_t0 is not None and abs(tm.t0 - stream.next_t0) > 0.5 / tm.fs:
-                stream.reset()
-            self.process(m.header, (stream.push(tm), tm))
+        restored = list(self.effects)
+        self._catching_up = True
+        try:
+            for i in range(start, first):
+                m = segments[i]
+                tm = telemetry_of(m.header, m.arrays)
+                if stream.next_t0 is not None and abs(tm.t0 - stream.next_t0) > 0.5 / tm.fs:
+                    stream.reset()
+                self.process(m.header, (stream.push(tm), tm))
+        finally:
+            self._catching_up = False
+            self.effects = restored
         self.event("restored", index=first, message=f"window rebuilt from the replayer's recorded telemetry: segments "
                                                      f"{start}..{first - 1} pushed again", first=start, last=first - 1)
         self.log.info("restart: window rebuilt from segments %d..%d of the recordings", start, first - 1)
@@ -465,20 +581,28 @@ class Fitter(OrderedStage):
         if self.rolling is None and header.index > 0 and self._restarted and not self._caught_up:
             self._caught_up = True
             self.catch_up(header.index)
-        if self.rolling is None:
-            self.rolling = RollingFit(self.settings(header.meta), window_duration=self.window_duration, names=td.names)
-            self.log.info("rolling fit: FFT segment %g s, window %g s, band %s",
-                          self.rolling.settings.segment_duration, self.window_duration, self.rolling.settings.band)
-        elif self._next_t0 is not None and abs(td.t0 - self._next_t0) > 0.5 / td.fs:
+        if getattr(self, "_catching_up", False):
+            self.replay_model(header.index)
+        if self.rolling is not None and self._next_t0 is not None and abs(td.t0 - self._next_t0) > 0.5 / td.fs:
             self.event("discontinuity", index=header.index,
                        message=f"t0={td.t0} s does not follow the previous segment (expected {self._next_t0} s); "
                                "the window restarts here")
             self.rolling.reset()
             self.window_tm.clear()
+        owners, xyz, push = None, None, td
+        if self.rolling_model():
+            push, owners, xyz = self.with_model_columns(td, [t for _, t in self.window_tm], tm)
+        if self.rolling is None:
+            self.rolling = RollingFit(self.settings(header.meta), window_duration=self.window_duration, names=push.names)
+            self.log.info("rolling fit: FFT segment %g s, window %g s, band %s, %d regressors",
+                          self.rolling.settings.segment_duration, self.window_duration, self.rolling.settings.band,
+                          len(push.names))
+        elif self.rolling.names != push.names:
+            self.rebuild_rolling(header, push.names)
         self._next_t0 = td.t0 + td.size / td.fs
         self._last_td = td
         self._segments_seen = header.index + 1  # by index: the same after a restart
-        res = self.rolling.push(td)
+        res = self.rolling.push(push)
         self.window_tm.append((header.index, tm))
         end = tm.t0 + tm.size / tm.fs
         while self.window_tm and self.window_tm[0][1].t0 < end - self.window_duration - 1.0:
@@ -504,17 +628,22 @@ class Fitter(OrderedStage):
         if live is not None and live["adoption"]["adopted"]:
             meta["model"] = live["model"]  # the model of this fit; the adopted one applies from the next segment
         arrays = {"coefficients": res.coefficients, "sigma": res.sigma, "covariance": res.covariance}
+        if owners is not None:  # the rolling model: its 24 coefficients, the others and their parts
+            meta["names"] = list(td.names)
+            arrays, more = self.rolling_outputs(res, td, owners, xyz)
+            meta.update(more)
         if window is not None:
             arrays.update(window.pop("arrays", {}))
             meta.update(window)
         if live is not None:
             meta["diagnosis"] = live
-        summary = {"run": self.run_id, "index": header.index, "names": list(res.names),
+        summary = {"run": self.run_id, "index": header.index, "names": meta["names"],
                    "coefficients": arrays["coefficients"], "sigma": arrays["sigma"], "covariance": arrays["covariance"],
                    "chi2": res.chi2, "dof": res.dof, "chi2_dof": res.chi2_dof,
                    "t_start": res.t_start, "t_end": res.t_stop, "segments": int(res.n_segments),
                    "fit": res.to_json(), **{k: meta[k] for k in ("model", "adequacy", "model_change", "candidates",
-                                                                 "extra_parameters", "model_parts", "diagnosis")
+                                                                 "extra_parameters", "model_parts", "diagnosis",
+                                                                 "model_update")
                                               if k in meta}}
         self.log.info("segment %d: fit over [%.0f, %.0f] s (%d FFT segments), chi2/dof %.3f", header.index,
                       res.t_start, res.t_stop, res.n_segments, res.chi2_dof)
@@ -561,13 +690,18 @@ def add_options(p) -> None:
     p.add_argument("--adopt", choices=ADOPT_MODES,
                    help="ask (default): recommend what to add; auto: adopt a recommendation that explains the excess; "
                         "never: no live diagnosis")
+    p.add_argument("--model-update", choices=MODEL_UPDATES,
+                   help="an extended model between the window refits (every --adequacy-every segments and on a "
+                        "model change): rolling (default: the rolling fit with the model's columns, the work of one "
+                        "segment) or refit (the window refitted every segment, as ttl refit)")
 
 
 def options(args) -> dict:
     return {"fit_segment": args.fit_segment, "window_duration": args.window_duration, "band": args.band,
             "settle": args.settle, "gap_timeout": args.gap_timeout, "effects": args.effects,
             "effect_modules": args.effect_module, "adequacy_every": args.adequacy_every,
-            "candidates_every": args.candidates_every, "diagnose_every": args.diagnose_every, "adopt": args.adopt}
+            "candidates_every": args.candidates_every, "diagnose_every": args.diagnose_every, "adopt": args.adopt,
+            "model_update": args.model_update}
 
 
 def main(argv=None) -> int:

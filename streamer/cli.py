@@ -72,7 +72,7 @@ def _read_config(path: Path) -> dict:
 #: ``ttl run`` options (and ``--config`` keys) that go to the fitter: option -> fitter option.
 FITTER_OPTIONS = {"fit_segment": "fit_segment", "fit_window": "window_duration", "band": "band",
                   "effects": "effects", "effect_module": "effect_modules", "adopt": "adopt",
-                  "diagnose_every": "diagnose_every"}
+                  "diagnose_every": "diagnose_every", "model_update": "model_update"}
 
 
 def _split(values) -> tuple:

@@ -99,6 +99,10 @@ def _add_run(sub) -> None:
                         "(no live diagnosis)")
     p.add_argument("--diagnose-every", type=int, metavar="N",
                    help="fitter: diagnose the window every N segments (default 24) and after every model change")
+    p.add_argument("--model-update", choices=("rolling", "refit"),
+                   help="fitter: an extended model between its window refits (every 24 segments and on a model "
+                        "change): rolling (default: the rolling fit with the model's columns) or refit (the "
+                        "window refitted every segment, as ttl refit)")
     p.add_argument("--timeout", type=float, help="give up after this many seconds")
     p.add_argument("--log-level", help="log level of the stages (default INFO)")
     p.add_argument("--quiet", action="store_true", help="no progress display")

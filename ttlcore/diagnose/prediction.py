@@ -33,7 +33,7 @@ from ..tdi.combinations import AET_MATRIX
 from ..tdi.interpolation import timeshift
 from .effects import effect_input_from_telemetry, filtered_many, tdi_in_blocks
 
-__all__ = ["effect_predictions", "fit_residual", "model_residual", "xyz_regressors"]
+__all__ = ["column_regressors", "effect_predictions", "fit_residual", "model_residual", "xyz_regressors"]
 
 log = logging.getLogger(__name__)
 
@@ -81,27 +81,62 @@ def effect_predictions(fit) -> dict[str, np.ndarray]:
     return {spec: np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0) for spec, x in out.items()}
 
 
-def _column_prediction(effect, theta: dict, data, tm) -> np.ndarray:
-    """``sum_k theta_k TDI(col_k)`` (filtered by each column's response) of a column effect."""
-    cols = [c for c in effect.columns(effect_input_from_telemetry(tm)) if c.name in theta]
-    n = tm.size
-    total = np.zeros((3, n))
-    s = data.settings
-    # columns sharing their parts (an fd-coupling's b0..b2) go through TDI once
+def column_regressors(tm, effect, *, order: int, delay_order: int) -> tuple[tuple[str, ...], np.ndarray]:
+    """X2, Y2, Z2 of the columns of a column effect on the telemetry's own samples.
+
+    Each column is the exact TDI of its parts (:func:`ttlcore.diagnose.effects.tdi_in_blocks`,
+    the code path of the 24 regressors), filtered in time by the column's frequency response
+    when it has one (zero-padded linear convolution, :func:`ttlcore.diagnose.effects.filtered_many`;
+    an LTI filter commutes with TDI up to the arms' rate of change, ~1e-8).  Columns sharing
+    their parts (an fd-coupling's b0..b2) go through TDI once.
+
+    Parameters
+    ----------
+    tm : Telemetry
+        The telemetry (DWS, eta, light travel times).
+    effect : Effect
+        A column effect with its parameters set (not ``needs_coefficients``).
+    order, delay_order : int
+        Lagrange orders of the data and of the delay interpolation (the diagnosis settings').
+
+    Returns
+    -------
+    names : tuple of str
+        The effect's column names, in its order.
+    xyz : ndarray (3, k, n)
+        [fractional frequency per column unit]; NaN where not computable (the first ~70 s,
+        which the TDI delays reach before).
+    """
+    if getattr(effect, "needs_coefficients", False):
+        raise ValueError(f"effect {effect.name!r} shifts the TDI regressors (a linearised effect): it has no "
+                         "columns of its own to compute from the telemetry")
+    cols = effect.columns(effect_input_from_telemetry(tm))
     groups: dict[str, list] = {}
     for c in cols:
         groups.setdefault(c.base or c.name, []).append(c)
+    out: dict[str, np.ndarray] = {}
     for members in groups.values():
-        _, xyz = tdi_in_blocks(tm.ltt, tm.fs, [members[0]], order=s.order, delay_order=s.delay_order)
+        _, xyz = tdi_in_blocks(tm.ltt, tm.fs, [members[0]], order=order, delay_order=delay_order)
         x = xyz[:, 0]  # (3, n)
-        if all(c.response is None for c in members):
-            total += sum(theta[c.name] for c in members) * x
-            continue
         ok = np.isfinite(x).all(axis=0)
         for c in members:
-            response = c.response or (lambda f: np.ones(np.shape(f), dtype=complex))
-            y = np.stack([filtered_many(x[ch], tm.fs, [response])[0] for ch in range(3)])
-            total += theta[c.name] * np.where(ok, y, np.nan)
+            if c.response is None:
+                out[c.name] = x
+            else:
+                y = np.stack([filtered_many(x[ch], tm.fs, [c.response])[0] for ch in range(3)])
+                out[c.name] = np.where(ok, y, np.nan)
+    names = tuple(c.name for c in cols)
+    return names, np.stack([out[n] for n in names], axis=1)
+
+
+def _column_prediction(effect, theta: dict, data, tm) -> np.ndarray:
+    """``sum_k theta_k TDI(col_k)`` (filtered by each column's response) of a column effect."""
+    s = data.settings
+    names, xyz = column_regressors(tm, effect, order=s.order, delay_order=s.delay_order)
+    total = np.zeros((3, tm.size))
+    for k, name in enumerate(names):
+        if name in theta:
+            total += theta[name] * xyz[:, k]
     return total
 
 
