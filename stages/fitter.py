@@ -614,7 +614,7 @@ class Fitter(OrderedStage):
         # rebuild the window): its window fit and diagnosis would be thrown away
         replayed = self.handled_before(header.index)
         window = None if replayed else self.window_fit(header)
-        if window is None and not replayed and self.effects != ["linear-ttl"]:
+        if window is None and not replayed and self.effects != ["linear-ttl"] and owners is None:
             self.warn("model-not-fitted", f"fit {header.index}: the model {','.join(self.effects)} could not be fitted "
                                           "on the window (too short for its spectra): the linear rolling fit is "
                                           "published, and only the linear TTL is subtracted", index=header.index)

@@ -315,16 +315,19 @@ def extended_day(tmp_path_factory):
 @pytest.mark.timeout(DAY_TIMEOUT)
 @pytest.mark.parametrize("stage", ["fitter", "subtractor"])
 def test_kill_with_an_extended_model_changes_nothing(extended_day, tmp_path, stage):
-    """SIGKILL of the fitter or the subtractor at segment 3 of 6 while the model holds a
+    """SIGKILL of the fitter or the subtractor at segment 4 of 6 while the model holds a
     witness and an fd-coupling: restarted, the results equal the clean run's to 1e-9 (the
-    fitter rebuilds its telemetry window from the replayer's recording: the caches hold 3
-    segments)."""
+    fitter rebuilds its telemetry window and its rolling fit from the replayer's recording:
+    the caches hold 3 segments)."""
     data, clean = extended_day
     procs = Procs(tmp_path)
     try:
         proc = procs.ttl("run", "--telemetry", data, "--run-id", "killed", "--recordings", tmp_path / "rec",
                          "--timeout", "3000", "--quiet", "--skip", "monitor", "--effects", EXTENDED, "--adopt", "never",
                          "--restart", "1", "--listen", f"tls/127.0.0.1:{free_port()}",
+                         # 3 s a segment: the kill lands with segments still to come (the
+                         # rolling update takes ~0.2 s a segment; results do not depend on pace)
+                         "--pace", "1200",
                          # caches smaller than the window: the restarted fitter must rebuild its
                          # window from the recordings, not from the publishers' caches
                          "--window", "1", "--cache", "3")
@@ -336,7 +339,7 @@ def test_kill_with_an_extended_model_changes_nothing(extended_day, tmp_path, sta
             except (RecordingError, OSError):
                 return 0
             return len(list(rec.segments("fit" if stage == "fitter" else "residual")))
-        wait_for(lambda: handled() >= 3 or proc.poll() is not None, 1800, f"{stage} at segment 3")
+        wait_for(lambda: handled() >= 4 or proc.poll() is not None, 1800, f"{stage} at segment 4")
         stage_processes(proc)[stage].send_signal(signal.SIGKILL)
         time.sleep(0.5)
         code = finish(proc, 3000)
