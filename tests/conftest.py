@@ -29,7 +29,7 @@ for _name in ("lisainstrument_sim", "pytdi_reference", "proc_testutil"):
 #: together.  Modules not listed (all under ~20 s) keep their order, after these.
 MODULE_SECONDS = {
     "tests/test_pipeline.py": 260,
-    "tests/test_live_loop.py": 150,
+    "tests/test_live_loop.py": 175,
     "tests/ttlcore/diagnose/test_diagnose.py": 170,
     "tests/test_model_control.py": 156,
     "tests/ttlcore/estimate/test_analyze.py": 137,

@@ -141,19 +141,19 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
     return report
 
 
-def _with_noise_levels(model: ModelFit) -> ModelFit:
+def _with_noise_levels(model: ModelFit, time_table: bool = True) -> ModelFit:
     """``model`` refitted with the secondary-noise levels profiled (``noise_model="fitted"``).
 
     The model's searched parameters stay at the estimates the search found (``model.effects``
     holds the effects at those estimates), and the search results are carried over; the
     offsets of shifted-witness effects, searched again with each fit's columns, are the
     refit's."""
-    _, fitted = profile_noise_model(model.data, list(model.effects), first=model)
+    _, fitted = profile_noise_model(model.data, list(model.effects), first=model, time_table=time_table)
     return replace(fitted, searches={**model.searches, **fitted.searches})
 
 
 def refit(source, effects=("linear-ttl",), *, settings: DiagnoseSettings | None = None, effect_modules=(),
-          dws_asd: float | None = None, baseline=("linear-ttl",)) -> dict:
+          dws_asd: float | None = None, baseline=("linear-ttl",), time_table: bool = True) -> dict:
     """Refit already-computed data with a given list of effects and report the change.
 
     Parameters
@@ -170,6 +170,9 @@ def refit(source, effects=("linear-ttl",), *, settings: DiagnoseSettings | None 
         The model, e.g. ``["linear-ttl", "drift", "step:t_step=50400"]``.
     baseline : sequence
         The model the change is measured against (default the linear TTL alone).
+    time_table : bool
+        Test the model's adequacy in time slices too (``adequacy.time``); without, the
+        fits (the same numbers) keep no time series of their columns (a day's: ~200 MB).
 
     Returns
     -------
@@ -180,10 +183,10 @@ def refit(source, effects=("linear-ttl",), *, settings: DiagnoseSettings | None 
         :class:`~ttlcore.diagnose.whitened.WhitenedData` of the model's final noise model).
     """
     with sp_fft.set_workers(-1):  # serial: the FFTs on every core
-        return _refit(source, effects, settings, effect_modules, dws_asd, baseline)
+        return _refit(source, effects, settings, effect_modules, dws_asd, baseline, time_table)
 
 
-def _refit(source, effects, settings, effect_modules, dws_asd, baseline) -> dict:
+def _refit(source, effects, settings, effect_modules, dws_asd, baseline, time_table=True) -> dict:
     if isinstance(source, WhitenedData):
         data = source
     elif isinstance(source, TDIData):
@@ -195,10 +198,10 @@ def _refit(source, effects, settings, effect_modules, dws_asd, baseline) -> dict
     else:
         raise ConfigError(f"refit: cannot refit a {type(source).__name__}; give telemetry, TDI data or WhitenedData")
     modules = tuple(effect_modules) or data.effect_modules
-    model = fit_model(data, make_effects(list(effects), modules))
+    model = fit_model(data, make_effects(list(effects), modules), time_table=time_table)
     if data.settings.noise_model == "fitted":
-        model = _with_noise_levels(model)
-    base = fit_model(model.data, make_effects(list(baseline), modules))
+        model = _with_noise_levels(model, time_table)
+    base = fit_model(model.data, make_effects(list(baseline), modules), time_table=time_table)
     ev = change(base, model)
     return {
         "model": model_json(model), "baseline": model_json(base),

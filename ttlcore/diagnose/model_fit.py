@@ -10,7 +10,8 @@ excess instead of being absorbed:
 
 with ``N = Re sum R^H S^-1 R``, ``b = Re sum R^H S^-1 d``, ``dd = sum d^H S^-1 d`` over the
 bins of each band and segment (:func:`gram`), ``E`` the errors-in-variables term of the
-columns (:func:`ttlcore.diagnose.columns.eiv`).  :func:`solve` is pure: whitened data and
+columns (:func:`ttlcore.diagnose.columns.eiv`), solved by the engine every fit in ttlcore
+shares (:func:`ttlcore.estimate.gls.solve`).  :func:`solve` is pure: whitened data and
 columns in, a :class:`ModelFit` out.
 """
 
@@ -21,6 +22,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES
+from ..estimate.gls import NormalEquations
+from ..estimate.gls import solve as gls_solve
 from .adequacy import band_table
 from .columns import ColumnSet, eiv, read_only
 
@@ -190,11 +193,9 @@ def solve(data, columns: ColumnSet, effects=(), expansion=None) -> ModelFit:
     b = rhs(data, columns)
     dd = data.dd
     E = eiv(data, columns)
-    Ntot = N.sum(axis=(0, 1)) - E.sum(axis=0)
+    theta, cov = gls_solve(normal_equations(data, columns, N, b, E))
+    cov = data.kappa * cov
     btot = b.sum(axis=(0, 1))
-    theta = np.linalg.solve(Ntot, btot)
-    cov = data.kappa * np.linalg.inv(2 * Ntot)
-    cov = 0.5 * (cov + cov.T)
     chi2_sg = 2 * (np.einsum("p,sgpq,q->sg", theta, N, theta) - 2 * b @ theta + dd)
     wr = data.wd - np.tensordot(theta, columns.x.view(complex), axes=(0, 0))  # no (S, m, 3, P) copy
     n_noise = 0 if data.noise_parameters is None else data.noise_parameters.n_parameters
@@ -205,10 +206,19 @@ def solve(data, columns: ColumnSet, effects=(), expansion=None) -> ModelFit:
                     eiv_term=E, expansion=dict(expansion or {}))
 
 
+def normal_equations(data, columns: ColumnSet, N=None, b=None, E=None) -> NormalEquations:
+    """The window's :class:`~ttlcore.estimate.gls.NormalEquations` of ``columns`` (summed over
+    segments, per band): what the engine solves.  ``N`` (S, G, P, P), ``b`` (S, G, P) and
+    ``E`` (G, P, P) when already computed."""
+    N = gram(data, columns, columns) if N is None else N
+    b = rhs(data, columns) if b is None else b
+    E = eiv(data, columns) if E is None else E
+    nbins = np.array([(hi - lo) * N.shape[0] for lo, hi in data.slices])
+    return NormalEquations(columns.names, data.edges, N.sum(axis=0), b.sum(axis=0), data.dd.sum(axis=0), E, nbins)
+
+
 def normal_solution(data, columns: ColumnSet) -> tuple[dict, dict]:
     """``(theta, sigma)`` of the GLS fit of ``columns`` (column -> value), nothing else."""
-    N = gram(data, columns, columns).sum(axis=(0, 1)) - eiv(data, columns).sum(axis=0)
-    b = rhs(data, columns).sum(axis=(0, 1))
-    theta = np.linalg.solve(N, b)
-    sig = np.sqrt(np.abs(np.diag(np.linalg.inv(2 * N))) * data.kappa)
+    theta, cov = gls_solve(normal_equations(data, columns))
+    sig = np.sqrt(np.abs(np.diag(cov)) * data.kappa)
     return dict(zip(columns.names, theta)), dict(zip(columns.names, sig))

@@ -368,7 +368,8 @@ def outlying_segments(chi2_seg_band, dof_seg_band, kappa: float, tolerance: floa
     return (p < alpha / (S * G)).any(axis=1)
 
 
-def profile_noise_model(data, effects, *, names=PARAMETERS, passes: int = 4, first=None, robust: bool = True):
+def profile_noise_model(data, effects, *, names=PARAMETERS, passes: int = 4, first=None, robust: bool = True,
+                        time_table: bool = True):
     """Profile the noise levels with the linear fit of a diagnosis (module docstring).
 
     Alternates the linear fit of ``effects`` under the current noise model and
@@ -425,7 +426,7 @@ def profile_noise_model(data, effects, *, names=PARAMETERS, passes: int = 4, fir
                  dict(zip(nm.names, np.round(nm.levels, 4))), float(np.max(moved)))
         if np.all(moved < 0.1):
             break
-    return nm, fit_model(fit.data, effects)
+    return nm, fit_model(fit.data, effects, time_table=time_table)
 
 
 def noise_model_json(model: "NoiseModel | None") -> dict:

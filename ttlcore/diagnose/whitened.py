@@ -324,7 +324,10 @@ def whiten_telemetry(tm, settings: DiagnoseSettings | None = None, effect_module
     s = settings or DiagnoseSettings()
     data, regs = tdi_in_blocks(tm.ltt, tm.fs, LinearTTL().columns(effect_input_from_telemetry(tm)), tm.eta,
                                order=s.order, delay_order=s.delay_order)
+    # A, E, T here, X2, Y2, Z2 freed before the whitening: a day's 24 regressors are 200 MB
+    # in each (what whiten_tdi does first, with the same numbers)
     td = TDIData(t0=float(tm.t0), fs=float(tm.fs), channels=tuple(c.name for c in MICHELSON), data=data,
-                 regressors=regs, names=COEFFICIENT_NAMES, ltt_mean=np.nanmean(np.asarray(tm.ltt), axis=-1))
+                 regressors=regs, names=COEFFICIENT_NAMES, ltt_mean=np.nanmean(np.asarray(tm.ltt), axis=-1)).to_aet()
+    del data, regs
     dws = s.dws_asd if s.dws_asd is not None else dws_asd_from_config(tm.config)
     return whiten_tdi(td, s, tm=tm, effect_modules=effect_modules, dws_asd=dws)

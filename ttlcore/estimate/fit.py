@@ -43,6 +43,7 @@ from scipy import ndimage
 from ..conventions import COEFFICIENT_NAMES
 from ..tdi.data import TDIData
 from ..tdi.regressors import dws_channel, regressor_responses
+from .gls import NormalEquations, solve
 from .noise_psd import tdi_noise_csd
 from .spectra import segment_fft, smooth_csd, smooth_csd_variable, window
 
@@ -294,55 +295,6 @@ def default_band_edges(band=DEFAULT_BAND, n_bands: int = 8) -> np.ndarray:
     return np.geomspace(band[0], band[1] * (1 + 1e-9), n_bands + 1)
 
 
-@dataclass
-class NormalEquations:
-    """Sufficient statistics of the linear-Gaussian fit, per frequency band.
-
-    ``Q_g(C) = C^T N_g C - 2 C^T b_g + dd_g`` is the whitened residual power of band ``g``
-    (``log L = -sum_g Q_g``); ``E_g`` the expected DWS-noise part of ``N_g``; ``nbins_g``
-    the number of complex frequency bins (summed over segments) and ``nchan`` the channels
-    per bin, so band ``g`` holds ``2 nchan nbins_g`` real degrees of freedom.
-    Additive: windows are built by adding and subtracting segments.
-    """
-
-    names: tuple
-    band_edges: np.ndarray
-    N: np.ndarray
-    b: np.ndarray
-    dd: np.ndarray
-    E: np.ndarray
-    nbins: np.ndarray
-    nchan: int = 3
-
-    @classmethod
-    def zeros(cls, names, band_edges, nchan: int = 3) -> "NormalEquations":
-        G, P = len(band_edges) - 1, len(names)
-        return cls(tuple(names), np.asarray(band_edges), np.zeros((G, P, P)), np.zeros((G, P)), np.zeros(G),
-                   np.zeros((G, P, P)), np.zeros(G, dtype=int), nchan)
-
-    def __add__(self, other: "NormalEquations") -> "NormalEquations":
-        return NormalEquations(self.names, self.band_edges, self.N + other.N, self.b + other.b, self.dd + other.dd,
-                               self.E + other.E, self.nbins + other.nbins, self.nchan)
-
-    def __sub__(self, other: "NormalEquations") -> "NormalEquations":
-        return NormalEquations(self.names, self.band_edges, self.N - other.N, self.b - other.b, self.dd - other.dd,
-                               self.E - other.E, self.nbins - other.nbins, self.nchan)
-
-    def total(self, eiv: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
-        """``(N - E, b, dd)`` summed over bands (``N`` alone if ``eiv`` is False)."""
-        N = self.N.sum(axis=0) - (self.E.sum(axis=0) if eiv else 0.0)
-        return N, self.b.sum(axis=0), float(self.dd.sum())
-
-    def chi2_per_band(self, C: np.ndarray, eiv: bool = False) -> np.ndarray:
-        """``2 Q_g(C)``: chi^2 of each band at coefficients ``C``."""
-        N = self.N - (self.E if eiv else 0.0)
-        q = np.einsum("p,gpq,q->g", C, N, C) - 2 * self.b @ C + self.dd
-        return 2 * q
-
-    def dof_per_band(self) -> np.ndarray:
-        return 2 * self.nchan * self.nbins
-
-
 def accumulate(spectra: list[SegmentSpectra], weights: np.ndarray, band_edges, names,
                eiv_response: np.ndarray | None = None, dws_psd: np.ndarray | None = None,
                stacked: tuple | None = None) -> NormalEquations:
@@ -537,15 +489,6 @@ class FitResult:
             out["normalised_chi2"] = float(err @ np.linalg.solve(self.covariance, err))
         out.update(self.extra)
         return out
-
-
-def solve(neq: NormalEquations, eiv: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """GLS estimate and covariance from the normal equations: ``C = (N - E)^-1 b``,
-    ``Cov = (2 (N - E))^-1``."""
-    N, b, _ = neq.total(eiv)
-    C = np.linalg.solve(N, b)
-    cov = np.linalg.inv(2 * N)
-    return C, 0.5 * (cov + cov.T)
 
 
 # ---------------------------------------------------------------------------

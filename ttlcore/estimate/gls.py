@@ -1,0 +1,81 @@
+"""The GLS engine with errors in variables: one solver for every model (docs/physics.md, fit).
+
+Every fit in ttlcore - ``ttl analyze``'s 24 coefficients, the rolling fitter (with or
+without a model's extra columns), ``ttl diagnose``'s and ``ttl refit``'s models - reduces
+its whitened data to the same sufficient statistics per frequency band,
+
+    N_g = Re sum R^H S^-1 R,    b_g = Re sum R^H S^-1 d,    dd_g = sum d^H S^-1 d,
+
+and the errors-in-variables term ``E_g`` (the expected DWS readout-noise part of ``N_g``),
+and solves them here (:func:`solve`): ``theta = (N - E)^-1 b``, ``Cov = (2 (N - E))^-1``
+(times the window's variance factor, which the caller applies).  What differs between the
+callers is the noise model ``S`` they whiten with (:mod:`ttlcore.estimate.fit`: re-estimated
+from the residual; :mod:`ttlcore.diagnose.whitened`: the instrument noise model, fitted
+levels) and the columns ``R`` (the 24 TDI regressors, or a model's).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = ["NormalEquations", "solve"]
+
+
+@dataclass
+class NormalEquations:
+    """Sufficient statistics of the linear-Gaussian fit, per frequency band.
+
+    ``Q_g(C) = C^T N_g C - 2 C^T b_g + dd_g`` is the whitened residual power of band ``g``
+    (``log L = -sum_g Q_g``); ``E_g`` the expected DWS-noise part of ``N_g``; ``nbins_g``
+    the number of complex frequency bins (summed over segments) and ``nchan`` the channels
+    per bin, so band ``g`` holds ``2 nchan nbins_g`` real degrees of freedom.
+    Additive: windows are built by adding and subtracting segments.
+    """
+
+    names: tuple
+    band_edges: np.ndarray
+    N: np.ndarray
+    b: np.ndarray
+    dd: np.ndarray
+    E: np.ndarray
+    nbins: np.ndarray
+    nchan: int = 3
+
+    @classmethod
+    def zeros(cls, names, band_edges, nchan: int = 3) -> "NormalEquations":
+        G, P = len(band_edges) - 1, len(names)
+        return cls(tuple(names), np.asarray(band_edges), np.zeros((G, P, P)), np.zeros((G, P)), np.zeros(G),
+                   np.zeros((G, P, P)), np.zeros(G, dtype=int), nchan)
+
+    def __add__(self, other: "NormalEquations") -> "NormalEquations":
+        return NormalEquations(self.names, self.band_edges, self.N + other.N, self.b + other.b, self.dd + other.dd,
+                               self.E + other.E, self.nbins + other.nbins, self.nchan)
+
+    def __sub__(self, other: "NormalEquations") -> "NormalEquations":
+        return NormalEquations(self.names, self.band_edges, self.N - other.N, self.b - other.b, self.dd - other.dd,
+                               self.E - other.E, self.nbins - other.nbins, self.nchan)
+
+    def total(self, eiv: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
+        """``(N - E, b, dd)`` summed over bands (``N`` alone if ``eiv`` is False)."""
+        N = self.N.sum(axis=0) - (self.E.sum(axis=0) if eiv else 0.0)
+        return N, self.b.sum(axis=0), float(self.dd.sum())
+
+    def chi2_per_band(self, C: np.ndarray, eiv: bool = False) -> np.ndarray:
+        """``2 Q_g(C)``: chi^2 of each band at coefficients ``C``."""
+        N = self.N - (self.E if eiv else 0.0)
+        q = np.einsum("p,gpq,q->g", C, N, C) - 2 * self.b @ C + self.dd
+        return 2 * q
+
+    def dof_per_band(self) -> np.ndarray:
+        return 2 * self.nchan * self.nbins
+
+
+def solve(neq: NormalEquations, eiv: bool = True) -> tuple[np.ndarray, np.ndarray]:
+    """GLS estimate and covariance from the normal equations: ``C = (N - E)^-1 b``,
+    ``Cov = (2 (N - E))^-1``."""
+    N, b, _ = neq.total(eiv)
+    C = np.linalg.solve(N, b)
+    cov = np.linalg.inv(2 * N)
+    return C, 0.5 * (cov + cov.T)
