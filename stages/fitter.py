@@ -22,16 +22,32 @@ The model is a list of effects (option ``effects``, default ``linear-ttl``): any
 ``ttl diagnose`` can fit - named effects, witness effects, fd-couplings, ``vary=``, and
 plugins from the stage's configuration (``effect_modules``, never from a message).  The TDI
 builder forwards each segment's telemetry (``eta``, ``dws_phi``, ``dws_eta``, ``ltt``) with
-its TDI, and the fitter keeps the window's telemetry.  With the linear TTL alone the
-published fit is the rolling fit's; with more, every segment refits the window's telemetry
-with the model by :func:`ttlcore.diagnose.diagnoser.refit` - exactly what ``ttl refit
---segments A:B`` does offline on the same segments (searched parameters searched again on
-the window) - and the fit message carries that model's 24 coefficients, ``extra_parameters``
-and, for the newest segment, each other effect's contribution to X2, Y2, Z2 (array
-``model_parts`` (k, 3, n), meta ``model_parts``: the effect specs;
-:func:`ttlcore.diagnose.prediction.effect_predictions`), which the subtractor subtracts.
-Every ``adequacy_every`` segments (default 24), and on every segment of an extended model,
-the meta holds ``adequacy`` (chi^2/dof per band against the instrument noise model).
+its TDI, and the fitter keeps the window's telemetry.  An extended model is fitted two ways:
+
+- **the window refit**, every ``adequacy_every`` segments (default 24: the last segment of
+  each day of 1-h segments) and on the first segment of every new model: the window's
+  telemetry refitted with the model by :func:`ttlcore.diagnose.diagnoser.refit` under the
+  instrument noise model - exactly what ``ttl refit --segments A:B`` does offline on the same
+  segments (searched parameters searched again on the window); the meta holds ``adequacy``
+  (chi^2/dof per band) and ``model_update: "window refit"``;
+- **the rolling update** in between (``model_update`` ``rolling``, the default): the model's
+  columns of the new segment are computed from its telemetry with :data:`COLUMN_HISTORY`
+  before it (:func:`ttlcore.diagnose.prediction.column_regressors`) and appended to its 24
+  TDI regressors, and the rolling fit (:class:`ttlcore.estimate.rolling.RollingFit`, the
+  estimator of ``ttl analyze``) fits all of them: the work of one segment, not of a window
+  (meta ``model_update: "rolling"``).  It needs every parameter of the model given (a
+  searched parameter, or the shifted regressors of ``timing-offset`` and ``ltt-error``, make
+  every segment a window refit, as ``model_update`` ``refit`` does for any model).
+
+Either way the fit message carries the model's 24 coefficients, ``extra_parameters`` and,
+for the newest segment, each other effect's contribution to X2, Y2, Z2 (array
+``model_parts`` (k, 3, n), meta ``model_parts``: the effect specs), which the subtractor
+subtracts.  The rolling update and the window refit are two GLS estimates of the same model
+(the rolling one weighted by the residual CSD of its last full refit, the window refit by the
+instrument noise model): they agree within a fraction of sigma, and a window-refit segment's
+residual equals ``ttl refit --residual``'s to 1e-9.  A new model rebuilds the rolling fit
+from the window's telemetry; a restarted fitter replays the recorded model changes while it
+rebuilds its window, so that its state is the uninterrupted run's.
 
 Every ``diagnose_every`` segments (default 24, counted by index) and on the first segment of
 a new model, the window is diagnosed as ``ttl diagnose`` would (:func:`ttlcore.diagnose.diagnoser.diagnose`,
