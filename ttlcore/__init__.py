@@ -16,7 +16,7 @@ against the measurement); :mod:`ttlcore.gw` holds the gravitational-wave sources
 Conventions (indices, units, signs: ``docs/physics.md``) live in :mod:`ttlcore.conventions`.
 """
 
-__version__ = "0.1.0"
+from ._version import __version__  # noqa: E402 (one place for the version)
 
 import importlib
 import sys

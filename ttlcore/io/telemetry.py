@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .. import __version__
+from .._version import __version__
 from ..conventions import LINKS, MOSAS
 from ..errors import TelemetryError
 from .hdf5 import (
