@@ -437,10 +437,12 @@ class Fitter(OrderedStage):
         s = refit_settings(None, self.band)
         owners: dict[str, tuple] = {}
         columns = []
+        self._rolling_eiv: dict = {}  # the DWS readouts each column carries the noise of
         for effect in self._rolling_effects:
-            names, xyz = column_regressors(tail, effect, order=s.order, delay_order=s.delay_order)
+            names, xyz, eiv = column_regressors(tail, effect, order=s.order, delay_order=s.delay_order)
             owners[effect.spec()] = names
             columns.append(xyz[:, :, -tm.size:])
+            self._rolling_eiv.update(eiv)
         xyz = np.concatenate(columns, axis=1)
         names = tuple(n for ns in owners.values() for n in ns)
         extra = TDIData(t0=td.t0, fs=td.fs, channels=td.channels, data=td.data, regressors=xyz, names=names,
@@ -451,7 +453,8 @@ class Fitter(OrderedStage):
         """A new rolling fit for the regressors ``names``, the window pushed into it again from
         the window's telemetry (TDI from a new stream, the model's columns with their history):
         when the rolling model's columns change (a model change)."""
-        self.rolling = RollingFit(self.settings(header.meta), window_duration=self.window_duration, names=names)
+        self.rolling = RollingFit(self.settings(header.meta), window_duration=self.window_duration, names=names,
+                                  eiv_extra=getattr(self, "_rolling_eiv", None) if self._rolling_effects else None)
         stream = TDIStream()
         window = [tm for _, tm in self.window_tm]
         for j, tm in enumerate(window):
@@ -611,7 +614,8 @@ class Fitter(OrderedStage):
         if self.rolling_model():
             push, owners, xyz = self.with_model_columns(td, [t for _, t in self.window_tm], tm)
         if self.rolling is None:
-            self.rolling = RollingFit(self.settings(header.meta), window_duration=self.window_duration, names=push.names)
+            self.rolling = RollingFit(self.settings(header.meta), window_duration=self.window_duration, names=push.names,
+                                      eiv_extra=self._rolling_eiv if owners is not None else None)
             self.log.info("rolling fit: FFT segment %g s, window %g s, band %s, %d regressors",
                           self.rolling.settings.segment_duration, self.window_duration, self.rolling.settings.band,
                           len(push.names))

@@ -81,7 +81,7 @@ def effect_predictions(fit) -> dict[str, np.ndarray]:
     return {spec: np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0) for spec, x in out.items()}
 
 
-def column_regressors(tm, effect, *, order: int, delay_order: int) -> tuple[tuple[str, ...], np.ndarray]:
+def column_regressors(tm, effect, *, order: int, delay_order: int) -> tuple[tuple[str, ...], np.ndarray, dict]:
     """X2, Y2, Z2 of the columns of a column effect on the telemetry's own samples.
 
     Each column is the exact TDI of its parts (:func:`ttlcore.diagnose.effects.tdi_in_blocks`,
@@ -106,6 +106,11 @@ def column_regressors(tm, effect, *, order: int, delay_order: int) -> tuple[tupl
     xyz : ndarray (3, k, n)
         [fractional frequency per column unit]; NaN where not computable (the first ~70 s,
         which the TDI delays reach before).
+    eiv : dict
+        Column name -> the DWS readouts whose noise it carries, for the errors-in-variables
+        term (:func:`ttlcore.estimate.fit.eiv_parts`): the parts of a plain witness
+        ``-DWS/c`` (channel, link, delays, the column's response); columns of modulated or
+        multiplied readouts carry none.
     """
     if getattr(effect, "needs_coefficients", False):
         raise ValueError(f"effect {effect.name!r} shifts the TDI regressors (a linearised effect): it has no "
@@ -126,13 +131,15 @@ def column_regressors(tm, effect, *, order: int, delay_order: int) -> tuple[tupl
                 y = np.stack([filtered_many(x[ch], tm.fs, [c.response])[0] for ch in range(3)])
                 out[c.name] = np.where(ok, y, np.nan)
     names = tuple(c.name for c in cols)
-    return names, np.stack([out[n] for n in names], axis=1)
+    eiv = {c.name: tuple((p.channel, p.link, tuple(p.extra), c.response) for p in c.parts)
+           for c in cols if c.parts and all(p.channel is not None and p.modulation is None for p in c.parts)}
+    return names, np.stack([out[n] for n in names], axis=1), eiv
 
 
 def _column_prediction(effect, theta: dict, data, tm) -> np.ndarray:
     """``sum_k theta_k TDI(col_k)`` (filtered by each column's response) of a column effect."""
     s = data.settings
-    names, xyz = column_regressors(tm, effect, order=s.order, delay_order=s.delay_order)
+    names, xyz, _ = column_regressors(tm, effect, order=s.order, delay_order=s.delay_order)
     total = np.zeros((3, tm.size))
     for k, name in enumerate(names):
         if name in theta:

@@ -40,9 +40,11 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import ndimage
 
-from ..conventions import COEFFICIENT_NAMES
+from ..conventions import C as C_LIGHT
+from ..conventions import COEFFICIENT_NAMES, LINKS
+from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 from ..tdi.data import TDIData
-from ..tdi.regressors import dws_channel, regressor_responses
+from ..tdi.regressors import dws_channel, placement
 from .gls import NormalEquations, solve
 from .noise_psd import tdi_noise_csd
 from .spectra import segment_fft, smooth_csd, smooth_csd_variable, window
@@ -296,25 +298,26 @@ def default_band_edges(band=DEFAULT_BAND, n_bands: int = 8) -> np.ndarray:
 
 
 def accumulate(spectra: list[SegmentSpectra], weights: np.ndarray, band_edges, names,
-               eiv_response: np.ndarray | None = None, dws_psd: np.ndarray | None = None,
+               eiv_response: list | None = None, dws_psd: np.ndarray | None = None,
                stacked: tuple | None = None) -> NormalEquations:
     """Sum the normal equations of ``spectra`` with per-bin weights ``W = S^-1`` (m, c, c).
 
     Each bin is whitened with the Cholesky factor ``W = L L^H`` (``x -> L^H x``), after
-    which the per-band sums are plain matrix products.  ``eiv_response`` (m, c, P) and
-    ``dws_psd`` (m,) give the errors-in-variables term.  ``stacked`` may pass the
-    already stacked ``(d (S, m, c), R (S, m, c, P))``.
+    which the per-band sums are plain matrix products.  ``eiv_response``
+    (:func:`eiv_responses`: per DWS channel, the regressors carrying its readout noise and
+    their responses (m, c, q)) and ``dws_psd`` (m,) give the errors-in-variables term
+    ``E_kl = sum_ch Re sum_f S_dws T_k,ch^H W T_l,ch``.  ``stacked`` may pass the already
+    stacked ``(d (S, m, c), R (S, m, c, P))``.
     """
     f = spectra[0].f
     c = spectra[0].d.shape[1]
     P = len(names)
     neq = NormalEquations.zeros(names, band_edges, nchan=c)
     Lh, wd, wR = whiten(weights, *(stacked if stacked is not None else stack_spectra(spectra)))
-    same = None
+    groups = None
     if eiv_response is not None and dws_psd is not None:
-        chans = [_eiv_channel(a) for a in names]
-        same = np.array([[a is not None and a == b for b in chans] for a in chans], dtype=float)
-        wT = np.matmul(Lh, eiv_response) * np.sqrt(dws_psd)[:, None, None]
+        scale = np.sqrt(dws_psd)[:, None, None]
+        groups = [(np.ix_(idx, idx), np.matmul(Lh, T) * scale) for idx, T in eiv_response]
     # f is sorted, so each band is a contiguous run of bins: slices, no copies
     for g, (m0, m1) in enumerate(band_slices(f, band_edges)):
         if m1 == m0:
@@ -327,9 +330,9 @@ def accumulate(spectra: list[SegmentSpectra], weights: np.ndarray, band_edges, n
         neq.b[g] = X.T @ y
         neq.dd[g] = float(y @ y)
         neq.nbins[g] = (m1 - m0) * len(spectra)
-        if same is not None:
-            XT = _real_stack(wT[m0:m1].reshape(-1, P))
-            neq.E[g] = (XT.T @ XT) * same * len(spectra)
+        for block, wT in groups or ():
+            XT = _real_stack(wT[m0:m1].reshape(-1, wT.shape[-1]))
+            neq.E[g][block] += (XT.T @ XT) * len(spectra)
     return neq
 
 
@@ -360,25 +363,58 @@ def _real_stack(z: np.ndarray) -> np.ndarray:
 
 
 def _eiv_channel(name: str):
-    """DWS channel of a TTL regressor, None for extra (effect) regressors: their
-    errors-in-variables term is not modelled (their coefficients are small, so the bias,
-    a fraction of order (DWS noise / jitter)^2 of them, is negligible)."""
+    """DWS channel ``(mosa, angle)`` of a TTL regressor, None for another name."""
     try:
         return dws_channel(name)
     except ValueError:
         return None
 
 
-def eiv_responses(f: np.ndarray, ltt_mean, names) -> np.ndarray:
-    """:func:`ttlcore.tdi.regressors.regressor_responses` for the TTL names among ``names``,
-    zero columns for extra (effect) regressors."""
-    names = tuple(names)
-    ttl = [k for k, n in enumerate(names) if _eiv_channel(n) is not None]
-    if len(ttl) == len(names):
-        return regressor_responses(f, ltt_mean, names)
-    out = np.zeros((np.size(f), 3, len(names)), dtype=complex)
-    if ttl:
-        out[:, :, ttl] = regressor_responses(f, ltt_mean, [names[k] for k in ttl])
+def eiv_parts(names, extra: dict | None = None) -> list[tuple]:
+    """Per regressor, the DWS readouts whose noise it carries: a tuple of parts
+    ``((mosa, angle), link, extra_delays, response)``, each the plain witness ``-DWS/c`` of
+    that channel placed on ``link`` after the delays ``extra_delays`` and filtered by
+    ``response`` (``f -> complex``, or None).  The 24 TTL regressors from their names
+    (:func:`ttlcore.tdi.regressors.placement`); other regressors (a model's columns) from
+    ``extra`` (name -> parts; a name not in it carries none: columns made of products or
+    modulations of the readouts, whose bias is second order in the small readout noise)."""
+    out = []
+    for name in names:
+        if _eiv_channel(name) is not None:
+            link, delays, mosa, angle = placement(name)
+            out.append((((mosa, angle), link, tuple(delays), None),))
+        else:
+            out.append(tuple((extra or {}).get(name, ())))
+    return out
+
+
+def eiv_responses(f: np.ndarray, ltt_mean, names, extra: dict | None = None) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The regressors' A, E, T responses to the DWS readout noise, by channel.
+
+    For each DWS channel whose noise some regressors carry (:func:`eiv_parts`): their
+    positions ``idx`` (q,) and responses ``T`` (m, 3, q), ``T_k = sum_parts -1/c r(f)
+    TDI_link,delays(f)`` (:func:`ttlcore.tdi.combinations.link_responses`, static arms; for
+    a TTL regressor :func:`ttlcore.tdi.regressors.regressor_responses`).  Regressors of one
+    channel share its noise: the errors-in-variables term couples them (a witness of
+    ``23.phi`` and the TTL regressors of ``23.phi``), regressors of different channels do not.
+    """
+    f = np.asarray(f, dtype=float)
+    by_channel: dict = {}
+    for k, parts in enumerate(eiv_parts(names, extra)):
+        for channel, link, delays, response in parts:
+            by_channel.setdefault(channel, {}).setdefault(k, []).append((link, tuple(delays), response))
+    responses: dict = {}
+    out = []
+    for channel, columns in by_channel.items():
+        idx = np.array(sorted(columns))
+        T = np.zeros((f.size, 3, idx.size), dtype=complex)
+        for j, k in enumerate(idx):
+            for link, delays, response in columns[k]:
+                if delays not in responses:  # (3, 6, m): X2, Y2, Z2 per link
+                    responses[delays] = np.stack([link_responses(comb, f, ltt_mean, delays) for comb in MICHELSON])
+                t = responses[delays][:, LINKS.index(link), :].T * (-1.0 / C_LIGHT)  # (m, 3)
+                T[:, :, j] += t if response is None else t * np.asarray(response(f))[:, None]
+        out.append((idx, np.einsum("ia,mak->mik", AET_MATRIX, T)))
     return out
 
 
@@ -527,7 +563,7 @@ class FitSettings:
 
 
 def fit_spectra(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings | None = None,
-                names=COEFFICIENT_NAMES, method: str = "gls") -> tuple[FitResult, dict]:
+                names=COEFFICIENT_NAMES, method: str = "gls", eiv_extra: dict | None = None) -> tuple[FitResult, dict]:
     """GLS fit of the coefficients from segment spectra (see the module docstring).
 
     ``method="ols"`` gives plain least squares for comparison: white weights, no
@@ -560,7 +596,7 @@ def fit_spectra(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings |
         dof = neq.dof_per_band().sum() - len(names)
         cov = kappa * cov_unit * chi2.sum() / dof  # residual-variance scaled, as OLS reports it
         return _result(names, C, cov, chi2, neq, s, "ols", False, 0, True, spectra), {"normal_equations": neq, "weights": W}
-    T = eiv_responses(f, ltt_mean, names) if s.eiv else None
+    T = eiv_responses(f, ltt_mean, names, eiv_extra) if s.eiv else None
     stacked = stack_spectra(spectra)
     half_widths = smoothing_half_widths(f, s.smooth_fraction, s.smooth_max_hz)
     dws_psd = (2 * np.pi * f * (DWS_ASD if s.dws_asd is None else s.dws_asd)) ** 2
@@ -630,17 +666,18 @@ def _result(names, C, cov, chi2_bands, neq, s, method, eiv, it, converged, spect
 
 
 def fit_tdi(td: TDIData, settings: FitSettings | None = None, method: str = "gls",
-            extra: TDIData | None = None) -> tuple[FitResult, dict]:
+            extra: TDIData | None = None, eiv_extra: dict | None = None) -> tuple[FitResult, dict]:
     """Fit the coefficients on TDI outputs (any of X/Y/Z or A/E/T; A, E, T are used).
 
     ``extra``: TDI of further regressors (model effects, :mod:`ttlcore.diagnose.effects`) on the same
-    samples and channels, fitted jointly with ``td``'s (their names follow in the result).
+    samples and channels, fitted jointly with ``td``'s (their names follow in the result);
+    ``eiv_extra``: the DWS readouts whose noise each of them carries (:func:`eiv_parts`).
     """
     s = settings or FitSettings()
     if extra is not None:
         td = with_extra_regressors(td, extra)
     spectra = segment_spectra(td, s.band, s.segment_duration, s.window, s.overlap, s.decimate)
-    res, internals = fit_spectra(spectra, td.ltt_mean, s, td.names, "ols" if method == "ols" else "gls")
+    res, internals = fit_spectra(spectra, td.ltt_mean, s, td.names, "ols" if method == "ols" else "gls", eiv_extra)
     internals["spectra"] = spectra
     return res, internals
 

@@ -121,6 +121,9 @@ class RollingFit:
         Regressor names (default the 24 coefficients).
     full_every : float or None
         Mission-time period [s] of the full refits (module docstring); None: always full.
+    eiv_extra : dict or None
+        For regressors beyond the 24 (a model's columns), the DWS readouts whose noise each
+        carries (:func:`ttlcore.estimate.fit.eiv_parts`), for the errors-in-variables term.
 
     Example
     -------
@@ -133,8 +136,9 @@ class RollingFit:
     MIN_INCREMENTAL = 6
 
     def __init__(self, settings: FitSettings | None = None, window_duration: float = 86400.0,
-                 names=COEFFICIENT_NAMES, full_every: float | None = 21600.0):
+                 names=COEFFICIENT_NAMES, full_every: float | None = 21600.0, eiv_extra: dict | None = None):
         self.settings = settings or FitSettings(segment_duration=3600.0)
+        self.eiv_extra = eiv_extra
         self.window_duration = float(window_duration)
         self.names = tuple(names)
         if full_every is not None and not full_every > 0:
@@ -238,7 +242,8 @@ class RollingFit:
     def _refit(self) -> FitResult:
         ltt_mean = np.mean(np.stack(self._ltt), axis=0)
         if self._full_due():
-            res, internals = fit_spectra(list(self._spectra), ltt_mean, self.settings, self.names)
+            res, internals = fit_spectra(list(self._spectra), ltt_mean, self.settings, self.names,
+                                         eiv_extra=self.eiv_extra)
             res.extra["update"] = "full"
             if self.full_every is not None:
                 self._keep_weights(internals, res.coefficients)

@@ -32,8 +32,10 @@ def test_effect_columns_equal_the_time_domain_columns_whitened_by_hand(data):
     (witness,) = make_effects(["witness:source=12.eta,link=23,delay=2"])
     cs = effect_columns(data, witness, cache=False)
     s = data.settings
-    names, xyz = column_regressors(data.tm, witness, order=s.order, delay_order=s.delay_order)
+    names, xyz, eiv = column_regressors(data.tm, witness, order=s.order, delay_order=s.delay_order)
     assert cs.names == names
+    # a plain witness of 12.eta carries that channel's readout noise, placed as the columns are
+    assert [p[:3] for p in eiv[names[0]]] == [((m, a), link, tuple(extra)) for (m, a), link, extra, _ in cs.eiv[0]]
     # the same TDI, decimated with the data's filter, FFT'd on the data's segments and
     # whitened with L^H: the diagnosis' path, rebuilt from its documented steps
     by_hand = data.whiten(data.spectra(data.decimate(xyz)))  # (S, m, 3, k)
