@@ -669,6 +669,14 @@ class Fitter(OrderedStage):
                                               if k in meta}}
         self.log.info("segment %d: fit over [%.0f, %.0f] s (%d FFT segments), chi2/dof %.3f", header.index,
                       res.t_start, res.t_stop, res.n_segments, res.chi2_dof)
+        excluded = res.extra.get("excluded")
+        if excluded:
+            meta["excluded"] = excluded
+            self.warn("segment-excluded", f"fit {header.index}: the FFT segment [{excluded['t_start']:.0f}, "
+                                          f"{excluded['t_stop']:.0f}] s is left out of the rolling fit: chi2/dof "
+                                          f"{excluded['chi2_dof']:.3f} at its own best fit, {excluded['z']:.0f} sigma "
+                                          f"above the window's {excluded['reference']:.3f} (a transient: a glitch, a "
+                                          "merger, a noise burst)", index=header.index, **excluded)
         if not res.converged:
             self.warn("not-converged", f"fit {header.index} did not converge in {res.iterations} iterations",
                       index=header.index, iterations=int(res.iterations))

@@ -351,10 +351,53 @@ def whiten(weights: np.ndarray, d: np.ndarray, R: np.ndarray):
     ``L^H R`` (m, S, c, P), bins first, for ``d`` (S, m, c) and ``R`` (S, m, c, P) as
     :func:`stack_spectra` gives them.
     """
-    Lh = np.conj(np.swapaxes(np.linalg.cholesky(weights), -1, -2))
+    Lh = np.conj(np.swapaxes(_cholesky(weights), -1, -2))
     wd = np.matmul(Lh[:, None], np.swapaxes(d, 0, 1)[..., None])[..., 0]
     wR = np.matmul(Lh[:, None], np.swapaxes(R, 0, 1))
     return Lh, wd, wR
+
+
+def inverse_csd(csd: np.ndarray) -> np.ndarray:
+    """The weights ``W = S^-1`` (m, c, c).  A bin whose CSD is singular to rounding (one
+    loud transient makes a residual CSD nearly of rank one) is inverted on its eigenvalues
+    clipped at 1e-12 of its largest; every other bin's inverse is unchanged."""
+    try:
+        return np.linalg.inv(csd)
+    except np.linalg.LinAlgError:
+        pass
+    out = np.empty_like(csd)
+    for m in range(csd.shape[0]):
+        try:
+            out[m] = np.linalg.inv(csd[m])
+        except np.linalg.LinAlgError:
+            S = 0.5 * (csd[m] + csd[m].conj().T)
+            lam, V = np.linalg.eigh(S)
+            lam = np.maximum(lam, 1e-12 * max(lam[-1], np.finfo(float).tiny))
+            out[m] = (V / lam) @ V.conj().T
+    return out
+
+
+def _cholesky(weights: np.ndarray) -> np.ndarray:
+    """``L`` with ``W = L L^H`` per bin.  Where rounding makes a bin's weights not positive
+    definite (a residual CSD dominated by one loud transient is nearly of rank one, and its
+    inverse loses the small eigenvalues), that bin's factor is taken from its eigenvalues,
+    clipped at 1e-12 of the largest: the weights of every other bin are the Cholesky
+    factor's, unchanged."""
+    try:
+        return np.linalg.cholesky(weights)
+    except np.linalg.LinAlgError:
+        pass
+    W = 0.5 * (weights + np.conj(np.swapaxes(weights, -1, -2)))
+    lam, V = np.linalg.eigh(W)
+    lam = np.maximum(lam, 1e-12 * lam[..., -1:])
+    L = V * np.sqrt(lam)[..., None, :]
+    out = np.empty_like(W)
+    for m in range(W.shape[0]):  # Cholesky where it works, the eigen-factor where not
+        try:
+            out[m] = np.linalg.cholesky(weights[m])
+        except np.linalg.LinAlgError:
+            out[m] = L[m]
+    return out
 
 
 def _real_stack(z: np.ndarray) -> np.ndarray:
@@ -605,7 +648,7 @@ def fit_spectra(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings |
     converged = False
     it = 0
     for it in range(s.iterations + 1):
-        W = np.linalg.inv(csd)
+        W = inverse_csd(csd)
         neq = accumulate(spectra, W, edges, names, T, dws_psd, stacked=stacked)
         C, cov = solve(neq, eiv=s.eiv)
         sig = np.sqrt(np.diag(cov))
