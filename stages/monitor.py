@@ -42,9 +42,13 @@ median ASD ratio and its segment), ``fit`` (index, chi2_dof and window of the la
 Rerun recording ``<recordings>/<run>/monitor.rrd`` (an existing one is kept as
 ``monitor.<n>.rrd``, like the MCAP files), its rows gathered and written a chunk per entity
 every 60 s of wall clock (:class:`streamer.viewer.LiveFanout`), and closed with its RRD
-footer however the monitor ends, then its chunks merged (a week: ~300 chunks, not ~17,600); a
+footer however the monitor ends, then its chunks merged (a week: ~210 chunks, not ~17,600); a
 blueprint shows everything at once: the views, their entities and the drawing functions
-are in :mod:`stages.monitor_views`.  Besides the plots, a run summary (progress, every
+are in :mod:`stages.monitor_views`.  The web viewer ingests what arrives for ~10 ms per
+frame, and a frame drawn in software at 1920x1080 takes ~0.5-2 s, so every chunk, the
+blueprint's included, costs load time: each entity is one chunk (a time series' style goes
+with its earliest row: :class:`stages.monitor_views.SeriesLog`), and the blueprint sets no
+view property that its default already gives.  Besides the plots, a run summary (progress, every
 alert) and the live diagnosis of the fit messages (meta ``diagnosis``: ``text``,
 ``recommendation``) are text documents.  Timelines: ``mission_time`` (duration, seconds of mission
 time) and ``segment`` (sequence).  A fit that did not converge is a WARN entry of the
