@@ -42,9 +42,13 @@ median ASD ratio and its segment), ``fit`` (index, chi2_dof and window of the la
 Rerun recording ``<recordings>/<run>/monitor.rrd`` (an existing one is kept as
 ``monitor.<n>.rrd``, like the MCAP files), its rows gathered and written a chunk per entity
 every 60 s of wall clock (:class:`streamer.viewer.LiveFanout`), and closed with its RRD
-footer however the monitor ends, then its chunks merged (a week: ~300 chunks, not ~17,600); a
+footer however the monitor ends, then its chunks merged (a week: ~210 chunks, not ~17,600); a
 blueprint shows everything at once: the views, their entities and the drawing functions
-are in :mod:`stages.monitor_views`.  Besides the plots, a run summary (progress, every
+are in :mod:`stages.monitor_views`.  The web viewer ingests what arrives for ~10 ms per
+frame, and a frame drawn in software at 1920x1080 takes ~0.5-2 s, so every chunk, the
+blueprint's included, costs load time: each entity is one chunk (a time series' style goes
+with its earliest row: :class:`stages.monitor_views.SeriesLog`), and the blueprint sets no
+view property that its default already gives.  Besides the plots, a run summary (progress, every
 alert) and the live diagnosis of the fit messages (meta ``diagnosis``: ``text``,
 ``recommendation``) are text documents.  Timelines: ``mission_time`` (duration, seconds of mission
 time) and ``segment`` (sequence).  A fit that did not converge is a WARN entry of the
@@ -133,7 +137,8 @@ class Monitor(PipelineStage):
         self._truth = None  # ttlcore.estimate.monitoring.ModelTruth or FileTruth
         self._model: list | None = None
         self._fit_windows: dict[int, tuple[float, float]] = {}  # fit index -> window drawn
-        self._styled: set[str] = set()
+        self.series: views.SeriesLog | None = None  # the time series' rows (styles with their earliest)
+        self._now = 0.0  # mission time [s] the recording is at
         self._truth_source: str | None = None
         self._errors: queue.Queue = queue.Queue()
         self._pending_alerts: list[Alert] = []
@@ -165,6 +170,7 @@ class Monitor(PipelineStage):
         self.rec = LiveFanout.open(APPLICATION_ID, f"{self.run_id}-{os.getpid()}-{int(time.time())}", self.rrd,
                                    self.viewer_url, views.blueprint(self.band), on_live_failure=self._live_failed)
         self.rec.send_recording_name(f"ttl {self.run_id}")
+        self.series = views.SeriesLog(self.rec)
         self._static_styles()
         self._time(0.0, 0)
         views.first_texts(self.rec)
@@ -356,6 +362,7 @@ class Monitor(PipelineStage):
         return len(self._drawn["tdi"] - self.done - self.failed)
 
     def _time(self, t: float, index: int) -> None:
+        self._now = float(t)
         self.rec.set_time("mission_time", duration=float(t))
         self.rec.set_time("segment", sequence=int(index))
 
@@ -466,8 +473,6 @@ class Monitor(PipelineStage):
         views.summary_document(self.rec, progress, self._alert_lines, self._band_labels)
 
     def on_residual(self, header, arrays):
-        import rerun as rr
-
         f, asd, f_welch = channel_asd(arrays["residual"][0], header.fs, self.per_decade)
         self._time(header.t0, header.index)
         self._curve("residual", f, asd)
@@ -479,7 +484,7 @@ class Monitor(PipelineStage):
         ref = self._references(header, f_welch)
         ratio = band_ratio(f, asd, *ref["expected"], self.band)
         if np.isfinite(ratio) and ratio > 0:
-            self.rec.log("adequacy/log10_residual_over_expected", rr.Scalars(math.log10(ratio)))
+            self.series.log("adequacy/log10_residual_over_expected", math.log10(ratio), self._now)
         self._ratio = (header.index, ratio if math.isfinite(ratio) else None)
         return ()
 
@@ -488,8 +493,6 @@ class Monitor(PipelineStage):
         views.static_styles(self.rec, self.band)
 
     def on_fit(self, header, arrays):
-        import rerun as rr
-
         meta = header.meta
         names = tuple(meta.get("names") or COEFFICIENT_NAMES)
         if names != COEFFICIENT_NAMES:
@@ -501,13 +504,13 @@ class Monitor(PipelineStage):
             raise ValueError(f"meta t_start/t_stop: the fitted window is needed, got {t_start!r}, {t_stop!r}")
         centre = 0.5 * (t_start + t_stop)
         self._time(centre, header.index)
-        views.fit_point(self.rec, C, S)
+        views.fit_point(self.series, C, S, centre)
         self._fit_windows[header.index] = (float(t_start), float(t_stop))
         self._draw_truth({header.index: (t_start, t_stop)})
         chi2 = meta.get("chi2_dof")
         chi2 = float(chi2) if isinstance(chi2, (int, float)) and math.isfinite(chi2) else None
         if chi2 is not None:
-            self.rec.log("adequacy/chi2_dof", rr.Scalars(float(chi2)))
+            self.series.log("adequacy/chi2_dof", chi2, centre)
         if meta.get("converged") is False:  # the fitter records it in its MCAP too (warnings)
             self.text("alerts", f"fit {header.index}: did not converge", "WARN")
         self.draw_model(header.index, meta)
@@ -549,7 +552,7 @@ class Monitor(PipelineStage):
             if truth is None:
                 continue
             self._time(0.5 * (t_start + t_stop), index)
-            views.truth_point(self.rec, truth)
+            views.truth_point(self.series, truth, 0.5 * (t_start + t_stop))
 
     def draw_model(self, index: int, meta: dict) -> None:
         """Adequacy against the instrument noise model, model changes and candidates of a fit."""
@@ -562,11 +565,11 @@ class Monitor(PipelineStage):
             self._model = model
         adequacy = meta.get("adequacy")
         if isinstance(adequacy, dict) and isinstance(adequacy.get("chi2_dof"), (int, float)):
-            self.rec.log("adequacy/instrument/chi2_dof", rr.Scalars(float(adequacy["chi2_dof"])))
+            self.series.log("adequacy/instrument/chi2_dof", float(adequacy["chi2_dof"]), self._now)
             bands = [b for b in adequacy.get("bands") or () if isinstance(b, dict)]
             for g, band in enumerate(bands):
                 if isinstance(band.get("chi2_dof"), (int, float)):
-                    views.band_series(self.rec, g, band, self._styled, len(bands))
+                    views.band_series(self.series, g, band, self._now, len(bands))
             labels = [views.band_label(b) for b in bands]
             if labels and labels != self._band_labels:
                 self._band_labels = labels

@@ -28,9 +28,14 @@ Views (entity paths in brackets), laid out for a 1920x1080 screen:
 * **Run and alerts** (``summary``, a text document): how far the run has been drawn and
   every alert so far, word-wrapped.  **Diagnosis** (``diagnosis``, a text document): the
   text and recommendation of the latest fit message whose meta carries a ``diagnosis``.
-  Tabs beside them: the alerts as a log (``alerts``), **Model and candidates**
-  (``model/log``, bar charts ``model/before``, ``model/after``, ``model/candidates``) and the
-  monitor's **log** (``log``).
+  Tabs beside the diagnosis: **Logs**, one text log of the alerts (``alerts``), the model
+  changes and candidates (``model/log``) and the monitor's own log (``log``); bar charts
+  ``model/candidates``, ``model/before``, ``model/after``.
+
+What makes the recording cheap to open is described in :mod:`stages.monitor`: the web viewer
+ingests a bounded number of messages per frame, so every chunk (blueprint ones included)
+counts; hence one chunk per entity (:class:`SeriesLog`) and no view property that the
+default already gives.
 """
 
 from __future__ import annotations
@@ -95,10 +100,15 @@ def band_color(g: int, n: int = 8) -> tuple[int, int, int]:
 # ---------------------------------------------------------------------------- blueprint
 
 def _series(name: str, contents, **kw) -> rrb.TimeSeriesView:
-    """A time series over the whole mission time range, without a legend over its data."""
+    """A time series over the whole mission time range, without a legend over its data.
+
+    The x axis is set to the whole range (by default it follows the time cursor over a few
+    minutes); the data range is left at its default, which is already everything: an
+    explicit ``VisibleTimeRanges`` per view was one more blueprint chunk per view to load
+    (27 of them) for the same picture.
+    """
     everything = rrb.TimeRangeBoundary.infinite()
-    whole = [rrb.VisibleTimeRange(t, start=everything, end=everything) for t in ("mission_time", "segment")]
-    return rrb.TimeSeriesView(name=name, contents=contents, time_ranges=whole,
+    return rrb.TimeSeriesView(name=name, contents=contents,
                               axis_x=rrb.TimeAxis(view_range=rr.TimeRange(start=everything, end=everything)),
                               plot_legend=rrb.PlotLegend(visible=False), **kw)
 
@@ -131,12 +141,13 @@ def blueprint(band) -> rrb.Blueprint:
         rrb.TextDocumentView(origin=f"/{SUMMARY}", name="Run and alerts"),
         rrb.Tabs(
             rrb.TextDocumentView(origin=f"/{DIAGNOSIS}", name="Diagnosis"),
-            rrb.TextLogView(origin="/alerts", name="Alert log"),
-            rrb.TextLogView(origin="/model", contents=["+ /model/log"], name="Model"),
+            # one log view for the alerts, the model changes and the monitor's log (their
+            # entities are its columns): a view is a few blueprint chunks to load
+            rrb.TextLogView(origin="/", contents=["+ /alerts", "+ /model/log", "+ /log"],
+                            name="Logs: alerts, model, monitor"),
             rrb.BarChartView(origin="model/candidates", name="Candidates Δχ²"),
             rrb.BarChartView(origin="model/before", name="χ²/dof per band before"),
             rrb.BarChartView(origin="model/after", name="after"),
-            rrb.TextLogView(origin="/log", name="Monitor log"),
         ),
         column_shares=[1, 1],
     )
@@ -157,21 +168,63 @@ def blueprint(band) -> rrb.Blueprint:
 # ---------------------------------------------------------------------------- static parts
 
 def static_styles(rec, band) -> None:
-    """Axes of the noise view, its legend, the series styles and empty text panels (once, static)."""
+    """The noise view's transform, axes and legend (once, static).  The time series' styles
+    are not static: they go with each series' earliest row (:class:`SeriesLog`)."""
     rec.log("asd/plot", rr.Transform3D(scale=[ASD_X_STRETCH, -1.0, 1.0]), static=True)  # larger ASD up
     noise_axes(rec, band)
+
+
+def series_styles() -> dict[str, rr.SeriesLines]:
+    """Colours, widths and names of the time series whose entities are known in advance
+    (the per-band chi^2/dof series are styled when their bands are known)."""
+    styles = {}
     for name in COEFFICIENT_NAMES:
         ent = coefficient_entity(name)
-        rec.log(f"{ent}/fit", rr.SeriesLines(colors=[FIT_COLOR, SIGMA_COLOR, SIGMA_COLOR], widths=[2.0, 1.0, 1.0],
-                                             names=["fit", "+1σ", "−1σ"]), static=True)
-        rec.log(f"{ent}/truth", rr.SeriesLines(colors=[TRUTH_COLOR], widths=[1.0], names=["truth"]), static=True)
-    rec.log("adequacy/chi2_dof", rr.SeriesLines(colors=[CHI2_COLOR], widths=[2.0],
-                                                names=["fit (re-estimated noise)"]), static=True)
-    rec.log("adequacy/instrument/chi2_dof", rr.SeriesLines(colors=[INSTRUMENT_COLOR], widths=[2.0],
-                                                           names=["instrument noise model"]), static=True)
-    rec.log("adequacy/log10_residual_over_expected",
-            rr.SeriesLines(colors=[CURVES["residual"][1]], widths=[1.5], names=["log10 residual/expected"]),
-            static=True)
+        styles[f"{ent}/fit"] = rr.SeriesLines(colors=[FIT_COLOR, SIGMA_COLOR, SIGMA_COLOR], widths=[2.0, 1.0, 1.0],
+                                              names=["fit", "+1σ", "−1σ"])
+        styles[f"{ent}/truth"] = rr.SeriesLines(colors=[TRUTH_COLOR], widths=[1.0], names=["truth"])
+    styles["adequacy/chi2_dof"] = rr.SeriesLines(colors=[CHI2_COLOR], widths=[2.0], names=["fit (re-estimated noise)"])
+    styles["adequacy/instrument/chi2_dof"] = rr.SeriesLines(colors=[INSTRUMENT_COLOR], widths=[2.0],
+                                                            names=["instrument noise model"])
+    styles["adequacy/log10_residual_over_expected"] = rr.SeriesLines(colors=[CURVES["residual"][1]], widths=[1.5],
+                                                                     names=["log10 residual/expected"])
+    return styles
+
+
+class SeriesLog:
+    """Logs the scalars of the time series, each entity's style (``rr.SeriesLines``) in the
+    same row as its earliest point.
+
+    A static style is a chunk of its own that no merging can join to the entity's data (a
+    static chunk has no timeline): 57 of the 296 chunks of a week's recording, each one more
+    message for the viewer to ingest.  Logged with the earliest row instead, the style and the
+    data of an entity end up in one chunk; the series visualizer carries a style forward to
+    the later points.  A row earlier than every row so far (a fit that arrived out of order)
+    carries the style again.
+
+    Parameters
+    ----------
+    rec
+        The recording stream (anything with ``log``).
+    """
+
+    def __init__(self, rec):
+        self.rec = rec
+        self.styles = series_styles()
+        self._earliest: dict[str, float] = {}
+
+    def style(self, entity: str, lines: rr.SeriesLines) -> None:
+        """Set the style of ``entity`` if it has none yet."""
+        self.styles.setdefault(entity, lines)
+
+    def log(self, entity: str, values, t: float) -> None:
+        """Scalars ``values`` of ``entity`` at the recording's current time, whose mission time is ``t`` [s]."""
+        earliest = self._earliest.get(entity)
+        if entity in self.styles and (earliest is None or t < earliest):
+            self._earliest[entity] = float(t)
+            self.rec.log(entity, rr.Scalars(values), self.styles[entity])
+        else:
+            self.rec.log(entity, rr.Scalars(values))
 
 
 def first_texts(rec) -> None:
@@ -234,32 +287,29 @@ def noise_curve(rec, name: str, f, asd, band) -> None:
                                                    radii=rr.Radius.ui_points(1.5)))
 
 
-def fit_point(rec, C, S) -> None:
-    """The 24 coefficients [m/rad] with their sigma, in mm/rad: one row of three series
-    (fit, fit + sigma, fit - sigma) per coefficient."""
+def fit_point(series: SeriesLog, C, S, t: float) -> None:
+    """The 24 coefficients [m/rad] with their sigma, in mm/rad, at mission time ``t`` [s]:
+    one row of three series (fit, fit + sigma, fit - sigma) per coefficient."""
     for p, name in enumerate(COEFFICIENT_NAMES):
         c, s = C[p] * 1e3, S[p] * 1e3
-        rec.log(f"{coefficient_entity(name)}/fit", rr.Scalars([c, c + s, c - s]))
+        series.log(f"{coefficient_entity(name)}/fit", [c, c + s, c - s], t)
 
 
-def truth_point(rec, truth) -> None:
-    """The 24 true coefficients [m/rad] averaged over a fit's window, in mm/rad."""
+def truth_point(series: SeriesLog, truth, t: float) -> None:
+    """The 24 true coefficients [m/rad] averaged over a fit's window, in mm/rad, at mission time ``t`` [s]."""
     for p, name in enumerate(COEFFICIENT_NAMES):
-        rec.log(f"{coefficient_entity(name)}/truth", rr.Scalars(truth[p] * 1e3))
+        series.log(f"{coefficient_entity(name)}/truth", truth[p] * 1e3, t)
 
 
 def band_label(band: dict) -> str:
     return f"{band.get('f_lo', 0):.3g}-{band.get('f_hi', 0):.3g} Hz"
 
 
-def band_series(rec, g: int, band: dict, styled: set, n_bands: int = 8) -> None:
-    """chi2/dof of band ``g`` (of ``n_bands``) against the instrument noise model."""
+def band_series(series: SeriesLog, g: int, band: dict, t: float, n_bands: int = 8) -> None:
+    """chi2/dof of band ``g`` (of ``n_bands``) against the instrument noise model, at mission time ``t`` [s]."""
     ent = f"adequacy/bands/{g}"
-    if ent not in styled:
-        styled.add(ent)
-        rec.log(ent, rr.SeriesLines(names=[band_label(band)], colors=[band_color(g, n_bands)], widths=[1.5]),
-                static=True)
-    rec.log(ent, rr.Scalars(float(band["chi2_dof"])))
+    series.style(ent, rr.SeriesLines(names=[band_label(band)], colors=[band_color(g, n_bands)], widths=[1.5]))
+    series.log(ent, float(band["chi2_dof"]), t)
 
 
 def text(rec, entity: str, message: str, level: str = "INFO") -> None:

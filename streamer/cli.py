@@ -187,7 +187,8 @@ def _cmd_control(args) -> int:
         try:
             err = rejections.get(timeout=max(0.0, args.wait))
         except queue.Empty:
-            print(f"ttl control: sent {key}; no rejection within {args.wait:g} s")
+            if not args.quiet:
+                print(f"ttl control: sent {key}; no rejection within {args.wait:g} s")
             return 0
     raise TTLError(f"{args.stage} rejected {args.command}: {err.get('message')}")
 
@@ -197,7 +198,8 @@ def _cmd_control(args) -> int:
 def _cmd_credentials(args) -> int:
 
     d = ensure_credentials(args.directory, hosts=tuple(args.host))
-    print(f"ttl credentials: {d}: ca.pem and {', '.join(ROLES)} (.pem, .key)")
+    if not args.quiet:
+        print(f"ttl credentials: {d}: ca.pem and {', '.join(ROLES)} (.pem, .key)")
     return 0
 
 
@@ -237,12 +239,14 @@ def _cmd_router(args) -> int:
             where = ", ".join(listen) if listen else f"the endpoints of {args.zenoh_config}"
             raise TTLError(f"cannot open the router on {where}: {exc}") from None
         try:
-            print(f"ttl router: zenoh router {session.zid()} listening on "
-                  f"{', '.join(listen) if listen else 'the endpoints of ' + str(args.zenoh_config)}; Ctrl-C to stop",
-                  file=sys.stderr, flush=True)
+            if not args.quiet:
+                print(f"ttl router: zenoh router {session.zid()} listening on "
+                      f"{', '.join(listen) if listen else 'the endpoints of ' + str(args.zenoh_config)}; "
+                      "Ctrl-C to stop", file=sys.stderr, flush=True)
             while not stop.wait(0.5):
                 pass
-            print(f"ttl router: {stop.name}: closing", file=sys.stderr, flush=True)
+            if not args.quiet:
+                print(f"ttl router: {stop.name}: closing", file=sys.stderr, flush=True)
         finally:
             session.close()
     finally:

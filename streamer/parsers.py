@@ -143,7 +143,7 @@ def _add_control(sub) -> None:
                         "connect with mutual TLS as the 'control' identity (endpoints tls/...)")
     p.add_argument("--wait", type=float, default=10.0,
                    help="seconds to listen for a rejection (default 10; a stage answers between segments)")
-    add_quiet(p, "accepted for uniformity (control shows no progress)")
+    add_quiet(p, "no status line (the sent command is not confirmed on standard output)")
     p.set_defaults(handler="streamer.cli:_cmd_control")
 
 
@@ -159,7 +159,7 @@ def _add_credentials(sub) -> None:
     p.add_argument("directory", type=Path, metavar="DIR")
     p.add_argument("--host", action="append", default=[], metavar="ADDRESS",
                    help="address (IP or DNS name) a router listens on for other hosts (repeatable)")
-    add_quiet(p, "accepted for uniformity (credentials shows no progress)")
+    add_quiet(p, "no status line (nothing printed but errors)")
     p.set_defaults(handler="streamer.cli:_cmd_credentials")
 
 
@@ -179,7 +179,7 @@ def _add_router(sub) -> None:
                      "(default tls/127.0.0.1:7447), and the access-control list of the pipeline; refused peers and "
                      "publications are logged on stderr",
                   "plain TCP, no authentication, no access control (default tcp/127.0.0.1:7447)")
-    add_quiet(p, "accepted for uniformity (the router shows no progress)")
+    add_quiet(p, "no status lines (listening, closing); the router log stays")
     p.set_defaults(handler="streamer.cli:_cmd_router")
 
 

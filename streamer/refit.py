@@ -225,7 +225,7 @@ def _cmd_refit(args) -> int:
         print(format_refit(report))
     if residual is not None:
         write_residual(args.residual, *residual)
-        if text:
+        if text and not args.quiet:
             print(f"wrote {args.residual}")
     return 0
 

@@ -237,3 +237,24 @@ def test_step_after_the_end_of_a_simulation_is_refused(tmp_path):
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert "--step 2h:12.phi.rx=0.1" in r.stderr and "after the end of the simulation (3600 s)" in r.stderr
     assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("command, made", [
+    (["simulate", "--duration", "20min", "--telemetry", "s.h5"], ["s.h5", "s.truth.h5"]),
+    (["credentials", "cr"], ["cr"]),
+])
+def test_quiet_prints_nothing_but_errors(tmp_path, command, made):
+    """``--quiet``: no progress, no status lines. A command whose result is files prints
+    nothing at all with it; without it the same command says what it wrote, so the test
+    sees the difference; an error still gets its one line."""
+    loud_dir, quiet_dir = tmp_path / "loud", tmp_path / "quiet"
+    loud_dir.mkdir()
+    quiet_dir.mkdir()
+    loud, _ = ttl(*command, cwd=loud_dir)
+    assert loud.returncode == 0 and (loud.stdout + loud.stderr).strip(), loud
+    r, _ = ttl(*command, "--quiet", cwd=quiet_dir)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout == "" and r.stderr == "", (r.stdout, r.stderr)
+    assert sorted(p.name for p in quiet_dir.iterdir()) == sorted(made)
+    bad, _ = ttl(*command, "--quiet", "--no-such-option", cwd=quiet_dir)
+    assert bad.returncode == 2 and bad.stdout == "" and len(bad.stderr.strip().splitlines()) == 1, bad.stderr

@@ -333,6 +333,20 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
     # rows are batched: a chunk per entity and batch, not one per row (~1,000 rows here)
     assert rrd_footer(rrd), "monitor.rrd has no RRD footer"
     assert rrd_chunks(rrd) < 200, rrd_chunks(rrd)
+    # a time series' style goes with its earliest row, not in a static chunk of its own that
+    # merging cannot join to its data (each chunk is one more message for the viewer to ingest)
+    from rerun.chunk import RrdReader
+
+    per_entity: dict = {}
+    for chunk in RrdReader(rrd).stream():
+        per_entity.setdefault(chunk.entity_path, []).append(chunk.is_static)
+    series = [e for e in per_entity if e.startswith(("/coefficients/", "/adequacy/"))]
+    assert len(series) >= 48 + 2, sorted(per_entity)  # fit and truth of 24 coefficients, chi2/dof, residual/expected
+    assert all(per_entity[e] == [False] for e in series), {e: per_entity[e] for e in series if per_entity[e] != [False]}
+    rows = ent["/coefficients/23/phi_tx/fit"]
+    styled = [row for row in rows if row[1].get("SeriesLines:colors")]
+    assert len(styled) == 1, styled
+    assert styled[0][0]["mission_time"] == min(row[0]["mission_time"] for row in rows), styled
     print(f"monitor test: {time.monotonic() - t_begin:.1f} s")
 
 

@@ -6,8 +6,9 @@ telemetry, TDI and residual, and rolling one-day fits whose coefficients step on
 coefficient and drift on another (so that the monitor's trend monitor raises its alerts),
 with the fitter's adequacy per band and a diagnosis in their meta.  ``ttl view --web``
 serves the recording on 127.0.0.1; headless Chromium (driven over the DevTools protocol)
-opens it and is screenshotted until the view is complete: the time cursor, which follows
-the data, reads the recording's last mission time, and the screenshot no longer changes.
+opens it, and the frames it draws are followed (its screencast) until the view is complete:
+the time cursor, which follows the data, reads the recording's last mission time, and a
+screenshot shows what the last frame drew (:func:`open_in_browser`).
 The complete screenshot must show the ASD curves (their colours in the noise panel), every
 alert the monitor raised and the last segment in the run summary (read with tesseract).
 
@@ -18,7 +19,7 @@ alert the monitor raised and the last segment in the run summary (read with tess
 
 Skipped with a message when Chromium or tesseract is not installed
 (``apt-get install -y chromium tesseract-ocr``).  Set ``TTL_SCREENSHOT_DIR`` to keep the
-screenshots for a look.
+frames (JPEG, named by their time) and the final screenshot for a look.
 """
 
 from __future__ import annotations
@@ -252,6 +253,7 @@ class DevTools:
         self.ws = websocket.create_connection(pages[0]["webSocketDebuggerUrl"], timeout=60,
                                               suppress_origin=True)
         self._id = 0
+        self.events: list[dict] = []
 
     def call(self, method: str, **params) -> dict:
         self._id += 1
@@ -262,6 +264,28 @@ class DevTools:
                 if "error" in msg:
                     raise RuntimeError(f"{method}: {msg['error']}")
                 return msg.get("result", {})
+            if "method" in msg:  # an event that came before the answer: kept for :meth:`event`
+                self.events.append(msg)
+
+    def event(self, timeout: float) -> dict | None:
+        """The next event the page sends (``{"method": ..., "params": ...}``), or None when
+        none comes within ``timeout`` seconds."""
+        import websocket
+
+        if self.events:
+            return self.events.pop(0)
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            self.ws.settimeout(left)
+            try:
+                msg = json.loads(self.ws.recv())
+            except websocket.WebSocketTimeoutException:
+                break
+            finally:
+                self.ws.settimeout(60)
+            if "method" in msg:
+                return msg
+        return None
 
     def screenshot(self) -> bytes:
         return base64.b64decode(self.settled("Page.captureScreenshot", format="png")["data"])
@@ -321,15 +345,25 @@ def time_shown(img: np.ndarray) -> int | None:
     return int(digits) if digits else None
 
 
-def open_in_browser(rrd: Path, tmp: Path, last_time: float, timeout: float):
-    """Open ``rrd`` with ``ttl view --web`` in headless Chromium and screenshot it until it
-    is complete (time cursor at ``last_time`` and the screenshot unchanged since the last
-    one); returns ``(seconds to complete, final screenshot png, seconds per screenshot)``,
-    the seconds None when it did not complete within ``timeout``.
+#: Seconds without a new frame from the page after which the view is checked for completeness.
+QUIET = 4.0
 
-    The viewer is a wasm app rendering in software here; a screenshot takes seconds on a
-    loaded machine, which bounds how finely the load time is resolved (the time is that of
-    the first complete screenshot: the view was complete then at the latest)."""
+
+def open_in_browser(rrd: Path, tmp: Path, last_time: float, timeout: float):
+    """Open ``rrd`` with ``ttl view --web`` in headless Chromium and follow the frames the
+    page draws until the view is complete; returns ``(seconds to complete, final screenshot
+    png, frames drawn)``, the seconds None when it did not complete within ``timeout``.
+
+    The frames come from the browser's screencast: a JPEG of each frame the compositor
+    draws, sent as it is drawn, which costs the page nothing it would not do anyway.  (A
+    screenshot makes the page draw a frame of its own: ~2 s of CPU each, in software at
+    1920x1080; polled every few seconds they slowed the load they measured and resolved its
+    time no finer than their own.)  When no frame has come for ``QUIET`` seconds, a
+    screenshot checks the view: complete when the time cursor reads the recording's last
+    mission time and the screenshot shows what the last frame showed; otherwise the
+    pointer is moved over the top bar (which makes the viewer draw a frame) and the frames
+    are followed on.  The load time is that of the first frame identical to the last one:
+    the view was complete then."""
     web_port = free_port()
     view = subprocess.Popen([str(Path(sys.executable).with_name("ttl")), "view", "--web", "--port", str(web_port),
                              str(rrd)], stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
@@ -345,30 +379,40 @@ def open_in_browser(rrd: Path, tmp: Path, last_time: float, timeout: float):
         browser.call("Emulation.setDeviceMetricsOverride", width=WIDTH, height=HEIGHT, deviceScaleFactor=1,
                      mobile=False)
         browser.call("Emulation.setFocusEmulationEnabled", enabled=True)
+        browser.call("Page.startScreencast", format="jpeg", quality=90, everyNthFrame=1)
         target = int(round(last_time))
         start = time.monotonic()
         browser.call("Page.navigate", url=url)
-        shots: list[tuple[float, np.ndarray, bytes, bool]] = []
-        while time.monotonic() - start < timeout:
-            # the pointer on the top bar (no tooltip over a plot) makes the viewer draw a frame;
-            # it loads and lays out a little more in each frame. More moves between screenshots
-            # do not help: on a loaded machine each frame, drawn in software, takes seconds
-            browser.settled("Input.dispatchMouseEvent", type="mouseMoved", x=WIDTH // 2 + len(shots) % 2, y=4)
+        frames: list[tuple[float, bytes]] = []
+        checks: list[tuple[float, int | None, float]] = []
+        final = None
+        while time.monotonic() - start < timeout and final is None:
+            ev = browser.event(QUIET)
+            if ev is not None:
+                if ev.get("method") == "Page.screencastFrame":
+                    params = ev["params"]
+                    browser.settled("Page.screencastFrameAck", sessionId=params["sessionId"])
+                    frames.append((time.monotonic() - start, base64.b64decode(params["data"])))
+                    keep(f"{rrd.stem}-{frames[-1][0]:05.1f}s.jpg", frames[-1][1])  # how the view fills in
+                continue
+            if not frames:
+                continue
             png = browser.screenshot()
-            t = time.monotonic() - start
             img = pixels(png)
-            shots.append((t, img, png, time_shown(img) == target))
-            keep(f"{rrd.stem}-{t:05.1f}s.png", png)  # how the view fills in
-            if len(shots) >= 2 and shots[-1][3] and shots[-2][3] and same(shots[-1][1], shots[-2][1]):
-                break
-        final = shots[-1]
-        done = final[3] and len(shots) >= 2 and shots[-2][3] and same(shots[-2][1], final[1])
-        first = next((s for s in shots if s[3] and same(s[1], final[1])), None)
-        per_shot = shots[-1][0] / len(shots) if shots else float("nan")
-        print("screenshots (s, time cursor at the end, grey std, difference to the last):",
-              [(round(t, 1), at_end, round(float(img.mean(axis=2).std()), 1),
-                round(float(np.abs(img - final[1]).mean()), 2)) for t, img, _, at_end in shots])
-        return (first[0] if done else None), final[2], per_shot
+            shown, differs = time_shown(img), float(np.abs(img - pixels(frames[-1][1])).mean())
+            checks.append((round(time.monotonic() - start, 1), shown, round(differs, 2)))
+            if shown == target and differs < JPEG_SAME:
+                final = png
+            else:  # not complete: a frame asked for, and the frames followed on
+                browser.settled("Input.dispatchMouseEvent", type="mouseMoved", x=WIDTH // 2 + len(checks) % 2, y=4)
+        browser.call("Page.stopScreencast")
+        last = pixels(frames[-1][1]) if frames else None
+        first = next((t for t, data in frames if same(pixels(data), last)), None) if final else None
+        print(f"{len(frames)} frames drawn at (s): {[round(t, 1) for t, _ in frames]}; "
+              f"checks (s, time cursor, difference to the last frame): {checks}")
+        if final is None:
+            final = browser.screenshot()
+        return first, final, len(frames)
     finally:
         if browser is not None:
             browser.close()
@@ -380,9 +424,16 @@ def open_in_browser(rrd: Path, tmp: Path, last_time: float, timeout: float):
             view.wait(10)
 
 
-def same(a: np.ndarray, b: np.ndarray) -> bool:
-    """Two screenshots show the same (the mean grey-level difference is below 0.3)."""
-    return float(np.abs(a - b).mean()) < 0.3
+#: Mean grey-level difference below which a screenshot and a JPEG screencast frame show the
+#: same view (the JPEG's loss: 1.26 measured on the complete view; a view still filling in
+#: differs from the complete one by 1.5 or more). Frames are compared with each other with
+#: :func:`same`'s own tolerance: the same view gives the same JPEG.
+JPEG_SAME = 2.0
+
+
+def same(a: np.ndarray, b: np.ndarray, tol: float = 0.3) -> bool:
+    """Two images show the same (the mean grey-level difference is below ``tol``)."""
+    return a.shape == b.shape and float(np.abs(a - b).mean()) < tol
 
 
 def colour_pixels(img: np.ndarray, box, rgb, tol: float = 40.0) -> int:
@@ -433,12 +484,12 @@ def check_screenshot(png: bytes, alerts: list[dict], segments: int) -> str:
 def run_and_open(procs, tmp: Path, segments: int, step_at: float, timeout: float):
     rrd, alerts = monitor_recording(procs, tmp, segments, step_at)
     stats = rrd_stats(rrd)
-    load, png, per_shot = open_in_browser(rrd, tmp, last_mission_time(rrd), timeout)
+    load, png, drawn = open_in_browser(rrd, tmp, last_mission_time(rrd), timeout)
     keep(f"monitor-web-{segments}.png", png)
     (tmp / "monitor-web.png").write_bytes(png)
-    stats.update(per_shot=round(per_shot, 1), loadavg=round(os.getloadavg()[0], 1))
+    stats.update(frames=drawn, loadavg=round(os.getloadavg()[0], 1))
     print(f"web view of {segments} 1-h segments: {stats['chunks']} chunks, footer {stats['footer']}, "
-          f"{stats['bytes'] / 1e6:.2f} MB; complete after {load} s ({per_shot:.1f} s per screenshot, "
+          f"{stats['bytes'] / 1e6:.2f} MB; complete after {load} s ({drawn} frames drawn, "
           f"load average {stats['loadavg']})")
     return rrd, alerts, stats, load, png
 
@@ -460,9 +511,12 @@ def test_web_viewer_shows_the_monitor_recording(procs, tmp_path):
 
 @pytest.mark.science
 @needs_browser
-# the content checks pass; the time does not yet: 26-76 s measured on the shared 2-core machine
-# (load 3-11), the web viewer drawing 4-5 frames of 5-13 s each in software (docs/operations.md)
-@pytest.mark.xfail(reason="issue 21's 10-s target not met yet: 26-76 s measured", strict=False)
+# the content checks pass; the time does not yet: 36 s at load average 8.3 and 90 s at 13.6
+# with the 208-chunk recording (25-76 s before, 296 chunks): the viewer ingests ~10 ms of
+# messages per frame and draws each frame in software (~0.5-2 s of CPU at 1920x1080), and the
+# machine is shared (docs/architecture.md, The monitor's Rerun recording)
+@pytest.mark.xfail(reason="issue 21's 10-s target not met on the shared machine: 36-90 s measured at load 8-14",
+                   strict=False)
 def test_a_week_of_monitor_recording_opens_in_seconds(procs, tmp_path):
     """Issue 21's target: a 7-day recording of 1-h segments opens fully in the web viewer
     in under 10 s on the project's 2-core machine."""
@@ -474,4 +528,4 @@ def test_a_week_of_monitor_recording_opens_in_seconds(procs, tmp_path):
     assert load is not None, f"the view did not complete within 180 s: {tmp_path}"
     check_screenshot(png, alerts, segments)
     assert load < WEEK_LOAD_LIMIT, (f"complete after {load:.1f} s (target {WEEK_LOAD_LIMIT:g} s; "
-                                    f"{stats['per_shot']} s per screenshot, load average {stats['loadavg']})")
+                                    f"{stats['frames']} frames drawn, load average {stats['loadavg']})")

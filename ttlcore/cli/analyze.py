@@ -43,5 +43,6 @@ def run(args) -> int:
             f"at {req['f_max']:.3g} Hz")
     for note in js.get("notes", []):
         say(f"  note: {note}")
-    say("  wrote " + ", ".join(str(p) for p in out["paths"].values()))
+    if not args.quiet:  # a status line; the report above is the result
+        say("  wrote " + ", ".join(str(p) for p in out["paths"].values()))
     return 0

@@ -127,6 +127,6 @@ def run(args) -> int:
         return 0
     print(text_report(report, str(data)))
     files = ([written] if written else []) + list((report.get("figures") or {}).values())
-    if files:
+    if files and not args.quiet:  # a status line; the report above is the result
         print("  wrote " + ", ".join(files))
     return 0

@@ -122,7 +122,7 @@ def add_json(p, what: str = "the report", required: bool = False) -> None:
                    help=f"write {what} as JSON to FILE ('-': to standard output, instead of the text)")
 
 
-def add_quiet(p, what: str = "no progress display") -> None:
+def add_quiet(p, what: str = "no progress display, no status lines ('wrote ...'): errors and the report only") -> None:
     p.add_argument("--quiet", action="store_true", help=what)
 
 

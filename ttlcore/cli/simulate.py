@@ -21,7 +21,8 @@ def run(args) -> int:
     config = simulation_config_from_args(args, truth_noises)
     with progress_bar(f"simulate {out.name}", quiet=args.quiet) as progress:
         tpath, rpath = simulate_to_file(config, out, chunk_size=int(round(chunk * args.fs)), progress=progress)
-    print(f"wrote {tpath} ({config.size} samples, {config.duration / DAY:g} d at {args.fs:g} Hz) and {rpath}")
+    if not args.quiet:  # a status line: the files are the result
+        print(f"wrote {tpath} ({config.size} samples, {config.duration / DAY:g} d at {args.fs:g} Hz) and {rpath}")
     if args.out is not None and not args.quiet:  # after the work: an error stays one line
         print("ttl simulate: note: --out FILE is now --telemetry FILE (--out names a directory in every "
               "other command); it still works", file=sys.stderr)
