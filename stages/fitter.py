@@ -75,6 +75,7 @@ import sys
 from collections import deque
 
 import numpy as np
+from threadpoolctl import threadpool_limits
 
 from streamer.codec import Expect
 from streamer.keys import to_ranges
@@ -610,6 +611,20 @@ class Fitter(OrderedStage):
                                "the window restarts here")
             self.rolling.reset()
             self.window_tm.clear()
+        with threadpool_limits(limits=1, user_api="blas"):  # small products: threads would only spin
+            res, owners, xyz = self.rolling_update(header, td, tm)
+        self.window_tm.append((header.index, tm))
+        end = tm.t0 + tm.size / tm.fs
+        while self.window_tm and self.window_tm[0][1].t0 < end - self.window_duration - 1.0:
+            self.window_tm.popleft()
+        if res is None:
+            self.log.info("segment %d: no FFT segment completed, no refit", header.index)
+            return None
+        return self.publish_fit(header, td, res, owners, xyz)
+
+    def rolling_update(self, header, td: TDIData, tm: Telemetry):
+        """Push a segment into the rolling fit (with the rolling model's columns when there
+        is one): ``(result or None, effect spec -> its columns' names or None, the columns)``."""
         owners, xyz, push = None, None, td
         if self.rolling_model():
             push, owners, xyz = self.with_model_columns(td, [t for _, t in self.window_tm], tm)
@@ -624,14 +639,11 @@ class Fitter(OrderedStage):
         self._next_t0 = td.t0 + td.size / td.fs
         self._last_td = td
         self._segments_seen = header.index + 1  # by index: the same after a restart
-        res = self.rolling.push(push)
-        self.window_tm.append((header.index, tm))
-        end = tm.t0 + tm.size / tm.fs
-        while self.window_tm and self.window_tm[0][1].t0 < end - self.window_duration - 1.0:
-            self.window_tm.popleft()
-        if res is None:
-            self.log.info("segment %d: no FFT segment completed, no refit", header.index)
-            return None
+        return self.rolling.push(push), owners, xyz
+
+    def publish_fit(self, header, td: TDIData, res, owners: dict | None, xyz) -> Output:
+        """The fit message of a segment: the rolling fit's (or the rolling model's), the
+        window refit when due, the live diagnosis when due."""
         # a segment an earlier process published the fit of (replayed, or pushed again to
         # rebuild the window): its window fit and diagnosis would be thrown away
         replayed = self.handled_before(header.index)
