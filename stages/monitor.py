@@ -481,12 +481,28 @@ class Monitor(PipelineStage):
         if model.size >= MIN_SAMPLES and np.any(model != 0):
             fm, am, _ = channel_asd(model, header.fs, self.per_decade)
             self._curve("ttl_model", fm, am)
+        self._effect_curves(header, arrays)
         ref = self._references(header, f_welch)
         ratio = band_ratio(f, asd, *ref["expected"], self.band)
         if np.isfinite(ratio) and ratio > 0:
             self.series.log("adequacy/log10_residual_over_expected", math.log10(ratio), self._now)
         self._ratio = (header.index, ratio if math.isfinite(ratio) else None)
         return ()
+
+    def _effect_curves(self, header, arrays) -> None:
+        """The X2 ASD of each effect of the model beyond the linear TTL that the subtractor
+        took away (array ``effect_model`` (k, 3, n), meta ``effects``), labelled with the
+        effect's name; at most :data:`views.EFFECT_COLORS` of them."""
+        parts, specs = arrays.get("effect_model"), header.meta.get("effects") or []
+        if parts is None or parts.ndim != 3 or parts.shape[0] != len(specs):
+            return
+        for k, spec in enumerate(specs[:len(views.EFFECT_COLORS)]):
+            x = parts[k, 0]
+            x = x[longest_run(np.isfinite(x))]
+            if x.size >= MIN_SAMPLES and np.any(x != 0):
+                f, asd, _ = channel_asd(x, header.fs, self.per_decade)
+                views.noise_curve(self.rec, f"effect/{k}", f, asd, self.band, color=views.EFFECT_COLORS[k],
+                                  label=str(spec).split(",")[0])
 
     # ------------------------------------------------------------------ fits and trends
     def _static_styles(self) -> None:

@@ -54,6 +54,7 @@ CURVES = {
     "data": ("X2 data (with TTL)", (31, 119, 180)),
     "residual": ("X2 residual (TTL subtracted)", (44, 160, 44)),
     "ttl_model": ("fitted TTL", (255, 127, 14)),
+    "effect_model": ("other fitted effects (one each)", (148, 103, 189)),
     "expected": ("expected noise without TTL", (90, 90, 90)),
     "requirement": ("LISA requirement", (214, 39, 40)),
 }
@@ -265,9 +266,15 @@ def noise_axes(rec, band) -> None:
 
 # ---------------------------------------------------------------------------- per message
 
-def noise_curve(rec, name: str, f, asd, band) -> None:
+#: Colours of the model's other effects (``effect_model``, one curve each, in the order of the
+#: subtractor's meta ``effects``): shades of the legend's purple.
+EFFECT_COLORS = ((148, 103, 189), (197, 176, 213), (106, 61, 154), (202, 178, 214))
+
+
+def noise_curve(rec, name: str, f, asd, band, color=None, label: str | None = None) -> None:
     """One ASD [m/sqrt(Hz)] of the noise view, inside the fit band, in log10 (points
-    outside the science range are left out, so no curve leaves the view)."""
+    outside the science range are left out, so no curve leaves the view); ``color`` and
+    ``label`` for a curve not in :data:`CURVES` (an effect of the model)."""
     f = np.asarray(f, dtype=float)
     asd = np.asarray(asd, dtype=float)
     sel = (f >= band[0]) & (f <= band[1]) & (asd > 0) & np.isfinite(asd)
@@ -283,8 +290,9 @@ def noise_curve(rec, name: str, f, asd, band) -> None:
             if k - start >= 2:
                 strips.append(np.column_stack([x[start:k], y[start:k]]).astype(np.float32))
             start = None
-    rec.log(f"asd/plot/X2/{name}", rr.LineStrips2D(strips, colors=[CURVES[name][1]],
-                                                   radii=rr.Radius.ui_points(1.5)))
+    labels = {"labels": [label] * len(strips), "show_labels": True} if label and strips else {}
+    rec.log(f"asd/plot/X2/{name}", rr.LineStrips2D(strips, colors=[color or CURVES[name][1]],
+                                                   radii=rr.Radius.ui_points(1.5), **labels))
 
 
 def fit_point(series: SeriesLog, C, S, t: float) -> None:

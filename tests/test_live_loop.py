@@ -154,8 +154,14 @@ def test_live_loop_adopts_an_unnamed_effect_and_subtracts_the_whole_model(tmp_pa
     if MONITOR:  # the monitor drew every segment, and the live diagnosis in its text panel
         from test_monitor import rrd_entities
 
-        texts = [str(row[1]) for row in rrd_entities(run_dir / "monitor.rrd")["/diagnosis"]]
+        entities = rrd_entities(run_dir / "monitor.rrd")
+        texts = [str(row[1]) for row in entities["/diagnosis"]]
         assert any(adopted.split(",")[0] in t for t in texts), texts[-1:]
+        # the adopted effect's own X2 ASD is drawn next to the linear TTL's where X2 sees it
+        # (this witness enters link 23, to which X2 is blind: its X2 part is zero, not drawn)
+        x2 = residuals[5].arrays["effect_model"][0, 0]
+        assert "/asd/plot/X2/ttl_model" in entities
+        assert ("/asd/plot/X2/effect/0" in entities) == bool(np.any(x2 != 0)), sorted(entities)
     check_residual_equals_refit(tmp_path, run_dir, ["linear-ttl", adopted])
     # ttl inspect reports the change, who made it, and the diagnoses
     r = subprocess.run(ttl_command("inspect", run_dir, "--json", tmp_path / "inspect.json"),
