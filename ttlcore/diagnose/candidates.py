@@ -28,8 +28,10 @@ from .columns import effect_columns
 from .effects import Effect
 from .evidence import Evidence, added_evidence, laplace_evidence
 from .fitting import fit_resolved
+from .glitches import Gate, Glitch, glitch_search, glitch_series
 from .model_fit import ModelFit, parameter_name, total_offset
 from .search import profile_search
+from .transients import event_excess, residual_map
 
 log = logging.getLogger(__name__)
 
@@ -53,7 +55,10 @@ def named_candidates(model: ModelFit, names=None) -> list:
     time, the offsets, any searched parameter), so that parallel scoring ends together."""
     data = model.data
     in_model = {e.name for e in model.effects}
-    todo = [n for n in (names or data.registry) if n not in in_model and n not in ("witness", "fd-coupling")]
+    # witness effects need options; glitches and gates are tried where the transient
+    # finder localises an excess (:func:`transient_actions`)
+    todo = [n for n in (names or data.registry) if n not in in_model
+            and n not in ("witness", "fd-coupling", "glitch", "gate")]
     effects = [data.registry[n]() for n in todo]
     return sorted(effects, key=lambda e: not (e.unresolved() or hasattr(e, "shifted_members")))
 
@@ -172,9 +177,13 @@ def score(model: ModelFit, effect, C) -> tuple[Evidence, dict]:
     if effect.unresolved():
         found = profile_search(model, effect, C)
         effect = found.effect
-        if found.evidence is not None:  # the step time: the evidence with the exact step near t_s
+        if found.evidence is not None and "t_step" in found.estimates:
+            # the step time: the evidence with the exact step near t_s
             ev = found.evidence
             extra = {"t_step": found.estimates["t_step"], "log_bayes_factor_at_best": ev.log_bayes_factor}
+        elif found.evidence is not None:  # a search that scored its estimate (a glitch's template)
+            ev = found.evidence
+            extra = {"search": found.to_json(), "log_bayes_factor_at_best": ev.log_bayes_factor}
         else:
             cs = effect_columns(data, effect, C if effect.needs_coefficients else None, cache=False)
             ev = added_evidence(model, cs)
@@ -264,3 +273,103 @@ def top_parameters(ev: Evidence, n: int = 6) -> list[dict]:
     z = np.abs(beta) / np.where(sig > 0, sig, np.inf)
     order = np.argsort(-z)[:n]
     return [{"name": ev.names[i], "value": float(beta[i]), "sigma": float(sig[i]), "z": float(z[i])} for i in order]
+
+
+#: A glitch is advised for a transient when it takes at least this share of the transient's
+#: excess in the time-frequency map (:func:`transient_actions`); otherwise the span is gated.
+GLITCH_EXPLAINED = 0.5
+#: Event classes for which a glitch is tried before gating.
+GLITCH_CLASSES = ("glitch", "unclassified")
+
+
+def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> list[dict]:
+    """What to add to the model for the transients and gaps the finder reported
+    (``report["transients"]``, :func:`ttlcore.diagnose.transients.transient_report`):
+
+    - an event classified ``glitch`` (or ``unclassified``): a :class:`~ttlcore.diagnose.glitches.Glitch`
+      searched over the event's span widened by a hop (time, damping, test mass or link,
+      :func:`~ttlcore.diagnose.glitches.glitch_search`), advised when significant (p <
+      alpha for ``delta chi2`` on 1 + 3 degrees of freedom - the velocity step, and the
+      time, damping and placement searched - and log Bayes factor above the threshold) and
+      when it takes at least :data:`GLITCH_EXPLAINED` of the event's excess in the
+      time-frequency map: ``1 - X_after / X_before``, ``X`` the excess chi^2 of the event's
+      tiles (:func:`~ttlcore.diagnose.transients.event_excess`) of the residual before and
+      after the fitted glitch is subtracted, against the same background;
+    - any other event that is not a missing coupling (a gravitational wave, a change of
+      the noise level, an unclassified or unexplained one), and every run of missing data:
+      a :class:`~ttlcore.diagnose.glitches.Gate` over its span (the event's widened by a
+      hop), overlapping spans merged.
+
+    Returns
+    -------
+    list of dict
+        ``kind`` (``"glitch"`` or ``"gate"``), ``spec``, ``cli_spec``, ``text`` (``"glitch
+        at 2.70 h on tm 12"``, ``"gate 15.20-15.80 h"``), ``events`` (indices); a glitch
+        also ``dv``, ``sigma_dv`` [m/s], ``beta`` [s], ``delta_chi2``, ``log_bayes_factor``,
+        ``explained_fraction``, ``search``; a gate, the glitch tried for its events (if
+        any) under ``glitch_tried``.
+    """
+    tr = report.get("transients") or {}
+    events = tr.get("events") or []
+    gaps = tr.get("gaps") or []
+    if not events and not gaps:
+        return []
+    data = model.data
+    s = data.settings
+    hop = float(tr.get("hop", 0.0))
+    tf0 = residual_map(data, residual) if events else None
+    actions, spans = [], []
+    for i, e in enumerate(events):
+        if e["class"] == "missing-coupling":
+            continue
+        span = (e["t_start"] - hop, e["t_stop"] + hop)
+        tried = None
+        if e["class"] in GLITCH_CLASSES and data.tm is not None:
+            act = _glitch_action(model, residual, tf0, e, span, s)
+            if act["advised"]:
+                act["events"] = [i]
+                actions.append(act)
+                continue
+            tried = act
+        spans.append([span[0], span[1], [i], tried])
+    spans += [[float(a), float(b), [], None] for a, b in gaps]
+    spans.sort(key=lambda x: x[0])
+    merged: list = []
+    for a, b, ev, tried in spans:
+        if merged and a <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], b)
+            merged[-1][2] += ev
+            merged[-1][3] = merged[-1][3] or tried
+        else:
+            merged.append([a, b, list(ev), tried])
+    for a, b, ev, tried in merged:
+        g = Gate(start=round(a), stop=round(b))
+        act = {"kind": "gate", "spec": g.spec(), "cli_spec": g.cli_spec(), "text": g.describe_text(), "events": ev,
+               "start": float(g.span[0]), "stop": float(g.span[1])}
+        if tried is not None:
+            act["glitch_tried"] = {k: v for k, v in tried.items() if k != "advised"}
+        actions.append(act)
+    return actions
+
+
+def _glitch_action(model: ModelFit, residual: np.ndarray, tf0, event: dict, span, s) -> dict:
+    """A glitch searched over ``span`` for ``event`` (:func:`transient_actions`)."""
+    found = glitch_search(model, Glitch(span=f"{span[0]:.0f}-{span[1]:.0f}"))
+    eff, ev = found.effect, found.evidence
+    dv, sdv = float(ev.beta[0]), float(ev.sigma[0])
+    p = float(stats.chi2.sf(max(ev.delta_chi2, 0.0), 4))
+    after = residual - dv * glitch_series(model.data, eff.where, float(eff.options["t"]), float(eff.options["beta"]))
+    tf1 = residual_map(model.data, after, tf0.duration)
+    before = event_excess(tf0, event["t_start"], event["t_stop"])
+    left = event_excess(tf1, event["t_start"], event["t_stop"], tf0.background)
+    frac = float(np.clip(1.0 - max(left, 0.0) / before, 0.0, 1.0)) if before > 0 else 0.0
+    significant = bool(p < s.alpha and found.log_bayes_factor > s.log_bf_threshold)
+    log.info("glitch for the event at %.2f h: %s, dv %.3g m/s, explains %.0f %%", event["t_start"] / 3600,
+             eff.cli_spec(), dv, 100 * frac)
+    return {"kind": "glitch", "spec": eff.spec(), "cli_spec": eff.cli_spec(),
+            "text": f"add {eff.describe_text()} (dv {dv:.3g} +- {sdv:.2g} m/s, beta {float(eff.options['beta']):.3g} s)",
+            "dv": dv, "sigma_dv": sdv, "beta": float(eff.options["beta"]), "t": float(eff.options["t"]),
+            "where": eff.where, "delta_chi2": float(ev.delta_chi2), "p_value": p,
+            "log_bayes_factor": float(found.log_bayes_factor), "explained_fraction": frac,
+            "significant": significant, "advised": bool(significant and frac >= GLITCH_EXPLAINED),
+            "search": found.to_json()}
