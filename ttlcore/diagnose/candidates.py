@@ -24,12 +24,12 @@ from scipy import stats
 from threadpoolctl import threadpool_limits
 
 from ..errors import ConfigError
-from .columns import effect_columns
+from .columns import concat, effect_columns
 from .effects import Effect
 from .evidence import Evidence, added_evidence, laplace_evidence
 from .fitting import fit_resolved
-from .glitches import Gate, Glitch, glitch_search, glitch_series
-from .model_fit import ModelFit, parameter_name, total_offset
+from .glitches import Gate, Glitch, glitch_columns, glitch_search, glitch_series, in_gates
+from .model_fit import ModelFit, parameter_name, solve, total_offset
 from .search import profile_search
 from .transients import event_excess, residual_map
 
@@ -278,6 +278,14 @@ def top_parameters(ev: Evidence, n: int = 6) -> list[dict]:
 #: A glitch is advised for a transient when it takes at least this share of the transient's
 #: excess in the time-frequency map (:func:`transient_actions`); otherwise the span is gated.
 GLITCH_EXPLAINED = 0.5
+#: Glitches searched at most in one event (:func:`transient_actions`).
+MAX_GLITCHES_PER_EVENT = 3
+#: Passes over an event's glitches searched again each with the others in the model, on
+#: its placement and within ``REFINE_SPAN`` seconds of its time.
+REFINE_PASSES = 2
+REFINE_SPAN = 300.0
+#: The search of an event's glitches stops once they take this share of its excess.
+GLITCH_DONE = 0.9
 #: Event classes for which a glitch is tried before gating.
 GLITCH_CLASSES = ("glitch", "unclassified")
 
@@ -325,14 +333,15 @@ def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> li
         span = (e["t_start"] - hop, e["t_stop"] + hop)
         tried = None
         if e["class"] in GLITCH_CLASSES and data.tm is not None:
-            act = _glitch_action(model, residual, tf0, e, span, s)
+            act = _event_glitches(model, residual, tf0, e, span, s)
             if act["advised"]:
-                act["events"] = [i]
-                actions.append(act)
+                for g in act["glitches"]:
+                    actions.append({**g, "events": [i], "explained_fraction": act["explained_fraction"]})
                 continue
             tried = act
         spans.append([span[0], span[1], [i], tried])
     spans += [[float(a), float(b), [], None] for a, b in gaps]
+    spans = [x for x in spans if not in_gates(data, x[0], x[1])]  # gated already
     spans.sort(key=lambda x: x[0])
     merged: list = []
     for a, b, ev, tried in spans:
@@ -352,24 +361,85 @@ def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> li
     return actions
 
 
-def _glitch_action(model: ModelFit, residual: np.ndarray, tf0, event: dict, span, s) -> dict:
-    """A glitch searched over ``span`` for ``event`` (:func:`transient_actions`)."""
-    found = glitch_search(model, Glitch(span=f"{span[0]:.0f}-{span[1]:.0f}"))
-    eff, ev = found.effect, found.evidence
-    dv, sdv = float(ev.beta[0]), float(ev.sigma[0])
-    p = float(stats.chi2.sf(max(ev.delta_chi2, 0.0), 4))
-    after = residual - dv * glitch_series(model.data, eff.where, float(eff.options["t"]), float(eff.options["beta"]))
-    tf1 = residual_map(model.data, after, tf0.duration)
+def _with_glitches(model: ModelFit, glitches) -> ModelFit:
+    """``model`` refitted with the columns of the resolved ``glitches`` added (exact
+    templates, :func:`~ttlcore.diagnose.glitches.glitch_columns`)."""
+    if not glitches:
+        return model
+    cols = concat(model.columns, *[glitch_columns(model.data, g) for g in glitches])
+    return solve(model.data, cols, tuple(model.effects) + tuple(glitches), model.expansion)
+
+
+def _event_glitches(model: ModelFit, residual: np.ndarray, tf0, event: dict, span, s) -> dict:
+    """Glitches for one event: searched one after the other (each against the model with
+    the ones found before, on the residual without them) while significant, at most
+    :data:`MAX_GLITCHES_PER_EVENT`, until they take :data:`GLITCH_DONE` of the event's
+    excess; with several, each is searched again against the model with the others
+    (:data:`REFINE_PASSES` passes, on its placement, within :data:`REFINE_SPAN` of its time:
+    overlapping glitches bias each other's damping and time), and their velocity steps
+    fitted jointly.  Returns the glitch action (:func:`transient_actions`) of the
+    set: ``advised`` when every one is significant and together they take at least
+    :data:`GLITCH_EXPLAINED` of the event's excess."""
+    data = model.data
     before = event_excess(tf0, event["t_start"], event["t_stop"])
+    search_span = Glitch(span=f"{span[0]:.0f}-{span[1]:.0f}")
+    found, results = [], []
+    for _ in range(MAX_GLITCHES_PER_EVENT):
+        base = _with_glitches(model, found)
+        res = glitch_search(base, search_span)
+        p = float(stats.chi2.sf(max(res.delta_chi2, 0.0), 4))
+        if not (p < s.alpha and res.log_bayes_factor > s.log_bf_threshold):
+            if not found:
+                results.append(res)
+            break
+        found.append(res.effect)
+        results.append(res)
+        if _explained(model, residual, tf0, event, found, before)[0] >= GLITCH_DONE:
+            break
+    for _ in range(REFINE_PASSES if len(found) > 1 else 0):  # each again, the others in the model
+        for j in range(len(found)):
+            others = found[:j] + found[j + 1:]
+            g = found[j]
+            t = float(g.options["t"])
+            again = Glitch(span=f"{t - REFINE_SPAN:.1f}-{t + REFINE_SPAN:.1f}",
+                           **{("tm" if g.where.startswith("tm") else "link"): g.where[-2:]})
+            res = glitch_search(_with_glitches(model, others), again)
+            found[j], results[j] = res.effect, res
+    if not found:
+        res = results[0]
+        return {"kind": "glitch", "advised": False, "significant": False, "explained_fraction": 0.0,
+                "text": f"add {res.effect.describe_text()}", "delta_chi2": float(res.delta_chi2),
+                "log_bayes_factor": float(res.log_bayes_factor), "cli_spec": res.effect.cli_spec()}
+    frac, fit = _explained(model, residual, tf0, event, found, before)
+    names = [g.column_name() for g in found]
+    dv = {n: float(fit.theta[list(fit.names).index(n)]) for n in names}
+    sdv = {n: float(fit.sigma[list(fit.names).index(n)]) for n in names}
+    acts = []
+    for g, res in zip(found, results):
+        n = g.column_name()
+        acts.append({"kind": "glitch", "spec": g.spec(), "cli_spec": g.cli_spec(),
+                     "text": f"add {g.describe_text()} (dv {dv[n]:.3g} +- {sdv[n]:.2g} m/s, beta "
+                             f"{float(g.options['beta']):.3g} s)",
+                     "dv": dv[n], "sigma_dv": sdv[n], "beta": float(g.options["beta"]), "t": float(g.options["t"]),
+                     "where": g.where, "delta_chi2": float(res.delta_chi2),
+                     "p_value": float(stats.chi2.sf(max(res.delta_chi2, 0.0), 4)),
+                     "log_bayes_factor": float(res.log_bayes_factor), "search": res.to_json()})
+    log.info("glitches for the event at %.2f h: %s, together %.0f %% of its excess", event["t_start"] / 3600,
+             ", ".join(a["cli_spec"] for a in acts), 100 * frac)
+    return {"kind": "glitches", "glitches": acts, "explained_fraction": frac, "significant": True,
+            "advised": frac >= GLITCH_EXPLAINED,
+            "text": "; ".join(a["text"] for a in acts), "cli_spec": ",".join(a["cli_spec"] for a in acts)}
+
+
+def _explained(model, residual, tf0, event, glitches, before) -> tuple[float, ModelFit]:
+    """Share of ``event``'s excess (``before``) the ``glitches`` take, fitted jointly with
+    the model: ``1 - X_after / X_before`` on the residual without them, and that fit."""
+    fit = _with_glitches(model, glitches)
+    after = np.array(residual, dtype=float)
+    for g in glitches:
+        dv = float(fit.theta[list(fit.names).index(g.column_name())])
+        after -= dv * glitch_series(model.data, g.where, float(g.options["t"]), float(g.options["beta"]))
+    tf1 = residual_map(model.data, after, tf0.duration)
     left = event_excess(tf1, event["t_start"], event["t_stop"], tf0.background)
     frac = float(np.clip(1.0 - max(left, 0.0) / before, 0.0, 1.0)) if before > 0 else 0.0
-    significant = bool(p < s.alpha and found.log_bayes_factor > s.log_bf_threshold)
-    log.info("glitch for the event at %.2f h: %s, dv %.3g m/s, explains %.0f %%", event["t_start"] / 3600,
-             eff.cli_spec(), dv, 100 * frac)
-    return {"kind": "glitch", "spec": eff.spec(), "cli_spec": eff.cli_spec(),
-            "text": f"add {eff.describe_text()} (dv {dv:.3g} +- {sdv:.2g} m/s, beta {float(eff.options['beta']):.3g} s)",
-            "dv": dv, "sigma_dv": sdv, "beta": float(eff.options["beta"]), "t": float(eff.options["t"]),
-            "where": eff.where, "delta_chi2": float(ev.delta_chi2), "p_value": p,
-            "log_bayes_factor": float(found.log_bayes_factor), "explained_fraction": frac,
-            "significant": significant, "advised": bool(significant and frac >= GLITCH_EXPLAINED),
-            "search": found.to_json()}
+    return frac, fit

@@ -216,18 +216,31 @@ def split_gates(effects) -> tuple[list, list]:
 @dataclass(frozen=True, eq=False)
 class GatedData(WhitenedData):
     """:class:`~ttlcore.diagnose.whitened.WhitenedData` with spans gated out (module
-    docstring): :meth:`spectra` multiplies every series by ``gate`` (decimated grid) and
-    each segment's spectra by ``seg_scale`` (``1 / sqrt(r_s)``); the data inside a span
-    (``gate == 0``) are NaN in ``data_series`` and out of ``mask``, so that the residual
-    there is neither fitted nor tested."""
+    docstring).  Every decimated series is multiplied by ``gate``: the data's and the TTL
+    regressors' (``data_series``, ``regressor_series``) once here, every column's where it
+    is decimated (:meth:`decimate`, the one path from an effect's TDI to its spectra), so
+    that data and columns carry the same window and the time-domain residual (per-hour
+    adequacy, transients) is tapered too, without a hard edge; each segment's spectra are
+    multiplied by ``seg_scale`` (``1 / sqrt(r_s)``).  Inside a span (``gate == 0``) the
+    samples are out of ``mask``."""
 
     gate: np.ndarray | None = None
     seg_scale: np.ndarray | None = None
     gates: tuple = ()
+    #: ``((start, stop), ...)`` [s] of the gates
+    gate_spans: tuple = ()
 
     def spectra(self, x: np.ndarray) -> np.ndarray:
-        out = super().spectra(np.nan_to_num(np.asarray(x)) * self.gate)
-        return out * self.seg_scale[:, None, None, None]
+        return super().spectra(x) * self.seg_scale[:, None, None, None]
+
+    def decimate(self, xyz: np.ndarray, is_aet: bool = False) -> np.ndarray:
+        """The decimated A, E, T of columns (:meth:`WhitenedData.decimate`) times the gate;
+        full-length series only (a stretch: decimate it ungated and gate it once placed)."""
+        out = super().decimate(xyz, is_aet)
+        if out.shape[-1] != self.gate.size:
+            raise ConfigError(f"gated data: a series of {out.shape[-1]} decimated samples cannot be gated "
+                              f"({self.gate.size} expected)")
+        return out * self.gate
 
 
 def gated_data(data: WhitenedData, gates) -> WhitenedData:
@@ -258,14 +271,17 @@ def gated_data(data: WhitenedData, gates) -> WhitenedData:
     idx = [i for i, k in enumerate(keep) if k]
     starts = tuple(data.starts[i] for i in idx)
     w2 = np.stack([(data.win * mask[s0:s0 + data.L] * g[s0:s0 + data.L]) ** 2 for s0 in starts])
-    series = np.where(inside, np.nan, data.data_series)
+    # gated once; inside a span exactly zero (a gap's NaN there too)
+    series = np.where(inside, 0.0, data.data_series * g)
+    regs = np.where(inside, 0.0, data.regressor_series * g)
     out = GatedData(**{**{k: getattr(data, k) for k in data.__dataclass_fields__},
                        "mask": mask, "starts": starts, "seg_t0": np.asarray(data.seg_t0)[idx],
-                       "w2": w2 / w2.sum(axis=1, keepdims=True), "data_series": series,
+                       "w2": w2 / w2.sum(axis=1, keepdims=True), "data_series": series, "regressor_series": regs,
                        "store": ColumnStore(), "d": np.empty(0), "wd": np.empty(0), "dd": np.empty(0),
-                       "gate": g, "seg_scale": np.asarray(scale)[idx], "gates": tuple(e.spec() for e in gates)})
+                       "gate": g, "seg_scale": np.asarray(scale)[idx], "gates": tuple(e.spec() for e in gates),
+                       "gate_spans": tuple(e.span for e in gates)})
     d = out.spectra(series[:, None, :])[..., 0]
-    R = out.spectra(data.regressor_series)
+    R = out.spectra(regs)
     wd = np.matmul(out.Lh, d[..., None])[..., 0]
     dd = np.zeros((len(starts), out.G))
     for gi, (a, b) in enumerate(out.slices):
@@ -276,50 +292,64 @@ def gated_data(data: WhitenedData, gates) -> WhitenedData:
     return out
 
 
+def in_gates(data, a: float, b: float) -> bool:
+    """Whether ``[a, b]`` [s] lies inside one of ``data``'s gates (:class:`GatedData`)."""
+    return any(lo <= a + 1e-6 and b <= hi + 1e-6 for lo, hi in getattr(data, "gate_spans", ()))
+
+
 # ---------------------------------------------------------------------------
 # Glitch search
 # ---------------------------------------------------------------------------
 
-def glitch_series(data, where: str, t_glitch: float, beta: float) -> np.ndarray:
+def glitch_series(data, where, t_glitch: float, beta: float) -> np.ndarray:
     """Decimated A, E, T (3, n) of a unit glitch (``dv = 1 m/s``) placed ``where`` at
-    ``t_glitch`` with damping ``beta``: the exact TDI of its parts computed on a stretch of
-    telemetry from the delays' history before ``t_glitch`` to ``20 beta + 600 s`` after it
-    (beyond, TDI cancels the velocity step that stays), zero elsewhere.  The stretch starts
-    on a multiple of the decimation factor, so that its decimated samples are the data's."""
+    ``t_glitch`` with damping ``beta`` - (3, k, n) for a list of ``k`` placements: the
+    exact TDI of its parts computed on a stretch of telemetry from the delays' history
+    before ``t_glitch`` to ``12 beta + 300 s`` after it (beyond, TDI cancels the velocity
+    step that stays, to ``13 exp(-12)``), zero elsewhere.  The stretch starts on a multiple
+    of the decimation factor, so that its decimated samples are the data's; on gated data
+    the series is gated once placed."""
     tm = data.tm
     if tm is None:
         raise ConfigError("effect 'glitch' needs the telemetry")
+    many = not isinstance(where, str)
+    wheres = list(where) if many else [where]
     fs = float(tm.fs)
     dec = int(data.decimation)
     hist = history_samples(fs, float(np.nanmax(tm.ltt)))
     i0 = int(math.floor((t_glitch - float(tm.t0)) * fs))
     a = max(i0 - hist - 16, 0)
     a -= a % dec
-    b = min(max(i0, 0) + hist + int((20.0 * beta + 600.0) * fs), tm.size)
+    b = min(max(i0, 0) + hist + int((12.0 * beta + 300.0) * fs), tm.size)
     n_dec = data.mask.size
-    out = np.zeros((3, n_dec))
-    if b <= a + hist:
-        return out
-    sub = tm.slice(a, b)
-    inp = effect_input_from_telemetry(sub)
-    v = glitch_velocity(inp.t, t_glitch, beta)
-    parts = [Part(link, factor * v / C, n) for link, n, factor in placement_parts(where)]
-    _, xyz = tdi_in_blocks(sub.ltt, fs, [Column("g", parts)], order=data.settings.order,
-                           delay_order=data.settings.delay_order)
-    x = data.decimate(np.nan_to_num(xyz))[:, 0]  # (3, m): global decimated samples a / dec + k
-    k0 = a // dec
-    m = min(x.shape[-1], n_dec - k0)
-    out[:, k0:k0 + m] = x[:, :m]
-    return out
+    out = np.zeros((3, len(wheres), n_dec))
+    if b > a + hist:
+        sub = tm.slice(a, b)
+        inp = effect_input_from_telemetry(sub)
+        v = glitch_velocity(inp.t, t_glitch, beta) / C
+        cols = [Column(w, [Part(link, factor * v, n) for link, n, factor in placement_parts(w)]) for w in wheres]
+        _, xyz = tdi_in_blocks(sub.ltt, fs, cols, order=data.settings.order, delay_order=data.settings.delay_order)
+        # (3, k, m): global decimated samples a / dec + j, ungated (a stretch), gated once placed
+        x = WhitenedData.decimate(data, np.nan_to_num(xyz))
+        k0 = a // dec
+        m = min(x.shape[-1], n_dec - k0)
+        out[:, :, k0:k0 + m] = x[:, :, :m]
+        g = getattr(data, "gate", None)
+        if g is not None:
+            out *= g
+    return out if many else out[:, 0]
 
 
-def glitch_spectra(data, where: str, t_glitch: float, beta: float) -> np.ndarray:
-    """Whitened segment spectra (S, m, 3) of a unit glitch (:func:`glitch_series`)."""
-    return data.whiten(data.spectra(glitch_series(data, where, t_glitch, beta)[:, None, :]))[..., 0]
+def glitch_spectra(data, where, t_glitch: float, beta: float) -> np.ndarray:
+    """Whitened segment spectra (S, m, 3) of a unit glitch (:func:`glitch_series`); (S, m,
+    3, k) for a list of placements."""
+    x = glitch_series(data, where, t_glitch, beta)
+    w = data.whiten(data.spectra(x if x.ndim == 3 else x[:, None, :]))
+    return w if x.ndim == 3 else w[..., 0]
 
 
-class _Scan:
-    """Profile of a glitch's time against a fitted model for one template.
+class _Scanner:
+    """Profile of a glitch's time against a fitted model, for templates.
 
     Adding one column ``g`` to the model ``M`` (fitted: residual ``r``, normal matrix with
     errors in variables ``N_MM - E``) gains
@@ -330,41 +360,54 @@ class _Scan:
     (the glitch column carries no readout noise).  A template moved by ``tau`` is the
     phase ``exp(-2 pi i f tau)`` of its spectra (inside one segment, away from the taper),
     so ``c`` and ``n`` at every shift by a sample of the decimated grid are one inverse FFT
-    of their per-bin products over the segment's frequency grid."""
+    of their per-bin products over the segment's frequency grid (``n`` matters: a glitch
+    already in the model, near in time, is correlated with the template).  The model's columns and
+    residual are arranged once per search (:meth:`products` then costs a batched product
+    per template)."""
 
-    def __init__(self, model, g: np.ndarray):
+    def __init__(self, model):
         data = self.data = model.data
-        r = model.residual_w
-        M = model.columns.w  # (S, m, 3, P)
-        self.p = np.einsum("smc,smc->m", g.conj(), r)
-        self.q = np.einsum("smc,smcp->mp", g.conj(), M)
-        self.ngg = float(np.sum(np.abs(g) ** 2))
-        self.NM = model.normal[0].sum(axis=(0, 1)) - model.eiv_term.sum(axis=0)
+        S, m = model.residual_w.shape[:2]
+        self.r = np.ascontiguousarray(model.residual_w.transpose(1, 0, 2)).reshape(m, S * 3)
+        x = model.columns.x.view(complex)  # (P, S, m, 3)
+        self.M = np.ascontiguousarray(x.transpose(2, 1, 3, 0)).reshape(m, S * 3, -1)  # (m, S 3, P)
+        NM = model.normal[0].sum(axis=(0, 1)) - model.eiv_term.sum(axis=0)
+        self.NMinv = np.linalg.inv(NM)
 
-    def shifts(self, max_shift: float) -> tuple[np.ndarray, np.ndarray]:
-        """``(tau [s], delta chi2)`` on the decimated grid, ``|tau| <= max_shift``."""
+    def products(self, G: np.ndarray) -> list[tuple]:
+        """``(p (m,), q (m, P), |g|^2)`` per template of ``G`` (S, m, 3, k): the per-bin
+        products ``sum conj(g) r``, ``sum conj(g) M``."""
+        S, m, _, k = G.shape
+        Gc = np.ascontiguousarray(G.conj().transpose(1, 3, 0, 2)).reshape(m, k, S * 3)
+        p = np.einsum("mkj,mj->mk", Gc, self.r)
+        q = np.matmul(Gc, self.M)  # (m, k, P)
+        ngg = np.sum(np.abs(G) ** 2, axis=(0, 1, 2))
+        return [(p[:, j], q[:, j], float(ngg[j])) for j in range(k)]
+
+    def shifts(self, prods, max_shift: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(tau [s], delta chi2)`` of one template's products on the decimated grid,
+        ``|tau| <= max_shift``."""
         data = self.data
+        p, q, ngg = prods
         L = data.L
-        full = np.zeros((1 + self.q.shape[1], L), dtype=complex)
-        full[0, data.bins] = self.p
-        full[1:, data.bins] = self.q.T
+        kmax = int(max_shift * data.fs) + 1
+        full = np.zeros((1 + q.shape[1], L), dtype=complex)
+        full[0, data.bins] = p
+        full[1:, data.bins] = q.T
         z = np.fft.ifft(full, axis=1).real * L  # sum_f x(f) exp(2 pi i f k / fs)
-        k = np.arange(L)
-        k = np.where(k > L // 2, k - L, k)
-        sel = np.abs(k) <= max_shift * data.fs
-        order = np.argsort(k[sel])
-        tau = k[sel][order] / data.fs
-        c = z[0, sel][order]
-        n = z[1:, sel][:, order]  # (P, K)
-        D = self.ngg - np.einsum("pk,pk->k", n, np.linalg.solve(self.NM, n))
-        return tau, 2.0 * c ** 2 / (np.maximum(D, 1e-300) * data.kappa)
+        k = np.r_[np.arange(-min(kmax, L // 2 - 1), 0), np.arange(0, min(kmax, L // 2) + 1)]
+        c = z[0, k]
+        n = z[1:, k]  # (P, K)
+        D = ngg - np.einsum("pk,pk->k", n, self.NMinv @ n)
+        return k / data.fs, 2.0 * c ** 2 / (np.maximum(D, 1e-300) * data.kappa)
 
-    def at(self, tau: float) -> float:
-        """delta chi2 at a shift ``tau`` [s] (any real value)."""
+    def at(self, prods, tau: float) -> float:
+        """delta chi2 of one template's products at a shift ``tau`` [s] (any real value)."""
+        p, q, ngg = prods
         ph = np.exp(2j * np.pi * self.data.f * tau)
-        c = float(np.real(np.sum(self.p * ph)))
-        n = np.real(ph @ self.q)
-        D = self.ngg - n @ np.linalg.solve(self.NM, n)
+        c = float(np.real(np.sum(p * ph)))
+        n = np.real(ph @ q)
+        D = ngg - n @ self.NMinv @ n
         return 2.0 * c ** 2 / (max(D, 1e-300) * self.data.kappa)
 
 
@@ -383,7 +426,7 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
     and the six links, :data:`PLACEMENTS`) and each damping of :data:`BETA_GRID` (or the
     given one), a template at the centre of each piece of the searched span (``span``, the
     analysed data without it; cut at the segments' boundaries) is scanned over every shift
-    by a decimated sample (:class:`_Scan`); the best (placement, damping, time) is refined
+    by a decimated sample (:class:`_Scanner`); the best (placement, damping, time) is refined
     by Brent's method in ``log beta`` (templates rebuilt exactly at the time found, the
     time rescanned +-60 s) and in time (the phase formula).  The estimate is scored with
     its exact template (:func:`ttlcore.diagnose.evidence.added_evidence`).
@@ -409,16 +452,16 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
     places = [effect.where] if effect.where else list(PLACEMENTS)
     betas = [float(effect.options["beta"])] if effect.options.get("beta") is not None else list(BETA_GRID)
     n_eval = 0
+    scanner = _Scanner(model)
     best = (-np.inf, None, None, None)  # (dchi2, where, beta, t)
     grid = []
     for t_ref, a, b in _pieces(data, lo, hi) if hi > lo else [(lo, lo, lo)]:
         half = max(t_ref - a, b - t_ref)
-        for where in places:
-            for beta in betas:
-                # the template's start sits at t_ref - the time at which the excess peaks
-                # depends on beta, so that the shift scanned is that of the glitch's start
-                scan = _Scan(model, glitch_spectra(data, where, t_ref, beta))
-                tau, dchi2 = scan.shifts(half)
+        for beta in betas:
+            # every placement in one TDI
+            prods = scanner.products(glitch_spectra(data, places, t_ref, beta))
+            for j_place, where in enumerate(places):
+                tau, dchi2 = scanner.shifts(prods[j_place], half)
                 inside = (t_ref + tau >= a) & (t_ref + tau <= b)
                 n_eval += int(inside.sum())
                 j = int(np.argmax(np.where(inside, dchi2, -np.inf)))
@@ -431,17 +474,18 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
     def refine_time(beta_):
         """Best time [s] and delta chi2 near ``t_best`` for a damping (exact template there)."""
         nonlocal n_eval
-        scan = _Scan(model, glitch_spectra(data, where, t_best, beta_))
+        pr = scanner.products(glitch_spectra(data, [where], t_best, beta_))[0]
         if fixed_t:
             n_eval += 1
-            return t_best, scan.at(0.0), scan
-        tau, dchi2 = scan.shifts(60.0)
+            return t_best, scanner.at(pr, 0.0), pr
+        tau, dchi2 = scanner.shifts(pr, 60.0)
         j = int(np.argmax(dchi2))
-        res = optimize.minimize_scalar(lambda x: -scan.at(x), bounds=(tau[j] - 1.0 / data.fs, tau[j] + 1.0 / data.fs),
+        res = optimize.minimize_scalar(lambda x: -scanner.at(pr, x),
+                                       bounds=(tau[j] - 1.0 / data.fs, tau[j] + 1.0 / data.fs),
                                        method="bounded", options={"xatol": 1e-3})
         n_eval += tau.size + res.nfev
         x, val = (float(res.x), -float(res.fun)) if -res.fun >= dchi2[j] else (float(tau[j]), float(dchi2[j]))
-        return t_best + x, val, scan
+        return t_best + x, val, pr
 
     if effect.options.get("beta") is None:
         lb = math.log(beta)
@@ -451,8 +495,7 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
                                                min(lb + step, math.log(BETA_RANGE[1]))),
                                        method="bounded", options={"xatol": 0.01})
         beta = float(math.exp(res.x))
-    t_new, _, scan = refine_time(beta)
-    t_best = t_new
+    t_best, _, _ = refine_time(beta)
     found = effect.with_options(t=round(t_best, 2), beta=float(f"{beta:.4g}"), span=None,
                                 **({} if effect.where else {("tm" if where.startswith("tm") else "link"): where[-2:]}))
     g = glitch_spectra(data, where, t_best, beta)
@@ -460,13 +503,14 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
     # curvatures of l = delta chi2 / 2 in time and log beta (the others at the estimate)
     sig_t = sig_lb = float("nan")
     if not fixed_t:
-        scan = _Scan(model, g)
+        pr = scanner.products(g[..., None])[0]
         h = 0.25 / data.fs
-        curv = -(scan.at(h) - 2 * scan.at(0.0) + scan.at(-h)) / (2 * h * h)
+        curv = -(scanner.at(pr, h) - 2 * scanner.at(pr, 0.0) + scanner.at(pr, -h)) / (2 * h * h)
         sig_t = 1.0 / math.sqrt(curv) if curv > 0 else float("nan")
     if effect.options.get("beta") is None:
         h = 0.05
-        vals = [_Scan(model, glitch_spectra(data, where, t_best, beta * math.exp(s))).at(0.0) for s in (-h, 0.0, h)]
+        prods = [scanner.products(glitch_spectra(data, [where], t_best, beta * math.exp(x)))[0] for x in (-h, 0.0, h)]
+        vals = [scanner.at(pr, 0.0) for pr in prods]
         curv = -(vals[0] - 2 * vals[1] + vals[2]) / (2 * h * h)
         sig_lb = 1.0 / math.sqrt(curv) if curv > 0 else float("nan")
     marg = ev.log_bayes_factor - math.log(len(places))

@@ -765,7 +765,10 @@ def transient_report(model, report: dict | None = None, tile: float = TILE_DURAT
     psd = np.real(np.einsum("mii->mi", data.noise_csd))
     keep = kept_like(data.f, 1.0 / data.seg_duration, 1.0 / tile)
     band = (max(s.band[0], 3.0 / tile), s.band[1])
-    gaps = data_gaps(data.data_series, data.fs, data.t0, data.mask)
+    # a gated span reads as zeros: not missing data, the model's choice
+    spans = getattr(data, "gate_spans", ())
+    gaps = [(a, b) for a, b in data_gaps(data.data_series, data.fs, data.t0, data.mask)
+            if not any(lo - 1.0 <= a and b <= hi + 1.0 for lo, hi in spans)]
     events = find_events(tf, alpha)
     out_events, classes = [], []
     for e in events:
