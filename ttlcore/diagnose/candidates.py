@@ -286,6 +286,9 @@ REFINE_PASSES = 2
 REFINE_SPAN = 300.0
 #: The search of an event's glitches stops once they take this share of its excess.
 GLITCH_DONE = 0.9
+#: Events longer than this [h] (an inspiral in band for hours, a noise change) are not
+#: gated: the report shows the fit's robustness to them instead.
+MAX_GATE_HOURS = 2.0
 #: Event classes for which a glitch is tried before gating.
 GLITCH_CLASSES = ("glitch", "unclassified")
 
@@ -304,7 +307,8 @@ def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> li
       tiles (:func:`~ttlcore.diagnose.transients.event_excess`) of the residual before and
       after the fitted glitch is subtracted, against the same background;
     - any other event that is not a missing coupling (a gravitational wave, a change of
-      the noise level, an unclassified or unexplained one), and every run of missing data:
+      the noise level, an unclassified or unexplained one) and lasts at most
+      :data:`MAX_GATE_HOURS`, and every run of missing data:
       a :class:`~ttlcore.diagnose.glitches.Gate` over its span (the event's widened by a
       hop), overlapping spans merged.
 
@@ -331,6 +335,8 @@ def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> li
         if e["class"] == "missing-coupling":
             continue
         span = (e["t_start"] - hop, e["t_stop"] + hop)
+        if e["duration"] > MAX_GATE_HOURS * 3600.0 and e["class"] not in GLITCH_CLASSES:
+            continue  # hours of signal (a long inspiral) are not a transient to gate
         tried = None
         if e["class"] in GLITCH_CLASSES and data.tm is not None:
             act = _event_glitches(model, residual, tf0, e, span, s)

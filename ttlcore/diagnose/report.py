@@ -137,16 +137,20 @@ def excess_description(report: dict) -> str:
 
 
 def recommendation(report: dict, effects) -> dict | None:
-    """The next step (:func:`effect_recommendation`), or, when no effect is advised and the
-    transient finder localised the excess, the glitches and gates that take it
-    (``report["transients"]["actions"]``, :func:`ttlcore.diagnose.candidates.transient_actions`):
-    ``option`` then adds all of them at once (``--effects "linear-ttl,glitch:t=9720.4;
+    """The next step: when the transient finder localised excess in time, the glitches and
+    gates that take it, before any effect (the effect candidates are scored again on the
+    data without them at the next step); otherwise :func:`effect_recommendation`.  With the
+    transients' actions (``report["transients"]["actions"]``,
+    :func:`ttlcore.diagnose.candidates.transient_actions`) ``option`` adds all of them at once (``--effects "linear-ttl,glitch:t=9720.4;
     beta=31.2;tm=12,gate:start=54720;stop=56880"``), ``actions`` lists them and ``message``
     reads ``"add glitch at 2.70 h on tm 12 (...); gate 15.20-15.80 h"``."""
     rec = effect_recommendation(report, effects)
     actions = (report.get("transients") or {}).get("actions") or []
-    if not actions or (rec is not None and rec.get("option")):
+    if not actions:
         return rec
+    # transients first: a loud signal or glitch pulls the noise levels and the linear fit
+    # the effects are scored against (a merger's hours read as a missing second-order term);
+    # once they are gated or fitted, the next diagnosis scores the effects on clean data
     rec = dict(rec or {})
     tr = report.get("transients") or {}
     verdict = tr.get("classification") or {}
@@ -155,6 +159,8 @@ def recommendation(report: dict, effects) -> dict | None:
     option = "--effects " + (f'"{value}"' if any(ch in value for ch in ';|&<> ') else value)
     texts = "; ".join(a["text"] for a in actions)
     description = rec.get("description") or excess_description(report)
+    if rec.get("option"):
+        rec["effect_after"] = {"cli_spec": rec.get("cli_spec"), "explained_fraction": rec.get("explained_fraction")}
     rec.update({"effect": actions[0]["kind"], "spec": ",".join(a["spec"] for a in actions),
                 "cli_spec": ",".join(a["cli_spec"] for a in actions), "option": option, "explains": True,
                 "actions": actions, "excess_class": verdict.get("class"), "signal": bool(verdict.get("signal")),
