@@ -386,7 +386,6 @@ def _event_glitches(model: ModelFit, residual: np.ndarray, tf0, event: dict, spa
     fitted jointly.  Returns the glitch action (:func:`transient_actions`) of the
     set: ``advised`` when every one is significant and together they take at least
     :data:`GLITCH_EXPLAINED` of the event's excess."""
-    data = model.data
     before = event_excess(tf0, event["t_start"], event["t_stop"])
     search_span = Glitch(span=f"{span[0]:.0f}-{span[1]:.0f}")
     found, results = [], []

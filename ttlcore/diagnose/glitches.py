@@ -197,7 +197,7 @@ class Gate(Effect):
         super().__init__(**options)
         for key in ("start", "stop"):
             if self.options.get(key) is None:
-                raise ConfigError(f"effect 'gate' needs start= and stop= (e.g. gate:start=15.2h,stop=15.8h)")
+                raise ConfigError("effect 'gate' needs start= and stop= (e.g. gate:start=15.2h,stop=15.8h)")
             self.options[key] = parse_time(self.options[key], f"gate {key}")
         self.options["taper"] = float(self.options["taper"]) if isinstance(self.options["taper"], (int, float)) \
             else parse_duration(self.options["taper"], "gate taper")
@@ -379,7 +379,7 @@ class _Scanner:
     per template)."""
 
     def __init__(self, model):
-        data = self.data = model.data
+        self.data = model.data
         S, m = model.residual_w.shape[:2]
         self.r = np.ascontiguousarray(model.residual_w.transpose(1, 0, 2)).reshape(m, S * 3)
         x = model.columns.x.view(complex)  # (P, S, m, 3)
