@@ -8,9 +8,15 @@ and ``noise_model`` (the reference the residual is tested against), ``settings``
 ``whitened`` (the whitened data, an immutable value), ``columns`` (an effect's whitened
 columns), ``model_fit`` (the GLS fit with errors in variables), ``fitting`` (a model of
 effects fitted), ``evidence`` (Bayes factors), ``search`` (profile likelihood over nonlinear
-parameters: step time, offsets, poles, periods), ``candidates``, ``report``, ``diagnoser``
+parameters: step time, offsets, poles, periods), ``glitches`` (the glitch and gate effects, gated data), ``candidates``, ``report``, ``diagnoser``
 (``diagnose``, ``refit``), ``witnesses``, ``trends``, ``reprocess``.
 """
 
-__all__ = ['adequacy', 'candidates', 'columns', 'diagnoser', 'effects', 'evidence', 'fitting', 'model_fit',
+from .effects import EFFECTS
+from .glitches import Gate, Glitch
+
+# the transient effects live with their search and gating (glitches imports effects)
+EFFECTS.update({Glitch.name: Glitch, Gate.name: Gate})
+
+__all__ = ['adequacy', 'candidates', 'columns', 'diagnoser', 'effects', 'evidence', 'fitting', 'glitches', 'model_fit',
            'noise_model', 'report', 'reprocess', 'search', 'settings', 'trends', 'whitened', 'witnesses']

@@ -30,10 +30,11 @@ from scipy import fft as sp_fft
 
 from ..errors import ConfigError
 from ..tdi.data import TDIData
-from .candidates import CandidatePool, named_candidates
+from .candidates import CandidatePool, named_candidates, transient_actions
 from .effects import make_effects
 from .evidence import change
 from .fitting import fit_model
+from .glitches import gated_data, split_gates, with_gates
 from .model_fit import ModelFit
 from .noise_model import profile_noise_model
 from .report import (
@@ -83,21 +84,22 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
         clock = now
 
     eff = make_effects(list(effects), effect_modules)
+    gates, fitted = split_gates(eff)  # gates change the data, not the columns
     if not any(e.name == "linear-ttl" for e in eff):
         log.warning("model without linear-ttl: the 24 linear coefficients are not fitted")
     # FFTs on every core while nothing else runs; one per thread once the candidates'
     # threads start (the diagnosis' transforms take the calling thread's default)
     with sp_fft.set_workers(-1):
         say("TDI and spectra")
-        data = whiten_telemetry(tm, s, effect_modules)
+        data = gated_data(whiten_telemetry(tm, s, effect_modules), gates)
         lap("tdi_and_spectra")
         say("fit")
-        model = fit_model(data, eff)
+        model = fit_model(data, fitted)
         if s.noise_model == "fitted":
             say("noise model")
             model = _with_noise_levels(model)
         lap("fit")
-    report: dict = {"model": model_json(model, truth_coefficients)}
+    report: dict = {"model": with_gates(model_json(model, truth_coefficients), gates)}
     report["adequacy"] = report["model"]["adequacy"]
     if len(eff) > 1 or eff[0].name != "linear-ttl":
         before = fit_model(model.data, make_effects(["linear-ttl"]))
@@ -131,6 +133,8 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
         report["candidates"] = pool.ranked()
     lap("candidates")
     report["transients"] = transient_report(model, report)
+    residual = report["transients"].pop("_residual")
+    report["transients"]["actions"] = transient_actions(model, report, residual)
     lap("transients")
     report["recommendation"] = recommendation(report, eff)
     report["settings"] = {"band": list(map(float, s.band)), "n_bands": s.n_bands, "segment_duration": model.data.seg_duration,
@@ -198,13 +202,16 @@ def _refit(source, effects, settings, effect_modules, dws_asd, baseline, time_ta
     else:
         raise ConfigError(f"refit: cannot refit a {type(source).__name__}; give telemetry, TDI data or WhitenedData")
     modules = tuple(effect_modules) or data.effect_modules
-    model = fit_model(data, make_effects(list(effects), modules), time_table=time_table)
+    gates, fitted = split_gates(make_effects(list(effects), modules))
+    if gates and not getattr(data, "gates", ()):
+        data = gated_data(data, gates)
+    model = fit_model(data, fitted, time_table=time_table)
     if data.settings.noise_model == "fitted":
         model = _with_noise_levels(model, time_table)
     base = fit_model(model.data, make_effects(list(baseline), modules), time_table=time_table)
     ev = change(base, model)
     return {
-        "model": model_json(model), "baseline": model_json(base),
+        "model": with_gates(model_json(model), gates), "baseline": model_json(base),
         "change": {"delta_chi2": None if ev is None else ev.delta_chi2,
                    "log_bayes_factor": None if ev is None else ev.log_bayes_factor,
                    "chi2_dof_before": base.chi2_dof, "chi2_dof_after": model.chi2_dof,

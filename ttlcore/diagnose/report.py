@@ -137,6 +137,40 @@ def excess_description(report: dict) -> str:
 
 
 def recommendation(report: dict, effects) -> dict | None:
+    """The next step: when the transient finder localised excess in time, the glitches and
+    gates that take it, before any effect (the effect candidates are scored again on the
+    data without them at the next step); otherwise :func:`effect_recommendation`.  With the
+    transients' actions (``report["transients"]["actions"]``,
+    :func:`ttlcore.diagnose.candidates.transient_actions`) ``option`` adds all of them at once (``--effects "linear-ttl,glitch:t=9720.4;
+    beta=31.2;tm=12,gate:start=54720;stop=56880"``), ``actions`` lists them and ``message``
+    reads ``"add glitch at 2.70 h on tm 12 (...); gate 15.20-15.80 h"``."""
+    rec = effect_recommendation(report, effects)
+    actions = (report.get("transients") or {}).get("actions") or []
+    if not actions:
+        return rec
+    # transients first: a loud signal or glitch pulls the noise levels and the linear fit
+    # the effects are scored against (a merger's hours read as a missing second-order term);
+    # once they are gated or fitted, the next diagnosis scores the effects on clean data
+    rec = dict(rec or {})
+    tr = report.get("transients") or {}
+    verdict = tr.get("classification") or {}
+    specs = [e.cli_spec() for e in effects] + [a["cli_spec"] for a in actions]
+    value = ",".join(specs)
+    option = "--effects " + (f'"{value}"' if any(ch in value for ch in ';|&<> ') else value)
+    texts = "; ".join(a["text"] for a in actions)
+    description = rec.get("description") or excess_description(report)
+    if rec.get("option"):
+        rec["effect_after"] = {"cli_spec": rec.get("cli_spec"), "explained_fraction": rec.get("explained_fraction")}
+    rec.update({"effect": actions[0]["kind"], "spec": ",".join(a["spec"] for a in actions),
+                "cli_spec": ",".join(a["cli_spec"] for a in actions), "option": option, "explains": True,
+                "actions": actions, "excess_class": verdict.get("class"), "signal": bool(verdict.get("signal")),
+                "description": description,
+                "message": f"the excess is localised in time: {texts}" + (f" ({description})" if description else "")})
+    rec.setdefault("pointers", [])
+    return rec
+
+
+def effect_recommendation(report: dict, effects) -> dict | None:
     """The next step: the significant candidate with the largest (marginal) log Bayes
     factor over everything tried (named effects, witness effects, frequency-dependent
     couplings, plugins), its ``--effects`` option runnable as printed (quoted when it holds
@@ -288,7 +322,10 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
     if tr:
         lines += transient_lines(tr)
     rec = report.get("recommendation")
-    if rec and rec.get("option"):
+    if rec and rec.get("option") and rec.get("actions"):
+        lines.append(f"  best next step: {'; '.join(a['text'].split(' (')[0] for a in rec['actions'])}:  "
+                     f"ttl diagnose {source or 'DATA'} {rec['option']}")
+    elif rec and rec.get("option"):
         lines.append(f"  best next step: add {rec['cli_spec']}:  ttl diagnose {source or 'DATA'} {rec['option']}")
     if rec and rec.get("message"):
         lines.append(f"  {rec['message']}")
@@ -314,6 +351,14 @@ def transient_lines(tr: dict) -> list[str]:
     if q.get("chi2_dof") is not None and (ev or tr.get("gaps")):
         lines.append(f"    outside them ({q['hours']:.1f} h): chi2/dof {q['chi2_dof']:.3f} against the noise model"
                      f" ({'fails' if q['fails'] else 'consistent'})")
+    for a in tr.get("actions") or []:
+        if a["kind"] == "glitch":
+            lines.append(f"    -> {a['text']}: delta chi2 {a['delta_chi2']:.0f}, logB {a['log_bayes_factor']:.1f}, "
+                         f"takes {100 * a['explained_fraction']:.0f} % of the transient's excess")
+        else:
+            tried = a.get("glitch_tried")
+            lines.append(f"    -> {a['text']}" + (f" (a glitch takes only {100 * tried['explained_fraction']:.0f} % of it: "
+                                                   f"{tried['text'].split(' (')[0][4:]})" if tried else ""))
     verdict = tr.get("classification") or {}
     if verdict.get("class") not in (None, "none"):
         lines.append(f"  the excess: {verdict['class']}" + ("" if not verdict.get("evidence") else

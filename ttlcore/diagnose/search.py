@@ -339,7 +339,13 @@ def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
     against the model's columns, filters and other parameters by a grid and local
     refinement.
 
+    An effect with its own search (a method ``profile_search(model, coefficients)``, e.g.
+    :class:`ttlcore.diagnose.glitches.Glitch`) is searched by it.
+
     Raises ConfigError when the data have no telemetry and the columns need DWS series."""
+    own = getattr(effect, "profile_search", None)
+    if callable(own):
+        return own(model, coefficients)
     if hasattr(effect, "shifted_members"):
         return offset_search(model, effect)
     names = effect.unresolved()

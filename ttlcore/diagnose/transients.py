@@ -722,6 +722,28 @@ def event_json(e: Event, cls: str, evidence: list) -> dict:
             "gap": list(e.gap) if e.gap else None}
 
 
+def residual_map(data, residual, tile: float = TILE_DURATION) -> TimeFrequencyMap:
+    """The time-frequency map (:func:`time_frequency_map`) of a residual (3, n) of ``data``
+    (:class:`~ttlcore.diagnose.whitened.WhitenedData`) under its noise model: the diagonal of
+    its noise CSD, its analysis bins (:func:`kept_like`), its band from ``3 / tile`` (the
+    Hann main lobe clear of zero frequency), its valid samples and tolerance."""
+    s = data.settings
+    psd = np.real(np.einsum("mii->mi", data.noise_csd))
+    keep = kept_like(data.f, 1.0 / data.seg_duration, 1.0 / tile)
+    band = (max(s.band[0], 3.0 / tile), s.band[1])
+    return time_frequency_map(residual, data.fs, data.t0, data.f, psd, band, tile=tile, valid=data.mask, keep=keep,
+                              tolerance=s.tolerance)
+
+
+def event_excess(tf: TimeFrequencyMap, t_start: float, t_stop: float, background=None) -> float:
+    """Excess chi^2 ``sum (chi2 - B dof)`` over A, E, T, the bands and the tiles of ``tf``
+    centred in ``[t_start, t_stop]`` (``background`` ``B``: ``tf``'s, or another map's, so
+    that a residual before and after a change is measured against one level)."""
+    B = tf.background if background is None else background
+    sl = (tf.t_mid >= t_start - 1e-6) & (tf.t_mid <= t_stop + 1e-6) & tf.valid
+    return float(np.sum(tf.chi2[:, sl] - B[:, None, :] * tf.dof[None, None, :]))
+
+
 def transient_report(model, report: dict | None = None, tile: float = TILE_DURATION, alpha: float = MAP_ALPHA) -> dict:
     """The ``transients`` part of a diagnosis report (docs/diagnostics.md): the
     time-frequency map of the model's residual, its events with their class and evidence,
@@ -732,17 +754,21 @@ def transient_report(model, report: dict | None = None, tile: float = TILE_DURAT
     ``report`` (the diagnosis' report so far: adequacy, candidates) decides between a
     missing coupling and an unexplained stationary excess when the quiet tiles fail.
     The key ``_map`` holds the :class:`TimeFrequencyMap` (for the figure; the diagnosis moves
-    it to the report's ``_internals["transient_map"]``).
+    it to the report's ``_internals["transient_map"]``), ``_residual`` the model's residual
+    series (3, n) (the diagnosis scores the transients' glitches and gates on it,
+    :func:`ttlcore.diagnose.candidates.transient_actions`, and drops it).
     """
     data = model.data
     s = data.settings
     resid = model_residual(model)
+    tf = residual_map(data, resid, tile)
     psd = np.real(np.einsum("mii->mi", data.noise_csd))
     keep = kept_like(data.f, 1.0 / data.seg_duration, 1.0 / tile)
-    band = (max(s.band[0], 3.0 / tile), s.band[1])  # the Hann main lobe clear of zero frequency
-    tf = time_frequency_map(resid, data.fs, data.t0, data.f, psd, band, tile=tile, valid=data.mask, keep=keep,
-                            tolerance=s.tolerance)
-    gaps = data_gaps(data.data_series, data.fs, data.t0, data.mask)
+    band = (max(s.band[0], 3.0 / tile), s.band[1])
+    # a gated span reads as zeros: not missing data, the model's choice
+    spans = getattr(data, "gate_spans", ())
+    gaps = [(a, b) for a, b in data_gaps(data.data_series, data.fs, data.t0, data.mask)
+            if not any(lo - 1.0 <= a and b <= hi + 1.0 for lo, hi in spans)]
     events = find_events(tf, alpha)
     out_events, classes = [], []
     for e in events:
@@ -777,7 +803,7 @@ def transient_report(model, report: dict | None = None, tile: float = TILE_DURAT
         summary.append(f"TTL fit without those hours: largest coefficient shift {robust['max_abs_shift_sigma']:.2f} sigma")
     return {"tile_duration": tf.duration, "hop": tf.hop, "alpha": alpha, "t_share_threshold": T_SHARE_INSTRUMENTAL,
             "events": out_events, "gaps": [[a, b] for a, b in gaps], "quiet": quiet, "classification": verdict,
-            "robustness": robust, "summary": summary, "map": tf.to_json(), "_map": tf}
+            "robustness": robust, "summary": summary, "map": tf.to_json(), "_map": tf, "_residual": resid}
 
 
 def excess_classification(report: dict, events: list, quiet: dict, gaps=()) -> dict:
