@@ -89,6 +89,7 @@ from ttlcore.conventions import COEFFICIENT_NAMES, DAY, parse_duration
 from ttlcore.diagnose.candidates import candidates
 from ttlcore.diagnose.diagnoser import diagnose, refit, text_report
 from ttlcore.diagnose.effects import make_effects
+from ttlcore.diagnose.glitches import split_gates
 from ttlcore.diagnose.prediction import column_regressors, effect_predictions
 from ttlcore.errors import ConfigError
 from ttlcore.estimate.fit import FitSettings, with_extra_regressors
@@ -415,9 +416,10 @@ class Fitter(OrderedStage):
             return None
         key = tuple(self.effects)
         if getattr(self, "_rolling_key", None) != key:
-            effects = make_effects(list(self.effects), self.effect_modules)
+            gates, effects = split_gates(make_effects(list(self.effects), self.effect_modules))
             ok = all(not e.needs_coefficients and not e.unresolved() for e in effects)
             self._rolling_effects = [e for e in effects if e.name != "linear-ttl"] if ok else None
+            self._rolling_gates = [g.span for g in gates]
             self._rolling_key = key
         return self._rolling_effects
 
@@ -626,7 +628,8 @@ class Fitter(OrderedStage):
         """Push a segment into the rolling fit (with the rolling model's columns when there
         is one): ``(result or None, effect spec -> its columns' names or None, the columns)``."""
         owners, xyz, push = None, None, td
-        if self.rolling_model():
+        rolling_model = self.rolling_model()
+        if rolling_model:
             push, owners, xyz = self.with_model_columns(td, [t for _, t in self.window_tm], tm)
         if self.rolling is None:
             self.rolling = RollingFit(self.settings(header.meta), window_duration=self.window_duration, names=push.names,
@@ -639,6 +642,8 @@ class Fitter(OrderedStage):
         self._next_t0 = td.t0 + td.size / td.fs
         self._last_td = td
         self._segments_seen = header.index + 1  # by index: the same after a restart
+        # a model's gates leave their hours out of the rolling fit (whole FFT segments)
+        self.rolling.set_gates(self._rolling_gates if rolling_model is not None else ())
         return self.rolling.push(push), owners, xyz
 
     def publish_fit(self, header, td: TDIData, res, owners: dict | None, xyz) -> Output:
@@ -648,7 +653,7 @@ class Fitter(OrderedStage):
         # rebuild the window): its window fit and diagnosis would be thrown away
         replayed = self.handled_before(header.index)
         window = None if replayed else self.window_fit(header)
-        if window is None and not replayed and self.effects != ["linear-ttl"] and owners is None:
+        if window is None and not replayed and self.effects != ["linear-ttl"] and self.rolling_model() is None:
             self.warn("model-not-fitted", f"fit {header.index}: the model {','.join(self.effects)} could not be fitted "
                                           "on the window (too short for its spectra): the linear rolling fit is "
                                           "published, and only the linear TTL is subtracted", index=header.index)
@@ -682,7 +687,12 @@ class Fitter(OrderedStage):
         self.log.info("segment %d: fit over [%.0f, %.0f] s (%d FFT segments), chi2/dof %.3f", header.index,
                       res.t_start, res.t_stop, res.n_segments, res.chi2_dof)
         excluded = res.extra.get("excluded")
-        if excluded:
+        if excluded and "gate" in excluded:
+            meta["excluded"] = excluded
+            self.event("segment-gated", index=header.index,
+                       message=f"fit {header.index}: the FFT segment [{excluded['t_start']:.0f}, {excluded['t_stop']:.0f}] s "
+                               f"overlaps the model's gate {excluded['gate']} s: left out of the rolling fit", **excluded)
+        elif excluded:
             meta["excluded"] = excluded
             self.warn("segment-excluded", f"fit {header.index}: the FFT segment [{excluded['t_start']:.0f}, "
                                           f"{excluded['t_stop']:.0f}] s is left out of the rolling fit: chi2/dof "

@@ -154,8 +154,10 @@ class RollingFit:
         self.settings = settings or FitSettings(segment_duration=3600.0)
         self.eiv_extra = eiv_extra
         self.outlier_z = outlier_z
-        #: the FFT segments left out as outliers (:meth:`outlier`), oldest first
+        #: the FFT segments left out as outliers (:meth:`outlier`) or gated, oldest first
         self.excluded: list[dict] = []
+        #: spans ``(start, stop)`` [s] of mission time whose FFT segments are left out (:meth:`set_gates`)
+        self.gates: tuple = ()
         self.window_duration = float(window_duration)
         self.names = tuple(names)
         if full_every is not None and not full_every > 0:
@@ -236,12 +238,15 @@ class RollingFit:
             if sp is None:
                 log.info("FFT segment at t0=%.1f has less than half valid samples: skipped", t0)
                 continue
-            outlier = self.outlier(sp)
+            outlier = self.gated(sp) or self.outlier(sp)
             if outlier is not None:
                 self.excluded.append(outlier)
                 self._ltt.pop()  # this segment's light travel times: it is not in the window
-                log.info("FFT segment at t0=%.1f left out: chi2/dof at its own best fit %.3f, %.1f sigma above the "
-                         "window's median %.3f", t0, outlier["chi2_dof"], outlier["z"], outlier["reference"])
+                if "gate" in outlier:
+                    log.info("FFT segment at t0=%.1f left out: it overlaps the gate %s", t0, outlier["gate"])
+                else:
+                    log.info("FFT segment at t0=%.1f left out: chi2/dof at its own best fit %.3f, %.1f sigma above "
+                             "the window's median %.3f", t0, outlier["chi2_dof"], outlier["z"], outlier["reference"])
                 if self.last is not None:  # the window is unchanged: its fit stands
                     result = replace(self.last, extra={**self.last.extra, "excluded": outlier})
                 continue
@@ -254,6 +259,31 @@ class RollingFit:
                 self._ltt.popleft()
             result = self._refit()
         return result
+
+    def set_gates(self, spans) -> None:
+        """Leave out the FFT segments that overlap any of ``spans`` (``(start, stop)`` [s] of
+        mission time: a model's ``gate`` effects): those in the window now (the next fit is a
+        full refit) and those to come."""
+        spans = tuple(sorted((float(a), float(b)) for a, b in spans))
+        if spans == self.gates:
+            return
+        self.gates = spans
+        keep = [k for k, sp in enumerate(self._spectra) if self.gated(sp) is None]
+        if len(keep) < len(self._spectra):
+            for k, sp in enumerate(self._spectra):
+                if k not in keep:
+                    self.excluded.append(self.gated(sp))
+            self._spectra = deque(self._spectra[k] for k in keep)
+            self._ltt = deque(self._ltt[k] for k in keep if k < len(self._ltt))
+            self._sums.clear()
+            self._weights = None  # the next fit is a full refit of what is left
+
+    def gated(self, sp: SegmentSpectra) -> dict | None:
+        """``{t_start, t_stop, gate}`` when the FFT segment ``sp`` overlaps a gate."""
+        for a, b in self.gates:
+            if sp.t0 < b and sp.t0 + sp.duration > a:
+                return {"t_start": float(sp.t0), "t_stop": float(sp.t0 + sp.duration), "gate": [a, b]}
+        return None
 
     def outlier(self, sp: SegmentSpectra) -> dict | None:
         """Whether the FFT segment ``sp`` is an outlier among the window's, and by how much.

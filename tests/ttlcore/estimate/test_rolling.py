@@ -134,3 +134,28 @@ def test_a_loud_transient_is_left_out_and_does_not_pull_the_fit(streamed):
     kept = np.max(np.abs(r_robust.coefficients - r_clean.coefficients) / r_clean.sigma)
     print(f"burst: the naive fit moves by {pulled:.2f} sigma, the robust one by {kept:.2e}")
     assert pulled > 1.0 and kept < 0.1
+
+
+def test_gates_leave_their_hours_out(streamed):
+    # A model's gate (the diagnosis' advice for a merger or a gap) leaves the FFT segments it
+    # overlaps out of the rolling fit, those already in the window (the next fit a full
+    # refit) and those to come: the same fit as one whose overlapping hours were never there.
+    _, segments = streamed
+    settings = FitSettings(segment_duration=HOUR)
+    gated = RollingFit(settings, window_duration=DAY)
+    for td in segments[:8]:
+        gated.push(td)
+    gated.set_gates([(5.2 * HOUR, 8.5 * HOUR)])  # hours 5, 6, 7 (in the window) and 8 (to come)
+    r_gated = [gated.push(td) for td in segments[8:12]][-1]
+    assert [round(e["t_start"] / HOUR) for e in gated.excluded] == [5, 6, 7, 8]
+    assert r_gated.n_segments == 8 and r_gated.extra["update"] == "full"
+    from dataclasses import replace
+
+    blank = [replace(td, data=np.full_like(td.data, np.nan), regressors=np.full_like(td.regressors, np.nan))
+             for td in segments[5:9]]
+    never = RollingFit(settings, window_duration=DAY)
+    r_never = [never.push(td) for td in segments[:5] + blank + segments[9:12]][-1]
+    assert r_never.n_segments == 8
+    # the same spectra and weights from a full refit; only the window's mean light travel
+    # times differ (the blanked hours' stay in the other's mean): a small fraction of sigma
+    assert np.max(np.abs(r_gated.coefficients - r_never.coefficients) / r_never.sigma) < 0.1
