@@ -79,6 +79,7 @@ from threadpoolctl import threadpool_limits
 
 from streamer.codec import Expect
 from streamer.keys import to_ranges
+from streamer.memtrace import release_free_memory
 from streamer.messages import TELEMETRY_ARRAYS, concatenate_telemetry, tdi_of, telemetry_of
 from streamer.pipeline_stage import OrderedStage
 from streamer.plan import RangeSet
@@ -658,6 +659,8 @@ class Fitter(OrderedStage):
                                           "on the window (too short for its spectra): the linear rolling fit is "
                                           "published, and only the linear TTL is subtracted", index=header.index)
         live = None if replayed or not self.diagnosis_due(header.index) else self.live_diagnosis(header)
+        if window is not None or live is not None:
+            release_free_memory()  # the refit's and the diagnosis' temporaries: not kept for the next peak
         meta = {"names": list(res.names), "chi2_dof": res.chi2_dof, "t_start": res.t_start, "t_stop": res.t_stop,
                 "segments": int(res.n_segments), "band": list(res.band), "converged": bool(res.converged),
                 "chi2": res.chi2, "dof": res.dof, "iterations": int(res.iterations), "method": res.method,

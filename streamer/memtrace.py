@@ -25,6 +25,7 @@ tool, not for production runs, and not for measuring the slopes themselves
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import os
 import tracemalloc
@@ -41,6 +42,18 @@ TOP_LINES = 10
 FRAMES = 16
 #: Where the project's packages are: an allocation is charged to the innermost frame there.
 PACKAGES = tuple(str(Path(__file__).resolve().parents[1] / name) + os.sep for name in ("ttlcore", "streamer", "stages"))
+
+
+def release_free_memory() -> bool:
+    """Give the allocator's free pages back to the system (glibc ``malloc_trim(0)``): after
+    a large temporary computation (a window refit, a diagnosis) its freed arrays otherwise
+    stay in the process' heap and add to the next one's peak.  False where there is no
+    glibc (the call is then a no-op)."""
+    try:
+        libc = ctypes.CDLL("libc.so.6")
+    except OSError:
+        return False
+    return bool(libc.malloc_trim(0))
 
 
 def rss_mb() -> float | None:
