@@ -18,7 +18,7 @@ in total, the largest |z_clean|, the RMS of z_loss, sum z^2 clean and gapped, th
 ratio sigma_gap^2 / sigma_clean^2 (median over the coefficients) next to the fraction of
 the window's effective samples lost.
 
-Usage: ``PYTHONPATH=$PWD OPENBLAS_NUM_THREADS=1 python bench/gap.py [--seeds 1 2 3 4]``
+Usage: ``PYTHONPATH=$PWD OPENBLAS_NUM_THREADS=1 python bench/gap.py [--seeds 1 2 3 4] [--taper S]``
 """
 
 from __future__ import annotations
@@ -33,6 +33,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 import numpy as np  # noqa: E402
 
 from ttlcore.conventions import DAY  # noqa: E402
+from ttlcore.estimate import fit as fit_module  # noqa: E402
 from ttlcore.estimate.fit import FitSettings  # noqa: E402
 from ttlcore.estimate.rolling import RollingFit  # noqa: E402
 from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
@@ -82,6 +83,7 @@ def one_seed(seed: int) -> dict:
             "max_abs_z_clean": float(np.max(np.abs(z_clean))),
             "rms_z_loss": float(np.sqrt(np.mean(np.square(z_loss)))),
             "max_abs_z_loss": float(np.max(np.abs(z_loss))),
+            "rms_z_loss_per_fit": [round(float(np.sqrt(np.mean(np.square(z)))), 3) for z in z_loss],
             "sum_z2_truth_clean": float(np.sum(((last_c.coefficients - truth) / last_c.sigma) ** 2)),
             "sum_z2_truth_gap": float(np.sum(((last_g.coefficients - truth) / last_g.sigma) ** 2)),
             "variance_ratio_median": [round(float(r), 4) for r in ratio],
@@ -92,13 +94,16 @@ def one_seed(seed: int) -> dict:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--seeds", type=int, nargs="+", default=[1, 2, 3, 4])
+    p.add_argument("--taper", type=float, help="half-cosine taper into a gap [s] (default fit.GAP_TAPER)")
     args = p.parse_args(argv)
+    if args.taper is not None:
+        fit_module.GAP_TAPER = args.taper
     rows = [one_seed(s) for s in args.seeds]
     summary = {"max_abs_z_clean": max(r["max_abs_z_clean"] for r in rows),
                "rms_z_loss": float(np.sqrt(np.mean([r["rms_z_loss"] ** 2 for r in rows]))),
                "sum_z2_truth_clean_mean": float(np.mean([r["sum_z2_truth_clean"] for r in rows])),
                "sum_z2_truth_gap_mean": float(np.mean([r["sum_z2_truth_gap"] for r in rows]))}
-    print(json.dumps({"benchmark": "gap", "hours": HOURS, "gap_s": GAP, "seeds": rows, "summary": summary}, indent=1))
+    print(json.dumps({"benchmark": "gap", "hours": HOURS, "gap_s": GAP, "taper_s": fit_module.GAP_TAPER, "seeds": rows, "summary": summary}, indent=1))
     return 0
 
 
