@@ -96,6 +96,7 @@ def processes_of(tmp_path: Path) -> list[psutil.Process]:
     return out
 
 
+@pytest.mark.timeout(3 * 3600)  # the clean run (~10 min) and the chaos run (>= KILLS x 90 s of replay)
 def test_chaos_kills_change_nothing(tmp_path):
     seed = int(os.environ.get("TTL_CHAOS_SEED", random.SystemRandom().randrange(2 ** 31)))
     rng = random.Random(seed)
