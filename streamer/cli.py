@@ -101,7 +101,7 @@ def run_options(args) -> "RunOptions":
            "recordings": args.recordings, "pace": args.pace, "window": args.window, "cache": args.cache,
            "restart": args.restart, "zenoh_config": args.zenoh_config, "timeout": args.timeout,
            "log_level": args.log_level, "credentials": args.credentials,
-           "insecure": args.insecure or None}
+           "insecure": args.insecure or None, "resume": args.resume}
     if args.skip:
         cli["skip"] = _split(args.skip)
     if args.external:

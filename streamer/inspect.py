@@ -382,6 +382,7 @@ def inspect_run(run_dir, truth=None) -> dict:
                 interruptions.append({"stage": stage, "kind": "unfinished", "file": last.get("file"),
                                       "message": f"{stage} did not finish: segment(s) {_fmt_ranges(out['missing'])} "
                                                  f"of {total} not handled"})
+    interruptions.extend(launcher_journal(run_dir))
     gaps = _gaps(recs_of, errors, plan)
 
     fits = _fits(recs_of.get("fitter", []))
@@ -403,6 +404,44 @@ def inspect_run(run_dir, truth=None) -> dict:
             "stages": stages, "stages_missing": [s for s in STAGES if s not in stages],
             "segments_total": total, "fits": fit_report, "model": model, "alerts": alerts, "warnings": warnings, "errors": errors,
             "interruptions": interruptions, "gaps": gaps, "security": security_report(run_dir)}
+
+
+def launcher_journal(run_dir: Path) -> list[dict]:
+    """The interruptions ``ttl run`` recorded in ``launcher.jsonl`` (:mod:`streamer.launcher`,
+    "Journal and resuming"): every stage or router that died and was restarted, every
+    launcher that ended without its ``end`` record (killed) and every ``--resume``."""
+    path = Path(run_dir) / "launcher.jsonl"
+    try:
+        lines = path.read_text(errors="replace").splitlines()
+    except OSError:
+        return []
+    out, open_start = [], None
+    for n, line in enumerate(lines, 1):
+        try:
+            rec = json.loads(line)
+        except ValueError:
+            out.append({"stage": "launcher", "kind": "journal-unreadable", "file": path.name,
+                        "message": f"launcher.jsonl line {n} is not JSON (cut off when the launcher died?)"})
+            continue
+        if not isinstance(rec, dict):
+            continue
+        kind, when = rec.get("kind"), rec.get("time")
+        if kind == "start":
+            if open_start is not None:
+                out.append({"stage": "launcher", "kind": "launcher-killed", "file": path.name, "time": open_start.get("time"),
+                            "message": f"ttl run (pid {open_start.get('launcher_pid')}) ended without its end record "
+                                       "(killed)"})
+            open_start = rec
+        elif kind == "end":
+            open_start = None
+        elif kind in ("stage-died", "stage-restarted", "router-died", "router-restarted", "resume"):
+            out.append({"stage": rec.get("stage") or "launcher", "kind": kind, "file": path.name, "time": when,
+                        "message": rec.get("message")})
+    if open_start is not None:
+        out.append({"stage": "launcher", "kind": "launcher-killed", "file": path.name, "time": open_start.get("time"),
+                    "message": f"ttl run (pid {open_start.get('launcher_pid')}) has no end record (killed, or still "
+                               "running)"})
+    return out
 
 
 def security_report(run_dir: Path) -> dict:

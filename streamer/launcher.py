@@ -41,6 +41,22 @@ publishers' caches (the replayer stays within ``window`` segments of the slowest
 the caches hold ``cache`` > ``window`` + 1 segments); otherwise the run is stopped and
 ``ttl run`` exits 1.  ``external`` stages are expected but run elsewhere (``ttl stage``
 on another host, or started later: late joiners catch up from the caches).
+
+The Zenoh router is supervised too: when it dies, it is started again on the same endpoints
+(up to ``restart`` times); the stages and the launcher, its clients, reconnect by themselves
+and recover what was published meanwhile from the publishers' caches.
+
+Journal and resuming
+--------------------
+The launcher appends what it does to ``<recordings>/<run>/launcher.jsonl`` (one JSON object
+a line: ``start``, ``stage-died``, ``stage-restarted``, ``router-died``,
+``router-restarted``, ``resume``, ``end``; ``ttl inspect`` lists them) and keeps the board
+it believes in ``<recordings>/<run>/board.json``.  A launcher that died (SIGKILL: its stages
+stop as orphaned, the router with it) is replaced by the same ``ttl run`` command with
+``--resume``: it reads ``board.json``, takes every segment before the first one some stage
+lacks (``m``) as handled by every stage, and starts the stages, which go on from there as
+restarted stages do (the replayer from ``m - 1``, the fitter's window rebuilt from the
+recordings); segments from ``m`` on are processed and published again, by every stage.
 """
 
 from __future__ import annotations
@@ -78,6 +94,7 @@ from .keys import (
 )
 from .processes import SignalFlag, stop_process, tied_to_parent
 from .progress import REPLAY_WINDOW, Progress, key_stage, parse_progress
+from .plan import RangeSet
 from .recorder import stage_record
 from .session import (
     Bus,
@@ -138,6 +155,9 @@ class RunOptions:
         options ``fit_segment``, ``window_duration``, ``band``.
     timeout : float, optional
         Give up after this many seconds.
+    resume : bool
+        Go on with a run whose launcher died (``board.json`` of the run directory; module
+        docstring, "Journal and resuming").
     """
 
     run_id: str
@@ -158,6 +178,7 @@ class RunOptions:
     stage_options: dict = field(default_factory=dict)
     timeout: float | None = None
     stop_timeout: float = 60.0
+    resume: bool = False
     log_level: str = "INFO"
     quiet: bool = False
     python: str = sys.executable
@@ -181,6 +202,7 @@ class _Child:
     starts: int = 0
     exit_codes: list = field(default_factory=list)
     pids: set = field(default_factory=set)
+    pids_order: list = field(default_factory=list)
 
 
 class Launcher:
@@ -209,6 +231,8 @@ class Launcher:
         self.router: subprocess.Popen | None = None
         self.refused: list[dict] = []
         self._watcher: security.RefusalWatcher | None = None
+        self.router_starts = 0
+        self.resumed_from: int | None = None  # --resume: the first segment handled again
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:
@@ -312,6 +336,71 @@ class Launcher:
         return SessionSettings(mode="client", connect=(self.endpoint,), credentials=self.credentials,
                                identity=identity if self.credentials is not None else None)
 
+    # ------------------------------------------------------------------ journal, board, resume
+    def journal(self, kind: str, message: str, **details) -> None:
+        """Append a record to ``launcher.jsonl`` (module docstring; ``ttl inspect`` reads it)."""
+        rec = {"time": time.time(), "launcher_pid": os.getpid(), "kind": kind, "message": message, **details}
+        try:
+            with open(self.run_dir / "launcher.jsonl", "a") as f:
+                f.write(json.dumps(rec) + "\n")
+        except OSError as exc:
+            log.warning("cannot write %s: %s", self.run_dir / "launcher.jsonl", exc)
+
+    def save_board(self) -> None:
+        """Write the board (what the launcher believes of every stage) to ``board.json``,
+        atomically: a launcher that dies leaves the last one whole."""
+        path = self.run_dir / "board.json"
+        tmp = path.with_name(".board.json.tmp")
+        try:
+            tmp.write_text(json.dumps({s: p.message(self.opts.run_id) for s, p in self.progress.items()}))
+            os.replace(tmp, path)
+        except OSError as exc:
+            log.warning("cannot write %s: %s", path, exc)
+
+    def load_board(self) -> None:
+        """``--resume``: the progress of the earlier launcher (``board.json``), cut at the first
+        segment some expected stage has not handled, so that every stage goes on from the
+        same segment (the publishers' caches of the earlier processes are gone with them)."""
+        path = self.run_dir / "board.json"
+        try:
+            board = json.loads(path.read_text())
+        except FileNotFoundError:
+            self.say(f"--resume: no {path}: the run starts from its first segment")
+            board = {}
+        except (OSError, ValueError) as exc:
+            raise LaunchError(f"--resume: {path}: unreadable ({exc})") from None
+        total = self.run_plan["segments_total"] if self.run_plan else None
+        progress = {}
+        for stage, msg in board.items():
+            if stage in self.expected and isinstance(msg, dict):
+                progress[stage] = Progress(stage)
+                progress[stage].update(msg, total)
+        def first_missing(stage: str) -> int:
+            if stage not in progress or not total:
+                return 0
+            missing = progress[stage].handled.missing(0, total - 1)
+            return missing[0][0] if missing else total
+
+        def below(indices: RangeSet, first: int) -> RangeSet:
+            out = RangeSet()
+            for a, b in indices.ranges():
+                if a < first:
+                    out.add_range(a, min(b, first - 1))
+            return out
+
+        first = min(first_missing(s) for s in self.expected)
+        self.resumed_from = first
+        if first == 0:
+            self.journal("resume", "resumed from segment 0 (nothing handled by every stage)", first=0)
+            return
+        for stage, p in progress.items():
+            self.progress[stage] = Progress(stage, below(p.done, first), below(p.failed, first), total,
+                                            below(p.gaps, first),
+                                            extra={n: below(v, first) for n, v in p.extra.items()})
+        self.say(f"--resume: segments 0..{first - 1} handled by every stage (board.json); going on from {first}")
+        self.journal("resume", f"resumed: segments 0..{first - 1} handled by every stage; going on from {first}",
+                     first=first)
+
     # ------------------------------------------------------------------ router and credentials
     def make_credentials(self, listen) -> None:
         """The run's credentials (``--credentials`` or made in the run directory), unless insecure."""
@@ -348,6 +437,7 @@ class Launcher:
             start = logf.tell()
             self.router = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
                                            env=env, preexec_fn=tied_to_parent(signal.SIGKILL))
+        self.router_starts += 1
         self._watcher = security.RefusalWatcher(path, offset=start)
         deadline = time.monotonic() + 60.0
         while time.monotonic() < deadline:
@@ -360,6 +450,31 @@ class Launcher:
                                   f"{lines[-1] if lines else 'exit status %d' % self.router.returncode}")
             time.sleep(0.05)
         raise LaunchError(f"the Zenoh router did not start within 60 s (log {path})")
+
+    def restart_router(self) -> str | None:
+        """The router died: start it again on the same endpoints (up to ``restart`` times);
+        returns a reason to abort, or None.  Its clients reconnect by themselves."""
+        code = self.router.returncode
+        how = f"killed by {signal.Signals(-code).name}" if code < 0 and -code in signal.Signals._value2member_map_ \
+            else f"exit status {code}"
+        self.say(f"the Zenoh router died ({how}; log {self.run_dir / 'router.log'})")
+        self.journal("router-died", f"the Zenoh router (pid {self.router.pid}) died ({how})", stage="router",
+                     pid=self.router.pid, how=how)
+        self.watch_refusals()  # what the old router logged, before the new watcher starts
+        if self.router_starts > self.opts.restart:
+            return f"the Zenoh router died ({how}; log {self.run_dir / 'router.log'})"
+        self.say(f"restarting the Zenoh router ({self.router_starts}/{self.opts.restart})")
+        for attempt in range(5):  # the port of the killed router may take a moment to be free
+            try:
+                self.start_router(self.listen)
+                break
+            except LaunchError as exc:
+                if attempt == 4:
+                    return f"the Zenoh router could not be restarted: {exc}"
+                time.sleep(1.0)
+        self.journal("router-restarted", f"the Zenoh router restarted (pid {self.router.pid})", stage="router",
+                     pid=self.router.pid, start=self.router_starts)
+        return None
 
     def stop_router(self) -> None:
         if self.router is None:
@@ -490,6 +605,7 @@ class Launcher:
             pub = self._boards[stage] = self.bus.track(
                 declare_segment_publisher(self.bus.session, board_key(self.opts.run_id, stage), cache=1))
         pub.put(json.dumps(self.progress[stage].message(self.opts.run_id)).encode())
+        self.save_board()
 
     def refuse_progress(self, msg: dict, why: str) -> None:
         """Record a refused progress message (shown, kept for the report, put on errors)."""
@@ -573,6 +689,7 @@ class Launcher:
                 preexec_fn=tied_to_parent(signal.SIGTERM))
         child.starts += 1
         child.pids.add(child.proc.pid)
+        child.pids_order.append(child.proc.pid)
         log.info("started %s (pid %d)", name, child.proc.pid)
 
     def last_log_line(self, name: str) -> str:
@@ -593,9 +710,13 @@ class Launcher:
             how = f"killed by {signal.Signals(-code).name}" if code < 0 and -code in signal.Signals._value2member_map_ \
                 else f"exit status {code}" + {3: ": orphaned", 4: ": disk full"}.get(code, "")
             self.say(f"stage {name} died ({how}); log {child.log}: {self.last_log_line(name)}")
+            self.journal("stage-died", f"stage {name} (pid {child.pids_order[-1]}) died ({how})", stage=name,
+                         pid=child.pids_order[-1], how=how, code=code)
             if child.starts <= self.opts.restart:
                 self.say(f"restarting {name} ({child.starts}/{self.opts.restart})")
                 self.start(name)
+                self.journal("stage-restarted", f"stage {name} restarted (pid {child.proc.pid})", stage=name,
+                             pid=child.proc.pid, start=child.starts)
             else:
                 return f"stage {name} died ({how})"
         return None
@@ -641,6 +762,10 @@ class Launcher:
         if self.run_plan is not None:
             (self.run_dir / "plan.json").write_text(json.dumps(self.run_plan, indent=2))
         self.make_credentials(listen)
+        self.journal("start", f"ttl run started (pid {os.getpid()})" + (" with --resume" if o.resume else ""),
+                     resume=bool(o.resume))
+        if o.resume:
+            self.load_board()
         self.start_router(listen)
         try:
             try:
@@ -648,7 +773,9 @@ class Launcher:
             except Exception as exc:
                 raise LaunchError(f"cannot reach the run's router at {self.endpoint}: {exc}") from None
             with bus:
-                return self._run_on(bus)
+                status = self._run_on(bus)
+                self.journal("end", f"ttl run ended (exit status {status})", status=status)
+                return status
         finally:
             self.stop_router()
             self.watch_refusals()
@@ -663,6 +790,8 @@ class Launcher:
         # the stages stop when this token goes (streamer.stage.Stage.orphaned)
         bus.declare_alive(o.run_id, LAUNCHER)
         bus.subscriber(topic_pattern(o.run_id, ERRORS), self._on_error)
+        for stage in list(self.progress):  # --resume: the board of the earlier launcher, cut
+            self.publish_board(stage)
         security_note = "" if self.credentials is None else f" (mutual TLS, credentials {self.credentials})"
         self.say(f"router on {', '.join(self.listen)}{security_note}; stages: {', '.join(self.expected)}"
                  + (f" (external: {', '.join(o.external)})" if o.external else "")
@@ -692,7 +821,7 @@ class Launcher:
                 self.watch_refusals()
                 abort = self.supervise()
                 if not abort and self.router is not None and self.router.poll() is not None:
-                    abort = f"the Zenoh router died (exit status {self.router.returncode}; log {self.run_dir / 'router.log'})"
+                    abort = self.restart_router()
                 if abort:
                     break
                 self.show()

@@ -77,7 +77,11 @@ def _add_run(sub) -> None:
     p.add_argument("--skip", action="append", metavar="STAGE", help="do not run STAGE (repeatable)")
     p.add_argument("--external", action="append", metavar="STAGE",
                    help="STAGE runs elsewhere ('ttl stage'): expect it, do not start it (repeatable)")
-    p.add_argument("--restart", type=int, help="restart a stage that dies, up to N times per stage (default 0)")
+    p.add_argument("--restart", type=int, help="restart a stage that dies, up to N times per stage, and the "
+                   "Zenoh router up to N times (default 0)")
+    p.add_argument("--resume", action="store_true", default=None,
+                   help="go on with a run whose launcher died (same options, same --run-id and --recordings): "
+                        "from the first segment some stage had not handled (RECORDINGS/RUN_ID/board.json)")
     p.add_argument("--listen", action="append", metavar="ENDPOINT",
                    help="router endpoint (default tls/127.0.0.1:<free port>; repeatable)")
     p.add_argument("--zenoh-config", type=Path, help="Zenoh configuration file (JSON5) of the router")

@@ -14,7 +14,8 @@ processes on a loopback Zenoh, real MCAP files read back.
 * NaN gap: ten minutes of NaN in eta: the run ends on its own, the gap is reported, and the
   fit after the gap is within 1 sigma of the clean run's.
 * launcher killed: every stage stops by itself (exit status 3, recording closed with the
-  reason), nothing orphaned.
+  reason), nothing orphaned; and the same command with ``--resume`` completes the run.
+* router killed: restarted by the launcher, the results equal the clean run's.
 """
 
 from __future__ import annotations
@@ -353,6 +354,106 @@ def test_stage_killed_mid_run_restarts_exactly(stage, clean, tmp_path):
         events = [e["kind"] for e in read_recording(run_dir / "fitter.mcap").json("events")]
         assert "restored" in events or "replayed" in events, events
     # nothing orphaned: no stage process of this run is left
+    assert not [p for p in psutil.process_iter(["cmdline"]) if run in " ".join(p.info["cmdline"] or ())]
+
+
+def _router_of(proc) -> psutil.Process | None:
+    for p in psutil.Process(proc.pid).children():
+        try:
+            if "router" in p.cmdline():
+                return p
+        except psutil.Error:
+            continue
+    return None
+
+
+def _journal(run_dir: Path) -> list[dict]:
+    return [json.loads(line) for line in (run_dir / "launcher.jsonl").read_text().splitlines()]
+
+
+def test_router_killed_mid_run_is_restarted(clean, tmp_path):
+    """SIGKILL of the run's Zenoh router after the fitter's second segment: the launcher
+    starts it again on the same endpoint (``--restart 1``), the stages reconnect and recover
+    what was published meanwhile, the run completes, the results equal the clean run's to
+    1e-9, and the journal and ``ttl inspect`` say so.  (Before, the launcher stopped the
+    run: "the Zenoh router died".)"""
+    import subprocess
+
+    port = free_port()
+    procs = Procs(tmp_path)
+    run = "kill-router"
+    try:
+        proc = procs.ttl(*run_args(run, tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--restart", "1",
+                                   "--pace", "450"))
+        with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
+            board = _watch_board(bus, run)
+            wait_for(lambda: _handled(board, "fitter") >= 2 or proc.poll() is not None, 600, "fitter at segment 2")
+        router = _router_of(proc)
+        assert router is not None, output(proc)[-2000:]
+        router.kill()
+        code = finish(proc, 900)
+        out = output(proc)
+    finally:
+        procs.close()
+    assert code == 0 and "restarting the Zenoh router (1/1)" in out, out[-4000:]
+    run_dir = tmp_path / "rec" / run
+    assert_same_results(results(clean), results(run_dir), rtol=1e-9)
+    kinds = [j["kind"] for j in _journal(run_dir)]
+    assert kinds[0] == "start" and kinds[-1] == "end" and "router-died" in kinds and "router-restarted" in kinds, kinds
+    res = subprocess.run(ttl_command("inspect", str(run_dir)), capture_output=True, text=True, timeout=300)
+    assert f"the Zenoh router (pid {router.pid}) died (killed by SIGKILL)" in res.stdout, res.stdout[-3000:]
+    assert not [p for p in psutil.process_iter(["cmdline"]) if run in " ".join(p.info["cmdline"] or ())]
+
+
+def test_launcher_killed_then_resumed_completes_the_run(clean, tmp_path):
+    """SIGKILL of ``ttl run`` once every stage handled two segments: everything it started
+    stops (nothing orphaned); the same command with ``--resume`` goes on from the first
+    segment some stage lacked (``board.json``) and completes the run, every recorded copy of
+    every fit and residual equal to the clean run's to 1e-9; ``ttl inspect`` lists the
+    killed launcher and the resume."""
+    import subprocess
+
+    port = free_port()
+    procs = Procs(tmp_path)
+    run = "kill-launcher"
+    args = run_args(run, tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--pace", "450")
+    try:
+        proc = procs.ttl(*args)
+        with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
+            board = _watch_board(bus, run)
+            # every stage past segment 1 (the monitor comes last): the resume starts at 2 or later
+            wait_for(lambda: min(_handled(board, s) for s in STAGES) >= 2 or proc.poll() is not None, 600,
+                     "every stage at segment 2")
+        everything = psutil.Process(proc.pid).children(recursive=True)
+        first_pid = proc.pid
+        proc.kill()
+        proc.wait(30)
+        gone, alive = psutil.wait_procs(everything, timeout=60)
+        assert not alive, [p.cmdline() for p in alive]
+        again = procs.ttl(*args, "--resume", name="ttl-resumed")
+        code = finish(again, 900)
+        out = output(again)
+    finally:
+        procs.close()
+    assert code == 0 and "--resume: segments 0.." in out, out[-4000:]
+    run_dir = tmp_path / "rec" / run
+    resumed = [j for j in _journal(run_dir) if j["kind"] == "resume"]
+    assert len(resumed) == 1 and resumed[0]["first"] >= 2, resumed
+    reference = results(clean)
+    for stage, topic in (("fitter", "fit"), ("subtractor", "residual")):
+        copies: dict = {}
+        for path in sorted(run_dir.glob(f"{stage}*.mcap")):
+            for s in read_recording(path).segments(topic):
+                copies.setdefault(s.header.index, []).append(s.arrays)
+        assert sorted(copies) == sorted(reference[topic]), topic
+        for i, arrays in copies.items():
+            for a in arrays:
+                for name, arr in reference[topic][i].items():
+                    np.testing.assert_allclose(a[name], arr, rtol=1e-9, atol=0, equal_nan=True,
+                                               err_msg=f"{topic} {i} {name}")
+    res = subprocess.run(ttl_command("inspect", str(run_dir)), capture_output=True, text=True, timeout=300)
+    assert f"ttl run (pid {first_pid}) ended without its end record (killed)" in res.stdout, res.stdout[-3000:]
+    assert "launcher: resume: resumed: segments 0.." in res.stdout, res.stdout[-3000:]
     assert not [p for p in psutil.process_iter(["cmdline"]) if run in " ".join(p.info["cmdline"] or ())]
 
 

@@ -111,7 +111,7 @@ class SegmentSpectra:
 
 
 #: Length of the half-cosine tapers at the edges of a gap inside a segment [s].
-GAP_TAPER = 300.0
+GAP_TAPER = 900.0
 
 
 def gap_taper(ok: np.ndarray, samples: int) -> np.ndarray:
@@ -142,22 +142,53 @@ def spectra_of_segment(data: np.ndarray, regressors: np.ndarray, t0: float, fs: 
     Samples where data or any regressor are not finite (delays reaching before the start of
     the data, a gap in the telemetry) are set to zero in all series alike, which keeps the
     model exact, with tapers of :data:`GAP_TAPER` into the gaps inside the segment
-    (:func:`gap_taper`); the PSD normalisation uses the window's power.  Returns None if
-    less than half is valid.
+    (:func:`gap_taper`); the PSD normalisation uses the window's power, and the spectra of
+    a segment with a gap are scaled by ``sqrt(n_eff / n_eff0)`` (:func:`effective_samples`
+    with and without the gap) so that the segment weighs in the fit by the information it
+    still holds.  Returns None if less than half is valid.
     """
     n = data.shape[-1]
     ok = np.isfinite(data).all(axis=0) & np.isfinite(regressors).all(axis=(0, 1))
     frac = ok.mean() if n else 0.0
     if frac < 0.5:
         return None
-    w = window(window_name, n) * (gap_taper(ok, int(round(GAP_TAPER * fs))) if not ok.all() else 1.0)
+    w = window(window_name, n)
+    scale = 1.0
+    if not ok.all():
+        # the invalid runs at the ends (the delays before the data) are the window's business,
+        # as they were: only gaps inside the segment are tapered and cost information
+        valid = np.flatnonzero(ok)
+        edges = np.zeros(n, dtype=bool)
+        edges[valid[0]:valid[-1] + 1] = True
+        tapered = w * gap_taper(ok, int(round(GAP_TAPER * fs)))
+        if not ok[edges].all():
+            scale = np.sqrt(effective_samples(tapered) / effective_samples(w * edges))
+        w = tapered
     d = np.where(ok, data, 0.0)
     R = np.where(ok, regressors, 0.0)
     f, D = segment_fft(d, fs, w)
     _, RR = segment_fft(R, fs, w)
     sel = (f >= band[0]) & (f <= band[1])
-    return SegmentSpectra(t0=float(t0), duration=n / fs, f=f[sel], d=D[:, sel].T.copy(),
-                          R=np.moveaxis(RR[:, :, sel], 2, 0).copy(), valid_fraction=float(frac))
+    D, RR = D[:, sel], RR[:, :, sel]
+    if scale != 1.0:  # the information the gap took, out of data and model alike
+        D, RR = D * scale, RR * scale
+    return SegmentSpectra(t0=float(t0), duration=n / fs, f=f[sel], d=D.T.copy(),
+                          R=np.moveaxis(RR, 2, 0).copy(), valid_fraction=float(frac))
+
+
+def effective_samples(w: np.ndarray) -> float:
+    """Effective number of independent samples of a series weighted by ``w``,
+    ``(sum w^2)^2 / sum w^4`` (``n`` for the rectangular window).
+
+    The fit's statistics of one segment are, by Parseval, time-domain sums weighted by
+    ``w^2``; their variance goes with ``sum w^4`` and the PSD normalisation of
+    :func:`ttlcore.estimate.spectra.segment_fft` divides by ``sum w^2``.  A segment with a
+    gap, normalised that way, would weigh in the fit as much as a whole one (and its sigmas
+    would not grow); :func:`spectra_of_segment` scales its spectra by the square root of
+    its effective samples over those of the window without the gap, so that its normal
+    equations carry only the information left."""
+    w2 = np.square(w)
+    return float(np.sum(w2) ** 2 / np.sum(w2 ** 2))
 
 
 def segment_spectra(td: TDIData, band=DEFAULT_BAND, segment_duration: float = 21600.0,
