@@ -94,10 +94,10 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
         data = gated_data(whiten_telemetry(tm, s, effect_modules), gates)
         lap("tdi_and_spectra")
         say("fit")
-        model = fit_model(data, fitted)
+        fits = [fit_model(data, fitted)]
         if s.noise_model == "fitted":
             say("noise model")
-            model = _with_noise_levels(model)
+        model = _with_noise_levels(fits) if s.noise_model == "fitted" else fits.pop()
         lap("fit")
     report: dict = {"model": with_gates(model_json(model, truth_coefficients), gates)}
     report["adequacy"] = report["model"]["adequacy"]
@@ -145,15 +145,19 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
     return report
 
 
-def _with_noise_levels(model: ModelFit, time_table: bool = True) -> ModelFit:
-    """``model`` refitted with the secondary-noise levels profiled (``noise_model="fitted"``).
+def _with_noise_levels(fits: list, time_table: bool = True) -> ModelFit:
+    """The model of ``fits`` (a list holding its first fit) refitted with the secondary-noise
+    levels profiled (``noise_model="fitted"``).
 
-    The model's searched parameters stay at the estimates the search found (``model.effects``
-    holds the effects at those estimates), and the search results are carried over; the
-    offsets of shifted-witness effects, searched again with each fit's columns, are the
-    refit's."""
-    _, fitted = profile_noise_model(model.data, list(model.effects), first=model, time_table=time_table)
-    return replace(fitted, searches={**model.searches, **fitted.searches})
+    The first fit is handed over (popped from ``fits`` into the call), so that no frame
+    keeps it while the noise model's passes replace it: its columns (~100 MB for a day) are
+    freed after the first pass.  The model's searched parameters stay at the estimates the
+    search found (its ``effects`` hold the effects at those estimates), and the search
+    results are carried over; the offsets of shifted-witness effects, searched again with
+    each fit's columns, are the refit's."""
+    data, effects, searches = fits[0].data, list(fits[0].effects), dict(fits[0].searches)
+    _, fitted = profile_noise_model(data, effects, first=fits.pop(), time_table=time_table)
+    return replace(fitted, searches={**searches, **fitted.searches})
 
 
 def refit(source, effects=("linear-ttl",), *, settings: DiagnoseSettings | None = None, effect_modules=(),
@@ -205,9 +209,8 @@ def _refit(source, effects, settings, effect_modules, dws_asd, baseline, time_ta
     gates, fitted = split_gates(make_effects(list(effects), modules))
     if gates and not getattr(data, "gates", ()):
         data = gated_data(data, gates)
-    model = fit_model(data, fitted, time_table=time_table)
-    if data.settings.noise_model == "fitted":
-        model = _with_noise_levels(model, time_table)
+    fits = [fit_model(data, fitted, time_table=time_table)]
+    model = _with_noise_levels(fits, time_table) if data.settings.noise_model == "fitted" else fits.pop()
     base = fit_model(model.data, make_effects(list(baseline), modules), time_table=time_table)
     ev = change(base, model)
     return {

@@ -405,6 +405,7 @@ def profile_noise_model(data, effects, *, names=PARAMETERS, passes: int = 4, fir
     nm = data.noise_parameters if data.noise_parameters is not None and tuple(data.noise_parameters.names) == tuple(names) \
         else NoiseModel.nominal(data.ltt_mean, names)
     fit = first if first is not None else fit_model(data, effects, time_table=False)
+    first = None  # only ``fit`` holds it: the first pass's replacement frees it
     for k in range(max(1, passes)):
         d = fit.data
         dof = np.array([6.0 * (b - a) for a, b in d.slices])
