@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 DEMO   := demo-output
 
-.PHONY: demo demo-batch test test-science test-ops bench clean lock
+.PHONY: demo demo-batch lint test test-science test-ops bench clean lock
 
 # the project with its test and gw extras, every package at the version pinned in
 # constraints.txt (resolved by pip with dependencies; `pip check` must be clean)
@@ -66,8 +66,18 @@ demo-batch: $(STAMP)
 ## test: the fast test suite, on every core (pytest-xdist; a module's tests stay on one worker).
 ## One BLAS thread per process: the workers already fill the cores, and OpenBLAS threads that
 ## wait for a busy core spin (measured on a loaded machine: docs/diagnostics.md, "Measured")
-test: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadscope
+## The lint checks first (about a minute, mostly mypy), then the tests with line coverage of ttlcore, streamer and
+## stages measured in the test processes (a summary of the files not fully covered, and the total).
+test: lint $(STAMP)
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadscope \
+		--cov --cov-report=term:skip-covered
+
+## lint: ruff (lint rules and the formatting, checked not applied) over the tree and mypy over
+## ttlcore (configured in pyproject.toml); `ruff check --fix . && ruff format .` applies the fixes
+lint: $(STAMP)
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/mypy
 
 ## test-science: slow full-day science checks
 test-science: $(STAMP)
