@@ -197,6 +197,7 @@ def _parse_duration(text: str | float | int) -> float:
                 value = float(s)
             except ValueError:
                 raise ValueError(f"bad duration {text!r}; use e.g. '1d', '6h', '30min' or seconds") from None
+    assert value is not None  # parsed above or raised
     if not np.isfinite(value) or value <= 0:
         raise ValueError(f"duration must be positive, got {text!r}")
     return value

@@ -148,7 +148,7 @@ def _f(x):
     return x if np.isfinite(x) else None
 
 
-def band_table(wr: np.ndarray, band_index: np.ndarray, edges, n_params: int = 0, kappa: float = 1.0,
+def band_table(wr: np.ndarray, band_index: np.ndarray, edges, n_params: float = 0, kappa: float = 1.0,
                tolerance: float = DEFAULT_TOLERANCE, alpha: float = DEFAULT_ALPHA) -> BandTable:
     """chi^2 per band of whitened residual spectra ``wr`` (S, m, 3) (``L^H r`` with
     ``S^-1 = L L^H``); ``band_index`` (m,) the band of each bin.  The ``n_params`` fitted
@@ -173,15 +173,15 @@ def band_table(wr: np.ndarray, band_index: np.ndarray, edges, n_params: int = 0,
 def merged_band_edges(f: np.ndarray, edges: np.ndarray, dof_per_bin: int, min_dof: int) -> np.ndarray:
     """Merge adjacent bands (lowest first) until each holds at least ``min_dof`` degrees of
     freedom (``dof_per_bin`` per frequency bin)."""
-    edges = list(np.asarray(edges, dtype=float))
-    while len(edges) > 2:
-        counts = np.histogram(f, bins=edges)[0] * dof_per_bin
+    merged = list(np.asarray(edges, dtype=float))
+    while len(merged) > 2:
+        counts = np.histogram(f, bins=merged)[0] * dof_per_bin
         low = np.flatnonzero(counts < min_dof)
         if low.size == 0:
             break
         g = int(low[0])
-        del edges[g + 1 if g < len(counts) - 1 else g]  # merge with the upper neighbour (the last: lower)
-    return np.asarray(edges)
+        del merged[g + 1 if g < len(counts) - 1 else g]  # merge with the upper neighbour (the last: lower)
+    return np.asarray(merged)
 
 
 def third_octave_edges(band) -> np.ndarray:
@@ -241,7 +241,7 @@ def describe_failures(table: BandTable, channels=("A", "E", "T")) -> list[str]:
 
 def describe_time_failures(t_start, t_stop, fails, t0: float) -> list[str]:
     """``fails after 14 h`` / ``fails between 3 h and 9 h`` from per-segment flags."""
-    out = []
+    out: list[str] = []
     fails = np.asarray(fails, dtype=bool)
     if not fails.any():
         return out

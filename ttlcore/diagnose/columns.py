@@ -133,7 +133,8 @@ def assemble(names, *sets: ColumnSet, series: bool = True) -> ColumnSet:
     picks = [where[n] for n in names]
     x = np.stack([s.x[i] for s, i in picks]) if picks else np.zeros((0, 0, 0, 6))
     have_series = series and all(s.series is not None for s, _ in picks)
-    stacked = np.stack([s.series[:, i] for s, i in picks], axis=1) if picks and have_series else None
+    stacked = np.stack([s.series[:, i] for s, i in picks if s.series is not None], axis=1) if picks and have_series \
+        else None
     return ColumnSet(names, x, next(iter(keys)) if keys else "", tuple(s.units[i] for s, i in picks),
                      tuple(s.priors[i] for s, i in picks), tuple(s.eiv[i] for s, i in picks),
                      tuple(s.modulation[i] for s, i in picks), stacked)
@@ -246,7 +247,7 @@ def ttl_columns(data) -> ColumnSet:
 
 def regressor_columns(data, R: np.ndarray) -> ColumnSet:
     """The TDI regressor columns from their raw band spectra ``R`` (S, m, 3, k), whitened."""
-    eiv = []
+    eiv: list = []
     for n in data.regressor_names:
         if n in COEFFICIENT_NAMES:
             link, extra, mosa, angle = placement(n)
@@ -275,7 +276,7 @@ def derivative_columns(data, series: bool = False) -> ColumnSet:
     for o, order in enumerate((1, 2)):
         s = np.concatenate([data.decimate(derivative(td.regressors[:, j0:j0 + 8], td.fs, order), is_aet=True)
                             for j0 in range(0, k, 8)], axis=1)
-        if series:
+        if kept is not None:  # series asked for
             kept[:, o * k:(o + 1) * k] = s
         w = data.whiten(data.spectra(s))
         del s
@@ -308,14 +309,14 @@ def effect_columns(data, effect, coefficients=None, keep_series: bool = False, e
     if hasattr(effect, "tdi_terms") and len(data.ttl_names) == 24 and all(n in names_in for n in data.ttl_names):
         if coefficients is None:
             raise ConfigError(f"effect {effect.name!r} needs the linear coefficients")
-        key = ("tdi_terms", effect.name, _options_key(effect), tuple(np.round(coefficients, 15)))
+        key: tuple = ("tdi_terms", effect.name, _options_key(effect), tuple(np.round(coefficients, 15)))
         cs = data.store.get(key, data)
         if cs is None or (keep_series and cs.series is None):
             d = derivative_columns(data, series=keep_series)
             names, x, series, units, priors = [], [], [], [], []
             for cname, unit, prior, terms in effect.tdi_terms(coefficients):
                 x.append(np.ascontiguousarray(sum(f * d.column(f"d{o}:{n}") for n, o, f in terms)))
-                if keep_series:
+                if keep_series and d.series is not None:  # kept: derivative_columns(series=True)
                     series.append(sum(f * d.series[:, d.names.index(f"d{o}:{n}")] for n, o, f in terms))
                 names.append(cname)
                 units.append(unit)
@@ -441,6 +442,8 @@ def filtered_spectra(data, base: ColumnSet, responses, transform: tuple | None =
     the taper, a few tens of per cent of a strong resonance's excess at the segment ends.
     ``transform``: :func:`ttlcore.diagnose.effects.filter_transform` of the base series,
     when it is filtered many times (a search)."""
+    if base.series is None:
+        raise ValueError("the base column's series are needed (keep_series)")
     x = base.series[:, 0]
     ok = np.isfinite(x)
     series = np.stack([np.where(ok, y, np.nan) for y in filtered_many(x, data.fs, responses, transform)], axis=1)

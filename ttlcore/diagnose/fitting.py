@@ -59,7 +59,7 @@ def fit_model(data, effects, coefficients_for_linearised=None, keep_series: bool
     hist = coefficient_history(fit)
     if hist is not None and fit.data.dws_asd > 0:
         d = fit.data
-        fit = None  # not kept while the model is refitted (a day's columns are large)
+        del fit  # not kept while the model is refitted (a day's columns are large)
         nm = d.noise_parameters
         d = d.with_noise(instrument_noise_csd(d.f, d.ltt_mean, hist, d.dws_asd,
                                               secondary=None if nm is None else nm.csd(d.f)))
@@ -177,7 +177,8 @@ def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet | None, di
         searches (the effect's ``--effects`` spec -> :meth:`SearchResult.to_json`).
     """
     small = 0.05 / (2 * np.pi * data.settings.band[1])
-    shifts, C, moved_names, searches = {e.name: {} for e in lin}, None, set(), {}
+    shifts: dict[str, dict] = {e.name: {} for e in lin}
+    C, moved_names, searches = None, set[str](), {}
     for e in lin:  # the given offsets
         for g, d0 in e.fixed_offsets().items():
             members = set(e.shifted_members()[g])
@@ -217,7 +218,7 @@ def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet | None, di
             names = [repl.get(n, n) for n in names]
             sets.append(cs)
         C = _ttl_vector(normal_solution(data, assemble(names, *sets, series=False))[0])
-    model, expansion = first, {}
+    model, expansion = first, dict[str, float]()
     for _ in range(max(1, data.settings.expansion_passes)):
         names, sets, expansion = list(first.names), [first], {}
         for e in lin:
@@ -270,6 +271,8 @@ def time_adequacy(model: ModelFit) -> dict:
     the same noise model (interpolated to the slice's frequency grid)."""
     data = model.data
     s = data.settings
+    if model.columns.series is None:
+        raise ValueError("time_adequacy needs the columns' series (keep_series)")
     resid = data.data_series - np.einsum("p,cpn->cn", model.theta, model.columns.series)
     L = int(round(min(s.time_segment, data.seg_duration) * data.fs))
     idx = np.flatnonzero(data.mask)
@@ -288,7 +291,7 @@ def time_adequacy(model: ModelFit) -> dict:
     bidx = np.clip(np.searchsorted(data.edges, fb, side="right") - 1, 0, data.G - 1)
     win = window("hann", L)
     kappa = variance_factor("hann", 4096, 0.0)
-    rows = []
+    rows: list[dict] = []
     for s0 in range(lo, hi - L + 1, L):
         seg = resid[:, s0:s0 + L]
         _, X = segment_fft(np.nan_to_num(seg), data.fs, win, workers=None)

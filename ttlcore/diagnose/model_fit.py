@@ -18,6 +18,7 @@ columns in, a :class:`ModelFit` out.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -26,6 +27,10 @@ from ..estimate.gls import NormalEquations
 from ..estimate.gls import solve as gls_solve
 from .adequacy import band_table
 from .columns import ColumnSet, eiv, read_only
+
+if TYPE_CHECKING:
+    from .adequacy import BandTable
+    from .whitened import WhitenedData
 
 
 def gram_x(XA: np.ndarray, XB: np.ndarray, slices) -> np.ndarray:
@@ -113,14 +118,14 @@ class ModelFit:
 
     effects: tuple
     columns: ColumnSet
-    data: object
+    data: WhitenedData
     theta: np.ndarray
     covariance: np.ndarray
     chi2_seg_band: np.ndarray
-    bands: object
+    bands: BandTable
     q_min: float
-    residual_w: np.ndarray = field(repr=False, default=None)
-    normal: tuple | None = field(repr=False, default=None)
+    residual_w: np.ndarray = field(repr=False)
+    normal: tuple[np.ndarray, np.ndarray] = field(repr=False)
     eiv_term: np.ndarray | None = field(repr=False, default=None)
     expansion: dict = field(default_factory=dict)
     searches: dict = field(default_factory=dict)

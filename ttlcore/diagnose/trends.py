@@ -524,7 +524,7 @@ def trend_estimates(times, coefficients, sigma, *, t_start=None, window: float |
     sel = (te <= t_end) & (te > t_end - s.drift_lookback)
     n = int(sel.sum())
     if n < max(3, s.drift_min_windows):
-        return TrendEstimates(names, nan, nan.copy(), nan.copy(), nan.copy(), n,
+        return TrendEstimates(tuple(names), nan, nan.copy(), nan.copy(), nan.copy(), n,
                               float(te[sel][0]) if n else float("nan"), float(t_end))
     ts, te, C, S = ts[sel], te[sel], C[sel], S[sel]
     rho = window_correlation(ts, te)
@@ -578,7 +578,7 @@ def trend_estimates(times, coefficients, sigma, *, t_start=None, window: float |
         se[p] = math.sqrt(var) * inflate
         sig[p] = rate[p] / se[p]
         chi2dof[p] = cd
-    return TrendEstimates(names, rate, se, sig, chi2dof, n, float(te[0]), float(te[-1]), modelled)
+    return TrendEstimates(tuple(names), rate, se, sig, chi2dof, n, float(te[0]), float(te[-1]), modelled)
 
 
 def detect_drifts(times, coefficients, sigma, *, t_start=None, window: float | None = None,
@@ -662,13 +662,13 @@ class TrendMonitor:
         if not (math.isfinite(t_start) and math.isfinite(t_stop) and t_stop > t_start):
             raise ValueError(f"fit {index}: window [{t_start}, {t_stop}] is not valid")
         # one fit per window end (a refit of the same index replaces it)
-        for other, (_, te, _, _) in list(self._fits.items()):
-            if te == t_stop and other != index:
+        for other, (_, stop, _, _) in list(self._fits.items()):
+            if stop == t_stop and other != index:
                 del self._fits[other]
         self._fits[int(index)] = (float(t_start), float(t_stop), C, S)
-        horizon = max(te for _, te, _, _ in self._fits.values()) - self.max_history
-        for other, (_, te, _, _) in list(self._fits.items()):
-            if te < horizon:
+        horizon = max(stop for _, stop, _, _ in self._fits.values()) - self.max_history
+        for other, (_, stop, _, _) in list(self._fits.items()):
+            if stop < horizon:
                 del self._fits[other]
         order = sorted(self._fits, key=lambda i: self._fits[i][1])
         ts = np.array([self._fits[i][0] for i in order])

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -47,6 +48,10 @@ from .effects import (
     tdi_in_blocks,
 )
 from .settings import DiagnoseSettings
+
+if TYPE_CHECKING:
+    from ..io.telemetry import Telemetry
+    from .noise_model import NoiseModel
 
 
 def band_slices(band_index: np.ndarray, G: int) -> tuple:
@@ -143,7 +148,7 @@ class WhitenedData:
     """
 
     settings: DiagnoseSettings
-    tm: object
+    tm: Telemetry | None
     td_in: TDIData
     effect_modules: tuple
     registry: dict
@@ -178,8 +183,8 @@ class WhitenedData:
     noise_key: str
     wd: np.ndarray
     dd: np.ndarray
-    noise_parameters: object = None
-    store: object = field(default=None, repr=False)
+    noise_parameters: NoiseModel | None = None
+    store: ColumnStore = field(default_factory=ColumnStore, repr=False)
 
     def __post_init__(self):
         read_only(*(v for v in vars(self).values() if isinstance(v, np.ndarray)))

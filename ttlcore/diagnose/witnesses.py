@@ -260,7 +260,7 @@ def _log_grid(f, per_decade: int = 30):
 def _smoothed_coherence(f, b, n, rr, per_decade: int = 30) -> list:
     grid = _log_grid(f, per_decade)
     idx = np.clip(np.searchsorted(grid, f) , 0, grid.size - 1)
-    out = []
+    out: list = []
     for k in range(grid.size):
         sel = idx == k
         if not sel.any():

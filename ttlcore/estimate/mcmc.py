@@ -141,6 +141,10 @@ class McmcResult:
 class _Posterior:
     """Vectorised log-posterior in whitened coordinates (see the module docstring)."""
 
+    #: origin and Cholesky factor of the whitened coordinates (:meth:`set_whitening`, before any use)
+    x0: np.ndarray
+    L: np.ndarray
+
     def __init__(self, neq: NormalEquations, eiv: bool, kappa: float, bands: np.ndarray | None):
         self.Np = neq.N - (neq.E if eiv else 0.0)  # (G, P, P)
         self.b = np.asarray(neq.b, dtype=float)
@@ -149,8 +153,6 @@ class _Posterior:
         self.P = self.b.shape[1]
         self.bands = bands  # indices of bands with a free noise level, or None
         self.n = (neq.nchan * np.asarray(neq.nbins, dtype=float))
-        self.x0 = None
-        self.L = None
 
     @property
     def ndim(self) -> int:
@@ -462,7 +464,7 @@ def fit_mcmc(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings | No
         "gls_coefficients": dict(zip(names, map(float, gls.coefficients))),
         "gls_sigma_model_based": dict(zip(names, map(float, np.sqrt(np.diag(gls.extra["covariance_model_based"]))))),
     })
-    if mc.noise_levels is not None:
+    if mc.noise_levels is not None and mc.noise_levels_std is not None:
         res.extra["noise_levels"] = {
             "band_edges": list(map(float, neq.band_edges)),
             "mean": [None if not np.isfinite(v) else float(v) for v in mc.noise_levels],

@@ -165,7 +165,7 @@ class SubtractionResult:
         return self.t0 + np.arange(self.size) / self.fs
 
     def _convert(self, fn, channels) -> "SubtractionResult":
-        conv = {k: (None if getattr(self, k) is None else fn(getattr(self, k), self.channels)) for k in self.SERIES}
+        conv: dict = {k: (None if getattr(self, k) is None else fn(getattr(self, k), self.channels)) for k in self.SERIES}
         return replace(self, channels=channels, **conv)
 
     def xyz(self) -> "SubtractionResult":

@@ -151,7 +151,7 @@ class SGWBInjection:
         if not (self.omega_h2 >= 0 and self.f_ref > 0 and math.isfinite(self.alpha)):
             raise ConfigError(f"sgwb: need omega_h2 >= 0, f_ref > 0, finite alpha; got {omega_h2}, {f_ref}, {alpha}")
         self.n_pix, self.filter_length = int(n_pix), int(filter_length)
-        self._gen = None
+        self._gen: StochasticBackgroundGenerator | None = None
 
     def describe(self) -> dict:
         return {"kind": "gw", "source": "sgwb", "name": self.name, "seed": self.seed, "omega_h2": self.omega_h2,
@@ -330,7 +330,7 @@ def parse_gw_spec(spec: str, *, t0: float = 0.0, duration: float = 86400.0, seed
                 raise ConfigError(f"--gw: unknown source {item!r}; known: {', '.join(GW_SOURCES)}, or an existing "
                                   "lisagwresponse file (FILE or FILE:tcb/y)")
             files.append(item)
-    out = []
+    out: list = []
     seen = set()
     for n in names:
         if n in seen:

@@ -170,7 +170,7 @@ class _Runner:
         ttl_xyz = ttl_in_tdi(truth["ttl"], tm.ltt, tm.fs, tm.t0)
         return {"config": cfg, "tm": tm, "td": td, "ttl_xyz": ttl_xyz, "fits": {}}
 
-    def gw(self, case: Case, base: dict) -> tuple[np.ndarray, dict]:
+    def gw(self, case: Case, base: dict) -> tuple[np.ndarray, dict, list, float | None]:
         """GW link responses (6, n) of a case (sum) and per source, by the simulator's injection hook."""
 
         t_c = None
@@ -256,7 +256,7 @@ def analyse_case(case: Case, base: dict, runner: _Runner, variant: dict, out_dir
     P = {k: v[1] for k, v in welch.items()}
 
     # GW intact (per Welch bin)
-    intact = {"n_bins": 0, "max_relative_deviation": None, "pass": None, "factor": GW_INTACT_FACTOR,
+    intact: dict = {"n_bins": 0, "max_relative_deviation": None, "pass": None, "factor": GW_INTACT_FACTOR,
               "tolerance": GW_INTACT_TOLERANCE}
     if case.gw:
         sel = (f >= 1e-4) & (P["gw"] > GW_INTACT_FACTOR**2 * P["ttl_residual"]) & (P["gw"] > 0)

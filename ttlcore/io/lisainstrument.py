@@ -402,7 +402,7 @@ def _noise_flags(md: dict) -> dict:
 
 def _ttl_flat(md: dict) -> dict[str, float] | None:
     """lisainstrument's static TTL coefficients as our flat names [m/rad], or None."""
-    blocks = {key: md.get(key) for key in TTL_METADATA_KEYS}
+    blocks: dict = {key: md.get(key) for key in TTL_METADATA_KEYS}
     if not all(isinstance(v, dict) for v in blocks.values()):
         return None
     flat = {}

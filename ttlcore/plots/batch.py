@@ -72,6 +72,7 @@ def asd_x_curves(sub, channel: str = "X2", nperseg: int | None = None, per_decad
     for name, x in series.items():
         fc, asd, f = displacement_asd(x[ok], sub.fs, nperseg, per_decade)
         out[name] = (fc, asd)
+    assert f is not None, "no series"
     out["requirement"] = log_displacement_asd(f, requirement_x2(f, arm_length), per_decade)
     return out
 

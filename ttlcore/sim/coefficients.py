@@ -120,7 +120,7 @@ class CoefficientModel:
         out = self.base[:, None] + self.drift[:, None] * (t - self.t_ref)[None, :]
         for t_step, jump in self.steps:
             out = out + np.asarray(jump)[:, None] * (t >= t_step)[None, :]
-        if self.table_t is not None:
+        if self.table_t is not None and self.table_values is not None:
             out = out + np.stack([np.interp(t, self.table_t, row) for row in self.table_values])
         return out
 
@@ -135,7 +135,7 @@ class CoefficientModel:
             d["drift_per_s"] = {n: v for n, v in as_mapping(self.drift).items() if v}
         if self.steps:
             d["steps"] = [{"t": float(t), "jump": {n: v for n, v in as_mapping(j).items() if v}} for t, j in self.steps]
-        if self.table_t is not None:
+        if self.table_t is not None and self.table_values is not None:
             d["table"] = {"t": list(map(float, self.table_t)), "values": {n: list(map(float, row)) for n, row in zip(COEFFICIENT_NAMES, self.table_values)}}
         return d
 

@@ -115,6 +115,8 @@ def load_module(spec: str):
             raise ConfigError(f"{spec}: no such Python file")
         mod_name = f"ttl_user_{path.stem}_{abs(hash(str(path.resolve()))) & 0xFFFFFF:06x}"
         module_spec = importlib.util.spec_from_file_location(mod_name, path)
+        if module_spec is None or module_spec.loader is None:
+            raise ConfigError(f"{spec}: cannot load (not a Python source file)")
         module = importlib.util.module_from_spec(module_spec)
         try:
             module_spec.loader.exec_module(module)

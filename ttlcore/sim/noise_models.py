@@ -430,4 +430,4 @@ MODELS: dict[str, Callable] = {
 
 # ``test_mass`` is a model, not a test: keep pytest from collecting it when a test module
 # imports it by name.
-test_mass.__test__ = False
+test_mass.__test__ = False  # type: ignore[attr-defined]  # an attribute pytest reads, set on a function

@@ -547,7 +547,7 @@ class KeplerianOrbit(Orbit):
             else:  # pragma: no cover - contraction ~1e-4, converges in 1-2 steps
                 raise RuntimeError("light-time iteration did not converge")
             tau[index] = x
-            if rates:
+            if rate is not None:  # rates asked for
                 # c tau' = n.(v_i - v_j^e (1 - tau'))  =>  tau' = n.(v_i - v_j^e) / (c - n.v_j^e)
                 r = sign * d_key + x * (V[j] - x * (0.5 * A[j] - x * J[j] / 6.0))
                 vj_e = V[j] - x * (A[j] - 0.5 * x * J[j])
@@ -563,7 +563,7 @@ class KeplerianOrbit(Orbit):
         for start in range(0, t.size, _CHUNK):
             sl = slice(start, start + _CHUNK)
             tau[:, sl], r = self._solve_chunk(t[sl], rates)
-            if rates:
+            if rate is not None:  # rates asked for
                 rate[:, sl] = r
         return tau, rate
 

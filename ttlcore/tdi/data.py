@@ -224,6 +224,7 @@ class TDIStream:
         hist = history_samples(fs, max(self.ltt_max, float(np.max(tm.ltt))), self.order, self.delay_order, self.combinations)
         if self._tail is not None:
             expected = self.next_t0
+            assert expected is not None  # set with the tail
             if abs(tm.t0 - expected) > 0.5 / fs or tm.fs != self._tail.fs:
                 raise ValueError(f"segment at t0={tm.t0} does not follow the previous one (expected t0={expected})")
             tail = self._tail
@@ -232,10 +233,12 @@ class TDIStream:
         else:
             arrays = [tm.eta, tm.dws_phi, tm.dws_eta, tm.ltt]
             h = 0
-        out = compute_tdi_arrays(*arrays, fs=fs, t0=tm.t0, history=h, names=self.names, order=self.order,
+        eta, dws_phi, dws_eta, ltt = arrays
+        out = compute_tdi_arrays(eta, dws_phi, dws_eta, ltt, fs=fs, t0=tm.t0, history=h, names=self.names, order=self.order,
                                  delay_order=self.delay_order, combinations=self.combinations)
         keep = min(hist, arrays[0].shape[-1])
-        self._tail = Telemetry(t0=tm.t0 + tm.duration - keep / fs, fs=fs,
-                               **{k: a[:, -keep:].copy() for k, a in zip(("eta", "dws_phi", "dws_eta", "ltt"), arrays)})
+        self._tail = Telemetry(t0=tm.t0 + tm.duration - keep / fs, fs=fs, eta=eta[:, -keep:].copy(),
+                               dws_phi=dws_phi[:, -keep:].copy(), dws_eta=dws_eta[:, -keep:].copy(),
+                               ltt=ltt[:, -keep:].copy())
         self.next_t0 = tm.t0 + tm.size / fs
         return out

@@ -181,7 +181,7 @@ def predelayed(parts, ltt: np.ndarray, fs: float, **options) -> list:
         by_delay: dict = {}
         for i, (p, extra) in enumerate(pending):
             by_delay.setdefault(extra[-1], []).append(i)  # innermost delay first
-        done = [None] * len(pending)
+        done: list = [None] * len(pending)
         for d, idx in by_delay.items():
             moved = tdi_columns([Part(j, d, (), pending[i][0].series) for j, i in enumerate(idx)], len(idx), ltt, fs,
                                 combinations=(_Delay(d),), **options)[0]
@@ -297,16 +297,16 @@ def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, combination
             for c, poly in plan.terms[key]:
                 # one FIR per power q for all terms of this link: output j reads x[j + lead - d]
                 h = np.zeros((degree + 1, L))
-                reach, shifts = 0, []
+                reach, read_shifts = 0, []
                 for f, chain in poly:
                     if not chain:
                         h[0, lead] += f
-                        shifts.append(0)
+                        read_shifts.append(0)
                         continue
                     s_int, A = taps[chain]
                     h[:, lead - s_int - offsets] += f * A
                     reach = max(reach, -(s_int + offsets[0]))
-                    shifts.append(s_int)
+                    read_shifts.append(s_int)
                 H = sp_fft.rfft(h, L, axis=-1)
                 for r, (col, _) in enumerate(items):
                     k = (c, col)
@@ -314,7 +314,7 @@ def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, combination
                     spectra[k] = contrib if k not in spectra else spectra[k] + contrib
                     first_ok[k] = max(first_ok.get(k, 0), reach - j0)
                     if bad is not None:
-                        nan_at = _non_finite_reads(bad[r], shifts, offsets, j0, nb)
+                        nan_at = _non_finite_reads(bad[r], read_shifts, offsets, j0, nb)
                         first_ok[(k, "mask")] = nan_at | first_ok.get((k, "mask"), False)
         keys = list(spectra)
         y = sp_fft.irfft(np.stack([spectra[k] for k in keys]), L, axis=-1)[..., j0 + lead : j0 + lead + nb]
