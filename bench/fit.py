@@ -32,9 +32,9 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from ttlcore.sim.coefficients import make_coefficients  # noqa: E402
 from ttlcore.estimate.fit import FitSettings, fit_tdi  # noqa: E402
 from ttlcore.estimate.mcmc import fit_mcmc  # noqa: E402
+from ttlcore.sim.coefficients import make_coefficients  # noqa: E402
 from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
 from ttlcore.tdi.data import compute_tdi  # noqa: E402
 

@@ -44,8 +44,8 @@ def make_days(d: Path, n: int, hours: float) -> list[Path]:
 
 def _warm_up() -> None:
     """Import what a day's job imports on first use (as the serial reference's warm-up day)."""
-    import ttlcore.diagnose.witnesses  # noqa: F401
     import ttlcore.diagnose.reprocess  # noqa: F401
+    import ttlcore.diagnose.witnesses  # noqa: F401
     import ttlcore.estimate.subtraction  # noqa: F401
     import ttlcore.io.reader  # noqa: F401
     import ttlcore.tdi.data  # noqa: F401

@@ -35,7 +35,6 @@ from pathlib import Path
 import numpy as np
 
 
-
 def _load_reference():
     """``tests/pytdi_reference.py`` loaded by path (the same reference as the tests; putting
     ``tests/`` on ``sys.path`` would shadow the ``ttlcore`` package)."""

@@ -36,7 +36,6 @@ from __future__ import annotations
 import hashlib
 import json
 import math
-import re
 import zlib
 from collections.abc import Mapping
 from dataclasses import dataclass, field

@@ -26,8 +26,8 @@ key at fault.
 from __future__ import annotations
 
 import re
+from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Iterable
 
 from .topology import OUTPUT_TOPIC
 

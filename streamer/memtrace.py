@@ -110,7 +110,7 @@ class MemoryTrace:
             self._snapshot = self._take()
 
     @classmethod
-    def from_env(cls, logger=None) -> "MemoryTrace":
+    def from_env(cls, logger=None) -> MemoryTrace:
         return cls(every_from_env(), logger)
 
     @property

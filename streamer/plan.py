@@ -71,7 +71,7 @@ class RangeSet:
             self.add(i)
 
     @classmethod
-    def from_ranges(cls, ranges, limit: int | None = None) -> "RangeSet":
+    def from_ranges(cls, ranges, limit: int | None = None) -> RangeSet:
         """From ``[[first, last], ...]``, malformed entries ignored, clipped to ``[0, limit)``."""
         out = cls()
         for r in ranges or ():
@@ -162,23 +162,23 @@ class RangeSet:
             for i in items:
                 self.add(i)
 
-    def copy(self) -> "RangeSet":
+    def copy(self) -> RangeSet:
         out = RangeSet()
         out._starts, out._ends = list(self._starts), list(self._ends)
         return out
 
-    def __or__(self, other) -> "RangeSet":
+    def __or__(self, other) -> RangeSet:
         out = self.copy()
         out.update(other)
         return out
 
     __ror__ = __or__
 
-    def __ior__(self, other) -> "RangeSet":
+    def __ior__(self, other) -> RangeSet:
         self.update(other)
         return self
 
-    def __sub__(self, other) -> "RangeSet":
+    def __sub__(self, other) -> RangeSet:
         """The indices of this set not in ``other`` (a RangeSet or any container)."""
         if isinstance(other, RangeSet):
             out = RangeSet()
@@ -261,7 +261,7 @@ class Plan:
                 "producers": dict(self.producers), "window": self.window}
 
     @classmethod
-    def from_dict(cls, d: Mapping) -> "Plan":
+    def from_dict(cls, d: Mapping) -> Plan:
         """From :meth:`to_dict` output; raises ValueError naming the field at fault."""
         d = dict(d)
         unknown = set(d) - set(cls.__dataclass_fields__)

@@ -93,7 +93,7 @@ class SignalFlag:
     def _handler(self, signum, frame) -> None:
         self.received = signum  # nothing else: see the class docstring
 
-    def install(self) -> "SignalFlag":
+    def install(self) -> SignalFlag:
         if threading.current_thread() is threading.main_thread():
             for sig in self.signals:
                 self._previous[sig] = signal.signal(sig, self._handler)

@@ -127,7 +127,7 @@ class Progress:
                 "segments_total": self.segments_total, "complete": self.complete,
                 **{f"{name}_ranges": _ranges(v) for name, v in self.extra.items()}}
 
-    def copy(self) -> "Progress":
+    def copy(self) -> Progress:
         """A copy that shares no set with this one."""
         return Progress(self.stage, self.done.copy(), self.failed.copy(), self.segments_total, self.gaps.copy(),
                         self.complete, dict(self.last), set(self.pids),

@@ -47,7 +47,6 @@ from pathlib import Path
 
 import numpy as np
 from mcap.data_stream import ReadDataStream
-from mcap.exceptions import McapError
 from mcap.opcode import Opcode
 from mcap.records import Channel, Chunk, Footer, Message, Metadata, Schema
 from mcap.stream_reader import StreamReader, breakup_chunk
@@ -268,7 +267,7 @@ class Recorder:
             self._writer.add_metadata("ttl", {str(k): str(v) for k, v in metadata.items()})
         self.flush()
 
-    def __enter__(self) -> "Recorder":
+    def __enter__(self) -> Recorder:
         return self
 
     def __exit__(self, *exc) -> None:

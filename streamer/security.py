@@ -165,7 +165,7 @@ def ensure_credentials(directory, hosts=(), roles=ROLES) -> Path:
 
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True, mode=0o700)
-    now = _dt.datetime.now(_dt.timezone.utc)
+    now = _dt.datetime.now(_dt.UTC)
     start, end = now - _dt.timedelta(minutes=10), now + _dt.timedelta(days=VALIDITY_DAYS)
     ca_pem, ca_key_path = d / "ca.pem", d / "ca.key"
     router_hosts = (*LOCAL_HOSTS, *hosts)
@@ -249,7 +249,7 @@ class Identity:
     def key(self) -> Path:
         return self.directory / f"{self.role}.key"
 
-    def check(self) -> "Identity":
+    def check(self) -> Identity:
         """Every file present, the key private (else :class:`CredentialsError` naming the file)."""
         for p in (self.ca, self.certificate):
             if not p.is_file():

@@ -138,7 +138,7 @@ class SessionSettings:
                 "identity": self.identity}
 
     @classmethod
-    def from_dict(cls, d: dict | None) -> "SessionSettings":
+    def from_dict(cls, d: dict | None) -> SessionSettings:
         """Inverse of :meth:`to_dict`; unknown keys raise :class:`SessionConfigError`."""
         d = dict(d or {})
         unknown = set(d) - set(cls.__dataclass_fields__)
@@ -286,7 +286,7 @@ def open_router(listen: Iterable[str] = DEFAULT_ROUTER_LISTEN, connect: Iterable
 # ---------------------------------------------------------------------------- publishers
 
 def declare_segment_publisher(session: zenoh.Session, key: str, cache: int = 1,
-                              heartbeat: float = HEARTBEAT_PERIOD) -> "ext.AdvancedPublisher":
+                              heartbeat: float = HEARTBEAT_PERIOD) -> ext.AdvancedPublisher:
     """An advanced publisher for segment data on one key.
 
     Congestion control BLOCK, reliable, a cache of the last ``cache`` samples (replied to
@@ -457,10 +457,10 @@ class Bus:
     _declared: list = field(default_factory=list)
 
     @classmethod
-    def open(cls, settings: SessionSettings | None = None) -> "Bus":
+    def open(cls, settings: SessionSettings | None = None) -> Bus:
         return cls(open_session(settings))
 
-    def __enter__(self) -> "Bus":
+    def __enter__(self) -> Bus:
         return self
 
     def __exit__(self, *exc) -> None:

@@ -189,7 +189,7 @@ class LiveFanout:
 
     @classmethod
     def open(cls, application_id: str, recording_id: str, rrd: Path, url: str | None = None, blueprint=None,
-             on_live_failure=None, batch_seconds: float = FILE_BATCH_SECONDS) -> "LiveFanout":
+             on_live_failure=None, batch_seconds: float = FILE_BATCH_SECONDS) -> LiveFanout:
         """A recording written to ``rrd`` and, when ``url`` is given, streamed to the viewer
         there as a stream of its own (both with the default ``blueprint``).
 

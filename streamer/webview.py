@@ -67,7 +67,7 @@ class WebView:
         self.files.shutdown()
         self.files.server_close()
 
-    def __enter__(self) -> "WebView":
+    def __enter__(self) -> WebView:
         return self
 
     def __exit__(self, *exc) -> None:

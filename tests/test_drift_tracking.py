@@ -25,8 +25,8 @@ import pytest
 from mcap.reader import make_reader
 
 from streamer.recorder import read_recording
-from ttlcore.sim.coefficients import make_coefficients
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY
+from ttlcore.sim.coefficients import make_coefficients
 
 STEP_T = 1.5 * DAY
 DRIFTING = {"12.phi.rx": 0.05e-3, "13.eta.tx": -0.05e-3}
@@ -109,9 +109,9 @@ def test_every_stage_file_holds_every_segment_once_and_reads_back(run):
 def test_fit_of_a_window_covering_the_first_day_equals_the_batch_fit(run):
     from dataclasses import replace
 
+    from ttlcore.estimate.fit import FitSettings, fit_tdi
     from ttlcore.io.telemetry import Telemetry
     from ttlcore.tdi.data import compute_tdi
-    from ttlcore.estimate.fit import FitSettings, fit_tdi
 
     tdi = sorted(read_recording(run / "tdi_builder.mcap").segments("tdi"), key=lambda s: s.header.index)[:24]
     # the tdi_builder records X2, Y2, Z2; the regressors it published are rebuilt from the

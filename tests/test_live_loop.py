@@ -31,9 +31,10 @@ import pytest
 sys.path.insert(0, str(Path(__file__).with_name("stages")))
 sys.path.insert(0, str(Path(__file__).parent / "ttlcore" / "diagnose"))
 
+from ttl_testutil import MONITOR, Procs, finish, output, stage_processes, ttl_command, wait_for  # noqa: E402
+
 from streamer.recorder import RecordingError, read_recording  # noqa: E402
 from streamer.session import free_port  # noqa: E402
-from ttl_testutil import MONITOR, Procs, finish, output, stage_processes, ttl_command, wait_for  # noqa: E402
 from ttlcore.estimate.monitoring import FileTruth  # noqa: E402
 
 BLIND = str(Path(__file__).parent / "ttlcore" / "diagnose" / "blind_effects.py")

@@ -22,11 +22,12 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).with_name("stages")))
 
+from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for  # noqa: E402
+
 from streamer.keys import control_key  # noqa: E402
 from streamer.recorder import read_recording  # noqa: E402
 from streamer.security import ensure_credentials  # noqa: E402
 from streamer.session import Bus, SessionSettings, free_port  # noqa: E402
-from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for  # noqa: E402
 
 SEGMENTS = 8
 

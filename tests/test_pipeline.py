@@ -31,11 +31,22 @@ from mcap.reader import make_reader
 
 sys.path.insert(0, str(Path(__file__).with_name("stages")))
 
+from ttl_testutil import (  # noqa: E402
+    MONITOR,
+    Procs,
+    finish,
+    indices,
+    listening,
+    output,
+    recordings_of,
+    stage_processes,
+    ttl_command,
+    wait_for,
+)
+
 from streamer.recorder import read_recording  # noqa: E402
 from streamer.security import ensure_credentials  # noqa: E402
 from streamer.session import Bus, SessionSettings, free_port  # noqa: E402
-from ttl_testutil import (MONITOR, Procs, finish, indices, listening, output, recordings_of,  # noqa: E402
-                          stage_processes, ttl_command, wait_for)
 
 SIM = "--duration 12h --orbit unequal --seed 1"
 SEGMENTS = 12
@@ -148,11 +159,11 @@ def test_nothing_listens_beyond_loopback(t1):
 
 
 def test_message_contracts_and_streaming_equals_batch(t1):
-    from ttlcore.sim.coefficients import make_coefficients
     from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
     from ttlcore.estimate.fit import FitSettings, fit_tdi
-    from ttlcore.tdi.data import TDIData, compute_tdi
     from ttlcore.io.telemetry import Telemetry
+    from ttlcore.sim.coefficients import make_coefficients
+    from ttlcore.tdi.data import TDIData, compute_tdi
 
     tel = read_recording(t1.dir / "replayer.mcap").segments("telemetry")
     h = tel[0].header

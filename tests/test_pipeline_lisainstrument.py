@@ -17,8 +17,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).with_name("stages")))
 
 from lisainstrument_sim import simulate_lisainstrument  # noqa: E402
-from streamer.recorder import read_recording  # noqa: E402
 from ttl_testutil import MONITOR, Procs, finish, indices, output  # noqa: E402
+
+from streamer.recorder import read_recording  # noqa: E402
 
 STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if MONITOR else [])
 OUTPUT = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit", "subtractor": "residual",
@@ -26,9 +27,9 @@ OUTPUT = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit", "subtr
 
 
 def test_lisainstrument_file_replayed_through_the_pipeline(tmp_path):
-    from ttlcore.tdi.data import compute_tdi
-    from ttlcore.io.telemetry import Telemetry
     from ttlcore.io.reader import read_telemetry
+    from ttlcore.io.telemetry import Telemetry
+    from ttlcore.tdi.data import compute_tdi
 
     li = tmp_path / "measurements.h5"
     simulate_lisainstrument(li, duration=2 * 3600 + 600, orbits="static", seed=5)  # margin for its t0 handling

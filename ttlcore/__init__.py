@@ -16,11 +16,11 @@ against the measurement); :mod:`ttlcore.gw` holds the gravitational-wave sources
 Conventions (indices, units, signs: ``docs/physics.md``) live in :mod:`ttlcore.conventions`.
 """
 
-from ._version import __version__  # noqa: E402 (one place for the version)
-
 import importlib
 import sys
 import types
+
+from ._version import __version__  # noqa: E402 (one place for the version)
 
 #: where each name of the notebook API lives; imported on first use (PEP 562) so that
 #: ``import ttlcore.cli...`` or ``ttlcore.conventions`` does not pull in scipy and the whole

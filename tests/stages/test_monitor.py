@@ -17,7 +17,6 @@ from pathlib import Path
 import numpy as np
 import psutil
 import pytest
-
 from ttl_testutil import finish, output, wait_for  # noqa: F401  (also puts the project first on sys.path)
 
 from streamer.codec import decode, encode
@@ -25,8 +24,7 @@ from streamer.keys import control_key, topic_pattern
 from streamer.recorder import read_recording
 from streamer.session import Bus, SessionSettings, free_port
 from streamer.stage import StageConfig
-
-from ttlcore.conventions import C, COEFFICIENT_NAMES, MOSAS
+from ttlcore.conventions import COEFFICIENT_NAMES, MOSAS, C
 from ttlcore.estimate.fit import DEFAULT_BAND
 from ttlcore.io.truth import CORE_DATASETS, TruthWriter
 

@@ -8,15 +8,15 @@ import time
 import numpy as np
 import pytest
 from mcap.reader import make_reader
+from ttl_testutil import indices, output, wait_for
 
 from streamer.codec import Expect, decode, encode
 from streamer.keys import topic_pattern
 from streamer.recorder import read_recording
 from streamer.session import Bus, SessionSettings, free_port
 from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
-from ttlcore.tdi.data import TDIStream
 from ttlcore.io.telemetry import Telemetry
-from ttl_testutil import indices, output, wait_for
+from ttlcore.tdi.data import TDIStream
 
 RUN = "tdi-stage"
 FS = 4.0

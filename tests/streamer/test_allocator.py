@@ -31,9 +31,9 @@ def test_freed_large_blocks_go_back_to_the_system():
     """After a burst of large temporaries interleaved with small blocks that stay, the heap
     keeps the large ones (glibc's dynamic threshold has risen) unless the threshold is
     fixed: RSS after freeing, in a fresh process each way."""
-    code = """
+    code = f"""
 import sys
-sys.path.insert(0, {root!r})
+sys.path.insert(0, {str(ROOT)!r})
 from streamer import allocator
 from streamer.memtrace import rss_mb
 if sys.argv[1] == "fixed":
@@ -45,7 +45,7 @@ pairs = [(np.ones(1 << 19), np.ones(200)) for _ in range(40)]   # 4 MB blocks, e
 small = [b for _, b in pairs]       # the small blocks stay: the heap cannot shrink below them
 del pairs
 print(rss_mb() - base)
-""".format(root=str(ROOT))
+"""
     env = {"PATH": "/usr/bin:/bin"}
     kept = {how: float(subprocess.run([sys.executable, "-c", code, how], capture_output=True, text=True,
                                       check=True, env=env).stdout) for how in ("dynamic", "fixed")}

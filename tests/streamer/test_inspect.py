@@ -18,13 +18,12 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from streamer_testutil import ROOT, wait_for
 
+from streamer.cli import main as ttl_main
 from streamer.codec import encode
 from streamer.inspect import InspectError, format_report, inspect_run, view_command
 from streamer.recorder import Recorder, read_recording
-from streamer.cli import main as ttl_main
 from ttlcore.conventions import COEFFICIENT_NAMES
 
 RUN = "r1"

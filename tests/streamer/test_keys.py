@@ -2,9 +2,21 @@
 
 import pytest
 
-from streamer.keys import (KeyExprError, SegmentKey, alive_key, alive_pattern, control_key,
-                           errors_key, parse_alive_key, parse_control_key, parse_segment_key,
-                           parse_stream_key, segment_key, stream_key, topic_pattern)
+from streamer.keys import (
+    KeyExprError,
+    SegmentKey,
+    alive_key,
+    alive_pattern,
+    control_key,
+    errors_key,
+    parse_alive_key,
+    parse_control_key,
+    parse_segment_key,
+    parse_stream_key,
+    segment_key,
+    stream_key,
+    topic_pattern,
+)
 from streamer.plan import RangeSet
 from streamer.progress import Progress
 

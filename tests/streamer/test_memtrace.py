@@ -2,7 +2,6 @@
 
 import logging
 import tracemalloc
-
 from pathlib import Path
 
 import numpy as np

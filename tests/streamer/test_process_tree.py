@@ -15,8 +15,8 @@ from pathlib import Path
 
 import psutil
 import pytest
-
 from proc_testutil import ChildProcesses, output, wait_for
+
 from streamer.processes import SignalFlag
 from streamer.recorder import read_recording
 from streamer.session import free_port

@@ -39,8 +39,8 @@ BIN = Path(sys.executable).parent
 def days(tmp_path_factory) -> list[Path]:
     """Three consecutive one-hour days, cut from one 3-h simulation (its noise is made in
     fixed blocks, so 3 h cost what 1 h does).  Laser noise off: TDI removes it anyway."""
-    from ttlcore.sim.simulator import NoiseSwitches, SimulationConfig, simulate
     from ttlcore.io.telemetry import write_telemetry
+    from ttlcore.sim.simulator import NoiseSwitches, SimulationConfig, simulate
 
     d = tmp_path_factory.mktemp("days")
     tm, _ = simulate(SimulationConfig(duration=3 * HOUR, seed=10, noises=NoiseSwitches.parse("all,-laser")))
@@ -53,8 +53,8 @@ def _ttl(*args, timeout=300):
 
 
 def test_reprocess_equals_analyze_and_reports_a_failed_day(days, tmp_path, capsys):
-    from ttlcore.estimate.analyze import analyze
     from streamer.cli import main
+    from ttlcore.estimate.analyze import analyze
     from ttlcore.estimate.fit import FitSettings
 
     bad = tmp_path / "broken.h5"

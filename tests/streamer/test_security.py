@@ -24,18 +24,18 @@ import time
 from pathlib import Path
 
 import numpy as np
-import zenoh
-import psutil
 import pytest
+import zenoh
 from cryptography import x509
 from cryptography.x509.oid import NameOID
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "stages"))
 
+from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for  # noqa: E402
+
 from streamer import security  # noqa: E402
 from streamer.recorder import read_recording  # noqa: E402
 from streamer.session import Bus, SessionSettings, free_port  # noqa: E402
-from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for  # noqa: E402
 
 INTRUDER = Path(__file__).with_name("intruder.py")
 
@@ -222,8 +222,9 @@ def test_intruders_against_a_live_run_change_nothing(tmp_path):
 
 
 def test_credentials_make_every_link_mutual_tls_and_routers_enforce_the_acl(tmp_path):
-    from streamer.session import SessionConfigError, _get, make_config
     from streamer_testutil import ROOT
+
+    from streamer.session import SessionConfigError, _get, make_config
 
     creds = security.ensure_credentials(tmp_path / "creds")
     stage = make_config(SessionSettings(mode="client", connect=("tls/127.0.0.1:7447",), credentials=creds,

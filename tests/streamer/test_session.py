@@ -2,16 +2,15 @@
 
 import json
 import queue
-import time
 import signal
+import time
 
 import pytest
+from streamer_testutil import ROOT, output_of, wait_for
 
 from streamer.codec import decode, encode
 from streamer.keys import control_key, topic_pattern
-from streamer.session import (Bus, SessionConfigError, SessionSettings, _get, free_port, make_config,
-                              open_router)
-from streamer_testutil import ROOT, output_of, wait_for
+from streamer.session import Bus, SessionConfigError, SessionSettings, _get, free_port, make_config, open_router
 
 MB = 2**20
 

@@ -30,9 +30,10 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "stages"))
 
+from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for  # noqa: E402
+
 from streamer import security  # noqa: E402
 from streamer.recorder import read_recording  # noqa: E402
-from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for  # noqa: E402
 
 pytestmark = pytest.mark.ops
 

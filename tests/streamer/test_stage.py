@@ -9,13 +9,13 @@ import numpy as np
 import psutil
 import pytest
 from mcap.reader import make_reader
+from streamer_testutil import output_of, wait_for
 
 from streamer.codec import encode
 from streamer.keys import errors_key, topic_pattern
 from streamer.recorder import read_recording
 from streamer.session import Bus, SessionSettings, free_port
 from streamer.stage import StageConfig
-from streamer_testutil import output_of, wait_for
 
 RUN = "stage-test"
 

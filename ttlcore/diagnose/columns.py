@@ -96,7 +96,7 @@ class ColumnSet:
         """One column's whitened spectra (S, m, 3)."""
         return self.x[self.names.index(name)].view(complex)
 
-    def select(self, names, series: bool = True) -> "ColumnSet":
+    def select(self, names, series: bool = True) -> ColumnSet:
         """The columns ``names`` (in that order)."""
         return assemble(names, self, series=series)
 

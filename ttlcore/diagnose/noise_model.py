@@ -189,7 +189,7 @@ class NoiseModel:
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     @classmethod
-    def nominal(cls, ltt_mean, names=PARAMETERS) -> "NoiseModel":
+    def nominal(cls, ltt_mean, names=PARAMETERS) -> NoiseModel:
         """The fixed model (the paper's levels) in this parameterisation."""
         return cls(tuple(map(float, ltt_mean)), tuple(names), tuple(NOMINAL[n.split(".")[0]] for n in names))
 
@@ -430,7 +430,7 @@ def profile_noise_model(data, effects, *, names=PARAMETERS, passes: int = 4, fir
     return nm, fit_model(fit.data, effects, time_table=time_table)
 
 
-def noise_model_json(model: "NoiseModel | None") -> dict:
+def noise_model_json(model: NoiseModel | None) -> dict:
     """The ``adequacy.noise_model`` entry of a diagnosis report."""
     if model is None:
         return {"kind": "fixed",

@@ -166,7 +166,7 @@ class Alert:
         return out
 
     @classmethod
-    def from_json(cls, d: Mapping) -> "Alert":
+    def from_json(cls, d: Mapping) -> Alert:
         nan = float("nan")
         return cls(kind=str(d["kind"]), coefficient=str(d["coefficient"]),
                    t=nan if d.get("t") is None else float(d["t"]),
@@ -212,7 +212,7 @@ class TrendSettings:
     drift_min_windows: int = 12
 
     @classmethod
-    def from_dict(cls, d: Mapping | None) -> "TrendSettings":
+    def from_dict(cls, d: Mapping | None) -> TrendSettings:
         d = dict(d or {})
         unknown = set(d) - set(cls.__dataclass_fields__)
         if unknown:

@@ -224,7 +224,7 @@ class WhitenedData:
             return a
         return lowpass_decimate([a], lowpass_taps(self.fs_in), self.decimation, workers=None)[0]
 
-    def with_noise(self, csd: np.ndarray, noise_parameters=...) -> "WhitenedData":
+    def with_noise(self, csd: np.ndarray, noise_parameters=...) -> WhitenedData:
         """The same data under another noise CSD (m, 3, 3): a new value (``self`` is left as
         it is); ``noise_parameters`` (default: kept) the fitted levels it comes from."""
         Lh = whitening(csd)

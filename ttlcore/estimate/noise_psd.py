@@ -21,8 +21,15 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..conventions import (
+    ARM_LENGTH,
+    LINKS,
+    C,
+    acceleration_to_ffd_asd,
+    displacement_to_ffd_asd,
+    ffd_to_displacement_asd,
+)
 from ..sim import noise_models
-from ..conventions import ARM_LENGTH, C, LINKS, acceleration_to_ffd_asd, displacement_to_ffd_asd, ffd_to_displacement_asd
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 
 #: Requirement levels (SciRD): OMS [m/sqrt(Hz)], test-mass acceleration [m/s^2/sqrt(Hz)].

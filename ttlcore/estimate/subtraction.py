@@ -31,9 +31,9 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from ..tdi.interpolation import DEFAULT_ORDER
 from ..tdi.combinations import AET, AET_MATRIX, DEFAULT_DELAY_ORDER, MICHELSON, XYZ
 from ..tdi.data import TDIData, compute_tdi_arrays
+from ..tdi.interpolation import DEFAULT_ORDER
 
 
 def _coefficients(td: TDIData, coefficients) -> np.ndarray:
@@ -164,15 +164,15 @@ class SubtractionResult:
     def t(self) -> np.ndarray:
         return self.t0 + np.arange(self.size) / self.fs
 
-    def _convert(self, fn, channels) -> "SubtractionResult":
+    def _convert(self, fn, channels) -> SubtractionResult:
         conv: dict = {k: (None if getattr(self, k) is None else fn(getattr(self, k), self.channels)) for k in self.SERIES}
         return replace(self, channels=channels, **conv)
 
-    def xyz(self) -> "SubtractionResult":
+    def xyz(self) -> SubtractionResult:
         """The same series in X2, Y2, Z2."""
         return self if self.channels == XYZ else self._convert(to_xyz, XYZ)
 
-    def aet(self) -> "SubtractionResult":
+    def aet(self) -> SubtractionResult:
         """The same series in A, E, T."""
         return self if self.channels == AET else self._convert(to_aet, AET)
 

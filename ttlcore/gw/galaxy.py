@@ -65,7 +65,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..conventions import C, LINKS
+from ..conventions import LINKS, C
 from .sources import GM_SUN, OBLIQUITY_J2000, PARSEC
 
 __all__ = [
@@ -134,7 +134,7 @@ class BinaryArrays:
         return self.f0.size
 
     @classmethod
-    def from_binaries(cls, binaries) -> "BinaryArrays":
+    def from_binaries(cls, binaries) -> BinaryArrays:
         binaries = list(binaries)
         t_init = {b.t_init for b in binaries}
         if len(t_init) > 1:
@@ -143,7 +143,7 @@ class BinaryArrays:
         return cls(get("f0"), get("fdot"), get("amplitude"), get("inclination"), get("psi"), get("phi0"),
                    get("beta"), get("lam"), t_init=t_init.pop() if t_init else 0.0)
 
-    def subset(self, sel) -> "BinaryArrays":
+    def subset(self, sel) -> BinaryArrays:
         return BinaryArrays(self.f0[sel], self.fdot[sel], self.amplitude[sel], self.inclination[sel],
                             self.psi[sel], self.phi0[sel], self.beta[sel], self.lam[sel], t_init=self.t_init)
 

@@ -71,7 +71,7 @@ class BinariesInjection:
         self.binaries = [b if isinstance(b, GalacticBinary) else GalacticBinary(**b) for b in binaries]
 
     @classmethod
-    def catalogue(cls, names, name: str | None = None) -> "BinariesInjection":
+    def catalogue(cls, names, name: str | None = None) -> BinariesInjection:
         """From catalogue keys (``"HM Cnc"``, ``"ZTF J1539"``)."""
 
         return cls(name or "_".join(n.replace(" ", "").lower() for n in names),
@@ -194,7 +194,7 @@ class MBHBInjection:
         self._wave = None
 
     @classmethod
-    def paper(cls, which: str, t_c: float | None = None) -> "MBHBInjection":
+    def paper(cls, which: str, t_c: float | None = None) -> MBHBInjection:
 
         params = dict(PAPER_MBHBS[which])
         params.pop("name", None)

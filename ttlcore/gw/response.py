@@ -73,7 +73,7 @@ from collections.abc import Callable
 
 import numpy as np
 
-from ..conventions import C, LINKS
+from ..conventions import LINKS, C
 from ..sim.orbits import Orbit, as_times
 
 __all__ = ["propagation_basis", "antenna_patterns", "link_response"]

@@ -57,7 +57,7 @@ import math
 
 import numpy as np
 
-from ..conventions import C, LINKS
+from ..conventions import LINKS, C
 from ..sim.noise import key_hash
 
 __all__ = ["H100", "omega_power_law", "strain_psd", "fibonacci_sphere", "link_transfer", "link_csd",

@@ -260,7 +260,7 @@ class GalacticBinary:
         t_init: float = 0.0,
         name: str = "",
         meta: dict | None = None,
-    ) -> "GalacticBinary":
+    ) -> GalacticBinary:
         """Build from orbital period [s], masses [Msun], distance [pc] and angles [rad].
 
         ``f0 = 2 / period``; ``amplitude`` from :func:`strain_amplitude`; ``fdot`` the

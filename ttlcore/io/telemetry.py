@@ -110,7 +110,7 @@ class Telemetry:
         edges = np.flatnonzero(np.diff(np.concatenate([[0], self.missing().astype(np.int8), [0]])))
         return [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2])]
 
-    def slice(self, start: int, stop: int) -> "Telemetry":
+    def slice(self, start: int, stop: int) -> Telemetry:
         """Samples ``start:stop`` as a new :class:`Telemetry` (views, no copy)."""
         start, stop, _ = slice(start, stop).indices(self.size)
         return Telemetry(

@@ -21,9 +21,9 @@ from pathlib import Path
 import numpy as np
 
 from ..conventions import ARM_LENGTH, PAPER_ORDER, paper_ordered_names
-from ..io.hdf5 import temporary_path
 from ..estimate.noise_psd import requirement_x2
 from ..estimate.spectra import default_nperseg, displacement_asd, log_displacement_asd, longest_run
+from ..io.hdf5 import temporary_path
 
 #: Coefficient requirement of the paper [m/rad]: |C_fit - C_true| < 0.1 mm/rad.
 COEFFICIENT_REQUIREMENT = 0.1e-3

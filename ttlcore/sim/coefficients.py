@@ -140,7 +140,7 @@ class CoefficientModel:
         return d
 
     @classmethod
-    def from_description(cls, d: dict) -> "CoefficientModel":
+    def from_description(cls, d: dict) -> CoefficientModel:
         """Build from :meth:`describe` output (also the JSON file format of ``--coeffs FILE``)."""
         if "base" not in d:
             raise ConfigError("coefficient description needs a 'base' mapping of the 24 names to m/rad")
@@ -163,14 +163,14 @@ class CoefficientModel:
             table_t=table_t, table_values=table_values,
         )
 
-    def with_drift(self, rates_per_day: dict[str, float]) -> "CoefficientModel":
+    def with_drift(self, rates_per_day: dict[str, float]) -> CoefficientModel:
         """Copy with added linear drifts, given in m/rad per day."""
         extra = np.zeros(len(COEFFICIENT_NAMES))
         for name, rate in rates_per_day.items():
             extra[_index(name)] += float(rate) / DAY
         return CoefficientModel(self.base, self.drift + extra, self.t_ref, self.steps, self.table_t, self.table_values)
 
-    def with_step(self, t_step: float, jumps: dict[str, float]) -> "CoefficientModel":
+    def with_step(self, t_step: float, jumps: dict[str, float]) -> CoefficientModel:
         """Copy with an added step at ``t_step`` [s]; ``jumps`` in m/rad."""
         jump = np.zeros(len(COEFFICIENT_NAMES))
         for name, value in jumps.items():

@@ -89,7 +89,7 @@ import operator
 import os
 import zlib
 from collections import OrderedDict
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 import scipy.fft as sfft

@@ -25,7 +25,7 @@ All entries are picklable (module-level functions or :class:`functools.partial`)
 from __future__ import annotations
 
 import functools
-from typing import Callable
+from collections.abc import Callable
 
 import numpy as np
 

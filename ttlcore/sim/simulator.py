@@ -43,16 +43,13 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Callable, Iterator
 from dataclasses import asdict, dataclass, field, fields
-from typing import Callable, Iterator
 
 import numpy as np
 from scipy import signal
 
-from . import noise_models
-from .coefficients import CoefficientModel, make_coefficients
 from ..conventions import (
-    C,
     COEFFICIENT_NAMES,
     DAY,
     FS_TELEMETRY,
@@ -60,15 +57,18 @@ from ..conventions import (
     MOSA_ANGLES_DEG,
     MOSAS,
     REVERSED_INDEX,
+    C,
     local_spacecraft,
 )
 from ..errors import ConfigError
-from .injection import LOOKAHEAD, ChunkContext, check_signal, injection_from_description
-from ..tdi.interpolation import DEFAULT_ORDER, apply_taps, delay, shift_taps
-from .noise import NoiseStream, default_filter_length, run_block_length
-from .orbits import Orbit, make_orbit
 from ..io.telemetry import Telemetry, TelemetryWriter
 from ..io.truth import NOISE_COMPONENTS, TruthWriter, truth_path
+from ..tdi.interpolation import DEFAULT_ORDER, apply_taps, delay, shift_taps
+from . import noise_models
+from .coefficients import CoefficientModel, make_coefficients
+from .injection import LOOKAHEAD, ChunkContext, check_signal, injection_from_description
+from .noise import NoiseStream, default_filter_length, run_block_length
+from .orbits import Orbit, make_orbit
 
 log = logging.getLogger(__name__)
 
@@ -93,7 +93,7 @@ class NoiseSwitches:
     ttl: bool = True
 
     @classmethod
-    def parse(cls, spec: str) -> "NoiseSwitches":
+    def parse(cls, spec: str) -> NoiseSwitches:
         """Parse ``"all"``, ``"none"``, ``"all,-laser,-dws"`` or ``"ttl,sc_jitter,mosa_jitter"``."""
         names = [f.name for f in fields(cls)]
         items = [s.strip() for s in str(spec).split(",") if s.strip()]
@@ -205,7 +205,7 @@ class SimulationConfig:
         return d
 
     @classmethod
-    def from_dict(cls, d: dict) -> "SimulationConfig":
+    def from_dict(cls, d: dict) -> SimulationConfig:
         d = dict(d)
         d["coefficients"] = CoefficientModel.from_description(d["coefficients"])
         d["noises"] = NoiseSwitches(**d.get("noises", {}))

@@ -34,8 +34,8 @@ from functools import cached_property
 import numpy as np
 
 from ..conventions import LINKS
-from .interpolation import DEFAULT_ORDER, apply_taps, shift_taps
 from .engine import DEFAULT_DELAY_ORDER, Part, tdi_columns
+from .interpolation import DEFAULT_ORDER, apply_taps, shift_taps
 
 Chain = tuple[str, ...]
 
@@ -57,13 +57,13 @@ class Combination:
     name: str
     terms: tuple
 
-    def permuted(self, mapping: dict[int, int], name: str | None = None) -> "Combination":
+    def permuted(self, mapping: dict[int, int], name: str | None = None) -> Combination:
         """Relabel spacecraft indices, e.g. ``{1: 2, 2: 3, 3: 1}``."""
         m = {str(k): str(v) for k, v in mapping.items()}
         terms = tuple((f, _permute_link(l, m), tuple(_permute_link(c, m) for c in chain)) for f, l, chain in self.terms)
         return Combination(name or self.name, terms)
 
-    def rotated(self, name: str | None = None) -> "Combination":
+    def rotated(self, name: str | None = None) -> Combination:
         """Cyclic permutation 1 -> 2 -> 3 -> 1 (X -> Y -> Z)."""
         return self.permuted({1: 2, 2: 3, 3: 1}, name)
 
@@ -76,7 +76,7 @@ class Combination:
         return max(len(chain) for _, _, chain in self.terms)
 
     def build(self, ltt: np.ndarray, fs: float, order: int = DEFAULT_ORDER,
-              delay_order: int = DEFAULT_DELAY_ORDER, history: int = 0) -> "BuiltCombination":
+              delay_order: int = DEFAULT_DELAY_ORDER, history: int = 0) -> BuiltCombination:
         """Bind to a delay series; see :func:`build`."""
         return build([self], ltt, fs, order=order, delay_order=delay_order, history=history)[0]
 

@@ -16,11 +16,11 @@ from scipy import fft as sp_fft
 from scipy import signal
 
 from ..conventions import COEFFICIENT_NAMES, LINKS
-from .interpolation import DEFAULT_ORDER
-from .regressors import ttl_witnesses
+from ..io.telemetry import Telemetry
 from .combinations import AET, MICHELSON, aet
 from .engine import DEFAULT_DELAY_ORDER, Part, tdi_columns
-from ..io.telemetry import Telemetry
+from .interpolation import DEFAULT_ORDER
+from .regressors import ttl_witnesses
 
 
 @dataclass
@@ -62,7 +62,7 @@ class TDIData:
     def t(self) -> np.ndarray:
         return self.t0 + np.arange(self.size) / self.fs
 
-    def to_aet(self) -> "TDIData":
+    def to_aet(self) -> TDIData:
         """A, E, T from X2, Y2, Z2."""
         if self.channels == AET:
             return self
@@ -74,13 +74,13 @@ class TDIData:
         idx = np.flatnonzero(ok)
         return slice(int(idx[0]), int(idx[-1]) + 1) if idx.size else slice(0, 0)
 
-    def slice(self, sl: slice) -> "TDIData":
+    def slice(self, sl: slice) -> TDIData:
         start, stop, _ = sl.indices(self.size)
         return replace(self, t0=self.t0 + start / self.fs, data=self.data[:, start:stop],
                        regressors=self.regressors[:, :, start:stop])
 
     def decimated(self, factor: int = 2, passband: float = 0.9, stopband: float = 1.1,
-                  attenuation_db: float = 180.0, workers: int | None = -1) -> "TDIData":
+                  attenuation_db: float = 180.0, workers: int | None = -1) -> TDIData:
         """Anti-alias low-pass and decimation of data and regressors alike (the paper fits at
         2 Hz after such a filter).
 

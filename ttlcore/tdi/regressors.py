@@ -16,8 +16,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..conventions import COEFFICIENT_NAMES, LINKS, C, parse_coefficient_name, reverse
 from .combinations import AET_MATRIX, MICHELSON, link_responses
-from ..conventions import C, COEFFICIENT_NAMES, LINKS, parse_coefficient_name, reverse
 
 
 def witness_placement(mosa: str, side: str) -> tuple[str, bool]:

@@ -14,9 +14,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from lisainstrument_sim import simulate_lisainstrument
 from scipy import signal
 
-from ttlcore.conventions import C, COEFFICIENT_NAMES, ffd_to_displacement_asd
+from ttlcore.conventions import COEFFICIENT_NAMES, C, ffd_to_displacement_asd
 from ttlcore.estimate.noise_psd import requirement_x2
 from ttlcore.estimate.spectra import log_average
 from ttlcore.estimate.subtraction import (
@@ -28,10 +29,9 @@ from ttlcore.estimate.subtraction import (
     to_xyz,
     ttl_in_tdi,
 )
-from ttlcore.tdi.data import compute_tdi
 from ttlcore.io.reader import read_telemetry
 from ttlcore.io.truth import read_truth, truth_path
-from lisainstrument_sim import simulate_lisainstrument
+from ttlcore.tdi.data import compute_tdi
 
 REQUIRED_KEYS = {"names", "coefficients", "sigma", "covariance", "chi2_dof", "band", "method"}
 

@@ -4,18 +4,18 @@ lisainstrument data, and the fit's statistics (chi^2 of the normalised errors)."
 
 import numpy as np
 import pytest
+from lisainstrument_sim import simulate_lisainstrument
 from scipy import signal
 
-from ttlcore.sim.coefficients import make_coefficients
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY
 from ttlcore.estimate.fit import FitSettings, dws_asd_from_config, fit_tdi, notch_mask
-from ttlcore.io.lisainstrument import lisainstrument_truth
 from ttlcore.estimate.noise_psd import requirement_x2, tdi_noise_csd
-from ttlcore.sim.simulator import NoiseSwitches, SimulationConfig, simulate
 from ttlcore.estimate.spectra import log_average
-from ttlcore.tdi.data import compute_tdi, compute_tdi_arrays
+from ttlcore.io.lisainstrument import lisainstrument_truth
 from ttlcore.io.reader import read_telemetry
-from lisainstrument_sim import simulate_lisainstrument
+from ttlcore.sim.coefficients import make_coefficients
+from ttlcore.sim.simulator import NoiseSwitches, SimulationConfig, simulate
+from ttlcore.tdi.data import compute_tdi, compute_tdi_arrays
 
 HOUR = 3600.0
 MM = 1e3  # m/rad -> mm/rad

@@ -19,9 +19,8 @@ import warnings
 import numpy as np
 import pytest
 
-from ttlcore.conventions import ARM_LENGTH, C, LINKS
+from ttlcore.conventions import ARM_LENGTH, LINKS, C
 from ttlcore.gw.response import antenna_patterns, link_response, propagation_basis
-from ttlcore.sim.orbits import KeplerianOrbit, OrbitFile, equal_arms
 from ttlcore.gw.sources import (
     VERIFICATION_BINARIES,
     VERIFICATION_BINARY_PARAMETERS,
@@ -31,6 +30,7 @@ from ttlcore.gw.sources import (
     gw_frequency_derivative,
     strain_amplitude,
 )
+from ttlcore.sim.orbits import KeplerianOrbit, OrbitFile, equal_arms
 
 RECEIVER = [int(link[0]) - 1 for link in LINKS]
 EMITTER = [int(link[1]) - 1 for link in LINKS]

@@ -27,10 +27,10 @@ from ttlcore.gw.injection import (
     parse_gw_spec,
 )
 from ttlcore.gw.mbhb import MBHB, PAPER_MBHBS, fd_amplitude, phenoma_parameters, time_domain
-from ttlcore.sim.orbits import KeplerianOrbit, equal_arms
 from ttlcore.gw.sgwb import StochasticBackgroundGenerator, link_transfer, strain_psd
-from ttlcore.sim.simulator import NoiseSwitches, SimulationConfig, simulate
 from ttlcore.gw.sources import VERIFICATION_BINARIES, GalacticBinary
+from ttlcore.sim.orbits import KeplerianOrbit, equal_arms
+from ttlcore.sim.simulator import NoiseSwitches, SimulationConfig, simulate
 from ttlcore.tdi.combinations import MICHELSON, build
 
 

@@ -19,7 +19,6 @@ import pytest
 from ttlcore.errors import TTLError
 from ttlcore.gw.scenarios import PAPER_CASES, run_scenarios
 
-
 SHORT_MERGER = ["--cases", "mbhb2", "--variants", "paper", "--duration", "3h", "--seed", "2", "--quiet"]
 
 

@@ -14,10 +14,10 @@ from pathlib import Path
 import h5py
 import numpy as np
 import pytest
+from lisainstrument_sim import simulate_lisainstrument
 
-from ttlcore.conventions import C, COEFFICIENT_NAMES, LINKS, MOSAS, link_index
+from ttlcore.conventions import COEFFICIENT_NAMES, LINKS, MOSAS, C, link_index
 from ttlcore.errors import TelemetryError
-from ttlcore.tdi.interpolation import delay
 from ttlcore.io.lisainstrument import (
     BEATNOTE_DATASETS,
     DWS_ETA_DATASET,
@@ -28,10 +28,9 @@ from ttlcore.io.lisainstrument import (
     lisainstrument_truth,
     read_lisainstrument,
 )
-from ttlcore.io.telemetry import Telemetry, write_telemetry
 from ttlcore.io.reader import file_kind, read_telemetry
-from lisainstrument_sim import simulate_lisainstrument
-
+from ttlcore.io.telemetry import Telemetry, write_telemetry
+from ttlcore.tdi.interpolation import delay
 
 ORDER = 31
 DELAY_ORDER = 5

@@ -5,9 +5,9 @@ import json
 import numpy as np
 import pytest
 
-from ttlcore.sim.coefficients import CoefficientModel, lisainstrument_set, make_coefficients, paper_set
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY
 from ttlcore.errors import ConfigError
+from ttlcore.sim.coefficients import CoefficientModel, lisainstrument_set, make_coefficients, paper_set
 
 
 def test_names_order_and_count():

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 
 from ttlcore.errors import ConfigError
-from ttlcore.sim.injection import injection_from_description
-from ttlcore.sim.simulator import NoiseSwitches, SimulationConfig, simulate, simulate_to_file
 from ttlcore.io.reader import read_telemetry
 from ttlcore.io.truth import read_truth
+from ttlcore.sim.injection import injection_from_description
+from ttlcore.sim.simulator import NoiseSwitches, SimulationConfig, simulate, simulate_to_file
 
 PLUGIN = '''
 import numpy as np

@@ -21,8 +21,8 @@ import scipy.fft as sfft
 import scipy.signal
 import scipy.stats
 
+from ttlcore.conventions import NU0, C
 from ttlcore.sim import noise_models as nm
-from ttlcore.conventions import C, NU0
 from ttlcore.sim.noise import (
     WHITE_BLOCK,
     NoiseFilter,
@@ -139,7 +139,7 @@ def _bands(fmax: float, fmin: float = 1e-4) -> list[tuple[float, float]]:
     return list(zip(edges[:-1], edges[1:]))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _window_correlations(nperseg: int, max_lag: int = 12) -> tuple[np.ndarray, float]:
     """``c_f(d)`` for ``d = 0 .. max_lag - 1`` and ``c_t(1)`` of the Welch window (see below)."""
     w = scipy.signal.get_window(WINDOW, nperseg)

@@ -16,7 +16,7 @@ import h5py
 import numpy as np
 import pytest
 
-from ttlcore.conventions import ARM_LENGTH, ASTRONOMICAL_UNIT, C, DAY, LINKS
+from ttlcore.conventions import ARM_LENGTH, ASTRONOMICAL_UNIT, DAY, LINKS, C
 from ttlcore.errors import ConfigError, TelemetryError
 from ttlcore.sim.orbits import (
     GM_SUN,

@@ -8,9 +8,9 @@ import pytest
 from pytdi.dsp import timeshift as pytdi_timeshift
 from scipy import signal
 
+from ttlcore.conventions import COEFFICIENT_NAMES, DAY, LINKS, C, reverse
 from ttlcore.sim import noise_models
 from ttlcore.sim.coefficients import make_coefficients
-from ttlcore.conventions import C, COEFFICIENT_NAMES, DAY, LINKS, reverse
 from ttlcore.sim.simulator import NoiseSwitches, SimulationConfig, Simulator, simulate
 
 HOUR = 3600.0

@@ -5,7 +5,7 @@ import pytest
 from pytdi.michelson import X2_ETA, Y2_ETA, Z2_ETA
 from scipy import signal
 
-from ttlcore.conventions import ARM_LENGTH, C, DAY, LINKS
+from ttlcore.conventions import ARM_LENGTH, DAY, LINKS, C
 from ttlcore.estimate.noise_psd import simulated_single_link, tdi_noise_csd, x2_psd_equal_arms
 from ttlcore.sim.simulator import SimulationConfig, simulate
 from ttlcore.tdi.combinations import AET_MATRIX, X2, Y2, Z2, aet
