@@ -57,7 +57,7 @@ def fitter_update_times(path: Path) -> tuple[list[float], list[float]]:
 
     received, fitted, with_adequacy = {}, {}, set()
     with open(path, "rb") as f:
-        for schema, channel, message in make_reader(f).iter_messages():
+        for _schema, channel, message in make_reader(f).iter_messages():
             if channel.topic not in ("tdi/input", "fit/summary"):
                 continue
             try:

@@ -42,10 +42,10 @@ def run_ours(out: Path, duration: float) -> dict:
 
 def run_lisainstrument(out: Path, duration: float) -> dict:
     code = (
-        "import json, sys; sys.path.insert(0, %r)\n"
+        f"import json, sys; sys.path.insert(0, {str(HERE)!r})\n"
         "from lisainstrument_reference import run_lisainstrument_day\n"
-        "print(json.dumps(run_lisainstrument_day(%r, duration=%r, orbits='keplerian')))\n"
-    ) % (str(HERE), str(out), duration)
+        f"print(json.dumps(run_lisainstrument_day({str(out)!r}, duration={duration!r}, orbits='keplerian')))\n"
+    )
     start = time.perf_counter()
     proc = subprocess.run([sys.executable, "-c", code], check=True, capture_output=True, text=True)
     wall = time.perf_counter() - start

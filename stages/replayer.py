@@ -349,7 +349,9 @@ def add_options(p: argparse.ArgumentParser) -> None:
 
 
 def options(args) -> dict:
-    split = (lambda s: [x for x in s.split(",") if x] if s else None)
+    def split(s):
+        return [x for x in s.split(",") if x] if s else None
+
     return {"telemetry": args.telemetry, "simulate": args.simulate, "segment": args.segment, "pace": args.pace,
             "window": args.window, "wait_for": split(args.wait_for), "pace_on": split(args.pace_on),
             "plan_out": args.plan_out}

@@ -20,7 +20,7 @@ import importlib
 import sys
 import types
 
-from ._version import __version__  # noqa: E402 (one place for the version)
+from ._version import __version__ as __version__  # one place for the version (re-exported)
 
 #: where each name of the notebook API lives; imported on first use (PEP 562) so that
 #: ``import ttlcore.cli...`` or ``ttlcore.conventions`` does not pull in scipy and the whole

@@ -257,7 +257,7 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
     assert len(fit_rows) == N_FITS
     by_time = {row[0]["segment"]: row[1]["Scalars:scalars"][0] for row in fit_rows}
     p = COEFFICIENT_NAMES.index(STEP_COEF)
-    for k, (ts, te, c, s) in enumerate(driver.fits):
+    for k, (_ts, _te, c, _s) in enumerate(driver.fits):
         assert by_time[k] == pytest.approx(c[p] * 1e3)  # mm/rad
     # one entity, three series: the fit, fit + sigma, fit - sigma
     band = {row[0]["segment"]: row[1]["Scalars:scalars"] for row in fit_rows}

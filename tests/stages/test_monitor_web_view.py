@@ -182,7 +182,7 @@ def monitor_recording(procs, tmp: Path, segments: int, step_at: float) -> tuple[
         for i in range(segments):
             driver.segment(i)
             # at most four segments ahead of the monitor, like the replayer
-            wait_for(lambda: len(driver.statuses) >= i - 3 or proc.poll() is not None, 120, f"segment {i - 3} drawn")
+            wait_for(lambda i=i: len(driver.statuses) >= i - 3 or proc.poll() is not None, 120, f"segment {i - 3} drawn")
             assert proc.poll() is None, output(proc)
         wait_for(lambda: len(set(driver.statuses)) >= segments, 120, "every segment drawn")
         mcap = tmp / "rec" / RUN / "monitor.mcap"

@@ -290,7 +290,7 @@ def test_inspect_a_killed_and_restarted_stage_process(tmp_path):
             log.close()
             path = rec_dir / "r2" / "monitor.mcap"
 
-            def started():
+            def started(path=path):
                 if len(procs) == 2 and not path.with_name("monitor.1.mcap").exists():
                     return False  # the killed process's file is still the current one
                 try:

@@ -70,7 +70,7 @@ def test_router_stops_on_sigterm_at_any_moment(tmp_path):
             port = free_port()
             proc = children.start(ttl("router", "--insecure", "--listen", f"tcp/127.0.0.1:{port}"), f"router{attempt}",
                                   cwd=ROOT)
-            wait_for(lambda: "listening on" in output(proc) or proc.poll() is not None, 60, "the router to listen")
+            wait_for(lambda proc=proc: "listening on" in output(proc) or proc.poll() is not None, 60, "the router to listen")
             assert proc.poll() is None, output(proc)
             time.sleep(rng.uniform(0.0, 1.0))  # anywhere in the 0.5-s wait cycle
             proc.send_signal(signal.SIGTERM)
@@ -83,10 +83,10 @@ def test_router_stops_on_sigterm_at_any_moment(tmp_path):
 def test_tied_child_dies_with_its_parent(tmp_path):
     """tied_to_parent: the child of a SIGKILLed parent gets its signal; a child whose parent
     died before prctl exits at once instead of running on."""
-    code = ("import subprocess, sys, time, signal; sys.path.insert(0, %r); "
+    code = (f"import subprocess, sys, time, signal; sys.path.insert(0, {str(ROOT)!r}); "
             "from streamer.processes import tied_to_parent; "
             "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(120)'], "
-            "preexec_fn=tied_to_parent(signal.SIGKILL)); print(p.pid, flush=True); time.sleep(120)") % str(ROOT)
+            "preexec_fn=tied_to_parent(signal.SIGKILL)); print(p.pid, flush=True); time.sleep(120)")
     parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     try:
         child = psutil.Process(int(parent.stdout.readline()))

@@ -67,7 +67,7 @@ def test_json_channels_carry_json_schemas(tmp_path):
         reader = make_reader(f)
         summary = reader.get_summary()
         seen = {}
-        for schema, channel, message in reader.iter_messages():
+        for schema, channel, _message in reader.iter_messages():
             seen[channel.topic] = (schema, channel)
     for topic in ("events", "errors", "tdi/header", "fit/summary"):
         schema, channel = seen[topic]

@@ -59,7 +59,7 @@ def test_router_relays_between_clients():
     endpoint = f"tcp/127.0.0.1:{free_port()}"
     client = SessionSettings(mode="client", connect=(endpoint,))
     got = queue.Queue()
-    with Bus(open_router(listen=(endpoint,))) as router, Bus.open(client) as a, Bus.open(client) as b:
+    with Bus(open_router(listen=(endpoint,))), Bus.open(client) as a, Bus.open(client) as b:
         b.segment_subscriber(topic_pattern("r", "fit"), lambda s: got.put(s), history=0)
         b.declare_alive("r", "b")
         wait_for(lambda: "b" in a.alive_stages("r", timeout=0.5), 10, "client b alive seen by client a")

@@ -548,7 +548,7 @@ def eiv_products(data, *sets: ColumnSet) -> np.ndarray:
     for i, parts in enumerate(parts_of):
         for ch, link, extra, factor in parts:
             by_channel.setdefault(ch, {}).setdefault(i, []).append((link, extra, factor))
-    for ch, cols in by_channel.items():
+    for cols in by_channel.values():
         idx = sorted(cols)
         U = np.stack([sum(data.store.eiv_response(data, link, extra) * readout_noise_factor(data.f, factor)
                           for link, extra, factor in cols[i]) for i in idx], axis=-1)

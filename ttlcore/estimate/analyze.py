@@ -364,7 +364,7 @@ def requirement_summary(curves: dict, band) -> dict:
     f, req = curves["requirement"]
     sel = (f >= band[0]) & (f <= band[1]) & (req > 0)
     out = {}
-    for name, (fc, asd) in curves.items():
+    for name, (_fc, asd) in curves.items():
         if name == "requirement" or not sel.any():
             continue
         ratio = asd[sel] / req[sel]

@@ -89,7 +89,7 @@ from ..tdi.combinations import MICHELSON, build
 from ..tdi.data import compute_tdi
 from .injection import parse_gw_spec
 
-__all__ = ["Case", "PAPER_CASES", "VARIANTS", "run_scenarios", "add_parser"]
+__all__ = ["Case", "PAPER_CASES", "VARIANTS", "run_scenarios"]
 
 
 @dataclass(frozen=True)

@@ -179,7 +179,7 @@ def predelayed(parts, ltt: np.ndarray, fs: float, **options) -> list:
     pending = [(p, tuple(p.extra)) for p in parts if p.extra]
     while pending:
         by_delay: dict = {}
-        for i, (p, extra) in enumerate(pending):
+        for i, (_p, extra) in enumerate(pending):
             by_delay.setdefault(extra[-1], []).append(i)  # innermost delay first
         done: list = [None] * len(pending)
         for d, idx in by_delay.items():

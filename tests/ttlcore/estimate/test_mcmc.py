@@ -85,7 +85,9 @@ def complex_gaussian_problem(seed: int, lam_true: np.ndarray, bins_per_band: int
     # bins_per_band log-spaced frequencies inside each band
     f = np.concatenate([np.geomspace(lo, hi, bins_per_band + 2)[1:-1] for lo, hi in zip(edges[:-1], edges[1:])])
     band = np.repeat(np.arange(G), bins_per_band)
-    cn = lambda *shape: (rng.standard_normal(shape) + 1j * rng.standard_normal(shape)) / np.sqrt(2)
+    def cn(*shape):
+        return (rng.standard_normal(shape) + 1j * rng.standard_normal(shape)) / np.sqrt(2)
+
     R = 1e3 * cn(m, 3, P)
     c_true = 1e-3 * rng.uniform(-2, 2, P)
     d = R @ c_true + np.sqrt(lam_true[band])[:, None] * cn(m, 3)

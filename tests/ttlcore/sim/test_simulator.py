@@ -162,12 +162,16 @@ def test_laser_noise_asd(noise_day):
 def test_jitter_and_dws_asds(noise_day):
     cfg, tm, truth = noise_day
     jit = cfg.jitter
-    shape = lambda level: (lambda f: (2 * np.pi * f * level) ** 2 * (1 + (jit["fknee"] / f) ** 4))
+    def shape(level):
+        return lambda f: (2 * np.pi * f * level) ** 2 * (1 + (jit["fknee"] / f) ** 4)
+
     # total phi_ij = phi_SC_i + phi_MOSA_ij; eta_ij = cos(a) eta_SC - sin(a) theta_SC + eta_MOSA
     # (cos^2 + sin^2 = 1, SC angles of equal level): velocity PSDs add
     assert_matches(truth["angular_velocity/phi"], tm.fs, lambda f: shape(jit["sc"])(f) + shape(jit["mosa_phi"])(f), "phi velocity")
     assert_matches(truth["angular_velocity/eta"], tm.fs, lambda f: shape(jit["sc"])(f) + shape(jit["mosa_eta"])(f), "eta velocity")
-    dws = lambda f: (2 * np.pi * f * jit["dws"]) ** 2
+    def dws(f):
+        return (2 * np.pi * f * jit["dws"]) ** 2
+
     assert_matches(np.vstack([truth["noises/dws_phi"], truth["noises/dws_eta"]]), tm.fs, dws, "dws noise")
 
 
