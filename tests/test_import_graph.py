@@ -4,7 +4,8 @@
 ``streamer`` nor ``stages``; ``streamer`` (the plumbing) does not import ``stages`` (the
 programs).  No module imports, directly or through others, a module that imports it back:
 every import is followed, at module level and inside functions alike, so a cycle cannot be
-hidden by moving an import into a function.  Imports inside functions are allowed only for
+hidden by moving an import into a function; only the imports under ``if TYPE_CHECKING:``,
+which name types for the type checker and never run, are not part of the graph.  Imports inside functions are allowed only for
 optional or heavy outside packages (figures, viewers, outside references).
 """
 
@@ -41,6 +42,15 @@ def _resolve(module: str, is_package: bool, node: ast.ImportFrom) -> str:
     return ".".join(base + ([node.module] if node.module else []))
 
 
+def _is_type_checking(node: ast.AST) -> bool:
+    """An ``if TYPE_CHECKING:`` (or ``typing.TYPE_CHECKING``) block without ``else``."""
+    if not isinstance(node, ast.If) or node.orelse:
+        return False
+    test = node.test
+    return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+
+
 def _imports(modules: dict[str, Path]):
     """(module, imported internal module, line, inside a function) for every import."""
     for name, path in modules.items():
@@ -50,7 +60,11 @@ def _imports(modules: dict[str, Path]):
         for fn in ast.walk(tree):
             if isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
                 in_function.update(id(n) for n in ast.walk(fn) if n is not fn)
+        # `if TYPE_CHECKING:` imports name types for the type checker and never run
+        type_only = {id(n) for block in ast.walk(tree) if _is_type_checking(block) for n in ast.walk(block)}
         for node in ast.walk(tree):
+            if id(node) in type_only:
+                continue
             targets = []
             if isinstance(node, ast.Import):
                 targets = [a.name for a in node.names]
