@@ -1,5 +1,5 @@
 """Helpers every process test shares: child processes that do not outlive the test, their
-output, polling.  Registered as the module ``proc_testutil`` by ``tests/conftest.py``."""
+output, polling.  Imported by name (``tests/`` is on pytest's ``pythonpath``, pyproject.toml)."""
 
 from __future__ import annotations
 

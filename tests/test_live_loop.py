@@ -20,22 +20,17 @@ import json
 import shlex
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import h5py
 import numpy as np
 import pytest
+from ttl_testutil import MONITOR, Procs, finish, output, stage_processes, ttl_command, wait_for
 
-sys.path.insert(0, str(Path(__file__).with_name("stages")))
-sys.path.insert(0, str(Path(__file__).parent / "ttlcore" / "diagnose"))
-
-from ttl_testutil import MONITOR, Procs, finish, output, stage_processes, ttl_command, wait_for  # noqa: E402
-
-from streamer.recorder import RecordingError, read_recording  # noqa: E402
-from streamer.session import free_port  # noqa: E402
-from ttlcore.estimate.monitoring import FileTruth  # noqa: E402
+from streamer.recorder import RecordingError, read_recording
+from streamer.session import free_port
+from ttlcore.estimate.monitoring import FileTruth
 
 BLIND = str(Path(__file__).parent / "ttlcore" / "diagnose" / "blind_effects.py")
 #: the acceptance of the live-loop issue: the last fit's coefficients against the truth

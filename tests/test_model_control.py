@@ -14,20 +14,15 @@ from __future__ import annotations
 
 import json
 import subprocess
-import sys
 import time
-from pathlib import Path
 
 import pytest
+from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for
 
-sys.path.insert(0, str(Path(__file__).with_name("stages")))
-
-from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for  # noqa: E402
-
-from streamer.keys import control_key  # noqa: E402
-from streamer.recorder import read_recording  # noqa: E402
-from streamer.security import ensure_credentials  # noqa: E402
-from streamer.session import Bus, SessionSettings, free_port  # noqa: E402
+from streamer.keys import control_key
+from streamer.recorder import read_recording
+from streamer.security import ensure_credentials
+from streamer.session import Bus, SessionSettings, free_port
 
 SEGMENTS = 8
 

@@ -17,7 +17,6 @@ import queue
 import re
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -28,10 +27,7 @@ import pytest
 
 # out of `make test` while an intermittent stall of the fitter in full runs is open (issue 5)
 from mcap.reader import make_reader
-
-sys.path.insert(0, str(Path(__file__).with_name("stages")))
-
-from ttl_testutil import (  # noqa: E402
+from ttl_testutil import (
     MONITOR,
     Procs,
     finish,
@@ -44,9 +40,9 @@ from ttl_testutil import (  # noqa: E402
     wait_for,
 )
 
-from streamer.recorder import read_recording  # noqa: E402
-from streamer.security import ensure_credentials  # noqa: E402
-from streamer.session import Bus, SessionSettings, free_port  # noqa: E402
+from streamer.recorder import read_recording
+from streamer.security import ensure_credentials
+from streamer.session import Bus, SessionSettings, free_port
 
 SIM = "--duration 12h --orbit unequal --seed 1"
 SEGMENTS = 12

@@ -9,17 +9,11 @@ stage must handle every segment.
 
 from __future__ import annotations
 
-import sys
-from pathlib import Path
-
 import numpy as np
+from lisainstrument_sim import simulate_lisainstrument
+from ttl_testutil import MONITOR, Procs, finish, indices, output
 
-sys.path.insert(0, str(Path(__file__).with_name("stages")))
-
-from lisainstrument_sim import simulate_lisainstrument  # noqa: E402
-from ttl_testutil import MONITOR, Procs, finish, indices, output  # noqa: E402
-
-from streamer.recorder import read_recording  # noqa: E402
+from streamer.recorder import read_recording
 
 STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if MONITOR else [])
 OUTPUT = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit", "subtractor": "residual",

@@ -17,7 +17,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 import pytest
-from ttl_testutil import finish, output, wait_for  # noqa: F401  (also puts the project first on sys.path)
+from ttl_testutil import finish, output, wait_for  # noqa: F401
 
 from streamer.codec import decode, encode
 from streamer.keys import control_key, topic_pattern

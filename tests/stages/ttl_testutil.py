@@ -8,16 +8,11 @@ import sys
 from pathlib import Path
 
 import psutil
+from proc_testutil import ChildProcesses, finish, output, wait_for  # noqa: F401 - the tests import them from here
+
+from streamer.recorder import read_recording
 
 ROOT = Path(__file__).resolve().parents[2]
-# the project first: with tests/ on sys.path (pytest's rootdir insertion for tests/test_pipeline.py),
-# tests/stages would otherwise be imported as a namespace package named `stages`
-if sys.path[0] != str(ROOT):
-    sys.path.insert(0, str(ROOT))
-
-from proc_testutil import ChildProcesses, finish, output, wait_for  # noqa: E402,F401 - the tests import them from here
-
-from streamer.recorder import read_recording  # noqa: E402
 
 _TTL = Path(sys.executable).with_name("ttl")
 #: The monitor stage is written separately; the pipeline tests run without it until it exists.

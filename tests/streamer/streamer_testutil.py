@@ -8,12 +8,10 @@ import subprocess
 import sys
 from pathlib import Path
 
+from proc_testutil import ChildProcesses, output, wait_for  # noqa: F401 - the tests import them from here
+
 ROOT = Path(__file__).resolve().parents[2]
 PROCS = Path(__file__).with_name("procs.py")
-if str(ROOT) not in sys.path:  # `streamer` may not be in the editable install's mapping yet
-    sys.path.insert(0, str(ROOT))
-
-from proc_testutil import ChildProcesses, output, wait_for  # noqa: E402,F401 - the tests import them from here
 
 
 class Children(ChildProcesses):

@@ -28,14 +28,11 @@ import pytest
 import zenoh
 from cryptography import x509
 from cryptography.x509.oid import NameOID
+from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "stages"))
-
-from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for  # noqa: E402
-
-from streamer import security  # noqa: E402
-from streamer.recorder import read_recording  # noqa: E402
-from streamer.session import Bus, SessionSettings, free_port  # noqa: E402
+from streamer import security
+from streamer.recorder import read_recording
+from streamer.session import Bus, SessionSettings, free_port
 
 INTRUDER = Path(__file__).with_name("intruder.py")
 

@@ -21,19 +21,15 @@ import os
 import re
 import shutil
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
+from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "stages"))
-
-from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for  # noqa: E402
-
-from streamer import security  # noqa: E402
-from streamer.recorder import read_recording  # noqa: E402
+from streamer import security
+from streamer.recorder import read_recording
 
 pytestmark = pytest.mark.ops
 
