@@ -115,7 +115,7 @@ class CandidatePool:
                 continue
             self._seen.add(effect.spec())
             if self._executor is None:  # serial: scored now, held as a finished future
-                done = Future()
+                done: Future = Future()
                 done.set_result(self.score(effect))
                 self._futures.append(done)
             else:
@@ -158,7 +158,7 @@ class CandidatePool:
             "delta_chi2": float(ev.delta_chi2),
             "p_value": p,
             "log_bayes_factor": float(ev.log_bayes_factor),
-            "delta_bic": float(ev.delta_bic),
+            "delta_bic": float(ev.delta_bic) if ev.delta_bic is not None else None,
             "explained_fraction": float(min(1.0, max(ev.delta_chi2, 0.0) / self.excess)) if self.excess > 0 else 0.0,
             "significant": significant,
             "where": where(data, ev, extra_json),
@@ -243,6 +243,8 @@ def where(data, ev: Evidence, extra: dict) -> dict:
     parameters (link, MOSA, spacecraft), the step time or offsets it was scored at."""
     bd = ev.band_delta
     sd = ev.segment_delta
+    if bd is None or sd is None:
+        raise ValueError("where(): the evidence has no band and segment deltas")
     tot = max(float(np.sum(np.maximum(bd, 0))), 1e-300)
     bands = [{"f_lo": float(data.edges[g]), "f_hi": float(data.edges[g + 1]), "delta_chi2": float(bd[g]),
               "share": float(max(bd[g], 0) / tot)} for g in range(data.G)]
@@ -330,7 +332,7 @@ def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> li
     s = data.settings
     hop = float(tr.get("hop", 0.0))
     tf0 = residual_map(data, residual) if events else None
-    actions, spans, prior = [], [], []
+    actions, spans, prior = [], [], list[Effect]()
     for i, e in enumerate(events):  # loudest first
         if e["class"] == "missing-coupling":
             continue
@@ -391,7 +393,7 @@ def _event_glitches(model: ModelFit, residual: np.ndarray, tf0, event: dict, spa
     :data:`GLITCH_EXPLAINED` of the event's excess."""
     before = event_excess(tf0, event["t_start"], event["t_stop"])
     search_span = Glitch(span=f"{span[0]:.0f}-{span[1]:.0f}")
-    found, results = [], []
+    found, results = list[Glitch](), []
     for _ in range(MAX_GLITCHES_PER_EVENT):
         base = _with_glitches(model, list(prior) + found)
         res = glitch_search(base, search_span)
@@ -400,6 +402,7 @@ def _event_glitches(model: ModelFit, residual: np.ndarray, tf0, event: dict, spa
             if not found:
                 results.append(res)
             break
+        assert isinstance(res.effect, Glitch)  # glitch_search's
         found.append(res.effect)
         results.append(res)
         if _explained(model, residual, tf0, event, list(prior) + found, before)[0] >= GLITCH_DONE:
@@ -409,12 +412,15 @@ def _event_glitches(model: ModelFit, residual: np.ndarray, tf0, event: dict, spa
             others = list(prior) + found[:j] + found[j + 1:]
             g = found[j]
             t = float(g.options["t"])
+            assert g.where is not None  # placed by its search
             again = Glitch(span=f"{t - REFINE_SPAN:.1f}-{t + REFINE_SPAN:.1f}",
                            **{("tm" if g.where.startswith("tm") else "link"): g.where[-2:]})
             res = glitch_search(_with_glitches(model, others), again)
+            assert isinstance(res.effect, Glitch)  # glitch_search's
             found[j], results[j] = res.effect, res
     if not found:
         res = results[0]
+        assert isinstance(res.effect, Glitch)  # glitch_search's
         return {"kind": "glitch", "advised": False, "significant": False, "explained_fraction": 0.0,
                 "text": f"add {res.effect.describe_text()}", "delta_chi2": float(res.delta_chi2),
                 "log_bayes_factor": float(res.log_bayes_factor), "cli_spec": res.effect.cli_spec()}
@@ -422,7 +428,7 @@ def _event_glitches(model: ModelFit, residual: np.ndarray, tf0, event: dict, spa
     names = [g.column_name() for g in found]
     dv = {n: float(fit.theta[list(fit.names).index(n)]) for n in names}
     sdv = {n: float(fit.sigma[list(fit.names).index(n)]) for n in names}
-    acts = []
+    acts: list[dict] = []
     for g, res in zip(found, results):
         n = g.column_name()
         acts.append({"kind": "glitch", "spec": g.spec(), "cli_spec": g.cli_spec(),

@@ -39,6 +39,7 @@ from dataclasses import dataclass, field
 from importlib import metadata
 from math import factorial
 from pathlib import Path
+from typing import ClassVar, Self
 
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
@@ -295,6 +296,8 @@ class Effect:
     physics = ""
     parameters: dict = {}
     needs_coefficients = False
+    #: where a plugin effect class was loaded from (:func:`load_effect_module`)
+    _ttl_module_path: ClassVar[str]
 
     def __init__(self, **options):
         unknown = set(options) - set(self.parameters)
@@ -359,7 +362,7 @@ class Effect:
         """Searched options without a value (the diagnosis finds them)."""
         return [k for k in self.searched if self.options.get(k) is None]
 
-    def with_options(self, **options) -> "Effect":
+    def with_options(self, **options) -> Self:
         """A copy with some options replaced (searched parameters filled in)."""
         new = type(self)(**{**{k: v for k, v in self.options.items() if v != self.parameters.get(k)}, **options})
         return new
@@ -564,7 +567,7 @@ class _Linearised(Effect):
                 raise ConfigError(f"effect {self.name!r}: {key}={self.options[key]!r} is not an offset in seconds") from None
 
     @property
-    def searched(self) -> dict:
+    def searched(self) -> dict:  # type: ignore[override]  # a class attribute in Effect (plugins set it so), computed here
         """``offset.<group> -> (-inf, inf, "linear")``: one offset [s] per group of
         :meth:`shifted_members` (the search's span comes from the settings)."""
         return {f"{OFFSET_OPTION}{g}": (-np.inf, np.inf, "linear") for g in self.shifted_members()}
@@ -793,7 +796,7 @@ class _Placed(Effect):
         return v
 
     @property
-    def searched(self) -> dict:
+    def searched(self) -> dict:  # type: ignore[override]  # a class attribute in Effect (plugins set it so), computed here
         """The filter's searched poles (:meth:`filter_searched`) and, with ``vary=cycle``,
         the period [s] of the cycle (:data:`CYCLE_PERIOD`)."""
         out = dict(self.filter_searched())
@@ -898,6 +901,8 @@ def rational_basis(kind: str, f: np.ndarray, f0: float, q: float | None = None) 
     if kind == "pole1":
         D = 1.0 + x
         return [1.0 / D, x / D]
+    if q is None:
+        raise ValueError(f"a {kind!r} basis needs q")
     D = 1.0 + x / float(q) + x * x
     return [1.0 / D, x / D, x * x / D]
 
@@ -934,6 +939,7 @@ class FrequencyCoupling(_Placed):
         """The basis responses ``f -> complex`` for the current poles.  They share the
         basis: computed once for the frequency array they are called with in turn (the same
         array object, which must not change in place between the calls)."""
+        poles: tuple[float, ...]
         if self.kind == "pole1":
             poles, n = (float(self.options["fc"]),), 2
         else:
@@ -1003,7 +1009,7 @@ EFFECTS: dict[str, type] = {cls.name: cls for cls in
 # Lookup, parsing, plugins
 # ---------------------------------------------------------------------------
 
-def load_effect_module(spec: str) -> list[type]:
+def load_effect_module(spec: str) -> list[type[Effect]]:
     """Effect classes of a user module (a ``.py`` path or a dotted name).
 
     The module lists its classes in ``EFFECTS`` (a list, or a dict name -> class); without
@@ -1033,13 +1039,10 @@ def load_effect_module(spec: str) -> list[type]:
 
 
 @functools.lru_cache(maxsize=1)
-def _entry_point_effects() -> dict[str, type]:
+def _entry_point_effects() -> dict[str, type[Effect]]:
     """Effect classes registered by installed packages (scanned once per process)."""
-    out = {}
-    try:
-        eps = metadata.entry_points(group=ENTRY_POINT_GROUP)
-    except TypeError:  # Python < 3.10 API
-        eps = metadata.entry_points().get(ENTRY_POINT_GROUP, [])
+    out: dict[str, type[Effect]] = {}
+    eps = metadata.entry_points(group=ENTRY_POINT_GROUP)
     for ep in eps:
         try:
             obj = ep.load()
@@ -1052,7 +1055,7 @@ def _entry_point_effects() -> dict[str, type]:
     return out
 
 
-def available_effects(modules=()) -> dict[str, type]:
+def available_effects(modules=()) -> dict[str, type[Effect]]:
     """Named effects, those of installed packages (entry points ``ttl.effects``) and those of
     the given plugin modules (later ones override earlier ones with the same name)."""
     out = dict(EFFECTS)
@@ -1135,7 +1138,7 @@ class EffectInjection:
         if unknown:
             raise ConfigError(f"injection of {effect.name!r}: unknown columns {sorted(unknown)[:5]}")
         self.name = name or effect.name
-        self._angle = None  # running angle integral (phi, eta) at the last sample of the previous chunk
+        self._angle: np.ndarray | None = None  # running angle integral (phi, eta) at the last sample of the previous chunk
         self._next_n0 = 0
 
     def describe(self) -> dict:
@@ -1219,6 +1222,7 @@ class ShiftInjection(EffectInjection):
 
     def link_signal(self, ctx: ChunkContext) -> np.ndarray:
         eff = self.effect
+        assert isinstance(eff, _Linearised)  # the injection of the shifted-witness effects only
         n, h, fs = ctx.n, ctx.h, ctx.fs
         # (24 or 6, h + n + look-ahead): the samples after the chunk keep the stencils centred
         ahead = ctx.phi_dot_ahead is not None

@@ -244,12 +244,14 @@ class GatedData(WhitenedData):
     gate_spans: tuple = ()
 
     def spectra(self, x: np.ndarray) -> np.ndarray:
+        assert self.seg_scale is not None  # set with the gate (gate_data)
         return super().spectra(x) * self.seg_scale[:, None, None, None]
 
     def decimate(self, xyz: np.ndarray, is_aet: bool = False) -> np.ndarray:
         """The decimated A, E, T of columns (:meth:`WhitenedData.decimate`) times the gate;
         full-length series only (a stretch: decimate it ungated and gate it once placed)."""
         out = super().decimate(xyz, is_aet)
+        assert self.gate is not None  # set with the gate (gate_data)
         if out.shape[-1] != self.gate.size:
             raise ConfigError(f"gated data: a series of {out.shape[-1]} decimated samples cannot be gated "
                               f"({self.gate.size} expected)")
@@ -466,7 +468,7 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
     betas = [float(effect.options["beta"])] if effect.options.get("beta") is not None else list(BETA_GRID)
     n_eval = 0
     scanner = _Scanner(model)
-    best = (-np.inf, None, None, None)  # (dchi2, where, beta, t)
+    best: tuple = (-np.inf, None, None, None)  # (dchi2, where, beta, t)
     grid = []
     for t_ref, a, b in _pieces(data, lo, hi) if hi > lo else [(lo, lo, lo)]:
         half = max(t_ref - a, b - t_ref)

@@ -126,7 +126,7 @@ class ModelFit:
     q_min: float
     residual_w: np.ndarray = field(repr=False)
     normal: tuple[np.ndarray, np.ndarray] = field(repr=False)
-    eiv_term: np.ndarray | None = field(repr=False, default=None)
+    eiv_term: np.ndarray = field(repr=False)
     expansion: dict = field(default_factory=dict)
     searches: dict = field(default_factory=dict)
     time_table: dict | None = None

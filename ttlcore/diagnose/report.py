@@ -50,7 +50,7 @@ def adequacy_json(model: ModelFit) -> dict:
 def coefficients_json(model: ModelFit, truth=None) -> dict:
     """The fitted columns (value, sigma) and, with truth, the errors of the 24 linear ones;
     ``offsets``: the fitted offsets of linearised effects (expansion point + ``d1``)."""
-    out = {"values": {n: float(v) for n, v in zip(model.parameter_names, model.theta)},
+    out: dict = {"values": {n: float(v) for n, v in zip(model.parameter_names, model.theta)},
            "sigma": {n: float(v) for n, v in zip(model.parameter_names, model.sigma)}}
     offsets = {k: {"value": v, "sigma": sg, "unit": "s"} for k, (v, sg) in model.offsets().items()}
     if offsets:

@@ -70,6 +70,7 @@ from .columns import (
 )
 from .effects import (
     OFFSET_OPTION,
+    Effect,
     LinearTTL,
     Step,
     columns_tdi,
@@ -123,7 +124,7 @@ class SearchResult:
         Column -> linear parameter at the optimum (offsets).
     """
 
-    effect: object
+    effect: Effect
     estimates: dict
     intervals: dict
     delta_chi2: float
@@ -454,7 +455,7 @@ def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
             H[i, j] = H[j, i] = -(fpp - fpm - fmp + fmm) / (4 * h[i] * h[j])
     try:
         cov = np.linalg.inv(H)
-        ok = np.all(np.linalg.eigvalsh(H) > 0)
+        ok = bool(np.all(np.linalg.eigvalsh(H) > 0))
     except np.linalg.LinAlgError:
         cov, ok = np.full((d, d), np.nan), False
     sig = np.sqrt(np.abs(np.diag(cov))) if ok else np.full(d, np.nan)
@@ -664,8 +665,8 @@ def _step_correction(data, ts: float, base: list) -> tuple | None:
     sub = tm.slice(a, b)
     inp = effect_input_from_telemetry(sub)
     step = (inp.t >= ts).astype(float)
-    cols = {c.name: c for c in LinearTTL().columns(inp)}
-    cols = [cols[n] for n in base]
+    by_name = {c.name: c for c in LinearTTL().columns(inp)}
+    cols = [by_name[n] for n in base]
     for c in cols:
         for p in c.parts:
             p.series = p.series * step
@@ -891,7 +892,8 @@ def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
     found = effect.with_options(**{k: float(f"{v:.6g}") for k, v in est.items()})
     intervals = {option[g]: (delta[g] - sigma[g], delta[g] + sigma[g]) for g in searched if np.isfinite(sigma[g])}
     return SearchResult(found, est, intervals, float(dchi2), float(lbf_best), marg, n_eval,
-                        gains={option[g]: float(v) for g, v in gain.items()}, theta=dict(zip(names, theta)))
+                        gains={option[g]: float(v) for g, v in gain.items()},
+                        theta=dict(zip(names, theta)) if theta is not None else {})
 
 
 def _offset_sigma(q, x0: float, kappa: float, grid_step: float) -> float:

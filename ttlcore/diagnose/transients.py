@@ -278,7 +278,7 @@ def data_gaps(series, fs: float, t0: float, valid=None, min_gap: float = MIN_GAP
         if idx.size:
             inside[idx[0]:idx[-1] + 1] = True
         bad &= inside
-    out = []
+    out: list[tuple[float, float]] = []
     d = np.diff(np.concatenate([[0], bad.astype(np.int8), [0]]))
     for a, b in zip(np.flatnonzero(d == 1), np.flatnonzero(d == -1)):
         if (b - a) / fs >= min_gap:
@@ -793,10 +793,10 @@ def transient_report(model, report: dict | None = None, tile: float = TILE_DURAT
         robust = gated_ttl_fit(data, signal_spans, model.data.ttl_names or None)
         robust["model"] = model.ttl_coefficients().tolist()
     summary = []
-    for e in out_events:
-        summary.append(f"{e['class']}: {e['t_start'] / 3600:.2f}-{e['t_stop'] / 3600:.2f} h, {_f(e['f_lo'])}-{_f(e['f_hi'])} "
-                       f"in {', '.join(e['channels']) or '-'} (T share {100 * e['t_share']:.1f} %, track {e['track_kind']}, "
-                       f"SNR {e['snr']:.0f})")
+    for ev in out_events:
+        summary.append(f"{ev['class']}: {ev['t_start'] / 3600:.2f}-{ev['t_stop'] / 3600:.2f} h, {_f(ev['f_lo'])}-{_f(ev['f_hi'])} "
+                       f"in {', '.join(ev['channels']) or '-'} (T share {100 * ev['t_share']:.1f} %, track {ev['track_kind']}, "
+                       f"SNR {ev['snr']:.0f})")
     for a, b in gaps:
         summary.append(f"missing data {a / 3600:.2f}-{b / 3600:.2f} h")
     if robust is not None:
