@@ -367,7 +367,7 @@ class Effect:
         new = type(self)(**{**{k: v for k, v in self.options.items() if v != self.parameters.get(k)}, **options})
         return new
 
-    def injection(self, values: dict, name: str | None = None) -> "EffectInjection":
+    def injection(self, values: dict, name: str | None = None) -> EffectInjection:
         """Simulator injection adding ``sum_col values[col] * col`` (true angles) to eta."""
         return EffectInjection(self, values, name)
 
@@ -1360,7 +1360,7 @@ def readout_noise_factor(f, shift):
     return np.exp(2j * np.pi * f * shift)[:, None] if shift else 1.0
 
 
-def names_only_input() -> "EffectInput":
+def names_only_input() -> EffectInput:
     """A tiny input with ``names_only=True``: enough for an effect to name its columns."""
     t = np.arange(64.0)
     z = np.zeros((6, 64))

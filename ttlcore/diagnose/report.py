@@ -6,10 +6,10 @@ from __future__ import annotations
 import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES
-from .transients import NOT_AN_EFFECT
 from .adequacy import _hz, describe_failures, third_octave_table
 from .model_fit import ModelFit
 from .noise_model import noise_model_json
+from .transients import NOT_AN_EFFECT
 
 
 def fine_band_table(model: ModelFit):

@@ -852,7 +852,7 @@ def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
             profiles[g] = Qg
             x0 = float(grids[g][int(np.argmin(Qg))])
             lo, hi = ranges[option[g]][:2]
-            res = minimize_scalar(lambda x: float(q(x)[0][0]), bounds=(max(x0 - step, lo), min(x0 + step, hi)),
+            res = minimize_scalar(lambda x, q=q: float(q(x)[0][0]), bounds=(max(x0 - step, lo), min(x0 + step, hi)),
                                   method="bounded", options={"xatol": 1e-4})
             best = float(res.x) if res.fun <= Qg.min() else x0
             moved = max(moved, abs(best - delta[g]))

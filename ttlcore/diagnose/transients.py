@@ -226,7 +226,6 @@ def time_frequency_map(residual, fs: float, t0: float, f_psd, psd, band, *, tile
         Relative tolerance of the noise model.
     """
     x = np.asarray(residual, dtype=float)
-    n = x.shape[-1]
     L = int(round(tile * fs))
     hop = max(1, L // 2)
     if valid is None:
@@ -351,7 +350,7 @@ def find_events(tf: TimeFrequencyMap, alpha: float = MAP_ALPHA) -> list[Event]:
         level = (tf.background[:, bands] * tf.dof[None, bands]).sum()
         dof = 3 * tf.dof[bands].sum()
 
-        def weak(i):
+        def weak(i, bands=bands, dof=dof, level=level):
             return bool(tf.valid[i]) and _p(tf.chi2[:, i][:, bands].sum(), dof, level / dof, tf.kappa, tf.tolerance) < alpha
         lo, hi = k, j
         while lo - 1 >= 0 and weak(lo - 1):

@@ -7,8 +7,8 @@ import numpy as np
 from ttlcore.estimate.fit import default_band_edges
 from ttlcore.estimate.noise_psd import tdi_noise_csd
 from ttlcore.estimate.spectra import welch_asd
-from ttlcore.tdi.data import compute_tdi
 from ttlcore.io.telemetry import Telemetry
+from ttlcore.tdi.data import compute_tdi
 
 
 def injected_asd_ratio(tm, injected: np.ndarray, band=(3e-3, 0.8), n_bands: int = 8) -> np.ndarray:

@@ -4,9 +4,15 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from ttlcore.diagnose.adequacy import (band_table, describe_failures, describe_time_failures, instrument_noise_csd,
-                                       merged_band_edges, p_value)
 from ttlcore.conventions import COEFFICIENT_NAMES
+from ttlcore.diagnose.adequacy import (
+    band_table,
+    describe_failures,
+    describe_time_failures,
+    instrument_noise_csd,
+    merged_band_edges,
+    p_value,
+)
 from ttlcore.diagnose.evidence import log_bayes_factor
 from ttlcore.estimate.fit import model_csd
 from ttlcore.tdi.regressors import regressor_responses

@@ -23,14 +23,14 @@ from ttlcore.cli.main import main  # noqa: E402
 from ttlcore.conventions import COEFFICIENT_NAMES  # noqa: E402
 from ttlcore.diagnose.candidates import candidates, shifted_evidence  # noqa: E402
 from ttlcore.diagnose.diagnoser import diagnose, refit, text_report  # noqa: E402
-from ttlcore.diagnose.settings import DiagnoseSettings  # noqa: E402
+from ttlcore.diagnose.effects import injection_from_spec, make_effects  # noqa: E402
 from ttlcore.diagnose.evidence import laplace_evidence, log_bayes_factor  # noqa: E402
 from ttlcore.diagnose.fitting import fit_model  # noqa: E402
+from ttlcore.diagnose.settings import DiagnoseSettings  # noqa: E402
 from ttlcore.diagnose.whitened import fft_length, whiten_telemetry  # noqa: E402
-from ttlcore.diagnose.effects import injection_from_spec, make_effects  # noqa: E402
-from ttlcore.tdi.interpolation import timeshift  # noqa: E402
 from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
 from ttlcore.tdi.data import compute_tdi  # noqa: E402
+from ttlcore.tdi.interpolation import timeshift  # noqa: E402
 
 HOURS6 = 6 * 3600.0
 
@@ -212,6 +212,7 @@ def test_lisainstrument_day_with_shifted_dws_channels(tmp_path):
     """Outside data: lisainstrument (4 h here; the day is a science test) with the DWS
     channels time-stamped 0.12 s late (a timing offset between DWS and phasemeter)."""
     from lisainstrument_sim import simulate_lisainstrument
+
     from ttlcore.io.lisainstrument import lisainstrument_truth
     from ttlcore.io.reader import read_telemetry
 
@@ -362,6 +363,7 @@ def test_nothing_injected_one_day():
 @pytest.mark.science
 def test_lisainstrument_full_day_with_shifted_dws(tmp_path):
     from lisainstrument_sim import simulate_lisainstrument
+
     from ttlcore.io.lisainstrument import lisainstrument_truth
     from ttlcore.io.reader import read_telemetry
 

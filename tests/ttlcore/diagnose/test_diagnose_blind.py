@@ -31,8 +31,8 @@ from ttlcore.cli.main import main  # noqa: E402
 from ttlcore.conventions import ANGLES, COEFFICIENT_NAMES, LINKS, MOSAS  # noqa: E402
 from ttlcore.diagnose.diagnoser import refit  # noqa: E402
 from ttlcore.diagnose.whitened import whiten_telemetry  # noqa: E402
-from ttlcore.io.truth import read_truth  # noqa: E402
 from ttlcore.io.reader import read_telemetry  # noqa: E402
+from ttlcore.io.truth import read_truth  # noqa: E402
 
 BLIND = str(Path(__file__).parent / "blind_effects.py")
 #: the acceptance of issue 10

@@ -32,7 +32,7 @@ from diagnose_helpers import injected_asd_ratio  # noqa: E402
 from test_diagnose_blind import MAX_ERROR, MAX_PULL_RMS, blind_case  # noqa: E402
 
 from ttlcore.cli.main import main  # noqa: E402
-from ttlcore.conventions import C, COEFFICIENT_NAMES, LINKS  # noqa: E402
+from ttlcore.conventions import COEFFICIENT_NAMES, LINKS, C  # noqa: E402
 from ttlcore.io.lisainstrument import lisainstrument_truth  # noqa: E402
 from ttlcore.io.reader import read_telemetry  # noqa: E402
 from ttlcore.io.telemetry import write_telemetry  # noqa: E402

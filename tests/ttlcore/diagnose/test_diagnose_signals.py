@@ -17,22 +17,17 @@ the transient's hours (``transients.robustness.gated``) when it is a signal - wi
 the shared 2-core machine).
 """
 
-import sys
 from dataclasses import replace
-from pathlib import Path
 
+import blind_signals as bs
 import numpy as np
 import pytest
 
-sys.path.insert(0, str(Path(__file__).parent))
-
-import blind_signals as bs  # noqa: E402
-
-from ttlcore.cli.diagnose import split_effects  # noqa: E402
-from ttlcore.conventions import COEFFICIENT_NAMES, LINKS  # noqa: E402
-from ttlcore.diagnose.diagnoser import diagnose, text_report  # noqa: E402
-from ttlcore.diagnose.effects import injection_from_spec  # noqa: E402
-from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
+from ttlcore.cli.diagnose import split_effects
+from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
+from ttlcore.diagnose.diagnoser import diagnose, text_report
+from ttlcore.diagnose.effects import injection_from_spec
+from ttlcore.sim.simulator import SimulationConfig, simulate
 
 pytestmark = pytest.mark.science
 
@@ -52,7 +47,7 @@ def day(seed, spec=None):
 def follow(tm, C, max_steps=3):
     """``diagnose`` and its printed ``--effects`` option, at most ``max_steps`` times."""
     effects, reports = ["linear-ttl"], []
-    for step in range(max_steps):
+    for _step in range(max_steps):
         rep = diagnose(tm, effects, truth_coefficients=C, witnesses=False)
         reports.append(rep)
         opt = (rep["recommendation"] or {}).get("option")

@@ -4,8 +4,7 @@ diagnosis columns against the injected signals through TDI."""
 import numpy as np
 import pytest
 
-from ttlcore.sim.coefficients import make_coefficients
-from ttlcore.conventions import C, COEFFICIENT_NAMES, LINKS, MOSAS
+from ttlcore.conventions import COEFFICIENT_NAMES, LINKS, MOSAS, C
 from ttlcore.diagnose.effects import (
     EFFECTS,
     available_effects,
@@ -18,11 +17,12 @@ from ttlcore.diagnose.effects import (
 )
 from ttlcore.errors import ConfigError
 from ttlcore.estimate.fit import FitSettings, fit_tdi
+from ttlcore.sim.coefficients import make_coefficients
 from ttlcore.sim.injection import injection_from_description
-from ttlcore.tdi.interpolation import timeshift
 from ttlcore.sim.simulator import NoiseSwitches, SimulationConfig, simulate
 from ttlcore.tdi.combinations import MICHELSON, build
 from ttlcore.tdi.data import TDIData, compute_tdi
+from ttlcore.tdi.interpolation import timeshift
 
 #: jitter and TTL only (no readout noise): the DWS readouts are the true velocities
 QUIET = dict(orbit="equal", seed=7, noises=NoiseSwitches.parse("none,ttl,sc_jitter,mosa_jitter"))

@@ -28,8 +28,8 @@ from ttlcore.diagnose.effects import make_effects, parse_effect_spec  # noqa: E4
 from ttlcore.diagnose.fitting import fit_model  # noqa: E402
 from ttlcore.diagnose.glitches import (  # noqa: E402
     Gate,
-    Glitch,
     GatedData,
+    Glitch,
     gated_data,
     glitch_search,
     glitch_velocity,

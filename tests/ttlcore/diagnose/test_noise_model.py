@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from ttlcore.diagnose.diagnoser import DiagnoseSettings, diagnose
-from ttlcore.diagnose.whitened import whiten_telemetry
 from ttlcore.diagnose.effects import injection_from_spec, make_effects
 from ttlcore.diagnose.noise_model import BOUNDS, NoiseModel, basis_csds, fit_noise_model, profile_noise_model
+from ttlcore.diagnose.whitened import whiten_telemetry
 from ttlcore.estimate.fit import model_csd
 from ttlcore.estimate.noise_psd import tdi_noise_csd
 from ttlcore.io.telemetry import Telemetry
@@ -145,6 +145,7 @@ def test_lisainstrument_null_day_passes_at_two_percent(tmp_path):
     # coupling on); the fixed model reads chi2/dof 1.07 at low and 0.93 at high frequency,
     # the fitted one passes the 2 % test in every band and reads 1 within the scatter
     from lisainstrument_sim import simulate_lisainstrument
+
     from ttlcore.io.reader import read_telemetry
 
     path = tmp_path / "null.h5"

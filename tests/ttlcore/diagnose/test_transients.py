@@ -14,8 +14,8 @@ from ttlcore.conventions import LINKS
 from ttlcore.diagnose import transients as T
 from ttlcore.diagnose.noise_model import outlying_segments
 from ttlcore.diagnose.report import recommendation
-from ttlcore.tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 from ttlcore.sim import noise_models
+from ttlcore.tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 
 FS = 2.0
 HOURS = 12

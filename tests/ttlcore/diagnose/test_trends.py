@@ -15,8 +15,15 @@ import numpy as np
 import pytest
 
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY
-from ttlcore.diagnose.trends import (Alert, TrendMonitor, TrendSettings, detect_drifts, detect_steps,
-                            trend_estimates, window_correlation)
+from ttlcore.diagnose.trends import (
+    Alert,
+    TrendMonitor,
+    TrendSettings,
+    detect_drifts,
+    detect_steps,
+    trend_estimates,
+    window_correlation,
+)
 
 HOUR = 3600.0
 N = 24                    # segments per window

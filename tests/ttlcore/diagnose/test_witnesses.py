@@ -2,11 +2,11 @@
 
 import numpy as np
 
+from ttlcore.diagnose.effects import Column, Effect, Part
 from ttlcore.diagnose.fitting import fit_model
 from ttlcore.diagnose.whitened import whiten_telemetry
-from ttlcore.diagnose.effects import Column, Effect, Part
-from ttlcore.sim.simulator import SimulationConfig, simulate
 from ttlcore.diagnose.witnesses import witness_search
+from ttlcore.sim.simulator import SimulationConfig, simulate
 
 
 class _Leak(Effect):
