@@ -82,7 +82,7 @@ def _split(values) -> tuple:
     return tuple(out)
 
 
-def run_options(args) -> "RunOptions":
+def run_options(args) -> RunOptions:
     """:class:`streamer.launcher.RunOptions` from ``--config`` and the command line."""
 
     conf = _read_config(args.config) if args.config else {}

@@ -92,9 +92,9 @@ from .keys import (
     to_ranges,
     topic_pattern,
 )
+from .plan import RangeSet
 from .processes import SignalFlag, stop_process, tied_to_parent
 from .progress import REPLAY_WINDOW, Progress, key_stage, parse_progress
-from .plan import RangeSet
 from .recorder import stage_record
 from .session import (
     Bus,
@@ -447,7 +447,7 @@ class Launcher:
             if self.router.poll() is not None:
                 lines = [ln for ln in text.splitlines() if ln.strip()]
                 raise LaunchError(f"cannot open the Zenoh router on {', '.join(listen)}: "
-                                  f"{lines[-1] if lines else 'exit status %d' % self.router.returncode}")
+                                  f"{lines[-1] if lines else f'exit status {self.router.returncode}'}")
             time.sleep(0.05)
         raise LaunchError(f"the Zenoh router did not start within 60 s (log {path})")
 

@@ -155,7 +155,7 @@ class StageConfig:
                 "progress_from": self.progress_from}
 
     @classmethod
-    def from_dict(cls, d: Mapping[str, Any]) -> "StageConfig":
+    def from_dict(cls, d: Mapping[str, Any]) -> StageConfig:
         d = dict(d)
         unknown = set(d) - set(cls.__dataclass_fields__)
         if unknown:

@@ -31,19 +31,16 @@ import os
 import random
 import signal
 import subprocess
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 import psutil
 import pytest
+from ttl_testutil import MONITOR, Procs, finish, output, stage_processes, ttl_command
 
-sys.path.insert(0, str(Path(__file__).with_name("stages")))
-
-from streamer.recorder import read_recording  # noqa: E402
-from streamer.session import free_port  # noqa: E402
-from ttl_testutil import MONITOR, Procs, finish, output, stage_processes, ttl_command  # noqa: E402
+from streamer.recorder import read_recording
+from streamer.session import free_port
 
 pytestmark = pytest.mark.ops
 

@@ -24,7 +24,6 @@ import json
 import os
 import re
 import signal
-import sys
 import threading
 import time
 import zlib
@@ -34,13 +33,11 @@ import numpy as np
 import psutil
 import pytest
 import zenoh
+from ttl_testutil import MONITOR, Procs, finish, output, stage_processes, ttl_command, wait_for
 
-sys.path.insert(0, str(Path(__file__).with_name("stages")))
-
-from streamer.codec import encode  # noqa: E402
-from streamer.recorder import read_recording  # noqa: E402
-from streamer.session import Bus, SessionSettings, free_port  # noqa: E402
-from ttl_testutil import MONITOR, Procs, finish, indices, output, stage_processes, ttl_command, wait_for  # noqa: E402
+from streamer.codec import encode
+from streamer.recorder import read_recording
+from streamer.session import Bus, SessionSettings, free_port
 
 pytestmark = pytest.mark.ops
 
@@ -556,8 +553,9 @@ def test_launcher_killed_stages_stop_with_a_clear_error(clean, tmp_path):
 def test_nan_gap_ends_the_run_with_the_gap_reported(tmp_path):
     """Ten minutes of NaN in eta: the run ends by itself (exit 0), the gap is reported, and
     the fit after the gap is within 1 sigma of the clean run's over the same data."""
-    import h5py
     import subprocess
+
+    import h5py
 
     clean_file = tmp_path / "clean.h5"
     res = subprocess.run(ttl_command("simulate", *SIM.split(), "--out", str(clean_file)), capture_output=True,

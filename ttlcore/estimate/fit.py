@@ -40,8 +40,8 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy import ndimage
 
-from ..conventions import C as C_LIGHT
 from ..conventions import COEFFICIENT_NAMES, LINKS
+from ..conventions import C as C_LIGHT
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 from ..tdi.data import TDIData
 from ..tdi.regressors import dws_channel, placement
@@ -479,7 +479,7 @@ def eiv_responses(f: np.ndarray, ltt_mean, names, extra: dict | None = None) -> 
             by_channel.setdefault(channel, {}).setdefault(k, []).append((link, tuple(delays), response))
     responses: dict = {}
     out = []
-    for channel, columns in by_channel.items():
+    for columns in by_channel.values():
         idx = np.array(sorted(columns))
         T = np.zeros((f.size, 3, idx.size), dtype=complex)
         for j, k in enumerate(idx):
@@ -585,7 +585,7 @@ class FitResult:
             "identifiability": self.identifiability(),
             "units": "m/rad",
         }
-        if self.band_edges is not None:
+        if self.band_edges is not None and self.chi2_per_band is not None and self.dof_per_band is not None:
             out["per_band"] = [
                 {"f_lo": float(lo), "f_hi": float(hi), "chi2": float(c), "dof": float(d), "chi2_dof": float(c / d) if d else None}
                 for lo, hi, c, d in zip(self.band_edges[:-1], self.band_edges[1:], self.chi2_per_band, self.dof_per_band)

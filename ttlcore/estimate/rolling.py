@@ -53,10 +53,20 @@ import numpy as np
 from scipy import signal
 
 from ..conventions import COEFFICIENT_NAMES
-from .fit import (FitResult, FitSettings, NormalEquations, SegmentSpectra, _result, accumulate, fit_spectra,
-                  score_matrix, solve, spectra_of_segment)
 from ..tdi.combinations import AET
 from ..tdi.data import TDIData, lowpass_taps
+from .fit import (
+    FitResult,
+    FitSettings,
+    NormalEquations,
+    SegmentSpectra,
+    _result,
+    accumulate,
+    fit_spectra,
+    score_matrix,
+    solve,
+    spectra_of_segment,
+)
 
 log = logging.getLogger(__name__)
 
@@ -73,8 +83,8 @@ class StreamingDecimator:
         self.h = np.asarray(taps, dtype=float)
         self.factor = int(factor)
         self.n_in = 0  # global index of the next input sample
-        self._tail = None  # last len(h) - 1 inputs (zeros before the start)
-        self._bad_tail = None
+        self._tail: np.ndarray | None = None  # last len(h) - 1 inputs (zeros before the start)
+        self._bad_tail: np.ndarray | None = None
 
     def push(self, x: np.ndarray) -> np.ndarray:
         """Filter the block ``x`` (shape ``(..., m)``); returns its decimated outputs."""
@@ -83,7 +93,7 @@ class StreamingDecimator:
         L = self.h.size
         bad = ~np.isfinite(x).reshape(-1, m).all(axis=0)
         x = np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0)
-        if self._tail is None:
+        if self._tail is None or self._bad_tail is None:
             self._tail = np.zeros(x.shape[:-1] + (L - 1,))
             self._bad_tail = np.zeros(L - 1, dtype=bool)
         ext = np.concatenate([self._tail, x], axis=-1)
@@ -168,8 +178,8 @@ class RollingFit:
     def reset(self) -> None:
         """Forget everything (after a gap in the data)."""
         self._decimator: StreamingDecimator | None = None
-        self._fs_in = None
-        self._t0_out = None  # time of decimated output sample 0
+        self._fs_in: float | None = None
+        self._t0_out: float | None = None  # time of decimated output sample 0
         self._n_out = 0  # decimated samples produced so far
         self._pending = _Pending([], [])
         self._spectra: deque[SegmentSpectra] = deque()
@@ -211,6 +221,7 @@ class RollingFit:
             self._t0_out = td.t0 - (taps.size - 1) / 2 / td.fs
         elif td.fs != self._fs_in:
             raise ValueError(f"segment at t0={td.t0}: fs {td.fs} differs from {self._fs_in}")
+        assert self._fs_in is not None and self._t0_out is not None  # set with the decimator
         stacked = np.concatenate([td.data[:, None, :], td.regressors], axis=1)  # (3, 1 + P, n)
         out = self._decimator.push(stacked)
         fs_out = self._fs_in / self._factor
@@ -270,9 +281,10 @@ class RollingFit:
         self.gates = spans
         keep = [k for k, sp in enumerate(self._spectra) if self.gated(sp) is None]
         if len(keep) < len(self._spectra):
-            for k, sp in enumerate(self._spectra):
-                if k not in keep:
-                    self.excluded.append(self.gated(sp))
+            for sp in self._spectra:
+                gate = self.gated(sp)
+                if gate is not None:  # those not kept
+                    self.excluded.append(gate)
             self._spectra = deque(self._spectra[k] for k in keep)
             self._ltt = deque(self._ltt[k] for k in keep if k < len(self._ltt))
             self._sums.clear()
@@ -317,6 +329,7 @@ class RollingFit:
             return True
         # FFT segments tile the time from the first output sample of the stream (t0 of the
         # telemetry minus the low-pass delay): count from there
+        assert self._t0_out is not None  # set with the first segment
         elapsed = self._spectra[-1].t0 + self._spectra[-1].duration - self._t0_out
         return abs(elapsed / self.full_every - round(elapsed / self.full_every)) * self.full_every < 1e-3
 
@@ -334,15 +347,21 @@ class RollingFit:
         return res
 
     # ---------------------------------------------------------------- incremental updates
+    def _kept(self) -> dict:
+        """The weights of the last full refit (the incremental updates need one)."""
+        if self._weights is None:
+            raise RuntimeError("no full refit yet: no weights to update with")
+        return self._weights
+
     def _masked(self, sp: SegmentSpectra) -> SegmentSpectra:
-        keep = self._weights["notch"]
+        keep = self._kept()["notch"]
         if keep is None:
             return sp
         return SegmentSpectra(sp.t0, sp.duration, sp.f[keep], sp.d[keep], sp.R[keep], sp.valid_fraction)
 
     def _segment_sums(self, sp: SegmentSpectra, C: np.ndarray) -> tuple[NormalEquations, np.ndarray]:
         """Normal equations and sandwich scores of one segment with the kept weights."""
-        w = self._weights
+        w = self._kept()
         sp = self._masked(sp)
         neq = accumulate([sp], w["weights"], w["band_edges"], self.names, w["eiv_response"], w["dws_psd"])
         return neq, score_matrix([sp], w["weights"], C)
@@ -356,7 +375,7 @@ class RollingFit:
 
     def _update(self) -> FitResult:
         """GLS of the window from the per-segment sums with the lagged weights (one segment's work)."""
-        s, w = self.settings, self._weights
+        s, w = self.settings, self._kept()
         C_prev = self.last.coefficients if self.last is not None else np.zeros(len(self.names))
         self._sums.append(self._segment_sums(self._spectra[-1], C_prev))
         total = self._sums[0][0]

@@ -8,8 +8,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ttlcore.estimate.fit import (GAP_TAPER, FitSettings, effective_samples, fit_tdi, gap_taper,
-                                  spectra_of_segment, window)
+from ttlcore.estimate.fit import (
+    GAP_TAPER,
+    FitSettings,
+    effective_samples,
+    fit_tdi,
+    gap_taper,
+    spectra_of_segment,
+    window,
+)
 from ttlcore.estimate.spectra import segment_fft
 from ttlcore.sim.simulator import SimulationConfig, simulate
 from ttlcore.tdi.data import compute_tdi
