@@ -88,8 +88,8 @@ class CandidatePool:
         self.workers = max(1, int(workers))
         self._seen = {e.spec() for e in model.effects}
         self._futures: list = []
-        self._executor = None
-        self._limits = None
+        self._executor: ThreadPoolExecutor | None = None
+        self._limits: threadpool_limits | None = None
 
     def __enter__(self):
         if self.workers > 1:

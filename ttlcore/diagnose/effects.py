@@ -90,7 +90,7 @@ class Part:
     """
 
     link: str
-    series: np.ndarray
+    series: np.ndarray | None  # None in the columns of names only (EffectInput.names_only)
     #: False/0: undelayed; True/1: ``D_link series``; an integer n: n delays of the link
     #: (``D_link ... D_link series``, the witness library's "delayed nL")
     delayed: bool | int = False

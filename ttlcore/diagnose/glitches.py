@@ -170,6 +170,7 @@ class Glitch(Effect):
             raise ConfigError(f"effect 'glitch': {', '.join(self.unresolved())} not given (the diagnosis searches "
                               "them: ttl diagnose, refit)")
         v = glitch_velocity(data.t, self.options["t"], self.options["beta"])
+        assert self.where is not None  # resolved above (unresolved() names it otherwise)
         parts = [Part(link, factor * v / C, n) for link, n, factor in placement_parts(self.where)]
         return [Column(self.column_name(), parts, "m/s", GLITCH_PRIOR)]
 

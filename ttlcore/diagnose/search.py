@@ -310,6 +310,11 @@ def _modulated_evaluator(model: ModelFit, effect, effect_at):
     if any(c.response is not None for c in cols) or plain.needs_coefficients:
         return None
     bases = [base_column(data, c) for c in cols]
+    base_series = []
+    for b in bases:
+        if b.series is None:
+            raise ValueError(f"{b.names[0]}: the base column's series are needed")
+        base_series.append(b.series[:, 0])
     t_dec = data.t0 + np.arange(data.mask.size) / data.fs
     t_ref = inp.t_ref if effect.options.get("t_ref") is None else float(effect.options["t_ref"])
     names_only = names_only_input()
@@ -319,7 +324,7 @@ def _modulated_evaluator(model: ModelFit, effect, effect_at):
         phase = 2 * np.pi * (t_dec - t_ref) / float(eff.options["period"])
         mods = (np.sin(phase), np.cos(phase))
         named = eff.columns(names_only)
-        series = np.stack([b.series[:, 0] * m for b in bases for m in mods], axis=1)
+        series = np.stack([bs * m for bs in base_series for m in mods], axis=1)
         k = series.shape[1]
         w = data.whiten(data.spectra(series))
         cs = ColumnSet(tuple(c.name for c in named), np.stack([np.ascontiguousarray(w[..., j]) for j in range(k)])
@@ -392,7 +397,7 @@ def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
                 memo[key] = function(np.array(key))
             return memo[key]
 
-        call.memo = memo
+        call.memo = memo  # type: ignore[attr-defined]  # the cache, read by the callers
         return call
 
     score = memoised(evaluate)

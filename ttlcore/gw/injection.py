@@ -31,7 +31,7 @@ import numpy as np
 from scipy.interpolate import CubicSpline
 
 from ..errors import ConfigError
-from .galaxy import GALAXY_DEFAULTS, binaries_link_signal, draw_galaxy
+from .galaxy import GALAXY_DEFAULTS, BinaryArrays, binaries_link_signal, draw_galaxy
 from .mbhb import MBHB, PAPER_MBHBS, MBHBWaveform
 from .response import link_response
 from .sgwb import StochasticBackgroundGenerator
@@ -113,7 +113,7 @@ class GalaxyInjection:
         unknown = set(self.model) - set(GALAXY_DEFAULTS)
         if unknown:
             raise ConfigError(f"galaxy: unknown model parameters {sorted(unknown)}; known: {', '.join(GALAXY_DEFAULTS)}")
-        self._binaries = None
+        self._binaries: BinaryArrays | None = None
 
     @property
     def binaries(self):
@@ -191,7 +191,7 @@ class MBHBInjection:
             self.source = MBHB(**params)
         except (TypeError, ValueError) as exc:
             raise ConfigError(f"mbhb {name!r}: {exc}") from None
-        self._wave = None
+        self._wave: MBHBWaveform | None = None
 
     @classmethod
     def paper(cls, which: str, t_c: float | None = None) -> MBHBInjection:

@@ -107,7 +107,7 @@ class _Plan:
         self.combinations = tuple(combinations)
         # (link, extra) -> [(c, [(factor, chain + extra), ...]), ...]
         self.terms: dict = {}
-        chains = set()
+        chains: set = set()
         for key in groups:
             link, extra = key
             per = []
