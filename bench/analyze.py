@@ -39,8 +39,22 @@ def main() -> int:
     if data is None:
         data = work / "day.h5"
         if not data.exists():
-            subprocess.run([*ttl, "simulate", "--duration", args.duration, "--orbit", "keplerian", "--seed", "1",
-                            "--out", str(data), "--quiet"], check=True)
+            subprocess.run(
+                [
+                    *ttl,
+                    "simulate",
+                    "--duration",
+                    args.duration,
+                    "--orbit",
+                    "keplerian",
+                    "--seed",
+                    "1",
+                    "--out",
+                    str(data),
+                    "--quiet",
+                ],
+                check=True,
+            )
     truth = data.with_name(data.name.replace(".h5", ".truth.h5"))
     cmd = [*ttl, "analyze", str(data), "--out", str(work / "analysis")]
     if truth.exists():

@@ -60,11 +60,16 @@ def main() -> int:
     ap.add_argument("--unknown", action="store_true", help="inject a resonance the diagnosis does not name")
     ap.add_argument("--profile", action="store_true", help="add the ten most expensive functions")
     ap.add_argument("--keep", type=Path, help="write the simulated telemetry to this file")
-    ap.add_argument("--data", type=Path, help="diagnose this telemetry file (from --keep) instead of simulating; "
-                    "--duration, --seed and --clean/--unknown must match the run that wrote it")
+    ap.add_argument(
+        "--data",
+        type=Path,
+        help="diagnose this telemetry file (from --keep) instead of simulating; "
+        "--duration, --seed and --clean/--unknown must match the run that wrote it",
+    )
     ap.add_argument("--report", type=Path, help="write the full JSON report to this file")
-    ap.add_argument("--workers", type=int, default=None,
-                    help="candidate-scoring threads (default: one per core, at most 4)")
+    ap.add_argument(
+        "--workers", type=int, default=None, help="candidate-scoring threads (default: one per core, at most 4)"
+    )
     args = ap.parse_args()
     spec = None if args.clean else (UNKNOWN if args.unknown else INJECTION)
     inj = () if spec is None else (injection_from_spec(spec, [BLIND_MODULE] if args.unknown else []),)
@@ -73,8 +78,10 @@ def main() -> int:
         tm = read_ttl_telemetry(args.data)
     else:
         # one chunk: no chunk-boundary approximation in the timing-offset injection
-        tm, _ = simulate(SimulationConfig(duration=args.duration, orbit="keplerian", seed=args.seed, injections=inj),
-                         chunk_size=int(args.duration * 4))
+        tm, _ = simulate(
+            SimulationConfig(duration=args.duration, orbit="keplerian", seed=args.seed, injections=inj),
+            chunk_size=int(args.duration * 4),
+        )
         if args.keep is not None:
             write_telemetry(args.keep, tm)
     t_sim = time.perf_counter() - t
@@ -120,9 +127,13 @@ def main() -> int:
         "chi2_dof": round(report["adequacy"]["chi2_dof"], 4),
         "top_candidate": cands[0]["effect"] if cands else None,
         "top_significant": bool(cands and cands[0]["significant"]),
-        "top_is_injected": (not args.clean) and bool(cands) and (
-            cands[0]["cli_spec"].startswith("fd-coupling:source=23.eta;link=31;f0") if args.unknown
-            else cands[0]["effect"] == INJECTION.split(":")[0]),
+        "top_is_injected": (not args.clean)
+        and bool(cands)
+        and (
+            cands[0]["cli_spec"].startswith("fd-coupling:source=23.eta;link=31;f0")
+            if args.unknown
+            else cands[0]["effect"] == INJECTION.split(":")[0]
+        ),
     }
     if prof:
         st = pstats.Stats(prof)

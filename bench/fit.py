@@ -67,8 +67,10 @@ def profile_gls(td, settings) -> dict:
     for label, func in PROFILE_STAGES.items():
         rows = [v for (fname, _, name), v in stats.items() if name == func and ("ttlcore" in fname or func == "inv")]
         if rows:
-            out[label.strip()] = {"cumulative_s": round(max(v[3] for v in rows), 3),
-                                  "calls": int(sum(v[1] for v in rows))}
+            out[label.strip()] = {
+                "cumulative_s": round(max(v[3] for v in rows), 3),
+                "calls": int(sum(v[1] for v in rows)),
+            }
     total = sum(v[2] for v in stats.values())
     out["total_s"] = round(total, 3)
     return out
@@ -132,7 +134,8 @@ def main() -> int:
             "chi2_dof": round(gls.chi2_dof, 4),
             "max_abs_error_mm_per_rad": round(float(np.max(np.abs(gls.coefficients - c_true))) * mm, 5),
             "max_sigma_model_based_mm_per_rad": round(
-                float(np.max(np.sqrt(np.diag(gls.extra["covariance_model_based"])))) * mm, 5),
+                float(np.max(np.sqrt(np.diag(gls.extra["covariance_model_based"])))) * mm, 5
+            ),
         },
     }
     for noise_levels, key in ((False, "mcmc"), (True, "mcmc_noise_levels")):
@@ -155,8 +158,9 @@ def main() -> int:
         if mc.noise_levels is not None:
             entry["noise_levels"] = [round(float(v), 4) for v in mc.noise_levels]
             entry["noise_levels_std"] = [round(float(v), 4) for v in mc.noise_levels_std]
-            entry["gls_chi2_dof_per_band"] = [round(float(c / d), 4)
-                                              for c, d in zip(gls.chi2_per_band, gls.dof_per_band)]
+            entry["gls_chi2_dof_per_band"] = [
+                round(float(c / d), 4) for c, d in zip(gls.chi2_per_band, gls.dof_per_band)
+            ]
         result[key] = entry
     if args.profile or t_gls >= GLS_TARGET_S:
         result["gls_profile"] = profile_gls(td, settings)

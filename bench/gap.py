@@ -64,7 +64,7 @@ def one_seed(seed: int) -> dict:
     truth = cfg.coefficients.base
     clean = hourly_tdi(tm)
     a = int(GAP_START * tm.fs)
-    tm.eta[0, a:a + int(GAP * tm.fs)] = np.nan
+    tm.eta[0, a : a + int(GAP * tm.fs)] = np.nan
     gapped = hourly_tdi(tm)
     fc, _ = fits(clean)
     fg, rf = fits(gapped)
@@ -76,19 +76,21 @@ def one_seed(seed: int) -> dict:
             continue
         d = g.coefficients - c.coefficients
         z_clean.append(d / c.sigma)
-        z_loss.append(d / np.sqrt(np.abs(g.sigma ** 2 - c.sigma ** 2)))
-        ratio.append(np.median(g.sigma ** 2 / c.sigma ** 2))
+        z_loss.append(d / np.sqrt(np.abs(g.sigma**2 - c.sigma**2)))
+        ratio.append(np.median(g.sigma**2 / c.sigma**2))
     last_c, last_g = fc[-1], fg[-1]
-    return {"seed": seed,
-            "max_abs_z_clean": float(np.max(np.abs(z_clean))),
-            "rms_z_loss": float(np.sqrt(np.mean(np.square(z_loss)))),
-            "max_abs_z_loss": float(np.max(np.abs(z_loss))),
-            "rms_z_loss_per_fit": [round(float(np.sqrt(np.mean(np.square(z)))), 3) for z in z_loss],
-            "sum_z2_truth_clean": float(np.sum(((last_c.coefficients - truth) / last_c.sigma) ** 2)),
-            "sum_z2_truth_gap": float(np.sum(((last_g.coefficients - truth) / last_g.sigma) ** 2)),
-            "variance_ratio_median": [round(float(r), 4) for r in ratio],
-            "valid_fraction_gapped_segment": round(float(min(valid)), 4),
-            "lost_fraction_of_window": round(float(1 - np.mean(valid)), 4)}
+    return {
+        "seed": seed,
+        "max_abs_z_clean": float(np.max(np.abs(z_clean))),
+        "rms_z_loss": float(np.sqrt(np.mean(np.square(z_loss)))),
+        "max_abs_z_loss": float(np.max(np.abs(z_loss))),
+        "rms_z_loss_per_fit": [round(float(np.sqrt(np.mean(np.square(z)))), 3) for z in z_loss],
+        "sum_z2_truth_clean": float(np.sum(((last_c.coefficients - truth) / last_c.sigma) ** 2)),
+        "sum_z2_truth_gap": float(np.sum(((last_g.coefficients - truth) / last_g.sigma) ** 2)),
+        "variance_ratio_median": [round(float(r), 4) for r in ratio],
+        "valid_fraction_gapped_segment": round(float(min(valid)), 4),
+        "lost_fraction_of_window": round(float(1 - np.mean(valid)), 4),
+    }
 
 
 def main(argv=None) -> int:
@@ -99,11 +101,25 @@ def main(argv=None) -> int:
     if args.taper is not None:
         fit_module.GAP_TAPER = args.taper
     rows = [one_seed(s) for s in args.seeds]
-    summary = {"max_abs_z_clean": max(r["max_abs_z_clean"] for r in rows),
-               "rms_z_loss": float(np.sqrt(np.mean([r["rms_z_loss"] ** 2 for r in rows]))),
-               "sum_z2_truth_clean_mean": float(np.mean([r["sum_z2_truth_clean"] for r in rows])),
-               "sum_z2_truth_gap_mean": float(np.mean([r["sum_z2_truth_gap"] for r in rows]))}
-    print(json.dumps({"benchmark": "gap", "hours": HOURS, "gap_s": GAP, "taper_s": fit_module.GAP_TAPER, "seeds": rows, "summary": summary}, indent=1))
+    summary = {
+        "max_abs_z_clean": max(r["max_abs_z_clean"] for r in rows),
+        "rms_z_loss": float(np.sqrt(np.mean([r["rms_z_loss"] ** 2 for r in rows]))),
+        "sum_z2_truth_clean_mean": float(np.mean([r["sum_z2_truth_clean"] for r in rows])),
+        "sum_z2_truth_gap_mean": float(np.mean([r["sum_z2_truth_gap"] for r in rows])),
+    }
+    print(
+        json.dumps(
+            {
+                "benchmark": "gap",
+                "hours": HOURS,
+                "gap_s": GAP,
+                "taper_s": fit_module.GAP_TAPER,
+                "seeds": rows,
+                "summary": summary,
+            },
+            indent=1,
+        )
+    )
     return 0
 
 

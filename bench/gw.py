@@ -28,8 +28,9 @@ def main() -> None:
     out = {"duration_s": args.duration, "fs_hz": 4.0, "orbit": "keplerian", "sources": {}}
     for name in args.sources.split(","):
         inj = parse_gw_spec(name, duration=args.duration, seed=1)
-        cfg = SimulationConfig(duration=args.duration, orbit="keplerian", seed=1, noises=NoiseSwitches.parse("none"),
-                               injections=inj)
+        cfg = SimulationConfig(
+            duration=args.duration, orbit="keplerian", seed=1, noises=NoiseSwitches.parse("none"), injections=inj
+        )
         start = time.perf_counter()
         sq, n = 0.0, 0
         for _, truth in Simulator(cfg).chunks():

@@ -98,8 +98,16 @@ def run_lisainstrument_day(path, duration: float = 86400, orbits: str = "static"
         ``orbits``, ``path`` and the ``settings`` used.
     """
     path = Path(path)
-    cmd = [sys.executable, str(Path(__file__).resolve()), str(path), "--duration", repr(float(duration)),
-           "--orbits", str(orbits), "--child"]
+    cmd = [
+        sys.executable,
+        str(Path(__file__).resolve()),
+        str(path),
+        "--duration",
+        repr(float(duration)),
+        "--orbits",
+        str(orbits),
+        "--child",
+    ]
     start = time.perf_counter()
     proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     # wait4 gives this very child's resource usage (ru_maxrss in KiB on Linux)

@@ -34,8 +34,9 @@ from streamer.topology import STAGES
 
 #: The extended model of the live-loop issue's bench: a witness two light travel times away
 #: and a first-order frequency-dependent coupling, their parameters given (not searched).
-EXTENDED = ("linear-ttl,witness:source=12.eta;link=23;delay=2,"
-            "fd-coupling:source=13.eta;link=31;delay=1;filter=pole1;fc=0.05")
+EXTENDED = (
+    "linear-ttl,witness:source=12.eta;link=23;delay=2,fd-coupling:source=13.eta;link=31;delay=1;filter=pole1;fc=0.05"
+)
 
 
 def stage_of(proc: psutil.Process) -> str | None:
@@ -70,8 +71,10 @@ def fitter_update_times(path: Path) -> tuple[list[float], list[float]]:
             if channel.topic == "fit/summary" and "adequacy" in msg:
                 with_adequacy.add(index)
     times = {i: (fitted[i] - received[i]) / 1e9 for i in fitted if i in received}
-    return ([t for i, t in times.items() if i not in with_adequacy],
-            [t for i, t in times.items() if i in with_adequacy])
+    return (
+        [t for i, t in times.items() if i not in with_adequacy],
+        [t for i, t in times.items() if i in with_adequacy],
+    )
 
 
 def main() -> int:
@@ -80,18 +83,57 @@ def main() -> int:
     ap.add_argument("--effects", default=EXTENDED, help=f"the fitter's model (default {EXTENDED})")
     ap.add_argument("--diagnose-every", type=int, help="live diagnosis every N segments (default: none)")
     args = ap.parse_args()
-    live = ["--adopt", "ask", "--diagnose-every", str(args.diagnose_every)] if args.diagnose_every else ["--adopt", "never"]
+    live = (
+        ["--adopt", "ask", "--diagnose-every", str(args.diagnose_every)]
+        if args.diagnose_every
+        else ["--adopt", "never"]
+    )
     load_before = psutil.getloadavg()
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         data = tmp / "mission.h5"
-        subprocess.run([sys.executable, "-m", "ttlcore.cli.main", "simulate", "--duration", f"{args.days}d", "--orbit",
-                        "keplerian", "--seed", "1", "--out", str(data), "--quiet"], check=True)
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "ttlcore.cli.main",
+                "simulate",
+                "--duration",
+                f"{args.days}d",
+                "--orbit",
+                "keplerian",
+                "--seed",
+                "1",
+                "--out",
+                str(data),
+                "--quiet",
+            ],
+            check=True,
+        )
         start = time.perf_counter()
-        launcher = subprocess.Popen([sys.executable, "-m", "streamer.cli", "run", "--telemetry", str(data), "--run-id",
-                                     "bench", "--recordings", str(tmp / "rec"), "--quiet", "--timeout", "14400",
-                                     "--effects", args.effects, *live],
-                                    stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+        launcher = subprocess.Popen(
+            [
+                sys.executable,
+                "-m",
+                "streamer.cli",
+                "run",
+                "--telemetry",
+                str(data),
+                "--run-id",
+                "bench",
+                "--recordings",
+                str(tmp / "rec"),
+                "--quiet",
+                "--timeout",
+                "14400",
+                "--effects",
+                args.effects,
+                *live,
+            ],
+            stdout=subprocess.PIPE,
+            stderr=subprocess.STDOUT,
+            text=True,
+        )
         cpu, rss = {}, {}
         parent = psutil.Process(launcher.pid)
         while launcher.poll() is None:
@@ -129,12 +171,17 @@ def main() -> int:
         "per_stage_cpu_s_per_segment": {s: round(v / segments, 3) for s, v in per_stage_cpu.items()},
         "per_stage_peak_memory_gb": {s: round(rss.get(s, 0) / 1e9, 3) for s in STAGES},
         "target_peak_memory_gb": 1.5,
-        "fitter_update_s": {"median": round(float(np.median(updates)), 3) if updates else None,
-                            "p90": round(float(np.percentile(updates, 90)), 3) if updates else None,
-                            "max": round(float(np.max(updates)), 3) if updates else None, "target": 0.2},
-        "fitter_update_with_adequacy_s": {"count": len(adequacy),
-                                          "median": round(float(np.median(adequacy)), 3) if adequacy else None,
-                                          "p90": round(float(np.percentile(adequacy, 90)), 3) if adequacy else None},
+        "fitter_update_s": {
+            "median": round(float(np.median(updates)), 3) if updates else None,
+            "p90": round(float(np.percentile(updates, 90)), 3) if updates else None,
+            "max": round(float(np.max(updates)), 3) if updates else None,
+            "target": 0.2,
+        },
+        "fitter_update_with_adequacy_s": {
+            "count": len(adequacy),
+            "median": round(float(np.median(adequacy)), 3) if adequacy else None,
+            "p90": round(float(np.percentile(adequacy, 90)), 3) if adequacy else None,
+        },
     }
     result["meets_targets"] = bool(
         result["real_time_factor"] >= 2000

@@ -65,8 +65,12 @@ def run_config(name, jobs_of, n_days, scheduler=None, workers=None) -> dict:
         wall = time.monotonic() - t1
         n_workers = s["cluster"]["workers"]
     assert s["n_ok"] == n_days, s["failed"]
-    return {"workers": n_workers, "startup_s": round(startup, 2), "wall_s": round(wall, 2),
-            "days_per_hour": round(n_days / wall * 3600, 1)}
+    return {
+        "workers": n_workers,
+        "startup_s": round(startup, 2),
+        "wall_s": round(wall, 2),
+        "days_per_hour": round(n_days / wall * 3600, 1),
+    }
 
 
 def main() -> None:
@@ -103,36 +107,81 @@ def main() -> None:
         # a scheduler and workers started apart, as on a cluster (here on 127.0.0.1)
         sched_file = tmp / "scheduler.json"
         log = open(tmp / "dask.log", "wb")
-        procs.append(subprocess.Popen([str(BIN / "dask"), "scheduler", "--host", "127.0.0.1", "--port", "0",
-                                       "--no-dashboard", "--scheduler-file", str(sched_file)],
-                                      stdout=log, stderr=subprocess.STDOUT))
+        procs.append(
+            subprocess.Popen(
+                [
+                    str(BIN / "dask"),
+                    "scheduler",
+                    "--host",
+                    "127.0.0.1",
+                    "--port",
+                    "0",
+                    "--no-dashboard",
+                    "--scheduler-file",
+                    str(sched_file),
+                ],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+            )
+        )
         deadline = time.monotonic() + 60
         while not sched_file.exists() and time.monotonic() < deadline:
             time.sleep(0.2)
-        procs.append(subprocess.Popen([str(BIN / "dask"), "worker", "--scheduler-file", str(sched_file),
-                                       "--nworkers", "2", "--nthreads", "1", "--host", "127.0.0.1",
-                                       "--memory-limit", "3GiB", "--no-dashboard"], stdout=log,
-                                      stderr=subprocess.STDOUT, env=dict(os.environ, **WORKER_ENV)))
-        results["dask_scheduler_2_workers"] = run_config("external", jobs_of, args.days, scheduler=str(sched_file),
-                                                         workers=2)
+        procs.append(
+            subprocess.Popen(
+                [
+                    str(BIN / "dask"),
+                    "worker",
+                    "--scheduler-file",
+                    str(sched_file),
+                    "--nworkers",
+                    "2",
+                    "--nthreads",
+                    "1",
+                    "--host",
+                    "127.0.0.1",
+                    "--memory-limit",
+                    "3GiB",
+                    "--no-dashboard",
+                ],
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                env=dict(os.environ, **WORKER_ENV),
+            )
+        )
+        results["dask_scheduler_2_workers"] = run_config(
+            "external", jobs_of, args.days, scheduler=str(sched_file), workers=2
+        )
         ref = results["serial"]["days_per_hour"]
         for r in results.values():
             r["ratio_to_serial"] = round(r["days_per_hour"] / ref, 3)
         one = results["local_1_worker"]["days_per_hour"]
-        print(json.dumps({
-            "bench": "reprocess",
-            "day_hours": args.hours, "n_days": args.days, "segment_s": args.segment,
-            "note": f"short days of {args.hours:g} h so the bench runs in minutes; a full day's job takes longer "
+        print(
+            json.dumps(
+                {
+                    "bench": "reprocess",
+                    "day_hours": args.hours,
+                    "n_days": args.days,
+                    "segment_s": args.segment,
+                    "note": f"short days of {args.hours:g} h so the bench runs in minutes; a full day's job takes longer "
                     "(bench/diagnose.py, ttl analyze) and its throughput scales accordingly",
-            "job": "ttl analyze (no figures)" + (" + ttl diagnose" + ("" if args.witnesses else " without witnesses")
-                                                 if args.diagnosis else ""),
-            "simulation_s": round(t_sim, 1),
-            "results": results,
-            "speedup_2_vs_1_local_workers": round(results["local_2_workers"]["days_per_hour"] / one, 3),
-            "speedup_2_vs_1_external_workers": round(results["dask_scheduler_2_workers"]["days_per_hour"] / one, 3),
-            "machine": {"cpus": os.cpu_count(), "load_average_1min_at_end": round(os.getloadavg()[0], 2),
-                        "python": platform.python_version()},
-        }, indent=2))
+                    "job": "ttl analyze (no figures)"
+                    + (" + ttl diagnose" + ("" if args.witnesses else " without witnesses") if args.diagnosis else ""),
+                    "simulation_s": round(t_sim, 1),
+                    "results": results,
+                    "speedup_2_vs_1_local_workers": round(results["local_2_workers"]["days_per_hour"] / one, 3),
+                    "speedup_2_vs_1_external_workers": round(
+                        results["dask_scheduler_2_workers"]["days_per_hour"] / one, 3
+                    ),
+                    "machine": {
+                        "cpus": os.cpu_count(),
+                        "load_average_1min_at_end": round(os.getloadavg()[0], 2),
+                        "python": platform.python_version(),
+                    },
+                },
+                indent=2,
+            )
+        )
     finally:
         for p in reversed(procs):
             p.terminate()

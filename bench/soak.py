@@ -97,7 +97,7 @@ def line_fit(x, y) -> dict | None:
         return None
     b, a = np.polyfit(x, y, 1)
     resid = y - (a + b * x)
-    s = float(np.sqrt(np.sum(resid ** 2) / (x.size - 2)))
+    s = float(np.sqrt(np.sum(resid**2) / (x.size - 2)))
     se = s / float(np.sqrt(np.sum((x - x.mean()) ** 2)))
     return {"slope": float(b), "slope_stderr": se, "spread": s, "points": int(x.size)}
 
@@ -110,13 +110,15 @@ def assess(series: dict[int, float], warmup: int, total: int, unit: str, digits:
     whole = line_fit(ks, [series[k] for k in ks])
     late = [k for k in ks if k >= warmup]
     after = line_fit(late, [series[k] for k in late])
-    out = {f"slope_whole_run_{unit}_per_segment": whole["slope"] if whole else None,
-           f"slope_after_warmup_{unit}_per_segment": after["slope"] if after else None,
-           f"slope_after_warmup_stderr_{unit}_per_segment": after["slope_stderr"] if after else None,
-           f"spread_after_warmup_{unit}": after["spread"] if after else None,
-           f"growth_over_run_{unit}": after["slope"] * total if after else None,
-           f"noise_{unit}": max(NOISE_SIGMAS * after["spread"], MIN_NOISE[unit]) if after else None,
-           "verdict": None}
+    out = {
+        f"slope_whole_run_{unit}_per_segment": whole["slope"] if whole else None,
+        f"slope_after_warmup_{unit}_per_segment": after["slope"] if after else None,
+        f"slope_after_warmup_stderr_{unit}_per_segment": after["slope_stderr"] if after else None,
+        f"spread_after_warmup_{unit}": after["spread"] if after else None,
+        f"growth_over_run_{unit}": after["slope"] * total if after else None,
+        f"noise_{unit}": max(NOISE_SIGMAS * after["spread"], MIN_NOISE[unit]) if after else None,
+        "verdict": None,
+    }
     if after:
         if out[f"growth_over_run_{unit}"] <= out[f"noise_{unit}"]:
             out["verdict"] = "flat"
@@ -149,15 +151,24 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--days", type=float, default=7.0)
     p.add_argument("--segment", default="1h")
-    p.add_argument("--warmup", default="1d", help="left out of the post-warm-up fits (default 1d: the "
-                                                  "fitter's window is full)")
+    p.add_argument(
+        "--warmup", default="1d", help="left out of the post-warm-up fits (default 1d: the fitter's window is full)"
+    )
     p.add_argument("--seed", type=int, default=1)
     p.add_argument("--interval", type=float, default=1.0, help="RSS sampling period [s]")
     p.add_argument("--keep", type=Path, help="keep the recordings (and the stage logs) in this directory")
-    p.add_argument("--series", type=Path, help="write the per-segment RSS [MB] and latency [s] of every stage "
-                                               "here (JSON: stage -> {rss_mb, latency_s}: segment -> value)")
-    p.add_argument("--memtrace", type=int, default=None,
-                   help=f"set {MEMTRACE_ENV}=N for the stages: memory lines in their logs (with --keep)")
+    p.add_argument(
+        "--series",
+        type=Path,
+        help="write the per-segment RSS [MB] and latency [s] of every stage "
+        "here (JSON: stage -> {rss_mb, latency_s}: segment -> value)",
+    )
+    p.add_argument(
+        "--memtrace",
+        type=int,
+        default=None,
+        help=f"set {MEMTRACE_ENV}=N for the stages: memory lines in their logs (with --keep)",
+    )
     args = p.parse_args(argv)
     segment_s = parse_duration(args.segment, "--segment")
     total = math.ceil(round(args.days * DAY / segment_s, 6))
@@ -166,10 +177,22 @@ def main(argv=None) -> int:
     rec = args.keep or Path(tempfile.mkdtemp(prefix="ttl-soak-"))
     port = free_port()
     run = "soak"
-    cmd = [str(Path(sys.executable).with_name("ttl")), "run", "--simulate",
-           f"--duration {args.days * 24:g}h --orbit unequal --seed {args.seed}", "--segment", args.segment,
-           "--run-id", run, "--recordings", str(rec), "--listen", f"tcp/127.0.0.1:{port}", "--quiet",
-           "--insecure"]  # plain TCP on loopback: the bench's own client only reads
+    cmd = [
+        str(Path(sys.executable).with_name("ttl")),
+        "run",
+        "--simulate",
+        f"--duration {args.days * 24:g}h --orbit unequal --seed {args.seed}",
+        "--segment",
+        args.segment,
+        "--run-id",
+        run,
+        "--recordings",
+        str(rec),
+        "--listen",
+        f"tcp/127.0.0.1:{port}",
+        "--quiet",
+        "--insecure",
+    ]  # plain TCP on loopback: the bench's own client only reads
     env = dict(os.environ)
     if args.memtrace is not None:
         env[MEMTRACE_ENV] = str(args.memtrace)
@@ -177,8 +200,7 @@ def main(argv=None) -> int:
     load_start = os.getloadavg()
     proc = subprocess.Popen(cmd, cwd=ROOT, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, env=env)
     out_chunks: list[bytes] = []
-    reader = threading.Thread(target=lambda: out_chunks.extend(iter(lambda: proc.stdout.read(4096), b"")),
-                              daemon=True)
+    reader = threading.Thread(target=lambda: out_chunks.extend(iter(lambda: proc.stdout.read(4096), b"")), daemon=True)
     reader.start()
     done_at: dict[str, dict[int, float]] = {}
     lock = threading.Lock()
@@ -202,7 +224,11 @@ def main(argv=None) -> int:
     if bus is None:
         proc.wait()
         reader.join(5)
-        print(json.dumps({"exit_status": proc.returncode, "output_tail": b"".join(out_chunks).decode(errors="replace")[-2000:]}))
+        print(
+            json.dumps(
+                {"exit_status": proc.returncode, "output_tail": b"".join(out_chunks).decode(errors="replace")[-2000:]}
+            )
+        )
         return 1
     with bus:
         bus.segment_subscriber(f"ttl/{run}/control/board/*", on_board, history=1)
@@ -219,7 +245,7 @@ def main(argv=None) -> int:
                     if name is None and cmdline[3:4] == ["router"]:  # python -c "..." router ...
                         name = "router"  # the run's Zenoh router (ttl router): every segment goes through it
                     if name:
-                        mb = k.memory_info().rss / 2 ** 20
+                        mb = k.memory_info().rss / 2**20
                         with lock:
                             index = max(done_at.get(CLOCK.get(name, name), {}), default=-1)
                         rss.setdefault(name, []).append((index, mb))
@@ -228,12 +254,21 @@ def main(argv=None) -> int:
             time.sleep(args.interval)
     reader.join(10)
     out = b"".join(out_chunks).decode(errors="replace")
-    result = {"days": args.days, "segment": args.segment, "segments": total, "warmup_segments": warmup,
-              "exit_status": proc.returncode, "seconds": round(time.monotonic() - t_start, 1),
-              "load_average_1min": {"start": round(load_start[0], 2),
-                                    "mean": round(float(np.mean(loads)), 2) if loads else None,
-                                    "max": round(float(np.max(loads)), 2) if loads else None},
-              "recordings": str(rec), "stages": {}}
+    result = {
+        "days": args.days,
+        "segment": args.segment,
+        "segments": total,
+        "warmup_segments": warmup,
+        "exit_status": proc.returncode,
+        "seconds": round(time.monotonic() - t_start, 1),
+        "load_average_1min": {
+            "start": round(load_start[0], 2),
+            "mean": round(float(np.mean(loads)), 2) if loads else None,
+            "max": round(float(np.max(loads)), 2) if loads else None,
+        },
+        "recordings": str(rec),
+        "stages": {},
+    }
     series = {}
     for stage, samples in sorted(rss.items()):
         mem = per_segment_rss(samples, total - 1)
@@ -241,16 +276,20 @@ def main(argv=None) -> int:
         ks = sorted(mem)
         result["stages"][stage] = {
             "segments": len(done_at.get(CLOCK.get(stage, stage), {})),
-            "rss_mb": {"first_segment": round(mem[ks[0]], 1) if ks else None,
-                       "at_warmup": round(mem[min(ks, key=lambda k: abs(k - warmup))], 1) if ks else None,
-                       "last_segment": round(mem[ks[-1]], 1) if ks else None,
-                       "max": round(max(m for _, m in samples), 1) if samples else None},
+            "rss_mb": {
+                "first_segment": round(mem[ks[0]], 1) if ks else None,
+                "at_warmup": round(mem[min(ks, key=lambda k: abs(k - warmup))], 1) if ks else None,
+                "last_segment": round(mem[ks[-1]], 1) if ks else None,
+                "max": round(max(m for _, m in samples), 1) if samples else None,
+            },
             "rss": assess(mem, warmup, total, "mb", 4),
             "latency_s": {"median": round(float(np.median(list(lat.values()))), 3) if lat else None},
             "latency": assess(lat, warmup, total, "s", 5),
         }
-        series[stage] = {"rss_mb": {k: round(v, 2) for k, v in sorted(mem.items())},
-                         "latency_s": {k: round(v, 4) for k, v in sorted(lat.items())}}
+        series[stage] = {
+            "rss_mb": {k: round(v, 2) for k, v in sorted(mem.items())},
+            "latency_s": {k: round(v, 4) for k, v in sorted(lat.items())},
+        }
     if args.series:
         args.series.write_text(json.dumps(series))
     if proc.returncode != 0:

@@ -40,8 +40,9 @@ def _load_reference():
     ``tests/`` on ``sys.path`` would shadow the ``ttlcore`` package)."""
     import importlib.util
 
-    spec = importlib.util.spec_from_file_location("pytdi_reference",
-                                                  Path(__file__).resolve().parents[1] / "tests" / "pytdi_reference.py")
+    spec = importlib.util.spec_from_file_location(
+        "pytdi_reference", Path(__file__).resolve().parents[1] / "tests" / "pytdi_reference.py"
+    )
     module = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(module)
     return module.pytdi_natural

@@ -99,8 +99,7 @@ from ttlcore.io.telemetry import Telemetry
 from ttlcore.tdi.combinations import XYZ
 from ttlcore.tdi.data import TDIData, TDIStream
 
-UNITS = {"coefficients": "m/rad", "sigma": "m/rad", "covariance": "m^2/rad^2",
-         "model_parts": "fractional frequency"}
+UNITS = {"coefficients": "m/rad", "sigma": "m/rad", "covariance": "m^2/rad^2", "model_parts": "fractional frequency"}
 P = len(COEFFICIENT_NAMES)
 #: Candidates reported in a fit message.
 TOP_CANDIDATES = 3
@@ -118,9 +117,17 @@ COLUMN_HISTORY = 1800.0
 def tdi_expect(run: str, index: int) -> Expect:
     """What a ``tdi`` message must fit (NaN allowed: first samples of a stream, gaps): X2, Y2,
     Z2 of the data and of the 24 regressors, and the telemetry they were computed from."""
-    return Expect(run=run, index=index, channels=XYZ, allow_nonfinite=True,
-                  arrays={"data": ("<f8", (3, None)), "regressors": ("<f8", (3, P, None)),
-                          **{k: ("<f8", (6, None)) for k in TELEMETRY_ARRAYS}})
+    return Expect(
+        run=run,
+        index=index,
+        channels=XYZ,
+        allow_nonfinite=True,
+        arrays={
+            "data": ("<f8", (3, None)),
+            "regressors": ("<f8", (3, P, None)),
+            **{k: ("<f8", (6, None)) for k in TELEMETRY_ARRAYS},
+        },
+    )
 
 
 def adoptable(recommendation: dict | None, log_bf_threshold: float = 2.3) -> tuple[bool, str]:
@@ -135,13 +142,17 @@ def adoptable(recommendation: dict | None, log_bf_threshold: float = 2.3) -> tup
     if not recommendation or not recommendation.get("option") or not recommendation.get("spec"):
         return False, "nothing recommended"
     if not recommendation.get("explains"):
-        return False, (f"the best candidate explains {100 * float(recommendation.get('explained_fraction') or 0):.0f} % "
-                       "of the excess: not adopted")
+        return False, (
+            f"the best candidate explains {100 * float(recommendation.get('explained_fraction') or 0):.0f} % "
+            "of the excess: not adopted"
+        )
     lbf = recommendation.get("log_bayes_factor")
     if lbf is not None and float(lbf) < log_bf_threshold:
         return False, f"log Bayes factor {float(lbf):.1f} below {log_bf_threshold:g}: not adopted"
-    return True, (f"explains {100 * float(recommendation.get('explained_fraction') or 0):.0f} % of the excess"
-                  + (f", log Bayes factor {float(lbf):.1f}" if lbf is not None else ""))
+    return True, (
+        f"explains {100 * float(recommendation.get('explained_fraction') or 0):.0f} % of the excess"
+        + (f", log Bayes factor {float(lbf):.1f}" if lbf is not None else "")
+    )
 
 
 class Fitter(OrderedStage):
@@ -179,8 +190,9 @@ class Fitter(OrderedStage):
         self.adopt = o.get("adopt") or "ask"
         self.model_update = o.get("model_update") or "rolling"
         if self.model_update not in MODEL_UPDATES:
-            raise ConfigError(f"fitter --model-update: expected one of {', '.join(MODEL_UPDATES)}, "
-                              f"got {self.model_update!r}")
+            raise ConfigError(
+                f"fitter --model-update: expected one of {', '.join(MODEL_UPDATES)}, got {self.model_update!r}"
+            )
         #: the configured model and the recorded changes (from_index, effects) of earlier
         #: processes: a restarted fitter replays the window under the model of each segment
         self._initial_effects = list(self.effects)
@@ -233,8 +245,12 @@ class Fitter(OrderedStage):
             effects, before = self.check_model(d["effects"]), list(d["before"])
             start = int(d["from_index"])
         except (KeyError, TypeError, ValueError, ConfigError) as exc:
-            self.report_error("failed", f"restart: the recorded model change cannot be restored ({exc}); "
-                                        f"the configured model {','.join(self.effects)} stays", field="model")
+            self.report_error(
+                "failed",
+                f"restart: the recorded model change cannot be restored ({exc}); "
+                f"the configured model {','.join(self.effects)} stays",
+                field="model",
+            )
             return
         self.effects = effects
         for e in history:
@@ -247,10 +263,16 @@ class Fitter(OrderedStage):
         if due:
             self._model_change = {"before": before, "after": effects, "from_index": start}
             self._diagnose_model = True
-        self.event("model-restored", index=start, message=f"model {','.join(effects)} restored from the earlier "
-                                                          f"process (in force from segment {start}"
-                                                          f"{'; its model change is still to be reported' if due else ''})",
-                   effects=effects, from_index=start, change_due=due)
+        self.event(
+            "model-restored",
+            index=start,
+            message=f"model {','.join(effects)} restored from the earlier "
+            f"process (in force from segment {start}"
+            f"{'; its model change is still to be reported' if due else ''})",
+            effects=effects,
+            from_index=start,
+            change_due=due,
+        )
         self.log.info("restart: model %s restored (from segment %d)", ",".join(effects), start)
 
     def settings(self, meta: dict) -> FitSettings:
@@ -285,14 +307,33 @@ class Fitter(OrderedStage):
         n = plan.segment(index)[1] if plan is not None else last.size
         nan = np.full((3, n), np.nan)
         names = self.rolling.names  # the 24 regressors, and the rolling model's columns when it has any
-        td = TDIData(t0=self._next_t0, fs=last.fs, channels=last.channels, data=nan,
-                     regressors=np.full((3, len(names), n), np.nan), names=names, ltt_mean=last.ltt_mean)
+        td = TDIData(
+            t0=self._next_t0,
+            fs=last.fs,
+            channels=last.channels,
+            data=nan,
+            regressors=np.full((3, len(names), n), np.nan),
+            names=names,
+            ltt_mean=last.ltt_mean,
+        )
         self.rolling.push(td)
         if self.window_tm:
             prev = self.window_tm[-1][1]
             blank = np.full((6, n), np.nan)
-            self.window_tm.append((index, Telemetry(t0=td.t0, fs=td.fs, eta=blank, dws_phi=blank, dws_eta=blank,
-                                                    ltt=np.repeat(prev.ltt[:, -1:], n, axis=1), source=prev.source)))
+            self.window_tm.append(
+                (
+                    index,
+                    Telemetry(
+                        t0=td.t0,
+                        fs=td.fs,
+                        eta=blank,
+                        dws_phi=blank,
+                        dws_eta=blank,
+                        ltt=np.repeat(prev.ltt[:, -1:], n, axis=1),
+                        source=prev.source,
+                    ),
+                )
+            )
         self._next_t0 = td.t0 + n / td.fs
         self.event("gap", index=index, message=f"tdi segment {index} missing: {n} NaN samples pushed, window kept")
 
@@ -314,8 +355,15 @@ class Fitter(OrderedStage):
         self._model_change = {"before": list(self.effects), "after": new, "from_index": start}
         self._diagnose_model = True
         self.log.info("model change: %s -> %s from segment %d", ",".join(self.effects), ",".join(new), start)
-        self.event("model", index=start, message=f"model {','.join(new)} from segment {start} on",
-                   effects=new, before=list(self.effects), from_index=start, **why)
+        self.event(
+            "model",
+            index=start,
+            message=f"model {','.join(new)} from segment {start} on",
+            effects=new,
+            before=list(self.effects),
+            from_index=start,
+            **why,
+        )
         self.effects = new
 
     def control(self, command: str, payload: bytes):
@@ -329,8 +377,10 @@ class Fitter(OrderedStage):
         if not isinstance(msg, dict) or "effects" not in msg:
             raise ValueError('expected {"effects": [...]}')
         if set(msg) - {"effects"}:
-            raise ValueError(f"unknown field(s) {sorted(set(msg) - {'effects'})}; plugin modules come from the "
-                             "stage's configuration only")
+            raise ValueError(
+                f"unknown field(s) {sorted(set(msg) - {'effects'})}; plugin modules come from the "
+                "stage's configuration only"
+            )
         try:
             new = self.check_model(msg["effects"])
         except ConfigError as exc:
@@ -349,8 +399,11 @@ class Fitter(OrderedStage):
         change, extended = self._model_change, self.effects != ["linear-ttl"]
         if change is not None and header.index < change["from_index"]:
             change = None  # a segment replayed after a restart, before the change
-        due = (change is not None or (extended and self.rolling_model() is None)
-               or (self.adequacy_every > 0 and self._segments_seen % self.adequacy_every == 0))
+        due = (
+            change is not None
+            or (extended and self.rolling_model() is None)
+            or (self.adequacy_every > 0 and self._segments_seen % self.adequacy_every == 0)
+        )
         if not due:
             return None
         r = self._window_refit(header.meta, change["before"] if change else ["linear-ttl"])
@@ -360,17 +413,29 @@ class Fitter(OrderedStage):
             self._model_change = None
         model = r["_internals"]["fit"]
         adequacy = r["model"]["adequacy"]
-        out: dict = {"adequacy": {
-            "noise_model": "instrument (analytic secondary noises + DWS readout noise), not re-estimated",
-            "chi2_dof": adequacy["chi2_dof"], "fails": adequacy["fails"], "summary": adequacy["summary"],
-            "bands": [{k: b[k] for k in ("f_lo", "f_hi", "chi2_dof", "p_value", "fails")} for b in adequacy["bands"]],
-        }}
+        out: dict = {
+            "adequacy": {
+                "noise_model": "instrument (analytic secondary noises + DWS readout noise), not re-estimated",
+                "chi2_dof": adequacy["chi2_dof"],
+                "fails": adequacy["fails"],
+                "summary": adequacy["summary"],
+                "bands": [
+                    {k: b[k] for k in ("f_lo", "f_hi", "chi2_dof", "p_value", "fails")} for b in adequacy["bands"]
+                ],
+            }
+        }
         if extended:
             k = [model.parameter_names.index(n) for n in COEFFICIENT_NAMES]
-            out["arrays"] = {"coefficients": model.ttl_coefficients(), "sigma": model.ttl_sigma(),
-                             "covariance": model.covariance[np.ix_(k, k)]}
-            out["extra_parameters"] = {n: [float(v), float(s)] for n, v, s in zip(model.names, model.theta, model.sigma)
-                                       if n not in COEFFICIENT_NAMES}
+            out["arrays"] = {
+                "coefficients": model.ttl_coefficients(),
+                "sigma": model.ttl_sigma(),
+                "covariance": model.covariance[np.ix_(k, k)],
+            }
+            out["extra_parameters"] = {
+                n: [float(v), float(s)]
+                for n, v, s in zip(model.names, model.theta, model.sigma)
+                if n not in COEFFICIENT_NAMES
+            }
             predictions = effect_predictions(model)
             n = self.window_tm[-1][1].size
             if predictions:
@@ -381,17 +446,25 @@ class Fitter(OrderedStage):
         if change is not None:
             c = r["change"]
             out["model_change"] = {
-                "before": change["before"], "after": change["after"],
-                "chi2_dof_before": c["chi2_dof_before"], "chi2_dof_after": c["chi2_dof_after"],
-                "bands_before": c["bands_before"], "bands_after": c["bands_after"],
-                "delta_chi2": c["delta_chi2"], "log_bayes_factor": c["log_bayes_factor"],
+                "before": change["before"],
+                "after": change["after"],
+                "chi2_dof_before": c["chi2_dof_before"],
+                "chi2_dof_after": c["chi2_dof_after"],
+                "bands_before": c["bands_before"],
+                "bands_after": c["bands_after"],
+                "delta_chi2": c["delta_chi2"],
+                "log_bayes_factor": c["log_bayes_factor"],
                 "band_edges": [b["f_lo"] for b in adequacy["bands"]] + [adequacy["bands"][-1]["f_hi"]],
             }
         if change is not None or (self.candidates_every > 0 and self._segments_seen % self.candidates_every == 0):
             ranked = candidates(model)
-            out["candidates"] = [{k: c.get(k) for k in ("effect", "spec", "delta_chi2", "log_bayes_factor",
-                                                       "explained_fraction", "significant")}
-                                 for c in ranked[:TOP_CANDIDATES]]
+            out["candidates"] = [
+                {
+                    k: c.get(k)
+                    for k in ("effect", "spec", "delta_chi2", "log_bayes_factor", "explained_fraction", "significant")
+                }
+                for c in ranked[:TOP_CANDIDATES]
+            ]
         return out
 
     def _window_refit(self, meta: dict, baseline: list[str]) -> dict | None:
@@ -400,8 +473,14 @@ class Fitter(OrderedStage):
         try:
             # no time table: the live diagnosis gives the failing hours; without it the refit
             # keeps no column series (~110 MB less at its peak for a day, the same numbers)
-            return refit(self.window_telemetry(), self.effects, settings=refit_settings(meta.get("dws_asd"), self.band),
-                         effect_modules=self.effect_modules, baseline=baseline, time_table=False)
+            return refit(
+                self.window_telemetry(),
+                self.effects,
+                settings=refit_settings(meta.get("dws_asd"), self.band),
+                effect_modules=self.effect_modules,
+                baseline=baseline,
+                time_table=False,
+            )
         except ConfigError as exc:
             self.log.info("no window refit yet: %s", exc)
             return None
@@ -424,7 +503,9 @@ class Fitter(OrderedStage):
             self._rolling_key = key
         return self._rolling_effects
 
-    def with_model_columns(self, td: TDIData, history: list[Telemetry], tm: Telemetry) -> tuple[TDIData, dict, np.ndarray]:
+    def with_model_columns(
+        self, td: TDIData, history: list[Telemetry], tm: Telemetry
+    ) -> tuple[TDIData, dict, np.ndarray]:
         """``td`` with the rolling model's columns appended to its 24 regressors.
 
         The columns' X2, Y2, Z2 (:func:`ttlcore.diagnose.prediction.column_regressors`) are
@@ -445,20 +526,25 @@ class Fitter(OrderedStage):
         for effect in self._rolling_effects:
             names, xyz, eiv = column_regressors(tail, effect, order=s.order, delay_order=s.delay_order)
             owners[effect.spec()] = names
-            columns.append(xyz[:, :, -tm.size:])
+            columns.append(xyz[:, :, -tm.size :])
             self._rolling_eiv.update(eiv)
         xyz = np.concatenate(columns, axis=1)
         names = tuple(n for ns in owners.values() for n in ns)
-        extra = TDIData(t0=td.t0, fs=td.fs, channels=td.channels, data=td.data, regressors=xyz, names=names,
-                        ltt_mean=td.ltt_mean)
+        extra = TDIData(
+            t0=td.t0, fs=td.fs, channels=td.channels, data=td.data, regressors=xyz, names=names, ltt_mean=td.ltt_mean
+        )
         return with_extra_regressors(td, extra), owners, xyz
 
     def rebuild_rolling(self, header, names: tuple) -> None:
         """A new rolling fit for the regressors ``names``, the window pushed into it again from
         the window's telemetry (TDI from a new stream, the model's columns with their history):
         when the rolling model's columns change (a model change)."""
-        self.rolling = RollingFit(self.settings(header.meta), window_duration=self.window_duration, names=names,
-                                  eiv_extra=getattr(self, "_rolling_eiv", None) if self._rolling_effects else None)
+        self.rolling = RollingFit(
+            self.settings(header.meta),
+            window_duration=self.window_duration,
+            names=names,
+            eiv_extra=getattr(self, "_rolling_eiv", None) if self._rolling_effects else None,
+        )
         stream = TDIStream()
         window = [tm for _, tm in self.window_tm]
         for j, tm in enumerate(window):
@@ -466,9 +552,14 @@ class Fitter(OrderedStage):
             if self._rolling_effects:
                 td = self.with_model_columns(td, window[:j], tm)[0]
             self.rolling.push(td)
-        self.event("rolling-rebuilt", index=header.index,
-                   message=f"rolling fit rebuilt for {len(names)} regressors from the window's {len(window)} "
-                           f"telemetry segments", names=list(names), segments=len(window))
+        self.event(
+            "rolling-rebuilt",
+            index=header.index,
+            message=f"rolling fit rebuilt for {len(names)} regressors from the window's {len(window)} "
+            f"telemetry segments",
+            names=list(names),
+            segments=len(window),
+        )
 
     def replay_model(self, index: int) -> None:
         """While a restarted fitter catches up: the model in force at segment ``index`` (the
@@ -485,14 +576,20 @@ class Fitter(OrderedStage):
         covariance), ``extra_parameters`` and, for this segment, each effect's contribution
         ``sum_k theta_k TDI(col_k)`` (``model_parts``; zero where a column is not computable)."""
         k = [res.names.index(n) for n in td.names]
-        arrays = {"coefficients": res.coefficients[k], "sigma": res.sigma[k],
-                  "covariance": res.covariance[np.ix_(k, k)]}
+        arrays = {
+            "coefficients": res.coefficients[k],
+            "sigma": res.sigma[k],
+            "covariance": res.covariance[np.ix_(k, k)],
+        }
         theta = dict(zip(res.names, map(float, res.coefficients)))
-        extra = {n: [float(v), float(s)] for n, v, s in zip(res.names, res.coefficients, res.sigma)
-                 if n not in td.names}
+        extra = {
+            n: [float(v), float(s)] for n, v, s in zip(res.names, res.coefficients, res.sigma) if n not in td.names
+        }
         col = {n: j for j, n in enumerate(n for ns in owners.values() for n in ns)}
-        parts = [np.nan_to_num(sum(theta[n] * xyz[:, col[n]] for n in names), nan=0.0, posinf=0.0, neginf=0.0)
-                 for names in owners.values()]
+        parts = [
+            np.nan_to_num(sum(theta[n] * xyz[:, col[n]] for n in names), nan=0.0, posinf=0.0, neginf=0.0)
+            for names in owners.values()
+        ]
         arrays["model_parts"] = np.stack(parts)
         return arrays, {"extra_parameters": extra, "model_parts": list(owners), "model_update": "rolling"}
 
@@ -507,26 +604,44 @@ class Fitter(OrderedStage):
         auto, its recommendation adopted when :func:`adoptable`.  None when the window is too
         short for a diagnosis."""
         try:
-            report = diagnose(self.window_telemetry(), self.effects, settings=refit_settings(header.meta.get("dws_asd"), self.band),
-                              effect_modules=self.effect_modules)
+            report = diagnose(
+                self.window_telemetry(),
+                self.effects,
+                settings=refit_settings(header.meta.get("dws_asd"), self.band),
+                effect_modules=self.effect_modules,
+            )
         except ConfigError as exc:
             self.log.info("no diagnosis yet: %s", exc)
             return None
         self._diagnose_model = False
         rec = report.get("recommendation")
         first, last = self.window_tm[0][0], self.window_tm[-1][0]
-        out = {"index": header.index, "segments": [first, last], "model": list(self.effects),
-               "chi2_dof": report["adequacy"]["chi2_dof"], "fails": bool(report["adequacy"]["fails"]),
-               "bands": [{k: b[k] for k in ("f_lo", "f_hi", "chi2_dof", "fails")} for b in report["adequacy"]["bands"]],
-               "failing_hours": [[s["t_start"], s["t_stop"]] for s in (report["adequacy"].get("time") or {}).get("segments", [])
-                                 if s.get("fails")],
-               "summary": report["adequacy"]["summary"],
-               "witnesses": [{k: w.get(k) for k in ("name", "spec", "delta_chi2", "best_band")}
-                             for w in ((report.get("witnesses") or {}).get("overall") or [])[:3]],
-               "candidates": [{k: c.get(k) for k in ("spec", "cli_spec", "delta_chi2", "log_bayes_factor",
-                                                      "explained_fraction", "significant")}
-                              for c in report["candidates"][:5]],
-               "text": text_report(report, source=f"window {first}..{last}")}
+        out = {
+            "index": header.index,
+            "segments": [first, last],
+            "model": list(self.effects),
+            "chi2_dof": report["adequacy"]["chi2_dof"],
+            "fails": bool(report["adequacy"]["fails"]),
+            "bands": [{k: b[k] for k in ("f_lo", "f_hi", "chi2_dof", "fails")} for b in report["adequacy"]["bands"]],
+            "failing_hours": [
+                [s["t_start"], s["t_stop"]]
+                for s in (report["adequacy"].get("time") or {}).get("segments", [])
+                if s.get("fails")
+            ],
+            "summary": report["adequacy"]["summary"],
+            "witnesses": [
+                {k: w.get(k) for k in ("name", "spec", "delta_chi2", "best_band")}
+                for w in ((report.get("witnesses") or {}).get("overall") or [])[:3]
+            ],
+            "candidates": [
+                {
+                    k: c.get(k)
+                    for k in ("spec", "cli_spec", "delta_chi2", "log_bayes_factor", "explained_fraction", "significant")
+                }
+                for c in report["candidates"][:5]
+            ],
+            "text": text_report(report, source=f"window {first}..{last}"),
+        }
         if rec:
             rec = dict(rec)
             best = next((c for c in report["candidates"] if c.get("spec") == rec.get("spec")), None)
@@ -540,10 +655,20 @@ class Fitter(OrderedStage):
         out["adoption"] = {"mode": self.adopt, "adopted": False, "reason": why}
         if self.adopt == "auto" and ok:
             out["adoption"]["adopted"] = True
-            self.change_model(self.check_model(rec["effects"]), by="adopt auto", diagnosis_index=header.index,
-                              reason=why, recommendation=to_jsonable(rec))
-        self.event("diagnosis", index=header.index, message=out["text"].splitlines()[0] if out["text"] else "",
-                   recommendation=to_jsonable(rec), adoption=out["adoption"])
+            self.change_model(
+                self.check_model(rec["effects"]),
+                by="adopt auto",
+                diagnosis_index=header.index,
+                reason=why,
+                recommendation=to_jsonable(rec),
+            )
+        self.event(
+            "diagnosis",
+            index=header.index,
+            message=out["text"].splitlines()[0] if out["text"] else "",
+            recommendation=to_jsonable(rec),
+            adoption=out["adoption"],
+        )
         return out
 
     def control_command(self, effects: list[str]) -> str:
@@ -579,9 +704,13 @@ class Fitter(OrderedStage):
         while start - 1 in segments:
             start -= 1
         if start > 0:
-            self.report_error("window-shortened", f"restart: telemetry segments before {start} are not in the "
-                                                  f"recordings; the window restarts at {start} instead of the run's start",
-                              index=first, details={"recorded": to_ranges(have)})
+            self.report_error(
+                "window-shortened",
+                f"restart: telemetry segments before {start} are not in the "
+                f"recordings; the window restarts at {start} instead of the run's start",
+                index=first,
+                details={"recorded": to_ranges(have)},
+            )
         stream = TDIStream()
         restored = list(self.effects)
         self._catching_up = True
@@ -595,8 +724,14 @@ class Fitter(OrderedStage):
         finally:
             self._catching_up = False
             self.effects = restored
-        self.event("restored", index=first, message=f"window rebuilt from the replayer's recorded telemetry: segments "
-                                                     f"{start}..{first - 1} pushed again", first=start, last=first - 1)
+        self.event(
+            "restored",
+            index=first,
+            message=f"window rebuilt from the replayer's recorded telemetry: segments "
+            f"{start}..{first - 1} pushed again",
+            first=start,
+            last=first - 1,
+        )
         self.log.info("restart: window rebuilt from segments %d..%d of the recordings", start, first - 1)
 
     def process(self, header, item) -> Output | None:
@@ -609,9 +744,12 @@ class Fitter(OrderedStage):
         if getattr(self, "_catching_up", False):
             self.replay_model(header.index)
         if self.rolling is not None and self._next_t0 is not None and abs(td.t0 - self._next_t0) > 0.5 / td.fs:
-            self.event("discontinuity", index=header.index,
-                       message=f"t0={td.t0} s does not follow the previous segment (expected {self._next_t0} s); "
-                               "the window restarts here")
+            self.event(
+                "discontinuity",
+                index=header.index,
+                message=f"t0={td.t0} s does not follow the previous segment (expected {self._next_t0} s); "
+                "the window restarts here",
+            )
             self.rolling.reset()
             self.window_tm.clear()
         with threadpool_limits(limits=1, user_api="blas"):  # small products: threads would only spin
@@ -633,11 +771,19 @@ class Fitter(OrderedStage):
         if rolling_model:
             push, owners, xyz = self.with_model_columns(td, [t for _, t in self.window_tm], tm)
         if self.rolling is None:
-            self.rolling = RollingFit(self.settings(header.meta), window_duration=self.window_duration, names=push.names,
-                                      eiv_extra=self._rolling_eiv if owners is not None else None)
-            self.log.info("rolling fit: FFT segment %g s, window %g s, band %s, %d regressors",
-                          self.rolling.settings.segment_duration, self.window_duration, self.rolling.settings.band,
-                          len(push.names))
+            self.rolling = RollingFit(
+                self.settings(header.meta),
+                window_duration=self.window_duration,
+                names=push.names,
+                eiv_extra=self._rolling_eiv if owners is not None else None,
+            )
+            self.log.info(
+                "rolling fit: FFT segment %g s, window %g s, band %s, %d regressors",
+                self.rolling.settings.segment_duration,
+                self.window_duration,
+                self.rolling.settings.band,
+                len(push.names),
+            )
         elif self.rolling.names != push.names:
             self.rebuild_rolling(header, push.names)
         self._next_t0 = td.t0 + td.size / td.fs
@@ -655,18 +801,33 @@ class Fitter(OrderedStage):
         replayed = self.handled_before(header.index)
         window = None if replayed else self.window_fit(header)
         if window is None and not replayed and self.effects != ["linear-ttl"] and self.rolling_model() is None:
-            self.warn("model-not-fitted", f"fit {header.index}: the model {','.join(self.effects)} could not be fitted "
-                                          "on the window (too short for its spectra): the linear rolling fit is "
-                                          "published, and only the linear TTL is subtracted", index=header.index)
+            self.warn(
+                "model-not-fitted",
+                f"fit {header.index}: the model {','.join(self.effects)} could not be fitted "
+                "on the window (too short for its spectra): the linear rolling fit is "
+                "published, and only the linear TTL is subtracted",
+                index=header.index,
+            )
         live = None if replayed or not self.diagnosis_due(header.index) else self.live_diagnosis(header)
         if window is not None or live is not None:
             release_free_memory()  # the refit's and the diagnosis' temporaries: not kept for the next peak
-        meta = {"names": list(res.names), "chi2_dof": res.chi2_dof, "t_start": res.t_start, "t_stop": res.t_stop,
-                "segments": int(res.n_segments), "band": list(res.band), "converged": bool(res.converged),
-                "chi2": res.chi2, "dof": res.dof, "iterations": int(res.iterations), "method": res.method,
-                "window_duration": self.window_duration,
-                "fft_segment": self.rolling.settings.segment_duration,
-                "segments_total": self.segments_total, "model": list(self.effects)}
+        meta = {
+            "names": list(res.names),
+            "chi2_dof": res.chi2_dof,
+            "t_start": res.t_start,
+            "t_stop": res.t_stop,
+            "segments": int(res.n_segments),
+            "band": list(res.band),
+            "converged": bool(res.converged),
+            "chi2": res.chi2,
+            "dof": res.dof,
+            "iterations": int(res.iterations),
+            "method": res.method,
+            "window_duration": self.window_duration,
+            "fft_segment": self.rolling.settings.segment_duration,
+            "segments_total": self.segments_total,
+            "model": list(self.effects),
+        }
         if live is not None and live["adoption"]["adopted"]:
             meta["model"] = live["model"]  # the model of this fit; the adopted one applies from the next segment
         arrays = {"coefficients": res.coefficients, "sigma": res.sigma, "covariance": res.covariance}
@@ -679,50 +840,104 @@ class Fitter(OrderedStage):
             meta.update(window)
         if live is not None:
             meta["diagnosis"] = live
-        summary = {"run": self.run_id, "index": header.index, "names": meta["names"],
-                   "coefficients": arrays["coefficients"], "sigma": arrays["sigma"], "covariance": arrays["covariance"],
-                   "chi2": res.chi2, "dof": res.dof, "chi2_dof": res.chi2_dof,
-                   "t_start": res.t_start, "t_end": res.t_stop, "segments": int(res.n_segments),
-                   "fit": res.to_json(), **{k: meta[k] for k in ("model", "adequacy", "model_change", "candidates",
-                                                                 "extra_parameters", "model_parts", "diagnosis",
-                                                                 "model_update")
-                                              if k in meta}}
-        self.log.info("segment %d: fit over [%.0f, %.0f] s (%d FFT segments), chi2/dof %.3f", header.index,
-                      res.t_start, res.t_stop, res.n_segments, res.chi2_dof)
+        summary = {
+            "run": self.run_id,
+            "index": header.index,
+            "names": meta["names"],
+            "coefficients": arrays["coefficients"],
+            "sigma": arrays["sigma"],
+            "covariance": arrays["covariance"],
+            "chi2": res.chi2,
+            "dof": res.dof,
+            "chi2_dof": res.chi2_dof,
+            "t_start": res.t_start,
+            "t_end": res.t_stop,
+            "segments": int(res.n_segments),
+            "fit": res.to_json(),
+            **{
+                k: meta[k]
+                for k in (
+                    "model",
+                    "adequacy",
+                    "model_change",
+                    "candidates",
+                    "extra_parameters",
+                    "model_parts",
+                    "diagnosis",
+                    "model_update",
+                )
+                if k in meta
+            },
+        }
+        self.log.info(
+            "segment %d: fit over [%.0f, %.0f] s (%d FFT segments), chi2/dof %.3f",
+            header.index,
+            res.t_start,
+            res.t_stop,
+            res.n_segments,
+            res.chi2_dof,
+        )
         excluded = res.extra.get("excluded")
         if excluded and "gate" in excluded:
             meta["excluded"] = excluded
-            self.event("segment-gated", index=header.index,
-                       message=f"fit {header.index}: the FFT segment [{excluded['t_start']:.0f}, {excluded['t_stop']:.0f}] s "
-                               f"overlaps the model's gate {excluded['gate']} s: left out of the rolling fit", **excluded)
+            self.event(
+                "segment-gated",
+                index=header.index,
+                message=f"fit {header.index}: the FFT segment [{excluded['t_start']:.0f}, {excluded['t_stop']:.0f}] s "
+                f"overlaps the model's gate {excluded['gate']} s: left out of the rolling fit",
+                **excluded,
+            )
         elif excluded:
             meta["excluded"] = excluded
-            self.warn("segment-excluded", f"fit {header.index}: the FFT segment [{excluded['t_start']:.0f}, "
-                                          f"{excluded['t_stop']:.0f}] s is left out of the rolling fit: chi2/dof "
-                                          f"{excluded['chi2_dof']:.3f} at its own best fit, {excluded['z']:.0f} sigma "
-                                          f"above the window's {excluded['reference']:.3f} (a transient: a glitch, a "
-                                          "merger, a noise burst)", index=header.index, **excluded)
+            self.warn(
+                "segment-excluded",
+                f"fit {header.index}: the FFT segment [{excluded['t_start']:.0f}, "
+                f"{excluded['t_stop']:.0f}] s is left out of the rolling fit: chi2/dof "
+                f"{excluded['chi2_dof']:.3f} at its own best fit, {excluded['z']:.0f} sigma "
+                f"above the window's {excluded['reference']:.3f} (a transient: a glitch, a "
+                "merger, a noise burst)",
+                index=header.index,
+                **excluded,
+            )
         if not res.converged:
-            self.warn("not-converged", f"fit {header.index} did not converge in {res.iterations} iterations",
-                      index=header.index, iterations=int(res.iterations))
+            self.warn(
+                "not-converged",
+                f"fit {header.index} did not converge in {res.iterations} iterations",
+                index=header.index,
+                iterations=int(res.iterations),
+            )
         if "adequacy" in meta:
-            self.log.info("segment %d: model %s, chi2/dof against the instrument noise model %.3f%s", header.index,
-                          ",".join(meta["model"]), meta["adequacy"]["chi2_dof"],
-                          " (fails)" if meta["adequacy"]["fails"] else "")
+            self.log.info(
+                "segment %d: model %s, chi2/dof against the instrument noise model %.3f%s",
+                header.index,
+                ",".join(meta["model"]),
+                meta["adequacy"]["chi2_dof"],
+                " (fails)" if meta["adequacy"]["fails"] else "",
+            )
             if meta["adequacy"]["fails"]:
-                self.warn("model-inadequate", f"fit {header.index}: the model {','.join(meta['model'])} fails against "
-                                              f"the instrument noise model (chi2/dof {meta['adequacy']['chi2_dof']:.3f}; "
-                                              + "; ".join(meta["adequacy"]["summary"]) + ")",
-                          index=header.index, chi2_dof=meta["adequacy"]["chi2_dof"])
-        return Output(self.output_topic, arrays,
-                      fields={"units": UNITS, "meta": to_jsonable(meta)},
-                      summary=to_jsonable(summary), summary_schema="ttl.Fit", allow_nonfinite=True)
+                self.warn(
+                    "model-inadequate",
+                    f"fit {header.index}: the model {','.join(meta['model'])} fails against "
+                    f"the instrument noise model (chi2/dof {meta['adequacy']['chi2_dof']:.3f}; "
+                    + "; ".join(meta["adequacy"]["summary"])
+                    + ")",
+                    index=header.index,
+                    chi2_dof=meta["adequacy"]["chi2_dof"],
+                )
+        return Output(
+            self.output_topic,
+            arrays,
+            fields={"units": UNITS, "meta": to_jsonable(meta)},
+            summary=to_jsonable(summary),
+            summary_schema="ttl.Fit",
+            allow_nonfinite=True,
+        )
 
 
 def _file_number(path, stage: str) -> int:
     """``n`` of ``<stage>.<n>.mcap`` (the order the processes ran in)."""
     try:
-        return int(path.name[len(stage) + 1:-len(".mcap")])
+        return int(path.name[len(stage) + 1 : -len(".mcap")])
     except ValueError:
         return 0
 
@@ -733,30 +948,57 @@ def add_options(p) -> None:
     p.add_argument("--band", nargs=2, type=float, metavar=("FMIN", "FMAX"), help="fit band [Hz]")
     p.add_argument("--settle", type=float, help="seconds to collect cached history before choosing the first segment")
     p.add_argument("--gap-timeout", type=float, help="seconds to wait for a missing segment before skipping it")
-    p.add_argument("--effects", help="the model: effect specs, comma-separated (default linear-ttl; any effect "
-                                     "ttl diagnose can fit, e.g. 'linear-ttl,witness:source=12.eta;link=23;delay=2')")
+    p.add_argument(
+        "--effects",
+        help="the model: effect specs, comma-separated (default linear-ttl; any effect "
+        "ttl diagnose can fit, e.g. 'linear-ttl,witness:source=12.eta;link=23;delay=2')",
+    )
     p.add_argument("--effect-module", action="append", help="plugin module or .py file defining effects (repeatable)")
-    p.add_argument("--adequacy-every", type=int,
-                   help="refit the window under the instrument noise model every N segments (default 24; 0: never)")
-    p.add_argument("--candidates-every", type=int,
-                   help="rank the effects not in the model every N segments (default 0: on model changes only)")
-    p.add_argument("--diagnose-every", type=int,
-                   help="diagnose the window as ttl diagnose would every N segments (default 24; 0: never)")
-    p.add_argument("--adopt", choices=ADOPT_MODES,
-                   help="ask (default): recommend what to add; auto: adopt a recommendation that explains the excess; "
-                        "never: no live diagnosis")
-    p.add_argument("--model-update", choices=MODEL_UPDATES,
-                   help="an extended model between the window refits (every --adequacy-every segments and on a "
-                        "model change): rolling (default: the rolling fit with the model's columns, the work of one "
-                        "segment) or refit (the window refitted every segment, as ttl refit)")
+    p.add_argument(
+        "--adequacy-every",
+        type=int,
+        help="refit the window under the instrument noise model every N segments (default 24; 0: never)",
+    )
+    p.add_argument(
+        "--candidates-every",
+        type=int,
+        help="rank the effects not in the model every N segments (default 0: on model changes only)",
+    )
+    p.add_argument(
+        "--diagnose-every",
+        type=int,
+        help="diagnose the window as ttl diagnose would every N segments (default 24; 0: never)",
+    )
+    p.add_argument(
+        "--adopt",
+        choices=ADOPT_MODES,
+        help="ask (default): recommend what to add; auto: adopt a recommendation that explains the excess; "
+        "never: no live diagnosis",
+    )
+    p.add_argument(
+        "--model-update",
+        choices=MODEL_UPDATES,
+        help="an extended model between the window refits (every --adequacy-every segments and on a "
+        "model change): rolling (default: the rolling fit with the model's columns, the work of one "
+        "segment) or refit (the window refitted every segment, as ttl refit)",
+    )
 
 
 def options(args) -> dict:
-    return {"fit_segment": args.fit_segment, "window_duration": args.window_duration, "band": args.band,
-            "settle": args.settle, "gap_timeout": args.gap_timeout, "effects": args.effects,
-            "effect_modules": args.effect_module, "adequacy_every": args.adequacy_every,
-            "candidates_every": args.candidates_every, "diagnose_every": args.diagnose_every, "adopt": args.adopt,
-            "model_update": args.model_update}
+    return {
+        "fit_segment": args.fit_segment,
+        "window_duration": args.window_duration,
+        "band": args.band,
+        "settle": args.settle,
+        "gap_timeout": args.gap_timeout,
+        "effects": args.effects,
+        "effect_modules": args.effect_module,
+        "adequacy_every": args.adequacy_every,
+        "candidates_every": args.candidates_every,
+        "diagnose_every": args.diagnose_every,
+        "adopt": args.adopt,
+        "model_update": args.model_update,
+    }
 
 
 def main(argv=None) -> int:

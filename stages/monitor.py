@@ -107,7 +107,6 @@ P = len(COEFFICIENT_NAMES)
 APPLICATION_ID = "ttl_monitor"
 
 
-
 class Monitor(PipelineStage):
     """Draws ASDs, coefficient trends, chi^2/dof and alerts in Rerun (module docstring)."""
 
@@ -163,19 +162,29 @@ class Monitor(PipelineStage):
         self.rrd = set_aside(Path(rrd))
         self.rrd.parent.mkdir(parents=True, exist_ok=True)
         # no display, no binary, nothing listening: the file is still written
-        self.viewer, self.viewer_url, viewer_problem = start_live(self.live, self.options.get("viewer_port"),
-                                                                  self.options.get("rerun_binary"))
+        self.viewer, self.viewer_url, viewer_problem = start_live(
+            self.live, self.options.get("viewer_port"), self.options.get("rerun_binary")
+        )
         if viewer_problem:
             self.log.warning("%s", viewer_problem)
-        self.rec = LiveFanout.open(APPLICATION_ID, f"{self.run_id}-{os.getpid()}-{int(time.time())}", self.rrd,
-                                   self.viewer_url, views.blueprint(self.band), on_live_failure=self._live_failed)
+        self.rec = LiveFanout.open(
+            APPLICATION_ID,
+            f"{self.run_id}-{os.getpid()}-{int(time.time())}",
+            self.rrd,
+            self.viewer_url,
+            views.blueprint(self.band),
+            on_live_failure=self._live_failed,
+        )
         self.rec.send_recording_name(f"ttl {self.run_id}")
         self.series = views.SeriesLog(self.rec)
         self._static_styles()
         self._time(0.0, 0)
         views.first_texts(self.rec)
-        self.text("log", f"monitor of run {self.run_id} started; recording {self.rrd}"
-                  + (f", live viewer {self.viewer_url}" if self.viewer_url else ""))
+        self.text(
+            "log",
+            f"monitor of run {self.run_id} started; recording {self.rrd}"
+            + (f", live viewer {self.viewer_url}" if self.viewer_url else ""),
+        )
         if viewer_problem:
             self.text("log", viewer_problem, "WARN")
         self.bus.subscriber(topic_pattern(self.run_id, ERRORS), self._on_error)
@@ -274,8 +283,10 @@ class Monitor(PipelineStage):
         is waited for: the monitor would otherwise settle the first segments without their
         fits and residuals.
         """
-        for stage, topic, made in (("fitter", "fit", lambda p: p.extra.get("fits", set())),
-                                   ("subtractor", "residual", lambda p: p.done)):
+        for stage, topic, made in (
+            ("fitter", "fit", lambda p: p.extra.get("fits", set())),
+            ("subtractor", "residual", lambda p: p.done),
+        ):
             peer = board.get(stage)
             if peer is None:
                 if stage in self.alive_peers and i not in self._refused[topic]:
@@ -326,8 +337,12 @@ class Monitor(PipelineStage):
                 why = self._give_up(i, waiting, since, now)
                 if why is None:
                     continue
-                self.report_error("failed", f"segment {i}: its {waiting} did not come: {why}", index=i,
-                                  details={"waiting_for": waiting})
+                self.report_error(
+                    "failed",
+                    f"segment {i}: its {waiting} did not come: {why}",
+                    index=i,
+                    details={"waiting_for": waiting},
+                )
                 self.text("log", f"segment {i}: its {waiting} did not come: {why}", "WARN")
                 self._forget(i)
                 self.mark_failed(i)
@@ -468,8 +483,9 @@ class Monitor(PipelineStage):
             progress = "no segment drawn yet"
         else:
             i, end = self._drawn_to
-            progress = (f"Drawn to segment {i}" + (f" of {total - 1}" if total else "")
-                        + f", mission time {views.days(end)}")
+            progress = (
+                f"Drawn to segment {i}" + (f" of {total - 1}" if total else "") + f", mission time {views.days(end)}"
+            )
         views.summary_document(self.rec, progress, self._alert_lines, self._band_labels)
 
     def on_residual(self, header, arrays):
@@ -496,13 +512,20 @@ class Monitor(PipelineStage):
         parts, specs = arrays.get("effect_model"), header.meta.get("effects") or []
         if parts is None or parts.ndim != 3 or parts.shape[0] != len(specs):
             return
-        for k, spec in enumerate(specs[:len(views.EFFECT_COLORS)]):
+        for k, spec in enumerate(specs[: len(views.EFFECT_COLORS)]):
             x = parts[k, 0]
             x = x[longest_run(np.isfinite(x))]
             if x.size >= MIN_SAMPLES and np.any(x != 0):
                 f, asd, _ = channel_asd(x, header.fs, self.per_decade)
-                views.noise_curve(self.rec, f"effect/{k}", f, asd, self.band, color=views.EFFECT_COLORS[k],
-                                  label=str(spec).split(",")[0])
+                views.noise_curve(
+                    self.rec,
+                    f"effect/{k}",
+                    f,
+                    asd,
+                    self.band,
+                    color=views.EFFECT_COLORS[k],
+                    label=str(spec).split(",")[0],
+                )
 
     # ------------------------------------------------------------------ fits and trends
     def _static_styles(self) -> None:
@@ -549,8 +572,7 @@ class Monitor(PipelineStage):
         if alerts:
             self._summary()
         self._pending_alerts.extend(alerts)
-        self._last_fit = {"index": header.index, "chi2_dof": chi2,
-                          "t_start": t_start, "t_stop": t_stop}
+        self._last_fit = {"index": header.index, "chi2_dof": chi2, "t_start": t_start, "t_stop": t_stop}
         return ()
 
     def _draw_truth(self, windows: dict[int, tuple[float, float]]) -> None:
@@ -591,29 +613,48 @@ class Monitor(PipelineStage):
                 self._band_labels = labels
                 self._summary()
             if adequacy.get("fails"):
-                self.text("model/log", f"fit {index}: the model fails against the instrument noise model: "
-                                       + "; ".join(map(str, adequacy.get("summary") or ())), "WARN")
+                self.text(
+                    "model/log",
+                    f"fit {index}: the model fails against the instrument noise model: "
+                    + "; ".join(map(str, adequacy.get("summary") or ())),
+                    "WARN",
+                )
         views.diagnosis_document(self.rec, index, meta.get("diagnosis"))  # the live diagnosis, when there is one
         change = meta.get("model_change")
         if isinstance(change, dict):
+
             def fmt(x):
                 return f"{x:.3f}" if isinstance(x, (int, float)) else "?"
-            self.text("model/log", f"fit {index}: model {','.join(change.get('before') or ())} -> "
-                                   f"{','.join(change.get('after') or ())}: χ²/dof {fmt(change.get('chi2_dof_before'))}"
-                                   f" -> {fmt(change.get('chi2_dof_after'))}, Δχ² {fmt(change.get('delta_chi2'))}, "
-                                   f"log Bayes factor {fmt(change.get('log_bayes_factor'))}")
+
+            self.text(
+                "model/log",
+                f"fit {index}: model {','.join(change.get('before') or ())} -> "
+                f"{','.join(change.get('after') or ())}: χ²/dof {fmt(change.get('chi2_dof_before'))}"
+                f" -> {fmt(change.get('chi2_dof_after'))}, Δχ² {fmt(change.get('delta_chi2'))}, "
+                f"log Bayes factor {fmt(change.get('log_bayes_factor'))}",
+            )
             for part in ("before", "after"):
                 values = change.get(f"bands_{part}")
                 if isinstance(values, list) and values:
-                    self.rec.log(f"model/{part}", rr.BarChart(np.array([v if isinstance(v, (int, float)) else np.nan
-                                                                         for v in values], dtype=float)))
+                    self.rec.log(
+                        f"model/{part}",
+                        rr.BarChart(
+                            np.array([v if isinstance(v, (int, float)) else np.nan for v in values], dtype=float)
+                        ),
+                    )
         candidates = meta.get("candidates")
         if isinstance(candidates, list) and candidates:
-            lines = [f"{c.get('effect')}: Δχ² {c.get('delta_chi2', 0):.1f}, log BF {c.get('log_bayes_factor', 0):.1f}"
-                     f"{' (significant)' if c.get('significant') else ''}" for c in candidates if isinstance(c, dict)]
+            lines = [
+                f"{c.get('effect')}: Δχ² {c.get('delta_chi2', 0):.1f}, log BF {c.get('log_bayes_factor', 0):.1f}"
+                f"{' (significant)' if c.get('significant') else ''}"
+                for c in candidates
+                if isinstance(c, dict)
+            ]
             self.text("model/log", f"fit {index}: top candidates: " + "; ".join(lines))
-            self.rec.log("model/candidates", rr.BarChart(np.array([float(c.get("delta_chi2") or 0.0)
-                                                                   for c in candidates if isinstance(c, dict)])))
+            self.rec.log(
+                "model/candidates",
+                rr.BarChart(np.array([float(c.get("delta_chi2") or 0.0) for c in candidates if isinstance(c, dict)])),
+            )
 
     def status(self, index: int) -> Output:
         """The ``monitor/<i>`` message of segment ``i``: trend state and the alerts raised since the last one."""
@@ -622,15 +663,29 @@ class Monitor(PipelineStage):
         sig = np.nan_to_num(est.significance) if est is not None else np.zeros(P)
         alerts, self._pending_alerts = self._pending_alerts, []
         t0, fs = self._segment_time.get(index, (0.0, 1.0))
-        meta = {"names": list(COEFFICIENT_NAMES), "alerts": [a.to_json() for a in alerts],
-                "drifting": sorted(self.trends.drifting), "drift_windows": est.windows if est else 0,
-                "residual_over_expected": {"index": self._ratio[0], "ratio": self._ratio[1]} if self._ratio else None,
-                "fit": self._last_fit, "segments_total": self.segments_total}
-        return Output(self.output_topic, {"drift_rate": rate, "drift_significance": sig}, index=index,
-                      fields={"t0": t0, "fs": fs, "units": {"drift_rate": "mm/rad/day", "drift_significance": ""},
-                              "meta": to_jsonable(meta)},
-                      summary=to_jsonable({"run": self.run_id, "index": index, **meta,
-                                        "drift_rate": rate, "drift_significance": sig}))
+        meta = {
+            "names": list(COEFFICIENT_NAMES),
+            "alerts": [a.to_json() for a in alerts],
+            "drifting": sorted(self.trends.drifting),
+            "drift_windows": est.windows if est else 0,
+            "residual_over_expected": {"index": self._ratio[0], "ratio": self._ratio[1]} if self._ratio else None,
+            "fit": self._last_fit,
+            "segments_total": self.segments_total,
+        }
+        return Output(
+            self.output_topic,
+            {"drift_rate": rate, "drift_significance": sig},
+            index=index,
+            fields={
+                "t0": t0,
+                "fs": fs,
+                "units": {"drift_rate": "mm/rad/day", "drift_significance": ""},
+                "meta": to_jsonable(meta),
+            },
+            summary=to_jsonable(
+                {"run": self.run_id, "index": index, **meta, "drift_rate": rate, "drift_significance": sig}
+            ),
+        )
 
     @staticmethod
     def _trim(d: dict, keep: int = 8) -> None:
@@ -640,9 +695,13 @@ class Monitor(PipelineStage):
 
 # ---------------------------------------------------------------------------- entry point
 
+
 def add_options(p) -> None:
-    p.add_argument("--live", help="also stream to a viewer: 'spawn' (start the rerun viewer on 127.0.0.1), "
-                                  "'serve' (headless rerun gRPC server on 127.0.0.1) or a rerun+http:// URL")
+    p.add_argument(
+        "--live",
+        help="also stream to a viewer: 'spawn' (start the rerun viewer on 127.0.0.1), "
+        "'serve' (headless rerun gRPC server on 127.0.0.1) or a rerun+http:// URL",
+    )
     p.add_argument("--viewer-port", type=int, help="port of the spawned viewer or server (default: a free one)")
     p.add_argument("--rrd", help="Rerun recording to write (default <recordings>/<run>/monitor.rrd)")
 
@@ -653,8 +712,10 @@ def options(args) -> dict:
 
 def check(config) -> str:
     m = Monitor(config)
-    return (f"monitor of run {config.run}: recording {Path(config.recordings) / config.run / 'monitor.rrd'}, "
-            f"live {m.live or 'off'}, band {m.band}, trends {m.trends.settings}")
+    return (
+        f"monitor of run {config.run}: recording {Path(config.recordings) / config.run / 'monitor.rrd'}, "
+        f"live {m.live or 'off'}, band {m.band}, trends {m.trends.settings}"
+    )
 
 
 def main(argv=None) -> int:

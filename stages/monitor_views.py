@@ -100,6 +100,7 @@ def band_color(g: int, n: int = 8) -> tuple[int, int, int]:
 
 # ---------------------------------------------------------------------------- blueprint
 
+
 def _series(name: str, contents, **kw) -> rrb.TimeSeriesView:
     """A time series over the whole mission time range, without a legend over its data.
 
@@ -109,9 +110,13 @@ def _series(name: str, contents, **kw) -> rrb.TimeSeriesView:
     (27 of them) for the same picture.
     """
     everything = rrb.TimeRangeBoundary.infinite()
-    return rrb.TimeSeriesView(name=name, contents=contents,
-                              axis_x=rrb.TimeAxis(view_range=rr.TimeRange(start=everything, end=everything)),
-                              plot_legend=rrb.PlotLegend(visible=False), **kw)
+    return rrb.TimeSeriesView(
+        name=name,
+        contents=contents,
+        axis_x=rrb.TimeAxis(view_range=rr.TimeRange(start=everything, end=everything)),
+        plot_legend=rrb.PlotLegend(visible=False),
+        **kw,
+    )
 
 
 def noise_view(band) -> rrb.Spatial2DView:
@@ -122,9 +127,10 @@ def noise_view(band) -> rrb.Spatial2DView:
     # the plot is flipped (larger ASD up): its y is -log10 ASD; margins: tick labels and the
     # y-axis title on the left, frequency labels and x-axis title below, the legend above
     return rrb.Spatial2DView(
-        origin="asd", name="Noise of X2: ASD [m/√Hz] vs frequency [Hz], both log10 scales",
-        visual_bounds=rrb.VisualBounds2D(x_range=[s * x0 - 0.75, s * x1 + 0.15],
-                                         y_range=[-y1 - 1.05, -y0 + 0.6]))
+        origin="asd",
+        name="Noise of X2: ASD [m/√Hz] vs frequency [Hz], both log10 scales",
+        visual_bounds=rrb.VisualBounds2D(x_range=[s * x0 - 0.75, s * x1 + 0.15], y_range=[-y1 - 1.05, -y0 + 0.6]),
+    )
 
 
 def blueprint(band) -> rrb.Blueprint:
@@ -144,8 +150,9 @@ def blueprint(band) -> rrb.Blueprint:
             rrb.TextDocumentView(origin=f"/{DIAGNOSIS}", name="Diagnosis"),
             # one log view for the alerts, the model changes and the monitor's log (their
             # entities are its columns): a view is a few blueprint chunks to load
-            rrb.TextLogView(origin="/", contents=["+ /alerts", "+ /model/log", "+ /log"],
-                            name="Logs: alerts, model, monitor"),
+            rrb.TextLogView(
+                origin="/", contents=["+ /alerts", "+ /model/log", "+ /log"], name="Logs: alerts, model, monitor"
+            ),
             rrb.BarChartView(origin="model/candidates", name="Candidates Δχ²"),
             rrb.BarChartView(origin="model/before", name="χ²/dof per band before"),
             rrb.BarChartView(origin="model/after", name="after"),
@@ -157,7 +164,9 @@ def blueprint(band) -> rrb.Blueprint:
             rrb.Vertical(noise_view(band), adequacy, row_shares=[7, 3]),
             rrb.Vertical(
                 rrb.Grid(*coefficients, grid_columns=4, name="Coefficients: fit ±1σ (blue), truth (black)"),
-                texts, row_shares=[13, 5]),
+                texts,
+                row_shares=[13, 5],
+            ),
             column_shares=[1, 1],
         ),
         rrb.TimePanel(timeline="mission_time", play_state="following", state="collapsed"),
@@ -167,6 +176,7 @@ def blueprint(band) -> rrb.Blueprint:
 
 
 # ---------------------------------------------------------------------------- static parts
+
 
 def static_styles(rec, band) -> None:
     """The noise view's transform, axes and legend (once, static).  The time series' styles
@@ -181,14 +191,17 @@ def series_styles() -> dict[str, rr.SeriesLines]:
     styles = {}
     for name in COEFFICIENT_NAMES:
         ent = coefficient_entity(name)
-        styles[f"{ent}/fit"] = rr.SeriesLines(colors=[FIT_COLOR, SIGMA_COLOR, SIGMA_COLOR], widths=[2.0, 1.0, 1.0],
-                                              names=["fit", "+1σ", "−1σ"])
+        styles[f"{ent}/fit"] = rr.SeriesLines(
+            colors=[FIT_COLOR, SIGMA_COLOR, SIGMA_COLOR], widths=[2.0, 1.0, 1.0], names=["fit", "+1σ", "−1σ"]
+        )
         styles[f"{ent}/truth"] = rr.SeriesLines(colors=[TRUTH_COLOR], widths=[1.0], names=["truth"])
     styles["adequacy/chi2_dof"] = rr.SeriesLines(colors=[CHI2_COLOR], widths=[2.0], names=["fit (re-estimated noise)"])
-    styles["adequacy/instrument/chi2_dof"] = rr.SeriesLines(colors=[INSTRUMENT_COLOR], widths=[2.0],
-                                                            names=["instrument noise model"])
-    styles["adequacy/log10_residual_over_expected"] = rr.SeriesLines(colors=[CURVES["residual"][1]], widths=[1.5],
-                                                                     names=["log10 residual/expected"])
+    styles["adequacy/instrument/chi2_dof"] = rr.SeriesLines(
+        colors=[INSTRUMENT_COLOR], widths=[2.0], names=["instrument noise model"]
+    )
+    styles["adequacy/log10_residual_over_expected"] = rr.SeriesLines(
+        colors=[CURVES["residual"][1]], widths=[1.5], names=["log10 residual/expected"]
+    )
     return styles
 
 
@@ -232,8 +245,12 @@ def first_texts(rec) -> None:
     """The text panels before anything is drawn, at the current time (mission time 0: not
     static, which would hide every later document of the entity)."""
     summary_document(rec, "No segment drawn yet", [], [])
-    rec.log(DIAGNOSIS, rr.TextDocument("No diagnosis yet: it appears here when a fit message carries one.",
-                                       media_type="text/markdown"))
+    rec.log(
+        DIAGNOSIS,
+        rr.TextDocument(
+            "No diagnosis yet: it appears here when a fit message carries one.", media_type="text/markdown"
+        ),
+    )
 
 
 def noise_axes(rec, band) -> None:
@@ -246,22 +263,38 @@ def noise_axes(rec, band) -> None:
     yt = list(range(int(y0), int(y1) + 1))
     lines = [[(x, y0), (x, y1)] for x in xt] + [[(x0, y), (x1, y)] for y in yt]
     lines += [[(x0, y0), (x0, y1)], [(x1, y0), (x1, y1)]]  # the band's edges
-    rec.log("asd/plot/grid", rr.LineStrips2D(lines, colors=[(210, 210, 210)], radii=rr.Radius.ui_points(0.5)),
-            static=True)
+    rec.log(
+        "asd/plot/grid", rr.LineStrips2D(lines, colors=[(210, 210, 210)], radii=rr.Radius.ui_points(0.5)), static=True
+    )
     # label positions in data units; the x stretch makes a data unit of x longer on screen
     ticks = [(x, y0 - 0.12) for x in xt] + [(x0 - 0.16 / s, y) for y in yt]
-    labels = [f"{10.0 ** x:g} Hz" for x in xt] + [f"1e{y}" for y in yt]
+    labels = [f"{10.0**x:g} Hz" for x in xt] + [f"1e{y}" for y in yt]
     titles = [(0.5 * (x0 + x1), y0 - 0.32), (x0 + 0.1, y1 + 0.2)]
-    rec.log("asd/plot/ticks", rr.Points2D(ticks + titles, labels=labels + ["frequency [Hz], log10 scale",
-                                                                          "ASD [m/√Hz], log10 scale"],
-                                          radii=rr.Radius.ui_points(0.1), colors=[(90, 90, 90)],
-                                          show_labels=True), static=True)
+    rec.log(
+        "asd/plot/ticks",
+        rr.Points2D(
+            ticks + titles,
+            labels=labels + ["frequency [Hz], log10 scale", "ASD [m/√Hz], log10 scale"],
+            radii=rr.Radius.ui_points(0.1),
+            colors=[(90, 90, 90)],
+            show_labels=True,
+        ),
+        static=True,
+    )
     names = list(CURVES)
     # the legend in two rows of three above the plot (y above the science range): outside the data
     pts = [(x0 + (0.12 + 0.36 * (k % 3)) * (x1 - x0), y1 + 0.85 - 0.3 * (k // 3)) for k in range(len(names))]
-    rec.log("asd/plot/legend", rr.Points2D(pts, labels=[CURVES[n][0] for n in names],
-                                           colors=[CURVES[n][1] for n in names],
-                                           radii=rr.Radius.ui_points(5.0), show_labels=True), static=True)
+    rec.log(
+        "asd/plot/legend",
+        rr.Points2D(
+            pts,
+            labels=[CURVES[n][0] for n in names],
+            colors=[CURVES[n][1] for n in names],
+            radii=rr.Radius.ui_points(5.0),
+            show_labels=True,
+        ),
+        static=True,
+    )
 
 
 # ---------------------------------------------------------------------------- per message
@@ -291,8 +324,10 @@ def noise_curve(rec, name: str, f, asd, band, color=None, label: str | None = No
                 strips.append(np.column_stack([x[start:k], y[start:k]]).astype(np.float32))
             start = None
     labels = {"labels": [label] * len(strips), "show_labels": True} if label and strips else {}
-    rec.log(f"asd/plot/X2/{name}", rr.LineStrips2D(strips, colors=[color or CURVES[name][1]],
-                                                   radii=rr.Radius.ui_points(1.5), **labels))
+    rec.log(
+        f"asd/plot/X2/{name}",
+        rr.LineStrips2D(strips, colors=[color or CURVES[name][1]], radii=rr.Radius.ui_points(1.5), **labels),
+    )
 
 
 def fit_point(series: SeriesLog, C, S, t: float) -> None:

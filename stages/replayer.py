@@ -67,6 +67,7 @@ DEFAULT_SEGMENT = 3600.0
 
 # ---------------------------------------------------------------------------- sources
 
+
 @dataclass
 class _Piece:
     file: int
@@ -90,12 +91,26 @@ class FileSource:
                 raise TelemetryError(path, "this is a truth file; give the telemetry file beside it")
             if kind == "ttl":
                 head = read_header(path)
-                entry = {"path": path, "kind": kind, "t0": head["t0"], "fs": head["fs"], "size": head["size"],
-                         "config": head["config"] or {}, "data": None}
+                entry = {
+                    "path": path,
+                    "kind": kind,
+                    "t0": head["t0"],
+                    "fs": head["fs"],
+                    "size": head["size"],
+                    "config": head["config"] or {},
+                    "data": None,
+                }
             else:  # lisainstrument: reduced to eta once
                 tm = read_telemetry(path)
-                entry = {"path": path, "kind": kind, "t0": tm.t0, "fs": tm.fs, "size": tm.size,
-                         "config": tm.config or {}, "data": tm}
+                entry = {
+                    "path": path,
+                    "kind": kind,
+                    "t0": tm.t0,
+                    "fs": tm.fs,
+                    "size": tm.size,
+                    "config": tm.config or {},
+                    "data": tm,
+                }
             tp = truth_path(path)
             entry["truth"] = str(tp) if tp.exists() else None
             self.files.append(entry)
@@ -103,18 +118,24 @@ class FileSource:
         fs = self.files[0]["fs"]
         for e in self.files[1:]:
             if e["fs"] != fs:
-                raise TelemetryError(e["path"], f"sampling rate {e['fs']} Hz differs from {fs} Hz of {self.files[0]['path']}")
+                raise TelemetryError(
+                    e["path"], f"sampling rate {e['fs']} Hz differs from {fs} Hz of {self.files[0]['path']}"
+                )
         for a, b in zip(self.files, self.files[1:]):
             if b["t0"] < a["t0"] + a["size"] / fs - 0.5 / fs:
-                raise TelemetryError(b["path"], f"starts at t0={b['t0']} s, before {a['path']} ends "
-                                                f"({a['t0'] + a['size'] / fs} s): overlapping files")
+                raise TelemetryError(
+                    b["path"],
+                    f"starts at t0={b['t0']} s, before {a['path']} ends "
+                    f"({a['t0'] + a['size'] / fs} s): overlapping files",
+                )
         self.fs = fs
         self.segment_duration = float(segment_duration)
         n = int(round(self.segment_duration * fs))
         if n < 1:
             raise ConfigError(f"--segment: {segment_duration} s is less than one sample at {fs} Hz")
-        self.pieces = [_Piece(k, s, min(s + n, e["size"])) for k, e in enumerate(self.files)
-                       for s in range(0, e["size"], n)]
+        self.pieces = [
+            _Piece(k, s, min(s + n, e["size"])) for k, e in enumerate(self.files) for s in range(0, e["size"], n)
+        ]
 
     @property
     def segments_total(self) -> int:
@@ -141,8 +162,12 @@ class FileSource:
             tm = e["data"].slice(piece.start, piece.stop)
         else:
             tm = read_telemetry(e["path"], piece.start, piece.stop)
-        meta = {"source": str(e["path"]), "truth": e["truth"], "file": piece.file,
-                "dws_asd": dws_asd_from_config(e["config"])}
+        meta = {
+            "source": str(e["path"]),
+            "truth": e["truth"],
+            "file": piece.file,
+            "dws_asd": dws_asd_from_config(e["config"]),
+        }
         return tm, meta
 
 
@@ -180,8 +205,10 @@ class SimulationSource:
         return Plan(self.segments_total, self.fs, float(self.config.t0), self.n, int(self.sim.size))
 
     def describe(self) -> str:
-        return (f"{self.segments_total} segments of {self.segment_duration:g} s simulated on the fly "
-                f"({self.config.duration:g} s, orbit {self.config.orbit}, seed {self.config.seed})")
+        return (
+            f"{self.segments_total} segments of {self.segment_duration:g} s simulated on the fly "
+            f"({self.config.duration:g} s, orbit {self.config.orbit}, seed {self.config.seed})"
+        )
 
     def segment(self, i: int) -> tuple[Telemetry, dict]:
         n0 = i * self.n
@@ -203,10 +230,11 @@ def make_source(options: dict):
         return SimulationSource(simulate, segment)
     if files:
         return FileSource([files] if isinstance(files, str) else files, segment)
-    raise ConfigError("no telemetry source: give --telemetry FILE... or --simulate \"<ttl simulate options>\"")
+    raise ConfigError('no telemetry source: give --telemetry FILE... or --simulate "<ttl simulate options>"')
 
 
 # ---------------------------------------------------------------------------- the stage
+
 
 class Replayer(PipelineStage):
     """Publishes telemetry segments in mission-time order (files or simulation)."""
@@ -224,7 +252,9 @@ class Replayer(PipelineStage):
         self.segment_duration = self.source.segment_duration
         self.pace = float(o.get("pace") or 0.0)
         if self.pace < 0 or not np.isfinite(self.pace):
-            raise ConfigError(f"--pace: expected a multiple of real time > 0 (or 0: as fast as possible), got {self.pace}")
+            raise ConfigError(
+                f"--pace: expected a multiple of real time > 0 (or 0: as fast as possible), got {self.pace}"
+            )
         self.window = int(o.get("window", REPLAY_WINDOW))
         if self.window < 1:
             raise ConfigError(f"--window: expected >= 1, got {self.window}")
@@ -271,8 +301,9 @@ class Replayer(PipelineStage):
         peers = [p for name, p in board.items() if name != self.stage_name]
         if not peers or any(name not in board for name in self.pace_on):
             return 0
-        first_missing = min(min(set(range(self.segments_total)) - p.handled, default=self.segments_total)
-                            for p in peers)
+        first_missing = min(
+            min(set(range(self.segments_total)) - p.handled, default=self.segments_total) for p in peers
+        )
         return max(0, first_missing - 1)
 
     # ------------------------------------------------------------------ source loop
@@ -304,23 +335,42 @@ class Replayer(PipelineStage):
             gaps = tm.nan_stretches()
             if not np.isfinite(tm.eta).any():
                 # no data at all in this segment: a gap, reported; downstream moves on
-                self.report_error("gap", f"telemetry segment {i} (t0={tm.t0} s) has no finite eta sample: "
-                                         "no data, published as a gap", index=i)
+                self.report_error(
+                    "gap",
+                    f"telemetry segment {i} (t0={tm.t0} s) has no finite eta sample: no data, published as a gap",
+                    index=i,
+                )
                 self.next = i + 1
                 self.mark_gap(i)
                 return ()
             if not np.isfinite(tm.ltt).all():
                 raise ValueError("light travel times (ltt) are not finite everywhere")
             if gaps:
-                self.event("gap", index=i, message=f"telemetry segment {i}: {len(gaps)} NaN stretch(es) "
-                                                    f"({sum(b - a for a, b in gaps)} samples), published flagged",
-                           stretches=gaps)
-            out = Output(self.output_topic, {
-                "eta": tm.eta, "dws_phi": tm.dws_phi, "dws_eta": tm.dws_eta, "ltt": tm.ltt},
-                fields={"t0": float(tm.t0), "fs": float(tm.fs), "channels": list(LINKS), "units": UNITS,
-                        "meta": {**meta, "segments_total": self.segments_total,
-                                 "segment_duration": self.segment_duration, "gaps": gaps}},
-                index=i, allow_nonfinite=bool(gaps))
+                self.event(
+                    "gap",
+                    index=i,
+                    message=f"telemetry segment {i}: {len(gaps)} NaN stretch(es) "
+                    f"({sum(b - a for a, b in gaps)} samples), published flagged",
+                    stretches=gaps,
+                )
+            out = Output(
+                self.output_topic,
+                {"eta": tm.eta, "dws_phi": tm.dws_phi, "dws_eta": tm.dws_eta, "ltt": tm.ltt},
+                fields={
+                    "t0": float(tm.t0),
+                    "fs": float(tm.fs),
+                    "channels": list(LINKS),
+                    "units": UNITS,
+                    "meta": {
+                        **meta,
+                        "segments_total": self.segments_total,
+                        "segment_duration": self.segment_duration,
+                        "gaps": gaps,
+                    },
+                },
+                index=i,
+                allow_nonfinite=bool(gaps),
+            )
             self.publish(out)
         except Exception as exc:  # reported, and the replay goes on
             self.log.exception("segment %d failed", i)
@@ -336,25 +386,38 @@ class Replayer(PipelineStage):
 
 # ---------------------------------------------------------------------------- entry point
 
+
 def add_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--telemetry", nargs="+", metavar="FILE", help="telemetry files (ours or lisainstrument's)")
     p.add_argument("--simulate", metavar="OPTIONS", help="'ttl simulate' options, e.g. \"--duration 12h --seed 1\"")
     p.add_argument("--segment", help="segment length, e.g. 1h, 30min or seconds (default 1h)")
     p.add_argument("--pace", type=float, help="multiple of real time (default: as fast as consumers take them)")
-    p.add_argument("--window", type=int, help=f"segments the replay may run ahead of the slowest stage (default {REPLAY_WINDOW})")
+    p.add_argument(
+        "--window", type=int, help=f"segments the replay may run ahead of the slowest stage (default {REPLAY_WINDOW})"
+    )
     p.add_argument("--wait-for", help="stages to wait for (liveliness) before the first segment, comma-separated")
     p.add_argument("--plan-out", help="with --check: write the run's plan (JSON) to this file")
-    p.add_argument("--pace-on", help="stages reporting progress to stay within --window of, comma-separated "
-                   "(stages that report progress are followed anyway once seen)")
+    p.add_argument(
+        "--pace-on",
+        help="stages reporting progress to stay within --window of, comma-separated "
+        "(stages that report progress are followed anyway once seen)",
+    )
 
 
 def options(args) -> dict:
     def split(s):
         return [x for x in s.split(",") if x] if s else None
 
-    return {"telemetry": args.telemetry, "simulate": args.simulate, "segment": args.segment, "pace": args.pace,
-            "window": args.window, "wait_for": split(args.wait_for), "pace_on": split(args.pace_on),
-            "plan_out": args.plan_out}
+    return {
+        "telemetry": args.telemetry,
+        "simulate": args.simulate,
+        "segment": args.segment,
+        "pace": args.pace,
+        "window": args.window,
+        "wait_for": split(args.wait_for),
+        "pace_on": split(args.pace_on),
+        "plan_out": args.plan_out,
+    }
 
 
 def check(config) -> str:

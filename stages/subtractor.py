@@ -42,8 +42,11 @@ from ttlcore.tdi.combinations import XYZ
 
 from .fitter import P, tdi_expect
 
-UNITS = {"residual": "fractional frequency", "ttl_model": "fractional frequency",
-         "effect_model": "fractional frequency"}
+UNITS = {
+    "residual": "fractional frequency",
+    "ttl_model": "fractional frequency",
+    "effect_model": "fractional frequency",
+}
 #: Wait for a fit announced by the fitter's progress before falling back to an earlier one [s].
 FIT_TIMEOUT = 30.0
 
@@ -74,9 +77,12 @@ class Subtractor(PipelineStage):
         if topic == "fit":
             # NaN allowed for the model parts (TDI delays at the window's start); the
             # coefficients are checked finite in handle()
-            return Expect(run=self.run_id, index=index, allow_nonfinite=True,
-                          arrays={"coefficients": ("<f8", (P,)), "sigma": ("<f8", (P,)),
-                                  "covariance": ("<f8", (P, P))})
+            return Expect(
+                run=self.run_id,
+                index=index,
+                allow_nonfinite=True,
+                arrays={"coefficients": ("<f8", (P,)), "sigma": ("<f8", (P,)), "covariance": ("<f8", (P, P))},
+            )
         return tdi_expect(self.run_id, index)
 
     def pending(self) -> int:
@@ -106,13 +112,23 @@ class Subtractor(PipelineStage):
             parts = header.meta.get("model_parts") or []
             x = arrays.get("model_parts")
             if parts or x is not None:
-                if (x is None or not isinstance(parts, list) or not all(isinstance(p, str) for p in parts)
-                        or x.ndim != 3 or x.shape[:2] != (len(parts), 3)):
-                    raise ValueError(f"arrays.model_parts: expected (k, 3, n) with meta.model_parts naming k effects, "
-                                     f"got {None if x is None else x.shape} for {parts!r}")
-            self.fits[header.index] = {"coefficients": dict(zip(names, map(float, arrays["coefficients"]))),
-                                       "t_start": header.meta.get("t_start"), "t_stop": header.meta.get("t_stop"),
-                                       "parts": dict(zip(parts, x)) if parts else {}}
+                if (
+                    x is None
+                    or not isinstance(parts, list)
+                    or not all(isinstance(p, str) for p in parts)
+                    or x.ndim != 3
+                    or x.shape[:2] != (len(parts), 3)
+                ):
+                    raise ValueError(
+                        f"arrays.model_parts: expected (k, 3, n) with meta.model_parts naming k effects, "
+                        f"got {None if x is None else x.shape} for {parts!r}"
+                    )
+            self.fits[header.index] = {
+                "coefficients": dict(zip(names, map(float, arrays["coefficients"]))),
+                "t_start": header.meta.get("t_start"),
+                "t_stop": header.meta.get("t_stop"),
+                "parts": dict(zip(parts, x)) if parts else {},
+            }
         else:
             if header.index in self.done:
                 return ()
@@ -180,13 +196,20 @@ class Subtractor(PipelineStage):
             return "wait", None  # announced by the fitter's progress, still on its way
         received = [j for j in self.fits if j <= index]
         fallback = max(received) if received else None
-        self.report_error("missing-fit", f"fit {best} announced by the fitter never arrived; "
-                                         f"segment {index} gets fit {fallback}", index=index)
+        self.report_error(
+            "missing-fit",
+            f"fit {best} announced by the fitter never arrived; segment {index} gets fit {fallback}",
+            index=index,
+        )
         return "apply", fallback
 
     def drain(self) -> None:
-        if (not self.done and 0 not in self.tdi and self._first_arrival is not None
-                and time.monotonic() - self._first_arrival < self.settle):
+        if (
+            not self.done
+            and 0 not in self.tdi
+            and self._first_arrival is not None
+            and time.monotonic() - self._first_arrival < self.settle
+        ):
             return
         for index in sorted(self.tdi):
             what, j = self.choose(index)
@@ -218,38 +241,69 @@ class Subtractor(PipelineStage):
             fit = self.fits[fit_index]
             self.applied.add(fit_index)
             C = np.array([fit["coefficients"][n] for n in td.names])
-            if fit["parts"] and fit_index == header.index and all(p.shape[-1] == td.size for p in fit["parts"].values()):
+            if (
+                fit["parts"]
+                and fit_index == header.index
+                and all(p.shape[-1] == td.size for p in fit["parts"].values())
+            ):
                 parts = fit["parts"]
             elif fit["parts"]:
                 missing = list(fit["parts"])
-                self.warn("model-parts-missing", f"segment {header.index} gets fit {fit_index}: its effects "
-                                                 f"{', '.join(missing)} are not subtracted (linear TTL only)",
-                          index=header.index)
+                self.warn(
+                    "model-parts-missing",
+                    f"segment {header.index} gets fit {fit_index}: its effects "
+                    f"{', '.join(missing)} are not subtracted (linear TTL only)",
+                    index=header.index,
+                )
             residual = model_residual(td.data, td.regressors, C, parts.values())
             model = td.model(C)
         with np.errstate(invalid="ignore"):
-            rms = {"data": np.sqrt(np.nanmean(td.data ** 2, axis=1)), "residual": np.sqrt(np.nanmean(residual ** 2, axis=1))}
-        meta = {"fit_index": fit_index, "coefficients_t_start": fit["t_start"], "coefficients_t_stop": fit["t_stop"],
-                "segments_total": self.segments_total, "effects": list(parts)}
+            rms = {
+                "data": np.sqrt(np.nanmean(td.data**2, axis=1)),
+                "residual": np.sqrt(np.nanmean(residual**2, axis=1)),
+            }
+        meta = {
+            "fit_index": fit_index,
+            "coefficients_t_start": fit["t_start"],
+            "coefficients_t_stop": fit["t_stop"],
+            "segments_total": self.segments_total,
+            "effects": list(parts),
+        }
         if missing:
             meta["model_parts_missing"] = missing
         arrays = {"residual": residual, "ttl_model": model}
         if parts:
             arrays["effect_model"] = np.stack(list(parts.values()))
-        self.log.info("segment %d: fit %s applied%s", header.index, fit_index,
-                      f" with {', '.join(parts)}" if parts else "")
-        return Output(self.output_topic, arrays,
-                      fields={"channels": list(XYZ), "channel_axis": {"residual": 0, "ttl_model": 0, "effect_model": 1},
-                              "units": UNITS, "meta": to_jsonable(meta)},
-                      summary=to_jsonable({"run": self.run_id, "index": header.index, "fit_index": fit_index,
-                                        "channels": list(XYZ), "rms_data": rms["data"],
-                                        "rms_residual": rms["residual"]}),
-                      allow_nonfinite=True)
+        self.log.info(
+            "segment %d: fit %s applied%s", header.index, fit_index, f" with {', '.join(parts)}" if parts else ""
+        )
+        return Output(
+            self.output_topic,
+            arrays,
+            fields={
+                "channels": list(XYZ),
+                "channel_axis": {"residual": 0, "ttl_model": 0, "effect_model": 1},
+                "units": UNITS,
+                "meta": to_jsonable(meta),
+            },
+            summary=to_jsonable(
+                {
+                    "run": self.run_id,
+                    "index": header.index,
+                    "fit_index": fit_index,
+                    "channels": list(XYZ),
+                    "rms_data": rms["data"],
+                    "rms_residual": rms["residual"],
+                }
+            ),
+            allow_nonfinite=True,
+        )
 
 
 def add_options(p) -> None:
-    p.add_argument("--fit-timeout", type=float,
-                   help=f"seconds to wait for a fit the fitter announced (default {FIT_TIMEOUT:g})")
+    p.add_argument(
+        "--fit-timeout", type=float, help=f"seconds to wait for a fit the fitter announced (default {FIT_TIMEOUT:g})"
+    )
     p.add_argument("--settle", type=float, help="seconds to collect cached history before the first segment")
 
 

@@ -37,8 +37,14 @@ from ttlcore.tdi.data import TDIStream
 #: and the forwarded telemetry is the replayer's (recorded there).
 RECORDED = ("data",)
 #: Units of the output arrays.
-UNITS = {"data": "fractional frequency", "regressors": "fractional frequency per m/rad",
-         "eta": "fractional frequency", "dws_phi": "rad/s", "dws_eta": "rad/s", "ltt": "s"}
+UNITS = {
+    "data": "fractional frequency",
+    "regressors": "fractional frequency per m/rad",
+    "eta": "fractional frequency",
+    "dws_phi": "rad/s",
+    "dws_eta": "rad/s",
+    "ltt": "s",
+}
 #: Axis labelled by the channels (X2, Y2, Z2) per array: none for the forwarded telemetry (links, MOSAs).
 CHANNEL_AXIS = {"data": 0, "regressors": 0, **dict.fromkeys(TELEMETRY_ARRAYS)}
 
@@ -62,8 +68,9 @@ class TDIBuilder(OrderedStage):
     def expect(self, topic, index):
         # NaN stretches in eta / DWS are data with a gap (the replayer flags them in meta.gaps);
         # ltt must be finite and eta finite somewhere (streamer.plan.Validator)
-        return Expect(run=self.run_id, index=index, arrays={k: ("<f8", (6, None)) for k in TELEMETRY_ARRAYS},
-                      allow_nonfinite=True)
+        return Expect(
+            run=self.run_id, index=index, arrays={k: ("<f8", (6, None)) for k in TELEMETRY_ARRAYS}, allow_nonfinite=True
+        )
 
     def handle(self, header, arrays):
         # validated here, before buffering: a segment that raises is reported as failed and
@@ -78,22 +85,31 @@ class TDIBuilder(OrderedStage):
         """TDI of one telemetry segment (the stream's tail makes it continuous)."""
         continuous = self.stream.next_t0 is not None
         if continuous and (abs(tm.t0 - self.stream.next_t0) > 0.5 / tm.fs or tm.fs != self.stream._tail.fs):
-            self.event("discontinuity", index=header.index,
-                       message=f"t0={tm.t0} s does not follow the previous segment (expected {self.stream.next_t0} s); "
-                               "TDI restarts here")
+            self.event(
+                "discontinuity",
+                index=header.index,
+                message=f"t0={tm.t0} s does not follow the previous segment (expected {self.stream.next_t0} s); "
+                "TDI restarts here",
+            )
             self.stream.reset()
             continuous = False
         td = self.stream.push(tm)
-        meta = {k: header.meta.get(k) for k in ("segments_total", "segment_duration", "source", "truth", "dws_asd",
-                                                "gaps")}
+        meta = {
+            k: header.meta.get(k) for k in ("segments_total", "segment_duration", "source", "truth", "dws_asd", "gaps")
+        }
         meta.update(names=list(td.names), ltt_mean=[float(x) for x in td.ltt_mean], continuous=continuous)
         if tuple(td.names) != tuple(COEFFICIENT_NAMES) or tuple(td.channels) != XYZ:
-            raise ValueError(f"TDIStream gave channels {td.channels} and names {td.names[:2]}...; "
-                             f"expected {XYZ} and the 24 coefficients")
-        return Output(self.output_topic, {"data": td.data, "regressors": td.regressors,
-                                          **{k: getattr(tm, k) for k in TELEMETRY_ARRAYS}},
-                      fields={"channels": list(td.channels), "channel_axis": CHANNEL_AXIS, "units": UNITS, "meta": meta},
-                      allow_nonfinite=True, record_arrays=RECORDED)
+            raise ValueError(
+                f"TDIStream gave channels {td.channels} and names {td.names[:2]}...; "
+                f"expected {XYZ} and the 24 coefficients"
+            )
+        return Output(
+            self.output_topic,
+            {"data": td.data, "regressors": td.regressors, **{k: getattr(tm, k) for k in TELEMETRY_ARRAYS}},
+            fields={"channels": list(td.channels), "channel_axis": CHANNEL_AXIS, "units": UNITS, "meta": meta},
+            allow_nonfinite=True,
+            record_arrays=RECORDED,
+        )
 
 
 def add_options(p) -> None:

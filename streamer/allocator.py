@@ -59,8 +59,9 @@ def _glibc():
     return libc
 
 
-def configure(mmap_threshold: int | None = MMAP_THRESHOLD, arena_max: int | None = None,
-              environ=None) -> dict[str, int]:
+def configure(
+    mmap_threshold: int | None = MMAP_THRESHOLD, arena_max: int | None = None, environ=None
+) -> dict[str, int]:
     """Set glibc's mmap threshold (and the arena cap) for this process.
 
     Call it early, before the threads that allocate start (an arena cap does not merge
@@ -89,8 +90,10 @@ def configure(mmap_threshold: int | None = MMAP_THRESHOLD, arena_max: int | None
     """
     env = os.environ if environ is None else environ
     wanted = {}
-    for name, param, value, var in (("M_MMAP_THRESHOLD", M_MMAP_THRESHOLD, mmap_threshold, ENV_MMAP_THRESHOLD),
-                                    ("M_ARENA_MAX", M_ARENA_MAX, arena_max, ENV_ARENA_MAX)):
+    for name, param, value, var in (
+        ("M_MMAP_THRESHOLD", M_MMAP_THRESHOLD, mmap_threshold, ENV_MMAP_THRESHOLD),
+        ("M_ARENA_MAX", M_ARENA_MAX, arena_max, ENV_ARENA_MAX),
+    ):
         if value is None:
             continue
         if isinstance(value, bool) or not isinstance(value, int) or value <= 0:

@@ -27,9 +27,11 @@ MB = 2**20
 def _subscriber(port: int, n: int, shm: bool, ready, results) -> None:
     arrivals = []
     with Bus.open(SessionSettings(listen=(f"tcp/127.0.0.1:{port}",), shared_memory=shm)) as bus:
-        bus.segment_subscriber(topic_pattern(RUN, "telemetry"),
-                               lambda s: arrivals.append((time.time(), str(s.key_expr), s.payload.to_bytes(),
-                                                          s.attachment.to_bytes())), history=0)
+        bus.segment_subscriber(
+            topic_pattern(RUN, "telemetry"),
+            lambda s: arrivals.append((time.time(), str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes())),
+            history=0,
+        )
         bus.declare_alive(RUN, "bench-subscriber")
         ready.set()
         deadline = time.monotonic() + 120
@@ -41,8 +43,13 @@ def _subscriber(port: int, n: int, shm: bool, ready, results) -> None:
                 indices.append(decode(payload, attachment, key=key)[0].index)
             except CodecError:
                 valid = False
-        results.put({"t_last": max((a[0] for a in arrivals), default=None), "received": len(arrivals),
-                     "intact": valid and sorted(indices) == list(range(n))})
+        results.put(
+            {
+                "t_last": max((a[0] for a in arrivals), default=None),
+                "received": len(arrivals),
+                "intact": valid and sorted(indices) == list(range(n)),
+            }
+        )
 
 
 def _publisher(port: int, n: int, size: int, shm: bool, results) -> None:
@@ -55,8 +62,9 @@ def _publisher(port: int, n: int, size: int, shm: bool, results) -> None:
         t_first = time.time()
         for i, (payload, attachment) in enumerate(messages):
             pub.put(i, payload, attachment)
-        results.put({"t_first": t_first, "put_seconds": time.time() - t_first,
-                     "bytes": sum(len(p) for p, _ in messages)})
+        results.put(
+            {"t_first": t_first, "put_seconds": time.time() - t_first, "bytes": sum(len(p) for p, _ in messages)}
+        )
         time.sleep(2.0)  # let the subscriber drain before the session closes
 
 
@@ -74,10 +82,17 @@ def measure(segments: int = 20, size: int = 8 * MB, shm: bool = False) -> dict:
     sub.join(30)
     pub.join(30)
     seconds = received["t_last"] - published["t_first"]
-    return {"shared_memory": shm, "segments": segments, "segment_bytes": size, "bytes": published["bytes"],
-            "seconds": round(seconds, 4), "MB_per_s": round(published["bytes"] / MB / seconds, 1),
-            "put_seconds": round(published["put_seconds"], 4), "received": received["received"],
-            "intact": received["intact"]}
+    return {
+        "shared_memory": shm,
+        "segments": segments,
+        "segment_bytes": size,
+        "bytes": published["bytes"],
+        "seconds": round(seconds, 4),
+        "MB_per_s": round(published["bytes"] / MB / seconds, 1),
+        "put_seconds": round(published["put_seconds"], 4),
+        "received": received["received"],
+        "intact": received["intact"],
+    }
 
 
 def main(argv=None) -> None:

@@ -55,6 +55,7 @@ log = logging.getLogger(__name__)
 
 # ---------------------------------------------------------------------------- ttl run
 
+
 def _read_config(path: Path) -> dict:
     try:
         text = path.read_text()
@@ -63,16 +64,25 @@ def _read_config(path: Path) -> dict:
     try:
         data = tomllib.loads(text) if path.suffix.lower() == ".toml" else json.loads(text)
     except (ValueError, tomllib.TOMLDecodeError) as exc:
-        raise TTLError(f"--config: {path}: not valid {'TOML' if path.suffix.lower() == '.toml' else 'JSON'}: {exc}") from None
+        raise TTLError(
+            f"--config: {path}: not valid {'TOML' if path.suffix.lower() == '.toml' else 'JSON'}: {exc}"
+        ) from None
     if not isinstance(data, dict):
         raise TTLError(f"--config: {path}: expected an object of options")
     return data
 
 
 #: ``ttl run`` options (and ``--config`` keys) that go to the fitter: option -> fitter option.
-FITTER_OPTIONS = {"fit_segment": "fit_segment", "fit_window": "window_duration", "band": "band",
-                  "effects": "effects", "effect_module": "effect_modules", "adopt": "adopt",
-                  "diagnose_every": "diagnose_every", "model_update": "model_update"}
+FITTER_OPTIONS = {
+    "fit_segment": "fit_segment",
+    "fit_window": "window_duration",
+    "band": "band",
+    "effects": "effects",
+    "effect_module": "effect_modules",
+    "adopt": "adopt",
+    "diagnose_every": "diagnose_every",
+    "model_update": "model_update",
+}
 
 
 def _split(values) -> tuple:
@@ -97,11 +107,23 @@ def run_options(args) -> RunOptions:
     for key, name in FITTER_OPTIONS.items():
         if key in conf:
             fitter[name] = conf.pop(key)
-    cli = {"run_id": args.run_id, "telemetry": args.telemetry, "simulate": args.simulate, "segment": args.segment,
-           "recordings": args.recordings, "pace": args.pace, "window": args.window, "cache": args.cache,
-           "restart": args.restart, "zenoh_config": args.zenoh_config, "timeout": args.timeout,
-           "log_level": args.log_level, "credentials": args.credentials,
-           "insecure": args.insecure or None, "resume": args.resume}
+    cli = {
+        "run_id": args.run_id,
+        "telemetry": args.telemetry,
+        "simulate": args.simulate,
+        "segment": args.segment,
+        "recordings": args.recordings,
+        "pace": args.pace,
+        "window": args.window,
+        "cache": args.cache,
+        "restart": args.restart,
+        "zenoh_config": args.zenoh_config,
+        "timeout": args.timeout,
+        "log_level": args.log_level,
+        "credentials": args.credentials,
+        "insecure": args.insecure or None,
+        "resume": args.resume,
+    }
     if args.skip:
         cli["skip"] = _split(args.skip)
     if args.external:
@@ -140,6 +162,7 @@ def _cmd_run(args) -> int:
 
 # ---------------------------------------------------------------------------- ttl stage
 
+
 def _cmd_stage(args) -> int:
 
     if not stage_module_exists(args.name):
@@ -147,8 +170,11 @@ def _cmd_stage(args) -> int:
     module = importlib.import_module(stage_module(args.name))
     if hasattr(module, "main"):
         return int(module.main(args.args) or 0)
-    classes = [c for c in vars(module).values()
-               if isinstance(c, type) and issubclass(c, Stage) and c.__module__ == module.__name__]
+    classes = [
+        c
+        for c in vars(module).values()
+        if isinstance(c, type) and issubclass(c, Stage) and c.__module__ == module.__name__
+    ]
     if not classes:
         raise TTLError(f"stage {args.name!r}: module {stage_module(args.name)} has neither main() nor a Stage class")
     return int(stage_main(classes[0], args.args) or 0)
@@ -156,10 +182,12 @@ def _cmd_stage(args) -> int:
 
 # ---------------------------------------------------------------------------- ttl control
 
+
 def _cmd_control(args) -> int:
 
-
-    key = control_key(check_name(args.run, "run id"), check_name(args.stage, "stage"), check_name(args.command, "command"))
+    key = control_key(
+        check_name(args.run, "run id"), check_name(args.stage, "stage"), check_name(args.command, "command")
+    )
     if args.payload:
         try:
             _json.loads(args.payload)
@@ -167,11 +195,18 @@ def _cmd_control(args) -> int:
             raise TTLError(f"payload: not JSON ({exc})") from None
     rejections: queue.Queue = queue.Queue()
     try:
-        bus = Bus.open(SessionSettings(mode="client", connect=tuple(args.connect), credentials=args.credentials,
-                                       identity="control" if args.credentials else None))
+        bus = Bus.open(
+            SessionSettings(
+                mode="client",
+                connect=tuple(args.connect),
+                credentials=args.credentials,
+                identity="control" if args.credentials else None,
+            )
+        )
     except Exception as exc:
         raise TTLError(f"cannot reach the run's router at {', '.join(args.connect)}: {exc}") from None
     with bus:
+
         def on_error(sample):
             try:
                 err = _json.loads(sample.payload.to_bytes())
@@ -195,6 +230,7 @@ def _cmd_control(args) -> int:
 
 # ---------------------------------------------------------------------------- ttl credentials
 
+
 def _cmd_credentials(args) -> int:
 
     d = ensure_credentials(args.directory, hosts=tuple(args.host))
@@ -205,15 +241,16 @@ def _cmd_credentials(args) -> int:
 
 # ---------------------------------------------------------------------------- ttl router
 
+
 def _cmd_router(args) -> int:
 
     if (args.credentials is None) == (not args.insecure):
-        raise TTLError("give --credentials DIR (mutual TLS and access control; 'ttl credentials DIR' makes it) "
-                       "or --insecure (plain TCP, anyone reaching the port may publish)")
+        raise TTLError(
+            "give --credentials DIR (mutual TLS and access control; 'ttl credentials DIR' makes it) "
+            "or --insecure (plain TCP, anyone reaching the port may publish)"
+        )
     default = DEFAULT_ROUTER_LISTEN
     if args.credentials is not None:
-
-
         # the router's log (stderr) is the record of refused peers and publications
         filter_log()
         zenoh.init_log_from_env_or(ROUTER_LOG_FILTER)
@@ -226,13 +263,22 @@ def _cmd_router(args) -> int:
     try:
         try:
             if listen is None:  # the file's endpoints
-                session = open_session(SessionSettings(mode="router", config_file=args.zenoh_config,
-                                                       connect=tuple(args.connect) if args.connect else None,
-                                                       credentials=args.credentials,
-                                                       identity="router" if args.credentials else None))
+                session = open_session(
+                    SessionSettings(
+                        mode="router",
+                        config_file=args.zenoh_config,
+                        connect=tuple(args.connect) if args.connect else None,
+                        credentials=args.credentials,
+                        identity="router" if args.credentials else None,
+                    )
+                )
             else:
-                session = open_router(listen=listen, connect=tuple(args.connect or ()), config_file=args.zenoh_config,
-                                      credentials=args.credentials)
+                session = open_router(
+                    listen=listen,
+                    connect=tuple(args.connect or ()),
+                    config_file=args.zenoh_config,
+                    credentials=args.credentials,
+                )
         except SessionConfigError as exc:
             raise TTLError(str(exc)) from None
         except Exception as exc:  # zenoh: address in use, bad endpoint
@@ -240,9 +286,13 @@ def _cmd_router(args) -> int:
             raise TTLError(f"cannot open the router on {where}: {exc}") from None
         try:
             if not args.quiet:
-                print(f"ttl router: zenoh router {session.zid()} listening on "
-                      f"{', '.join(listen) if listen else 'the endpoints of ' + str(args.zenoh_config)}; "
-                      "Ctrl-C to stop", file=sys.stderr, flush=True)
+                print(
+                    f"ttl router: zenoh router {session.zid()} listening on "
+                    f"{', '.join(listen) if listen else 'the endpoints of ' + str(args.zenoh_config)}; "
+                    "Ctrl-C to stop",
+                    file=sys.stderr,
+                    flush=True,
+                )
             while not stop.wait(0.5):
                 pass
             if not args.quiet:

@@ -50,12 +50,23 @@ SCHEMA = "ttl-segment"
 #: Header version understood by this module (bumped on incompatible change).
 SCHEMA_VERSION = 1
 #: numpy dtype strings allowed on the wire (all little endian or byte-sized).
-ALLOWED_DTYPES = frozenset({
-    "<f8", "<f4", "<c16", "<c8",
-    "<i8", "<i4", "<i2", "|i1",
-    "<u8", "<u4", "<u2", "|u1",
-    "|b1",
-})
+ALLOWED_DTYPES = frozenset(
+    {
+        "<f8",
+        "<f4",
+        "<c16",
+        "<c8",
+        "<i8",
+        "<i4",
+        "<i2",
+        "|i1",
+        "<u8",
+        "<u4",
+        "<u2",
+        "|u1",
+        "|b1",
+    }
+)
 #: Checksum algorithms, name -> function of the payload returning a hex digest.
 CHECKSUMS = {
     "crc32": lambda data: f"{zlib.crc32(data) & 0xFFFFFFFF:08x}",
@@ -82,8 +93,20 @@ MAX_NUMBER_CHARS = 40
 #: Most axes of an array (numpy's limit is 32 or 64, the messages have at most 3).
 MAX_NDIM = 16
 
-_HEADER_FIELDS = ("schema", "version", "run", "index", "t0", "fs", "channels", "producer",
-                  "arrays", "payload_bytes", "checksum", "meta")
+_HEADER_FIELDS = (
+    "schema",
+    "version",
+    "run",
+    "index",
+    "t0",
+    "fs",
+    "channels",
+    "producer",
+    "arrays",
+    "payload_bytes",
+    "checksum",
+    "meta",
+)
 _ARRAY_FIELDS = ("name", "dtype", "shape", "offset", "nbytes", "units", "channel_axis")
 
 
@@ -107,7 +130,7 @@ class CodecError(ValueError):
 
     def __init__(self, field: str, what: str, key: str | None = None):
         if len(what) > self.MAX_WHAT:
-            what = f"{what[:self.MAX_WHAT]}... ({len(what)} characters)"
+            what = f"{what[: self.MAX_WHAT]}... ({len(what)} characters)"
         self.field = field
         self.what = what
         self.key = key
@@ -128,9 +151,15 @@ class ArraySpec:
     channel_axis: int | None = None
 
     def to_dict(self) -> dict:
-        return {"name": self.name, "dtype": self.dtype, "shape": list(self.shape),
-                "offset": self.offset, "nbytes": self.nbytes, "units": self.units,
-                "channel_axis": self.channel_axis}
+        return {
+            "name": self.name,
+            "dtype": self.dtype,
+            "shape": list(self.shape),
+            "offset": self.offset,
+            "nbytes": self.nbytes,
+            "units": self.units,
+            "channel_axis": self.channel_axis,
+        }
 
 
 @dataclass(frozen=True)
@@ -178,10 +207,18 @@ class Header:
     def to_dict(self) -> dict:
         """The wire header as a JSON-ready dict."""
         return {
-            "schema": SCHEMA, "version": self.version, "run": self.run, "index": self.index,
-            "t0": self.t0, "fs": self.fs, "channels": list(self.channels),
-            "producer": self.producer, "arrays": [a.to_dict() for a in self.arrays],
-            "payload_bytes": self.payload_bytes, "checksum": self.checksum, "meta": self.meta,
+            "schema": SCHEMA,
+            "version": self.version,
+            "run": self.run,
+            "index": self.index,
+            "t0": self.t0,
+            "fs": self.fs,
+            "channels": list(self.channels),
+            "producer": self.producer,
+            "arrays": [a.to_dict() for a in self.arrays],
+            "payload_bytes": self.payload_bytes,
+            "checksum": self.checksum,
+            "meta": self.meta,
         }
 
     def to_json(self) -> bytes:
@@ -246,7 +283,10 @@ def _per_array(value, name: str, default):
 def _wire_dtype(arr: np.ndarray, name: str) -> np.dtype:
     dt = arr.dtype.newbyteorder("<") if arr.dtype.byteorder == ">" else arr.dtype
     if dt.str not in ALLOWED_DTYPES:
-        _fail(f"arrays[{name}].dtype", f"dtype {arr.dtype.str!r} is not allowed (allowed: {', '.join(sorted(ALLOWED_DTYPES))})")
+        _fail(
+            f"arrays[{name}].dtype",
+            f"dtype {arr.dtype.str!r} is not allowed (allowed: {', '.join(sorted(ALLOWED_DTYPES))})",
+        )
     return dt
 
 
@@ -262,8 +302,9 @@ def _checksum(algorithm: str, payload) -> str:
     return f"{algorithm}:{CHECKSUMS[algorithm](payload)}"
 
 
-def encode(arrays, fields: Mapping[str, Any], *, checksum: str = "crc32",
-           allow_nonfinite: bool = False) -> tuple[bytes, bytes]:
+def encode(
+    arrays, fields: Mapping[str, Any], *, checksum: str = "crc32", allow_nonfinite: bool = False
+) -> tuple[bytes, bytes]:
     """Encode arrays and header fields into ``(payload, attachment)``.
 
     Parameters
@@ -294,8 +335,7 @@ def encode(arrays, fields: Mapping[str, Any], *, checksum: str = "crc32",
     CodecError
         If a field or array cannot be encoded (message names it).
     """
-    unknown = set(fields) - {"run", "index", "t0", "fs", "channels", "producer", "units",
-                             "channel_axis", "meta"}
+    unknown = set(fields) - {"run", "index", "t0", "fs", "channels", "producer", "units", "channel_axis", "meta"}
     if unknown:
         _fail(sorted(unknown)[0], "unknown header field")
     for name in ("run", "index", "t0", "fs"):
@@ -323,17 +363,32 @@ def encode(arrays, fields: Mapping[str, Any], *, checksum: str = "crc32",
             parts.append(b"\0" * pad)
             offset += pad
         axis = _per_array(axes, name, 0 if channels else None)
-        specs.append(ArraySpec(name=name, dtype=dt.str, shape=tuple(int(s) for s in data.shape),
-                               offset=offset, nbytes=data.nbytes,
-                               units=str(_per_array(units, name, "")),
-                               channel_axis=None if axis is None else int(axis)))
+        specs.append(
+            ArraySpec(
+                name=name,
+                dtype=dt.str,
+                shape=tuple(int(s) for s in data.shape),
+                offset=offset,
+                nbytes=data.nbytes,
+                units=str(_per_array(units, name, "")),
+                channel_axis=None if axis is None else int(axis),
+            )
+        )
         parts.append(memoryview(data.reshape(-1).view(np.uint8)))
         offset += data.nbytes
     payload = b"".join(parts)
-    header = Header(run=fields["run"], index=fields["index"], t0=fields["t0"], fs=fields["fs"],
-                    channels=channels, producer=str(fields.get("producer", "")),
-                    arrays=tuple(specs), payload_bytes=len(payload),
-                    checksum=_checksum(checksum, payload), meta=dict(fields.get("meta") or {}))
+    header = Header(
+        run=fields["run"],
+        index=fields["index"],
+        t0=fields["t0"],
+        fs=fields["fs"],
+        channels=channels,
+        producer=str(fields.get("producer", "")),
+        arrays=tuple(specs),
+        payload_bytes=len(payload),
+        checksum=_checksum(checksum, payload),
+        meta=dict(fields.get("meta") or {}),
+    )
     # Check the header as a consumer would, so that nothing undecodable leaves.
     attachment = _dump(header)
     parse_header(attachment)
@@ -451,8 +506,9 @@ def _load_bounded(raw: bytes, key: str | None):
     if depth > MAX_DEPTH:
         _fail("header", f"JSON nested {depth} levels deep (at most {MAX_DEPTH})", key)
     try:
-        obj = json.loads(raw.decode("utf-8"), parse_int=_parse_int, parse_float=_parse_float,
-                         parse_constant=_parse_constant)
+        obj = json.loads(
+            raw.decode("utf-8"), parse_int=_parse_int, parse_float=_parse_float, parse_constant=_parse_constant
+        )
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         _fail("header", f"not valid JSON: {exc}", key)
     except (ValueError, RecursionError, MemoryError) as exc:  # belt and braces: nothing else escapes
@@ -534,7 +590,9 @@ def _header_from_dict(obj: dict, key: str | None) -> Header:
     checksum = obj["checksum"]
     algorithm, _, digest = checksum.partition(":") if isinstance(checksum, str) else ("", "", "")
     if algorithm not in CHECKSUMS or not digest:
-        _fail("checksum", f"expected '<algorithm>:<hex>' with algorithm in {', '.join(CHECKSUMS)}, got {checksum!r}", key)
+        _fail(
+            "checksum", f"expected '<algorithm>:<hex>' with algorithm in {', '.join(CHECKSUMS)}, got {checksum!r}", key
+        )
     meta = obj["meta"]
     if not isinstance(meta, dict):
         _fail("meta", f"expected a JSON object, got {type(meta).__name__}", key)
@@ -549,9 +607,20 @@ def _header_from_dict(obj: dict, key: str | None) -> Header:
     for (_, end, a), (start, _, b) in zip(spans, spans[1:]):
         if start < end:
             _fail(f"arrays[{b}].offset", f"overlaps array {a!r}", key)
-    return Header(run=run, index=index, t0=float(t0), fs=float(fs), channels=tuple(channels),
-                  producer=producer, arrays=specs, payload_bytes=payload_bytes,
-                  checksum=checksum, meta=meta, version=version, key=key)
+    return Header(
+        run=run,
+        index=index,
+        t0=float(t0),
+        fs=float(fs),
+        channels=tuple(channels),
+        producer=producer,
+        arrays=specs,
+        payload_bytes=payload_bytes,
+        checksum=checksum,
+        meta=meta,
+        version=version,
+        key=key,
+    )
 
 
 def _array_spec(i: int, a, channels: list, payload_bytes: int, key: str | None) -> ArraySpec:
@@ -593,14 +662,20 @@ def _array_spec(i: int, a, channels: list, payload_bytes: int, key: str | None) 
         if not _is_int(axis) or not 0 <= axis < len(shape):
             _fail(f"{where}.channel_axis", f"expected null or an axis of shape {shape}, got {axis!r}", key)
         if shape[axis] != len(channels):
-            _fail("channels", f"{len(channels)} channel names {channels} but array {name!r} "
-                              f"has {shape[axis]} along its channel axis {axis} (shape {shape})", key)
-    return ArraySpec(name=name, dtype=dtype, shape=tuple(shape), offset=offset, nbytes=nbytes,
-                     units=units, channel_axis=axis)
+            _fail(
+                "channels",
+                f"{len(channels)} channel names {channels} but array {name!r} "
+                f"has {shape[axis]} along its channel axis {axis} (shape {shape})",
+                key,
+            )
+    return ArraySpec(
+        name=name, dtype=dtype, shape=tuple(shape), offset=offset, nbytes=nbytes, units=units, channel_axis=axis
+    )
 
 
-def decode(payload, attachment, expect: Expect | None = None, *,
-           key: str | None = None) -> tuple[Header, dict[str, np.ndarray]]:
+def decode(
+    payload, attachment, expect: Expect | None = None, *, key: str | None = None
+) -> tuple[Header, dict[str, np.ndarray]]:
     """Validate and decode a segment message.
 
     Parameters
@@ -646,8 +721,9 @@ def decode(payload, attachment, expect: Expect | None = None, *,
 
     arrays: dict[str, np.ndarray] = {}
     for spec in header.arrays:
-        arr = np.frombuffer(data, dtype=np.dtype(spec.dtype), count=math.prod(spec.shape),
-                            offset=spec.offset).reshape(spec.shape)
+        arr = np.frombuffer(data, dtype=np.dtype(spec.dtype), count=math.prod(spec.shape), offset=spec.offset).reshape(
+            spec.shape
+        )
         arrays[spec.name] = arr
 
     for name, (dtype, shape) in (expect.arrays or {}).items():

@@ -66,6 +66,7 @@ class InspectError(ValueError):
 
 # ---------------------------------------------------------------------------- reading
 
+
 def _fmt_ranges(ranges) -> str:
     if not ranges:
         return "-"
@@ -94,8 +95,10 @@ def recording_files(run_dir) -> dict[str, list[Path]]:
     if not by_stage:
         raise InspectError(f"{run_dir}: no MCAP recordings (*.mcap) in this directory")
     order = {s: i for i, s in enumerate(STAGES)}
-    return {stage: [p for _, p in sorted(files, key=lambda x: x[0])]
-            for stage, files in sorted(by_stage.items(), key=lambda kv: (order.get(kv[0], 99), kv[0]))}
+    return {
+        stage: [p for _, p in sorted(files, key=lambda x: x[0])]
+        for stage, files in sorted(by_stage.items(), key=lambda kv: (order.get(kv[0], 99), kv[0]))
+    }
 
 
 def _file_summary(path: Path, stage: str) -> tuple[dict, Recording | None]:
@@ -107,15 +110,26 @@ def _file_summary(path: Path, stage: str) -> tuple[dict, Recording | None]:
     kinds = Counter(e.get("kind") for e in events if isinstance(e, dict))
     times = [e.get("time") for e in events if isinstance(e, dict) and isinstance(e.get("time"), (int, float))]
     meta = rec.metadata.get("ttl", {})
-    info = {"file": path.name, "readable": True, "complete": rec.complete, "problem": rec.problem,
-            "records": rec.records, "run": meta.get("run"), "stage": meta.get("stage", stage),
-            "started": min(times) if times else None, "last_event": max(times) if times else None,
-            "stopped": "stop" in kinds, "completed": "complete" in kinds, "events": dict(kinds),
-            "incomplete_segments": [{"topic": m.topic, "index": (m.data or {}).get("index")}
-                                    for m in rec.messages if m.kind == "incomplete"],
-            "invalid_messages": [{"topic": m.topic, "error": m.error} for m in rec.messages if m.kind == "invalid"],
-            "stop_event": next((e for e in reversed(events) if isinstance(e, dict) and e.get("kind") == "stop"), None),
-            "stop_note": read_stop_note(path)}
+    info = {
+        "file": path.name,
+        "readable": True,
+        "complete": rec.complete,
+        "problem": rec.problem,
+        "records": rec.records,
+        "run": meta.get("run"),
+        "stage": meta.get("stage", stage),
+        "started": min(times) if times else None,
+        "last_event": max(times) if times else None,
+        "stopped": "stop" in kinds,
+        "completed": "complete" in kinds,
+        "events": dict(kinds),
+        "incomplete_segments": [
+            {"topic": m.topic, "index": (m.data or {}).get("index")} for m in rec.messages if m.kind == "incomplete"
+        ],
+        "invalid_messages": [{"topic": m.topic, "error": m.error} for m in rec.messages if m.kind == "invalid"],
+        "stop_event": next((e for e in reversed(events) if isinstance(e, dict) and e.get("kind") == "stop"), None),
+        "stop_note": read_stop_note(path),
+    }
     return info, rec
 
 
@@ -125,8 +139,12 @@ def _segment_table(per_file: list[dict[str, list[int]]]) -> dict:
     for topic in sorted({t for f in per_file for t in f}):
         all_idx = [i for f in per_file for i in f.get(topic, [])]
         counts = Counter(all_idx)
-        out[topic] = {"count": len(all_idx), "distinct": len(counts), "indices": to_ranges(counts),
-                      "duplicates": sorted(i for i, c in counts.items() if c > 1)}
+        out[topic] = {
+            "count": len(all_idx),
+            "distinct": len(counts),
+            "indices": to_ranges(counts),
+            "duplicates": sorted(i for i, c in counts.items() if c > 1),
+        }
     return out
 
 
@@ -150,16 +168,24 @@ def _stage_report(stage: str, files: list[Path]) -> tuple[dict, list[Recording]]
                 t = m.header.meta.get("segments_total") if isinstance(m.header.meta, dict) else None
                 if isinstance(t, int) and t > 0:
                     totals.add(t)
-            elif m.kind == "json" and m.topic.endswith("/input") and isinstance(m.data, dict) \
-                    and isinstance(m.data.get("index"), int):  # input headers recorded as JSON
+            elif (
+                m.kind == "json"
+                and m.topic.endswith("/input")
+                and isinstance(m.data, dict)
+                and isinstance(m.data.get("index"), int)
+            ):  # input headers recorded as JSON
                 in_f[m.topic[: -len("/input")]].append(m.data["index"])
         outputs.append(out_f)
         # inputs recorded both as segments and as header JSON count once per file
         inputs.append({t: sorted(set(v)) for t, v in in_f.items()})
-    report = {"files": infos, "restarts": max(0, len(files) - 1),
-              "outputs": _segment_table(outputs), "inputs": _segment_table(inputs),
-              "errors": sum(len(r.json("errors")) for r in recs),
-              "segments_total": max(totals) if totals else None}
+    report = {
+        "files": infos,
+        "restarts": max(0, len(files) - 1),
+        "outputs": _segment_table(outputs),
+        "inputs": _segment_table(inputs),
+        "errors": sum(len(r.json("errors")) for r in recs),
+        "segments_total": max(totals) if totals else None,
+    }
     return report, recs
 
 
@@ -179,23 +205,30 @@ def _fits(recs: list[Recording]) -> list[dict]:
                     sigma = [sigma[n] for n in names]
                 window = fit.get("window", {}) if isinstance(fit.get("window"), dict) else {}
                 fits[d["index"]] = {
-                    "index": d["index"], "names": list(names or []),
+                    "index": d["index"],
+                    "names": list(names or []),
                     "t_start": d.get("t_start", window.get("t_start")),
                     "t_stop": d.get("t_end", d.get("t_stop", window.get("t_stop"))),
                     "chi2_dof": d.get("chi2_dof", fit.get("chi2_dof")),
                     "converged": fit.get("converged", d.get("converged")),
-                    "coefficients": coeffs, "sigma": sigma}
+                    "coefficients": coeffs,
+                    "sigma": sigma,
+                }
         else:  # no summaries: the fit segments themselves
             for m in rec.segments("fit"):
                 a, meta = m.arrays, m.header.meta
                 if "coefficients" not in a:
                     continue
                 fits[m.header.index] = {
-                    "index": m.header.index, "names": list(meta.get("names") or []),
-                    "t_start": meta.get("t_start"), "t_stop": meta.get("t_stop"),
-                    "chi2_dof": meta.get("chi2_dof"), "converged": meta.get("converged"),
+                    "index": m.header.index,
+                    "names": list(meta.get("names") or []),
+                    "t_start": meta.get("t_start"),
+                    "t_stop": meta.get("t_stop"),
+                    "chi2_dof": meta.get("chi2_dof"),
+                    "converged": meta.get("converged"),
                     "coefficients": a["coefficients"].tolist(),
-                    "sigma": a["sigma"].tolist() if "sigma" in a else None}
+                    "sigma": a["sigma"].tolist() if "sigma" in a else None,
+                }
     good = []
     for f in sorted(fits.values(), key=lambda f: f["index"]):
         try:
@@ -216,25 +249,40 @@ def _trends(fits: list[dict]) -> dict:
     same = [f for f in fits if len(f["coefficients"]) == len(names)]
     C = np.array([f["coefficients"] for f in same], dtype=float) * 1e3
     S = np.array([f["sigma"] for f in same], dtype=float) * 1e3
-    out = {n: {"latest": float(C[-1, p]), "sigma": float(S[-1, p]), "first": float(C[0, p]),
-               "min": float(np.nanmin(C[:, p])), "max": float(np.nanmax(C[:, p])),
-               "rate": None, "rate_se": None, "significance": None}
-           for p, n in enumerate(names)}
+    out = {
+        n: {
+            "latest": float(C[-1, p]),
+            "sigma": float(S[-1, p]),
+            "first": float(C[0, p]),
+            "min": float(np.nanmin(C[:, p])),
+            "max": float(np.nanmax(C[:, p])),
+            "rate": None,
+            "rate_se": None,
+            "significance": None,
+        }
+        for p, n in enumerate(names)
+    }
     windows = [(f["t_start"], f["t_stop"]) for f in same]
     ok = all(isinstance(a, (int, float)) and isinstance(b, (int, float)) and b > a for a, b in windows)
     if ok and len(same) >= 3 and np.all(np.isfinite(S)):
         try:
-
             te = np.array([b for _, b in windows])
             order = np.argsort(te, kind="stable")
             keep = order[np.concatenate([[True], np.diff(te[order]) > 0])]
-            est = trend_estimates(te[keep], C[keep], S[keep], t_start=np.array([a for a, _ in windows])[keep],
-                                  names=names, units="mm/rad", settings=TrendSettings(drift_min_windows=3,
-                                                                                     drift_lookback=LOOKBACK_DAYS * 86400.0))
+            est = trend_estimates(
+                te[keep],
+                C[keep],
+                S[keep],
+                t_start=np.array([a for a, _ in windows])[keep],
+                names=names,
+                units="mm/rad",
+                settings=TrendSettings(drift_min_windows=3, drift_lookback=LOOKBACK_DAYS * 86400.0),
+            )
             for p, n in enumerate(names):
                 if np.isfinite(est.rate[p]):
-                    out[n].update(rate=float(est.rate[p]), rate_se=float(est.se[p]),
-                                  significance=float(est.significance[p]))
+                    out[n].update(
+                        rate=float(est.rate[p]), rate_se=float(est.se[p]), significance=float(est.significance[p])
+                    )
         except ValueError:
             pass
     return out
@@ -261,8 +309,16 @@ def model_report(recs: list[Recording]) -> dict:
         for e in rec.json("events"):
             if isinstance(e, dict) and e.get("kind") == "model":
                 d = e.get("details") or {}
-                changes.append({"from_index": d.get("from_index"), "effects": d.get("effects"), "before": d.get("before"),
-                                "by": d.get("by"), "reason": d.get("reason"), "file": rec.path.name})
+                changes.append(
+                    {
+                        "from_index": d.get("from_index"),
+                        "effects": d.get("effects"),
+                        "before": d.get("before"),
+                        "by": d.get("by"),
+                        "reason": d.get("reason"),
+                        "file": rec.path.name,
+                    }
+                )
         for d in rec.json("fit/summary"):
             if not isinstance(d, dict) or not isinstance(d.get("index"), int):
                 continue
@@ -272,16 +328,30 @@ def model_report(recs: list[Recording]) -> dict:
             if isinstance(diag, dict):
                 rec_ = diag.get("recommendation") if isinstance(diag.get("recommendation"), dict) else {}
                 diagnoses[d["index"]] = {
-                    "index": d["index"], "segments": diag.get("segments"), "model": diag.get("model"),
-                    "chi2_dof": diag.get("chi2_dof"), "fails": diag.get("fails"),
-                    "failing_bands": [[b.get("f_lo"), b.get("f_hi"), b.get("chi2_dof")]
-                                      for b in diag.get("bands") or [] if isinstance(b, dict) and b.get("fails")],
-                    "failing_hours": diag.get("failing_hours"), "summary": diag.get("summary"),
-                    "recommendation": rec_.get("spec"), "explains": rec_.get("explains"),
-                    "command": rec_.get("command"), "message": rec_.get("message"),
-                    "adoption": diag.get("adoption"), "text": diag.get("text")}
-    return {"model": None if last_model is None else {"index": last_model[0], "effects": last_model[1]},
-            "changes": changes, "diagnoses": [diagnoses[i] for i in sorted(diagnoses)]}
+                    "index": d["index"],
+                    "segments": diag.get("segments"),
+                    "model": diag.get("model"),
+                    "chi2_dof": diag.get("chi2_dof"),
+                    "fails": diag.get("fails"),
+                    "failing_bands": [
+                        [b.get("f_lo"), b.get("f_hi"), b.get("chi2_dof")]
+                        for b in diag.get("bands") or []
+                        if isinstance(b, dict) and b.get("fails")
+                    ],
+                    "failing_hours": diag.get("failing_hours"),
+                    "summary": diag.get("summary"),
+                    "recommendation": rec_.get("spec"),
+                    "explains": rec_.get("explains"),
+                    "command": rec_.get("command"),
+                    "message": rec_.get("message"),
+                    "adoption": diag.get("adoption"),
+                    "text": diag.get("text"),
+                }
+    return {
+        "model": None if last_model is None else {"index": last_model[0], "effects": last_model[1]},
+        "changes": changes,
+        "diagnoses": [diagnoses[i] for i in sorted(diagnoses)],
+    }
 
 
 def inspect_run(run_dir, truth=None) -> dict:
@@ -319,20 +389,45 @@ def inspect_run(run_dir, truth=None) -> dict:
         for rec in recs:
             for e in rec.json("errors"):
                 if isinstance(e, dict):
-                    errors.append({"stage": e.get("stage", stage), "file": rec.path.name, "kind": e.get("kind"),
-                                   "index": e.get("index"), "field": e.get("field"), "key": e.get("key"),
-                                   "message": e.get("message"), "time": e.get("time")})
-    alerts = [{**a, "file": rec.path.name} for stage, recs in recs_of.items() for rec in recs
-              for a in rec.json("alerts") if isinstance(a, dict)]
-    warnings = [{**w, "file": rec.path.name} for stage, recs in recs_of.items() for rec in recs
-                for w in rec.json("warnings") if isinstance(w, dict)]
+                    errors.append(
+                        {
+                            "stage": e.get("stage", stage),
+                            "file": rec.path.name,
+                            "kind": e.get("kind"),
+                            "index": e.get("index"),
+                            "field": e.get("field"),
+                            "key": e.get("key"),
+                            "message": e.get("message"),
+                            "time": e.get("time"),
+                        }
+                    )
+    alerts = [
+        {**a, "file": rec.path.name}
+        for stage, recs in recs_of.items()
+        for rec in recs
+        for a in rec.json("alerts")
+        if isinstance(a, dict)
+    ]
+    warnings = [
+        {**w, "file": rec.path.name}
+        for stage, recs in recs_of.items()
+        for rec in recs
+        for w in rec.json("warnings")
+        if isinstance(w, dict)
+    ]
 
     interruptions = []
     for stage, s in stages.items():
         names = [f["file"] for f in s["files"]]
         if s["restarts"]:
-            interruptions.append({"stage": stage, "kind": "restart", "files": names,
-                                  "message": f"{stage} ran {len(names)} times (recordings {', '.join(names)})"})
+            interruptions.append(
+                {
+                    "stage": stage,
+                    "kind": "restart",
+                    "files": names,
+                    "message": f"{stage} ran {len(names)} times (recordings {', '.join(names)})",
+                }
+            )
         for f in s["files"]:
             if not f["readable"]:
                 interruptions.append({"stage": stage, "kind": "unreadable", "file": f["file"], "message": f["problem"]})
@@ -340,38 +435,75 @@ def inspect_run(run_dir, truth=None) -> dict:
             note = f.get("stop_note") or {}
             if note.get("reason") == "disk-full":  # the stage said why it stopped (Recorder.note_stop)
                 closed = "closed" if f["complete"] else f"not closed: salvaged {f['records']} records; {f['problem']}"
-                interruptions.append({"stage": stage, "kind": "disk-full", "file": f["file"],
-                                      "message": f"{f['file']}: stopped: {note.get('message')} ({closed})"})
+                interruptions.append(
+                    {
+                        "stage": stage,
+                        "kind": "disk-full",
+                        "file": f["file"],
+                        "message": f"{f['file']}: stopped: {note.get('message')} ({closed})",
+                    }
+                )
             elif not f["complete"]:
-                interruptions.append({"stage": stage, "kind": "unfinished", "file": f["file"],
-                                      "message": f"{f['file']} was not closed (process killed?): salvaged "
-                                                 f"{f['records']} records; {f['problem']}"})
+                interruptions.append(
+                    {
+                        "stage": stage,
+                        "kind": "unfinished",
+                        "file": f["file"],
+                        "message": f"{f['file']} was not closed (process killed?): salvaged "
+                        f"{f['records']} records; {f['problem']}",
+                    }
+                )
             elif f["problem"]:  # closed, then damaged (flipped bytes): read past the damage
-                interruptions.append({"stage": stage, "kind": "damaged", "file": f["file"],
-                                      "message": f"{f['file']} is damaged: salvaged {f['records']} records; "
-                                                 f"{f['problem']}"})
+                interruptions.append(
+                    {
+                        "stage": stage,
+                        "kind": "damaged",
+                        "file": f["file"],
+                        "message": f"{f['file']} is damaged: salvaged {f['records']} records; {f['problem']}",
+                    }
+                )
             if f["complete"] and not f["stopped"]:
-                interruptions.append({"stage": stage, "kind": "no-stop", "file": f["file"],
-                                      "message": f"{f['file']} is closed but has no 'stop' event"})
+                interruptions.append(
+                    {
+                        "stage": stage,
+                        "kind": "no-stop",
+                        "file": f["file"],
+                        "message": f"{f['file']} is closed but has no 'stop' event",
+                    }
+                )
             for seg in f["incomplete_segments"]:
-                interruptions.append({"stage": stage, "kind": "incomplete-segment", "file": f["file"],
-                                      "message": f"{f['file']}: {seg['topic']} segment {seg['index']} has a header "
-                                                 "but no payload (cut off while writing)"})
+                interruptions.append(
+                    {
+                        "stage": stage,
+                        "kind": "incomplete-segment",
+                        "file": f["file"],
+                        "message": f"{f['file']}: {seg['topic']} segment {seg['index']} has a header "
+                        "but no payload (cut off while writing)",
+                    }
+                )
 
         for f in s["files"]:
             stop = f.get("stop_event") or {}
             if (stop.get("details") or {}).get("orphaned"):
-                interruptions.append({"stage": stage, "kind": "orphaned", "file": f["file"],
-                                      "message": f"{f['file']}: stopped by itself: {stop.get('message')}"})
+                interruptions.append(
+                    {
+                        "stage": stage,
+                        "kind": "orphaned",
+                        "file": f["file"],
+                        "message": f"{f['file']}: stopped by itself: {stop.get('message')}",
+                    }
+                )
         for rec in recs_of.get(stage, []):
             for e in rec.json("events"):
                 if isinstance(e, dict) and e.get("kind") == "restored":
-                    interruptions.append({"stage": stage, "kind": "restored", "file": rec.path.name,
-                                          "message": e.get("message")})
+                    interruptions.append(
+                        {"stage": stage, "kind": "restored", "file": rec.path.name, "message": e.get("message")}
+                    )
     for e in errors:
         if e["kind"] == "window-shortened":
-            interruptions.append({"stage": e["stage"], "kind": "window-shortened", "file": e["file"],
-                                  "message": e["message"]})
+            interruptions.append(
+                {"stage": e["stage"], "kind": "window-shortened", "file": e["file"], "message": e["message"]}
+            )
     plan = _plan(run_dir)
     if plan is not None:
         total = plan["segments_total"]
@@ -379,19 +511,32 @@ def inspect_run(run_dir, truth=None) -> dict:
             out = next(iter(s["outputs"].values()), None) if s["outputs"] else None
             last = s["files"][-1] if s["files"] else {}
             if out is not None and out["missing"] and not last.get("completed"):
-                interruptions.append({"stage": stage, "kind": "unfinished", "file": last.get("file"),
-                                      "message": f"{stage} did not finish: segment(s) {_fmt_ranges(out['missing'])} "
-                                                 f"of {total} not handled"})
+                interruptions.append(
+                    {
+                        "stage": stage,
+                        "kind": "unfinished",
+                        "file": last.get("file"),
+                        "message": f"{stage} did not finish: segment(s) {_fmt_ranges(out['missing'])} "
+                        f"of {total} not handled",
+                    }
+                )
     interruptions.extend(launcher_journal(run_dir))
     gaps = _gaps(recs_of, errors, plan)
 
     fits = _fits(recs_of.get("fitter", []))
     model = model_report(recs_of.get("fitter", []))
-    fit_report = {"count": len(fits), "indices": to_ranges(f["index"] for f in fits),
-                  "names": fits[-1]["names"] if fits else [], "units": "m/rad",
-                  "table": [{k: f[k] for k in ("index", "t_start", "t_stop", "chi2_dof", "converged",
-                                               "coefficients", "sigma")} for f in fits],
-                  "trends": _trends(fits), "trend_units": {"values": "mm/rad", "rate": "mm/rad/day"}}
+    fit_report = {
+        "count": len(fits),
+        "indices": to_ranges(f["index"] for f in fits),
+        "names": fits[-1]["names"] if fits else [],
+        "units": "m/rad",
+        "table": [
+            {k: f[k] for k in ("index", "t_start", "t_stop", "chi2_dof", "converged", "coefficients", "sigma")}
+            for f in fits
+        ],
+        "trends": _trends(fits),
+        "trend_units": {"values": "mm/rad", "rate": "mm/rad/day"},
+    }
     if truth is not None and fits:
         last = fits[-1]
         true = truth_over_window(truth, last["t_start"], last["t_stop"], fit_report["trends"])
@@ -400,10 +545,21 @@ def inspect_run(run_dir, truth=None) -> dict:
                 t["truth_latest_window"] = true[name]
                 t["error_over_sigma"] = (t["latest"] - true[name]) / t["sigma"] if t["sigma"] > 0 else None
         fit_report["truth_file"] = str(truth)
-    return {"run": runs[0] if len(runs) == 1 else (runs or [run_dir.name]), "directory": str(run_dir),
-            "stages": stages, "stages_missing": [s for s in STAGES if s not in stages],
-            "segments_total": total, "fits": fit_report, "model": model, "alerts": alerts, "warnings": warnings, "errors": errors,
-            "interruptions": interruptions, "gaps": gaps, "security": security_report(run_dir)}
+    return {
+        "run": runs[0] if len(runs) == 1 else (runs or [run_dir.name]),
+        "directory": str(run_dir),
+        "stages": stages,
+        "stages_missing": [s for s in STAGES if s not in stages],
+        "segments_total": total,
+        "fits": fit_report,
+        "model": model,
+        "alerts": alerts,
+        "warnings": warnings,
+        "errors": errors,
+        "interruptions": interruptions,
+        "gaps": gaps,
+        "security": security_report(run_dir),
+    }
 
 
 def launcher_journal(run_dir: Path) -> list[dict]:
@@ -420,27 +576,54 @@ def launcher_journal(run_dir: Path) -> list[dict]:
         try:
             rec = json.loads(line)
         except ValueError:
-            out.append({"stage": "launcher", "kind": "journal-unreadable", "file": path.name,
-                        "message": f"launcher.jsonl line {n} is not JSON (cut off when the launcher died?)"})
+            out.append(
+                {
+                    "stage": "launcher",
+                    "kind": "journal-unreadable",
+                    "file": path.name,
+                    "message": f"launcher.jsonl line {n} is not JSON (cut off when the launcher died?)",
+                }
+            )
             continue
         if not isinstance(rec, dict):
             continue
         kind, when = rec.get("kind"), rec.get("time")
         if kind == "start":
             if open_start is not None:
-                out.append({"stage": "launcher", "kind": "launcher-killed", "file": path.name, "time": open_start.get("time"),
-                            "message": f"ttl run (pid {open_start.get('launcher_pid')}) ended without its end record "
-                                       "(killed)"})
+                out.append(
+                    {
+                        "stage": "launcher",
+                        "kind": "launcher-killed",
+                        "file": path.name,
+                        "time": open_start.get("time"),
+                        "message": f"ttl run (pid {open_start.get('launcher_pid')}) ended without its end record "
+                        "(killed)",
+                    }
+                )
             open_start = rec
         elif kind == "end":
             open_start = None
         elif kind in ("stage-died", "stage-restarted", "router-died", "router-restarted", "resume"):
-            out.append({"stage": rec.get("stage") or "launcher", "kind": kind, "file": path.name, "time": when,
-                        "message": rec.get("message")})
+            out.append(
+                {
+                    "stage": rec.get("stage") or "launcher",
+                    "kind": kind,
+                    "file": path.name,
+                    "time": when,
+                    "message": rec.get("message"),
+                }
+            )
     if open_start is not None:
-        out.append({"stage": "launcher", "kind": "launcher-killed", "file": path.name, "time": open_start.get("time"),
-                    "message": f"ttl run (pid {open_start.get('launcher_pid')}) has no end record (killed, or still "
-                               "running)"})
+        out.append(
+            {
+                "stage": "launcher",
+                "kind": "launcher-killed",
+                "file": path.name,
+                "time": open_start.get("time"),
+                "message": f"ttl run (pid {open_start.get('launcher_pid')}) has no end record (killed, or still "
+                "running)",
+            }
+        )
     return out
 
 
@@ -505,8 +688,16 @@ def _gaps(recs_of: dict, errors: list[dict], plan: dict | None) -> list[dict]:
             if isinstance(e, dict) and e.get("kind") == "gap":
                 stretches = (e.get("details") or {}).get("stretches") or []
                 samples = sum(b - a for a, b in stretches)
-                out.append({"stage": "replayer", "kind": "nan-stretch", "index": e.get("index"), "stretches": stretches,
-                            "seconds": samples / fs if fs else None, "message": e.get("message")})
+                out.append(
+                    {
+                        "stage": "replayer",
+                        "kind": "nan-stretch",
+                        "index": e.get("index"),
+                        "stretches": stretches,
+                        "seconds": samples / fs if fs else None,
+                        "message": e.get("message"),
+                    }
+                )
     for e in errors:
         if e["kind"] == "gap":
             out.append({"stage": e["stage"], "kind": "missing", "index": e["index"], "message": e["message"]})
@@ -514,6 +705,7 @@ def _gaps(recs_of: dict, errors: list[dict], plan: dict | None) -> list[dict]:
 
 
 # ---------------------------------------------------------------------------- text
+
 
 def _topics_text(table: dict) -> str:
     parts = []
@@ -557,9 +749,16 @@ def format_report(r: dict) -> str:
         if files and files[-1].get("stopped"):
             stop = files[-1].get("stop_event") or {}
             details = stop.get("details") or {}
-            state.append("stopped: disk full" if details.get("disk_full") else
-                         "stopped: orphaned (launcher gone)" if details.get("orphaned") else "stopped")
-        lines.append(f"  {stage:<12} {len(files)} file(s)  errors {s['errors']}  {', '.join(state) or 'running or killed'}")
+            state.append(
+                "stopped: disk full"
+                if details.get("disk_full")
+                else "stopped: orphaned (launcher gone)"
+                if details.get("orphaned")
+                else "stopped"
+            )
+        lines.append(
+            f"  {stage:<12} {len(files)} file(s)  errors {s['errors']}  {', '.join(state) or 'running or killed'}"
+        )
         lines.append(f"  {'':<12} out: {_topics_text(s['outputs'])}")
         if s["inputs"]:
             lines.append(f"  {'':<12} in:  {_topics_text(s['inputs'])}")
@@ -568,19 +767,28 @@ def format_report(r: dict) -> str:
     lines.append("")
     if f["count"]:
         last = f["table"][-1]
-        lines.append(f"Coefficient trends (fitter fit JSON: {f['count']} fits [{_fmt_ranges(f['indices'])}], "
-                     f"last window {_days(last['t_start'])}..{_days(last['t_stop'])} d, "
-                     f"chi2/dof {_num(last['chi2_dof'])})")
-        lines.append(f"  {'coefficient':<12} {'latest [mm/rad]':>19} {'first':>8} {'min':>8} {'max':>8} "
-                     f"{'rate [mm/rad/day]':>22}   (rate: GLS line over the last {LOOKBACK_DAYS:g} d of fits)")
+        lines.append(
+            f"Coefficient trends (fitter fit JSON: {f['count']} fits [{_fmt_ranges(f['indices'])}], "
+            f"last window {_days(last['t_start'])}..{_days(last['t_stop'])} d, "
+            f"chi2/dof {_num(last['chi2_dof'])})"
+        )
+        lines.append(
+            f"  {'coefficient':<12} {'latest [mm/rad]':>19} {'first':>8} {'min':>8} {'max':>8} "
+            f"{'rate [mm/rad/day]':>22}   (rate: GLS line over the last {LOOKBACK_DAYS:g} d of fits)"
+        )
         with_truth = "truth_file" in f
         if with_truth:
             lines[-1] += "   truth(last window)  (latest-truth)/sigma"
         for name, t in f["trends"].items():
-            rate = (f"{t['rate']:+8.4f} ± {t['rate_se']:.4f}" + (" *" if abs(t["significance"]) >= 5 else "  ")
-                    if t["rate"] is not None else f"{'-':>20}")
-            line = (f"  {name:<12} {t['latest']:+9.4f} ± {t['sigma']:.4f} {t['first']:+8.4f} "
-                    f"{t['min']:+8.4f} {t['max']:+8.4f} {rate:>22}")
+            rate = (
+                f"{t['rate']:+8.4f} ± {t['rate_se']:.4f}" + (" *" if abs(t["significance"]) >= 5 else "  ")
+                if t["rate"] is not None
+                else f"{'-':>20}"
+            )
+            line = (
+                f"  {name:<12} {t['latest']:+9.4f} ± {t['sigma']:.4f} {t['first']:+8.4f} "
+                f"{t['min']:+8.4f} {t['max']:+8.4f} {rate:>22}"
+            )
             if with_truth and "truth_latest_window" in t:
                 line += f"   {t['truth_latest_window']:+9.4f}   {t['error_over_sigma']:+6.2f}"
             lines.append(line)
@@ -594,21 +802,29 @@ def format_report(r: dict) -> str:
     if m.get("model") or m.get("changes") or m.get("diagnoses"):
         lines.append("")
         current = m.get("model") or {}
-        lines.append(f"Model (fitter): {','.join(current.get('effects') or ['?'])} at fit {current.get('index')}; "
-                     f"{len(m['changes'])} change(s), {len(m['diagnoses'])} live diagnos{'i' if len(m['diagnoses']) == 1 else 'e'}s")
+        lines.append(
+            f"Model (fitter): {','.join(current.get('effects') or ['?'])} at fit {current.get('index')}; "
+            f"{len(m['changes'])} change(s), {len(m['diagnoses'])} live diagnos{'i' if len(m['diagnoses']) == 1 else 'e'}s"
+        )
         for c in m["changes"]:
-            lines.append(f"  from segment {c['from_index']}: {','.join(c['before'] or [])} -> {','.join(c['effects'] or [])}"
-                         f" ({c.get('by') or 'control'}{': ' + c['reason'] if c.get('reason') else ''})")
+            lines.append(
+                f"  from segment {c['from_index']}: {','.join(c['before'] or [])} -> {','.join(c['effects'] or [])}"
+                f" ({c.get('by') or 'control'}{': ' + c['reason'] if c.get('reason') else ''})"
+            )
         for d in m["diagnoses"]:
             seg = d.get("segments") or ["?", "?"]
             bands = ", ".join(f"{lo:.3g}-{hi:.3g} Hz ({chi:.3f})" for lo, hi, chi in d["failing_bands"]) or "none"
-            lines.append(f"  diagnosis at segment {d['index']} (window {seg[0]}..{seg[1]}, model "
-                         f"{','.join(d.get('model') or [])}): chi2/dof {_num(d.get('chi2_dof'))}, failing bands {bands}")
+            lines.append(
+                f"  diagnosis at segment {d['index']} (window {seg[0]}..{seg[1]}, model "
+                f"{','.join(d.get('model') or [])}): chi2/dof {_num(d.get('chi2_dof'))}, failing bands {bands}"
+            )
             if d.get("recommendation"):
                 adopted = (d.get("adoption") or {}).get("adopted")
-                lines.append(f"    recommends {d['recommendation']}"
-                             f"{' (explains the excess)' if d.get('explains') else ' (does not explain the excess)'}"
-                             f"{': adopted' if adopted else ''}")
+                lines.append(
+                    f"    recommends {d['recommendation']}"
+                    f"{' (explains the excess)' if d.get('explains') else ' (does not explain the excess)'}"
+                    f"{': adopted' if adopted else ''}"
+                )
                 if d.get("command") and not adopted:
                     lines.append(f"    apply it: {d['command']}")
             elif d.get("message"):
@@ -650,9 +866,14 @@ def format_report(r: dict) -> str:
         if not sec["present"]:
             lines.append("Security: no security.jsonl (a run with --insecure, or its launcher did not end)")
         else:
-            lines.append(f"Security (security.jsonl): {sec['count']} refusal(s) by the router"
-                         + (", " + ", ".join(f"{k} x{v['count']}" for k, v in sorted(sec["kinds"].items()))
-                            if sec["kinds"] else ""))
+            lines.append(
+                f"Security (security.jsonl): {sec['count']} refusal(s) by the router"
+                + (
+                    ", " + ", ".join(f"{k} x{v['count']}" for k, v in sorted(sec["kinds"].items()))
+                    if sec["kinds"]
+                    else ""
+                )
+            )
             for kind, v in sorted(sec["kinds"].items()):
                 for rec in v["first"]:
                     lines.append(f"  {kind}: {_refusal_text(rec)}")
@@ -669,6 +890,7 @@ def format_report(r: dict) -> str:
 
 
 # ---------------------------------------------------------------------------- view
+
 
 def view_command(target, binary: str | None = None) -> list[str]:
     """The ``rerun`` command that opens a run's ``monitor.rrd`` bound to 127.0.0.1.
@@ -707,6 +929,7 @@ def recording_to_view(target) -> Path:
 
 
 # ---------------------------------------------------------------------------- command line
+
 
 def _cmd_inspect(args) -> int:
 
@@ -750,5 +973,3 @@ def _cmd_view(args) -> int:
         print(shlex.join(cmd))
         return 0
     return subprocess.call(cmd)
-
-

@@ -289,6 +289,7 @@ def parse_control_key(key: str) -> tuple[str, tuple[str, ...]]:
 
 # ---------------------------------------------------------------------------- segment indices
 
+
 def to_ranges(indices: Iterable[int]) -> list[list[int]]:
     """``{0, 1, 2, 5}`` -> ``[[0, 2], [5, 5]]``."""
     out: list[list[int]] = []

@@ -189,8 +189,10 @@ def stage_module_exists(name: str) -> bool:
     spec = importlib.util.find_spec(STAGE_PACKAGE)
     if spec is None or not spec.submodule_search_locations:
         return False
-    return any((Path(loc) / f"{name}.py").exists() or (Path(loc) / name / "__init__.py").exists()
-               for loc in spec.submodule_search_locations)
+    return any(
+        (Path(loc) / f"{name}.py").exists() or (Path(loc) / name / "__init__.py").exists()
+        for loc in spec.submodule_search_locations
+    )
 
 
 @dataclass
@@ -256,7 +258,7 @@ class Launcher:
         if "replayer" in o.skip:
             raise LaunchError("--skip: the replayer cannot be skipped (run it elsewhere with --external replayer)")
         if not o.telemetry and not o.simulate and "replayer" not in o.external:
-            raise LaunchError("no telemetry source: give --telemetry FILE... or --simulate \"<ttl simulate options>\"")
+            raise LaunchError('no telemetry source: give --telemetry FILE... or --simulate "<ttl simulate options>"')
         if o.telemetry and o.simulate:
             raise LaunchError("give either --telemetry or --simulate, not both")
         for f in o.telemetry or ():
@@ -265,16 +267,19 @@ class Launcher:
         secure = not o.insecure
         for e in o.listen:
             if secure and not str(e).startswith("tls/"):
-                raise LaunchError(f"--listen {e}: the run talks mutual TLS: write tls/{str(e).split('/', 1)[-1]} "
-                                  "(or give --insecure)")
+                raise LaunchError(
+                    f"--listen {e}: the run talks mutual TLS: write tls/{str(e).split('/', 1)[-1]} (or give --insecure)"
+                )
         if o.insecure and o.credentials is not None:
             raise LaunchError("give either --credentials or --insecure, not both")
         if o.window < 1:
             raise LaunchError(f"--window: expected >= 1, got {o.window}")
         cache = self.cache
         if cache < o.window + 2:
-            raise LaunchError(f"--cache: {cache} segments is too few for --window {o.window} "
-                              f"(a restarted stage needs at least window + 2 = {o.window + 2})")
+            raise LaunchError(
+                f"--cache: {cache} segments is too few for --window {o.window} "
+                f"(a restarted stage needs at least window + 2 = {o.window + 2})"
+            )
         skipped = set(o.skip)
         if "monitor" not in skipped and "monitor" not in o.external and not stage_module_exists("monitor"):
             self.say("the monitor stage (stages/monitor.py) is not installed: running without it")
@@ -292,8 +297,11 @@ class Launcher:
         effects = fitter.get("effects")
         if not effects:
             return
-        specs = [x.strip().replace(";", ",") for x in effects.split(",") if x.strip()] \
-            if isinstance(effects, str) else list(effects)
+        specs = (
+            [x.strip().replace(";", ",") for x in effects.split(",") if x.strip()]
+            if isinstance(effects, str)
+            else list(effects)
+        )
         try:
             names = [e.name for e in make_effects(specs, tuple(fitter.get("effect_modules") or ()))]
         except TTLError as exc:
@@ -314,27 +322,44 @@ class Launcher:
             # external one: a stage downstream of an external stage cannot progress before that
             # one joins (it is followed once it reports progress)
             first_external = min((STAGES.index(n) for n in o.external), default=len(STAGES))
-            opts.update({"telemetry": [str(Path(f).resolve()) for f in o.telemetry] if o.telemetry else None,
-                         "simulate": o.simulate, "segment": o.segment, "pace": o.pace, "window": o.window,
-                         "wait_for": [n for n in started if n != "replayer"],
-                         "pace_on": [n for n in started if n != "replayer" and STAGES.index(n) < first_external]})
+            opts.update(
+                {
+                    "telemetry": [str(Path(f).resolve()) for f in o.telemetry] if o.telemetry else None,
+                    "simulate": o.simulate,
+                    "segment": o.segment,
+                    "pace": o.pace,
+                    "window": o.window,
+                    "wait_for": [n for n in started if n != "replayer"],
+                    "pace_on": [n for n in started if n != "replayer" and STAGES.index(n) < first_external],
+                }
+            )
         return {k: v for k, v in opts.items() if v is not None}
 
     def stage_config(self, name: str) -> dict:
-        cfg = {"run": self.opts.run_id, "stage": name,
-               "zenoh": self.session_settings(name).to_dict(),
-               "recordings": str(Path(self.opts.recordings).resolve()), "cache": self.cache,
-               "options": self.stage_options(name), "plan": self.run_plan, "launcher_pid": os.getpid(),
-               "progress_from": "launcher",
-               # inputs recorded as headers only (a reference to the payload in the producer's
-               # file): each payload is stored once per run
-               "record_inputs": False}
+        cfg = {
+            "run": self.opts.run_id,
+            "stage": name,
+            "zenoh": self.session_settings(name).to_dict(),
+            "recordings": str(Path(self.opts.recordings).resolve()),
+            "cache": self.cache,
+            "options": self.stage_options(name),
+            "plan": self.run_plan,
+            "launcher_pid": os.getpid(),
+            "progress_from": "launcher",
+            # inputs recorded as headers only (a reference to the payload in the producer's
+            # file): each payload is stored once per run
+            "record_inputs": False,
+        }
         return cfg
 
     def session_settings(self, identity: str) -> SessionSettings:
         """How ``identity`` (a stage, the launcher) connects to the run's router."""
-        return SessionSettings(mode="client", connect=(self.endpoint,), credentials=self.credentials,
-                               identity=identity if self.credentials is not None else None)
+        return SessionSettings(
+            mode="client",
+            connect=(self.endpoint,),
+            credentials=self.credentials,
+            identity=identity if self.credentials is not None else None,
+        )
 
     # ------------------------------------------------------------------ journal, board, resume
     def journal(self, kind: str, message: str, **details) -> None:
@@ -375,6 +400,7 @@ class Launcher:
             if stage in self.expected and isinstance(msg, dict):
                 progress[stage] = Progress(stage)
                 progress[stage].update(msg, total)
+
         def first_missing(stage: str) -> int:
             if stage not in progress or not total:
                 return 0
@@ -394,12 +420,18 @@ class Launcher:
             self.journal("resume", "resumed from segment 0 (nothing handled by every stage)", first=0)
             return
         for stage, p in progress.items():
-            self.progress[stage] = Progress(stage, below(p.done, first), below(p.failed, first), total,
-                                            below(p.gaps, first),
-                                            extra={n: below(v, first) for n, v in p.extra.items()})
+            self.progress[stage] = Progress(
+                stage,
+                below(p.done, first),
+                below(p.failed, first),
+                total,
+                below(p.gaps, first),
+                extra={n: below(v, first) for n, v in p.extra.items()},
+            )
         self.say(f"--resume: segments 0..{first - 1} handled by every stage (board.json); going on from {first}")
-        self.journal("resume", f"resumed: segments 0..{first - 1} handled by every stage; going on from {first}",
-                     first=first)
+        self.journal(
+            "resume", f"resumed: segments 0..{first - 1} handled by every stage; going on from {first}", first=first
+        )
 
     # ------------------------------------------------------------------ router and credentials
     def make_credentials(self, listen) -> None:
@@ -435,8 +467,14 @@ class Launcher:
         env.pop("RUST_LOG", None)
         with open(path, "ab") as logf:
             start = logf.tell()
-            self.router = subprocess.Popen(cmd, stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL,
-                                           env=env, preexec_fn=tied_to_parent(signal.SIGKILL))
+            self.router = subprocess.Popen(
+                cmd,
+                stdout=logf,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                env=env,
+                preexec_fn=tied_to_parent(signal.SIGKILL),
+            )
         self.router_starts += 1
         self._watcher = security.RefusalWatcher(path, offset=start)
         deadline = time.monotonic() + 60.0
@@ -446,8 +484,10 @@ class Launcher:
                 return
             if self.router.poll() is not None:
                 lines = [ln for ln in text.splitlines() if ln.strip()]
-                raise LaunchError(f"cannot open the Zenoh router on {', '.join(listen)}: "
-                                  f"{lines[-1] if lines else f'exit status {self.router.returncode}'}")
+                raise LaunchError(
+                    f"cannot open the Zenoh router on {', '.join(listen)}: "
+                    f"{lines[-1] if lines else f'exit status {self.router.returncode}'}"
+                )
             time.sleep(0.05)
         raise LaunchError(f"the Zenoh router did not start within 60 s (log {path})")
 
@@ -455,11 +495,19 @@ class Launcher:
         """The router died: start it again on the same endpoints (up to ``restart`` times);
         returns a reason to abort, or None.  Its clients reconnect by themselves."""
         code = self.router.returncode
-        how = f"killed by {signal.Signals(-code).name}" if code < 0 and -code in signal.Signals._value2member_map_ \
+        how = (
+            f"killed by {signal.Signals(-code).name}"
+            if code < 0 and -code in signal.Signals._value2member_map_
             else f"exit status {code}"
+        )
         self.say(f"the Zenoh router died ({how}; log {self.run_dir / 'router.log'})")
-        self.journal("router-died", f"the Zenoh router (pid {self.router.pid}) died ({how})", stage="router",
-                     pid=self.router.pid, how=how)
+        self.journal(
+            "router-died",
+            f"the Zenoh router (pid {self.router.pid}) died ({how})",
+            stage="router",
+            pid=self.router.pid,
+            how=how,
+        )
         self.watch_refusals()  # what the old router logged, before the new watcher starts
         if self.router_starts > self.opts.restart:
             return f"the Zenoh router died ({how}; log {self.run_dir / 'router.log'})"
@@ -472,8 +520,13 @@ class Launcher:
                 if attempt == 4:
                     return f"the Zenoh router could not be restarted: {exc}"
                 time.sleep(1.0)
-        self.journal("router-restarted", f"the Zenoh router restarted (pid {self.router.pid})", stage="router",
-                     pid=self.router.pid, start=self.router_starts)
+        self.journal(
+            "router-restarted",
+            f"the Zenoh router restarted (pid {self.router.pid})",
+            stage="router",
+            pid=self.router.pid,
+            start=self.router_starts,
+        )
         return None
 
     def stop_router(self) -> None:
@@ -502,11 +555,25 @@ class Launcher:
             path = Path(scratch) / "replayer.config.json"
             plan_path = Path(scratch) / "plan.json"
             path.write_text(json.dumps(self.stage_config("replayer"), indent=2))
-            res = subprocess.run([self.opts.python, "-m", stage_module("replayer"), "--config", str(path), "--check",
-                                  "--plan-out", str(plan_path), "--log-level", "WARNING"],
-                                 capture_output=True, text=True, timeout=300,
-                                 # nothing to save: killed with a killed or terminated launcher
-                                 preexec_fn=tied_to_parent(signal.SIGKILL))
+            res = subprocess.run(
+                [
+                    self.opts.python,
+                    "-m",
+                    stage_module("replayer"),
+                    "--config",
+                    str(path),
+                    "--check",
+                    "--plan-out",
+                    str(plan_path),
+                    "--log-level",
+                    "WARNING",
+                ],
+                capture_output=True,
+                text=True,
+                timeout=300,
+                # nothing to save: killed with a killed or terminated launcher
+                preexec_fn=tied_to_parent(signal.SIGKILL),
+            )
             if res.returncode != 0:
                 lines = [ln for ln in (res.stderr or res.stdout).strip().splitlines() if ln.strip()]
                 msg = lines[-1] if lines else f"exit status {res.returncode}"
@@ -521,8 +588,17 @@ class Launcher:
             return
         stage = key_stage(str(sample.key_expr))
         if msg["stage"] != stage:  # the key is what the access-control list vouches for
-            self.events.put(("error", {"stage": stage, "kind": "forged-progress", "key": str(sample.key_expr),
-                                       "message": f"progress of {msg['stage']!r} published as {stage!r}"}))
+            self.events.put(
+                (
+                    "error",
+                    {
+                        "stage": stage,
+                        "kind": "forged-progress",
+                        "key": str(sample.key_expr),
+                        "message": f"progress of {msg['stage']!r} published as {stage!r}",
+                    },
+                )
+            )
             return
         self.events.put(("progress", msg))
 
@@ -553,7 +629,8 @@ class Launcher:
                     self.refuse_progress(msg, why)
                     continue
                 self.progress.setdefault(msg["stage"], Progress(msg["stage"])).update(
-                    msg, self.run_plan["segments_total"] if self.run_plan else None)
+                    msg, self.run_plan["segments_total"] if self.run_plan else None
+                )
                 self.publish_board(msg["stage"])
             elif ev[0] == "alive":
                 _, stage, alive = ev
@@ -603,15 +680,22 @@ class Launcher:
         pub = self._boards.get(stage)
         if pub is None:
             pub = self._boards[stage] = self.bus.track(
-                declare_segment_publisher(self.bus.session, board_key(self.opts.run_id, stage), cache=1))
+                declare_segment_publisher(self.bus.session, board_key(self.opts.run_id, stage), cache=1)
+            )
         pub.put(json.dumps(self.progress[stage].message(self.opts.run_id)).encode())
         self.save_board()
 
     def refuse_progress(self, msg: dict, why: str) -> None:
         """Record a refused progress message (shown, kept for the report, put on errors)."""
-        err = stage_record(self.opts.run_id, LAUNCHER, "forged", f"progress message refused: {why}",
-                           details={"pid": msg.get("pid")}, key=progress_key(self.opts.run_id, msg["stage"]),
-                           field="progress")
+        err = stage_record(
+            self.opts.run_id,
+            LAUNCHER,
+            "forged",
+            f"progress message refused: {why}",
+            details={"pid": msg.get("pid")},
+            key=progress_key(self.opts.run_id, msg["stage"]),
+            field="progress",
+        )
         self.refused_progress.append(err)
         if len(self.refused_progress) <= 20:
             self.say(err["message"])
@@ -681,12 +765,23 @@ class Launcher:
             logf.write(f"--- start {child.starts + 1} of {name} at {time.ctime()} ---\n".encode())
             logf.flush()
             child.proc = subprocess.Popen(
-                [self.opts.python, "-m", stage_module(name), "--config", str(child.config),
-                 "--log-level", self.opts.log_level],
-                stdout=logf, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
+                [
+                    self.opts.python,
+                    "-m",
+                    stage_module(name),
+                    "--config",
+                    str(child.config),
+                    "--log-level",
+                    self.opts.log_level,
+                ],
+                stdout=logf,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                env=env,
                 # SIGTERM when the launcher dies, even while importing or opening its session
                 # (the stage then closes its recording, saying it was orphaned)
-                preexec_fn=tied_to_parent(signal.SIGTERM))
+                preexec_fn=tied_to_parent(signal.SIGTERM),
+            )
         child.starts += 1
         child.pids.add(child.proc.pid)
         child.pids_order.append(child.proc.pid)
@@ -707,16 +802,30 @@ class Launcher:
             code = child.proc.returncode
             child.exit_codes.append(code)
             child.proc = None
-            how = f"killed by {signal.Signals(-code).name}" if code < 0 and -code in signal.Signals._value2member_map_ \
+            how = (
+                f"killed by {signal.Signals(-code).name}"
+                if code < 0 and -code in signal.Signals._value2member_map_
                 else f"exit status {code}" + {3: ": orphaned", 4: ": disk full"}.get(code, "")
+            )
             self.say(f"stage {name} died ({how}); log {child.log}: {self.last_log_line(name)}")
-            self.journal("stage-died", f"stage {name} (pid {child.pids_order[-1]}) died ({how})", stage=name,
-                         pid=child.pids_order[-1], how=how, code=code)
+            self.journal(
+                "stage-died",
+                f"stage {name} (pid {child.pids_order[-1]}) died ({how})",
+                stage=name,
+                pid=child.pids_order[-1],
+                how=how,
+                code=code,
+            )
             if child.starts <= self.opts.restart:
                 self.say(f"restarting {name} ({child.starts}/{self.opts.restart})")
                 self.start(name)
-                self.journal("stage-restarted", f"stage {name} restarted (pid {child.proc.pid})", stage=name,
-                             pid=child.proc.pid, start=child.starts)
+                self.journal(
+                    "stage-restarted",
+                    f"stage {name} restarted (pid {child.proc.pid})",
+                    stage=name,
+                    pid=child.proc.pid,
+                    start=child.starts,
+                )
             else:
                 return f"stage {name} died ({how})"
         return None
@@ -724,8 +833,9 @@ class Launcher:
     def stop_all(self) -> None:
         """Ask every stage to stop, wait, then terminate and kill what is left."""
         try:
-            self.bus.session.put(control_key(self.opts.run_id, "stop"), b"{}",
-                                 congestion_control=zenoh.CongestionControl.BLOCK)
+            self.bus.session.put(
+                control_key(self.opts.run_id, "stop"), b"{}", congestion_control=zenoh.CongestionControl.BLOCK
+            )
         except Exception as exc:  # session closed
             log.warning("could not send stop: %s", exc)
         deadline = time.monotonic() + self.opts.stop_timeout
@@ -762,8 +872,11 @@ class Launcher:
         if self.run_plan is not None:
             (self.run_dir / "plan.json").write_text(json.dumps(self.run_plan, indent=2))
         self.make_credentials(listen)
-        self.journal("start", f"ttl run started (pid {os.getpid()})" + (" with --resume" if o.resume else ""),
-                     resume=bool(o.resume))
+        self.journal(
+            "start",
+            f"ttl run started (pid {os.getpid()})" + (" with --resume" if o.resume else ""),
+            resume=bool(o.resume),
+        )
         if o.resume:
             self.load_board()
         self.start_router(listen)
@@ -793,9 +906,11 @@ class Launcher:
         for stage in list(self.progress):  # --resume: the board of the earlier launcher, cut
             self.publish_board(stage)
         security_note = "" if self.credentials is None else f" (mutual TLS, credentials {self.credentials})"
-        self.say(f"router on {', '.join(self.listen)}{security_note}; stages: {', '.join(self.expected)}"
-                 + (f" (external: {', '.join(o.external)})" if o.external else "")
-                 + f"; recordings in {self.run_dir}")
+        self.say(
+            f"router on {', '.join(self.listen)}{security_note}; stages: {', '.join(self.expected)}"
+            + (f" (external: {', '.join(o.external)})" if o.external else "")
+            + f"; recordings in {self.run_dir}"
+        )
         for name in reversed(self.expected):  # consumers first, the replayer last
             if name in o.external:
                 continue
@@ -877,8 +992,11 @@ class Launcher:
         if conflicts:
             # two different copies of a segment were published: one of them was not the
             # producer's (docs/operations.md, "Conflicting copies"), whatever was used
-            self.say(f"conflicting copies of {len(conflicts)} segment(s) received: "
-                     + ", ".join(conflicts[:10]) + (" ..." if len(conflicts) > 10 else ""))
+            self.say(
+                f"conflicting copies of {len(conflicts)} segment(s) received: "
+                + ", ".join(conflicts[:10])
+                + (" ..." if len(conflicts) > 10 else "")
+            )
             status = 1
         if abort:
             self.say(f"run stopped: {abort}")
@@ -886,9 +1004,11 @@ class Launcher:
         files = sorted(p.name for p in self.run_dir.glob("*.mcap")) + sorted(p.name for p in self.run_dir.glob("*.rrd"))
         refused = f", {len(self.refused)} refusal(s) by the router (security.jsonl)" if self.refused else ""
         # the counts also when the run failed (exit 1): what went wrong is above, how much here
-        self.say(f"{'done' if status == 0 else 'ended (exit status 1)'}: {total} segments, "
-                 f"{len(self.errors)} error report(s){refused}, {len(self.refused_progress)} progress message(s) "
-                 f"refused; files in {self.run_dir}: {', '.join(files)}")
+        self.say(
+            f"{'done' if status == 0 else 'ended (exit status 1)'}: {total} segments, "
+            f"{len(self.errors)} error report(s){refused}, {len(self.refused_progress)} progress message(s) "
+            f"refused; files in {self.run_dir}: {', '.join(files)}"
+        )
         return status
 
 

@@ -80,8 +80,10 @@ def every_from_env(environ=None) -> int:
     try:
         every = int(raw)
     except ValueError:
-        raise ValueError(f"environment variable {ENV}={raw!r}: expected a non-negative integer "
-                         "(report every N segments; 0 or unset: off)") from None
+        raise ValueError(
+            f"environment variable {ENV}={raw!r}: expected a non-negative integer "
+            "(report every N segments; 0 or unset: off)"
+        ) from None
     if every < 0:
         raise ValueError(f"environment variable {ENV}={raw!r}: expected a non-negative integer")
     return every
@@ -140,14 +142,28 @@ class MemoryTrace:
         current, peak = tracemalloc.get_traced_memory()
         out = {"rss_mb": rss_mb(), "traced_mb": current / 2**20, "peak_mb": peak / 2**20}
         rss = f"{out['rss_mb']:.1f} MB" if out["rss_mb"] is not None else "unknown"
-        self.log.info("memory after segment %s: rss %s, traced %.1f MB (peak %.1f MB)", index, rss,
-                      out["traced_mb"], out["peak_mb"])
+        self.log.info(
+            "memory after segment %s: rss %s, traced %.1f MB (peak %.1f MB)",
+            index,
+            rss,
+            out["traced_mb"],
+            out["peak_mb"],
+        )
         if self.count % self.every == 0:
             snap, before = self._take(), self._snapshot
-            growth = sorted(((size - before.get(where, (0, 0))[0], where, size, blocks)
-                             for where, (size, blocks) in snap.items()), reverse=True)[:TOP_LINES]
+            growth = sorted(
+                ((size - before.get(where, (0, 0))[0], where, size, blocks) for where, (size, blocks) in snap.items()),
+                reverse=True,
+            )[:TOP_LINES]
             self._snapshot = snap
             for diff, (filename, lineno), size, blocks in growth:
-                self.log.info("memory growth over the last %d segments: %s:%d %+.2f MB (now %.2f MB in %d blocks)",
-                              self.every, filename, lineno, diff / 2**20, size / 2**20, blocks)
+                self.log.info(
+                    "memory growth over the last %d segments: %s:%d %+.2f MB (now %.2f MB in %d blocks)",
+                    self.every,
+                    filename,
+                    lineno,
+                    diff / 2**20,
+                    size / 2**20,
+                    blocks,
+                )
         return out

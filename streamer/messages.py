@@ -21,8 +21,12 @@ TELEMETRY_ARRAYS = ("eta", "dws_phi", "dws_eta", "ltt")
 
 def telemetry_of(header, arrays) -> Telemetry:
     """The :class:`~ttlcore.io.telemetry.Telemetry` of a ``telemetry`` message."""
-    return Telemetry(t0=header.t0, fs=header.fs, source=str(header.meta.get("source", "bus")),
-                     **{k: arrays[k] for k in TELEMETRY_ARRAYS})
+    return Telemetry(
+        t0=header.t0,
+        fs=header.fs,
+        source=str(header.meta.get("source", "bus")),
+        **{k: arrays[k] for k in TELEMETRY_ARRAYS},
+    )
 
 
 def concatenate_telemetry(parts, source: str = "bus") -> Telemetry:
@@ -32,8 +36,12 @@ def concatenate_telemetry(parts, source: str = "bus") -> Telemetry:
     parts = list(parts)
     if not parts:
         raise ValueError("no telemetry segments to join")
-    return Telemetry(t0=parts[0].t0, fs=parts[0].fs, source=source,
-                     **{k: np.concatenate([getattr(p, k) for p in parts], axis=1) for k in TELEMETRY_ARRAYS})
+    return Telemetry(
+        t0=parts[0].t0,
+        fs=parts[0].fs,
+        source=source,
+        **{k: np.concatenate([getattr(p, k) for p in parts], axis=1) for k in TELEMETRY_ARRAYS},
+    )
 
 
 def tdi_of(header, arrays) -> TDIData:
@@ -45,5 +53,12 @@ def tdi_of(header, arrays) -> TDIData:
     ltt = np.asarray(meta.get("ltt_mean", [np.nan] * 6), dtype=float)
     if ltt.shape != (6,):
         raise ValueError(f"meta.ltt_mean: expected 6 values, got shape {ltt.shape}")
-    return TDIData(t0=header.t0, fs=header.fs, channels=tuple(header.channels), data=arrays["data"],
-                   regressors=arrays["regressors"], names=names, ltt_mean=ltt)
+    return TDIData(
+        t0=header.t0,
+        fs=header.fs,
+        channels=tuple(header.channels),
+        data=arrays["data"],
+        regressors=arrays["regressors"],
+        names=names,
+        ltt_mean=ltt,
+    )

@@ -127,8 +127,9 @@ class PipelineStage(Stage):
         super().__init__(config)
         self.options = dict(config.options or {})
         #: This process's progress (what it published and gave up), published after every segment.
-        self.progress = Progress(self.stage_name,
-                                 segments_total=self.validator.plan.segments_total if self.validator.plan else None)
+        self.progress = Progress(
+            self.stage_name, segments_total=self.validator.plan.segments_total if self.validator.plan else None
+        )
         self.board = ProgressBoard()
         self._progress_pub = None
         #: Memory per segment, logged when ``TTL_MEMTRACE`` is set (:mod:`streamer.memtrace`).
@@ -172,7 +173,8 @@ class PipelineStage(Stage):
     # ------------------------------------------------------------------ lifecycle
     def setup(self) -> None:
         self._progress_pub = self.bus.track(
-            declare_segment_publisher(self.bus.session, progress_key(self.run_id, self.stage_name), cache=1))
+            declare_segment_publisher(self.bus.session, progress_key(self.run_id, self.stage_name), cache=1)
+        )
         if self.follow:
             pattern = progress_pattern(self.run_id, board=self.config.progress_from == "launcher")
             self.bus.segment_subscriber(pattern, self._on_progress, history=1)
@@ -232,14 +234,23 @@ class PipelineStage(Stage):
         """Record the ``complete`` event once the last segment is handled and nothing waits."""
         total = self.segments_total
         handled = self.done | self.failed
-        if (not self.progress.complete and total is not None and (total - 1) in handled and self.pending() == 0):
+        if not self.progress.complete and total is not None and (total - 1) in handled and self.pending() == 0:
             self.progress.complete = True
             missing = sorted(set(range(total)) - handled)
-            self.event("complete", index=total - 1,
-                       message=f"handled {len(handled)} of {total} segments in this process",
-                       done=to_ranges(self.done), failed=to_ranges(self.failed), missing=to_ranges(missing))
-            self.log.info("complete: last segment %d handled (%d done, %d failed in this process)",
-                          total - 1, len(self.done), len(self.failed))
+            self.event(
+                "complete",
+                index=total - 1,
+                message=f"handled {len(handled)} of {total} segments in this process",
+                done=to_ranges(self.done),
+                failed=to_ranges(self.failed),
+                missing=to_ranges(missing),
+            )
+            self.log.info(
+                "complete: last segment %d handled (%d done, %d failed in this process)",
+                total - 1,
+                len(self.done),
+                len(self.failed),
+            )
             if publish:
                 self.publish_progress(None)
         return self.progress.complete
@@ -268,8 +279,9 @@ class OrderedStage(PipelineStage):
 
     def __init__(self, config: StageConfig):
         super().__init__(config)
-        self.queue = InOrder(settle=float(self.options.get("settle", 1.0)),
-                             gap_timeout=float(self.options.get("gap_timeout", 60.0)))
+        self.queue = InOrder(
+            settle=float(self.options.get("settle", 1.0)), gap_timeout=float(self.options.get("gap_timeout", 60.0))
+        )
 
     def process(self, header, item):
         """Process the next segment in order; returns an :class:`streamer.stage.Output` or None."""
@@ -302,8 +314,12 @@ class OrderedStage(PipelineStage):
         """Buffer a validated input segment and process what is ready."""
         self.note_meta(header.meta)
         if not self.queue.add(header.index, (header, item)):
-            self.event("stale", index=header.index, message=f"{header.topic} segment {header.index} arrived after "
-                                                            f"the stream moved past it (next is {self.queue.next}); ignored")
+            self.event(
+                "stale",
+                index=header.index,
+                message=f"{header.topic} segment {header.index} arrived after "
+                f"the stream moved past it (next is {self.queue.next}); ignored",
+            )
             return
         self.drain()
 
@@ -323,8 +339,9 @@ class OrderedStage(PipelineStage):
         for index, entry in self.queue.ready(self.upstream_failed, self.segments_total):
             done += 1
             if entry is None:
-                self.report_error("gap", f"{self.inputs[0]} segment {index} skipped: {self.queue.skipped_reason}",
-                                  index=index)
+                self.report_error(
+                    "gap", f"{self.inputs[0]} segment {index} skipped: {self.queue.skipped_reason}", index=index
+                )
                 self.fill_gap(index)
                 peer = self.board.get(self.upstream)
                 if peer is not None and index in peer.gaps:
@@ -337,8 +354,12 @@ class OrderedStage(PipelineStage):
                 again = self.handled_before(index)
                 out = self.process(header, item)
                 if again:
-                    self.event("replayed", index=index, message=f"segment {index} processed again to rebuild the "
-                                                                "state after a restart; its output was out already")
+                    self.event(
+                        "replayed",
+                        index=index,
+                        message=f"segment {index} processed again to rebuild the "
+                        "state after a restart; its output was out already",
+                    )
                 elif out is not None:
                     self.publish(out, source=header)
                     self.published(index)

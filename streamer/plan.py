@@ -46,8 +46,11 @@ import numpy as np
 from .topology import PRODUCERS
 
 #: Arrays whose last axis is time (one sample per telemetry sample), per topic.
-TIME_ARRAYS = {"telemetry": ("eta", "dws_phi", "dws_eta", "ltt"), "tdi": ("data", "regressors"),
-               "residual": ("residual", "ttl_model")}
+TIME_ARRAYS = {
+    "telemetry": ("eta", "dws_phi", "dws_eta", "ltt"),
+    "tdi": ("data", "regressors"),
+    "residual": ("residual", "ttl_model"),
+}
 #: Arrays that must have at least one finite sample, per topic (others may be all NaN).
 FINITE_SOMEWHERE = {"telemetry": ("eta",), "tdi": ("data",), "residual": ("residual",)}
 #: Arrays that must be finite everywhere, per topic.
@@ -105,8 +108,8 @@ class RangeSet:
             return
         a, b = self._starts[k], self._ends[k]
         new = [(x, y) for x, y in ((a, i - 1), (i + 1, b)) if x <= y]
-        self._starts[k:k + 1] = [x for x, _ in new]
-        self._ends[k:k + 1] = [y for _, y in new]
+        self._starts[k : k + 1] = [x for x, _ in new]
+        self._ends[k : k + 1] = [y for _, y in new]
 
     def __contains__(self, i) -> bool:
         k = bisect.bisect_right(self._starts, i) - 1
@@ -256,9 +259,16 @@ class Plan:
         return self.t0 + index * self.samples / self.fs, min(self.samples, self.samples_total - index * self.samples)
 
     def to_dict(self) -> dict:
-        return {"segments_total": self.segments_total, "fs": self.fs, "t0": self.t0, "samples": self.samples,
-                "samples_total": self.samples_total, "table": None if self.table is None else [list(r) for r in self.table],
-                "producers": dict(self.producers), "window": self.window}
+        return {
+            "segments_total": self.segments_total,
+            "fs": self.fs,
+            "t0": self.t0,
+            "samples": self.samples,
+            "samples_total": self.samples_total,
+            "table": None if self.table is None else [list(r) for r in self.table],
+            "producers": dict(self.producers),
+            "window": self.window,
+        }
 
     @classmethod
     def from_dict(cls, d: Mapping) -> Plan:
@@ -354,12 +364,19 @@ class Validator:
         if total is not None and index >= total:
             raise Rejected("rejected", "index", f"segment {index} is beyond the run's {total} segments")
         if self.highest >= 0 and index > self.highest + self.window:
-            raise Rejected("rejected", "index", f"segment {index} is more than {self.window} ahead of the "
-                                               f"highest accepted segment {self.highest}")
+            raise Rejected(
+                "rejected",
+                "index",
+                f"segment {index} is more than {self.window} ahead of the highest accepted segment {self.highest}",
+            )
         if index < self.floor:
-            raise Rejected("rejected", "index", f"segment {index} is more than {self.window} behind the "
-                                               f"highest accepted segment {self.highest}: too late (a copy that "
-                                               "old is not compared with the one accepted before)")
+            raise Rejected(
+                "rejected",
+                "index",
+                f"segment {index} is more than {self.window} behind the "
+                f"highest accepted segment {self.highest}: too late (a copy that "
+                "old is not compared with the one accepted before)",
+            )
         if self.highest < 0 and plan is None and index > self.window and total is None:
             raise Rejected("rejected", "index", f"first segment {index} with no plan and no segments_total")
         if plan is not None:
@@ -373,10 +390,13 @@ class Validator:
             raise Rejected("rejected", "fs", f"{header.fs} Hz, the run's rate is {fs} Hz")
         for name in TIME_ARRAYS.get(topic, ()):
             m = _last_axis(header, name)
-            if m is not None and n is not None and m != n and not (
-                    plan is None and total is not None and index == total - 1 and m < n):
-                raise Rejected("rejected", f"arrays[{name}].shape",
-                               f"{m} samples, segment {index} has {n}")
+            if (
+                m is not None
+                and n is not None
+                and m != n
+                and not (plan is None and total is not None and index == total - 1 and m < n)
+            ):
+                raise Rejected("rejected", f"arrays[{name}].shape", f"{m} samples, segment {index} has {n}")
         for name in FINITE_SOMEWHERE.get(topic, ()):
             a = arrays.get(name)
             if a is not None and a.dtype.kind in "fc" and a.size and not np.isfinite(a).any():
@@ -393,9 +413,13 @@ class Validator:
             if seen == digest:
                 return "duplicate"
             self.conflicted.setdefault(topic, RangeSet()).add(index)
-            raise Rejected("conflict", "payload", f"{topic} segment {index} differs from the copy accepted "
-                                                  f"before (producer {seen[0]!r}, checksum {seen[3]}): both copies "
-                                                  "refused")
+            raise Rejected(
+                "conflict",
+                "payload",
+                f"{topic} segment {index} differs from the copy accepted "
+                f"before (producer {seen[0]!r}, checksum {seen[3]}): both copies "
+                "refused",
+            )
         return "new"
 
     def accepted(self, topic: str, header) -> None:

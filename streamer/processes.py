@@ -67,6 +67,7 @@ def tied_to_parent(sig: int = signal.SIGTERM):
         _set_pdeathsig(sig)
         if os.getppid() != parent:
             os._exit(1)
+
     return preexec
 
 
@@ -123,8 +124,7 @@ class SignalFlag:
         return True
 
 
-def wait_port(port: int, timeout: float = 10.0, proc: subprocess.Popen | None = None,
-              host: str = LOOPBACK) -> bool:
+def wait_port(port: int, timeout: float = 10.0, proc: subprocess.Popen | None = None, host: str = LOOPBACK) -> bool:
     """Wait until something accepts TCP connections on ``host:port``; False after ``timeout``
     seconds, or as soon as ``proc`` (the process expected to listen) has exited."""
     deadline = time.monotonic() + timeout

@@ -122,17 +122,33 @@ class Progress:
 
     def message(self, run: str, **fields) -> dict:
         """This progress as a message (module docstring); ``fields`` (``pid``, ``index``) added."""
-        return {"run": run, "stage": self.stage, "time": time.time(), **fields,
-                "done": self.done.ranges(), "failed": self.failed.ranges(), "gaps": self.gaps.ranges(),
-                "segments_total": self.segments_total, "complete": self.complete,
-                **{f"{name}_ranges": _ranges(v) for name, v in self.extra.items()}}
+        return {
+            "run": run,
+            "stage": self.stage,
+            "time": time.time(),
+            **fields,
+            "done": self.done.ranges(),
+            "failed": self.failed.ranges(),
+            "gaps": self.gaps.ranges(),
+            "segments_total": self.segments_total,
+            "complete": self.complete,
+            **{f"{name}_ranges": _ranges(v) for name, v in self.extra.items()},
+        }
 
     def copy(self) -> Progress:
         """A copy that shares no set with this one."""
-        return Progress(self.stage, self.done.copy(), self.failed.copy(), self.segments_total, self.gaps.copy(),
-                        self.complete, dict(self.last), set(self.pids),
-                        {n: RangeSet(s) if not isinstance(s, RangeSet) else s.copy() for n, s in self.extra.items()},
-                        self.updated)
+        return Progress(
+            self.stage,
+            self.done.copy(),
+            self.failed.copy(),
+            self.segments_total,
+            self.gaps.copy(),
+            self.complete,
+            dict(self.last),
+            set(self.pids),
+            {n: RangeSet(s) if not isinstance(s, RangeSet) else s.copy() for n, s in self.extra.items()},
+            self.updated,
+        )
 
 
 def _ranges(indices) -> list[list[int]]:

@@ -68,8 +68,12 @@ CHUNK_SIZE = 1 << 20
 MAX_CHUNK_AGE = 2.0
 #: JSON topics whose messages close the chunk at once (rare, and wanted after a kill).
 FLUSHED_TOPICS = frozenset({"errors", "events", "warnings"})
-_COMPRESSION = {"zstd": CompressionType.ZSTD, "lz4": CompressionType.LZ4, "": CompressionType.NONE,
-                "none": CompressionType.NONE}
+_COMPRESSION = {
+    "zstd": CompressionType.ZSTD,
+    "lz4": CompressionType.LZ4,
+    "": CompressionType.NONE,
+    "none": CompressionType.NONE,
+}
 
 
 def mission_ns(t: float) -> int:
@@ -87,15 +91,32 @@ _TIME = {"type": "number", "description": "wall-clock time [s since epoch]"}
 
 def _object_schema(title: str, required, properties: dict) -> dict:
     """A JSON schema (draft 2020-12) of an object named ``title``."""
-    return {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": title, "type": "object",
-            "required": list(required), "properties": properties}
+    return {
+        "$schema": "https://json-schema.org/draft/2020-12/schema",
+        "title": title,
+        "type": "object",
+        "required": list(required),
+        "properties": properties,
+    }
 
 
 #: JSON schema of a segment header (:mod:`streamer.codec`).
 HEADER_SCHEMA = _object_schema(
     "ttl.SegmentHeader",
-    ["schema", "version", "run", "index", "t0", "fs", "channels", "producer", "arrays", "payload_bytes", "checksum",
-     "meta"],
+    [
+        "schema",
+        "version",
+        "run",
+        "index",
+        "t0",
+        "fs",
+        "channels",
+        "producer",
+        "arrays",
+        "payload_bytes",
+        "checksum",
+        "meta",
+    ],
     {
         "schema": {"const": "ttl-segment"},
         "version": _INTEGER,
@@ -105,94 +126,164 @@ HEADER_SCHEMA = _object_schema(
         "fs": {"type": "number", "description": "sampling rate [Hz]"},
         "channels": {"type": "array", "items": _STRING},
         "producer": _STRING,
-        "arrays": {"type": "array", "items": {
-            "type": "object",
-            "required": ["name", "dtype", "shape", "offset", "nbytes", "units", "channel_axis"],
-            "properties": {
-                "name": _STRING, "dtype": _STRING,
-                "shape": {"type": "array", "items": _INTEGER},
-                "offset": _INTEGER, "nbytes": _INTEGER,
-                "units": _STRING, "channel_axis": {"type": ["integer", "null"]},
-            }}},
+        "arrays": {
+            "type": "array",
+            "items": {
+                "type": "object",
+                "required": ["name", "dtype", "shape", "offset", "nbytes", "units", "channel_axis"],
+                "properties": {
+                    "name": _STRING,
+                    "dtype": _STRING,
+                    "shape": {"type": "array", "items": _INTEGER},
+                    "offset": _INTEGER,
+                    "nbytes": _INTEGER,
+                    "units": _STRING,
+                    "channel_axis": {"type": ["integer", "null"]},
+                },
+            },
+        },
         "payload_bytes": _INTEGER,
         "checksum": _STRING,
         "meta": _OBJECT,
-    })
+    },
+)
 #: Fields of a stage's error, warning and event records (:func:`stage_record`).
-_RECORD = {"run": _STRING, "stage": _STRING, "kind": _STRING, "index": {"type": ["integer", "null"]},
-           "message": _STRING, "time": _TIME, "details": _OBJECT}
+_RECORD = {
+    "run": _STRING,
+    "stage": _STRING,
+    "kind": _STRING,
+    "index": {"type": ["integer", "null"]},
+    "message": _STRING,
+    "time": _TIME,
+    "details": _OBJECT,
+}
 #: JSON schema of an error (a rejected message, a failed segment, a gap).
-ERROR_SCHEMA = _object_schema("ttl.Error", ["run", "stage", "kind", "message", "time"], {
-    **_RECORD,
-    "kind": {"type": "string", "description": "rejected | failed | gap | ..."},
-    "key": {"type": ["string", "null"]},
-    "field": {"type": ["string", "null"], "description": "header field at fault"},
-})
+ERROR_SCHEMA = _object_schema(
+    "ttl.Error",
+    ["run", "stage", "kind", "message", "time"],
+    {
+        **_RECORD,
+        "kind": {"type": "string", "description": "rejected | failed | gap | ..."},
+        "key": {"type": ["string", "null"]},
+        "field": {"type": ["string", "null"], "description": "header field at fault"},
+    },
+)
 #: JSON schema of a warning: something an operator should see that is not an error
 #: (a fit that did not converge, ...).
-WARNING_SCHEMA = _object_schema("ttl.Warning", ["run", "stage", "kind", "message", "time"], {
-    **_RECORD, "kind": {"type": "string", "description": "not-converged | ..."}})
+WARNING_SCHEMA = _object_schema(
+    "ttl.Warning",
+    ["run", "stage", "kind", "message", "time"],
+    {**_RECORD, "kind": {"type": "string", "description": "not-converged | ..."}},
+)
 #: JSON schema of a lifecycle or bookkeeping event (start, stop, duplicate, ...).
 EVENT_SCHEMA = _object_schema("ttl.Event", ["run", "stage", "kind", "time"], _RECORD)
 #: JSON schema of a fit of the TTL coefficients.
-FIT_SCHEMA = _object_schema("ttl.Fit", ["run", "index", "names", "coefficients"], {
-    "run": _STRING,
-    "index": _INTEGER,
-    "t_start": {"type": "number", "description": "start of the fitted window [s]"},
-    "t_end": {"type": "number", "description": "end of the fitted window [s]"},
-    "names": {"type": "array", "items": _STRING},
-    "coefficients": {**_NUMBERS, "description": "m/rad"},
-    "sigma": _NUMBERS,
-    "covariance": {"type": "array", "items": _NUMBERS},
-    "chi2": _NUMBER,
-    "dof": _NUMBER,
-})
+FIT_SCHEMA = _object_schema(
+    "ttl.Fit",
+    ["run", "index", "names", "coefficients"],
+    {
+        "run": _STRING,
+        "index": _INTEGER,
+        "t_start": {"type": "number", "description": "start of the fitted window [s]"},
+        "t_end": {"type": "number", "description": "end of the fitted window [s]"},
+        "names": {"type": "array", "items": _STRING},
+        "coefficients": {**_NUMBERS, "description": "m/rad"},
+        "sigma": _NUMBERS,
+        "covariance": {"type": "array", "items": _NUMBERS},
+        "chi2": _NUMBER,
+        "dof": _NUMBER,
+    },
+)
 #: JSON schema of a model-adequacy diagnosis.
-DIAGNOSIS_SCHEMA = _object_schema("ttl.Diagnosis", ["run", "index", "verdict"], {
-    "run": _STRING, "index": _INTEGER, "verdict": _STRING, "checks": _OBJECT, "message": _STRING})
+DIAGNOSIS_SCHEMA = _object_schema(
+    "ttl.Diagnosis",
+    ["run", "index", "verdict"],
+    {"run": _STRING, "index": _INTEGER, "verdict": _STRING, "checks": _OBJECT, "message": _STRING},
+)
 #: JSON schema of a control message received by a stage (``ttl/<run>/control/<stage>/<command>``).
-CONTROL_SCHEMA = _object_schema("ttl.Control", ["run", "stage", "command", "time"], {
-    "run": _STRING,
-    "stage": _STRING,
-    "command": _STRING,
-    "payload": {"description": "the message (JSON when it parses, else text)"},
-    "accepted": {"type": "boolean"},
-    "message": _STRING,
-    "time": _TIME,
-})
+CONTROL_SCHEMA = _object_schema(
+    "ttl.Control",
+    ["run", "stage", "command", "time"],
+    {
+        "run": _STRING,
+        "stage": _STRING,
+        "command": _STRING,
+        "payload": {"description": "the message (JSON when it parses, else text)"},
+        "accepted": {"type": "boolean"},
+        "message": _STRING,
+        "time": _TIME,
+    },
+)
 #: JSON schema of a step or drift alert of the monitor (``alerts``).
-ALERT_SCHEMA = _object_schema("ttl.Alert", ["kind", "coefficient", "t", "value", "significance", "message"], {
-    "run": _STRING,
-    "kind": {"type": "string", "description": "step | drift"},
-    "coefficient": _STRING,
-    "t": {"type": ["number", "null"], "description": "step time or end of the drift span [s]"},
-    "value": {"type": ["number", "null"], "description": "step [mm/rad] or drift rate [mm/rad/day]"},
-    "significance": {"type": ["number", "null"]},
-    "message": _STRING,
-    "t_detected": {"type": ["number", "null"]},
-    "index": {"type": ["integer", "null"], "description": "fit that raised it"},
-    "units": _STRING,
-    "details": _OBJECT,
-})
+ALERT_SCHEMA = _object_schema(
+    "ttl.Alert",
+    ["kind", "coefficient", "t", "value", "significance", "message"],
+    {
+        "run": _STRING,
+        "kind": {"type": "string", "description": "step | drift"},
+        "coefficient": _STRING,
+        "t": {"type": ["number", "null"], "description": "step time or end of the drift span [s]"},
+        "value": {"type": ["number", "null"], "description": "step [mm/rad] or drift rate [mm/rad/day]"},
+        "significance": {"type": ["number", "null"]},
+        "message": _STRING,
+        "t_detected": {"type": ["number", "null"]},
+        "index": {"type": ["integer", "null"], "description": "fit that raised it"},
+        "units": _STRING,
+        "details": _OBJECT,
+    },
+)
 #: Schemas known by name (``Recorder.write_json(..., schema="ttl.Fit")``).
-SCHEMAS = {s["title"]: s for s in (HEADER_SCHEMA, ERROR_SCHEMA, WARNING_SCHEMA, EVENT_SCHEMA, FIT_SCHEMA,
-                                   DIAGNOSIS_SCHEMA, CONTROL_SCHEMA, ALERT_SCHEMA)}
+SCHEMAS = {
+    s["title"]: s
+    for s in (
+        HEADER_SCHEMA,
+        ERROR_SCHEMA,
+        WARNING_SCHEMA,
+        EVENT_SCHEMA,
+        FIT_SCHEMA,
+        DIAGNOSIS_SCHEMA,
+        CONTROL_SCHEMA,
+        ALERT_SCHEMA,
+    )
+}
 #: Schema of JSON channels with no schema given.
-OBJECT_SCHEMA = {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "ttl.Object",
-                 "type": "object"}
+OBJECT_SCHEMA = {"$schema": "https://json-schema.org/draft/2020-12/schema", "title": "ttl.Object", "type": "object"}
 SCHEMAS["ttl.Object"] = OBJECT_SCHEMA
 
 
-def stage_record(run: str, stage: str, kind: str, message: str = "", *, index: int | None = None,
-                 details: dict | None = None, **fields) -> dict:
+def stage_record(
+    run: str,
+    stage: str,
+    kind: str,
+    message: str = "",
+    *,
+    index: int | None = None,
+    details: dict | None = None,
+    **fields,
+) -> dict:
     """An error, warning or event of a stage (or the launcher), as :data:`ERROR_SCHEMA`,
     :data:`WARNING_SCHEMA` and :data:`EVENT_SCHEMA` describe it; ``fields`` (``key``,
     ``field`` of an error) are added, the time is now."""
-    return {"run": run, "stage": stage, "kind": kind, "index": index, **fields, "message": message,
-            "time": time.time(), "details": details or {}}
+    return {
+        "run": run,
+        "stage": stage,
+        "kind": kind,
+        "index": index,
+        **fields,
+        "message": message,
+        "time": time.time(),
+        "details": details or {},
+    }
+
+
 #: Default schema by topic.
-TOPIC_SCHEMAS = {"errors": "ttl.Error", "warnings": "ttl.Warning", "events": "ttl.Event", "control": "ttl.Control",
-                 "alerts": "ttl.Alert"}
+TOPIC_SCHEMAS = {
+    "errors": "ttl.Error",
+    "warnings": "ttl.Warning",
+    "events": "ttl.Event",
+    "control": "ttl.Control",
+    "alerts": "ttl.Alert",
+}
 
 
 class RecordingError(ValueError):
@@ -240,9 +331,16 @@ class Recorder:
     Use as a context manager, or call :meth:`close`.
     """
 
-    def __init__(self, path, metadata: Mapping[str, str] | None = None, fsync: bool = False,
-                 compression: str = COMPRESSION, chunk_size: int = CHUNK_SIZE,
-                 max_chunk_age: float = MAX_CHUNK_AGE, reserve: int = RESERVE_BYTES):
+    def __init__(
+        self,
+        path,
+        metadata: Mapping[str, str] | None = None,
+        fsync: bool = False,
+        compression: str = COMPRESSION,
+        chunk_size: int = CHUNK_SIZE,
+        max_chunk_age: float = MAX_CHUNK_AGE,
+        reserve: int = RESERVE_BYTES,
+    ):
         if compression not in _COMPRESSION:
             raise ValueError(f"compression: expected one of zstd, lz4, none, got {compression!r}")
         self.path = Path(path)
@@ -252,8 +350,9 @@ class Recorder:
         stop_note_path(self.path).unlink(missing_ok=True)  # a note of an earlier file at this path
         self._file = open(self.path, "wb")
         self._fsync = fsync
-        self._writer = Writer(self._file, use_chunking=True, chunk_size=int(chunk_size),
-                              compression=_COMPRESSION[compression])
+        self._writer = Writer(
+            self._file, use_chunking=True, chunk_size=int(chunk_size), compression=_COMPRESSION[compression]
+        )
         self._writer.start(profile=PROFILE, library="ttl-streamer")
         self._schemas: dict[str, int] = {}
         self._channels: dict[str, int] = {}
@@ -293,22 +392,27 @@ class Recorder:
                 body = dict(schema)
                 name = body.get("title", f"{topic}.schema")
             schema_id = self._schema_id(name, body)
-            self._channels[topic] = self._writer.register_channel(topic=topic, message_encoding="json",
-                                                                  schema_id=schema_id)
+            self._channels[topic] = self._writer.register_channel(
+                topic=topic, message_encoding="json", schema_id=schema_id
+            )
         return self._channels[topic]
 
     def _payload_channel(self, topic: str) -> int:
         name = f"{topic}/payload"
         if name not in self._channels:
             self._channels[name] = self._writer.register_channel(
-                topic=name, message_encoding=PAYLOAD_ENCODING, schema_id=0,
-                metadata={"header_topic": f"{topic}/header",
-                          "layout": "ttl-segment: raw arrays at the header's offsets, little endian, C order"})
+                topic=name,
+                message_encoding=PAYLOAD_ENCODING,
+                schema_id=0,
+                metadata={
+                    "header_topic": f"{topic}/header",
+                    "layout": "ttl-segment: raw arrays at the header's offsets, little endian, C order",
+                },
+            )
         return self._channels[name]
 
     # ------------------------------------------------------------------ writing
-    def write_json(self, topic: str, obj, schema: str | Mapping | None = None,
-                   log_time: int | None = None) -> None:
+    def write_json(self, topic: str, obj, schema: str | Mapping | None = None, log_time: int | None = None) -> None:
         """Write one JSON message on ``topic``.
 
         Parameters
@@ -329,8 +433,7 @@ class Recorder:
         if topic in FLUSHED_TOPICS or time.monotonic() - self._chunk_opened >= self._max_chunk_age:
             self.flush()
 
-    def write_segment(self, topic: str, header: Header | Mapping, payload,
-                      log_time: int | None = None) -> None:
+    def write_segment(self, topic: str, header: Header | Mapping, payload, log_time: int | None = None) -> None:
         """Write one segment: its header on ``<topic>/header``, its payload on ``<topic>/payload``
         (log time: the segment's mission time ``t0`` unless given); the chunk is then closed."""
         header_dict = header.to_dict() if isinstance(header, Header) else dict(header)
@@ -353,8 +456,9 @@ class Recorder:
             self._sequence += 1
         if self._chunk_opened is None:
             self._chunk_opened = time.monotonic()
-        self._writer.add_message(channel_id=channel, log_time=int(log_time), publish_time=time.time_ns(),
-                                 data=data, sequence=self._sequence)
+        self._writer.add_message(
+            channel_id=channel, log_time=int(log_time), publish_time=time.time_ns(), data=data, sequence=self._sequence
+        )
 
     def flush(self) -> None:
         """Close the open chunk and push it to the OS (and to disk with ``fsync=True``)."""
@@ -421,6 +525,7 @@ def _allocate(path: Path, size: int) -> None:
 
 
 # ---------------------------------------------------------------------------- reading
+
 
 @dataclass
 class RecordedMessage:
@@ -530,8 +635,11 @@ class _Assembler:
     def channel(self, channel: Channel) -> None:
         self.channels[channel.id] = channel
         schema = self.schemas.get(channel.schema_id)
-        self.rec.schemas[channel.topic] = (schema.name if schema else "", schema.encoding if schema else "",
-                                           channel.message_encoding)
+        self.rec.schemas[channel.topic] = (
+            schema.name if schema else "",
+            schema.encoding if schema else "",
+            channel.message_encoding,
+        )
 
     def message(self, msg: Message) -> None:
         before = len(self.rec.messages)
@@ -544,9 +652,16 @@ class _Assembler:
     def _message(self, msg: Message) -> None:
         channel = self.channels.get(msg.channel_id)
         if channel is None:
-            self.rec.messages.append(RecordedMessage(f"<channel {msg.channel_id}>", msg.log_time, "raw",
-                                                     sequence=msg.sequence, raw=bytes(msg.data),
-                                                     error="unknown channel"))
+            self.rec.messages.append(
+                RecordedMessage(
+                    f"<channel {msg.channel_id}>",
+                    msg.log_time,
+                    "raw",
+                    sequence=msg.sequence,
+                    raw=bytes(msg.data),
+                    error="unknown channel",
+                )
+            )
             return
         topic = channel.topic
         if channel.message_encoding == "json" and topic.endswith("/header"):
@@ -555,8 +670,11 @@ class _Assembler:
             try:
                 data = json.loads(msg.data)
             except ValueError as exc:
-                self.rec.messages.append(RecordedMessage(seg, msg.log_time, "invalid", sequence=msg.sequence,
-                                                         error=f"header is not JSON: {exc}"))
+                self.rec.messages.append(
+                    RecordedMessage(
+                        seg, msg.log_time, "invalid", sequence=msg.sequence, error=f"header is not JSON: {exc}"
+                    )
+                )
                 return
             self.pending[seg] = RecordedMessage(seg, msg.log_time, "incomplete", data=data, sequence=msg.sequence)
         elif channel.message_encoding == PAYLOAD_ENCODING and topic.endswith("/payload"):
@@ -565,12 +683,19 @@ class _Assembler:
             if head is None or head.sequence != msg.sequence:
                 if head is not None:
                     self.rec.messages.append(head)
-                self.rec.messages.append(RecordedMessage(seg, msg.log_time, "invalid", sequence=msg.sequence,
-                                                         raw=bytes(msg.data), error="payload without its header"))
+                self.rec.messages.append(
+                    RecordedMessage(
+                        seg,
+                        msg.log_time,
+                        "invalid",
+                        sequence=msg.sequence,
+                        raw=bytes(msg.data),
+                        error="payload without its header",
+                    )
+                )
                 return
             try:
-                header, arrays = decode(msg.data, json.dumps(head.data).encode(),
-                                        Expect(allow_nonfinite=True))
+                header, arrays = decode(msg.data, json.dumps(head.data).encode(), Expect(allow_nonfinite=True))
                 head.kind, head.header, head.arrays = "segment", header, arrays
             except CodecError as exc:
                 head.kind, head.error = "invalid", str(exc)
@@ -578,14 +703,22 @@ class _Assembler:
         elif channel.message_encoding == "json":
             try:
                 data = json.loads(msg.data)
-                self.rec.messages.append(RecordedMessage(topic, msg.log_time, "json", data=data,
-                                                         sequence=msg.sequence))
+                self.rec.messages.append(RecordedMessage(topic, msg.log_time, "json", data=data, sequence=msg.sequence))
             except ValueError as exc:
-                self.rec.messages.append(RecordedMessage(topic, msg.log_time, "invalid", sequence=msg.sequence,
-                                                         raw=bytes(msg.data), error=f"not JSON: {exc}"))
+                self.rec.messages.append(
+                    RecordedMessage(
+                        topic,
+                        msg.log_time,
+                        "invalid",
+                        sequence=msg.sequence,
+                        raw=bytes(msg.data),
+                        error=f"not JSON: {exc}",
+                    )
+                )
         else:
-            self.rec.messages.append(RecordedMessage(topic, msg.log_time, "raw", sequence=msg.sequence,
-                                                     raw=bytes(msg.data)))
+            self.rec.messages.append(
+                RecordedMessage(topic, msg.log_time, "raw", sequence=msg.sequence, raw=bytes(msg.data))
+            )
 
     def _flush_pending(self, seg: str) -> None:
         head = self.pending.pop(seg, None)
@@ -625,8 +758,9 @@ def read_recording(path) -> Recording:
         try:
             return _read_complete(path)
         except Exception as exc:  # noqa: BLE001 - McapError, ZstdError, struct.error...: damaged
-            log.warning("%s: reading the closed file failed (%s: %s); salvaging record by record",
-                        path, type(exc).__name__, exc)
+            log.warning(
+                "%s: reading the closed file failed (%s: %s); salvaging record by record", path, type(exc).__name__, exc
+            )
     return _salvage(path, size)
 
 
@@ -665,8 +799,10 @@ def _salvage(path: Path, size: int) -> Recording:
                 break
             opcode, length = struct.unpack_from("<BQ", data, pos)
             if pos + 9 + length > size:
-                why = (f"truncated record (opcode 0x{opcode:02x}) at byte {pos}: "
-                       f"{size - pos - 9} of {length} bytes present")
+                why = (
+                    f"truncated record (opcode 0x{opcode:02x}) at byte {pos}: "
+                    f"{size - pos - 9} of {length} bytes present"
+                )
                 nxt = _resync(data, pos + 1, size)
                 if nxt is None:
                     end_problem = why
@@ -674,12 +810,17 @@ def _salvage(path: Path, size: int) -> Recording:
                 rec.skipped.append({"start": pos, "stop": nxt, "why": f"damaged record length ({why})"})
                 pos = nxt
                 continue
-            body = data[pos + 9:pos + 9 + length]
+            body = data[pos + 9 : pos + 9 + length]
             try:
                 done = _salvage_record(asm, opcode, body)
             except Exception as exc:  # noqa: BLE001 - a corrupt record: skip it, keep the rest
-                rec.skipped.append({"start": pos, "stop": pos + 9 + length,
-                                    "why": f"corrupt record (opcode 0x{opcode:02x}): {type(exc).__name__}: {exc}"})
+                rec.skipped.append(
+                    {
+                        "start": pos,
+                        "stop": pos + 9 + length,
+                        "why": f"corrupt record (opcode 0x{opcode:02x}): {type(exc).__name__}: {exc}",
+                    }
+                )
                 pos += 9 + length
                 continue
             rec.records += 1
@@ -691,8 +832,10 @@ def _salvage(path: Path, size: int) -> Recording:
     parts = []
     if rec.skipped:
         lost = sum(s["stop"] - s["start"] for s in rec.skipped)
-        parts.append(f"{len(rec.skipped)} corrupt stretch(es) skipped ({lost} bytes, first at byte "
-                     f"{rec.skipped[0]['start']}: {rec.skipped[0]['why']})")
+        parts.append(
+            f"{len(rec.skipped)} corrupt stretch(es) skipped ({lost} bytes, first at byte "
+            f"{rec.skipped[0]['start']}: {rec.skipped[0]['why']})"
+        )
     if end_problem:
         parts.append(end_problem)
     rec.problem = "; ".join(parts) or None
@@ -719,7 +862,7 @@ def _resync(data, start: int, size: int) -> int | None:
         (length,) = struct.unpack_from("<Q", data, pos + 1)
         if 0 < length <= min(_RESYNC_MAX, size - pos - 9):
             try:
-                chunk = Chunk.read(ReadDataStream(io.BytesIO(data[pos + 9:pos + 9 + length])))
+                chunk = Chunk.read(ReadDataStream(io.BytesIO(data[pos + 9 : pos + 9 + length])))
                 for _ in breakup_chunk(chunk, validate_crc=True):
                     pass
                 return pos

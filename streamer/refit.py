@@ -67,8 +67,10 @@ def _select(found: dict[int, tuple], first: int | None, last: int | None) -> lis
         raise RefitError("no recorded segment in the range asked")
     gaps = [i for i in range(idx[0], idx[-1] + 1) if i not in found]
     if gaps:
-        raise RefitError(f"segments {gaps[:5]}{'...' if len(gaps) > 5 else ''} are missing from the recordings: "
-                         "refit a contiguous range (--segments A:B)")
+        raise RefitError(
+            f"segments {gaps[:5]}{'...' if len(gaps) > 5 else ''} are missing from the recordings: "
+            "refit a contiguous range (--segments A:B)"
+        )
     return [found[i] for i in idx]
 
 
@@ -83,18 +85,29 @@ def load_run(run_dir, segments: tuple[int | None, int | None] = (None, None), so
         if found:
             parts = [telemetry_of(h, a) for h, a in _select(found, first, last)]
             tm = concatenate_telemetry(parts, source=str(run_dir))
-            return (tm, f"telemetry of {len(parts)} recorded segments ({tm.size / tm.fs / 3600:g} h)",
-                    found[min(found)][0].meta.get("dws_asd"))
+            return (
+                tm,
+                f"telemetry of {len(parts)} recorded segments ({tm.size / tm.fs / 3600:g} h)",
+                found[min(found)][0].meta.get("dws_asd"),
+            )
         if source == "telemetry":
             raise RefitError(f"{run_dir}: no recorded telemetry (replayer.mcap, or tdi_builder.mcap inputs)")
-    found = {i: (h, a) for i, (h, a) in recorded_segments(run_dir, "tdi", stages=(PRODUCERS["tdi"],)).items()
-             if "regressors" in a}  # a tdi_builder under `ttl run` records X2, Y2, Z2 only
+    found = {
+        i: (h, a)
+        for i, (h, a) in recorded_segments(run_dir, "tdi", stages=(PRODUCERS["tdi"],)).items()
+        if "regressors" in a
+    }  # a tdi_builder under `ttl run` records X2, Y2, Z2 only
     if not found:
-        raise RefitError(f"{run_dir}: no recorded telemetry, nor TDI segments with their regressors, to refit "
-                         "(a tdi_builder records X2, Y2, Z2 only: refit from the replayer's telemetry)")
+        raise RefitError(
+            f"{run_dir}: no recorded telemetry, nor TDI segments with their regressors, to refit "
+            "(a tdi_builder records X2, Y2, Z2 only: refit from the replayer's telemetry)"
+        )
     parts = [tdi_of(h, a) for h, a in _select(found, first, last)]
-    return (parts, f"TDI of {len(parts)} recorded segments ({sum(p.size / p.fs for p in parts) / 3600:g} h)",
-            found[min(found)][0].meta.get("dws_asd"))
+    return (
+        parts,
+        f"TDI of {len(parts)} recorded segments ({sum(p.size / p.fs for p in parts) / 3600:g} h)",
+        found[min(found)][0].meta.get("dws_asd"),
+    )
 
 
 def refit_settings(dws_asd=None, band=None) -> DiagnoseSettings:
@@ -102,12 +115,23 @@ def refit_settings(dws_asd=None, band=None) -> DiagnoseSettings:
     noise the replayer passed down (None: the telemetry's or the paper's) and the band
     (None: the diagnosis default).  The live fitter uses the same, so that its window fits
     equal ``ttl refit``'s."""
-    return DiagnoseSettings(dws_asd=None if dws_asd is None else float(dws_asd),
-                            **({"band": tuple(float(b) for b in band)} if band else {}))
+    return DiagnoseSettings(
+        dws_asd=None if dws_asd is None else float(dws_asd), **({"band": tuple(float(b) for b in band)} if band else {})
+    )
 
 
-def refit_run(run_dir, effects, *, baseline=("linear-ttl",), effect_modules=(), segments=(None, None),
-              source: str = "auto", band=None, residual: bool = False, progress=None) -> dict:
+def refit_run(
+    run_dir,
+    effects,
+    *,
+    baseline=("linear-ttl",),
+    effect_modules=(),
+    segments=(None, None),
+    source: str = "auto",
+    band=None,
+    residual: bool = False,
+    progress=None,
+) -> dict:
     """Refit a recorded run with ``effects`` against ``baseline`` (see the module docstring);
     returns the JSON report (``source``, ``model``, ``baseline``, ``change``).  With
     ``residual`` (telemetry only) the key ``"_residual"`` holds the whole model's residual
@@ -120,15 +144,24 @@ def refit_run(run_dir, effects, *, baseline=("linear-ttl",), effect_modules=(), 
     say(f"reading the recorded segments of {run_dir}")
     data, what, dws = load_run(run_dir, segments, source)
     parts = data if isinstance(data, list) else [data]
-    check_step_times(make_effects(list(effects), list(effect_modules)), parts[0].t0,
-                     parts[-1].t0 + parts[-1].size / parts[-1].fs)
+    check_step_times(
+        make_effects(list(effects), list(effect_modules)), parts[0].t0, parts[-1].t0 + parts[-1].size / parts[-1].fs
+    )
     dws = None if dws is None else float(dws)
     settings = refit_settings(dws, band)
-    say(f"refitting the {what} with {','.join(effects)} and {','.join(baseline)}, "
-        f"band {settings.band[0]:g}-{settings.band[1]:g} Hz")
+    say(
+        f"refitting the {what} with {','.join(effects)} and {','.join(baseline)}, "
+        f"band {settings.band[0]:g}-{settings.band[1]:g} Hz"
+    )
     try:
-        report = refit(data, list(effects), settings=settings, effect_modules=tuple(effect_modules),
-                       baseline=list(baseline), dws_asd=dws)
+        report = refit(
+            data,
+            list(effects),
+            settings=settings,
+            effect_modules=tuple(effect_modules),
+            baseline=list(baseline),
+            dws_asd=dws,
+        )
     except ValueError as exc:
         raise RefitError(str(exc)) from None
     fit = report["_internals"]["fit"]
@@ -150,11 +183,13 @@ def format_refit(report: dict) -> str:
 
     bands = m["adequacy"]["bands"]
     band = f", band {bands[0]['f_lo']:.3g}-{bands[-1]['f_hi']:.3g} Hz" if bands else ""
-    lines = [f"refit of {report['source']['run']}: {report['source']['data']}{band}",
-             f"  model     {','.join(m['effects'])}: {m['n_parameters']} parameters, chi2/dof {fmt(m['chi2_dof'])}",
-             f"  baseline  {','.join(b['effects'])}: {b['n_parameters']} parameters, chi2/dof {fmt(b['chi2_dof'])}",
-             f"  change    delta chi2 {fmt(c['delta_chi2'], '.1f')}, log Bayes factor {fmt(c['log_bayes_factor'], '.1f')}",
-             "  chi2/dof against the instrument noise model per band:  baseline -> model"]
+    lines = [
+        f"refit of {report['source']['run']}: {report['source']['data']}{band}",
+        f"  model     {','.join(m['effects'])}: {m['n_parameters']} parameters, chi2/dof {fmt(m['chi2_dof'])}",
+        f"  baseline  {','.join(b['effects'])}: {b['n_parameters']} parameters, chi2/dof {fmt(b['chi2_dof'])}",
+        f"  change    delta chi2 {fmt(c['delta_chi2'], '.1f')}, log Bayes factor {fmt(c['log_bayes_factor'], '.1f')}",
+        "  chi2/dof against the instrument noise model per band:  baseline -> model",
+    ]
     for band, before, after in zip(m["adequacy"]["bands"], c["bands_before"], c["bands_after"]):
         flag = "  FAILS" if band.get("fails") else ""
         lines.append(f"    {band['f_lo']:.3g}-{band['f_hi']:.3g} Hz   {fmt(before)} -> {fmt(after)}{flag}")
@@ -165,8 +200,10 @@ def format_refit(report: dict) -> str:
     if shown:
         lines.append("  linear coefficients [mm/rad]: baseline -> model (sigma)")
         for n in shown:
-            lines.append(f"    {n:<12} {base_values.get(n, float('nan')) * 1e3:+8.4f} -> {values[n] * 1e3:+8.4f} "
-                         f"({sigma[n] * 1e3:.4f})")
+            lines.append(
+                f"    {n:<12} {base_values.get(n, float('nan')) * 1e3:+8.4f} -> {values[n] * 1e3:+8.4f} "
+                f"({sigma[n] * 1e3:.4f})"
+            )
     extra = [n for n in values if n not in COEFFICIENT_NAMES]
     if extra:
         lines.append("  other parameters of the model: value (sigma) [unit]")
@@ -178,8 +215,12 @@ def format_refit(report: dict) -> str:
 
 #: display unit of the parameters of the named effects, by column-name prefix (the columns'
 #: own units in ttlcore.diagnose.effects, scaled like the coefficients: m/rad shown in mm/rad)
-_PARAMETER_UNITS = (("drift.", 1e3, "mm/rad/day"), ("step.", 1e3, "mm/rad"), ("cross.", 1e3, "mm/rad"),
-                    ("quad.", 1.0, "m/rad^2"))
+_PARAMETER_UNITS = (
+    ("drift.", 1e3, "mm/rad/day"),
+    ("step.", 1e3, "mm/rad"),
+    ("cross.", 1e3, "mm/rad"),
+    ("quad.", 1.0, "m/rad^2"),
+)
 
 
 def parameter_unit(name: str) -> tuple[float, str]:
@@ -213,9 +254,17 @@ def _cmd_refit(args) -> int:
     segments = _parse_range(args.segments)
     try:
         with status_line("ttl refit", args.quiet) as say:  # in place on a terminal
-            report = refit_run(args.run_dir, split(args.effects), baseline=split(args.baseline),
-                               effect_modules=args.effect_module, segments=segments, source=args.source,
-                               band=args.band, residual=args.residual is not None, progress=say)
+            report = refit_run(
+                args.run_dir,
+                split(args.effects),
+                baseline=split(args.baseline),
+                effect_modules=args.effect_module,
+                segments=segments,
+                source=args.source,
+                band=args.band,
+                residual=args.residual is not None,
+                progress=say,
+            )
     except InspectError as exc:
         raise RefitError(str(exc)) from None
     residual = report.pop("_residual", None)

@@ -57,13 +57,17 @@ def recorded_days(run_dir, out_dir, *, day_length: float = DAY) -> list[Path]:
         raise TTLError(f"--day-length: must be positive, got {day_length}")
     found = recorded_segments(run_dir, "telemetry")
     if not found:
-        raise TTLError(f"--from-recordings: {run_dir} holds no recorded telemetry segments "
-                       "(replayer.mcap, or the inputs tdi_builder.mcap recorded)")
+        raise TTLError(
+            f"--from-recordings: {run_dir} holds no recorded telemetry segments "
+            "(replayer.mcap, or the inputs tdi_builder.mcap recorded)"
+        )
     order = sorted(found)
     gaps = [i for i in range(order[0], order[-1] + 1) if i not in found]
     if gaps:  # a missing segment is named, never skipped
-        raise TTLError(f"{run_dir}: segments {gaps[:5]}{'...' if len(gaps) > 5 else ''} are missing from the "
-                       f"recordings (found {order[0]}-{order[-1]})")
+        raise TTLError(
+            f"{run_dir}: segments {gaps[:5]}{'...' if len(gaps) > 5 else ''} are missing from the "
+            f"recordings (found {order[0]}-{order[-1]})"
+        )
     t_first = found[order[0]][0].t0
     days: dict[int, list[int]] = {}
     for i in order:
@@ -76,32 +80,49 @@ def recorded_days(run_dir, out_dir, *, day_length: float = DAY) -> list[Path]:
         parts = []
         for i in idx:
             h, a = found[i]
-            parts.append(Telemetry(t0=h.t0, fs=h.fs, eta=a["eta"], dws_phi=a["dws_phi"], dws_eta=a["dws_eta"],
-                                   ltt=a["ltt"]))
+            parts.append(
+                Telemetry(t0=h.t0, fs=h.fs, eta=a["eta"], dws_phi=a["dws_phi"], dws_eta=a["dws_eta"], ltt=a["ltt"])
+            )
         for a, b in zip(parts[:-1], parts[1:]):
             if abs(b.t0 - (a.t0 + a.size / a.fs)) > 0.5 / a.fs or b.fs != a.fs:
-                raise TTLError(f"{run_dir}: recorded segments of day {k} are not contiguous "
-                               f"(one ends at {a.t0 + a.size / a.fs:g} s, the next starts at {b.t0:g} s)")
+                raise TTLError(
+                    f"{run_dir}: recorded segments of day {k} are not contiguous "
+                    f"(one ends at {a.t0 + a.size / a.fs:g} s, the next starts at {b.t0:g} s)"
+                )
         meta = found[idx[0]][0].meta
         dws = meta.get("dws_asd")
-        config = {"source": "recording", "run": run_dir.name, "segments": [idx[0], idx[-1]],
-                  "recorded_source": meta.get("source")}
+        config = {
+            "source": "recording",
+            "run": run_dir.name,
+            "segments": [idx[0], idx[-1]],
+            "recorded_source": meta.get("source"),
+        }
         if dws is not None:  # the fit's errors-in-variables level (ttlcore.estimate.fit.dws_asd_from_config)
             config["jitter"] = {"dws": float(dws)}
             config["noises"] = {"dws": float(dws) > 0}
-        tm = Telemetry(t0=parts[0].t0, fs=parts[0].fs, config=config, source=str(run_dir),
-                       **{f: np.concatenate([getattr(p, f) for p in parts], axis=1)
-                          for f in ("eta", "dws_phi", "dws_eta", "ltt")})
+        tm = Telemetry(
+            t0=parts[0].t0,
+            fs=parts[0].fs,
+            config=config,
+            source=str(run_dir),
+            **{f: np.concatenate([getattr(p, f) for p in parts], axis=1) for f in ("eta", "dws_phi", "dws_eta", "ltt")},
+        )
         del parts
         paths.append(write_telemetry(out_dir / f"{run_dir.name}-day{k:03d}.h5", tm))
-        log.info("day %d of %s: segments %d-%d, %.3f h -> %s", k, run_dir, idx[0], idx[-1], tm.duration / 3600,
-                 paths[-1])
+        log.info(
+            "day %d of %s: segments %d-%d, %.3f h -> %s", k, run_dir, idx[0], idx[-1], tm.duration / 3600, paths[-1]
+        )
     return paths
 
 
 def _job_options(args) -> dict:
-    opts = {"effects": tuple(_split_effects(args.effects, args.effect_module)), "effect_modules": tuple(args.effect_module),
-            "diagnosis": not args.no_diagnosis, "witnesses": not args.no_witnesses, "figures": not args.no_figures}
+    opts = {
+        "effects": tuple(_split_effects(args.effects, args.effect_module)),
+        "effect_modules": tuple(args.effect_module),
+        "diagnosis": not args.no_diagnosis,
+        "witnesses": not args.no_witnesses,
+        "figures": not args.no_figures,
+    }
     if args.candidates:
         opts["candidates"] = tuple(c.strip() for c in args.candidates.split(",") if c.strip())
     if args.band is not None:
@@ -154,8 +175,9 @@ def run(args) -> int:
                 bar.write(f"ttl reprocess: day {row['day']} FAILED: {row['error']}", file=sys.stderr)
 
     try:
-        with dask_client(args.scheduler, workers=args.workers, memory_limit=args.memory_limit,
-                         dashboard=args.dashboard) as client:
+        with dask_client(
+            args.scheduler, workers=args.workers, memory_limit=args.memory_limit, dashboard=args.dashboard
+        ) as client:
             if bar is not None and args.dashboard and client.dashboard_link:
                 bar.write(f"ttl reprocess: dashboard {client.dashboard_link}", file=sys.stderr)
             summary = reprocess(jobs, out, client=client, retries=args.retries, progress=progress, title=title)
@@ -164,8 +186,10 @@ def run(args) -> int:
             bar.close()
     for a in summary["trends"]["alerts"]:
         print(f"  {a['kind']}: {a['message']} (day {a['day']})")
-    print(f"{summary['n_ok']} of {summary['n_days']} days processed in {time.monotonic() - start:.1f} s on "
-          f"{summary['cluster']['workers']} worker(s); wrote {out / 'summary.md'}, {out / 'summary.json'}")
+    print(
+        f"{summary['n_ok']} of {summary['n_days']} days processed in {time.monotonic() - start:.1f} s on "
+        f"{summary['cluster']['workers']} worker(s); wrote {out / 'summary.md'}, {out / 'summary.json'}"
+    )
     if summary["failed"]:
         print(f"FAILED days: {', '.join(summary['failed'])} (errors in summary.json)")
         return 1

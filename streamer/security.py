@@ -57,8 +57,7 @@ LOCAL_HOSTS = ("127.0.0.1", "localhost")
 VALIDITY_DAYS = 365
 #: RUST_LOG filter of a router process: TLS connections accepted or refused (zenoh_link_tls
 #: logs them at debug/warn) and ACL decisions (zenoh logs them at trace level).
-ROUTER_LOG_FILTER = ("warn,zenoh_link_tls=debug,"
-                     "zenoh::net::routing::interceptor::access_control=trace")
+ROUTER_LOG_FILTER = "warn,zenoh_link_tls=debug,zenoh::net::routing::interceptor::access_control=trace"
 
 
 class CredentialsError(TTLError):
@@ -66,6 +65,7 @@ class CredentialsError(TTLError):
 
 
 # ---------------------------------------------------------------------------- generation
+
 
 def _write_private(path: Path, data: bytes, mode: int = 0o600) -> None:
     """Write ``data`` to ``path`` atomically, created with ``mode`` (never readable by others)."""
@@ -85,8 +85,12 @@ def _name(common_name: str):
     from cryptography import x509
     from cryptography.x509.oid import NameOID
 
-    return x509.Name([x509.NameAttribute(NameOID.ORGANIZATION_NAME, "ttl-streamer"),
-                      x509.NameAttribute(NameOID.COMMON_NAME, common_name)])
+    return x509.Name(
+        [
+            x509.NameAttribute(NameOID.ORGANIZATION_NAME, "ttl-streamer"),
+            x509.NameAttribute(NameOID.COMMON_NAME, common_name),
+        ]
+    )
 
 
 def _san(hosts):
@@ -114,16 +118,25 @@ def _cert_hosts(cert) -> set[str]:
 def _key_usage(ca: bool):
     from cryptography import x509
 
-    return x509.KeyUsage(digital_signature=True, key_cert_sign=ca, crl_sign=ca, content_commitment=False,
-                         key_encipherment=False, data_encipherment=False, key_agreement=False,
-                         encipher_only=False, decipher_only=False)
+    return x509.KeyUsage(
+        digital_signature=True,
+        key_cert_sign=ca,
+        crl_sign=ca,
+        content_commitment=False,
+        key_encipherment=False,
+        data_encipherment=False,
+        key_agreement=False,
+        encipher_only=False,
+        decipher_only=False,
+    )
 
 
 def _pem_key(key) -> bytes:
     from cryptography.hazmat.primitives import serialization
 
-    return key.private_bytes(serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8,
-                             serialization.NoEncryption())
+    return key.private_bytes(
+        serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
+    )
 
 
 def _load_cert(path: Path):
@@ -182,19 +195,27 @@ def ensure_credentials(directory, hosts=(), roles=ROLES) -> Path:
         if ca_key_path.exists():
             raise CredentialsError(f"{ca_key_path}: a CA key without its certificate ca.pem")
         ca_key = ec.generate_private_key(ec.SECP256R1())
-        ca = (x509.CertificateBuilder().subject_name(_name("ttl-streamer CA")).issuer_name(_name("ttl-streamer CA"))
-              .public_key(ca_key.public_key()).serial_number(x509.random_serial_number())
-              .not_valid_before(start).not_valid_after(end + _dt.timedelta(days=1))
-              .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
-              .add_extension(_key_usage(ca=True), critical=True)
-              .sign(ca_key, hashes.SHA256()))
+        ca = (
+            x509.CertificateBuilder()
+            .subject_name(_name("ttl-streamer CA"))
+            .issuer_name(_name("ttl-streamer CA"))
+            .public_key(ca_key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(start)
+            .not_valid_after(end + _dt.timedelta(days=1))
+            .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+            .add_extension(_key_usage(ca=True), critical=True)
+            .sign(ca_key, hashes.SHA256())
+        )
         _write_private(ca_key_path, _pem_key(ca_key))
         _write_private(ca_pem, ca.public_bytes(serialization.Encoding.PEM), 0o644)
     if not todo:
         return d
     if not ca_key_path.exists():
-        raise CredentialsError(f"{ca_key_path}: missing: cannot issue certificate(s) for {', '.join(todo)} "
-                               "(issue them where the CA key is kept, then copy them here)")
+        raise CredentialsError(
+            f"{ca_key_path}: missing: cannot issue certificate(s) for {', '.join(todo)} "
+            "(issue them where the CA key is kept, then copy them here)"
+        )
     check_private(ca_key_path)
     ca = _load_cert(ca_pem)
     try:
@@ -204,11 +225,17 @@ def ensure_credentials(directory, hosts=(), roles=ROLES) -> Path:
     for role in todo:
         key = ec.generate_private_key(ec.SECP256R1())
         usage = [ExtendedKeyUsageOID.CLIENT_AUTH]
-        builder = (x509.CertificateBuilder().subject_name(_name(role)).issuer_name(ca.subject)
-                   .public_key(key.public_key()).serial_number(x509.random_serial_number())
-                   .not_valid_before(start).not_valid_after(end)
-                   .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-                   .add_extension(_key_usage(ca=False), critical=True))
+        builder = (
+            x509.CertificateBuilder()
+            .subject_name(_name(role))
+            .issuer_name(ca.subject)
+            .public_key(key.public_key())
+            .serial_number(x509.random_serial_number())
+            .not_valid_before(start)
+            .not_valid_after(end)
+            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+            .add_extension(_key_usage(ca=False), critical=True)
+        )
         if role == "router":  # the only identity that listens
             usage.insert(0, ExtendedKeyUsageOID.SERVER_AUTH)
             builder = builder.add_extension(_san(router_hosts), critical=False)
@@ -225,8 +252,9 @@ def check_private(path: Path) -> Path:
     except OSError as exc:
         raise CredentialsError(f"{path}: {exc.strerror or exc}") from None
     if mode & (stat.S_IRWXG | stat.S_IRWXO):
-        raise CredentialsError(f"{path}: private key readable by others (mode {stat.S_IMODE(mode):o}); "
-                               f"chmod 600 {path}")
+        raise CredentialsError(
+            f"{path}: private key readable by others (mode {stat.S_IMODE(mode):o}); chmod 600 {path}"
+        )
     return path
 
 
@@ -260,10 +288,13 @@ class Identity:
     def tls(self, listen: bool) -> dict:
         """``transport/link/tls`` of a Zenoh configuration: mutual TLS with this identity."""
         self.check()
-        tls = {"root_ca_certificate": str(self.ca.resolve()), "enable_mtls": True,
-               "connect_certificate": str(self.certificate.resolve()),
-               "connect_private_key": str(self.key.resolve()),
-               "verify_name_on_connect": True}
+        tls = {
+            "root_ca_certificate": str(self.ca.resolve()),
+            "enable_mtls": True,
+            "connect_certificate": str(self.certificate.resolve()),
+            "connect_private_key": str(self.key.resolve()),
+            "verify_name_on_connect": True,
+        }
         if listen:
             tls.update(listen_certificate=str(self.certificate.resolve()), listen_private_key=str(self.key.resolve()))
         return tls
@@ -292,37 +323,76 @@ def access_control(run: str = "*") -> dict:
     rules = [
         {"id": "read", "messages": _READ, "flows": ["ingress"], "permission": "allow", "key_exprs": everything},
         # subscriber-detection tokens of advanced subscribers
-        {"id": "subscriber-tokens", "messages": ["liveliness_token"], "flows": ["ingress"], "permission": "allow",
-         "key_exprs": [f"{r}/**/@adv/sub/**"]},
+        {
+            "id": "subscriber-tokens",
+            "messages": ["liveliness_token"],
+            "flows": ["ingress"],
+            "permission": "allow",
+            "key_exprs": [f"{r}/**/@adv/sub/**"],
+        },
         {"id": "deliver", "messages": _ALL, "flows": ["egress"], "permission": "allow", "key_exprs": everything},
         {"id": "forward", "messages": _ALL, "flows": ["ingress"], "permission": "allow", "key_exprs": everything},
-        {"id": "commands", "messages": ["put"], "flows": ["ingress"], "permission": "allow",
-         "key_exprs": [f"{r}/control/**"]},
+        {
+            "id": "commands",
+            "messages": ["put"],
+            "flows": ["ingress"],
+            "permission": "allow",
+            "key_exprs": [f"{r}/control/**"],
+        },
         # (the subscriber tokens of a progress subscriber, .../@adv/sub/..., stay allowed)
-        {"id": "no-forged-progress", "messages": _WRITE, "flows": ["ingress"], "permission": "deny",
-         "key_exprs": [f"{r}/control/progress/**", f"{r}/control/progress/**/@adv/pub/**"]},
-        {"id": "launcher-token", "messages": ["liveliness_token"], "flows": ["ingress"], "permission": "allow",
-         "key_exprs": [f"{r}/alive/launcher"]},
+        {
+            "id": "no-forged-progress",
+            "messages": _WRITE,
+            "flows": ["ingress"],
+            "permission": "deny",
+            "key_exprs": [f"{r}/control/progress/**", f"{r}/control/progress/**/@adv/pub/**"],
+        },
+        {
+            "id": "launcher-token",
+            "messages": ["liveliness_token"],
+            "flows": ["ingress"],
+            "permission": "allow",
+            "key_exprs": [f"{r}/alive/launcher"],
+        },
         # the progress the launcher verified, which the stages follow (docs/operations.md)
-        {"id": "launcher-board", "messages": _WRITE, "flows": ["ingress"], "permission": "allow",
-         "key_exprs": _keys(f"{r}/control/board/*")},
-        {"id": "no-forged-board", "messages": _WRITE, "flows": ["ingress"], "permission": "deny",
-         "key_exprs": _keys(f"{r}/control/board/*")},
+        {
+            "id": "launcher-board",
+            "messages": _WRITE,
+            "flows": ["ingress"],
+            "permission": "allow",
+            "key_exprs": _keys(f"{r}/control/board/*"),
+        },
+        {
+            "id": "no-forged-board",
+            "messages": _WRITE,
+            "flows": ["ingress"],
+            "permission": "deny",
+            "key_exprs": _keys(f"{r}/control/board/*"),
+        },
     ]
     # one subject per common name: a transport matches exactly one subject, so the router
     # logs one decision per message (refusals() relies on it)
     common = ["read", "subscriber-tokens", "deliver"]
-    grants = {"router": ["forward"], "launcher": ["commands", "no-forged-progress", "launcher-token", "launcher-board"],
-              "control": ["commands", "no-forged-progress", "no-forged-board"]}
+    grants = {
+        "router": ["forward"],
+        "launcher": ["commands", "no-forged-progress", "launcher-token", "launcher-board"],
+        "control": ["commands", "no-forged-progress", "no-forged-board"],
+    }
     for stage, topic in OUTPUT_TOPIC.items():
-        rules.append({"id": f"{stage}-publishes", "messages": _WRITE, "flows": ["ingress"], "permission": "allow",
-                      "key_exprs": _keys(f"{r}/{topic}", f"{r}/errors/*", f"{r}/control/progress/{stage}")
-                      + [f"{r}/alive/{stage}"]})
+        rules.append(
+            {
+                "id": f"{stage}-publishes",
+                "messages": _WRITE,
+                "flows": ["ingress"],
+                "permission": "allow",
+                "key_exprs": _keys(f"{r}/{topic}", f"{r}/errors/*", f"{r}/control/progress/{stage}")
+                + [f"{r}/alive/{stage}"],
+            }
+        )
         grants[stage] = [f"{stage}-publishes"]
     subjects = [{"id": role, "cert_common_names": [role]} for role in ROLES]
     policies = [{"id": role, "rules": common + grants[role], "subjects": [role]} for role in ROLES]
-    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects,
-            "policies": policies}
+    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
 # ---------------------------------------------------------------------------- refusals in a router log
@@ -339,8 +409,14 @@ _TIME = re.compile(r"^(\d{4}-\d\d-\d\dT[0-9:.]+Z)")
 #: trusts another CA), ``DecryptError`` (it trusts another CA of the same name: the signature
 #: does not verify), ``BadCertificate``...  (A peer presenting a certificate of the run's CA
 #: with another key is refused without a log line from zenoh 1.10: not recorded.)
-_HANDSHAKE = ("invalid peer certificate", "Can not accept TLS connection", "received corrupt message",
-              "peer sent no certificates", "CertificateRequired", "received fatal alert")
+_HANDSHAKE = (
+    "invalid peer certificate",
+    "Can not accept TLS connection",
+    "received corrupt message",
+    "peer sent no certificates",
+    "CertificateRequired",
+    "received fatal alert",
+)
 
 
 class RefusalParser:
@@ -357,7 +433,7 @@ class RefusalParser:
     """
 
     def __init__(self):
-        self.names: dict[str, str] = {}      # zid -> common name
+        self.names: dict[str, str] = {}  # zid -> common name
         self._caching: dict[str, tuple] = {}  # thread -> (key being cached, actions seen)
 
     def feed(self, lines) -> list[dict]:
@@ -382,16 +458,30 @@ class RefusalParser:
                     seen.add(m.group("action"))  # a permission computed for a declared key, not a message
                     continue
                 self._caching.pop(thread, None)
-                out.append({"kind": "forbidden", "subject": name, "action": m.group("action"),
-                            "key": m.group("key"), "time": when})
+                out.append(
+                    {
+                        "kind": "forbidden",
+                        "subject": name,
+                        "action": m.group("action"),
+                        "key": m.group("key"),
+                        "time": when,
+                    }
+                )
                 continue
             if _ALLOWED.search(line):
                 continue
             self._caching.pop(thread, None)
             m = _CACHED.search(line)
             if m:
-                out.append({"kind": "forbidden", "subject": self.names.get(m.group("zid"), m.group("zid")),
-                            "action": m.group("action"), "key": m.group("key"), "time": when})
+                out.append(
+                    {
+                        "kind": "forbidden",
+                        "subject": self.names.get(m.group("zid"), m.group("zid")),
+                        "action": m.group("action"),
+                        "key": m.group("key"),
+                        "time": when,
+                    }
+                )
             elif "zenoh_link_tls" in line and any(h in line for h in _HANDSHAKE):
                 message = line.split("zenoh_link_tls::unicast:", 1)[-1].strip()
                 out.append({"kind": "unauthenticated", "message": message.split(". Hint:")[0], "time": when})

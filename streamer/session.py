@@ -130,12 +130,16 @@ class SessionSettings:
 
     def to_dict(self) -> dict:
         """JSON-ready form (for passing to child processes)."""
-        return {"mode": self.mode, "listen": None if self.listen is None else list(self.listen),
-                "connect": None if self.connect is None else list(self.connect),
-                "multicast_scouting": self.multicast_scouting, "shared_memory": self.shared_memory,
-                "config_file": None if self.config_file is None else str(self.config_file),
-                "credentials": None if self.credentials is None else str(self.credentials),
-                "identity": self.identity}
+        return {
+            "mode": self.mode,
+            "listen": None if self.listen is None else list(self.listen),
+            "connect": None if self.connect is None else list(self.connect),
+            "multicast_scouting": self.multicast_scouting,
+            "shared_memory": self.shared_memory,
+            "config_file": None if self.config_file is None else str(self.config_file),
+            "credentials": None if self.credentials is None else str(self.credentials),
+            "identity": self.identity,
+        }
 
     @classmethod
     def from_dict(cls, d: dict | None) -> SessionSettings:
@@ -211,9 +215,9 @@ def make_config(settings: SessionSettings | None = None) -> zenoh.Config:
         # Zenoh's defaults (5 s, 10 s) unless a configuration file changed them
         wait_key = "transport/link/tx/queue/congestion_control/block/wait_before_close"
         if _get(config, wait_key) == 5_000_000:
-            _set(config, wait_key, int(BLOCK_WAIT_BEFORE_CLOSE * 1e6))   # microseconds
+            _set(config, wait_key, int(BLOCK_WAIT_BEFORE_CLOSE * 1e6))  # microseconds
         if _get(config, "transport/link/tx/lease") == 10_000:
-            _set(config, "transport/link/tx/lease", int(LEASE * 1e3))     # milliseconds
+            _set(config, "transport/link/tx/lease", int(LEASE * 1e3))  # milliseconds
         if mode == "client" and _get(config, "connect/timeout_ms") is None:
             _set(config, "connect/timeout_ms", int(CLIENT_CONNECT_TIMEOUT * 1e3))
         if s.credentials is not None:
@@ -240,8 +244,10 @@ def _secure(config: zenoh.Config, s: SessionSettings, mode: str) -> None:
     for what in ("listen", "connect"):
         plain = [e for e in _endpoints(_get(config, f"{what}/endpoints")) if not e.startswith("tls/")]
         if plain:
-            raise SessionConfigError(f"{what} endpoint {plain[0]!r}: with credentials every link is TLS "
-                                     f"(write tls/{plain[0].split('/', 1)[-1]})")
+            raise SessionConfigError(
+                f"{what} endpoint {plain[0]!r}: with credentials every link is TLS "
+                f"(write tls/{plain[0].split('/', 1)[-1]})"
+            )
     _set(config, "transport/link/protocols", ["tls"])
     if mode == "router" and not (_get(config, "access_control") or {}).get("enabled"):
         _set(config, "access_control", access_control())
@@ -257,13 +263,22 @@ def open_session(settings: SessionSettings | None = None) -> zenoh.Session:
     """Open a Zenoh session (see :class:`SessionSettings` for the defaults)."""
     config = make_config(settings)
     session = zenoh.open(config)
-    log.info("zenoh session %s open (mode %s, listen %s, connect %s)", session.zid(),
-             _get(config, "mode"), _get(config, "listen/endpoints"), _get(config, "connect/endpoints"))
+    log.info(
+        "zenoh session %s open (mode %s, listen %s, connect %s)",
+        session.zid(),
+        _get(config, "mode"),
+        _get(config, "listen/endpoints"),
+        _get(config, "connect/endpoints"),
+    )
     return session
 
 
-def open_router(listen: Iterable[str] = DEFAULT_ROUTER_LISTEN, connect: Iterable[str] = (),
-                config_file: str | Path | None = None, credentials: str | Path | None = None) -> zenoh.Session:
+def open_router(
+    listen: Iterable[str] = DEFAULT_ROUTER_LISTEN,
+    connect: Iterable[str] = (),
+    config_file: str | Path | None = None,
+    credentials: str | Path | None = None,
+) -> zenoh.Session:
     """Open a Zenoh router in this process (``mode="router"``).
 
     Parameters
@@ -278,15 +293,24 @@ def open_router(listen: Iterable[str] = DEFAULT_ROUTER_LISTEN, connect: Iterable
         Credentials directory: mutual TLS with the ``router`` certificate and the run's
         access-control list (:mod:`streamer.security`).
     """
-    return open_session(SessionSettings(mode="router", listen=tuple(listen), connect=tuple(connect),
-                                        config_file=config_file, credentials=credentials,
-                                        identity="router" if credentials is not None else None))
+    return open_session(
+        SessionSettings(
+            mode="router",
+            listen=tuple(listen),
+            connect=tuple(connect),
+            config_file=config_file,
+            credentials=credentials,
+            identity="router" if credentials is not None else None,
+        )
+    )
 
 
 # ---------------------------------------------------------------------------- publishers
 
-def declare_segment_publisher(session: zenoh.Session, key: str, cache: int = 1,
-                              heartbeat: float = HEARTBEAT_PERIOD) -> ext.AdvancedPublisher:
+
+def declare_segment_publisher(
+    session: zenoh.Session, key: str, cache: int = 1, heartbeat: float = HEARTBEAT_PERIOD
+) -> ext.AdvancedPublisher:
     """An advanced publisher for segment data on one key.
 
     Congestion control BLOCK, reliable, a cache of the last ``cache`` samples (replied to
@@ -296,12 +320,14 @@ def declare_segment_publisher(session: zenoh.Session, key: str, cache: int = 1,
     """
     block = zenoh.CongestionControl.BLOCK
     return ext.declare_advanced_publisher(
-        session, key,
+        session,
+        key,
         encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
         congestion_control=block,
         reliability=zenoh.Reliability.RELIABLE,
-        cache=ext.CacheConfig(max_samples=max(1, int(cache)),
-                              replies_config=ext.RepliesConfig(congestion_control=block)),
+        cache=ext.CacheConfig(
+            max_samples=max(1, int(cache)), replies_config=ext.RepliesConfig(congestion_control=block)
+        ),
         sample_miss_detection=ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=heartbeat),
         publisher_detection=True,
     )
@@ -350,6 +376,7 @@ class SegmentPublisher:
 
 # ---------------------------------------------------------------------------- subscribers
 
+
 @dataclass
 class SegmentSubscription:
     """An advanced subscriber and its miss listener; :meth:`undeclare` removes both."""
@@ -366,10 +393,14 @@ class SegmentSubscription:
             self.subscriber = None
 
 
-def declare_segment_subscriber(session: zenoh.Session, key_expr: str,
-                               callback: Callable[[zenoh.Sample], None], *,
-                               history: int | None = None,
-                               on_miss: Callable[[str, int], None] | None = None) -> SegmentSubscription:
+def declare_segment_subscriber(
+    session: zenoh.Session,
+    key_expr: str,
+    callback: Callable[[zenoh.Sample], None],
+    *,
+    history: int | None = None,
+    on_miss: Callable[[str, int], None] | None = None,
+) -> SegmentSubscription:
     """Subscribe to segment data with history and recovery.
 
     Parameters
@@ -393,7 +424,9 @@ def declare_segment_subscriber(session: zenoh.Session, key_expr: str,
     else:
         hist = None
     sub = ext.declare_advanced_subscriber(
-        session, key_expr, callback,
+        session,
+        key_expr,
+        callback,
         history=hist,
         recovery=ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
         subscriber_detection=True,
@@ -409,6 +442,7 @@ def declare_segment_subscriber(session: zenoh.Session, key_expr: str,
 
 
 # ---------------------------------------------------------------------------- liveliness
+
 
 def declare_alive(session: zenoh.Session, run: str, stage: str):
     """Declare the liveliness token ``ttl/<run>/alive/<stage>`` (undeclare it on exit)."""
@@ -430,6 +464,7 @@ def watch_alive(session: zenoh.Session, run: str, callback: Callable[[str, bool]
     Stages alive at declaration are reported too.  Returns the liveliness subscriber
     (undeclare it, or declare it through :meth:`Bus.watch_alive`).
     """
+
     def on_sample(sample) -> None:
         _, stage = parse_alive_key(str(sample.key_expr))
         callback(stage, sample.kind == zenoh.SampleKind.PUT)
@@ -438,6 +473,7 @@ def watch_alive(session: zenoh.Session, run: str, callback: Callable[[str, bool]
 
 
 # ---------------------------------------------------------------------------- the bus
+
 
 @dataclass
 class Bus:
@@ -474,10 +510,12 @@ class Bus:
     def segment_publisher(self, run: str, topic: str, cache: int = DEFAULT_CACHE) -> SegmentPublisher:
         return self.track(SegmentPublisher(self.session, run, topic, cache))
 
-    def segment_subscriber(self, key_expr: str, callback, *, history: int | None = None,
-                           on_miss=None) -> SegmentSubscription:
-        return self.track(declare_segment_subscriber(self.session, key_expr, callback,
-                                                     history=history, on_miss=on_miss))
+    def segment_subscriber(
+        self, key_expr: str, callback, *, history: int | None = None, on_miss=None
+    ) -> SegmentSubscription:
+        return self.track(
+            declare_segment_subscriber(self.session, key_expr, callback, history=history, on_miss=on_miss)
+        )
 
     def subscriber(self, key_expr: str, callback):
         """A plain subscriber (control messages, errors)."""
@@ -494,9 +532,12 @@ class Bus:
 
     def put_json(self, key: str, obj) -> None:
         """Publish a small JSON message (BLOCK, reliable)."""
-        self.session.put(key, json.dumps(obj, allow_nan=False, default=str).encode(),
-                         encoding=zenoh.Encoding.APPLICATION_JSON,
-                         congestion_control=zenoh.CongestionControl.BLOCK)
+        self.session.put(
+            key,
+            json.dumps(obj, allow_nan=False, default=str).encode(),
+            encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
 
     def close(self) -> None:
         """Undeclare everything (most recent first), then close the session."""

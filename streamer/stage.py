@@ -147,12 +147,24 @@ class StageConfig:
     progress_from: str = "stages"
 
     def to_dict(self) -> dict:
-        return {"run": self.run, "stage": self.stage, "zenoh": self.zenoh.to_dict(),
-                "recordings": str(self.recordings), "cache": self.cache, "history": self.history,
-                "record_inputs": self.record_inputs, "record_outputs": self.record_outputs,
-                "poll_interval": self.poll_interval, "gap_grace": self.gap_grace, "hold": self.hold, "options": self.options,
-                "plan": self.plan, "launcher_pid": self.launcher_pid, "orphan_grace": self.orphan_grace,
-                "progress_from": self.progress_from}
+        return {
+            "run": self.run,
+            "stage": self.stage,
+            "zenoh": self.zenoh.to_dict(),
+            "recordings": str(self.recordings),
+            "cache": self.cache,
+            "history": self.history,
+            "record_inputs": self.record_inputs,
+            "record_outputs": self.record_outputs,
+            "poll_interval": self.poll_interval,
+            "gap_grace": self.gap_grace,
+            "hold": self.hold,
+            "options": self.options,
+            "plan": self.plan,
+            "launcher_pid": self.launcher_pid,
+            "orphan_grace": self.orphan_grace,
+            "progress_from": self.progress_from,
+        }
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> StageConfig:
@@ -219,8 +231,12 @@ class JsonFormatter(logging.Formatter):
     """One JSON object per line: time, level, logger, message, and run/stage/index if set."""
 
     def format(self, record: logging.LogRecord) -> str:
-        out = {"time": round(record.created, 6), "level": record.levelname, "logger": record.name,
-               "message": record.getMessage()}
+        out = {
+            "time": round(record.created, 6),
+            "level": record.levelname,
+            "logger": record.name,
+            "message": record.getMessage(),
+        }
         for name in ("run", "stage", "index"):
             if hasattr(record, name):
                 out[name] = getattr(record, name)
@@ -232,8 +248,9 @@ class JsonFormatter(logging.Formatter):
 def configure_logging(level: str | int = "INFO", json_lines: bool = False, stream=None) -> None:
     """Set up the root logger of a stage process (plain text or JSON lines on stderr)."""
     handler = logging.StreamHandler(stream or sys.stderr)
-    handler.setFormatter(JsonFormatter() if json_lines else
-                         logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s"))
+    handler.setFormatter(
+        JsonFormatter() if json_lines else logging.Formatter("%(asctime)s %(levelname)s %(name)s: %(message)s")
+    )
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(level)
@@ -286,8 +303,9 @@ class Stage:
             config = dataclasses.replace(config, zenoh=dataclasses.replace(config.zenoh, identity=self.stage_name))
         self.config = config
         self.run_id = config.run
-        self.log = StageLogger(logging.getLogger(f"streamer.stage.{self.stage_name}"),
-                               {"run": self.run_id, "stage": self.stage_name})
+        self.log = StageLogger(
+            logging.getLogger(f"streamer.stage.{self.stage_name}"), {"run": self.run_id, "stage": self.stage_name}
+        )
         self.bus: Bus | None = None
         self.recorder: Recorder | None = None
         self.recording_path: Path | None = None
@@ -368,9 +386,18 @@ class Stage:
         self.recording_path = recording_path(cfg.recordings, self.run_id, self.stage_name)
         restore = None
         try:
-            with Bus.open(cfg.zenoh) as bus, Recorder(self.recording_path, metadata={
-                    "run": self.run_id, "stage": self.stage_name, "class": type(self).__qualname__,
-                    "config": json.dumps(cfg.to_dict())}) as recorder:
+            with (
+                Bus.open(cfg.zenoh) as bus,
+                Recorder(
+                    self.recording_path,
+                    metadata={
+                        "run": self.run_id,
+                        "stage": self.stage_name,
+                        "class": type(self).__qualname__,
+                        "config": json.dumps(cfg.to_dict()),
+                    },
+                ) as recorder,
+            ):
                 # only now: zenoh.open blocks (up to 30 s for a client whose router is gone)
                 # without returning to Python, where a handler would run; until then a
                 # signal's default action ends the process, which has nothing to close yet
@@ -381,8 +408,9 @@ class Stage:
                 bus.watch_alive(self.run_id, self._on_alive)
                 self.setup()
                 for topic in self.inputs:
-                    bus.segment_subscriber(topic_pattern(self.run_id, topic), self._on_sample,
-                                           history=cfg.history, on_miss=self._on_miss)
+                    bus.segment_subscriber(
+                        topic_pattern(self.run_id, topic), self._on_sample, history=cfg.history, on_miss=self._on_miss
+                    )
                 self.event("start", message=f"inputs {list(self.inputs)}")
                 self.log.info("running (inputs %s, recording %s)", list(self.inputs), self.recording_path)
                 try:
@@ -400,9 +428,15 @@ class Stage:
                     self.report_error("orphaned", f"{why}: stage stops")
                 self.log.info("stopping")
                 self._last_words(self.teardown)
-                self._last_words(lambda: self.event(
-                    "stop", message=self.disk_full or self.exit_reason or "", orphaned=bool(self.exit_reason),
-                    disk_full=self.disk_full is not None, rejections=self.rejections))
+                self._last_words(
+                    lambda: self.event(
+                        "stop",
+                        message=self.disk_full or self.exit_reason or "",
+                        orphaned=bool(self.exit_reason),
+                        disk_full=self.disk_full is not None,
+                        rejections=self.rejections,
+                    )
+                )
         except OSError as exc:
             if self.disk_full is None or not disk_full(exc):
                 raise
@@ -424,8 +458,9 @@ class Stage:
         if self.recorder is not None:
             self.recorder.release_reserve()
             try:
-                self.recorder.note_stop("disk-full", self.disk_full, run=self.run_id, stage=self.stage_name,
-                                        errno=exc.errno)
+                self.recorder.note_stop(
+                    "disk-full", self.disk_full, run=self.run_id, stage=self.stage_name, errno=exc.errno
+                )
             except OSError as again:
                 self.log.error("could not write the stop note: %s", again)
         self._last_words(lambda: self.report_error("disk-full", f"{self.disk_full}: stage stops"))
@@ -520,8 +555,13 @@ class Stage:
             shown = json.loads(text) if text.strip() else None
         except (ValueError, RecursionError):  # RecursionError: nested too deep for the parser
             shown = text
-        record = {"run": self.run_id, "stage": self.stage_name, "command": command, "payload": shown,
-                  "time": time.time()}
+        record = {
+            "run": self.run_id,
+            "stage": self.stage_name,
+            "command": command,
+            "payload": shown,
+            "time": time.time(),
+        }
         try:
             outputs = list(self.control(command, payload) or ())
         except Exception as exc:  # a bad command must not stop the stage
@@ -551,12 +591,14 @@ class Stage:
             if disk_full(exc):
                 raise
             self.log.exception("tick failed")
-            self.report_error("failed", f"{type(exc).__name__}: {exc}",
-                              details={"traceback": traceback.format_exc(limit=8)})
+            self.report_error(
+                "failed", f"{type(exc).__name__}: {exc}", details={"traceback": traceback.format_exc(limit=8)}
+            )
         except Exception as exc:
             self.log.exception("tick failed")
-            self.report_error("failed", f"{type(exc).__name__}: {exc}",
-                              details={"traceback": traceback.format_exc(limit=8)})
+            self.report_error(
+                "failed", f"{type(exc).__name__}: {exc}", details={"traceback": traceback.format_exc(limit=8)}
+            )
 
     def _install_signal_handlers(self):
         """SIGINT and SIGTERM stop the loop through a flag (no lock, no logging in the
@@ -602,10 +644,13 @@ class Stage:
         except Exception as exc:  # noqa: BLE001 - the loop must outlive any message
             self.rejections += 1
             self.log.exception("%s: unexpected failure while checking a message", key)
-            self.report_error("rejected", f"unexpected {type(exc).__name__} while checking the message: {exc}",
-                              key=key, field="message",
-                              details={"traceback": traceback.format_exc(limit=8),
-                                       "attachment": _preview(attachment)})
+            self.report_error(
+                "rejected",
+                f"unexpected {type(exc).__name__} while checking the message: {exc}",
+                key=key,
+                field="message",
+                details={"traceback": traceback.format_exc(limit=8), "attachment": _preview(attachment)},
+            )
 
     def _check_and_use(self, key: str, payload, attachment) -> None:
         """The body of :meth:`_process`."""
@@ -621,9 +666,14 @@ class Stage:
             key = segment_key(self.run_id, topic, index)
             header, arrays = decode(payload, attachment, self.expect(topic, index), key=key)
         except CodecError as exc:
-            self.report_error("rejected", exc.what, index=index, key=key, field=exc.field,
-                              details={"payload_bytes": len(payload),
-                                       "attachment": _preview(attachment)})
+            self.report_error(
+                "rejected",
+                exc.what,
+                index=index,
+                key=key,
+                field=exc.field,
+                details={"payload_bytes": len(payload), "attachment": _preview(attachment)},
+            )
             return
         seg = SegmentKey(self.run_id, topic, index)
         try:
@@ -636,8 +686,11 @@ class Stage:
                 held = self.held.withdraw(seg.topic, seg.index)
                 kept_out = self.withdraw(seg.topic, seg.index, held)
                 details["first_copy"] = "withdrawn" if kept_out else "used"
-                what += ("; the first copy is withdrawn, the segment is missing" if kept_out else
-                         "; the first copy had been used already")
+                what += (
+                    "; the first copy is withdrawn, the segment is missing"
+                    if kept_out
+                    else "; the first copy had been used already"
+                )
             self.report_error(exc.kind, what, index=seg.index, key=key, field=exc.field, details=details)
             return
         done = self._done.setdefault(seg.topic, RangeSet())
@@ -658,8 +711,13 @@ class Stage:
                 raise
             except Exception as exc:  # noqa: BLE001 - as in _process: the loop goes on
                 self.log.exception("%s: unexpected failure while using a held segment", key)
-                self.report_error("failed", f"unexpected {type(exc).__name__}: {exc}", index=header.index, key=key,
-                                  details={"traceback": traceback.format_exc(limit=8)})
+                self.report_error(
+                    "failed",
+                    f"unexpected {type(exc).__name__}: {exc}",
+                    index=header.index,
+                    key=key,
+                    details={"traceback": traceback.format_exc(limit=8)},
+                )
 
     def _use(self, key: str, header: Header, arrays: dict, payload: bytes) -> None:
         """Record an accepted input segment and hand it to :meth:`handle`."""
@@ -669,8 +727,9 @@ class Stage:
         if self.config.record_inputs:
             self.recorder.write_segment(seg.topic, header, payload)
         else:  # a reference: the payload is in the producer's recording, named by its checksum
-            self.recorder.write_json(f"{seg.topic}/input", header.to_dict(), schema="ttl.SegmentHeader",
-                                     log_time=mission_ns(header.t0))
+            self.recorder.write_json(
+                f"{seg.topic}/input", header.to_dict(), schema="ttl.SegmentHeader", log_time=mission_ns(header.t0)
+            )
         try:
             outputs = list(self.handle(header, arrays) or ())
             for out in outputs:
@@ -688,8 +747,13 @@ class Stage:
 
     def _handle_failed(self, key: str, index: int, exc: Exception) -> None:
         self.log.exception("%s: processing failed", key)
-        self.report_error("failed", f"{type(exc).__name__}: {exc}", index=index, key=key,
-                          details={"traceback": traceback.format_exc(limit=8)})
+        self.report_error(
+            "failed",
+            f"{type(exc).__name__}: {exc}",
+            index=index,
+            key=key,
+            details={"traceback": traceback.format_exc(limit=8)},
+        )
 
     def _check_gap(self, topic: str, index: int) -> None:
         """Note the indices an arrival skips, as ranges; :meth:`_report_gaps` reports those
@@ -701,7 +765,7 @@ class Stage:
         for k, (first, last, since, revealed) in enumerate(gaps):
             if first <= index <= last:  # a suspected index came: split the range
                 parts = [[a, b, since, revealed] for a, b in ((first, index - 1), (index + 1, last)) if a <= b]
-                gaps[k:k + 1] = parts
+                gaps[k : k + 1] = parts
                 break
         highest = self._highest.get(topic)
         if highest is not None and index > highest + 1:
@@ -715,9 +779,13 @@ class Stage:
             due = [g for g in gaps if now - g[2] >= self.config.gap_grace]
             for first, last, _, revealed in due:
                 missing = f"{first}" if first == last else f"{first}..{last}"
-                self.report_error("gap", f"{topic} segment(s) {missing} missing before {revealed} "
-                                         f"(not received within {self.config.gap_grace:g} s)", index=revealed,
-                                  details={"topic": topic, "first_missing": first, "last_missing": last})
+                self.report_error(
+                    "gap",
+                    f"{topic} segment(s) {missing} missing before {revealed} "
+                    f"(not received within {self.config.gap_grace:g} s)",
+                    index=revealed,
+                    details={"topic": topic, "first_missing": first, "last_missing": last},
+                )
             if due:
                 gaps[:] = [g for g in gaps if now - g[2] < self.config.gap_grace]
 
@@ -742,8 +810,9 @@ class Stage:
         if self.config.record_outputs:
             self._record_output(out, fields, header, payload)
         if out.summary is not None:
-            self.recorder.write_json(f"{out.topic}/summary", out.summary, schema=out.summary_schema,
-                                     log_time=mission_ns(header["t0"]))
+            self.recorder.write_json(
+                f"{out.topic}/summary", out.summary, schema=out.summary_schema, log_time=mission_ns(header["t0"])
+            )
         return key
 
     def _record_output(self, out: Output, fields: dict, header: dict, payload) -> None:
@@ -754,9 +823,12 @@ class Stage:
             return
         kept = {name: arrays[name] for name in out.record_arrays}
         meta = dict(fields.get("meta") or {})
-        meta["recorded"] = {"arrays": list(kept), "published_checksum": header["checksum"],
-                            "published_bytes": header["payload_bytes"],
-                            "published_arrays": [a["name"] for a in header["arrays"]]}
+        meta["recorded"] = {
+            "arrays": list(kept),
+            "published_checksum": header["checksum"],
+            "published_bytes": header["payload_bytes"],
+            "published_arrays": [a["name"] for a in header["arrays"]],
+        }
         units = fields.get("units")
         sub = {**fields, "meta": meta}
         if isinstance(units, Mapping):
@@ -764,13 +836,28 @@ class Stage:
         part, attachment = encode(kept, sub, allow_nonfinite=out.allow_nonfinite)
         self.recorder.write_segment(out.topic, json.loads(attachment), part)
 
-    def report_error(self, kind: str, message: str, *, index: int | None = None, key: str | None = None,
-                     field: str | None = None, details: dict | None = None) -> dict:
+    def report_error(
+        self,
+        kind: str,
+        message: str,
+        *,
+        index: int | None = None,
+        key: str | None = None,
+        field: str | None = None,
+        details: dict | None = None,
+    ) -> dict:
         """Publish an error on ``ttl/<run>/errors/<index>``, record it, log it; returns it."""
-        error = stage_record(self.run_id, self.stage_name, kind, message, index=index, details=details, key=key,
-                             field=field)
-        self.log.warning("%s%s%s: %s", kind, f" {key}" if key else "", f" field {field!r}" if field else "",
-                         message, extra={"index": index})
+        error = stage_record(
+            self.run_id, self.stage_name, kind, message, index=index, details=details, key=key, field=field
+        )
+        self.log.warning(
+            "%s%s%s: %s",
+            kind,
+            f" {key}" if key else "",
+            f" field {field!r}" if field else "",
+            message,
+            extra={"index": index},
+        )
         if self.bus is not None:
             try:
                 self.bus.put_json(errors_key(self.run_id, index), error)
@@ -784,14 +871,16 @@ class Stage:
         """Log and record a warning (topic ``warnings``): not an error, but for the operator's eyes."""
         self.log.warning("%s: %s", kind, message, extra={"index": index})
         if self.recorder is not None:
-            self.recorder.write_json("warnings", stage_record(self.run_id, self.stage_name, kind, message,
-                                                              index=index, details=details))
+            self.recorder.write_json(
+                "warnings", stage_record(self.run_id, self.stage_name, kind, message, index=index, details=details)
+            )
 
     def event(self, kind: str, *, index: int | None = None, message: str = "", **details) -> None:
         """Record a lifecycle or bookkeeping event in the recording."""
         if self.recorder is not None:
-            self.recorder.write_json("events", stage_record(self.run_id, self.stage_name, kind, message,
-                                                            index=index, details=details))
+            self.recorder.write_json(
+                "events", stage_record(self.run_id, self.stage_name, kind, message, index=index, details=details)
+            )
 
 
 def disk_full(exc: BaseException) -> bool:
@@ -814,12 +903,19 @@ def stage_arguments(parser: argparse.ArgumentParser | None = None) -> argparse.A
     p.add_argument("--name", help="stage name (default: the stage's)")
     p.add_argument("--connect", action="append", default=None, help="Zenoh endpoint to connect to (repeatable)")
     p.add_argument("--listen", action="append", default=None, help="Zenoh endpoint to listen on (repeatable)")
-    p.add_argument("--mode", choices=("peer", "client"),
-                   help="Zenoh mode (default: client when --connect is given without --listen, as behind "
-                        "the router of `ttl run`; else peer)")
+    p.add_argument(
+        "--mode",
+        choices=("peer", "client"),
+        help="Zenoh mode (default: client when --connect is given without --listen, as behind "
+        "the router of `ttl run`; else peer)",
+    )
     p.add_argument("--zenoh-config", type=Path, help="Zenoh configuration file (JSON5)")
-    p.add_argument("--credentials", type=Path, metavar="DIR",
-                   help="credentials directory: mutual TLS with DIR/<stage>.pem (endpoints tls/...)")
+    p.add_argument(
+        "--credentials",
+        type=Path,
+        metavar="DIR",
+        help="credentials directory: mutual TLS with DIR/<stage>.pem (endpoints tls/...)",
+    )
     p.add_argument("--recordings", type=Path, help="recordings directory")
     p.add_argument("--log-level", default="INFO")
     p.add_argument("--log-json", action="store_true", help="log JSON lines")
@@ -833,8 +929,13 @@ def config_from_args(args: argparse.Namespace) -> StageConfig:
         if value:
             d[key] = str(value)
     z = dict(d.get("zenoh") or {})
-    for key, value in (("connect", args.connect), ("listen", args.listen), ("config_file", args.zenoh_config),
-                       ("credentials", getattr(args, "credentials", None)), ("mode", getattr(args, "mode", None))):
+    for key, value in (
+        ("connect", args.connect),
+        ("listen", args.listen),
+        ("config_file", args.zenoh_config),
+        ("credentials", getattr(args, "credentials", None)),
+        ("mode", getattr(args, "mode", None)),
+    ):
         if value:
             z[key] = value if isinstance(value, list) else str(value)
     if args.connect and not args.listen and not z.get("mode") and not z.get("config_file"):
@@ -847,15 +948,20 @@ def add_common_options(p: argparse.ArgumentParser) -> None:
     """Options of a stage process that override :class:`StageConfig` fields, besides
     :func:`stage_arguments`."""
     p.add_argument("--cache", type=int, help="segments kept per output topic for late joiners")
-    p.add_argument("--history", type=int, help="segments asked from each input topic's publisher cache (default: all it holds)")
+    p.add_argument(
+        "--history", type=int, help="segments asked from each input topic's publisher cache (default: all it holds)"
+    )
     p.add_argument("--no-record-inputs", action="store_true", help="do not record input payloads")
     p.add_argument("--poll-interval", type=float, help="longest wait before checking timers [s]")
 
 
-def stage_main(stage_class: type[Stage], argv: Sequence[str] | None = None,
-               add_options: Callable[[argparse.ArgumentParser], None] | None = None,
-               options: Callable[[argparse.Namespace], dict] | None = None,
-               check: Callable[[StageConfig], str] | None = None) -> int:
+def stage_main(
+    stage_class: type[Stage],
+    argv: Sequence[str] | None = None,
+    add_options: Callable[[argparse.ArgumentParser], None] | None = None,
+    options: Callable[[argparse.Namespace], dict] | None = None,
+    check: Callable[[StageConfig], str] | None = None,
+) -> int:
     """Entry point of a stage process.
 
     Parses :func:`stage_arguments`, :func:`add_common_options` and the stage's own
@@ -864,8 +970,11 @@ def stage_main(stage_class: type[Stage], argv: Sequence[str] | None = None,
     are validated by ``check(config)`` (which returns a one-line description) and nothing
     runs.  Errors: one line naming the problem on stderr, exit status 2.
     """
-    parser = stage_arguments(argparse.ArgumentParser(prog=f"ttl stage {stage_class.name}",
-                                                     description=(stage_class.__doc__ or "").split("\n\n")[0]))
+    parser = stage_arguments(
+        argparse.ArgumentParser(
+            prog=f"ttl stage {stage_class.name}", description=(stage_class.__doc__ or "").split("\n\n")[0]
+        )
+    )
     add_common_options(parser)
     if check is not None:
         parser.add_argument("--check", action="store_true", help="validate the options and exit")

@@ -60,8 +60,9 @@ def rerun_binary(explicit: str | None = None) -> str:
 
 def check_live(live) -> None:
     """Raise ValueError unless ``live`` is empty, ``"spawn"``, ``"serve"`` or a Rerun URL."""
-    if live not in (None, "", *SPAWN_MODES) and not str(live).startswith(("rerun://", "rerun+http://",
-                                                                           "rerun+https://")):
+    if live not in (None, "", *SPAWN_MODES) and not str(live).startswith(
+        ("rerun://", "rerun+http://", "rerun+https://")
+    ):
         raise ValueError(f"option live: {live!r} is not 'spawn', 'serve' or a rerun+http:// URL")
 
 
@@ -91,15 +92,22 @@ def spawn_viewer(mode: str, port: int | None = None, binary: str | None = None):
     port = int(port or free_port(LOOPBACK))
     cmd = [rerun_binary(binary), "--bind", LOOPBACK, "--port", str(port)]
     cmd += ["--serve-grpc"] if mode == "serve" else ["--expect-data-soon"]
-    proc = subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
-                            stderr=subprocess.DEVNULL, start_new_session=True,
-                            preexec_fn=tied_to_parent(signal.SIGTERM) if mode == "serve" else None)
+    proc = subprocess.Popen(
+        cmd,
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+        start_new_session=True,
+        preexec_fn=tied_to_parent(signal.SIGTERM) if mode == "serve" else None,
+    )
     if not wait_port(port, proc=proc):
         code = proc.poll()
         if code is None:
             proc.terminate()
-        raise RuntimeError(f"{cmd[0]}: the Rerun viewer did not listen on {LOOPBACK}:{port}"
-                           + (f" (exited with status {code}; no display?)" if code is not None else " within 10 s"))
+        raise RuntimeError(
+            f"{cmd[0]}: the Rerun viewer did not listen on {LOOPBACK}:{port}"
+            + (f" (exited with status {code}; no display?)" if code is not None else " within 10 s")
+        )
     return proc, f"rerun+http://{LOOPBACK}:{port}/proxy"
 
 
@@ -139,8 +147,9 @@ def file_batcher(seconds: float = FILE_BATCH_SECONDS):
     """
     import rerun as rr  # the viewer's SDK, loaded by the processes that draw only
 
-    return rr.ChunkBatcherConfig(flush_tick=datetime.timedelta(seconds=float(seconds)),
-                                 flush_num_bytes=8 << 20, flush_num_rows=65536)
+    return rr.ChunkBatcherConfig(
+        flush_tick=datetime.timedelta(seconds=float(seconds)), flush_num_bytes=8 << 20, flush_num_rows=65536
+    )
 
 
 def compact_rrd(rrd: Path, binary: str | None = None, timeout: float = 300.0) -> str | None:
@@ -188,8 +197,16 @@ class LiveFanout:
         self.closed = False
 
     @classmethod
-    def open(cls, application_id: str, recording_id: str, rrd: Path, url: str | None = None, blueprint=None,
-             on_live_failure=None, batch_seconds: float = FILE_BATCH_SECONDS) -> LiveFanout:
+    def open(
+        cls,
+        application_id: str,
+        recording_id: str,
+        rrd: Path,
+        url: str | None = None,
+        blueprint=None,
+        on_live_failure=None,
+        batch_seconds: float = FILE_BATCH_SECONDS,
+    ) -> LiveFanout:
         """A recording written to ``rrd`` and, when ``url`` is given, streamed to the viewer
         there as a stream of its own (both with the default ``blueprint``).
 
@@ -204,8 +221,9 @@ class LiveFanout:
         """
         import rerun as rr
 
-        file_rec = rr.RecordingStream(application_id, recording_id=recording_id,
-                                      batcher_config=file_batcher(batch_seconds))
+        file_rec = rr.RecordingStream(
+            application_id, recording_id=recording_id, batcher_config=file_batcher(batch_seconds)
+        )
         file_rec.set_sinks(rr.FileSink(str(rrd), write_footer=True), default_blueprint=blueprint)
         live_rec = None
         if url:  # a stream of its own: a viewer that goes away must not stall the file

@@ -52,11 +52,23 @@ class WebView:
         self._thread = threading.Thread(target=self.files.serve_forever, name="rrd-http", daemon=True)
         self._thread.start()
         file_url = f"http://{LOOPBACK}:{self.files.server_address[1]}/{quote(self.rrd.name)}"
-        self.command = [str(binary), "--serve-web", "--bind", LOOPBACK, "--port", str(free_port()),
-                        "--web-viewer-port", str(self.web_port)]
+        self.command = [
+            str(binary),
+            "--serve-web",
+            "--bind",
+            LOOPBACK,
+            "--port",
+            str(free_port()),
+            "--web-viewer-port",
+            str(self.web_port),
+        ]
         # the viewer server goes with `ttl view --web`, however that ends (SIGKILL included)
-        self.proc = subprocess.Popen(self.command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
-                                     preexec_fn=tied_to_parent(signal.SIGTERM))
+        self.proc = subprocess.Popen(
+            self.command,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.DEVNULL,
+            preexec_fn=tied_to_parent(signal.SIGTERM),
+        )
         self.url = f"http://{LOOPBACK}:{self.web_port}/?url={quote(file_url, safe='')}"
 
     def wait(self) -> int:

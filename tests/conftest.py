@@ -5,7 +5,6 @@ The helpers of the tests (``tests/lisainstrument_sim.py``, ``tests/pytdi_referen
 directories are on pytest's ``pythonpath`` (pyproject.toml).
 """
 
-
 #: Wall time of the longest test modules, seconds, each module's tests run one after the other
 #: in one process on a loaded 2-core machine (per-test times summed; measured for issue 13).
 #: ``make test`` runs pytest-xdist with ``--dist loadscope``: a module stays on one worker and

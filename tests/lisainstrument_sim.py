@@ -190,8 +190,15 @@ def simulate_lisainstrument(
                 disable()
         instrument.export_hdf5(str(path), overwrite=True, keep_all=keep_all)
     settings = {name: bool(keep) for name, (keep, _) in switches.items()}
-    settings.update(ttl=bool(ttl), duration=float(duration), fs=float(fs), orbits=str(orbits), seed=int(seed), lock=lock,
-                    ttl_coeffs=ttl_coeffs if isinstance(ttl_coeffs, (str, int, float)) else "custom")
+    settings.update(
+        ttl=bool(ttl),
+        duration=float(duration),
+        fs=float(fs),
+        orbits=str(orbits),
+        seed=int(seed),
+        lock=lock,
+        ttl_coeffs=ttl_coeffs if isinstance(ttl_coeffs, (str, int, float)) else "custom",
+    )
     return {
         "path": path,
         "orbit_file": orbit_file,

@@ -25,8 +25,15 @@ class ChildProcesses:
         path = self.tmp_path / f"{name}.out"
         env = dict(os.environ if env is None else env, PYTHONUNBUFFERED="1")
         with open(path, "wb") as log:
-            proc = subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, stdin=subprocess.DEVNULL, env=env,
-                                    cwd=self.tmp_path if cwd is None else cwd, start_new_session=True)
+            proc = subprocess.Popen(
+                cmd,
+                stdout=log,
+                stderr=subprocess.STDOUT,
+                stdin=subprocess.DEVNULL,
+                env=env,
+                cwd=self.tmp_path if cwd is None else cwd,
+                start_new_session=True,
+            )
         proc.out_path = path
         self.procs.append(proc)
         return proc

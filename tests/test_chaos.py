@@ -95,7 +95,7 @@ def processes_of(tmp_path: Path) -> list[psutil.Process]:
 
 @pytest.mark.timeout(3 * 3600)  # the clean run (~10 min) and the chaos run (>= KILLS x 90 s of replay)
 def test_chaos_kills_change_nothing(tmp_path):
-    seed = int(os.environ.get("TTL_CHAOS_SEED", random.SystemRandom().randrange(2 ** 31)))
+    seed = int(os.environ.get("TTL_CHAOS_SEED", random.SystemRandom().randrange(2**31)))
     rng = random.Random(seed)
     why = f"[chaos seed {seed}: TTL_CHAOS_SEED={seed} runs it again]"
     print(why, flush=True)
@@ -107,14 +107,48 @@ def test_chaos_kills_change_nothing(tmp_path):
         if os.environ.get("TTL_CHAOS_CLEAN"):
             clean_dir = Path(os.environ["TTL_CHAOS_CLEAN"])
         else:
-            proc = procs.ttl("run", "--simulate", SIM, "--segment", "10min", "--run-id", "clean", "--recordings",
-                             str(rec), "--timeout", "3600", "--insecure", "--quiet", *NO_DIAGNOSIS, name="clean")
+            proc = procs.ttl(
+                "run",
+                "--simulate",
+                SIM,
+                "--segment",
+                "10min",
+                "--run-id",
+                "clean",
+                "--recordings",
+                str(rec),
+                "--timeout",
+                "3600",
+                "--insecure",
+                "--quiet",
+                *NO_DIAGNOSIS,
+                name="clean",
+            )
             assert finish(proc, 3700) == 0, output(proc)[-3000:]
             clean_dir = rec / "clean"
         port = free_port()
-        args = ["run", "--simulate", SIM, "--segment", "10min", "--run-id", "chaos", "--recordings", str(rec),
-                "--listen", f"tcp/127.0.0.1:{port}", "--insecure", "--restart", "1000", "--pace", f"{pace:g}",
-                "--timeout", "7200", "--quiet", *NO_DIAGNOSIS]
+        args = [
+            "run",
+            "--simulate",
+            SIM,
+            "--segment",
+            "10min",
+            "--run-id",
+            "chaos",
+            "--recordings",
+            str(rec),
+            "--listen",
+            f"tcp/127.0.0.1:{port}",
+            "--insecure",
+            "--restart",
+            "1000",
+            "--pace",
+            f"{pace:g}",
+            "--timeout",
+            "7200",
+            "--quiet",
+            *NO_DIAGNOSIS,
+        ]
         proc = procs.ttl(*args, name="chaos-0")
         launchers = [proc]
         kills: list[dict] = []  # {"time", "target", "pid"}
@@ -167,8 +201,18 @@ def test_chaos_kills_change_nothing(tmp_path):
             p.kill()
     finally:
         procs.close()
-    print(json.dumps({"seed": seed, "segments": segments, "pace": pace, "elapsed_s": round(elapsed, 1),
-                      "kills": len(kills), "by_target": {t: sum(k["target"] == t for k in kills) for t in TARGETS}}))
+    print(
+        json.dumps(
+            {
+                "seed": seed,
+                "segments": segments,
+                "pace": pace,
+                "elapsed_s": round(elapsed, 1),
+                "kills": len(kills),
+                "by_target": {t: sum(k["target"] == t for k in kills) for t in TARGETS},
+            }
+        )
+    )
     assert code == 0, f"{why} the last ttl run exited {code}: {out[-4000:]}"
     assert len(kills) >= KILLS, f"{why} only {len(kills)} kills before the run ended ({elapsed:.0f} s)"
     assert not orphans, f"{why} processes left running after the launcher was killed: {orphans}"
@@ -184,13 +228,15 @@ def test_chaos_kills_change_nothing(tmp_path):
             for name, arrays in copies:
                 assert sorted(arrays) == sorted(want), (why, topic, i, name)
                 for k, arr in want.items():
-                    np.testing.assert_allclose(arrays[k], arr, rtol=1e-9, atol=0, equal_nan=True,
-                                               err_msg=f"{why} {topic} {i} {k} in {name}")
+                    np.testing.assert_allclose(
+                        arrays[k], arr, rtol=1e-9, atol=0, equal_nan=True, err_msg=f"{why} {topic} {i} {k} in {name}"
+                    )
 
     # ttl inspect lists every kill and every restart
     report = tmp_path / "inspect.json"
-    res = subprocess.run(ttl_command("inspect", str(run_dir), "--json", str(report)), capture_output=True, text=True,
-                         timeout=600)
+    res = subprocess.run(
+        ttl_command("inspect", str(run_dir), "--json", str(report)), capture_output=True, text=True, timeout=600
+    )
     assert res.returncode == 0, (why, res.stdout[-2000:], res.stderr[-2000:])
     listed = json.loads(report.read_text())["interruptions"]
     text = res.stdout
@@ -198,11 +244,20 @@ def test_chaos_kills_change_nothing(tmp_path):
         if k["target"] == "launcher":
             hit = [i for i in listed if i["kind"] == "launcher-killed" and f"pid {k['pid']})" in i["message"]]
         elif k["target"] == "router":
-            hit = [i for i in listed if i["kind"] == "router-died" and f"pid {k['pid']})" in i["message"]
-                   and "SIGKILL" in i["message"]]
+            hit = [
+                i
+                for i in listed
+                if i["kind"] == "router-died" and f"pid {k['pid']})" in i["message"] and "SIGKILL" in i["message"]
+            ]
         else:
-            hit = [i for i in listed if i["kind"] == "stage-died" and i["stage"] == k["target"]
-                   and f"pid {k['pid']})" in i["message"] and "SIGKILL" in i["message"]]
+            hit = [
+                i
+                for i in listed
+                if i["kind"] == "stage-died"
+                and i["stage"] == k["target"]
+                and f"pid {k['pid']})" in i["message"]
+                and "SIGKILL" in i["message"]
+            ]
         assert len(hit) == 1, (why, k, [i for i in listed if i["kind"] not in ("orphaned", "unfinished")][:40])
         assert hit[0]["message"] in text, (why, hit[0]["message"])
     n = {t: sum(k["target"] == t for k in kills) for t in TARGETS}

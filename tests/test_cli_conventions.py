@@ -48,6 +48,7 @@ def start_bound() -> float:
         runs.append(time.perf_counter() - start)
     return max(START_BOUND_S, 4 * min(runs))
 
+
 #: one bad argument per subcommand and a word the one-line error must contain
 BAD = {
     "simulate": (["--duration", "abc", "--telemetry", "x.h5"], "--duration"),
@@ -79,8 +80,9 @@ def _subparsers(parser) -> dict[str, argparse.ArgumentParser]:
 def ttl(*args, cwd=None, **kw):
     start = time.perf_counter()
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    r = subprocess.run([sys.executable, "-m", "streamer.main", *map(str, args)], capture_output=True, text=True,
-                       cwd=cwd, env=env, **kw)
+    r = subprocess.run(
+        [sys.executable, "-m", "streamer.main", *map(str, args)], capture_output=True, text=True, cwd=cwd, env=env, **kw
+    )
     return r, time.perf_counter() - start
 
 
@@ -111,8 +113,10 @@ def test_help_of_every_subcommand_is_fast(tmp_path):
         assert r.returncode == 0, (command, r.stderr)
         assert "usage: ttl " + command in r.stdout
     worst = max(times, key=times.get)
-    print(f"\nhelp start-up: max {times[worst]:.2f} s ({worst}), median {np.median(list(times.values())):.2f} s "
-          f"(bound {bound:.2f} s)")
+    print(
+        f"\nhelp start-up: max {times[worst]:.2f} s ({worst}), median {np.median(list(times.values())):.2f} s "
+        f"(bound {bound:.2f} s)"
+    )
     assert times[worst] < bound, times
     assert not list(tmp_path.iterdir())
 
@@ -180,8 +184,14 @@ def tiny_file(tmp_path):
 
     n = 4 * 600
     rng = np.random.default_rng(0)
-    tm = Telemetry(t0=0.0, fs=4.0, eta=rng.normal(size=(6, n)) * 1e-20, dws_phi=rng.normal(size=(6, n)) * 1e-9,
-                   dws_eta=rng.normal(size=(6, n)) * 1e-9, ltt=np.full((6, n), 8.3))
+    tm = Telemetry(
+        t0=0.0,
+        fs=4.0,
+        eta=rng.normal(size=(6, n)) * 1e-20,
+        dws_phi=rng.normal(size=(6, n)) * 1e-9,
+        dws_eta=rng.normal(size=(6, n)) * 1e-9,
+        ltt=np.full((6, n), 8.3),
+    )
     return write_telemetry(tmp_path / "tiny.h5", tm)
 
 
@@ -189,8 +199,12 @@ def tiny_file(tmp_path):
 def test_closed_pipe_ends_quietly(tiny_file, extra):
     """``ttl info FILE | head -0``: the reader is gone before the first write."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
-    p = subprocess.Popen([sys.executable, "-m", "streamer.main", "info", str(tiny_file), *extra],
-                         stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env)
+    p = subprocess.Popen(
+        [sys.executable, "-m", "streamer.main", "info", str(tiny_file), *extra],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        env=env,
+    )
     p.stdout.close()  # the child writes only after its start-up: it meets a closed pipe
     err = p.stderr.read().decode()
     assert p.wait(timeout=60) == 0, err
@@ -209,8 +223,9 @@ def test_failed_analysis_leaves_no_output_directory(tmp_path):
 
     n = 4 * 3600
     nan = np.full((6, n), np.nan)
-    write_telemetry(tmp_path / "nan.h5", Telemetry(t0=0.0, fs=4.0, eta=nan, dws_phi=nan, dws_eta=nan,
-                                                   ltt=np.full((6, n), 8.3)))
+    write_telemetry(
+        tmp_path / "nan.h5", Telemetry(t0=0.0, fs=4.0, eta=nan, dws_phi=nan, dws_eta=nan, ltt=np.full((6, n), 8.3))
+    )
     r, _ = ttl("analyze", "nan.h5", "--out", "fit", "--segment", "30min", "--quiet", cwd=tmp_path)
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert not (tmp_path / "fit").exists()
@@ -218,8 +233,17 @@ def test_failed_analysis_leaves_no_output_directory(tmp_path):
 
 def test_refused_run_makes_no_credentials(tmp_path):
     """A bad --simulate is refused before the run's directory, CA, keys or configs exist."""
-    r, _ = ttl("run", "--simulate", "--duration 1h --orbit moon", "--run-id", "r1", "--recordings", "rec",
-               cwd=tmp_path, timeout=300)
+    r, _ = ttl(
+        "run",
+        "--simulate",
+        "--duration 1h --orbit moon",
+        "--run-id",
+        "r1",
+        "--recordings",
+        "rec",
+        cwd=tmp_path,
+        timeout=300,
+    )
     assert r.returncode == 2 and "moon" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert not list(tmp_path.iterdir())
 
@@ -239,10 +263,13 @@ def test_step_after_the_end_of_a_simulation_is_refused(tmp_path):
     assert not list(tmp_path.iterdir())
 
 
-@pytest.mark.parametrize("command, made", [
-    (["simulate", "--duration", "20min", "--telemetry", "s.h5"], ["s.h5", "s.truth.h5"]),
-    (["credentials", "cr"], ["cr"]),
-])
+@pytest.mark.parametrize(
+    "command, made",
+    [
+        (["simulate", "--duration", "20min", "--telemetry", "s.h5"], ["s.h5", "s.truth.h5"]),
+        (["credentials", "cr"], ["cr"]),
+    ],
+)
 def test_quiet_prints_nothing_but_errors(tmp_path, command, made):
     """``--quiet``: no progress, no status lines. A command whose result is files prints
     nothing at all with it; without it the same command says what it wrote, so the test

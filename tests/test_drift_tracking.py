@@ -36,21 +36,49 @@ pytestmark = [pytest.mark.science, pytest.mark.timeout(1800)]
 
 
 def ttl(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "streamer.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd)
+    return subprocess.run(
+        [sys.executable, "-m", "streamer.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd
+    )
 
 
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("drift")
     drift = ",".join(f"{k}={v * 1e3}" for k, v in DRIFTING.items())
-    r = ttl("simulate", "--duration", "3d", "--orbit", "unequal", "--seed", 6, "--drift", drift,
-            "--step", f"1.5d:{STEPPED[0]}={STEPPED[1] * 1e3}", "--out", tmp / "mission.h5", "--quiet")
+    r = ttl(
+        "simulate",
+        "--duration",
+        "3d",
+        "--orbit",
+        "unequal",
+        "--seed",
+        6,
+        "--drift",
+        drift,
+        "--step",
+        f"1.5d:{STEPPED[0]}={STEPPED[1] * 1e3}",
+        "--out",
+        tmp / "mission.h5",
+        "--quiet",
+    )
     assert r.returncode == 0, r.stderr
     # --adopt never: no live diagnosis (three of a day each, 1.5-4 min on a loaded 2-core
     # machine, held the run past the test's limit); this test is about the rolling fit and
     # the monitor's alerts, which do not depend on it
-    r = ttl("run", "--telemetry", tmp / "mission.h5", "--run-id", "drift", "--recordings", tmp / "rec",
-            "--timeout", "1500", "--quiet", "--adopt", "never")
+    r = ttl(
+        "run",
+        "--telemetry",
+        tmp / "mission.h5",
+        "--run-id",
+        "drift",
+        "--recordings",
+        tmp / "rec",
+        "--timeout",
+        "1500",
+        "--quiet",
+        "--adopt",
+        "never",
+    )
     assert r.returncode == 0, r.stdout + r.stderr
     return tmp / "rec" / "drift"
 
@@ -82,8 +110,13 @@ def test_monitor_raises_step_and_drift_alerts(run):
     assert drifts == set(DRIFTING), drifts
 
 
-STAGE_OUTPUT = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit", "subtractor": "residual",
-                "monitor": "monitor"}
+STAGE_OUTPUT = {
+    "replayer": "telemetry",
+    "tdi_builder": "tdi",
+    "fitter": "fit",
+    "subtractor": "residual",
+    "monitor": "monitor",
+}
 
 
 def test_every_stage_file_holds_every_segment_once_and_reads_back(run):
@@ -118,11 +151,17 @@ def test_fit_of_a_window_covering_the_first_day_equals_the_batch_fit(run):
     # replayer's recorded telemetry of the same day (equal to what it published to 1e-9 of the
     # largest sample, test_pipeline)
     tel = sorted(read_recording(run / "replayer.mcap").segments("telemetry"), key=lambda s: s.header.index)[:24]
-    whole = Telemetry(t0=tel[0].header.t0, fs=tel[0].header.fs,
-                      **{k: np.concatenate([s.arrays[k] for s in tel], axis=1) for k in ("eta", "dws_phi", "dws_eta", "ltt")})
+    whole = Telemetry(
+        t0=tel[0].header.t0,
+        fs=tel[0].header.fs,
+        **{k: np.concatenate([s.arrays[k] for s in tel], axis=1) for k in ("eta", "dws_phi", "dws_eta", "ltt")},
+    )
     rebuilt = compute_tdi(whole)
-    day = replace(rebuilt, data=np.concatenate([s.arrays["data"] for s in tdi], axis=1),
-                  ltt_mean=np.asarray(tdi[0].header.meta["ltt_mean"]))
+    day = replace(
+        rebuilt,
+        data=np.concatenate([s.arrays["data"] for s in tdi], axis=1),
+        ltt_mean=np.asarray(tdi[0].header.meta["ltt_mean"]),
+    )
     fit = next(s for s in read_recording(run / "fitter.mcap").segments("fit") if s.header.index == 23)
     assert fit.header.meta["segments"] == 24
     # what `ttl analyze` computes, with the fitter's settings (1-h FFT segments, the DWS level passed down)

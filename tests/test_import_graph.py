@@ -17,8 +17,22 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGES = ("ttlcore", "streamer", "stages")
 #: outside packages that may be imported inside a function (optional, or slow to import)
-LAZY_ALLOWED = {"matplotlib", "rerun", "rerun_cli", "lisainstrument", "lisaorbits", "lisagwresponse", "healpy",
-                "pytdi", "dask", "distributed", "emcee", "tqdm", "rich", "cryptography"}
+LAZY_ALLOWED = {
+    "matplotlib",
+    "rerun",
+    "rerun_cli",
+    "lisainstrument",
+    "lisaorbits",
+    "lisagwresponse",
+    "healpy",
+    "pytdi",
+    "dask",
+    "distributed",
+    "emcee",
+    "tqdm",
+    "rich",
+    "cryptography",
+}
 
 
 def _modules() -> dict[str, Path]:
@@ -48,7 +62,8 @@ def _is_type_checking(node: ast.AST) -> bool:
         return False
     test = node.test
     return (isinstance(test, ast.Name) and test.id == "TYPE_CHECKING") or (
-        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING")
+        isinstance(test, ast.Attribute) and test.attr == "TYPE_CHECKING"
+    )
 
 
 def _imports(modules: dict[str, Path]):
@@ -77,9 +92,12 @@ def _imports(modules: dict[str, Path]):
 
 def test_layers():
     modules = _modules()
-    wrong = [f"{modules[m].relative_to(ROOT)}:{line} imports {t}" for m, t, line, _ in _imports(modules)
-             if (m.split(".")[0] == "ttlcore" and t.split(".")[0] in ("streamer", "stages"))
-             or (m.split(".")[0] == "streamer" and t.split(".")[0] == "stages")]
+    wrong = [
+        f"{modules[m].relative_to(ROOT)}:{line} imports {t}"
+        for m, t, line, _ in _imports(modules)
+        if (m.split(".")[0] == "ttlcore" and t.split(".")[0] in ("streamer", "stages"))
+        or (m.split(".")[0] == "streamer" and t.split(".")[0] == "stages")
+    ]
     assert not wrong, "layering broken:\n" + "\n".join(wrong)
 
 
@@ -147,13 +165,20 @@ def test_imports_at_the_top():
 #: the floors of ttlcore, from the bottom (docs/architecture.md): a module may import its
 #: own floor and those below, never one above.  io and tdi share a floor (the readers
 #: interpolate; TDI data are built from telemetry).
-FLOORS = {"ttlcore.conventions": 0, "ttlcore.errors": 0, "ttlcore._version": 0,
-          "ttlcore.io": 1, "ttlcore.tdi": 1,
-          "ttlcore.sim": 2,
-          "ttlcore.estimate": 3,
-          "ttlcore.diagnose": 4, "ttlcore.gw": 4,
-          "ttlcore.plots": 5,
-          "ttlcore.cli": 6, "ttlcore": 6}
+FLOORS = {
+    "ttlcore.conventions": 0,
+    "ttlcore.errors": 0,
+    "ttlcore._version": 0,
+    "ttlcore.io": 1,
+    "ttlcore.tdi": 1,
+    "ttlcore.sim": 2,
+    "ttlcore.estimate": 3,
+    "ttlcore.diagnose": 4,
+    "ttlcore.gw": 4,
+    "ttlcore.plots": 5,
+    "ttlcore.cli": 6,
+    "ttlcore": 6,
+}
 #: upward imports still to be removed by the redesign (issue 22): the effects that the
 #: simulator injects live in the diagnosis, ``ttl simulate``'s argument mapping and two
 #: orchestrators live in science packages.  The list may only shrink: a new upward import
@@ -184,8 +209,13 @@ def _imports_by_name(modules: dict[str, Path]):
         if not name.startswith("ttlcore"):
             continue
         for node in ast.walk(ast.parse(path.read_text(), str(path))):
-            if isinstance(node, ast.Constant) and isinstance(node.value, str) and node.value in modules \
-                    and node.value.startswith("ttlcore.") and node.value != name:
+            if (
+                isinstance(node, ast.Constant)
+                and isinstance(node.value, str)
+                and node.value in modules
+                and node.value.startswith("ttlcore.")
+                and node.value != name
+            ):
                 yield name, node.value, node.lineno
 
 

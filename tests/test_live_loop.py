@@ -45,12 +45,25 @@ def simulate(tmp_path: Path, duration: str, seed: int, inject: str | None = None
     return simulate_case(tmp_path, inject, duration, seed)
 
 
-def live_run(tmp_path: Path, data: Path, run: str, *extra, timeout: float = 3000,
-             monitor: bool = False) -> tuple[int, str, Path]:
+def live_run(
+    tmp_path: Path, data: Path, run: str, *extra, timeout: float = 3000, monitor: bool = False
+) -> tuple[int, str, Path]:
     procs = Procs(tmp_path)
     try:
-        proc = procs.ttl("run", "--telemetry", data, "--run-id", run, "--recordings", tmp_path / "rec",
-                         "--timeout", str(timeout), "--quiet", *([] if monitor else ["--skip", "monitor"]), *extra)
+        proc = procs.ttl(
+            "run",
+            "--telemetry",
+            data,
+            "--run-id",
+            run,
+            "--recordings",
+            tmp_path / "rec",
+            "--timeout",
+            str(timeout),
+            "--quiet",
+            *([] if monitor else ["--skip", "monitor"]),
+            *extra,
+        )
         code = finish(proc, timeout + 60)
         out = output(proc)
     finally:
@@ -77,8 +90,12 @@ def residuals_of(run_dir: Path) -> dict:
 
 
 def model_events(run_dir: Path) -> list[dict]:
-    return [e for path in sorted(run_dir.glob("fitter*.mcap")) for e in read_recording(path).json("events")
-            if e.get("kind") == "model"]
+    return [
+        e
+        for path in sorted(run_dir.glob("fitter*.mcap"))
+        for e in read_recording(path).json("events")
+        if e.get("kind") == "model"
+    ]
 
 
 def check_residual_equals_refit(tmp_path: Path, run_dir: Path, effects: list[str]) -> float:
@@ -88,16 +105,28 @@ def check_residual_equals_refit(tmp_path: Path, run_dir: Path, effects: list[str
     last = max(fits)
     window = fits[last].header.meta["window"]
     out = tmp_path / "refit-residual.h5"
-    r = subprocess.run(ttl_command("refit", run_dir, "--effects", ",".join(e.replace(",", ";") for e in effects),
-                                   "--segments", f"{window['first']}:{window['last']}", "--residual", out),
-                       capture_output=True, text=True, timeout=900)
+    r = subprocess.run(
+        ttl_command(
+            "refit",
+            run_dir,
+            "--effects",
+            ",".join(e.replace(",", ";") for e in effects),
+            "--segments",
+            f"{window['first']}:{window['last']}",
+            "--residual",
+            out,
+        ),
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert r.returncode == 0, r.stderr
     with h5py.File(out) as f:
         offline, t0, fs = f["residual"][:], float(f.attrs["t0"]), float(f.attrs["fs"])
     live = residuals[last]
     n = live.arrays["residual"].shape[-1]
     i0 = int(round((live.header.t0 - t0) * fs))
-    a, b = live.arrays["residual"], offline[:, i0:i0 + n]
+    a, b = live.arrays["residual"], offline[:, i0 : i0 + n]
     ok = np.isfinite(a) & np.isfinite(b)
     assert ok.mean() > 0.99 and np.array_equal(np.isfinite(a), np.isfinite(b))
     diff = np.max(np.abs(a - b)[ok]) / np.max(np.abs(a[ok]))
@@ -113,7 +142,7 @@ def check_against_truth(fit, truth_path: Path) -> tuple[float, float]:
     c_true = FileTruth(truth_path).mean(fit.header.meta["t_start"], fit.header.meta["t_stop"])
     err = fit.arrays["coefficients"] - c_true
     pull = err / fit.arrays["sigma"]
-    return float(np.max(np.abs(err))), float(np.sqrt(np.mean(pull ** 2)))
+    return float(np.max(np.abs(err))), float(np.sqrt(np.mean(pull**2)))
 
 
 def test_live_loop_adopts_an_unnamed_effect_and_subtracts_the_whole_model(tmp_path):
@@ -125,8 +154,21 @@ def test_live_loop_adopts_an_unnamed_effect_and_subtracts_the_whole_model(tmp_pa
     # with the monitor: it reads the extended fits and draws the diagnosis
     # --model-update refit: every segment of the extended model is the window refit (the
     # default rolling update is checked by the next test)
-    code, out, run_dir = live_run(tmp_path, data, "loop", "--segment", "30min", "--adopt", "auto",
-                                  "--diagnose-every", "3", "--model-update", "refit", timeout=900, monitor=MONITOR)
+    code, out, run_dir = live_run(
+        tmp_path,
+        data,
+        "loop",
+        "--segment",
+        "30min",
+        "--adopt",
+        "auto",
+        "--diagnose-every",
+        "3",
+        "--model-update",
+        "refit",
+        timeout=900,
+        monitor=MONITOR,
+    )
     assert code == 0, out[-4000:]
     fits = fits_of(run_dir)
     assert sorted(fits) == list(range(6))
@@ -160,8 +202,12 @@ def test_live_loop_adopts_an_unnamed_effect_and_subtracts_the_whole_model(tmp_pa
         assert ("/asd/plot/X2/effect/0" in entities) == bool(np.any(x2 != 0)), sorted(entities)
     check_residual_equals_refit(tmp_path, run_dir, ["linear-ttl", adopted])
     # ttl inspect reports the change, who made it, and the diagnoses
-    r = subprocess.run(ttl_command("inspect", run_dir, "--json", tmp_path / "inspect.json"),
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        ttl_command("inspect", run_dir, "--json", tmp_path / "inspect.json"),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 0, r.stderr
     assert "adopt auto" in r.stdout and f"recommends {adopted}" in r.stdout
     report = json.loads((tmp_path / "inspect.json").read_text())
@@ -180,8 +226,18 @@ def test_rolling_model_agrees_with_the_window_refit(tmp_path):
 
     data, truth = simulate(tmp_path, "3h", 3, "blind-witness:source=12.eta,link=23,delay=2,gain=5e-3")
     witness = "witness:source=12.eta,link=23,delay=2"
-    code, out, run_dir = live_run(tmp_path, data, "rolling", "--segment", "30min", "--adopt", "never",
-                                  "--effects", "linear-ttl," + witness.replace(",", ";"), timeout=900)
+    code, out, run_dir = live_run(
+        tmp_path,
+        data,
+        "rolling",
+        "--segment",
+        "30min",
+        "--adopt",
+        "never",
+        "--effects",
+        "linear-ttl," + witness.replace(",", ";"),
+        timeout=900,
+    )
     assert code == 0, out[-4000:]
     fits, residuals = fits_of(run_dir), residuals_of(run_dir)
     assert sorted(fits) == sorted(residuals) == list(range(6))
@@ -191,7 +247,7 @@ def test_rolling_model_agrees_with_the_window_refit(tmp_path):
         assert fit.arrays["model_parts"].shape == (1, 3, 1800 * 4) and np.any(fit.arrays["model_parts"] != 0)
         assert residuals[i].header.meta["effects"] == [witness]
     last = fits[5]
-    (column, (value, sigma)), = last.header.meta["extra_parameters"].items()
+    ((column, (value, sigma)),) = last.header.meta["extra_parameters"].items()
     tm, _, dws = load_run(run_dir, (0, 5), "telemetry")
     offline = refit(tm, ["linear-ttl", witness], settings=refit_settings(dws, None))["_internals"]["fit"]
     k = offline.names.index(column)
@@ -211,6 +267,7 @@ def test_rolling_model_agrees_with_the_window_refit(tmp_path):
 
 
 # ---------------------------------------------------------------------------- a day, blind
+
 
 def blind_day(tmp_path: Path, seed: int) -> tuple[str, Path, Path]:
     """A day from the blind generator of the offline diagnosis tests (an effect outside the
@@ -253,9 +310,26 @@ def test_live_loop_applies_the_printed_control_command(tmp_path):
     procs = Procs(tmp_path)
     run_dir = tmp_path / "rec" / "ask"
     try:
-        proc = procs.ttl("run", "--telemetry", data, "--run-id", "ask", "--recordings", tmp_path / "rec",
-                         "--timeout", "3000", "--quiet", "--skip", "monitor", "--adopt", "ask", "--diagnose-every", "6",
-                         "--pace", "240")
+        proc = procs.ttl(
+            "run",
+            "--telemetry",
+            data,
+            "--run-id",
+            "ask",
+            "--recordings",
+            tmp_path / "rec",
+            "--timeout",
+            "3000",
+            "--quiet",
+            "--skip",
+            "monitor",
+            "--adopt",
+            "ask",
+            "--diagnose-every",
+            "6",
+            "--pace",
+            "240",
+        )
         command = {}
 
         def recommended():
@@ -269,6 +343,7 @@ def test_live_loop_applies_the_printed_control_command(tmp_path):
                     command["argv"] = shlex.split(r["command"])
                     return True
             return False
+
         wait_for(lambda: recommended() or proc.poll() is not None, 2400, "a recommendation with its command")
         assert proc.poll() is None, output(proc)[-3000:]
         argv = command["argv"]
@@ -301,7 +376,9 @@ def test_live_loop_adopts_nothing_on_a_null_day(tmp_path):
 
 # ---------------------------------------------------------------------------- kills
 
-EXTENDED = "linear-ttl,witness:source=12.eta;link=23;delay=2,fd-coupling:source=13.eta;link=31;delay=1;filter=pole1;fc=0.05"
+EXTENDED = (
+    "linear-ttl,witness:source=12.eta;link=23;delay=2,fd-coupling:source=13.eta;link=31;delay=1;filter=pole1;fc=0.05"
+)
 
 
 @pytest.fixture(scope="module")
@@ -324,15 +401,38 @@ def test_kill_with_an_extended_model_changes_nothing(extended_day, tmp_path, sta
     data, clean = extended_day
     procs = Procs(tmp_path)
     try:
-        proc = procs.ttl("run", "--telemetry", data, "--run-id", "killed", "--recordings", tmp_path / "rec",
-                         "--timeout", "3000", "--quiet", "--skip", "monitor", "--effects", EXTENDED, "--adopt", "never",
-                         "--restart", "1", "--listen", f"tls/127.0.0.1:{free_port()}",
-                         # 3 s a segment: the kill lands with segments still to come (the
-                         # rolling update takes ~0.2 s a segment; results do not depend on pace)
-                         "--pace", "1200",
-                         # caches smaller than the window: the restarted fitter must rebuild its
-                         # window from the recordings, not from the publishers' caches
-                         "--window", "1", "--cache", "3")
+        proc = procs.ttl(
+            "run",
+            "--telemetry",
+            data,
+            "--run-id",
+            "killed",
+            "--recordings",
+            tmp_path / "rec",
+            "--timeout",
+            "3000",
+            "--quiet",
+            "--skip",
+            "monitor",
+            "--effects",
+            EXTENDED,
+            "--adopt",
+            "never",
+            "--restart",
+            "1",
+            "--listen",
+            f"tls/127.0.0.1:{free_port()}",
+            # 3 s a segment: the kill lands with segments still to come (the
+            # rolling update takes ~0.2 s a segment; results do not depend on pace)
+            "--pace",
+            "1200",
+            # caches smaller than the window: the restarted fitter must rebuild its
+            # window from the recordings, not from the publishers' caches
+            "--window",
+            "1",
+            "--cache",
+            "3",
+        )
         run_dir = tmp_path / "rec" / "killed"
 
         def handled():
@@ -341,6 +441,7 @@ def test_kill_with_an_extended_model_changes_nothing(extended_day, tmp_path, sta
             except (RecordingError, OSError):
                 return 0
             return len(list(rec.segments("fit" if stage == "fitter" else "residual")))
+
         wait_for(lambda: handled() >= 4 or proc.poll() is not None, 1800, f"{stage} at segment 4")
         stage_processes(proc)[stage].send_signal(signal.SIGKILL)
         time.sleep(0.5)
@@ -357,5 +458,6 @@ def test_kill_with_an_extended_model_changes_nothing(extended_day, tmp_path, sta
         assert sorted(a) == sorted(b)
         for i in a:
             for name, arr in a[i].arrays.items():
-                np.testing.assert_allclose(b[i].arrays[name], arr, rtol=1e-9, atol=0, equal_nan=True,
-                                           err_msg=f"{get.__name__} {i} {name}")
+                np.testing.assert_allclose(
+                    b[i].arrays[name], arr, rtol=1e-9, atol=0, equal_nan=True, err_msg=f"{get.__name__} {i} {name}"
+                )

@@ -33,29 +33,63 @@ def test_fitter_changes_model_on_control_message_and_monitor_shows_before_after(
     endpoint = f"tls/127.0.0.1:{free_port()}"
     creds = ensure_credentials(tmp_path / "creds")
     # the live diagnosis (tests/test_live_loop.py) is off: this test is about the control message
-    (tmp_path / "run.toml").write_text('[stages.fitter]\nadequacy_every = 1\ndiagnose_every = 0\n')
+    (tmp_path / "run.toml").write_text("[stages.fitter]\nadequacy_every = 1\ndiagnose_every = 0\n")
     procs = Procs(tmp_path)
     try:
         # 24 mm/rad/day on two coefficients (far beyond LISA's expectations, chosen so that
         # the excess shows in chi^2/dof and not only in the evidence: chi^2/dof grows with the
         # square of the drift over the window, rate x duration; at 3 mm/rad/day over 12 h the
         # linear model's chi^2/dof is 1.004 over ~10^6 degrees of freedom, delta chi^2 2000)
-        proc = procs.ttl("run", "--config", tmp_path / "run.toml", "--simulate",
-                         "--duration 8h --orbit unequal --seed 4 --drift 12.phi.rx=24,23.eta.tx=-24",
-                         # paced at 4 s a segment: the rejected command (`ttl control`, a Python start
-                         # and a TLS session) is sent after the first fit and answered before the fourth
-                         # even on a loaded machine; the accepted one is put from this process
-                         "--segment", "1h", "--pace", "900", "--run-id", "m1", "--recordings", tmp_path / "rec",
-                         "--listen", endpoint, "--credentials", creds, "--timeout", "400",
-                         *([] if MONITOR else ["--skip", "monitor"]))
-        with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="control")) as bus:
+        proc = procs.ttl(
+            "run",
+            "--config",
+            tmp_path / "run.toml",
+            "--simulate",
+            "--duration 8h --orbit unequal --seed 4 --drift 12.phi.rx=24,23.eta.tx=-24",
+            # paced at 4 s a segment: the rejected command (`ttl control`, a Python start
+            # and a TLS session) is sent after the first fit and answered before the fourth
+            # even on a loaded machine; the accepted one is put from this process
+            "--segment",
+            "1h",
+            "--pace",
+            "900",
+            "--run-id",
+            "m1",
+            "--recordings",
+            tmp_path / "rec",
+            "--listen",
+            endpoint,
+            "--credentials",
+            creds,
+            "--timeout",
+            "400",
+            *([] if MONITOR else ["--skip", "monitor"]),
+        )
+        with Bus.open(
+            SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="control")
+        ) as bus:
             time.sleep(0.5)
             fitted = _progress_watch(bus, "m1", "fitter")
             wait_for(lambda: fitted() >= 1 or proc.poll() is not None, 180, "the first fit")
-            bad = subprocess.run(ttl_command("control", "fitter", "model", '{"effects": ["linear-ttl", "tilt"]}',
-                                             "--run", "m1", "--connect", endpoint, "--credentials", str(creds),
-                                             "--wait", "60"),
-                                 capture_output=True, text=True, timeout=90)
+            bad = subprocess.run(
+                ttl_command(
+                    "control",
+                    "fitter",
+                    "model",
+                    '{"effects": ["linear-ttl", "tilt"]}',
+                    "--run",
+                    "m1",
+                    "--connect",
+                    endpoint,
+                    "--credentials",
+                    str(creds),
+                    "--wait",
+                    "60",
+                ),
+                capture_output=True,
+                text=True,
+                timeout=90,
+            )
             assert bad.returncode != 0 and "tilt" in bad.stderr, (bad.stdout, bad.stderr)  # unknown effect: rejected
             wait_for(lambda: fitted() >= 4 or proc.poll() is not None, 180, "four segments through the fitter")
             assert proc.poll() is None and fitted() < SEGMENTS - 1, output(proc)[-3000:]
@@ -88,8 +122,11 @@ def test_fitter_changes_model_on_control_message_and_monitor_shows_before_after(
         from test_monitor import rrd_entities
 
         ent = rrd_entities(run / "monitor.rrd")
-        series = {row[0]["segment"]: row[1]["Scalars:scalars"][0] for row in ent["/adequacy/instrument/chi2_dof"]
-                  if "Scalars:scalars" in row[1]}
+        series = {
+            row[0]["segment"]: row[1]["Scalars:scalars"][0]
+            for row in ent["/adequacy/instrument/chi2_dof"]
+            if "Scalars:scalars" in row[1]
+        }
         assert sorted(series) == list(range(SEGMENTS))
         # the monitor draws the fitter's adequacy (chi2/dof against the instrument noise model):
         # with the noise levels fitted (docs/diagnostics.md, "Noise model") a TTL-shaped excess is
@@ -106,13 +143,21 @@ def test_fitter_changes_model_on_control_message_and_monitor_shows_before_after(
 
     # offline: ttl refit of the recorded segments from the replayer's telemetry (the tdi_builder
     # records X2, Y2, Z2 without the 72 regressor channels, so there is no TDI-only refit of a run)
-    r = subprocess.run(ttl_command("refit", run, "--effects", "linear-ttl,drift", "--source", "tdi"),
-                       capture_output=True, text=True, timeout=300)
+    r = subprocess.run(
+        ttl_command("refit", run, "--effects", "linear-ttl,drift", "--source", "tdi"),
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert r.returncode == 2 and "regressors" in r.stderr.strip().splitlines()[-1], r.stderr
     for source in ("telemetry",):
         out = tmp_path / f"refit-{source}.json"
-        r = subprocess.run(ttl_command("refit", run, "--effects", "linear-ttl,drift", "--source", source, "--json", out),
-                           capture_output=True, text=True, timeout=300)
+        r = subprocess.run(
+            ttl_command("refit", run, "--effects", "linear-ttl,drift", "--source", source, "--json", out),
+            capture_output=True,
+            text=True,
+            timeout=300,
+        )
         assert r.returncode == 0, r.stderr
         report = json.loads(out.read_text())
         assert report["baseline"]["chi2_dof"] > 1.1 and 0.9 < report["model"]["chi2_dof"] < 1.1, report["change"]
@@ -120,9 +165,11 @@ def test_fitter_changes_model_on_control_message_and_monitor_shows_before_after(
         values = report["model"]["coefficients"]["values"]
         # the window-average of the drifting coefficient: 2.3 + 24 mm/rad/day x 4 h
         assert abs(values["12.phi.rx"] - 6.3e-3) < 5 * report["model"]["coefficients"]["sigma"]["12.phi.rx"]
-    r = subprocess.run(ttl_command("refit", run, "--effects", "linear-ttl,tilt"), capture_output=True, text=True,
-                       timeout=120)
+    r = subprocess.run(
+        ttl_command("refit", run, "--effects", "linear-ttl,tilt"), capture_output=True, text=True, timeout=120
+    )
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 1 and "tilt" in r.stderr, r.stderr
-    r = subprocess.run(ttl_command("refit", tmp_path / "nope", "--effects", "drift"), capture_output=True, text=True,
-                       timeout=120)
+    r = subprocess.run(
+        ttl_command("refit", tmp_path / "nope", "--effects", "drift"), capture_output=True, text=True, timeout=120
+    )
     assert r.returncode == 2 and "no such run directory" in r.stderr, r.stderr

@@ -44,16 +44,33 @@ pytestmark = pytest.mark.ops
 SEGMENTS = 6
 SIM = f"--duration {SEGMENTS}h --orbit unequal --seed 1"
 STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if MONITOR else [])
-INPUTS = {"tdi_builder": ("telemetry",), "fitter": ("tdi",), "subtractor": ("tdi", "fit"),
-          "monitor": ("telemetry", "tdi", "fit", "residual")}
+INPUTS = {
+    "tdi_builder": ("telemetry",),
+    "fitter": ("tdi",),
+    "subtractor": ("tdi", "fit"),
+    "monitor": ("telemetry", "tdi", "fit", "residual"),
+}
 REFUSALS = ("rejected", "forged", "conflict")
 
 
 def run_args(run_id: str, rec: Path, *extra, sim: str = SIM) -> list[str]:
     # plain TCP (--insecure): the plan checks must hold without the access control, and the
     # hostile client of the fuzz must reach the stages
-    return ["run", "--simulate", sim, "--segment", "1h", "--run-id", run_id, "--recordings", str(rec),
-            "--timeout", "600", "--insecure", *extra]
+    return [
+        "run",
+        "--simulate",
+        sim,
+        "--segment",
+        "1h",
+        "--run-id",
+        run_id,
+        "--recordings",
+        str(rec),
+        "--timeout",
+        "600",
+        "--insecure",
+        *extra,
+    ]
 
 
 def results(run_dir: Path) -> dict:
@@ -73,8 +90,9 @@ def assert_same_results(a: dict, b: dict, rtol: float = 0.0) -> None:
         assert sorted(a[topic]) == sorted(b[topic]), topic
         for i in a[topic]:
             for name, arr in a[topic][i].items():
-                np.testing.assert_allclose(b[topic][i][name], arr, rtol=rtol, atol=0, equal_nan=True,
-                                           err_msg=f"{topic} {i} {name}")
+                np.testing.assert_allclose(
+                    b[topic][i][name], arr, rtol=rtol, atol=0, equal_nan=True, err_msg=f"{topic} {i} {name}"
+                )
 
 
 @pytest.fixture(scope="module")
@@ -92,13 +110,27 @@ def clean(tmp_path_factory):
 
 # ---------------------------------------------------------------------------- the hostile client
 
+
 class Fuzzer:
     """A client of the run's router that publishes hostile messages, built from the genuine
     ones it sees (so that they look right but for the one thing that is wrong)."""
 
-    KINDS = ("random_bytes", "bad_checksum", "huge_size", "huge_index", "wrong_dtype", "nan_payload",
-             "identical_duplicate", "altered_duplicate", "forged_producer", "wrong_fs", "wrong_t0",
-             "short_segment", "bad_key", "forged_progress")
+    KINDS = (
+        "random_bytes",
+        "bad_checksum",
+        "huge_size",
+        "huge_index",
+        "wrong_dtype",
+        "nan_payload",
+        "identical_duplicate",
+        "altered_duplicate",
+        "forged_producer",
+        "wrong_fs",
+        "wrong_t0",
+        "short_segment",
+        "bad_key",
+        "forged_progress",
+    )
 
     def __init__(self, bus: Bus, run: str, seed: int = 7):
         self.bus, self.run = bus, run
@@ -123,10 +155,12 @@ class Fuzzer:
                 if (key, zlib.crc32(payload), zlib.crc32(attachment)) in self.mine:
                     return  # one of ours
                 self.genuine[topic].append((json.loads(attachment)["index"], payload, attachment))
+
         return on_sample
 
-    def put(self, topic: str, payload: bytes, attachment: bytes | None, identical: bool = False,
-            key: str | None = None) -> None:
+    def put(
+        self, topic: str, payload: bytes, attachment: bytes | None, identical: bool = False, key: str | None = None
+    ) -> None:
         """Publish on the topic's stream key ``ttl/<run>/<topic>`` (or on ``key``)."""
         key = key or f"ttl/{self.run}/{topic}"
         with self.lock:
@@ -165,21 +199,27 @@ class Fuzzer:
         self.put(topic, bytes(p), json.dumps(header).encode())
 
     def huge_size(self, topic, index, payload, header):
-        arrays = [{**a, "shape": [2 ** 40], "nbytes": 2 ** 43} for a in header["arrays"]]
-        self.put(topic, payload[:64], json.dumps({**header, "payload_bytes": 2 ** 50, "arrays": arrays}).encode())
+        arrays = [{**a, "shape": [2**40], "nbytes": 2**43} for a in header["arrays"]]
+        self.put(topic, payload[:64], json.dumps({**header, "payload_bytes": 2**50, "arrays": arrays}).encode())
 
     def huge_index(self, topic, index, payload, header):
-        big = int(2 ** 40 + self.rng.integers(1000))
+        big = int(2**40 + self.rng.integers(1000))
         self.put(topic, payload, json.dumps({**header, "index": big}).encode())
 
     def _arrays(self, payload, header):
-        return {a["name"]: np.frombuffer(payload, dtype=a["dtype"], count=int(np.prod(a["shape"])),
-                                         offset=a["offset"]).reshape(a["shape"]) for a in header["arrays"]}
+        return {
+            a["name"]: np.frombuffer(
+                payload, dtype=a["dtype"], count=int(np.prod(a["shape"])), offset=a["offset"]
+            ).reshape(a["shape"])
+            for a in header["arrays"]
+        }
 
     def _publish(self, topic, index, arrays, header, allow_nonfinite=False, **changes):
         fields = {k: header[k] for k in ("run", "index", "t0", "fs", "channels", "producer", "meta")}
-        fields.update(units={a["name"]: a["units"] for a in header["arrays"]},
-                      channel_axis={a["name"]: a["channel_axis"] for a in header["arrays"]})
+        fields.update(
+            units={a["name"]: a["units"] for a in header["arrays"]},
+            channel_axis={a["name"]: a["channel_axis"] for a in header["arrays"]},
+        )
         fields.update(changes)
         self.put(topic, *encode(arrays, fields, allow_nonfinite=True))
 
@@ -187,8 +227,9 @@ class Fuzzer:
         self._publish(topic, index, {k: v.astype("<f4") for k, v in self._arrays(payload, header).items()}, header)
 
     def nan_payload(self, topic, index, payload, header):
-        self._publish(topic, index, {k: np.full(v.shape, np.nan) for k, v in self._arrays(payload, header).items()},
-                      header)
+        self._publish(
+            topic, index, {k: np.full(v.shape, np.nan) for k, v in self._arrays(payload, header).items()}, header
+        )
 
     def identical_duplicate(self, topic, index, payload, header):
         self.put(topic, payload, json.dumps(header, separators=(",", ":")).encode(), identical=True)
@@ -238,13 +279,26 @@ class Fuzzer:
 
     def forged_progress(self, topic, index, payload, header):
         stage = ["replayer", "tdi_builder", "fitter", "subtractor", "monitor"][self.progress % 5]
-        msg = {"run": self.run, "stage": stage, "pid": 1, "time": time.time(), "index": SEGMENTS - 1,
-               "done": [[0, SEGMENTS - 1]], "failed": [], "gaps": [], "segments_total": SEGMENTS,
-               "complete": True, "fits_ranges": [[0, 2 ** 40]]}
+        msg = {
+            "run": self.run,
+            "stage": stage,
+            "pid": 1,
+            "time": time.time(),
+            "index": SEGMENTS - 1,
+            "done": [[0, SEGMENTS - 1]],
+            "failed": [],
+            "gaps": [],
+            "segments_total": SEGMENTS,
+            "complete": True,
+            "fits_ranges": [[0, 2**40]],
+        }
         if self.progress % 3 == 1:
             msg["segments_total"] = 3
-        self.bus.session.put(f"ttl/{self.run}/control/progress/{stage}", json.dumps(msg).encode(),
-                             congestion_control=zenoh.CongestionControl.BLOCK)
+        self.bus.session.put(
+            f"ttl/{self.run}/control/progress/{stage}",
+            json.dumps(msg).encode(),
+            congestion_control=zenoh.CongestionControl.BLOCK,
+        )
         self.progress += 1
 
 
@@ -291,8 +345,15 @@ def test_fuzz_of_hostile_messages_changes_nothing(clean, tmp_path):
             on_topic = [e for e in refused if (e.get("key") or "").split("/")[2:3] == [topic]]
             dups = [e for e in dup if f"/{topic}/" in e["message"]]
             sent = fuzz.sent.get(topic, 0)
-            assert len(on_topic) + len(dups) >= sent, (stage, topic, len(on_topic), len(dups), sent, fuzz.by_kind,
-                                                       sorted({e["field"] for e in on_topic}))
+            assert len(on_topic) + len(dups) >= sent, (
+                stage,
+                topic,
+                len(on_topic),
+                len(dups),
+                sent,
+                fuzz.by_kind,
+                sorted({e["field"] for e in on_topic}),
+            )
         assert not [e for e in rec.json("errors") if e["kind"] == "failed"], (stage, rec.json("errors")[:3])
         first = [e for e in refused if e["kind"] == "conflict" and e["field"] == "payload"]
         assert all(e["details"]["first_copy"] == "used" for e in first), (stage, first[:3])
@@ -307,6 +368,7 @@ def test_fuzz_of_hostile_messages_changes_nothing(clean, tmp_path):
 
 # ---------------------------------------------------------------------------- kills and restarts
 
+
 def _handled(board: dict, stage: str) -> int:
     msg = board.get(stage)
     return sum(b - a + 1 for a, b in (msg or {}).get("done", ())) if msg else 0
@@ -318,6 +380,7 @@ def _watch_board(bus: Bus, run: str) -> dict:
     def on_sample(sample):
         msg = json.loads(sample.payload.to_bytes())
         board[msg["stage"]] = msg
+
     bus.segment_subscriber(f"ttl/{run}/control/board/*", on_sample, history=1)
     return board
 
@@ -331,8 +394,9 @@ def test_stage_killed_mid_run_restarts_exactly(stage, clean, tmp_path):
     procs = Procs(tmp_path)
     run = f"kill-{stage.replace('_', '-')}"
     try:
-        proc = procs.ttl(*run_args(run, tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--restart", "1",
-                                   "--pace", "450"))
+        proc = procs.ttl(
+            *run_args(run, tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--restart", "1", "--pace", "450")
+        )
         with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
             board = _watch_board(bus, run)
             wait_for(lambda: _handled(board, stage) >= 3 or proc.poll() is not None, 600, f"{stage} at segment 3")
@@ -380,8 +444,9 @@ def test_router_killed_mid_run_is_restarted(clean, tmp_path):
     procs = Procs(tmp_path)
     run = "kill-router"
     try:
-        proc = procs.ttl(*run_args(run, tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--restart", "1",
-                                   "--pace", "450"))
+        proc = procs.ttl(
+            *run_args(run, tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--restart", "1", "--pace", "450")
+        )
         with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
             board = _watch_board(bus, run)
             wait_for(lambda: _handled(board, "fitter") >= 2 or proc.poll() is not None, 600, "fitter at segment 2")
@@ -419,8 +484,11 @@ def test_launcher_killed_then_resumed_completes_the_run(clean, tmp_path):
         with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
             board = _watch_board(bus, run)
             # every stage past segment 1 (the monitor comes last): the resume starts at 2 or later
-            wait_for(lambda: min(_handled(board, s) for s in STAGES) >= 2 or proc.poll() is not None, 600,
-                     "every stage at segment 2")
+            wait_for(
+                lambda: min(_handled(board, s) for s in STAGES) >= 2 or proc.poll() is not None,
+                600,
+                "every stage at segment 2",
+            )
         everything = psutil.Process(proc.pid).children(recursive=True)
         first_pid = proc.pid
         proc.kill()
@@ -446,8 +514,9 @@ def test_launcher_killed_then_resumed_completes_the_run(clean, tmp_path):
         for i, arrays in copies.items():
             for a in arrays:
                 for name, arr in reference[topic][i].items():
-                    np.testing.assert_allclose(a[name], arr, rtol=1e-9, atol=0, equal_nan=True,
-                                               err_msg=f"{topic} {i} {name}")
+                    np.testing.assert_allclose(
+                        a[name], arr, rtol=1e-9, atol=0, equal_nan=True, err_msg=f"{topic} {i} {name}"
+                    )
     res = subprocess.run(ttl_command("inspect", str(run_dir)), capture_output=True, text=True, timeout=300)
     assert f"ttl run (pid {first_pid}) ended without its end record (killed)" in res.stdout, res.stdout[-3000:]
     assert "launcher: resume: resumed: segments 0.." in res.stdout, res.stdout[-3000:]
@@ -464,14 +533,27 @@ def test_restarted_fitter_keeps_the_model_changed_by_control(tmp_path):
     run = "kill-model"
     effects = ["linear-ttl", "drift"]
     try:
-        proc = procs.ttl(*run_args(run, tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--restart", "1",
-                                   "--pace", "450"))
+        proc = procs.ttl(
+            *run_args(run, tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--restart", "1", "--pace", "450")
+        )
         with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
             board = _watch_board(bus, run)
             wait_for(lambda: _handled(board, "fitter") >= 2 or proc.poll() is not None, 600, "fitter at segment 2")
-            sent = subprocess.run(ttl_command("control", "fitter", "model", json.dumps({"effects": effects}),
-                                              "--run", run, "--connect", f"tcp/127.0.0.1:{port}"),
-                                  capture_output=True, text=True, timeout=90)
+            sent = subprocess.run(
+                ttl_command(
+                    "control",
+                    "fitter",
+                    "model",
+                    json.dumps({"effects": effects}),
+                    "--run",
+                    run,
+                    "--connect",
+                    f"tcp/127.0.0.1:{port}",
+                ),
+                capture_output=True,
+                text=True,
+                timeout=90,
+            )
             assert sent.returncode == 0, (sent.stdout, sent.stderr)
             # the segment the change applies from (its 'model' event), then one fit beyond it
             run_dir = tmp_path / "rec" / run
@@ -479,11 +561,15 @@ def test_restarted_fitter_keeps_the_model_changed_by_control(tmp_path):
             def model_event():
                 found = [e for e in read_recording(run_dir / "fitter.mcap").json("events") if e["kind"] == "model"]
                 return found[0]["details"]["from_index"] if found else None
+
             wait_for(lambda: model_event() is not None or proc.poll() is not None, 120, "the model event")
             start = model_event()
             assert start is not None and start < SEGMENTS - 1, (start, output(proc)[-3000:])
-            wait_for(lambda: _handled(board, "fitter") >= start + 1 or proc.poll() is not None, 600,
-                     f"fitter past segment {start}")
+            wait_for(
+                lambda: _handled(board, "fitter") >= start + 1 or proc.poll() is not None,
+                600,
+                f"fitter past segment {start}",
+            )
             stage_processes(proc)["fitter"].send_signal(signal.SIGKILL)
             code = finish(proc, 900)
         out = output(proc)
@@ -513,8 +599,7 @@ def test_launcher_killed_stages_stop_with_a_clear_error(clean, tmp_path):
     port = free_port()
     procs = Procs(tmp_path)
     try:
-        proc = procs.ttl(*run_args("orphans", tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}",
-                                   "--pace", "450"))
+        proc = procs.ttl(*run_args("orphans", tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--pace", "450"))
         with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
             board = _watch_board(bus, "orphans")
             wait_for(lambda: _handled(board, "fitter") >= 1 or proc.poll() is not None, 600, "the first fit")
@@ -537,18 +622,20 @@ def test_launcher_killed_stages_stop_with_a_clear_error(clean, tmp_path):
         stop = [e for e in rec.json("events") if e["kind"] == "stop"]
         assert stop and stop[-1]["details"]["orphaned"] and "launcher" in stop[-1]["message"], (stage, stop)
         assert [e for e in rec.json("errors") if e["kind"] == "orphaned"], stage
-    res = __import__("subprocess").run(ttl_command("inspect", str(run_dir)), capture_output=True, text=True, timeout=300)
+    res = __import__("subprocess").run(
+        ttl_command("inspect", str(run_dir)), capture_output=True, text=True, timeout=300
+    )
     assert "orphaned" in res.stdout and "launcher" in res.stdout, res.stdout[-3000:]
     # what the run produced before it stopped is the clean run's
     partial, reference = results(run_dir), results(clean)
     assert partial["fit"], "no fit recorded before the launcher died"
     for topic in ("fit", "residual"):
         assert set(partial[topic]) <= set(reference[topic]), topic
-    assert_same_results({t: {i: reference[t][i] for i in partial[t]} for t in ("fit", "residual")}, partial,
-                        rtol=1e-9)
+    assert_same_results({t: {i: reference[t][i] for i in partial[t]} for t in ("fit", "residual")}, partial, rtol=1e-9)
 
 
 # ---------------------------------------------------------------------------- gaps
+
 
 def test_nan_gap_ends_the_run_with_the_gap_reported(tmp_path):
     """Ten minutes of NaN in eta: the run ends by itself (exit 0), the gap is reported, and
@@ -558,22 +645,37 @@ def test_nan_gap_ends_the_run_with_the_gap_reported(tmp_path):
     import h5py
 
     clean_file = tmp_path / "clean.h5"
-    res = subprocess.run(ttl_command("simulate", *SIM.split(), "--out", str(clean_file)), capture_output=True,
-                         text=True, timeout=600)
+    res = subprocess.run(
+        ttl_command("simulate", *SIM.split(), "--out", str(clean_file)), capture_output=True, text=True, timeout=600
+    )
     assert res.returncode == 0, res.stderr
     gap_file = tmp_path / "gap.h5"
     gap_file.write_bytes(clean_file.read_bytes())
     with h5py.File(gap_file, "r+") as f:
         fs = 4.0
         a = int(2.5 * 3600 * fs)
-        f["eta"][:, a:a + int(600 * fs)] = np.nan  # 10 min in the middle of hour 2
+        f["eta"][:, a : a + int(600 * fs)] = np.nan  # 10 min in the middle of hour 2
     procs = Procs(tmp_path)
     try:
         runs = {}
         for name, path in (("clean", clean_file), ("gap", gap_file)):
-            proc = procs.start(ttl_command("run", "--telemetry", str(path), "--segment", "1h", "--run-id", name,
-                                           "--recordings", str(tmp_path / "rec"), "--timeout", "900", "--insecure"),
-                               name)
+            proc = procs.start(
+                ttl_command(
+                    "run",
+                    "--telemetry",
+                    str(path),
+                    "--segment",
+                    "1h",
+                    "--run-id",
+                    name,
+                    "--recordings",
+                    str(tmp_path / "rec"),
+                    "--timeout",
+                    "900",
+                    "--insecure",
+                ),
+                name,
+            )
             runs[name] = (finish(proc, 900), output(proc))
     finally:
         procs.close()

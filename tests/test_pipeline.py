@@ -47,14 +47,32 @@ from streamer.session import Bus, SessionSettings, free_port
 SIM = "--duration 12h --orbit unequal --seed 1"
 SEGMENTS = 12
 STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if MONITOR else [])
-OUTPUT = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit", "subtractor": "residual",
-          "monitor": "monitor"}
+OUTPUT = {
+    "replayer": "telemetry",
+    "tdi_builder": "tdi",
+    "fitter": "fit",
+    "subtractor": "residual",
+    "monitor": "monitor",
+}
 NO_MONITOR = [] if MONITOR else ["--skip", "monitor"]  # the monitor is written separately
 
 
 def run_args(run_id: str, rec: Path, *extra) -> list[str]:
-    return ["run", "--simulate", SIM, "--segment", "1h", "--run-id", run_id, "--recordings", str(rec),
-            "--timeout", "200", *NO_MONITOR, *extra]
+    return [
+        "run",
+        "--simulate",
+        SIM,
+        "--segment",
+        "1h",
+        "--run-id",
+        run_id,
+        "--recordings",
+        str(rec),
+        "--timeout",
+        "200",
+        *NO_MONITOR,
+        *extra,
+    ]
 
 
 @pytest.fixture(scope="module")
@@ -82,8 +100,9 @@ def t1(tmp_path_factory):
         sockets["launcher"] = (*listening(psutil.Process(proc.pid)), [])
         sockets["router"] = (*listening(router_process(proc)), [])
         code = finish(proc, 240)
-        yield SimpleNamespace(code=code, out=output(proc), dir=tmp / "rec" / "t1", sockets=sockets,
-                              seconds=time.monotonic() - t_start)
+        yield SimpleNamespace(
+            code=code, out=output(proc), dir=tmp / "rec" / "t1", sockets=sockets, seconds=time.monotonic() - t_start
+        )
     finally:
         procs.close()
 
@@ -105,7 +124,9 @@ def test_run_exits_0_with_every_segment_exactly_once_per_stage(t1):
     if MONITOR:
         assert (t1.dir / "monitor.rrd").exists()
     # inputs as references (headers whose checksum names the payload in the producer's file)
-    published = {h.index: h.checksum for h in (s.header for s in read_recording(t1.dir / "replayer.mcap").segments("telemetry"))}
+    published = {
+        h.index: h.checksum for h in (s.header for s in read_recording(t1.dir / "replayer.mcap").segments("telemetry"))
+    }
     tdi_rec = read_recording(t1.dir / "tdi_builder.mcap")
     assert indices(tdi_rec, "telemetry") == []  # each payload stored once
     assert {h["index"]: h["checksum"] for h in tdi_rec.json("telemetry/input")} == published
@@ -120,6 +141,7 @@ def test_recordings_fit_the_size_budget(t1):
     """Full-fidelity MCAP recordings of the five stages stay within 120 MB per simulated day
     (each payload stored once, zstd chunks): measured on this 12-h run, scaled to a day."""
     from mcap.reader import make_reader
+
     total = sum(p.stat().st_size for p in t1.dir.glob("*.mcap"))
     per_day = total * 86400.0 / (SEGMENTS * 3600.0)
     print(f"t1 recordings: {total / 1e6:.1f} MB for {SEGMENTS} h, {per_day / 1e6:.1f} MB per simulated day")
@@ -171,8 +193,11 @@ def test_message_contracts_and_streaming_equals_batch(t1):
     assert all(tel[i].arrays["eta"].shape == (6, 14400) and tel[i].header.t0 == 3600.0 * i for i in range(SEGMENTS))
 
     # TDI streamed segment by segment equals TDI of the whole stretch
-    whole = Telemetry(t0=0.0, fs=4.0, **{k: np.concatenate([s.arrays[k] for s in tel], axis=1)
-                                         for k in ("eta", "dws_phi", "dws_eta", "ltt")})
+    whole = Telemetry(
+        t0=0.0,
+        fs=4.0,
+        **{k: np.concatenate([s.arrays[k] for s in tel], axis=1) for k in ("eta", "dws_phi", "dws_eta", "ltt")},
+    )
     batch = compute_tdi(whole)
     tdi = read_recording(t1.dir / "tdi_builder.mcap").segments("tdi")
     assert tdi[0].header.channels == ("X2", "Y2", "Z2") and tdi[0].header.meta["names"] == list(COEFFICIENT_NAMES)
@@ -180,7 +205,13 @@ def test_message_contracts_and_streaming_equals_batch(t1):
     # below through the subtractor's TTL model, which the tdi_builder's published regressors make
     # (and the forwarded telemetry, which the replayer's recording holds)
     assert set(tdi[0].arrays) == {"data"} and tdi[0].header.meta["recorded"]["published_arrays"] == [
-        "data", "regressors", "eta", "dws_phi", "dws_eta", "ltt"]
+        "data",
+        "regressors",
+        "eta",
+        "dws_phi",
+        "dws_eta",
+        "ltt",
+    ]
     data = np.concatenate([s.arrays["data"] for s in tdi], axis=1)
     regs = batch.regressors
     # to 1e-9 of the largest sample: streamed and batch TDI cut the engine's blocks at different
@@ -195,8 +226,14 @@ def test_message_contracts_and_streaming_equals_batch(t1):
     assert meta["names"] == list(COEFFICIENT_NAMES) and meta["segments"] == SEGMENTS and meta["converged"]
     assert {"chi2_dof", "t_start", "t_stop", "band"} <= set(meta)
     assert last.arrays["coefficients"].shape == (24,) and last.arrays["covariance"].shape == (24, 24)
-    td = TDIData(t0=0.0, fs=4.0, channels=("X2", "Y2", "Z2"), data=data, regressors=regs,
-                 ltt_mean=np.asarray(tdi[0].header.meta["ltt_mean"]))
+    td = TDIData(
+        t0=0.0,
+        fs=4.0,
+        channels=("X2", "Y2", "Z2"),
+        data=data,
+        regressors=regs,
+        ltt_mean=np.asarray(tdi[0].header.meta["ltt_mean"]),
+    )
     res, _ = fit_tdi(td, FitSettings(segment_duration=3600.0, dws_asd=tel[0].header.meta["dws_asd"]))
     # (ttl analyze calls fit_tdi; same settings as the fitter's: 1-h FFT segments, the DWS level passed down)
     # the fitter's regressors were streamed, these are batch: equal to 1e-4 sigma, the covariance
@@ -208,6 +245,7 @@ def test_message_contracts_and_streaming_equals_batch(t1):
     assert fits.schemas["fit/summary"][0] == "ttl.Fit"
     # coefficients near the truth (paper set, 2.3 mm/rad scale): within 5 sigma
     from ttlcore.sim.coefficients import paper_set
+
     truth = np.asarray(paper_set(), dtype=float)
     assert np.all(np.abs(last.arrays["coefficients"] - truth) < 5 * last.arrays["sigma"])
 
@@ -215,17 +253,22 @@ def test_message_contracts_and_streaming_equals_batch(t1):
     res_rec = read_recording(t1.dir / "subtractor.mcap").segments("residual")
     for i in (0, SEGMENTS - 1):
         r = res_rec[i]
-        assert r.header.meta["fit_index"] == i and r.header.meta["coefficients_t_stop"] == fits.segments("fit")[i].header.meta["t_stop"]
+        assert (
+            r.header.meta["fit_index"] == i
+            and r.header.meta["coefficients_t_stop"] == fits.segments("fit")[i].header.meta["t_stop"]
+        )
         c = fits.segments("fit")[i].arrays["coefficients"]
         n = tdi[i].arrays["data"].shape[1]
-        model = np.einsum("k,ckn->cn", c, regs[:, :, i * n:(i + 1) * n])  # streamed regressors = batch (1e-9)
+        model = np.einsum("k,ckn->cn", c, regs[:, :, i * n : (i + 1) * n])  # streamed regressors = batch (1e-9)
         np.testing.assert_allclose(r.arrays["ttl_model"], model, rtol=1e-9, atol=1e-9 * np.nanmax(np.abs(model)))
-        np.testing.assert_allclose(r.arrays["residual"], tdi[i].arrays["data"] - r.arrays["ttl_model"],
-                                   rtol=1e-12, atol=1e-30)
+        np.testing.assert_allclose(
+            r.arrays["residual"], tdi[i].arrays["data"] - r.arrays["ttl_model"], rtol=1e-12, atol=1e-30
+        )
 
 
 def _progress_watch(bus, run, stage):
     from streamer.keys import progress_pattern
+
     seen = queue.Queue()
     bus.segment_subscriber(progress_pattern(run), lambda s: seen.put(json.loads(s.payload.to_bytes())), history=1)
     state = {"done": set()}
@@ -239,6 +282,7 @@ def _progress_watch(bus, run, stage):
             if msg["stage"] == stage:
                 for a, b in msg["done"]:
                     state["done"].update(range(a, b + 1))
+
     return count
 
 
@@ -248,9 +292,12 @@ def test_stage_killed_and_restarted_mid_run_misses_nothing(t1, tmp_path):
     creds = ensure_credentials(tmp_path / "creds")
     procs = Procs(tmp_path)
     try:
-        proc = procs.ttl(*run_args("t2", tmp_path / "rec", "--restart", "1", "--listen", endpoint,
-                                   "--credentials", creds))
-        with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="control")) as bus:
+        proc = procs.ttl(
+            *run_args("t2", tmp_path / "rec", "--restart", "1", "--listen", endpoint, "--credentials", creds)
+        )
+        with Bus.open(
+            SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="control")
+        ) as bus:
             time.sleep(0.5)
             done = _progress_watch(bus, "t2", "tdi_builder")
             wait_for(lambda: done() >= 4 or proc.poll() is not None, 90, "4 segments through the tdi_builder")
@@ -304,26 +351,71 @@ def test_late_joiners_catch_up_from_the_caches(tmp_path):
     procs = Procs(tmp_path)
     late = {}
     try:
-        proc = procs.ttl("run", "--simulate", "--duration 6h --orbit unequal --seed 2", "--segment", "30min",
-                         "--run-id", "t3", "--recordings", str(rec), *[a for s in late_stages for a in ("--external", s)],
-                         "--cache", "16", "--listen", endpoint, "--credentials", creds, "--timeout", "200",
-                         *NO_MONITOR)
-        with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="control")) as bus:
+        proc = procs.ttl(
+            "run",
+            "--simulate",
+            "--duration 6h --orbit unequal --seed 2",
+            "--segment",
+            "30min",
+            "--run-id",
+            "t3",
+            "--recordings",
+            str(rec),
+            *[a for s in late_stages for a in ("--external", s)],
+            "--cache",
+            "16",
+            "--listen",
+            endpoint,
+            "--credentials",
+            creds,
+            "--timeout",
+            "200",
+            *NO_MONITOR,
+        )
+        with Bus.open(
+            SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="control")
+        ) as bus:
             time.sleep(0.5)
             replayed = _progress_watch(bus, "t3", "replayer")
             subtracted = _progress_watch(bus, "t3", "subtractor")
             wait_for(lambda: replayed() >= SEGMENTS // 2 or proc.poll() is not None, 90, "half the replay")
             assert proc.poll() is None, output(proc)[-3000:]
             # its cache holds every residual, so that the late monitor gets them all from history
-            late["subtractor"] = procs.ttl("stage", "subtractor", "--run", "t3", "--connect", endpoint,
-                                           "--recordings", str(rec), "--credentials", creds, "--cache", "16",
-                                           name="subtractor")
+            late["subtractor"] = procs.ttl(
+                "stage",
+                "subtractor",
+                "--run",
+                "t3",
+                "--connect",
+                endpoint,
+                "--recordings",
+                str(rec),
+                "--credentials",
+                creds,
+                "--cache",
+                "16",
+                name="subtractor",
+            )
             if MONITOR:
-                wait_for(lambda: subtracted() >= SEGMENTS or proc.poll() is not None, 120,
-                         "every segment through the late subtractor")
+                wait_for(
+                    lambda: subtracted() >= SEGMENTS or proc.poll() is not None,
+                    120,
+                    "every segment through the late subtractor",
+                )
                 assert proc.poll() is None, output(proc)[-3000:]
-                late["monitor"] = procs.ttl("stage", "monitor", "--run", "t3", "--connect", endpoint,
-                                            "--recordings", str(rec), "--credentials", creds, name="monitor")
+                late["monitor"] = procs.ttl(
+                    "stage",
+                    "monitor",
+                    "--run",
+                    "t3",
+                    "--connect",
+                    endpoint,
+                    "--recordings",
+                    str(rec),
+                    "--credentials",
+                    creds,
+                    name="monitor",
+                )
             code = finish(proc, 240)
             for stage, p in late.items():
                 assert finish(p, 60) == 0, (stage, output(p)[-3000:])
@@ -331,8 +423,9 @@ def test_late_joiners_catch_up_from_the_caches(tmp_path):
         procs.close()
     assert code == 0, output(proc)[-5000:]
     # no error from the pipeline stages (history arrives out of order: that is not a gap)
-    assert not [ln for ln in output(proc).splitlines()
-                if any(f"error from {s}" in ln for s in STAGES if s != "monitor")], output(proc)[-5000:]
+    assert not [
+        ln for ln in output(proc).splitlines() if any(f"error from {s}" in ln for s in STAGES if s != "monitor")
+    ], output(proc)[-5000:]
     recordings = {stage: read_recording(rec / "t3" / f"{stage}.mcap") for stage in late_stages}
     for stage, recording in recordings.items():
         assert ("complete", SEGMENTS - 1) in [(e["kind"], e["index"]) for e in recording.json("events")], stage
@@ -340,19 +433,25 @@ def test_late_joiners_catch_up_from_the_caches(tmp_path):
     residuals = sorted(recordings["subtractor"].segments("residual"), key=lambda r: r.header.index)
     assert [r.header.index for r in residuals] == list(range(SEGMENTS))  # every segment, once
     assert [r.header.meta["fit_index"] for r in residuals] == list(range(SEGMENTS))
-    assert sorted(indices(recordings["subtractor"], "tdi")) == list(range(SEGMENTS))  # a stage run alone records its inputs
+    assert sorted(indices(recordings["subtractor"], "tdi")) == list(
+        range(SEGMENTS)
+    )  # a stage run alone records its inputs
     if MONITOR:
         # the monitor drew every segment of every input it follows, and its Rerun file holds them
         assert sorted(indices(recordings["monitor"], "monitor")) == list(range(SEGMENTS))
         # all from the caches: no segment waited for an input that did not come
         assert "did not come within" not in output(late["monitor"]), output(late["monitor"])[-3000:]
         from test_monitor import rrd_entities  # tests/stages: reads a .rrd with Rerun's reader
+
         ent = rrd_entities(rec / "t3" / "monitor.rrd")
         fits = [row[0]["segment"] for row in ent["/coefficients/12/phi_rx/fit"] if "Scalars:scalars" in row[1]]
         assert sorted(fits) == list(range(SEGMENTS))
         # a simulation on the fly: the truth drawn is the simulation's coefficient model (paper set)
         from ttlcore.sim.coefficients import paper_set
-        truth = [row[1]["Scalars:scalars"][0] for row in ent["/coefficients/12/phi_rx/truth"] if "Scalars:scalars" in row[1]]
+
+        truth = [
+            row[1]["Scalars:scalars"][0] for row in ent["/coefficients/12/phi_rx/truth"] if "Scalars:scalars" in row[1]
+        ]
         assert len(truth) == SEGMENTS and np.allclose(truth, paper_set()[0] * 1e3)
 
 
@@ -387,4 +486,3 @@ def test_router_listens_on_loopback_only(tmp_path):
         assert finish(router, 20) == 0, output(router)
     finally:
         procs.close()
-

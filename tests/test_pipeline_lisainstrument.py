@@ -16,8 +16,13 @@ from ttl_testutil import MONITOR, Procs, finish, indices, output
 from streamer.recorder import read_recording
 
 STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if MONITOR else [])
-OUTPUT = {"replayer": "telemetry", "tdi_builder": "tdi", "fitter": "fit", "subtractor": "residual",
-          "monitor": "monitor"}
+OUTPUT = {
+    "replayer": "telemetry",
+    "tdi_builder": "tdi",
+    "fitter": "fit",
+    "subtractor": "residual",
+    "monitor": "monitor",
+}
 
 
 def test_lisainstrument_file_replayed_through_the_pipeline(tmp_path):
@@ -29,8 +34,20 @@ def test_lisainstrument_file_replayed_through_the_pipeline(tmp_path):
     simulate_lisainstrument(li, duration=2 * 3600 + 600, orbits="static", seed=5)  # margin for its t0 handling
     procs = Procs(tmp_path)
     try:
-        proc = procs.ttl("run", "--telemetry", li, "--segment", "30min", "--run-id", "li",
-                         "--recordings", tmp_path / "rec", "--timeout", "300", *([] if MONITOR else ["--skip", "monitor"]))
+        proc = procs.ttl(
+            "run",
+            "--telemetry",
+            li,
+            "--segment",
+            "30min",
+            "--run-id",
+            "li",
+            "--recordings",
+            tmp_path / "rec",
+            "--timeout",
+            "300",
+            *([] if MONITOR else ["--skip", "monitor"]),
+        )
         code = finish(proc, 300)
     finally:
         procs.close()
@@ -50,19 +67,26 @@ def test_lisainstrument_file_replayed_through_the_pipeline(tmp_path):
 
     # the replayed telemetry is our reader's view of the lisainstrument file
     assert tel[0].header.meta["source"] == str(li.resolve())
-    replayed = Telemetry(t0=tel[0].header.t0, fs=4.0, **{k: np.concatenate([s.arrays[k] for s in tel], axis=1)
-                                                          for k in ("eta", "dws_phi", "dws_eta", "ltt")})
+    replayed = Telemetry(
+        t0=tel[0].header.t0,
+        fs=4.0,
+        **{k: np.concatenate([s.arrays[k] for s in tel], axis=1) for k in ("eta", "dws_phi", "dws_eta", "ltt")},
+    )
     direct = read_telemetry(li)
     n0 = int(round((replayed.t0 - direct.t0) * direct.fs))
-    np.testing.assert_array_equal(replayed.eta, direct.eta[:, n0:n0 + replayed.size])
-    np.testing.assert_array_equal(replayed.dws_phi, direct.dws_phi[:, n0:n0 + replayed.size])
+    np.testing.assert_array_equal(replayed.eta, direct.eta[:, n0 : n0 + replayed.size])
+    np.testing.assert_array_equal(replayed.dws_phi, direct.dws_phi[:, n0 : n0 + replayed.size])
 
     # streamed TDI equals the batch TDI of the same telemetry
     tdi = sorted(read_recording(run / "tdi_builder.mcap").segments("tdi"), key=lambda s: s.header.index)
     batch = compute_tdi(replayed)
     # to 1e-9 of the largest sample (streamed and batch TDI cut the engine's blocks at different places)
-    np.testing.assert_allclose(np.concatenate([s.arrays["data"] for s in tdi], axis=1), batch.data,
-                               rtol=1e-9, atol=1e-9 * np.nanmax(np.abs(batch.data)))
+    np.testing.assert_allclose(
+        np.concatenate([s.arrays["data"] for s in tdi], axis=1),
+        batch.data,
+        rtol=1e-9,
+        atol=1e-9 * np.nanmax(np.abs(batch.data)),
+    )
     # the last fit (2 h window) sees the lisainstrument default coefficients' TTL: finite, converged
     last = read_recording(run / "fitter.mcap").segments("fit")[-1]
     assert np.all(np.isfinite(last.arrays["coefficients"])) and last.header.meta["converged"]

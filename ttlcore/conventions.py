@@ -103,6 +103,7 @@ def paper_ordered_names() -> list[str]:
 # Unit conversions
 # ---------------------------------------------------------------------------
 
+
 def hz_to_ffd(x_hz):
     """Beat-note frequency fluctuation [Hz] -> fractional frequency deviation, ``x / nu0``."""
     return np.asarray(x_hz) / NU0
@@ -141,8 +142,9 @@ def angular_velocity_to_angle_asd(asd_velocity, f):
     return np.asarray(asd_velocity) / (2 * np.pi * np.asarray(f))
 
 
-def finite_number(value, what: str, *, positive: bool = False, unit: str = "",
-                  error: type[Exception] = ConfigError) -> float:
+def finite_number(
+    value, what: str, *, positive: bool = False, unit: str = "", error: type[Exception] = ConfigError
+) -> float:
     """``float(value)``, checked finite (and > 0 with ``positive``).
 
     Raises

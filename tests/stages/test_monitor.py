@@ -31,15 +31,17 @@ from ttlcore.io.truth import CORE_DATASETS, TruthWriter
 RUN = "monitor-test"
 HOUR = 3600.0
 FS = 4.0
-N_SAMPLES = 7200            # half-hour segments keep the test light; the monitor takes any length
+N_SAMPLES = 7200  # half-hour segments keep the test light; the monitor takes any length
 N_FITS = 36
 STEP_COEF = "23.phi.tx"
-STEP_FIT = 20               # the step enters the window of fit 20
-STEP = 0.3e-3               # [m/rad]
-SIGMA = 0.01e-3             # per-window uncertainty of a full window [m/rad]
+STEP_FIT = 20  # the step enters the window of fit 20
+STEP = 0.3e-3  # [m/rad]
+SIGMA = 0.01e-3  # per-window uncertainty of a full window [m/rad]
 TRUTH_FS = 1 / 60.0
-DIAGNOSIS = {"text": "A step in 23.phi.tx explains the excess below 10 mHz.",
-             "recommendation": "refit with step:t_step=20h"}
+DIAGNOSIS = {
+    "text": "A step in 23.phi.tx explains the excess below 10 mHz.",
+    "recommendation": "refit with step:t_step=20h",
+}
 
 
 def truth_coefficients(t):
@@ -67,13 +69,19 @@ def rolling_fits(seed=0):
     for k in range(N_FITS):
         a = max(0, k - 23)
         n = k + 1 - a
-        out.append((a * HOUR, (k + 1) * HOUR, seg[a:k + 1].mean(axis=0), np.full(24, SIGMA * math.sqrt(24 / n))))
+        out.append((a * HOUR, (k + 1) * HOUR, seg[a : k + 1].mean(axis=0), np.full(24, SIGMA * math.sqrt(24 / n))))
     return out
 
 
 def message(topic, index, arrays, meta, t0=None, fs=FS):
-    fields = {"run": RUN, "index": index, "t0": index * HOUR if t0 is None else t0, "fs": fs, "producer": "driver",
-              "meta": meta}
+    fields = {
+        "run": RUN,
+        "index": index,
+        "t0": index * HOUR if t0 is None else t0,
+        "fs": fs,
+        "producer": "driver",
+        "meta": meta,
+    }
     if topic in ("tdi", "residual"):
         fields.update(channels=["X2", "Y2", "Z2"], channel_axis=0)
     return encode(arrays, fields, allow_nonfinite=True)
@@ -86,8 +94,11 @@ class Driver:
         self.pubs = {t: self.bus.segment_publisher(RUN, t, cache=64) for t in ("telemetry", "tdi", "fit", "residual")}
         self.monitor: queue.Queue = queue.Queue()
         self.errors: list = []
-        self.bus.segment_subscriber(topic_pattern(RUN, "monitor"), lambda s: self.monitor.put(
-            decode(s.payload.to_bytes(), s.attachment.to_bytes(), key=str(s.key_expr))), history=0)
+        self.bus.segment_subscriber(
+            topic_pattern(RUN, "monitor"),
+            lambda s: self.monitor.put(decode(s.payload.to_bytes(), s.attachment.to_bytes(), key=str(s.key_expr))),
+            history=0,
+        )
         self.bus.subscriber(f"ttl/{RUN}/errors/*", lambda s: self.errors.append(json.loads(s.payload.to_bytes())))
         self.truth = truth
         self.rng = np.random.default_rng(7)
@@ -95,24 +106,58 @@ class Driver:
 
     def telemetry(self, i):
         ltt = np.full((6, N_SAMPLES), 2.5e9 / C) + np.arange(6)[:, None] * 1e-3
-        self.pubs["telemetry"].put(i, *message("telemetry", i, {"ltt": ltt}, {
-            "source": "test", "segments_total": N_FITS + 10, "truth": str(self.truth), "segment_duration": N_SAMPLES / FS}))
+        self.pubs["telemetry"].put(
+            i,
+            *message(
+                "telemetry",
+                i,
+                {"ltt": ltt},
+                {
+                    "source": "test",
+                    "segments_total": N_FITS + 10,
+                    "truth": str(self.truth),
+                    "segment_duration": N_SAMPLES / FS,
+                },
+            ),
+        )
 
     def tdi_and_residual(self, i):
         white = self.rng.normal(0.0, 1e-21, (3, N_SAMPLES))
         ttl = np.cumsum(self.rng.normal(0.0, 1e-22, (3, N_SAMPLES)), axis=1)
         data = white + ttl
         data[:, :40] = np.nan  # the first samples of a stream are NaN
-        self.pubs["tdi"].put(i, *message("tdi", i, {"data": data}, {
-            "names": list(COEFFICIENT_NAMES), "ltt_mean": [2.5e9 / C] * 6, "segments_total": N_FITS + 10}))
-        self.pubs["residual"].put(i, *message("residual", i, {"residual": data - ttl, "ttl_model": ttl}, {
-            "fit_index": i, "segments_total": N_FITS + 10}))
+        self.pubs["tdi"].put(
+            i,
+            *message(
+                "tdi",
+                i,
+                {"data": data},
+                {"names": list(COEFFICIENT_NAMES), "ltt_mean": [2.5e9 / C] * 6, "segments_total": N_FITS + 10},
+            ),
+        )
+        self.pubs["residual"].put(
+            i,
+            *message(
+                "residual",
+                i,
+                {"residual": data - ttl, "ttl_model": ttl},
+                {"fit_index": i, "segments_total": N_FITS + 10},
+            ),
+        )
 
     def fit(self, k, **meta_override):
         ts, te, c, s = self.fits[k]
-        meta = {"names": list(COEFFICIENT_NAMES), "chi2_dof": 1.0 + 0.01 * k, "t_start": ts, "t_stop": te,
-                "segments": k + 1, "band": [3e-3, 0.9], "converged": True, **meta_override}
-        arrays = {"coefficients": c, "sigma": s, "covariance": np.diag(s ** 2)}
+        meta = {
+            "names": list(COEFFICIENT_NAMES),
+            "chi2_dof": 1.0 + 0.01 * k,
+            "t_start": ts,
+            "t_stop": te,
+            "segments": k + 1,
+            "band": [3e-3, 0.9],
+            "converged": True,
+            **meta_override,
+        }
+        arrays = {"coefficients": c, "sigma": s, "covariance": np.diag(s**2)}
         self.pubs["fit"].put(k, *message("fit", k, arrays, meta, t0=te - HOUR, fs=1 / HOUR))
 
     def close(self):
@@ -179,13 +224,21 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
     for k in range(10):
         driver.fit(k)
 
-    config = StageConfig(run=RUN, zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
-                         recordings=tmp_path / "rec", history=64, poll_interval=0.05)
+    config = StageConfig(
+        run=RUN,
+        zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
+        recordings=tmp_path / "rec",
+        history=64,
+        poll_interval=0.05,
+    )
     cfg = tmp_path / "monitor.json"
     cfg.write_text(json.dumps(config.to_dict()))
     proc = procs.stage("monitor", "--config", cfg)
-    wait_for(lambda: "monitor" in driver.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
-             60, "the monitor's liveliness token")
+    wait_for(
+        lambda: "monitor" in driver.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
+        60,
+        "the monitor's liveliness token",
+    )
     assert proc.poll() is None, output(proc)
     tcp = [c for c in psutil.Process(proc.pid).net_connections(kind="inet") if c.status == psutil.CONN_LISTEN]
     assert all(c.laddr.ip == "127.0.0.1" for c in tcp), tcp
@@ -205,23 +258,29 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
     driver.pubs["fit"].put(40, *bad)
     driver.fit(5, t_start=None)  # index 5 again (duplicate: ignored by the base)
     ts, te, c, s = driver.fits[-1]
-    no_window = message("fit", 41, {"coefficients": c, "sigma": s}, {"names": list(COEFFICIENT_NAMES)},
-                        t0=te, fs=1 / HOUR)
+    no_window = message(
+        "fit", 41, {"coefficients": c, "sigma": s}, {"names": list(COEFFICIENT_NAMES)}, t0=te, fs=1 / HOUR
+    )
     driver.pubs["fit"].put(41, *no_window)
 
     rec_dir = tmp_path / "rec" / RUN
 
     def fits_recorded():
         return len(read_recording(rec_dir / "monitor.mcap").segments("fit")) >= N_FITS
+
     # messages on different keys may arrive in any order: let every fit in before the last segment
     wait_for(fits_recorded, 30, "every fit received")
     last = N_FITS - 1
     driver.tdi_and_residual(last)  # the status of the last segment carries the alerts raised since
     statuses = [first] + [driver.monitor.get(timeout=30) for _ in range(3)]
     assert sorted(h.index for h, _ in statuses) == [0, 1, 2, last]
+
     def reported():
         return {(e["kind"], e["index"]) for e in driver.errors if e["stage"] == "monitor"} >= {
-            ("rejected", 40), ("failed", 41)}
+            ("rejected", 40),
+            ("failed", 41),
+        }
+
     wait_for(reported, 30, "the two error reports")
     errors = [(e["kind"], e["index"], e["field"]) for e in driver.errors if e["stage"] == "monitor"]
     assert ("rejected", 40, "arrays[coefficients].shape") in errors
@@ -267,8 +326,11 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
     centre = next(row[0]["mission_time"] for row in fit_rows if row[0]["segment"] == N_FITS - 1)
     assert centre.total_seconds() == pytest.approx((driver.fits[-1][0] + driver.fits[-1][1]) / 2)
     # truth averaged over each fit window (at least for the fits after the truth file was known)
-    truth = {row[0]["segment"]: row[1]["Scalars:scalars"][0] for row in ent["/coefficients/23/phi_tx/truth"]
-             if "Scalars:scalars" in row[1]}
+    truth = {
+        row[0]["segment"]: row[1]["Scalars:scalars"][0]
+        for row in ent["/coefficients/23/phi_tx/truth"]
+        if "Scalars:scalars" in row[1]
+    }
     assert len(truth) >= N_FITS - 10
     for k, value in truth.items():
         ts, te = driver.fits[k][:2]
@@ -291,11 +353,23 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
         assert np.all((points[:, 0] >= lo - 1e-6) & (points[:, 0] <= hi + 1e-6)), name  # log10 f in the band
         assert np.all(np.diff(points[:, 0]) > 0)
         assert np.all((points[:, 1] >= -13) & (points[:, 1] <= -9)), (name, points[:, 1])  # log10 m/sqrt(Hz)
-    req = np.concatenate([np.array(st) for st in [row for row in ent["/asd/plot/X2/requirement"]
-                                                  if "LineStrips2D:strips" in row[1]][0][1]["LineStrips2D:strips"]])
+    req = np.concatenate(
+        [
+            np.array(st)
+            for st in [row for row in ent["/asd/plot/X2/requirement"] if "LineStrips2D:strips" in row[1]][0][1][
+                "LineStrips2D:strips"
+            ]
+        ]
+    )
     assert req[0, 0] < lo + 0.2 and req[-1, 0] > hi - 0.1  # the requirement spans the band (1-h Welch: from 4 mHz)
-    data = np.concatenate([np.array(st) for st in [row for row in ent["/asd/plot/X2/data"]
-                                                   if "LineStrips2D:strips" in row[1]][0][1]["LineStrips2D:strips"]])
+    data = np.concatenate(
+        [
+            np.array(st)
+            for st in [row for row in ent["/asd/plot/X2/data"] if "LineStrips2D:strips" in row[1]][0][1][
+                "LineStrips2D:strips"
+            ]
+        ]
+    )
     # the white fractional-frequency noise is 1/f in displacement: slope -1 in log-log at high f
     # (-1.2 measured over 30 mHz - 0.3 Hz, where the curve stays in the science range: the
     # log-averaged Welch bins of a 1-h segment bend it; a wrong unit would give 0 or -2)
@@ -315,8 +389,9 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
     assert f"Drawn to segment {last}" in last_summary and "Alerts (1)" in last_summary, last_summary
     assert STEP_COEF in last_summary
     # the diagnosis panel: a placeholder at mission time 0, then the last fit's diagnosis
-    diagnoses = {row[0]["segment"]: row[1]["TextDocument:text"][0] for row in ent["/diagnosis"]
-                 if "TextDocument:text" in row[1]}
+    diagnoses = {
+        row[0]["segment"]: row[1]["TextDocument:text"][0] for row in ent["/diagnosis"] if "TextDocument:text" in row[1]
+    }
     assert "No diagnosis yet" in diagnoses.pop(0) and list(diagnoses) == [N_FITS - 1], diagnoses
     assert DIAGNOSIS["text"] in diagnoses[N_FITS - 1] and DIAGNOSIS["recommendation"] in diagnoses[N_FITS - 1]
 
@@ -361,8 +436,9 @@ def test_live_viewer_server_listens_on_loopback_only(procs, tmp_path):
     """``--live serve``: a headless ``rerun --serve-grpc --bind 127.0.0.1`` beside the file;
     it goes away with the monitor."""
     port = free_port()
-    proc = procs.stage("monitor", "--run", RUN, "--recordings", tmp_path / "rec", "--live", "serve",
-                       "--viewer-port", port)
+    proc = procs.stage(
+        "monitor", "--run", RUN, "--recordings", tmp_path / "rec", "--live", "serve", "--viewer-port", port
+    )
 
     def server():
         try:
@@ -373,13 +449,17 @@ def test_live_viewer_server_listens_on_loopback_only(procs, tmp_path):
         except psutil.Error:
             return None
         return None
+
     child, conns = wait_for(server, 60, "the rerun gRPC server")
     assert "--bind" in child.cmdline() and "127.0.0.1" in child.cmdline()
     listening = [c for c in conns if c.status == psutil.CONN_LISTEN]
     assert listening and all(c.laddr.ip == "127.0.0.1" for c in listening), listening
     rec = tmp_path / "rec" / RUN / "monitor.mcap"
-    wait_for(lambda: rec.exists() and any(e["kind"] == "start" for e in read_recording(rec).json("events")),
-             30, "the monitor's start event")
+    wait_for(
+        lambda: rec.exists() and any(e["kind"] == "start" for e in read_recording(rec).json("events")),
+        30,
+        "the monitor's start event",
+    )
     proc.send_signal(2)  # SIGINT
     assert finish(proc, 30) == 0, output(proc)
     wait_for(lambda: not child.is_running() or child.status() == psutil.STATUS_ZOMBIE, 10, "the server to stop")
@@ -424,7 +504,8 @@ def test_monitor_recording_is_batched_and_ends_with_a_footer(tmp_path):
     one_row_mb = 9.0 * (rows - warm) / 1000
     assert grown < 0.55 * one_row_mb, (
         f"RSS grew {grown:.1f} MB over {rows - warm} flushes of {entities} entities "
-        f"(one-row chunks: ~{one_row_mb:.0f} MB)")
+        f"(one-row chunks: ~{one_row_mb:.0f} MB)"
+    )
     assert rrd_footer(tmp_path / "m.rrd")
     chunks = list(RrdReader(tmp_path / "m.rrd").stream())
     # a chunk per entity and batch (plus the recording's properties), not one per row
@@ -447,8 +528,10 @@ def test_monitor_waits_for_an_alive_producer_and_fails_what_will_not_come(driver
     try:
         producers.declare_alive(RUN, "fitter")
         producers.declare_alive(RUN, "subtractor")
-        pubs = {s: declare_segment_publisher(producers.session, progress_key(RUN, s), cache=1)
-                for s in ("fitter", "subtractor")}
+        pubs = {
+            s: declare_segment_publisher(producers.session, progress_key(RUN, s), cache=1)
+            for s in ("fitter", "subtractor")
+        }
 
         def progress(fits):
             fitter = Progress("fitter", done=set(fits), extra={"fits": set(fits)})
@@ -458,12 +541,18 @@ def test_monitor_waits_for_an_alive_producer_and_fails_what_will_not_come(driver
         for i in (0, 1):
             driver.telemetry(i)
             driver.tdi_and_residual(i)
-        driver.fit(0)            # fit 1 announced below, published late
-        driver.fit(9)            # far ahead of the others (a forged copy sent ahead would be)
+        driver.fit(0)  # fit 1 announced below, published late
+        driver.fit(9)  # far ahead of the others (a forged copy sent ahead would be)
         progress({0, 1})
-        config = StageConfig(run=RUN, zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
-                             recordings=tmp_path / "rec", history=64, poll_interval=0.05, gap_grace=0.5,
-                             options={"settle_timeout": settle})
+        config = StageConfig(
+            run=RUN,
+            zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
+            recordings=tmp_path / "rec",
+            history=64,
+            poll_interval=0.05,
+            gap_grace=0.5,
+            options={"settle_timeout": settle},
+        )
         cfg = tmp_path / "monitor.json"
         cfg.write_text(json.dumps(config.to_dict()))
         proc = procs.stage("monitor", "--config", cfg)
@@ -475,15 +564,18 @@ def test_monitor_waits_for_an_alive_producer_and_fails_what_will_not_come(driver
 
         driver.telemetry(2)
         driver.tdi_and_residual(2)
-        progress({0, 1, 2})      # fit 2 announced, never published; then the fitter goes
+        progress({0, 1, 2})  # fit 2 announced, never published; then the fitter goes
         time.sleep(1.0)
         producers.close()
-        wait_for(lambda: [e for e in driver.errors if e["kind"] == "failed" and e["index"] == 2] or proc.poll() is not None,
-                 30, "segment 2 failed")
+        wait_for(
+            lambda: [e for e in driver.errors if e["kind"] == "failed" and e["index"] == 2] or proc.poll() is not None,
+            30,
+            "segment 2 failed",
+        )
         failed = [e for e in driver.errors if e["kind"] == "failed" and e["index"] == 2]
         assert "its fit did not come: fitter gone" in failed[0]["message"], failed
         with pytest.raises(queue.Empty):
-            driver.monitor.get(timeout=1.0)   # no status published for the failed segment
+            driver.monitor.get(timeout=1.0)  # no status published for the failed segment
         driver.bus.session.put(control_key(RUN, "stop"), b"")
         assert finish(proc, 60) == 0, output(proc)[-3000:]
     finally:

@@ -38,21 +38,21 @@ def test_in_order_settles_reorders_and_skips():
     q = InOrder(settle=0.2, gap_timeout=0.3)
     q.add(5, "e")
     q.add(3, "c")
-    assert list(q.ready()) == []                      # still collecting history
+    assert list(q.ready()) == []  # still collecting history
     time.sleep(0.25)
     q.add(4, "d")
     assert list(q.ready()) == [(3, "c"), (4, "d"), (5, "e")]
-    assert not q.add(2, "late")                       # behind the stream: stale
+    assert not q.add(2, "late")  # behind the stream: stale
     q.add(7, "g")
-    assert list(q.ready()) == []                      # 6 missing, 7 waits
+    assert list(q.ready()) == []  # 6 missing, 7 waits
     assert list(q.ready(skip=lambda i: i == 6)) == [(6, None), (7, "g")]
     q.add(9, "i")
     assert list(q.ready()) == []
     time.sleep(0.35)
-    assert list(q.ready()) == [(8, None), (9, "i")]   # gap timeout
+    assert list(q.ready()) == [(8, None), (9, "i")]  # gap timeout
     q2 = InOrder(settle=10)
     q2.add(0, "a")
-    assert list(q2.ready()) == [(0, "a")]             # index 0 needs no settling
+    assert list(q2.ready()) == [(0, "a")]  # index 0 needs no settling
     # conflicting copies: a buffered or future index is withdrawn and skipped in its turn
     q2.add(2, "c")
     assert q2.withdraw(2, "conflict") and q2.withdraw(3, "conflict") and not q2.withdraw(0, "conflict")
@@ -71,21 +71,21 @@ def test_in_order_settles_reorders_and_skips():
 def test_subtractor_applies_the_latest_fit_covering_each_segment(tmp_path):
     s = Subtractor(StageConfig(run="u", recordings=tmp_path))
     fit = {"coefficients": {}, "t_start": 0.0, "t_stop": 1.0}
-    assert s.choose(0) == ("wait", None)             # the fitter has not passed segment 0
+    assert s.choose(0) == ("wait", None)  # the fitter has not passed segment 0
     s.board.feed(sample({"stage": "fitter", "done": [[0, 1]], "fits_ranges": []}))
-    assert s.choose(0) == ("apply", None)            # passed, no fit yet: published unchanged
+    assert s.choose(0) == ("apply", None)  # passed, no fit yet: published unchanged
     s.board.feed(sample({"stage": "fitter", "done": [[0, 3]], "fits_ranges": [[2, 3]]}))
-    assert s.choose(2) == ("wait", None)             # fit 2 announced, not received yet
+    assert s.choose(2) == ("wait", None)  # fit 2 announced, not received yet
     s.fits[2] = fit
     assert s.choose(2) == ("apply", 2)
     assert s.choose(3) == ("wait", None)
     s.fits[3] = fit
     assert s.choose(3) == ("apply", 3)
     s.board.feed(sample({"stage": "fitter", "done": [[0, 5]], "fits_ranges": [[2, 3]]}))
-    assert s.choose(5) == ("apply", 3)               # no refit at 4, 5: the latest earlier fit
+    assert s.choose(5) == ("apply", 3)  # no refit at 4, 5: the latest earlier fit
     assert s.choose(6) == ("wait", None)
     s.fits[7] = fit
-    assert s.choose(6) == ("apply", 3)               # a later fit exists: the fitter passed 6
+    assert s.choose(6) == ("apply", 3)  # a later fit exists: the fitter passed 6
 
 
 def test_subtractor_keeps_only_the_fits_segments_to_come_can_get(tmp_path):
@@ -109,14 +109,22 @@ def test_subtractor_keeps_only_the_fits_segments_to_come_can_get(tmp_path):
     s._prune_fits()
     assert min(s.fits) == 530 and len(s.fits) == 47  # the latest fit at or before 600 - 64, and the later ones
     assert {i: s.choose(i) for i in range(600 - window, 1000)} == {
-        **{i: ("apply", i - i % 10) for i in range(600 - window, 600)}, **before}
+        **{i: ("apply", i - i % 10) for i in range(600 - window, 600)},
+        **before,
+    }
 
 
 def _file(path, t0, n, seed=0):
     rng = np.random.default_rng(seed)
-    tm = Telemetry(t0=t0, fs=4.0, eta=rng.standard_normal((6, n)), dws_phi=rng.standard_normal((6, n)),
-                   dws_eta=rng.standard_normal((6, n)), ltt=np.full((6, n), 8.3),
-                   config={"noises": {"dws": False}})
+    tm = Telemetry(
+        t0=t0,
+        fs=4.0,
+        eta=rng.standard_normal((6, n)),
+        dws_phi=rng.standard_normal((6, n)),
+        dws_eta=rng.standard_normal((6, n)),
+        ltt=np.full((6, n), 8.3),
+        config={"noises": {"dws": False}},
+    )
     write_telemetry(path, tm)
     return tm
 
@@ -155,8 +163,18 @@ def test_source_options_name_the_problem():
 
 def test_replayer_stays_within_window_of_the_slowest_stage(tmp_path):
     _file(tmp_path / "a.h5", 0.0, 400)
-    r = Replayer(StageConfig(run="u", recordings=tmp_path, options={
-        "telemetry": [str(tmp_path / "a.h5")], "segment": "10", "window": 2, "pace_on": ["tdi_builder", "fitter"]}))
+    r = Replayer(
+        StageConfig(
+            run="u",
+            recordings=tmp_path,
+            options={
+                "telemetry": [str(tmp_path / "a.h5")],
+                "segment": "10",
+                "window": 2,
+                "pace_on": ["tdi_builder", "fitter"],
+            },
+        )
+    )
     assert r.segments_total == 10
     assert r.lagging(1) == [] and r.lagging(2) == ["fitter", "tdi_builder"]
     r.board.feed(sample({"stage": "tdi_builder", "done": [[0, 4]]}))
@@ -169,8 +187,11 @@ def test_replayer_stays_within_window_of_the_slowest_stage(tmp_path):
 
 def test_replayer_paces_at_a_multiple_of_real_time(tmp_path, monkeypatch):
     _file(tmp_path / "a.h5", 0.0, 400)
-    r = Replayer(StageConfig(run="u", recordings=tmp_path, options={
-        "telemetry": [str(tmp_path / "a.h5")], "segment": "10", "pace": 100}))  # 10 s segments: one per 0.1 s
+    r = Replayer(
+        StageConfig(
+            run="u", recordings=tmp_path, options={"telemetry": [str(tmp_path / "a.h5")], "segment": "10", "pace": 100}
+        )
+    )  # 10 s segments: one per 0.1 s
     published = []
     monkeypatch.setattr(r, "publish", lambda out, source=None: published.append((time.monotonic(), out)))
     deadline = time.monotonic() + 5
@@ -194,11 +215,25 @@ def test_run_options_merge_config_file_and_command_line(tmp_path):
     from streamer.cli import register, run_options
     from ttlcore.cli.main import build_parser
 
-    (tmp_path / "run.toml").write_text('run_id = "from-file"\nsimulate = "--duration 6h"\nsegment = "30min"\n'
-                                       'window = 3\nskip = ["monitor"]\nfit_window = "6h"\n'
-                                       '[stages.monitor]\nlive = "serve"\n')
-    args = build_parser(register).parse_args(["run", "--config", str(tmp_path / "run.toml"), "--segment", "1h",
-                                      "--band", "0.004", "0.5", "--external", "subtractor,fitter"])
+    (tmp_path / "run.toml").write_text(
+        'run_id = "from-file"\nsimulate = "--duration 6h"\nsegment = "30min"\n'
+        'window = 3\nskip = ["monitor"]\nfit_window = "6h"\n'
+        '[stages.monitor]\nlive = "serve"\n'
+    )
+    args = build_parser(register).parse_args(
+        [
+            "run",
+            "--config",
+            str(tmp_path / "run.toml"),
+            "--segment",
+            "1h",
+            "--band",
+            "0.004",
+            "0.5",
+            "--external",
+            "subtractor,fitter",
+        ]
+    )
     o = run_options(args)
     assert (o.run_id, o.simulate, o.segment, o.window, o.skip) == ("from-file", "--duration 6h", "1h", 3, ("monitor",))
     assert o.external == ("subtractor", "fitter") and o.recordings == Path("recordings")
@@ -275,17 +310,32 @@ def test_fitter_window_keeps_one_window_of_telemetry(tmp_path):
     from ttlcore.io.telemetry import Telemetry
     from ttlcore.tdi.data import TDIData
 
-    fitter = Fitter(StageConfig(run="u", recordings=tmp_path, options={
-        "window_duration": "1800", "adequacy_every": 0, "diagnose_every": 0}))
+    fitter = Fitter(
+        StageConfig(
+            run="u", recordings=tmp_path, options={"window_duration": "1800", "adequacy_every": 0, "diagnose_every": 0}
+        )
+    )
     rng = np.random.default_rng(1)
     fs, n = 4.0, 2400
     segments = []
     for i in range(6):
         header = SimpleNamespace(index=i, t0=i * n / fs, meta={"segment_duration": n / fs})
-        td = TDIData(t0=header.t0, fs=fs, channels=("X2", "Y2", "Z2"), data=rng.standard_normal((3, n)),
-                     regressors=rng.standard_normal((3, len(COEFFICIENT_NAMES), n)), ltt_mean=np.full(6, 8.3))
-        tm = Telemetry(t0=header.t0, fs=fs, eta=rng.standard_normal((6, n)), dws_phi=rng.standard_normal((6, n)),
-                       dws_eta=rng.standard_normal((6, n)), ltt=np.full((6, n), 8.3))
+        td = TDIData(
+            t0=header.t0,
+            fs=fs,
+            channels=("X2", "Y2", "Z2"),
+            data=rng.standard_normal((3, n)),
+            regressors=rng.standard_normal((3, len(COEFFICIENT_NAMES), n)),
+            ltt_mean=np.full(6, 8.3),
+        )
+        tm = Telemetry(
+            t0=header.t0,
+            fs=fs,
+            eta=rng.standard_normal((6, n)),
+            dws_phi=rng.standard_normal((6, n)),
+            dws_eta=rng.standard_normal((6, n)),
+            ltt=np.full((6, n), 8.3),
+        )
         segments.append(tm)
         fitter.process(header, (td, tm))
         assert [j for j, _ in fitter.window_tm] == list(range(max(0, i - 2), i + 1))  # 1800 s: three segments
@@ -301,11 +351,16 @@ def test_adoption_needs_a_recommendation_that_explains_the_excess():
     decisive evidence."""
     from stages.fitter import adoptable
 
-    rec = {"option": "--effects linear-ttl,drift", "spec": "drift", "explains": True, "explained_fraction": 0.93,
-           "log_bayes_factor": 40.0}
+    rec = {
+        "option": "--effects linear-ttl,drift",
+        "spec": "drift",
+        "explains": True,
+        "explained_fraction": 0.93,
+        "log_bayes_factor": 40.0,
+    }
     assert adoptable(rec)[0]
     assert not adoptable(None)[0] and not adoptable({"effect": None, "explains": False})[0]
-    assert not adoptable({**rec, "option": ""})[0]       # nothing recommended (the option left empty)
+    assert not adoptable({**rec, "option": ""})[0]  # nothing recommended (the option left empty)
     no, why = adoptable({**rec, "explains": False, "explained_fraction": 0.2})
     assert not no and "20 %" in why
     assert not adoptable({**rec, "log_bayes_factor": 1.0})[0]
@@ -317,12 +372,12 @@ def test_monitor_waits_for_an_alive_fitter_that_has_not_reported_yet(tmp_path):
     from stages.monitor import Monitor
 
     m = Monitor(StageConfig(run="u", recordings=tmp_path))
-    assert m._waiting_for(0, {}) is None                  # neither fitter nor subtractor running
+    assert m._waiting_for(0, {}) is None  # neither fitter nor subtractor running
     m.alive_peers = {"fitter", "subtractor"}
-    assert m._waiting_for(0, {}) == "fit"                 # started, not reported yet
+    assert m._waiting_for(0, {}) == "fit"  # started, not reported yet
     fitter = Progress("fitter", done={0}, extra={"fits": {0}})
     assert m._waiting_for(0, {"fitter": fitter}) == "fit"  # fit 0 announced, not drawn
     m._drawn["fit"].add(0)
     assert m._waiting_for(0, {"fitter": fitter}) == "residual"
-    m.alive_peers = {"fitter"}                            # no subtractor after all
+    m.alive_peers = {"fitter"}  # no subtractor after all
     assert m._waiting_for(0, {"fitter": fitter}) is None

@@ -27,17 +27,29 @@ def telemetry(index: int) -> Telemetry:
     """Crafted telemetry (the stage does not care about physics): noise and ~8.3 s delays."""
     rng = np.random.default_rng(100 + index)
     ltt = 8.3 + 0.01 * np.arange(6)[:, None] + np.zeros((6, N))
-    return Telemetry(t0=index * N / FS, fs=FS, eta=1e-14 * rng.standard_normal((6, N)),
-                     dws_phi=1e-9 * rng.standard_normal((6, N)), dws_eta=1e-9 * rng.standard_normal((6, N)),
-                     ltt=ltt)
+    return Telemetry(
+        t0=index * N / FS,
+        fs=FS,
+        eta=1e-14 * rng.standard_normal((6, N)),
+        dws_phi=1e-9 * rng.standard_normal((6, N)),
+        dws_eta=1e-9 * rng.standard_normal((6, N)),
+        ltt=ltt,
+    )
 
 
 def message(index: int, tm: Telemetry | None = None, **changes):
     tm = tm or telemetry(index)
     arrays = {"eta": tm.eta, "dws_phi": tm.dws_phi, "dws_eta": tm.dws_eta, "ltt": tm.ltt}
     arrays.update(changes.pop("arrays", {}))
-    fields = {"run": RUN, "index": index, "t0": tm.t0, "fs": tm.fs, "channels": list(LINKS), "producer": "test",
-              "meta": {"segments_total": 4, "segment_duration": N / FS, "source": "crafted", "truth": None}}
+    fields = {
+        "run": RUN,
+        "index": index,
+        "t0": tm.t0,
+        "fs": tm.fs,
+        "channels": list(LINKS),
+        "producer": "test",
+        "meta": {"segments_total": 4, "segment_duration": N / FS, "source": "crafted", "truth": None},
+    }
     fields.update(changes)
     return encode(arrays, fields, allow_nonfinite=True)
 
@@ -46,14 +58,29 @@ def test_tdi_builder_ignores_duplicates_reports_malformed_and_goes_on(procs, tmp
     port = free_port()
     outputs, errors = queue.Queue(), []
     with Bus.open(SessionSettings(listen=(f"tcp/127.0.0.1:{port}",))) as bus:
-        bus.segment_subscriber(topic_pattern(RUN, "tdi"), lambda s: outputs.put(
-            (str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes())), history=0)
+        bus.segment_subscriber(
+            topic_pattern(RUN, "tdi"),
+            lambda s: outputs.put((str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes())),
+            history=0,
+        )
         bus.subscriber(f"ttl/{RUN}/errors/*", lambda s: errors.append(json.loads(s.payload.to_bytes())))
         pub = bus.segment_publisher(RUN, "telemetry", cache=8)
-        stage = procs.stage("tdi_builder", "--run", RUN, "--connect", f"tcp/127.0.0.1:{port}",
-                            "--recordings", tmp_path / "rec", "--settle", "0.3")
-        wait_for(lambda: "tdi_builder" in bus.alive_stages(RUN, timeout=0.5) or stage.poll() is not None,
-                 60, "the tdi_builder's liveliness token")
+        stage = procs.stage(
+            "tdi_builder",
+            "--run",
+            RUN,
+            "--connect",
+            f"tcp/127.0.0.1:{port}",
+            "--recordings",
+            tmp_path / "rec",
+            "--settle",
+            "0.3",
+        )
+        wait_for(
+            lambda: "tdi_builder" in bus.alive_stages(RUN, timeout=0.5) or stage.poll() is not None,
+            60,
+            "the tdi_builder's liveliness token",
+        )
         assert stage.poll() is None, output(stage)
         time.sleep(0.5)  # subscribers declared after the token
 
@@ -63,25 +90,25 @@ def test_tdi_builder_ignores_duplicates_reports_malformed_and_goes_on(procs, tmp
 
         pub.put(0, *message(0))
         h0, a0 = got()
-        pub.put(0, *message(0))                                            # duplicate: ignored
+        pub.put(0, *message(0))  # duplicate: ignored
         p1, att1 = message(1)
-        pub.put(1, p1, b'{"schema": "ttl-segment", broken')               # unreadable header
+        pub.put(1, p1, b'{"schema": "ttl-segment", broken')  # unreadable header
         bad = telemetry(1)
         pub.put(1, *message(1, arrays={"eta": bad.eta[:5]}, channel_axis={"eta": None}))  # wrong shape
         nan = np.full_like(telemetry(1).eta, np.nan)
-        pub.put(1, *message(1, arrays={"eta": nan}))                        # no finite eta: no data
-        pub.put(1, p1[:-8], att1)                                           # truncated payload
-        pub.put(1, *message(1, arrays={"ltt": bad.ltt[:, :-4]}))            # inconsistent lengths
-        pub.put(1, *message(1, fs=2.0))                                     # another sampling rate
-        pub.put(1, *message(1, producer="intruder"))                        # another producer
-        pub.put(1, p1, att1)                                                # the good one
+        pub.put(1, *message(1, arrays={"eta": nan}))  # no finite eta: no data
+        pub.put(1, p1[:-8], att1)  # truncated payload
+        pub.put(1, *message(1, arrays={"ltt": bad.ltt[:, :-4]}))  # inconsistent lengths
+        pub.put(1, *message(1, fs=2.0))  # another sampling rate
+        pub.put(1, *message(1, producer="intruder"))  # another producer
+        pub.put(1, p1, att1)  # the good one
         h1, a1 = got()
-        pub.put(3, *message(3))                                             # out of order: waits for 2
+        pub.put(3, *message(3))  # out of order: waits for 2
         pub.put(2, *message(2))
         h2, a2 = got()
         h3, a3 = got()
         with pytest.raises(queue.Empty):
-            got(timeout=1.0)                                                # nothing twice
+            got(timeout=1.0)  # nothing twice
         assert [h.index for h in (h0, h1, h2, h3)] == [0, 1, 2, 3]
 
         # the outputs are the streaming TDI of the four segments (tail carried between them)
@@ -97,12 +124,18 @@ def test_tdi_builder_ignores_duplicates_reports_malformed_and_goes_on(procs, tmp
             np.testing.assert_array_equal(a["regressors"], td.regressors)
         assert np.isnan(a0["data"][:, 0]).all() and np.isfinite(a1["data"]).all()
 
-        wait_for(lambda: len([e for e in errors if e["kind"] in ("rejected", "forged")]) >= 7, 10,
-                 "seven rejections")
+        wait_for(lambda: len([e for e in errors if e["kind"] in ("rejected", "forged")]) >= 7, 10, "seven rejections")
         rejected = [(e["index"], e["field"]) for e in errors if e["kind"] in ("rejected", "forged")]
         # an unreadable header: the index is unknown (the stream key ttl/<run>/telemetry carries none)
-        assert rejected == [(None, "header"), (1, "arrays[eta].shape"), (1, "arrays[eta]"), (1, "payload"),
-                            (1, "arrays[ltt].shape"), (1, "fs"), (1, "producer")], rejected
+        assert rejected == [
+            (None, "header"),
+            (1, "arrays[eta].shape"),
+            (1, "arrays[eta]"),
+            (1, "payload"),
+            (1, "arrays[ltt].shape"),
+            (1, "fs"),
+            (1, "producer"),
+        ], rejected
         assert not [e for e in errors if e["kind"] == "failed"]
         assert all(e["stage"] == "tdi_builder" for e in errors)
 

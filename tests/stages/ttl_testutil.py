@@ -56,8 +56,10 @@ def stage_processes(proc) -> dict[str, psutil.Process]:
 def listening(proc: psutil.Process) -> tuple[list, list]:
     """(TCP listening sockets, UDP sockets) of a process."""
     conns = proc.net_connections(kind="inet")
-    return ([c for c in conns if c.status == psutil.CONN_LISTEN],
-            [c for c in conns if c.type == __import__("socket").SOCK_DGRAM])
+    return (
+        [c for c in conns if c.status == psutil.CONN_LISTEN],
+        [c for c in conns if c.type == __import__("socket").SOCK_DGRAM],
+    )
 
 
 def indices(recording, topic: str) -> list[int]:

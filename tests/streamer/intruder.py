@@ -29,10 +29,14 @@ from streamer.session import SessionSettings, make_config  # noqa: E402
 def config(args: dict) -> zenoh.Config:
     endpoint = args["endpoint"]
     if args.get("credentials"):  # a certificate of the run's CA (another role's)
-        return make_config(SessionSettings(mode="client", connect=(endpoint,), credentials=args["credentials"],
-                                           identity=args["identity"]))
-    cfg = make_config(SessionSettings(mode="client", connect=(endpoint.replace("tls/", "tcp/")
-                                                              if args.get("plain") else endpoint,)))
+        return make_config(
+            SessionSettings(
+                mode="client", connect=(endpoint,), credentials=args["credentials"], identity=args["identity"]
+            )
+        )
+    cfg = make_config(
+        SessionSettings(mode="client", connect=(endpoint.replace("tls/", "tcp/") if args.get("plain") else endpoint,))
+    )
     if not args.get("plain"):
         # it trusts the run's CA (to get as far as it can), and presents another CA's
         # certificate or none at all (a TLS client without a certificate of its own)
@@ -61,17 +65,20 @@ def main(args: dict) -> None:
     try:
         while time.monotonic() < deadline:
             index = i % 6
-            payload, attachment = encode({"eta": 3.0 * rng.standard_normal((6, 14400)),
-                                          "dws": rng.standard_normal((6, 2, 14400))},
-                                         {"run": run, "index": index, "t0": 3600.0 * index, "fs": 4.0,
-                                          "producer": "replayer"})
+            payload, attachment = encode(
+                {"eta": 3.0 * rng.standard_normal((6, 14400)), "dws": rng.standard_normal((6, 2, 14400))},
+                {"run": run, "index": index, "t0": 3600.0 * index, "fs": 4.0, "producer": "replayer"},
+            )
             session.put(stream_key(run, "telemetry"), payload, attachment=attachment)
-            payload, attachment = encode(10.0 * rng.standard_normal(24), {"run": run, "index": index,
-                                                                         "t0": 3600.0 * index, "fs": 4.0,
-                                                                         "producer": "fitter"})
+            payload, attachment = encode(
+                10.0 * rng.standard_normal(24),
+                {"run": run, "index": index, "t0": 3600.0 * index, "fs": 4.0, "producer": "fitter"},
+            )
             session.put(stream_key(run, "fit"), payload, attachment=attachment)
-            session.put(control_key(run, "progress", "replayer"),
-                        json.dumps({"stage": "replayer", "segments_total": 3, "done": [[0, 2]], "failed": []}))
+            session.put(
+                control_key(run, "progress", "replayer"),
+                json.dumps({"stage": "replayer", "segments_total": 3, "done": [[0, 2]], "failed": []}),
+            )
             session.put(control_key(run, "stop"), b"{}")
             report["puts"] += 4
             i += 1

@@ -41,9 +41,12 @@ def segment(index: int, size: int) -> np.ndarray:
 
 
 def settings(args: dict) -> SessionSettings:
-    return SessionSettings(mode=args.get("mode"), listen=tuple(args["listen"]) if args.get("listen") else None,
-                           connect=tuple(args.get("connect") or ()),
-                           shared_memory=args.get("shm"))
+    return SessionSettings(
+        mode=args.get("mode"),
+        listen=tuple(args["listen"]) if args.get("listen") else None,
+        connect=tuple(args.get("connect") or ()),
+        shared_memory=args.get("shm"),
+    )
 
 
 def publisher(args: dict) -> None:
@@ -59,9 +62,10 @@ def publisher(args: dict) -> None:
         pub = bus.segment_publisher(run, "telemetry", cache=args.get("cache", 4))
         messages = []
         for i in range(n):
-            payload, attachment = encode(segment(i, size), {"run": run, "index": i, "t0": 3600.0 * i,
-                                                            "fs": 4.0, "channels": ["a", "b"],
-                                                            "producer": "publisher"})
+            payload, attachment = encode(
+                segment(i, size),
+                {"run": run, "index": i, "t0": 3600.0 * i, "fs": 4.0, "channels": ["a", "b"], "producer": "publisher"},
+            )
             messages.append((payload, attachment))
         times = []
         t_start = time.perf_counter()
@@ -72,8 +76,9 @@ def publisher(args: dict) -> None:
             time.sleep(args.get("interval", 0))
         elapsed = time.perf_counter() - t_start
         bus.declare_alive(run, args.get("name", "publisher") + "-done")
-        Path(args["out"]).write_text(json.dumps({"put_seconds": times, "elapsed": elapsed,
-                                                 "bytes": sum(len(p) for p, _ in messages)}))
+        Path(args["out"]).write_text(
+            json.dumps({"put_seconds": times, "elapsed": elapsed, "bytes": sum(len(p) for p, _ in messages)})
+        )
         stop.wait(args.get("linger", 60))
 
 
@@ -82,10 +87,13 @@ def subscriber(args: dict) -> None:
     samples: queue.Queue = queue.Queue()
     received, errors, arrival = {}, [], {}
     with Bus.open(settings(args)) as bus:
-        bus.segment_subscriber(topic_pattern(run, "telemetry"),
-                               lambda s: samples.put((time.perf_counter(), str(s.key_expr),
-                                                      s.payload.to_bytes(), s.attachment.to_bytes())),
-                               history=args.get("history", 4))
+        bus.segment_subscriber(
+            topic_pattern(run, "telemetry"),
+            lambda s: samples.put(
+                (time.perf_counter(), str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes())
+            ),
+            history=args.get("history", 4),
+        )
         bus.declare_alive(run, args.get("name", "subscriber"))
         deadline = time.monotonic() + args.get("timeout", 60)
         while len(received) < n and time.monotonic() < deadline:
@@ -101,9 +109,16 @@ def subscriber(args: dict) -> None:
             intact = bool(np.array_equal(arrays["data"], segment(header.index, args["size"])))
             received.setdefault(header.index, []).append(intact)
             arrival.setdefault(header.index, t)
-        Path(args["out"]).write_text(json.dumps({
-            "received": {str(k): v for k, v in received.items()}, "errors": errors,
-            "t_first": min(arrival.values(), default=None), "t_last": max(arrival.values(), default=None)}))
+        Path(args["out"]).write_text(
+            json.dumps(
+                {
+                    "received": {str(k): v for k, v in received.items()},
+                    "errors": errors,
+                    "t_first": min(arrival.values(), default=None),
+                    "t_last": max(arrival.values(), default=None),
+                }
+            )
+        )
 
 
 class Doubler(Stage):
@@ -134,9 +149,14 @@ class Doubler(Stage):
     def handle(self, header, arrays):
         if header.meta.get("fail"):
             raise RuntimeError(f"asked to fail on segment {header.index}")
-        return [Output("tdi", {"data": self.factor * arrays["data"]},
-                       fields={"channels": list(header.channels), "units": "test units"},
-                       summary={"index": header.index, "mean": float(arrays["data"].mean())})]
+        return [
+            Output(
+                "tdi",
+                {"data": self.factor * arrays["data"]},
+                fields={"channels": list(header.channels), "units": "test units"},
+                summary={"index": header.index, "mean": float(arrays["data"].mean())},
+            )
+        ]
 
 
 def stage(args: dict) -> int:

@@ -47,6 +47,12 @@ del pairs
 print(rss_mb() - base)
 """
     env = {"PATH": "/usr/bin:/bin"}
-    kept = {how: float(subprocess.run([sys.executable, "-c", code, how], capture_output=True, text=True,
-                                      check=True, env=env).stdout) for how in ("dynamic", "fixed")}
+    kept = {
+        how: float(
+            subprocess.run(
+                [sys.executable, "-c", code, how], capture_output=True, text=True, check=True, env=env
+            ).stdout
+        )
+        for how in ("dynamic", "fixed")
+    }
     assert kept["dynamic"] > 100 and kept["fixed"] < 20, kept

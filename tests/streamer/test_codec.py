@@ -9,8 +9,15 @@ import pytest
 
 from streamer.codec import CodecError, Expect, decode, encode, parse_header
 
-FIELDS = {"run": "r1", "index": 7, "t0": 1.5e7, "fs": 4.0, "channels": ["X2", "Y2", "Z2"],
-          "producer": "tdi_builder", "meta": {"note": "test"}}
+FIELDS = {
+    "run": "r1",
+    "index": 7,
+    "t0": 1.5e7,
+    "fs": 4.0,
+    "channels": ["X2", "Y2", "Z2"],
+    "producer": "tdi_builder",
+    "meta": {"note": "test"},
+}
 
 
 def tdi_message(n=64, **overrides):
@@ -55,6 +62,7 @@ def test_round_trip_several_arrays_and_dtypes():
 
 def test_single_array_and_zenoh_bytes():
     import zenoh
+
     payload, attachment = encode(np.ones((3, 4)), FIELDS)
     header, arrays = decode(zenoh.ZBytes(payload), zenoh.ZBytes(attachment), key="ttl/r1/tdi/7")
     assert list(arrays) == ["data"] and header.key == "ttl/r1/tdi/7" and header.topic == "tdi"
@@ -108,8 +116,9 @@ def _cases():
     yield "arrays[data]", p2, a2, None
 
 
-@pytest.mark.parametrize("field, payload, attachment, expect", list(_cases()),
-                         ids=[f"{i}-{c[0]}" for i, c in enumerate(_cases())])
+@pytest.mark.parametrize(
+    "field, payload, attachment, expect", list(_cases()), ids=[f"{i}-{c[0]}" for i, c in enumerate(_cases())]
+)
 def test_malformed_messages_are_rejected_naming_the_field(field, payload, attachment, expect):
     with pytest.raises(CodecError) as err:
         decode(payload, attachment, expect, key="ttl/r1/tdi/7")
@@ -125,16 +134,19 @@ def test_nonfinite_allowed_when_expected():
     assert np.isnan(arrays["data"][0, 0])
 
 
-@pytest.mark.parametrize("arrays, fields, field", [
-    (np.array([np.nan, 1.0, 2.0]), FIELDS, "arrays[data]"),
-    (np.array(["a", "b", "c"]), FIELDS, "arrays[data].dtype"),
-    (np.ones((2, 4)), FIELDS, "channels"),
-    (np.ones(3), {k: v for k, v in FIELDS.items() if k != "fs"}, "fs"),
-    (np.ones(3), {**FIELDS, "fs": float("inf")}, "fs"),
-    (np.ones(3), {**FIELDS, "meta": {"x": object()}}, "meta"),
-    (np.ones(3), {**FIELDS, "colour": "red"}, "colour"),
-    ({}, FIELDS, "arrays"),
-])
+@pytest.mark.parametrize(
+    "arrays, fields, field",
+    [
+        (np.array([np.nan, 1.0, 2.0]), FIELDS, "arrays[data]"),
+        (np.array(["a", "b", "c"]), FIELDS, "arrays[data].dtype"),
+        (np.ones((2, 4)), FIELDS, "channels"),
+        (np.ones(3), {k: v for k, v in FIELDS.items() if k != "fs"}, "fs"),
+        (np.ones(3), {**FIELDS, "fs": float("inf")}, "fs"),
+        (np.ones(3), {**FIELDS, "meta": {"x": object()}}, "meta"),
+        (np.ones(3), {**FIELDS, "colour": "red"}, "colour"),
+        ({}, FIELDS, "arrays"),
+    ],
+)
 def test_encode_refuses_what_decode_would_reject(arrays, fields, field):
     with pytest.raises(CodecError) as err:
         encode(arrays, fields)
@@ -148,6 +160,7 @@ def test_parse_header_alone():
 
 
 # ---------------------------------------------------------------------------- bounded parsing
+
 
 def _raw_header(edit_text) -> tuple[bytes, bytes]:
     """A valid message whose header text is rewritten by ``edit_text(str) -> str``."""
@@ -168,19 +181,31 @@ def _hostile_cases():
     yield "huge-exponent", "meta.x", _meta('{"x":1e999999}')
     yield "huge-negative-exponent-t0", "t0", lambda h: h.replace('"t0":15000000.0', '"t0":-1e400')
     yield "huge-int-index", "index", lambda h: h.replace('"index":7', '"index":' + "9" * 5000)
-    yield "int-beyond-64-bits", "payload_bytes", lambda h: h.replace('"payload_bytes":', '"payload_bytes":1' + "0" * 20 + ",\"x\":")
+    yield (
+        "int-beyond-64-bits",
+        "payload_bytes",
+        lambda h: h.replace('"payload_bytes":', '"payload_bytes":1' + "0" * 20 + ',"x":'),
+    )
     yield "long-float", "fs", lambda h: h.replace('"fs":4.0', '"fs":4.' + "0" * 100)
     yield "nan", "meta.x", _meta('{"x":NaN}')
     yield "long-string-in-meta", "meta.s", _meta('{"s":"' + "a" * 900_000 + '"}')
     yield "long-key-in-meta", "meta", _meta('{"' + "k" * 70_000 + '":1}')
     yield "long-run", "run", lambda h: h.replace('"run":"r1"', '"run":"' + "r" * 5000 + '"')
-    yield "long-producer", "producer", lambda h: h.replace('"producer":"tdi_builder"', '"producer":"' + "p" * 5000 + '"')
+    yield (
+        "long-producer",
+        "producer",
+        lambda h: h.replace('"producer":"tdi_builder"', '"producer":"' + "p" * 5000 + '"'),
+    )
     yield "long-channel", "channels[0]", lambda h: h.replace('"X2"', '"' + "X" * 5000 + '"', 1)
     yield "long-units", "arrays[data].units", lambda h: h.replace('"units":"1"', '"units":"' + "u" * 5000 + '"', 1)
     yield "escaped-quotes", "header", lambda h: h[:-1] + ',"z":"' + '\\"' * 400_000 + "}"
     yield "dtype-a-list", "arrays[data].dtype", lambda h: h.replace('"dtype":"<f8"', '"dtype":["<f8"]', 1)
     yield "dtype-an-object", "arrays[data].dtype", lambda h: h.replace('"dtype":"<f8"', '"dtype":{"a":1}', 1)
-    yield "too-many-axes", "arrays[data].shape", lambda h: h.replace('"shape":[3,64]', '"shape":[' + "1," * 40 + "3,64]", 1)
+    yield (
+        "too-many-axes",
+        "arrays[data].shape",
+        lambda h: h.replace('"shape":[3,64]', '"shape":[' + "1," * 40 + "3,64]", 1),
+    )
 
 
 @pytest.mark.parametrize("name, field, edit", list(_hostile_cases()), ids=[c[0] for c in _hostile_cases()])
@@ -198,15 +223,38 @@ def test_hostile_headers_are_refused_quickly_naming_the_field(name, field, edit)
 
 
 def test_legitimate_nesting_and_sizes_pass():
-    meta = {"a": [{"b": [{"c": [[1, 2], [3.5e300, -2.5e-300]]}]}], "path": "/x" * 2000, "big": 2 ** 63,
-            "quote": 'a "[{" b \\ c'}
+    meta = {
+        "a": [{"b": [{"c": [[1, 2], [3.5e300, -2.5e-300]]}]}],
+        "path": "/x" * 2000,
+        "big": 2**63,
+        "quote": 'a "[{" b \\ c',
+    }
     payload, attachment = encode(np.ones((3, 4)), {**FIELDS, "meta": meta})
     header, _ = decode(payload, attachment)
     assert header.meta == meta
 
 
-JSON_VALUES = [None, True, False, 0, -1, 2 ** 63, 1.5, -1e308, 1e-308, "", "x", "<f8", [], [1], [[]], ["a"],
-               {}, {"a": 1}, {"name": "data"}]
+JSON_VALUES = [
+    None,
+    True,
+    False,
+    0,
+    -1,
+    2**63,
+    1.5,
+    -1e308,
+    1e-308,
+    "",
+    "x",
+    "<f8",
+    [],
+    [1],
+    [[]],
+    ["a"],
+    {},
+    {"a": 1},
+    {"name": "data"},
+]
 
 
 def _every_field_every_type():

@@ -36,23 +36,54 @@ class StageFile:
 
     def __init__(self, run_dir: Path, stage: str, filename: str | None = None):
         self.stage = stage
-        self.rec = Recorder(run_dir / (filename or f"{stage}.mcap"),
-                            metadata={"run": RUN, "stage": stage, "class": stage.title(), "config": "{}"})
+        self.rec = Recorder(
+            run_dir / (filename or f"{stage}.mcap"),
+            metadata={"run": RUN, "stage": stage, "class": stage.title(), "config": "{}"},
+        )
         self.event("start", message="inputs [...]")
 
     def event(self, kind, index=None, message="", **details):
-        self.rec.write_json("events", {"run": RUN, "stage": self.stage, "kind": kind, "index": index,
-                                       "message": message, "time": time.time(), "details": details})
+        self.rec.write_json(
+            "events",
+            {
+                "run": RUN,
+                "stage": self.stage,
+                "kind": kind,
+                "index": index,
+                "message": message,
+                "time": time.time(),
+                "details": details,
+            },
+        )
 
     def error(self, kind, index, message, field=None):
-        self.rec.write_json("errors", {"run": RUN, "stage": self.stage, "kind": kind, "index": index,
-                                       "key": f"ttl/{RUN}/x/{index}", "field": field, "message": message,
-                                       "time": time.time(), "details": {}})
+        self.rec.write_json(
+            "errors",
+            {
+                "run": RUN,
+                "stage": self.stage,
+                "kind": kind,
+                "index": index,
+                "key": f"ttl/{RUN}/x/{index}",
+                "field": field,
+                "message": message,
+                "time": time.time(),
+                "details": {},
+            },
+        )
 
     def segment(self, topic, index, arrays, producer=None, **meta):
-        payload, attachment = encode(arrays, {"run": RUN, "index": index, "t0": index * HOUR, "fs": 4.0,
-                                              "producer": producer or self.stage,
-                                              "meta": {"segments_total": TOTAL, **meta}})
+        payload, attachment = encode(
+            arrays,
+            {
+                "run": RUN,
+                "index": index,
+                "t0": index * HOUR,
+                "fs": 4.0,
+                "producer": producer or self.stage,
+                "meta": {"segments_total": TOTAL, **meta},
+            },
+        )
         self.rec.write_segment(topic, json.loads(attachment), payload)
         return payload
 
@@ -70,12 +101,31 @@ def fit_values(i):
 def write_fit(f: StageFile, i):
     c, s = fit_values(i)
     f.segment("tdi", i, {"data": np.zeros((3, 8))}, producer="tdi_builder")
-    f.segment("fit", i, {"coefficients": c, "sigma": s, "covariance": np.diag(s ** 2)},
-              t_start=(i - 23) * HOUR, t_stop=(i + 1) * HOUR, names=list(COEFFICIENT_NAMES))
-    f.rec.write_json("fit/summary", {"run": RUN, "index": i, "names": list(COEFFICIENT_NAMES),
-                                     "coefficients": c, "sigma": s, "chi2": 10.0, "dof": 10.0, "chi2_dof": 1.0,
-                                     "t_start": (i - 23) * HOUR, "t_end": (i + 1) * HOUR,
-                                     "fit": {"converged": True}}, schema="ttl.Fit")
+    f.segment(
+        "fit",
+        i,
+        {"coefficients": c, "sigma": s, "covariance": np.diag(s**2)},
+        t_start=(i - 23) * HOUR,
+        t_stop=(i + 1) * HOUR,
+        names=list(COEFFICIENT_NAMES),
+    )
+    f.rec.write_json(
+        "fit/summary",
+        {
+            "run": RUN,
+            "index": i,
+            "names": list(COEFFICIENT_NAMES),
+            "coefficients": c,
+            "sigma": s,
+            "chi2": 10.0,
+            "dof": 10.0,
+            "chi2_dof": 1.0,
+            "t_start": (i - 23) * HOUR,
+            "t_end": (i + 1) * HOUR,
+            "fit": {"converged": True},
+        },
+        schema="ttl.Fit",
+    )
 
 
 @pytest.fixture
@@ -111,8 +161,17 @@ def run_dir(tmp_path):
     f = StageFile(d, "fitter")
     for i in range(TOTAL):
         write_fit(f, i)
-    f.rec.write_json("warnings", {"run": RUN, "stage": "fitter", "kind": "not-converged", "index": 5,
-                                  "message": "fit 5 did not converge in 8 iterations", "time": 1.0})
+    f.rec.write_json(
+        "warnings",
+        {
+            "run": RUN,
+            "stage": "fitter",
+            "kind": "not-converged",
+            "index": 5,
+            "message": "fit 5 did not converge in 8 iterations",
+            "time": 1.0,
+        },
+    )
     f.event("complete", index=TOTAL - 1)
     f.close()
 
@@ -128,17 +187,43 @@ def run_dir(tmp_path):
     f = StageFile(d, "monitor")
     for i in range(TOTAL):
         f.segment("monitor", i, {"drift_rate": np.zeros(24), "drift_significance": np.zeros(24)})
-    f.rec.write_json("alerts", {"run": RUN, "kind": "step", "coefficient": "23.phi.tx", "t": 7200.0, "value": 0.3,
-                                "significance": 7.1, "message": "step of +0.300 mm/rad in 23.phi.tx at 0.083 d",
-                                "t_detected": 10800.0, "index": 2, "units": "mm/rad", "details": {}})
+    f.rec.write_json(
+        "alerts",
+        {
+            "run": RUN,
+            "kind": "step",
+            "coefficient": "23.phi.tx",
+            "t": 7200.0,
+            "value": 0.3,
+            "significance": 7.1,
+            "message": "step of +0.300 mm/rad in 23.phi.tx at 0.083 d",
+            "t_detected": 10800.0,
+            "index": 2,
+            "units": "mm/rad",
+            "details": {},
+        },
+    )
     f.close()
     (d / "monitor.rrd").write_bytes(b"")
     # the router's refusals (streamer.security.refusals): 7 forbidden publications, 2 peers
     # without a valid certificate, and a line cut off
-    refusals = [{"kind": "forbidden", "subject": "subtractor", "action": "Put", "key": f"ttl/{RUN}/fit/{i}",
-                 "time": f"2025-01-01T00:00:0{i}Z"} for i in range(7)]
-    refusals[2:2] = [{"kind": "unauthenticated", "message": "invalid peer certificate: UnknownIssuer",
-                      "time": "2025-01-01T00:00:10Z"}] * 2
+    refusals = [
+        {
+            "kind": "forbidden",
+            "subject": "subtractor",
+            "action": "Put",
+            "key": f"ttl/{RUN}/fit/{i}",
+            "time": f"2025-01-01T00:00:0{i}Z",
+        }
+        for i in range(7)
+    ]
+    refusals[2:2] = [
+        {
+            "kind": "unauthenticated",
+            "message": "invalid peer certificate: UnknownIssuer",
+            "time": "2025-01-01T00:00:10Z",
+        }
+    ] * 2
     (d / "security.jsonl").write_text("".join(json.dumps(r) + "\n" for r in refusals) + '{"kind": "forb')
     return d
 
@@ -158,8 +243,13 @@ def test_inspect_json_report(run_dir, capsys):
     assert list(st) == ["replayer", "tdi_builder", "fitter", "subtractor", "monitor"]
     assert st["replayer"]["outputs"]["telemetry"]["distinct"] == TOTAL
     assert st["tdi_builder"]["inputs"]["telemetry"]["distinct"] == TOTAL
-    assert st["tdi_builder"]["outputs"]["tdi"] == {"count": TOTAL, "distinct": TOTAL, "indices": [[0, TOTAL - 1]],
-                                                   "duplicates": [], "missing": []}
+    assert st["tdi_builder"]["outputs"]["tdi"] == {
+        "count": TOTAL,
+        "distinct": TOTAL,
+        "indices": [[0, TOTAL - 1]],
+        "duplicates": [],
+        "missing": [],
+    }
     fit = st["fitter"]["outputs"]["fit"]
     assert fit["distinct"] == TOTAL and fit["duplicates"] == [0, 1, 2] and fit["missing"] == []
     assert st["fitter"]["restarts"] == 1
@@ -170,7 +260,9 @@ def test_inspect_json_report(run_dir, capsys):
     assert st["monitor"]["outputs"]["monitor"]["distinct"] == TOTAL
     # errors of all stages
     assert sorted((e["stage"], e["kind"], e["index"]) for e in r["errors"]) == [
-        ("subtractor", "failed", 4), ("tdi_builder", "rejected", 3)]
+        ("subtractor", "failed", 4),
+        ("tdi_builder", "rejected", 3),
+    ]
     assert st["tdi_builder"]["errors"] == 1
     # alerts of the monitor
     assert [(a["kind"], a["coefficient"]) for a in r["alerts"]] == [("step", "23.phi.tx")]
@@ -197,8 +289,13 @@ def test_inspect_json_report(run_dir, capsys):
     assert len(sec["kinds"]["unauthenticated"]["first"]) == 2
     (run_dir / "security.jsonl").unlink()  # a run with --insecure has none
     code, out, err = run_ttl(capsys, "inspect", run_dir, "--json", "-")
-    assert json.loads(out)["security"] == {"file": str(run_dir / "security.jsonl"), "present": False, "count": 0,
-                                           "kinds": {}, "unreadable": []}
+    assert json.loads(out)["security"] == {
+        "file": str(run_dir / "security.jsonl"),
+        "present": False,
+        "count": 0,
+        "kinds": {},
+        "unreadable": [],
+    }
 
 
 def test_inspect_text_report(run_dir, capsys):
@@ -297,6 +394,7 @@ def test_inspect_a_killed_and_restarted_stage_process(tmp_path):
                     return any(e["kind"] == "start" for e in read_recording(path).json("events"))
                 except Exception:
                     return False
+
             wait_for(started, 60, "the monitor's start event")
             procs[-1].send_signal(sig)
             procs[-1].wait(30)
@@ -306,13 +404,20 @@ def test_inspect_a_killed_and_restarted_stage_process(tmp_path):
             if p.poll() is None:
                 p.kill()
                 p.wait(10)
-    out = subprocess.run([sys.executable, "-m", "streamer.cli", "inspect", str(rec_dir / "r2"), "--json", "-"],
-                         capture_output=True, text=True, env=env, timeout=120)
+    out = subprocess.run(
+        [sys.executable, "-m", "streamer.cli", "inspect", str(rec_dir / "r2"), "--json", "-"],
+        capture_output=True,
+        text=True,
+        env=env,
+        timeout=120,
+    )
     assert out.returncode == 0, out.stderr
     r = json.loads(out.stdout)
     files = r["stages"]["monitor"]["files"]
     assert [(f["file"], f["complete"], f["stopped"]) for f in files] == [
-        ("monitor.1.mcap", False, False), ("monitor.mcap", True, True)]
+        ("monitor.1.mcap", False, False),
+        ("monitor.mcap", True, True),
+    ]
     assert sorted(i["kind"] for i in r["interruptions"]) == ["restart", "unfinished"]
     assert set(r["stages_missing"]) == {"replayer", "tdi_builder", "fitter", "subtractor"}
     assert (rec_dir / "r2" / "monitor.rrd").exists() and (rec_dir / "r2" / "monitor.1.rrd").exists()

@@ -26,7 +26,7 @@ def test_build_and_parse_round_trip():
     assert parse_segment_key("ttl/run-1/tdi/12") == SegmentKey("run-1", "tdi", 12)
     assert str(SegmentKey("r", "fit", 3)) == "ttl/r/fit/3"
     assert stream_key("r", "residual") == "ttl/r/residual" and parse_stream_key("ttl/r/residual") == "residual"
-    assert topic_pattern("r", "residual") == "ttl/r/residual/**"   # the stream key and strays under it
+    assert topic_pattern("r", "residual") == "ttl/r/residual/**"  # the stream key and strays under it
     assert topic_pattern("r", "errors") == "ttl/r/errors/*"
     assert errors_key("r", None) == "ttl/r/errors/unknown"
     assert parse_segment_key("ttl/r/errors/unknown").index is None
@@ -37,20 +37,39 @@ def test_build_and_parse_round_trip():
     assert parse_control_key("ttl/r/control/stop") == ("r", ("stop",))
 
 
-@pytest.mark.parametrize("key", [
-    "ttl/r/tdi", "ttl/r/tdi/1/2", "xyz/r/tdi/1", "ttl/r/bogus/1", "ttl/r/tdi/-1",
-    "ttl/r/tdi/01", "ttl/r/tdi/one", "ttl/r/telemetry/unknown", "ttl/r*/tdi/1", "",
-])
+@pytest.mark.parametrize(
+    "key",
+    [
+        "ttl/r/tdi",
+        "ttl/r/tdi/1/2",
+        "xyz/r/tdi/1",
+        "ttl/r/bogus/1",
+        "ttl/r/tdi/-1",
+        "ttl/r/tdi/01",
+        "ttl/r/tdi/one",
+        "ttl/r/telemetry/unknown",
+        "ttl/r*/tdi/1",
+        "",
+    ],
+)
 def test_parse_errors_name_the_key(key):
     with pytest.raises(KeyExprError) as err:
         parse_segment_key(key)
     assert repr(key) in str(err.value)
 
 
-@pytest.mark.parametrize("run, topic, index", [
-    ("a/b", "tdi", 1), ("r*", "tdi", 1), ("", "tdi", 1), ("r", "nope", 1), ("r", "tdi", -1),
-    ("r", "tdi", None), ("r", "tdi", True),
-])
+@pytest.mark.parametrize(
+    "run, topic, index",
+    [
+        ("a/b", "tdi", 1),
+        ("r*", "tdi", 1),
+        ("", "tdi", 1),
+        ("r", "nope", 1),
+        ("r", "tdi", -1),
+        ("r", "tdi", None),
+        ("r", "tdi", True),
+    ],
+)
 def test_builders_reject_bad_chunks(run, topic, index):
     with pytest.raises(KeyExprError):
         segment_key(run, topic, index)
@@ -62,7 +81,7 @@ def test_stream_key_errors_name_the_key(key):
         parse_stream_key(key)
     assert repr(key) in str(err.value)
     with pytest.raises(KeyExprError):
-        stream_key("r", "errors")   # error reports are per index
+        stream_key("r", "errors")  # error reports are per index
 
 
 def test_alive_and_control_errors():
@@ -94,19 +113,25 @@ def test_progress_keys_and_the_one_topology():
     # every list of stages and topics is the topology's
     assert TOPICS == (*(OUTPUT_TOPIC[s] for s in STAGES), "errors")
     assert {PRODUCERS[t]: t for t in PRODUCERS} == OUTPUT_TOPIC
-    assert ROLES[:len(STAGES)] == STAGES and set(UPSTREAM) == set(STAGES) - {"replayer"}
+    assert ROLES[: len(STAGES)] == STAGES and set(UPSTREAM) == set(STAGES) - {"replayer"}
     # a progress message read back is the progress it was made from (the launcher's board)
     p = Progress("fitter", done={0, 1, 2, 5}, failed={3, 4}, gaps={4}, segments_total=8, extra={"fits": {1, 2, 5}})
     msg = p.message("r", pid=7, index=5)
     assert msg["done"] == [[0, 2], [5, 5]] and msg["fits_ranges"] == [[1, 2], [5, 5]] and msg["pid"] == 7
     q = Progress("fitter")
     q.update(msg)
-    assert (q.done, q.failed, q.gaps, q.segments_total, q.extra, q.pids) == (p.done, p.failed, p.gaps, 8,
-                                                                            {"fits": {1, 2, 5}}, {7})
+    assert (q.done, q.failed, q.gaps, q.segments_total, q.extra, q.pids) == (
+        p.done,
+        p.failed,
+        p.gaps,
+        8,
+        {"fits": {1, 2, 5}},
+        {7},
+    )
     assert not q.covers() and q.highest == 5
     q.update({"done": [[6, 7]], "stage": "fitter", "complete": True})
     assert q.covers() and q.complete
-    q.update({"done": [[0, 2 ** 40]], "stage": "fitter"}, limit=8)  # clipped, not 2^40 entries
+    q.update({"done": [[0, 2**40]], "stage": "fitter"}, limit=8)  # clipped, not 2^40 entries
     assert max(q.done) == 7
 
 

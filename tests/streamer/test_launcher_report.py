@@ -22,8 +22,15 @@ def launcher(tmp_path, errors=()) -> tuple[Launcher, io.StringIO]:
 
 
 def conflict(index: int, first_copy: str) -> dict:
-    return {"stage": "fitter", "kind": "conflict", "index": index, "key": f"ttl/r1/tdi/{index}",
-            "field": "payload", "message": "conflicting copies", "details": {"first_copy": first_copy}}
+    return {
+        "stage": "fitter",
+        "kind": "conflict",
+        "index": index,
+        "key": f"ttl/r1/tdi/{index}",
+        "field": "payload",
+        "message": "conflicting copies",
+        "details": {"first_copy": first_copy},
+    }
 
 
 def test_a_complete_run_exits_0(tmp_path):

@@ -35,9 +35,16 @@ def test_the_board_is_cut_at_the_first_segment_some_stage_lacks(tmp_path):
     whatever a stage published from 5 on is published again); what each had failed, the
     gaps and the fitter's fits before 5 are kept, nothing from 5 on."""
     la = launcher(tmp_path)
-    (la.run_dir / "board.json").write_text(json.dumps(board(
-        replayer=(range(9), (), (), ()), tdi_builder=([0, 1, 2, 4, 5, 6, 7], [3], [3], ()),
-        fitter=([0, 1, 2, 4, 5, 6], [3], [3], [1, 2, 4, 5, 6]), subtractor=([0, 1, 2, 4, 6], [3], [3], ()))))
+    (la.run_dir / "board.json").write_text(
+        json.dumps(
+            board(
+                replayer=(range(9), (), (), ()),
+                tdi_builder=([0, 1, 2, 4, 5, 6, 7], [3], [3], ()),
+                fitter=([0, 1, 2, 4, 5, 6], [3], [3], [1, 2, 4, 5, 6]),
+                subtractor=([0, 1, 2, 4, 6], [3], [3], ()),
+            )
+        )
+    )
     la.load_board()
     assert la.resumed_from == 5
     assert la.progress["replayer"].done.ranges() == [[0, 4]] and not la.progress["replayer"].failed
@@ -97,8 +104,14 @@ def test_inspect_lists_what_the_journal_holds(tmp_path):
     (tmp_path / "launcher.jsonl").write_text(text)
     listed = launcher_journal(tmp_path)
     kinds = [(i["stage"], i["kind"]) for i in listed]
-    assert kinds == [("fitter", "stage-died"), ("fitter", "stage-restarted"), ("router", "router-died"),
-                     ("router", "router-restarted"), ("launcher", "launcher-killed"), ("launcher", "resume"),
-                     ("launcher", "journal-unreadable")], kinds
+    assert kinds == [
+        ("fitter", "stage-died"),
+        ("fitter", "stage-restarted"),
+        ("router", "router-died"),
+        ("router", "router-restarted"),
+        ("launcher", "launcher-killed"),
+        ("launcher", "resume"),
+        ("launcher", "journal-unreadable"),
+    ], kinds
     assert "pid 11)" in listed[4]["message"] and "without its end record" in listed[4]["message"]
     assert launcher_journal(tmp_path / "nothing") == []

@@ -19,11 +19,12 @@ PLAN = Plan(segments_total=30, fs=FS, t0=100.0, samples=N, samples_total=29 * N 
 def tdi(index, producer="tdi_builder", n=None, t0=None, fs=FS, data=None):
     n = (PLAN.segment(index)[1] if index < PLAN.segments_total else N) if n is None else n
     rng = np.random.default_rng(index)
-    arrays = {"data": rng.standard_normal((3, n)) if data is None else data,
-              "regressors": rng.standard_normal((3, 2, n))}
+    arrays = {
+        "data": rng.standard_normal((3, n)) if data is None else data,
+        "regressors": rng.standard_normal((3, 2, n)),
+    }
     t0 = (PLAN.segment(index)[0] if index < PLAN.segments_total else 0.0) if t0 is None else t0
-    fields = {"run": "r", "index": index, "t0": t0, "fs": fs,
-              "channels": ["X2", "Y2", "Z2"], "producer": producer}
+    fields = {"run": "r", "index": index, "t0": t0, "fs": fs, "channels": ["X2", "Y2", "Z2"], "producer": producer}
     payload, attachment = encode(arrays, fields, allow_nonfinite=True)
     return decode(payload, attachment, Expect(allow_nonfinite=True), key=f"ttl/r/tdi/{index}")
 
@@ -39,21 +40,21 @@ def accept(v, msg):
 
 def test_range_set_keeps_ranges_not_indices():
     s = RangeSet()
-    for i in (5, 3, 4, 10, 2 ** 40, 11, 0):
+    for i in (5, 3, 4, 10, 2**40, 11, 0):
         s.add(i)
-    assert s.ranges() == [[0, 0], [3, 5], [10, 11], [2 ** 40, 2 ** 40]]
-    assert 4 in s and 6 not in s and 2 ** 40 in s and len(s) == 7
+    assert s.ranges() == [[0, 0], [3, 5], [10, 11], [2**40, 2**40]]
+    assert 4 in s and 6 not in s and 2**40 in s and len(s) == 7
     s.add_range(1, 9)
-    assert s.ranges() == [[0, 11], [2 ** 40, 2 ** 40]]
+    assert s.ranges() == [[0, 11], [2**40, 2**40]]
     s.discard(5)
-    assert s.ranges() == [[0, 4], [6, 11], [2 ** 40, 2 ** 40]]
+    assert s.ranges() == [[0, 4], [6, 11], [2**40, 2**40]]
     assert s.missing(0, 14) == [[5, 5], [12, 14]] and s.covers(6, 11) and not s.covers(0, 6)
     tracemalloc.start()
-    big = RangeSet.from_ranges([[0, 2 ** 40], [2 ** 41, 2 ** 62]])
+    big = RangeSet.from_ranges([[0, 2**40], [2**41, 2**62]])
     assert tracemalloc.get_traced_memory()[1] < 100_000 and big.n_ranges == 2
     tracemalloc.stop()
     # the set-valued inverse of to_ranges clips hostile ranges to the plan
-    assert from_ranges([[0, 2 ** 40]], limit=30) == set(range(30)) and from_ranges([[-5, 2]]) == {0, 1, 2}
+    assert from_ranges([[0, 2**40]], limit=30) == set(range(30)) and from_ranges([[-5, 2]]) == {0, 1, 2}
 
 
 def test_range_set_operations_as_sets():
@@ -101,14 +102,17 @@ def test_plan_segments_regular_and_table():
         Plan.from_dict({**PLAN.to_dict(), "segments_total": 0})
 
 
-@pytest.mark.parametrize("change, kind, field", [
-    ({"producer": "intruder"}, "forged", "producer"),
-    ({"index": 30}, "rejected", "index"),          # beyond the run
-    ({"fs": 1e6}, "rejected", "fs"),
-    ({"t0": 0.0}, "rejected", "t0"),
-    ({"n": 10}, "rejected", "arrays[data].shape"),  # a 10-sample segment
-    ({"data": np.full((3, N), np.nan)}, "rejected", "arrays[data]"),  # all NaN
-])
+@pytest.mark.parametrize(
+    "change, kind, field",
+    [
+        ({"producer": "intruder"}, "forged", "producer"),
+        ({"index": 30}, "rejected", "index"),  # beyond the run
+        ({"fs": 1e6}, "rejected", "fs"),
+        ({"t0": 0.0}, "rejected", "t0"),
+        ({"n": 10}, "rejected", "arrays[data].shape"),  # a 10-sample segment
+        ({"data": np.full((3, N), np.nan)}, "rejected", "arrays[data]"),  # all NaN
+    ],
+)
 def test_each_rule_rejects_and_names_the_field(change, kind, field):
     v = Validator(PLAN)
     index = change.pop("index", 1)
@@ -151,7 +155,7 @@ def test_conflicting_copies_keep_both_out_while_held():
     assert (err.value.kind, err.value.field) == ("conflict", "payload") and "both copies refused" in str(err.value)
     assert held.withdraw("tdi", 3) and held.due(now=20.0) == []  # the first copy never reaches the stage
     with pytest.raises(Rejected, match="conflicting copies"):
-        check(v, first)                                         # nor does any later copy
+        check(v, first)  # nor does any later copy
     # no contender within the hold: the copy comes out, a later different copy cannot withdraw it
     second = tdi(4)
     assert check(v, second) == "new"
@@ -160,8 +164,8 @@ def test_conflicting_copies_keep_both_out_while_held():
     assert held.due(now=30.99) == [] and held.due(now=31.0) == [second] and len(held) == 0
     with pytest.raises(Rejected, match="both copies refused"):
         check(v, tdi(4, data=np.ones((3, N))))
-    assert not held.withdraw("tdi", 4)                          # used already: the stage is told so
-    assert not Holdback(0).put("tdi", 5, tdi(5), now=0.0)       # no hold: used at once
+    assert not held.withdraw("tdi", 4)  # used already: the stage is told so
+    assert not Holdback(0).put("tdi", 5, tdi(5), now=0.0)  # no hold: used at once
     with pytest.raises(ValueError, match="hold"):
         Holdback(-1)
 
@@ -176,4 +180,4 @@ def test_without_a_plan_the_first_message_fixes_producer_rate_and_length():
     with pytest.raises(Rejected, match="samples"):
         check(v, tdi(1, n=10))
     with pytest.raises(Rejected, match="ahead"):
-        check(v, tdi(2 ** 40 - 1, t0=0.0))
+        check(v, tdi(2**40 - 1, t0=0.0))

@@ -68,9 +68,12 @@ def test_router_stops_on_sigterm_at_any_moment(tmp_path):
         rng = random.Random(5)
         for attempt in range(3):
             port = free_port()
-            proc = children.start(ttl("router", "--insecure", "--listen", f"tcp/127.0.0.1:{port}"), f"router{attempt}",
-                                  cwd=ROOT)
-            wait_for(lambda proc=proc: "listening on" in output(proc) or proc.poll() is not None, 60, "the router to listen")
+            proc = children.start(
+                ttl("router", "--insecure", "--listen", f"tcp/127.0.0.1:{port}"), f"router{attempt}", cwd=ROOT
+            )
+            wait_for(
+                lambda proc=proc: "listening on" in output(proc) or proc.poll() is not None, 60, "the router to listen"
+            )
             assert proc.poll() is None, output(proc)
             time.sleep(rng.uniform(0.0, 1.0))  # anywhere in the 0.5-s wait cycle
             proc.send_signal(signal.SIGTERM)
@@ -83,10 +86,12 @@ def test_router_stops_on_sigterm_at_any_moment(tmp_path):
 def test_tied_child_dies_with_its_parent(tmp_path):
     """tied_to_parent: the child of a SIGKILLed parent gets its signal; a child whose parent
     died before prctl exits at once instead of running on."""
-    code = (f"import subprocess, sys, time, signal; sys.path.insert(0, {str(ROOT)!r}); "
-            "from streamer.processes import tied_to_parent; "
-            "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(120)'], "
-            "preexec_fn=tied_to_parent(signal.SIGKILL)); print(p.pid, flush=True); time.sleep(120)")
+    code = (
+        f"import subprocess, sys, time, signal; sys.path.insert(0, {str(ROOT)!r}); "
+        "from streamer.processes import tied_to_parent; "
+        "p = subprocess.Popen([sys.executable, '-c', 'import time; time.sleep(120)'], "
+        "preexec_fn=tied_to_parent(signal.SIGKILL)); print(p.pid, flush=True); time.sleep(120)"
+    )
     parent = subprocess.Popen([sys.executable, "-c", code], stdout=subprocess.PIPE, text=True)
     try:
         child = psutil.Process(int(parent.stdout.readline()))
@@ -109,11 +114,29 @@ def test_killed_launcher_leaves_nothing_alive(when, tmp_path):
     port = free_port()
     # a long simulation makes the planning check last; the run itself never gets far
     sim = "--duration 30d --orbit equal --seed 1" if when == "planning" else "--duration 2h --orbit equal --seed 1"
-    proc = children.start(ttl("run", "--simulate", sim, "--segment", "1h", "--run-id", f"kill-{when}",
-                              "--recordings", str(tmp_path / "rec"), "--insecure",
-                              "--listen", f"tcp/127.0.0.1:{port}", "--timeout", "300"), "ttl-run", cwd=ROOT)
+    proc = children.start(
+        ttl(
+            "run",
+            "--simulate",
+            sim,
+            "--segment",
+            "1h",
+            "--run-id",
+            f"kill-{when}",
+            "--recordings",
+            str(tmp_path / "rec"),
+            "--insecure",
+            "--listen",
+            f"tcp/127.0.0.1:{port}",
+            "--timeout",
+            "300",
+        ),
+        "ttl-run",
+        cwd=ROOT,
+    )
     everything: list[psutil.Process] = []
     try:
+
         def ready():
             if proc.poll() is not None:
                 return True
@@ -122,6 +145,7 @@ def test_killed_launcher_leaves_nothing_alive(when, tmp_path):
                 return any("--check" in c for c in lines)
             # every stage has opened its session and its recording
             return any(" router" in c for c in lines) and len(list(run_dir.glob("*.mcap"))) >= 4
+
         run_dir = tmp_path / "rec" / f"kill-{when}"
         wait_for(ready, 120, f"ttl run {when}")
         assert proc.poll() is None, output(proc)

@@ -32,12 +32,22 @@ def write_sample(path, close=True):
     for i in range(3):
         arrays, header, payload = segment(i)
         rec.write_segment("tdi", header, payload)
-        rec.write_json("fit/summary", {"run": "r", "index": i, "names": ["a", "b"],
-                                       "coefficients": np.array([1.0, np.nan]), "chi2": np.float64(2.5)},
-                       schema="ttl.Fit")
+        rec.write_json(
+            "fit/summary",
+            {
+                "run": "r",
+                "index": i,
+                "names": ["a", "b"],
+                "coefficients": np.array([1.0, np.nan]),
+                "chi2": np.float64(2.5),
+            },
+            schema="ttl.Fit",
+        )
         written.append(arrays)
-    rec.write_json("errors", {"run": "r", "stage": "test", "kind": "rejected", "index": 4,
-                              "field": "fs", "message": "bad", "time": 2.0})
+    rec.write_json(
+        "errors",
+        {"run": "r", "stage": "test", "kind": "rejected", "index": 4, "field": "fs", "message": "bad", "time": 2.0},
+    )
     if close:
         rec.close()
     return rec, written
@@ -96,8 +106,9 @@ def test_unclosed_file_is_salvaged(tmp_path):
 def _segment_chunks(path):
     """Start offsets of the chunks holding a segment payload (the big ones)."""
     with open(path, "rb") as f:
-        return [c.chunk_start_offset for c in make_reader(f).get_summary().chunk_indexes
-                if c.uncompressed_size > 100_000]
+        return [
+            c.chunk_start_offset for c in make_reader(f).get_summary().chunk_indexes if c.uncompressed_size > 100_000
+        ]
 
 
 def test_truncated_file_stops_at_the_truncated_chunk(tmp_path):
@@ -136,8 +147,14 @@ def test_chunked_compressed_mission_time(tmp_path):
     assert len(summary.chunk_indexes) >= 3
     got = read_recording(path)
     times = [(m.topic, m.log_time) for m in got.messages]
-    assert times == [("tdi", 0), ("fit/summary", 0), ("tdi", 3600 * 10**9), ("fit/summary", 3600 * 10**9),
-                     ("tdi", 7200 * 10**9), ("fit/summary", 7200 * 10**9)]
+    assert times == [
+        ("tdi", 0),
+        ("fit/summary", 0),
+        ("tdi", 3600 * 10**9),
+        ("fit/summary", 3600 * 10**9),
+        ("tdi", 7200 * 10**9),
+        ("fit/summary", 7200 * 10**9),
+    ]
     assert all(abs(m.publish_time / 1e9 - time.time()) < 60 for m in got.messages)  # wall clock kept
 
 
@@ -146,8 +163,7 @@ def test_lz4_and_bad_compression(tmp_path):
     arrays, header, payload = segment(0)
     rec.write_segment("tdi", header, payload)
     rec.close()
-    np.testing.assert_array_equal(read_recording(tmp_path / "l.mcap").segments("tdi")[0].arrays["data"],
-                                  arrays["data"])
+    np.testing.assert_array_equal(read_recording(tmp_path / "l.mcap").segments("tdi")[0].arrays["data"], arrays["data"])
     with pytest.raises(ValueError, match="compression"):
         Recorder(tmp_path / "b.mcap", compression="gzip")
 
@@ -177,8 +193,12 @@ def test_sigkill_loses_at_most_the_open_chunk(tmp_path):
     is read back by the salvage reader; what is lost is the chunk it was filling (here the
     fit summary written after the last closed segment chunk)."""
     path = tmp_path / "killed.mcap"
-    proc = subprocess.Popen([sys.executable, "-c", WRITER, str(path)], stdout=subprocess.PIPE, text=True,
-                            cwd=Path(__file__).resolve().parents[2])
+    proc = subprocess.Popen(
+        [sys.executable, "-c", WRITER, str(path)],
+        stdout=subprocess.PIPE,
+        text=True,
+        cwd=Path(__file__).resolve().parents[2],
+    )
     try:
         written = -1
         deadline = time.monotonic() + 60

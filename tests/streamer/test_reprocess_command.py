@@ -60,8 +60,27 @@ def test_reprocess_equals_analyze_and_reports_a_failed_day(days, tmp_path, capsy
     bad = tmp_path / "broken.h5"
     bad.write_bytes(b"not an HDF5 file" * 100)
     out = tmp_path / "out"
-    rc = main(["reprocess", *map(str, days), str(bad), "--out", str(out), "--workers", "2", "--memory-limit", "2GiB",
-               "--segment", SEGMENT, "--no-figures", "--no-witnesses", "--candidates", "drift", "--retries", "1"])
+    rc = main(
+        [
+            "reprocess",
+            *map(str, days),
+            str(bad),
+            "--out",
+            str(out),
+            "--workers",
+            "2",
+            "--memory-limit",
+            "2GiB",
+            "--segment",
+            SEGMENT,
+            "--no-figures",
+            "--no-witnesses",
+            "--candidates",
+            "drift",
+            "--retries",
+            "1",
+        ]
+    )
     assert rc == 1  # one day failed
     err = capsys.readouterr().err
     assert "ttl reprocess: 100%" in err and "4/4" in err  # the progress bar
@@ -75,8 +94,9 @@ def test_reprocess_equals_analyze_and_reports_a_failed_day(days, tmp_path, capsy
     md = (out / "summary.md").read_text()
     assert "| broken | FAILED |" in md and "| day1 | ok |" in md
     for p in days:
-        alone = analyze(p, out_dir=tmp_path / "alone" / p.stem, figures=False,
-                        settings=FitSettings(segment_duration=15 * 60.0))["fit_json"]
+        alone = analyze(
+            p, out_dir=tmp_path / "alone" / p.stem, figures=False, settings=FitSettings(segment_duration=15 * 60.0)
+        )["fit_json"]
         mine = json.loads((out / p.stem / "fit.json").read_text())
         for key in ("coefficients", "sigma"):
             a = np.array([alone[key][n] for n in COEFFICIENT_NAMES])
@@ -85,8 +105,12 @@ def test_reprocess_equals_analyze_and_reports_a_failed_day(days, tmp_path, capsy
         assert mine["chi2"] == pytest.approx(alone["chi2"], rel=1e-12)
         assert mine["window"] == alone["window"]
         row = rows[p.stem]
-        np.testing.assert_allclose([row["coefficients"][n] for n in COEFFICIENT_NAMES],
-                                   [alone["coefficients"][n] for n in COEFFICIENT_NAMES], rtol=1e-12, atol=0)
+        np.testing.assert_allclose(
+            [row["coefficients"][n] for n in COEFFICIENT_NAMES],
+            [alone["coefficients"][n] for n in COEFFICIENT_NAMES],
+            rtol=1e-12,
+            atol=0,
+        )
         diag = json.loads((out / p.stem / "diagnosis.json").read_text())
         assert diag["file"] == str(p)
         assert row["diagnosis"]["chi2_dof"] == diag["adequacy"]["chi2_dof"]
@@ -96,8 +120,9 @@ def test_reprocess_equals_analyze_and_reports_a_failed_day(days, tmp_path, capsy
 
 
 def _start(*cmd, log: Path):
-    return subprocess.Popen([str(c) for c in cmd], stdout=open(log, "wb"), stderr=subprocess.STDOUT,
-                            start_new_session=True)
+    return subprocess.Popen(
+        [str(c) for c in cmd], stdout=open(log, "wb"), stderr=subprocess.STDOUT, start_new_session=True
+    )
 
 
 def test_killed_worker_loses_no_day(days, tmp_path):
@@ -105,25 +130,66 @@ def test_killed_worker_loses_no_day(days, tmp_path):
     from distributed import Client
 
     sched_file = tmp_path / "scheduler.json"
-    procs = [_start(BIN / "dask", "scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
-                    "--scheduler-file", sched_file, log=tmp_path / "scheduler.log")]
+    procs = [
+        _start(
+            BIN / "dask",
+            "scheduler",
+            "--host",
+            "127.0.0.1",
+            "--port",
+            "0",
+            "--no-dashboard",
+            "--scheduler-file",
+            sched_file,
+            log=tmp_path / "scheduler.log",
+        )
+    ]
     try:
         deadline = time.monotonic() + 60
         while not sched_file.exists() and time.monotonic() < deadline:
             time.sleep(0.2)
         assert sched_file.exists(), (tmp_path / "scheduler.log").read_text()
         for i in range(2):
-            procs.append(_start(BIN / "dask", "worker", "--scheduler-file", sched_file, "--nthreads", "1",
-                                "--no-nanny", "--host", "127.0.0.1", "--memory-limit", "2GiB", "--no-dashboard",
-                                log=tmp_path / f"worker{i}.log"))
+            procs.append(
+                _start(
+                    BIN / "dask",
+                    "worker",
+                    "--scheduler-file",
+                    sched_file,
+                    "--nthreads",
+                    "1",
+                    "--no-nanny",
+                    "--host",
+                    "127.0.0.1",
+                    "--memory-limit",
+                    "2GiB",
+                    "--no-dashboard",
+                    log=tmp_path / f"worker{i}.log",
+                )
+            )
         with Client(scheduler_file=str(sched_file), timeout="30s") as client:
             client.wait_for_workers(2, timeout=90)
             pids = client.run(os.getpid)  # worker address -> pid
             out = tmp_path / "out"
-            run = subprocess.Popen([str(BIN / "ttl"), "reprocess", *map(str, days), "--out", str(out),
-                                    "--scheduler", str(sched_file), "--segment", SEGMENT, "--no-diagnosis",
-                                    "--no-figures", "--quiet"], stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
-                                   text=True)
+            run = subprocess.Popen(
+                [
+                    str(BIN / "ttl"),
+                    "reprocess",
+                    *map(str, days),
+                    "--out",
+                    str(out),
+                    "--scheduler",
+                    str(sched_file),
+                    "--segment",
+                    SEGMENT,
+                    "--no-diagnosis",
+                    "--no-figures",
+                    "--quiet",
+                ],
+                stdout=subprocess.PIPE,
+                stderr=subprocess.STDOUT,
+                text=True,
+            )
             killed = victim_day = None
             deadline = time.monotonic() + 240
             while killed is None and time.monotonic() < deadline and run.poll() is None:
@@ -176,10 +242,18 @@ def test_days_from_recordings_equal_the_source(days, tmp_path):
         for tm in src:
             for j in range(0, tm.size, n):
                 part = tm.slice(j, j + n)
-                payload, att = encode({k: getattr(part, k) for k in ("eta", "dws_phi", "dws_eta", "ltt")},
-                                      {"run": "r1", "index": index, "t0": part.t0, "fs": part.fs,
-                                       "channels": list(LINKS), "producer": "replayer",
-                                       "meta": {"source": str(days[0]), "dws_asd": 2.1e-10}})
+                payload, att = encode(
+                    {k: getattr(part, k) for k in ("eta", "dws_phi", "dws_eta", "ltt")},
+                    {
+                        "run": "r1",
+                        "index": index,
+                        "t0": part.t0,
+                        "fs": part.fs,
+                        "channels": list(LINKS),
+                        "producer": "replayer",
+                        "meta": {"source": str(days[0]), "dws_asd": 2.1e-10},
+                    },
+                )
                 rec.write_segment("telemetry", json.loads(att), payload)
                 index += 1
     paths = recorded_days(run_dir, tmp_path / "days", day_length=HOUR)
@@ -195,9 +269,18 @@ def test_days_from_recordings_equal_the_source(days, tmp_path):
     with Recorder(run_dir / "replayer.mcap", metadata={"run": "r1", "stage": "replayer"}) as rec:
         for index in (0, 2):
             part = src[0].slice(0, n)
-            payload, att = encode({k: getattr(part, k) for k in ("eta", "dws_phi", "dws_eta", "ltt")},
-                                  {"run": "r1", "index": index, "t0": index * 1800.0, "fs": 4.0,
-                                   "channels": list(LINKS), "producer": "replayer", "meta": {}})
+            payload, att = encode(
+                {k: getattr(part, k) for k in ("eta", "dws_phi", "dws_eta", "ltt")},
+                {
+                    "run": "r1",
+                    "index": index,
+                    "t0": index * 1800.0,
+                    "fs": 4.0,
+                    "channels": list(LINKS),
+                    "producer": "replayer",
+                    "meta": {},
+                },
+            )
             rec.write_segment("telemetry", json.loads(att), payload)
     with pytest.raises(TTLError, match=r"segments \[1\] are missing"):
         recorded_days(run_dir, tmp_path / "days2", day_length=HOUR)

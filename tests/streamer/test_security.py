@@ -49,15 +49,19 @@ def test_credentials_are_made_once_with_private_keys(tmp_path):
         assert common_name(d / f"{role}.pem") == role
         assert stat.S_IMODE((d / f"{role}.key").stat().st_mode) == 0o600, role
     assert stat.S_IMODE((d / "ca.key").stat().st_mode) == 0o600
-    assert security._cert_hosts(x509.load_pem_x509_certificate((d / "router.pem").read_bytes())) == {"127.0.0.1", "localhost"}
+    assert security._cert_hosts(x509.load_pem_x509_certificate((d / "router.pem").read_bytes())) == {
+        "127.0.0.1",
+        "localhost",
+    }
     assert security._cert_hosts(x509.load_pem_x509_certificate((d / "fitter.pem").read_bytes())) == set()
     before = {p.name: p.read_bytes() for p in d.iterdir()}
     security.ensure_credentials(d)
     assert {p.name: p.read_bytes() for p in d.iterdir()} == before  # nothing reissued
     security.ensure_credentials(d, hosts=("198.18.0.1",))  # a router host added: only its certificate changes
     after = {p.name: p.read_bytes() for p in d.iterdir()}
-    assert [n for n in before if before[n] != after[n]] == ["router.key", "router.pem"] or \
-        sorted(n for n in before if before[n] != after[n]) == ["router.key", "router.pem"]
+    assert [n for n in before if before[n] != after[n]] == ["router.key", "router.pem"] or sorted(
+        n for n in before if before[n] != after[n]
+    ) == ["router.key", "router.pem"]
     assert "198.18.0.1" in security._cert_hosts(x509.load_pem_x509_certificate(after["router.pem"]))
     # a stage host holds no CA key: it cannot issue certificates, and says which file is missing
     (d / "ca.key").unlink()
@@ -93,12 +97,14 @@ def intruders(procs: Procs, tmp_path: Path, creds: Path, endpoint: str, run: str
     router logs the alert they send: DecryptError for a CA of the same name, UnknownCA)."""
     base = {"run": run, "endpoint": endpoint, "duration": duration, "ca": str(creds / "ca.pem")}
     foreign, stranger = foreign_certificate(tmp_path), stranger_certificate(tmp_path)
-    kinds = {"other-stage": {"credentials": str(creds), "identity": "subtractor"},
-             "no-certificate": {},
-             "foreign-ca": {"foreign": foreign},
-             "plain-tcp": {"plain": True},
-             "trusts-foreign-ca": {"foreign": foreign, "ca": str(Path(foreign).with_name("ca.pem"))},
-             "trusts-stranger-ca": {"foreign": stranger, "ca": str(Path(stranger).with_name("ca.pem"))}}
+    kinds = {
+        "other-stage": {"credentials": str(creds), "identity": "subtractor"},
+        "no-certificate": {},
+        "foreign-ca": {"foreign": foreign},
+        "plain-tcp": {"plain": True},
+        "trusts-foreign-ca": {"foreign": foreign, "ca": str(Path(foreign).with_name("ca.pem"))},
+        "trusts-stranger-ca": {"foreign": stranger, "ca": str(Path(stranger).with_name("ca.pem"))},
+    }
     out = {}
     for name, extra in kinds.items():
         report = tmp_path / f"{name}.json"
@@ -121,17 +127,22 @@ def check_intruders(started: dict) -> dict:
 
 def check_refusals(refused: list[dict], run: str) -> None:
     forbidden = {(r["subject"], r["key"]) for r in refused if r["kind"] == "forbidden"}
-    for key in (f"ttl/{run}/telemetry", f"ttl/{run}/fit", f"ttl/{run}/control/progress/replayer",
-                f"ttl/{run}/control/stop"):
+    for key in (
+        f"ttl/{run}/telemetry",
+        f"ttl/{run}/fit",
+        f"ttl/{run}/control/progress/replayer",
+        f"ttl/{run}/control/stop",
+    ):
         assert ("subtractor", key) in forbidden, (key, sorted(forbidden)[:20])
     assert {s for s, _ in forbidden} == {"subtractor"}, forbidden  # no genuine message refused
     unauth = [r["message"] for r in refused if r["kind"] == "unauthenticated"]
     assert any("invalid peer certificate" in m for m in unauth), unauth  # the foreign CA
-    assert any("corrupt message" in m for m in unauth), unauth           # plain TCP on the TLS port
-    assert any("no certificate" in m.lower() or "certificaterequired" in m.lower().replace(" ", "")
-               for m in unauth), unauth                                   # a TLS peer without certificate
+    assert any("corrupt message" in m for m in unauth), unauth  # plain TCP on the TLS port
+    assert any("no certificate" in m.lower() or "certificaterequired" in m.lower().replace(" ", "") for m in unauth), (
+        unauth
+    )  # a TLS peer without certificate
     assert any("fatal alert: DecryptError" in m for m in unauth), unauth  # a peer trusting a same-named CA
-    assert any("fatal alert: UnknownCA" in m for m in unauth), unauth     # a peer trusting another CA
+    assert any("fatal alert: UnknownCA" in m for m in unauth), unauth  # a peer trusting another CA
 
 
 def test_router_refuses_and_records_intruders(tmp_path):
@@ -143,12 +154,18 @@ def test_router_refuses_and_records_intruders(tmp_path):
         wait_for(lambda: "listening on" in output(router) or router.poll() is not None, 60, "the router")
         assert router.poll() is None, output(router)
         got: queue.Queue = queue.Queue()
-        with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="monitor")) as reader, \
-                Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="fitter")) as fitter:
+        with (
+            Bus.open(
+                SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="monitor")
+            ) as reader,
+            Bus.open(
+                SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="fitter")
+            ) as fitter,
+        ):
             reader.subscriber("ttl/r1/**", lambda s: got.put((str(s.key_expr), s.payload.to_bytes())))
             time.sleep(0.5)
             started = intruders(procs, tmp_path, creds, endpoint, "r1", duration=3.0)
-            fitter.session.put("ttl/r1/fit", b"genuine")   # a stage publishes its own topic
+            fitter.session.put("ttl/r1/fit", b"genuine")  # a stage publishes its own topic
             check_intruders(started)
             time.sleep(0.5)
             received = []
@@ -173,8 +190,21 @@ NO_MONITOR = [] if MONITOR else ["--skip", "monitor"]
 
 
 def run_cmd(run: str, rec: Path, *extra) -> list[str]:
-    return ttl_command("run", "--simulate", SIM, "--segment", "1h", "--run-id", run, "--recordings", str(rec),
-                       "--timeout", "400", *NO_MONITOR, *extra)
+    return ttl_command(
+        "run",
+        "--simulate",
+        SIM,
+        "--segment",
+        "1h",
+        "--run-id",
+        run,
+        "--recordings",
+        str(rec),
+        "--timeout",
+        "400",
+        *NO_MONITOR,
+        *extra,
+    )
 
 
 def fits(run_dir: Path) -> dict[int, dict]:
@@ -189,8 +219,11 @@ def test_intruders_against_a_live_run_change_nothing(tmp_path):
         clean = procs.start(run_cmd("clean", tmp_path / "rec"), "clean")
         assert finish(clean, 500) == 0, output(clean)[-3000:]
         attacked = procs.start(run_cmd("attacked", tmp_path / "rec"), "attacked")
-        wait_for(lambda: re.search(r"router on (tls/\S+?)[ ;]", output(attacked)) or attacked.poll() is not None,
-                 120, "the run's router")
+        wait_for(
+            lambda: re.search(r"router on (tls/\S+?)[ ;]", output(attacked)) or attacked.poll() is not None,
+            120,
+            "the run's router",
+        )
         endpoint = re.search(r"router on (tls/\S+?)[ ;]", output(attacked)).group(1)
         creds = tmp_path / "rec" / "attacked" / "credentials"
         started = intruders(procs, tmp_path, creds, endpoint, "attacked", duration=20.0)
@@ -199,7 +232,9 @@ def test_intruders_against_a_live_run_change_nothing(tmp_path):
         out = output(attacked)
         assert code == 0 and f"done: {SEGMENTS} segments" in out, out[-3000:]
         assert "refusal(s) by the router" in out and "refused: subtractor may not Put" in out, out[-3000:]
-        refused = [json.loads(line) for line in (tmp_path / "rec" / "attacked" / "security.jsonl").read_text().splitlines()]
+        refused = [
+            json.loads(line) for line in (tmp_path / "rec" / "attacked" / "security.jsonl").read_text().splitlines()
+        ]
         check_refusals(refused, "attacked")
         # the clean run refused nothing, and the attacked run's results are the clean run's
         assert (tmp_path / "rec" / "clean" / "security.jsonl").read_text() == ""
@@ -224,15 +259,17 @@ def test_credentials_make_every_link_mutual_tls_and_routers_enforce_the_acl(tmp_
     from streamer.session import SessionConfigError, _get, make_config
 
     creds = security.ensure_credentials(tmp_path / "creds")
-    stage = make_config(SessionSettings(mode="client", connect=("tls/127.0.0.1:7447",), credentials=creds,
-                                        identity="fitter"))
+    stage = make_config(
+        SessionSettings(mode="client", connect=("tls/127.0.0.1:7447",), credentials=creds, identity="fitter")
+    )
     tls = _get(stage, "transport/link/tls")
     assert tls["enable_mtls"] and tls["connect_certificate"].endswith("fitter.pem") and tls["verify_name_on_connect"]
     assert _get(stage, "transport/link/protocols") == ["tls"] and _get(stage, "listen/endpoints") == []
     assert not (_get(stage, "access_control") or {}).get("enabled")  # a client enforces nothing
     # the example router of a deployment: TLS endpoints, and the pipeline's ACL added
-    router = make_config(SessionSettings(config_file=ROOT / "streamer/configs/router.json5", credentials=creds,
-                                         identity="router"))
+    router = make_config(
+        SessionSettings(config_file=ROOT / "streamer/configs/router.json5", credentials=creds, identity="router")
+    )
     assert all(e.startswith("tls/") for e in _get(router, "listen/endpoints") + _get(router, "connect/endpoints"))
     assert _get(router, "transport/link/tls/listen_certificate") == str((creds / "router.pem").resolve())
     acl = _get(router, "access_control")
@@ -242,7 +279,9 @@ def test_credentials_make_every_link_mutual_tls_and_routers_enforce_the_acl(tmp_
     peer = make_config(SessionSettings(credentials=creds, identity="router"))
     assert [e.split(":")[0] for e in _get(peer, "listen/endpoints")] == ["tls/127.0.0.1"]
     with pytest.raises(SessionConfigError, match="tcp/127.0.0.1:7447.*tls/127.0.0.1:7447"):
-        make_config(SessionSettings(mode="client", connect=("tcp/127.0.0.1:7447",), credentials=creds, identity="fitter"))
+        make_config(
+            SessionSettings(mode="client", connect=("tcp/127.0.0.1:7447",), credentials=creds, identity="fitter")
+        )
     with pytest.raises(SessionConfigError, match="identity"):
         make_config(SessionSettings(mode="client", credentials=creds))
     with pytest.raises(SessionConfigError, match="nobody.pem: missing"):
@@ -252,9 +291,22 @@ def test_credentials_make_every_link_mutual_tls_and_routers_enforce_the_acl(tmp_
 def test_router_needs_credentials_or_insecure(tmp_path):
     r = subprocess.run(ttl_command("router", "--listen", "tcp/127.0.0.1:1"), capture_output=True, text=True, timeout=60)
     assert r.returncode != 0 and "--credentials" in r.stderr and "--insecure" in r.stderr, r.stderr
-    r = subprocess.run(ttl_command("run", "--simulate", "--duration 1h", "--run-id", "x", "--listen",
-                                   "tcp/127.0.0.1:7447", "--recordings", str(tmp_path)),
-                       capture_output=True, text=True, timeout=120)
+    r = subprocess.run(
+        ttl_command(
+            "run",
+            "--simulate",
+            "--duration 1h",
+            "--run-id",
+            "x",
+            "--listen",
+            "tcp/127.0.0.1:7447",
+            "--recordings",
+            str(tmp_path),
+        ),
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert r.returncode != 0 and "tls/127.0.0.1:7447" in r.stderr and "--insecure" in r.stderr, r.stderr
 
 
@@ -263,33 +315,60 @@ def test_refusals_are_read_from_zenoh_log_lines():
     zid = "4760c7ae5a5a15441e795c87c7f0e941"
     subject = f"Interface(lo)+CertCommonName(monitor)+Transport(Tls)+{zid}"
     head = "2026-11-23T21:38:19.46{}Z TRACE  rx-0 ThreadId(09) zenoh::net::routing::interceptor::access_control: "
-    lines = [head.format(1) + "ACL (ingress): caching permissions for `ttl/r1/fit/0` ...",
-             head.format(2) + f"{zid} on {subject} is unauthorized to Put (ingress) on ttl/r1/fit/0",  # precomputed
-             head.format(3) + f"{zid} on {subject} is unauthorized to Put (ingress) on ttl/r1/telemetry/3",
-             head.format(4) + f"Using cached result: {zid} is unauthorized to Put (ingress) on ttl/r1/fit/0",
-             head.format(5) + f"{zid} on {subject} is authorized to Put (egress) on ttl/r1/fit/0",
-             "2026-11-23T21:39:34.12Z  WARN acc-0 ThreadId(05) zenoh_link_tls::unicast: peer sent no certificates. "
-             "Hint: increase the system open file limit.",
-             # a peer refusing the router's certificate (it trusts another CA), as zenoh 1.10 logs it
-             "\x1b[2m2026-11-26T03:44:32.188356Z\x1b[0m \x1b[33m WARN\x1b[0m acc-0 ThreadId(05) \x1b[2mzenoh_link_tls::unicast"
-             "\x1b[0m\x1b[2m:\x1b[0m received fatal alert: DecryptError. Hint: increase the system open file limit.",
-             "2026-11-26T03:44:33.19Z  WARN acc-0 ThreadId(05) zenoh_link_tls::unicast: received fatal alert: UnknownCA. "
-             "Hint: increase the system open file limit."]
+    lines = [
+        head.format(1) + "ACL (ingress): caching permissions for `ttl/r1/fit/0` ...",
+        head.format(2) + f"{zid} on {subject} is unauthorized to Put (ingress) on ttl/r1/fit/0",  # precomputed
+        head.format(3) + f"{zid} on {subject} is unauthorized to Put (ingress) on ttl/r1/telemetry/3",
+        head.format(4) + f"Using cached result: {zid} is unauthorized to Put (ingress) on ttl/r1/fit/0",
+        head.format(5) + f"{zid} on {subject} is authorized to Put (egress) on ttl/r1/fit/0",
+        "2026-11-23T21:39:34.12Z  WARN acc-0 ThreadId(05) zenoh_link_tls::unicast: peer sent no certificates. "
+        "Hint: increase the system open file limit.",
+        # a peer refusing the router's certificate (it trusts another CA), as zenoh 1.10 logs it
+        "\x1b[2m2026-11-26T03:44:32.188356Z\x1b[0m \x1b[33m WARN\x1b[0m acc-0 ThreadId(05) \x1b[2mzenoh_link_tls::unicast"
+        "\x1b[0m\x1b[2m:\x1b[0m received fatal alert: DecryptError. Hint: increase the system open file limit.",
+        "2026-11-26T03:44:33.19Z  WARN acc-0 ThreadId(05) zenoh_link_tls::unicast: received fatal alert: UnknownCA. "
+        "Hint: increase the system open file limit.",
+    ]
     got = security.refusals(lines)
     assert [(r["kind"], r.get("subject"), r.get("key")) for r in got] == [
-        ("forbidden", "monitor", "ttl/r1/telemetry/3"), ("forbidden", "monitor", "ttl/r1/fit/0"),
-        ("unauthenticated", None, None), ("unauthenticated", None, None), ("unauthenticated", None, None)]
-    assert [r["message"] for r in got[2:]] == ["peer sent no certificates", "received fatal alert: DecryptError",
-                                               "received fatal alert: UnknownCA"]
+        ("forbidden", "monitor", "ttl/r1/telemetry/3"),
+        ("forbidden", "monitor", "ttl/r1/fit/0"),
+        ("unauthenticated", None, None),
+        ("unauthenticated", None, None),
+        ("unauthenticated", None, None),
+    ]
+    assert [r["message"] for r in got[2:]] == [
+        "peer sent no certificates",
+        "received fatal alert: DecryptError",
+        "received fatal alert: UnknownCA",
+    ]
     assert got[3]["time"] == "2026-11-26T03:44:32.188356Z"
 
 
 @pytest.mark.ops
 def test_insecure_run_is_plain_tcp_and_says_so(tmp_path):
-    r = subprocess.run(ttl_command("run", "--simulate", "--duration 1h", "--segment", "30min", "--run-id", "ins",
-                                   "--recordings", str(tmp_path), "--insecure", "--skip", "monitor",
-                                   "--timeout", "120", "--quiet"),
-                       capture_output=True, text=True, timeout=200)
+    r = subprocess.run(
+        ttl_command(
+            "run",
+            "--simulate",
+            "--duration 1h",
+            "--segment",
+            "30min",
+            "--run-id",
+            "ins",
+            "--recordings",
+            str(tmp_path),
+            "--insecure",
+            "--skip",
+            "monitor",
+            "--timeout",
+            "120",
+            "--quiet",
+        ),
+        capture_output=True,
+        text=True,
+        timeout=200,
+    )
     assert r.returncode == 0, r.stderr[-3000:]
     assert "--insecure: no TLS, no access control" in r.stderr and "router on tcp/127.0.0.1:" in r.stderr
     assert not (tmp_path / "ins" / "credentials").exists() and not (tmp_path / "ins" / "security.jsonl").exists()
@@ -298,9 +377,13 @@ def test_insecure_run_is_plain_tcp_and_says_so(tmp_path):
 # ---------------------------------------------------------------------------- hostile content from every identity
 
 #: Consumers of each topic (who must record every hostile message on it).
-CONSUMERS = {"telemetry": ("tdi_builder", "monitor"), "tdi": ("fitter", "subtractor", "monitor"),
-             "fit": ("subtractor", "monitor"), "residual": ("monitor",)}
-JSON_VALUES = [None, True, False, 0, -1, 2 ** 63, 1.5, -1e308, "", "x", "<f8", [], [1], [[]], ["a"], {}, {"a": 1}]
+CONSUMERS = {
+    "telemetry": ("tdi_builder", "monitor"),
+    "tdi": ("fitter", "subtractor", "monitor"),
+    "fit": ("subtractor", "monitor"),
+    "residual": ("monitor",),
+}
+JSON_VALUES = [None, True, False, 0, -1, 2**63, 1.5, -1e308, "", "x", "<f8", [], [1], [[]], ["a"], {}, {"a": 1}]
 
 
 def _with_text(attachment: bytes, old: str, new: str) -> bytes:
@@ -324,7 +407,11 @@ def hostile_variants(payload: bytes, attachment: bytes):
     yield "huge-exponent-t0", small, _with_text(compact, f'"t0":{json.dumps(header["t0"])}', '"t0":-1e400')
     yield "huge-int", small, _with_text(compact, f'"index":{header["index"]}', '"index":' + "9" * 5000)
     yield "long-string", b"", _with_text(compact, meta, '"meta":{"s":"' + "a" * 900_000 + '"}')
-    yield "long-name", small, _with_text(compact, f'"producer":"{header["producer"]}"', '"producer":"' + "p" * 5000 + '"')
+    yield (
+        "long-name",
+        small,
+        _with_text(compact, f'"producer":"{header["producer"]}"', '"producer":"' + "p" * 5000 + '"'),
+    )
     for name in header:
         for value in JSON_VALUES:
             yield "every-type", small, json.dumps({**header, name: value}).encode()
@@ -335,8 +422,11 @@ def hostile_variants(payload: bytes, attachment: bytes):
     # a different copy of a segment every stage has used: a conflict, the first copy kept
     altered = bytearray(payload)
     altered[-1] ^= 0x01
-    yield "conflict-after-use", bytes(altered), json.dumps(
-        {**header, "checksum": f"crc32:{zlib.crc32(bytes(altered)) & 0xFFFFFFFF:08x}"}).encode()
+    yield (
+        "conflict-after-use",
+        bytes(altered),
+        json.dumps({**header, "checksum": f"crc32:{zlib.crc32(bytes(altered)) & 0xFFFFFFFF:08x}"}).encode(),
+    )
 
 
 @pytest.mark.ops
@@ -358,40 +448,64 @@ def test_hostile_content_from_each_identity_changes_nothing(tmp_path):
         clean = procs.start(run_cmd("clean", rec), "clean")
         assert finish(clean, 500) == 0, output(clean)[-3000:]
         # paced (a segment every 12 s): the attack meets the run in progress
-        attacked = procs.start(run_cmd("hostile", rec, "--listen", f"tls/127.0.0.1:{port}", "--pace", "300"),
-                               "hostile")
+        attacked = procs.start(run_cmd("hostile", rec, "--listen", f"tls/127.0.0.1:{port}", "--pace", "300"), "hostile")
         endpoint = f"tls/127.0.0.1:{port}"
         wait_for(lambda: "router on" in output(attacked) or attacked.poll() is not None, 120, "the run's router")
         creds = rec / "hostile" / "credentials"
         genuine: dict[str, dict] = {t: {} for t in CONSUMERS}
-        with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="monitor")) as reader:
+        with Bus.open(
+            SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="monitor")
+        ) as reader:
             for topic in CONSUMERS:
-                reader.subscriber(f"ttl/hostile/{topic}", lambda s, t=topic: genuine[t].setdefault(
-                    json.loads(s.attachment.to_bytes())["index"], (s.payload.to_bytes(), s.attachment.to_bytes())))
+                reader.subscriber(
+                    f"ttl/hostile/{topic}",
+                    lambda s, t=topic: genuine[t].setdefault(
+                        json.loads(s.attachment.to_bytes())["index"], (s.payload.to_bytes(), s.attachment.to_bytes())
+                    ),
+                )
             # segment 1 of every topic published, and (progress) used by every consumer
-            wait_for(lambda: all(1 in g for g in genuine.values()) or attacked.poll() is not None, 600,
-                     "segment 1 of every topic")
-            wait_for(lambda: "monitor 2/" in output(attacked) or attacked.poll() is not None, 600,
-                     "the monitor past segment 1")
+            wait_for(
+                lambda: all(1 in g for g in genuine.values()) or attacked.poll() is not None,
+                600,
+                "segment 1 of every topic",
+            )
+            wait_for(
+                lambda: "monitor 2/" in output(attacked) or attacked.poll() is not None,
+                600,
+                "the monitor past segment 1",
+            )
             assert attacked.poll() is None, output(attacked)[-3000:]
-            for stage, topic in (("replayer", "telemetry"), ("tdi_builder", "tdi"), ("fitter", "fit"),
-                                 ("subtractor", "residual")):
-                with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds,
-                                              identity=stage)) as bus:
+            for stage, topic in (
+                ("replayer", "telemetry"),
+                ("tdi_builder", "tdi"),
+                ("fitter", "fit"),
+                ("subtractor", "residual"),
+            ):
+                with Bus.open(
+                    SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity=stage)
+                ) as bus:
                     put = bus.session.put
                     for kind, payload, attachment in hostile_variants(*genuine[topic][1]):
-                        put(f"ttl/hostile/{topic}", payload, attachment=attachment,
-                            congestion_control=zenoh.CongestionControl.BLOCK)
+                        put(
+                            f"ttl/hostile/{topic}",
+                            payload,
+                            attachment=attachment,
+                            congestion_control=zenoh.CongestionControl.BLOCK,
+                        )
                         sent[topic] = sent.get(topic, 0) + 1
                         sent[f"{topic}/{kind}"] = sent.get(f"{topic}/{kind}", 0) + 1
                         time.sleep(0.002)
                     bomb = b'{"stage":' + b"[" * 100_000 + b"]" * 100_000 + b"}"
                     put(errors_key("hostile", 1), bomb)
                     put(progress_key("hostile", stage), bomb)
-            with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds,
-                                          identity="launcher")) as bus:
-                for payload in (b'{"effects":' + b"[" * 100_000 + b"]" * 100_000 + b"}",
-                                b'{"effects": [1e999999]}', b'{"effects": ["' + b"a" * 900_000 + b'"]}'):
+            with Bus.open(
+                SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="launcher")
+            ) as bus:
+                for payload in (
+                    b'{"effects":' + b"[" * 100_000 + b"]" * 100_000 + b"}",
+                    b'{"effects": [1e999999]}',
+                    b'{"effects": ["' + b"a" * 900_000 + b'"]}',
+                ):
                     bus.session.put(control_key("hostile", "fitter", "model"), payload)
             code = finish(attacked, 600)
         out = output(attacked)
@@ -399,19 +513,26 @@ def test_hostile_content_from_each_identity_changes_nothing(tmp_path):
         procs.close()
     print(json.dumps(sent))
     assert "died" not in out, out[-4000:]
-    assert code == 1 and "conflicting copies of" in out and "gave up" not in out and "did not handle" not in out, \
-        out[-4000:]
+    assert code == 1 and "conflicting copies of" in out and "gave up" not in out and "did not handle" not in out, out[
+        -4000:
+    ]
     run_dir = rec / "hostile"
     for topic, consumers in CONSUMERS.items():
         for stage in consumers:
             r = read_recording(run_dir / f"{stage}.mcap")
             assert r.complete and r.problem is None, stage
             errors = r.json("errors")
-            on_topic = [e for e in errors if (e.get("key") or "").split("/")[2:3] == [topic]
-                        and e["kind"] in ("rejected", "forged", "conflict")]
+            on_topic = [
+                e
+                for e in errors
+                if (e.get("key") or "").split("/")[2:3] == [topic] and e["kind"] in ("rejected", "forged", "conflict")
+            ]
             dups = [e for e in r.json("events") if e["kind"] == "duplicate" and f"/{topic}/" in e["message"]]
             assert len(on_topic) + len(dups) >= sent[topic], (stage, topic, len(on_topic), len(dups), sent[topic])
-            assert not [e for e in errors if e["kind"] == "failed"], (stage, [e for e in errors if e["kind"] == "failed"][:3])
+            assert not [e for e in errors if e["kind"] == "failed"], (
+                stage,
+                [e for e in errors if e["kind"] == "failed"][:3],
+            )
             conflicts = [e for e in on_topic if e["kind"] == "conflict" and e["field"] == "payload"]
             assert conflicts and all(e["details"]["first_copy"] == "used" for e in conflicts), (stage, conflicts[:3])
             deep = [e for e in on_topic if "levels deep" in e["message"]]
@@ -425,7 +546,9 @@ def test_hostile_content_from_each_identity_changes_nothing(tmp_path):
             np.testing.assert_array_equal(a[i][k], b[i][k], err_msg=f"fit {i} {k}")
     residual = {}
     for name in ("clean", "hostile"):
-        residual[name] = {s.header.index: s.arrays for s in read_recording(rec / name / "subtractor.mcap").segments("residual")}
+        residual[name] = {
+            s.header.index: s.arrays for s in read_recording(rec / name / "subtractor.mcap").segments("residual")
+        }
     assert sorted(residual["clean"]) == sorted(residual["hostile"]) == list(range(SEGMENTS))
     for i, arrays in residual["clean"].items():
         for k, v in arrays.items():

@@ -76,11 +76,20 @@ def test_big_segments_across_processes_no_drops_and_late_joiner(children, tmp_pa
     n, size, cache = 20, 8 * MB, 4
     sub_port, pub_port = free_port(), free_port()
     sub_out, pub_out = tmp_path / "sub.json", tmp_path / "pub.json"
-    sub = children.start("subscriber", run="big", n=n, size=size, out=str(sub_out),
-                         listen=[f"tcp/127.0.0.1:{sub_port}"], timeout=60)
-    pub = children.start("publisher", run="big", n=n, size=size, out=str(pub_out), cache=cache,
-                         wait_for="subscriber", listen=[f"tcp/127.0.0.1:{pub_port}"],
-                         connect=[f"tcp/127.0.0.1:{sub_port}"])
+    sub = children.start(
+        "subscriber", run="big", n=n, size=size, out=str(sub_out), listen=[f"tcp/127.0.0.1:{sub_port}"], timeout=60
+    )
+    pub = children.start(
+        "publisher",
+        run="big",
+        n=n,
+        size=size,
+        out=str(pub_out),
+        cache=cache,
+        wait_for="subscriber",
+        listen=[f"tcp/127.0.0.1:{pub_port}"],
+        connect=[f"tcp/127.0.0.1:{sub_port}"],
+    )
     try:
         assert sub.wait(90) == 0, output_of(sub)
     except Exception:
@@ -90,16 +99,20 @@ def test_big_segments_across_processes_no_drops_and_late_joiner(children, tmp_pa
     assert sorted(map(int, result["received"])) == list(range(n)), output_of(pub)
     assert all(v == [True] for v in result["received"].values())  # once each, intact
     published = json.loads(pub_out.read_text())
-    print(f"\n{n} x {size / MB:.0f} MB: publisher put {published['bytes'] / MB / published['elapsed']:.0f} MB/s, "
-          f"max put {max(published['put_seconds']):.3f} s; subscriber arrivals span "
-          f"{result['t_last'] - result['t_first']:.2f} s")
+    print(
+        f"\n{n} x {size / MB:.0f} MB: publisher put {published['bytes'] / MB / published['elapsed']:.0f} MB/s, "
+        f"max put {max(published['put_seconds']):.3f} s; subscriber arrivals span "
+        f"{result['t_last'] - result['t_first']:.2f} s"
+    )
 
     # a late joiner, connecting to the publisher after everything was published
     got = queue.Queue()
     with Bus.open(SessionSettings(connect=(f"tcp/127.0.0.1:{pub_port}",))) as late:
-        late.segment_subscriber(topic_pattern("big", "telemetry"),
-                                lambda s: got.put((str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes())),
-                                history=cache)
+        late.segment_subscriber(
+            topic_pattern("big", "telemetry"),
+            lambda s: got.put((str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes())),
+            history=cache,
+        )
         history = {}
         deadline = time.monotonic() + 20
         while len(history) < cache and time.monotonic() < deadline:
@@ -126,8 +139,9 @@ def test_consumer_stalled_longer_than_zenohs_block_timeout_loses_nothing(childre
     with Bus(open_router(listen=(endpoint,))) as router:
         sub = children.start("subscriber", run="stall", n=n, size=size, out=str(sub_out), timeout=120, **client)
         wait_for(lambda: "subscriber" in router.alive_stages("stall", timeout=0.5), 30, "the subscriber")
-        pub = children.start("publisher", run="stall", n=n, size=size, out=str(pub_out), interval=0.2,
-                             wait_for="subscriber", **client)
+        pub = children.start(
+            "publisher", run="stall", n=n, size=size, out=str(pub_out), interval=0.2, wait_for="subscriber", **client
+        )
         time.sleep(3.0)  # the publisher is mid-stream (24 x 0.2 s)
         sub.send_signal(signal.SIGSTOP)
         time.sleep(12.0)

@@ -40,8 +40,10 @@ PORT = 7447
 TAG = f"t{os.getpid() % 100000}"
 NS = {h: f"{TAG}{h}" for h in "ABC"}
 #: veth pairs: (end in the first host, its address), (end in the second host, its address)
-LINKS = {"AB": (("A", f"{TAG}ab", "198.18.1.1"), ("B", f"{TAG}ba", "198.18.1.2")),
-         "BC": (("B", f"{TAG}bc", "198.18.2.2"), ("C", f"{TAG}cb", "198.18.2.3"))}
+LINKS = {
+    "AB": (("A", f"{TAG}ab", "198.18.1.1"), ("B", f"{TAG}ba", "198.18.1.2")),
+    "BC": (("B", f"{TAG}bc", "198.18.2.2"), ("C", f"{TAG}cb", "198.18.2.3")),
+}
 
 
 def ip(*args: str, check: bool = True) -> subprocess.CompletedProcess:
@@ -101,10 +103,18 @@ def fits(run_dir: Path) -> dict:
 
 def stage_config(path: Path, run: str, stage: str, rec: Path, creds: Path) -> Path:
     """The configuration ttl run would give the stage (same cache), connecting to its host's router."""
-    path.write_text(json.dumps({"run": run, "stage": stage, "recordings": str(rec), "cache": 8,
-                                "record_inputs": stage == "tdi_builder",
-                                "zenoh": {"mode": "client", "connect": [LOCAL], "credentials": str(creds),
-                                          "identity": stage}}))
+    path.write_text(
+        json.dumps(
+            {
+                "run": run,
+                "stage": stage,
+                "recordings": str(rec),
+                "cache": 8,
+                "record_inputs": stage == "tdi_builder",
+                "zenoh": {"mode": "client", "connect": [LOCAL], "credentials": str(creds), "identity": stage},
+            }
+        )
+    )
     return path
 
 
@@ -119,31 +129,102 @@ def test_three_hosts_with_a_cut_link_equal_one_host(network, tmp_path):
     skip = [] if MONITOR else ["--skip", "monitor"]
     try:
         # the reference: every stage on one host (the root namespace, loopback)
-        one = procs.start(ttl_command("run", "--simulate", SIM, "--segment", "1h", "--run-id", "one",
-                                      "--recordings", str(rec), "--timeout", "500", *skip), "one")
+        one = procs.start(
+            ttl_command(
+                "run",
+                "--simulate",
+                SIM,
+                "--segment",
+                "1h",
+                "--run-id",
+                "one",
+                "--recordings",
+                str(rec),
+                "--timeout",
+                "500",
+                *skip,
+            ),
+            "one",
+        )
         assert finish(one, 600) == 0, output(one)[-3000:]
 
-        creds = security.ensure_credentials(tmp_path / "creds", hosts=[a for pair in LINKS.values() for _, _, a in pair])
+        creds = security.ensure_credentials(
+            tmp_path / "creds", hosts=[a for pair in LINKS.values() for _, _, a in pair]
+        )
         # hosts B and C: routers (to the previous host) and their stages, up before the run starts
-        procs.start(in_ns("B", *ttl_command("router", "--credentials", str(creds), "--listen", LOCAL,
-                                            "--listen", endpoint("198.18.1.2"), "--listen", endpoint("198.18.2.2"),
-                                            "--connect", endpoint("198.18.1.1"))), "router-B")
-        procs.start(in_ns("C", *ttl_command("router", "--credentials", str(creds), "--listen", LOCAL,
-                                            "--listen", endpoint("198.18.2.3"), "--connect", endpoint("198.18.2.2"))),
-                    "router-C")
+        procs.start(
+            in_ns(
+                "B",
+                *ttl_command(
+                    "router",
+                    "--credentials",
+                    str(creds),
+                    "--listen",
+                    LOCAL,
+                    "--listen",
+                    endpoint("198.18.1.2"),
+                    "--listen",
+                    endpoint("198.18.2.2"),
+                    "--connect",
+                    endpoint("198.18.1.1"),
+                ),
+            ),
+            "router-B",
+        )
+        procs.start(
+            in_ns(
+                "C",
+                *ttl_command(
+                    "router",
+                    "--credentials",
+                    str(creds),
+                    "--listen",
+                    LOCAL,
+                    "--listen",
+                    endpoint("198.18.2.3"),
+                    "--connect",
+                    endpoint("198.18.2.2"),
+                ),
+            ),
+            "router-C",
+        )
         remote = {"tdi_builder": "B", "fitter": "C", "subtractor": "C"}
         stages = {}
         for stage, host in remote.items():
             cfg = stage_config(tmp_path / f"{stage}.json", "three", stage, rec, creds)
             stages[stage] = procs.start(in_ns(host, *ttl_command("stage", stage, "--config", str(cfg))), stage)
-        run = procs.start(in_ns("A", *ttl_command(
-            "run", "--simulate", SIM, "--segment", "1h", "--run-id", "three", "--recordings", str(rec),
-            "--credentials", str(creds), "--listen", LOCAL, "--listen", endpoint("198.18.1.1"),
-            "--external", ",".join(remote), "--timeout", "500", *skip)), "three")
+        run = procs.start(
+            in_ns(
+                "A",
+                *ttl_command(
+                    "run",
+                    "--simulate",
+                    SIM,
+                    "--segment",
+                    "1h",
+                    "--run-id",
+                    "three",
+                    "--recordings",
+                    str(rec),
+                    "--credentials",
+                    str(creds),
+                    "--listen",
+                    LOCAL,
+                    "--listen",
+                    endpoint("198.18.1.1"),
+                    "--external",
+                    ",".join(remote),
+                    "--timeout",
+                    "500",
+                    *skip,
+                ),
+            ),
+            "three",
+        )
         wait_for(lambda: done(output(run), "fitter") >= 2 or run.poll() is not None, 400, "two fits on host C")
         assert run.poll() is None, output(run)[-3000:]
         (_, a_dev, _), _ = LINKS["AB"]
-        ip("-n", NS["A"], "link", "set", a_dev, "down")           # host A loses host B (and C behind it)
+        ip("-n", NS["A"], "link", "set", a_dev, "down")  # host A loses host B (and C behind it)
         time.sleep(CUT_SECONDS)
         cut_at = done(output(run), "fitter")
         still_running = run.poll() is None

@@ -22,8 +22,18 @@ RUN = "stage-test"
 
 def good(index, n=4000, scale=1.0, **meta):
     data = scale * np.random.default_rng(index).standard_normal((2, n))
-    payload, attachment = encode(data, {"run": RUN, "index": index, "t0": 3600.0 * index, "fs": 4.0,
-                                        "channels": ["a", "b"], "producer": "driver", "meta": meta})
+    payload, attachment = encode(
+        data,
+        {
+            "run": RUN,
+            "index": index,
+            "t0": 3600.0 * index,
+            "fs": 4.0,
+            "channels": ["a", "b"],
+            "producer": "driver",
+            "meta": meta,
+        },
+    )
     return data, payload, attachment
 
 
@@ -36,25 +46,38 @@ class Driver:
         self.outputs: queue.Queue = queue.Queue()
         self.errors: list = []
         self.alive: list = []
-        self.bus.segment_subscriber(topic_pattern(RUN, "tdi"), lambda s: self.outputs.put(
-            (str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes())), history=0)
-        self.bus.subscriber(f"ttl/{RUN}/errors/*",
-                            lambda s: self.errors.append((str(s.key_expr), json.loads(s.payload.to_bytes()))))
+        self.bus.segment_subscriber(
+            topic_pattern(RUN, "tdi"),
+            lambda s: self.outputs.put((str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes())),
+            history=0,
+        )
+        self.bus.subscriber(
+            f"ttl/{RUN}/errors/*", lambda s: self.errors.append((str(s.key_expr), json.loads(s.payload.to_bytes())))
+        )
         self.bus.watch_alive(RUN, lambda stage, alive: self.alive.append((stage, alive)))
         self.telemetry = self.bus.segment_publisher(RUN, "telemetry", cache=8)
 
     def start_stage(self, children, tmp_path, **fields):
-        config = StageConfig(run=RUN, zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{self.port}",)),
-                             recordings=tmp_path / "recordings", poll_interval=0.05,
-                             gap_grace=0.5, **fields)
+        config = StageConfig(
+            run=RUN,
+            zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{self.port}",)),
+            recordings=tmp_path / "recordings",
+            poll_interval=0.05,
+            gap_grace=0.5,
+            **fields,
+        )
         proc = children.start("stage", config=config.to_dict())
-        wait_for(lambda: "doubler" in self.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
-                 30, "the stage's liveliness token")
+        wait_for(
+            lambda: "doubler" in self.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
+            30,
+            "the stage's liveliness token",
+        )
         assert proc.poll() is None, output_of(proc)
         return proc, tmp_path / "recordings" / RUN / "doubler.mcap"
 
     def output(self, timeout=10):
         from streamer.codec import decode
+
         key, payload, attachment = self.outputs.get(timeout=timeout)
         return decode(payload, attachment, key=key)
 
@@ -84,33 +107,33 @@ def test_stage_validates_deduplicates_reports_and_stops_cleanly(driver, children
     assert header.index == 0 and header.producer == "doubler" and header.key == f"ttl/{RUN}/tdi"  # the stream key
     np.testing.assert_array_equal(arrays["data"], 2 * data0)
 
-    driver.telemetry.put(0, p0, a0)                                 # duplicate: ignored
+    driver.telemetry.put(0, p0, a0)  # duplicate: ignored
     data1, p1, a1 = good(1)
     wrong = encode(np.ones((3, 10)), {"run": RUN, "index": 1, "t0": 0, "fs": 4, "channels": ["a", "b", "c"]})
     nan = np.ones((2, 10))
     nan[1, 3] = np.nan
     nan = encode(nan, {"run": RUN, "index": 1, "t0": 0, "fs": 4, "channels": ["a", "b"]}, allow_nonfinite=True)
     driver.telemetry.put(1, p1, b'{"schema": "ttl-segment", oops')  # bad header
-    driver.telemetry.put(1, *wrong)                                   # wrong shape
-    driver.telemetry.put(1, *nan)                                     # NaN
-    driver.telemetry.put(1, p1[:-1000], a1)                           # truncated payload
+    driver.telemetry.put(1, *wrong)  # wrong shape
+    driver.telemetry.put(1, *nan)  # NaN
+    driver.telemetry.put(1, p1[:-1000], a1)  # truncated payload
     driver.bus.session.put(f"ttl/{RUN}/telemetry/1", p1, attachment=a1)  # not the stream key
-    driver.telemetry.put(1, p1, a1)                                   # the good one
+    driver.telemetry.put(1, p1, a1)  # the good one
     header, arrays = driver.output()
     assert header.index == 1
     np.testing.assert_array_equal(arrays["data"], 2 * data1)
     _, p3, a3 = good(3)
-    driver.telemetry.put(3, p3, a3)                                   # gap: 2 missing (reported after 0.5 s)
+    driver.telemetry.put(3, p3, a3)  # gap: 2 missing (reported after 0.5 s)
     _, p4, a4 = good(4, fail=True)
-    driver.telemetry.put(4, p4, a4)                                   # handler raises
+    driver.telemetry.put(4, p4, a4)  # handler raises
     data5, p5, a5 = good(5)
-    driver.telemetry.put(5, p5, a5)                                   # and the stage goes on
+    driver.telemetry.put(5, p5, a5)  # and the stage goes on
     assert driver.output()[0].index == 3
     header, arrays = driver.output()
     assert header.index == 5
     np.testing.assert_array_equal(arrays["data"], 2 * data5)
     with pytest.raises(queue.Empty):
-        driver.output(timeout=0.5)                                    # nothing for 0 again, 2 or 4
+        driver.output(timeout=0.5)  # nothing for 0 again, 2 or 4
 
     wait_for(lambda: len(driver.errors) >= 7, 10, "seven error reports")
     time.sleep(0.3)
@@ -119,9 +142,14 @@ def test_stage_validates_deduplicates_reports_and_stops_cleanly(driver, children
     stray = [e for _, e in driver.errors if e["field"] == "key"]
     assert len(stray) == 1 and stray[0]["key"] == f"ttl/{RUN}/telemetry/1" and stray[0]["index"] is None, stray
     kinds = [k for k in kinds if k[2] != "key"]
-    assert kinds == [("rejected", None, "header"), ("rejected", 1, "arrays[data].shape"),
-                     ("rejected", 1, "arrays[data]"), ("rejected", 1, "payload"),
-                     ("failed", 4, None), ("gap", 3, None)], kinds
+    assert kinds == [
+        ("rejected", None, "header"),
+        ("rejected", 1, "arrays[data].shape"),
+        ("rejected", 1, "arrays[data]"),
+        ("rejected", 1, "payload"),
+        ("failed", 4, None),
+        ("gap", 3, None),
+    ], kinds
     # an unreadable header: the index is unknown (the stream key carries none)
     assert [k for k, _ in driver.errors][:1] == [errors_key(RUN, None)]
     assert "RuntimeError: asked to fail on segment 4" in driver.errors[-2][1]["message"]
@@ -172,7 +200,10 @@ def test_conflicting_copies_within_the_hold_are_both_kept_out(driver, children, 
     assert proc.wait(20) == 0, output_of(proc)
     conflicts = [e for e in read_recording(mcap_path).json("errors") if e["kind"] == "conflict"]
     assert [(e["index"], e["field"], e["details"].get("first_copy")) for e in conflicts] == [
-        (0, "payload", "withdrawn"), (0, "index", None), (1, "payload", "used")], conflicts
+        (0, "payload", "withdrawn"),
+        (0, "index", None),
+        (1, "payload", "used"),
+    ], conflicts
     assert "first copy is withdrawn" in conflicts[0]["message"] and "had been used" in conflicts[2]["message"]
     assert [s.header.index for s in read_recording(mcap_path).segments("tdi")] == [1]
 
@@ -192,8 +223,7 @@ def test_killed_stage_leaves_a_salvageable_recording(driver, children, tmp_path)
     assert rec.json("events")[0]["kind"] == "start"
     # the killed session's liveliness token lingers until Zenoh notices the dead link; a
     # restart must not mistake the old token for the new process's
-    wait_for(lambda: "doubler" not in driver.bus.alive_stages(RUN, timeout=0.5), 30,
-             "the killed stage's token to go")
+    wait_for(lambda: "doubler" not in driver.bus.alive_stages(RUN, timeout=0.5), 30, "the killed stage's token to go")
 
     # a restarted stage keeps the killed one's file and catches up from the publisher's cache
     proc, mcap_path = driver.start_stage(children, tmp_path)
@@ -209,23 +239,28 @@ def test_control_messages_change_a_stage_or_are_rejected_and_recorded(driver, ch
     proc, mcap_path = driver.start_stage(children, tmp_path)
     control = f"ttl/{RUN}/control/doubler"
     driver.bus.session.put(f"{control}/factor", b'{"factor": 3}')
-    driver.bus.session.put(f"{control}/factor", b'{"factor": "x"}')    # bad value: rejected
-    driver.bus.session.put(f"{control}/factor", b'{oops')               # not JSON: rejected
-    driver.bus.session.put(f"{control}/explode", b"")                   # unknown command: rejected
+    driver.bus.session.put(f"{control}/factor", b'{"factor": "x"}')  # bad value: rejected
+    driver.bus.session.put(f"{control}/factor", b"{oops")  # not JSON: rejected
+    driver.bus.session.put(f"{control}/explode", b"")  # unknown command: rejected
     wait_for(lambda: len(driver.errors) >= 3, 10, "three rejections")
     data, payload, attachment = good(0)
     driver.telemetry.put(0, payload, attachment)
     header, arrays = driver.output()
-    np.testing.assert_array_equal(arrays["data"], 3 * data)              # the accepted factor holds
+    np.testing.assert_array_equal(arrays["data"], 3 * data)  # the accepted factor holds
     rejected = [e for _, e in driver.errors]
-    assert [(e["kind"], e["field"], e["key"]) for e in rejected] == [("rejected", "payload", f"{control}/factor")] * 2 + [
-        ("rejected", "payload", f"{control}/explode")]
+    assert [(e["kind"], e["field"], e["key"]) for e in rejected] == [
+        ("rejected", "payload", f"{control}/factor")
+    ] * 2 + [("rejected", "payload", f"{control}/explode")]
     assert "factor: expected a number" in rejected[0]["message"] and "no command 'explode'" in rejected[2]["message"]
     driver.bus.session.put(f"{control}/stop", b"")
     assert proc.wait(20) == 0, output_of(proc)
     rec = read_recording(mcap_path)
     assert [(c["command"], c["accepted"]) for c in rec.json("control")] == [
-        ("factor", True), ("factor", False), ("factor", False), ("explode", False)]
+        ("factor", True),
+        ("factor", False),
+        ("factor", False),
+        ("explode", False),
+    ]
     assert rec.json("control")[0]["payload"] == {"factor": 3}
 
 
@@ -243,15 +278,20 @@ def test_no_message_content_stops_the_stage(driver, children, tmp_path):
     driver.telemetry.put(0, p0, text.replace('"index":0', '"index":' + "9" * 5000).encode())
     driver.telemetry.put(0, p0, text.replace('"meta":{}', '"meta":{"s":"' + "a" * 500_000 + '"}').encode())
     _, p99, a99 = good(99)
-    driver.telemetry.put(99, p99, a99)                                 # Doubler.expect raises LookupError
-    driver.telemetry.put(0, p0, a0)                                    # and the stage goes on
+    driver.telemetry.put(99, p99, a99)  # Doubler.expect raises LookupError
+    driver.telemetry.put(0, p0, a0)  # and the stage goes on
     header, arrays = driver.output()
     assert header.index == 0
     np.testing.assert_array_equal(arrays["data"], 2 * data0)
     wait_for(lambda: len(driver.errors) >= 5, 10, "five error reports")
     got = [(e["kind"], e["field"]) for _, e in driver.errors]
-    assert got == [("rejected", "header"), ("rejected", "meta.x"), ("rejected", "index"), ("rejected", "meta.s"),
-                   ("rejected", "message")], got
+    assert got == [
+        ("rejected", "header"),
+        ("rejected", "meta.x"),
+        ("rejected", "index"),
+        ("rejected", "meta.s"),
+        ("rejected", "message"),
+    ], got
     assert "nested 100002 levels deep" in driver.errors[0][1]["message"]
     assert "LookupError" in driver.errors[4][1]["message"]
     assert proc.poll() is None
@@ -284,11 +324,19 @@ def test_full_disk_stops_the_stage_and_says_so(driver, children, small_disk):
     the cause ("disk full"), not "process killed?"."""
     from streamer.inspect import format_report, inspect_run
 
-    config = StageConfig(run=RUN, zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
-                         recordings=small_disk / "recordings", poll_interval=0.05, hold=0.0)
+    config = StageConfig(
+        run=RUN,
+        zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
+        recordings=small_disk / "recordings",
+        poll_interval=0.05,
+        hold=0.0,
+    )
     proc = children.start("stage", config=config.to_dict())
-    wait_for(lambda: "doubler" in driver.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
-             30, "the stage's liveliness token")
+    wait_for(
+        lambda: "doubler" in driver.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
+        30,
+        "the stage's liveliness token",
+    )
     for i in range(60):  # 128 kB recorded per segment (input and output): 2 MB free
         if proc.poll() is not None:
             break

@@ -1,4 +1,3 @@
-"""The science commands of ``ttl``: simulate, info, analyze, diagnose, scenarios.
-"""
+"""The science commands of ``ttl``: simulate, info, analyze, diagnose, scenarios."""
 
-__all__ = ['analyze', 'diagnose', 'info', 'main', 'progress', 'report', 'simulate']
+__all__ = ["analyze", "diagnose", "info", "main", "progress", "report", "simulate"]

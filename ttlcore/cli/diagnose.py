@@ -56,8 +56,9 @@ def check_step_times(effects, t_start: float, t_stop: float, option: str = "--ef
         except (TypeError, ValueError):
             t = parse_duration(text, option)
         if not t_start < t < t_stop:
-            raise TTLError(f"{option}: {effect.name} at t_step={text} ({t:g} s) is outside the data "
-                           f"({t_start:g} - {t_stop:g} s)")
+            raise TTLError(
+                f"{option}: {effect.name} at t_step={text} ({t:g} s) is outside the data ({t_start:g} - {t_stop:g} s)"
+            )
 
 
 def run(args) -> int:
@@ -77,7 +78,6 @@ def run(args) -> int:
             raise TTLError(f"--candidates: unknown effect(s) {bad}; known: {', '.join(sorted(known))}")
     s = DiagnoseSettings()
     if args.band is not None:
-
         s.band = check_band(args.band)
     if args.segment is not None:
         s.segment_duration = parse_duration(args.segment, "--segment")
@@ -98,8 +98,16 @@ def run(args) -> int:
         if args.truth:
             tr = load_truth(args.truth, tm, file_kind(data), data)
             truth, _ = tr.mean_coefficients(tm.t0, tm.t0 + tm.duration)
-        report = diagnose(tm, effects, settings=s, effect_modules=modules, candidates=candidates,
-                          truth_coefficients=truth, witnesses=not args.no_witnesses, progress=say)
+        report = diagnose(
+            tm,
+            effects,
+            settings=s,
+            effect_modules=modules,
+            candidates=candidates,
+            truth_coefficients=truth,
+            witnesses=not args.no_witnesses,
+            progress=say,
+        )
     internals = report["_internals"]
     report = strip_internals(report)
     report["file"] = str(data)
@@ -114,13 +122,17 @@ def run(args) -> int:
         if "before" in report:
             fits = {"linear-ttl": fit_model(whitened, make_effects(["linear-ttl"]), time_table=False), "model": model}
         fine = {label: fine_band_table(fit) for label, fit in fits.items()}
-        paths = {"residual_vs_noise": str(plot_residual_vs_noise(whitened, fits, out / "residual_vs_noise.png",
-                                                                 s.tolerance, fine))}
+        paths = {
+            "residual_vs_noise": str(
+                plot_residual_vs_noise(whitened, fits, out / "residual_vs_noise.png", s.tolerance, fine)
+            )
+        }
         if report.get("witnesses"):
             paths["witness_coherence"] = str(plot_witness_coherence(report["witnesses"], out / "witness_coherence.png"))
         if internals.get("transient_map") is not None:
-            paths["time_frequency"] = str(plot_time_frequency(internals["transient_map"], report["transients"],
-                                                              out / "time_frequency.png"))
+            paths["time_frequency"] = str(
+                plot_time_frequency(internals["transient_map"], report["transients"], out / "time_frequency.png")
+            )
         report["figures"] = paths
     written = write_report(args.json, report)
     if to_stdout(args.json):

@@ -21,10 +21,18 @@ def summarise(path) -> dict:
     if kind == "truth":
         tr = read_truth(path)
         return {
-            "file": str(path), "kind": "truth", "t0": tr.t0, "fs": tr.fs, "size": tr.size, "duration_s": tr.size / tr.fs,
-            "datasets": ["ttl", "coefficients", "angles", "angular_velocity"] + [f"noises/{n}" for n in tr.noises]
+            "file": str(path),
+            "kind": "truth",
+            "t0": tr.t0,
+            "fs": tr.fs,
+            "size": tr.size,
+            "duration_s": tr.size / tr.fs,
+            "datasets": ["ttl", "coefficients", "angles", "angular_velocity"]
+            + [f"noises/{n}" for n in tr.noises]
             + [f"injections/{n}" for n in tr.injections],
-            "coefficients_mean_mm_per_rad": dict(zip(COEFFICIENT_NAMES, (1e3 * tr.mean_coefficients()).round(6).tolist())),
+            "coefficients_mean_mm_per_rad": dict(
+                zip(COEFFICIENT_NAMES, (1e3 * tr.mean_coefficients()).round(6).tolist())
+            ),
             "ttl_rms": dict(zip(LINKS, _rms(tr.ttl))),
             "injections_rms": {n: float(np.sqrt(np.mean(np.square(v)))) for n, v in tr.injections.items()},
         }
@@ -57,15 +65,22 @@ def run(args) -> int:
     print(f"  t0 {s['t0']:.3f} s, fs {s['fs']:g} Hz, {s['size']} samples = {s['duration_s'] / 3600:.3f} h")
     if s["kind"] == "truth":
         print("  datasets: " + ", ".join(s["datasets"]))
-        print("  mean coefficients [mm/rad]: " + " ".join(f"{k}={v:+.4f}" for k, v in s["coefficients_mean_mm_per_rad"].items()))
+        print(
+            "  mean coefficients [mm/rad]: "
+            + " ".join(f"{k}={v:+.4f}" for k, v in s["coefficients_mean_mm_per_rad"].items())
+        )
         return 0
     cfg = s["config"]
     if cfg.get("orbit"):
-        print(f"  orbit {cfg.get('orbit')}, seed {cfg.get('seed')}, noises on: "
-              + ", ".join(k for k, v in cfg.get("noises", {}).items() if v))
+        print(
+            f"  orbit {cfg.get('orbit')}, seed {cfg.get('seed')}, noises on: "
+            + ", ".join(k for k, v in cfg.get("noises", {}).items() if v)
+        )
     print("  link    eta RMS [1]   DWS phi RMS [rad/s]   DWS eta RMS [rad/s]   ltt [s]")
     for link in LINKS:
-        print(f"  {link}   {s['eta_rms'][link]:.3e}     {s['dws_phi_rms_rad_per_s'][link]:.3e}             "
-              f"{s['dws_eta_rms_rad_per_s'][link]:.3e}             {s['ltt_min_s'][link]:.6f} .. {s['ltt_max_s'][link]:.6f}")
+        print(
+            f"  {link}   {s['eta_rms'][link]:.3e}     {s['dws_phi_rms_rad_per_s'][link]:.3e}             "
+            f"{s['dws_eta_rms_rad_per_s'][link]:.3e}             {s['ltt_min_s'][link]:.6f} .. {s['ltt_max_s'][link]:.6f}"
+        )
     print(f"  truth file: {s['truth_file'] or 'none beside it'}")
     return 0

@@ -53,6 +53,7 @@ class Parser(argparse.ArgumentParser):
 # argument types: checked at parse time, before any work or heavy import
 # ---------------------------------------------------------------------------
 
+
 def output_file(text: str) -> str:
     """A file to write: ``-`` (standard output) or a path whose directory exists."""
     if text == "-":
@@ -118,8 +119,13 @@ def frequency(text: str) -> float:
 
 def add_json(p, what: str = "the report", required: bool = False) -> None:
     """``--json FILE|-``, the same in every command."""
-    p.add_argument("--json", metavar="FILE|-", type=output_file, required=required,
-                   help=f"write {what} as JSON to FILE ('-': to standard output, instead of the text)")
+    p.add_argument(
+        "--json",
+        metavar="FILE|-",
+        type=output_file,
+        required=required,
+        help=f"write {what} as JSON to FILE ('-': to standard output, instead of the text)",
+    )
 
 
 def add_quiet(p, what: str = "no progress display, no status lines ('wrote ...'): errors and the report only") -> None:
@@ -127,13 +133,20 @@ def add_quiet(p, what: str = "no progress display, no status lines ('wrote ...')
 
 
 def add_band(p, default) -> None:
-    p.add_argument("--band", nargs=2, type=frequency, metavar=("FMIN", "FMAX"), default=None,
-                   help=f"band in Hz (default {default[0]:g} {default[1]:g})")
+    p.add_argument(
+        "--band",
+        nargs=2,
+        type=frequency,
+        metavar=("FMIN", "FMAX"),
+        default=None,
+        help=f"band in Hz (default {default[0]:g} {default[1]:g})",
+    )
 
 
 # ---------------------------------------------------------------------------
 # the science subcommands
 # ---------------------------------------------------------------------------
+
 
 def _add_simulate(sub) -> None:
     p = sub.add_parser(
@@ -144,15 +157,27 @@ def _add_simulate(sub) -> None:
     )
     add_simulation_options(p)
     out = p.add_mutually_exclusive_group(required=True)
-    out.add_argument("--telemetry", metavar="FILE", type=output_file,
-                     help="telemetry file to write (HDF5); the truth file goes beside it")
+    out.add_argument(
+        "--telemetry",
+        metavar="FILE",
+        type=output_file,
+        help="telemetry file to write (HDF5); the truth file goes beside it",
+    )
     # before the convention (--out is a directory in every command) this option named the file:
     # still accepted, with a note, so that existing scripts keep working
     out.add_argument("--out", metavar="FILE", type=output_file, help=argparse.SUPPRESS)
-    p.add_argument("--truth-noises", default="", help="noise components to store alone in the truth file, "
-                   "comma-separated (laser, oms, backlink, telescope, test_mass, dws_phi, dws_eta) or 'all'")
-    p.add_argument("--chunk", default="3h", type=duration,
-                   help="simulation chunk length (memory bound; the result does not depend on it)")
+    p.add_argument(
+        "--truth-noises",
+        default="",
+        help="noise components to store alone in the truth file, "
+        "comma-separated (laser, oms, backlink, telescope, test_mass, dws_phi, dws_eta) or 'all'",
+    )
+    p.add_argument(
+        "--chunk",
+        default="3h",
+        type=duration,
+        help="simulation chunk length (memory bound; the result does not depend on it)",
+    )
     add_quiet(p)
     p.set_defaults(handler="ttlcore.cli.simulate:run")
 
@@ -175,13 +200,21 @@ def _add_analyze(sub) -> None:
         "file itself) is only used for comparisons, never by the fit.",
     )
     p.add_argument("data", type=input_file, help="telemetry file (HDF5: ours or a lisainstrument measurement file)")
-    p.add_argument("--truth", default=None, type=input_file,
-                   help="truth file (day.truth.h5), or for lisainstrument data the "
-                   "lisainstrument file (its static coefficients; no TTL residual then)")
+    p.add_argument(
+        "--truth",
+        default=None,
+        type=input_file,
+        help="truth file (day.truth.h5), or for lisainstrument data the "
+        "lisainstrument file (its static coefficients; no TTL residual then)",
+    )
     add_band(p, ANALYZE_BAND)
     p.add_argument("--method", default="gls", choices=("gls", "mcmc"), help="gls (default) | mcmc")
-    p.add_argument("--segment", default=None, type=duration,
-                   help="FFT segment length of the fit, e.g. 6h, 1h or seconds (default 21600 s)")
+    p.add_argument(
+        "--segment",
+        default=None,
+        type=duration,
+        help="FFT segment length of the fit, e.g. 6h, 1h or seconds (default 21600 s)",
+    )
     p.add_argument("--out", required=True, metavar="DIR", type=output_dir, help="output directory (created)")
     add_json(p, "fit.json")
     add_quiet(p)
@@ -198,29 +231,60 @@ def _add_diagnose(sub) -> None:
         "Works on our telemetry and on lisainstrument files. See docs/diagnostics.md.",
     )
     p.add_argument("data", type=input_file, help="telemetry file (ours or a lisainstrument measurement file)")
-    p.add_argument("--effects", default="linear-ttl", metavar="EFFECT[:opt=v],...",
-                   help="the model: comma-separated effects, options after ':' separated by ';' "
-                   "(e.g. linear-ttl,drift,step:t_step=50400;mosas=12+13); default linear-ttl")
-    p.add_argument("--effect-module", action="append", default=[], metavar="PATH",
-                   help="Python file (or importable module) defining user effects; repeatable")
-    p.add_argument("--candidates", default=None, metavar="EFFECT,...",
-                   help="named effects and plugins to try (default: all available); the witness effects and "
-                   "frequency-dependent couplings of the top witnesses are tried as well")
-    p.add_argument("--truth", default=None, type=input_file,
-                   help="truth file (or the lisainstrument file itself): adds coefficient errors only")
+    p.add_argument(
+        "--effects",
+        default="linear-ttl",
+        metavar="EFFECT[:opt=v],...",
+        help="the model: comma-separated effects, options after ':' separated by ';' "
+        "(e.g. linear-ttl,drift,step:t_step=50400;mosas=12+13); default linear-ttl",
+    )
+    p.add_argument(
+        "--effect-module",
+        action="append",
+        default=[],
+        metavar="PATH",
+        help="Python file (or importable module) defining user effects; repeatable",
+    )
+    p.add_argument(
+        "--candidates",
+        default=None,
+        metavar="EFFECT,...",
+        help="named effects and plugins to try (default: all available); the witness effects and "
+        "frequency-dependent couplings of the top witnesses are tried as well",
+    )
+    p.add_argument(
+        "--truth",
+        default=None,
+        type=input_file,
+        help="truth file (or the lisainstrument file itself): adds coefficient errors only",
+    )
     add_band(p, DIAGNOSE_BAND)
-    p.add_argument("--segment", default=None, type=duration,
-                   help="FFT segment length (default 6 h, or a quarter of shorter data)")
-    p.add_argument("--tolerance", type=float, default=None,
-                   help="relative tolerance of the noise model (default 0.02; 0.05 with --noise-model fixed)")
-    p.add_argument("--noise-model", choices=("fitted", "fixed"), default="fitted",
-                   help="secondary-noise levels fitted with the model (default) or fixed at the paper's levels")
+    p.add_argument(
+        "--segment", default=None, type=duration, help="FFT segment length (default 6 h, or a quarter of shorter data)"
+    )
+    p.add_argument(
+        "--tolerance",
+        type=float,
+        default=None,
+        help="relative tolerance of the noise model (default 0.02; 0.05 with --noise-model fixed)",
+    )
+    p.add_argument(
+        "--noise-model",
+        choices=("fitted", "fixed"),
+        default="fitted",
+        help="secondary-noise levels fitted with the model (default) or fixed at the paper's levels",
+    )
     p.add_argument("--no-witnesses", action="store_true", help="skip the witness search")
     add_json(p, "the report")
     p.add_argument("--out", default=None, metavar="DIR", type=output_dir, help="directory for the figures (created)")
-    p.add_argument("--workers", type=positive_int, default=None, metavar="N",
-                   help="threads scoring the candidates side by side (default: one per core, at most 4; "
-                        "the report does not depend on it)")
+    p.add_argument(
+        "--workers",
+        type=positive_int,
+        default=None,
+        metavar="N",
+        help="threads scoring the candidates side by side (default: one per core, at most 4; "
+        "the report does not depend on it)",
+    )
     add_quiet(p)
     p.set_defaults(handler="ttlcore.cli.diagnose:run")
 
@@ -236,17 +300,31 @@ def _add_scenarios(sub) -> None:
         "DIR/<variant>/<case>_*.png.",
     )
     p.add_argument("--out", required=True, metavar="DIR", type=output_dir, help="output directory (created)")
-    p.add_argument("--cases", default="all-cases", help="comma-separated cases (default all): " + ", ".join(SCENARIO_CASES))
-    p.add_argument("--variants", default=",".join(SCENARIO_VARIANTS),
-                   help="comma-separated variants: " + ", ".join(SCENARIO_VARIANTS) + " (default all three)")
-    p.add_argument("--duration", default="1d", type=duration,
-                   help="length of each case, e.g. 1d or 6h (default 1d, as the paper)")
+    p.add_argument(
+        "--cases", default="all-cases", help="comma-separated cases (default all): " + ", ".join(SCENARIO_CASES)
+    )
+    p.add_argument(
+        "--variants",
+        default=",".join(SCENARIO_VARIANTS),
+        help="comma-separated variants: " + ", ".join(SCENARIO_VARIANTS) + " (default all three)",
+    )
+    p.add_argument(
+        "--duration", default="1d", type=duration, help="length of each case, e.g. 1d or 6h (default 1d, as the paper)"
+    )
     p.add_argument("--seed", type=int, default=1, help="noise seed shared by all cases (default 1)")
     p.add_argument("--no-figures", action="store_true", help="skip the figures")
-    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
-                   help="run the cases on this Dask scheduler (tcp://host:8786 or its --scheduler-file)")
-    p.add_argument("--workers", type=int, default=0,
-                   help="run the cases on a local Dask cluster of N worker processes (default 0: in this process)")
+    p.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help="run the cases on this Dask scheduler (tcp://host:8786 or its --scheduler-file)",
+    )
+    p.add_argument(
+        "--workers",
+        type=int,
+        default=0,
+        help="run the cases on a local Dask cluster of N worker processes (default 0: in this process)",
+    )
     add_quiet(p)
     p.set_defaults(handler="ttlcore.gw.scenarios:_cmd_scenarios")
 
@@ -264,11 +342,14 @@ def register(sub) -> None:
 # entry point
 # ---------------------------------------------------------------------------
 
+
 def build_parser(*registrars) -> argparse.ArgumentParser:
     """The ``ttl`` parser: the science subcommands, plus those each of ``registrars`` adds
     (the operations package passes its own: ``ttlcore`` never imports it)."""
-    parser = Parser(prog="ttl", description="Tilt-to-length noise subtraction for LISA. Conventions shared by "
-                    "every command: docs/cli.md.")
+    parser = Parser(
+        prog="ttl",
+        description="Tilt-to-length noise subtraction for LISA. Conventions shared by every command: docs/cli.md.",
+    )
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv for debug)")
     parser.add_argument("--version", action="version", version=f"ttl {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True, parser_class=Parser)

@@ -64,6 +64,7 @@ def progress_bar(label: str, quiet: bool = False, stream=None) -> Iterator[Calla
         yield line
         return
     with tqdm(total=1, file=stream, desc=label, leave=True, dynamic_ncols=True) as bar:
+
         def update(done: int, total: int) -> None:
             bar.total = max(int(total), 1)
             bar.n = min(int(done), bar.total)

@@ -18,5 +18,22 @@ from .glitches import Gate, Glitch
 # the transient effects live with their search and gating (glitches imports effects)
 EFFECTS.update({Glitch.name: Glitch, Gate.name: Gate})
 
-__all__ = ['adequacy', 'candidates', 'columns', 'diagnoser', 'effects', 'evidence', 'fitting', 'glitches', 'model_fit',
-           'noise_model', 'report', 'reprocess', 'search', 'settings', 'trends', 'whitened', 'witnesses']
+__all__ = [
+    "adequacy",
+    "candidates",
+    "columns",
+    "diagnoser",
+    "effects",
+    "evidence",
+    "fitting",
+    "glitches",
+    "model_fit",
+    "noise_model",
+    "report",
+    "reprocess",
+    "search",
+    "settings",
+    "trends",
+    "whitened",
+    "witnesses",
+]

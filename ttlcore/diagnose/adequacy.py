@@ -50,8 +50,14 @@ DEFAULT_ALPHA = 1e-3
 DIAGNOSIS_BAND = (3e-3, 0.8)
 
 
-def instrument_noise_csd(f: np.ndarray, ltt_mean, coefficients=None, dws_asd: float = 0.0,
-                         names=COEFFICIENT_NAMES, secondary: np.ndarray | None = None) -> np.ndarray:
+def instrument_noise_csd(
+    f: np.ndarray,
+    ltt_mean,
+    coefficients=None,
+    dws_asd: float = 0.0,
+    names=COEFFICIENT_NAMES,
+    secondary: np.ndarray | None = None,
+) -> np.ndarray:
     """The instrument noise model ``S(f)`` of the module docstring, shape (m, 3, 3) (A, E, T).
 
     Parameters
@@ -133,13 +139,26 @@ class BandTable:
         out = []
         cf = self.channel_fails()
         for g in range(len(self.chi2)):
-            out.append({
-                "f_lo": float(self.edges[g]), "f_hi": float(self.edges[g + 1]),
-                "chi2": float(self.chi2[g]), "dof": float(self.dof[g]), "chi2_dof": _f(self.chi2_dof[g]),
-                "p_value": _f(self.p_values[g]), "fails": bool(self.fails[g]),
-                "channels": {c: {"chi2_dof": _f(self.channel_chi2[g, i] / self.channel_dof[g, i]) if self.channel_dof[g, i] else None,
-                                 "fails": bool(cf[g, i])} for i, c in enumerate(channels)},
-            })
+            out.append(
+                {
+                    "f_lo": float(self.edges[g]),
+                    "f_hi": float(self.edges[g + 1]),
+                    "chi2": float(self.chi2[g]),
+                    "dof": float(self.dof[g]),
+                    "chi2_dof": _f(self.chi2_dof[g]),
+                    "p_value": _f(self.p_values[g]),
+                    "fails": bool(self.fails[g]),
+                    "channels": {
+                        c: {
+                            "chi2_dof": _f(self.channel_chi2[g, i] / self.channel_dof[g, i])
+                            if self.channel_dof[g, i]
+                            else None,
+                            "fails": bool(cf[g, i]),
+                        }
+                        for i, c in enumerate(channels)
+                    },
+                }
+            )
         return out
 
 
@@ -148,8 +167,15 @@ def _f(x):
     return x if np.isfinite(x) else None
 
 
-def band_table(wr: np.ndarray, band_index: np.ndarray, edges, n_params: float = 0, kappa: float = 1.0,
-               tolerance: float = DEFAULT_TOLERANCE, alpha: float = DEFAULT_ALPHA) -> BandTable:
+def band_table(
+    wr: np.ndarray,
+    band_index: np.ndarray,
+    edges,
+    n_params: float = 0,
+    kappa: float = 1.0,
+    tolerance: float = DEFAULT_TOLERANCE,
+    alpha: float = DEFAULT_ALPHA,
+) -> BandTable:
     """chi^2 per band of whitened residual spectra ``wr`` (S, m, 3) (``L^H r`` with
     ``S^-1 = L L^H``); ``band_index`` (m,) the band of each bin.  The ``n_params`` fitted
     parameters remove their share of degrees of freedom in proportion to each band's."""
@@ -194,9 +220,16 @@ def third_octave_edges(band) -> np.ndarray:
     return edges
 
 
-def third_octave_table(wr: np.ndarray, f: np.ndarray, band, n_params: float = 0, kappa: float = 1.0,
-                       tolerance: float = DEFAULT_TOLERANCE, alpha: float = DEFAULT_ALPHA,
-                       min_dof: int = 2000) -> BandTable:
+def third_octave_table(
+    wr: np.ndarray,
+    f: np.ndarray,
+    band,
+    n_params: float = 0,
+    kappa: float = 1.0,
+    tolerance: float = DEFAULT_TOLERANCE,
+    alpha: float = DEFAULT_ALPHA,
+    min_dof: int = 2000,
+) -> BandTable:
     """:func:`band_table` at third-octave resolution where the data allow it: third-octave
     bands (:func:`third_octave_edges`) holding fewer than ``min_dof`` degrees of freedom are
     merged with their neighbour (:func:`merged_band_edges`), so that the statistical scatter
@@ -231,10 +264,12 @@ def describe_failures(table: BandTable, channels=("A", "E", "T")) -> list[str]:
         h = g
         while h + 1 < len(fails) and fails[h + 1]:
             h += 1
-        chans = [c for i, c in enumerate(channels) if cf[g:h + 1, i].any()]
-        worst = g + int(np.nanargmax(table.chi2_dof[g:h + 1]))
-        out.append(f"fails between {_hz(table.edges[g])} and {_hz(table.edges[h + 1])} in {', '.join(chans) or 'the sum of A, E, T'} "
-                   f"(chi2/dof up to {table.chi2_dof[worst]:.2f}, p = {table.p_values[worst]:.1e})")
+        chans = [c for i, c in enumerate(channels) if cf[g : h + 1, i].any()]
+        worst = g + int(np.nanargmax(table.chi2_dof[g : h + 1]))
+        out.append(
+            f"fails between {_hz(table.edges[g])} and {_hz(table.edges[h + 1])} in {', '.join(chans) or 'the sum of A, E, T'} "
+            f"(chi2/dof up to {table.chi2_dof[worst]:.2f}, p = {table.p_values[worst]:.1e})"
+        )
         g = h + 1
     return out
 

@@ -57,8 +57,11 @@ def named_candidates(model: ModelFit, names=None) -> list:
     in_model = {e.name for e in model.effects}
     # witness effects need options; glitches and gates are tried where the transient
     # finder localises an excess (:func:`transient_actions`)
-    todo = [n for n in (names or data.registry) if n not in in_model
-            and n not in ("witness", "fd-coupling", "glitch", "gate")]
+    todo = [
+        n
+        for n in (names or data.registry)
+        if n not in in_model and n not in ("witness", "fd-coupling", "glitch", "gate")
+    ]
     effects = [data.registry[n]() for n in todo]
     return sorted(effects, key=lambda e: not (e.unresolved() or hasattr(e, "shifted_members")))
 
@@ -83,7 +86,9 @@ class CandidatePool:
         s = data.settings
         self.C = model.ttl_coefficients()
         # the excess the noise model (with its tolerance) cannot explain
-        self.excess = float(np.sum(np.maximum(model.bands.chi2 - (1 + s.tolerance) * model.bands.dof, 0.0))) / data.kappa
+        self.excess = (
+            float(np.sum(np.maximum(model.bands.chi2 - (1 + s.tolerance) * model.bands.dof, 0.0))) / data.kappa
+        )
         self.n_data = float(model.dof_band.sum())
         self.workers = max(1, int(workers))
         self._seen = {e.spec() for e in model.effects}
@@ -194,7 +199,8 @@ def score(model: ModelFit, effect, C) -> tuple[Evidence, dict]:
     if effect.needs_coefficients and np.isnan(C).any():
         raise ConfigError(f"effect {effect.name!r} needs the 24 linear coefficients in the model")
     trial = effect.name in ("witness", "fd-coupling") or any(
-        c.startswith(("witness.", "fd.")) for c in effect.column_names())
+        c.startswith(("witness.", "fd.")) for c in effect.column_names()
+    )
     # trial columns of witness effects are not kept; drift and step ranked from modulated
     # TDI regressors (exact=False)
     cs = effect_columns(data, effect, C if effect.needs_coefficients else None, exact=trial, cache=not trial)
@@ -225,13 +231,23 @@ def shifted_evidence(model: ModelFit, effect, taylor: Evidence) -> tuple[Evidenc
     new = [i for i, n in enumerate(exact.names) if parameter_name(n) not in set(model.parameter_names)]
     names = [exact.names[i] for i in new]
     beta = np.array([total_offset(exact.names[i], exact.theta[i], exact.expansion) for i in new])
-    ev = Evidence(dchi2, lbf, len(new), tuple(names), beta, exact.sigma[new],
-                  (model.chi2_seg_band - exact.chi2_seg_band).sum(axis=0) / data.kappa,
-                  (model.chi2_seg_band - exact.chi2_seg_band).sum(axis=1) / data.kappa)
+    ev = Evidence(
+        dchi2,
+        lbf,
+        len(new),
+        tuple(names),
+        beta,
+        exact.sigma[new],
+        (model.chi2_seg_band - exact.chi2_seg_band).sum(axis=0) / data.kappa,
+        (model.chi2_seg_band - exact.chi2_seg_band).sum(axis=1) / data.kappa,
+    )
     offsets = {n[:-3]: float(b) for n, b in zip(names, beta) if n.endswith(".d1")}
     prefix = effect.name + "."
-    expanded = {f"offset.{k[len(prefix):]}": float(f"{v:.6g}") for k, v in offsets.items()
-                if k.startswith(prefix) and exact.expansion.get(k, 0.0) != 0.0}
+    expanded = {
+        f"offset.{k[len(prefix) :]}": float(f"{v:.6g}")
+        for k, v in offsets.items()
+        if k.startswith(prefix) and exact.expansion.get(k, 0.0) != 0.0
+    }
     extra = {"offsets": offsets, "_effect": effect.with_options(**expanded)}
     if effect.cli_spec() in exact.searches:
         extra["offset_search"] = exact.searches[effect.cli_spec()]
@@ -246,8 +262,15 @@ def where(data, ev: Evidence, extra: dict) -> dict:
     if bd is None or sd is None:
         raise ValueError("where(): the evidence has no band and segment deltas")
     tot = max(float(np.sum(np.maximum(bd, 0))), 1e-300)
-    bands = [{"f_lo": float(data.edges[g]), "f_hi": float(data.edges[g + 1]), "delta_chi2": float(bd[g]),
-              "share": float(max(bd[g], 0) / tot)} for g in range(data.G)]
+    bands = [
+        {
+            "f_lo": float(data.edges[g]),
+            "f_hi": float(data.edges[g + 1]),
+            "delta_chi2": float(bd[g]),
+            "share": float(max(bd[g], 0) / tot),
+        }
+        for g in range(data.G)
+    ]
     strong = [b for b in bands if b["share"] >= 0.1]
     z2 = (ev.beta / np.where(ev.sigma > 0, ev.sigma, np.inf)) ** 2
     groups: dict = {}
@@ -259,8 +282,10 @@ def where(data, ev: Evidence, extra: dict) -> dict:
     out = {
         "bands": bands,
         "main_bands": [[b["f_lo"], b["f_hi"]] for b in strong],
-        "segments": [{"t_start": float(t), "t_stop": float(t + data.seg_duration), "delta_chi2": float(x)}
-                     for t, x in zip(data.seg_t0, sd)],
+        "segments": [
+            {"t_start": float(t), "t_stop": float(t + data.seg_duration), "delta_chi2": float(x)}
+            for t, x in zip(data.seg_t0, sd)
+        ],
         "links": [{"group": g, "z2": z, "share": z / ztot} for g, z in links[:6]],
     }
     if "t_step" in extra:
@@ -362,8 +387,15 @@ def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> li
             merged.append([a, b, list(ev), tried])
     for a, b, ev, tried in merged:
         g = Gate(start=round(a), stop=round(b))
-        act = {"kind": "gate", "spec": g.spec(), "cli_spec": g.cli_spec(), "text": g.describe_text(), "events": ev,
-               "start": float(g.span[0]), "stop": float(g.span[1])}
+        act = {
+            "kind": "gate",
+            "spec": g.spec(),
+            "cli_spec": g.cli_spec(),
+            "text": g.describe_text(),
+            "events": ev,
+            "start": float(g.span[0]),
+            "stop": float(g.span[1]),
+        }
         if tried is not None:
             act["glitch_tried"] = {k: v for k, v in tried.items() if k not in ("advised", "effects")}
         actions.append(act)
@@ -409,21 +441,30 @@ def _event_glitches(model: ModelFit, residual: np.ndarray, tf0, event: dict, spa
             break
     for _ in range(REFINE_PASSES if len(found) > 1 else 0):  # each again, the others in the model
         for j in range(len(found)):
-            others = list(prior) + found[:j] + found[j + 1:]
+            others = list(prior) + found[:j] + found[j + 1 :]
             g = found[j]
             t = float(g.options["t"])
             assert g.where is not None  # placed by its search
-            again = Glitch(span=f"{t - REFINE_SPAN:.1f}-{t + REFINE_SPAN:.1f}",
-                           **{("tm" if g.where.startswith("tm") else "link"): g.where[-2:]})
+            again = Glitch(
+                span=f"{t - REFINE_SPAN:.1f}-{t + REFINE_SPAN:.1f}",
+                **{("tm" if g.where.startswith("tm") else "link"): g.where[-2:]},
+            )
             res = glitch_search(_with_glitches(model, others), again)
             assert isinstance(res.effect, Glitch)  # glitch_search's
             found[j], results[j] = res.effect, res
     if not found:
         res = results[0]
         assert isinstance(res.effect, Glitch)  # glitch_search's
-        return {"kind": "glitch", "advised": False, "significant": False, "explained_fraction": 0.0,
-                "text": f"add {res.effect.describe_text()}", "delta_chi2": float(res.delta_chi2),
-                "log_bayes_factor": float(res.log_bayes_factor), "cli_spec": res.effect.cli_spec()}
+        return {
+            "kind": "glitch",
+            "advised": False,
+            "significant": False,
+            "explained_fraction": 0.0,
+            "text": f"add {res.effect.describe_text()}",
+            "delta_chi2": float(res.delta_chi2),
+            "log_bayes_factor": float(res.log_bayes_factor),
+            "cli_spec": res.effect.cli_spec(),
+        }
     frac, fit = _explained(model, residual, tf0, event, list(prior) + found, before)
     names = [g.column_name() for g in found]
     dv = {n: float(fit.theta[list(fit.names).index(n)]) for n in names}
@@ -431,18 +472,40 @@ def _event_glitches(model: ModelFit, residual: np.ndarray, tf0, event: dict, spa
     acts: list[dict] = []
     for g, res in zip(found, results):
         n = g.column_name()
-        acts.append({"kind": "glitch", "spec": g.spec(), "cli_spec": g.cli_spec(),
-                     "text": f"add {g.describe_text()} (dv {dv[n]:.3g} +- {sdv[n]:.2g} m/s, beta "
-                             f"{float(g.options['beta']):.3g} s)",
-                     "dv": dv[n], "sigma_dv": sdv[n], "beta": float(g.options["beta"]), "t": float(g.options["t"]),
-                     "where": g.where, "delta_chi2": float(res.delta_chi2),
-                     "p_value": float(stats.chi2.sf(max(res.delta_chi2, 0.0), 4)),
-                     "log_bayes_factor": float(res.log_bayes_factor), "search": res.to_json()})
-    log.info("glitches for the event at %.2f h: %s, together %.0f %% of its excess", event["t_start"] / 3600,
-             ", ".join(a["cli_spec"] for a in acts), 100 * frac)
-    return {"kind": "glitches", "glitches": acts, "effects": found, "explained_fraction": frac, "significant": True,
-            "advised": frac >= GLITCH_EXPLAINED,
-            "text": "; ".join(a["text"] for a in acts), "cli_spec": ",".join(a["cli_spec"] for a in acts)}
+        acts.append(
+            {
+                "kind": "glitch",
+                "spec": g.spec(),
+                "cli_spec": g.cli_spec(),
+                "text": f"add {g.describe_text()} (dv {dv[n]:.3g} +- {sdv[n]:.2g} m/s, beta "
+                f"{float(g.options['beta']):.3g} s)",
+                "dv": dv[n],
+                "sigma_dv": sdv[n],
+                "beta": float(g.options["beta"]),
+                "t": float(g.options["t"]),
+                "where": g.where,
+                "delta_chi2": float(res.delta_chi2),
+                "p_value": float(stats.chi2.sf(max(res.delta_chi2, 0.0), 4)),
+                "log_bayes_factor": float(res.log_bayes_factor),
+                "search": res.to_json(),
+            }
+        )
+    log.info(
+        "glitches for the event at %.2f h: %s, together %.0f %% of its excess",
+        event["t_start"] / 3600,
+        ", ".join(a["cli_spec"] for a in acts),
+        100 * frac,
+    )
+    return {
+        "kind": "glitches",
+        "glitches": acts,
+        "effects": found,
+        "explained_fraction": frac,
+        "significant": True,
+        "advised": frac >= GLITCH_EXPLAINED,
+        "text": "; ".join(a["text"] for a in acts),
+        "cli_spec": ",".join(a["cli_spec"] for a in acts),
+    }
 
 
 def _explained(model, residual, tf0, event, glitches, before) -> tuple[float, ModelFit]:

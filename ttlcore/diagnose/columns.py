@@ -133,11 +133,19 @@ def assemble(names, *sets: ColumnSet, series: bool = True) -> ColumnSet:
     picks = [where[n] for n in names]
     x = np.stack([s.x[i] for s, i in picks]) if picks else np.zeros((0, 0, 0, 6))
     have_series = series and all(s.series is not None for s, _ in picks)
-    stacked = np.stack([s.series[:, i] for s, i in picks if s.series is not None], axis=1) if picks and have_series \
-        else None
-    return ColumnSet(names, x, next(iter(keys)) if keys else "", tuple(s.units[i] for s, i in picks),
-                     tuple(s.priors[i] for s, i in picks), tuple(s.eiv[i] for s, i in picks),
-                     tuple(s.modulation[i] for s, i in picks), stacked)
+    stacked = (
+        np.stack([s.series[:, i] for s, i in picks if s.series is not None], axis=1) if picks and have_series else None
+    )
+    return ColumnSet(
+        names,
+        x,
+        next(iter(keys)) if keys else "",
+        tuple(s.units[i] for s, i in picks),
+        tuple(s.priors[i] for s, i in picks),
+        tuple(s.eiv[i] for s, i in picks),
+        tuple(s.modulation[i] for s, i in picks),
+        stacked,
+    )
 
 
 def concat(*sets: ColumnSet) -> ColumnSet:
@@ -164,9 +172,16 @@ def _whitened_set(data, names, spectra, units, priors, eiv=None, modulation=None
     w = data.whiten(spectra)
     x = np.stack([np.ascontiguousarray(w[..., k]) for k in range(len(names))]).view(np.float64)
     k = len(names)
-    return ColumnSet(tuple(names), x, data.noise_key, tuple(units), tuple(priors),
-                     tuple(eiv) if eiv is not None else ((),) * k,
-                     tuple(modulation) if modulation is not None else (None,) * k, series)
+    return ColumnSet(
+        tuple(names),
+        x,
+        data.noise_key,
+        tuple(units),
+        tuple(priors),
+        tuple(eiv) if eiv is not None else ((),) * k,
+        tuple(modulation) if modulation is not None else (None,) * k,
+        series,
+    )
 
 
 class ColumnStore:
@@ -236,6 +251,7 @@ class ColumnStore:
 # Building columns
 # ---------------------------------------------------------------------------
 
+
 def ttl_columns(data) -> ColumnSet:
     """The TDI regressor columns of the data (the 24 TTL ones, with their readout noise)."""
     key = ("regressors",)
@@ -255,8 +271,9 @@ def regressor_columns(data, R: np.ndarray) -> ColumnSet:
         else:
             eiv.append(())
     k = len(data.regressor_names)
-    return _whitened_set(data, data.regressor_names, R, [TTL_INFO[0]] * k, [TTL_INFO[1]] * k, eiv, None,
-                         data.regressor_series)
+    return _whitened_set(
+        data, data.regressor_names, R, [TTL_INFO[0]] * k, [TTL_INFO[1]] * k, eiv, None, data.regressor_series
+    )
 
 
 def derivative_columns(data, series: bool = False) -> ColumnSet:
@@ -274,18 +291,24 @@ def derivative_columns(data, series: bool = False) -> ColumnSet:
     x = np.empty((2 * k, len(data.starts), data.f.size, 6))
     kept = np.empty((3, 2 * k, data.mask.size)) if series else None
     for o, order in enumerate((1, 2)):
-        s = np.concatenate([data.decimate(derivative(td.regressors[:, j0:j0 + 8], td.fs, order), is_aet=True)
-                            for j0 in range(0, k, 8)], axis=1)
+        s = np.concatenate(
+            [
+                data.decimate(derivative(td.regressors[:, j0 : j0 + 8], td.fs, order), is_aet=True)
+                for j0 in range(0, k, 8)
+            ],
+            axis=1,
+        )
         if kept is not None:  # series asked for
-            kept[:, o * k:(o + 1) * k] = s
+            kept[:, o * k : (o + 1) * k] = s
         w = data.whiten(data.spectra(s))
         del s
         xc = x.view(complex)  # (2k, S, m, 3)
         for j in range(k):
             xc[o * k + j] = w[..., j]
         del w
-    cs = ColumnSet(tuple(names), x, data.noise_key, ("",) * (2 * k), (1.0,) * (2 * k), ((),) * (2 * k),
-                   (None,) * (2 * k), kept)
+    cs = ColumnSet(
+        tuple(names), x, data.noise_key, ("",) * (2 * k), (1.0,) * (2 * k), ((),) * (2 * k), (None,) * (2 * k), kept
+    )
     return data.store.put(key, data, cs)
 
 
@@ -293,8 +316,9 @@ def _options_key(effect) -> str:
     return repr(sorted(effect.options.items()))
 
 
-def effect_columns(data, effect, coefficients=None, keep_series: bool = False, exact: bool = True,
-                   cache: bool = True) -> ColumnSet:
+def effect_columns(
+    data, effect, coefficients=None, keep_series: bool = False, exact: bool = True, cache: bool = True
+) -> ColumnSet:
     """The whitened columns of ``effect`` (cached; see the module docstring).
 
     ``exact=False`` (candidate ranking) builds ``drift`` and ``step`` columns by modulating
@@ -322,13 +346,27 @@ def effect_columns(data, effect, coefficients=None, keep_series: bool = False, e
                 units.append(unit)
                 priors.append(prior)
             k = len(names)
-            cs = data.store.put(key, data, ColumnSet(tuple(names), np.stack(x).view(np.float64), data.noise_key,
-                                                     tuple(units), tuple(priors), ((),) * k, (None,) * k,
-                                                     np.stack(series, axis=1) if keep_series else None),
-                                 family=key[:3])
+            cs = data.store.put(
+                key,
+                data,
+                ColumnSet(
+                    tuple(names),
+                    np.stack(x).view(np.float64),
+                    data.noise_key,
+                    tuple(units),
+                    tuple(priors),
+                    ((),) * k,
+                    (None,) * k,
+                    np.stack(series, axis=1) if keep_series else None,
+                ),
+                family=key[:3],
+            )
         return cs
-    if not exact and effect.name in ("drift", "step") and all(
-            f"{m}.{a}.{sd}" in names_in for m in effect.mosas for a in effect.angles for sd in effect.sides):
+    if (
+        not exact
+        and effect.name in ("drift", "step")
+        and all(f"{m}.{a}.{sd}" in names_in for m in effect.mosas for a in effect.angles for sd in effect.sides)
+    ):
         key = ("approx", effect.name, _options_key(effect))
         cs = data.store.get(key, data)
         if cs is None:
@@ -346,7 +384,12 @@ def _exact_columns(data, effect, coefficients, keep_series, cache=True) -> Colum
         if missing:
             raise ConfigError(f"linear-ttl columns {missing[:3]} missing from the TDI data")
         return ttl_columns(data).select(names, series=keep_series)
-    key = ("exact", effect.name, _options_key(effect), None if coefficients is None else tuple(np.round(coefficients, 12)))
+    key = (
+        "exact",
+        effect.name,
+        _options_key(effect),
+        None if coefficients is None else tuple(np.round(coefficients, 12)),
+    )
     cs = data.store.get(key, data)
     if cs is not None and (not keep_series or cs.series is not None):
         return cs
@@ -362,12 +405,25 @@ def _exact_columns(data, effect, coefficients, keep_series, cache=True) -> Colum
         eiv, mods = zip(*[column_eiv(data, c) for c in cols])
         chunks = []
         for j0 in range(0, len(cols), 8):  # bounded memory (a day: ~70 MB per column in flight)
-            _, xyz = tdi_in_blocks(data.tm.ltt, data.tm.fs, cols[j0:j0 + 8], order=data.settings.order,
-                                   delay_order=data.settings.delay_order)
+            _, xyz = tdi_in_blocks(
+                data.tm.ltt,
+                data.tm.fs,
+                cols[j0 : j0 + 8],
+                order=data.settings.order,
+                delay_order=data.settings.delay_order,
+            )
             chunks.append(data.decimate(xyz))
         series = np.concatenate(chunks, axis=1)
-        cs = _whitened_set(data, [c.name for c in cols], data.spectra(series), [c.unit for c in cols],
-                           [c.prior_scale for c in cols], eiv, mods, series if keep_series else None)
+        cs = _whitened_set(
+            data,
+            [c.name for c in cols],
+            data.spectra(series),
+            [c.unit for c in cols],
+            [c.prior_scale for c in cols],
+            eiv,
+            mods,
+            series if keep_series else None,
+        )
     return data.store.put(key, data, cs, family=key[:3]) if cache else cs
 
 
@@ -425,12 +481,16 @@ def base_column(data, column) -> ColumnSet:
     cs = data.store.get(("base", key), data)
     if cs is None:
         plain = Column(key, column.parts, column.unit, column.prior_scale)
-        _, xyz = tdi_in_blocks(data.tm.ltt, data.tm.fs, [plain], order=data.settings.order,
-                               delay_order=data.settings.delay_order)
+        _, xyz = tdi_in_blocks(
+            data.tm.ltt, data.tm.fs, [plain], order=data.settings.order, delay_order=data.settings.delay_order
+        )
         series = data.decimate(xyz)
         eiv, mod = column_eiv(data, plain)
-        cs = data.store.put(("base", key), data, _whitened_set(data, [key], data.spectra(series), [column.unit],
-                                                               [column.prior_scale], [eiv], [mod], series))
+        cs = data.store.put(
+            ("base", key),
+            data,
+            _whitened_set(data, [key], data.spectra(series), [column.unit], [column.prior_scale], [eiv], [mod], series),
+        )
     return cs
 
 
@@ -457,15 +517,24 @@ def filtered_columns(data, cols) -> ColumnSet:
     x, series, eiv, mods = [], [], [], []
     for c in cols:
         base = base_column(data, c)
-        resp = np.ones(data.f.size, dtype=complex) if c.response is None else np.asarray(c.response(data.f), dtype=complex)
+        resp = (
+            np.ones(data.f.size, dtype=complex) if c.response is None else np.asarray(c.response(data.f), dtype=complex)
+        )
         w, s = filtered_spectra(data, base, [c.response or (lambda f: np.ones(np.shape(f)))])
         x.append(np.ascontiguousarray(w[..., 0]))
         series.append(s[:, 0])
         eiv.append(tuple((ch, link, extra, resp) for ch, link, extra, *_ in base.eiv[0]))
         mods.append(base.modulation[0])
-    return ColumnSet(tuple(c.name for c in cols), np.stack(x).view(np.float64), data.noise_key,
-                     tuple(c.unit for c in cols), tuple(c.prior_scale for c in cols), tuple(eiv), tuple(mods),
-                     np.stack(series, axis=1))
+    return ColumnSet(
+        tuple(c.name for c in cols),
+        np.stack(x).view(np.float64),
+        data.noise_key,
+        tuple(c.unit for c in cols),
+        tuple(c.prior_scale for c in cols),
+        tuple(eiv),
+        tuple(mods),
+        np.stack(series, axis=1),
+    )
 
 
 def shifted_columns(data, effect, C, shifts: dict) -> tuple[dict, ColumnSet, dict]:
@@ -526,6 +595,7 @@ def shifted_columns(data, effect, C, shifts: dict) -> tuple[dict, ColumnSet, dic
 # Errors in variables
 # ---------------------------------------------------------------------------
 
+
 def eiv(data, *sets: ColumnSet) -> np.ndarray:
     """Errors-in-variables term (G, p, p) of the columns of ``sets`` (one after the other),
     summed over segments: ``E_kl = W_kl sum_ch Re sum_f U_k,ch^H U_l,ch``
@@ -550,8 +620,16 @@ def eiv_products(data, *sets: ColumnSet) -> np.ndarray:
             by_channel.setdefault(ch, {}).setdefault(i, []).append((link, extra, factor))
     for cols in by_channel.values():
         idx = sorted(cols)
-        U = np.stack([sum(data.store.eiv_response(data, link, extra) * readout_noise_factor(data.f, factor)
-                          for link, extra, factor in cols[i]) for i in idx], axis=-1)
+        U = np.stack(
+            [
+                sum(
+                    data.store.eiv_response(data, link, extra) * readout_noise_factor(data.f, factor)
+                    for link, extra, factor in cols[i]
+                )
+                for i in idx
+            ],
+            axis=-1,
+        )
         for g, (a, b) in enumerate(data.slices):
             if b > a:
                 Ug = U[a:b].reshape(-1, len(idx))
@@ -567,7 +645,7 @@ def eiv_weights(data, *sets: ColumnSet) -> np.ndarray:
     W = np.full((len(mods), len(mods)), float(len(data.starts)))
     idx = [i for i, m in enumerate(mods) if m is not None]
     if idx:
-        A = np.stack([np.stack([mods[i][s0:s0 + data.L] for s0 in data.starts]) for i in idx])  # (q, S, L)
+        A = np.stack([np.stack([mods[i][s0 : s0 + data.L] for s0 in data.starts]) for i in idx])  # (q, S, L)
         cross = np.einsum("qsl,sl->q", A, data.w2)  # against m = 1
         W[idx, :] = cross[:, None]
         W[:, idx] = cross[None, :]

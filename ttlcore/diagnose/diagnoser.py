@@ -49,14 +49,32 @@ from .transients import transient_report
 from .whitened import WhitenedData, whiten_tdi, whiten_telemetry
 from .witnesses import witness_candidates, witness_search
 
-__all__ = ["DiagnoseSettings", "diagnose", "refit", "text_report", "strip_internals", "fine_band_table",
-           "concatenate_tdi", "ModelFit", "WhitenedData"]
+__all__ = [
+    "DiagnoseSettings",
+    "diagnose",
+    "refit",
+    "text_report",
+    "strip_internals",
+    "fine_band_table",
+    "concatenate_tdi",
+    "ModelFit",
+    "WhitenedData",
+]
 
 log = logging.getLogger(__name__)
 
 
-def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None = None, effect_modules=(),
-             candidates=None, truth_coefficients=None, witnesses: bool | None = None, progress=None) -> dict:
+def diagnose(
+    tm,
+    effects=("linear-ttl",),
+    *,
+    settings: DiagnoseSettings | None = None,
+    effect_modules=(),
+    candidates=None,
+    truth_coefficients=None,
+    witnesses: bool | None = None,
+    progress=None,
+) -> dict:
     """Full diagnosis of telemetry ``tm`` with a model (list of effect specs).
 
     Fits the model under the instrument noise model, tests its adequacy per band and per
@@ -109,7 +127,8 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
             "added": [e.spec() for e in eff if e.name != "linear-ttl"],
             "delta_chi2": None if ev is None else ev.delta_chi2,
             "log_bayes_factor": None if ev is None else ev.log_bayes_factor,
-            "chi2_dof_before": before.chi2_dof, "chi2_dof_after": model.chi2_dof,
+            "chi2_dof_before": before.chi2_dof,
+            "chi2_dof_after": model.chi2_dof,
             "bands_before": [b["chi2_dof"] for b in report["before"]["adequacy"]["bands"]],
             "bands_after": [b["chi2_dof"] for b in report["adequacy"]["bands"]],
         }
@@ -137,9 +156,16 @@ def diagnose(tm, effects=("linear-ttl",), *, settings: DiagnoseSettings | None =
     report["transients"]["actions"] = transient_actions(model, report, residual)
     lap("transients")
     report["recommendation"] = recommendation(report, eff)
-    report["settings"] = {"band": list(map(float, s.band)), "n_bands": s.n_bands, "segment_duration": model.data.seg_duration,
-                          "time_segment": s.time_segment, "tolerance": s.tolerance, "alpha": s.alpha,
-                          "log_bf_threshold": s.log_bf_threshold, "dws_asd": model.data.dws_asd}
+    report["settings"] = {
+        "band": list(map(float, s.band)),
+        "n_bands": s.n_bands,
+        "segment_duration": model.data.seg_duration,
+        "time_segment": s.time_segment,
+        "tolerance": s.tolerance,
+        "alpha": s.alpha,
+        "log_bf_threshold": s.log_bf_threshold,
+        "dws_asd": model.data.dws_asd,
+    }
     report["timings_s"] = timings
     report["_internals"] = {"data": model.data, "model": model, "transient_map": report["transients"].pop("_map")}
     return report
@@ -160,8 +186,16 @@ def _with_noise_levels(fits: list, time_table: bool = True) -> ModelFit:
     return replace(fitted, searches={**searches, **fitted.searches})
 
 
-def refit(source, effects=("linear-ttl",), *, settings: DiagnoseSettings | None = None, effect_modules=(),
-          dws_asd: float | None = None, baseline=("linear-ttl",), time_table: bool = True) -> dict:
+def refit(
+    source,
+    effects=("linear-ttl",),
+    *,
+    settings: DiagnoseSettings | None = None,
+    effect_modules=(),
+    dws_asd: float | None = None,
+    baseline=("linear-ttl",),
+    time_table: bool = True,
+) -> dict:
     """Refit already-computed data with a given list of effects and report the change.
 
     Parameters
@@ -214,12 +248,16 @@ def _refit(source, effects, settings, effect_modules, dws_asd, baseline, time_ta
     base = fit_model(model.data, make_effects(list(baseline), modules), time_table=time_table)
     ev = change(base, model)
     return {
-        "model": with_gates(model_json(model), gates), "baseline": model_json(base),
-        "change": {"delta_chi2": None if ev is None else ev.delta_chi2,
-                   "log_bayes_factor": None if ev is None else ev.log_bayes_factor,
-                   "chi2_dof_before": base.chi2_dof, "chi2_dof_after": model.chi2_dof,
-                   "bands_before": [float(x) for x in base.bands.chi2_dof],
-                   "bands_after": [float(x) for x in model.bands.chi2_dof]},
+        "model": with_gates(model_json(model), gates),
+        "baseline": model_json(base),
+        "change": {
+            "delta_chi2": None if ev is None else ev.delta_chi2,
+            "log_bayes_factor": None if ev is None else ev.log_bayes_factor,
+            "chi2_dof_before": base.chi2_dof,
+            "chi2_dof_after": model.chi2_dof,
+            "bands_before": [float(x) for x in base.bands.chi2_dof],
+            "bands_after": [float(x) for x in model.bands.chi2_dof],
+        },
         "_internals": {"data": model.data, "fit": model, "baseline_fit": base},
     }
 
@@ -231,7 +269,12 @@ def concatenate_tdi(segments) -> TDIData:
         if b.channels != first.channels or b.names != first.names or b.fs != first.fs:
             raise ConfigError("TDI segments differ in channels, regressor names or rate")
         if abs(b.t0 - (a.t0 + a.size / a.fs)) > 0.5 / a.fs:
-            raise ConfigError(f"TDI segments are not contiguous: one ends at {a.t0 + a.size / a.fs} s, the next starts at {b.t0} s")
-    return replace(first, data=np.concatenate([x.data for x in segments], axis=-1),
-                   regressors=np.concatenate([x.regressors for x in segments], axis=-1),
-                   ltt_mean=np.mean([x.ltt_mean for x in segments], axis=0))
+            raise ConfigError(
+                f"TDI segments are not contiguous: one ends at {a.t0 + a.size / a.fs} s, the next starts at {b.t0} s"
+            )
+    return replace(
+        first,
+        data=np.concatenate([x.data for x in segments], axis=-1),
+        regressors=np.concatenate([x.regressors for x in segments], axis=-1),
+        ltt_mean=np.mean([x.ltt_mean for x in segments], axis=0),
+    )

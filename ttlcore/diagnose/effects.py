@@ -74,6 +74,7 @@ ENTRY_POINT_GROUP = "ttl.effects"
 # Columns and inputs
 # ---------------------------------------------------------------------------
 
+
 @dataclass
 class Part:
     """One witness series placed on a link.
@@ -183,8 +184,10 @@ class EffectInput:
         """``(phi, eta)`` angles [rad], (6, n) each: running integral of the velocities
         (rectangle rule, as the simulator's truth angles) from :attr:`angle0`."""
         if self._angles is None:
-            self._angles = tuple(self.angle0[i][:, None] + np.cumsum(v, axis=1) / self.fs
-                                 for i, v in enumerate((self.phi_dot, self.eta_dot)))
+            self._angles = tuple(
+                self.angle0[i][:, None] + np.cumsum(v, axis=1) / self.fs
+                for i, v in enumerate((self.phi_dot, self.eta_dot))
+            )
         return self._angles
 
     def coefficient(self, name: str) -> np.ndarray | float:
@@ -236,7 +239,7 @@ def _fd_weights(order: int, half: int = _FD_HALF) -> np.ndarray:
     if order == 1:
         c = base / j
         return np.r_[-c[::-1], 0.0, c]
-    c = 2 * base / j ** 2
+    c = 2 * base / j**2
     return np.r_[c[::-1], -2 * np.sum(c), c]
 
 
@@ -244,7 +247,7 @@ def derivative(x: np.ndarray, fs: float, order: int = 1) -> np.ndarray:
     """First or second time derivative by a 25-point central difference along the last
     axis; the first and last 12 samples are NaN (they are outside the valid TDI output
     anyway or inside the segment window's taper)."""
-    w = _fd_weights(order) * fs ** order
+    w = _fd_weights(order) * fs**order
     x = np.asarray(x, dtype=float)
     out = np.full(x.shape, np.nan)
 
@@ -256,6 +259,7 @@ def derivative(x: np.ndarray, fs: float, order: int = 1) -> np.ndarray:
 # ---------------------------------------------------------------------------
 # Effects
 # ---------------------------------------------------------------------------
+
 
 def _split_list(value, allowed, what) -> tuple:
     if value is None or value == "all":
@@ -302,8 +306,10 @@ class Effect:
     def __init__(self, **options):
         unknown = set(options) - set(self.parameters)
         if unknown:
-            raise ConfigError(f"effect {self.name!r}: unknown option(s) {sorted(unknown)}; "
-                              f"options: {', '.join(self.parameters) or 'none'}")
+            raise ConfigError(
+                f"effect {self.name!r}: unknown option(s) {sorted(unknown)}; "
+                f"options: {', '.join(self.parameters) or 'none'}"
+            )
         self.options = {**self.parameters, **options}
         for key in ("mosas", "angles", "sides"):  # validate the selections now, naming the option
             if key in self.parameters:
@@ -330,8 +336,15 @@ class Effect:
         """Names of the columns (without building them), for parsing injection values."""
         t = np.arange(64.0)
         z = np.zeros((6, 64))
-        data = EffectInput(t=t, fs=1.0, phi_dot=z, eta_dot=z, ltt=z + 8.3,
-                           coefficients=np.zeros(len(COEFFICIENT_NAMES)), names_only=True)
+        data = EffectInput(
+            t=t,
+            fs=1.0,
+            phi_dot=z,
+            eta_dot=z,
+            ltt=z + 8.3,
+            coefficients=np.zeros(len(COEFFICIENT_NAMES)),
+            names_only=True,
+        )
         return [c.name for c in self.columns(data)]
 
     def describe(self) -> dict:
@@ -347,7 +360,11 @@ class Effect:
         opts = {k: v for k, v in self.options.items() if v != self.parameters.get(k)}
         if not opts:
             return self.name
-        return self.name + ":" + sep.join(f"{k}={'+'.join(v) if isinstance(v, (list, tuple)) else v}" for k, v in opts.items())
+        return (
+            self.name
+            + ":"
+            + sep.join(f"{k}={'+'.join(v) if isinstance(v, (list, tuple)) else v}" for k, v in opts.items())
+        )
 
     def cli_spec(self) -> str:
         """The ``--effects`` spelling (options separated by ``;``)."""
@@ -385,7 +402,9 @@ class Effect:
             for p in col.parts:
                 series = p.series if col.response is None else filtered(p.series, data.fs, col.response)
                 if int(p.delayed) > 1:
-                    raise ConfigError(f"effect {self.name!r}: the simulator injects one delay per part, not {int(p.delayed)}")
+                    raise ConfigError(
+                        f"effect {self.name!r}: the simulator injects one delay per part, not {int(p.delayed)}"
+                    )
                 if p.delayed:  # D_ij x_ji: row of the transmitting MOSA ji
                     tx[LINKS.index(reverse(p.link))] += v * series
                 else:
@@ -398,8 +417,10 @@ class Effect:
 class LinearTTL(Effect):
     name = "linear-ttl"
     title = "linear tilt-to-length coupling (the 24 coefficients)"
-    physics = ("Angular jitter of the receiving (rx) and transmitting (tx) MOSA couples linearly into the "
-               "measured length, with one coefficient per MOSA, angle and side (paper eq. 3; docs/physics.md).")
+    physics = (
+        "Angular jitter of the receiving (rx) and transmitting (tx) MOSA couples linearly into the "
+        "measured length, with one coefficient per MOSA, angle and side (paper eq. 3; docs/physics.md)."
+    )
     parameters = {"mosas": "all", "angles": "all", "sides": "all"}
 
     def columns(self, data):
@@ -409,16 +430,20 @@ class LinearTTL(Effect):
                 for s in SIDES:
                     if m in self.mosas and a in self.angles and s in self.sides:
                         link, delayed = placement(m, s)
-                        cols.append(Column(f"{m}.{a}.{s}", [Part(link, data.witness(m, a), delayed, (m, a))], "m/rad", 2.3e-3))
+                        cols.append(
+                            Column(f"{m}.{a}.{s}", [Part(link, data.witness(m, a), delayed, (m, a))], "m/rad", 2.3e-3)
+                        )
         return cols
 
 
 class Drift(Effect):
     name = "drift"
     title = "coefficients drifting linearly in time"
-    physics = ("Thermal relaxation or slow alignment changes make the coupling coefficients vary with time: "
-               "C(t) = C + r (t - t_ref). The extra term r (t - t_ref) w enters each link like the coefficient "
-               "it modifies (rx undelayed, tx after the light travel time, with the time of emission).")
+    physics = (
+        "Thermal relaxation or slow alignment changes make the coupling coefficients vary with time: "
+        "C(t) = C + r (t - t_ref). The extra term r (t - t_ref) w enters each link like the coefficient "
+        "it modifies (rx undelayed, tx after the light travel time, with the time of emission)."
+    )
     parameters = {"mosas": "all", "angles": "all", "sides": "all", "t_ref": None}
 
     def columns(self, data):
@@ -429,27 +454,40 @@ class Drift(Effect):
             for a in self.angles:
                 for s in self.sides:
                     link, delayed = placement(m, s)
-                    cols.append(Column(f"drift.{m}.{a}.{s}", [Part(link, tau * data.witness(m, a), delayed, (m, a), tau)],
-                                       "m/rad/day", 1e-3))
+                    cols.append(
+                        Column(
+                            f"drift.{m}.{a}.{s}",
+                            [Part(link, tau * data.witness(m, a), delayed, (m, a), tau)],
+                            "m/rad/day",
+                            1e-3,
+                        )
+                    )
         return cols
 
 
 class Step(Effect):
     name = "step"
     title = "coefficient step at a given or searched time"
-    physics = ("A realignment, a thermal event or a micrometeoroid hit changes the coupling abruptly at t_step: "
-               "C(t) = C + J H(t - t_step). The jump J multiplies the witness from t_step on (tx: emission time).")
+    physics = (
+        "A realignment, a thermal event or a micrometeoroid hit changes the coupling abruptly at t_step: "
+        "C(t) = C + J H(t - t_step). The jump J multiplies the witness from t_step on (tx: emission time)."
+    )
     parameters = {"mosas": "all", "angles": "all", "sides": "all", "t_step": None}
     #: the step time [s], searched over the data (its own evaluator: :func:`ttlcore.diagnose.search.step_time_search`)
     searched = {"t_step": (-np.inf, np.inf, "linear")}
 
     def columns(self, data):
         if self.options.get("t_step") is None and data.names_only:
-            return [Column(f"step.{m}.{a}.{s}", [], "m/rad", 1e-3)
-                    for m in self.mosas for a in self.angles for s in self.sides]
+            return [
+                Column(f"step.{m}.{a}.{s}", [], "m/rad", 1e-3)
+                for m in self.mosas
+                for a in self.angles
+                for s in self.sides
+            ]
         if self.options.get("t_step") is None:
-            raise ConfigError("effect 'step' needs t_step (a time, e.g. step:t_step=50000) or a search "
-                              "(ttl diagnose searches it)")
+            raise ConfigError(
+                "effect 'step' needs t_step (a time, e.g. step:t_step=50000) or a search (ttl diagnose searches it)"
+            )
 
         ts = parse_duration(self.options["t_step"])
         h = (data.t >= ts).astype(float)
@@ -458,28 +496,35 @@ class Step(Effect):
             for a in self.angles:
                 for s in self.sides:
                     link, delayed = placement(m, s)
-                    cols.append(Column(f"step.{m}.{a}.{s}", [Part(link, h * data.witness(m, a), delayed, (m, a), h)],
-                                       "m/rad", 1e-3))
+                    cols.append(
+                        Column(
+                            f"step.{m}.{a}.{s}", [Part(link, h * data.witness(m, a), delayed, (m, a), h)], "m/rad", 1e-3
+                        )
+                    )
         return cols
 
 
 class CrossCoupling(Effect):
     name = "cross-coupling"
     title = "jitter of the neighbouring MOSA on the same spacecraft"
-    physics = ("Stray light, the shared optical bench or mechanical coupling let the angle of the other MOSA on "
-               "the same spacecraft (12 <-> 13, 23 <-> 21, 31 <-> 32) couple into a MOSA's received (rx) or "
-               "transmitted (tx) beam path. Distinguishable from the linear TTL only through the MOSA jitter "
-               "(the spacecraft jitter is common to both MOSAs). Rx side only: a channel on both sides "
-               "of both MOSAs forms, with the linear rx and tx terms, the pattern of a laser's frequency noise "
-               "(-1 on the two undelayed links of its spacecraft, +1 delayed on the two links it feeds), "
-               "which TDI cancels - the tx cross terms are absorbed by the linear coefficients.")
+    physics = (
+        "Stray light, the shared optical bench or mechanical coupling let the angle of the other MOSA on "
+        "the same spacecraft (12 <-> 13, 23 <-> 21, 31 <-> 32) couple into a MOSA's received (rx) or "
+        "transmitted (tx) beam path. Distinguishable from the linear TTL only through the MOSA jitter "
+        "(the spacecraft jitter is common to both MOSAs). Rx side only: a channel on both sides "
+        "of both MOSAs forms, with the linear rx and tx terms, the pattern of a laser's frequency noise "
+        "(-1 on the two undelayed links of its spacecraft, +1 delayed on the two links it feeds), "
+        "which TDI cancels - the tx cross terms are absorbed by the linear coefficients."
+    )
     parameters = {"mosas": "all", "angles": "all", "sides": "rx"}
 
     def __init__(self, **options):
         super().__init__(**options)
         if set(self.sides) == {"rx", "tx"}:
-            raise ConfigError("effect 'cross-coupling': sides rx and tx together are unobservable with the linear TTL "
-                              "(they form a laser-noise pattern TDI cancels); use sides=rx or sides=tx")
+            raise ConfigError(
+                "effect 'cross-coupling': sides rx and tx together are unobservable with the linear TTL "
+                "(they form a laser-noise pattern TDI cancels); use sides=rx or sides=tx"
+            )
 
     def columns(self, data):
         cols = []
@@ -487,19 +532,27 @@ class CrossCoupling(Effect):
             for a in self.angles:
                 for s in self.sides:
                     link, delayed = placement(m, s)
-                    cols.append(Column(f"cross.{m}.{a}.{s}", [Part(link, data.witness(partner(m), a), delayed, (partner(m), a))],
-                                       "m/rad", 1e-3))
+                    cols.append(
+                        Column(
+                            f"cross.{m}.{a}.{s}",
+                            [Part(link, data.witness(partner(m), a), delayed, (partner(m), a))],
+                            "m/rad",
+                            1e-3,
+                        )
+                    )
         return cols
 
 
 class SecondOrder(Effect):
     name = "second-order"
     title = "second-order angle terms (squares and products, static offsets)"
-    physics = ("The path length depends quadratically on the angles near the optimal alignment: "
-               "l = C1 a + K (a + a0)(b + b0) for a, b in {phi, eta}. Differentiated, K (a' b + a b') adds to "
-               "eta; the static offsets a0, b0 only add K (a0 b' + b0 a'), absorbed by the linear "
-               "coefficients (which then differ from the linear-only truth by K a0, K b0). "
-               "Angles are the running integral of the DWS velocities.")
+    physics = (
+        "The path length depends quadratically on the angles near the optimal alignment: "
+        "l = C1 a + K (a + a0)(b + b0) for a, b in {phi, eta}. Differentiated, K (a' b + a b') adds to "
+        "eta; the static offsets a0, b0 only add K (a0 b' + b0 a'), absorbed by the linear "
+        "coefficients (which then differ from the linear-only truth by K a0, K b0). "
+        "Angles are the running integral of the DWS velocities."
+    )
     parameters = {"mosas": "all", "sides": "rx", "terms": "phiphi,etaeta,phieta", "offset_phi": 0.0, "offset_eta": 0.0}
     TERMS = ("phiphi", "etaeta", "phieta")
 
@@ -558,13 +611,17 @@ class _Linearised(Effect):
         self.options.update(offsets)
         groups = self.shifted_members()
         for key in [k for k, v in self.options.items() if k.startswith(OFFSET_OPTION) and v is not None]:
-            if key[len(OFFSET_OPTION):] not in groups:
-                raise ConfigError(f"effect {self.name!r}: option {key} names no group of this effect; its offsets: "
-                                  f"{', '.join(OFFSET_OPTION + g for g in groups)}")
+            if key[len(OFFSET_OPTION) :] not in groups:
+                raise ConfigError(
+                    f"effect {self.name!r}: option {key} names no group of this effect; its offsets: "
+                    f"{', '.join(OFFSET_OPTION + g for g in groups)}"
+                )
             try:
                 self.options[key] = float(self.options[key])
             except (TypeError, ValueError):
-                raise ConfigError(f"effect {self.name!r}: {key}={self.options[key]!r} is not an offset in seconds") from None
+                raise ConfigError(
+                    f"effect {self.name!r}: {key}={self.options[key]!r} is not an offset in seconds"
+                ) from None
 
     @property
     def searched(self) -> dict:  # type: ignore[override]  # a class attribute in Effect (plugins set it so), computed here
@@ -580,8 +637,11 @@ class _Linearised(Effect):
 
     def fixed_offsets(self) -> dict[str, float]:
         """Group -> offset [s] given as an option (the group's expansion point)."""
-        return {g: float(self.options[f"{OFFSET_OPTION}{g}"]) for g in self.shifted_members()
-                if self.options.get(f"{OFFSET_OPTION}{g}") is not None}
+        return {
+            g: float(self.options[f"{OFFSET_OPTION}{g}"])
+            for g in self.shifted_members()
+            if self.options.get(f"{OFFSET_OPTION}{g}") is not None
+        }
 
     def open_offsets(self) -> list[str]:
         """Groups whose offset is not given (searched)."""
@@ -609,8 +669,14 @@ class _Linearised(Effect):
                     series = derivative(data.witness(m, a), data.fs, order) * coef / (1 if order == 1 else 2)
                     parts.append(Part(link, series, delayed))
                 if parts:
-                    cols.append(Column(f"{self.name}.{gname}.d{order}", parts, "s" if order == 1 else "s^2",
-                                       0.1 if order == 1 else 0.01))
+                    cols.append(
+                        Column(
+                            f"{self.name}.{gname}.d{order}",
+                            parts,
+                            "s" if order == 1 else "s^2",
+                            0.1 if order == 1 else 0.01,
+                        )
+                    )
         return cols
 
     def _shifts_delay(self) -> bool:
@@ -644,17 +710,25 @@ class _Linearised(Effect):
                     c = float(np.asarray(coefficients)[COEFFICIENT_NAMES.index(cname)])
                     terms.append((cname, order, c * (self.d1_sign if order == 1 else 0.5)))
                 if terms:
-                    out.append((f"{self.name}.{gname}.d{order}", "s" if order == 1 else "s^2",
-                                0.1 if order == 1 else 0.01, terms))
+                    out.append(
+                        (
+                            f"{self.name}.{gname}.d{order}",
+                            "s" if order == 1 else "s^2",
+                            0.1 if order == 1 else 0.01,
+                            terms,
+                        )
+                    )
         return out
 
 
 class TimingOffset(_Linearised):
     name = "timing-offset"
     title = "timing offset between DWS and phasemeter readouts"
-    physics = ("The DWS samples of a spacecraft are time-stamped delta late with respect to the phasemeter "
-               "(a processing latency, a misaligned data stream): the length readout holds C DWS(t + delta). "
-               "To second order C [w + delta w' + delta^2/2 w''], with the fitted C.")
+    physics = (
+        "The DWS samples of a spacecraft are time-stamped delta late with respect to the phasemeter "
+        "(a processing latency, a misaligned data stream): the length readout holds C DWS(t + delta). "
+        "To second order C [w + delta w' + delta^2/2 w''], with the fitted C."
+    )
     parameters = {"per": "sc", **_offset_parameters(["sc1", "sc2", "sc3", *MOSAS, "all"])}
 
     def _groups(self):
@@ -675,9 +749,11 @@ class TimingOffset(_Linearised):
 class LightTravelTimeError(_Linearised):
     name = "ltt-error"
     title = "error in the light travel time of the delayed (tx) terms"
-    physics = ("The tx jitter reaches the receiver one light travel time after emission; if the delay used to "
-               "place the tx witnesses (the telemetry's ranging) is off by eps on link ij, the fit misses "
-               "C D_ij [w(t - eps) - w] = C D_ij [-eps w' + eps^2/2 w'']. One eps per link.")
+    physics = (
+        "The tx jitter reaches the receiver one light travel time after emission; if the delay used to "
+        "place the tx witnesses (the telemetry's ranging) is off by eps on link ij, the fit misses "
+        "C D_ij [w(t - eps) - w] = C D_ij [-eps w' + eps^2/2 w'']. One eps per link."
+    )
     parameters = {"links": "all", **_offset_parameters(LINKS)}
 
     d1_sign = -1.0
@@ -724,8 +800,10 @@ def witness_series(data: EffectInput, source: str, derivative_order: int = 0) ->
     """
     mosa, _, kind = str(source).partition(".")
     if mosa not in MOSAS or kind not in ANGLES + SecondOrder.TERMS:
-        raise ConfigError(f"witness source {source!r}: expected <mosa>.<phi|eta> or <mosa>.<phiphi|etaeta|phieta> "
-                          f"with mosa in {', '.join(MOSAS)}")
+        raise ConfigError(
+            f"witness source {source!r}: expected <mosa>.<phi|eta> or <mosa>.<phiphi|etaeta|phieta> "
+            f"with mosa in {', '.join(MOSAS)}"
+        )
     if kind in ANGLES:
         w = data.witness(mosa, kind)
         if derivative_order:
@@ -743,7 +821,9 @@ def _int_option(effect, key, allowed) -> int:
     try:
         v = int(float(effect.options.get(key) or 0))
     except ValueError:
-        raise ConfigError(f"effect {effect.name!r} {key}: expected an integer, got {effect.options.get(key)!r}") from None
+        raise ConfigError(
+            f"effect {effect.name!r} {key}: expected an integer, got {effect.options.get(key)!r}"
+        ) from None
     if v not in allowed:
         raise ConfigError(f"effect {effect.name!r} {key}: expected one of {sorted(allowed)}, got {v}")
     return v
@@ -780,8 +860,10 @@ class _Placed(Effect):
                         link, delayed = placement(m, sd)
                         out.append((f"{m}.{a}", link, int(delayed)))
         else:
-            raise ConfigError(f"effect {self.name!r} needs source=<mosa>.<angle> (with link=, delay=) "
-                              f"or mosas= (with angles=, sides=)")
+            raise ConfigError(
+                f"effect {self.name!r} needs source=<mosa>.<angle> (with link=, delay=) "
+                f"or mosas= (with angles=, sides=)"
+            )
         return [p for p in out if p[1] in links]
 
     @staticmethod
@@ -824,8 +906,10 @@ class _Placed(Effect):
             if data.names_only:
                 return [(x, None) for x in suffixes]
             if self.options.get("period") is None:
-                raise ConfigError(f"effect {self.name!r} vary=cycle: period not given (the diagnosis searches it: "
-                                  "ttl diagnose, refit)")
+                raise ConfigError(
+                    f"effect {self.name!r} vary=cycle: period not given (the diagnosis searches it: "
+                    "ttl diagnose, refit)"
+                )
             t_ref = data.t_ref if self.options.get("t_ref") is None else float(self.options["t_ref"])
             phase = 2 * np.pi * (data.t - t_ref) / parse_duration(self.options["period"])
             return [(".sin", np.sin(phase)), (".cos", np.cos(phase))]
@@ -847,21 +931,38 @@ class _Placed(Effect):
 
     def _label(self, label, suffix="") -> str:
         vary = self.vary
-        at = {"drift": self.options.get("t_ref"), "step": self.options.get("t_step"),
-              "cycle": self.options.get("period")}.get(vary)
+        at = {
+            "drift": self.options.get("t_ref"),
+            "step": self.options.get("t_step"),
+            "cycle": self.options.get("period"),
+        }.get(vary)
         return (label if vary == "none" else f"{label}~{vary}" + (f"@{at}" if at is not None else "")) + suffix
 
 
 class WitnessEffect(_Placed):
     name = "witness"
     title = "a witness series of the library, fitted with one coefficient each"
-    physics = ("Any series of the witness library (ttlcore.witnesses: a DWS channel on any link, undelayed or "
-               "delayed by one or two light travel times, its time derivative, a product of angles) can couple "
-               "into the data with a constant coefficient. The column is the series placed on the link through "
-               "the exact time-varying TDI delays; a plain DWS channel carries its readout noise into the "
-               "errors-in-variables term.")
-    parameters = {"source": None, "link": None, "delay": 0, "derivative": 0, "mosas": None, "angles": "all",
-                  "sides": "rx", "links": "all", "vary": "none", "t_ref": None, "t_step": None, "period": None}
+    physics = (
+        "Any series of the witness library (ttlcore.witnesses: a DWS channel on any link, undelayed or "
+        "delayed by one or two light travel times, its time derivative, a product of angles) can couple "
+        "into the data with a constant coefficient. The column is the series placed on the link through "
+        "the exact time-varying TDI delays; a plain DWS channel carries its readout noise into the "
+        "errors-in-variables term."
+    )
+    parameters = {
+        "source": None,
+        "link": None,
+        "delay": 0,
+        "derivative": 0,
+        "mosas": None,
+        "angles": "all",
+        "sides": "rx",
+        "links": "all",
+        "vary": "none",
+        "t_ref": None,
+        "t_step": None,
+        "period": None,
+    }
 
     def columns(self, data):
         der = _int_option(self, "derivative", (0, 1))
@@ -874,9 +975,15 @@ class WitnessEffect(_Placed):
                 label = self._label(("d/dt:" if der else "") + self.placement_label(src, link, n), suffix)
                 prior = {"m/rad": 1e-3, "m/rad^2": 1e3}[unit]
                 # the time derivative as the filter 2 pi i f: its readout noise follows exactly
-                cols.append(Column(f"witness.{label}", [Part(link, series, n, channel, mod)],
-                                   "m s/rad" if der else unit, prior * 10 if der else prior,
-                                   response=_derivative_response if der else None))
+                cols.append(
+                    Column(
+                        f"witness.{label}",
+                        [Part(link, series, n, channel, mod)],
+                        "m s/rad" if der else unit,
+                        prior * 10 if der else prior,
+                        response=_derivative_response if der else None,
+                    )
+                )
         return cols
 
 
@@ -910,18 +1017,35 @@ def rational_basis(kind: str, f: np.ndarray, f0: float, q: float | None = None) 
 class FrequencyCoupling(_Placed):
     name = "fd-coupling"
     title = "frequency-dependent coupling of a witness (resonance, first-order path)"
-    physics = ("A witness couples through a path whose gain varies with frequency: a mechanical resonance of "
-               "unknown frequency and quality factor (filter=pole2, the default: 1/D, x/D, x^2/D with "
-               "D = 1 + x/q + x^2, x = i f/f0) or a first-order low- or high-pass path of unknown corner "
-               "(filter=pole1: 1/(1+x), x/(1+x), x = i f/fc). Linear in the numerator coefficients; the poles "
-               "(f0, q or fc) are searched by the diagnosis when not given. Place it with source=, link=, "
-               "delay= (a library witness) or mosas=, angles=, sides=, links=. On the placement of a linear TTL "
-               "coefficient (its own link undelayed, or the link it transmits on after one delay) the constant "
-               "coupling is that coefficient: the basis drops one column there (flat=auto, the default; "
-               "flat=keep for a model without linear-ttl).")
-    parameters = {"source": None, "link": None, "delay": 0, "mosas": None, "angles": "all", "sides": "rx",
-                  "links": "all", "filter": "pole2", "f0": None, "q": None, "fc": None, "vary": "none", "t_ref": None,
-                  "t_step": None, "period": None, "flat": "auto"}
+    physics = (
+        "A witness couples through a path whose gain varies with frequency: a mechanical resonance of "
+        "unknown frequency and quality factor (filter=pole2, the default: 1/D, x/D, x^2/D with "
+        "D = 1 + x/q + x^2, x = i f/f0) or a first-order low- or high-pass path of unknown corner "
+        "(filter=pole1: 1/(1+x), x/(1+x), x = i f/fc). Linear in the numerator coefficients; the poles "
+        "(f0, q or fc) are searched by the diagnosis when not given. Place it with source=, link=, "
+        "delay= (a library witness) or mosas=, angles=, sides=, links=. On the placement of a linear TTL "
+        "coefficient (its own link undelayed, or the link it transmits on after one delay) the constant "
+        "coupling is that coefficient: the basis drops one column there (flat=auto, the default; "
+        "flat=keep for a model without linear-ttl)."
+    )
+    parameters = {
+        "source": None,
+        "link": None,
+        "delay": 0,
+        "mosas": None,
+        "angles": "all",
+        "sides": "rx",
+        "links": "all",
+        "filter": "pole2",
+        "f0": None,
+        "q": None,
+        "fc": None,
+        "vary": "none",
+        "t_ref": None,
+        "t_step": None,
+        "period": None,
+        "flat": "auto",
+    }
 
     @property
     def kind(self) -> str:
@@ -970,16 +1094,21 @@ class FrequencyCoupling(_Placed):
         if flat == "keep" or self.vary != "none":
             return True
         mosa, _, angle = source.partition(".")
-        return angle not in ANGLES or (link, bool(n_delays)) not in (placement(mosa, "rx"), placement(mosa, "tx")) \
+        return (
+            angle not in ANGLES
+            or (link, bool(n_delays)) not in (placement(mosa, "rx"), placement(mosa, "tx"))
             or n_delays > 1
+        )
 
     def columns(self, data):
         n_basis = 2 if self.kind == "pole1" else 3
         poles = [k for k in self.unresolved() if k != "period"]
         if poles:
             if not data.names_only:
-                raise ConfigError(f"effect 'fd-coupling': {', '.join(poles)} not given "
-                                  "(the diagnosis searches them: ttl diagnose, refit)")
+                raise ConfigError(
+                    f"effect 'fd-coupling': {', '.join(poles)} not given "
+                    "(the diagnosis searches them: ttl diagnose, refit)"
+                )
             resp = [None] * n_basis
         else:
             resp = self.response_functions()
@@ -994,20 +1123,40 @@ class FrequencyCoupling(_Placed):
                 label = self._label(self.placement_label(src, link, n), suffix)
                 parts = [Part(link, series, n, channel, mod)]
                 for j in range(n_basis if self.holds_flat(src, link, n) else n_basis - 1):
-                    cols.append(Column(f"fd.{label}.b{j}", parts, unit, 1e-3 if unit == "m/rad" else 1e3,
-                                       response=resp[j], base=label))
+                    cols.append(
+                        Column(
+                            f"fd.{label}.b{j}",
+                            parts,
+                            unit,
+                            1e-3 if unit == "m/rad" else 1e3,
+                            response=resp[j],
+                            base=label,
+                        )
+                    )
         return cols
 
 
 #: The named effects.
-EFFECTS: dict[str, type] = {cls.name: cls for cls in
-                            (LinearTTL, Drift, Step, CrossCoupling, TimingOffset, SecondOrder, LightTravelTimeError,
-                             WitnessEffect, FrequencyCoupling)}
+EFFECTS: dict[str, type] = {
+    cls.name: cls
+    for cls in (
+        LinearTTL,
+        Drift,
+        Step,
+        CrossCoupling,
+        TimingOffset,
+        SecondOrder,
+        LightTravelTimeError,
+        WitnessEffect,
+        FrequencyCoupling,
+    )
+}
 
 
 # ---------------------------------------------------------------------------
 # Lookup, parsing, plugins
 # ---------------------------------------------------------------------------
+
 
 def load_effect_module(spec: str) -> list[type[Effect]]:
     """Effect classes of a user module (a ``.py`` path or a dotted name).
@@ -1021,16 +1170,22 @@ def load_effect_module(spec: str) -> list[type[Effect]]:
     if isinstance(found, dict):
         found = list(found.values())
     if found is None:
-        found = [v for v in vars(module).values() if isinstance(v, type) and issubclass(v, Effect)
-                 and v is not Effect and v.__module__ == module.__name__]
+        found = [
+            v
+            for v in vars(module).values()
+            if isinstance(v, type) and issubclass(v, Effect) and v is not Effect and v.__module__ == module.__name__
+        ]
     if not found:
         raise ConfigError(f"{spec}: defines no effect (an Effect subclass, or a list EFFECTS)")
     out = []
     for cls in found:
-        if not (isinstance(cls, type) and issubclass(cls, Effect)) or not getattr(cls, "name", None) or cls.name == "effect":
+        if (
+            not (isinstance(cls, type) and issubclass(cls, Effect))
+            or not getattr(cls, "name", None)
+            or cls.name == "effect"
+        ):
             raise ConfigError(f"{spec}: {cls!r} is not an Effect subclass with a name")
         if spec.endswith(".py"):
-
             cls._ttl_module_path = str(Path(spec).resolve())
         else:
             cls._ttl_module_path = spec
@@ -1091,8 +1246,10 @@ def parse_effect_spec(spec: str, modules=()) -> tuple[Effect, dict]:
             try:
                 raw_values[key] = float(value)
             except ValueError:
-                raise ConfigError(f"effect {name!r}: {key!r} is neither an option ({', '.join(cls.parameters) or 'none'}) "
-                                  f"nor a column with a number (got {value!r})") from None
+                raise ConfigError(
+                    f"effect {name!r}: {key!r} is neither an option ({', '.join(cls.parameters) or 'none'}) "
+                    f"nor a column with a number (got {value!r})"
+                ) from None
     effect = cls(**options)
     values = {}
     if raw_values:
@@ -1103,8 +1260,10 @@ def parse_effect_spec(spec: str, modules=()) -> tuple[Effect, dict]:
                 continue
             matches = [n for n in names if n == key or n == f"{_prefix(n)}.{key}" or n.endswith("." + key)]
             if not matches:
-                raise ConfigError(f"effect {name!r}: unknown column {key!r}; columns: {', '.join(names[:8])}"
-                                  + (", ..." if len(names) > 8 else ""))
+                raise ConfigError(
+                    f"effect {name!r}: unknown column {key!r}; columns: {', '.join(names[:8])}"
+                    + (", ..." if len(names) > 8 else "")
+                )
             values.update(dict.fromkeys(matches, v))
     return effect, values
 
@@ -1125,6 +1284,7 @@ def make_effects(specs, modules=()) -> list[Effect]:
 # Injections
 # ---------------------------------------------------------------------------
 
+
 class EffectInjection:
     """Injection of an effect into the simulator (:mod:`ttlcore.sim.injection` protocol).
 
@@ -1138,7 +1298,9 @@ class EffectInjection:
         if unknown:
             raise ConfigError(f"injection of {effect.name!r}: unknown columns {sorted(unknown)[:5]}")
         self.name = name or effect.name
-        self._angle: np.ndarray | None = None  # running angle integral (phi, eta) at the last sample of the previous chunk
+        self._angle: np.ndarray | None = (
+            None  # running angle integral (phi, eta) at the last sample of the previous chunk
+        )
         self._next_n0 = 0
 
     def describe(self) -> dict:
@@ -1151,15 +1313,24 @@ class EffectInjection:
             if ctx.n0 == 0:
                 self._angle = np.zeros((2, 6))
             elif self._angle is None or ctx.n0 != self._next_n0:
-                raise ConfigError(f"injection {self.name!r}: second-order terms need the chunks in order from "
-                                  f"the start (got sample {ctx.n0}, expected {self._next_n0})")
+                raise ConfigError(
+                    f"injection {self.name!r}: second-order terms need the chunks in order from "
+                    f"the start (got sample {ctx.n0}, expected {self._next_n0})"
+                )
             # angle just before the first history sample: subtract the history's integral
-            hist = np.stack([ctx.phi_dot[:, :ctx.h].sum(axis=1), ctx.eta_dot[:, :ctx.h].sum(axis=1)]) / ctx.fs
+            hist = np.stack([ctx.phi_dot[:, : ctx.h].sum(axis=1), ctx.eta_dot[:, : ctx.h].sum(axis=1)]) / ctx.fs
             angle0 = self._angle - hist
         t_ref = self.effect.options.get("t_ref")
-        data = EffectInput(t=ctx.t_ext, fs=ctx.fs, phi_dot=ctx.phi_dot, eta_dot=ctx.eta_dot,
-                           ltt=np.pad(ctx.ltt, ((0, 0), (ctx.h, 0)), mode="edge"), coefficients=ctx.coefficients,
-                           angle0=angle0, t_ref=0.0 if t_ref is None else float(t_ref))
+        data = EffectInput(
+            t=ctx.t_ext,
+            fs=ctx.fs,
+            phi_dot=ctx.phi_dot,
+            eta_dot=ctx.eta_dot,
+            ltt=np.pad(ctx.ltt, ((0, 0), (ctx.h, 0)), mode="edge"),
+            coefficients=ctx.coefficients,
+            angle0=angle0,
+            t_ref=0.0 if t_ref is None else float(t_ref),
+        )
         return data
 
     def link_signal(self, ctx: ChunkContext) -> np.ndarray:
@@ -1227,8 +1398,10 @@ class ShiftInjection(EffectInjection):
         # (24 or 6, h + n + look-ahead): the samples after the chunk keep the stencils centred
         ahead = ctx.phi_dot_ahead is not None
         coeffs = np.concatenate([ctx.coefficients, ctx.coefficients_ahead], axis=1) if ahead else ctx.coefficients
-        vel = {"phi": np.concatenate([ctx.phi_dot, ctx.phi_dot_ahead], axis=1) if ahead else ctx.phi_dot,
-               "eta": np.concatenate([ctx.eta_dot, ctx.eta_dot_ahead], axis=1) if ahead else ctx.eta_dot}
+        vel = {
+            "phi": np.concatenate([ctx.phi_dot, ctx.phi_dot_ahead], axis=1) if ahead else ctx.phi_dot,
+            "eta": np.concatenate([ctx.eta_dot, ctx.eta_dot_ahead], axis=1) if ahead else ctx.eta_dot,
+        }
         shifts = {g: self.values.get(f"{eff.name}.{g}.d1", 0.0) for g in eff._groups()}
         order = min(31, ctx.interpolation_order)
         out = np.zeros((6, n))
@@ -1245,7 +1418,9 @@ class ShiftInjection(EffectInjection):
                     src += coeffs[COEFFICIENT_NAMES.index(cname)] * vel[a][MOSAS.index(m)]
                 tau = ctx.ltt[k]
                 if (tau.max() + abs(eps)) * fs + (order - 1) // 2 > h:
-                    raise ConfigError(f"injection {self.name!r}: |eps| = {abs(eps)} s too large for the simulator's history")
+                    raise ConfigError(
+                        f"injection {self.name!r}: |eps| = {abs(eps)} s too large for the simulator's history"
+                    )
                 pos_true = h + np.arange(n) - tau * fs
                 pos_wrong = pos_true - eps * fs
                 out[k] += -(_read_at(src, pos_wrong, order) - _read_at(src, pos_true, order)) / C
@@ -1281,8 +1456,10 @@ def injection_from_spec(spec: str, modules=()) -> EffectInjection:
     """``--inject EFFECT[:key=value,...]`` -> injection (values in the columns' units)."""
     effect, values = parse_effect_spec(spec, modules)
     if not values:
-        raise ConfigError(f"--inject {spec}: no parameter value given; e.g. --inject "
-                          f"{effect.name}:{effect.column_names()[0].split('.', 1)[-1]}=VALUE (or all=VALUE)")
+        raise ConfigError(
+            f"--inject {spec}: no parameter value given; e.g. --inject "
+            f"{effect.name}:{effect.column_names()[0].split('.', 1)[-1]}=VALUE (or all=VALUE)"
+        )
     return effect.injection(values)
 
 
@@ -1290,15 +1467,31 @@ def injection_from_spec(spec: str, modules=()) -> EffectInjection:
 # TDI of columns
 # ---------------------------------------------------------------------------
 
+
 def effect_input_from_telemetry(tm, coefficients=None) -> EffectInput:
     """:class:`EffectInput` from a :class:`~ttlcore.io.telemetry.Telemetry` (DWS readouts)."""
     t = tm.t0 + np.arange(tm.size) / tm.fs
-    return EffectInput(t=t, fs=tm.fs, phi_dot=np.asarray(tm.dws_phi), eta_dot=np.asarray(tm.dws_eta),
-                       ltt=np.asarray(tm.ltt), coefficients=coefficients, t_ref=float(t[0] + t[-1]) / 2)
+    return EffectInput(
+        t=t,
+        fs=tm.fs,
+        phi_dot=np.asarray(tm.dws_phi),
+        eta_dot=np.asarray(tm.dws_eta),
+        ltt=np.asarray(tm.ltt),
+        coefficients=coefficients,
+        t_ref=float(t[0] + t[-1]) / 2,
+    )
 
 
-def tdi_in_blocks(ltt: np.ndarray, fs: float, columns=(), eta: np.ndarray | None = None, *, order: int,
-                  delay_order: int, block: int = 43200) -> tuple:
+def tdi_in_blocks(
+    ltt: np.ndarray,
+    fs: float,
+    columns=(),
+    eta: np.ndarray | None = None,
+    *,
+    order: int,
+    delay_order: int,
+    block: int = 43200,
+) -> tuple:
     """TDI (X2, Y2, Z2) of regressor columns (:func:`columns_tdi`) and optionally of ``eta``,
     by the block engine :func:`ttlcore.tdi.engine.tdi_columns` (each block with the history
     its delays reach back to; memory does not grow with the data).  The first ~70 s are NaN.
@@ -1348,8 +1541,16 @@ def columns_tdi(columns: list[Column], built) -> np.ndarray:
     ndarray, shape (len(built), len(columns), n)
     """
     b = built[0]
-    return tdi_columns(_engine_parts(columns), len(columns), b.ltt, b.fs, history=b.history,
-                       combinations=[x.combination for x in built], order=b.order, delay_order=b.delay_order)
+    return tdi_columns(
+        _engine_parts(columns),
+        len(columns),
+        b.ltt,
+        b.fs,
+        history=b.history,
+        combinations=[x.combination for x in built],
+        order=b.order,
+        delay_order=b.delay_order,
+    )
 
 
 def readout_noise_factor(f, shift):

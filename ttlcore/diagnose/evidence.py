@@ -28,8 +28,15 @@ from ..errors import ConfigError
 from .columns import ColumnSet, eiv, rewhitened
 from .model_fit import ModelFit, gram, parameter_name, rhs, total_offset
 
-__all__ = ["Evidence", "log_bayes_factor", "added_evidence", "evidence_from_normal", "laplace_evidence", "change",
-           "stable_solve"]
+__all__ = [
+    "Evidence",
+    "log_bayes_factor",
+    "added_evidence",
+    "evidence_from_normal",
+    "laplace_evidence",
+    "change",
+    "stable_solve",
+]
 
 
 def log_bayes_factor(A: np.ndarray, beta: np.ndarray, prior_scale: np.ndarray) -> float:
@@ -51,7 +58,7 @@ def log_bayes_factor(A: np.ndarray, beta: np.ndarray, prior_scale: np.ndarray) -
     if sign <= 0:
         return float("nan")
     q1 = beta @ A @ beta
-    q2 = beta @ A @ np.linalg.solve(np.eye(k) + (d ** 2)[:, None] * A, beta)
+    q2 = beta @ A @ np.linalg.solve(np.eye(k) + (d**2)[:, None] * A, beta)
     return float(-0.5 * logdet + 0.5 * (q1 - q2))
 
 
@@ -138,8 +145,16 @@ def evidence_from_normal(model: ModelFit, N_MM, N_MK, N_KK, b_M, b_K, names, pri
         var = np.diag(np.linalg.inv(A))
     except np.linalg.LinAlgError:
         var = np.full(k, np.nan)
-    return Evidence(float(dchi2), lbf, k, tuple(names), beta, np.sqrt(np.abs(var)),
-                    (chi2_before - chi2_after).sum(axis=0) / kappa, (chi2_before - chi2_after).sum(axis=1) / kappa)
+    return Evidence(
+        float(dchi2),
+        lbf,
+        k,
+        tuple(names),
+        beta,
+        np.sqrt(np.abs(var)),
+        (chi2_before - chi2_after).sum(axis=0) / kappa,
+        (chi2_before - chi2_after).sum(axis=1) / kappa,
+    )
 
 
 def added_evidence(model: ModelFit, cand: ColumnSet, priors=None) -> Evidence:
@@ -147,8 +162,17 @@ def added_evidence(model: ModelFit, cand: ColumnSet, priors=None) -> Evidence:
     data = model.data
     M = model.columns
     N_MM, b_M = model.normal
-    return evidence_from_normal(model, N_MM, gram(data, M, cand), gram(data, cand, cand), b_M, rhs(data, cand),
-                                cand.names, cand.priors if priors is None else priors, eiv(data, M, cand))
+    return evidence_from_normal(
+        model,
+        N_MM,
+        gram(data, M, cand),
+        gram(data, cand, cand),
+        b_M,
+        rhs(data, cand),
+        cand.names,
+        cand.priors if priors is None else priors,
+        eiv(data, M, cand),
+    )
 
 
 def laplace_evidence(base: ModelFit, model: ModelFit) -> tuple[float, float]:
@@ -194,6 +218,11 @@ def change(base: ModelFit, model: ModelFit) -> Evidence | None:
         return added_evidence(base, rewhitened(model.columns.select(added), model.data.Lh, base.data))
     dchi2, lbf = laplace_evidence(base, model)
     new = [i for i, n in enumerate(model.names) if parameter_name(n) not in set(base.parameter_names)]
-    return Evidence(dchi2, lbf, len(new), tuple(model.names[i] for i in new),
-                    np.array([total_offset(model.names[i], model.theta[i], model.expansion) for i in new]),
-                    model.sigma[new])
+    return Evidence(
+        dchi2,
+        lbf,
+        len(new),
+        tuple(model.names[i] for i in new),
+        np.array([total_offset(model.names[i], model.theta[i], model.expansion) for i in new]),
+        model.sigma[new],
+    )

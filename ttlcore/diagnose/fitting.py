@@ -43,8 +43,9 @@ def as_effects(data, effects) -> list:
     return make_effects(list(effects), data.effect_modules)
 
 
-def fit_model(data, effects, coefficients_for_linearised=None, keep_series: bool = True,
-              time_table: bool = True) -> ModelFit:
+def fit_model(
+    data, effects, coefficients_for_linearised=None, keep_series: bool = True, time_table: bool = True
+) -> ModelFit:
     """Fit a model (list of effects or specs) to ``data`` under its noise model.
 
     A model whose coefficients change in time (drift, step) changes the readout noise the
@@ -61,8 +62,9 @@ def fit_model(data, effects, coefficients_for_linearised=None, keep_series: bool
         d = fit.data
         del fit  # not kept while the model is refitted (a day's columns are large)
         nm = d.noise_parameters
-        d = d.with_noise(instrument_noise_csd(d.f, d.ltt_mean, hist, d.dws_asd,
-                                              secondary=None if nm is None else nm.csd(d.f)))
+        d = d.with_noise(
+            instrument_noise_csd(d.f, d.ltt_mean, hist, d.dws_asd, secondary=None if nm is None else nm.csd(d.f))
+        )
         fit = fit_resolved(d, effects, coefficients_for_linearised, keep_series)
     table = None
     if time_table and fit.columns.series is not None:
@@ -127,8 +129,9 @@ def model_columns(data, effects, coefficients=None, keep_series: bool = True) ->
             data = part.data
             C = part.ttl_coefficients()
             if np.isnan(C).any():
-                raise ConfigError("linearised effects (timing-offset, ltt-error) need all 24 linear-ttl coefficients "
-                                  "in the model")
+                raise ConfigError(
+                    "linearised effects (timing-offset, ltt-error) need all 24 linear-ttl coefficients in the model"
+                )
         first = list(names)
         for e in lin:  # their series (~400 MB a day through the derivatives) only when kept
             # the Taylor columns at zero do not depend on the given offsets (one cache entry)
@@ -143,8 +146,11 @@ def model_columns(data, effects, coefficients=None, keep_series: bool = True) ->
             return data, assemble(names, *sets, series=keep_series), {}, searches
         given = [f"{e.name}:{OFFSET_OPTION}{g}" for e in lin for g, v in e.fixed_offsets().items() if v != 0.0]
         if given:
-            why = ("expansion_passes is 0" if not data.settings.expansion_passes
-                   else "it lacks some of the 24 linear-ttl coefficients")
+            why = (
+                "expansion_passes is 0"
+                if not data.settings.expansion_passes
+                else "it lacks some of the 24 linear-ttl coefficients"
+            )
             raise ConfigError(f"offsets given ({', '.join(given)}) but this model is not expanded at offsets ({why})")
     if not names:
         return data, empty_set(data.noise_key), expansion, {}
@@ -185,8 +191,10 @@ def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet | None, di
             if d0 == 0.0:
                 continue
             if moved_names & members:
-                raise ConfigError(f"{e.name}:{OFFSET_OPTION}{g}: another given offset shifts the same linear "
-                                  f"coefficients ({', '.join(sorted(moved_names & members))})")
+                raise ConfigError(
+                    f"{e.name}:{OFFSET_OPTION}{g}: another given offset shifts the same linear "
+                    f"coefficients ({', '.join(sorted(moved_names & members))})"
+                )
             moved_names |= members
             shifts[e.name][g] = d0
     base = None
@@ -201,8 +209,12 @@ def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet | None, di
             C = _ttl_vector(found.theta)
         for g, members in e.shifted_members().items():
             k = f"{OFFSET_OPTION}{g}"
-            big = (k in found.estimates and found.gains[k] > 25.0 and abs(found.estimates[k]) > small
-                   and not moved_names & set(members))
+            big = (
+                k in found.estimates
+                and found.gains[k] > 25.0
+                and abs(found.estimates[k]) > small
+                and not moved_names & set(members)
+            )
             if big:
                 moved_names |= set(members)
                 shifts[e.name][g] = found.estimates[k]
@@ -285,27 +297,41 @@ def time_adequacy(model: ModelFit) -> dict:
     csd = np.empty((fb.size, 3, 3), dtype=complex)
     for i in range(3):  # interpolate the model CSD (smooth) from the segment grid
         for j in range(3):
-            csd[:, i, j] = (np.interp(fb, data.f, data.noise_csd[:, i, j].real)
-                            + 1j * np.interp(fb, data.f, data.noise_csd[:, i, j].imag))
+            csd[:, i, j] = np.interp(fb, data.f, data.noise_csd[:, i, j].real) + 1j * np.interp(
+                fb, data.f, data.noise_csd[:, i, j].imag
+            )
     Lh = np.conj(np.swapaxes(np.linalg.cholesky(np.linalg.inv(csd)), -1, -2))
     bidx = np.clip(np.searchsorted(data.edges, fb, side="right") - 1, 0, data.G - 1)
     win = window("hann", L)
     kappa = variance_factor("hann", 4096, 0.0)
     rows: list[dict] = []
     for s0 in range(lo, hi - L + 1, L):
-        seg = resid[:, s0:s0 + L]
+        seg = resid[:, s0 : s0 + L]
         _, X = segment_fft(np.nan_to_num(seg), data.fs, win, workers=None)
         wr = np.matmul(Lh, X[:, keep].T[..., None])[..., 0][None]
         tab = band_table(wr, bidx, data.edges, 0, kappa, s.tolerance, s.alpha)
         chi2, dof = tab.chi2.sum(), tab.dof.sum()
-        rows.append({"t_start": data.t0 + s0 / data.fs, "t_stop": data.t0 + (s0 + L) / data.fs,
-                     "chi2": float(chi2), "dof": float(dof), "chi2_dof": float(chi2 / dof),
-                     "p_value": float(p_value(chi2, dof, kappa, s.tolerance)),
-                     "band_chi2_dof": [float(x) if np.isfinite(x) else None for x in tab.chi2_dof],
-                     "band_fails": [bool(x) for x in tab.fails]})
+        rows.append(
+            {
+                "t_start": data.t0 + s0 / data.fs,
+                "t_stop": data.t0 + (s0 + L) / data.fs,
+                "chi2": float(chi2),
+                "dof": float(dof),
+                "chi2_dof": float(chi2 / dof),
+                "p_value": float(p_value(chi2, dof, kappa, s.tolerance)),
+                "band_chi2_dof": [float(x) if np.isfinite(x) else None for x in tab.chi2_dof],
+                "band_fails": [bool(x) for x in tab.fails],
+            }
+        )
     for r in rows:
         r["fails"] = bool(r["p_value"] < s.alpha) or any(r["band_fails"])
-    summary = describe_time_failures([r["t_start"] for r in rows], [r["t_stop"] for r in rows],
-                                     [r["fails"] for r in rows], data.t0_in)
-    return {"segment_duration": L / data.fs, "window": "hann", "variance_factor": kappa, "segments": rows,
-            "summary": summary}
+    summary = describe_time_failures(
+        [r["t_start"] for r in rows], [r["t_stop"] for r in rows], [r["fails"] for r in rows], data.t0_in
+    )
+    return {
+        "segment_duration": L / data.fs,
+        "window": "hann",
+        "variance_factor": kappa,
+        "segments": rows,
+        "summary": summary,
+    }

@@ -118,12 +118,14 @@ PLACEMENTS = tuple(f"tm{m}" for m in MOSAS) + tuple(f"link{k}" for k in LINKS)
 class Glitch(Effect):
     name = "glitch"
     title = "a test-mass (or link) glitch of the LISA Pathfinder shape"
-    physics = ("A test mass kicked by outgassing, a discharge or a micrometeoroid changes velocity by dv over a "
-               "damping time beta: v(t) = dv [1 - (1 + x) exp(-x)], x = (t - t_g)/beta (the integrated shapelet "
-               "that fits the LISA Pathfinder glitches, lisaglitch's IntegratedShapeletGlitch). Test mass ij enters "
-               "eta_ij as 2v/c and eta_ji as D_ji 2v/c; a link glitch (link=ij) eta_ij alone as v/c. One linear "
-               "parameter, dv [m/s]; the time t, the damping beta and the test mass are searched when not given "
-               "(span=START-STOP restricts the time searched).")
+    physics = (
+        "A test mass kicked by outgassing, a discharge or a micrometeoroid changes velocity by dv over a "
+        "damping time beta: v(t) = dv [1 - (1 + x) exp(-x)], x = (t - t_g)/beta (the integrated shapelet "
+        "that fits the LISA Pathfinder glitches, lisaglitch's IntegratedShapeletGlitch). Test mass ij enters "
+        "eta_ij as 2v/c and eta_ji as D_ji 2v/c; a link glitch (link=ij) eta_ij alone as v/c. One linear "
+        "parameter, dv [m/s]; the time t, the damping beta and the test mass are searched when not given "
+        "(span=START-STOP restricts the time searched)."
+    )
     parameters = {"t": None, "tm": None, "link": None, "beta": None, "span": None}
     searched = {"t": (-np.inf, np.inf, "linear"), "beta": (BETA_RANGE[0], BETA_RANGE[1], "log")}
 
@@ -167,8 +169,10 @@ class Glitch(Effect):
         if self.unresolved():
             if data.names_only:
                 return [Column(self.column_name(), [], "m/s", GLITCH_PRIOR)]
-            raise ConfigError(f"effect 'glitch': {', '.join(self.unresolved())} not given (the diagnosis searches "
-                              "them: ttl diagnose, refit)")
+            raise ConfigError(
+                f"effect 'glitch': {', '.join(self.unresolved())} not given (the diagnosis searches "
+                "them: ttl diagnose, refit)"
+            )
         v = glitch_velocity(data.t, self.options["t"], self.options["beta"])
         assert self.where is not None  # resolved above (unresolved() names it otherwise)
         parts = [Part(link, factor * v / C, n) for link, n, factor in placement_parts(self.where)]
@@ -188,10 +192,12 @@ class Glitch(Effect):
 class Gate(Effect):
     name = "gate"
     title = "a span of the data gated out (tapered window, as lisa-gap smooths a gap)"
-    physics = ("The data between start and stop (a loud transient, a gap with hard edges, hours of changed noise) "
-               "are down-weighted to zero with cosine tapers of 'taper' seconds outside the span, in the data and in "
-               "every column alike, so that the fit ignores them (lisa-gap's smoothed gap). Not a physical effect: no "
-               "parameter is fitted; the gated hours are left out of the fit and of the adequacy tests.")
+    physics = (
+        "The data between start and stop (a loud transient, a gap with hard edges, hours of changed noise) "
+        "are down-weighted to zero with cosine tapers of 'taper' seconds outside the span, in the data and in "
+        "every column alike, so that the fit ignores them (lisa-gap's smoothed gap). Not a physical effect: no "
+        "parameter is fitted; the gated hours are left out of the fit and of the adequacy tests."
+    )
     parameters = {"start": None, "stop": None, "taper": GATE_TAPER}
 
     def __init__(self, **options):
@@ -200,10 +206,15 @@ class Gate(Effect):
             if self.options.get(key) is None:
                 raise ConfigError("effect 'gate' needs start= and stop= (e.g. gate:start=15.2h,stop=15.8h)")
             self.options[key] = parse_time(self.options[key], f"gate {key}")
-        self.options["taper"] = float(self.options["taper"]) if isinstance(self.options["taper"], (int, float)) \
+        self.options["taper"] = (
+            float(self.options["taper"])
+            if isinstance(self.options["taper"], (int, float))
             else parse_duration(self.options["taper"], "gate taper")
+        )
         if self.options["stop"] <= self.options["start"]:
-            raise ConfigError(f"effect 'gate': stop ({self.options['stop']:g} s) before start ({self.options['start']:g} s)")
+            raise ConfigError(
+                f"effect 'gate': stop ({self.options['stop']:g} s) before start ({self.options['start']:g} s)"
+            )
 
     @property
     def span(self) -> tuple[float, float]:
@@ -226,6 +237,7 @@ def split_gates(effects) -> tuple[list, list]:
 # ---------------------------------------------------------------------------
 # Gated data
 # ---------------------------------------------------------------------------
+
 
 @dataclass(frozen=True, eq=False)
 class GatedData(WhitenedData):
@@ -254,8 +266,9 @@ class GatedData(WhitenedData):
         out = super().decimate(xyz, is_aet)
         assert self.gate is not None  # set with the gate (gate_data)
         if out.shape[-1] != self.gate.size:
-            raise ConfigError(f"gated data: a series of {out.shape[-1]} decimated samples cannot be gated "
-                              f"({self.gate.size} expected)")
+            raise ConfigError(
+                f"gated data: a series of {out.shape[-1]} decimated samples cannot be gated ({self.gate.size} expected)"
+            )
         return out * self.gate
 
 
@@ -278,24 +291,37 @@ def gated_data(data: WhitenedData, gates) -> WhitenedData:
         raise ConfigError("the gates leave no data")
     keep, scale = [], []
     for s0 in data.starts:
-        w = data.win * data.mask[s0:s0 + data.L]
-        r = float(np.sum((w * g[s0:s0 + data.L]) ** 2) / max(np.sum(w ** 2), 1e-300))
+        w = data.win * data.mask[s0 : s0 + data.L]
+        r = float(np.sum((w * g[s0 : s0 + data.L]) ** 2) / max(np.sum(w**2), 1e-300))
         keep.append(r >= MIN_KEPT)
         scale.append(1.0 / math.sqrt(max(r, 1e-300)))
     if not any(keep):
         raise ConfigError("the gates leave no FFT segment with data")
     idx = [i for i, k in enumerate(keep) if k]
     starts = tuple(data.starts[i] for i in idx)
-    w2 = np.stack([(data.win * mask[s0:s0 + data.L] * g[s0:s0 + data.L]) ** 2 for s0 in starts])
+    w2 = np.stack([(data.win * mask[s0 : s0 + data.L] * g[s0 : s0 + data.L]) ** 2 for s0 in starts])
     # gated once; inside a span exactly zero (a gap's NaN there too)
     series = np.where(inside, 0.0, data.data_series * g)
     regs = np.where(inside, 0.0, data.regressor_series * g)
-    out = GatedData(**{**{k: getattr(data, k) for k in data.__dataclass_fields__},
-                       "mask": mask, "starts": starts, "seg_t0": np.asarray(data.seg_t0)[idx],
-                       "w2": w2 / w2.sum(axis=1, keepdims=True), "data_series": series, "regressor_series": regs,
-                       "store": ColumnStore(), "d": np.empty(0), "wd": np.empty(0), "dd": np.empty(0),
-                       "gate": g, "seg_scale": np.asarray(scale)[idx], "gates": tuple(e.spec() for e in gates),
-                       "gate_spans": tuple(e.span for e in gates)})
+    out = GatedData(
+        **{
+            **{k: getattr(data, k) for k in data.__dataclass_fields__},
+            "mask": mask,
+            "starts": starts,
+            "seg_t0": np.asarray(data.seg_t0)[idx],
+            "w2": w2 / w2.sum(axis=1, keepdims=True),
+            "data_series": series,
+            "regressor_series": regs,
+            "store": ColumnStore(),
+            "d": np.empty(0),
+            "wd": np.empty(0),
+            "dd": np.empty(0),
+            "gate": g,
+            "seg_scale": np.asarray(scale)[idx],
+            "gates": tuple(e.spec() for e in gates),
+            "gate_spans": tuple(e.span for e in gates),
+        }
+    )
     d = out.spectra(series[:, None, :])[..., 0]
     R = out.spectra(regs)
     wd = np.matmul(out.Lh, d[..., None])[..., 0]
@@ -316,6 +342,7 @@ def in_gates(data, a: float, b: float) -> bool:
 # ---------------------------------------------------------------------------
 # Glitch search
 # ---------------------------------------------------------------------------
+
 
 def glitch_series(data, where, t_glitch: float, beta: float) -> np.ndarray:
     """Decimated A, E, T (3, n) of a unit glitch (``dv = 1 m/s``) placed ``where`` at
@@ -349,7 +376,7 @@ def glitch_series(data, where, t_glitch: float, beta: float) -> np.ndarray:
         x = WhitenedData.decimate(data, np.nan_to_num(xyz))
         k0 = a // dec
         m = min(x.shape[-1], n_dec - k0)
-        out[:, :, k0:k0 + m] = x[:, :, :m]
+        out[:, :, k0 : k0 + m] = x[:, :, :m]
         g = getattr(data, "gate", None)
         if g is not None:
             out *= g
@@ -415,7 +442,7 @@ class _Scanner:
         c = z[0, k]
         n = z[1:, k]  # (P, K)
         D = ngg - np.einsum("pk,pk->k", n, self.NMinv @ n)
-        return k / data.fs, 2.0 * c ** 2 / (np.maximum(D, 1e-300) * data.kappa)
+        return k / data.fs, 2.0 * c**2 / (np.maximum(D, 1e-300) * data.kappa)
 
     def at(self, prods, tau: float) -> float:
         """delta chi2 of one template's products at a shift ``tau`` [s] (any real value)."""
@@ -424,7 +451,7 @@ class _Scanner:
         c = float(np.real(np.sum(p * ph)))
         n = np.real(ph @ q)
         D = ngg - n @ self.NMinv @ n
-        return 2.0 * c ** 2 / (max(D, 1e-300) * self.data.kappa)
+        return 2.0 * c**2 / (max(D, 1e-300) * self.data.kappa)
 
 
 def _pieces(data, lo: float, hi: float) -> list[tuple[float, float, float]]:
@@ -496,9 +523,12 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
             return t_best, scanner.at(pr, 0.0), pr
         tau, dchi2 = scanner.shifts(pr, 60.0)
         j = int(np.argmax(dchi2))
-        res = optimize.minimize_scalar(lambda x: -scanner.at(pr, x),
-                                       bounds=(tau[j] - 1.0 / data.fs, tau[j] + 1.0 / data.fs),
-                                       method="bounded", options={"xatol": 1e-3})
+        res = optimize.minimize_scalar(
+            lambda x: -scanner.at(pr, x),
+            bounds=(tau[j] - 1.0 / data.fs, tau[j] + 1.0 / data.fs),
+            method="bounded",
+            options={"xatol": 1e-3},
+        )
         n_eval += tau.size + res.nfev
         x, val = (float(res.x), -float(res.fun)) if -res.fun >= dchi2[j] else (float(tau[j]), float(dchi2[j]))
         return t_best + x, val, pr
@@ -506,14 +536,20 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
     if effect.options.get("beta") is None:
         lb = math.log(beta)
         step = math.log(BETA_GRID[1] / BETA_GRID[0])
-        res = optimize.minimize_scalar(lambda x: -refine_time(math.exp(x))[1],
-                                       bounds=(max(lb - step, math.log(BETA_RANGE[0])),
-                                               min(lb + step, math.log(BETA_RANGE[1]))),
-                                       method="bounded", options={"xatol": 2e-3})
+        res = optimize.minimize_scalar(
+            lambda x: -refine_time(math.exp(x))[1],
+            bounds=(max(lb - step, math.log(BETA_RANGE[0])), min(lb + step, math.log(BETA_RANGE[1]))),
+            method="bounded",
+            options={"xatol": 2e-3},
+        )
         beta = float(math.exp(res.x))
     t_best, _, _ = refine_time(beta)
-    found = effect.with_options(t=round(t_best, 2), beta=float(f"{beta:.4g}"), span=None,
-                                **({} if effect.where else {("tm" if where.startswith("tm") else "link"): where[-2:]}))
+    found = effect.with_options(
+        t=round(t_best, 2),
+        beta=float(f"{beta:.4g}"),
+        span=None,
+        **({} if effect.where else {("tm" if where.startswith("tm") else "link"): where[-2:]}),
+    )
     g = glitch_spectra(data, where, t_best, beta)
     ev = _evidence(model, found, g)
     # curvatures of l = delta chi2 / 2 in time and log beta (the others at the estimate)
@@ -531,12 +567,18 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
         sig_lb = 1.0 / math.sqrt(curv) if curv > 0 else float("nan")
     marg = ev.log_bayes_factor - math.log(len(places))
     if not fixed_t:
-        marg += (0.5 * math.log(2 * math.pi) + math.log(sig_t) - math.log(max(hi - lo, 1e-9))) if np.isfinite(sig_t) \
+        marg += (
+            (0.5 * math.log(2 * math.pi) + math.log(sig_t) - math.log(max(hi - lo, 1e-9)))
+            if np.isfinite(sig_t)
             else -math.log(max((hi - lo) * data.fs, 1.0))
+        )
     if effect.options.get("beta") is None:
         width = math.log(BETA_RANGE[1] / BETA_RANGE[0])
-        marg += (0.5 * math.log(2 * math.pi) + math.log(sig_lb) - math.log(width)) if np.isfinite(sig_lb) \
+        marg += (
+            (0.5 * math.log(2 * math.pi) + math.log(sig_lb) - math.log(width))
+            if np.isfinite(sig_lb)
             else -math.log(len(BETA_GRID))
+        )
     marg = float(min(marg, ev.log_bayes_factor))
     est = {"t": float(t_best), "beta": float(beta)}
     intervals = {}
@@ -545,8 +587,18 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
     if np.isfinite(sig_lb):
         intervals["beta"] = (beta * math.exp(-sig_lb), beta * math.exp(sig_lb))
     log.info("glitch search: %s at %.1f s, beta %.3g s, delta chi2 %.1f", where, t_best, beta, ev.delta_chi2)
-    return SearchResult(found, est, intervals, float(ev.delta_chi2), float(ev.log_bayes_factor), marg, n_eval,
-                        grid=grid, evidence=ev, theta={found.column_name(): float(ev.beta[0])})
+    return SearchResult(
+        found,
+        est,
+        intervals,
+        float(ev.delta_chi2),
+        float(ev.log_bayes_factor),
+        marg,
+        n_eval,
+        grid=grid,
+        evidence=ev,
+        theta={found.column_name(): float(ev.beta[0])},
+    )
 
 
 def glitch_columns(data, effect: Glitch, g: np.ndarray | None = None) -> ColumnSet:
@@ -560,7 +612,6 @@ def glitch_columns(data, effect: Glitch, g: np.ndarray | None = None) -> ColumnS
 
 def _evidence(model, effect: Glitch, g: np.ndarray):
     return added_evidence(model, glitch_columns(model.data, effect, g))
-
 
 
 def with_gates(model_json: dict, gates) -> dict:

@@ -132,8 +132,7 @@ class ModelFit:
     time_table: dict | None = None
 
     def __post_init__(self):
-        read_only(self.theta, self.covariance, self.chi2_seg_band, self.residual_w, self.eiv_term,
-                  *(self.normal or ()))
+        read_only(self.theta, self.covariance, self.chi2_seg_band, self.residual_w, self.eiv_term, *(self.normal or ()))
 
     @property
     def names(self) -> tuple:
@@ -187,8 +186,11 @@ class ModelFit:
 
     def offsets(self) -> dict:
         """``"effect.group" -> (offset [s], sigma [s])`` of the shifted-witness effects."""
-        return {n[:-3]: (total_offset(n, v, self.expansion), float(s))
-                for n, v, s in zip(self.names, self.theta, self.sigma) if n.endswith(".d1")}
+        return {
+            n[:-3]: (total_offset(n, v, self.expansion), float(s))
+            for n, v, s in zip(self.names, self.theta, self.sigma)
+            if n.endswith(".d1")
+        }
 
 
 def solve(data, columns: ColumnSet, effects=(), expansion=None) -> ModelFit:
@@ -207,8 +209,20 @@ def solve(data, columns: ColumnSet, effects=(), expansion=None) -> ModelFit:
     s = data.settings
     bands = band_table(wr, data.band_index, data.edges, len(columns) + n_noise, data.kappa, s.tolerance, s.alpha)
     q_min = float(dd.sum() - btot @ theta)
-    return ModelFit(tuple(effects), columns, data, theta, cov, chi2_sg, bands, q_min, residual_w=wr, normal=(N, b),
-                    eiv_term=E, expansion=dict(expansion or {}))
+    return ModelFit(
+        tuple(effects),
+        columns,
+        data,
+        theta,
+        cov,
+        chi2_sg,
+        bands,
+        q_min,
+        residual_w=wr,
+        normal=(N, b),
+        eiv_term=E,
+        expansion=dict(expansion or {}),
+    )
 
 
 def normal_equations(data, columns: ColumnSet, N=None, b=None, E=None) -> NormalEquations:

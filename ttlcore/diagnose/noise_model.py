@@ -84,8 +84,13 @@ MIN_LEVEL = 1e-5
 #: this knowledge keeps the level from absorbing it (measured: a drift giving chi2/dof 13
 #: under the fixed model pulls a free OMS level to 14.4).  The test-mass levels, which act
 #: below ~10 mHz only, and the floor may move more.
-BOUNDS: dict = {"oms": (0.95, 1.05), "tm_acc": (0.25, 4.0), "tm_rise": (MIN_LEVEL, 4.0), "local": (MIN_LEVEL, 1.0),
-                "floor": (MIN_LEVEL, 0.02)}
+BOUNDS: dict = {
+    "oms": (0.95, 1.05),
+    "tm_acc": (0.25, 4.0),
+    "tm_rise": (MIN_LEVEL, 4.0),
+    "local": (MIN_LEVEL, 1.0),
+    "floor": (MIN_LEVEL, 0.02),
+}
 
 
 def local_readout_psd(f) -> np.ndarray:
@@ -220,12 +225,19 @@ class NoiseModel:
 
     def to_json(self) -> dict:
         sig = self.sigma
-        return {"parameters": {n: {"psd_scale": float(v), "sigma": float(s) if np.isfinite(s) else None}
-                               for n, v, s in zip(self.names, self.levels, sig)},
-                "n_parameters": self.n_parameters, "log_likelihood": self.log_likelihood,
-                "iterations": self.iterations, "converged": self.converged, "at_bound": list(self.at_bound),
-                "excluded_segments": [float(t) for t in self.excluded_segments],
-                "bounds": {n: list(BOUNDS[n.split(".")[0]]) for n in self.names}}
+        return {
+            "parameters": {
+                n: {"psd_scale": float(v), "sigma": float(s) if np.isfinite(s) else None}
+                for n, v, s in zip(self.names, self.levels, sig)
+            },
+            "n_parameters": self.n_parameters,
+            "log_likelihood": self.log_likelihood,
+            "iterations": self.iterations,
+            "converged": self.converged,
+            "at_bound": list(self.at_bound),
+            "excluded_segments": [float(t) for t in self.excluded_segments],
+            "bounds": {n: list(BOUNDS[n.split(".")[0]]) for n in self.names},
+        }
 
 
 def whittle_terms(levels, B, P, n_segments, fixed=None):
@@ -257,8 +269,20 @@ def whittle_terms(levels, B, P, n_segments, fixed=None):
     return nll, grad, F
 
 
-def fit_noise_model(f, P, n_segments, ltt_mean, *, names=PARAMETERS, fixed=None, start=None,
-                    kappa: float = 1.0, max_iter: int = 200, tol: float = 1e-4, bounded: bool = True) -> NoiseModel:
+def fit_noise_model(
+    f,
+    P,
+    n_segments,
+    ltt_mean,
+    *,
+    names=PARAMETERS,
+    fixed=None,
+    start=None,
+    kappa: float = 1.0,
+    max_iter: int = 200,
+    tol: float = 1e-4,
+    bounded: bool = True,
+) -> NoiseModel:
     """Maximum Whittle likelihood levels of the components for residual spectra.
 
     Parameters
@@ -306,8 +330,14 @@ def fit_noise_model(f, P, n_segments, ltt_mean, *, names=PARAMETERS, fixed=None,
         return nll - nll0, g * scale
 
     bounds = [((lo - v) / sc, None if hi is None else (hi - v) / sc) for v, sc, (lo, hi) in zip(a0, scale, lim)]
-    res = optimize.minimize(objective, np.zeros(len(a0)), jac=True, method="L-BFGS-B", bounds=bounds,
-                            options={"maxiter": max_iter, "gtol": tol, "ftol": 1e-12})
+    res = optimize.minimize(
+        objective,
+        np.zeros(len(a0)),
+        jac=True,
+        method="L-BFGS-B",
+        bounds=bounds,
+        options={"maxiter": max_iter, "gtol": tol, "ftol": 1e-12},
+    )
     a = a0 + scale * res.x
     nll, grad, F = whittle_terms(a, B, P, n_segments, fixed)
     converged, it = bool(res.success), int(res.nit)
@@ -315,11 +345,24 @@ def fit_noise_model(f, P, n_segments, ltt_mean, *, names=PARAMETERS, fixed=None,
         log.warning("noise-model fit: %s after %d iterations", res.message, it)
     cov = kappa * np.linalg.inv(F)
     cov = 0.5 * (cov + cov.T)
-    at_bound = tuple(n for n, v, (lo, hi) in zip(names, a, lim)
-                     if (hi is not None and v >= hi * (1 - 1e-6)) or (lo > MIN_LEVEL and v <= lo * (1 + 1e-6)))
-    return NoiseModel(tuple(map(float, ltt_mean)), names, tuple(map(float, a)),
-                      tuple(map(tuple, cov)), -nll, int(n_segments), int(f.size), it, converged, at_bound,
-                      _cache={k: v for k, v in model._cache.items()})
+    at_bound = tuple(
+        n
+        for n, v, (lo, hi) in zip(names, a, lim)
+        if (hi is not None and v >= hi * (1 - 1e-6)) or (lo > MIN_LEVEL and v <= lo * (1 + 1e-6))
+    )
+    return NoiseModel(
+        tuple(map(float, ltt_mean)),
+        names,
+        tuple(map(float, a)),
+        tuple(map(tuple, cov)),
+        -nll,
+        int(n_segments),
+        int(f.size),
+        it,
+        converged,
+        at_bound,
+        _cache={k: v for k, v in model._cache.items()},
+    )
 
 
 def residual_periodogram(residual_w: np.ndarray, Lh: np.ndarray, keep=None) -> np.ndarray:
@@ -337,8 +380,9 @@ def residual_periodogram(residual_w: np.ndarray, Lh: np.ndarray, keep=None) -> n
 OUTLIER_ALPHA = 1e-3
 
 
-def outlying_segments(chi2_seg_band, dof_seg_band, kappa: float, tolerance: float,
-                      alpha: float = OUTLIER_ALPHA) -> np.ndarray:
+def outlying_segments(
+    chi2_seg_band, dof_seg_band, kappa: float, tolerance: float, alpha: float = OUTLIER_ALPHA
+) -> np.ndarray:
     """Segments whose residual is an outlier against the others, (S,) of bool.
 
     Per band ``g`` the reference level is that of the quietest segment, ``min_s chi2 /
@@ -368,8 +412,9 @@ def outlying_segments(chi2_seg_band, dof_seg_band, kappa: float, tolerance: floa
     return (p < alpha / (S * G)).any(axis=1)
 
 
-def profile_noise_model(data, effects, *, names=PARAMETERS, passes: int = 4, first=None, robust: bool = True,
-                        time_table: bool = True):
+def profile_noise_model(
+    data, effects, *, names=PARAMETERS, passes: int = 4, first=None, robust: bool = True, time_table: bool = True
+):
     """Profile the noise levels with the linear fit of a diagnosis (module docstring).
 
     Alternates the linear fit of ``effects`` under the current noise model and
@@ -402,29 +447,42 @@ def profile_noise_model(data, effects, *, names=PARAMETERS, passes: int = 4, fir
     (NoiseModel, ModelFit)
         The fitted noise model and the final fit of ``effects`` under it.
     """
-    nm = data.noise_parameters if data.noise_parameters is not None and tuple(data.noise_parameters.names) == tuple(names) \
+    nm = (
+        data.noise_parameters
+        if data.noise_parameters is not None and tuple(data.noise_parameters.names) == tuple(names)
         else NoiseModel.nominal(data.ltt_mean, names)
+    )
     fit = first if first is not None else fit_model(data, effects, time_table=False)
     first = None  # only ``fit`` holds it: the first pass's replacement frees it
     for k in range(max(1, passes)):
         d = fit.data
         dof = np.array([6.0 * (b - a) for a, b in d.slices])
-        out = outlying_segments(fit.chi2_seg_band, dof, d.kappa, d.settings.tolerance) if robust else \
-            np.zeros(len(d.starts), dtype=bool)
+        out = (
+            outlying_segments(fit.chi2_seg_band, dof, d.kappa, d.settings.tolerance)
+            if robust
+            else np.zeros(len(d.starts), dtype=bool)
+        )
         P = residual_periodogram(fit.residual_w, d.Lh, ~out)
         secondary = d.noise_parameters.csd(d.f) if d.noise_parameters is not None else nm.csd(d.f)
         dws = d.noise_csd - secondary
         new = fit_noise_model(d.f, P, int((~out).sum()), d.ltt_mean, names=names, fixed=dws, start=nm, kappa=d.kappa)
         new = replace(new, excluded_segments=tuple(float(t) for t in np.asarray(d.seg_t0)[out]))
         if out.any():
-            log.info("noise model pass %d: segments starting at %s h left out as outliers", k + 1,
-                     [round(float(t) / 3600, 2) for t in np.asarray(d.seg_t0)[out]])
+            log.info(
+                "noise model pass %d: segments starting at %s h left out as outliers",
+                k + 1,
+                [round(float(t) / 3600, 2) for t in np.asarray(d.seg_t0)[out]],
+            )
         moved = np.abs(np.subtract(new.levels, nm.levels)) / np.maximum(new.sigma, 1e-300)
         nm = new
         fit = None  # the previous pass's fit is not kept while the next is made
         fit = fit_model(d.with_noise(nm.csd(d.f) + dws, noise_parameters=nm), effects, time_table=False)
-        log.info("noise model pass %d: levels %s (moved %.2g sigma)", k + 1,
-                 dict(zip(nm.names, np.round(nm.levels, 4))), float(np.max(moved)))
+        log.info(
+            "noise model pass %d: levels %s (moved %.2g sigma)",
+            k + 1,
+            dict(zip(nm.names, np.round(nm.levels, 4))),
+            float(np.max(moved)),
+        )
         if np.all(moved < 0.1):
             break
     return nm, fit_model(fit.data, effects, time_table=time_table)
@@ -433,10 +491,15 @@ def profile_noise_model(data, effects, *, names=PARAMETERS, passes: int = 4, fir
 def noise_model_json(model: NoiseModel | None) -> dict:
     """The ``adequacy.noise_model`` entry of a diagnosis report."""
     if model is None:
-        return {"kind": "fixed",
-                "description": "analytic secondary noises of A, E, T for the mean arms (paper appendix levels) + DWS "
-                               "readout noise through the fitted linear coefficients; not re-estimated from the residual"}
-    return {"kind": "fitted",
-            "description": "secondary-noise components of fixed shape and TDI structure with fitted levels (maximum "
-                           "Whittle likelihood, profiled with the linear fit; docs/diagnostics.md) + DWS readout noise "
-                           "through the fitted linear coefficients", **model.to_json()}
+        return {
+            "kind": "fixed",
+            "description": "analytic secondary noises of A, E, T for the mean arms (paper appendix levels) + DWS "
+            "readout noise through the fitted linear coefficients; not re-estimated from the residual",
+        }
+    return {
+        "kind": "fitted",
+        "description": "secondary-noise components of fixed shape and TDI structure with fitted levels (maximum "
+        "Whittle likelihood, profiled with the linear fit; docs/diagnostics.md) + DWS readout noise "
+        "through the fitted linear coefficients",
+        **model.to_json(),
+    }

@@ -67,8 +67,10 @@ def effect_predictions(fit) -> dict[str, np.ndarray]:
     data = fit.data
     tm = data.tm
     if tm is None:
-        raise ValueError("effect_predictions: the model was fitted to TDI outputs alone; the prediction of its "
-                         "effects needs the telemetry (DWS series)")
+        raise ValueError(
+            "effect_predictions: the model was fitted to TDI outputs alone; the prediction of its "
+            "effects needs the telemetry (DWS series)"
+        )
     theta = dict(zip(fit.names, map(float, fit.theta)))
     out: dict[str, np.ndarray] = {}
     for effect in fit.effects:
@@ -113,8 +115,10 @@ def column_regressors(tm, effect, *, order: int, delay_order: int) -> tuple[tupl
         multiplied readouts carry none.
     """
     if getattr(effect, "needs_coefficients", False):
-        raise ValueError(f"effect {effect.name!r} shifts the TDI regressors (a linearised effect): it has no "
-                         "columns of its own to compute from the telemetry")
+        raise ValueError(
+            f"effect {effect.name!r} shifts the TDI regressors (a linearised effect): it has no "
+            "columns of its own to compute from the telemetry"
+        )
     cols = effect.columns(effect_input_from_telemetry(tm))
     groups: dict[str, list] = {}
     for c in cols:
@@ -131,8 +135,11 @@ def column_regressors(tm, effect, *, order: int, delay_order: int) -> tuple[tupl
                 y = np.stack([filtered_many(x[ch], tm.fs, [c.response])[0] for ch in range(3)])
                 out[c.name] = np.where(ok, y, np.nan)
     names = tuple(c.name for c in cols)
-    eiv = {c.name: tuple((p.channel, p.link, tuple(p.extra), c.response) for p in c.parts)
-           for c in cols if c.parts and all(p.channel is not None and p.modulation is None for p in c.parts)}
+    eiv = {
+        c.name: tuple((p.channel, p.link, tuple(p.extra), c.response) for p in c.parts)
+        for c in cols
+        if c.parts and all(p.channel is not None and p.modulation is None for p in c.parts)
+    }
     return names, np.stack([out[n] for n in names], axis=1), eiv
 
 
@@ -165,8 +172,9 @@ def _shift_prediction(fit, effect, data) -> np.ndarray:
     return total
 
 
-def model_residual(data_xyz: np.ndarray, regressors_xyz: np.ndarray, coefficients: np.ndarray,
-                   predictions=()) -> np.ndarray:
+def model_residual(
+    data_xyz: np.ndarray, regressors_xyz: np.ndarray, coefficients: np.ndarray, predictions=()
+) -> np.ndarray:
     """``d - sum_k C_k R_k - sum_e prediction_e``: the residual of the whole model (3, n).
 
     Parameters
@@ -180,8 +188,9 @@ def model_residual(data_xyz: np.ndarray, regressors_xyz: np.ndarray, coefficient
     predictions : iterable of ndarray (3, n)
         The other effects' predictions (:func:`effect_predictions`).
     """
-    r = np.asarray(data_xyz, dtype=float) - np.einsum("k,ckn->cn", np.asarray(coefficients, dtype=float),
-                                                      regressors_xyz)
+    r = np.asarray(data_xyz, dtype=float) - np.einsum(
+        "k,ckn->cn", np.asarray(coefficients, dtype=float), regressors_xyz
+    )
     for p in predictions:
         r = r - p
     return r

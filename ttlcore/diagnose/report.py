@@ -19,7 +19,9 @@ def fine_band_table(model: ModelFit):
     data = model.data
     s = data.settings
     n_fitted = 6 * data.f.size * len(data.starts) - float(model.bands.dof.sum())
-    return third_octave_table(model.residual_w, data.f, s.band, n_fitted, data.kappa, s.tolerance, s.alpha, s.min_band_dof)
+    return third_octave_table(
+        model.residual_w, data.f, s.band, n_fitted, data.kappa, s.tolerance, s.alpha, s.min_band_dof
+    )
 
 
 def adequacy_json(model: ModelFit) -> dict:
@@ -32,16 +34,26 @@ def adequacy_json(model: ModelFit) -> dict:
     summary += [f"localised (third-octave bands): {x}" for x in describe_failures(fine)]
     nm = data.noise_parameters
     if nm is not None and nm.at_bound:
-        summary.append(f"noise level(s) {', '.join(nm.at_bound)} at the bound of their allowed range: more (or less) "
-                       "noise of that shape than the instrument is known to have, or an unmodelled effect of that shape")
+        summary.append(
+            f"noise level(s) {', '.join(nm.at_bound)} at the bound of their allowed range: more (or less) "
+            "noise of that shape than the instrument is known to have, or an unmodelled effect of that shape"
+        )
     time_part = model.time_table or {}
     summary += time_part.get("summary", [])
     return {
         "noise_model": noise_model_json(data.noise_parameters),
-        "tolerance": s.tolerance, "alpha": s.alpha, "variance_factor": data.kappa,
-        "band": list(map(float, s.band)), "segment_duration": data.seg_duration, "segments": len(data.starts),
-        "chi2": model.chi2, "dof": model.dof, "chi2_dof": model.chi2_dof,
-        "bands": bands, "fine_bands": fine.to_json(), "time": time_part,
+        "tolerance": s.tolerance,
+        "alpha": s.alpha,
+        "variance_factor": data.kappa,
+        "band": list(map(float, s.band)),
+        "segment_duration": data.seg_duration,
+        "segments": len(data.starts),
+        "chi2": model.chi2,
+        "dof": model.dof,
+        "chi2_dof": model.chi2_dof,
+        "bands": bands,
+        "fine_bands": fine.to_json(),
+        "time": time_part,
         "fails": bool(any(b["fails"] for b in bands) or any(r.get("fails") for r in time_part.get("segments", []))),
         "summary": summary or ["no failure: the residual is consistent with the instrument noise model"],
     }
@@ -50,8 +62,10 @@ def adequacy_json(model: ModelFit) -> dict:
 def coefficients_json(model: ModelFit, truth=None) -> dict:
     """The fitted columns (value, sigma) and, with truth, the errors of the 24 linear ones;
     ``offsets``: the fitted offsets of linearised effects (expansion point + ``d1``)."""
-    out: dict = {"values": {n: float(v) for n, v in zip(model.parameter_names, model.theta)},
-           "sigma": {n: float(v) for n, v in zip(model.parameter_names, model.sigma)}}
+    out: dict = {
+        "values": {n: float(v) for n, v in zip(model.parameter_names, model.theta)},
+        "sigma": {n: float(v) for n, v in zip(model.parameter_names, model.sigma)},
+    }
     offsets = {k: {"value": v, "sigma": sg, "unit": "s"} for k, (v, sg) in model.offsets().items()}
     if offsets:
         out["offsets"] = offsets
@@ -64,17 +78,21 @@ def coefficients_json(model: ModelFit, truth=None) -> dict:
         out["error"] = {n: float(e) for n, e, k in zip(COEFFICIENT_NAMES, err, ok) if k}
         out["max_abs_error"] = float(np.nanmax(np.abs(err)))
         out["max_abs_error_over_sigma"] = float(np.nanmax(np.abs(z)))
-        out["rms_error"] = float(np.sqrt(np.nanmean(err ** 2)))
+        out["rms_error"] = float(np.sqrt(np.nanmean(err**2)))
     return out
 
 
 def model_json(model: ModelFit, truth=None) -> dict:
     """The ``model`` (or ``before``, ``baseline``) part of a report."""
-    return {"effects": [e.spec() for e in model.effects], "n_parameters": len(model.names),
-            "cli_effects": ",".join(e.cli_spec() for e in model.effects), "searched": dict(model.searches),
-            "chi2_dof": model.chi2_dof, "adequacy": adequacy_json(model),
-            "coefficients": coefficients_json(model, truth)}
-
+    return {
+        "effects": [e.spec() for e in model.effects],
+        "n_parameters": len(model.names),
+        "cli_effects": ",".join(e.cli_spec() for e in model.effects),
+        "searched": dict(model.searches),
+        "chi2_dof": model.chi2_dof,
+        "adequacy": adequacy_json(model),
+        "coefficients": coefficients_json(model, truth),
+    }
 
 
 #: A candidate is recommended only when it explains at least this share of the excess (chi^2
@@ -108,16 +126,21 @@ def excess_description(report: dict) -> str:
     cls = verdict.get("class")
     failing = [s for s in report["adequacy"].get("summary", []) if s.startswith("fails between")]
     where = failing[0] if failing else "no band fails"
-    q = (tr.get("quiet") or {})
+    q = tr.get("quiet") or {}
     if verdict.get("signal") and q.get("fails"):  # in every hour, T nearly empty
-        return (f"the excess is a long-lived gravitational-wave-like signal, not a missing effect: in every hour "
-                f"(outside any transient chi2/dof {q.get('chi2_dof', float('nan')):.3f}), {where}, T carrying "
-                f"{100 * (q.get('t_share') or 0.0):.1f} % of it")
+        return (
+            f"the excess is a long-lived gravitational-wave-like signal, not a missing effect: in every hour "
+            f"(outside any transient chi2/dof {q.get('chi2_dof', float('nan')):.3f}), {where}, T carrying "
+            f"{100 * (q.get('t_share') or 0.0):.1f} % of it"
+        )
     if verdict.get("signal"):
         ev = tr["events"]
-        parts = [f"{e['class']} {e['t_start'] / 3600:.2f}-{e['t_stop'] / 3600:.2f} h ({e['f_lo'] * 1e3:.3g}-"
-                 f"{e['f_hi'] * 1e3:.3g} mHz, {', '.join(e['channels'])}, T share {100 * e['t_share']:.1f} %, "
-                 f"track {e['track_kind']})" for e in ev[:3]]
+        parts = [
+            f"{e['class']} {e['t_start'] / 3600:.2f}-{e['t_stop'] / 3600:.2f} h ({e['f_lo'] * 1e3:.3g}-"
+            f"{e['f_hi'] * 1e3:.3g} mHz, {', '.join(e['channels'])}, T share {100 * e['t_share']:.1f} %, "
+            f"track {e['track_kind']})"
+            for e in ev[:3]
+        ]
         parts += [f"missing data {a / 3600:.2f}-{b / 3600:.2f} h" for a, b in (tr.get("gaps") or [])[:3]]
         text = f"the excess is a transient or a gap, not a missing effect: {'; '.join(parts)}"
         q = tr.get("quiet") or {}
@@ -129,10 +152,12 @@ def excess_description(report: dict) -> str:
         return text
     if cls == "stationary-excess":
         share = q.get("t_share")
-        return (f"the excess is stationary (every hour; outside any transient chi2/dof "
-                f"{q.get('chi2_dof', float('nan')):.3f}), {where}" +
-                (f", T carrying {100 * share:.0f} % of it" if share is not None else "") +
-                ": no named effect or witness explains it")
+        return (
+            f"the excess is stationary (every hour; outside any transient chi2/dof "
+            f"{q.get('chi2_dof', float('nan')):.3f}), {where}"
+            + (f", T carrying {100 * share:.0f} % of it" if share is not None else "")
+            + ": no named effect or witness explains it"
+        )
     return f"{where}"
 
 
@@ -156,16 +181,25 @@ def recommendation(report: dict, effects) -> dict | None:
     verdict = tr.get("classification") or {}
     specs = [e.cli_spec() for e in effects] + [a["cli_spec"] for a in actions]
     value = ",".join(specs)
-    option = "--effects " + (f'"{value}"' if any(ch in value for ch in ';|&<> ') else value)
+    option = "--effects " + (f'"{value}"' if any(ch in value for ch in ";|&<> ") else value)
     texts = "; ".join(a["text"] for a in actions)
     description = rec.get("description") or excess_description(report)
     if rec.get("option"):
         rec["effect_after"] = {"cli_spec": rec.get("cli_spec"), "explained_fraction": rec.get("explained_fraction")}
-    rec.update({"effect": actions[0]["kind"], "spec": ",".join(a["spec"] for a in actions),
-                "cli_spec": ",".join(a["cli_spec"] for a in actions), "option": option, "explains": True,
-                "actions": actions, "excess_class": verdict.get("class"), "signal": bool(verdict.get("signal")),
-                "description": description,
-                "message": f"the excess is localised in time: {texts}" + (f" ({description})" if description else "")})
+    rec.update(
+        {
+            "effect": actions[0]["kind"],
+            "spec": ",".join(a["spec"] for a in actions),
+            "cli_spec": ",".join(a["cli_spec"] for a in actions),
+            "option": option,
+            "explains": True,
+            "actions": actions,
+            "excess_class": verdict.get("class"),
+            "signal": bool(verdict.get("signal")),
+            "description": description,
+            "message": f"the excess is localised in time: {texts}" + (f" ({description})" if description else ""),
+        }
+    )
     rec.setdefault("pointers", [])
     return rec
 
@@ -202,8 +236,9 @@ def effect_recommendation(report: dict, effects) -> dict | None:
         return None
     pointers = []
     for w in (report.get("witnesses") or {}).get("overall", [])[:3]:
-        pointers.append({"witness": w["name"], "spec": w.get("spec"), "band_hz": w["best_band"],
-                         "delta_chi2": w["delta_chi2"]})
+        pointers.append(
+            {"witness": w["name"], "spec": w.get("spec"), "band_hz": w["best_band"], "delta_chi2": w["delta_chi2"]}
+        )
     point_text = "; ".join(f"{p['witness']} ({p['band_hz'][0]:.3g}-{p['band_hz'][1]:.3g} Hz)" for p in pointers)
     description = excess_description(report) if (fails or signal) else ""
     common = {"excess_class": verdict.get("class"), "signal": signal, "description": description}
@@ -214,10 +249,11 @@ def effect_recommendation(report: dict, effects) -> dict | None:
         return {"effect": None, "option": "", "explains": False, "pointers": pointers, "message": msg, **common}
     specs = [e.cli_spec() for e in effects] + [best["cli_spec"]]
     value = ",".join(specs)
-    option = "--effects " + (f'"{value}"' if any(ch in value for ch in ';|&<> ') else value)
+    option = "--effects " + (f'"{value}"' if any(ch in value for ch in ";|&<> ") else value)
     per_band = band_explained(report, best) if fails else []
-    explains = not fails or (best["explained_fraction"] >= MIN_EXPLAINED and
-                             (not per_band or max(per_band) >= MIN_EXPLAINED))
+    explains = not fails or (
+        best["explained_fraction"] >= MIN_EXPLAINED and (not per_band or max(per_band) >= MIN_EXPLAINED)
+    )
     # with signals in the data (a merger, glitches) their excess is no candidate's to
     # explain: the share is then that of the excess outside them, the quiet tiles' level
     # over the whole span (transients.quiet.excess_chi2_full_span, divided by kappa as the
@@ -230,20 +266,29 @@ def effect_recommendation(report: dict, effects) -> dict | None:
     if fails and beside and q.get("fails") and outside:
         frac_outside = float(min(1.0, max(best["delta_chi2"], 0.0) / (outside / kappa)))
         explains = frac_outside >= MIN_EXPLAINED
-    out = {"effect": best["effect"], "spec": best["spec"], "cli_spec": best["cli_spec"],
-           "option": option if explains and not signal else "",
-           "explains": bool(explains and not signal), "explained_fraction": best["explained_fraction"],
-           "band_explained": per_band, "explained_fraction_outside_transients": frac_outside, **common}
+    out = {
+        "effect": best["effect"],
+        "spec": best["spec"],
+        "cli_spec": best["cli_spec"],
+        "option": option if explains and not signal else "",
+        "explains": bool(explains and not signal),
+        "explained_fraction": best["explained_fraction"],
+        "band_explained": per_band,
+        "explained_fraction_outside_transients": frac_outside,
+        **common,
+    }
     if signal:
         out["pointers"] = pointers
         out["message"] = f"no effect recommended: {description} (the best candidate, {best['cli_spec']}, would fit it)"
     elif not explains:
         out["pointers"] = pointers
-        out["message"] = (f"no candidate explains the excess (the best, {best['cli_spec']}, explains "
-                          f"{100 * best['explained_fraction']:.0f} %, at most "
-                          f"{100 * max(per_band or [0.0]):.0f} % of a failing band's; {100 * MIN_EXPLAINED:.0f} % needed)"
-                          + (f"; {description}" if description else "") +
-                          (f"; the witnesses point at: {point_text}" if pointers else ""))
+        out["message"] = (
+            f"no candidate explains the excess (the best, {best['cli_spec']}, explains "
+            f"{100 * best['explained_fraction']:.0f} %, at most "
+            f"{100 * max(per_band or [0.0]):.0f} % of a failing band's; {100 * MIN_EXPLAINED:.0f} % needed)"
+            + (f"; {description}" if description else "")
+            + (f"; the witnesses point at: {point_text}" if pointers else "")
+        )
     return out
 
 
@@ -262,8 +307,11 @@ def _offset_text(group: str, value: float, intervals: dict) -> str:
 def strip_internals(report: dict) -> dict:
     """The report without its in-memory objects (what ``--json`` writes): top-level keys
     starting with ``_``, and those of its parts (``transients["_map"]``)."""
-    return {k: ({kk: vv for kk, vv in v.items() if not kk.startswith("_")} if isinstance(v, dict) else v)
-            for k, v in report.items() if not k.startswith("_")}
+    return {
+        k: ({kk: vv for kk, vv in v.items() if not kk.startswith("_")} if isinstance(v, dict) else v)
+        for k, v in report.items()
+        if not k.startswith("_")
+    }
 
 
 def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
@@ -271,27 +319,37 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
     lines = []
     m = report["model"]
     ad = report["adequacy"]
-    lines.append(f"{source}: model {', '.join(m['effects'])} ({m['n_parameters']} parameters), "
-                 f"chi2/dof {ad['chi2_dof']:.3f} against the instrument noise model"
-                 f"{' (fitted levels)' if ad['noise_model'].get('kind') == 'fitted' else ''} "
-                 f"({1e3 * ad['band'][0]:.3g} mHz - {ad['band'][1]:.3g} Hz, tolerance {100 * ad['tolerance']:.0f} %)")
+    lines.append(
+        f"{source}: model {', '.join(m['effects'])} ({m['n_parameters']} parameters), "
+        f"chi2/dof {ad['chi2_dof']:.3f} against the instrument noise model"
+        f"{' (fitted levels)' if ad['noise_model'].get('kind') == 'fitted' else ''} "
+        f"({1e3 * ad['band'][0]:.3g} mHz - {ad['band'][1]:.3g} Hz, tolerance {100 * ad['tolerance']:.0f} %)"
+    )
     if "before" in report:
         b = report["before"]
         lines.append("  before -> after (" + ", ".join(report["change"]["added"]) + "):")
         lines.append("    band [Hz]            chi2/dof before   after")
         for bb, ba in zip(b["adequacy"]["bands"], ad["bands"]):
-            lines.append(f"    {bb['f_lo']:.4f} - {bb['f_hi']:.4f}      {bb['chi2_dof']:8.3f}{' FAIL' if bb['fails'] else '     '}"
-                         f"  {ba['chi2_dof']:8.3f}{' FAIL' if ba['fails'] else ''}")
+            lines.append(
+                f"    {bb['f_lo']:.4f} - {bb['f_hi']:.4f}      {bb['chi2_dof']:8.3f}{' FAIL' if bb['fails'] else '     '}"
+                f"  {ba['chi2_dof']:8.3f}{' FAIL' if ba['fails'] else ''}"
+            )
         ch = report["change"]
         if ch.get("delta_chi2") is not None:
-            lines.append(f"    evidence for the change: delta chi2 {ch['delta_chi2']:.1f}, log Bayes factor {ch['log_bayes_factor']:.1f}")
+            lines.append(
+                f"    evidence for the change: delta chi2 {ch['delta_chi2']:.1f}, log Bayes factor {ch['log_bayes_factor']:.1f}"
+            )
         if "max_abs_error" in b["coefficients"] and "max_abs_error" in m["coefficients"]:
-            lines.append(f"    max |coefficient error|: {1e3 * b['coefficients']['max_abs_error']:.4f} -> "
-                         f"{1e3 * m['coefficients']['max_abs_error']:.4f} mm/rad "
-                         f"({b['coefficients']['max_abs_error_over_sigma']:.1f} -> {m['coefficients']['max_abs_error_over_sigma']:.1f} sigma)")
+            lines.append(
+                f"    max |coefficient error|: {1e3 * b['coefficients']['max_abs_error']:.4f} -> "
+                f"{1e3 * m['coefficients']['max_abs_error']:.4f} mm/rad "
+                f"({b['coefficients']['max_abs_error_over_sigma']:.1f} -> {m['coefficients']['max_abs_error_over_sigma']:.1f} sigma)"
+            )
     elif "max_abs_error" in m["coefficients"]:
         c = m["coefficients"]
-        lines.append(f"  truth: max |coefficient error| {1e3 * c['max_abs_error']:.4f} mm/rad ({c['max_abs_error_over_sigma']:.1f} sigma)")
+        lines.append(
+            f"  truth: max |coefficient error| {1e3 * c['max_abs_error']:.4f} mm/rad ({c['max_abs_error_over_sigma']:.1f} sigma)"
+        )
     lines.append("  where the model fails:")
     lines += [f"    {x}" for x in ad["summary"]]
     cands = report["candidates"]
@@ -304,27 +362,35 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
         if "offsets" in where:
             top = sorted(where["offsets"].items(), key=lambda kv: -abs(kv[1]))[:3]
             intervals = c.get("searched", {}).get("offset_search", {}).get("intervals", {})
-            extra += ", offsets " + ", ".join(_offset_text(k[len(c["effect"]) + 1:], v, intervals) for k, v in top)
+            extra += ", offsets " + ", ".join(_offset_text(k[len(c["effect"]) + 1 :], v, intervals) for k, v in top)
         if "search" in c.get("searched", {}):
             est = c["searched"]["search"]["estimates"]
             extra += ", " + ", ".join(f"{k} {v:.4g}" for k, v in est.items())
         label = c["effect"] if c["cli_spec"] == c["effect"] else c["cli_spec"]
-        lines.append(f"    {'*' if c['significant'] else ' '} {label:<16} {c['delta_chi2']:10.1f} / {c['n_parameters']:<3d}"
-                     f" logB {c['log_bayes_factor']:9.1f}  {100 * c['explained_fraction']:5.0f} %  [{bands}; {links}{extra}]")
+        lines.append(
+            f"    {'*' if c['significant'] else ' '} {label:<16} {c['delta_chi2']:10.1f} / {c['n_parameters']:<3d}"
+            f" logB {c['log_bayes_factor']:9.1f}  {100 * c['explained_fraction']:5.0f} %  [{bands}; {links}{extra}]"
+        )
     if not any(c["significant"] for c in cands):
         lines.append("    no candidate is significant")
     w = report.get("witnesses")
     if w:
-        lines.append(f"  top witnesses ({w['n_witnesses']} tried): " +
-                     "; ".join(f"{x['name']} (delta chi2 {x['delta_chi2']:.0f}, coherence peaks at "
-                               f"{_hz(x['peak_frequency'])})" for x in w["overall"][:3]))
+        lines.append(
+            f"  top witnesses ({w['n_witnesses']} tried): "
+            + "; ".join(
+                f"{x['name']} (delta chi2 {x['delta_chi2']:.0f}, coherence peaks at {_hz(x['peak_frequency'])})"
+                for x in w["overall"][:3]
+            )
+        )
     tr = report.get("transients")
     if tr:
         lines += transient_lines(tr)
     rec = report.get("recommendation")
     if rec and rec.get("option") and rec.get("actions"):
-        lines.append(f"  best next step: {'; '.join(a['text'].split(' (')[0] for a in rec['actions'])}:  "
-                     f"ttl diagnose {source or 'DATA'} {rec['option']}")
+        lines.append(
+            f"  best next step: {'; '.join(a['text'].split(' (')[0] for a in rec['actions'])}:  "
+            f"ttl diagnose {source or 'DATA'} {rec['option']}"
+        )
     elif rec and rec.get("option"):
         lines.append(f"  best next step: add {rec['cli_spec']}:  ttl diagnose {source or 'DATA'} {rec['option']}")
     if rec and rec.get("message"):
@@ -340,33 +406,50 @@ def transient_lines(tr: dict) -> list[str]:
     if ev or tr.get("gaps"):
         lines.append(f"  transients ({tr['tile_duration']:.0f}-s tiles of the whitened residual per channel):")
         for e in ev[:5]:
-            lines.append(f"    {e['class']:<18} {e['t_start'] / 3600:6.2f}-{e['t_stop'] / 3600:.2f} h  "
-                         f"{e['f_lo'] * 1e3:.3g}-{e['f_hi'] * 1e3:.3g} mHz  in {', '.join(e['channels']) or '-'}  "
-                         f"T share {100 * e['t_share']:.1f} %  track {e['track_kind']}  SNR {e['snr']:.0f}  "
-                         f"witnesses {100 * e['coherence'].get('explained_fraction', 0):.0f} %")
+            lines.append(
+                f"    {e['class']:<18} {e['t_start'] / 3600:6.2f}-{e['t_stop'] / 3600:.2f} h  "
+                f"{e['f_lo'] * 1e3:.3g}-{e['f_hi'] * 1e3:.3g} mHz  in {', '.join(e['channels']) or '-'}  "
+                f"T share {100 * e['t_share']:.1f} %  track {e['track_kind']}  SNR {e['snr']:.0f}  "
+                f"witnesses {100 * e['coherence'].get('explained_fraction', 0):.0f} %"
+            )
         if len(ev) > 5:
             lines.append(f"    ... {len(ev) - 5} more")
         for a, b in tr.get("gaps") or []:
             lines.append(f"    missing data {a / 3600:.2f}-{b / 3600:.2f} h")
     if q.get("chi2_dof") is not None and (ev or tr.get("gaps")):
-        lines.append(f"    outside them ({q['hours']:.1f} h): chi2/dof {q['chi2_dof']:.3f} against the noise model"
-                     f" ({'fails' if q['fails'] else 'consistent'})")
+        lines.append(
+            f"    outside them ({q['hours']:.1f} h): chi2/dof {q['chi2_dof']:.3f} against the noise model"
+            f" ({'fails' if q['fails'] else 'consistent'})"
+        )
     for a in tr.get("actions") or []:
         if a["kind"] == "glitch":
-            lines.append(f"    -> {a['text']}: delta chi2 {a['delta_chi2']:.0f}, logB {a['log_bayes_factor']:.1f}, "
-                         f"takes {100 * a['explained_fraction']:.0f} % of the transient's excess")
+            lines.append(
+                f"    -> {a['text']}: delta chi2 {a['delta_chi2']:.0f}, logB {a['log_bayes_factor']:.1f}, "
+                f"takes {100 * a['explained_fraction']:.0f} % of the transient's excess"
+            )
         else:
             tried = a.get("glitch_tried")
-            lines.append(f"    -> {a['text']}" + (f" (a glitch takes only {100 * tried['explained_fraction']:.0f} % of it: "
-                                                   f"{tried['text'].split(' (')[0][4:]})" if tried else ""))
+            lines.append(
+                f"    -> {a['text']}"
+                + (
+                    f" (a glitch takes only {100 * tried['explained_fraction']:.0f} % of it: "
+                    f"{tried['text'].split(' (')[0][4:]})"
+                    if tried
+                    else ""
+                )
+            )
     verdict = tr.get("classification") or {}
     if verdict.get("class") not in (None, "none"):
-        lines.append(f"  the excess: {verdict['class']}" + ("" if not verdict.get("evidence") else
-                                                           " (" + "; ".join(verdict["evidence"][:4]) + ")"))
+        lines.append(
+            f"  the excess: {verdict['class']}"
+            + ("" if not verdict.get("evidence") else " (" + "; ".join(verdict["evidence"][:4]) + ")")
+        )
     rb = tr.get("robustness")
     if rb:
         names, sh = rb["names"], np.abs(rb["shift_sigma"])
         top = np.argsort(-sh)[:3]
-        lines.append("  TTL fit with and without those hours: largest shifts " +
-                     ", ".join(f"{names[i]} {rb['shift_sigma'][i]:+.2f} sigma" for i in top))
+        lines.append(
+            "  TTL fit with and without those hours: largest shifts "
+            + ", ".join(f"{names[i]} {rb['shift_sigma'][i]:+.2f} sigma" for i in top)
+        )
     return lines

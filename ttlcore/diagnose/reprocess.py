@@ -153,9 +153,14 @@ def process_day(job: DayJob) -> dict:
         if job.segment_duration is not None:
             ds.segment_duration = float(job.segment_duration)
         tm = read_telemetry(job.data)
-        report = diagnose(tm, list(job.effects), settings=ds, effect_modules=tuple(job.effect_modules),
-                          candidates=None if job.candidates is None else list(job.candidates),
-                          witnesses=job.witnesses)
+        report = diagnose(
+            tm,
+            list(job.effects),
+            settings=ds,
+            effect_modules=tuple(job.effect_modules),
+            candidates=None if job.candidates is None else list(job.candidates),
+            witnesses=job.witnesses,
+        )
         del tm
         report = strip_internals(report)
         report["file"] = str(job.data)
@@ -168,9 +173,14 @@ def process_day(job: DayJob) -> dict:
 def day_row(job: DayJob, fit_json: dict, diagnosis: dict | None, timings: dict) -> dict:
     """The summary row of a processed day from its ``fit.json`` and diagnosis report."""
     row = {
-        "day": job.name, "file": str(job.data), "status": "ok", "out_dir": str(job.out_dir),
-        "t_start": float(fit_json["window"]["t_start"]), "t_stop": float(fit_json["window"]["t_stop"]),
-        "coefficients": dict(fit_json["coefficients"]), "sigma": dict(fit_json["sigma"]),
+        "day": job.name,
+        "file": str(job.data),
+        "status": "ok",
+        "out_dir": str(job.out_dir),
+        "t_start": float(fit_json["window"]["t_start"]),
+        "t_stop": float(fit_json["window"]["t_stop"]),
+        "coefficients": dict(fit_json["coefficients"]),
+        "sigma": dict(fit_json["sigma"]),
         "chi2_dof_fit": fit_json["chi2_dof"],
         "units": "m/rad",
         "worker": {"host": socket.gethostname(), "pid": os.getpid()},
@@ -182,8 +192,11 @@ def day_row(job: DayJob, fit_json: dict, diagnosis: dict | None, timings: dict) 
     if diagnosis is not None:
         ad = diagnosis["adequacy"]
         row["diagnosis"] = {
-            "effects": diagnosis["model"]["effects"], "chi2_dof": ad["chi2_dof"], "fails": ad["fails"],
-            "bands_chi2_dof": [b["chi2_dof"] for b in ad["bands"]], "summary": ad["summary"],
+            "effects": diagnosis["model"]["effects"],
+            "chi2_dof": ad["chi2_dof"],
+            "fails": ad["fails"],
+            "bands_chi2_dof": [b["chi2_dof"] for b in ad["bands"]],
+            "summary": ad["summary"],
             "recommendation": diagnosis.get("recommendation"),
         }
         row["outputs"]["diagnosis_json"] = str(Path(job.out_dir) / "diagnosis.json")
@@ -192,9 +205,16 @@ def day_row(job: DayJob, fit_json: dict, diagnosis: dict | None, timings: dict) 
 
 # ---------------------------------------------------------------------------- the cluster
 
+
 @contextlib.contextmanager
-def dask_client(scheduler: str | None = None, *, workers: int = 2, threads_per_worker: int = 1,
-                memory_limit: str | float = DEFAULT_MEMORY_LIMIT, dashboard: bool = False):
+def dask_client(
+    scheduler: str | None = None,
+    *,
+    workers: int = 2,
+    threads_per_worker: int = 1,
+    memory_limit: str | float = DEFAULT_MEMORY_LIMIT,
+    dashboard: bool = False,
+):
     """A :class:`distributed.Client`: to ``scheduler`` (``tcp://host:port`` of a
     ``dask scheduler``, or the path of its ``--scheduler-file``) or to a new
     :class:`distributed.LocalCluster` of ``workers`` processes bound to 127.0.0.1
@@ -219,9 +239,14 @@ def dask_client(scheduler: str | None = None, *, workers: int = 2, threads_per_w
     # a day's analysis takes twice the CPU time (measured: 0.82 s against 0.43 s for 1 h).
     # The worker memory is bounded by memory_limit anyway.
     with dask.config.set({f"{SPAWN_ENV}.MALLOC_TRIM_THRESHOLD_": None}):
-        cluster = LocalCluster(n_workers=int(workers), threads_per_worker=int(threads_per_worker), processes=True,
-                               host="127.0.0.1", dashboard_address="127.0.0.1:0" if dashboard else None,
-                               memory_limit=memory_limit)
+        cluster = LocalCluster(
+            n_workers=int(workers),
+            threads_per_worker=int(threads_per_worker),
+            processes=True,
+            host="127.0.0.1",
+            dashboard_address="127.0.0.1:0" if dashboard else None,
+            memory_limit=memory_limit,
+        )
     client = Client(cluster)
     try:
         yield client
@@ -234,9 +259,16 @@ def _task_key(job: DayJob, i: int) -> str:
     return f"day-{i:05d}-{job.name}"
 
 
-def reprocess(jobs: Sequence[DayJob], out_dir, *, client, retries: int = 2,
-              trend_settings: TrendSettings | None = None, progress: Callable[[int, int, dict], None] | None = None,
-              title: str = "") -> dict:
+def reprocess(
+    jobs: Sequence[DayJob],
+    out_dir,
+    *,
+    client,
+    retries: int = 2,
+    trend_settings: TrendSettings | None = None,
+    progress: Callable[[int, int, dict], None] | None = None,
+    title: str = "",
+) -> dict:
     """Run :func:`process_day` for every job on ``client``'s cluster and write the summary.
 
     Parameters
@@ -272,8 +304,10 @@ def reprocess(jobs: Sequence[DayJob], out_dir, *, client, retries: int = 2,
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
     start = time.monotonic()
-    futures = [client.submit(process_day, job, key=_task_key(job, i), retries=int(retries), pure=False)
-               for i, job in enumerate(jobs)]
+    futures = [
+        client.submit(process_day, job, key=_task_key(job, i), retries=int(retries), pure=False)
+        for i, job in enumerate(jobs)
+    ]
     by_key = {f.key: job for f, job in zip(futures, jobs)}
     rows: dict[str, dict] = {}
     done = 0
@@ -284,8 +318,14 @@ def reprocess(jobs: Sequence[DayJob], out_dir, *, client, retries: int = 2,
         except Exception as exc:  # noqa: BLE001 - every failure is reported, none is lost
             tb = "".join(traceback.format_exception_only(type(exc), exc)).strip()
             log.error("day %s failed after %d retries: %s", job.name, retries, tb)
-            row = {"day": job.name, "file": str(job.data), "status": "failed", "out_dir": str(job.out_dir),
-                   "error": tb, "retries": int(retries)}
+            row = {
+                "day": job.name,
+                "file": str(job.data),
+                "status": "failed",
+                "out_dir": str(job.out_dir),
+                "error": tb,
+                "retries": int(retries),
+            }
         rows[job.name] = row
         done += 1
         fut.release()
@@ -296,12 +336,17 @@ def reprocess(jobs: Sequence[DayJob], out_dir, *, client, retries: int = 2,
     failed = [r for r in ordered if r["status"] != "ok"]
     trends = day_trends(ok, trend_settings or DAY_TRENDS)
     summary = {
-        "title": title, "days": ok + failed, "failed": [r["day"] for r in failed],
-        "n_days": len(jobs), "n_ok": len(ok), "trends": trends,
-        "settings": {"retries": int(retries), "jobs": asdict(jobs[0]) | {"name": None, "data": None, "out_dir": None,
-                                                                          "truth": None}},
-        "cluster": {"scheduler": client.scheduler.address,
-                    "workers": len(client.scheduler_info().get("workers", {}))},
+        "title": title,
+        "days": ok + failed,
+        "failed": [r["day"] for r in failed],
+        "n_days": len(jobs),
+        "n_ok": len(ok),
+        "trends": trends,
+        "settings": {
+            "retries": int(retries),
+            "jobs": asdict(jobs[0]) | {"name": None, "data": None, "out_dir": None, "truth": None},
+        },
+        "cluster": {"scheduler": client.scheduler.address, "workers": len(client.scheduler_info().get("workers", {}))},
         "wall_s": round(time.monotonic() - start, 3),
     }
     write_json(out_dir / "summary.json", summary)
@@ -310,6 +355,7 @@ def reprocess(jobs: Sequence[DayJob], out_dir, *, client, retries: int = 2,
 
 
 # ---------------------------------------------------------------------------- trends and tables
+
 
 def day_trends(rows: Sequence[dict], settings: TrendSettings | None = None) -> dict:
     """Steps and drifts across days: the rows' fits fed in time order to the live monitor's
@@ -348,14 +394,16 @@ def _num(v, spec: str = ".3f") -> str:
 def summary_markdown(summary: dict) -> str:
     """``summary.md``: days (chi^2/dof, adequacy, recommendation), coefficients, trends."""
     days = summary["days"]
-    lines = [f"# Reprocessing summary{': ' + summary['title'] if summary.get('title') else ''}\n",
-             f"{summary['n_ok']} of {summary['n_days']} days processed"
-             + (f"; **failed: {', '.join(summary['failed'])}**" if summary["failed"] else "")
-             + f" in {summary['wall_s']:.1f} s on {summary['cluster']['workers']} worker(s). "
-             "chi2/dof fit: the GLS fit against its re-estimated noise; chi2/dof model: the diagnosis' "
-             "residual against the fixed instrument noise model (1 when adequate).\n",
-             "\n## Days\n\n| day | status | t start [d] | t stop [d] | chi2/dof fit | chi2/dof model | model fails "
-             "| recommendation |\n|---|---|---|---|---|---|---|---|"]
+    lines = [
+        f"# Reprocessing summary{': ' + summary['title'] if summary.get('title') else ''}\n",
+        f"{summary['n_ok']} of {summary['n_days']} days processed"
+        + (f"; **failed: {', '.join(summary['failed'])}**" if summary["failed"] else "")
+        + f" in {summary['wall_s']:.1f} s on {summary['cluster']['workers']} worker(s). "
+        "chi2/dof fit: the GLS fit against its re-estimated noise; chi2/dof model: the diagnosis' "
+        "residual against the fixed instrument noise model (1 when adequate).\n",
+        "\n## Days\n\n| day | status | t start [d] | t stop [d] | chi2/dof fit | chi2/dof model | model fails "
+        "| recommendation |\n|---|---|---|---|---|---|---|---|",
+    ]
     for r in days:
         if r["status"] != "ok":
             err = r["error"].replace("|", "/").replace("\n", " ")
@@ -363,9 +411,11 @@ def summary_markdown(summary: dict) -> str:
             continue
         dg = r.get("diagnosis") or {}
         rec = (dg.get("recommendation") or {}).get("option", "none") if dg else "-"
-        lines.append(f"| {r['day']} | ok | {r['t_start'] / DAY:.4f} | {r['t_stop'] / DAY:.4f} | "
-                     f"{_num(r['chi2_dof_fit'])} | {_num(dg.get('chi2_dof'))} | "
-                     f"{'-' if not dg else ('yes' if dg['fails'] else 'no')} | {rec} |")
+        lines.append(
+            f"| {r['day']} | ok | {r['t_start'] / DAY:.4f} | {r['t_stop'] / DAY:.4f} | "
+            f"{_num(r['chi2_dof_fit'])} | {_num(dg.get('chi2_dof'))} | "
+            f"{'-' if not dg else ('yes' if dg['fails'] else 'no')} | {rec} |"
+        )
     ok = [r for r in days if r["status"] == "ok"]
     if ok:
         lines.append("\n## Coefficients [mm/rad], value (sigma)\n")
@@ -380,9 +430,11 @@ def summary_markdown(summary: dict) -> str:
         for a in tr["alerts"]:
             lines.append(f"- {a['kind']} in {a['coefficient']} (day {a['day']}): {a['message']}")
     else:
-        lines.append(f"No step or drift flagged over {tr['days']} day(s) (steps need "
-                     f"{tr['settings']['min_history']} days of history, drifts "
-                     f"{tr['settings']['drift_min_windows']} fits).")
+        lines.append(
+            f"No step or drift flagged over {tr['days']} day(s) (steps need "
+            f"{tr['settings']['min_history']} days of history, drifts "
+            f"{tr['settings']['drift_min_windows']} fits)."
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -406,5 +458,15 @@ def jobs_for_files(paths: Sequence, out_dir, *, truth_beside: bool = False, **op
     return jobs
 
 
-__all__ = ["DAY_TRENDS", "DayJob", "process_day", "day_row", "dask_client", "reprocess", "day_trends",
-           "summary_markdown", "jobs_for_files", "fit_settings"]
+__all__ = [
+    "DAY_TRENDS",
+    "DayJob",
+    "process_day",
+    "day_row",
+    "dask_client",
+    "reprocess",
+    "day_trends",
+    "summary_markdown",
+    "jobs_for_files",
+    "fit_settings",
+]

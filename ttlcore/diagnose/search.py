@@ -137,10 +137,14 @@ class SearchResult:
     theta: dict = field(default_factory=dict, repr=False)
 
     def to_json(self) -> dict:
-        return {"estimates": {k: float(v) for k, v in self.estimates.items()},
-                "intervals": {k: [float(a), float(b)] for k, (a, b) in self.intervals.items()},
-                "delta_chi2": float(self.delta_chi2), "log_bayes_factor_best": float(self.log_bayes_factor_best),
-                "log_bayes_factor_marginal": float(self.log_bayes_factor), "evaluations": int(self.n_evaluations)}
+        return {
+            "estimates": {k: float(v) for k, v in self.estimates.items()},
+            "intervals": {k: [float(a), float(b)] for k, (a, b) in self.intervals.items()},
+            "delta_chi2": float(self.delta_chi2),
+            "log_bayes_factor_best": float(self.log_bayes_factor_best),
+            "log_bayes_factor_marginal": float(self.log_bayes_factor),
+            "evaluations": int(self.n_evaluations),
+        }
 
 
 def _scaled(ranges, names):
@@ -241,8 +245,13 @@ class _Spectral:
         spectra (products over bins only); ``exact``: the base series filtered in time and
         then windowed (:func:`ttlcore.diagnose.columns.filtered_spectra`, as the fit)."""
         data = self.data
-        R = np.stack([np.ones(data.f.size, complex) if c.response is None else np.asarray(c.response(data.f), complex)
-                      for c in cols], axis=1)  # (m, k)
+        R = np.stack(
+            [
+                np.ones(data.f.size, complex) if c.response is None else np.asarray(c.response(data.f), complex)
+                for c in cols
+            ],
+            axis=1,
+        )  # (m, k)
         Rc = R.conj()
         NMB, NBB, Pud, eMB, eBB = self._products(idx)
         k = R.shape[1]
@@ -287,12 +296,14 @@ class _Spectral:
 def _generic_evaluator(model: ModelFit, effect_at):
     """Evidence of an effect whose columns change with its parameters: built at each point
     (not cached)."""
+
     def evaluate(params):
         eff = effect_at(params)
         C = model.ttl_coefficients()
         cs = effect_columns(model.data, eff, C if eff.needs_coefficients else None, cache=False)
         ev = added_evidence(model, cs)
         return float(ev.delta_chi2), float(ev.log_bayes_factor)
+
     return evaluate
 
 
@@ -327,10 +338,15 @@ def _modulated_evaluator(model: ModelFit, effect, effect_at):
         series = np.stack([bs * m for bs in base_series for m in mods], axis=1)
         k = series.shape[1]
         w = data.whiten(data.spectra(series))
-        cs = ColumnSet(tuple(c.name for c in named), np.stack([np.ascontiguousarray(w[..., j]) for j in range(k)])
-                       .view(np.float64), data.noise_key, tuple(c.unit for c in named),
-                       tuple(c.prior_scale for c in named), tuple(b.eiv[0] for b in bases for _ in mods),
-                       tuple(m if b.eiv[0] else None for b in bases for m in mods))
+        cs = ColumnSet(
+            tuple(c.name for c in named),
+            np.stack([np.ascontiguousarray(w[..., j]) for j in range(k)]).view(np.float64),
+            data.noise_key,
+            tuple(c.unit for c in named),
+            tuple(c.prior_scale for c in named),
+            tuple(b.eiv[0] for b in bases for _ in mods),
+            tuple(m if b.eiv[0] else None for b in bases for m in mods),
+        )
         ev = added_evidence(model, cs)
         return float(ev.delta_chi2), float(ev.log_bayes_factor)
 
@@ -371,8 +387,11 @@ def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
 
     mid = effect_at(0.5 * (lo + hi))
     cols0 = mid.columns(effect_input_from_telemetry(data.tm, coefficients))
-    spectral = all(c.response is not None for c in cols0) and not mid.needs_coefficients \
+    spectral = (
+        all(c.response is not None for c in cols0)
+        and not mid.needs_coefficients
         and not any(k.startswith("period") for k in names)
+    )
     modulated = None
     if spectral:
         sp = _Spectral(model, cols0)
@@ -419,21 +438,34 @@ def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
     if spectral and all(score(x)[1] == COLLINEAR for x in grid) and exact(best_x)[1] == COLLINEAR:
         # e.g. a coupling placed as a TTL witness: its constant combination is the model's
         # column at every pole, so no refinement can find evidence
-        raise ConfigError(f"effect {effect.name!r}: columns collinear with the model's at every grid point: "
-                          "no evidence")
+        raise ConfigError(
+            f"effect {effect.name!r}: columns collinear with the model's at every grid point: no evidence"
+        )
     # local refinement from the best few grid points (the profile may have several maxima)
     for start in grid[order[:2]]:
-        res = optimize.minimize(lambda x: -score(x)[0], start, method="Nelder-Mead",
-                                options={"xatol": 1e-3, "fatol": 1e-2, "maxfev": 100 * len(names)})
+        res = optimize.minimize(
+            lambda x: -score(x)[0],
+            start,
+            method="Nelder-Mead",
+            options={"xatol": 1e-3, "fatol": 1e-2, "maxfev": 100 * len(names)},
+        )
         if -res.fun > best:
             best, best_x = -res.fun, np.clip(res.x, lo, hi)
     if spectral:
         # the fast products miss the filter's ringing across the segment tapers: refine
         # with the columns the fit uses (filtered in time, then windowed)
         exact_score = memoised(exact)
-        res = optimize.minimize(lambda x: -exact_score(x)[0], best_x, method="Nelder-Mead",
-                                options={"xatol": 1e-3, "fatol": 1e-2, "maxfev": 30 * len(names),
-                                         "initial_simplex": np.vstack([best_x, best_x + 0.01 * np.eye(len(names))])})
+        res = optimize.minimize(
+            lambda x: -exact_score(x)[0],
+            best_x,
+            method="Nelder-Mead",
+            options={
+                "xatol": 1e-3,
+                "fatol": 1e-2,
+                "maxfev": 30 * len(names),
+                "initial_simplex": np.vstack([best_x, best_x + 0.01 * np.eye(len(names))]),
+            },
+        )
         best_x = np.clip(res.x, lo, hi)
         dchi2, lbf_best = exact_score(best_x)
         n_exact = len(exact_score.memo)
@@ -478,14 +510,22 @@ def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
         intervals[k] = (float(np.exp(a)), float(np.exp(b))) if is_log[j] else (float(a), float(b))
     found = effect_at(best_x)
     log.debug("profile search %s: %s, delta chi2 %.1f", effect.name, dict(zip(names, est)), dchi2)
-    return SearchResult(found, {k: float(found.options[k]) for k in names}, intervals, float(dchi2),
-                        float(lbf_best), marg, len(score.memo) + n_exact,
-                        grid=[(list(map(float, back(x))), float(v)) for x, v in zip(grid, values)])
+    return SearchResult(
+        found,
+        {k: float(found.options[k]) for k in names},
+        intervals,
+        float(dchi2),
+        float(lbf_best),
+        marg,
+        len(score.memo) + n_exact,
+        grid=[(list(map(float, back(x))), float(v)) for x, v in zip(grid, values)],
+    )
 
 
 # ---------------------------------------------------------------------------
 # The step time
 # ---------------------------------------------------------------------------
+
 
 def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
     """Search the step time of ``step`` against ``model``: step columns approximated as
@@ -513,8 +553,10 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
     W_MM = eiv_weights(data, M)
     t_flat = np.concatenate([data.t0 + (s0 + np.arange(data.L)) / data.fs for s0 in data.starts])
     w2 = data.w2.reshape(-1)
-    prof = np.stack([w2 if m is None else w2 * np.concatenate([m[s0:s0 + data.L] for s0 in data.starts])
-                     for m in M.modulation] + [w2])
+    prof = np.stack(
+        [w2 if m is None else w2 * np.concatenate([m[s0 : s0 + data.L] for s0 in data.starts]) for m in M.modulation]
+        + [w2]
+    )
     tail = np.concatenate([np.cumsum(prof[:, ::-1], axis=1)[:, ::-1], np.zeros((nM + 1, 1))], axis=1)
 
     def eiv_at(ts):
@@ -542,8 +584,11 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
     memo: dict = {}
 
     def cell(ts) -> tuple:
-        return (int(np.searchsorted(data.seg_t0, ts, side="right")), int(np.searchsorted(t_dec, ts)),
-                _correction_cell(data, ts))
+        return (
+            int(np.searchsorted(data.seg_t0, ts, side="right")),
+            int(np.searchsorted(t_dec, ts)),
+            _correction_cell(data, ts),
+        )
 
     def evaluate_at(ts) -> Evidence:
         key = cell(ts)
@@ -560,14 +605,14 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
         if 0 <= j < len(data.starts):
             s0 = data.starts[j]
             h = (data.t0 + (s0 + np.arange(data.L)) / data.fs >= ts).astype(float)
-            wm = data.win * data.mask[s0:s0 + data.L]  # the taper on the valid samples (mask: 0 or 1)
-            seg = stack[:, :, s0:s0 + data.L] * h  # a new array: patched in place
+            wm = data.win * data.mask[s0 : s0 + data.L]  # the taper on the valid samples (mask: 0 or 1)
+            seg = stack[:, :, s0 : s0 + data.L] * h  # a new array: patched in place
             corr = _step_correction(data, ts, base)
             if corr is not None:  # exact TDI of the step near t_s (the delays straddle it)
                 k0, c = corr
                 lo, hi = max(k0 - s0, 0), min(k0 - s0 + c.shape[-1], data.L)
                 if hi > lo:
-                    seg[:, :, lo:hi] += c[:, :, lo - (k0 - s0):hi - (k0 - s0)]
+                    seg[:, :, lo:hi] += c[:, :, lo - (k0 - s0) : hi - (k0 - s0)]
             # spectra of segment j only: segment_fft(seg * m, fs, win * m) with m in {0, 1}
             # (the same products), the taper applied in place, only the analysis bins scaled
             seg *= wm
@@ -576,9 +621,9 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
             X = psd_scale(data.fs, wm) * X[:, :, data.bins]
             wK = np.matmul(data.Lh, np.moveaxis(X, 2, 0))[None]  # (1, m, 3, k)
             XK = as_real(wK)
-            N_MK[j] = gram_x(XM[:, j:j + 1], XK, data.slices)[0]
+            N_MK[j] = gram_x(XM[:, j : j + 1], XK, data.slices)[0]
             N_KK[j] = gram_x(XK, XK, data.slices)[0]
-            b_K[j] = gram_x(XK, data.wd[j:j + 1][None].view(np.float64), data.slices)[0, ..., 0]
+            b_K[j] = gram_x(XK, data.wd[j : j + 1][None].view(np.float64), data.slices)[0, ..., 0]
         return evidence_from_normal(model, N_MM, N_MK, N_KK, b_M, b_K, names, np.full(len(base), 1e-3), eiv_at(ts))
 
     coarse = np.arange(t_lo + s.step_grid / 2, t_hi, s.step_grid)
@@ -630,8 +675,17 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
     marg = float(special.logsumexp(good) - math.log(len(good))) if good.size else float("nan")
     found = step.with_options(t_step=round(float(ts_best), 3))
     log.debug("step time search: %.3f s, delta chi2 %.1f", ts_best, ev.delta_chi2)
-    return SearchResult(found, {"t_step": float(ts_best)}, {}, float(ev.delta_chi2), float(ev.log_bayes_factor), marg,
-                        len(results), grid=[([float(t)], float(e.log_bayes_factor)) for t, e in results], evidence=ev)
+    return SearchResult(
+        found,
+        {"t_step": float(ts_best)},
+        {},
+        float(ev.delta_chi2),
+        float(ev.log_bayes_factor),
+        marg,
+        len(results),
+        grid=[([float(t)], float(e.log_bayes_factor)) for t, e in results],
+        evidence=ev,
+    )
 
 
 def _correction_stretch(data, ts: float) -> tuple[int, int, np.ndarray, int]:
@@ -685,18 +739,19 @@ def _step_correction(data, ts: float, base: list) -> tuple | None:
     # of the local convolution is global sample a + i; keep those inside the stretch
     full = np.apply_along_axis(lambda x: np.convolve(x, taps)[: b - a], -1, exact)
     first = (-a) % data.decimation
-    dec = full[..., first::data.decimation]
+    dec = full[..., first :: data.decimation]
     k0 = (a + first) // data.decimation  # decimated index of global sample a + first
     n = dec.shape[-1]
     t_dec = data.t0 + (k0 + np.arange(n)) / data.fs
     idx = [data.regressor_names.index(nm) for nm in base]
-    modulated = data.regressor_series[:, idx, k0:k0 + n] * (t_dec >= ts)
+    modulated = data.regressor_series[:, idx, k0 : k0 + n] * (t_dec >= ts)
     return k0, dec - np.nan_to_num(modulated)
 
 
 # ---------------------------------------------------------------------------
 # Time offsets of the shifted-witness effects
 # ---------------------------------------------------------------------------
+
 
 def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
     """Profile-likelihood search of the open offsets of a shifted-witness effect.
@@ -758,8 +813,9 @@ def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
         raise ConfigError(f"effect {effect.name!r}: every offset is given; nothing to search")
     ranges = search_ranges(data, effect)
     names = list(columns.names)
-    members = {g: [names.index(n) for n in mem] for g, mem in effect.shifted_members().items()
-               if all(n in names for n in mem)}
+    members = {
+        g: [names.index(n) for n in mem] for g, mem in effect.shifted_members().items() if all(n in names for n in mem)
+    }
     held = {g: v for g, v in effect.fixed_offsets().items() if g in members}
     searched = [g for g in open_groups if g in members]
     if not searched:
@@ -836,12 +892,12 @@ def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
             n_eval += x.size
             xw = np.outer(x, w)
             A = np.concatenate([np.cos(xw), np.sin(xw)], axis=1) @ QQ  # (K, |J| (|R| + 1))
-            NJR = A[:, :len(J) * len(R)].reshape(-1, len(J), len(R))
+            NJR = A[:, : len(J) * len(R)].reshape(-1, len(J), len(R))
             Nk = np.broadcast_to(N, (x.size, P, P)).copy()
             bk = np.broadcast_to(b, (x.size, P)).copy()
             Nk[:, np.ix_(J, R)[0], np.ix_(J, R)[1]] = NJR
             Nk[:, np.ix_(R, J)[0], np.ix_(R, J)[1]] = np.swapaxes(NJR, 1, 2)
-            bk[:, J] = A[:, len(J) * len(R):]
+            bk[:, J] = A[:, len(J) * len(R) :]
             th = np.linalg.solve(Nk, bk[..., None])[..., 0]
             return dd - np.einsum("kp,kp->k", bk, th), th
 
@@ -857,8 +913,12 @@ def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
             profiles[g] = Qg
             x0 = float(grids[g][int(np.argmin(Qg))])
             lo, hi = ranges[option[g]][:2]
-            res = minimize_scalar(lambda x, q=q: float(q(x)[0][0]), bounds=(max(x0 - step, lo), min(x0 + step, hi)),
-                                  method="bounded", options={"xatol": 1e-4})
+            res = minimize_scalar(
+                lambda x, q=q: float(q(x)[0][0]),
+                bounds=(max(x0 - step, lo), min(x0 + step, hi)),
+                method="bounded",
+                options={"xatol": 1e-4},
+            )
             best = float(res.x) if res.fun <= Qg.min() else x0
             moved = max(moved, abs(best - delta[g]))
             delta[g] = best
@@ -890,15 +950,25 @@ def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
         if np.isfinite(sigma[g]):
             marg += 0.5 * math.log(2 * math.pi) + math.log(sigma[g]) - math.log(hi - lo)
         else:  # a flat or multimodal profile: its likelihood averaged over the grid
-            marg += float(special.logsumexp(-(profiles[g] - profiles[g].min()) / data.kappa) - math.log(profiles[g].size))
+            marg += float(
+                special.logsumexp(-(profiles[g] - profiles[g].min()) / data.kappa) - math.log(profiles[g].size)
+            )
     marg = float(min(marg, lbf_best))
     log.debug("offset search %s: %s", effect.name, {g: round(v, 4) for g, v in delta.items()})
     est = {option[g]: float(delta[g]) for g in searched}
     found = effect.with_options(**{k: float(f"{v:.6g}") for k, v in est.items()})
     intervals = {option[g]: (delta[g] - sigma[g], delta[g] + sigma[g]) for g in searched if np.isfinite(sigma[g])}
-    return SearchResult(found, est, intervals, float(dchi2), float(lbf_best), marg, n_eval,
-                        gains={option[g]: float(v) for g, v in gain.items()},
-                        theta=dict(zip(names, theta)) if theta is not None else {})
+    return SearchResult(
+        found,
+        est,
+        intervals,
+        float(dchi2),
+        float(lbf_best),
+        marg,
+        n_eval,
+        gains={option[g]: float(v) for g, v in gain.items()},
+        theta=dict(zip(names, theta)) if theta is not None else {},
+    )
 
 
 def _offset_sigma(q, x0: float, kappa: float, grid_step: float) -> float:
@@ -911,7 +981,7 @@ def _offset_sigma(q, x0: float, kappa: float, grid_step: float) -> float:
     sigma = float("nan")
     for _ in range(2):
         (qm, q0, qp), _ = q(np.array([x0 - h, x0, x0 + h]))
-        curv = (qp - 2.0 * q0 + qm) / h ** 2
+        curv = (qp - 2.0 * q0 + qm) / h**2
         if not curv > 0:
             return float("nan")
         sigma = math.sqrt(kappa / curv)

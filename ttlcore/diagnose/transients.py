@@ -182,9 +182,15 @@ class TimeFrequencyMap:
         return _p(self.chi2.sum(axis=2), self.dof.sum(), bd.sum(axis=2) / self.dof.sum(), self.kappa, self.tolerance)
 
     def to_json(self) -> dict:
-        return {"tile_duration": self.duration, "hop": self.hop, "t_start": [float(x) for x in self.t_start],
-                "edges": [float(x) for x in self.edges], "dof": [float(x) for x in self.dof], "kappa": self.kappa,
-                "background": {c: [float(x) for x in self.background[i]] for i, c in enumerate(CHANNELS)}}
+        return {
+            "tile_duration": self.duration,
+            "hop": self.hop,
+            "t_start": [float(x) for x in self.t_start],
+            "edges": [float(x) for x in self.edges],
+            "dof": [float(x) for x in self.dof],
+            "kappa": self.kappa,
+            "background": {c: [float(x) for x in self.background[i]] for i, c in enumerate(CHANNELS)},
+        }
 
 
 def _p(chi2, dof, level, kappa, tol):
@@ -200,9 +206,20 @@ def median_factor(k) -> np.ndarray:
     return (1 - 2 / (9 * k)) ** 3
 
 
-def time_frequency_map(residual, fs: float, t0: float, f_psd, psd, band, *, tile: float = TILE_DURATION,
-                       valid=None, keep=None, tolerance: float = 0.02, min_dof: int = MIN_TILE_DOF
-                       ) -> TimeFrequencyMap:
+def time_frequency_map(
+    residual,
+    fs: float,
+    t0: float,
+    f_psd,
+    psd,
+    band,
+    *,
+    tile: float = TILE_DURATION,
+    valid=None,
+    keep=None,
+    tolerance: float = 0.02,
+    min_dof: int = MIN_TILE_DOF,
+) -> TimeFrequencyMap:
     """The time-frequency map of the module docstring.
 
     Parameters
@@ -240,8 +257,9 @@ def time_frequency_map(residual, fs: float, t0: float, f_psd, psd, band, *, tile
     if keep is not None:
         sel[sel] = keep(f[sel])
     fb = f[sel]
-    S = np.stack([np.exp(np.interp(np.log(fb), np.log(f_psd), np.log(np.maximum(psd[:, c], 1e-300))))
-                  for c in range(3)])  # (3, nb)
+    S = np.stack(
+        [np.exp(np.interp(np.log(fb), np.log(f_psd), np.log(np.maximum(psd[:, c], 1e-300)))) for c in range(3)]
+    )  # (3, nb)
     edges = merged_band_edges(fb, third_octave_edges(band), 2, min_dof)
     bidx = np.clip(np.searchsorted(edges, fb, side="right") - 1, 0, len(edges) - 2)
     G = len(edges) - 1
@@ -249,8 +267,8 @@ def time_frequency_map(residual, fs: float, t0: float, f_psd, psd, band, *, tile
     chi2 = np.zeros((3, starts.size, G))
     ok = np.zeros(starts.size, dtype=bool)
     for k, s0 in enumerate(starts):
-        seg = x[:, s0:s0 + L]
-        ok[k] = bool(valid[s0:s0 + L].all())
+        seg = x[:, s0 : s0 + L]
+        ok[k] = bool(valid[s0 : s0 + L].all())
         _, X = segment_fft(np.nan_to_num(seg), fs, win, workers=None)
         z = 2 * np.abs(X[:, sel]) ** 2 / S
         for c in range(3):
@@ -275,7 +293,7 @@ def data_gaps(series, fs: float, t0: float, valid=None, min_gap: float = MIN_GAP
         idx = np.flatnonzero(valid)
         inside = np.zeros_like(bad)
         if idx.size:
-            inside[idx[0]:idx[-1] + 1] = True
+            inside[idx[0] : idx[-1] + 1] = True
         bad &= inside
     out: list[tuple[float, float]] = []
     d = np.diff(np.concatenate([[0], bad.astype(np.int8), [0]]))
@@ -351,13 +369,17 @@ def find_events(tf: TimeFrequencyMap, alpha: float = MAP_ALPHA) -> list[Event]:
         dof = 3 * tf.dof[bands].sum()
 
         def weak(i, bands=bands, dof=dof, level=level):
-            return bool(tf.valid[i]) and _p(tf.chi2[:, i][:, bands].sum(), dof, level / dof, tf.kappa, tf.tolerance) < alpha
+            return (
+                bool(tf.valid[i])
+                and _p(tf.chi2[:, i][:, bands].sum(), dof, level / dof, tf.kappa, tf.tolerance) < alpha
+            )
+
         lo, hi = k, j
         while lo - 1 >= 0 and weak(lo - 1):
             lo -= 1
         while hi + 1 < n_t and weak(hi + 1):
             hi += 1
-        member[lo:hi + 1] = True
+        member[lo : hi + 1] = True
         k = j + 1
     events = []
     k = 0
@@ -402,23 +424,41 @@ def _event(tf, sl, pt, pb, ex, n_tests, alpha) -> Event:
     for i in sl:
         for chans in ((0, 1), (0, 1, 2)):
             ch = list(chans)
-            p_ae = _p(tf.chi2[ch, i].sum(axis=0), len(ch) * tf.dof, bg[ch].sum(axis=0) / (len(ch) * tf.dof),
-                      tf.kappa, tf.tolerance)
+            p_ae = _p(
+                tf.chi2[ch, i].sum(axis=0),
+                len(ch) * tf.dof,
+                bg[ch].sum(axis=0) / (len(ch) * tf.dof),
+                tf.kappa,
+                tf.tolerance,
+            )
             e = np.where(p_ae < alpha, np.maximum(ex[ch, i].sum(axis=0), 0.0), 0.0)
             if e.sum() > 0:
                 break
         if e.sum() <= 0:
             continue
-        track.append((float(tf.t_mid[i]), float(fc[int(np.argmax(e))]), float(np.exp(np.sum(e * np.log(fc)) / e.sum()))))
+        track.append(
+            (float(tf.t_mid[i]), float(fc[int(np.argmax(e))]), float(np.exp(np.sum(e * np.log(fc)) / e.sum())))
+        )
     exc_c = np.maximum(exc.sum(axis=1), 0.0)
     total = float(exc_c.sum())
     t_share = float(exc_c[2] / total) if total > 0 else 0.0
-    return Event(t_start=float(centres[0] - 0.5 * tf.hop), t_stop=float(centres[-1] + 0.5 * tf.hop),
-                 t_peak=float(tf.t_mid[peak]), slices=tuple(int(i) for i in sl), channels=carries, channel_p=ch_p,
-                 f_lo=f_lo, f_hi=f_hi, band_excess=tuple(float(x) for x in exc.sum(axis=0)),
-                 significant_bands=tuple(int(g) for g in sig), track=tuple(track),
-                 excess={c: float(exc_c[i]) for i, c in enumerate(CHANNELS)}, t_share=t_share,
-                 snr=float(np.sqrt(total)), track_kind=track_kind([t for t, _, _ in track], [m for _, _, m in track]))
+    return Event(
+        t_start=float(centres[0] - 0.5 * tf.hop),
+        t_stop=float(centres[-1] + 0.5 * tf.hop),
+        t_peak=float(tf.t_mid[peak]),
+        slices=tuple(int(i) for i in sl),
+        channels=carries,
+        channel_p=ch_p,
+        f_lo=f_lo,
+        f_hi=f_hi,
+        band_excess=tuple(float(x) for x in exc.sum(axis=0)),
+        significant_bands=tuple(int(g) for g in sig),
+        track=tuple(track),
+        excess={c: float(exc_c[i]) for i, c in enumerate(CHANNELS)},
+        t_share=t_share,
+        snr=float(np.sqrt(total)),
+        track_kind=track_kind([t for t, _, _ in track], [m for _, _, m in track]),
+    )
 
 
 def track_kind(t, f, ratio: float = CHIRP_RATIO) -> str:
@@ -442,8 +482,18 @@ def track_kind(t, f, ratio: float = CHIRP_RATIO) -> str:
     return "irregular"
 
 
-def witness_coherence(residual, witnesses, fs: float, tf: TimeFrequencyMap, event: Event, f_psd, psd,
-                      t0: float, keep=None, alpha: float = MAP_ALPHA) -> dict:
+def witness_coherence(
+    residual,
+    witnesses,
+    fs: float,
+    tf: TimeFrequencyMap,
+    event: Event,
+    f_psd,
+    psd,
+    t0: float,
+    keep=None,
+    alpha: float = MAP_ALPHA,
+) -> dict:
     """How much of ``event``'s excess the witnesses explain (module docstring).
 
     Parameters
@@ -472,8 +522,9 @@ def witness_coherence(residual, witnesses, fs: float, tf: TimeFrequencyMap, even
     if not sel.any() or W.shape[1] == 0:
         return {"delta_chi2": 0.0, "expected": 0.0, "explained_fraction": 0.0, "p_value": 1.0, "coherent": False}
     fb = f[sel]
-    S = np.stack([np.exp(np.interp(np.log(fb), np.log(f_psd), np.log(np.maximum(psd[:, c], 1e-300))))
-                  for c in range(3)])
+    S = np.stack(
+        [np.exp(np.interp(np.log(fb), np.log(f_psd), np.log(np.maximum(psd[:, c], 1e-300)))) for c in range(3)]
+    )
     sq = np.sqrt(S)
     win = window("hann", L)
     bands = np.clip(np.searchsorted(tf.edges, fb, side="right") - 1, 0, len(tf.edges) - 2)
@@ -482,8 +533,8 @@ def witness_coherence(residual, witnesses, fs: float, tf: TimeFrequencyMap, even
     peak = sl[int(np.argmin(np.abs(tf.t_mid[sl] - event.t_peak)))]
     for i in sl[(sl - peak) % 2 == 0]:  # independent tiles, the loudest among them
         s0 = int(round((tf.t_start[i] - t0) * fs))
-        _, Y = segment_fft(np.nan_to_num(x[:, s0:s0 + L]), fs, win, workers=None)
-        _, X = segment_fft(np.nan_to_num(W[:, :, s0:s0 + L]), fs, win, workers=None)
+        _, Y = segment_fft(np.nan_to_num(x[:, s0 : s0 + L]), fs, win, workers=None)
+        _, X = segment_fft(np.nan_to_num(W[:, :, s0 : s0 + L]), fs, win, workers=None)
         ys.append(Y[:, sel] / sq)  # (3, nb)
         Xs.append(X[:, :, sel] / sq[:, None, :])  # (3, k, nb)
     y = np.stack(ys).reshape(-1)  # (ns, 3, nb) -> N complex rows
@@ -502,8 +553,13 @@ def witness_coherence(residual, witnesses, fs: float, tf: TimeFrequencyMap, even
     # the event's excess in the bands regressed (the same independent tiles)
     exc = max(sum(event.band_excess[g] for g in np.unique(bands)), 1e-300)
     frac = float(np.clip((dchi2 - expected) / exc, 0.0, 1.0))
-    return {"delta_chi2": dchi2, "expected": expected, "explained_fraction": frac, "p_value": p,
-            "coherent": bool(frac >= COHERENT_FRACTION and p < alpha)}
+    return {
+        "delta_chi2": dchi2,
+        "expected": expected,
+        "explained_fraction": frac,
+        "p_value": p,
+        "coherent": bool(frac >= COHERENT_FRACTION and p < alpha),
+    }
 
 
 def instrumental_t_share(f, noise_csd, ltt_mean, f_lo: float, f_hi: float, slope: float = -2.0) -> float:
@@ -531,7 +587,7 @@ def instrumental_t_share(f, noise_csd, ltt_mean, f_lo: float, f_hi: float, slope
     h = np.einsum("ia,alm->lmi", AET_MATRIX, h)  # (6 links, m, 3)
     rev = [LINKS.index(k[::-1]) for k in LINKS]
     g = np.stack([h[k] + h[rev[k]] * np.exp(-2j * np.pi * fb * ltt[rev[k]])[:, None] for k in range(6)])
-    w = fb ** slope
+    w = fb**slope
     shares = []
     for x in np.concatenate([h, g]):
         p = np.abs(x) ** 2 / S * w[:, None]  # (m, 3)
@@ -545,19 +601,31 @@ def classify(event: Event) -> tuple[str, list[str]]:
     """The class of an event and the evidence for it (module docstring)."""
     ev = []
     hours = event.duration / 3600.0
-    ev.append(f"{hours:.2f} h long ({_clock(event.t_start)}-{_clock(event.t_stop)}), "
-              f"{_f(event.f_lo)}-{_f(event.f_hi)}, carried by {', '.join(event.channels) or 'no single channel'}")
+    ev.append(
+        f"{hours:.2f} h long ({_clock(event.t_start)}-{_clock(event.t_stop)}), "
+        f"{_f(event.f_lo)}-{_f(event.f_hi)}, carried by {', '.join(event.channels) or 'no single channel'}"
+    )
     thr = event.t_share_threshold
-    ev.append(f"T carries {100 * event.t_share:.1f} % of its whitened excess "
-              f"({'instrumental' if event.t_share >= thr else 'T consistent with a null stream'}: threshold "
-              f"{100 * thr:.2g} %" + ("" if event.t_share_expected is None else
-                                     f", a third of the {100 * event.t_share_expected:.2g} % a single link or "
-                                     "test mass would give") + ")")
+    ev.append(
+        f"T carries {100 * event.t_share:.1f} % of its whitened excess "
+        f"({'instrumental' if event.t_share >= thr else 'T consistent with a null stream'}: threshold "
+        f"{100 * thr:.2g} %"
+        + (
+            ""
+            if event.t_share_expected is None
+            else f", a third of the {100 * event.t_share_expected:.2g} % a single link or test mass would give"
+        )
+        + ")"
+    )
     coh = event.coherence or {}
     if coh:
-        ev.append(f"witnesses (24 TTL regressors) explain {100 * coh['explained_fraction']:.0f} % of the excess "
-                  f"(delta chi2 {coh['delta_chi2']:.0f} for {coh['expected']:.0f} expected on noise)")
-    ev.append(f"track: {event.track_kind}" + (f", {_f(event.track[0][2])} -> {_f(event.track[-1][2])}" if event.track else ""))
+        ev.append(
+            f"witnesses (24 TTL regressors) explain {100 * coh['explained_fraction']:.0f} % of the excess "
+            f"(delta chi2 {coh['delta_chi2']:.0f} for {coh['expected']:.0f} expected on noise)"
+        )
+    ev.append(
+        f"track: {event.track_kind}" + (f", {_f(event.track[0][2])} -> {_f(event.track[-1][2])}" if event.track else "")
+    )
     nb = len(event.band_excess)
     broad = len(event.significant_bands) >= BROADBAND_FRACTION * nb
     if event.gap is not None:
@@ -645,10 +713,16 @@ def gated_ttl_fit(data, spans, names=None) -> dict:
         out[label] = (theta, sigma)
         del X, Xf
     shift = (out["gated"][0] - out["full"][0]) / out["full"][1]
-    return {"names": names, "full": out["full"][0].tolist(), "gated": out["gated"][0].tolist(),
-            "sigma_full": out["full"][1].tolist(), "sigma_gated": out["gated"][1].tolist(),
-            "shift_sigma": shift.tolist(), "max_abs_shift_sigma": float(np.max(np.abs(shift))),
-            "spans": [[float(a), float(b)] for a, b in spans]}
+    return {
+        "names": names,
+        "full": out["full"][0].tolist(),
+        "gated": out["gated"][0].tolist(),
+        "sigma_full": out["full"][1].tolist(),
+        "sigma_gated": out["gated"][1].tolist(),
+        "shift_sigma": shift.tolist(),
+        "max_abs_shift_sigma": float(np.max(np.abs(shift))),
+        "spans": [[float(a), float(b)] for a, b in spans],
+    }
 
 
 def kept_like(f_kept, df_fine: float, df_tile: float, lobe: float = 2.0):
@@ -664,6 +738,7 @@ def kept_like(f_kept, df_fine: float, df_tile: float, lobe: float = 2.0):
         f = np.asarray(f, dtype=float)
         n = np.searchsorted(fk, f + lobe * df_tile) - np.searchsorted(fk, f - lobe * df_tile)
         return n >= 0.99 * 2 * lobe * df_tile / df_fine
+
     return keep
 
 
@@ -685,13 +760,19 @@ def quiet_adequacy(tf: TimeFrequencyMap, events, alpha: float) -> dict:
     busy = np.zeros(n_t, dtype=bool)
     for e in events:
         lo, hi = min(e.slices), max(e.slices)
-        busy[max(0, lo - 1):hi + 2] = True  # the tiles overlapping an event's
+        busy[max(0, lo - 1) : hi + 2] = True  # the tiles overlapping an event's
     idx = np.flatnonzero(tf.valid & ~busy)
     idx = idx[(idx - (idx[0] if idx.size else 0)) % 2 == 0]
     G = tf.chi2.shape[2]
     if idx.size == 0:
-        return {"tiles": 0, "hours": 0.0, "chi2_dof": None, "band_chi2_dof": [None] * G, "fails": False,
-                "excess_chi2_full_span": None}
+        return {
+            "tiles": 0,
+            "hours": 0.0,
+            "chi2_dof": None,
+            "band_chi2_dof": [None] * G,
+            "fails": False,
+            "excess_chi2_full_span": None,
+        }
     chi2 = tf.chi2[:, idx].sum(axis=(0, 1))
     dof = 3 * tf.dof * idx.size
     p = _p(chi2, dof, 1.0, tf.kappa, tf.tolerance)
@@ -704,21 +785,40 @@ def quiet_adequacy(tf: TimeFrequencyMap, events, alpha: float) -> dict:
     # there, by the caller)
     n_span = (tf.valid.sum() + 1) / 2.0
     full = float(np.sum(np.maximum(chi2 / dof - (1 + tf.tolerance), 0.0) * 3 * tf.dof * n_span))
-    return {"tiles": int(idx.size), "hours": float(idx.size * tf.duration / 3600),
-            "chi2_dof": float(chi2.sum() / dof.sum()), "band_chi2_dof": [float(x) for x in chi2 / dof],
-            "channel_chi2_dof": {c: float(ch[i] / ch_dof) for i, c in enumerate(CHANNELS)},
-            "t_share": float(ex[2] / ex.sum()) if ex.sum() > 0 else None,
-            "excess_chi2_full_span": full,
-            "fails": bool((p < alpha / G).any())}
+    return {
+        "tiles": int(idx.size),
+        "hours": float(idx.size * tf.duration / 3600),
+        "chi2_dof": float(chi2.sum() / dof.sum()),
+        "band_chi2_dof": [float(x) for x in chi2 / dof],
+        "channel_chi2_dof": {c: float(ch[i] / ch_dof) for i, c in enumerate(CHANNELS)},
+        "t_share": float(ex[2] / ex.sum()) if ex.sum() > 0 else None,
+        "excess_chi2_full_span": full,
+        "fails": bool((p < alpha / G).any()),
+    }
 
 
 def event_json(e: Event, cls: str, evidence: list) -> dict:
-    return {"class": cls, "evidence": evidence, "t_start": e.t_start, "t_stop": e.t_stop, "t_peak": e.t_peak,
-            "duration": e.duration, "channels": list(e.channels), "channel_p": e.channel_p,
-            "f_lo": e.f_lo, "f_hi": e.f_hi, "track": [list(x) for x in e.track], "track_kind": e.track_kind,
-            "t_share": e.t_share, "t_share_expected": e.t_share_expected, "t_share_threshold": e.t_share_threshold,
-            "excess": e.excess, "snr": e.snr, "coherence": e.coherence,
-            "gap": list(e.gap) if e.gap else None}
+    return {
+        "class": cls,
+        "evidence": evidence,
+        "t_start": e.t_start,
+        "t_stop": e.t_stop,
+        "t_peak": e.t_peak,
+        "duration": e.duration,
+        "channels": list(e.channels),
+        "channel_p": e.channel_p,
+        "f_lo": e.f_lo,
+        "f_hi": e.f_hi,
+        "track": [list(x) for x in e.track],
+        "track_kind": e.track_kind,
+        "t_share": e.t_share,
+        "t_share_expected": e.t_share_expected,
+        "t_share_threshold": e.t_share_threshold,
+        "excess": e.excess,
+        "snr": e.snr,
+        "coherence": e.coherence,
+        "gap": list(e.gap) if e.gap else None,
+    }
 
 
 def residual_map(data, residual, tile: float = TILE_DURATION) -> TimeFrequencyMap:
@@ -730,8 +830,9 @@ def residual_map(data, residual, tile: float = TILE_DURATION) -> TimeFrequencyMa
     psd = np.real(np.einsum("mii->mi", data.noise_csd))
     keep = kept_like(data.f, 1.0 / data.seg_duration, 1.0 / tile)
     band = (max(s.band[0], 3.0 / tile), s.band[1])
-    return time_frequency_map(residual, data.fs, data.t0, data.f, psd, band, tile=tile, valid=data.mask, keep=keep,
-                              tolerance=s.tolerance)
+    return time_frequency_map(
+        residual, data.fs, data.t0, data.f, psd, band, tile=tile, valid=data.mask, keep=keep, tolerance=s.tolerance
+    )
 
 
 def event_excess(tf: TimeFrequencyMap, t_start: float, t_stop: float, background=None) -> float:
@@ -766,16 +867,25 @@ def transient_report(model, report: dict | None = None, tile: float = TILE_DURAT
     band = (max(s.band[0], 3.0 / tile), s.band[1])
     # a gated span reads as zeros: not missing data, the model's choice
     spans = getattr(data, "gate_spans", ())
-    gaps = [(a, b) for a, b in data_gaps(data.data_series, data.fs, data.t0, data.mask)
-            if not any(lo - 1.0 <= a and b <= hi + 1.0 for lo, hi in spans)]
+    gaps = [
+        (a, b)
+        for a, b in data_gaps(data.data_series, data.fs, data.t0, data.mask)
+        if not any(lo - 1.0 <= a and b <= hi + 1.0 for lo, hi in spans)
+    ]
     events = find_events(tf, alpha)
     out_events, classes = [], []
     for e in events:
         coh = witness_coherence(resid, data.regressor_series, data.fs, tf, e, data.f, psd, data.t0, keep, alpha)
         gap = next(((a, b) for a, b in gaps if a < e.t_stop and b > e.t_start), None)
         expected = instrumental_t_share(data.f, data.noise_csd, data.ltt_mean, e.f_lo, e.f_hi)
-        e = Event(**{**e.__dict__, "coherence": coh, "gap": gap,
-                     "t_share_expected": expected if np.isfinite(expected) else None})
+        e = Event(
+            **{
+                **e.__dict__,
+                "coherence": coh,
+                "gap": gap,
+                "t_share_expected": expected if np.isfinite(expected) else None,
+            }
+        )
         cls, evidence = classify(e)
         classes.append(cls)
         out_events.append(event_json(e, cls, evidence))
@@ -793,16 +903,32 @@ def transient_report(model, report: dict | None = None, tile: float = TILE_DURAT
         robust["model"] = model.ttl_coefficients().tolist()
     summary = []
     for ev in out_events:
-        summary.append(f"{ev['class']}: {ev['t_start'] / 3600:.2f}-{ev['t_stop'] / 3600:.2f} h, {_f(ev['f_lo'])}-{_f(ev['f_hi'])} "
-                       f"in {', '.join(ev['channels']) or '-'} (T share {100 * ev['t_share']:.1f} %, track {ev['track_kind']}, "
-                       f"SNR {ev['snr']:.0f})")
+        summary.append(
+            f"{ev['class']}: {ev['t_start'] / 3600:.2f}-{ev['t_stop'] / 3600:.2f} h, {_f(ev['f_lo'])}-{_f(ev['f_hi'])} "
+            f"in {', '.join(ev['channels']) or '-'} (T share {100 * ev['t_share']:.1f} %, track {ev['track_kind']}, "
+            f"SNR {ev['snr']:.0f})"
+        )
     for a, b in gaps:
         summary.append(f"missing data {a / 3600:.2f}-{b / 3600:.2f} h")
     if robust is not None:
-        summary.append(f"TTL fit without those hours: largest coefficient shift {robust['max_abs_shift_sigma']:.2f} sigma")
-    return {"tile_duration": tf.duration, "hop": tf.hop, "alpha": alpha, "t_share_threshold": T_SHARE_INSTRUMENTAL,
-            "events": out_events, "gaps": [[a, b] for a, b in gaps], "quiet": quiet, "classification": verdict,
-            "robustness": robust, "summary": summary, "map": tf.to_json(), "_map": tf, "_residual": resid}
+        summary.append(
+            f"TTL fit without those hours: largest coefficient shift {robust['max_abs_shift_sigma']:.2f} sigma"
+        )
+    return {
+        "tile_duration": tf.duration,
+        "hop": tf.hop,
+        "alpha": alpha,
+        "t_share_threshold": T_SHARE_INSTRUMENTAL,
+        "events": out_events,
+        "gaps": [[a, b] for a, b in gaps],
+        "quiet": quiet,
+        "classification": verdict,
+        "robustness": robust,
+        "summary": summary,
+        "map": tf.to_json(),
+        "_map": tf,
+        "_residual": resid,
+    }
 
 
 def excess_classification(report: dict, events: list, quiet: dict, gaps=()) -> dict:
@@ -827,18 +953,32 @@ def excess_classification(report: dict, events: list, quiet: dict, gaps=()) -> d
     best = next((c for c in cands if c.get("significant")), None)
     ev = []
     if quiet.get("chi2_dof") is not None:
-        ev.append(f"tiles outside the events ({quiet['hours']:.1f} h): chi2/dof {quiet['chi2_dof']:.3f} against the "
-                  f"noise model, {'failing' if quiet['fails'] else 'consistent'}")
+        ev.append(
+            f"tiles outside the events ({quiet['hours']:.1f} h): chi2/dof {quiet['chi2_dof']:.3f} against the "
+            f"noise model, {'failing' if quiet['fails'] else 'consistent'}"
+        )
     if not fails:
         return {"class": "none", "signal": False, "classes": [], "evidence": ev}
     kinds = [e["class"] for e in events]
     if not events and gaps and not quiet.get("fails"):
-        return {"class": "gap", "signal": True, "classes": ["gap"],
-                "evidence": ev + ["missing data " + ", ".join(f"{a / 3600:.2f}-{b / 3600:.2f} h" for a, b in gaps) +
-                                  "; no transient outside it"]}
+        return {
+            "class": "gap",
+            "signal": True,
+            "classes": ["gap"],
+            "evidence": ev
+            + [
+                "missing data "
+                + ", ".join(f"{a / 3600:.2f}-{b / 3600:.2f} h" for a, b in gaps)
+                + "; no transient outside it"
+            ],
+        }
     if events and all(k in NOT_AN_EFFECT for k in kinds) and not quiet.get("fails"):
-        return {"class": kinds[0], "signal": True, "classes": sorted(set(kinds)),
-                "evidence": ev + [f"{len(events)} event(s): " + ", ".join(kinds)] + events[0]["evidence"]}
+        return {
+            "class": kinds[0],
+            "signal": True,
+            "classes": sorted(set(kinds)),
+            "evidence": ev + [f"{len(events)} event(s): " + ", ".join(kinds)] + events[0]["evidence"],
+        }
     frac = best.get("explained_fraction", 0.0) if best is not None else 0.0
     outside = quiet.get("excess_chi2_full_span")
     if best is not None and quiet.get("fails") and outside and any(k in NOT_AN_EFFECT for k in kinds):
@@ -847,8 +987,10 @@ def excess_classification(report: dict, events: list, quiet: dict, gaps=()) -> d
         frac = float(min(1.0, max(best.get("delta_chi2", 0.0), 0.0) / (outside / kappa)))
     if "missing-coupling" in kinds or frac >= 0.5:
         if best is not None:
-            ev.append(f"the best candidate, {best['cli_spec']}, explains {100 * frac:.0f} % of the excess"
-                      + (" outside the transients" if frac != best.get("explained_fraction") else ""))
+            ev.append(
+                f"the best candidate, {best['cli_spec']}, explains {100 * frac:.0f} % of the excess"
+                + (" outside the transients" if frac != best.get("explained_fraction") else "")
+            )
         return {"class": "missing-coupling", "signal": False, "classes": sorted(set(kinds)), "evidence": ev}
     share = quiet.get("t_share")
     expected = quiet.get("t_share_expected")
@@ -857,10 +999,16 @@ def excess_classification(report: dict, events: list, quiet: dict, gaps=()) -> d
         # in every hour, T nearly empty, nothing named explains it: a long-lived signal (an
         # inspiral in band over the whole span, binaries), not a coupling (a link signal
         # puts 1/6 to 1/2 of its whitened excess into T)
-        ev.append(f"stationary in time, T carries {100 * share:.1f} % of the excess outside any transient "
-                  f"(threshold {100 * thr:.2g} %): a long-lived gravitational-wave signal")
+        ev.append(
+            f"stationary in time, T carries {100 * share:.1f} % of the excess outside any transient "
+            f"(threshold {100 * thr:.2g} %): a long-lived gravitational-wave signal"
+        )
         if best is not None:
             ev.append(f"the best candidate, {best['cli_spec']}, explains {100 * best['explained_fraction']:.0f} %")
-        return {"class": "gravitational-wave", "signal": True, "classes": sorted(set(kinds) | {"gravitational-wave"}),
-                "evidence": ev}
+        return {
+            "class": "gravitational-wave",
+            "signal": True,
+            "classes": sorted(set(kinds) | {"gravitational-wave"}),
+            "evidence": ev,
+        }
     return {"class": "stationary-excess", "signal": False, "classes": sorted(set(kinds)), "evidence": ev}

@@ -159,22 +159,34 @@ class Alert:
             v = out[key]
             out[key] = None if v is None or not math.isfinite(v) else float(v)
         out["units"] = "mm/rad" if self.kind == STEP else "mm/rad/day"
-        out["details"] = {k: (float(v) if isinstance(v, (np.floating, float)) and math.isfinite(v) else
-                              None if isinstance(v, (np.floating, float)) else
-                              int(v) if isinstance(v, np.integer) else v)
-                          for k, v in self.details.items()}
+        out["details"] = {
+            k: (
+                float(v)
+                if isinstance(v, (np.floating, float)) and math.isfinite(v)
+                else None
+                if isinstance(v, (np.floating, float))
+                else int(v)
+                if isinstance(v, np.integer)
+                else v
+            )
+            for k, v in self.details.items()
+        }
         return out
 
     @classmethod
     def from_json(cls, d: Mapping) -> Alert:
         nan = float("nan")
-        return cls(kind=str(d["kind"]), coefficient=str(d["coefficient"]),
-                   t=nan if d.get("t") is None else float(d["t"]),
-                   value=nan if d.get("value") is None else float(d["value"]),
-                   significance=nan if d.get("significance") is None else float(d["significance"]),
-                   message=str(d.get("message", "")),
-                   t_detected=nan if d.get("t_detected") is None else float(d["t_detected"]),
-                   index=d.get("index"), details=dict(d.get("details") or {}))
+        return cls(
+            kind=str(d["kind"]),
+            coefficient=str(d["coefficient"]),
+            t=nan if d.get("t") is None else float(d["t"]),
+            value=nan if d.get("value") is None else float(d["value"]),
+            significance=nan if d.get("significance") is None else float(d["significance"]),
+            message=str(d.get("message", "")),
+            t_detected=nan if d.get("t_detected") is None else float(d["t_detected"]),
+            index=d.get("index"),
+            details=dict(d.get("details") or {}),
+        )
 
 
 @dataclass(frozen=True)
@@ -216,12 +228,14 @@ class TrendSettings:
         d = dict(d or {})
         unknown = set(d) - set(cls.__dataclass_fields__)
         if unknown:
-            raise ValueError(f"trend settings: unknown field {sorted(unknown)[0]!r} "
-                             f"(known: {', '.join(cls.__dataclass_fields__)})")
+            raise ValueError(
+                f"trend settings: unknown field {sorted(unknown)[0]!r} (known: {', '.join(cls.__dataclass_fields__)})"
+            )
         return cls(**d)
 
 
 # ---------------------------------------------------------------------------- inputs
+
 
 def _scale(units: str) -> float:
     try:
@@ -296,6 +310,7 @@ def format_time(t: float) -> str:
 
 # ---------------------------------------------------------------------------- steps
 
+
 def consecutive_differences(t_start, t_stop, C, S):
     """Differences of consecutive estimates and their model standard deviations.
 
@@ -305,16 +320,24 @@ def consecutive_differences(t_start, t_stop, C, S):
     overlap = np.clip(np.minimum(te[1:], te[:-1]) - np.maximum(ts[1:], ts[:-1]), 0.0, None)
     rho = overlap / np.sqrt((te[1:] - ts[1:]) * (te[:-1] - ts[:-1]))
     s1, s0 = S[1:], S[:-1]
-    var = s1 ** 2 + s0 ** 2 - 2 * rho[:, None] * s1 * s0
+    var = s1**2 + s0**2 - 2 * rho[:, None] * s1 * s0
     # two windows can never be more alike than their different lengths allow; keep a floor
     floor = (1e-3 * np.minimum(s1, s0)) ** 2
     return C[1:] - C[:-1], np.sqrt(np.maximum(var, floor))
 
 
-def detect_steps(times, coefficients, sigma, *, t_start=None, window: float | None = None,
-                 names: Sequence[str] | None = None, units: str = "m/rad",
-                 indices: Sequence[int] | None = None,
-                 settings: TrendSettings | None = None) -> list[Alert]:
+def detect_steps(
+    times,
+    coefficients,
+    sigma,
+    *,
+    t_start=None,
+    window: float | None = None,
+    names: Sequence[str] | None = None,
+    units: str = "m/rad",
+    indices: Sequence[int] | None = None,
+    settings: TrendSettings | None = None,
+) -> list[Alert]:
     """Step alerts in a sequence of rolling-window fits (CUSUM on consecutive differences).
 
     Parameters
@@ -421,7 +444,7 @@ class _StepScan:
                 ramp_end = int(np.searchsorted(ts, te[j], side="left"))  # first window starting after it
                 hold[p] = max(j, min(n - 1, ramp_end))  # difference rows up to that window
                 self.hold_time[p] = te[j]
-                excluded[min(j0, run_start): hold[p] + 1, p] = True
+                excluded[min(j0, run_start) : hold[p] + 1, p] = True
                 s_plus[p] = s_minus[p] = 0.0
         self.rows = n
         return alerts
@@ -458,22 +481,40 @@ def _change_point(ts, te, d, sd, mu, factor, p, run_start: int, j: int) -> int:
 def _step_alert(ts, te, d, sd, mu, factor, p, j0, j, name, idx, stat, k_allow, h) -> Alert:
     t_step = te[j0]  # difference row j0 brings in the data after the end of window j0
     r = _ramp(ts, te, j0, slice(j0, j + 1))  # ramp seen by difference rows j0..j
-    w = 1.0 / (factor[p] * sd[j0: j + 1, p]) ** 2
-    y = d[j0: j + 1, p] - mu[p]
+    w = 1.0 / (factor[p] * sd[j0 : j + 1, p]) ** 2
+    y = d[j0 : j + 1, p] - mu[p]
     info = float(np.sum(w * r * r))
     size = float(np.sum(w * r * y) / info) if info > 0 else float("nan")
     se = 1.0 / math.sqrt(info) if info > 0 else float("nan")
     sig = size / se if info > 0 else float("nan")
-    msg = (f"step of {size:+.3f} mm/rad in {name} at {format_time(t_step)} "
-           f"({abs(sig):.1f} sigma), detected at {format_time(te[j + 1])}")
-    return Alert(kind=STEP, coefficient=name, t=float(t_step), value=size, significance=sig, message=msg,
-                 t_detected=float(te[j + 1]), index=idx[j + 1],
-                 details={"se": se, "cusum": stat, "allowance": k_allow, "threshold": h,
-                          "change_index": idx[j0 + 1], "baseline_mm_per_window": float(mu[p]),
-                          "scatter_factor": float(factor[p]), "differences": int(j - j0 + 1)})
+    msg = (
+        f"step of {size:+.3f} mm/rad in {name} at {format_time(t_step)} "
+        f"({abs(sig):.1f} sigma), detected at {format_time(te[j + 1])}"
+    )
+    return Alert(
+        kind=STEP,
+        coefficient=name,
+        t=float(t_step),
+        value=size,
+        significance=sig,
+        message=msg,
+        t_detected=float(te[j + 1]),
+        index=idx[j + 1],
+        details={
+            "se": se,
+            "cusum": stat,
+            "allowance": k_allow,
+            "threshold": h,
+            "change_index": idx[j0 + 1],
+            "baseline_mm_per_window": float(mu[p]),
+            "scatter_factor": float(factor[p]),
+            "differences": int(j - j0 + 1),
+        },
+    )
 
 
 # ---------------------------------------------------------------------------- drifts
+
 
 @dataclass
 class TrendEstimates:
@@ -506,10 +547,19 @@ class TrendEstimates:
     steps: dict = field(default_factory=dict)
 
 
-def trend_estimates(times, coefficients, sigma, *, t_start=None, window: float | None = None,
-                    names: Sequence[str] | None = None, units: str = "m/rad",
-                    steps: Sequence[Alert] = (), at: float | None = None,
-                    settings: TrendSettings | None = None) -> TrendEstimates:
+def trend_estimates(
+    times,
+    coefficients,
+    sigma,
+    *,
+    t_start=None,
+    window: float | None = None,
+    names: Sequence[str] | None = None,
+    units: str = "m/rad",
+    steps: Sequence[Alert] = (),
+    at: float | None = None,
+    settings: TrendSettings | None = None,
+) -> TrendEstimates:
     """GLS line through the fits of the last ``lookback`` with the overlap covariance.
 
     Parameters are those of :func:`detect_steps`; ``steps`` are step alerts whose steps
@@ -524,8 +574,16 @@ def trend_estimates(times, coefficients, sigma, *, t_start=None, window: float |
     sel = (te <= t_end) & (te > t_end - s.drift_lookback)
     n = int(sel.sum())
     if n < max(3, s.drift_min_windows):
-        return TrendEstimates(tuple(names), nan, nan.copy(), nan.copy(), nan.copy(), n,
-                              float(te[sel][0]) if n else float("nan"), float(t_end))
+        return TrendEstimates(
+            tuple(names),
+            nan,
+            nan.copy(),
+            nan.copy(),
+            nan.copy(),
+            n,
+            float(te[sel][0]) if n else float("nan"),
+            float(t_end),
+        )
     ts, te, C, S = ts[sel], te[sel], C[sel], S[sel]
     rho = window_correlation(ts, te)
     centre = 0.5 * (ts + te)
@@ -581,11 +639,20 @@ def trend_estimates(times, coefficients, sigma, *, t_start=None, window: float |
     return TrendEstimates(tuple(names), rate, se, sig, chi2dof, n, float(te[0]), float(te[-1]), modelled)
 
 
-def detect_drifts(times, coefficients, sigma, *, t_start=None, window: float | None = None,
-                  names: Sequence[str] | None = None, units: str = "m/rad",
-                  steps: Sequence[Alert] = (), at: float | None = None,
-                  indices: Sequence[int] | None = None,
-                  settings: TrendSettings | None = None) -> list[Alert]:
+def detect_drifts(
+    times,
+    coefficients,
+    sigma,
+    *,
+    t_start=None,
+    window: float | None = None,
+    names: Sequence[str] | None = None,
+    units: str = "m/rad",
+    steps: Sequence[Alert] = (),
+    at: float | None = None,
+    indices: Sequence[int] | None = None,
+    settings: TrendSettings | None = None,
+) -> list[Alert]:
     """Drift alerts: coefficients whose linear trend over the last ``drift_lookback`` is
     significant (``|rate| / se >= drift_threshold``), evaluated at the last fit (or ``at``).
 
@@ -593,8 +660,18 @@ def detect_drifts(times, coefficients, sigma, *, t_start=None, window: float | N
     first.
     """
     s = settings or TrendSettings()
-    est = trend_estimates(times, coefficients, sigma, t_start=t_start, window=window, names=names, units=units,
-                          steps=steps, at=at, settings=s)
+    est = trend_estimates(
+        times,
+        coefficients,
+        sigma,
+        t_start=t_start,
+        window=window,
+        names=names,
+        units=units,
+        steps=steps,
+        at=at,
+        settings=s,
+    )
     t_stop = np.asarray(times, dtype=float).reshape(-1)
     last = int(np.searchsorted(t_stop, est.t_last, side="right") - 1) if t_stop.size else 0
     index = None if indices is None or not len(indices) else int(list(indices)[max(0, last)])
@@ -604,18 +681,35 @@ def detect_drifts(times, coefficients, sigma, *, t_start=None, window: float | N
         if not (np.isfinite(z) and abs(z) >= s.drift_threshold):
             continue
         name = est.names[p]
-        msg = (f"drift of {est.rate[p]:+.3f} mm/rad/day in {name} over the last "
-               f"{(est.t_last - est.t_first) / DAY + 0.0:.2f} d of fits ({abs(z):.1f} sigma)")
-        alerts.append(Alert(kind=DRIFT, coefficient=name, t=est.t_last, value=float(est.rate[p]),
-                            significance=float(z), message=msg, t_detected=est.t_last, index=index,
-                            details={"se": float(est.se[p]), "chi2_dof": float(est.chi2_dof[p]),
-                                     "windows": est.windows, "t_first": est.t_first,
-                                     "lookback": s.drift_lookback,
-                                     "steps_modelled": est.steps.get(name, [])}))
+        msg = (
+            f"drift of {est.rate[p]:+.3f} mm/rad/day in {name} over the last "
+            f"{(est.t_last - est.t_first) / DAY + 0.0:.2f} d of fits ({abs(z):.1f} sigma)"
+        )
+        alerts.append(
+            Alert(
+                kind=DRIFT,
+                coefficient=name,
+                t=est.t_last,
+                value=float(est.rate[p]),
+                significance=float(z),
+                message=msg,
+                t_detected=est.t_last,
+                index=index,
+                details={
+                    "se": float(est.se[p]),
+                    "chi2_dof": float(est.chi2_dof[p]),
+                    "windows": est.windows,
+                    "t_first": est.t_first,
+                    "lookback": s.drift_lookback,
+                    "steps_modelled": est.steps.get(name, []),
+                },
+            )
+        )
     return alerts
 
 
 # ---------------------------------------------------------------------------- streaming use
+
 
 class TrendMonitor:
     """Feeds fits one at a time and reports each new alert once (used by the monitor stage).
@@ -636,8 +730,13 @@ class TrendMonitor:
         History kept [s] (default 30 days).
     """
 
-    def __init__(self, names: Sequence[str] | None = None, settings: TrendSettings | None = None,
-                 units: str = "m/rad", max_history: float = 30 * DAY):
+    def __init__(
+        self,
+        names: Sequence[str] | None = None,
+        settings: TrendSettings | None = None,
+        units: str = "m/rad",
+        max_history: float = 30 * DAY,
+    ):
         self.names = tuple(names) if names is not None else COEFFICIENT_NAMES
         self.settings = settings or TrendSettings()
         self.units = units
@@ -679,7 +778,7 @@ class TrendMonitor:
         # steps: the causal scan goes on from the fits scanned before (O(baseline) per fit);
         # from the start again when the history changed otherwise (a refit, trimmed history)
         keys = [(i, self._fits[i][1]) for i in order]
-        if self._scan is None or keys[:len(self._scanned)] != self._scanned or len(keys) < 2:
+        if self._scan is None or keys[: len(self._scanned)] != self._scanned or len(keys) < 2:
             self._scan, self._scanned = _StepScan(len(self.names)), []
         found = []
         if len(keys) >= 2:
@@ -691,11 +790,21 @@ class TrendMonitor:
                 self.alerts.append(a)
                 new.append(a)
         steps = [a for a in self.alerts if a.kind == STEP]
-        self.estimates = trend_estimates(te, Cs, Ss, t_start=ts, names=self.names, units=self.units,
-                                         steps=steps, settings=self.settings)
+        self.estimates = trend_estimates(
+            te, Cs, Ss, t_start=ts, names=self.names, units=self.units, steps=steps, settings=self.settings
+        )
         z = np.nan_to_num(np.abs(self.estimates.significance), nan=0.0)
-        for a in detect_drifts(te, Cs, Ss, t_start=ts, names=self.names, units=self.units, steps=steps,
-                               indices=order, settings=self.settings):
+        for a in detect_drifts(
+            te,
+            Cs,
+            Ss,
+            t_start=ts,
+            names=self.names,
+            units=self.units,
+            steps=steps,
+            indices=order,
+            settings=self.settings,
+        ):
             if a.coefficient not in self._drifting:
                 self._drifting.add(a.coefficient)
                 self.alerts.append(a)
@@ -709,8 +818,7 @@ class TrendMonitor:
         """Already reported: same coefficient, step time within one window length."""
         lengths = [te - ts for ts, te, _, _ in self._fits.values()]
         length = float(np.median(lengths)) if lengths else 0.0
-        return any(b.kind == STEP and b.coefficient == a.coefficient and abs(b.t - a.t) <= length
-                   for b in self.alerts)
+        return any(b.kind == STEP and b.coefficient == a.coefficient and abs(b.t - a.t) <= length for b in self.alerts)
 
     @property
     def drifting(self) -> frozenset:

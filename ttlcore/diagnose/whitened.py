@@ -201,10 +201,10 @@ class WhitenedData:
         """(3, k, n) decimated series -> band spectra (S, m, 3, k), masked like the data."""
         out = np.empty((len(self.starts), self.f.size, x.shape[0], x.shape[1]), dtype=complex)
         for i, s0 in enumerate(self.starts):
-            seg = x[:, :, s0:s0 + self.L]
-            m = self.mask[s0:s0 + self.L]
+            seg = x[:, :, s0 : s0 + self.L]
+            m = self.mask[s0 : s0 + self.L]
             seg = np.where(m, np.nan_to_num(seg), 0.0)
-            bad = ~np.isfinite(x[:, :, s0:s0 + self.L]) & m
+            bad = ~np.isfinite(x[:, :, s0 : s0 + self.L]) & m
             if bad.any():
                 raise ConfigError("a regressor column is not finite inside the analysed span")
             _, X = segment_fft(seg, self.fs, self.win * m, workers=None)
@@ -233,12 +233,20 @@ class WhitenedData:
         dd = np.empty_like(self.dd)
         for g, (a, b) in enumerate(self.slices):
             dd[:, g] = np.sum(np.abs(wd[:, a:b]) ** 2, axis=(1, 2))
-        return replace(self, noise_csd=csd, Lh=Lh, noise_key=noise_digest(csd), wd=wd, dd=dd,
-                       noise_parameters=self.noise_parameters if noise_parameters is ... else noise_parameters)
+        return replace(
+            self,
+            noise_csd=csd,
+            Lh=Lh,
+            noise_key=noise_digest(csd),
+            wd=wd,
+            dd=dd,
+            noise_parameters=self.noise_parameters if noise_parameters is ... else noise_parameters,
+        )
 
 
-def whiten_tdi(td: TDIData, settings: DiagnoseSettings | None = None, tm=None, effect_modules=(),
-               dws_asd: float | None = None) -> WhitenedData:
+def whiten_tdi(
+    td: TDIData, settings: DiagnoseSettings | None = None, tm=None, effect_modules=(), dws_asd: float | None = None
+) -> WhitenedData:
     """Build the :class:`WhitenedData` of TDI outputs (with the telemetry they come from,
     when there is one).
 
@@ -285,17 +293,46 @@ def whiten_tdi(td: TDIData, settings: DiagnoseSettings | None = None, tm=None, e
     edges = merged_band_edges(f, default_band_edges(s.band, s.n_bands), 6 * len(starts), s.min_band_dof)
     G = len(edges) - 1
     band_index = np.clip(np.searchsorted(edges, f, side="right") - 1, 0, G - 1)
-    w2 = np.stack([(win * mask[s0:s0 + L]) ** 2 for s0 in starts])
+    w2 = np.stack([(win * mask[s0 : s0 + L]) ** 2 for s0 in starts])
     data = WhitenedData(
-        settings=s, tm=tm, td_in=tda, effect_modules=tuple(effect_modules),
-        registry=available_effects(tuple(effect_modules)), dws_asd=dws, ltt_mean=ltt_mean, decimation=factor,
-        fs_in=tda.fs, t0_in=tda.t0, fs=fs, t0=t0, mask=mask, L=L, starts=starts, seg_t0=seg_t0,
-        seg_duration=L / fs, win=win, f=f, bins=bins, edges=edges, G=G, band_index=band_index,
-        slices=band_slices(band_index, G), kappa=variance_factor(s.window, 4096, 0.0),
-        w2=w2 / w2.sum(axis=1, keepdims=True), data_series=dec.data, d=np.empty(0), regressor_names=tuple(dec.names),
+        settings=s,
+        tm=tm,
+        td_in=tda,
+        effect_modules=tuple(effect_modules),
+        registry=available_effects(tuple(effect_modules)),
+        dws_asd=dws,
+        ltt_mean=ltt_mean,
+        decimation=factor,
+        fs_in=tda.fs,
+        t0_in=tda.t0,
+        fs=fs,
+        t0=t0,
+        mask=mask,
+        L=L,
+        starts=starts,
+        seg_t0=seg_t0,
+        seg_duration=L / fs,
+        win=win,
+        f=f,
+        bins=bins,
+        edges=edges,
+        G=G,
+        band_index=band_index,
+        slices=band_slices(band_index, G),
+        kappa=variance_factor(s.window, 4096, 0.0),
+        w2=w2 / w2.sum(axis=1, keepdims=True),
+        data_series=dec.data,
+        d=np.empty(0),
+        regressor_names=tuple(dec.names),
         regressor_series=dec.regressors,
-        ttl_names=tuple(nm for nm in dec.names if nm in COEFFICIENT_NAMES), noise_csd=np.empty(0), Lh=np.empty(0),
-        noise_key="", wd=np.empty(0), dd=np.empty(0), store=ColumnStore())
+        ttl_names=tuple(nm for nm in dec.names if nm in COEFFICIENT_NAMES),
+        noise_csd=np.empty(0),
+        Lh=np.empty(0),
+        noise_key="",
+        wd=np.empty(0),
+        dd=np.empty(0),
+        store=ColumnStore(),
+    )
     d = data.spectra(dec.data[:, None, :])[..., 0]
     R = data.spectra(dec.regressors)
     C0 = None
@@ -306,9 +343,14 @@ def whiten_tdi(td: TDIData, settings: DiagnoseSettings | None = None, tm=None, e
         # few per cent; the ten passes of the standard fit moved the diagnosis' coefficients by
         # 1e-3 sigma and chi^2/dof by 6e-7 (bench day with a witness, 1 day) and cost 40 % of a
         # window refit, which the live fitter makes every segment
-        res, _ = fit_spectra(sp, ltt_mean, FitSettings(band=s.band, notch=False, dws_asd=dws, iterations=0,
-                                                        robust_covariance=False, n_bands=s.n_bands),
-                             names=tuple(dec.names))
+        res, _ = fit_spectra(
+            sp,
+            ltt_mean,
+            FitSettings(
+                band=s.band, notch=False, dws_asd=dws, iterations=0, robust_covariance=False, n_bands=s.n_bands
+            ),
+            names=tuple(dec.names),
+        )
         C0 = res.coefficients[[dec.names.index(nm) for nm in COEFFICIENT_NAMES]]
     csd = instrument_noise_csd(f, ltt_mean, C0, dws)
     Lh = whitening(csd)
@@ -327,12 +369,25 @@ def whiten_telemetry(tm, settings: DiagnoseSettings | None = None, effect_module
     (:func:`ttlcore.diagnose.effects.tdi_in_blocks`): the interpolation taps of a day would
     hold ~4 GB."""
     s = settings or DiagnoseSettings()
-    data, regs = tdi_in_blocks(tm.ltt, tm.fs, LinearTTL().columns(effect_input_from_telemetry(tm)), tm.eta,
-                               order=s.order, delay_order=s.delay_order)
+    data, regs = tdi_in_blocks(
+        tm.ltt,
+        tm.fs,
+        LinearTTL().columns(effect_input_from_telemetry(tm)),
+        tm.eta,
+        order=s.order,
+        delay_order=s.delay_order,
+    )
     # A, E, T here, X2, Y2, Z2 freed before the whitening: a day's 24 regressors are 200 MB
     # in each (what whiten_tdi does first, with the same numbers)
-    td = TDIData(t0=float(tm.t0), fs=float(tm.fs), channels=tuple(c.name for c in MICHELSON), data=data,
-                 regressors=regs, names=COEFFICIENT_NAMES, ltt_mean=np.nanmean(np.asarray(tm.ltt), axis=-1)).to_aet()
+    td = TDIData(
+        t0=float(tm.t0),
+        fs=float(tm.fs),
+        channels=tuple(c.name for c in MICHELSON),
+        data=data,
+        regressors=regs,
+        names=COEFFICIENT_NAMES,
+        ltt_mean=np.nanmean(np.asarray(tm.ltt), axis=-1),
+    ).to_aet()
     del data, regs
     dws = s.dws_asd if s.dws_asd is not None else dws_asd_from_config(tm.config)
     return whiten_tdi(td, s, tm=tm, effect_modules=effect_modules, dws_asd=dws)

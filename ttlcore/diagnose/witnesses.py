@@ -74,7 +74,7 @@ def witness_library(tm, dg) -> tuple[list[dict], dict]:
             seg = np.zeros(L)
             a, b = max(i0, 0), min(i0 + L, tm.size)
             if b > a:
-                seg[a - i0:b - i0] = x[a:b]
+                seg[a - i0 : b - i0] = x[a:b]
             f, X = segment_fft(seg, fs, win, workers=None)
             out[i] = np.interp(dg.f, f, X.real) + 1j * np.interp(dg.f, f, X.imag)
         return out
@@ -94,32 +94,75 @@ def witness_library(tm, dg) -> tuple[list[dict], dict]:
             raw[key] = spectra(w)
             for link in LINKS:
                 for n_delay in (0, 1, 2):
-                    lib.append({"name": f"dws {key} on {link}" + (f" delayed {n_delay}L" if n_delay else ""), "family": "dws",
-                                "series": key, "link": link, "delay": n_delay * ltt[link], "derivative": False,
-                                "spec": witness_spec(key, link, n_delay)})
+                    lib.append(
+                        {
+                            "name": f"dws {key} on {link}" + (f" delayed {n_delay}L" if n_delay else ""),
+                            "family": "dws",
+                            "series": key,
+                            "link": link,
+                            "delay": n_delay * ltt[link],
+                            "derivative": False,
+                            "spec": witness_spec(key, link, n_delay),
+                        }
+                    )
                 for n_delay in (0, 1):
-                    lib.append({"name": f"d/dt dws {key} on {link}" + (" delayed 1L" if n_delay else ""),
-                                "family": "derivative", "series": key, "link": link, "delay": n_delay * ltt[link],
-                                "derivative": True, "spec": witness_spec(key, link, n_delay, derivative=True)})
+                    lib.append(
+                        {
+                            "name": f"d/dt dws {key} on {link}" + (" delayed 1L" if n_delay else ""),
+                            "family": "derivative",
+                            "series": key,
+                            "link": link,
+                            "delay": n_delay * ltt[link],
+                            "derivative": True,
+                            "spec": witness_spec(key, link, n_delay, derivative=True),
+                        }
+                    )
             raw[f"time {key}"] = spectra((t - t_mid) / T * w)
             for side, link, dl in (("rx", m, 0.0), ("tx", reverse(m), ltt[reverse(m)])):
-                lib.append({"name": f"t x dws {key} ({side})", "family": "time", "series": f"time {key}", "link": link,
-                            "delay": dl, "derivative": False, "spec": f"drift:mosas={m};angles={a};sides={side}"})
+                lib.append(
+                    {
+                        "name": f"t x dws {key} ({side})",
+                        "family": "time",
+                        "series": f"time {key}",
+                        "link": link,
+                        "delay": dl,
+                        "derivative": False,
+                        "spec": f"drift:mosas={m};angles={a};sides={side}",
+                    }
+                )
                 for ts in boundaries:
                     skey = f"step {ts:.0f} {key}"
                     if skey not in raw:
                         raw[skey] = spectra((t >= ts) * w)
-                    lib.append({"name": f"H(t - {(ts - tm.t0) / 3600:.1f} h) x dws {key} ({side})", "family": "step",
-                                "series": skey, "link": link, "delay": dl, "derivative": False, "t_step": float(ts),
-                                "spec": f"step:t_step={ts:.0f};mosas={m};angles={a};sides={side}"})
+                    lib.append(
+                        {
+                            "name": f"H(t - {(ts - tm.t0) / 3600:.1f} h) x dws {key} ({side})",
+                            "family": "step",
+                            "series": skey,
+                            "link": link,
+                            "delay": dl,
+                            "derivative": False,
+                            "t_step": float(ts),
+                            "spec": f"step:t_step={ts:.0f};mosas={m};angles={a};sides={side}",
+                        }
+                    )
         for pair in ("phiphi", "etaeta", "phieta"):
             a, b = pair[:3], pair[3:]
             x = -(vel[a][k] * angles[b][k] + angles[a][k] * vel[b][k]) / C
             key = f"{m}.{pair}"
             raw[key] = spectra(x)
             for side, link, dl in (("rx", m, 0.0), ("tx", reverse(m), ltt[reverse(m)])):
-                lib.append({"name": f"d/dt({a} {b}) {m} ({side})", "family": "product", "series": key, "link": link,
-                            "delay": dl, "derivative": False, "spec": witness_spec(key, link, 0 if side == "rx" else 1)})
+                lib.append(
+                    {
+                        "name": f"d/dt({a} {b}) {m} ({side})",
+                        "family": "product",
+                        "series": key,
+                        "link": link,
+                        "delay": dl,
+                        "derivative": False,
+                        "spec": witness_spec(key, link, 0 if side == "rx" else 1),
+                    }
+                )
     return lib, raw
 
 
@@ -162,26 +205,46 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
         n = P * n_link[:, li]
         if w["derivative"]:  # conj(i omega X) = -i omega conj(X)
             b = b * (-1j * omega)
-            n = n * omega ** 2
+            n = n * omega**2
         if w["delay"]:  # conj(X exp(-i omega delay)) = conj(X) exp(+i omega delay)
             b = b * np.exp(1j * omega * w["delay"])
         bsum = b @ onehot
         nsum = n @ onehot
         with np.errstate(invalid="ignore", divide="ignore"):
-            dchi2[i] = np.where(nsum > 0, 2 * bsum.real ** 2 / nsum, 0.0) / dg.kappa
+            dchi2[i] = np.where(nsum > 0, 2 * bsum.real**2 / nsum, 0.0) / dg.kappa
             coh[i] = np.where(nsum > 0, np.abs(bsum) ** 2 / (nsum * rr), 0.0)
     bands = []
     for g in range(G):
         order = np.argsort(-dchi2[:, g])[:top]
-        bands.append({"f_lo": float(dg.edges[g]), "f_hi": float(dg.edges[g + 1]),
-                      "top": [{"name": lib[i]["name"], "family": lib[i]["family"], "spec": lib[i]["spec"],
-                               "delta_chi2": float(dchi2[i, g]),
-                               "coherence": float(coh[i, g])} for i in order]})
+        bands.append(
+            {
+                "f_lo": float(dg.edges[g]),
+                "f_hi": float(dg.edges[g + 1]),
+                "top": [
+                    {
+                        "name": lib[i]["name"],
+                        "family": lib[i]["family"],
+                        "spec": lib[i]["spec"],
+                        "delta_chi2": float(dchi2[i, g]),
+                        "coherence": float(coh[i, g]),
+                    }
+                    for i in order
+                ],
+            }
+        )
     total = dchi2.sum(axis=1)
     order = np.argsort(-total)[:top]
-    overall = [{"name": lib[i]["name"], "family": lib[i]["family"], "spec": lib[i]["spec"], "delta_chi2": float(total[i]),
-                "best_band": [float(dg.edges[int(np.argmax(dchi2[i]))]), float(dg.edges[int(np.argmax(dchi2[i])) + 1])],
-                "coherence_max": float(coh[i].max())} for i in order]
+    overall = [
+        {
+            "name": lib[i]["name"],
+            "family": lib[i]["family"],
+            "spec": lib[i]["spec"],
+            "delta_chi2": float(total[i]),
+            "best_band": [float(dg.edges[int(np.argmax(dchi2[i]))]), float(dg.edges[int(np.argmax(dchi2[i])) + 1])],
+            "coherence_max": float(coh[i].max()),
+        }
+        for i in order
+    ]
     # coherence spectra of the top witnesses (running mean over ~2 % of f): the frequency of
     # each one's peak, and the curves of the first ``coherence_of`` for the figure
     spectra = {}
@@ -193,7 +256,7 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
         li = LINKS.index(w["link"])
         b, n = B[:, li], P * n_link[:, li]
         if w["derivative"]:
-            b, n = b * (-1j * omega), n * omega ** 2
+            b, n = b * (-1j * omega), n * omega**2
         if w["delay"]:
             b = b * np.exp(1j * omega * w["delay"])
         curve = _smoothed_coherence(dg.f, b, n, rrf)
@@ -202,8 +265,13 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
         overall[k]["peak_coherence"] = float(vals.max())
         if k < coherence_of:
             spectra[w["name"]] = curve
-    return {"n_witnesses": len(lib), "families": sorted({w["family"] for w in lib}), "bands": bands,
-            "overall": overall, "coherence_spectra": {"f": _log_grid(dg.f).tolist(), "curves": spectra}}
+    return {
+        "n_witnesses": len(lib),
+        "families": sorted({w["family"] for w in lib}),
+        "bands": bands,
+        "overall": overall,
+        "coherence_spectra": {"f": _log_grid(dg.f).tolist(), "curves": spectra},
+    }
 
 
 def witness_spec(source: str, link: str, n_delay: int = 0, derivative: bool = False) -> str:
@@ -244,7 +312,7 @@ def witness_candidates(report: dict, top: int = 3, modules=()) -> list:
                 placements.append((*key, int(opts.get("delay", 0))))
     for i, (src, link, n) in enumerate(placements[:2]):
         where = f"source={src}" + (f";link={link}" if link != src.split(".")[0] else "")
-        for d in ((0, 1, 2) if i == 0 else (n,)):
+        for d in (0, 1, 2) if i == 0 else (n,):
             specs.append(f"fd-coupling:{where}" + (f";delay={d}" if d else ""))
         if i == 0:
             specs += [f"fd-coupling:{where}" + (f";delay={d}" if d else "") + ";filter=pole1" for d in (0, 1, 2)]
@@ -259,7 +327,7 @@ def _log_grid(f, per_decade: int = 30):
 
 def _smoothed_coherence(f, b, n, rr, per_decade: int = 30) -> list:
     grid = _log_grid(f, per_decade)
-    idx = np.clip(np.searchsorted(grid, f) , 0, grid.size - 1)
+    idx = np.clip(np.searchsorted(grid, f), 0, grid.size - 1)
     out: list = []
     for k in range(grid.size):
         sel = idx == k

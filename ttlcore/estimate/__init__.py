@@ -3,4 +3,4 @@ fit, the emcee sampler, the subtraction, the batch analysis of a file and what a
 the subtraction computes (noise curves of a segment, the truth over a fit's window).
 """
 
-__all__ = ['analyze', 'fit', 'mcmc', 'monitoring', 'noise_psd', 'rolling', 'spectra', 'subtraction']
+__all__ = ["analyze", "fit", "mcmc", "monitoring", "noise_psd", "rolling", "spectra", "subtraction"]

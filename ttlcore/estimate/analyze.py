@@ -77,8 +77,10 @@ def check_band(band, fs: float = 4.0, segment_duration: float | None = None) -> 
     if segment_duration is not None:
         nbins = math.floor(fmax * segment_duration) - math.ceil(fmin * segment_duration) + 1
         if nbins < 5:
-            raise TTLError(f"--band: {fmin:g}-{fmax:g} Hz holds only {max(nbins, 0)} frequency bins of "
-                           f"{segment_duration:g} s segments; widen the band or lengthen --segment")
+            raise TTLError(
+                f"--band: {fmin:g}-{fmax:g} Hz holds only {max(nbins, 0)} frequency bins of "
+                f"{segment_duration:g} s segments; widen the band or lengthen --segment"
+            )
     return fmin, fmax
 
 
@@ -90,14 +92,20 @@ def data_loss(tm, td) -> dict:
     bad = tm.missing()
     stretches = tm.nan_stretches()
     tdi_bad = ~(np.isfinite(td.data).all(axis=0) & np.isfinite(td.regressors).all(axis=(0, 1)))
-    return {"telemetry_samples_missing": int(bad.sum()), "stretches": stretches,
-            "seconds_missing": float(bad.sum() / tm.fs), "tdi_fraction_lost": float(tdi_bad.mean())}
+    return {
+        "telemetry_samples_missing": int(bad.sum()),
+        "stretches": stretches,
+        "seconds_missing": float(bad.sum() / tm.fs),
+        "tdi_fraction_lost": float(tdi_bad.mean()),
+    }
 
 
 def _check_segment(segment: float, duration: float, path) -> None:
     if segment > duration:
-        raise TTLError(f"--segment: {segment:g} s segments need at least that much data, but {path} "
-                       f"holds {duration:g} s; give a shorter --segment")
+        raise TTLError(
+            f"--segment: {segment:g} s segments need at least that much data, but {path} "
+            f"holds {duration:g} s; give a shorter --segment"
+        )
 
 
 def check_method(method: str) -> str:
@@ -111,16 +119,17 @@ def check_method(method: str) -> str:
 # Truth
 # ---------------------------------------------------------------------------
 
+
 class _Truth:
     """What the analysis knows of the truth: a coefficient source and maybe a TTL series."""
 
     def __init__(self, path: Path, source: str, coefficients=None, series=None, ttl=None, t=None):
         self.path = path
-        self.source = source            # "ttl-truth" or "lisainstrument"
-        self.static = coefficients      # (24,) for lisainstrument
-        self.series = series            # (24, n) on the data's samples, our truth files
-        self.ttl = ttl                  # (6, n) on the data's samples, our truth files
-        self.t = t                      # (n,) sample times
+        self.source = source  # "ttl-truth" or "lisainstrument"
+        self.static = coefficients  # (24,) for lisainstrument
+        self.series = series  # (24, n) on the data's samples, our truth files
+        self.ttl = ttl  # (6, n) on the data's samples, our truth files
+        self.t = t  # (n,) sample times
 
     def mean_coefficients(self, t_start: float, t_stop: float) -> tuple[np.ndarray, bool]:
         """Mean true coefficients over ``[t_start, t_stop)`` and whether they vary in time."""
@@ -144,11 +153,17 @@ def load_truth(path, tm, data_kind: str, data_path) -> _Truth:
     path = Path(path)
     kind = file_kind(path)
     if kind == "ttl":
-        raise TelemetryError(path, f"--truth names a telemetry file, not a truth file (ours sit beside the data as {default_truth_path(path).name})")
+        raise TelemetryError(
+            path,
+            f"--truth names a telemetry file, not a truth file (ours sit beside the data as {default_truth_path(path).name})",
+        )
     if kind == "lisainstrument":
         if data_kind != "lisainstrument":
-            raise TelemetryError(path, "--truth: a lisainstrument file gives the truth of lisainstrument data only; "
-                                       f"for {Path(data_path).name} give its truth file {default_truth_path(data_path).name}")
+            raise TelemetryError(
+                path,
+                "--truth: a lisainstrument file gives the truth of lisainstrument data only; "
+                f"for {Path(data_path).name} give its truth file {default_truth_path(data_path).name}",
+            )
         flat = lisainstrument_truth(path)
         return _Truth(path, "lisainstrument", coefficients=np.array([flat[n] for n in COEFFICIENT_NAMES]))
     # our truth file: align it with the data's samples
@@ -157,13 +172,21 @@ def load_truth(path, tm, data_kind: str, data_path) -> _Truth:
         raise TelemetryError(path, f"sampled at {tr.fs:g} Hz but the data at {tm.fs:g} Hz", "@fs")
     i0 = int(round((tm.t0 - tr.t0) * tm.fs))
     if abs(i0 / tm.fs - (tm.t0 - tr.t0)) > 1e-3 / tm.fs or i0 < 0 or i0 + tm.size > tr.size:
-        raise TelemetryError(path, f"does not cover the data's samples (data t0 {tm.t0:g} s, {tm.size} samples; "
-                                   f"truth t0 {tr.t0:g} s, {tr.size} samples); wrong truth file?", "@t0")
+        raise TelemetryError(
+            path,
+            f"does not cover the data's samples (data t0 {tm.t0:g} s, {tm.size} samples; "
+            f"truth t0 {tr.t0:g} s, {tr.size} samples); wrong truth file?",
+            "@t0",
+        )
     if tm.config and tr.config:
         differ = [k for k in _SIMULATION_KEYS if tm.config.get(k) != tr.config.get(k)]
         if differ:
-            raise TelemetryError(path, f"belongs to another simulation than {Path(data_path).name} "
-                                       f"(configuration differs in {', '.join(differ)}); wrong truth file?", "@config")
+            raise TelemetryError(
+                path,
+                f"belongs to another simulation than {Path(data_path).name} "
+                f"(configuration differs in {', '.join(differ)}); wrong truth file?",
+                "@config",
+            )
     sl = slice(i0, i0 + tm.size)
     return _Truth(path, "ttl-truth", series=tr.coefficients[:, sl], ttl=tr.ttl[:, sl], t=tm.t)
 
@@ -172,9 +195,19 @@ def load_truth(path, tm, data_kind: str, data_path) -> _Truth:
 # The analysis
 # ---------------------------------------------------------------------------
 
-def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls", out_dir,
-            settings: FitSettings | None = None, progress=None, figures: bool = True,
-            mcmc_options: dict | None = None) -> dict:
+
+def analyze(
+    data_path,
+    *,
+    truth_path=None,
+    band=DEFAULT_BAND,
+    method: str = "gls",
+    out_dir,
+    settings: FitSettings | None = None,
+    progress=None,
+    figures: bool = True,
+    mcmc_options: dict | None = None,
+) -> dict:
     """Fit the TTL coefficients of a telemetry file, subtract them and write the results.
 
     Parameters
@@ -238,11 +271,12 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
     # --- check the inputs before any work (and before any progress output)
     data_kind = file_kind(data_path)
     if data_kind == "truth":
-        raise TelemetryError(data_path, "this is a truth file; analyse the telemetry file beside it (pass this one with --truth)")
+        raise TelemetryError(
+            data_path, "this is a truth file; analyse the telemetry file beside it (pass this one with --truth)"
+        )
     if truth_path is not None:
         file_kind(truth_path)
     if data_kind == "ttl":  # our files tell their length without reading the series
-
         _check_segment(s.segment_duration, read_header(data_path)["duration"], data_path)
 
     # --- read
@@ -261,9 +295,11 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
     td = compute_tdi(tm)
     loss = data_loss(tm, td)
     if loss["telemetry_samples_missing"]:
-        say(f"gaps: {loss['telemetry_samples_missing']} telemetry samples missing (NaN) in "
+        say(
+            f"gaps: {loss['telemetry_samples_missing']} telemetry samples missing (NaN) in "
             f"{len(loss['stretches'])} stretch(es); {100 * loss['tdi_fraction_lost']:.2f} % of the TDI samples lost "
-            "(the fit masks them)")
+            "(the fit masks them)"
+        )
     lap("tdi")
 
     # --- fit (truth never enters here)
@@ -274,8 +310,10 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
         else:
             res = _fit_mcmc(td, s, say, mcmc_options)
     except np.linalg.LinAlgError:
-        raise TTLError(f"{data_path}: the fit's normal equations are singular (no jitter in the DWS readouts, "
-                       "or too little data in the band?)") from None
+        raise TTLError(
+            f"{data_path}: the fit's normal equations are singular (no jitter in the DWS readouts, "
+            "or too little data in the band?)"
+        ) from None
     except ValueError as exc:
         raise TTLError(f"{data_path}: fit failed: {exc}") from None
     lap("fit")
@@ -286,18 +324,23 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
     if truth is not None:
         truth_mean, varying = truth.mean_coefficients(res.t_start, res.t_stop)
         if varying:
-            notes.append("true coefficients vary in time: 'truth' is their mean over the fit window, "
-                         "and the residual with true coefficients uses that mean")
+            notes.append(
+                "true coefficients vary in time: 'truth' is their mean over the fit window, "
+                "and the residual with true coefficients uses that mean"
+            )
         if truth.ttl is None:
-            notes.append("the truth (lisainstrument file) holds no TTL time series: TTL residual and "
-                         "noise without TTL are not computed")
+            notes.append(
+                "the truth (lisainstrument file) holds no TTL time series: TTL residual and "
+                "noise without TTL are not computed"
+            )
     else:
         notes.append("no truth given: coefficient errors, TTL residual and noise without TTL not computed")
 
     # --- subtraction
     say("subtraction in the time domain")
-    sub = analyse_subtraction(td, res.coefficients, true_coefficients=truth_mean,
-                              ttl_truth=None if truth is None else truth.ttl, ltt=tm.ltt)
+    sub = analyse_subtraction(
+        td, res.coefficients, true_coefficients=truth_mean, ttl_truth=None if truth is None else truth.ttl, ltt=tm.ltt
+    )
     lap("subtraction")
 
     # --- fit.json
@@ -307,15 +350,27 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
         paths["coefficients"] = out_dir / "coefficients.png"
     content = res.to_json(truth=truth_mean)
     content["units"] = "m/rad"
-    content["data"] = {"file": str(data_path), "kind": data_kind, "t0": tm.t0, "fs": tm.fs, "size": tm.size,
-                       "duration_s": tm.duration}
+    content["data"] = {
+        "file": str(data_path),
+        "kind": data_kind,
+        "t0": tm.t0,
+        "fs": tm.fs,
+        "size": tm.size,
+        "duration_s": tm.duration,
+    }
     content["data_loss"] = loss
     content["truth_file"] = None if truth is None else str(truth.path)
     content["truth_source"] = None if truth is None else truth.source
     content["ttl_residual_available"] = sub.ttl_residual is not None
-    content["settings"] = {"segment_duration": s.segment_duration, "window": s.window, "overlap": s.overlap,
-                           "notch": s.notch, "eiv": s.eiv, "robust_covariance": s.robust_covariance,
-                           "fit_fs": FIT_FS}
+    content["settings"] = {
+        "segment_duration": s.segment_duration,
+        "window": s.window,
+        "overlap": s.overlap,
+        "notch": s.notch,
+        "eiv": s.eiv,
+        "robust_covariance": s.robust_covariance,
+        "fit_fs": FIT_FS,
+    }
     content["notes"] = notes
     content["files"] = {k: str(v) for k, v in paths.items()}
     # made only now that the fit has succeeded: a failed analysis (all data NaN, a singular
@@ -324,20 +379,32 @@ def analyze(data_path, *, truth_path=None, band=DEFAULT_BAND, method: str = "gls
 
     # --- figures
     if figures:
-
         say("ASDs and figures")
         arm = C * float(np.mean(td.ltt_mean))
         curves = asd_x_curves(sub, arm_length=arm)
         content["asd_x_vs_requirement"] = requirement_summary(curves, s.band)
         title = f"{data_path.name}: {method.upper()} fit {s.band[0]:g}-{s.band[1]:g} Hz"
         plot_asd_x(sub, paths["asd_x"], band=s.band, arm_length=arm, title=title, curves=curves)
-        plot_coefficients(res.names, res.coefficients, res.sigma, paths["coefficients"], truth=truth_mean,
-                          title=f"{title}, chi2/dof {res.chi2_dof:.3f}")
+        plot_coefficients(
+            res.names,
+            res.coefficients,
+            res.sigma,
+            paths["coefficients"],
+            truth=truth_mean,
+            title=f"{title}, chi2/dof {res.chi2_dof:.3f}",
+        )
         lap("figures")
     content["timings_s"] = timings
     write_json(paths["fit_json"], content)
-    return {"fit": res, "fit_json": content, "subtraction": sub, "tdi": td, "paths": paths, "timings": timings,
-            "notes": notes}
+    return {
+        "fit": res,
+        "fit_json": content,
+        "subtraction": sub,
+        "tdi": td,
+        "paths": paths,
+        "timings": timings,
+        "notes": notes,
+    }
 
 
 def _fit_mcmc(td, s: FitSettings, say, options: dict | None):

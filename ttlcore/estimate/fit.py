@@ -82,6 +82,7 @@ def dws_asd_from_config(config: dict, default: float = DWS_ASD) -> float:
 # Segment spectra
 # ---------------------------------------------------------------------------
 
+
 @dataclass
 class SegmentSpectra:
     """Band-limited, PSD-normalised spectra of one segment.
@@ -129,14 +130,15 @@ def gap_taper(ok: np.ndarray, samples: int) -> np.ndarray:
         if start == 0 or stop == n or samples <= 0:
             continue
         a = max(0, start - samples)
-        w[a:start] = np.minimum(w[a:start], ramp[::-1][samples - (start - a):])
+        w[a:start] = np.minimum(w[a:start], ramp[::-1][samples - (start - a) :])
         b = min(n, stop + samples)
         w[stop:b] = np.minimum(w[stop:b], ramp[: b - stop])
     return w
 
 
-def spectra_of_segment(data: np.ndarray, regressors: np.ndarray, t0: float, fs: float,
-                       band=DEFAULT_BAND, window_name: str = "rect") -> SegmentSpectra | None:
+def spectra_of_segment(
+    data: np.ndarray, regressors: np.ndarray, t0: float, fs: float, band=DEFAULT_BAND, window_name: str = "rect"
+) -> SegmentSpectra | None:
     """Spectra of one segment of TDI outputs (data (c, n), regressors (c, P, n)).
 
     Samples where data or any regressor are not finite (delays reaching before the start of
@@ -159,7 +161,7 @@ def spectra_of_segment(data: np.ndarray, regressors: np.ndarray, t0: float, fs: 
         # as they were: only gaps inside the segment are tapered and cost information
         valid = np.flatnonzero(ok)
         edges = np.zeros(n, dtype=bool)
-        edges[valid[0]:valid[-1] + 1] = True
+        edges[valid[0] : valid[-1] + 1] = True
         tapered = w * gap_taper(ok, int(round(GAP_TAPER * fs)))
         if not ok[edges].all():
             scale = np.sqrt(effective_samples(tapered) / effective_samples(w * edges))
@@ -172,8 +174,14 @@ def spectra_of_segment(data: np.ndarray, regressors: np.ndarray, t0: float, fs: 
     D, RR = D[:, sel], RR[:, :, sel]
     if scale != 1.0:  # the information the gap took, out of data and model alike
         D, RR = D * scale, RR * scale
-    return SegmentSpectra(t0=float(t0), duration=n / fs, f=f[sel], d=D.T.copy(),
-                          R=np.moveaxis(RR, 2, 0).copy(), valid_fraction=float(frac))
+    return SegmentSpectra(
+        t0=float(t0),
+        duration=n / fs,
+        f=f[sel],
+        d=D.T.copy(),
+        R=np.moveaxis(RR, 2, 0).copy(),
+        valid_fraction=float(frac),
+    )
 
 
 def effective_samples(w: np.ndarray) -> float:
@@ -188,11 +196,17 @@ def effective_samples(w: np.ndarray) -> float:
     its effective samples over those of the window without the gap, so that its normal
     equations carry only the information left."""
     w2 = np.square(w)
-    return float(np.sum(w2) ** 2 / np.sum(w2 ** 2))
+    return float(np.sum(w2) ** 2 / np.sum(w2**2))
 
 
-def segment_spectra(td: TDIData, band=DEFAULT_BAND, segment_duration: float = 21600.0,
-                    window_name: str = "tukey:0.1", overlap: float = 0.0, decimate: bool = True) -> list[SegmentSpectra]:
+def segment_spectra(
+    td: TDIData,
+    band=DEFAULT_BAND,
+    segment_duration: float = 21600.0,
+    window_name: str = "tukey:0.1",
+    overlap: float = 0.0,
+    decimate: bool = True,
+) -> list[SegmentSpectra]:
     """Cut TDI outputs (A, E, T) into segments of ``segment_duration`` overlapping by
     ``overlap`` (Welch's scheme) from the first sample and take their spectra; a trailing
     partial segment is dropped.  With ``decimate`` the outputs are first low-passed and
@@ -204,8 +218,9 @@ def segment_spectra(td: TDIData, band=DEFAULT_BAND, segment_duration: float = 21
     hop = max(1, int(round(L * (1 - overlap))))
     out = []
     for s0 in range(0, td.size - L + 1, hop):
-        sp = spectra_of_segment(td.data[:, s0 : s0 + L], td.regressors[:, :, s0 : s0 + L],
-                                td.t0 + s0 / td.fs, td.fs, band, window_name)
+        sp = spectra_of_segment(
+            td.data[:, s0 : s0 + L], td.regressors[:, :, s0 : s0 + L], td.t0 + s0 / td.fs, td.fs, band, window_name
+        )
         if sp is not None:
             out.append(sp)
     if not out:
@@ -217,8 +232,15 @@ def segment_spectra(td: TDIData, band=DEFAULT_BAND, segment_duration: float = 21
 # Noise models
 # ---------------------------------------------------------------------------
 
-def notch_mask(f: np.ndarray, ltt_mean, depth: float = 0.1, half_width: int = 20,
-               channel_depth: float = 0.3, max_half_width: float = 7.5e-3) -> np.ndarray:
+
+def notch_mask(
+    f: np.ndarray,
+    ltt_mean,
+    depth: float = 0.1,
+    half_width: int = 20,
+    channel_depth: float = 0.3,
+    max_half_width: float = 7.5e-3,
+) -> np.ndarray:
     """Bins to keep: False near the zeros of the TDI response.
 
     At those zeros (near multiples of ``c / 4L``, about 30 mHz) signal and noise both
@@ -257,8 +279,8 @@ def notch_mask(f: np.ndarray, ltt_mean, depth: float = 0.1, half_width: int = 20
     df = float(f[1] - f[0]) if m > 1 else 1.0
     w = min(half_width, max(2, int(max_half_width / df)), m - 1)
     log_psd = np.log(np.maximum(psd, np.finfo(float).tiny))
-    ext = np.concatenate([2 * log_psd[:1] - log_psd[w:0:-1], log_psd, 2 * log_psd[-1:] - log_psd[-2:-w - 2:-1]])
-    local = ndimage.median_filter(ext, size=(2 * w + 1, 1), mode="nearest")[w:w + m]
+    ext = np.concatenate([2 * log_psd[:1] - log_psd[w:0:-1], log_psd, 2 * log_psd[-1:] - log_psd[-2 : -w - 2 : -1]])
+    local = ndimage.median_filter(ext, size=(2 * w + 1, 1), mode="nearest")[w : w + m]
     return keep & np.all(log_psd >= np.log(channel_depth) + local, axis=1)
 
 
@@ -278,9 +300,9 @@ def variance_factor(window_name: str, n: int, overlap: float) -> float:
     """
     w = window(window_name, n)
     hop = max(1, int(round(n * (1 - overlap))))
-    w2 = w ** 2
+    w2 = w**2
     cross = sum(np.sum(w2[: n - j * hop] * w2[j * hop :]) for j in range(1, -(-n // hop)))
-    return float(n * (np.sum(w2 ** 2) + 2 * cross) / np.sum(w2) ** 2 * hop / n)
+    return float(n * (np.sum(w2**2) + 2 * cross) / np.sum(w2) ** 2 * hop / n)
 
 
 def regularise(csd: np.ndarray, floor: float = 1e-2, half_width: int = 10) -> np.ndarray:
@@ -299,8 +321,7 @@ def model_csd(f: np.ndarray, ltt_mean, s_oms=None, s_acc=None) -> np.ndarray:
     return regularise(tdi_noise_csd(f, ltt_mean, s_oms, s_acc))
 
 
-def residual_csd(spectra: list[SegmentSpectra], C: np.ndarray, half_widths,
-                 stacked: tuple | None = None) -> np.ndarray:
+def residual_csd(spectra: list[SegmentSpectra], C: np.ndarray, half_widths, stacked: tuple | None = None) -> np.ndarray:
     """Noise CSD re-estimated from the residual ``d - R C``: averaged over segments and
     smoothed over ``2 w + 1`` bins, ``w`` per bin (``half_widths``: int or array)."""
     d, R = stacked if stacked is not None else stack_spectra(spectra)
@@ -323,14 +344,21 @@ def smoothing_half_widths(f: np.ndarray, fraction: float = 0.02, max_hz: float =
 # Sufficient statistics
 # ---------------------------------------------------------------------------
 
+
 def default_band_edges(band=DEFAULT_BAND, n_bands: int = 8) -> np.ndarray:
     """Log-spaced band edges over the fit band, for per-band chi^2 and noise levels."""
     return np.geomspace(band[0], band[1] * (1 + 1e-9), n_bands + 1)
 
 
-def accumulate(spectra: list[SegmentSpectra], weights: np.ndarray, band_edges, names,
-               eiv_response: list | None = None, dws_psd: np.ndarray | None = None,
-               stacked: tuple | None = None) -> NormalEquations:
+def accumulate(
+    spectra: list[SegmentSpectra],
+    weights: np.ndarray,
+    band_edges,
+    names,
+    eiv_response: list | None = None,
+    dws_psd: np.ndarray | None = None,
+    stacked: tuple | None = None,
+) -> NormalEquations:
     """Sum the normal equations of ``spectra`` with per-bin weights ``W = S^-1`` (m, c, c).
 
     Each bin is whitened with the Cholesky factor ``W = L L^H`` (``x -> L^H x``), after
@@ -501,6 +529,7 @@ def stack_spectra(spectra: list[SegmentSpectra]) -> tuple[np.ndarray, np.ndarray
 # Results
 # ---------------------------------------------------------------------------
 
+
 @dataclass
 class FitResult:
     """Fitted coefficients with honest uncertainties and diagnostics.
@@ -559,10 +588,12 @@ class FitResult:
         for k in range(min(n_modes, len(vals))):
             v = vecs[:, k]
             top = np.argsort(-np.abs(v))[:4]
-            modes.append({
-                "relative_information": float(vals[k] / vals[-1]),
-                "combination": {self.names[i]: round(float(v[i]), 3) for i in top},
-            })
+            modes.append(
+                {
+                    "relative_information": float(vals[k] / vals[-1]),
+                    "combination": {self.names[i]: round(float(v[i]), 3) for i in top},
+                }
+            )
         return {"condition_number": float(np.linalg.cond(corr)), "weakest_combinations": modes}
 
     def to_json(self, truth: np.ndarray | None = None) -> dict:
@@ -587,8 +618,16 @@ class FitResult:
         }
         if self.band_edges is not None and self.chi2_per_band is not None and self.dof_per_band is not None:
             out["per_band"] = [
-                {"f_lo": float(lo), "f_hi": float(hi), "chi2": float(c), "dof": float(d), "chi2_dof": float(c / d) if d else None}
-                for lo, hi, c, d in zip(self.band_edges[:-1], self.band_edges[1:], self.chi2_per_band, self.dof_per_band)
+                {
+                    "f_lo": float(lo),
+                    "f_hi": float(hi),
+                    "chi2": float(c),
+                    "dof": float(d),
+                    "chi2_dof": float(c / d) if d else None,
+                }
+                for lo, hi, c, d in zip(
+                    self.band_edges[:-1], self.band_edges[1:], self.chi2_per_band, self.dof_per_band
+                )
             ]
         if truth is not None:
             truth = np.asarray(truth, dtype=float)
@@ -604,6 +643,7 @@ class FitResult:
 # ---------------------------------------------------------------------------
 # The fit
 # ---------------------------------------------------------------------------
+
 
 @dataclass
 class FitSettings:
@@ -636,8 +676,14 @@ class FitSettings:
     decimate: bool = True
 
 
-def fit_spectra(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings | None = None,
-                names=COEFFICIENT_NAMES, method: str = "gls", eiv_extra: dict | None = None) -> tuple[FitResult, dict]:
+def fit_spectra(
+    spectra: list[SegmentSpectra],
+    ltt_mean,
+    settings: FitSettings | None = None,
+    names=COEFFICIENT_NAMES,
+    method: str = "gls",
+    eiv_extra: dict | None = None,
+) -> tuple[FitResult, dict]:
     """GLS fit of the coefficients from segment spectra (see the module docstring).
 
     ``method="ols"`` gives plain least squares for comparison: white weights, no
@@ -659,7 +705,9 @@ def fit_spectra(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings |
     kappa = variance_factor(s.window, 4096, s.overlap)  # depends on the window's shape only
     if s.notch:
         keep = notch_mask(f, ltt_mean)
-        spectra = [SegmentSpectra(sp.t0, sp.duration, sp.f[keep], sp.d[keep], sp.R[keep], sp.valid_fraction) for sp in spectra]
+        spectra = [
+            SegmentSpectra(sp.t0, sp.duration, sp.f[keep], sp.d[keep], sp.R[keep], sp.valid_fraction) for sp in spectra
+        ]
         f = f[keep]
     if method == "ols":
         c = spectra[0].d.shape[1]
@@ -669,7 +717,10 @@ def fit_spectra(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings |
         chi2 = neq.chi2_per_band(C)
         dof = neq.dof_per_band().sum() - len(names)
         cov = kappa * cov_unit * chi2.sum() / dof  # residual-variance scaled, as OLS reports it
-        return _result(names, C, cov, chi2, neq, s, "ols", False, 0, True, spectra), {"normal_equations": neq, "weights": W}
+        return _result(names, C, cov, chi2, neq, s, "ols", False, 0, True, spectra), {
+            "normal_equations": neq,
+            "weights": W,
+        }
     T = eiv_responses(f, ltt_mean, names, eiv_extra) if s.eiv else None
     stacked = stack_spectra(spectra)
     half_widths = smoothing_half_widths(f, s.smooth_fraction, s.smooth_max_hz)
@@ -694,16 +745,32 @@ def fit_spectra(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings |
     chi2 = neq.chi2_per_band(C, eiv=s.eiv)
     cov_model = kappa * cov
     cov_robust = kappa * sandwich_covariance(spectra, W, C, neq, s.eiv, stacked=stacked)
-    res = _result(names, C, cov_robust if s.robust_covariance else cov_model, chi2, neq, s, method, s.eiv, it, converged, spectra)
+    res = _result(
+        names, C, cov_robust if s.robust_covariance else cov_model, chi2, neq, s, method, s.eiv, it, converged, spectra
+    )
     res.extra["variance_factor"] = kappa
     res.extra["covariance_model_based"] = cov_model.tolist()
     res.extra["sigma_ratio_robust_to_model"] = float(np.median(np.sqrt(np.diag(cov_robust) / np.diag(cov_model))))
-    return res, {"normal_equations": neq, "weights": W, "noise_csd": csd, "notch": keep if s.notch else None,
-                 "eiv_response": T, "dws_psd": dws_psd, "band_edges": edges, "variance_factor": kappa}
+    return res, {
+        "normal_equations": neq,
+        "weights": W,
+        "noise_csd": csd,
+        "notch": keep if s.notch else None,
+        "eiv_response": T,
+        "dws_psd": dws_psd,
+        "band_edges": edges,
+        "variance_factor": kappa,
+    }
 
 
-def sandwich_covariance(spectra: list[SegmentSpectra], weights: np.ndarray, C: np.ndarray,
-                        neq: NormalEquations, eiv: bool = True, stacked: tuple | None = None) -> np.ndarray:
+def sandwich_covariance(
+    spectra: list[SegmentSpectra],
+    weights: np.ndarray,
+    C: np.ndarray,
+    neq: NormalEquations,
+    eiv: bool = True,
+    stacked: tuple | None = None,
+) -> np.ndarray:
     """Robust (sandwich) covariance of the GLS estimate.
 
     ``Cov = (N - E)^-1 [sum_{s,f} Re(u) Re(u)^T] (N - E)^-1`` with the per-bin scores
@@ -717,30 +784,49 @@ def sandwich_covariance(spectra: list[SegmentSpectra], weights: np.ndarray, C: n
     return 0.5 * (cov + cov.T)
 
 
-def score_matrix(spectra: list[SegmentSpectra], weights: np.ndarray, C: np.ndarray,
-                 stacked: tuple | None = None) -> np.ndarray:
+def score_matrix(
+    spectra: list[SegmentSpectra], weights: np.ndarray, C: np.ndarray, stacked: tuple | None = None
+) -> np.ndarray:
     """``sum_{s,f} Re(u) Re(u)^T`` of the per-bin scores ``u = R^H W (d - R C)`` (the middle
     of :func:`sandwich_covariance`; additive over segments)."""
     _, wd, wR = whiten(weights, *(stacked if stacked is not None else stack_spectra(spectra)))
     wr = wd - wR @ C  # whitened residual L^H r, (m, S, c)
     # Re(R^H W r) = Re((L^H R)^H L^H r), one row per bin and segment
-    u = (np.einsum("mscp,msc->msp", wR.real, wr.real)
-         + np.einsum("mscp,msc->msp", wR.imag, wr.imag)).reshape(-1, C.size)
+    u = (np.einsum("mscp,msc->msp", wR.real, wr.real) + np.einsum("mscp,msc->msp", wR.imag, wr.imag)).reshape(
+        -1, C.size
+    )
     return u.T @ u
 
 
 def _result(names, C, cov, chi2_bands, neq, s, method, eiv, it, converged, spectra) -> FitResult:
     dof_bands = neq.dof_per_band().astype(float)
     return FitResult(
-        names=tuple(names), coefficients=C, covariance=cov, chi2=float(chi2_bands.sum()),
-        dof=float(dof_bands.sum() - len(names)), band=tuple(s.band), method=method, eiv=eiv, iterations=it,
-        converged=converged, band_edges=neq.band_edges, chi2_per_band=chi2_bands, dof_per_band=dof_bands,
-        t_start=spectra[0].t0, t_stop=spectra[-1].t0 + spectra[-1].duration, n_segments=len(spectra),
+        names=tuple(names),
+        coefficients=C,
+        covariance=cov,
+        chi2=float(chi2_bands.sum()),
+        dof=float(dof_bands.sum() - len(names)),
+        band=tuple(s.band),
+        method=method,
+        eiv=eiv,
+        iterations=it,
+        converged=converged,
+        band_edges=neq.band_edges,
+        chi2_per_band=chi2_bands,
+        dof_per_band=dof_bands,
+        t_start=spectra[0].t0,
+        t_stop=spectra[-1].t0 + spectra[-1].duration,
+        n_segments=len(spectra),
     )
 
 
-def fit_tdi(td: TDIData, settings: FitSettings | None = None, method: str = "gls",
-            extra: TDIData | None = None, eiv_extra: dict | None = None) -> tuple[FitResult, dict]:
+def fit_tdi(
+    td: TDIData,
+    settings: FitSettings | None = None,
+    method: str = "gls",
+    extra: TDIData | None = None,
+    eiv_extra: dict | None = None,
+) -> tuple[FitResult, dict]:
     """Fit the coefficients on TDI outputs (any of X/Y/Z or A/E/T; A, E, T are used).
 
     ``extra``: TDI of further regressors (model effects, :mod:`ttlcore.diagnose.effects`) on the same
@@ -759,11 +845,21 @@ def fit_tdi(td: TDIData, settings: FitSettings | None = None, method: str = "gls
 def with_extra_regressors(td: TDIData, extra: TDIData) -> TDIData:
     """``td`` with the regressor columns of ``extra`` appended (same time grid and channels)."""
 
-    if extra.channels != td.channels or extra.size != td.size or abs(extra.t0 - td.t0) > 0.5 / td.fs or extra.fs != td.fs:
-        raise ValueError(f"extra regressors do not match the TDI data (channels {extra.channels} vs {td.channels}, "
-                         f"{extra.size} vs {td.size} samples, t0 {extra.t0} vs {td.t0})")
+    if (
+        extra.channels != td.channels
+        or extra.size != td.size
+        or abs(extra.t0 - td.t0) > 0.5 / td.fs
+        or extra.fs != td.fs
+    ):
+        raise ValueError(
+            f"extra regressors do not match the TDI data (channels {extra.channels} vs {td.channels}, "
+            f"{extra.size} vs {td.size} samples, t0 {extra.t0} vs {td.t0})"
+        )
     clash = set(extra.names) & set(td.names)
     if clash:
         raise ValueError(f"extra regressor names already present: {sorted(clash)}")
-    return replace(td, regressors=np.concatenate([td.regressors, extra.regressors], axis=1),
-                   names=tuple(td.names) + tuple(extra.names))
+    return replace(
+        td,
+        regressors=np.concatenate([td.regressors, extra.regressors], axis=1),
+        names=tuple(td.names) + tuple(extra.names),
+    )

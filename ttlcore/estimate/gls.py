@@ -46,16 +46,40 @@ class NormalEquations:
     @classmethod
     def zeros(cls, names, band_edges, nchan: int = 3) -> NormalEquations:
         G, P = len(band_edges) - 1, len(names)
-        return cls(tuple(names), np.asarray(band_edges), np.zeros((G, P, P)), np.zeros((G, P)), np.zeros(G),
-                   np.zeros((G, P, P)), np.zeros(G, dtype=int), nchan)
+        return cls(
+            tuple(names),
+            np.asarray(band_edges),
+            np.zeros((G, P, P)),
+            np.zeros((G, P)),
+            np.zeros(G),
+            np.zeros((G, P, P)),
+            np.zeros(G, dtype=int),
+            nchan,
+        )
 
     def __add__(self, other: NormalEquations) -> NormalEquations:
-        return NormalEquations(self.names, self.band_edges, self.N + other.N, self.b + other.b, self.dd + other.dd,
-                               self.E + other.E, self.nbins + other.nbins, self.nchan)
+        return NormalEquations(
+            self.names,
+            self.band_edges,
+            self.N + other.N,
+            self.b + other.b,
+            self.dd + other.dd,
+            self.E + other.E,
+            self.nbins + other.nbins,
+            self.nchan,
+        )
 
     def __sub__(self, other: NormalEquations) -> NormalEquations:
-        return NormalEquations(self.names, self.band_edges, self.N - other.N, self.b - other.b, self.dd - other.dd,
-                               self.E - other.E, self.nbins - other.nbins, self.nchan)
+        return NormalEquations(
+            self.names,
+            self.band_edges,
+            self.N - other.N,
+            self.b - other.b,
+            self.dd - other.dd,
+            self.E - other.E,
+            self.nbins - other.nbins,
+            self.nchan,
+        )
 
     def total(self, eiv: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
         """``(N - E, b, dd)`` summed over bands (``N`` alone if ``eiv`` is False)."""

@@ -138,6 +138,7 @@ class McmcResult:
 # Posterior
 # ---------------------------------------------------------------------------
 
+
 class _Posterior:
     """Vectorised log-posterior in whitened coordinates (see the module docstring)."""
 
@@ -152,7 +153,7 @@ class _Posterior:
         self.kappa = float(kappa)
         self.P = self.b.shape[1]
         self.bands = bands  # indices of bands with a free noise level, or None
-        self.n = (neq.nchan * np.asarray(neq.nbins, dtype=float))
+        self.n = neq.nchan * np.asarray(neq.nbins, dtype=float)
 
     @property
     def ndim(self) -> int:
@@ -168,10 +169,9 @@ class _Posterior:
         q = self.Q(x[: self.P])
         if self.bands is None:
             return float(-q.sum() / self.kappa)
-        s = x[self.P:]
+        s = x[self.P :]
         g = self.bands
-        return float(-(q.sum() - q[g].sum()) / self.kappa
-                     - np.sum(q[g] * np.exp(-s) + self.n[g] * s) / self.kappa)
+        return float(-(q.sum() - q[g].sum()) / self.kappa - np.sum(q[g] * np.exp(-s) + self.n[g] * s) / self.kappa)
 
     def mode(self, max_iter: int = 200, tol: float = 1e-12) -> np.ndarray:
         """Posterior mode: ``C = N'^-1 b``; with noise levels, alternate ``lambda_g = Q_g / n_g``
@@ -222,12 +222,13 @@ class _Posterior:
         try:
             self.L = np.linalg.cholesky(cov)
         except np.linalg.LinAlgError as exc:
-            raise ValueError("whitening covariance is not positive definite "
-                             "(N - E not positive definite? try eiv=False)") from exc
+            raise ValueError(
+                "whitening covariance is not positive definite (N - E not positive definite? try eiv=False)"
+            ) from exc
         C0 = self.x0[: self.P]
-        self.q0 = self.Q(C0)                                                   # (G,)
-        self.grad0 = 2 * (np.einsum("gpq,q->gp", self.Np, C0) - self.b)        # (G, P)
-        self.LC = self.L[: self.P]                                             # (P, D)
+        self.q0 = self.Q(C0)  # (G,)
+        self.grad0 = 2 * (np.einsum("gpq,q->gp", self.Np, C0) - self.b)  # (G, P)
+        self.LC = self.L[: self.P]  # (P, D)
 
     def to_natural(self, z: np.ndarray) -> np.ndarray:
         """``x = x0 + L z`` for z of shape (..., D)."""
@@ -236,13 +237,13 @@ class _Posterior:
     def __call__(self, z: np.ndarray) -> np.ndarray:
         """Log-posterior of walkers ``z`` (W, D) -> (W,)."""
         z = np.atleast_2d(z)
-        delta = z @ self.LC.T                                                  # (W, P)
+        delta = z @ self.LC.T  # (W, P)
         quad = np.einsum("wgq,wq->wg", np.tensordot(delta, self.Np, axes=([1], [1])), delta)
-        q = self.q0 + delta @ self.grad0.T + quad                              # (W, G)
+        q = self.q0 + delta @ self.grad0.T + quad  # (W, G)
         if self.bands is None:
             return -q.sum(axis=1) / self.kappa
         g = self.bands
-        s = self.x0[self.P:] + z @ self.L[self.P:].T                           # (W, Gs)
+        s = self.x0[self.P :] + z @ self.L[self.P :].T  # (W, Gs)
         fixed = (q.sum(axis=1) - q[:, g].sum(axis=1)) / self.kappa
         lp = -fixed - np.sum(q[:, g] * np.exp(-s) + self.n[g] * s, axis=1) / self.kappa
         # Q_g must stay positive for a proper noise-level posterior (N'_g may be indefinite)
@@ -253,10 +254,21 @@ class _Posterior:
 # Sampling
 # ---------------------------------------------------------------------------
 
-def sample(neq: NormalEquations, *, eiv: bool = True, kappa: float = 1.0, noise_levels: bool = False,
-           start: np.ndarray | None = None, scale: np.ndarray | None = None, nwalkers: int | None = None,
-           n_autocorr: float = 50, max_steps: int = 200_000, seed: int = 0,
-           progress: Callable[[int, float, float], None] | None = None) -> McmcResult:
+
+def sample(
+    neq: NormalEquations,
+    *,
+    eiv: bool = True,
+    kappa: float = 1.0,
+    noise_levels: bool = False,
+    start: np.ndarray | None = None,
+    scale: np.ndarray | None = None,
+    nwalkers: int | None = None,
+    n_autocorr: float = 50,
+    max_steps: int = 200_000,
+    seed: int = 0,
+    progress: Callable[[int, float, float], None] | None = None,
+) -> McmcResult:
     """Sample the posterior of the coefficients (and noise levels) given normal equations.
 
     ``log L(C) = -(1/kappa) sum_g Q_g(C)`` or, with ``noise_levels``,
@@ -316,7 +328,7 @@ def sample(neq: NormalEquations, *, eiv: bool = True, kappa: float = 1.0, noise_
     sampler.random_state = np.random.RandomState(seed).get_state()
     state = emcee.State(rng.standard_normal((W, D)))
 
-    stride = 1          # storage stride [steps]
+    stride = 1  # storage stride [steps]
     kept_z, kept_lp = [], []
     n_steps, accepted = 0, np.zeros(W)
     chunk = min(max(500, 40 * D), max_steps)
@@ -349,8 +361,9 @@ def sample(neq: NormalEquations, *, eiv: bool = True, kappa: float = 1.0, noise_
     tau_max = float(np.max(tau))
     converged = bool(n_steps >= n_autocorr * tau_max)
     if not converged:
-        log.warning("mcmc: not converged after %d steps (max tau %.1f, needs %.0f)", n_steps, tau_max,
-                    n_autocorr * tau_max)
+        log.warning(
+            "mcmc: not converged after %d steps (max tau %.1f, needs %.0f)", n_steps, tau_max, n_autocorr * tau_max
+        )
     zs, lps = kept_z[0], kept_lp[0]
     steps = _stored_steps(n_steps, stride, zs.shape[0])
     burn = BURN_IN_TAU * tau_max
@@ -376,12 +389,31 @@ def sample(neq: NormalEquations, *, eiv: bool = True, kappa: float = 1.0, noise_
     n_independent = float(W * max(n_steps - burn, 0) / tau_max)
     wall = time.perf_counter() - t_start
     acc = float(np.mean(accepted / n_steps))
-    log.info("mcmc: %d walkers x %d steps, max tau %.1f, %.0f independent samples, acceptance %.2f, %.1f s",
-             W, n_steps, tau_max, n_independent, acc, wall)
-    return McmcResult(names=names, samples=samples, coefficients=mean, covariance=0.5 * (cov + cov.T),
-                      autocorr_time=tau, n_independent=n_independent, acceptance_fraction=acc,
-                      n_steps=int(n_steps), converged=converged, noise_levels=lam_mean, noise_levels_std=lam_std,
-                      log_prob=lp_flat, nwalkers=W, wall_time=wall)
+    log.info(
+        "mcmc: %d walkers x %d steps, max tau %.1f, %.0f independent samples, acceptance %.2f, %.1f s",
+        W,
+        n_steps,
+        tau_max,
+        n_independent,
+        acc,
+        wall,
+    )
+    return McmcResult(
+        names=names,
+        samples=samples,
+        coefficients=mean,
+        covariance=0.5 * (cov + cov.T),
+        autocorr_time=tau,
+        n_independent=n_independent,
+        acceptance_fraction=acc,
+        n_steps=int(n_steps),
+        converged=converged,
+        noise_levels=lam_mean,
+        noise_levels_std=lam_std,
+        log_prob=lp_flat,
+        nwalkers=W,
+        wall_time=wall,
+    )
 
 
 def integrated_time(x: np.ndarray, c: float = 5.0) -> np.ndarray:
@@ -398,9 +430,9 @@ def integrated_time(x: np.ndarray, c: float = 5.0) -> np.ndarray:
     nfft = sp_fft.next_fast_len(2 * n - 1, real=True)  # zero padding: linear, not circular
     y = np.ascontiguousarray(np.moveaxis(x - x.mean(axis=0), 0, -1))  # (W, D, n)
     f = sp_fft.rfft(y, n=nfft, axis=-1, workers=-1)
-    acf = sp_fft.irfft(f.real ** 2 + f.imag ** 2, n=nfft, axis=-1, workers=-1)[..., :n]
+    acf = sp_fft.irfft(f.real**2 + f.imag**2, n=nfft, axis=-1, workers=-1)[..., :n]
     with np.errstate(invalid="ignore", divide="ignore"):
-        rho = np.nan_to_num(acf / acf[..., :1]).mean(axis=0).T          # (n, D)
+        rho = np.nan_to_num(acf / acf[..., :1]).mean(axis=0).T  # (n, D)
     taus = 2.0 * np.cumsum(rho, axis=0) - 1.0
     m = np.arange(n)[:, None] < c * taus
     window = np.where(m.all(axis=0), n - 1, np.argmin(m, axis=0))
@@ -418,10 +450,20 @@ def _stored_steps(n_steps: int, stride: int, count: int) -> np.ndarray:
 # Fit
 # ---------------------------------------------------------------------------
 
-def fit_mcmc(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings | None = None,
-             names=COEFFICIENT_NAMES, *, noise_levels: bool = False, seed: int = 0, n_autocorr: float = 50,
-             nwalkers: int | None = None, max_steps: int = 200_000,
-             progress: Callable[[int, float, float], None] | None = None) -> tuple[FitResult, dict]:
+
+def fit_mcmc(
+    spectra: list[SegmentSpectra],
+    ltt_mean,
+    settings: FitSettings | None = None,
+    names=COEFFICIENT_NAMES,
+    *,
+    noise_levels: bool = False,
+    seed: int = 0,
+    n_autocorr: float = 50,
+    nwalkers: int | None = None,
+    max_steps: int = 200_000,
+    progress: Callable[[int, float, float], None] | None = None,
+) -> tuple[FitResult, dict]:
     """MCMC fit of the coefficients: GLS first (noise weights, normal equations), then
     :func:`sample` over the same likelihood.
 
@@ -442,28 +484,52 @@ def fit_mcmc(spectra: list[SegmentSpectra], ltt_mean, settings: FitSettings | No
     neq = internals["normal_equations"]
     kappa = float(gls.extra.get("variance_factor", 1.0))
     eiv = bool(s.eiv)
-    mc = sample(neq, eiv=eiv, kappa=kappa, noise_levels=noise_levels, nwalkers=nwalkers, n_autocorr=n_autocorr,
-                max_steps=max_steps, seed=seed, progress=progress)
+    mc = sample(
+        neq,
+        eiv=eiv,
+        kappa=kappa,
+        noise_levels=noise_levels,
+        nwalkers=nwalkers,
+        n_autocorr=n_autocorr,
+        max_steps=max_steps,
+        seed=seed,
+        progress=progress,
+    )
     chi2 = neq.chi2_per_band(mc.coefficients, eiv=eiv)
     dof_bands = neq.dof_per_band().astype(float)
     res = FitResult(
-        names=tuple(names), coefficients=mc.coefficients, covariance=mc.covariance, chi2=float(chi2.sum()),
-        dof=float(dof_bands.sum() - len(names)), band=tuple(s.band), method="mcmc", eiv=eiv,
-        iterations=gls.iterations, converged=bool(gls.converged and mc.converged), band_edges=neq.band_edges,
-        chi2_per_band=chi2, dof_per_band=dof_bands, t_start=gls.t_start, t_stop=gls.t_stop,
+        names=tuple(names),
+        coefficients=mc.coefficients,
+        covariance=mc.covariance,
+        chi2=float(chi2.sum()),
+        dof=float(dof_bands.sum() - len(names)),
+        band=tuple(s.band),
+        method="mcmc",
+        eiv=eiv,
+        iterations=gls.iterations,
+        converged=bool(gls.converged and mc.converged),
+        band_edges=neq.band_edges,
+        chi2_per_band=chi2,
+        dof_per_band=dof_bands,
+        t_start=gls.t_start,
+        t_stop=gls.t_stop,
         n_segments=gls.n_segments,
     )
-    res.extra.update({
-        "autocorr_time": dict(zip(mc.names, map(float, mc.autocorr_time))),
-        "n_independent": mc.n_independent,
-        "acceptance_fraction": mc.acceptance_fraction,
-        "n_steps": mc.n_steps,
-        "nwalkers": mc.nwalkers,
-        "converged": mc.converged,
-        "variance_factor": kappa,
-        "gls_coefficients": dict(zip(names, map(float, gls.coefficients))),
-        "gls_sigma_model_based": dict(zip(names, map(float, np.sqrt(np.diag(gls.extra["covariance_model_based"]))))),
-    })
+    res.extra.update(
+        {
+            "autocorr_time": dict(zip(mc.names, map(float, mc.autocorr_time))),
+            "n_independent": mc.n_independent,
+            "acceptance_fraction": mc.acceptance_fraction,
+            "n_steps": mc.n_steps,
+            "nwalkers": mc.nwalkers,
+            "converged": mc.converged,
+            "variance_factor": kappa,
+            "gls_coefficients": dict(zip(names, map(float, gls.coefficients))),
+            "gls_sigma_model_based": dict(
+                zip(names, map(float, np.sqrt(np.diag(gls.extra["covariance_model_based"]))))
+            ),
+        }
+    )
     if mc.noise_levels is not None and mc.noise_levels_std is not None:
         res.extra["noise_levels"] = {
             "band_edges": list(map(float, neq.band_edges)),

@@ -82,7 +82,7 @@ def band_ratio(f, a, f_ref, ref, band) -> float:
     if not sel.any():
         return float("nan")
     r = np.interp(np.log10(f[sel]), np.log10(f_ref), np.log10(ref))
-    return float(np.median(a[sel] / 10 ** r))
+    return float(np.median(a[sel] / 10**r))
 
 
 class ModelTruth:

@@ -158,9 +158,15 @@ class RollingFit:
     #: Full refits while the window holds fewer FFT segments than this.
     MIN_INCREMENTAL = 6
 
-    def __init__(self, settings: FitSettings | None = None, window_duration: float = 86400.0,
-                 names=COEFFICIENT_NAMES, full_every: float | None = 21600.0, eiv_extra: dict | None = None,
-                 outlier_z: float | None = 10.0):
+    def __init__(
+        self,
+        settings: FitSettings | None = None,
+        window_duration: float = 86400.0,
+        names=COEFFICIENT_NAMES,
+        full_every: float | None = 21600.0,
+        eiv_extra: dict | None = None,
+        outlier_z: float | None = 10.0,
+    ):
         self.settings = settings or FitSettings(segment_duration=3600.0)
         self.eiv_extra = eiv_extra
         self.outlier_z = outlier_z
@@ -227,9 +233,15 @@ class RollingFit:
         fs_out = self._fs_in / self._factor
         ltt_seg = np.asarray(ltt_mean if ltt_mean is not None else td.ltt_mean)
         #: the segment low-passed and decimated (A, E, T; NaN where the filter saw invalid input)
-        self.last_decimated = TDIData(t0=self._t0_out + (self._n_out + self._pending.n) / fs_out, fs=fs_out,
-                                      channels=AET, data=out[:, 0], regressors=out[:, 1:],
-                                      names=td.names, ltt_mean=ltt_seg)
+        self.last_decimated = TDIData(
+            t0=self._t0_out + (self._n_out + self._pending.n) / fs_out,
+            fs=fs_out,
+            channels=AET,
+            data=out[:, 0],
+            regressors=out[:, 1:],
+            names=td.names,
+            ltt_mean=ltt_seg,
+        )
         self._pending.data.append(out[:, 0])
         self._pending.regressors.append(out[:, 1:])
         self._pending.n += out.shape[-1]
@@ -256,13 +268,23 @@ class RollingFit:
                 if "gate" in outlier:
                     log.info("FFT segment at t0=%.1f left out: it overlaps the gate %s", t0, outlier["gate"])
                 else:
-                    log.info("FFT segment at t0=%.1f left out: chi2/dof at its own best fit %.3f, %.1f sigma above "
-                             "the window's median %.3f", t0, outlier["chi2_dof"], outlier["z"], outlier["reference"])
+                    log.info(
+                        "FFT segment at t0=%.1f left out: chi2/dof at its own best fit %.3f, %.1f sigma above "
+                        "the window's median %.3f",
+                        t0,
+                        outlier["chi2_dof"],
+                        outlier["z"],
+                        outlier["reference"],
+                    )
                 if self.last is not None:  # the window is unchanged: its fit stands
                     result = replace(self.last, extra={**self.last.extra, "excluded": outlier})
                 continue
             self._spectra.append(sp)
-            while self._spectra and self._spectra[-1].t0 + self._spectra[-1].duration - self._spectra[0].t0 > self.window_duration + 1e-6:
+            while (
+                self._spectra
+                and self._spectra[-1].t0 + self._spectra[-1].duration - self._spectra[0].t0
+                > self.window_duration + 1e-6
+            ):
                 self._spectra.popleft()
                 if len(self._sums) > len(self._spectra) - 1:
                     self._sums.popleft()
@@ -311,16 +333,25 @@ class RollingFit:
         reference, z}``.
         """
         w = self._weights
-        if (self.outlier_z is None or w is None or len(self._sums) < self.MIN_INCREMENTAL - 1
-                or sp.f.size != w["f_size"]):
+        if (
+            self.outlier_z is None
+            or w is None
+            or len(self._sums) < self.MIN_INCREMENTAL - 1
+            or sp.f.size != w["f_size"]
+        ):
             return None
         ref = float(np.median([_own_fit_chi2_dof(neq)[0] for neq, _ in self._sums]))
         r, dof = _own_fit_chi2_dof(accumulate([self._masked(sp)], w["weights"], w["band_edges"], self.names))
         z = (r / ref - 1.0) / np.sqrt(2.0 / dof)
         if not z > self.outlier_z:
             return None
-        return {"t_start": float(sp.t0), "t_stop": float(sp.t0 + sp.duration), "chi2_dof": float(r),
-                "reference": ref, "z": float(z)}
+        return {
+            "t_start": float(sp.t0),
+            "t_stop": float(sp.t0 + sp.duration),
+            "chi2_dof": float(r),
+            "reference": ref,
+            "z": float(z),
+        }
 
     def _full_due(self) -> bool:
         if self.full_every is None or self._weights is None or len(self._spectra) < self.MIN_INCREMENTAL:
@@ -336,8 +367,9 @@ class RollingFit:
     def _refit(self) -> FitResult:
         ltt_mean = np.mean(np.stack(self._ltt), axis=0)
         if self._full_due():
-            res, internals = fit_spectra(list(self._spectra), ltt_mean, self.settings, self.names,
-                                         eiv_extra=self.eiv_extra)
+            res, internals = fit_spectra(
+                list(self._spectra), ltt_mean, self.settings, self.names, eiv_extra=self.eiv_extra
+            )
             res.extra["update"] = "full"
             if self.full_every is not None:
                 self._keep_weights(internals, res.coefficients)
@@ -368,8 +400,9 @@ class RollingFit:
 
     def _keep_weights(self, internals: dict, C: np.ndarray) -> None:
         """After a full refit: its weights, and the per-segment sums of the window with them."""
-        self._weights = {k: internals[k] for k in ("weights", "notch", "eiv_response", "dws_psd", "band_edges",
-                                                   "variance_factor")}
+        self._weights = {
+            k: internals[k] for k in ("weights", "notch", "eiv_response", "dws_psd", "band_edges", "variance_factor")
+        }
         self._weights["f_size"] = self._spectra[-1].f.size
         self._sums = deque(self._segment_sums(sp, C) for sp in self._spectra)
 
@@ -390,8 +423,23 @@ class RollingFit:
         cov_robust = kappa * Ninv @ M @ Ninv
         cov_robust = 0.5 * (cov_robust + cov_robust.T)
         chi2 = total.chi2_per_band(C, eiv=s.eiv)
-        res = _result(self.names, C, cov_robust if s.robust_covariance else cov_model, chi2, total, s, "gls",
-                      s.eiv, 0, True, list(self._spectra))
-        res.extra.update(update="incremental", variance_factor=kappa, covariance_model_based=cov_model.tolist(),
-                         sigma_ratio_robust_to_model=float(np.median(np.sqrt(np.diag(cov_robust) / np.diag(cov_model)))))
+        res = _result(
+            self.names,
+            C,
+            cov_robust if s.robust_covariance else cov_model,
+            chi2,
+            total,
+            s,
+            "gls",
+            s.eiv,
+            0,
+            True,
+            list(self._spectra),
+        )
+        res.extra.update(
+            update="incremental",
+            variance_factor=kappa,
+            covariance_model_based=cov_model.tolist(),
+            sigma_ratio_robust_to_model=float(np.median(np.sqrt(np.diag(cov_robust) / np.diag(cov_model)))),
+        )
         return res

@@ -50,7 +50,7 @@ def segment_fft(x: np.ndarray, fs: float, win: np.ndarray, workers: int | None =
 def psd_scale(fs: float, win: np.ndarray) -> float:
     """The factor of :func:`segment_fft`, ``sqrt(2 / (fs sum(win^2)))``: ``|X|^2`` of the
     scaled transform of a series windowed by ``win`` is its one-sided PSD [unit^2/Hz]."""
-    return np.sqrt(2.0 / (fs * np.sum(win ** 2)))
+    return np.sqrt(2.0 / (fs * np.sum(win**2)))
 
 
 def default_nperseg(n: int, fs: float, max_seconds: float = 16384.0) -> int:
@@ -91,8 +91,7 @@ def welch_asd(x, fs: float, nperseg: int | None = None, window_name: str = "hann
     def detrend(seg):
         return seg - np.tensordot(seg, w, axes=(-1, 0))[..., None]
 
-    f, p = signal.welch(x, fs=fs, window=window_name, nperseg=nperseg, noverlap=nperseg // 2, detrend=detrend,
-                        axis=-1)
+    f, p = signal.welch(x, fs=fs, window=window_name, nperseg=nperseg, noverlap=nperseg // 2, detrend=detrend, axis=-1)
     return f, np.sqrt(p)
 
 
@@ -123,8 +122,9 @@ def log_displacement_asd(f: np.ndarray, psd: np.ndarray, per_decade: int = 40) -
     return fc, ffd_to_displacement_asd(np.sqrt(p), fc)
 
 
-def displacement_asd(x, fs: float, nperseg: int | None = None,
-                     per_decade: int = 40) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def displacement_asd(
+    x, fs: float, nperseg: int | None = None, per_decade: int = 40
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Log-averaged displacement ASD of a fractional-frequency series (a TDI channel).
 
     Welch (:func:`welch_asd`, segments of ``nperseg`` samples, default

@@ -88,9 +88,17 @@ def residual_aet(td: TDIData, coefficients) -> np.ndarray:
     return to_aet(subtract(td, coefficients), td.channels)
 
 
-def ttl_in_tdi(ttl_truth: np.ndarray, ltt: np.ndarray, fs: float, t0: float, *, history: int = 0,
-               order: int = DEFAULT_ORDER, delay_order: int = DEFAULT_DELAY_ORDER,
-               combinations=MICHELSON) -> np.ndarray:
+def ttl_in_tdi(
+    ttl_truth: np.ndarray,
+    ltt: np.ndarray,
+    fs: float,
+    t0: float,
+    *,
+    history: int = 0,
+    order: int = DEFAULT_ORDER,
+    delay_order: int = DEFAULT_DELAY_ORDER,
+    combinations=MICHELSON,
+) -> np.ndarray:
     """TDI (X2, Y2, Z2) of the true TTL series of the six links, shape (3, n - history).
 
     ``ttl_truth`` (6, n) is the truth file's ``ttl`` (fractional frequency, the TTL term of
@@ -101,8 +109,19 @@ def ttl_in_tdi(ttl_truth: np.ndarray, ltt: np.ndarray, fs: float, t0: float, *, 
     """
     ttl_truth = np.asarray(ttl_truth, dtype=float)
     zeros = np.zeros_like(ttl_truth)
-    td = compute_tdi_arrays(ttl_truth, zeros, zeros, ltt, fs, t0, history=history, names=(), order=order,
-                            delay_order=delay_order, combinations=combinations)
+    td = compute_tdi_arrays(
+        ttl_truth,
+        zeros,
+        zeros,
+        ltt,
+        fs,
+        t0,
+        history=history,
+        names=(),
+        order=order,
+        delay_order=delay_order,
+        combinations=combinations,
+    )
     return td.data
 
 
@@ -165,7 +184,9 @@ class SubtractionResult:
         return self.t0 + np.arange(self.size) / self.fs
 
     def _convert(self, fn, channels) -> SubtractionResult:
-        conv: dict = {k: (None if getattr(self, k) is None else fn(getattr(self, k), self.channels)) for k in self.SERIES}
+        conv: dict = {
+            k: (None if getattr(self, k) is None else fn(getattr(self, k), self.channels)) for k in self.SERIES
+        }
         return replace(self, channels=channels, **conv)
 
     def xyz(self) -> SubtractionResult:
@@ -184,8 +205,16 @@ class SubtractionResult:
         return {s: getattr(res, s)[k] for s in self.SERIES if getattr(res, s) is not None}
 
 
-def analyse_subtraction(td: TDIData, coefficients, *, true_coefficients=None, ttl_truth=None,
-                        ltt=None, order: int = DEFAULT_ORDER, delay_order: int = DEFAULT_DELAY_ORDER) -> SubtractionResult:
+def analyse_subtraction(
+    td: TDIData,
+    coefficients,
+    *,
+    true_coefficients=None,
+    ttl_truth=None,
+    ltt=None,
+    order: int = DEFAULT_ORDER,
+    delay_order: int = DEFAULT_DELAY_ORDER,
+) -> SubtractionResult:
     """All the subtraction series of :class:`SubtractionResult` for ``td`` (X2, Y2, Z2 or A, E, T).
 
     Parameters
@@ -203,8 +232,9 @@ def analyse_subtraction(td: TDIData, coefficients, *, true_coefficients=None, tt
         The delays the data's TDI used (the telemetry's ``ltt``); needed with ``ttl_truth``.
     """
     C = _coefficients(td, coefficients)
-    out = SubtractionResult(t0=td.t0, fs=td.fs, channels=tuple(td.channels), data=td.data,
-                            residual=td.data - td.model(C), coefficients=C)
+    out = SubtractionResult(
+        t0=td.t0, fs=td.fs, channels=tuple(td.channels), data=td.data, residual=td.data - td.model(C), coefficients=C
+    )
     if true_coefficients is not None:
         Ct = _coefficients(td, true_coefficients)
         out.true_coefficients = Ct

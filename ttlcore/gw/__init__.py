@@ -5,4 +5,4 @@ background, galaxy), ``galaxy``, ``sgwb``, ``mbhb`` (the models), ``injection`` 
 to the simulated links) and ``scenarios`` (the paper's cases with and without GW).
 """
 
-__all__ = ['galaxy', 'injection', 'mbhb', 'response', 'scenarios', 'sgwb', 'sources']
+__all__ = ["galaxy", "injection", "mbhb", "response", "scenarios", "sgwb", "sources"]

@@ -83,11 +83,13 @@ _EMITTER = np.array([int(link[1]) - 1 for link in LINKS])
 
 #: ICRS -> galactic rotation (rows: galactic x, y, z axes in ICRS; Hipparcos catalogue,
 #: ESA 1997, vol. 1, sect. 1.5.3). ``r_gal = M r_icrs``; its transpose goes back.
-GAL_TO_ICRS = np.array([
-    [-0.0548755604162154, -0.8734370902348850, -0.4838350155487132],
-    [+0.4941094278755837, -0.4448296299600112, +0.7469822444972189],
-    [-0.8676661490190047, -0.1980763734312015, +0.4559837761750669],
-]).T
+GAL_TO_ICRS = np.array(
+    [
+        [-0.0548755604162154, -0.8734370902348850, -0.4838350155487132],
+        [+0.4941094278755837, -0.4448296299600112, +0.7469822444972189],
+        [-0.8676661490190047, -0.1980763734312015, +0.4559837761750669],
+    ]
+).T
 
 #: Default population model parameters (module docstring).
 GALAXY_DEFAULTS = {
@@ -140,12 +142,30 @@ class BinaryArrays:
         if len(t_init) > 1:
             raise ValueError("binaries with different t_init cannot be stacked")
         get = lambda k: np.array([getattr(b, k) for b in binaries], dtype=float)  # noqa: E731
-        return cls(get("f0"), get("fdot"), get("amplitude"), get("inclination"), get("psi"), get("phi0"),
-                   get("beta"), get("lam"), t_init=t_init.pop() if t_init else 0.0)
+        return cls(
+            get("f0"),
+            get("fdot"),
+            get("amplitude"),
+            get("inclination"),
+            get("psi"),
+            get("phi0"),
+            get("beta"),
+            get("lam"),
+            t_init=t_init.pop() if t_init else 0.0,
+        )
 
     def subset(self, sel) -> BinaryArrays:
-        return BinaryArrays(self.f0[sel], self.fdot[sel], self.amplitude[sel], self.inclination[sel],
-                            self.psi[sel], self.phi0[sel], self.beta[sel], self.lam[sel], t_init=self.t_init)
+        return BinaryArrays(
+            self.f0[sel],
+            self.fdot[sel],
+            self.amplitude[sel],
+            self.inclination[sel],
+            self.psi[sel],
+            self.phi0[sel],
+            self.beta[sel],
+            self.lam[sel],
+            t_init=self.t_init,
+        )
 
 
 def _bases(p: BinaryArrays):
@@ -166,7 +186,9 @@ def _geometry(orbit, t: np.ndarray):
     x_emit = np.empty((6, t.size, 3))
     for sc in range(3):
         links = np.flatnonzero(_EMITTER == sc)
-        x_emit[links] = np.asarray(orbit.positions(t_emit[links].ravel()), dtype=float)[sc].reshape(len(links), t.size, 3)
+        x_emit[links] = np.asarray(orbit.positions(t_emit[links].ravel()), dtype=float)[sc].reshape(
+            len(links), t.size, 3
+        )
     nvec = x_rec[_RECEIVER] - x_emit
     nvec /= np.linalg.norm(nvec, axis=-1, keepdims=True)
     return x_rec, x_emit, nvec, t_emit
@@ -187,8 +209,9 @@ def complex_response(orbit, t, p: BinaryArrays, geometry=None, bases=None) -> np
         tau = np.concatenate([t[0] - (k @ xr.T) / C, t_emit[:, 0][None, :] - (k @ xe.T) / C], axis=1) - p.t_init
         ph = 2.0 * np.pi * tau * (p.f0[:, None] + 0.5 * p.fdot[:, None] * tau) - p.phi0[:, None]
         e = np.exp(1j * ph)  # (N, 9): 3 receivers, then 6 emitters
-        num = (un * un - vn * vn) * (-p.amplitude * (1.0 + ci * ci))[:, None] \
-            + 1j * (2.0 * un * vn) * (2.0 * p.amplitude * ci)[:, None]
+        num = (un * un - vn * vn) * (-p.amplitude * (1.0 + ci * ci))[:, None] + 1j * (2.0 * un * vn) * (
+            2.0 * p.amplitude * ci
+        )[:, None]
         return (num * (e[:, 3:] - e[:, _RECEIVER]) / (2.0 * (1.0 - kn)))[:, :, None]
     un = np.einsum("lmc,nc->nlm", nvec, u)
     vn = np.einsum("lmc,nc->nlm", nvec, v)
@@ -214,17 +237,20 @@ def _cubic_weights(u: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     node index ``i - 1`` (i = floor(u)) and the four weights (4, len(u))."""
     i = np.floor(u).astype(int)
     x = u - i
-    w = np.stack([
-        -x * (x - 1) * (x - 2) / 6.0,
-        (x + 1) * (x - 1) * (x - 2) / 2.0,
-        -(x + 1) * x * (x - 2) / 2.0,
-        (x + 1) * x * (x - 1) / 6.0,
-    ])
+    w = np.stack(
+        [
+            -x * (x - 1) * (x - 2) / 6.0,
+            (x + 1) * (x - 1) * (x - 2) / 2.0,
+            -(x + 1) * x * (x - 2) / 2.0,
+            (x + 1) * x * (x - 1) / 6.0,
+        ]
+    )
     return i - 1, w
 
 
-def binaries_link_signal(orbit, t, p: BinaryArrays, *, max_node_spacing: float = 900.0, min_nodes: int = 12,
-                         batch: int = 100_000) -> np.ndarray:
+def binaries_link_signal(
+    orbit, t, p: BinaryArrays, *, max_node_spacing: float = 900.0, min_nodes: int = 12, batch: int = 100_000
+) -> np.ndarray:
     """Sum of the link responses of all binaries ``p`` on the uniform times ``t``, shape (6, n).
 
     Uses the node-and-FFT scheme of the module docstring; ``t`` must be uniformly sampled.
@@ -260,7 +286,7 @@ def binaries_link_signal(orbit, t, p: BinaryArrays, *, max_node_spacing: float =
         nz = weight != 0
         if not np.any(nz):
             continue
-        tm = t_nodes[m:m + 1]
+        tm = t_nodes[m : m + 1]
         geometry = _geometry(orbit, tm)
         acc = np.zeros((6, n), dtype=complex)
         for start in range(0, p.size, batch):
@@ -269,8 +295,9 @@ def binaries_link_signal(orbit, t, p: BinaryArrays, *, max_node_spacing: float =
             y *= np.exp(-2j * np.pi * fk[sl] * (tm[0] - t[0]))[:, None]
             kb = kbin[sl]
             for link in range(6):
-                acc[link] += np.bincount(kb, weights=y[:, link].real, minlength=n) \
-                    + 1j * np.bincount(kb, weights=y[:, link].imag, minlength=n)
+                acc[link] += np.bincount(kb, weights=y[:, link].real, minlength=n) + 1j * np.bincount(
+                    kb, weights=y[:, link].imag, minlength=n
+                )
         series = np.fft.ifft(acc, axis=-1) * n  # (6, n): sum_k A_k exp(2 pi i k j / n)
         out[:, nz] += (series[:, nz] * weight[nz]).real
     return out

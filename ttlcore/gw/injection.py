@@ -74,13 +74,18 @@ class BinariesInjection:
     def catalogue(cls, names, name: str | None = None) -> BinariesInjection:
         """From catalogue keys (``"HM Cnc"``, ``"ZTF J1539"``)."""
 
-        return cls(name or "_".join(n.replace(" ", "").lower() for n in names),
-                   [VERIFICATION_BINARIES[n] for n in names])
+        return cls(
+            name or "_".join(n.replace(" ", "").lower() for n in names), [VERIFICATION_BINARIES[n] for n in names]
+        )
 
     def describe(self) -> dict:
         keys = ("f0", "fdot", "amplitude", "inclination", "psi", "phi0", "beta", "lam", "t_init", "name")
-        return {"kind": "gw", "source": "binaries", "name": self.name,
-                "binaries": [{k: getattr(b, k) for k in keys} for b in self.binaries]}
+        return {
+            "kind": "gw",
+            "source": "binaries",
+            "name": self.name,
+            "binaries": [{k: getattr(b, k) for k in keys} for b in self.binaries],
+        }
 
     def link_signal(self, ctx) -> np.ndarray:
         out = np.zeros((6, ctx.n))
@@ -112,19 +117,26 @@ class GalaxyInjection:
         self.model = dict(model or {})
         unknown = set(self.model) - set(GALAXY_DEFAULTS)
         if unknown:
-            raise ConfigError(f"galaxy: unknown model parameters {sorted(unknown)}; known: {', '.join(GALAXY_DEFAULTS)}")
+            raise ConfigError(
+                f"galaxy: unknown model parameters {sorted(unknown)}; known: {', '.join(GALAXY_DEFAULTS)}"
+            )
         self._binaries: BinaryArrays | None = None
 
     @property
     def binaries(self):
         if self._binaries is None:
-
             self._binaries = draw_galaxy(self.seed, t_init=self.t_init, **self.model)
         return self._binaries
 
     def describe(self) -> dict:
-        return {"kind": "gw", "source": "galaxy", "name": self.name, "seed": self.seed, "t_init": self.t_init,
-                "model": self.model}
+        return {
+            "kind": "gw",
+            "source": "galaxy",
+            "name": self.name,
+            "seed": self.seed,
+            "t_init": self.t_init,
+            "model": self.model,
+        }
 
     def link_signal(self, ctx) -> np.ndarray:
 
@@ -143,8 +155,16 @@ class SGWBInjection:
     absolute index ``ctx.n0 + j``, so the realisation does not depend on the chunking.
     """
 
-    def __init__(self, name: str = "sgwb", seed: int = 0, omega_h2: float = 1.15e-12, f_ref: float = 3e-3,
-                 alpha: float = 2.0 / 3.0, n_pix: int = 1024, filter_length: int = 1 << 14):
+    def __init__(
+        self,
+        name: str = "sgwb",
+        seed: int = 0,
+        omega_h2: float = 1.15e-12,
+        f_ref: float = 3e-3,
+        alpha: float = 2.0 / 3.0,
+        n_pix: int = 1024,
+        filter_length: int = 1 << 14,
+    ):
         self.name = str(name)
         self.seed = int(seed)
         self.omega_h2, self.f_ref, self.alpha = float(omega_h2), float(f_ref), float(alpha)
@@ -154,21 +174,48 @@ class SGWBInjection:
         self._gen: StochasticBackgroundGenerator | None = None
 
     def describe(self) -> dict:
-        return {"kind": "gw", "source": "sgwb", "name": self.name, "seed": self.seed, "omega_h2": self.omega_h2,
-                "f_ref": self.f_ref, "alpha": self.alpha, "n_pix": self.n_pix, "filter_length": self.filter_length}
+        return {
+            "kind": "gw",
+            "source": "sgwb",
+            "name": self.name,
+            "seed": self.seed,
+            "omega_h2": self.omega_h2,
+            "f_ref": self.f_ref,
+            "alpha": self.alpha,
+            "n_pix": self.n_pix,
+            "filter_length": self.filter_length,
+        }
 
     def generator(self, orbit, t: float, fs: float):
 
         if self._gen is None:
             pos = np.asarray(orbit.positions(np.array([t])), dtype=float)[:, 0, :]
             ltt = np.asarray(orbit.ltt(np.array([t])), dtype=float)[:, 0]
-            key = (tuple(np.round((pos - pos.mean(axis=0)).ravel(), 0)), tuple(np.round(ltt, 9)),
-                   fs, self.seed, self.omega_h2, self.f_ref, self.alpha, self.n_pix, self.filter_length)
+            key = (
+                tuple(np.round((pos - pos.mean(axis=0)).ravel(), 0)),
+                tuple(np.round(ltt, 9)),
+                fs,
+                self.seed,
+                self.omega_h2,
+                self.f_ref,
+                self.alpha,
+                self.n_pix,
+                self.filter_length,
+            )
             gen = _SGWB_CACHE.get(key)
             if gen is None:
-                gen = StochasticBackgroundGenerator(pos, ltt, fs, seed=self.seed, key=f"sgwb:{self.name}",
-                                                    filter_length=self.filter_length, n_pix=self.n_pix,
-                                                    omega_h2=self.omega_h2, f_ref=self.f_ref, alpha=self.alpha)
+                gen = StochasticBackgroundGenerator(
+                    pos,
+                    ltt,
+                    fs,
+                    seed=self.seed,
+                    key=f"sgwb:{self.name}",
+                    filter_length=self.filter_length,
+                    n_pix=self.n_pix,
+                    omega_h2=self.omega_h2,
+                    f_ref=self.f_ref,
+                    alpha=self.alpha,
+                )
                 if len(_SGWB_CACHE) > 4:
                     _SGWB_CACHE.clear()
                 _SGWB_CACHE[key] = gen
@@ -205,7 +252,6 @@ class MBHBInjection:
     @property
     def waveform(self):
         if self._wave is None:
-
             self._wave = MBHBWaveform(self.source)
         return self._wave
 
@@ -235,8 +281,9 @@ class GWFileInjection:
         try:
             with h5py.File(self.path, "r") as f:
                 if self.dataset not in f:
-                    raise ConfigError(f"--gw: {self.path}: no dataset {self.dataset!r} (a lisagwresponse file has "
-                                      "tps/y and/or tcb/y)")
+                    raise ConfigError(
+                        f"--gw: {self.path}: no dataset {self.dataset!r} (a lisagwresponse file has tps/y and/or tcb/y)"
+                    )
                 shape = f[self.dataset].shape
                 try:
                     self.t0, self.dt, self.size = float(f.attrs["t0"]), float(f.attrs["dt"]), int(f.attrs["size"])
@@ -257,8 +304,10 @@ class GWFileInjection:
         t = np.asarray(ctx.t, dtype=float)
         pos = (t - self.t0) / self.dt
         if pos[0] < -1e-6 or pos[-1] > self.size - 1 + 1e-6:
-            raise ConfigError(f"--gw: {self.path} covers {self.t0:g} .. {self.t0 + (self.size - 1) * self.dt:g} s, "
-                              f"the simulation needs {t[0]:g} .. {t[-1]:g} s")
+            raise ConfigError(
+                f"--gw: {self.path} covers {self.t0:g} .. {self.t0 + (self.size - 1) * self.dt:g} s, "
+                f"the simulation needs {t[0]:g} .. {t[-1]:g} s"
+            )
         idx = np.rint(pos).astype(int)
         with h5py.File(self.path, "r") as f:
             ds = f[self.dataset]
@@ -284,8 +333,9 @@ def injection_from_description(description: dict):
         if source == "binaries":
             return BinariesInjection(name, d["binaries"])
         if source == "galaxy":
-            return GalaxyInjection(name, seed=d.get("seed", GALAXY_SEED), t_init=d.get("t_init", 0.0),
-                                   model=d.get("model"))
+            return GalaxyInjection(
+                name, seed=d.get("seed", GALAXY_SEED), t_init=d.get("t_init", 0.0), model=d.get("model")
+            )
         if source == "sgwb":
             return SGWBInjection(name, **d)
         if source == "mbhb":
@@ -301,8 +351,9 @@ def injection_from_description(description: dict):
 GW_SOURCES = ("hmcnc", "ztfj1539", "vb", "galaxy", "sgwb", "mbhb1", "mbhb2", "all")
 
 
-def parse_gw_spec(spec: str, *, t0: float = 0.0, duration: float = 86400.0, seed: int = 0,
-                  t_c: float | None = None) -> tuple:
+def parse_gw_spec(
+    spec: str, *, t0: float = 0.0, duration: float = 86400.0, seed: int = 0, t_c: float | None = None
+) -> tuple:
     """Injections for ``--gw`` (module docstring): comma-separated source names or files.
 
     ``t_c`` (merger time) defaults to the middle of the run, ``t0 + duration / 2``; the
@@ -327,8 +378,10 @@ def parse_gw_spec(spec: str, *, t0: float = 0.0, duration: float = 86400.0, seed
             if ":" in item and not Path(item).exists():
                 path = item.split(":", 1)[0]
             if not Path(path).exists():
-                raise ConfigError(f"--gw: unknown source {item!r}; known: {', '.join(GW_SOURCES)}, or an existing "
-                                  "lisagwresponse file (FILE or FILE:tcb/y)")
+                raise ConfigError(
+                    f"--gw: unknown source {item!r}; known: {', '.join(GW_SOURCES)}, or an existing "
+                    "lisagwresponse file (FILE or FILE:tcb/y)"
+                )
             files.append(item)
     out: list = []
     seen = set()
@@ -387,7 +440,9 @@ def rebuild_from_truth(telemetry, truth) -> dict:
         ``telemetry`` are unchanged in all of them.
     """
     if truth.ttl.shape != telemetry.eta.shape:
-        raise ConfigError(f"truth {truth.source}: {truth.ttl.shape[-1]} samples, telemetry has {telemetry.eta.shape[-1]}")
+        raise ConfigError(
+            f"truth {truth.source}: {truth.ttl.shape[-1]} samples, telemetry has {telemetry.eta.shape[-1]}"
+        )
     names = [n for n in gw_names(truth.config or telemetry.config) if n in truth.injections]
     gw = sum((truth.injections[n] for n in names), np.zeros_like(truth.ttl))
     return {"gw": gw, "ttl_plus_gw": truth.ttl + gw, "everything_but_ttl": telemetry.eta - truth.ttl}

@@ -258,10 +258,30 @@ class MBHBWaveform:
 
 #: The paper's two mergers (module docstring); angles are our choices.
 PAPER_MBHBS = {
-    "mbhb1": dict(m1=3.20e6, m2=3.06e6, distance=24.83 * GPC, t_c=13.62e6, inclination=math.pi / 3,
-                  psi=0.4, phi_c=0.0, beta=0.3, lam=1.0, name="mbhb1"),
-    "mbhb2": dict(m1=9.16e5, m2=7.02e5, distance=7.71 * GPC, t_c=11.26e6, inclination=math.pi / 4,
-                  psi=1.2, phi_c=0.0, beta=-0.5, lam=4.0, name="mbhb2"),
+    "mbhb1": dict(
+        m1=3.20e6,
+        m2=3.06e6,
+        distance=24.83 * GPC,
+        t_c=13.62e6,
+        inclination=math.pi / 3,
+        psi=0.4,
+        phi_c=0.0,
+        beta=0.3,
+        lam=1.0,
+        name="mbhb1",
+    ),
+    "mbhb2": dict(
+        m1=9.16e5,
+        m2=7.02e5,
+        distance=7.71 * GPC,
+        t_c=11.26e6,
+        inclination=math.pi / 4,
+        psi=1.2,
+        phi_c=0.0,
+        beta=-0.5,
+        lam=4.0,
+        name="mbhb2",
+    ),
 }
 #: The paper's data-segment start times t0 [s] for the two mergers.
 PAPER_MBHB_T0 = {"mbhb1": 13.57e6, "mbhb2": 11.22e6}

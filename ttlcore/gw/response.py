@@ -194,8 +194,8 @@ def _link_response_chunk(orbit, t, hplus, hcross, k, u, v) -> np.ndarray:
     s = np.concatenate([s_rec.ravel(), s_emit.ravel()])
     hp = _strain(hplus, s, "hplus")
     hc = _strain(hcross, s, "hcross")
-    hp_rec, hp_emit = hp[: 3 * n].reshape(3, n), hp[3 * n:].reshape(6, n)
-    hc_rec, hc_emit = hc[: 3 * n].reshape(3, n), hc[3 * n:].reshape(6, n)
+    hp_rec, hp_emit = hp[: 3 * n].reshape(3, n), hp[3 * n :].reshape(6, n)
+    hc_rec, hc_emit = hc[: 3 * n].reshape(3, n), hc[3 * n :].reshape(6, n)
 
     d_plus = hp_emit - hp_rec[_RECEIVER]
     d_cross = hc_emit - hc_rec[_RECEIVER]

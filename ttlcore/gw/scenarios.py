@@ -116,19 +116,47 @@ PAPER_CASES = (
     Case("gb2", "galactic binaries, epoch 2 (t0 = 10303235 s)", "keplerian", 10303235.0, "galaxy"),
     Case("mbhb1", "MBHB1 merger", "equal", 13.57e6, "mbhb1", tc_offset=0.05e6, merger=True),
     Case("mbhb2", "MBHB2 merger", "equal", 11.22e6, "mbhb2", tc_offset=0.04e6, merger=True),
-    Case("all", "all sources (VB, galaxy, background, MBHB2)", "equal", 11.22e6, "hmcnc,ztfj1539,galaxy,sgwb,mbhb2",
-         tc_offset=0.04e6, merger=True),
-    Case("mbhb2_200mhz", "MBHB2, fit band 3 mHz - 0.2 Hz", "equal", 11.22e6, "mbhb2", band=(3e-3, 0.2),
-         tc_offset=0.04e6, merger=True),
+    Case(
+        "all",
+        "all sources (VB, galaxy, background, MBHB2)",
+        "equal",
+        11.22e6,
+        "hmcnc,ztfj1539,galaxy,sgwb,mbhb2",
+        tc_offset=0.04e6,
+        merger=True,
+    ),
+    Case(
+        "mbhb2_200mhz",
+        "MBHB2, fit band 3 mHz - 0.2 Hz",
+        "equal",
+        11.22e6,
+        "mbhb2",
+        band=(3e-3, 0.2),
+        tc_offset=0.04e6,
+        merger=True,
+    ),
 )
 
 #: Variants: coefficient set, jitter knee and high-frequency corner [Hz] (None: white above the knee).
 VARIANTS = {
-    "paper": {"coeffs": "paper", "fknee": 0.8e-3, "fhigh": None, "title": "paper: 2.3 mm/rad, white jitter in the band"},
-    "lisainstrument": {"coeffs": "lisainstrument", "fknee": 0.8e-3, "fhigh": None,
-                       "title": "lisainstrument default coefficients, white jitter"},
-    "coloured": {"coeffs": "paper", "fknee": 8e-3, "fhigh": 0.1,
-                 "title": "2.3 mm/rad, coloured jitter (f^-2 below 8 mHz and above 0.1 Hz)"},
+    "paper": {
+        "coeffs": "paper",
+        "fknee": 0.8e-3,
+        "fhigh": None,
+        "title": "paper: 2.3 mm/rad, white jitter in the band",
+    },
+    "lisainstrument": {
+        "coeffs": "lisainstrument",
+        "fknee": 0.8e-3,
+        "fhigh": None,
+        "title": "lisainstrument default coefficients, white jitter",
+    },
+    "coloured": {
+        "coeffs": "paper",
+        "fknee": 8e-3,
+        "fhigh": 0.1,
+        "title": "2.3 mm/rad, coloured jitter (f^-2 below 8 mHz and above 0.1 Hz)",
+    },
 }
 
 #: Acceptance thresholds of the issue / paper [m/rad] and the GW-intact tolerance.
@@ -157,13 +185,20 @@ class _Runner:
     # -- simulation ---------------------------------------------------------------------
     def base(self, orbit: str, t0: float, variant: dict) -> dict:
 
-        cfg = SimulationConfig(duration=self.duration, t0=t0, orbit=orbit, seed=self.seed,
-                               coefficients=make_coefficients(variant["coeffs"], seed=self.seed))
+        cfg = SimulationConfig(
+            duration=self.duration,
+            t0=t0,
+            orbit=orbit,
+            seed=self.seed,
+            coefficients=make_coefficients(variant["coeffs"], seed=self.seed),
+        )
         cfg.jitter = dict(cfg.jitter, fknee=variant["fknee"])
         if variant.get("fhigh"):
             cfg.jitter["fhigh"] = variant["fhigh"]
-        self.say(f"simulate {orbit} t0={t0:g} s ({self.duration:g} s, {variant['coeffs']} coefficients, "
-                 f"jitter knee {1e3 * variant['fknee']:g} mHz)")
+        self.say(
+            f"simulate {orbit} t0={t0:g} s ({self.duration:g} s, {variant['coeffs']} coefficients, "
+            f"jitter knee {1e3 * variant['fknee']:g} mHz)"
+        )
         tm, truth = simulate(cfg)
         self.say("TDI of data and regressors")
         td = compute_tdi(tm)
@@ -180,8 +215,14 @@ class _Runner:
         if key not in self._gw_cache:
             inj = parse_gw_spec(case.gw, t0=case.t0, duration=self.duration, seed=self.seed, t_c=t_c)
             self.say(f"GW signals: {', '.join(i.name for i in inj)}")
-            cfg = SimulationConfig(duration=self.duration, t0=case.t0, orbit=case.orbit, seed=self.seed,
-                                   noises=NoiseSwitches.parse("none"), injections=inj)
+            cfg = SimulationConfig(
+                duration=self.duration,
+                t0=case.t0,
+                orbit=case.orbit,
+                seed=self.seed,
+                noises=NoiseSwitches.parse("none"),
+                injections=inj,
+            )
             tm, truth = simulate(cfg)
             parts = {k.split("/", 1)[1]: v for k, v in truth.items() if k.startswith("injections/")}
             # kept for the other variants (a day of six links is 17 MB per source)
@@ -208,8 +249,9 @@ def _snr_band(f, p_gw, p_noise, band, duration) -> float:
     return float(math.sqrt(2 * duration * np.sum(p_gw[sel] / p_noise[sel]) * df))
 
 
-def analyse_case(case: Case, base: dict, runner: _Runner, variant: dict, out_dir: Path | None,
-                 figures: bool = True) -> dict:
+def analyse_case(
+    case: Case, base: dict, runner: _Runner, variant: dict, out_dir: Path | None, figures: bool = True
+) -> dict:
     """Fit with and without GW, subtraction, the summary metrics and (optionally) figures of one case."""
 
     td, tm, cfg = base["td"], base["tm"], base["config"]
@@ -229,8 +271,11 @@ def analyse_case(case: Case, base: dict, runner: _Runner, variant: dict, out_dir
     else:
         gw_xyz, parts, described, t_c = np.zeros((3, n)), {}, [], None
         td_gw, res = td, ref
-    truth = cfg.coefficients.mean(res.t_start, res.t_stop) if np.isfinite(res.t_start) else \
-        cfg.coefficients.mean(tm.t0, tm.t0 + tm.duration)
+    truth = (
+        cfg.coefficients.mean(res.t_start, res.t_stop)
+        if np.isfinite(res.t_start)
+        else cfg.coefficients.mean(tm.t0, tm.t0 + tm.duration)
+    )
     err = res.coefficients - truth
     shift = res.coefficients - ref.coefficients
     z = shift / ref.sigma
@@ -250,14 +295,19 @@ def analyse_case(case: Case, base: dict, runner: _Runner, variant: dict, out_dir
     x = {k: v[0] for k, v in series.items()}
     ok = np.all([np.isfinite(v) for v in x.values()], axis=0)
     fs = tm.fs
-    nper = int(min(2 ** 14, 2 ** np.floor(np.log2(max(ok.sum() / 4, 64)))))
+    nper = int(min(2**14, 2 ** np.floor(np.log2(max(ok.sum() / 4, 64)))))
     welch = {k: _welch(v[ok], fs, nper) for k, v in x.items()}
     f = welch["data"][0]
     P = {k: v[1] for k, v in welch.items()}
 
     # GW intact (per Welch bin)
-    intact: dict = {"n_bins": 0, "max_relative_deviation": None, "pass": None, "factor": GW_INTACT_FACTOR,
-              "tolerance": GW_INTACT_TOLERANCE}
+    intact: dict = {
+        "n_bins": 0,
+        "max_relative_deviation": None,
+        "pass": None,
+        "factor": GW_INTACT_FACTOR,
+        "tolerance": GW_INTACT_TOLERANCE,
+    }
     if case.gw:
         sel = (f >= 1e-4) & (P["gw"] > GW_INTACT_FACTOR**2 * P["ttl_residual"]) & (P["gw"] > 0)
         intact["n_bins"] = int(sel.sum())
@@ -303,7 +353,7 @@ def analyse_case(case: Case, base: dict, runner: _Runner, variant: dict, out_dir
         "shift_worst_coefficient": COEFFICIENT_NAMES[int(np.argmax(np.abs(z)))],
         "shift_max_mm": float(mm * np.max(np.abs(shift))),
         "snr_band_x2": snr,
-        "gw_rms_links": float(np.sqrt(np.mean(gw_links ** 2))) if case.gw else 0.0,
+        "gw_rms_links": float(np.sqrt(np.mean(gw_links**2))) if case.gw else 0.0,
         "gw_rms_links_per_source": {k: float(np.sqrt(np.mean(v**2))) for k, v in parts.items()},
         "coefficients_error_mm": dict(zip(COEFFICIENT_NAMES, (mm * err).round(6).tolist())),
         "sigma_mm": dict(zip(COEFFICIENT_NAMES, (mm * res.sigma).round(6).tolist())),
@@ -313,14 +363,14 @@ def analyse_case(case: Case, base: dict, runner: _Runner, variant: dict, out_dir
     out["error_within_limit"] = out["max_abs_error_mm"] < out["limit_mm"]
     out["shift_within_2sigma"] = out["shift_over_sigma_max"] < 2.0
     if figures and out_dir is not None:
-        out["figures"] = _figures(case, out, f, P, fc, req, band, C * float(np.mean(td.ltt_mean)), res, ref, truth,
-                                  out_dir)
+        out["figures"] = _figures(
+            case, out, f, P, fc, req, band, C * float(np.mean(td.ltt_mean)), res, ref, truth, out_dir
+        )
     return out
 
 
 def _figures(case, summary, f, P, fc, req, band, arm, res, ref, truth, out_dir: Path) -> dict:
     from matplotlib.figure import Figure
-
 
     paths = {}
     names = ["data", "noise_without_ttl", "residual", "ttl_residual", "gw", "ttl_plus_gw_residual"]
@@ -348,7 +398,9 @@ def _figures(case, summary, f, P, fc, req, band, arm, res, ref, truth, out_dir: 
         ax.axvspan(band[0], band[1], color="tab:orange", alpha=0.07, lw=0, label=f"fit band {band[0]:g}-{band[1]:g} Hz")
         ax.set_xlim(fmin, fmax)
         sel = (fcl >= fmin) & (fcl <= fmax)
-        vals = np.concatenate([asd[k][sel] for k in keys if (k != "gw" or case.gw)] + [req_x[(fc >= fmin) & (fc <= fmax)]])
+        vals = np.concatenate(
+            [asd[k][sel] for k in keys if (k != "gw" or case.gw)] + [req_x[(fc >= fmin) & (fc <= fmax)]]
+        )
         vals = vals[vals > 0]
         ax.set_ylim(max(vals.min() / 2, vals.max() * 1e-9), vals.max() * 3)
         ax.set_xlabel("Frequency [Hz]")
@@ -359,14 +411,30 @@ def _figures(case, summary, f, P, fc, req, band, arm, res, ref, truth, out_dir: 
         return _save(fig, path)
 
     title = f"{case.title}: max |error| {summary['max_abs_error_mm']:.4f} mm/rad, chi2/dof {summary['chi2_dof']:.3f}"
-    paths["asd"] = str(draw(["data", "noise_without_ttl", "residual", "ttl_residual", "gw"],
-                            out_dir / f"{case.name}_asd.png", 1e-4, 1.0, title))
+    paths["asd"] = str(
+        draw(
+            ["data", "noise_without_ttl", "residual", "ttl_residual", "gw"],
+            out_dir / f"{case.name}_asd.png",
+            1e-4,
+            1.0,
+            title,
+        )
+    )
     if case.gw:
         gi = summary["gw_intact"]
-        t2 = (f"{case.title}: GW intact: {gi['n_bins']} bins with GW > {GW_INTACT_FACTOR:g} x TTL residual, "
-              f"max deviation {100 * (gi['max_relative_deviation'] or 0):.2f} %")
-        paths["gw_intact"] = str(draw(["data", "noise_without_ttl", "residual", "gw", "ttl_plus_gw_residual"],
-                                      out_dir / f"{case.name}_gw_intact.png", 1e-4, 3e-2, t2))
+        t2 = (
+            f"{case.title}: GW intact: {gi['n_bins']} bins with GW > {GW_INTACT_FACTOR:g} x TTL residual, "
+            f"max deviation {100 * (gi['max_relative_deviation'] or 0):.2f} %"
+        )
+        paths["gw_intact"] = str(
+            draw(
+                ["data", "noise_without_ttl", "residual", "gw", "ttl_plus_gw_residual"],
+                out_dir / f"{case.name}_gw_intact.png",
+                1e-4,
+                3e-2,
+                t2,
+            )
+        )
     # coefficients: with GW (fit - truth) and the reference
 
     order = list(paper_ordered_names())
@@ -380,16 +448,21 @@ def _figures(case, summary, f, P, fc, req, band, arm, res, ref, truth, out_dir: 
     ax.axhline(-lim, color="tab:red", lw=1, ls="--")
     e_ref = 1e3 * (ref.coefficients - truth)[idx]
     e_gw = 1e3 * (res.coefficients - truth)[idx]
-    ax.errorbar(xpos - 0.15, e_ref, yerr=1e3 * ref.sigma[idx], fmt="o", ms=4, color="0.55", capsize=2.5,
-                label="without GW")
+    ax.errorbar(
+        xpos - 0.15, e_ref, yerr=1e3 * ref.sigma[idx], fmt="o", ms=4, color="0.55", capsize=2.5, label="without GW"
+    )
     if case.gw:
-        ax.errorbar(xpos + 0.15, e_gw, yerr=1e3 * res.sigma[idx], fmt="o", ms=4, color="tab:blue", capsize=2.5,
-                    label="with GW")
+        ax.errorbar(
+            xpos + 0.15, e_gw, yerr=1e3 * res.sigma[idx], fmt="o", ms=4, color="tab:blue", capsize=2.5, label="with GW"
+        )
     ax.set_xticks(xpos, [n.split(".", 1)[1].replace(".", " ") for n in order], fontsize=7, rotation=90)
     for g in range(1, len(PAPER_ORDER)):
         ax.axvline(5 * g - 1, color="0.8", lw=0.8, ls=":")
-    ym = max(1.2 * lim, 1.15 * float(np.max(np.abs(e_ref) + 1e3 * ref.sigma[idx])),
-             1.15 * float(np.max(np.abs(e_gw) + 1e3 * res.sigma[idx])))
+    ym = max(
+        1.2 * lim,
+        1.15 * float(np.max(np.abs(e_ref) + 1e3 * ref.sigma[idx])),
+        1.15 * float(np.max(np.abs(e_gw) + 1e3 * res.sigma[idx])),
+    )
     ax.set_ylim(-ym, ym)
     ax.set_ylabel("C$_{fit}$ − C$_{true}$ [mm/rad]")
     ax.set_title(f"{case.title} (MOSAs {', '.join(PAPER_ORDER)})", fontsize=10, loc="left")
@@ -400,21 +473,27 @@ def _figures(case, summary, f, P, fc, req, band, arm, res, ref, truth, out_dir: 
 
 
 def _md_table(rows: list[dict]) -> str:
-    head = ("| case | GW | max err [mm/rad] | RMS err | limit | chi2/dof | frac > req | GW intact (bins, max dev) "
-            "| shift/sigma max | SNR band |\n|---|---|---|---|---|---|---|---|---|---|\n")
+    head = (
+        "| case | GW | max err [mm/rad] | RMS err | limit | chi2/dof | frac > req | GW intact (bins, max dev) "
+        "| shift/sigma max | SNR band |\n|---|---|---|---|---|---|---|---|---|---|\n"
+    )
     lines = []
     for r in rows:
         gi = r["gw_intact"]
         if r["gw"]:
             dev = gi["max_relative_deviation"]
-            intact = f"{gi['n_bins']}, {100 * dev:.2f} % {'ok' if gi['pass'] else 'FAIL'}" if dev is not None \
+            intact = (
+                f"{gi['n_bins']}, {100 * dev:.2f} % {'ok' if gi['pass'] else 'FAIL'}"
+                if dev is not None
                 else f"{gi['n_bins']} bins (GW never 10x TTL residual)"
+            )
         else:
             intact = "-"
         lines.append(
             f"| {r['case']} | {r['gw'] or '-'} | {r['max_abs_error_mm']:.4f} {'ok' if r['error_within_limit'] else 'FAIL'} "
             f"| {r['rms_error_mm']:.4f} | {r['limit_mm']:.2f} | {r['chi2_dof']:.3f} | {r['fraction_above_requirement']:.3f} "
-            f"| {intact} | {r['shift_over_sigma_max']:.2f} ({r['shift_worst_coefficient']}) | {r['snr_band_x2']:.1f} |")
+            f"| {intact} | {r['shift_over_sigma_max']:.2f} ({r['shift_worst_coefficient']}) | {r['snr_band_x2']:.1f} |"
+        )
     return head + "\n".join(lines) + "\n"
 
 
@@ -437,9 +516,18 @@ def _group_task(duration, seed, fit_settings, vname, names, vdir, figures) -> li
     return _run_group(_Runner(duration, seed, lambda msg: None, fit_settings), vname, names, Path(vdir), figures)
 
 
-def run_scenarios(out_dir, *, cases=None, variants=("paper", "lisainstrument", "coloured"), duration: float = DAY,
-                  seed: int = 1, figures: bool = True, progress=None, fit_settings: FitSettings | None = None,
-                  client=None) -> dict:
+def run_scenarios(
+    out_dir,
+    *,
+    cases=None,
+    variants=("paper", "lisainstrument", "coloured"),
+    duration: float = DAY,
+    seed: int = 1,
+    figures: bool = True,
+    progress=None,
+    fit_settings: FitSettings | None = None,
+    client=None,
+) -> dict:
     """Run the scenarios, write ``summary.json``, ``summary.md`` and figures to ``out_dir``.
 
     Parameters
@@ -498,8 +586,18 @@ def run_scenarios(out_dir, *, cases=None, variants=("paper", "lisainstrument", "
         for vname in variants:
             (out_dir / vname).mkdir(exist_ok=True)
             for key, names in groups.items():
-                futures[vname, key] = client.submit(_group_task, duration, seed, fit_settings, vname, names,
-                                                    str(out_dir / vname), figures, pure=False, retries=1)
+                futures[vname, key] = client.submit(
+                    _group_task,
+                    duration,
+                    seed,
+                    fit_settings,
+                    vname,
+                    names,
+                    str(out_dir / vname),
+                    figures,
+                    pure=False,
+                    retries=1,
+                )
         say(f"{len(futures)} tasks submitted to {client.scheduler.address}")
     for vname in variants:
         variant = VARIANTS[vname]
@@ -514,20 +612,28 @@ def run_scenarios(out_dir, *, cases=None, variants=("paper", "lisainstrument", "
             else:
                 rows += _run_group(runner, vname, names, vdir, figures)
         rows.sort(key=lambda r: cases.index(r["case"]))
-        summary["variants"][vname] = {"title": variant["title"], "coefficients": variant["coeffs"],
-                                      "jitter_fknee_hz": variant["fknee"],
-                                      "jitter_fhigh_hz": variant.get("fhigh"), "cases": rows}
+        summary["variants"][vname] = {
+            "title": variant["title"],
+            "coefficients": variant["coeffs"],
+            "jitter_fknee_hz": variant["fknee"],
+            "jitter_fhigh_hz": variant.get("fhigh"),
+            "cases": rows,
+        }
         summary["timings_s"][vname] = round(time.monotonic() - t_var, 1)
     summary["timings_s"]["total"] = round(time.monotonic() - start, 1)
-    summary["all_within_limits"] = all(r["error_within_limit"] for v in summary["variants"].values() for r in v["cases"])
+    summary["all_within_limits"] = all(
+        r["error_within_limit"] for v in summary["variants"].values() for r in v["cases"]
+    )
     write_json(out_dir / "summary.json", summary, indent=1)
-    md = ["# TTL subtraction with GW signals: scenario summary\n",
-          f"{duration:g} s per case, seed {seed}, total {summary['timings_s']['total']:.0f} s. "
-          "Errors in mm/rad; limit 0.06 mm/rad without merger, 0.1 with (the paper's). "
-          "'frac > req': fraction of log-spaced bins in the fit band, outside GW-dominated ones, where the X2 "
-          "residual exceeds the requirement. 'GW intact': bins where the GW ASD exceeds 10x the TTL residual, "
-          "and the largest relative deviation there of the ASD of (TTL + GW only - fitted model) from the GW's "
-          "(pass < 5 %). 'shift/sigma': largest (C with GW - C without) / sigma; 'SNR band': GW in-band SNR in X2.\n"]
+    md = [
+        "# TTL subtraction with GW signals: scenario summary\n",
+        f"{duration:g} s per case, seed {seed}, total {summary['timings_s']['total']:.0f} s. "
+        "Errors in mm/rad; limit 0.06 mm/rad without merger, 0.1 with (the paper's). "
+        "'frac > req': fraction of log-spaced bins in the fit band, outside GW-dominated ones, where the X2 "
+        "residual exceeds the requirement. 'GW intact': bins where the GW ASD exceeds 10x the TTL residual, "
+        "and the largest relative deviation there of the ASD of (TTL + GW only - fitted model) from the GW's "
+        "(pass < 5 %). 'shift/sigma': largest (C with GW - C without) / sigma; 'SNR band': GW in-band SNR in X2.\n",
+    ]
     for vname, v in summary["variants"].items():
         md.append(f"\n## {vname}: {v['title']}\n\n")
         md.append(_md_table(v["cases"]))
@@ -539,6 +645,7 @@ def run_scenarios(out_dir, *, cases=None, variants=("paper", "lisainstrument", "
 # ttl scenarios
 # ---------------------------------------------------------------------------
 
+
 def _cmd_scenarios(args) -> int:
     """``ttl scenarios`` (options: :mod:`ttlcore.cli.main`)."""
 
@@ -549,8 +656,14 @@ def _cmd_scenarios(args) -> int:
     if args.workers < 0:
         raise TTLError(f"--workers: must be >= 0, got {args.workers}")
     with status_line("ttl scenarios", args.quiet) as progress:  # in place on a terminal
-        options = dict(cases=cases, variants=variants, duration=duration, seed=args.seed,
-                       figures=not args.no_figures, progress=progress)
+        options = dict(
+            cases=cases,
+            variants=variants,
+            duration=duration,
+            seed=args.seed,
+            figures=not args.no_figures,
+            progress=progress,
+        )
         if args.scheduler or args.workers:
             with dask_client(args.scheduler, workers=args.workers or 2) as client:
                 s = run_scenarios(args.out, client=client, **options)
@@ -560,10 +673,19 @@ def _cmd_scenarios(args) -> int:
         print(f"[{vname}] {v['title']}")
         for r in v["cases"]:
             gi = r["gw_intact"]
-            gtxt = "" if not r["gw"] else (f", GW intact {'ok' if gi['pass'] else 'FAIL'} ({gi['n_bins']} bins)"
-                                           if gi["pass"] is not None else ", GW never 10x TTL residual")
-            print(f"  {r['case']:<15} max |err| {r['max_abs_error_mm']:.4f} mm/rad "
-                  f"({'ok' if r['error_within_limit'] else 'ABOVE ' + str(r['limit_mm'])}), chi2/dof {r['chi2_dof']:.3f}, "
-                  f"shift {r['shift_over_sigma_max']:.2f} sigma{gtxt}")
+            gtxt = (
+                ""
+                if not r["gw"]
+                else (
+                    f", GW intact {'ok' if gi['pass'] else 'FAIL'} ({gi['n_bins']} bins)"
+                    if gi["pass"] is not None
+                    else ", GW never 10x TTL residual"
+                )
+            )
+            print(
+                f"  {r['case']:<15} max |err| {r['max_abs_error_mm']:.4f} mm/rad "
+                f"({'ok' if r['error_within_limit'] else 'ABOVE ' + str(r['limit_mm'])}), chi2/dof {r['chi2_dof']:.3f}, "
+                f"shift {r['shift_over_sigma_max']:.2f} sigma{gtxt}"
+            )
     print(f"wrote {Path(args.out) / 'summary.md'}, summary.json and figures ({s['timings_s']['total']:.0f} s)")
     return 0

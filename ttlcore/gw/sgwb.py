@@ -60,8 +60,15 @@ import numpy as np
 from ..conventions import LINKS, C
 from ..sim.noise import key_hash
 
-__all__ = ["H100", "omega_power_law", "strain_psd", "fibonacci_sphere", "link_transfer", "link_csd",
-           "StochasticBackgroundGenerator"]
+__all__ = [
+    "H100",
+    "omega_power_law",
+    "strain_psd",
+    "fibonacci_sphere",
+    "link_transfer",
+    "link_csd",
+    "StochasticBackgroundGenerator",
+]
 
 #: H_0 for h = 1: 100 km/s/Mpc in 1/s (1 Mpc = 3.0856775814913673e22 m).
 H100 = 100e3 / 3.0856775814913673e22
@@ -144,8 +151,8 @@ def link_csd(f, positions, ltt, n_pix: int = 1024, block: int = 128, **spectrum)
     sh = strain_psd(f, **spectrum) / (2 * n_pix)
     out = np.empty((f.size, 6, 6), dtype=complex)
     for s in range(0, f.size, block):
-        r = link_transfer(f[s:s + block], k, positions, np.asarray(ltt, dtype=float))
-        out[s:s + block] = np.matmul(r, np.conj(np.swapaxes(r, 1, 2))) * sh[s:s + block, None, None]
+        r = link_transfer(f[s : s + block], k, positions, np.asarray(ltt, dtype=float))
+        out[s : s + block] = np.matmul(r, np.conj(np.swapaxes(r, 1, 2))) * sh[s : s + block, None, None]
     return out
 
 
@@ -171,8 +178,18 @@ class StochasticBackgroundGenerator:
 
     _BLOCK = 1 << 16
 
-    def __init__(self, positions, ltt, fs: float, *, seed: int, key: str = "sgwb", filter_length: int = 1 << 14,
-                 n_pix: int = 1024, **spectrum):
+    def __init__(
+        self,
+        positions,
+        ltt,
+        fs: float,
+        *,
+        seed: int,
+        key: str = "sgwb",
+        filter_length: int = 1 << 14,
+        n_pix: int = 1024,
+        **spectrum,
+    ):
         self.fs = float(fs)
         self.seed = int(seed)
         self.key = str(key)
@@ -210,7 +227,7 @@ class StochasticBackgroundGenerator:
         B = self._BLOCK
         for b in range(start // B, (stop - 1) // B + 1):
             lo, hi = max(start, b * B), min(stop, (b + 1) * B)
-            out[:, lo - start:hi - start] = self._white_block(b)[:, lo - b * B:hi - b * B]
+            out[:, lo - start : hi - start] = self._white_block(b)[:, lo - b * B : hi - b * B]
         return out
 
     def get(self, start: int, stop: int) -> np.ndarray:
@@ -224,4 +241,4 @@ class StochasticBackgroundGenerator:
         H = np.fft.rfft(self.taps, nfft, axis=-1)
         Y = np.einsum("oif,if->of", H, W)
         full = np.fft.irfft(Y, nfft, axis=-1)
-        return full[:, L - 1:L - 1 + n]
+        return full[:, L - 1 : L - 1 + n]

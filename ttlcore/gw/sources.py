@@ -270,8 +270,19 @@ class GalacticBinary:
         mc = chirp_mass(m1, m2)
         amp = strain_amplitude(mc, f0, distance_pc)
         fd = gw_frequency_derivative(mc, f0) if fdot is None else float(fdot)
-        return cls(f0=f0, fdot=fd, amplitude=amp, inclination=inclination, psi=psi, phi0=phi0,
-                   beta=beta, lam=lam, t_init=t_init, name=name, meta=dict(meta or {}))
+        return cls(
+            f0=f0,
+            fdot=fd,
+            amplitude=amp,
+            inclination=inclination,
+            psi=psi,
+            phi0=phi0,
+            beta=beta,
+            lam=lam,
+            t_init=t_init,
+            name=name,
+            meta=dict(meta or {}),
+        )
 
 
 # ---------------------------------------------------------------------------
@@ -301,7 +312,7 @@ VERIFICATION_BINARY_PARAMETERS: dict[str, dict] = {
         "ra_hms": (8, 6, 22.95196),
         "dec_dms": (15, 27, 31.0073, +1),
         "references": "Roelofs et al. 2010 ApJL 711 L138; Munday et al. 2023 MNRAS 518 5123; "
-                      "Kupfer et al. 2018 MNRAS 480 302; Kupfer et al. 2024 ApJ 963 100; Gaia DR2",
+        "Kupfer et al. 2018 MNRAS 480 302; Kupfer et al. 2024 ApJ 963 100; Gaia DR2",
     },
     "ZTF J1539": {
         # ZTF J153932.16+502738.8, Burdge et al. 2019 (Nature 571, 528):
@@ -331,9 +342,17 @@ def _verification_binary(name: str, p: dict) -> GalacticBinary:
     dec = dms_to_rad(d, m, s, sign)
     beta, lam = equatorial_to_ecliptic(ra, dec)
     return GalacticBinary.from_system(
-        period=p["period"], m1=p["m1"], m2=p["m2"], distance_pc=p["distance_pc"],
-        inclination=math.radians(p["inclination_deg"]), beta=beta, lam=lam,
-        fdot=p["fdot_gw"], psi=0.0, phi0=0.0, name=name,
+        period=p["period"],
+        m1=p["m1"],
+        m2=p["m2"],
+        distance_pc=p["distance_pc"],
+        inclination=math.radians(p["inclination_deg"]),
+        beta=beta,
+        lam=lam,
+        fdot=p["fdot_gw"],
+        psi=0.0,
+        phi0=0.0,
+        name=name,
         meta={"ra": ra, "dec": dec, "chirp_mass": chirp_mass(p["m1"], p["m2"]), "references": p["references"]},
     )
 

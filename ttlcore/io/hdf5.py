@@ -147,8 +147,16 @@ def json_attr(f: h5py.File, path, name: str) -> dict:
         raise TelemetryError(path, f"not valid JSON ({exc})", f"@{name}") from None
 
 
-def read_series(f: h5py.File, path, name: str, rows: int, size: int, start: int = 0, stop: int | None = None,
-                allow_nan: bool = False) -> np.ndarray:
+def read_series(
+    f: h5py.File,
+    path,
+    name: str,
+    rows: int,
+    size: int,
+    start: int = 0,
+    stop: int | None = None,
+    allow_nan: bool = False,
+) -> np.ndarray:
     """Read ``f[name][:, start:stop]`` checking presence, shape and finiteness.
 
     With ``allow_nan`` NaN (a gap in the data: no sample) is accepted, infinities are not.

@@ -126,18 +126,12 @@ TTL_METADATA_KEYS: dict[str, tuple[str, str]] = {
 #: The eta reduction, pytdi's ``ETA_SET`` after simplification:
 #: link -> (undelayed terms, terms delayed by D_link), each term ``(measurement, factor)``.
 ETA_TERMS: dict[str, tuple[tuple[tuple[str, float], ...], tuple[tuple[str, float], ...]]] = {
-    "12": ((("sci_12", 1.0), ("ref_12", 0.5), ("tmi_12", -0.5)),
-           (("ref_21", 1.0), ("ref_23", -0.5), ("tmi_21", -0.5))),
-    "23": ((("sci_23", 1.0), ("ref_23", 0.5), ("tmi_23", -0.5)),
-           (("ref_32", 1.0), ("ref_31", -0.5), ("tmi_32", -0.5))),
-    "31": ((("sci_31", 1.0), ("ref_31", 0.5), ("tmi_31", -0.5)),
-           (("ref_13", 1.0), ("ref_12", -0.5), ("tmi_13", -0.5))),
-    "13": ((("sci_13", 1.0), ("ref_12", 0.5), ("tmi_13", -0.5)),
-           (("ref_31", 0.5), ("tmi_31", -0.5))),
-    "32": ((("sci_32", 1.0), ("ref_31", 0.5), ("tmi_32", -0.5)),
-           (("ref_23", 0.5), ("tmi_23", -0.5))),
-    "21": ((("sci_21", 1.0), ("ref_23", 0.5), ("tmi_21", -0.5)),
-           (("ref_12", 0.5), ("tmi_12", -0.5))),
+    "12": ((("sci_12", 1.0), ("ref_12", 0.5), ("tmi_12", -0.5)), (("ref_21", 1.0), ("ref_23", -0.5), ("tmi_21", -0.5))),
+    "23": ((("sci_23", 1.0), ("ref_23", 0.5), ("tmi_23", -0.5)), (("ref_32", 1.0), ("ref_31", -0.5), ("tmi_32", -0.5))),
+    "31": ((("sci_31", 1.0), ("ref_31", 0.5), ("tmi_31", -0.5)), (("ref_13", 1.0), ("ref_12", -0.5), ("tmi_13", -0.5))),
+    "13": ((("sci_13", 1.0), ("ref_12", 0.5), ("tmi_13", -0.5)), (("ref_31", 0.5), ("tmi_31", -0.5))),
+    "32": ((("sci_32", 1.0), ("ref_31", 0.5), ("tmi_32", -0.5)), (("ref_23", 0.5), ("tmi_23", -0.5))),
+    "21": ((("sci_21", 1.0), ("ref_23", 0.5), ("tmi_21", -0.5)), (("ref_12", 0.5), ("tmi_12", -0.5))),
 }
 
 #: Output samples evaluated per interpolation block (bounds memory for long files).
@@ -147,6 +141,7 @@ _BLOCK = 1 << 16
 # ---------------------------------------------------------------------------
 # Detection
 # ---------------------------------------------------------------------------
+
 
 def _str_attr(f: h5py.File, name: str) -> str | None:
     value = f.attrs.get(name)
@@ -191,13 +186,16 @@ def _parse_version(text: str) -> tuple[int, int] | None:
 # Reading
 # ---------------------------------------------------------------------------
 
+
 def _open(path: Path) -> h5py.File:
     if not path.exists():
         raise TelemetryError(path, "no such file")
     try:
         return h5py.File(path, "r")
     except OSError as exc:
-        raise TelemetryError(path, f"not a readable HDF5 file ({exc.__class__.__name__}: {exc}); truncated or corrupt?") from None
+        raise TelemetryError(
+            path, f"not a readable HDF5 file ({exc.__class__.__name__}: {exc}); truncated or corrupt?"
+        ) from None
 
 
 class _Metadata:
@@ -207,7 +205,9 @@ class _Metadata:
         self.path = path
         text = _str_attr(f, "metadata_json")
         if text is None:
-            raise TelemetryError(path, "missing root attribute (lisainstrument 2.x files carry their metadata there)", "@metadata_json")
+            raise TelemetryError(
+                path, "missing root attribute (lisainstrument 2.x files carry their metadata there)", "@metadata_json"
+            )
         try:
             self.data = json.loads(text)
         except json.JSONDecodeError as exc:
@@ -245,13 +245,17 @@ def _sampling(path: Path, meta: _Metadata) -> tuple[float, float, int, float]:
     if "fs" in meta.data:
         fs_meta = meta.number("fs", positive=True)
         if abs(fs_meta * dt - 1.0) > 1e-9:
-            raise TelemetryError(path, f"sampling frequency {fs_meta:g} Hz disagrees with dt = {dt:g} s", meta.where("fs"))
+            raise TelemetryError(
+                path, f"sampling frequency {fs_meta:g} Hz disagrees with dt = {dt:g} s", meta.where("fs")
+            )
         fs = fs_meta
     size = meta.integer("size")
     if "duration" in meta.data:
         duration = meta.number("duration", positive=True)
         if abs(duration - size * dt) > 1e-6 * max(1.0, duration):
-            raise TelemetryError(path, f"duration {duration:g} s disagrees with size * dt = {size * dt:g} s", meta.where("duration"))
+            raise TelemetryError(
+                path, f"duration {duration:g} s disagrees with size * dt = {size * dt:g} s", meta.where("duration")
+            )
     t0 = meta.number("t0")
     nu0 = meta.number("central_freq", positive=True)
     return t0, fs, size, nu0
@@ -278,7 +282,11 @@ class _DatasetReader:
         if ds.dtype.kind not in "fiu":
             raise TelemetryError(self.path, f"expected real numbers, found dtype {ds.dtype}", name)
         if ds.shape not in ((), (self.size,)):
-            raise TelemetryError(self.path, f"expected shape ({self.size},) from metadata size (or a scalar for a constant series), found {ds.shape}", name)
+            raise TelemetryError(
+                self.path,
+                f"expected shape ({self.size},) from metadata size (or a scalar for a constant series), found {ds.shape}",
+                name,
+            )
         rng = self._range(ds, name)
         try:
             data = np.asarray(ds[()], dtype=float)
@@ -292,7 +300,9 @@ class _DatasetReader:
         if self.range is None:
             self.range = rng
         elif rng != self.range:
-            raise TelemetryError(self.path, f"sample range {rng} differs from that of the other datasets {self.range}", name)
+            raise TelemetryError(
+                self.path, f"sample range {rng} differs from that of the other datasets {self.range}", name
+            )
         return data
 
     def _range(self, ds: h5py.Dataset, name: str) -> tuple[int, int]:
@@ -302,9 +312,15 @@ class _DatasetReader:
         try:
             start, stop = int(attrs["index_start"]), int(attrs["index_stop"])
         except (KeyError, TypeError, ValueError):
-            raise TelemetryError(self.path, "bad or incomplete index_start/index_stop attributes", f"{name}@index_start") from None
+            raise TelemetryError(
+                self.path, "bad or incomplete index_start/index_stop attributes", f"{name}@index_start"
+            ) from None
         if stop - start != self.size:
-            raise TelemetryError(self.path, f"sample range [{start}, {stop}) holds {stop - start} samples, metadata size is {self.size}", f"{name}@index_stop")
+            raise TelemetryError(
+                self.path,
+                f"sample range [{start}, {stop}) holds {stop - start} samples, metadata size is {self.size}",
+                f"{name}@index_stop",
+            )
         return (start, stop)
 
 
@@ -329,7 +345,9 @@ def _delayed(x: np.ndarray, shift: np.ndarray, order: int) -> np.ndarray:
     return out
 
 
-def compute_etas_hz(beatnotes: dict[str, np.ndarray], mprs: dict[str, np.ndarray], fs: float, order: int = 31) -> np.ndarray:
+def compute_etas_hz(
+    beatnotes: dict[str, np.ndarray], mprs: dict[str, np.ndarray], fs: float, order: int = 31
+) -> np.ndarray:
     """The six ``eta_ij`` [Hz] from beat-note fluctuations [Hz] and MPRs [s].
 
     Parameters
@@ -388,9 +406,22 @@ def _noise_flags(md: dict) -> dict:
         "testmass": on("testmass_asds"),
         "backlink": on("backlink_asds"),
         "reciprocal_backlink": on("reciprocal_backlink_asds"),
-        "oms": on("oms_sci_carrier_asds", "oms_sci_usb_asds", "oms_tmi_carrier_asds", "oms_tmi_usb_asds", "oms_ref_carrier_asds", "oms_ref_usb_asds"),
+        "oms": on(
+            "oms_sci_carrier_asds",
+            "oms_sci_usb_asds",
+            "oms_tmi_carrier_asds",
+            "oms_tmi_usb_asds",
+            "oms_ref_carrier_asds",
+            "oms_ref_usb_asds",
+        ),
         "ranging": on("ranging_asds", "ranging_biases"),
-        "angular_jitter": on("sc_jitter_phi_asds", "sc_jitter_eta_asds", "sc_jitter_theta_asds", "mosa_jitter_phi_asds", "mosa_jitter_eta_asds"),
+        "angular_jitter": on(
+            "sc_jitter_phi_asds",
+            "sc_jitter_eta_asds",
+            "sc_jitter_theta_asds",
+            "mosa_jitter_phi_asds",
+            "mosa_jitter_eta_asds",
+        ),
         "longitudinal_jitter": on("mosa_jitter_x_asds"),
         "dws": on("dws_asds"),
         "moc_time_correlation": on("moc_time_correlation_asds"),
@@ -479,14 +510,20 @@ def read_lisainstrument(path, *, order: int = 31, delay_order: int = 5):
     path = Path(path)
     with _open(path) as f:
         if not is_lisainstrument(f):
-            raise TelemetryError(path, "not a lisainstrument measurement file (no lisainstrument version/git_url root attributes)")
+            raise TelemetryError(
+                path, "not a lisainstrument measurement file (no lisainstrument version/git_url root attributes)"
+            )
         version_text = _str_attr(f, "version_format") or _str_attr(f, "version") or ""
         version = _parse_version(version_text)
         attr = "@version_format" if _str_attr(f, "version_format") else "@version"
         if version is None:
             raise TelemetryError(path, f"cannot parse the lisainstrument file version {version_text!r}", attr)
         if version[0] != SUPPORTED_MAJOR:
-            raise TelemetryError(path, f"lisainstrument file format {version_text} is not supported (only 2.x; re-simulate or convert)", attr)
+            raise TelemetryError(
+                path,
+                f"lisainstrument file format {version_text} is not supported (only 2.x; re-simulate or convert)",
+                attr,
+            )
         meta = _Metadata(path, f)
         t0, fs, size, nu0 = _sampling(path, meta)
 
@@ -498,22 +535,42 @@ def read_lisainstrument(path, *, order: int = 31, delay_order: int = 5):
         mprs = {mosa: reader.read(MPR_DATASET, mosa) for mosa in MOSAS}
         for mosa, d in mprs.items():
             if np.any(d <= 0):
-                raise TelemetryError(path, f"measured pseudo-ranges must be positive delays [s], found min {d.min():g}", f"{MPR_DATASET}/{mosa}")
+                raise TelemetryError(
+                    path,
+                    f"measured pseudo-ranges must be positive delays [s], found min {d.min():g}",
+                    f"{MPR_DATASET}/{mosa}",
+                )
         dws_phi = np.stack([reader.read(DWS_PHI_DATASET, mosa) for mosa in MOSAS])
         dws_eta = np.stack([reader.read(DWS_ETA_DATASET, mosa) for mosa in MOSAS])
         index_start = reader.range[0] if reader.range else 0
         eta_hz = compute_etas_hz(beatnotes, mprs, fs, order)
         valid = np.isfinite(eta_hz).all(axis=0)
         if not valid.any():
-            raise TelemetryError(path, f"too short for the eta reduction: no sample has its delayed terms (delays {max(d.max() for d in mprs.values()):.3g} s, order {order})", MPR_DATASET)
+            raise TelemetryError(
+                path,
+                f"too short for the eta reduction: no sample has its delayed terms (delays {max(d.max() for d in mprs.values()):.3g} s, order {order})",
+                MPR_DATASET,
+            )
         first = int(np.argmax(valid))
         last = size - int(np.argmax(valid[::-1]))  # one past the last valid sample
         if not valid[first:last].all():
             bad = first + int(np.argmin(valid[first:last]))
-            raise TelemetryError(path, f"eta reduction undefined inside the data (sample {bad}); delays jump?", MPR_DATASET)
+            raise TelemetryError(
+                path, f"eta reduction undefined inside the data (sample {bad}); delays jump?", MPR_DATASET
+            )
         t0_file = t0 + index_start / fs
-        config = _config(f, meta.data, t0=t0_file, fs=fs, size=size, nu0=nu0, order=order,
-                         delay_order=delay_order, dropped=first, trailing=size - last)
+        config = _config(
+            f,
+            meta.data,
+            t0=t0_file,
+            fs=fs,
+            size=size,
+            nu0=nu0,
+            order=order,
+            delay_order=delay_order,
+            dropped=first,
+            trailing=size - last,
+        )
     sl = slice(first, last)
     ltt = np.stack([mprs[m] for m in LINKS])
     return Telemetry(
@@ -551,7 +608,15 @@ def lisainstrument_truth(path) -> dict[str, float]:
     flat = _ttl_flat(md)
     if flat is None:
         if md.get("ttl_file"):
-            raise TelemetryError(path, f"time-varying TTL coefficients from file {md['ttl_file']!r}; no static truth", meta.where("ttl_file"))
+            raise TelemetryError(
+                path,
+                f"time-varying TTL coefficients from file {md['ttl_file']!r}; no static truth",
+                meta.where("ttl_file"),
+            )
         missing = [k for k in TTL_METADATA_KEYS if not isinstance(md.get(k), dict)]
-        raise TelemetryError(path, "missing or malformed TTL coefficients", meta.where(missing[0] if missing else "ttl_coeffs_local_phis"))
+        raise TelemetryError(
+            path,
+            "missing or malformed TTL coefficients",
+            meta.where(missing[0] if missing else "ttl_coeffs_local_phis"),
+        )
     return flat

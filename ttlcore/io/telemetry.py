@@ -102,8 +102,11 @@ class Telemetry:
 
     def missing(self) -> np.ndarray:
         """Samples where an eta or DWS series is not finite (a gap in the data), shape (n,)."""
-        return ~(np.isfinite(self.eta).all(axis=0) & np.isfinite(self.dws_phi).all(axis=0)
-                 & np.isfinite(self.dws_eta).all(axis=0))
+        return ~(
+            np.isfinite(self.eta).all(axis=0)
+            & np.isfinite(self.dws_phi).all(axis=0)
+            & np.isfinite(self.dws_eta).all(axis=0)
+        )
 
     def nan_stretches(self) -> list[list[int]]:
         """Sample ranges ``[start, stop)`` of the gaps (:meth:`missing`)."""
@@ -204,8 +207,10 @@ def read_ttl_telemetry(path, start: int = 0, stop: int | None = None) -> Telemet
         start, stop, _ = slice(start, stop).indices(size)
         # NaN in eta and the DWS series is a gap in the data (no sample): read as such, the
         # consumers mask it; the light travel times must be finite
-        arrays = {fieldname: read_series(f, path, name, 6, size, start, stop, allow_nan=fieldname != "ltt")
-                  for name, fieldname in _FIELDS.items()}
+        arrays = {
+            fieldname: read_series(f, path, name, 6, size, start, stop, allow_nan=fieldname != "ltt")
+            for name, fieldname in _FIELDS.items()
+        }
     return Telemetry(
         t0=head["t0"] + start / head["fs"], fs=head["fs"], config=head["config"], source=str(path), **arrays
     )

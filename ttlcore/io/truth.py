@@ -98,7 +98,9 @@ def read_truth(path, start: int = 0, stop: int | None = None) -> Truth:
     """Read a truth file; errors name the file and dataset."""
     with open_h5(path) as f:
         if text_attr(f, "format") != FORMAT:
-            raise TelemetryError(path, f"not a truth file (root attribute format={text_attr(f, 'format')!r})", "@format")
+            raise TelemetryError(
+                path, f"not a truth file (root attribute format={text_attr(f, 'format')!r})", "@format"
+            )
         fs = number_attr(f, path, "fs", positive=True)
         size = number_attr(f, path, "size", int, positive=True)
         t0 = number_attr(f, path, "t0")

@@ -2,4 +2,4 @@
 Imported only where figures are drawn.
 """
 
-__all__ = ['batch', 'diagnosis']
+__all__ = ["batch", "diagnosis"]

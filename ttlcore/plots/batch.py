@@ -39,8 +39,9 @@ ASD_CURVES = {
 REQUIREMENT_STYLE = dict(color="0.4", lw=1.2, ls="--")
 
 
-def asd_x_curves(sub, channel: str = "X2", nperseg: int | None = None, per_decade: int = 40,
-                 arm_length: float = ARM_LENGTH) -> dict:
+def asd_x_curves(
+    sub, channel: str = "X2", nperseg: int | None = None, per_decade: int = 40, arm_length: float = ARM_LENGTH
+) -> dict:
     """Log-averaged displacement ASDs [m/sqrt(Hz)] of the series of one channel.
 
     Parameters
@@ -92,8 +93,17 @@ def _save(fig, path) -> Path:
     return path
 
 
-def plot_asd_x(sub, path, *, band=None, arm_length: float = ARM_LENGTH, title: str | None = None,
-               curves: dict | None = None, fmin: float = 1e-4, fmax: float = 1.0) -> Path:
+def plot_asd_x(
+    sub,
+    path,
+    *,
+    band=None,
+    arm_length: float = ARM_LENGTH,
+    title: str | None = None,
+    curves: dict | None = None,
+    fmin: float = 1e-4,
+    fmax: float = 1.0,
+) -> Path:
     """ASD of TDI X in displacement: with TTL (black), residual with the fitted coefficients
     (blue), residual with the true coefficients (light-blue dashed), TTL residual (green
     dash-dotted), noise without TTL (grey), LISA requirement (grey dashed); the fit band is
@@ -159,8 +169,18 @@ def plot_coefficients(names, coefficients, sigma, path, *, truth=None, title: st
         r = COEFFICIENT_REQUIREMENT * 1e3
         ax.axhline(r, color="tab:red", lw=1, ls="--", label=f"±{r:g} mm/rad (paper's goal)")
         ax.axhline(-r, color="tab:red", lw=1, ls="--")
-    ax.errorbar(x, y, yerr=e, fmt="o", ms=4.5, color="tab:blue", ecolor="tab:blue", elinewidth=1.2, capsize=3,
-                label=("fit - truth" if tru is not None else "fitted value") + ", 1σ bars")
+    ax.errorbar(
+        x,
+        y,
+        yerr=e,
+        fmt="o",
+        ms=4.5,
+        color="tab:blue",
+        ecolor="tab:blue",
+        elinewidth=1.2,
+        capsize=3,
+        label=("fit - truth" if tru is not None else "fitted value") + ", 1σ bars",
+    )
     for g in range(1, len(PAPER_ORDER)):
         ax.axvline(5 * g - 1, color="0.8", lw=0.8, ls=":")
     ax.set_xticks(x, [_label(n) for n in order], fontsize=8, rotation=90)

@@ -32,7 +32,11 @@ def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.02, fine: 
     f = dg.f
     for ci, ch in enumerate(AET):
         ax = axes[ci]
-        label = "noise model (fitted levels)" if getattr(dg, "noise_parameters", None) is not None else "instrument noise model"
+        label = (
+            "noise model (fitted levels)"
+            if getattr(dg, "noise_parameters", None) is not None
+            else "instrument noise model"
+        )
         ax.loglog(*log_displacement_asd(f, np.real(dg.noise_csd[:, ci, ci])), "k--", lw=1.2, label=label)
         for label, fit in fits.items():
             r = np.linalg.solve(dg.Lh[None], fit.residual_w[..., None])[..., 0]  # unwhiten: r = (L^H)^-1 wr
@@ -45,11 +49,17 @@ def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.02, fine: 
     edges = dg.edges
     top = 1.2
     for label, fit in fits.items():
-        top = max(top, 1.1 * _band_stairs(ax, fit.bands.chi2_dof, edges, fit.bands.fails, "rx",
-                                          lw=1.5, label=label, zorder=3))
+        top = max(
+            top, 1.1 * _band_stairs(ax, fit.bands.chi2_dof, edges, fit.bands.fails, "rx", lw=1.5, label=label, zorder=3)
+        )
     for label, tab in (fine or {}).items():
-        top = max(top, 1.1 * _band_stairs(ax, tab.chi2_dof, tab.edges, tab.fails, "r+",
-                                          lw=0.8, ls=":", label=f"{label}, third-octave", zorder=2))
+        top = max(
+            top,
+            1.1
+            * _band_stairs(
+                ax, tab.chi2_dof, tab.edges, tab.fails, "r+", lw=0.8, ls=":", label=f"{label}, third-octave", zorder=2
+            ),
+        )
     ax.axhspan(1 - tolerance, 1 + tolerance, color="0.85", zorder=0, label=f"1 +- tolerance ({100 * tolerance:.0f} %)")
     ax.set_xscale("log")
     ax.set_ylim(0.8, top)

@@ -6,4 +6,4 @@
 and ``spec`` (a simulation described by the options of ``ttl simulate``).
 """
 
-__all__ = ['coefficients', 'injection', 'noise', 'noise_models', 'orbits', 'simulator', 'spec']
+__all__ = ["coefficients", "injection", "noise", "noise_models", "orbits", "simulator", "spec"]

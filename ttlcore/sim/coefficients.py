@@ -136,7 +136,10 @@ class CoefficientModel:
         if self.steps:
             d["steps"] = [{"t": float(t), "jump": {n: v for n, v in as_mapping(j).items() if v}} for t, j in self.steps]
         if self.table_t is not None and self.table_values is not None:
-            d["table"] = {"t": list(map(float, self.table_t)), "values": {n: list(map(float, row)) for n, row in zip(COEFFICIENT_NAMES, self.table_values)}}
+            d["table"] = {
+                "t": list(map(float, self.table_t)),
+                "values": {n: list(map(float, row)) for n, row in zip(COEFFICIENT_NAMES, self.table_values)},
+            }
         return d
 
     @classmethod
@@ -148,9 +151,7 @@ class CoefficientModel:
         drift = as_vector({**zeros, **d.get("drift_per_s", {})})
         if "drift_per_day" in d:
             drift = drift + as_vector({**zeros, **d["drift_per_day"]}) / DAY
-        steps = tuple(
-            (float(s["t"]), as_vector({**zeros, **s.get("jump", {})})) for s in d.get("steps", [])
-        )
+        steps = tuple((float(s["t"]), as_vector({**zeros, **s.get("jump", {})})) for s in d.get("steps", []))
         table_t = table_values = None
         if "table" in d:
             table_t = np.asarray(d["table"]["t"], dtype=float)
@@ -159,8 +160,12 @@ class CoefficientModel:
             if table_values.shape != (24, table_t.size) or np.any(np.diff(table_t) <= 0):
                 raise ConfigError("coefficient table needs increasing 't' and one value per time for each name")
         return cls(
-            base=as_vector(d["base"]), drift=drift, t_ref=float(d.get("t_ref", 0.0)), steps=steps,
-            table_t=table_t, table_values=table_values,
+            base=as_vector(d["base"]),
+            drift=drift,
+            t_ref=float(d.get("t_ref", 0.0)),
+            steps=steps,
+            table_t=table_t,
+            table_values=table_values,
         )
 
     def with_drift(self, rates_per_day: dict[str, float]) -> CoefficientModel:

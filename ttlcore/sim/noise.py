@@ -216,8 +216,15 @@ class NoiseFilter:
         Causal impulse response (peak at index ``N/2``).
     """
 
-    def __init__(self, asd: Callable, fs: float, *, fmin: float = DEFAULT_FMIN, length: int | None = None,
-                 taper: float = TAPER_FRACTION):
+    def __init__(
+        self,
+        asd: Callable,
+        fs: float,
+        *,
+        fmin: float = DEFAULT_FMIN,
+        length: int | None = None,
+        taper: float = TAPER_FRACTION,
+    ):
         fs = float(fs)
         fmin = float(fmin)
         if not (np.isfinite(fs) and fs > 0):
@@ -234,8 +241,12 @@ class NoiseFilter:
         if not 0.0 <= taper < 1.0:
             raise ValueError(f"taper fraction must be in [0, 1), got {taper!r}")
         if length < fs / fmin:
-            logger.warning("filter length %d covers %.3g s < 1/fmin = %.3g s: the spectrum near fmin "
-                           "will be smeared", length, length / fs, 1.0 / fmin)
+            logger.warning(
+                "filter length %d covers %.3g s < 1/fmin = %.3g s: the spectrum near fmin will be smeared",
+                length,
+                length / fs,
+                1.0 / fmin,
+            )
         self.asd = asd
         self.fs = fs
         self.fmin = fmin
@@ -246,8 +257,10 @@ class NoiseFilter:
         amp = np.broadcast_to(np.asarray(asd(regularized_frequency(f, fmin)), dtype=float), f.shape)
         if not np.all(np.isfinite(amp)) or np.any(amp < 0):
             bad = f[~(np.isfinite(amp) & (amp >= 0))]
-            raise ValueError(f"ASD model {getattr(asd, '__name__', asd)!r} returned non-finite or negative "
-                             f"values at {bad.size} frequencies (first {bad[0]:.3g} Hz)")
+            raise ValueError(
+                f"ASD model {getattr(asd, '__name__', asd)!r} returned non-finite or negative "
+                f"values at {bad.size} frequencies (first {bad[0]:.3g} Hz)"
+            )
         h = sfft.irfft(amp * np.sqrt(fs / 2.0), n=length)
         h = np.roll(h, length // 2)
         h *= _taper(length, self.taper)
@@ -328,9 +341,20 @@ class NoiseStream:
     ``PCG64``/``SeedSequence`` streams, which numpy keeps stable across versions.
     """
 
-    def __init__(self, asd, fs: float, *, seed: int, key: str, n_channels: int = 1, fmin: float = DEFAULT_FMIN,
-                 filter_length: int | None = None, block_length: int | None = None, cache_blocks: int = 2,
-                 keep_white: bool = True):
+    def __init__(
+        self,
+        asd,
+        fs: float,
+        *,
+        seed: int,
+        key: str,
+        n_channels: int = 1,
+        fmin: float = DEFAULT_FMIN,
+        filter_length: int | None = None,
+        block_length: int | None = None,
+        cache_blocks: int = 2,
+        keep_white: bool = True,
+    ):
         if isinstance(asd, NoiseFilter):
             if not math.isclose(asd.fs, float(fs)):
                 raise ValueError(f"NoiseFilter designed for fs={asd.fs} Hz used at fs={fs} Hz")
@@ -419,7 +443,7 @@ class NoiseStream:
         for k in range(start // WHITE_BLOCK, (stop - 1) // WHITE_BLOCK + 1):
             b0 = k * WHITE_BLOCK
             lo, hi = max(start, b0), min(stop, b0 + WHITE_BLOCK)
-            out[:, lo - start:hi - start] = self._white_block(k)[channels, lo - b0:hi - b0]
+            out[:, lo - start : hi - start] = self._white_block(k)[channels, lo - b0 : hi - b0]
         return out
 
     # -- output blocks --------------------------------------------------------------
@@ -436,7 +460,7 @@ class NoiseStream:
             spec *= self._hf
             y = sfft.irfft(spec, n=M, axis=-1, workers=-1)
             del spec
-            out[sel] = y[:, M - B:]
+            out[sel] = y[:, M - B :]
         return out
 
     def _block(self, b: int) -> np.ndarray:
@@ -455,8 +479,9 @@ class NoiseStream:
         try:
             start, stop = operator.index(start), operator.index(stop)
         except TypeError:
-            raise TypeError(f"start and stop must be integers (absolute sample indices), got {start!r}, {stop!r}") \
-                from None
+            raise TypeError(
+                f"start and stop must be integers (absolute sample indices), got {start!r}, {stop!r}"
+            ) from None
         if stop < start:
             raise ValueError(f"stop ({stop}) must be >= start ({start})")
         return start, stop
@@ -482,7 +507,7 @@ class NoiseStream:
         for b in range((start - o) // B, (stop - 1 - o) // B + 1):
             b0 = b * B + o
             lo, hi = max(start, b0), min(stop, b0 + B)
-            out[:, lo - start:hi - start] = self._block(b)[:, lo - b0:hi - b0]
+            out[:, lo - start : hi - start] = self._block(b)[:, lo - b0 : hi - b0]
         return out
 
     def clear_cache(self) -> None:
@@ -496,8 +521,10 @@ class NoiseStream:
         return sum(a.nbytes for a in self._blocks.values()) + sum(a.nbytes for a in self._white.values())
 
     def __repr__(self) -> str:
-        return (f"NoiseStream(key={self.key!r}, seed={self.seed}, fs={self.fs}, n_channels={self.n_channels}, "
-                f"filter_length={self.filter.length}, block_length={self.block_length})")
+        return (
+            f"NoiseStream(key={self.key!r}, seed={self.seed}, fs={self.fs}, n_channels={self.n_channels}, "
+            f"filter_length={self.filter.length}, block_length={self.block_length})"
+        )
 
 
 def generate(asd, fs: float, n: int, *, seed: int, key: str, n_channels: int = 1, start: int = 0, **kw) -> np.ndarray:

@@ -100,6 +100,7 @@ def _freq(f) -> np.ndarray:
 # Interferometric noises (fractional frequency)
 # ---------------------------------------------------------------------------
 
+
 def laser(f, asd_hz: float = 30.0, fknee: float = 2e-3):
     """Laser frequency noise of one free-running laser, in fractional frequency.
 
@@ -292,6 +293,7 @@ def secondary_single_link(f):
 # ---------------------------------------------------------------------------
 # Jitters and DWS readout (angles)
 # ---------------------------------------------------------------------------
+
 
 def _jitter(f, asd: float, fknee: float):
     f = _freq(f)

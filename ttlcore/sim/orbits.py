@@ -229,9 +229,7 @@ class StaticOrbit(Orbit):
         self.name = str(name)
         self._ltt = _ltt_mapping(ltt)
         self._values = np.array([self._ltt[link] for link in LINKS])
-        arm = {
-            pair: C * 0.5 * (self._ltt[pair] + self._ltt[pair[::-1]]) for pair in ("12", "23", "31")
-        }
+        arm = {pair: C * 0.5 * (self._ltt[pair] + self._ltt[pair[::-1]]) for pair in ("12", "23", "31")}
         l12, l23, l31 = arm["12"], arm["23"], arm["31"]
         if not (l12 < l23 + l31 and l23 < l12 + l31 and l31 < l12 + l23):
             raise ConfigError(
@@ -634,9 +632,7 @@ class OrbitFile(Orbit):
         self.path = os.fspath(path)
         self.dataset = str(dataset)
         if self.dataset not in ORBIT_FILE_DATASETS:
-            raise ConfigError(
-                f"orbit file dataset must be one of {', '.join(ORBIT_FILE_DATASETS)}, got {dataset!r}"
-            )
+            raise ConfigError(f"orbit file dataset must be one of {', '.join(ORBIT_FILE_DATASETS)}, got {dataset!r}")
         try:
             order = int(order)
         except (TypeError, ValueError):
@@ -671,16 +667,19 @@ class OrbitFile(Orbit):
         except (TypeError, ValueError) as exc:
             raise TelemetryError(self.path, f"bad time-grid attributes t0/dt/size ({exc})") from None
         if not (np.isfinite(self.t0) and np.isfinite(self.dt) and self.dt > 0 and self.size >= 2):
-            raise TelemetryError(
-                self.path, f"bad time grid t0={self.t0!r}, dt={self.dt!r}, size={self.size!r}", "dt"
-            )
+            raise TelemetryError(self.path, f"bad time grid t0={self.t0!r}, dt={self.dt!r}, size={self.size!r}", "dt")
         #: File time grid [s] (same expression as lisaorbits: ``t0 + arange(size) * dt``).
         self.times = self.t0 + np.arange(self.size) * self.dt
         # Read and validate the delay dataset now, so a bad file fails at construction.
         self._load(self.dataset, (6,))
         logger.info(
             "orbit file %s: %s, %d samples every %g s from t0 = %g s (%s %s)",
-            self.path, self.dataset, self.size, self.dt, self.t0, self.generator or "unknown generator",
+            self.path,
+            self.dataset,
+            self.size,
+            self.dt,
+            self.t0,
+            self.generator or "unknown generator",
             self.file_version,
         )
 
@@ -716,7 +715,6 @@ class OrbitFile(Orbit):
 
     def _spline(self, name: str, trailing: tuple[int, ...]):
         if name not in self._splines:
-
             data = self._load(name, trailing)
             k = min(self.order, self.size - 1)
             self._splines[name] = make_interp_spline(self.times, data, k=k, axis=0)
@@ -732,8 +730,7 @@ class OrbitFile(Orbit):
         if tmin < first or tmax > last:
             raise TelemetryError(
                 self.path,
-                f"requested times [{tmin:.9g}, {tmax:.9g}] s are outside the file's range "
-                f"[{first:.9g}, {last:.9g}] s",
+                f"requested times [{tmin:.9g}, {tmax:.9g}] s are outside the file's range [{first:.9g}, {last:.9g}] s",
                 name,
             )
 

@@ -214,8 +214,9 @@ class SimulationConfig:
         return cls(**{k: v for k, v in d.items() if k in {f.name for f in fields(cls)}})
 
 
-def anti_alias_filter(fs_physics: float, down: int, attenuation_db: float = 240.0,
-                      passband: float = 1.1, stopband: float = 2.9) -> np.ndarray:
+def anti_alias_filter(
+    fs_physics: float, down: int, attenuation_db: float = 240.0, passband: float = 1.1, stopband: float = 2.9
+) -> np.ndarray:
     """Kaiser-window low-pass FIR (lisainstrument's default: 240 dB, 1.1 Hz pass, 2.9 Hz stop).
 
     The number of taps is odd, and its half-length a multiple of ``down`` so that the
@@ -249,10 +250,12 @@ class Simulator:
             # output blocks sized to the run (a short run computes one short block, not 1.5
             # filter lengths); the samples do not depend on it beyond rounding (noise.py)
             taps = default_filter_length(rate)
-            block = run_block_length(int(math.ceil(cfg.duration * rate)), taps,
-                                     margin=int(math.ceil(BLOCK_MARGIN_S * rate)))
-            return NoiseStream(model, rate, seed=cfg.seed, key=key, n_channels=n, block_length=block,
-                               keep_white=block >= taps // 2)
+            block = run_block_length(
+                int(math.ceil(cfg.duration * rate)), taps, margin=int(math.ceil(BLOCK_MARGIN_S * rate))
+            )
+            return NoiseStream(
+                model, rate, seed=cfg.seed, key=key, n_channels=n, block_length=block, keep_white=block >= taps // 2
+            )
 
         def jitter_model(level):
             return vel(_Jitter(level, jit["fknee"], jit.get("fhigh")))
@@ -270,7 +273,9 @@ class Simulator:
             # rows: phi of the six MOSAs, then eta
             "dws": stream(sw.dws, "dws", vel(_White(jit["dws"])), 12),
         }
-        self.aa_filter = anti_alias_filter(self.fs_physics, int(cfg.laser_upsampling)) if cfg.laser_upsampling > 1 else np.ones(1)
+        self.aa_filter = (
+            anti_alias_filter(self.fs_physics, int(cfg.laser_upsampling)) if cfg.laser_upsampling > 1 else np.ones(1)
+        )
         angles = np.radians([MOSA_ANGLES_DEG[m] for m in MOSAS])
         self._cos, self._sin = np.cos(angles)[:, None], np.sin(angles)[:, None]
         self._sc_of_mosa = np.array([local_spacecraft(m) - 1 for m in MOSAS])
@@ -338,7 +343,7 @@ class Simulator:
         sc = self._get("sc_jitter", e0, ea, 9).reshape(3, 3, -1)[self._sc_of_mosa]
         phi_dot = sc[:, 0] + self._get("mosa_jitter_phi", e0, ea, 6)
         eta_dot = self._cos * sc[:, 1] - self._sin * sc[:, 2] + self._get("mosa_jitter_eta", e0, ea, 6)
-        phi_ahead, eta_ahead = phi_dot[:, h + n:], eta_dot[:, h + n:]
+        phi_ahead, eta_ahead = phi_dot[:, h + n :], eta_dot[:, h + n :]
         phi_dot, eta_dot = phi_dot[:, : h + n], eta_dot[:, : h + n]
 
         coeffs = cfg.coefficients.values(t_ext)
@@ -367,12 +372,24 @@ class Simulator:
         eta = ttl + sum(components.values())
         injected = {}
         if cfg.injections:
-            ctx = ChunkContext(n0=n0, n=n, h=h, fs=fs, t=t, t_ext=t_ext, ltt=ltt, orbit=self.orbit,
-                               phi_dot=phi_dot, eta_dot=eta_dot, coefficients=coeffs,
-                               delayed_onto_links=delayed_onto_links,
-                               interpolation_order=cfg.interpolation_order,
-                               phi_dot_ahead=phi_ahead, eta_dot_ahead=eta_ahead,
-                               coefficients_ahead=cfg.coefficients.values(cfg.t0 + np.arange(e1, ea) / fs))
+            ctx = ChunkContext(
+                n0=n0,
+                n=n,
+                h=h,
+                fs=fs,
+                t=t,
+                t_ext=t_ext,
+                ltt=ltt,
+                orbit=self.orbit,
+                phi_dot=phi_dot,
+                eta_dot=eta_dot,
+                coefficients=coeffs,
+                delayed_onto_links=delayed_onto_links,
+                interpolation_order=cfg.interpolation_order,
+                phi_dot_ahead=phi_ahead,
+                eta_dot_ahead=eta_ahead,
+                coefficients_ahead=cfg.coefficients.values(cfg.t0 + np.arange(e1, ea) / fs),
+            )
             for inj in cfg.injections:
                 injected[inj.name] = check_signal(inj, inj.link_signal(ctx), n)
                 eta = eta + injected[inj.name]
@@ -465,8 +482,9 @@ def simulate(config: SimulationConfig, chunk_size: int | None = None) -> tuple[T
     return tm, truth
 
 
-def simulate_to_file(config: SimulationConfig, out, *, chunk_size: int | None = None,
-                     progress: Callable[[int, int], None] | None = None):
+def simulate_to_file(
+    config: SimulationConfig, out, *, chunk_size: int | None = None, progress: Callable[[int, int], None] | None = None
+):
     """Simulate chunk by chunk into ``out`` and its truth file ``out.truth.h5``.
 
     Both files are written atomically (temporary name, then rename); memory stays bounded
@@ -481,9 +499,18 @@ def simulate_to_file(config: SimulationConfig, out, *, chunk_size: int | None = 
     cfg_dict = config.to_dict()
     cfg_dict["orbit_description"] = sim.orbit.describe()
     tpath = truth_path(out)
-    with TelemetryWriter(out, t0=config.t0, fs=config.fs, size=sim.size, config=cfg_dict) as tw, \
-            TruthWriter(tpath, t0=config.t0, fs=config.fs, size=sim.size, config=cfg_dict, noises=config.truth_noises,
-                        injections=[inj.name for inj in config.injections]) as rw:
+    with (
+        TelemetryWriter(out, t0=config.t0, fs=config.fs, size=sim.size, config=cfg_dict) as tw,
+        TruthWriter(
+            tpath,
+            t0=config.t0,
+            fs=config.fs,
+            size=sim.size,
+            config=cfg_dict,
+            noises=config.truth_noises,
+            injections=[inj.name for inj in config.injections],
+        ) as rw,
+    ):
         done = 0
         for tm, truth in sim.chunks(chunk_size):
             tw.append_telemetry(tm)

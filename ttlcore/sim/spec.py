@@ -31,7 +31,9 @@ def _parse_assignments(text: str, option: str) -> dict[str, float]:
         if not sep:
             raise TTLError(f"{option}: expected NAME=VALUE, got {item!r}")
         if name not in COEFFICIENT_NAMES:
-            raise TTLError(f"{option}: unknown coefficient {name!r}; names look like '12.phi.rx' ('<mosa>.<phi|eta>.<rx|tx>')")
+            raise TTLError(
+                f"{option}: unknown coefficient {name!r}; names look like '12.phi.rx' ('<mosa>.<phi|eta>.<rx|tx>')"
+            )
         try:
             out[name] = float(value)
         except ValueError:
@@ -53,17 +55,24 @@ def simulation_config_from_args(args, truth_noises=()):
             raise TTLError(f"--step: expected T:NAME=MM,..., got {step!r}")
         t_step = parse_duration(when, "--step") if when.strip() not in ("0", "0.0") else 0.0
         if t_step >= args.t0 + duration:  # would change nothing in the data: surely not what was meant
-            raise TTLError(f"--step {step}: {t_step:g} s is at or after the end of the simulation "
-                           f"({args.t0 + duration:g} s)")
+            raise TTLError(
+                f"--step {step}: {t_step:g} s is at or after the end of the simulation ({args.t0 + duration:g} s)"
+            )
         coeffs = coeffs.with_step(t_step, {k: v * 1e-3 for k, v in _parse_assignments(rest, "--step").items()})
     make_orbit(args.orbit)  # validate early: clear error before any work
     gw = ()
     if getattr(args, "gw", ""):
-
         gw = parse_gw_spec(args.gw, t0=args.t0, duration=duration, seed=args.seed)
     return SimulationConfig(
-        duration=duration, t0=args.t0, fs=args.fs, orbit=args.orbit, coefficients=coeffs, seed=args.seed,
-        noises=NoiseSwitches.parse(args.noises), interpolation_order=args.order, truth_noises=tuple(truth_noises),
+        duration=duration,
+        t0=args.t0,
+        fs=args.fs,
+        orbit=args.orbit,
+        coefficients=coeffs,
+        seed=args.seed,
+        noises=NoiseSwitches.parse(args.noises),
+        interpolation_order=args.order,
+        truth_noises=tuple(truth_noises),
         injections=tuple(gw) + _effect_injections(args),
     )
 
@@ -100,8 +109,10 @@ def simulation_config(text: str) -> SimulationConfig:
     except (argparse.ArgumentError, ValueError) as exc:
         raise ConfigError(f"--simulate: {exc}") from None
     if unknown:
-        raise ConfigError(f"--simulate: unknown option(s) {' '.join(unknown)} "
-                          "(the options of 'ttl simulate' except --out, --chunk, --truth-noises, --quiet)")
+        raise ConfigError(
+            f"--simulate: unknown option(s) {' '.join(unknown)} "
+            "(the options of 'ttl simulate' except --out, --chunk, --truth-noises, --quiet)"
+        )
     try:
         return simulation_config_from_args(args)
     except TTLError as exc:  # ConfigError included: the message names the option

@@ -7,4 +7,4 @@ history), ``regressors`` (DWS witnesses placed on their links) and ``data`` (TDI
 batch and streaming).
 """
 
-__all__ = ['combinations', 'data', 'engine', 'interpolation', 'regressors']
+__all__ = ["combinations", "data", "engine", "interpolation", "regressors"]

@@ -39,6 +39,7 @@ from .interpolation import DEFAULT_ORDER, apply_taps, shift_taps
 
 Chain = tuple[str, ...]
 
+
 def _permute_link(link: str, mapping: dict[str, str]) -> str:
     return "".join(mapping[c] for c in link)
 
@@ -75,8 +76,14 @@ class Combination:
     def max_chain_length(self) -> int:
         return max(len(chain) for _, _, chain in self.terms)
 
-    def build(self, ltt: np.ndarray, fs: float, order: int = DEFAULT_ORDER,
-              delay_order: int = DEFAULT_DELAY_ORDER, history: int = 0) -> BuiltCombination:
+    def build(
+        self,
+        ltt: np.ndarray,
+        fs: float,
+        order: int = DEFAULT_ORDER,
+        delay_order: int = DEFAULT_DELAY_ORDER,
+        history: int = 0,
+    ) -> BuiltCombination:
         """Bind to a delay series; see :func:`build`."""
         return build([self], ltt, fs, order=order, delay_order=delay_order, history=history)[0]
 
@@ -187,8 +194,16 @@ class BuiltCombination:
 
     def columns(self, parts, ncolumns: int) -> np.ndarray:
         """:func:`~ttlcore.tdi.engine.tdi_columns` of ``parts`` for this combination: ``(ncolumns, n)``."""
-        return tdi_columns(parts, ncolumns, self.ltt, self.fs, history=self.history, combinations=(self.combination,),
-                           order=self.order, delay_order=self.delay_order)[0]
+        return tdi_columns(
+            parts,
+            ncolumns,
+            self.ltt,
+            self.fs,
+            history=self.history,
+            combinations=(self.combination,),
+            order=self.order,
+            delay_order=self.delay_order,
+        )[0]
 
     def __call__(self, eta: np.ndarray) -> np.ndarray:
         """Evaluate the combination on ``eta`` (shape ``(6, history + n)``); returns ``(n,)``."""
@@ -220,8 +235,14 @@ class BuiltCombination:
         return out
 
 
-def build(combinations, ltt: np.ndarray, fs: float, order: int = DEFAULT_ORDER,
-          delay_order: int = DEFAULT_DELAY_ORDER, history: int = 0) -> list:
+def build(
+    combinations,
+    ltt: np.ndarray,
+    fs: float,
+    order: int = DEFAULT_ORDER,
+    delay_order: int = DEFAULT_DELAY_ORDER,
+    history: int = 0,
+) -> list:
     """Bind several combinations to one delay series.
 
     Parameters

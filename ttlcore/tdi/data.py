@@ -76,11 +76,21 @@ class TDIData:
 
     def slice(self, sl: slice) -> TDIData:
         start, stop, _ = sl.indices(self.size)
-        return replace(self, t0=self.t0 + start / self.fs, data=self.data[:, start:stop],
-                       regressors=self.regressors[:, :, start:stop])
+        return replace(
+            self,
+            t0=self.t0 + start / self.fs,
+            data=self.data[:, start:stop],
+            regressors=self.regressors[:, :, start:stop],
+        )
 
-    def decimated(self, factor: int = 2, passband: float = 0.9, stopband: float = 1.1,
-                  attenuation_db: float = 180.0, workers: int | None = -1) -> TDIData:
+    def decimated(
+        self,
+        factor: int = 2,
+        passband: float = 0.9,
+        stopband: float = 1.1,
+        attenuation_db: float = 180.0,
+        workers: int | None = -1,
+    ) -> TDIData:
         """Anti-alias low-pass and decimation of data and regressors alike (the paper fits at
         2 Hz after such a filter).
 
@@ -158,8 +168,13 @@ def lowpass_decimate(arrays, taps: np.ndarray, factor: int, workers: int | None 
     return out
 
 
-def history_samples(fs: float, ltt_max: float = 8.6, order: int = DEFAULT_ORDER,
-                    delay_order: int = DEFAULT_DELAY_ORDER, combinations=MICHELSON) -> int:
+def history_samples(
+    fs: float,
+    ltt_max: float = 8.6,
+    order: int = DEFAULT_ORDER,
+    delay_order: int = DEFAULT_DELAY_ORDER,
+    combinations=MICHELSON,
+) -> int:
     """Input samples the combinations reach back to: the longest chain plus the Tx
     pre-delay, times the largest light travel time, plus the stencils of both
     interpolations (chain and pre-delay) and of the delay interpolation."""
@@ -167,9 +182,20 @@ def history_samples(fs: float, ltt_max: float = 8.6, order: int = DEFAULT_ORDER,
     return int(np.ceil(longest * ltt_max * fs)) + 2 * (order // 2 + 1) + delay_order + 8
 
 
-def compute_tdi_arrays(eta, dws_phi, dws_eta, ltt, fs: float, t0: float, *, history: int = 0,
-                       names=COEFFICIENT_NAMES, order: int = DEFAULT_ORDER,
-                       delay_order: int = DEFAULT_DELAY_ORDER, combinations=MICHELSON) -> TDIData:
+def compute_tdi_arrays(
+    eta,
+    dws_phi,
+    dws_eta,
+    ltt,
+    fs: float,
+    t0: float,
+    *,
+    history: int = 0,
+    names=COEFFICIENT_NAMES,
+    order: int = DEFAULT_ORDER,
+    delay_order: int = DEFAULT_DELAY_ORDER,
+    combinations=MICHELSON,
+) -> TDIData:
     """TDI of ``eta`` and of the regressors ``names``, on arrays whose first ``history``
     samples precede the output (``t0`` is the time of the first output sample).
 
@@ -181,18 +207,41 @@ def compute_tdi_arrays(eta, dws_phi, dws_eta, ltt, fs: float, t0: float, *, hist
     parts = [Part(0, link, (), eta[k]) for k, link in enumerate(LINKS)]
     for (link, extra), w in witnesses.items():
         parts += [Part(1 + k, link, extra, row) for row, k in zip(w, index[(link, extra)])]
-    out = tdi_columns(parts, 1 + len(names), ltt, fs, history=history, combinations=combinations, order=order,
-                      delay_order=delay_order)
-    return TDIData(t0=float(t0), fs=float(fs), channels=tuple(cb.name for cb in combinations), data=out[:, 0],
-                   regressors=out[:, 1:], names=tuple(names),
-                   ltt_mean=np.nanmean(np.asarray(ltt)[:, history:], axis=-1))
+    out = tdi_columns(
+        parts, 1 + len(names), ltt, fs, history=history, combinations=combinations, order=order, delay_order=delay_order
+    )
+    return TDIData(
+        t0=float(t0),
+        fs=float(fs),
+        channels=tuple(cb.name for cb in combinations),
+        data=out[:, 0],
+        regressors=out[:, 1:],
+        names=tuple(names),
+        ltt_mean=np.nanmean(np.asarray(ltt)[:, history:], axis=-1),
+    )
 
 
-def compute_tdi(tm: Telemetry, names=COEFFICIENT_NAMES, order: int = DEFAULT_ORDER,
-                delay_order: int = DEFAULT_DELAY_ORDER, combinations=MICHELSON) -> TDIData:
+def compute_tdi(
+    tm: Telemetry,
+    names=COEFFICIENT_NAMES,
+    order: int = DEFAULT_ORDER,
+    delay_order: int = DEFAULT_DELAY_ORDER,
+    combinations=MICHELSON,
+) -> TDIData:
     """TDI of a whole telemetry stretch; the first ~70 s are NaN (delays reach before the data)."""
-    return compute_tdi_arrays(tm.eta, tm.dws_phi, tm.dws_eta, tm.ltt, tm.fs, tm.t0, history=0, names=names,
-                              order=order, delay_order=delay_order, combinations=combinations)
+    return compute_tdi_arrays(
+        tm.eta,
+        tm.dws_phi,
+        tm.dws_eta,
+        tm.ltt,
+        tm.fs,
+        tm.t0,
+        history=0,
+        names=names,
+        order=order,
+        delay_order=delay_order,
+        combinations=combinations,
+    )
 
 
 class TDIStream:
@@ -203,8 +252,14 @@ class TDIStream:
     except that the very first segment starts with NaN like the batch result.
     """
 
-    def __init__(self, names=COEFFICIENT_NAMES, order: int = DEFAULT_ORDER,
-                 delay_order: int = DEFAULT_DELAY_ORDER, combinations=MICHELSON, ltt_max: float = 8.6):
+    def __init__(
+        self,
+        names=COEFFICIENT_NAMES,
+        order: int = DEFAULT_ORDER,
+        delay_order: int = DEFAULT_DELAY_ORDER,
+        combinations=MICHELSON,
+        ltt_max: float = 8.6,
+    ):
         self.names = tuple(names)
         self.order = order
         self.delay_order = delay_order
@@ -221,24 +276,44 @@ class TDIStream:
     def push(self, tm: Telemetry) -> TDIData:
         """TDI for the samples of ``tm`` (which must follow the previous segment)."""
         fs = tm.fs
-        hist = history_samples(fs, max(self.ltt_max, float(np.max(tm.ltt))), self.order, self.delay_order, self.combinations)
+        hist = history_samples(
+            fs, max(self.ltt_max, float(np.max(tm.ltt))), self.order, self.delay_order, self.combinations
+        )
         if self._tail is not None:
             expected = self.next_t0
             assert expected is not None  # set with the tail
             if abs(tm.t0 - expected) > 0.5 / fs or tm.fs != self._tail.fs:
                 raise ValueError(f"segment at t0={tm.t0} does not follow the previous one (expected t0={expected})")
             tail = self._tail
-            arrays = [np.concatenate([getattr(tail, k), getattr(tm, k)], axis=1) for k in ("eta", "dws_phi", "dws_eta", "ltt")]
+            arrays = [
+                np.concatenate([getattr(tail, k), getattr(tm, k)], axis=1) for k in ("eta", "dws_phi", "dws_eta", "ltt")
+            ]
             h = tail.size
         else:
             arrays = [tm.eta, tm.dws_phi, tm.dws_eta, tm.ltt]
             h = 0
         eta, dws_phi, dws_eta, ltt = arrays
-        out = compute_tdi_arrays(eta, dws_phi, dws_eta, ltt, fs=fs, t0=tm.t0, history=h, names=self.names, order=self.order,
-                                 delay_order=self.delay_order, combinations=self.combinations)
+        out = compute_tdi_arrays(
+            eta,
+            dws_phi,
+            dws_eta,
+            ltt,
+            fs=fs,
+            t0=tm.t0,
+            history=h,
+            names=self.names,
+            order=self.order,
+            delay_order=self.delay_order,
+            combinations=self.combinations,
+        )
         keep = min(hist, arrays[0].shape[-1])
-        self._tail = Telemetry(t0=tm.t0 + tm.duration - keep / fs, fs=fs, eta=eta[:, -keep:].copy(),
-                               dws_phi=dws_phi[:, -keep:].copy(), dws_eta=dws_eta[:, -keep:].copy(),
-                               ltt=ltt[:, -keep:].copy())
+        self._tail = Telemetry(
+            t0=tm.t0 + tm.duration - keep / fs,
+            fs=fs,
+            eta=eta[:, -keep:].copy(),
+            dws_phi=dws_phi[:, -keep:].copy(),
+            dws_eta=dws_eta[:, -keep:].copy(),
+            ltt=ltt[:, -keep:].copy(),
+        )
         self.next_t0 = tm.t0 + tm.size / fs
         return out

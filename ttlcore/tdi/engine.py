@@ -126,8 +126,8 @@ def _edge_lines(ltt: np.ndarray, fs: float):
     m = ltt.shape[-1]
     k = max(2, min(m, int(60 * fs)))
     x = np.arange(k, dtype=float)
-    head = np.polynomial.polynomial.polyfit(x, ltt[:, :k].T, 1)             # (2, rows)
-    tail = np.polynomial.polynomial.polyfit(x + (m - k), ltt[:, m - k:].T, 1)
+    head = np.polynomial.polynomial.polyfit(x, ltt[:, :k].T, 1)  # (2, rows)
+    tail = np.polynomial.polynomial.polyfit(x + (m - k), ltt[:, m - k :].T, 1)
 
     def line(rows, pos):
         c = np.where(pos < m / 2, head[:, rows], tail[:, rows])
@@ -143,11 +143,11 @@ def _nested_delays(chains, ltt: np.ndarray, pos: np.ndarray, fs: float, delay_or
     prefixes = {chain[:m] for chain in chains for m in range(1, len(chain) + 1)}
     for length in range(1, max((len(c) for c in chains), default=0) + 1):
         level = sorted(p for p in prefixes if len(p) == length)
-        prev = np.stack([out[p[:-1]] for p in level])                      # (k, nodes)
+        prev = np.stack([out[p[:-1]] for p in level])  # (k, nodes)
         rows = np.array([LINKS.index(p[-1]) for p in level])
         read = (pos[None, :] - prev * fs).ravel()
         k = np.floor(read)
-        w = lagrange_weights(read - k, delay_order)                         # (order + 1, k * nodes)
+        w = lagrange_weights(read - k, delay_order)  # (order + 1, k * nodes)
         idx = k.astype(np.int64)[None, :] + np.arange(-(delay_order - 1) // 2, (delay_order + 1) // 2 + 1)[:, None]
         m = ltt.shape[-1]
         outside = (idx[0] < 0) | (idx[-1] > m - 1)
@@ -183,8 +183,14 @@ def predelayed(parts, ltt: np.ndarray, fs: float, **options) -> list:
             by_delay.setdefault(extra[-1], []).append(i)  # innermost delay first
         done: list = [None] * len(pending)
         for d, idx in by_delay.items():
-            moved = tdi_columns([Part(j, d, (), pending[i][0].series) for j, i in enumerate(idx)], len(idx), ltt, fs,
-                                combinations=(_Delay(d),), **options)[0]
+            moved = tdi_columns(
+                [Part(j, d, (), pending[i][0].series) for j, i in enumerate(idx)],
+                len(idx),
+                ltt,
+                fs,
+                combinations=(_Delay(d),),
+                **options,
+            )[0]
             for j, i in enumerate(idx):
                 p, extra = pending[i]
                 done[i] = (Part(p.column, p.link, extra[:-1], moved[j]), extra[:-1])
@@ -193,9 +199,20 @@ def predelayed(parts, ltt: np.ndarray, fs: float, **options) -> list:
     return out
 
 
-def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, combinations, history: int = 0,
-                order: int = DEFAULT_ORDER, delay_order: int = DEFAULT_DELAY_ORDER,
-                degree: int = DEFAULT_DEGREE, nfft: int = DEFAULT_NFFT, out: np.ndarray | None = None) -> np.ndarray:
+def tdi_columns(
+    parts,
+    ncolumns: int,
+    ltt: np.ndarray,
+    fs: float,
+    *,
+    combinations,
+    history: int = 0,
+    order: int = DEFAULT_ORDER,
+    delay_order: int = DEFAULT_DELAY_ORDER,
+    degree: int = DEFAULT_DEGREE,
+    nfft: int = DEFAULT_NFFT,
+    out: np.ndarray | None = None,
+) -> np.ndarray:
     """TDI of columns made of parts placed on links (see the module docstring).
 
     Parameters
@@ -243,8 +260,9 @@ def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, combination
         return out
     for p in parts:
         if np.shape(p.series)[-1] != total:
-            raise ValueError(f"part of column {p.column} on link {p.link} has {np.shape(p.series)[-1]} samples, "
-                             f"the delays {total}")
+            raise ValueError(
+                f"part of column {p.column} on link {p.link} has {np.shape(p.series)[-1]} samples, the delays {total}"
+            )
     groups: dict = {}
     for p in predelayed(parts, ltt, fs, order=order, delay_order=delay_order, degree=degree, nfft=nfft):
         groups.setdefault((p.link, ()), []).append((p.column, np.asarray(p.series, dtype=float)))
@@ -261,9 +279,9 @@ def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, combination
 
     for a in range(0, n, block):
         b = min(a + block, n)
-        p0, p1 = history + a, history + b      # output positions in input samples
-        i0 = max(0, p0 - hist)                  # first input sample of the block
-        m = p1 - i0 + lead                      # inputs read (stencils reach `lead` ahead)
+        p0, p1 = history + a, history + b  # output positions in input samples
+        i0 = max(0, p0 - hist)  # first input sample of the block
+        m = p1 - i0 + lead  # inputs read (stencils reach `lead` ahead)
         i1 = min(total, i0 + m)
         m = i1 - i0
         L = sp_fft.next_fast_len(max(p1 - i0 + lead + 1, hist + lead + order + 2), real=True)
@@ -277,16 +295,16 @@ def tdi_columns(parts, ncolumns: int, ltt: np.ndarray, fs: float, *, combination
 
         # per chain: integer shift and Chebyshev coefficients of the weights (all chains at once)
         delayed = [chain for chain in plan.chains if chain]
-        shifts = -np.stack([delays[chain] for chain in delayed]) * fs      # (chains, nodes): read at pos + shift
+        shifts = -np.stack([delays[chain] for chain in delayed]) * fs  # (chains, nodes): read at pos + shift
         s_ints = np.floor(shifts.mean(axis=1)).astype(np.int64)
-        w = lagrange_weights((shifts - s_ints[:, None]).ravel(), order)   # (order + 1, chains * nodes)
+        w = lagrange_weights((shifts - s_ints[:, None]).ravel(), order)  # (order + 1, chains * nodes)
         w = w.reshape(order + 1, len(delayed), degree + 1).transpose(2, 1, 0)  # (nodes, chains, order + 1)
-        A = _chebyshev_coefficients(w, degree)                              # (q, chains, order + 1)
+        A = _chebyshev_coefficients(w, degree)  # (q, chains, order + 1)
         taps = {chain: (int(s_ints[i]), A[:, i]) for i, chain in enumerate(delayed)}
 
-        j0 = p0 - i0                            # block index of the first output
-        spectra: dict = {}                      # (c, column) -> (q, nf) spectrum of the output
-        first_ok: dict = {}                     # (c, column) -> outputs before it are NaN
+        j0 = p0 - i0  # block index of the first output
+        spectra: dict = {}  # (c, column) -> (q, nf) spectrum of the output
+        first_ok: dict = {}  # (c, column) -> outputs before it are NaN
         for key, items in groups.items():
             rows = np.stack([s[i0:i1] for _, s in items])
             finite = np.isfinite(rows)

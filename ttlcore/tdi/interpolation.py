@@ -219,7 +219,9 @@ def shift_taps(shift, n: int, order: int = DEFAULT_ORDER, offset: int = 0) -> Ta
     return Taps(base=base, weights=lagrange_weights(eps, order))
 
 
-def delay(x: np.ndarray, tau, fs: float, order: int = DEFAULT_ORDER, fill: float = np.nan, history: int = 0) -> np.ndarray:
+def delay(
+    x: np.ndarray, tau, fs: float, order: int = DEFAULT_ORDER, fill: float = np.nan, history: int = 0
+) -> np.ndarray:
     """Apply the delay operator ``D x(t) = x(t - tau(t))`` (``tau`` in seconds).
 
     Parameters

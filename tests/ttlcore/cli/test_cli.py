@@ -12,14 +12,31 @@ from ttlcore.io.truth import read_truth
 
 
 def ttl(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "ttlcore.cli.main", *map(str, args)], capture_output=True, text=True, cwd=cwd)
+    return subprocess.run(
+        [sys.executable, "-m", "ttlcore.cli.main", *map(str, args)], capture_output=True, text=True, cwd=cwd
+    )
 
 
 @pytest.fixture(scope="module")
 def hour_file(tmp_path_factory):
     out = tmp_path_factory.mktemp("sim") / "hour.h5"
-    r = ttl("simulate", "--duration", "1h", "--orbit", "keplerian", "--coeffs", "lisainstrument",
-            "--seed", 4, "--telemetry", out, "--drift", "12.phi.rx=0.05", "--step", "30min:13.eta.tx=0.3")
+    r = ttl(
+        "simulate",
+        "--duration",
+        "1h",
+        "--orbit",
+        "keplerian",
+        "--coeffs",
+        "lisainstrument",
+        "--seed",
+        4,
+        "--telemetry",
+        out,
+        "--drift",
+        "12.phi.rx=0.05",
+        "--step",
+        "30min:13.eta.tx=0.3",
+    )
     assert r.returncode == 0, r.stderr
     return out
 
@@ -30,6 +47,7 @@ def test_simulate_writes_telemetry_and_truth(hour_file):
     assert np.all(np.isfinite(tm.eta))
     truth = read_truth(hour_file.with_name("hour.truth.h5"))
     from ttlcore.conventions import COEFFICIENT_NAMES
+
     j = COEFFICIENT_NAMES.index("13.eta.tx")
     assert truth.coefficients[j, 0] == pytest.approx(-0.0 + 1.960050e-03)
     assert truth.coefficients[j, -1] == pytest.approx(1.960050e-03 + 0.3e-3)

@@ -29,7 +29,9 @@ def _filter(x, fs, h):
 class _OneChunk(EffectInjection):
     def link_signal(self, ctx):
         if ctx.n0 != 0:
-            raise ConfigError(f"{self.name}: filtered through the FFT of one chunk; simulate with --chunk covering the run")
+            raise ConfigError(
+                f"{self.name}: filtered through the FFT of one chunk; simulate with --chunk covering the run"
+            )
         return super().link_signal(ctx)
 
 
@@ -50,7 +52,7 @@ class _Blind(Effect):
         if n == 2 and not data.names_only:  # one extra light travel time (mean) before the simulator's delay
             tau = float(np.mean(data.ltt[["12", "23", "31", "13", "32", "21"].index(self.options["link"])]))
             f = np.fft.rfftfreq(2 * x.size, 1 / data.fs)
-            x = np.fft.irfft(np.fft.rfft(x, 2 * x.size) * np.exp(-2j * np.pi * f * tau), 2 * x.size)[:x.size]
+            x = np.fft.irfft(np.fft.rfft(x, 2 * x.size) * np.exp(-2j * np.pi * f * tau), 2 * x.size)[: x.size]
         return [Column(f"{self.name}.gain", [Part(self.options["link"], x, n > 0)], "m/rad", 1e-3)]
 
 
@@ -59,7 +61,7 @@ class BlindResonance(_Blind):
 
     def response(self, f):
         w0, w = 2 * np.pi * float(self.options["f0"]), 2 * np.pi * f
-        return w0 ** 2 / (w0 ** 2 - w ** 2 + 1j * w * w0 / float(self.options["q"]))
+        return w0**2 / (w0**2 - w**2 + 1j * w * w0 / float(self.options["q"]))
 
 
 class BlindLowpass(_Blind):

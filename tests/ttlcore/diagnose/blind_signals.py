@@ -40,13 +40,13 @@ def chirp_strain(t, t_c, m_total, q, distance_mpc, iota, phi_c=0.0, taper_cycles
     ``h = 4 Mc^(5/3) (pi f)^(2/3) / D`` (Mc, M, D in seconds)."""
     m1 = m_total / (1 + q)
     m2 = m_total - m1
-    mc = (m1 * m2) ** 0.6 / m_total ** 0.2 * G_MSUN_S
+    mc = (m1 * m2) ** 0.6 / m_total**0.2 * G_MSUN_S
     m_s = m_total * G_MSUN_S
     d = distance_mpc * MPC_S
-    f_isco = 1.0 / (6 ** 1.5 * np.pi * m_s)
+    f_isco = 1.0 / (6**1.5 * np.pi * m_s)
     tau_isco = 5.0 * mc * (8 * np.pi * mc * f_isco) ** (-8 / 3)
     tau = np.maximum(t_c - np.asarray(t, dtype=float), tau_isco)
-    f = (5.0 / tau) ** 0.375 / (8 * np.pi * mc ** 0.625)
+    f = (5.0 / tau) ** 0.375 / (8 * np.pi * mc**0.625)
     phase = -2.0 * (tau / (5.0 * mc)) ** 0.625 + phi_c
     amp = 4.0 * mc ** (5 / 3) * (np.pi * f) ** (2 / 3) / d
     # smooth end: past the ISCO the frequency is held and the amplitude tapered to zero
@@ -93,8 +93,9 @@ def optimal_snr(tm_like: Telemetry, eta_signal: np.ndarray, band=(3e-3, 0.8)) ->
     """Optimal SNR of a signal in ``eta`` (6, n): A, E, T of it (our TDI, no regressors),
     ``rho^2 = 4 sum |x(f)|^2 / S(f) df`` over the band against the analytic secondary noise
     (diagonal), the edges of the TDI start-up cut."""
-    only = Telemetry(t0=tm_like.t0, fs=tm_like.fs, eta=eta_signal, dws_phi=tm_like.dws_phi, dws_eta=tm_like.dws_eta,
-                     ltt=tm_like.ltt)
+    only = Telemetry(
+        t0=tm_like.t0, fs=tm_like.fs, eta=eta_signal, dws_phi=tm_like.dws_phi, dws_eta=tm_like.dws_eta, ltt=tm_like.ltt
+    )
     td = compute_tdi(only, names=()).to_aet()
     x = td.data
     ok = np.isfinite(x).all(axis=0)
@@ -131,8 +132,10 @@ def gap_mask(t, n_gaps_per_day: float, duration_hr: float, seed: int, nan: bool 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         import lisagap
-    defs = {"planned": {"blind": {"rate_per_year": n_gaps_per_day * 365.25, "duration_hr": duration_hr}},
-            "unplanned": {}}
+    defs = {
+        "planned": {"blind": {"rate_per_year": n_gaps_per_day * 365.25, "duration_hr": duration_hr}},
+        "unplanned": {},
+    }
     gen = lisagap.GapMaskGenerator(np.asarray(t, dtype=float), defs, treat_as_nan=nan, planseed=seed)
     return np.asarray(gen.generate_mask(), dtype=float)
 

@@ -89,7 +89,7 @@ def test_log_bayes_factor_against_direct_integration():
     A, beta, s = np.array([[4.0]]), np.array([1.3]), 0.7
     x = np.linspace(-10, 10, 200001)
     like = np.exp(-0.5 * A[0, 0] * (x - beta[0]) ** 2)
-    prior = np.exp(-0.5 * x ** 2 / s ** 2) / np.sqrt(2 * np.pi * s ** 2)
+    prior = np.exp(-0.5 * x**2 / s**2) / np.sqrt(2 * np.pi * s**2)
     num = np.trapezoid(like * prior, x)
     den = np.exp(-0.5 * A[0, 0] * beta[0] ** 2)
     assert log_bayes_factor(A, beta, np.array([s])) == pytest.approx(np.log(num / den), rel=1e-8)
@@ -97,10 +97,12 @@ def test_log_bayes_factor_against_direct_integration():
     A2 = np.array([[3.0, 1.0], [1.0, 2.0]])
     b2 = np.array([0.5, -1.0])
     s2 = np.array([0.3, 2.0])
-    D = np.diag(s2 ** 2)
+    D = np.diag(s2**2)
+
     # evidence ratio = N(b; 0, A^-1 + D) / N(b; 0, A^-1)
     def lognorm(v, cov):
         return -0.5 * (v @ np.linalg.solve(cov, v) + np.linalg.slogdet(2 * np.pi * cov)[1])
+
     Ai = np.linalg.inv(A2)
     assert log_bayes_factor(A2, b2, s2) == pytest.approx(lognorm(b2, Ai + D) - lognorm(b2, Ai), rel=1e-10)
 

@@ -23,8 +23,10 @@ MODEL = "witness:source=23.eta,link=31,vary=cycle,t_ref=0"
 @pytest.fixture(scope="module")
 def cycle_data():
     spec = f"witness:source=23.eta,link=31,vary=cycle,period={PERIOD:g},t_ref=0,sin={SIN},cos={COS}"
-    tm, _ = simulate(SimulationConfig(duration=3 * 3600.0, orbit="keplerian", seed=5,
-                                      injections=(injection_from_spec(spec),)), chunk_size=3 * 3600 * 4)
+    tm, _ = simulate(
+        SimulationConfig(duration=3 * 3600.0, orbit="keplerian", seed=5, injections=(injection_from_spec(spec),)),
+        chunk_size=3 * 3600 * 4,
+    )
     return whiten_telemetry(tm)
 
 

@@ -58,8 +58,9 @@ def _simulate(spec, duration, seed):
     inj = (injection_from_spec(spec),) if spec else ()
     # one chunk: the timing-offset injection reads the angles after each chunk's end, which
     # the simulator's chunk context does not hold (an off-centre stencil there, see effects)
-    tm, truth = simulate(SimulationConfig(duration=duration, orbit="keplerian", seed=seed, injections=inj),
-                         chunk_size=int(duration * 4))
+    tm, truth = simulate(
+        SimulationConfig(duration=duration, orbit="keplerian", seed=seed, injections=inj), chunk_size=int(duration * 4)
+    )
     return tm, truth, (inj[0].name if inj else None)
 
 
@@ -100,8 +101,9 @@ def null6h():
 def null6h_report(null6h):
     """The full diagnosis of the null 6-h file, candidates scored by two threads."""
     tm, truth = null6h
-    return diagnose(tm, truth_coefficients=truth["coefficients"].mean(axis=1), witnesses=True,
-                    settings=DiagnoseSettings(workers=2))
+    return diagnose(
+        tm, truth_coefficients=truth["coefficients"].mean(axis=1), witnesses=True, settings=DiagnoseSettings(workers=2)
+    )
 
 
 def test_nothing_injected_nothing_significant(null6h_report):
@@ -148,8 +150,9 @@ def test_candidates_scored_in_threads_equal_the_serial_ranking(null6h, null6h_re
 SCIENCE_ONLY = ("timing-offset", "cross-coupling")
 
 
-@pytest.mark.parametrize("effect", [pytest.param(e, marks=pytest.mark.science) if e in SCIENCE_ONLY else e
-                                    for e in FAST_CASES])
+@pytest.mark.parametrize(
+    "effect", [pytest.param(e, marks=pytest.mark.science) if e in SCIENCE_ONLY else e for e in FAST_CASES]
+)
 def test_hidden_effect_is_found_added_and_the_error_falls_6h(effect):
     spec, time_dependent = FAST_CASES[effect]
     tm, truth, name = _simulate_cached(spec, HOURS6, seed=22)
@@ -201,8 +204,11 @@ def test_refit_from_tdi_only_adds_a_drift():
     # the step time is a searched parameter in a model too (not given: searched, the same
     # search as the candidate's), from TDI alone
     st = refit(out["_internals"]["data"], ["linear-ttl", "step"])
-    (spec, found), = st["model"]["searched"].items()
-    assert st["model"]["effects"] == ["linear-ttl", spec] and spec == f"step:t_step={round(found['estimates']['t_step'], 3)}"
+    ((spec, found),) = st["model"]["searched"].items()
+    assert (
+        st["model"]["effects"] == ["linear-ttl", spec]
+        and spec == f"step:t_step={round(found['estimates']['t_step'], 3)}"
+    )
     assert st["model"]["n_parameters"] == 48
     with pytest.raises(Exception, match="needs the telemetry"):
         refit(out["_internals"]["data"], ["linear-ttl", "cross-coupling"])
@@ -269,15 +275,48 @@ def test_plugin_through_the_command_line(tmp_path, capsys):
     plugin = tmp_path / "stray.py"
     plugin.write_text(PLUGIN)
     data = tmp_path / "day.h5"
-    assert main(["simulate", "--duration", "2h", "--orbit", "keplerian", "--seed", "5", "--quiet",
-                 "--effect-module", str(plugin), "--inject", "stray-12-on-23:phi=4e-3,eta=-4e-3", "--out", str(data)]) == 0
+    assert (
+        main(
+            [
+                "simulate",
+                "--duration",
+                "2h",
+                "--orbit",
+                "keplerian",
+                "--seed",
+                "5",
+                "--quiet",
+                "--effect-module",
+                str(plugin),
+                "--inject",
+                "stray-12-on-23:phi=4e-3,eta=-4e-3",
+                "--out",
+                str(data),
+            ]
+        )
+        == 0
+    )
     from ttlcore.io.truth import read_truth
 
     assert "stray-12-on-23" in read_truth(tmp_path / "day.truth.h5").injections
     report = tmp_path / "r.json"
     capsys.readouterr()
-    assert main(["diagnose", str(data), "--effect-module", str(plugin), "--json", str(report), "--out",
-                 str(tmp_path / "fig"), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "diagnose",
+                str(data),
+                "--effect-module",
+                str(plugin),
+                "--json",
+                str(report),
+                "--out",
+                str(tmp_path / "fig"),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     text = capsys.readouterr().out
     rep = json.loads(report.read_text())
     assert rep["candidates"][0]["effect"] == "stray-12-on-23" and rep["candidates"][0]["significant"]
@@ -287,8 +326,25 @@ def test_plugin_through_the_command_line(tmp_path, capsys):
     assert (tmp_path / "fig" / "residual_vs_noise.png").stat().st_size > 0
     assert (tmp_path / "fig" / "witness_coherence.png").stat().st_size > 0
     after = tmp_path / "after.json"
-    assert main(["diagnose", str(data), "--effect-module", str(plugin), "--effects", "linear-ttl,stray-12-on-23",
-                 "--truth", str(tmp_path / "day.truth.h5"), "--json", str(after), "--no-witnesses", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "diagnose",
+                str(data),
+                "--effect-module",
+                str(plugin),
+                "--effects",
+                "linear-ttl,stray-12-on-23",
+                "--truth",
+                str(tmp_path / "day.truth.h5"),
+                "--json",
+                str(after),
+                "--no-witnesses",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "before -> after" in out
     rep2 = json.loads(after.read_text())
@@ -320,10 +376,24 @@ def test_command_line_errors_name_the_option(tmp_path, capsys):
     from ttlcore.io.telemetry import write_telemetry
 
     write_telemetry(tmp_path / "b.h5", simulate(SimulationConfig(duration=600.0))[0])
-    assert main(["diagnose", str(tmp_path / "b.h5"), "--effects", "linear-ttl,bogus", "--json", str(tmp_path / "r.json")]) == 2
+    assert (
+        main(["diagnose", str(tmp_path / "b.h5"), "--effects", "linear-ttl,bogus", "--json", str(tmp_path / "r.json")])
+        == 2
+    )
     assert "--effects" in capsys.readouterr().err
-    assert main(["diagnose", str(tmp_path / "b.h5"), "--effect-module", str(tmp_path / "none.py"),
-                 "--json", str(tmp_path / "r.json")]) == 2
+    assert (
+        main(
+            [
+                "diagnose",
+                str(tmp_path / "b.h5"),
+                "--effect-module",
+                str(tmp_path / "none.py"),
+                "--json",
+                str(tmp_path / "r.json"),
+            ]
+        )
+        == 2
+    )
     assert "none.py" in capsys.readouterr().err
 
 

@@ -56,14 +56,29 @@ def blind_case(seed: int) -> str:
         link = str(rng.choice([x for x in LINKS if x != mosa]))
         extra, gain = "", 5e-3
     delay = int(rng.integers(1, 3)) if kind == "witness" else int(rng.integers(0, 2))
-    return (f"blind-{kind}:source={mosa}.{angle},link={link},delay={delay}" + (f",{extra}" if extra else "")
-            + f",gain={gain:.3g}")
+    return (
+        f"blind-{kind}:source={mosa}.{angle},link={link},delay={delay}"
+        + (f",{extra}" if extra else "")
+        + f",gain={gain:.3g}"
+    )
 
 
 def simulate_case(tmp_path, spec, duration, seed):
     path = tmp_path / "day.h5"
-    args = ["simulate", "--duration", duration, "--orbit", "keplerian", "--seed", str(seed), "--out", str(path),
-            "--chunk", "7d", "--quiet"]
+    args = [
+        "simulate",
+        "--duration",
+        duration,
+        "--orbit",
+        "keplerian",
+        "--seed",
+        str(seed),
+        "--out",
+        str(path),
+        "--chunk",
+        "7d",
+        "--quiet",
+    ]
     if spec:
         args += ["--effect-module", BLIND, "--inject", spec]
     assert main(args) == 0

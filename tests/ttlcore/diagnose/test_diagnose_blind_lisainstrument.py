@@ -53,7 +53,7 @@ def response(kind: str, opts: dict, f: np.ndarray) -> np.ndarray:
     """The effect's transfer function at ``f`` [Hz] (written out here, not taken from ttlcore)."""
     if kind == "resonance":
         w0, w = 2 * np.pi * float(opts["f0"]), 2 * np.pi * f
-        return w0 ** 2 / (w0 ** 2 - w ** 2 + 1j * w * w0 / float(opts["q"]))
+        return w0**2 / (w0**2 - w**2 + 1j * w * w0 / float(opts["q"]))
     if kind == "lowpass":
         return 1.0 / (1.0 + 1j * f / float(opts["fc"]))
     return np.ones_like(f, dtype=complex)

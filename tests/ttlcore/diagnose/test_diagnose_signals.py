@@ -39,8 +39,9 @@ MAX_PULL_RMS = 1.5
 
 def day(seed, spec=None):
     inj = (injection_from_spec(spec),) if spec else ()
-    tm, truth = simulate(SimulationConfig(duration=DURATION, orbit="keplerian", seed=seed, injections=inj),
-                         chunk_size=int(DURATION * 4))
+    tm, truth = simulate(
+        SimulationConfig(duration=DURATION, orbit="keplerian", seed=seed, injections=inj), chunk_size=int(DURATION * 4)
+    )
     return tm, truth["coefficients"].mean(axis=1)
 
 
@@ -61,8 +62,11 @@ def quiet_hours(rep):
     """chi2/dof of the hourly slices outside every event (and the hours next to one)."""
     ev = rep["transients"]["events"]
     rows = rep["adequacy"]["time"]["segments"]
-    quiet = [r["chi2_dof"] for r in rows
-             if not any(r["t_start"] < e["t_stop"] + 1800 and r["t_stop"] > e["t_start"] - 1800 for e in ev)]
+    quiet = [
+        r["chi2_dof"]
+        for r in rows
+        if not any(r["t_start"] < e["t_stop"] + 1800 and r["t_stop"] > e["t_start"] - 1800 for e in ev)
+    ]
     return np.array(quiet)
 
 
@@ -72,7 +76,9 @@ def only_transients(rep) -> bool:
     opt = (rep["recommendation"] or {}).get("option") or ""
     if not opt:
         return True
-    return all(e == "linear-ttl" or e.startswith(("glitch:", "gate:")) for e in split_effects(opt.split(None, 1)[1].strip('"')))
+    return all(
+        e == "linear-ttl" or e.startswith(("glitch:", "gate:")) for e in split_effects(opt.split(None, 1)[1].strip('"'))
+    )
 
 
 def check_signal(rep, C, expected_class):
@@ -89,7 +95,7 @@ def check_signal(rep, C, expected_class):
     err = np.array(rb["gated"])[idx] - C
     pull = err / np.array(rb["sigma_gated"])[idx]
     assert np.max(np.abs(err)) < MAX_ERROR, (np.max(np.abs(err)), txt)
-    assert np.sqrt(np.mean(pull ** 2)) < MAX_PULL_RMS, (pull, txt)
+    assert np.sqrt(np.mean(pull**2)) < MAX_PULL_RMS, (pull, txt)
     return err, pull
 
 
@@ -100,22 +106,40 @@ def orbit_file(tmp_path_factory):
     return path
 
 
-@pytest.mark.parametrize("seed", [
-    pytest.param(101, marks=pytest.mark.xfail(strict=False, reason=(
-        "quiet hours 0.969 (3 % low): the chirp (6.5-10.9 h, SNR ~1000) pulls the linear fit by 5 sigma, whose "
-        "mis-subtracted TTL noise in every hour drives tm_acc to its bound although the three segments holding the "
-        "chirp are left out of the levels; the class and the empty option are right. Needs the "
-        "levels fitted on the gated residual (issue 24, item 4)"))),
-    102])
+@pytest.mark.parametrize(
+    "seed",
+    [
+        pytest.param(
+            101,
+            marks=pytest.mark.xfail(
+                strict=False,
+                reason=(
+                    "quiet hours 0.969 (3 % low): the chirp (6.5-10.9 h, SNR ~1000) pulls the linear fit by 5 sigma, whose "
+                    "mis-subtracted TTL noise in every hour drives tm_acc to its bound although the three segments holding the "
+                    "chirp are left out of the levels; the class and the empty option are right. Needs the "
+                    "levels fitted on the gated residual (issue 24, item 4)"
+                ),
+            ),
+        ),
+        102,
+    ],
+)
 def test_chirp_is_a_gravitational_wave(seed, orbit_file):
     rng = np.random.default_rng(seed)
     tm, C = day(seed)
     # merging inside the span, heavy enough that the chirp is in band for hours at most (a
     # loud inspiral in band over the whole span is a stationary excess: classified
     # gravitational-wave too, but no quiet hours remain to test)
-    source = dict(t_c=rng.uniform(0.3, 0.95) * DURATION, m_total=10 ** rng.uniform(5.3, 6.3), q=rng.uniform(0.3, 1.0),
-                  distance_mpc=1e4, iota=rng.uniform(0, np.pi), beta=rng.uniform(-1.2, 1.2), lam=rng.uniform(0, 2 * np.pi),
-                  psi=rng.uniform(0, np.pi))
+    source = dict(
+        t_c=rng.uniform(0.3, 0.95) * DURATION,
+        m_total=10 ** rng.uniform(5.3, 6.3),
+        q=rng.uniform(0.3, 1.0),
+        distance_mpc=1e4,
+        iota=rng.uniform(0, np.pi),
+        beta=rng.uniform(-1.2, 1.2),
+        lam=rng.uniform(0, 2 * np.pi),
+        psi=rng.uniform(0, np.pi),
+    )
     y = bs.gw_link_responses(orbit_file, DURATION, tm.fs, **source)
     snr = rng.uniform(100, 3000)
     y *= snr / bs.optimal_snr(tm, y)
@@ -132,8 +156,15 @@ def test_glitches_are_glitches(seed, louder):
     n = int(rng.integers(1, 6))
     t = tm.t0 + np.arange(tm.eta.shape[1]) / tm.fs
     # LISA Pathfinder: velocity steps of 1e-12 to 5e-12 m/s (Delta v = 2 level), damping 5-300 s
-    glitches = [(LINKS[int(rng.integers(6))], float(rng.uniform(0.5, HOURS - 0.5) * 3600),
-                 louder * rng.uniform(0.5e-12, 2.5e-12), float(rng.uniform(5, 300))) for _ in range(n)]
+    glitches = [
+        (
+            LINKS[int(rng.integers(6))],
+            float(rng.uniform(0.5, HOURS - 0.5) * 3600),
+            louder * rng.uniform(0.5e-12, 2.5e-12),
+            float(rng.uniform(5, 300)),
+        )
+        for _ in range(n)
+    ]
     tm = replace(tm, eta=tm.eta + bs.glitch_eta(t, np.mean(tm.ltt, axis=1), glitches))
     reports = follow(tm, C)
     rep = reports[-1]

@@ -29,7 +29,9 @@ QUIET = dict(orbit="equal", seed=7, noises=NoiseSwitches.parse("none,ttl,sc_jitt
 
 
 def test_named_effects_and_parsing():
-    assert {"linear-ttl", "drift", "step", "cross-coupling", "timing-offset", "second-order", "ltt-error"} <= set(EFFECTS)
+    assert {"linear-ttl", "drift", "step", "cross-coupling", "timing-offset", "second-order", "ltt-error"} <= set(
+        EFFECTS
+    )
     eff, values = parse_effect_spec("drift:mosas=12+13,12.phi.rx=2e-3")
     assert eff.mosas == ("12", "13") and values == {"drift.12.phi.rx": 2e-3}
     eff, values = parse_effect_spec("timing-offset:sc1.d1=0.05")
@@ -67,7 +69,9 @@ def test_drift_and_step_injections_equal_the_simulators_own_coefficient_model(ki
         coeffs = make_coefficients("paper").with_step(700.0, rates)
         spec = "step:t_step=700," + ",".join(f"{k}={v}" for k, v in rates.items())
     a, _ = simulate(SimulationConfig(duration=1500.0, coefficients=coeffs, **QUIET), chunk_size=1100)
-    b, tb = simulate(SimulationConfig(duration=1500.0, injections=(injection_from_spec(spec),), **QUIET), chunk_size=1100)
+    b, tb = simulate(
+        SimulationConfig(duration=1500.0, injections=(injection_from_spec(spec),), **QUIET), chunk_size=1100
+    )
     scale = np.max(np.abs(tb[f"injections/{kind}"]))
     assert scale > 0
     # the sums differ by rounding only (the simulator adds the terms in another order)
@@ -77,8 +81,10 @@ def test_drift_and_step_injections_equal_the_simulators_own_coefficient_model(ki
 def test_timing_offset_injection_against_a_shifted_ttl():
     delta = 0.05
     base_cfg = SimulationConfig(duration=2000.0, **QUIET)
-    tm, truth = simulate(SimulationConfig(duration=2000.0, injections=(injection_from_spec(f"timing-offset:sc1.d1={delta}"),),
-                                          **QUIET), chunk_size=100000)
+    tm, truth = simulate(
+        SimulationConfig(duration=2000.0, injections=(injection_from_spec(f"timing-offset:sc1.d1={delta}"),), **QUIET),
+        chunk_size=100000,
+    )
     inj = truth["injections/timing-offset"]
     # independent: rx terms of the MOSAs of SC 1 read at t + delta (whole series, no chunks)
     c = base_cfg.coefficients.values(np.zeros(1))[:, 0]
@@ -102,8 +108,12 @@ def test_timing_offset_injection_is_invisible_to_chunking():
     # reading the angles 0.04 s ahead uses centred stencils at the chunk ends too, so
     # 1000-sample chunks give the one-piece result to rounding
     spec = "timing-offset:sc2.d1=-0.04"
-    a = simulate(SimulationConfig(duration=2000.0, injections=(injection_from_spec(spec),), **QUIET), chunk_size=100000)[1]
-    b = simulate(SimulationConfig(duration=2000.0, injections=(injection_from_spec(spec),), **QUIET), chunk_size=1000)[1]
+    a = simulate(
+        SimulationConfig(duration=2000.0, injections=(injection_from_spec(spec),), **QUIET), chunk_size=100000
+    )[1]
+    b = simulate(SimulationConfig(duration=2000.0, injections=(injection_from_spec(spec),), **QUIET), chunk_size=1000)[
+        1
+    ]
     rms = np.std(a["injections/timing-offset"])
     assert rms > 0
     np.testing.assert_allclose(b["injections/timing-offset"], a["injections/timing-offset"], rtol=0, atol=1e-9 * rms)
@@ -112,10 +122,18 @@ def test_timing_offset_injection_is_invisible_to_chunking():
 def test_second_order_injection_against_truth_angles_and_chunk_invariance():
     K = 4e5
     spec = f"second-order:mosas=13,terms=phiphi,quad.13.phiphi.rx={K}"
-    a, ta = simulate(SimulationConfig(duration=2000.0, injections=(injection_from_spec(spec),), **QUIET), chunk_size=700)
-    b, tb = simulate(SimulationConfig(duration=2000.0, injections=(injection_from_spec(spec),), **QUIET), chunk_size=5000)
-    np.testing.assert_allclose(ta["injections/second-order"], tb["injections/second-order"], rtol=0,
-                               atol=1e-9 * np.max(np.abs(tb["injections/second-order"])))
+    a, ta = simulate(
+        SimulationConfig(duration=2000.0, injections=(injection_from_spec(spec),), **QUIET), chunk_size=700
+    )
+    b, tb = simulate(
+        SimulationConfig(duration=2000.0, injections=(injection_from_spec(spec),), **QUIET), chunk_size=5000
+    )
+    np.testing.assert_allclose(
+        ta["injections/second-order"],
+        tb["injections/second-order"],
+        rtol=0,
+        atol=1e-9 * np.max(np.abs(tb["injections/second-order"])),
+    )
     k = MOSAS.index("13")
     phi, phidot = ta["angles/phi"][k], ta["angular_velocity/phi"][k]
     expected = -2 * K * phi * phidot / C  # d/dt (K phi^2) = 2 K phi phi'
@@ -124,8 +142,10 @@ def test_second_order_injection_against_truth_angles_and_chunk_invariance():
 
 def test_ltt_error_injection_against_a_wrongly_delayed_tx_term():
     eps = 0.1
-    tm, truth = simulate(SimulationConfig(duration=2000.0, injections=(injection_from_spec(f"ltt-error:12.d1={eps}"),),
-                                          **QUIET), chunk_size=100000)
+    tm, truth = simulate(
+        SimulationConfig(duration=2000.0, injections=(injection_from_spec(f"ltt-error:12.d1={eps}"),), **QUIET),
+        chunk_size=100000,
+    )
     c = make_coefficients("paper").values(np.zeros(1))[:, 0]
     k21 = MOSAS.index("21")
     src = sum(c[COEFFICIENT_NAMES.index(f"21.{a}.tx")] * truth[f"angular_velocity/{a}"][k21] for a in ("phi", "eta"))
@@ -139,15 +159,28 @@ def test_ltt_error_injection_against_a_wrongly_delayed_tx_term():
     assert np.all(truth["injections/ltt-error"][np.arange(6) != LINKS.index("12")] == 0)
 
 
-@pytest.mark.parametrize("spec", ["drift:t_ref=0,all=5e-3", "cross-coupling:sides=tx,all=1e-3",
-                                  "second-order:sides=rx+tx,quad.12.phieta.rx=3e5,quad.32.etaeta.tx=-2e5"])
+@pytest.mark.parametrize(
+    "spec",
+    [
+        "drift:t_ref=0,all=5e-3",
+        "cross-coupling:sides=tx,all=1e-3",
+        "second-order:sides=rx+tx,quad.12.phieta.rx=3e5,quad.32.etaeta.tx=-2e5",
+    ],
+)
 def test_effect_columns_through_tdi_reproduce_the_injected_signal(spec):
     # with jitter only and no readout noise, the TDI of the injected signal equals the
     # effect's columns (built from the DWS readouts) through TDI times the injected values:
     # an independent check of the column definitions, their placement and the TDI path
     inj = injection_from_spec(spec)
-    tm, truth = simulate(SimulationConfig(duration=1200.0, noises=NoiseSwitches.parse("none,sc_jitter,mosa_jitter"),
-                                          orbit="unequal", seed=3, injections=(inj,)))
+    tm, truth = simulate(
+        SimulationConfig(
+            duration=1200.0,
+            noises=NoiseSwitches.parse("none,sc_jitter,mosa_jitter"),
+            orbit="unequal",
+            seed=3,
+            injections=(inj,),
+        )
+    )
     assert np.allclose(tm.eta, truth[f"injections/{inj.name}"], atol=0)
     cols = inj.effect.columns(effect_input_from_telemetry(tm))
     built = build(MICHELSON, tm.ltt, tm.fs)
@@ -175,7 +208,9 @@ def test_tdi_in_blocks_equals_one_block():
     np.testing.assert_array_equal(np.isnan(data), np.isnan(whole_data))
     ok = np.isfinite(whole_data).all(axis=0) & np.isfinite(whole_cols).all(axis=(0, 1))
     assert ok.sum() > 0.9 * tm.size
-    np.testing.assert_allclose(blocks[..., ok], whole_cols[..., ok], rtol=0, atol=1e-12 * np.abs(whole_cols[..., ok]).max())
+    np.testing.assert_allclose(
+        blocks[..., ok], whole_cols[..., ok], rtol=0, atol=1e-12 * np.abs(whole_cols[..., ok]).max()
+    )
     np.testing.assert_allclose(data[:, ok], whole_data[:, ok], rtol=0, atol=1e-12 * np.abs(whole_data[:, ok]).max())
 
 
@@ -190,7 +225,7 @@ def test_derivative_is_accurate_in_band():
         # 25-point central differences at 4 Hz: relative error below 1e-5 up to 0.9 Hz
         # (measured 9e-6 at 0.9 Hz), negligible against the effects they build
         np.testing.assert_allclose(d1, w * np.cos(w * t[20:-20]), atol=2e-5 * w)
-        np.testing.assert_allclose(d2, -w ** 2 * x[20:-20], atol=1e-4 * w ** 2)
+        np.testing.assert_allclose(d2, -(w**2) * x[20:-20], atol=1e-4 * w**2)
 
 
 def test_fit_tdi_with_extra_regressors_recovers_a_drift():
@@ -199,13 +234,23 @@ def test_fit_tdi_with_extra_regressors_recovers_a_drift():
     rates = {"12.phi.rx": 0.4, "23.eta.tx": -0.3}
     spec = "drift:t_ref=1800," + ",".join(f"{k}={v}" for k, v in rates.items())
     inj = injection_from_spec(spec)
-    tm, truth = simulate(SimulationConfig(duration=3600.0, noises=NoiseSwitches.parse("none,ttl,sc_jitter,mosa_jitter"),
-                                          seed=4, injections=(inj,)))
+    tm, truth = simulate(
+        SimulationConfig(
+            duration=3600.0, noises=NoiseSwitches.parse("none,ttl,sc_jitter,mosa_jitter"), seed=4, injections=(inj,)
+        )
+    )
     td = compute_tdi(tm)
     cols = inj.effect.columns(effect_input_from_telemetry(tm))
     built = build(MICHELSON, tm.ltt, tm.fs)
-    extra = TDIData(t0=td.t0, fs=td.fs, channels=td.channels, data=np.zeros_like(td.data),
-                    regressors=columns_tdi(cols, built), names=tuple(c.name for c in cols), ltt_mean=td.ltt_mean)
+    extra = TDIData(
+        t0=td.t0,
+        fs=td.fs,
+        channels=td.channels,
+        data=np.zeros_like(td.data),
+        regressors=columns_tdi(cols, built),
+        names=tuple(c.name for c in cols),
+        ltt_mean=td.ltt_mean,
+    )
     res, _ = fit_tdi(td, FitSettings(dws_asd=0.0, segment_duration=1200.0, eiv=False), extra=extra)
     assert res.names[:24] == COEFFICIENT_NAMES and len(res.names) == 48
     c_true = make_coefficients("paper").values(np.zeros(1))[:, 0]
@@ -270,7 +315,9 @@ def test_rational_basis_spans_the_resonance_the_first_order_path_and_a_constant(
 def test_fd_coupling_declares_its_searched_poles_and_holds_given_ones():
     from ttlcore.diagnose.effects import make_effects
 
-    searched, held = make_effects(["fd-coupling:source=12.phi,link=23,delay=1", "fd-coupling:mosas=12,filter=pole1,fc=0.05"])
+    searched, held = make_effects(
+        ["fd-coupling:source=12.phi,link=23,delay=1", "fd-coupling:mosas=12,filter=pole1,fc=0.05"]
+    )
     assert searched.unresolved() == ["f0", "q"] and held.unresolved() == []
     assert searched.column_names() == ["fd.12.phi>23+1L.b0", "fd.12.phi>23+1L.b1", "fd.12.phi>23+1L.b2"]
     # the rx placement of MOSA 12 is that of the linear coefficients 12.phi.rx and 12.eta.rx:
@@ -279,7 +326,7 @@ def test_fd_coupling_declares_its_searched_poles_and_holds_given_ones():
     kept = held.with_options(flat="keep")
     assert kept.column_names() == ["fd.12.phi>12.b0", "fd.12.phi>12.b1", "fd.12.eta>12.b0", "fd.12.eta>12.b1"]
     # tx of MOSA 13: link 31 after one delay; delay 2 or a time variation keep the full basis
-    on_tx, = make_effects(["fd-coupling:source=13.eta,link=31,delay=1"])
+    (on_tx,) = make_effects(["fd-coupling:source=13.eta,link=31,delay=1"])
     assert on_tx.column_names() == ["fd.13.eta>31+1L.b0", "fd.13.eta>31+1L.b1"]
     assert on_tx.with_options(delay=2).column_names()[-1].endswith("+2L.b2")
     assert len(on_tx.with_options(vary="drift").column_names()) == 3
@@ -291,14 +338,14 @@ def test_fd_coupling_responses_share_the_basis_per_frequency_array():
     # with in turn; another array (or the same values in a new array) gets its own basis
     from ttlcore.diagnose.effects import make_effects, rational_basis
 
-    eff, = make_effects(["fd-coupling:source=12.phi,link=23,delay=1,f0=0.08,q=15"])
+    (eff,) = make_effects(["fd-coupling:source=12.phi,link=23,delay=1,f0=0.08,q=15"])
     resp = eff.response_functions()
     f1, f2 = np.geomspace(1e-3, 1.0, 50), np.linspace(0.01, 0.9, 70)
     for f in (f1, f2, f1.copy(), f1):
         ref = rational_basis("pole2", f, 0.08, 15.0)
         for j, r in enumerate(resp):
             np.testing.assert_array_equal(r(f), ref[j])
-    one, = make_effects(["fd-coupling:mosas=12,filter=pole1,fc=0.05"])
+    (one,) = make_effects(["fd-coupling:mosas=12,filter=pole1,fc=0.05"])
     r1 = one.response_functions()
     assert len(r1) == 2
     np.testing.assert_array_equal(r1[1](f2), rational_basis("pole1", f2, 0.05)[1])

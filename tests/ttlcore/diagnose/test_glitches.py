@@ -66,6 +66,7 @@ def model_errors(fit, C):
 # the shape and the specs
 # ---------------------------------------------------------------------------
 
+
 def test_glitch_shape_is_lisaglitch_s():
     import warnings
 
@@ -112,8 +113,12 @@ def glitch_day(request):
     rng = np.random.default_rng(100 + request.param)
     tm, C = day(700 + request.param, HOURS_SHORT)
     # a hundred times the Pathfinder catalogue's largest (velocity steps of 1e-12 to 5e-12 m/s)
-    g = (LINKS[int(rng.integers(6))], float(rng.uniform(1.2, HOURS_SHORT - 1.2) * 3600),
-         float(100 * rng.uniform(1e-12, 5e-12)), float(rng.uniform(5, 300)))
+    g = (
+        LINKS[int(rng.integers(6))],
+        float(rng.uniform(1.2, HOURS_SHORT - 1.2) * 3600),
+        float(100 * rng.uniform(1e-12, 5e-12)),
+        float(rng.uniform(5, 300)),
+    )
     tm = with_glitches(tm, [g])
     data = whiten_telemetry(tm)
     return tm, C, g, data, fit_model(data, make_effects(["linear-ttl"]))
@@ -203,18 +208,29 @@ def test_advice_names_the_glitches_and_following_it_works(seed):
     rng = np.random.default_rng(seed)
     tm, C = day(seed, HOURS)
     n = int(rng.integers(1, 6))
-    glitches = [(LINKS[int(rng.integers(6))], float(rng.uniform(0.5, HOURS - 0.5) * 3600),
-                 float(100 * rng.uniform(1e-12, 5e-12)), float(rng.uniform(5, 300))) for _ in range(n)]
+    glitches = [
+        (
+            LINKS[int(rng.integers(6))],
+            float(rng.uniform(0.5, HOURS - 0.5) * 3600),
+            float(100 * rng.uniform(1e-12, 5e-12)),
+            float(rng.uniform(5, 300)),
+        )
+        for _ in range(n)
+    ]
     reports = follow(with_glitches(tm, glitches), C)
     txt = check_final(reports, C)
-    added = [e for r in reports for e in make_effects(split_effects(r["model"]["cli_effects"]))
-             if isinstance(e, Glitch)]
+    added = [
+        e for r in reports for e in make_effects(split_effects(r["model"]["cli_effects"])) if isinstance(e, Glitch)
+    ]
     for mosa, t_g, dv, beta in glitches:
         # every injected glitch named on its test mass within a minute (or gated, when two
         # overlap so closely that the search cannot tell them apart)
         named = [g for g in added if g.where == f"tm{mosa}" and abs(float(g.options["t"]) - t_g) < 60.0]
-        gated = [e for e in make_effects(split_effects(reports[-1]["model"]["cli_effects"])) if isinstance(e, Gate)
-                 and e.span[0] <= t_g <= e.span[1]]
+        gated = [
+            e
+            for e in make_effects(split_effects(reports[-1]["model"]["cli_effects"]))
+            if isinstance(e, Gate) and e.span[0] <= t_g <= e.span[1]
+        ]
         assert named or gated, ((mosa, t_g, dv, beta), glitches, txt)
     first = reports[0]["recommendation"]
     assert first["actions"] and "add glitch at" in first["message"], txt

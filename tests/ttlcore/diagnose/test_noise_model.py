@@ -55,7 +55,7 @@ def test_whittle_fit_recovers_levels_within_fisher_sigmas():
     # 16 draws: the mean of unit-variance pulls is within 3/sqrt(16) = 0.75 of 0, the rms
     # within [0.55, 1.45] (the 3-sigma range of the rms of 16 chi^2_1 draws)
     assert np.all(np.abs(pulls.mean(axis=0)) < 0.75), pulls.mean(axis=0)
-    rms = np.sqrt((pulls ** 2).mean(axis=0))
+    rms = np.sqrt((pulls**2).mean(axis=0))
     assert np.all((rms > 0.55) & (rms < 1.45)), rms
 
 
@@ -101,10 +101,10 @@ def test_fitted_levels_recover_scaled_simulator_noises(short_day):
     dg = whiten_telemetry(_scaled(tm, truth, k_oms, k_tm), DiagnoseSettings(noise_model="fitted"))
     nm, fit = profile_noise_model(dg, make_effects(["linear-ttl"]))
     lv, sg = dict(zip(nm.names, nm.levels)), dict(zip(nm.names, nm.sigma))
-    assert abs(lv["oms"] - k_oms ** 2) < 3 * sg["oms"], (lv, sg)
+    assert abs(lv["oms"] - k_oms**2) < 3 * sg["oms"], (lv, sg)
     # the test-mass PSD is one shape in the simulator: both parts scale together
-    assert abs(lv["tm_acc"] - k_tm ** 2) < 3 * sg["tm_acc"], (lv, sg)
-    assert abs(lv["tm_rise"] - k_tm ** 2) < 3 * sg["tm_rise"], (lv, sg)
+    assert abs(lv["tm_acc"] - k_tm**2) < 3 * sg["tm_acc"], (lv, sg)
+    assert abs(lv["tm_rise"] - k_tm**2) < 3 * sg["tm_rise"], (lv, sg)
     assert not nm.at_bound
     # the fitted model passes at the 2 % tolerance
     assert not fit.bands.fails.any(), fit.bands.chi2_dof
@@ -131,8 +131,9 @@ def test_injected_effect_still_fails_with_the_fitted_noise_model():
     # must not absorb it; the adequacy test fails with the fitted model, and the effect is
     # found; the null day of the same seed passes (test above)
     inj = injection_from_spec("timing-offset:sc1.d1=0.35")
-    tm, _ = simulate(SimulationConfig(duration=6 * 3600.0, orbit="keplerian", seed=41, injections=(inj,)),
-                     chunk_size=6 * 3600 * 4)
+    tm, _ = simulate(
+        SimulationConfig(duration=6 * 3600.0, orbit="keplerian", seed=41, injections=(inj,)), chunk_size=6 * 3600 * 4
+    )
     rep = diagnose(tm, witnesses=False, candidates=["timing-offset"])
     assert rep["adequacy"]["noise_model"]["kind"] == "fitted"
     assert rep["adequacy"]["fails"], rep["adequacy"]["summary"]

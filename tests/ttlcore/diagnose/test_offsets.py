@@ -52,8 +52,9 @@ def test_offsets_are_declared_searched_parameters():
     inf = (-np.inf, np.inf, "linear")
     to = make_effects(["timing-offset"])[0]
     assert to.searched == {"offset.sc1": inf, "offset.sc2": inf, "offset.sc3": inf}
-    assert set(make_effects(["timing-offset:per=mosa"])[0].searched) == {f"offset.{m}" for m in
-                                                                          ("12", "13", "21", "23", "31", "32")}
+    assert set(make_effects(["timing-offset:per=mosa"])[0].searched) == {
+        f"offset.{m}" for m in ("12", "13", "21", "23", "31", "32")
+    }
     assert list(make_effects(["timing-offset:per=global"])[0].searched) == ["offset.all"]
     assert set(parse_effect_spec("ltt-error:links=12+21")[0].searched) == {"offset.12", "offset.21"}
     # searched where the model's columns are built, not before the fit
@@ -79,23 +80,27 @@ def test_offsets_are_declared_searched_parameters():
         make_effects(["timing-offset:delta=0.1"])  # the former option, never read
 
     # the range: declared open, clipped to +-shift_span where the data are known
-    stub = SimpleNamespace(mask=np.ones(100, bool), fs=4.0, f=np.array([1e-3, 0.8]),
-                           settings=SimpleNamespace(shift_span=2.5))
+    stub = SimpleNamespace(
+        mask=np.ones(100, bool), fs=4.0, f=np.array([1e-3, 0.8]), settings=SimpleNamespace(shift_span=2.5)
+    )
     assert search_ranges(stub, given) == {k: (-2.5, 2.5, "linear") for k in ("offset.sc1", "offset.sc2", "offset.sc3")}
 
     # a plugin with the interface gets the options without listing them
     plug = _Shifted()
     assert plug.searched == {"offset.a": inf}
     fixed = plug.with_options(**{"offset.a": "0.2"})
-    assert fixed.fixed_offsets() == {"a": 0.2} and fixed.open_offsets() == [] and fixed.spec() == "shifted-12:offset.a=0.2"
+    assert (
+        fixed.fixed_offsets() == {"a": 0.2} and fixed.open_offsets() == [] and fixed.spec() == "shifted-12:offset.a=0.2"
+    )
 
 
 @pytest.fixture(scope="module")
 def late3h():
     """3 h, SC 1's DWS stamped 0.35 s late; whitened once; the model with the offsets searched."""
     inj = injection_from_spec(f"timing-offset:sc1.d1={INJECTED}")
-    tm, _ = simulate(SimulationConfig(duration=3 * 3600.0, orbit="keplerian", seed=22, injections=(inj,)),
-                     chunk_size=3 * 3600 * 4)
+    tm, _ = simulate(
+        SimulationConfig(duration=3 * 3600.0, orbit="keplerian", seed=22, injections=(inj,)), chunk_size=3 * 3600 * 4
+    )
     dg = whiten_telemetry(tm)
     return tm, dg, fit_model(dg, ["linear-ttl", "timing-offset"])
 
@@ -125,8 +130,10 @@ def test_searched_offset_interval_from_the_curvature(late3h):
     # determinant nearly unchanged), marginalised by Laplace over +-shift_span per group
     assert search["log_bayes_factor_best"] == pytest.approx(search["delta_chi2"] / 2, rel=1e-3)
     span = dg.settings.shift_span
-    laplace = sum(0.5 * math.log(2 * math.pi) + math.log(0.5 * (b - a)) - math.log(2 * span)
-                  for a, b in search["intervals"].values())
+    laplace = sum(
+        0.5 * math.log(2 * math.pi) + math.log(0.5 * (b - a)) - math.log(2 * span)
+        for a, b in search["intervals"].values()
+    )
     assert search["log_bayes_factor_marginal"] == pytest.approx(search["log_bayes_factor_best"] + laplace, abs=1e-6)
     assert search["log_bayes_factor_marginal"] < search["log_bayes_factor_best"]
     # one path: profile_search on the model of the other effects gives the same search
@@ -142,7 +149,7 @@ def test_given_offset_is_held_and_is_the_expansion_point(late3h):
     # given near the optimum: not searched (the search holds it), the model expanded there
     # and the offset still fitted (d1): the same offset as when it is searched
     near = fit_model(dg, ["linear-ttl", "timing-offset:offset.sc1=0.34"])
-    (spec, search), = near.searches.items()
+    ((spec, search),) = near.searches.items()
     assert spec == "timing-offset:offset.sc1=0.34" and set(search["estimates"]) == {"offset.sc2", "offset.sc3"}
     assert near.offsets()["timing-offset.sc1"][0] == pytest.approx(value, abs=0.1 * sigma)
     assert near.chi2 == pytest.approx(fit.chi2, abs=0.05)

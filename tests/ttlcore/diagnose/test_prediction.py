@@ -40,26 +40,33 @@ def band_rms(x: np.ndarray, fs: float) -> np.ndarray:
 
 def _day(inject: str, orbit: str = "keplerian", duration: float = 2 * 3600.0):
     inj = injection_from_spec(inject, (BLIND,))
-    tm, truth = simulate(SimulationConfig(duration=duration, orbit=orbit, seed=5, noises=NOISES,
-                                          injections=(inj,)), chunk_size=10 ** 7)
+    tm, truth = simulate(
+        SimulationConfig(duration=duration, orbit=orbit, seed=5, noises=NOISES, injections=(inj,)), chunk_size=10**7
+    )
     return tm, truth[f"injections/{inj.name}"]
 
 
-@pytest.mark.parametrize("inject, model, orbit", [
-    # a witness two light travel times away (the live-loop issue's ghost), injected by the blind
-    # plugin (which delays by twice the mean arm: exact with equal arms)
-    ("blind-witness:source=12.eta,link=23,delay=2,gain=2e-3", "witness:source=12.eta,link=23,delay=2", "equal"),
-    # a first-order low-pass on a witness, injected by the blind plugin's own FFT filter
-    ("blind-lowpass:source=13.eta,link=31,delay=1,fc=0.05,gain=4e-3",
-     "fd-coupling:source=13.eta,link=31,delay=1,filter=pole1,fc=0.05", "keplerian"),
-    # a DWS timing offset on spacecraft 1 (the simulator's exact shift): the shifted witnesses
-    ("timing-offset:sc1.d1=0.2", "timing-offset:offset.sc1=0.2", "keplerian"),
-])
+@pytest.mark.parametrize(
+    "inject, model, orbit",
+    [
+        # a witness two light travel times away (the live-loop issue's ghost), injected by the blind
+        # plugin (which delays by twice the mean arm: exact with equal arms)
+        ("blind-witness:source=12.eta,link=23,delay=2,gain=2e-3", "witness:source=12.eta,link=23,delay=2", "equal"),
+        # a first-order low-pass on a witness, injected by the blind plugin's own FFT filter
+        (
+            "blind-lowpass:source=13.eta,link=31,delay=1,fc=0.05,gain=4e-3",
+            "fd-coupling:source=13.eta,link=31,delay=1,filter=pole1,fc=0.05",
+            "keplerian",
+        ),
+        # a DWS timing offset on spacecraft 1 (the simulator's exact shift): the shifted witnesses
+        ("timing-offset:sc1.d1=0.2", "timing-offset:offset.sc1=0.2", "keplerian"),
+    ],
+)
 def test_prediction_equals_the_tdi_of_the_injected_signal(inject, model, orbit):
     tm, injected = _day(inject, orbit)
     r = refit(tm, ["linear-ttl", model], settings=DiagnoseSettings(dws_asd=0.0))
     fit = r["_internals"]["fit"]
-    (spec, predicted), = effect_predictions(fit).items()
+    ((spec, predicted),) = effect_predictions(fit).items()
     assert spec.split(":")[0] == model.split(":")[0]
     truth, _ = tdi_in_blocks(tm.ltt, tm.fs, (), injected, order=31, delay_order=fit.data.settings.delay_order)
     assert np.isfinite(predicted).all()  # zero where it cannot be computed

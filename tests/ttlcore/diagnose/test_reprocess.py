@@ -20,8 +20,15 @@ def _rows(n_days: int, rng, step=None, drift=None):
             c[COEFFICIENT_NAMES.index(step[0])] += step[2] * 1e-3
         if drift:
             c[COEFFICIENT_NAMES.index(drift[0])] += drift[1] * 1e-3 * k
-        rows.append({"day": f"d{k:02d}", "t_start": k * DAY, "t_stop": (k + 1) * DAY,
-                     "coefficients": dict(zip(COEFFICIENT_NAMES, c)), "sigma": dict.fromkeys(COEFFICIENT_NAMES, 1e-5)})
+        rows.append(
+            {
+                "day": f"d{k:02d}",
+                "t_start": k * DAY,
+                "t_stop": (k + 1) * DAY,
+                "coefficients": dict(zip(COEFFICIENT_NAMES, c)),
+                "sigma": dict.fromkeys(COEFFICIENT_NAMES, 1e-5),
+            }
+        )
     return rows
 
 
@@ -41,5 +48,3 @@ def test_trends_across_days_find_a_step_and_a_drift():
     # no trend, no alert (the false-alarm rates are those of the live monitor, ttlcore.diagnose.trends)
     assert day_trends(_rows(30, rng))["alerts"] == []
     assert DAY_TRENDS.drift_lookback == 30 * DAY
-
-

@@ -123,7 +123,7 @@ def test_glitch_carried_by_t_is_a_glitch():
     n = x.shape[1]
     t_g = 8 * 3600 + 900.0
     b = burst(n, t_g, 0.01, 30.0, 1.0)
-    e_b = np.sum(b ** 2) / FS
+    e_b = np.sum(b**2) / FS
     # whitened power split 1:1:1 (a link signal: T share ~ 1/3 from the test above)
     for c in range(3):
         x[c] += b * np.sqrt(PSD[c] * 3000.0 / (2 * e_b))
@@ -161,8 +161,25 @@ def test_missing_data_is_a_gap():
     assert gaps == [(3 * 3600.0, 3.5 * 3600.0)]
     # the map flags the deficit's edges only if they excite excess; the classifier names a
     # gap for any event overlapping missing data
-    e = T.Event(3 * 3600.0, 3.6 * 3600.0, 3.2 * 3600, (1,), ("A",), {}, 0.003, 0.1, (1.0,), (0,), (), {"A": 1.0},
-                0.0, 10.0, "single", {}, gaps[0])
+    e = T.Event(
+        3 * 3600.0,
+        3.6 * 3600.0,
+        3.2 * 3600,
+        (1,),
+        ("A",),
+        {},
+        0.003,
+        0.1,
+        (1.0,),
+        (0,),
+        (),
+        {"A": 1.0},
+        0.0,
+        10.0,
+        "single",
+        {},
+        gaps[0],
+    )
     assert T.classify(e)[0] == "gap"
 
 
@@ -226,18 +243,49 @@ def test_outlying_segment_is_left_out_and_alike_ones_are_not():
 
 
 def _report(explained, band_delta, signal=False):
-    bands = [{"f_lo": 3e-3, "f_hi": 1e-2, "chi2": 3000.0, "dof": 2000.0, "chi2_dof": 1.5, "fails": True},
-             {"f_lo": 1e-2, "f_hi": 0.8, "chi2": 2000.0, "dof": 2000.0, "chi2_dof": 1.0, "fails": False}]
-    cand = {"effect": "drift", "spec": "drift", "cli_spec": "drift", "significant": True, "explained_fraction": explained,
-            "where": {"bands": [{"delta_chi2": band_delta}, {"delta_chi2": 0.0}]}}
-    tr = {"events": [], "gaps": [], "quiet": {"chi2_dof": 1.2, "hours": 12.0, "fails": True},
-          "classification": {"class": "gravitational-wave" if signal else "missing-coupling", "signal": signal}}
+    bands = [
+        {"f_lo": 3e-3, "f_hi": 1e-2, "chi2": 3000.0, "dof": 2000.0, "chi2_dof": 1.5, "fails": True},
+        {"f_lo": 1e-2, "f_hi": 0.8, "chi2": 2000.0, "dof": 2000.0, "chi2_dof": 1.0, "fails": False},
+    ]
+    cand = {
+        "effect": "drift",
+        "spec": "drift",
+        "cli_spec": "drift",
+        "significant": True,
+        "explained_fraction": explained,
+        "where": {"bands": [{"delta_chi2": band_delta}, {"delta_chi2": 0.0}]},
+    }
+    tr = {
+        "events": [],
+        "gaps": [],
+        "quiet": {"chi2_dof": 1.2, "hours": 12.0, "fails": True},
+        "classification": {"class": "gravitational-wave" if signal else "missing-coupling", "signal": signal},
+    }
     if signal:
-        tr["events"] = [{"class": "gravitational-wave", "t_start": 3600.0, "t_stop": 5400.0, "f_lo": 3e-3, "f_hi": 1e-2,
-                         "channels": ["A", "E"], "t_share": 0.001, "track_kind": "chirp"}]
-    return {"candidates": [cand], "witnesses": None, "transients": tr,
-            "adequacy": {"fails": True, "tolerance": 0.02, "variance_factor": 1.0, "bands": bands,
-                         "summary": ["fails between 3 mHz and 10 mHz in A, E"]}}
+        tr["events"] = [
+            {
+                "class": "gravitational-wave",
+                "t_start": 3600.0,
+                "t_stop": 5400.0,
+                "f_lo": 3e-3,
+                "f_hi": 1e-2,
+                "channels": ["A", "E"],
+                "t_share": 0.001,
+                "track_kind": "chirp",
+            }
+        ]
+    return {
+        "candidates": [cand],
+        "witnesses": None,
+        "transients": tr,
+        "adequacy": {
+            "fails": True,
+            "tolerance": 0.02,
+            "variance_factor": 1.0,
+            "bands": bands,
+            "summary": ["fails between 3 mHz and 10 mHz in A, E"],
+        },
+    }
 
 
 class _Lin:
@@ -281,8 +329,10 @@ def test_excess_classification_rules():
     ev_gw = [{"class": "gravitational-wave", "evidence": ["x"]}]
     ad = {"adequacy": {"fails": True}}
     # beside a signal the share of the excess outside it decides (1000 / 1.06 outside)
-    outside = {"adequacy": {"fails": True, "variance_factor": 1.06},
-               "candidates": [{"significant": True, "explained_fraction": 0.01, "delta_chi2": 800.0, "cli_spec": "drift"}]}
+    outside = {
+        "adequacy": {"fails": True, "variance_factor": 1.06},
+        "candidates": [{"significant": True, "explained_fraction": 0.01, "delta_chi2": 800.0, "cli_spec": "drift"}],
+    }
     v = T.excess_classification(outside, ev_gw, {**quiet_bad, "excess_chi2_full_span": 1000.0})
     assert v["class"] == "missing-coupling", v
     assert T.excess_classification({"adequacy": {"fails": False}}, [], quiet_ok)["class"] == "none"
@@ -290,7 +340,10 @@ def test_excess_classification_rules():
     assert v["class"] == "gravitational-wave" and v["signal"]
     v = T.excess_classification(ad, ev_gw, quiet_bad)  # excess outside the event too
     assert v["class"] == "stationary-excess" and not v["signal"]
-    cands = {"adequacy": {"fails": True}, "candidates": [{"significant": True, "explained_fraction": 0.7, "cli_spec": "drift"}]}
+    cands = {
+        "adequacy": {"fails": True},
+        "candidates": [{"significant": True, "explained_fraction": 0.7, "cli_spec": "drift"}],
+    }
     assert T.excess_classification(cands, ev_gw, quiet_bad)["class"] == "missing-coupling"
     # in every hour with T nearly empty (below a third of a link's share): a long-lived wave
     v = T.excess_classification(ad, [], {**quiet_bad, "t_share": 0.01})

@@ -26,16 +26,15 @@ from ttlcore.diagnose.trends import (
 )
 
 HOUR = 3600.0
-N = 24                    # segments per window
-SIGMA = 0.01e-3           # per-window uncertainty [m/rad]
+N = 24  # segments per window
+SIGMA = 0.01e-3  # per-window uncertainty [m/rad]
 STEP_COEF = "23.phi.tx"
 STEP_TIME = 2 * DAY
-STEP_SIZE = 0.3e-3        # [m/rad]
+STEP_SIZE = 0.3e-3  # [m/rad]
 DRIFTS = {"31.phi.tx": 0.05e-3, "32.phi.tx": -0.05e-3}  # [m/rad/day]
 
 
-def rolling_fits(seed, days=4.0, step=(STEP_COEF, STEP_TIME, STEP_SIZE), drifts=DRIFTS, sigma=SIGMA,
-                 grow=False):
+def rolling_fits(seed, days=4.0, step=(STEP_COEF, STEP_TIME, STEP_SIZE), drifts=DRIFTS, sigma=SIGMA, grow=False):
     """Rolling one-day fits every hour of a truth with a step and drifts.
 
     Returns ``(t_start, t_stop, coefficients, sigmas, truth_of_each_window)`` in m/rad.
@@ -53,8 +52,8 @@ def rolling_fits(seed, days=4.0, step=(STEP_COEF, STEP_TIME, STEP_SIZE), drifts=
         truth[:, COEFFICIENT_NAMES.index(name)] += rate * (seg_start + HOUR / 2) / DAY
     seg = truth + rng.normal(0.0, sigma * math.sqrt(N), truth.shape)
     first = [max(0, k - N + 1) for k in range(lead, nseg)]
-    C = np.array([seg[a:k + 1].mean(axis=0) for a, k in zip(first, range(lead, nseg))])
-    T = np.array([truth[a:k + 1].mean(axis=0) for a, k in zip(first, range(lead, nseg))])
+    C = np.array([seg[a : k + 1].mean(axis=0) for a, k in zip(first, range(lead, nseg))])
+    T = np.array([truth[a : k + 1].mean(axis=0) for a, k in zip(first, range(lead, nseg))])
     n = np.array([k + 1 - a for a, k in zip(first, range(lead, nseg))])
     t_stop = seg_start[lead:] + HOUR
     t_start = t_stop - n * HOUR
@@ -65,9 +64,9 @@ def rolling_fits(seed, days=4.0, step=(STEP_COEF, STEP_TIME, STEP_SIZE), drifts=
 def test_synthetic_sequence_is_realistic():
     t_start, t_stop, C, S, T = rolling_fits(0, step=None, drifts={})
     err = (C - T) * 1e3
-    assert 0.007 < err.std() < 0.013                   # ~0.01 mm/rad per window
+    assert 0.007 < err.std() < 0.013  # ~0.01 mm/rad per window
     d = np.diff(err, axis=0)
-    assert d.std() < 0.4 * err.std()                   # consecutive windows strongly correlated
+    assert d.std() < 0.4 * err.std()  # consecutive windows strongly correlated
     rho = window_correlation(t_start, t_stop)
     assert rho[10, 11] == pytest.approx(23 / 24) and rho[10, 10 + N] == 0.0
 
@@ -80,9 +79,9 @@ def test_step_alert_on_the_right_coefficient_within_three_segments(seed):
     assert len(steps) == 1, alerts
     a = steps[0]
     assert a.kind == "step"
-    assert abs(a.t - STEP_TIME) <= 3 * HOUR                       # dated within 3 segments
-    assert STEP_TIME < a.t_detected <= STEP_TIME + 4 * HOUR       # raised within 4 refits
-    assert a.value == pytest.approx(STEP_SIZE * 1e3, abs=0.15)    # mm/rad
+    assert abs(a.t - STEP_TIME) <= 3 * HOUR  # dated within 3 segments
+    assert STEP_TIME < a.t_detected <= STEP_TIME + 4 * HOUR  # raised within 4 refits
+    assert a.value == pytest.approx(STEP_SIZE * 1e3, abs=0.15)  # mm/rad
     assert a.significance > 4.5
     assert STEP_COEF in a.message and "mm/rad" in a.message
     assert [x for x in alerts if x.coefficient != STEP_COEF] == []  # nothing else, drifts included
@@ -93,15 +92,16 @@ def test_step_alerts_are_causal_and_carry_indices():
     full = detect_steps(t_stop, C, S, t_start=t_start, indices=range(100, 100 + len(t_stop)))
     a = full[0]
     k = a.index - 100
-    prefix = detect_steps(t_stop[:k + 1], C[:k + 1], S[:k + 1], t_start=t_start[:k + 1],
-                          indices=range(100, 101 + k))
-    assert prefix == [a]                                   # same alert from the data up to it
+    prefix = detect_steps(
+        t_stop[: k + 1], C[: k + 1], S[: k + 1], t_start=t_start[: k + 1], indices=range(100, 101 + k)
+    )
+    assert prefix == [a]  # same alert from the data up to it
     assert detect_steps(t_stop[:k], C[:k], S[:k], t_start=t_start[:k]) == []
 
 
 def test_negative_step_and_units_and_covariances():
     t_start, t_stop, C, S, _ = rolling_fits(2, step=("12.eta.rx", STEP_TIME, -STEP_SIZE), drifts={})
-    cov = np.einsum("ki,ij->kij", S ** 2, np.eye(24))
+    cov = np.einsum("ki,ij->kij", S**2, np.eye(24))
     in_mm = detect_steps(t_stop, C * 1e3, cov * 1e6, t_start=t_start, units="mm/rad")
     in_m = detect_steps(t_stop, C, S, t_start=t_start)
     assert [(a.coefficient, round(a.value, 9)) for a in in_mm] == [(a.coefficient, round(a.value, 9)) for a in in_m]

@@ -57,10 +57,21 @@ def test_every_library_witness_is_an_effect_spelled_as_the_report_prints_it():
     from ttlcore.diagnose.effects import make_effects
     from ttlcore.diagnose.witnesses import witness_spec
 
-    specs = [witness_spec(f"{m}.{a}", link, n, d) for m in MOSAS for a in ANGLES for link in LINKS
-             for n in (0, 1, 2) for d in (False, True) if not (d and n == 2)]
-    specs += [witness_spec(f"{m}.{p}", link, n) for m in MOSAS for p in ("phiphi", "etaeta", "phieta")
-              for link, n in ((m, 0), (m[::-1], 1))]
+    specs = [
+        witness_spec(f"{m}.{a}", link, n, d)
+        for m in MOSAS
+        for a in ANGLES
+        for link in LINKS
+        for n in (0, 1, 2)
+        for d in (False, True)
+        if not (d and n == 2)
+    ]
+    specs += [
+        witness_spec(f"{m}.{p}", link, n)
+        for m in MOSAS
+        for p in ("phiphi", "etaeta", "phieta")
+        for link, n in ((m, 0), (m[::-1], 1))
+    ]
     for spec in specs:
         (effect,) = make_effects(split_effects(spec))
         assert effect.cli_spec() == spec

@@ -37,7 +37,9 @@ REQUIRED_KEYS = {"names", "coefficients", "sigma", "covariance", "chi2_dof", "ba
 
 
 def ttl(*args, cwd=None):
-    return subprocess.run([sys.executable, "-m", "ttlcore.cli.main", *map(str, args)], capture_output=True, text=True, cwd=cwd)
+    return subprocess.run(
+        [sys.executable, "-m", "ttlcore.cli.main", *map(str, args)], capture_output=True, text=True, cwd=cwd
+    )
 
 
 def png_size(path: Path) -> tuple[int, int]:
@@ -52,6 +54,7 @@ def png_size(path: Path) -> tuple[int, int]:
 # fixtures
 # ---------------------------------------------------------------------------
 
+
 @pytest.fixture(scope="module")
 def noisy(tmp_path_factory):
     """6 h, unequal arms, all noises, paper coefficients; analysed with its truth."""
@@ -62,16 +65,33 @@ def noisy(tmp_path_factory):
     out = d / "out"
     r = ttl("analyze", data, "--truth", truth_path(data), "--out", out, "--segment", 3600)
     assert r.returncode == 0, r.stderr
-    return {"data": data, "out": out, "stdout": r.stdout, "stderr": r.stderr,
-            "fit": json.loads((out / "fit.json").read_text())}
+    return {
+        "data": data,
+        "out": out,
+        "stdout": r.stdout,
+        "stderr": r.stderr,
+        "fit": json.loads((out / "fit.json").read_text()),
+    }
 
 
 @pytest.fixture(scope="module")
 def ttl_only(tmp_path_factory):
     """2 h of TTL only (jitter on, no DWS readout noise, no other noise)."""
     data = tmp_path_factory.mktemp("ttl_only") / "ttl.h5"
-    r = ttl("simulate", "--duration", "2h", "--orbit", "unequal", "--seed", 1, "--noises", "ttl,sc_jitter,mosa_jitter",
-            "--out", data, "--quiet")
+    r = ttl(
+        "simulate",
+        "--duration",
+        "2h",
+        "--orbit",
+        "unequal",
+        "--seed",
+        1,
+        "--noises",
+        "ttl,sc_jitter,mosa_jitter",
+        "--out",
+        data,
+        "--quiet",
+    )
     assert r.returncode == 0, r.stderr
     return data
 
@@ -86,6 +106,7 @@ def li_file(tmp_path_factory):
 # ---------------------------------------------------------------------------
 # fit.json and figures
 # ---------------------------------------------------------------------------
+
 
 def test_fit_json_content(noisy):
     js = noisy["fit"]
@@ -132,6 +153,7 @@ def test_figures_are_pngs(noisy):
 # the subtraction, checked independently of the CLI
 # ---------------------------------------------------------------------------
 
+
 def test_true_coefficients_remove_ttl_exactly(ttl_only):
     tm = read_telemetry(ttl_only)
     truth = read_truth(truth_path(ttl_only))
@@ -162,7 +184,7 @@ def test_true_coefficients_remove_ttl_exactly(ttl_only):
     assert set(x) == {"data", "residual", "residual_true", "ttl_tdi", "ttl_residual", "noise_without_ttl"}
 
 
-def _log_asd(x, fs, nperseg=2 ** 14):
+def _log_asd(x, fs, nperseg=2**14):
     w = signal.get_window("hann", nperseg)
     w = w / w.sum()
     f, p = signal.welch(x, fs=fs, nperseg=nperseg, detrend=lambda s: s - np.dot(s, w))
@@ -195,6 +217,7 @@ def test_residual_below_requirement_in_band(noisy):
 # bad input
 # ---------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize(
     "args, needle",
     [
@@ -225,6 +248,7 @@ def test_truth_of_another_simulation_is_refused(noisy, ttl_only, tmp_path):
 # ---------------------------------------------------------------------------
 # lisainstrument input, MCMC, no truth
 # ---------------------------------------------------------------------------
+
 
 def test_lisainstrument_file(li_file, tmp_path):
     from ttlcore.io.lisainstrument import lisainstrument_truth

@@ -1,7 +1,6 @@
 """The TTL coefficient fit against truth: exactness, errors in variables, the paper's scenario,
 lisainstrument data, and the fit's statistics (chi^2 of the normalised errors)."""
 
-
 import numpy as np
 import pytest
 from lisainstrument_sim import simulate_lisainstrument
@@ -32,8 +31,13 @@ def test_exact_recovery_on_own_simulation():
     # 5e-16), so GLS recovers the truth to rounding.  With no DWS noise the
     # errors-in-variables term is zero (dws_asd_from_config reads the switch).
     coeffs = make_coefficients("lisainstrument")
-    cfg = SimulationConfig(duration=6 * HOUR, orbit="keplerian", coefficients=coeffs, seed=7,
-                           noises=NoiseSwitches.parse("ttl,sc_jitter,mosa_jitter"))
+    cfg = SimulationConfig(
+        duration=6 * HOUR,
+        orbit="keplerian",
+        coefficients=coeffs,
+        seed=7,
+        noises=NoiseSwitches.parse("ttl,sc_jitter,mosa_jitter"),
+    )
     tm, truth = simulate(cfg)
     assert dws_asd_from_config(tm.config) == 0.0
     res, _ = _fit(tm, FitSettings(dws_asd=0.0, segment_duration=HOUR))
@@ -47,9 +51,21 @@ def test_exact_recovery_on_lisainstrument_hour(tmp_path):
     # decimated 4-Hz DWS readouts; the two agree to ~3e-8 below 0.5 Hz but only to 1e-6 at
     # 1 Hz and 1 % at 1.5 Hz, where order-31 interpolation at 4 Hz runs out of accuracy.
     path = tmp_path / "ttl-only.h5"
-    simulate_lisainstrument(path, duration=3600, orbits="static", ttl=True, jitter=True, dws_noise=False, laser=False,
-                          oms=False, testmass=False, backlink=False, reciprocal_backlink=False,
-                          longitudinal_jitter=False, seed=2)
+    simulate_lisainstrument(
+        path,
+        duration=3600,
+        orbits="static",
+        ttl=True,
+        jitter=True,
+        dws_noise=False,
+        laser=False,
+        oms=False,
+        testmass=False,
+        backlink=False,
+        reciprocal_backlink=False,
+        longitudinal_jitter=False,
+        seed=2,
+    )
     tm = read_telemetry(path)
     assert dws_asd_from_config(tm.config) == 0.0
     truth = lisainstrument_truth(path)
@@ -204,5 +220,5 @@ def test_notch_mask_leaves_out_a_zero_of_one_channel_that_the_sum_does_not_show(
         assert not keep[k], c
     # T's zero there is deep (1 % of its median), the sum's is not (above 0.3 of its median)
     k = int(np.argmin(psd[:, 2]))
-    assert psd[k, 2] < 0.05 * np.median(psd[k - 20:k + 21, 2])
-    assert total[k] > 0.3 * np.median(total[k - 20:k + 21])
+    assert psd[k, 2] < 0.05 * np.median(psd[k - 20 : k + 21, 2])
+    assert total[k] > 0.3 * np.median(total[k - 20 : k + 21])

@@ -49,7 +49,7 @@ def test_segments_without_a_gap_inside_are_unchanged(window_name):
     for lead, trail in ((0, 0), (150, 0), (0, 40), (150, 40)):
         d, r = data.copy(), regs.copy()
         d[:, :lead] = np.nan
-        r[:, 3, N - trail:] = np.nan
+        r[:, 3, N - trail :] = np.nan
         ok = np.isfinite(d).all(axis=0) & np.isfinite(r).all(axis=(0, 1))
         sp = spectra_of_segment(d, r, 0.0, FS, BAND, window_name)
         want_d, want_r = previous_spectra(d, r, ok, window_name)
@@ -97,10 +97,10 @@ def test_a_gapped_fit_moves_by_what_the_lost_data_explains():
     settings = FitSettings(segment_duration=3600.0)
     clean, _ = fit_tdi(compute_tdi(tm), settings)
     a = int((2 * 3600 + 25 * 60) * tm.fs)
-    tm.eta[0, a:a + int(600 * tm.fs)] = np.nan
+    tm.eta[0, a : a + int(600 * tm.fs)] = np.nan
     gap, _ = fit_tdi(compute_tdi(tm), settings)
-    ratio = gap.sigma ** 2 / clean.sigma ** 2
+    ratio = gap.sigma**2 / clean.sigma**2
     share = 600 / (6 * 3600)
     assert ratio.min() > 1 + share / 2 and 1 + share < np.median(ratio) < 1 + 3 * share, ratio
-    z = (gap.coefficients - clean.coefficients) / np.sqrt(gap.sigma ** 2 - clean.sigma ** 2)
-    assert np.sqrt(np.mean(z ** 2)) < 2.5, z
+    z = (gap.coefficients - clean.coefficients) / np.sqrt(gap.sigma**2 - clean.sigma**2)
+    assert np.sqrt(np.mean(z**2)) < 2.5, z

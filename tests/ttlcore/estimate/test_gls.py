@@ -16,8 +16,9 @@ def normal_equations(X: np.ndarray, y: np.ndarray, E: np.ndarray | None = None) 
     b = np.real(X.conj().T @ y)[None]
     dd = np.array([np.real(np.vdot(y, y))])
     E = np.zeros((1, P, P)) if E is None else E[None]
-    return NormalEquations(tuple(f"c{k}" for k in range(P)), np.array([1e-3, 1.0]), N, b, dd, E,
-                           np.array([len(y)]), nchan=1)
+    return NormalEquations(
+        tuple(f"c{k}" for k in range(P)), np.array([1e-3, 1.0]), N, b, dd, E, np.array([len(y)]), nchan=1
+    )
 
 
 def complex_normal(rng, *shape, var=1.0):

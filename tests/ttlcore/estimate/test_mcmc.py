@@ -85,6 +85,7 @@ def complex_gaussian_problem(seed: int, lam_true: np.ndarray, bins_per_band: int
     # bins_per_band log-spaced frequencies inside each band
     f = np.concatenate([np.geomspace(lo, hi, bins_per_band + 2)[1:-1] for lo, hi in zip(edges[:-1], edges[1:])])
     band = np.repeat(np.arange(G), bins_per_band)
+
     def cn(*shape):
         return (rng.standard_normal(shape) + 1j * rng.standard_normal(shape)) / np.sqrt(2)
 
@@ -158,6 +159,7 @@ def test_autocorrelation_time_matches_emcee_and_ar1():
 # ---------------------------------------------------------------------------
 # Simulated LISA data: against the GLS fit
 # ---------------------------------------------------------------------------
+
 
 def batch_standard_error(x: np.ndarray, nwalkers: int, n_batches: int = 16) -> np.ndarray:
     """Standard error of the mean of samples ``x`` (steps * walkers, D), stored step-major,

@@ -29,7 +29,7 @@ def test_file_truth_averages_like_a_plain_mean_across_blocks(tmp_path, span):
     expected = coefficients[:, a:b].mean(axis=1)
     np.testing.assert_allclose(truth.mean(*span), expected, rtol=1e-12)
     np.testing.assert_allclose(truth.mean(*span), expected, rtol=1e-12)  # again, from the cached blocks
-    assert truth.mean(5000.0, 6000.0) is None                            # after the file: nothing
+    assert truth.mean(5000.0, 6000.0) is None  # after the file: nothing
     assert read_truth(path).coefficients.shape == (24, 200)
 
 
@@ -57,7 +57,7 @@ def test_channel_asd_uses_the_longest_finite_stretch_and_refuses_too_few_samples
     x = rng.normal(0.0, 1e-20, 20000)
     f, asd, f_welch = channel_asd(x, fs)
     gapped = x.copy()
-    gapped[:100] = np.nan          # the longest finite stretch is what is left after the gap
+    gapped[:100] = np.nan  # the longest finite stretch is what is left after the gap
     fg, asdg, _ = channel_asd(gapped, fs)
     assert np.all(asd > 0) and np.all(np.diff(f) > 0) and f_welch[0] > 0
     assert np.median(asdg / np.interp(fg, f, asd)) == pytest.approx(1.0, rel=0.1)

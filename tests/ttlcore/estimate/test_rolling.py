@@ -18,10 +18,19 @@ def test_streaming_decimator_equals_batch_filter():
     x[:, :37] = np.nan
     h = lowpass_taps(4.0)
     dec = StreamingDecimator(h, 2)
-    pieces = np.concatenate([dec.push(x[:, a:b]) for a, b in ((0, 3001), (3001, 3002), (3002, 7777), (7777, 10_000))], axis=-1)
+    pieces = np.concatenate(
+        [dec.push(x[:, a:b]) for a, b in ((0, 3001), (3001, 3002), (3002, 7777), (7777, 10_000))], axis=-1
+    )
     from ttlcore.tdi.data import TDIData
 
-    td = TDIData(t0=0.0, fs=4.0, channels=("A", "E", "T"), data=np.vstack([x, x[:1]]), regressors=np.zeros((3, 1, 10_000)), names=("c",))
+    td = TDIData(
+        t0=0.0,
+        fs=4.0,
+        channels=("A", "E", "T"),
+        data=np.vstack([x, x[:1]]),
+        regressors=np.zeros((3, 1, 10_000)),
+        names=("c",),
+    )
     batch = td.decimated(2).data[:2]
     np.testing.assert_allclose(pieces, batch, rtol=0, atol=1e-12, equal_nan=True)
 
@@ -52,9 +61,11 @@ def test_rolling_window_over_a_day_equals_batch_analysis(streamed):
     # delay weights, 2e-10 of the largest sample apart: tests/ttlcore/tdi), which moves the
     # coefficients by ~1e-5 sigma: equal to 1e-4 sigma, the covariance and chi2 to 1e-6
     dc = np.abs(last.coefficients - batch.coefficients) / batch.sigma
-    print(f"streamed - batch: {dc.max():.2e} sigma, covariance "
-          f"{np.max(np.abs(last.covariance - batch.covariance)) / np.max(np.abs(batch.covariance)):.2e}, "
-          f"chi2 {abs(last.chi2 - batch.chi2) / batch.chi2:.2e}")
+    print(
+        f"streamed - batch: {dc.max():.2e} sigma, covariance "
+        f"{np.max(np.abs(last.covariance - batch.covariance)) / np.max(np.abs(batch.covariance)):.2e}, "
+        f"chi2 {abs(last.chi2 - batch.chi2) / batch.chi2:.2e}"
+    )
     assert dc.max() < 1e-4
     assert np.max(np.abs(last.covariance - batch.covariance)) < 1e-6 * np.max(np.abs(batch.covariance))
     assert abs(last.chi2 - batch.chi2) < 1e-6 * batch.chi2
@@ -116,7 +127,7 @@ def test_a_loud_transient_is_left_out_and_does_not_pull_the_fit(streamed):
     loud[0] += 3 * np.nanstd(td.data[0]) * burst
     from dataclasses import replace
 
-    dirty = segments[:burst_at] + [replace(td, data=loud)] + segments[burst_at + 1:12]
+    dirty = segments[:burst_at] + [replace(td, data=loud)] + segments[burst_at + 1 : 12]
     robust, naive = RollingFit(settings, window_duration=DAY), RollingFit(settings, window_duration=DAY, outlier_z=None)
     r_robust = [robust.push(x) for x in dirty][-1]
     r_naive = [naive.push(x) for x in dirty][-1]
@@ -128,7 +139,7 @@ def test_a_loud_transient_is_left_out_and_does_not_pull_the_fit(streamed):
     # FFT segment less than half valid is skipped, its light travel times dropped alike)
     blank = replace(td, data=np.full_like(td.data, np.nan), regressors=np.full_like(td.regressors, np.nan))
     clean = RollingFit(settings, window_duration=DAY, outlier_z=None)
-    r_clean = [clean.push(x) for x in segments[:burst_at] + [blank] + segments[burst_at + 1:12]][-1]
+    r_clean = [clean.push(x) for x in segments[:burst_at] + [blank] + segments[burst_at + 1 : 12]][-1]
     assert r_clean.n_segments == 11
     pulled = np.max(np.abs(r_naive.coefficients - r_clean.coefficients) / r_clean.sigma)
     kept = np.max(np.abs(r_robust.coefficients - r_clean.coefficients) / r_clean.sigma)
@@ -151,8 +162,10 @@ def test_gates_leave_their_hours_out(streamed):
     assert r_gated.n_segments == 8 and r_gated.extra["update"] == "full"
     from dataclasses import replace
 
-    blank = [replace(td, data=np.full_like(td.data, np.nan), regressors=np.full_like(td.regressors, np.nan))
-             for td in segments[5:9]]
+    blank = [
+        replace(td, data=np.full_like(td.data, np.nan), regressors=np.full_like(td.regressors, np.nan))
+        for td in segments[5:9]
+    ]
     never = RollingFit(settings, window_duration=DAY)
     r_never = [never.push(td) for td in segments[:5] + blank + segments[9:12]][-1]
     assert r_never.n_segments == 8

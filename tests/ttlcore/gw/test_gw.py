@@ -65,14 +65,25 @@ def _relative_error(y, ref):
 
 
 # A generic chirping source, away from any symmetry: all angles non-trivial.
-GB_PARAMS = dict(f0=6.22e-3, fdot=7e-16, amplitude=1e-21, inclination=0.6, psi=0.7, phi0=0.3,
-                 beta=0.4, lam=2.1, t_init=1000.0)
+GB_PARAMS = dict(
+    f0=6.22e-3, fdot=7e-16, amplitude=1e-21, inclination=0.6, psi=0.7, phi0=0.3, beta=0.4, lam=2.1, t_init=1000.0
+)
 
 
 def _lgr_binary(lgr, **kwargs):
     p = GB_PARAMS
-    return lgr.GalacticBinary(A=p["amplitude"], f=p["f0"], df=p["fdot"], phi0=p["phi0"], iota=p["inclination"],
-                              psi=p["psi"], t_init=p["t_init"], gw_beta=p["beta"], gw_lambda=p["lam"], **kwargs)
+    return lgr.GalacticBinary(
+        A=p["amplitude"],
+        f=p["f0"],
+        df=p["fdot"],
+        phi0=p["phi0"],
+        iota=p["inclination"],
+        psi=p["psi"],
+        t_init=p["t_init"],
+        gw_beta=p["beta"],
+        gw_lambda=p["lam"],
+        **kwargs,
+    )
 
 
 # ---------------------------------------------------------------------------
@@ -140,8 +151,15 @@ def test_verification_binary_amplitude_and_fdot_match_lisagwresponse(lgr, kepler
     # and the quadrupole fdot independently (masses, period, distance -> A, df). Same
     # constants (IAU GM_sun, parsec, c), so agreement to rounding (1e-12).
     p = VERIFICATION_BINARY_PARAMETERS["HM Cnc"]
-    vb = lgr.VerificationBinary(period=p["period"], distance=p["distance_pc"], masses=(p["m1"], p["m2"]),
-                                glong=206.9, glat=23.4, orbits="unused", **_orbit_interpolants(kepler))
+    vb = lgr.VerificationBinary(
+        period=p["period"],
+        distance=p["distance_pc"],
+        masses=(p["m1"], p["m2"]),
+        glong=206.9,
+        glat=23.4,
+        orbits="unused",
+        **_orbit_interpolants(kepler),
+    )
     mc = chirp_mass(p["m1"], p["m2"])
     f0 = 2.0 / p["period"]
     assert vb.f == pytest.approx(f0, rel=1e-14)
@@ -332,8 +350,9 @@ def test_ecliptic_coordinates_match_astropy():
 
 
 def test_waveform_definition():
-    gb = GalacticBinary(f0=1e-3, fdot=2e-12, amplitude=2e-22, inclination=0.5, psi=0.0, phi0=0.4,
-                        beta=0.0, lam=0.0, t_init=100.0)
+    gb = GalacticBinary(
+        f0=1e-3, fdot=2e-12, amplitude=2e-22, inclination=0.5, psi=0.0, phi0=0.4, beta=0.0, lam=0.0, t_init=100.0
+    )
     t = np.array([100.0, 350.0, 1234.5])
     tau = t - 100.0
     phase = 2 * np.pi * (1e-3 * tau + 1e-12 * tau**2) - 0.4

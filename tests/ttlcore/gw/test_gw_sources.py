@@ -50,9 +50,19 @@ def test_fast_binary_sum_matches_exact_response(kepler):
     # Binaries at random sky positions, frequencies up to 20 mHz, a Keplerian (moving,
     # flexing) orbit, a chunk not starting at 0.
     rng = np.random.default_rng(5)
-    bins = [GalacticBinary(f0=f, fdot=1e-16, amplitude=1e-22, inclination=rng.uniform(0, 3), psi=rng.uniform(0, 3),
-                           phi0=rng.uniform(0, 6), beta=rng.uniform(-1.5, 1.5), lam=rng.uniform(0, 6))
-            for f in (3e-4, 2.1e-3, 4.822e-3, 6.22e-3, 2e-2)]
+    bins = [
+        GalacticBinary(
+            f0=f,
+            fdot=1e-16,
+            amplitude=1e-22,
+            inclination=rng.uniform(0, 3),
+            psi=rng.uniform(0, 3),
+            phi0=rng.uniform(0, 6),
+            beta=rng.uniform(-1.5, 1.5),
+            lam=rng.uniform(0, 6),
+        )
+        for f in (3e-4, 2.1e-3, 4.822e-3, 6.22e-3, 2e-2)
+    ]
     t = 5000.0 + np.arange(4 * 3600 * 4) / 4.0
     fast = binaries_link_signal(kepler, t, BinaryArrays.from_binaries(bins))
     exact = sum(b.response(kepler, t) for b in bins)
@@ -89,8 +99,9 @@ def test_galaxy_population_model():
     frac = np.mean(g.f0 > 2 * 5e-4)
     assert frac == pytest.approx(2 ** (-8 / 3), rel=0.03)
     beta_gc, lam_gc = galactic_to_ecliptic(0.0, 0.0)
-    near = np.arccos(np.clip(np.sin(g.beta) * np.sin(beta_gc) + np.cos(g.beta) * np.cos(beta_gc)
-                             * np.cos(g.lam - lam_gc), -1, 1)) < np.radians(30)
+    near = np.arccos(
+        np.clip(np.sin(g.beta) * np.sin(beta_gc) + np.cos(g.beta) * np.cos(beta_gc) * np.cos(g.lam - lam_gc), -1, 1)
+    ) < np.radians(30)
     assert near.mean() > 0.4  # an isotropic sky would put 6.7 % within 30 deg
     assert np.all(g.amplitude > 0) and np.all(g.fdot > 0)
 
@@ -102,9 +113,11 @@ def test_galactic_to_ecliptic_matches_astropy():
     l, b = rng.uniform(0, 2 * np.pi, 20), rng.uniform(-1.5, 1.5, 20)
     beta, lam = galactic_to_ecliptic(l, b)
     sc = coords.SkyCoord(l=l * units.rad, b=b * units.rad, frame="galactic").transform_to(
-        coords.BarycentricMeanEcliptic(equinox="J2000"))
-    sep = coords.SkyCoord(lon=lam * units.rad, lat=beta * units.rad, frame=coords.BarycentricMeanEcliptic(
-        equinox="J2000")).separation(sc)
+        coords.BarycentricMeanEcliptic(equinox="J2000")
+    )
+    sep = coords.SkyCoord(
+        lon=lam * units.rad, lat=beta * units.rad, frame=coords.BarycentricMeanEcliptic(equinox="J2000")
+    ).separation(sc)
     assert np.max(sep.arcsec) < 1.0
 
 
@@ -167,13 +180,15 @@ def test_sgwb_tdi_psd_matches_sky_average():
 
 def test_sgwb_chunk_invariant_and_reproducible():
     orbit = equal_arms()
-    gen = StochasticBackgroundGenerator(orbit.sc_positions, orbit.ltt(0.0)[:, 0], 4.0, seed=3, filter_length=1 << 10,
-                                        n_pix=64)
+    gen = StochasticBackgroundGenerator(
+        orbit.sc_positions, orbit.ltt(0.0)[:, 0], 4.0, seed=3, filter_length=1 << 10, n_pix=64
+    )
     a = gen.get(1000, 9000)
     b = np.concatenate([gen.get(1000, 4321), gen.get(4321, 9000)], axis=1)
     np.testing.assert_allclose(a, b, rtol=0, atol=1e-12 * np.max(np.abs(a)))
-    other = StochasticBackgroundGenerator(orbit.sc_positions, orbit.ltt(0.0)[:, 0], 4.0, seed=4,
-                                          filter_length=1 << 10, n_pix=64)
+    other = StochasticBackgroundGenerator(
+        orbit.sc_positions, orbit.ltt(0.0)[:, 0], 4.0, seed=4, filter_length=1 << 10, n_pix=64
+    )
     assert np.max(np.abs(other.get(1000, 9000) - a)) > 0.1 * np.max(np.abs(a))
 
 
@@ -201,7 +216,7 @@ def test_mbhb_inspiral_matches_quadrupole_and_merges_at_tc():
         assert np.max(np.abs(hp[w])) == pytest.approx(h0 * (1 + ci**2) / 2, rel=0.05)
         assert np.max(np.abs(hc[w])) == pytest.approx(h0 * ci, rel=0.05)
         # instantaneous frequency from the zero crossings
-        zc = np.flatnonzero(np.diff(np.sign(hp[k - int(3 / f):k + int(3 / f)])) != 0)
+        zc = np.flatnonzero(np.diff(np.sign(hp[k - int(3 / f) : k + int(3 / f)])) != 0)
         f_meas = (len(zc) - 1) / (2 * (zc[-1] - zc[0]) * (t[1] - t[0]))
         assert f_meas == pytest.approx(f, rel=0.05)
     peak = t[np.argmax(np.hypot(hp, hc))]
@@ -305,8 +320,9 @@ def test_cli_simulate_gw_writes_truth(tmp_path):
     from ttlcore.io.truth import read_truth
 
     out = tmp_path / "d.h5"
-    rc = main(["simulate", "--duration", "600", "--orbit", "equal", "--gw", "hmcnc,mbhb1", "--out", str(out),
-               "--quiet"])
+    rc = main(
+        ["simulate", "--duration", "600", "--orbit", "equal", "--gw", "hmcnc,mbhb1", "--out", str(out), "--quiet"]
+    )
     assert rc == 0
     tr = read_truth(tmp_path / "d.truth.h5")
     assert set(tr.injections) == {"hmcnc", "mbhb1"}
@@ -321,8 +337,22 @@ def test_cli_simulate_gw_writes_truth(tmp_path):
     from ttlcore.gw.injection import rebuild_from_truth
     from ttlcore.io.reader import read_telemetry
 
-    rc = main(["simulate", "--duration", "600", "--orbit", "equal", "--gw", "hmcnc,mbhb1", "--out",
-               str(tmp_path / "t.h5"), "--quiet", "--noises", "ttl,sc_jitter,mosa_jitter"])
+    rc = main(
+        [
+            "simulate",
+            "--duration",
+            "600",
+            "--orbit",
+            "equal",
+            "--gw",
+            "hmcnc,mbhb1",
+            "--out",
+            str(tmp_path / "t.h5"),
+            "--quiet",
+            "--noises",
+            "ttl,sc_jitter,mosa_jitter",
+        ]
+    )
     assert rc == 0
     tm, tr2 = read_telemetry(tmp_path / "t.h5"), read_truth(tmp_path / "t.truth.h5")
     r = rebuild_from_truth(tm, tr2)

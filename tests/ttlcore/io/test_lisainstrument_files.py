@@ -80,6 +80,7 @@ def _copy(src: Path, tmp_path: Path, name: str = "copy.h5") -> Path:
 # Detection
 # ---------------------------------------------------------------------------
 
+
 def test_detects_lisainstrument_files_and_only_them(li_file, tm, tmp_path):
     with h5py.File(li_file, "r") as f:
         assert is_lisainstrument(f)
@@ -98,6 +99,7 @@ def test_detects_lisainstrument_files_and_only_them(li_file, tm, tmp_path):
 # ---------------------------------------------------------------------------
 # eta against pytdi
 # ---------------------------------------------------------------------------
+
 
 def test_eta_terms_are_pytdis_eta_set():
     # Our table of the reduction is pytdi's ETA_SET (= ETA_ij_XI @ XI_SET, simplified);
@@ -172,6 +174,7 @@ def test_leading_samples_dropped_exactly_where_delayed_terms_are_undefined(li_fi
 # DWS, delays, sampling, configuration
 # ---------------------------------------------------------------------------
 
+
 def test_dws_ltt_and_sampling_are_the_files(li_file, tm, metadata):
     k = tm.config["dropped_leading_samples"]
     sl = slice(k, k + tm.size)
@@ -224,6 +227,7 @@ def test_read_telemetry_autodetects_and_returns_the_same(li_file, tm):
 # TTL truth and conventions
 # ---------------------------------------------------------------------------
 
+
 def test_truth_is_lisainstruments_default_set(li_file):
     from lisainstrument.instru import instru_defaults as d
 
@@ -256,9 +260,20 @@ def test_ttl_sign_and_coefficient_indexing_in_lisainstrument(tmp_path):
     coeffs["12.phi.tx"] = 2e-3
     coeffs["23.eta.rx"] = 1e-3
     path = tmp_path / "ttl-only.h5"
-    simulate_lisainstrument(path, duration=600, orbits="static", ttl_coeffs=coeffs, lock="six", laser=False,
-                            oms=False, testmass=False, backlink=False, reciprocal_backlink=False,
-                            longitudinal_jitter=False, dws_noise=False)
+    simulate_lisainstrument(
+        path,
+        duration=600,
+        orbits="static",
+        ttl_coeffs=coeffs,
+        lock="six",
+        laser=False,
+        oms=False,
+        testmass=False,
+        backlink=False,
+        reciprocal_backlink=False,
+        longitudinal_jitter=False,
+        dws_noise=False,
+    )
     assert lisainstrument_truth(path) == coeffs
     t = read_lisainstrument(path)
     i12, i21, i23 = link_index("12"), link_index("21"), link_index("23")
@@ -273,6 +288,7 @@ def test_ttl_sign_and_coefficient_indexing_in_lisainstrument(tmp_path):
 # ---------------------------------------------------------------------------
 # Errors name the file and the dataset or attribute
 # ---------------------------------------------------------------------------
+
 
 @pytest.mark.parametrize(
     "dataset",

@@ -9,7 +9,7 @@ from ttlcore.io.truth import read_truth
 from ttlcore.sim.injection import injection_from_description
 from ttlcore.sim.simulator import NoiseSwitches, SimulationConfig, simulate, simulate_to_file
 
-PLUGIN = '''
+PLUGIN = """
 import numpy as np
 
 class Tone:
@@ -26,15 +26,16 @@ class Tone:
 
 def injection_from_description(d):
     return Tone(d["name"], d["amplitude"], d["frequency"])
-'''
+"""
 
 
 @pytest.fixture
 def tone(tmp_path):
     path = tmp_path / "tone.py"
     path.write_text(PLUGIN)
-    return injection_from_description({"kind": "tone", "module": str(path), "name": "tone",
-                                       "amplitude": 1e-20, "frequency": 0.01})
+    return injection_from_description(
+        {"kind": "tone", "module": str(path), "name": "tone", "amplitude": 1e-20, "frequency": 0.01}
+    )
 
 
 def test_injection_is_added_to_eta_and_stored_alone(tone, tmp_path):
@@ -43,7 +44,7 @@ def test_injection_is_added_to_eta_and_stored_alone(tone, tmp_path):
     cfg = SimulationConfig(**quiet, injections=(tone,))
     tm, truth = simulate(cfg, chunk_size=1000)
     t = tm.t0 + np.arange(tm.size) / tm.fs
-    expected = 1e-20 * np.sin(2 * np.pi * 0.01 * t + np.arange(6)[:, None])   # independent formula
+    expected = 1e-20 * np.sin(2 * np.pi * 0.01 * t + np.arange(6)[:, None])  # independent formula
     np.testing.assert_allclose(truth["injections/tone"], expected, rtol=0, atol=1e-32)
     np.testing.assert_allclose(tm.eta - base.eta, expected, rtol=0, atol=1e-30)  # nothing else changed
 

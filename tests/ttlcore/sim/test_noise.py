@@ -40,6 +40,7 @@ FS = 4.0
 # Models
 # ---------------------------------------------------------------------------
 
+
 def test_levels_and_shapes():
     # Paper appendix numbers.
     assert nm.OMS_LINK == pytest.approx(7.2355e-12, rel=1e-4)  # sqrt(6.35^2 + 3.32^2 + 1.42^2/2) pm
@@ -50,7 +51,8 @@ def test_levels_and_shapes():
     # velocity ASD rises like f well above 8 mHz.
     assert nm.test_mass(np.array([2.0]))[0] / nm.test_mass(np.array([1.0]))[0] == pytest.approx(2.0, rel=1e-4)
     assert nm.test_mass(np.array([1e-2]))[0] == pytest.approx(
-        2.4e-15 / (2 * np.pi * 1e-2 * C) * math.sqrt(1 + 0.04**2) * math.sqrt(1 + 1.25**4), rel=1e-12)
+        2.4e-15 / (2 * np.pi * 1e-2 * C) * math.sqrt(1 + 0.04**2) * math.sqrt(1 + 1.25**4), rel=1e-12
+    )
     f = np.logspace(-4, 0, 7)
     s_oms, s_acc = nm.secondary_single_link(f)
     np.testing.assert_allclose(s_oms, nm.oms(f) ** 2 + nm.backlink(f) ** 2 + nm.telescope(f) ** 2, rtol=1e-14)
@@ -86,8 +88,7 @@ def test_models_match_lisainstrument():
 
     refs = {
         "laser": asd(li.NoiseDefLaser(30.0, "white+infrared_stationary", 1e-5, FS, "l"), 1 / NU0),
-        "test_mass": asd(li.NoiseDefTestMass(2.4e-15, "original-stationary", 0.4e-3, 8e-3, 0.0, 1e-5, FS, "t"),
-                         1 / C),
+        "test_mass": asd(li.NoiseDefTestMass(2.4e-15, "original-stationary", 0.4e-3, 8e-3, 0.0, 1e-5, FS, "t"), 1 / C),
         "oms": asd(li.NoiseDefOMS(nm.OMS_LINK, 1e-5, 2e-3, FS, "o")),
         "backlink": asd(li.NoiseDefBacklink(nm.BACKLINK_LINK, 1e-5, 2e-3, FS, "b")),
         "sc_jitter_velocity": asd(li.NoiseDefAngularJitter(5e-9, 1e-5, 0.8e-3, FS, "j")),
@@ -146,7 +147,7 @@ def _window_correlations(nperseg: int, max_lag: int = 12) -> tuple[np.ndarray, f
     norm = np.sum(w * w) ** 2
     c_f = np.abs(sfft.rfft(w * w)[:max_lag]) ** 2 / norm
     step = nperseg // 2
-    c_t1 = float(np.sum(w[step:] * w[:nperseg - step])) ** 2 / norm
+    c_t1 = float(np.sum(w[step:] * w[: nperseg - step])) ** 2 / norm
     return c_f, c_t1
 
 
@@ -205,8 +206,11 @@ def _welch_streamed(stream: NoiseStream, nperseg: int, nseg: int, per_call: int 
 # length, has 4 times the bins: a quarter of the data); the science suite checks every
 # series from 0.1 mHz, the 16 Hz laser (2^23-sample segments) included.  The filters
 # themselves are checked deterministically at both rates above.
-@pytest.mark.parametrize("name,fs,fmin", [(n, fs, 4e-4) for n, fs in SPECTRAL_CASES if fs == FS]
-                         + [pytest.param(n, fs, 1e-4, marks=pytest.mark.science) for n, fs in SPECTRAL_CASES])
+@pytest.mark.parametrize(
+    "name,fs,fmin",
+    [(n, fs, 4e-4) for n, fs in SPECTRAL_CASES if fs == FS]
+    + [pytest.param(n, fs, 1e-4, marks=pytest.mark.science) for n, fs in SPECTRAL_CASES],
+)
 def test_generated_spectrum_matches_model(name, fs, fmin):
     """Welch ASD of a generated series within 10 % of the model in octave bands from ``fmin``.
 
@@ -247,6 +251,7 @@ def test_generated_spectrum_matches_model(name, fs, fmin):
 # Block machinery against direct convolution
 # ---------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("block_length", [16, 37, 64, 1000])
 def test_matches_direct_convolution(block_length):
     # y[n] = sum_k h[k] w[n - k] computed by np.convolve on the stream's own white noise:
@@ -283,6 +288,7 @@ def test_run_sized_blocks_give_the_same_noise():
 # ---------------------------------------------------------------------------
 # Reproducibility, independence, random access
 # ---------------------------------------------------------------------------
+
 
 def test_reproducible_and_independent():
     n = 2**18
@@ -328,7 +334,9 @@ def test_chunk_size_invariance_and_negative_start():
     fresh = NoiseStream(flt, fs, seed=11, key="chunks", n_channels=2).get(-5000, -4000)
     assert np.max(np.abs(fresh - one[:, 5000:6000])) <= 1e-12 * scale
     # A different block size changes only the FFT round-off.
-    other_block = NoiseStream(flt, fs, seed=11, key="chunks", n_channels=2, block_length=3 * hour).get(start, start + span)
+    other_block = NoiseStream(flt, fs, seed=11, key="chunks", n_channels=2, block_length=3 * hour).get(
+        start, start + span
+    )
     assert np.max(np.abs(other_block - one)) <= 1e-10 * scale
 
 
@@ -363,6 +371,7 @@ def test_continuity_at_block_boundaries():
 # Gaussianity
 # ---------------------------------------------------------------------------
 
+
 @pytest.mark.parametrize("name", ["oms", "telescope", "test_mass", "dws_velocity", "mosa_jitter_eta_velocity"])
 def test_gaussian_kurtosis(name):
     # For a Gaussian linear process the sample kurtosis of n samples has standard deviation
@@ -388,6 +397,7 @@ def test_gaussian_kurtosis(name):
 # Memory and API
 # ---------------------------------------------------------------------------
 
+
 def test_memory_bounded():
     # Reading day after day must not accumulate: the caches hold at most cache_blocks
     # output blocks and the white noise of one FFT span, and the traced peak for 12 days
@@ -405,7 +415,11 @@ def test_memory_bounded():
             _, peak = tracemalloc.get_traced_memory()
         finally:
             tracemalloc.stop()
-        bound = 3 * 8 * (stream.cache_blocks * stream.block_length + stream.fft_length - stream.block_length + 2 * WHITE_BLOCK)
+        bound = (
+            3
+            * 8
+            * (stream.cache_blocks * stream.block_length + stream.fft_length - stream.block_length + 2 * WHITE_BLOCK)
+        )
         assert stream.cache_nbytes <= bound
         return peak
 

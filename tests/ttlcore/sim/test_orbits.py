@@ -177,8 +177,10 @@ def test_keplerian_two_body_invariants(kepler):
     # Velocities are the derivatives of the positions (4th-order central difference,
     # h = 10 s: truncation ~ h^4 a n^5 / 30 ~ 1e-21 m/s, rounding ~ 3e-5 m / 10 s).
     tt, step = t[:50], 10.0
-    fd = (8 * (kepler.positions(tt + step) - kepler.positions(tt - step))
-          - (kepler.positions(tt + 2 * step) - kepler.positions(tt - 2 * step))) / (12 * step)
+    fd = (
+        8 * (kepler.positions(tt + step) - kepler.positions(tt - step))
+        - (kepler.positions(tt + 2 * step) - kepler.positions(tt - 2 * step))
+    ) / (12 * step)
     np.testing.assert_allclose(kepler.velocities(tt), fd, rtol=0, atol=1e-4)
 
 
@@ -189,8 +191,9 @@ def test_keplerian_matches_lisaorbits_newtonian(tmp_path, lisaorbits, kepler):
     # so the files must agree to rounding: positions to a few ulp of 1 AU (3e-5 m each),
     # LTTs to ~1e-12 s.
     path = tmp_path / "newtonian.h5"
-    model = lisaorbits.KeplerianOrbits(L=ARM_LENGTH, lambda1=0.0, m_init1=0.0, t_init=0.0,
-                                       tt_method="iterative", tt_niter=6, ignore_shapiro=True)
+    model = lisaorbits.KeplerianOrbits(
+        L=ARM_LENGTH, lambda1=0.0, m_init1=0.0, t_init=0.0, tt_method="iterative", tt_niter=6, ignore_shapiro=True
+    )
     model.write(str(path), dt=3600.0, size=25, t0=0.0, mode="w")
     with h5py.File(path, "r") as f:
         t = f.attrs["t0"] + np.arange(f.attrs["size"]) * f.attrs["dt"]

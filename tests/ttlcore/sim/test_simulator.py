@@ -24,7 +24,9 @@ def ttl_formula(dws_phi, dws_eta, coeffs, ltt, fs):
     for k, link in enumerate(LINKS):
         j = LINKS.index(reverse(link))
         rx = coeffs[name[f"{link}.phi.rx"]] * dws_phi[k] + coeffs[name[f"{link}.eta.rx"]] * dws_eta[k]
-        src = coeffs[name[f"{reverse(link)}.phi.tx"]] * dws_phi[j] + coeffs[name[f"{reverse(link)}.eta.tx"]] * dws_eta[j]
+        src = (
+            coeffs[name[f"{reverse(link)}.phi.tx"]] * dws_phi[j] + coeffs[name[f"{reverse(link)}.eta.tx"]] * dws_eta[j]
+        )
         out[k] = -(rx + pytdi_timeshift(src, -ltt[k] * fs, 31)) / C
     return out
 
@@ -33,7 +35,10 @@ def ttl_formula(dws_phi, dws_eta, coeffs, ltt, fs):
 def test_ttl_equals_physics_formula(orbit):
     coeffs = make_coefficients("lisainstrument").with_drift({"12.phi.tx": 0.05e-3, "31.eta.rx": -0.02e-3})
     cfg = SimulationConfig(
-        duration=2 * HOUR, orbit=orbit, coefficients=coeffs, seed=3,
+        duration=2 * HOUR,
+        orbit=orbit,
+        coefficients=coeffs,
+        seed=3,
         noises=NoiseSwitches.parse("ttl,sc_jitter,mosa_jitter"),
     )
     tm, truth = simulate(cfg, chunk_size=2000)
@@ -77,7 +82,12 @@ def test_laser_chunking_is_invisible():
 
 
 def test_components_add_up_to_eta():
-    cfg = SimulationConfig(duration=HOUR, orbit="keplerian", seed=2, truth_noises=("laser", "oms", "backlink", "telescope", "test_mass", "dws_phi", "dws_eta"))
+    cfg = SimulationConfig(
+        duration=HOUR,
+        orbit="keplerian",
+        seed=2,
+        truth_noises=("laser", "oms", "backlink", "telescope", "test_mass", "dws_phi", "dws_eta"),
+    )
     tm, truth = simulate(cfg)
     total = truth["ttl"] + sum(truth[f"noises/{k}"] for k in ("laser", "oms", "backlink", "telescope", "test_mass"))
     assert np.max(np.abs(total - tm.eta)) <= 1e-12 * np.max(np.abs(tm.eta))
@@ -129,12 +139,19 @@ def assert_matches(series, fs, model_psd, label, sources=None):
     assert bands[0][0] == 1e-4 and bands[-1][1] == 1.5
     for lo, hi, ratio, sigma_asd in bands:
         err = abs(np.sqrt(ratio) - 1)
-        assert err < 0.10, f"{label}: ASD off by {100 * err:.1f} % in {lo:.2e}-{hi:.2e} Hz (1 sigma {100 * sigma_asd:.1f} %)"
+        assert err < 0.10, (
+            f"{label}: ASD off by {100 * err:.1f} % in {lo:.2e}-{hi:.2e} Hz (1 sigma {100 * sigma_asd:.1f} %)"
+        )
 
 
 @pytest.fixture(scope="module")
 def noise_day():
-    cfg = SimulationConfig(duration=DAY, orbit="equal", seed=11, truth_noises=("laser", "oms", "backlink", "telescope", "test_mass", "dws_phi", "dws_eta"))
+    cfg = SimulationConfig(
+        duration=DAY,
+        orbit="equal",
+        seed=11,
+        truth_noises=("laser", "oms", "backlink", "telescope", "test_mass", "dws_phi", "dws_eta"),
+    )
     tm, truth = simulate(cfg)
     return cfg, tm, truth
 
@@ -162,13 +179,19 @@ def test_laser_noise_asd(noise_day):
 def test_jitter_and_dws_asds(noise_day):
     cfg, tm, truth = noise_day
     jit = cfg.jitter
+
     def shape(level):
         return lambda f: (2 * np.pi * f * level) ** 2 * (1 + (jit["fknee"] / f) ** 4)
 
     # total phi_ij = phi_SC_i + phi_MOSA_ij; eta_ij = cos(a) eta_SC - sin(a) theta_SC + eta_MOSA
     # (cos^2 + sin^2 = 1, SC angles of equal level): velocity PSDs add
-    assert_matches(truth["angular_velocity/phi"], tm.fs, lambda f: shape(jit["sc"])(f) + shape(jit["mosa_phi"])(f), "phi velocity")
-    assert_matches(truth["angular_velocity/eta"], tm.fs, lambda f: shape(jit["sc"])(f) + shape(jit["mosa_eta"])(f), "eta velocity")
+    assert_matches(
+        truth["angular_velocity/phi"], tm.fs, lambda f: shape(jit["sc"])(f) + shape(jit["mosa_phi"])(f), "phi velocity"
+    )
+    assert_matches(
+        truth["angular_velocity/eta"], tm.fs, lambda f: shape(jit["sc"])(f) + shape(jit["mosa_eta"])(f), "eta velocity"
+    )
+
     def dws(f):
         return (2 * np.pi * f * jit["dws"]) ** 2
 
@@ -179,8 +202,13 @@ def test_coloured_jitter_follows_its_shape():
     # knees at 8 mHz and 0.1 Hz: f^-2 below and above, white between (the coloured-jitter
     # variant of `ttl scenarios`); same tolerance as the white case above
     jitter = {"sc": 5e-9, "mosa_phi": 2e-9, "mosa_eta": 1e-9, "fknee": 8e-3, "fhigh": 0.1, "dws": 70e-9 / 335}
-    cfg = SimulationConfig(duration=DAY / 2, orbit="equal", seed=12, jitter=jitter,
-                           noises=NoiseSwitches.parse("none,sc_jitter,mosa_jitter"))
+    cfg = SimulationConfig(
+        duration=DAY / 2,
+        orbit="equal",
+        seed=12,
+        jitter=jitter,
+        noises=NoiseSwitches.parse("none,sc_jitter,mosa_jitter"),
+    )
     tm, truth = simulate(cfg)
 
     def shape(level):  # velocity PSD of the angle ASD level * sqrt(1 + (fk/f)^4) / sqrt(1 + (f/fh)^4)

@@ -66,7 +66,7 @@ def test_regressors_agree_with_pytdi_natural_usage():
         ok[: skip * a.shape[-1] // tm.size] = False
         a, b = a[..., ok], b[..., ok]
         u = np.any(b != 0, axis=-1)
-        return np.max(np.sqrt(np.mean((a - b) ** 2, axis=-1))[u] / np.sqrt(np.mean(b ** 2, axis=-1))[u])
+        return np.max(np.sqrt(np.mean((a - b) ** 2, axis=-1))[u] / np.sqrt(np.mean(b**2, axis=-1))[u])
 
     # the same order-31 interpolations (Tx: pre-delay, then the chain), all frequencies;
     # the block engine's FFT rounding and Chebyshev weights stay below 1e-10 (measured 5e-12)
@@ -88,13 +88,13 @@ def test_lowpass_decimate_is_the_causal_fir_and_flags_nan_in_every_array():
     da, db = lowpass_decimate([a, b], h, 2)
     direct = np.stack([np.convolve(x, h)[:n:2] for x in a])
     spoiled = np.zeros(len(range(0, n, 2)), dtype=bool)
-    spoiled[750:(1500 + h.size - 1) // 2 + 1] = True
+    spoiled[750 : (1500 + h.size - 1) // 2 + 1] = True
     assert np.array_equal(np.isnan(da), np.broadcast_to(spoiled, da.shape))
     assert np.array_equal(np.isnan(db), np.broadcast_to(spoiled, db.shape))
     np.testing.assert_allclose(da[:, ~spoiled], direct[:, ~spoiled], rtol=0, atol=1e-12)
     td = TDIData(t0=0.0, fs=fs, channels=("X2", "Y2", "Z2"), data=b[:, 0], regressors=b[:, 1:])
     dec = td.decimated(2, workers=1)
-    alone, = lowpass_decimate([b], h, 2, workers=2)
+    (alone,) = lowpass_decimate([b], h, 2, workers=2)
     assert np.array_equal(dec.data, alone[:, 0], equal_nan=True)
     assert np.array_equal(dec.regressors, alone[:, 1:], equal_nan=True)
     assert dec.t0 == -(h.size - 1) / 2 / fs and dec.fs == fs / 2
@@ -135,11 +135,17 @@ def test_streaming_hours_equal_whole_day(keplerian_day):
     # the pieces cut the engine's blocks elsewhere: its FFTs round at ~1e-16 of eta, which
     # TDI suppresses by ~1e5, and the Chebyshev weights differ by < 1e-11 (measured 5e-11
     # and 3e-11 of the largest output), far below any noise in the outputs
-    np.testing.assert_allclose(data[:, after], whole.data[:, after], rtol=0,
-                               atol=2e-10 * np.nanmax(np.abs(whole.data)), equal_nan=True)
-    np.testing.assert_allclose(regs[..., after], whole.regressors[..., after], rtol=0,
-                               atol=2e-10 * np.nanmax(np.abs(whole.regressors)), equal_nan=True)
-    assert np.isfinite(data[:, int(80 * tm.fs):]).all()
+    np.testing.assert_allclose(
+        data[:, after], whole.data[:, after], rtol=0, atol=2e-10 * np.nanmax(np.abs(whole.data)), equal_nan=True
+    )
+    np.testing.assert_allclose(
+        regs[..., after],
+        whole.regressors[..., after],
+        rtol=0,
+        atol=2e-10 * np.nanmax(np.abs(whole.regressors)),
+        equal_nan=True,
+    )
+    assert np.isfinite(data[:, int(80 * tm.fs) :]).all()
 
 
 def _tdi_of(series, tm):
