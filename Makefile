@@ -87,7 +87,8 @@ test-science: $(STAMP)
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadscope -m science
 
 ## test-ops: long operations tests (live runs under attack: hostile-message fuzz, NaN gap, kills of each
-## stage and of the launcher; three hosts in network namespaces): about 20-30 minutes on 2 cores
+## stage, of the router and of the launcher; three hosts in network namespaces; the chaos test, 2 days
+## in 10-min segments with 20+ random kills, ~50 min alone): about 1.5 hours on 2 cores
 test-ops: $(STAMP)
 	$(BIN)/python -m pytest -q -m ops
 
