@@ -197,6 +197,13 @@ class Fitter(OrderedStage):
         #: processes: a restarted fitter replays the window under the model of each segment
         self._initial_effects = list(self.effects)
         self._model_history: list[tuple[int, list[str]]] = []
+        self._catching_up = False  # a restarted fitter pushing the recorded segments again
+        #: the rolling model (:meth:`rolling_model`): the effects list it was derived from, its
+        #: column effects (None: not rollable), its gates' spans, its columns' readout parts
+        self._rolling_key: tuple | None = None
+        self._rolling_effects: list | None = None
+        self._rolling_gates: list = []
+        self._rolling_eiv: dict = {}
         if self.adopt not in ADOPT_MODES:
             raise ConfigError(f"fitter --adopt: expected one of {', '.join(ADOPT_MODES)}, got {self.adopt!r}")
         #: the window's telemetry, (index, Telemetry) in index order
@@ -495,7 +502,7 @@ class Fitter(OrderedStage):
         if self.model_update != "rolling" or self.effects == ["linear-ttl"]:
             return None
         key = tuple(self.effects)
-        if getattr(self, "_rolling_key", None) != key:
+        if self._rolling_key != key:
             gates, effects = split_gates(make_effects(list(self.effects), self.effect_modules))
             ok = all(not e.needs_coefficients and not e.unresolved() for e in effects)
             self._rolling_effects = [e for e in effects if e.name != "linear-ttl"] if ok else None
@@ -522,7 +529,7 @@ class Fitter(OrderedStage):
         s = refit_settings(None, self.band)
         owners: dict[str, tuple] = {}
         columns = []
-        self._rolling_eiv: dict = {}  # the DWS readouts each column carries the noise of
+        self._rolling_eiv = {}  # the DWS readouts each column carries the noise of
         for effect in self._rolling_effects:
             names, xyz, eiv = column_regressors(tail, effect, order=s.order, delay_order=s.delay_order)
             owners[effect.spec()] = names
@@ -543,7 +550,7 @@ class Fitter(OrderedStage):
             self.settings(header.meta),
             window_duration=self.window_duration,
             names=names,
-            eiv_extra=getattr(self, "_rolling_eiv", None) if self._rolling_effects else None,
+            eiv_extra=self._rolling_eiv if self._rolling_effects else None,
         )
         stream = TDIStream()
         window = [tm for _, tm in self.window_tm]
@@ -741,7 +748,7 @@ class Fitter(OrderedStage):
         if self.rolling is None and header.index > 0 and self._restarted and not self._caught_up:
             self._caught_up = True
             self.catch_up(header.index)
-        if getattr(self, "_catching_up", False):
+        if self._catching_up:
             self.replay_model(header.index)
         if self.rolling is not None and self._next_t0 is not None and abs(td.t0 - self._next_t0) > 0.5 / td.fs:
             self.event(
