@@ -259,6 +259,9 @@ def test_rolling_model_agrees_with_the_window_refit(tmp_path):
     # a couple of sigma (measured: witness 0.73 sigma, the 24 coefficients max 1.06 sigma)
     assert abs(value - offline.theta[k]) < 2.5 * offline.sigma[k], (value, offline.theta[k], offline.sigma[k])
     dz = (last.arrays["coefficients"] - offline.ttl_coefficients()) / offline.ttl_sigma()
+    print(
+        f"witness: rolling {value:.5g} +- {sigma:.2g}, window refit {offline.theta[k]:.5g} +- {offline.sigma[k]:.2g}; the 24 within {np.max(np.abs(dz)):.2f} sigma"
+    )
     assert np.max(np.abs(dz)) < 2.5, dz
     # three hours: sigmas ~3x a day's, so the pulls, not the day's 0.05 mm/rad, are the test
     # (measured: pull RMS 1.16)
