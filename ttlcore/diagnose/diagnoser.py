@@ -21,6 +21,7 @@ same data, the change reported) orchestrate the pieces, each a value or a pure f
 
 from __future__ import annotations
 
+import functools
 import logging
 import time
 from dataclasses import replace
@@ -34,7 +35,7 @@ from .candidates import CandidatePool, named_candidates, transient_actions
 from .effects import make_effects
 from .evidence import change
 from .fitting import fit_model
-from .glitches import gated_data, split_gates, with_gates
+from .glitches import Gate, gated_data, split_gates, with_gates
 from .model_fit import ModelFit
 from .noise_model import profile_noise_model
 from .report import (
@@ -151,9 +152,14 @@ def diagnose(
         say("candidates")
         report["candidates"] = pool.ranked()
     lap("candidates")
-    report["transients"] = transient_report(model, report)
+    refit = None if gates else functools.partial(gated_model, model, fitted)
+    report["transients"] = transient_report(model, report, refit=refit)
     residual = report["transients"].pop("_residual")
     report["transients"]["actions"] = transient_actions(model, report, residual)
+    del residual
+    gated = report["transients"].pop("_gated")
+    report["transients"]["gated_model"] = None if gated is None else gated_model_json(gated, truth_coefficients)
+    del gated
     lap("transients")
     report["recommendation"] = recommendation(report, eff)
     report["settings"] = {
@@ -169,6 +175,36 @@ def diagnose(
     report["timings_s"] = timings
     report["_internals"] = {"data": model.data, "model": model, "transient_map": report["transients"].pop("_map")}
     return report
+
+
+def gated_model(model: ModelFit, effects, spans) -> ModelFit | None:
+    """``model`` refitted with the ``(start, stop)`` spans [s] gated out (a signal's hours, a
+    gap), its noise levels profiled again when they were fitted; None when the gates leave
+    too little data.
+
+    A loud signal pulls the linear fit (a chirp: by several sigma, ``transients.robustness``)
+    and, through the whole day's mis-subtracted TTL noise, everything read outside it. With
+    its span gated (:func:`~ttlcore.diagnose.glitches.gated_data`: cosine tapers, the same
+    window in data and columns) the fit and the levels are those of the quiet data: what a
+    user who follows the advice (``gate``) gets.  The transient finder reads the quiet
+    tiles on it (:func:`~ttlcore.diagnose.transients.transient_report`'s ``refit``).
+    """
+    gates = [Gate(start=float(a), stop=float(b)) for a, b in spans]
+    try:
+        data = gated_data(model.data, gates)
+    except ConfigError as err:  # the gates leave too little data
+        log.info("no gated model: %s", err)
+        return None
+    fits = [fit_model(data, list(effects))]
+    return _with_noise_levels(fits) if model.data.noise_parameters is not None else fits.pop()
+
+
+def gated_model_json(model: ModelFit, truth_coefficients=None) -> dict:
+    """The ``transients.gated_model`` entry of a report: the spans gated [s], the adequacy
+    (per band and per hour) and the coefficients of the model with them gated."""
+    out = model_json(model, truth_coefficients)
+    spans = [[float(a), float(b)] for a, b in model.data.gate_spans]
+    return {"spans": spans, "adequacy": out["adequacy"], "coefficients": out["coefficients"]}
 
 
 def _with_noise_levels(fits: list, time_table: bool = True) -> ModelFit:

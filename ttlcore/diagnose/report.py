@@ -418,7 +418,8 @@ def transient_lines(tr: dict) -> list[str]:
             lines.append(f"    missing data {a / 3600:.2f}-{b / 3600:.2f} h")
     if q.get("chi2_dof") is not None and (ev or tr.get("gaps")):
         lines.append(
-            f"    outside them ({q['hours']:.1f} h): chi2/dof {q['chi2_dof']:.3f} against the noise model"
+            f"    outside them ({q['hours']:.1f} h{', the model refitted with them gated' if q.get('gated') else ''}): "
+            f"chi2/dof {q['chi2_dof']:.3f} against the noise model"
             f" ({'fails' if q['fails'] else 'consistent'})"
         )
     for a in tr.get("actions") or []:
@@ -451,5 +452,17 @@ def transient_lines(tr: dict) -> list[str]:
         lines.append(
             "  TTL fit with and without those hours: largest shifts "
             + ", ".join(f"{names[i]} {rb['shift_sigma'][i]:+.2f} sigma" for i in top)
+        )
+    gm = tr.get("gated_model")
+    if gm:
+        ad = gm["adequacy"]
+        hours = [
+            r["chi2_dof"]
+            for r in (ad.get("time") or {}).get("segments", [])
+            if not any(r["t_start"] < b and r["t_stop"] > a for a, b in gm["spans"])
+        ]
+        lines.append(
+            f"  the model with those hours gated: chi2/dof {ad['chi2_dof']:.3f} ({'fails' if ad['fails'] else 'consistent'})"
+            + (f", the {len(hours)} hours outside them {np.mean(hours):.3f}" if hours else "")
         )
     return lines

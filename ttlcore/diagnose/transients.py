@@ -752,15 +752,19 @@ def model_residual(model) -> np.ndarray:
     return data.data_series - np.einsum("p,cpn->cn", model.theta, model.columns.series)
 
 
-def quiet_adequacy(tf: TimeFrequencyMap, events, alpha: float) -> dict:
-    """The residual of the tiles outside every event against the noise model itself (not
-    the background): chi2/dof per band over independent tiles (every other one), A, E, T
+def quiet_adequacy(tf: TimeFrequencyMap, events, alpha: float, spans=()) -> dict:
+    """The residual of the tiles outside every event (and every ``(start, stop)`` of
+    ``spans`` [s]: gated hours with their tapers) against the noise model itself (not the
+    background): chi2/dof per band over independent tiles (every other one), A, E, T
     summed; ``fails`` when a band fails at ``alpha`` (divided by the bands)."""
     n_t = tf.chi2.shape[1]
     busy = np.zeros(n_t, dtype=bool)
     for e in events:
         lo, hi = min(e.slices), max(e.slices)
         busy[max(0, lo - 1) : hi + 2] = True  # the tiles overlapping an event's
+    t_mid = tf.t_mid
+    for a, b in spans:
+        busy |= (t_mid + tf.duration / 2 > a) & (t_mid - tf.duration / 2 < b)
     idx = np.flatnonzero(tf.valid & ~busy)
     idx = idx[(idx - (idx[0] if idx.size else 0)) % 2 == 0]
     G = tf.chi2.shape[2]
@@ -844,7 +848,9 @@ def event_excess(tf: TimeFrequencyMap, t_start: float, t_stop: float, background
     return float(np.sum(tf.chi2[:, sl] - B[:, None, :] * tf.dof[None, None, :]))
 
 
-def transient_report(model, report: dict | None = None, tile: float = TILE_DURATION, alpha: float = MAP_ALPHA) -> dict:
+def transient_report(
+    model, report: dict | None = None, tile: float = TILE_DURATION, alpha: float = MAP_ALPHA, refit=None
+) -> dict:
     """The ``transients`` part of a diagnosis report (docs/diagnostics.md): the
     time-frequency map of the model's residual, its events with their class and evidence,
     the missing data, the quiet tiles against the noise model, the class of the excess as
@@ -857,6 +863,12 @@ def transient_report(model, report: dict | None = None, tile: float = TILE_DURAT
     it to the report's ``_internals["transient_map"]``), ``_residual`` the model's residual
     series (3, n) (the diagnosis scores the transients' glitches and gates on it,
     :func:`ttlcore.diagnose.candidates.transient_actions`, and drops it).
+
+    ``refit(spans)``, optional, returns the model refitted with ``spans`` [s] gated (or
+    None): when events read as signals or defects of the data (:data:`NOT_AN_EFFECT`) or
+    data are missing, the quiet tiles are then read on that fit's residual, so that what a
+    loud signal pulls the linear fit by is not taken for excess in every hour (``quiet.gated``);
+    ``_gated`` holds that fit.
     """
     data = model.data
     s = data.settings
@@ -889,15 +901,24 @@ def transient_report(model, report: dict | None = None, tile: float = TILE_DURAT
         cls, evidence = classify(e)
         classes.append(cls)
         out_events.append(event_json(e, cls, evidence))
-    quiet = quiet_adequacy(tf, events, alpha)
+    signal_spans = [(e["t_start"] - tf.hop, e["t_stop"] + tf.hop) for e in out_events if e["class"] in NOT_AN_EFFECT]
+    signal_spans += [(a, b) for a, b in gaps if not any(x[0] <= a and b <= x[1] for x in signal_spans)]
+    # a loud signal pulls the linear fit, whose mis-subtracted TTL noise is then in every
+    # quiet tile: the quiet tiles are read on the model refitted with the signals gated
+    gated = refit(signal_spans) if refit is not None and signal_spans else None
+    if gated is not None:
+        quiet_tf = residual_map(gated.data, model_residual(gated), tile)
+        busy = [(a - GATE_TAPER, b + GATE_TAPER) for a, b in signal_spans]
+        quiet = quiet_adequacy(quiet_tf, events, alpha, busy)
+        quiet["gated"] = True
+    else:
+        quiet = quiet_adequacy(tf, events, alpha)
     fb = [(b["f_lo"], b["f_hi"]) for b in ((report or {}).get("adequacy") or {}).get("bands", []) if b.get("fails")]
     lo, hi = (min(a for a, _ in fb), max(b for _, b in fb)) if fb else tuple(band)
     expected = instrumental_t_share(data.f, data.noise_csd, data.ltt_mean, lo, hi)
     quiet["t_share_expected"] = float(expected) if np.isfinite(expected) else None
     verdict = excess_classification(report or {}, out_events, quiet, gaps)
     robust = None
-    signal_spans = [(e["t_start"] - tf.hop, e["t_stop"] + tf.hop) for e in out_events if e["class"] in NOT_AN_EFFECT]
-    signal_spans += [(a, b) for a, b in gaps if not any(x[0] <= a and b <= x[1] for x in signal_spans)]
     if signal_spans and data.regressor_series is not None:
         robust = gated_ttl_fit(data, signal_spans, model.data.ttl_names or None)
         robust["model"] = model.ttl_coefficients().tolist()
@@ -928,6 +949,7 @@ def transient_report(model, report: dict | None = None, tile: float = TILE_DURAT
         "map": tf.to_json(),
         "_map": tf,
         "_residual": resid,
+        "_gated": gated,
     }
 
 
