@@ -203,7 +203,7 @@ def gated_model_json(model: ModelFit, truth_coefficients=None) -> dict:
     """The ``transients.gated_model`` entry of a report: the spans gated [s], the adequacy
     (per band and per hour) and the coefficients of the model with them gated."""
     out = model_json(model, truth_coefficients)
-    spans = [[float(a), float(b)] for a, b in model.data.gate_spans]
+    spans = [[float(a), float(b)] for a, b in getattr(model.data, "gate_spans", ())]
     return {"spans": spans, "adequacy": out["adequacy"], "coefficients": out["coefficients"]}
 
 
