@@ -111,7 +111,9 @@ def optimal_snr(tm_like: Telemetry, eta_signal: np.ndarray, band=(3e-3, 0.8)) ->
 
 def glitch_eta(t, ltt, glitches) -> np.ndarray:
     """``eta`` (6, n) of test-mass glitches from lisaglitch: each ``(mosa, t_inj, level,
-    beta)`` an ``IntegratedShapeletGlitch`` (velocity [m/s], ``Delta v = 2 level``) on
+    beta)`` an ``IntegratedShapeletGlitch`` (velocity [m/s]; its velocity step ``Delta v``
+    is ``level``: the signal rises from 0 to ``level``, checked against lisaglitch in
+    ``test_glitches.py``) on
     test mass ``mosa``, entering ``eta_mosa`` as ``2 v(t) / c`` and ``eta_ji`` as
     ``2 v(t - L_ji) / c``."""
     with warnings.catch_warnings():
