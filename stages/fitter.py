@@ -130,6 +130,24 @@ def tdi_expect(run: str, index: int) -> Expect:
     )
 
 
+def transients_meta(transients: dict | None) -> dict | None:
+    """The live diagnosis' reading of the window's transients (meta ``diagnosis.transients``):
+    the class of the excess (gravitational-wave, glitch, gap, noise-change, missing-coupling...),
+    whether it is a signal or a defect of the data, and each event's class and span [s]."""
+    if not transients:
+        return None
+    verdict = transients.get("classification") or {}
+    return {
+        "class": verdict.get("class"),
+        "signal": bool(verdict.get("signal")),
+        "events": [
+            {k: e.get(k) for k in ("class", "t_start", "t_stop", "f_lo", "f_hi", "snr")}
+            for e in transients.get("events") or []
+        ],
+        "gaps": transients.get("gaps") or [],
+    }
+
+
 def adoptable(recommendation: dict | None, log_bf_threshold: float = 2.3) -> tuple[bool, str]:
     """Whether a diagnosis' recommendation may be adopted without a person, and why.
 
@@ -647,6 +665,7 @@ class Fitter(OrderedStage):
                 }
                 for c in report["candidates"][:5]
             ],
+            "transients": transients_meta(report.get("transients")),
             "text": text_report(report, source=f"window {first}..{last}"),
         }
         if rec:
