@@ -92,7 +92,7 @@ from ttlcore.diagnose.diagnoser import diagnose, refit, text_report
 from ttlcore.diagnose.effects import make_effects
 from ttlcore.diagnose.glitches import split_gates
 from ttlcore.diagnose.prediction import column_regressors, effect_predictions
-from ttlcore.errors import ConfigError
+from ttlcore.errors import ConfigError, TTLError
 from ttlcore.estimate.fit import FitSettings, with_extra_regressors
 from ttlcore.estimate.rolling import RollingFit
 from ttlcore.io.telemetry import Telemetry
@@ -674,7 +674,9 @@ class Fitter(OrderedStage):
             if best is not None:
                 rec["log_bayes_factor"] = best.get("log_bayes_factor")
             if rec.get("spec"):
-                rec["effects"] = [*self.effects, rec["spec"]]
+                # a transient's advice adds several glitches and gates at once (``actions``)
+                added = [a["spec"] for a in rec.get("actions") or []] or [rec["spec"]]
+                rec["effects"] = [*self.effects, *added]
                 rec["command"] = self.control_command(rec["effects"])
         out["recommendation"] = rec
         ok, why = adoptable(rec)
@@ -834,7 +836,20 @@ class Fitter(OrderedStage):
                 "published, and only the linear TTL is subtracted",
                 index=header.index,
             )
-        live = None if replayed or not self.diagnosis_due(header.index) else self.live_diagnosis(header)
+        live = None
+        if not replayed and self.diagnosis_due(header.index):
+            try:
+                live = self.live_diagnosis(header)
+            except (TTLError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+                # the window's fit stands without its diagnosis: published, the failure recorded
+                self._diagnose_model = False
+                self.log.exception("live diagnosis of segment %d failed", header.index)
+                self.warn(
+                    "diagnosis-failed",
+                    f"fit {header.index}: the live diagnosis failed ({type(exc).__name__}: {exc}); "
+                    "the fit is published without it",
+                    index=header.index,
+                )
         if window is not None or live is not None:
             release_free_memory()  # the refit's and the diagnosis' temporaries: not kept for the next peak
         meta = {

@@ -146,6 +146,14 @@ def diagnose(
             # the searched ones (pole searches, seconds each) first, so that the threads end
             # together instead of one running the last search alone
             extra = witness_candidates(report["witnesses"], s.witness_candidates, effect_modules)
+            if not report["adequacy"]["fails"]:
+                # nothing to explain: the couplings with searched poles (seconds to a minute
+                # each, most of a null day's diagnosis) would only fit noise; the witnesses'
+                # own candidates still say how much each would take
+                skipped = [e.spec() for e in extra if e.unresolved()]
+                extra = [e for e in extra if not e.unresolved()]
+                report["witnesses"]["skipped_candidates"] = skipped
+                log.info("the model passes: %d witness candidates with searched parameters not tried", len(skipped))
             pool.submit(sorted(extra, key=lambda e: not e.unresolved()))
         else:
             report["witnesses"] = None
