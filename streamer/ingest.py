@@ -20,7 +20,8 @@ from collections.abc import Callable
 
 from .codec import CodecError, Expect, decode, parse_header
 from .keys import KeyExprError, SegmentKey, parse_stream_key, segment_key
-from .plan import Holdback, RangeSet, Rejected, Validator
+from .plan import Holdback, Rejected, Validator
+from .rangeset import RangeSet
 
 #: Characters of a rejected attachment kept in the error report.
 PREVIEW_CHARS = 2000

@@ -35,7 +35,8 @@ import time
 from dataclasses import dataclass, field
 
 from .keys import KeyExprError, parse_progress_key
-from .plan import MAX_SEGMENTS, RangeSet
+from .plan import MAX_SEGMENTS
+from .rangeset import RangeSet
 
 #: Default number of segments the replayer may run ahead of the slowest stage.
 REPLAY_WINDOW = 4

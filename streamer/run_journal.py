@@ -13,8 +13,8 @@ import time
 from collections.abc import Mapping
 from pathlib import Path
 
-from .plan import RangeSet
 from .progress import Progress
+from .rangeset import RangeSet
 
 # the logger of these lines before the launcher was split into parts: log lines unchanged
 log = logging.getLogger("streamer.launcher")

@@ -52,8 +52,9 @@ from .ingest import PREVIEW_CHARS, GapWatch, Ingest
 from .ingest import preview as _preview
 from .keys import control_key, control_pattern, parse_segment_key, topic_pattern
 from .lifecycle import LAUNCHER, LauncherWatch, disk_full, install_signal_flag
-from .plan import Holdback, Plan, RangeSet, Validator
+from .plan import Holdback, Plan, Validator
 from .processes import SignalFlag
+from .rangeset import RangeSet
 from .recorder import Recorder, mission_ns
 from .session import Bus
 from .stage_cli import add_common_options, config_from_args, stage_arguments, stage_main
