@@ -14,9 +14,10 @@ import signal
 import subprocess
 import sys
 import tempfile
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Any
 
 from ttlcore.diagnose.effects import make_effects
 from ttlcore.errors import TTLError
@@ -24,6 +25,7 @@ from ttlcore.errors import TTLError
 from .keys import check_name
 from .processes import tied_to_parent
 from .progress import REPLAY_WINDOW
+from .settings import above, at_least, check_fields, from_dict, to_dict
 from .topology import STAGE_PACKAGE, STAGES, stage_module
 
 
@@ -77,26 +79,39 @@ class RunOptions:
 
     run_id: str
     recordings: Path = Path("recordings")
-    telemetry: list | None = None
+    telemetry: list[str | Path] | None = None
     simulate: str | None = None
-    segment: str = "1h"
-    pace: float = 0.0
+    segment: str | float = "1h"
+    pace: float = field(default=0.0, metadata={"check": at_least(0)})
     window: int = REPLAY_WINDOW
     cache: int | None = None
-    skip: tuple = ()
-    external: tuple = ()
-    restart: int = 0
-    listen: tuple = ()
+    skip: tuple[str, ...] = ()
+    external: tuple[str, ...] = ()
+    restart: int = field(default=0, metadata={"check": at_least(0)})
+    listen: tuple[str, ...] = ()
     zenoh_config: Path | None = None
     credentials: Path | None = None
     insecure: bool = False
-    stage_options: dict = field(default_factory=dict)
-    timeout: float | None = None
-    stop_timeout: float = 60.0
+    stage_options: dict[str, Any] = field(default_factory=dict)
+    timeout: float | None = field(default=None, metadata={"check": above(0)})
+    stop_timeout: float = field(default=60.0, metadata={"check": at_least(0)})
     resume: bool = False
     log_level: str = "INFO"
     quiet: bool = False
     python: str = sys.executable
+
+    def __post_init__(self) -> None:
+        check_fields(self, "run options")
+
+    def to_dict(self) -> dict:
+        """The JSON form (the keys of a ``ttl run --config`` file)."""
+        return to_dict(self)
+
+    @classmethod
+    def from_dict(cls, d: Mapping[str, Any]) -> RunOptions:
+        """Inverse of :meth:`to_dict`; a field that is unknown, missing or does not fit
+        raises :class:`streamer.settings.SettingsError` naming it."""
+        return from_dict(cls, d, "run options")
 
 
 def stage_module_exists(name: str) -> bool:

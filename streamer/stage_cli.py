@@ -133,6 +133,7 @@ def stage_main(
             config.poll_interval = stage_class.default_poll_interval
         if options is not None:
             config.options = {**config.options, **{k: v for k, v in options(args).items() if v is not None}}
+        config.check()  # the fields set one by one above, checked like the file's
         check_name(config.run, "run id")
         if check is not None and args.check:
             print(check(config))

@@ -1,13 +1,36 @@
-"""The configuration of one stage process (:class:`StageConfig`)."""
+"""The configuration of one stage process (:class:`StageConfig`): a typed dataclass, checked
+field by field on construction and read from and written to JSON by the one converter of
+:mod:`streamer.settings` (errors name the field)."""
 
 from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
+from .keys import KeyExprError, check_name
+from .plan import Plan
 from .session import DEFAULT_CACHE, SessionSettings
+from .settings import above, at_least, check_fields, from_dict, to_dict
+
+WHAT = "stage configuration"
+
+
+def _run_id(run: str) -> str | None:
+    try:
+        check_name(run, "run id")
+    except KeyExprError as exc:
+        return str(exc)
+    return None
+
+
+def _plan(plan: dict) -> str | None:
+    try:
+        Plan.from_dict(plan)
+    except (ValueError, TypeError, KeyError) as exc:
+        return f"not a plan: {exc}"
+    return None
 
 
 @dataclass
@@ -61,52 +84,40 @@ class StageConfig:
         stage stops when it has been gone this long [s] (a launcher on another host).
     """
 
-    run: str
+    run: str = field(metadata={"check": _run_id})
     stage: str = ""
     zenoh: SessionSettings = field(default_factory=SessionSettings)
     recordings: Path = Path("recordings")
-    cache: int = DEFAULT_CACHE
-    history: int | None = None
+    cache: int = field(default=DEFAULT_CACHE, metadata={"check": at_least(1)})
+    history: int | None = field(default=None, metadata={"check": at_least(0)})
     record_inputs: bool = True
     record_outputs: bool = True
-    poll_interval: float = 0.2
-    gap_grace: float = 10.0
-    hold: float = 1.0
-    options: dict = field(default_factory=dict)
-    plan: dict | None = None
+    poll_interval: float = field(default=0.2, metadata={"check": above(0)})
+    gap_grace: float = field(default=10.0, metadata={"check": at_least(0)})
+    hold: float = field(default=1.0, metadata={"check": at_least(0)})
+    options: dict[str, Any] = field(default_factory=dict)
+    plan: dict[str, Any] | None = field(default=None, metadata={"check": _plan})
     launcher_pid: int | None = None
-    orphan_grace: float = 60.0
-    progress_from: str = "stages"
+    orphan_grace: float = field(default=60.0, metadata={"check": at_least(0)})
+    progress_from: Literal["stages", "launcher"] = "stages"
+
+    def __post_init__(self) -> None:
+        check_fields(self, WHAT)
+
+    def check(self) -> StageConfig:
+        """Check the fields again (after they were set one by one); returns self."""
+        check_fields(self, WHAT)
+        return self
 
     def to_dict(self) -> dict:
-        return {
-            "run": self.run,
-            "stage": self.stage,
-            "zenoh": self.zenoh.to_dict(),
-            "recordings": str(self.recordings),
-            "cache": self.cache,
-            "history": self.history,
-            "record_inputs": self.record_inputs,
-            "record_outputs": self.record_outputs,
-            "poll_interval": self.poll_interval,
-            "gap_grace": self.gap_grace,
-            "hold": self.hold,
-            "options": self.options,
-            "plan": self.plan,
-            "launcher_pid": self.launcher_pid,
-            "orphan_grace": self.orphan_grace,
-            "progress_from": self.progress_from,
-        }
+        """The JSON form (the configuration file; the ``config`` of a recording's metadata)."""
+        return to_dict(self)
 
     @classmethod
     def from_dict(cls, d: Mapping[str, Any]) -> StageConfig:
+        """Inverse of :meth:`to_dict`; a field that is unknown, missing or does not fit
+        raises :class:`streamer.settings.SettingsError` (a ValueError) naming it."""
         d = dict(d)
-        unknown = set(d) - set(cls.__dataclass_fields__)
-        if unknown:
-            raise ValueError(f"stage configuration: unknown field {sorted(unknown)[0]!r}")
-        if "run" not in d:
-            raise ValueError("stage configuration: field 'run' missing")
-        d["zenoh"] = SessionSettings.from_dict(d.get("zenoh"))
-        if "recordings" in d:
-            d["recordings"] = Path(d["recordings"])
-        return cls(**d)
+        if "zenoh" in d and d["zenoh"] is None:  # as before: no settings, the defaults
+            del d["zenoh"]
+        return from_dict(cls, d, WHAT)
