@@ -48,7 +48,7 @@ class Progress:
 
     A pipeline stage keeps its own progress in one too (:attr:`done`, :attr:`failed`,
     :attr:`gaps` of this process) and publishes :meth:`message`.  Index sets are
-    :class:`streamer.plan.RangeSet` (memory by ranges, not by index: a run's progress is a
+    :class:`streamer.rangeset.RangeSet` (memory by ranges, not by index: a run's progress is a
     few ranges however long the run); sets given to the constructor are converted.
 
     Attributes
