@@ -1,11 +1,12 @@
 """What a stage does with a message before its :meth:`~streamer.stage.Stage.handle` sees it:
 validation, hold-back and gap detection.
 
-* :meth:`Ingest.check` decodes the message with the codec (:func:`streamer.codec.decode`)
+* :meth:`Ingest.take` decodes the message with the codec (:func:`streamer.codec.decode`)
   against the stage's :meth:`~streamer.stage.Stage.expect`, checks it against the plan
   (:class:`streamer.plan.Validator`), ignores an identical copy of a processed segment, and
-  holds an accepted one ``hold`` seconds (:class:`streamer.plan.Holdback`): a different copy
-  arriving meanwhile keeps both out.  Whatever a message holds, the check does not raise:
+  holds an accepted one ``hold`` seconds (:class:`streamer.plan.Holdback`; a different copy
+  arriving meanwhile keeps both out), or hands it to the stage at once when ``hold`` is 0.
+  Whatever a message holds, this does not raise:
   a message that does not fit is reported (kind ``rejected``, or the validator's kind) and
   the stage goes on; only an ``OSError`` (the recording's disk) escapes.
 * :class:`GapWatch` notes the indices an arrival skips and reports those that do not come
@@ -106,6 +107,8 @@ class Ingest:
         Reports an error (:meth:`streamer.stage.Stage.report_error`).
     event : callable
         Records an event (:meth:`streamer.stage.Stage.event`).
+    use : callable
+        ``use(key, header, arrays, payload)``: hand an accepted segment to the stage.
     log : logging.LoggerAdapter
         The stage's logger.
     """
@@ -120,6 +123,7 @@ class Ingest:
         withdraw: Callable[[str, int, bool], bool],
         report: Callable[..., object],
         event: Callable[..., None],
+        use: Callable[[str, object, dict, bytes], None],
         log,
     ):
         self.run = run
@@ -129,15 +133,16 @@ class Ingest:
         self.withdraw = withdraw
         self.report = report
         self.event = event
+        self.use = use
         self.log = log
         #: Messages refused (codec errors excepted: those are reports only).
         self.rejections = 0
         #: Segment indices processed, per topic.
         self.done: dict[str, RangeSet] = {}
 
-    def check(self, key: str, payload, attachment) -> tuple | None:
-        """Validate one message that came on Zenoh key ``key``: returns ``(key, header,
-        arrays, payload)`` to use now, or None (refused, ignored, or held).
+    def take(self, key: str, payload, attachment) -> None:
+        """Validate one message that came on Zenoh key ``key``, and hold it or use it (or
+        refuse it).
 
         Data come on the stream key ``ttl/<run>/<topic>``, the index in the header; from
         the header on, the segment is named ``ttl/<run>/<topic>/<index>``.  Nothing a
@@ -147,7 +152,7 @@ class Ingest:
         message's doing and still stops the stage.
         """
         try:
-            return self._check(key, payload, attachment)
+            self._take(key, payload, attachment)
         except OSError:
             raise
         except Exception as exc:  # noqa: BLE001 - the loop must outlive any message
@@ -160,16 +165,15 @@ class Ingest:
                 field="message",
                 details={"traceback": traceback.format_exc(limit=8), "attachment": preview(attachment)},
             )
-            return None
 
-    def _check(self, key: str, payload, attachment) -> tuple | None:
-        """The body of :meth:`check`."""
+    def _take(self, key: str, payload, attachment) -> None:
+        """The body of :meth:`take`."""
         payload = payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload or b"")
         try:
             topic = parse_stream_key(key)
         except KeyExprError as exc:
             self.report("rejected", str(exc), key=key, field="key")
-            return None
+            return
         index = None
         try:
             index = parse_header(attachment, key).index
@@ -184,7 +188,7 @@ class Ingest:
                 field=exc.field,
                 details={"payload_bytes": len(payload), "attachment": preview(attachment)},
             )
-            return None
+            return
         seg = SegmentKey(self.run, topic, index)
         try:
             verdict = self.validator.check(seg.topic, header, arrays)
@@ -202,17 +206,15 @@ class Ingest:
                     else "; the first copy had been used already"
                 )
             self.report(exc.kind, what, index=seg.index, key=key, field=exc.field, details=details)
-            return None
+            return
         done = self.done.setdefault(seg.topic, RangeSet())
         if verdict == "duplicate" or seg.index in done:
             self.log.info("%s: identical copy of a processed segment, ignored", key)
             self.event("duplicate", index=seg.index, message=f"{key} already processed (identical copy)")
-            return None
+            return
         self.validator.accepted(seg.topic, header)  # from now on a different copy is a conflict
-        item = (key, header, arrays, payload)
-        if self.held.put(seg.topic, seg.index, item, time.monotonic()):
-            return None
-        return item
+        if not self.held.put(seg.topic, seg.index, (key, header, arrays, payload), time.monotonic()):
+            self.use(key, header, arrays, payload)
 
     def due(self) -> list[tuple]:
         """The held segments whose wait is over (no conflicting copy came), to use now."""

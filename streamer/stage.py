@@ -127,6 +127,7 @@ class Stage:
             withdraw=lambda topic, index, held: self.withdraw(topic, index, held),
             report=lambda *a, **k: self.report_error(*a, **k),
             event=lambda *a, **k: self.event(*a, **k),
+            use=lambda *item: self._use(*item),
             log=self.log,
         )
         #: Indices skipped on arrival (not for the topics in :attr:`reorders`).
@@ -327,9 +328,7 @@ class Stage:
                 self.last_miss = time.monotonic()
                 self.report_error("missed", f"{count} sample(s) lost beyond recovery from publisher {source}")
             else:
-                accepted = self.ingest.check(*item[1:])
-                if accepted is not None:
-                    self._use(*accepted)
+                self.ingest.take(*item[1:])
 
     def _control(self, command: str, payload: bytes) -> None:
         """Handle ``ttl/<run>/control/<stage>/<command>`` on the main thread: record it, call
@@ -393,7 +392,7 @@ class Stage:
                 self._use(key, header, arrays, payload)
             except OSError:
                 raise
-            except Exception as exc:  # noqa: BLE001 - as in Ingest.check: the loop goes on
+            except Exception as exc:  # noqa: BLE001 - as in Ingest.take: the loop goes on
                 self.log.exception("%s: unexpected failure while using a held segment", key)
                 self.report_error(
                     "failed",
