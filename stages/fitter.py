@@ -77,12 +77,11 @@ from collections import deque
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from streamer.codec import Expect
 from streamer.keys import to_ranges
 from streamer.memtrace import release_free_memory
-from streamer.messages import TELEMETRY_ARRAYS, concatenate_telemetry, tdi_of, telemetry_of
+from streamer.messages import concatenate_telemetry, tdi_expect, tdi_of, telemetry_of
 from streamer.pipeline_stage import OrderedStage
-from streamer.plan import RangeSet
+from streamer.rangeset import RangeSet
 from streamer.recorder import read_recording, to_jsonable
 from streamer.refit import refit_settings
 from streamer.stage import Output, stage_main
@@ -96,11 +95,9 @@ from ttlcore.errors import ConfigError, TTLError
 from ttlcore.estimate.fit import FitSettings, with_extra_regressors
 from ttlcore.estimate.rolling import RollingFit
 from ttlcore.io.telemetry import Telemetry
-from ttlcore.tdi.combinations import XYZ
 from ttlcore.tdi.data import TDIData, TDIStream
 
 UNITS = {"coefficients": "m/rad", "sigma": "m/rad", "covariance": "m^2/rad^2", "model_parts": "fractional frequency"}
-P = len(COEFFICIENT_NAMES)
 #: Candidates reported in a fit message.
 TOP_CANDIDATES = 3
 #: Adoption modes of ``--adopt``.
@@ -112,22 +109,6 @@ MODEL_UPDATES = ("rolling", "refit")
 #: ring-in of a column's filter (an fd-coupling pole at 1 mHz decays in 160 s: 1e-5 of it
 #: is left after 1800 s).
 COLUMN_HISTORY = 1800.0
-
-
-def tdi_expect(run: str, index: int) -> Expect:
-    """What a ``tdi`` message must fit (NaN allowed: first samples of a stream, gaps): X2, Y2,
-    Z2 of the data and of the 24 regressors, and the telemetry they were computed from."""
-    return Expect(
-        run=run,
-        index=index,
-        channels=XYZ,
-        allow_nonfinite=True,
-        arrays={
-            "data": ("<f8", (3, None)),
-            "regressors": ("<f8", (3, P, None)),
-            **{k: ("<f8", (6, None)) for k in TELEMETRY_ARRAYS},
-        },
-    )
 
 
 def transients_meta(transients: dict | None) -> dict | None:

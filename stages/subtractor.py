@@ -31,16 +31,14 @@ import time
 import numpy as np
 
 from streamer.codec import Expect
-from streamer.messages import tdi_of
+from streamer.messages import P, tdi_expect, tdi_of
 from streamer.pipeline_stage import PipelineStage
-from streamer.plan import RangeSet
+from streamer.rangeset import RangeSet
 from streamer.recorder import to_jsonable
 from streamer.stage import Output, stage_main
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.prediction import model_residual
 from ttlcore.tdi.combinations import XYZ
-
-from .fitter import P, tdi_expect
 
 UNITS = {
     "residual": "fractional frequency",

@@ -47,6 +47,7 @@ from .session import (
     open_router,
     open_session,
 )
+from .settings import SettingsError
 from .stage import Stage, stage_main
 from .topology import stage_module
 
@@ -141,18 +142,15 @@ def run_options(args) -> RunOptions:
         stages = {**stages, "fitter": fitter}
     if not merged.get("run_id"):
         raise TTLError("--run-id is required (or 'run_id' in --config)")
-    for key in ("skip", "external", "listen"):
-        if key in merged:
-            merged[key] = tuple(merged[key]) if not isinstance(merged[key], str) else (merged[key],)
+    for key in ("skip", "external", "listen"):  # one name for a list of one
+        if isinstance(merged.get(key), str):
+            merged[key] = (merged[key],)
     if isinstance(merged.get("telemetry"), str):
         merged["telemetry"] = [merged["telemetry"]]
-    for key in ("recordings", "zenoh_config", "credentials"):
-        if merged.get(key) is not None:
-            merged[key] = Path(merged[key])
-    try:
-        return RunOptions(**merged, stage_options=stages, quiet=args.quiet)
-    except TypeError as exc:
-        raise TTLError(f"--config: {exc}") from None
+    try:  # types and values checked (and paths, lists converted) by streamer.settings
+        return RunOptions.from_dict({**merged, "stage_options": stages, "quiet": args.quiet})
+    except SettingsError as exc:
+        raise TTLError(f"--config: {args.config}: {exc}" if args.config else str(exc)) from None
 
 
 def _cmd_run(args) -> int:

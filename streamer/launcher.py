@@ -57,45 +57,53 @@ stop as orphaned, the router with it) is replaced by the same ``ttl run`` comman
 lacks (``m``) as handled by every stage, and starts the stages, which go on from there as
 restarted stages do (the replayer from ``m - 1``, the fitter's window rebuilt from the
 recordings); segments from ``m`` on are processed and published again, by every stage.
+
+Parts
+-----
+:mod:`streamer.launch_plan` (options, their checks, the stages' configurations),
+:mod:`streamer.run_router` (router process and credentials), :mod:`streamer.supervision`
+(stage processes: start, restart, stop), :mod:`streamer.run_journal` (``launcher.jsonl``,
+``board.json``); :class:`Launcher` composes them with the progress board and the report.
 """
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import logging
 import os
 import queue
 import signal
-import subprocess
 import sys
-import tempfile
 import time
-from dataclasses import dataclass, field
 from pathlib import Path
 
-import zenoh
 from tqdm import tqdm
-
-from ttlcore.diagnose.effects import make_effects
-from ttlcore.errors import TTLError
 
 from . import security
 from .keys import (
     ERRORS,
     board_key,
-    check_name,
-    control_key,
     errors_key,
     progress_key,
     progress_pattern,
     to_ranges,
     topic_pattern,
 )
-from .plan import RangeSet
-from .processes import SignalFlag, stop_process, tied_to_parent
-from .progress import REPLAY_WINDOW, Progress, key_stage, parse_progress
+from .launch_plan import (
+    LaunchError,
+    RunOptions,
+    cache_size,
+    check_replayer,
+    expected_stages,
+    stage_config,
+    stage_module_exists,
+)
+from .lifecycle import LAUNCHER
+from .processes import SignalFlag
+from .progress import Progress, key_stage, parse_progress
 from .recorder import stage_record
+from .run_journal import append_journal, cut_board, read_board, save_board
+from .run_router import Router, make_credentials
 from .session import (
     Bus,
     SessionSettings,
@@ -103,108 +111,15 @@ from .session import (
     declare_segment_subscriber,
     loopback_endpoint,
 )
-from .stage import LAUNCHER
-from .topology import STAGE_PACKAGE, STAGES, UPSTREAM, stage_module
+from .supervision import Child, Supervisor
+from .topology import UPSTREAM
+
+__all__ = ["HOLD_PROGRESS", "Child", "LaunchError", "Launcher", "RunOptions", "run", "stage_module_exists"]
 
 log = logging.getLogger(__name__)
 
 #: Seconds a progress message claiming more than its upstream waits for the upstream's progress.
 HOLD_PROGRESS = 30.0
-
-
-class LaunchError(TTLError):
-    """The run cannot start (message names the option, file or stage at fault)."""
-
-
-@dataclass
-class RunOptions:
-    """What ``ttl run`` runs (command-line options, or a ``--config`` file with these keys).
-
-    Attributes
-    ----------
-    run_id : str
-    recordings : Path
-    telemetry : list of str, optional
-        Telemetry files (exclusive with ``simulate``).
-    simulate : str, optional
-        ``ttl simulate`` options.
-    segment : str
-        Segment length (``1h``, ``30min``, seconds).
-    pace : float
-        Multiple of real time (0: as fast as the consumers take the segments).
-    window : int
-        Segments the replayer may run ahead of the slowest stage.
-    cache : int, optional
-        Segments each stage keeps per output topic for late joiners (default window + 4).
-    skip : tuple of str
-        Stages not run at all.
-    external : tuple of str
-        Stages run elsewhere (expected, not started).
-    restart : int
-        Restarts allowed per stage.
-    listen : tuple of str
-        Router endpoints (default ``tcp/127.0.0.1:<free port>``).
-    zenoh_config : Path, optional
-        Zenoh configuration file of the router.
-    credentials : Path, optional
-        Credentials directory (default ``<recordings>/<run>/credentials``, made on first use).
-    insecure : bool
-        No TLS, no access control (plain TCP): any process reaching the router may publish.
-    stage_options : dict
-        Stage name -> stage options (``options`` of its StageConfig), and the fitter
-        options ``fit_segment``, ``window_duration``, ``band``.
-    timeout : float, optional
-        Give up after this many seconds.
-    resume : bool
-        Go on with a run whose launcher died (``board.json`` of the run directory; module
-        docstring, "Journal and resuming").
-    """
-
-    run_id: str
-    recordings: Path = Path("recordings")
-    telemetry: list | None = None
-    simulate: str | None = None
-    segment: str = "1h"
-    pace: float = 0.0
-    window: int = REPLAY_WINDOW
-    cache: int | None = None
-    skip: tuple = ()
-    external: tuple = ()
-    restart: int = 0
-    listen: tuple = ()
-    zenoh_config: Path | None = None
-    credentials: Path | None = None
-    insecure: bool = False
-    stage_options: dict = field(default_factory=dict)
-    timeout: float | None = None
-    stop_timeout: float = 60.0
-    resume: bool = False
-    log_level: str = "INFO"
-    quiet: bool = False
-    python: str = sys.executable
-
-
-def stage_module_exists(name: str) -> bool:
-    """True when ``stages/<name>.py`` is installed (without importing it)."""
-    spec = importlib.util.find_spec(STAGE_PACKAGE)
-    if spec is None or not spec.submodule_search_locations:
-        return False
-    return any(
-        (Path(loc) / f"{name}.py").exists() or (Path(loc) / name / "__init__.py").exists()
-        for loc in spec.submodule_search_locations
-    )
-
-
-@dataclass
-class _Child:
-    name: str
-    config: Path
-    log: Path
-    proc: subprocess.Popen | None = None
-    starts: int = 0
-    exit_codes: list = field(default_factory=list)
-    pids: set = field(default_factory=set)
-    pids_order: list = field(default_factory=list)
 
 
 class Launcher:
@@ -213,7 +128,6 @@ class Launcher:
     def __init__(self, opts: RunOptions, out=None):
         self.opts = opts
         self.out = out or sys.stderr
-        self.children: dict[str, _Child] = {}
         self.expected: list[str] = []
         self.alive: dict[str, bool] = {}
         self.progress: dict[str, Progress] = {}  # stage -> what the launcher believed of it
@@ -224,17 +138,27 @@ class Launcher:
         self._last_print = 0.0
         self._live: tqdm | None = None  # the status line, in place on a terminal
         self.endpoint = ""
+        self.listen: tuple = ()
         self.run_dir = Path(opts.recordings) / opts.run_id
         self.run_plan: dict | None = None
         self.refused_progress: list[dict] = []  # progress messages refused (forged or inconsistent)
         self._held: list[tuple[dict, float]] = []
         self._boards: dict = {}
         self.credentials: Path | None = None
-        self.router: subprocess.Popen | None = None
-        self.refused: list[dict] = []
-        self._watcher: security.RefusalWatcher | None = None
-        self.router_starts = 0
+        #: The stage processes.
+        self.stages = Supervisor(opts, self.say, self.journal)
+        #: The router process (made in :meth:`run`, once the credentials are known).
+        self.router: Router | None = None
         self.resumed_from: int | None = None  # --resume: the first segment handled again
+
+    @property
+    def children(self) -> dict[str, Child]:
+        return self.stages.children
+
+    @property
+    def refused(self) -> list[dict]:
+        """Peers and publications the router refused."""
+        return self.router.refused if self.router is not None else []
 
     # ------------------------------------------------------------------ output
     def say(self, text: str) -> None:
@@ -244,113 +168,16 @@ class Launcher:
         else:
             print(msg, file=self.out, flush=True)
 
-    # ------------------------------------------------------------------ validation
+    # ------------------------------------------------------------------ planning
     def plan(self) -> None:
-        o = self.opts
-        try:
-            check_name(o.run_id, "run id")
-        except ValueError as exc:
-            raise LaunchError(f"--run-id: {exc}") from None
-        for what, names in (("--skip", o.skip), ("--external", o.external)):
-            for n in names:
-                if n not in STAGES:
-                    raise LaunchError(f"{what}: unknown stage {n!r} (stages: {', '.join(STAGES)})")
-        if "replayer" in o.skip:
-            raise LaunchError("--skip: the replayer cannot be skipped (run it elsewhere with --external replayer)")
-        if not o.telemetry and not o.simulate and "replayer" not in o.external:
-            raise LaunchError('no telemetry source: give --telemetry FILE... or --simulate "<ttl simulate options>"')
-        if o.telemetry and o.simulate:
-            raise LaunchError("give either --telemetry or --simulate, not both")
-        for f in o.telemetry or ():
-            if not Path(f).is_file():
-                raise LaunchError(f"--telemetry: {f}: no such file")
-        secure = not o.insecure
-        for e in o.listen:
-            if secure and not str(e).startswith("tls/"):
-                raise LaunchError(
-                    f"--listen {e}: the run talks mutual TLS: write tls/{str(e).split('/', 1)[-1]} (or give --insecure)"
-                )
-        if o.insecure and o.credentials is not None:
-            raise LaunchError("give either --credentials or --insecure, not both")
-        if o.window < 1:
-            raise LaunchError(f"--window: expected >= 1, got {o.window}")
-        cache = self.cache
-        if cache < o.window + 2:
-            raise LaunchError(
-                f"--cache: {cache} segments is too few for --window {o.window} "
-                f"(a restarted stage needs at least window + 2 = {o.window + 2})"
-            )
-        skipped = set(o.skip)
-        if "monitor" not in skipped and "monitor" not in o.external and not stage_module_exists("monitor"):
-            self.say("the monitor stage (stages/monitor.py) is not installed: running without it")
-            skipped.add("monitor")
-        for name in STAGES:
-            if name not in skipped and name not in o.external and not stage_module_exists(name):
-                raise LaunchError(f"stage {name!r}: module stages.{name} not found")
-        self.check_model()
-        self.expected = [n for n in STAGES if n not in skipped]
-
-    def check_model(self) -> None:
-        """The fitter's model (``--effects``, ``--effect-module``) parsed here, before any
-        work: a bad spec is refused in one line instead of a fitter that dies at start."""
-        fitter = self.opts.stage_options.get("fitter") or {}
-        effects = fitter.get("effects")
-        if not effects:
-            return
-        specs = (
-            [x.strip().replace(";", ",") for x in effects.split(",") if x.strip()]
-            if isinstance(effects, str)
-            else list(effects)
-        )
-        try:
-            names = [e.name for e in make_effects(specs, tuple(fitter.get("effect_modules") or ()))]
-        except TTLError as exc:
-            raise LaunchError(f"--effects: {exc}") from None
-        if "linear-ttl" not in names:
-            raise LaunchError("--effects: the model must include linear-ttl")
+        self.expected = expected_stages(self.opts, self.say)
 
     @property
     def cache(self) -> int:
-        return self.opts.cache if self.opts.cache is not None else self.opts.window + 4
-
-    def stage_options(self, name: str) -> dict:
-        o = self.opts
-        opts = dict(o.stage_options.get(name) or {})
-        started = [n for n in self.expected if n not in o.external]
-        if name == "replayer":
-            # flow control on the stages started here that report progress, up to the first
-            # external one: a stage downstream of an external stage cannot progress before that
-            # one joins (it is followed once it reports progress)
-            first_external = min((STAGES.index(n) for n in o.external), default=len(STAGES))
-            opts.update(
-                {
-                    "telemetry": [str(Path(f).resolve()) for f in o.telemetry] if o.telemetry else None,
-                    "simulate": o.simulate,
-                    "segment": o.segment,
-                    "pace": o.pace,
-                    "window": o.window,
-                    "wait_for": [n for n in started if n != "replayer"],
-                    "pace_on": [n for n in started if n != "replayer" and STAGES.index(n) < first_external],
-                }
-            )
-        return {k: v for k, v in opts.items() if v is not None}
+        return cache_size(self.opts)
 
     def stage_config(self, name: str) -> dict:
-        cfg = {
-            "run": self.opts.run_id,
-            "stage": name,
-            "zenoh": self.session_settings(name).to_dict(),
-            "recordings": str(Path(self.opts.recordings).resolve()),
-            "cache": self.cache,
-            "options": self.stage_options(name),
-            "plan": self.run_plan,
-            "launcher_pid": os.getpid(),
-            "progress_from": "launcher",
-            # inputs recorded as headers only (a reference to the payload in the producer's
-            # file): each payload is stored once per run
-            "record_inputs": False,
-        }
-        return cfg
+        return stage_config(self.opts, self.expected, name, self.session_settings(name).to_dict(), self.run_plan)
 
     def session_settings(self, identity: str) -> SessionSettings:
         """How ``identity`` (a stage, the launcher) connects to the run's router."""
@@ -361,225 +188,51 @@ class Launcher:
             identity=identity if self.credentials is not None else None,
         )
 
+    def check_replayer(self) -> None:
+        """Validate the source options in a child (``stages.replayer --check``)."""
+        if "replayer" in self.opts.external:
+            return
+        self.run_plan, line = check_replayer(self.opts, self.stage_config("replayer"))
+        self.say(f"replay: {line}")
+
     # ------------------------------------------------------------------ journal, board, resume
     def journal(self, kind: str, message: str, **details) -> None:
         """Append a record to ``launcher.jsonl`` (module docstring; ``ttl inspect`` reads it)."""
-        rec = {"time": time.time(), "launcher_pid": os.getpid(), "kind": kind, "message": message, **details}
-        try:
-            with open(self.run_dir / "launcher.jsonl", "a") as f:
-                f.write(json.dumps(rec) + "\n")
-        except OSError as exc:
-            log.warning("cannot write %s: %s", self.run_dir / "launcher.jsonl", exc)
+        append_journal(self.run_dir, kind, message, **details)
 
     def save_board(self) -> None:
-        """Write the board (what the launcher believes of every stage) to ``board.json``,
-        atomically: a launcher that dies leaves the last one whole."""
-        path = self.run_dir / "board.json"
-        tmp = path.with_name(".board.json.tmp")
-        try:
-            tmp.write_text(json.dumps({s: p.message(self.opts.run_id) for s, p in self.progress.items()}))
-            os.replace(tmp, path)
-        except OSError as exc:
-            log.warning("cannot write %s: %s", path, exc)
+        """Write the board to ``board.json`` (:func:`streamer.run_journal.save_board`)."""
+        save_board(self.run_dir, self.opts.run_id, self.progress)
 
     def load_board(self) -> None:
         """``--resume``: the progress of the earlier launcher (``board.json``), cut at the first
         segment some expected stage has not handled, so that every stage goes on from the
         same segment (the publishers' caches of the earlier processes are gone with them)."""
         path = self.run_dir / "board.json"
+        total = self.run_plan["segments_total"] if self.run_plan else None
         try:
-            board = json.loads(path.read_text())
-        except FileNotFoundError:
-            self.say(f"--resume: no {path}: the run starts from its first segment")
-            board = {}
+            progress = read_board(path, self.expected, total)
         except (OSError, ValueError) as exc:
             raise LaunchError(f"--resume: {path}: unreadable ({exc})") from None
-        total = self.run_plan["segments_total"] if self.run_plan else None
-        progress = {}
-        for stage, msg in board.items():
-            if stage in self.expected and isinstance(msg, dict):
-                progress[stage] = Progress(stage)
-                progress[stage].update(msg, total)
-
-        def first_missing(stage: str) -> int:
-            if stage not in progress or not total:
-                return 0
-            missing = progress[stage].handled.missing(0, total - 1)
-            return missing[0][0] if missing else total
-
-        def below(indices: RangeSet, first: int) -> RangeSet:
-            out = RangeSet()
-            for a, b in indices.ranges():
-                if a < first:
-                    out.add_range(a, min(b, first - 1))
-            return out
-
-        first = min(first_missing(s) for s in self.expected)
+        if progress is None:
+            self.say(f"--resume: no {path}: the run starts from its first segment")
+            progress = {}
+        first, cut = cut_board(progress, self.expected, total)
         self.resumed_from = first
         if first == 0:
             self.journal("resume", "resumed from segment 0 (nothing handled by every stage)", first=0)
             return
-        for stage, p in progress.items():
-            self.progress[stage] = Progress(
-                stage,
-                below(p.done, first),
-                below(p.failed, first),
-                total,
-                below(p.gaps, first),
-                extra={n: below(v, first) for n, v in p.extra.items()},
-            )
+        self.progress.update(cut)
         self.say(f"--resume: segments 0..{first - 1} handled by every stage (board.json); going on from {first}")
         self.journal(
             "resume", f"resumed: segments 0..{first - 1} handled by every stage; going on from {first}", first=first
         )
 
-    # ------------------------------------------------------------------ router and credentials
-    def make_credentials(self, listen) -> None:
-        """The run's credentials (``--credentials`` or made in the run directory), unless insecure."""
-        o = self.opts
-        if o.insecure:
-            self.say("--insecure: no TLS, no access control; any process reaching the router may publish")
-            return
-        hosts = [security.endpoint_host(e) for e in listen]
-        hosts = [h for h in hosts if h and h not in security.LOCAL_HOSTS and h not in ("0.0.0.0", "[::]", "::")]
-        directory = Path(o.credentials) if o.credentials is not None else self.run_dir / "credentials"
-        fresh = not (directory / "ca.pem").exists()
-        try:
-            self.credentials = security.ensure_credentials(directory, hosts=hosts).resolve()
-            for role in ("router", "launcher", *self.expected):
-                security.Identity(self.credentials, role).check()
-        except security.CredentialsError as exc:
-            raise LaunchError(f"--credentials: {exc}") from None
-        if fresh:
-            self.say(f"credentials made in {directory} (CA and one certificate per stage)")
-
-    def start_router(self, listen) -> None:
-        """Start ``ttl router`` (log ``router.log``) and wait until it listens."""
-        o = self.opts
-        path = self.run_dir / "router.log"
-        cmd = [o.python, "-c", "import sys; from streamer.cli import main; sys.exit(main())", "router"]
-        for e in listen:
-            cmd += ["--listen", e]
-        if o.zenoh_config is not None:
-            cmd += ["--zenoh-config", str(o.zenoh_config)]
-        cmd += ["--credentials", str(self.credentials)] if self.credentials is not None else ["--insecure"]
-        env = dict(os.environ, PYTHONUNBUFFERED="1", NO_COLOR="1")
-        env.pop("RUST_LOG", None)
-        with open(path, "ab") as logf:
-            start = logf.tell()
-            self.router = subprocess.Popen(
-                cmd,
-                stdout=logf,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                env=env,
-                preexec_fn=tied_to_parent(signal.SIGKILL),
-            )
-        self.router_starts += 1
-        self._watcher = security.RefusalWatcher(path, offset=start)
-        deadline = time.monotonic() + 60.0
-        while time.monotonic() < deadline:
-            text = path.read_text(errors="replace")[start:]
-            if "ttl router: zenoh router" in text:
-                return
-            if self.router.poll() is not None:
-                lines = [ln for ln in text.splitlines() if ln.strip()]
-                raise LaunchError(
-                    f"cannot open the Zenoh router on {', '.join(listen)}: "
-                    f"{lines[-1] if lines else f'exit status {self.router.returncode}'}"
-                )
-            time.sleep(0.05)
-        raise LaunchError(f"the Zenoh router did not start within 60 s (log {path})")
-
-    def restart_router(self) -> str | None:
-        """The router died: start it again on the same endpoints (up to ``restart`` times);
-        returns a reason to abort, or None.  Its clients reconnect by themselves."""
-        code = self.router.returncode
-        how = (
-            f"killed by {signal.Signals(-code).name}"
-            if code < 0 and -code in signal.Signals._value2member_map_
-            else f"exit status {code}"
-        )
-        self.say(f"the Zenoh router died ({how}; log {self.run_dir / 'router.log'})")
-        self.journal(
-            "router-died",
-            f"the Zenoh router (pid {self.router.pid}) died ({how})",
-            stage="router",
-            pid=self.router.pid,
-            how=how,
-        )
-        self.watch_refusals()  # what the old router logged, before the new watcher starts
-        if self.router_starts > self.opts.restart:
-            return f"the Zenoh router died ({how}; log {self.run_dir / 'router.log'})"
-        self.say(f"restarting the Zenoh router ({self.router_starts}/{self.opts.restart})")
-        for attempt in range(5):  # the port of the killed router may take a moment to be free
-            try:
-                self.start_router(self.listen)
-                break
-            except LaunchError as exc:
-                if attempt == 4:
-                    return f"the Zenoh router could not be restarted: {exc}"
-                time.sleep(1.0)
-        self.journal(
-            "router-restarted",
-            f"the Zenoh router restarted (pid {self.router.pid})",
-            stage="router",
-            pid=self.router.pid,
-            start=self.router_starts,
-        )
-        return None
-
-    def stop_router(self) -> None:
-        if self.router is None:
-            return
-        stop_process(self.router, 15.0)
-        self.router = None
-
+    # ------------------------------------------------------------------ router
     def watch_refusals(self) -> None:
         """Report peers and publications the router refused (from its log)."""
-        if self._watcher is None:
-            return
-        for r in self._watcher.poll():
-            self.refused.append(r)
-            if r["kind"] == "forbidden":
-                self.say(f"refused: {r['subject']} may not {r['action']} on {r['key']}")
-            else:
-                self.say(f"refused a connection: {r['message']}")
-
-    def check_replayer(self) -> None:
-        """Validate the source options in a child (``stages.replayer --check``)."""
-        if "replayer" in self.opts.external:
-            return
-        # in a scratch directory: nothing is written into the run's directory before the check passes
-        with tempfile.TemporaryDirectory(prefix="ttl-check-") as scratch:
-            path = Path(scratch) / "replayer.config.json"
-            plan_path = Path(scratch) / "plan.json"
-            path.write_text(json.dumps(self.stage_config("replayer"), indent=2))
-            res = subprocess.run(
-                [
-                    self.opts.python,
-                    "-m",
-                    stage_module("replayer"),
-                    "--config",
-                    str(path),
-                    "--check",
-                    "--plan-out",
-                    str(plan_path),
-                    "--log-level",
-                    "WARNING",
-                ],
-                capture_output=True,
-                text=True,
-                timeout=300,
-                # nothing to save: killed with a killed or terminated launcher
-                preexec_fn=tied_to_parent(signal.SIGKILL),
-            )
-            if res.returncode != 0:
-                lines = [ln for ln in (res.stderr or res.stdout).strip().splitlines() if ln.strip()]
-                msg = lines[-1] if lines else f"exit status {res.returncode}"
-                raise LaunchError(msg.replace("ttl stage replayer: error: ", ""))
-            self.run_plan = json.loads(plan_path.read_text())
-        self.say(f"replay: {res.stdout.strip()}")
+        if self.router is not None:
+            self.router.watch_refusals()
 
     # ------------------------------------------------------------------ bus callbacks
     def _on_progress(self, sample) -> None:
@@ -755,109 +408,6 @@ class Launcher:
             self._live.close()
             self._live = None
 
-    # ------------------------------------------------------------------ children
-    def start(self, name: str) -> None:
-        child = self.children[name]
-        env = dict(os.environ, PYTHONUNBUFFERED="1")
-        if name == "monitor":  # small linear algebra: threaded BLAS only fights the other stages for the cores
-            env.setdefault("OPENBLAS_NUM_THREADS", "1")
-        with open(child.log, "ab") as logf:
-            logf.write(f"--- start {child.starts + 1} of {name} at {time.ctime()} ---\n".encode())
-            logf.flush()
-            child.proc = subprocess.Popen(
-                [
-                    self.opts.python,
-                    "-m",
-                    stage_module(name),
-                    "--config",
-                    str(child.config),
-                    "--log-level",
-                    self.opts.log_level,
-                ],
-                stdout=logf,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                env=env,
-                # SIGTERM when the launcher dies, even while importing or opening its session
-                # (the stage then closes its recording, saying it was orphaned)
-                preexec_fn=tied_to_parent(signal.SIGTERM),
-            )
-        child.starts += 1
-        child.pids.add(child.proc.pid)
-        child.pids_order.append(child.proc.pid)
-        log.info("started %s (pid %d)", name, child.proc.pid)
-
-    def last_log_line(self, name: str) -> str:
-        try:
-            lines = [ln for ln in self.children[name].log.read_text(errors="replace").splitlines() if ln.strip()]
-        except OSError:
-            return ""
-        return lines[-1] if lines else ""
-
-    def supervise(self) -> str | None:
-        """Handle stages that exited; returns a reason to abort, or None."""
-        for name, child in self.children.items():
-            if child.proc is None or child.proc.poll() is None:
-                continue
-            code = child.proc.returncode
-            child.exit_codes.append(code)
-            child.proc = None
-            how = (
-                f"killed by {signal.Signals(-code).name}"
-                if code < 0 and -code in signal.Signals._value2member_map_
-                else f"exit status {code}" + {3: ": orphaned", 4: ": disk full"}.get(code, "")
-            )
-            self.say(f"stage {name} died ({how}); log {child.log}: {self.last_log_line(name)}")
-            self.journal(
-                "stage-died",
-                f"stage {name} (pid {child.pids_order[-1]}) died ({how})",
-                stage=name,
-                pid=child.pids_order[-1],
-                how=how,
-                code=code,
-            )
-            if child.starts <= self.opts.restart:
-                self.say(f"restarting {name} ({child.starts}/{self.opts.restart})")
-                self.start(name)
-                self.journal(
-                    "stage-restarted",
-                    f"stage {name} restarted (pid {child.proc.pid})",
-                    stage=name,
-                    pid=child.proc.pid,
-                    start=child.starts,
-                )
-            else:
-                return f"stage {name} died ({how})"
-        return None
-
-    def stop_all(self) -> None:
-        """Ask every stage to stop, wait, then terminate and kill what is left."""
-        try:
-            self.bus.session.put(
-                control_key(self.opts.run_id, "stop"), b"{}", congestion_control=zenoh.CongestionControl.BLOCK
-            )
-        except Exception as exc:  # session closed
-            log.warning("could not send stop: %s", exc)
-        deadline = time.monotonic() + self.opts.stop_timeout
-        for sig, wait in ((None, None), (signal.SIGTERM, 15.0), (signal.SIGKILL, 10.0)):
-            running = [c for c in self.children.values() if c.proc is not None and c.proc.poll() is None]
-            if not running:
-                break
-            if sig is not None:
-                for c in running:
-                    self.say(f"stage {c.name} did not stop: sending {sig.name}")
-                    c.proc.send_signal(sig)
-                deadline = time.monotonic() + wait
-            for c in running:
-                try:
-                    c.proc.wait(max(0.1, deadline - time.monotonic()))
-                except subprocess.TimeoutExpired:
-                    pass
-        for c in self.children.values():
-            if c.proc is not None:
-                c.exit_codes.append(c.proc.returncode)
-                c.proc = None
-
     # ------------------------------------------------------------------ the run
     def run(self) -> int:
         o = self.opts
@@ -871,7 +421,8 @@ class Launcher:
         self.run_dir.mkdir(parents=True, exist_ok=True)
         if self.run_plan is not None:
             (self.run_dir / "plan.json").write_text(json.dumps(self.run_plan, indent=2))
-        self.make_credentials(listen)
+        self.credentials = make_credentials(o, self.run_dir, self.expected, listen, self.say)
+        self.router = Router(o, self.run_dir, self.credentials, self.say, self.journal)
         self.journal(
             "start",
             f"ttl run started (pid {os.getpid()})" + (" with --resume" if o.resume else ""),
@@ -879,7 +430,7 @@ class Launcher:
         )
         if o.resume:
             self.load_board()
-        self.start_router(listen)
+        self.router.start(listen)
         try:
             try:
                 bus = Bus.open(self.session_settings("launcher"))
@@ -890,9 +441,9 @@ class Launcher:
                 self.journal("end", f"ttl run ended (exit status {status})", status=status)
                 return status
         finally:
-            self.stop_router()
+            self.router.stop()
             self.watch_refusals()
-            if self._watcher is not None and self.credentials is not None:
+            if self.router.watcher is not None and self.credentials is not None:
                 security.dump(self.refused, self.run_dir / "security.jsonl")
 
     def _run_on(self, bus: Bus) -> int:
@@ -916,8 +467,7 @@ class Launcher:
                 continue
             cfg = self.run_dir / f"{name}.config.json"
             cfg.write_text(json.dumps(self.stage_config(name), indent=2))
-            self.children[name] = _Child(name, cfg, self.run_dir / f"{name}.log")
-            self.start(name)
+            self.stages.add(name, cfg, self.run_dir / f"{name}.log")
         return self._supervise_loop()
 
     def _supervise_loop(self) -> int:
@@ -934,9 +484,9 @@ class Launcher:
                 self._drain_events()
                 self._recheck_held()
                 self.watch_refusals()
-                abort = self.supervise()
-                if not abort and self.router is not None and self.router.poll() is not None:
-                    abort = self.restart_router()
+                abort = self.stages.supervise()
+                if not abort and self.router is not None and self.router.died():
+                    abort = self.router.restart()
                 if abort:
                     break
                 self.show()
@@ -952,7 +502,7 @@ class Launcher:
             abort = "interrupted"
         finally:
             terminated.restore()
-        self.stop_all()
+        self.stages.stop_all(self.bus)
         self._drain_events()
         return self.report(abort)
 

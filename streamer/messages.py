@@ -13,10 +13,32 @@ import numpy as np
 
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.io.telemetry import Telemetry
+from ttlcore.tdi.combinations import XYZ
 from ttlcore.tdi.data import TDIData
+
+from .codec import Expect
 
 #: Arrays of a telemetry message.
 TELEMETRY_ARRAYS = ("eta", "dws_phi", "dws_eta", "ltt")
+#: Coefficients of the linear TTL model: the regressors of a ``tdi`` message, the
+#: coefficients of a ``fit``.
+P = len(COEFFICIENT_NAMES)
+
+
+def tdi_expect(run: str, index: int) -> Expect:
+    """What a ``tdi`` message must fit (NaN allowed: first samples of a stream, gaps): X2, Y2,
+    Z2 of the data and of the 24 regressors, and the telemetry they were computed from."""
+    return Expect(
+        run=run,
+        index=index,
+        channels=XYZ,
+        allow_nonfinite=True,
+        arrays={
+            "data": ("<f8", (3, None)),
+            "regressors": ("<f8", (3, P, None)),
+            **{k: ("<f8", (6, None)) for k in TELEMETRY_ARRAYS},
+        },
+    )
 
 
 def telemetry_of(header, arrays) -> Telemetry:

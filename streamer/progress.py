@@ -35,7 +35,8 @@ import time
 from dataclasses import dataclass, field
 
 from .keys import KeyExprError, parse_progress_key
-from .plan import MAX_SEGMENTS, RangeSet
+from .plan import MAX_SEGMENTS
+from .rangeset import RangeSet
 
 #: Default number of segments the replayer may run ahead of the slowest stage.
 REPLAY_WINDOW = 4
@@ -47,7 +48,7 @@ class Progress:
 
     A pipeline stage keeps its own progress in one too (:attr:`done`, :attr:`failed`,
     :attr:`gaps` of this process) and publishes :meth:`message`.  Index sets are
-    :class:`streamer.plan.RangeSet` (memory by ranges, not by index: a run's progress is a
+    :class:`streamer.rangeset.RangeSet` (memory by ranges, not by index: a run's progress is a
     few ranges however long the run); sets given to the constructor are converted.
 
     Attributes

@@ -45,6 +45,11 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
+from cryptography import x509
+from cryptography.hazmat.primitives import hashes, serialization
+from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
+
 from ttlcore.errors import TTLError
 
 from .topology import OUTPUT_TOPIC, STAGES
@@ -82,9 +87,6 @@ def _write_private(path: Path, data: bytes, mode: int = 0o600) -> None:
 
 
 def _name(common_name: str):
-    from cryptography import x509
-    from cryptography.x509.oid import NameOID
-
     return x509.Name(
         [
             x509.NameAttribute(NameOID.ORGANIZATION_NAME, "ttl-streamer"),
@@ -94,8 +96,6 @@ def _name(common_name: str):
 
 
 def _san(hosts):
-    from cryptography import x509
-
     names = []
     for h in dict.fromkeys(hosts):
         try:
@@ -106,8 +106,6 @@ def _san(hosts):
 
 
 def _cert_hosts(cert) -> set[str]:
-    from cryptography import x509
-
     try:
         san = cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value
     except x509.ExtensionNotFound:
@@ -116,8 +114,6 @@ def _cert_hosts(cert) -> set[str]:
 
 
 def _key_usage(ca: bool):
-    from cryptography import x509
-
     return x509.KeyUsage(
         digital_signature=True,
         key_cert_sign=ca,
@@ -132,16 +128,12 @@ def _key_usage(ca: bool):
 
 
 def _pem_key(key) -> bytes:
-    from cryptography.hazmat.primitives import serialization
-
     return key.private_bytes(
         serialization.Encoding.PEM, serialization.PrivateFormat.PKCS8, serialization.NoEncryption()
     )
 
 
 def _load_cert(path: Path):
-    from cryptography import x509
-
     try:
         return x509.load_pem_x509_certificate(path.read_bytes())
     except (OSError, ValueError) as exc:
@@ -171,11 +163,6 @@ def ensure_credentials(directory, hosts=(), roles=ROLES) -> Path:
         If a certificate is needed but the CA key is absent (a directory copied to a
         stage host holds no CA key), or a file is unreadable.
     """
-    from cryptography import x509
-    from cryptography.hazmat.primitives import hashes, serialization
-    from cryptography.hazmat.primitives.asymmetric import ec
-    from cryptography.x509.oid import ExtendedKeyUsageOID
-
     d = Path(directory)
     d.mkdir(parents=True, exist_ok=True, mode=0o700)
     now = _dt.datetime.now(_dt.UTC)

@@ -1,0 +1,221 @@
+"""What a stage does with a message before its :meth:`~streamer.stage.Stage.handle` sees it:
+validation, hold-back and gap detection.
+
+* :meth:`Ingest.take` decodes the message with the codec (:func:`streamer.codec.decode`)
+  against the stage's :meth:`~streamer.stage.Stage.expect`, checks it against the plan
+  (:class:`streamer.plan.Validator`), ignores an identical copy of a processed segment, and
+  holds an accepted one ``hold`` seconds (:class:`streamer.plan.Holdback`; a different copy
+  arriving meanwhile keeps both out), or hands it to the stage at once when ``hold`` is 0.
+  Whatever a message holds, this does not raise:
+  a message that does not fit is reported (kind ``rejected``, or the validator's kind) and
+  the stage goes on; only an ``OSError`` (the recording's disk) escapes.
+* :class:`GapWatch` notes the indices an arrival skips and reports those that do not come
+  within ``gap_grace`` seconds.
+"""
+
+from __future__ import annotations
+
+import time
+import traceback
+from collections.abc import Callable
+
+from .codec import CodecError, Expect, decode, parse_header
+from .keys import KeyExprError, SegmentKey, parse_stream_key, segment_key
+from .plan import Holdback, Rejected, Validator
+from .rangeset import RangeSet
+
+#: Characters of a rejected attachment kept in the error report.
+PREVIEW_CHARS = 2000
+
+
+def preview(attachment) -> str:
+    """The start of an attachment, as text, for an error report."""
+    if attachment is None:
+        return ""
+    raw = attachment.to_bytes() if hasattr(attachment, "to_bytes") else bytes(attachment)
+    return raw[:PREVIEW_CHARS].decode("utf-8", errors="replace")
+
+
+class GapWatch:
+    """Indices skipped on arrival, reported when they have not come within ``gap_grace`` s.
+
+    Parameters
+    ----------
+    gap_grace : float
+        Seconds a skipped index has to arrive before it is a gap [s] (messages of different
+        keys may arrive out of order).
+    reorders : tuple of str
+        Topics not watched (the stage puts them back in order itself).
+
+    Memory: one entry per gap, whatever its length.
+    """
+
+    def __init__(self, gap_grace: float, reorders: tuple[str, ...] = ()):
+        self.gap_grace = gap_grace
+        self.reorders = tuple(reorders)
+        self._highest: dict[str, int] = {}
+        # suspected gaps, in ranges: topic -> [[first, last, since, revealed by], ...]
+        self._suspected: dict[str, list[list]] = {}
+
+    def arrived(self, topic: str, index: int) -> None:
+        """Note segment ``index`` of ``topic``: the indices it skips become suspected gaps,
+        and a suspected index that comes is no longer one."""
+        if topic in self.reorders:
+            return
+        gaps = self._suspected.setdefault(topic, [])
+        for k, (first, last, since, revealed) in enumerate(gaps):
+            if first <= index <= last:  # a suspected index came: split the range
+                parts = [[a, b, since, revealed] for a, b in ((first, index - 1), (index + 1, last)) if a <= b]
+                gaps[k : k + 1] = parts
+                break
+        highest = self._highest.get(topic)
+        if highest is not None and index > highest + 1:
+            gaps.append([highest + 1, index - 1, time.monotonic(), index])
+        if highest is None or index > highest:
+            self._highest[topic] = index
+
+    def due(self) -> list[tuple[str, int, int, int]]:
+        """The gaps not filled within ``gap_grace``, as (topic, first, last, revealed by);
+        taken out."""
+        now = time.monotonic()
+        out = []
+        for topic, gaps in self._suspected.items():
+            due = [g for g in gaps if now - g[2] >= self.gap_grace]
+            out += [(topic, first, last, revealed) for first, last, _, revealed in due]
+            if due:
+                gaps[:] = [g for g in gaps if now - g[2] < self.gap_grace]
+        return out
+
+
+class Ingest:
+    """The checks an input message goes through (module docstring).
+
+    Parameters
+    ----------
+    run : str
+        Run id.
+    validator : Validator
+        The plan's checks.
+    held : Holdback
+        The hold-back of accepted segments.
+    expect : callable
+        ``expect(topic, index)``: what a message must fit (:meth:`streamer.stage.Stage.expect`).
+    withdraw : callable
+        ``withdraw(topic, index, held)``: keep the first of two conflicting copies out
+        (:meth:`streamer.stage.Stage.withdraw`).
+    report : callable
+        Reports an error (:meth:`streamer.stage.Stage.report_error`).
+    event : callable
+        Records an event (:meth:`streamer.stage.Stage.event`).
+    use : callable
+        ``use(key, header, arrays, payload)``: hand an accepted segment to the stage.
+    log : logging.LoggerAdapter
+        The stage's logger.
+    """
+
+    def __init__(
+        self,
+        run: str,
+        validator: Validator,
+        held: Holdback,
+        *,
+        expect: Callable[[str, int], Expect],
+        withdraw: Callable[[str, int, bool], bool],
+        report: Callable[..., object],
+        event: Callable[..., None],
+        use: Callable[[str, object, dict, bytes], None],
+        log,
+    ):
+        self.run = run
+        self.validator = validator
+        self.held = held
+        self.expect = expect
+        self.withdraw = withdraw
+        self.report = report
+        self.event = event
+        self.use = use
+        self.log = log
+        #: Messages refused (codec errors excepted: those are reports only).
+        self.rejections = 0
+        #: Segment indices processed, per topic.
+        self.done: dict[str, RangeSet] = {}
+
+    def take(self, key: str, payload, attachment) -> None:
+        """Validate one message that came on Zenoh key ``key``, and hold it or use it (or
+        refuse it).
+
+        Data come on the stream key ``ttl/<run>/<topic>``, the index in the header; from
+        the header on, the segment is named ``ttl/<run>/<topic>/<index>``.  Nothing a
+        message holds can stop the stage: an exception that escapes the checks (a bug met
+        by an unforeseen message) is a recorded rejection of that message (``field:
+        message``), and the stage goes on.  An ``OSError`` (the recording's disk) is not the
+        message's doing and still stops the stage.
+        """
+        try:
+            self._take(key, payload, attachment)
+        except OSError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - the loop must outlive any message
+            self.rejections += 1
+            self.log.exception("%s: unexpected failure while checking a message", key)
+            self.report(
+                "rejected",
+                f"unexpected {type(exc).__name__} while checking the message: {exc}",
+                key=key,
+                field="message",
+                details={"traceback": traceback.format_exc(limit=8), "attachment": preview(attachment)},
+            )
+
+    def _take(self, key: str, payload, attachment) -> None:
+        """The body of :meth:`take`."""
+        payload = payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload or b"")
+        try:
+            topic = parse_stream_key(key)
+        except KeyExprError as exc:
+            self.report("rejected", str(exc), key=key, field="key")
+            return
+        index = None
+        try:
+            index = parse_header(attachment, key).index
+            key = segment_key(self.run, topic, index)
+            header, arrays = decode(payload, attachment, self.expect(topic, index), key=key)
+        except CodecError as exc:
+            self.report(
+                "rejected",
+                exc.what,
+                index=index,
+                key=key,
+                field=exc.field,
+                details={"payload_bytes": len(payload), "attachment": preview(attachment)},
+            )
+            return
+        seg = SegmentKey(self.run, topic, index)
+        try:
+            verdict = self.validator.check(seg.topic, header, arrays)
+        except Rejected as exc:
+            self.rejections += 1
+            details = {"producer": header.producer, "t0": header.t0, "fs": header.fs, "checksum": header.checksum}
+            what = exc.what
+            if exc.kind == "conflict" and exc.field == "payload":  # the first conflicting copy: the other goes too
+                held = self.held.withdraw(seg.topic, seg.index)
+                kept_out = self.withdraw(seg.topic, seg.index, held)
+                details["first_copy"] = "withdrawn" if kept_out else "used"
+                what += (
+                    "; the first copy is withdrawn, the segment is missing"
+                    if kept_out
+                    else "; the first copy had been used already"
+                )
+            self.report(exc.kind, what, index=seg.index, key=key, field=exc.field, details=details)
+            return
+        done = self.done.setdefault(seg.topic, RangeSet())
+        if verdict == "duplicate" or seg.index in done:
+            self.log.info("%s: identical copy of a processed segment, ignored", key)
+            self.event("duplicate", index=seg.index, message=f"{key} already processed (identical copy)")
+            return
+        self.validator.accepted(seg.topic, header)  # from now on a different copy is a conflict
+        if not self.held.put(seg.topic, seg.index, (key, header, arrays, payload), time.monotonic()):
+            self.use(key, header, arrays, payload)
+
+    def due(self) -> list[tuple]:
+        """The held segments whose wait is over (no conflicting copy came), to use now."""
+        return self.held.due(time.monotonic())

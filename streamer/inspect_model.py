@@ -1,0 +1,182 @@
+"""The fitter's coefficients and model over a run, from its recordings (for ``ttl inspect``,
+:func:`streamer.inspect.inspect_run`): the fits, their trends with the GLS drift rate of
+:mod:`ttlcore.diagnose.trends`, the truth over a fit window, the model's changes and the
+live diagnoses."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ttlcore.conventions import COEFFICIENT_NAMES
+from ttlcore.diagnose.trends import TrendSettings, trend_estimates
+from ttlcore.estimate.monitoring import FileTruth
+
+from .recorder import Recording
+
+#: Span of the drift rate in the report [days] (ttlcore.diagnose.trends.TrendSettings.drift_lookback).
+LOOKBACK_DAYS = 3.0
+
+
+def recorded_fits(recs: list[Recording]) -> list[dict]:
+    """The fits of the fitter's recordings, one per index (a later file's fit wins)."""
+    fits: dict[int, dict] = {}
+    for rec in recs:
+        summaries = [d for d in rec.json("fit/summary") if isinstance(d, dict) and isinstance(d.get("index"), int)]
+        if summaries:
+            for d in summaries:
+                fit = d.get("fit") if isinstance(d.get("fit"), dict) else {}
+                names = d.get("names") or fit.get("names")
+                coeffs, sigma = d.get("coefficients"), d.get("sigma")
+                if isinstance(coeffs, dict):  # FitResult.to_json layout
+                    coeffs = [coeffs[n] for n in names]
+                if isinstance(sigma, dict):
+                    sigma = [sigma[n] for n in names]
+                window = fit.get("window", {}) if isinstance(fit.get("window"), dict) else {}
+                fits[d["index"]] = {
+                    "index": d["index"],
+                    "names": list(names or []),
+                    "t_start": d.get("t_start", window.get("t_start")),
+                    "t_stop": d.get("t_end", d.get("t_stop", window.get("t_stop"))),
+                    "chi2_dof": d.get("chi2_dof", fit.get("chi2_dof")),
+                    "converged": fit.get("converged", d.get("converged")),
+                    "coefficients": coeffs,
+                    "sigma": sigma,
+                }
+        else:  # no summaries: the fit segments themselves
+            for m in rec.segments("fit"):
+                a, meta = m.arrays, m.header.meta
+                if "coefficients" not in a:
+                    continue
+                fits[m.header.index] = {
+                    "index": m.header.index,
+                    "names": list(meta.get("names") or []),
+                    "t_start": meta.get("t_start"),
+                    "t_stop": meta.get("t_stop"),
+                    "chi2_dof": meta.get("chi2_dof"),
+                    "converged": meta.get("converged"),
+                    "coefficients": a["coefficients"].tolist(),
+                    "sigma": a["sigma"].tolist() if "sigma" in a else None,
+                }
+    good = []
+    for f in sorted(fits.values(), key=lambda f: f["index"]):
+        try:
+            c = np.asarray(f["coefficients"], dtype=float)
+            s = np.asarray(f["sigma"], dtype=float) if f["sigma"] is not None else np.full(c.shape, np.nan)
+        except (TypeError, ValueError):
+            continue
+        if c.ndim == 1 and c.shape == s.shape and c.size:
+            good.append(f)
+    return good
+
+
+def coefficient_trends(fits: list[dict]) -> dict:
+    """Per coefficient: latest value and sigma, range, and the GLS drift rate of ttlcore.diagnose.trends [mm/rad]."""
+    if not fits:
+        return {}
+    names = fits[-1]["names"] or [f"c{i}" for i in range(len(fits[-1]["coefficients"]))]
+    same = [f for f in fits if len(f["coefficients"]) == len(names)]
+    C = np.array([f["coefficients"] for f in same], dtype=float) * 1e3
+    S = np.array([f["sigma"] for f in same], dtype=float) * 1e3
+    out = {
+        n: {
+            "latest": float(C[-1, p]),
+            "sigma": float(S[-1, p]),
+            "first": float(C[0, p]),
+            "min": float(np.nanmin(C[:, p])),
+            "max": float(np.nanmax(C[:, p])),
+            "rate": None,
+            "rate_se": None,
+            "significance": None,
+        }
+        for p, n in enumerate(names)
+    }
+    windows = [(f["t_start"], f["t_stop"]) for f in same]
+    ok = all(isinstance(a, (int, float)) and isinstance(b, (int, float)) and b > a for a, b in windows)
+    if ok and len(same) >= 3 and np.all(np.isfinite(S)):
+        try:
+            te = np.array([b for _, b in windows])
+            order = np.argsort(te, kind="stable")
+            keep = order[np.concatenate([[True], np.diff(te[order]) > 0])]
+            est = trend_estimates(
+                te[keep],
+                C[keep],
+                S[keep],
+                t_start=np.array([a for a, _ in windows])[keep],
+                names=names,
+                units="mm/rad",
+                settings=TrendSettings(drift_min_windows=3, drift_lookback=LOOKBACK_DAYS * 86400.0),
+            )
+            for p, n in enumerate(names):
+                if np.isfinite(est.rate[p]):
+                    out[n].update(
+                        rate=float(est.rate[p]), rate_se=float(est.se[p]), significance=float(est.significance[p])
+                    )
+        except ValueError:
+            pass
+    return out
+
+
+def truth_over_window(truth_path, t_start: float, t_stop: float, names) -> dict:
+    """True coefficients [mm/rad] averaged over ``[t_start, t_stop)`` from a truth file
+    (:class:`ttlcore.estimate.monitoring.FileTruth`, as the monitor draws them); empty when
+    the window is outside the file."""
+    mean = FileTruth(truth_path).mean(t_start, t_stop)
+    if mean is None:
+        return {}
+    mean = dict(zip(COEFFICIENT_NAMES, mean * 1e3))
+    return {n: float(mean[n]) for n in names if n in mean}
+
+
+def model_report(recs: list[Recording]) -> dict:
+    """The fitter's model over the run: its changes (``model`` events: from which segment,
+    by whom - a control message or ``--adopt auto`` - and why) and the live diagnoses (the
+    ``diagnosis`` of the fit summaries: window, chi^2/dof, failing bands, recommendation and
+    the ``ttl control`` command applying it, adoption)."""
+    changes, diagnoses, last_model = [], {}, None
+    for rec in recs:
+        for e in rec.json("events"):
+            if isinstance(e, dict) and e.get("kind") == "model":
+                d = e.get("details") or {}
+                changes.append(
+                    {
+                        "from_index": d.get("from_index"),
+                        "effects": d.get("effects"),
+                        "before": d.get("before"),
+                        "by": d.get("by"),
+                        "reason": d.get("reason"),
+                        "file": rec.path.name,
+                    }
+                )
+        for d in rec.json("fit/summary"):
+            if not isinstance(d, dict) or not isinstance(d.get("index"), int):
+                continue
+            if isinstance(d.get("model"), list):
+                last_model = (d["index"], d["model"])
+            diag = d.get("diagnosis")
+            if isinstance(diag, dict):
+                rec_ = diag.get("recommendation") if isinstance(diag.get("recommendation"), dict) else {}
+                diagnoses[d["index"]] = {
+                    "index": d["index"],
+                    "segments": diag.get("segments"),
+                    "model": diag.get("model"),
+                    "chi2_dof": diag.get("chi2_dof"),
+                    "fails": diag.get("fails"),
+                    "failing_bands": [
+                        [b.get("f_lo"), b.get("f_hi"), b.get("chi2_dof")]
+                        for b in diag.get("bands") or []
+                        if isinstance(b, dict) and b.get("fails")
+                    ],
+                    "failing_hours": diag.get("failing_hours"),
+                    "summary": diag.get("summary"),
+                    "recommendation": rec_.get("spec"),
+                    "explains": rec_.get("explains"),
+                    "command": rec_.get("command"),
+                    "message": rec_.get("message"),
+                    "adoption": diag.get("adoption"),
+                    "text": diag.get("text"),
+                }
+    return {
+        "model": None if last_model is None else {"index": last_model[0], "effects": last_model[1]},
+        "changes": changes,
+        "diagnoses": [diagnoses[i] for i in sorted(diagnoses)],
+    }

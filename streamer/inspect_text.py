@@ -1,0 +1,207 @@
+"""The text of ``ttl inspect`` (:func:`format_report` of :func:`streamer.inspect.inspect_run`'s dict)."""
+
+from __future__ import annotations
+
+import json
+from collections import Counter
+
+from .inspect_model import LOOKBACK_DAYS
+from .keys import to_ranges
+
+#: Errors listed in full by the text report (the rest are counted).
+MAX_LISTED = 20
+
+
+def fmt_ranges(ranges) -> str:
+    if not ranges:
+        return "-"
+    return ",".join(f"{a}" if a == b else f"{a}-{b}" for a, b in ranges)
+
+
+def refusal_text(r: dict) -> str:
+    when = f" at {r['time']}" if r.get("time") else ""
+    if r.get("kind") == "forbidden":
+        return f"{r.get('subject')} may not {r.get('action')} on {r.get('key')}{when}"
+    return f"{r.get('message', json.dumps(r))}{when}"
+
+
+def topics_text(table: dict) -> str:
+    parts = []
+    for topic, t in table.items():
+        extra = ""
+        if t["missing"]:
+            extra += f" missing {fmt_ranges(t['missing'])}"
+        if t["duplicates"]:
+            extra += f" dup {fmt_ranges(to_ranges(t['duplicates']))}"
+        parts.append(f"{topic} {t['distinct']} [{fmt_ranges(t['indices'])}]{extra}")
+    return "; ".join(parts) or "-"
+
+
+def _days(t) -> str:
+    return f"{round(t / 86400.0, 3) + 0.0:.3f}" if isinstance(t, (int, float)) else "?"
+
+
+def _num(x) -> str:
+    return f"{x:.3f}" if isinstance(x, (int, float)) else "?"
+
+
+def format_report(r: dict) -> str:
+    """The text of ``ttl inspect``."""
+    lines = []
+    run = r["run"] if isinstance(r["run"], str) else ", ".join(r["run"])
+    total = f", {r['segments_total']} segments expected" if r["segments_total"] else ""
+    lines.append(f"run {run} ({r['directory']}): {len(r['stages'])} stage(s) recorded{total}")
+    if r["stages_missing"]:
+        lines.append(f"  no recording of: {', '.join(r['stages_missing'])}")
+    lines.append("")
+    lines.append("Stages")
+    for stage, s in r["stages"].items():
+        state = []
+        files = s["files"]
+        if s["restarts"]:
+            state.append(f"restarted {s['restarts']}x")
+        if any(not f["complete"] for f in files):
+            state.append("unfinished file")
+        if files and files[-1].get("completed"):
+            state.append("complete")
+        if files and files[-1].get("stopped"):
+            stop = files[-1].get("stop_event") or {}
+            details = stop.get("details") or {}
+            state.append(
+                "stopped: disk full"
+                if details.get("disk_full")
+                else "stopped: orphaned (launcher gone)"
+                if details.get("orphaned")
+                else "stopped"
+            )
+        lines.append(
+            f"  {stage:<12} {len(files)} file(s)  errors {s['errors']}  {', '.join(state) or 'running or killed'}"
+        )
+        lines.append(f"  {'':<12} out: {topics_text(s['outputs'])}")
+        if s["inputs"]:
+            lines.append(f"  {'':<12} in:  {topics_text(s['inputs'])}")
+
+    f = r["fits"]
+    lines.append("")
+    if f["count"]:
+        last = f["table"][-1]
+        lines.append(
+            f"Coefficient trends (fitter fit JSON: {f['count']} fits [{fmt_ranges(f['indices'])}], "
+            f"last window {_days(last['t_start'])}..{_days(last['t_stop'])} d, "
+            f"chi2/dof {_num(last['chi2_dof'])})"
+        )
+        lines.append(
+            f"  {'coefficient':<12} {'latest [mm/rad]':>19} {'first':>8} {'min':>8} {'max':>8} "
+            f"{'rate [mm/rad/day]':>22}   (rate: GLS line over the last {LOOKBACK_DAYS:g} d of fits)"
+        )
+        with_truth = "truth_file" in f
+        if with_truth:
+            lines[-1] += "   truth(last window)  (latest-truth)/sigma"
+        for name, t in f["trends"].items():
+            rate = (
+                f"{t['rate']:+8.4f} ± {t['rate_se']:.4f}" + (" *" if abs(t["significance"]) >= 5 else "  ")
+                if t["rate"] is not None
+                else f"{'-':>20}"
+            )
+            line = (
+                f"  {name:<12} {t['latest']:+9.4f} ± {t['sigma']:.4f} {t['first']:+8.4f} "
+                f"{t['min']:+8.4f} {t['max']:+8.4f} {rate:>22}"
+            )
+            if with_truth and "truth_latest_window" in t:
+                line += f"   {t['truth_latest_window']:+9.4f}   {t['error_over_sigma']:+6.2f}"
+            lines.append(line)
+        lines.append("  (* rate significant at 5 sigma with the overlap covariance of the rolling windows)")
+        if with_truth:
+            lines.append(f"  truth: {f['truth_file']}, averaged over the last fit window")
+    else:
+        lines.append("Coefficient trends: no fits recorded")
+
+    m = r.get("model") or {}
+    if m.get("model") or m.get("changes") or m.get("diagnoses"):
+        lines.append("")
+        current = m.get("model") or {}
+        lines.append(
+            f"Model (fitter): {','.join(current.get('effects') or ['?'])} at fit {current.get('index')}; "
+            f"{len(m['changes'])} change(s), {len(m['diagnoses'])} live diagnos{'i' if len(m['diagnoses']) == 1 else 'e'}s"
+        )
+        for c in m["changes"]:
+            lines.append(
+                f"  from segment {c['from_index']}: {','.join(c['before'] or [])} -> {','.join(c['effects'] or [])}"
+                f" ({c.get('by') or 'control'}{': ' + c['reason'] if c.get('reason') else ''})"
+            )
+        for d in m["diagnoses"]:
+            seg = d.get("segments") or ["?", "?"]
+            bands = ", ".join(f"{lo:.3g}-{hi:.3g} Hz ({chi:.3f})" for lo, hi, chi in d["failing_bands"]) or "none"
+            lines.append(
+                f"  diagnosis at segment {d['index']} (window {seg[0]}..{seg[1]}, model "
+                f"{','.join(d.get('model') or [])}): chi2/dof {_num(d.get('chi2_dof'))}, failing bands {bands}"
+            )
+            if d.get("recommendation"):
+                adopted = (d.get("adoption") or {}).get("adopted")
+                lines.append(
+                    f"    recommends {d['recommendation']}"
+                    f"{' (explains the excess)' if d.get('explains') else ' (does not explain the excess)'}"
+                    f"{': adopted' if adopted else ''}"
+                )
+                if d.get("command") and not adopted:
+                    lines.append(f"    apply it: {d['command']}")
+            elif d.get("message"):
+                lines.append(f"    {d['message']}")
+            elif not d.get("fails"):
+                lines.append("    the model is adequate: nothing to add")
+
+    lines.append("")
+    lines.append(f"Alerts (monitor): {len(r['alerts'])}")
+    for a in r["alerts"]:
+        lines.append(f"  [{a.get('kind')}] {a.get('message')}")
+
+    lines.append("")
+    lines.append(f"Warnings: {len(r['warnings'])}")
+    for w in r["warnings"][:MAX_LISTED]:
+        lines.append(f"  {w.get('stage')} [{w.get('kind')}] {w.get('message')}")
+
+    lines.append("")
+    lines.append(f"Errors: {len(r['errors'])}")
+    by = Counter((e["stage"], e["kind"]) for e in r["errors"])
+    if by:
+        lines.append("  " + ", ".join(f"{stage} {kind} x{n}" for (stage, kind), n in sorted(by.items())))
+    for e in r["errors"][:MAX_LISTED]:
+        where = f" segment {e['index']}" if e["index"] is not None else ""
+        field = f" field {e['field']!r}" if e["field"] else ""
+        lines.append(f"  {e['stage']} {e['kind']}{where}{field}: {e['message']}")
+    if len(r["errors"]) > MAX_LISTED:
+        lines.append(f"  ... {len(r['errors']) - MAX_LISTED} more (--json FILE for all)")
+
+    lines.append("")
+    lines.append(f"Gaps: {len(r.get('gaps', []))}")
+    for g in r.get("gaps", [])[:MAX_LISTED]:
+        span = f" ({g['seconds'] / 60:.1f} min of NaN)" if g.get("seconds") else ""
+        lines.append(f"  {g['stage']} {g['kind']} segment {g['index']}{span}: {g['message']}")
+
+    sec = r.get("security")
+    if sec is not None:
+        lines.append("")
+        if not sec["present"]:
+            lines.append("Security: no security.jsonl (a run with --insecure, or its launcher did not end)")
+        else:
+            lines.append(
+                f"Security (security.jsonl): {sec['count']} refusal(s) by the router"
+                + (
+                    ", " + ", ".join(f"{k} x{v['count']}" for k, v in sorted(sec["kinds"].items()))
+                    if sec["kinds"]
+                    else ""
+                )
+            )
+            for kind, v in sorted(sec["kinds"].items()):
+                for rec in v["first"]:
+                    lines.append(f"  {kind}: {refusal_text(rec)}")
+                if v["count"] > len(v["first"]):
+                    lines.append(f"  {kind}: ... {v['count'] - len(v['first'])} more")
+            if sec["unreadable"]:
+                lines.append(f"  unreadable line(s) {fmt_ranges(to_ranges(sec['unreadable']))}")
+
+    lines.append("")
+    lines.append(f"Interruptions: {len(r['interruptions'])}")
+    for i in r["interruptions"]:
+        lines.append(f"  {i['stage']}: {i['kind']}: {i['message']}")
+    return "\n".join(lines)

@@ -1,0 +1,98 @@
+"""What the launcher of ``ttl run`` keeps on disk: its journal (``launcher.jsonl``) and the
+board it believes (``board.json``), read back by ``ttl run --resume``.
+
+See :mod:`streamer.launcher`, "Journal and resuming".
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import time
+from collections.abc import Mapping
+from pathlib import Path
+
+from .progress import Progress
+from .rangeset import RangeSet
+
+# the logger of these lines before the launcher was split into parts: log lines unchanged
+log = logging.getLogger("streamer.launcher")
+
+
+def append_journal(run_dir: Path, kind: str, message: str, **details) -> None:
+    """Append a record to ``<run_dir>/launcher.jsonl`` (``ttl inspect`` reads it)."""
+    rec = {"time": time.time(), "launcher_pid": os.getpid(), "kind": kind, "message": message, **details}
+    try:
+        with open(run_dir / "launcher.jsonl", "a") as f:
+            f.write(json.dumps(rec) + "\n")
+    except OSError as exc:
+        log.warning("cannot write %s: %s", run_dir / "launcher.jsonl", exc)
+
+
+def save_board(run_dir: Path, run: str, progress: Mapping[str, Progress]) -> None:
+    """Write the board (what the launcher believes of every stage) to ``board.json``,
+    atomically: a launcher that dies leaves the last one whole."""
+    path = run_dir / "board.json"
+    tmp = path.with_name(".board.json.tmp")
+    try:
+        tmp.write_text(json.dumps({s: p.message(run) for s, p in progress.items()}))
+        os.replace(tmp, path)
+    except OSError as exc:
+        log.warning("cannot write %s: %s", path, exc)
+
+
+def read_board(path: Path, expected: list[str], total: int | None) -> dict[str, Progress] | None:
+    """The progress of each expected stage in ``board.json``; None when there is no file.
+
+    Raises
+    ------
+    OSError, ValueError
+        The file is there but unreadable.
+    """
+    try:
+        board = json.loads(path.read_text())
+    except FileNotFoundError:
+        return None
+    progress = {}
+    for stage, msg in board.items():
+        if stage in expected and isinstance(msg, dict):
+            progress[stage] = Progress(stage)
+            progress[stage].update(msg, total)
+    return progress
+
+
+def _below(indices: RangeSet, first: int) -> RangeSet:
+    out = RangeSet()
+    for a, b in indices.ranges():
+        if a < first:
+            out.add_range(a, min(b, first - 1))
+    return out
+
+
+def cut_board(progress: Mapping[str, Progress], expected: list[str], total: int | None) -> tuple[int, dict]:
+    """The first segment some expected stage has not handled (``m``), and the board cut
+    before it: every segment before ``m`` taken as handled by every stage, nothing from ``m``
+    on (the publishers' caches of the earlier processes are gone with them)."""
+
+    def first_missing(stage: str) -> int:
+        if stage not in progress or not total:
+            return 0
+        missing = progress[stage].handled.missing(0, total - 1)
+        return missing[0][0] if missing else total
+
+    first = min(first_missing(s) for s in expected)
+    if first == 0:
+        return 0, {}
+    cut = {
+        stage: Progress(
+            stage,
+            _below(p.done, first),
+            _below(p.failed, first),
+            total,
+            _below(p.gaps, first),
+            extra={n: _below(v, first) for n, v in p.extra.items()},
+        )
+        for stage, p in progress.items()
+    }
+    return first, cut
