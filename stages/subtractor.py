@@ -73,12 +73,13 @@ class Subtractor(PipelineStage):
 
     def expect(self, topic, index):
         if topic == "fit":
-            # NaN allowed for the model parts (TDI delays at the window's start); the
-            # coefficients are checked finite in handle()
+            # NaN allowed for the model parts (TDI delays at the window's start), never in
+            # the coefficients: such a copy is malformed (rejected), not a conflicting one
             return Expect(
                 run=self.run_id,
                 index=index,
                 allow_nonfinite=True,
+                finite=("coefficients",),
                 arrays={"coefficients": ("<f8", (P,)), "sigma": ("<f8", (P,)), "covariance": ("<f8", (P, P))},
             )
         return tdi_expect(self.run_id, index)

@@ -242,6 +242,9 @@ class Expect:
         Required channel names.
     allow_nonfinite : bool
         Accept NaN and inf in float arrays (default: reject).
+    finite : tuple of str
+        Arrays that must be finite even with ``allow_nonfinite`` (a fit's coefficients: NaN
+        there makes the message malformed, not a second opinion on the segment).
     """
 
     run: str | None = None
@@ -249,6 +252,7 @@ class Expect:
     arrays: Mapping[str, tuple[str | None, tuple | None]] | None = None
     channels: tuple[str, ...] | None = None
     allow_nonfinite: bool = False
+    finite: tuple[str, ...] = ()
 
 
 def _fail(field: str, what: str, key: str | None = None):
@@ -639,9 +643,9 @@ def decode(
                 want = "(" + ", ".join("n" if e is None else str(e) for e in shape) + ")"
                 _fail(f"arrays[{name}].shape", f"{spec.shape}, expected {want}", key)
 
-    if not expect.allow_nonfinite:
-        for name, arr in arrays.items():
-            bad, first = _count_nonfinite(arr)
-            if bad:
-                _fail(f"arrays[{name}]", f"{bad} non-finite values (NaN or inf), first at flat index {first}", key)
+    checked = arrays if not expect.allow_nonfinite else {k: arrays[k] for k in expect.finite if k in arrays}
+    for name, arr in checked.items():
+        bad, first = _count_nonfinite(arr)
+        if bad:
+            _fail(f"arrays[{name}]", f"{bad} non-finite values (NaN or inf), first at flat index {first}", key)
     return header, arrays

@@ -134,6 +134,22 @@ def test_nonfinite_allowed_when_expected():
     assert np.isnan(arrays["data"][0, 0])
 
 
+def test_arrays_named_finite_are_checked_when_nonfinite_is_allowed():
+    """A fit may carry NaN in its model parts, never in its coefficients: Expect.finite."""
+    fields = {k: v for k, v in FIELDS.items() if k != "channels"}
+    coefficients = np.ones(24)
+    coefficients[3] = np.inf
+    parts = np.full((1, 3, 8), np.nan)
+    payload, attachment = encode({"coefficients": coefficients, "model_parts": parts}, fields, allow_nonfinite=True)
+    with pytest.raises(CodecError) as err:
+        decode(payload, attachment, Expect(allow_nonfinite=True, finite=("coefficients",)))
+    assert err.value.field == "arrays[coefficients]" and "first at flat index 3" in str(err.value)
+    coefficients[3] = 1.0
+    payload, attachment = encode({"coefficients": coefficients, "model_parts": parts}, fields, allow_nonfinite=True)
+    _, arrays = decode(payload, attachment, Expect(allow_nonfinite=True, finite=("coefficients",)))
+    assert np.isnan(arrays["model_parts"]).all()
+
+
 @pytest.mark.parametrize(
     "arrays, fields, field",
     [

@@ -45,7 +45,7 @@ from ..conventions import C as C_LIGHT
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 from ..tdi.data import TDIData
 from ..tdi.regressors import dws_channel, placement
-from .gls import NormalEquations, solve
+from .gls import NormalEquations, sandwich, solve
 from .noise_psd import tdi_noise_csd
 from .spectra import segment_fft, smooth_csd, smooth_csd_variable, window
 
@@ -582,7 +582,8 @@ class FitResult:
 
     def identifiability(self, n_modes: int = 3) -> dict:
         """Condition number of the correlation matrix and its weakest eigen-combinations."""
-        corr = self.correlation
+        live = np.flatnonzero(np.isfinite(self.sigma))  # a column without information: left out
+        corr = self.correlation[np.ix_(live, live)]
         vals, vecs = np.linalg.eigh(np.linalg.inv(corr))  # small eigenvalue = poorly determined
         modes = []
         for k in range(min(n_modes, len(vals))):
@@ -591,7 +592,7 @@ class FitResult:
             modes.append(
                 {
                     "relative_information": float(vals[k] / vals[-1]),
-                    "combination": {self.names[i]: round(float(v[i]), 3) for i in top},
+                    "combination": {self.names[live[i]]: round(float(v[i]), 3) for i in top},
                 }
             )
         return {"condition_number": float(np.linalg.cond(corr)), "weakest_combinations": modes}
@@ -779,9 +780,7 @@ def sandwich_covariance(
     steep spectral features, unmodelled lines) it stays honest.
     """
     N, _, _ = neq.total(eiv)
-    Ninv = np.linalg.inv(N)
-    cov = Ninv @ score_matrix(spectra, weights, C, stacked) @ Ninv
-    return 0.5 * (cov + cov.T)
+    return sandwich(N, score_matrix(spectra, weights, C, stacked))
 
 
 def score_matrix(

@@ -96,10 +96,46 @@ class NormalEquations:
         return 2 * self.nchan * self.nbins
 
 
+def inverse(N: np.ndarray) -> np.ndarray:
+    """``N^-1`` of a normal matrix; a regressor the data hold no information on (a zero row
+    and column of ``N``: a glitch's column before its time, in a rolling window) gets an
+    infinite diagonal and zeros elsewhere, the rest the inverse of the informed block (the
+    same numbers as a model without that column)."""
+    live = np.real(np.diag(N)) > 0.0
+    if live.all():
+        return np.linalg.inv(N)
+    if not live.any():
+        raise np.linalg.LinAlgError("no regressor holds any information: the normal matrix is zero")
+    idx = np.flatnonzero(live)
+    out = np.zeros_like(N)
+    out[np.ix_(idx, idx)] = np.linalg.inv(N[np.ix_(idx, idx)])
+    out[~live, ~live] = np.inf
+    return out
+
+
 def solve(neq: NormalEquations, eiv: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """GLS estimate and covariance from the normal equations: ``C = (N - E)^-1 b``,
-    ``Cov = (2 (N - E))^-1``."""
+    ``Cov = (2 (N - E))^-1`` (:func:`inverse`: a regressor without information gets
+    coefficient 0 and infinite variance).
+    """
     N, b, _ = neq.total(eiv)
-    C = np.linalg.solve(N, b)
-    cov = np.linalg.inv(2 * N)
+    Ninv = inverse(N)
+    live = np.isfinite(np.diag(Ninv))
+    C = np.zeros_like(b)
+    C[live] = Ninv[np.ix_(live, live)] @ b[live]
+    if live.all():
+        C = np.linalg.solve(N, b)  # the well-conditioned path, as before
+    cov = 0.5 * Ninv
     return C, 0.5 * (cov + cov.T)
+
+
+def sandwich(N: np.ndarray, M: np.ndarray) -> np.ndarray:
+    """``N^-1 M N^-1`` (symmetrised): the robust covariance of a GLS estimate from its
+    normal matrix ``N`` and the sum ``M`` of its scores' outer products; a regressor
+    without information (:func:`inverse`) keeps an infinite variance."""
+    Ninv = inverse(N)
+    live = np.isfinite(np.diag(Ninv))
+    cov = np.diag(np.where(live, 0.0, np.inf))
+    block = np.ix_(live, live)
+    cov[block] = Ninv[block] @ M[block] @ Ninv[block]
+    return 0.5 * (cov + cov.T)

@@ -67,6 +67,7 @@ from .fit import (
     solve,
     spectra_of_segment,
 )
+from .gls import sandwich
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +123,8 @@ def _own_fit_chi2_dof(neq: NormalEquations) -> tuple[float, float]:
     errors-in-variables term), and the degrees of freedom."""
     N, b, dd = neq.total(eiv=False)
     dof = float(neq.dof_per_band().sum() - len(b))
-    return float(2 * (dd - b @ np.linalg.solve(N, b))) / dof, dof
+    C, _ = solve(neq, eiv=False)  # a column without information in this segment: fixed at 0
+    return float(2 * (dd - b @ C)) / dof, dof
 
 
 class RollingFit:
@@ -419,9 +421,7 @@ class RollingFit:
         kappa = w["variance_factor"]
         cov_model = kappa * cov
         N, _, _ = total.total(s.eiv)
-        Ninv = np.linalg.inv(N)
-        cov_robust = kappa * Ninv @ M @ Ninv
-        cov_robust = 0.5 * (cov_robust + cov_robust.T)
+        cov_robust = kappa * sandwich(N, M)
         chi2 = total.chi2_per_band(C, eiv=s.eiv)
         res = _result(
             self.names,

@@ -79,3 +79,31 @@ def test_band_sums_are_additive():
     # chi^2 at the optimum: 2 (dd - b^T C), the whitened residual power
     r = y - X @ C
     assert whole.chi2_per_band(C)[0] == pytest.approx(2 * np.real(np.vdot(r, r)), rel=1e-9)
+
+
+def test_a_regressor_without_information_is_fixed_at_zero_and_the_rest_unchanged():
+    """A column that is zero over the whole window (a glitch's column before its time in a
+    rolling window) has no information: coefficient 0, infinite variance, and the other
+    coefficients and their covariance those of the model without it (to round-off)."""
+    rng = np.random.default_rng(3)
+    n, p = 400, 4
+    X = rng.standard_normal((n, p))
+    y = X @ np.array([1.0, -2.0, 0.5, 3.0]) + rng.standard_normal(n)
+    X0 = np.column_stack([X[:, :2], np.zeros(n), X[:, 2:]])
+    names = ("a", "b", "dead", "c", "d")
+    full = NormalEquations(
+        names,
+        np.array([0.0, 1.0]),
+        (X0.T @ X0)[None],
+        (X0.T @ y)[None],
+        np.array([y @ y]),
+        np.zeros((1, 5, 5)),
+        np.array([n]),
+        1,
+    )
+    C, cov = solve(full, eiv=False)
+    assert C[2] == 0.0 and np.isinf(cov[2, 2]) and np.all(cov[2, [0, 1, 3, 4]] == 0)
+    ref = np.linalg.solve(X.T @ X, X.T @ y)
+    keep = [0, 1, 3, 4]
+    np.testing.assert_allclose(C[keep], ref, rtol=1e-12)
+    np.testing.assert_allclose(cov[np.ix_(keep, keep)], np.linalg.inv(2 * X.T @ X), rtol=1e-12)
