@@ -77,7 +77,7 @@ from pathlib import Path
 import zenoh
 from tqdm import tqdm
 
-from ttlcore.diagnose.effects import make_effects
+from ttlcore.effects import make_effects
 from ttlcore.errors import TTLError
 
 from . import security

@@ -32,7 +32,7 @@ _EXPORTS = {
     "diagnose": "diagnose.diagnoser",
     "refit": "diagnose.diagnoser",
     "text_report": "diagnose.diagnoser",
-    "make_effects": "diagnose.effects",
+    "make_effects": "effects",
     "ConfigError": "errors",
     "TelemetryError": "errors",
     "TTLError": "errors",

@@ -54,6 +54,12 @@ from scipy import fft as sp_fft
 from scipy import optimize, special
 from scipy.optimize import minimize_scalar
 
+from ..effects.base import Effect
+from ..effects.column_tdi import columns_tdi, effect_input_from_telemetry
+from ..effects.columns import names_only_input
+from ..effects.coupling import LinearTTL, Step
+from ..effects.filters import filter_transform, readout_noise_factor
+from ..effects.shifted import OFFSET_OPTION
 from ..errors import ConfigError
 from ..estimate.spectra import psd_scale
 from ..tdi.combinations import MICHELSON, aet, build
@@ -67,17 +73,6 @@ from .columns import (
     eiv_weights,
     filtered_spectra,
     ttl_columns,
-)
-from .effects import (
-    OFFSET_OPTION,
-    Effect,
-    LinearTTL,
-    Step,
-    columns_tdi,
-    effect_input_from_telemetry,
-    filter_transform,
-    names_only_input,
-    readout_noise_factor,
 )
 from .evidence import (
     Evidence,
