@@ -37,7 +37,10 @@ from .filters import filtered
 from .injection import EffectInjection
 
 
-def _split_list(value, allowed, what) -> tuple:
+def split_list(value, allowed, what) -> tuple:
+    """An option's selection: ``None`` or ``"all"`` -> every item of ``allowed``; a list, or a
+    string separated by ``,`` or ``+`` (``"12+13"``) -> its items, ConfigError naming ``what``
+    for an unknown one."""
     if value is None or value == "all":
         return tuple(allowed)
     items = value if isinstance(value, (list, tuple)) else [s for s in str(value).replace("+", ",").split(",") if s]
@@ -98,15 +101,15 @@ class Effect:
     # selections shared by the coefficient-based effects
     @property
     def mosas(self) -> tuple:
-        return _split_list(self.options.get("mosas"), MOSAS, f"effect {self.name!r} mosas")
+        return split_list(self.options.get("mosas"), MOSAS, f"effect {self.name!r} mosas")
 
     @property
     def angles(self) -> tuple:
-        return _split_list(self.options.get("angles"), ANGLES, f"effect {self.name!r} angles")
+        return split_list(self.options.get("angles"), ANGLES, f"effect {self.name!r} angles")
 
     @property
     def sides(self) -> tuple:
-        return _split_list(self.options.get("sides"), SIDES, f"effect {self.name!r} sides")
+        return split_list(self.options.get("sides"), SIDES, f"effect {self.name!r} sides")
 
     def columns(self, data: EffectInput) -> list[Column]:
         """The regressor columns built from ``data``."""

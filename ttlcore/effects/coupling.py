@@ -19,7 +19,7 @@ from ..conventions import (
 )
 from ..errors import ConfigError
 from ..tdi.regressors import witness_placement as placement
-from .base import Effect, _split_list
+from .base import Effect, split_list
 from .columns import Column, Part
 
 
@@ -174,7 +174,7 @@ class SecondOrder(Effect):
 
     @property
     def terms(self) -> tuple:
-        return _split_list(self.options.get("terms"), self.TERMS, "effect 'second-order' terms")
+        return split_list(self.options.get("terms"), self.TERMS, "effect 'second-order' terms")
 
     def columns(self, data):
         ang = dict(zip(ANGLES, data.angles))

@@ -68,7 +68,8 @@ def derivative(x: np.ndarray, fs: float, order: int = 1) -> np.ndarray:
     return out
 
 
-def _derivative_response(f):
+def derivative_response(f):
+    """The time derivative as a filter: ``2 pi i f`` (``f`` [Hz])."""
     return 2j * np.pi * np.asarray(f, dtype=float)
 
 

@@ -22,10 +22,10 @@ from ..conventions import (
 )
 from ..errors import ConfigError
 from ..tdi.regressors import witness_placement as placement
-from .base import Effect, _split_list
+from .base import Effect, split_list
 from .columns import Column, EffectInput, Part
 from .coupling import SecondOrder
-from .filters import _derivative_response, derivative, rational_basis
+from .filters import derivative, derivative_response, rational_basis
 
 
 def witness_series(data: EffectInput, source: str, derivative_order: int = 0) -> tuple[np.ndarray, tuple | None, str]:
@@ -91,7 +91,7 @@ class _Placed(Effect):
     def placements(self) -> list[tuple[str, str, int]]:
         """``[(source, link, n_delays), ...]``."""
         src = self.options.get("source")
-        links = _split_list(self.options.get("links"), LINKS, f"effect {self.name!r} links")
+        links = split_list(self.options.get("links"), LINKS, f"effect {self.name!r} links")
         if src:
             mosa = str(src).split(".")[0]
             link = self.options.get("link") or mosa
@@ -227,7 +227,7 @@ class WitnessEffect(_Placed):
                         [Part(link, series, n, channel, mod)],
                         "m s/rad" if der else unit,
                         prior * 10 if der else prior,
-                        response=_derivative_response if der else None,
+                        response=derivative_response if der else None,
                     )
                 )
         return cols

@@ -21,7 +21,7 @@ from ..errors import ConfigError
 from ..sim.injection import ChunkContext
 from ..tdi.interpolation import apply_taps, shift_taps
 from ..tdi.regressors import witness_placement as placement
-from .base import Effect, _split_list
+from .base import Effect, split_list
 from .columns import Column, Part
 from .filters import derivative
 from .injection import EffectInjection
@@ -211,7 +211,7 @@ class LightTravelTimeError(_Linearised):
         return True
 
     def _groups(self):
-        links = _split_list(self.options.get("links"), LINKS, "effect 'ltt-error' links")
+        links = split_list(self.options.get("links"), LINKS, "effect 'ltt-error' links")
         groups: dict = {}
         for cname in COEFFICIENT_NAMES:
             m, _, s = cname.split(".")
