@@ -30,7 +30,7 @@ T series of the data and of every column are multiplied by
 before the segments are windowed (the diagnosis' :class:`ttlcore.diagnose.gating.GatedData`),
 so that the fit ignores the span and no hard edge leaks.
 
-The effect classes and the shapelet live here, below the simulator and the diagnosis, so
+The effect classes and the shapelet live here, on the simulator's floor below the diagnosis, so
 that the registry of effects (:data:`ttlcore.effects.registry.EFFECTS`) is complete without
 the diagnosis; the glitch search and the gated data are the diagnosis'
 (:mod:`ttlcore.diagnose.glitches`, :mod:`ttlcore.diagnose.gating`).
@@ -57,7 +57,8 @@ BETA_RANGE = (1.0, 3000.0)
 BETA_GRID = tuple(float(x) for x in np.geomspace(2.0, 2000.0, 10))
 #: Prior scale [m/s] of a glitch's velocity step (the Bayes factor's Gaussian prior).
 GLITCH_PRIOR = 1e-10
-#: Taper [s] of each side of a gate (a cosine, as lisa-gap's smoothed gaps).
+#: Taper [s] of each side of a gate (a cosine, as lisa-gap's smoothed gaps); the default of
+#: :func:`ttlcore.diagnose.transients.gate` too (a test holds them equal)
 GATE_TAPER = 300.0
 
 
