@@ -42,8 +42,8 @@ from pathlib import Path
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from ttlcore.diagnose.diagnoser import diagnose, strip_internals  # noqa: E402
-from ttlcore.diagnose.effects import injection_from_spec  # noqa: E402
 from ttlcore.diagnose.settings import DiagnoseSettings  # noqa: E402
+from ttlcore.effects import injection_from_spec  # noqa: E402
 from ttlcore.io.atomic import write_json  # noqa: E402
 from ttlcore.io.reader import read_telemetry  # noqa: E402
 from ttlcore.io.telemetry import write_telemetry  # noqa: E402

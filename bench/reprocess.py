@@ -26,7 +26,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from ttlcore.diagnose.reprocess import dask_client, jobs_for_files, process_day, reprocess
+from ttlcore.app.reprocessing import dask_client, jobs_for_files, process_day, reprocess
 from ttlcore.io.telemetry import write_telemetry
 from ttlcore.sim.simulator import SimulationConfig, simulate
 
@@ -44,7 +44,7 @@ def make_days(d: Path, n: int, hours: float) -> list[Path]:
 
 def _warm_up() -> None:
     """Import what a day's job imports on first use (as the serial reference's warm-up day)."""
-    import ttlcore.diagnose.reprocess  # noqa: F401
+    import ttlcore.app.reprocessing  # noqa: F401
     import ttlcore.diagnose.witnesses  # noqa: F401
     import ttlcore.estimate.subtraction  # noqa: F401
     import ttlcore.io.reader  # noqa: F401

@@ -88,9 +88,9 @@ from streamer.stage import Output, stage_main
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY, parse_duration
 from ttlcore.diagnose.candidates import candidates
 from ttlcore.diagnose.diagnoser import diagnose, refit, text_report
-from ttlcore.diagnose.effects import make_effects
-from ttlcore.diagnose.glitches import split_gates
 from ttlcore.diagnose.prediction import column_regressors, effect_predictions
+from ttlcore.effects import make_effects
+from ttlcore.effects.glitch import split_gates
 from ttlcore.errors import ConfigError, TTLError
 from ttlcore.estimate.fit import FitSettings, with_extra_regressors
 from ttlcore.estimate.rolling import RollingFit

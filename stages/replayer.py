@@ -49,6 +49,7 @@ from streamer.pipeline_stage import PipelineStage
 from streamer.plan import Plan
 from streamer.progress import REPLAY_WINDOW
 from streamer.stage import Output, stage_main
+from ttlcore.cli.simulation import simulation_config
 from ttlcore.conventions import LINKS, parse_duration
 from ttlcore.errors import ConfigError, TelemetryError
 from ttlcore.estimate.fit import dws_asd_from_config
@@ -57,7 +58,6 @@ from ttlcore.io.reader import file_kind, read_telemetry
 from ttlcore.io.telemetry import Telemetry, read_header
 from ttlcore.io.truth import truth_path
 from ttlcore.sim.simulator import Simulator
-from ttlcore.sim.spec import simulation_config
 
 #: Units of the telemetry arrays.
 UNITS = {"eta": "fractional frequency", "dws_phi": "rad/s", "dws_eta": "rad/s", "ltt": "s"}

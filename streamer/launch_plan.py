@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from ttlcore.diagnose.effects import make_effects
+from ttlcore.effects import make_effects
 from ttlcore.errors import TTLError
 
 from .keys import check_name

@@ -22,12 +22,12 @@ from ttlcore.cli.main import (
     output_file,
     positive_int,
 )
-from ttlcore.sim.options import duration
+from ttlcore.cli.simulation_options import duration
 
 from .security import ROLES
 from .topology import STAGES
 
-#: memory limit per local Dask worker (``ttlcore.diagnose.reprocess.DEFAULT_MEMORY_LIMIT``)
+#: memory limit per local Dask worker (``ttlcore.app.reprocessing.DEFAULT_MEMORY_LIMIT``)
 DEFAULT_MEMORY_LIMIT = "6GiB"
 
 

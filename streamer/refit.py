@@ -23,8 +23,8 @@ from ttlcore.cli.progress import status_line
 from ttlcore.cli.report import to_stdout, write_report
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.diagnoser import DiagnoseSettings, refit
-from ttlcore.diagnose.effects import make_effects
 from ttlcore.diagnose.prediction import fit_residual
+from ttlcore.effects import make_effects
 from ttlcore.errors import TTLError
 
 from .inspect import InspectError, recording_files
@@ -214,7 +214,7 @@ def format_refit(report: dict) -> str:
 
 
 #: display unit of the parameters of the named effects, by column-name prefix (the columns'
-#: own units in ttlcore.diagnose.effects, scaled like the coefficients: m/rad shown in mm/rad)
+#: own units in ttlcore.effects, scaled like the coefficients: m/rad shown in mm/rad)
 _PARAMETER_UNITS = (
     ("drift.", 1e3, "mm/rad/day"),
     ("step.", 1e3, "mm/rad"),

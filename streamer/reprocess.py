@@ -5,7 +5,7 @@
     ttl reprocess DAY.h5... --out DIR [--effects ...] [--scheduler ADDRESS | --workers N]
     ttl reprocess --from-recordings recordings/RUN --out DIR ...
 
-The science (per-day job, summary table, trends) is :mod:`ttlcore.diagnose.reprocess`; this module
+The science (per-day job, summary table, trends) is :mod:`ttlcore.app.reprocessing`; this module
 adds the days of a recorded run (:func:`recorded_days`: the telemetry segments the replayer
 recorded in ``replayer.mcap``, read back with :func:`streamer.recorder.read_recording` and
 reassembled into one telemetry file per day) and the command line.  It lives beside the
@@ -23,16 +23,16 @@ from pathlib import Path
 
 import numpy as np
 
-from ttlcore.cli.diagnose import split_effects
-from ttlcore.conventions import DAY, parse_duration
-from ttlcore.diagnose.effects import make_effects
-from ttlcore.diagnose.reprocess import (
+from ttlcore.app.analysis import check_band
+from ttlcore.app.reprocessing import (
     dask_client,
     jobs_for_files,
     reprocess,
 )
+from ttlcore.cli.diagnose import split_effects
+from ttlcore.conventions import DAY, parse_duration
+from ttlcore.effects import make_effects
 from ttlcore.errors import TTLError
-from ttlcore.estimate.analyze import check_band
 from ttlcore.io.telemetry import Telemetry, write_telemetry
 
 from .refit import recorded_segments

@@ -166,10 +166,10 @@ def test_output_paths_are_checked_before_any_work(tmp_path):
 
 
 def test_defaults_declared_by_the_parsers_agree_with_the_library():
+    from ttlcore.app.reprocessing import DEFAULT_MEMORY_LIMIT as library_limit
+    from ttlcore.app.scenarios import PAPER_CASES, VARIANTS
     from ttlcore.diagnose.diagnoser import DiagnoseSettings
-    from ttlcore.diagnose.reprocess import DEFAULT_MEMORY_LIMIT as library_limit
     from ttlcore.estimate.fit import DEFAULT_BAND
-    from ttlcore.gw.scenarios import PAPER_CASES, VARIANTS
 
     assert tuple(ANALYZE_BAND) == tuple(DEFAULT_BAND)
     assert tuple(DIAGNOSE_BAND) == tuple(DiagnoseSettings().band)

@@ -11,8 +11,11 @@ Plain functions and small dataclasses, numpy arrays in and out, usable from a no
 The sub-packages follow the data flow: :mod:`ttlcore.io` (files) -> :mod:`ttlcore.sim`
 (simulated telemetry) -> :mod:`ttlcore.tdi` (TDI of the data and the regressors) ->
 :mod:`ttlcore.estimate` (spectra, fit, subtraction) -> :mod:`ttlcore.diagnose` (the model
-against the measurement); :mod:`ttlcore.gw` holds the gravitational-wave sources,
-:mod:`ttlcore.plots` the figures and :mod:`ttlcore.cli` the science commands of ``ttl``.
+against the measurement); :mod:`ttlcore.effects` holds the model effects (fitted by the
+diagnosis, injected by the simulator), :mod:`ttlcore.gw` the gravitational-wave sources,
+:mod:`ttlcore.plots` the figures, :mod:`ttlcore.app` the commands' work (analysis,
+reprocessing, scenarios) and :mod:`ttlcore.cli` the science commands of ``ttl``; they stand on
+floors, each importing only its own and those below (``docs/architecture.md``).
 Conventions (indices, units, signs: ``docs/physics.md``) live in :mod:`ttlcore.conventions`.
 """
 
@@ -32,7 +35,7 @@ _EXPORTS = {
     "diagnose": "diagnose.diagnoser",
     "refit": "diagnose.diagnoser",
     "text_report": "diagnose.diagnoser",
-    "make_effects": "diagnose.effects",
+    "make_effects": "effects",
     "ConfigError": "errors",
     "TelemetryError": "errors",
     "TTLError": "errors",

@@ -13,11 +13,11 @@ from streamer.keys import from_ranges, to_ranges
 from streamer.pipeline_stage import InOrder
 from streamer.progress import Progress
 from streamer.stage import StageConfig
+from ttlcore.cli.simulation import simulation_config
 from ttlcore.errors import ConfigError, TelemetryError
 from ttlcore.io.telemetry import Telemetry, write_telemetry
 from ttlcore.io.truth import truth_path
 from ttlcore.sim.simulator import Simulator
-from ttlcore.sim.spec import simulation_config
 
 
 def sample(msg: dict):

@@ -1,4 +1,4 @@
-"""Tests of ``ttl reprocess`` (streamer.reprocess, ttlcore.diagnose.reprocess) on real Dask clusters.
+"""Tests of ``ttl reprocess`` (streamer.reprocess, ttlcore.app.reprocessing) on real Dask clusters.
 
 Days are one hour long (14 400 samples at 4 Hz, fits on 15-min segments) so the suite stays
 quick; the per-day job is the same code whatever the length.
@@ -54,7 +54,7 @@ def _ttl(*args, timeout=300):
 
 def test_reprocess_equals_analyze_and_reports_a_failed_day(days, tmp_path, capsys):
     from streamer.cli import main
-    from ttlcore.estimate.analyze import analyze
+    from ttlcore.app.analysis import analyze
     from ttlcore.estimate.fit import FitSettings
 
     bad = tmp_path / "broken.h5"

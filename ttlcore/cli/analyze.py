@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..app.analysis import analyze, check_band
 from ..conventions import parse_duration
-from ..estimate.analyze import analyze, check_band
 from ..estimate.fit import DEFAULT_BAND, FitSettings
 from .progress import status_line
 from .report import to_stdout, write_report

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+from ..app.analysis import check_band, load_truth
 from ..conventions import parse_duration
 from ..diagnose.adequacy import FIXED_MODEL_TOLERANCE
 from ..diagnose.diagnoser import (
@@ -24,10 +25,9 @@ from ..diagnose.diagnoser import (
     strip_internals,
     text_report,
 )
-from ..diagnose.effects import available_effects, make_effects
 from ..diagnose.fitting import fit_model
+from ..effects.registry import available_effects, make_effects
 from ..errors import TTLError
-from ..estimate.analyze import check_band, load_truth
 from ..io.reader import file_kind, read_telemetry
 from ..plots.diagnosis import plot_residual_vs_noise, plot_witness_coherence
 from ..plots.transients import plot_time_frequency

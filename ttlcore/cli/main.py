@@ -26,7 +26,7 @@ from pathlib import Path
 
 from .. import __version__
 from ..errors import TTLError
-from ..sim.options import add_simulation_options, duration
+from .simulation_options import add_simulation_options, duration
 
 log = logging.getLogger("ttl")
 
@@ -36,7 +36,7 @@ ANALYZE_BAND = (3e-3, 0.9)
 #: default band of ``ttl diagnose`` [Hz] (``DiagnoseSettings().band``): the residual is tested
 #: against the noise model, which lacks TDI's residual laser noise above 0.8 Hz (docs/cli.md)
 DIAGNOSE_BAND = (3e-3, 0.8)
-#: the paper's scenarios and variants (``ttlcore.gw.scenarios``; checked by the same test)
+#: the paper's scenarios and variants (``ttlcore.app.scenarios``; checked by the same test)
 SCENARIO_CASES = ("static_unequal", "keplerian", "vb", "sgwb", "gb1", "gb2", "mbhb1", "mbhb2", "all", "mbhb2_200mhz")
 SCENARIO_VARIANTS = ("paper", "lisainstrument", "coloured")
 
@@ -326,7 +326,7 @@ def _add_scenarios(sub) -> None:
         help="run the cases on a local Dask cluster of N worker processes (default 0: in this process)",
     )
     add_quiet(p)
-    p.set_defaults(handler="ttlcore.gw.scenarios:_cmd_scenarios")
+    p.set_defaults(handler="ttlcore.cli.scenarios:run")
 
 
 def register(sub) -> None:

@@ -8,8 +8,8 @@ from pathlib import Path
 from ..conventions import DAY, parse_duration
 from ..io.truth import NOISE_COMPONENTS
 from ..sim.simulator import simulate_to_file
-from ..sim.spec import simulation_config_from_args
 from .progress import progress_bar
+from .simulation import simulation_config_from_args
 
 
 def run(args) -> int:

@@ -1,7 +1,7 @@
 """Candidates: every effect that could be added to a fitted model, scored by evidence.
 
 Each candidate goes through the same steps (docs/diagnostics.md, "Candidates"): its
-searched parameters, if any, are profiled (:func:`ttlcore.diagnose.search.profile_search`:
+searched parameters, if any, are profiled (:func:`ttlcore.diagnose.glitches.effect_search`:
 the step time, the poles of a frequency-dependent coupling, a plugin's parameters); its
 columns are built at the estimates (:func:`ttlcore.diagnose.columns.effect_columns`) and
 its evidence computed against the model (:func:`ttlcore.diagnose.evidence.added_evidence`,
@@ -23,14 +23,15 @@ import numpy as np
 from scipy import stats
 from threadpoolctl import threadpool_limits
 
+from ..effects.base import Effect
+from ..effects.glitch import Gate, Glitch
 from ..errors import ConfigError
 from .columns import concat, effect_columns
-from .effects import Effect
 from .evidence import Evidence, added_evidence, laplace_evidence
 from .fitting import fit_resolved
-from .glitches import Gate, Glitch, glitch_columns, glitch_search, glitch_series, in_gates
+from .gating import in_gates
+from .glitches import effect_search, glitch_columns, glitch_search, glitch_series
 from .model_fit import ModelFit, parameter_name, solve, total_offset
-from .search import profile_search
 from .transients import event_excess, residual_map
 
 log = logging.getLogger(__name__)
@@ -110,7 +111,7 @@ class CandidatePool:
         return False
 
     def submit(self, effects) -> None:
-        """Queue effects (registry names or :class:`~ttlcore.diagnose.effects.Effect`
+        """Queue effects (registry names or :class:`~ttlcore.effects.base.Effect`
         instances) for scoring; one already in the model or queued is skipped."""
         registry = self.model.data.registry
         for effect in effects:
@@ -180,7 +181,7 @@ def score(model: ModelFit, effect, C) -> tuple[Evidence, dict]:
     data = model.data
     extra: dict = {}
     if effect.unresolved():
-        found = profile_search(model, effect, C)
+        found = effect_search(model, effect, C)
         effect = found.effect
         if found.evidence is not None and "t_step" in found.estimates:
             # the step time: the evidence with the exact step near t_s
@@ -324,7 +325,7 @@ def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> li
     """What to add to the model for the transients and gaps the finder reported
     (``report["transients"]``, :func:`ttlcore.diagnose.transients.transient_report`):
 
-    - an event classified ``glitch`` (or ``unclassified``): a :class:`~ttlcore.diagnose.glitches.Glitch`
+    - an event classified ``glitch`` (or ``unclassified``): a :class:`~ttlcore.effects.glitch.Glitch`
       searched over the event's span widened by a hop (time, damping, test mass or link,
       :func:`~ttlcore.diagnose.glitches.glitch_search`), advised when significant (p <
       alpha for ``delta chi2`` on 1 + 3 degrees of freedom - the velocity step, and the
@@ -336,7 +337,7 @@ def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> li
     - any other event that is not a missing coupling (a gravitational wave, a change of
       the noise level, an unclassified or unexplained one) and lasts at most
       :data:`MAX_GATE_HOURS`, and every run of missing data:
-      a :class:`~ttlcore.diagnose.glitches.Gate` over its span (the event's widened by a
+      a :class:`~ttlcore.effects.glitch.Gate` over its span (the event's widened by a
       hop), overlapping spans merged.
 
     Returns

@@ -5,7 +5,7 @@ segment spectra (under the noise model of the :class:`~ttlcore.diagnose.whitened
 they were built for), units and prior scales, their errors-in-variables description (the
 DWS channels whose readout noise they carry, with placement and response) and optionally
 their decimated series.  :func:`effect_columns` builds an effect's columns (the exact TDI of
-its parts, :func:`ttlcore.diagnose.effects.tdi_in_blocks`; or the modulated TDI regressors
+its parts, :func:`ttlcore.effects.column_tdi.tdi_in_blocks`; or the modulated TDI regressors
 for a quick ranking of ``drift`` and ``step``; or combinations of the time derivatives of
 the TDI regressors for the linearised ``timing-offset`` and ``ltt-error``).
 
@@ -27,20 +27,14 @@ import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES, LINKS, parse_duration
 from ..conventions import C as SPEED_OF_LIGHT
+from ..effects.column_tdi import effect_input_from_telemetry, tdi_in_blocks
+from ..effects.columns import Column, names_only_input
+from ..effects.coupling import Step
+from ..effects.filters import derivative, filtered_many, readout_noise_factor
 from ..errors import ConfigError
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 from ..tdi.interpolation import timeshift
 from ..tdi.regressors import placement
-from .effects import (
-    Column,
-    Step,
-    derivative,
-    effect_input_from_telemetry,
-    filtered_many,
-    names_only_input,
-    readout_noise_factor,
-    tdi_in_blocks,
-)
 
 #: Unit and prior scale of the TTL regressor columns (m/rad; 2.3 mm/rad).
 TTL_INFO = ("m/rad", 2.3e-3)
@@ -325,7 +319,7 @@ def effect_columns(
     the TDI regressors in time (``TDI(m w) = m TDI(w)`` but for the ~70 s the TDI delays
     span, a relative error ~1e-3 on a drift column), saving a TDI per column.  Linearised
     effects (``timing-offset``, ``ltt-error``) always use the time derivatives of the TDI
-    regressors (:meth:`ttlcore.diagnose.effects._Linearised.tdi_terms`) when the data hold
+    regressors (:meth:`ttlcore.effects.shifted._Linearised.tdi_terms`) when the data hold
     the 24 of them.  ``keep_series``: the decimated series are kept (time-domain adequacy,
     filters in time); ``cache=False``: the columns are not kept in the store (trial
     columns of a search or a candidate; the unfiltered base columns are kept)."""
@@ -497,10 +491,10 @@ def base_column(data, column) -> ColumnSet:
 def filtered_spectra(data, base: ColumnSet, responses, transform: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Whitened spectra (S, m, 3, k) and decimated series (3, k, n) of the one-column set
     ``base`` through the filters ``responses`` (callables ``f -> complex``), filtered in the
-    time domain before the segments are windowed (:func:`ttlcore.diagnose.effects.filtered`):
+    time domain before the segments are windowed (:func:`ttlcore.effects.filters.filtered`):
     multiplying the windowed segment's spectrum instead misses the filter's ringing across
     the taper, a few tens of per cent of a strong resonance's excess at the segment ends.
-    ``transform``: :func:`ttlcore.diagnose.effects.filter_transform` of the base series,
+    ``transform``: :func:`ttlcore.effects.filters.filter_transform` of the base series,
     when it is filtered many times (a search)."""
     if base.series is None:
         raise ValueError("the base column's series are needed (keep_series)")

@@ -29,13 +29,14 @@ from dataclasses import replace
 import numpy as np
 from scipy import fft as sp_fft
 
+from ..effects.glitch import Gate, split_gates
+from ..effects.registry import make_effects
 from ..errors import ConfigError
 from ..tdi.data import TDIData
 from .candidates import CandidatePool, named_candidates, transient_actions
-from .effects import make_effects
 from .evidence import change
 from .fitting import fit_model
-from .glitches import Gate, gated_data, split_gates, with_gates
+from .gating import gated_data, with_gates
 from .model_fit import ModelFit
 from .noise_model import profile_noise_model
 from .report import (
@@ -192,7 +193,7 @@ def gated_model(model: ModelFit, effects, spans) -> ModelFit | None:
 
     A loud signal pulls the linear fit (a chirp: by several sigma, ``transients.robustness``)
     and, through the whole day's mis-subtracted TTL noise, everything read outside it. With
-    its span gated (:func:`~ttlcore.diagnose.glitches.gated_data`: cosine tapers, the same
+    its span gated (:func:`~ttlcore.diagnose.gating.gated_data`: cosine tapers, the same
     window in data and columns) the fit and the levels are those of the quiet data: what a
     user who follows the advice (``gate``) gets.  The transient finder reads the quiet
     tiles on it (:func:`~ttlcore.diagnose.transients.transient_report`'s ``refit``).

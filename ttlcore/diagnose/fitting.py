@@ -2,7 +2,7 @@
 model, the candidates' trial models, the ``before`` model and the pipeline's refits.
 
 :func:`fit_model` resolves the effects' searched parameters
-(:func:`ttlcore.diagnose.search.profile_search` against the model of the other effects),
+(:func:`ttlcore.diagnose.glitches.effect_search` against the model of the other effects),
 builds the columns (:mod:`ttlcore.diagnose.columns`), expands the shifted-witness effects
 at their given or searched offsets (:func:`expand_linearised`, the same
 :func:`~ttlcore.diagnose.search.profile_search` against the model's other columns), solves
@@ -19,6 +19,9 @@ from dataclasses import replace
 import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES, parse_duration
+from ..effects.base import Effect
+from ..effects.registry import make_effects
+from ..effects.shifted import OFFSET_OPTION
 from ..errors import ConfigError
 from ..estimate.fit import notch_mask, variance_factor
 from ..estimate.spectra import segment_fft, window
@@ -31,9 +34,8 @@ from .columns import (
     rewhitened,
     shifted_columns,
 )
-from .effects import OFFSET_OPTION, Effect, make_effects
+from .glitches import effect_search
 from .model_fit import ModelFit, normal_solution, parameter_name, solve
-from .search import profile_search
 
 
 def as_effects(data, effects) -> list:
@@ -76,9 +78,9 @@ def fit_model(
 
 
 def resolve(data, effects, coefficients_for_linearised=None) -> tuple[list, dict]:
-    """Effects with unset searched parameters (:attr:`ttlcore.diagnose.effects.Effect.searched`)
-    replaced by the same effect at the estimates of :func:`ttlcore.diagnose.search.profile_search`,
-    profiled against the model of the other effects; returns the effects and the searches
+    """Effects with unset searched parameters (:attr:`ttlcore.effects.base.Effect.searched`)
+    replaced by the same effect at the estimates of :func:`ttlcore.diagnose.glitches.effect_search`
+    (:func:`ttlcore.diagnose.search.profile_search`, or a glitch's own search), profiled against the model of the other effects; returns the effects and the searches
     (``cli spec -> result``)."""
     out, searches = list(effects), {}
     for i, e in enumerate(effects):
@@ -86,7 +88,7 @@ def resolve(data, effects, coefficients_for_linearised=None) -> tuple[list, dict
             continue
         rest = [x for x in out if x is not e and not x.unresolved()]
         base = fit_resolved(data, rest, coefficients_for_linearised, False)
-        res = profile_search(base, e, base.ttl_coefficients())
+        res = effect_search(base, e, base.ttl_coefficients())
         out[i] = res.effect
         searches[res.effect.cli_spec()] = res.to_json()
     return out, searches
@@ -203,7 +205,7 @@ def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet | None, di
             continue
         if base is None:
             base = solve(data, first)
-        found = profile_search(base, e)
+        found = effect_search(base, e)
         searches[e.cli_spec()] = found.to_json()
         if C is None:
             C = _ttl_vector(found.theta)

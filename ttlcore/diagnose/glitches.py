@@ -1,347 +1,42 @@
-"""Glitches and gates: transients a user (or the diagnosis' advice) adds to a model.
+"""The glitch search: the time, damping and test mass of a glitch against a fitted model.
 
-docs/diagnostics.md, "Glitches and gates".  Two effects that act on a short span of the
-data instead of the whole of it, for the excess the transient finder
-(:mod:`ttlcore.diagnose.transients`) localises:
-
-**glitch** - the LISA Pathfinder glitch shape, the one ``lisaglitch``'s
-``IntegratedShapeletGlitch`` injects (the integrated single-component exponential
-shapelet that fitted the Pathfinder catalogue): a test-mass velocity
-
-    v(t) = dv [1 - (1 + x) exp(-x)],   x = (t - t_g) / beta  (t >= t_g; 0 before),
-
-a velocity step ``dv`` [m/s] reached over the damping time ``beta`` [s].  A glitch of
-test mass ``ij`` (MOSA ``ij``, received at ``i``) moves the far end of link ``ji`` and the
-near end of link ``ij``: it enters ``eta_ij`` as ``2 v(t) / c`` undelayed and ``eta_ji``
-as ``D_ji 2 v / c`` (the light leaving test mass ``ij`` reaches ``j`` one light travel
-time later) - as lisainstrument and the blind generator inject it.  A glitch of one link's
-optical path (``link=ij``) enters ``eta_ij`` alone, as ``v(t) / c``.  The column is that
-series through the exact TDI (a velocity step that stays is cancelled by TDI once every
-delay has seen it: the column is localised, ~70 s plus a few ``beta``); its one linear
-parameter is ``dv``.  Time, damping and the test mass (or link) are searched
-(:func:`glitch_search`) when not given.
-
-**gate** - a span of the data down-weighted to zero, as lisa-gap smooths a gap: the A, E,
-T series of the data and of every column are multiplied by
-
-    g(t) = 0 inside [start, stop],  1/2 - 1/2 cos(pi d / taper) for the distance d < taper
-           outside it,  1 beyond,
-
-before the segments are windowed (:class:`GatedData`), so that the fit ignores the span
-and no hard edge leaks.  A segment partly gated holds less noise: its spectra are divided
-by ``sqrt(r_s)``, ``r_s = sum (w g)^2 / sum w^2`` over its taper ``w``, so that its chi^2
-keeps the expectation of an ungated segment; a segment with ``r_s < MIN_KEPT`` is left out
-(its remnant leaks the red noise below the band).
+The effect (:class:`ttlcore.effects.glitch.Glitch`: the LISA Pathfinder shapelet, docs/diagnostics.md,
+"Glitches and gates") is defined below the diagnosis; its unset time ``t``, damping ``beta``
+and placement (test mass or link) are searched here (:func:`glitch_search`), each template
+the exact TDI of its parts on a stretch of telemetry (:func:`glitch_series`).
+:func:`effect_search` is the search of any effect's unset parameters: the glitch's here,
+the others' by :func:`ttlcore.diagnose.search.profile_search`.
 """
 
 from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import optimize
 
-from ..conventions import LINKS, MOSAS, C, parse_duration, reverse
+from ..conventions import C
+from ..effects.column_tdi import effect_input_from_telemetry, tdi_in_blocks
+from ..effects.columns import Column, Part
+from ..effects.glitch import (
+    BETA_GRID,
+    BETA_RANGE,
+    GLITCH_PRIOR,
+    PLACEMENTS,
+    Glitch,
+    _parse_span,
+    glitch_velocity,
+    placement_parts,
+)
 from ..errors import ConfigError
 from ..tdi.data import history_samples
-from .columns import ColumnSet, ColumnStore, regressor_columns
-from .effects import Column, Effect, Part, effect_input_from_telemetry, tdi_in_blocks
+from .columns import ColumnSet
 from .evidence import added_evidence
-from .search import SearchResult
-from .transients import GATE_TAPER, gate
-from .whitened import WhitenedData, noise_digest
+from .search import SearchResult, profile_search
+from .whitened import WhitenedData
 
 log = logging.getLogger(__name__)
-
-#: Range [s] of the damping time searched (the Pathfinder catalogue: 5-300 s).
-BETA_RANGE = (1.0, 3000.0)
-#: Damping times of the search's first grid [s].
-BETA_GRID = tuple(float(x) for x in np.geomspace(2.0, 2000.0, 10))
-#: Prior scale [m/s] of a glitch's velocity step (the Bayes factor's Gaussian prior).
-GLITCH_PRIOR = 1e-10
-#: Segments keeping less than this share of their taper's power under a gate are left out:
-#: a short remnant of a segment leaks the red noise below the band into it through the
-#: gate's ramps (4-h simulated day, 58-min segments, a 55-min gate: keeping a remnant of
-#: 0.3 read chi2/dof 1.43 and pull RMS 2.49; leaving it out, 0.993 and 0.88).
-MIN_KEPT = 0.6
-
-
-def glitch_velocity(t, t_glitch: float, beta: float) -> np.ndarray:
-    """``v(t) / dv = 1 - (1 + x) exp(-x)``, ``x = (t - t_glitch) / beta`` (0 before): the
-    Pathfinder shape of unit velocity step (module docstring)."""
-    x = (np.asarray(t, dtype=float) - float(t_glitch)) / float(beta)
-    out = np.zeros_like(x)
-    on = x >= 0
-    out[on] = 1.0 - (1.0 + x[on]) * np.exp(-x[on])
-    return out
-
-
-def parse_time(value, option: str) -> float:
-    """A time [s]: a number (any sign, zero included) or a duration with its unit
-    (``"2.7h"``, ``"30min"``; :func:`ttlcore.conventions.parse_duration`)."""
-    if isinstance(value, (int, float)):
-        return float(value)
-    try:
-        return float(str(value).strip())
-    except ValueError:
-        return parse_duration(value, option)
-
-
-def _parse_span(text) -> tuple[float, float] | None:
-    """``"a-b"`` (durations, :func:`ttlcore.conventions.parse_duration`) -> (a, b) [s]."""
-    if text is None:
-        return None
-    a, sep, b = str(text).partition("-")
-    if not sep:
-        raise ConfigError(f"span {text!r}: expected START-STOP (e.g. 9000-11000 or 2.5h-3h)")
-    lo, hi = parse_time(a.strip(), "span"), parse_time(b.strip(), "span")
-    if hi <= lo:
-        raise ConfigError(f"span {text!r}: stop before start")
-    return lo, hi
-
-
-def placement_parts(where: str) -> list[tuple[str, int, float]]:
-    """``"tm12"`` -> ``[("12", 0, 2), ("21", 1, 2)]`` (link, delays, factor of ``v / c``);
-    ``"link12"`` -> ``[("12", 0, 1)]`` (module docstring)."""
-    if where.startswith("tm"):
-        m = where[2:]
-        return [(m, 0, 2.0), (reverse(m), 1, 2.0)]
-    return [(where[4:], 0, 1.0)]
-
-
-#: The placements a glitch search tries when neither ``tm`` nor ``link`` is given.
-PLACEMENTS = tuple(f"tm{m}" for m in MOSAS) + tuple(f"link{k}" for k in LINKS)
-
-
-class Glitch(Effect):
-    name = "glitch"
-    title = "a test-mass (or link) glitch of the LISA Pathfinder shape"
-    physics = (
-        "A test mass kicked by outgassing, a discharge or a micrometeoroid changes velocity by dv over a "
-        "damping time beta: v(t) = dv [1 - (1 + x) exp(-x)], x = (t - t_g)/beta (the integrated shapelet "
-        "that fits the LISA Pathfinder glitches, lisaglitch's IntegratedShapeletGlitch). Test mass ij enters "
-        "eta_ij as 2v/c and eta_ji as D_ji 2v/c; a link glitch (link=ij) eta_ij alone as v/c. One linear "
-        "parameter, dv [m/s]; the time t, the damping beta and the test mass are searched when not given "
-        "(span=START-STOP restricts the time searched)."
-    )
-    parameters = {"t": None, "tm": None, "link": None, "beta": None, "span": None}
-    searched = {"t": (-np.inf, np.inf, "linear"), "beta": (BETA_RANGE[0], BETA_RANGE[1], "log")}
-
-    def __init__(self, **options):
-        super().__init__(**options)
-        tm, link = self.options.get("tm"), self.options.get("link")
-        if tm is not None and link is not None:
-            raise ConfigError("effect 'glitch': give tm= (a test mass) or link= (one link), not both")
-        for key, value in (("tm", tm), ("link", link)):
-            if value is not None and str(value) not in LINKS:
-                raise ConfigError(f"effect 'glitch' {key}: unknown {value!r}; known: {', '.join(LINKS)}")
-            if value is not None:
-                self.options[key] = str(value)
-        if self.options.get("t") is not None:
-            self.options["t"] = parse_time(self.options["t"], "glitch t")
-        if self.options.get("beta") is not None:
-            beta = float(self.options["beta"])
-            if not beta > 0:
-                raise ConfigError(f"effect 'glitch' beta: a damping time > 0 s, got {beta}")
-            self.options["beta"] = beta
-        _parse_span(self.options.get("span"))
-
-    @property
-    def where(self) -> str | None:
-        """``"tm12"``, ``"link12"`` or None (searched)."""
-        if self.options.get("tm") is not None:
-            return f"tm{self.options['tm']}"
-        if self.options.get("link") is not None:
-            return f"link{self.options['link']}"
-        return None
-
-    def unresolved(self) -> list[str]:
-        out = super().unresolved()
-        return out + (["tm"] if self.where is None else [])
-
-    def column_name(self) -> str:
-        t = self.options.get("t")
-        return f"glitch.{self.where or '?'}@{'?' if t is None else f'{float(t):.1f}'}"
-
-    def columns(self, data):
-        if self.unresolved():
-            if data.names_only:
-                return [Column(self.column_name(), [], "m/s", GLITCH_PRIOR)]
-            raise ConfigError(
-                f"effect 'glitch': {', '.join(self.unresolved())} not given (the diagnosis searches "
-                "them: ttl diagnose, refit)"
-            )
-        v = glitch_velocity(data.t, self.options["t"], self.options["beta"])
-        assert self.where is not None  # resolved above (unresolved() names it otherwise)
-        parts = [Part(link, factor * v / C, n) for link, n, factor in placement_parts(self.where)]
-        return [Column(self.column_name(), parts, "m/s", GLITCH_PRIOR)]
-
-    def profile_search(self, model, coefficients=None) -> SearchResult:
-        """The search of the unset time, damping and placement (:func:`glitch_search`)."""
-        return glitch_search(model, self)
-
-    def describe_text(self) -> str:
-        """``"glitch at 2.70 h on tm 12"`` (or ``on link 12``)."""
-        w = self.where or "?"
-        on = f"tm {w[2:]}" if w.startswith("tm") else f"link {w[4:]}"
-        return f"glitch at {float(self.options['t']) / 3600:.2f} h on {on}"
-
-
-class Gate(Effect):
-    name = "gate"
-    title = "a span of the data gated out (tapered window, as lisa-gap smooths a gap)"
-    physics = (
-        "The data between start and stop (a loud transient, a gap with hard edges, hours of changed noise) "
-        "are down-weighted to zero with cosine tapers of 'taper' seconds outside the span, in the data and in "
-        "every column alike, so that the fit ignores them (lisa-gap's smoothed gap). Not a physical effect: no "
-        "parameter is fitted; the gated hours are left out of the fit and of the adequacy tests."
-    )
-    parameters = {"start": None, "stop": None, "taper": GATE_TAPER}
-
-    def __init__(self, **options):
-        super().__init__(**options)
-        for key in ("start", "stop"):
-            if self.options.get(key) is None:
-                raise ConfigError("effect 'gate' needs start= and stop= (e.g. gate:start=15.2h,stop=15.8h)")
-            self.options[key] = parse_time(self.options[key], f"gate {key}")
-        self.options["taper"] = (
-            float(self.options["taper"])
-            if isinstance(self.options["taper"], (int, float))
-            else parse_duration(self.options["taper"], "gate taper")
-        )
-        if self.options["stop"] <= self.options["start"]:
-            raise ConfigError(
-                f"effect 'gate': stop ({self.options['stop']:g} s) before start ({self.options['start']:g} s)"
-            )
-
-    @property
-    def span(self) -> tuple[float, float]:
-        return float(self.options["start"]), float(self.options["stop"])
-
-    def columns(self, data):
-        return []
-
-    def describe_text(self) -> str:
-        a, b = self.span
-        return f"gate {a / 3600:.2f}-{b / 3600:.2f} h"
-
-
-def split_gates(effects) -> tuple[list, list]:
-    """``(gates, others)`` of a model's effects."""
-    gates = [e for e in effects if isinstance(e, Gate)]
-    return gates, [e for e in effects if not isinstance(e, Gate)]
-
-
-# ---------------------------------------------------------------------------
-# Gated data
-# ---------------------------------------------------------------------------
-
-
-@dataclass(frozen=True, eq=False)
-class GatedData(WhitenedData):
-    """:class:`~ttlcore.diagnose.whitened.WhitenedData` with spans gated out (module
-    docstring).  Every decimated series is multiplied by ``gate``: the data's and the TTL
-    regressors' (``data_series``, ``regressor_series``) once here, every column's where it
-    is decimated (:meth:`decimate`, the one path from an effect's TDI to its spectra), so
-    that data and columns carry the same window and the time-domain residual (per-hour
-    adequacy, transients) is tapered too, without a hard edge; each segment's spectra are
-    multiplied by ``seg_scale`` (``1 / sqrt(r_s)``).  Inside a span (``gate == 0``) the
-    samples are out of ``mask``."""
-
-    gate: np.ndarray | None = None
-    seg_scale: np.ndarray | None = None
-    gates: tuple = ()
-    #: ``((start, stop), ...)`` [s] of the gates
-    gate_spans: tuple = ()
-
-    def spectra(self, x: np.ndarray) -> np.ndarray:
-        assert self.seg_scale is not None  # set with the gate (gate_data)
-        return super().spectra(x) * self.seg_scale[:, None, None, None]
-
-    def decimate(self, xyz: np.ndarray, is_aet: bool = False) -> np.ndarray:
-        """The decimated A, E, T of columns (:meth:`WhitenedData.decimate`) times the gate;
-        full-length series only (a stretch: decimate it ungated and gate it once placed)."""
-        out = super().decimate(xyz, is_aet)
-        assert self.gate is not None  # set with the gate (gate_data)
-        if out.shape[-1] != self.gate.size:
-            raise ConfigError(
-                f"gated data: a series of {out.shape[-1]} decimated samples cannot be gated ({self.gate.size} expected)"
-            )
-        return out * self.gate
-
-
-def gated_data(data: WhitenedData, gates) -> WhitenedData:
-    """``data`` with the spans of ``gates`` (:class:`Gate`) gated out (:class:`GatedData`);
-    ``data`` itself when there is none.  The noise model is kept; the column store is new
-    (columns built on ungated data do not apply)."""
-    gates = list(gates)
-    if not gates:
-        return data
-    if isinstance(data, GatedData):
-        raise ConfigError("these data are already gated")
-    n = data.mask.size
-    g = np.ones(n)
-    for e in gates:
-        g = np.minimum(g, gate(n, data.fs, data.t0, [e.span], taper=float(e.options["taper"])))
-    inside = g <= 0.0
-    mask = data.mask & ~inside
-    if not mask.any():
-        raise ConfigError("the gates leave no data")
-    keep, scale = [], []
-    for s0 in data.starts:
-        w = data.win * data.mask[s0 : s0 + data.L]
-        r = float(np.sum((w * g[s0 : s0 + data.L]) ** 2) / max(np.sum(w**2), 1e-300))
-        keep.append(r >= MIN_KEPT)
-        scale.append(1.0 / math.sqrt(max(r, 1e-300)))
-    if not any(keep):
-        raise ConfigError("the gates leave no FFT segment with data")
-    idx = [i for i, k in enumerate(keep) if k]
-    starts = tuple(data.starts[i] for i in idx)
-    w2 = np.stack([(data.win * mask[s0 : s0 + data.L] * g[s0 : s0 + data.L]) ** 2 for s0 in starts])
-    # gated once; inside a span exactly zero (a gap's NaN there too)
-    series = np.where(inside, 0.0, data.data_series * g)
-    regs = np.where(inside, 0.0, data.regressor_series * g)
-    out = GatedData(
-        **{
-            **{k: getattr(data, k) for k in data.__dataclass_fields__},
-            "mask": mask,
-            "starts": starts,
-            "seg_t0": np.asarray(data.seg_t0)[idx],
-            "w2": w2 / w2.sum(axis=1, keepdims=True),
-            "data_series": series,
-            "regressor_series": regs,
-            "store": ColumnStore(),
-            "d": np.empty(0),
-            "wd": np.empty(0),
-            "dd": np.empty(0),
-            "gate": g,
-            "seg_scale": np.asarray(scale)[idx],
-            "gates": tuple(e.spec() for e in gates),
-            "gate_spans": tuple(e.span for e in gates),
-        }
-    )
-    d = out.spectra(series[:, None, :])[..., 0]
-    R = out.spectra(regs)
-    wd = np.matmul(out.Lh, d[..., None])[..., 0]
-    dd = np.zeros((len(starts), out.G))
-    for gi, (a, b) in enumerate(out.slices):
-        dd[:, gi] = np.sum(np.abs(wd[:, a:b]) ** 2, axis=(1, 2))
-    out = replace(out, d=d, wd=wd, dd=dd, noise_key=noise_digest(out.noise_csd) + ":gated:" + ",".join(out.gates))
-    out.store.put(("regressors",), out, regressor_columns(out, R))
-    log.info("gated %s: %d of %d segments kept", ", ".join(out.gates), len(starts), len(data.starts))
-    return out
-
-
-def in_gates(data, a: float, b: float) -> bool:
-    """Whether ``[a, b]`` [s] lies inside one of ``data``'s gates (:class:`GatedData`)."""
-    return any(lo <= a + 1e-6 and b <= hi + 1e-6 for lo, hi in getattr(data, "gate_spans", ()))
-
-
-# ---------------------------------------------------------------------------
-# Glitch search
-# ---------------------------------------------------------------------------
 
 
 def glitch_series(data, where, t_glitch: float, beta: float) -> np.ndarray:
@@ -614,15 +309,10 @@ def _evidence(model, effect: Glitch, g: np.ndarray):
     return added_evidence(model, glitch_columns(model.data, effect, g))
 
 
-def with_gates(model_json: dict, gates) -> dict:
-    """A report's ``model`` part (:func:`ttlcore.diagnose.report.model_json`) with the
-    model's gates listed among its effects (they change the data, not the columns) and
-    under ``gates`` (``[start, stop]`` [s] each)."""
-    gates = list(gates)
-    if not gates:
-        return model_json
-    out = dict(model_json)
-    out["effects"] = list(out["effects"]) + [g.spec() for g in gates]
-    out["cli_effects"] = ",".join([out["cli_effects"]] + [g.cli_spec() for g in gates])
-    out["gates"] = [list(g.span) for g in gates]
-    return out
+def effect_search(model, effect, coefficients=None) -> SearchResult:
+    """The search of ``effect``'s unset parameters against ``model``: a glitch's by
+    :func:`glitch_search` (its own evaluator, templates on stretches), any other's by
+    :func:`ttlcore.diagnose.search.profile_search`."""
+    if isinstance(effect, Glitch):
+        return glitch_search(model, effect)
+    return profile_search(model, effect, coefficients)

@@ -8,7 +8,7 @@ contributes
 
 - a column effect (drift, step, cross-coupling, second order, witness, fd-coupling,
   plugins): ``sum_k theta_k TDI(col_k)``, the exact TDI of the column's parts
-  (:func:`ttlcore.diagnose.effects.tdi_in_blocks`, the code path of the 24 regressors),
+  (:func:`ttlcore.effects.column_tdi.tdi_in_blocks`, the code path of the 24 regressors),
   filtered in time by the column's frequency response when it has one (an LTI filter
   commutes with TDI up to the arms' rate of change, ~1e-8, as the fit assumes);
 - a shifted-witness effect (timing offset, light-travel-time error) of total offset
@@ -29,9 +29,10 @@ import logging
 import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES
+from ..effects.column_tdi import effect_input_from_telemetry, tdi_in_blocks
+from ..effects.filters import filtered_many
 from ..tdi.combinations import AET_MATRIX
 from ..tdi.interpolation import timeshift
-from .effects import effect_input_from_telemetry, filtered_many, tdi_in_blocks
 
 __all__ = ["column_regressors", "effect_predictions", "fit_residual", "model_residual", "xyz_regressors"]
 
@@ -86,9 +87,9 @@ def effect_predictions(fit) -> dict[str, np.ndarray]:
 def column_regressors(tm, effect, *, order: int, delay_order: int) -> tuple[tuple[str, ...], np.ndarray, dict]:
     """X2, Y2, Z2 of the columns of a column effect on the telemetry's own samples.
 
-    Each column is the exact TDI of its parts (:func:`ttlcore.diagnose.effects.tdi_in_blocks`,
+    Each column is the exact TDI of its parts (:func:`ttlcore.effects.column_tdi.tdi_in_blocks`,
     the code path of the 24 regressors), filtered in time by the column's frequency response
-    when it has one (zero-padded linear convolution, :func:`ttlcore.diagnose.effects.filtered_many`;
+    when it has one (zero-padded linear convolution, :func:`ttlcore.effects.filters.filtered_many`;
     an LTI filter commutes with TDI up to the arms' rate of change, ~1e-8).  Columns sharing
     their parts (an fd-coupling's b0..b2) go through TDI once.
 

@@ -1,6 +1,6 @@
 """Searched nonlinear parameters of any effect: profile chi^2 over them, marginal evidence.
 
-An effect declares the options the diagnosis may search (:attr:`ttlcore.diagnose.effects.Effect.searched`,
+An effect declares the options the diagnosis may search (:attr:`ttlcore.effects.base.Effect.searched`,
 ``option -> (low, high, scale)``); left unset, :func:`profile_search` finds them against a
 fitted model and returns a :class:`SearchResult` (the effect at the estimates, estimates,
 intervals, delta chi^2, log Bayes factors at the best point and marginalised).  One
@@ -8,7 +8,7 @@ mechanism - chi^2 profiled over every linear parameter on a grid, refined locall
 evidence marginalised over the searched range - with an evaluator chosen by the kind of
 column:
 
-- filters on fixed base columns (:attr:`ttlcore.diagnose.effects.Column.response`, e.g.
+- filters on fixed base columns (:attr:`ttlcore.effects.columns.Column.response`, e.g.
   ``fd-coupling``): a point costs a few products over frequency bins (the base columns'
   cross-products with the model's columns, the data and each other, and their
   readout-noise responses, computed once per search); a grid (30 points per decade for a
@@ -54,6 +54,12 @@ from scipy import fft as sp_fft
 from scipy import optimize, special
 from scipy.optimize import minimize_scalar
 
+from ..effects.base import Effect
+from ..effects.column_tdi import columns_tdi, effect_input_from_telemetry
+from ..effects.columns import names_only_input
+from ..effects.coupling import LinearTTL, Step
+from ..effects.filters import filter_transform, readout_noise_factor
+from ..effects.shifted import OFFSET_OPTION
 from ..errors import ConfigError
 from ..estimate.spectra import psd_scale
 from ..tdi.combinations import MICHELSON, aet, build
@@ -67,17 +73,6 @@ from .columns import (
     eiv_weights,
     filtered_spectra,
     ttl_columns,
-)
-from .effects import (
-    OFFSET_OPTION,
-    Effect,
-    LinearTTL,
-    Step,
-    columns_tdi,
-    effect_input_from_telemetry,
-    filter_transform,
-    names_only_input,
-    readout_noise_factor,
 )
 from .evidence import (
     Evidence,
@@ -354,15 +349,16 @@ def _modulated_evaluator(model: ModelFit, effect, effect_at):
 
 
 def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
-    """Search the unset :attr:`~ttlcore.diagnose.effects.Effect.searched` options of
+    """Search the unset :attr:`~ttlcore.effects.base.Effect.searched` options of
     ``effect`` against ``model`` (see the module docstring): the step time by
     :func:`step_time_search`, the open offsets of a shifted-witness effect
-    (:meth:`~ttlcore.diagnose.effects._Linearised.open_offsets`) by :func:`offset_search`
+    (:meth:`~ttlcore.effects.shifted._Linearised.open_offsets`) by :func:`offset_search`
     against the model's columns, filters and other parameters by a grid and local
     refinement.
 
-    An effect with its own search (a method ``profile_search(model, coefficients)``, e.g.
-    :class:`ttlcore.diagnose.glitches.Glitch`) is searched by it.
+    An effect with its own search (a method ``profile_search(model, coefficients)``, for a
+    plugin's effect) is searched by it; a glitch goes to
+    :func:`ttlcore.diagnose.glitches.glitch_search` (:func:`ttlcore.diagnose.glitches.effect_search`).
 
     Raises ConfigError when the data have no telemetry and the columns need DWS series."""
     own = getattr(effect, "profile_search", None)
@@ -757,9 +753,9 @@ def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
     """Profile-likelihood search of the open offsets of a shifted-witness effect.
 
     The exact model of ``timing-offset`` and ``ltt-error`` replaces the witnesses of the
-    coefficients of group ``g`` (:meth:`~ttlcore.diagnose.effects._Linearised.shifted_members`) by
+    coefficients of group ``g`` (:meth:`~ttlcore.effects.shifted._Linearised.shifted_members`) by
     the same witnesses shifted by ``s delta_g`` (``s`` =
-    :attr:`~ttlcore.diagnose.effects._Linearised.d1_sign`).  A shift is the phase
+    :attr:`~ttlcore.effects.shifted._Linearised.d1_sign`).  A shift is the phase
     ``exp(2 pi i f s delta_g)`` of the whitened spectra (TDI commutes with it up to the
     arms' rate of change, ~1e-8; the segment taper changes by ``delta / T`` ~ 1e-4), so
     the chi^2 profiled over the linear parameters ``theta`` of the model's columns,
@@ -767,7 +763,7 @@ def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
         Q(delta) = dd - b(delta)^T [N(delta) - E]^-1 b(delta),     chi2 = 2 Q / kappa,
 
     is cheap to evaluate for many offsets.  Each open group's offset (option
-    ``offset.<group>`` unset, :meth:`~ttlcore.diagnose.effects._Linearised.open_offsets`) is
+    ``offset.<group>`` unset, :meth:`~ttlcore.effects.shifted._Linearised.open_offsets`) is
     scanned on a grid of spacing ``1 / (8 f_max)`` over its range
     (:func:`search_ranges`: ``+-settings.shift_span``) with the other groups held, the best
     point refined by bounded Brent minimisation; groups are visited in turn (coordinate
@@ -791,7 +787,7 @@ def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
     model : ModelFit
         The model without the effect; its columns must hold the shifted coefficients'
         (its normal equations and errors-in-variables term are the unshifted ones).
-    effect : ttlcore.diagnose.effects._Linearised
+    effect : ttlcore.effects.shifted._Linearised
         ``timing-offset``, ``ltt-error`` or a plugin with the same interface.
 
     Returns

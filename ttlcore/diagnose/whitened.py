@@ -25,6 +25,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES
+from ..effects.column_tdi import effect_input_from_telemetry, tdi_in_blocks
+from ..effects.coupling import LinearTTL
+from ..effects.registry import available_effects
 from ..errors import ConfigError
 from ..estimate.fit import (
     DWS_ASD,
@@ -41,12 +44,6 @@ from ..tdi.combinations import MICHELSON, aet
 from ..tdi.data import TDIData, lowpass_decimate, lowpass_taps
 from .adequacy import instrument_noise_csd, merged_band_edges
 from .columns import ColumnStore, read_only, regressor_columns
-from .effects import (
-    LinearTTL,
-    available_effects,
-    effect_input_from_telemetry,
-    tdi_in_blocks,
-)
 from .settings import DiagnoseSettings
 
 if TYPE_CHECKING:
@@ -366,7 +363,7 @@ def whiten_tdi(
 def whiten_telemetry(tm, settings: DiagnoseSettings | None = None, effect_modules=()) -> WhitenedData:
     """:class:`WhitenedData` of a :class:`~ttlcore.io.telemetry.Telemetry` (ours or
     lisainstrument's): every effect available.  TDI in blocks
-    (:func:`ttlcore.diagnose.effects.tdi_in_blocks`): the interpolation taps of a day would
+    (:func:`ttlcore.effects.column_tdi.tdi_in_blocks`): the interpolation taps of a day would
     hold ~4 GB."""
     s = settings or DiagnoseSettings()
     data, regs = tdi_in_blocks(

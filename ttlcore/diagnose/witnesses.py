@@ -33,9 +33,9 @@ from __future__ import annotations
 import numpy as np
 
 from ..conventions import ANGLES, LINKS, MOSAS, C, reverse
+from ..effects.registry import make_effects
 from ..estimate.spectra import segment_fft, window
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
-from .effects import make_effects
 
 
 def _responses(f, ltt_mean) -> np.ndarray:
@@ -276,7 +276,7 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
 
 def witness_spec(source: str, link: str, n_delay: int = 0, derivative: bool = False) -> str:
     """The ``--effects`` spelling of a library witness as an effect
-    (:class:`ttlcore.diagnose.effects.WitnessEffect`): ``witness:source=12.phi;link=23;delay=1``."""
+    (:class:`ttlcore.effects.placed.WitnessEffect`): ``witness:source=12.phi;link=23;delay=1``."""
     opts = [f"source={source}"]
     if link != source.split(".")[0]:
         opts.append(f"link={link}")

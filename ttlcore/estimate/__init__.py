@@ -1,6 +1,16 @@
 """Estimation: spectra, the noise CSD models, the GLS fit with errors in variables, the rolling
-fit, the emcee sampler, the subtraction, the batch analysis of a file and what a monitor of
-the subtraction computes (noise curves of a segment, the truth over a fit's window).
+fit, the emcee sampler, the subtraction and what a monitor of the subtraction computes
+(noise curves of a segment, the truth over a fit's window).  The batch analysis of a file
+(``ttl analyze``) is :mod:`ttlcore.app.analysis`.
+
+::
+
+    from ttlcore.estimate import FitSettings, fit_tdi, residual_aet
 """
 
-__all__ = ["analyze", "fit", "mcmc", "monitoring", "noise_psd", "rolling", "spectra", "subtraction"]
+from .fit import FitResult, FitSettings, fit_tdi
+from .mcmc import fit_mcmc
+from .rolling import RollingFit
+from .subtraction import residual_aet, subtract
+
+__all__ = ["FitResult", "FitSettings", "RollingFit", "fit_mcmc", "fit_tdi", "residual_aet", "subtract"]

@@ -828,7 +828,7 @@ def fit_tdi(
 ) -> tuple[FitResult, dict]:
     """Fit the coefficients on TDI outputs (any of X/Y/Z or A/E/T; A, E, T are used).
 
-    ``extra``: TDI of further regressors (model effects, :mod:`ttlcore.diagnose.effects`) on the same
+    ``extra``: TDI of further regressors (model effects, :mod:`ttlcore.effects`) on the same
     samples and channels, fitted jointly with ``td``'s (their names follow in the result);
     ``eiv_extra``: the DWS readouts whose noise each of them carries (:func:`eiv_parts`).
     """

@@ -1,5 +1,16 @@
-"""Figures (matplotlib): the batch analysis's paper-style figures and the diagnosis figure.
-Imported only where figures are drawn.
+"""Figures (matplotlib, imported inside the functions): the batch analysis's paper-style
+figures (``batch``), the diagnosis figures (``diagnosis``, ``transients``) and those of the
+paper's scenarios (``scenarios``).
 """
 
-__all__ = ["batch", "diagnosis"]
+from .batch import plot_asd_x, plot_coefficients
+from .diagnosis import plot_residual_vs_noise, plot_witness_coherence
+from .transients import plot_time_frequency
+
+__all__ = [
+    "plot_asd_x",
+    "plot_coefficients",
+    "plot_residual_vs_noise",
+    "plot_time_frequency",
+    "plot_witness_coherence",
+]

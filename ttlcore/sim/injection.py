@@ -17,7 +17,7 @@ An injection is any object with
 ``link_signal(ctx)`` -> ndarray, shape (6, n)
     The signal added to ``eta`` on the six links (canonical order) [fractional frequency].
 
-Kinds are resolved lazily by module (``"effect"`` -> :mod:`ttlcore.diagnose.effects`, ``"gw"`` ->
+Kinds are resolved lazily by module (``"effect"`` -> :mod:`ttlcore.effects.registry`, ``"gw"`` ->
 :mod:`ttlcore.gw.injection`), or by a ``"module"`` key naming any importable module or
 Python file that defines ``injection_from_description(description)``.
 """
@@ -40,7 +40,7 @@ from ..errors import ConfigError
 LOOKAHEAD = 64
 
 #: kind -> module defining ``injection_from_description(description)``.
-KIND_MODULES = {"effect": "ttlcore.diagnose.effects", "gw": "ttlcore.gw.injection"}
+KIND_MODULES = {"effect": "ttlcore.effects.registry", "gw": "ttlcore.gw.injection"}
 
 
 @dataclass

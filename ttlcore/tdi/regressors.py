@@ -26,7 +26,7 @@ def witness_placement(mosa: str, side: str) -> tuple[str, bool]:
     Side ``rx``: on the MOSA's own link ``mosa``, undelayed.  Side ``tx``: on the link it
     transmits on, ``reverse(mosa)``, after that link's delay ``D_ij`` (``delayed`` True).
     The TTL regressors (:func:`placement`) and the diagnosis's witness columns
-    (:mod:`ttlcore.diagnose.effects`) are both placed so.
+    (:mod:`ttlcore.effects`) are both placed so.
     """
     return (mosa, False) if side == "rx" else (reverse(mosa), True)
 

@@ -4,7 +4,7 @@ The diagnosis never loads this module: it must find these effects through its wi
 witness effects and frequency-dependent couplings.  The filters are applied here in the
 time domain through the FFT of the whole simulated series (the simulator is run in one
 chunk by the tests), with the analog responses written out independently of
-``ttlcore.diagnose.effects.rational_basis``:
+``ttlcore.effects.filters.rational_basis``:
 
 - ``blind-resonance``: ``g * w0^2 / (w0^2 - w^2 + i w w0 / Q)`` (a mechanical resonance,
   gain ``g Q`` at ``f0``);
@@ -16,7 +16,7 @@ chunk by the tests), with the analog responses written out independently of
 
 import numpy as np
 
-from ttlcore.diagnose.effects import Column, Effect, EffectInjection, Part
+from ttlcore.effects import Column, Effect, EffectInjection, Part
 from ttlcore.errors import ConfigError
 
 

@@ -14,11 +14,11 @@ import numpy as np
 import pytest
 
 from ttlcore.diagnose.columns import assemble, effect_columns, rewhitened, ttl_columns
-from ttlcore.diagnose.effects import make_effects
 from ttlcore.diagnose.model_fit import gram, normal_equations, rhs
 from ttlcore.diagnose.prediction import column_regressors
 from ttlcore.diagnose.settings import DiagnoseSettings
 from ttlcore.diagnose.whitened import whiten_telemetry
+from ttlcore.effects import make_effects
 from ttlcore.sim.simulator import SimulationConfig, simulate
 
 

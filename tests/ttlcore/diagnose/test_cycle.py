@@ -11,8 +11,8 @@ import numpy as np
 import pytest
 
 from ttlcore.diagnose.diagnoser import refit
-from ttlcore.diagnose.effects import injection_from_spec, make_effects
 from ttlcore.diagnose.whitened import whiten_telemetry
+from ttlcore.effects import injection_from_spec, make_effects
 from ttlcore.sim.simulator import SimulationConfig, simulate
 
 PERIOD = 7200.0  # s

@@ -23,11 +23,11 @@ from ttlcore.cli.main import main  # noqa: E402
 from ttlcore.conventions import COEFFICIENT_NAMES  # noqa: E402
 from ttlcore.diagnose.candidates import candidates, shifted_evidence  # noqa: E402
 from ttlcore.diagnose.diagnoser import diagnose, refit, text_report  # noqa: E402
-from ttlcore.diagnose.effects import injection_from_spec, make_effects  # noqa: E402
 from ttlcore.diagnose.evidence import laplace_evidence, log_bayes_factor  # noqa: E402
 from ttlcore.diagnose.fitting import fit_model  # noqa: E402
 from ttlcore.diagnose.settings import DiagnoseSettings  # noqa: E402
 from ttlcore.diagnose.whitened import fft_length, whiten_telemetry  # noqa: E402
+from ttlcore.effects import injection_from_spec, make_effects  # noqa: E402
 from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
 from ttlcore.tdi.data import compute_tdi  # noqa: E402
 from ttlcore.tdi.interpolation import timeshift  # noqa: E402
@@ -256,7 +256,7 @@ def _check_lisainstrument(tm, truth_map, delta=0.12):
 
 PLUGIN = '''
 """A user's effect: DWS of MOSA 12 leaking into the readout of link 23 (made up for the test)."""
-from ttlcore.diagnose.effects import Column, Effect, Part
+from ttlcore.effects import Column, Effect, Part
 
 
 class StrayLight(Effect):

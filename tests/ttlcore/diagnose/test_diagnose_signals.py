@@ -26,7 +26,7 @@ import pytest
 from ttlcore.cli.diagnose import split_effects
 from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
 from ttlcore.diagnose.diagnoser import diagnose, text_report
-from ttlcore.diagnose.effects import injection_from_spec
+from ttlcore.effects import injection_from_spec
 from ttlcore.sim.simulator import SimulationConfig, simulate
 
 pytestmark = pytest.mark.science

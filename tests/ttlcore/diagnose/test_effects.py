@@ -5,16 +5,16 @@ import numpy as np
 import pytest
 
 from ttlcore.conventions import COEFFICIENT_NAMES, LINKS, MOSAS, C
-from ttlcore.diagnose.effects import (
+from ttlcore.effects import (
     EFFECTS,
     available_effects,
     columns_tdi,
-    derivative,
     effect_input_from_telemetry,
     injection_from_spec,
     parse_effect_spec,
     tdi_in_blocks,
 )
+from ttlcore.effects.filters import derivative
 from ttlcore.errors import ConfigError
 from ttlcore.estimate.fit import FitSettings, fit_tdi
 from ttlcore.sim.coefficients import make_coefficients
@@ -277,7 +277,7 @@ def test_plugin_module_by_path(tmp_path):
 
 
 PLUGIN = '''
-from ttlcore.diagnose.effects import Column, Effect, Part
+from ttlcore.effects import Column, Effect, Part
 
 
 class StrayLight(Effect):
@@ -300,7 +300,7 @@ EFFECTS = [StrayLight]
 def test_rational_basis_spans_the_resonance_the_first_order_path_and_a_constant():
     # pole2: the resonance 1 / (1 - (f/f0)^2 + i f / (f0 q)) is b0; the constant coupling is
     # b0 + b1 / q + b2; pole1: the low-pass 1 / (1 + i f / fc) is b0, the constant b0 + b1
-    from ttlcore.diagnose.effects import rational_basis
+    from ttlcore.effects.filters import rational_basis
 
     f = np.geomspace(1e-3, 1.0, 200)
     f0, q = 0.08, 15.0
@@ -313,7 +313,7 @@ def test_rational_basis_spans_the_resonance_the_first_order_path_and_a_constant(
 
 
 def test_fd_coupling_declares_its_searched_poles_and_holds_given_ones():
-    from ttlcore.diagnose.effects import make_effects
+    from ttlcore.effects import make_effects
 
     searched, held = make_effects(
         ["fd-coupling:source=12.phi,link=23,delay=1", "fd-coupling:mosas=12,filter=pole1,fc=0.05"]
@@ -336,7 +336,8 @@ def test_fd_coupling_declares_its_searched_poles_and_holds_given_ones():
 def test_fd_coupling_responses_share_the_basis_per_frequency_array():
     # the columns' responses compute the basis once per frequency array they are called
     # with in turn; another array (or the same values in a new array) gets its own basis
-    from ttlcore.diagnose.effects import make_effects, rational_basis
+    from ttlcore.effects import make_effects
+    from ttlcore.effects.filters import rational_basis
 
     (eff,) = make_effects(["fd-coupling:source=12.phi,link=23,delay=1,f0=0.08,q=15"])
     resp = eff.response_functions()

@@ -24,17 +24,13 @@ import blind_signals as bs  # noqa: E402
 from ttlcore.cli.diagnose import split_effects  # noqa: E402
 from ttlcore.conventions import COEFFICIENT_NAMES, LINKS  # noqa: E402
 from ttlcore.diagnose.diagnoser import diagnose, refit, text_report  # noqa: E402
-from ttlcore.diagnose.effects import make_effects, parse_effect_spec  # noqa: E402
 from ttlcore.diagnose.fitting import fit_model  # noqa: E402
-from ttlcore.diagnose.glitches import (  # noqa: E402
-    Gate,
-    GatedData,
-    Glitch,
-    gated_data,
-    glitch_search,
-    glitch_velocity,
-)
+from ttlcore.diagnose.gating import GatedData, gated_data  # noqa: E402
+from ttlcore.diagnose.glitches import glitch_search  # noqa: E402
+from ttlcore.diagnose.transients import GATE_TAPER as TRANSIENTS_GATE_TAPER  # noqa: E402
 from ttlcore.diagnose.whitened import whiten_telemetry  # noqa: E402
+from ttlcore.effects import Gate, Glitch, make_effects, parse_effect_spec  # noqa: E402
+from ttlcore.effects.glitch import GATE_TAPER, glitch_velocity  # noqa: E402
 from ttlcore.errors import ConfigError  # noqa: E402
 from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
 
@@ -99,6 +95,9 @@ def test_specs_accept_units_and_name_the_glitch():
     for bad in ("gate:start=10", "gate:start=10,stop=5"):
         with pytest.raises(ConfigError):
             parse_effect_spec(bad)
+    # the gate effect's default taper is the transient finder's gate's (two floors, one value)
+    assert GATE_TAPER == TRANSIENTS_GATE_TAPER
+    assert parse_effect_spec("gate:start=1,stop=2")[0].options["taper"] == GATE_TAPER
 
 
 # ---------------------------------------------------------------------------

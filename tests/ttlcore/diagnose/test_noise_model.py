@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 from ttlcore.diagnose.diagnoser import DiagnoseSettings, diagnose
-from ttlcore.diagnose.effects import injection_from_spec, make_effects
 from ttlcore.diagnose.noise_model import BOUNDS, NoiseModel, basis_csds, fit_noise_model, profile_noise_model
 from ttlcore.diagnose.whitened import whiten_telemetry
+from ttlcore.effects import injection_from_spec, make_effects
 from ttlcore.estimate.fit import model_csd
 from ttlcore.estimate.noise_psd import tdi_noise_csd
 from ttlcore.io.telemetry import Telemetry

@@ -21,16 +21,12 @@ from ttlcore.cli.diagnose import split_effects
 from ttlcore.cli.main import main
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.diagnoser import diagnose, text_report
-from ttlcore.diagnose.effects import (
-    _Linearised,
-    injection_from_spec,
-    make_effects,
-    parse_effect_spec,
-)
 from ttlcore.diagnose.fitting import fit_model
 from ttlcore.diagnose.report import model_json, recommendation
 from ttlcore.diagnose.search import profile_search, search_ranges
 from ttlcore.diagnose.whitened import whiten_telemetry
+from ttlcore.effects import injection_from_spec, make_effects, parse_effect_spec
+from ttlcore.effects.shifted import _Linearised
 from ttlcore.errors import ConfigError
 from ttlcore.io.telemetry import write_telemetry
 from ttlcore.sim.simulator import SimulationConfig, simulate

@@ -17,8 +17,8 @@ import numpy as np
 import pytest
 
 from ttlcore.diagnose.diagnoser import DiagnoseSettings, refit
-from ttlcore.diagnose.effects import injection_from_spec, tdi_in_blocks
 from ttlcore.diagnose.prediction import effect_predictions, fit_residual
+from ttlcore.effects import injection_from_spec, tdi_in_blocks
 from ttlcore.sim.simulator import NoiseSwitches, SimulationConfig, simulate
 
 BLIND = str(Path(__file__).with_name("blind_effects.py"))

@@ -1,4 +1,4 @@
-"""Tests of the science part of reprocessing (ttlcore.diagnose.reprocess): trends across days with
+"""Tests of the science part of reprocessing (ttlcore.app.reprocessing): trends across days with
 the live monitor's step and drift tests (:mod:`ttlcore.diagnose.trends`).  The command itself, on
 real Dask clusters, is tested in tests/streamer/test_reprocess_command.py."""
 
@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from ttlcore.app.reprocessing import DAY_TRENDS, day_trends
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY
-from ttlcore.diagnose.reprocess import DAY_TRENDS, day_trends
 
 
 def _rows(n_days: int, rng, step=None, drift=None):

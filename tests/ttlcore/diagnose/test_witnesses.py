@@ -2,10 +2,10 @@
 
 import numpy as np
 
-from ttlcore.diagnose.effects import Column, Effect, Part
 from ttlcore.diagnose.fitting import fit_model
 from ttlcore.diagnose.whitened import whiten_telemetry
 from ttlcore.diagnose.witnesses import witness_search
+from ttlcore.effects import Column, Effect, Part
 from ttlcore.sim.simulator import SimulationConfig, simulate
 
 
@@ -54,8 +54,8 @@ def test_every_library_witness_is_an_effect_spelled_as_the_report_prints_it():
     # one column of the witness effect, whatever the channel, link, delay or derivative
     from ttlcore.cli.diagnose import split_effects
     from ttlcore.conventions import ANGLES, LINKS, MOSAS
-    from ttlcore.diagnose.effects import make_effects
     from ttlcore.diagnose.witnesses import witness_spec
+    from ttlcore.effects import make_effects
 
     specs = [
         witness_spec(f"{m}.{a}", link, n, d)

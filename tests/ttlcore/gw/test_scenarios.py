@@ -1,4 +1,4 @@
-"""Tests of ``ttl scenarios`` (ttlcore.gw.scenarios).
+"""Tests of ``ttl scenarios`` (ttlcore.app.scenarios).
 
 The fast test runs one short merger case (3 h, one variant): the files, the table, the
 GW-intact check and the bookkeeping of "with GW minus without". The science test runs the
@@ -16,8 +16,8 @@ import time
 import numpy as np
 import pytest
 
+from ttlcore.app.scenarios import PAPER_CASES, run_scenarios
 from ttlcore.errors import TTLError
-from ttlcore.gw.scenarios import PAPER_CASES, run_scenarios
 
 SHORT_MERGER = ["--cases", "mbhb2", "--variants", "paper", "--duration", "3h", "--seed", "2", "--quiet"]
 

@@ -2,7 +2,7 @@
 :class:`~ttlcore.sim.simulator.SimulationConfig` they describe.
 
 The same options serve ``ttl simulate`` (:mod:`ttlcore.cli.main`) and a replay simulated on
-the fly (``ttl run --simulate "<options>"``, the replayer stage): :func:`~ttlcore.sim.options.add_simulation_options`
+the fly (``ttl run --simulate "<options>"``, the replayer stage): :func:`~ttlcore.cli.simulation_options.add_simulation_options`
 declares them on any :mod:`argparse` parser, :func:`simulation_config_from_args` turns the
 parsed options into a configuration, and :func:`simulation_config` does both for a string of
 words.  Errors name the option at fault.
@@ -14,13 +14,13 @@ import argparse
 import shlex
 
 from ..conventions import COEFFICIENT_NAMES, parse_duration
-from ..diagnose.effects import injection_from_spec
+from ..effects.registry import injection_from_spec
 from ..errors import ConfigError, TTLError
 from ..gw.injection import parse_gw_spec
-from .coefficients import make_coefficients
-from .options import add_simulation_options
-from .orbits import make_orbit
-from .simulator import NoiseSwitches, SimulationConfig
+from ..sim.coefficients import make_coefficients
+from ..sim.orbits import make_orbit
+from ..sim.simulator import NoiseSwitches, SimulationConfig
+from .simulation_options import add_simulation_options
 
 
 def _parse_assignments(text: str, option: str) -> dict[str, float]:
@@ -78,7 +78,7 @@ def simulation_config_from_args(args, truth_noises=()):
 
 
 def _effect_injections(args) -> tuple:
-    """The ``--inject`` options as simulator injections (:mod:`ttlcore.diagnose.effects`)."""
+    """The ``--inject`` options as simulator injections (:mod:`ttlcore.effects`)."""
     if not getattr(args, "inject", None):
         return ()
 

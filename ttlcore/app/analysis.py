@@ -3,7 +3,7 @@
 
 ::
 
-    from ttlcore.estimate.analyze import analyze
+    from ttlcore.app.analysis import analyze
     out = analyze("day.h5", truth_path="day.truth.h5", out_dir="day-analysis")
     out["fit"].coefficients, out["paths"]["fit_json"]
 
@@ -39,6 +39,9 @@ import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES, C
 from ..errors import TelemetryError, TTLError
+from ..estimate.fit import DEFAULT_BAND, FitSettings, dws_asd_from_config, fit_tdi, segment_spectra
+from ..estimate.mcmc import fit_mcmc
+from ..estimate.subtraction import analyse_subtraction
 from ..io.atomic import write_json
 from ..io.lisainstrument import lisainstrument_truth
 from ..io.reader import file_kind, read_telemetry
@@ -47,9 +50,6 @@ from ..io.truth import read_truth
 from ..io.truth import truth_path as default_truth_path
 from ..plots.batch import asd_x_curves, plot_asd_x, plot_coefficients
 from ..tdi.data import compute_tdi
-from .fit import DEFAULT_BAND, FitSettings, dws_asd_from_config, fit_tdi, segment_spectra
-from .mcmc import fit_mcmc
-from .subtraction import analyse_subtraction
 
 log = logging.getLogger(__name__)
 

@@ -2,14 +2,14 @@
 
 ::
 
-    from ttlcore.diagnose.reprocess import DayJob, dask_client, reprocess
+    from ttlcore.app.reprocessing import DayJob, dask_client, reprocess
     jobs = [DayJob(name=p.stem, data=str(p), out_dir=f"out/{p.stem}") for p in days]
     with dask_client(workers=2) as client:
         summary = reprocess(jobs, "out", client=client)
     summary["days"][0]["coefficients"], summary["trends"]["alerts"]
 
 Each day is one task (:func:`process_day`): the batch analysis of ``ttl analyze``
-(:func:`ttlcore.estimate.analyze.analyze`: TDI, GLS fit of the 24 coefficients, subtraction,
+(:func:`ttlcore.app.analysis.analyze`: TDI, GLS fit of the 24 coefficients, subtraction,
 ``fit.json`` and figures) and the diagnosis of ``ttl diagnose``
 (:func:`ttlcore.diagnose.diagnoser.diagnose`: the model's chi^2/dof against the fixed instrument noise
 model per band and per time slice, the ranking of missing effects, the recommendation),
@@ -53,14 +53,14 @@ from pathlib import Path
 import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES, DAY
+from ..diagnose.diagnoser import DiagnoseSettings, diagnose, strip_internals
+from ..diagnose.trends import TrendMonitor, TrendSettings
 from ..errors import TTLError
-from ..estimate.analyze import analyze
 from ..estimate.fit import DEFAULT_BAND, FitSettings
 from ..io.atomic import write_json, write_text
 from ..io.reader import read_telemetry
 from ..io.truth import truth_path
-from .diagnoser import DiagnoseSettings, diagnose, strip_internals
-from .trends import TrendMonitor, TrendSettings
+from .analysis import analyze
 
 log = logging.getLogger(__name__)
 

@@ -1,6 +1,6 @@
 """The options that describe a simulation, declared on an :mod:`argparse` parser.
 
-Kept apart from :mod:`ttlcore.sim.spec` (which turns them into a configuration and imports the
+Kept apart from :mod:`ttlcore.cli.simulation` (which turns them into a configuration and imports the
 simulator) so that the ``ttl`` parser is built without importing the science: ``ttl --help``
 and argument errors answer at once.
 """

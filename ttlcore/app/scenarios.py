@@ -65,29 +65,23 @@ from pathlib import Path
 
 import numpy as np
 
-from ..cli.progress import status_line
 from ..conventions import (
     COEFFICIENT_NAMES,
     DAY,
-    PAPER_ORDER,
     C,
-    ffd_to_displacement_asd,
-    paper_ordered_names,
-    parse_duration,
 )
-from ..diagnose.reprocess import dask_client
 from ..errors import TTLError
 from ..estimate.fit import DEFAULT_BAND, FitSettings, fit_tdi
 from ..estimate.noise_psd import requirement_x2
 from ..estimate.spectra import log_average, welch_asd
 from ..estimate.subtraction import ttl_in_tdi
+from ..gw.injection import parse_gw_spec
 from ..io.atomic import write_json, write_text
-from ..plots.batch import _save
+from ..plots.scenarios import scenario_figures
 from ..sim.coefficients import make_coefficients
 from ..sim.simulator import NoiseSwitches, SimulationConfig, simulate
 from ..tdi.combinations import MICHELSON, build
 from ..tdi.data import compute_tdi
-from .injection import parse_gw_spec
 
 __all__ = ["Case", "PAPER_CASES", "VARIANTS", "run_scenarios"]
 
@@ -363,113 +357,11 @@ def analyse_case(
     out["error_within_limit"] = out["max_abs_error_mm"] < out["limit_mm"]
     out["shift_within_2sigma"] = out["shift_over_sigma_max"] < 2.0
     if figures and out_dir is not None:
-        out["figures"] = _figures(
-            case, out, f, P, fc, req, band, C * float(np.mean(td.ltt_mean)), res, ref, truth, out_dir
+        arm = C * float(np.mean(td.ltt_mean))
+        out["figures"] = scenario_figures(
+            case, out, f, P, fc, req, band, arm, res, ref, truth, out_dir, intact_factor=GW_INTACT_FACTOR
         )
     return out
-
-
-def _figures(case, summary, f, P, fc, req, band, arm, res, ref, truth, out_dir: Path) -> dict:
-    from matplotlib.figure import Figure
-
-    paths = {}
-    names = ["data", "noise_without_ttl", "residual", "ttl_residual", "gw", "ttl_plus_gw_residual"]
-    fcl, lp = log_average(f[1:], np.stack([P[k][1:] for k in names]))
-    asd = {k: ffd_to_displacement_asd(np.sqrt(lp[i]), fcl) for i, k in enumerate(names)}
-    req_x = ffd_to_displacement_asd(np.sqrt(req), fc)
-    styles = {
-        "data": ("X with TTL (and GW)", dict(color="black", lw=1.3)),
-        "noise_without_ttl": ("X without TTL", dict(color="0.6", lw=3.0)),
-        "residual": ("residual, fitted coefficients", dict(color="tab:blue", lw=1.3)),
-        "ttl_residual": ("TTL residual", dict(color="tab:green", lw=1.3, ls="-.")),
-        "gw": ("GW response", dict(color="tab:purple", lw=1.3)),
-        "ttl_plus_gw_residual": ("TTL + GW only, after subtraction", dict(color="gold", lw=1.6, ls="--")),
-    }
-
-    def draw(keys, path, fmin, fmax, title):
-        fig = Figure(figsize=(10.5, 5.4), layout="constrained")
-        ax = fig.add_subplot()
-        for k in keys:
-            if k == "gw" and not case.gw:
-                continue
-            label, st = styles[k]
-            ax.loglog(fcl, asd[k], label=label, **st)
-        ax.loglog(fc, req_x, label="LISA requirement", color="0.4", lw=1.2, ls="--")
-        ax.axvspan(band[0], band[1], color="tab:orange", alpha=0.07, lw=0, label=f"fit band {band[0]:g}-{band[1]:g} Hz")
-        ax.set_xlim(fmin, fmax)
-        sel = (fcl >= fmin) & (fcl <= fmax)
-        vals = np.concatenate(
-            [asd[k][sel] for k in keys if (k != "gw" or case.gw)] + [req_x[(fc >= fmin) & (fc <= fmax)]]
-        )
-        vals = vals[vals > 0]
-        ax.set_ylim(max(vals.min() / 2, vals.max() * 1e-9), vals.max() * 3)
-        ax.set_xlabel("Frequency [Hz]")
-        ax.set_ylabel("ASD of TDI X [m/√Hz]")
-        ax.grid(True, which="major", alpha=0.35)
-        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8.5, borderaxespad=0)
-        ax.set_title(title, fontsize=10)
-        return _save(fig, path)
-
-    title = f"{case.title}: max |error| {summary['max_abs_error_mm']:.4f} mm/rad, chi2/dof {summary['chi2_dof']:.3f}"
-    paths["asd"] = str(
-        draw(
-            ["data", "noise_without_ttl", "residual", "ttl_residual", "gw"],
-            out_dir / f"{case.name}_asd.png",
-            1e-4,
-            1.0,
-            title,
-        )
-    )
-    if case.gw:
-        gi = summary["gw_intact"]
-        t2 = (
-            f"{case.title}: GW intact: {gi['n_bins']} bins with GW > {GW_INTACT_FACTOR:g} x TTL residual, "
-            f"max deviation {100 * (gi['max_relative_deviation'] or 0):.2f} %"
-        )
-        paths["gw_intact"] = str(
-            draw(
-                ["data", "noise_without_ttl", "residual", "gw", "ttl_plus_gw_residual"],
-                out_dir / f"{case.name}_gw_intact.png",
-                1e-4,
-                3e-2,
-                t2,
-            )
-        )
-    # coefficients: with GW (fit - truth) and the reference
-
-    order = list(paper_ordered_names())
-    idx = [COEFFICIENT_NAMES.index(n) for n in order]
-    xpos = np.array([5 * PAPER_ORDER.index(n.split(".")[0]) + (k % 4) for k, n in enumerate(order)], dtype=float)
-    fig = Figure(figsize=(10, 4.8), layout="constrained")
-    ax = fig.add_subplot()
-    ax.axhline(0, color="black", lw=0.8)
-    lim = summary["limit_mm"]
-    ax.axhline(lim, color="tab:red", lw=1, ls="--", label=f"±{lim:g} mm/rad")
-    ax.axhline(-lim, color="tab:red", lw=1, ls="--")
-    e_ref = 1e3 * (ref.coefficients - truth)[idx]
-    e_gw = 1e3 * (res.coefficients - truth)[idx]
-    ax.errorbar(
-        xpos - 0.15, e_ref, yerr=1e3 * ref.sigma[idx], fmt="o", ms=4, color="0.55", capsize=2.5, label="without GW"
-    )
-    if case.gw:
-        ax.errorbar(
-            xpos + 0.15, e_gw, yerr=1e3 * res.sigma[idx], fmt="o", ms=4, color="tab:blue", capsize=2.5, label="with GW"
-        )
-    ax.set_xticks(xpos, [n.split(".", 1)[1].replace(".", " ") for n in order], fontsize=7, rotation=90)
-    for g in range(1, len(PAPER_ORDER)):
-        ax.axvline(5 * g - 1, color="0.8", lw=0.8, ls=":")
-    ym = max(
-        1.2 * lim,
-        1.15 * float(np.max(np.abs(e_ref) + 1e3 * ref.sigma[idx])),
-        1.15 * float(np.max(np.abs(e_gw) + 1e3 * res.sigma[idx])),
-    )
-    ax.set_ylim(-ym, ym)
-    ax.set_ylabel("C$_{fit}$ − C$_{true}$ [mm/rad]")
-    ax.set_title(f"{case.title} (MOSAs {', '.join(PAPER_ORDER)})", fontsize=10, loc="left")
-    ax.legend(fontsize=8.5, loc="lower right")
-    ax.grid(True, axis="y", alpha=0.3)
-    paths["coefficients"] = str(_save(fig, out_dir / f"{case.name}_coefficients.png"))
-    return paths
 
 
 def _md_table(rows: list[dict]) -> str:
@@ -543,7 +435,7 @@ def run_scenarios(
         Noise seed, shared by every case (same realisation with and without GW).
     client : distributed.Client, optional
         Run the cases on this Dask cluster, one task per variant and base simulation
-        (:func:`ttlcore.diagnose.reprocess.dask_client`); the summary equals the serial run's except
+        (:func:`ttlcore.app.reprocessing.dask_client`); the summary equals the serial run's except
         ``timings_s`` (per variant: the wait for its tasks).
 
     Returns
@@ -639,53 +531,3 @@ def run_scenarios(
         md.append(_md_table(v["cases"]))
     write_text(out_dir / "summary.md", "".join(md))
     return summary
-
-
-# ---------------------------------------------------------------------------
-# ttl scenarios
-# ---------------------------------------------------------------------------
-
-
-def _cmd_scenarios(args) -> int:
-    """``ttl scenarios`` (options: :mod:`ttlcore.cli.main`)."""
-
-    duration = parse_duration(args.duration, "--duration")
-    cases = None if args.cases in ("all-cases", "") else [c.strip() for c in args.cases.split(",") if c.strip()]
-    variants = [v.strip() for v in args.variants.split(",") if v.strip()]
-
-    if args.workers < 0:
-        raise TTLError(f"--workers: must be >= 0, got {args.workers}")
-    with status_line("ttl scenarios", args.quiet) as progress:  # in place on a terminal
-        options = dict(
-            cases=cases,
-            variants=variants,
-            duration=duration,
-            seed=args.seed,
-            figures=not args.no_figures,
-            progress=progress,
-        )
-        if args.scheduler or args.workers:
-            with dask_client(args.scheduler, workers=args.workers or 2) as client:
-                s = run_scenarios(args.out, client=client, **options)
-        else:
-            s = run_scenarios(args.out, **options)
-    for vname, v in s["variants"].items():
-        print(f"[{vname}] {v['title']}")
-        for r in v["cases"]:
-            gi = r["gw_intact"]
-            gtxt = (
-                ""
-                if not r["gw"]
-                else (
-                    f", GW intact {'ok' if gi['pass'] else 'FAIL'} ({gi['n_bins']} bins)"
-                    if gi["pass"] is not None
-                    else ", GW never 10x TTL residual"
-                )
-            )
-            print(
-                f"  {r['case']:<15} max |err| {r['max_abs_error_mm']:.4f} mm/rad "
-                f"({'ok' if r['error_within_limit'] else 'ABOVE ' + str(r['limit_mm'])}), chi2/dof {r['chi2_dof']:.3f}, "
-                f"shift {r['shift_over_sigma_max']:.2f} sigma{gtxt}"
-            )
-    print(f"wrote {Path(args.out) / 'summary.md'}, summary.json and figures ({s['timings_s']['total']:.0f} s)")
-    return 0

@@ -1,0 +1,53 @@
+"""Model effects: named groups of extra regressors for the TTL fit, and their injections.
+
+An *effect* is a physically motivated set of extra terms in ``eta``, linear in its
+parameters, written as regressor columns (docs/diagnostics.md): the diagnosis fits them
+(:mod:`ttlcore.diagnose`), the simulator injects them (:mod:`ttlcore.sim.injection`).  One
+concept per module:
+
+``columns`` (:class:`Part`, :class:`Column`, :class:`EffectInput`), ``base`` (the
+:class:`Effect` base class), ``filters`` (filter and derivative numerics), ``coupling``
+(linear-ttl, drift, step, cross-coupling, second-order), ``shifted`` (timing-offset,
+ltt-error and their exact injection), ``placed`` (witness, fd-coupling), ``glitch`` (glitch
+and gate), ``injection`` (an effect injected into the simulator), ``column_tdi`` (TDI of
+columns) and ``registry`` (lookup by name, plugins, spec parsing).
+
+::
+
+    from ttlcore.effects import make_effects, injection_from_spec
+    drift, = make_effects("drift:mosas=12")
+    inj = injection_from_spec("drift:12.phi.rx=1e-3")
+"""
+
+from .base import Effect
+from .column_tdi import columns_tdi, effect_input_from_telemetry, tdi_in_blocks
+from .columns import Column, EffectInput, Part
+from .glitch import Gate, Glitch
+from .injection import EffectInjection
+from .registry import (
+    EFFECTS,
+    available_effects,
+    injection_from_spec,
+    load_effect_module,
+    make_effects,
+    parse_effect_spec,
+)
+
+__all__ = [
+    "EFFECTS",
+    "Column",
+    "Effect",
+    "EffectInjection",
+    "EffectInput",
+    "Gate",
+    "Glitch",
+    "Part",
+    "available_effects",
+    "columns_tdi",
+    "effect_input_from_telemetry",
+    "injection_from_spec",
+    "load_effect_module",
+    "make_effects",
+    "parse_effect_spec",
+    "tdi_in_blocks",
+]

@@ -1,0 +1,104 @@
+"""TDI of effect columns: the code path of the 24 TTL regressors.
+
+Each column is the sum of its parts placed on their links, through the block engine
+:func:`ttlcore.tdi.engine.tdi_columns` (:func:`columns_tdi`, :func:`tdi_in_blocks`); the
+diagnosis builds its columns from the telemetry's DWS readouts
+(:func:`effect_input_from_telemetry`).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ..conventions import (
+    LINKS,
+)
+from ..tdi.combinations import MICHELSON
+from ..tdi.engine import Part as EnginePart
+from ..tdi.engine import tdi_columns
+from .columns import Column, EffectInput
+
+
+def effect_input_from_telemetry(tm, coefficients=None) -> EffectInput:
+    """:class:`EffectInput` from a :class:`~ttlcore.io.telemetry.Telemetry` (DWS readouts)."""
+    t = tm.t0 + np.arange(tm.size) / tm.fs
+    return EffectInput(
+        t=t,
+        fs=tm.fs,
+        phi_dot=np.asarray(tm.dws_phi),
+        eta_dot=np.asarray(tm.dws_eta),
+        ltt=np.asarray(tm.ltt),
+        coefficients=coefficients,
+        t_ref=float(t[0] + t[-1]) / 2,
+    )
+
+
+def tdi_in_blocks(
+    ltt: np.ndarray,
+    fs: float,
+    columns=(),
+    eta: np.ndarray | None = None,
+    *,
+    order: int,
+    delay_order: int,
+    block: int = 43200,
+) -> tuple:
+    """TDI (X2, Y2, Z2) of regressor columns (:func:`columns_tdi`) and optionally of ``eta``,
+    by the block engine :func:`ttlcore.tdi.engine.tdi_columns` (each block with the history
+    its delays reach back to; memory does not grow with the data).  The first ~70 s are NaN.
+
+    Parameters
+    ----------
+    ltt : ndarray, shape (6, n)
+        Light travel times [s].
+    fs : float
+        Sampling rate [Hz].
+    columns : list of Column
+        Parts sampled like ``ltt``.
+    eta : ndarray, shape (6, n), optional
+        Link readouts.
+    order, delay_order : int
+        Lagrange orders of the data and of the delay interpolation.
+    block : int
+        Kept for callers; the engine chooses its own blocks (~2.2 h at 4 Hz), which bound
+        the memory, so the result equals the one-call :func:`columns_tdi` exactly.
+
+    Returns
+    -------
+    data : ndarray (3, n) or None
+        TDI of ``eta``.
+    regressors : ndarray (3, len(columns), n)
+    """
+    parts = _engine_parts(columns, first=1)
+    if eta is not None:
+        parts += [EnginePart(0, link, (), np.asarray(eta)[k]) for k, link in enumerate(LINKS)]
+    out = tdi_columns(parts, 1 + len(columns), ltt, fs, combinations=MICHELSON, order=order, delay_order=delay_order)
+    return (None if eta is None else out[:, 0]), out[:, 1:]
+
+
+def _engine_parts(columns, first: int = 0) -> list:
+    """The parts of ``columns`` as :class:`ttlcore.tdi.engine.Part` (column ``first + j``)."""
+    return [EnginePart(first + j, p.link, p.extra, p.series) for j, col in enumerate(columns) for p in col.parts]
+
+
+def columns_tdi(columns: list[Column], built) -> np.ndarray:
+    """TDI (the combinations of ``built``, :func:`ttlcore.tdi.combinations.build`) of
+    regressor columns: each column is the sum of its parts placed on their links, through
+    the block engine :func:`ttlcore.tdi.engine.tdi_columns` - the code path of the 24 TTL
+    regressors.
+
+    Returns
+    -------
+    ndarray, shape (len(built), len(columns), n)
+    """
+    b = built[0]
+    return tdi_columns(
+        _engine_parts(columns),
+        len(columns),
+        b.ltt,
+        b.fs,
+        history=b.history,
+        combinations=[x.combination for x in built],
+        order=b.order,
+        delay_order=b.delay_order,
+    )
