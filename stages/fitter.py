@@ -90,7 +90,7 @@ from ttlcore.diagnose.candidates import candidates
 from ttlcore.diagnose.diagnoser import diagnose, refit, text_report
 from ttlcore.diagnose.prediction import column_regressors, effect_predictions
 from ttlcore.effects import make_effects
-from ttlcore.effects.glitch import split_gates
+from ttlcore.effects.glitch import merge_gates, split_gates
 from ttlcore.errors import ConfigError, TTLError
 from ttlcore.estimate.fit import FitSettings, with_extra_regressors
 from ttlcore.estimate.rolling import RollingFit
@@ -657,10 +657,14 @@ class Fitter(OrderedStage):
             if rec.get("spec"):
                 # a transient's advice adds several glitches and gates at once (``actions``)
                 added = [a["spec"] for a in rec.get("actions") or []] or [rec["spec"]]
-                rec["effects"] = [*self.effects, *added]
+                # a gate overlapping one of the model's (an ongoing signal, seen again) is merged
+                effects = make_effects([e.replace(";", ",") for e in [*self.effects, *added]], self.effect_modules)
+                rec["effects"] = [e.spec() for e in merge_gates(effects)]
                 rec["command"] = self.control_command(rec["effects"])
         out["recommendation"] = rec
         ok, why = adoptable(rec)
+        if ok and rec["effects"] == list(self.effects):
+            ok, why = False, "the model already holds it"
         out["adoption"] = {"mode": self.adopt, "adopted": False, "reason": why}
         if self.adopt == "auto" and ok:
             out["adoption"]["adopted"] = True

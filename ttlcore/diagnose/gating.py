@@ -22,9 +22,9 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from ..effects.glitch import gate
 from ..errors import ConfigError
 from .columns import ColumnStore, regressor_columns
-from .transients import gate
 from .whitened import WhitenedData, noise_digest
 
 log = logging.getLogger(__name__)

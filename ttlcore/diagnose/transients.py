@@ -83,6 +83,7 @@ import numpy as np
 from scipy import stats
 
 from ..conventions import LINKS
+from ..effects.glitch import GATE_TAPER, gate
 from ..estimate.fit import variance_factor
 from ..estimate.spectra import segment_fft, window
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
@@ -655,21 +656,6 @@ def _f(f: float) -> str:
 # ---------------------------------------------------------------------------
 # the diagnosis' use: the model's residual, the quiet hours, the class of the excess
 # ---------------------------------------------------------------------------
-
-#: Taper [s] of each side of a gate (a cosine, as lisa-gap's smoothed gaps).
-GATE_TAPER = 300.0
-
-
-def gate(n: int, fs: float, t0: float, spans, taper: float = GATE_TAPER) -> np.ndarray:
-    """A gate (n,): 0 inside each ``(start, stop)`` span [s], 1 outside, with cosine ramps of
-    ``taper`` seconds outside the spans."""
-    t = t0 + np.arange(n) / fs
-    g = np.ones(n)
-    for a, b in spans:
-        d = np.maximum(np.maximum(a - t, t - b), 0.0)  # distance outside the span [s]
-        ramp = np.where(d >= taper, 1.0, 0.5 - 0.5 * np.cos(np.pi * np.clip(d / taper, 0, 1)))
-        g = np.minimum(g, ramp)
-    return g
 
 
 def gated_ttl_fit(data, spans, names=None) -> dict:

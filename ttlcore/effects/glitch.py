@@ -57,9 +57,20 @@ BETA_RANGE = (1.0, 3000.0)
 BETA_GRID = tuple(float(x) for x in np.geomspace(2.0, 2000.0, 10))
 #: Prior scale [m/s] of a glitch's velocity step (the Bayes factor's Gaussian prior).
 GLITCH_PRIOR = 1e-10
-#: Taper [s] of each side of a gate (a cosine, as lisa-gap's smoothed gaps); the default of
-#: :func:`ttlcore.diagnose.transients.gate` too (a test holds them equal)
+#: Taper [s] of each side of a gate (a cosine, as lisa-gap's smoothed gaps).
 GATE_TAPER = 300.0
+
+
+def gate(n: int, fs: float, t0: float, spans, taper: float = GATE_TAPER) -> np.ndarray:
+    """A gate (n,): 0 inside each ``(start, stop)`` span [s], 1 outside, with cosine ramps of
+    ``taper`` seconds outside the spans (lisa-gap's smoothed gap)."""
+    t = t0 + np.arange(n) / fs
+    g = np.ones(n)
+    for a, b in spans:
+        d = np.maximum(np.maximum(a - t, t - b), 0.0)  # distance outside the span [s]
+        ramp = np.where(d >= taper, 1.0, 0.5 - 0.5 * np.cos(np.pi * np.clip(d / taper, 0, 1)))
+        g = np.minimum(g, ramp)
+    return g
 
 
 def glitch_velocity(t, t_glitch: float, beta: float) -> np.ndarray:
@@ -222,3 +233,21 @@ def split_gates(effects) -> tuple[list, list]:
     """``(gates, others)`` of a model's effects."""
     gates = [e for e in effects if isinstance(e, Gate)]
     return gates, [e for e in effects if not isinstance(e, Gate)]
+
+
+def merge_gates(effects) -> list:
+    """A model's effects with overlapping or touching gates merged into one gate over their
+    union (the widest taper), after the other effects in their order.  The live fitter
+    adopts a gate for an ongoing signal at each diagnosis (a chirp in band for hours: the
+    span to the window's end, then on from there): one gate per signal, not one per look."""
+    gates, others = split_gates(effects)
+    merged: list[list[float]] = []
+    for g in sorted(gates, key=lambda g: g.span):
+        a, b = g.span
+        taper = float(g.options["taper"])
+        if merged and a <= merged[-1][1]:
+            merged[-1][1] = max(merged[-1][1], b)
+            merged[-1][2] = max(merged[-1][2], taper)
+        else:
+            merged.append([a, b, taper])
+    return list(others) + [Gate(start=a, stop=b, taper=t) for a, b, t in merged]

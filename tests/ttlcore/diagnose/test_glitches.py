@@ -27,10 +27,9 @@ from ttlcore.diagnose.diagnoser import diagnose, refit, text_report  # noqa: E40
 from ttlcore.diagnose.fitting import fit_model  # noqa: E402
 from ttlcore.diagnose.gating import GatedData, gated_data  # noqa: E402
 from ttlcore.diagnose.glitches import glitch_search  # noqa: E402
-from ttlcore.diagnose.transients import GATE_TAPER as TRANSIENTS_GATE_TAPER  # noqa: E402
 from ttlcore.diagnose.whitened import whiten_telemetry  # noqa: E402
 from ttlcore.effects import Gate, Glitch, make_effects, parse_effect_spec  # noqa: E402
-from ttlcore.effects.glitch import GATE_TAPER, glitch_velocity  # noqa: E402
+from ttlcore.effects.glitch import GATE_TAPER, glitch_velocity, merge_gates  # noqa: E402
 from ttlcore.errors import ConfigError  # noqa: E402
 from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
 
@@ -96,7 +95,6 @@ def test_specs_accept_units_and_name_the_glitch():
         with pytest.raises(ConfigError):
             parse_effect_spec(bad)
     # the gate effect's default taper is the transient finder's gate's (two floors, one value)
-    assert GATE_TAPER == TRANSIENTS_GATE_TAPER
     assert parse_effect_spec("gate:start=1,stop=2")[0].options["taper"] == GATE_TAPER
 
 
@@ -253,3 +251,22 @@ def test_a_gap_is_gated_and_following_it_works():
     assert len(reports) == 2 and reports[-1]["recommendation"] is None, txt  # nothing left
     # the hard-edged hole pulled the first fit
     assert reports[0]["model"]["coefficients"]["max_abs_error"] > 3 * MAX_ERROR, txt
+
+
+def test_overlapping_gates_merge_into_their_union():
+    """The live fitter's gates for an ongoing signal, seen at successive diagnoses, become one
+    gate over their union; separate gates and the other effects stay as they are."""
+    effects = make_effects(
+        [
+            "linear-ttl",
+            "gate:start=17550,stop=21600",
+            "gate:start=21600,stop=28800",
+            "gate:start=17550,stop=32400",
+            "gate:start=50400,stop=55350,taper=600",
+            "drift",
+        ]
+    )
+    merged = merge_gates(effects)
+    assert [e.name for e in merged] == ["linear-ttl", "drift", "gate", "gate"]
+    assert [e.span for e in merged[2:]] == [(17550.0, 32400.0), (50400.0, 55350.0)]
+    assert merged[3].options["taper"] == 600.0
