@@ -547,7 +547,7 @@ class Monitor(PipelineStage):
         self._time(centre, header.index)
         # the fit and, in the same row, the truth averaged over its window (when known)
         views.fit_point(self.series, C, S, centre, self._window_truth(t_start, t_stop))
-        self._fit_windows[header.index] = (float(t_start), float(t_stop), C, S)
+        self._fit_windows[header.index] = (float(t_start), float(t_stop), np.array(C, float), np.array(S, float))
         chi2 = meta.get("chi2_dof")
         chi2 = float(chi2) if isinstance(chi2, (int, float)) and math.isfinite(chi2) else None
         if chi2 is not None:
