@@ -135,7 +135,9 @@ class Monitor(PipelineStage):
         self._ref: dict[int, dict] = {}
         self._truth = None  # ttlcore.estimate.monitoring.ModelTruth or FileTruth
         self._model: list | None = None
-        self._fit_windows: dict[int, tuple[float, float]] = {}  # fit index -> window drawn
+        # fit index -> window drawn and its coefficients and sigma [m/rad] (redrawn with the
+        # truth when a truth file becomes known later)
+        self._fit_windows: dict[int, tuple[float, float, np.ndarray, np.ndarray]] = {}
         self.series: views.SeriesLog | None = None  # the time series' rows (styles with their earliest)
         self._now = 0.0  # mission time [s] the recording is at
         self._truth_source: str | None = None
@@ -543,9 +545,9 @@ class Monitor(PipelineStage):
             raise ValueError(f"meta t_start/t_stop: the fitted window is needed, got {t_start!r}, {t_stop!r}")
         centre = 0.5 * (t_start + t_stop)
         self._time(centre, header.index)
-        views.fit_point(self.series, C, S, centre)
-        self._fit_windows[header.index] = (float(t_start), float(t_stop))
-        self._draw_truth({header.index: (t_start, t_stop)})
+        # the fit and, in the same row, the truth averaged over its window (when known)
+        views.fit_point(self.series, C, S, centre, self._window_truth(t_start, t_stop))
+        self._fit_windows[header.index] = (float(t_start), float(t_stop), np.array(C, float), np.array(S, float))
         chi2 = meta.get("chi2_dof")
         chi2 = float(chi2) if isinstance(chi2, (int, float)) and math.isfinite(chi2) else None
         if chi2 is not None:
@@ -575,22 +577,29 @@ class Monitor(PipelineStage):
         self._last_fit = {"index": header.index, "chi2_dof": chi2, "t_start": t_start, "t_stop": t_stop}
         return ()
 
-    def _draw_truth(self, windows: dict[int, tuple[float, float]]) -> None:
-        """The true coefficients averaged over each fit window, at the fit's time."""
-
+    def _window_truth(self, t_start: float, t_stop: float):
+        """The true coefficients [m/rad] averaged over a fit window, or None (no truth known,
+        none for that window, or the truth file failed: then no more truth is drawn)."""
         if self._truth is None:
-            return
-        for index, (t_start, t_stop) in sorted(windows.items()):
-            try:
-                truth = self._truth.mean(t_start, t_stop)
-            except Exception as exc:
-                self.text("log", f"truth file {self._truth.path}: {exc}; no more truth drawn", "WARN")
-                self._truth = None
+            return None
+        try:
+            return self._truth.mean(t_start, t_stop)
+        except Exception as exc:
+            self.text("log", f"truth file {self._truth.path}: {exc}; no more truth drawn", "WARN")
+            self._truth = None
+            return None
+
+    def _draw_truth(self, windows: dict[int, tuple[float, float, np.ndarray, np.ndarray]]) -> None:
+        """Fits drawn before the truth was known, drawn again with the truth averaged over
+        their windows (a row at the fit's time, with the fit's values)."""
+        for index, (t_start, t_stop, coefficients, sigma) in sorted(windows.items()):
+            if self._truth is None:
                 return
+            truth = self._window_truth(t_start, t_stop)
             if truth is None:
                 continue
             self._time(0.5 * (t_start + t_stop), index)
-            views.truth_point(self.series, truth, 0.5 * (t_start + t_stop))
+            views.fit_point(self.series, coefficients, sigma, 0.5 * (t_start + t_stop), truth)
 
     def draw_model(self, index: int, meta: dict) -> None:
         """Adequacy against the instrument noise model, model changes and candidates of a fit."""
@@ -605,9 +614,7 @@ class Monitor(PipelineStage):
         if isinstance(adequacy, dict) and isinstance(adequacy.get("chi2_dof"), (int, float)):
             self.series.log("adequacy/instrument/chi2_dof", float(adequacy["chi2_dof"]), self._now)
             bands = [b for b in adequacy.get("bands") or () if isinstance(b, dict)]
-            for g, band in enumerate(bands):
-                if isinstance(band.get("chi2_dof"), (int, float)):
-                    views.band_series(self.series, g, band, self._now, len(bands))
+            views.band_series(self.series, bands, self._now)
             labels = [views.band_label(b) for b in bands]
             if labels and labels != self._band_labels:
                 self._band_labels = labels

@@ -19,12 +19,13 @@ Views (entity paths in brackets), laid out for a 1920x1080 screen:
 * **χ²/dof** (``adequacy/chi2_dof``, ``adequacy/instrument/chi2_dof``): 1 is a model that
   explains the data.  **Residual / expected** (``adequacy/log10_residual_over_expected``):
   log10 of the in-band median ratio of the residual's ASD to the expected noise.
-  **χ²/dof per band** (``adequacy/bands/<g>``) against the instrument noise model, coloured
-  from blue (lowest band) to red (highest).  No legend over the data: the series are named
-  in the view titles and in the run summary.
-* **Coefficients** (``coefficients/<mosa>/<angle>_<side>/{fit,truth}``): one small plot per
-  coefficient [mm/rad]; ``fit`` holds three series, the fit at the centre of its window and
-  fit +-1 sigma, ``truth`` the truth averaged over the same window; same colours everywhere.
+  **χ²/dof per band** (``adequacy/bands``, one series per band) against the instrument noise
+  model, coloured from blue (lowest band) to red (highest).  No legend over the data: the
+  series are named in the view titles and in the run summary.
+* **Coefficients** (``coefficients/<mosa>/<angle>_<side>``): one small plot per coefficient
+  [mm/rad] of one entity with four series: the fit at the centre of its window, fit +-1
+  sigma and the truth averaged over the same window (when a truth is known); same colours
+  everywhere.
 * **Run and alerts** (``summary``, a text document): how far the run has been drawn and
   every alert so far, word-wrapped.  **Diagnosis** (``diagnosis``, a text document): the
   text and recommendation of the latest fit message whose meta carries a ``diagnosis``.
@@ -72,6 +73,8 @@ CHI2_COLOR = (30, 30, 30)
 INSTRUMENT_COLOR = (214, 39, 40)
 #: Greek letters of the angles, for view titles.
 _ANGLE = {"phi": "φ", "eta": "η"}
+#: Entity of the per-band chi^2/dof series (one series per band).
+BANDS = "adequacy/bands"
 #: Entities of the text documents.
 SUMMARY = "summary"
 DIAGNOSIS = "diagnosis"
@@ -142,7 +145,7 @@ def blueprint(band) -> rrb.Blueprint:
     adequacy = rrb.Horizontal(
         _series("χ²/dof: fit black, model red", ["+ /adequacy/chi2_dof", "+ /adequacy/instrument/chi2_dof"]),
         _series("log10 residual/expected", ["+ /adequacy/log10_residual_over_expected"]),
-        _series("χ²/dof per band, f: blue→red", ["+ /adequacy/bands/**"]),
+        _series("χ²/dof per band, f: blue→red", [f"+ /{BANDS}"]),
     )
     texts = rrb.Horizontal(
         rrb.TextDocumentView(origin=f"/{SUMMARY}", name="Run and alerts"),
@@ -187,14 +190,14 @@ def static_styles(rec, band) -> None:
 
 def series_styles() -> dict[str, rr.SeriesLines]:
     """Colours, widths and names of the time series whose entities are known in advance
-    (the per-band chi^2/dof series are styled when their bands are known)."""
+    (the per-band chi^2/dof series are styled when their bands are known: :func:`band_series`)."""
     styles = {}
     for name in COEFFICIENT_NAMES:
-        ent = coefficient_entity(name)
-        styles[f"{ent}/fit"] = rr.SeriesLines(
-            colors=[FIT_COLOR, SIGMA_COLOR, SIGMA_COLOR], widths=[2.0, 1.0, 1.0], names=["fit", "+1σ", "−1σ"]
+        styles[coefficient_entity(name)] = rr.SeriesLines(
+            colors=[FIT_COLOR, SIGMA_COLOR, SIGMA_COLOR, TRUTH_COLOR],
+            widths=[2.0, 1.0, 1.0, 1.0],
+            names=["fit", "+1σ", "−1σ", "truth"],
         )
-        styles[f"{ent}/truth"] = rr.SeriesLines(colors=[TRUTH_COLOR], widths=[1.0], names=["truth"])
     styles["adequacy/chi2_dof"] = rr.SeriesLines(colors=[CHI2_COLOR], widths=[2.0], names=["fit (re-estimated noise)"])
     styles["adequacy/instrument/chi2_dof"] = rr.SeriesLines(
         colors=[INSTRUMENT_COLOR], widths=[2.0], names=["instrument noise model"]
@@ -226,15 +229,28 @@ class SeriesLog:
         self.rec = rec
         self.styles = series_styles()
         self._earliest: dict[str, float] = {}
+        self._keys: dict[str, object] = {}  # what each style set with a key was made of
+        self._restyle: set[str] = set()  # entities whose next row carries a changed style
 
-    def style(self, entity: str, lines: rr.SeriesLines) -> None:
-        """Set the style of ``entity`` if it has none yet."""
-        self.styles.setdefault(entity, lines)
+    def style(self, entity: str, lines: rr.SeriesLines, key=None) -> None:
+        """Set the style of ``entity`` if it has none yet, or if ``key`` (what the style is made
+        of, e.g. the series' names) differs from the one it was set with; a style changed after
+        rows were logged goes with the next row."""
+        if entity in self.styles and (key is None or self._keys.get(entity) == key):
+            return
+        if entity in self._earliest:
+            self._restyle.add(entity)
+        self.styles[entity] = lines
+        self._keys[entity] = key
 
     def log(self, entity: str, values, t: float) -> None:
         """Scalars ``values`` of ``entity`` at the recording's current time, whose mission time is ``t`` [s]."""
         earliest = self._earliest.get(entity)
-        if entity in self.styles and (earliest is None or t < earliest):
+        if entity in self._restyle:
+            self._restyle.discard(entity)
+            self._earliest[entity] = float(t) if earliest is None else min(earliest, float(t))
+            self.rec.log(entity, rr.Scalars(values), self.styles[entity])
+        elif entity in self.styles and (earliest is None or t < earliest):
             self._earliest[entity] = float(t)
             self.rec.log(entity, rr.Scalars(values), self.styles[entity])
         else:
@@ -330,29 +346,36 @@ def noise_curve(rec, name: str, f, asd, band, color=None, label: str | None = No
     )
 
 
-def fit_point(series: SeriesLog, C, S, t: float) -> None:
-    """The 24 coefficients [m/rad] with their sigma, in mm/rad, at mission time ``t`` [s]:
-    one row of three series (fit, fit + sigma, fit - sigma) per coefficient."""
+def fit_point(series: SeriesLog, C, S, t: float, truth=None) -> None:
+    """The 24 coefficients [m/rad] with their sigma and, when known, the truth averaged over
+    the fit's window, in mm/rad, at mission time ``t`` [s]: one row per coefficient of the
+    series fit, fit + sigma, fit - sigma and truth.  One entity per coefficient, not a fit and
+    a truth entity: half the rows and chunks for the web viewer to ingest."""
     for p, name in enumerate(COEFFICIENT_NAMES):
         c, s = C[p] * 1e3, S[p] * 1e3
-        series.log(f"{coefficient_entity(name)}/fit", [c, c + s, c - s], t)
-
-
-def truth_point(series: SeriesLog, truth, t: float) -> None:
-    """The 24 true coefficients [m/rad] averaged over a fit's window, in mm/rad, at mission time ``t`` [s]."""
-    for p, name in enumerate(COEFFICIENT_NAMES):
-        series.log(f"{coefficient_entity(name)}/truth", truth[p] * 1e3, t)
+        values = [c, c + s, c - s] if truth is None else [c, c + s, c - s, truth[p] * 1e3]
+        series.log(coefficient_entity(name), values, t)
 
 
 def band_label(band: dict) -> str:
     return f"{band.get('f_lo', 0):.3g}-{band.get('f_hi', 0):.3g} Hz"
 
 
-def band_series(series: SeriesLog, g: int, band: dict, t: float, n_bands: int = 8) -> None:
-    """chi2/dof of band ``g`` (of ``n_bands``) against the instrument noise model, at mission time ``t`` [s]."""
-    ent = f"adequacy/bands/{g}"
-    series.style(ent, rr.SeriesLines(names=[band_label(band)], colors=[band_color(g, n_bands)], widths=[1.5]))
-    series.log(ent, float(band["chi2_dof"]), t)
+def band_series(series: SeriesLog, bands: list[dict], t: float) -> bool:
+    """chi2/dof of every adequacy band against the instrument noise model at mission time ``t``
+    [s]: one row of the entity ``adequacy/bands``, one series per band (coloured from blue,
+    the lowest band, to red).  One entity rather than one per band: a row and a chunk less
+    per band for the viewer to ingest.  Nothing is drawn (False) unless every band has a
+    finite ``chi2_dof`` (a series per band: a missing one would shift the others)."""
+    values = [b.get("chi2_dof") for b in bands]
+    if not values or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+        return False
+    labels = [band_label(b) for b in bands]
+    n = len(bands)
+    lines = rr.SeriesLines(names=labels, colors=[band_color(g, n) for g in range(n)], widths=[1.5] * n)
+    series.style(BANDS, lines, key=tuple(labels))
+    series.log(BANDS, [float(v) for v in values], t)
+    return True
 
 
 def text(rec, entity: str, message: str, level: str = "INFO") -> None:
