@@ -17,7 +17,9 @@ alert the monitor raised and the last segment in the run summary (read with tess
   wall clock to what else runs) are measured and printed, not judged (a loaded machine must
   not fail it).
 * ``test_a_week_of_monitor_recording_opens_in_seconds`` (``-m science``): 168 segments,
-  7 days: it must open in under 10 s (``WEEK_LOAD_LIMIT``).
+  7 days: the content checks always, and it must open in under 10 s (``WEEK_LOAD_LIMIT``)
+  when the machine is quiet (1-min load average at most ``QUIET_LOAD`` before the open;
+  otherwise the time is printed and the test skipped with it).
 
 Skipped with a message when Chromium or tesseract is not installed
 (``apt-get install -y chromium tesseract-ocr``).  Set ``TTL_SCREENSHOT_DIR`` to keep the
@@ -587,6 +589,7 @@ def check_screenshot(png: bytes, alerts: list[dict], segments: int) -> str:
 def run_and_open(procs, tmp: Path, segments: int, step_at: float, timeout: float):
     rrd, alerts = monitor_recording(procs, tmp, segments, step_at)
     stats = rrd_stats(rrd)
+    stats["loadavg_before"] = round(os.getloadavg()[0], 2)  # the monitor's own work included
     load, png, drawn, cpu = open_in_browser(rrd, tmp, last_mission_time(rrd), timeout)
     keep(f"monitor-web-{segments}.png", png)
     (tmp / "monitor-web.png").write_bytes(png)
@@ -615,16 +618,15 @@ def test_web_viewer_shows_the_monitor_recording(procs, tmp_path):
     check_screenshot(png, alerts, 36)
 
 
+#: 1-min load average before the week is opened above which its load time is not judged: the
+#: 10-s target is for the 2-core machine otherwise idle (the monitor that drew the recording
+#: just before leaves ~1-1.5); on a loaded machine the viewer draws more frames (each ~0.5-1.2 s
+#: of software rendering at 1920x1080) for the same data: 25-60 s at load 6-15
+QUIET_LOAD = 2.5
+
+
 @pytest.mark.science
 @needs_browser
-# the content checks pass; the time only on a quiet machine: 8.3-8.8 s at load average 1.5-1.7,
-# 25-60 s at load 6-15 (179 chunks): the viewer ingests ~10 ms of messages per frame and draws
-# each frame in software (~0.5-1.2 s of CPU at 1920x1080), and the machine is shared
-# (docs/architecture.md, Where the load time goes)
-@pytest.mark.xfail(
-    reason="issue 21's 10-s target met only on a quiet machine: 8.3-8.8 s at load 1.5-1.7, 25-60 s at load 6-15",
-    strict=False,
-)
 def test_a_week_of_monitor_recording_opens_in_seconds(procs, tmp_path):
     """Issue 21's target: a 7-day recording of 1-h segments opens fully in the web viewer
     in under 10 s on the project's 2-core machine."""
@@ -635,7 +637,12 @@ def test_a_week_of_monitor_recording_opens_in_seconds(procs, tmp_path):
     assert ("step", STEP_COEF) in kinds and ("drift", DRIFT_COEF) in kinds, alerts
     assert load is not None, f"the view did not complete within 180 s: {tmp_path}"
     check_screenshot(png, alerts, segments)
+    if stats["loadavg_before"] > QUIET_LOAD:
+        pytest.skip(
+            f"content checks passed; load time {load:.1f} s not judged: load average {stats['loadavg_before']} "
+            f"before the open (the {WEEK_LOAD_LIMIT:g}-s target is for a quiet machine, below {QUIET_LOAD})"
+        )
     assert load < WEEK_LOAD_LIMIT, (
         f"complete after {load:.1f} s (target {WEEK_LOAD_LIMIT:g} s; "
-        f"{stats['frames']} frames drawn, load average {stats['loadavg']})"
+        f"{stats['frames']} frames drawn, load average {stats['loadavg_before']} before, {stats['loadavg']} after)"
     )
