@@ -9,7 +9,7 @@ The effects the diagnosis fits are defined below it, in :mod:`ttlcore.effects`. 
 whitened columns), ``model_fit`` (the GLS fit with errors in variables), ``fitting`` (a
 model of effects fitted), ``evidence`` (Bayes factors), ``search`` (profile likelihood over
 nonlinear parameters: step time, offsets, poles, periods), ``glitches`` (the glitch
-search), ``gating`` (gated data), ``transients``, ``candidates``, ``report``, ``diagnoser``
+search), ``gating`` (gated data), ``transients`` (the time-frequency map, its events), ``excess`` (their class, the quiet tiles, the report), ``candidates``, ``report``, ``diagnoser``
 (``diagnose``, ``refit``), ``witnesses``, ``trends``, ``prediction``.
 
 ::

@@ -323,7 +323,7 @@ GLITCH_CLASSES = ("glitch", "unclassified")
 
 def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> list[dict]:
     """What to add to the model for the transients and gaps the finder reported
-    (``report["transients"]``, :func:`ttlcore.diagnose.transients.transient_report`):
+    (``report["transients"]``, :func:`ttlcore.diagnose.excess.transient_report`):
 
     - an event classified ``glitch`` (or ``unclassified``): a :class:`~ttlcore.effects.glitch.Glitch`
       searched over the event's span widened by a hop (time, damping, test mass or link,

@@ -35,6 +35,7 @@ from ..errors import ConfigError
 from ..tdi.data import TDIData
 from .candidates import CandidatePool, named_candidates, transient_actions
 from .evidence import change
+from .excess import transient_report
 from .fitting import fit_model
 from .gating import gated_data, with_gates
 from .model_fit import ModelFit
@@ -47,7 +48,6 @@ from .report import (
     text_report,
 )
 from .settings import DiagnoseSettings
-from .transients import transient_report
 from .whitened import WhitenedData, whiten_tdi, whiten_telemetry
 from .witnesses import witness_candidates, witness_search
 
@@ -196,7 +196,7 @@ def gated_model(model: ModelFit, effects, spans) -> ModelFit | None:
     its span gated (:func:`~ttlcore.diagnose.gating.gated_data`: cosine tapers, the same
     window in data and columns) the fit and the levels are those of the quiet data: what a
     user who follows the advice (``gate``) gets.  The transient finder reads the quiet
-    tiles on it (:func:`~ttlcore.diagnose.transients.transient_report`'s ``refit``).
+    tiles on it (:func:`~ttlcore.diagnose.excess.transient_report`'s ``refit``).
     """
     gates = [Gate(start=float(a), stop=float(b)) for a, b in spans]
     try:

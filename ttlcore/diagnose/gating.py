@@ -2,7 +2,7 @@
 
 docs/diagnostics.md, "Glitches and gates".  The A, E, T series of the data and of every
 column are multiplied by the gate (:class:`ttlcore.effects.glitch.Gate`; the taper of
-:func:`ttlcore.diagnose.transients.gate`)
+:func:`ttlcore.effects.glitch.gate`)
 
     g(t) = 0 inside [start, stop],  1/2 - 1/2 cos(pi d / taper) for the distance d < taper
            outside it,  1 beyond,

@@ -119,7 +119,7 @@ def band_explained(report: dict, candidate: dict) -> list[float]:
 
 def excess_description(report: dict) -> str:
     """What the excess looks like, in one sentence, from the transient finder's
-    classification (:func:`ttlcore.diagnose.transients.transient_report`) and the failing
+    classification (:func:`ttlcore.diagnose.excess.transient_report`) and the failing
     bands."""
     tr = report.get("transients") or {}
     verdict = tr.get("classification") or {}

@@ -11,9 +11,11 @@ import numpy as np
 import pytest
 
 from ttlcore.conventions import LINKS
+from ttlcore.diagnose import excess as X
 from ttlcore.diagnose import transients as T
 from ttlcore.diagnose.noise_model import outlying_segments
 from ttlcore.diagnose.report import recommendation
+from ttlcore.effects.glitch import gate
 from ttlcore.sim import noise_models
 from ttlcore.tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 
@@ -86,7 +88,7 @@ def test_burst_in_a_and_e_is_found_where_and_as_loud_as_injected():
     scatter = 2 * np.sqrt(expected) + np.sqrt(2 * tf.kappa * tf.dof.sum())
     assert abs(excess - expected) < 4 * scatter, (excess, expected, scatter)
     assert 4 * scatter / expected < 0.03  # a 3 % test
-    cls, evidence = T.classify(e)
+    cls, evidence = X.classify(e)
     assert cls == "gravitational-wave", evidence
 
 
@@ -113,7 +115,7 @@ def test_a_link_signal_puts_its_share_in_t():
     csd = np.zeros((f.size, 3, 3), dtype=complex)
     for c in range(3):
         csd[:, c, c] = S[:, c]
-    exp = T.instrumental_t_share(f, csd, ltt, 3e-3, 3e-2)
+    exp = X.instrumental_t_share(f, csd, ltt, 3e-3, 3e-2)
     band_share = (w[..., 2] * f[None, :] ** -2).sum(axis=1) / (w.sum(axis=-1) * f[None, :] ** -2).sum(axis=1)
     assert 0 < exp <= band_share.min() + 1e-12
 
@@ -131,7 +133,7 @@ def test_glitch_carried_by_t_is_a_glitch():
     ev = T.find_events(tf)
     assert len(ev) == 1
     assert ev[0].t_share == pytest.approx(1 / 3, abs=0.05)
-    assert T.classify(ev[0])[0] == "glitch"
+    assert X.classify(ev[0])[0] == "glitch"
 
 
 def test_noise_level_that_doubles_for_three_hours_is_a_noise_change():
@@ -147,9 +149,9 @@ def test_noise_level_that_doubles_for_three_hours_is_a_noise_change():
     r = tf.chi2[:, inside].sum() / (3 * tf.dof.sum() * inside.sum())
     assert r == pytest.approx(2.0, rel=0.02)
     assert abs(e.t_start - 4 * 3600) <= tf.duration and abs(e.t_stop - 7 * 3600) <= tf.duration
-    assert T.classify(e)[0] == "noise-change"
+    assert X.classify(e)[0] == "noise-change"
     # outside it the residual is noise: the quiet tiles read 1
-    q = T.quiet_adequacy(tf, ev, 1e-3)
+    q = X.quiet_adequacy(tf, ev, 1e-3)
     assert not q["fails"] and abs(q["chi2_dof"] - 1) < 0.02
 
 
@@ -180,7 +182,7 @@ def test_missing_data_is_a_gap():
         {},
         gaps[0],
     )
-    assert T.classify(e)[0] == "gap"
+    assert X.classify(e)[0] == "gap"
 
 
 def test_excess_coherent_with_a_witness_is_a_missing_coupling():
@@ -196,15 +198,15 @@ def test_excess_coherent_with_a_witness_is_a_missing_coupling():
     ev = T.find_events(tf)
     assert len(ev) == 1
     f = np.linspace(1e-4, 1.0, 64)
-    coh = T.witness_coherence(x, W, FS, tf, ev[0], f, np.tile(PSD, (f.size, 1)), 0.0)
+    coh = X.witness_coherence(x, W, FS, tf, ev[0], f, np.tile(PSD, (f.size, 1)), 0.0)
     assert coh["coherent"], coh
     # most of the excess is the witnesses' (not all: the tiles at the event's ends hold the
     # coupling over part of their length, which one coefficient fits only partly)
     assert coh["explained_fraction"] > 0.8
     e = T.Event(**{**ev[0].__dict__, "coherence": coh})
-    assert T.classify(e)[0] == "missing-coupling"
+    assert X.classify(e)[0] == "missing-coupling"
     # an unrelated witness explains nothing: within the chance expectation k/N
-    coh0 = T.witness_coherence(x, rng.standard_normal((3, k, n)), FS, tf, ev[0], f, np.tile(PSD, (f.size, 1)), 0.0)
+    coh0 = X.witness_coherence(x, rng.standard_normal((3, k, n)), FS, tf, ev[0], f, np.tile(PSD, (f.size, 1)), 0.0)
     assert not coh0["coherent"] and coh0["explained_fraction"] < 0.05
 
 
@@ -217,7 +219,7 @@ def test_track_kinds():
 
 
 def test_gate_is_zero_inside_one_outside_and_a_cosine_between():
-    g = T.gate(20001, 1.0, 0.0, [(5000.0, 6000.0)], taper=300.0)
+    g = gate(20001, 1.0, 0.0, [(5000.0, 6000.0)], taper=300.0)
     assert np.all(g[5000:6001] == 0) and g[4700 - 1] == 1 and g[6300 + 1] == 1
     assert g[4850] == pytest.approx(0.5) and g[6150] == pytest.approx(0.5)  # half-way down the ramp
 
@@ -333,20 +335,20 @@ def test_excess_classification_rules():
         "adequacy": {"fails": True, "variance_factor": 1.06},
         "candidates": [{"significant": True, "explained_fraction": 0.01, "delta_chi2": 800.0, "cli_spec": "drift"}],
     }
-    v = T.excess_classification(outside, ev_gw, {**quiet_bad, "excess_chi2_full_span": 1000.0})
+    v = X.excess_classification(outside, ev_gw, {**quiet_bad, "excess_chi2_full_span": 1000.0})
     assert v["class"] == "missing-coupling", v
-    assert T.excess_classification({"adequacy": {"fails": False}}, [], quiet_ok)["class"] == "none"
-    v = T.excess_classification(ad, ev_gw, quiet_ok)
+    assert X.excess_classification({"adequacy": {"fails": False}}, [], quiet_ok)["class"] == "none"
+    v = X.excess_classification(ad, ev_gw, quiet_ok)
     assert v["class"] == "gravitational-wave" and v["signal"]
-    v = T.excess_classification(ad, ev_gw, quiet_bad)  # excess outside the event too
+    v = X.excess_classification(ad, ev_gw, quiet_bad)  # excess outside the event too
     assert v["class"] == "stationary-excess" and not v["signal"]
     cands = {
         "adequacy": {"fails": True},
         "candidates": [{"significant": True, "explained_fraction": 0.7, "cli_spec": "drift"}],
     }
-    assert T.excess_classification(cands, ev_gw, quiet_bad)["class"] == "missing-coupling"
+    assert X.excess_classification(cands, ev_gw, quiet_bad)["class"] == "missing-coupling"
     # in every hour with T nearly empty (below a third of a link's share): a long-lived wave
-    v = T.excess_classification(ad, [], {**quiet_bad, "t_share": 0.01})
+    v = X.excess_classification(ad, [], {**quiet_bad, "t_share": 0.01})
     assert v["class"] == "gravitational-wave" and v["signal"]
-    v = T.excess_classification(ad, [], quiet_ok, gaps=[(3600.0, 5400.0)])
+    v = X.excess_classification(ad, [], quiet_ok, gaps=[(3600.0, 5400.0)])
     assert v["class"] == "gap" and v["signal"]
