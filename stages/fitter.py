@@ -67,6 +67,10 @@ not the configured one, and rebuilds its window from the replayer's recorded tel
 (:meth:`Fitter.catch_up`).
 """
 
+# size: not yet split (issue 22): the live loop (rolling model update, window refits, live
+# diagnosis and adoption, restarts) grew here; the rolling-model update and the live diagnosis are
+# the next parts to move to streamer/ or ttlcore/.
+
 from __future__ import annotations
 
 import json

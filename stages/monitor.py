@@ -68,6 +68,10 @@ fields), ``asd_per_decade`` (20), ``band`` ([fmin, fmax], default the fit band),
 hour of window end, so that their cost per segment stays bounded with short segments).
 """
 
+# size: not yet split (issue 22): the stage's bookkeeping (settling, waiting for alive producers,
+# the truth) is here, its drawing in monitor_views.py; the settling logic is the next part to move
+# out.
+
 from __future__ import annotations
 
 import json

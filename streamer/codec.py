@@ -37,6 +37,9 @@ and :func:`decode` side by side with the field checks is what keeps them in agre
 (the bounded JSON parsing, a concept of its own, is in :mod:`streamer.bounded_json`).
 """
 
+# size: the wire format and its validation are one contract (the docstring says why); the bounded
+# JSON parser is in bounded_json.py.
+
 from __future__ import annotations
 
 import hashlib

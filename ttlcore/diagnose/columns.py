@@ -19,6 +19,9 @@ The errors-in-variables term of a set of columns (:func:`eiv`) is the bias of th
 matrix by the DWS readout noise the columns share (docs/diagnostics.md, "The loop").
 """
 
+# size: the column builders of every kind of effect column (fixed, filtered, shifted, modulated)
+# share one cache and one whitening path; split by kind they would import each other.
+
 from __future__ import annotations
 
 from dataclasses import dataclass, replace

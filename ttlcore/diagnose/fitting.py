@@ -165,7 +165,7 @@ def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet | None, di
 
     The open offsets of each effect (``offset.<group>`` unset) are found by
     :func:`ttlcore.diagnose.search.profile_search` against the model of ``first`` (the other
-    effects' columns; :func:`ttlcore.diagnose.search.offset_search`: no Taylor expansion, so
+    effects' columns; :func:`ttlcore.diagnose.offset_search.offset_search`: no Taylor expansion, so
     offsets with 2 pi f delta >> 1 at the top of the band are found), the given ones held.
     A group whose offset is given is expanded there (at zero: the Taylor columns); a
     searched one where its offset is clearly measured (delta chi^2 > 25) and large enough

@@ -33,7 +33,8 @@ from ..errors import ConfigError
 from ..tdi.data import history_samples
 from .columns import ColumnSet
 from .evidence import added_evidence
-from .search import SearchResult, profile_search
+from .search import profile_search
+from .search_result import SearchResult
 from .whitened import WhitenedData
 
 log = logging.getLogger(__name__)

@@ -75,7 +75,7 @@ class DiagnoseSettings:
     #: Gauss-Newton passes of the linearised effects in a model (0: Taylor at zero only)
     expansion_passes: int = 3
     #: half-width [s] of the profile search of the offsets of ``timing-offset`` and
-    #: ``ltt-error`` (:func:`ttlcore.diagnose.search.offset_search`) that starts those passes
+    #: ``ltt-error`` (:func:`ttlcore.diagnose.offset_search.offset_search`) that starts those passes
     shift_span: float = 5.0
     #: bands with fewer degrees of freedom are merged with their neighbour, so that the
     #: statistical scatter of chi2/dof in a band (sqrt(2 kappa / dof) = 0.032 at 2000) stays

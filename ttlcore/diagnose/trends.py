@@ -94,6 +94,10 @@ Units: coefficients and sigmas are given in m/rad (the bus's unit) unless ``unit
 otherwise; alert values are in mm/rad (steps) or mm/rad/day (drifts); times in seconds.
 """
 
+# size: the step and drift detectors share the window-correlation statistics of overlapping
+# rolling fits (window_correlation, step_response) and the alerts they raise; TrendMonitor is
+# their streaming face.
+
 from __future__ import annotations
 
 import math

@@ -88,7 +88,7 @@ class Step(Effect):
         "C(t) = C + J H(t - t_step). The jump J multiplies the witness from t_step on (tx: emission time)."
     )
     parameters = {"mosas": "all", "angles": "all", "sides": "all", "t_step": None}
-    #: the step time [s], searched over the data (its own evaluator: :func:`ttlcore.diagnose.search.step_time_search`)
+    #: the step time [s], searched over the data (its own evaluator: :func:`ttlcore.diagnose.step_search.step_time_search`)
     searched = {"t_step": (-np.inf, np.inf, "linear")}
 
     def columns(self, data):

@@ -32,6 +32,10 @@ The statistics are accumulated per segment and per frequency band
 segment and drop the oldest, and the batch fit uses exactly the same sums.
 """
 
+# size: the frequency-domain GLS fit as one pipeline - segment spectra, notches, noise CSD,
+# weights, errors in variables, the fit and its result - read top to bottom as docs/physics.md
+# describes it; the solver is in gls.py.
+
 from __future__ import annotations
 
 import logging

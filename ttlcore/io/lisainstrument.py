@@ -83,6 +83,9 @@ Conventions verified in lisainstrument 2.3's source (``instru/instru_model.py``,
   eta_MOSA``) in rad/s, undelayed, filtered and decimated like the beat notes.
 """
 
+# size: one reader of one outside format: lisainstrument 2.x's layouts, units, clock and orbit
+# conventions and its truth, kept together so that a change of that format is one module's change.
+
 from __future__ import annotations
 
 import json

@@ -32,6 +32,9 @@ All models are Newtonian: no Shapiro delay and no relativistic time-scale correc
 added (an orbit *file* carries whatever its generator put in it).
 """
 
+# size: three orbit models behind one interface (static arms, Keplerian, a lisaorbits file) and
+# the factory that chooses; each is ~200 lines of geometry.
+
 from __future__ import annotations
 
 import logging

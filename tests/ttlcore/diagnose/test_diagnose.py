@@ -40,7 +40,7 @@ FAST_CASES = {
     "drift": ("drift:t_ref=10800,12.phi.rx=0.13,21.eta.tx=-0.13", True),
     "cross-coupling": ("cross-coupling:12.phi.rx=8e-3,31.eta.rx=8e-3", False),
     # 2 pi f eps ~ 3 rad at the band's top: beyond any Taylor expansion at zero, the offsets
-    # must be searched (ttlcore.diagnose.search.offset_search)
+    # must be searched (ttlcore.diagnose.offset_search.offset_search)
     "ltt-error": ("ltt-error:12.d1=0.6,23.d1=0.6,31.d1=0.6,13.d1=-0.6,32.d1=-0.6,21.d1=-0.6", False),
 }
 

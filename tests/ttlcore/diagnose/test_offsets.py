@@ -2,7 +2,7 @@
 
 ``timing-offset`` and ``ltt-error`` declare one offset per group (``offset.<group>``);
 unset they are searched (:func:`ttlcore.diagnose.search.profile_search` ->
-:func:`ttlcore.diagnose.search.offset_search`) with an interval from the profile's
+:func:`ttlcore.diagnose.offset_search.offset_search`) with an interval from the profile's
 curvature and a marginal evidence; given, they are the group's expansion point.  The
 simulated test uses a 3-h file with SC 1's DWS stamped 0.35 s late (as the 6-h case of
 ``test_diagnose.py``).
@@ -23,7 +23,8 @@ from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.diagnoser import diagnose, text_report
 from ttlcore.diagnose.fitting import fit_model
 from ttlcore.diagnose.report import model_json, recommendation
-from ttlcore.diagnose.search import profile_search, search_ranges
+from ttlcore.diagnose.search import profile_search
+from ttlcore.diagnose.search_result import search_ranges
 from ttlcore.diagnose.whitened import whiten_telemetry
 from ttlcore.effects import injection_from_spec, make_effects, parse_effect_spec
 from ttlcore.effects.shifted import _Linearised

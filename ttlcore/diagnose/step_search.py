@@ -1,0 +1,259 @@
+"""The step time of ``step`` searched (:func:`step_time_search`): the step columns are
+``H(t - t_s)`` times the TDI of the TTL regressors, so a point recomputes one segment's
+spectra (the exact TDI of the step patched in where the delays straddle it); a 1-h grid, a
+15-min grid around the best, golden section to 0.05 s, the profile's secondary maxima one
+to four light travel times away (docs/diagnostics.md; :mod:`ttlcore.diagnose.search`)."""
+
+from __future__ import annotations
+
+import logging
+import math
+
+import numpy as np
+from scipy import fft as sp_fft
+from scipy import special
+
+from ..effects.column_tdi import columns_tdi, effect_input_from_telemetry
+from ..effects.coupling import LinearTTL, Step
+from ..errors import ConfigError
+from ..estimate.spectra import psd_scale
+from ..tdi.combinations import MICHELSON, aet, build
+from ..tdi.data import history_samples, lowpass_taps
+from .columns import (
+    eiv_products,
+    eiv_weights,
+    ttl_columns,
+)
+from .evidence import (
+    Evidence,
+    evidence_from_normal,
+)
+from .model_fit import ModelFit, as_real, gram, gram_x, rhs
+from .search_result import SearchResult
+
+log = logging.getLogger(__name__)
+
+# ---------------------------------------------------------------------------
+# The step time
+# ---------------------------------------------------------------------------
+
+
+def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
+    """Search the step time of ``step`` against ``model``: step columns approximated as
+    ``H(t - t_s)`` times the TDI of the TTL regressors (exact but for the ~70 s the TDI
+    delays span, which :func:`_step_correction` patches in from the telemetry), Bayes factor
+    marginalised over the coarse grid (uniform prior); the evidence at the best time is
+    :attr:`SearchResult.evidence`."""
+    data = model.data
+    s = data.settings
+    step = step or Step()
+    base = [f"{m}.{a}.{sd}" for m in step.mosas for a in step.angles for sd in step.sides]
+    if not all(n in data.regressor_names for n in base):
+        raise ConfigError(f"effect 'step': the TDI data lack the regressors {base[:2]}...")
+    M = model.columns
+    Bcs = ttl_columns(data).select(base)
+    G_MB = gram(data, M, Bcs)  # (S, G, P, k)
+    G_BB = gram(data, Bcs, Bcs)
+    N_MM, b_M = model.normal
+    b_B = rhs(data, Bcs)
+    XM = M.x
+    # errors-in-variables of the step columns H(t - t_s) x witness: one segment's products
+    # times the taper-weighted share of each segment after t_s (tail sums over the samples)
+    nM, nK = len(M), len(base)
+    E_products = eiv_products(data, M, Bcs)
+    W_MM = eiv_weights(data, M)
+    t_flat = np.concatenate([data.t0 + (s0 + np.arange(data.L)) / data.fs for s0 in data.starts])
+    w2 = data.w2.reshape(-1)
+    prof = np.stack(
+        [w2 if m is None else w2 * np.concatenate([m[s0 : s0 + data.L] for s0 in data.starts]) for m in M.modulation]
+        + [w2]
+    )
+    tail = np.concatenate([np.cumsum(prof[:, ::-1], axis=1)[:, ::-1], np.zeros((nM + 1, 1))], axis=1)
+
+    def eiv_at(ts):
+        j = int(np.searchsorted(t_flat, ts))  # the first sample at or after t_s
+        W = np.empty((nM + nK, nM + nK))
+        W[:nM, :nM] = W_MM
+        W[:nM, nM:] = tail[:nM, j][:, None]
+        W[nM:, :nM] = tail[:nM, j][None, :]
+        W[nM:, nM:] = tail[nM, j]
+        return E_products * W[None]
+
+    idx = np.flatnonzero(data.mask)
+    # a step closer to the ends than half a coarse step is nearly collinear with the TTL
+    # columns themselves: search inside
+    t_lo = data.t0 + idx[0] / data.fs + s.step_grid / 2
+    t_hi = data.t0 + (idx[-1] + 1) / data.fs - s.step_grid / 2
+    stack = np.nan_to_num(np.stack([data.regressor_series[:, data.regressor_names.index(n)] for n in base], axis=1))
+    names = [f"step.{n}" for n in base]
+    # evaluate_at(ts) is piecewise constant in ts: it reads ts only through comparisons with
+    # the decimated sample times (the step columns, their readout noise), the segments'
+    # starts and, for the correction, the telemetry's sample times; one evaluation per
+    # cell of those grids (the same numbers: the golden section ends inside one cell, and
+    # the scan and the light-travel-time multiples meet cells already evaluated)
+    t_dec = data.t0 + np.arange(data.mask.size) / data.fs  # as evaluate_at, eiv_at, _step_correction
+    memo: dict = {}
+
+    def cell(ts) -> tuple:
+        return (
+            int(np.searchsorted(data.seg_t0, ts, side="right")),
+            int(np.searchsorted(t_dec, ts)),
+            _correction_cell(data, ts),
+        )
+
+    def evaluate_at(ts) -> Evidence:
+        key = cell(ts)
+        if key not in memo:
+            memo[key] = _evaluate_at(ts)
+        return memo[key]
+
+    def _evaluate_at(ts) -> Evidence:
+        j = int(np.searchsorted(data.seg_t0, ts, side="right") - 1)
+        after = np.arange(len(data.starts)) > j
+        N_MK = np.where(after[:, None, None, None], G_MB, 0.0)
+        N_KK = np.where(after[:, None, None, None], G_BB, 0.0)
+        b_K = np.where(after[:, None, None], b_B, 0.0)
+        if 0 <= j < len(data.starts):
+            s0 = data.starts[j]
+            h = (data.t0 + (s0 + np.arange(data.L)) / data.fs >= ts).astype(float)
+            wm = data.win * data.mask[s0 : s0 + data.L]  # the taper on the valid samples (mask: 0 or 1)
+            seg = stack[:, :, s0 : s0 + data.L] * h  # a new array: patched in place
+            corr = _step_correction(data, ts, base)
+            if corr is not None:  # exact TDI of the step near t_s (the delays straddle it)
+                k0, c = corr
+                lo, hi = max(k0 - s0, 0), min(k0 - s0 + c.shape[-1], data.L)
+                if hi > lo:
+                    seg[:, :, lo:hi] += c[:, :, lo - (k0 - s0) : hi - (k0 - s0)]
+            # spectra of segment j only: segment_fft(seg * m, fs, win * m) with m in {0, 1}
+            # (the same products), the taper applied in place, only the analysis bins scaled
+            seg *= wm
+            X = sp_fft.rfft(seg, axis=-1, workers=None)
+            del seg
+            X = psd_scale(data.fs, wm) * X[:, :, data.bins]
+            wK = np.matmul(data.Lh, np.moveaxis(X, 2, 0))[None]  # (1, m, 3, k)
+            XK = as_real(wK)
+            N_MK[j] = gram_x(XM[:, j : j + 1], XK, data.slices)[0]
+            N_KK[j] = gram_x(XK, XK, data.slices)[0]
+            b_K[j] = gram_x(XK, data.wd[j : j + 1][None].view(np.float64), data.slices)[0, ..., 0]
+        return evidence_from_normal(model, N_MM, N_MK, N_KK, b_M, b_K, names, np.full(len(base), 1e-3), eiv_at(ts))
+
+    coarse = np.arange(t_lo + s.step_grid / 2, t_hi, s.step_grid)
+    if coarse.size == 0:
+        coarse = np.array([0.5 * (t_lo + t_hi)])
+    results = [(ts, evaluate_at(ts)) for ts in coarse]
+    lbfs = np.array([r.log_bayes_factor for _, r in results])
+    best = coarse[int(np.nanargmax(lbfs))]
+    fine = np.arange(best - s.step_grid + s.step_refine, best + s.step_grid, s.step_refine)
+    fine = fine[(fine > t_lo) & (fine < t_hi)]
+    results += [(ts, evaluate_at(ts)) for ts in fine if not np.any(np.isclose(ts, coarse))]
+    all_lbf = np.array([r.log_bayes_factor for _, r in results])
+    ts_best, ev = results[int(np.nanargmax(all_lbf))]
+    # golden-section search of the maximum within one fine step either side, to 0.05 s
+    a, b = max(ts_best - s.step_refine, t_lo), min(ts_best + s.step_refine, t_hi)
+    ratio = (math.sqrt(5) - 1) / 2
+    c, d = b - ratio * (b - a), a + ratio * (b - a)
+    ec, ed = evaluate_at(c), evaluate_at(d)
+    while b - a > 0.05:  # a step between two samples: the profile is flat within 0.25 s
+        if np.nan_to_num(ec.delta_chi2, nan=-np.inf) >= np.nan_to_num(ed.delta_chi2, nan=-np.inf):
+            b, d, ed = d, c, ec
+            c = b - ratio * (b - a)
+            ec = evaluate_at(c)
+        else:
+            a, c, ec = c, d, ed
+            d = a + ratio * (b - a)
+            ed = evaluate_at(d)
+    for ts, e in ((c, ec), (d, ed)):
+        results.append((ts, e))
+        if e.log_bayes_factor > ev.log_bayes_factor:
+            ts_best, ev = ts, e
+    # the profile has secondary maxima one or more light travel times from the true step
+    # (the TDI terms see the step delayed): try those, then refine around the best
+    tau = float(np.mean(data.ltt_mean))
+    for k in (-4, -3, -2, -1, 1, 2, 3, 4):
+        ts = ts_best + k * tau
+        if t_lo < ts < t_hi:
+            e = evaluate_at(ts)
+            results.append((ts, e))
+            if e.log_bayes_factor > ev.log_bayes_factor:
+                ts_best, ev = ts, e
+    for ts in ts_best + np.arange(-2.0, 2.01, 0.25):
+        if t_lo < ts < t_hi:
+            e = evaluate_at(ts)
+            results.append((ts, e))
+            if e.log_bayes_factor > ev.log_bayes_factor:
+                ts_best, ev = ts, e
+    good = lbfs[np.isfinite(lbfs)]
+    marg = float(special.logsumexp(good) - math.log(len(good))) if good.size else float("nan")
+    found = step.with_options(t_step=round(float(ts_best), 3))
+    log.debug("step time search: %.3f s, delta chi2 %.1f", ts_best, ev.delta_chi2)
+    return SearchResult(
+        found,
+        {"t_step": float(ts_best)},
+        {},
+        float(ev.delta_chi2),
+        float(ev.log_bayes_factor),
+        marg,
+        len(results),
+        grid=[([float(t)], float(e.log_bayes_factor)) for t, e in results],
+        evidence=ev,
+    )
+
+
+def _correction_stretch(data, ts: float) -> tuple[int, int, np.ndarray, int]:
+    """The telemetry samples ``[a, b)`` around ``t_s`` over which :func:`_step_correction`
+    computes the exact TDI of the step, the FIR taps of the decimation and the delays'
+    history [samples]."""
+    tm, fs = data.tm, data.tm.fs
+    taps = lowpass_taps(fs) if data.decimation > 1 else np.ones(1)
+    hist = history_samples(fs, float(np.max(tm.ltt)))
+    i_ts = int(np.floor((ts - tm.t0) * fs))
+    return max(i_ts - hist - 8, 0), min(i_ts + hist + taps.size + 8, tm.size), taps, hist
+
+
+def _correction_cell(data, ts: float) -> tuple | None:
+    """What :func:`_step_correction` reads of ``t_s``: its stretch of telemetry and the
+    number of the stretch's samples before ``t_s`` (None without telemetry)."""
+    if data.tm is None:
+        return None
+    a, b, _, _ = _correction_stretch(data, ts)
+    t = (data.tm.t0 + a / data.tm.fs) + np.arange(b - a) / data.tm.fs  # as the stretch's EffectInput.t
+    return a, b, int(np.count_nonzero(t < ts))
+
+
+def _step_correction(data, ts: float, base: list) -> tuple | None:
+    """``TDI(H(t - t_s) w) - H(t - t_s) TDI(w)`` for the TTL witnesses ``base``, decimated:
+    non-zero only where the TDI delays straddle ``t_s`` (about 70 s, spread by the
+    anti-alias filter), computed exactly on a short stretch of telemetry around ``t_s``
+    (:func:`_correction_stretch`).
+
+    Returns ``(first decimated sample index, array (3, k, n))`` or None without telemetry.
+    """
+    if data.tm is None:
+        return None
+    tm, fs = data.tm, data.tm.fs
+    a, b, taps, hist = _correction_stretch(data, ts)
+    sub = tm.slice(a, b)
+    inp = effect_input_from_telemetry(sub)
+    step = (inp.t >= ts).astype(float)
+    by_name = {c.name: c for c in LinearTTL().columns(inp)}
+    cols = [by_name[n] for n in base]
+    for c in cols:
+        for p in c.parts:
+            p.series = p.series * step
+    built = build(MICHELSON, sub.ltt, fs, order=data.settings.order, delay_order=data.settings.delay_order)
+    exact = aet(columns_tdi(cols, built))  # (3, k, b - a); NaN where delays leave the stretch
+    # before t_s - 8 s the step column is exactly zero (NaN only where the delays leave
+    # the stretch), and so is the signal before the stretch
+    exact = np.nan_to_num(exact)
+    exact[..., : hist + 4] = 0.0
+    # causal FIR then decimation on the global sample grid, as TDIData.decimated: output i
+    # of the local convolution is global sample a + i; keep those inside the stretch
+    full = np.apply_along_axis(lambda x: np.convolve(x, taps)[: b - a], -1, exact)
+    first = (-a) % data.decimation
+    dec = full[..., first :: data.decimation]
+    k0 = (a + first) // data.decimation  # decimated index of global sample a + first
+    n = dec.shape[-1]
+    t_dec = data.t0 + (k0 + np.arange(n)) / data.fs
+    idx = [data.regressor_names.index(nm) for nm in base]
+    modulated = data.regressor_series[:, idx, k0 : k0 + n] * (t_dec >= ts)
+    return k0, dec - np.nan_to_num(modulated)
