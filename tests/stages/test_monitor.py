@@ -473,7 +473,7 @@ def test_monitor_recording_is_batched_and_ends_with_a_footer(tmp_path):
     import rerun as rr
     from rerun.chunk import RrdReader
 
-    from streamer.memtrace import rss_mb
+    from streamer.memtrace import release_free_memory, rss_mb
     from streamer.viewer import LiveFanout
 
     if rss_mb() is None:
@@ -489,8 +489,10 @@ def test_monitor_recording_is_batched_and_ends_with_a_footer(tmp_path):
         rec.flush()  # the monitor flushes after every message: the live viewer's, not the file's
         if i == warm:  # past the sink's and the allocator's warm-up (measured: ~2000 rows)
             rec.file.flush()  # what the footer keeps is measured, not the batch being gathered
+            release_free_memory()  # freed but kept by the allocator: not held
             start = rss_mb()
     rec.file.flush()
+    release_free_memory()
     grown = rss_mb() - start
     rec.disconnect()
     rec.disconnect()  # idempotent: the monitor closes on every way out

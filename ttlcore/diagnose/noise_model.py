@@ -286,6 +286,7 @@ def fit_noise_model(
     max_iter: int = 200,
     tol: float = 1e-4,
     bounded: bool = True,
+    keep=None,
 ) -> NoiseModel:
     """Maximum Whittle likelihood levels of the components for residual spectra.
 
@@ -309,6 +310,9 @@ def fit_noise_model(
         Variance factor of the tapered segments (scales the covariance).
     bounded : bool
         Keep each level within its :data:`BOUNDS` (default); False: only positive.
+    keep : ndarray (m,) of bool, optional
+        The bins the likelihood sums over (default all): the components are computed on
+        all of ``f`` (their smoothing spans neighbouring bins) and then restricted.
     max_iter, tol : int, float
         Iterations of the bounded quasi-Newton search (L-BFGS-B, analytic score, variables
         scaled by their Fisher sigmas at the start) and its tolerance on the scaled score.
@@ -322,6 +326,10 @@ def fit_noise_model(
     names = tuple(names)
     model = start if start is not None and tuple(start.names) == names else NoiseModel.nominal(ltt_mean, names)
     B = model.basis(f)
+    if keep is not None:
+        keep = np.asarray(keep, dtype=bool)
+        B, P = B[:, keep], P[keep]
+        fixed = None if fixed is None else fixed[keep]
     lim = [BOUNDS[n.split(".")[0]] if bounded else (MIN_LEVEL, None) for n in names]
     a0 = np.maximum(np.asarray(model.levels, dtype=float), 10 * MIN_LEVEL)
     a0 = np.array([np.clip(v, lo, np.inf if hi is None else hi) for v, (lo, hi) in zip(a0, lim)])
@@ -361,7 +369,7 @@ def fit_noise_model(
         tuple(map(tuple, cov)),
         -nll,
         int(n_segments),
-        int(f.size),
+        int(P.shape[0]),  # the bins the likelihood summed over
         it,
         converged,
         at_bound,
@@ -377,16 +385,13 @@ NARROWBAND_Z = 5.0
 def narrowband_excess(f, P, S, n_segments: int, kappa: float = 1.0, width: int = 16, z: float = NARROWBAND_Z):
     """Bins (m,) of bool whose residual power is a narrowband excess over its neighbours.
 
-    The levels are amplitudes of broadband shapes; power confined to a few bins (a chirp's
-    track, a line, a missing coupling's resonance) does not inform them, and a loud one
-    pulls them to their bounds, whitening every quiet hour wrongly.  Per channel ``c`` the
-    whitened power ``q_kc = P_kcc / (n S_kcc)`` (1 in expectation) is averaged over
-    ``width`` bins (``qbar``, standard deviation ``sqrt(kappa / (n width))`` under the
-    model); the continuum is the median of ``qbar`` over one octave around each bin (a
-    level mismatch is broadband and moves it alike); a window more than ``z`` standard
-    deviations above the continuum in any channel is excess, with ``width`` bins either side.
-    ``z = 5`` over the ~10^3 independent windows of a day: a false flag in about one
-    diagnosis in a thousand.
+    Levels are amplitudes of broadband shapes: power in a few bins (a chirp's track, a line,
+    a resonance) does not inform them, and a loud one pins them at their bounds.  Per channel
+    ``q_kc = P_kcc / (n S_kcc)`` (1 in expectation) averaged over ``width`` bins (standard
+    deviation ``sqrt(kappa / (n width))``) against its median over one octave around the bin
+    (a wrong level is broadband and moves it alike): ``z`` sigma above it in any channel is
+    excess, with ``width`` bins either side (z = 5 over ~10^3 windows a day: one false flag
+    in about a thousand diagnoses).
 
     Parameters
     ----------
@@ -424,11 +429,9 @@ def narrowband_excess(f, P, S, n_segments: int, kappa: float = 1.0, width: int =
 def _runs(f, mask) -> tuple:
     """``((f_lo, f_hi), ...)`` [Hz] of the runs of ``mask`` over ``f``."""
     idx = np.flatnonzero(mask)
-    if idx.size == 0:
-        return ()
     cut = np.flatnonzero(np.diff(idx) > 1)
-    starts, stops = np.r_[idx[0], idx[cut + 1]], np.r_[idx[cut], idx[-1]]
-    return tuple((float(f[a]), float(f[b])) for a, b in zip(starts, stops))
+    runs = zip(np.r_[idx[:1], idx[cut + 1]], np.r_[idx[cut], idx[-1:]]) if idx.size else ()
+    return tuple((float(f[a]), float(f[b])) for a, b in runs)
 
 
 def residual_periodogram(residual_w: np.ndarray, Lh: np.ndarray, keep=None) -> np.ndarray:
@@ -535,7 +538,15 @@ def profile_noise_model(
         narrow = narrowband_excess(d.f, P, d.noise_csd, n_kept, d.kappa) if robust else np.zeros(d.f.size, bool)
         use = ~narrow
         new = fit_noise_model(
-            d.f[use], P[use], n_kept, d.ltt_mean, names=names, fixed=dws[use], start=nm, kappa=d.kappa
+            d.f,
+            P,
+            n_kept,
+            d.ltt_mean,
+            names=names,
+            fixed=dws,
+            start=nm,
+            kappa=d.kappa,
+            keep=use if narrow.any() else None,
         )
         new = replace(
             new,
