@@ -97,19 +97,38 @@ class NormalEquations:
 
 
 def inverse(N: np.ndarray) -> np.ndarray:
-    """``N^-1`` of a normal matrix; a regressor the data hold no information on (a zero row
-    and column of ``N``: a glitch's column before its time, in a rolling window) gets an
-    infinite diagonal and zeros elsewhere, the rest the inverse of the informed block (the
-    same numbers as a model without that column)."""
-    live = np.real(np.diag(N)) > 0.0
+    """``N^-1`` of a normal matrix, with the parameters the data do not determine set apart.
+
+    A regressor without information (a zero row and column: a glitch's column before its
+    time, in a rolling window) or a combination of regressors without it (collinear
+    columns: after their times, glitches on one test mass are all constant velocity steps,
+    which TDI nearly cancels) gets an infinite variance and no covariance with the others;
+    the informed parameters keep the inverse of their own block (the same numbers as a
+    model without the others).  Found from the eigenvalues of ``N`` scaled to unit
+    diagonal: below ``1e-12`` of the largest, a direction is not determined.
+    """
+    d = np.real(np.diag(N))
+    live = d > 0.0
     if live.all():
-        return np.linalg.inv(N)
+        try:
+            return np.linalg.inv(N)
+        except np.linalg.LinAlgError:
+            pass
     if not live.any():
         raise np.linalg.LinAlgError("no regressor holds any information: the normal matrix is zero")
     idx = np.flatnonzero(live)
+    scale = 1.0 / np.sqrt(d[idx])
+    w, V = np.linalg.eigh(N[np.ix_(idx, idx)] * np.outer(scale, scale))
+    null = w <= 1e-12 * w.max()
+    # parameters that take part in an undetermined direction
+    loose = np.zeros(d.size, dtype=bool)
+    loose[idx] = np.any(np.abs(V[:, null]) > 1e-6, axis=1) if null.any() else False
+    loose |= ~live
+    keep = np.flatnonzero(~loose)
     out = np.zeros_like(N)
-    out[np.ix_(idx, idx)] = np.linalg.inv(N[np.ix_(idx, idx)])
-    out[~live, ~live] = np.inf
+    if keep.size:
+        out[np.ix_(keep, keep)] = np.linalg.inv(N[np.ix_(keep, keep)])
+    out[loose, loose] = np.inf
     return out
 
 

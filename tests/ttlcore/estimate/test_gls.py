@@ -107,3 +107,19 @@ def test_a_regressor_without_information_is_fixed_at_zero_and_the_rest_unchanged
     keep = [0, 1, 3, 4]
     np.testing.assert_allclose(C[keep], ref, rtol=1e-12)
     np.testing.assert_allclose(cov[np.ix_(keep, keep)], np.linalg.inv(2 * X.T @ X), rtol=1e-12)
+
+
+def test_collinear_regressors_are_undetermined_and_the_rest_unchanged():
+    """Two identical columns (glitches on one test mass after their times: both a constant
+    velocity step) leave their split undetermined: both get infinite variance, and the other
+    coefficients are those of the model without them when the data hold nothing of them."""
+    rng = np.random.default_rng(4)
+    n = 400
+    X = rng.standard_normal((n, 3))
+    y = X @ np.array([1.0, -2.0, 0.5]) + rng.standard_normal(n)
+    g = np.zeros(n)
+    g[:5] = 1e-3 * rng.standard_normal(5)  # a column nearly without information ...
+    X0 = np.column_stack([X, g, g])  # ... twice: collinear
+    C, cov = solve(normal_equations(X0.astype(complex), y.astype(complex)), eiv=False)
+    assert np.all(np.isinf(np.diag(cov)[3:])) and np.all(C[3:] == 0.0)
+    np.testing.assert_allclose(C[:3], np.linalg.solve(X.T @ X, X.T @ y), rtol=1e-12)
