@@ -416,7 +416,18 @@ class Fitter(OrderedStage):
         )
         if not due:
             return None
-        r = self._window_refit(header.meta, change["before"] if change else ["linear-ttl"])
+        try:
+            r = self._window_refit(header.meta, change["before"] if change else ["linear-ttl"])
+        except (TTLError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+            # the rolling fit of this segment stands; the refit is tried again when next due
+            self.log.exception("window refit of segment %d failed", header.index)
+            self.warn(
+                "window-refit-failed",
+                f"fit {header.index}: the window refit failed ({type(exc).__name__}: {exc}); "
+                "the rolling fit is published without its adequacy",
+                index=header.index,
+            )
+            return None
         if r is None:
             return None
         if change is not None:

@@ -60,6 +60,7 @@ import numpy as np
 from scipy import optimize, stats
 
 from ..conventions import LINKS, displacement_to_ffd_asd
+from ..estimate.gls import inverse
 from ..estimate.spectra import smooth_csd
 from ..sim import noise_models
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
@@ -355,7 +356,7 @@ def fit_noise_model(
     converged, it = bool(res.success), int(res.nit)
     if not converged:
         log.warning("noise-model fit: %s after %d iterations", res.message, it)
-    cov = kappa * np.linalg.inv(F)
+    cov = kappa * inverse(F)  # a level no bin informs (every bin of its shape left out): infinite variance
     cov = 0.5 * (cov + cov.T)
     at_bound = tuple(
         n
