@@ -13,10 +13,9 @@ directories are on pytest's ``pythonpath`` (pyproject.toml).
 #: other idles.  Longest first, the short modules fill in at the end and the workers finish
 #: together.  Modules not listed (all under ~20 s) keep their order, after these.
 MODULE_SECONDS = {
-    "tests/test_pipeline.py": 260,
+    "tests/test_pipeline.py": 200,
     "tests/test_live_loop.py": 175,
     "tests/ttlcore/diagnose/test_diagnose.py": 170,
-    "tests/test_model_control.py": 156,
     "tests/ttlcore/estimate/test_analyze.py": 137,
     "tests/ttlcore/sim/test_simulator.py": 90,
     "tests/ttlcore/diagnose/test_effects.py": 81,

@@ -27,6 +27,10 @@ from streamer.session import Bus, SessionSettings, free_port
 SEGMENTS = 8
 
 
+# an operations test of a live run (8 paced segments, a window refit on every one: ~100 s on
+# the idle 2-core machine): `make test-ops`, beside the kills and the fuzz; the control command
+# is also exercised by tests/test_live_loop.py (the printed `ttl control`, science)
+@pytest.mark.ops
 def test_fitter_changes_model_on_control_message_and_monitor_shows_before_after(tmp_path):
     from test_pipeline import _progress_watch
 

@@ -286,6 +286,8 @@ def _progress_watch(bus, run, stage):
     return count
 
 
+# a kill of a live run (~40 s on the idle machine): `make test-ops`, with the other kills
+@pytest.mark.ops
 def test_stage_killed_and_restarted_mid_run_misses_nothing(t1, tmp_path):
     assert t1.code == 0
     endpoint = f"tls/127.0.0.1:{free_port()}"
