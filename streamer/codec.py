@@ -93,7 +93,9 @@ MAX_NAME_CHARS = 256
 #: Most axes of an array (numpy's limit is 32 or 64, the messages have at most 3).
 MAX_NDIM = 16
 
-_HEADER_FIELDS = (
+#: the fields of a segment header and of each of its arrays (all required; the recorded
+#: JSON schema, :mod:`streamer.record_schemas`, is built from these)
+HEADER_FIELDS = (
     "schema",
     "version",
     "run",
@@ -107,7 +109,7 @@ _HEADER_FIELDS = (
     "checksum",
     "meta",
 )
-_ARRAY_FIELDS = ("name", "dtype", "shape", "offset", "nbytes", "units", "channel_axis")
+ARRAY_FIELDS = ("name", "dtype", "shape", "offset", "nbytes", "units", "channel_axis")
 
 
 class CodecError(ValueError):
@@ -461,10 +463,10 @@ def _header_from_dict(obj: dict, key: str | None) -> Header:
     version = need("version")
     if version != SCHEMA_VERSION or not _is_int(version):
         _fail("version", f"schema version {version!r} not supported (this reader knows {SCHEMA_VERSION})", key)
-    unknown = sorted(set(obj) - set(_HEADER_FIELDS))
+    unknown = sorted(set(obj) - set(HEADER_FIELDS))
     if unknown:
         _fail(unknown[0], "unknown header field", key)
-    missing = [name for name in _HEADER_FIELDS if name not in obj]
+    missing = [name for name in HEADER_FIELDS if name not in obj]
     if missing:
         _fail(missing[0], "missing", key)
 
@@ -539,10 +541,10 @@ def _array_spec(i: int, a, channels: list, payload_bytes: int, key: str | None) 
     if not isinstance(name, str) or not name:
         _fail(f"arrays[{i}].name", f"expected a non-empty string, got {name!r}", key)
     where = f"arrays[{name}]"
-    unknown = sorted(set(a) - set(_ARRAY_FIELDS))
+    unknown = sorted(set(a) - set(ARRAY_FIELDS))
     if unknown:
         _fail(f"{where}.{unknown[0]}", "unknown array field", key)
-    for f in _ARRAY_FIELDS:
+    for f in ARRAY_FIELDS:
         if f not in a:
             _fail(f"{where}.{f}", "missing", key)
     dtype = a["dtype"]

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from .codec import ARRAY_FIELDS, HEADER_FIELDS
+
 #: Message encoding of payload channels.
 PAYLOAD_ENCODING = "application/octet-stream"
 
@@ -37,20 +39,7 @@ def _object_schema(title: str, required, properties: dict) -> dict:
 #: JSON schema of a segment header (:mod:`streamer.codec`).
 HEADER_SCHEMA = _object_schema(
     "ttl.SegmentHeader",
-    [
-        "schema",
-        "version",
-        "run",
-        "index",
-        "t0",
-        "fs",
-        "channels",
-        "producer",
-        "arrays",
-        "payload_bytes",
-        "checksum",
-        "meta",
-    ],
+    list(HEADER_FIELDS),
     {
         "schema": {"const": "ttl-segment"},
         "version": _INTEGER,
@@ -64,7 +53,7 @@ HEADER_SCHEMA = _object_schema(
             "type": "array",
             "items": {
                 "type": "object",
-                "required": ["name", "dtype", "shape", "offset", "nbytes", "units", "channel_axis"],
+                "required": list(ARRAY_FIELDS),
                 "properties": {
                     "name": _STRING,
                     "dtype": _STRING,

@@ -530,4 +530,7 @@ def test_live_loop_is_not_pulled_by_a_merger_or_glitches(tmp_path):
         d["text"] for d in diagnoses
     ]
     err, pull = check_against_truth(last, truth)
+    print(
+        f"injected {injected}; last model {model}; last fit {1e3 * err:.3f} mm/rad from the truth, pull RMS {pull:.2f}"
+    )
     assert err < MAX_ERROR and pull < MAX_PULL_RMS, (injected, model, err, pull)

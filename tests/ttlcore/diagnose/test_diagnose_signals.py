@@ -94,6 +94,12 @@ def check_signal(rep, C, expected_class):
     idx = [rb["names"].index(n) for n in COEFFICIENT_NAMES]
     err = np.array(rb["gated"])[idx] - C
     pull = err / np.array(rb["sigma_gated"])[idx]
+    levels = {k: round(v["psd_scale"], 3) for k, v in rep["adequacy"]["noise_model"]["parameters"].items()}
+    print(  # the figures docs/diagnostics.md quotes (pytest -s)
+        f"{expected_class}: quiet hours {q.mean():.3f}, quiet tiles {tr['quiet']['chi2_dof']:.3f} "
+        f"(gated fit: {bool(tr['quiet'].get('gated'))}), levels {levels}, gated TTL fit "
+        f"{1e3 * np.max(np.abs(err)):.3f} mm/rad, pull RMS {np.sqrt(np.mean(pull**2)):.2f}"
+    )
     assert np.max(np.abs(err)) < MAX_ERROR, (np.max(np.abs(err)), txt)
     assert np.sqrt(np.mean(pull**2)) < MAX_PULL_RMS, (pull, txt)
     return err, pull
