@@ -85,7 +85,7 @@ def publisher(args: dict) -> None:
 def subscriber(args: dict) -> None:
     run, n = args["run"], args["n"]
     samples: queue.Queue = queue.Queue()
-    received, errors, arrival = {}, [], {}
+    received, errors, arrival, missed = {}, [], {}, []
     with Bus.open(settings(args)) as bus:
         bus.segment_subscriber(
             topic_pattern(run, "telemetry"),
@@ -93,6 +93,7 @@ def subscriber(args: dict) -> None:
                 (time.perf_counter(), str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes())
             ),
             history=args.get("history", 4),
+            on_miss=lambda source, count: missed.append({"source": source, "count": count, "t": time.perf_counter()}),
         )
         bus.declare_alive(run, args.get("name", "subscriber"))
         deadline = time.monotonic() + args.get("timeout", 60)
@@ -114,6 +115,7 @@ def subscriber(args: dict) -> None:
                 {
                     "received": {str(k): v for k, v in received.items()},
                     "errors": errors,
+                    "missed": missed,
                     "t_first": min(arrival.values(), default=None),
                     "t_last": max(arrival.values(), default=None),
                 }
