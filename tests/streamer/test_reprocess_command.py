@@ -23,6 +23,8 @@ import signal
 import subprocess
 import sys
 import time
+import urllib.error
+import urllib.request
 from pathlib import Path
 
 import numpy as np
@@ -284,3 +286,30 @@ def test_days_from_recordings_equal_the_source(days, tmp_path):
             rec.write_segment("telemetry", json.loads(att), payload)
     with pytest.raises(TTLError, match=r"segments \[1\] are missing"):
         recorded_days(run_dir, tmp_path / "days2", day_length=HOUR)
+
+
+def test_local_cluster_listens_on_loopback_ephemeral_ports_only():
+    """The LocalCluster of ``ttl reprocess`` (dashboard off): every listening socket of the
+    scheduler and of the workers is on 127.0.0.1, none on Dask's fixed 8787 (the scheduler's
+    HTTP server used to take it even with the dashboard off, so two runs met on one port),
+    and no dashboard is served."""
+    import psutil
+
+    from ttlcore.app.reprocessing import dask_client
+
+    with dask_client(workers=1) as client:
+        client.wait_for_workers(1, timeout=60)
+        pids = {os.getpid(), *client.run(os.getpid).values()}
+        listening = [
+            c.laddr
+            for pid in pids
+            for c in psutil.Process(pid).net_connections(kind="inet")
+            if c.status == psutil.CONN_LISTEN
+        ]
+        http = client.cluster.scheduler.http_server.port
+        assert urllib.request.urlopen(f"http://127.0.0.1:{http}/health", timeout=10).status == 200
+        with pytest.raises(urllib.error.HTTPError, match="404"):  # no dashboard pages
+            urllib.request.urlopen(f"http://127.0.0.1:{http}/status", timeout=10)
+    assert listening, "no listening socket found: the check would be empty"
+    assert all(addr.ip == "127.0.0.1" for addr in listening), listening
+    assert all(addr.port != 8787 for addr in listening), listening

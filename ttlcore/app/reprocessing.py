@@ -244,7 +244,11 @@ def dask_client(
             threads_per_worker=int(threads_per_worker),
             processes=True,
             host="127.0.0.1",
-            dashboard_address="127.0.0.1:0" if dashboard else None,
+            # the scheduler serves HTTP (health, metrics) even without the dashboard, on Dask's
+            # fixed 8787 unless told otherwise: an ephemeral loopback port instead, so that two
+            # runs never meet on one port; the dashboard's pages only when asked for
+            dashboard_address="127.0.0.1:0",
+            scheduler_kwargs={"dashboard": bool(dashboard)},
             memory_limit=memory_limit,
         )
     client = Client(cluster)
