@@ -372,12 +372,12 @@ def test_monitor_waits_for_an_alive_fitter_that_has_not_reported_yet(tmp_path):
     from stages.monitor import Monitor
 
     m = Monitor(StageConfig(run="u", recordings=tmp_path))
-    assert m._waiting_for(0, {}) is None  # neither fitter nor subtractor running
+    assert m.settling.waiting_for(0, {}, m.alive_peers) is None  # neither fitter nor subtractor running
     m.alive_peers = {"fitter", "subtractor"}
-    assert m._waiting_for(0, {}) == "fit"  # started, not reported yet
+    assert m.settling.waiting_for(0, {}, m.alive_peers) == "fit"  # started, not reported yet
     fitter = Progress("fitter", done={0}, extra={"fits": {0}})
-    assert m._waiting_for(0, {"fitter": fitter}) == "fit"  # fit 0 announced, not drawn
-    m._drawn["fit"].add(0)
-    assert m._waiting_for(0, {"fitter": fitter}) == "residual"
+    assert m.settling.waiting_for(0, {"fitter": fitter}, m.alive_peers) == "fit"  # fit 0 announced, not drawn
+    m.settling.drawn["fit"].add(0)
+    assert m.settling.waiting_for(0, {"fitter": fitter}, m.alive_peers) == "residual"
     m.alive_peers = {"fitter"}  # no subtractor after all
-    assert m._waiting_for(0, {"fitter": fitter}) is None
+    assert m.settling.waiting_for(0, {"fitter": fitter}, m.alive_peers) is None
