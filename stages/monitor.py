@@ -31,14 +31,14 @@ segment whose fit or residual could not be drawn, or will not come (its producer
 is a recorded failure (``failed`` error, ``failed`` in the progress: ``ttl run`` exits 1),
 never a silently incomplete "done" (the bookkeeping: :mod:`stages.monitor_settling`).  The
 segment is then done for the progress protocol (:mod:`streamer.progress`), so the replayer
-paces on the monitor too and ``ttl run`` stops it only once it has drawn everything.  Arrays ``drift_rate`` (24,) [mm/rad/day] and
-``drift_significance`` (24,) of the latest trend evaluation (0 where not yet defined, see
-meta ``drift_windows``); meta ``names``, ``alerts`` (the alerts raised since the previous
-monitor message, each :meth:`ttlcore.diagnose.trends.Alert.to_json` with the index of the fit that
-raised it), ``drifting``, ``drift_windows``, ``residual_over_expected`` (latest in-band
-median ASD ratio and its segment), ``fit`` (index, chi2_dof and window of the latest fit),
-``segments_total`` (:mod:`stages.monitor_status`).  The same goes to the recording on
-``monitor/summary``.
+paces on the monitor too and ``ttl run`` stops it only once it has drawn everything.
+Arrays ``drift_rate`` (24,) [mm/rad/day] and ``drift_significance`` (24,) of the latest
+trend evaluation (0 where not yet defined, see meta ``drift_windows``); meta ``names``,
+``alerts`` (the alerts raised since the previous monitor message, each
+:meth:`ttlcore.diagnose.trends.Alert.to_json` with the index of the fit that raised it),
+``drifting``, ``drift_windows``, ``residual_over_expected`` (latest in-band median ASD ratio
+and its segment), ``fit`` (index, chi2_dof and window of the latest fit), ``segments_total``
+(:mod:`stages.monitor_status`).  The same goes to the recording on ``monitor/summary``.
 
 Rerun recording ``<recordings>/<run>/monitor.rrd`` (an existing one is kept as
 ``monitor.<n>.rrd``, like the MCAP files), its rows gathered and written a chunk per entity
