@@ -15,5 +15,7 @@ record through :mod:`streamer`.  Each runs as its own process: ``python -m stage
 [options]`` or ``ttl stage <name> [options]`` (options: :func:`streamer.stage.stage_main`
 plus the stage's own).  Their base classes (:mod:`streamer.pipeline_stage`), the progress
 protocol (:mod:`streamer.progress`) and the shape of the pipeline (:mod:`streamer.topology`)
-are in :mod:`streamer`.
+are in :mod:`streamer`.  The fitter and the monitor are composed of parts, modules of this
+package named after them (:mod:`stages.live_model`, :mod:`stages.monitor_settling`, ...: see
+``docs/architecture.md``); those are not programs.
 """

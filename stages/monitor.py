@@ -16,7 +16,7 @@ What it draws (the numbers come from :mod:`ttlcore.estimate.monitoring`)
 * Coefficient trends: every fit's 24 coefficients with +-1 sigma, at the centre of its
   window (the estimate is the window's average); when the telemetry meta names a truth
   (a truth file, or a simulation's coefficient model), the true coefficients averaged over
-  the same window.
+  the same window (:mod:`stages.monitor_truth`).
 * Step and drift alerts from :class:`ttlcore.diagnose.trends.TrendMonitor` (thresholds and their
   false-alarm reasoning in :mod:`ttlcore.diagnose.trends`).  Each alert is logged as a Rerun text
   entry, written to the MCAP recording as JSON (topic ``alerts``, schema ``ttl.Alert``)
@@ -29,15 +29,16 @@ machine may take minutes; a stage that is skipped or not started blocks nothing)
 segment whose fit or residual could not be drawn, or will not come (its producer gone for
 ``settle_timeout`` = 60 s, or a sample lost beyond recovery and ``settle_timeout`` passed),
 is a recorded failure (``failed`` error, ``failed`` in the progress: ``ttl run`` exits 1),
-never a silently incomplete "done".  The segment is then done for the progress protocol
-(:mod:`streamer.progress`), so the replayer paces on the monitor too and ``ttl run`` stops it only once
-it has drawn everything.  Arrays ``drift_rate`` (24,) [mm/rad/day] and
-``drift_significance`` (24,) of the latest trend evaluation (0 where not yet defined, see
-meta ``drift_windows``); meta ``names``, ``alerts`` (the alerts raised since the previous
-monitor message, each :meth:`ttlcore.diagnose.trends.Alert.to_json` with the index of the fit that
-raised it), ``drifting``, ``drift_windows``, ``residual_over_expected`` (latest in-band
-median ASD ratio and its segment), ``fit`` (index, chi2_dof and window of the latest fit),
-``segments_total``.  The same goes to the recording on ``monitor/summary``.
+never a silently incomplete "done" (the bookkeeping: :mod:`stages.monitor_settling`).  The
+segment is then done for the progress protocol (:mod:`streamer.progress`), so the replayer
+paces on the monitor too and ``ttl run`` stops it only once it has drawn everything.
+Arrays ``drift_rate`` (24,) [mm/rad/day] and ``drift_significance`` (24,) of the latest
+trend evaluation (0 where not yet defined, see meta ``drift_windows``); meta ``names``,
+``alerts`` (the alerts raised since the previous monitor message, each
+:meth:`ttlcore.diagnose.trends.Alert.to_json` with the index of the fit that raised it),
+``drifting``, ``drift_windows``, ``residual_over_expected`` (latest in-band median ASD ratio
+and its segment), ``fit`` (index, chi2_dof and window of the latest fit), ``segments_total``
+(:mod:`stages.monitor_status`).  The same goes to the recording on ``monitor/summary``.
 
 Rerun recording ``<recordings>/<run>/monitor.rrd`` (an existing one is kept as
 ``monitor.<n>.rrd``, like the MCAP files), its rows gathered and written a chunk per entity
@@ -68,10 +69,6 @@ fields), ``asd_per_decade`` (20), ``band`` ([fmin, fmax], default the fit band),
 hour of window end, so that their cost per segment stays bounded with short segments).
 """
 
-# size: not yet split (issue 22): the stage's bookkeeping (settling, waiting for alive producers,
-# the truth) is here, its drawing in monitor_views.py; the settling logic is the next part to move
-# out.
-
 from __future__ import annotations
 
 import json
@@ -100,11 +97,13 @@ from ttlcore.estimate.monitoring import (
     band_ratio,
     channel_asd,
     reference_curves,
-    window_truth,
 )
 from ttlcore.estimate.spectra import longest_run
 
 from . import monitor_views as views
+from .monitor_settling import Settling
+from .monitor_status import UNITS, drift_arrays, status_meta
+from .monitor_truth import FitTruth
 
 P = len(COEFFICIENT_NAMES)
 #: Application id of the Rerun recording.
@@ -118,7 +117,7 @@ class Monitor(PipelineStage):
     inputs = ("telemetry", "tdi", "fit", "residual")
     follow = ("tdi_builder", "fitter", "subtractor")
     # no gap reports on arrival: the monitor needs no order, and settles each segment from its
-    # producers' progress (_waiting_for); an arrival order says nothing (a forged fit 9 ahead
+    # producers' progress (Settling.waiting_for); an arrival order says nothing (a forged fit 9 ahead
     # of the stream recorded "fit segments 1..8 missing" for fits that came later)
     reorders = inputs
 
@@ -137,24 +136,18 @@ class Monitor(PipelineStage):
         self._ltt: dict[int, np.ndarray] = {}
         self._data_asd: dict[int, tuple] = {}
         self._ref: dict[int, dict] = {}
-        self._truth = None  # ttlcore.estimate.monitoring.ModelTruth or FileTruth
+        # the truth beside the fits, and the fits' windows (redrawn when a truth becomes known later)
+        self.truth = FitTruth(warn=lambda message: self.text("log", message, "WARN"))
         self._model: list | None = None
-        # fit index -> window drawn and its coefficients and sigma [m/rad] (redrawn with the
-        # truth when a truth file becomes known later)
-        self._fit_windows: dict[int, tuple[float, float, np.ndarray, np.ndarray]] = {}
         self.series: views.SeriesLog | None = None  # the time series' rows (styles with their earliest)
         self._now = 0.0  # mission time [s] the recording is at
-        self._truth_source: str | None = None
         self._errors: queue.Queue = queue.Queue()
         self._pending_alerts: list[Alert] = []
         self._last_fit: dict | None = None
         self._ratio: tuple | None = None
-        self._drawn: dict[str, set[int]] = {t: set() for t in self.inputs}
-        self._refused: dict[str, set[int]] = {t: set() for t in self.inputs}  # withdrawn: not waited for
-        self._unhandled: dict[str, set[int]] = {t: set() for t in self.inputs}  # handle() raised: not waited for
-        self._tdi_at: dict[int, float] = {}
         self._segment_time: dict[int, tuple[float, float]] = {}
-        self.settle_timeout = float(o.get("settle_timeout", 60.0))
+        # what was drawn, refused, could not be handled; when a segment is done
+        self.settling = Settling(self.inputs, float(o.get("settle_timeout", 60.0)))
         self.trend_spacing = float(o.get("trend_spacing", 3600.0))
         self._trend_t: deque = deque(maxlen=64)  # window ends given to the trends lately
         self._alert_lines: list[str] = []  # every alert so far, for the run summary
@@ -256,12 +249,12 @@ class Monitor(PipelineStage):
         topic = header.topic
         try:
             out = getattr(self, f"on_{topic}")(header, arrays)
-            self._drawn[topic].add(header.index)
+            self.settling.drawn[topic].add(header.index)
         except Exception:
             if topic == "tdi":
                 self.mark_failed(header.index)
             else:  # the segment is settled as failed, not waited for (the error is recorded)
-                self._unhandled[topic].add(header.index)
+                self.settling.unhandled[topic].add(header.index)
             raise
         finally:
             self._drain_errors()
@@ -272,77 +265,25 @@ class Monitor(PipelineStage):
     def withdraw(self, topic, index, held):
         """Conflicting copies: not drawn if still held, not waited for; a TDI segment (what the
         monitor's progress counts) not drawn is given up (failed)."""
-        self._refused[topic].add(index)
-        if topic == "tdi" and index not in self._drawn["tdi"] and index not in self.done | self.failed:
+        drawn = self.settling.drawn
+        self.settling.refused[topic].add(index)
+        if topic == "tdi" and index not in drawn["tdi"] and index not in self.done | self.failed:
             self.mark_failed(index)
-        return index not in self._drawn[topic]
+        return index not in drawn[topic]
 
     # ------------------------------------------------------------------ progress
-    def _waiting_for(self, i: int, board: dict) -> str | None:
-        """What segment ``i`` (its TDI drawn) still waits for before it is done, or None.
-
-        The fit and the residual of ``i`` are waited for only from a fitter / subtractor
-        that reports progress or is alive (its liveliness token), so a skipped or not started
-        stage blocks nothing: until it has passed ``i``, and then for what it published (the
-        subtractor's residual, the fitter's fit if it made one, ``fits`` of its progress).
-        A stage that is alive but has not reported yet (a fitter still on its first segment)
-        is waited for: the monitor would otherwise settle the first segments without their
-        fits and residuals.
-        """
-        for stage, topic, made in (
-            ("fitter", "fit", lambda p: p.extra.get("fits", set())),
-            ("subtractor", "residual", lambda p: p.done),
-        ):
-            peer = board.get(stage)
-            if peer is None:
-                if stage in self.alive_peers and i not in self._refused[topic]:
-                    return topic
-                continue
-            settled = self._drawn[topic] | self._refused[topic] | self._unhandled[topic]
-            if i in made(peer) and i not in settled:
-                return topic
-            if not peer.complete and i not in peer.handled:
-                return topic
-        return None
-
-    #: Producer of each topic the monitor waits for.
-    PRODUCERS = {"fit": "fitter", "residual": "subtractor"}
-
-    def _give_up(self, i: int, waiting: str, since: float, now: float) -> str | None:
-        """Why segment ``i`` stops waiting for its ``waiting`` input, or None to go on.
-
-        Never while the producer is alive and nothing was lost (a loaded machine may take
-        minutes; the publisher's cache and Zenoh's recovery deliver it): only when the
-        producer's liveliness token has been gone for ``settle_timeout`` seconds, or when a
-        sample was lost beyond recovery (a ``missed`` error) since the wait began and
-        ``settle_timeout`` has passed since.
-        """
-        stage = self.PRODUCERS[waiting]
-        if now - since < self.settle_timeout:
-            return None
-        if stage not in self.alive_peers:
-            return f"{stage} gone for {self.settle_timeout:g} s"
-        if self.last_miss is not None and self.last_miss >= since - self.settle_timeout:
-            return f"lost beyond recovery ({self.settle_timeout:g} s after a missed-samples report)"
-        return None
-
     def _settle(self) -> None:
         """Publish the status of every drawn segment that waits for nothing more, mark it
         done; fail a segment whose input could not be handled or will not come
-        (:meth:`_give_up`); give up segments upstream gave up."""
-        now = time.monotonic()
+        (:meth:`stages.monitor_settling.Settling.ready`); give up segments upstream gave up."""
         board = self.board.snapshot()
         changed = False
-        for i in sorted(self._drawn["tdi"] - self.done - self.failed):
-            waiting = self._waiting_for(i, board)
-            if waiting is not None:
-                since = self._tdi_at.setdefault(i, now)
-                if self.PRODUCERS[waiting] in self.alive_peers and self.last_miss is None:
-                    self._tdi_at[i] = now  # the producer is there: the wait is not over
-                    continue
-                why = self._give_up(i, waiting, since, now)
-                if why is None:
-                    continue
+        handled = self.done | self.failed
+        for i, outcome, waiting, why in self.settling.ready(
+            board, handled, self.alive_peers, self.last_miss, time.monotonic()
+        ):
+            changed = True
+            if outcome == "gone":
                 self.report_error(
                     "failed",
                     f"segment {i}: its {waiting} did not come: {why}",
@@ -350,23 +291,16 @@ class Monitor(PipelineStage):
                     details={"waiting_for": waiting},
                 )
                 self.text("log", f"segment {i}: its {waiting} did not come: {why}", "WARN")
+            if outcome != "done":  # will not come, or could not be drawn (error recorded): failed
                 self._forget(i)
                 self.mark_failed(i)
-                changed = True
-                continue
-            unhandled = [t for t in ("fit", "residual") if i in self._unhandled[t]]
-            if unhandled:  # its fit or residual could not be drawn (error recorded): a failed segment
-                self._forget(i)
-                self.mark_failed(i)
-                changed = True
                 continue
             self.publish(self.status(i))
             self.mark_done(i)  # after the output is out (progress protocol)
             self._forget(i)
-            changed = True
         tdi = board.get(self.upstream)
         if tdi is not None:
-            for i in sorted(tdi.failed - self.done - self.failed - self._drawn["tdi"]):
+            for i in sorted(tdi.failed - self.done - self.failed - self.settling.drawn["tdi"]):
                 (self.mark_gap if i in tdi.gaps else self.mark_failed)(i)
         self.check_complete()
         if changed:
@@ -374,13 +308,11 @@ class Monitor(PipelineStage):
 
     def _forget(self, i: int) -> None:
         """Segment ``i`` is settled: its bookkeeping goes (memory flat in a long run)."""
-        self._tdi_at.pop(i, None)
+        self.settling.forget(i)
         self._segment_time.pop(i, None)
-        for topic in ("fit", "residual"):
-            self._unhandled[topic].discard(i)
 
     def pending(self) -> int:
-        return len(self._drawn["tdi"] - self.done - self.failed)
+        return self.settling.pending(self.done | self.failed)
 
     def _time(self, t: float, index: int) -> None:
         self._now = float(t)
@@ -422,18 +354,21 @@ class Monitor(PipelineStage):
             self._ltt[header.index] = mean
             self._trim(self._ltt)
         truth = header.meta.get("truth")
-        if truth and truth != self._truth_source:
-            self._truth_source = truth
+        if self.truth.is_new(truth):
+            self.truth.source = truth
             self._time(header.t0, header.index)
             try:
-                self._truth = window_truth(truth, block=float(header.meta.get("segment_duration") or 3600.0))
+                self.truth.load(truth, block=float(header.meta.get("segment_duration") or 3600.0))
                 if isinstance(truth, dict):  # a simulation on the fly: its coefficient model
                     self.text("log", "simulated on the fly: the simulation's true coefficients drawn beside the fits")
                 else:
                     self.text("log", f"truth file {truth}: true coefficients drawn beside the fits")
-                self._draw_truth(self._fit_windows)  # fits drawn before the truth was known (a late joiner)
+                # fits drawn before the truth was known (a late joiner), drawn again with it
+                for index, centre, coefficients, sigma, window_truth in self.truth.redraw():
+                    self._time(centre, index)
+                    views.fit_point(self.series, coefficients, sigma, centre, window_truth)
             except Exception as exc:  # a bad truth file must not stop the monitor
-                self._truth = None
+                self.truth.truth = None
                 self.text("log", f"truth file {truth} unusable: {exc}", "WARN")
                 self.report_error("truth", f"{truth}: {exc}", index=header.index)
         return ()
@@ -550,8 +485,8 @@ class Monitor(PipelineStage):
         centre = 0.5 * (t_start + t_stop)
         self._time(centre, header.index)
         # the fit and, in the same row, the truth averaged over its window (when known)
-        views.fit_point(self.series, C, S, centre, self._window_truth(t_start, t_stop))
-        self._fit_windows[header.index] = (float(t_start), float(t_stop), np.array(C, float), np.array(S, float))
+        views.fit_point(self.series, C, S, centre, self.truth.mean(t_start, t_stop))
+        self.truth.add_fit(header.index, t_start, t_stop, C, S)
         chi2 = meta.get("chi2_dof")
         chi2 = float(chi2) if isinstance(chi2, (int, float)) and math.isfinite(chi2) else None
         if chi2 is not None:
@@ -581,34 +516,8 @@ class Monitor(PipelineStage):
         self._last_fit = {"index": header.index, "chi2_dof": chi2, "t_start": t_start, "t_stop": t_stop}
         return ()
 
-    def _window_truth(self, t_start: float, t_stop: float):
-        """The true coefficients [m/rad] averaged over a fit window, or None (no truth known,
-        none for that window, or the truth file failed: then no more truth is drawn)."""
-        if self._truth is None:
-            return None
-        try:
-            return self._truth.mean(t_start, t_stop)
-        except Exception as exc:
-            self.text("log", f"truth file {self._truth.path}: {exc}; no more truth drawn", "WARN")
-            self._truth = None
-            return None
-
-    def _draw_truth(self, windows: dict[int, tuple[float, float, np.ndarray, np.ndarray]]) -> None:
-        """Fits drawn before the truth was known, drawn again with the truth averaged over
-        their windows (a row at the fit's time, with the fit's values)."""
-        for index, (t_start, t_stop, coefficients, sigma) in sorted(windows.items()):
-            if self._truth is None:
-                return
-            truth = self._window_truth(t_start, t_stop)
-            if truth is None:
-                continue
-            self._time(0.5 * (t_start + t_stop), index)
-            views.fit_point(self.series, coefficients, sigma, 0.5 * (t_start + t_stop), truth)
-
     def draw_model(self, index: int, meta: dict) -> None:
         """Adequacy against the instrument noise model, model changes and candidates of a fit."""
-        import rerun as rr
-
         model = meta.get("model")
         if isinstance(model, list) and model != self._model:
             if self._model is not None or model != ["linear-ttl"]:
@@ -631,71 +540,22 @@ class Monitor(PipelineStage):
                     "WARN",
                 )
         views.diagnosis_document(self.rec, index, meta.get("diagnosis"))  # the live diagnosis, when there is one
-        change = meta.get("model_change")
-        if isinstance(change, dict):
-
-            def fmt(x):
-                return f"{x:.3f}" if isinstance(x, (int, float)) else "?"
-
-            self.text(
-                "model/log",
-                f"fit {index}: model {','.join(change.get('before') or ())} -> "
-                f"{','.join(change.get('after') or ())}: χ²/dof {fmt(change.get('chi2_dof_before'))}"
-                f" -> {fmt(change.get('chi2_dof_after'))}, Δχ² {fmt(change.get('delta_chi2'))}, "
-                f"log Bayes factor {fmt(change.get('log_bayes_factor'))}",
-            )
-            for part in ("before", "after"):
-                values = change.get(f"bands_{part}")
-                if isinstance(values, list) and values:
-                    self.rec.log(
-                        f"model/{part}",
-                        rr.BarChart(
-                            np.array([v if isinstance(v, (int, float)) else np.nan for v in values], dtype=float)
-                        ),
-                    )
-        candidates = meta.get("candidates")
-        if isinstance(candidates, list) and candidates:
-            lines = [
-                f"{c.get('effect')}: Δχ² {c.get('delta_chi2', 0):.1f}, log BF {c.get('log_bayes_factor', 0):.1f}"
-                f"{' (significant)' if c.get('significant') else ''}"
-                for c in candidates
-                if isinstance(c, dict)
-            ]
-            self.text("model/log", f"fit {index}: top candidates: " + "; ".join(lines))
-            self.rec.log(
-                "model/candidates",
-                rr.BarChart(np.array([float(c.get("delta_chi2") or 0.0) for c in candidates if isinstance(c, dict)])),
-            )
+        views.model_change(self.rec, index, meta.get("model_change"))
+        views.candidate_ranking(self.rec, index, meta.get("candidates"))
 
     def status(self, index: int) -> Output:
-        """The ``monitor/<i>`` message of segment ``i``: trend state and the alerts raised since the last one."""
-        est = self.trends.estimates
-        rate = np.nan_to_num(est.rate) if est is not None else np.zeros(P)
-        sig = np.nan_to_num(est.significance) if est is not None else np.zeros(P)
+        """The ``monitor/<i>`` message of segment ``i`` (:mod:`stages.monitor_status`): trend
+        state and the alerts raised since the last one."""
+        arrays = drift_arrays(self.trends)
         alerts, self._pending_alerts = self._pending_alerts, []
         t0, fs = self._segment_time.get(index, (0.0, 1.0))
-        meta = {
-            "names": list(COEFFICIENT_NAMES),
-            "alerts": [a.to_json() for a in alerts],
-            "drifting": sorted(self.trends.drifting),
-            "drift_windows": est.windows if est else 0,
-            "residual_over_expected": {"index": self._ratio[0], "ratio": self._ratio[1]} if self._ratio else None,
-            "fit": self._last_fit,
-            "segments_total": self.segments_total,
-        }
+        meta = status_meta(self.trends, alerts, self._ratio, self._last_fit, self.segments_total)
         return Output(
             self.output_topic,
-            {"drift_rate": rate, "drift_significance": sig},
+            arrays,
             index=index,
-            fields={
-                "t0": t0,
-                "fs": fs,
-                "units": {"drift_rate": "mm/rad/day", "drift_significance": ""},
-                "meta": to_jsonable(meta),
-            },
-            summary=to_jsonable(
-                {"run": self.run_id, "index": index, **meta, "drift_rate": rate, "drift_significance": sig}
-            ),
+            fields={"t0": t0, "fs": fs, "units": UNITS, "meta": to_jsonable(meta)},
+            summary=to_jsonable({"run": self.run_id, "index": index, **meta, **arrays}),
         )
 
     @staticmethod

@@ -1,6 +1,7 @@
 """What the monitor draws in Rerun, and how the views are laid out (the blueprint).
 
-The monitor's state (what arrived, the trends) lives in :mod:`stages.monitor`; the drawing
+The monitor's state (what arrived, the trends) lives in :mod:`stages.monitor` (when a segment
+is done: :mod:`stages.monitor_settling`; the truth: :mod:`stages.monitor_truth`); the drawing
 lives here, in functions of a recording stream ``rec`` (an ``rr.RecordingStream`` or
 anything with its ``log``), so that a view can be changed without touching the stage.
 
@@ -411,3 +412,48 @@ def diagnosis_document(rec, index: int, diagnosis) -> bool:
         lines += ["", f"**Recommendation:** {recommendation.strip()}"]
     rec.log(DIAGNOSIS, rr.TextDocument("\n".join(lines), media_type="text/markdown"))
     return True
+
+
+def model_change(rec, index: int, change) -> None:
+    """A fit's ``model_change`` (meta): a line of the model log (the models, chi^2/dof before
+    and after, delta chi^2, log Bayes factor) and the per-band chi^2/dof before and after as
+    bar charts (``model/before``, ``model/after``).  Nothing when ``change`` is not a dict."""
+    if not isinstance(change, dict):
+        return
+
+    def fmt(x):
+        return f"{x:.3f}" if isinstance(x, (int, float)) else "?"
+
+    text(
+        rec,
+        "model/log",
+        f"fit {index}: model {','.join(change.get('before') or ())} -> "
+        f"{','.join(change.get('after') or ())}: χ²/dof {fmt(change.get('chi2_dof_before'))}"
+        f" -> {fmt(change.get('chi2_dof_after'))}, Δχ² {fmt(change.get('delta_chi2'))}, "
+        f"log Bayes factor {fmt(change.get('log_bayes_factor'))}",
+    )
+    for part in ("before", "after"):
+        values = change.get(f"bands_{part}")
+        if isinstance(values, list) and values:
+            rec.log(
+                f"model/{part}",
+                rr.BarChart(np.array([v if isinstance(v, (int, float)) else np.nan for v in values], dtype=float)),
+            )
+
+
+def candidate_ranking(rec, index: int, candidates) -> None:
+    """A fit's ``candidates`` (meta): a line of the model log and their delta chi^2 as a bar
+    chart (``model/candidates``).  Nothing when there are none."""
+    if not isinstance(candidates, list) or not candidates:
+        return
+    lines = [
+        f"{c.get('effect')}: Δχ² {c.get('delta_chi2', 0):.1f}, log BF {c.get('log_bayes_factor', 0):.1f}"
+        f"{' (significant)' if c.get('significant') else ''}"
+        for c in candidates
+        if isinstance(c, dict)
+    ]
+    text(rec, "model/log", f"fit {index}: top candidates: " + "; ".join(lines))
+    rec.log(
+        "model/candidates",
+        rr.BarChart(np.array([float(c.get("delta_chi2") or 0.0) for c in candidates if isinstance(c, dict)])),
+    )

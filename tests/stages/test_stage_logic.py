@@ -265,14 +265,14 @@ def test_restarted_fitter_recovers_the_model_in_force(tmp_path):
     second = Fitter(StageConfig(run="u", recordings=tmp_path, options={"effects": ["linear-ttl"]}))
     second.restore_model()
     assert second.effects == first.effects != ["linear-ttl"]
-    assert second._model_change == {"before": ["linear-ttl"], "after": first.effects, "from_index": 5}
+    assert second.model.change_due == {"before": ["linear-ttl"], "after": first.effects, "from_index": 5}
 
     # killed again after fit 5 was out: the model holds, its change was reported already
     with Recorder(run_dir / "fitter.2.mcap") as rec:
         rec.write_json("fit/summary", {"index": 5})
     third = Fitter(StageConfig(run="u", recordings=tmp_path))
     third.restore_model()
-    assert third.effects == first.effects and third._model_change is None
+    assert third.effects == first.effects and third.model.change_due is None
 
     # no model event in the earlier recordings: the configured model stays
     (run_dir / "fitter.1.mcap").unlink()
@@ -349,7 +349,7 @@ def test_fitter_window_keeps_one_window_of_telemetry(tmp_path):
 def test_adoption_needs_a_recommendation_that_explains_the_excess():
     """--adopt auto takes only what the diagnosis recommends, says explains the excess, with
     decisive evidence."""
-    from stages.fitter import adoptable
+    from stages.live_diagnosis import adoptable
 
     rec = {
         "option": "--effects linear-ttl,drift",
@@ -372,12 +372,12 @@ def test_monitor_waits_for_an_alive_fitter_that_has_not_reported_yet(tmp_path):
     from stages.monitor import Monitor
 
     m = Monitor(StageConfig(run="u", recordings=tmp_path))
-    assert m._waiting_for(0, {}) is None  # neither fitter nor subtractor running
+    assert m.settling.waiting_for(0, {}, m.alive_peers) is None  # neither fitter nor subtractor running
     m.alive_peers = {"fitter", "subtractor"}
-    assert m._waiting_for(0, {}) == "fit"  # started, not reported yet
+    assert m.settling.waiting_for(0, {}, m.alive_peers) == "fit"  # started, not reported yet
     fitter = Progress("fitter", done={0}, extra={"fits": {0}})
-    assert m._waiting_for(0, {"fitter": fitter}) == "fit"  # fit 0 announced, not drawn
-    m._drawn["fit"].add(0)
-    assert m._waiting_for(0, {"fitter": fitter}) == "residual"
+    assert m.settling.waiting_for(0, {"fitter": fitter}, m.alive_peers) == "fit"  # fit 0 announced, not drawn
+    m.settling.drawn["fit"].add(0)
+    assert m.settling.waiting_for(0, {"fitter": fitter}, m.alive_peers) == "residual"
     m.alive_peers = {"fitter"}  # no subtractor after all
-    assert m._waiting_for(0, {"fitter": fitter}) is None
+    assert m.settling.waiting_for(0, {"fitter": fitter}, m.alive_peers) is None

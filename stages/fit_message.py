@@ -1,0 +1,98 @@
+"""The fitter's output: the fit message's meta, its recorded summary, and what it warns about.
+
+A fit message ``ttl/<run>/fit/<i>`` carries the arrays ``coefficients``, ``sigma``,
+``covariance`` (and ``model_parts`` for an extended model) with the meta of
+:func:`fit_meta` plus what the rolling model, the window refit and the live diagnosis add;
+:func:`fit_summary` is what goes into the recording on ``fit/summary`` (schema ``ttl.Fit``).
+The texts of the warnings and events a fit raises (a left-out FFT segment, a model that
+fails against the instrument noise model) are :func:`excluded_message` and
+:func:`inadequate_message`; the stage records them.
+"""
+
+from __future__ import annotations
+
+#: Units of the fit message's arrays.
+UNITS = {"coefficients": "m/rad", "sigma": "m/rad", "covariance": "m^2/rad^2", "model_parts": "fractional frequency"}
+#: Meta of the fit message that the recorded summary repeats, when present.
+SUMMARY_META = (
+    "model",
+    "adequacy",
+    "model_change",
+    "candidates",
+    "extra_parameters",
+    "model_parts",
+    "diagnosis",
+    "model_update",
+)
+
+
+def fit_meta(res, *, window_duration: float, fft_segment: float, segments_total: int | None, model: list[str]) -> dict:
+    """The meta of a fit message from a rolling fit's result ``res``
+    (:class:`ttlcore.estimate.fit.FitResult`): the window fitted, the fit's quality, the
+    rolling fit's settings and the model in force."""
+    return {
+        "names": list(res.names),
+        "chi2_dof": res.chi2_dof,
+        "t_start": res.t_start,
+        "t_stop": res.t_stop,
+        "segments": int(res.n_segments),
+        "band": list(res.band),
+        "converged": bool(res.converged),
+        "chi2": res.chi2,
+        "dof": res.dof,
+        "iterations": int(res.iterations),
+        "method": res.method,
+        "window_duration": window_duration,
+        "fft_segment": fft_segment,
+        "segments_total": segments_total,
+        "model": list(model),
+    }
+
+
+def fit_summary(run: str, index: int, res, meta: dict, arrays: dict) -> dict:
+    """The recorded summary of the fit message of segment ``index`` (``fit/summary``): the
+    coefficients published, the fit's quality, the whole result under ``fit``, and the
+    model's meta (:data:`SUMMARY_META`)."""
+    return {
+        "run": run,
+        "index": index,
+        "names": meta["names"],
+        "coefficients": arrays["coefficients"],
+        "sigma": arrays["sigma"],
+        "covariance": arrays["covariance"],
+        "chi2": res.chi2,
+        "dof": res.dof,
+        "chi2_dof": res.chi2_dof,
+        "t_start": res.t_start,
+        "t_end": res.t_stop,
+        "segments": int(res.n_segments),
+        "fit": res.to_json(),
+        **{k: meta[k] for k in SUMMARY_META if k in meta},
+    }
+
+
+def excluded_message(index: int, excluded: dict) -> str:
+    """Why the FFT segment ``excluded`` (the rolling fit's ``extra["excluded"]``) is left out
+    of the fit of segment ``index``: a gate of the model (an event), or an outlier (a warning)."""
+    if "gate" in excluded:
+        return (
+            f"fit {index}: the FFT segment [{excluded['t_start']:.0f}, {excluded['t_stop']:.0f}] s "
+            f"overlaps the model's gate {excluded['gate']} s: left out of the rolling fit"
+        )
+    return (
+        f"fit {index}: the FFT segment [{excluded['t_start']:.0f}, "
+        f"{excluded['t_stop']:.0f}] s is left out of the rolling fit: chi2/dof "
+        f"{excluded['chi2_dof']:.3f} at its own best fit, {excluded['z']:.0f} sigma "
+        f"above the window's {excluded['reference']:.3f} (a transient: a glitch, a "
+        "merger, a noise burst)"
+    )
+
+
+def inadequate_message(index: int, meta: dict) -> str:
+    """The warning of a fit whose model fails against the instrument noise model."""
+    return (
+        f"fit {index}: the model {','.join(meta['model'])} fails against "
+        f"the instrument noise model (chi2/dof {meta['adequacy']['chi2_dof']:.3f}; "
+        + "; ".join(meta["adequacy"]["summary"])
+        + ")"
+    )

@@ -1,0 +1,169 @@
+"""The fitter's live diagnosis: the window diagnosed as ``ttl diagnose`` would, and its adoption.
+
+Every ``diagnose_every`` segments and on the first segment of a new model, the fitter
+diagnoses its window (:func:`ttlcore.diagnose.diagnoser.diagnose`, the witness search
+included).  :func:`diagnosis_meta` turns the report into the fit message's meta
+``diagnosis``: the failing bands and hours, the top witnesses and candidates, the reading of
+the transients (:func:`transients_meta`), the text report, and the recommendation with the
+model it leads to and the ``ttl control`` command that applies it (:func:`control_command`).
+Whether the recommendation may be adopted without a person is :func:`adoptable`'s call; the
+stage adopts it under ``--adopt auto``.
+"""
+
+from __future__ import annotations
+
+import json
+import shlex
+from collections.abc import Callable
+
+from ttlcore.diagnose.diagnoser import text_report
+from ttlcore.effects import make_effects
+from ttlcore.effects.glitch import merge_gates
+
+
+def transients_meta(transients: dict | None) -> dict | None:
+    """The live diagnosis' reading of the window's transients (meta ``diagnosis.transients``):
+    the class of the excess (gravitational-wave, glitch, gap, noise-change, missing-coupling...),
+    whether it is a signal or a defect of the data, and each event's class and span [s]."""
+    if not transients:
+        return None
+    verdict = transients.get("classification") or {}
+    return {
+        "class": verdict.get("class"),
+        "signal": bool(verdict.get("signal")),
+        "events": [
+            {k: e.get(k) for k in ("class", "t_start", "t_stop", "f_lo", "f_hi", "snr")}
+            for e in transients.get("events") or []
+        ],
+        "gaps": transients.get("gaps") or [],
+    }
+
+
+def adoptable(recommendation: dict | None, log_bf_threshold: float = 2.3) -> tuple[bool, str]:
+    """Whether a diagnosis' recommendation may be adopted without a person, and why.
+
+    Adopted only when every one of these holds: a candidate is recommended (``option`` set),
+    the diagnosis says it explains the excess (``explains``: at least half of the chi^2
+    beyond the tolerance, :func:`ttlcore.diagnose.report.recommendation`), and its evidence
+    is decisive (log Bayes factor above ``log_bf_threshold`` - the diagnosis' own
+    significance threshold, odds 10:1 - as the candidate's ``significant`` flag already
+    requires together with p < alpha)."""
+    if not recommendation or not recommendation.get("option") or not recommendation.get("spec"):
+        return False, "nothing recommended"
+    if not recommendation.get("explains"):
+        return False, (
+            f"the best candidate explains {100 * float(recommendation.get('explained_fraction') or 0):.0f} % "
+            "of the excess: not adopted"
+        )
+    lbf = recommendation.get("log_bayes_factor")
+    if lbf is not None and float(lbf) < log_bf_threshold:
+        return False, f"log Bayes factor {float(lbf):.1f} below {log_bf_threshold:g}: not adopted"
+    return True, (
+        f"explains {100 * float(recommendation.get('explained_fraction') or 0):.0f} % of the excess"
+        + (f", log Bayes factor {float(lbf):.1f}" if lbf is not None else "")
+    )
+
+
+def control_command(run: str, stage: str, zenoh, effects: list[str]) -> str:
+    """The ``ttl control`` command that puts ``effects`` in the model of the fitter ``stage``
+    of run ``run``, reached as its Zenoh settings ``zenoh`` say (``connect``, ``credentials``)."""
+    parts = ["ttl", "control", "--run", run]
+    if getattr(zenoh, "connect", None):
+        parts += ["--connect", str(list(zenoh.connect)[0])]
+    if getattr(zenoh, "credentials", None):
+        parts += ["--credentials", str(zenoh.credentials)]
+    return shlex.join(parts + [stage, "model", json.dumps({"effects": list(effects)})])
+
+
+def recommendation_meta(
+    report: dict, effects: list[str], effect_modules, command: Callable[[list[str]], str]
+) -> dict | None:
+    """The diagnosis' recommendation, with the evidence of its candidate (``log_bayes_factor``),
+    the model it leads to (``effects``: the model in force plus what it adds, a gate
+    overlapping one of the model's merged with it) and the command that applies it."""
+    rec = report.get("recommendation")
+    if not rec:
+        return rec
+    rec = dict(rec)
+    best = next((c for c in report["candidates"] if c.get("spec") == rec.get("spec")), None)
+    if best is not None:
+        rec["log_bayes_factor"] = best.get("log_bayes_factor")
+    if rec.get("spec"):
+        # a transient's advice adds several glitches and gates at once (``actions``)
+        added = [a["spec"] for a in rec.get("actions") or []] or [rec["spec"]]
+        # a gate overlapping one of the model's (an ongoing signal, seen again) is merged
+        model = make_effects([e.replace(";", ",") for e in [*effects, *added]], effect_modules)
+        rec["effects"] = [e.spec() for e in merge_gates(model)]
+        rec["command"] = command(rec["effects"])
+    return rec
+
+
+def diagnosis_meta(
+    report: dict,
+    *,
+    index: int,
+    window: tuple[int, int],
+    effects: list[str],
+    effect_modules,
+    mode: str,
+    command: Callable[[list[str]], str],
+) -> tuple[dict, bool]:
+    """The fit message's meta ``diagnosis`` from a diagnosis report of the window.
+
+    Parameters
+    ----------
+    report : dict
+        :func:`ttlcore.diagnose.diagnoser.diagnose`'s report.
+    index : int
+        The segment whose fit message carries it.
+    window : (int, int)
+        The first and last segment of the window diagnosed.
+    effects : list of str
+        The model in force.
+    effect_modules : sequence of str
+        Plugin modules defining effects.
+    mode : str
+        ``--adopt`` (``adoption.mode``).
+    command : callable
+        Effects -> the ``ttl control`` command that applies them (:func:`control_command`).
+
+    Returns
+    -------
+    (dict, bool)
+        The meta (``adoption.adopted`` False: the stage sets it when it adopts) and whether
+        the recommendation may be adopted (:func:`adoptable`, and not held by the model already).
+    """
+    first, last = window
+    adequacy = report["adequacy"]
+    out = {
+        "index": index,
+        "segments": [first, last],
+        "model": list(effects),
+        "chi2_dof": adequacy["chi2_dof"],
+        "fails": bool(adequacy["fails"]),
+        "bands": [{k: b[k] for k in ("f_lo", "f_hi", "chi2_dof", "fails")} for b in adequacy["bands"]],
+        "failing_hours": [
+            [s["t_start"], s["t_stop"]] for s in (adequacy.get("time") or {}).get("segments", []) if s.get("fails")
+        ],
+        "summary": adequacy["summary"],
+        "witnesses": [
+            {k: w.get(k) for k in ("name", "spec", "delta_chi2", "best_band")}
+            for w in ((report.get("witnesses") or {}).get("overall") or [])[:3]
+        ],
+        "candidates": [
+            {
+                k: c.get(k)
+                for k in ("spec", "cli_spec", "delta_chi2", "log_bayes_factor", "explained_fraction", "significant")
+            }
+            for c in report["candidates"][:5]
+        ],
+        "transients": transients_meta(report.get("transients")),
+        "text": text_report(report, source=f"window {first}..{last}"),
+    }
+    rec = recommendation_meta(report, effects, effect_modules, command)
+    out["recommendation"] = rec
+    ok, why = adoptable(rec)
+    if ok and rec is not None and rec["effects"] == list(effects):
+        ok, why = False, "the model already holds it"
+    out["adoption"] = {"mode": mode, "adopted": False, "reason": why}
+    return out, ok

@@ -1,0 +1,142 @@
+"""The fitter's model in force: its effects, its changes, and what a restarted fitter restores.
+
+The model is a list of effect specs (``ttl diagnose``'s effects, plugins from the stage's
+configuration only) that always holds ``linear-ttl``.  It changes from a given segment on, by
+a control message (``ttl/<run>/control/fitter/model``, :meth:`LiveModel.parse_control`) or
+by the adoption of a live diagnosis' recommendation; the change is then due in the next fit
+message (``model_change``) and the new model is diagnosed on its first segment.
+
+A restarted fitter takes the model in force from the ``model`` events of its earlier
+processes' recordings (:meth:`LiveModel.restore`) and, while it rebuilds its window, the model
+of each segment it pushes again (:meth:`LiveModel.replay`): its state is then the
+uninterrupted run's.  The stage records the events; this class only holds the state.
+"""
+
+from __future__ import annotations
+
+import json
+
+from ttlcore.effects import make_effects
+from ttlcore.errors import ConfigError
+
+
+class LiveModel:
+    """The model in force and its recorded changes.
+
+    Parameters
+    ----------
+    effects : list of str or str
+        The configured model (a list of effect specs, or one comma-separated string).
+    effect_modules : sequence of str
+        Plugin modules or ``.py`` files defining effects (the stage's configuration).
+
+    Attributes
+    ----------
+    effects : list of str
+        The validated specs of the model in force.
+    initial : list of str
+        The configured model (what a restarted fitter replays before the first change).
+    history : list of (int, list of str)
+        The recorded changes of earlier processes: (segment it applies from, effects).
+    change_due : dict or None
+        A change not yet reported in a fit message: ``before``, ``after``, ``from_index``.
+    diagnose_due : bool
+        The first segment of a new model is diagnosed (cleared once it was).
+    """
+
+    def __init__(self, effects, effect_modules=()):
+        self.effect_modules = tuple(effect_modules)
+        self.effects = self.check(effects)
+        self.initial = list(self.effects)
+        self.history: list[tuple[int, list[str]]] = []
+        self.change_due: dict | None = None
+        self.diagnose_due = False
+
+    @property
+    def extended(self) -> bool:
+        """True when the model holds more than ``linear-ttl``."""
+        return self.effects != ["linear-ttl"]
+
+    def check(self, specs) -> list[str]:
+        """Validated effect specs of a model (a list, or one comma-separated string)."""
+        if isinstance(specs, str):  # the command line's form: ';' between one effect's options
+            specs = [s for s in specs.split(",") if s.strip()]
+        if not isinstance(specs, (list, tuple)) or not specs or not all(isinstance(s, str) for s in specs):
+            raise ValueError(f"effects: expected a list of effect specs, got {specs!r}")
+        effects = make_effects([s.strip().replace(";", ",") for s in specs], self.effect_modules)
+        if "linear-ttl" not in [e.name for e in effects]:
+            raise ValueError("effects: the model must include linear-ttl")
+        return [e.spec() for e in effects]
+
+    def change(self, new: list[str], start: int) -> None:
+        """The model ``new`` (validated) from segment ``start`` on: its change is due, its
+        first segment diagnosed."""
+        self.change_due = {"before": list(self.effects), "after": new, "from_index": start}
+        self.diagnose_due = True
+        self.effects = new
+
+    def parse_control(self, payload: bytes) -> list[str]:
+        """The model a control message ``{"effects": [...]}`` asks for, validated; ValueError
+        saying what is wrong with the message otherwise."""
+        try:
+            msg = json.loads(payload)
+        except ValueError as exc:
+            raise ValueError(f"not JSON: {exc}") from None
+        if not isinstance(msg, dict) or "effects" not in msg:
+            raise ValueError('expected {"effects": [...]}')
+        if set(msg) - {"effects"}:
+            raise ValueError(
+                f"unknown field(s) {sorted(set(msg) - {'effects'})}; plugin modules come from the "
+                "stage's configuration only"
+            )
+        try:
+            return self.check(msg["effects"])
+        except ConfigError as exc:
+            raise ValueError(str(exc)) from None
+
+    def restore(self, models: list[dict], fits: set[int]) -> tuple[int, bool] | None:
+        """Take the model in force from the ``model`` events of earlier processes (oldest
+        first), given the segments they recorded a fit of.
+
+        The last event's model is in force; its change is still due when no fit was recorded
+        from the segment it applies from on.  Every event that can be read goes into
+        :attr:`history` (one that cannot: the segments before it keep the model before).
+
+        Returns
+        -------
+        (int, bool) or None
+            The segment the model applies from and whether its change is due; None when no
+            model was recorded (the configured model stays).
+
+        Raises
+        ------
+        KeyError, TypeError, ValueError, ConfigError
+            The last event cannot be restored (nothing is changed).
+        """
+        if not models:
+            return None
+        d = models[-1].get("details") or {}
+        effects, before = self.check(d["effects"]), list(d["before"])
+        start = int(d["from_index"])
+        self.effects = effects
+        for e in models:
+            try:
+                d_e = e.get("details") or {}
+                self.history.append((int(d_e["from_index"]), self.check(d_e["effects"])))
+            except (KeyError, TypeError, ValueError, ConfigError):
+                continue  # a change that cannot be restored: the segments before it use the model before
+        due = not any(i >= start for i in fits)
+        if due:
+            self.change_due = {"before": before, "after": effects, "from_index": start}
+            self.diagnose_due = True
+        return start, due
+
+    def replay(self, index: int) -> None:
+        """While a restarted fitter catches up: the model in force at segment ``index`` (the
+        configured one, then each recorded change from its segment on), so that the rolling
+        fit is rebuilt where the uninterrupted run rebuilt it."""
+        effects = self.initial
+        for start, changed in sorted(self.history, key=lambda c: c[0]):
+            if start <= index:
+                effects = changed
+        self.effects = list(effects)
