@@ -53,8 +53,9 @@ with injected effects).
 
 from __future__ import annotations
 
+import functools
 import logging
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import optimize, stats
@@ -155,6 +156,14 @@ def basis_csds(f, ltt_mean, names=PARAMETERS) -> np.ndarray:
     return np.stack(out)
 
 
+@functools.lru_cache(maxsize=4)  # a run's few grids (a day's: ~10 MB each)
+def basis_on_grid(f_bytes: bytes, ltt_mean: tuple[float, ...], names: tuple[str, ...]) -> np.ndarray:
+    """:func:`basis_csds` on the frequencies ``np.frombuffer(f_bytes)`` [Hz], read-only, cached."""
+    b = basis_csds(np.frombuffer(f_bytes, dtype=float), ltt_mean, names)
+    b.flags.writeable = False
+    return b
+
+
 @dataclass(frozen=True)
 class NoiseModel:
     """Secondary-noise model of A, E, T with fitted PSD scale factors (module docstring).
@@ -180,22 +189,21 @@ class NoiseModel:
         data ask for more (or less) noise of that shape than the instrument is known to have.
     """
 
-    ltt_mean: tuple
-    names: tuple = PARAMETERS
-    levels: tuple = tuple(NOMINAL[p.split(".")[0]] for p in PARAMETERS)
-    covariance: tuple | None = None
+    ltt_mean: tuple[float, ...]
+    names: tuple[str, ...] = PARAMETERS
+    levels: tuple[float, ...] = tuple(NOMINAL[p.split(".")[0]] for p in PARAMETERS)
+    covariance: tuple[tuple[float, ...], ...] | None = None
     log_likelihood: float | None = None
     n_segments: int = 0
     n_bins: int = 0
     iterations: int = 0
     converged: bool = True
-    at_bound: tuple = ()
+    at_bound: tuple[str, ...] = ()
     #: start times [s] of the segments left out of the fit as outliers (:func:`outlying_segments`)
-    excluded_segments: tuple = ()
+    excluded_segments: tuple[float, ...] = ()
     #: analysis bins [Hz] left out of the fit as narrowband excess (:func:`narrowband_excess`),
     #: as ``((f_lo, f_hi), ...)`` runs
-    excluded_bands: tuple = ()
-    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+    excluded_bands: tuple[tuple[float, float], ...] = ()
 
     @classmethod
     def nominal(cls, ltt_mean, names=PARAMETERS) -> NoiseModel:
@@ -214,14 +222,8 @@ class NoiseModel:
         return np.sqrt(np.diag(np.asarray(self.covariance)))
 
     def basis(self, f) -> np.ndarray:
-        """:func:`basis_csds` on ``f`` (cached for the last grid)."""
-        f = np.asarray(f, dtype=float)
-        key = (f.size, float(f[0]), float(f[-1])) if f.size else (0,)
-        b = self._cache.get(key)  # one lookup: safe when threads share the model
-        if b is None:
-            self._cache.clear()
-            b = self._cache[key] = basis_csds(f, self.ltt_mean, self.names)
-        return b
+        """:func:`basis_csds` on ``f`` (read-only; computed once per grid, :func:`basis_on_grid`)."""
+        return basis_on_grid(np.ascontiguousarray(f, dtype=float).tobytes(), self.ltt_mean, self.names)
 
     def csd(self, f) -> np.ndarray:
         """Secondary-noise CSD (m, 3, 3) of A, E, T [1/Hz] (without the DWS term)."""
@@ -374,7 +376,6 @@ def fit_noise_model(
         it,
         converged,
         at_bound,
-        _cache={k: v for k, v in model._cache.items()},
     )
 
 
@@ -517,11 +518,8 @@ def profile_noise_model(
     (NoiseModel, ModelFit)
         The fitted noise model and the final fit of ``effects`` under it.
     """
-    nm = (
-        data.noise_parameters
-        if data.noise_parameters is not None and tuple(data.noise_parameters.names) == tuple(names)
-        else NoiseModel.nominal(data.ltt_mean, names)
-    )
+    fitted = data.noise_parameters  # the levels the data are whitened with, if fitted
+    nm = fitted if fitted is not None and fitted.names == tuple(names) else NoiseModel.nominal(data.ltt_mean, names)
     fit = first if first is not None else fit_model(data, effects, time_table=False)
     first = None  # only ``fit`` holds it: the first pass's replacement frees it
     for k in range(max(1, passes)):
