@@ -518,39 +518,40 @@ def profile_noise_model(
     (NoiseModel, ModelFit)
         The fitted noise model and the final fit of ``effects`` under it.
     """
-    fitted = data.noise_parameters  # the levels the data are whitened with, if fitted
-    nm = fitted if fitted is not None and fitted.names == tuple(names) else NoiseModel.nominal(data.ltt_mean, names)
+    fitted = data.noise.parameters  # the levels the data are whitened with, if fitted
+    nm = fitted if fitted is not None and fitted.names == tuple(names) else NoiseModel.nominal(data.tdi.ltt_mean, names)
     fit = first if first is not None else fit_model(data, effects, time_table=False)
     first = None  # only ``fit`` holds it: the first pass's replacement frees it
     for k in range(max(1, passes)):
         d = fit.data
-        dof = np.array([6.0 * (b - a) for a, b in d.slices])
+        grid, noise = d.grid, d.noise
+        dof = np.array([6.0 * (b - a) for a, b in grid.slices])
         out = (
-            outlying_segments(fit.chi2_seg_band, dof, d.kappa, d.settings.tolerance)
+            outlying_segments(fit.chi2_seg_band, dof, grid.kappa, d.context.settings.tolerance)
             if robust
-            else np.zeros(len(d.starts), dtype=bool)
+            else np.zeros(len(grid.starts), dtype=bool)
         )
-        P = residual_periodogram(fit.residual_w, d.Lh, ~out)
-        secondary = d.noise_parameters.csd(d.f) if d.noise_parameters is not None else nm.csd(d.f)
-        dws = d.noise_csd - secondary
+        P = residual_periodogram(fit.residual_w, noise.Lh, ~out)
+        secondary = noise.parameters.csd(grid.f) if noise.parameters is not None else nm.csd(grid.f)
+        dws = noise.csd - secondary
         n_kept = int((~out).sum())
-        narrow = narrowband_excess(d.f, P, d.noise_csd, n_kept, d.kappa) if robust else np.zeros(d.f.size, bool)
+        narrow = narrowband_excess(grid.f, P, noise.csd, n_kept, grid.kappa) if robust else np.zeros(grid.f.size, bool)
         use = ~narrow
         new = fit_noise_model(
-            d.f,
+            grid.f,
             P,
             n_kept,
-            d.ltt_mean,
+            d.tdi.ltt_mean,
             names=names,
             fixed=dws,
             start=nm,
-            kappa=d.kappa,
+            kappa=grid.kappa,
             keep=use if narrow.any() else None,
         )
         new = replace(
             new,
-            excluded_segments=tuple(float(t) for t in np.asarray(d.seg_t0)[out]),
-            excluded_bands=_runs(d.f, narrow),
+            excluded_segments=tuple(float(t) for t in np.asarray(grid.seg_t0)[out]),
+            excluded_bands=_runs(grid.f, narrow),
         )
         if narrow.any():
             log.info(
@@ -564,12 +565,12 @@ def profile_noise_model(
             log.info(
                 "noise model pass %d: segments starting at %s h left out as outliers",
                 k + 1,
-                [round(float(t) / 3600, 2) for t in np.asarray(d.seg_t0)[out]],
+                [round(float(t) / 3600, 2) for t in np.asarray(grid.seg_t0)[out]],
             )
         moved = np.abs(np.subtract(new.levels, nm.levels)) / np.maximum(new.sigma, 1e-300)
         nm = new
         fit = None  # the previous pass's fit is not kept while the next is made
-        fit = fit_model(d.with_noise(nm.csd(d.f) + dws, noise_parameters=nm), effects, time_table=False)
+        fit = fit_model(d.with_noise(nm.csd(grid.f) + dws, noise_parameters=nm), effects, time_table=False)
         log.info(
             "noise model pass %d: levels %s (moved %.2g sigma)",
             k + 1,
