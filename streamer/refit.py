@@ -168,7 +168,7 @@ def refit_run(
     report = {k: v for k, v in report.items() if not k.startswith("_")}
     report["source"] = {"run": str(run_dir), "data": what}
     if residual:
-        if fit.data.tm is None:
+        if fit.data.context.tm is None:
             raise RefitError("--residual needs the recorded telemetry (the replayer's recording)")
         report["_residual"] = fit_residual(fit)
     return report

@@ -47,7 +47,7 @@ import socket
 import time
 import traceback
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -123,9 +123,9 @@ class DayJob:
 def fit_settings(job: DayJob):
     """The :class:`~ttlcore.estimate.fit.FitSettings` of ``ttl analyze`` for ``job``."""
     s = FitSettings(band=tuple(job.band or DEFAULT_BAND))
-    if job.segment_duration is not None:
-        s.segment_duration = float(job.segment_duration)
-    return s
+    if job.segment_duration is None:
+        return s
+    return replace(s, segment_duration=float(job.segment_duration))
 
 
 def process_day(job: DayJob) -> dict:
@@ -149,9 +149,11 @@ def process_day(job: DayJob) -> dict:
     diagnosis = None
     if job.diagnosis:
         # one candidate thread: the cluster's workers already run days side by side
-        ds = DiagnoseSettings(band=tuple(s.band), workers=1)
-        if job.segment_duration is not None:
-            ds.segment_duration = float(job.segment_duration)
+        ds = DiagnoseSettings(
+            band=tuple(s.band),
+            workers=1,
+            segment_duration=None if job.segment_duration is None else float(job.segment_duration),
+        )
         tm = read_telemetry(job.data)
         report = diagnose(
             tm,

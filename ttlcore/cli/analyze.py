@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from ..app.analysis import analyze, check_band
@@ -15,7 +17,7 @@ def run(args) -> int:
     band = tuple(DEFAULT_BAND) if args.band is None else check_band(args.band)
     settings = FitSettings(band=band)
     if args.segment is not None:
-        settings.segment_duration = parse_duration(args.segment, "--segment")
+        settings = replace(settings, segment_duration=parse_duration(args.segment, "--segment"))
     with status_line("ttl analyze", quiet=args.quiet) as progress:
         out = analyze(
             args.data,

@@ -13,6 +13,7 @@ then only to add coefficient errors.
 
 from __future__ import annotations
 
+from dataclasses import replace
 from pathlib import Path
 
 from ..app.analysis import check_band, load_truth
@@ -76,20 +77,23 @@ def run(args) -> int:
         bad = [c for c in candidates if c not in known]
         if bad:
             raise TTLError(f"--candidates: unknown effect(s) {bad}; known: {', '.join(sorted(known))}")
-    s = DiagnoseSettings()
-    if args.band is not None:
-        s.band = check_band(args.band)
-    if args.segment is not None:
-        s.segment_duration = parse_duration(args.segment, "--segment")
-    s.noise_model = args.noise_model
-    if s.noise_model == "fixed":
-        s.tolerance = FIXED_MODEL_TOLERANCE
+    defaults = DiagnoseSettings()
+    band = defaults.band if args.band is None else check_band(args.band)
+    segment = None if args.segment is None else parse_duration(args.segment, "--segment")
+    tolerance = FIXED_MODEL_TOLERANCE if args.noise_model == "fixed" else defaults.tolerance
     if args.tolerance is not None:
         if not (0 <= args.tolerance < 1):
             raise TTLError(f"--tolerance: expected a fraction in [0, 1), got {args.tolerance}")
-        s.tolerance = args.tolerance
-    if args.workers is not None:
-        s.workers = args.workers
+        tolerance = args.tolerance
+    # built once from the options (the settings are not changed afterwards)
+    s = replace(
+        defaults,
+        band=band,
+        segment_duration=segment,
+        noise_model=args.noise_model,
+        tolerance=tolerance,
+        workers=args.workers,
+    )
     with status_line("ttl diagnose", args.quiet) as say:  # in place on a terminal
         say(f"reading {data}")
         tm = read_telemetry(data)

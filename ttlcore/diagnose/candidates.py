@@ -60,10 +60,10 @@ def named_candidates(model: ModelFit, names=None) -> list:
     # finder localises an excess (:func:`transient_actions`)
     todo = [
         n
-        for n in (names or data.registry)
+        for n in (names or data.context.registry)
         if n not in in_model and n not in ("witness", "fd-coupling", "glitch", "gate")
     ]
-    effects = [data.registry[n]() for n in todo]
+    effects = [data.context.registry[n]() for n in todo]
     return sorted(effects, key=lambda e: not (e.unresolved() or hasattr(e, "shifted_members")))
 
 
@@ -84,11 +84,11 @@ class CandidatePool:
     def __init__(self, model: ModelFit, workers: int = 1):
         self.model = model
         data = model.data
-        s = data.settings
+        s = data.context.settings
         self.C = model.ttl_coefficients()
         # the excess the noise model (with its tolerance) cannot explain
         self.excess = (
-            float(np.sum(np.maximum(model.bands.chi2 - (1 + s.tolerance) * model.bands.dof, 0.0))) / data.kappa
+            float(np.sum(np.maximum(model.bands.chi2 - (1 + s.tolerance) * model.bands.dof, 0.0))) / data.grid.kappa
         )
         self.n_data = float(model.dof_band.sum())
         self.workers = max(1, int(workers))
@@ -113,7 +113,7 @@ class CandidatePool:
     def submit(self, effects) -> None:
         """Queue effects (registry names or :class:`~ttlcore.effects.base.Effect`
         instances) for scoring; one already in the model or queued is skipped."""
-        registry = self.model.data.registry
+        registry = self.model.data.context.registry
         for effect in effects:
             if not isinstance(effect, Effect):
                 effect = registry[effect]()
@@ -137,7 +137,7 @@ class CandidatePool:
     def score(self, effect) -> dict | None:
         """One candidate's entry of the ranking (None when it cannot be scored here)."""
         model, data = self.model, self.model.data
-        s = data.settings
+        s = data.context.settings
         cls, name = type(effect), effect.name
         t_start = time.monotonic()
         try:
@@ -206,7 +206,10 @@ def score(model: ModelFit, effect, C) -> tuple[Evidence, dict]:
     # TDI regressors (exact=False)
     cs = effect_columns(data, effect, C if effect.needs_coefficients else None, exact=trial, cache=not trial)
     ev = added_evidence(model, cs)
-    if hasattr(effect, "shifted_members") and stats.chi2.sf(max(ev.delta_chi2, 0.0), len(cs)) < data.settings.alpha:
+    if (
+        hasattr(effect, "shifted_members")
+        and stats.chi2.sf(max(ev.delta_chi2, 0.0), len(cs)) < data.context.settings.alpha
+    ):
         ev, extra = shifted_evidence(model, effect, ev)
     return ev, extra
 
@@ -223,7 +226,7 @@ def shifted_evidence(model: ModelFit, effect, taylor: Evidence) -> tuple[Evidenc
     with the offsets of its expanded groups given (``offset.<group>``, 6 significant
     digits), whose ``--effects`` spelling fits the same model."""
     data = model.data
-    if data.settings.expansion_passes == 0 or len(data.ttl_names) != 24:
+    if data.context.settings.expansion_passes == 0 or len(data.tdi.ttl_names) != 24:
         return taylor, {}
     exact = fit_resolved(data, list(model.effects) + [effect], None, False)
     if all("@" not in n for n in exact.names):
@@ -239,8 +242,8 @@ def shifted_evidence(model: ModelFit, effect, taylor: Evidence) -> tuple[Evidenc
         tuple(names),
         beta,
         exact.sigma[new],
-        (model.chi2_seg_band - exact.chi2_seg_band).sum(axis=0) / data.kappa,
-        (model.chi2_seg_band - exact.chi2_seg_band).sum(axis=1) / data.kappa,
+        (model.chi2_seg_band - exact.chi2_seg_band).sum(axis=0) / data.grid.kappa,
+        (model.chi2_seg_band - exact.chi2_seg_band).sum(axis=1) / data.grid.kappa,
     )
     offsets = {n[:-3]: float(b) for n, b in zip(names, beta) if n.endswith(".d1")}
     prefix = effect.name + "."
@@ -265,12 +268,12 @@ def where(data, ev: Evidence, extra: dict) -> dict:
     tot = max(float(np.sum(np.maximum(bd, 0))), 1e-300)
     bands = [
         {
-            "f_lo": float(data.edges[g]),
-            "f_hi": float(data.edges[g + 1]),
+            "f_lo": float(data.grid.edges[g]),
+            "f_hi": float(data.grid.edges[g + 1]),
             "delta_chi2": float(bd[g]),
             "share": float(max(bd[g], 0) / tot),
         }
-        for g in range(data.G)
+        for g in range(data.grid.G)
     ]
     strong = [b for b in bands if b["share"] >= 0.1]
     z2 = (ev.beta / np.where(ev.sigma > 0, ev.sigma, np.inf)) ** 2
@@ -284,8 +287,8 @@ def where(data, ev: Evidence, extra: dict) -> dict:
         "bands": bands,
         "main_bands": [[b["f_lo"], b["f_hi"]] for b in strong],
         "segments": [
-            {"t_start": float(t), "t_stop": float(t + data.seg_duration), "delta_chi2": float(x)}
-            for t, x in zip(data.seg_t0, sd)
+            {"t_start": float(t), "t_stop": float(t + data.grid.seg_duration), "delta_chi2": float(x)}
+            for t, x in zip(data.grid.seg_t0, sd)
         ],
         "links": [{"group": g, "z2": z, "share": z / ztot} for g, z in links[:6]],
     }
@@ -355,7 +358,7 @@ def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> li
     if not events and not gaps:
         return []
     data = model.data
-    s = data.settings
+    s = data.context.settings
     hop = float(tr.get("hop", 0.0))
     tf0 = residual_map(data, residual) if events else None
     actions, spans, prior = [], [], list[Effect]()
@@ -366,7 +369,7 @@ def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> li
         if e["duration"] > MAX_GATE_HOURS * 3600.0 and e["class"] not in GLITCH_CLASSES:
             continue  # hours of signal (a long inspiral) are not a transient to gate
         tried = None
-        if e["class"] in GLITCH_CLASSES and data.tm is not None:
+        if e["class"] in GLITCH_CLASSES and data.context.tm is not None:
             act = _event_glitches(model, residual, tf0, e, span, s, prior)
             if act["advised"]:
                 prior += act["effects"]

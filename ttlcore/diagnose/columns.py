@@ -156,23 +156,23 @@ def concat(*sets: ColumnSet) -> ColumnSet:
 def rewhitened(cs: ColumnSet, Lh_from: np.ndarray, data) -> ColumnSet:
     """``cs`` (whitened with ``Lh_from``) whitened with ``data``'s noise model instead:
     ``L_new^H (L_old^H)^-1`` per bin, no spectra recomputed."""
-    if cs.noise_key == data.noise_key or not len(cs):
+    if cs.noise_key == data.noise.key or not len(cs):
         return cs
-    M = data.Lh @ np.linalg.inv(Lh_from)
+    M = data.noise.Lh @ np.linalg.inv(Lh_from)
     w = cs.x.view(complex)
     x = np.stack([np.ascontiguousarray(np.einsum("mij,smj->smi", M, w[k])) for k in range(len(cs))])
-    return replace(cs, x=x.view(np.float64), noise_key=data.noise_key)
+    return replace(cs, x=x.view(np.float64), noise_key=data.noise.key)
 
 
 def _whitened_set(data, names, spectra, units, priors, eiv=None, modulation=None, series=None) -> ColumnSet:
     """A set from raw spectra (S, m, 3, k), whitened with ``data``'s noise model."""
-    w = data.whiten(spectra)
+    w = data.noise.whiten(spectra)
     x = np.stack([np.ascontiguousarray(w[..., k]) for k in range(len(names))]).view(np.float64)
     k = len(names)
     return ColumnSet(
         tuple(names),
         x,
-        data.noise_key,
+        data.noise.key,
         tuple(units),
         tuple(priors),
         tuple(eiv) if eiv is not None else ((),) * k,
@@ -203,9 +203,9 @@ class ColumnStore:
         if entry is None:
             return None
         Lh, cs = entry
-        if cs.noise_key != data.noise_key:
+        if cs.noise_key != data.noise.key:
             cs = rewhitened(cs, Lh, data)
-            self._sets[key] = (data.Lh, cs)
+            self._sets[key] = (data.noise.Lh, cs)
         return cs
 
     def put(self, key, data, cs: ColumnSet, family=None) -> ColumnSet:
@@ -218,29 +218,31 @@ class ColumnStore:
             if old is not None and old != key:
                 self._sets.pop(old, None)
             self._latest[family] = key
-        self._sets[key] = (data.Lh, cs)
+        self._sets[key] = (data.noise.Lh, cs)
         return cs
 
     def _link_responses(self, data, combination, extra: tuple) -> np.ndarray:
-        """:func:`ttlcore.tdi.combinations.link_responses` of ``combination`` on ``data.f``
+        """:func:`ttlcore.tdi.combinations.link_responses` of ``combination`` on ``data.grid.f``
         (every link), computed once per diagnosis and extra delays."""
         entry = self._links.get((combination.name, extra))
-        if entry is None or entry[0] is not data.f or entry[1] is not data.ltt_mean:
-            entry = (data.f, data.ltt_mean, link_responses(combination, data.f, data.ltt_mean, extra))
+        if entry is None or entry[0] is not data.grid.f or entry[1] is not data.tdi.ltt_mean:
+            entry = (data.grid.f, data.tdi.ltt_mean, link_responses(combination, data.grid.f, data.tdi.ltt_mean, extra))
             self._links[(combination.name, extra)] = entry
         return entry[2]
 
     def eiv_response(self, data, link, extra) -> np.ndarray:
         """Whitened A, E, T response (m, 3) to the DWS readout noise of a witness ``-DWS/c``
         placed on ``link`` after ``extra`` delays, times the noise's ASD (velocity)."""
-        key = (data.noise_key, link, tuple(extra))
+        key = (data.noise.key, link, tuple(extra))
         r = self._eiv.get(key)  # one lookup: candidates scored in threads share the store
         if r is None:
             if len(self._eiv) > 64:
                 self._eiv.clear()
             h = np.stack([self._link_responses(data, c, tuple(extra))[LINKS.index(link)] for c in MICHELSON])
             T = (AET_MATRIX @ h).T * (-1.0 / SPEED_OF_LIGHT)  # (m, 3)
-            r = self._eiv[key] = np.matmul(data.Lh, T[..., None])[..., 0] * (2 * np.pi * data.f * data.dws_asd)[:, None]
+            r = self._eiv[key] = (
+                np.matmul(data.noise.Lh, T[..., None])[..., 0] * (2 * np.pi * data.grid.f * data.tdi.dws_asd)[:, None]
+            )
         return r
 
 
@@ -252,24 +254,24 @@ class ColumnStore:
 def ttl_columns(data) -> ColumnSet:
     """The TDI regressor columns of the data (the 24 TTL ones, with their readout noise)."""
     key = ("regressors",)
-    cs = data.store.get(key, data)
+    cs = data.context.store.get(key, data)
     if cs is None:  # put there by whiten_tdi; recomputed only if a user's store was cleared
-        cs = data.store.put(key, data, regressor_columns(data, data.spectra(data.regressor_series)))
+        cs = data.context.store.put(key, data, regressor_columns(data, data.grid.spectra(data.tdi.regressor_series)))
     return cs
 
 
 def regressor_columns(data, R: np.ndarray) -> ColumnSet:
     """The TDI regressor columns from their raw band spectra ``R`` (S, m, 3, k), whitened."""
     eiv: list = []
-    for n in data.regressor_names:
+    for n in data.tdi.regressor_names:
         if n in COEFFICIENT_NAMES:
             link, extra, mosa, angle = placement(n)
             eiv.append((((mosa, angle), link, tuple(extra), 0.0),))
         else:
             eiv.append(())
-    k = len(data.regressor_names)
+    k = len(data.tdi.regressor_names)
     return _whitened_set(
-        data, data.regressor_names, R, [TTL_INFO[0]] * k, [TTL_INFO[1]] * k, eiv, None, data.regressor_series
+        data, data.tdi.regressor_names, R, [TTL_INFO[0]] * k, [TTL_INFO[1]] * k, eiv, None, data.tdi.regressor_series
     )
 
 
@@ -278,35 +280,35 @@ def derivative_columns(data, series: bool = False) -> ColumnSet:
     (columns ``d1:<name>``, ``d2:<name>``), computed once; with ``series`` their decimated
     series too (a day's 48 columns: ~400 MB, so kept only when a model asks for them)."""
     key = ("derivatives",)
-    cs = data.store.get(key, data)
+    cs = data.context.store.get(key, data)
     if cs is not None and (not series or cs.series is not None):
         return cs
-    td = data.td_in
+    td = data.tdi.td_in
     k = len(td.names)
     names = [f"d{order}:{n}" for order in (1, 2) for n in td.names]
     # filled order by order, no concatenation (a day's 48 columns: ~160 MB of spectra)
-    x = np.empty((2 * k, len(data.starts), data.f.size, 6))
-    kept = np.empty((3, 2 * k, data.mask.size)) if series else None
+    x = np.empty((2 * k, len(data.grid.starts), data.grid.f.size, 6))
+    kept = np.empty((3, 2 * k, data.grid.mask.size)) if series else None
     for o, order in enumerate((1, 2)):
         s = np.concatenate(
             [
-                data.decimate(derivative(td.regressors[:, j0 : j0 + 8], td.fs, order), is_aet=True)
+                data.grid.decimate(derivative(td.regressors[:, j0 : j0 + 8], td.fs, order), is_aet=True)
                 for j0 in range(0, k, 8)
             ],
             axis=1,
         )
         if kept is not None:  # series asked for
             kept[:, o * k : (o + 1) * k] = s
-        w = data.whiten(data.spectra(s))
+        w = data.noise.whiten(data.grid.spectra(s))
         del s
         xc = x.view(complex)  # (2k, S, m, 3)
         for j in range(k):
             xc[o * k + j] = w[..., j]
         del w
     cs = ColumnSet(
-        tuple(names), x, data.noise_key, ("",) * (2 * k), (1.0,) * (2 * k), ((),) * (2 * k), (None,) * (2 * k), kept
+        tuple(names), x, data.noise.key, ("",) * (2 * k), (1.0,) * (2 * k), ((),) * (2 * k), (None,) * (2 * k), kept
     )
-    return data.store.put(key, data, cs)
+    return data.context.store.put(key, data, cs)
 
 
 def _options_key(effect) -> str:
@@ -326,12 +328,16 @@ def effect_columns(
     the 24 of them.  ``keep_series``: the decimated series are kept (time-domain adequacy,
     filters in time); ``cache=False``: the columns are not kept in the store (trial
     columns of a search or a candidate; the unfiltered base columns are kept)."""
-    names_in = set(data.regressor_names)
-    if hasattr(effect, "tdi_terms") and len(data.ttl_names) == 24 and all(n in names_in for n in data.ttl_names):
+    names_in = set(data.tdi.regressor_names)
+    if (
+        hasattr(effect, "tdi_terms")
+        and len(data.tdi.ttl_names) == 24
+        and all(n in names_in for n in data.tdi.ttl_names)
+    ):
         if coefficients is None:
             raise ConfigError(f"effect {effect.name!r} needs the linear coefficients")
         key: tuple = ("tdi_terms", effect.name, _options_key(effect), tuple(np.round(coefficients, 15)))
-        cs = data.store.get(key, data)
+        cs = data.context.store.get(key, data)
         if cs is None or (keep_series and cs.series is None):
             d = derivative_columns(data, series=keep_series)
             names, x, series, units, priors = [], [], [], [], []
@@ -343,13 +349,13 @@ def effect_columns(
                 units.append(unit)
                 priors.append(prior)
             k = len(names)
-            cs = data.store.put(
+            cs = data.context.store.put(
                 key,
                 data,
                 ColumnSet(
                     tuple(names),
                     np.stack(x).view(np.float64),
-                    data.noise_key,
+                    data.noise.key,
                     tuple(units),
                     tuple(priors),
                     ((),) * k,
@@ -365,9 +371,9 @@ def effect_columns(
         and all(f"{m}.{a}.{sd}" in names_in for m in effect.mosas for a in effect.angles for sd in effect.sides)
     ):
         key = ("approx", effect.name, _options_key(effect))
-        cs = data.store.get(key, data)
+        cs = data.context.store.get(key, data)
         if cs is None:
-            cs = data.store.put(key, data, _modulated_regressors(data, effect))
+            cs = data.context.store.put(key, data, _modulated_regressors(data, effect))
         return cs
     return _exact_columns(data, effect, coefficients, keep_series, cache)
 
@@ -377,7 +383,7 @@ def _exact_columns(data, effect, coefficients, keep_series, cache=True) -> Colum
         raise ConfigError("effect 'step' needs t_step in a model (ttl diagnose reports the searched time)")
     if effect.name == "linear-ttl":
         names = [c.name for c in effect.columns(names_only_input())]
-        missing = [n for n in names if n not in data.regressor_names]
+        missing = [n for n in names if n not in data.tdi.regressor_names]
         if missing:
             raise ConfigError(f"linear-ttl columns {missing[:3]} missing from the TDI data")
         return ttl_columns(data).select(names, series=keep_series)
@@ -387,41 +393,41 @@ def _exact_columns(data, effect, coefficients, keep_series, cache=True) -> Colum
         _options_key(effect),
         None if coefficients is None else tuple(np.round(coefficients, 12)),
     )
-    cs = data.store.get(key, data)
+    cs = data.context.store.get(key, data)
     if cs is not None and (not keep_series or cs.series is not None):
         return cs
-    if data.tm is None:
+    if data.context.tm is None:
         cs = _modulated_regressors(data, effect)
     else:
-        cols = effect.columns(effect_input_from_telemetry(data.tm, coefficients))
+        cols = effect.columns(effect_input_from_telemetry(data.context.tm, coefficients))
         if not cols:
             raise ConfigError(f"effect {effect.name!r} produced no column (check its options)")
         if any(c.response is not None for c in cols):
             cs = filtered_columns(data, cols)
-            return data.store.put(key, data, cs, family=key[:3]) if cache else cs
+            return data.context.store.put(key, data, cs, family=key[:3]) if cache else cs
         eiv, mods = zip(*[column_eiv(data, c) for c in cols])
         chunks = []
         for j0 in range(0, len(cols), 8):  # bounded memory (a day: ~70 MB per column in flight)
             _, xyz = tdi_in_blocks(
-                data.tm.ltt,
-                data.tm.fs,
+                data.context.tm.ltt,
+                data.context.tm.fs,
                 cols[j0 : j0 + 8],
-                order=data.settings.order,
-                delay_order=data.settings.delay_order,
+                order=data.context.settings.order,
+                delay_order=data.context.settings.delay_order,
             )
-            chunks.append(data.decimate(xyz))
+            chunks.append(data.grid.decimate(xyz))
         series = np.concatenate(chunks, axis=1)
         cs = _whitened_set(
             data,
             [c.name for c in cols],
-            data.spectra(series),
+            data.grid.spectra(series),
             [c.unit for c in cols],
             [c.prior_scale for c in cols],
             eiv,
             mods,
             series if keep_series else None,
         )
-    return data.store.put(key, data, cs, family=key[:3]) if cache else cs
+    return data.context.store.put(key, data, cs, family=key[:3]) if cache else cs
 
 
 def column_eiv(data, column) -> tuple:
@@ -436,8 +442,8 @@ def column_eiv(data, column) -> tuple:
     if any(m is not None for m in mods):
         if any(m is None or not np.array_equal(m, mods[0]) for m in mods):
             return (), None  # parts modulated differently: not modelled
-        t_tm = float(data.tm.t0) + np.arange(len(mods[0])) / float(data.tm.fs)
-        t_dec = data.t0 + np.arange(data.mask.size) / data.fs
+        t_tm = float(data.context.tm.t0) + np.arange(len(mods[0])) / float(data.context.tm.fs)
+        t_dec = data.grid.t0 + np.arange(data.grid.mask.size) / data.grid.fs
         mod = np.interp(t_dec, t_tm, np.asarray(mods[0], dtype=float))
     return tuple((p.channel, p.link, tuple(p.extra), 0.0) for p in parts), mod
 
@@ -446,10 +452,10 @@ def _modulated_regressors(data, effect) -> ColumnSet:
     """Drift and step columns as time-modulated TDI regressors (no telemetry needed)."""
     if effect.name not in ("drift", "step"):
         raise ConfigError(f"effect {effect.name!r} needs the telemetry (DWS series); these segments carry TDI only")
-    t = data.t0 + np.arange(data.data_series.shape[-1]) / data.fs
+    t = data.grid.t0 + np.arange(data.tdi.data_series.shape[-1]) / data.grid.fs
     if effect.name == "drift":
         t_ref = effect.options.get("t_ref")
-        t_ref = 0.5 * (t[data.mask][0] + t[data.mask][-1]) if t_ref is None else float(t_ref)
+        t_ref = 0.5 * (t[data.grid.mask][0] + t[data.grid.mask][-1]) if t_ref is None else float(t_ref)
         mod, prefix, unit = (t - t_ref) / 86400.0, "drift", "m/rad/day"
     else:
         mod, prefix, unit = (t >= parse_duration(effect.options["t_step"])).astype(float), "step", "m/rad"
@@ -461,12 +467,12 @@ def _modulated_regressors(data, effect) -> ColumnSet:
                 b = f"{m}.{a}.{sd}"
                 i = base.names.index(b)
                 names.append(f"{prefix}.{b}")
-                cols.append(data.regressor_series[:, i] * mod)
+                cols.append(data.tdi.regressor_series[:, i] * mod)
                 eiv.append(base.eiv[i])
                 mods.append(mod if base.eiv[i] else None)
     series = np.stack(cols, axis=1)
     k = len(names)
-    return _whitened_set(data, names, data.spectra(series), [unit] * k, [1e-3] * k, eiv, mods)
+    return _whitened_set(data, names, data.grid.spectra(series), [unit] * k, [1e-3] * k, eiv, mods)
 
 
 def base_column(data, column) -> ColumnSet:
@@ -475,18 +481,24 @@ def base_column(data, column) -> ColumnSet:
     frequency-dependent candidates on one placement share it."""
     key = "base:" + (column.base or column.name.split(".", 1)[-1])
     key += "|" + ";".join(f"{p.link}/{int(p.delayed)}/{p.channel}" for p in column.parts)
-    cs = data.store.get(("base", key), data)
+    cs = data.context.store.get(("base", key), data)
     if cs is None:
         plain = Column(key, column.parts, column.unit, column.prior_scale)
         _, xyz = tdi_in_blocks(
-            data.tm.ltt, data.tm.fs, [plain], order=data.settings.order, delay_order=data.settings.delay_order
+            data.context.tm.ltt,
+            data.context.tm.fs,
+            [plain],
+            order=data.context.settings.order,
+            delay_order=data.context.settings.delay_order,
         )
-        series = data.decimate(xyz)
+        series = data.grid.decimate(xyz)
         eiv, mod = column_eiv(data, plain)
-        cs = data.store.put(
+        cs = data.context.store.put(
             ("base", key),
             data,
-            _whitened_set(data, [key], data.spectra(series), [column.unit], [column.prior_scale], [eiv], [mod], series),
+            _whitened_set(
+                data, [key], data.grid.spectra(series), [column.unit], [column.prior_scale], [eiv], [mod], series
+            ),
         )
     return cs
 
@@ -503,8 +515,8 @@ def filtered_spectra(data, base: ColumnSet, responses, transform: tuple | None =
         raise ValueError("the base column's series are needed (keep_series)")
     x = base.series[:, 0]
     ok = np.isfinite(x)
-    series = np.stack([np.where(ok, y, np.nan) for y in filtered_many(x, data.fs, responses, transform)], axis=1)
-    return data.whiten(data.spectra(series)), series
+    series = np.stack([np.where(ok, y, np.nan) for y in filtered_many(x, data.grid.fs, responses, transform)], axis=1)
+    return data.noise.whiten(data.grid.spectra(series)), series
 
 
 def filtered_columns(data, cols) -> ColumnSet:
@@ -515,7 +527,9 @@ def filtered_columns(data, cols) -> ColumnSet:
     for c in cols:
         base = base_column(data, c)
         resp = (
-            np.ones(data.f.size, dtype=complex) if c.response is None else np.asarray(c.response(data.f), dtype=complex)
+            np.ones(data.grid.f.size, dtype=complex)
+            if c.response is None
+            else np.asarray(c.response(data.grid.f), dtype=complex)
         )
         w, s = filtered_spectra(data, base, [c.response or (lambda f: np.ones(np.shape(f)))])
         x.append(np.ascontiguousarray(w[..., 0]))
@@ -525,7 +539,7 @@ def filtered_columns(data, cols) -> ColumnSet:
     return ColumnSet(
         tuple(c.name for c in cols),
         np.stack(x).view(np.float64),
-        data.noise_key,
+        data.noise.key,
         tuple(c.unit for c in cols),
         tuple(c.prior_scale for c in cols),
         tuple(eiv),
@@ -554,7 +568,7 @@ def shifted_columns(data, effect, C, shifts: dict) -> tuple[dict, ColumnSet, dic
     expansion : dict
         ``"effect.group" -> delta_0``.
     """
-    td = data.td_in
+    td = data.tdi.td_in
     base = ttl_columns(data)
     sgn = float(effect.d1_sign)
     replaced, names, series_list, units, priors, eiv, expansion = {}, [], [], [], [], [], {}
@@ -583,8 +597,8 @@ def shifted_columns(data, effect, C, shifts: dict) -> tuple[dict, ColumnSet, dic
             units.append({"d1": "s", "d2": "s^2"}[kind])
             priors.append({"d1": 0.1, "d2": 0.01}[kind])
             eiv.append(())
-    series = data.decimate(np.stack(series_list, axis=1), is_aet=True)
-    cs = _whitened_set(data, names, data.spectra(series), units, priors, eiv, None, series)
+    series = data.grid.decimate(np.stack(series_list, axis=1), is_aet=True)
+    cs = _whitened_set(data, names, data.grid.spectra(series), units, priors, eiv, None, series)
     return replaced, cs, expansion
 
 
@@ -610,7 +624,7 @@ def eiv_products(data, *sets: ColumnSet) -> np.ndarray:
     the readouts, carry none - their bias is second order in the small readout noise."""
     parts_of = [parts for cs in sets for parts in cs.eiv]
     p = len(parts_of)
-    E = np.zeros((data.G, p, p))
+    E = np.zeros((data.grid.G, p, p))
     by_channel: dict = {}
     for i, parts in enumerate(parts_of):
         for ch, link, extra, factor in parts:
@@ -620,14 +634,14 @@ def eiv_products(data, *sets: ColumnSet) -> np.ndarray:
         U = np.stack(
             [
                 sum(
-                    data.store.eiv_response(data, link, extra) * readout_noise_factor(data.f, factor)
+                    data.context.store.eiv_response(data, link, extra) * readout_noise_factor(data.grid.f, factor)
                     for link, extra, factor in cols[i]
                 )
                 for i in idx
             ],
             axis=-1,
         )
-        for g, (a, b) in enumerate(data.slices):
+        for g, (a, b) in enumerate(data.grid.slices):
             if b > a:
                 Ug = U[a:b].reshape(-1, len(idx))
                 E[g][np.ix_(idx, idx)] += np.real(Ug.conj().T @ Ug)
@@ -639,12 +653,12 @@ def eiv_weights(data, *sets: ColumnSet) -> np.ndarray:
     columns' modulations weighted by the squared taper (the readout noise is white on the
     modulations' time scale), ``m = 1`` for unmodulated columns."""
     mods = [m for cs in sets for m in cs.modulation]
-    W = np.full((len(mods), len(mods)), float(len(data.starts)))
+    W = np.full((len(mods), len(mods)), float(len(data.grid.starts)))
     idx = [i for i, m in enumerate(mods) if m is not None]
     if idx:
-        A = np.stack([np.stack([mods[i][s0 : s0 + data.L] for s0 in data.starts]) for i in idx])  # (q, S, L)
-        cross = np.einsum("qsl,sl->q", A, data.w2)  # against m = 1
+        A = np.stack([np.stack([mods[i][s0 : s0 + data.grid.L] for s0 in data.grid.starts]) for i in idx])  # (q, S, L)
+        cross = np.einsum("qsl,sl->q", A, data.grid.w2)  # against m = 1
         W[idx, :] = cross[:, None]
         W[:, idx] = cross[None, :]
-        W[np.ix_(idx, idx)] = np.einsum("qsl,rsl,sl->qr", A, A, data.w2)
+        W[np.ix_(idx, idx)] = np.einsum("qsl,rsl,sl->qr", A, A, data.grid.w2)
     return W

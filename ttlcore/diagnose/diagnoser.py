@@ -174,12 +174,12 @@ def diagnose(
     report["settings"] = {
         "band": list(map(float, s.band)),
         "n_bands": s.n_bands,
-        "segment_duration": model.data.seg_duration,
+        "segment_duration": model.data.grid.seg_duration,
         "time_segment": s.time_segment,
         "tolerance": s.tolerance,
         "alpha": s.alpha,
         "log_bf_threshold": s.log_bf_threshold,
-        "dws_asd": model.data.dws_asd,
+        "dws_asd": model.data.tdi.dws_asd,
     }
     report["timings_s"] = timings
     report["_internals"] = {"data": model.data, "model": model, "transient_map": report["transients"].pop("_map")}
@@ -205,14 +205,14 @@ def gated_model(model: ModelFit, effects, spans) -> ModelFit | None:
         log.info("no gated model: %s", err)
         return None
     fits = [fit_model(data, list(effects))]
-    return _with_noise_levels(fits) if model.data.noise_parameters is not None else fits.pop()
+    return _with_noise_levels(fits) if model.data.noise.parameters is not None else fits.pop()
 
 
 def gated_model_json(model: ModelFit, truth_coefficients=None) -> dict:
     """The ``transients.gated_model`` entry of a report: the spans gated [s], the adequacy
     (per band and per hour) and the coefficients of the model with them gated."""
     out = model_json(model, truth_coefficients)
-    spans = [[float(a), float(b)] for a, b in getattr(model.data, "gate_spans", ())]
+    spans = [[float(a), float(b)] for a, b in getattr(model.data.grid, "gate_spans", ())]
     return {"spans": spans, "adequacy": out["adequacy"], "coefficients": out["coefficients"]}
 
 
@@ -284,12 +284,12 @@ def _refit(source, effects, settings, effect_modules, dws_asd, baseline, time_ta
         data = whiten_telemetry(source, settings, effect_modules)
     else:
         raise ConfigError(f"refit: cannot refit a {type(source).__name__}; give telemetry, TDI data or WhitenedData")
-    modules = tuple(effect_modules) or data.effect_modules
+    modules = tuple(effect_modules) or data.context.effect_modules
     gates, fitted = split_gates(make_effects(list(effects), modules))
-    if gates and not getattr(data, "gates", ()):
+    if gates and not getattr(data.grid, "gates", ()):
         data = gated_data(data, gates)
     fits = [fit_model(data, fitted, time_table=time_table)]
-    model = _with_noise_levels(fits, time_table) if data.settings.noise_model == "fitted" else fits.pop()
+    model = _with_noise_levels(fits, time_table) if data.context.settings.noise_model == "fitted" else fits.pop()
     base = fit_model(model.data, make_effects(list(baseline), modules), time_table=time_table)
     ev = change(base, model)
     return {

@@ -115,7 +115,7 @@ def evidence_from_normal(model: ModelFit, N_MM, N_MK, N_KK, b_M, b_K, names, pri
     normal equations and the errors-in-variables term ``E_full`` (G, P + k, P + k) of all
     the columns: the candidates' readout noise correlates with the model's where they
     share a DWS channel, and left out, that correlation would pass for a signal."""
-    kappa = model.data.kappa
+    kappa = model.data.grid.kappa
     P, k = N_MM.shape[-1], N_KK.shape[-1]
     full = np.zeros(N_MM.shape[:2] + (P + k, P + k))
     full[..., :P, :P] = N_MM
@@ -191,7 +191,7 @@ def laplace_evidence(base: ModelFit, model: ModelFit) -> tuple[float, float]:
 
     ``H = 2 (N - E) / kappa`` the Hessians.  For a nested pair whose new parameters lie
     well inside their prior this equals :func:`log_bayes_factor`."""
-    kappa = base.data.kappa
+    kappa = base.data.grid.kappa
 
     def logdet(fit):
         H = 2 * (fit.normal[0].sum(axis=(0, 1)) - fit.eiv_term.sum(axis=0)) / kappa
@@ -215,7 +215,7 @@ def change(base: ModelFit, model: ModelFit) -> Evidence | None:
     if not added:
         return None
     if set(base.names) <= set(model.names):
-        return added_evidence(base, rewhitened(model.columns.select(added), model.data.Lh, base.data))
+        return added_evidence(base, rewhitened(model.columns.select(added), model.data.noise.Lh, base.data))
     dchi2, lbf = laplace_evidence(base, model)
     new = [i for i, n in enumerate(model.names) if parameter_name(n) not in set(base.parameter_names)]
     return Evidence(

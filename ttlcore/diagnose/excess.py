@@ -237,22 +237,22 @@ def gated_ttl_fit(data, spans, names=None) -> dict:
         ``names``, ``full``, ``gated``, ``sigma_full``, ``sigma_gated`` (m/rad),
         ``shift_sigma`` ((gated - full) / sigma_full), ``max_abs_shift_sigma``, ``spans``.
     """
-    names = list(names or data.ttl_names or data.regressor_names)
-    cols = [list(data.regressor_names).index(n) for n in names]
-    y = np.asarray(data.data_series, dtype=float)
-    R = np.asarray(data.regressor_series[:, cols], dtype=float)
-    g = gate(y.shape[-1], data.fs, data.t0, spans)
+    names = list(names or data.tdi.ttl_names or data.tdi.regressor_names)
+    cols = [list(data.tdi.regressor_names).index(n) for n in names]
+    y = np.asarray(data.tdi.data_series, dtype=float)
+    R = np.asarray(data.tdi.regressor_series[:, cols], dtype=float)
+    g = gate(y.shape[-1], data.grid.fs, data.grid.t0, spans)
     out = {}
     for label, w in (("full", None), ("gated", g)):
         yy = y if w is None else y * w
         RR = R if w is None else R * w
-        Y = data.whiten(data.spectra(yy[:, None, :]))[..., 0]  # (S, m, 3)
-        X = data.whiten(data.spectra(RR))  # (S, m, 3, P)
+        Y = data.noise.whiten(data.grid.spectra(yy[:, None, :]))[..., 0]  # (S, m, 3)
+        X = data.noise.whiten(data.grid.spectra(RR))  # (S, m, 3, P)
         Xf = X.reshape(-1, X.shape[-1])
         A = 2 * np.real(Xf.conj().T @ Xf)
         b = 2 * np.real(Xf.conj().T @ Y.reshape(-1))
         theta = np.linalg.solve(A, b)
-        sigma = np.sqrt(np.diag(np.linalg.inv(A)) * data.kappa)
+        sigma = np.sqrt(np.diag(np.linalg.inv(A)) * data.grid.kappa)
         out[label] = (theta, sigma)
         del X, Xf
     shift = (out["gated"][0] - out["full"][0]) / out["full"][1]
@@ -275,7 +275,7 @@ def model_residual(model) -> np.ndarray:
     data = model.data
     if model.columns.series is None:  # a fitted model keeps its whitened columns only
         model = fit_resolved(data, list(model.effects), None, True)
-    return data.data_series - np.einsum("p,cpn->cn", model.theta, model.columns.series)
+    return data.tdi.data_series - np.einsum("p,cpn->cn", model.theta, model.columns.series)
 
 
 def quiet_adequacy(tf: TimeFrequencyMap, events, alpha: float, spans=()) -> dict:
@@ -374,25 +374,26 @@ def transient_report(
     ``_gated`` holds that fit.
     """
     data = model.data
-    s = data.settings
+    grid = data.grid
+    s = data.context.settings
     resid = model_residual(model)
     tf = residual_map(data, resid, tile)
-    psd = np.real(np.einsum("mii->mi", data.noise_csd))
-    keep = kept_like(data.f, 1.0 / data.seg_duration, 1.0 / tile)
+    psd = np.real(np.einsum("mii->mi", data.noise.csd))
+    keep = kept_like(grid.f, 1.0 / grid.seg_duration, 1.0 / tile)
     band = (max(s.band[0], 3.0 / tile), s.band[1])
     # a gated span reads as zeros: not missing data, the model's choice
-    spans = getattr(data, "gate_spans", ())
+    spans = getattr(data.grid, "gate_spans", ())
     gaps = [
         (a, b)
-        for a, b in data_gaps(data.data_series, data.fs, data.t0, data.mask)
+        for a, b in data_gaps(data.tdi.data_series, grid.fs, grid.t0, grid.mask)
         if not any(lo - 1.0 <= a and b <= hi + 1.0 for lo, hi in spans)
     ]
     events = find_events(tf, alpha)
     out_events, classes = [], []
     for e in events:
-        coh = witness_coherence(resid, data.regressor_series, data.fs, tf, e, data.f, psd, data.t0, keep, alpha)
+        coh = witness_coherence(resid, data.tdi.regressor_series, grid.fs, tf, e, grid.f, psd, grid.t0, keep, alpha)
         gap = next(((a, b) for a, b in gaps if a < e.t_stop and b > e.t_start), None)
-        expected = instrumental_t_share(data.f, data.noise_csd, data.ltt_mean, e.f_lo, e.f_hi)
+        expected = instrumental_t_share(grid.f, data.noise.csd, data.tdi.ltt_mean, e.f_lo, e.f_hi)
         e = Event(
             **{
                 **e.__dict__,
@@ -418,12 +419,12 @@ def transient_report(
         quiet = quiet_adequacy(tf, events, alpha)
     fb = [(b["f_lo"], b["f_hi"]) for b in ((report or {}).get("adequacy") or {}).get("bands", []) if b.get("fails")]
     lo, hi = (min(a for a, _ in fb), max(b for _, b in fb)) if fb else tuple(band)
-    expected = instrumental_t_share(data.f, data.noise_csd, data.ltt_mean, lo, hi)
+    expected = instrumental_t_share(grid.f, data.noise.csd, data.tdi.ltt_mean, lo, hi)
     quiet["t_share_expected"] = float(expected) if np.isfinite(expected) else None
     verdict = excess_classification(report or {}, out_events, quiet, gaps)
     robust = None
-    if signal_spans and data.regressor_series is not None:
-        robust = gated_ttl_fit(data, signal_spans, model.data.ttl_names or None)
+    if signal_spans and data.tdi.regressor_series is not None:
+        robust = gated_ttl_fit(data, signal_spans, model.data.tdi.ttl_names or None)
         robust["model"] = model.ttl_coefficients().tolist()
     summary = []
     for ev in out_events:

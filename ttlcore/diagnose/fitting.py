@@ -39,10 +39,10 @@ from .model_fit import ModelFit, normal_solution, parameter_name, solve
 
 
 def as_effects(data, effects) -> list:
-    """Effect instances from specs or instances (plugins of ``data.effect_modules``)."""
+    """Effect instances from specs or instances (plugins of ``data.context.effect_modules``)."""
     if all(isinstance(e, Effect) for e in effects):
         return list(effects)
-    return make_effects(list(effects), data.effect_modules)
+    return make_effects(list(effects), data.context.effect_modules)
 
 
 def fit_model(
@@ -60,12 +60,14 @@ def fit_model(
     keep_series = keep_series and time_table  # the series serve the time-domain adequacy only
     fit = fit_resolved(data, effects, coefficients_for_linearised, keep_series)
     hist = coefficient_history(fit)
-    if hist is not None and fit.data.dws_asd > 0:
+    if hist is not None and fit.data.tdi.dws_asd > 0:
         d = fit.data
         del fit  # not kept while the model is refitted (a day's columns are large)
-        nm = d.noise_parameters
+        nm = d.noise.parameters
         d = d.with_noise(
-            instrument_noise_csd(d.f, d.ltt_mean, hist, d.dws_asd, secondary=None if nm is None else nm.csd(d.f))
+            instrument_noise_csd(
+                d.grid.f, d.tdi.ltt_mean, hist, d.tdi.dws_asd, secondary=None if nm is None else nm.csd(d.grid.f)
+            )
         )
         fit = fit_resolved(d, effects, coefficients_for_linearised, keep_series)
     table = None
@@ -126,8 +128,8 @@ def model_columns(data, effects, coefficients=None, keep_series: bool = True) ->
         C = coefficients
         if C is None:
             part = fit_model(data, plain, keep_series=False, time_table=False)
-            if part.data.noise_key != data.noise_key:  # a drifting model changed the noise model
-                sets = [rewhitened(cs, data.Lh, part.data) for cs in sets]
+            if part.data.noise.key != data.noise.key:  # a drifting model changed the noise model
+                sets = [rewhitened(cs, data.noise.Lh, part.data) for cs in sets]
             data = part.data
             C = part.ttl_coefficients()
             if np.isnan(C).any():
@@ -140,7 +142,7 @@ def model_columns(data, effects, coefficients=None, keep_series: bool = True) ->
             cs = effect_columns(data, e.without_offsets(), C, keep_series=keep_series)
             sets.append(cs)
             names += [n for n in cs.names if n not in names]
-        if data.settings.expansion_passes and len(data.ttl_names) == 24:
+        if data.context.settings.expansion_passes and len(data.tdi.ttl_names) == 24:
             base = assemble(first, *sets, series=keep_series)
             columns, expansion, searches = expand_linearised(data, base, lin)
             if columns is not None:
@@ -150,12 +152,12 @@ def model_columns(data, effects, coefficients=None, keep_series: bool = True) ->
         if given:
             why = (
                 "expansion_passes is 0"
-                if not data.settings.expansion_passes
+                if not data.context.settings.expansion_passes
                 else "it lacks some of the 24 linear-ttl coefficients"
             )
             raise ConfigError(f"offsets given ({', '.join(given)}) but this model is not expanded at offsets ({why})")
     if not names:
-        return data, empty_set(data.noise_key), expansion, {}
+        return data, empty_set(data.noise.key), expansion, {}
     return data, assemble(names, *sets, series=keep_series), expansion, {}
 
 
@@ -184,7 +186,7 @@ def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet | None, di
         The model's columns, the expansion points ``"effect.group" -> delta_0``, and the
         searches (the effect's ``--effects`` spec -> :meth:`SearchResult.to_json`).
     """
-    small = 0.05 / (2 * np.pi * data.settings.band[1])
+    small = 0.05 / (2 * np.pi * data.context.settings.band[1])
     shifts: dict[str, dict] = {e.name: {} for e in lin}
     C, moved_names, searches = None, set[str](), {}
     for e in lin:  # the given offsets
@@ -233,7 +235,7 @@ def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet | None, di
             sets.append(cs)
         C = _ttl_vector(normal_solution(data, assemble(names, *sets, series=False))[0])
     model, expansion = first, dict[str, float]()
-    for _ in range(max(1, data.settings.expansion_passes)):
+    for _ in range(max(1, data.context.settings.expansion_passes)):
         names, sets, expansion = list(first.names), [first], {}
         for e in lin:
             repl, cs, exp = shifted_columns(data, e, C, shifts[e.name])
@@ -266,8 +268,8 @@ def coefficient_history(model: ModelFit, n_t: int = 97) -> np.ndarray | None:
     vals = dict(zip(model.names, model.theta))
     if not any(n.startswith(("drift.", "step.")) for n in vals):
         return None
-    idx = np.flatnonzero(data.mask)
-    t = data.t0 + np.linspace(idx[0], idx[-1], n_t) / data.fs
+    idx = np.flatnonzero(data.grid.mask)
+    t = data.grid.t0 + np.linspace(idx[0], idx[-1], n_t) / data.grid.fs
     t_ref = 0.5 * (t[0] + t[-1])
     C = np.tile(model.ttl_coefficients()[:, None], (1, n_t))
     steps = {e.name: e for e in model.effects}
@@ -284,39 +286,40 @@ def time_adequacy(model: ModelFit) -> dict:
     """chi^2 of the residual in Hann-windowed slices of ``settings.time_segment`` against
     the same noise model (interpolated to the slice's frequency grid)."""
     data = model.data
-    s = data.settings
+    grid = data.grid
+    s = data.context.settings
     if model.columns.series is None:
         raise ValueError("time_adequacy needs the columns' series (keep_series)")
-    resid = data.data_series - np.einsum("p,cpn->cn", model.theta, model.columns.series)
-    L = int(round(min(s.time_segment, data.seg_duration) * data.fs))
-    idx = np.flatnonzero(data.mask)
+    resid = data.tdi.data_series - np.einsum("p,cpn->cn", model.theta, model.columns.series)
+    L = int(round(min(s.time_segment, grid.seg_duration) * grid.fs))
+    idx = np.flatnonzero(grid.mask)
     lo, hi = idx[0], idx[-1] + 1
-    f = np.fft.rfftfreq(L, 1 / data.fs)
+    f = np.fft.rfftfreq(L, 1 / grid.fs)
     sel = (f >= s.band[0]) & (f <= s.band[1])
     keep = np.zeros_like(sel)
-    keep[sel] = notch_mask(f[sel], data.ltt_mean)
+    keep[sel] = notch_mask(f[sel], data.tdi.ltt_mean)
     fb = f[keep]
     csd = np.empty((fb.size, 3, 3), dtype=complex)
     for i in range(3):  # interpolate the model CSD (smooth) from the segment grid
         for j in range(3):
-            csd[:, i, j] = np.interp(fb, data.f, data.noise_csd[:, i, j].real) + 1j * np.interp(
-                fb, data.f, data.noise_csd[:, i, j].imag
+            csd[:, i, j] = np.interp(fb, grid.f, data.noise.csd[:, i, j].real) + 1j * np.interp(
+                fb, grid.f, data.noise.csd[:, i, j].imag
             )
     Lh = np.conj(np.swapaxes(np.linalg.cholesky(np.linalg.inv(csd)), -1, -2))
-    bidx = np.clip(np.searchsorted(data.edges, fb, side="right") - 1, 0, data.G - 1)
+    bidx = np.clip(np.searchsorted(grid.edges, fb, side="right") - 1, 0, grid.G - 1)
     win = window("hann", L)
     kappa = variance_factor("hann", 4096, 0.0)
     rows: list[dict] = []
     for s0 in range(lo, hi - L + 1, L):
         seg = resid[:, s0 : s0 + L]
-        _, X = segment_fft(np.nan_to_num(seg), data.fs, win, workers=None)
+        _, X = segment_fft(np.nan_to_num(seg), grid.fs, win, workers=None)
         wr = np.matmul(Lh, X[:, keep].T[..., None])[..., 0][None]
-        tab = band_table(wr, bidx, data.edges, 0, kappa, s.tolerance, s.alpha)
+        tab = band_table(wr, bidx, grid.edges, 0, kappa, s.tolerance, s.alpha)
         chi2, dof = tab.chi2.sum(), tab.dof.sum()
         rows.append(
             {
-                "t_start": data.t0 + s0 / data.fs,
-                "t_stop": data.t0 + (s0 + L) / data.fs,
+                "t_start": grid.t0 + s0 / grid.fs,
+                "t_stop": grid.t0 + (s0 + L) / grid.fs,
                 "chi2": float(chi2),
                 "dof": float(dof),
                 "chi2_dof": float(chi2 / dof),
@@ -328,10 +331,10 @@ def time_adequacy(model: ModelFit) -> dict:
     for r in rows:
         r["fails"] = bool(r["p_value"] < s.alpha) or any(r["band_fails"])
     summary = describe_time_failures(
-        [r["t_start"] for r in rows], [r["t_stop"] for r in rows], [r["fails"] for r in rows], data.t0_in
+        [r["t_start"] for r in rows], [r["t_stop"] for r in rows], [r["fails"] for r in rows], grid.t0_in
     )
     return {
-        "segment_duration": L / data.fs,
+        "segment_duration": L / grid.fs,
         "window": "hann",
         "variance_factor": kappa,
         "segments": rows,

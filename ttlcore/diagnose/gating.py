@@ -7,7 +7,7 @@ column are multiplied by the gate (:class:`ttlcore.effects.glitch.Gate`; the tap
     g(t) = 0 inside [start, stop],  1/2 - 1/2 cos(pi d / taper) for the distance d < taper
            outside it,  1 beyond,
 
-before the segments are windowed (:class:`GatedData`), so that the fit ignores the span
+before the segments are windowed (:class:`GatedGrid`), so that the fit ignores the span
 and no hard edge leaks.  A segment partly gated holds less noise: its spectra are divided
 by ``sqrt(r_s)``, ``r_s = sum (w g)^2 / sum w^2`` over its taper ``w``, so that its chi^2
 keeps the expectation of an ungated segment; a segment with ``r_s < MIN_KEPT`` is left out
@@ -18,14 +18,15 @@ from __future__ import annotations
 
 import logging
 import math
-from dataclasses import dataclass, replace
+from collections.abc import Iterable
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from ..effects.glitch import gate
+from ..effects.glitch import Gate, gate
 from ..errors import ConfigError
 from .columns import ColumnStore, regressor_columns
-from .whitened import WhitenedData, noise_digest
+from .whitened import AnalysisGrid, WhitenedData, noise_digest
 
 log = logging.getLogger(__name__)
 
@@ -37,31 +38,39 @@ MIN_KEPT = 0.6
 
 
 @dataclass(frozen=True, eq=False)
-class GatedData(WhitenedData):
-    """:class:`~ttlcore.diagnose.whitened.WhitenedData` with spans gated out (module
+class GatedGrid(AnalysisGrid):
+    """:class:`~ttlcore.diagnose.whitened.AnalysisGrid` with spans gated out (module
     docstring).  Every decimated series is multiplied by ``gate``: the data's and the TTL
-    regressors' (``data_series``, ``regressor_series``) once here, every column's where it
-    is decimated (:meth:`decimate`, the one path from an effect's TDI to its spectra), so
-    that data and columns carry the same window and the time-domain residual (per-hour
-    adequacy, transients) is tapered too, without a hard edge; each segment's spectra are
-    multiplied by ``seg_scale`` (``1 / sqrt(r_s)``).  Inside a span (``gate == 0``) the
-    samples are out of ``mask``."""
+    regressors' (:class:`~ttlcore.diagnose.whitened.MeasuredTDI` ``data_series``,
+    ``regressor_series``) once in :func:`gated_data`, every column's where it is decimated
+    (:meth:`decimate`, the one path from an effect's TDI to its spectra), so that data and
+    columns carry the same window and the time-domain residual (per-hour adequacy,
+    transients) is tapered too, without a hard edge; each segment's spectra are multiplied
+    by ``seg_scale`` (``1 / sqrt(r_s)``).  Inside a span (``gate == 0``) the samples are out
+    of ``mask``.
 
-    gate: np.ndarray | None = None
-    seg_scale: np.ndarray | None = None
-    gates: tuple = ()
-    #: ``((start, stop), ...)`` [s] of the gates
-    gate_spans: tuple = ()
+    Attributes
+    ----------
+    gate : ndarray (n,)
+        The gate ``g(t)`` on the decimated samples.
+    seg_scale : ndarray (S,)
+        ``1 / sqrt(r_s)`` of each kept segment.
+    gates : tuple of str
+        The gates' effect specs; ``gate_spans`` their ``(start, stop)`` [s].
+    """
+
+    gate: np.ndarray = field(default_factory=lambda: np.ones(0))
+    seg_scale: np.ndarray = field(default_factory=lambda: np.ones(0))
+    gates: tuple[str, ...] = ()
+    gate_spans: tuple[tuple[float, float], ...] = ()
 
     def spectra(self, x: np.ndarray) -> np.ndarray:
-        assert self.seg_scale is not None  # set with the gate (gate_data)
         return super().spectra(x) * self.seg_scale[:, None, None, None]
 
     def decimate(self, xyz: np.ndarray, is_aet: bool = False) -> np.ndarray:
-        """The decimated A, E, T of columns (:meth:`WhitenedData.decimate`) times the gate;
+        """The decimated A, E, T of columns (:meth:`AnalysisGrid.decimate`) times the gate;
         full-length series only (a stretch: decimate it ungated and gate it once placed)."""
         out = super().decimate(xyz, is_aet)
-        assert self.gate is not None  # set with the gate (gate_data)
         if out.shape[-1] != self.gate.size:
             raise ConfigError(
                 f"gated data: a series of {out.shape[-1]} decimated samples cannot be gated ({self.gate.size} expected)"
@@ -69,71 +78,71 @@ class GatedData(WhitenedData):
         return out * self.gate
 
 
-def gated_data(data: WhitenedData, gates) -> WhitenedData:
-    """``data`` with the spans of ``gates`` (:class:`Gate`) gated out (:class:`GatedData`);
-    ``data`` itself when there is none.  The noise model is kept; the column store is new
-    (columns built on ungated data do not apply)."""
+def gated_data(data: WhitenedData, gates: Iterable[Gate]) -> WhitenedData:
+    """``data`` with the spans of ``gates`` (:class:`Gate`) gated out (its grid a
+    :class:`GatedGrid`); ``data`` itself when there is none.  The noise model is kept; the
+    context is new, with an empty column store (columns built on ungated data do not apply)."""
     gates = list(gates)
     if not gates:
         return data
-    if isinstance(data, GatedData):
+    grid = data.grid
+    if isinstance(grid, GatedGrid):
         raise ConfigError("these data are already gated")
-    n = data.mask.size
+    n = grid.mask.size
     g = np.ones(n)
     for e in gates:
-        g = np.minimum(g, gate(n, data.fs, data.t0, [e.span], taper=float(e.options["taper"])))
+        g = np.minimum(g, gate(n, grid.fs, grid.t0, [e.span], taper=float(e.options["taper"])))
     inside = g <= 0.0
-    mask = data.mask & ~inside
+    mask = grid.mask & ~inside
     if not mask.any():
         raise ConfigError("the gates leave no data")
     keep, scale = [], []
-    for s0 in data.starts:
-        w = data.win * data.mask[s0 : s0 + data.L]
-        r = float(np.sum((w * g[s0 : s0 + data.L]) ** 2) / max(np.sum(w**2), 1e-300))
+    for s0 in grid.starts:
+        w = grid.win * grid.mask[s0 : s0 + grid.L]
+        r = float(np.sum((w * g[s0 : s0 + grid.L]) ** 2) / max(np.sum(w**2), 1e-300))
         keep.append(r >= MIN_KEPT)
         scale.append(1.0 / math.sqrt(max(r, 1e-300)))
     if not any(keep):
         raise ConfigError("the gates leave no FFT segment with data")
     idx = [i for i, k in enumerate(keep) if k]
-    starts = tuple(data.starts[i] for i in idx)
-    w2 = np.stack([(data.win * mask[s0 : s0 + data.L] * g[s0 : s0 + data.L]) ** 2 for s0 in starts])
-    # gated once; inside a span exactly zero (a gap's NaN there too)
-    series = np.where(inside, 0.0, data.data_series * g)
-    regs = np.where(inside, 0.0, data.regressor_series * g)
-    out = GatedData(
+    starts = tuple(grid.starts[i] for i in idx)
+    w2 = np.stack([(grid.win * mask[s0 : s0 + grid.L] * g[s0 : s0 + grid.L]) ** 2 for s0 in starts])
+    gated = GatedGrid(
         **{
-            **{k: getattr(data, k) for k in data.__dataclass_fields__},
+            **{f.name: getattr(grid, f.name) for f in fields(AnalysisGrid)},
             "mask": mask,
             "starts": starts,
-            "seg_t0": np.asarray(data.seg_t0)[idx],
+            "seg_t0": np.asarray(grid.seg_t0)[idx],
             "w2": w2 / w2.sum(axis=1, keepdims=True),
-            "data_series": series,
-            "regressor_series": regs,
-            "store": ColumnStore(),
-            "d": np.empty(0),
-            "wd": np.empty(0),
-            "dd": np.empty(0),
             "gate": g,
             "seg_scale": np.asarray(scale)[idx],
             "gates": tuple(e.spec() for e in gates),
             "gate_spans": tuple(e.span for e in gates),
         }
     )
-    d = out.spectra(series[:, None, :])[..., 0]
-    R = out.spectra(regs)
-    wd = np.matmul(out.Lh, d[..., None])[..., 0]
-    dd = np.zeros((len(starts), out.G))
-    for gi, (a, b) in enumerate(out.slices):
+    # gated once; inside a span exactly zero (a gap's NaN there too)
+    series = np.where(inside, 0.0, data.tdi.data_series * g)
+    regs = np.where(inside, 0.0, data.tdi.regressor_series * g)
+    d = gated.spectra(series[:, None, :])[..., 0]
+    R = gated.spectra(regs)
+    wd = np.matmul(data.noise.Lh, d[..., None])[..., 0]
+    dd = np.zeros((len(starts), gated.G))
+    for gi, (a, b) in enumerate(gated.slices):
         dd[:, gi] = np.sum(np.abs(wd[:, a:b]) ** 2, axis=(1, 2))
-    out = replace(out, d=d, wd=wd, dd=dd, noise_key=noise_digest(out.noise_csd) + ":gated:" + ",".join(out.gates))
-    out.store.put(("regressors",), out, regressor_columns(out, R))
-    log.info("gated %s: %d of %d segments kept", ", ".join(out.gates), len(starts), len(data.starts))
+    out = WhitenedData(
+        grid=gated,
+        tdi=replace(data.tdi, data_series=series, regressor_series=regs, d=d),
+        noise=replace(data.noise, wd=wd, dd=dd, key=noise_digest(data.noise.csd) + ":gated:" + ",".join(gated.gates)),
+        context=replace(data.context, store=ColumnStore()),
+    )
+    out.context.store.put(("regressors",), out, regressor_columns(out, R))
+    log.info("gated %s: %d of %d segments kept", ", ".join(gated.gates), len(starts), len(grid.starts))
     return out
 
 
 def in_gates(data, a: float, b: float) -> bool:
-    """Whether ``[a, b]`` [s] lies inside one of ``data``'s gates (:class:`GatedData`)."""
-    return any(lo <= a + 1e-6 and b <= hi + 1e-6 for lo, hi in getattr(data, "gate_spans", ()))
+    """Whether ``[a, b]`` [s] lies inside one of ``data``'s gates (:class:`GatedGrid`)."""
+    return any(lo <= a + 1e-6 and b <= hi + 1e-6 for lo, hi in getattr(data.grid, "gate_spans", ()))
 
 
 def with_gates(model_json: dict, gates) -> dict:

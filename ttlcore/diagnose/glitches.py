@@ -35,7 +35,7 @@ from .columns import ColumnSet
 from .evidence import added_evidence
 from .search import profile_search
 from .search_result import SearchResult
-from .whitened import WhitenedData
+from .whitened import AnalysisGrid
 
 log = logging.getLogger(__name__)
 
@@ -48,32 +48,34 @@ def glitch_series(data, where, t_glitch: float, beta: float) -> np.ndarray:
     step that stays, to ``13 exp(-12)``), zero elsewhere.  The stretch starts on a multiple
     of the decimation factor, so that its decimated samples are the data's; on gated data
     the series is gated once placed."""
-    tm = data.tm
+    tm = data.context.tm
     if tm is None:
         raise ConfigError("effect 'glitch' needs the telemetry")
     many = not isinstance(where, str)
     wheres = list(where) if many else [where]
     fs = float(tm.fs)
-    dec = int(data.decimation)
+    dec = int(data.grid.decimation)
     hist = history_samples(fs, float(np.nanmax(tm.ltt)))
     i0 = int(math.floor((t_glitch - float(tm.t0)) * fs))
     a = max(i0 - hist - 16, 0)
     a -= a % dec
     b = min(max(i0, 0) + hist + int((12.0 * beta + 300.0) * fs), tm.size)
-    n_dec = data.mask.size
+    n_dec = data.grid.mask.size
     out = np.zeros((3, len(wheres), n_dec))
     if b > a + hist:
         sub = tm.slice(a, b)
         inp = effect_input_from_telemetry(sub)
         v = glitch_velocity(inp.t, t_glitch, beta) / C
         cols = [Column(w, [Part(link, factor * v, n) for link, n, factor in placement_parts(w)]) for w in wheres]
-        _, xyz = tdi_in_blocks(sub.ltt, fs, cols, order=data.settings.order, delay_order=data.settings.delay_order)
+        _, xyz = tdi_in_blocks(
+            sub.ltt, fs, cols, order=data.context.settings.order, delay_order=data.context.settings.delay_order
+        )
         # (3, k, m): global decimated samples a / dec + j, ungated (a stretch), gated once placed
-        x = WhitenedData.decimate(data, np.nan_to_num(xyz))
+        x = AnalysisGrid.decimate(data.grid, np.nan_to_num(xyz))
         k0 = a // dec
         m = min(x.shape[-1], n_dec - k0)
         out[:, :, k0 : k0 + m] = x[:, :, :m]
-        g = getattr(data, "gate", None)
+        g = getattr(data.grid, "gate", None)
         if g is not None:
             out *= g
     return out if many else out[:, 0]
@@ -83,7 +85,7 @@ def glitch_spectra(data, where, t_glitch: float, beta: float) -> np.ndarray:
     """Whitened segment spectra (S, m, 3) of a unit glitch (:func:`glitch_series`); (S, m,
     3, k) for a list of placements."""
     x = glitch_series(data, where, t_glitch, beta)
-    w = data.whiten(data.spectra(x if x.ndim == 3 else x[:, None, :]))
+    w = data.noise.whiten(data.grid.spectra(x if x.ndim == 3 else x[:, None, :]))
     return w if x.ndim == 3 else w[..., 0]
 
 
@@ -127,33 +129,34 @@ class _Scanner:
         """``(tau [s], delta chi2)`` of one template's products on the decimated grid,
         ``|tau| <= max_shift``."""
         data = self.data
+        grid = data.grid
         p, q, ngg = prods
-        L = data.L
-        kmax = int(max_shift * data.fs) + 1
+        L = grid.L
+        kmax = int(max_shift * grid.fs) + 1
         full = np.zeros((1 + q.shape[1], L), dtype=complex)
-        full[0, data.bins] = p
-        full[1:, data.bins] = q.T
+        full[0, grid.bins] = p
+        full[1:, grid.bins] = q.T
         z = np.fft.ifft(full, axis=1).real * L  # sum_f x(f) exp(2 pi i f k / fs)
         k = np.r_[np.arange(-min(kmax, L // 2 - 1), 0), np.arange(0, min(kmax, L // 2) + 1)]
         c = z[0, k]
         n = z[1:, k]  # (P, K)
         D = ngg - np.einsum("pk,pk->k", n, self.NMinv @ n)
-        return k / data.fs, 2.0 * c**2 / (np.maximum(D, 1e-300) * data.kappa)
+        return k / grid.fs, 2.0 * c**2 / (np.maximum(D, 1e-300) * grid.kappa)
 
     def at(self, prods, tau: float) -> float:
         """delta chi2 of one template's products at a shift ``tau`` [s] (any real value)."""
         p, q, ngg = prods
-        ph = np.exp(2j * np.pi * self.data.f * tau)
+        ph = np.exp(2j * np.pi * self.data.grid.f * tau)
         c = float(np.real(np.sum(p * ph)))
         n = np.real(ph @ q)
         D = ngg - n @ self.NMinv @ n
-        return 2.0 * c**2 / (max(D, 1e-300) * self.data.kappa)
+        return 2.0 * c**2 / (max(D, 1e-300) * self.data.grid.kappa)
 
 
 def _pieces(data, lo: float, hi: float) -> list[tuple[float, float, float]]:
     """``[lo, hi]`` cut at the segment boundaries: ``(t_ref, a, b)`` per piece, the
     template's reference time the piece's centre."""
-    bounds = sorted({float(t) for t in data.seg_t0} | {float(data.seg_t0[-1] + data.seg_duration)})
+    bounds = sorted({float(t) for t in data.grid.seg_t0} | {float(data.grid.seg_t0[-1] + data.grid.seg_duration)})
     cuts = [lo] + [t for t in bounds if lo < t < hi] + [hi]
     return [(0.5 * (a + b), a, b) for a, b in zip(cuts[:-1], cuts[1:]) if b > a]
 
@@ -175,10 +178,10 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
     ``n`` placements tried; never above the evidence at the estimate.
     """
     data = model.data
-    if data.tm is None:
+    if data.context.tm is None:
         raise ConfigError("effect 'glitch': the search needs the telemetry")
-    idx = np.flatnonzero(data.mask)
-    t_lo, t_hi = data.t0 + idx[0] / data.fs, data.t0 + idx[-1] / data.fs
+    idx = np.flatnonzero(data.grid.mask)
+    t_lo, t_hi = data.grid.t0 + idx[0] / data.grid.fs, data.grid.t0 + idx[-1] / data.grid.fs
     span = _parse_span(effect.options.get("span"))
     if effect.options.get("t") is not None:
         t_fixed = float(effect.options["t"])
@@ -221,7 +224,7 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
         j = int(np.argmax(dchi2))
         res = optimize.minimize_scalar(
             lambda x: -scanner.at(pr, x),
-            bounds=(tau[j] - 1.0 / data.fs, tau[j] + 1.0 / data.fs),
+            bounds=(tau[j] - 1.0 / data.grid.fs, tau[j] + 1.0 / data.grid.fs),
             method="bounded",
             options={"xatol": 1e-3},
         )
@@ -252,7 +255,7 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
     sig_t = sig_lb = float("nan")
     if not fixed_t:
         pr = scanner.products(g[..., None])[0]
-        h = 0.25 / data.fs
+        h = 0.25 / data.grid.fs
         curv = -(scanner.at(pr, h) - 2 * scanner.at(pr, 0.0) + scanner.at(pr, -h)) / (2 * h * h)
         sig_t = 1.0 / math.sqrt(curv) if curv > 0 else float("nan")
     if effect.options.get("beta") is None:
@@ -266,7 +269,7 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
         marg += (
             (0.5 * math.log(2 * math.pi) + math.log(sig_t) - math.log(max(hi - lo, 1e-9)))
             if np.isfinite(sig_t)
-            else -math.log(max((hi - lo) * data.fs, 1.0))
+            else -math.log(max((hi - lo) * data.grid.fs, 1.0))
         )
     if effect.options.get("beta") is None:
         width = math.log(BETA_RANGE[1] / BETA_RANGE[0])
@@ -303,7 +306,7 @@ def glitch_columns(data, effect: Glitch, g: np.ndarray | None = None) -> ColumnS
     if g is None:
         g = glitch_spectra(data, effect.where, float(effect.options["t"]), float(effect.options["beta"]))
     x = np.ascontiguousarray(g)[None].view(np.float64)
-    return ColumnSet((effect.column_name(),), x, data.noise_key, ("m/s",), (GLITCH_PRIOR,), ((),), (None,))
+    return ColumnSet((effect.column_name(),), x, data.noise.key, ("m/s",), (GLITCH_PRIOR,), ((),), (None,))
 
 
 def _evidence(model, effect: Glitch, g: np.ndarray):

@@ -55,12 +55,12 @@ def as_real(w: np.ndarray) -> np.ndarray:
 
 def gram(data, A: ColumnSet, B: ColumnSet) -> np.ndarray:
     """``N`` per segment and band (S, G, p, q) of two column sets."""
-    return gram_x(A.x, B.x, data.slices)
+    return gram_x(A.x, B.x, data.grid.slices)
 
 
 def rhs(data, A: ColumnSet) -> np.ndarray:
     """``b`` per segment and band, (S, G, p)."""
-    return gram_x(A.x, data.wd[None].view(np.float64), data.slices)[..., 0]
+    return gram_x(A.x, data.noise.wd[None].view(np.float64), data.grid.slices)[..., 0]
 
 
 def parameter_name(column: str) -> str:
@@ -144,7 +144,7 @@ class ModelFit:
 
     @property
     def dd(self) -> np.ndarray:
-        return self.data.dd
+        return self.data.noise.dd
 
     @property
     def sigma(self) -> np.ndarray:
@@ -198,16 +198,18 @@ def solve(data, columns: ColumnSet, effects=(), expansion=None) -> ModelFit:
     matrix), with its adequacy per band."""
     N = gram(data, columns, columns)  # (S, G, P, P)
     b = rhs(data, columns)
-    dd = data.dd
+    dd = data.noise.dd
     E = eiv(data, columns)
     theta, cov = gls_solve(normal_equations(data, columns, N, b, E))
-    cov = data.kappa * cov
+    cov = data.grid.kappa * cov
     btot = b.sum(axis=(0, 1))
     chi2_sg = 2 * (np.einsum("p,sgpq,q->sg", theta, N, theta) - 2 * b @ theta + dd)
-    wr = data.wd - np.tensordot(theta, columns.x.view(complex), axes=(0, 0))  # no (S, m, 3, P) copy
-    n_noise = 0 if data.noise_parameters is None else data.noise_parameters.n_parameters
-    s = data.settings
-    bands = band_table(wr, data.band_index, data.edges, len(columns) + n_noise, data.kappa, s.tolerance, s.alpha)
+    wr = data.noise.wd - np.tensordot(theta, columns.x.view(complex), axes=(0, 0))  # no (S, m, 3, P) copy
+    n_noise = 0 if data.noise.parameters is None else data.noise.parameters.n_parameters
+    s = data.context.settings
+    bands = band_table(
+        wr, data.grid.band_index, data.grid.edges, len(columns) + n_noise, data.grid.kappa, s.tolerance, s.alpha
+    )
     q_min = float(dd.sum() - btot @ theta)
     return ModelFit(
         tuple(effects),
@@ -232,12 +234,14 @@ def normal_equations(data, columns: ColumnSet, N=None, b=None, E=None) -> Normal
     N = gram(data, columns, columns) if N is None else N
     b = rhs(data, columns) if b is None else b
     E = eiv(data, columns) if E is None else E
-    nbins = np.array([(hi - lo) * N.shape[0] for lo, hi in data.slices])
-    return NormalEquations(columns.names, data.edges, N.sum(axis=0), b.sum(axis=0), data.dd.sum(axis=0), E, nbins)
+    nbins = np.array([(hi - lo) * N.shape[0] for lo, hi in data.grid.slices])
+    return NormalEquations(
+        columns.names, data.grid.edges, N.sum(axis=0), b.sum(axis=0), data.noise.dd.sum(axis=0), E, nbins
+    )
 
 
 def normal_solution(data, columns: ColumnSet) -> tuple[dict, dict]:
     """``(theta, sigma)`` of the GLS fit of ``columns`` (column -> value), nothing else."""
     theta, cov = gls_solve(normal_equations(data, columns))
-    sig = np.sqrt(np.abs(np.diag(cov)) * data.kappa)
+    sig = np.sqrt(np.abs(np.diag(cov)) * data.grid.kappa)
     return dict(zip(columns.names, theta)), dict(zip(columns.names, sig))

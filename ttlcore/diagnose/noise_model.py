@@ -53,8 +53,9 @@ with injected effects).
 
 from __future__ import annotations
 
+import functools
 import logging
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy import optimize, stats
@@ -155,6 +156,14 @@ def basis_csds(f, ltt_mean, names=PARAMETERS) -> np.ndarray:
     return np.stack(out)
 
 
+@functools.lru_cache(maxsize=4)  # a run's few grids (a day's: ~10 MB each)
+def basis_on_grid(f_bytes: bytes, ltt_mean: tuple[float, ...], names: tuple[str, ...]) -> np.ndarray:
+    """:func:`basis_csds` on the frequencies ``np.frombuffer(f_bytes)`` [Hz], read-only, cached."""
+    b = basis_csds(np.frombuffer(f_bytes, dtype=float), ltt_mean, names)
+    b.flags.writeable = False
+    return b
+
+
 @dataclass(frozen=True)
 class NoiseModel:
     """Secondary-noise model of A, E, T with fitted PSD scale factors (module docstring).
@@ -180,22 +189,21 @@ class NoiseModel:
         data ask for more (or less) noise of that shape than the instrument is known to have.
     """
 
-    ltt_mean: tuple
-    names: tuple = PARAMETERS
-    levels: tuple = tuple(NOMINAL[p.split(".")[0]] for p in PARAMETERS)
-    covariance: tuple | None = None
+    ltt_mean: tuple[float, ...]
+    names: tuple[str, ...] = PARAMETERS
+    levels: tuple[float, ...] = tuple(NOMINAL[p.split(".")[0]] for p in PARAMETERS)
+    covariance: tuple[tuple[float, ...], ...] | None = None
     log_likelihood: float | None = None
     n_segments: int = 0
     n_bins: int = 0
     iterations: int = 0
     converged: bool = True
-    at_bound: tuple = ()
+    at_bound: tuple[str, ...] = ()
     #: start times [s] of the segments left out of the fit as outliers (:func:`outlying_segments`)
-    excluded_segments: tuple = ()
+    excluded_segments: tuple[float, ...] = ()
     #: analysis bins [Hz] left out of the fit as narrowband excess (:func:`narrowband_excess`),
     #: as ``((f_lo, f_hi), ...)`` runs
-    excluded_bands: tuple = ()
-    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+    excluded_bands: tuple[tuple[float, float], ...] = ()
 
     @classmethod
     def nominal(cls, ltt_mean, names=PARAMETERS) -> NoiseModel:
@@ -214,14 +222,8 @@ class NoiseModel:
         return np.sqrt(np.diag(np.asarray(self.covariance)))
 
     def basis(self, f) -> np.ndarray:
-        """:func:`basis_csds` on ``f`` (cached for the last grid)."""
-        f = np.asarray(f, dtype=float)
-        key = (f.size, float(f[0]), float(f[-1])) if f.size else (0,)
-        b = self._cache.get(key)  # one lookup: safe when threads share the model
-        if b is None:
-            self._cache.clear()
-            b = self._cache[key] = basis_csds(f, self.ltt_mean, self.names)
-        return b
+        """:func:`basis_csds` on ``f`` (read-only; computed once per grid, :func:`basis_on_grid`)."""
+        return basis_on_grid(np.ascontiguousarray(f, dtype=float).tobytes(), self.ltt_mean, self.names)
 
     def csd(self, f) -> np.ndarray:
         """Secondary-noise CSD (m, 3, 3) of A, E, T [1/Hz] (without the DWS term)."""
@@ -374,7 +376,6 @@ def fit_noise_model(
         it,
         converged,
         at_bound,
-        _cache={k: v for k, v in model._cache.items()},
     )
 
 
@@ -517,42 +518,40 @@ def profile_noise_model(
     (NoiseModel, ModelFit)
         The fitted noise model and the final fit of ``effects`` under it.
     """
-    nm = (
-        data.noise_parameters
-        if data.noise_parameters is not None and tuple(data.noise_parameters.names) == tuple(names)
-        else NoiseModel.nominal(data.ltt_mean, names)
-    )
+    fitted = data.noise.parameters  # the levels the data are whitened with, if fitted
+    nm = fitted if fitted is not None and fitted.names == tuple(names) else NoiseModel.nominal(data.tdi.ltt_mean, names)
     fit = first if first is not None else fit_model(data, effects, time_table=False)
     first = None  # only ``fit`` holds it: the first pass's replacement frees it
     for k in range(max(1, passes)):
         d = fit.data
-        dof = np.array([6.0 * (b - a) for a, b in d.slices])
+        grid, noise = d.grid, d.noise
+        dof = np.array([6.0 * (b - a) for a, b in grid.slices])
         out = (
-            outlying_segments(fit.chi2_seg_band, dof, d.kappa, d.settings.tolerance)
+            outlying_segments(fit.chi2_seg_band, dof, grid.kappa, d.context.settings.tolerance)
             if robust
-            else np.zeros(len(d.starts), dtype=bool)
+            else np.zeros(len(grid.starts), dtype=bool)
         )
-        P = residual_periodogram(fit.residual_w, d.Lh, ~out)
-        secondary = d.noise_parameters.csd(d.f) if d.noise_parameters is not None else nm.csd(d.f)
-        dws = d.noise_csd - secondary
+        P = residual_periodogram(fit.residual_w, noise.Lh, ~out)
+        secondary = noise.parameters.csd(grid.f) if noise.parameters is not None else nm.csd(grid.f)
+        dws = noise.csd - secondary
         n_kept = int((~out).sum())
-        narrow = narrowband_excess(d.f, P, d.noise_csd, n_kept, d.kappa) if robust else np.zeros(d.f.size, bool)
+        narrow = narrowband_excess(grid.f, P, noise.csd, n_kept, grid.kappa) if robust else np.zeros(grid.f.size, bool)
         use = ~narrow
         new = fit_noise_model(
-            d.f,
+            grid.f,
             P,
             n_kept,
-            d.ltt_mean,
+            d.tdi.ltt_mean,
             names=names,
             fixed=dws,
             start=nm,
-            kappa=d.kappa,
+            kappa=grid.kappa,
             keep=use if narrow.any() else None,
         )
         new = replace(
             new,
-            excluded_segments=tuple(float(t) for t in np.asarray(d.seg_t0)[out]),
-            excluded_bands=_runs(d.f, narrow),
+            excluded_segments=tuple(float(t) for t in np.asarray(grid.seg_t0)[out]),
+            excluded_bands=_runs(grid.f, narrow),
         )
         if narrow.any():
             log.info(
@@ -566,12 +565,12 @@ def profile_noise_model(
             log.info(
                 "noise model pass %d: segments starting at %s h left out as outliers",
                 k + 1,
-                [round(float(t) / 3600, 2) for t in np.asarray(d.seg_t0)[out]],
+                [round(float(t) / 3600, 2) for t in np.asarray(grid.seg_t0)[out]],
             )
         moved = np.abs(np.subtract(new.levels, nm.levels)) / np.maximum(new.sigma, 1e-300)
         nm = new
         fit = None  # the previous pass's fit is not kept while the next is made
-        fit = fit_model(d.with_noise(nm.csd(d.f) + dws, noise_parameters=nm), effects, time_table=False)
+        fit = fit_model(d.with_noise(nm.csd(grid.f) + dws, noise_parameters=nm), effects, time_table=False)
         log.info(
             "noise model pass %d: levels %s (moved %.2g sigma)",
             k + 1,

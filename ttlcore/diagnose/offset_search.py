@@ -79,6 +79,7 @@ def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
     Raises ConfigError when the effect has no open offset or the model lacks the columns.
     """
     data, columns = model.data, model.columns
+    grid = data.grid
     option = {g: f"{OFFSET_OPTION}{g}" for g in effect.shifted_members()}
     open_groups = effect.open_offsets()
     if not open_groups:
@@ -96,12 +97,12 @@ def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
     X = columns.w  # (S, m, 3, P)
     S, m = X.shape[:2]
     X = np.ascontiguousarray(X.transpose(1, 0, 2, 3)).reshape(m, S * 3, P)
-    d = np.ascontiguousarray(data.wd.transpose(1, 0, 2)).reshape(m, S * 3)
-    w = 2 * np.pi * data.f * float(effect.d1_sign)  # phase [rad] per second of offset
+    d = np.ascontiguousarray(data.noise.wd.transpose(1, 0, 2)).reshape(m, S * 3)
+    w = 2 * np.pi * grid.f * float(effect.d1_sign)  # phase [rad] per second of offset
     E = model.eiv_term.sum(axis=0)
-    dd = float(data.dd.sum())
+    dd = float(data.noise.dd.sum())
     delta = {g: held.get(g, 0.0) for g in members}
-    step = 1.0 / (8.0 * data.f[-1])
+    step = 1.0 / (8.0 * grid.f[-1])
     grids = {g: np.arange(ranges[option[g]][0], ranges[option[g]][1] + 0.5 * step, step) for g in searched}
     n_eval = 0
     # a shift is a phase per bin and column: the normal equations at any offsets are
@@ -195,7 +196,7 @@ def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
             moved = max(moved, abs(best - delta[g]))
             delta[g] = best
             (q0, q1), th = q(np.array([0.0, best]))
-            gain[g], theta = 2.0 * (q0 - q1) / data.kappa, th[1]
+            gain[g], theta = 2.0 * (q0 - q1) / grid.kappa, th[1]
         if moved < 1e-3:  # the gains of this pass hold: no other offset moved since
             break
     # the gains (if the last pass moved an offset) and the curvature, each group with the
@@ -205,8 +206,8 @@ def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
         q = profile(g)
         if moved >= 1e-3:
             (q0, q1), th = q(np.array([0.0, delta[g]]))
-            gain[g], theta = 2.0 * (q0 - q1) / data.kappa, th[1]
-        sigma[g] = _offset_sigma(q, delta[g], data.kappa, step)
+            gain[g], theta = 2.0 * (q0 - q1) / grid.kappa, th[1]
+        sigma[g] = _offset_sigma(q, delta[g], grid.kappa, step)
     # the joint gain and the evidence against the open offsets at zero (the given ones held)
     logdet, q_at = [], []
     for offsets in ({g: held.get(g, 0.0) for g in members}, delta):
@@ -214,7 +215,7 @@ def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
         N = N - E
         q_at.append(dd - b @ np.linalg.solve(N, b))
         logdet.append(np.linalg.slogdet(N)[1])
-    dchi2 = 2.0 * (q_at[0] - q_at[1]) / data.kappa
+    dchi2 = 2.0 * (q_at[0] - q_at[1]) / grid.kappa
     lbf_best = 0.5 * dchi2 - 0.5 * (logdet[1] - logdet[0])
     marg = lbf_best
     for g in searched:
@@ -223,7 +224,7 @@ def offset_search(model: ModelFit, effect, passes: int = 4) -> SearchResult:
             marg += 0.5 * math.log(2 * math.pi) + math.log(sigma[g]) - math.log(hi - lo)
         else:  # a flat or multimodal profile: its likelihood averaged over the grid
             marg += float(
-                special.logsumexp(-(profiles[g] - profiles[g].min()) / data.kappa) - math.log(profiles[g].size)
+                special.logsumexp(-(profiles[g] - profiles[g].min()) / grid.kappa) - math.log(profiles[g].size)
             )
     marg = float(min(marg, lbf_best))
     log.debug("offset search %s: %s", effect.name, {g: round(v, 4) for g, v in delta.items()})

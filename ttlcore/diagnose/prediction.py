@@ -43,7 +43,7 @@ def xyz_regressors(data) -> np.ndarray:
     """The 24 TTL regressors' X2, Y2, Z2 (3, 24, n) on the telemetry samples of a
     :class:`~ttlcore.diagnose.whitened.WhitenedData` (its ``td_in`` holds A, E, T; the
     A, E, T matrix is orthogonal, so X, Y, Z are its transpose times A, E, T)."""
-    td = data.td_in
+    td = data.tdi.td_in
     R = np.stack([td.regressors[:, td.names.index(n)] for n in COEFFICIENT_NAMES], axis=1)
     return np.einsum("ac,akn->ckn", AET_MATRIX, R)
 
@@ -54,7 +54,7 @@ def effect_predictions(fit) -> dict[str, np.ndarray]:
     Parameters
     ----------
     fit : ModelFit
-        A model fitted to telemetry (``fit.data.tm`` set).
+        A model fitted to telemetry (``fit.data.context.tm`` set).
 
     Returns
     -------
@@ -66,7 +66,7 @@ def effect_predictions(fit) -> dict[str, np.ndarray]:
         the data less what is known of the model, and no consumer meets NaN in a fit.
     """
     data = fit.data
-    tm = data.tm
+    tm = data.context.tm
     if tm is None:
         raise ValueError(
             "effect_predictions: the model was fitted to TDI outputs alone; the prediction of its "
@@ -146,7 +146,7 @@ def column_regressors(tm, effect, *, order: int, delay_order: int) -> tuple[tupl
 
 def _column_prediction(effect, theta: dict, data, tm) -> np.ndarray:
     """``sum_k theta_k TDI(col_k)`` (filtered by each column's response) of a column effect."""
-    s = data.settings
+    s = data.context.settings
     names, xyz, _ = column_regressors(tm, effect, order=s.order, delay_order=s.delay_order)
     total = np.zeros((3, tm.size))
     for k, name in enumerate(names):
@@ -160,7 +160,7 @@ def _shift_prediction(fit, effect, data) -> np.ndarray:
     R = xyz_regressors(data)
     C = fit.ttl_coefficients()
     offsets = fit.offsets()
-    fs = float(data.td_in.fs)
+    fs = float(data.tdi.td_in.fs)
     sign = float(effect.d1_sign)
     total = np.zeros(R[:, 0].shape)
     for group, members in effect.shifted_members().items():
@@ -169,7 +169,7 @@ def _shift_prediction(fit, effect, data) -> np.ndarray:
             continue
         k = [COEFFICIENT_NAMES.index(m) for m in members]
         A = np.einsum("k,ckn->cn", C[k], R[:, k])
-        total += timeshift(A, sign * delta * fs, order=data.settings.order) - A
+        total += timeshift(A, sign * delta * fs, order=data.context.settings.order) - A
     return total
 
 
@@ -212,7 +212,7 @@ def fit_residual(fit) -> tuple[float, float, np.ndarray, dict]:
     predictions : dict
         :func:`effect_predictions`.
     """
-    td = fit.data.td_in
+    td = fit.data.tdi.td_in
     C = fit.ttl_coefficients()
     if np.isnan(C).any():
         raise ValueError("fit_residual: the model does not hold the 24 linear coefficients (add linear-ttl)")

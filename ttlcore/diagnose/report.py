@@ -17,22 +17,22 @@ def fine_band_table(model: ModelFit):
     (:func:`ttlcore.diagnose.adequacy.third_octave_table`), its fitted parameters (linear
     and noise) counted as in its band table."""
     data = model.data
-    s = data.settings
-    n_fitted = 6 * data.f.size * len(data.starts) - float(model.bands.dof.sum())
+    s = data.context.settings
+    n_fitted = 6 * data.grid.f.size * len(data.grid.starts) - float(model.bands.dof.sum())
     return third_octave_table(
-        model.residual_w, data.f, s.band, n_fitted, data.kappa, s.tolerance, s.alpha, s.min_band_dof
+        model.residual_w, data.grid.f, s.band, n_fitted, data.grid.kappa, s.tolerance, s.alpha, s.min_band_dof
     )
 
 
 def adequacy_json(model: ModelFit) -> dict:
     """The ``adequacy`` part of the report for ``model``."""
     data = model.data
-    s = data.settings
+    s = data.context.settings
     bands = model.bands.to_json()
     summary = describe_failures(model.bands)
     fine = fine_band_table(model)
     summary += [f"localised (third-octave bands): {x}" for x in describe_failures(fine)]
-    nm = data.noise_parameters
+    nm = data.noise.parameters
     if nm is not None and nm.at_bound:
         summary.append(
             f"noise level(s) {', '.join(nm.at_bound)} at the bound of their allowed range: more (or less) "
@@ -41,13 +41,13 @@ def adequacy_json(model: ModelFit) -> dict:
     time_part = model.time_table or {}
     summary += time_part.get("summary", [])
     return {
-        "noise_model": noise_model_json(data.noise_parameters),
+        "noise_model": noise_model_json(data.noise.parameters),
         "tolerance": s.tolerance,
         "alpha": s.alpha,
-        "variance_factor": data.kappa,
+        "variance_factor": data.grid.kappa,
         "band": list(map(float, s.band)),
-        "segment_duration": data.seg_duration,
-        "segments": len(data.starts),
+        "segment_duration": data.grid.seg_duration,
+        "segments": len(data.grid.starts),
         "chi2": model.chi2,
         "dof": model.dof,
         "chi2_dof": model.chi2_dof,

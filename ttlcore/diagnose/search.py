@@ -105,7 +105,7 @@ class _Spectral:
         U = B.w  # (S, m, 3, nb)
         Uconj = U.conj()
         self.PM = np.einsum("smcp,smcb->mpb", wMconj, U)
-        self.Pud = np.einsum("smcb,smc->mb", Uconj, data.wd)
+        self.Pud = np.einsum("smcb,smc->mb", Uconj, data.noise.wd)
         self.Puu = np.einsum("smcb,smce->mbe", Uconj, U)
         del U, Uconj
         # errors-in-variables: readout-noise responses per DWS channel; only the channels
@@ -117,17 +117,19 @@ class _Spectral:
             for ch, link, extra, factor in parts:
                 if ch not in touched:
                     continue
-                r = resp.setdefault(ch, np.zeros((data.f.size, 3, len(parts_of)), dtype=complex))
-                r[:, :, i] += data.store.eiv_response(data, link, extra) * readout_noise_factor(data.f, factor)
+                r = resp.setdefault(ch, np.zeros((data.grid.f.size, 3, len(parts_of)), dtype=complex))
+                r[:, :, i] += data.context.store.eiv_response(data, link, extra) * readout_noise_factor(
+                    data.grid.f, factor
+                )
         W = eiv_weights(data, model.columns, B)
         P = len(model.columns)
-        self.eMB = np.zeros((data.f.size, P, len(bases)))
-        self.eBB = np.zeros((data.f.size, len(bases), len(bases)), dtype=complex)
+        self.eMB = np.zeros((data.grid.f.size, P, len(bases)))
+        self.eBB = np.zeros((data.grid.f.size, len(bases), len(bases)), dtype=complex)
         for r in resp.values():
             self.eMB = self.eMB + np.einsum("mcp,mcb->mpb", r[:, :, :P].conj(), r[:, :, P:]) * W[:P, P:][None]
             self.eBB = self.eBB + np.einsum("mcb,mce->mbe", r[:, :, P:].conj(), r[:, :, P:]) * W[P:, P:][None]
         self.wMc = np.ascontiguousarray(wMconj.reshape(-1, wMconj.shape[-1]).T)  # (P, S m 3)
-        self.wdc = data.wd.reshape(-1).conj()
+        self.wdc = data.noise.wd.reshape(-1).conj()
         self._cache: dict = {}
         self._transforms: dict = {}
         self.NM = model.normal[0].sum(axis=(0, 1)) - model.eiv_term.sum(axis=0)
@@ -156,7 +158,9 @@ class _Spectral:
         data = self.data
         R = np.stack(
             [
-                np.ones(data.f.size, complex) if c.response is None else np.asarray(c.response(data.f), complex)
+                np.ones(data.grid.f.size, complex)
+                if c.response is None
+                else np.asarray(c.response(data.grid.f), complex)
                 for c in cols
             ],
             axis=1,
@@ -182,7 +186,7 @@ class _Spectral:
         th = stable_solve(N, b)
         if th is None:  # collinear: no gain (a finite value keeps the simplex well defined)
             return 0.0, COLLINEAR
-        kappa = data.kappa
+        kappa = data.grid.kappa
         dchi2 = 2 * (b @ th - self.bM @ self.thM) / kappa
         A = 2 * (NKK - NMK.T @ np.linalg.solve(self.NM, NMK)) / kappa
         lbf = log_bayes_factor(A, th[P:], np.array([c.prior_scale for c in cols]))
@@ -196,7 +200,7 @@ class _Spectral:
         for i in dict.fromkeys(idx):
             js = [j for j, ii in enumerate(idx) if ii == i]
             if i not in self._transforms:  # the base series' transform, once per search
-                self._transforms[i] = filter_transform(self.bases[i].series[:, 0], data.fs)
+                self._transforms[i] = filter_transform(self.bases[i].series[:, 0], data.grid.fs)
             w, _ = filtered_spectra(data, self.bases[i], [cols[j].response for j in js], self._transforms[i])
             out[:, js] = w.reshape(-1, len(js))
         return out
@@ -225,7 +229,7 @@ def _modulated_evaluator(model: ModelFit, effect, effect_at):
     the effect is not of that kind."""
     data = model.data
     plain = effect.with_options(vary="none", period=None)
-    inp = effect_input_from_telemetry(data.tm)
+    inp = effect_input_from_telemetry(data.context.tm)
     cols = plain.columns(inp)
     if any(c.response is not None for c in cols) or plain.needs_coefficients:
         return None
@@ -235,7 +239,7 @@ def _modulated_evaluator(model: ModelFit, effect, effect_at):
         if b.series is None:
             raise ValueError(f"{b.names[0]}: the base column's series are needed")
         base_series.append(b.series[:, 0])
-    t_dec = data.t0 + np.arange(data.mask.size) / data.fs
+    t_dec = data.grid.t0 + np.arange(data.grid.mask.size) / data.grid.fs
     t_ref = inp.t_ref if effect.options.get("t_ref") is None else float(effect.options["t_ref"])
     names_only = names_only_input()
 
@@ -246,11 +250,11 @@ def _modulated_evaluator(model: ModelFit, effect, effect_at):
         named = eff.columns(names_only)
         series = np.stack([bs * m for bs in base_series for m in mods], axis=1)
         k = series.shape[1]
-        w = data.whiten(data.spectra(series))
+        w = data.noise.whiten(data.grid.spectra(series))
         cs = ColumnSet(
             tuple(c.name for c in named),
             np.stack([np.ascontiguousarray(w[..., j]) for j in range(k)]).view(np.float64),
-            data.noise_key,
+            data.noise.key,
             tuple(c.unit for c in named),
             tuple(c.prior_scale for c in named),
             tuple(b.eiv[0] for b in bases for _ in mods),
@@ -286,7 +290,7 @@ def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
     if isinstance(effect, Step):
         return step_time_search(model, effect)
     data = model.data
-    if data.tm is None:
+    if data.context.tm is None:
         raise ConfigError(f"effect {effect.name!r}: searching {', '.join(names)} needs the telemetry")
     ranges = search_ranges(data, effect)
     lo, hi, fwd, back, is_log = _scaled(ranges, names)
@@ -296,7 +300,7 @@ def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
         return effect.with_options(**{k: float(f"{float(val):.6g}") for k, val in zip(names, v)})
 
     mid = effect_at(0.5 * (lo + hi))
-    cols0 = mid.columns(effect_input_from_telemetry(data.tm, coefficients))
+    cols0 = mid.columns(effect_input_from_telemetry(data.context.tm, coefficients))
     spectral = (
         all(c.response is not None for c in cols0)
         and not mid.needs_coefficients

@@ -82,15 +82,15 @@ def search_ranges(data, effect) -> dict:
     ``period``) to twice the analysed span, the offsets of shifted-witness effects (names
     starting with ``offset.``) to ``+-settings.shift_span``."""
     out = {}
-    idx = np.flatnonzero(data.mask)
-    span = (idx[-1] - idx[0]) / data.fs
+    idx = np.flatnonzero(data.grid.mask)
+    span = (idx[-1] - idx[0]) / data.grid.fs
     for k, (lo, hi, scale) in effect.searched.items():
         if k.startswith("f"):
-            lo, hi = max(lo, data.f[0] / 1.26), min(hi, data.f[-1] * 1.26)
+            lo, hi = max(lo, data.grid.f[0] / 1.26), min(hi, data.grid.f[-1] * 1.26)
         if k.startswith("period"):
             hi = min(hi, 2 * span)
         if k.startswith(OFFSET_OPTION):
-            lo, hi = max(lo, -float(data.settings.shift_span)), min(hi, float(data.settings.shift_span))
+            lo, hi = max(lo, -float(data.context.settings.shift_span)), min(hi, float(data.context.settings.shift_span))
         if lo >= hi:
             raise ConfigError(f"effect {effect.name!r}: the range of {k} does not fit these data")
         out[k] = (float(lo), float(hi), scale)

@@ -17,9 +17,9 @@ from .adequacy import DEFAULT_ALPHA, DEFAULT_TOLERANCE, DIAGNOSIS_BAND
 MAX_WORKERS = 4
 
 
-@dataclass
+@dataclass(frozen=True)
 class DiagnoseSettings:
-    """Settings of a diagnosis.
+    """Settings of a diagnosis: a value, built once (``dataclasses.replace`` for another).
 
     Attributes
     ----------

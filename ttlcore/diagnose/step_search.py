@@ -45,10 +45,11 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
     marginalised over the coarse grid (uniform prior); the evidence at the best time is
     :attr:`SearchResult.evidence`."""
     data = model.data
-    s = data.settings
+    grid = data.grid
+    s = data.context.settings
     step = step or Step()
     base = [f"{m}.{a}.{sd}" for m in step.mosas for a in step.angles for sd in step.sides]
-    if not all(n in data.regressor_names for n in base):
+    if not all(n in data.tdi.regressor_names for n in base):
         raise ConfigError(f"effect 'step': the TDI data lack the regressors {base[:2]}...")
     M = model.columns
     Bcs = ttl_columns(data).select(base)
@@ -62,10 +63,10 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
     nM, nK = len(M), len(base)
     E_products = eiv_products(data, M, Bcs)
     W_MM = eiv_weights(data, M)
-    t_flat = np.concatenate([data.t0 + (s0 + np.arange(data.L)) / data.fs for s0 in data.starts])
-    w2 = data.w2.reshape(-1)
+    t_flat = np.concatenate([grid.t0 + (s0 + np.arange(grid.L)) / grid.fs for s0 in grid.starts])
+    w2 = grid.w2.reshape(-1)
     prof = np.stack(
-        [w2 if m is None else w2 * np.concatenate([m[s0 : s0 + data.L] for s0 in data.starts]) for m in M.modulation]
+        [w2 if m is None else w2 * np.concatenate([m[s0 : s0 + grid.L] for s0 in grid.starts]) for m in M.modulation]
         + [w2]
     )
     tail = np.concatenate([np.cumsum(prof[:, ::-1], axis=1)[:, ::-1], np.zeros((nM + 1, 1))], axis=1)
@@ -79,24 +80,26 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
         W[nM:, nM:] = tail[nM, j]
         return E_products * W[None]
 
-    idx = np.flatnonzero(data.mask)
+    idx = np.flatnonzero(grid.mask)
     # a step closer to the ends than half a coarse step is nearly collinear with the TTL
     # columns themselves: search inside
-    t_lo = data.t0 + idx[0] / data.fs + s.step_grid / 2
-    t_hi = data.t0 + (idx[-1] + 1) / data.fs - s.step_grid / 2
-    stack = np.nan_to_num(np.stack([data.regressor_series[:, data.regressor_names.index(n)] for n in base], axis=1))
+    t_lo = grid.t0 + idx[0] / grid.fs + s.step_grid / 2
+    t_hi = grid.t0 + (idx[-1] + 1) / grid.fs - s.step_grid / 2
+    stack = np.nan_to_num(
+        np.stack([data.tdi.regressor_series[:, data.tdi.regressor_names.index(n)] for n in base], axis=1)
+    )
     names = [f"step.{n}" for n in base]
     # evaluate_at(ts) is piecewise constant in ts: it reads ts only through comparisons with
     # the decimated sample times (the step columns, their readout noise), the segments'
     # starts and, for the correction, the telemetry's sample times; one evaluation per
     # cell of those grids (the same numbers: the golden section ends inside one cell, and
     # the scan and the light-travel-time multiples meet cells already evaluated)
-    t_dec = data.t0 + np.arange(data.mask.size) / data.fs  # as evaluate_at, eiv_at, _step_correction
+    t_dec = grid.t0 + np.arange(grid.mask.size) / grid.fs  # as evaluate_at, eiv_at, _step_correction
     memo: dict = {}
 
     def cell(ts) -> tuple:
         return (
-            int(np.searchsorted(data.seg_t0, ts, side="right")),
+            int(np.searchsorted(grid.seg_t0, ts, side="right")),
             int(np.searchsorted(t_dec, ts)),
             _correction_cell(data, ts),
         )
@@ -108,20 +111,20 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
         return memo[key]
 
     def _evaluate_at(ts) -> Evidence:
-        j = int(np.searchsorted(data.seg_t0, ts, side="right") - 1)
-        after = np.arange(len(data.starts)) > j
+        j = int(np.searchsorted(grid.seg_t0, ts, side="right") - 1)
+        after = np.arange(len(grid.starts)) > j
         N_MK = np.where(after[:, None, None, None], G_MB, 0.0)
         N_KK = np.where(after[:, None, None, None], G_BB, 0.0)
         b_K = np.where(after[:, None, None], b_B, 0.0)
-        if 0 <= j < len(data.starts):
-            s0 = data.starts[j]
-            h = (data.t0 + (s0 + np.arange(data.L)) / data.fs >= ts).astype(float)
-            wm = data.win * data.mask[s0 : s0 + data.L]  # the taper on the valid samples (mask: 0 or 1)
-            seg = stack[:, :, s0 : s0 + data.L] * h  # a new array: patched in place
+        if 0 <= j < len(grid.starts):
+            s0 = grid.starts[j]
+            h = (grid.t0 + (s0 + np.arange(grid.L)) / grid.fs >= ts).astype(float)
+            wm = grid.win * grid.mask[s0 : s0 + grid.L]  # the taper on the valid samples (mask: 0 or 1)
+            seg = stack[:, :, s0 : s0 + grid.L] * h  # a new array: patched in place
             corr = _step_correction(data, ts, base)
             if corr is not None:  # exact TDI of the step near t_s (the delays straddle it)
                 k0, c = corr
-                lo, hi = max(k0 - s0, 0), min(k0 - s0 + c.shape[-1], data.L)
+                lo, hi = max(k0 - s0, 0), min(k0 - s0 + c.shape[-1], grid.L)
                 if hi > lo:
                     seg[:, :, lo:hi] += c[:, :, lo - (k0 - s0) : hi - (k0 - s0)]
             # spectra of segment j only: segment_fft(seg * m, fs, win * m) with m in {0, 1}
@@ -129,12 +132,12 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
             seg *= wm
             X = sp_fft.rfft(seg, axis=-1, workers=None)
             del seg
-            X = psd_scale(data.fs, wm) * X[:, :, data.bins]
-            wK = np.matmul(data.Lh, np.moveaxis(X, 2, 0))[None]  # (1, m, 3, k)
+            X = psd_scale(grid.fs, wm) * X[:, :, grid.bins]
+            wK = np.matmul(data.noise.Lh, np.moveaxis(X, 2, 0))[None]  # (1, m, 3, k)
             XK = as_real(wK)
-            N_MK[j] = gram_x(XM[:, j : j + 1], XK, data.slices)[0]
-            N_KK[j] = gram_x(XK, XK, data.slices)[0]
-            b_K[j] = gram_x(XK, data.wd[j : j + 1][None].view(np.float64), data.slices)[0, ..., 0]
+            N_MK[j] = gram_x(XM[:, j : j + 1], XK, grid.slices)[0]
+            N_KK[j] = gram_x(XK, XK, grid.slices)[0]
+            b_K[j] = gram_x(XK, data.noise.wd[j : j + 1][None].view(np.float64), grid.slices)[0, ..., 0]
         return evidence_from_normal(model, N_MM, N_MK, N_KK, b_M, b_K, names, np.full(len(base), 1e-3), eiv_at(ts))
 
     coarse = np.arange(t_lo + s.step_grid / 2, t_hi, s.step_grid)
@@ -168,7 +171,7 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
             ts_best, ev = ts, e
     # the profile has secondary maxima one or more light travel times from the true step
     # (the TDI terms see the step delayed): try those, then refine around the best
-    tau = float(np.mean(data.ltt_mean))
+    tau = float(np.mean(data.tdi.ltt_mean))
     for k in (-4, -3, -2, -1, 1, 2, 3, 4):
         ts = ts_best + k * tau
         if t_lo < ts < t_hi:
@@ -203,8 +206,8 @@ def _correction_stretch(data, ts: float) -> tuple[int, int, np.ndarray, int]:
     """The telemetry samples ``[a, b)`` around ``t_s`` over which :func:`_step_correction`
     computes the exact TDI of the step, the FIR taps of the decimation and the delays'
     history [samples]."""
-    tm, fs = data.tm, data.tm.fs
-    taps = lowpass_taps(fs) if data.decimation > 1 else np.ones(1)
+    tm, fs = data.context.tm, data.context.tm.fs
+    taps = lowpass_taps(fs) if data.grid.decimation > 1 else np.ones(1)
     hist = history_samples(fs, float(np.max(tm.ltt)))
     i_ts = int(np.floor((ts - tm.t0) * fs))
     return max(i_ts - hist - 8, 0), min(i_ts + hist + taps.size + 8, tm.size), taps, hist
@@ -213,10 +216,11 @@ def _correction_stretch(data, ts: float) -> tuple[int, int, np.ndarray, int]:
 def _correction_cell(data, ts: float) -> tuple | None:
     """What :func:`_step_correction` reads of ``t_s``: its stretch of telemetry and the
     number of the stretch's samples before ``t_s`` (None without telemetry)."""
-    if data.tm is None:
+    tm = data.context.tm
+    if tm is None:
         return None
     a, b, _, _ = _correction_stretch(data, ts)
-    t = (data.tm.t0 + a / data.tm.fs) + np.arange(b - a) / data.tm.fs  # as the stretch's EffectInput.t
+    t = (tm.t0 + a / tm.fs) + np.arange(b - a) / tm.fs  # as the stretch's EffectInput.t
     return a, b, int(np.count_nonzero(t < ts))
 
 
@@ -228,9 +232,9 @@ def _step_correction(data, ts: float, base: list) -> tuple | None:
 
     Returns ``(first decimated sample index, array (3, k, n))`` or None without telemetry.
     """
-    if data.tm is None:
+    if data.context.tm is None:
         return None
-    tm, fs = data.tm, data.tm.fs
+    tm, fs = data.context.tm, data.context.tm.fs
     a, b, taps, hist = _correction_stretch(data, ts)
     sub = tm.slice(a, b)
     inp = effect_input_from_telemetry(sub)
@@ -240,7 +244,9 @@ def _step_correction(data, ts: float, base: list) -> tuple | None:
     for c in cols:
         for p in c.parts:
             p.series = p.series * step
-    built = build(MICHELSON, sub.ltt, fs, order=data.settings.order, delay_order=data.settings.delay_order)
+    built = build(
+        MICHELSON, sub.ltt, fs, order=data.context.settings.order, delay_order=data.context.settings.delay_order
+    )
     exact = aet(columns_tdi(cols, built))  # (3, k, b - a); NaN where delays leave the stretch
     # before t_s - 8 s the step column is exactly zero (NaN only where the delays leave
     # the stretch), and so is the signal before the stretch
@@ -249,11 +255,11 @@ def _step_correction(data, ts: float, base: list) -> tuple | None:
     # causal FIR then decimation on the global sample grid, as TDIData.decimated: output i
     # of the local convolution is global sample a + i; keep those inside the stretch
     full = np.apply_along_axis(lambda x: np.convolve(x, taps)[: b - a], -1, exact)
-    first = (-a) % data.decimation
-    dec = full[..., first :: data.decimation]
-    k0 = (a + first) // data.decimation  # decimated index of global sample a + first
+    first = (-a) % data.grid.decimation
+    dec = full[..., first :: data.grid.decimation]
+    k0 = (a + first) // data.grid.decimation  # decimated index of global sample a + first
     n = dec.shape[-1]
-    t_dec = data.t0 + (k0 + np.arange(n)) / data.fs
-    idx = [data.regressor_names.index(nm) for nm in base]
-    modulated = data.regressor_series[:, idx, k0 : k0 + n] * (t_dec >= ts)
+    t_dec = data.grid.t0 + (k0 + np.arange(n)) / data.grid.fs
+    idx = [data.tdi.regressor_names.index(nm) for nm in base]
+    modulated = data.tdi.regressor_series[:, idx, k0 : k0 + n] * (t_dec >= ts)
     return k0, dec - np.nan_to_num(modulated)

@@ -505,12 +505,22 @@ def residual_map(data, residual, tile: float = TILE_DURATION) -> TimeFrequencyMa
     (:class:`~ttlcore.diagnose.whitened.WhitenedData`) under its noise model: the diagonal of
     its noise CSD, its analysis bins (:func:`kept_like`), its band from ``3 / tile`` (the
     Hann main lobe clear of zero frequency), its valid samples and tolerance."""
-    s = data.settings
-    psd = np.real(np.einsum("mii->mi", data.noise_csd))
-    keep = kept_like(data.f, 1.0 / data.seg_duration, 1.0 / tile)
+    grid = data.grid
+    s = data.context.settings
+    psd = np.real(np.einsum("mii->mi", data.noise.csd))
+    keep = kept_like(grid.f, 1.0 / grid.seg_duration, 1.0 / tile)
     band = (max(s.band[0], 3.0 / tile), s.band[1])
     return time_frequency_map(
-        residual, data.fs, data.t0, data.f, psd, band, tile=tile, valid=data.mask, keep=keep, tolerance=s.tolerance
+        residual,
+        grid.fs,
+        grid.t0,
+        grid.f,
+        psd,
+        band,
+        tile=tile,
+        valid=grid.mask,
+        keep=keep,
+        tolerance=s.tolerance,
     )
 
 

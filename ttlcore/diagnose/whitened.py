@@ -1,25 +1,37 @@
-"""The whitened data of a diagnosis: an immutable value built once.
+"""The whitened data of a diagnosis: small immutable values built once, and a per-run context.
 
 :class:`WhitenedData` holds what every fit, candidate and search of a diagnosis works on
-(docs/diagnostics.md, "The loop"): the A, E, T TDI of the data decimated to 2 Hz, its
-6-hour Tukey-windowed segments (a quarter of shorter data), the analysis bins (band and
-arm notches), the bands of the adequacy test, the noise CSD ``S(f)`` and its whitening
-``L^H`` (``S^-1 = L L^H``), and the whitened data spectra ``L^H d``.  It is built by
-:func:`whiten_telemetry` or :func:`whiten_tdi` and never changes:
-:meth:`WhitenedData.with_noise` returns a new value under another noise model (the fitted
-noise levels, the DWS readout noise of a drifting model).
+(docs/diagnostics.md, "The loop"), as four parts of one concept each:
+
+* :class:`AnalysisGrid`: the segments and bins - the decimation to 2 Hz, the 6-hour
+  Tukey-windowed segments (a quarter of shorter data), the analysis bins (band and arm
+  notches) and the bands of the adequacy test;
+* :class:`MeasuredTDI`: the A, E, T TDI of the data and of the TTL regressors (input rate,
+  decimated, band spectra), the mean light travel times and the DWS readout noise;
+* :class:`Whitening`: the noise CSD ``S(f)``, its whitening ``L^H`` (``S^-1 = L L^H``) and
+  the whitened data spectra ``L^H d``;
+* :class:`DiagnosisContext`: the settings, telemetry and effect plugins of the run, and its
+  column cache.
+
+The first three are built by :func:`whiten_telemetry` or :func:`whiten_tdi` and never
+change: :meth:`WhitenedData.with_noise` returns a new value with another :class:`Whitening`
+(the fitted noise levels, the DWS readout noise of a drifting model) and the same grid, TDI
+and context.
 
 Regressor columns are computed from it by :mod:`ttlcore.diagnose.columns` (pure functions
 of the effect and its parameters); their cache (:class:`ttlcore.diagnose.columns.ColumnStore`)
-is shared by the values derived from one another with :meth:`~WhitenedData.with_noise`, its
-keys immutable (the effect's spelling, the coefficients it was built with, the noise model's
-digest), so that no trial fit can change what another fit sees.
+is the per-run state of the context, shared on purpose by the values derived from one another
+with :meth:`~WhitenedData.with_noise`, its keys immutable (the effect's spelling, the
+coefficients it was built with, the noise model's digest), so that no trial fit can change
+what another fit sees.
 """
 
 from __future__ import annotations
 
 import hashlib
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, field, replace
+from types import EllipsisType
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -47,11 +59,12 @@ from .columns import ColumnStore, read_only, regressor_columns
 from .settings import DiagnoseSettings
 
 if TYPE_CHECKING:
+    from ..effects.base import Effect
     from ..io.telemetry import Telemetry
     from .noise_model import NoiseModel
 
 
-def band_slices(band_index: np.ndarray, G: int) -> tuple:
+def band_slices(band_index: np.ndarray, G: int) -> tuple[tuple[int, int], ...]:
     """Contiguous bin ranges of the bands (frequencies ascend, so bands are contiguous)."""
     out = []
     for g in range(G):
@@ -96,61 +109,37 @@ def noise_digest(csd: np.ndarray) -> str:
 
 
 @dataclass(frozen=True, eq=False)
-class WhitenedData:
-    """Segment spectra of the data, analysis grid and noise model of one diagnosis.
+class AnalysisGrid:
+    """The segments and bins of a diagnosis: where and at which frequencies it looks.
 
     Attributes
     ----------
-    settings : DiagnoseSettings
-    tm : Telemetry or None
-        The telemetry (every effect available), None for TDI outputs only.
-    td_in : TDIData
-        A, E, T TDI of the data and the 24 TTL regressors at the input rate.
-    effect_modules : tuple
-        Plugin modules; ``registry`` the effects available (name -> class).
-    dws_asd : float
-        DWS readout noise [rad/sqrt(Hz)].
-    ltt_mean : ndarray (6,)
-        Mean light travel times [s].
+    decimation : int
+        Decimation factor from the input rate ``fs_in`` [Hz] (first time ``t0_in`` [s]).
     fs, t0 : float
-        Rate [Hz] and first time [s] of the decimated series (``decimation`` the factor,
-        ``fs_in``, ``t0_in`` those of the input).
-    mask : ndarray (n,)
+        Rate [Hz] and first time [s] of the decimated series.
+    mask : ndarray (n,) of bool
         Valid decimated samples (the TDI delays' start-up and a 120-s margin removed).
-    L, starts : int, tuple
-        Segment length and first samples (decimated); ``seg_t0`` their times [s].
+    L : int
+        Segment length (decimated samples).
+    starts : tuple of int
+        First samples of the segments (decimated); ``seg_t0`` their times [s] (S,).
+    seg_duration : float
+        Segment length [s].
     win : ndarray (L,)
         Segment taper.
-    f, bins : ndarray
+    f, bins : ndarray (m,)
         Analysis frequencies [Hz] and their indices in the segment's rfft grid.
-    edges, band_index, slices : ndarray, ndarray, tuple
-        Band edges [Hz] of the adequacy test, band of each bin, bin range of each band.
+    edges : ndarray (G + 1,)
+        Band edges [Hz] of the adequacy test; ``G`` the number of bands.
+    band_index : ndarray (m,) of int
+        Band of each bin; ``slices`` the bin range ``(first, stop)`` of each band.
     kappa : float
         Variance factor of the tapered segments (:func:`ttlcore.estimate.fit.variance_factor`).
     w2 : ndarray (S, L)
         Each segment's normalised squared taper (weights of modulation products).
-    data_series : ndarray (3, n)
-        Decimated A, E, T of the data; ``d`` its band spectra (S, m, 3).
-    regressor_series : ndarray (3, 24, n)
-        Decimated A, E, T of the TTL regressors (names ``regressor_names``; their whitened
-        spectra are :func:`ttlcore.diagnose.columns.ttl_columns`).
-    noise_csd, Lh : ndarray (m, 3, 3)
-        Noise CSD and its whitening; ``noise_key`` their digest; ``noise_parameters`` the
-        fitted secondary-noise levels (:class:`ttlcore.diagnose.noise_model.NoiseModel`) or
-        None for the fixed model.
-    wd, dd : ndarray
-        Whitened data spectra (S, m, 3) and their power per segment and band (S, G).
-    store : ColumnStore
-        The column cache (:mod:`ttlcore.diagnose.columns`), shared with derived values.
     """
 
-    settings: DiagnoseSettings
-    tm: Telemetry | None
-    td_in: TDIData
-    effect_modules: tuple
-    registry: dict
-    dws_asd: float
-    ltt_mean: np.ndarray
     decimation: int
     fs_in: float
     t0_in: float
@@ -158,7 +147,7 @@ class WhitenedData:
     t0: float
     mask: np.ndarray
     L: int
-    starts: tuple
+    starts: tuple[int, ...]
     seg_t0: np.ndarray
     seg_duration: float
     win: np.ndarray
@@ -167,32 +156,12 @@ class WhitenedData:
     edges: np.ndarray
     G: int
     band_index: np.ndarray
-    slices: tuple
+    slices: tuple[tuple[int, int], ...]
     kappa: float
     w2: np.ndarray
-    data_series: np.ndarray
-    d: np.ndarray
-    regressor_names: tuple
-    regressor_series: np.ndarray
-    ttl_names: tuple
-    noise_csd: np.ndarray
-    Lh: np.ndarray
-    noise_key: str
-    wd: np.ndarray
-    dd: np.ndarray
-    noise_parameters: NoiseModel | None = None
-    store: ColumnStore = field(default_factory=ColumnStore, repr=False)
 
-    def __post_init__(self):
+    def __post_init__(self) -> None:
         read_only(*(v for v in vars(self).values() if isinstance(v, np.ndarray)))
-
-    @property
-    def has_telemetry(self) -> bool:
-        return self.tm is not None
-
-    @property
-    def n_segments(self) -> int:
-        return len(self.starts)
 
     def spectra(self, x: np.ndarray) -> np.ndarray:
         """(3, k, n) decimated series -> band spectra (S, m, 3, k), masked like the data."""
@@ -208,10 +177,6 @@ class WhitenedData:
             out[i] = np.moveaxis(X[:, :, self.bins], 2, 0)
         return out
 
-    def whiten(self, X: np.ndarray) -> np.ndarray:
-        """``L^H X`` for spectra (S, m, 3, k)."""
-        return np.matmul(self.Lh, X)
-
     def decimate(self, xyz: np.ndarray, is_aet: bool = False) -> np.ndarray:
         """XYZ (or A, E, T) TDI of columns (3, k, n_in) -> decimated A, E, T (3, k, n), the
         data's anti-alias filter (:meth:`ttlcore.tdi.data.TDIData.decimated`; FFT threads:
@@ -221,28 +186,154 @@ class WhitenedData:
             return a
         return lowpass_decimate([a], lowpass_taps(self.fs_in), self.decimation, workers=None)[0]
 
-    def with_noise(self, csd: np.ndarray, noise_parameters=...) -> WhitenedData:
-        """The same data under another noise CSD (m, 3, 3): a new value (``self`` is left as
-        it is); ``noise_parameters`` (default: kept) the fitted levels it comes from."""
+
+@dataclass(frozen=True, eq=False)
+class MeasuredTDI:
+    """The TDI of a diagnosis' data and of its TTL regressors, before any whitening.
+
+    Attributes
+    ----------
+    td_in : TDIData
+        A, E, T TDI of the data and of the regressors at the input rate.
+    data_series : ndarray (3, n)
+        Decimated A, E, T of the data; ``d`` their band spectra (S, m, 3).
+    regressor_series : ndarray (3, k, n)
+        Decimated A, E, T of the TDI regressors, named ``regressor_names`` (their whitened
+        spectra are :func:`ttlcore.diagnose.columns.ttl_columns`); ``ttl_names`` those of them
+        that are linear TTL coefficients (the 24 of telemetry).
+    ltt_mean : ndarray (6,)
+        Mean light travel times [s], LINKS order.
+    dws_asd : float
+        DWS readout noise [rad/sqrt(Hz)].
+    """
+
+    td_in: TDIData
+    data_series: np.ndarray
+    d: np.ndarray
+    regressor_names: tuple[str, ...]
+    regressor_series: np.ndarray
+    ttl_names: tuple[str, ...]
+    ltt_mean: np.ndarray
+    dws_asd: float
+
+    def __post_init__(self) -> None:
+        read_only(self.data_series, self.d, self.regressor_series, self.ltt_mean)
+
+
+@dataclass(frozen=True, eq=False)
+class Whitening:
+    """A noise model on the analysis bins and the data whitened with it.
+
+    Attributes
+    ----------
+    csd : ndarray (m, 3, 3)
+        Noise CSD of A, E, T [1/Hz].
+    Lh : ndarray (m, 3, 3)
+        Its whitening ``L^H`` (``S^-1 = L L^H``).
+    key : str
+        Digest of ``csd``: the cache key of spectra whitened with it.
+    wd : ndarray (S, m, 3)
+        Whitened data spectra ``L^H d``.
+    dd : ndarray (S, G)
+        Their power per segment and band.
+    parameters : NoiseModel or None
+        The fitted secondary-noise levels the CSD comes from
+        (:class:`ttlcore.diagnose.noise_model.NoiseModel`), None for the fixed model.
+    """
+
+    csd: np.ndarray
+    Lh: np.ndarray
+    key: str
+    wd: np.ndarray
+    dd: np.ndarray
+    parameters: NoiseModel | None = None
+
+    def __post_init__(self) -> None:
+        read_only(self.csd, self.Lh, self.wd, self.dd)
+
+    def whiten(self, X: np.ndarray) -> np.ndarray:
+        """``L^H X`` for spectra (S, m, 3, k)."""
+        return np.matmul(self.Lh, X)
+
+
+@dataclass(eq=False)
+class DiagnosisContext:
+    """The per-run context of a diagnosis: its inputs other than the data, and its column cache.
+
+    Not a value (compared by identity): one per run (``ttl diagnose``, a refit; a new one for
+    gated data), shared by reference by every :class:`WhitenedData` derived from the first
+    one with :meth:`WhitenedData.with_noise`, so that columns built under one noise model are
+    reused (transformed) under the next.  The cache is the only state a diagnosis keeps
+    between fits: its keys are immutable (module docstring), its column sets are values, an
+    entry is only ever replaced by its transform to another noise model.
+
+    Attributes
+    ----------
+    settings : DiagnoseSettings
+    tm : Telemetry or None
+        The telemetry (every effect available), None for TDI outputs only.
+    effect_modules : tuple of str
+        Plugin modules (paths or dotted names); ``registry`` the effects available
+        (name -> class, :func:`ttlcore.effects.registry.available_effects`).
+    store : ColumnStore
+        The column cache (:mod:`ttlcore.diagnose.columns`).
+    """
+
+    settings: DiagnoseSettings
+    tm: Telemetry | None
+    effect_modules: tuple[str, ...]
+    registry: Mapping[str, type[Effect]]
+    store: ColumnStore = field(default_factory=ColumnStore, repr=False)
+
+
+@dataclass(frozen=True, eq=False)
+class WhitenedData:
+    """What every fit, candidate and search of a diagnosis works on (module docstring).
+
+    Attributes
+    ----------
+    grid : AnalysisGrid
+        Segments, bins and bands.
+    tdi : MeasuredTDI
+        The data's and the regressors' TDI, series and spectra.
+    noise : Whitening
+        The noise model and the data whitened with it.
+    context : DiagnosisContext
+        Settings, telemetry, plugins and column cache of the run (shared, see there).
+    """
+
+    grid: AnalysisGrid
+    tdi: MeasuredTDI
+    noise: Whitening
+    context: DiagnosisContext
+
+    def with_noise(self, csd: np.ndarray, noise_parameters: NoiseModel | None | EllipsisType = ...) -> WhitenedData:
+        """The same data under another noise CSD (m, 3, 3): a new value sharing the grid, the
+        TDI and the context (``self`` is left as it is); ``noise_parameters`` (default: kept)
+        the fitted levels it comes from."""
         Lh = whitening(csd)
-        M = Lh @ np.linalg.inv(self.Lh)
-        wd = np.einsum("mij,smj->smi", M, self.wd)
-        dd = np.empty_like(self.dd)
-        for g, (a, b) in enumerate(self.slices):
+        M = Lh @ np.linalg.inv(self.noise.Lh)
+        wd = np.einsum("mij,smj->smi", M, self.noise.wd)
+        dd = np.empty_like(self.noise.dd)
+        for g, (a, b) in enumerate(self.grid.slices):
             dd[:, g] = np.sum(np.abs(wd[:, a:b]) ** 2, axis=(1, 2))
-        return replace(
-            self,
-            noise_csd=csd,
+        noise = Whitening(
+            csd=csd,
             Lh=Lh,
-            noise_key=noise_digest(csd),
+            key=noise_digest(csd),
             wd=wd,
             dd=dd,
-            noise_parameters=self.noise_parameters if noise_parameters is ... else noise_parameters,
+            parameters=self.noise.parameters if isinstance(noise_parameters, EllipsisType) else noise_parameters,
         )
+        return replace(self, noise=noise)
 
 
 def whiten_tdi(
-    td: TDIData, settings: DiagnoseSettings | None = None, tm=None, effect_modules=(), dws_asd: float | None = None
+    td: TDIData,
+    settings: DiagnoseSettings | None = None,
+    tm: Telemetry | None = None,
+    effect_modules: Iterable[str] = (),
+    dws_asd: float | None = None,
 ) -> WhitenedData:
     """Build the :class:`WhitenedData` of TDI outputs (with the telemetry they come from,
     when there is one).
@@ -291,14 +382,7 @@ def whiten_tdi(
     G = len(edges) - 1
     band_index = np.clip(np.searchsorted(edges, f, side="right") - 1, 0, G - 1)
     w2 = np.stack([(win * mask[s0 : s0 + L]) ** 2 for s0 in starts])
-    data = WhitenedData(
-        settings=s,
-        tm=tm,
-        td_in=tda,
-        effect_modules=tuple(effect_modules),
-        registry=available_effects(tuple(effect_modules)),
-        dws_asd=dws,
-        ltt_mean=ltt_mean,
+    grid = AnalysisGrid(
         decimation=factor,
         fs_in=tda.fs,
         t0_in=tda.t0,
@@ -318,23 +402,22 @@ def whiten_tdi(
         slices=band_slices(band_index, G),
         kappa=variance_factor(s.window, 4096, 0.0),
         w2=w2 / w2.sum(axis=1, keepdims=True),
+    )
+    d = grid.spectra(dec.data[:, None, :])[..., 0]
+    R = grid.spectra(dec.regressors)
+    tdi = MeasuredTDI(
+        td_in=tda,
         data_series=dec.data,
-        d=np.empty(0),
+        d=d,
         regressor_names=tuple(dec.names),
         regressor_series=dec.regressors,
         ttl_names=tuple(nm for nm in dec.names if nm in COEFFICIENT_NAMES),
-        noise_csd=np.empty(0),
-        Lh=np.empty(0),
-        noise_key="",
-        wd=np.empty(0),
-        dd=np.empty(0),
-        store=ColumnStore(),
+        ltt_mean=ltt_mean,
+        dws_asd=dws,
     )
-    d = data.spectra(dec.data[:, None, :])[..., 0]
-    R = data.spectra(dec.regressors)
     C0 = None
-    if len(data.ttl_names) == len(COEFFICIENT_NAMES):
-        sp = [SegmentSpectra(t, data.seg_duration, f, d[i], R[i]) for i, t in enumerate(seg_t0)]
+    if len(tdi.ttl_names) == len(COEFFICIENT_NAMES):
+        sp = [SegmentSpectra(t, grid.seg_duration, f, d[i], R[i]) for i, t in enumerate(seg_t0)]
         # the first GLS pass, under the analytic secondary-noise CSD (no re-estimation of the
         # CSD from the residual): C0 only sets the DWS readout-noise term, which it needs to a
         # few per cent; the ten passes of the standard fit moved the diagnosis' coefficients by
@@ -355,12 +438,20 @@ def whiten_tdi(
     dd = np.zeros((len(starts), G))
     for g in range(G):
         dd[:, g] = np.sum(np.abs(wd[:, band_index == g]) ** 2, axis=(1, 2))
-    data = replace(data, d=d, noise_csd=csd, Lh=Lh, noise_key=noise_digest(csd), wd=wd, dd=dd)
-    data.store.put(("regressors",), data, regressor_columns(data, R))
+    modules = tuple(effect_modules)
+    data = WhitenedData(
+        grid=grid,
+        tdi=tdi,
+        noise=Whitening(csd=csd, Lh=Lh, key=noise_digest(csd), wd=wd, dd=dd),
+        context=DiagnosisContext(settings=s, tm=tm, effect_modules=modules, registry=available_effects(modules)),
+    )
+    data.context.store.put(("regressors",), data, regressor_columns(data, R))
     return data
 
 
-def whiten_telemetry(tm, settings: DiagnoseSettings | None = None, effect_modules=()) -> WhitenedData:
+def whiten_telemetry(
+    tm: Telemetry, settings: DiagnoseSettings | None = None, effect_modules: Iterable[str] = ()
+) -> WhitenedData:
     """:class:`WhitenedData` of a :class:`~ttlcore.io.telemetry.Telemetry` (ours or
     lisainstrument's): every effect available.  TDI in blocks
     (:func:`ttlcore.effects.column_tdi.tdi_in_blocks`): the interpolation taps of a day would

@@ -60,23 +60,24 @@ def witness_library(tm, dg) -> tuple[list[dict], dict]:
     dict
         ``series key -> spectra (S, m)`` (4-Hz telemetry over the residual's segments).
     """
+    grid = dg.grid
     fs = tm.fs
     t = tm.t0 + np.arange(tm.size) / fs
-    L = int(round(dg.seg_duration * fs))
+    L = int(round(grid.seg_duration * fs))
 
-    win = window(dg.settings.window, L)
-    ltt = dict(zip(LINKS, dg.ltt_mean))
+    win = window(dg.context.settings.window, L)
+    ltt = dict(zip(LINKS, dg.tdi.ltt_mean))
 
     def spectra(x):
-        out = np.zeros((len(dg.seg_t0), dg.f.size), dtype=complex)
-        for i, t0 in enumerate(dg.seg_t0):
+        out = np.zeros((len(grid.seg_t0), grid.f.size), dtype=complex)
+        for i, t0 in enumerate(grid.seg_t0):
             i0 = int(round((t0 - tm.t0) * fs))
             seg = np.zeros(L)
             a, b = max(i0, 0), min(i0 + L, tm.size)
             if b > a:
                 seg[a - i0 : b - i0] = x[a:b]
             f, X = segment_fft(seg, fs, win, workers=None)
-            out[i] = np.interp(dg.f, f, X.real) + 1j * np.interp(dg.f, f, X.imag)
+            out[i] = np.interp(grid.f, f, X.real) + 1j * np.interp(grid.f, f, X.imag)
         return out
 
     raw: dict = {}
@@ -85,7 +86,7 @@ def witness_library(tm, dg) -> tuple[list[dict], dict]:
     angles = {a: np.cumsum(vel[a], axis=1) / fs for a in ANGLES}
     t_mid = 0.5 * (t[0] + t[-1])
     T = max(t[-1] - t[0], 1.0)
-    boundaries = list(dg.seg_t0[1:]) + [t0 + dg.seg_duration / 2 for t0 in dg.seg_t0]
+    boundaries = list(grid.seg_t0[1:]) + [t0 + grid.seg_duration / 2 for t0 in grid.seg_t0]
     for m in MOSAS:
         k = MOSAS.index(m)
         for a in ANGLES:
@@ -182,17 +183,17 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
         band).
     """
     lib, raw = witness_library(tm, dg)
-    H = _responses(dg.f, dg.ltt_mean)  # (m, 3, 6)
-    hw = np.matmul(dg.Lh, H)  # whitened responses (m, 3, 6)
+    H = _responses(dg.grid.f, dg.tdi.ltt_mean)  # (m, 3, 6)
+    hw = np.matmul(dg.noise.Lh, H)  # whitened responses (m, 3, 6)
     r = model.residual_w  # (S, m, 3)
     g_link = np.einsum("mil,smi->sml", hw.conj(), r)  # (S, m, 6)
     n_link = np.sum(np.abs(hw) ** 2, axis=1)  # (m, 6)
-    G = dg.G
-    bidx = dg.band_index
-    onehot = np.zeros((dg.f.size, G))
-    onehot[np.arange(dg.f.size), bidx] = 1.0
+    G = dg.grid.G
+    bidx = dg.grid.band_index
+    onehot = np.zeros((dg.grid.f.size, G))
+    onehot[np.arange(dg.grid.f.size), bidx] = 1.0
     rr = np.einsum("smi,mg->g", np.abs(r) ** 2, onehot)
-    omega = 2 * np.pi * dg.f
+    omega = 2 * np.pi * dg.grid.f
     dchi2 = np.zeros((len(lib), G))
     coh = np.zeros((len(lib), G))
     per_series: dict = {}
@@ -211,15 +212,15 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
         bsum = b @ onehot
         nsum = n @ onehot
         with np.errstate(invalid="ignore", divide="ignore"):
-            dchi2[i] = np.where(nsum > 0, 2 * bsum.real**2 / nsum, 0.0) / dg.kappa
+            dchi2[i] = np.where(nsum > 0, 2 * bsum.real**2 / nsum, 0.0) / dg.grid.kappa
             coh[i] = np.where(nsum > 0, np.abs(bsum) ** 2 / (nsum * rr), 0.0)
     bands = []
     for g in range(G):
         order = np.argsort(-dchi2[:, g])[:top]
         bands.append(
             {
-                "f_lo": float(dg.edges[g]),
-                "f_hi": float(dg.edges[g + 1]),
+                "f_lo": float(dg.grid.edges[g]),
+                "f_hi": float(dg.grid.edges[g + 1]),
                 "top": [
                     {
                         "name": lib[i]["name"],
@@ -240,7 +241,10 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
             "family": lib[i]["family"],
             "spec": lib[i]["spec"],
             "delta_chi2": float(total[i]),
-            "best_band": [float(dg.edges[int(np.argmax(dchi2[i]))]), float(dg.edges[int(np.argmax(dchi2[i])) + 1])],
+            "best_band": [
+                float(dg.grid.edges[int(np.argmax(dchi2[i]))]),
+                float(dg.grid.edges[int(np.argmax(dchi2[i])) + 1]),
+            ],
             "coherence_max": float(coh[i].max()),
         }
         for i in order
@@ -249,7 +253,7 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
     # each one's peak, and the curves of the first ``coherence_of`` for the figure
     spectra = {}
     rrf = (np.abs(r) ** 2).sum(axis=(0, 2))
-    grid = _log_grid(dg.f)
+    grid = _log_grid(dg.grid.f)
     for k, i in enumerate(order):
         w = lib[i]
         B, P = per_series[w["series"]]
@@ -259,7 +263,7 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
             b, n = b * (-1j * omega), n * omega**2
         if w["delay"]:
             b = b * np.exp(1j * omega * w["delay"])
-        curve = _smoothed_coherence(dg.f, b, n, rrf)
+        curve = _smoothed_coherence(dg.grid.f, b, n, rrf)
         vals = np.array([-1.0 if v is None else v for v in curve])
         overall[k]["peak_frequency"] = float(grid[int(np.argmax(vals))])
         overall[k]["peak_coherence"] = float(vals.max())
@@ -270,7 +274,7 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
         "families": sorted({w["family"] for w in lib}),
         "bands": bands,
         "overall": overall,
-        "coherence_spectra": {"f": _log_grid(dg.f).tolist(), "curves": spectra},
+        "coherence_spectra": {"f": _log_grid(dg.grid.f).tolist(), "curves": spectra},
     }
 
 

@@ -27,7 +27,7 @@ T series of the data and of every column are multiplied by
     g(t) = 0 inside [start, stop],  1/2 - 1/2 cos(pi d / taper) for the distance d < taper
            outside it,  1 beyond,
 
-before the segments are windowed (the diagnosis' :class:`ttlcore.diagnose.gating.GatedData`),
+before the segments are windowed (the diagnosis' :class:`ttlcore.diagnose.gating.GatedGrid`),
 so that the fit ignores the span and no hard edge leaks.
 
 The effect classes and the shapelet live here, on the simulator's floor below the diagnosis, so

@@ -29,24 +29,20 @@ def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.02, fine: 
 
     fig = Figure(figsize=(9, 10))
     axes = [fig.add_subplot(4, 1, k + 1) for k in range(4)]
-    f = dg.f
+    f = dg.grid.f
     for ci, ch in enumerate(AET):
         ax = axes[ci]
-        label = (
-            "noise model (fitted levels)"
-            if getattr(dg, "noise_parameters", None) is not None
-            else "instrument noise model"
-        )
-        ax.loglog(*log_displacement_asd(f, np.real(dg.noise_csd[:, ci, ci])), "k--", lw=1.2, label=label)
+        label = "noise model (fitted levels)" if dg.noise.parameters is not None else "instrument noise model"
+        ax.loglog(*log_displacement_asd(f, np.real(dg.noise.csd[:, ci, ci])), "k--", lw=1.2, label=label)
         for label, fit in fits.items():
-            r = np.linalg.solve(dg.Lh[None], fit.residual_w[..., None])[..., 0]  # unwhiten: r = (L^H)^-1 wr
+            r = np.linalg.solve(dg.noise.Lh[None], fit.residual_w[..., None])[..., 0]  # unwhiten: r = (L^H)^-1 wr
             p = np.mean(np.abs(r[:, :, ci]) ** 2, axis=0)
             ax.loglog(*log_displacement_asd(f, p), lw=1, label=f"residual ({label})")
         ax.set_ylabel(f"ASD {ch} [m/sqrt(Hz)]")
         ax.grid(True, which="both", alpha=0.3)
         ax.legend(fontsize=7)
     ax = axes[3]
-    edges = dg.edges
+    edges = dg.grid.edges
     top = 1.2
     for label, fit in fits.items():
         top = max(

@@ -31,22 +31,22 @@ def data():
 def test_effect_columns_equal_the_time_domain_columns_whitened_by_hand(data):
     (witness,) = make_effects(["witness:source=12.eta,link=23,delay=2"])
     cs = effect_columns(data, witness, cache=False)
-    s = data.settings
-    names, xyz, eiv = column_regressors(data.tm, witness, order=s.order, delay_order=s.delay_order)
+    s = data.context.settings
+    names, xyz, eiv = column_regressors(data.context.tm, witness, order=s.order, delay_order=s.delay_order)
     assert cs.names == names
     # a plain witness of 12.eta carries that channel's readout noise, placed as the columns are
     assert [p[:3] for p in eiv[names[0]]] == [((m, a), link, tuple(extra)) for (m, a), link, extra, _ in cs.eiv[0]]
     # the same TDI, decimated with the data's filter, FFT'd on the data's segments and
     # whitened with L^H: the diagnosis' path, rebuilt from its documented steps
-    by_hand = data.whiten(data.spectra(data.decimate(xyz)))  # (S, m, 3, k)
+    by_hand = data.noise.whiten(data.grid.spectra(data.grid.decimate(xyz)))  # (S, m, 3, k)
     np.testing.assert_allclose(cs.w, by_hand, rtol=0, atol=1e-9 * np.max(np.abs(by_hand)))
 
 
 def test_rewhitening_under_a_scaled_noise_model_scales_the_columns(data):
     cs = ttl_columns(data)
-    scaled = data.with_noise(4.0 * data.noise_csd)
-    moved = rewhitened(cs, data.Lh, scaled)
-    assert moved.noise_key == scaled.noise_key != cs.noise_key
+    scaled = data.with_noise(4.0 * data.noise.csd)
+    moved = rewhitened(cs, data.noise.Lh, scaled)
+    assert moved.noise_key == scaled.noise.key != cs.noise_key
     # S -> 4 S: L^H -> L^H / 2, the whitened spectra halve
     np.testing.assert_allclose(moved.x, cs.x / 2, rtol=1e-12, atol=1e-12 * np.max(np.abs(cs.x)))
 
@@ -56,13 +56,15 @@ def test_gram_is_the_complex_inner_product(data):
     N = gram(data, cs, cs)  # (S, G, p, p)
     b = rhs(data, cs)
     w = cs.w  # (S, m, 3, p) complex
-    for g, (lo, hi) in enumerate(data.slices):
+    for g, (lo, hi) in enumerate(data.grid.slices):
         direct = np.real(np.einsum("smci,smcj->sij", np.conj(w[:, lo:hi]), w[:, lo:hi]))
         np.testing.assert_allclose(N[:, g], direct, rtol=1e-10, atol=1e-12 * np.max(np.abs(direct)))
-        rhs_direct = np.real(np.einsum("smci,smc->si", np.conj(w[:, lo:hi]), data.wd[:, lo:hi]))
+        rhs_direct = np.real(np.einsum("smci,smc->si", np.conj(w[:, lo:hi]), data.noise.wd[:, lo:hi]))
         np.testing.assert_allclose(b[:, g], rhs_direct, rtol=1e-10, atol=1e-12 * np.max(np.abs(rhs_direct)))
     neq = normal_equations(data, cs)
-    assert neq.N.shape == (data.G, 3, 3) and neq.dof_per_band().sum() == 6 * len(data.starts) * data.f.size
+    assert (
+        neq.N.shape == (data.grid.G, 3, 3) and neq.dof_per_band().sum() == 6 * len(data.grid.starts) * data.grid.f.size
+    )
 
 
 def test_assemble_selects_and_keeps_a_whole_set(data):

@@ -460,8 +460,8 @@ def test_laplace_evidence_matches_the_exact_bayes_factor_on_nested_models(null6h
     N = model.normal[0].sum(axis=(0, 1)) - model.eiv_term.sum(axis=0)
     b = model.normal[1].sum(axis=(0, 1))
     theta, theta_base = np.linalg.solve(N, b), np.linalg.solve(N[:P, :P], b[:P])
-    delta_chi2 = 2 * (b @ theta - b[:P] @ theta_base) / dg.kappa
-    A = 2 * (N[P:, P:] - N[P:, :P] @ np.linalg.solve(N[:P, :P], N[:P, P:])) / dg.kappa
+    delta_chi2 = 2 * (b @ theta - b[:P] @ theta_base) / dg.grid.kappa
+    A = 2 * (N[P:, P:] - N[P:, :P] @ np.linalg.solve(N[:P, :P], N[:P, P:])) / dg.grid.kappa
     exact = log_bayes_factor(A, theta[P:], np.full(len(theta) - P, 1e-3))
     laplace_dchi2, laplace_lbf = laplace_evidence(base, model)
     assert laplace_dchi2 == pytest.approx(delta_chi2, rel=1e-6, abs=1e-6)
@@ -473,9 +473,9 @@ def test_whitened_data_reused_for_successive_refits(null6h):
     dg = whiten_telemetry(tm)
     # the default segments: a quarter of the data apart, each of a length whose prime
     # factors are 2, 3, 5, 7 (fast transforms), a few samples shorter than the spacing
-    spacing = np.diff(dg.starts)
-    assert np.all(spacing == spacing[0]) and 0 <= spacing[0] - dg.L < 0.01 * dg.L
-    assert dg.L == fft_length(dg.L) and fft_length(spacing[0]) == dg.L
+    spacing = np.diff(dg.grid.starts)
+    assert np.all(spacing == spacing[0]) and 0 <= spacing[0] - dg.grid.L < 0.01 * dg.grid.L
+    assert dg.grid.L == fft_length(dg.grid.L) and fft_length(spacing[0]) == dg.grid.L
     a = refit(dg, ["linear-ttl"])
     b = refit(dg, ["linear-ttl", "drift"])
     assert a["model"]["n_parameters"] == 24 and b["model"]["n_parameters"] == 48

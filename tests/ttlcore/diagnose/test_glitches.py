@@ -25,7 +25,7 @@ from ttlcore.cli.diagnose import split_effects  # noqa: E402
 from ttlcore.conventions import COEFFICIENT_NAMES, LINKS  # noqa: E402
 from ttlcore.diagnose.diagnoser import diagnose, refit, text_report  # noqa: E402
 from ttlcore.diagnose.fitting import fit_model  # noqa: E402
-from ttlcore.diagnose.gating import GatedData, gated_data  # noqa: E402
+from ttlcore.diagnose.gating import GatedGrid, gated_data  # noqa: E402
 from ttlcore.diagnose.glitches import glitch_search  # noqa: E402
 from ttlcore.diagnose.whitened import whiten_telemetry  # noqa: E402
 from ttlcore.effects import Gate, Glitch, make_effects, parse_effect_spec  # noqa: E402
@@ -143,7 +143,7 @@ def test_gating_removes_the_glitch(glitch_day):
     tm, C, (mosa, t_g, dv, beta), data, model = glitch_day
     gate = Gate(start=t_g - 600, stop=t_g + 12 * beta + 600)
     gated = gated_data(data, [gate])
-    assert isinstance(gated, GatedData) and not gated.mask[int((t_g + 10 - gated.t0) * gated.fs)]
+    assert isinstance(gated.grid, GatedGrid) and not gated.grid.mask[int((t_g + 10 - gated.grid.t0) * gated.grid.fs)]
     fit = fit_model(gated, make_effects(["linear-ttl"]))
     # the same day without the glitch, gated alike: the gate leaves nothing of the glitch
     t = tm.t0 + np.arange(tm.eta.shape[1]) / tm.fs

@@ -110,7 +110,7 @@ def test_fitted_levels_recover_scaled_simulator_noises(short_day):
     assert not fit.bands.fails.any(), fit.bands.chi2_dof
     assert np.all(np.abs(fit.bands.chi2_dof - 1) < 0.06), fit.bands.chi2_dof
     # the noise parameters count in the degrees of freedom (24 columns + 4 levels)
-    dof_raw = 6 * dg.f.size * len(dg.starts)
+    dof_raw = 6 * dg.grid.f.size * len(dg.grid.starts)
     assert fit.bands.dof.sum() == pytest.approx(dof_raw - 24 - nm.n_parameters)
 
 

@@ -78,7 +78,8 @@ def test_offsets_are_declared_searched_parameters():
 
     # the range: declared open, clipped to +-shift_span where the data are known
     stub = SimpleNamespace(
-        mask=np.ones(100, bool), fs=4.0, f=np.array([1e-3, 0.8]), settings=SimpleNamespace(shift_span=2.5)
+        grid=SimpleNamespace(mask=np.ones(100, bool), fs=4.0, f=np.array([1e-3, 0.8])),
+        context=SimpleNamespace(settings=SimpleNamespace(shift_span=2.5)),
     )
     assert search_ranges(stub, given) == {k: (-2.5, 2.5, "linear") for k in ("offset.sc1", "offset.sc2", "offset.sc3")}
 
@@ -126,7 +127,7 @@ def test_searched_offset_interval_from_the_curvature(late3h):
     # the evidence: at the best point about delta chi^2 / 2 (the shift leaves the Gram
     # determinant nearly unchanged), marginalised by Laplace over +-shift_span per group
     assert search["log_bayes_factor_best"] == pytest.approx(search["delta_chi2"] / 2, rel=1e-3)
-    span = dg.settings.shift_span
+    span = dg.context.settings.shift_span
     laplace = sum(
         0.5 * math.log(2 * math.pi) + math.log(0.5 * (b - a)) - math.log(2 * span)
         for a, b in search["intervals"].values()
@@ -161,7 +162,7 @@ def test_given_offset_is_held_and_is_the_expansion_point(late3h):
     with pytest.raises(ConfigError, match="ltt-error:offset.12: another given offset"):
         fit_model(dg, ["linear-ttl", "timing-offset:offset.sc2=0.1", "ltt-error:offset.12=0.1"])
     # a given offset the model cannot be expanded at is an error, not ignored
-    taylor_only = replace(dg, settings=replace(dg.settings, expansion_passes=0))
+    taylor_only = replace(dg, context=replace(dg.context, settings=replace(dg.context.settings, expansion_passes=0)))
     with pytest.raises(ConfigError, match="timing-offset:offset.sc1.*expansion_passes is 0"):
         fit_model(taylor_only, ["linear-ttl", "timing-offset:offset.sc1=0.34"])
 

@@ -68,7 +68,7 @@ def test_prediction_equals_the_tdi_of_the_injected_signal(inject, model, orbit):
     fit = r["_internals"]["fit"]
     ((spec, predicted),) = effect_predictions(fit).items()
     assert spec.split(":")[0] == model.split(":")[0]
-    truth, _ = tdi_in_blocks(tm.ltt, tm.fs, (), injected, order=31, delay_order=fit.data.settings.delay_order)
+    truth, _ = tdi_in_blocks(tm.ltt, tm.fs, (), injected, order=31, delay_order=fit.data.context.settings.delay_order)
     assert np.isfinite(predicted).all()  # zero where it cannot be computed
     ok = np.isfinite(truth).all(axis=0)
     assert ok.mean() > 0.95
