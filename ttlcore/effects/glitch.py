@@ -38,6 +38,8 @@ the diagnosis; the glitch search and the gated data are the diagnosis'
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from ..conventions import (
@@ -94,14 +96,20 @@ def parse_time(value, option: str) -> float:
         return parse_duration(value, option)
 
 
+#: ``START-STOP``: two times (seconds, signed, with an exponent, or durations such as ``2.5h``)
+#: joined by a minus sign; a negative start (an event widened before the first sample) is a time.
+_SPAN = re.compile(r"\s*(-?[0-9.]+(?:[eE][-+]?[0-9]+)?[a-z]*)\s*-\s*(-?[0-9.]+(?:[eE][-+]?[0-9]+)?[a-z]*)\s*")
+
+
 def _parse_span(text) -> tuple[float, float] | None:
-    """``"a-b"`` (durations, :func:`ttlcore.conventions.parse_duration`) -> (a, b) [s]."""
+    """``"a-b"`` (durations, :func:`ttlcore.conventions.parse_duration`) -> (a, b) [s]; either
+    may be negative (``"-480-3000"``)."""
     if text is None:
         return None
-    a, sep, b = str(text).partition("-")
-    if not sep:
+    m = _SPAN.fullmatch(str(text))
+    if m is None:
         raise ConfigError(f"span {text!r}: expected START-STOP (e.g. 9000-11000 or 2.5h-3h)")
-    lo, hi = parse_time(a.strip(), "span"), parse_time(b.strip(), "span")
+    lo, hi = parse_time(m.group(1), "span"), parse_time(m.group(2), "span")
     if hi <= lo:
         raise ConfigError(f"span {text!r}: stop before start")
     return lo, hi

@@ -29,7 +29,7 @@ from ttlcore.diagnose.gating import GatedGrid, gated_data  # noqa: E402
 from ttlcore.diagnose.glitches import glitch_search  # noqa: E402
 from ttlcore.diagnose.whitened import whiten_telemetry  # noqa: E402
 from ttlcore.effects import Gate, Glitch, make_effects, parse_effect_spec  # noqa: E402
-from ttlcore.effects.glitch import GATE_TAPER, glitch_velocity, merge_gates  # noqa: E402
+from ttlcore.effects.glitch import GATE_TAPER, _parse_span, glitch_velocity, merge_gates  # noqa: E402
 from ttlcore.errors import ConfigError  # noqa: E402
 from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
 
@@ -85,7 +85,11 @@ def test_specs_accept_units_and_name_the_glitch():
     assert parse_effect_spec(g.spec())[0].spec() == g.spec()  # round trip
     assert set(Glitch().unresolved()) == {"t", "beta", "tm"}
     assert parse_effect_spec("glitch:link=23,t=100,beta=5")[0].where == "link23"
-    for bad in ("glitch:tm=12,link=12", "glitch:tm=14", "glitch:beta=-1", "glitch:span=5-1"):
+    # a searched span may start before the first sample (an event near the start, widened):
+    # the blind day of seed 11 stopped `ttl diagnose` with "span: bad duration ''" on -480.0-...
+    assert Glitch(span="-480.0-3000.0").options["span"] == "-480.0-3000.0"
+    assert _parse_span("-1e3-2.5h") == (-1000.0, 9000.0)
+    for bad in ("glitch:tm=12,link=12", "glitch:tm=14", "glitch:beta=-1", "glitch:span=5-1", "glitch:span=10-"):
         with pytest.raises(ConfigError):
             parse_effect_spec(bad)
     gate, _ = parse_effect_spec("gate:start=15.2h,stop=56880")
