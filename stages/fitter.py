@@ -156,6 +156,12 @@ class Fitter(OrderedStage):
         """The effect specs of the model in force."""
         return self.model.effects
 
+    def step_failed(self, kind: str, index: int, what: str, exc: Exception, consequence: str) -> None:
+        """A step of segment ``index`` (the window refit, the live diagnosis) failed: logged with
+        its traceback and recorded as a ``kind`` warning that says what was published instead."""
+        self.log.exception("%s of segment %d failed", what, index)
+        self.warn(kind, f"fit {index}: the {what} failed ({type(exc).__name__}: {exc}); {consequence}", index=index)
+
     def expect(self, topic, index):
         return tdi_expect(self.run_id, index)
 
@@ -300,12 +306,12 @@ class Fitter(OrderedStage):
             )
         except (TTLError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
             # the rolling fit of this segment stands; the refit is tried again when next due
-            self.log.exception("window refit of segment %d failed", header.index)
-            self.warn(
+            self.step_failed(
                 "window-refit-failed",
-                f"fit {header.index}: the window refit failed ({type(exc).__name__}: {exc}); "
+                header.index,
+                "window refit",
+                exc,
                 "the rolling fit is published without its adequacy",
-                index=header.index,
             )
             return None
         if r is None:
@@ -507,12 +513,8 @@ class Fitter(OrderedStage):
             except (TTLError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
                 # the window's fit stands without its diagnosis: published, the failure recorded
                 self.model.diagnose_due = False
-                self.log.exception("live diagnosis of segment %d failed", header.index)
-                self.warn(
-                    "diagnosis-failed",
-                    f"fit {header.index}: the live diagnosis failed ({type(exc).__name__}: {exc}); "
-                    "the fit is published without it",
-                    index=header.index,
+                self.step_failed(
+                    "diagnosis-failed", header.index, "live diagnosis", exc, "the fit is published without it"
                 )
         if window is not None or live is not None:
             release_free_memory()  # the refit's and the diagnosis' temporaries: not kept for the next peak
