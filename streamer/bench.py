@@ -1,7 +1,7 @@
 """Loopback throughput of segment messages between two processes.
 
 ``python -m streamer.bench --segments 20 --size-mb 8 --repeat 3`` runs a publisher and a
-subscriber process (peer mode on 127.0.0.1, :class:`~streamer.session.SegmentPublisher`
+subscriber process (peer mode on 127.0.0.1, :class:`~streamer.segment_stream.SegmentPublisher`
 with congestion control BLOCK), once with Zenoh's shared-memory transport disabled and
 once enabled, and prints one JSON object per run: bytes, seconds from the first ``put``
 to the last arrival, MB/s, and whether every segment arrived once with a valid checksum.

@@ -6,6 +6,9 @@ validation, hold-back and gap detection.
   (:class:`streamer.plan.Validator`), ignores an identical copy of a processed segment, and
   holds an accepted one ``hold`` seconds (:class:`streamer.plan.Holdback`; a different copy
   arriving meanwhile keeps both out), or hands it to the stage at once when ``hold`` is 0.
+  A copy damaged on the way (payload size or checksum not those of its header) is asked
+  for again from the publishers' caches (``refetch``, at most :data:`MAX_REFETCHES` times
+  per segment): the intact copy then goes through the same checks.
   Whatever a message holds, this does not raise:
   a message that does not fit is reported (kind ``rejected``, or the validator's kind) and
   the stage goes on; only an ``OSError`` (the recording's disk) escapes.
@@ -26,6 +29,10 @@ from .rangeset import RangeSet
 
 #: Characters of a rejected attachment kept in the error report.
 PREVIEW_CHARS = 2000
+#: Codec fields at fault in a copy damaged on the way (asked for again).
+DAMAGED = ("payload", "checksum")
+#: Re-fetches of one segment at most.
+MAX_REFETCHES = 3
 
 
 def preview(attachment) -> str:
@@ -111,6 +118,9 @@ class Ingest:
         ``use(key, header, arrays, payload)``: hand an accepted segment to the stage.
     log : logging.LoggerAdapter
         The stage's logger.
+    refetch : callable, optional
+        ``refetch(stream_key, index, checksum)``: ask the publishers' caches again for a segment whose
+        copy arrived damaged (:func:`streamer.segment_stream.refetch_segment`); None: do not.
     """
 
     def __init__(
@@ -125,6 +135,7 @@ class Ingest:
         event: Callable[..., None],
         use: Callable[[str, object, dict, bytes], None],
         log,
+        refetch: Callable[[str, int, str], None] | None = None,
     ):
         self.run = run
         self.validator = validator
@@ -135,6 +146,9 @@ class Ingest:
         self.event = event
         self.use = use
         self.log = log
+        self.refetch = refetch
+        #: Re-fetches asked for, per (stream key, segment index).
+        self.refetches: dict[tuple[str, int], int] = {}
         #: Messages refused (codec errors excepted: those are reports only).
         self.rejections = 0
         #: Segment indices processed, per topic.
@@ -174,20 +188,18 @@ class Ingest:
         except KeyExprError as exc:
             self.report("rejected", str(exc), key=key, field="key")
             return
-        index = None
+        index = checksum = None
+        stream = key
         try:
-            index = parse_header(attachment, key).index
+            head = parse_header(attachment, key)
+            index, checksum = head.index, head.checksum
             key = segment_key(self.run, topic, index)
             header, arrays = decode(payload, attachment, self.expect(topic, index), key=key)
         except CodecError as exc:
-            self.report(
-                "rejected",
-                exc.what,
-                index=index,
-                key=key,
-                field=exc.field,
-                details={"payload_bytes": len(payload), "attachment": preview(attachment)},
-            )
+            details = {"payload_bytes": len(payload), "attachment": preview(attachment)}
+            if exc.field in DAMAGED and index is not None and checksum is not None:
+                details["refetch"] = self._ask_again(stream, index, checksum)
+            self.report("rejected", exc.what, index=index, key=key, field=exc.field, details=details)
             return
         seg = SegmentKey(self.run, topic, index)
         try:
@@ -215,6 +227,18 @@ class Ingest:
         self.validator.accepted(seg.topic, header)  # from now on a different copy is a conflict
         if not self.held.put(seg.topic, seg.index, (key, header, arrays, payload), time.monotonic()):
             self.use(key, header, arrays, payload)
+
+    def _ask_again(self, stream: str, index: int, checksum: str) -> int:
+        """Ask the caches again for the copy of segment ``index`` of ``stream`` with
+        ``checksum`` (a damaged copy came); returns the attempt number, 0 when not asked (no
+        refetch, or attempts used up)."""
+        tries = self.refetches.get((stream, index), 0)
+        if self.refetch is None or tries >= MAX_REFETCHES:
+            return 0
+        self.refetches[(stream, index)] = tries + 1
+        self.log.warning("%s: segment %d arrived damaged, asking the publishers' caches again", stream, index)
+        self.refetch(stream, index, checksum)
+        return tries + 1
 
     def due(self) -> list[tuple]:
         """The held segments whose wait is over (no conflicting copy came), to use now."""

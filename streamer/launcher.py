@@ -104,13 +104,8 @@ from .progress import Progress, key_stage, parse_progress
 from .recorder import stage_record
 from .run_journal import append_journal, cut_board, read_board, save_board
 from .run_router import Router, make_credentials
-from .session import (
-    Bus,
-    SessionSettings,
-    declare_segment_publisher,
-    declare_segment_subscriber,
-    loopback_endpoint,
-)
+from .segment_stream import declare_segment_publisher, declare_segment_subscriber
+from .session import Bus, SessionSettings, loopback_endpoint
 from .supervision import Child, Supervisor
 from .topology import UPSTREAM
 

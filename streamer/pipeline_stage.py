@@ -21,7 +21,7 @@ from .keys import progress_key, progress_pattern, to_ranges
 from .memtrace import MemoryTrace
 from .plan import MAX_SEGMENTS
 from .progress import Progress, ProgressBoard, key_stage
-from .session import declare_segment_publisher
+from .segment_stream import declare_segment_publisher
 from .stage import Stage, StageConfig, disk_full
 from .topology import OUTPUT_TOPIC, UPSTREAM
 

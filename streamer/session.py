@@ -23,20 +23,8 @@ deployment over several hosts; what the file leaves unset keeps the safe default
 (loopback listening, no multicast scouting), and explicit :class:`SessionSettings`
 fields override the file.
 
-Segment data go through Zenoh's *advanced* publisher and subscriber (``zenoh.ext``,
-marked unstable in zenoh-python 1.x):
-
-* :class:`SegmentPublisher` publishes every segment of a topic on one key,
-  ``ttl/<run>/<topic>`` (the segment index is in the message header), with congestion
-  control BLOCK (the default DROP silently loses multi-megabyte messages), reliable
-  reliability, a cache of the last ``cache`` segments, publisher detection and sporadic
-  heartbeats.  One long-lived publisher per topic: an advanced publisher is bound to one
-  key, and declaring one per segment key grew the memory of every subscriber and of the
-  router with the number of segments (``bench/soak.py``).
-* :func:`declare_segment_subscriber` declares an advanced subscriber on
-  ``ttl/<run>/<topic>/**`` that, on declaration and whenever a publisher appears later,
-  queries the caches (late joiners and restarted stages catch up), recovers a lost sample
-  from the heartbeats, and reports what it could not recover to a miss callback.
+Segment data go through the advanced publishers and subscribers of
+:mod:`streamer.segment_stream`.
 
 :class:`Bus` wraps a session as a context manager that undeclares everything declared
 through it (a callback subscriber left declared otherwise hangs the interpreter at exit)
@@ -53,10 +41,16 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import zenoh
-from zenoh import ext
 
-from .keys import alive_key, alive_pattern, parse_alive_key, segment_key, stream_key
+from .keys import alive_key, alive_pattern, parse_alive_key
 from .security import CredentialsError, Identity, access_control
+from .segment_stream import (
+    DEFAULT_CACHE,
+    SegmentPublisher,
+    SegmentSubscription,
+    declare_segment_subscriber,
+    refetch_segment,
+)
 
 log = logging.getLogger(__name__)
 
@@ -64,10 +58,6 @@ log = logging.getLogger(__name__)
 LOOPBACK = "127.0.0.1"
 #: Default router endpoint (Zenoh's customary port, on loopback).
 DEFAULT_ROUTER_LISTEN = ("tcp/127.0.0.1:7447",)
-#: Default number of segments kept in a topic's publisher caches.
-DEFAULT_CACHE = 4
-#: Period of the sporadic heartbeat of segment publishers [s].
-HEARTBEAT_PERIOD = 1.0
 MODES = ("peer", "client", "router")
 #: How long a BLOCK put may wait for a congested link before Zenoh closes the link [s].
 #: Zenoh's default, 5 s, closed the link of a consumer starved of CPU for a few seconds
@@ -305,142 +295,6 @@ def open_router(
     )
 
 
-# ---------------------------------------------------------------------------- publishers
-
-
-def declare_segment_publisher(
-    session: zenoh.Session, key: str, cache: int = 1, heartbeat: float = HEARTBEAT_PERIOD
-) -> ext.AdvancedPublisher:
-    """An advanced publisher for segment data on one key.
-
-    Congestion control BLOCK, reliable, a cache of the last ``cache`` samples (replied to
-    history queries with BLOCK too), sample-miss detection with a sporadic heartbeat of
-    period ``heartbeat`` [s], and publisher detection (a liveliness token that lets
-    advanced subscribers declared earlier query the cache).
-    """
-    block = zenoh.CongestionControl.BLOCK
-    return ext.declare_advanced_publisher(
-        session,
-        key,
-        encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
-        congestion_control=block,
-        reliability=zenoh.Reliability.RELIABLE,
-        cache=ext.CacheConfig(
-            max_samples=max(1, int(cache)), replies_config=ext.RepliesConfig(congestion_control=block)
-        ),
-        sample_miss_detection=ext.MissDetectionConfig(heartbeat=None, sporadic_heartbeat=heartbeat),
-        publisher_detection=True,
-    )
-
-
-class SegmentPublisher:
-    """Publishes the segments of one topic on ``ttl/<run>/<topic>``.
-
-    One advanced publisher (:func:`declare_segment_publisher`), declared on the first put,
-    whose cache of the last ``cache`` segments answers late joiners.
-
-    Parameters
-    ----------
-    session : zenoh.Session
-    run, topic : str
-    cache : int
-        Number of segments kept for late joiners (memory: ``cache`` payloads).
-    """
-
-    def __init__(self, session: zenoh.Session, run: str, topic: str, cache: int = DEFAULT_CACHE):
-        self.session = session
-        self.run = run
-        self.topic = topic
-        self.cache = max(1, int(cache))
-        self.key = stream_key(run, topic)
-        self._publisher: ext.AdvancedPublisher | None = None
-
-    def put(self, index: int, payload, attachment) -> str:
-        """Publish segment ``index`` (blocks while the transport is congested).
-
-        The header in ``attachment`` carries the index; returns the segment's name
-        ``ttl/<run>/<topic>/<index>``.
-        """
-        name = segment_key(self.run, self.topic, index)
-        if self._publisher is None:
-            self._publisher = declare_segment_publisher(self.session, self.key, cache=self.cache)
-        self._publisher.put(payload, attachment=attachment)
-        return name
-
-    def undeclare(self) -> None:
-        """Undeclare the publisher (its cache goes with it)."""
-        if self._publisher is not None:
-            self._publisher.undeclare()
-            self._publisher = None
-
-
-# ---------------------------------------------------------------------------- subscribers
-
-
-@dataclass
-class SegmentSubscription:
-    """An advanced subscriber and its miss listener; :meth:`undeclare` removes both."""
-
-    subscriber: object
-    miss_listener: object | None = None
-
-    def undeclare(self) -> None:
-        if self.miss_listener is not None:
-            self.miss_listener.undeclare()
-            self.miss_listener = None
-        if self.subscriber is not None:
-            self.subscriber.undeclare()
-            self.subscriber = None
-
-
-def declare_segment_subscriber(
-    session: zenoh.Session,
-    key_expr: str,
-    callback: Callable[[zenoh.Sample], None],
-    *,
-    history: int | None = None,
-    on_miss: Callable[[str, int], None] | None = None,
-) -> SegmentSubscription:
-    """Subscribe to segment data with history and recovery.
-
-    Parameters
-    ----------
-    session : zenoh.Session
-    key_expr : str
-        Usually ``ttl/<run>/<topic>/**`` (:func:`streamer.keys.topic_pattern`).
-    callback : callable(zenoh.Sample)
-        Called on a Zenoh thread for every sample: keep it short (queue the sample).
-    history : int or None
-        Samples to query from each matching publisher's cache (the last ``history`` of a
-        key), on declaration and when a publisher appears later; None: all it holds; 0: no
-        history.
-    on_miss : callable(source: str, count: int), optional
-        Called when samples were lost beyond recovery; default logs a warning.
-    """
-    if history is None:
-        hist = ext.HistoryConfig(detect_late_publishers=True)
-    elif history > 0:
-        hist = ext.HistoryConfig(detect_late_publishers=True, max_samples=int(history))
-    else:
-        hist = None
-    sub = ext.declare_advanced_subscriber(
-        session,
-        key_expr,
-        callback,
-        history=hist,
-        recovery=ext.RecoveryConfig(periodic_queries=None, heartbeat=True),
-        subscriber_detection=True,
-    )
-
-    def missed(miss) -> None:
-        if on_miss is not None:
-            on_miss(str(miss.source), int(miss.nb))
-        else:
-            log.warning("%s: %d sample(s) missed from %s", key_expr, miss.nb, miss.source)
-
-    return SegmentSubscription(sub, sub.sample_miss_listener(missed))
-
-
 # ---------------------------------------------------------------------------- liveliness
 
 
@@ -516,6 +370,10 @@ class Bus:
         return self.track(
             declare_segment_subscriber(self.session, key_expr, callback, history=history, on_miss=on_miss)
         )
+
+    def refetch(self, key_expr: str, index: int, checksum: str, on_sample, *, on_done=None) -> None:
+        """Segment ``index`` of stream ``key_expr`` again from the publishers' caches (:func:`refetch_segment`)."""
+        refetch_segment(self.session, key_expr, index, checksum, on_sample, on_done=on_done)
 
     def subscriber(self, key_expr: str, callback):
         """A plain subscriber (control messages, errors)."""

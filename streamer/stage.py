@@ -50,7 +50,7 @@ import numpy as np
 from .codec import Expect, Header
 from .ingest import PREVIEW_CHARS, GapWatch, Ingest
 from .ingest import preview as _preview
-from .keys import control_key, control_pattern, parse_segment_key, topic_pattern
+from .keys import control_key, control_pattern, parse_segment_key, parse_stream_key, segment_key, topic_pattern
 from .lifecycle import LAUNCHER, LauncherWatch, disk_full, install_signal_flag
 from .plan import Holdback, Plan, Validator
 from .processes import SignalFlag
@@ -129,6 +129,7 @@ class Stage:
             event=lambda *a, **k: self.event(*a, **k),
             use=lambda *item: self._use(*item),
             log=self.log,
+            refetch=lambda key, index, checksum: self.transport.refetch(self.bus, key, index, checksum),
         )
         #: Indices skipped on arrival (not for the topics in :attr:`reorders`).
         self.gap_watch = GapWatch(config.gap_grace, self.reorders)
@@ -327,8 +328,24 @@ class Stage:
                 _, source, count = item
                 self.last_miss = time.monotonic()
                 self.report_error("missed", f"{count} sample(s) lost beyond recovery from publisher {source}")
+            elif item[0] == "refetched":
+                self._refetched(*item[1:])
             else:
                 self.ingest.take(*item[1:])
+
+    def _refetched(self, key: str, index: int, copies: int) -> None:
+        """A re-fetch of a damaged segment is over: record it.  With no copy found, a warning
+        (another copy may still come on the stream; if none does, the gap or the unhandled
+        segment is reported as any other)."""
+        topic = parse_stream_key(key)
+        if copies:
+            self.event("refetched", index=index, message=f"{copies} intact cached copy(ies) of {key} segment {index}")
+        elif index not in self.ingest.done.get(topic, ()):
+            self.warn(
+                "refetch-empty",
+                f"{segment_key(self.run_id, topic, index)} arrived damaged and no publisher cache holds an intact copy",
+                index=index,
+            )
 
     def _control(self, command: str, payload: bytes) -> None:
         """Handle ``ttl/<run>/control/<stage>/<command>`` on the main thread: record it, call

@@ -116,7 +116,8 @@ class StageTransport:
         self.cache = cache
         self.stop = stop
         self.log = log
-        #: ("sample", key, payload, attachment) and ("miss", source, count), in arrival order.
+        #: ("sample", key, payload, attachment), ("miss", source, count) and ("refetched",
+        #: key, index, copies), in arrival order.
         self.inbox: queue.Queue = queue.Queue()
         #: (command, payload) of ``control/<stage>/<command>``: handled before queued segments.
         self.controls: queue.Queue = queue.Queue()
@@ -128,6 +129,13 @@ class StageTransport:
 
     def on_miss(self, source: str, count: int) -> None:
         self.inbox.put(("miss", source, count))
+
+    def refetch(self, bus: Bus, key: str, index: int, checksum: str) -> None:
+        """Ask the publishers' caches of stream ``key`` again for segment ``index`` (the copy
+        with ``checksum``): the copies come in as samples, then ("refetched", key, index, copies)."""
+        bus.refetch(
+            key, index, checksum, self.on_sample, on_done=lambda n: self.inbox.put(("refetched", key, index, n))
+        )
 
     def on_control(self, sample) -> None:
         try:

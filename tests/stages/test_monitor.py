@@ -497,19 +497,20 @@ def test_monitor_recording_is_batched_and_ends_with_a_footer(tmp_path):
     rec.disconnect()
     rec.disconnect()  # idempotent: the monitor closes on every way out
     batches = (time.monotonic() - began) / batch
-    # one-row chunks with a footer: ~9 MB per 1000 flushes of 30 entities (measured), ~45 MB
-    # here; batched (measured, rows 2000 to 7000): flat on an idle machine, but a batcher thread
-    # that lags on a loaded machine holds its unwritten rows (~2 kB a row; 14.7 MB once, in CI),
-    # so the bound sits between the two: it fails for one-row chunks, not for a lagging batcher.
-    # The monitor's 60-s batches hold ~1,500 rows at full replay speed (3 MB).
+    # The resident set is not what decides: one-row chunks with a footer grew it by ~9 MB per
+    # 1000 flushes of 30 entities (measured, ~45 MB here), batched ones by 0-15 MB in CI, but on
+    # 2026-11-26 the same batched code grew it by 38-72 MB in 4 of 6 runs alone on a quiet
+    # machine (Rerun's own allocator keeps what it freed): a bound between the two failed on
+    # allocator noise.  What the footer keeps is its manifest, ~0.3 kB per chunk, so the
+    # chunks are counted below; the resident set only has to stay far from holding every row
+    # (210,000 rows of ~2 kB: 400 MB).
     one_row_mb = 9.0 * (rows - warm) / 1000
-    assert grown < 0.55 * one_row_mb, (
-        f"RSS grew {grown:.1f} MB over {rows - warm} flushes of {entities} entities "
-        f"(one-row chunks: ~{one_row_mb:.0f} MB)"
-    )
+    print(f"RSS grew {grown:.1f} MB over {rows - warm} flushes (one-row chunks: ~{one_row_mb:.0f} MB)")
+    assert grown < 3 * one_row_mb, f"RSS grew {grown:.1f} MB over {rows - warm} flushes of {entities} entities"
     assert rrd_footer(tmp_path / "m.rrd")
     chunks = list(RrdReader(tmp_path / "m.rrd").stream())
-    # a chunk per entity and batch (plus the recording's properties), not one per row
+    # a chunk per entity and batch (plus the recording's properties), not one per row: a
+    # manifest of at most ~0.3 kB x that many chunks
     assert len(chunks) <= entities * (batches + 2) + 2, (len(chunks), batches)
     assert len(chunks) < rows * entities / 20, len(chunks)
     assert sum(c.to_record_batch().num_rows for c in chunks) >= rows * entities
@@ -522,7 +523,7 @@ def test_monitor_waits_for_an_alive_producer_and_fails_what_will_not_come(driver
     never came is a recorded failure in the monitor's progress, not a done segment."""
     from streamer.keys import progress_key
     from streamer.progress import Progress
-    from streamer.session import declare_segment_publisher
+    from streamer.segment_stream import declare_segment_publisher
 
     settle = 2.0
     producers = Bus.open(SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)))

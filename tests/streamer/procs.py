@@ -7,7 +7,8 @@ publisher
     (BLOCK, cache) once the stage ``wait_for`` is alive, declares ``<name>-done``, then
     keeps its caches alive until ``ttl/<run>/control/stop``; writes timings to ``out``.
 subscriber
-    Receives segments with the advanced subscriber, decodes each (checksum checked) and,
+    Receives segments with the advanced subscriber, decodes each (checksum checked; a
+    damaged copy is asked for again from the publishers' caches, as a stage does) and,
     after ``n`` distinct indices or ``timeout``, writes what it got to ``out``.
 stage
     Runs :class:`Doubler` (a :class:`streamer.stage.Stage`) with the StageConfig ``config``.
@@ -27,7 +28,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from streamer.codec import CodecError, Expect, decode, encode  # noqa: E402
+from streamer.codec import CodecError, Expect, decode, encode, parse_header  # noqa: E402
 from streamer.keys import control_key, topic_pattern  # noqa: E402
 from streamer.session import Bus, SessionSettings  # noqa: E402
 from streamer.stage import Output, Stage, StageConfig, configure_logging  # noqa: E402
@@ -85,13 +86,15 @@ def publisher(args: dict) -> None:
 def subscriber(args: dict) -> None:
     run, n = args["run"], args["n"]
     samples: queue.Queue = queue.Queue()
-    received, errors, arrival, missed = {}, [], {}, []
+    received, errors, arrival, missed, refetched = {}, [], {}, [], []
+
+    def on_sample(s) -> None:
+        samples.put((time.perf_counter(), str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes()))
+
     with Bus.open(settings(args)) as bus:
         bus.segment_subscriber(
             topic_pattern(run, "telemetry"),
-            lambda s: samples.put(
-                (time.perf_counter(), str(s.key_expr), s.payload.to_bytes(), s.attachment.to_bytes())
-            ),
+            on_sample,
             history=args.get("history", 4),
             on_miss=lambda source, count: missed.append({"source": source, "count": count, "t": time.perf_counter()}),
         )
@@ -106,6 +109,10 @@ def subscriber(args: dict) -> None:
                 header, arrays = decode(payload, attachment, Expect(run=run), key=key)
             except CodecError as exc:
                 errors.append(str(exc))
+                if exc.field in ("payload", "checksum"):  # damaged on the way: the cache has it
+                    head = parse_header(attachment, key)
+                    refetched.append(head.index)
+                    bus.refetch(key, head.index, head.checksum, on_sample)
                 continue
             intact = bool(np.array_equal(arrays["data"], segment(header.index, args["size"])))
             received.setdefault(header.index, []).append(intact)
@@ -116,6 +123,7 @@ def subscriber(args: dict) -> None:
                     "received": {str(k): v for k, v in received.items()},
                     "errors": errors,
                     "missed": missed,
+                    "refetched": refetched,
                     "t_first": min(arrival.values(), default=None),
                     "t_last": max(arrival.values(), default=None),
                 }

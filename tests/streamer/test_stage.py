@@ -208,6 +208,38 @@ def test_conflicting_copies_within_the_hold_are_both_kept_out(driver, children, 
     assert [s.header.index for s in read_recording(mcap_path).segments("tdi")] == [1]
 
 
+def test_a_damaged_copy_is_fetched_again_from_the_publishers_cache(driver, children, tmp_path):
+    """A copy whose payload does not match its header's checksum (as Zenoh delivered once
+    after a 12-s stall, docs/operations.md) is refused, and the intact copy is fetched from
+    the publisher's cache and used; with no intact copy cached, a warning says so."""
+    data0, p0, a0 = good(0)
+    driver.telemetry.put(0, p0, a0)  # cached before the stage starts: it asks no history
+    proc, mcap_path = driver.start_stage(children, tmp_path, history=0)
+    damaged = bytearray(p0)
+    damaged[len(damaged) // 2 : len(damaged) // 2 + 64] = bytes(64)  # same size, other content
+    driver.bus.session.put(f"ttl/{RUN}/telemetry", bytes(damaged), attachment=a0)  # not cached
+    header, arrays = driver.output()
+    assert header.index == 0
+    np.testing.assert_array_equal(arrays["data"], 2 * data0)
+
+    _, p1, a1 = good(1)  # never published intact: nothing to fetch
+    driver.bus.session.put(f"ttl/{RUN}/telemetry", p1[:-8] + bytes(8), attachment=a1)
+    wait_for(lambda: len(driver.errors) >= 2, 10, "two error reports")
+    with pytest.raises(queue.Empty):
+        driver.output(timeout=0.5)
+    driver.bus.session.put(f"ttl/{RUN}/control/doubler/stop", b"")
+    assert proc.wait(40) == 0, output_of(proc)
+    rec = read_recording(mcap_path)
+    assert [(e["kind"], e["index"], e["field"], e["details"]["refetch"]) for e in rec.json("errors")] == [
+        ("rejected", 0, "checksum", 1),
+        ("rejected", 1, "checksum", 1),
+    ]
+    assert [e["index"] for e in rec.json("events") if e["kind"] == "refetched"] == [0]
+    assert [s.header.index for s in rec.segments("tdi")] == [0]
+    empty = [w for w in rec.json("warnings") if w["kind"] == "refetch-empty"]
+    assert [w["index"] for w in empty] == [1] and "no publisher cache holds an intact copy" in empty[0]["message"]
+
+
 def test_killed_stage_leaves_a_salvageable_recording(driver, children, tmp_path):
     proc, mcap_path = driver.start_stage(children, tmp_path)
     data, payload, attachment = good(0)

@@ -13,6 +13,7 @@ m/rad times ``w`` is fractional frequency (docs/physics.md, units).
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -72,7 +73,7 @@ class Column:
     #: column's witness before it enters the link (a frequency-dependent coupling); the
     #: diagnosis multiplies the column's spectrum, and its readout noise, by it (a linear
     #: time-invariant filter commutes with TDI up to the arms' rate of change, ~1e-8)
-    response: object = None
+    response: Callable[[np.ndarray], np.ndarray] | None = None
     #: columns of one effect with the same ``base`` share their parts (only the response
     #: differs): their TDI is computed once
     base: str = ""

@@ -650,7 +650,7 @@ class FitResult:
 # ---------------------------------------------------------------------------
 
 
-@dataclass
+@dataclass(frozen=True)
 class FitSettings:
     """Settings shared by the batch analysis and the streaming fitter."""
 

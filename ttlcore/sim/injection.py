@@ -34,6 +34,7 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 from ..errors import ConfigError
+from .orbits import Orbit
 
 #: Samples past the chunk given to injections (``ChunkContext.*_ahead``): 64 samples,
 #: 16 s at 4 Hz, for reading angles a few seconds ahead with centred Lagrange stencils.
@@ -88,7 +89,7 @@ class ChunkContext:
     t: np.ndarray
     t_ext: np.ndarray
     ltt: np.ndarray
-    orbit: object
+    orbit: Orbit
     phi_dot: np.ndarray
     eta_dot: np.ndarray
     coefficients: np.ndarray
