@@ -69,13 +69,13 @@ class ColumnSet:
         Decimated A, E, T of the columns, when kept.
     """
 
-    names: tuple
+    names: tuple[str, ...]
     x: np.ndarray
     noise_key: str
-    units: tuple
-    priors: tuple
-    eiv: tuple
-    modulation: tuple
+    units: tuple[str, ...]
+    priors: tuple[float, ...]
+    eiv: tuple[tuple, ...]
+    modulation: tuple[np.ndarray | None, ...]
     series: np.ndarray | None = None
 
     def __post_init__(self):
@@ -191,14 +191,16 @@ class ColumnStore:
     recomputation, never a wrong or missing entry."""
 
     def __init__(self):
-        self._sets: dict = {}
-        self._eiv: dict = {}
+        # key -> (the Cholesky factor Lh it is whitened with, the columns)
+        self._sets: dict[tuple, tuple[np.ndarray, ColumnSet]] = {}
+        # (noise key, link, extra delays) -> whitened readout-noise response (m, 3)
+        self._eiv: dict[tuple, np.ndarray] = {}
         # (combination, extra delays) -> (f, ltt_mean, link_responses): the unwhitened
         # responses do not change with the noise model (one diagnosis: one f, one ltt_mean)
-        self._links: dict = {}
-        self._latest: dict = {}  # family -> its latest key (columns built with fitted coefficients)
+        self._links: dict[tuple, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+        self._latest: dict[tuple, tuple] = {}  # family -> its latest key (columns built with fitted coefficients)
 
-    def get(self, key, data) -> ColumnSet | None:
+    def get(self, key: tuple, data) -> ColumnSet | None:
         entry = self._sets.get(key)
         if entry is None:
             return None
@@ -208,7 +210,7 @@ class ColumnStore:
             self._sets[key] = (data.noise.Lh, cs)
         return cs
 
-    def put(self, key, data, cs: ColumnSet, family=None) -> ColumnSet:
+    def put(self, key: tuple, data, cs: ColumnSet, family: tuple | None = None) -> ColumnSet:
         """Store ``cs`` under ``key``; with ``family`` (the key without the coefficients the
         columns were built with) the family's previous entry is dropped: a model's
         coefficients move with every pass of the noise-model fit, and only the last
@@ -656,7 +658,9 @@ def eiv_weights(data, *sets: ColumnSet) -> np.ndarray:
     W = np.full((len(mods), len(mods)), float(len(data.grid.starts)))
     idx = [i for i, m in enumerate(mods) if m is not None]
     if idx:
-        A = np.stack([np.stack([mods[i][s0 : s0 + data.grid.L] for s0 in data.grid.starts]) for i in idx])  # (q, S, L)
+        A = np.stack(
+            [np.stack([m[s0 : s0 + data.grid.L] for s0 in data.grid.starts]) for m in mods if m is not None]
+        )  # (q, S, L)
         cross = np.einsum("qsl,sl->q", A, data.grid.w2)  # against m = 1
         W[idx, :] = cross[:, None]
         W[:, idx] = cross[None, :]

@@ -29,6 +29,7 @@ from .adequacy import band_table
 from .columns import ColumnSet, eiv, read_only
 
 if TYPE_CHECKING:
+    from ..effects.base import Effect
     from .adequacy import BandTable
     from .whitened import WhitenedData
 
@@ -116,7 +117,7 @@ class ModelFit:
         Adequacy in time slices (:func:`ttlcore.diagnose.fitting.time_adequacy`).
     """
 
-    effects: tuple
+    effects: tuple[Effect, ...]
     columns: ColumnSet
     data: WhitenedData
     theta: np.ndarray
@@ -127,15 +128,15 @@ class ModelFit:
     residual_w: np.ndarray = field(repr=False)
     normal: tuple[np.ndarray, np.ndarray] = field(repr=False)
     eiv_term: np.ndarray = field(repr=False)
-    expansion: dict = field(default_factory=dict)
-    searches: dict = field(default_factory=dict)
+    expansion: dict[str, float] = field(default_factory=dict)
+    searches: dict[str, dict] = field(default_factory=dict)
     time_table: dict | None = None
 
     def __post_init__(self):
         read_only(self.theta, self.covariance, self.chi2_seg_band, self.residual_w, self.eiv_term, *(self.normal or ()))
 
     @property
-    def names(self) -> tuple:
+    def names(self) -> tuple[str, ...]:
         return self.columns.names
 
     @property
