@@ -256,7 +256,9 @@ def refit(
     effects : sequence of str or Effect
         The model, e.g. ``["linear-ttl", "drift", "step:t_step=50400"]``.
     baseline : sequence
-        The model the change is measured against (default the linear TTL alone).
+        The model the change is measured against (default the linear TTL alone), fitted
+        on the model's data: its gates, if any, are not applied again (the data are gated
+        as the model says).
     time_table : bool
         Test the model's adequacy in time slices too (``adequacy.time``); without, the
         fits (the same numbers) keep no time series of their columns (a day's: ~200 MB).
@@ -290,7 +292,9 @@ def _refit(source, effects, settings, effect_modules, dws_asd, baseline, time_ta
         data = gated_data(data, gates)
     fits = [fit_model(data, fitted, time_table=time_table)]
     model = _with_noise_levels(fits, time_table) if data.context.settings.noise_model == "fitted" else fits.pop()
-    base = fit_model(model.data, make_effects(list(baseline), modules), time_table=time_table)
+    # the baseline on the same (gated) data: its own gates are not columns, and a comparison
+    # needs one data set (a live model change from a shorter gate to a longer one, say)
+    base = fit_model(model.data, split_gates(make_effects(list(baseline), modules))[1], time_table=time_table)
     ev = change(base, model)
     return {
         "model": with_gates(model_json(model), gates),
