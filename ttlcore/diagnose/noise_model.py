@@ -461,9 +461,13 @@ def outlying_segments(
     ``chi2_sg / (level_g (1 + tol) kappa)`` has p < ``alpha / (S G)`` with ``dof / kappa``
     degrees of freedom.  A loud transient (a merger, glitches, a chirp in band for hours)
     fills the segments it falls in; a missing effect or a wrong level fills every segment
-    alike and is not an outlier; the quietest segment never is.  (The median of the
-    segments as reference let a chirp in band for six of twelve hours - three of four
-    segments - pin the levels at their bounds: the quiet hours read 0.89.)
+    alike and is not an outlier.  (The median of the segments as reference let a chirp in
+    band for six of twelve hours - three of four segments - pin the levels at their bounds:
+    the quiet hours read 0.89.)  The quietest segment of a band is never an outlier in that
+    band, but may be in another: when every segment is an outlier (a chirp in band over a
+    whole live window, its merger at the end: three of three 6-h segments), the excess is
+    not localised and none is left out, so that the levels are fitted on the data there
+    are (they absorb part of the excess) rather than on nothing.
 
     Parameters
     ----------
@@ -480,7 +484,8 @@ def outlying_segments(
     k = dof / kappa
     level = np.maximum(np.min(chi2 / dof, axis=0), 1.0)
     p = stats.chi2.sf(chi2 / (level[None, :] * (1 + tolerance) * kappa), k)
-    return (p < alpha / (S * G)).any(axis=1)
+    out = (p < alpha / (S * G)).any(axis=1)
+    return np.zeros(S, dtype=bool) if out.all() else out
 
 
 def profile_noise_model(

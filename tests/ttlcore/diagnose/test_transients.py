@@ -242,6 +242,12 @@ def test_outlying_segment_is_left_out_and_alike_ones_are_not():
     chi2 = dof * (1 + rng.standard_normal((4, 7)) * np.sqrt(2 * kappa / dof))
     chi2[1:, 0] *= [1.3, 2.0, 5.0]
     assert outlying_segments(chi2, dof, kappa, 0.02).tolist() == [False, True, True, True]
+    # every segment loud in some band (a live window's chirp in band 0 of the first two,
+    # its merger in band 1 of the last: the science run's live test, 19 h) - not localised:
+    # none is left out, the levels are fitted on the data there are (every one left out
+    # made the levels' Fisher matrix zero and the window refit fail)
+    chi2 = dof[:3] * np.array([[123.0, 1.0, 1.0], [600.0, 1.7, 1.4], [2.9, 112.0, 14.0]])
+    assert not outlying_segments(chi2, dof[:3], kappa, 0.02).any()
 
 
 def _report(explained, band_delta, signal=False):
