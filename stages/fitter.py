@@ -302,6 +302,7 @@ class Fitter(OrderedStage):
                 dws_asd=header.meta.get("dws_asd"),
                 band=self.band,
                 effect_modules=self.effect_modules,
+                transients=self.rolling.excluded if self.rolling else (),
                 log=self.log,
             )
         except (TTLError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:

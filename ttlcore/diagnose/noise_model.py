@@ -460,14 +460,10 @@ def outlying_segments(
     dof``, at least 1 (the noise model); segment ``s`` is an outlier when, in some band,
     ``chi2_sg / (level_g (1 + tol) kappa)`` has p < ``alpha / (S G)`` with ``dof / kappa``
     degrees of freedom.  A loud transient (a merger, glitches, a chirp in band for hours)
-    fills the segments it falls in; a missing effect or a wrong level fills every segment
-    alike and is not an outlier.  (The median of the segments as reference let a chirp in
-    band for six of twelve hours - three of four segments - pin the levels at their bounds:
-    the quiet hours read 0.89.)  The quietest segment of a band is never an outlier in that
-    band, but may be in another: when every segment is an outlier (a chirp in band over a
-    whole live window, its merger at the end: three of three 6-h segments), the excess is
-    not localised and none is left out, so that the levels are fitted on the data there
-    are (they absorb part of the excess) rather than on nothing.
+    fills the segments it falls in; a missing effect or a wrong level fills all alike.  (The median as reference let a chirp in band in three of
+    four segments pin the levels at their bounds: the quiet hours read 0.89.)  When every
+    segment is an outlier (a chirp over a whole live window, each segment loud in some
+    band), the excess is not localised: none is left out (levels fitted on all the data).
 
     Parameters
     ----------
