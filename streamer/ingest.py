@@ -119,7 +119,7 @@ class Ingest:
     log : logging.LoggerAdapter
         The stage's logger.
     refetch : callable, optional
-        ``refetch(stream_key, index, checksum)``: ask the publishers' caches again for a segment whose
+        ``refetch(stream_key, index, header)``: ask the publishers' caches again for a segment whose
         copy arrived damaged (:func:`streamer.segment_stream.refetch_segment`); None: do not.
     """
 
@@ -135,7 +135,7 @@ class Ingest:
         event: Callable[..., None],
         use: Callable[[str, object, dict, bytes], None],
         log,
-        refetch: Callable[[str, int, str], None] | None = None,
+        refetch: Callable[[str, int, bytes], None] | None = None,
     ):
         self.run = run
         self.validator = validator
@@ -188,17 +188,17 @@ class Ingest:
         except KeyExprError as exc:
             self.report("rejected", str(exc), key=key, field="key")
             return
-        index = checksum = None
+        index = None
         stream = key
         try:
-            head = parse_header(attachment, key)
-            index, checksum = head.index, head.checksum
+            index = parse_header(attachment, key).index
             key = segment_key(self.run, topic, index)
             header, arrays = decode(payload, attachment, self.expect(topic, index), key=key)
         except CodecError as exc:
             details = {"payload_bytes": len(payload), "attachment": preview(attachment)}
-            if exc.field in DAMAGED and index is not None and checksum is not None:
-                details["refetch"] = self._ask_again(stream, index, checksum)
+            if exc.field in DAMAGED and index is not None:
+                raw = attachment.to_bytes() if hasattr(attachment, "to_bytes") else bytes(attachment)
+                details["refetch"] = self._ask_again(stream, index, raw)
             self.report("rejected", exc.what, index=index, key=key, field=exc.field, details=details)
             return
         seg = SegmentKey(self.run, topic, index)
@@ -228,16 +228,16 @@ class Ingest:
         if not self.held.put(seg.topic, seg.index, (key, header, arrays, payload), time.monotonic()):
             self.use(key, header, arrays, payload)
 
-    def _ask_again(self, stream: str, index: int, checksum: str) -> int:
+    def _ask_again(self, stream: str, index: int, header: bytes) -> int:
         """Ask the caches again for the copy of segment ``index`` of ``stream`` with
-        ``checksum`` (a damaged copy came); returns the attempt number, 0 when not asked (no
+        the damaged copy's ``header`` (bytes); returns the attempt number, 0 when not asked (no
         refetch, or attempts used up)."""
         tries = self.refetches.get((stream, index), 0)
         if self.refetch is None or tries >= MAX_REFETCHES:
             return 0
         self.refetches[(stream, index)] = tries + 1
         self.log.warning("%s: segment %d arrived damaged, asking the publishers' caches again", stream, index)
-        self.refetch(stream, index, checksum)
+        self.refetch(stream, index, header)
         return tries + 1
 
     def due(self) -> list[tuple]:

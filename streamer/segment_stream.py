@@ -117,21 +117,21 @@ def refetch_segment(
     session: zenoh.Session,
     key_expr: str,
     index: int,
-    checksum: str,
+    header: bytes,
     on_sample: Callable[[zenoh.Sample], None],
     *,
     on_done: Callable[[int], None] | None = None,
     timeout: float = REFETCH_TIMEOUT,
 ) -> None:
     """Ask every publisher cache of the stream ``key_expr`` (``ttl/<run>/<topic>``) again
-    for segment ``index`` whose header carries ``checksum`` (the copy a damaged message's
-    header describes); returns at once.
+    for segment ``index`` with the header ``header`` (the damaged message's, byte for byte:
+    its payload was damaged, not its header); returns at once.
 
     The advanced publishers' caches answer on ``<key_expr>/@adv/pub/<zid>/<eid>`` with the
-    samples as published (key ``key_expr``, the header in the attachment).  Each reply of
-    that index and checksum whose payload matches its header (size and checksum) goes to
+    samples as published (key ``key_expr``, the header in the attachment).  Each reply with
+    that header whose payload matches it (size and checksum) goes to
     ``on_sample``, the callback a subscriber's samples go to, on a Zenoh thread; other
-    cached messages are not handed on again.  When the query is over (all caches
+    cached messages (other segments, other copies of this one) are not handed on again.  When the query is over (all caches
     answered, or ``timeout`` seconds), ``on_done(n)`` gets the number of copies handed on:
     0 when no cache holds the segment any more (a cache keeps the last ``cache`` segments
     of its publisher).
@@ -143,8 +143,7 @@ def refetch_segment(
         if sample is None or sample.attachment is None:
             return
         try:
-            header = parse_header(sample.attachment, key_expr)
-            if header.index != index or header.checksum != checksum:
+            if sample.attachment.to_bytes() != header or parse_header(header, key_expr).index != index:
                 return
             decode(sample.payload, sample.attachment, key=key_expr)  # intact this time
         except CodecError:

@@ -129,7 +129,7 @@ class Stage:
             event=lambda *a, **k: self.event(*a, **k),
             use=lambda *item: self._use(*item),
             log=self.log,
-            refetch=lambda key, index, checksum: self.transport.refetch(self.bus, key, index, checksum),
+            refetch=lambda key, index, header: self.transport.refetch(self.bus, key, index, header),
         )
         #: Indices skipped on arrival (not for the topics in :attr:`reorders`).
         self.gap_watch = GapWatch(config.gap_grace, self.reorders)

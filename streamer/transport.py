@@ -130,12 +130,10 @@ class StageTransport:
     def on_miss(self, source: str, count: int) -> None:
         self.inbox.put(("miss", source, count))
 
-    def refetch(self, bus: Bus, key: str, index: int, checksum: str) -> None:
+    def refetch(self, bus: Bus, key: str, index: int, header: bytes) -> None:
         """Ask the publishers' caches of stream ``key`` again for segment ``index`` (the copy
-        with ``checksum``): the copies come in as samples, then ("refetched", key, index, copies)."""
-        bus.refetch(
-            key, index, checksum, self.on_sample, on_done=lambda n: self.inbox.put(("refetched", key, index, n))
-        )
+        with ``header``, bytes): the copies come in as samples, then ("refetched", key, index, copies)."""
+        bus.refetch(key, index, header, self.on_sample, on_done=lambda n: self.inbox.put(("refetched", key, index, n)))
 
     def on_control(self, sample) -> None:
         try:

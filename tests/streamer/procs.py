@@ -110,9 +110,9 @@ def subscriber(args: dict) -> None:
             except CodecError as exc:
                 errors.append(str(exc))
                 if exc.field in ("payload", "checksum"):  # damaged on the way: the cache has it
-                    head = parse_header(attachment, key)
-                    refetched.append(head.index)
-                    bus.refetch(key, head.index, head.checksum, on_sample)
+                    index = parse_header(attachment, key).index
+                    refetched.append(index)
+                    bus.refetch(key, index, attachment, on_sample)
                 continue
             intact = bool(np.array_equal(arrays["data"], segment(header.index, args["size"])))
             received.setdefault(header.index, []).append(intact)
