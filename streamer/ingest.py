@@ -33,6 +33,9 @@ PREVIEW_CHARS = 2000
 DAMAGED = ("payload", "checksum")
 #: Re-fetches of one segment at most.
 MAX_REFETCHES = 3
+#: Segments whose re-fetches are counted (the oldest forgotten first): memory stays bounded
+#: when damaged copies, hostile ones included, name ever new indices.
+MAX_REFETCHED_SEGMENTS = 4096
 
 
 def preview(attachment) -> str:
@@ -236,6 +239,8 @@ class Ingest:
         if self.refetch is None or tries >= MAX_REFETCHES:
             return 0
         self.refetches[(stream, index)] = tries + 1
+        if len(self.refetches) > MAX_REFETCHED_SEGMENTS:  # bounded whatever indices damaged copies name
+            del self.refetches[next(iter(self.refetches))]
         self.log.warning("%s: segment %d arrived damaged, asking the publishers' caches again", stream, index)
         self.refetch(stream, index, header)
         return tries + 1
