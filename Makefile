@@ -63,7 +63,10 @@ demo-batch: $(STAMP)
 	$(BIN)/ttl analyze $(DEMO)/batch/day.h5 --truth $(DEMO)/batch/day.truth.h5 --out $(DEMO)/batch/fit
 	@echo "figures: $(DEMO)/batch/fit/asd_X.png $(DEMO)/batch/fit/coefficients.png; numbers: $(DEMO)/batch/fit/fit.json"
 
-## test: the fast test suite, on every core (pytest-xdist; a module's tests stay on one worker).
+## test: the fast test suite, on every core (pytest-xdist, --dist worksteal: the tests are shared
+## out in collection order and an idle worker takes half of a busy one's queue, so the workers
+## finish together without a table of module timings; measured on the idle 2-core machine, with
+## coverage: 519 s against 512 s for whole modules handed out longest first by such a table).
 ## One BLAS thread per process: the workers already fill the cores, and OpenBLAS threads that
 ## wait for a busy core spin (measured on a loaded machine: docs/diagnostics.md, "Measured")
 ## The lint checks first (about a minute, mostly mypy), then the tests with line coverage of ttlcore,
@@ -73,7 +76,7 @@ demo-batch: $(STAMP)
 ## runs without it.
 COV ?= --cov --cov-report=term:skip-covered
 test: lint $(STAMP)
-	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadscope $(COV)
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist worksteal $(COV)
 
 ## lint: ruff (lint rules and the formatting, checked not applied) over the tree and mypy over
 ## ttlcore (configured in pyproject.toml); `ruff check --fix . && ruff format .` applies the fixes
@@ -84,7 +87,7 @@ lint: $(STAMP)
 
 ## test-science: slow full-day science checks
 test-science: $(STAMP)
-	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist loadscope -m science
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist worksteal -m science
 
 ## test-ops: long operations tests (live runs under attack: hostile-message fuzz, NaN gap, kills of each
 ## stage, of the router and of the launcher; three hosts in network namespaces; the chaos test, 2 days

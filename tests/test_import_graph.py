@@ -174,6 +174,7 @@ FLOORS = {
     "ttlcore.conventions": 0,
     "ttlcore.errors": 0,
     "ttlcore._version": 0,
+    "ttlcore._lazy": 0,
     "ttlcore.io": 1,
     "ttlcore.tdi": 1,
     "ttlcore.sim": 2,

@@ -19,10 +19,7 @@ floors, each importing only its own and those below (``docs/architecture.md``).
 Conventions (indices, units, signs: ``docs/physics.md``) live in :mod:`ttlcore.conventions`.
 """
 
-import importlib
-import sys
-import types
-
+from ._lazy import lazy_face
 from ._version import __version__ as __version__  # one place for the version (re-exported)
 
 #: where each name of the notebook API lives; imported on first use (PEP 562) so that
@@ -32,9 +29,6 @@ _EXPORTS = {
     "COEFFICIENT_NAMES": "conventions",
     "LINKS": "conventions",
     "MOSAS": "conventions",
-    "diagnose": "diagnose.diagnoser",
-    "refit": "diagnose.diagnoser",
-    "text_report": "diagnose.diagnoser",
     "make_effects": "effects",
     "ConfigError": "errors",
     "TelemetryError": "errors",
@@ -57,35 +51,11 @@ _EXPORTS = {
 }
 
 
-def __getattr__(name):
-    try:
-        module = _EXPORTS[name]
-    except KeyError:
-        raise AttributeError(f"module 'ttlcore' has no attribute {name!r}") from None
-    value = getattr(importlib.import_module(f".{module}", __name__), name)
-    globals()[name] = value  # later look-ups do not come back here
-    return value
+#: the sub-packages, each with a small face of its own (``from ttlcore.diagnose import diagnose``);
+#: ``ttlcore.diagnose`` is the sub-package, imported on first use like the names above
+_SUBPACKAGES = ("io", "sim", "effects", "tdi", "estimate", "diagnose", "gw", "plots", "app", "cli")
 
-
-def __dir__():
-    return sorted(set(globals()) | set(_EXPORTS))
-
-
-class _Module(types.ModuleType):
-    """``ttlcore.diagnose`` is the function of the notebook API, as it always was, although a
-    subpackage of that name exists: importing the subpackage binds it here, which is ignored."""
-
-    @property
-    def diagnose(self):
-        return importlib.import_module(".diagnose.diagnoser", __name__).diagnose
-
-    @diagnose.setter
-    def diagnose(self, value):
-        pass
-
-
-sys.modules[__name__].__class__ = _Module
-
+__getattr__, __dir__ = lazy_face(__name__, _EXPORTS | {name: name for name in _SUBPACKAGES}, globals())
 
 __all__ = [
     "COEFFICIENT_NAMES",
@@ -106,9 +76,6 @@ __all__ = [
     "RollingFit",
     "subtract",
     "residual_aet",
-    "diagnose",
-    "refit",
-    "text_report",
     "make_effects",
     "TTLError",
     "TelemetryError",
