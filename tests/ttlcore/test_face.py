@@ -4,6 +4,9 @@ import importlib
 import subprocess
 import sys
 import types
+from pathlib import Path
+
+import numpy as np
 
 import ttlcore
 
@@ -47,3 +50,17 @@ def test_the_face_is_imported_on_first_use():
     assert _imported("import ttlcore.io.atomic, ttlcore.tdi.interpolation") == ["h5py"]
     # a name of a face imports its own module only (the reader: h5py, not the TDI engine)
     assert _imported("from ttlcore.io import read_telemetry") == ["h5py", "ttlcore.io.reader"]
+
+
+def test_the_readme_notebook_example_runs(tmp_path, monkeypatch):
+    # the README's "In a notebook" block, as printed, on a simulated 6-h file named as it says
+    readme = (Path(__file__).parents[2] / "README.md").read_text()
+    block = readme.split("In a notebook", 1)[1].split("```python\n", 1)[1].split("```", 1)[0]
+    tm, _ = ttlcore.simulate(ttlcore.SimulationConfig(duration=6 * 3600, orbit="keplerian", seed=3))
+    ttlcore.write_telemetry(tmp_path / "day.h5", tm)
+    monkeypatch.chdir(tmp_path)
+    namespace: dict = {}
+    exec(compile(block, "README.md", "exec"), namespace)  # noqa: S102 - the documented example
+    fit = namespace["fit"]
+    assert fit.coefficients.shape == (24,) and np.all(np.isfinite(fit.sigma)) and 0.5 < fit.chi2_dof < 2
+    assert namespace["residual"].shape == namespace["td"].data.shape

@@ -8,9 +8,18 @@ fit, the emcee sampler, the subtraction and what a monitor of the subtraction co
     from ttlcore.estimate import FitSettings, fit_tdi, residual_aet
 """
 
-from .fit import FitResult, FitSettings, fit_tdi
+from .fit import FitResult, FitSettings, dws_asd_from_config, fit_tdi
 from .mcmc import fit_mcmc
 from .rolling import RollingFit
 from .subtraction import residual_aet, subtract
 
-__all__ = ["FitResult", "FitSettings", "RollingFit", "fit_mcmc", "fit_tdi", "residual_aet", "subtract"]
+__all__ = [
+    "FitResult",
+    "FitSettings",
+    "RollingFit",
+    "dws_asd_from_config",
+    "fit_mcmc",
+    "fit_tdi",
+    "residual_aet",
+    "subtract",
+]
