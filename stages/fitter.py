@@ -450,12 +450,7 @@ class Fitter(OrderedStage):
         if column_effects:
             push, owners, xyz = self.rolling_model.with_columns(td, self.window_tm.telemetry, tm)
         if self.rolling is None:
-            self.rolling = RollingFit(
-                self.settings(header.meta),
-                window_duration=self.window_duration,
-                names=push.names,
-                eiv_extra=self.rolling_model.eiv if owners is not None else None,
-            )
+            self.rolling = self.rolling_model.new_fit(self.settings(header.meta), self.window_duration, push.names)
             self.log.info(
                 "rolling fit: FFT segment %g s, window %g s, band %s, %d regressors",
                 self.rolling.settings.segment_duration,

@@ -19,7 +19,7 @@ import numpy as np
 from streamer.messages import concatenate_telemetry
 from streamer.refit import refit_settings
 from ttlcore.diagnose.prediction import column_regressors
-from ttlcore.effects import make_effects
+from ttlcore.effects import effect_input_from_telemetry, make_effects
 from ttlcore.effects.glitch import split_gates
 from ttlcore.estimate.fit import FitSettings, with_extra_regressors
 from ttlcore.estimate.rolling import RollingFit
@@ -66,6 +66,10 @@ class RollingModel:
         self.effects: list | None = None
         self.gates: list = []
         self.eiv: dict = {}
+        #: column name -> prior scale (:attr:`ttlcore.effects.Column.prior_scale`): a column the
+        #: window does not determine better than that is set apart (a glitch whose FFT segments
+        #: are left out as outliers; :func:`ttlcore.estimate.gls.set_apart`)
+        self.priors: dict = {}
 
     def column_effects(self, model: list[str]) -> list | None:
         """The effects of ``model`` beyond ``linear-ttl`` whose columns the rolling fit
@@ -107,6 +111,8 @@ class RollingModel:
             owners[effect.spec()] = names
             columns.append(xyz[:, :, -tm.size :])
             self.eiv.update(eiv)
+            if not all(n in self.priors for n in names):
+                self.priors.update({c.name: c.prior_scale for c in effect.columns(effect_input_from_telemetry(tail))})
         xyz = np.concatenate(columns, axis=1)
         names = tuple(n for ns in owners.values() for n in ns)
         extra = TDIData(
@@ -114,18 +120,25 @@ class RollingModel:
         )
         return with_extra_regressors(td, extra), owners, xyz
 
+    def new_fit(self, settings: FitSettings, window_duration: float, names: tuple) -> RollingFit:
+        """An empty rolling fit for the regressors ``names``: the 24, and the columns of the
+        rolling model when it has some (their readout noise and prior scales)."""
+        extended = bool(self.effects)
+        return RollingFit(
+            settings,
+            window_duration=window_duration,
+            names=names,
+            eiv_extra=self.eiv if extended else None,
+            prior_scale=self.priors if extended else None,
+        )
+
     def rebuilt(
         self, settings: FitSettings, window_duration: float, names: tuple, window: list[Telemetry]
     ) -> RollingFit:
         """A new rolling fit for the regressors ``names``, the window pushed into it again from
         the window's telemetry (TDI from a new stream, the model's columns with their history):
         when the rolling model's columns change (a model change)."""
-        rolling = RollingFit(
-            settings,
-            window_duration=window_duration,
-            names=names,
-            eiv_extra=self.eiv if self.effects else None,
-        )
+        rolling = self.new_fit(settings, window_duration, names)
         stream = TDIStream()
         for j, tm in enumerate(window):
             td = stream.push(tm)

@@ -523,6 +523,11 @@ def test_live_loop_is_not_pulled_by_a_merger_or_glitches(tmp_path):
     last = fits[max(fits)]
     model = last.header.meta["model"]
     assert all(e == "linear-ttl" or e.startswith(("glitch", "gate")) for e in model), (injected, model)
+    # nothing spurious: each glitch of the model is one injected (its time within a damping
+    # time and a bit, 300 s), at most one per injected glitch
+    times = [float(e.split("t=", 1)[1].split(",", 1)[0]) for e in model if e.startswith("glitch")]
+    owners = [[k for k, g in enumerate(injected["glitches"]) if abs(t - g[1]) < 300.0] for t in times]
+    assert all(len(o) == 1 for o in owners) and len({o[0] for o in owners}) == len(owners), (injected, model)
     diagnoses = [f.header.meta["diagnosis"] for f in fits.values() if "diagnosis" in f.header.meta]
     classes = {e["class"] for d in diagnoses for e in ((d.get("transients") or {}).get("events") or [])}
     assert classes & {"gravitational-wave", "glitch"}, [d["text"] for d in diagnoses]

@@ -317,6 +317,11 @@ REFINE_PASSES = 2
 REFINE_SPAN = 300.0
 #: The search of an event's glitches stops once they take this share of its excess.
 GLITCH_DONE = 0.9
+#: A further glitch in one event is kept only when it takes at least this share of the
+#: event's excess more than the glitches before it: a loud glitch inside the hours of a
+#: chirp made one event of both, and two glitches of 1/200 of its step (significant: the
+#: chirp is loud) took the chirp's power, not a glitch's (live merger day, issue 24).
+GLITCH_MORE = 0.1
 #: Events longer than this [h] (an inspiral in band for hours, a noise change) are not
 #: gated: the report shows the fit's robustness to them instead.
 MAX_GATE_HOURS = 2.0
@@ -417,7 +422,8 @@ def _with_glitches(model: ModelFit, glitches) -> ModelFit:
 
 def _event_glitches(model: ModelFit, residual: np.ndarray, tf0, event: dict, span, s, prior=()) -> dict:
     """Glitches for one event: searched one after the other (each against the model with
-    the ones found before, on the residual without them) while significant, at most
+    the ones found before, on the residual without them) while significant and, after the
+    first, while each takes :data:`GLITCH_MORE` more of the event's excess, at most
     :data:`MAX_GLITCHES_PER_EVENT`, until they take :data:`GLITCH_DONE` of the event's
     excess; with several, each is searched again against the model with the others
     (:data:`REFINE_PASSES` passes, on its placement, within :data:`REFINE_SPAN` of its time:
@@ -430,6 +436,7 @@ def _event_glitches(model: ModelFit, residual: np.ndarray, tf0, event: dict, spa
     before = event_excess(tf0, event["t_start"], event["t_stop"])
     search_span = Glitch(span=f"{span[0]:.0f}-{span[1]:.0f}")
     found, results = list[Glitch](), []
+    taken = 0.0  # share of the event's excess the glitches found take
     for _ in range(MAX_GLITCHES_PER_EVENT):
         base = _with_glitches(model, list(prior) + found)
         res = glitch_search(base, search_span)
@@ -439,9 +446,18 @@ def _event_glitches(model: ModelFit, residual: np.ndarray, tf0, event: dict, spa
                 results.append(res)
             break
         assert isinstance(res.effect, Glitch)  # glitch_search's
+        share = _explained(model, residual, tf0, event, list(prior) + found + [res.effect], before)[0]
+        if found and share - taken < GLITCH_MORE:
+            log.info(
+                "a further glitch at %.2f h takes %.1f %% more of the event's excess: not kept",
+                float(res.effect.options["t"]) / 3600,
+                100 * (share - taken),
+            )
+            break
         found.append(res.effect)
         results.append(res)
-        if _explained(model, residual, tf0, event, list(prior) + found, before)[0] >= GLITCH_DONE:
+        taken = share
+        if share >= GLITCH_DONE:
             break
     for _ in range(REFINE_PASSES if len(found) > 1 else 0):  # each again, the others in the model
         for j in range(len(found)):

@@ -34,7 +34,7 @@ from ..tdi.data import history_samples
 from .columns import ColumnSet
 from .evidence import added_evidence
 from .search import profile_search
-from .search_result import SearchResult
+from .search_result import COLLINEAR, SearchResult
 from .whitened import AnalysisGrid
 
 log = logging.getLogger(__name__)
@@ -89,6 +89,13 @@ def glitch_spectra(data, where, t_glitch: float, beta: float) -> np.ndarray:
     return w if x.ndim == 3 else w[..., 0]
 
 
+#: A template whose part the model's columns do not explain (``D`` of :class:`_Scanner`) is
+#: below this share of its norm holds no information of its own (a glitch in FFT segments
+#: gated out or left out: a zero column, or one collinear with the model's): its gain is 0.
+#: Before, ``0 / 1e-300`` there could be the best of the scan, at a time with no data.
+DEGENERATE = 1e-9
+
+
 class _Scanner:
     """Profile of a glitch's time against a fitted model, for templates.
 
@@ -141,7 +148,7 @@ class _Scanner:
         c = z[0, k]
         n = z[1:, k]  # (P, K)
         D = ngg - np.einsum("pk,pk->k", n, self.NMinv @ n)
-        return k / grid.fs, 2.0 * c**2 / (np.maximum(D, 1e-300) * grid.kappa)
+        return k / grid.fs, np.where(D > DEGENERATE * ngg, 2.0 * c**2 / (np.maximum(D, 1e-300) * grid.kappa), 0.0)
 
     def at(self, prods, tau: float) -> float:
         """delta chi2 of one template's products at a shift ``tau`` [s] (any real value)."""
@@ -150,7 +157,7 @@ class _Scanner:
         c = float(np.real(np.sum(p * ph)))
         n = np.real(ph @ q)
         D = ngg - n @ self.NMinv @ n
-        return 2.0 * c**2 / (max(D, 1e-300) * self.data.grid.kappa)
+        return 2.0 * c**2 / (max(D, 1e-300) * self.data.grid.kappa) if D > DEGENERATE * ngg else 0.0
 
 
 def _pieces(data, lo: float, hi: float) -> list[tuple[float, float, float]]:
@@ -250,7 +257,11 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
         **({} if effect.where else {("tm" if where.startswith("tm") else "link"): where[-2:]}),
     )
     g = glitch_spectra(data, where, t_best, beta)
-    ev = _evidence(model, found, g)
+    try:
+        ev = _evidence(model, found, g)
+    except ConfigError as exc:  # no template holds information of its own: nothing found
+        log.info("glitch search over %.0f-%.0f s: %s", lo, hi, exc)
+        return SearchResult(found, {"t": float(t_best), "beta": float(beta)}, {}, 0.0, COLLINEAR, COLLINEAR, n_eval)
     # curvatures of l = delta chi2 / 2 in time and log beta (the others at the estimate)
     sig_t = sig_lb = float("nan")
     if not fixed_t:

@@ -201,7 +201,7 @@ def solve(data, columns: ColumnSet, effects=(), expansion=None) -> ModelFit:
     b = rhs(data, columns)
     dd = data.noise.dd
     E = eiv(data, columns)
-    theta, cov = gls_solve(normal_equations(data, columns, N, b, E))
+    theta, cov = gls_solve(normal_equations(data, columns, N, b, E), prior_scale=np.asarray(columns.priors))
     cov = data.grid.kappa * cov
     btot = b.sum(axis=(0, 1))
     chi2_sg = 2 * (np.einsum("p,sgpq,q->sg", theta, N, theta) - 2 * b @ theta + dd)
@@ -243,6 +243,6 @@ def normal_equations(data, columns: ColumnSet, N=None, b=None, E=None) -> Normal
 
 def normal_solution(data, columns: ColumnSet) -> tuple[dict, dict]:
     """``(theta, sigma)`` of the GLS fit of ``columns`` (column -> value), nothing else."""
-    theta, cov = gls_solve(normal_equations(data, columns))
+    theta, cov = gls_solve(normal_equations(data, columns), prior_scale=np.asarray(columns.priors))
     sig = np.sqrt(np.abs(np.diag(cov)) * data.grid.kappa)
     return dict(zip(columns.names, theta)), dict(zip(columns.names, sig))

@@ -49,7 +49,7 @@ from ..conventions import C as C_LIGHT
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 from ..tdi.data import TDIData
 from ..tdi.regressors import dws_channel, placement
-from .gls import NormalEquations, sandwich, solve
+from .gls import NormalEquations, sandwich, set_apart, solve
 from .noise_psd import tdi_noise_csd
 from .spectra import segment_fft, smooth_csd, smooth_csd_variable, window
 
@@ -688,11 +688,14 @@ def fit_spectra(
     names=COEFFICIENT_NAMES,
     method: str = "gls",
     eiv_extra: dict | None = None,
+    prior_scale: np.ndarray | None = None,
 ) -> tuple[FitResult, dict]:
     """GLS fit of the coefficients from segment spectra (see the module docstring).
 
     ``method="ols"`` gives plain least squares for comparison: white weights, no
-    errors-in-variables correction, no iterations.
+    errors-in-variables correction, no iterations.  ``prior_scale`` (one per regressor,
+    ``inf`` for none): a regressor the data determine worse than that is set apart
+    (:func:`ttlcore.estimate.gls.set_apart`: a model's glitch whose FFT segments are left out).
 
     Returns
     -------
@@ -718,7 +721,7 @@ def fit_spectra(
         c = spectra[0].d.shape[1]
         W = np.broadcast_to(np.eye(c), (f.size, c, c))
         neq = accumulate(spectra, W, edges, names)
-        C, cov_unit = solve(neq, eiv=False)
+        C, cov_unit = solve(neq, eiv=False, prior_scale=prior_scale)
         chi2 = neq.chi2_per_band(C)
         dof = neq.dof_per_band().sum() - len(names)
         cov = kappa * cov_unit * chi2.sum() / dof  # residual-variance scaled, as OLS reports it
@@ -737,7 +740,7 @@ def fit_spectra(
     for it in range(s.iterations + 1):
         W = inverse_csd(csd)
         neq = accumulate(spectra, W, edges, names, T, dws_psd, stacked=stacked)
-        C, cov = solve(neq, eiv=s.eiv)
+        C, cov = solve(neq, eiv=s.eiv, prior_scale=prior_scale)
         sig = np.sqrt(np.diag(cov))
         if C_prev is not None:
             change = np.max(np.abs(C - C_prev) / sig)
@@ -749,7 +752,7 @@ def fit_spectra(
         csd = residual_csd(spectra, C, half_widths, stacked=stacked)
     chi2 = neq.chi2_per_band(C, eiv=s.eiv)
     cov_model = kappa * cov
-    cov_robust = kappa * sandwich_covariance(spectra, W, C, neq, s.eiv, stacked=stacked)
+    cov_robust = kappa * sandwich_covariance(spectra, W, C, neq, s.eiv, stacked=stacked, prior_scale=prior_scale)
     res = _result(
         names, C, cov_robust if s.robust_covariance else cov_model, chi2, neq, s, method, s.eiv, it, converged, spectra
     )
@@ -775,8 +778,10 @@ def sandwich_covariance(
     neq: NormalEquations,
     eiv: bool = True,
     stacked: tuple | None = None,
+    prior_scale: np.ndarray | None = None,
 ) -> np.ndarray:
-    """Robust (sandwich) covariance of the GLS estimate.
+    """Robust (sandwich) covariance of the GLS estimate (regressors set apart by
+    ``prior_scale`` as in the estimate, :func:`ttlcore.estimate.gls.set_apart`).
 
     ``Cov = (N - E)^-1 [sum_{s,f} Re(u) Re(u)^T] (N - E)^-1`` with the per-bin scores
     ``u = R^H W r`` of the residual ``r = d - R C``.  If the weights are the exact inverse
@@ -784,7 +789,7 @@ def sandwich_covariance(
     steep spectral features, unmodelled lines) it stays honest.
     """
     N, _, _ = neq.total(eiv)
-    return sandwich(N, score_matrix(spectra, weights, C, stacked))
+    return sandwich(set_apart(N, prior_scale), score_matrix(spectra, weights, C, stacked))
 
 
 def score_matrix(

@@ -67,7 +67,7 @@ from .fit import (
     solve,
     spectra_of_segment,
 )
-from .gls import sandwich
+from .gls import sandwich, set_apart
 
 log = logging.getLogger(__name__)
 
@@ -149,6 +149,11 @@ class RollingFit:
         window's (:meth:`outlier`: more than ``outlier_z`` standard deviations of chi^2/dof
         above their median) is left out of the window: a glitch or a merger does not pull
         the fit.  None: every segment is kept.
+    prior_scale : dict or None
+        Regressor name -> the expected size of its coefficient (a model column's
+        :attr:`ttlcore.effects.Column.prior_scale`): a regressor the window determines worse
+        than that (a glitch whose FFT segments were left out) gets coefficient 0 and infinite
+        variance (:func:`ttlcore.estimate.gls.set_apart`); regressors not named, never.
 
     Example
     -------
@@ -168,9 +173,14 @@ class RollingFit:
         full_every: float | None = 21600.0,
         eiv_extra: dict | None = None,
         outlier_z: float | None = 10.0,
+        prior_scale: dict | None = None,
     ):
         self.settings = settings or FitSettings(segment_duration=3600.0)
         self.eiv_extra = eiv_extra
+        #: per regressor, the scale below which the data must determine it (``inf``: any)
+        self.prior_scale = (
+            None if not prior_scale else np.array([float(prior_scale.get(n, np.inf)) for n in names], dtype=float)
+        )
         self.outlier_z = outlier_z
         #: the FFT segments left out as outliers (:meth:`outlier`) or gated, oldest first
         self.excluded: list[dict] = []
@@ -370,7 +380,12 @@ class RollingFit:
         ltt_mean = np.mean(np.stack(self._ltt), axis=0)
         if self._full_due():
             res, internals = fit_spectra(
-                list(self._spectra), ltt_mean, self.settings, self.names, eiv_extra=self.eiv_extra
+                list(self._spectra),
+                ltt_mean,
+                self.settings,
+                self.names,
+                eiv_extra=self.eiv_extra,
+                prior_scale=self.prior_scale,
             )
             res.extra["update"] = "full"
             if self.full_every is not None:
@@ -417,11 +432,11 @@ class RollingFit:
         M = self._sums[0][1]
         for neq, m in list(self._sums)[1:]:
             total, M = total + neq, M + m
-        C, cov = solve(total, eiv=s.eiv)
+        C, cov = solve(total, eiv=s.eiv, prior_scale=self.prior_scale)
         kappa = w["variance_factor"]
         cov_model = kappa * cov
         N, _, _ = total.total(s.eiv)
-        cov_robust = kappa * sandwich(N, M)
+        cov_robust = kappa * sandwich(set_apart(N, self.prior_scale), M)
         chi2 = total.chi2_per_band(C, eiv=s.eiv)
         res = _result(
             self.names,

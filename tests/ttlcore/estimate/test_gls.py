@@ -123,3 +123,28 @@ def test_collinear_regressors_are_undetermined_and_the_rest_unchanged():
     C, cov = solve(normal_equations(X0.astype(complex), y.astype(complex)), eiv=False)
     assert np.all(np.isinf(np.diag(cov)[3:])) and np.all(C[3:] == 0.0)
     np.testing.assert_allclose(C[:3], np.linalg.solve(X.T @ X, X.T @ y), rtol=1e-12)
+
+
+def test_a_regressor_known_worse_than_its_prior_is_set_apart():
+    """A column with a trace of information (a model's glitch whose FFT segments were all left
+    out: only the velocity step after it remains, nearly cancelled by TDI) is fitted at a
+    noise-driven value of any size; with prior scales, one whose standard deviation exceeds
+    its prior's (analytic: sigma = 1 / sqrt(2 |g|^2) for an orthogonal column) is set apart -
+    coefficient 0, infinite variance, the others those of the model without it - and a
+    determined one keeps the plain solve's numbers exactly."""
+    rng = np.random.default_rng(5)
+    n = 400
+    X = rng.standard_normal((n, 3))
+    y = X @ np.array([1.0, -2.0, 0.5]) + rng.standard_normal(n)
+    g = np.zeros(n)
+    g[-3:] = 1e-4  # |g|^2 = 3e-8: sigma ~ 4e3 in the column's unit
+    X0 = np.column_stack([X, g])
+    neq = normal_equations(X0.astype(complex), y.astype(complex))
+    plain, plain_cov = solve(neq, eiv=False)
+    assert np.sqrt(plain_cov[3, 3]) > 1e3 and plain[3] != 0.0
+    C, cov = solve(neq, eiv=False, prior_scale=np.array([np.inf, np.inf, np.inf, 1.0]))
+    assert C[3] == 0.0 and np.isinf(cov[3, 3])
+    np.testing.assert_allclose(C[:3], np.linalg.solve(X.T @ X, X.T @ y), rtol=1e-12)
+    # a prior scale above the standard deviation: the plain solve, to the bit
+    C2, cov2 = solve(neq, eiv=False, prior_scale=np.array([np.inf, np.inf, np.inf, 1e6]))
+    assert np.array_equal(C2, plain) and np.array_equal(cov2, plain_cov)
