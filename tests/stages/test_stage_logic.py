@@ -366,6 +366,23 @@ def test_adoption_needs_a_recommendation_that_explains_the_excess():
     assert not adoptable({**rec, "log_bayes_factor": 1.0})[0]
 
 
+def test_an_effect_waits_while_the_models_gates_hide_most_of_the_window():
+    """An effect is adopted only from a window whose gates leave half of it (a 16-h window with
+    11 h gated once adopted second-order from noise levels fitted on the 5 h left); counted on
+    the gates merged and clipped to the window."""
+    from stages.live_diagnosis import enough_ungated
+
+    hours = [{"t_start": 3600.0 * h, "t_stop": 3600.0 * (h + 1)} for h in range(16)]
+    report = {"adequacy": {"time": {"segments": hours}}}
+    ok, why = enough_ungated(report, ["linear-ttl", "gate:start=14400,stop=54000"], (), "explains")
+    assert not ok and "5.0 h of the window's 16.0 h" in why
+    # two touching gates (0-2 h, 2-6 h) and one reaching beyond the window (2 h of it): 8 h left of 16
+    gates = ["gate:start=0,stop=7200", "gate:start=7200,stop=21600", "gate:start=50400,stop=1e6"]
+    assert enough_ungated(report, ["linear-ttl", *gates], (), "x") == (True, "x")
+    assert not enough_ungated(report, ["linear-ttl", *gates[:2], "gate:start=46800,stop=1e6"], (), "x")[0]
+    assert enough_ungated(report, ["linear-ttl", "drift"], (), "explains") == (True, "explains")
+
+
 def test_monitor_waits_for_an_alive_fitter_that_has_not_reported_yet(tmp_path):
     """A fitter still on its first segment (alive, no progress yet) is waited for; one that is
     not running blocks nothing; one that reported is waited for until it passed the segment."""

@@ -111,7 +111,8 @@ def diagnose(
     # threads start (the diagnosis' transforms take the calling thread's default)
     with sp_fft.set_workers(-1):
         say("TDI and spectra")
-        data = gated_data(whiten_telemetry(tm, s, effect_modules), gates)
+        ungated = whiten_telemetry(tm, s, effect_modules)
+        data = gated_data(ungated, gates)
         lap("tdi_and_spectra")
         say("fit")
         fits = [fit_model(data, fitted)]
@@ -161,7 +162,8 @@ def diagnose(
         say("candidates")
         report["candidates"] = pool.ranked()
     lap("candidates")
-    refit = None if gates else functools.partial(gated_model, model, fitted)
+    refit = functools.partial(gated_model, model, fitted, ungated=ungated if gates else None, gates=gates)
+    del ungated
     report["transients"] = transient_report(model, report, refit=refit)
     residual = report["transients"].pop("_residual")
     report["transients"]["actions"] = transient_actions(model, report, residual)
@@ -186,10 +188,11 @@ def diagnose(
     return report
 
 
-def gated_model(model: ModelFit, effects, spans) -> ModelFit | None:
+def gated_model(model: ModelFit, effects, spans, ungated=None, gates=()) -> ModelFit | None:
     """``model`` refitted with the ``(start, stop)`` spans [s] gated out (a signal's hours, a
     gap), its noise levels profiled again when they were fitted; None when the gates leave
-    too little data.
+    too little data.  A model with gates of its own (``gates``) is gated anew from its
+    ``ungated`` data, its gates and the spans together.
 
     A loud signal pulls the linear fit (a chirp: by several sigma, ``transients.robustness``)
     and, through the whole day's mis-subtracted TTL noise, everything read outside it. With
@@ -198,9 +201,9 @@ def gated_model(model: ModelFit, effects, spans) -> ModelFit | None:
     user who follows the advice (``gate``) gets.  The transient finder reads the quiet
     tiles on it (:func:`~ttlcore.diagnose.excess.transient_report`'s ``refit``).
     """
-    gates = [Gate(start=float(a), stop=float(b)) for a, b in spans]
+    new = [Gate(start=float(a), stop=float(b)) for a, b in spans]
     try:
-        data = gated_data(model.data, gates)
+        data = gated_data(model.data, new) if ungated is None else gated_data(ungated, [*gates, *new])
     except ConfigError as err:  # the gates leave too little data
         log.info("no gated model: %s", err)
         return None

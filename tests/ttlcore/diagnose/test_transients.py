@@ -341,8 +341,25 @@ def test_excess_classification_rules():
         "adequacy": {"fails": True, "variance_factor": 1.06},
         "candidates": [{"significant": True, "explained_fraction": 0.01, "delta_chi2": 800.0, "cli_spec": "drift"}],
     }
-    v = X.excess_classification(outside, ev_gw, {**quiet_bad, "excess_chi2_full_span": 1000.0})
+    read_gated = {**quiet_bad, "excess_chi2_full_span": 1000.0, "gated": True}
+    v = X.excess_classification(outside, ev_gw, read_gated)
     assert v["class"] == "missing-coupling", v
+    # ... as the candidate takes it on the model with the signal gated, when scored there
+    v = X.excess_classification(outside, ev_gw, {**read_gated, "best_delta_chi2_gated": 100.0})
+    assert v["class"] == "stationary-excess", v
+    # ... and only when the quiet tiles were read with the signal gated (else the signal's pull
+    # is in every quiet tile, and a candidate fitted to the signal would "explain" it)
+    v = X.excess_classification(outside, ev_gw, {**read_gated, "gated": False})
+    assert v["class"] == "stationary-excess", v
+
+    # ... nor when a noise level sits at its lower bound (the quiet excess is the levels' misfit
+    # too); at an upper bound (a missing coupling's extra noise) the share still decides
+    def levels(tm_acc):
+        nm = {"parameters": {"tm_acc": {"psd_scale": tm_acc}}, "bounds": {"tm_acc": [0.25, 4.0]}}
+        return {**outside, "adequacy": {**outside["adequacy"], "noise_model": nm}}
+
+    assert X.excess_classification(levels(0.25), ev_gw, read_gated)["class"] == "stationary-excess"
+    assert X.excess_classification(levels(4.0), ev_gw, read_gated)["class"] == "missing-coupling"
     assert X.excess_classification({"adequacy": {"fails": False}}, [], quiet_ok)["class"] == "none"
     v = X.excess_classification(ad, ev_gw, quiet_ok)
     assert v["class"] == "gravitational-wave" and v["signal"]
