@@ -424,7 +424,12 @@ def transient_report(
     lo, hi = (min(a for a, _ in fb), max(b for _, b in fb)) if fb else tuple(band)
     expected = instrumental_t_share(grid.f, data.noise.csd, data.tdi.ltt_mean, lo, hi)
     quiet["t_share_expected"] = float(expected) if np.isfinite(expected) else None
-    if quiet.get("gated") and quiet.get("fails"):
+    if (
+        quiet.get("gated")
+        and quiet.get("fails")
+        and any(c in NOT_AN_EFFECT for c in classes)
+        and not at_lower_bound(((report or {}).get("adequacy") or {}).get("noise_model") or {})
+    ):  # only where excess_classification weighs it: a candidate scored again costs seconds
         quiet["best_delta_chi2_gated"] = _best_on_gated(report or {}, gated)
     verdict = excess_classification(report or {}, out_events, quiet, gaps)
     robust = None
