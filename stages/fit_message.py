@@ -11,6 +11,10 @@ fails against the instrument noise model) are :func:`excluded_message` and
 
 from __future__ import annotations
 
+import logging
+
+log = logging.getLogger(__name__)
+
 #: Units of the fit message's arrays.
 UNITS = {"coefficients": "m/rad", "sigma": "m/rad", "covariance": "m^2/rad^2", "model_parts": "fractional frequency"}
 #: Meta of the fit message that the recorded summary repeats, when present.
@@ -73,7 +77,13 @@ def fit_summary(run: str, index: int, res, meta: dict, arrays: dict) -> dict:
 
 def excluded_message(index: int, excluded: dict) -> str:
     """Why the FFT segment ``excluded`` (the rolling fit's ``extra["excluded"]``) is left out
-    of the fit of segment ``index``: a gate of the model (an event), or an outlier (a warning)."""
+    of the fit of segment ``index``: a gate of the model or a gap in the data (events), or an
+    outlier (a warning)."""
+    if excluded.get("gap"):
+        return (
+            f"fit {index}: the FFT segment [{excluded['t_start']:.0f}, {excluded['t_stop']:.0f}] s "
+            "holds less than half valid samples (a gap in the data): the window's fit stands"
+        )
     if "gate" in excluded:
         return (
             f"fit {index}: the FFT segment [{excluded['t_start']:.0f}, {excluded['t_stop']:.0f}] s "
@@ -96,3 +106,40 @@ def inadequate_message(index: int, meta: dict) -> str:
         + "; ".join(meta["adequacy"]["summary"])
         + ")"
     )
+
+
+def notices(index: int, res, meta: dict) -> list[tuple[str, str, str, dict]]:
+    """What the fit of segment ``index`` says beyond its numbers, as ``(level, kind, message,
+    details)`` with level ``"event"`` or ``"warning"``: an FFT segment left out (copied to
+    ``meta["excluded"]``; an event for a gap or a gate, a warning for an outlier), no
+    convergence, a model that fails against the instrument noise model."""
+    out: list[tuple[str, str, str, dict]] = []
+    excluded = res.extra.get("excluded")
+    if excluded:
+        meta["excluded"] = excluded
+        kind = "segment-gap" if excluded.get("gap") else "segment-gated" if "gate" in excluded else "segment-excluded"
+        level = "warning" if kind == "segment-excluded" else "event"
+        out.append((level, kind, excluded_message(index, excluded), dict(excluded)))
+    if not res.converged:
+        out.append(
+            (
+                "warning",
+                "not-converged",
+                f"fit {index} did not converge in {res.iterations} iterations",
+                {"iterations": int(res.iterations)},
+            )
+        )
+    adequacy = meta.get("adequacy")
+    if adequacy is not None:
+        log.info(
+            "segment %d: model %s, chi2/dof against the instrument noise model %.3f%s",
+            index,
+            ",".join(meta["model"]),
+            adequacy["chi2_dof"],
+            " (fails)" if adequacy["fails"] else "",
+        )
+        if adequacy["fails"]:
+            out.append(
+                ("warning", "model-inadequate", inadequate_message(index, meta), {"chi2_dof": adequacy["chi2_dof"]})
+            )
+    return out

@@ -53,6 +53,11 @@ class TelemetryWindow:
         """Index of the newest segment."""
         return self.segments[-1][0]
 
+    @property
+    def t_start(self) -> float:
+        """Start [s] of the oldest segment."""
+        return float(self.segments[0][1].t0)
+
     def clear(self) -> None:
         """Forget every segment (a discontinuity: the window restarts)."""
         self.segments.clear()

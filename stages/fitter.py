@@ -18,54 +18,29 @@ subtractor knows, for each segment, which fit is the latest one covering it.
 
 Model, adequacy and the live loop (``docs/diagnostics.md``, "The loop in the live pipeline")
 ----------------------------------------------------------------------------------------
-The model is a list of effects (option ``effects``, default ``linear-ttl``): any effect
-``ttl diagnose`` can fit - named effects, witness effects, fd-couplings, ``vary=``, and
-plugins from the stage's configuration (``effect_modules``, never from a message).  The TDI
-builder forwards each segment's telemetry (``eta``, ``dws_phi``, ``dws_eta``, ``ltt``) with
-its TDI, and the fitter keeps the window's telemetry.  An extended model is fitted two ways:
+The model is a list of effects (option ``effects``, default ``linear-ttl``; plugins from the
+stage's configuration only), held by :class:`stages.live_model.LiveModel`.  An extended model
+is fitted two ways: the rolling update (its columns of the new segment appended to the 24
+regressors, :class:`stages.rolling_model.RollingModel`) and the window refit every
+``adequacy_every`` segments and on a model change (the window's telemetry refitted as ``ttl
+refit`` does, with its adequacy, :mod:`stages.window_refit`).  The fit message carries each
+other effect's X2, Y2, Z2 of the newest segment (``model_parts``) for the subtractor.
 
-- **the window refit**, every ``adequacy_every`` segments (default 24: the last segment of
-  each day of 1-h segments) and on the first segment of every new model: the window's
-  telemetry refitted with the model by :func:`ttlcore.diagnose.diagnoser.refit` under the
-  instrument noise model - exactly what ``ttl refit --segments A:B`` does offline on the same
-  segments (searched parameters searched again on the window); the meta holds ``adequacy``
-  (chi^2/dof per band) and ``model_update: "window refit"``;
-- **the rolling update** in between (``model_update`` ``rolling``, the default): the model's
-  columns of the new segment are computed from its telemetry with
-  :data:`stages.rolling_model.COLUMN_HISTORY` before it
-  (:func:`ttlcore.diagnose.prediction.column_regressors`) and appended to its 24 TDI
-  regressors, and the rolling fit (:class:`ttlcore.estimate.rolling.RollingFit`, the
-  estimator of ``ttl analyze``) fits all of them: the work of one segment, not of a window
-  (meta ``model_update: "rolling"``).  It needs every parameter of the model given (a
-  searched parameter, or the shifted regressors of ``timing-offset`` and ``ltt-error``, make
-  every segment a window refit, as ``model_update`` ``refit`` does for any model).
+The window is diagnosed as ``ttl diagnose`` would (meta ``diagnosis``,
+:mod:`stages.live_diagnosis`) on the schedule of :mod:`stages.fitter_schedule` (the first
+half-cadence, every ``diagnose_every`` segments, a new model, a sustained excess, the last
+segment); with ``adopt`` ``auto`` a recommendation :func:`stages.live_diagnosis.adoptable`
+becomes the model from the next segment on.  A control message
+``ttl/<run>/control/fitter/model`` (``{"effects": [...]}``) does the same by hand.  Every
+change is a ``model`` event (``by``: ``control``, ``adopt auto``, or ``window`` for the
+transients - glitches, gates - that leave the model once their span has left the window), and
+its first fit message carries ``model_change`` (both models refitted on the window).  A
+restarted fitter takes the model in force from those events (:meth:`Fitter.restore_model`) and
+rebuilds its window from the replayer's recorded telemetry (:meth:`Fitter.catch_up`).
 
-Either way the fit message carries the model's 24 coefficients, ``extra_parameters`` and,
-for the newest segment, each other effect's contribution to X2, Y2, Z2 (array
-``model_parts`` (k, 3, n), meta ``model_parts``: the effect specs), which the subtractor
-subtracts.  The rolling update and the window refit are two GLS estimates of the same model
-(the rolling one weighted by the residual CSD of its last full refit, the window refit by the
-instrument noise model): they agree within a fraction of sigma, and a window-refit segment's
-residual equals ``ttl refit --residual``'s to 1e-9.  A new model rebuilds the rolling fit
-from the window's telemetry; a restarted fitter replays the recorded model changes while it
-rebuilds its window, so that its state is the uninterrupted run's.
-
-Every ``diagnose_every`` segments (default 24, counted by index) and on the first segment of
-a new model, the window is diagnosed as ``ttl diagnose`` would (:func:`ttlcore.diagnose.diagnoser.diagnose`,
-the witness search included): meta ``diagnosis`` holds the failing bands and hours, the top
-witnesses and candidates, the recommendation with the ``ttl control`` command that applies
-it, and the text report.  With ``adopt`` ``auto`` a recommendation that explains the excess
-(:func:`stages.live_diagnosis.adoptable`) becomes the model from the next segment on (a
-``model`` event records why); ``ask`` (default) only recommends, ``never`` does not diagnose.
-
-A control message ``ttl/<run>/control/fitter/model`` with JSON ``{"effects": [...]}`` (or
-``"linear-ttl,drift"``) changes the model from the next segment on (a ``model`` event in the
-recording says from which); that segment's fit message carries ``model_change``: both models
-refitted on the same window, with chi^2/dof and per-band chi^2/dof before and after, delta
-chi^2 and log Bayes factor, and ``candidates``.  A restarted fitter takes the model in force
-from the ``model`` events of its earlier processes' recordings (:meth:`Fitter.restore_model`),
-not the configured one, and rebuilds its window from the replayer's recorded telemetry
-(:meth:`Fitter.catch_up`).
+The last segment of a run, often shorter than the others, closes its FFT segment with a gap
+(:meth:`ttlcore.estimate.rolling.RollingFit.flush`), so every segment gets its fit; a segment
+that gets none is a ``no-fit`` warning naming it and why.
 """
 
 from __future__ import annotations
@@ -91,10 +66,11 @@ from ttlcore.estimate.rolling import RollingFit
 from ttlcore.io.telemetry import Telemetry
 from ttlcore.tdi.data import TDIData
 
-from .fit_message import UNITS, excluded_message, fit_meta, fit_summary, inadequate_message
+from .fit_message import UNITS, fit_meta, fit_summary, notices
 from .fit_window import TelemetryWindow
 from .fitter_options import ADOPT_MODES, MODEL_UPDATES, add_options, one_of, options
 from .fitter_recordings import pushed_again, recorded_models, recorded_telemetry
+from .fitter_schedule import DiagnosisSchedule
 from .live_diagnosis import control_command, diagnosis_meta
 from .live_model import LiveModel
 from .rolling_model import RollingModel, rolling_outputs
@@ -143,6 +119,7 @@ class Fitter(OrderedStage):
         model_update = one_of("model-update", o.get("model_update") or "rolling", MODEL_UPDATES)
         self.rolling_model = RollingModel(model_update, self.band, self.effect_modules)
         self.adopt = one_of("adopt", o.get("adopt") or "ask", ADOPT_MODES)
+        self.schedule = DiagnosisSchedule(self.diagnose_every if self.adopt != "never" else 0)
         self._catching_up = False  # a restarted fitter pushing the recorded segments again
         #: the window's telemetry, (index, Telemetry) in index order
         self.window_tm = TelemetryWindow(self.window_duration)
@@ -252,8 +229,9 @@ class Fitter(OrderedStage):
         self.event("gap", index=index, message=f"tdi segment {index} missing: {n} NaN samples pushed, window kept")
 
     # ------------------------------------------------------------------ the model
-    def change_model(self, new: list[str], **why) -> None:
-        """The model ``new`` from the next segment on (a ``model`` event records it and why)."""
+    def change_model(self, new: list[str], *, diagnose: bool = True, **why) -> None:
+        """The model ``new`` from the next segment on (a ``model`` event records it and why);
+        its first segment diagnosed unless ``diagnose`` is False."""
         start = self.queue.next if self.queue.next is not None else 0
         before = list(self.effects)
         self.log.info("model change: %s -> %s from segment %d", ",".join(before), ",".join(new), start)
@@ -266,7 +244,7 @@ class Fitter(OrderedStage):
             from_index=start,
             **why,
         )
-        self.model.change(new, start)
+        self.model.change(new, start, diagnose=diagnose)
 
     def control(self, command: str, payload: bytes):
         """``model``: ``{"effects": [...]}`` changes the model from the next segment on."""
@@ -325,9 +303,8 @@ class Fitter(OrderedStage):
 
     # ------------------------------------------------------------------ the live diagnosis
     def diagnosis_due(self, index: int) -> bool:
-        if self.adopt == "never" or self.diagnose_every <= 0:
-            return False
-        return self.model.diagnose_due or (index + 1) % self.diagnose_every == 0
+        """:meth:`stages.fitter_schedule.DiagnosisSchedule.due`."""
+        return self.schedule.due(index, last=self.last_segment(index), new_model=self.model.diagnose_due)
 
     def live_diagnosis(self, header) -> dict | None:
         """The window diagnosed as ``ttl diagnose`` would (meta ``diagnosis``,
@@ -437,10 +414,63 @@ class Fitter(OrderedStage):
         with threadpool_limits(limits=1, user_api="blas"):  # small products: threads would only spin
             res, owners, xyz = self.rolling_update(header, td, tm)
         self.window_tm.add(header.index, tm)
+        if res is None and self.last_segment(header.index):
+            res = self.rolling.flush() if self.rolling is not None else None
         if res is None:
-            self.log.info("segment %d: no FFT segment completed, no refit", header.index)
+            self.no_fit(header.index, td)
+            self.drop_expired(header.index)
             return None
-        return self.publish_fit(header, td, res, owners, xyz)
+        self.watch_excess(header.index, res)
+        out = self.publish_fit(header, td, res, owners, xyz)
+        self.drop_expired(header.index)
+        return out
+
+    def watch_excess(self, index: int, res) -> None:
+        """A sustained excess brings the diagnosis forward (an ``excess`` event;
+        :meth:`stages.fitter_schedule.DiagnosisSchedule.outlier`).  The hours left out stay in
+        the window's telemetry: a model adopted for them rebuilds the rolling fit with them."""
+        if self.schedule.outlier(res.extra.get("excluded")) and not self._catching_up and self.schedule.every > 0:
+            self.model.diagnose_due = True
+            self.event(
+                "excess",
+                index=index,
+                message=f"fit {index}: {self.schedule.sustained} FFT segments in a row left out as outliers "
+                "(a sustained excess, not a transient): the window is diagnosed now",
+                segments=self.schedule.sustained,
+            )
+
+    def drop_expired(self, index: int) -> None:
+        """Transients of the model (glitches, gates) whose span has left the window leave the
+        model from the next segment on (a ``model`` event ``by: window`` with the specs
+        ``removed``; the recordings keep them for offline refits of their span), so that the
+        model's size stays bounded over any run."""
+        if self._catching_up or not len(self.window_tm) or not self.model.extended:
+            return
+        gone = self.model.expired(self.window_tm.t_start)
+        if not gone:
+            return
+        kept = [e for e in self.effects if e not in gone]
+        self.change_model(kept, diagnose=False, by="window", removed=gone, decided_at=index)
+
+    def last_segment(self, index: int) -> bool:
+        """Whether segment ``index`` is the run's last (the replayer's plan says how many)."""
+        return self.segments_total is not None and index == self.segments_total - 1
+
+    def no_fit(self, index: int, td: TDIData) -> None:
+        """Segment ``index`` produced no fit: logged when an FFT segment longer than the
+        telemetry segments is still filling (by design, the next fit covers it), a ``no-fit``
+        warning naming the segment and why otherwise."""
+        fft = self.rolling.settings.segment_duration if self.rolling is not None else None
+        seg = td.size / td.fs
+        if fft is not None and fft > seg * 1.001 and not self.last_segment(index):
+            self.log.info("segment %d: FFT segment of %g s still filling, no refit", index, fft)
+            return
+        why = (
+            "the window holds no FFT segment with data yet (the first ones were gaps or left out)"
+            if self.rolling is None or self.rolling.last is None
+            else "its FFT segment could not be completed"
+        )
+        self.warn("no-fit", f"segment {index}: no fit published: {why}", index=index)
 
     def rolling_update(self, header, td: TDIData, tm: Telemetry):
         """Push a segment into the rolling fit (with the rolling model's columns when there
@@ -553,38 +583,12 @@ class Fitter(OrderedStage):
         )
 
     def record_notices(self, index: int, res, meta: dict) -> None:
-        """What the fit of segment ``index`` says beyond its numbers: an FFT segment left out
-        (``meta["excluded"]``; an event for a gate, a warning for an outlier), no convergence,
-        a model that fails against the instrument noise model."""
-        excluded = res.extra.get("excluded")
-        if excluded:
-            meta["excluded"] = excluded
-            if "gate" in excluded:
-                self.event("segment-gated", index=index, message=excluded_message(index, excluded), **excluded)
+        """The events and warnings of the fit of segment ``index`` (:func:`stages.fit_message.notices`)."""
+        for level, kind, message, details in notices(index, res, meta):
+            if level == "event":
+                self.event(kind, index=index, message=message, **details)
             else:
-                self.warn("segment-excluded", excluded_message(index, excluded), index=index, **excluded)
-        if not res.converged:
-            self.warn(
-                "not-converged",
-                f"fit {index} did not converge in {res.iterations} iterations",
-                index=index,
-                iterations=int(res.iterations),
-            )
-        if "adequacy" in meta:
-            self.log.info(
-                "segment %d: model %s, chi2/dof against the instrument noise model %.3f%s",
-                index,
-                ",".join(meta["model"]),
-                meta["adequacy"]["chi2_dof"],
-                " (fails)" if meta["adequacy"]["fails"] else "",
-            )
-            if meta["adequacy"]["fails"]:
-                self.warn(
-                    "model-inadequate",
-                    inadequate_message(index, meta),
-                    index=index,
-                    chi2_dof=meta["adequacy"]["chi2_dof"],
-                )
+                self.warn(kind, message, index=index, **details)
 
 
 def main(argv=None) -> int:

@@ -187,6 +187,14 @@ def diagnosis_meta(
     rec = recommendation_meta(report, effects, effect_modules, command)
     out["recommendation"] = rec
     ok, why = adoptable(rec)
+    if ok and rec is not None and not rec.get("actions") and not adequacy["fails"]:
+        # the model passes the instrument noise model: a candidate "significant" against
+        # hundreds tried (the witness scan picks the best of ~600) is no reason to change it
+        # without a person (a clean simulated day adopted a witness at log B 4.5)
+        ok, why = (
+            False,
+            "the model is adequate (no failing band): an effect is adopted without a person only when it fails",
+        )
     if ok and rec is not None and not rec.get("actions"):
         ok, why = enough_ungated(report, effects, effect_modules, why)
     if ok and rec is not None and rec["effects"] == list(effects):

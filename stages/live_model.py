@@ -68,12 +68,25 @@ class LiveModel:
             raise ValueError("effects: the model must include linear-ttl")
         return [e.spec() for e in effects]
 
-    def change(self, new: list[str], start: int) -> None:
+    def change(self, new: list[str], start: int, *, diagnose: bool = True) -> None:
         """The model ``new`` (validated) from segment ``start`` on: its change is due, its
-        first segment diagnosed."""
+        first segment diagnosed (unless ``diagnose`` is False: a transient that left the
+        window takes nothing new to diagnose)."""
         self.change_due = {"before": list(self.effects), "after": new, "from_index": start}
-        self.diagnose_due = True
+        self.diagnose_due = self.diagnose_due or diagnose
         self.effects = new
+
+    def expired(self, t_start: float) -> list[str]:
+        """The transients of the model (effects with an
+        :meth:`~ttlcore.effects.base.Effect.active_span`: glitches, gates) whose span ends
+        before ``t_start`` [s], the start of the window: nothing in the window informs them
+        any more, and they leave the model (the recordings keep them for offline refits)."""
+        out = []
+        for spec, effect in zip(self.effects, make_effects(self.effects, self.effect_modules), strict=True):
+            span = effect.active_span()
+            if span is not None and span[1] < t_start:
+                out.append(spec)
+        return out
 
     def parse_control(self, payload: bytes) -> list[str]:
         """The model a control message ``{"effects": [...]}`` asks for, validated; ValueError

@@ -115,6 +115,13 @@ class Effect:
         """The regressor columns built from ``data``."""
         raise NotImplementedError
 
+    def active_span(self) -> tuple[float, float] | None:
+        """The mission-time span ``(start, stop)`` [s] outside which the effect's columns
+        vanish (a transient: a glitch, a gate), or None for an effect that acts all the time
+        (a coupling) or whose time is still to be searched.  A live model drops a transient
+        whose span has left its window (docs/diagnostics.md, "A model that lives for weeks")."""
+        return None
+
     def column_names(self) -> list[str]:
         """Names of the columns (without building them), for parsing injection values."""
         t = np.arange(64.0)

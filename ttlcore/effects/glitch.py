@@ -61,6 +61,12 @@ BETA_GRID = tuple(float(x) for x in np.geomspace(2.0, 2000.0, 10))
 GLITCH_PRIOR = 1e-10
 #: Taper [s] of each side of a gate (a cosine, as lisa-gap's smoothed gaps).
 GATE_TAPER = 300.0
+#: How long a glitch's column lasts after its time, in damping times: ``(1 + x) exp(-x)``
+#: is 2e-9 at x = 25, so the velocity has reached its step (which TDI then cancels).
+GLITCH_DAMPING_SPAN = 25.0
+#: Reach [s] of the second-generation TDI around a sample: the nested delays (four round
+#: trips of ~8.3 s) and the interpolation stencil, with margin.
+TDI_REACH = 120.0
 
 
 def gate(n: int, fs: float, t0: float, spans, taper: float = GATE_TAPER) -> np.ndarray:
@@ -191,6 +197,14 @@ class Glitch(Effect):
         parts = [Part(link, factor * v / C, n) for link, n, factor in placement_parts(self.where)]
         return [Column(self.column_name(), parts, "m/s", GLITCH_PRIOR)]
 
+    def active_span(self) -> tuple[float, float] | None:
+        """From the glitch's time to :data:`GLITCH_DAMPING_SPAN` damping times and the TDI's
+        reach after it (None while its time or damping is searched)."""
+        t, beta = self.options.get("t"), self.options.get("beta")
+        if t is None or beta is None:
+            return None
+        return float(t), float(t) + GLITCH_DAMPING_SPAN * float(beta) + TDI_REACH
+
     def describe_text(self) -> str:
         """``"glitch at 2.70 h on tm 12"`` (or ``on link 12``)."""
         w = self.where or "?"
@@ -231,6 +245,12 @@ class Gate(Effect):
 
     def columns(self, data):
         return []
+
+    def active_span(self) -> tuple[float, float]:
+        """The gated span with its tapers."""
+        a, b = self.span
+        taper = float(self.options["taper"])
+        return a - taper, b + taper
 
     def describe_text(self) -> str:
         a, b = self.span

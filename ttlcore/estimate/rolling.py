@@ -258,6 +258,42 @@ class RollingFit:
         self._pending.regressors.append(out[:, 1:])
         self._pending.n += out.shape[-1]
         self._ltt_blocks.append((ltt_seg, td.size))
+        return self._complete_segments()
+
+    def flush(self) -> FitResult | None:
+        """Close the FFT segment in progress at the end of the stream and refit.
+
+        The last telemetry segment of a file is often shorter than the others (a
+        lisainstrument day loses its first samples to the eta reduction), so its samples
+        never complete an FFT segment and no fit would cover it.  The FFT segment in progress
+        is completed with NaN (a gap at its end: masked and tapered like any gap,
+        :func:`ttlcore.estimate.fit.spectra_of_segment`, and left out when less than half of
+        it holds data) and handled as :meth:`push` handles a completed one.  Call it once,
+        after the last segment: the FFT grid does not continue past it.
+
+        Returns
+        -------
+        FitResult or None
+            The fit over the window with that FFT segment; the standing fit flagged
+            (``extra["excluded"]``) when it was left out; None when nothing was pending.
+        """
+        if self._decimator is None or self._pending.n == 0 or self._fs_in is None:
+            return None
+        fs_out = self._fs_in / self._factor
+        pad = int(round(self.settings.segment_duration * fs_out)) - self._pending.n
+        if pad > 0:
+            data, regs = self._pending.data[-1], self._pending.regressors[-1]
+            self._pending.data.append(np.full(data.shape[:-1] + (pad,), np.nan))
+            self._pending.regressors.append(np.full(regs.shape[:-1] + (pad,), np.nan))
+            self._pending.n += pad
+        return self._complete_segments()
+
+    def _complete_segments(self) -> FitResult | None:
+        """Spectra of every FFT segment the pending samples complete, each refitted (or left
+        out); the last result."""
+        s = self.settings
+        assert self._fs_in is not None and self._t0_out is not None  # set with the decimator
+        fs_out = self._fs_in / self._factor
         L = int(round(s.segment_duration * fs_out))
         result = None
         while self._pending.n >= L:
@@ -272,6 +308,10 @@ class RollingFit:
             self._ltt_blocks = []
             if sp is None:
                 log.info("FFT segment at t0=%.1f has less than half valid samples: skipped", t0)
+                self._ltt.pop()  # this segment's light travel times: it is not in the window
+                if self.last is not None:  # the window is unchanged: its fit stands, flagged
+                    gap = {"t_start": float(t0), "t_stop": float(t0 + L / fs_out), "gap": True}
+                    result = replace(self.last, extra={**self.last.extra, "excluded": gap})
                 continue
             outlier = self.gated(sp) or self.outlier(sp)
             if outlier is not None:

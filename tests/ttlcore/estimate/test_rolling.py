@@ -172,3 +172,52 @@ def test_gates_leave_their_hours_out(streamed):
     # the same spectra and weights from a full refit; only the window's mean light travel
     # times differ (the blanked hours' stay in the other's mean): a small fraction of sigma
     assert np.max(np.abs(r_gated.coefficients - r_never.coefficients) / r_never.sigma) < 0.1
+
+
+def test_the_short_last_segment_gets_its_fit(streamed):
+    # The last telemetry segment of a file is often short (a lisainstrument day loses its
+    # first 49 samples to the eta reduction, so its last hour holds 14351 samples): its
+    # samples never complete an FFT segment, and before flush() no fit covered it. Flushed,
+    # the FFT segment is closed with a gap at its end; the result equals the batch fit of the
+    # same data padded with NaN to whole hours (the batch cuts the same segments and masks
+    # the same gap), to the streaming/batch agreement of the day-long test above (1e-4 sigma).
+    from dataclasses import replace
+
+    tm, segments = streamed
+    settings = FitSettings(segment_duration=HOUR)
+    n = 14400 - 49
+    rolling = RollingFit(settings, window_duration=DAY, full_every=None)
+    for td in segments[:6]:
+        assert rolling.push(td) is not None
+    assert rolling.push(segments[6].slice(slice(0, n))) is None  # the FFT segment is not complete
+    flushed = rolling.flush()
+    assert flushed is not None and flushed.n_segments == 7
+    assert rolling.flush() is None  # nothing pending any more
+
+    td = compute_tdi(tm.slice(0, 6 * 14400 + n))
+    pad = np.full(td.data.shape[:-1] + (14400 - n,), np.nan)
+    padded = replace(
+        td,
+        data=np.concatenate([td.data, pad], axis=-1),
+        regressors=np.concatenate([td.regressors, np.full(td.regressors.shape[:-1] + (14400 - n,), np.nan)], axis=-1),
+    )
+    batch, _ = fit_tdi(padded, settings)
+    assert batch.n_segments == 7
+    assert np.max(np.abs(flushed.coefficients - batch.coefficients) / batch.sigma) < 1e-4
+
+
+def test_a_segment_mostly_gap_leaves_the_window_fit_standing(streamed):
+    # An FFT segment less than half valid (a gap in the data) is skipped; the fit of that
+    # segment is the window's fit before it, flagged (extra["excluded"]["gap"]) so that the
+    # stage says so, and it is not counted as an outlier.
+    from dataclasses import replace
+
+    _, segments = streamed
+    rolling = RollingFit(FitSettings(segment_duration=HOUR), window_duration=DAY)
+    before = [rolling.push(td) for td in segments[:7]][-1]
+    holed = segments[7].data.copy()
+    holed[:, : 14400 * 2 // 3] = np.nan
+    r = rolling.push(replace(segments[7], data=holed))
+    assert r is not None and r.extra["excluded"]["gap"] is True
+    assert np.array_equal(r.coefficients, before.coefficients) and r.n_segments == before.n_segments
+    assert rolling.excluded == []

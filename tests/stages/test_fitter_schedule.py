@@ -1,0 +1,62 @@
+"""The live diagnosis' schedule (stages/fitter_schedule.py) and the live model's transients
+leaving it (stages/live_model.py): parts of the fitter with no bus in them."""
+
+from __future__ import annotations
+
+import pytest
+
+from stages.fitter_schedule import SUSTAINED_OUTLIERS, DiagnosisSchedule
+from stages.live_model import LiveModel
+from ttlcore.effects.glitch import GLITCH_DAMPING_SPAN, TDI_REACH
+
+
+def test_a_one_day_file_is_diagnosed_at_half_a_day_and_at_its_end():
+    # default cadence 24 (1-h segments): the first diagnosis at 12 h, so that a model adopted
+    # then is fitted for the rest of the day, then at the end of every day, and the run's
+    # last segment wherever it falls
+    s = DiagnosisSchedule(24)
+    due = [i for i in range(24) if s.due(i, last=i == 23, new_model=False)]
+    assert due == [11, 23]
+    week = [i for i in range(124) if s.due(i, last=i == 123, new_model=False)]
+    assert week == [11, 23, 47, 71, 95, 119, 123]
+    assert s.due(5, last=False, new_model=True)
+    # a short cadence is its own first diagnosis: 3 segments, not one
+    assert [i for i in range(9) if DiagnosisSchedule(3).due(i, last=False, new_model=False)] == [2, 5, 8]
+    assert not any(DiagnosisSchedule(0).due(i, last=True, new_model=True) for i in range(30))
+
+
+def test_a_sustained_excess_brings_the_diagnosis_forward_once():
+    s = DiagnosisSchedule(24)
+    outlier = {"t_start": 0.0, "t_stop": 3600.0, "chi2_dof": 1.5, "reference": 1.0, "z": 40.0}
+    gate = {"t_start": 0.0, "t_stop": 3600.0, "gate": [0.0, 10.0]}
+    assert not s.outlier(outlier) and not s.outlier(outlier)
+    assert not s.outlier(gate)  # a gate ends the run: not an outlier of the data
+    fired = [s.outlier(outlier) for _ in range(2 * SUSTAINED_OUTLIERS)]
+    assert fired == [k == SUSTAINED_OUTLIERS - 1 for k in range(2 * SUSTAINED_OUTLIERS)]
+    assert not s.outlier(None) and s.outlier_run == 0
+
+
+def test_transients_leave_the_model_once_their_span_has_left_the_window():
+    glitch = "glitch:t=36000.0,tm=12,beta=30.0"
+    gate = "gate:start=50000.0,stop=52000.0"
+    model = LiveModel(["linear-ttl", "witness:source=12.phi,link=31,delay=2", glitch, gate])
+    glitch_end = 36000.0 + GLITCH_DAMPING_SPAN * 30.0 + TDI_REACH
+    assert model.expired(36000.0) == []
+    assert model.expired(glitch_end + 1.0) == [model.effects[2]]
+    # the gate with its 300-s tapers; the coupling never leaves
+    assert model.expired(52301.0) == model.effects[2:]
+    assert model.expired(1e9) == model.effects[2:]
+    # a glitch whose time is still to be searched has no span yet
+    assert LiveModel(["linear-ttl", "glitch:tm=12"]).expired(1e9) == []
+
+
+@pytest.mark.parametrize("diagnose", [True, False])
+def test_a_change_that_only_drops_transients_is_not_diagnosed_again(diagnose):
+    model = LiveModel(["linear-ttl", "gate:start=0,stop=10"])
+    model.change(["linear-ttl"], 5, diagnose=diagnose)
+    assert model.change_due == {
+        "before": ["linear-ttl", "gate:start=0.0,stop=10.0"],
+        "after": ["linear-ttl"],
+        "from_index": 5,
+    }
+    assert model.diagnose_due is diagnose
