@@ -77,7 +77,12 @@ class RollingModel:
         extended model whose parameters are all given and whose columns come from the
         telemetry (not the linearised shifts of ``timing-offset`` and ``ltt-error``).  Other
         extended models are refitted on the window every segment."""
-        if self.update != "rolling" or model == ["linear-ttl"]:
+        if self.update != "rolling":
+            return None
+        if model == ["linear-ttl"]:
+            # back to the 24 alone (the transients left the window, or a control message):
+            # no column of the model before may be rebuilt into the new rolling fit
+            self._key, self.effects, self.gates = tuple(model), None, []
             return None
         key = tuple(model)
         if self._key != key:

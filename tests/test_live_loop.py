@@ -272,6 +272,44 @@ def test_rolling_model_agrees_with_the_window_refit(tmp_path):
     assert pull < MAX_PULL_RMS, pull
 
 
+def test_transients_leave_the_model_with_the_window(tmp_path):
+    """A glitch and a gate in the model leave it once their span has left the fit window (a
+    ``model`` event ``by: window`` naming them): the model stays bounded over any run, and
+    the fits after it hold no column of theirs.  Two hours in 30-min segments with a 1-h
+    window: the gate (10-20 min, with its 5-min tapers) and the glitch (15 min, damping 10 s:
+    gone 6 min later with the TDI's reach) are out of the window once it starts at 30 min,
+    after segment 2, so the model is linear-ttl from segment 3 on.  Segment 0, gated, gets
+    no fit, and a ``no-fit`` warning says so."""
+    data, _ = simulate(tmp_path, "2h", 4)
+    glitch, gate = "glitch:t=900.0,tm=12,beta=10.0", "gate:start=600.0,stop=1200.0"
+    code, out, run_dir = live_run(
+        tmp_path,
+        data,
+        "expire",
+        "--segment",
+        "30min",
+        "--fit-window",
+        "1h",
+        "--adopt",
+        "never",
+        "--effects",
+        ",".join(["linear-ttl", glitch.replace(",", ";"), gate.replace(",", ";")]),
+        timeout=600,
+    )
+    assert code == 0, out[-4000:]
+    fits = fits_of(run_dir)
+    # segment 0 lies under the gate: no FFT segment with data yet, said by a no-fit warning
+    assert sorted(fits) == [1, 2, 3]
+    warnings = [w for w in read_recording(run_dir / "fitter.mcap").json("warnings") if w.get("kind") == "no-fit"]
+    assert [w["index"] for w in warnings] == [0], warnings
+    models = {i: fit.header.meta["model"] for i, fit in fits.items()}
+    assert models[2] == ["linear-ttl", glitch, gate] and models[3] == ["linear-ttl"], models
+    (event,) = model_events(run_dir)
+    d = event["details"]
+    assert d["by"] == "window" and d["removed"] == [glitch, gate] and d["from_index"] == 3, d
+    assert "model_parts" not in fits[3].header.meta or not fits[3].header.meta["model_parts"]
+
+
 # ---------------------------------------------------------------------------- a day, blind
 
 
