@@ -153,7 +153,7 @@ def _add_run(sub) -> None:
         "--diagnose-every",
         type=int,
         metavar="N",
-        help="fitter: diagnose the window every N segments (default 24) and after every model change",
+        help="fitter: diagnose the window every N segments (default 24; the first time at N/2 when that is 6 or more), after every model change, on a sustained excess and on the last segment",
     )
     p.add_argument(
         "--model-update",

@@ -425,6 +425,55 @@ EXTENDED = (
 )
 
 
+@pytest.mark.science
+@pytest.mark.timeout(DAY_TIMEOUT)
+def test_default_cadence_fixes_a_lisainstrument_day(tmp_path):
+    """Issue 31's acceptance: ``ttl run --adopt auto`` at the default cadence on a one-day
+    lisainstrument file with a missing coupling (the blind generator's seed 25, a delayed
+    witness outside the named set, added to one link's eta by code of the test's own) gets
+    24 of 24 fits (the last segment holds 14351 samples: lisainstrument's first 49 go to the
+    eta reduction), adopts the coupling at its half-day diagnosis, subtracts it for the rest
+    of the day, and raises no alert (the truth has no step or drift)."""
+    from dataclasses import replace
+
+    from lisainstrument_sim import simulate_lisainstrument
+    from test_diagnose_blind import blind_case
+    from test_diagnose_blind_lisainstrument import injected_eta, scaled_to_a_random_level
+
+    from ttlcore.conventions import COEFFICIENT_NAMES
+    from ttlcore.io.lisainstrument import lisainstrument_truth
+    from ttlcore.io.telemetry import write_telemetry
+
+    li = tmp_path / "li.h5"
+    simulate_lisainstrument(li, duration=86400, orbits="keplerian", seed=8)
+    truth = lisainstrument_truth(li)
+    c_true = np.array([truth[n] for n in COEFFICIENT_NAMES])
+    tm = read_telemetry(li)
+    seed = 25
+    extra = scaled_to_a_random_level(tm, injected_eta(tm, blind_case(seed)), seed)
+    data = write_telemetry(tmp_path / "day.h5", replace(tm, eta=tm.eta + extra, source="memory"))
+    code, out, run_dir = live_run(tmp_path, data, "li", "--adopt", "auto", monitor=True)
+    assert code == 0, out[-4000:]
+    fits = fits_of(run_dir)
+    assert sorted(fits) == list(range(24)), sorted(fits)
+    (event,) = [e for e in model_events(run_dir) if e["details"]["by"] == "adopt auto"]
+    assert event["details"]["from_index"] <= 12, event
+    last = fits[23]
+    assert last.header.meta["model"] == event["details"]["effects"]
+    err = last.arrays["coefficients"] - c_true
+    pull = float(np.sqrt(np.mean((err / last.arrays["sigma"]) ** 2)))
+    print(
+        f"lisainstrument day, seed {seed}: adopted {event['details']['effects']} from segment "
+        f"{event['details']['from_index']}; last fit {np.max(np.abs(err)) * 1e3:.4f} mm/rad, pull RMS {pull:.2f}"
+    )
+    assert np.max(np.abs(err)) < MAX_ERROR and pull < MAX_PULL_RMS, (np.max(np.abs(err)), pull)
+    residuals = residuals_of(run_dir)
+    assert sorted(residuals) == list(range(24))
+    assert residuals[23].header.meta["effects"] == [e for e in last.header.meta["model"] if e != "linear-ttl"]
+    alerts = read_recording(run_dir / "monitor.mcap").json("alerts")
+    assert alerts == [], alerts
+
+
 @pytest.fixture(scope="module")
 def extended_day(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("extended")
