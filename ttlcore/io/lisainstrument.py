@@ -694,8 +694,10 @@ def gap_reach(mprs, fs: float, order: int) -> tuple[int, int]:
     delay later, widened by the interpolation stencil.  Together with the undelayed terms
     (the gap itself), the gap in the eta grows by ``ceil(d fs) + (order - 1)/2`` samples after
     its end (49 at 4 Hz, 8.3 s delays and order 31: 12.25 s) and by
-    ``max(0, (order + 1)/2 - ceil(d fs))`` before its start (none for LISA's delays).
-    Returns the largest over the links and the file (``mprs``: link -> delays [s]).
+    ``max(0, (order + 1)/2 - ceil(d fs))`` before its start (none for LISA's delays).  A
+    gap shorter than ``ceil(d fs) - (order + 1)/2`` samples (18, 4.5 s) leaves two pieces:
+    itself and its delayed image.  Returns the largest over the links and the file
+    (``mprs``: link -> delays [s]).
     """
     dmax = max(float(np.max(d)) for d in mprs.values())
     dmin = min(float(np.min(d)) for d in mprs.values())
