@@ -11,7 +11,56 @@ from .report import to_stdout, write_report
 
 
 def _rms(x: np.ndarray) -> list[float]:
-    return [float(v) for v in np.sqrt(np.mean(np.square(x), axis=-1))]
+    """RMS of each row over its finite samples (NaN is a gap; NaN if a row has none)."""
+    finite = np.isfinite(x)
+    count = finite.sum(axis=-1)
+    total = np.where(finite, np.square(np.where(finite, x, 0.0)), 0.0).sum(axis=-1)
+    return [float(np.sqrt(t / c)) if c else float("nan") for t, c in zip(total, count)]
+
+
+#: Gap spans printed by ``ttl info`` (all of them are in ``--json``).
+SHOWN_SPANS = 8
+
+
+def gaps(tm) -> dict:
+    """The gaps of telemetry ``tm``: samples where an eta or DWS value is missing (NaN), and
+    their spans, ``[start, stop)`` in samples and in mission time [s]."""
+    missing = tm.missing()
+    stretches = tm.nan_stretches()
+    return {
+        "samples_missing": int(missing.sum()),
+        "seconds_missing": float(missing.sum() / tm.fs),
+        "fraction_missing": float(missing.mean()) if missing.size else 0.0,
+        "stretches": stretches,
+        "spans_s": [[tm.t0 + a / tm.fs, tm.t0 + b / tm.fs] for a, b in stretches],
+    }
+
+
+def _gap_lines(s: dict) -> list[str]:
+    g = s["gaps"]
+    if not g["samples_missing"]:
+        return ["  gaps: none"]
+    spans = ", ".join(f"{a:.2f}-{b:.2f}" for a, b in g["spans_s"][:SHOWN_SPANS])
+    more = len(g["spans_s"]) - SHOWN_SPANS
+    lines = [
+        f"  gaps: {g['samples_missing']} samples missing (NaN; {g['seconds_missing']:g} s, "
+        f"{100 * g['fraction_missing']:.2f} %) in {len(g['spans_s'])} span(s) [s]: {spans}"
+        + (f" and {more} more (--json lists them)" if more > 0 else "")
+    ]
+    file_gaps = s["config"].get("gaps") if s["kind"] == "lisainstrument" else None
+    if file_gaps and file_gaps.get("datasets"):
+        nan = file_gaps["datasets"]
+        lines.append(
+            f"  in the file: NaN in {len(nan)} dataset(s) ({sum(d['samples_missing'] for d in nan.values())} samples); "
+            f"a beat-note gap reaches {file_gaps['reach_after_s']:g} s further in eta (delay and interpolation), "
+            f"an MPR gap {file_gaps['mpr_reach_s']:g} s each side"
+            + (
+                f"; MPRs interpolated across their gaps: {len(file_gaps['mprs_interpolated'])}"
+                if file_gaps.get("mprs_interpolated")
+                else ""
+            )
+        )
+    return lines
 
 
 def summarise(path) -> dict:
@@ -49,6 +98,7 @@ def summarise(path) -> dict:
         "dws_eta_rms_rad_per_s": dict(zip(LINKS, _rms(tm.dws_eta))),
         "ltt_min_s": dict(zip(LINKS, np.min(tm.ltt, axis=1).tolist())),
         "ltt_max_s": dict(zip(LINKS, np.max(tm.ltt, axis=1).tolist())),
+        "gaps": gaps(tm),
         "config": tm.config,
     }
     tp = truth_path(path)
@@ -82,5 +132,7 @@ def run(args) -> int:
             f"  {link}   {s['eta_rms'][link]:.3e}     {s['dws_phi_rms_rad_per_s'][link]:.3e}             "
             f"{s['dws_eta_rms_rad_per_s'][link]:.3e}             {s['ltt_min_s'][link]:.6f} .. {s['ltt_max_s'][link]:.6f}"
         )
+    for line in _gap_lines(s):
+        print(line)
     print(f"  truth file: {s['truth_file'] or 'none beside it'}")
     return 0

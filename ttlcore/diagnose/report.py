@@ -127,7 +127,7 @@ def excess_description(report: dict) -> str:
     failing = [s for s in report["adequacy"].get("summary", []) if s.startswith("fails between")]
     where = failing[0] if failing else "no band fails"
     q = tr.get("quiet") or {}
-    if verdict.get("signal") and q.get("fails"):  # in every hour, T nearly empty
+    if cls == "gravitational-wave" and q.get("fails"):  # in every hour, T nearly empty (a gap's may fail too)
         return (
             f"the excess is a long-lived gravitational-wave-like signal, not a missing effect: in every hour "
             f"(outside any transient chi2/dof {q.get('chi2_dof', float('nan')):.3f}), {where}, T carrying "

@@ -58,7 +58,27 @@ Leading samples: a delayed term at sample ``k`` needs the beat notes at
 and order 31).  pytdi zero-pads the data there (``pytdi.dsp.timeshift`` uses ``np.pad`` with
 zeros), so its first samples are finite but wrong.  We evaluate them as NaN instead and
 **drop** them (and any trailing ones, none in practice) from every series, moving ``t0``
-forward accordingly; the number dropped is ``config["dropped_leading_samples"]``.
+forward accordingly; the number dropped is ``config["dropped_leading_samples"]``.  They are
+found from the delays alone (where the stencil of ``D_ij`` leaves the file), so that a gap at
+the start of the file stays a gap and does not move ``t0``.
+
+Gaps: NaN in a dataset is missing data (lisa-gap's masks with ``treat_as_nan=True`` multiply
+the series by NaN over a gap), read as a gap in the telemetry, as our own files are
+(:meth:`~ttlcore.io.telemetry.Telemetry.missing`); an infinity stays an error naming the dataset.
+
+- A NaN beat-note sample makes NaN every eta sample that depends on it: an undelayed term at
+  the same sample, a delayed one wherever its interpolation stencil covers the sample, that
+  is one delay later, widened by the stencil.  A gap ``[a, b)`` in every beat note is
+  therefore missing from ``eta`` over ``[a, b + ceil(d fs) + (order - 1)/2)``: it grows by
+  the delay (~8.3 s) plus the interpolation half-stencil, 49 samples (12.25 s) at 4 Hz with
+  order 31 (:func:`gap_reach`).
+- A NaN DWS sample is NaN in the DWS readout, no more.
+- A NaN MPR sample is filled for the light travel times, which must stay finite (the MPRs
+  are smooth: linear interpolation across the gap), and ``eta_ij`` is NaN where its delay
+  or Doppler factor reads the missing sample (the MPR's gap and one sample each side).
+- The gaps are recorded in ``config["gaps"]``: the telemetry's missing samples and their
+  spans [s], how far a gap spreads, and the NaN of each dataset of the file; a file with no
+  complete sample at all is refused.
 
 Conventions verified in lisainstrument 2.3's source (``instru/instru_model.py``,
 ``instru/instru_formulas.py``):
@@ -139,6 +159,8 @@ ETA_TERMS: dict[str, tuple[tuple[tuple[str, float], ...], tuple[tuple[str, float
 
 #: Output samples evaluated per interpolation block (bounds memory for long files).
 _BLOCK = 1 << 16
+#: At most this many spans are listed per entry of ``config["gaps"]`` (the count is always whole).
+MAX_LISTED_SPANS = 1000
 
 
 # ---------------------------------------------------------------------------
@@ -272,6 +294,7 @@ class _DatasetReader:
         self.f = f
         self.size = size
         self.range: tuple[int, int] | None = None  # (index_start, index_stop) shared by all
+        self.missing: dict[str, np.ndarray] = {}  # dataset -> where its samples are NaN (gaps)
 
     def read(self, group: str, mosa: str) -> np.ndarray:
         name = f"{group}/{mosa}"
@@ -297,9 +320,12 @@ class _DatasetReader:
             raise TelemetryError(self.path, f"cannot read data ({exc}); truncated file?", name) from None
         if data.shape == ():
             data = np.full(self.size, float(data))
-        finite = np.isfinite(data)
-        if not finite.all():
-            raise TelemetryError(self.path, f"non-finite values (first at sample {int(np.argmin(finite))})", name)
+        infinite = np.isinf(data)
+        if infinite.any():
+            raise TelemetryError(self.path, f"infinite values (first at sample {int(np.argmax(infinite))})", name)
+        missing = np.isnan(data)
+        if missing.any():  # a gap in the data (lisa-gap's treat_as_nan): no sample there
+            self.missing[name] = missing
         if self.range is None:
             self.range = rng
         elif rng != self.range:
@@ -348,6 +374,48 @@ def _delayed(x: np.ndarray, shift: np.ndarray, order: int) -> np.ndarray:
     return out
 
 
+def _stencil_inside(d: np.ndarray, fs: float, order: int) -> np.ndarray:
+    """Where the stencil of ``D_ij`` (delay ``d`` [s]) lies inside the file's samples.
+
+    The same test as :func:`~ttlcore.tdi.interpolation.apply_taps`: sample ``k`` reads
+    ``x[base_k .. base_k + order]`` with ``base_k = k + floor(-d[k] fs) - (order - 1)/2``.
+    """
+    n = d.size
+    base = np.arange(n, dtype=np.int64) + np.floor(-d * fs).astype(np.int64) - (order - 1) // 2
+    return (base >= 0) & (base + order + 1 <= n)
+
+
+def _stretches(mask: np.ndarray) -> list[list[int]]:
+    """Sample ranges ``[start, stop)`` where ``mask`` is true."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], mask.astype(np.int8), [0]])))
+    return [[int(a), int(b)] for a, b in zip(edges[::2], edges[1::2])]
+
+
+def _grown(mask: np.ndarray, before: int, after: int) -> np.ndarray:
+    """``mask`` with every true stretch extended by ``before`` and ``after`` samples."""
+    out = mask.copy()
+    for a, b in _stretches(mask):
+        out[max(a - before, 0) : b + after] = True
+    return out
+
+
+def _fill_mpr(path: Path, name: str, d: np.ndarray, missing: np.ndarray) -> np.ndarray:
+    """The MPR ``d`` with its missing samples interpolated linearly from the valid ones.
+
+    MPRs vary smoothly (the arm lengths change by metres per second over 2.5 Gm): across a
+    gap of an hour a straight line misses the true delay by well under a nanosecond (the
+    second derivative is ~1e-13 s/s^2), so the light travel times stay finite and usable;
+    the eta samples that read the missing MPR are marked missing by the caller.
+    """
+    good = ~missing
+    if not good.any():
+        raise TelemetryError(path, "no valid sample (all NaN): the delays cannot be interpolated", name)
+    k = np.arange(d.size)
+    out = d.copy()
+    out[missing] = np.interp(k[missing], k[good], d[good])
+    return out
+
+
 def compute_etas_hz(
     beatnotes: dict[str, np.ndarray], mprs: dict[str, np.ndarray], fs: float, order: int = 31
 ) -> np.ndarray:
@@ -368,7 +436,9 @@ def compute_etas_hz(
     -------
     ndarray, shape (6, n)
         In :data:`~ttlcore.conventions.LINKS` order; NaN where a delayed term needs data
-        before the first sample (or after the last).
+        before the first sample (or after the last), and where a term reads a NaN beat-note
+        sample (a gap): an undelayed term at that sample, the delayed term wherever its
+        interpolation stencil covers it.  The MPRs must be finite.
     """
     order = _check_order(order, "order")
     n = next(iter(mprs.values())).shape[-1]
@@ -449,7 +519,7 @@ def _ttl_flat(md: dict) -> dict[str, float] | None:
     return {name: flat[name] for name in COEFFICIENT_NAMES}
 
 
-def _config(f: h5py.File, md: dict, *, t0, fs, size, nu0, order, delay_order, dropped, trailing) -> dict:
+def _config(f: h5py.File, md: dict, *, t0, fs, size, nu0, order, delay_order, dropped, trailing, gaps) -> dict:
     version = _str_attr(f, "version")
     return {
         "source_format": "lisainstrument",
@@ -475,6 +545,7 @@ def _config(f: h5py.File, md: dict, *, t0, fs, size, nu0, order, delay_order, dr
         "delay_order": delay_order,
         "dropped_leading_samples": dropped,
         "dropped_trailing_samples": trailing,
+        "gaps": gaps,
         # everything else the file says, except the long anti-aliasing filter taps
         "lisainstrument_metadata": {k: v for k, v in md.items() if k != "aafilter_coeffs"},
     }
@@ -498,7 +569,10 @@ def read_lisainstrument(path, *, order: int = 31, delay_order: int = 5):
     -------
     Telemetry
         ``eta`` in fractional frequency (Hz / ``central_freq``), DWS readouts in rad/s,
-        ``ltt`` = the MPRs in s, ``t0`` moved past the dropped leading samples.
+        ``ltt`` = the MPRs in s, ``t0`` moved past the dropped leading samples.  NaN in the
+        file is a gap: NaN in the eta samples that depend on it (spread by the delay and
+        the interpolation stencil) and in the DWS, MPRs interpolated across; the gaps are
+        in ``config["gaps"]`` (module docstring).
 
     Raises
     ------
@@ -535,33 +609,55 @@ def read_lisainstrument(path, *, order: int = 31, delay_order: int = 5):
         for ifo, group in BEATNOTE_DATASETS.items():
             for mosa in MOSAS:
                 beatnotes[f"{ifo}_{mosa}"] = reader.read(group, mosa)
-        mprs = {mosa: reader.read(MPR_DATASET, mosa) for mosa in MOSAS}
-        for mosa, d in mprs.items():
+        raw_mprs = {mosa: reader.read(MPR_DATASET, mosa) for mosa in MOSAS}
+        mprs = {}
+        for mosa, d in raw_mprs.items():
+            name = f"{MPR_DATASET}/{mosa}"
+            if name in reader.missing:
+                d = _fill_mpr(path, name, d, reader.missing[name])
             if np.any(d <= 0):
                 raise TelemetryError(
-                    path,
-                    f"measured pseudo-ranges must be positive delays [s], found min {d.min():g}",
-                    f"{MPR_DATASET}/{mosa}",
+                    path, f"measured pseudo-ranges must be positive delays [s], found min {d.min():g}", name
                 )
+            mprs[mosa] = d
         dws_phi = np.stack([reader.read(DWS_PHI_DATASET, mosa) for mosa in MOSAS])
         dws_eta = np.stack([reader.read(DWS_ETA_DATASET, mosa) for mosa in MOSAS])
         index_start = reader.range[0] if reader.range else 0
-        eta_hz = compute_etas_hz(beatnotes, mprs, fs, order)
-        valid = np.isfinite(eta_hz).all(axis=0)
-        if not valid.any():
+        # the leading (and trailing) samples whose delayed terms reach beyond the file, from
+        # the delays alone: a gap at the start of the file does not move t0
+        inside = np.all([_stencil_inside(mprs[link], fs, order) for link in LINKS], axis=0)
+        if not inside.any():
             raise TelemetryError(
                 path,
                 f"too short for the eta reduction: no sample has its delayed terms (delays {max(d.max() for d in mprs.values()):.3g} s, order {order})",
                 MPR_DATASET,
             )
-        first = int(np.argmax(valid))
-        last = size - int(np.argmax(valid[::-1]))  # one past the last valid sample
-        if not valid[first:last].all():
-            bad = first + int(np.argmin(valid[first:last]))
+        first = int(np.argmax(inside))
+        last = size - int(np.argmax(inside[::-1]))  # one past the last valid sample
+        if not inside[first:last].all():
+            bad = first + int(np.argmin(inside[first:last]))
             raise TelemetryError(
                 path, f"eta reduction undefined inside the data (sample {bad}); delays jump?", MPR_DATASET
             )
+        eta_hz = compute_etas_hz(beatnotes, mprs, fs, order)
+        for row, link in enumerate(LINKS):
+            # the delay of D_ij at sample k is d_ij[k] and its Doppler factor the centred
+            # gradient of d_ij: a missing MPR sample takes eta_ij at k - 1 .. k + 1
+            missing_mpr = reader.missing.get(f"{MPR_DATASET}/{link}")
+            if missing_mpr is not None:
+                eta_hz[row, _grown(missing_mpr, 1, 1)] = np.nan
         t0_file = t0 + index_start / fs
+        sl = slice(first, last)
+        eta, dws_phi, dws_eta = eta_hz[:, sl] / nu0, dws_phi[:, sl], dws_eta[:, sl]
+        missing = ~(np.isfinite(eta).all(axis=0) & np.isfinite(dws_phi).all(axis=0) & np.isfinite(dws_eta).all(axis=0))
+        if missing.all():
+            named = ", ".join(sorted(reader.missing)[:3]) + (", ..." if len(reader.missing) > 3 else "")
+            raise TelemetryError(
+                path,
+                f"no valid sample: every sample of the {last - first} misses an eta or DWS value (NaN in {named})",
+                next(iter(sorted(reader.missing)), None),
+            )
+        gaps = _gap_record(reader.missing, missing, mprs, t0_file=t0_file, first=first, fs=fs, order=order)
         config = _config(
             f,
             meta.data,
@@ -573,19 +669,70 @@ def read_lisainstrument(path, *, order: int = 31, delay_order: int = 5):
             delay_order=delay_order,
             dropped=first,
             trailing=size - last,
+            gaps=gaps,
         )
-    sl = slice(first, last)
     ltt = np.stack([mprs[m] for m in LINKS])
     return Telemetry(
         t0=t0_file + first / fs,
         fs=fs,
-        eta=eta_hz[:, sl] / nu0,
-        dws_phi=dws_phi[:, sl],
-        dws_eta=dws_eta[:, sl],
+        eta=eta,
+        dws_phi=dws_phi,
+        dws_eta=dws_eta,
         ltt=ltt[:, sl],
         config=config,
         source=str(path),
     )
+
+
+def gap_reach(mprs, fs: float, order: int) -> tuple[int, int]:
+    """How far a gap in a beat note spreads in ``eta`` [samples before, after it].
+
+    The delayed term of ``eta_ij`` at sample ``k`` reads the beat notes at
+    ``k + floor(-d_ij fs) - (order - 1)/2 .. k + floor(-d_ij fs) + (order + 1)/2``, so a gap
+    ``[a, b)`` of a delayed beat note takes ``eta_ij`` over
+    ``[a + ceil(d fs) - (order + 1)/2, b + ceil(d fs) + (order - 1)/2)``: its image one
+    delay later, widened by the interpolation stencil.  Together with the undelayed terms
+    (the gap itself), the gap in the eta grows by ``ceil(d fs) + (order - 1)/2`` samples after
+    its end (49 at 4 Hz, 8.3 s delays and order 31: 12.25 s) and by
+    ``max(0, (order + 1)/2 - ceil(d fs))`` before its start (none for LISA's delays).  A
+    gap shorter than ``ceil(d fs) - (order + 1)/2`` samples (18, 4.5 s) leaves two pieces:
+    itself and its delayed image.  Returns the largest over the links and the file
+    (``mprs``: link -> delays [s]).
+    """
+    dmax = max(float(np.max(d)) for d in mprs.values())
+    dmin = min(float(np.min(d)) for d in mprs.values())
+    after = math.ceil(dmax * fs) + (order - 1) // 2
+    before = max(0, (order + 1) // 2 - math.ceil(dmin * fs))
+    return before, after
+
+
+def _spans_s(stretches: list[list[int]], t0: float, fs: float) -> dict:
+    """``spans_s`` (mission times [start, stop) of the sample ranges) and how many were left off."""
+    spans = [[t0 + a / fs, t0 + b / fs] for a, b in stretches[:MAX_LISTED_SPANS]]
+    return {"spans_s": spans, "spans_left_off": max(0, len(stretches) - MAX_LISTED_SPANS)}
+
+
+def _gap_record(file_missing: dict, missing: np.ndarray, mprs: dict, *, t0_file, first, fs, order) -> dict:
+    """``config["gaps"]``: the gaps of the telemetry and the NaN of the file they come from."""
+    t0 = t0_file + first / fs
+    before, after = gap_reach(mprs, fs, order)
+    return {
+        # the telemetry returned: samples where an eta or DWS value is missing
+        "samples_missing": int(missing.sum()),
+        "seconds_missing": float(missing.sum() / fs),
+        **_spans_s(_stretches(missing), t0, fs),
+        # how far a gap of a beat note spreads in eta, and that of an MPR (the Doppler
+        # factor's centred gradient: one sample each side)
+        "reach_before_s": before / fs,
+        "reach_after_s": after / fs,
+        "mpr_reach_s": 1 / fs,
+        # the file: NaN per dataset, over all its samples (the dropped leading ones included)
+        "datasets": {
+            name: {"samples_missing": int(m.sum()), **_spans_s(_stretches(m), t0_file, fs)}
+            for name, m in sorted(file_missing.items())
+        },
+        "mprs_interpolated": sorted(name for name in file_missing if name.startswith(f"{MPR_DATASET}/")),
+    }
 
 
 def lisainstrument_truth(path) -> dict[str, float]:

@@ -113,3 +113,56 @@ def test_wrong_sampling_attribute(hour_file, tmp_path):
         f.attrs["fs"] = -4.0
     r = ttl("info", bad)
     assert r.returncode == 2 and "@fs" in r.stderr
+
+
+def test_info_and_analyze_report_the_gaps_of_a_lisainstrument_file(hour_file, tmp_path):
+    """A lisainstrument file with a lisa-gap gap (NaN in every series over 3 min): ``ttl info``
+    lists the gap, ours as well; ``ttl analyze`` fits around it and reports the same gap."""
+    import json
+
+    import blind_signals as bs
+    from lisainstrument_sim import simulate_lisainstrument
+
+    from ttlcore.conventions import MOSAS
+    from ttlcore.io.lisainstrument import BEATNOTE_DATASETS, DWS_ETA_DATASET, DWS_PHI_DATASET, MPR_DATASET
+
+    path = tmp_path / "li.h5"
+    simulate_lisainstrument(path, duration=1800, orbits="static", seed=7)
+    with h5py.File(path, "r+") as f:
+        md = json.loads(f.attrs["metadata_json"])
+        t = md["t0"] + np.arange(md["size"]) / md["fs"]
+        mask = bs.gap_mask(t, n_gaps_per_day=2 * 86400 / 1800, duration_hr=3 / 60, seed=5)  # one, mid-file
+        for group in (*BEATNOTE_DATASETS.values(), MPR_DATASET, DWS_PHI_DATASET, DWS_ETA_DATASET):
+            for m in MOSAS:
+                f[f"{group}/{m}"][...] = f[f"{group}/{m}"][()] * mask
+    t_nan = t[np.isnan(mask)]
+    assert t_nan.size == 720
+
+    r = ttl("info", path)
+    assert r.returncode == 0, r.stderr
+    assert "lisainstrument file" in r.stdout and "in 1 span(s)" in r.stdout, r.stdout
+    assert "reaches 12.25 s further in eta" in r.stdout and "nan" not in r.stdout.split("ltt [s]")[1].split("gaps")[0]
+    r = ttl("info", "--json", "-", path)
+    assert r.returncode == 0, r.stderr
+    gaps = json.loads(r.stdout)["gaps"]
+    # the gap, one MPR sample before it (Doppler factor) and 12.25 s after it (delay + stencil)
+    ((a, b),) = gaps["spans_s"]
+    assert a == t_nan[0] - 0.25 and b == t_nan[-1] + 0.25 + 12.25
+    assert gaps["samples_missing"] == 720 + 1 + 49
+
+    out = tmp_path / "fit"
+    r = ttl("analyze", path, "--truth", path, "--segment", 600, "--out", out)
+    assert r.returncode == 0, r.stderr
+    assert "gaps: 770 telemetry samples missing (NaN) in 1 stretch(es)" in r.stderr, r.stderr
+    js = json.loads((out / "fit.json").read_text())
+    assert js["data_loss"]["stretches"] == gaps["stretches"]
+    assert np.isfinite(js["chi2_dof"]) and all(np.isfinite(v) for v in js["coefficients"].values())
+
+    # our own files: the same report
+    ours = _copy(hour_file, tmp_path / "ours.h5")
+    with h5py.File(ours, "a") as f:
+        f["eta"][:, 4000:4400] = np.nan
+    r = ttl("info", "--json", "-", ours)
+    assert r.returncode == 0, r.stderr
+    assert json.loads(r.stdout)["gaps"]["stretches"] == [[4000, 4400]]
+    assert "gaps: none" in ttl("info", hour_file).stdout

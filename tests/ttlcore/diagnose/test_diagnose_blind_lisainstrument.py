@@ -144,3 +144,56 @@ def test_lisainstrument_null_day_fails_nothing_and_recommends_nothing(lisainstru
     assert not any(c["significant"] for c in rep["candidates"]), [c["effect"] for c in rep["candidates"][:3]]
     assert rep["recommendation"] is None
     check_against_truth(rep, truth)
+
+
+def test_lisainstrument_day_with_gaps_has_them_gated_and_no_effect_advised(lisainstrument_day, tmp_path):
+    """The untouched lisainstrument day with lisa-gap gaps (NaN in every beat note, MPR and DWS
+    series of the file, ``treat_as_nan=True``: missing data), read by ``ttl diagnose`` from
+    the lisainstrument file itself (issue 31).  The gaps are found as missing data and gated
+    (the hard-edged holes pull the first linear fit), the advice adds gates and nothing else,
+    and the model it leads to passes with lisainstrument's coefficients."""
+    import shutil
+
+    import blind_signals as bs
+    import h5py
+
+    from ttlcore.cli.diagnose import split_effects
+    from ttlcore.conventions import MOSAS
+    from ttlcore.io.lisainstrument import BEATNOTE_DATASETS, DWS_ETA_DATASET, DWS_PHI_DATASET, MPR_DATASET
+
+    _, truth, clean = lisainstrument_day
+    path = tmp_path / "li-gaps.h5"
+    shutil.copyfile(clean, path)
+    with h5py.File(path, "r+") as f:
+        md = json.loads(f.attrs["metadata_json"])
+        t = md["t0"] + np.arange(md["size"]) / md["fs"]
+        mask = bs.gap_mask(t, n_gaps_per_day=3.0, duration_hr=0.5, seed=301)  # NaN: missing data
+        for group in (*BEATNOTE_DATASETS.values(), MPR_DATASET, DWS_PHI_DATASET, DWS_ETA_DATASET):
+            for m in MOSAS:
+                f[f"{group}/{m}"][...] = f[f"{group}/{m}"][()] * mask
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], np.isnan(mask).astype(np.int8), [0]])))
+    injected = [(t[a], t[b - 1]) for a, b in zip(edges[::2], edges[1::2])]
+    assert len(injected) == 2, injected  # at ~8 h and ~16 h, 30 min each
+
+    reports = follow_advice(path, tmp_path)
+    first, last = reports[0], reports[-1]
+    summary = [r["recommendation"] and r["recommendation"]["message"] for r in reports]
+    # the gaps as missing data (spread by the reduction's 12.25 s and the TDI's nested delays)
+    found = first["transients"]["gaps"]
+    for a, b in injected:
+        assert any(lo <= a + 60 and hi >= b - 60 for lo, hi in found), (injected, found)
+    # a gap day (the quiet tiles of a lisainstrument day read 1.04 even without gaps: the
+    # model with the gaps gated passes), gated, and nothing else advised
+    assert first["transients"]["classification"]["class"] == "gap", first["transients"]["classification"]
+    rec = first["recommendation"]
+    assert rec is not None and rec["effect"] == "gate" and rec["excess_class"] == "gap", summary
+    gates = [x for x in rec["actions"] if x["kind"] == "gate"]
+    for a, b in injected:
+        assert any(g["start"] <= a + 60 and g["stop"] >= b - 60 for g in gates), (injected, gates)
+    for rep in reports[:-1]:
+        added = split_effects(shlex.split(rep["recommendation"]["option"])[1])
+        assert all(e == "linear-ttl" or e.startswith("gate:") for e in added), added
+    assert last["recommendation"] is None, summary
+    assert len(reports) == 2, summary
+    assert not any(c["significant"] for c in last["candidates"]), [c["effect"] for c in last["candidates"][:3]]
+    check_against_truth(last, truth)

@@ -375,3 +375,25 @@ def test_excess_classification_rules():
     assert v["class"] == "gravitational-wave" and v["signal"]
     v = X.excess_classification(ad, [], quiet_ok, gaps=[(3600.0, 5400.0)])
     assert v["class"] == "gap" and v["signal"]
+
+
+def test_a_gap_is_a_gap_when_the_model_with_it_gated_passes():
+    """Quiet tiles read on the model with the gaps gated may fail where that model's own
+    adequacy passes (900-s tiles of a lisainstrument day: 1.040 against 1.000, gaps or not):
+    the day is a gap day; it is not when the gated model fails too (something beside the gap)."""
+    from ttlcore.diagnose.report import excess_description
+
+    ad = {"adequacy": {"fails": True, "summary": ["fails between 3 mHz and 0.8 Hz in A, E, T"]}}
+    gaps = [(28800.0, 30700.0)]
+    quiet = {"chi2_dof": 1.041, "hours": 21.8, "fails": True, "t_share": 0.35, "t_share_expected": 0.015}
+    quiet |= {"gated": True, "gated_model_fails": False, "gated_model_chi2_dof": 1.001}
+    v = X.excess_classification(ad, [], quiet, gaps=gaps)
+    assert v["class"] == "gap" and v["signal"], v
+    assert "gated, the model passes (chi2/dof 1.001)" in v["evidence"][-1]
+    report = {**ad, "transients": {"classification": v, "quiet": quiet, "events": [], "gaps": [list(g) for g in gaps]}}
+    text = excess_description(report)
+    assert "gap" in text and "gravitational" not in text, text
+    v = X.excess_classification(ad, [], {**quiet, "gated_model_fails": True}, gaps=gaps)
+    assert v["class"] == "stationary-excess" and not v["signal"], v
+    v = X.excess_classification(ad, [], {**quiet, "gated": False}, gaps=gaps)
+    assert v["class"] != "gap", v

@@ -352,11 +352,12 @@ def test_wrong_shape_and_non_finite_data_are_named(li_file, tmp_path):
         read_lisainstrument(bad)
     assert err.value.dataset == name
 
-    bad = _copy(li_file, tmp_path, "nan.h5")
+    # NaN is a gap (tests/ttlcore/io/test_lisainstrument_gaps.py); an infinity is an error
+    bad = _copy(li_file, tmp_path, "inf.h5")
     name = f"{MPR_DATASET}/12"
     with h5py.File(bad, "r+") as f:
-        f[name][100] = np.nan
-    with pytest.raises(TelemetryError, match="non-finite.*sample 100") as err:
+        f[name][100] = np.inf
+    with pytest.raises(TelemetryError, match="infinite.*sample 100") as err:
         read_lisainstrument(bad)
     assert err.value.dataset == name
 
