@@ -83,11 +83,18 @@ def _effect_injections(args) -> tuple:
         return ()
 
     out = []
+    count: dict[str, int] = {}
     for spec in args.inject:
         try:
-            out.append(injection_from_spec(spec, getattr(args, "effect_module", ()) or ()))
+            inj = injection_from_spec(spec, getattr(args, "effect_module", ()) or ())
         except TTLError as exc:
             raise TTLError(f"--inject {spec}: {exc}") from None
+        # the same effect injected again (a glitch a day) is named glitch-2, glitch-3, ...:
+        # the truth file keeps each injection under its own name
+        count[inj.name] = count.get(inj.name, 0) + 1
+        if count[inj.name] > 1:
+            inj.name = f"{inj.name}-{count[inj.name]}"
+        out.append(inj)
     return tuple(out)
 
 
