@@ -4,10 +4,10 @@ Seven days (``--days``) are simulated by our simulator (Keplerian arms, all nois
 coefficients) with what LISA delivers: one glitch a day at a random time on a random test mass
 (sizes drawn log-uniformly between LISA Pathfinder's, 1e-12 m/s, and a hundred times larger,
 damping 5-300 s), the paper's MBHB1 merger in mid-run, a planned 7-h gap (NaN in every series
-of the written file) and a coupling outside the 24 - a witness two light travel times away -
-that switches on at day 3 (``witness:...;vary=step``).  The week is replayed in 1-h segments
-through the five stage processes at the default cadence with ``--adopt auto``; every stage
-process is sampled with psutil while it runs.
+of the written file) and a coupling outside the 24 - a witness of MOSA 12's DWS on link 23,
+one light travel time away - that switches on at day 3 (``witness:...;vary=step``).  The week
+is replayed in 1-h segments through the five stage processes at the default cadence with
+``--adopt auto``; every stage process is sampled with psutil while it runs.
 
 Prints one JSON object: wall time and real-time factor (target >= 500: a week in under 20
 minutes on 2 cores), per-stage CPU seconds and peak memory (target <= 1.5 GB each) with the
@@ -43,10 +43,10 @@ from ttlcore.estimate.monitoring import FileTruth  # noqa: E402
 
 HOUR = 3600.0
 
-#: The coupling that switches on at day 3: a witness of 12.eta two light travel times away on
-#: link 23 (the live loop's ghost), its gain as the live-loop tests' (5e-3: the linear fit is
+#: The coupling that switches on at day 3: a witness of 12.eta one light travel time away on
+#: link 23 (the simulator injects one delay per part), its gain as the live-loop tests' (5e-3: the linear fit is
 #: ~0.5 mm/rad off without it).
-COUPLING = "witness:source=12.eta,link=23,delay=2,vary=step,t_step={t_on},all=5e-3"
+COUPLING = "witness:source=12.eta,link=23,delay=1,vary=step,t_step={t_on},all=5e-3"
 #: The planned gap: 7 h from day 5.3 (NaN in eta and the DWS readouts).
 GAP = (5.3 * DAY, 5.3 * DAY + 7 * HOUR)
 
