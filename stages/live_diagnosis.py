@@ -13,8 +13,11 @@ stage adopts it under ``--adopt auto``.
 from __future__ import annotations
 
 import json
+import math
 import shlex
 from collections.abc import Callable
+
+from scipy import stats
 
 from ttlcore.diagnose.diagnoser import text_report
 from ttlcore.effects import make_effects
@@ -86,6 +89,37 @@ def enough_ungated(report: dict, effects: list[str], effect_modules, why: str) -
             "an effect waits for more ungated data"
         )
     return True, why
+
+
+#: An effect of the model whose parameters are jointly consistent with zero at this p-value or
+#: above has lost its evidence: its removal is proposed (never done without a person).
+STALE_P = 0.01
+
+
+def stale_effects(report: dict, effects: list[str], effect_modules) -> list[dict]:
+    """The effects of the model in force whose evidence is gone: those (not ``linear-ttl``,
+    not a transient) whose fitted parameters on the window are consistent with zero, the sum
+    of their ``(value / sigma)^2`` having p >= :data:`STALE_P` against chi^2 with one degree
+    of freedom per parameter (a coupling that has switched off, or an adoption the data no
+    longer support).  Each: ``spec``, ``chi2``, ``dof``, ``p``."""
+    fitted = (report.get("model") or {}).get("coefficients") or {}
+    values, sigma = fitted.get("values") or {}, fitted.get("sigma") or {}
+    out = []
+    for spec, effect in zip(effects, make_effects([e.replace(";", ",") for e in effects], effect_modules), strict=True):
+        if effect.name == "linear-ttl" or effect.active_span() is not None or effect.name == "gate":
+            continue
+        try:
+            names = effect.column_names()
+        except Exception:  # noqa: BLE001 - an effect whose columns need the data: not judged here
+            continue
+        z = [values[n] / sigma[n] for n in names if n in values and sigma.get(n) and math.isfinite(sigma[n])]
+        if not z:
+            continue
+        chi2 = float(sum(v * v for v in z))
+        p = float(stats.chi2.sf(chi2, len(z)))
+        if p >= STALE_P:
+            out.append({"spec": spec, "chi2": chi2, "dof": len(z), "p": p})
+    return out
 
 
 def control_command(run: str, stage: str, zenoh, effects: list[str]) -> str:
@@ -200,4 +234,12 @@ def diagnosis_meta(
     if ok and rec is not None and rec["effects"] == list(effects):
         ok, why = False, "the model already holds it"
     out["adoption"] = {"mode": mode, "adopted": False, "reason": why}
+    stale = stale_effects(report, effects, effect_modules)
+    for s in stale:
+        s["command"] = command([e for e in effects if e != s["spec"]])
+        out["text"] += (
+            f"\n  evidence gone: {s['spec']} (its {s['dof']} parameter(s) consistent with zero: chi2 "
+            f"{s['chi2']:.1f}, p = {s['p']:.2g}); proposed for removal: {s['command']}"
+        )
+    out["removal"] = stale
     return out, ok

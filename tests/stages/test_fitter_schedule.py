@@ -60,3 +60,24 @@ def test_a_change_that_only_drops_transients_is_not_diagnosed_again(diagnose):
         "from_index": 5,
     }
     assert model.diagnose_due is diagnose
+
+
+def test_an_effect_whose_evidence_is_gone_is_proposed_for_removal():
+    # the window's fit of the model: the witness at 0.4 sigma (a coupling that switched off),
+    # the fd-coupling's two parameters far from zero; p of chi^2 = 0.16 with 1 dof is 0.69
+    # (scipy's chi2.sf, checked against the normal tail: 2 * (1 - Phi(0.4)) = 0.689)
+    from stages.live_diagnosis import stale_effects
+
+    witness = "witness:source=12.eta,link=23,delay=2"
+    fd = "fd-coupling:source=12.eta,delay=1,filter=pole1,fc=0.02"
+    report = {
+        "model": {
+            "coefficients": {
+                "values": {"witness.12.eta>23+2L": 0.4e-3, "fd.12.eta>12+1L.b0": 5e-3, "fd.12.eta>12+1L.b1": 1e-3},
+                "sigma": {"witness.12.eta>23+2L": 1e-3, "fd.12.eta>12+1L.b0": 1e-4, "fd.12.eta>12+1L.b1": 1e-4},
+            }
+        }
+    }
+    (stale,) = stale_effects(report, ["linear-ttl", witness, fd, "gate:start=0.0,stop=10.0"], ())
+    assert stale["spec"] == witness and stale["dof"] == 1
+    assert stale["chi2"] == pytest.approx(0.16) and stale["p"] == pytest.approx(0.6892, abs=1e-4)
