@@ -36,11 +36,9 @@ change is a ``model`` event (``by``: ``control``, ``adopt auto``, or ``window`` 
 transients - glitches, gates - that leave the model once their span has left the window), and
 its first fit message carries ``model_change`` (both models refitted on the window).  A
 restarted fitter takes the model in force from those events (:meth:`Fitter.restore_model`) and
-rebuilds its window from the replayer's recorded telemetry (:meth:`Fitter.catch_up`).
-
-The last segment of a run, often shorter than the others, closes its FFT segment with a gap
-(:meth:`ttlcore.estimate.rolling.RollingFit.flush`), so every segment gets its fit; a segment
-that gets none is a ``no-fit`` warning naming it and why.
+rebuilds its window from the replayer's recorded telemetry (:meth:`Fitter.catch_up`).  The
+run's last segment, often short, closes its FFT segment with a gap (``RollingFit.flush``): every
+segment gets its fit, and one that gets none is a ``no-fit`` warning naming it and why.
 """
 
 from __future__ import annotations
@@ -66,7 +64,7 @@ from ttlcore.estimate.rolling import RollingFit
 from ttlcore.io.telemetry import Telemetry
 from ttlcore.tdi.data import TDIData
 
-from .fit_message import UNITS, fit_meta, fit_summary, notices
+from .fit_message import UNITS, fit_meta, fit_summary, notices, rolling_estimate
 from .fit_window import TelemetryWindow
 from .fitter_options import ADOPT_MODES, MODEL_UPDATES, add_options, one_of, options
 from .fitter_recordings import pushed_again, recorded_models, recorded_telemetry
@@ -559,6 +557,8 @@ class Fitter(OrderedStage):
             arrays, more = rolling_outputs(res, td, owners, xyz)
             meta.update(more)
         if window is not None:
+            if meta.get("model_update") == "rolling" and "coefficients" in window.get("arrays", {}):
+                meta["rolling"] = rolling_estimate(arrays)  # what the window refit replaces: for the trends
             arrays.update(window.pop("arrays", {}))
             meta.update(window)
         if live is not None:
