@@ -852,7 +852,8 @@ class TrendMonitor:
         self.settings = settings or TrendSettings()
         self.units = units
         self.max_history = float(max_history)
-        self._fits: dict[int, tuple[float, float, np.ndarray, np.ndarray, list | None]] = {}
+        # index -> (t_start, t_stop, coefficients, sigmas, model, model_key)
+        self._fits: dict[int, tuple[float, float, np.ndarray, np.ndarray, list | None, tuple | None]] = {}
         self.alerts: list[Alert] = []
         self._epoch_alerts: list[Alert] = []  # the current epoch's (duplicates, steps in the drift line)
         self._drifting: set[str] = set()
@@ -880,7 +881,8 @@ class TrendMonitor:
         for other, (_, stop, *_rest) in list(self._fits.items()):
             if stop == t_stop and other != index:
                 del self._fits[other]
-        self._fits[int(index)] = (float(t_start), float(t_stop), C, S, list(model) if model_key(model) else None)
+        key = model_key(model)
+        self._fits[int(index)] = (float(t_start), float(t_stop), C, S, list(model) if key else None, key)
         horizon = max(f[1] for f in self._fits.values()) - self.max_history
         for other, (_, stop, *_rest) in list(self._fits.items()):
             if stop < horizon:
@@ -953,7 +955,7 @@ class TrendMonitor:
         order = sorted(self._fits, key=lambda i: self._fits[i][1])
         keys: list = []
         for i in order:  # a fit without a model is under the model of the fit before it
-            key = model_key(self._fits[i][4])
+            key = self._fits[i][5]
             keys.append(key if key is not None or not keys else keys[-1])
         start = 0
         for k in range(1, len(order)):
