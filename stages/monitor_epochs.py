@@ -58,8 +58,11 @@ class ModelEpochs:
         """The fit ``index`` (meta ``model``, its window's centre and end [s]) is about to be
         drawn: the change of model it brings, if any."""
         key = model_key(model)
-        if key is None or (self.centre is not None and centre <= self.centre):
-            return None  # no model in the meta (the one before holds), or a fit that came late
+        if self.centre is not None and centre <= self.centre:
+            return None  # a fit that came late
+        if key is None:  # no model in the meta: the one before holds
+            self.centre = centre
+            return None
         before, before_key, last = self.model, model_key(self.model), self.centre
         self.model, self.centre = list(model), centre
         if before_key is None:  # the first model seen

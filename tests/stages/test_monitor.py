@@ -680,3 +680,31 @@ def test_a_jump_at_a_model_change_starts_a_new_series_not_a_step_alert(driver, p
     assert f"fit {JUMP_FIT}: model linear-ttl -> {','.join(GHOST_MODEL)}: couplings changed" in model_log
     assert "new series (model epoch 1)" in model_log, model_log
     assert "Model epochs" in summary and f"epoch 1 from fit {JUMP_FIT}" in summary, summary
+
+
+def test_model_epochs_as_drawn():
+    """What the monitor draws where the model changes (stages.monitor_epochs): new couplings
+    are a new epoch (a new colour), a glitch added or dropped breaks the lines in the same
+    epoch, a fit without a model or one that comes late changes nothing."""
+    from stages.monitor_epochs import ModelEpochs
+
+    glitch = GHOST_MODEL + ["glitch:t=90000;tm=12;beta=100"]
+    epochs = ModelEpochs()
+    centre = [k * HOUR for k in range(8)]
+    assert epochs.fit(0, ["linear-ttl"], centre[0], HOUR) is None  # the run's first model: nothing to draw
+    assert epochs.fit(1, None, centre[1], HOUR) is None
+    new = epochs.fit(2, GHOST_MODEL, centre[2], 6 * HOUR)
+    assert new.new_epoch and new.number == 1 and new.t_break == pytest.approx(1.5 * HOUR)
+    assert "couplings changed (added witness:source=12.eta;link=23;delay=2)" in new.message
+    assert epochs.fit(1, ["linear-ttl"], centre[1], HOUR) is None  # came late
+    transient = epochs.fit(3, glitch, centre[3], 4 * HOUR)
+    assert not transient.new_epoch and transient.number == 1 and "transients changed (added glitch" in transient.message
+    dropped = epochs.fit(4, list(reversed(GHOST_MODEL)), centre[4], 5 * HOUR)  # the order of the specs is no change
+    assert not dropped.new_epoch and "removed glitch" in dropped.message
+    assert epochs.fit(5, GHOST_MODEL, centre[5], 6 * HOUR) is None
+    assert epochs.lines == [
+        "epoch 0 from fit 0: linear-ttl",
+        f"epoch 1 from fit 2 (window end 0.25 d): {', '.join(GHOST_MODEL)}",
+        "transients changed at fit 3 (added glitch:t=90000;tm=12;beta=100): the series goes on",
+        "transients changed at fit 4 (removed glitch:t=90000;tm=12;beta=100): the series goes on",
+    ]
