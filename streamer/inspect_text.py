@@ -226,7 +226,8 @@ def format_report(r: dict) -> str:
     lines.append("")
     lines.append(f"Alerts (monitor): {len(r['alerts'])}")
     for a in r["alerts"]:
-        lines.append(f"  [{a.get('kind')}] {a.get('message')}")
+        epoch = (a.get("details") or {}).get("model_epoch") if isinstance(a.get("details"), dict) else None
+        lines.append(f"  [{a.get('kind')}] {a.get('message')}" + (f" (model epoch {epoch})" if epoch else ""))
 
     lines.append("")
     lines.append(f"Warnings: {len(r['warnings'])}")

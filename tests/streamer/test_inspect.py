@@ -513,6 +513,21 @@ def test_inspect_prints_the_model_timeline(tmp_path, capsys):
         gate=[9 * HOUR, 9.5 * HOUR],
     )
     f.close()
+    f = StageFile(d, "monitor")
+    f.rec.write_json(
+        "alerts",
+        {
+            "run": RUN,
+            "kind": "step",
+            "coefficient": "23.phi.tx",
+            "t": 12 * HOUR,
+            "value": 0.3,
+            "significance": 7.0,
+            "message": "step of +0.300 mm/rad in 23.phi.tx at 0.500 d",
+            "details": {"model_epoch": 2},
+        },
+    )
+    f.close()
 
     code, out, err = run_ttl(capsys, "inspect", d, "--json", "-")
     assert code == 0, err
@@ -575,3 +590,4 @@ def test_inspect_prints_the_model_timeline(tmp_path, capsys):
     ]
     start = lines.index(expected[0])
     assert lines[start : start + len(expected)] == expected, "\n".join(lines[start : start + len(expected)])
+    assert "[step] step of +0.300 mm/rad in 23.phi.tx at 0.500 d (model epoch 2)" in lines
