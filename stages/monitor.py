@@ -18,9 +18,10 @@ What it draws (the numbers come from :mod:`ttlcore.estimate.monitoring`)
   (a truth file, or a simulation's coefficient model), the true coefficients averaged over
   the same window (:mod:`stages.monitor_truth`).
 * Step and drift alerts from :class:`ttlcore.diagnose.trends.TrendMonitor` (thresholds and their
-  false-alarm reasoning in :mod:`ttlcore.diagnose.trends`).  Each alert is logged as a Rerun text
-  entry, written to the MCAP recording as JSON (topic ``alerts``, schema ``ttl.Alert``)
-  and published with the fit's index on ``ttl/<run>/monitor/<i>``.
+  false-alarm reasoning in :mod:`ttlcore.diagnose.trends`), within a model epoch (meta ``model``;
+  :mod:`stages.monitor_epochs`).  Each alert is logged as a Rerun text entry, written to the
+  MCAP recording as JSON (topic ``alerts``, schema ``ttl.Alert``) and published with the
+  fit's index on ``ttl/<run>/monitor/<i>``.
 
 Output ``ttl/<run>/monitor/<i>``, one per segment, once the segment is drawn: its TDI, and
 its fit and residual from a fitter / subtractor that reports progress or is alive (they are
@@ -36,8 +37,8 @@ Arrays ``drift_rate`` (24,) [mm/rad/day] and ``drift_significance`` (24,) of the
 trend evaluation (0 where not yet defined, see meta ``drift_windows``); meta ``names``,
 ``alerts`` (the alerts raised since the previous monitor message, each
 :meth:`ttlcore.diagnose.trends.Alert.to_json` with the index of the fit that raised it),
-``drifting``, ``drift_windows``, ``residual_over_expected`` (latest in-band median ASD ratio
-and its segment), ``fit`` (index, chi2_dof and window of the latest fit), ``segments_total``
+``drifting``, ``drift_windows``, ``model_epoch``, ``residual_over_expected`` (latest in-band
+median ASD ratio, its segment), ``fit`` (index, chi2_dof, window of the latest fit), ``segments_total``
 (:mod:`stages.monitor_status`).  The same goes to the recording on ``monitor/summary``.
 
 Rerun recording ``<recordings>/<run>/monitor.rrd`` (an existing one is kept as
@@ -101,6 +102,7 @@ from ttlcore.estimate.monitoring import (
 from ttlcore.estimate.spectra import longest_run
 
 from . import monitor_views as views
+from .monitor_epochs import ModelEpochs
 from .monitor_settling import Settling
 from .monitor_status import UNITS, drift_arrays, status_meta
 from .monitor_truth import FitTruth
@@ -138,7 +140,7 @@ class Monitor(PipelineStage):
         self._ref: dict[int, dict] = {}
         # the truth beside the fits, and the fits' windows (redrawn when a truth becomes known later)
         self.truth = FitTruth(warn=lambda message: self.text("log", message, "WARN"))
-        self._model: list | None = None
+        self.epochs = ModelEpochs()  # where the model changed, as drawn
         self.series: views.SeriesLog | None = None  # the time series' rows (styles with their earliest)
         self._now = 0.0  # mission time [s] the recording is at
         self._errors: queue.Queue = queue.Queue()
@@ -176,7 +178,7 @@ class Monitor(PipelineStage):
         )
         self.rec.send_recording_name(f"ttl {self.run_id}")
         self.series = views.SeriesLog(self.rec)
-        self._static_styles()
+        views.static_styles(self.rec, self.band)
         self._time(0.0, 0)
         views.first_texts(self.rec)
         self.text(
@@ -427,7 +429,7 @@ class Monitor(PipelineStage):
             progress = (
                 f"Drawn to segment {i}" + (f" of {total - 1}" if total else "") + f", mission time {views.days(end)}"
             )
-        views.summary_document(self.rec, progress, self._alert_lines, self._band_labels)
+        views.summary_document(self.rec, progress, self._alert_lines, self._band_labels, self.epochs.lines)
 
     def on_residual(self, header, arrays):
         f, asd, f_welch = channel_asd(arrays["residual"][0], header.fs, self.per_decade)
@@ -469,9 +471,6 @@ class Monitor(PipelineStage):
                 )
 
     # ------------------------------------------------------------------ fits and trends
-    def _static_styles(self) -> None:
-        views.static_styles(self.rec, self.band)
-
     def on_fit(self, header, arrays):
         meta = header.meta
         names = tuple(meta.get("names") or COEFFICIENT_NAMES)
@@ -483,9 +482,18 @@ class Monitor(PipelineStage):
         if not (isinstance(t_start, (int, float)) and isinstance(t_stop, (int, float)) and t_stop > t_start):
             raise ValueError(f"meta t_start/t_stop: the fitted window is needed, got {t_start!r}, {t_stop!r}")
         centre = 0.5 * (t_start + t_stop)
+        change, style = self.epochs.fit(header.index, meta.get("model"), centre, t_stop), None
         self._time(centre, header.index)
+        if change is not None:
+            self.text("model/log", change.message)
+            self._summary()
+        if change is not None and change.t_break is not None:  # the lines broken between the two models
+            self._time(change.t_break, header.index)
+            views.break_series(self.rec)
+            style = views.epoch_style(change.number)
+            self._time(centre, header.index)
         # the fit and, in the same row, the truth averaged over its window (when known)
-        views.fit_point(self.series, C, S, centre, self.truth.mean(t_start, t_stop))
+        views.fit_point(self.series, C, S, centre, self.truth.mean(t_start, t_stop), style)
         self.truth.add_fit(header.index, t_start, t_stop, C, S)
         chi2 = meta.get("chi2_dof")
         chi2 = float(chi2) if isinstance(chi2, (int, float)) and math.isfinite(chi2) else None
@@ -500,7 +508,7 @@ class Monitor(PipelineStage):
         near = [t for t in self._trend_t if abs(t - t_stop) < self.trend_spacing - 1e-6]
         if not near:
             self._trend_t.append(float(t_stop))
-            alerts = self.trends.add(header.index, float(t_start), float(t_stop), C, S)
+            alerts = self.trends.add(header.index, float(t_start), float(t_stop), C, S, meta.get("model"))
         else:
             alerts = []
         self._time(t_stop, header.index)
@@ -518,11 +526,6 @@ class Monitor(PipelineStage):
 
     def draw_model(self, index: int, meta: dict) -> None:
         """Adequacy against the instrument noise model, model changes and candidates of a fit."""
-        model = meta.get("model")
-        if isinstance(model, list) and model != self._model:
-            if self._model is not None or model != ["linear-ttl"]:
-                self.text("model/log", f"fit {index}: model {','.join(map(str, model))}")
-            self._model = model
         adequacy = meta.get("adequacy")
         if isinstance(adequacy, dict) and isinstance(adequacy.get("chi2_dof"), (int, float)):
             self.series.log("adequacy/instrument/chi2_dof", float(adequacy["chi2_dof"]), self._now)

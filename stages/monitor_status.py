@@ -32,15 +32,17 @@ def status_meta(
     trends: TrendMonitor, alerts: list[Alert], ratio: tuple | None, last_fit: dict | None, segments_total: int | None
 ) -> dict:
     """The meta of a monitor message: ``alerts`` (raised since the previous message),
-    ``drifting``, ``drift_windows``, ``residual_over_expected`` (the latest in-band median
-    ASD ratio ``ratio`` = (segment, ratio)), ``fit`` (the latest fit: index, chi2_dof,
-    window), ``segments_total``."""
+    ``drifting``, ``drift_windows``, ``model_epoch`` (the model epoch the trends are in:
+    :class:`ttlcore.diagnose.trends.ModelEpoch`, None before the first fit),
+    ``residual_over_expected`` (the latest in-band median ASD ratio ``ratio`` = (segment,
+    ratio)), ``fit`` (the latest fit: index, chi2_dof, window), ``segments_total``."""
     est = trends.estimates
     return {
         "names": list(COEFFICIENT_NAMES),
         "alerts": [a.to_json() for a in alerts],
         "drifting": sorted(trends.drifting),
         "drift_windows": est.windows if est else 0,
+        "model_epoch": trends.epoch.to_json() if trends.epoch else None,
         "residual_over_expected": {"index": ratio[0], "ratio": ratio[1]} if ratio else None,
         "fit": last_fit,
         "segments_total": segments_total,

@@ -26,9 +26,12 @@ Views (entity paths in brackets), laid out for a 1920x1080 screen:
 * **Coefficients** (``coefficients/<mosa>/<angle>_<side>``): one small plot per coefficient
   [mm/rad] of one entity with four series: the fit at the centre of its window, fit +-1
   sigma and the truth averaged over the same window (when a truth is known); same colours
-  everywhere.
-* **Run and alerts** (``summary``, a text document): how far the run has been drawn and
-  every alert so far, word-wrapped.  **Diagnosis** (``diagnosis``, a text document): the
+  everywhere.  Where the fitter's model changed, the lines are broken (:func:`break_series`)
+  and a new model epoch (new couplings: a new series of the trend tests) is drawn in a colour
+  of its own (:func:`epoch_style`: blue, orange, green, purple, then blue again);
+  :mod:`stages.monitor_epochs`.
+* **Run and alerts** (``summary``, a text document): how far the run has been drawn, every
+  alert so far and the model epochs, word-wrapped.  **Diagnosis** (``diagnosis``, a text document): the
   text and recommendation of the latest fit message whose meta carries a ``diagnosis``.
   Tabs beside the diagnosis: **Logs**, one text log of the alerts (``alerts``), the model
   changes and candidates (``model/log``) and the monitor's own log (``log``); bar charts
@@ -69,6 +72,13 @@ ASD_X_STRETCH = 2.4
 FIT_COLOR = (31, 119, 180)
 SIGMA_COLOR = (158, 190, 224)
 TRUTH_COLOR = (30, 30, 30)
+#: Fit and +-1 sigma colours of the model epochs (epoch k: ``EPOCH_COLORS[k % 4]``).
+EPOCH_COLORS = (
+    (FIT_COLOR, SIGMA_COLOR),
+    ((255, 127, 14), (255, 197, 140)),
+    ((44, 160, 44), (160, 216, 160)),
+    ((148, 103, 189), (205, 185, 225)),
+)
 #: chi^2/dof lines: the fit's own (re-estimated noise) and against the instrument noise model.
 CHI2_COLOR = (30, 30, 30)
 INSTRUMENT_COLOR = (214, 39, 40)
@@ -167,7 +177,11 @@ def blueprint(band) -> rrb.Blueprint:
         rrb.Horizontal(
             rrb.Vertical(noise_view(band), adequacy, row_shares=[7, 3]),
             rrb.Vertical(
-                rrb.Grid(*coefficients, grid_columns=4, name="Coefficients: fit ±1σ (blue), truth (black)"),
+                rrb.Grid(
+                    *coefficients,
+                    grid_columns=4,
+                    name="Coefficients: fit ±1σ (blue; a colour per model epoch), truth (black)",
+                ),
                 texts,
                 row_shares=[13, 5],
             ),
@@ -189,16 +203,31 @@ def static_styles(rec, band) -> None:
     noise_axes(rec, band)
 
 
+def epoch_style(number: int) -> rr.SeriesLines:
+    """The style of a coefficient's series (fit, +-1 sigma, truth) in model epoch ``number``."""
+    fit, sigma = EPOCH_COLORS[number % len(EPOCH_COLORS)]
+    return rr.SeriesLines(
+        colors=[fit, sigma, sigma, TRUTH_COLOR],
+        widths=[2.0, 1.0, 1.0, 1.0],
+        names=["fit" if number == 0 else f"fit (model epoch {number})", "+1σ", "−1σ", "truth"],
+    )
+
+
+def break_series(rec) -> None:
+    """Break the 24 coefficient lines at the recording's current time (a model change between
+    two fits): a time series plot draws an ``rr.Clear`` as a hole in its lines.  The clear
+    also hides the style logged before it from the rows after it, so the next row of each
+    entity carries its style again (:func:`fit_point`'s ``style``)."""
+    for name in COEFFICIENT_NAMES:
+        rec.log(coefficient_entity(name), rr.Clear(recursive=False))
+
+
 def series_styles() -> dict[str, rr.SeriesLines]:
     """Colours, widths and names of the time series whose entities are known in advance
     (the per-band chi^2/dof series are styled when their bands are known: :func:`band_series`)."""
     styles = {}
     for name in COEFFICIENT_NAMES:
-        styles[coefficient_entity(name)] = rr.SeriesLines(
-            colors=[FIT_COLOR, SIGMA_COLOR, SIGMA_COLOR, TRUTH_COLOR],
-            widths=[2.0, 1.0, 1.0, 1.0],
-            names=["fit", "+1σ", "−1σ", "truth"],
-        )
+        styles[coefficient_entity(name)] = epoch_style(0)
     styles["adequacy/chi2_dof"] = rr.SeriesLines(colors=[CHI2_COLOR], widths=[2.0], names=["fit (re-estimated noise)"])
     styles["adequacy/instrument/chi2_dof"] = rr.SeriesLines(
         colors=[INSTRUMENT_COLOR], widths=[2.0], names=["instrument noise model"]
@@ -244,10 +273,15 @@ class SeriesLog:
         self.styles[entity] = lines
         self._keys[entity] = key
 
-    def log(self, entity: str, values, t: float) -> None:
-        """Scalars ``values`` of ``entity`` at the recording's current time, whose mission time is ``t`` [s]."""
+    def log(self, entity: str, values, t: float, style: rr.SeriesLines | None = None) -> None:
+        """Scalars ``values`` of ``entity`` at the recording's current time, whose mission time
+        is ``t`` [s]; ``style``: this row's style (after a break of the series), whatever the
+        entity's."""
         earliest = self._earliest.get(entity)
-        if entity in self._restyle:
+        if style is not None:
+            self._earliest[entity] = float(t) if earliest is None else min(earliest, float(t))
+            self.rec.log(entity, rr.Scalars(values), style)
+        elif entity in self._restyle:
             self._restyle.discard(entity)
             self._earliest[entity] = float(t) if earliest is None else min(earliest, float(t))
             self.rec.log(entity, rr.Scalars(values), self.styles[entity])
@@ -347,15 +381,16 @@ def noise_curve(rec, name: str, f, asd, band, color=None, label: str | None = No
     )
 
 
-def fit_point(series: SeriesLog, C, S, t: float, truth=None) -> None:
+def fit_point(series: SeriesLog, C, S, t: float, truth=None, style: rr.SeriesLines | None = None) -> None:
     """The 24 coefficients [m/rad] with their sigma and, when known, the truth averaged over
     the fit's window, in mm/rad, at mission time ``t`` [s]: one row per coefficient of the
     series fit, fit + sigma, fit - sigma and truth.  One entity per coefficient, not a fit and
-    a truth entity: half the rows and chunks for the web viewer to ingest."""
+    a truth entity: half the rows and chunks for the web viewer to ingest.  ``style``: the
+    rows' style (the first fit after a model change: :func:`epoch_style`)."""
     for p, name in enumerate(COEFFICIENT_NAMES):
         c, s = C[p] * 1e3, S[p] * 1e3
         values = [c, c + s, c - s] if truth is None else [c, c + s, c - s, truth[p] * 1e3]
-        series.log(coefficient_entity(name), values, t)
+        series.log(coefficient_entity(name), values, t, style)
 
 
 def band_label(band: dict) -> str:
@@ -388,11 +423,14 @@ def days(t: float) -> str:
     return f"{t / 86400.0:.2f} d"
 
 
-def summary_document(rec, progress: str, alerts: list[str], bands: list[str]) -> None:
-    """The run summary: how far the run is drawn, every alert so far (newest last) and the
-    key of the per-band chi^2/dof plot, as a word-wrapped markdown document."""
+def summary_document(rec, progress: str, alerts: list[str], bands: list[str], epochs: list[str] = ()) -> None:
+    """The run summary: how far the run is drawn, every alert so far (newest last), the model
+    epochs and changes of transients (when the model changed) and the key of the per-band
+    chi^2/dof plot, as a word-wrapped markdown document."""
     lines = [f"**{progress}**", ""]
     lines += [f"**Alerts ({len(alerts)})**", ""] + ([f"- {a}" for a in alerts] or ["- none"])
+    if len(epochs) > 1:  # the trends compare fits within an epoch (stages.monitor_epochs)
+        lines += ["", "**Model epochs** (the trends compare fits within one)", ""] + [f"- {e}" for e in epochs]
     if bands:
         lines += ["", "**χ²/dof bands** (blue → red): " + ", ".join(bands)]
     rec.log(SUMMARY, rr.TextDocument("\n".join(lines), media_type="text/markdown"))

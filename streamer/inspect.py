@@ -4,8 +4,9 @@
     From the MCAP files alone (``<stage>.mcap``, and ``<stage>.<n>.mcap`` kept by restarts,
     oldest ``.1``): which stages ran; the segments each produced and received per topic,
     with missing and duplicate indices; the coefficients and their trends with
-    uncertainties (the fitter's fit JSON, ``fit/summary``, schema ``ttl.Fit``); the
-    monitor's alerts; the errors of every stage; the router's refusals (``security.jsonl``:
+    uncertainties (the fitter's fit JSON, ``fit/summary``, schema ``ttl.Fit``); the model
+    timeline (what the fitter's model held from which segment to which and why, the
+    segments it had no data for and those it left out of its fit); the monitor's alerts; the errors of every stage; the router's refusals (``security.jsonl``:
     unauthenticated peers and forbidden publications, counted per kind with the first few);
     and interruptions: files without footer
     (the process was killed; the reader salvages them), segments whose payload never made
@@ -43,6 +44,7 @@ from ttlcore.io.atomic import write_json
 from .inspect_model import LOOKBACK_DAYS, coefficient_trends, model_report, recorded_fits, truth_over_window
 from .inspect_records import MAX_REFUSALS, InspectError, launcher_journal, read_plan, run_gaps, security_report
 from .inspect_text import MAX_LISTED, fmt_ranges, format_report
+from .inspect_timeline import model_timeline
 from .keys import to_ranges
 from .recorder import Recording, RecordingError, read_recording, read_stop_note, to_jsonable
 from .topology import STAGES
@@ -194,7 +196,9 @@ def inspect_run(run_dir, truth=None) -> dict:
     ``stages_missing`` (pipeline stages without a recording), ``segments_total``,
     ``fits`` (count, index range, the table of fits in m/rad and ``trends`` per
     coefficient in mm/rad and mm/rad/day), ``alerts`` (the monitor's), ``warnings`` (all stages: a fit that did not converge...), ``errors`` (all
-    stages'), ``interruptions``, ``gaps``, ``security`` (:func:`security_report`).
+    stages'), ``interruptions``, ``gaps``, ``security`` (:func:`security_report`),
+    ``timeline`` (the fitter's model from which segment to which and why, its gaps and the
+    spans it left out of the fit: :func:`streamer.inspect_timeline.model_timeline`).
 
     Raises
     ------
@@ -390,6 +394,7 @@ def inspect_run(run_dir, truth=None) -> dict:
         "errors": errors,
         "interruptions": interruptions,
         "gaps": gaps,
+        "timeline": model_timeline(recs_of.get("fitter", []), plan),
         "security": security_report(run_dir),
     }
 

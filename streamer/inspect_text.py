@@ -45,6 +45,83 @@ def _num(x) -> str:
     return f"{x:.3f}" if isinstance(x, (int, float)) else "?"
 
 
+def _span(a, b) -> str:
+    return f"segment {a}" if a == b else f"segments {a}-{'' if b is None else b}"
+
+
+def _hours(t_start, t_stop) -> str:
+    if not (isinstance(t_start, (int, float)) and isinstance(t_stop, (int, float))):
+        return ""
+    return f" ({_days(t_start)}-{_days(t_stop)} d)"
+
+
+def _recommended(rec) -> str:
+    """What a model change's ``recommendation`` (the adopted advice) says, in a few words."""
+    if not isinstance(rec, dict):
+        return ""
+    parts = [str(rec.get("spec") or "?")]
+    if isinstance(rec.get("explained_fraction"), (int, float)):
+        parts.append(f"explains {100 * rec['explained_fraction']:.0f} % of the excess")
+    if isinstance(rec.get("log_bayes_factor"), (int, float)):
+        parts.append(f"log Bayes factor {rec['log_bayes_factor']:.3g}")
+    return "recommended " + ", ".join(parts)
+
+
+def timeline_text(t: dict) -> list[str]:
+    """The model timeline of ``ttl inspect`` (:func:`streamer.inspect_timeline.model_timeline`):
+    one line per model span, with what changed, by whom and why; then the fitter's gaps and
+    the spans it left out of the fit."""
+    lines = []
+    models = t.get("models") or []
+    if models:
+        epochs = [s["from_index"] for s in models if s["new_epoch"]]
+        lines.append(
+            "  Timeline: the model from segment to segment"
+            + (
+                f" (new couplings from segment(s) {', '.join(map(str, epochs))}: the monitor's trends start "
+                "a new series there)"
+                if epochs
+                else ""
+            )
+        )
+    for s in models:
+        fits = f"{s['fits']} fit{'' if s['fits'] == 1 else 's'}"
+        lines.append(f"  {_span(s['from_index'], s['to_index']):<16} {','.join(s['effects'])}  ({fits})")
+        if s["by"] == "configured":
+            lines.append("      as configured")
+            continue
+        what = [f"+ {e}" for e in s["added"]] + [f"- {e}" for e in s["removed"]]
+        why = f" after the diagnosis of segment {s['diagnosis_index']}" if s.get("diagnosis_index") is not None else ""
+        why += " (it left the one-day window)" if s["by"] == "window" else ""
+        lines.append(
+            f"      {'; '.join(what) or 'the same effects'} by {s['by']}{why}"
+            + (f": {s['reason']}" if s.get("reason") else "")
+            + ("  [new model epoch]" if s["new_epoch"] else "")
+        )
+        if _recommended(s.get("recommendation")):
+            lines.append(f"      {_recommended(s['recommendation'])}")
+    gaps = t.get("gaps") or []
+    if gaps:
+        lines.append(
+            "  Gaps (no TDI segment: NaN pushed, window kept): "
+            + "; ".join(f"{_span(g['from_index'], g['to_index'])}{_hours(g['t_start'], g['t_stop'])}" for g in gaps)
+        )
+    for x in t.get("excluded") or []:
+        cause = (
+            f"outlier{'s' if x['count'] > 1 else ''}"
+            + (f", up to {x['z_max']:.0f} sigma above the window" if isinstance(x.get("z_max"), (int, float)) else "")
+            if x["kind"] == "outlier"
+            else "gated"
+            + (f" by the gate {_days(x['gate'][0])}-{_days(x['gate'][1])} d" if isinstance(x.get("gate"), list) else "")
+        )
+        lines.append(
+            f"  Left out of the fit: fit{'s' if x['to_index'] > x['from_index'] else ''} "
+            f"{_span(x['from_index'], x['to_index']).split(' ', 1)[1]}, "
+            f"{x['count']} FFT segment(s){_hours(x['t_start'], x['t_stop'])}: {cause}"
+        )
+    return lines
+
+
 def format_report(r: dict) -> str:
     """The text of ``ttl inspect``."""
     lines = []
@@ -117,18 +194,14 @@ def format_report(r: dict) -> str:
         lines.append("Coefficient trends: no fits recorded")
 
     m = r.get("model") or {}
-    if m.get("model") or m.get("changes") or m.get("diagnoses"):
+    if m.get("model") or m.get("changes") or m.get("diagnoses") or any((r.get("timeline") or {}).values()):
         lines.append("")
         current = m.get("model") or {}
         lines.append(
             f"Model (fitter): {','.join(current.get('effects') or ['?'])} at fit {current.get('index')}; "
             f"{len(m['changes'])} change(s), {len(m['diagnoses'])} live diagnos{'i' if len(m['diagnoses']) == 1 else 'e'}s"
         )
-        for c in m["changes"]:
-            lines.append(
-                f"  from segment {c['from_index']}: {','.join(c['before'] or [])} -> {','.join(c['effects'] or [])}"
-                f" ({c.get('by') or 'control'}{': ' + c['reason'] if c.get('reason') else ''})"
-            )
+        lines += timeline_text(r.get("timeline") or {})
         for d in m["diagnoses"]:
             seg = d.get("segments") or ["?", "?"]
             bands = ", ".join(f"{lo:.3g}-{hi:.3g} Hz ({chi:.3f})" for lo, hi, chi in d["failing_bands"]) or "none"
@@ -153,7 +226,8 @@ def format_report(r: dict) -> str:
     lines.append("")
     lines.append(f"Alerts (monitor): {len(r['alerts'])}")
     for a in r["alerts"]:
-        lines.append(f"  [{a.get('kind')}] {a.get('message')}")
+        epoch = (a.get("details") or {}).get("model_epoch") if isinstance(a.get("details"), dict) else None
+        lines.append(f"  [{a.get('kind')}] {a.get('message')}" + (f" (model epoch {epoch})" if epoch else ""))
 
     lines.append("")
     lines.append(f"Warnings: {len(r['warnings'])}")

@@ -589,3 +589,122 @@ def test_monitor_waits_for_an_alive_producer_and_fails_what_will_not_come(driver
     # the monitor settles each segment from its producers' progress): it reported "fit
     # segment(s) 1..8 missing before 9" for fits that came later
     assert not [e for e in driver.errors if e["kind"] == "gap"], driver.errors
+
+
+#: Issue 31: coefficients the fitter's model change moves [m/rad], 8 and -6 sigma of a window
+#: (the live day that adopted a round-trip-ghost witness raised two step alerts at 7.4 sigma)
+MODEL_JUMPS = {"12.phi.rx": 8 * SIGMA, "31.eta.tx": -6 * SIGMA}
+JUMP_FIT = 24  # the first fit under the new model
+GHOST_MODEL = ["linear-ttl", "witness:source=12.eta;link=23;delay=2"]
+
+
+def fits_with_a_jump(seed=5):
+    """Hourly rolling fits of constant coefficients (no step in the truth) whose estimates
+    jump by ``MODEL_JUMPS`` from fit ``JUMP_FIT`` on, as when the fitter rebuilds its window
+    under a new model."""
+    rng = np.random.default_rng(seed)
+    seg = np.linspace(-2e-3, 2e-3, 24) + rng.normal(0.0, SIGMA * math.sqrt(24), (N_FITS, 24))
+    out = []
+    for k in range(N_FITS):
+        a = max(0, k - 23)
+        c = seg[a : k + 1].mean(axis=0)
+        if k >= JUMP_FIT:
+            for name, jump in MODEL_JUMPS.items():
+                c[COEFFICIENT_NAMES.index(name)] += jump
+        out.append((a * HOUR, (k + 1) * HOUR, c, np.full(24, SIGMA * math.sqrt(24 / (k + 1 - a)))))
+    return out
+
+
+@pytest.mark.parametrize("model_change", [True, False], ids=["model-change", "same-model"])
+def test_a_jump_at_a_model_change_starts_a_new_series_not_a_step_alert(driver, procs, tmp_path, model_change):
+    """The same jump of the estimates (8 and -6 sigma) is a step alert under an unchanged model
+    and none when the fit messages' ``model`` changes there (new couplings): the trends start a
+    new series, the monitor logs the change, breaks the coefficient lines (a Rerun clear) and
+    draws the new epoch in a colour of its own."""
+    driver.fits = fits_with_a_jump()
+    config = StageConfig(
+        run=RUN,
+        zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
+        recordings=tmp_path / "rec",
+        history=64,
+        poll_interval=0.05,
+    )
+    cfg = tmp_path / "monitor.json"
+    cfg.write_text(json.dumps(config.to_dict()))
+    proc = procs.stage("monitor", "--config", cfg)
+    wait_for(
+        lambda: "monitor" in driver.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
+        60,
+        "the monitor's liveliness token",
+    )
+    driver.telemetry(0)
+    driver.tdi_and_residual(0)
+    for k in range(N_FITS):
+        new = model_change and k >= JUMP_FIT
+        driver.fit(k, model=GHOST_MODEL if new else ["linear-ttl"])
+        if k == 0:  # the monitor's subscriptions are up once segment 0 is drawn
+            assert driver.monitor.get(timeout=60)[0].index == 0
+        time.sleep(0.01)
+    rec_dir = tmp_path / "rec" / RUN
+    wait_for(lambda: len(read_recording(rec_dir / "monitor.mcap").segments("fit")) >= N_FITS, 30, "every fit received")
+    driver.tdi_and_residual(N_FITS - 1)  # its status carries the trends' model epoch
+    status = next(h for h, _ in iter(lambda: driver.monitor.get(timeout=30), None) if h.index == N_FITS - 1)
+    assert status.meta["model_epoch"]["number"] == int(model_change), status.meta["model_epoch"]
+    if model_change:
+        assert status.meta["model_epoch"]["index"] == JUMP_FIT and status.meta["model_epoch"]["model"] == GHOST_MODEL
+    driver.bus.session.put(control_key(RUN, "stop"), b"")
+    assert finish(proc, 30) == 0, output(proc)
+
+    steps = [a for a in read_recording(rec_dir / "monitor.mcap").json("alerts") if a["kind"] == "step"]
+    ent = rrd_entities(rec_dir / "monitor.rrd")
+    rows = ent["/coefficients/12/phi_rx"]
+    clears = [r[0]["mission_time"].total_seconds() for r in rows if "Clear:is_recursive" in r[1]]
+    styles = [r for r in rows if r[1].get("SeriesLines:colors")]
+    model_log = " ".join(r[1]["TextLog:text"][0] for r in ent.get("/model/log", []) if "TextLog:text" in r[1])
+    summary = max((r for r in ent["/summary"] if "TextDocument:text" in r[1]), key=lambda r: r[0]["mission_time"])[1][
+        "TextDocument:text"
+    ][0]
+    if not model_change:  # the test can fail: the jump is a step for the step test
+        assert {a["coefficient"] for a in steps} == set(MODEL_JUMPS), steps
+        assert all(abs(a["t"] - JUMP_FIT * HOUR) <= 2 * HOUR for a in steps), steps
+        assert clears == [] and len(styles) == 1 and "Model epochs" not in summary
+        return
+    assert steps == [], [a["message"] for a in steps]
+    # the coefficient lines are broken between the centres of fits JUMP_FIT - 1 and JUMP_FIT,
+    # and the first fit of the new epoch carries the epoch's colours
+    centres = [0.5 * (ts + te) for ts, te, _, _ in driver.fits]
+    assert clears == [pytest.approx(0.5 * (centres[JUMP_FIT - 1] + centres[JUMP_FIT]))], clears
+    assert len(styles) == 2 and styles[1][0]["segment"] == JUMP_FIT, styles
+    assert styles[1][1]["SeriesLines:colors"] != styles[0][1]["SeriesLines:colors"]
+    assert "model epoch 1" in " ".join(styles[1][1]["SeriesLines:names"])
+    assert f"fit {JUMP_FIT}: model linear-ttl -> {','.join(GHOST_MODEL)}: couplings changed" in model_log
+    assert "new series (model epoch 1)" in model_log, model_log
+    assert "Model epochs" in summary and f"epoch 1 from fit {JUMP_FIT}" in summary, summary
+
+
+def test_model_epochs_as_drawn():
+    """What the monitor draws where the model changes (stages.monitor_epochs): new couplings
+    are a new epoch (a new colour), a glitch added or dropped breaks the lines in the same
+    epoch, a fit without a model or one that comes late changes nothing."""
+    from stages.monitor_epochs import ModelEpochs
+
+    glitch = GHOST_MODEL + ["glitch:t=90000;tm=12;beta=100"]
+    epochs = ModelEpochs()
+    centre = [k * HOUR for k in range(8)]
+    assert epochs.fit(0, ["linear-ttl"], centre[0], HOUR) is None  # the run's first model: nothing to draw
+    assert epochs.fit(1, None, centre[1], HOUR) is None
+    new = epochs.fit(2, GHOST_MODEL, centre[2], 6 * HOUR)
+    assert new.new_epoch and new.number == 1 and new.t_break == pytest.approx(1.5 * HOUR)
+    assert "couplings changed (added witness:source=12.eta;link=23;delay=2)" in new.message
+    assert epochs.fit(1, ["linear-ttl"], centre[1], HOUR) is None  # came late
+    transient = epochs.fit(3, glitch, centre[3], 4 * HOUR)
+    assert not transient.new_epoch and transient.number == 1 and "transients changed (added glitch" in transient.message
+    dropped = epochs.fit(4, list(reversed(GHOST_MODEL)), centre[4], 5 * HOUR)  # the order of the specs is no change
+    assert not dropped.new_epoch and "removed glitch" in dropped.message
+    assert epochs.fit(5, GHOST_MODEL, centre[5], 6 * HOUR) is None
+    assert epochs.lines == [
+        "epoch 0 from fit 0: linear-ttl",
+        f"epoch 1 from fit 2 (window end 0.25 d): {', '.join(GHOST_MODEL)}",
+        "transients changed at fit 3 (added glitch:t=90000;tm=12;beta=100): the series goes on",
+        "transients changed at fit 4 (removed glitch:t=90000;tm=12;beta=100): the series goes on",
+    ]

@@ -421,3 +421,173 @@ def test_inspect_a_killed_and_restarted_stage_process(tmp_path):
     assert sorted(i["kind"] for i in r["interruptions"]) == ["restart", "unfinished"]
     assert set(r["stages_missing"]) == {"replayer", "tdi_builder", "fitter", "subtractor"}
     assert (rec_dir / "r2" / "monitor.rrd").exists() and (rec_dir / "r2" / "monitor.1.rrd").exists()
+
+
+WITNESS = "witness:source=12.eta;link=23;delay=2"
+GLITCH = "glitch:t=25200;tm=12;beta=100"
+#: (first segment, model, by, event details beyond them) of the run below
+MODELS = [
+    (0, ["linear-ttl"], None, {}),
+    (
+        4,
+        ["linear-ttl", WITNESS],
+        "adopt auto",
+        {
+            "diagnosis_index": 3,
+            "reason": "explains 100 % of the excess, log Bayes factor 3.3e+05",
+            "recommendation": {"spec": WITNESS, "explains": True, "explained_fraction": 1.0, "log_bayes_factor": 3.3e5},
+        },
+    ),
+    (7, ["linear-ttl", WITNESS, GLITCH], "adopt auto", {"diagnosis_index": 6, "reason": "explains 80 %"}),
+    (10, ["linear-ttl", WITNESS], "window", {"removed": [GLITCH]}),
+    (11, ["linear-ttl", WITNESS, "drift"], "control", {}),
+]
+N_TIMELINE = 13
+
+
+def model_of(i):
+    return next(m for start, m, _, _ in reversed(MODELS) if i >= start)
+
+
+def test_inspect_prints_the_model_timeline(tmp_path, capsys):
+    """The fitter's model from which segment to which and why (``model`` events: adopt auto
+    with its reason and recommendation, a transient taken out by ``window``, a control
+    message), its gaps and the FFT segments it left out (outliers, gated), in the text and
+    the JSON; a new coupling is a new model epoch of the monitor's trends, a transient is not."""
+    d = tmp_path / "recordings" / RUN
+    d.mkdir(parents=True)
+    (d / "plan.json").write_text(json.dumps({"segments_total": N_TIMELINE, "fs": 4.0, "t0": 0.0, "samples": 14400}))
+    f = StageFile(d, "fitter")
+    changes = {start: (m, by, extra) for start, m, by, extra in MODELS[1:]}
+    for i in range(N_TIMELINE):
+        if i in changes:  # recorded when the change is made: before the segment it applies from
+            m, by, extra = changes[i]
+            f.event(
+                "model",
+                index=i,
+                message=f"model {','.join(m)} from segment {i} on",
+                effects=m,
+                before=model_of(i - 1),
+                from_index=i,
+                by=by,
+                **extra,
+            )
+        if i == 8:
+            f.event("gap", index=8, message="tdi segment 8 missing: 14400 NaN samples pushed, window kept")
+            continue
+        write_fit(f, i)
+        f.rec.write_json(
+            "fit/summary",
+            {
+                "run": RUN,
+                "index": i,
+                "names": list(COEFFICIENT_NAMES),
+                "coefficients": fit_values(i)[0],
+                "sigma": fit_values(i)[1],
+                "t_start": (i - 23) * HOUR,
+                "t_end": (i + 1) * HOUR,
+                "model": model_of(i),
+                "fit": {"converged": True},
+            },
+            schema="ttl.Fit",
+        )
+    for i, z in ((2, 300.0), (3, 120.0)):
+        f.rec.write_json(
+            "warnings",
+            {
+                "run": RUN,
+                "stage": "fitter",
+                "kind": "segment-excluded",
+                "index": i,
+                "message": f"fit {i}: left out",
+                "time": 1.0,
+                "details": {"t_start": i * HOUR, "t_stop": (i + 1) * HOUR, "chi2_dof": 9.0, "z": z, "reference": 1.0},
+            },
+        )
+    f.event(
+        "segment-gated",
+        index=9,
+        message="fit 9: gated",
+        t_start=9 * HOUR,
+        t_stop=10 * HOUR,
+        gate=[9 * HOUR, 9.5 * HOUR],
+    )
+    f.close()
+    f = StageFile(d, "monitor")
+    f.rec.write_json(
+        "alerts",
+        {
+            "run": RUN,
+            "kind": "step",
+            "coefficient": "23.phi.tx",
+            "t": 12 * HOUR,
+            "value": 0.3,
+            "significance": 7.0,
+            "message": "step of +0.300 mm/rad in 23.phi.tx at 0.500 d",
+            "details": {"model_epoch": 2},
+        },
+    )
+    f.close()
+
+    code, out, err = run_ttl(capsys, "inspect", d, "--json", "-")
+    assert code == 0, err
+    t = json.loads(out)["timeline"]
+    spans = [(s["from_index"], s["to_index"], s["effects"], s["by"], s["new_epoch"], s["fits"]) for s in t["models"]]
+    assert spans == [
+        (0, 3, ["linear-ttl"], "configured", False, 4),
+        (4, 6, ["linear-ttl", WITNESS], "adopt auto", True, 3),
+        (7, 9, ["linear-ttl", WITNESS, GLITCH], "adopt auto", False, 2),
+        (10, 10, ["linear-ttl", WITNESS], "window", False, 1),
+        (11, 12, ["linear-ttl", WITNESS, "drift"], "control", True, 2),
+    ], spans
+    adopted = t["models"][1]
+    assert adopted["added"] == [WITNESS] and adopted["removed"] == [] and adopted["diagnosis_index"] == 3
+    assert adopted["recommendation"]["log_bayes_factor"] == 3.3e5 and "explains 100 %" in adopted["reason"]
+    assert t["models"][3]["removed"] == [GLITCH] and t["models"][3]["added"] == []
+    assert t["gaps"] == [{"from_index": 8, "to_index": 8, "segments": 1, "t_start": 8 * HOUR, "t_stop": 9 * HOUR}]
+    assert t["excluded"] == [
+        {
+            "kind": "outlier",
+            "from_index": 2,
+            "to_index": 3,
+            "t_start": 2 * HOUR,
+            "t_stop": 4 * HOUR,
+            "count": 2,
+            "z_max": 300.0,
+        },
+        {
+            "kind": "gated",
+            "from_index": 9,
+            "to_index": 9,
+            "t_start": 9 * HOUR,
+            "t_stop": 10 * HOUR,
+            "count": 1,
+            "gate": [9 * HOUR, 9.5 * HOUR],
+        },
+    ]
+
+    code, out, err = run_ttl(capsys, "inspect", d)
+    assert code == 0, err
+    lines = [line.strip() for line in out.splitlines()]
+    expected = [
+        "Timeline: the model from segment to segment (new couplings from segment(s) 4, 11: the monitor's trends "
+        "start a new series there)",
+        "segments 0-3     linear-ttl  (4 fits)",
+        "as configured",
+        f"segments 4-6     linear-ttl,{WITNESS}  (3 fits)",
+        f"+ {WITNESS} by adopt auto after the diagnosis of segment 3: explains 100 % of the excess, log Bayes "
+        "factor 3.3e+05  [new model epoch]",
+        f"recommended {WITNESS}, explains 100 % of the excess, log Bayes factor 3.3e+05",
+        f"segments 7-9     linear-ttl,{WITNESS},{GLITCH}  (2 fits)",
+        f"+ {GLITCH} by adopt auto after the diagnosis of segment 6: explains 80 %",
+        f"segment 10       linear-ttl,{WITNESS}  (1 fit)",
+        f"- {GLITCH} by window (it left the one-day window)",
+        f"segments 11-12   linear-ttl,{WITNESS},drift  (2 fits)",
+        "+ drift by control  [new model epoch]",
+        "Gaps (no TDI segment: NaN pushed, window kept): segment 8 (0.333-0.375 d)",
+        "Left out of the fit: fits 2-3, 2 FFT segment(s) (0.083-0.167 d): outliers, up to 300 sigma above the window",
+        "Left out of the fit: fit 9, 1 FFT segment(s) (0.375-0.417 d): gated by the gate 0.375-0.396 d",
+    ]
+    start = lines.index(expected[0])
+    assert lines[start : start + len(expected)] == expected, "\n".join(lines[start : start + len(expected)])
+    assert "[step] step of +0.300 mm/rad in 23.phi.tx at 0.500 d (model epoch 2)" in lines

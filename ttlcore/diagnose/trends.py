@@ -90,6 +90,38 @@ fits and 11 after three - drifts are flagged about when they have moved a coeffi
 the 0.1 mm/rad accuracy requirement.  A longer lookback is more sensitive to steady
 drifts but slower to forget one that stopped.
 
+Model epochs (:class:`TrendMonitor`, :func:`model_key`)
+------------------------------------------------------
+The fitter's model can change during a run (``ttl control``, ``--adopt auto``, a transient
+leaving the window), and every fit message says under which model its coefficients were
+estimated (meta ``model``, the list of effect specs).  A change of the model moves the
+estimates at once - the fitter rebuilds its window under the new model - by what the old
+model got wrong, not by anything the coefficients did: on a live day that adopted a
+round-trip-ghost witness the change raised two step alerts at 7.4 sigma.  The trends
+therefore compare fits under the same model only:
+
+* **a new coupling** (any change of the effects other than the transients ``glitch`` and
+  ``gate``: a witness, a drift, an fd-coupling added, removed or re-parametrised) starts a
+  new *model epoch*: the step scan, its baselines and its scatter, the drift line and the
+  reported drifts start again from the first fit of the new model, and the alerts of the
+  epoch are de-duplicated among themselves.  What the 24 numbers mean can change with the
+  couplings (with ``drift`` in the model they are the values at the reference time), so no
+  statistic of the old epoch is carried over.  The cost: the step test is armed again only
+  after ``min_history`` differences (13 fits, half a day of hourly fits) and the drift line
+  after ``drift_min_windows`` fits; a drift that goes on is reported again in the new epoch
+  once its own fits show it.
+* **a change of the transients only** (a glitch or a gate added, merged, or removed when it
+  leaves the window) does not: the 24 coefficients are the same quantity under both models,
+  but the estimate jumps by what the transient pulled it by.  The series goes on; the one
+  difference across the change is left out of the step test (not accumulated, not in a
+  baseline, not in a step's size) and the drift line gets a free offset from the first fit
+  of the new model.  A live day with a merger changes its gates at every diagnosis (a gate
+  merged with the next to the window's end) and drops each transient a day later: starting
+  the series again each time would leave the step test unarmed most of such a day, for a
+  jump that one left-out difference already takes.
+
+A fit without ``model`` in its meta is under the model of the fit before it.
+
 Units: coefficients and sigmas are given in m/rad (the bus's unit) unless ``units`` says
 otherwise; alert values are in mm/rad (steps) or mm/rad/day (drifts); times in seconds.
 """
@@ -103,7 +135,7 @@ from __future__ import annotations
 import math
 import warnings
 from collections.abc import Mapping, Sequence
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 
 import numpy as np
 from scipy.linalg import solve_triangular
@@ -392,11 +424,14 @@ class _StepScan:
         self.start_plus = np.zeros(P, dtype=int)
         self.start_minus = np.zeros(P, dtype=int)
 
-    def run(self, ts, te, C, S, names, idx, s: TrendSettings) -> list[Alert]:
-        """Scan the rows not scanned yet; returns their alerts."""
+    def run(self, ts, te, C, S, names, idx, s: TrendSettings, skip=None) -> list[Alert]:
+        """Scan the rows not scanned yet; returns their alerts.  ``skip`` (bool per row): the
+        differences left out (across a change of the model's transients: not accumulated, not
+        in a baseline, not in a step's size)."""
         P = C.shape[1]
         d, sd = consecutive_differences(ts, te, C, S)  # row j is the difference into window j + 1
         n = d.shape[0]
+        skip = np.zeros(n, dtype=bool) if skip is None else np.asarray(skip, dtype=bool)[:n]
         if self.excluded.shape[0] < n:
             self.excluded = np.vstack([self.excluded, np.zeros((n - self.excluded.shape[0], P), dtype=bool)])
         excluded, hold = self.excluded, self.hold
@@ -404,6 +439,9 @@ class _StepScan:
         alerts: list[Alert] = []
         h, k_allow, B = s.step_threshold, s.step_allowance, max(2, int(s.baseline_windows))
         for j in range(self.rows, n):
+            if skip[j]:
+                excluded[j] = True
+                continue
             lo = max(0, j - B)
             past_d = np.where(excluded[lo:j], np.nan, d[lo:j])
             count = np.sum(~np.isnan(past_d), axis=0)
@@ -439,8 +477,8 @@ class _StepScan:
                 up = s_plus[p] >= h
                 run_start = int(start_plus[p] if up else start_minus[p])
                 stat = float(s_plus[p] if up else s_minus[p])
-                j0 = _change_point(ts, te, d, sd, mu, factor, p, run_start, j)
-                alert = _step_alert(ts, te, d, sd, mu, factor, p, j0, j, names[p], idx, stat, k_allow, h)
+                j0 = _change_point(ts, te, d, sd, mu, factor, p, run_start, j, skip)
+                alert = _step_alert(ts, te, d, sd, mu, factor, p, j0, j, names[p], idx, stat, k_allow, h, skip)
                 alerts.append(alert)
                 # hold off until the ramp has passed: until a window lies wholly after the
                 # latest possible step time (the end of the alarm's older window, te[j]):
@@ -460,7 +498,7 @@ def _ramp(ts, te, j0: int, rows: slice) -> np.ndarray:
     return (resp[1:] - resp[:-1])[rows]
 
 
-def _change_point(ts, te, d, sd, mu, factor, p, run_start: int, j: int) -> int:
+def _change_point(ts, te, d, sd, mu, factor, p, run_start: int, j: int, skip=None) -> int:
     """Most likely difference row where the step entered, among the CUSUM run's rows.
 
     For each candidate the exact ramp is fitted to the run's differences (weighted least
@@ -469,6 +507,8 @@ def _change_point(ts, te, d, sd, mu, factor, p, run_start: int, j: int) -> int:
     """
     rows = slice(run_start, j + 1)
     w = 1.0 / (factor[p] * sd[rows, p]) ** 2
+    if skip is not None:
+        w = np.where(skip[rows], 0.0, w)
     y = d[rows, p] - mu[p]
     best, best_score = run_start, -1.0
     for c in range(run_start, j + 1):
@@ -482,10 +522,12 @@ def _change_point(ts, te, d, sd, mu, factor, p, run_start: int, j: int) -> int:
     return best
 
 
-def _step_alert(ts, te, d, sd, mu, factor, p, j0, j, name, idx, stat, k_allow, h) -> Alert:
+def _step_alert(ts, te, d, sd, mu, factor, p, j0, j, name, idx, stat, k_allow, h, skip=None) -> Alert:
     t_step = te[j0]  # difference row j0 brings in the data after the end of window j0
     r = _ramp(ts, te, j0, slice(j0, j + 1))  # ramp seen by difference rows j0..j
     w = 1.0 / (factor[p] * sd[j0 : j + 1, p]) ** 2
+    if skip is not None:
+        w = np.where(skip[j0 : j + 1], 0.0, w)
     y = d[j0 : j + 1, p] - mu[p]
     info = float(np.sum(w * r * r))
     size = float(np.sum(w * r * y) / info) if info > 0 else float("nan")
@@ -563,12 +605,15 @@ def trend_estimates(
     steps: Sequence[Alert] = (),
     at: float | None = None,
     settings: TrendSettings | None = None,
+    breaks: Sequence[float] = (),
 ) -> TrendEstimates:
     """GLS line through the fits of the last ``lookback`` with the overlap covariance.
 
     Parameters are those of :func:`detect_steps`; ``steps`` are step alerts whose steps
     are modelled as nuisance terms, ``at`` the time of evaluation (default: the last
-    window end; fits ending after it are ignored).
+    window end; fits ending after it are ignored); ``breaks`` are window ends from which the
+    fits are under another model's transients: each adds a free level from that fit on (the
+    estimate jumps there at once, not along a step's ramp).
     """
     s = settings or TrendSettings()
     ts, te, C, S, names = _prepare(times, coefficients, sigma, t_start, window, names, units)
@@ -606,8 +651,9 @@ def trend_estimates(
         L_rho = np.linalg.cholesky(rho_j)
     except np.linalg.LinAlgError:
         L_rho = None
+    levels = [col for col in ((te >= float(b)).astype(float) for b in sorted(breaks)) if np.ptp(col) > 0]
     for p in range(P):
-        cols = [np.ones(n), x]
+        cols = [np.ones(n), x, *levels]
         for t_step in sorted(by_name.get(names[p], ())):
             col = step_response(ts, te, t_step)
             if np.ptp(col) > 1e-6:
@@ -627,7 +673,10 @@ def trend_estimates(
         beta, *_ = np.linalg.lstsq(Xw, yw, rcond=None)
         A = Xw.T @ Xw
         if np.linalg.cond(A) > 1e12:  # a step that cannot be told from the trend: drop steps
-            Xw, A = Xw[:, :2], (Xw[:, :2]).T @ Xw[:, :2]
+            keep = 2 + len(levels)
+            Xw, A = Xw[:, :keep], (Xw[:, :keep]).T @ Xw[:, :keep]
+            if np.linalg.cond(A) > 1e12:  # nor a level (a break among the last fits): drop those too
+                Xw, A = Xw[:, :2], (Xw[:, :2]).T @ Xw[:, :2]
             beta, *_ = np.linalg.lstsq(Xw, yw, rcond=None)
             modelled.pop(names[p], None)
         resid = yw - Xw @ beta
@@ -656,6 +705,7 @@ def detect_drifts(
     at: float | None = None,
     indices: Sequence[int] | None = None,
     settings: TrendSettings | None = None,
+    breaks: Sequence[float] = (),
 ) -> list[Alert]:
     """Drift alerts: coefficients whose linear trend over the last ``drift_lookback`` is
     significant (``|rate| / se >= drift_threshold``), evaluated at the last fit (or ``at``).
@@ -675,6 +725,7 @@ def detect_drifts(
         steps=steps,
         at=at,
         settings=s,
+        breaks=breaks,
     )
     t_stop = np.asarray(times, dtype=float).reshape(-1)
     last = int(np.searchsorted(t_stop, est.t_last, side="right") - 1) if t_stop.size else 0
@@ -714,6 +765,54 @@ def detect_drifts(
 
 # ---------------------------------------------------------------------------- streaming use
 
+#: Effects that are transients of a model: a change of these alone does not start a new epoch.
+TRANSIENT_EFFECTS = ("glitch", "gate")
+
+
+def model_key(model) -> tuple[tuple[str, ...], tuple[str, ...]] | None:
+    """``(couplings, transients)`` of a model (a list of effect specs, as a fit's meta
+    ``model``), each sorted; None when ``model`` is not a list (unknown).  Two fits are in one
+    model epoch when their couplings are equal; a change of the transients alone is a break
+    of the series (module docstring, "Model epochs")."""
+    if not isinstance(model, (list, tuple)):
+        return None
+    specs = [str(spec).strip() for spec in model]
+    transient = [spec.partition(":")[0].strip() in TRANSIENT_EFFECTS for spec in specs]
+    return (
+        tuple(sorted(spec for spec, t in zip(specs, transient) if not t)),
+        tuple(sorted(spec for spec, t in zip(specs, transient) if t)),
+    )
+
+
+@dataclass
+class ModelEpoch:
+    """A stretch of fits under one model's couplings (:class:`TrendMonitor`).
+
+    Attributes
+    ----------
+    number : int
+        0 for the first epoch of the run, then 1, 2, ...
+    index : int
+        The epoch's first fit (the first fit under its model).
+    t_start, t_stop : float
+        That fit's window [s].
+    model : list of str or None
+        Its effect specs (None: not known).
+    breaks : list of int
+        Fits from which the transients changed within the epoch (the difference into each is
+        not tested).
+    """
+
+    number: int
+    index: int
+    t_start: float
+    t_stop: float
+    model: list | None = None
+    breaks: list = field(default_factory=list)
+
+    def to_json(self) -> dict:
+        return asdict(self)
+
 
 class TrendMonitor:
     """Feeds fits one at a time and reports each new alert once (used by the monitor stage).
@@ -722,7 +821,8 @@ class TrendMonitor:
     change as fits arrive; an alert of a coefficient within one window length of one
     already reported is a duplicate).  Drifts are re-evaluated at every fit: a drift is
     reported when its significance first reaches ``drift_threshold``, and again only after
-    it has fallen below ``drift_release``.
+    it has fallen below ``drift_release``.  Both look at the fits of the current model epoch
+    only (:meth:`add`'s ``model``; module docstring, "Model epochs").
 
     Parameters
     ----------
@@ -732,6 +832,13 @@ class TrendMonitor:
         Units of the coefficients given to :meth:`add` (default m/rad).
     max_history : float
         History kept [s] (default 30 days).
+
+    Attributes
+    ----------
+    alerts : list of Alert
+        Every alert reported, all epochs.
+    epoch : ModelEpoch or None
+        The current model epoch; ``epochs`` every epoch so far, oldest first.
     """
 
     def __init__(
@@ -745,16 +852,22 @@ class TrendMonitor:
         self.settings = settings or TrendSettings()
         self.units = units
         self.max_history = float(max_history)
-        self._fits: dict[int, tuple[float, float, np.ndarray, np.ndarray]] = {}
+        # index -> (t_start, t_stop, coefficients, sigmas, model, model_key)
+        self._fits: dict[int, tuple[float, float, np.ndarray, np.ndarray, list | None, tuple | None]] = {}
         self.alerts: list[Alert] = []
+        self._epoch_alerts: list[Alert] = []  # the current epoch's (duplicates, steps in the drift line)
         self._drifting: set[str] = set()
         self.estimates: TrendEstimates | None = None
         self.cusum = np.zeros(len(self.names))
         self._scan: _StepScan | None = None
         self._scanned: list = []
+        self.epoch: ModelEpoch | None = None
+        self.epochs: list[ModelEpoch] = []
 
-    def add(self, index: int, t_start: float, t_stop: float, coefficients, sigma) -> list[Alert]:
-        """Store one fit and return the alerts it raises (possibly none)."""
+    def add(self, index: int, t_start: float, t_stop: float, coefficients, sigma, model=None) -> list[Alert]:
+        """Store one fit and return the alerts it raises (possibly none).  ``model``: the
+        effect specs the fit was estimated under (a fit message's meta ``model``; None: the
+        model of the fit before it)."""
         C = np.asarray(coefficients, dtype=float).reshape(-1)
         S = np.asarray(sigma, dtype=float)
         if S.ndim == 2:
@@ -765,37 +878,51 @@ class TrendMonitor:
         if not (math.isfinite(t_start) and math.isfinite(t_stop) and t_stop > t_start):
             raise ValueError(f"fit {index}: window [{t_start}, {t_stop}] is not valid")
         # one fit per window end (a refit of the same index replaces it)
-        for other, (_, stop, _, _) in list(self._fits.items()):
+        for other, (_, stop, *_rest) in list(self._fits.items()):
             if stop == t_stop and other != index:
                 del self._fits[other]
-        self._fits[int(index)] = (float(t_start), float(t_stop), C, S)
-        horizon = max(stop for _, stop, _, _ in self._fits.values()) - self.max_history
-        for other, (_, stop, _, _) in list(self._fits.items()):
+        key = model_key(model)
+        self._fits[int(index)] = (float(t_start), float(t_stop), C, S, list(model) if key else None, key)
+        horizon = max(f[1] for f in self._fits.values()) - self.max_history
+        for other, (_, stop, *_rest) in list(self._fits.items()):
             if stop < horizon:
                 del self._fits[other]
-        order = sorted(self._fits, key=lambda i: self._fits[i][1])
+        order, breaks = self._series()
         ts = np.array([self._fits[i][0] for i in order])
         te = np.array([self._fits[i][1] for i in order])
         Cs = np.array([self._fits[i][2] for i in order])
         Ss = np.array([self._fits[i][3] for i in order])
         new: list[Alert] = []
         # steps: the causal scan goes on from the fits scanned before (O(baseline) per fit);
-        # from the start again when the history changed otherwise (a refit, trimmed history)
-        keys = [(i, self._fits[i][1]) for i in order]
+        # from the start again when the history changed otherwise (a refit, trimmed history,
+        # a new epoch)
+        keys = [(i, self._fits[i][1], k in breaks) for k, i in enumerate(order)]
         if self._scan is None or keys[: len(self._scanned)] != self._scanned or len(keys) < 2:
             self._scan, self._scanned = _StepScan(len(self.names)), []
         found = []
         if len(keys) >= 2:
             ts_, te_, C_, S_, names_ = _prepare(te, Cs, Ss, ts, None, self.names, self.units)
-            found = self._scan.run(ts_, te_, C_, S_, names_, order, self.settings)
+            skip = np.array([k + 1 in breaks for k in range(len(order) - 1)])
+            found = self._scan.run(ts_, te_, C_, S_, names_, order, self.settings, skip)
             self._scanned = keys
         for a in found:
+            a = self._in_epoch(a)
             if not self._known_step(a):
                 self.alerts.append(a)
+                self._epoch_alerts.append(a)
                 new.append(a)
-        steps = [a for a in self.alerts if a.kind == STEP]
+        steps = [a for a in self._epoch_alerts if a.kind == STEP]
+        at_breaks = [float(te[k]) for k in sorted(breaks)]
         self.estimates = trend_estimates(
-            te, Cs, Ss, t_start=ts, names=self.names, units=self.units, steps=steps, settings=self.settings
+            te,
+            Cs,
+            Ss,
+            t_start=ts,
+            names=self.names,
+            units=self.units,
+            steps=steps,
+            settings=self.settings,
+            breaks=at_breaks,
         )
         z = np.nan_to_num(np.abs(self.estimates.significance), nan=0.0)
         for a in detect_drifts(
@@ -808,21 +935,60 @@ class TrendMonitor:
             steps=steps,
             indices=order,
             settings=self.settings,
+            breaks=at_breaks,
         ):
             if a.coefficient not in self._drifting:
+                a = self._in_epoch(a)
                 self._drifting.add(a.coefficient)
                 self.alerts.append(a)
+                self._epoch_alerts.append(a)
                 new.append(a)
         for p, name in enumerate(self.names):
             if name in self._drifting and z[p] < self.settings.drift_release:
                 self._drifting.discard(name)
         return new
 
+    def _series(self) -> tuple[list[int], set[int]]:
+        """The fits of the current model epoch in order of window end, and the positions in
+        it where the transients changed; a new epoch (its first fit later than the current
+        one's) resets what the trends carried (the scan restarts with the fits it is given)."""
+        order = sorted(self._fits, key=lambda i: self._fits[i][1])
+        keys: list = []
+        for i in order:  # a fit without a model is under the model of the fit before it
+            key = self._fits[i][5]
+            keys.append(key if key is not None or not keys else keys[-1])
+        start = 0
+        for k in range(1, len(order)):
+            if keys[k] is not None and keys[k - 1] is not None and keys[k][0] != keys[k - 1][0]:
+                start = k
+        breaks = {
+            k
+            for k in range(start + 1, len(order))
+            if keys[k] is not None and keys[k - 1] is not None and keys[k][1] != keys[k - 1][1]
+        }
+        first = order[start]
+        t_first = self._fits[first][1]
+        if self.epoch is None or (start > 0 and t_first > self.epoch.t_stop):
+            if self.epoch is not None:  # a new model: what the trends carried was another model's
+                self._epoch_alerts, self._drifting = [], set()
+            self.epoch = ModelEpoch(len(self.epochs), first, self._fits[first][0], t_first, self._fits[first][4])
+            self.epochs.append(self.epoch)
+        elif start > 0 and t_first < self.epoch.t_stop:  # its first fit came late
+            self.epoch.index, self.epoch.t_start, self.epoch.t_stop = first, self._fits[first][0], t_first
+        self.epoch.breaks = [order[k] for k in sorted(breaks)]
+        return order[start:], {k - start for k in breaks}
+
+    def _in_epoch(self, a: Alert) -> Alert:
+        """The alert with its model epoch in ``details`` (``model_epoch``)."""
+        return replace(a, details={**a.details, "model_epoch": self.epoch.number if self.epoch else 0})
+
     def _known_step(self, a: Alert) -> bool:
-        """Already reported: same coefficient, step time within one window length."""
-        lengths = [te - ts for ts, te, _, _ in self._fits.values()]
+        """Already reported in this epoch: same coefficient, step time within one window length."""
+        lengths = [f[1] - f[0] for f in self._fits.values()]
         length = float(np.median(lengths)) if lengths else 0.0
-        return any(b.kind == STEP and b.coefficient == a.coefficient and abs(b.t - a.t) <= length for b in self.alerts)
+        return any(
+            b.kind == STEP and b.coefficient == a.coefficient and abs(b.t - a.t) <= length for b in self._epoch_alerts
+        )
 
     @property
     def drifting(self) -> frozenset:

@@ -222,3 +222,70 @@ def test_monitor_scans_steps_incrementally_with_the_batch_alerts():
     steps = [(a.coefficient, a.t, a.value) for a in online if a.kind == "step"]
     assert steps == [(a.coefficient, a.t, a.value) for a in batch] and len(steps) >= 2, (steps, batch)
     assert np.median(costs[-20:]) < 3 * np.median(costs[30:50]) + 0.01, (costs[30:50], costs[-20:])
+
+
+#: Coefficients the model change moves, by how much [m/rad] (5 and 8 sigma of a window:
+#: each difference across the change is ~17 and ~28 of its own standard deviations).
+JUMPS = {"12.phi.rx": 5 * SIGMA, "21.eta.tx": -8 * SIGMA, "31.phi.rx": 5 * SIGMA}
+LINEAR = ["linear-ttl"]
+GHOST = LINEAR + ["witness:source=12.eta;link=23;delay=2"]
+GLITCH = LINEAR + ["glitch:t=170000;tm=12;beta=100"]
+
+
+def monitor_with_a_model_change(models, seed=4, change=2 * DAY, step_time=3.2 * DAY):
+    """A TrendMonitor fed 4 days of hourly fits whose estimates jump by ``JUMPS`` from the
+    first window ending after ``change`` on (as when the fitter rebuilds its window under a
+    new model), and with a real 0.3 mm/rad step in ``STEP_COEF`` at ``step_time``; ``models``
+    = (model before, model from the jump on).  Returns the monitor, the alerts, the index of
+    the first fit after the jump."""
+    t_start, t_stop, C, S, _ = rolling_fits(seed, step=(STEP_COEF, step_time, STEP_SIZE), drifts={})
+    k_change = int(np.searchsorted(t_stop, change, side="right"))
+    for name, jump in JUMPS.items():
+        C[k_change:, COEFFICIENT_NAMES.index(name)] += jump
+    mon = TrendMonitor()
+    alerts = []
+    for i in range(len(t_stop)):
+        alerts += mon.add(i, t_start[i], t_stop[i], C[i], S[i], model=models[i >= k_change])
+    return mon, alerts, k_change
+
+
+def test_a_jump_at_a_model_change_is_no_step_and_starts_a_new_series():
+    """Issue 31: the estimates jump when the fitter's couplings change (a witness adopted):
+    no step alert, a new epoch; the same jump under an unchanged model is a step alert; a
+    real step later in the new epoch still is."""
+    mon, alerts, k = monitor_with_a_model_change((LINEAR, GHOST))
+    assert [(a.kind, a.coefficient) for a in alerts] == [("step", STEP_COEF)], [a.message for a in alerts]
+    assert alerts[0].t == pytest.approx(3.2 * DAY, abs=3 * HOUR) and alerts[0].details["model_epoch"] == 1
+    assert [(e.number, e.index, e.model) for e in mon.epochs] == [(0, 0, LINEAR), (1, k, GHOST)]
+    assert mon.epoch is mon.epochs[-1] and mon.epoch.breaks == []
+    # the trends restarted: the drift line holds the new epoch's fits only
+    assert mon.estimates.t_first >= mon.epoch.t_stop
+    mon_same, same, _ = monitor_with_a_model_change((LINEAR, LINEAR))
+    jumped = {a.coefficient for a in same if a.kind == "step"}
+    assert jumped >= set(JUMPS) | {STEP_COEF}, [a.message for a in same]
+    assert min(abs(a.significance) for a in same if a.coefficient in JUMPS) > 5
+    assert len(mon_same.epochs) == 1
+
+
+def test_a_change_of_transients_only_breaks_the_series_without_a_new_epoch():
+    """A glitch added to the model moves the estimates by what it pulled them by: the one
+    difference across the change is not tested and the drift line gets a level of its own;
+    the series goes on (the same epoch), so a real step later is alerted as without it."""
+    mon, alerts, k = monitor_with_a_model_change((LINEAR, GLITCH))
+    assert [(a.kind, a.coefficient) for a in alerts] == [("step", STEP_COEF)], [a.message for a in alerts]
+    assert alerts[0].details["model_epoch"] == 0
+    assert len(mon.epochs) == 1 and mon.epoch.breaks == [k]
+    assert mon.estimates.t_first < mon.epoch.breaks[0] * HOUR  # the drift line spans the break
+    # a real step in the truth exactly at the change, under unchanged couplings, is still a step
+    # (its ramp goes on after the one left-out difference)
+    mon2, alerts2, _ = monitor_with_a_model_change((LINEAR, GLITCH), step_time=2 * DAY)
+    assert STEP_COEF in {a.coefficient for a in alerts2 if a.kind == "step"}, [a.message for a in alerts2]
+
+
+def test_model_key_separates_couplings_from_transients():
+    from ttlcore.diagnose.trends import model_key
+
+    assert model_key(None) is None and model_key("linear-ttl") is None
+    assert model_key(GHOST) == (tuple(sorted(GHOST)), ())
+    assert model_key(GLITCH + ["gate:start=1;stop=2"]) == (("linear-ttl",), ("gate:start=1;stop=2", GLITCH[1]))
+    assert model_key(list(reversed(GHOST))) == model_key(GHOST)  # the order of the specs is not a change
