@@ -102,7 +102,7 @@ from ttlcore.estimate.monitoring import (
 from ttlcore.estimate.spectra import longest_run
 
 from . import monitor_views as views
-from .monitor_epochs import ModelEpochs
+from .monitor_epochs import ModelEpochs, trend_estimate
 from .monitor_settling import Settling
 from .monitor_status import UNITS, drift_arrays, status_meta
 from .monitor_truth import FitTruth
@@ -503,12 +503,12 @@ class Monitor(PipelineStage):
             self.text("alerts", f"fit {header.index}: did not converge", "WARN")
         self.draw_model(header.index, meta)
 
-        # the trend monitor gets at most one fit per trend_spacing of window end (10-min segments
-        # give six nearly identical one-day windows an hour): its work per fit stays bounded
+        # at most one fit per trend_spacing of window end (10-min segments: six near-equal windows an hour)
         near = [t for t in self._trend_t if abs(t - t_stop) < self.trend_spacing - 1e-6]
         if not near:
             self._trend_t.append(float(t_stop))
-            alerts = self.trends.add(header.index, float(t_start), float(t_stop), C, S, meta.get("model"))
+            C_t, S_t = trend_estimate(meta, C, S)
+            alerts = self.trends.add(header.index, float(t_start), float(t_stop), C_t, S_t, meta.get("model"))
         else:
             alerts = []
         self._time(t_stop, header.index)

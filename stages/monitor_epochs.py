@@ -21,6 +21,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import numpy as np
+
 from ttlcore.diagnose.trends import model_key
 
 from .monitor_views import days
@@ -95,3 +97,20 @@ class ModelEpochs:
             )
         t_break = centre if last is None else 0.5 * (last + centre)
         return Change(index, couplings, self.number, t_break, message)
+
+
+def trend_estimate(meta: dict, coefficients: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The coefficients and sigmas [m/rad] the trend tests follow for a fit: the rolling fit's
+    (meta ``rolling``, :func:`stages.fit_message.rolling_estimate`) when the published fit is a
+    window refit that replaced it, so that the series holds one estimator (the daily switch
+    between the two read as a step); the published ones otherwise."""
+    rolling = meta.get("rolling")
+    if isinstance(rolling, dict):
+        try:
+            c = np.asarray(rolling["coefficients"], dtype=float)
+            s = np.asarray(rolling["sigma"], dtype=float)
+        except (KeyError, TypeError, ValueError):
+            return coefficients, sigma
+        if c.shape == coefficients.shape and s.shape == sigma.shape:
+            return c, s
+    return coefficients, sigma

@@ -708,3 +708,18 @@ def test_model_epochs_as_drawn():
         "transients changed at fit 3 (added glitch:t=90000;tm=12;beta=100): the series goes on",
         "transients changed at fit 4 (removed glitch:t=90000;tm=12;beta=100): the series goes on",
     ]
+
+
+def test_the_trends_follow_the_rolling_estimate_through_a_window_refit():
+    # a window refit that replaced the rolling model's estimate carries it (meta rolling): the
+    # trends take it, so that the daily switch of estimator is no step; a malformed one is
+    # ignored (the published estimate stands)
+    from stages.monitor_epochs import trend_estimate
+
+    C, S = np.full(24, 2.3e-3), np.full(24, 1e-5)
+    rolling = {"coefficients": [2.28e-3] * 24, "sigma": [9e-6] * 24}
+    c, s = trend_estimate({"rolling": rolling}, C, S)
+    assert np.all(c == 2.28e-3) and np.all(s == 9e-6)
+    for bad in ({"rolling": {"coefficients": [1.0] * 3, "sigma": [1.0] * 3}}, {"rolling": {"sigma": 1}}, {}):
+        c, s = trend_estimate(bad, C, S)
+        assert c is C and s is S
