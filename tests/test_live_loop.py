@@ -427,18 +427,26 @@ EXTENDED = (
 
 @pytest.mark.science
 @pytest.mark.timeout(DAY_TIMEOUT)
-def test_default_cadence_fixes_a_lisainstrument_day(tmp_path):
+@pytest.mark.parametrize("gaps", [False, True], ids=["clean", "gaps"])
+def test_default_cadence_fixes_a_lisainstrument_day(tmp_path, gaps):
     """Issue 31's acceptance: ``ttl run --adopt auto`` at the default cadence on a one-day
-    lisainstrument file with a missing coupling (the blind generator's seed 25, a delayed
-    witness outside the named set, added to one link's eta by code of the test's own) gets
-    24 of 24 fits (the last segment holds 14351 samples: lisainstrument's first 49 go to the
-    eta reduction), adopts the coupling at its half-day diagnosis, subtracts it for the rest
-    of the day, and raises no alert (the truth has no step or drift)."""
+    lisainstrument file with a missing coupling (the blind generator's seed 25, a coupling
+    outside the named set, added by code of the test's own) gets 24 of 24 fits (the last
+    segment holds 14351 samples: lisainstrument's first 49 go to the eta reduction), adopts
+    the coupling at its half-day diagnosis, subtracts it for the rest of the day, and raises
+    no alert (the truth has no step or drift).  ``clean``: the coupling added to the eta read
+    from the file, written in our format; ``gaps``: added to the lisainstrument file's beat
+    notes, with two 30-min lisa-gap gaps (NaN in every series) in it, replayed from that
+    file: the segments they fall in are fitted on what they hold."""
     from dataclasses import replace
 
     from lisainstrument_sim import simulate_lisainstrument
     from test_diagnose_blind import blind_case
-    from test_diagnose_blind_lisainstrument import injected_eta, scaled_to_a_random_level
+    from test_diagnose_blind_lisainstrument import (
+        gapped_lisainstrument_day_with_a_coupling,
+        injected_eta,
+        scaled_to_a_random_level,
+    )
 
     from ttlcore.conventions import COEFFICIENT_NAMES
     from ttlcore.io.lisainstrument import lisainstrument_truth
@@ -450,8 +458,12 @@ def test_default_cadence_fixes_a_lisainstrument_day(tmp_path):
     c_true = np.array([truth[n] for n in COEFFICIENT_NAMES])
     tm = read_telemetry(li)
     seed = 25
-    extra = scaled_to_a_random_level(tm, injected_eta(tm, blind_case(seed)), seed)
-    data = write_telemetry(tmp_path / "day.h5", replace(tm, eta=tm.eta + extra, source="memory"))
+    if gaps:
+        data = tmp_path / "li-gaps.h5"
+        gapped_lisainstrument_day_with_a_coupling(li, tm, data, seed)
+    else:
+        extra = scaled_to_a_random_level(tm, injected_eta(tm, blind_case(seed)), seed)
+        data = write_telemetry(tmp_path / "day.h5", replace(tm, eta=tm.eta + extra, source="memory"))
     code, out, run_dir = live_run(tmp_path, data, "li", "--adopt", "auto", monitor=True)
     assert code == 0, out[-4000:]
     fits = fits_of(run_dir)

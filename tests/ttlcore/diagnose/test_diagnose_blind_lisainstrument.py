@@ -197,3 +197,59 @@ def test_lisainstrument_day_with_gaps_has_them_gated_and_no_effect_advised(lisai
     assert len(reports) == 2, summary
     assert not any(c["significant"] for c in last["candidates"]), [c["effect"] for c in last["candidates"][:3]]
     check_against_truth(last, truth)
+
+
+def gapped_lisainstrument_day_with_a_coupling(clean, tm, path, seed: int, gap_seed: int = 301) -> list[tuple]:
+    """A copy of the lisainstrument file ``clean`` (read as ``tm``) at ``path`` with the blind
+    generator's case ``seed`` added to the science beat notes (``eta_ij`` holds ``sci_ij``
+    undelayed with factor 1: the eta signal times ``central_freq`` in Hz; zero over the
+    reduction's dropped leading samples) and lisa-gap's NaN gaps in every beat-note, MPR and
+    DWS series.  Returns the gaps' spans [s]."""
+    import shutil
+
+    import blind_signals as bs
+    import h5py
+
+    from ttlcore.conventions import MOSAS
+    from ttlcore.io.lisainstrument import BEATNOTE_DATASETS, DWS_ETA_DATASET, DWS_PHI_DATASET, MPR_DATASET
+
+    extra = scaled_to_a_random_level(tm, injected_eta(tm, blind_case(seed)), seed)
+    shutil.copyfile(clean, path)
+    with h5py.File(path, "r+") as f:
+        md = json.loads(f.attrs["metadata_json"])
+        t = md["t0"] + np.arange(md["size"]) / md["fs"]
+        first = int(tm.config["dropped_leading_samples"])
+        for k, link in enumerate(LINKS):
+            ds = f[f"{BEATNOTE_DATASETS['sci']}/{link}"]
+            x = ds[()]
+            x[first : first + tm.size] += extra[k] * md["central_freq"]
+            ds[...] = x
+        mask = bs.gap_mask(t, n_gaps_per_day=3.0, duration_hr=0.5, seed=gap_seed)  # NaN: missing data
+        for group in (*BEATNOTE_DATASETS.values(), MPR_DATASET, DWS_PHI_DATASET, DWS_ETA_DATASET):
+            for m in MOSAS:
+                f[f"{group}/{m}"][...] = f[f"{group}/{m}"][()] * mask
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], np.isnan(mask).astype(np.int8), [0]])))
+    return [(t[a], t[b - 1]) for a, b in zip(edges[::2], edges[1::2])]
+
+
+def test_lisainstrument_day_with_gaps_and_a_hidden_coupling(lisainstrument_day, tmp_path):
+    """Issue 31's acceptance: a lisainstrument file with NaN gaps and a coupling outside the
+    named set (the blind case of seed 25, added to the file's beat notes): ``ttl diagnose``
+    and its printed advice, followed as printed, gate the gaps and fit the coupling; the last
+    model passes with lisainstrument's coefficients (< 0.05 mm/rad, pull RMS < 1.5)."""
+    tm, truth, clean = lisainstrument_day
+    path = tmp_path / "li-gaps-coupling.h5"
+    injected = gapped_lisainstrument_day_with_a_coupling(clean, tm, path, 25)
+    assert len(injected) == 2, injected
+    reports = follow_advice(path, tmp_path)
+    summary = [r["recommendation"] and r["recommendation"]["message"] for r in reports]
+    first, last = reports[0], reports[-1]
+    found = first["transients"]["gaps"]
+    for a, b in injected:
+        assert any(lo <= a + 60 and hi >= b - 60 for lo, hi in found), (injected, found)
+    model = last["model"]["effects"]
+    gates = [e for e in model if e.startswith("gate:")]
+    couplings = [e for e in model if e != "linear-ttl" and not e.startswith(("gate:", "glitch:"))]
+    print(f"gaps and a coupling: {len(reports)} reports; last model {model}; {summary}")
+    assert gates and couplings, (model, summary)
+    check_against_truth(last, truth)
