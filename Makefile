@@ -105,6 +105,7 @@ bench: $(STAMP)
 	$(BIN)/python bench/rolling.py
 	$(BIN)/python bench/gw.py
 	$(BIN)/python bench/diagnose.py
+	$(BIN)/python bench/mission.py
 
 clean:
 	rm -rf $(VENV) .venv-lock $(DEMO) *.egg-info
