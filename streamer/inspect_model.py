@@ -173,6 +173,7 @@ def model_report(recs: list[Recording]) -> dict:
                     "command": rec_.get("command"),
                     "message": rec_.get("message"),
                     "adoption": diag.get("adoption"),
+                    "removal": [x for x in diag.get("removal") or [] if isinstance(x, dict)],
                     "text": diag.get("text"),
                 }
     return {

@@ -107,13 +107,16 @@ def timeline_text(t: dict) -> list[str]:
             + "; ".join(f"{_span(g['from_index'], g['to_index'])}{_hours(g['t_start'], g['t_stop'])}" for g in gaps)
         )
     for x in t.get("excluded") or []:
-        cause = (
-            f"outlier{'s' if x['count'] > 1 else ''}"
-            + (f", up to {x['z_max']:.0f} sigma above the window" if isinstance(x.get("z_max"), (int, float)) else "")
-            if x["kind"] == "outlier"
-            else "gated"
-            + (f" by the gate {_days(x['gate'][0])}-{_days(x['gate'][1])} d" if isinstance(x.get("gate"), list) else "")
-        )
+        if x["kind"] == "gap":
+            cause = "less than half valid (a gap in the data)"
+        elif x["kind"] == "outlier":
+            cause = f"outlier{'s' if x['count'] > 1 else ''}" + (
+                f", up to {x['z_max']:.0f} sigma above the window" if isinstance(x.get("z_max"), (int, float)) else ""
+            )
+        else:
+            cause = "gated" + (
+                f" by the gate {_days(x['gate'][0])}-{_days(x['gate'][1])} d" if isinstance(x.get("gate"), list) else ""
+            )
         lines.append(
             f"  Left out of the fit: fit{'s' if x['to_index'] > x['from_index'] else ''} "
             f"{_span(x['from_index'], x['to_index']).split(' ', 1)[1]}, "
@@ -222,6 +225,10 @@ def format_report(r: dict) -> str:
                 lines.append(f"    {d['message']}")
             elif not d.get("fails"):
                 lines.append("    the model is adequate: nothing to add")
+            for x in d.get("removal") or []:
+                lines.append(
+                    f"    evidence gone: {x.get('spec')} (p = {_num(x.get('p'))}); remove it: {x.get('command')}"
+                )
 
     lines.append("")
     lines.append(f"Alerts (monitor): {len(r['alerts'])}")

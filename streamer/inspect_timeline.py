@@ -151,9 +151,13 @@ def excluded_spans(recs: list[Recording]) -> list[dict]:
     """The FFT segments the rolling fit left out, as spans: consecutive fits that left out
     segments for the same cause (``kind`` ``outlier``: a ``segment-excluded`` warning, with
     the largest excess ``z_max`` in sigma; ``gated``: a ``segment-gated`` event, with its
-    ``gate`` [s]), with ``from_index``, ``to_index`` (the fits), ``t_start``, ``t_stop``
+    ``gate`` [s]; ``gap``: a ``segment-gap`` event, less than half of the FFT segment valid), with ``from_index``, ``to_index`` (the fits), ``t_start``, ``t_stop``
     (mission time [s] left out), ``count``."""
-    wanted = {"segment-excluded": ("warnings", "outlier"), "segment-gated": ("events", "gated")}
+    wanted = {
+        "segment-excluded": ("warnings", "outlier"),
+        "segment-gated": ("events", "gated"),
+        "segment-gap": ("events", "gap"),
+    }
     items = {}
     for rec in recs:
         for kind, (topic, cause) in wanted.items():
