@@ -242,16 +242,20 @@ def format_report(r: dict) -> str:
         lines.append(f"  {w.get('stage')} [{w.get('kind')}] {w.get('message')}")
 
     lines.append("")
-    lines.append(f"Errors: {len(r['errors'])}")
-    by = Counter((e["stage"], e["kind"]) for e in r["errors"])
+    # a segment with no data is a gap of the data, reported with an error message so that the
+    # stages downstream move on: listed under Gaps, not here
+    errors = [e for e in r["errors"] if e["kind"] != "gap"]
+    gap_reports = len(r["errors"]) - len(errors)
+    lines.append(f"Errors: {len(errors)}" + (f" ({gap_reports} gap report(s): under Gaps)" if gap_reports else ""))
+    by = Counter((e["stage"], e["kind"]) for e in errors)
     if by:
         lines.append("  " + ", ".join(f"{stage} {kind} x{n}" for (stage, kind), n in sorted(by.items())))
-    for e in r["errors"][:MAX_LISTED]:
+    for e in errors[:MAX_LISTED]:
         where = f" segment {e['index']}" if e["index"] is not None else ""
         field = f" field {e['field']!r}" if e["field"] else ""
         lines.append(f"  {e['stage']} {e['kind']}{where}{field}: {e['message']}")
-    if len(r["errors"]) > MAX_LISTED:
-        lines.append(f"  ... {len(r['errors']) - MAX_LISTED} more (--json FILE for all)")
+    if len(errors) > MAX_LISTED:
+        lines.append(f"  ... {len(errors) - MAX_LISTED} more (--json FILE for all)")
 
     lines.append("")
     lines.append(f"Gaps: {len(r.get('gaps', []))}")
