@@ -209,21 +209,8 @@ def rrd_footer(path: Path) -> bool:
     return done.returncode == 0 and "footer" not in (done.stdout + done.stderr).lower()
 
 
-@pytest.fixture
-def driver(tmp_path):
-    d = Driver(write_truth(tmp_path / "day.truth.h5", hours=N_FITS + 2))
-    yield d
-    d.close()
-
-
-def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
-    t_begin = time.monotonic()
-    # before the monitor starts: the first segment and ten fits (from the publishers' caches)
-    driver.telemetry(0)
-    driver.tdi_and_residual(0)
-    for k in range(10):
-        driver.fit(k)
-
+def start_monitor(driver, procs, tmp_path):
+    """A monitor stage process on the driver's router, up once its liveliness token is seen."""
     config = StageConfig(
         run=RUN,
         zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
@@ -239,6 +226,25 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
         60,
         "the monitor's liveliness token",
     )
+    return proc
+
+
+@pytest.fixture
+def driver(tmp_path):
+    d = Driver(write_truth(tmp_path / "day.truth.h5", hours=N_FITS + 2))
+    yield d
+    d.close()
+
+
+def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
+    t_begin = time.monotonic()
+    # before the monitor starts: the first segment and ten fits (from the publishers' caches)
+    driver.telemetry(0)
+    driver.tdi_and_residual(0)
+    for k in range(10):
+        driver.fit(k)
+
+    proc = start_monitor(driver, procs, tmp_path)
     assert proc.poll() is None, output(proc)
     tcp = [c for c in psutil.Process(proc.pid).net_connections(kind="inet") if c.status == psutil.CONN_LISTEN]
     assert all(c.laddr.ip == "127.0.0.1" for c in tcp), tcp
@@ -622,21 +628,7 @@ def test_a_jump_at_a_model_change_starts_a_new_series_not_a_step_alert(driver, p
     new series, the monitor logs the change, breaks the coefficient lines (a Rerun clear) and
     draws the new epoch in a colour of its own."""
     driver.fits = fits_with_a_jump()
-    config = StageConfig(
-        run=RUN,
-        zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
-        recordings=tmp_path / "rec",
-        history=64,
-        poll_interval=0.05,
-    )
-    cfg = tmp_path / "monitor.json"
-    cfg.write_text(json.dumps(config.to_dict()))
-    proc = procs.stage("monitor", "--config", cfg)
-    wait_for(
-        lambda: "monitor" in driver.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
-        60,
-        "the monitor's liveliness token",
-    )
+    proc = start_monitor(driver, procs, tmp_path)
     driver.telemetry(0)
     driver.tdi_and_residual(0)
     for k in range(N_FITS):
