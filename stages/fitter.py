@@ -68,7 +68,7 @@ from .fit_message import UNITS, fit_meta, fit_summary, notices, rolling_estimate
 from .fit_window import TelemetryWindow
 from .fitter_options import ADOPT_MODES, MODEL_UPDATES, add_options, one_of, options
 from .fitter_recordings import pushed_again, recorded_models, recorded_telemetry
-from .fitter_schedule import DiagnosisSchedule
+from .fitter_schedule import TRANSIENT_SPACING, DiagnosisSchedule
 from .live_diagnosis import control_command, diagnosis_meta
 from .live_model import LiveModel
 from .rolling_model import RollingModel, rolling_outputs
@@ -231,6 +231,9 @@ class Fitter(OrderedStage):
         """The model ``new`` from the next segment on (a ``model`` event records it and why);
         its first segment diagnosed unless ``diagnose`` is False."""
         start = self.queue.next if self.queue.next is not None else 0
+        if diagnose and self.model.only_transients_added(new):  # diagnosed a little later
+            diagnose = False
+            self.schedule.later(start + TRANSIENT_SPACING)
         before = list(self.effects)
         self.log.info("model change: %s -> %s from segment %d", ",".join(before), ",".join(new), start)
         self.event(
@@ -320,6 +323,7 @@ class Fitter(OrderedStage):
             self.log.info("no diagnosis yet: %s", exc)
             return None
         self.model.diagnose_due = False
+        self.schedule.done()
         out, ok = diagnosis_meta(
             report,
             index=header.index,
@@ -459,15 +463,10 @@ class Fitter(OrderedStage):
         telemetry segments is still filling (by design, the next fit covers it), a ``no-fit``
         warning naming the segment and why otherwise."""
         fft = self.rolling.settings.segment_duration if self.rolling is not None else None
-        seg = td.size / td.fs
-        if fft is not None and fft > seg * 1.001 and not self.last_segment(index):
-            self.log.info("segment %d: FFT segment of %g s still filling, no refit", index, fft)
-            return
-        why = (
-            "the window holds no FFT segment with data yet (the first ones were gaps or left out)"
-            if self.rolling is None or self.rolling.last is None
-            else "its FFT segment could not be completed"
-        )
+        if fft is not None and fft > td.size / td.fs * 1.001 and not self.last_segment(index):
+            return self.log.info("segment %d: FFT segment of %g s still filling, no refit", index, fft)
+        why = "its FFT segment could not be completed" if self.rolling is not None and self.rolling.last else ""
+        why = why or "the window holds no FFT segment with data yet (the first ones were gaps or left out)"
         self.warn("no-fit", f"segment {index}: no fit published: {why}", index=index)
 
     def rolling_update(self, header, td: TDIData, tm: Telemetry):

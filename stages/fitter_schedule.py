@@ -6,13 +6,18 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-__all__ = ["MIN_FIRST", "SUSTAINED_OUTLIERS", "DiagnosisSchedule"]
+__all__ = ["MIN_FIRST", "SUSTAINED_OUTLIERS", "TRANSIENT_SPACING", "DiagnosisSchedule"]
 
 #: FFT segments in a row left out of the rolling fit as outliers that make a sustained excess.
 SUSTAINED_OUTLIERS = 3
 #: The first diagnosis at half the cadence only when that many segments or more are in the
 #: window by then (a short cadence is its own first diagnosis).
 MIN_FIRST = 6
+#: A model that only gained transients (gates, glitches) is diagnosed this many segments after
+#: its first, not on it: an excess that goes on to the window's end (a coupling that switched
+#: on an hour ago) was otherwise gated again at every segment, each time by a diagnosis of
+#: several minutes (bench/mission.py: segments 72-74 of a week took 2, 5.5 and 8+ min).
+TRANSIENT_SPACING = 3
 
 
 @dataclass
@@ -33,22 +38,36 @@ class DiagnosisSchedule:
     ----------
     outlier_run : int
         FFT segments in a row the rolling fit left out as outliers, up to now.
+    pending_from : int or None
+        A diagnosis put off to this segment (:meth:`later`).
     """
 
     every: int
     sustained: int = SUSTAINED_OUTLIERS
     outlier_run: int = 0
+    pending_from: int | None = None
+
+    def later(self, index: int) -> None:
+        """Diagnose at segment ``index`` (or at the slot before it): a model that only gained
+        transients waits :data:`TRANSIENT_SPACING` segments."""
+        self.pending_from = index if self.pending_from is None else min(self.pending_from, index)
+
+    def done(self) -> None:
+        """A diagnosis ran: what was put off is done."""
+        self.pending_from = None
 
     def due(self, index: int, *, last: bool, new_model: bool) -> bool:
         """Whether segment ``index`` is diagnosed: on the cadence above, on the first
         segment of a new model or a sustained excess (``new_model``: the model's own flag),
-        and on the run's ``last`` segment (its advice stands in the recordings)."""
+        from a segment put off to (:meth:`later`), and on the run's ``last`` segment (its
+        advice stands in the recordings)."""
         if self.every <= 0:
             return False
         return (
             new_model
             or (index + 1) % self.every == 0
             or (self.every // 2 >= MIN_FIRST and index + 1 == self.every // 2)
+            or (self.pending_from is not None and index >= self.pending_from)
             or last
         )
 

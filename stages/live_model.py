@@ -76,6 +76,14 @@ class LiveModel:
         self.diagnose_due = self.diagnose_due or diagnose
         self.effects = new
 
+    def only_transients_added(self, new: list[str]) -> bool:
+        """Whether the model ``new`` differs from the one in force by transients alone (gates,
+        glitches: effects with an :meth:`~ttlcore.effects.base.Effect.active_span`)."""
+        added = [e for e in new if e not in self.effects]
+        removed = [e for e in self.effects if e not in new]
+        effects = make_effects([*added, *removed], self.effect_modules)
+        return bool(added) and all(e.active_span() is not None for e in effects)
+
     def expired(self, t_start: float) -> list[str]:
         """The transients of the model (effects with an
         :meth:`~ttlcore.effects.base.Effect.active_span`: glitches, gates) whose span ends

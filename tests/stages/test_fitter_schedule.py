@@ -81,3 +81,25 @@ def test_an_effect_whose_evidence_is_gone_is_proposed_for_removal():
     (stale,) = stale_effects(report, ["linear-ttl", witness, fd, "gate:start=0.0,stop=10.0"], ())
     assert stale["spec"] == witness and stale["dof"] == 1
     assert stale["chi2"] == pytest.approx(0.16) and stale["p"] == pytest.approx(0.6892, abs=1e-4)
+
+
+def test_a_model_that_only_gained_transients_is_diagnosed_a_little_later():
+    # an excess going on to the window's end (a coupling switched on an hour ago) was gated
+    # again at every segment, each time by a diagnosis of minutes: a change that only adds
+    # gates or glitches puts the diagnosis off by TRANSIENT_SPACING segments; one that adds a
+    # coupling is diagnosed on its first segment, as before
+    from stages.fitter_schedule import TRANSIENT_SPACING
+
+    model = LiveModel(["linear-ttl", "step:t_step=259198.757"])
+    assert model.only_transients_added(["linear-ttl", "step:t_step=259198.757", "gate:start=1,stop=2"])
+    assert model.only_transients_added(["linear-ttl", "glitch:t=5.0,tm=12,beta=3.0", "step:t_step=259198.757"])
+    assert not model.only_transients_added(
+        ["linear-ttl", "step:t_step=259198.757", "witness:source=12.eta,link=23,delay=2"]
+    )
+    assert not model.only_transients_added(["linear-ttl"])  # a coupling removed
+    s = DiagnosisSchedule(24)
+    s.later(74 + TRANSIENT_SPACING)
+    due = [i for i in range(72, 96) if s.due(i, last=False, new_model=False)]
+    assert due[0] == 74 + TRANSIENT_SPACING
+    s.done()
+    assert [i for i in range(78, 96) if s.due(i, last=False, new_model=False)] == [95]
