@@ -446,8 +446,8 @@ class Fitter(OrderedStage):
         model from the next segment on (a ``model`` event ``by: window`` with the specs
         ``removed``; the recordings keep them for offline refits of their span), so that the
         model's size stays bounded over any run."""
-        if self._catching_up or not len(self.window_tm) or not self.model.extended:
-            return
+        if self._catching_up or not len(self.window_tm) or not self.model.extended or self.model.change_due:
+            return  # (a change still to be reported first: the transients go at the next segment)
         gone = self.model.expired(self.window_tm.t_start)
         if not gone:
             return
