@@ -20,13 +20,21 @@ from .columns import Column, EffectInput
 
 
 def effect_input_from_telemetry(tm, coefficients=None) -> EffectInput:
-    """:class:`EffectInput` from a :class:`~ttlcore.io.telemetry.Telemetry` (DWS readouts)."""
+    """:class:`EffectInput` from a :class:`~ttlcore.io.telemetry.Telemetry` (DWS readouts).
+
+    A gap in the readouts (NaN) is zero here, as the data's gap is in the spectra: a filtered
+    column (a resonance, a pole) would otherwise carry the NaN over its whole length, and every
+    candidate built on a witness of a gapped day was skipped ("a regressor column is not
+    finite inside the analysed span").  Data without a gap are passed as they are."""
     t = tm.t0 + np.arange(tm.size) / tm.fs
+    phi, eta = np.asarray(tm.dws_phi), np.asarray(tm.dws_eta)
+    if not (np.isfinite(phi).all() and np.isfinite(eta).all()):
+        phi, eta = np.nan_to_num(phi, nan=0.0), np.nan_to_num(eta, nan=0.0)
     return EffectInput(
         t=t,
         fs=tm.fs,
-        phi_dot=np.asarray(tm.dws_phi),
-        eta_dot=np.asarray(tm.dws_eta),
+        phi_dot=phi,
+        eta_dot=eta,
         ltt=np.asarray(tm.ltt),
         coefficients=coefficients,
         t_ref=float(t[0] + t[-1]) / 2,
