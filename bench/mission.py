@@ -34,7 +34,7 @@ import numpy as np
 import psutil
 
 sys.path.insert(0, str(Path(__file__).parent))
-from pipeline import stage_of  # noqa: E402
+from pipeline import watch_stages  # noqa: E402
 
 from streamer.recorder import read_recording  # noqa: E402
 from streamer.topology import STAGES  # noqa: E402
@@ -104,21 +104,7 @@ def main() -> int:
         cmd = [sys.executable, "-m", "streamer.cli", "run", "--telemetry", str(data), "--run-id", "mission"]
         cmd += ["--recordings", str(tmp / "rec"), "--quiet", "--timeout", "14400", "--adopt", "auto"]
         launcher = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        cpu: dict = {}
-        rss: dict[str, list[tuple[float, int]]] = {s: [] for s in STAGES}
-        parent = psutil.Process(launcher.pid)
-        while launcher.poll() is None:
-            for child in parent.children(recursive=True):
-                name = stage_of(child)
-                if name is None:
-                    continue
-                try:
-                    t = child.cpu_times()
-                    cpu[(name, child.pid)] = t.user + t.system
-                    rss[name].append((time.perf_counter() - start, child.memory_info().rss))
-                except psutil.Error:
-                    pass
-            time.sleep(0.5)
+        cpu, rss = watch_stages(launcher, start)
         wall = time.perf_counter() - start
         output = launcher.stdout.read() if launcher.stdout else ""
         run_dir = tmp / "rec" / "mission"

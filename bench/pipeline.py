@@ -50,6 +50,28 @@ def stage_of(proc: psutil.Process) -> str | None:
     return None
 
 
+def watch_stages(launcher: subprocess.Popen, start: float) -> tuple[dict, dict[str, list[tuple[float, int]]]]:
+    """Sample every stage process of a running ``ttl run`` (psutil, every 0.5 s) until it
+    ends: CPU seconds per ``(stage, pid)`` (the last sample of each process) and, per stage,
+    ``(seconds since start, resident bytes)`` samples."""
+    cpu: dict = {}
+    rss: dict[str, list[tuple[float, int]]] = {s: [] for s in STAGES}
+    parent = psutil.Process(launcher.pid)
+    while launcher.poll() is None:
+        for child in parent.children(recursive=True):
+            name = stage_of(child)
+            if name is None:
+                continue
+            try:
+                t = child.cpu_times()
+                cpu[(name, child.pid)] = t.user + t.system
+                rss[name].append((time.perf_counter() - start, child.memory_info().rss))
+            except psutil.Error:
+                pass
+        time.sleep(0.5)
+    return cpu, rss
+
+
 def fitter_update_times(path: Path) -> tuple[list[float], list[float]]:
     """Seconds from each TDI input to the fit recorded for it (MCAP publish times: wall clock): the rolling
     refits alone, and those that also refitted the window under the instrument noise model
@@ -134,20 +156,8 @@ def main() -> int:
             stderr=subprocess.STDOUT,
             text=True,
         )
-        cpu, rss = {}, {}
-        parent = psutil.Process(launcher.pid)
-        while launcher.poll() is None:
-            for child in parent.children(recursive=True):
-                name = stage_of(child)
-                if name is None:
-                    continue
-                try:
-                    t = child.cpu_times()
-                    cpu[(name, child.pid)] = t.user + t.system
-                    rss[name] = max(rss.get(name, 0), child.memory_info().rss)
-                except psutil.Error:
-                    pass
-            time.sleep(0.5)
+        cpu, samples = watch_stages(launcher, start)
+        rss = {s: max((r for _, r in samples[s]), default=0) for s in STAGES}
         wall = time.perf_counter() - start
         output = launcher.stdout.read()
         if launcher.returncode != 0:
