@@ -418,6 +418,8 @@ class Fitter(OrderedStage):
         self.window_tm.add(header.index, tm)
         if res is None and self.last_segment(header.index):
             res = self.rolling.flush() if self.rolling is not None else None
+        if res is not None and not np.isfinite(res.sigma).any():  # a window without information
+            res = None
         if res is None:
             self.no_fit(header.index, td)
             self.drop_expired(header.index)
@@ -459,14 +461,14 @@ class Fitter(OrderedStage):
         return self.segments_total is not None and index == self.segments_total - 1
 
     def no_fit(self, index: int, td: TDIData) -> None:
-        """Segment ``index`` produced no fit: logged when an FFT segment longer than the
-        telemetry segments is still filling (by design, the next fit covers it), a ``no-fit``
-        warning naming the segment and why otherwise."""
+        """Segment ``index`` produced no fit: logged when a longer FFT segment is still filling
+        (the next fit covers it), a ``no-fit`` warning naming the segment and why otherwise."""
         fft = self.rolling.settings.segment_duration if self.rolling is not None else None
         if fft is not None and fft > td.size / td.fs * 1.001 and not self.last_segment(index):
             return self.log.info("segment %d: FFT segment of %g s still filling, no refit", index, fft)
-        why = "its FFT segment could not be completed" if self.rolling is not None and self.rolling.last else ""
-        why = why or "the window holds no FFT segment with data yet (the first ones were gaps or left out)"
+        why = "no FFT segment completed, or the window determines no parameter"
+        if not (self.rolling and self.rolling.last):
+            why = "the window holds no FFT segment with data yet (the first ones were gaps or left out)"
         self.warn("no-fit", f"segment {index}: no fit published: {why}", index=index)
 
     def rolling_update(self, header, td: TDIData, tm: Telemetry):

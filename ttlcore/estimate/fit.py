@@ -587,6 +587,8 @@ class FitResult:
     def identifiability(self, n_modes: int = 3) -> dict:
         """Condition number of the correlation matrix and its weakest eigen-combinations."""
         live = np.flatnonzero(np.isfinite(self.sigma))  # a column without information: left out
+        if live.size == 0:  # nothing determined at all (a window that holds no valid data)
+            return {"condition_number": None, "weakest_combinations": []}
         corr = self.correlation[np.ix_(live, live)]
         vals, vecs = np.linalg.eigh(np.linalg.inv(corr))  # small eigenvalue = poorly determined
         modes = []
