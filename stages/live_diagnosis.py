@@ -91,6 +91,24 @@ def enough_ungated(report: dict, effects: list[str], effect_modules, why: str) -
     return True, why
 
 
+def outside_gaps(recommendation: dict, gaps, why: str) -> tuple[bool, str]:
+    """Whether the times a recommendation names (a step's ``t_step``, a glitch's ``t``) lie
+    outside the data's gaps ``[(start, stop), ...]`` [s], and why not: a time inside missing
+    data is not determined by them (the mission week's planned gap had its edge adopted as a
+    step inside it, and every coefficient after it came out 0)."""
+    for spec in str(recommendation.get("spec") or "").split(","):
+        key, _, value = spec.partition(":")[2].partition("=") if ":" in spec else spec.partition("=")
+        if key.strip() not in ("t_step", "t"):
+            continue
+        try:
+            t = float(value)
+        except ValueError:
+            continue
+        if any(float(a) <= t <= float(b) for a, b in gaps):
+            return False, f"{key.strip()}={t:.1f} s lies in a gap of the data: not adopted"
+    return True, why
+
+
 #: An effect of the model whose parameters are jointly consistent with zero at this p-value or
 #: above has lost its evidence: its removal is proposed (never done without a person).
 STALE_P = 0.01
@@ -231,6 +249,8 @@ def diagnosis_meta(
         )
     if ok and rec is not None and not rec.get("actions"):
         ok, why = enough_ungated(report, effects, effect_modules, why)
+    if ok and rec is not None:
+        ok, why = outside_gaps(rec, (report.get("transients") or {}).get("gaps") or [], why)
     if ok and rec is not None and rec["effects"] == list(effects):
         ok, why = False, "the model already holds it"
     out["adoption"] = {"mode": mode, "adopted": False, "reason": why}

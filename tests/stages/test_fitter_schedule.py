@@ -103,3 +103,16 @@ def test_a_model_that_only_gained_transients_is_diagnosed_a_little_later():
     assert due[0] == 74 + TRANSIENT_SPACING
     s.done()
     assert [i for i in range(78, 96) if s.due(i, last=False, new_model=False)] == [95]
+
+
+def test_a_time_inside_a_gap_is_not_adopted():
+    # the mission week's planned gap (127.2-134.2 h): its edge was adopted as a step at 132.1 h,
+    # inside it, and every coefficient after the gap came out 0
+    from stages.live_diagnosis import outside_gaps
+
+    gap = [[457890.0, 483224.0]]
+    ok, why = outside_gaps({"spec": "step:t_step=475424.5"}, gap, "explains")
+    assert not ok and "t_step=475424.5 s lies in a gap" in why
+    assert not outside_gaps({"spec": "glitch:t=460000.0,tm=12,beta=3.0,gate:start=1,stop=2"}, gap, "")[0]
+    assert outside_gaps({"spec": "step:t_step=400000"}, gap, "explains") == (True, "explains")
+    assert outside_gaps({"spec": "witness:source=12.eta,link=23,delay=1"}, gap, "x") == (True, "x")
