@@ -323,7 +323,7 @@ class Fitter(OrderedStage):
             self.log.info("no diagnosis yet: %s", exc)
             return None
         self.model.diagnose_due = False
-        self.schedule.done()
+        self.schedule.done(header.index)
         out, ok = diagnosis_meta(
             report,
             index=header.index,

@@ -40,27 +40,32 @@ class DiagnosisSchedule:
         FFT segments in a row the rolling fit left out as outliers, up to now.
     pending_from : int or None
         A diagnosis put off to this segment (:meth:`later`).
+    last_done : int or None
+        The segment of the last diagnosis (:meth:`done`).
     """
 
     every: int
     sustained: int = SUSTAINED_OUTLIERS
     outlier_run: int = 0
     pending_from: int | None = None
+    last_done: int | None = None
 
     def later(self, index: int) -> None:
         """Diagnose at segment ``index`` (or at the slot before it): a model that only gained
         transients waits :data:`TRANSIENT_SPACING` segments."""
         self.pending_from = index if self.pending_from is None else min(self.pending_from, index)
 
-    def done(self) -> None:
-        """A diagnosis ran: what was put off is done."""
+    def done(self, index: int) -> None:
+        """A diagnosis ran at segment ``index``: what was put off is done."""
         self.pending_from = None
+        self.last_done = index
 
     def due(self, index: int, *, last: bool, new_model: bool) -> bool:
         """Whether segment ``index`` is diagnosed: on the cadence above, on the first
         segment of a new model or a sustained excess (``new_model``: the model's own flag),
-        from a segment put off to (:meth:`later`), and on the run's ``last`` segment (its
-        advice stands in the recordings)."""
+        from a segment put off to (:meth:`later`), and on the run's ``last`` segment when half a
+        cadence or more has passed since the last diagnosis (its advice stands in the
+        recordings; a short run is not diagnosed at its end)."""
         if self.every <= 0:
             return False
         return (
@@ -68,7 +73,7 @@ class DiagnosisSchedule:
             or (index + 1) % self.every == 0
             or (self.every // 2 >= MIN_FIRST and index + 1 == self.every // 2)
             or (self.pending_from is not None and index >= self.pending_from)
-            or last
+            or (last and index - (-1 if self.last_done is None else self.last_done) >= max(1, self.every // 2))
         )
 
     def outlier(self, excluded: dict | None) -> bool:

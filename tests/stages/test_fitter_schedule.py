@@ -23,6 +23,11 @@ def test_a_one_day_file_is_diagnosed_at_half_a_day_and_at_its_end():
     # a short cadence is its own first diagnosis: 3 segments, not one
     assert [i for i in range(9) if DiagnosisSchedule(3).due(i, last=False, new_model=False)] == [2, 5, 8]
     assert not any(DiagnosisSchedule(0).due(i, last=True, new_model=True) for i in range(30))
+    # the last segment only when half a cadence has passed since the last diagnosis: a run of
+    # 124 h diagnosed at 119 h is not diagnosed again at 123 h; a 4-segment run not at its end
+    s.done(119)
+    assert not s.due(123, last=True, new_model=False) and s.due(131, last=True, new_model=False)
+    assert not DiagnosisSchedule(24).due(3, last=True, new_model=False)
 
 
 def test_a_sustained_excess_brings_the_diagnosis_forward_once():
@@ -101,7 +106,7 @@ def test_a_model_that_only_gained_transients_is_diagnosed_a_little_later():
     s.later(74 + TRANSIENT_SPACING)
     due = [i for i in range(72, 96) if s.due(i, last=False, new_model=False)]
     assert due[0] == 74 + TRANSIENT_SPACING
-    s.done()
+    s.done(77)
     assert [i for i in range(78, 96) if s.due(i, last=False, new_model=False)] == [95]
 
 
