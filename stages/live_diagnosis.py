@@ -19,6 +19,7 @@ from collections.abc import Callable
 
 from scipy import stats
 
+from ttlcore.conventions import parse_duration
 from ttlcore.diagnose.diagnoser import text_report
 from ttlcore.effects import make_effects
 from ttlcore.effects.glitch import merge_gates, split_gates
@@ -91,21 +92,19 @@ def enough_ungated(report: dict, effects: list[str], effect_modules, why: str) -
     return True, why
 
 
-def outside_gaps(recommendation: dict, gaps, why: str) -> tuple[bool, str]:
-    """Whether the times a recommendation names (a step's ``t_step``, a glitch's ``t``) lie
-    outside the data's gaps ``[(start, stop), ...]`` [s], and why not: a time inside missing
-    data is not determined by them (the mission week's planned gap had its edge adopted as a
-    step inside it, and every coefficient after it came out 0)."""
-    for spec in str(recommendation.get("spec") or "").split(","):
-        key, _, value = spec.partition(":")[2].partition("=") if ":" in spec else spec.partition("=")
-        if key.strip() not in ("t_step", "t"):
-            continue
-        try:
-            t = float(value)
-        except ValueError:
-            continue
-        if any(float(a) <= t <= float(b) for a, b in gaps):
-            return False, f"{key.strip()}={t:.1f} s lies in a gap of the data: not adopted"
+def outside_gaps(recommendation: dict, gaps, why: str, effect_modules=()) -> tuple[bool, str]:
+    """Whether the times a recommendation's effects name (a step's ``t_step``, a glitch's
+    ``t``) lie outside the data's gaps ``[(start, stop), ...]`` [s], and why not: a time inside
+    missing data is not determined by them (the mission week's planned gap had its edge
+    adopted as a step inside it, and every coefficient after it came out 0)."""
+    specs = [a["spec"] for a in recommendation.get("actions") or []] or [recommendation.get("spec")]
+    for effect in make_effects([s for s in specs if s], effect_modules):
+        for key in ("t_step", "t"):
+            if effect.options.get(key) is None:
+                continue
+            t = parse_duration(effect.options[key])  # a number of seconds, or e.g. "1.5d"
+            if any(float(a) <= t <= float(b) for a, b in gaps):
+                return False, f"{effect.name} {key}={t:.1f} s lies in a gap of the data: not adopted"
     return True, why
 
 
@@ -250,7 +249,7 @@ def diagnosis_meta(
     if ok and rec is not None and not rec.get("actions"):
         ok, why = enough_ungated(report, effects, effect_modules, why)
     if ok and rec is not None:
-        ok, why = outside_gaps(rec, (report.get("transients") or {}).get("gaps") or [], why)
+        ok, why = outside_gaps(rec, (report.get("transients") or {}).get("gaps") or [], why, effect_modules)
     if ok and rec is not None and rec["effects"] == list(effects):
         ok, why = False, "the model already holds it"
     out["adoption"] = {"mode": mode, "adopted": False, "reason": why}

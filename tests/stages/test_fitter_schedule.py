@@ -118,6 +118,7 @@ def test_a_time_inside_a_gap_is_not_adopted():
     gap = [[457890.0, 483224.0]]
     ok, why = outside_gaps({"spec": "step:t_step=475424.5"}, gap, "explains")
     assert not ok and "t_step=475424.5 s lies in a gap" in why
-    assert not outside_gaps({"spec": "glitch:t=460000.0,tm=12,beta=3.0,gate:start=1,stop=2"}, gap, "")[0]
+    actions = [{"spec": "glitch:t=460000.0,tm=12,beta=3.0"}, {"spec": "gate:start=1,stop=2"}]
+    assert not outside_gaps({"spec": "x", "actions": actions}, gap, "")[0]
     assert outside_gaps({"spec": "step:t_step=400000"}, gap, "explains") == (True, "explains")
     assert outside_gaps({"spec": "witness:source=12.eta,link=23,delay=1"}, gap, "x") == (True, "x")
