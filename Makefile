@@ -35,9 +35,10 @@ lock:
 ## paper coefficients, a slow drift on two coefficients and a 0.3 mm/rad step on one at 1.5 d)
 ## replayed through the five stage processes (ttl run), the coefficient table against the
 ## truth (ttl inspect), and the day around the flagged step refitted with a step in the model.
-## The live fitter diagnoses its one-day window once, at the end of day 2 where the step is
-## (--diagnose-every 48): on a fresh clone under load (average 8-10) the default's three
-## diagnoses (segments 23, 47, 71) held the pipeline for 96, 94 and 229 s of a 546-s run.
+## The live fitter diagnoses its window at segments 23, 47 (the end of day 2, where the step is)
+## and 71, the run's last (--diagnose-every 48: the first at half of it, then every 48, and the
+## last segment; stages/fitter_schedule.py). Measured 2026-11-27 on an idle machine, venv built:
+## `time make demo` 4 min 53 s (before that schedule, one diagnosis: 3 min 9 s).
 demo: $(STAMP)
 	rm -rf $(DEMO)/pipeline && mkdir -p $(DEMO)/pipeline
 	$(BIN)/ttl simulate --duration 3d --orbit keplerian --coeffs paper --seed 1 \
