@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 DEMO   := demo-output
 
-.PHONY: demo demo-batch lint test test-science test-ops bench clean lock
+.PHONY: demo demo-batch lint test test-science test-ops bench clean lock pip-check
 
 # the project with its test and gw extras, every package at the version pinned in
 # constraints.txt (resolved by pip with dependencies; `pip check` must be clean)
@@ -19,6 +19,12 @@ $(STAMP): pyproject.toml constraints.txt
 	# tests never import (pyproject.toml says why); pinned in constraints.txt like the rest
 	$(BIN)/python -m pip install --quiet --no-deps -c constraints.txt 'lisaglitch>=2.0' 'lisa-gap>=0.4'
 	touch $(STAMP)
+
+## pip-check: `pip check` of the venv as set up, every time `make test` or `make demo` runs: clean
+## but for the one line the no-deps install above makes on purpose (lisaglitch requires torch),
+## which .ci/pip_check.py prints as known; any other broken requirement stops the set-up
+pip-check: $(STAMP)
+	$(BIN)/python .ci/pip_check.py
 
 ## lock: refresh constraints.txt: the newest versions pip resolves for pyproject.toml in a fresh
 ## venv (then `make clean test` before committing the new pins)
@@ -39,7 +45,7 @@ lock:
 ## and 71, the run's last (--diagnose-every 48: the first at half of it, then every 48, and the
 ## last segment; stages/fitter_schedule.py). Measured 2026-11-27 on an idle machine, venv built:
 ## `time make demo` 4 min 53 s (before that schedule, one diagnosis: 3 min 9 s).
-demo: $(STAMP)
+demo: $(STAMP) pip-check
 	rm -rf $(DEMO)/pipeline && mkdir -p $(DEMO)/pipeline
 	$(BIN)/ttl simulate --duration 3d --orbit keplerian --coeffs paper --seed 1 \
 		--drift 12.phi.rx=0.05,13.eta.tx=-0.05 --step 1.5d:23.phi.tx=0.3 --telemetry $(DEMO)/pipeline/mission.h5
@@ -76,7 +82,7 @@ demo-batch: $(STAMP)
 ## the in-process tests (measured on six ttlcore modules: 35-39 s -> 48-50 s user); `make test COV=`
 ## runs without it.
 COV ?= --cov --cov-report=term:skip-covered
-test: lint $(STAMP)
+test: lint $(STAMP) pip-check
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist worksteal $(COV)
 
 ## lint: ruff (lint rules and the formatting, checked not applied) over the tree and mypy over

@@ -135,8 +135,10 @@ def notices(index: int, res, meta: dict) -> list[tuple[str, str, str, dict]]:
             (
                 "warning",
                 "not-converged",
-                f"fit {index} did not converge in {res.iterations} iterations",
-                {"iterations": int(res.iterations)},
+                f"fit {index} did not converge in {res.iterations} iterations (the last moved a "
+                f"coefficient by {res.extra.get('last_change_sigma', float('nan')):.2g} sigma): its "
+                "sigmas hold, its values may still move by about that much",
+                {"iterations": int(res.iterations), "last_change_sigma": res.extra.get("last_change_sigma")},
             )
         )
     adequacy = meta.get("adequacy")

@@ -214,11 +214,7 @@ def format_report(r: dict) -> str:
             )
             if d.get("recommendation"):
                 adopted = (d.get("adoption") or {}).get("adopted")
-                lines.append(
-                    f"    recommends {d['recommendation']}"
-                    f"{' (explains the excess)' if d.get('explains') else ' (does not explain the excess)'}"
-                    f"{': adopted' if adopted else ''}"
-                )
+                lines.append(f"    recommends {d['recommendation']}{_explains_text(d)}{': adopted' if adopted else ''}")
                 if d.get("command") and not adopted:
                     lines.append(f"    apply it: {d['command']}")
             elif d.get("message"):
@@ -290,3 +286,11 @@ def format_report(r: dict) -> str:
     for i in r["interruptions"]:
         lines.append(f"  {i['stage']}: {i['kind']}: {i['message']}")
     return "\n".join(lines)
+
+
+def _explains_text(d: dict) -> str:
+    """What a live recommendation does for the model: it explains the failing bands' excess,
+    it does not, or the model passes and the effect is a significant improvement only."""
+    if d.get("fails") is False:
+        return " (the model passes; a significant improvement, not a repair)"
+    return " (explains the excess)" if d.get("explains") else " (does not explain the excess)"

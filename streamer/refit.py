@@ -62,6 +62,14 @@ def recorded_segments(run_dir, topic: str, stages: tuple[str, ...] | None = None
 
 
 def _select(found: dict[int, tuple], first: int | None, last: int | None) -> list[tuple]:
+    lo, hi = min(found), max(found)
+    for end in (first, last):  # a range beyond the recordings is refused, not clipped
+        if end is not None and not lo <= end <= hi:
+            asked = f"{'' if first is None else first}:{'' if last is None else last}"
+            raise RefitError(
+                f"--segments {asked}: the run recorded segments {lo}-{hi}; "
+                f"give a range inside them, or leave an end open ({lo}: or :{hi})"
+            )
     idx = sorted(i for i in found if (first is None or i >= first) and (last is None or i <= last))
     if not idx:
         raise RefitError("no recorded segment in the range asked")

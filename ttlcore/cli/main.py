@@ -68,6 +68,14 @@ def output_file(text: str) -> str:
         raise argparse.ArgumentTypeError(f"{parent} is not a directory")
     if not os.access(parent, os.W_OK):
         raise argparse.ArgumentTypeError(f"directory {parent} is not writable")
+    # the permission bits do not tell everything (root, read-only or special file systems):
+    # create and remove a file beside the target, as the atomic write will, before any work
+    probe = parent / f".{path.name}.probe{os.getpid()}"
+    try:
+        os.close(os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600))
+    except OSError as exc:
+        raise argparse.ArgumentTypeError(f"cannot write {text}: {exc.strerror}") from None
+    probe.unlink(missing_ok=True)
     return text
 
 

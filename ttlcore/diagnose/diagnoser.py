@@ -152,8 +152,11 @@ def diagnose(
                 # nothing to explain: the couplings with searched poles (seconds to a minute
                 # each, most of a null day's diagnosis) would only fit noise; the witnesses'
                 # own candidates still say how much each would take
-                skipped = [e.spec() for e in extra if e.unresolved()]
-                extra = [e for e in extra if not e.unresolved()]
+                # (a step's time is searched too, but in seconds: a witness step on one channel
+                # is kept, or the witness's coarse grid time would be all the report has)
+                costly = [e for e in extra if set(e.unresolved()) - {"t_step"}]
+                skipped = [e.spec() for e in costly]
+                extra = [e for e in extra if e not in costly]
                 report["witnesses"]["skipped_candidates"] = skipped
                 log.info("the model passes: %d witness candidates with searched parameters not tried", len(skipped))
             pool.submit(sorted(extra, key=lambda e: not e.unresolved()))

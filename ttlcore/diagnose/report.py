@@ -291,6 +291,13 @@ def effect_recommendation(report: dict, effects) -> dict | None:
         "explained_fraction_outside_transients": frac_outside,
         **common,
     }
+    if not fails and not signal:
+        out["message"] = (
+            f"the model passes the noise test, but {best['cli_spec']} improves it significantly "
+            f"(delta chi2 {best['delta_chi2']:.1f} for {best['n_parameters']} parameter"
+            f"{'s' if best['n_parameters'] != 1 else ''}, log Bayes factor {best['log_bayes_factor']:.1f}): "
+            "an effect too small to fail the test at its tolerance, yet measured"
+        )
     if signal:
         out["pointers"] = pointers
         out["message"] = f"no effect recommended: {description} (the best candidate, {best['cli_spec']}, would fit it)"
@@ -342,6 +349,8 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
     if "before" in report:
         b = report["before"]
         lines.append("  before -> after (" + ", ".join(report["change"]["added"]) + "):")
+        lines.append("    (both columns against the noise levels fitted with the new model; a report of the old model")
+        lines.append("    alone fits the levels to it, which then absorb part of its excess and read lower)")
         lines.append("    band [Hz]            chi2/dof before   after")
         for bb, ba in zip(b["adequacy"]["bands"], ad["bands"]):
             lines.append(
@@ -381,9 +390,11 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
             est = c["searched"]["search"]["estimates"]
             extra += ", " + ", ".join(f"{k} {v:.4g}" for k, v in est.items())
         label = c["effect"] if c["cli_spec"] == c["effect"] else c["cli_spec"]
+        # a model that passes has no excess to share out: "-", not "0 %"
+        share = f"{100 * c['explained_fraction']:5.0f} %" if ad["fails"] else "    - "
         lines.append(
             f"    {'*' if c['significant'] else ' '} {label:<16} {c['delta_chi2']:10.1f} / {c['n_parameters']:<3d}"
-            f" logB {c['log_bayes_factor']:9.1f}  {100 * c['explained_fraction']:5.0f} %  [{bands}; {links}{extra}]"
+            f" logB {c['log_bayes_factor']:9.1f}  {share}  [{bands}; {links}{extra}]"
         )
     if not any(c["significant"] for c in cands):
         lines.append("    no candidate is significant")

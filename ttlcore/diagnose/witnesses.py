@@ -30,6 +30,8 @@ coherence is scale-free.
 
 from __future__ import annotations
 
+import re
+
 import numpy as np
 
 from ..conventions import ANGLES, LINKS, MOSAS, C, reverse
@@ -307,6 +309,11 @@ def witness_candidates(report: dict, top: int = 3, modules=()) -> list:
     placements: list = []
     for w in report.get("overall", []):
         spec = w.get("spec")
+        if spec and w["family"] == "step":
+            # the library's step times are a coarse grid (a pointer to where the step is):
+            # the candidate's time is searched (step_time_search) on its channel and side
+            name, _, opts = spec.partition(":")
+            spec = name + ":" + ";".join(o for o in re.split(r"[;,]", opts) if not o.startswith("t_step="))
         if spec and len(specs) < top and spec not in specs:
             specs.append(spec)
         if w["family"] in ("dws", "derivative") and spec:

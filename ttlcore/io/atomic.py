@@ -20,6 +20,10 @@ def write_text(path, text: str) -> Path:
     try:
         tmp.write_text(text)
         os.replace(tmp, path)
+    except OSError as exc:
+        tmp.unlink(missing_ok=True)
+        # name the file the user asked for, not the temporary name beside it
+        raise OSError(exc.errno, f"cannot write {path}: {exc.strerror}") from exc
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise

@@ -172,3 +172,23 @@ def test_simulator_null_day_passes_at_two_percent():
     # 3 % of 1 (measured 0.983 +- 0.006 on this seed: the floor term shares its high-frequency
     # shape)
     assert abs(ad["noise_model"]["parameters"]["oms"]["psd_scale"] - 1) < 0.03
+
+
+def test_newton_distance_is_the_newton_step_in_sigmas():
+    """Two levels with Fisher matrix F and score g: the distance to the optimum is the
+    Newton step F^-1 g over the sigmas sqrt(diag F^-1), computed here by hand for a 2x2
+    matrix; a level held at its bound with the score pushing it outward does not count."""
+    from ttlcore.diagnose.noise_model import newton_distance
+
+    F = np.array([[4.0, 1.0], [1.0, 2.0]])
+    g = np.array([0.1, -0.3])
+    det = 4.0 * 2.0 - 1.0
+    inv = np.array([[2.0, -1.0], [-1.0, 4.0]]) / det
+    step = inv @ g
+    expected = np.max(np.abs(step) / np.sqrt(np.diag(inv)))
+    limits = [(1e-5, None), (1e-5, None)]
+    assert newton_distance([1.0, 1.0], g, F, limits) == pytest.approx(expected, rel=1e-12)
+    # the second level at its upper bound, pushed up (negative score of -log L): only the
+    # first is free, its step g_0 / F_00 over its sigma 1 / sqrt(F_00)
+    at_bound = [(1e-5, None), (0.5, 1.0)]
+    assert newton_distance([1.0, 1.0], g, F, at_bound) == pytest.approx(abs(0.1 / 4.0) * 2.0, rel=1e-12)

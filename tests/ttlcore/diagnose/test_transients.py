@@ -13,7 +13,7 @@ import pytest
 from ttlcore.conventions import LINKS
 from ttlcore.diagnose import excess as X
 from ttlcore.diagnose import transients as T
-from ttlcore.diagnose.noise_model import outlying_segments
+from ttlcore.diagnose.outliers import outlying_segments
 from ttlcore.diagnose.report import recommendation
 from ttlcore.effects.glitch import gate
 from ttlcore.sim import noise_models
