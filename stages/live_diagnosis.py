@@ -163,7 +163,10 @@ def recommendation_meta(
     best = next((c for c in report["candidates"] if c.get("spec") == rec.get("spec")), None)
     if best is not None:
         rec["log_bayes_factor"] = best.get("log_bayes_factor")
-    if rec.get("spec"):
+    if rec.get("spec") and rec.get("option"):
+        # only what is advised gets a model and a command (offline: an ``option``): a
+        # candidate that explains nothing, or a signal's best fit, is named in the message
+        # alone, never with a command that would add it
         # a transient's advice adds several glitches and gates at once (``actions``)
         added = [a["spec"] for a in rec.get("actions") or []] or [rec["spec"]]
         # a gate overlapping one of the model's (an ongoing signal, seen again) is merged
@@ -250,7 +253,7 @@ def diagnosis_meta(
         ok, why = enough_ungated(report, effects, effect_modules, why)
     if ok and rec is not None:
         ok, why = outside_gaps(rec, (report.get("transients") or {}).get("gaps") or [], why, effect_modules)
-    if ok and rec is not None and rec["effects"] == list(effects):
+    if ok and rec is not None and rec.get("effects") == list(effects):
         ok, why = False, "the model already holds it"
     out["adoption"] = {"mode": mode, "adopted": False, "reason": why}
     stale = stale_effects(report, effects, effect_modules)

@@ -168,7 +168,9 @@ def model_report(recs: list[Recording]) -> dict:
                     ],
                     "failing_hours": diag.get("failing_hours"),
                     "summary": diag.get("summary"),
-                    "recommendation": rec_.get("spec"),
+                    # advised only with an option (offline) or a command (live): a best
+                    # candidate that explains nothing is in the message, not recommended
+                    "recommendation": rec_.get("spec") if rec_.get("option") or rec_.get("command") else None,
                     "explains": rec_.get("explains"),
                     "command": rec_.get("command"),
                     "message": rec_.get("message"),
