@@ -12,6 +12,7 @@ import argparse
 from pathlib import Path
 
 from ttlcore.cli.main import (
+    ANALYZE_BAND,
     DIAGNOSE_BAND,
     add_band,
     add_json,
@@ -340,10 +341,17 @@ def _add_reprocess(sub) -> None:
         "of a recorded run, in parallel on Dask distributed: a LocalCluster on 127.0.0.1 by default, or the "
         "cluster of --scheduler. Writes DIR/<day>/fit.json (+ figures), DIR/<day>/diagnosis.json, "
         "DIR/summary.json and DIR/summary.md (coefficients per day with sigmas, chi2/dof, recommendations, "
-        "steps and drifts across days). A failed day is retried, then reported; exit status 1 if any "
-        "day failed. See docs/reprocessing.md.",
+        "steps and drifts across days). Every file is checked before any work: a file that is not telemetry "
+        "is refused, the truth files ttl simulate writes beside the days (day.truth.h5) are skipped. A day "
+        "that fails is reported (one line) and the exit status is 1; only transient errors (OSError, "
+        "MemoryError) are retried. See docs/reprocessing.md.",
     )
-    p.add_argument("days", nargs="*", metavar="DAY", help="telemetry files (ours or lisainstrument's), one per day")
+    p.add_argument(
+        "days",
+        nargs="*",
+        metavar="DAY",
+        help="telemetry files (ours or lisainstrument's), one per day; truth files among them are skipped",
+    )
     p.add_argument(
         "--from-recordings",
         metavar="RUN",
@@ -374,14 +382,23 @@ def _add_reprocess(sub) -> None:
         type=frequency,
         metavar=("FMIN", "FMAX"),
         default=None,
-        help="band in Hz (default: those of ttl analyze, 0.003 0.9, and ttl diagnose, 0.003 0.8)",
+        help=f"band of the fit in Hz (default that of ttl analyze, {ANALYZE_BAND[0]:g} {ANALYZE_BAND[1]:g})",
+    )
+    p.add_argument(
+        "--diagnose-band",
+        nargs=2,
+        type=frequency,
+        metavar=("FMIN", "FMAX"),
+        default=None,
+        help=f"band of the diagnosis in Hz (default that of ttl diagnose, {DIAGNOSE_BAND[0]:g} {DIAGNOSE_BAND[1]:g}: "
+        "the noise model it tests against lacks TDI's residual laser noise above 0.8 Hz)",
     )
     p.add_argument(
         "--segment",
         default=None,
         type=duration,
-        help="FFT segment length, e.g. 6h or 15min (default that of "
-        "ttl analyze, 6 h; give a shorter one for days shorter than 6 h)",
+        help="FFT segment length of the fit and the diagnosis, e.g. 6h or 15min (default that of "
+        "ttl analyze, 6 h, and of ttl diagnose; give a shorter one for days shorter than 6 h)",
     )
     p.add_argument(
         "--truth-beside",
@@ -405,8 +422,15 @@ def _add_reprocess(sub) -> None:
         help=f"memory limit per local worker (default {DEFAULT_MEMORY_LIMIT})",
     )
     p.add_argument("--dashboard", action="store_true", help="serve the Dask dashboard on 127.0.0.1 (LocalCluster)")
-    p.add_argument("--retries", type=int, default=2, help="retries of a failed day (default 2)")
-    p.add_argument("--quiet", action="store_true", help="no progress display")
+    p.add_argument(
+        "--retries",
+        type=int,
+        default=2,
+        help="runs again of a day that failed with a transient error (OSError, MemoryError; default 2); "
+        "an error of the data or the options is not retried, a day whose worker died is rescheduled by Dask",
+    )
+    add_json(p, "the summary (as DIR/summary.json)")
+    add_quiet(p, "no progress display, no status lines, no report: errors only (the result is DIR/summary.*)")
     p.set_defaults(handler="streamer.reprocess:run")
 
 

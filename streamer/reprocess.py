@@ -2,8 +2,17 @@
 
 ::
 
-    ttl reprocess DAY.h5... --out DIR [--effects ...] [--scheduler ADDRESS | --workers N]
+    ttl reprocess DAY.h5... --out DIR [--effects ...] [--band FMIN FMAX] [--diagnose-band FMIN FMAX]
+                  [--scheduler ADDRESS | --workers N] [--json FILE|-] [--quiet]
     ttl reprocess --from-recordings recordings/RUN --out DIR ...
+
+Every file is checked before the cluster starts (:func:`day_inputs`): a file that is not
+telemetry is refused with one line (exit status 2, nothing written), the truth files
+``ttl simulate`` writes beside the days are skipped with one logged line.  Progress follows
+the other commands (:func:`ttlcore.cli.progress.progress_bar`: a bar in place on a
+terminal, a line per tenth otherwise), Dask's own INFO lines are not shown
+(:func:`ttlcore.app.cluster.dask_log_level`), and a day that fails is one line on standard
+error, its traceback logged at DEBUG (``-vv``) and kept in ``summary.json``.
 
 The science (per-day job, summary table, trends) is :mod:`ttlcore.app.reprocessing`; this module
 adds the days of a recorded run (:func:`recorded_days`: the telemetry segments the replayer
@@ -22,17 +31,19 @@ import time
 from pathlib import Path
 
 import numpy as np
+from tqdm import tqdm
 
 from ttlcore.app.analysis import check_band
-from ttlcore.app.reprocessing import (
-    dask_client,
-    jobs_for_files,
-    reprocess,
-)
+from ttlcore.app.cluster import dask_client, dask_log_level
+from ttlcore.app.reprocessing import day_files, jobs_for_files, reprocess
 from ttlcore.cli.diagnose import split_effects
+from ttlcore.cli.progress import progress_bar
+from ttlcore.cli.report import to_stdout, write_report
 from ttlcore.conventions import DAY, parse_duration
+from ttlcore.diagnose.diagnoser import DiagnoseSettings
 from ttlcore.effects import make_effects
 from ttlcore.errors import TTLError
+from ttlcore.estimate.fit import DEFAULT_BAND, FitSettings
 from ttlcore.io.telemetry import Telemetry, write_telemetry
 
 from .refit import recorded_segments
@@ -122,11 +133,16 @@ def _job_options(args) -> dict:
         "diagnosis": not args.no_diagnosis,
         "witnesses": not args.no_witnesses,
         "figures": not args.no_figures,
+        # both bands stated in every job (and so in summary.json), defaults included
+        "band": tuple(DEFAULT_BAND) if args.band is None else check_band(args.band),
+        "diagnose_band": (
+            tuple(DiagnoseSettings().band)
+            if args.diagnose_band is None
+            else check_band(args.diagnose_band, option="--diagnose-band")
+        ),
     }
     if args.candidates:
         opts["candidates"] = tuple(c.strip() for c in args.candidates.split(",") if c.strip())
-    if args.band is not None:
-        opts["band"] = check_band(args.band)
     if args.segment is not None:
         opts["segment_duration"] = parse_duration(args.segment, "--segment")
     return opts
@@ -140,6 +156,39 @@ def _split_effects(text: str, modules) -> list[str]:
     except TTLError as exc:
         raise TTLError(f"--effects: {exc}") from None
     return specs
+
+
+def _names(paths, shown: int = 3) -> str:
+    names = [str(p) for p in paths]
+    return ", ".join(names[:shown]) + (f" and {len(names) - shown} more" if len(names) > shown else "")
+
+
+def day_inputs(paths, opts: dict, quiet: bool = False) -> list[Path]:
+    """The days among ``paths``, every file checked before any work
+    (:func:`ttlcore.app.reprocessing.day_files`): a file that is not telemetry is refused
+    (:class:`TTLError`, one line); truth files are skipped with one logged line (a warning;
+    at INFO, so unseen, with ``--quiet``), or refused when nothing else is left."""
+    segment = opts.get("segment_duration", FitSettings().segment_duration)
+    days, truths = day_files(paths, segment_duration=segment)
+    if truths and not days:
+        raise TTLError(
+            f"{_names(truths)}: truth file(s), not telemetry (ttl simulate writes day.truth.h5 beside each "
+            f"day.h5); give the telemetry files"
+        )
+    if truths:
+        log.log(
+            logging.INFO if quiet else logging.WARNING,
+            "skipping %d truth file(s), not telemetry (ttl simulate writes one beside each day; "
+            "--truth-beside compares each day with its own): %s",
+            len(truths),
+            _names(truths),
+        )
+    return days
+
+
+def _say(text: str) -> None:
+    """A line on standard error that leaves a progress bar on the terminal whole."""
+    tqdm.write(text, file=sys.stderr)
 
 
 def run(args) -> int:
@@ -159,38 +208,45 @@ def run(args) -> int:
         files = recorded_days(args.from_recordings, out / "days", day_length=day_length)
         title = f"recorded run {args.from_recordings}"
     else:
-        files = args.days
+        files = day_inputs(args.days, opts, quiet=args.quiet)
         title = f"{len(files)} telemetry file(s)"
     jobs = jobs_for_files(files, out, truth_beside=args.truth_beside, **opts)
-    bar = None
-    if not args.quiet:
-        from tqdm import tqdm
+    level = dask_log_level(args.verbose)
+    with progress_bar("ttl reprocess", quiet=args.quiet) as shown:  # in place on a terminal only
 
-        bar = tqdm(total=len(jobs), desc="ttl reprocess", unit="day", file=sys.stderr)
+        def progress(done, total, row):
+            shown(done, total)
+            if row["status"] != "ok":  # an error: said even with --quiet
+                _say(f"ttl reprocess: day {row['day']} failed: {row['error']}")
 
-    def progress(done, total, row):
-        if bar is not None:
-            bar.update(1)
-            if row["status"] != "ok":
-                bar.write(f"ttl reprocess: day {row['day']} FAILED: {row['error']}", file=sys.stderr)
-
-    try:
         with dask_client(
-            args.scheduler, workers=args.workers, memory_limit=args.memory_limit, dashboard=args.dashboard
+            args.scheduler,
+            workers=args.workers,
+            memory_limit=args.memory_limit,
+            dashboard=args.dashboard,
+            log_level=level,
         ) as client:
-            if bar is not None and args.dashboard and client.dashboard_link:
-                bar.write(f"ttl reprocess: dashboard {client.dashboard_link}", file=sys.stderr)
+            if args.dashboard and client.dashboard_link and not args.quiet:
+                _say(f"ttl reprocess: dashboard {client.dashboard_link}")
             summary = reprocess(jobs, out, client=client, retries=args.retries, progress=progress, title=title)
-    finally:
-        if bar is not None:
-            bar.close()
+    status = 1 if summary["failed"] else 0
+    write_report(args.json, summary)
+    if args.quiet or to_stdout(args.json):  # the files (and the exit status) are the result
+        return status
     for a in summary["trends"]["alerts"]:
         print(f"  {a['kind']}: {a['message']} (day {a['day']})")
     print(
         f"{summary['n_ok']} of {summary['n_days']} days processed in {time.monotonic() - start:.1f} s on "
-        f"{summary['cluster']['workers']} worker(s); wrote {out / 'summary.md'}, {out / 'summary.json'}"
+        f"{summary['cluster']['workers']} worker(s)"
     )
+    verdicts = [r["diagnosis"]["fails"] for r in summary["days"] if r["status"] == "ok" and r.get("diagnosis")]
+    if verdicts:
+        f0, f1 = summary["settings"]["bands_hz"]["diagnosis"]
+        print(
+            f"  the model ({', '.join(opts['effects'])}) fails on {sum(verdicts)} of {len(verdicts)} day(s) "
+            f"against the instrument noise model in {f0:g}-{f1:g} Hz"
+        )
     if summary["failed"]:
         print(f"FAILED days: {', '.join(summary['failed'])} (errors in summary.json)")
-        return 1
-    return 0
+    print(f"  wrote {out / 'summary.md'}, {out / 'summary.json'}")
+    return status

@@ -285,3 +285,190 @@ def test_quiet_prints_nothing_but_errors(tmp_path, command, made):
     assert sorted(p.name for p in quiet_dir.iterdir()) == sorted(made)
     bad, _ = ttl(*command, "--quiet", "--no-such-option", cwd=quiet_dir)
     assert bad.returncode == 2 and bad.stdout == "" and len(bad.stderr.strip().splitlines()) == 1, bad.stderr
+
+
+# --- ttl reprocess ---------------------------------------------------------------------------
+# The command as a newcomer meets it (issue 35): the README's command on real `ttl simulate`
+# output (its glob takes the truth files too), a bad file, --quiet, a pipe, an unwritable
+# --json, Ctrl-C. Two days of 6 h, simulated once for the block (6 h: the README's command
+# has no --segment, and the fit's default segment is 6 h).
+
+
+@pytest.fixture(scope="module")
+def simulated_days(tmp_path_factory) -> Path:
+    """A directory where ``ttl simulate`` wrote ``data/day1.h5`` and ``data/day2.h5`` (nothing
+    injected, consecutive) and their truth files beside them."""
+    d = tmp_path_factory.mktemp("mission")
+    (d / "data").mkdir()
+    for name, seed, t0 in (("day1", 3, 0), ("day2", 4, 21600)):
+        r, _ = ttl(
+            "simulate", "--duration", "6h", "--seed", seed, "--t0", t0, "--telemetry", f"data/{name}.h5", "--quiet",
+            cwd=d,
+        )  # fmt: skip
+        assert r.returncode == 0, r.stderr
+    assert sorted(p.name for p in (d / "data").iterdir()) == ["day1.h5", "day1.truth.h5", "day2.h5", "day2.truth.h5"]
+    return d
+
+
+def _readme_reprocess_command() -> str:
+    """The first ``ttl reprocess`` line of the README's reprocessing block, as printed."""
+    text = (ROOT / "README.md").read_text()
+    block = text[text.index("### Reprocessing many days (Dask)") :]
+    line = next(ln for ln in block.splitlines() if ln.startswith("ttl reprocess "))
+    return line.split("#")[0].strip()
+
+
+def _ttl_on_path(tmp_path) -> dict:
+    """An environment whose PATH has a ``ttl`` running this checkout (the shell runs the README's line)."""
+    bin_dir = tmp_path / "bin"
+    bin_dir.mkdir()
+    (bin_dir / "ttl").write_text(f'#!/bin/sh\nexec "{sys.executable}" -m streamer.main "$@"\n')
+    (bin_dir / "ttl").chmod(0o755)
+    return {
+        **os.environ,
+        "PATH": f"{bin_dir}{os.pathsep}{os.environ['PATH']}",
+        "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
+    }
+
+
+def test_reprocess_readme_command_on_simulated_days(simulated_days, tmp_path):
+    """The README's command pasted as printed, in a directory where ``ttl simulate`` wrote two
+    days: its glob takes the truth files too, which are skipped with one line; both days are
+    processed (exit 0); stderr is a pipe, so progress comes as plain lines (no carriage
+    return) and Dask says nothing; the days, nothing injected, pass the diagnosis in its own
+    band (3 mHz-0.8 Hz; they failed above 0.44 Hz when it ran in the fit band, up to 0.9 Hz)."""
+    import json
+
+    command = _readme_reprocess_command()
+    assert command == "ttl reprocess data/day*.h5 --out reproc/"
+    r = subprocess.run(
+        ["bash", "-c", command],
+        cwd=simulated_days,
+        env=_ttl_on_path(tmp_path),
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    assert r.returncode == 0, r.stdout + r.stderr
+    err = r.stderr.splitlines()
+    skipped = [line for line in err if "truth" in line]
+    assert len(skipped) == 1 and "skipping 2 truth file(s)" in skipped[0], r.stderr
+    assert "data/day1.truth.h5" in skipped[0] and "data/day2.truth.h5" in skipped[0]
+    assert all(line.startswith("ttl reprocess: ") for line in err if line not in skipped), r.stderr
+    assert "\r" not in r.stderr and "distributed" not in r.stderr and "Traceback" not in r.stderr
+    assert "2 of 2 days processed" in r.stdout
+    assert "fails on 0 of 2 day(s) against the instrument noise model in 0.003-0.8 Hz" in r.stdout
+    out = simulated_days / "reproc"
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["n_days"] == 2 and summary["n_ok"] == 2 and summary["failed"] == []
+    assert summary["settings"]["bands_hz"] == {"fit": list(ANALYZE_BAND), "diagnosis": list(DIAGNOSE_BAND)}
+    for row in summary["days"]:
+        assert row["diagnosis"]["fails"] is False, row["diagnosis"]["summary"]
+        assert not any(s.startswith("fails between") for s in row["diagnosis"]["summary"]), row
+    md = (out / "summary.md").read_text()
+    for day in ("day1", "day2"):  # the "model fails" column
+        line = next(ln for ln in md.splitlines() if ln.startswith(f"| {day} | ok |"))
+        assert line.split("|")[7].strip() == "no", line
+    assert sorted(p.name for p in out.iterdir()) == ["day1", "day2", "summary.json", "summary.md"]
+
+
+def test_reprocess_quiet_prints_nothing(simulated_days):
+    """``--quiet``: nothing on stdout or stderr when all goes well (the truth files skipped
+    without a word, no progress, no Dask line, no report: the result is the files)."""
+    r, _ = ttl(
+        "reprocess", *sorted(p.name for p in (simulated_days / "data").iterdir()), "--out", "../quiet",
+        "--quiet", "--workers", "1", "--no-diagnosis", "--no-figures", cwd=simulated_days / "data", timeout=600,
+    )  # fmt: skip
+    assert r.returncode == 0, r.stderr
+    assert r.stdout == "" and r.stderr == "", (r.stdout, r.stderr)
+    assert (simulated_days / "quiet" / "summary.json").is_file()
+
+
+@pytest.mark.parametrize("bad", ["text", "truncated", "missing", "truth only"])
+def test_reprocess_refuses_a_bad_file_before_any_work(simulated_days, tmp_path, bad):
+    """A file that is not telemetry, beside a good day: one line naming it, exit status 2,
+    nothing written (no summary, no --out directory), no cluster started."""
+    good = simulated_days / "data" / "day1.h5"
+    if bad == "text":
+        (tmp_path / "day3.h5").write_text("telemetry of day 3, to come\n")
+        files, needle = [good, "day3.h5"], "day3.h5: not a readable HDF5 file"
+    elif bad == "truncated":
+        (tmp_path / "day3.h5").write_bytes(good.read_bytes()[: 1 << 20])
+        files, needle = [good, "day3.h5"], "day3.h5: not a readable HDF5 file"
+    elif bad == "missing":
+        files, needle = [good, "day3.h5"], "day3.h5: no such file"
+    else:
+        files, needle = [simulated_days / "data" / "day1.truth.h5"], "day1.truth.h5: truth file(s), not telemetry"
+    before = sorted(p.name for p in tmp_path.iterdir())
+    r, elapsed = ttl("reprocess", *files, "--out", "out", cwd=tmp_path, timeout=120)
+    assert r.returncode == 2, (r.returncode, r.stderr)
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("ttl reprocess: error: ") and needle in lines[0], r.stderr
+    assert r.stdout == "" and "Traceback" not in r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == before, "a refused command left files behind"
+    print(f"\nrefused in {elapsed:.2f} s: {lines[0]}")
+
+
+def test_reprocess_unwritable_json_is_refused_before_any_work(simulated_days, tmp_path):
+    r, elapsed = fastest(
+        "reprocess", simulated_days / "data" / "day1.h5", "--out", "out", "--json", "nodir/s.json", cwd=tmp_path
+    )
+    assert r.returncode == 2
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--json" in lines[0] and "nodir" in lines[0], r.stderr
+    assert elapsed < START_BOUND_S or elapsed < start_bound()  # refused by the parser: no cluster
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("target", ["process", "group"])
+def test_reprocess_interrupted_ends_with_one_line(simulated_days, tmp_path, target):
+    """SIGINT while a worker runs a day, to the command (``kill -INT``) or to its whole process
+    group (Ctrl-C at a terminal): exit status 130, ``interrupted`` as the one line after the
+    truth files' note, no traceback, no Dask complaint, no summary, no worker left behind."""
+    import signal
+
+    import psutil
+
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    days = sorted(str(p) for p in (simulated_days / "data").glob("day*.h5"))
+    p = subprocess.Popen(
+        [sys.executable, "-m", "streamer.main", "reprocess", *days, "--out", "out", "--workers", "1", "--no-figures"],
+        cwd=tmp_path,
+        env=env,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        start_new_session=True,
+    )
+    try:
+        deadline = time.monotonic() + 180
+        workers: list = []
+        while time.monotonic() < deadline and p.poll() is None:
+            try:
+                kids = psutil.Process(p.pid).children(recursive=True)
+                workers = [k for k in kids if "spawn_main" in " ".join(k.cmdline())]
+                if any(k.cpu_times().user > 3.0 for k in workers):  # a worker is busy with a day
+                    break
+            except psutil.Error:  # a process that ended while looked at
+                pass
+            time.sleep(0.2)
+        assert workers and p.poll() is None, "no worker seen busy"
+        if target == "group":
+            os.killpg(p.pid, signal.SIGINT)
+        else:
+            p.send_signal(signal.SIGINT)
+        out, err = p.communicate(timeout=120)
+    finally:
+        if p.poll() is None:
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
+    assert p.returncode == 130, (p.returncode, err)
+    lines = err.strip().splitlines()
+    assert lines[-1] == "ttl reprocess: interrupted", err
+    assert "skipping 2 truth file(s)" in lines[0], err
+    progress = [line for line in lines[1:-1] if line.startswith("ttl reprocess: ") and line.endswith(" s)")]
+    assert lines[1:-1] == progress, err  # nothing else: a day that ended first shows as progress
+    assert "Traceback" not in err and "distributed" not in err and out == ""
+    assert not list(tmp_path.glob("out/summary*")), "a summary of an interrupted run"
+    alive = psutil.wait_procs(workers, timeout=10)[1]
+    assert not alive, f"worker processes left: {alive}"

@@ -7,7 +7,9 @@ quick; the per-day job is the same code whatever the length.
   the one ``ttl analyze`` writes when run alone on that file (coefficients, sigmas, chi^2 to
   1e-12 relative: the same code on the same input; the workers run BLAS single-threaded,
   which may change the last bits of a sum, hence not bit equality), the diagnosis report is
-  written, a broken file is retried and reported as failed (never dropped), exit status 1;
+  written in the diagnosis band (the fit's in the fit band), a day whose fit fails (all NaN)
+  is reported as failed in one line (never dropped) and not retried, exit status 1;
+- the retries: only a transient error (OSError) is run again, an error of the data is not;
 - a separately started ``dask scheduler`` with two ``dask worker`` processes: one worker is
   killed with SIGKILL while it processes a day, and every day is still reported (the
   scheduler reschedules the lost task on the surviving worker);
@@ -58,9 +60,12 @@ def test_reprocess_equals_analyze_and_reports_a_failed_day(days, tmp_path, capsy
     from streamer.cli import main
     from ttlcore.app.analysis import analyze
     from ttlcore.estimate.fit import FitSettings
+    from ttlcore.io.telemetry import Telemetry, write_telemetry
 
-    bad = tmp_path / "broken.h5"
-    bad.write_bytes(b"not an HDF5 file" * 100)
+    nan = np.full((6, int(4 * HOUR)), np.nan)  # telemetry whose fit fails: no valid segment
+    bad = write_telemetry(
+        tmp_path / "broken.h5", Telemetry(t0=0.0, fs=4.0, eta=nan, dws_phi=nan, dws_eta=nan, ltt=np.full_like(nan, 8.3))
+    )
     out = tmp_path / "out"
     rc = main(
         [
@@ -85,12 +90,17 @@ def test_reprocess_equals_analyze_and_reports_a_failed_day(days, tmp_path, capsy
     )
     assert rc == 1  # one day failed
     err = capsys.readouterr().err
-    assert "ttl reprocess: 100%" in err and "4/4" in err  # the progress bar
-    assert "day broken FAILED" in err
+    assert "ttl reprocess: 100%" in err and "\r" not in err  # progress as plain lines: not a terminal
+    failed_lines = [line for line in err.splitlines() if "broken" in line]
+    assert len(failed_lines) == 1 and failed_lines[0].startswith("ttl reprocess: day broken failed: "), err
+    assert "Traceback" not in err
     summary = json.loads((out / "summary.json").read_text())
     assert summary["n_days"] == 4 and summary["n_ok"] == 3 and summary["failed"] == ["broken"]
+    assert summary["settings"]["bands_hz"] == {"fit": [0.003, 0.9], "diagnosis": [0.003, 0.8]}
     failed = [r for r in summary["days"] if r["status"] == "failed"]
-    assert len(failed) == 1 and "broken.h5" in failed[0]["error"] and failed[0]["retries"] == 1
+    # an error of the data fails the same way every time: not retried (--retries 1 notwithstanding)
+    assert len(failed) == 1 and "broken.h5" in failed[0]["error"] and failed[0]["retries"] == 0
+    assert "fit failed" in failed[0]["error"] and "Traceback" in failed[0]["traceback"]
     rows = {r["day"]: r for r in summary["days"] if r["status"] == "ok"}
     assert [r["day"] for r in summary["days"][:3]] == ["day0", "day1", "day2"]  # time order
     md = (out / "summary.md").read_text()
@@ -115,10 +125,54 @@ def test_reprocess_equals_analyze_and_reports_a_failed_day(days, tmp_path, capsy
         )
         diag = json.loads((out / p.stem / "diagnosis.json").read_text())
         assert diag["file"] == str(p)
+        # each in its own band: the fit in ttl analyze's, the diagnosis in ttl diagnose's
+        assert mine["band"] == [0.003, 0.9] and diag["adequacy"]["band"] == [0.003, 0.8]
         assert row["diagnosis"]["chi2_dof"] == diag["adequacy"]["chi2_dof"]
         # one hour of the paper's noise and TTL: the linear model is adequate
         assert 0.8 < row["diagnosis"]["chi2_dof"] < 1.2
     assert not list(out.rglob("*.tmp*"))  # atomic writes leave no temporaries
+
+
+def test_only_transient_errors_are_retried(monkeypatch, tmp_path):
+    """A day failing with an OSError (a shared file system that hiccups) is run again, up to
+    ``retries`` times; one failing with an error of the data (TTLError) is run once.  On an
+    in-process cluster, whose workers see the patched day job."""
+    from distributed import Client
+
+    from ttlcore.app import reprocessing
+    from ttlcore.errors import TTLError
+
+    runs: dict[str, int] = {}
+
+    def fake_day(job):
+        runs[job.name] = runs.get(job.name, 0) + 1
+        if job.name == "flaky" and runs[job.name] == 1:
+            raise OSError("stale file handle")
+        if job.name == "down":
+            raise OSError("no route to the file server")
+        if job.name == "bad":
+            raise TTLError(f"{job.data}: not a day")
+        t0 = {"flaky": 0.0, "bad": HOUR, "down": 2 * HOUR}[job.name]
+        return {
+            "day": job.name,
+            "status": "ok",
+            "t_start": t0,
+            "t_stop": t0 + HOUR,
+            "coefficients": dict.fromkeys(COEFFICIENT_NAMES, 0.0),
+            "sigma": dict.fromkeys(COEFFICIENT_NAMES, 1e-4),
+            "chi2_dof_fit": 1.0,
+        }
+
+    monkeypatch.setattr(reprocessing, "process_day", fake_day)
+    jobs = [reprocessing.DayJob(name=n, data=f"{n}.h5", out_dir=str(tmp_path / n)) for n in ("flaky", "bad", "down")]
+    with Client(processes=False, n_workers=1, threads_per_worker=1, dashboard_address=None) as client:
+        summary = reprocessing.reprocess(jobs, tmp_path, client=client, retries=2)
+    assert runs == {"flaky": 2, "bad": 1, "down": 3}
+    rows = {r["day"]: r for r in summary["days"]}
+    assert rows["flaky"]["status"] == "ok"
+    assert rows["bad"]["error"] == "bad.h5: not a day" and rows["bad"]["retries"] == 0
+    assert rows["down"]["error"] == "OSError: no route to the file server" and rows["down"]["retries"] == 2
+    assert summary["failed"] == ["bad", "down"]
 
 
 def _start(*cmd, log: Path):

@@ -3,8 +3,9 @@
 Above the science and the figures, below the command line (:mod:`ttlcore.cli` parses the
 arguments and calls these): ``analysis`` (``ttl analyze``: TDI, fit, subtraction,
 ``fit.json`` and figures of one file), ``reprocessing`` (``ttl reprocess``: many days on
-Dask, the analysis and the diagnosis of each, the trends across them) and ``scenarios``
-(``ttl scenarios``: the paper's cases with and without GW).
+Dask, the analysis and the diagnosis of each, the trends across them), ``scenarios``
+(``ttl scenarios``: the paper's cases with and without GW) and ``cluster`` (the Dask client
+of both).
 
 ::
 
@@ -13,7 +14,8 @@ Dask, the analysis and the diagnosis of each, the trends across them) and ``scen
 """
 
 from .analysis import analyze
-from .reprocessing import DayJob, dask_client, reprocess
+from .cluster import dask_client
+from .reprocessing import DayJob, reprocess
 from .scenarios import run_scenarios
 
 __all__ = ["DayJob", "analyze", "dask_client", "reprocess", "run_scenarios"]

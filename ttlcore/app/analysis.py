@@ -59,26 +59,28 @@ METHODS = ("gls", "mcmc")
 FIT_FS = 2.0
 
 
-def check_band(band, fs: float = 4.0, segment_duration: float | None = None) -> tuple[float, float]:
-    """Validate a fit band ``(fmin, fmax)`` [Hz]; raises :class:`TTLError` naming ``--band``."""
+def check_band(
+    band, fs: float = 4.0, segment_duration: float | None = None, option: str = "--band"
+) -> tuple[float, float]:
+    """Validate a band ``(fmin, fmax)`` [Hz]; raises :class:`TTLError` naming ``option``."""
     try:
         fmin, fmax = (float(b) for b in band)
     except (TypeError, ValueError):
-        raise TTLError(f"--band: expected two frequencies FMIN FMAX in Hz, got {band!r}") from None
+        raise TTLError(f"{option}: expected two frequencies FMIN FMAX in Hz, got {band!r}") from None
     if not (math.isfinite(fmin) and math.isfinite(fmax)):
-        raise TTLError(f"--band: frequencies must be finite, got {fmin:g} {fmax:g}")
+        raise TTLError(f"{option}: frequencies must be finite, got {fmin:g} {fmax:g}")
     if fmin <= 0:
-        raise TTLError(f"--band: FMIN must be positive, got {fmin:g} Hz")
+        raise TTLError(f"{option}: FMIN must be positive, got {fmin:g} Hz")
     if fmax <= fmin:
-        raise TTLError(f"--band: FMAX must be above FMIN, got {fmin:g} {fmax:g} Hz")
+        raise TTLError(f"{option}: FMAX must be above FMIN, got {fmin:g} {fmax:g} Hz")
     nyquist = min(fs, FIT_FS) / 2
     if fmax > nyquist:
-        raise TTLError(f"--band: FMAX {fmax:g} Hz is above the Nyquist frequency {nyquist:g} Hz of the fit")
+        raise TTLError(f"{option}: FMAX {fmax:g} Hz is above the Nyquist frequency {nyquist:g} Hz of the fit")
     if segment_duration is not None:
         nbins = math.floor(fmax * segment_duration) - math.ceil(fmin * segment_duration) + 1
         if nbins < 5:
             raise TTLError(
-                f"--band: {fmin:g}-{fmax:g} Hz holds only {max(nbins, 0)} frequency bins of "
+                f"{option}: {fmin:g}-{fmax:g} Hz holds only {max(nbins, 0)} frequency bins of "
                 f"{segment_duration:g} s segments; widen the band or lengthen --segment"
             )
     return fmin, fmax

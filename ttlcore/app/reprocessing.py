@@ -18,10 +18,24 @@ whole or not at all).  The tasks run on any Dask cluster (a
 :class:`distributed.LocalCluster` by default, see :func:`dask_client`); the files are read
 by the workers, so on several machines they must sit on a shared file system.
 
-Failures: a task that raises is retried ``retries`` times (Dask's ``retries=``), and a task
-whose worker dies is rescheduled on another worker by the scheduler (up to its
+Inputs are checked before any work (:func:`day_files`, with the readers' own checks,
+``file_kind`` and ``read_header``): a file that is not telemetry is refused, and the truth
+files ``ttl simulate`` writes beside each day (``day.truth.h5``, told by their content) are
+set aside, so that ``data/day*.h5`` names the days.
+
+Failures: the task (:func:`run_day`) does not raise: a day that fails is returned as a
+failed row with its error (one line) and traceback.  An error of the data or of the
+options (:class:`~ttlcore.errors.TTLError`, ``ValueError``, any error but those below) fails
+again whenever it is run, so it is not retried; an ``OSError`` or ``MemoryError`` (a shared
+file system that hiccups, a full machine) is run again ``retries`` times.  A day whose worker
+dies is rescheduled on another worker by the scheduler (up to its
 ``distributed.scheduler.allowed-failures``).  A day that still fails is kept in the summary
 with ``status: "failed"`` and the error; it is never silently dropped.
+
+Bands: the fit runs in :attr:`DayJob.band` (default that of ``ttl analyze``, 3 mHz-0.9 Hz),
+the diagnosis in :attr:`DayJob.diagnose_band` (default that of ``ttl diagnose``,
+3 mHz-0.8 Hz: the instrument noise model it tests against lacks TDI's residual laser noise
+above 0.8 Hz, so a clean day would fail there).
 
 Outputs in ``out_dir``: ``<day>/fit.json`` (+ figures), ``<day>/diagnosis.json``,
 ``summary.json`` (one row per day: coefficients and sigmas [m/rad], chi^2/dof of the fit
@@ -39,7 +53,6 @@ otherwise.
 
 from __future__ import annotations
 
-import contextlib
 import logging
 import math
 import os
@@ -55,22 +68,23 @@ import numpy as np
 from ..conventions import COEFFICIENT_NAMES, DAY
 from ..diagnose.diagnoser import DiagnoseSettings, diagnose, strip_internals
 from ..diagnose.trends import TrendMonitor, TrendSettings
-from ..errors import TTLError
+from ..errors import TelemetryError, TTLError
 from ..estimate.fit import DEFAULT_BAND, FitSettings
 from ..io.atomic import write_json, write_text
-from ..io.reader import read_telemetry
+from ..io.reader import file_kind, read_telemetry
+from ..io.telemetry import read_header
 from ..io.truth import truth_path
-from .analysis import analyze
+from .analysis import _check_segment, analyze
+from .cluster import DEFAULT_MEMORY_LIMIT, SPAWN_ENV, dask_client
 
 log = logging.getLogger(__name__)
 
 #: Trend thresholds for one fit per day (see the module docstring): the live monitor's
 #: step test, a drift line over the last 30 days of fits (at least 5).
 DAY_TRENDS = TrendSettings(drift_lookback=30 * DAY, drift_min_windows=5)
-#: Dask configuration key of the environment a nanny gives its worker processes.
-SPAWN_ENV = "distributed.nanny.pre-spawn-environ"
-#: Default memory limit of a local worker: a full day's `ttl analyze` peaks near 5 GB (its diagnosis near 3 GB).
-DEFAULT_MEMORY_LIMIT = "6GiB"
+#: Errors that may not recur when a day is run again (a shared file system, a full machine):
+#: the only ones retried.  Any other error fails the same way every time.
+TRANSIENT_ERRORS = (OSError, MemoryError)
 
 
 @dataclass(frozen=True)
@@ -88,7 +102,10 @@ class DayJob:
     truth : str or None
         Truth file (comparisons only, as ``ttl analyze --truth``).
     band : (float, float) or None
-        Fit band [Hz] (default that of ``ttl analyze``).
+        Fit band [Hz] (default that of ``ttl analyze``, 3 mHz-0.9 Hz).
+    diagnose_band : (float, float) or None
+        Band of the diagnosis [Hz] (default that of ``ttl diagnose``,
+        ``DiagnoseSettings().band``, 3 mHz-0.8 Hz).
     segment_duration : float or None
         FFT segment length [s] of the fit and the diagnosis (default: ``ttl analyze``'s
         6 h, and the diagnosis' own default).
@@ -111,6 +128,7 @@ class DayJob:
     out_dir: str
     truth: str | None = None
     band: tuple | None = None
+    diagnose_band: tuple | None = None
     segment_duration: float | None = None
     effects: tuple = ("linear-ttl",)
     effect_modules: tuple = ()
@@ -128,11 +146,23 @@ def fit_settings(job: DayJob):
     return replace(s, segment_duration=float(job.segment_duration))
 
 
+def diagnose_settings(job: DayJob) -> DiagnoseSettings:
+    """The :class:`~ttlcore.diagnose.diagnoser.DiagnoseSettings` of ``ttl diagnose`` for ``job``
+    (one candidate thread: the cluster's workers already run days side by side)."""
+    s = DiagnoseSettings(workers=1)
+    if job.diagnose_band is not None:
+        s = replace(s, band=tuple(float(b) for b in job.diagnose_band))
+    if job.segment_duration is not None:
+        s = replace(s, segment_duration=float(job.segment_duration))
+    return s
+
+
 def process_day(job: DayJob) -> dict:
     """Analysis and diagnosis of one day (the task run on a worker).
 
     Writes ``fit.json`` (and figures) exactly as ``ttl analyze DATA --out DIR`` with the same
-    band and segment, and ``diagnosis.json`` as ``ttl diagnose DATA --effects ... --json``.
+    band and segment, and ``diagnosis.json`` as ``ttl diagnose DATA --effects ... --json``
+    with the same diagnosis band and segment.  Raises on failure (:func:`run_day` does not).
 
     Returns
     -------
@@ -148,17 +178,11 @@ def process_day(job: DayJob) -> dict:
     del res  # the TDI of a day is hundreds of MB: free it before the diagnosis
     diagnosis = None
     if job.diagnosis:
-        # one candidate thread: the cluster's workers already run days side by side
-        ds = DiagnoseSettings(
-            band=tuple(s.band),
-            workers=1,
-            segment_duration=None if job.segment_duration is None else float(job.segment_duration),
-        )
         tm = read_telemetry(job.data)
         report = diagnose(
             tm,
             list(job.effects),
-            settings=ds,
+            settings=diagnose_settings(job),
             effect_modules=tuple(job.effect_modules),
             candidates=None if job.candidates is None else list(job.candidates),
             witnesses=job.witnesses,
@@ -205,64 +229,40 @@ def day_row(job: DayJob, fit_json: dict, diagnosis: dict | None, timings: dict) 
     return row
 
 
-# ---------------------------------------------------------------------------- the cluster
+# ---------------------------------------------------------------------------- the run
 
 
-@contextlib.contextmanager
-def dask_client(
-    scheduler: str | None = None,
-    *,
-    workers: int = 2,
-    threads_per_worker: int = 1,
-    memory_limit: str | float = DEFAULT_MEMORY_LIMIT,
-    dashboard: bool = False,
-):
-    """A :class:`distributed.Client`: to ``scheduler`` (``tcp://host:port`` of a
-    ``dask scheduler``, or the path of its ``--scheduler-file``) or to a new
-    :class:`distributed.LocalCluster` of ``workers`` processes bound to 127.0.0.1
-    (dashboard off, or on 127.0.0.1 with ``dashboard=True``).  Closed on exit."""
-    import dask
-    from distributed import Client, LocalCluster
+def error_text(exc: BaseException) -> str:
+    """One line for an error: our errors say what is at fault themselves, others are named."""
+    text = str(exc) if isinstance(exc, TTLError) else f"{type(exc).__name__}: {exc}"
+    return " ".join(text.split()) or type(exc).__name__
 
-    if scheduler:
-        if Path(scheduler).is_file():
-            client = Client(scheduler_file=str(scheduler), timeout="30s")
-        else:
-            client = Client(scheduler, timeout="30s")
-        try:
-            yield client
-        finally:
-            client.close()
-        return
-    if int(workers) < 1:
-        raise TTLError(f"--workers: at least one worker, got {workers}")
-    # Dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536 in its workers, which fixes glibc's mmap
-    # threshold at 128 kB: every array of a day is then a fresh mmap, zeroed page by page, and
-    # a day's analysis takes twice the CPU time (measured: 0.82 s against 0.43 s for 1 h).
-    # The worker memory is bounded by memory_limit anyway.
-    with dask.config.set({f"{SPAWN_ENV}.MALLOC_TRIM_THRESHOLD_": None}):
-        cluster = LocalCluster(
-            n_workers=int(workers),
-            threads_per_worker=int(threads_per_worker),
-            processes=True,
-            host="127.0.0.1",
-            # the scheduler serves HTTP (health, metrics) even without the dashboard, on Dask's
-            # fixed 8787 unless told otherwise: an ephemeral loopback port instead, so that two
-            # runs never meet on one port; the dashboard's pages only when asked for
-            dashboard_address="127.0.0.1:0",
-            scheduler_kwargs={"dashboard": bool(dashboard)},
-            memory_limit=memory_limit,
-        )
-    client = Client(cluster)
+
+def failed_row(job: DayJob, exc: BaseException) -> dict:
+    """The summary row of a day that failed with ``exc`` (``transient``: worth running again)."""
+    return {
+        "day": job.name,
+        "file": str(job.data),
+        "status": "failed",
+        "out_dir": str(job.out_dir),
+        "error": error_text(exc),
+        "transient": isinstance(exc, TRANSIENT_ERRORS),
+        "traceback": "".join(traceback.format_exception(type(exc), exc, exc.__traceback__)),
+    }
+
+
+def run_day(job: DayJob) -> dict:
+    """The task run on a worker: :func:`process_day`, whose failure is returned as a failed
+    row (:func:`failed_row`) instead of raised, so that Dask neither retries it nor logs it:
+    :func:`reprocess` decides what is run again."""
     try:
-        yield client
-    finally:
-        client.close()
-        cluster.close()
+        return process_day(job)
+    except Exception as exc:  # noqa: BLE001 - every failure is reported, none is lost
+        return failed_row(job, exc)
 
 
-def _task_key(job: DayJob, i: int) -> str:
-    return f"day-{i:05d}-{job.name}"
+def _task_key(job: DayJob, i: int, attempt: int = 0) -> str:
+    return f"day-{i:05d}-{job.name}" + (f"-retry{attempt}" if attempt else "")
 
 
 def reprocess(
@@ -275,7 +275,7 @@ def reprocess(
     progress: Callable[[int, int, dict], None] | None = None,
     title: str = "",
 ) -> dict:
-    """Run :func:`process_day` for every job on ``client``'s cluster and write the summary.
+    """Run every job on ``client``'s cluster (:func:`run_day`) and write the summary.
 
     Parameters
     ----------
@@ -285,7 +285,9 @@ def reprocess(
         Where ``summary.json`` and ``summary.md`` go (the days' directories are the jobs').
     client : distributed.Client
     retries : int
-        Retries of a day whose task raised (Dask's ``retries=``).
+        Times a day that failed with a transient error (:data:`TRANSIENT_ERRORS`) is run
+        again; other errors are not retried (they would fail the same way), and a day whose
+        worker died is rescheduled by the scheduler itself.
     trend_settings : TrendSettings, optional
         Default :data:`DAY_TRENDS`.
     progress : callable(done, total, row), optional
@@ -295,8 +297,8 @@ def reprocess(
     -------
     dict
         The ``summary.json`` content: ``days`` (rows in time order, failed days included
-        with ``status: "failed"`` and ``error``), ``trends``, ``failed`` (names),
-        ``settings``, ``wall_s``.
+        with ``status: "failed"``, ``error`` (one line) and ``traceback``), ``trends``,
+        ``failed`` (names), ``settings``, ``wall_s``.
     """
     from distributed import as_completed
 
@@ -307,36 +309,40 @@ def reprocess(
         raise TTLError(f"days: names must be unique, {', '.join(dup)} repeated")
     if not jobs:
         raise TTLError("no day to reprocess")
+    if retries < 0:
+        raise TTLError(f"--retries: must be >= 0, got {retries}")
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
     start = time.monotonic()
-    futures = [
-        client.submit(process_day, job, key=_task_key(job, i), retries=int(retries), pure=False)
-        for i, job in enumerate(jobs)
-    ]
-    by_key = {f.key: job for f, job in zip(futures, jobs)}
+    running: dict[str, tuple[int, int]] = {}  # task key -> (job index, attempt)
+    pending = as_completed()
+
+    def submit(i: int, attempt: int) -> None:
+        fut = client.submit(run_day, jobs[i], key=_task_key(jobs[i], i, attempt), pure=False)
+        running[fut.key] = (i, attempt)
+        pending.add(fut)
+
+    for i in range(len(jobs)):
+        submit(i, 0)
     rows: dict[str, dict] = {}
-    done = 0
-    for fut in as_completed(futures):
-        job = by_key[fut.key]
+    for fut in pending:
+        i, attempt = running.pop(fut.key)
+        job = jobs[i]
         try:
             row = fut.result()
-        except Exception as exc:  # noqa: BLE001 - every failure is reported, none is lost
-            tb = "".join(traceback.format_exception_only(type(exc), exc)).strip()
-            log.error("day %s failed after %d retries: %s", job.name, retries, tb)
-            row = {
-                "day": job.name,
-                "file": str(job.data),
-                "status": "failed",
-                "out_dir": str(job.out_dir),
-                "error": tb,
-                "retries": int(retries),
-            }
-        rows[job.name] = row
-        done += 1
+        except Exception as exc:  # noqa: BLE001 - its worker died too often, or the cluster is gone
+            row = failed_row(job, exc)
+            row["transient"] = False  # the scheduler has rescheduled it already
         fut.release()
+        if row["status"] != "ok":
+            if row["transient"] and attempt < retries:
+                log.info("day %s: %s; running it again (%d of %d)", job.name, row["error"], attempt + 1, retries)
+                submit(i, attempt + 1)
+                continue
+            row["retries"] = attempt
+            log.debug("day %s failed:\n%s", job.name, row["traceback"])
+        rows[job.name] = row
         if progress is not None:
-            progress(done, len(jobs), row)
+            progress(len(rows), len(jobs), row)
     ordered = [rows[j.name] for j in jobs]
     ok = sorted((r for r in ordered if r["status"] == "ok"), key=lambda r: r["t_stop"])
     failed = [r for r in ordered if r["status"] != "ok"]
@@ -350,11 +356,13 @@ def reprocess(
         "trends": trends,
         "settings": {
             "retries": int(retries),
+            "bands_hz": {"fit": list(fit_settings(jobs[0]).band), "diagnosis": list(diagnose_settings(jobs[0]).band)},
             "jobs": asdict(jobs[0]) | {"name": None, "data": None, "out_dir": None, "truth": None},
         },
         "cluster": {"scheduler": client.scheduler.address, "workers": len(client.scheduler_info().get("workers", {}))},
         "wall_s": round(time.monotonic() - start, 3),
     }
+    out_dir.mkdir(parents=True, exist_ok=True)
     write_json(out_dir / "summary.json", summary)
     write_text(out_dir / "summary.md", summary_markdown(summary))
     return summary
@@ -397,6 +405,13 @@ def _num(v, spec: str = ".3f") -> str:
     return "-" if v is None or (isinstance(v, float) and not math.isfinite(v)) else format(v, spec)
 
 
+def _bands_text(bands: dict | None) -> str:
+    if not bands:
+        return ""
+    (f0, f1), (d0, d1) = bands["fit"], bands["diagnosis"]
+    return f"; fit band {f0:g}-{f1:g} Hz, diagnosis band {d0:g}-{d1:g} Hz"
+
+
 def summary_markdown(summary: dict) -> str:
     """``summary.md``: days (chi^2/dof, adequacy, recommendation), coefficients, trends."""
     days = summary["days"]
@@ -406,7 +421,9 @@ def summary_markdown(summary: dict) -> str:
         + (f"; **failed: {', '.join(summary['failed'])}**" if summary["failed"] else "")
         + f" in {summary['wall_s']:.1f} s on {summary['cluster']['workers']} worker(s). "
         "chi2/dof fit: the GLS fit against its re-estimated noise; chi2/dof model: the diagnosis' "
-        "residual against the fixed instrument noise model (1 when adequate).\n",
+        "residual against the fixed instrument noise model (1 when adequate)"
+        + _bands_text(summary.get("settings", {}).get("bands_hz"))
+        + ".\n",
         "\n## Days\n\n| day | status | t start [d] | t stop [d] | chi2/dof fit | chi2/dof model | model fails "
         "| recommendation |\n|---|---|---|---|---|---|---|---|",
     ]
@@ -444,6 +461,47 @@ def summary_markdown(summary: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def day_files(paths: Sequence, segment_duration: float | None = None) -> tuple[list[Path], list[Path]]:
+    """The input files of a reprocessing, checked before any work: ``(days, truths)``.
+
+    Each file goes through the check every command makes of its input
+    (:func:`ttlcore.io.reader.file_kind`, and :func:`ttlcore.io.telemetry.read_header` for
+    ours: an HDF5 file of a known layout, its root attributes consistent).  Telemetry
+    files (ours or lisainstrument's) are the days; our truth files (root attribute
+    ``format='ttl-truth'``, the ``day.truth.h5`` that ``ttl simulate`` writes beside each
+    day, whatever their name) are returned apart, for the caller to skip.  With
+    ``segment_duration`` [s], a day of ours shorter than one segment is refused (the
+    analysis would refuse it on its worker).
+
+    Raises
+    ------
+    TelemetryError
+        Naming the first file that is neither (missing, not HDF5, truncated, another layout),
+        with the count of the others.
+    """
+    days: list[Path] = []
+    truths: list[Path] = []
+    refused: list[TTLError] = []
+    for p in map(Path, paths):
+        try:
+            kind = file_kind(p)
+            if kind == "ttl":
+                head = read_header(p)
+                if segment_duration is not None:
+                    _check_segment(segment_duration, head["duration"], p)
+        except TTLError as exc:
+            refused.append(exc)
+            continue
+        (truths if kind == "truth" else days).append(p)
+    if refused:
+        more = f" (and {len(refused) - 1} more file(s) refused)" if len(refused) > 1 else ""
+        first = refused[0]
+        if isinstance(first, TelemetryError):
+            raise TelemetryError(first.path, first.what + more, first.dataset)
+        raise TTLError(f"{first}{more}")
+    return days, truths
+
+
 def jobs_for_files(paths: Sequence, out_dir, *, truth_beside: bool = False, **options) -> list[DayJob]:
     """One :class:`DayJob` per telemetry file: name = the file's stem (made unique with its
     position when two stems coincide), outputs in ``out_dir/<name>``; ``truth_beside``: use
@@ -475,4 +533,10 @@ __all__ = [
     "summary_markdown",
     "jobs_for_files",
     "fit_settings",
+    "diagnose_settings",
+    "day_files",
+    "run_day",
+    "failed_row",
+    "DEFAULT_MEMORY_LIMIT",
+    "SPAWN_ENV",
 ]

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ..app.reprocessing import dask_client
+from ..app.cluster import dask_client, dask_log_level
 from ..app.scenarios import run_scenarios
 from ..conventions import parse_duration
 from ..errors import TTLError
@@ -32,7 +32,8 @@ def run(args) -> int:
             progress=progress,
         )
         if args.scheduler or args.workers:
-            with dask_client(args.scheduler, workers=args.workers or 2) as client:
+            level = dask_log_level(args.verbose)  # no Dask INFO lines
+            with dask_client(args.scheduler, workers=args.workers or 2, log_level=level) as client:
                 s = run_scenarios(args.out, client=client, **options)
         else:
             s = run_scenarios(args.out, **options)
