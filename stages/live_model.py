@@ -19,6 +19,12 @@ import json
 from ttlcore.effects import make_effects
 from ttlcore.errors import ConfigError
 
+#: Most effects a live model may hold (a day of glitches and gates, with room): a control
+#: message with more is refused before any effect is built (docs/operations.md, "Model limits")
+MAX_EFFECTS = 64
+#: Most columns of a live model (the 24 linear ones included; a drift adds 24, a glitch 1)
+MAX_COLUMNS = 256
+
 
 class LiveModel:
     """The model in force and its recorded changes.
@@ -63,9 +69,21 @@ class LiveModel:
             specs = [s for s in specs.split(",") if s.strip()]
         if not isinstance(specs, (list, tuple)) or not specs or not all(isinstance(s, str) for s in specs):
             raise ValueError(f"effects: expected a list of effect specs, got {specs!r}")
+        if len(specs) > MAX_EFFECTS:  # before anything is built: 100,000 effects grew a fitter to 6 GB
+            raise ValueError(f"effects: {len(specs)} effects, at most {MAX_EFFECTS} (docs/operations.md, model limits)")
         effects = make_effects([s.strip().replace(";", ",") for s in specs], self.effect_modules)
         if "linear-ttl" not in [e.name for e in effects]:
             raise ValueError("effects: the model must include linear-ttl")
+        # every option read now, not at the next segment: the effect's columns are built on a
+        # stand-in input (``step:t_step=abc`` was accepted, then failed every later segment)
+        n_columns = 0
+        for e in effects:
+            try:
+                n_columns += len(e.column_names())
+            except (ValueError, TypeError, KeyError) as exc:  # ConfigError is a ValueError
+                raise ValueError(f"effects: {e.spec()}: {exc}") from None
+        if n_columns > MAX_COLUMNS:
+            raise ValueError(f"effects: {n_columns} columns, at most {MAX_COLUMNS} (docs/operations.md, model limits)")
         return [e.spec() for e in effects]
 
     def change(self, new: list[str], start: int, *, diagnose: bool = True) -> None:

@@ -91,21 +91,22 @@ def nesting_depth(raw: bytes) -> int:
     return int(np.cumsum(steps).max(initial=0))
 
 
-def load_bounded(raw: bytes):
+def load_bounded(raw: bytes, root: str = "header"):
     """``json.loads`` of a header with every size bounded: nesting depth (checked before
     parsing: the parser recurses), number literals, string lengths.  Every failure is a
-    :class:`BoundedJSONError` naming the field."""
+    :class:`BoundedJSONError` naming the field (``root``: what the text is, for a failure of
+    the text as a whole, e.g. ``"payload"`` for a control message)."""
     depth = nesting_depth(raw)
     if depth > MAX_DEPTH:
-        raise BoundedJSONError("header", f"JSON nested {depth} levels deep (at most {MAX_DEPTH})")
+        raise BoundedJSONError(root, f"JSON nested {depth} levels deep (at most {MAX_DEPTH})")
     try:
         obj = json.loads(
             raw.decode("utf-8"), parse_int=_parse_int, parse_float=_parse_float, parse_constant=_parse_constant
         )
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise BoundedJSONError("header", f"not valid JSON: {exc}") from None
+        raise BoundedJSONError(root, f"not valid JSON: {exc}") from None
     except (ValueError, RecursionError, MemoryError) as exc:  # belt and braces: nothing else escapes
-        raise BoundedJSONError("header", f"unreadable JSON: {type(exc).__name__}: {exc}") from None
+        raise BoundedJSONError(root, f"unreadable JSON: {type(exc).__name__}: {exc}") from None
     _check_values(obj, "")
     return obj
 

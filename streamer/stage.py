@@ -47,6 +47,7 @@ from typing import ClassVar
 
 import numpy as np
 
+from .bounded_json import BoundedJSONError, load_bounded
 from .codec import Expect, Header
 from .ingest import PREVIEW_CHARS, GapWatch, Ingest
 from .ingest import preview as _preview
@@ -351,18 +352,18 @@ class Stage:
         """Handle ``ttl/<run>/control/<stage>/<command>`` on the main thread: record it, call
         :meth:`control`; a rejected command is reported on ``errors`` and changes nothing."""
         key = control_key(self.run_id, self.stage_name, command)
-        text = payload.decode("utf-8", errors="replace")
+        record = {"run": self.run_id, "stage": self.stage_name, "command": command, "time": time.time()}
         try:
-            shown = json.loads(text) if text.strip() else None
-        except (ValueError, RecursionError):  # RecursionError: nested too deep for the parser
-            shown = text
-        record = {
-            "run": self.run_id,
-            "stage": self.stage_name,
-            "command": command,
-            "payload": shown,
-            "time": time.time(),
-        }
+            # the bounded parser of the segment headers: a payload nested 500 deep, or with
+            # a 5000-digit number, is refused here, before any parser or recorder walks it
+            shown = load_bounded(payload, root="payload") if payload.strip() else None
+        except BoundedJSONError as exc:
+            text = payload[:PREVIEW_CHARS].decode("utf-8", errors="replace")
+            self.log.warning("control %s rejected: %s", command, exc)
+            self.recorder.write_json("control", {**record, "payload": text, "accepted": False, "message": str(exc)})
+            self.report_error("rejected", f"control message {command!r}: {exc}", key=key, field="payload")
+            return
+        record["payload"] = shown
         try:
             outputs = list(self.control(command, payload) or ())
         except Exception as exc:  # a bad command must not stop the stage

@@ -281,7 +281,8 @@ def test_transients_leave_the_model_with_the_window(tmp_path):
     after segment 2, so the model is linear-ttl from segment 3 on.  Segment 0, gated, gets
     no fit, and a ``no-fit`` warning says so."""
     data, _ = simulate(tmp_path, "2h", 4)
-    glitch, gate = "glitch:t=900.0,tm=12,beta=10.0", "gate:start=600.0,stop=1200.0"
+    # the gate with 5-min tapers (its default is 15 min: it would then reach past 30 min)
+    glitch, gate = "glitch:t=900.0,tm=12,beta=10.0", "gate:start=600.0,stop=1200.0,taper=300.0"
     code, out, run_dir = live_run(
         tmp_path,
         data,

@@ -1,8 +1,8 @@
 """Every command the README prints, pasted as printed.
 
 The README's ``sh`` blocks are read here, not copied: a command changed there is tested as
-changed.  A line is a command when it starts with ``ttl`` or ``make`` (a ``\\`` joins the next
-line); text after ``#`` is a comment, as in a shell.
+changed.  A line is a command when it starts with ``ttl``, ``make`` or ``mkdir`` (a ``\\`` joins
+the next line); text after ``#`` is a comment, as in a shell.
 
 - Every ``ttl`` command parses with the real parser (in a directory holding stand-ins of the
   files it names, the globs expanded as a shell would), and the effect specs it types
@@ -43,7 +43,7 @@ def readme_commands() -> list[str]:
     for block in re.findall(r"```sh\n(.*?)```", README.read_text(), re.S):
         for line in block.replace("\\\n", " ").splitlines():
             line = line.strip()
-            if line.startswith(("ttl ", "make ")):
+            if line.startswith(("ttl ", "make ", "mkdir ")):
                 out.append(line)
     return out
 

@@ -273,8 +273,10 @@ def test_control_messages_change_a_stage_or_are_rejected_and_recorded(driver, ch
     driver.bus.session.put(f"{control}/factor", b'{"factor": 3}')
     driver.bus.session.put(f"{control}/factor", b'{"factor": "x"}')  # bad value: rejected
     driver.bus.session.put(f"{control}/factor", b"{oops")  # not JSON: rejected
+    # 1 kB nested 500 deep: the recorder's walk of it killed every stage (RecursionError)
+    driver.bus.session.put(f"{control}/factor", b'{"factor": ' + b"[" * 500 + b"]" * 500 + b"}")
     driver.bus.session.put(f"{control}/explode", b"")  # unknown command: rejected
-    wait_for(lambda: len(driver.errors) >= 3, 10, "three rejections")
+    wait_for(lambda: len(driver.errors) >= 4, 10, "four rejections")
     data, payload, attachment = good(0)
     driver.telemetry.put(0, payload, attachment)
     header, arrays = driver.output()
@@ -282,13 +284,15 @@ def test_control_messages_change_a_stage_or_are_rejected_and_recorded(driver, ch
     rejected = [e for _, e in driver.errors]
     assert [(e["kind"], e["field"], e["key"]) for e in rejected] == [
         ("rejected", "payload", f"{control}/factor")
-    ] * 2 + [("rejected", "payload", f"{control}/explode")]
-    assert "factor: expected a number" in rejected[0]["message"] and "no command 'explode'" in rejected[2]["message"]
+    ] * 3 + [("rejected", "payload", f"{control}/explode")]
+    assert "factor: expected a number" in rejected[0]["message"] and "no command 'explode'" in rejected[3]["message"]
+    assert "field 'payload': JSON nested 501 levels deep (at most 32)" in rejected[2]["message"]
     driver.bus.session.put(f"{control}/stop", b"")
     assert proc.wait(20) == 0, output_of(proc)
     rec = read_recording(mcap_path)
     assert [(c["command"], c["accepted"]) for c in rec.json("control")] == [
         ("factor", True),
+        ("factor", False),
         ("factor", False),
         ("factor", False),
         ("explode", False),
