@@ -29,9 +29,8 @@ from ttlcore.app.reprocessing import (
     jobs_for_files,
     reprocess,
 )
-from ttlcore.cli.diagnose import split_effects
 from ttlcore.conventions import DAY, parse_duration
-from ttlcore.effects import make_effects
+from ttlcore.effects import make_effects, split_effects
 from ttlcore.errors import TTLError
 from ttlcore.io.telemetry import Telemetry, write_telemetry
 
