@@ -133,7 +133,7 @@ def main() -> int:
         "top_is_injected": (not args.clean)
         and bool(cands)
         and (
-            cands[0]["cli_spec"].startswith("fd-coupling:source=23.eta;link=31;f0")
+            cands[0]["cli_spec"].startswith("fd-coupling:source=23.eta,link=31,f0")
             if args.unknown
             else cands[0]["effect"] == INJECTION.split(":")[0]
         ),

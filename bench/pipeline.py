@@ -35,7 +35,7 @@ from streamer.topology import STAGES
 #: The extended model of the live-loop issue's bench: a witness two light travel times away
 #: and a first-order frequency-dependent coupling, their parameters given (not searched).
 EXTENDED = (
-    "linear-ttl,witness:source=12.eta;link=23;delay=2,fd-coupling:source=13.eta;link=31;delay=1;filter=pole1;fc=0.05"
+    "linear-ttl,witness:source=12.eta,link=23,delay=2,fd-coupling:source=13.eta,link=31,delay=1,filter=pole1,fc=0.05Hz"
 )
 
 

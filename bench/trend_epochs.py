@@ -31,11 +31,11 @@ from ttlcore.diagnose.trends import TrendMonitor  # noqa: E402
 
 HOUR, N, SIGMA, HOURS = 3600.0, 24, 0.01e-3, 124
 LINEAR = ["linear-ttl"]
-W1, W2 = "witness:source=12.eta;link=23;delay=2", "witness:source=23.phi;link=13;delay=2"
+W1, W2 = "witness:source=12.eta,link=23,delay=2", "witness:source=23.phi,link=13,delay=2"
 
 
 def glitch(t: int) -> str:
-    return f"glitch:t={t * HOUR:.0f};tm=12;beta=100"
+    return f"glitch:t={t}h,tm=12,beta=100s"
 
 
 #: (first fit under the model, model)

@@ -31,7 +31,7 @@ def add_options(p) -> None:
     p.add_argument(
         "--effects",
         help="the model: effect specs, comma-separated (default linear-ttl; any effect "
-        "ttl diagnose can fit, e.g. 'linear-ttl,witness:source=12.eta;link=23;delay=2')",
+        "ttl diagnose can fit, e.g. linear-ttl,witness:source=12.eta,link=23,delay=2)",
     )
     p.add_argument("--effect-module", action="append", help="plugin module or .py file defining effects (repeatable)")
     p.add_argument(

@@ -19,7 +19,7 @@ from collections.abc import Callable
 
 from scipy import stats
 
-from ttlcore.conventions import parse_duration
+from ttlcore.conventions import format_time
 from ttlcore.diagnose.diagnoser import text_report
 from ttlcore.effects import make_effects
 from ttlcore.effects.glitch import merge_gates, split_gates
@@ -82,7 +82,7 @@ def enough_ungated(report: dict, effects: list[str], effect_modules, why: str) -
     if not rows:
         return True, why
     a, b = float(rows[0]["t_start"]), float(rows[-1]["t_stop"])
-    gates, _ = split_gates(make_effects([e.replace(";", ",") for e in effects], effect_modules))
+    gates, _ = split_gates(make_effects(list(effects), effect_modules))
     gated = sum(max(0.0, min(g.span[1], b) - max(g.span[0], a)) for g in merge_gates(gates))
     if b > a and 1.0 - gated / (b - a) < MIN_UNGATED:
         return False, (
@@ -102,9 +102,9 @@ def outside_gaps(recommendation: dict, gaps, why: str, effect_modules=()) -> tup
         for key in ("t_step", "t"):
             if effect.options.get(key) is None:
                 continue
-            t = parse_duration(effect.options[key])  # a number of seconds, or e.g. "1.5d"
+            t = float(effect.options[key])  # seconds (the effect read the spec's unit)
             if any(float(a) <= t <= float(b) for a, b in gaps):
-                return False, f"{effect.name} {key}={t:.1f} s lies in a gap of the data: not adopted"
+                return False, f"{effect.name} {key}={format_time(t)} lies in a gap of the data: not adopted"
     return True, why
 
 
@@ -122,7 +122,7 @@ def stale_effects(report: dict, effects: list[str], effect_modules) -> list[dict
     fitted = (report.get("model") or {}).get("coefficients") or {}
     values, sigma = fitted.get("values") or {}, fitted.get("sigma") or {}
     out = []
-    for spec, effect in zip(effects, make_effects([e.replace(";", ",") for e in effects], effect_modules), strict=True):
+    for spec, effect in zip(effects, make_effects(list(effects), effect_modules), strict=True):
         if effect.name == "linear-ttl" or effect.active_span() is not None or effect.name == "gate":
             continue
         try:
@@ -170,7 +170,7 @@ def recommendation_meta(
         # a transient's advice adds several glitches and gates at once (``actions``)
         added = [a["spec"] for a in rec.get("actions") or []] or [rec["spec"]]
         # a gate overlapping one of the model's (an ongoing signal, seen again) is merged
-        model = make_effects([e.replace(";", ",") for e in [*effects, *added]], effect_modules)
+        model = make_effects([*effects, *added], effect_modules)
         rec["effects"] = [e.spec() for e in merge_gates(model)]
         rec["command"] = command(rec["effects"])
     return rec

@@ -16,7 +16,7 @@ from __future__ import annotations
 
 import json
 
-from ttlcore.effects import make_effects
+from ttlcore.effects import make_effects, split_effects
 from ttlcore.errors import ConfigError
 
 #: Most effects a live model may hold (a day of glitches and gates, with room): a control
@@ -65,13 +65,14 @@ class LiveModel:
 
     def check(self, specs) -> list[str]:
         """Validated effect specs of a model (a list, or one comma-separated string)."""
-        if isinstance(specs, str):  # the command line's form: ';' between one effect's options
-            specs = [s for s in specs.split(",") if s.strip()]
+        if isinstance(specs, str):  # the command line's form (docs/cli.md, "Effect specs")
+            specs = split_effects(specs)
         if not isinstance(specs, (list, tuple)) or not specs or not all(isinstance(s, str) for s in specs):
             raise ValueError(f"effects: expected a list of effect specs, got {specs!r}")
-        if len(specs) > MAX_EFFECTS:  # before anything is built: 100,000 effects grew a fitter to 6 GB
-            raise ValueError(f"effects: {len(specs)} effects, at most {MAX_EFFECTS} (docs/operations.md, model limits)")
-        effects = make_effects([s.strip().replace(";", ",") for s in specs], self.effect_modules)
+        flat = [e for s in specs for e in split_effects(s)]  # one item may hold several effects
+        if len(flat) > MAX_EFFECTS:  # before anything is built: 100,000 effects grew a fitter to 6 GB
+            raise ValueError(f"effects: {len(flat)} effects, at most {MAX_EFFECTS} (docs/operations.md, model limits)")
+        effects = make_effects(flat, self.effect_modules)
         if "linear-ttl" not in [e.name for e in effects]:
             raise ValueError("effects: the model must include linear-ttl")
         # every option read now, not at the next segment: the effect's columns are built on a
@@ -97,6 +98,7 @@ class LiveModel:
     def only_transients_added(self, new: list[str]) -> bool:
         """Whether the model ``new`` differs from the one in force by transients alone (gates,
         glitches: effects with an :meth:`~ttlcore.effects.base.Effect.active_span`)."""
+        new = [e.spec() for e in make_effects(list(new), self.effect_modules)]  # as the model prints them
         added = [e for e in new if e not in self.effects]
         removed = [e for e in self.effects if e not in new]
         effects = make_effects([*added, *removed], self.effect_modules)

@@ -189,13 +189,9 @@ def check_model(o: RunOptions) -> None:
     effects = fitter.get("effects")
     if not effects:
         return
-    specs = (
-        [x.strip().replace(";", ",") for x in effects.split(",") if x.strip()]
-        if isinstance(effects, str)
-        else list(effects)
-    )
-    try:
-        names = [e.name for e in make_effects(specs, tuple(fitter.get("effect_modules") or ()))]
+    modules = tuple(fitter.get("effect_modules") or ())
+    try:  # one string in the grammar of --effects, or a list of specs (docs/cli.md, "Effect specs")
+        names = [e.name for e in make_effects(effects if isinstance(effects, str) else list(effects), modules)]
     except TTLError as exc:
         raise LaunchError(f"--effects: {exc}") from None
     if "linear-ttl" not in names:

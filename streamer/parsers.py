@@ -134,8 +134,8 @@ def _add_run(sub) -> None:
     )
     p.add_argument(
         "--effects",
-        help="fitter: the model, effect specs comma-separated, ';' between one effect's "
-        "options (default linear-ttl; any effect ttl diagnose can fit)",
+        help="fitter: the model, effect specs and their options comma-separated, as ttl diagnose "
+        "--effects (default linear-ttl; any effect ttl diagnose can fit; docs/cli.md, Effect specs)",
     )
     p.add_argument(
         "--effect-module",
@@ -300,7 +300,8 @@ def _add_refit(sub) -> None:
     p.add_argument(
         "--effects",
         required=True,
-        help="the model, comma-separated effect specs (e.g. linear-ttl,drift; docs/diagnostics.md lists them)",
+        help="the model, comma-separated effect specs as ttl diagnose --effects (e.g. linear-ttl,drift,"
+        "gate:start=15.2h,stop=15.8h; docs/cli.md, Effect specs)",
     )
     p.add_argument("--baseline", default="linear-ttl", help="the model to compare with (default linear-ttl)")
     p.add_argument(
@@ -365,7 +366,7 @@ def _add_reprocess(sub) -> None:
     p.add_argument(
         "--effects",
         default="linear-ttl",
-        metavar="EFFECT[:opt=v],...",
+        metavar="EFFECT[:opt=v,...],...",
         help="the diagnosis model, as ttl diagnose --effects (default linear-ttl)",
     )
     p.add_argument(

@@ -18,13 +18,13 @@ from pathlib import Path
 import h5py
 
 from ttlcore.cli.diagnose import check_step_times
-from ttlcore.cli.diagnose import split_effects as split
 from ttlcore.cli.progress import status_line
 from ttlcore.cli.report import to_stdout, write_report
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.diagnoser import DiagnoseSettings, refit
 from ttlcore.diagnose.prediction import fit_residual
 from ttlcore.effects import make_effects
+from ttlcore.effects import split_effects as split
 from ttlcore.errors import TTLError
 
 from .inspect import InspectError, recording_files

@@ -36,12 +36,11 @@ from tqdm import tqdm
 from ttlcore.app.analysis import check_band
 from ttlcore.app.cluster import dask_client, dask_log_level
 from ttlcore.app.reprocessing import day_files, jobs_for_files, reprocess
-from ttlcore.cli.diagnose import split_effects
 from ttlcore.cli.progress import progress_bar
 from ttlcore.cli.report import to_stdout, write_report
 from ttlcore.conventions import DAY, parse_duration
 from ttlcore.diagnose.diagnoser import DiagnoseSettings
-from ttlcore.effects import make_effects
+from ttlcore.effects import make_effects, split_effects
 from ttlcore.errors import TTLError
 from ttlcore.estimate.fit import DEFAULT_BAND, FitSettings
 from ttlcore.io.telemetry import Telemetry, write_telemetry

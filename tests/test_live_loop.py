@@ -113,7 +113,7 @@ def check_residual_equals_refit(tmp_path: Path, run_dir: Path, effects: list[str
             "refit",
             run_dir,
             "--effects",
-            ",".join(e.replace(",", ";") for e in effects),
+            ",".join(effects),
             "--segments",
             f"{window['first']}:{window['last']}",
             "--residual",
@@ -238,7 +238,7 @@ def test_rolling_model_agrees_with_the_window_refit(tmp_path):
         "--adopt",
         "never",
         "--effects",
-        "linear-ttl," + witness.replace(",", ";"),
+        "linear-ttl," + witness,
         timeout=900,
     )
     assert code == 0, out[-4000:]
@@ -281,8 +281,9 @@ def test_transients_leave_the_model_with_the_window(tmp_path):
     after segment 2, so the model is linear-ttl from segment 3 on.  Segment 0, gated, gets
     no fit, and a ``no-fit`` warning says so."""
     data, _ = simulate(tmp_path, "2h", 4)
-    # the gate with 5-min tapers (its default is 15 min: it would then reach past 30 min)
-    glitch, gate = "glitch:t=900.0,tm=12,beta=10.0", "gate:start=600.0,stop=1200.0,taper=300.0"
+    # as the fitter prints them; the gate with 5-min tapers (its default is 15 min: it would
+    # then reach past 30 min)
+    glitch, gate = "glitch:t=900s,tm=12,beta=10s", "gate:start=600s,stop=1200s,taper=300s"
     code, out, run_dir = live_run(
         tmp_path,
         data,
@@ -294,7 +295,7 @@ def test_transients_leave_the_model_with_the_window(tmp_path):
         "--adopt",
         "never",
         "--effects",
-        ",".join(["linear-ttl", glitch.replace(",", ";"), gate.replace(",", ";")]),
+        ",".join(["linear-ttl", glitch, gate]),
         timeout=600,
     )
     assert code == 0, out[-4000:]
@@ -422,7 +423,7 @@ def test_live_loop_adopts_nothing_on_a_null_day(tmp_path):
 # ---------------------------------------------------------------------------- kills
 
 EXTENDED = (
-    "linear-ttl,witness:source=12.eta;link=23;delay=2,fd-coupling:source=13.eta;link=31;delay=1;filter=pole1;fc=0.05"
+    "linear-ttl,witness:source=12.eta,link=23,delay=2,fd-coupling:source=13.eta,link=31,delay=1,filter=pole1,fc=0.05Hz"
 )
 
 

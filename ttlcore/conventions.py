@@ -180,26 +180,116 @@ def parse_duration(text: str | float | int, option: str | None = None) -> float:
         raise ConfigError(f"{option}: {exc}") from None
 
 
+#: Units of a time or duration (:func:`parse_duration`, :func:`parse_time`), longest first.
+TIME_UNITS = (("min", 60.0), ("d", DAY), ("h", 3600.0), ("m", 60.0), ("s", 1.0))
+
+
 def _parse_duration(text: str | float | int) -> float:
-    if isinstance(text, (int, float)):
-        value = float(text)
-    else:
-        s = str(text).strip().lower()
-        units = (("min", 60.0), ("d", DAY), ("h", 3600.0), ("m", 60.0), ("s", 1.0))
-        value = None
-        for suffix, scale in units:
-            if s.endswith(suffix):
-                try:
-                    value = float(s[: -len(suffix)]) * scale
-                except ValueError:
-                    value = None
-                break
-        if value is None:
-            try:
-                value = float(s)
-            except ValueError:
-                raise ValueError(f"bad duration {text!r}; use e.g. '1d', '6h', '30min' or seconds") from None
-    assert value is not None  # parsed above or raised
+    value = _time_value(text)
     if not np.isfinite(value) or value <= 0:
         raise ValueError(f"duration must be positive, got {text!r}")
     return value
+
+
+def _time_value(text: str | float | int) -> float:
+    """A number of seconds, or a number with a unit of :data:`TIME_UNITS` (any sign)."""
+    if isinstance(text, (int, float)):
+        return float(text)
+    s = str(text).strip().lower()
+    for suffix, scale in TIME_UNITS:
+        if s.endswith(suffix):
+            try:
+                return float(s[: -len(suffix)]) * scale
+            except ValueError:
+                break
+    try:
+        return float(s)
+    except ValueError:
+        raise ValueError(f"bad duration {text!r}; use e.g. '1d', '6h', '30min' or seconds") from None
+
+
+def parse_time(text: str | float | int, option: str | None = None) -> float:
+    """A time or signed duration [s]: a number (any sign, zero included) or a number with a
+    unit of :data:`TIME_UNITS` (``"2.7h"``, ``"-480s"``, ``"1.5d"``); what
+    :func:`format_time` prints.
+
+    Raises
+    ------
+    ValueError
+        If ``text`` is not a finite time; with ``option``, a
+        :class:`~ttlcore.errors.ConfigError` whose message starts with it.
+    """
+    try:
+        value = _time_value(text)
+        if not np.isfinite(value):
+            raise ValueError(f"a time must be finite, got {text!r}")
+    except ValueError as exc:
+        if option is None:
+            raise
+        raise ConfigError(f"{option}: {exc}") from None
+    return value
+
+
+def format_number(x: float) -> str:
+    """The shortest text that reads back as ``x`` exactly (``1800.0`` -> ``"1800"``,
+    ``0.35`` -> ``"0.35"``)."""
+    text = repr(float(x))
+    return text[:-2] if text.endswith(".0") else text
+
+
+def format_time(seconds: float) -> str:
+    """A time [s] with its unit, read back by :func:`parse_time` (and, when positive, by
+    :func:`parse_duration`) as exactly the same float: in days or hours where a number of at
+    most 6 significant digits gives it exactly (``86400`` -> ``"1d"``, ``54720`` ->
+    ``"15.2h"``), else in seconds (``1800`` -> ``"1800s"``, ``9734.25`` -> ``"9734.25s"``)."""
+    v = float(seconds)
+    if not np.isfinite(v):
+        return repr(v)
+    sign, a = ("-" if v < 0 else ""), abs(v)
+    for suffix, scale in (("d", DAY), ("h", 3600.0)):
+        if a >= scale:
+            text = f"{a / scale:.6g}"
+            if "e" not in text and float(text) * scale == a:
+                return f"{sign}{text}{suffix}"
+    return f"{sign}{format_number(a)}s"
+
+
+#: Units of a frequency (:func:`parse_frequency`).
+FREQUENCY_UNITS = (("mhz", 1e-3), ("hz", 1.0))
+
+
+def parse_frequency(text: str | float | int, option: str | None = None) -> float:
+    """A frequency [Hz]: a number of hertz or a number with its unit (``"0.0718Hz"``,
+    ``"71.8mHz"``); what :func:`format_frequency` prints.  ConfigError (ValueError
+    without ``option``) unless finite and positive."""
+    try:
+        value = _frequency_value(text)
+        if not np.isfinite(value) or value <= 0:
+            raise ValueError(f"frequency must be positive, got {text!r}")
+    except ValueError as exc:
+        if option is None:
+            raise
+        raise ConfigError(f"{option}: {exc}") from None
+    return value
+
+
+def _frequency_value(text: str | float | int) -> float:
+    if isinstance(text, (int, float)):
+        return float(text)
+    s = str(text).strip().lower()
+    for suffix, scale in FREQUENCY_UNITS:
+        if s.endswith(suffix):
+            s, factor = s[: -len(suffix)], scale
+            break
+    else:
+        factor = 1.0
+    try:
+        return float(s) * factor
+    except ValueError:
+        raise ValueError(f"bad frequency {text!r}; use e.g. '0.0718Hz', '71.8mHz' or hertz") from None
+
+
+def format_frequency(hz: float) -> str:
+    """A frequency [Hz] with its unit, read back by :func:`parse_frequency` exactly
+    (``0.0718`` -> ``"0.0718Hz"``)."""
+    return f"{format_number(hz)}Hz"

@@ -60,7 +60,7 @@ def test_a_change_that_only_drops_transients_is_not_diagnosed_again(diagnose):
     model = LiveModel(["linear-ttl", "gate:start=0,stop=10"])
     model.change(["linear-ttl"], 5, diagnose=diagnose)
     assert model.change_due == {
-        "before": ["linear-ttl", "gate:start=0.0,stop=10.0"],
+        "before": ["linear-ttl", "gate:start=0s,stop=10s"],
         "after": ["linear-ttl"],
         "from_index": 5,
     }
@@ -117,7 +117,7 @@ def test_a_time_inside_a_gap_is_not_adopted():
 
     gap = [[457890.0, 483224.0]]
     ok, why = outside_gaps({"spec": "step:t_step=475424.5"}, gap, "explains")
-    assert not ok and "t_step=475424.5 s lies in a gap" in why
+    assert not ok and "t_step=475424.5s lies in a gap" in why
     actions = [{"spec": "glitch:t=460000.0,tm=12,beta=3.0"}, {"spec": "gate:start=1,stop=2"}]
     assert not outside_gaps({"spec": "x", "actions": actions}, gap, "")[0]
     assert outside_gaps({"spec": "step:t_step=400000"}, gap, "explains") == (True, "explains")

@@ -601,7 +601,7 @@ def test_monitor_waits_for_an_alive_producer_and_fails_what_will_not_come(driver
 #: (the live day that adopted a round-trip-ghost witness raised two step alerts at 7.4 sigma)
 MODEL_JUMPS = {"12.phi.rx": 8 * SIGMA, "31.eta.tx": -6 * SIGMA}
 JUMP_FIT = 24  # the first fit under the new model
-GHOST_MODEL = ["linear-ttl", "witness:source=12.eta;link=23;delay=2"]
+GHOST_MODEL = ["linear-ttl", "witness:source=12.eta,link=23,delay=2"]
 
 
 def fits_with_a_jump(seed=5):
@@ -680,14 +680,14 @@ def test_model_epochs_as_drawn():
     epoch, a fit without a model or one that comes late changes nothing."""
     from stages.monitor_epochs import ModelEpochs
 
-    glitch = GHOST_MODEL + ["glitch:t=90000;tm=12;beta=100"]
+    glitch = GHOST_MODEL + ["glitch:t=25h,tm=12,beta=100s"]
     epochs = ModelEpochs()
     centre = [k * HOUR for k in range(8)]
     assert epochs.fit(0, ["linear-ttl"], centre[0], HOUR) is None  # the run's first model: nothing to draw
     assert epochs.fit(1, None, centre[1], HOUR) is None
     new = epochs.fit(2, GHOST_MODEL, centre[2], 6 * HOUR)
     assert new.new_epoch and new.number == 1 and new.t_break == pytest.approx(1.5 * HOUR)
-    assert "couplings changed (added witness:source=12.eta;link=23;delay=2)" in new.message
+    assert "couplings changed (added witness:source=12.eta,link=23,delay=2)" in new.message
     assert epochs.fit(1, ["linear-ttl"], centre[1], HOUR) is None  # came late
     transient = epochs.fit(3, glitch, centre[3], 4 * HOUR)
     assert not transient.new_epoch and transient.number == 1 and "transients changed (added glitch" in transient.message
@@ -697,8 +697,8 @@ def test_model_epochs_as_drawn():
     assert epochs.lines == [
         "epoch 0 from fit 0: linear-ttl",
         f"epoch 1 from fit 2 (window end 0.25 d): {', '.join(GHOST_MODEL)}",
-        "transients changed at fit 3 (added glitch:t=90000;tm=12;beta=100): the series goes on",
-        "transients changed at fit 4 (removed glitch:t=90000;tm=12;beta=100): the series goes on",
+        "transients changed at fit 3 (added glitch:t=25h,tm=12,beta=100s): the series goes on",
+        "transients changed at fit 4 (removed glitch:t=25h,tm=12,beta=100s): the series goes on",
     ]
 
 

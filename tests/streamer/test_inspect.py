@@ -423,8 +423,8 @@ def test_inspect_a_killed_and_restarted_stage_process(tmp_path):
     assert (rec_dir / "r2" / "monitor.rrd").exists() and (rec_dir / "r2" / "monitor.1.rrd").exists()
 
 
-WITNESS = "witness:source=12.eta;link=23;delay=2"
-GLITCH = "glitch:t=25200;tm=12;beta=100"
+WITNESS = "witness:source=12.eta,link=23,delay=2"
+GLITCH = "glitch:t=7h,tm=12,beta=100s"
 #: (first segment, model, by, event details beyond them) of the run below
 MODELS = [
     (0, ["linear-ttl"], None, {}),

@@ -17,7 +17,7 @@ from dataclasses import replace
 from pathlib import Path
 
 from ..app.analysis import check_band, load_truth
-from ..conventions import parse_duration
+from ..conventions import format_time, parse_duration
 from ..diagnose.adequacy import FIXED_MODEL_TOLERANCE
 from ..diagnose.diagnoser import (
     DiagnoseSettings,
@@ -27,7 +27,7 @@ from ..diagnose.diagnoser import (
     text_report,
 )
 from ..diagnose.fitting import fit_model
-from ..effects.registry import available_effects, make_effects
+from ..effects.registry import available_effects, make_effects, split_effects
 from ..errors import TTLError
 from ..io.reader import file_kind, read_telemetry
 from ..plots.diagnosis import plot_residual_vs_noise, plot_witness_coherence
@@ -36,29 +36,18 @@ from .progress import status_line
 from .report import to_stdout, write_report
 
 
-def split_effects(text: str) -> list[str]:
-    """``"linear-ttl,step:t_step=5e4;mosas=12"`` -> ``["linear-ttl", "step:t_step=5e4,mosas=12"]``
-    (options inside one effect are separated by ';' on the command line)."""
-    out = []
-    for item in filter(None, (s.strip() for s in text.split(","))):
-        out.append(item.replace(";", ","))
-    return out
-
-
 def check_step_times(effects, t_start: float, t_stop: float, option: str = "--effects") -> None:
     """Refuse a step whose time ``t_step`` lies outside the data [s, mission time]: its column
     would be empty, or the linear coupling itself, and the fit would say nothing about it."""
     for effect in effects:
-        text = getattr(effect, "options", {}).get("t_step")
-        if text is None:  # searched over the data
+        t = getattr(effect, "options", {}).get("t_step")
+        if t is None:  # searched over the data
             continue
-        try:
-            t = float(text)
-        except (TypeError, ValueError):
-            t = parse_duration(text, option)
+        t = float(t)  # seconds (the effect read its unit)
         if not t_start < t < t_stop:
             raise TTLError(
-                f"{option}: {effect.name} at t_step={text} ({t:g} s) is outside the data ({t_start:g} - {t_stop:g} s)"
+                f"{option}: {effect.name} at t_step={format_time(t)} ({t:g} s) is outside the data "
+                f"({t_start:g} - {t_stop:g} s)"
             )
 
 

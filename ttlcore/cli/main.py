@@ -242,9 +242,9 @@ def _add_diagnose(sub) -> None:
     p.add_argument(
         "--effects",
         default="linear-ttl",
-        metavar="EFFECT[:opt=v],...",
-        help="the model: comma-separated effects, options after ':' separated by ';' "
-        "(e.g. linear-ttl,drift,step:t_step=50400;mosas=12+13); default linear-ttl",
+        metavar="EFFECT[:opt=v,...],...",
+        help="the model: effects and their options after ':', all separated by ',' "
+        "(e.g. linear-ttl,drift,step:t_step=14h,mosas=12+13; docs/cli.md, Effect specs); default linear-ttl",
     )
     p.add_argument(
         "--effect-module",

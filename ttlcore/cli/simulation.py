@@ -14,7 +14,7 @@ import argparse
 import shlex
 
 from ..conventions import COEFFICIENT_NAMES, parse_duration
-from ..effects.registry import injection_from_spec
+from ..effects.registry import injection_from_spec, split_effects
 from ..errors import ConfigError, TTLError
 from ..gw.injection import parse_gw_spec
 from ..sim.coefficients import make_coefficients
@@ -78,23 +78,26 @@ def simulation_config_from_args(args, truth_noises=()):
 
 
 def _effect_injections(args) -> tuple:
-    """The ``--inject`` options as simulator injections (:mod:`ttlcore.effects`)."""
+    """The ``--inject`` options as simulator injections (:mod:`ttlcore.effects`); one option
+    may hold several effects, in the grammar of ``--effects`` (docs/cli.md, "Effect specs")."""
     if not getattr(args, "inject", None):
         return ()
 
     out = []
     count: dict[str, int] = {}
-    for spec in args.inject:
+    for text in args.inject:
         try:
-            inj = injection_from_spec(spec, getattr(args, "effect_module", ()) or ())
+            specs = split_effects(text)
+            injections = [injection_from_spec(spec, getattr(args, "effect_module", ()) or ()) for spec in specs]
         except TTLError as exc:
-            raise TTLError(f"--inject {spec}: {exc}") from None
-        # the same effect injected again (a glitch a day) is named glitch-2, glitch-3, ...:
-        # the truth file keeps each injection under its own name
-        count[inj.name] = count.get(inj.name, 0) + 1
-        if count[inj.name] > 1:
-            inj.name = f"{inj.name}-{count[inj.name]}"
-        out.append(inj)
+            raise TTLError(f"--inject {text}: {exc}") from None
+        for inj in injections:
+            # the same effect injected again (a glitch a day) is named glitch-2, glitch-3, ...:
+            # the truth file keeps each injection under its own name
+            count[inj.name] = count.get(inj.name, 0) + 1
+            if count[inj.name] > 1:
+                inj.name = f"{inj.name}-{count[inj.name]}"
+            out.append(inj)
     return tuple(out)
 
 

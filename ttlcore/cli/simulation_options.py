@@ -67,8 +67,8 @@ def add_simulation_options(p) -> None:
         action="append",
         default=[],
         metavar="EFFECT[:key=value,...]",
-        help="model effect to inject (truth in the truth file only), e.g. drift:12.phi.rx=2e-3 or "
-        "timing-offset:sc1.d1=0.05; repeatable (docs/diagnostics.md)",
+        help="model effect(s) to inject (truth in the truth file only), in the grammar of --effects, e.g. "
+        "drift:12.phi.rx=2e-3 or glitch:t=3h,tm=12,beta=35s,all=1e-9; repeatable (docs/cli.md, Effect specs)",
     )
     p.add_argument(
         "--effect-module",

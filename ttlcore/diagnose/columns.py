@@ -28,7 +28,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ..conventions import COEFFICIENT_NAMES, LINKS, parse_duration
+from ..conventions import COEFFICIENT_NAMES, LINKS
 from ..conventions import C as SPEED_OF_LIGHT
 from ..effects.column_tdi import effect_input_from_telemetry, tdi_in_blocks
 from ..effects.columns import Column, names_only_input
@@ -460,7 +460,7 @@ def _modulated_regressors(data, effect) -> ColumnSet:
         t_ref = 0.5 * (t[data.grid.mask][0] + t[data.grid.mask][-1]) if t_ref is None else float(t_ref)
         mod, prefix, unit = (t - t_ref) / 86400.0, "drift", "m/rad/day"
     else:
-        mod, prefix, unit = (t >= parse_duration(effect.options["t_step"])).astype(float), "step", "m/rad"
+        mod, prefix, unit = (t >= float(effect.options["t_step"])).astype(float), "step", "m/rad"
     base = ttl_columns(data)
     names, cols, eiv, mods = [], [], [], []
     for m in effect.mosas:

@@ -18,7 +18,7 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..conventions import COEFFICIENT_NAMES, parse_duration
+from ..conventions import COEFFICIENT_NAMES
 from ..effects.base import Effect
 from ..effects.registry import make_effects
 from ..effects.shifted import OFFSET_OPTION
@@ -278,7 +278,7 @@ def coefficient_history(model: ModelFit, n_t: int = 97) -> np.ndarray | None:
             ref = steps["drift"].options.get("t_ref") if "drift" in steps else None
             C[k] += vals[f"drift.{name}"] * (t - (t_ref if ref is None else float(ref))) / 86400.0
         if f"step.{name}" in vals and "step" in steps:
-            C[k] += vals[f"step.{name}"] * (t >= parse_duration(steps["step"].options["t_step"]))
+            C[k] += vals[f"step.{name}"] * (t >= float(steps["step"].options["t_step"]))
     return C
 
 

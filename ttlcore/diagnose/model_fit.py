@@ -68,7 +68,7 @@ def parameter_name(column: str) -> str:
     """The parameter a column's coefficient is: for the shifted TTL witnesses of
     :func:`ttlcore.diagnose.columns.shifted_columns` (``"21.phi.tx@ltt-error.12"``) the
     linear coefficient before the ``@``; any other column is its own parameter (an ``@``
-    in a time-varying witness's label, ``witness.12.phi>12~cycle@7200.sin``, stays)."""
+    in a time-varying witness's label, ``witness.12.phi>12~cycle@2h.sin``, stays)."""
     head, sep, _ = column.partition("@")
     return head if sep and head in COEFFICIENT_NAMES else column
 

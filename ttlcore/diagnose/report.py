@@ -3,9 +3,12 @@ recommendation, and the one-minute text report (docs/diagnostics.md, "JSON repor
 
 from __future__ import annotations
 
+import shlex
+
 import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES
+from ..effects.registry import EFFECTS
 from .adequacy import _hz, describe_failures, third_octave_table
 from .model_fit import ModelFit
 from .noise_model import noise_model_json
@@ -168,8 +171,8 @@ def recommendation(report: dict, effects) -> dict | None:
     (``transients.classification.class``) that the best candidate explains: then, and
     otherwise, :func:`effect_recommendation`.  With the
     transients' actions (``report["transients"]["actions"]``,
-    :func:`ttlcore.diagnose.candidates.transient_actions`) ``option`` adds all of them at once (``--effects "linear-ttl,glitch:t=9720.4;
-    beta=31.2;tm=12,gate:start=54720;stop=56880"``), ``actions`` lists them and ``message``
+    :func:`ttlcore.diagnose.candidates.transient_actions`) ``option`` adds all of them at once (``--effects
+    linear-ttl,glitch:t=9720.4s,tm=12,beta=31.2s,gate:start=15.2h,stop=15.8h``), ``actions`` lists them and ``message``
     reads ``"add glitch at 2.70 h on tm 12 (...); gate 15.20-15.80 h"``."""
     rec = effect_recommendation(report, effects)
     actions = (report.get("transients") or {}).get("actions") or []
@@ -195,7 +198,7 @@ def recommendation(report: dict, effects) -> dict | None:
     verdict = tr.get("classification") or {}
     specs = [e.cli_spec() for e in effects] + [a["cli_spec"] for a in actions]
     value = ",".join(specs)
-    option = "--effects " + (f'"{value}"' if any(ch in value for ch in ";|&<> ") else value)
+    option = "--effects " + shlex.quote(value)
     texts = "; ".join(a["text"] for a in actions)
     description = rec.get("description") or excess_description(report)
     if rec.get("option"):
@@ -221,8 +224,8 @@ def recommendation(report: dict, effects) -> dict | None:
 def effect_recommendation(report: dict, effects) -> dict | None:
     """The next step: the significant candidate with the largest (marginal) log Bayes
     factor over everything tried (named effects, witness effects, frequency-dependent
-    couplings, plugins), its ``--effects`` option runnable as printed (quoted when it holds
-    ``;``).
+    couplings, plugins), its ``--effects`` option runnable as printed (quoted when a shell
+    would split or read it otherwise).
 
     The option is given only when the candidate *explains* the excess: at least
     :data:`MIN_EXPLAINED` of the excess over all bands and of at least one failing band's
@@ -263,7 +266,7 @@ def effect_recommendation(report: dict, effects) -> dict | None:
         return {"effect": None, "option": "", "explains": False, "pointers": pointers, "message": msg, **common}
     specs = [e.cli_spec() for e in effects] + [best["cli_spec"]]
     value = ",".join(specs)
-    option = "--effects " + (f'"{value}"' if any(ch in value for ch in ";|&<> ") else value)
+    option = "--effects " + shlex.quote(value)
     per_band = band_explained(report, best) if fails else []
     explains = not fails or (
         best["explained_fraction"] >= MIN_EXPLAINED and (not per_band or max(per_band) >= MIN_EXPLAINED)
@@ -323,6 +326,14 @@ def _offset_text(group: str, value: float, intervals: dict) -> str:
     sigma = 0.5 * (lo_hi[1] - lo_hi[0])
     digits = max(0, 1 - int(np.floor(np.log10(sigma)))) if sigma > 0 else 3
     return f"{group} {value:+.{digits}f} +- {sigma:.2g} s"
+
+
+def _estimate_text(effect: str, option: str, value: float) -> str:
+    """``"f0 0.01143 Hz"``: a searched option of a candidate with the unit of the effect's
+    option (:attr:`ttlcore.effects.base.Effect.units`; an offset ``offset.<group>`` in s)."""
+    cls = EFFECTS.get(effect)
+    unit = "s" if option.startswith("offset.") else (cls.units.get(option) if cls is not None else None)
+    return f"{option} {value:.4g}" + (f" {unit}" if unit in ("s", "Hz", "rad") else "")
 
 
 def strip_internals(report: dict) -> dict:
@@ -388,7 +399,7 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
             extra += ", offsets " + ", ".join(_offset_text(k[len(c["effect"]) + 1 :], v, intervals) for k, v in top)
         if "search" in c.get("searched", {}):
             est = c["searched"]["search"]["estimates"]
-            extra += ", " + ", ".join(f"{k} {v:.4g}" for k, v in est.items())
+            extra += ", " + ", ".join(_estimate_text(c["effect"], k, v) for k, v in est.items())
         label = c["effect"] if c["cli_spec"] == c["effect"] else c["cli_spec"]
         # a model that passes has no excess to share out: "-", not "0 %"
         share = f"{100 * c['explained_fraction']:5.0f} %" if ad["fails"] else "    - "

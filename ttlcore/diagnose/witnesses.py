@@ -35,7 +35,9 @@ import re
 import numpy as np
 
 from ..conventions import ANGLES, LINKS, MOSAS, C, reverse
-from ..effects.registry import make_effects
+from ..effects.coupling import Drift, Step
+from ..effects.placed import WitnessEffect
+from ..effects.registry import make_effects, parse_effect_spec
 from ..estimate.spectra import segment_fft, window
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 
@@ -130,7 +132,7 @@ def witness_library(tm, dg) -> tuple[list[dict], dict]:
                         "link": link,
                         "delay": dl,
                         "derivative": False,
-                        "spec": f"drift:mosas={m};angles={a};sides={side}",
+                        "spec": Drift(mosas=m, angles=a, sides=side).spec(),
                     }
                 )
                 for ts in boundaries:
@@ -146,7 +148,7 @@ def witness_library(tm, dg) -> tuple[list[dict], dict]:
                             "delay": dl,
                             "derivative": False,
                             "t_step": float(ts),
-                            "spec": f"step:t_step={ts:.0f};mosas={m};angles={a};sides={side}",
+                            "spec": Step(mosas=m, angles=a, sides=side, t_step=float(round(ts))).spec(),
                         }
                     )
         for pair in ("phiphi", "etaeta", "phieta"):
@@ -281,16 +283,16 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
 
 
 def witness_spec(source: str, link: str, n_delay: int = 0, derivative: bool = False) -> str:
-    """The ``--effects`` spelling of a library witness as an effect
-    (:class:`ttlcore.effects.placed.WitnessEffect`): ``witness:source=12.phi;link=23;delay=1``."""
-    opts = [f"source={source}"]
+    """The spec of a library witness as an effect (:class:`ttlcore.effects.placed.WitnessEffect`):
+    ``witness:source=12.phi,link=23,delay=1``."""
+    opts: dict = {"source": source}
     if link != source.split(".")[0]:
-        opts.append(f"link={link}")
+        opts["link"] = link
     if n_delay:
-        opts.append(f"delay={n_delay}")
+        opts["delay"] = n_delay
     if derivative:
-        opts.append("derivative=1")
-    return "witness:" + ";".join(opts)
+        opts["derivative"] = 1
+    return WitnessEffect(**opts).spec()
 
 
 def witness_candidates(report: dict, top: int = 3, modules=()) -> list:
@@ -317,19 +319,19 @@ def witness_candidates(report: dict, top: int = 3, modules=()) -> list:
         if spec and len(specs) < top and spec not in specs:
             specs.append(spec)
         if w["family"] in ("dws", "derivative") and spec:
-            opts = dict(o.split("=", 1) for o in spec.split(":", 1)[1].split(";"))
-            key = (opts["source"], opts.get("link", opts["source"].split(".")[0]))
+            opts = parse_effect_spec(spec, modules)[0].options
+            key = (opts["source"], opts.get("link") or opts["source"].split(".")[0])
             if key not in [p[:2] for p in placements]:
-                placements.append((*key, int(opts.get("delay", 0))))
+                placements.append((*key, int(opts.get("delay") or 0)))
     for i, (src, link, n) in enumerate(placements[:2]):
-        where = f"source={src}" + (f";link={link}" if link != src.split(".")[0] else "")
+        where = f"source={src}" + (f",link={link}" if link != src.split(".")[0] else "")
         for d in (0, 1, 2) if i == 0 else (n,):
-            specs.append(f"fd-coupling:{where}" + (f";delay={d}" if d else ""))
+            specs.append(f"fd-coupling:{where}" + (f",delay={d}" if d else ""))
         if i == 0:
-            specs += [f"fd-coupling:{where}" + (f";delay={d}" if d else "") + ";filter=pole1" for d in (0, 1, 2)]
+            specs += [f"fd-coupling:{where}" + (f",delay={d}" if d else "") + ",filter=pole1" for d in (0, 1, 2)]
             # a coupling that changes in time (composition with a drift)
-            specs.append(f"witness:{where}" + (f";delay={n}" if n else "") + ";vary=drift")
-    return make_effects([s.replace(";", ",") for s in dict.fromkeys(specs)], modules)
+            specs.append(f"witness:{where}" + (f",delay={n}" if n else "") + ",vary=drift")
+    return make_effects(list(dict.fromkeys(specs)), modules)
 
 
 def _log_grid(f, per_decade: int = 30):

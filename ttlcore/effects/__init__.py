@@ -10,12 +10,13 @@ concept per module:
 (linear-ttl, drift, step, cross-coupling, second-order), ``shifted`` (timing-offset,
 ltt-error and their exact injection), ``placed`` (witness, fd-coupling), ``glitch`` (glitch
 and gate), ``injection`` (an effect injected into the simulator), ``column_tdi`` (TDI of
-columns) and ``registry`` (lookup by name, plugins, spec parsing).
+columns) and ``registry`` (lookup by name, plugins, the one reader of effect specs:
+``NAME[:key=value,...]``, several separated by ``,``; docs/cli.md, "Effect specs").
 
 ::
 
     from ttlcore.effects import make_effects, injection_from_spec
-    drift, = make_effects("drift:mosas=12")
+    linear, gate = make_effects("linear-ttl,gate:start=15.2h,stop=15.8h")
     inj = injection_from_spec("drift:12.phi.rx=1e-3")
 """
 
@@ -31,6 +32,7 @@ from .registry import (
     load_effect_module,
     make_effects,
     parse_effect_spec,
+    split_effects,
 )
 
 __all__ = [
@@ -49,5 +51,6 @@ __all__ = [
     "load_effect_module",
     "make_effects",
     "parse_effect_spec",
+    "split_effects",
     "tdi_in_blocks",
 ]

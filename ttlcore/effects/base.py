@@ -29,6 +29,11 @@ from ..conventions import (
     LINKS,
     MOSAS,
     SIDES,
+    format_frequency,
+    format_number,
+    format_time,
+    parse_frequency,
+    parse_time,
     reverse,
 )
 from ..errors import ConfigError
@@ -50,6 +55,52 @@ def split_list(value, allowed, what) -> tuple:
     return tuple(items)
 
 
+def parse_option(value, unit: str, what: str):
+    """An option's value in its unit (:attr:`Effect.units`): ``"s"`` a time [s]
+    (:func:`ttlcore.conventions.parse_time`: ``2.7h``, ``-480s``, ``30min`` or seconds),
+    ``"Hz"`` a frequency (:func:`ttlcore.conventions.parse_frequency`), ``"count"`` an
+    integer, any other unit (``"rad"``, ``""``) a number, optionally followed by that unit.
+    None stays None; ConfigError naming ``what`` otherwise."""
+    if value is None:
+        return None
+    if unit == "s":
+        return parse_time(value, what)
+    if unit == "Hz":
+        return parse_frequency(value, what)
+    text = value if isinstance(value, (int, float)) else str(value).strip()
+    if unit and isinstance(text, str) and text.endswith(unit):
+        text = text[: -len(unit)]
+    try:
+        number = float(text)
+    except (TypeError, ValueError):
+        number = float("nan")
+    if unit == "count":
+        if not number.is_integer():
+            raise ConfigError(f"{what}: expected an integer, got {value!r}")
+        return int(number)
+    if not np.isfinite(number):
+        raise ConfigError(f"{what}: expected a number{f' of {unit}' if unit else ''}, got {value!r}")
+    return number
+
+
+def format_option(value, unit: str | None) -> str:
+    """An option's value as :meth:`Effect.spec` prints it, read back by :func:`parse_option`
+    to the same value: a time with its unit (:func:`ttlcore.conventions.format_time`:
+    ``1800s``, ``15.2h``, ``1.5d``), a frequency in ``Hz``, a number in ``rad`` with it, a
+    list joined by ``+`` (``mosas=12+13``), other text as it is (its commas as ``+``)."""
+    if isinstance(value, (list, tuple)):
+        return "+".join(str(v) for v in value)
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        return str(value).replace(",", "+")
+    if unit == "s":
+        return format_time(value)
+    if unit == "Hz":
+        return format_frequency(value)
+    if unit == "count":
+        return str(int(value))
+    return format_number(value) + (unit or "")
+
+
 class Effect:
     """Base class of model effects (subclass it for a plugin, see ``docs/diagnostics.md``).
 
@@ -69,6 +120,13 @@ class Effect:
     searched : dict
         ``option -> (low, high, "log"|"linear")``: nonlinear parameters the diagnosis
         searches when the option is not given (:func:`ttlcore.diagnose.search.profile_search`).
+    units : dict
+        ``option -> unit`` of the options that are numbers: ``"s"`` (a time or duration,
+        written ``1800s``, ``15.2h``, ``1.5d`` or seconds), ``"Hz"``, ``"rad"``, ``""``
+        (dimensionless) or ``"count"`` (an integer).  The constructor reads them
+        (:func:`parse_option`) and :meth:`spec` prints them with their unit
+        (:func:`format_option`), so that the printed spec reads back as the same effect;
+        options not listed are kept as given.
 
     Instances hold the option values (``Effect(**options)``); :meth:`columns` builds the
     regressor columns, :meth:`injection` the simulator injection.
@@ -78,6 +136,7 @@ class Effect:
     title = ""
     physics = ""
     parameters: dict = {}
+    units: dict = {}
     needs_coefficients = False
     #: the columns use the angles (:attr:`ttlcore.effects.columns.EffectInput.angles`,
     #: the running integral of the velocities): the injection then carries the integral
@@ -94,6 +153,10 @@ class Effect:
                 f"options: {', '.join(self.parameters) or 'none'}"
             )
         self.options = {**self.parameters, **options}
+        for key, value in self.options.items():
+            unit = self.option_unit(key)
+            if unit is not None:
+                self.options[key] = parse_option(value, unit, f"effect {self.name!r} {key}")
         for key in ("mosas", "angles", "sides"):  # validate the selections now, naming the option
             if key in self.parameters:
                 getattr(self, key)
@@ -124,6 +187,11 @@ class Effect:
 
     def column_names(self) -> list[str]:
         """Names of the columns (without building them), for parsing injection values."""
+        return [c.name for c in self.named_columns()]
+
+    def named_columns(self) -> list[Column]:
+        """The columns with their names, units and prior scales, built on a names-only
+        input (their series are placeholders)."""
         t = np.arange(64.0)
         z = np.zeros((6, 64))
         data = EffectInput(
@@ -135,7 +203,7 @@ class Effect:
             coefficients=np.zeros(len(COEFFICIENT_NAMES)),
             names_only=True,
         )
-        return [c.name for c in self.columns(data)]
+        return self.columns(data)
 
     def describe(self) -> dict:
         d = {"effect": self.name, "options": {k: v for k, v in self.options.items() if v != self.parameters.get(k)}}
@@ -144,21 +212,24 @@ class Effect:
             d["effect_module"] = module
         return d
 
-    def spec(self, sep: str = ",") -> str:
-        """The spelling ``name[:key=value,...]`` of this effect (:func:`parse_effect_spec`);
-        ``sep=";"`` gives the command line's (``--effects``, where ``,`` separates effects)."""
+    def option_unit(self, key: str) -> str | None:
+        """The unit of option ``key`` (:attr:`units`), None for an option kept as given."""
+        return self.units.get(key)
+
+    def spec(self) -> str:
+        """The spelling ``name[:key=value,...]`` of this effect, the one ``--effects``,
+        ``--inject`` and every report use (:func:`ttlcore.effects.registry.parse_effect_spec`
+        reads it back as the same effect): the options that differ from their defaults,
+        times and frequencies with their unit (:func:`format_option`)."""
         opts = {k: v for k, v in self.options.items() if v != self.parameters.get(k)}
         if not opts:
             return self.name
-        return (
-            self.name
-            + ":"
-            + sep.join(f"{k}={'+'.join(v) if isinstance(v, (list, tuple)) else v}" for k, v in opts.items())
-        )
+        return self.name + ":" + ",".join(f"{k}={format_option(v, self.option_unit(k))}" for k, v in opts.items())
 
     def cli_spec(self) -> str:
-        """The ``--effects`` spelling (options separated by ``;``)."""
-        return self.spec(";")
+        """:meth:`spec` (the command line's spelling is the same since the one grammar of
+        docs/cli.md, "Effect specs"; kept for the callers and reports that name it)."""
+        return self.spec()
 
     #: nonlinear parameters the diagnosis searches when their option is not given:
     #: ``option -> (low, high, scale)`` with scale ``"log"`` or ``"linear"``

@@ -15,7 +15,6 @@ from ..conventions import (
     MOSAS,
     SIDES,
     C,
-    parse_duration,
 )
 from ..errors import ConfigError
 from ..tdi.regressors import witness_placement as placement
@@ -60,6 +59,7 @@ class Drift(Effect):
         "it modifies (rx undelayed, tx after the light travel time, with the time of emission)."
     )
     parameters = {"mosas": "all", "angles": "all", "sides": "all", "t_ref": None}
+    units = {"t_ref": "s"}
 
     def columns(self, data):
         t_ref = data.t_ref if self.options.get("t_ref") is None else float(self.options["t_ref"])
@@ -88,6 +88,7 @@ class Step(Effect):
         "C(t) = C + J H(t - t_step). The jump J multiplies the witness from t_step on (tx: emission time)."
     )
     parameters = {"mosas": "all", "angles": "all", "sides": "all", "t_step": None}
+    units = {"t_step": "s"}
     #: the step time [s], searched over the data (its own evaluator: :func:`ttlcore.diagnose.step_search.step_time_search`)
     searched = {"t_step": (-np.inf, np.inf, "linear")}
 
@@ -101,10 +102,10 @@ class Step(Effect):
             ]
         if self.options.get("t_step") is None:
             raise ConfigError(
-                "effect 'step' needs t_step (a time, e.g. step:t_step=50000) or a search (ttl diagnose searches it)"
+                "effect 'step' needs t_step (a time, e.g. step:t_step=13.9h) or a search (ttl diagnose searches it)"
             )
 
-        ts = parse_duration(self.options["t_step"])
+        ts = float(self.options["t_step"])  # seconds (read with its unit)
         h = (data.t >= ts).astype(float)
         cols = []
         for m in self.mosas:
@@ -169,6 +170,7 @@ class SecondOrder(Effect):
         "Angles are the running integral of the DWS velocities."
     )
     parameters = {"mosas": "all", "sides": "rx", "terms": "phiphi,etaeta,phieta", "offset_phi": 0.0, "offset_eta": 0.0}
+    units = {"offset_phi": "rad", "offset_eta": "rad"}
     TERMS = ("phiphi", "etaeta", "phieta")
     integrates_angles = True
 

@@ -46,7 +46,8 @@ from ..conventions import (
     LINKS,
     MOSAS,
     C,
-    parse_duration,
+    format_time,
+    parse_time,
     reverse,
 )
 from ..errors import ConfigError
@@ -97,30 +98,20 @@ def glitch_velocity(t, t_glitch: float, beta: float) -> np.ndarray:
     return out
 
 
-def parse_time(value, option: str) -> float:
-    """A time [s]: a number (any sign, zero included) or a duration with its unit
-    (``"2.7h"``, ``"30min"``; :func:`ttlcore.conventions.parse_duration`)."""
-    if isinstance(value, (int, float)):
-        return float(value)
-    try:
-        return float(str(value).strip())
-    except ValueError:
-        return parse_duration(value, option)
-
-
-#: ``START-STOP``: two times (seconds, signed, with an exponent, or durations such as ``2.5h``)
-#: joined by a minus sign; a negative start (an event widened before the first sample) is a time.
+#: ``START-STOP``: two times (seconds, signed, with an exponent, or with a unit such as ``2.5h``;
+#: :func:`ttlcore.conventions.parse_time`) joined by a minus sign; a negative start (an event
+#: widened before the first sample) is a time.
 _SPAN = re.compile(r"\s*(-?[0-9.]+(?:[eE][-+]?[0-9]+)?[a-z]*)\s*-\s*(-?[0-9.]+(?:[eE][-+]?[0-9]+)?[a-z]*)\s*")
 
 
 def _parse_span(text) -> tuple[float, float] | None:
-    """``"a-b"`` (durations, :func:`ttlcore.conventions.parse_duration`) -> (a, b) [s]; either
-    may be negative (``"-480-3000"``)."""
+    """``"a-b"`` (times, :func:`ttlcore.conventions.parse_time`) -> (a, b) [s]; either may be
+    negative (``"-480-3000"``, ``"-480s-50min"``)."""
     if text is None:
         return None
     m = _SPAN.fullmatch(str(text))
     if m is None:
-        raise ConfigError(f"span {text!r}: expected START-STOP (e.g. 9000-11000 or 2.5h-3h)")
+        raise ConfigError(f"span {text!r}: expected START-STOP (e.g. glitch:span=9000-11000 or glitch:span=2.5h-3h)")
     lo, hi = parse_time(m.group(1), "span"), parse_time(m.group(2), "span")
     if hi <= lo:
         raise ConfigError(f"span {text!r}: stop before start")
@@ -152,6 +143,7 @@ class Glitch(Effect):
         "(span=START-STOP restricts the time searched)."
     )
     parameters = {"t": None, "tm": None, "link": None, "beta": None, "span": None}
+    units = {"t": "s", "beta": "s"}
     searched = {"t": (-np.inf, np.inf, "linear"), "beta": (BETA_RANGE[0], BETA_RANGE[1], "log")}
 
     def __init__(self, **options):
@@ -164,14 +156,12 @@ class Glitch(Effect):
                 raise ConfigError(f"effect 'glitch' {key}: unknown {value!r}; known: {', '.join(LINKS)}")
             if value is not None:
                 self.options[key] = str(value)
-        if self.options.get("t") is not None:
-            self.options["t"] = parse_time(self.options["t"], "glitch t")
-        if self.options.get("beta") is not None:
-            beta = float(self.options["beta"])
-            if not beta > 0:
-                raise ConfigError(f"effect 'glitch' beta: a damping time > 0 s, got {beta}")
-            self.options["beta"] = beta
-        _parse_span(self.options.get("span"))
+        beta = self.options.get("beta")
+        if beta is not None and not beta > 0:
+            raise ConfigError(f"effect 'glitch' beta: a damping time > 0 s, got {beta:g} s")
+        span = _parse_span(self.options.get("span"))
+        if span is not None:  # printed with its units (as every time of a spec)
+            self.options["span"] = f"{format_time(span[0])}-{format_time(span[1])}"
 
     @property
     def where(self) -> str | None:
@@ -228,18 +218,14 @@ class Gate(Effect):
         "parameter is fitted; the gated hours are left out of the fit and of the adequacy tests."
     )
     parameters = {"start": None, "stop": None, "taper": GATE_TAPER}
+    units = {"start": "s", "stop": "s", "taper": "s"}
 
     def __init__(self, **options):
         super().__init__(**options)
-        for key in ("start", "stop"):
-            if self.options.get(key) is None:
-                raise ConfigError("effect 'gate' needs start= and stop= (e.g. gate:start=15.2h,stop=15.8h)")
-            self.options[key] = parse_time(self.options[key], f"gate {key}")
-        self.options["taper"] = (
-            float(self.options["taper"])
-            if isinstance(self.options["taper"], (int, float))
-            else parse_duration(self.options["taper"], "gate taper")
-        )
+        if self.options.get("start") is None or self.options.get("stop") is None:
+            raise ConfigError("effect 'gate' needs start= and stop= (e.g. gate:start=15.2h,stop=15.8h)")
+        if not self.options["taper"] > 0:
+            raise ConfigError(f"effect 'gate' taper: a duration > 0 s, got {self.options['taper']:g} s")
         if self.options["stop"] <= self.options["start"]:
             raise ConfigError(
                 f"effect 'gate': stop ({self.options['stop']:g} s) before start ({self.options['start']:g} s)"

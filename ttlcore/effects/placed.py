@@ -18,6 +18,7 @@ from ..conventions import (
     LINKS,
     MOSAS,
     C,
+    format_time,
     parse_duration,
 )
 from ..errors import ConfigError
@@ -157,7 +158,9 @@ class _Placed(Effect):
                     "ttl diagnose, refit)"
                 )
             t_ref = data.t_ref if self.options.get("t_ref") is None else float(self.options["t_ref"])
-            phase = 2 * np.pi * (data.t - t_ref) / parse_duration(self.options["period"])
+            phase = (
+                2 * np.pi * (data.t - t_ref) / parse_duration(self.options["period"], f"effect {self.name!r} period")
+            )
             return [(".sin", np.sin(phase)), (".cos", np.cos(phase))]
         if data.names_only:
             return [("", None)]
@@ -166,7 +169,7 @@ class _Placed(Effect):
             return [("", (data.t - t_ref) / DAY)]
         if self.options.get("t_step") is None:
             raise ConfigError(f"effect {self.name!r} vary=step needs t_step")
-        return [("", (data.t >= parse_duration(self.options["t_step"])).astype(float))]
+        return [("", (data.t >= float(self.options["t_step"])).astype(float))]
 
     @staticmethod
     def _series(data, src, mod):
@@ -182,7 +185,9 @@ class _Placed(Effect):
             "step": self.options.get("t_step"),
             "cycle": self.options.get("period"),
         }.get(vary)
-        return (label if vary == "none" else f"{label}~{vary}" + (f"@{at}" if at is not None else "")) + suffix
+        return (
+            label if vary == "none" else f"{label}~{vary}" + (f"@{format_time(at)}" if at is not None else "")
+        ) + suffix
 
 
 class WitnessEffect(_Placed):
@@ -209,6 +214,7 @@ class WitnessEffect(_Placed):
         "t_step": None,
         "period": None,
     }
+    units = {"delay": "count", "derivative": "count", "t_ref": "s", "t_step": "s", "period": "s"}
 
     def columns(self, data):
         der = _int_option(self, "derivative", (0, 1))
@@ -265,6 +271,7 @@ class FrequencyCoupling(_Placed):
         "period": None,
         "flat": "auto",
     }
+    units = {"delay": "count", "t_ref": "s", "t_step": "s", "period": "s", "f0": "Hz", "q": "", "fc": "Hz"}
 
     @property
     def kind(self) -> str:

@@ -3,8 +3,9 @@
 Effects are looked up by name (:data:`EFFECTS`), from a user's Python file
 (``--effect-module PATH``, :func:`load_effect_module`) or from installed packages through
 the entry-point group ``ttl.effects`` (:func:`available_effects`); see
-``docs/diagnostics.md`` for the plugin interface.  :func:`parse_effect_spec` reads the
-spelling ``NAME[:key=value,...]`` of ``--effects`` and ``--inject``;
+``docs/diagnostics.md`` for the plugin interface.  :func:`split_effects` and
+:func:`parse_effect_spec` read the one spelling ``NAME[:key=value,...]`` of every effect
+(``--effects``, ``--inject``, reports; docs/cli.md, "Effect specs");
 :func:`injection_from_description` is the hook :func:`ttlcore.sim.injection.injection_from_description`
 calls for kind ``"effect"``.
 """
@@ -13,9 +14,11 @@ from __future__ import annotations
 
 import functools
 import logging
+import shlex
 from importlib import metadata
 from pathlib import Path
 
+from ..conventions import format_number
 from ..errors import ConfigError
 from ..sim.injection import load_module
 from .base import Effect
@@ -23,7 +26,7 @@ from .coupling import CrossCoupling, Drift, LinearTTL, SecondOrder, Step
 from .glitch import Gate, Glitch
 from .injection import EffectInjection
 from .placed import FrequencyCoupling, WitnessEffect
-from .shifted import LightTravelTimeError, TimingOffset
+from .shifted import OFFSET_OPTION, LightTravelTimeError, TimingOffset, _Linearised
 
 log = logging.getLogger(__name__)
 
@@ -33,7 +36,7 @@ ENTRY_POINT_GROUP = "ttl.effects"
 
 
 #: The named effects (the transients ``glitch`` and ``gate`` included).
-EFFECTS: dict[str, type] = {
+EFFECTS: dict[str, type[Effect]] = {
     cls.name: cls
     for cls in (
         LinearTTL,
@@ -114,26 +117,61 @@ def available_effects(modules=()) -> dict[str, type[Effect]]:
     return out
 
 
+def split_effects(text: str) -> list[str]:
+    """One string of effect specs -> one spec per effect (the grammar of every effect list:
+    ``--effects``, ``--inject``, ``ttl refit --effects``, ``ttl control ... model``, configs
+    and reports; docs/cli.md, "Effect specs").
+
+    ``NAME[:key=value,key=value,...]``, several effects separated by ``,`` too:
+    ``"linear-ttl,gate:start=15.2h,stop=15.8h,drift:mosas=12+13"`` -> ``["linear-ttl",
+    "gate:start=15.2h,stop=15.8h", "drift:mosas=12+13"]``.  Unambiguous because an option
+    is always ``key=value`` (``12.phi.rx=0.05``, ``all=1e-3``, ``mosas=12+13``: a list
+    inside an option is joined by ``+``) while an effect starts with its name (a token
+    without ``=``, or ``NAME:key=value``).  ``;`` between one effect's options, the former
+    spelling of ``--effects`` (``gate:start=15.2h;stop=15.8h``), is still read.
+    """
+    out: list[str] = []
+    for token in (s.strip() for s in str(text).replace(";", ",").split(",")):
+        if not token:
+            continue
+        key, eq, _ = token.partition("=")
+        if not eq or ":" in key:  # NAME or NAME:key=value: a new effect
+            out.append(token)
+        elif not out:
+            raise ConfigError(f"{token!r}: an option before any effect (write NAME:{token})")
+        elif ":" not in out[-1]:
+            raise ConfigError(f"{token!r} follows {out[-1]!r}, which has no options (write {out[-1]}:{token})")
+        else:
+            out[-1] += "," + token
+    return out
+
+
 def parse_effect_spec(spec: str, modules=()) -> tuple[Effect, dict]:
-    """``"NAME[:key=value,...]"`` -> (effect instance, column values).
+    """``"NAME[:key=value,...]"`` (one effect, :func:`split_effects`) -> (effect instance,
+    column values).
 
     Keys that are options of the effect set options; keys that are column names (with or
     without the effect prefix, e.g. ``12.phi.rx`` for ``drift.12.phi.rx``) or ``all`` set
     the parameter values of an injection (in the column's unit).  Lists inside an option
-    use ``+`` (``mosas=12+13``).
+    use ``+`` (``mosas=12+13``); times carry their unit or are seconds (``t_step=15.2h``,
+    ``beta=35s``, ``offset.sc1=0.35``), frequencies are hertz (``f0=0.0718`` or
+    ``f0=0.0718Hz``).  This is the one reader of an effect's spelling.
     """
-    name, _, rest = str(spec).partition(":")
+    specs = split_effects(spec)
+    if len(specs) != 1:
+        raise ConfigError(f"expected one effect, got {len(specs)}: {spec!r}")
+    name, _, rest = specs[0].partition(":")
     name = name.strip()
     effects = available_effects(modules)
     if name not in effects:
-        raise ConfigError(f"unknown effect {name!r}; known: {', '.join(sorted(effects))}")
+        hint = " (a list inside an option is joined by '+': mosas=12+13)" if name[:1].isdigit() else ""
+        raise ConfigError(f"unknown effect {name!r}; known: {', '.join(sorted(effects))}{hint}")
     cls = effects[name]
     options, raw_values = {}, {}
     for item in filter(None, (s.strip() for s in rest.split(","))):
-        key, sep, value = item.partition("=")
-        if not sep:
-            raise ConfigError(f"effect {name!r}: expected key=value, got {item!r}")
-        if key in cls.parameters:
+        key, _, value = item.partition("=")
+        # a shifted-witness plugin's offsets are options without being listed (shifted._Linearised)
+        if key in cls.parameters or (key.startswith(OFFSET_OPTION) and issubclass(cls, _Linearised)):
             options[key] = value
         else:
             try:
@@ -166,11 +204,18 @@ def _prefix(column_name: str) -> str:
 
 
 def make_effects(specs, modules=()) -> list[Effect]:
-    """Effect instances from a comma-free list of specs or one comma-separated string of
-    names (``"linear-ttl,drift"``)."""
+    """Effect instances from one string of specs (``"linear-ttl,gate:start=1h,stop=2h"``,
+    :func:`split_effects`) or a list of specs (each one effect, or several in the same
+    grammar) and effects."""
     if isinstance(specs, str):
-        specs = [s for s in specs.split(",") if s.strip()]
-    return [s if isinstance(s, Effect) else parse_effect_spec(s, modules)[0] for s in specs]
+        specs = [specs]
+    out: list[Effect] = []
+    for s in specs:
+        if isinstance(s, Effect):
+            out.append(s)
+        else:
+            out += [parse_effect_spec(one, modules)[0] for one in split_effects(s)]
+    return out
 
 
 def injection_from_description(description: dict):
@@ -191,8 +236,11 @@ def injection_from_spec(spec: str, modules=()) -> EffectInjection:
     """``--inject EFFECT[:key=value,...]`` -> injection (values in the columns' units)."""
     effect, values = parse_effect_spec(spec, modules)
     if not values:
+        col = effect.named_columns()[0]
+        value = format_number(col.prior_scale)
+        example = f"{effect.spec()}{',' if ':' in effect.spec() else ':'}{col.name.split('.', 1)[-1]}={value}"
         raise ConfigError(
-            f"--inject {spec}: no parameter value given; e.g. --inject "
-            f"{effect.name}:{effect.column_names()[0].split('.', 1)[-1]}=VALUE (or all=VALUE)"
+            f"--inject {spec}: no parameter value given; e.g. --inject {shlex.quote(example)} "
+            f"(a value in {col.unit}; all={value} sets every column)"
         )
     return effect.injection(values)

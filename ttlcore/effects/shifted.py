@@ -15,6 +15,7 @@ from ..conventions import (
     MOSAS,
     C,
     local_spacecraft,
+    parse_time,
     reverse,
 )
 from ..errors import ConfigError
@@ -66,11 +67,16 @@ class _Linearised(Effect):
                     f"{', '.join(OFFSET_OPTION + g for g in groups)}"
                 )
             try:
-                self.options[key] = float(self.options[key])
+                self.options[key] = parse_time(self.options[key])
             except (TypeError, ValueError):
                 raise ConfigError(
-                    f"effect {self.name!r}: {key}={self.options[key]!r} is not an offset in seconds"
+                    f"effect {self.name!r}: {key}={self.options[key]!r} is not an offset in seconds "
+                    f"(e.g. {self.name}:{key}=0.35s)"
                 ) from None
+
+    def option_unit(self, key: str) -> str | None:
+        """The offsets ``offset.<group>`` are times [s] (printed ``offset.sc1=0.35s``)."""
+        return "s" if key.startswith(OFFSET_OPTION) else super().option_unit(key)
 
     @property
     def searched(self) -> dict:  # type: ignore[override]  # a class attribute in Effect (plugins set it so), computed here

@@ -34,7 +34,7 @@ def test_cycle_columns_are_named_and_the_period_is_searched():
     effect = make_effects([MODEL])[0]
     assert effect.unresolved() == ["period"]
     at = effect.with_options(period=PERIOD)
-    assert at.column_names() == ["witness.23.eta>31~cycle@7200.0.sin", "witness.23.eta>31~cycle@7200.0.cos"]
+    assert at.column_names() == ["witness.23.eta>31~cycle@2h.sin", "witness.23.eta>31~cycle@2h.cos"]
     with pytest.raises(Exception, match="vary"):
         make_effects(["witness:source=23.eta,vary=wobble"])[0].column_names()
 

@@ -20,7 +20,7 @@ sys.path.insert(0, str(Path(__file__).parent))
 from diagnose_helpers import injected_asd_ratio  # noqa: E402
 
 from ttlcore.cli.main import main  # noqa: E402
-from ttlcore.conventions import COEFFICIENT_NAMES  # noqa: E402
+from ttlcore.conventions import COEFFICIENT_NAMES, format_time  # noqa: E402
 from ttlcore.diagnose.candidates import candidates, shifted_evidence  # noqa: E402
 from ttlcore.diagnose.diagnoser import diagnose, refit, text_report  # noqa: E402
 from ttlcore.diagnose.evidence import laplace_evidence, log_bayes_factor  # noqa: E402
@@ -211,7 +211,7 @@ def test_refit_from_tdi_only_adds_a_drift():
     ((spec, found),) = st["model"]["searched"].items()
     assert (
         st["model"]["effects"] == ["linear-ttl", spec]
-        and spec == f"step:t_step={round(found['estimates']['t_step'], 3)}"
+        and spec == f"step:t_step={format_time(round(found['estimates']['t_step'], 3))}"
     )
     assert st["model"]["n_parameters"] == 48
     with pytest.raises(Exception, match="needs the telemetry"):

@@ -157,8 +157,8 @@ def test_lisainstrument_day_with_gaps_has_them_gated_and_no_effect_advised(lisai
     import blind_signals as bs
     import h5py
 
-    from ttlcore.cli.diagnose import split_effects
     from ttlcore.conventions import MOSAS
+    from ttlcore.effects import split_effects
     from ttlcore.io.lisainstrument import BEATNOTE_DATASETS, DWS_ETA_DATASET, DWS_PHI_DATASET, MPR_DATASET
 
     _, truth, clean = lisainstrument_day

@@ -17,16 +17,16 @@ the transient's hours (``transients.robustness.gated``) when it is a signal - wi
 the shared 2-core machine).
 """
 
+import shlex
 from dataclasses import replace
 
 import blind_signals as bs
 import numpy as np
 import pytest
 
-from ttlcore.cli.diagnose import split_effects
 from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
 from ttlcore.diagnose.diagnoser import diagnose, text_report
-from ttlcore.effects import injection_from_spec
+from ttlcore.effects import injection_from_spec, split_effects
 from ttlcore.sim.simulator import SimulationConfig, simulate
 
 pytestmark = pytest.mark.science
@@ -54,7 +54,7 @@ def follow(tm, C, max_steps=3):
         opt = (rep["recommendation"] or {}).get("option")
         if not opt:
             break
-        effects = split_effects(opt.split(None, 1)[1].strip('"'))
+        effects = split_effects(shlex.split(opt)[1])
     return reports
 
 
@@ -76,9 +76,7 @@ def only_transients(rep) -> bool:
     opt = (rep["recommendation"] or {}).get("option") or ""
     if not opt:
         return True
-    return all(
-        e == "linear-ttl" or e.startswith(("glitch:", "gate:")) for e in split_effects(opt.split(None, 1)[1].strip('"'))
-    )
+    return all(e == "linear-ttl" or e.startswith(("glitch:", "gate:")) for e in split_effects(shlex.split(opt)[1]))
 
 
 def check_signal(rep, C, expected_class):

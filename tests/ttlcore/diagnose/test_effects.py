@@ -330,7 +330,7 @@ def test_fd_coupling_declares_its_searched_poles_and_holds_given_ones():
     assert on_tx.column_names() == ["fd.13.eta>31+1L.b0", "fd.13.eta>31+1L.b1"]
     assert on_tx.with_options(delay=2).column_names()[-1].endswith("+2L.b2")
     assert len(on_tx.with_options(vary="drift").column_names()) == 3
-    assert searched.with_options(f0=0.1, q=5).cli_spec() == "fd-coupling:source=12.phi;link=23;delay=1;f0=0.1;q=5"
+    assert searched.with_options(f0=0.1, q=5).spec() == "fd-coupling:source=12.phi,link=23,delay=1,f0=0.1Hz,q=5"
 
 
 def test_fd_coupling_responses_share_the_basis_per_frequency_array():

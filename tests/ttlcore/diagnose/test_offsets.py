@@ -17,7 +17,6 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from ttlcore.cli.diagnose import split_effects
 from ttlcore.cli.main import main
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.diagnoser import diagnose, text_report
@@ -26,7 +25,7 @@ from ttlcore.diagnose.report import model_json, recommendation
 from ttlcore.diagnose.search import profile_search
 from ttlcore.diagnose.search_result import search_ranges
 from ttlcore.diagnose.whitened import whiten_telemetry
-from ttlcore.effects import injection_from_spec, make_effects, parse_effect_spec
+from ttlcore.effects import injection_from_spec, make_effects, parse_effect_spec, split_effects
 from ttlcore.effects.shifted import _Linearised
 from ttlcore.errors import ConfigError
 from ttlcore.io.telemetry import write_telemetry
@@ -62,16 +61,17 @@ def test_offsets_are_declared_searched_parameters():
     assert values == {} and given.options["offset.sc1"] == 0.05
     assert given.fixed_offsets() == {"sc1": 0.05} and given.open_offsets() == ["sc2", "sc3"]
     assert given.without_offsets().fixed_offsets() == {}
-    # its command-line spelling parses back (options separated by ';' in --effects)
-    _, back = make_effects(split_effects(f"linear-ttl,{given.cli_spec()}"))
-    assert given.cli_spec() == "timing-offset:offset.sc1=0.05" and back.options == given.options
+    # its spelling, with its unit, parses back in a list of effects
+    _, back = make_effects(split_effects(f"linear-ttl,{given.spec()}"))
+    assert given.spec() == given.cli_spec() == "timing-offset:offset.sc1=0.05s" and back.options == given.options
+    assert parse_effect_spec("timing-offset:offset.sc1=-0.05s")[0].fixed_offsets() == {"sc1": -0.05}
     # the injection's column values are unaffected
     assert parse_effect_spec("timing-offset:sc1.d1=0.05")[1] == {"timing-offset.sc1.d1": 0.05}
     with pytest.raises(ConfigError, match="offset.12 names no group.*offset.sc1"):
         make_effects(["timing-offset:offset.12=0.1"])
     with pytest.raises(ConfigError, match="offset.23 names no group"):
         make_effects(["ltt-error:links=12,offset.23=0.1"])
-    with pytest.raises(ConfigError, match="offset.sc1='late' is not an offset"):
+    with pytest.raises(ConfigError, match="offset.sc1: bad duration 'late'"):
         make_effects(["timing-offset:offset.sc1=late"])
     with pytest.raises(ConfigError, match="'delta'"):
         make_effects(["timing-offset:delta=0.1"])  # the former option, never read
@@ -88,7 +88,9 @@ def test_offsets_are_declared_searched_parameters():
     assert plug.searched == {"offset.a": inf}
     fixed = plug.with_options(**{"offset.a": "0.2"})
     assert (
-        fixed.fixed_offsets() == {"a": 0.2} and fixed.open_offsets() == [] and fixed.spec() == "shifted-12:offset.a=0.2"
+        fixed.fixed_offsets() == {"a": 0.2}
+        and fixed.open_offsets() == []
+        and fixed.spec() == "shifted-12:offset.a=0.2s"
     )
 
 
@@ -148,12 +150,12 @@ def test_given_offset_is_held_and_is_the_expansion_point(late3h):
     # and the offset still fitted (d1): the same offset as when it is searched
     near = fit_model(dg, ["linear-ttl", "timing-offset:offset.sc1=0.34"])
     ((spec, search),) = near.searches.items()
-    assert spec == "timing-offset:offset.sc1=0.34" and set(search["estimates"]) == {"offset.sc2", "offset.sc3"}
+    assert spec == "timing-offset:offset.sc1=0.34s" and set(search["estimates"]) == {"offset.sc2", "offset.sc3"}
     assert near.offsets()["timing-offset.sc1"][0] == pytest.approx(value, abs=0.1 * sigma)
     assert near.chi2 == pytest.approx(fit.chi2, abs=0.05)
     # given as zero: the Taylor columns at zero, as asked (they cannot reach 0.35 s)
     zero = fit_model(dg, ["linear-ttl", "timing-offset:offset.sc1=0"])
-    assert "offset.sc1" not in zero.searches["timing-offset:offset.sc1=0.0"]["estimates"]
+    assert "offset.sc1" not in zero.searches["timing-offset:offset.sc1=0s"]["estimates"]
     assert zero.expansion.get("timing-offset.sc1", 0.0) == 0.0 and zero.chi2 > fit.chi2 + 100
     # every offset given: no search at all
     held = fit_model(dg, ["linear-ttl", "timing-offset:offset.sc1=0.35,offset.sc2=0,offset.sc3=0"])
@@ -179,7 +181,7 @@ def test_candidate_with_offsets_runs_exactly_as_printed(late3h, tmp_path):
     (lo, hi) = search["intervals"]["offset.sc1"]
     assert lo < INJECTED + 3 * (hi - lo) and hi > INJECTED - 3 * (hi - lo)
     # its spec holds the expanded group's offset (SC 2 and 3: small, Taylor, left open)
-    assert top["cli_spec"] == f"timing-offset:offset.sc1={top['where']['offsets']['timing-offset.sc1']:.6g}"
+    assert top["cli_spec"] == f"timing-offset:offset.sc1={top['where']['offsets']['timing-offset.sc1']:.6g}s"
     text = text_report(rep, source=str(path))
     assert "offsets sc1 +0.350" in text and " +- 0.00" in text
     # the printed next step, run as printed (a shell would split it the same way)
@@ -194,10 +196,10 @@ def test_candidate_with_offsets_runs_exactly_as_printed(late3h, tmp_path):
     got = after["model"]["coefficients"]["offsets"]["timing-offset.sc1"]
     value, sigma = fit.offsets()["timing-offset.sc1"]
     assert got["value"] == pytest.approx(value, abs=0.1 * sigma)
-    # a spec with several offsets holds ';': the printed option is quoted and parses back
+    # a spec with several offsets: the printed option parses back
     several = next(c for c in rep["candidates"] if c["cli_spec"].count("offset.") > 1)
     rec = recommendation({"candidates": [several], "adequacy": {"fails": True}}, make_effects(["linear-ttl"]))
-    assert rec["option"].startswith('--effects "linear-ttl,')
+    assert rec["option"].startswith("--effects linear-ttl,")
     _, value_text = shlex.split(rec["option"])
     parsed = make_effects(split_effects(value_text))[1]
     assert parsed.cli_spec() == several["cli_spec"] and len(parsed.fixed_offsets()) > 1

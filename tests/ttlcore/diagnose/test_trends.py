@@ -228,8 +228,8 @@ def test_monitor_scans_steps_incrementally_with_the_batch_alerts():
 #: each difference across the change is ~17 and ~28 of its own standard deviations).
 JUMPS = {"12.phi.rx": 5 * SIGMA, "21.eta.tx": -8 * SIGMA, "31.phi.rx": 5 * SIGMA}
 LINEAR = ["linear-ttl"]
-GHOST = LINEAR + ["witness:source=12.eta;link=23;delay=2"]
-GLITCH = LINEAR + ["glitch:t=170000;tm=12;beta=100"]
+GHOST = LINEAR + ["witness:source=12.eta,link=23,delay=2"]
+GLITCH = LINEAR + ["glitch:t=170000s,tm=12,beta=100s"]
 
 
 def monitor_with_a_model_change(models, seed=4, change=2 * DAY, step_time=3.2 * DAY):
@@ -287,5 +287,5 @@ def test_model_key_separates_couplings_from_transients():
 
     assert model_key(None) is None and model_key("linear-ttl") is None
     assert model_key(GHOST) == (tuple(sorted(GHOST)), ())
-    assert model_key(GLITCH + ["gate:start=1;stop=2"]) == (("linear-ttl",), ("gate:start=1;stop=2", GLITCH[1]))
+    assert model_key(GLITCH + ["gate:start=1s,stop=2s"]) == (("linear-ttl",), ("gate:start=1s,stop=2s", GLITCH[1]))
     assert model_key(list(reversed(GHOST))) == model_key(GHOST)  # the order of the specs is not a change

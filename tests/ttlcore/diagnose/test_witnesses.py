@@ -52,10 +52,9 @@ def test_no_witness_stands_out_without_an_effect():
 def test_every_library_witness_is_an_effect_spelled_as_the_report_prints_it():
     # the report prints each witness's spec (witness_spec); --effects parses it back into
     # one column of the witness effect, whatever the channel, link, delay or derivative
-    from ttlcore.cli.diagnose import split_effects
     from ttlcore.conventions import ANGLES, LINKS, MOSAS
     from ttlcore.diagnose.witnesses import witness_spec
-    from ttlcore.effects import make_effects
+    from ttlcore.effects import make_effects, split_effects
 
     specs = [
         witness_spec(f"{m}.{a}", link, n, d)
