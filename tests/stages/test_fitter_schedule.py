@@ -7,7 +7,7 @@ import pytest
 
 from stages.fitter_schedule import SUSTAINED_OUTLIERS, DiagnosisSchedule
 from stages.live_model import LiveModel
-from ttlcore.effects.glitch import GLITCH_DAMPING_SPAN, TDI_REACH
+from ttlcore.effects.glitch import GATE_TAPER, GLITCH_DAMPING_SPAN, TDI_REACH
 
 
 def test_a_one_day_file_is_diagnosed_at_half_a_day_and_at_its_end():
@@ -48,8 +48,9 @@ def test_transients_leave_the_model_once_their_span_has_left_the_window():
     glitch_end = 36000.0 + GLITCH_DAMPING_SPAN * 30.0 + TDI_REACH
     assert model.expired(36000.0) == []
     assert model.expired(glitch_end + 1.0) == [model.effects[2]]
-    # the gate with its 300-s tapers; the coupling never leaves
-    assert model.expired(52301.0) == model.effects[2:]
+    # the gate with its tapers (GATE_TAPER); the coupling never leaves
+    assert model.expired(52000.0 + GATE_TAPER - 1.0) == [model.effects[2]]
+    assert model.expired(52000.0 + GATE_TAPER + 1.0) == model.effects[2:]
     assert model.expired(1e9) == model.effects[2:]
     # a glitch whose time is still to be searched has no span yet
     assert LiveModel(["linear-ttl", "glitch:tm=12"]).expired(1e9) == []
