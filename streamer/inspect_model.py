@@ -169,6 +169,7 @@ def model_report(recs: list[Recording]) -> dict:
                     "failing_hours": diag.get("failing_hours"),
                     "summary": diag.get("summary"),
                     "recommendation": rec_.get("spec"),
+                    "effects": rec_.get("effects"),
                     "explains": rec_.get("explains"),
                     "command": rec_.get("command"),
                     "message": rec_.get("message"),
