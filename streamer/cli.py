@@ -38,12 +38,14 @@ from .launcher import RunOptions, run, stage_module_exists
 from .main import main as ttl_main
 from .parsers import register  # noqa: F401  (the operations parsers, for build_parser(register))
 from .processes import SignalFlag
+from .reach import listening, zenoh_error_text
 from .security import ROLES, ROUTER_LOG_FILTER, ensure_credentials, filter_log
 from .session import (
     DEFAULT_ROUTER_LISTEN,
     Bus,
     SessionConfigError,
     SessionSettings,
+    make_config,
     open_router,
     open_session,
 )
@@ -180,11 +182,63 @@ def _cmd_stage(args) -> int:
 
 # ---------------------------------------------------------------------------- ttl control
 
+#: How long ``ttl control`` tries to open its session once the router's port answers [s]: a
+#: router answers a TLS handshake in milliseconds; one it refuses (credentials of another CA)
+#: Zenoh retries until then.  (A stage waits :data:`streamer.session.CLIENT_CONNECT_TIMEOUT`.)
+CONTROL_CONNECT_TIMEOUT = 5.0
+
+
+def _control_bus(args) -> Bus:
+    """The session of ``ttl control``, or a one-line :class:`TTLError` naming the address and
+    the likely cause: no router there (the run has ended), or credentials it refuses."""
+    endpoints = tuple(args.connect)
+    where = ", ".join(endpoints)
+    tls = [e for e in endpoints if e.startswith("tls/")]
+    if tls and args.credentials is None:
+        raise TTLError(
+            f"--connect {tls[0]}: a TLS router needs the run's credentials: give --credentials DIR "
+            f"(ttl run makes them in recordings/{args.run}/credentials)"
+        )
+    settings = SessionSettings(
+        mode="client",
+        connect=endpoints,
+        credentials=args.credentials,
+        identity="control" if args.credentials else None,
+        connect_timeout=CONTROL_CONNECT_TIMEOUT,
+    )
+    try:
+        make_config(settings)  # the credentials and endpoints checked before anything is reached
+    except SessionConfigError as exc:
+        raise TTLError(str(exc)) from None
+    if all(listening(e) is False for e in endpoints):
+        raise TTLError(
+            f"no router at {where} (nothing listens there): has the run ended? "
+            f"'ttl inspect recordings/{args.run}' says; offline, 'ttl refit recordings/{args.run} --effects ...' "
+            "refits its recordings with another model"
+        )
+    try:
+        return Bus.open(settings)
+    except Exception as exc:  # zenoh.ZError: "Unable to connect ... Timeout!"
+        log.debug("zenoh: %s", zenoh_error_text(exc))
+        if args.credentials is not None:
+            cause = (
+                f"it refused the TLS handshake: the credentials in {args.credentials} are not of the run's CA "
+                f"(ttl run's are in recordings/{args.run}/credentials), or it is not the run's router"
+            )
+        else:
+            cause = (
+                "it did not answer as a Zenoh router over plain TCP (a run started without --insecure "
+                "listens on tls/...: give that endpoint and --credentials DIR)"
+            )
+        raise TTLError(
+            f"cannot connect to the router at {where} within {CONTROL_CONNECT_TIMEOUT:g} s: {cause}"
+        ) from None
+
 
 def _cmd_control(args) -> int:
 
     key = control_key(
-        check_name(args.run, "run id"), check_name(args.stage, "stage"), check_name(args.command, "command")
+        check_name(args.run, "run id"), check_name(args.stage, "stage"), check_name(args.stage_command, "command")
     )
     if args.payload:
         try:
@@ -192,18 +246,7 @@ def _cmd_control(args) -> int:
         except ValueError as exc:
             raise TTLError(f"payload: not JSON ({exc})") from None
     rejections: queue.Queue = queue.Queue()
-    try:
-        bus = Bus.open(
-            SessionSettings(
-                mode="client",
-                connect=tuple(args.connect),
-                credentials=args.credentials,
-                identity="control" if args.credentials else None,
-            )
-        )
-    except Exception as exc:
-        raise TTLError(f"cannot reach the run's router at {', '.join(args.connect)}: {exc}") from None
-    with bus:
+    with _control_bus(args) as bus:
 
         def on_error(sample):
             try:
@@ -215,7 +258,9 @@ def _cmd_control(args) -> int:
 
         bus.subscriber(topic_pattern(args.run, ERRORS), on_error)
         if args.stage not in bus.alive_stages(args.run, timeout=1.0):
-            raise TTLError(f"no stage {args.stage!r} alive in run {args.run!r}")
+            raise TTLError(
+                f"no stage {args.stage!r} alive in run {args.run!r} (the router at {', '.join(args.connect)} answers)"
+            )
         bus.session.put(key, args.payload.encode())
         try:
             err = rejections.get(timeout=max(0.0, args.wait))
@@ -223,7 +268,7 @@ def _cmd_control(args) -> int:
             if not args.quiet:
                 print(f"ttl control: sent {key}; no rejection within {args.wait:g} s")
             return 0
-    raise TTLError(f"{args.stage} rejected {args.command}: {err.get('message')}")
+    raise TTLError(f"{args.stage} rejected {args.stage_command}: {err.get('message')}")
 
 
 # ---------------------------------------------------------------------------- ttl credentials

@@ -17,10 +17,11 @@
     (:func:`inspect_run`) written to FILE (``-``: standard output).
 ``ttl view recordings/NAME [--web [--port P]] [--print]``
     ``--web`` serves ``monitor.rrd`` in Rerun's web viewer on 127.0.0.1 and prints the URL
-    (a machine without a display, :mod:`streamer.webview`); otherwise opens it in the ``rerun`` viewer binary with
-    ``--bind 127.0.0.1`` (its
-    gRPC server listens on loopback only; no web server is started); ``--print`` only
-    prints the command.
+    (a machine without a display, :mod:`streamer.webview`; Ctrl-C: exit status 130);
+    otherwise opens it in the ``rerun`` viewer binary with ``--bind 127.0.0.1`` (its gRPC
+    server listens on loopback only; no web server is started), refused in one line naming
+    ``--web`` when there is no display, and a viewer that fails is one line too (its Rust
+    log kept from the terminal); ``--print`` only prints the command.
 
 Errors (no such directory, no recordings, no ``monitor.rrd``, no ``rerun`` binary) are one
 line naming the file or directory at fault (``ttl`` exits with status 2).
@@ -34,13 +35,13 @@ import math
 import re
 import shlex
 import signal
-import subprocess
 import sys
 from collections import Counter, defaultdict
 from pathlib import Path
 
 from ttlcore.io.atomic import write_json
 
+from .inspect_advice import advise
 from .inspect_model import LOOKBACK_DAYS, coefficient_trends, model_report, recorded_fits, truth_over_window
 from .inspect_records import MAX_REFUSALS, InspectError, launcher_journal, read_plan, run_gaps, security_report
 from .inspect_text import MAX_LISTED, fmt_ranges, format_report
@@ -48,7 +49,7 @@ from .inspect_timeline import model_timeline
 from .keys import to_ranges
 from .recorder import Recording, RecordingError, read_recording, read_stop_note, to_jsonable
 from .topology import STAGES
-from .viewer import rerun_binary
+from .viewer import no_display, rerun_binary, run_native_viewer
 from .webview import WebView
 
 _FILE = re.compile(r"^(?P<stage>.+?)(?:\.(?P<n>\d+))?\.mcap$")
@@ -361,6 +362,8 @@ def inspect_run(run_dir, truth=None) -> dict:
 
     fits = recorded_fits(recs_of.get("fitter", []))
     model = model_report(recs_of.get("fitter", []))
+    # the command each recommendation is applied with: ttl control while the run is live, else ttl refit
+    model["run_state"] = advise(model, run_dir, runs[0] if len(runs) == 1 else run_dir.name)
     fit_report = {
         "count": len(fits),
         "indices": to_ranges(f["index"] for f in fits),
@@ -472,14 +475,19 @@ def _cmd_view(args) -> int:
         print(f"Rerun web viewer of {view.rrd}: {view.url}  (Ctrl-C to stop)", flush=True)
         for sig in (signal.SIGINT, signal.SIGTERM):  # stop the servers (SIGINT too when started in the background)
             signal.signal(sig, signal.default_int_handler)
-        try:
+        try:  # Ctrl-C: the KeyboardInterrupt goes on to ttl's "interrupted", exit status 130
             return view.wait()
-        except KeyboardInterrupt:
-            return 0
         finally:
             view.close()
     cmd = view_command(args.run_dir)
     if args.print:
         print(shlex.join(cmd))
         return 0
-    return subprocess.call(cmd)
+    web = f"'ttl view {shlex.quote(str(args.run_dir))} --web' serves the web viewer on 127.0.0.1 for a browser"
+    why = no_display()
+    if why:
+        raise InspectError(f"no display ({why}): the native Rerun viewer cannot open a window; {web}")
+    code, last = run_native_viewer(cmd)
+    if code != 0:
+        raise InspectError(f"the Rerun viewer failed (exit status {code}{': ' + last if last else ''}); {web}")
+    return 0

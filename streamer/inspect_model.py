@@ -171,6 +171,7 @@ def model_report(recs: list[Recording]) -> dict:
                     # advised only with an option (offline) or a command (live): a best
                     # candidate that explains nothing is in the message, not recommended
                     "recommendation": rec_.get("spec") if rec_.get("option") or rec_.get("command") else None,
+                    "effects": rec_.get("effects"),
                     "explains": rec_.get("explains"),
                     "command": rec_.get("command"),
                     "message": rec_.get("message"),

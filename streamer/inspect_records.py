@@ -19,7 +19,7 @@ class InspectError(ValueError):
 def launcher_journal(run_dir: Path) -> list[dict]:
     """The interruptions ``ttl run`` recorded in ``launcher.jsonl`` (:mod:`streamer.launcher`,
     "Journal and resuming"): every stage or router that died and was restarted, every
-    launcher that ended without its ``end`` record (killed) and every ``--resume``."""
+    launcher that ended without its ``end`` record (killed), every Ctrl-C and every ``--resume``."""
     path = Path(run_dir) / "launcher.jsonl"
     try:
         lines = path.read_text(errors="replace").splitlines()
@@ -57,7 +57,7 @@ def launcher_journal(run_dir: Path) -> list[dict]:
             open_start = rec
         elif kind == "end":
             open_start = None
-        elif kind in ("stage-died", "stage-restarted", "router-died", "router-restarted", "resume"):
+        elif kind in ("stage-died", "stage-restarted", "router-died", "router-restarted", "resume", "interrupted"):
             out.append(
                 {
                     "stage": rec.get("stage") or "launcher",

@@ -42,6 +42,11 @@ the caches hold ``cache`` > ``window`` + 1 segments); otherwise the run is stopp
 ``ttl run`` exits 1.  ``external`` stages are expected but run elsewhere (``ttl stage``
 on another host, or started later: late joiners catch up from the caches).
 
+Ctrl-C: the router and the stages run in process groups of their own, so the terminal's
+SIGINT reaches the launcher alone; it records the interrupt (``interrupted``), passes SIGINT
+on to the stages (each closes its recording), waits for them, stops the router last, and
+exits 130 (docs/operations.md, "Ctrl-C").
+
 The Zenoh router is supervised too: when it dies, it is started again on the same endpoints
 (up to ``restart`` times); the stages and the launcher, its clients, reconnect by themselves
 and recover what was published meanwhile from the publishers' caches.
@@ -49,8 +54,9 @@ and recover what was published meanwhile from the publishers' caches.
 Journal and resuming
 --------------------
 The launcher appends what it does to ``<recordings>/<run>/launcher.jsonl`` (one JSON object
-a line: ``start``, ``stage-died``, ``stage-restarted``, ``router-died``,
-``router-restarted``, ``resume``, ``end``; ``ttl inspect`` lists them) and keeps the board
+a line: ``start`` (with the router's endpoint and credentials), ``stage-died``,
+``stage-restarted``, ``router-died``, ``router-restarted``, ``resume``, ``interrupted``,
+``end``; ``ttl inspect`` lists them) and keeps the board
 it believes in ``<recordings>/<run>/board.json``.  A launcher that died (SIGKILL: its stages
 stop as orphaned, the router with it) is replaced by the same ``ttl run`` command with
 ``--resume``: it reads ``board.json``, takes every segment before the first one some stage
@@ -73,6 +79,7 @@ import logging
 import os
 import queue
 import signal
+import socket
 import sys
 import time
 from pathlib import Path
@@ -101,6 +108,7 @@ from .launch_plan import (
 from .lifecycle import LAUNCHER
 from .processes import SignalFlag
 from .progress import Progress, key_stage, parse_progress
+from .reach import zenoh_error_text
 from .recorder import stage_record
 from .run_journal import append_journal, cut_board, read_board, save_board
 from .run_router import Router, make_credentials
@@ -145,6 +153,8 @@ class Launcher:
         #: The router process (made in :meth:`run`, once the credentials are known).
         self.router: Router | None = None
         self.resumed_from: int | None = None  # --resume: the first segment handled again
+        self._interrupted = False
+        self.signals = SignalFlag(())  # SIGINT and SIGTERM noted while the run goes (run)
 
     @property
     def children(self) -> dict[str, Child]:
@@ -418,24 +428,40 @@ class Launcher:
             (self.run_dir / "plan.json").write_text(json.dumps(self.run_plan, indent=2))
         self.credentials = make_credentials(o, self.run_dir, self.expected, listen, self.say)
         self.router = Router(o, self.run_dir, self.credentials, self.say, self.journal)
+        # where the run is reached while it lasts (ttl inspect tells a live run by these)
         self.journal(
             "start",
             f"ttl run started (pid {os.getpid()})" + (" with --resume" if o.resume else ""),
             resume=bool(o.resume),
+            host=socket.gethostname(),
+            router=self.endpoint,
+            credentials=None if self.credentials is None else str(self.credentials),
         )
         if o.resume:
             self.load_board()
-        self.router.start(listen)
+        # Ctrl-C, SIGTERM: a flag until the stages are told to stop (a KeyboardInterrupt raised
+        # in an at-fork hook while a child started was ignored: docs/operations.md, "Ctrl-C")
+        self.signals = SignalFlag().install()
         try:
             try:
-                bus = Bus.open(self.session_settings("launcher"))
-            except Exception as exc:
-                raise LaunchError(f"cannot reach the run's router at {self.endpoint}: {exc}") from None
-            with bus:
-                status = self._run_on(bus)
-                self.journal("end", f"ttl run ended (exit status {status})", status=status)
-                return status
+                self.router.start(listen)
+                try:
+                    bus = Bus.open(self.session_settings("launcher"))
+                except Exception as exc:
+                    raise LaunchError(
+                        f"cannot reach the run's router at {self.endpoint}: {zenoh_error_text(exc)}"
+                    ) from None
+                with bus:
+                    status = self._run_on(bus)
+            except KeyboardInterrupt:  # before the stages started, or again while they stop
+                self.interrupted()
+                self.end_status_line()
+                self.say("run stopped: interrupted")
+                status = 130
+            self.journal("end", f"ttl run ended (exit status {status})", status=status)
+            return status
         finally:
+            self.signals.restore()
             self.router.stop()
             self.watch_refusals()
             if self.router.watcher is not None and self.credentials is not None:
@@ -457,24 +483,32 @@ class Launcher:
             + (f" (external: {', '.join(o.external)})" if o.external else "")
             + f"; recordings in {self.run_dir}"
         )
-        for name in reversed(self.expected):  # consumers first, the replayer last
-            if name in o.external:
+        return self._supervise_loop()
+
+    def start_stages(self) -> None:
+        """Write each stage's configuration and start it: consumers first, the replayer last."""
+        for name in reversed(self.expected):
+            if name in self.opts.external:
                 continue
             cfg = self.run_dir / f"{name}.config.json"
             cfg.write_text(json.dumps(self.stage_config(name), indent=2))
             self.stages.add(name, cfg, self.run_dir / f"{name}.log")
-        return self._supervise_loop()
+
+    def interrupted(self) -> None:
+        """Ctrl-C: recorded in the journal at once, before any child is reaped."""
+        if not self._interrupted:
+            self._interrupted = True
+            self.journal("interrupted", "ttl run interrupted (SIGINT, Ctrl-C): stopping the stages", signal="SIGINT")
 
     def _supervise_loop(self) -> int:
         o = self.opts
         deadline = time.monotonic() + o.timeout if o.timeout else None
         abort = None
-        # SIGTERM: stop the stages first (a flag: no lock taken in the handler)
-        terminated = SignalFlag((signal.SIGTERM,)).install()
         try:
+            self.start_stages()  # a Ctrl-C while they start stops those started
             while True:
-                if terminated:
-                    abort = "terminated"
+                if self.signals:  # before any child is reaped
+                    abort = "interrupted" if self.signals.received == signal.SIGINT else "terminated"
                     break
                 self._drain_events()
                 self._recheck_held()
@@ -493,11 +527,11 @@ class Launcher:
                     abort = f"timed out after {o.timeout:g} s"
                     break
                 time.sleep(0.1)
-        except KeyboardInterrupt:
-            abort = "interrupted"
-        finally:
-            terminated.restore()
-        self.stages.stop_all(self.bus)
+        finally:  # a second Ctrl-C while the stages stop: KeyboardInterrupt (caught in run)
+            self.signals.restore()
+        if abort == "interrupted":
+            self.interrupted()
+        self.stages.stop_all(self.bus, signal.SIGINT if abort == "interrupted" else None)
         self._drain_events()
         return self.report(abort)
 
@@ -515,8 +549,8 @@ class Launcher:
         self.end_status_line()
         total = self.total
         status = 0
-        for name, child in self.children.items():
-            bad = [c for c in child.exit_codes[-1:] if c != 0]
+        for name, child in self.children.items():  # after a Ctrl-C: no news (a stage starting dies of it)
+            bad = [c for c in child.exit_codes[-1:] if c != 0 and abort != "interrupted"]
             if bad:
                 self.say(f"stage {name} exited with status {bad[0]} (log {child.log})")
                 status = 1

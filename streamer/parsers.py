@@ -196,10 +196,13 @@ def _add_control(sub) -> None:
         description="Publish ttl/<run>/control/<stage>/<command> (for example the fitter's model: "
         "ttl control --run day3 --connect tcp/127.0.0.1:PORT fitter model "
         '\'{"effects": ["linear-ttl", "drift"]}\'), then report a rejection the '
-        "stage publishes on errors within --wait seconds.",
+        "stage publishes on errors within --wait seconds. A router that is not there (the run has "
+        "ended: ttl refit works offline) or that refuses the credentials is one line, exit status 2, "
+        "within a few seconds.",
     )
     p.add_argument("stage", help="stage name")
-    p.add_argument("command", help="command (fitter: model; every stage: stop)")
+    # not dest "command": that is the subcommand's name (the "ttl control:" of its messages)
+    p.add_argument("stage_command", metavar="command", help="command (fitter: model; every stage: stop)")
     p.add_argument("payload", nargs="?", default="", help="the message (JSON)")
     p.add_argument("--run", required=True, help="run id")
     p.add_argument(

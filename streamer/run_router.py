@@ -1,8 +1,9 @@
 """The Zenoh router of a ``ttl run`` and the run's credentials.
 
 The router is a child process (``ttl router``, log ``<run>/router.log``) that dies with the
-launcher (SIGKILL: nothing to save); when it dies during the run it is started again on the
-same endpoints (:meth:`Router.restart`).  Peers and publications it refused are read back
+launcher (SIGKILL: nothing to save), in a process group of its own (a Ctrl-C in the terminal
+does not reach it: the launcher stops it last); when it dies during the run it is started
+again on the same endpoints (:meth:`Router.restart`).  Peers and publications it refused are read back
 from its log (:class:`streamer.security.RefusalWatcher`).
 """
 
@@ -100,6 +101,8 @@ class Router:
                 stdin=subprocess.DEVNULL,
                 env=env,
                 preexec_fn=tied_to_parent(signal.SIGKILL),
+                # not the terminal's Ctrl-C: the launcher stops it after the stages
+                process_group=0,
             )
         self.starts += 1
         self.watcher = security.RefusalWatcher(path, offset=start)

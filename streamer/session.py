@@ -107,6 +107,9 @@ class SessionSettings:
     identity : str, optional
         Role whose certificate the session presents (``fitter``, ``launcher``, ``router``...);
         required with ``credentials``.
+    connect_timeout : float, optional
+        How long a client keeps trying to reach its router when the session opens [s]
+        (default :data:`CLIENT_CONNECT_TIMEOUT`, or the file's ``connect/timeout_ms``).
     """
 
     mode: str | None = None
@@ -117,6 +120,7 @@ class SessionSettings:
     config_file: str | Path | None = None
     credentials: str | Path | None = None
     identity: str | None = None
+    connect_timeout: float | None = None
 
     def to_dict(self) -> dict:
         """JSON-ready form (for passing to child processes)."""
@@ -129,6 +133,7 @@ class SessionSettings:
             "config_file": None if self.config_file is None else str(self.config_file),
             "credentials": None if self.credentials is None else str(self.credentials),
             "identity": self.identity,
+            "connect_timeout": self.connect_timeout,
         }
 
     @classmethod
@@ -208,7 +213,9 @@ def make_config(settings: SessionSettings | None = None) -> zenoh.Config:
             _set(config, wait_key, int(BLOCK_WAIT_BEFORE_CLOSE * 1e6))  # microseconds
         if _get(config, "transport/link/tx/lease") == 10_000:
             _set(config, "transport/link/tx/lease", int(LEASE * 1e3))  # milliseconds
-        if mode == "client" and _get(config, "connect/timeout_ms") is None:
+        if s.connect_timeout is not None:
+            _set(config, "connect/timeout_ms", int(s.connect_timeout * 1e3))
+        elif mode == "client" and _get(config, "connect/timeout_ms") is None:
             _set(config, "connect/timeout_ms", int(CLIENT_CONNECT_TIMEOUT * 1e3))
         if s.credentials is not None:
             _secure(config, s, mode)

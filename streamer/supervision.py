@@ -3,7 +3,9 @@
 
 Each stage is ``python -m stages.<name> --config <run>/<name>.config.json``, its output
 appended to ``<run>/<name>.log``; it receives SIGTERM when the launcher dies (it then closes
-its recording and says it was orphaned).  See :mod:`streamer.launcher`, "Supervision".
+its recording and says it was orphaned).  Each runs in a process group of its own: a Ctrl-C
+in the terminal reaches the launcher alone, which passes it on.  See :mod:`streamer.launcher`,
+"Supervision".
 """
 
 from __future__ import annotations
@@ -93,6 +95,9 @@ class Supervisor:
                 # SIGTERM when the launcher dies, even while importing or opening its session
                 # (the stage then closes its recording, saying it was orphaned)
                 preexec_fn=tied_to_parent(signal.SIGTERM),
+                # a process group of its own: the terminal's Ctrl-C reaches the launcher alone,
+                # which passes it on (stop_all) once it has recorded the interrupt
+                process_group=0,
             )
         child.starts += 1
         child.pids.add(child.proc.pid)
@@ -140,8 +145,12 @@ class Supervisor:
                 return f"stage {name} died ({how})"
         return None
 
-    def stop_all(self, bus: Bus) -> None:
-        """Ask every stage to stop, wait, then terminate and kill what is left."""
+    def stop_all(self, bus: Bus, first: signal.Signals | None = None) -> None:
+        """Ask every stage to stop (``first``, e.g. the SIGINT of a Ctrl-C, passed on to every
+        stage running, and the stop message), wait, then terminate and kill what is left."""
+        for c in self.children.values():
+            if first is not None and c.proc is not None and c.proc.poll() is None:
+                c.proc.send_signal(first)
         try:
             bus.session.put(
                 control_key(self.opts.run_id, "stop"), b"{}", congestion_control=zenoh.CongestionControl.BLOCK

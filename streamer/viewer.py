@@ -14,10 +14,13 @@ from __future__ import annotations
 
 import datetime
 import os
+import re
 import shutil
 import signal
 import socket
 import subprocess
+import sys
+import tempfile
 import threading
 from pathlib import Path
 from urllib.parse import urlparse
@@ -56,6 +59,36 @@ def rerun_binary(explicit: str | None = None) -> str:
     if not found:
         raise FileNotFoundError("rerun: the Rerun viewer binary is not installed (pip install rerun-sdk)")
     return found
+
+
+def no_display() -> str | None:
+    """Why a native viewer cannot open a window here, or None: on Linux and the other X11 /
+    Wayland systems, neither ``DISPLAY`` nor ``WAYLAND_DISPLAY`` (nor ``WAYLAND_SOCKET``) is
+    set (macOS and Windows always have a display)."""
+    if sys.platform in ("darwin", "win32"):
+        return None
+    if any(os.environ.get(v) for v in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET")):
+        return None
+    return "neither DISPLAY nor WAYLAND_DISPLAY is set"
+
+
+_ANSI = re.compile(r"\x1b\[[0-9;]*[A-Za-z]")
+
+
+def run_native_viewer(cmd: list[str]) -> tuple[int, str]:
+    """Run the native viewer ``cmd`` until it is closed; returns ``(exit status, the last
+    line of its log)``, the line without colours or Rust source paths.  Its log (stderr, Rust's
+    coloured lines) is kept from the terminal: a failure is said in one line by the caller."""
+    with tempfile.TemporaryFile() as log, subprocess.Popen(cmd, stdin=subprocess.DEVNULL, stderr=log) as proc:
+        try:
+            code = proc.wait()
+        except BaseException:  # Ctrl-C: the viewer goes too
+            proc.kill()
+            raise
+        log.seek(0)
+        lines = [ln for ln in _ANSI.sub("", log.read().decode(errors="replace")).splitlines() if ln.strip()]
+    last = re.sub(r"\s+at\s+\S+\.rs:\d+(:\d+)?:?", ":", lines[-1]).strip() if lines else ""
+    return code, last[:300]
 
 
 def check_live(live) -> None:

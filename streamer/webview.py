@@ -68,6 +68,7 @@ class WebView:
             stdout=subprocess.DEVNULL,
             stderr=subprocess.DEVNULL,
             preexec_fn=tied_to_parent(signal.SIGTERM),
+            process_group=0,  # not the terminal's Ctrl-C: ttl view stops it (close)
         )
         self.url = f"http://{LOOPBACK}:{self.web_port}/?url={quote(file_url, safe='')}"
 

@@ -472,3 +472,181 @@ def test_reprocess_interrupted_ends_with_one_line(simulated_days, tmp_path, targ
     assert not list(tmp_path.glob("out/summary*")), "a summary of an interrupted run"
     alive = psutil.wait_procs(workers, timeout=10)[1]
     assert not alive, f"worker processes left: {alive}"
+
+
+# --- ttl control and ttl view ---
+# What an operator meets (issue 35): a router that is not there (the run has ended) or that
+# refuses the credentials, no display, Ctrl-C; each one line, its exit status, no traceback,
+# no Zenoh or Rerun internals (a Rust source path, a coloured Rust log).
+
+
+def one_line_error(r, command: str) -> str:
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"ttl {command}: error: "), r.stderr
+    assert "Traceback" not in r.stderr and ".rs:" not in r.stderr and "\x1b[" not in r.stderr, r.stderr
+    return lines[0]
+
+
+def free_loopback_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_control_without_a_router_fails_at_once_naming_the_address(tmp_path):
+    """The command ``ttl inspect`` used to print for a run that had ended: it waited 31 s and
+    printed Zenoh's "Timeout! at .../orchestrator.rs:388" under "ttl model:"."""
+    endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
+    r, elapsed = ttl("control", "--run", "r1", "--connect", endpoint, "fitter", "model", '{"effects": ["drift"]}')
+    line = one_line_error(r, "control")
+    assert r.returncode == 2 and elapsed < 10, (r.returncode, elapsed)
+    assert endpoint in line and "has the run ended" in line and "ttl refit" in line, line
+    assert "orchestrator" not in line and "Timeout" not in line
+    # a TLS router without credentials: said before anything is tried
+    r, elapsed = ttl("control", "--run", "r1", "--connect", endpoint.replace("tcp/", "tls/"), "fitter", "stop")
+    assert r.returncode == 2 and elapsed < 10 and "--credentials" in one_line_error(r, "control"), r.stderr
+    # credentials that are not there
+    r, _ = ttl(
+        "control",
+        "--run",
+        "r1",
+        "--connect",
+        endpoint.replace("tcp/", "tls/"),
+        "--credentials",
+        tmp_path / "none",
+        "fitter",
+        "stop",
+    )
+    assert r.returncode == 2 and str(tmp_path / "none") in one_line_error(r, "control"), r.stderr
+
+
+def test_control_with_credentials_of_another_ca_says_so(tmp_path):
+    """A live router of the run's CA, reached with the credentials of another CA: Zenoh
+    retries the refused handshake until its connect timeout (a few seconds here, 30 s a
+    stage) and the router logs "UnknownCA", which the operator never sees: one line naming
+    the credentials and the CA."""
+    from proc_testutil import ChildProcesses, output, wait_for
+
+    for ca in ("run-ca", "other-ca"):
+        r, _ = ttl("credentials", tmp_path / ca, "--quiet")
+        assert r.returncode == 0, r.stderr
+    endpoint = f"tls/127.0.0.1:{free_loopback_port()}"
+    procs = ChildProcesses(tmp_path)
+    try:
+        env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+        router = procs.start(
+            [
+                sys.executable,
+                "-m",
+                "streamer.main",
+                "router",
+                "--credentials",
+                str(tmp_path / "run-ca"),
+                "--listen",
+                endpoint,
+            ],
+            "router",
+            env=env,
+        )
+        wait_for(lambda: "listening on" in output(router) or router.poll() is not None, 60, "the router")
+        assert router.poll() is None, output(router)
+        r, elapsed = ttl(
+            "control", "--run", "r1", "--connect", endpoint, "--credentials", tmp_path / "other-ca", "fitter", "stop"
+        )
+        line = one_line_error(r, "control")
+        assert r.returncode == 2 and str(tmp_path / "other-ca") in line and "CA" in line and endpoint in line, line
+        assert elapsed < 20, elapsed  # the 5 s connect timeout and two Python start-ups
+        # the run's own credentials reach it: the router answers, no stage is alive
+        r, _ = ttl(
+            "control", "--run", "r1", "--connect", endpoint, "--credentials", tmp_path / "run-ca", "fitter", "stop"
+        )
+        assert r.returncode == 2 and "no stage 'fitter' alive in run 'r1'" in one_line_error(r, "control"), r.stderr
+    finally:
+        procs.close()
+
+
+def test_view_without_a_display_names_web(tmp_path, monkeypatch):
+    """It exited 1 with Rerun's coloured Rust log ("winit EventLoopError ... neither
+    WAYLAND_DISPLAY nor WAYLAND_SOCKET nor DISPLAY is set") and no word of --web."""
+    (tmp_path / "monitor.rrd").write_bytes(b"")
+    for name in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
+        monkeypatch.delenv(name, raising=False)
+    r, elapsed = ttl("view", tmp_path)
+    assert r.returncode == 2 and elapsed < 10 and "--web" in one_line_error(r, "view"), r.stderr
+    assert r.stdout == ""
+    # a bad directory: one line naming it, with --quiet too
+    r, _ = ttl("view", tmp_path / "nope", "--quiet")
+    assert r.returncode == 2 and str(tmp_path / "nope") in one_line_error(r, "view"), r.stderr
+
+
+def test_view_web_interrupted_exits_130(tmp_path):
+    """Ctrl-C on ``ttl view --web`` (its process group, as a terminal sends it): exit 130
+    with one line (it was 0, not the 130 of docs/cli.md), the rerun server gone with it."""
+    import signal
+
+    import psutil
+
+    (tmp_path / "monitor.rrd").write_bytes(b"")
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    view = subprocess.Popen(
+        [sys.executable, "-m", "streamer.main", "view", str(tmp_path), "--web"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+        start_new_session=True,
+    )
+    try:
+        assert "http://127.0.0.1:" in view.stdout.readline()
+        children = psutil.Process(view.pid).children(recursive=True)
+        os.killpg(view.pid, signal.SIGINT)
+        out, err = view.communicate(timeout=60)
+    finally:
+        if view.poll() is None:
+            os.killpg(view.pid, signal.SIGKILL)
+            view.wait(10)
+    assert view.returncode == 130 and err == "ttl view: interrupted\n", (view.returncode, err)
+    assert not psutil.wait_procs(children, timeout=15)[1], "the rerun server outlived ttl view"
+
+
+def test_ctrl_c_on_ttl_run_is_always_an_interrupt(tmp_path):
+    """Ctrl-C on ``ttl run`` (SIGINT to its process group, as a terminal sends it) while the
+    stages start (a KeyboardInterrupt raised in the at-fork hook of a stage being started was
+    ignored: the run went on to its end) and once they work: exit 130, "interrupted", the
+    journal records it, never ``router-died`` (the router got the SIGINT too and could exit 0
+    before the launcher saw it: "the Zenoh router died (exit status 0)", exit 1, 1 time in
+    4), and nothing of the run left running."""
+    import json
+    import re
+    import signal
+
+    import psutil
+    from proc_testutil import ChildProcesses, output, wait_for
+
+    procs = ChildProcesses(tmp_path)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
+    try:
+        for n, moment in enumerate((r"router on ", r"router on ", r"replayer [1-9]\d*/12")):
+            run = f"cc{n}"
+            cmd = [sys.executable, "-m", "streamer.main", "run", "--simulate", "--duration 2h --seed 1"]
+            cmd += ["--segment", "10min", "--run-id", run, "--recordings", str(tmp_path / "rec"), "--insecure"]
+            proc = procs.start([*cmd, "--timeout", "600"], run, env=env)  # a session of its own, as a terminal's
+            wait_for(lambda proc=proc, m=moment: re.search(m, output(proc)) or proc.poll() is not None, 300, moment)
+            everything = psutil.Process(proc.pid).children(recursive=True)
+            os.killpg(proc.pid, signal.SIGINT)
+            code = proc.wait(120)
+            out = output(proc)
+            kinds = [
+                json.loads(x)["kind"] for x in (tmp_path / "rec" / run / "launcher.jsonl").read_text().splitlines()
+            ]
+            assert code == 130 and out.rstrip().endswith(f"ttl run {run}: run stopped: interrupted"), (
+                moment,
+                out[-3000:],
+            )
+            assert kinds == ["start", "interrupted", "end"], (moment, kinds)
+            assert "died" not in out and "Traceback" not in out, out[-3000:]
+            assert not psutil.wait_procs(everything, timeout=60)[1], f"{run}: processes left running"
+    finally:
+        procs.close()

@@ -591,3 +591,118 @@ def test_inspect_prints_the_model_timeline(tmp_path, capsys):
     start = lines.index(expected[0])
     assert lines[start : start + len(expected)] == expected, "\n".join(lines[start : start + len(expected)])
     assert "[step] step of +0.300 mm/rad in 23.phi.tx at 0.500 d (model epoch 2)" in lines
+
+
+# ---------------------------------------------------------------------------- live or ended: the command printed
+
+#: what the fitter recorded of its diagnosis of segments 0..3 (stages.live_diagnosis), with
+#: the ttl control command of that moment: a router that is gone since
+RECORDED_COMMAND = (
+    "ttl control --run r1 --connect tls/127.0.0.1:1 --credentials /nowhere/credentials fitter model "
+    '\'{"effects": ["linear-ttl", "drift"]}\''
+)
+
+
+def diagnosed_run(tmp_path) -> Path:
+    d = tmp_path / "recordings" / RUN
+    d.mkdir(parents=True)
+    f = StageFile(d, "fitter")
+    for i in range(4):
+        write_fit(f, i)
+    f.rec.write_json(
+        "fit/summary",
+        {
+            "run": RUN,
+            "index": 3,
+            "names": list(COEFFICIENT_NAMES),
+            "coefficients": fit_values(3)[0],
+            "sigma": fit_values(3)[1],
+            "model": ["linear-ttl", "step:t_step=1h;mosas=12"],
+            "fit": {"converged": True},
+            "diagnosis": {
+                "segments": [0, 3],
+                "model": ["linear-ttl", "step:t_step=1h;mosas=12"],
+                "chi2_dof": 3.0,
+                "fails": True,
+                "bands": [{"f_lo": 0.003, "f_hi": 0.01, "chi2_dof": 3.0, "fails": True}],
+                "recommendation": {
+                    "spec": "drift",
+                    "explains": True,
+                    "effects": ["linear-ttl", "step:t_step=1h;mosas=12", "drift"],
+                    "command": RECORDED_COMMAND,
+                },
+                "adoption": {"mode": "ask", "adopted": False, "reason": "ask"},
+                "removal": [{"spec": "step:t_step=1h;mosas=12", "p": 0.4, "command": RECORDED_COMMAND}],
+            },
+        },
+        schema="ttl.Fit",
+    )
+    f.close()
+    return d
+
+
+def journal(d: Path, *records) -> None:
+    (d / "launcher.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+
+
+def test_inspect_of_an_ended_run_prints_the_offline_refit_not_ttl_control(tmp_path, capsys):
+    """Issue 35: the diagnosis' ``ttl control`` names a router that stopped with the run;
+    pasted after the run it could only fail.  An ended run (``end`` in the journal, or a
+    launcher that is gone) gets the offline ``ttl refit`` of the window diagnosed instead."""
+    d = diagnosed_run(tmp_path)
+    start = {"time": time.time() - 60, "launcher_pid": os.getpid(), "kind": "start", "router": "tls/127.0.0.1:1"}
+    refit = f"ttl refit {d} --effects 'linear-ttl,step:t_step=1h;mosas=12,drift' --baseline 'linear-ttl,step:t_step=1h;mosas=12' --segments 0:3"
+    removal = f"ttl refit {d} --effects linear-ttl --baseline 'linear-ttl,step:t_step=1h;mosas=12' --segments 0:3"
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    for records, why in (
+        ([start, {"time": time.time(), "kind": "end", "status": 0}], "ttl run ended (exit status 0)"),
+        ([{**start, "launcher_pid": dead.pid, "time": time.time()}], f"ttl run (pid {dead.pid}) is gone"),
+    ):
+        journal(d, *records)
+        code, out, err = run_ttl(capsys, "inspect", d)
+        assert code == 0, err
+        assert "ttl control --" not in out, out  # no command to paste (the header may name it)
+        assert f"    refit with it offline: {refit}" in out.splitlines(), out
+        assert f"refit without it offline: {removal}" in out, out
+        assert f"the run is not live here ({why}" in out, out
+        r = inspect_run(d)
+        assert r["model"]["run_state"]["live"] is False and r["model"]["diagnoses"][0]["advice"] == refit
+
+
+def test_inspect_of_a_live_run_prints_ttl_control_with_the_live_router(tmp_path, capsys):
+    """A live run (its launcher alive, its router answering at the address of the journal's
+    last start, which a --resume may have changed) gets ``ttl control`` with that address and
+    the run's credentials; credentials missing here: the offline command, and why."""
+    import socket as socket_
+
+    d = diagnosed_run(tmp_path)
+    creds = tmp_path / "credentials"
+    creds.mkdir()
+    with socket_.socket() as router:
+        router.bind(("127.0.0.1", 0))
+        router.listen()
+        live = f"tls/127.0.0.1:{router.getsockname()[1]}"
+        start = {
+            "time": time.time(),
+            "launcher_pid": os.getpid(),
+            "kind": "start",
+            "host": socket_.gethostname(),
+            "router": live,
+            "credentials": str(creds),
+        }
+        journal(d, start)
+        code, out, err = run_ttl(capsys, "inspect", d)
+        assert code == 0 and f"credentials are not here ({creds}/control.pem)" in out, out
+        assert "ttl control --" not in out, out
+        (creds / "control.pem").write_text("")
+        code, out, err = run_ttl(capsys, "inspect", d)
+    assert code == 0, err
+    command = (
+        f"ttl control --run r1 --connect {live} --credentials {creds} fitter model "
+        '\'{"effects": ["linear-ttl", "step:t_step=1h;mosas=12", "drift"]}\''
+    )
+    assert f"    apply it: {command}" in out.splitlines(), out
+    assert "remove it: ttl control --run r1 --connect " + live in out and "ttl refit" not in out, out
+    assert "tls/127.0.0.1:1 " not in out  # the recorded, dead address
+    assert "the run is live (ttl run (pid" in out
