@@ -21,6 +21,8 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import signal
+import threading
 from pathlib import Path
 
 from ..errors import TTLError
@@ -98,7 +100,7 @@ def dask_client(
         # threshold at 128 kB: every array of a day is then a fresh mmap, zeroed page by page, and
         # a day's analysis takes twice the CPU time (measured: 0.82 s against 0.43 s for 1 h).
         # The worker memory is bounded by memory_limit anyway.
-        with dask.config.set({f"{SPAWN_ENV}.MALLOC_TRIM_THRESHOLD_": None}):
+        with dask.config.set({f"{SPAWN_ENV}.MALLOC_TRIM_THRESHOLD_": None}), _sigint_ignored():
             cluster = LocalCluster(
                 n_workers=int(workers),
                 threads_per_worker=int(threads_per_worker),
@@ -124,6 +126,23 @@ def dask_client(
                 client.close()
         finally:
             cluster.close()
+
+
+@contextlib.contextmanager
+def _sigint_ignored():
+    """SIGINT ignored while the local cluster's processes start (main thread only): they
+    inherit the ignored disposition, so a Ctrl-C at the terminal, which reaches the whole
+    process group, stops the command alone (its ``KeyboardInterrupt`` closes the cluster)
+    instead of printing a traceback from each nanny and worker.  A Ctrl-C during those
+    seconds of start-up is lost; the next one stops the command."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    before = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, before)
 
 
 def _silence_dask() -> None:
