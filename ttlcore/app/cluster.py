@@ -88,13 +88,8 @@ def dask_client(
                 client = Client(scheduler_file=str(scheduler), timeout="30s")
             else:
                 client = Client(scheduler, timeout="30s")
-            try:
+            with _serving(client):
                 yield client
-            except KeyboardInterrupt:
-                _silence_dask()
-                raise
-            finally:
-                client.close()
             return
         # Dask's nanny sets MALLOC_TRIM_THRESHOLD_=65536 in its workers, which fixes glibc's mmap
         # threshold at 128 kB: every array of a day is then a fresh mmap, zeroed page by page, and
@@ -117,15 +112,22 @@ def dask_client(
             )
         try:
             client = Client(cluster)
-            try:
+            with _serving(client):
                 yield client
-            except KeyboardInterrupt:
-                _silence_dask()
-                raise
-            finally:
-                client.close()
         finally:
             cluster.close()
+
+
+@contextlib.contextmanager
+def _serving(client):
+    """``client`` closed on exit; after an interrupt, silently (module docstring)."""
+    try:
+        yield client
+    except KeyboardInterrupt:
+        _silence_dask()
+        raise
+    finally:
+        client.close()
 
 
 @contextlib.contextmanager
