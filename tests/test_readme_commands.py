@@ -119,9 +119,11 @@ def test_every_readme_command_parses_as_printed(tmp_path, monkeypatch):
 
 
 @pytest.mark.science
+@pytest.mark.timeout(5400)
 def test_the_readme_walk_through_runs_as_printed(tmp_path):
-    """About 20 minutes on 2 cores: three 1-day simulations, two diagnoses, a 3-day and a
-    1-day ``ttl run``, the refit and the reprocessing of their days."""
+    """About 30 minutes on 2 cores: four 1-day simulations, two diagnoses, a 3-day and a
+    1-day ``ttl run`` (the second with the live loop's diagnoses), the refit and the
+    reprocessing of five days (the 3-day ``ttl run`` alone took 294 s)."""
     skipped = ("ttl view ", "make ")
     env = {**os.environ, "PATH": f"{Path(sys.executable).parent}{os.pathsep}{os.environ['PATH']}"}
     env["OPENBLAS_NUM_THREADS"] = "1"
