@@ -504,6 +504,9 @@ def test_control_without_a_router_fails_at_once_naming_the_address(tmp_path):
     assert r.returncode == 2 and elapsed < 10, (r.returncode, elapsed)
     assert endpoint in line and "has the run ended" in line and "ttl refit" in line, line
     assert "orchestrator" not in line and "Timeout" not in line
+    # --quiet: the error's one line still, nothing else (standard output empty)
+    r, _ = ttl("control", "--quiet", "--run", "r1", "--connect", endpoint, "fitter", "model", '{"effects": ["drift"]}')
+    assert r.returncode == 2 and r.stdout == "" and endpoint in one_line_error(r, "control"), r.stderr
     # a TLS router without credentials: said before anything is tried
     r, elapsed = ttl("control", "--run", "r1", "--connect", endpoint.replace("tcp/", "tls/"), "fitter", "stop")
     assert r.returncode == 2 and elapsed < 10 and "--credentials" in one_line_error(r, "control"), r.stderr
