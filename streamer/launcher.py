@@ -110,7 +110,7 @@ from .processes import SignalFlag
 from .progress import Progress, key_stage, parse_progress
 from .reach import zenoh_error_text
 from .recorder import stage_record
-from .run_journal import append_journal, cut_board, read_board, save_board
+from .run_journal import append_journal, cut_board, lock_run, read_board, save_board
 from .run_router import Router, make_credentials
 from .segment_stream import declare_segment_publisher, declare_segment_subscriber
 from .session import Bus, SessionSettings, loopback_endpoint
@@ -424,6 +424,7 @@ class Launcher:
         # credentials or configs are made: a refused run leaves nothing behind
         self.check_replayer()
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        self._lock = lock_run(self.run_dir)  # a second launcher of the run is refused here
         if self.run_plan is not None:
             (self.run_dir / "plan.json").write_text(json.dumps(self.run_plan, indent=2))
         self.credentials = make_credentials(o, self.run_dir, self.expected, listen, self.say)
