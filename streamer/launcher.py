@@ -58,11 +58,10 @@ a line: ``start`` (with the router's endpoint and credentials), ``stage-died``,
 ``stage-restarted``, ``router-died``, ``router-restarted``, ``resume``, ``interrupted``,
 ``end``; ``ttl inspect`` lists them) and keeps the board
 it believes in ``<recordings>/<run>/board.json``.  A launcher that died (SIGKILL: its stages
-stop as orphaned, the router with it) is replaced by the same ``ttl run`` command with
-``--resume``: it reads ``board.json``, takes every segment before the first one some stage
-lacks (``m``) as handled by every stage, and starts the stages, which go on from there as
-restarted stages do (the replayer from ``m - 1``, the fitter's window rebuilt from the
-recordings); segments from ``m`` on are processed and published again, by every stage.
+and router stop with it) is replaced by the same command with ``--resume``: every segment
+before the first one some stage lacks (``m``) counts as handled, the stages go on as
+restarted ones do, and from ``m`` on all is processed again.  A live launcher holds
+``launcher.lock``: a second one of the run is refused.
 
 Parts
 -----
@@ -110,7 +109,7 @@ from .processes import SignalFlag
 from .progress import Progress, key_stage, parse_progress
 from .reach import zenoh_error_text
 from .recorder import stage_record
-from .run_journal import append_journal, cut_board, read_board, save_board
+from .run_journal import append_journal, cut_board, lock_run, read_board, save_board
 from .run_router import Router, make_credentials
 from .segment_stream import declare_segment_publisher, declare_segment_subscriber
 from .session import Bus, SessionSettings, loopback_endpoint
@@ -166,7 +165,10 @@ class Launcher:
         return self.router.refused if self.router is not None else []
 
     # ------------------------------------------------------------------ output
-    def say(self, text: str) -> None:
+    def say(self, text: str, *, status: bool = False) -> None:
+        """A line on standard output; ``--quiet`` leaves out a ``status`` line (docs/cli.md)."""
+        if status and self.opts.quiet:
+            return
         msg = f"ttl run {self.opts.run_id}: {text}"
         if self._live is not None:  # above the status line, which stays at the bottom
             self._live.write(msg, file=self.out)
@@ -198,7 +200,7 @@ class Launcher:
         if "replayer" in self.opts.external:
             return
         self.run_plan, line = check_replayer(self.opts, self.stage_config("replayer"))
-        self.say(f"replay: {line}")
+        self.say(f"replay: {line}", status=True)
 
     # ------------------------------------------------------------------ journal, board, resume
     def journal(self, kind: str, message: str, **details) -> None:
@@ -220,7 +222,7 @@ class Launcher:
         except (OSError, ValueError) as exc:
             raise LaunchError(f"--resume: {path}: unreadable ({exc})") from None
         if progress is None:
-            self.say(f"--resume: no {path}: the run starts from its first segment")
+            self.say(f"--resume: no {path}: the run starts from its first segment", status=True)
             progress = {}
         first, cut = cut_board(progress, self.expected, total)
         self.resumed_from = first
@@ -228,7 +230,7 @@ class Launcher:
             self.journal("resume", "resumed from segment 0 (nothing handled by every stage)", first=0)
             return
         self.progress.update(cut)
-        self.say(f"--resume: segments 0..{first - 1} handled by every stage (board.json); going on from {first}")
+        self.say(f"--resume: going on from segment {first} (0..{first - 1} handled by every stage)", status=True)
         self.journal(
             "resume", f"resumed: segments 0..{first - 1} handled by every stage; going on from {first}", first=first
         )
@@ -420,13 +422,13 @@ class Launcher:
         listen = tuple(o.listen) or (loopback_endpoint(protocol="tcp" if o.insecure else "tls"),)
         self.endpoint = next((e for e in listen if "127.0.0.1" in e or "localhost" in e), listen[0])
         self.listen = listen
-        # the source (--simulate, --telemetry) is checked before the run directory, its
-        # credentials or configs are made: a refused run leaves nothing behind
+        # the source is checked before the run directory is made: a refused run leaves nothing
         self.check_replayer()
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        self._lock = lock_run(self.run_dir)  # a second launcher of the run is refused here
         if self.run_plan is not None:
             (self.run_dir / "plan.json").write_text(json.dumps(self.run_plan, indent=2))
-        self.credentials = make_credentials(o, self.run_dir, self.expected, listen, self.say)
+        self.credentials = make_credentials(o, self.run_dir, self.expected, listen, lambda t: self.say(t, status=True))
         self.router = Router(o, self.run_dir, self.credentials, self.say, self.journal)
         # where the run is reached while it lasts (ttl inspect tells a live run by these)
         self.journal(
@@ -481,7 +483,8 @@ class Launcher:
         self.say(
             f"router on {', '.join(self.listen)}{security_note}; stages: {', '.join(self.expected)}"
             + (f" (external: {', '.join(o.external)})" if o.external else "")
-            + f"; recordings in {self.run_dir}"
+            + f"; recordings in {self.run_dir}",
+            status=True,
         )
         return self._supervise_loop()
 
@@ -521,7 +524,7 @@ class Launcher:
                 self.show()
                 if self.total is not None and all(self.stage_done(s) for s in self.expected):
                     self.show(force=True)
-                    self.say("every stage has handled every segment: stopping")
+                    self.say("every stage has handled every segment: stopping", status=True)
                     break
                 if deadline is not None and time.monotonic() > deadline:
                     abort = f"timed out after {o.timeout:g} s"
@@ -586,7 +589,8 @@ class Launcher:
         self.say(
             f"{'done' if status == 0 else 'ended (exit status 1)'}: {total} segments, "
             f"{len(self.errors)} error report(s){refused}, {len(self.refused_progress)} progress message(s) "
-            f"refused; files in {self.run_dir}: {', '.join(files)}"
+            f"refused; files in {self.run_dir}: {', '.join(files)}",
+            status=status == 0,
         )
         return status
 

@@ -1,11 +1,13 @@
-"""What the launcher of ``ttl run`` keeps on disk: its journal (``launcher.jsonl``) and the
-board it believes (``board.json``), read back by ``ttl run --resume``.
+"""What the launcher of ``ttl run`` keeps on disk: its journal (``launcher.jsonl``), the
+board it believes (``board.json``), read back by ``ttl run --resume``, and the lock that
+keeps a second launcher off its run directory (``launcher.lock``, :func:`lock_run`).
 
 See :mod:`streamer.launcher`, "Journal and resuming".
 """
 
 from __future__ import annotations
 
+import fcntl
 import json
 import logging
 import os
@@ -13,6 +15,7 @@ import time
 from collections.abc import Mapping
 from pathlib import Path
 
+from .launch_plan import LaunchError
 from .progress import Progress
 from .rangeset import RangeSet
 
@@ -96,3 +99,34 @@ def cut_board(progress: Mapping[str, Progress], expected: list[str], total: int 
         for stage, p in progress.items()
     }
     return first, cut
+
+
+def lock_run(run_dir: Path):
+    """Hold ``run_dir/launcher.lock`` for as long as the launcher lives (an exclusive
+    ``flock``, released by the kernel when the process ends, however it ends: a killed
+    launcher leaves no stale lock, and ``--resume`` takes it again).  The file names the
+    holder's pid.  Returns the open file (keep it: closing it releases the lock).
+
+    Raises
+    ------
+    LaunchError
+        Another launcher holds the run (two ``ttl run`` with one ``--run-id`` and
+        ``--recordings`` would share the board, the journal and every recording).
+    """
+    path = run_dir / "launcher.lock"
+    f = open(path, "a+")  # noqa: SIM115 - held open for the launcher's life
+    try:
+        fcntl.flock(f.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        f.seek(0)
+        holder = f.read().strip() or "another process"
+        f.close()
+        raise LaunchError(
+            f"run {run_dir.name} is in use: its launcher ({holder}) holds {path}; "
+            "give another --run-id, or wait for that run to end"
+        ) from None
+    f.seek(0)
+    f.truncate()
+    f.write(f"ttl run pid {os.getpid()}\n")
+    f.flush()
+    return f
