@@ -120,7 +120,12 @@ def stale_effects(report: dict, effects: list[str], effect_modules) -> list[dict
     of freedom per parameter (a coupling that has switched off, or an adoption the data no
     longer support).  Each: ``spec``, ``chi2``, ``dof``, ``p``."""
     fitted = (report.get("model") or {}).get("coefficients") or {}
-    values, sigma = fitted.get("values") or {}, fitted.get("sigma") or {}
+    values, sigma = dict(fitted.get("values") or {}), dict(fitted.get("sigma") or {})
+    # a shifted effect's ``<effect>.<group>.d1`` column is the offset beyond its expansion
+    # point (~0 once the point is right): its evidence is the whole offset, value and sigma
+    for group, o in (fitted.get("offsets") or {}).items():
+        if f"{group}.d1" in values and isinstance(o, dict):
+            values[f"{group}.d1"], sigma[f"{group}.d1"] = o.get("value"), o.get("sigma")
     out = []
     for spec, effect in zip(effects, make_effects(list(effects), effect_modules), strict=True):
         if effect.name == "linear-ttl" or effect.active_span() is not None or effect.name == "gate":
@@ -129,7 +134,11 @@ def stale_effects(report: dict, effects: list[str], effect_modules) -> list[dict
             names = effect.column_names()
         except Exception:  # noqa: BLE001 - an effect whose columns need the data: not judged here
             continue
-        z = [values[n] / sigma[n] for n in names if n in values and sigma.get(n) and math.isfinite(sigma[n])]
+        z = [
+            values[n] / sigma[n]
+            for n in names
+            if values.get(n) is not None and sigma.get(n) and math.isfinite(sigma[n])
+        ]
         if not z:
             continue
         chi2 = float(sum(v * v for v in z))

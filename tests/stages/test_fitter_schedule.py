@@ -89,6 +89,32 @@ def test_an_effect_whose_evidence_is_gone_is_proposed_for_removal():
     assert stale["chi2"] == pytest.approx(0.16) and stale["p"] == pytest.approx(0.6892, abs=1e-4)
 
 
+def test_an_adopted_offset_keeps_its_evidence():
+    """A shifted effect's ``.d1`` column is the offset beyond its expansion point, ~0 once
+    the point is right: its evidence is the whole offset.  (Right after the live loop adopted
+    ``timing-offset:offset.sc1=0.099483s``, log B 2.5e4, the next diagnosis proposed to
+    remove it, p = 0.013, from the ``.d1`` columns alone.)"""
+    from stages.live_diagnosis import stale_effects
+
+    spec = "timing-offset:offset.sc1=0.099483s"
+    names = [f"timing-offset.sc{k}.d{o}" for k in (1, 2, 3) for o in (1, 2)]
+    values = dict.fromkeys(names, 0.0)
+    sigma = dict.fromkeys(names, 1e-3)
+    values["timing-offset.sc1.d1"] = 1e-4  # 0.1 sigma beyond the expansion point
+    report = {
+        "model": {
+            "coefficients": {
+                "values": values,
+                "sigma": sigma,
+                "offsets": {"timing-offset.sc1": {"value": 0.0995, "sigma": 1e-3, "unit": "s"}},
+            }
+        }
+    }
+    assert stale_effects(report, ["linear-ttl", spec], ()) == []
+    del report["model"]["coefficients"]["offsets"]  # the .d1 columns alone: wrongly stale
+    assert [s["spec"] for s in stale_effects(report, ["linear-ttl", spec], ())] == [spec]
+
+
 def test_a_model_that_only_gained_transients_is_diagnosed_a_little_later():
     # an excess going on to the window's end (a coupling switched on an hour ago) was gated
     # again at every segment, each time by a diagnosis of minutes: a change that only adds
