@@ -47,6 +47,9 @@ UNITS = {
 }
 #: Wait for a fit announced by the fitter's progress before falling back to an earlier one [s].
 FIT_TIMEOUT = 30.0
+#: After this long waiting for an announced fit [s], ask the fitter's cache for it (once):
+#: a late joiner's history query can be lost on a loaded machine (5 fits never came, 2026-11-27)
+FIT_FETCH_AFTER = 5.0
 
 
 class Subtractor(PipelineStage):
@@ -66,6 +69,7 @@ class Subtractor(PipelineStage):
         self._highest = -1  # highest segment handled (done or given up)
         self.refused_fits: set[int] = set()  # fits withdrawn (conflicting copies): never waited for
         self._waiting_since: dict[int, float] = {}
+        self._fetched: set[int] = set()  # fits asked of the fitter's cache (choose)
         # a late joiner gets its history from several publisher caches in any order: collect
         # for `settle` seconds before the first segment (unless it is segment 0)
         self.settle = float(self.options.get("settle", 1.0))
@@ -191,7 +195,11 @@ class Subtractor(PipelineStage):
         if best in self.fits:
             return "apply", best
         since = self._waiting_since.setdefault(index, time.monotonic())
-        if time.monotonic() - since < self.fit_timeout:
+        waited = time.monotonic() - since
+        if waited > min(FIT_FETCH_AFTER, self.fit_timeout / 2) and best not in self._fetched:
+            self._fetched.add(best)
+            self.fetch("fit", best)  # once: the fitter's cache holds it
+        if waited < self.fit_timeout:
             return "wait", None  # announced by the fitter's progress, still on its way
         received = [j for j in self.fits if j <= index]
         fallback = max(received) if received else None

@@ -117,7 +117,7 @@ def refetch_segment(
     session: zenoh.Session,
     key_expr: str,
     index: int,
-    header: bytes,
+    header: bytes | None,
     on_sample: Callable[[zenoh.Sample], None],
     *,
     on_done: Callable[[int], None] | None = None,
@@ -134,7 +134,8 @@ def refetch_segment(
     cached messages (other segments, other copies of this one) are not handed on again.  When the query is over (all caches
     answered, or ``timeout`` seconds), ``on_done(n)`` gets the number of copies handed on:
     0 when no cache holds the segment any more (a cache keeps the last ``cache`` segments
-    of its publisher).
+    of its publisher).  ``header=None``: any intact copy of segment ``index`` (a segment
+    announced but never received, e.g. a late joiner's history query lost under load).
     """
     found = [0]
 
@@ -143,7 +144,8 @@ def refetch_segment(
         if sample is None or sample.attachment is None:
             return
         try:
-            if sample.attachment.to_bytes() != header or parse_header(header, key_expr).index != index:
+            raw = sample.attachment.to_bytes()
+            if (header is not None and raw != header) or parse_header(raw, key_expr).index != index:
                 return
             decode(sample.payload, sample.attachment, key=key_expr)  # intact this time
         except CodecError:

@@ -51,7 +51,15 @@ from .bounded_json import BoundedJSONError, load_bounded
 from .codec import Expect, Header
 from .ingest import PREVIEW_CHARS, GapWatch, Ingest
 from .ingest import preview as _preview
-from .keys import control_key, control_pattern, parse_segment_key, parse_stream_key, segment_key, topic_pattern
+from .keys import (
+    control_key,
+    control_pattern,
+    parse_segment_key,
+    parse_stream_key,
+    segment_key,
+    stream_key,
+    topic_pattern,
+)
 from .lifecycle import LAUNCHER, LauncherWatch, disk_full, install_signal_flag
 from .plan import Holdback, Plan, Validator
 from .processes import SignalFlag
@@ -331,8 +339,18 @@ class Stage:
                 self.report_error("missed", f"{count} sample(s) lost beyond recovery from publisher {source}")
             elif item[0] == "refetched":
                 self._refetched(*item[1:])
+            elif item[0] == "fetched":
+                _, key, index, copies = item
+                self.event("fetched", index=index, message=f"{copies} cached copy(ies) of {key} segment {index}")
             else:
                 self.ingest.take(*item[1:])
+
+    def fetch(self, topic: str, index: int) -> None:
+        """Ask the publishers' caches for segment ``index`` of ``topic`` (any intact copy): for
+        a segment announced on the progress board that never came (a late joiner's history
+        query lost under load).  What comes is taken as any sample; a ``fetched`` event
+        records how many copies came."""
+        self.transport.fetch(self.bus, stream_key(self.run_id, topic), index)
 
     def _refetched(self, key: str, index: int, copies: int) -> None:
         """A re-fetch of a damaged segment is over: record it.  With no copy found, a warning

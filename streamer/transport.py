@@ -135,6 +135,12 @@ class StageTransport:
         with ``header``, bytes): the copies come in as samples, then ("refetched", key, index, copies)."""
         bus.refetch(key, index, header, self.on_sample, on_done=lambda n: self.inbox.put(("refetched", key, index, n)))
 
+    def fetch(self, bus: Bus, key: str, index: int) -> None:
+        """Ask the publishers' caches of stream ``key`` for segment ``index``, any intact copy
+        (one announced but never received): the copies come in as samples, then
+        ("fetched", key, index, copies)."""
+        bus.refetch(key, index, None, self.on_sample, on_done=lambda n: self.inbox.put(("fetched", key, index, n)))
+
     def on_control(self, sample) -> None:
         try:
             _, parts = parse_control_key(str(sample.key_expr))

@@ -88,6 +88,24 @@ def test_subtractor_applies_the_latest_fit_covering_each_segment(tmp_path):
     assert s.choose(6) == ("apply", 3)  # a later fit exists: the fitter passed 6
 
 
+def test_subtractor_asks_the_fitter_cache_for_an_announced_fit_that_does_not_come(tmp_path):
+    """A late joiner's history query can be lost on a loaded machine: fits 0-4, announced by
+    the fitter's progress, never came, and segments 0-4 got no fit after 30 s each.  After
+    FIT_FETCH_AFTER seconds the fit is asked of the fitter's cache, once."""
+    from stages.subtractor import FIT_FETCH_AFTER
+
+    s = Subtractor(StageConfig(run="u", recordings=tmp_path))
+    asked = []
+    s.fetch = lambda topic, index: asked.append((topic, index))
+    s.board.feed(sample({"stage": "fitter", "done": [[0, 3]], "fits_ranges": [[0, 3]]}))
+    assert s.choose(2) == ("wait", None) and asked == []  # just announced: on its way
+    s._waiting_since[2] -= FIT_FETCH_AFTER + 1.0
+    assert s.choose(2) == ("wait", None) and asked == [("fit", 2)]
+    assert s.choose(2) == ("wait", None) and asked == [("fit", 2)]  # asked once
+    s.fits[2] = {"coefficients": {}, "t_start": 0.0, "t_stop": 1.0}
+    assert s.choose(2) == ("apply", 2)
+
+
 def test_subtractor_keeps_only_the_fits_segments_to_come_can_get(tmp_path):
     """Memory flat in a long run: fits older than the latest one before the segments still to
     come (less the message window, for late arrivals) are forgotten; choices are unchanged."""
