@@ -224,7 +224,7 @@ def test_a_damaged_copy_is_fetched_again_from_the_publishers_cache(driver, child
 
     _, p1, a1 = good(1)  # never published intact: nothing to fetch
     driver.bus.session.put(f"ttl/{RUN}/telemetry", p1[:-8] + bytes(8), attachment=a1)
-    wait_for(lambda: len(driver.errors) >= 2, 10, "two error reports")
+    wait_for(lambda: len(driver.errors) >= 2, 30, "two error reports")  # 10 s ran out under make test
     with pytest.raises(queue.Empty):
         driver.output(timeout=0.5)
     driver.bus.session.put(f"ttl/{RUN}/control/doubler/stop", b"")
