@@ -172,8 +172,13 @@ def parse_duration(text: str | float | int, option: str | None = None) -> float:
         If ``text`` is not a positive duration; with ``option`` (the option or field it came
         from), a :class:`~ttlcore.errors.ConfigError` whose message starts with it.
     """
+    return _for_option(_parse_duration, text, option)
+
+
+def _for_option(parse, text, option: str | None) -> float:
+    """``parse(text)``; its ValueError as a ConfigError starting with ``option`` when given."""
     try:
-        return _parse_duration(text)
+        return parse(text)
     except ValueError as exc:
         if option is None:
             raise
@@ -219,14 +224,13 @@ def parse_time(text: str | float | int, option: str | None = None) -> float:
         If ``text`` is not a finite time; with ``option``, a
         :class:`~ttlcore.errors.ConfigError` whose message starts with it.
     """
-    try:
-        value = _time_value(text)
-        if not np.isfinite(value):
-            raise ValueError(f"a time must be finite, got {text!r}")
-    except ValueError as exc:
-        if option is None:
-            raise
-        raise ConfigError(f"{option}: {exc}") from None
+    return _for_option(_finite_time, text, option)
+
+
+def _finite_time(text: str | float | int) -> float:
+    value = _time_value(text)
+    if not np.isfinite(value):
+        raise ValueError(f"a time must be finite, got {text!r}")
     return value
 
 
@@ -262,14 +266,13 @@ def parse_frequency(text: str | float | int, option: str | None = None) -> float
     """A frequency [Hz]: a number of hertz or a number with its unit (``"0.0718Hz"``,
     ``"71.8mHz"``); what :func:`format_frequency` prints.  ConfigError (ValueError
     without ``option``) unless finite and positive."""
-    try:
-        value = _frequency_value(text)
-        if not np.isfinite(value) or value <= 0:
-            raise ValueError(f"frequency must be positive, got {text!r}")
-    except ValueError as exc:
-        if option is None:
-            raise
-        raise ConfigError(f"{option}: {exc}") from None
+    return _for_option(_positive_frequency, text, option)
+
+
+def _positive_frequency(text: str | float | int) -> float:
+    value = _frequency_value(text)
+    if not np.isfinite(value) or value <= 0:
+        raise ValueError(f"frequency must be positive, got {text!r}")
     return value
 
 
