@@ -268,12 +268,6 @@ def test_step_after_the_end_of_a_simulation_is_refused(tmp_path):
     [
         (["simulate", "--duration", "20min", "--telemetry", "s.h5"], ["s.h5", "s.truth.h5"]),
         (["credentials", "cr"], ["cr"]),
-        # a run's result is its recordings: with --quiet no plan, no router line, no summary
-        (
-            ["run", "--simulate", "--duration 20min", "--segment", "10min", "--run-id", "q", "--recordings", "rec"]
-            + ["--insecure", "--skip", "monitor"],
-            ["rec"],
-        ),
     ],
 )
 def test_quiet_prints_nothing_but_errors(tmp_path, command, made):

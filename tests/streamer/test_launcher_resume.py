@@ -115,3 +115,16 @@ def test_inspect_lists_what_the_journal_holds(tmp_path):
     ], kinds
     assert "pid 11)" in listed[4]["message"] and "without its end record" in listed[4]["message"]
     assert launcher_journal(tmp_path / "nothing") == []
+
+
+def test_quiet_leaves_out_status_lines_not_what_went_wrong(tmp_path):
+    """``ttl run --quiet``: a run's result is its recordings (docs/cli.md, ``--quiet``), so
+    the plan, the router line and the summary of a run that succeeded are left out; what
+    went wrong (a stage that died, errors) is still said."""
+    for quiet, expected in ((False, 2), (True, 1)):
+        out = io.StringIO()
+        la = Launcher(RunOptions(run_id="r1", recordings=tmp_path, quiet=quiet), out=out)
+        la.say("replay: 12 segments", status=True)
+        la.say("stage fitter exited with status 1")
+        lines = out.getvalue().splitlines()
+        assert len(lines) == expected and lines[-1] == "ttl run r1: stage fitter exited with status 1", lines
