@@ -631,7 +631,7 @@ def test_ctrl_c_on_ttl_run_is_always_an_interrupt(tmp_path):
     procs = ChildProcesses(tmp_path)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     try:
-        for n, moment in enumerate((r"router on ", r"router on ", r"replayer [1-9]\d*/12")):
+        for n, moment in enumerate((r"router on ", r"replayer [1-9]\d*/12")):  # stages starting, working
             run = f"cc{n}"
             cmd = [sys.executable, "-m", "streamer.main", "run", "--simulate", "--duration 2h --seed 1"]
             cmd += ["--segment", "10min", "--run-id", run, "--recordings", str(tmp_path / "rec"), "--insecure"]
