@@ -17,6 +17,9 @@ What it draws (the numbers come from :mod:`ttlcore.estimate.monitoring`)
   window (the estimate is the window's average); when the telemetry meta names a truth
   (a truth file, or a simulation's coefficient model), the true coefficients averaged over
   the same window (:mod:`stages.monitor_truth`).
+* The model timeline (:mod:`stages.monitor_timeline`): which model was in force over which
+  fits (a lane per effect), each change (what, by whom, chi^2/dof per band and the residual's
+  ASD before and after), the gaps and the hours left out of the fit as shaded spans.
 * Step and drift alerts from :class:`ttlcore.diagnose.trends.TrendMonitor` (thresholds and their
   false-alarm reasoning in :mod:`ttlcore.diagnose.trends`), within a model epoch (meta ``model``;
   :mod:`stages.monitor_epochs`).  Each alert is logged as a Rerun text entry, written to the
@@ -90,21 +93,16 @@ from streamer.processes import stop_process
 from streamer.recorder import to_jsonable
 from streamer.stage import Output, set_aside, stage_main
 from streamer.viewer import LiveFanout, check_live, compact_rrd, start_live
-from ttlcore.conventions import ARM_LENGTH, COEFFICIENT_NAMES, LINKS, C
+from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.trends import Alert, TrendMonitor, TrendSettings
 from ttlcore.estimate.fit import DEFAULT_BAND
-from ttlcore.estimate.monitoring import (
-    MIN_SAMPLES,
-    band_ratio,
-    channel_asd,
-    reference_curves,
-)
-from ttlcore.estimate.spectra import longest_run
 
 from . import monitor_views as views
 from .monitor_epochs import ModelEpochs, trend_estimate
+from .monitor_noise import NoiseCurves
 from .monitor_settling import Settling
 from .monitor_status import UNITS, drift_arrays, status_meta
+from .monitor_timeline import ModelTimeline
 from .monitor_truth import FitTruth
 
 P = len(COEFFICIENT_NAMES)
@@ -135,9 +133,8 @@ class Monitor(PipelineStage):
         self.rrd: Path | None = None
         self.viewer = None
         self.viewer_url: str | None = None
-        self._ltt: dict[int, np.ndarray] = {}
-        self._data_asd: dict[int, tuple] = {}
-        self._ref: dict[int, dict] = {}
+        self.noise = NoiseCurves(self.band, self.per_decade)  # the noise view's curves
+        self.timeline: ModelTimeline | None = None  # the model timeline, gaps, left-out hours
         # the truth beside the fits, and the fits' windows (redrawn when a truth becomes known later)
         self.truth = FitTruth(warn=lambda message: self.text("log", message, "WARN"))
         self.epochs = ModelEpochs()  # where the model changed, as drawn
@@ -168,19 +165,7 @@ class Monitor(PipelineStage):
         )
         if viewer_problem:
             self.log.warning("%s", viewer_problem)
-        self.rec = LiveFanout.open(
-            APPLICATION_ID,
-            f"{self.run_id}-{os.getpid()}-{int(time.time())}",
-            self.rrd,
-            self.viewer_url,
-            views.blueprint(self.band),
-            on_live_failure=self._live_failed,
-        )
-        self.rec.send_recording_name(f"ttl {self.run_id}")
-        self.series = views.SeriesLog(self.rec)
-        views.static_styles(self.rec, self.band)
-        self._time(0.0, 0)
-        views.first_texts(self.rec)
+        self.open_recording()
         self.text(
             "log",
             f"monitor of run {self.run_id} started; recording {self.rrd}"
@@ -191,6 +176,24 @@ class Monitor(PipelineStage):
         self.bus.subscriber(topic_pattern(self.run_id, ERRORS), self._on_error)
         self.flush()
         self.log.info("rerun recording %s%s", self.rrd, f", live {self.viewer_url}" if self.viewer_url else "")
+
+    def open_recording(self) -> None:
+        """The Rerun recording (file ``self.rrd``, and the live viewer at ``self.viewer_url``),
+        its blueprint and static parts, and the text panels at mission time 0."""
+        self.rec = LiveFanout.open(
+            APPLICATION_ID,
+            f"{self.run_id}-{os.getpid()}-{int(time.time())}",
+            self.rrd,
+            self.viewer_url,
+            views.blueprint(self.band),
+            on_live_failure=self._live_failed,
+        )
+        self.rec.send_recording_name(f"ttl {self.run_id}")
+        self.series = views.SeriesLog(self.rec)
+        self.timeline = ModelTimeline(self.rec, self._time, self.band)
+        views.static_styles(self.rec, self.band)
+        self._time(0.0, 0)
+        views.first_texts(self.rec)
 
     def _live_failed(self, exc) -> None:
         self.log.warning("live viewer %s lost (%s): writing the file only", self.viewer_url, exc)
@@ -303,10 +306,22 @@ class Monitor(PipelineStage):
         tdi = board.get(self.upstream)
         if tdi is not None:
             for i in sorted(tdi.failed - self.done - self.failed - self.settling.drawn["tdi"]):
+                if i in tdi.gaps:
+                    self.draw_gap(i)
                 (self.mark_gap if i in tdi.gaps else self.mark_failed)(i)
         self.check_complete()
         if changed:
             self.flush()
+
+    def draw_gap(self, i: int) -> None:
+        """Segment ``i`` reported as a gap upstream: a shaded span of the model timeline, over
+        the segment's span in the run's plan (else extrapolated from the segments drawn)."""
+        plan = self.validator.plan
+        span = None
+        if plan is not None and 0 <= i < plan.segments_total:
+            t0, n = plan.segment(i)
+            span = (t0, t0 + n / plan.fs)
+        self.timeline.gap(i, span)
 
     def _forget(self, i: int) -> None:
         """Segment ``i`` is settled: its bookkeeping goes (memory flat in a long run)."""
@@ -349,12 +364,7 @@ class Monitor(PipelineStage):
 
     # ------------------------------------------------------------------ telemetry
     def on_telemetry(self, header, arrays):
-        ltt = arrays["ltt"]
-        with np.errstate(all="ignore"):
-            mean = np.nanmean(ltt, axis=1)
-        if np.all(np.isfinite(mean)):
-            self._ltt[header.index] = mean
-            self._trim(self._ltt)
+        self.noise.telemetry(header.index, arrays["ltt"])
         truth = header.meta.get("truth")
         if self.truth.is_new(truth):
             self.truth.source = truth
@@ -376,44 +386,12 @@ class Monitor(PipelineStage):
         return ()
 
     # ------------------------------------------------------------------ ASDs
-    def _ltt_of(self, header) -> np.ndarray:
-        v = header.meta.get("ltt_mean")
-        if isinstance(v, dict):
-            v = [v.get(link) for link in LINKS]
-        try:
-            arr = np.asarray(v, dtype=float)
-            if arr.shape == (6,) and np.all(np.isfinite(arr)):
-                return arr
-        except (TypeError, ValueError):
-            pass
-        if header.index in self._ltt:
-            return self._ltt[header.index]
-        if self._ltt:
-            return self._ltt[max(self._ltt)]
-        return np.full(6, ARM_LENGTH / C)
-
-    def _curve(self, name: str, f, asd) -> None:
-        views.noise_curve(self.rec, name, f, asd, self.band)
-
-    def _references(self, header, f_welch) -> dict:
-        ref = self._ref.get(header.index)
-        if ref is None:  # once per segment (from its tdi or its residual, whichever comes first)
-            ref = reference_curves(f_welch, self._ltt_of(header), self.per_decade)
-            self._ref[header.index] = ref
-            self._trim(self._ref)
-            for name, (f, asd) in ref.items():
-                self._curve(name, f, asd)
-        return ref
-
     def on_tdi(self, header, arrays):
         self._segment_time[header.index] = (header.t0, header.fs)
-        f, asd, f_welch = channel_asd(arrays["data"][0], header.fs, self.per_decade)
         self._time(header.t0, header.index)
-        self._curve("data", f, asd)
-        self._references(header, f_welch)
-        self._data_asd[header.index] = (f, asd)
-        self._trim(self._data_asd)
+        self.noise.tdi(self.rec, header, arrays["data"])
         end = header.t0 + arrays["data"].shape[-1] / header.fs
+        self.timeline.segment(header.index, header.t0, end - header.t0)
         if self._drawn_to is None or header.index > self._drawn_to[0]:
             self._drawn_to = (header.index, end)
             self._summary()
@@ -432,43 +410,13 @@ class Monitor(PipelineStage):
         views.summary_document(self.rec, progress, self._alert_lines, self._band_labels, self.epochs.lines)
 
     def on_residual(self, header, arrays):
-        f, asd, f_welch = channel_asd(arrays["residual"][0], header.fs, self.per_decade)
         self._time(header.t0, header.index)
-        self._curve("residual", f, asd)
-        model = arrays["ttl_model"][0]
-        model = model[longest_run(np.isfinite(model))]
-        if model.size >= MIN_SAMPLES and np.any(model != 0):
-            fm, am, _ = channel_asd(model, header.fs, self.per_decade)
-            self._curve("ttl_model", fm, am)
-        self._effect_curves(header, arrays)
-        ref = self._references(header, f_welch)
-        ratio = band_ratio(f, asd, *ref["expected"], self.band)
+        f, asd, ratio = self.noise.residual(self.rec, header, arrays)
         if np.isfinite(ratio) and ratio > 0:
             self.series.log("adequacy/log10_residual_over_expected", math.log10(ratio), self._now)
         self._ratio = (header.index, ratio if math.isfinite(ratio) else None)
+        self.timeline.residual(header.index, header.meta.get("fit_index"), f, asd, ratio)
         return ()
-
-    def _effect_curves(self, header, arrays) -> None:
-        """The X2 ASD of each effect of the model beyond the linear TTL that the subtractor
-        took away (array ``effect_model`` (k, 3, n), meta ``effects``), labelled with the
-        effect's name; at most :data:`views.EFFECT_COLORS` of them."""
-        parts, specs = arrays.get("effect_model"), header.meta.get("effects") or []
-        if parts is None or parts.ndim != 3 or parts.shape[0] != len(specs):
-            return
-        for k, spec in enumerate(specs[: len(views.EFFECT_COLORS)]):
-            x = parts[k, 0]
-            x = x[longest_run(np.isfinite(x))]
-            if x.size >= MIN_SAMPLES and np.any(x != 0):
-                f, asd, _ = channel_asd(x, header.fs, self.per_decade)
-                views.noise_curve(
-                    self.rec,
-                    f"effect/{k}",
-                    f,
-                    asd,
-                    self.band,
-                    color=views.EFFECT_COLORS[k],
-                    label=str(spec).split(",")[0],
-                )
 
     # ------------------------------------------------------------------ fits and trends
     def on_fit(self, header, arrays):
@@ -483,10 +431,13 @@ class Monitor(PipelineStage):
             raise ValueError(f"meta t_start/t_stop: the fitted window is needed, got {t_start!r}, {t_stop!r}")
         centre = 0.5 * (t_start + t_stop)
         change, style = self.epochs.fit(header.index, meta.get("model"), centre, t_stop), None
-        self._time(centre, header.index)
-        if change is not None:
-            self.text("model/log", change.message)
+        # the model timeline: lanes, the change (who, what), left-out hours, before and after
+        said = self.timeline.fit(header.index, meta, centre, change.t_break if change else None, t_stop)
+        if change is not None:  # at the change's time (where the lanes switch)
+            self._time(change.t_break if change.t_break is not None else centre, header.index)
+            self.text("model/log", change.message + (f"; {said}" if said else ""))
             self._summary()
+        self._time(centre, header.index)
         if change is not None and change.t_break is not None:  # the lines broken between the two models
             self._time(change.t_break, header.index)
             views.break_series(self.rec)
@@ -560,11 +511,6 @@ class Monitor(PipelineStage):
             fields={"t0": t0, "fs": fs, "units": UNITS, "meta": to_jsonable(meta)},
             summary=to_jsonable({"run": self.run_id, "index": index, **meta, **arrays}),
         )
-
-    @staticmethod
-    def _trim(d: dict, keep: int = 8) -> None:
-        while len(d) > keep:
-            del d[min(d)]
 
 
 # ---------------------------------------------------------------------------- entry point

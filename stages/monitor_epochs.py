@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from streamer.model_timeline import model_delta
 from ttlcore.diagnose.trends import model_key
 
 from .monitor_views import days
@@ -74,10 +75,7 @@ class ModelEpochs:
             return Change(index, False, 0, None, f"fit {index}: model {','.join(model)}")
         if key == before_key:
             return None
-        couplings = key[0] != before_key[0]
-        part = 0 if couplings else 1
-        added = sorted(set(key[part]) - set(before_key[part]))
-        removed = sorted(set(before_key[part]) - set(key[part]))
+        added, removed, couplings = model_delta(before, model)
         what = "; ".join(
             [f"added {', '.join(added)}"] * bool(added) + [f"removed {', '.join(removed)}"] * bool(removed)
         )

@@ -30,6 +30,11 @@ Views (entity paths in brackets), laid out for a 1920x1080 screen:
   and a new model epoch (new couplings: a new series of the trend tests) is drawn in a colour
   of its own (:func:`epoch_style`: blue, orange, green, purple, then blue again);
   :mod:`stages.monitor_epochs`.
+* **Model timeline** (``timeline/**``, under the coefficients, on their time axis, with a
+  legend): a lane per effect of the model, the gaps and the hours left out of the fit as
+  shaded spans; the per-band chi^2/dof before and after each change (``adequacy/change``) in
+  the per-band view; the residual before and after in the noise view; a document
+  (``model/timeline``).  :mod:`stages.monitor_timeline`.
 * **Run and alerts** (``summary``, a text document): how far the run has been drawn, every
   alert so far and the model epochs, word-wrapped.  **Diagnosis** (``diagnosis``, a text document): the
   text and recommendation of the latest fit message whose meta carries a ``diagnosis``.
@@ -89,6 +94,21 @@ BANDS = "adequacy/bands"
 #: Entities of the text documents.
 SUMMARY = "summary"
 DIAGNOSIS = "diagnosis"
+#: The model timeline (:mod:`stages.monitor_timeline`): its document, the lanes of the
+#: model's effects (``timeline/model/<k>``), of the gaps and of the hours left out of the fit,
+#: and the per-band chi^2/dof before and after each change (``before``, ``after``).
+TIMELINE_DOC = "model/timeline"
+TIMELINE = "timeline"
+TIMELINE_GAPS = "timeline/gaps"
+TIMELINE_EXCLUDED = "timeline/excluded"
+CHANGE_BANDS = "adequacy/change"
+#: The residual's ASD before and after the latest model change (noise view).
+CHANGE_COLORS = {"before": (188, 189, 34), "after": (0, 90, 50)}
+
+
+def timeline_lane(k: int) -> str:
+    """Entity of lane ``k`` of the model timeline (an effect of the model)."""
+    return f"{TIMELINE}/model/{k}"
 
 
 def coefficient_entity(name: str) -> str:
@@ -115,7 +135,7 @@ def band_color(g: int, n: int = 8) -> tuple[int, int, int]:
 # ---------------------------------------------------------------------------- blueprint
 
 
-def _series(name: str, contents, **kw) -> rrb.TimeSeriesView:
+def _series(name: str, contents, legend: bool = False, **kw) -> rrb.TimeSeriesView:
     """A time series over the whole mission time range, without a legend over its data.
 
     The x axis is set to the whole range (by default it follows the time cursor over a few
@@ -128,7 +148,7 @@ def _series(name: str, contents, **kw) -> rrb.TimeSeriesView:
         name=name,
         contents=contents,
         axis_x=rrb.TimeAxis(view_range=rr.TimeRange(start=everything, end=everything)),
-        plot_legend=rrb.PlotLegend(visible=False),
+        plot_legend=rrb.PlotLegend(visible=False) if not legend else None,
         **kw,
     )
 
@@ -156,12 +176,16 @@ def blueprint(band) -> rrb.Blueprint:
     adequacy = rrb.Horizontal(
         _series("χ²/dof: fit black, model red", ["+ /adequacy/chi2_dof", "+ /adequacy/instrument/chi2_dof"]),
         _series("log10 residual/expected", ["+ /adequacy/log10_residual_over_expected"]),
-        _series("χ²/dof per band, f: blue→red", [f"+ /{BANDS}"]),
+        _series(
+            "χ²/dof per band, f: blue→red; at a model change before × after ●",
+            [f"+ /{BANDS}", f"+ /{CHANGE_BANDS}/**"],
+        ),
     )
     texts = rrb.Horizontal(
         rrb.TextDocumentView(origin=f"/{SUMMARY}", name="Run and alerts"),
         rrb.Tabs(
             rrb.TextDocumentView(origin=f"/{DIAGNOSIS}", name="Diagnosis"),
+            rrb.TextDocumentView(origin=f"/{TIMELINE_DOC}", name="Model timeline"),
             # one log view for the alerts, the model changes and the monitor's log (their
             # entities are its columns): a view is a few blueprint chunks to load
             rrb.TextLogView(
@@ -182,8 +206,13 @@ def blueprint(band) -> rrb.Blueprint:
                     grid_columns=4,
                     name="Coefficients: fit ±1σ (blue; a colour per model epoch), truth (black)",
                 ),
+                _series(
+                    "Model timeline: effects in the model (a lane each), gaps (grey), hours left out (red, orange)",
+                    [f"+ /{TIMELINE}/**"],
+                    legend=True,
+                ),
                 texts,
-                row_shares=[13, 5],
+                row_shares=[13, 3, 5],
             ),
             column_shares=[1, 1],
         ),

@@ -7,6 +7,7 @@ from collections import Counter
 
 from .inspect_model import LOOKBACK_DAYS
 from .keys import to_ranges
+from .model_timeline import change_text
 
 #: Errors listed in full by the text report (the rest are counted).
 MAX_LISTED = 20
@@ -90,13 +91,16 @@ def timeline_text(t: dict) -> list[str]:
         if s["by"] == "configured":
             lines.append("      as configured")
             continue
-        what = [f"+ {e}" for e in s["added"]] + [f"- {e}" for e in s["removed"]]
-        why = f" after the diagnosis of segment {s['diagnosis_index']}" if s.get("diagnosis_index") is not None else ""
-        why += " (it left the one-day window)" if s["by"] == "window" else ""
         lines.append(
-            f"      {'; '.join(what) or 'the same effects'} by {s['by']}{why}"
-            + (f": {s['reason']}" if s.get("reason") else "")
-            + ("  [new model epoch]" if s["new_epoch"] else "")
+            "      "
+            + change_text(
+                s["added"],
+                s["removed"],
+                s["by"],
+                diagnosis_index=s.get("diagnosis_index"),
+                reason=s.get("reason"),
+                new_epoch=s["new_epoch"],
+            )
         )
         if _recommended(s.get("recommendation")):
             lines.append(f"      {_recommended(s['recommendation'])}")

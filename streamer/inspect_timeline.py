@@ -24,9 +24,8 @@ a change of the transients ``glitch`` and ``gate`` only does not,
 
 from __future__ import annotations
 
-from ttlcore.diagnose.trends import model_key
-
 from .keys import to_ranges
+from .model_timeline import SpanMerger, model_delta
 from .recorder import Recording
 
 
@@ -111,14 +110,14 @@ def model_spans(recs: list[Recording]) -> list[dict]:
             continue  # superseded before a segment was fitted under it
         prev = out[-1]["effects"] if out else None
         event = span["event"]
-        new_epoch = prev is not None and model_key(prev)[0] != model_key(span["effects"])[0]
+        added, removed, new_epoch = model_delta(prev, span["effects"])
         out.append(
             {
                 "from_index": span["from_index"],
                 "to_index": to,
                 "effects": span["effects"],
-                "added": [e for e in span["effects"] if prev is not None and e not in prev],
-                "removed": event.get("removed") or [e for e in prev or () if e not in span["effects"]],
+                "added": added,
+                "removed": event.get("removed") or removed,
                 "by": span["by"],
                 "reason": event.get("reason"),
                 "recommendation": event.get("recommendation"),
@@ -169,23 +168,10 @@ def excluded_spans(recs: list[Recording]) -> list[dict]:
                     continue
                 # the same FFT segment recorded again (a restarted fitter) counts once
                 items[(float(d["t_start"]), cause)] = (r["index"], float(d["t_stop"]), d.get("gate"), d.get("z"))
-    out: list[dict] = []
+    merger = SpanMerger()
     for (t_start, cause), (index, t_stop, gate, z) in sorted(items.items(), key=lambda kv: (kv[0][0], kv[1][0])):
-        span = out[-1] if out else None
-        gate = gate if cause == "gated" else None
-        if span and span["kind"] == cause and span.get("gate") == gate and index <= span["to_index"] + 1:
-            span["to_index"] = max(span["to_index"], index)
-            span["t_stop"] = max(span["t_stop"], t_stop)
-            span["count"] += 1
-        else:
-            span = {"kind": cause, "from_index": index, "to_index": index, "t_start": t_start, "t_stop": t_stop}
-            span["count"] = 1
-            if cause == "gated":
-                span["gate"] = gate
-            out.append(span)
-        if cause == "outlier" and isinstance(z, (int, float)):
-            span["z_max"] = max(span.get("z_max", z), z)
-    return out
+        merger.add(cause, index, t_start, t_stop, gate=gate, z=z)
+    return merger.spans
 
 
 def model_timeline(recs: list[Recording], plan: dict | None) -> dict:

@@ -402,8 +402,8 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
 
     views = blueprint_views(rrd)
     kinds = sorted(k for k, _ in views)
-    # one plot per coefficient (24), chi2/dof, residual/expected, chi2/dof per band
-    assert kinds.count("TimeSeries") == 24 + 3 and "2D" in kinds and "TextLog" in kinds, views
+    # one plot per coefficient (24), chi2/dof, residual/expected, chi2/dof per band, the model timeline
+    assert kinds.count("TimeSeries") == 24 + 4 and "2D" in kinds and "TextLog" in kinds, views
     views = [(k, o.lstrip("/")) for k, o in views]
     assert ("2D", "asd") in views
     assert ("TextDocument", "summary") in views and ("TextDocument", "diagnosis") in views, views
