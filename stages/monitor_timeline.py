@@ -363,7 +363,9 @@ class ModelTimeline:
         hide every later one from the time cursor at the end."""
         lines = ["**Model timeline** (lanes under the coefficient plots; newest change last)", ""]
         if self.first is not None:
-            lines.append(f"- from fit {self.first['index']}: {', '.join(self.first['effects'])} (the first model drawn)")
+            lines.append(
+                f"- from fit {self.first['index']}: {', '.join(self.first['effects'])} (the first model drawn)"
+            )
         for c in self.changes:
             line = f"- from fit {c['index']} ({views.days(c['t'])}): {', '.join(c['effects'])}: {c['text']}"
             if c.get("chi2"):
