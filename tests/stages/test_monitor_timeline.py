@@ -194,7 +194,9 @@ def test_monitor_draws_the_model_timeline_gaps_and_before_after(tmp_path):
 
     # ---- the document and the blueprint
     doc = [r for r in ent["/model/timeline"] if "TextDocument:text" in r[1]]
-    last = max(doc, key=lambda r: (r[0]["mission_time"], r[0]["segment"]))[1]["TextDocument:text"][0]
+    # the viewer shows the latest row at the time cursor (of rows at one time, the last logged)
+    last = max(enumerate(doc), key=lambda kr: (kr[1][0]["mission_time"], kr[1][0]["segment"], kr[0]))[1]
+    last = last[1]["TextDocument:text"][0]
     assert "from fit 0: linear-ttl (the first model drawn)" in last
     assert "from fit 8" in last and "by adopt auto" in last and "χ²/dof 1.800 → 1.010" in last
     assert "0.003-0.01 Hz 2.400 → 1.010" in last and "residual / expected" in last
