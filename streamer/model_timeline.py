@@ -62,8 +62,9 @@ def excluded_kind(details: dict) -> str:
 
 class SpanMerger:
     """Items (an FFT segment left out, a segment with no data) merged into spans of one cause:
-    an item extends the latest span when it has the same ``kind`` (and ``gate``) and follows
-    it - the next index, or a start at most ``tolerance`` [s] after its end.
+    an item extends the latest span when it has the same ``kind`` (and ``gate``) and starts
+    within it or at most ``tolerance`` [s] after its end (an item of the next fit that is
+    apart in mission time - one that came late - starts a span of its own).
 
     Each span: ``kind``, ``from_index``, ``to_index``, ``t_start``, ``t_stop`` [s], ``count``;
     ``gate`` for ``gated``; ``z_max`` (the largest excess in sigma) for ``outlier``.
@@ -85,10 +86,7 @@ class SpanMerger:
         """Add one item; returns its span and whether the span is new."""
         span = self.spans[-1] if self.spans else None
         gate = gate if kind == "gated" else None
-        follows = span is not None and (
-            index <= span["to_index"] + 1
-            or span["t_stop"] - self.tolerance <= t_start <= span["t_stop"] + self.tolerance
-        )
+        follows = span is not None and span["t_start"] - self.tolerance <= t_start <= span["t_stop"] + self.tolerance
         new = not (span is not None and span["kind"] == kind and span.get("gate") == gate and follows)
         if new:
             span = {"kind": kind, "from_index": index, "to_index": index, "t_start": t_start, "t_stop": t_stop}

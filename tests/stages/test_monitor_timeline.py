@@ -95,7 +95,10 @@ def fit_meta(k: int) -> dict:
 
 
 def test_monitor_draws_the_model_timeline_gaps_and_before_after(tmp_path):
-    m = Monitor(StageConfig(run=RUN, recordings=tmp_path, options={"trends": {}}))
+    # the run's plan: the gap segment holds half the samples of the others (its span from the plan)
+    table = [[k * SEG, N // 2 if k == GAP else N] for k in range(SEGMENTS)]
+    plan = {"segments_total": SEGMENTS, "fs": FS, "t0": 0.0, "samples": N, "samples_total": N * SEGMENTS}
+    m = Monitor(StageConfig(run=RUN, recordings=tmp_path, plan={**plan, "table": table}))
     m.rrd = tmp_path / "monitor.rrd"
     m.open_recording()
     rng = np.random.default_rng(3)
@@ -104,7 +107,7 @@ def test_monitor_draws_the_model_timeline_gaps_and_before_after(tmp_path):
     sigma = np.full(24, 1e-5)
     for k in range(SEGMENTS):
         if k == GAP:
-            m.draw_gap(k)  # reported as a gap upstream (no plan: its span from the segments drawn)
+            m.draw_gap(k)  # reported as a gap upstream
             continue
         data = rng.normal(0.0, 1e-21, (3, N))
         h = header("tdi", k, {"data": data}, {"ltt_mean": [2.5e9 / C] * 6}, k * SEG)
@@ -150,7 +153,7 @@ def test_monitor_draws_the_model_timeline_gaps_and_before_after(tmp_path):
 
     # ---- gaps and hours left out: shaded spans over their mission time
     gap = scalars("/timeline/gaps")
-    assert [t for t, _ in gap] == [GAP * SEG, (GAP + 1) * SEG] and {v[0] for _, v in gap} == {-1.0}
+    assert [t for t, _ in gap] == [GAP * SEG, (GAP + 0.5) * SEG] and {v[0] for _, v in gap} == {-1.0}
     outliers = scalars("/timeline/excluded/outlier")
     # two adjacent FFT segments: one span, no clear between them
     assert sorted({t for t, _ in outliers}) == [3 * SEG, 4 * SEG, 5 * SEG], outliers
@@ -205,3 +208,52 @@ def test_monitor_draws_the_model_timeline_gaps_and_before_after(tmp_path):
     kinds = blueprint_views(m.rrd)
     assert ("TextDocument", f"/{views.TIMELINE_DOC}") in kinds, kinds
     assert sum(1 for k, _ in kinds if k == "TimeSeries") == 24 + 4
+
+
+def test_timeline_lanes_and_spans_are_broken_between_spans():
+    """A lane or span drawn again after a pause is not joined to its earlier part (an
+    ``rr.Clear`` just before it), a span that comes late is closed after it too, and a gap
+    segment without a plan takes its span from the latest segment drawn."""
+    from stages.monitor_timeline import EPS, ModelTimeline
+
+    class Rec:
+        def __init__(self):
+            self.t, self.rows = 0.0, []
+
+        def log(self, entity, *parts):
+            self.rows.append((self.t, entity, parts[0].__class__.__name__))
+
+    rec = Rec()
+    tl = ModelTimeline(rec, lambda t, i: setattr(rec, "t", t), (3e-3, 0.9))
+
+    def fit(k, model, **meta):
+        tl.fit(k, {"model": model, **meta}, k * 100.0, None if k == 0 else k * 100.0 - 50.0, k * 100.0 + 50.0)
+
+    fit(0, ["linear-ttl", "drift"])
+    fit(1, ["linear-ttl"])
+    fit(2, ["linear-ttl", "drift"])  # drift back: its lane broken before it comes back
+    drift = views.timeline_lane(1)
+    assert [(t, kind) for t, e, kind in rec.rows if e == drift] == [
+        (0.0, "Scalars"),
+        (50.0, "Scalars"),
+        (150.0 - EPS, "Clear"),
+        (150.0, "Scalars"),
+        (200.0, "Scalars"),
+    ]
+    out = f"{views.TIMELINE_EXCLUDED}/outlier"
+    fit(3, ["linear-ttl", "drift"], excluded={"t_start": 1000.0, "t_stop": 1100.0, "z": 9.0})
+    fit(4, ["linear-ttl", "drift"], excluded={"t_start": 500.0, "t_stop": 600.0, "z": 9.0})  # late, apart
+    assert [(t, kind) for t, e, kind in rec.rows if e == out] == [
+        (1000.0, "Scalars"),
+        (1100.0, "Scalars"),
+        (500.0 - EPS, "Clear"),
+        (500.0, "Scalars"),
+        (600.0, "Scalars"),
+        (600.0 + EPS, "Clear"),
+    ]
+    tl.segment(7, 700.0, 100.0)
+    tl.gap(9, None)  # no plan: after segment 7 of 100 s
+    assert [(t, kind) for t, e, kind in rec.rows if e == views.TIMELINE_GAPS] == [
+        (900.0, "Scalars"),
+        (1000.0, "Scalars"),
+    ]
