@@ -136,7 +136,8 @@ def band_color(g: int, n: int = 8) -> tuple[int, int, int]:
 
 
 def _series(name: str, contents, legend: bool = False, **kw) -> rrb.TimeSeriesView:
-    """A time series over the whole mission time range, without a legend over its data.
+    """A time series over the whole mission time range, without a legend over its data
+    (``legend``: one in the left top corner, for the model timeline's lanes).
 
     The x axis is set to the whole range (by default it follows the time cursor over a few
     minutes); the data range is left at its default, which is already everything: an
@@ -148,7 +149,8 @@ def _series(name: str, contents, legend: bool = False, **kw) -> rrb.TimeSeriesVi
         name=name,
         contents=contents,
         axis_x=rrb.TimeAxis(view_range=rr.TimeRange(start=everything, end=everything)),
-        plot_legend=rrb.PlotLegend(visible=False) if not legend else None,
+        # a legend in the left top corner: over the earliest fits, where later effects have no lane yet
+        plot_legend=rrb.PlotLegend(corner="lefttop", visible=True) if legend else rrb.PlotLegend(visible=False),
         **kw,
     )
 
