@@ -116,9 +116,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
+from .._lagrange import Taps, apply_taps, shift_taps
 from ..conventions import COEFFICIENT_NAMES, LINKS, MOSAS
 from ..errors import TelemetryError
-from ..tdi.interpolation import Taps, apply_taps, shift_taps
 from .telemetry import Telemetry
 
 #: ``git_url`` root attribute that lisainstrument writes.
@@ -377,7 +377,7 @@ def _delayed(x: np.ndarray, shift: np.ndarray, order: int) -> np.ndarray:
 def _stencil_inside(d: np.ndarray, fs: float, order: int) -> np.ndarray:
     """Where the stencil of ``D_ij`` (delay ``d`` [s]) lies inside the file's samples.
 
-    The same test as :func:`~ttlcore.tdi.interpolation.apply_taps`: sample ``k`` reads
+    The same test as :func:`~ttlcore._lagrange.apply_taps`: sample ``k`` reads
     ``x[base_k .. base_k + order]`` with ``base_k = k + floor(-d[k] fs) - (order - 1)/2``.
     """
     n = d.size
