@@ -10,7 +10,7 @@ import logging
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 from ttlcore.errors import TTLError
 
@@ -20,8 +20,22 @@ from .lifecycle import die_with_launcher
 from .stage_config import StageConfig
 from .stagelog import configure_logging
 
-if TYPE_CHECKING:
-    from .stage import Stage
+
+class _Runs(Protocol):
+    def run(self) -> int: ...
+
+
+class StageProgram(Protocol):
+    """What :func:`stage_main` reads of a stage class: :class:`streamer.stage.Stage` and its
+    subclasses are ones.  Named by its shape rather than imported: :mod:`streamer.stage`
+    imports this module, so an import of it here, even for the type checker only, would close
+    a circle (tests/test_import_graph.py)."""
+
+    name: str
+    default_poll_interval: float
+
+    def __call__(self, config: StageConfig) -> _Runs: ...
+
 
 # the logger of these lines before the stage was split into parts: log lines unchanged
 log = logging.getLogger("streamer.stage")
@@ -88,7 +102,7 @@ def add_common_options(p: argparse.ArgumentParser) -> None:
 
 
 def stage_main(
-    stage_class: type[Stage],
+    stage_class: StageProgram,
     argv: Sequence[str] | None = None,
     add_options: Callable[[argparse.ArgumentParser], None] | None = None,
     options: Callable[[argparse.Namespace], dict] | None = None,

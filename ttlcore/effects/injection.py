@@ -10,7 +10,7 @@ their own exact injection (:class:`ttlcore.effects.shifted.ShiftInjection`).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import Protocol
 
 import numpy as np
 
@@ -18,8 +18,29 @@ from ..errors import ConfigError
 from ..sim.injection import ChunkContext
 from .columns import EffectInput
 
-if TYPE_CHECKING:
-    from .base import Effect
+
+class InjectedEffect(Protocol):
+    """What an injection reads of its effect: :class:`ttlcore.effects.base.Effect` is one.
+
+    Named by its shape rather than imported: :mod:`ttlcore.effects.base` imports this module
+    (``Effect.injection``), so an import of it here, even for the type checker only, would
+    close a circle (tests/test_import_graph.py).
+    """
+
+    @property
+    def name(self) -> str: ...
+
+    @property
+    def options(self) -> dict: ...
+
+    @property
+    def integrates_angles(self) -> bool: ...
+
+    def column_names(self) -> list[str]: ...
+
+    def describe(self) -> dict: ...
+
+    def signal(self, data: EffectInput, values: dict, delayed_onto_links, history: int) -> np.ndarray: ...
 
 
 class EffectInjection:
@@ -28,7 +49,7 @@ class EffectInjection:
     ``values`` maps column names to the true parameter values (column units).
     """
 
-    def __init__(self, effect: Effect, values: dict, name: str | None = None):
+    def __init__(self, effect: InjectedEffect, values: dict, name: str | None = None):
         self.effect = effect
         self.values = {k: float(v) for k, v in values.items()}
         unknown = set(self.values) - set(effect.column_names())
