@@ -431,18 +431,7 @@ EXTENDED = (
 @pytest.mark.timeout(DAY_TIMEOUT)
 @pytest.mark.parametrize(
     "gaps",
-    [
-        False,
-        pytest.param(
-            True,
-            marks=pytest.mark.xfail(
-                strict=True,
-                reason="issue 31, open: the gapped day's coupling is read as glitches on link 12 and "
-                "gated hours; the live model adopted 16 glitches and 7 gates, never the coupling "
-                "(measured 2026-11-27)",
-            ),
-        ),
-    ],
+    [False, True],
     ids=["clean", "gaps"],
 )
 def test_default_cadence_fixes_a_lisainstrument_day(tmp_path, gaps):

@@ -37,7 +37,7 @@ from .candidates import CandidatePool, named_candidates, transient_actions
 from .evidence import change
 from .excess import transient_report
 from .fitting import fit_model
-from .gating import gated_data, with_gates
+from .gating import GatedGrid, gated_data, missing_data, with_gates
 from .model_fit import ModelFit
 from .noise_model import profile_noise_model
 from .report import (
@@ -112,7 +112,8 @@ def diagnose(
     with sp_fft.set_workers(-1):
         say("TDI and spectra")
         ungated = whiten_telemetry(tm, s, effect_modules)
-        data = gated_data(ungated, gates)
+        gaps = missing_data(ungated)  # gated before anything is fitted: the data's, not an effect
+        data = gated_data(ungated, gates, gaps)
         lap("tdi_and_spectra")
         say("fit")
         fits = [fit_model(data, fitted)]
@@ -165,7 +166,9 @@ def diagnose(
         say("candidates")
         report["candidates"] = pool.ranked()
     lap("candidates")
-    refit = functools.partial(gated_model, model, fitted, ungated=ungated if gates else None, gates=gates)
+    refit = functools.partial(
+        gated_model, model, fitted, ungated=ungated if gates or gaps else None, gates=gates, gaps=gaps
+    )
     del ungated
     report["transients"] = transient_report(model, report, refit=refit)
     residual = report["transients"].pop("_residual")
@@ -191,7 +194,7 @@ def diagnose(
     return report
 
 
-def gated_model(model: ModelFit, effects, spans, ungated=None, gates=()) -> ModelFit | None:
+def gated_model(model: ModelFit, effects, spans, ungated=None, gates=(), gaps=()) -> ModelFit | None:
     """``model`` refitted with the ``(start, stop)`` spans [s] gated out (a signal's hours, a
     gap), its noise levels profiled again when they were fitted; None when the gates leave
     too little data.  A model with gates of its own (``gates``) is gated anew from its
@@ -199,14 +202,15 @@ def gated_model(model: ModelFit, effects, spans, ungated=None, gates=()) -> Mode
 
     A loud signal pulls the linear fit (a chirp: by several sigma, ``transients.robustness``)
     and, through the whole day's mis-subtracted TTL noise, everything read outside it. With
-    its span gated (:func:`~ttlcore.diagnose.gating.gated_data`: cosine tapers, the same
+    ``gaps``, the runs of missing data the data were gated for, are gated again with them.
+    With its span gated (:func:`~ttlcore.diagnose.gating.gated_data`: cosine tapers, the same
     window in data and columns) the fit and the levels are those of the quiet data: what a
     user who follows the advice (``gate``) gets.  The transient finder reads the quiet
     tiles on it (:func:`~ttlcore.diagnose.excess.transient_report`'s ``refit``).
     """
     new = [Gate(start=float(a), stop=float(b)) for a, b in spans]
     try:
-        data = gated_data(model.data, new) if ungated is None else gated_data(ungated, [*gates, *new])
+        data = gated_data(model.data, new) if ungated is None else gated_data(ungated, [*gates, *new], gaps)
     except ConfigError as err:  # the gates leave too little data
         log.info("no gated model: %s", err)
         return None
@@ -294,8 +298,8 @@ def _refit(source, effects, settings, effect_modules, dws_asd, baseline, time_ta
         raise ConfigError(f"refit: cannot refit a {type(source).__name__}; give telemetry, TDI data or WhitenedData")
     modules = tuple(effect_modules) or data.context.effect_modules
     gates, fitted = split_gates(make_effects(list(effects), modules))
-    if gates and not getattr(data.grid, "gates", ()):
-        data = gated_data(data, gates)
+    if not isinstance(data.grid, GatedGrid):
+        data = gated_data(data, gates, missing_data(data))
     fits = [fit_model(data, fitted, time_table=time_table)]
     model = _with_noise_levels(fits, time_table) if data.context.settings.noise_model == "fitted" else fits.pop()
     # the baseline on the same (gated) data: its own gates are not columns, and a comparison

@@ -56,13 +56,17 @@ class GatedGrid(AnalysisGrid):
     seg_scale : ndarray (S,)
         ``1 / sqrt(r_s)`` of each kept segment.
     gates : tuple of str
-        The gates' effect specs; ``gate_spans`` their ``(start, stop)`` [s].
+        The model's gates' effect specs; ``gate_spans`` their ``(start, stop)`` [s].
+    gap_spans : tuple of (float, float)
+        Runs of missing data [s] gated the same way (:func:`missing_data`): the data's, not
+        the model's; reported as gaps, never advised.
     """
 
     gate: np.ndarray = field(default_factory=lambda: np.ones(0))
     seg_scale: np.ndarray = field(default_factory=lambda: np.ones(0))
     gates: tuple[str, ...] = ()
     gate_spans: tuple[tuple[float, float], ...] = ()
+    gap_spans: tuple[tuple[float, float], ...] = ()
 
     def spectra(self, x: np.ndarray) -> np.ndarray:
         return super().spectra(x) * self.seg_scale[:, None, None, None]
@@ -78,19 +82,35 @@ class GatedGrid(AnalysisGrid):
         return out * self.gate
 
 
-def gated_data(data: WhitenedData, gates: Iterable[Gate]) -> WhitenedData:
-    """``data`` with the spans of ``gates`` (:class:`Gate`) gated out (its grid a
-    :class:`GatedGrid`); ``data`` itself when there is none.  The noise model is kept; the
-    context is new, with an empty column store (columns built on ungated data do not apply)."""
-    gates = list(gates)
-    if not gates:
+def missing_data(data: WhitenedData) -> list[tuple[float, float]]:
+    """The runs of missing data [s] inside ``data``'s analysed span (NaN in the telemetry,
+    grown by the TDI's reach; :func:`ttlcore.diagnose.transients.data_gaps`), which the
+    diagnosis gates before it fits anything (:func:`gated_data`'s ``gaps``): a hard edge
+    into a gap would leak the red noise below the band into every bin of its segment and
+    read as an excess in the hours around it."""
+    from .transients import data_gaps
+
+    if isinstance(data.grid, GatedGrid):
+        return list(data.grid.gap_spans)
+    return data_gaps(data.tdi.data_series, data.grid.fs, data.grid.t0, data.grid.mask)
+
+
+def gated_data(data: WhitenedData, gates: Iterable[Gate], gaps: Iterable[tuple[float, float]] = ()) -> WhitenedData:
+    """``data`` with the spans of ``gates`` (:class:`Gate`) and the runs of missing data
+    ``gaps`` (``(start, stop)`` [s], :func:`missing_data`) gated out (its grid a
+    :class:`GatedGrid`); ``data`` itself when there is neither.  A gap is gated like a gate
+    of the default taper (:data:`ttlcore.effects.glitch.GATE_TAPER`) and recorded as the
+    data's (``gap_spans``), not the model's.  The noise model is kept; the context is new,
+    with an empty column store (columns built on ungated data do not apply)."""
+    gates, gaps = list(gates), [(float(a), float(b)) for a, b in gaps]
+    if not gates and not gaps:
         return data
     grid = data.grid
     if isinstance(grid, GatedGrid):
         raise ConfigError("these data are already gated")
     n = grid.mask.size
     g = np.ones(n)
-    for e in gates:
+    for e in [*gates, *(Gate(start=a, stop=b) for a, b in gaps)]:
         g = np.minimum(g, gate(n, grid.fs, grid.t0, [e.span], taper=float(e.options["taper"])))
     inside = g <= 0.0
     mask = grid.mask & ~inside
@@ -118,6 +138,7 @@ def gated_data(data: WhitenedData, gates: Iterable[Gate]) -> WhitenedData:
             "seg_scale": np.asarray(scale)[idx],
             "gates": tuple(e.spec() for e in gates),
             "gate_spans": tuple(e.span for e in gates),
+            "gap_spans": tuple(gaps),
         }
     )
     # gated once; inside a span exactly zero (a gap's NaN there too)
@@ -132,17 +153,34 @@ def gated_data(data: WhitenedData, gates: Iterable[Gate]) -> WhitenedData:
     out = WhitenedData(
         grid=gated,
         tdi=replace(data.tdi, data_series=series, regressor_series=regs, d=d),
-        noise=replace(data.noise, wd=wd, dd=dd, key=noise_digest(data.noise.csd) + ":gated:" + ",".join(gated.gates)),
+        noise=replace(
+            data.noise,
+            wd=wd,
+            dd=dd,
+            key=noise_digest(data.noise.csd)
+            + ":gated:"
+            + ",".join([*gated.gates, *(f"gap:{a:.3f}-{b:.3f}" for a, b in gaps)]),
+        ),
         context=replace(data.context, store=ColumnStore()),
     )
     out.context.store.put(("regressors",), out, regressor_columns(out, R))
-    log.info("gated %s: %d of %d segments kept", ", ".join(gated.gates), len(starts), len(grid.starts))
+    log.info(
+        "gated %s and %d gap(s): %d of %d segments kept",
+        ", ".join(gated.gates),
+        len(gaps),
+        len(starts),
+        len(grid.starts),
+    )
     return out
 
 
 def in_gates(data, a: float, b: float) -> bool:
-    """Whether ``[a, b]`` [s] lies inside one of ``data``'s gates (:class:`GatedGrid`)."""
-    return any(lo <= a + 1e-6 and b <= hi + 1e-6 for lo, hi in getattr(data.grid, "gate_spans", ()))
+    """Whether ``[a, b]`` [s] lies inside one of ``data``'s gates or gated gaps (:class:`GatedGrid`),
+    to a sample (a run of zeros found in the gated series ends one sample after the span:
+    the gate is zero at both ends)."""
+    spans = (*getattr(data.grid, "gate_spans", ()), *getattr(data.grid, "gap_spans", ()))
+    tol = 1.0 / data.grid.fs + 1e-6
+    return any(lo <= a + tol and b <= hi + tol for lo, hi in spans)
 
 
 def with_gates(model_json: dict, gates) -> dict:

@@ -451,7 +451,7 @@ def transient_lines(tr: dict) -> list[str]:
         if len(ev) > 5:
             lines.append(f"    ... {len(ev) - 5} more")
         for a, b in tr.get("gaps") or []:
-            lines.append(f"    missing data {a / 3600:.2f}-{b / 3600:.2f} h")
+            lines.append(f"    missing data {a / 3600:.2f}-{b / 3600:.2f} h (gated before the fit)")
     if q.get("chi2_dof") is not None and (ev or tr.get("gaps")):
         lines.append(
             f"    outside them ({q['hours']:.1f} h{', the model refitted with them gated' if q.get('gated') else ''}): "

@@ -71,9 +71,15 @@ def witness_library(tm, dg) -> tuple[list[dict], dict]:
 
     win = window(dg.context.settings.window, L)
     ltt = dict(zip(LINKS, dg.tdi.ltt_mean))
+    # the data's valid samples (its gaps, grown by the TDI's reach) at the telemetry's rate:
+    # a witness is windowed exactly as the data it is compared with, or a gap in the data
+    # would leave the witness' power there unmatched (and a NaN in it would blank the search)
+    k_dec = np.clip(np.round((t - grid.t0) * grid.fs).astype(int), 0, grid.mask.size - 1)
+    valid = grid.mask[k_dec]
 
     def spectra(x):
         out = np.zeros((len(grid.seg_t0), grid.f.size), dtype=complex)
+        x = np.where(valid, np.nan_to_num(x, nan=0.0, posinf=0.0, neginf=0.0), 0.0)
         for i, t0 in enumerate(grid.seg_t0):
             i0 = int(round((t0 - tm.t0) * fs))
             seg = np.zeros(L)
@@ -86,7 +92,8 @@ def witness_library(tm, dg) -> tuple[list[dict], dict]:
 
     raw: dict = {}
     lib: list[dict] = []
-    vel = {"phi": np.asarray(tm.dws_phi), "eta": np.asarray(tm.dws_eta)}
+    # DWS gaps (NaN) at zero: the angles, integrated from the DWS, hold still over a gap
+    vel = {"phi": np.nan_to_num(np.asarray(tm.dws_phi)), "eta": np.nan_to_num(np.asarray(tm.dws_eta))}
     angles = {a: np.cumsum(vel[a], axis=1) / fs for a in ANGLES}
     t_mid = 0.5 * (t[0] + t[-1])
     T = max(t[-1] - t[0], 1.0)
