@@ -37,6 +37,7 @@ from .candidates import CandidatePool, named_candidates, transient_actions
 from .evidence import change
 from .excess import transient_report
 from .fitting import fit_model
+from .gated_ranking import rank_on_gated, reordered
 from .gating import GatedGrid, gated_data, missing_data, with_gates
 from .model_fit import ModelFit
 from .noise_model import profile_noise_model
@@ -48,6 +49,7 @@ from .report import (
     text_report,
 )
 from .settings import DiagnoseSettings
+from .transients import NOT_AN_EFFECT
 from .whitened import WhitenedData, whiten_tdi, whiten_telemetry
 from .witnesses import witness_candidates, witness_search
 
@@ -176,6 +178,15 @@ def diagnose(
     del residual
     gated = report["transients"].pop("_gated")
     report["transients"]["gated_model"] = None if gated is None else gated_model_json(gated, truth_coefficients)
+    verdict = report["transients"]["classification"]
+    signals = [e for e in report["transients"]["events"] if e["class"] in NOT_AN_EFFECT]
+    if gated is not None and signals and verdict["class"] == "missing-coupling":
+        # beside a signal, the candidates are ranked again on the data with it gated: the
+        # simplest that explains the quiet data, not the shape that also takes the signal
+        ranking = rank_on_gated(report["candidates"], gated, s.alpha, s.tolerance)
+        if ranking is not None:
+            report["candidates"] = reordered(report["candidates"], ranking)
+            report["candidates_gated"] = ranking.to_json()
     del gated
     lap("transients")
     report["recommendation"] = recommendation(report, eff)

@@ -281,7 +281,9 @@ def effect_recommendation(report: dict, effects) -> dict | None:
     beside = [e for e in tr.get("events", []) if e["class"] in NOT_AN_EFFECT]
     frac_outside = None
     if fails and beside and q.get("fails") and outside:
-        frac_outside = float(min(1.0, max(best["delta_chi2"], 0.0) / (outside / kappa)))
+        # what it takes of the data with the signals gated, when it was scored there
+        taken = best.get("delta_chi2_gated", best["delta_chi2"])
+        frac_outside = float(min(1.0, max(taken, 0.0) / (outside / kappa)))
         explains = frac_outside >= MIN_EXPLAINED
     out = {
         "effect": best["effect"],
@@ -409,6 +411,13 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
         )
     if not any(c["significant"] for c in cands):
         lines.append("    no candidate is significant")
+    rg = report.get("candidates_gated")
+    if rg:
+        spans = ", ".join(f"{a / 3600:.2f}-{b / 3600:.2f} h" for a, b in rg["spans"][:4])
+        more = f" and {len(rg['spans']) - 4} more" if len(rg["spans"]) > 4 else ""
+        lines.append(
+            f"    scored again with {spans}{more} gated (the signals' hours): {rg['chosen']} first, {rg['reason']}"
+        )
     w = report.get("witnesses")
     if w:
         lines.append(
