@@ -26,6 +26,7 @@ import numpy as np
 from ..effects.glitch import Gate, gate
 from ..errors import ConfigError
 from .columns import ColumnStore, regressor_columns
+from .transients import data_gaps
 from .whitened import AnalysisGrid, WhitenedData, noise_digest
 
 log = logging.getLogger(__name__)
@@ -88,8 +89,6 @@ def missing_data(data: WhitenedData) -> list[tuple[float, float]]:
     diagnosis gates before it fits anything (:func:`gated_data`'s ``gaps``): a hard edge
     into a gap would leak the red noise below the band into every bin of its segment and
     read as an excess in the hours around it."""
-    from .transients import data_gaps
-
     if isinstance(data.grid, GatedGrid):
         return list(data.grid.gap_spans)
     return data_gaps(data.tdi.data_series, data.grid.fs, data.grid.t0, data.grid.mask)
