@@ -1,0 +1,290 @@
+"""Model changes that cannot break a run (issue 33; ``make test-ops``, marker ``ops``).
+
+Real ``ttl run`` processes on a loopback Zenoh, real MCAP files read back:
+
+* bad models sent by ``ttl control`` (an option that does not parse, 100,000 effects, 10,000
+  gates, a gate over the whole day) are refused with the reason printed by ``ttl control``,
+  and the fits and residuals equal those of the clean run;
+* a model change every second for a minute: every fit is published, ``ttl run`` exits 0;
+* SIGKILL of the fitter right after a model change: the fits equal those of the uninterrupted
+  run with the same change to 1e-9;
+* SIGKILL of the fitter just after it published a fit: ``ttl inspect`` shows every fit.
+"""
+
+from __future__ import annotations
+
+import json
+import signal
+import subprocess
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+from ttl_testutil import Procs, finish, output, stage_processes, ttl_command, wait_for
+
+from streamer.keys import control_key
+from streamer.recorder import read_recording
+from streamer.session import Bus, SessionSettings, free_port
+
+pytestmark = pytest.mark.ops
+
+SEGMENTS = 6
+SIM = f"--duration {SEGMENTS}h --orbit unequal --seed 1"
+
+
+def run_args(run_id: str, rec: Path, *extra, sim: str = SIM) -> list[str]:
+    return [
+        "run",
+        "--simulate",
+        sim,
+        "--segment",
+        "1h",
+        "--run-id",
+        run_id,
+        "--recordings",
+        str(rec),
+        "--timeout",
+        "900",
+        "--insecure",
+        *extra,
+    ]
+
+
+def results(run_dir: Path) -> dict:
+    """Fits and residuals of a run by index, from every process's recording."""
+    out: dict = {}
+    for stage, topic in (("fitter", "fit"), ("subtractor", "residual")):
+        out[topic] = {}
+        for path in sorted(run_dir.glob(f"{stage}*.mcap")):
+            for s in read_recording(path).segments(topic):
+                out[topic].setdefault(s.header.index, s.arrays)
+    return out
+
+
+def assert_same(a: dict, b: dict, topics=("fit", "residual"), rtol: float = 0.0) -> None:
+    for topic in topics:
+        assert sorted(a[topic]) == sorted(b[topic]), (topic, sorted(a[topic]), sorted(b[topic]))
+        for i in a[topic]:
+            for name, arr in a[topic][i].items():
+                np.testing.assert_allclose(
+                    b[topic][i][name], arr, rtol=rtol, atol=0, equal_nan=True, err_msg=f"{topic} {i} {name}"
+                )
+
+
+def watch_fits(bus: Bus, run: str) -> dict:
+    """The fitter's latest progress message, kept up to date."""
+    board: dict = {}
+
+    def on_sample(sample):
+        msg = json.loads(sample.payload.to_bytes())
+        board[msg["stage"]] = msg
+
+    bus.segment_subscriber(f"ttl/{run}/control/board/*", on_sample, history=1)
+    return board
+
+
+def handled(board: dict, stage: str = "fitter") -> int:
+    msg = board.get(stage)
+    return sum(b - a + 1 for a, b in (msg or {}).get("done", ())) if msg else 0
+
+
+def model_events(run_dir: Path) -> list[dict]:
+    try:
+        return [e for e in read_recording(run_dir / "fitter.mcap").json("events") if e["kind"] == "model"]
+    except Exception:  # noqa: BLE001 - not written yet
+        return []
+
+
+@pytest.fixture(scope="module")
+def clean(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("clean")
+    procs = Procs(tmp)
+    try:
+        proc = procs.ttl(*run_args("clean", tmp / "rec"))
+        code = finish(proc, 900)
+        assert code == 0, output(proc)[-3000:]
+        yield tmp / "rec" / "clean"
+    finally:
+        procs.close()
+
+
+#: name -> (effects, what the refusal says, sent by ``ttl control``): the large ones exceed
+#: the 128 KiB of one command-line argument and are put on the bus as ``ttl control`` does
+BAD_MODELS = {
+    "option": (["linear-ttl", "step:t_step=abc"], "bad duration 'abc'", True),
+    "effects": (["linear-ttl"] + ["drift"] * 100_000, "100001 effects", False),
+    "gates": (["linear-ttl"] + [f"gate:start={k + 1}s,stop={k + 2}s" for k in range(10_000)], "10001 effects", False),
+    "day-gate": (["linear-ttl", "gate:start=0s,stop=1d"], "gates span", True),
+}
+
+
+def test_bad_models_are_refused_and_change_nothing(clean, tmp_path):
+    """Each bad model is refused by the fitter with its reason, which ``ttl control`` prints
+    (exit 1); none is recorded as a ``model`` event; the fits and residuals equal the clean
+    run's bit for bit."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    procs = Procs(tmp_path)
+    run = "bad-models"
+    sent = {}
+    try:
+        proc = procs.ttl(*run_args(run, tmp_path / "rec", "--listen", endpoint, "--pace", "120"))
+        with Bus.open(SessionSettings(mode="client", connect=(endpoint,))) as bus:
+            board = watch_fits(bus, run)
+            wait_for(lambda: handled(board) >= 1 or proc.poll() is not None, 600, "the first fit")
+            for name, (effects, _, by_command) in BAD_MODELS.items():
+                payload = json.dumps({"effects": effects})
+                if not by_command:
+                    bus.session.put(control_key(run, "fitter", "model"), payload.encode())
+                    continue
+                sent[name] = subprocess.run(
+                    ttl_command(
+                        "control", "fitter", "model", payload, "--run", run, "--connect", endpoint, "--wait", "30"
+                    ),
+                    capture_output=True,
+                    text=True,
+                    timeout=120,
+                )
+            assert proc.poll() is None and handled(board) < SEGMENTS, "the run ended before the bad models were sent"
+            code = finish(proc, 900)
+    finally:
+        procs.close()
+    assert code == 0, output(proc)[-4000:]
+    for name, r in sent.items():
+        needle = BAD_MODELS[name][1]
+        assert r.returncode != 0 and needle in r.stderr, (name, r.returncode, r.stdout[-500:], r.stderr[-1000:])
+    run_dir = tmp_path / "rec" / run
+    assert not model_events(run_dir)
+    controls = read_recording(run_dir / "fitter.mcap").json("control")
+    assert len(controls) == len(BAD_MODELS) and not any(c["accepted"] for c in controls), controls
+    for (_, needle, _), c in zip(BAD_MODELS.values(), controls, strict=True):
+        assert needle in c["message"], c["message"]
+    assert_same(results(clean), results(run_dir))
+
+
+def test_a_model_change_every_second_breaks_no_fit(tmp_path):
+    """A model change every second for a minute (alternating models with and without
+    columns, a gate): every one of the 12 fits is published and the run exits 0."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    procs = Procs(tmp_path)
+    run = "churn"
+    models = [
+        ["linear-ttl", "drift"],
+        ["linear-ttl"],
+        ["linear-ttl", "drift", "gate:start=9h,stop=9.5h"],
+        ["linear-ttl", "gate:start=10h,stop=10.2h"],
+        ["linear-ttl", "step:t_step=8h"],
+    ]
+    stop = threading.Event()
+    n_sent = [0]
+    try:
+        proc = procs.ttl(*run_args(run, tmp_path / "rec", "--listen", endpoint, "--pace", "450", sim="--duration 12h"))
+        with Bus.open(SessionSettings(mode="client", connect=(endpoint,))) as bus:
+            board = watch_fits(bus, run)
+            wait_for(lambda: handled(board) >= 1 or proc.poll() is not None, 600, "the first fit")
+
+            def churn():
+                t_end = time.monotonic() + 60
+                while not stop.is_set() and time.monotonic() < t_end and proc.poll() is None:
+                    m = models[n_sent[0] % len(models)]
+                    bus.session.put(control_key(run, "fitter", "model"), json.dumps({"effects": m}).encode())
+                    n_sent[0] += 1
+                    time.sleep(1.0)
+
+            t = threading.Thread(target=churn, daemon=True)
+            t.start()
+            code = finish(proc, 900)
+            stop.set()
+            t.join(10)
+    finally:
+        procs.close()
+    out = output(proc)
+    assert code == 0, out[-4000:]
+    assert n_sent[0] >= 20, n_sent
+    rec = read_recording(tmp_path / "rec" / run / "fitter.mcap")
+    fits = sorted(s.header.index for s in rec.segments("fit"))
+    assert fits == list(range(12)), (fits, [e["message"] for e in rec.json("errors")][:5])
+    assert not [e for e in rec.json("errors") if e["kind"] == "failed"], rec.json("errors")[:3]
+
+
+def _run_with_change(tmp_path: Path, run: str, kill: bool) -> tuple[Path, int]:
+    """A 6-h run whose fitter gets ``linear-ttl,drift`` while it waits for segment 2 (the
+    change applies from 2 in both runs); with ``kill``, the fitter is killed as soon as the
+    change is recorded."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    procs = Procs(tmp_path)
+    run_dir = tmp_path / "rec" / run
+    try:
+        proc = procs.ttl(*run_args(run, tmp_path / "rec", "--listen", endpoint, "--pace", "300", "--restart", "1"))
+        with Bus.open(SessionSettings(mode="client", connect=(endpoint,))) as bus:
+            board = watch_fits(bus, run)
+            wait_for(lambda: handled(board) >= 2 or proc.poll() is not None, 600, "the second fit")
+            bus.session.put(control_key(run, "fitter", "model"), b'{"effects": ["linear-ttl", "drift"]}')
+            wait_for(lambda: model_events(run_dir) or proc.poll() is not None, 120, "the model event")
+            if kill:
+                stage_processes(proc)["fitter"].send_signal(signal.SIGKILL)
+            code = finish(proc, 900)
+    finally:
+        procs.close()
+    assert code == 0, output(proc)[-4000:]
+    events = model_events(run_dir) if not kill else []
+    for path in run_dir.glob("fitter*.mcap"):
+        events += [e for e in read_recording(path).json("events") if e["kind"] == "model"]
+    return run_dir, int(events[0]["details"]["from_index"])
+
+
+def test_fitter_killed_right_after_a_model_change_restarts_exactly(tmp_path):
+    """SIGKILL of the fitter as soon as a model change is recorded: the restarted fitter
+    fits each segment with the model in force for it, and every fit equals the uninterrupted
+    run's (the same change from the same segment) to 1e-9."""
+    ref, start_ref = _run_with_change(tmp_path / "ref", "ref", kill=False)
+    killed, start = _run_with_change(tmp_path / "killed", "killed", kill=True)
+    if start != start_ref:
+        pytest.skip(f"the change applied from segment {start_ref} and {start}: not comparable")
+    assert (killed / "fitter.1.mcap").exists()
+    assert_same(results(ref), results(killed), topics=("fit",), rtol=1e-9)
+    models = {}
+    for path in sorted(killed.glob("fitter*.mcap")):
+        for s in read_recording(path).segments("fit"):
+            models.setdefault(s.header.index, s.header.meta["model"])
+    assert all(models[i] == (["linear-ttl", "drift"] if i >= start else ["linear-ttl"]) for i in models), models
+
+
+def test_fitter_killed_after_publishing_a_fit_leaves_every_fit_recorded(tmp_path):
+    """SIGKILL of the fitter the moment its third fit is seen on the bus: every fit the
+    subtractor used is in the fitter's recordings, and ``ttl inspect`` shows all of them."""
+    port = free_port()
+    endpoint = f"tcp/127.0.0.1:{port}"
+    procs = Procs(tmp_path)
+    run = "kill-fit"
+    killed = threading.Event()
+    try:
+        proc = procs.ttl(*run_args(run, tmp_path / "rec", "--listen", endpoint, "--pace", "450", "--restart", "1"))
+        with Bus.open(SessionSettings(mode="client", connect=(endpoint,))) as bus:
+
+            def on_fit(sample):
+                if not killed.is_set() and str(sample.key_expr).endswith("/fit/2"):
+                    killed.set()
+                    victim = stage_processes(proc).get("fitter")
+                    if victim is not None:
+                        victim.send_signal(signal.SIGKILL)
+
+            bus.segment_subscriber(f"ttl/{run}/fit/*", on_fit)
+            code = finish(proc, 900)
+    finally:
+        procs.close()
+    assert code == 0 and killed.is_set(), output(proc)[-4000:]
+    run_dir = tmp_path / "rec" / run
+    assert (run_dir / "fitter.1.mcap").exists()
+    fits = set()
+    for path in run_dir.glob("fitter*.mcap"):
+        fits |= {s.header.index for s in read_recording(path).segments("fit")}
+    assert fits == set(range(SEGMENTS)), sorted(fits)
+    r = subprocess.run(ttl_command("inspect", str(run_dir), "--json", "-"), capture_output=True, text=True, timeout=300)
+    assert r.returncode in (0, 1), r.stderr[-2000:]
+    report = json.loads(r.stdout)
+    assert report["fits"]["count"] == SEGMENTS, report["fits"]["indices"]
