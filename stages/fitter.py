@@ -125,6 +125,7 @@ class Fitter(FitterModel, OrderedStage):
         self._restarted = False
         self._caught_up = False
         self.recorded_fits: set[int] = set()
+        self.summarised_fits: set[int] = set()
         self._fresh: tuple[int, float] | None = None  # the last fit that took in new data: index, t_stop
         self._singular: list[str] | None = None  # the model whose window refit was singular (reported)
 

@@ -33,8 +33,10 @@ class FitterModel:
     """The model-change and restart part of :class:`stages.fitter.Fitter` (a mixin: it uses
     the stage's ``model``, ``queue``, ``schedule``, ``window_tm``, recorder and events)."""
 
-    #: segments an earlier process of this stage recorded a fit of (a restarted fitter)
+    #: segments an earlier process of this stage recorded a fit of (a restarted fitter), and
+    #: those whose summary it recorded too (what ``ttl inspect`` lists)
     recorded_fits: set[int]
+    summarised_fits: set[int]
 
     def change_model(self, new: list[str], *, diagnose: bool = True, **why) -> None:
         """The model ``new`` (validated) from the next segment on: queued (it takes effect
@@ -77,8 +79,8 @@ class FitterModel:
         recorded from the segment it applies from on
         (:meth:`stages.live_model.LiveModel.restore`).  A damaged or unreadable file is
         skipped (warned)."""
-        models, fits = recorded_models(self.config.recordings / self.run_id, self.stage_name, self.log)
-        self.recorded_fits = set(fits)
+        models, fits, summaries = recorded_models(self.config.recordings / self.run_id, self.stage_name, self.log)
+        self.recorded_fits, self.summarised_fits = set(fits), set(summaries)
         try:
             restored = self.model.restore(models, fits)
         except (KeyError, TypeError, ValueError, ConfigError) as exc:
@@ -144,22 +146,26 @@ class FitterModel:
 
     def unrecorded(self, index: int) -> bool:
         """Whether segment ``index`` was handled by an earlier process (its fit published,
-        its progress says so) that was killed before its fit reached its recording."""
-        return self._restarted and index not in self.recorded_fits and self.handled_before(index)
+        its progress says so) that was killed before its fit (or its summary) reached its
+        recording."""
+        return self._restarted and index not in self.summarised_fits and self.handled_before(index)
 
     def record_again(self, index: int, out: Output, source) -> None:
         """Record the fit ``out`` of segment ``index`` that an earlier process published and
         did not record (killed in between), without publishing it again: the fit recomputed
-        by the same state is the one published (``fit-recorded-again`` event)."""
+        by the same state is the one published (``fit-recorded-again`` event).  Its summary
+        only when the earlier process recorded the fit message itself."""
         _, fields = output_fields(out, self.run_id, self.stage_name, source)
         payload, attachment = encode(out.arrays, fields, allow_nonfinite=out.allow_nonfinite)
         header = json.loads(attachment)
-        self.recorder.write_segment(out.topic, header, payload)
+        if index not in self.recorded_fits:
+            self.recorder.write_segment(out.topic, header, payload)
         if out.summary is not None:
             self.recorder.write_json(
                 f"{out.topic}/summary", out.summary, schema=out.summary_schema, log_time=mission_ns(header["t0"])
             )
         self.recorded_fits.add(index)
+        self.summarised_fits.add(index)
         self.event(
             "fit-recorded-again",
             index=index,

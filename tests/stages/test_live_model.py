@@ -139,3 +139,47 @@ def test_a_restart_queues_the_recorded_changes_at_their_segments():
         "after": ["linear-ttl"],
         "from_index": 7,
     }
+
+
+def test_a_fit_that_took_in_no_data_is_flagged_stale(tmp_path):
+    """The fitter (real, fed synthetic segments): a fit whose newest FFT segment was gated is
+    the last fit again, flagged ``stale`` with the segment of the fit it repeats; once the
+    gates leave the window without any FFT segment, ``no_data`` and a ``no-data`` warning
+    naming the segment.  (Before, such fits went out as fresh: a gate over the whole day
+    made fits 3-11 bit-identical copies of fit 2.)"""
+    from types import SimpleNamespace
+
+    from stages.fitter import Fitter
+    from streamer.stage import StageConfig
+    from ttlcore.conventions import COEFFICIENT_NAMES
+    from ttlcore.tdi.data import TDIData
+
+    fitter = Fitter(StageConfig(run="u", recordings=tmp_path, options={"adequacy_every": 0, "diagnose_every": 0}))
+    warned = []
+    fitter.warn = lambda kind, message, **kw: warned.append((kind, kw.get("index"), message))
+    fitter.event = lambda *a, **kw: None
+    rng = np.random.default_rng(1)
+    fs, n = 4.0, 2400
+    metas = {}
+    for i in range(5):
+        if i == 2:  # gates over the first 2 segments and the next 2: the window holds nothing to fit
+            fitter.model.change(["linear-ttl", "gate:start=0s,stop=2400s,taper=1s"], 2)
+        if i == 3:
+            fitter.model.change(["linear-ttl"], 3)
+        header = SimpleNamespace(index=i, t0=i * n / fs, meta={"segment_duration": n / fs})
+        td = TDIData(
+            t0=header.t0,
+            fs=fs,
+            channels=("X2", "Y2", "Z2"),
+            data=rng.standard_normal((3, n)),
+            regressors=rng.standard_normal((3, len(COEFFICIENT_NAMES), n)),
+            ltt_mean=np.full(6, 8.3),
+        )
+        tm = telemetry(n)
+        tm.t0 = header.t0
+        out = fitter.process(header, (td, tm))
+        metas[i] = out.fields["meta"] if out is not None else None
+    assert "stale" not in metas[0] and "stale" not in metas[1]
+    assert metas[2]["stale"] == {"since": 1, "no_data": True}
+    assert [i for k, i, _ in warned if k == "no-data"] == [2], warned
+    assert "stale" not in metas[3] and "stale" not in metas[4]  # the gate left: fresh fits again
