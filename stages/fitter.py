@@ -34,9 +34,14 @@ becomes the model from the next segment on.  A control message
 ``ttl/<run>/control/fitter/model`` (``{"effects": [...]}``) does the same by hand.  Every
 change is a ``model`` event (``by``: ``control``, ``adopt auto``, or ``window`` for the
 transients - glitches, gates - that leave the model once their span has left the window), and
-its first fit message carries ``model_change`` (both models refitted on the window).  A
-restarted fitter takes the model in force from those events (:meth:`Fitter.restore_model`) and
-rebuilds its window from the replayer's recorded telemetry (:meth:`Fitter.catch_up`).  The
+its first fit message carries ``model_change`` (both models refitted on the window).  A change
+is checked completely when asked for (a refused one is never recorded, its reason goes back to
+the sender), then queued and applied at the start of the segment it applies from, never within
+a segment (:mod:`stages.fitter_model`).  A restarted fitter queues the recorded changes again,
+each from its own segment (:meth:`FitterModel.restore_model`), rebuilds its window from the
+replayer's recorded telemetry (:meth:`FitterModel.catch_up`) and records the fits its
+predecessor published but did not record.  A fit that took in no new data carries ``stale``
+(``no_data`` and a warning when its window holds none).  The
 run's last segment, often short, closes its FFT segment with a gap (``RollingFit.flush``): every
 segment gets its fit, and one that gets none is a ``no-fit`` warning naming it and why.
 """

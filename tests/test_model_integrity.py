@@ -214,6 +214,7 @@ def _adopting_run(tmp_path: Path, data: Path, run: str, kill: bool) -> Path:
     """Three hours in 30-min segments with a witness the first diagnosis (segment 2)
     recommends and ``--adopt auto`` adopts from segment 3; with ``kill``, SIGKILL of the
     fitter as soon as the adoption's ``model`` event is in its recording."""
+    tmp_path.mkdir(parents=True, exist_ok=True)
     procs = Procs(tmp_path)
     run_dir = tmp_path / "rec" / run
     try:
@@ -240,8 +241,21 @@ def _adopting_run(tmp_path: Path, data: Path, run: str, kill: bool) -> Path:
             "monitor",
         )
         if kill:
-            wait_for(lambda: model_events(run_dir) or proc.poll() is not None, 600, "the adoption")
-            stage_processes(proc)["fitter"].send_signal(signal.SIGKILL)
+            # the fitter logs the change as it adopts it, before the fit of the diagnosed
+            # segment is published: killed within those milliseconds, the restarted fitter
+            # recomputes that segment (main recomputed it with the new model)
+            log = run_dir / "fitter.log"
+            wait_for(lambda: log.exists() or proc.poll() is not None, 600, "the fitter's log")
+            victim = stage_processes(proc)["fitter"]
+            with log.open("rb") as f:
+                seen = [b""]
+
+                def adopted():
+                    seen[0] = seen[0][-100:] + f.read()
+                    return b"model change:" in seen[0] or proc.poll() is not None
+
+                wait_for(adopted, 600, "the adoption", 0.001)
+            victim.send_signal(signal.SIGKILL)
         code = finish(proc, 900)
     finally:
         procs.close()
