@@ -179,8 +179,11 @@ class LiveModel:
         ValueError naming the effect whose columns cannot be built on it."""
         data = effect_input_from_telemetry(window)
         for e in effects:
-            if e.name == "linear-ttl" or e.active_span() is not None:
-                continue  # the 24 regressors; a transient's columns vanish outside its span
+            if e.name == "linear-ttl" or e.active_span() is not None or e.needs_coefficients or e.unresolved():
+                # the 24 regressors; a transient's columns vanish outside its span; an effect
+                # whose columns need the fitted coefficients or searched parameters is built by
+                # the window refit (its search on the window)
+                continue
             try:
                 e.columns(data)
             except (ValueError, TypeError, KeyError, IndexError, ArithmeticError) as exc:

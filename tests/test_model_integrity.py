@@ -210,10 +210,10 @@ def test_a_model_change_every_second_breaks_no_fit(tmp_path):
     assert not [e for e in rec.json("errors") if e["kind"] == "failed"], rec.json("errors")[:3]
 
 
-def _adopting_run(tmp_path: Path, data: Path, run: str, kill: bool) -> Path:
+def _adopting_run(tmp_path: Path, data: Path, run: str, kill: bytes | None) -> Path:
     """Three hours in 30-min segments with a witness the first diagnosis (segment 2)
     recommends and ``--adopt auto`` adopts from segment 3; with ``kill``, SIGKILL of the
-    fitter as soon as the adoption's ``model`` event is in its recording."""
+    fitter the moment its log shows that line."""
     tmp_path.mkdir(parents=True, exist_ok=True)
     procs = Procs(tmp_path)
     run_dir = tmp_path / "rec" / run
@@ -240,21 +240,18 @@ def _adopting_run(tmp_path: Path, data: Path, run: str, kill: bool) -> Path:
             "--skip",
             "monitor",
         )
-        if kill:
-            # the fitter logs the change as it adopts it, before the fit of the diagnosed
-            # segment is published: killed within those milliseconds, the restarted fitter
-            # recomputes that segment (main recomputed it with the new model)
+        if kill is not None:
             log = run_dir / "fitter.log"
             wait_for(lambda: log.exists() or proc.poll() is not None, 600, "the fitter's log")
             victim = stage_processes(proc)["fitter"]
             with log.open("rb") as f:
                 seen = [b""]
 
-                def adopted():
-                    seen[0] = seen[0][-100:] + f.read()
-                    return b"model change:" in seen[0] or proc.poll() is not None
+                def logged():
+                    seen[0] = seen[0][-200:] + f.read()
+                    return kill in seen[0] or proc.poll() is not None
 
-                wait_for(adopted, 600, "the adoption", 0.001)
+                wait_for(logged, 600, kill.decode(), 0.001)
             victim.send_signal(signal.SIGKILL)
         code = finish(proc, 900)
     finally:
@@ -263,26 +260,40 @@ def _adopting_run(tmp_path: Path, data: Path, run: str, kill: bool) -> Path:
     return run_dir
 
 
-def test_fitter_killed_right_after_an_adoption_restarts_exactly(tmp_path):
-    """SIGKILL of the fitter as soon as ``--adopt auto`` adopted a model: the restarted
-    fitter fits each segment with the model that was in force for it (the segment of the
-    diagnosis with the model before), and every fit equals the uninterrupted run's to 1e-9."""
+@pytest.fixture(scope="module")
+def adoption(tmp_path_factory):
+    """The witness data and the uninterrupted run that adopts it."""
     from test_live_loop import simulate
 
-    data, _ = simulate(tmp_path, "3h", 3, "blind-witness:source=12.eta,link=23,delay=2,gain=5e-3")
-    ref = _adopting_run(tmp_path / "ref", data, "ref", kill=False)
-    killed = _adopting_run(tmp_path / "killed", data, "killed", kill=True)
+    tmp = tmp_path_factory.mktemp("adoption")
+    data, _ = simulate(tmp, "3h", 3, "blind-witness:source=12.eta,link=23,delay=2,gain=5e-3")
+    return data, _adopting_run(tmp / "ref", data, "ref", None)
+
+
+def fit_models(run_dir: Path) -> dict:
+    out: dict = {}
+    for path in sorted(run_dir.glob("fitter*.mcap")):
+        for s in read_recording(path).segments("fit"):
+            out.setdefault(s.header.index, s.header.meta["model"])
+    return out
+
+
+# the fitter logs the change as it adopts it, before the fit of the diagnosed segment is
+# published: killed within those milliseconds, the restarted fitter recomputes that segment
+# (main: with the new model, labelled with it); killed two segments after the adoption, it
+# rebuilds its window across the change (main: the model in force from the run's start)
+@pytest.mark.parametrize("kill", [b"model change:", b"segment 4: fit over"], ids=["at-adoption", "after"])
+def test_fitter_killed_after_an_adoption_restarts_exactly(adoption, kill, tmp_path):
+    """SIGKILL of the fitter right after ``--adopt auto`` adopted a model, and two segments
+    later: the restarted fitter fits each segment with the model that was in force for it,
+    and every fit equals the uninterrupted run's to 1e-9."""
+    data, ref = adoption
+    killed = _adopting_run(tmp_path, data, "killed", kill)
     assert (killed / "fitter.1.mcap").exists(), "the fitter was not killed before the run ended"
-    a, b = results(ref), results(killed)
-    assert_same(a, b, topics=("fit",), rtol=1e-9)
-    models = {}
-    for run_dir in (ref, killed):
-        models[run_dir.name] = {}
-        for path in sorted(run_dir.glob("fitter*.mcap")):
-            for s in read_recording(path).segments("fit"):
-                models[run_dir.name].setdefault(s.header.index, s.header.meta["model"])
-    assert models["ref"] == models["killed"], models
-    assert models["ref"][2] == ["linear-ttl"] and models["ref"][5] != ["linear-ttl"], models["ref"]
+    assert_same(results(ref), results(killed), topics=("fit",), rtol=1e-9)
+    models = fit_models(ref)
+    assert fit_models(killed) == models
+    assert models[2] == ["linear-ttl"] and models[5] != ["linear-ttl"], models
 
 
 def test_fitter_killed_after_publishing_a_fit_leaves_every_fit_recorded(tmp_path):
