@@ -220,7 +220,7 @@ class LiveModel:
             self.diagnose_due = self.diagnose_due or c["diagnose"]
         if any(c["due"] for c in applied) and self.effects != before:
             self.change_due = {"before": before, "after": list(self.effects), "from_index": index}
-        elif self.change_due is not None and not any(c["due"] for c in applied):
+        else:  # back to the model last reported, or changes an earlier process reported
             self.change_due = None
         return applied
 

@@ -242,8 +242,8 @@ def _adopting_run(tmp_path: Path, data: Path, run: str, kill: bytes | None) -> P
         )
         if kill is not None:
             log = run_dir / "fitter.log"
+            victim = wait_for(lambda: stage_processes(proc).get("fitter") or proc.poll() is not None, 600, "the fitter")
             wait_for(lambda: log.exists() or proc.poll() is not None, 600, "the fitter's log")
-            victim = stage_processes(proc)["fitter"]
             with log.open("rb") as f:
                 seen = [b""]
 
