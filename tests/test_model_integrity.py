@@ -6,9 +6,13 @@ Real ``ttl run`` processes on a loopback Zenoh, real MCAP files read back:
   gates, a gate over the whole day) are refused with the reason printed by ``ttl control``,
   and the fits and residuals equal those of the clean run;
 * a model change every second for a minute: every fit is published, ``ttl run`` exits 0;
-* SIGKILL of the fitter right after ``--adopt auto`` adopted a model: the fits equal those
-  of the uninterrupted run to 1e-9;
+* SIGKILL of the fitter right after ``--adopt auto`` adopted a model, and two segments later:
+  the fits equal those of the uninterrupted run to 1e-9, each with the model in force for its
+  segment, and every fit is recorded with its summary;
 * SIGKILL of the fitter just after it published a fit: ``ttl inspect`` shows every fit.
+
+The refusals (bad option, limits), the queue of changes applied at segment boundaries and the
+restart's queue are unit-tested in tests/stages/test_live_model.py.
 """
 
 from __future__ import annotations
