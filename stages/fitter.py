@@ -34,9 +34,14 @@ becomes the model from the next segment on.  A control message
 ``ttl/<run>/control/fitter/model`` (``{"effects": [...]}``) does the same by hand.  Every
 change is a ``model`` event (``by``: ``control``, ``adopt auto``, or ``window`` for the
 transients - glitches, gates - that leave the model once their span has left the window), and
-its first fit message carries ``model_change`` (both models refitted on the window).  A
-restarted fitter takes the model in force from those events (:meth:`Fitter.restore_model`) and
-rebuilds its window from the replayer's recorded telemetry (:meth:`Fitter.catch_up`).  The
+its first fit message carries ``model_change`` (both models refitted on the window).  A change
+is checked completely when asked for (a refused one is never recorded, its reason goes back to
+the sender), then queued and applied at the start of the segment it applies from, never within
+a segment (:mod:`stages.fitter_model`).  A restarted fitter queues the recorded changes again,
+each from its own segment (:meth:`FitterModel.restore_model`), rebuilds its window from the
+replayer's recorded telemetry (:meth:`FitterModel.catch_up`) and records the fits its
+predecessor published but did not record.  A fit that took in no new data carries ``stale``
+(``no_data`` and a warning when its window holds none).  The
 run's last segment, often short, closes its FFT segment with a gap (``RollingFit.flush``): every
 segment gets its fit, and one that gets none is a ``no-fit`` warning naming it and why.
 """
@@ -48,7 +53,6 @@ import sys
 import numpy as np
 from threadpoolctl import threadpool_limits
 
-from streamer.keys import to_ranges
 from streamer.memtrace import release_free_memory
 from streamer.messages import tdi_expect, tdi_of, telemetry_of
 from streamer.pipeline_stage import OrderedStage
@@ -66,16 +70,16 @@ from ttlcore.tdi.data import TDIData
 
 from .fit_message import UNITS, fit_meta, fit_summary, notices, rolling_estimate
 from .fit_window import TelemetryWindow
+from .fitter_model import FitterModel, adoption_refused
 from .fitter_options import ADOPT_MODES, MODEL_UPDATES, add_options, one_of, options
-from .fitter_recordings import pushed_again, recorded_models, recorded_telemetry
-from .fitter_schedule import TRANSIENT_SPACING, DiagnosisSchedule
+from .fitter_schedule import DiagnosisSchedule
 from .live_diagnosis import control_command, diagnosis_meta
 from .live_model import LiveModel
 from .rolling_model import RollingModel, rolling_outputs
 from .window_refit import window_refit, window_refit_meta
 
 
-class Fitter(OrderedStage):
+class Fitter(FitterModel, OrderedStage):
     """Rolling-window fit of the TTL coefficients (ttlcore.estimate.rolling.RollingFit), and
     of any extended model on the window's telemetry (ttlcore.diagnose.diagnoser.refit).
 
@@ -108,7 +112,7 @@ class Fitter(OrderedStage):
         self._next_t0: float | None = None
         self.effect_modules = tuple(o.get("effect_modules") or ())
         try:
-            self.model = LiveModel(o.get("effects") or ["linear-ttl"], self.effect_modules)
+            self.model = LiveModel(o.get("effects") or ["linear-ttl"], self.effect_modules, self.window_duration)
         except (ValueError, ConfigError) as exc:
             raise ConfigError(f"fitter --effects: {exc}") from None
         self.adequacy_every = int(o.get("adequacy_every", 24) or 0)
@@ -125,6 +129,10 @@ class Fitter(OrderedStage):
         self._last_td: TDIData | None = None
         self._restarted = False
         self._caught_up = False
+        self.recorded_fits: set[int] = set()
+        self.summarised_fits: set[int] = set()
+        self._fresh: tuple[int, float] | None = None  # the last fit that took in new data: index, t_stop
+        self._singular: list[str] | None = None  # the model whose window refit was singular (reported)
 
     @property
     def effects(self) -> list[str]:
@@ -146,39 +154,6 @@ class Fitter(OrderedStage):
         self._restarted = any((self.config.recordings / self.run_id).glob(f"{self.stage_name}.*.mcap"))
         if self._restarted:
             self.restore_model()
-
-    def restore_model(self) -> None:
-        """A restarted fitter: the model in force is the last one an earlier process of this
-        stage accepted (``model`` events of ``<stage>.<n>.mcap``, oldest file first), and its
-        ``model_change`` is still due when no fit was recorded from the segment it applies
-        from on (:meth:`stages.live_model.LiveModel.restore`).  A damaged or unreadable file
-        is skipped (warned)."""
-        models, fits = recorded_models(self.config.recordings / self.run_id, self.stage_name, self.log)
-        try:
-            restored = self.model.restore(models, fits)
-        except (KeyError, TypeError, ValueError, ConfigError) as exc:
-            self.report_error(
-                "failed",
-                f"restart: the recorded model change cannot be restored ({exc}); "
-                f"the configured model {','.join(self.effects)} stays",
-                field="model",
-            )
-            return
-        if restored is None:
-            return
-        start, due = restored
-        effects = self.effects
-        self.event(
-            "model-restored",
-            index=start,
-            message=f"model {','.join(effects)} restored from the earlier "
-            f"process (in force from segment {start}"
-            f"{'; its model change is still to be reported' if due else ''})",
-            effects=effects,
-            from_index=start,
-            change_due=due,
-        )
-        self.log.info("restart: model %s restored (from segment %d)", ",".join(effects), start)
 
     def settings(self, meta: dict) -> FitSettings:
         kwargs = {"segment_duration": self.fit_segment or float(meta.get("segment_duration") or 3600.0)}
@@ -226,34 +201,6 @@ class Fitter(OrderedStage):
         self._next_t0 = td.t0 + n / td.fs
         self.event("gap", index=index, message=f"tdi segment {index} missing: {n} NaN samples pushed, window kept")
 
-    # ------------------------------------------------------------------ the model
-    def change_model(self, new: list[str], *, diagnose: bool = True, **why) -> None:
-        """The model ``new`` from the next segment on (a ``model`` event records it and why);
-        its first segment diagnosed unless ``diagnose`` is False."""
-        start = self.queue.next if self.queue.next is not None else 0
-        if diagnose and self.model.only_transients_added(new):  # diagnosed a little later
-            diagnose = False
-            self.schedule.later(start + TRANSIENT_SPACING)
-        before = list(self.effects)
-        self.log.info("model change: %s -> %s from segment %d", ",".join(before), ",".join(new), start)
-        self.event(
-            "model",
-            index=start,
-            message=f"model {','.join(new)} from segment {start} on",
-            effects=new,
-            before=before,
-            from_index=start,
-            **why,
-        )
-        self.model.change(new, start, diagnose=diagnose)
-
-    def control(self, command: str, payload: bytes):
-        """``model``: ``{"effects": [...]}`` changes the model from the next segment on."""
-        if command != "model":
-            return super().control(command, payload)
-        self.change_model(self.model.parse_control(payload), by="control")
-        return ()
-
     def window_telemetry(self) -> Telemetry:
         """The window's telemetry, one series (:func:`streamer.messages.concatenate_telemetry`:
         the same as ``ttl refit`` builds from the recorded segments)."""
@@ -286,6 +233,8 @@ class Fitter(OrderedStage):
             )
         except (TTLError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
             # the rolling fit of this segment stands; the refit is tried again when next due
+            if isinstance(exc, np.linalg.LinAlgError):
+                self.singular_model(header.index, exc)
             self.step_failed(
                 "window-refit-failed",
                 header.index,
@@ -335,14 +284,22 @@ class Fitter(OrderedStage):
         )
         rec = out["recommendation"]
         if self.adopt == "auto" and ok:
-            out["adoption"]["adopted"] = True
-            self.change_model(
-                self.model.check(rec["effects"]),
-                by="adopt auto",
-                diagnosis_index=header.index,
-                reason=out["adoption"]["reason"],
-                recommendation=to_jsonable(rec),
-            )
+            try:
+                adopted = self.model.check(rec["effects"])
+            except (ValueError, ConfigError) as exc:  # a limit: the model stays
+                adoption_refused(out, exc)
+                self.warn(
+                    "adoption-refused", f"fit {header.index}: recommendation not adopted: {exc}", index=header.index
+                )
+            else:
+                out["adoption"]["adopted"] = True
+                self.change_model(
+                    adopted,
+                    by="adopt auto",
+                    diagnosis_index=header.index,
+                    reason=out["adoption"]["reason"],
+                    recommendation=to_jsonable(rec),
+                )
         self.event(
             "diagnosis",
             index=header.index,
@@ -356,44 +313,6 @@ class Fitter(OrderedStage):
         """The ``ttl control`` command that puts ``effects`` in this fitter's model."""
         return control_command(self.run_id, self.stage_name, self.config.zenoh, effects)
 
-    # ------------------------------------------------------------------ restarts
-    def catch_up(self, first: int) -> None:
-        """A restarted fitter whose first segment is ``first`` > 0: rebuild the rolling window
-        and the telemetry window by pushing again the segments before it, their TDI computed
-        again from the replayer's recorded telemetry (``<recordings>/<run>/replayer*.mcap``;
-        the same TDI stream as the TDI builder's, from the run's first segment), never from
-        the publishers' caches alone.  From the start of the run when the recordings have it,
-        so that the state (window, weights of the full refits) is the uninterrupted run's."""
-        segments = recorded_telemetry(self.config.recordings / self.run_id, first, self.log)
-        start = first
-        while start - 1 in segments:
-            start -= 1
-        if start > 0:
-            self.report_error(
-                "window-shortened",
-                f"restart: telemetry segments before {start} are not in the "
-                f"recordings; the window restarts at {start} instead of the run's start",
-                index=first,
-                details={"recorded": to_ranges(sorted(segments))},
-            )
-        restored = list(self.effects)
-        self._catching_up = True
-        try:
-            for header, item in pushed_again(segments, start, first):
-                self.process(header, item)
-        finally:
-            self._catching_up = False
-            self.model.effects = restored
-        self.event(
-            "restored",
-            index=first,
-            message=f"window rebuilt from the replayer's recorded telemetry: segments "
-            f"{start}..{first - 1} pushed again",
-            first=start,
-            last=first - 1,
-        )
-        self.log.info("restart: window rebuilt from segments %d..%d of the recordings", start, first - 1)
-
     # ------------------------------------------------------------------ a segment
     def process(self, header, item) -> Output | None:
         """Push one segment into the rolling fit and the telemetry window; the fit message if
@@ -402,8 +321,7 @@ class Fitter(OrderedStage):
         if self.rolling is None and header.index > 0 and self._restarted and not self._caught_up:
             self._caught_up = True
             self.catch_up(header.index)
-        if self._catching_up:
-            self.model.replay(header.index)
+        self.model.apply(header.index)  # the changes queued for this segment: at its start only
         if self.rolling is not None and self._next_t0 is not None and abs(td.t0 - self._next_t0) > 0.5 / td.fs:
             self.event(
                 "discontinuity",
@@ -442,19 +360,6 @@ class Fitter(OrderedStage):
                 "(a sustained excess, not a transient): the window is diagnosed now",
                 segments=self.schedule.sustained,
             )
-
-    def drop_expired(self, index: int) -> None:
-        """Transients of the model (glitches, gates) whose span has left the window leave the
-        model from the next segment on (a ``model`` event ``by: window`` with the specs
-        ``removed``; the recordings keep them for offline refits of their span), so that the
-        model's size stays bounded over any run."""
-        if self._catching_up or not len(self.window_tm) or not self.model.extended or self.model.change_due:
-            return  # (a change still to be reported first: the transients go at the next segment)
-        gone = self.model.expired(self.window_tm.t_start)
-        if not gone:
-            return
-        kept = [e for e in self.effects if e not in gone]
-        self.change_model(kept, diagnose=False, by="window", removed=gone, decided_at=index)
 
     def last_segment(self, index: int) -> bool:
         """Whether segment ``index`` is the run's last (the replayer's plan says how many)."""
@@ -517,7 +422,8 @@ class Fitter(OrderedStage):
         # a segment an earlier process published the fit of (replayed, or pushed again to
         # rebuild the window): its window fit and diagnosis would be thrown away
         replayed = self.handled_before(header.index)
-        window = None if replayed else self.window_fit(header)
+        again = self.unrecorded(header.index)  # published, not recorded: recomputed whole, recorded
+        window = None if replayed and not again else self.window_fit(header)
         if (
             window is None
             and not replayed
@@ -564,6 +470,9 @@ class Fitter(OrderedStage):
             meta.update(window)
         if live is not None:
             meta["diagnosis"] = live
+        stale = self.staleness(header.index, res)
+        if stale is not None:
+            meta["stale"] = stale
         summary = fit_summary(self.run_id, header.index, res, meta, arrays)
         self.log.info(
             "segment %d: fit over [%.0f, %.0f] s (%d FFT segments), chi2/dof %.3f",
@@ -574,13 +483,52 @@ class Fitter(OrderedStage):
             res.chi2_dof,
         )
         self.record_notices(header.index, res, meta)
-        return Output(
+        out = Output(
             self.output_topic,
             arrays,
             fields={"units": UNITS, "meta": to_jsonable(meta)},
             summary=to_jsonable(summary),
             summary_schema="ttl.Fit",
             allow_nonfinite=True,
+        )
+        if again:
+            self.record_again(header.index, out, header)
+        return out
+
+    def staleness(self, index: int, res) -> dict | None:
+        """Meta ``stale`` of a fit that took in no new data (its window did not move: the
+        newest FFT segment was a gap, gated or an outlier; the rolling fit's result is the last
+        fit's): ``since``, the segment of the last fit that did, and ``no_data`` when the
+        window holds no FFT segment at all - then a ``no-data`` warning names the segment, so
+        that a copy is never taken for a fresh fit."""
+        if self._fresh is None or res.t_stop > self._fresh[1] or self.rolling is None:
+            self._fresh = (index, float(res.t_stop))
+            return None
+        no_data = self.rolling.n_segments == 0
+        if no_data and not self._catching_up:
+            self.warn(
+                "no-data",
+                f"fit {index}: the window holds no data (every FFT segment in it gated, a gap or left out): "
+                f"the fit of segment {self._fresh[0]} is published again, flagged stale",
+                index=index,
+                since=self._fresh[0],
+            )
+        return {"since": self._fresh[0], "no_data": no_data}
+
+    def singular_model(self, index: int, exc: Exception) -> None:
+        """The window refit of the model in force was singular: the effects beyond
+        ``linear-ttl`` are reported once per model (``model-singular``): one of them is not
+        determined by the window (a glitch that explains nothing, a column of zeros)."""
+        if self._singular == self.effects:
+            return
+        self._singular = list(self.effects)
+        others = [e for e in self.effects if e != "linear-ttl"]
+        self.warn(
+            "model-singular",
+            f"fit {index}: the window refit of the model is singular ({exc}): one of {', '.join(others) or '-'} "
+            "is not determined by the window; the rolling estimate is published until the model changes",
+            index=index,
+            effects=others,
         )
 
     def record_notices(self, index: int, res, meta: dict) -> None:

@@ -29,13 +29,15 @@ def _file_number(path: Path, stage: str) -> int:
 
 def recorded_models(
     run_dir: Path, stage: str, log: logging.Logger | logging.LoggerAdapter
-) -> tuple[list[dict], set[int]]:
-    """The ``model`` events of the earlier processes of ``stage`` (oldest file first) and the
+) -> tuple[list[dict], set[int], set[int]]:
+    """The ``model`` events of the earlier processes of ``stage`` (oldest file first), the
     segments they recorded a fit of (the fit message or its summary: a kill between the two
-    leaves only the former)."""
+    leaves only the former), and those whose summary is recorded (what ``ttl inspect``
+    lists)."""
     files = sorted(Path(run_dir).glob(f"{stage}.*.mcap"), key=lambda p: _file_number(p, stage))
     models: list[dict] = []
-    fits: set[int] = set()
+    segments: set[int] = set()
+    summaries: set[int] = set()
     for path in files:
         try:
             rec = read_recording(path)
@@ -44,9 +46,9 @@ def recorded_models(
             continue
         models += [e for e in rec.json("events") if e.get("kind") == "model"]
         # the fit's segment is written before its summary: a kill between leaves only the former
-        fits.update(m.header.index for m in rec.segments("fit"))
-        fits.update(s["index"] for s in rec.json("fit/summary") if isinstance(s.get("index"), int))
-    return models, fits
+        segments.update(m.header.index for m in rec.segments("fit"))
+        summaries.update(s["index"] for s in rec.json("fit/summary") if isinstance(s.get("index"), int))
+    return models, segments | summaries, summaries
 
 
 def recorded_telemetry(run_dir: Path, first: int, log: logging.Logger | logging.LoggerAdapter) -> dict:

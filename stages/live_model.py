@@ -6,17 +6,27 @@ a control message (``ttl/<run>/control/fitter/model``, :meth:`LiveModel.parse_co
 by the adoption of a live diagnosis' recommendation; the change is then due in the next fit
 message (``model_change``) and the new model is diagnosed on its first segment.
 
-A restarted fitter takes the model in force from the ``model`` events of its earlier
-processes' recordings (:meth:`LiveModel.restore`) and, while it rebuilds its window, the model
-of each segment it pushes again (:meth:`LiveModel.replay`): its state is then the
-uninterrupted run's.  The stage records the events; this class only holds the state.
+A change is checked completely when it is asked for (:meth:`LiveModel.check`: every option,
+the size limits, its columns built on the newest telemetry, the size of the fit header it
+makes) and queued (:meth:`LiveModel.request`); it takes effect at a segment boundary only,
+when the segment it applies from is about to be processed (:meth:`LiveModel.apply`): a
+segment is always fitted with one model from its start to its end.
+
+A restarted fitter queues again the changes of its earlier processes (``model`` events,
+:meth:`LiveModel.restore`): each takes effect at its own segment while the window is rebuilt
+and afterwards, so that a segment is recomputed with the model that was in force for it and the
+state is the uninterrupted run's.  The stage records the events; this class only holds the
+state.
 """
 
 from __future__ import annotations
 
 import json
 
-from ttlcore.effects import make_effects, split_effects
+from streamer.codec import MAX_HEADER_BYTES
+from ttlcore.conventions import DAY
+from ttlcore.effects import effect_input_from_telemetry, make_effects, split_effects
+from ttlcore.effects.glitch import split_gates
 from ttlcore.errors import ConfigError
 
 #: Most effects a live model may hold (a day of glitches and gates, with room): a control
@@ -24,6 +34,32 @@ from ttlcore.errors import ConfigError
 MAX_EFFECTS = 64
 #: Most columns of a live model (the 24 linear ones included; a drift adds 24, a glitch 1)
 MAX_COLUMNS = 256
+#: Most gates of a live model (a gate adds no column, but a span of the window left out)
+MAX_GATES = 32
+#: Most of the window the gates of a live model may span together (the union of their spans):
+#: a gate over the whole day left the window without data, and every later fit was a copy of
+#: the last one published under a new index
+MAX_GATED_FRACTION = 0.5
+#: Most bytes of the fit header the model's own fields may take (``model``, ``model_change``,
+#: ``extra_parameters``, ``model_parts``, the gates of ``adequacy``): the whole header is
+#: refused beyond :data:`streamer.codec.MAX_HEADER_BYTES` (10,000 gates made a fit header
+#: larger than that: the fit was lost)
+MAX_MODEL_HEADER_BYTES = MAX_HEADER_BYTES // 4
+
+
+def header_bytes(effects: list[str], columns: list[str], gates: int) -> int:
+    """An upper estimate of the bytes the model's fields take in a fit header: the specs
+    three times (``model``, ``model_change``'s ``before`` and ``after``) and once more as
+    ``model_parts``, each column with two full-precision numbers, each gate's span."""
+    number = -1.2345678901234567e-100
+    fields = {
+        "model": effects,
+        "model_change": {"before": effects, "after": effects},
+        "model_parts": effects,
+        "extra_parameters": {c: [number, number] for c in columns},
+        "gates": [[number, number]] * gates,
+    }
+    return len(json.dumps(fields))
 
 
 class LiveModel:
@@ -35,6 +71,9 @@ class LiveModel:
         The configured model (a list of effect specs, or one comma-separated string).
     effect_modules : sequence of str
         Plugin modules or ``.py`` files defining effects (the stage's configuration).
+    window_duration : float
+        The fitter's window [s]: the gates of a model span at most
+        :data:`MAX_GATED_FRACTION` of it.
 
     Attributes
     ----------
@@ -42,19 +81,21 @@ class LiveModel:
         The validated specs of the model in force.
     initial : list of str
         The configured model (what a restarted fitter replays before the first change).
-    history : list of (int, list of str)
-        The recorded changes of earlier processes: (segment it applies from, effects).
+    pending : list of dict
+        The changes asked for and not yet in force, in the order asked: ``effects``,
+        ``from_index``, ``due`` (its ``model_change`` is still to be reported), ``diagnose``.
     change_due : dict or None
         A change not yet reported in a fit message: ``before``, ``after``, ``from_index``.
     diagnose_due : bool
         The first segment of a new model is diagnosed (cleared once it was).
     """
 
-    def __init__(self, effects, effect_modules=()):
+    def __init__(self, effects, effect_modules=(), window_duration: float = DAY):
         self.effect_modules = tuple(effect_modules)
+        self.window_duration = float(window_duration)
         self.effects = self.check(effects)
         self.initial = list(self.effects)
-        self.history: list[tuple[int, list[str]]] = []
+        self.pending: list[dict] = []
         self.change_due: dict | None = None
         self.diagnose_due = False
 
@@ -63,8 +104,23 @@ class LiveModel:
         """True when the model holds more than ``linear-ttl``."""
         return self.effects != ["linear-ttl"]
 
-    def check(self, specs) -> list[str]:
-        """Validated effect specs of a model (a list, or one comma-separated string)."""
+    def check(self, specs, window=None) -> list[str]:
+        """Validated effect specs of a model (a list, or one comma-separated string).
+
+        Parameters
+        ----------
+        specs : list of str or str
+            The model asked for.
+        window : ttlcore.io.telemetry.Telemetry, optional
+            The newest telemetry of the window: the model's columns are built on it too (an
+            option that only fails on real data is refused now, not at the next segment).
+
+        Raises
+        ------
+        ValueError
+            Naming what is wrong: an effect or option at fault, or a limit exceeded
+            (docs/operations.md, "Control messages and model limits").
+        """
         if isinstance(specs, str):  # the command line's form (docs/cli.md, "Effect specs")
             specs = split_effects(specs)
         if not isinstance(specs, (list, tuple)) or not specs or not all(isinstance(s, str) for s in specs):
@@ -77,23 +133,102 @@ class LiveModel:
             raise ValueError("effects: the model must include linear-ttl")
         # every option read now, not at the next segment: the effect's columns are built on a
         # stand-in input (``step:t_step=abc`` was accepted, then failed every later segment)
-        n_columns = 0
+        columns: list[str] = []
         for e in effects:
             try:
-                n_columns += len(e.column_names())
+                columns += e.column_names()
             except (ValueError, TypeError, KeyError) as exc:  # ConfigError is a ValueError
                 raise ValueError(f"effects: {e.spec()}: {exc}") from None
-        if n_columns > MAX_COLUMNS:
-            raise ValueError(f"effects: {n_columns} columns, at most {MAX_COLUMNS} (docs/operations.md, model limits)")
-        return [e.spec() for e in effects]
+        if len(columns) > MAX_COLUMNS:
+            raise ValueError(
+                f"effects: {len(columns)} columns, at most {MAX_COLUMNS} (docs/operations.md, model limits)"
+            )
+        self.check_gates(split_gates(effects)[0])
+        out = [e.spec() for e in effects]
+        size = header_bytes(out, columns, len(split_gates(effects)[0]))
+        if size > MAX_MODEL_HEADER_BYTES:
+            raise ValueError(
+                f"effects: the model takes about {size} bytes of the fit header, at most {MAX_MODEL_HEADER_BYTES} "
+                f"(the header's limit is {MAX_HEADER_BYTES}; docs/operations.md, model limits)"
+            )
+        if window is not None:
+            self.check_columns(effects, window)
+        return out
+
+    def check_gates(self, gates) -> None:
+        """At most :data:`MAX_GATES` gates, spanning together (their union) at most
+        :data:`MAX_GATED_FRACTION` of the window; ValueError otherwise."""
+        if len(gates) > MAX_GATES:
+            raise ValueError(f"effects: {len(gates)} gates, at most {MAX_GATES} (docs/operations.md, model limits)")
+        total, end = 0.0, -float("inf")
+        for a, b in sorted(g.span for g in gates):  # the union of the spans
+            a = max(a, end)
+            if b > a:
+                total += b - a
+            end = max(end, b)
+        limit = MAX_GATED_FRACTION * self.window_duration
+        if total > limit:
+            raise ValueError(
+                f"effects: the gates span {total / 3600:.3g} h in total, at most {limit / 3600:.3g} h "
+                f"({MAX_GATED_FRACTION:.0%} of the {self.window_duration / 3600:.3g}-h window: the window "
+                "would hold no data to fit; docs/operations.md, model limits)"
+            )
+
+    def check_columns(self, effects, window) -> None:
+        """Build the columns of ``effects`` on the telemetry ``window`` (the newest segment):
+        ValueError naming the effect whose columns cannot be built on it."""
+        data = effect_input_from_telemetry(window)
+        for e in effects:
+            if e.name == "linear-ttl" or e.active_span() is not None or e.needs_coefficients or e.unresolved():
+                # the 24 regressors; a transient's columns vanish outside its span; an effect
+                # whose columns need the fitted coefficients or searched parameters is built by
+                # the window refit (its search on the window)
+                continue
+            try:
+                e.columns(data)
+            except (ValueError, TypeError, KeyError, IndexError, ArithmeticError) as exc:
+                raise ValueError(f"effects: {e.spec()}: its columns cannot be built on the window ({exc})") from None
+
+    def request(self, new: list[str], start: int, *, diagnose: bool = True, due: bool = True) -> bool:
+        """Queue the model ``new`` (validated) from segment ``start`` on (:meth:`apply` puts
+        it in force); False when it is the model already in force or queued for ``start``
+        (nothing to record)."""
+        after = self.pending[-1]["effects"] if self.pending else self.effects
+        if list(new) == list(after):
+            return False
+        self.pending.append({"effects": list(new), "from_index": int(start), "due": due, "diagnose": diagnose})
+        return True
+
+    @property
+    def planned(self) -> list[str]:
+        """The model of the next segment (the last change queued, else the model in force)."""
+        return list(self.pending[-1]["effects"]) if self.pending else list(self.effects)
+
+    def apply(self, index: int) -> list[dict]:
+        """Segment ``index`` is about to be processed: the changes queued for it (from
+        ``index`` or earlier) take effect, in the order they were asked for; their change is
+        due in the next fit message (one ``model_change``, from the model before the first
+        to the model after the last) and the new model is diagnosed on its first segment.
+        Returns the changes applied."""
+        applied = [c for c in self.pending if c["from_index"] <= index]
+        if not applied:
+            return []
+        self.pending = [c for c in self.pending if c["from_index"] > index]
+        before = self.change_due["before"] if self.change_due else list(self.effects)
+        for c in applied:
+            self.effects = list(c["effects"])
+            self.diagnose_due = self.diagnose_due or c["diagnose"]
+        if any(c["due"] for c in applied) and self.effects != before:
+            self.change_due = {"before": before, "after": list(self.effects), "from_index": index}
+        else:  # back to the model last reported, or changes an earlier process reported
+            self.change_due = None
+        return applied
 
     def change(self, new: list[str], start: int, *, diagnose: bool = True) -> None:
-        """The model ``new`` (validated) from segment ``start`` on: its change is due, its
-        first segment diagnosed (unless ``diagnose`` is False: a transient that left the
-        window takes nothing new to diagnose)."""
-        self.change_due = {"before": list(self.effects), "after": new, "from_index": start}
-        self.diagnose_due = self.diagnose_due or diagnose
-        self.effects = new
+        """The model ``new`` (validated) in force from segment ``start`` on at once
+        (:meth:`request` then :meth:`apply`)."""
+        self.request(new, start, diagnose=diagnose)
+        self.apply(start)
 
     def only_transients_added(self, new: list[str]) -> bool:
         """Whether the model ``new`` differs from the one in force by transients alone (gates,
@@ -116,9 +251,10 @@ class LiveModel:
                 out.append(spec)
         return out
 
-    def parse_control(self, payload: bytes) -> list[str]:
-        """The model a control message ``{"effects": [...]}`` asks for, validated; ValueError
-        saying what is wrong with the message otherwise."""
+    def parse_control(self, payload: bytes, window=None) -> list[str]:
+        """The model a control message ``{"effects": [...]}`` asks for, validated (its
+        columns built on ``window``, the newest telemetry, when given); ValueError saying
+        what is wrong with the message otherwise."""
         try:
             msg = json.loads(payload)
         except ValueError as exc:
@@ -131,23 +267,23 @@ class LiveModel:
                 "stage's configuration only"
             )
         try:
-            return self.check(msg["effects"])
+            return self.check(msg["effects"], window=window)
         except ConfigError as exc:
             raise ValueError(str(exc)) from None
 
     def restore(self, models: list[dict], fits: set[int]) -> tuple[int, bool] | None:
-        """Take the model in force from the ``model`` events of earlier processes (oldest
-        first), given the segments they recorded a fit of.
-
-        The last event's model is in force; its change is still due when no fit was recorded
-        from the segment it applies from on.  Every event that can be read goes into
-        :attr:`history` (one that cannot: the segments before it keep the model before).
+        """Queue again the model changes of earlier processes (their ``model`` events, oldest
+        first), given the segments they recorded a fit of: each takes effect at its own
+        segment (:meth:`apply`), while the window is rebuilt and after, so that every segment
+        is fitted with the model that was in force for it.  A change's ``model_change`` is
+        still due when no fit was recorded from the segment it applies from on.  An event that
+        cannot be read is skipped (the segments from it on keep the model before).
 
         Returns
         -------
         (int, bool) or None
-            The segment the model applies from and whether its change is due; None when no
-            model was recorded (the configured model stays).
+            The segment the last change applies from and whether its change is due; None
+            when no model was recorded (the configured model stays).
 
         Raises
         ------
@@ -157,27 +293,21 @@ class LiveModel:
         if not models:
             return None
         d = models[-1].get("details") or {}
-        effects, before = self.check(d["effects"]), list(d["before"])
+        last = self.check(d["effects"])
         start = int(d["from_index"])
-        self.effects = effects
+        queued = []
         for e in models:
             try:
                 d_e = e.get("details") or {}
-                self.history.append((int(d_e["from_index"]), self.check(d_e["effects"])))
+                i = int(d_e["from_index"])
+                queued.append({"effects": self.check(d_e["effects"]), "from_index": i, "diagnose": True})
             except (KeyError, TypeError, ValueError, ConfigError):
-                continue  # a change that cannot be restored: the segments before it use the model before
+                continue  # a change that cannot be restored: the segments from it keep the model before
+        for c in queued:
+            c["due"] = not any(i >= c["from_index"] for i in fits)
+        # by the segment each applies from; in the order asked among those of one segment
+        self.pending = sorted(queued, key=lambda c: c["from_index"])
         due = not any(i >= start for i in fits)
-        if due:
-            self.change_due = {"before": before, "after": effects, "from_index": start}
-            self.diagnose_due = True
+        if not self.pending or self.pending[-1]["effects"] != last:
+            raise ValueError(f"the last recorded change {last} cannot be queued again")
         return start, due
-
-    def replay(self, index: int) -> None:
-        """While a restarted fitter catches up: the model in force at segment ``index`` (the
-        configured one, then each recorded change from its segment on), so that the rolling
-        fit is rebuilt where the uninterrupted run rebuilt it."""
-        effects = self.initial
-        for start, changed in sorted(self.history, key=lambda c: c[0]):
-            if start <= index:
-                effects = changed
-        self.effects = list(effects)

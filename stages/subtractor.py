@@ -131,6 +131,7 @@ class Subtractor(PipelineStage):
                 "t_start": header.meta.get("t_start"),
                 "t_stop": header.meta.get("t_stop"),
                 "parts": dict(zip(parts, x)) if parts else {},
+                "stale": header.meta.get("stale"),  # a fit that took in no new data (stages/fitter.py)
             }
         else:
             if header.index in self.done:
@@ -278,6 +279,8 @@ class Subtractor(PipelineStage):
         }
         if missing:
             meta["model_parts_missing"] = missing
+        if fit.get("stale"):
+            meta["fit_stale"] = fit["stale"]  # the fit applied is an earlier one's again, not fresh
         arrays = {"residual": residual, "ttl_model": model}
         if parts:
             arrays["effect_model"] = np.stack(list(parts.values()))

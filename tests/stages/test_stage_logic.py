@@ -265,7 +265,8 @@ def test_run_options_merge_config_file_and_command_line(tmp_path):
 
 def test_restarted_fitter_recovers_the_model_in_force(tmp_path):
     """A model changed by a control message survives a restart: taken from the earlier
-    process's recording, its model_change still due when no fit followed it."""
+    process's recording, queued from its segment, its model_change still due when no fit
+    followed it."""
     from stages.fitter import Fitter
     from streamer.recorder import Recorder
 
@@ -278,11 +279,18 @@ def test_restarted_fitter_recovers_the_model_in_force(tmp_path):
             rec.write_json("fit/summary", {"index": i})
         first.control("model", b'{"effects": ["linear-ttl", "drift"]}')
     first.recorder = None
+    # queued: in force from segment 5, not within segment 4
+    assert first.effects == ["linear-ttl"] and len(first.model.planned) == 2
+    first.model.apply(5)
     assert len(first.effects) == 2 and first.effects[1].startswith("drift")
 
     second = Fitter(StageConfig(run="u", recordings=tmp_path, options={"effects": ["linear-ttl"]}))
     second.restore_model()
-    assert second.effects == first.effects != ["linear-ttl"]
+    assert second.model.planned == first.effects and second.effects == ["linear-ttl"]
+    second.model.apply(4)
+    assert second.effects == ["linear-ttl"]  # segment 4 is refitted with the model before the change
+    second.model.apply(5)
+    assert second.effects == first.effects
     assert second.model.change_due == {"before": ["linear-ttl"], "after": first.effects, "from_index": 5}
 
     # killed again after fit 5 was out: the model holds, its change was reported already
@@ -290,6 +298,7 @@ def test_restarted_fitter_recovers_the_model_in_force(tmp_path):
         rec.write_json("fit/summary", {"index": 5})
     third = Fitter(StageConfig(run="u", recordings=tmp_path))
     third.restore_model()
+    third.model.apply(6)
     assert third.effects == first.effects and third.model.change_due is None
 
     # no model event in the earlier recordings: the configured model stays
