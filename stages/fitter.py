@@ -424,29 +424,9 @@ class Fitter(FitterModel, OrderedStage):
         replayed = self.handled_before(header.index)
         again = self.unrecorded(header.index)  # published, not recorded: recomputed whole, recorded
         window = None if replayed and not again else self.window_fit(header)
-        if (
-            window is None
-            and not replayed
-            and self.model.extended
-            and self.rolling_model.column_effects(self.effects) is None
-        ):
-            self.warn(
-                "model-not-fitted",
-                f"fit {header.index}: the model {','.join(self.effects)} could not be fitted "
-                "on the window (too short for its spectra): the linear rolling fit is "
-                "published, and only the linear TTL is subtracted",
-                index=header.index,
-            )
-        live = None
-        if not replayed and self.diagnosis_due(header.index):
-            try:
-                live = self.live_diagnosis(header)
-            except (TTLError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
-                # the window's fit stands without its diagnosis: published, the failure recorded
-                self.model.diagnose_due = False
-                self.step_failed(
-                    "diagnosis-failed", header.index, "live diagnosis", exc, "the fit is published without it"
-                )
+        if window is None and not replayed:
+            self.warn_if_not_fitted(header.index)
+        live = None if replayed else self.diagnosis_if_due(header)
         if window is not None or live is not None:
             release_free_memory()  # the refit's and the diagnosis' temporaries: not kept for the next peak
         meta = fit_meta(
@@ -494,6 +474,30 @@ class Fitter(FitterModel, OrderedStage):
         if again:
             self.record_again(header.index, out, header)
         return out
+
+    def warn_if_not_fitted(self, index: int) -> None:
+        """A ``model-not-fitted`` warning when an extended model had no window refit and
+        the rolling model cannot fit it either (the window too short for its spectra)."""
+        if self.model.extended and self.rolling_model.column_effects(self.effects) is None:
+            self.warn(
+                "model-not-fitted",
+                f"fit {index}: the model {','.join(self.effects)} could not be fitted "
+                "on the window (too short for its spectra): the linear rolling fit is "
+                "published, and only the linear TTL is subtracted",
+                index=index,
+            )
+
+    def diagnosis_if_due(self, header) -> dict | None:
+        """The live diagnosis of the window when due (None otherwise, or when it failed: the
+        window's fit stands without it, published, the failure recorded)."""
+        if not self.diagnosis_due(header.index):
+            return None
+        try:
+            return self.live_diagnosis(header)
+        except (TTLError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
+            self.model.diagnose_due = False
+            self.step_failed("diagnosis-failed", header.index, "live diagnosis", exc, "the fit is published without it")
+            return None
 
     def staleness(self, index: int, res) -> dict | None:
         """Meta ``stale`` of a fit that took in no new data (its window did not move: the
