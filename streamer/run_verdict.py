@@ -172,7 +172,10 @@ def report(la: Any, abort: str | None) -> int:
         if status == 0:
             status = EXIT_LOST
     if abort:
-        la.say(f"run stopped: {abort}" + (f"; {lost_text[2:]}" if lost_text and total else ""))
+        # what was lost, but after a Ctrl-C or SIGTERM (the run was stopped on purpose: the
+        # line stays "run stopped: interrupted")
+        stopped = abort in ("interrupted", "terminated")
+        la.say(f"run stopped: {abort}" + (f"; {lost_text[2:]}" if lost_text and not stopped else ""))
         return {"interrupted": 130, "terminated": 143}.get(abort, 1)
     files = sorted(p.name for p in la.run_dir.glob("*.mcap")) + sorted(p.name for p in la.run_dir.glob("*.rrd"))
     refused = f", {len(la.refused)} refusal(s) by the router (security.jsonl)" if la.refused else ""
