@@ -13,25 +13,48 @@ statuses of its stage processes:
 
 A gap in the data is not a loss: a segment with no data (``gaps`` in some stage's progress,
 the replayer's ``gap`` error) needs neither; a NaN stretch inside a segment still gets its
-fit (the window's fit before it, flagged ``excluded.gap``) and its residual.  The final
-summary line names the lost segments and what each lacked.
+fit (the window's fit before it, flagged ``excluded.gap``) and its residual.  A segment the
+fitter had no data to fit yet (its ``no-fit`` warning: "the window holds no FFT segment with
+data yet", the first segments gapped, gated or left out) needs no fit either
+(:func:`no_data_yet`, read from the fitter's recordings only when some segment lacks a fit).
+The final summary line names the lost segments and what each lacked.
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Iterable, Mapping
+from pathlib import Path
 from typing import Any
 
 from ttlcore.conventions import parse_duration
 
 from .keys import to_ranges
 from .progress import Progress
+from .recording_reader import RecordingError, read_recording
 
-__all__ = ["EXIT_LOST", "conflicts", "fit_span", "lost_segments", "report", "spans"]
+__all__ = ["EXIT_LOST", "conflicts", "fit_span", "lost_segments", "no_data_yet", "report", "spans"]
 
 #: Exit status of a run that ended with every segment handled but some lost (no fit, no residual).
 EXIT_LOST = 3
+#: What the fitter's ``no-fit`` warning says of a segment it had no data to fit yet
+#: (``stages.fitter.Fitter.no_fit``): not a loss.
+NO_DATA_YET = "no FFT segment with data yet"
+
+
+def no_data_yet(run_dir: Path, indices: Iterable[int]) -> set[int]:
+    """Of ``indices``, the segments whose ``no-fit`` warning (in ``<run_dir>/fitter*.mcap``)
+    says the fitter had no data to fit yet (:data:`NO_DATA_YET`); unreadable files give none."""
+    wanted, out = set(indices), set()
+    for path in sorted(Path(run_dir).glob("fitter*.mcap")):
+        try:
+            warnings = read_recording(path).json("warnings")
+        except (RecordingError, OSError, ValueError):
+            continue
+        for w in warnings:
+            if w.get("kind") == "no-fit" and w.get("index") in wanted and NO_DATA_YET in str(w.get("message")):
+                out.add(w["index"])
+    return out
 
 
 def spans(indices: Iterable[int], limit: int = 10) -> str:
@@ -73,6 +96,7 @@ def lost_segments(
     progress: Mapping[str, Progress],
     errors: Iterable = (),
     span: int = 1,
+    no_data: Iterable[int] = (),
 ) -> dict[str, list[int]]:
     """The plan's segments outside the gaps in the data that got no fit or no residual.
 
@@ -92,6 +116,8 @@ def lost_segments(
     span : int
         Segments per FFT segment of the fitter (:func:`fit_span`): segment ``i`` has a fit
         when some fit ``j`` has ``i <= j < i + span``.
+    no_data : list of int
+        Segments the fitter had no data to fit yet (:func:`no_data_yet`): no fit needed.
 
     Returns
     -------
@@ -118,7 +144,8 @@ def lost_segments(
         fitted: set[int] = set()
         for j in fits:
             fitted.update(range(max(0, j - span + 1), j + 1))
-        no_fit = [i for i in wanted if i not in fitted or i in missing]
+        excused = set(no_data)
+        no_fit = [i for i in wanted if (i not in fitted and i not in excused) or i in missing]
     no_residual: list[int] = []
     if "subtractor" in expected:
         sub = progress.get("subtractor")
@@ -164,6 +191,10 @@ def report(la: Any, abort: str | None) -> int:
         status = 1
     span = fit_span(la.opts.stage_options.get("fitter") or {}, la.run_plan)
     lost = lost_segments(total, la.expected, la.progress, la.errors, span)
+    if lost["no_fit"]:  # those the fitter had no data for yet are not lost (its recordings say)
+        no_data = no_data_yet(la.run_dir, lost["no_fit"])
+        if no_data:
+            lost = lost_segments(total, la.expected, la.progress, la.errors, span, no_data)
     lost_text = ""
     if lost["lost"]:
         parts = [f"no fit: {spans(lost['no_fit'])}"] if lost["no_fit"] else []

@@ -385,3 +385,23 @@ def test_nested_control_payload_is_refused_by_every_stage(tmp_path):
         for i, arrays in ref[topic].items():
             for name, arr in arrays.items():
                 np.testing.assert_array_equal(got[topic][i][name], arr, err_msg=f"{topic} {i} {name}")
+
+
+def test_a_segment_the_fitter_had_no_data_for_yet_is_not_lost(tmp_path):
+    """Its ``no-fit`` warning (in the fitter's recording) says "no FFT segment with data yet"
+    (the first segments gated or gapped): not a loss; a segment the window could not fit is."""
+    from streamer.recorder import Recorder, stage_record
+
+    run_dir = tmp_path / "r1"
+    run_dir.mkdir()
+    with Recorder(run_dir / "fitter.mcap", metadata={"run": "r1", "stage": "fitter"}) as rec:
+        for i, why in (
+            (0, "the window holds no FFT segment with data yet (the first ones were gaps or left out)"),
+            (5, "no FFT segment completed, or the window determines no parameter"),
+        ):
+            rec.write_json(
+                "warnings", stage_record("r1", "fitter", "no-fit", f"segment {i}: no fit published: {why}", index=i)
+            )
+    la, out = launcher(tmp_path, board(12, [1, 2, 3, 4, 6, 7, 8, 9, 10, 11], range(12)))
+    assert la.report(None) == 3, out.getvalue()
+    assert "1 lost outside the gaps (no fit: 5)" in out.getvalue(), out.getvalue()
