@@ -350,15 +350,19 @@ def send_model(run: str, port: int, effects: list) -> subprocess.CompletedProces
 
 def clean_run_with(procs: Procs, rec: Path, schedule: list[tuple[int, list]], why: str) -> Path:
     """The reference: a run without kills that takes the same model changes from the same
-    segments.  Before segment ``k`` of a change is published, the replayer is stopped
-    (SIGSTOP) once it has published ``k - 1``; the change is sent when the fitter has handled
-    ``k - 1`` and the replayer continued once the fitter recorded it from ``k``."""
+    segments (without the monitor, which changes no fit or residual).
+
+    With ``--window 1`` the replayer publishes segment ``i`` only once every stage has handled
+    ``i - 1``; the subtractor is stopped (SIGSTOP) once it has handled ``k - 2``, so the replayer
+    can publish ``k - 1`` but not ``k``; the change is sent once the fitter has handled
+    ``k - 1``, and the subtractor continued (SIGCONT) once the fitter recorded the change from
+    ``k``.  (Stopping the replayer after ``k - 1`` raced with it: a replayer behind its pace
+    published ``k - 1`` and ``k`` back to back.)"""
     port = free_port()
-    pace = 600 / 3.0  # a segment every 3 s: the stop comes between two segments
     proc = procs.ttl(
         "run", "--simulate", SIM, "--segment", "10min", "--run-id", "clean", "--recordings", str(rec),
         "--listen", f"tcp/127.0.0.1:{port}", "--timeout", "7200", "--insecure", "--quiet",
-        "--pace", f"{pace:g}", *ADOPT_AUTO, name="clean",
+        "--window", "1", "--skip", "monitor", *ADOPT_AUTO, name="clean",
     )  # fmt: skip
     run_dir = rec / "clean"
     with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
@@ -366,15 +370,24 @@ def clean_run_with(procs: Procs, rec: Path, schedule: list[tuple[int, list]], wh
         made = 0  # changes recorded so far
         for k, group in itertools.groupby(schedule, key=lambda c: c[0]):
             wait_for(
-                lambda k=k: k - 1 in handled(seen, "replayer") or proc.poll() is not None, 3600, f"replayer at {k - 1}"
+                lambda k=k: (
+                    (k < 2 or k - 2 in handled(seen, "subtractor"))
+                    and "subtractor" in stage_processes(proc)
+                    or proc.poll() is not None
+                ),
+                3600,
+                f"subtractor at {k - 2}",
             )
-            replayer = stage_processes(proc)["replayer"]
-            replayer.send_signal(signal.SIGSTOP)
+            subtractor = stage_processes(proc)["subtractor"]
+            subtractor.send_signal(signal.SIGSTOP)
             try:
-                assert k not in handled(seen, "replayer"), f"{why} segment {k} went out before the replayer stopped"
+                assert k - 1 not in handled(seen, "subtractor"), (
+                    f"{why} the subtractor passed {k - 1} before it stopped"
+                )
                 wait_for(
                     lambda k=k: k - 1 in handled(seen, "fitter") or proc.poll() is not None, 3600, f"fitter at {k - 1}"
                 )
+                assert k not in handled(seen, "replayer"), f"{why} segment {k} went out before the change"
                 for _, effects in group:  # in the order the chaos run's fitter made them
                     res = send_model("clean", port, effects)
                     assert res.returncode == 0, (why, res.stdout, res.stderr)
@@ -385,7 +398,7 @@ def clean_run_with(procs: Procs, rec: Path, schedule: list[tuple[int, list]], wh
                         f"the model change from {k}",
                     )
             finally:
-                replayer.send_signal(signal.SIGCONT)
+                subtractor.send_signal(signal.SIGCONT)
     assert finish(proc, 7200) == 0, output(proc)[-3000:]
     assert control_changes(run_dir) == schedule, (why, control_changes(run_dir), schedule)
     return run_dir
