@@ -32,6 +32,14 @@ out no earlier than ``i * segment_duration / X`` seconds after the first: X time
 Before the first segment the replayer waits until the stages in ``wait_for`` are alive
 (liveliness tokens).  A restarted replayer resumes one segment before the first one that
 some stage reporting progress still lacks.
+
+Pinned inputs
+-------------
+The files are pinned in the run's plan (``Plan.inputs``, :mod:`streamer.input_pins`): a
+replayer started or restarted with a plan refuses files that are not those, unchanged, and
+checks a file's size and modification time before and after reading each segment.  A file
+changed under the run is an ``input-changed`` error naming it and what changed, and the
+replayer stops (exit status 2): no segment is read from a file the run was not planned with.
 """
 
 from __future__ import annotations
@@ -45,6 +53,7 @@ from pathlib import Path
 
 import numpy as np
 
+from streamer.input_pins import InputChanged, check_pins, check_stat, pin
 from streamer.pipeline_stage import PipelineStage
 from streamer.plan import Plan
 from streamer.progress import REPLAY_WINDOW
@@ -76,16 +85,25 @@ class _Piece:
 
 
 class FileSource:
-    """Segments of one or more telemetry files, in mission-time order."""
+    """Segments of one or more telemetry files, in mission-time order.
 
-    def __init__(self, paths, segment_duration: float):
+    Every file is pinned when opened (:func:`streamer.input_pins.pin`: size, modification
+    time, sampled digest); with ``planned`` (the pins of the run's plan) the files must be
+    those, unchanged, and before each segment is read its file is checked again (one
+    ``stat``): :class:`streamer.input_pins.InputChanged` otherwise.
+    """
+
+    def __init__(self, paths, segment_duration: float, planned=None):
         if not paths:
             raise ConfigError("--telemetry: no file given")
+        if planned:  # a run's replayer, started or restarted: the files it was planned with
+            check_pins(planned, paths)
         self.files = []
         for p in paths:
             path = Path(p)
             if not path.exists():
                 raise TelemetryError(path, "no such file")
+            pinned = pin(path)
             kind = file_kind(path)
             if kind == "truth":
                 raise TelemetryError(path, "this is a truth file; give the telemetry file beside it")
@@ -113,6 +131,8 @@ class FileSource:
                 }
             tp = truth_path(path)
             entry["truth"] = str(tp) if tp.exists() else None
+            check_stat(pinned)  # not changed while its header was read
+            entry["pin"] = pinned
             self.files.append(entry)
         self.files.sort(key=lambda e: e["t0"])
         fs = self.files[0]["fs"]
@@ -149,7 +169,8 @@ class FileSource:
         table = None
         if len(self.files) > 1:
             table = tuple((self.files[p.file]["t0"] + p.start / self.fs, p.stop - p.start) for p in self.pieces)
-        return Plan(self.segments_total, self.fs, float(first["t0"]), n, int(first["size"]), table)
+        inputs = tuple(e["pin"] for e in self.files)
+        return Plan(self.segments_total, self.fs, float(first["t0"]), n, int(first["size"]), table, inputs=inputs)
 
     def describe(self) -> str:
         names = ", ".join(str(e["path"]) for e in self.files)
@@ -158,10 +179,12 @@ class FileSource:
     def segment(self, i: int) -> tuple[Telemetry, dict]:
         piece = self.pieces[i]
         e = self.files[piece.file]
-        if e["data"] is not None:
+        if e["data"] is not None:  # read whole at open (and pinned then)
             tm = e["data"].slice(piece.start, piece.stop)
-        else:
+        else:  # the file as pinned, before and after the read (replaced while read)
+            check_stat(e["pin"])
             tm = read_telemetry(e["path"], piece.start, piece.stop)
+            check_stat(e["pin"])
         meta = {
             "source": str(e["path"]),
             "truth": e["truth"],
@@ -219,8 +242,9 @@ class SimulationSource:
         return tm, {"source": "simulation", "truth": truth, "file": None, "dws_asd": self.dws_asd}
 
 
-def make_source(options: dict):
-    """The source described by the stage options (``telemetry`` or ``simulate``, ``segment``)."""
+def make_source(options: dict, planned=None):
+    """The source described by the stage options (``telemetry`` or ``simulate``, ``segment``);
+    ``planned``: the pins of the run's plan (``Plan.inputs``) the files must match."""
     segment = options.get("segment", DEFAULT_SEGMENT)
     segment = parse_duration(segment, "--segment")
     files, simulate = options.get("telemetry"), options.get("simulate")
@@ -229,7 +253,7 @@ def make_source(options: dict):
     if simulate:
         return SimulationSource(simulate, segment)
     if files:
-        return FileSource([files] if isinstance(files, str) else files, segment)
+        return FileSource([files] if isinstance(files, str) else files, segment, planned)
     raise ConfigError('no telemetry source: give --telemetry FILE... or --simulate "<ttl simulate options>"')
 
 
@@ -247,7 +271,8 @@ class Replayer(PipelineStage):
     def __init__(self, config):
         super().__init__(config)
         o = self.options
-        self.source = make_source(o)
+        # the files as the run was planned (restarted too): a changed file stops it here
+        self.source = make_source(o, (config.plan or {}).get("inputs"))
         self.segments_total = self.source.segments_total
         self.segment_duration = self.source.segment_duration
         self.pace = float(o.get("pace") or 0.0)
@@ -265,6 +290,17 @@ class Replayer(PipelineStage):
         self._t_start = 0.0
         self._last_check = 0.0
         self._last_log = 0.0
+        #: Why the replayer stopped on its own: an input file changed under the run.
+        self.input_changed: InputChanged | None = None
+
+    def run(self) -> int:
+        """:meth:`streamer.stage.Stage.run`; exit status 2 with one line naming the file when
+        an input file changed under the run (the recording closed as on any stop)."""
+        code = super().run()
+        if self.input_changed is not None:
+            print(f"ttl stage {self.name}: error: {self.input_changed}", file=sys.stderr, flush=True)
+            return 2
+        return code
 
     def setup(self) -> None:
         super().setup()
@@ -372,6 +408,11 @@ class Replayer(PipelineStage):
                 allow_nonfinite=bool(gaps),
             )
             self.publish(out)
+        except InputChanged as exc:  # the run's input is not what it was planned with: stop
+            self.report_error("input-changed", f"{exc}: the replayer stops (segment {i} not read)", index=i)
+            self.input_changed = exc
+            self.stop()  # (the stage loop reports any exception of a tick and goes on)
+            return ()
         except Exception as exc:  # reported, and the replay goes on
             self.log.exception("segment %d failed", i)
             self.report_error("failed", f"{type(exc).__name__}: {exc}", index=i)

@@ -31,7 +31,9 @@ not claim a segment its upstream has not handled, :data:`streamer.topology.UPSTR
 republishes it on ``ttl/<run>/control/board/<stage>`` for the stages to follow, and shows
 ``done/total`` per stage, with liveliness (``ttl/<run>/alive/<stage>``).  When every stage
 has handled every segment, the launcher sends ``ttl/<run>/control/stop``; the stages close
-their recordings and exit 0, and so does ``ttl run``.
+their recordings and exit 0, and so does ``ttl run`` unless segments were lost: a segment
+outside the gaps in the data without a fit or a residual makes it exit 3
+(:mod:`streamer.run_verdict`, which also names them in the summary line).
 
 Supervision
 -----------
@@ -60,7 +62,9 @@ a line: ``start`` (with the router's endpoint and credentials), ``stage-died``,
 it believes in ``<recordings>/<run>/board.json``.  A launcher that died (SIGKILL: its stages
 and router stop with it) is replaced by the same command with ``--resume``: every segment
 before the first one some stage lacks (``m``) counts as handled, the stages go on as
-restarted ones do, and from ``m`` on all is processed again.  A live launcher holds
+restarted ones do, and from ``m`` on all is processed again.  The input files must be those
+the run was planned with (the pins of ``plan.json``, :mod:`streamer.input_pins`): a file
+changed since is refused before anything starts.  A live launcher holds
 ``launcher.lock``: a second one of the run is refused.
 
 Parts
@@ -68,7 +72,8 @@ Parts
 :mod:`streamer.launch_plan` (options, their checks, the stages' configurations),
 :mod:`streamer.run_router` (router process and credentials), :mod:`streamer.supervision`
 (stage processes: start, restart, stop), :mod:`streamer.run_journal` (``launcher.jsonl``,
-``board.json``); :class:`Launcher` composes them with the progress board and the report.
+``board.json``), :mod:`streamer.run_verdict` (the final report and the exit status);
+:class:`Launcher` composes them with the progress board.
 """
 
 from __future__ import annotations
@@ -109,8 +114,9 @@ from .processes import SignalFlag
 from .progress import Progress, key_stage, parse_progress
 from .reach import zenoh_error_text
 from .recorder import stage_record
-from .run_journal import append_journal, cut_board, lock_run, read_board, save_board
+from .run_journal import append_journal, check_resumed_inputs, cut_board, lock_run, read_board, save_board
 from .run_router import Router, make_credentials
+from .run_verdict import conflicts, report
 from .segment_stream import declare_segment_publisher, declare_segment_subscriber
 from .session import Bus, SessionSettings, loopback_endpoint
 from .supervision import Child, Supervisor
@@ -424,6 +430,8 @@ class Launcher:
         self.listen = listen
         # the source is checked before the run directory is made: a refused run leaves nothing
         self.check_replayer()
+        if o.resume:  # the input files as the run was planned with them (plan.json)
+            check_resumed_inputs(self.run_dir, self.run_plan)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self._lock = lock_run(self.run_dir)  # a second launcher of the run is refused here
         if self.run_plan is not None:
@@ -539,60 +547,12 @@ class Launcher:
         return self.report(abort)
 
     def conflicts(self) -> list[str]:
-        """The segments (``topic/index``, by first report) of which a stage reported
-        conflicting copies (error ``kind: conflict`` on the errors topic)."""
-        seen: dict[str, None] = {}
-        for err in self.errors:
-            if isinstance(err, dict) and err.get("kind") == "conflict":
-                key = str(err.get("key") or "")
-                seen.setdefault("/".join(key.split("/")[2:]) or f"segment {err.get('index')}", None)
-        return list(seen)
+        """The segments of which a stage reported conflicting copies (:func:`streamer.run_verdict.conflicts`)."""
+        return conflicts(self.errors)
 
     def report(self, abort: str | None) -> int:
-        self.end_status_line()
-        total = self.total
-        status = 0
-        for name, child in self.children.items():  # after a Ctrl-C: no news (a stage starting dies of it)
-            bad = [c for c in child.exit_codes[-1:] if c != 0 and abort != "interrupted"]
-            if bad:
-                self.say(f"stage {name} exited with status {bad[0]} (log {child.log})")
-                status = 1
-        for s in self.expected:
-            p = self.progress.get(s) or Progress(s)
-            gaps = sorted(p.gaps)
-            failed = sorted(p.failed - p.gaps)
-            if gaps:
-                self.say(f"stage {s}: gap(s) in the data at segment(s) {to_ranges(gaps)} (no data; reported)")
-            if failed:
-                self.say(f"stage {s} gave up segment(s) {failed}")
-                status = 1
-            if total is not None and s in self.progress and not self.handled(s).issuperset(range(total)):
-                missing = sorted(set(range(total)) - self.handled(s))
-                self.say(f"stage {s} did not handle segment(s) {missing[:20]}{' ...' if len(missing) > 20 else ''}")
-                status = 1
-        conflicts = self.conflicts()
-        if conflicts:
-            # two different copies of a segment were published: one of them was not the
-            # producer's (docs/operations.md, "Conflicting copies"), whatever was used
-            self.say(
-                f"conflicting copies of {len(conflicts)} segment(s) received: "
-                + ", ".join(conflicts[:10])
-                + (" ..." if len(conflicts) > 10 else "")
-            )
-            status = 1
-        if abort:
-            self.say(f"run stopped: {abort}")
-            return {"interrupted": 130, "terminated": 143}.get(abort, 1)
-        files = sorted(p.name for p in self.run_dir.glob("*.mcap")) + sorted(p.name for p in self.run_dir.glob("*.rrd"))
-        refused = f", {len(self.refused)} refusal(s) by the router (security.jsonl)" if self.refused else ""
-        # the counts also when the run failed (exit 1): what went wrong is above, how much here
-        self.say(
-            f"{'done' if status == 0 else 'ended (exit status 1)'}: {total} segments, "
-            f"{len(self.errors)} error report(s){refused}, {len(self.refused_progress)} progress message(s) "
-            f"refused; files in {self.run_dir}: {', '.join(files)}",
-            status=status == 0,
-        )
-        return status
+        """The final report and the exit status (:func:`streamer.run_verdict.report`)."""
+        return report(self, abort)
 
 
 def run(opts: RunOptions, out=None) -> int:

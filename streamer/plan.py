@@ -93,6 +93,11 @@ class Plan:
         Topic -> the stage that publishes it.
     window : int
         How far beyond the highest accepted index a message may be.
+    inputs : tuple of dict
+        The input files as they were when the run was planned
+        (:func:`streamer.input_pins.pin`: ``path``, ``size``, ``mtime_ns``, ``sha256_sampled``);
+        empty for a simulation.  The replayer reads nothing else (docs/operations.md,
+        "Pinned inputs").
     """
 
     segments_total: int
@@ -103,6 +108,7 @@ class Plan:
     table: tuple | None = None
     producers: dict = field(default_factory=lambda: dict(PRODUCERS))
     window: int = DEFAULT_WINDOW
+    inputs: tuple = ()
 
     def segment(self, index: int) -> tuple[float, int]:
         """``(t0 [s], samples)`` of segment ``index``."""
@@ -121,6 +127,7 @@ class Plan:
             "table": None if self.table is None else [list(r) for r in self.table],
             "producers": dict(self.producers),
             "window": self.window,
+            "inputs": [dict(p) for p in self.inputs],
         }
 
     @classmethod
@@ -145,7 +152,19 @@ class Plan:
             if len(table) != total:
                 raise ValueError(f"plan: table has {len(table)} rows for {total} segments")
         producers = {**PRODUCERS, **dict(d.get("producers") or {})}
-        return cls(total, fs, t0, samples, samples_total, table, producers, int(d.get("window") or DEFAULT_WINDOW))
+        inputs = tuple(_input_pin(k, p) for k, p in enumerate(d.get("inputs") or ()))
+        window = int(d.get("window") or DEFAULT_WINDOW)
+        return cls(total, fs, t0, samples, samples_total, table, producers, window, inputs)
+
+
+def _input_pin(k: int, p) -> dict:
+    """One row of a plan's ``inputs``, checked (ValueError naming the row and field)."""
+    if not isinstance(p, Mapping):
+        raise ValueError(f"plan: inputs[{k}] is not an object")
+    for name, kind in (("path", str), ("size", int), ("mtime_ns", int), ("sha256_sampled", str)):
+        if not isinstance(p.get(name), kind) or isinstance(p.get(name), bool):
+            raise ValueError(f"plan: inputs[{k}].{name}: expected {kind.__name__}, got {p.get(name)!r}")
+    return {name: p[name] for name in ("path", "size", "mtime_ns", "sha256_sampled")}
 
 
 class Rejected(ValueError):

@@ -15,6 +15,7 @@ import time
 from collections.abc import Mapping
 from pathlib import Path
 
+from .input_pins import compare
 from .launch_plan import LaunchError
 from .progress import Progress
 from .rangeset import RangeSet
@@ -99,6 +100,35 @@ def cut_board(progress: Mapping[str, Progress], expected: list[str], total: int 
         for stage, p in progress.items()
     }
     return first, cut
+
+
+def check_resumed_inputs(run_dir: Path, plan: Mapping | None) -> None:
+    """``--resume``: the input files must be those the run was planned with, unchanged (the
+    pins of ``<run_dir>/plan.json`` against those of the new ``plan``; docs/operations.md,
+    "Pinned inputs").  Nothing to compare without a plan file or pins.
+
+    Raises
+    ------
+    LaunchError
+        Naming the file and what changed.
+    """
+    path = run_dir / "plan.json"
+    try:
+        before = json.loads(path.read_text())
+    except FileNotFoundError:
+        return
+    except (OSError, ValueError) as exc:
+        raise LaunchError(f"--resume: {path}: unreadable ({exc})") from None
+    planned = before.get("inputs") or [] if isinstance(before, dict) else []
+    now = {p["path"]: p for p in (plan or {}).get("inputs") or ()}
+    for pin in planned:
+        current = now.get(pin.get("path"))
+        what = "not an input of the resumed run" if current is None else compare(pin, current)
+        if what:
+            raise LaunchError(
+                f"--resume: {pin.get('path')}: {what}; the segments already handled came from the file "
+                f"as it was (give a new --run-id to run on this one)"
+            )
 
 
 def lock_run(run_dir: Path):

@@ -6,6 +6,7 @@ import io
 
 from streamer.launcher import Launcher, RunOptions
 from streamer.progress import Progress
+from streamer.rangeset import RangeSet
 
 
 def launcher(tmp_path, errors=()) -> tuple[Launcher, io.StringIO]:
@@ -16,6 +17,8 @@ def launcher(tmp_path, errors=()) -> tuple[Launcher, io.StringIO]:
     for stage in la.expected:
         p = Progress(stage, segments_total=3)
         p.done.update(range(3))
+        if stage == "fitter":  # every segment produced a fit (else segments are lost: exit 3)
+            p.extra["fits"] = RangeSet(range(3))
         la.progress[stage] = p
     la.errors = list(errors)
     return la, out
