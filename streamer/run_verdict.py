@@ -155,10 +155,9 @@ def lost_segments(
     return {"gaps": sorted(gaps), "no_fit": no_fit, "no_residual": no_residual, "lost": lost}
 
 
-def report(la: Any, abort: str | None) -> int:
-    """The final report of launcher ``la`` (:class:`streamer.launcher.Launcher`): what went
-    wrong, one line each, then the summary line; returns the exit status (module docstring)."""
-    la.end_status_line()
+def stage_failures(la: Any, abort: str | None) -> int:
+    """Say, one line each, which stages exited badly, gave up segments or left segments
+    unhandled, and which reported gaps; 1 when anything went wrong, else 0."""
     total = la.total
     status = 0
     for name, child in la.children.items():  # after a Ctrl-C: no news (a stage starting dies of it)
@@ -179,6 +178,15 @@ def report(la: Any, abort: str | None) -> int:
             missing = sorted(set(range(total)) - la.handled(s))
             la.say(f"stage {s} did not handle segment(s) {missing[:20]}{' ...' if len(missing) > 20 else ''}")
             status = 1
+    return status
+
+
+def report(la: Any, abort: str | None) -> int:
+    """The final report of launcher ``la`` (:class:`streamer.launcher.Launcher`): what went
+    wrong, one line each, then the summary line; returns the exit status (module docstring)."""
+    la.end_status_line()
+    total = la.total
+    status = stage_failures(la, abort)
     found = conflicts(la.errors)
     if found:
         # two different copies of a segment were published: one of them was not the
