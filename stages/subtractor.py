@@ -4,8 +4,12 @@ Inputs ``ttl/<run>/tdi/<i>`` (tdi_builder) and ``ttl/<run>/fit/<j>`` (fitter).  
 gets the latest fit whose window includes or precedes it: the fit made when segment ``i``
 arrived at the fitter (window ending with segment ``i``) if there is one, else the latest
 earlier fit.  To know that no fit ``i`` will come, the subtractor follows the fitter's
-progress messages (``fits_ranges``: the segments that produced a fit); a segment waits
-until the fitter has passed it.  A segment no fit covers yet (the fitter has not made one)
+progress messages (``fits_ranges``: the segments that produced a fit); a segment waits,
+by its index, until the fitter's progress says it handled that segment (:func:`fit_for`):
+a fit of a later segment is no proof that the fitter passed this one (a fit forged ahead,
+issue 33, released every waiting segment with the fit before it).  A segment the fitter
+handled without a fit (a gap, a ``no-fit`` warning, an FFT segment still filling) gets
+the latest earlier fit.  A segment no fit covers yet (the fitter has not made one)
 is published unchanged: residual = data, model = 0, ``fit_index`` null.  Segments need not
 come in order (a late joiner's history does not); a segment waits only for its fit, and
 the first is chosen after ``settle`` seconds of history so that the output starts in order.
@@ -50,6 +54,38 @@ FIT_TIMEOUT = 30.0
 #: After this long waiting for an announced fit [s], ask the fitter's cache for it (once):
 #: a late joiner's history query can be lost on a loaded machine (5 fits never came, 2026-11-27)
 FIT_FETCH_AFTER = 5.0
+
+
+def fit_for(index: int, passed: bool, announced: set[int], received: set[int]) -> tuple[str, int | None]:
+    """Which fit segment ``index`` gets, by its index (module docstring).
+
+    Parameters
+    ----------
+    index : int
+        The TDI segment.
+    passed : bool
+        The fitter's progress says it handled segment ``index`` (with a fit or without).
+    announced : set of int
+        Fits the fitter's progress says it published (less the refused ones).
+    received : set of int
+        Fits received and accepted here.
+
+    Returns
+    -------
+    ("wait", None)
+        The fitter has not passed ``index``: whatever fits of later segments came.
+    ("apply", j)
+        Fit ``j``, the latest at or before ``index`` announced or received (None: none yet).
+    ("await", j)
+        That fit ``j`` is announced but has not come yet.
+    """
+    if not passed:
+        return "wait", None
+    known = [j for j in announced | received if j <= index]
+    if not known:
+        return "apply", None
+    best = max(known)
+    return ("apply", best) if best in received else ("await", best)
 
 
 class Subtractor(PipelineStage):
@@ -185,15 +221,9 @@ class Subtractor(PipelineStage):
         """``("wait", None)``, or ``("apply", j)`` with ``j`` the fit index (None: no fit yet)."""
         fitter = self.board.get("fitter")
         announced = (set(fitter.extra.get("fits", ())) if fitter else set()) - self.refused_fits
-        passed = (fitter is not None and index in fitter.handled) or any(j >= index for j in self.fits)
-        if not passed:
-            return "wait", None
-        known = [j for j in announced | set(self.fits) if j <= index]
-        if not known:
-            return "apply", None
-        best = max(known)
-        if best in self.fits:
-            return "apply", best
+        what, best = fit_for(index, fitter is not None and index in fitter.handled, announced, set(self.fits))
+        if what != "await":
+            return what, best
         since = self._waiting_since.setdefault(index, time.monotonic())
         waited = time.monotonic() - since
         if waited > min(FIT_FETCH_AFTER, self.fit_timeout / 2) and best not in self._fetched:

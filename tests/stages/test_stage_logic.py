@@ -85,7 +85,36 @@ def test_subtractor_applies_the_latest_fit_covering_each_segment(tmp_path):
     assert s.choose(5) == ("apply", 3)  # no refit at 4, 5: the latest earlier fit
     assert s.choose(6) == ("wait", None)
     s.fits[7] = fit
-    assert s.choose(6) == ("apply", 3)  # a later fit exists: the fitter passed 6
+    assert s.choose(6) == ("wait", None)  # a later fit is no proof that the fitter passed 6 (issue 33)
+    s.board.feed(sample({"stage": "fitter", "done": [[0, 6]], "fits_ranges": [[2, 3]]}))
+    assert s.choose(6) == ("apply", 3)  # the fitter's progress is
+
+
+def test_a_fit_forged_ahead_releases_no_segment_before_it(tmp_path):
+    """Issue 33: a fit for segment 9 while the fitter is at 1 released segments 2-8 with fit
+    1 (residual 2 with fit 0 and so on), silently.  Each segment waits for the fitter's
+    progress on its own index; one the fitter handled without a fit (a no-fit, a gap) gets
+    the latest earlier fit, as before."""
+    s = Subtractor(StageConfig(run="u", recordings=tmp_path))
+    fit = {"coefficients": {}, "t_start": 0.0, "t_stop": 1.0}
+    s.fits[0] = s.fits[1] = fit
+    s.board.feed(sample({"stage": "fitter", "done": [[0, 1]], "fits_ranges": [[0, 1]]}))
+    s.fits[9] = fit  # forged with the fitter's key
+    assert [s.choose(i) for i in range(2, 10)] == [("wait", None)] * 7 + [("wait", None)]
+    # the fitter reaches 4: segment 2 fitted, 3 a no-fit, 4 failed (a gap)
+    s.fits[2] = fit
+    s.board.feed(sample({"stage": "fitter", "done": [[0, 3]], "failed": [[4, 4]], "fits_ranges": [[0, 2]]}))
+    assert [s.choose(i) for i in range(2, 6)] == [("apply", 2), ("apply", 2), ("apply", 2), ("wait", None)]
+
+
+def test_fit_for_by_index():
+    from stages.subtractor import fit_for
+
+    assert fit_for(5, False, {0, 1}, {0, 1, 9}) == ("wait", None)  # fits ahead prove nothing
+    assert fit_for(5, True, set(), set()) == ("apply", None)
+    assert fit_for(5, True, {0, 3}, {0, 3, 9}) == ("apply", 3)  # no fit at 4, 5: the latest earlier
+    assert fit_for(5, True, {0, 3, 5}, {0, 3}) == ("await", 5)  # announced, on its way
+    assert fit_for(5, True, {0, 3}, {0, 3, 5}) == ("apply", 5)
 
 
 def test_subtractor_asks_the_fitter_cache_for_an_announced_fit_that_does_not_come(tmp_path):
