@@ -260,11 +260,12 @@ class Ingest:
             return 0, ""
         v = self.validator
         plan = v.plan
+        owner = topic_owner(topic, plan)
         ceiling = v.highest + v.window if v.highest >= 0 or plan is None else None
         why = refetch_refusal(
             index,
             str(producer),
-            topic_owner(topic, plan),
+            owner,
             total=v.segments_total,
             floor=v.floor,
             ceiling=max(ceiling, v.window) if ceiling is not None else None,
@@ -272,7 +273,9 @@ class Ingest:
         )
         if why:
             return 0, why
-        attempt = self.budget.take(stream, index, str(producer), v.floor)
+        # the budget's key: the topic's producer (without a plan, any name the sender writes
+        # would open a new budget: one for the topic then)
+        attempt = self.budget.take(stream, index, owner or topic, v.floor)
         if not attempt:
             return 0, f"re-fetches of segment {index} or of producer {producer!r} used up"
         self.log.warning("%s: segment %d arrived damaged, asking the producer's cache again", stream, index)

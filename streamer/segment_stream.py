@@ -145,7 +145,8 @@ class SegmentPublisher:
         with self._lock:
             found = self._recent.get(index)
         if found is not None:
-            query.reply(self.key, found[0], attachment=found[1], congestion_control=zenoh.CongestionControl.BLOCK)
+            # (a reply's congestion control is the query's: BLOCK, refetch_segment)
+            query.reply(self.key, found[0], attachment=found[1])
 
     def undeclare(self) -> None:
         """Undeclare the publisher (its cache goes with it) and the index queryable."""

@@ -207,6 +207,8 @@ def test_a_flood_of_damaged_headers_costs_little_and_records_a_bounded_count(cle
     assert wall <= SLOWER * clean_wall, (wall, clean_wall)
     assert code == 0 and "died" not in out, out[-3000:]
     run_dir = rec / "flooded"
+    # the index queryables of the publishers (<topic>/@adv/seg) pass the access control
+    assert (clean_dir / "security.jsonl").read_text() == (run_dir / "security.jsonl").read_text() == ""
     a, b = residuals(clean_dir), residuals(run_dir)
     assert sorted(a) == sorted(b) == list(range(SEGMENTS))
     assert all(same(a[i][0], b[i][0]) for i in a)

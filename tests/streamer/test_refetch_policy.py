@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 
 import numpy as np
 
@@ -123,3 +124,71 @@ def test_a_flood_of_damaged_headers_asks_a_few_refetches_and_records_a_bounded_c
         (OTHER_SENDER, "rejected", "payload", 1400),
         ("tdi_builder", "rejected", "payload", 1400),
     ]
+
+
+def test_a_refetch_asks_one_index_and_passes_the_access_control(tmp_path):
+    """Through a router with the run's credentials (the access control on): the fitter's
+    publisher answers a re-fetch of fit 3 with fit 3 only (before, every cached segment
+    came back: 11.4 MB each for TDI), and an index it no longer caches with nothing."""
+    import threading
+
+    from proc_testutil import output, wait_for
+    from ttl_testutil import Procs
+
+    from streamer import security
+    from streamer.codec import parse_header
+    from streamer.segment_stream import index_selector, refetch_segment
+    from streamer.session import Bus, SessionSettings, free_port
+
+    creds = security.ensure_credentials(tmp_path / "creds")
+    endpoint = f"tls/127.0.0.1:{free_port()}"
+    procs = Procs(tmp_path)
+
+    def session(identity):
+        return Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity=identity))
+
+    try:
+        router = procs.ttl("router", "--credentials", str(creds), "--listen", endpoint, name="router")
+        wait_for(lambda: "listening on" in output(router) or router.poll() is not None, 60, "the router")
+        with session("fitter") as fitter, session("subtractor") as reader:
+            pub = fitter.segment_publisher(RUN, "fit", cache=4)
+            for i in range(8):  # the cache keeps 4..7
+                pub.put(
+                    i,
+                    *encode(
+                        np.full(24, float(i)), {"run": RUN, "index": i, "t0": 0.0, "fs": 4.0, "producer": "fitter"}
+                    ),
+                )
+            time.sleep(0.5)
+
+            def ask(index):
+                """(indices handed on, every reply that came over the wire)."""
+                import zenoh
+
+                got, replies, done = [], [], threading.Event()
+                refetch_segment(
+                    reader.session,
+                    f"ttl/{RUN}/fit",
+                    index,
+                    None,
+                    lambda s: got.append(parse_header(s.attachment, "fit").index),
+                    on_done=lambda n: done.set(),
+                    timeout=5.0,
+                )
+                assert done.wait(10)
+                wire = threading.Event()
+                reader.session.get(  # what the publishers answer to the very query refetch_segment asks
+                    index_selector(f"ttl/{RUN}/fit", index),
+                    zenoh.handlers.Callback(lambda r: replies.append(r.ok is not None), wire.set),
+                    target=zenoh.QueryTarget.ALL,
+                    consolidation=zenoh.ConsolidationMode.NONE,
+                    accept_replies=zenoh.ReplyKeyExpr.ANY,
+                    timeout=5.0,
+                )
+                assert wire.wait(10)
+                return got, replies
+
+            assert ask(6) == ([6], [True])  # one reply: segment 6, not the four cached
+            assert ask(2) == ([], [])  # no longer cached: nothing
+    finally:
+        procs.close()
