@@ -122,8 +122,10 @@ class Ingest:
     log : logging.LoggerAdapter
         The stage's logger.
     refetch : callable, optional
-        ``refetch(stream_key, index, header)``: ask the publishers' caches again for a segment whose
-        copy arrived damaged (:func:`streamer.segment_stream.refetch_segment`); None: do not.
+        ``refetch(stream_key, index, header, sn)``: ask the publishers' caches again for the
+        sample ``sn`` of segment ``index``, whose copy arrived damaged (``sn`` None: a sample
+        without a sequence number, a plain put: every cached sample, filtered by its header;
+        :func:`streamer.segment_stream.refetch_segment`); None: do not.
     """
 
     def __init__(
@@ -138,7 +140,7 @@ class Ingest:
         event: Callable[..., None],
         use: Callable[[str, object, dict, bytes], None],
         log,
-        refetch: Callable[[str, int, bytes], None] | None = None,
+        refetch: Callable[[str, int, bytes, int], None] | None = None,
     ):
         self.run = run
         self.validator = validator
@@ -159,7 +161,7 @@ class Ingest:
         #: Segment indices processed, per topic.
         self.done: dict[str, RangeSet] = {}
 
-    def take(self, key: str, payload, attachment) -> None:
+    def take(self, key: str, payload, attachment, sn: int | None = None) -> None:
         """Validate one message that came on Zenoh key ``key``, and hold it or use it (or
         refuse it).
 
@@ -171,7 +173,7 @@ class Ingest:
         message's doing and still stops the stage.
         """
         try:
-            self._take(key, payload, attachment)
+            self._take(key, payload, attachment, sn)
         except OSError:
             raise
         except Exception as exc:  # noqa: BLE001 - the loop must outlive any message
@@ -185,7 +187,7 @@ class Ingest:
                 details={"traceback": traceback.format_exc(limit=8), "attachment": preview(attachment)},
             )
 
-    def _take(self, key: str, payload, attachment) -> None:
+    def _take(self, key: str, payload, attachment, sn: int | None = None) -> None:
         """The body of :meth:`take`."""
         payload = payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload or b"")
         try:
@@ -205,7 +207,7 @@ class Ingest:
             details = {"payload_bytes": len(payload), "attachment": preview(attachment)}
             if exc.field in DAMAGED and index is not None:
                 raw = attachment.to_bytes() if hasattr(attachment, "to_bytes") else bytes(attachment)
-                details["refetch"], why = self._ask_again(stream, topic, index, producer, raw)
+                details["refetch"], why = self._ask_again(stream, topic, index, producer, raw, sn)
                 if why:
                     details["refetch_refused"] = why
             self._refused(topic, producer, "rejected", exc.what, index=index, key=key, field=exc.field, details=details)
@@ -251,7 +253,9 @@ class Ingest:
         count)`` per cause (:meth:`streamer.refetch_policy.ReportLimiter.due`)."""
         return self.limiter.due(final)
 
-    def _ask_again(self, stream: str, topic: str, index: int, producer, header: bytes) -> tuple[int, str]:
+    def _ask_again(
+        self, stream: str, topic: str, index: int, producer, header: bytes, sn: int | None
+    ) -> tuple[int, str]:
         """Ask the producer's cache again for the copy of segment ``index`` of ``stream``
         with the damaged copy's ``header`` (bytes), if the plan, the window and the budget
         allow it (:mod:`streamer.refetch_policy`); returns the attempt number (0 when not
@@ -279,7 +283,7 @@ class Ingest:
         if not attempt:
             return 0, f"re-fetches of segment {index} or of producer {producer!r} used up"
         self.log.warning("%s: segment %d arrived damaged, asking the producer's cache again", stream, index)
-        self.refetch(stream, index, header)
+        self.refetch(stream, index, header, sn)
         return attempt, ""
 
     def due(self) -> list[tuple]:

@@ -15,22 +15,19 @@ marked unstable in zenoh-python 1.x):
   ``ttl/<run>/<topic>/**`` that, on declaration and whenever a publisher appears later,
   queries the caches (late joiners and restarted stages catch up), recovers a lost sample
   from the heartbeats, and reports what it could not recover to a miss callback.
-* :func:`refetch_segment` asks the publishers again for one segment, for a copy that
-  arrived damaged (its payload does not match its header's checksum or size): after a
-  consumer stalled longer than the BLOCK wait, a multi-megabyte segment has arrived whole
-  in size but not in content (docs/operations.md); the codec refuses it, and the cached
-  copy replaces it.  The query names the index (``<stream>/@adv/seg?index=<i>``) and each
-  :class:`SegmentPublisher` answers it from its own index of the segments its cache holds,
-  with that segment only: a query costs one segment's bytes, not the whole cache's (the
-  advanced publisher's own cache, ``@adv/pub``, knows sequence numbers, not our indices,
-  and answered every re-fetch with every cached segment: 11.4 MB each, issue 33).
+* :func:`refetch_segment` asks the publishers' caches again for one segment, for a copy
+  that arrived damaged (its payload does not match its header's checksum or size): after
+  a consumer stalled longer than the BLOCK wait, a multi-megabyte segment has arrived
+  whole in size but not in content (docs/operations.md); the codec refuses it, and the
+  cached copy replaces it.  The query names the damaged copy's sequence number
+  (``?_sn=<n>..<n>``: the advanced publisher's number, in the sample's ``source_info``), so
+  that a cache answers with that one sample, not with every segment it holds (11.4 MB
+  each for TDI: a flood of damaged headers made every query cost the whole cache, issue 33).
 """
 
 from __future__ import annotations
 
 import logging
-import threading
-from collections import OrderedDict
 from collections.abc import Callable
 from dataclasses import dataclass
 
@@ -48,15 +45,6 @@ REFETCH_TIMEOUT = 30.0
 DEFAULT_CACHE = 4
 #: Period of the sporadic heartbeat of segment publishers [s].
 HEARTBEAT_PERIOD = 1.0
-#: Chunk, under a stream key, of the queryable that answers a re-fetch of one index
-#: (``<stream>/@adv/seg?index=<i>``; under ``@adv`` like the advanced publisher's own keys,
-#: which the access control grants the stream's producer: streamer/security.py).
-INDEX_QUERYABLE = "@adv/seg"
-
-
-def index_selector(key_expr: str, index: int) -> str:
-    """The selector of a re-fetch of segment ``index`` of stream ``key_expr``."""
-    return f"{key_expr}/{INDEX_QUERYABLE}?index={int(index)}"
 
 
 # ---------------------------------------------------------------------------- publishers
@@ -91,10 +79,7 @@ class SegmentPublisher:
     """Publishes the segments of one topic on ``ttl/<run>/<topic>``.
 
     One advanced publisher (:func:`declare_segment_publisher`), declared on the first put,
-    whose cache of the last ``cache`` segments answers late joiners; and a queryable on
-    ``<stream>/@adv/seg`` that answers a re-fetch of one index (:func:`refetch_segment`)
-    with the copy of that index among the same last ``cache`` segments (the payloads are
-    shared with the advanced cache's, not copied).
+    whose cache of the last ``cache`` segments answers late joiners.
 
     Parameters
     ----------
@@ -111,9 +96,6 @@ class SegmentPublisher:
         self.cache = max(1, int(cache))
         self.key = stream_key(run, topic)
         self._publisher: ext.AdvancedPublisher | None = None
-        self._queryable = None
-        self._lock = threading.Lock()
-        self._recent: OrderedDict[int, tuple[zenoh.ZBytes, bytes]] = OrderedDict()  # index -> (payload, attachment)
 
     def put(self, index: int, payload, attachment) -> str:
         """Publish segment ``index`` (blocks while the transport is congested).
@@ -124,40 +106,14 @@ class SegmentPublisher:
         name = segment_key(self.run, self.topic, index)
         if self._publisher is None:
             self._publisher = declare_segment_publisher(self.session, self.key, cache=self.cache)
-            self._queryable = self.session.declare_queryable(f"{self.key}/{INDEX_QUERYABLE}", self._on_query)
-        payload = payload if isinstance(payload, zenoh.ZBytes) else zenoh.ZBytes(payload)
-        raw = attachment.to_bytes() if hasattr(attachment, "to_bytes") else bytes(attachment)
-        with self._lock:
-            self._recent[int(index)] = (payload, raw)
-            self._recent.move_to_end(int(index))
-            while len(self._recent) > self.cache:
-                self._recent.popitem(last=False)
         self._publisher.put(payload, attachment=attachment)
         return name
 
-    def _on_query(self, query) -> None:  # a Zenoh thread
-        """Answer ``<stream>/@adv/seg?index=<i>`` with the copy of segment ``i`` if it is
-        among the last ``cache`` published; nothing otherwise (a malformed index included)."""
-        try:
-            index = int(query.parameters.get("index") or "")
-        except ValueError:
-            return
-        with self._lock:
-            found = self._recent.get(index)
-        if found is not None:
-            # (a reply's congestion control is the query's: BLOCK, refetch_segment)
-            query.reply(self.key, found[0], attachment=found[1])
-
     def undeclare(self) -> None:
-        """Undeclare the publisher (its cache goes with it) and the index queryable."""
-        if self._queryable is not None:
-            self._queryable.undeclare()
-            self._queryable = None
+        """Undeclare the publisher (its cache goes with it)."""
         if self._publisher is not None:
             self._publisher.undeclare()
             self._publisher = None
-        with self._lock:
-            self._recent.clear()
 
 
 def refetch_segment(
@@ -169,21 +125,25 @@ def refetch_segment(
     *,
     on_done: Callable[[int], None] | None = None,
     timeout: float = REFETCH_TIMEOUT,
+    sn: int | None = None,
 ) -> None:
-    """Ask every publisher of the stream ``key_expr`` (``ttl/<run>/<topic>``) again for
-    segment ``index`` with the header ``header`` (the damaged message's, byte for byte: its
-    payload was damaged, not its header); returns at once.
+    """Ask every publisher cache of the stream ``key_expr`` (``ttl/<run>/<topic>``) again
+    for segment ``index`` with the header ``header`` (the damaged message's, byte for byte:
+    its payload was damaged, not its header); returns at once.
 
-    The query names the index (:func:`index_selector`); each :class:`SegmentPublisher`
-    answers with its copy of that segment if its cache still holds it (key ``key_expr``,
-    the header in the attachment), and nothing else.  Each reply with that header whose
-    payload matches it (size and checksum) goes to ``on_sample``, the callback a
-    subscriber's samples go to, on a Zenoh thread; any other reply (another segment,
-    another copy of this one) is not handed on.  When the query is over (all publishers
+    The advanced publishers' caches answer on ``<key_expr>/@adv/pub/<zid>/<eid>`` with the
+    samples as published (key ``key_expr``, the header in the attachment).  Each reply with
+    that header whose payload matches it (size and checksum) goes to
+    ``on_sample``, the callback a subscriber's samples go to, on a Zenoh thread; other
+    cached messages (other segments, other copies of this one) are not handed on again.  When the query is over (all caches
     answered, or ``timeout`` seconds), ``on_done(n)`` gets the number of copies handed on:
     0 when no cache holds the segment any more (a cache keeps the last ``cache`` segments
     of its publisher).  ``header=None``: any intact copy of segment ``index`` (a segment
     announced but never received, e.g. a late joiner's history query lost under load).
+    ``sn``: the sequence number of the damaged copy (``sample.source_info.source_sn``): the
+    caches answer with the sample of that number only (Zenoh's ``_sn`` selector parameter);
+    None: with everything they hold (a fetch of an announced segment, whose number is not
+    known: fits, a few kB each).
     """
     found = [0]
 
@@ -206,11 +166,11 @@ def refetch_segment(
             on_done(found[0])
 
     session.get(
-        index_selector(key_expr, index),
+        f"{key_expr}/@adv/pub/**" + (f"?_sn={int(sn)}..{int(sn)}" if sn is not None else ""),
         zenoh.handlers.Callback(on_reply, done),
         target=zenoh.QueryTarget.ALL,
         consolidation=zenoh.ConsolidationMode.NONE,
-        accept_replies=zenoh.ReplyKeyExpr.ANY,  # the publishers reply on the stream key, not the query's
+        accept_replies=zenoh.ReplyKeyExpr.ANY,  # the caches reply on the stream key, not the query's
         congestion_control=zenoh.CongestionControl.BLOCK,
         timeout=timeout,
     )

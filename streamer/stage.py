@@ -139,7 +139,7 @@ class Stage:
             event=lambda *a, **k: self.event(*a, **k),
             use=lambda *item: self._use(*item),
             log=self.log,
-            refetch=lambda key, index, header: self.transport.refetch(self.bus, key, index, header),
+            refetch=lambda key, index, header, sn: self.transport.refetch(self.bus, key, index, header, sn),
         )
         #: Indices skipped on arrival (not for the topics in :attr:`reorders`).
         self.gap_watch = GapWatch(config.gap_grace, self.reorders)

@@ -107,7 +107,7 @@ def test_a_flood_of_damaged_headers_asks_a_few_refetches_and_records_a_bounded_c
         event=lambda *a, **k: None,
         use=lambda key, header, arrays, payload: ing.done.setdefault("tdi", RangeSet()).add(header.index),
         log=logging.getLogger("test"),
-        refetch=lambda stream, index, header: asked.append(index),
+        refetch=lambda stream, index, header, sn: asked.append(index),
     )
     ing.limiter.limit = 100
     payload, attachment = _tdi(0, producer="tdi_builder")
@@ -127,9 +127,10 @@ def test_a_flood_of_damaged_headers_asks_a_few_refetches_and_records_a_bounded_c
 
 
 def test_a_refetch_asks_one_index_and_passes_the_access_control(tmp_path):
-    """Through a router with the run's credentials (the access control on): the fitter's
-    publisher answers a re-fetch of fit 3 with fit 3 only (before, every cached segment
-    came back: 11.4 MB each for TDI), and an index it no longer caches with nothing."""
+    """Through a router with the run's credentials (the access control on): a re-fetch that
+    names the damaged copy's sequence number is answered by the fitter's cache with that
+    sample only (without it, every cached segment comes back: 11.4 MB each for TDI), and a
+    number no longer cached with nothing."""
     import threading
 
     from proc_testutil import output, wait_for
@@ -137,7 +138,7 @@ def test_a_refetch_asks_one_index_and_passes_the_access_control(tmp_path):
 
     from streamer import security
     from streamer.codec import parse_header
-    from streamer.segment_stream import index_selector, refetch_segment
+    from streamer.segment_stream import refetch_segment
     from streamer.session import Bus, SessionSettings, free_port
 
     creds = security.ensure_credentials(tmp_path / "creds")
@@ -161,8 +162,8 @@ def test_a_refetch_asks_one_index_and_passes_the_access_control(tmp_path):
                 )
             time.sleep(0.5)
 
-            def ask(index):
-                """(indices handed on, every reply that came over the wire)."""
+            def ask(index, sn):
+                """(indices handed on, replies that came over the wire for that query)."""
                 import zenoh
 
                 got, replies, done = [], [], threading.Event()
@@ -174,11 +175,13 @@ def test_a_refetch_asks_one_index_and_passes_the_access_control(tmp_path):
                     lambda s: got.append(parse_header(s.attachment, "fit").index),
                     on_done=lambda n: done.set(),
                     timeout=5.0,
+                    sn=sn,
                 )
                 assert done.wait(10)
                 wire = threading.Event()
-                reader.session.get(  # what the publishers answer to the very query refetch_segment asks
-                    index_selector(f"ttl/{RUN}/fit", index),
+                selector = f"ttl/{RUN}/fit/@adv/pub/**" + (f"?_sn={sn}..{sn}" if sn is not None else "")
+                reader.session.get(  # the very query refetch_segment asks, every reply counted
+                    selector,
                     zenoh.handlers.Callback(lambda r: replies.append(r.ok is not None), wire.set),
                     target=zenoh.QueryTarget.ALL,
                     consolidation=zenoh.ConsolidationMode.NONE,
@@ -186,9 +189,11 @@ def test_a_refetch_asks_one_index_and_passes_the_access_control(tmp_path):
                     timeout=5.0,
                 )
                 assert wire.wait(10)
-                return got, replies
+                return got, len(replies)
 
-            assert ask(6) == ([6], [True])  # one reply: segment 6, not the four cached
-            assert ask(2) == ([], [])  # no longer cached: nothing
+            # the publisher's sequence numbers are 0..7 (one put per segment)
+            assert ask(6, 6) == ([6], 1)  # one reply: segment 6, not the four cached
+            assert ask(2, 2) == ([], 0)  # no longer cached: nothing
+            assert ask(6, None) == ([6], 4)  # without the number: the whole cache, filtered here
     finally:
         procs.close()
