@@ -4,8 +4,13 @@ Inputs ``ttl/<run>/tdi/<i>`` (tdi_builder) and ``ttl/<run>/fit/<j>`` (fitter).  
 gets the latest fit whose window includes or precedes it: the fit made when segment ``i``
 arrived at the fitter (window ending with segment ``i``) if there is one, else the latest
 earlier fit.  To know that no fit ``i`` will come, the subtractor follows the fitter's
-progress messages (``fits_ranges``: the segments that produced a fit); a segment waits
-until the fitter has passed it.  A segment no fit covers yet (the fitter has not made one)
+progress messages (``fits_ranges``: the segments that produced a fit); a segment waits,
+by its index, until the fitter's progress says it handled that segment (:func:`fit_for`):
+a fit of a later segment is no proof that the fitter passed this one (a fit forged ahead,
+issue 33, released every waiting segment with the fit before it).  A segment the fitter
+handled without a fit (a gap, a ``no-fit`` warning, an FFT segment still filling) gets
+the latest earlier fit; a fit received for such a segment is not the fitter's (forged) and
+is reported, never applied.  A segment no fit covers yet (the fitter has not made one)
 is published unchanged: residual = data, model = 0, ``fit_index`` null.  Segments need not
 come in order (a late joiner's history does not); a segment waits only for its fit, and
 the first is chosen after ``settle`` seconds of history so that the output starts in order.
@@ -52,6 +57,39 @@ FIT_TIMEOUT = 30.0
 FIT_FETCH_AFTER = 5.0
 
 
+def fit_for(index: int, handled, announced: set[int], received: set[int]) -> tuple[str, int | None]:
+    """Which fit segment ``index`` gets, by its index (module docstring).
+
+    Parameters
+    ----------
+    index : int
+        The TDI segment.
+    handled : set of int
+        Segments the fitter's progress says it handled (with a fit or without).
+    announced : set of int
+        Fits the fitter's progress says it published (less the refused ones).
+    received : set of int
+        Fits received and accepted here.  One of a segment the fitter handled without
+        announcing a fit for it is not the fitter's (forged, or refused) and is never chosen.
+
+    Returns
+    -------
+    ("wait", None)
+        The fitter has not passed ``index``: whatever fits of later segments came.
+    ("apply", j)
+        Fit ``j``, the latest at or before ``index`` announced or received (None: none yet).
+    ("await", j)
+        That fit ``j`` is announced but has not come yet.
+    """
+    if index not in handled:
+        return "wait", None
+    known = [j for j in announced | received if j <= index and (j in announced or j not in handled)]
+    if not known:
+        return "apply", None
+    best = max(known)
+    return ("apply", best) if best in received else ("await", best)
+
+
 class Subtractor(PipelineStage):
     """Subtracts the fitted TTL model from each TDI segment."""
 
@@ -70,6 +108,9 @@ class Subtractor(PipelineStage):
         self.refused_fits: set[int] = set()  # fits withdrawn (conflicting copies): never waited for
         self._waiting_since: dict[int, float] = {}
         self._fetched: set[int] = set()  # fits asked of the fitter's cache (choose)
+        self._disowned: set[int] = set()  # fits received that the fitter says it never made (choose)
+        self._started = time.monotonic()
+        self._board_asked = 0.0  # when the fitter's progress was last asked again (_board_silent)
         # a late joiner gets its history from several publisher caches in any order: collect
         # for `settle` seconds before the first segment (unless it is segment 0)
         self.settle = float(self.options.get("settle", 1.0))
@@ -186,15 +227,20 @@ class Subtractor(PipelineStage):
         """``("wait", None)``, or ``("apply", j)`` with ``j`` the fit index (None: no fit yet)."""
         fitter = self.board.get("fitter")
         announced = (set(fitter.extra.get("fits", ())) if fitter else set()) - self.refused_fits
-        passed = (fitter is not None and index in fitter.handled) or any(j >= index for j in self.fits)
-        if not passed:
-            return "wait", None
-        known = [j for j in announced | set(self.fits) if j <= index]
-        if not known:
-            return "apply", None
-        best = max(known)
-        if best in self.fits:
-            return "apply", best
+        handled = fitter.handled if fitter is not None else set()
+        for j in sorted(set(self.fits) - announced - self._disowned):
+            if j <= index and j in handled:  # a fit the fitter says it never made: not used
+                self._disowned.add(j)
+                self.report_error(
+                    "forged",
+                    f"fit {j} was received but the fitter's progress says segment {j} produced no fit: not applied",
+                    index=j,
+                )
+        what, best = fit_for(index, handled, announced, set(self.fits))
+        if what == "wait":
+            self._board_silent(fitter)
+        if what != "await":
+            return what, best
         since = self._waiting_since.setdefault(index, time.monotonic())
         waited = time.monotonic() - since
         if waited > min(FIT_FETCH_AFTER, self.fit_timeout / 2) and best not in self._fetched:
@@ -210,6 +256,17 @@ class Subtractor(PipelineStage):
             index=index,
         )
         return "apply", fallback
+
+    def _board_silent(self, fitter) -> None:
+        """A segment waits for the fitter's progress: when none came for FIT_FETCH_AFTER
+        seconds, ask its cache again (at most that often; :meth:`refresh_progress`): a late
+        joiner's history query lost on a loaded machine would otherwise leave every segment
+        waiting for a fitter that has finished (a fit of a later segment is no proof)."""
+        now = time.monotonic()
+        heard = max(fitter.updated if fitter is not None else 0.0, self._board_asked)
+        if now - max(heard, self._started) >= FIT_FETCH_AFTER:
+            self._board_asked = now
+            self.refresh_progress("fitter")
 
     def drain(self) -> None:
         if (

@@ -7,11 +7,15 @@ validation, hold-back and gap detection.
   holds an accepted one ``hold`` seconds (:class:`streamer.plan.Holdback`; a different copy
   arriving meanwhile keeps both out), or hands it to the stage at once when ``hold`` is 0.
   A copy damaged on the way (payload size or checksum not those of its header) is asked
-  for again from the publishers' caches (``refetch``, at most :data:`MAX_REFETCHES` times
-  per segment): the intact copy then goes through the same checks.
+  for again from its producer's cache (``refetch``) when
+  :class:`streamer.refetch_policy.RefetchBudget` allows it (an index of the plan and of the
+  window, not processed yet, the topic's producer, at most 3 times per segment and a
+  bounded rate per producer): the intact copy then goes through the same checks.
   Whatever a message holds, this does not raise:
   a message that does not fit is reported (kind ``rejected``, or the validator's kind) and
-  the stage goes on; only an ``OSError`` (the recording's disk) escapes.
+  the stage goes on; only an ``OSError`` (the recording's disk) escapes.  The reports of one
+  cause from one producer are recorded one by one up to a limit, then counted
+  (:class:`streamer.refetch_policy.ReportLimiter`, :meth:`Ingest.suppressed`).
 * :class:`GapWatch` notes the indices an arrival skips and reports those that do not come
   within ``gap_grace`` seconds.
 """
@@ -26,16 +30,12 @@ from .codec import CodecError, Expect, decode, parse_header
 from .keys import KeyExprError, SegmentKey, parse_stream_key, segment_key
 from .plan import Holdback, Rejected, Validator
 from .rangeset import RangeSet
+from .refetch_policy import RefetchBudget, ReportLimiter, refetch_refusal, sender, topic_owner
 
 #: Characters of a rejected attachment kept in the error report.
 PREVIEW_CHARS = 2000
 #: Codec fields at fault in a copy damaged on the way (asked for again).
 DAMAGED = ("payload", "checksum")
-#: Re-fetches of one segment at most.
-MAX_REFETCHES = 3
-#: Segments whose re-fetches are counted (the oldest forgotten first): memory stays bounded
-#: when damaged copies, hostile ones included, name ever new indices.
-MAX_REFETCHED_SEGMENTS = 4096
 
 
 def preview(attachment) -> str:
@@ -122,8 +122,10 @@ class Ingest:
     log : logging.LoggerAdapter
         The stage's logger.
     refetch : callable, optional
-        ``refetch(stream_key, index, header)``: ask the publishers' caches again for a segment whose
-        copy arrived damaged (:func:`streamer.segment_stream.refetch_segment`); None: do not.
+        ``refetch(stream_key, index, header, sn)``: ask the publishers' caches again for the
+        sample ``sn`` of segment ``index``, whose copy arrived damaged (``sn`` None: a sample
+        without a sequence number, a plain put: every cached sample, filtered by its header;
+        :func:`streamer.segment_stream.refetch_segment`); None: do not.
     """
 
     def __init__(
@@ -138,7 +140,7 @@ class Ingest:
         event: Callable[..., None],
         use: Callable[[str, object, dict, bytes], None],
         log,
-        refetch: Callable[[str, int, bytes], None] | None = None,
+        refetch: Callable[[str, int, bytes, int], None] | None = None,
     ):
         self.run = run
         self.validator = validator
@@ -150,14 +152,16 @@ class Ingest:
         self.use = use
         self.log = log
         self.refetch = refetch
-        #: Re-fetches asked for, per (stream key, segment index).
-        self.refetches: dict[tuple[str, int], int] = {}
+        #: Which damaged copies are asked for again (per segment, per producer).
+        self.budget = RefetchBudget()
+        #: Which refusals are recorded one by one.
+        self.limiter = ReportLimiter()
         #: Messages refused (codec errors excepted: those are reports only).
         self.rejections = 0
         #: Segment indices processed, per topic.
         self.done: dict[str, RangeSet] = {}
 
-    def take(self, key: str, payload, attachment) -> None:
+    def take(self, key: str, payload, attachment, sn: int | None = None) -> None:
         """Validate one message that came on Zenoh key ``key``, and hold it or use it (or
         refuse it).
 
@@ -169,7 +173,7 @@ class Ingest:
         message's doing and still stops the stage.
         """
         try:
-            self._take(key, payload, attachment)
+            self._take(key, payload, attachment, sn)
         except OSError:
             raise
         except Exception as exc:  # noqa: BLE001 - the loop must outlive any message
@@ -183,7 +187,7 @@ class Ingest:
                 details={"traceback": traceback.format_exc(limit=8), "attachment": preview(attachment)},
             )
 
-    def _take(self, key: str, payload, attachment) -> None:
+    def _take(self, key: str, payload, attachment, sn: int | None = None) -> None:
         """The body of :meth:`take`."""
         payload = payload.to_bytes() if hasattr(payload, "to_bytes") else bytes(payload or b"")
         try:
@@ -192,17 +196,21 @@ class Ingest:
             self.report("rejected", str(exc), key=key, field="key")
             return
         index = None
+        producer = None
         stream = key
         try:
-            index = parse_header(attachment, key).index
+            claimed = parse_header(attachment, key)
+            index, producer = claimed.index, claimed.producer
             key = segment_key(self.run, topic, index)
             header, arrays = decode(payload, attachment, self.expect(topic, index), key=key)
         except CodecError as exc:
             details = {"payload_bytes": len(payload), "attachment": preview(attachment)}
             if exc.field in DAMAGED and index is not None:
                 raw = attachment.to_bytes() if hasattr(attachment, "to_bytes") else bytes(attachment)
-                details["refetch"] = self._ask_again(stream, index, raw)
-            self.report("rejected", exc.what, index=index, key=key, field=exc.field, details=details)
+                details["refetch"], why = self._ask_again(stream, topic, index, producer, raw, sn)
+                if why:
+                    details["refetch_refused"] = why
+            self._refused(topic, producer, "rejected", exc.what, index=index, key=key, field=exc.field, details=details)
             return
         seg = SegmentKey(self.run, topic, index)
         try:
@@ -220,7 +228,9 @@ class Ingest:
                     if kept_out
                     else "; the first copy had been used already"
                 )
-            self.report(exc.kind, what, index=seg.index, key=key, field=exc.field, details=details)
+            self._refused(
+                seg.topic, header.producer, exc.kind, what, index=seg.index, key=key, field=exc.field, details=details
+            )
             return
         done = self.done.setdefault(seg.topic, RangeSet())
         if verdict == "duplicate" or seg.index in done:
@@ -231,19 +241,50 @@ class Ingest:
         if not self.held.put(seg.topic, seg.index, (key, header, arrays, payload), time.monotonic()):
             self.use(key, header, arrays, payload)
 
-    def _ask_again(self, stream: str, index: int, header: bytes) -> int:
-        """Ask the caches again for the copy of segment ``index`` of ``stream`` with
-        the damaged copy's ``header`` (bytes); returns the attempt number, 0 when not asked (no
-        refetch, or attempts used up)."""
-        tries = self.refetches.get((stream, index), 0)
-        if self.refetch is None or tries >= MAX_REFETCHES:
-            return 0
-        self.refetches[(stream, index)] = tries + 1
-        if len(self.refetches) > MAX_REFETCHED_SEGMENTS:  # bounded whatever indices damaged copies name
-            del self.refetches[next(iter(self.refetches))]
-        self.log.warning("%s: segment %d arrived damaged, asking the publishers' caches again", stream, index)
-        self.refetch(stream, index, header)
-        return tries + 1
+    def _refused(self, topic: str, producer, kind: str, what: str, **fields) -> None:
+        """Report a refused message, unless its cause has been recorded often enough
+        (:class:`streamer.refetch_policy.ReportLimiter`: then it is counted)."""
+        owner = topic_owner(topic, self.validator.plan)
+        if self.limiter.admit(sender(producer, owner), kind, fields.get("field")):
+            self.report(kind, what, **fields)
+
+    def suppressed(self, final: bool = False) -> list[tuple[str, str, str, int]]:
+        """The refusals counted and not recorded since last asked, ``(producer, kind, field,
+        count)`` per cause (:meth:`streamer.refetch_policy.ReportLimiter.due`)."""
+        return self.limiter.due(final)
+
+    def _ask_again(
+        self, stream: str, topic: str, index: int, producer, header: bytes, sn: int | None
+    ) -> tuple[int, str]:
+        """Ask the producer's cache again for the copy of segment ``index`` of ``stream``
+        with the damaged copy's ``header`` (bytes), if the plan, the window and the budget
+        allow it (:mod:`streamer.refetch_policy`); returns the attempt number (0 when not
+        asked) and why not."""
+        if self.refetch is None:
+            return 0, ""
+        v = self.validator
+        plan = v.plan
+        owner = topic_owner(topic, plan)
+        ceiling = v.highest + v.window if v.highest >= 0 or plan is None else None
+        why = refetch_refusal(
+            index,
+            str(producer),
+            owner,
+            total=v.segments_total,
+            floor=v.floor,
+            ceiling=max(ceiling, v.window) if ceiling is not None else None,
+            done=index in self.done.get(topic, ()),
+        )
+        if why:
+            return 0, why
+        # the budget's key: the topic's producer (without a plan, any name the sender writes
+        # would open a new budget: one for the topic then)
+        attempt = self.budget.take(stream, index, owner or topic, v.floor)
+        if not attempt:
+            return 0, f"re-fetches of segment {index} or of producer {producer!r} used up"
+        self.log.warning("%s: segment %d arrived damaged, asking the producer's cache again", stream, index)
+        self.refetch(stream, index, header, sn)
+        return attempt, ""
 
     def due(self) -> list[tuple]:
         """The held segments whose wait is over (no conflicting copy came), to use now."""

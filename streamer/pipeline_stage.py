@@ -17,7 +17,9 @@ import time
 from collections.abc import Callable
 from typing import ClassVar
 
-from .keys import progress_key, progress_pattern, to_ranges
+import zenoh
+
+from .keys import board_key, progress_key, progress_pattern, to_ranges
 from .memtrace import MemoryTrace
 from .plan import MAX_SEGMENTS
 from .progress import Progress, ProgressBoard, key_stage
@@ -178,6 +180,29 @@ class PipelineStage(Stage):
         if self.follow:
             pattern = progress_pattern(self.run_id, board=self.config.progress_from == "launcher")
             self.bus.segment_subscriber(pattern, self._on_progress, history=1)
+
+    def refresh_progress(self, stage: str) -> None:
+        """Ask the cache of ``stage``'s progress (the launcher's board of it, when the stage
+        follows the board) for its latest message again; returns at once, the reply goes to
+        the board as any progress message.  For a stage that waits on another's progress and
+        hears nothing: a late joiner's history query can be lost on a loaded machine, and a
+        stage that has finished publishes no more progress."""
+        if self.bus is None:
+            return
+        key = (board_key if self.config.progress_from == "launcher" else progress_key)(self.run_id, stage)
+
+        def on_reply(reply) -> None:
+            if reply.ok is not None:
+                self._on_progress(reply.ok)
+
+        self.bus.session.get(
+            f"{key}/@adv/pub/**",
+            zenoh.handlers.Callback(on_reply, lambda: None),
+            target=zenoh.QueryTarget.ALL,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            accept_replies=zenoh.ReplyKeyExpr.ANY,  # the cache replies on the progress key
+            timeout=10.0,
+        )
 
     def _on_progress(self, sample) -> None:
         stage = key_stage(str(sample.key_expr))

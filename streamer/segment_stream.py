@@ -19,7 +19,10 @@ marked unstable in zenoh-python 1.x):
   that arrived damaged (its payload does not match its header's checksum or size): after
   a consumer stalled longer than the BLOCK wait, a multi-megabyte segment has arrived
   whole in size but not in content (docs/operations.md); the codec refuses it, and the
-  cached copy replaces it.
+  cached copy replaces it.  The query names the damaged copy's sequence number
+  (``?_sn=<n>..<n>``: the advanced publisher's number, in the sample's ``source_info``), so
+  that a cache answers with that one sample, not with every segment it holds (11.4 MB
+  each for TDI: a flood of damaged headers made every query cost the whole cache, issue 33).
 """
 
 from __future__ import annotations
@@ -122,6 +125,7 @@ def refetch_segment(
     *,
     on_done: Callable[[int], None] | None = None,
     timeout: float = REFETCH_TIMEOUT,
+    sn: int | None = None,
 ) -> None:
     """Ask every publisher cache of the stream ``key_expr`` (``ttl/<run>/<topic>``) again
     for segment ``index`` with the header ``header`` (the damaged message's, byte for byte:
@@ -136,6 +140,10 @@ def refetch_segment(
     0 when no cache holds the segment any more (a cache keeps the last ``cache`` segments
     of its publisher).  ``header=None``: any intact copy of segment ``index`` (a segment
     announced but never received, e.g. a late joiner's history query lost under load).
+    ``sn``: the sequence number of the damaged copy (``sample.source_info.source_sn``): the
+    caches answer with the sample of that number only (Zenoh's ``_sn`` selector parameter);
+    None: with everything they hold (a fetch of an announced segment, whose number is not
+    known: fits, a few kB each).
     """
     found = [0]
 
@@ -158,7 +166,7 @@ def refetch_segment(
             on_done(found[0])
 
     session.get(
-        f"{key_expr}/@adv/pub/**",
+        f"{key_expr}/@adv/pub/**" + (f"?_sn={int(sn)}..{int(sn)}" if sn is not None else ""),
         zenoh.handlers.Callback(on_reply, done),
         target=zenoh.QueryTarget.ALL,
         consolidation=zenoh.ConsolidationMode.NONE,

@@ -378,9 +378,11 @@ class Bus:
             declare_segment_subscriber(self.session, key_expr, callback, history=history, on_miss=on_miss)
         )
 
-    def refetch(self, key_expr: str, index: int, header: bytes | None, on_sample, *, on_done=None) -> None:
+    def refetch(
+        self, key_expr: str, index: int, header: bytes | None, on_sample, *, on_done=None, sn: int | None = None
+    ) -> None:
         """Segment ``index`` of stream ``key_expr`` again from the publishers' caches (:func:`refetch_segment`)."""
-        refetch_segment(self.session, key_expr, index, header, on_sample, on_done=on_done)
+        refetch_segment(self.session, key_expr, index, header, on_sample, on_done=on_done, sn=sn)
 
     def subscriber(self, key_expr: str, callback):
         """A plain subscriber (control messages, errors)."""

@@ -65,6 +65,7 @@ from .plan import Holdback, Plan, Validator
 from .processes import SignalFlag
 from .rangeset import RangeSet
 from .recorder import Recorder, mission_ns
+from .refetch_policy import topic_owner
 from .session import Bus
 from .stage_cli import add_common_options, config_from_args, stage_arguments, stage_main
 from .stage_config import StageConfig
@@ -138,7 +139,7 @@ class Stage:
             event=lambda *a, **k: self.event(*a, **k),
             use=lambda *item: self._use(*item),
             log=self.log,
-            refetch=lambda key, index, header: self.transport.refetch(self.bus, key, index, header),
+            refetch=lambda key, index, header, sn: self.transport.refetch(self.bus, key, index, header, sn),
         )
         #: Indices skipped on arrival (not for the topics in :attr:`reorders`).
         self.gap_watch = GapWatch(config.gap_grace, self.reorders)
@@ -286,6 +287,7 @@ class Stage:
                     self.report_error("orphaned", f"{why}: stage stops")
                 self.log.info("stopping")
                 self.reports.last_words(self.teardown)
+                self.reports.last_words(lambda: self._report_suppressed(final=True))
                 self.reports.last_words(
                     lambda: self.event(
                         "stop",
@@ -327,6 +329,7 @@ class Stage:
         while not self.stopping:
             self._check_orphaned()
             self._release_held()
+            self._report_suppressed()
             for command, payload in self.transport.pending_controls():
                 self._control(command, payload)
             item = self.transport.next(self.config.poll_interval)
@@ -345,12 +348,40 @@ class Stage:
             else:
                 self.ingest.take(*item[1:])
 
-    def fetch(self, topic: str, index: int) -> None:
-        """Ask the publishers' caches for segment ``index`` of ``topic`` (any intact copy): for
+    def _report_suppressed(self, final: bool = False) -> None:
+        """One ``suppressed`` warning per cause of refusals counted, not recorded one by one
+        (:class:`streamer.refetch_policy.ReportLimiter`), with their count."""
+        for producer, kind, field, count in self.ingest.suppressed(final):
+            self.warn(
+                "suppressed",
+                f"{count} more message(s) from {producer} refused ({kind}, {field}): counted, not recorded "
+                f"one by one (the first {self.ingest.limiter.limit} of this cause were)",
+                producer=producer,
+                cause=kind,
+                refused_field=field,
+                count=count,
+            )
+
+    def fetch(self, topic: str, index: int) -> bool:
+        """Ask the producer's cache for segment ``index`` of ``topic`` (any intact copy): for
         a segment announced on the progress board that never came (a late joiner's history
         query lost under load).  What comes is taken as any sample; a ``fetched`` event
-        records how many copies came."""
+        records how many copies came.  Asked only for an index of the plan and the window
+        not processed yet, within the producer's re-fetch budget
+        (:mod:`streamer.refetch_policy`); returns whether it was asked."""
+        v = self.validator
+        total = v.segments_total
+        if (
+            index < max(v.floor, 0)
+            or (total is not None and index >= total)
+            or index in self.ingest.done.get(topic, ())
+        ):
+            return False
+        owner = topic_owner(topic, v.plan) or topic
+        if not self.ingest.budget.take(stream_key(self.run_id, topic), index, owner, v.floor):
+            return False
         self.transport.fetch(self.bus, stream_key(self.run_id, topic), index)
+        return True
 
     def _refetched(self, key: str, index: int, copies: int) -> None:
         """A re-fetch of a damaged segment is over: record it.  With no copy found, a warning

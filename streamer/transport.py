@@ -95,6 +95,14 @@ def recorded_part(out: Output, fields: dict, header: dict) -> tuple[dict, bytes]
     return json.loads(attachment), part
 
 
+def sequence_number(sample) -> int | None:
+    """The advanced publisher's sequence number of ``sample`` (None: a sample of a plain
+    ``put``, which has none)."""
+    info = getattr(sample, "source_info", None)
+    sn = getattr(info, "source_sn", None) if info is not None else None
+    return int(sn) if isinstance(sn, int) else None
+
+
 class StageTransport:
     """The queues a stage's Zenoh callbacks fill, and its output publishers.
 
@@ -116,7 +124,7 @@ class StageTransport:
         self.cache = cache
         self.stop = stop
         self.log = log
-        #: ("sample", key, payload, attachment), ("miss", source, count) and ("refetched",
+        #: ("sample", key, payload, attachment, sn), ("miss", source, count) and ("refetched",
         #: key, index, copies), in arrival order.
         self.inbox: queue.Queue = queue.Queue()
         #: (command, payload) of ``control/<stage>/<command>``: handled before queued segments.
@@ -125,15 +133,18 @@ class StageTransport:
 
     # ------------------------------------------------------------------ Zenoh threads
     def on_sample(self, sample) -> None:
-        self.inbox.put(("sample", str(sample.key_expr), sample.payload, sample.attachment))
+        self.inbox.put(("sample", str(sample.key_expr), sample.payload, sample.attachment, sequence_number(sample)))
 
     def on_miss(self, source: str, count: int) -> None:
         self.inbox.put(("miss", source, count))
 
-    def refetch(self, bus: Bus, key: str, index: int, header: bytes) -> None:
+    def refetch(self, bus: Bus, key: str, index: int, header: bytes, sn: int) -> None:
         """Ask the publishers' caches of stream ``key`` again for segment ``index`` (the copy
-        with ``header``, bytes): the copies come in as samples, then ("refetched", key, index, copies)."""
-        bus.refetch(key, index, header, self.on_sample, on_done=lambda n: self.inbox.put(("refetched", key, index, n)))
+        with ``header``, bytes, and sequence number ``sn``): the copies come in as samples, then
+        ("refetched", key, index, copies)."""
+        bus.refetch(
+            key, index, header, self.on_sample, on_done=lambda n: self.inbox.put(("refetched", key, index, n)), sn=sn
+        )
 
     def fetch(self, bus: Bus, key: str, index: int) -> None:
         """Ask the publishers' caches of stream ``key`` for segment ``index``, any intact copy

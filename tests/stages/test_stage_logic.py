@@ -85,7 +85,66 @@ def test_subtractor_applies_the_latest_fit_covering_each_segment(tmp_path):
     assert s.choose(5) == ("apply", 3)  # no refit at 4, 5: the latest earlier fit
     assert s.choose(6) == ("wait", None)
     s.fits[7] = fit
-    assert s.choose(6) == ("apply", 3)  # a later fit exists: the fitter passed 6
+    assert s.choose(6) == ("wait", None)  # a later fit is no proof that the fitter passed 6 (issue 33)
+    s.board.feed(sample({"stage": "fitter", "done": [[0, 6]], "fits_ranges": [[2, 3]]}))
+    assert s.choose(6) == ("apply", 3)  # the fitter's progress is
+
+
+def test_a_fit_forged_ahead_releases_no_segment_before_it(tmp_path):
+    """Issue 33: a fit for segment 9 while the fitter is at 1 released segments 2-8 with fit
+    1 (residual 2 with fit 0 and so on), silently.  Each segment waits for the fitter's
+    progress on its own index; one the fitter handled without a fit (a no-fit, a gap) gets
+    the latest earlier fit, as before."""
+    s = Subtractor(StageConfig(run="u", recordings=tmp_path))
+    fit = {"coefficients": {}, "t_start": 0.0, "t_stop": 1.0}
+    s.fits[0] = s.fits[1] = fit
+    s.board.feed(sample({"stage": "fitter", "done": [[0, 1]], "fits_ranges": [[0, 1]]}))
+    s.fits[9] = fit  # forged with the fitter's key
+    assert [s.choose(i) for i in range(2, 10)] == [("wait", None)] * 7 + [("wait", None)]
+    # the fitter reaches 4: segment 2 fitted, 3 a no-fit, 4 failed (a gap)
+    s.fits[2] = fit
+    s.board.feed(sample({"stage": "fitter", "done": [[0, 3]], "failed": [[4, 4]], "fits_ranges": [[0, 2]]}))
+    assert [s.choose(i) for i in range(2, 6)] == [("apply", 2), ("apply", 2), ("apply", 2), ("wait", None)]
+    # a fit forged for segment 3, which the fitter handled without one: never applied, reported
+    reports = []
+    s.report_error = lambda kind, message, **k: reports.append((kind, k.get("index")))
+    s.fits[3] = fit
+    assert s.choose(3) == ("apply", 2) and s.choose(4) == ("apply", 2) and reports == [("forged", 3)]
+
+
+def test_a_waiting_subtractor_asks_the_fitters_progress_again_when_it_hears_none(tmp_path):
+    """A late joiner's history query can be lost under load; a fitter that has finished
+    publishes no more progress, and a fit of a later segment is no proof any more: after
+    FIT_FETCH_AFTER seconds without the fitter's progress, its cache is asked again, at most
+    that often."""
+    from stages.subtractor import FIT_FETCH_AFTER
+
+    s = Subtractor(StageConfig(run="u", recordings=tmp_path))
+    asked = []
+    s.refresh_progress = asked.append
+    assert s.choose(0) == ("wait", None) and asked == []  # just started
+    s._started -= FIT_FETCH_AFTER + 1
+    assert s.choose(0) == ("wait", None) and asked == ["fitter"]
+    assert s.choose(1) == ("wait", None) and asked == ["fitter"]  # not again at once
+    s._board_asked -= FIT_FETCH_AFTER + 1
+    s.choose(0)
+    assert asked == ["fitter", "fitter"]
+    s.board.feed(sample({"stage": "fitter", "done": [[0, 0]], "fits_ranges": []}))  # heard now
+    s._board_asked -= FIT_FETCH_AFTER + 1
+    assert s.choose(1) == ("wait", None) and asked == ["fitter", "fitter"]
+
+
+def test_fit_for_by_index():
+    from stages.subtractor import fit_for
+
+    upto = lambda n: set(range(n + 1))  # noqa: E731 - the fitter handled 0..n
+    assert fit_for(5, upto(1), {0, 1}, {0, 1, 9}) == ("wait", None)  # fits ahead prove nothing
+    assert fit_for(5, upto(5), set(), set()) == ("apply", None)
+    assert fit_for(5, upto(9), {0, 3}, {0, 3, 9}) == ("apply", 3)  # no fit at 4, 5: the latest earlier
+    assert fit_for(5, upto(5), {0, 3, 5}, {0, 3}) == ("await", 5)  # announced, on its way
+    assert fit_for(5, upto(5), {0, 3, 5}, {0, 3, 5}) == ("apply", 5)
+    # a fit received for a segment the fitter handled without one (a no-fit): not the fitter's
+    assert fit_for(5, upto(5), {0, 3}, {0, 3, 4}) == ("apply", 3)
 
 
 def test_subtractor_asks_the_fitter_cache_for_an_announced_fit_that_does_not_come(tmp_path):
