@@ -436,7 +436,9 @@ class Launcher:
         self._lock = lock_run(self.run_dir)  # a second launcher of the run is refused here
         if self.run_plan is not None:
             (self.run_dir / "plan.json").write_text(json.dumps(self.run_plan, indent=2))
-        self.credentials = make_credentials(o, self.run_dir, self.expected, listen, lambda t: self.say(t, status=True))
+        self.credentials = make_credentials(
+            o, self.run_dir, self.expected, listen, lambda t: self.say(t, status=True), self.say
+        )
         self.router = Router(o, self.run_dir, self.credentials, self.say, self.journal)
         # where the run is reached while it lasts (ttl inspect tells a live run by these)
         self.journal(

@@ -29,12 +29,13 @@ def exit_description(code: int) -> str:
 
 
 def make_credentials(
-    o: RunOptions, run_dir: Path, roles: Sequence[str], listen, say: Callable[[str], None]
+    o: RunOptions, run_dir: Path, roles: Sequence[str], listen, say: Callable[[str], None], warn: Callable[[str], None]
 ) -> Path | None:
     """The run's credentials (``--credentials`` or made in ``<run_dir>/credentials``, with a
-    certificate for every role), unless insecure (None)."""
+    certificate for every role), unless insecure (None): ``say`` tells of credentials made,
+    ``warn`` that there are none (a warning, printed under ``--quiet`` too)."""
     if o.insecure:
-        say("--insecure: no TLS, no access control; any process reaching the router may publish")
+        warn("--insecure: no TLS, no access control; any process reaching the router may publish")
         return None
     hosts = [security.endpoint_host(e) for e in listen]
     hosts = [h for h in hosts if h and h not in security.LOCAL_HOSTS and h not in ("0.0.0.0", "[::]", "::")]

@@ -364,7 +364,6 @@ def test_insecure_run_is_plain_tcp_and_says_so(tmp_path):
             "monitor",
             "--timeout",
             "120",
-            "--quiet",
         ),
         capture_output=True,
         text=True,

@@ -229,7 +229,7 @@ def test_a_coupling_beside_a_merger_is_advised_without_a_shape_it_does_not_have(
     noise): following the advice ends with the plain witness - no resonance, pole or
     modulation that the injection does not have (the candidates are ranked again with the
     signal's hours gated, :mod:`ttlcore.diagnose.gated_ranking`) - max |dC| < 0.05 mm/rad,
-    pull RMS < 1.5, chi2/dof within 2 % of 1."""
+    pull RMS < 1.5, chi2/dof outside the gated span within 2 % of 1."""
     from test_diagnose_blind_lisainstrument import injected_eta, scaled_to_a_random_level
 
     from ttlcore.conventions import MOSAS
@@ -262,10 +262,13 @@ def test_a_coupling_beside_a_merger_is_advised_without_a_shape_it_does_not_have(
     c = last["model"]["coefficients"]
     err = np.array([c["error"][n] for n in COEFFICIENT_NAMES])
     pull = err / np.array([c["sigma"][n] for n in COEFFICIENT_NAMES])
-    print(
-        f"  {1e3 * np.max(np.abs(err)):.3f} mm/rad, pull RMS {np.sqrt(np.mean(pull**2)):.2f}, chi2/dof "
-        f"{last['model']['chi2_dof']:.4f}"
-    )
+    print(f"  {1e3 * np.max(np.abs(err)):.3f} mm/rad, pull RMS {np.sqrt(np.mean(pull**2)):.2f}")
     assert np.max(np.abs(err)) < MAX_ERROR, (np.max(np.abs(err)), txt)
     assert np.sqrt(np.mean(pull**2)) < MAX_PULL_RMS, (pull, txt)
-    assert abs(last["model"]["chi2_dof"] - 1) < 0.02, txt
+    # chi2/dof of the hours outside the gated span (its 900-s ramps included: a chirp's
+    # power leaks through them) within 2 % of 1
+    spans = [(a - 900.0, b + 900.0) for a, b in last["model"].get("gates") or []]
+    rows = last["adequacy"]["time"]["segments"]
+    outside = [r["chi2_dof"] for r in rows if not any(r["t_start"] < b and r["t_stop"] > a for a, b in spans)]
+    print(f"  the {len(outside)} hours outside the gated span: chi2/dof {np.mean(outside):.4f}")
+    assert len(outside) >= 4 and abs(np.mean(outside) - 1) < 0.02, txt
