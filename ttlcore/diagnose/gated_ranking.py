@@ -33,7 +33,7 @@ from ..errors import ConfigError
 from .candidates import score
 from .model_fit import ModelFit
 
-__all__ = ["GatedRanking", "rank_on_gated", "reordered", "complexity"]
+__all__ = ["GatedRanking", "rank_on_gated", "simplest_alike", "reordered", "complexity"]
 
 log = logging.getLogger(__name__)
 
@@ -103,18 +103,8 @@ def rank_on_gated(candidates: list[dict], gated: ModelFit, alpha: float, toleran
     if len(scored) < 2:
         return None
     best, best_chi2, _ = max(scored, key=lambda x: x[1])
+    chosen, chosen_chi2 = simplest_alike(scored, alpha, tolerance)
     k_best = complexity(best)
-    alike = []
-    for c, d, logb in scored:
-        k = complexity(c)
-        if k >= k_best and c is not best:
-            continue
-        dk = max(k_best - k, 1)
-        margin = max(float(stats.chi2.isf(alpha, dk)), tolerance * max(best_chi2, 0.0))
-        if best_chi2 - d <= margin:
-            alike.append((k, -logb, c, d))
-    alike.sort(key=lambda x: (x[0], x[1]))
-    _, _, chosen, chosen_chi2 = alike[0]
     if chosen is best:
         reason = f"the largest delta chi2 on the gated data ({best_chi2:.1f})"
     else:
@@ -138,6 +128,26 @@ def rank_on_gated(candidates: list[dict], gated: ModelFit, alpha: float, toleran
         chosen=chosen["cli_spec"],
         reason=reason,
     )
+
+
+def simplest_alike(scored: list[tuple[dict, float, float]], alpha: float, tolerance: float) -> tuple[dict, float]:
+    """The candidate to advise among ``scored`` (``(candidate, delta_chi2, log_bayes_factor)``
+    on the gated data) and its ``delta chi^2``: the one with the fewest parameters
+    (:func:`complexity`) among those that explain the data as the best does (module
+    docstring), between equals the higher evidence."""
+    best, best_chi2, _ = max(scored, key=lambda x: x[1])
+    k_best = complexity(best)
+    alike = []
+    for c, d, logb in scored:
+        k = complexity(c)
+        if k >= k_best and c is not best:
+            continue
+        dk = max(k_best - k, 1)
+        margin = max(float(stats.chi2.isf(alpha, dk)), tolerance * max(best_chi2, 0.0))
+        if best_chi2 - d <= margin:
+            alike.append((k, -logb, c, d))
+    alike.sort(key=lambda x: (x[0], x[1]))
+    return alike[0][2], alike[0][3]
 
 
 def reordered(candidates: list[dict], ranking: GatedRanking) -> list[dict]:
