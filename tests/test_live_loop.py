@@ -588,16 +588,7 @@ def transient_day(tmp_path: Path, seed: int) -> tuple[Path, Path, dict]:
     duration = tm.eta.shape[1] / tm.fs
     orbits = tmp_path / "orbits.h5"
     bs.write_orbits(orbits, duration)
-    source = dict(
-        t_c=rng.uniform(0.3, 0.7) * duration,
-        m_total=10 ** rng.uniform(5.3, 6.0),
-        q=rng.uniform(0.3, 1.0),
-        distance_mpc=1e4,
-        iota=rng.uniform(0, np.pi),
-        beta=rng.uniform(-1.2, 1.2),
-        lam=rng.uniform(0, 2 * np.pi),
-        psi=rng.uniform(0, np.pi),
-    )
+    source = bs.random_merger(rng, duration, t_c=(0.3, 0.7), log10_mass=(5.3, 6.0))
     y = bs.gw_link_responses(orbits, duration, tm.fs, **source)
     snr = rng.uniform(300, 1000)
     y *= snr / bs.optimal_snr(tm, y)

@@ -59,6 +59,23 @@ def chirp_strain(t, t_c, m_total, q, distance_mpc, iota, phi_c=0.0, taper_cycles
     return hp, hc
 
 
+def random_merger(rng, duration: float, t_c=(0.3, 0.95), log10_mass=(5.3, 6.3)) -> dict:
+    """A merger's parameters drawn from ``rng`` (for :func:`gw_link_responses`): coalescence at a
+    random share ``t_c`` of ``duration`` [s], total mass log-uniform in ``log10_mass`` [solar
+    masses], random mass ratio, inclination, sky position and polarisation, 10 Gpc (the
+    tests scale it to an SNR)."""
+    return dict(
+        t_c=rng.uniform(*t_c) * duration,
+        m_total=10 ** rng.uniform(*log10_mass),
+        q=rng.uniform(0.3, 1.0),
+        distance_mpc=1e4,
+        iota=rng.uniform(0, np.pi),
+        beta=rng.uniform(-1.2, 1.2),
+        lam=rng.uniform(0, 2 * np.pi),
+        psi=rng.uniform(0, np.pi),
+    )
+
+
 def write_orbits(path, duration: float) -> None:
     """A lisaorbits Keplerian orbit file covering ``duration`` [s] (and some margin)."""
     import lisaorbits

@@ -117,16 +117,7 @@ def test_chirp_is_a_gravitational_wave(seed, orbit_file):
     # merging inside the span, heavy enough that the chirp is in band for hours at most (a
     # loud inspiral in band over the whole span is a stationary excess: classified
     # gravitational-wave too, but no quiet hours remain to test)
-    source = dict(
-        t_c=rng.uniform(0.3, 0.95) * DURATION,
-        m_total=10 ** rng.uniform(5.3, 6.3),
-        q=rng.uniform(0.3, 1.0),
-        distance_mpc=1e4,
-        iota=rng.uniform(0, np.pi),
-        beta=rng.uniform(-1.2, 1.2),
-        lam=rng.uniform(0, 2 * np.pi),
-        psi=rng.uniform(0, np.pi),
-    )
+    source = bs.random_merger(rng, DURATION, t_c=(0.3, 0.95), log10_mass=(5.3, 6.3))
     y = bs.gw_link_responses(orbit_file, DURATION, tm.fs, **source)
     snr = rng.uniform(100, 3000)
     y *= snr / bs.optimal_snr(tm, y)
@@ -239,16 +230,7 @@ def test_a_coupling_beside_a_merger_is_advised_without_a_shape_it_does_not_have(
     source = f"{MOSAS[int(rng.integers(6))]}.{('phi', 'eta')[int(rng.integers(2))]}"
     spec = f"blind-witness:source={source},link={LINKS[int(rng.integers(6))]},delay={int(rng.integers(3))},gain=1"
     extra = scaled_to_a_random_level(tm, injected_eta(tm, spec), seed)
-    merger = dict(
-        t_c=rng.uniform(0.4, 0.9) * DURATION,
-        m_total=10 ** rng.uniform(5.3, 6.0),
-        q=rng.uniform(0.3, 1.0),
-        distance_mpc=1e4,
-        iota=rng.uniform(0, np.pi),
-        beta=rng.uniform(-1.2, 1.2),
-        lam=rng.uniform(0, 2 * np.pi),
-        psi=rng.uniform(0, np.pi),
-    )
+    merger = bs.random_merger(rng, DURATION, t_c=(0.4, 0.9), log10_mass=(5.3, 6.0))
     y = bs.gw_link_responses(orbit_file, DURATION, tm.fs, **merger)
     y *= rng.uniform(300, 1500) / bs.optimal_snr(tm, y)
     tm = replace(tm, eta=tm.eta + extra + y)
