@@ -176,7 +176,9 @@ def test_lisainstrument_day_with_gaps_has_them_gated_and_no_effect_advised(lisai
 
     reports = follow_advice(path, tmp_path)
     first, last = reports[0], reports[-1]
-    summary = [r["recommendation"] and r["recommendation"]["message"] for r in reports]
+    summary = [
+        r["recommendation"] and r["recommendation"].get("message", r["recommendation"]["cli_spec"]) for r in reports
+    ]
     # the gaps as missing data (spread by the reduction's 12.25 s and the TDI's nested delays)
     found = first["transients"]["gaps"]
     for a, b in injected:
@@ -231,7 +233,9 @@ def test_lisainstrument_day_with_gaps_and_a_hidden_coupling(lisainstrument_day, 
     injected = gapped_lisainstrument_day_with_a_coupling(clean, tm, path, 25)
     assert len(injected) == 2, injected
     reports = follow_advice(path, tmp_path)
-    summary = [r["recommendation"] and r["recommendation"]["message"] for r in reports]
+    summary = [
+        r["recommendation"] and r["recommendation"].get("message", r["recommendation"]["cli_spec"]) for r in reports
+    ]
     first, last = reports[0], reports[-1]
     found = first["transients"]["gaps"]
     for a, b in injected:
