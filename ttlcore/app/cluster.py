@@ -107,8 +107,11 @@ def dask_client(
                 dashboard_address="127.0.0.1:0",
                 scheduler_kwargs={"dashboard": bool(dashboard)},
                 memory_limit=memory_limit,
-                # the level of the workers' (and nannies') handlers of Dask's loggers
-                silence_logs=log_level,
+                # the level of the workers' (and nannies') handlers of Dask's loggers: by default
+                # not even their errors, which after an interrupt are a worker's failed heartbeat
+                # to the scheduler just closed (a traceback on the terminal); a task's failure
+                # reaches this process as its exception anyway
+                silence_logs=logging.CRITICAL if log_level >= logging.ERROR else log_level,
             )
         try:
             client = Client(cluster)
