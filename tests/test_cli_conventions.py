@@ -430,9 +430,9 @@ def sigint_ignored(pid: int) -> bool:
 
 
 def worker_busy_on_a_day(p, lines_seen: list, n_days: int) -> list:
-    """Wait until a Dask worker of ``ttl reprocess`` (process ``p``) is busy with a day that is
-    not the last (more than half of the last 0.5 s of CPU, fewer progress lines in
-    ``lines_seen`` than days less one); its worker processes."""
+    """Wait until a Dask worker of ``ttl reprocess`` (process ``p``) is busy with a day (a
+    tenth of the last 0.5 s of CPU, fewer progress lines in ``lines_seen`` than days) while
+    ``p`` listens to SIGINT; its worker processes."""
     import psutil
 
     deadline = time.monotonic() + 180
@@ -445,10 +445,12 @@ def worker_busy_on_a_day(p, lines_seen: list, n_days: int) -> list:
             now = {k.pid: k.cpu_times().user for k in workers}
         except psutil.Error:  # a process that ended while looked at
             now = {}
-        busy = any(pid in cpu and now[pid] - cpu[pid] > 0.25 for pid in now)
+        # busy: a tenth of a core over the last 0.5 s (a loaded machine shares its cores
+        # between the suite's workers: half a core was too much to ask)
+        busy = any(pid in cpu and now[pid] - cpu[pid] > 0.05 for pid in now)
         # and the command listening to SIGINT again: it ignores it while its workers start
         # (ttlcore/app/cluster.py; a busy worker may still be importing then)
-        if busy and sum("%" in line for line in lines_seen) < n_days - 1 and not sigint_ignored(p.pid):
+        if busy and sum("%" in line for line in lines_seen) < n_days and not sigint_ignored(p.pid):
             return workers
         cpu = now
         time.sleep(0.5)
