@@ -476,6 +476,8 @@ def test_reprocess_interrupted_ends_with_one_line(simulated_days, tmp_path, targ
         stderr=subprocess.PIPE,
         text=True,
         start_new_session=True,
+        # SIGINT as at a terminal: a pytest-xdist worker ignores it, and its children inherit that
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     # standard error read as it comes: a day that ended shows as a progress line, and the
     # interrupt must come while a day is still being worked on (on a loaded machine a worker's
