@@ -637,6 +637,8 @@ def test_view_web_interrupted_exits_130(tmp_path):
         text=True,
         env=env,
         start_new_session=True,
+        # SIGINT as at a terminal (a shell's background job ignores it, and its children inherit that)
+        preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL),
     )
     try:
         assert "http://127.0.0.1:" in view.stdout.readline()
