@@ -33,7 +33,7 @@ from ..effects.glitch import Gate, split_gates
 from ..effects.registry import make_effects
 from ..errors import ConfigError
 from ..tdi.data import TDIData
-from .candidates import CandidatePool, named_candidates, transient_actions
+from .candidates import CandidatePool, named_candidates
 from .evidence import change
 from .excess import transient_report
 from .fitting import fit_model
@@ -49,6 +49,7 @@ from .report import (
     text_report,
 )
 from .settings import DiagnoseSettings
+from .transient_advice import transient_actions
 from .transients import NOT_AN_EFFECT
 from .whitened import WhitenedData, whiten_tdi, whiten_telemetry
 from .witnesses import witness_candidates, witness_search
@@ -174,7 +175,7 @@ def diagnose(
     del ungated
     report["transients"] = transient_report(model, report, refit=refit)
     residual = report["transients"].pop("_residual")
-    report["transients"]["actions"] = transient_actions(model, report, residual)
+    report["transients"].update(transient_actions(model, report, residual))  # actions, not_advised
     del residual
     gated = report["transients"].pop("_gated")
     report["transients"]["gated_model"] = None if gated is None else gated_model_json(gated, truth_coefficients)

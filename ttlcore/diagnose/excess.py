@@ -368,7 +368,7 @@ def transient_report(
     The key ``_map`` holds the :class:`TimeFrequencyMap` (for the figure; the diagnosis moves
     it to the report's ``_internals["transient_map"]``), ``_residual`` the model's residual
     series (3, n) (the diagnosis scores the transients' glitches and gates on it,
-    :func:`ttlcore.diagnose.candidates.transient_actions`, and drops it).
+    :func:`ttlcore.diagnose.transient_advice.transient_actions`, and drops it).
 
     ``refit(spans)``, optional, returns the model refitted with ``spans`` [s] gated (or
     None): when events read as signals or defects of the data (:data:`NOT_AN_EFFECT`) or

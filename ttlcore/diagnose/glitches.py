@@ -14,6 +14,7 @@ import logging
 import math
 
 import numpy as np
+from scipy import fft as sp_fft
 from scipy import optimize
 
 from ..conventions import C
@@ -124,7 +125,9 @@ class _Scanner:
 
     def products(self, G: np.ndarray) -> list[tuple]:
         """``(p (m,), q (m, P), |g|^2)`` per template of ``G`` (S, m, 3, k): the per-bin
-        products ``sum conj(g) r``, ``sum conj(g) M``."""
+        products ``sum conj(g) r``, ``sum conj(g) M``.  (Over every segment, the zeros of a
+        template's stretch included: numpy's batched product over 12 terms per bin is
+        faster than over the 3 of one segment.)"""
         S, m, _, k = G.shape
         Gc = np.ascontiguousarray(G.conj().transpose(1, 3, 0, 2)).reshape(m, k, S * 3)
         p = np.einsum("mkj,mj->mk", Gc, self.r)
@@ -140,10 +143,16 @@ class _Scanner:
         p, q, ngg = prods
         L = grid.L
         kmax = int(max_shift * grid.fs) + 1
-        full = np.zeros((1 + q.shape[1], L), dtype=complex)
-        full[0, grid.bins] = p
-        full[1:, grid.bins] = q.T
-        z = np.fft.ifft(full, axis=1).real * L  # sum_f x(f) exp(2 pi i f k / fs)
+        if grid.bins[0] > 0 and 2 * grid.bins[-1] < L:  # Re sum_f x(f) exp(2 pi i f k / fs): half an irfft
+            half = np.zeros((1 + q.shape[1], L // 2 + 1), dtype=complex)
+            half[0, grid.bins] = p
+            half[1:, grid.bins] = q.T
+            z = sp_fft.irfft(half, n=L, axis=1) * (L / 2)
+        else:
+            full = np.zeros((1 + q.shape[1], L), dtype=complex)
+            full[0, grid.bins] = p
+            full[1:, grid.bins] = q.T
+            z = np.fft.ifft(full, axis=1).real * L
         k = np.r_[np.arange(-min(kmax, L // 2 - 1), 0), np.arange(0, min(kmax, L // 2) + 1)]
         c = z[0, k]
         n = z[1:, k]  # (P, K)

@@ -171,7 +171,7 @@ def recommendation(report: dict, effects) -> dict | None:
     (``transients.classification.class``) that the best candidate explains: then, and
     otherwise, :func:`effect_recommendation`.  With the
     transients' actions (``report["transients"]["actions"]``,
-    :func:`ttlcore.diagnose.candidates.transient_actions`) ``option`` adds all of them at once (``--effects
+    :func:`ttlcore.diagnose.transient_advice.transient_actions`) ``option`` adds all of them at once (``--effects
     linear-ttl,glitch:t=9720.4s,tm=12,beta=31.2s,gate:start=15.2h,stop=15.8h``), ``actions`` lists them and ``message``
     reads ``"add glitch at 2.70 h on tm 12 (...); gate 15.20-15.80 h"``."""
     rec = effect_recommendation(report, effects)
@@ -484,6 +484,8 @@ def transient_lines(tr: dict) -> list[str]:
                     else ""
                 )
             )
+    for a in tr.get("not_advised") or []:  # detectable, but the TTL fit does not move
+        lines.append(f"    (not advised: {a['text']}: {a['reason']})")
     verdict = tr.get("classification") or {}
     if verdict.get("class") not in (None, "none"):
         lines.append(
