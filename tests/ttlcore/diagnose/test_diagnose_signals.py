@@ -127,11 +127,16 @@ def test_chirp_is_a_gravitational_wave(seed, orbit_file):
     check_signal(reports[0], C, "gravitational-wave")
 
 
-@pytest.mark.parametrize("seed,louder", [(201, 100.0), (202, 1.0)])
-def test_glitches_are_glitches(seed, louder):
+@pytest.mark.parametrize("seed,louder,n", [(201, 100.0, None), (202, 1.0, None), (203, 1.0, 4), (204, 1.0, 4)])
+def test_glitches_are_glitches(seed, louder, n):
+    """Glitches a hundred times the LISA Pathfinder size are glitches; Pathfinder-sized ones
+    (issue 32: four of them on seeds 203, 204) give no advice, or advice that keeps the pull
+    RMS below 1.3 and the largest coefficient error within 10 % of the linear fit's (seed
+    203: a gate was advised for one read as a gravitational wave, which moved the fit by
+    0.49 sigma; followed, the gated fit read chi2/dof 1.058 and failed 0.1-0.8 Hz)."""
     rng = np.random.default_rng(seed)
     tm, C = day(seed)
-    n = int(rng.integers(1, 6))
+    n = int(rng.integers(1, 6)) if n is None else n
     t = tm.t0 + np.arange(tm.eta.shape[1]) / tm.fs
     # LISA Pathfinder: velocity steps of 1e-12 to 5e-12 m/s (lisaglitch's level), damping 5-300 s
     glitches = [
@@ -150,11 +155,23 @@ def test_glitches_are_glitches(seed, louder):
         assert all(only_transients(r) for r in reports), text_report(rep)
         check_signal(reports[0], C, "glitch")
     else:
-        # Pathfinder-sized glitches leave the fit untouched; whatever the finder reports,
-        # nothing is added and the coefficients are right
-        assert rep["recommendation"] is None or rep["recommendation"]["option"] == "", text_report(rep)
-        c = rep["model"]["coefficients"]
-        assert c["max_abs_error"] < MAX_ERROR
+        # Pathfinder-sized glitches leave the fit untouched: nothing is added, or what is
+        # added keeps the pulls and the error of the linear fit (and nothing but glitches)
+        txt = "\n\n".join(text_report(r) for r in reports)
+        first, last = reports[0]["model"]["coefficients"], rep["model"]["coefficients"]
+        err = np.array([last["error"][k] for k in COEFFICIENT_NAMES])
+        pull_rms = float(np.sqrt(np.mean((err / np.array([last["sigma"][k] for k in COEFFICIENT_NAMES])) ** 2)))
+        print(
+            f"Pathfinder-sized glitches {glitches}: {len(reports)} diagnosis(es), last model "
+            f"{rep['model']['cli_effects']}; linear fit {1e3 * first['max_abs_error']:.4f} mm/rad, last "
+            f"{1e3 * last['max_abs_error']:.4f} mm/rad, pull RMS {pull_rms:.2f}"
+        )
+        assert rep["recommendation"] is None or rep["recommendation"]["option"] == "", txt
+        assert all(only_transients(r) for r in reports), txt
+        if len(reports) > 1:  # advice followed: the fit no worse, and still consistent with the noise
+            assert pull_rms < 1.3 and last["max_abs_error"] < 1.1 * first["max_abs_error"], txt
+            assert abs(rep["model"]["chi2_dof"] - 1) < 0.02, txt
+        assert last["max_abs_error"] < MAX_ERROR, txt
 
 
 def test_gap_is_gated_before_the_fit_and_nothing_is_advised():
