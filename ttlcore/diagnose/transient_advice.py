@@ -13,6 +13,7 @@ change the 24 coefficients beyond their sigmas is left in the data, and the repo
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 
 import numpy as np
 from scipy import stats
@@ -78,10 +79,19 @@ def ttl_shift(before: ModelFit, after: ModelFit) -> np.ndarray:
     return (c1[ok] - c0[ok]) / s0[ok]
 
 
-def gate_shift(data, span) -> dict:
-    """The TTL fit's change when ``span`` [s] is gated (:func:`~ttlcore.diagnose.excess.gated_ttl_fit`):
-    ``max_shift_sigma`` (in sigma of the fit of all data) and ``max_z``, the shift over what
-    leaving out the span's noise alone gives, ``sqrt(sigma_gated^2 - sigma^2)``."""
+def gate_shift(model: ModelFit, span) -> dict:
+    """The TTL fit's change when ``span`` [s] is gated (:func:`~ttlcore.diagnose.excess.gated_ttl_fit`,
+    on the data less the model's fitted glitches: a glitch the model holds inside the span
+    is not the span's pull): ``max_shift_sigma`` (in sigma of the fit of all data) and
+    ``max_z``, the shift over what leaving out the span's noise alone gives,
+    ``sqrt(sigma_gated^2 - sigma^2)``."""
+    data = model.data
+    y = np.array(data.tdi.data_series, dtype=float)
+    for e in model.effects:
+        if isinstance(e, Glitch) and e.column_name() in model.names:
+            dv = float(model.theta[list(model.names).index(e.column_name())])
+            y -= dv * glitch_series(data, e.where, float(e.options["t"]), float(e.options["beta"]))
+    data = replace(data, tdi=replace(data.tdi, data_series=y))
     rb = gated_ttl_fit(data, [span], data.tdi.ttl_names or None)
     sf, sg = np.asarray(rb["sigma_full"]), np.asarray(rb["sigma_gated"])
     shift = np.asarray(rb["gated"]) - np.asarray(rb["full"])
@@ -158,7 +168,7 @@ def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> di
         if gap or model.data.tdi.regressor_series is None:
             actions.append(act)  # missing data: gated whatever it pulls
             continue
-        act["shift"] = gate_shift(model.data, (act["start"], act["stop"]))
+        act["shift"] = gate_shift(model, (act["start"], act["stop"]))
         act["shift"]["fails_a_band"] = _events_fail_a_band(model, [events[i] for i in act["events"]])
         if moves_the_fit("gate", act["shift"]):
             actions.append(act)
@@ -277,8 +287,13 @@ def _with_glitches(model: ModelFit, glitches) -> ModelFit:
     templates, :func:`~ttlcore.diagnose.glitches.glitch_columns`)."""
     if not glitches:
         return model
-    cols = concat(model.columns, *[glitch_columns(model.data, g) for g in glitches])
-    return solve(model.data, cols, tuple(model.effects) + tuple(glitches), model.expansion)
+    data = model.data
+    store = data.context.store
+    sets = []
+    for g in glitches:  # each template built once per diagnosis (an event's fits and shifts, the later events')
+        key = ("transient-glitch", g.spec())
+        sets.append(store.get(key, data) or store.put(key, data, glitch_columns(data, g)))
+    return solve(data, concat(model.columns, *sets), tuple(model.effects) + tuple(glitches), model.expansion)
 
 
 def _event_glitches(model: ModelFit, residual: np.ndarray, tf0, event: dict, span, s, prior=(), single=False) -> dict:

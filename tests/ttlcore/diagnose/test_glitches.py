@@ -261,10 +261,16 @@ def test_advice_names_the_glitches_and_following_it_works(seed, four):
     reports = follow(with_glitches(tm, glitches), C)
     txt = check_final(reports, C)
     final = make_effects(split_effects(reports[-1]["model"]["cli_effects"]))
+
+    def pull_rms(r):
+        c = r["model"]["coefficients"]
+        return np.sqrt(np.mean([(c["error"][k] / c["sigma"][k]) ** 2 for k in COEFFICIENT_NAMES]))
+
     print(  # the figures docs/diagnostics.md quotes (pytest -s)
         f"seed {seed}: injected {glitches}; {len(reports)} step(s), final model {reports[-1]['model']['cli_effects']}; "
         + "; ".join(
-            f"{1e3 * r['model']['coefficients']['max_abs_error']:.4f} mm/rad chi2/dof {r['model']['chi2_dof']:.4f}"
+            f"{1e3 * r['model']['coefficients']['max_abs_error']:.4f} mm/rad, pull RMS {pull_rms(r):.2f}, "
+            f"chi2/dof {r['model']['chi2_dof']:.4f}"
             for r in reports
         )
     )
