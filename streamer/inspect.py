@@ -42,7 +42,14 @@ from pathlib import Path
 from ttlcore.io.atomic import write_json
 
 from .inspect_advice import advise
-from .inspect_model import LOOKBACK_DAYS, coefficient_trends, model_report, recorded_fits, truth_over_window
+from .inspect_model import (
+    LOOKBACK_DAYS,
+    coefficient_trends,
+    model_report,
+    recorded_fits,
+    truth_over_window,
+    truth_test,
+)
 from .inspect_records import MAX_REFUSALS, InspectError, launcher_journal, read_plan, run_gaps, security_report
 from .inspect_text import MAX_LISTED, fmt_ranges, format_report
 from .inspect_timeline import model_timeline
@@ -384,6 +391,7 @@ def inspect_run(run_dir, truth=None) -> dict:
                 t["truth_latest_window"] = true[name]
                 t["error_over_sigma"] = (t["latest"] - true[name]) / t["sigma"] if t["sigma"] > 0 else None
         fit_report["truth_file"] = str(truth)
+        fit_report["truth_test"] = truth_test(last, truth)
     return {
         "run": runs[0] if len(runs) == 1 else (runs or [run_dir.name]),
         "directory": str(run_dir),
