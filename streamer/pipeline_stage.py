@@ -23,6 +23,7 @@ from .keys import board_key, progress_key, progress_pattern, to_ranges
 from .memtrace import MemoryTrace
 from .plan import MAX_SEGMENTS
 from .progress import Progress, ProgressBoard, key_stage
+from .rangeset import RangeSet
 from .segment_stream import declare_segment_publisher
 from .stage import Stage, StageConfig, disk_full
 from .topology import OUTPUT_TOPIC, UPSTREAM
@@ -74,7 +75,10 @@ class InOrder:
         if self.next is None:
             if not self.pending:
                 return
-            if 0 not in self.pending and now - self._first_arrival < self.settle:
+            first = self._first_arrival
+            if first is None:  # set by the add() that buffered the first pending segment
+                raise RuntimeError("in-order queue: segments pending with no arrival time")
+            if 0 not in self.pending and now - first < self.settle:
                 return
             self.next = min(self.pending.keys() | self.withdrawn.keys())
         while True:
@@ -138,17 +142,17 @@ class PipelineStage(Stage):
         self.memtrace = MemoryTrace.from_env(self.log)
 
     @property
-    def done(self) -> set[int]:
+    def done(self) -> RangeSet:
         """Segments whose output this process published."""
         return self.progress.done
 
     @property
-    def failed(self) -> set[int]:
+    def failed(self) -> RangeSet:
         """Segments this process gave up (gaps included)."""
         return self.progress.failed
 
     @property
-    def gaps(self) -> set[int]:
+    def gaps(self) -> RangeSet:
         """Segments given up for lack of data upstream."""
         return self.progress.gaps
 
@@ -174,12 +178,13 @@ class PipelineStage(Stage):
 
     # ------------------------------------------------------------------ lifecycle
     def setup(self) -> None:
-        self._progress_pub = self.bus.track(
-            declare_segment_publisher(self.bus.session, progress_key(self.run_id, self.stage_name), cache=1)
+        bus = self.live_bus
+        self._progress_pub = bus.track(
+            declare_segment_publisher(bus.session, progress_key(self.run_id, self.stage_name), cache=1)
         )
         if self.follow:
             pattern = progress_pattern(self.run_id, board=self.config.progress_from == "launcher")
-            self.bus.segment_subscriber(pattern, self._on_progress, history=1)
+            bus.segment_subscriber(pattern, self._on_progress, history=1)
 
     def refresh_progress(self, stage: str) -> None:
         """Ask the cache of ``stage``'s progress (the launcher's board of it, when the stage

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import bisect
 from collections.abc import Iterable
+from typing import ClassVar
 
 
 class RangeSet:
@@ -162,7 +163,8 @@ class RangeSet:
             return len(self) == len(other) and all(i in self for i in other)
         return NotImplemented
 
-    __hash__ = None
+    # unhashable (mutable), spelled as typeshed spells it for list and set: mypy's only way
+    __hash__: ClassVar[None]  # type: ignore[assignment]
 
     def __repr__(self) -> str:
         return f"RangeSet({self.ranges()})"
