@@ -38,6 +38,7 @@ otherwise (a ``ttl control`` message).
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 import numpy as np
 import rerun as rr
@@ -73,6 +74,12 @@ EPS = 1e-3
 
 def _fmt(x) -> str:
     return f"{x:.3f}" if isinstance(x, (int, float)) and math.isfinite(x) else "?"
+
+
+def _couplings(specs: list[str]) -> tuple[str, ...]:
+    """The couplings of the effect specs ``specs`` (the first part of their model key)."""
+    key = model_key(specs)
+    return key[0] if key is not None else ()
 
 
 class ModelTimeline:
@@ -124,7 +131,7 @@ class ModelTimeline:
         self.latest = max(self.latest, (float(t_stop), int(index)))
         late = self.centre is not None and centre <= self.centre
         if not late:
-            if model_key(model) is not None and model_key(model) != model_key(self.model):
+            if isinstance(model, (list, tuple)) and model_key(model) != model_key(self.model):
                 said = self._change(index, [str(e) for e in model], meta, centre, t_break)
             self.centre = centre
             self.at(centre, index)
@@ -150,7 +157,7 @@ class ModelTimeline:
             return None
         if self.adoption is not None:
             by, diagnosis_index, reason = "adopt auto", self.adoption["index"], self.adoption["reason"]
-        elif removed and not added and not model_key(removed)[0]:
+        elif removed and not added and not _couplings(removed):
             by, diagnosis_index, reason = "window", None, None
         else:
             by, diagnosis_index, reason = "control", None, None
@@ -308,7 +315,11 @@ class ModelTimeline:
         n = len(after)
         colors = [views.band_color(g, n) for g in range(n)]
         self.at(change["t"], change["index"])
-        for part, values, marker in (("before", before, "cross"), ("after", after, "circle")):
+        parts: tuple[tuple[str, list, Literal["cross", "circle"]], ...] = (
+            ("before", before, "cross"),
+            ("after", after, "circle"),
+        )
+        for part, values, marker in parts:
             vals = [float(v) if isinstance(v, (int, float)) else float("nan") for v in values]
             self.rec.log(
                 f"{views.CHANGE_BANDS}/{part}",

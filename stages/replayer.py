@@ -310,7 +310,7 @@ class Replayer(PipelineStage):
     def _consumers_alive(self) -> bool:
         if not self.wait_for:
             return True
-        alive = self.bus.alive_stages(self.run_id, timeout=0.3)
+        alive = self.live_bus.alive_stages(self.run_id, timeout=0.3)
         missing = [s for s in self.wait_for if s not in alive]
         if missing and time.monotonic() - self._last_log > 10:
             self._last_log = time.monotonic()
@@ -325,7 +325,7 @@ class Replayer(PipelineStage):
         out = []
         for name in sorted(names):
             peer = board.get(name)
-            if peer is not None and (peer.covers(self.segments_total) or peer.complete):
+            if peer is not None and (peer.covers(self.source.segments_total) or peer.complete):
                 continue
             if (peer.highest if peer is not None else -1) < need:
                 out.append(name)
@@ -338,7 +338,7 @@ class Replayer(PipelineStage):
         if not peers or any(name not in board for name in self.pace_on):
             return 0
         first_missing = min(
-            min(set(range(self.segments_total)) - p.handled, default=self.segments_total) for p in peers
+            min(set(range(self.source.segments_total)) - p.handled, default=self.source.segments_total) for p in peers
         )
         return max(0, first_missing - 1)
 
@@ -356,7 +356,7 @@ class Replayer(PipelineStage):
             if self.first:
                 self.log.info("resuming at segment %d (stages report %d.. missing)", self.first, self.first + 1)
             self._t_start = time.monotonic()
-        if self.next >= self.segments_total:
+        if self.next >= self.source.segments_total:
             self.check_complete()
             return ()
         i = self.next
