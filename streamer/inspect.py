@@ -86,7 +86,7 @@ def recording_files(run_dir) -> dict[str, list[Path]]:
         raise InspectError(f"{run_dir}: no such run directory")
     if not run_dir.is_dir():
         raise InspectError(f"{run_dir}: not a directory (give recordings/<run>)")
-    by_stage: dict[str, list[tuple[int, Path]]] = defaultdict(list)
+    by_stage: dict[str, list[tuple[float, Path]]] = defaultdict(list)  # (n, or inf for the current file)
     for path in run_dir.iterdir():
         m = _FILE.match(path.name)
         if m and path.is_file():
@@ -108,7 +108,7 @@ def _file_summary(path: Path, stage: str) -> tuple[dict, Recording | None]:
         return {"file": path.name, "readable": False, "complete": False, "problem": str(exc), "records": 0}, None
     events = rec.json("events")
     kinds = Counter(e.get("kind") for e in events if isinstance(e, dict))
-    times = [e.get("time") for e in events if isinstance(e, dict) and isinstance(e.get("time"), (int, float))]
+    times = [t for e in events if isinstance(e, dict) and isinstance(t := e.get("time"), (int, float))]
     meta = rec.metadata.get("ttl", {})
     info = {
         "file": path.name,
@@ -253,7 +253,7 @@ def inspect_run(run_dir, truth=None) -> dict:
         if isinstance(w, dict)
     ]
 
-    interruptions = []
+    interruptions: list[dict] = []
     for stage, s in stages.items():
         names = [f["file"] for f in s["files"]]
         if s["restarts"]:

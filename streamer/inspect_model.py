@@ -11,6 +11,7 @@ from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.trends import TrendSettings, trend_estimates
 from ttlcore.estimate.monitoring import FileTruth
 
+from .inspect_records import json_object
 from .recorder import Recording
 
 #: Span of the drift rate in the report [days] (ttlcore.diagnose.trends.TrendSettings.drift_lookback).
@@ -24,17 +25,17 @@ def recorded_fits(recs: list[Recording]) -> list[dict]:
         summaries = [d for d in rec.json("fit/summary") if isinstance(d, dict) and isinstance(d.get("index"), int)]
         if summaries:
             for d in summaries:
-                fit = d.get("fit") if isinstance(d.get("fit"), dict) else {}
-                names = d.get("names") or fit.get("names")
+                fit = json_object(d.get("fit"))
+                names = list(d.get("names") or fit.get("names") or [])
                 coeffs, sigma = d.get("coefficients"), d.get("sigma")
                 if isinstance(coeffs, dict):  # FitResult.to_json layout
                     coeffs = [coeffs[n] for n in names]
                 if isinstance(sigma, dict):
                     sigma = [sigma[n] for n in names]
-                window = fit.get("window", {}) if isinstance(fit.get("window"), dict) else {}
+                window = json_object(fit.get("window"))
                 fits[d["index"]] = {
                     "index": d["index"],
-                    "names": list(names or []),
+                    "names": names,
                     "t_start": d.get("t_start", window.get("t_start")),
                     "t_stop": d.get("t_end", d.get("t_stop", window.get("t_stop"))),
                     "chi2_dof": d.get("chi2_dof", fit.get("chi2_dof")),
@@ -123,8 +124,8 @@ def truth_over_window(truth_path, t_start: float, t_stop: float, names) -> dict:
     mean = FileTruth(truth_path).mean(t_start, t_stop)
     if mean is None:
         return {}
-    mean = dict(zip(COEFFICIENT_NAMES, mean * 1e3))
-    return {n: float(mean[n]) for n in names if n in mean}
+    by_name = dict(zip(COEFFICIENT_NAMES, mean * 1e3))
+    return {n: float(by_name[n]) for n in names if n in by_name}
 
 
 def model_report(recs: list[Recording]) -> dict:
@@ -154,7 +155,7 @@ def model_report(recs: list[Recording]) -> dict:
                 last_model = (d["index"], d["model"])
             diag = d.get("diagnosis")
             if isinstance(diag, dict):
-                rec_ = diag.get("recommendation") if isinstance(diag.get("recommendation"), dict) else {}
+                rec_ = json_object(diag.get("recommendation"))
                 diagnoses[d["index"]] = {
                     "index": d["index"],
                     "segments": diag.get("segments"),

@@ -209,12 +209,12 @@ def format_report(r: dict) -> str:
             f"{len(m['changes'])} change(s), {len(m['diagnoses'])} live diagnos{'i' if len(m['diagnoses']) == 1 else 'e'}s"
         )
         lines += timeline_text(r.get("timeline") or {})
-        state = m.get("run_state") or {}
+        run_state = m.get("run_state") or {}
         if any(d.get("advice") or d.get("removal") for d in m["diagnoses"]):
             lines.append(
-                f"  the run is live ({state.get('why')}): the commands below change the live fitter's model"
-                if state.get("control")
-                else f"  the run is not live here ({state.get('why')}): the commands below refit the recordings "
+                f"  the run is live ({run_state.get('why')}): the commands below change the live fitter's model"
+                if run_state.get("control")
+                else f"  the run is not live here ({run_state.get('why')}): the commands below refit the recordings "
                 "offline (ttl refit; ttl control works only while the run goes on)"
             )
         for d in m["diagnoses"]:
@@ -228,14 +228,14 @@ def format_report(r: dict) -> str:
                 adopted = (d.get("adoption") or {}).get("adopted")
                 lines.append(f"    recommends {d['recommendation']}{_explains_text(d)}{': adopted' if adopted else ''}")
                 if d.get("advice") and not adopted:
-                    verb = "apply it" if state.get("control") else "refit with it offline"
+                    verb = "apply it" if run_state.get("control") else "refit with it offline"
                     lines.append(f"    {verb}: {d['advice']}")
             elif d.get("message"):
                 lines.append(f"    {d['message']}")
             elif not d.get("fails"):
                 lines.append("    the model is adequate: nothing to add")
             for x in d.get("removal") or []:
-                verb = "remove it" if state.get("control") else "refit without it offline"
+                verb = "remove it" if run_state.get("control") else "refit without it offline"
                 lines.append(f"    evidence gone: {x.get('spec')} (p = {_num(x.get('p'))}); {verb}: {x.get('advice')}")
 
     lines.append("")

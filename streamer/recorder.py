@@ -63,7 +63,7 @@ from .record_schemas import (
     stage_record,
     to_jsonable,
 )
-from .recording_reader import MAGIC, RecordedMessage, Recording, RecordingError, read_recording
+from .recording_reader import MAGIC, RecordedMessage, RecordedSegment, Recording, RecordingError, read_recording
 
 __all__ = [  # the reader's and the schemas' names too: stages, tools and tests import them from here
     "ALERT_SCHEMA",
@@ -80,6 +80,7 @@ __all__ = [  # the reader's and the schemas' names too: stages, tools and tests 
     "TOPIC_SCHEMAS",
     "WARNING_SCHEMA",
     "RecordedMessage",
+    "RecordedSegment",
     "Recorder",
     "Recording",
     "RecordingError",
