@@ -228,9 +228,7 @@ class Ingest:
                     if kept_out
                     else "; the first copy had been used already"
                 )
-            self._refused(
-                topic, header.producer, exc.kind, what, index=at, key=key, field=exc.field, details=details
-            )
+            self._refused(topic, header.producer, exc.kind, what, index=at, key=key, field=exc.field, details=details)
             return
         done = self.done.setdefault(topic, RangeSet())
         if verdict == "duplicate" or at in done:

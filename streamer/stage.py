@@ -424,7 +424,9 @@ class Stage:
         except BoundedJSONError as exc:
             text = payload[:PREVIEW_CHARS].decode("utf-8", errors="replace")
             self.log.warning("control %s rejected: %s", command, exc)
-            self.live_recorder.write_json("control", {**record, "payload": text, "accepted": False, "message": str(exc)})
+            self.live_recorder.write_json(
+                "control", {**record, "payload": text, "accepted": False, "message": str(exc)}
+            )
             self.report_error("rejected", f"control message {command!r}: {exc}", key=key, field="payload")
             return
         record["payload"] = shown
