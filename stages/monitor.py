@@ -168,6 +168,10 @@ class Monitor(PipelineStage):
         """The Rerun recording's file (chosen by :meth:`setup`)."""
         return _opened(self._rrd, "the recording's file")
 
+    @rrd.setter
+    def rrd(self, path: Path) -> None:
+        self._rrd = path
+
     @property
     def rec(self) -> LiveFanout:
         """The Rerun recording (opened by :meth:`setup`)."""
