@@ -47,7 +47,8 @@ from pathlib import Path
 
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.hazmat.primitives.asymmetric import dsa, ec, ed448, ed25519, rsa
+from cryptography.hazmat.primitives.asymmetric.types import CertificateIssuerPrivateKeyTypes
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from ttlcore.errors import TTLError
@@ -63,6 +64,15 @@ VALIDITY_DAYS = 365
 #: RUST_LOG filter of a router process: TLS connections accepted or refused (zenoh_link_tls
 #: logs them at debug/warn) and ACL decisions (zenoh logs them at trace level).
 ROUTER_LOG_FILTER = "warn,zenoh_link_tls=debug,zenoh::net::routing::interceptor::access_control=trace"
+
+#: Private keys a CA key may be (ours is EC; a key of another kind cannot sign certificates).
+SIGNING_KEYS = (
+    ec.EllipticCurvePrivateKey,
+    rsa.RSAPrivateKey,
+    dsa.DSAPrivateKey,
+    ed25519.Ed25519PrivateKey,
+    ed448.Ed448PrivateKey,
+)
 
 
 class CredentialsError(TTLError):
@@ -96,7 +106,7 @@ def _name(common_name: str):
 
 
 def _san(hosts):
-    names = []
+    names: list[x509.GeneralName] = []
     for h in dict.fromkeys(hosts):
         try:
             names.append(x509.IPAddress(ipaddress.ip_address(h)))
@@ -181,7 +191,7 @@ def ensure_credentials(directory, hosts=(), roles=ROLES) -> Path:
     if not ca_pem.exists():
         if ca_key_path.exists():
             raise CredentialsError(f"{ca_key_path}: a CA key without its certificate ca.pem")
-        ca_key = ec.generate_private_key(ec.SECP256R1())
+        ca_key: CertificateIssuerPrivateKeyTypes = ec.generate_private_key(ec.SECP256R1())
         ca = (
             x509.CertificateBuilder()
             .subject_name(_name("ttl-streamer CA"))
@@ -206,17 +216,20 @@ def ensure_credentials(directory, hosts=(), roles=ROLES) -> Path:
     check_private(ca_key_path)
     ca = _load_cert(ca_pem)
     try:
-        ca_key = serialization.load_pem_private_key(ca_key_path.read_bytes(), password=None)
+        loaded = serialization.load_pem_private_key(ca_key_path.read_bytes(), password=None)
     except (OSError, ValueError) as exc:
         raise CredentialsError(f"{ca_key_path}: not a readable private key ({exc})") from None
+    if not isinstance(loaded, SIGNING_KEYS):
+        raise CredentialsError(f"{ca_key_path}: a {type(loaded).__name__}, which cannot sign certificates")
+    ca_key = loaded
     for role in todo:
-        key = ec.generate_private_key(ec.SECP256R1())
+        role_key = ec.generate_private_key(ec.SECP256R1())
         usage = [ExtendedKeyUsageOID.CLIENT_AUTH]
         builder = (
             x509.CertificateBuilder()
             .subject_name(_name(role))
             .issuer_name(ca.subject)
-            .public_key(key.public_key())
+            .public_key(role_key.public_key())
             .serial_number(x509.random_serial_number())
             .not_valid_before(start)
             .not_valid_after(end)
@@ -227,7 +240,7 @@ def ensure_credentials(directory, hosts=(), roles=ROLES) -> Path:
             usage.insert(0, ExtendedKeyUsageOID.SERVER_AUTH)
             builder = builder.add_extension(_san(router_hosts), critical=False)
         cert = builder.add_extension(x509.ExtendedKeyUsage(usage), critical=False).sign(ca_key, hashes.SHA256())
-        _write_private(d / f"{role}.key", _pem_key(key))
+        _write_private(d / f"{role}.key", _pem_key(role_key))
         _write_private(d / f"{role}.pem", cert.public_bytes(serialization.Encoding.PEM), 0o644)
     return d
 
