@@ -89,7 +89,7 @@ FITTER_OPTIONS = {
 
 
 def _split(values) -> tuple:
-    out = []
+    out: list[str] = []
     for v in values or ():
         out.extend(x for x in str(v).split(",") if x)
     return tuple(out)
@@ -292,7 +292,7 @@ def _cmd_router(args) -> int:
             "give --credentials DIR (mutual TLS and access control; 'ttl credentials DIR' makes it) "
             "or --insecure (plain TCP, anyone reaching the port may publish)"
         )
-    default = DEFAULT_ROUTER_LISTEN
+    default: tuple[str, ...] = DEFAULT_ROUTER_LISTEN
     if args.credentials is not None:
         # the router's log (stderr) is the record of refused peers and publications
         filter_log()

@@ -380,7 +380,7 @@ def encode(
                 channel_axis=None if axis is None else int(axis),
             )
         )
-        parts.append(memoryview(data.reshape(-1).view(np.uint8)))
+        parts.append(data.reshape(-1).view(np.uint8).data)  # (a memoryview of the array's bytes)
         offset += data.nbytes
     payload = b"".join(parts)
     header = Header(
@@ -414,7 +414,7 @@ def _dump(header: Header) -> bytes:
         raise
 
 
-def _to_bytes(data) -> bytes | memoryview:
+def _to_bytes(data) -> bytes | bytearray | memoryview:
     if data is None:
         return b""
     if isinstance(data, (bytes, bytearray, memoryview)):

@@ -203,7 +203,7 @@ class Validator:
         self.segments_total: int | None = plan.segments_total if plan is not None else None
         self.digests: dict[tuple[str, int], tuple] = {}
         self.conflicted: dict[str, RangeSet] = {}
-        self._learned: dict[str, tuple[float, int]] = {}  # topic -> (fs, samples) without a plan
+        self._learned: dict[str, tuple[float, int | None]] = {}  # topic -> (fs, samples) without a plan
         self._producers: dict[str, str] = {}  # topic -> producer, learned without a plan
 
     def set_highest(self, index: int) -> None:
@@ -251,6 +251,7 @@ class Validator:
             )
         if self.highest < 0 and plan is None and index > self.window and total is None:
             raise Rejected("rejected", "index", f"first segment {index} with no plan and no segments_total")
+        n: int | None  # samples of the segment (None: not learned yet)
         if plan is not None:
             t0, n = plan.segment(index)
             fs = plan.fs

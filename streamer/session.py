@@ -232,6 +232,8 @@ def _secure(config: zenoh.Config, s: SessionSettings, mode: str) -> None:
 
     if not s.identity:
         raise SessionConfigError("credentials given without an identity (the role whose certificate to use)")
+    if s.credentials is None:  # (called only with credentials)
+        raise SessionConfigError("an identity given without the credentials directory")
     try:
         tls = Identity(Path(s.credentials), s.identity).tls(listen=mode != "client")
     except CredentialsError as exc:
