@@ -57,7 +57,7 @@ def test_stage_parts_used_before_they_exist_are_named(tmp_path):
     with pytest.raises(RuntimeError, match="the bus is used outside run"):
         fitter.live_bus.close()
     with pytest.raises(RuntimeError, match="rolling fit is used before a segment started it"):
-        fitter.started_rolling.settings
+        assert fitter.started_rolling.settings  # (raises first)
     monitor = Monitor(StageConfig(run="u", recordings=tmp_path))
     with pytest.raises(RuntimeError, match="monitor: the Rerun recording is used before"):
         monitor.text("log", "too early")
