@@ -151,18 +151,22 @@ class Supervisor:
         """The stages whose process is running, with it."""
         return [(c, c.proc) for c in self.children.values() if c.proc is not None and c.proc.poll() is None]
 
-    def stop_all(self, bus: Bus, first: signal.Signals | None = None) -> None:
-        """Ask every stage to stop (``first``, e.g. the SIGINT of a Ctrl-C, passed on to every
-        stage running, and the stop message), wait, then terminate and kill what is left."""
-        if first is not None:
-            for _, proc in self._running():
-                proc.send_signal(first)
+    def _send_stop(self, bus: Bus) -> None:
+        """The run's stop message to every stage (logged when the session is closed)."""
         try:
             bus.session.put(
                 control_key(self.opts.run_id, "stop"), b"{}", congestion_control=zenoh.CongestionControl.BLOCK
             )
         except Exception as exc:  # session closed
             log.warning("could not send stop: %s", exc)
+
+    def stop_all(self, bus: Bus, first: signal.Signals | None = None) -> None:
+        """Ask every stage to stop (``first``, e.g. the SIGINT of a Ctrl-C, passed on to every
+        stage running, and the stop message), wait, then terminate and kill what is left."""
+        if first is not None:
+            for _, proc in self._running():
+                proc.send_signal(first)
+        self._send_stop(bus)
         deadline = time.monotonic() + self.opts.stop_timeout
         # the stop message, then SIGTERM with 15 s more, then SIGKILL with 10 s more
         for sig, wait in ((None, 0.0), (signal.SIGTERM, 15.0), (signal.SIGKILL, 10.0)):
@@ -174,12 +178,18 @@ class Supervisor:
                     self.say(f"stage {c.name} did not stop: sending {sig.name}")
                     proc.send_signal(sig)
                 deadline = time.monotonic() + wait
-            for _, proc in running:
-                try:
-                    proc.wait(max(0.1, deadline - time.monotonic()))
-                except subprocess.TimeoutExpired:
-                    pass
+            _wait_all(running, deadline)
         for c in self.children.values():
             if c.proc is not None:
                 c.exit_codes.append(c.proc.returncode)
                 c.proc = None
+
+
+def _wait_all(running: list[tuple[Child, subprocess.Popen]], deadline: float) -> None:
+    """Wait for the processes of ``running`` to end, until ``deadline`` (monotonic [s]; at
+    least 0.1 s each)."""
+    for _, proc in running:
+        try:
+            proc.wait(max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            pass
