@@ -12,7 +12,7 @@ from ttlcore.diagnose.trends import TrendSettings, trend_estimates
 from ttlcore.estimate.monitoring import FileTruth
 
 from .inspect_records import json_object
-from .recorder import Recording
+from .recorder import RecordedSegment, Recording
 
 #: Span of the drift rate in the report [days] (ttlcore.diagnose.trends.TrendSettings.drift_lookback).
 LOOKBACK_DAYS = 3.0
@@ -24,50 +24,57 @@ def recorded_fits(recs: list[Recording]) -> list[dict]:
     for rec in recs:
         summaries = [d for d in rec.json("fit/summary") if isinstance(d, dict) and isinstance(d.get("index"), int)]
         if summaries:
-            for d in summaries:
-                fit = json_object(d.get("fit"))
-                names = list(d.get("names") or fit.get("names") or [])
-                coeffs, sigma = d.get("coefficients"), d.get("sigma")
-                if isinstance(coeffs, dict):  # FitResult.to_json layout
-                    coeffs = [coeffs[n] for n in names]
-                if isinstance(sigma, dict):
-                    sigma = [sigma[n] for n in names]
-                window = json_object(fit.get("window"))
-                fits[d["index"]] = {
-                    "index": d["index"],
-                    "names": names,
-                    "t_start": d.get("t_start", window.get("t_start")),
-                    "t_stop": d.get("t_end", d.get("t_stop", window.get("t_stop"))),
-                    "chi2_dof": d.get("chi2_dof", fit.get("chi2_dof")),
-                    "converged": fit.get("converged", d.get("converged")),
-                    "coefficients": coeffs,
-                    "sigma": sigma,
-                }
+            fits.update((d["index"], _summary_fit(d)) for d in summaries)
         else:  # no summaries: the fit segments themselves
-            for m in rec.segments("fit"):
-                a, meta = m.arrays, m.header.meta
-                if "coefficients" not in a:
-                    continue
-                fits[m.header.index] = {
-                    "index": m.header.index,
-                    "names": list(meta.get("names") or []),
-                    "t_start": meta.get("t_start"),
-                    "t_stop": meta.get("t_stop"),
-                    "chi2_dof": meta.get("chi2_dof"),
-                    "converged": meta.get("converged"),
-                    "coefficients": a["coefficients"].tolist(),
-                    "sigma": a["sigma"].tolist() if "sigma" in a else None,
-                }
-    good = []
-    for f in sorted(fits.values(), key=lambda f: f["index"]):
-        try:
-            c = np.asarray(f["coefficients"], dtype=float)
-            s = np.asarray(f["sigma"], dtype=float) if f["sigma"] is not None else np.full(c.shape, np.nan)
-        except (TypeError, ValueError):
-            continue
-        if c.ndim == 1 and c.shape == s.shape and c.size:
-            good.append(f)
-    return good
+            fits.update((m.header.index, _segment_fit(m)) for m in rec.segments("fit") if "coefficients" in m.arrays)
+    return [f for f in sorted(fits.values(), key=lambda f: f["index"]) if _usable(f)]
+
+
+def _summary_fit(d: dict) -> dict:
+    """The fit of a ``fit/summary`` record (its own layout, or FitResult.to_json's)."""
+    fit = json_object(d.get("fit"))
+    names = list(d.get("names") or fit.get("names") or [])
+    coeffs, sigma = d.get("coefficients"), d.get("sigma")
+    if isinstance(coeffs, dict):  # FitResult.to_json layout
+        coeffs = [coeffs[n] for n in names]
+    if isinstance(sigma, dict):
+        sigma = [sigma[n] for n in names]
+    window = json_object(fit.get("window"))
+    return {
+        "index": d["index"],
+        "names": names,
+        "t_start": d.get("t_start", window.get("t_start")),
+        "t_stop": d.get("t_end", d.get("t_stop", window.get("t_stop"))),
+        "chi2_dof": d.get("chi2_dof", fit.get("chi2_dof")),
+        "converged": fit.get("converged", d.get("converged")),
+        "coefficients": coeffs,
+        "sigma": sigma,
+    }
+
+
+def _segment_fit(m: RecordedSegment) -> dict:
+    """The fit of a recorded ``fit`` segment (with its coefficients)."""
+    a, meta = m.arrays, m.header.meta
+    return {
+        "index": m.header.index,
+        "names": list(meta.get("names") or []),
+        "t_start": meta.get("t_start"),
+        "t_stop": meta.get("t_stop"),
+        "chi2_dof": meta.get("chi2_dof"),
+        "converged": meta.get("converged"),
+        "coefficients": a["coefficients"].tolist(),
+        "sigma": a["sigma"].tolist() if "sigma" in a else None,
+    }
+
+
+def _usable(f: dict) -> bool:
+    """Whether a fit has a vector of coefficients and sigma of the same shape (sigma may be missing)."""
+    try:
+        c = np.asarray(f["coefficients"], dtype=float)
+        s = np.asarray(f["sigma"], dtype=float) if f["sigma"] is not None else np.full(c.shape, np.nan)
+    except (TypeError, ValueError):
+        return False
+    return bool(c.ndim == 1 and c.shape == s.shape and c.size)
 
 
 def coefficient_trends(fits: list[dict]) -> dict:

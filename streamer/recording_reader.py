@@ -375,19 +375,24 @@ def _salvage(path: Path, size: int) -> Recording:
                 rec.complete = True
                 break
     asm.finish()
-    parts = []
-    if rec.skipped:
-        lost = sum(s["stop"] - s["start"] for s in rec.skipped)
-        parts.append(
-            f"{len(rec.skipped)} corrupt stretch(es) skipped ({lost} bytes, first at byte "
-            f"{rec.skipped[0]['start']}: {rec.skipped[0]['why']})"
-        )
-    if end_problem:
-        parts.append(end_problem)
-    rec.problem = "; ".join(parts) or None
+    rec.problem = _salvage_problem(rec.skipped, end_problem)
     if rec.problem:
         log.warning("%s: salvaged %d records; %s", path, rec.records, rec.problem)
     return rec
+
+
+def _salvage_problem(skipped: list[dict], end_problem: str | None) -> str | None:
+    """What a salvaged file lost: its ``skipped`` stretches and why it ended early (None: nothing)."""
+    parts = []
+    if skipped:
+        lost = sum(s["stop"] - s["start"] for s in skipped)
+        parts.append(
+            f"{len(skipped)} corrupt stretch(es) skipped ({lost} bytes, first at byte "
+            f"{skipped[0]['start']}: {skipped[0]['why']})"
+        )
+    if end_problem:
+        parts.append(end_problem)
+    return "; ".join(parts) or None
 
 
 #: Longest record :func:`_resync` accepts as the next chunk [bytes] (the recorder closes a
