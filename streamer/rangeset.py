@@ -8,7 +8,6 @@ from __future__ import annotations
 
 import bisect
 from collections.abc import Iterable
-from typing import ClassVar
 
 
 class RangeSet:
@@ -163,8 +162,7 @@ class RangeSet:
             return len(self) == len(other) and all(i in self for i in other)
         return NotImplemented
 
-    # unhashable (mutable), spelled as typeshed spells it for list and set: mypy's only way
-    __hash__: ClassVar[None]  # type: ignore[assignment]
+    # unhashable (mutable): a class that defines __eq__ and not __hash__ has __hash__ = None
 
     def __repr__(self) -> str:
         return f"RangeSet({self.ranges()})"
