@@ -43,7 +43,14 @@ from ttlcore.io.atomic import write_json
 
 from .inspect_advice import advise
 from .inspect_interruptions import interruptions
-from .inspect_model import LOOKBACK_DAYS, coefficient_trends, model_report, recorded_fits, truth_over_window
+from .inspect_model import (
+    LOOKBACK_DAYS,
+    coefficient_trends,
+    model_report,
+    recorded_fits,
+    truth_over_window,
+    truth_test,
+)
 from .inspect_records import MAX_REFUSALS, InspectError, launcher_journal, read_plan, run_gaps, security_report
 from .inspect_text import MAX_LISTED, format_report
 from .inspect_timeline import model_timeline
@@ -310,6 +317,7 @@ def _fit_report(fits: list[dict], truth) -> dict:
                 t["truth_latest_window"] = true[name]
                 t["error_over_sigma"] = (t["latest"] - true[name]) / t["sigma"] if t["sigma"] > 0 else None
         report["truth_file"] = str(truth)
+        report["truth_test"] = truth_test(last, truth)
     return report
 
 

@@ -1,6 +1,7 @@
 """The fitter's coefficients and model over a run, from its recordings (for ``ttl inspect``,
 :func:`streamer.inspect.inspect_run`): the fits, their trends with the GLS drift rate of
-:mod:`ttlcore.diagnose.trends`, the truth over a fit window, the model's changes and the
+:mod:`ttlcore.diagnose.trends`, the truth over a fit window (and the last fit's sigmas tested
+against it), the model's changes and the
 live diagnoses."""
 
 from __future__ import annotations
@@ -10,6 +11,7 @@ import numpy as np
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.trends import TrendSettings, trend_estimates
 from ttlcore.estimate.monitoring import FileTruth
+from ttlcore.estimate.pulls import pull_summary
 
 from .inspect_records import json_object
 from .recorder import RecordedSegment, Recording
@@ -49,6 +51,7 @@ def _summary_fit(d: dict) -> dict:
         "converged": fit.get("converged", d.get("converged")),
         "coefficients": coeffs,
         "sigma": sigma,
+        "covariance": d.get("covariance"),
     }
 
 
@@ -64,6 +67,7 @@ def _segment_fit(m: RecordedSegment) -> dict:
         "converged": meta.get("converged"),
         "coefficients": a["coefficients"].tolist(),
         "sigma": a["sigma"].tolist() if "sigma" in a else None,
+        "covariance": a["covariance"].tolist() if "covariance" in a else None,
     }
 
 
@@ -133,6 +137,19 @@ def truth_over_window(truth_path, t_start: float, t_stop: float, names) -> dict:
         return {}
     by_name = dict(zip(COEFFICIENT_NAMES, mean * 1e3))
     return {n: float(by_name[n]) for n in names if n in by_name}
+
+
+def truth_test(fit: dict, truth_path) -> dict | None:
+    """A recorded fit (:func:`recorded_fits`) against the truth averaged over its window:
+    its errors and whether its sigmas are honest (:func:`ttlcore.estimate.pulls.pull_summary`,
+    in m/rad); None without a covariance, a truth over the window or the 24 coefficients."""
+    mean = FileTruth(truth_path).mean(fit["t_start"], fit["t_stop"])
+    names, cov = fit.get("names") or [], fit.get("covariance")
+    if mean is None or cov is None or any(n not in names for n in COEFFICIENT_NAMES):
+        return None
+    k = [names.index(n) for n in COEFFICIENT_NAMES]
+    C = np.asarray(fit["coefficients"], dtype=float)[k]
+    return pull_summary(C, np.asarray(cov, dtype=float)[np.ix_(k, k)], mean).to_json()
 
 
 def model_report(recs: list[Recording]) -> dict:

@@ -129,6 +129,19 @@ def timeline_text(t: dict) -> list[str]:
     return lines
 
 
+def truth_test_lines(t: dict | None) -> list[str]:
+    """The last fit against the truth: errors and the tests of its sigmas
+    (:func:`ttlcore.estimate.pulls.pull_summary`)."""
+    if not t:
+        return []
+    lo, hi = t["pull_rms_range"] or (float("nan"), float("nan"))
+    return [
+        f"  last fit against the truth: max |error| {t['max_abs_error'] * 1e3:.4f} mm/rad, pull RMS "
+        f"{t['pull_rms']:.2f} ({lo:.2f}-{hi:.2f} for honest sigmas with this fit's correlations), "
+        f"errors' chi2 {t['chi2']:.1f} for {t['n']} (p {t['p_value']:.3g}): sigmas {t['verdict']}"
+    ]
+
+
 def format_report(r: dict) -> str:
     """The text of ``ttl inspect``."""
     lines = _stages_text(r) + _fits_text(r["fits"]) + _model_text(r)
@@ -218,6 +231,7 @@ def _fits_text(f: dict) -> list[str]:
     lines.append("  (* rate significant at 5 sigma with the overlap covariance of the rolling windows)")
     if with_truth:
         lines.append(f"  truth: {f['truth_file']}, averaged over the last fit window")
+        lines += truth_test_lines(f.get("truth_test"))
     return lines
 
 
