@@ -19,9 +19,10 @@ within a tile and a hop of the data's end, and is not a gap or a gravitational w
   search's best DWS placements are tried with their coupling switched on at the onset:
   ``witness:...,vary=step,t_step=T`` (one column, the placed witness times ``H(t - T)``),
   ``fd-coupling:...,vary=step,t_step=T``.
-- ``T`` is the named ``step`` candidate's searched time when it lies within
-  :data:`ONSET_SEARCH` of the event's start (the step-time search resolves it to seconds),
-  else the event's start. The candidates join the ranking, so a coupling that switched on
+- ``T`` is searched (:func:`onset_time`): the best of them switched on at times about the
+  event's start, to ~30 s. The named ``step`` candidate's time is no guide: a step of the 24
+  coefficients fitted to a resonance that switched on came out 0.5 h late on a
+  lisainstrument window. The candidates join the ranking, so a coupling that switched on
   is advised as one, and the excess's class follows from what it explains.
 - An onset that nothing explains (a noise level that rose and stayed) gets no advice. Once
   it has ended, it is a transient like any other; once the window holds only the time
@@ -35,9 +36,10 @@ import logging
 import numpy as np
 
 from ..effects import make_effects
-from .candidates import CandidatePool
+from ..errors import ConfigError
+from .candidates import CandidatePool, score
 
-__all__ = ["ONSET", "ONSET_MIN_HOURS", "ONSET_SEARCH", "add_onset_candidates", "onset_events", "reclassify_onsets"]
+__all__ = ["ONSET", "ONSET_MIN_HOURS", "add_onset_candidates", "onset_events", "onset_time", "reclassify_onsets"]
 
 log = logging.getLogger(__name__)
 
@@ -47,8 +49,9 @@ ONSET = "onset"
 #: Shortest onset [h]: a glitch or burst at the window's end is shorter (a 300-s damping
 #: rings for ~30 min); the live fitter's sustained-excess diagnosis comes 3 segments after.
 ONSET_MIN_HOURS = 2.0
-#: How far [s] from the event's start a step candidate's searched time is taken as the onset's.
-ONSET_SEARCH = 7200.0
+#: Offsets [s] from an onset event's start at which its coupling's switch-on time is first
+#: scored (:func:`onset_time`): the event's start is a tile's centre less a quarter tile.
+ONSET_GRID = (-1800.0, -900.0, -450.0, 0.0, 450.0, 900.0, 1800.0)
 #: DWS placements of the witness search tried with a switched-on coupling.
 ONSET_PLACEMENTS = 2
 
@@ -77,13 +80,30 @@ def onset_events(events: list[dict]) -> list[dict]:
     return [e for e in events if e["class"] == ONSET]
 
 
-def _onset_time(report: dict, event: dict) -> float:
-    """The step candidate's searched time near the event's start, else the start [s]."""
-    for c in report.get("candidates") or []:
-        t = (c.get("searched") or {}).get("t_step")
-        if c["effect"] == "step" and t is not None and abs(float(t) - event["t_start"]) <= ONSET_SEARCH:
-            return float(t)
-    return float(event["t_start"])
+def onset_time(model, spec: str, t_start: float, modules=()) -> float:
+    """The time [s] a coupling ``spec`` switched on, near an onset event's start ``t_start``:
+    the ``t_step`` of ``spec,vary=step,t_step=T`` with the largest delta chi^2 added to
+    ``model``, on :data:`ONSET_GRID` about ``t_start`` and then halving steps from a quarter
+    tile to a 32nd (13 fits of one column set)."""
+    C = model.ttl_coefficients()
+    found: dict[float, float] = {}
+
+    def delta_chi2(t: float) -> float:
+        t = round(float(t), 1)
+        if t not in found:
+            effect = make_effects([f"{spec},vary=step,t_step={t:.1f}s"], modules)[0]
+            try:
+                found[t] = float(score(model, effect, C)[0].delta_chi2)
+            except ConfigError as exc:  # a switch outside the data: no column
+                log.info("onset time %.1f s not scored: %s", t, exc)
+                found[t] = -np.inf
+        return found[t]
+
+    best = max((t_start + dt for dt in ONSET_GRID), key=delta_chi2)
+    for step in (225.0, 112.5, 56.25, 28.125):
+        best = max((best - step, best, best + step), key=delta_chi2)
+    log.info("onset of %s at %.1f s (event from %.1f s): delta chi2 %.1f", spec, best, t_start, delta_chi2(best))
+    return float(best)
 
 
 def _switchable(report: dict) -> list[str]:
@@ -108,10 +128,11 @@ def add_onset_candidates(model, report: dict, events: list[dict], modules=()) ->
     ``report["candidates"]`` (best first, as :meth:`CandidatePool.ranked` orders them);
     returns the new entries (empty without an onset or a DWS witness)."""
     onsets = onset_events(events)
+    switchable = _switchable(report)
     specs = []
-    for e in onsets:
-        t = _onset_time(report, e)
-        specs += [f"{spec},vary=step,t_step={t:.1f}s" for spec in _switchable(report)]
+    for e in onsets if switchable else ():
+        t = onset_time(model, switchable[0], float(e["t_start"]), modules)
+        specs += [f"{spec},vary=step,t_step={t:.1f}s" for spec in switchable]
     if not specs:
         return []
     with CandidatePool(model, 1) as pool:

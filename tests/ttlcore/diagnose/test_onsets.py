@@ -75,7 +75,12 @@ def test_a_coupling_that_switches_on_is_advised_switched_on_and_never_gated(tmp_
     events = first["transients"]["events"]
     onsets = [e for e in events if e["class"] == ONSET]
     advice = first["recommendation"]
-    summary = (blind_case(seed), t_on / HOUR, [(e["class"], e["t_start"] / HOUR) for e in events], advice["message"])
+    summary = (
+        blind_case(seed),
+        t_on / HOUR,
+        [(e["class"], e["t_start"] / HOUR) for e in events],
+        advice.get("message"),
+    )
     assert onsets and abs(onsets[0]["t_start"] - t_on) < 1800.0, summary
     # the coupling advised switched on, at its onset; nothing gated over its hours
     assert "vary=step" in advice["cli_spec"] and "gate" not in advice["cli_spec"], summary
