@@ -41,6 +41,7 @@ from .gated_ranking import rank_on_gated, reordered
 from .gating import GatedGrid, gated_data, missing_data, with_gates
 from .model_fit import ModelFit
 from .noise_model import profile_noise_model
+from .onsets import add_onset_candidates
 from .report import (
     fine_band_table,
     model_json,
@@ -173,7 +174,8 @@ def diagnose(
         gated_model, model, fitted, ungated=ungated if gates or gaps else None, gates=gates, gaps=gaps
     )
     del ungated
-    report["transients"] = transient_report(model, report, refit=refit)
+    onsets = functools.partial(add_onset_candidates, model, report, modules=effect_modules)
+    report["transients"] = transient_report(model, report, refit=refit, onsets=onsets)
     residual = report["transients"].pop("_residual")
     report["transients"].update(transient_actions(model, report, residual))  # actions, not_advised
     del residual

@@ -191,7 +191,7 @@ def _event_actions(model: ModelFit, tr: dict, residual: np.ndarray) -> tuple[lis
     tf0 = residual_map(data, residual) if events else None
     actions, spans, prior, skipped = [], [], list[Effect](), []
     for i, e in enumerate(events):  # loudest first
-        if e["class"] == "missing-coupling":
+        if e["class"] in ("missing-coupling", "onset"):  # a change that has not ended is no transient
             continue
         span = (e["t_start"] - hop, e["t_stop"] + hop)
         if e["duration"] > MAX_GATE_FRACTION * analysed and e["class"] not in GLITCH_CLASSES:
