@@ -296,7 +296,7 @@ def _descend(prob: _OffsetProfiles, searched: list, bounds: dict, delta: dict, s
     return gain, theta, moved, profiles
 
 
-def _joint_gain(prob: _OffsetProfiles, held: dict, delta: dict, kappa: float) -> tuple[float, float]:
+def _joint_gain(prob: _OffsetProfiles, held: dict, delta: dict, kappa: float) -> tuple:
     """The joint chi^2 gain of the offsets ``delta`` against the open ones at zero (the given
     ones ``held``), and the log Bayes factor at the optimum (with the change of ``log det(N - E)``)."""
     logdet, q_at = [], []
