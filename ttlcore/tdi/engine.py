@@ -277,8 +277,13 @@ def tdi_columns(
     st = _Stencil(
         fs, order, delay_order, degree, hist, lead, np.arange(-half, (order + 1) // 2 + 1), _chebyshev_nodes(degree)
     )
+    # a block's work arrays (returned) are held until the next block has made its own, as
+    # when the blocks were one loop: freed at once, they went back to the system and every
+    # block faulted them in again (4.5 times the page faults, +35 % CPU time for a day's TDI)
+    held = None
     for a in range(0, n, block):
-        _block(out, a, min(a + block, n), history, total, plan, groups, ltt, st)
+        held = _block(out, a, min(a + block, n), history, total, plan, groups, ltt, st)
+    del held
     return out
 
 
@@ -299,11 +304,14 @@ class _Stencil:
     nodes: np.ndarray
 
 
-def _block(out: np.ndarray, a: int, b: int, history: int, total: int, plan, groups: dict, ltt, st: _Stencil) -> None:
+def _block(
+    out: np.ndarray, a: int, b: int, history: int, total: int, plan, groups: dict, ltt, st: _Stencil
+) -> tuple[np.ndarray, np.ndarray]:
     """The outputs ``a:b`` of :func:`tdi_columns` into ``out``: per link group, one FIR per
     Chebyshev power for all its terms applied by FFT, the powers summed with the
     Chebyshev polynomials at the outputs; NaN where a stencil reaches before the data or
-    touches a non-finite input."""
+    touches a non-finite input.  Returns the block's largest work arrays (the outputs per
+    Chebyshev power and their sum), for the caller to hold until the next block's are made."""
     p0, p1 = history + a, history + b  # output positions in input samples
     i0 = max(0, p0 - st.hist)  # first input sample of the block
     m = p1 - i0 + st.lead  # inputs read (stencils reach `lead` ahead)
@@ -325,6 +333,7 @@ def _block(out: np.ndarray, a: int, b: int, history: int, total: int, plan, grou
         if (k, "mask") in first_ok:
             res[r, first_ok[(k, "mask")]] = np.nan
         out[k[0], k[1], a:b] = res[r]
+    return y, res
 
 
 def _block_taps(plan, ltt, p0: int, p1: int, st: _Stencil) -> tuple[dict, np.ndarray]:
