@@ -88,7 +88,8 @@ test: lint $(STAMP) pip-check
 	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist worksteal $(COV)
 
 ## lint: ruff (lint rules and the formatting, checked not applied) over the tree and mypy over
-## ttlcore (configured in pyproject.toml); `ruff check --fix . && ruff format .` applies the fixes
+## ttlcore, streamer and stages (configured in pyproject.toml: [tool.mypy] files); `ruff check --fix .
+## && ruff format .` applies the fixes
 lint: $(STAMP)
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .

@@ -49,6 +49,7 @@ segment gets its fit, and one that gets none is a ``no-fit`` warning naming it a
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 
 import numpy as np
 from threadpoolctl import threadpool_limits
@@ -139,6 +140,13 @@ class Fitter(FitterModel, OrderedStage):
         """The effect specs of the model in force."""
         return self.model.effects
 
+    @property
+    def started_rolling(self) -> RollingFit:
+        """The rolling fit, which the first segment pushed starts (a RuntimeError before)."""
+        if self.rolling is None:
+            raise RuntimeError("fitter: the rolling fit is used before a segment started it")
+        return self.rolling
+
     def step_failed(self, kind: str, index: int, what: str, exc: Exception, consequence: str) -> None:
         """A step of segment ``index`` (the window refit, the live diagnosis) failed: logged with
         its traceback and recorded as a ``kind`` warning that says what was published instead."""
@@ -156,12 +164,12 @@ class Fitter(FitterModel, OrderedStage):
             self.restore_model()
 
     def settings(self, meta: dict) -> FitSettings:
-        kwargs = {"segment_duration": self.fit_segment or float(meta.get("segment_duration") or 3600.0)}
-        if self.band:
-            kwargs["band"] = self.band
-        if meta.get("dws_asd") is not None:
-            kwargs["dws_asd"] = float(meta["dws_asd"])
-        return FitSettings(**kwargs)
+        """The rolling fit's settings: the fitter's FFT segment (else the message's
+        ``segment_duration``, else 1 h) and band (else the default), the message's DWS ASD."""
+        segment = self.fit_segment or float(meta.get("segment_duration") or 3600.0)
+        dws_asd = float(meta["dws_asd"]) if meta.get("dws_asd") is not None else None
+        settings = FitSettings(segment_duration=segment, dws_asd=dws_asd)
+        return replace(settings, band=self.band) if self.band else settings
 
     def handle(self, header, arrays):
         # before buffering: a segment that raises is not marked processed
@@ -432,7 +440,7 @@ class Fitter(FitterModel, OrderedStage):
         meta = fit_meta(
             res,
             window_duration=self.window_duration,
-            fft_segment=self.rolling.settings.segment_duration,
+            fft_segment=self.started_rolling.settings.segment_duration,
             segments_total=self.segments_total,
             model=self.effects,
         )

@@ -18,6 +18,7 @@ process published but did not get to record before it was killed
 from __future__ import annotations
 
 import json
+from typing import TYPE_CHECKING
 
 from streamer.codec import encode
 from streamer.keys import to_ranges
@@ -28,10 +29,28 @@ from ttlcore.errors import ConfigError
 from .fitter_recordings import pushed_again, recorded_models, recorded_telemetry
 from .fitter_schedule import TRANSIENT_SPACING
 
+if TYPE_CHECKING:  # the mixin is checked as the ordered stage it is mixed into
+    from streamer.pipeline_stage import OrderedStage
 
-class FitterModel:
+    from .fit_window import TelemetryWindow
+    from .fitter_schedule import DiagnosisSchedule
+    from .live_model import LiveModel
+
+    _Stage = OrderedStage
+else:
+    _Stage = object
+
+
+class FitterModel(_Stage):
     """The model-change and restart part of :class:`stages.fitter.Fitter` (a mixin: it uses
     the stage's ``model``, ``queue``, ``schedule``, ``window_tm``, recorder and events)."""
+
+    #: the fitter's state this part works on (set by :class:`stages.fitter.Fitter`)
+    model: LiveModel
+    schedule: DiagnosisSchedule
+    window_tm: TelemetryWindow
+    _catching_up: bool
+    _restarted: bool
 
     #: segments an earlier process of this stage recorded a fit of (a restarted fitter), and
     #: those whose summary it recorded too (what ``ttl inspect`` lists)
@@ -67,7 +86,7 @@ class FitterModel:
         checked completely (its columns built on the newest telemetry of the window); a model
         refused raises ValueError with the reason, which the stage reports to the sender."""
         if command != "model":
-            return super().control(command, payload)  # type: ignore[misc]
+            return super().control(command, payload)
         newest = self.window_tm.telemetry[-1] if len(self.window_tm) else None
         self.change_model(self.model.parse_control(payload, window=newest), by="control")
         return ()
@@ -87,7 +106,7 @@ class FitterModel:
             self.report_error(
                 "failed",
                 f"restart: the recorded model change cannot be restored ({exc}); "
-                f"the configured model {','.join(self.effects)} stays",
+                f"the configured model {','.join(self.model.effects)} stays",
                 field="model",
             )
             return
@@ -159,9 +178,9 @@ class FitterModel:
         payload, attachment = encode(out.arrays, fields, allow_nonfinite=out.allow_nonfinite)
         header = json.loads(attachment)
         if index not in self.recorded_fits:
-            self.recorder.write_segment(out.topic, header, payload)
+            self.live_recorder.write_segment(out.topic, header, payload)
         if out.summary is not None:
-            self.recorder.write_json(
+            self.live_recorder.write_json(
                 f"{out.topic}/summary", out.summary, schema=out.summary_schema, log_time=mission_ns(header["t0"])
             )
         self.recorded_fits.add(index)
@@ -184,7 +203,7 @@ class FitterModel:
         gone = model.expired(self.window_tm.t_start)
         if not gone:
             return
-        kept = [e for e in self.effects if e not in gone]
+        kept = [e for e in model.effects if e not in gone]
         self.change_model(kept, diagnose=False, by="window", removed=gone, decided_at=index)
 
 

@@ -22,12 +22,23 @@ state.
 from __future__ import annotations
 
 import json
+from typing import TypedDict
 
 from streamer.codec import MAX_HEADER_BYTES
 from ttlcore.conventions import DAY
 from ttlcore.effects import effect_input_from_telemetry, make_effects, split_effects
 from ttlcore.effects.glitch import split_gates
 from ttlcore.errors import ConfigError
+
+
+class PendingChange(TypedDict):
+    """A model change asked for and not yet in force (:attr:`LiveModel.pending`)."""
+
+    effects: list[str]  # the validated specs of the new model
+    from_index: int  # the segment it applies from
+    due: bool  # its ``model_change`` is still to be reported
+    diagnose: bool  # the new model's first segment is diagnosed
+
 
 #: Most effects a live model may hold (a day of glitches and gates, with room): a control
 #: message with more is refused before any effect is built (docs/operations.md, "Model limits")
@@ -81,9 +92,8 @@ class LiveModel:
         The validated specs of the model in force.
     initial : list of str
         The configured model (what a restarted fitter replays before the first change).
-    pending : list of dict
-        The changes asked for and not yet in force, in the order asked: ``effects``,
-        ``from_index``, ``due`` (its ``model_change`` is still to be reported), ``diagnose``.
+    pending : list of PendingChange
+        The changes asked for and not yet in force, in the order asked.
     change_due : dict or None
         A change not yet reported in a fit message: ``before``, ``after``, ``from_index``.
     diagnose_due : bool
@@ -95,7 +105,7 @@ class LiveModel:
         self.window_duration = float(window_duration)
         self.effects = self.check(effects)
         self.initial = list(self.effects)
-        self.pending: list[dict] = []
+        self.pending: list[PendingChange] = []
         self.change_due: dict | None = None
         self.diagnose_due = False
 
@@ -204,7 +214,7 @@ class LiveModel:
         """The model of the next segment (the last change queued, else the model in force)."""
         return list(self.pending[-1]["effects"]) if self.pending else list(self.effects)
 
-    def apply(self, index: int) -> list[dict]:
+    def apply(self, index: int) -> list[PendingChange]:
         """Segment ``index`` is about to be processed: the changes queued for it (from
         ``index`` or earlier) take effect, in the order they were asked for; their change is
         due in the next fit message (one ``model_change``, from the model before the first
@@ -295,16 +305,16 @@ class LiveModel:
         d = models[-1].get("details") or {}
         last = self.check(d["effects"])
         start = int(d["from_index"])
-        queued = []
+        queued: list[PendingChange] = []
         for e in models:
             try:
                 d_e = e.get("details") or {}
                 i = int(d_e["from_index"])
-                queued.append({"effects": self.check(d_e["effects"]), "from_index": i, "diagnose": True})
+                effects = self.check(d_e["effects"])
             except (KeyError, TypeError, ValueError, ConfigError):
                 continue  # a change that cannot be restored: the segments from it keep the model before
-        for c in queued:
-            c["due"] = not any(i >= c["from_index"] for i in fits)
+            due_e = not any(j >= i for j in fits)
+            queued.append({"effects": effects, "from_index": i, "due": due_e, "diagnose": True})
         # by the segment each applies from; in the order asked among those of one segment
         self.pending = sorted(queued, key=lambda c: c["from_index"])
         due = not any(i >= start for i in fits)

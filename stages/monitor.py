@@ -83,6 +83,7 @@ import sys
 import time
 from collections import deque
 from pathlib import Path
+from typing import TypeVar
 
 import numpy as np
 
@@ -108,6 +109,14 @@ from .monitor_truth import FitTruth
 P = len(COEFFICIENT_NAMES)
 #: Application id of the Rerun recording.
 APPLICATION_ID = "ttl_monitor"
+T = TypeVar("T")
+
+
+def _opened(part: T | None, what: str) -> T:
+    """``part`` of the monitor that :meth:`Monitor.setup` opens; a RuntimeError before."""
+    if part is None:
+        raise RuntimeError(f"monitor: {what} is used before the stage's setup()")
+    return part
 
 
 class Monitor(PipelineStage):
@@ -129,16 +138,16 @@ class Monitor(PipelineStage):
         self.per_decade = int(o.get("asd_per_decade", 20))
         self.band = tuple(float(x) for x in (o.get("band") or DEFAULT_BAND))
         self.trends = TrendMonitor(settings=TrendSettings.from_dict(o.get("trends")))
-        self.rec = None
-        self.rrd: Path | None = None
+        self._rec: LiveFanout | None = None  # the Rerun recording (:meth:`open_recording`)
+        self._rrd: Path | None = None  # its file (:meth:`setup`)
         self.viewer = None
         self.viewer_url: str | None = None
         self.noise = NoiseCurves(self.band, self.per_decade)  # the noise view's curves
-        self.timeline: ModelTimeline | None = None  # the model timeline, gaps, left-out hours
+        self._timeline: ModelTimeline | None = None  # the model timeline, gaps, left-out hours
         # the truth beside the fits, and the fits' windows (redrawn when a truth becomes known later)
         self.truth = FitTruth(warn=lambda message: self.text("log", message, "WARN"))
         self.epochs = ModelEpochs()  # where the model changed, as drawn
-        self.series: views.SeriesLog | None = None  # the time series' rows (styles with their earliest)
+        self._series: views.SeriesLog | None = None  # the time series' rows (styles with their earliest)
         self._now = 0.0  # mission time [s] the recording is at
         self._errors: queue.Queue = queue.Queue()
         self._pending_alerts: list[Alert] = []
@@ -153,12 +162,37 @@ class Monitor(PipelineStage):
         self._band_labels: list[str] = []  # the adequacy bands, for the run summary's key
         self._drawn_to: tuple[int, float] | None = None  # latest segment drawn and its end [s]
 
+    # ------------------------------------------------------------------ what setup() opens
+    @property
+    def rrd(self) -> Path:
+        """The Rerun recording's file (chosen by :meth:`setup`)."""
+        return _opened(self._rrd, "the recording's file")
+
+    @rrd.setter
+    def rrd(self, path: Path) -> None:
+        self._rrd = path
+
+    @property
+    def rec(self) -> LiveFanout:
+        """The Rerun recording (opened by :meth:`setup`)."""
+        return _opened(self._rec, "the Rerun recording")
+
+    @property
+    def timeline(self) -> ModelTimeline:
+        """The model timeline view (opened by :meth:`setup`)."""
+        return _opened(self._timeline, "the model timeline")
+
+    @property
+    def series(self) -> views.SeriesLog:
+        """The time series' rows (opened by :meth:`setup`)."""
+        return _opened(self._series, "the time series")
+
     # ------------------------------------------------------------------ lifecycle
     def setup(self) -> None:
         super().setup()
         rrd = self.options.get("rrd") or Path(self.config.recordings) / self.run_id / "monitor.rrd"
-        self.rrd = set_aside(Path(rrd))
-        self.rrd.parent.mkdir(parents=True, exist_ok=True)
+        self._rrd = set_aside(Path(rrd))
+        self._rrd.parent.mkdir(parents=True, exist_ok=True)
         # no display, no binary, nothing listening: the file is still written
         self.viewer, self.viewer_url, viewer_problem = start_live(
             self.live, self.options.get("viewer_port"), self.options.get("rerun_binary")
@@ -173,14 +207,14 @@ class Monitor(PipelineStage):
         )
         if viewer_problem:
             self.text("log", viewer_problem, "WARN")
-        self.bus.subscriber(topic_pattern(self.run_id, ERRORS), self._on_error)
+        self.live_bus.subscriber(topic_pattern(self.run_id, ERRORS), self._on_error)
         self.flush()
         self.log.info("rerun recording %s%s", self.rrd, f", live {self.viewer_url}" if self.viewer_url else "")
 
     def open_recording(self) -> None:
         """The Rerun recording (file ``self.rrd``, and the live viewer at ``self.viewer_url``),
         its blueprint and static parts, and the text panels at mission time 0."""
-        self.rec = LiveFanout.open(
+        self._rec = LiveFanout.open(
             APPLICATION_ID,
             f"{self.run_id}-{os.getpid()}-{int(time.time())}",
             self.rrd,
@@ -189,8 +223,8 @@ class Monitor(PipelineStage):
             on_live_failure=self._live_failed,
         )
         self.rec.send_recording_name(f"ttl {self.run_id}")
-        self.series = views.SeriesLog(self.rec)
-        self.timeline = ModelTimeline(self.rec, self._time, self.band)
+        self._series = views.SeriesLog(self.rec)
+        self._timeline = ModelTimeline(self.rec, self._time, self.band)
         views.static_styles(self.rec, self.band)
         self._time(0.0, 0)
         views.first_texts(self.rec)
@@ -217,7 +251,7 @@ class Monitor(PipelineStage):
     def _close_recording(self, message: str) -> None:
         """Write the last batch and the RRD footer, then merge the file's chunks (once; the
         viewer then opens the file from its manifest instead of scanning it)."""
-        if self.rec is None or self.rec.closed:
+        if self._rec is None or self._rec.closed:
             return
         try:
             self.text("log", message)
@@ -236,18 +270,18 @@ class Monitor(PipelineStage):
         return ()
 
     def flush(self) -> None:
-        if self.rec is not None:
-            self.rec.flush()
+        if self._rec is not None:
+            self._rec.flush()
 
     # ------------------------------------------------------------------ inputs
     def expect(self, topic, index):
-        arrays = {
+        specs: dict[str, dict[str, tuple[str | None, tuple | None]]] = {
             "telemetry": {"ltt": ("<f8", (6, None))},
             "tdi": {"data": ("<f8", (3, None))},
             "fit": {"coefficients": ("<f8", (P,)), "sigma": ("<f8", (P,))},
             "residual": {"residual": ("<f8", (3, None)), "ttl_model": ("<f8", (3, None))},
-        }[topic]
-        return Expect(run=self.run_id, index=index, arrays=arrays, allow_nonfinite=topic != "fit")
+        }
+        return Expect(run=self.run_id, index=index, arrays=specs[topic], allow_nonfinite=topic != "fit")
 
     def handle(self, header, arrays):
         self.note_meta(header.meta)
@@ -303,7 +337,7 @@ class Monitor(PipelineStage):
             self.publish(self.status(i))
             self.mark_done(i)  # after the output is out (progress protocol)
             self._forget(i)
-        tdi = board.get(self.upstream)
+        tdi = board.get(self.upstream) if self.upstream is not None else None
         if tdi is not None:
             for i in sorted(tdi.failed - self.done - self.failed - self.settling.drawn["tdi"]):
                 if i in tdi.gaps:
@@ -359,7 +393,7 @@ class Monitor(PipelineStage):
                 msg = f"error from {e.get('stage')}: {e.get('kind')} segment {e.get('index')}: {e.get('message')}"
             except (ValueError, RecursionError, AttributeError):  # not JSON, nested too deep, not an object
                 msg = f"unreadable error message ({len(raw)} bytes)"
-            if self.rec is not None:
+            if self._rec is not None:
                 self.text("log", msg, "ERROR")
 
     # ------------------------------------------------------------------ telemetry
@@ -467,7 +501,7 @@ class Monitor(PipelineStage):
             self.text("alerts", a.message, "WARN")
             raised = a.t_detected if math.isfinite(a.t_detected) else t_stop
             self._alert_lines.append(f"raised at {views.days(raised)}: {a.message}")
-            self.recorder.write_json("alerts", {"run": self.run_id, **a.to_json()}, schema="ttl.Alert")
+            self.live_recorder.write_json("alerts", {"run": self.run_id, **a.to_json()}, schema="ttl.Alert")
             self.log.warning("alert: %s", a.message)
         if alerts:
             self._summary()

@@ -68,7 +68,7 @@ class ModelEpochs:
             return None
         before, before_key, last = self.model, model_key(self.model), self.centre
         self.model, self.centre = list(model), centre
-        if before_key is None:  # the first model seen
+        if before is None or before_key is None:  # the first model seen (model_key(None) is None)
             self.lines.append(f"epoch 0 from fit {index}: {', '.join(model)}")
             if list(model) == ["linear-ttl"]:
                 return None

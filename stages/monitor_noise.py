@@ -94,8 +94,8 @@ class NoiseCurves:
             fm, am, _ = channel_asd(model, header.fs, self.per_decade)
             views.noise_curve(rec, "ttl_model", fm, am, self.band)
         self.effect_curves(rec, header, arrays)
-        ref = self.references(rec, header, f_welch)
-        return f, asd, band_ratio(f, asd, *ref["expected"], self.band)
+        f_ref, expected = self.references(rec, header, f_welch)["expected"]
+        return f, asd, band_ratio(f, asd, f_ref, expected, self.band)
 
     def effect_curves(self, rec, header, arrays) -> None:
         """The X2 ASD of each effect of the model beyond the linear TTL that the subtractor

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 from collections.abc import Iterator
 
+from streamer.rangeset import RangeSet
+
 #: Producer of each topic the monitor waits for.
 PRODUCERS = {"fit": "fitter", "residual": "subtractor"}
 
@@ -92,7 +94,7 @@ class Settling:
         return None
 
     def ready(
-        self, board: dict, handled: set[int], alive: set[str], last_miss: float | None, now: float
+        self, board: dict, handled: RangeSet | set[int], alive: set[str], last_miss: float | None, now: float
     ) -> Iterator[tuple[int, str, str | None, str | None]]:
         """The drawn segments not ``handled`` yet that wait for nothing more, in index order:
         ``(i, "done", None, None)``; ``(i, "unhandled", None, None)`` when its fit or residual
@@ -121,6 +123,6 @@ class Settling:
         for topic in ("fit", "residual"):
             self.unhandled[topic].discard(i)
 
-    def pending(self, handled: set[int]) -> int:
+    def pending(self, handled: RangeSet | set[int]) -> int:
         """Segments drawn and not yet ``handled``."""
         return len(self.drawn["tdi"] - handled)

@@ -38,6 +38,7 @@ otherwise (a ``ttl control`` message).
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 import numpy as np
 import rerun as rr
@@ -73,6 +74,12 @@ EPS = 1e-3
 
 def _fmt(x) -> str:
     return f"{x:.3f}" if isinstance(x, (int, float)) and math.isfinite(x) else "?"
+
+
+def _couplings(specs: list[str]) -> tuple[str, ...]:
+    """The couplings of the effect specs ``specs`` (the first part of their model key)."""
+    key = model_key(specs)
+    return key[0] if key is not None else ()
 
 
 class ModelTimeline:
@@ -124,7 +131,7 @@ class ModelTimeline:
         self.latest = max(self.latest, (float(t_stop), int(index)))
         late = self.centre is not None and centre <= self.centre
         if not late:
-            if model_key(model) is not None and model_key(model) != model_key(self.model):
+            if isinstance(model, (list, tuple)) and model_key(model) != model_key(self.model):
                 said = self._change(index, [str(e) for e in model], meta, centre, t_break)
             self.centre = centre
             self.at(centre, index)
@@ -148,27 +155,11 @@ class ModelTimeline:
                 self._lane_of(spec)
             self._document()
             return None
-        if self.adoption is not None:
-            by, diagnosis_index, reason = "adopt auto", self.adoption["index"], self.adoption["reason"]
-        elif removed and not added and not model_key(removed)[0]:
-            by, diagnosis_index, reason = "window", None, None
-        else:
-            by, diagnosis_index, reason = "control", None, None
+        by, diagnosis_index, reason = self._who(added, removed)
         self.adoption = None
         t = t_break if t_break is not None else centre
         self.at(t, index)
-        for spec in removed:  # the lane ends at the change
-            if spec in self.lanes:
-                self._lane_point(self.lanes[spec], t, style=False)
-            self.active.discard(spec)
-        for spec in added:
-            lane = self._lane_of(spec)
-            if lane in self.drawn_lanes:  # drawn before: not joined to its earlier span
-                self.at(t - EPS, index)
-                self.rec.log(views.timeline_lane(lane), rr.Clear(recursive=False))
-                self.at(t, index)
-            self.active.add(spec)
-            self._lane_point(lane, t, style=True)
+        self._lanes_changed(index, t, added, removed)
         text = change_text(added, removed, by, diagnosis_index=diagnosis_index, reason=reason, new_epoch=new_epoch)
         change = {
             "index": index,
@@ -197,6 +188,32 @@ class ModelTimeline:
         self._after_residual()
         self._document()
         return text
+
+    def _who(self, added: list[str], removed: list[str]) -> tuple[str, int | None, str | None]:
+        """Who changed the model, ``(by, diagnosis index, reason)``: the adoption of a live
+        diagnosis (``adopt auto``), the window (transients that left it, removed alone) or a
+        control message."""
+        if self.adoption is not None:
+            return "adopt auto", self.adoption["index"], self.adoption["reason"]
+        if removed and not added and not _couplings(removed):
+            return "window", None, None
+        return "control", None, None
+
+    def _lanes_changed(self, index: int, t: float, added: list[str], removed: list[str]) -> None:
+        """The lanes of the ``removed`` effects end at ``t``, those of the ``added`` start
+        there (a lane drawn before is not joined to its earlier span)."""
+        for spec in removed:
+            if spec in self.lanes:
+                self._lane_point(self.lanes[spec], t, style=False)
+            self.active.discard(spec)
+        for spec in added:
+            lane = self._lane_of(spec)
+            if lane in self.drawn_lanes:
+                self.at(t - EPS, index)
+                self.rec.log(views.timeline_lane(lane), rr.Clear(recursive=False))
+                self.at(t, index)
+            self.active.add(spec)
+            self._lane_point(lane, t, style=True)
 
     def _labels(self, meta, mc) -> list[str]:
         bands = (meta.get("adequacy") or {}).get("bands") if isinstance(meta.get("adequacy"), dict) else None
@@ -308,7 +325,11 @@ class ModelTimeline:
         n = len(after)
         colors = [views.band_color(g, n) for g in range(n)]
         self.at(change["t"], change["index"])
-        for part, values, marker in (("before", before, "cross"), ("after", after, "circle")):
+        parts: tuple[tuple[str, list, Literal["cross", "circle"]], ...] = (
+            ("before", before, "cross"),
+            ("after", after, "circle"),
+        )
+        for part, values, marker in parts:
             vals = [float(v) if isinstance(v, (int, float)) else float("nan") for v in values]
             self.rec.log(
                 f"{views.CHANGE_BANDS}/{part}",

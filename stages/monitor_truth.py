@@ -14,7 +14,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from ttlcore.estimate.monitoring import window_truth
+from ttlcore.estimate.monitoring import FileTruth, ModelTruth, window_truth
 
 
 class FitTruth:
@@ -37,7 +37,7 @@ class FitTruth:
 
     def __init__(self, warn: Callable[[str], None]):
         self.warn = warn
-        self.truth = None
+        self.truth: ModelTruth | FileTruth | None = None
         self.source: str | dict | None = None
         self.windows: dict[int, tuple[float, float, np.ndarray, np.ndarray]] = {}
 

@@ -52,6 +52,7 @@ from __future__ import annotations
 
 import json
 import math
+from collections.abc import Sequence
 
 import numpy as np
 import rerun as rr
@@ -343,7 +344,8 @@ def noise_axes(rec, band) -> None:
     s = ASD_X_STRETCH
     xt = list(range(math.ceil(x0), math.floor(x1) + 1))
     yt = list(range(int(y0), int(y1) + 1))
-    lines = [[(x, y0), (x, y1)] for x in xt] + [[(x0, y), (x1, y)] for y in yt]
+    lines: list[list[tuple[float, float]]] = [[(x, y0), (x, y1)] for x in xt]
+    lines += [[(x0, y), (x1, y)] for y in yt]
     lines += [[(x0, y0), (x0, y1)], [(x1, y0), (x1, y1)]]  # the band's edges
     rec.log(
         "asd/plot/grid", rr.LineStrips2D(lines, colors=[(210, 210, 210)], radii=rr.Radius.ui_points(0.5)), static=True
@@ -405,10 +407,15 @@ def noise_curve(rec, name: str, f, asd, band, color=None, label: str | None = No
             if k - start >= 2:
                 strips.append(np.column_stack([x[start:k], y[start:k]]).astype(np.float32))
             start = None
-    labels = {"labels": [label] * len(strips), "show_labels": True} if label and strips else {}
     rec.log(
         f"asd/plot/X2/{name}",
-        rr.LineStrips2D(strips, colors=[color or CURVES[name][1]], radii=rr.Radius.ui_points(1.5), **labels),
+        rr.LineStrips2D(
+            strips,
+            colors=[color or CURVES[name][1]],
+            radii=rr.Radius.ui_points(1.5),
+            labels=[label] * len(strips) if label and strips else None,  # (None: Rerun's defaults)
+            show_labels=True if label and strips else None,
+        ),
     )
 
 
@@ -434,14 +441,14 @@ def band_series(series: SeriesLog, bands: list[dict], t: float) -> bool:
     the lowest band, to red).  One entity rather than one per band: a row and a chunk less
     per band for the viewer to ingest.  Nothing is drawn (False) unless every band has a
     finite ``chi2_dof`` (a series per band: a missing one would shift the others)."""
-    values = [b.get("chi2_dof") for b in bands]
-    if not values or not all(isinstance(v, (int, float)) and math.isfinite(v) for v in values):
+    values = [float(v) for b in bands if isinstance(v := b.get("chi2_dof"), (int, float)) and math.isfinite(v)]
+    if not values or len(values) != len(bands):
         return False
     labels = [band_label(b) for b in bands]
     n = len(bands)
     lines = rr.SeriesLines(names=labels, colors=[band_color(g, n) for g in range(n)], widths=[1.5] * n)
     series.style(BANDS, lines, key=tuple(labels))
-    series.log(BANDS, [float(v) for v in values], t)
+    series.log(BANDS, values, t)
     return True
 
 
@@ -454,7 +461,7 @@ def days(t: float) -> str:
     return f"{t / 86400.0:.2f} d"
 
 
-def summary_document(rec, progress: str, alerts: list[str], bands: list[str], epochs: list[str] = ()) -> None:
+def summary_document(rec, progress: str, alerts: list[str], bands: list[str], epochs: Sequence[str] = ()) -> None:
     """The run summary: how far the run is drawn, every alert so far (newest last), the model
     epochs and changes of transients (when the model changed) and the key of the per-band
     chi^2/dof plot, as a word-wrapped markdown document."""

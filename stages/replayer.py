@@ -84,6 +84,46 @@ class _Piece:
     stop: int
 
 
+def _file_entry(path: Path) -> dict:
+    """What the replayer keeps of a telemetry file: ``path``, ``kind`` (``ttl`` or
+    lisainstrument's), ``t0``, ``fs``, ``size``, ``config``, ``data`` (a lisainstrument file
+    read whole, reduced to eta once; None for ours, read segment by segment), ``truth`` (the
+    truth file beside it, or None) and its ``pin``."""
+    if not path.exists():
+        raise TelemetryError(path, "no such file")
+    pinned = pin(path)
+    kind = file_kind(path)
+    if kind == "truth":
+        raise TelemetryError(path, "this is a truth file; give the telemetry file beside it")
+    if kind == "ttl":
+        head = read_header(path)
+        entry: dict = {
+            "path": path,
+            "kind": kind,
+            "t0": head["t0"],
+            "fs": head["fs"],
+            "size": head["size"],
+            "config": head["config"] or {},
+            "data": None,
+        }
+    else:  # lisainstrument: reduced to eta once
+        tm = read_telemetry(path)
+        entry = {
+            "path": path,
+            "kind": kind,
+            "t0": tm.t0,
+            "fs": tm.fs,
+            "size": tm.size,
+            "config": tm.config or {},
+            "data": tm,
+        }
+    tp = truth_path(path)
+    entry["truth"] = str(tp) if tp.exists() else None
+    check_stat(pinned)  # not changed while its header was read
+    entry["pin"] = pinned
+    return entry
+
+
 class FileSource:
     """Segments of one or more telemetry files, in mission-time order.
 
@@ -98,43 +138,7 @@ class FileSource:
             raise ConfigError("--telemetry: no file given")
         if planned:  # a run's replayer, started or restarted: the files it was planned with
             check_pins(planned, paths)
-        self.files = []
-        for p in paths:
-            path = Path(p)
-            if not path.exists():
-                raise TelemetryError(path, "no such file")
-            pinned = pin(path)
-            kind = file_kind(path)
-            if kind == "truth":
-                raise TelemetryError(path, "this is a truth file; give the telemetry file beside it")
-            if kind == "ttl":
-                head = read_header(path)
-                entry = {
-                    "path": path,
-                    "kind": kind,
-                    "t0": head["t0"],
-                    "fs": head["fs"],
-                    "size": head["size"],
-                    "config": head["config"] or {},
-                    "data": None,
-                }
-            else:  # lisainstrument: reduced to eta once
-                tm = read_telemetry(path)
-                entry = {
-                    "path": path,
-                    "kind": kind,
-                    "t0": tm.t0,
-                    "fs": tm.fs,
-                    "size": tm.size,
-                    "config": tm.config or {},
-                    "data": tm,
-                }
-            tp = truth_path(path)
-            entry["truth"] = str(tp) if tp.exists() else None
-            check_stat(pinned)  # not changed while its header was read
-            entry["pin"] = pinned
-            self.files.append(entry)
-        self.files.sort(key=lambda e: e["t0"])
+        self.files = sorted((_file_entry(Path(p)) for p in paths), key=lambda e: e["t0"])
         fs = self.files[0]["fs"]
         for e in self.files[1:]:
             if e["fs"] != fs:
@@ -310,7 +314,7 @@ class Replayer(PipelineStage):
     def _consumers_alive(self) -> bool:
         if not self.wait_for:
             return True
-        alive = self.bus.alive_stages(self.run_id, timeout=0.3)
+        alive = self.live_bus.alive_stages(self.run_id, timeout=0.3)
         missing = [s for s in self.wait_for if s not in alive]
         if missing and time.monotonic() - self._last_log > 10:
             self._last_log = time.monotonic()
@@ -325,7 +329,7 @@ class Replayer(PipelineStage):
         out = []
         for name in sorted(names):
             peer = board.get(name)
-            if peer is not None and (peer.covers(self.segments_total) or peer.complete):
+            if peer is not None and (peer.covers(self.source.segments_total) or peer.complete):
                 continue
             if (peer.highest if peer is not None else -1) < need:
                 out.append(name)
@@ -338,75 +342,26 @@ class Replayer(PipelineStage):
         if not peers or any(name not in board for name in self.pace_on):
             return 0
         first_missing = min(
-            min(set(range(self.segments_total)) - p.handled, default=self.segments_total) for p in peers
+            min(set(range(self.source.segments_total)) - p.handled, default=self.source.segments_total) for p in peers
         )
         return max(0, first_missing - 1)
 
     # ------------------------------------------------------------------ source loop
     def tick(self):
-        if self.next is None:
-            now = time.monotonic()
-            if now - self._last_check < 0.2:
-                return ()
-            self._last_check = now
-            if not self._consumers_alive():
-                return ()
-            time.sleep(0.2)  # let the progress caches of restarted runs arrive
-            self.first = self.next = self._resume_index()
-            if self.first:
-                self.log.info("resuming at segment %d (stages report %d.. missing)", self.first, self.first + 1)
-            self._t_start = time.monotonic()
-        if self.next >= self.segments_total:
+        i = self.next if self.next is not None else self._start()
+        if i is None:
+            return ()
+        if i >= self.source.segments_total:
             self.check_complete()
             return ()
-        i = self.next
-        if self.lagging(i):
+        if self.lagging(i) or not self._due(i):
             return ()
-        if self.pace > 0:
-            due = self._t_start + (i - self.first) * self.segment_duration / self.pace
-            if time.monotonic() < due:
-                return ()
         try:
-            tm, meta = self.source.segment(i)
-            gaps = tm.nan_stretches()
-            if not np.isfinite(tm.eta).any():
-                # no data at all in this segment: a gap, reported; downstream moves on
-                self.report_error(
-                    "gap",
-                    f"telemetry segment {i} (t0={tm.t0} s) has no finite eta sample: no data, published as a gap",
-                    index=i,
-                )
+            out = self._telemetry_output(i)
+            if out is None:  # no data: a gap, reported; downstream moves on
                 self.next = i + 1
                 self.mark_gap(i)
                 return ()
-            if not np.isfinite(tm.ltt).all():
-                raise ValueError("light travel times (ltt) are not finite everywhere")
-            if gaps:
-                self.event(
-                    "gap",
-                    index=i,
-                    message=f"telemetry segment {i}: {len(gaps)} NaN stretch(es) "
-                    f"({sum(b - a for a, b in gaps)} samples), published flagged",
-                    stretches=gaps,
-                )
-            out = Output(
-                self.output_topic,
-                {"eta": tm.eta, "dws_phi": tm.dws_phi, "dws_eta": tm.dws_eta, "ltt": tm.ltt},
-                fields={
-                    "t0": float(tm.t0),
-                    "fs": float(tm.fs),
-                    "channels": list(LINKS),
-                    "units": UNITS,
-                    "meta": {
-                        **meta,
-                        "segments_total": self.segments_total,
-                        "segment_duration": self.segment_duration,
-                        "gaps": gaps,
-                    },
-                },
-                index=i,
-                allow_nonfinite=bool(gaps),
-            )
             self.publish(out)
         except InputChanged as exc:  # the run's input is not what it was planned with: stop
             self.report_error("input-changed", f"{exc}: the replayer stops (segment {i} not read)", index=i)
@@ -420,9 +375,72 @@ class Replayer(PipelineStage):
             self.mark_failed(i)
             return ()
         self.next = i + 1
-        self.log.info("published telemetry segment %d/%d (t0=%.1f s)", i + 1, self.segments_total, tm.t0)
+        self.log.info("published telemetry segment %d/%d (t0=%.1f s)", i + 1, self.segments_total, out.fields["t0"])
         self.mark_done(i)
         return ()
+
+    def _start(self) -> int | None:
+        """The first segment to publish, once the consumers are alive (checked every 0.2 s;
+        None until then): where the stages' progress says the run stands."""
+        now = time.monotonic()
+        if now - self._last_check < 0.2:
+            return None
+        self._last_check = now
+        if not self._consumers_alive():
+            return None
+        time.sleep(0.2)  # let the progress caches of restarted runs arrive
+        self.first = self.next = self._resume_index()
+        if self.first:
+            self.log.info("resuming at segment %d (stages report %d.. missing)", self.first, self.first + 1)
+        self._t_start = time.monotonic()
+        return self.next
+
+    def _due(self, i: int) -> bool:
+        """Whether segment ``i`` is due at the replay's pace (always, at pace 0)."""
+        if self.pace <= 0:
+            return True
+        return time.monotonic() >= self._t_start + (i - self.first) * self.segment_duration / self.pace
+
+    def _telemetry_output(self, i: int) -> Output | None:
+        """The telemetry message of segment ``i`` (its NaN stretches flagged, a ``gap``
+        event); None when it holds no finite sample (reported as a gap)."""
+        tm, meta = self.source.segment(i)
+        gaps = tm.nan_stretches()
+        if not np.isfinite(tm.eta).any():
+            self.report_error(
+                "gap",
+                f"telemetry segment {i} (t0={tm.t0} s) has no finite eta sample: no data, published as a gap",
+                index=i,
+            )
+            return None
+        if not np.isfinite(tm.ltt).all():
+            raise ValueError("light travel times (ltt) are not finite everywhere")
+        if gaps:
+            self.event(
+                "gap",
+                index=i,
+                message=f"telemetry segment {i}: {len(gaps)} NaN stretch(es) "
+                f"({sum(b - a for a, b in gaps)} samples), published flagged",
+                stretches=gaps,
+            )
+        return Output(
+            self.output_topic,
+            {"eta": tm.eta, "dws_phi": tm.dws_phi, "dws_eta": tm.dws_eta, "ltt": tm.ltt},
+            fields={
+                "t0": float(tm.t0),
+                "fs": float(tm.fs),
+                "channels": list(LINKS),
+                "units": UNITS,
+                "meta": {
+                    **meta,
+                    "segments_total": self.segments_total,
+                    "segment_duration": self.segment_duration,
+                    "gaps": gaps,
+                },
+            },
+            index=i,
+            allow_nonfinite=bool(gaps),
+        )
 
 
 # ---------------------------------------------------------------------------- entry point

@@ -227,7 +227,7 @@ class Subtractor(PipelineStage):
         """``("wait", None)``, or ``("apply", j)`` with ``j`` the fit index (None: no fit yet)."""
         fitter = self.board.get("fitter")
         announced = (set(fitter.extra.get("fits", ())) if fitter else set()) - self.refused_fits
-        handled = fitter.handled if fitter is not None else set()
+        handled: RangeSet | set[int] = fitter.handled if fitter is not None else set()
         for j in sorted(set(self.fits) - announced - self._disowned):
             if j <= index and j in handled:  # a fit the fitter says it never made: not used
                 self._disowned.add(j)
@@ -241,6 +241,8 @@ class Subtractor(PipelineStage):
             self._board_silent(fitter)
         if what != "await":
             return what, best
+        if best is None:  # fit_for awaits the fit it names
+            raise RuntimeError(f"segment {index}: awaiting a fit with no index")
         since = self._waiting_since.setdefault(index, time.monotonic())
         waited = time.monotonic() - since
         if waited > min(FIT_FETCH_AFTER, self.fit_timeout / 2) and best not in self._fetched:
@@ -301,7 +303,7 @@ class Subtractor(PipelineStage):
         missing: list = []
         if fit_index is None:
             residual, model = np.array(td.data, dtype=float), np.zeros_like(td.data)
-            fit = {"t_start": None, "t_stop": None}
+            fit: dict = {"t_start": None, "t_stop": None}
         else:
             fit = self.fits[fit_index]
             self.applied.add(fit_index)

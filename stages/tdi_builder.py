@@ -83,13 +83,13 @@ class TDIBuilder(OrderedStage):
 
     def process(self, header, tm: Telemetry) -> Output:
         """TDI of one telemetry segment (the stream's tail makes it continuous)."""
-        continuous = self.stream.next_t0 is not None
-        if continuous and (abs(tm.t0 - self.stream.next_t0) > 0.5 / tm.fs or tm.fs != self.stream._tail.fs):
+        next_t0, tail = self.stream.next_t0, self.stream._tail  # both set by the stream's last push
+        continuous = next_t0 is not None
+        if next_t0 is not None and tail is not None and (abs(tm.t0 - next_t0) > 0.5 / tm.fs or tm.fs != tail.fs):
             self.event(
                 "discontinuity",
                 index=header.index,
-                message=f"t0={tm.t0} s does not follow the previous segment (expected {self.stream.next_t0} s); "
-                "TDI restarts here",
+                message=f"t0={tm.t0} s does not follow the previous segment (expected {next_t0} s); TDI restarts here",
             )
             self.stream.reset()
             continuous = False

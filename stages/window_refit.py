@@ -120,11 +120,11 @@ def window_refit_meta(
         out["arrays"] = {
             "coefficients": model.ttl_coefficients(),
             "sigma": model.ttl_sigma(),
-            "covariance": model.covariance[np.ix_(k, k)],
+            "covariance": model.robust_covariance[np.ix_(k, k)],
         }
         out["extra_parameters"] = {
             n: [float(v), float(s)]
-            for n, v, s in zip(model.names, model.theta, model.sigma)
+            for n, v, s in zip(model.names, model.theta, model.robust_sigma)
             if n not in COEFFICIENT_NAMES
         }
         predictions = effect_predictions(model)

@@ -46,7 +46,7 @@ ENV_ARENA_MAX = "MALLOC_ARENA_MAX"
 def _glibc():
     """The C library as a :class:`ctypes.CDLL` when it is glibc, else None."""
     try:
-        if not os.confstr("CS_GNU_LIBC_VERSION").startswith("glibc"):
+        if not (os.confstr("CS_GNU_LIBC_VERSION") or "").startswith("glibc"):
             return None
     except (AttributeError, ValueError, OSError):  # no confstr, or not glibc
         return None

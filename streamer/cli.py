@@ -89,7 +89,7 @@ FITTER_OPTIONS = {
 
 
 def _split(values) -> tuple:
-    out = []
+    out: list[str] = []
     for v in values or ():
         out.extend(x for x in str(v).split(",") if x)
     return tuple(out)
@@ -99,17 +99,50 @@ def run_options(args) -> RunOptions:
     """:class:`streamer.launcher.RunOptions` from ``--config`` and the command line."""
 
     conf = _read_config(args.config) if args.config else {}
+    stages, fitter = _config_stages(conf, args.config)
+    cli = _command_line_options(args)
+    if args.telemetry or args.simulate:  # the command line's source replaces the file's
+        conf.pop("telemetry", None)
+        conf.pop("simulate", None)
+    merged = {**conf, **{k: v for k, v in cli.items() if v is not None}}
+    for key, name in FITTER_OPTIONS.items():
+        if getattr(args, key) is not None:
+            fitter[name] = getattr(args, key)
+    if fitter:
+        stages = {**stages, "fitter": fitter}
+    if not merged.get("run_id"):
+        raise TTLError("--run-id is required (or 'run_id' in --config)")
+    for key in ("skip", "external", "listen"):  # one name for a list of one
+        if isinstance(merged.get(key), str):
+            merged[key] = (merged[key],)
+    if isinstance(merged.get("telemetry"), str):
+        merged["telemetry"] = [merged["telemetry"]]
+    try:  # types and values checked (and paths, lists converted) by streamer.settings
+        return RunOptions.from_dict({**merged, "stage_options": stages, "quiet": args.quiet})
+    except SettingsError as exc:
+        raise TTLError(f"--config: {args.config}: {exc}" if args.config else str(exc)) from None
+
+
+def _config_stages(conf: dict, path) -> tuple[dict, dict]:
+    """The ``stages`` options of a ``--config`` file ``conf`` (taken out of it) and the
+    fitter's, with the fitter options given at the top level (:data:`FITTER_OPTIONS`, taken
+    out too); a TTLError naming ``path`` for an unknown option or a malformed ``stages``."""
     known = set(RunOptions.__dataclass_fields__) | {"stages", *FITTER_OPTIONS}
     unknown = sorted(set(conf) - known)
     if unknown:
-        raise TTLError(f"--config: {args.config}: unknown option {unknown[0]!r} (known: {', '.join(sorted(known))})")
+        raise TTLError(f"--config: {path}: unknown option {unknown[0]!r} (known: {', '.join(sorted(known))})")
     stages = conf.pop("stages", {}) or {}
     if not isinstance(stages, dict):
-        raise TTLError(f"--config: {args.config}: 'stages' must map stage names to options")
+        raise TTLError(f"--config: {path}: 'stages' must map stage names to options")
     fitter = dict(stages.get("fitter") or {})
     for key, name in FITTER_OPTIONS.items():
         if key in conf:
             fitter[name] = conf.pop(key)
+    return stages, fitter
+
+
+def _command_line_options(args) -> dict:
+    """The options of ``ttl run``'s command line (None: not given)."""
     cli = {
         "run_id": args.run_id,
         "telemetry": args.telemetry,
@@ -133,26 +166,7 @@ def run_options(args) -> RunOptions:
         cli["external"] = _split(args.external)
     if args.listen:
         cli["listen"] = tuple(args.listen)
-    if args.telemetry or args.simulate:  # the command line's source replaces the file's
-        conf.pop("telemetry", None)
-        conf.pop("simulate", None)
-    merged = {**conf, **{k: v for k, v in cli.items() if v is not None}}
-    for key, name in FITTER_OPTIONS.items():
-        if getattr(args, key) is not None:
-            fitter[name] = getattr(args, key)
-    if fitter:
-        stages = {**stages, "fitter": fitter}
-    if not merged.get("run_id"):
-        raise TTLError("--run-id is required (or 'run_id' in --config)")
-    for key in ("skip", "external", "listen"):  # one name for a list of one
-        if isinstance(merged.get(key), str):
-            merged[key] = (merged[key],)
-    if isinstance(merged.get("telemetry"), str):
-        merged["telemetry"] = [merged["telemetry"]]
-    try:  # types and values checked (and paths, lists converted) by streamer.settings
-        return RunOptions.from_dict({**merged, "stage_options": stages, "quiet": args.quiet})
-    except SettingsError as exc:
-        raise TTLError(f"--config: {args.config}: {exc}" if args.config else str(exc)) from None
+    return cli
 
 
 def _cmd_run(args) -> int:
@@ -292,7 +306,7 @@ def _cmd_router(args) -> int:
             "give --credentials DIR (mutual TLS and access control; 'ttl credentials DIR' makes it) "
             "or --insecure (plain TCP, anyone reaching the port may publish)"
         )
-    default = DEFAULT_ROUTER_LISTEN
+    default: tuple[str, ...] = DEFAULT_ROUTER_LISTEN
     if args.credentials is not None:
         # the router's log (stderr) is the record of refused peers and publications
         filter_log()

@@ -380,7 +380,7 @@ def encode(
                 channel_axis=None if axis is None else int(axis),
             )
         )
-        parts.append(memoryview(data.reshape(-1).view(np.uint8)))
+        parts.append(data.reshape(-1).view(np.uint8).data)  # (a memoryview of the array's bytes)
         offset += data.nbytes
     payload = b"".join(parts)
     header = Header(
@@ -414,7 +414,7 @@ def _dump(header: Header) -> bytes:
         raise
 
 
-def _to_bytes(data) -> bytes | memoryview:
+def _to_bytes(data) -> bytes | bytearray | memoryview:
     if data is None:
         return b""
     if isinstance(data, (bytes, bytearray, memoryview)):
@@ -453,6 +453,32 @@ def _check_name(value, field: str, key: str | None) -> None:
 
 
 def _header_from_dict(obj: dict, key: str | None) -> Header:
+    """The header of ``obj``, every field checked in the order of :data:`HEADER_FIELDS`'s
+    contract: schema and version, no unknown or missing field, then each value."""
+    version = _check_envelope(obj, key)
+    _check_identity(obj, key)
+    channels = _checked_channels(obj["channels"], key)
+    _check_payload_fields(obj, key)
+    specs = _array_specs(obj["arrays"], channels, obj["payload_bytes"], key)
+    return Header(
+        run=obj["run"],
+        index=obj["index"],
+        t0=float(obj["t0"]),
+        fs=float(obj["fs"]),
+        channels=tuple(channels),
+        producer=obj["producer"],
+        arrays=specs,
+        payload_bytes=obj["payload_bytes"],
+        checksum=obj["checksum"],
+        meta=obj["meta"],
+        version=version,
+        key=key,
+    )
+
+
+def _check_envelope(obj: dict, key: str | None) -> int:
+    """The schema and its version (returned), no unknown field, no missing one."""
+
     def need(name):
         if name not in obj:
             _fail(name, "missing", key)
@@ -469,7 +495,11 @@ def _header_from_dict(obj: dict, key: str | None) -> Header:
     missing = [name for name in HEADER_FIELDS if name not in obj]
     if missing:
         _fail(missing[0], "missing", key)
+    return version
 
+
+def _check_identity(obj: dict, key: str | None) -> None:
+    """The short names (run, producer, checksum), then run, index, t0 and fs."""
     for name in ("run", "producer", "checksum"):
         _check_name(obj[name], name, key)
     run = obj["run"]
@@ -484,13 +514,21 @@ def _header_from_dict(obj: dict, key: str | None) -> Header:
     fs = obj["fs"]
     if not _is_number(fs) or not math.isfinite(fs) or fs <= 0:
         _fail("fs", f"expected a finite number > 0 [Hz], got {fs!r}", key)
-    channels = obj["channels"]
+
+
+def _checked_channels(channels, key: str | None) -> list[str]:
+    """``channels``: a list of distinct short names."""
     if not isinstance(channels, list) or not all(isinstance(c, str) for c in channels):
         _fail("channels", f"expected a list of strings, got {channels!r}", key)
     for i, c in enumerate(channels):
         _check_name(c, f"channels[{i}]", key)
     if len(set(channels)) != len(channels):
         _fail("channels", f"duplicate channel names in {channels!r}", key)
+    return channels
+
+
+def _check_payload_fields(obj: dict, key: str | None) -> None:
+    """The producer, payload_bytes, checksum and meta."""
     producer = obj["producer"]
     if not isinstance(producer, str):
         _fail("producer", f"expected a string, got {producer!r}", key)
@@ -506,7 +544,10 @@ def _header_from_dict(obj: dict, key: str | None) -> Header:
     meta = obj["meta"]
     if not isinstance(meta, dict):
         _fail("meta", f"expected a JSON object, got {type(meta).__name__}", key)
-    arrays = obj["arrays"]
+
+
+def _array_specs(arrays, channels: list[str], payload_bytes: int, key: str | None) -> tuple[ArraySpec, ...]:
+    """The array descriptions: a non-empty list, each valid, names distinct, no two overlapping."""
     if not isinstance(arrays, list) or not arrays:
         _fail("arrays", "expected a non-empty list of array descriptions", key)
     specs = tuple(_array_spec(i, a, channels, payload_bytes, key) for i, a in enumerate(arrays))
@@ -517,52 +558,14 @@ def _header_from_dict(obj: dict, key: str | None) -> Header:
     for (_, end, a), (start, _, b) in zip(spans, spans[1:]):
         if start < end:
             _fail(f"arrays[{b}].offset", f"overlaps array {a!r}", key)
-    return Header(
-        run=run,
-        index=index,
-        t0=float(t0),
-        fs=float(fs),
-        channels=tuple(channels),
-        producer=producer,
-        arrays=specs,
-        payload_bytes=payload_bytes,
-        checksum=checksum,
-        meta=meta,
-        version=version,
-        key=key,
-    )
+    return specs
 
 
 def _array_spec(i: int, a, channels: list, payload_bytes: int, key: str | None) -> ArraySpec:
-    if not isinstance(a, dict):
-        _fail(f"arrays[{i}]", "expected a JSON object", key)
-    name = a.get("name")
-    _check_name(name, f"arrays[{i}].name", key)
-    if not isinstance(name, str) or not name:
-        _fail(f"arrays[{i}].name", f"expected a non-empty string, got {name!r}", key)
+    name = _array_name(i, a, key)
     where = f"arrays[{name}]"
-    unknown = sorted(set(a) - set(ARRAY_FIELDS))
-    if unknown:
-        _fail(f"{where}.{unknown[0]}", "unknown array field", key)
-    for f in ARRAY_FIELDS:
-        if f not in a:
-            _fail(f"{where}.{f}", "missing", key)
-    dtype = a["dtype"]
-    if not isinstance(dtype, str) or dtype not in ALLOWED_DTYPES:
-        _fail(f"{where}.dtype", f"dtype {dtype!r} is not allowed (allowed: {', '.join(sorted(ALLOWED_DTYPES))})", key)
-    shape = a["shape"]
-    if not isinstance(shape, list) or not all(_is_int(s) and s >= 0 for s in shape):
-        _fail(f"{where}.shape", f"expected a list of integers >= 0, got {shape!r}", key)
-    if len(shape) > MAX_NDIM:
-        _fail(f"{where}.shape", f"{len(shape)} axes (at most {MAX_NDIM})", key)
-    offset, nbytes = a["offset"], a["nbytes"]
-    if not _is_int(offset) or offset < 0:
-        _fail(f"{where}.offset", f"expected an integer >= 0, got {offset!r}", key)
-    expected = math.prod(shape) * np.dtype(dtype).itemsize
-    if not _is_int(nbytes) or nbytes != expected:
-        _fail(f"{where}.nbytes", f"{nbytes!r} does not match shape {shape} of {dtype} ({expected} bytes)", key)
-    if offset + nbytes > payload_bytes:
-        _fail(f"{where}.offset", f"bytes {offset}..{offset + nbytes} lie beyond payload_bytes={payload_bytes}", key)
+    dtype, shape, offset, nbytes = a["dtype"], a["shape"], a["offset"], a["nbytes"]
+    _check_layout(where, dtype, shape, offset, nbytes, payload_bytes, key)
     units = a["units"]
     _check_name(units, f"{where}.units", key)
     if not isinstance(units, str):
@@ -581,6 +584,42 @@ def _array_spec(i: int, a, channels: list, payload_bytes: int, key: str | None) 
     return ArraySpec(
         name=name, dtype=dtype, shape=tuple(shape), offset=offset, nbytes=nbytes, units=units, channel_axis=axis
     )
+
+
+def _array_name(i: int, a, key: str | None) -> str:
+    """The name of array description ``i`` (``a``: an object with every field of
+    :data:`ARRAY_FIELDS` and no other)."""
+    if not isinstance(a, dict):
+        _fail(f"arrays[{i}]", "expected a JSON object", key)
+    name = a.get("name")
+    _check_name(name, f"arrays[{i}].name", key)
+    if not isinstance(name, str) or not name:
+        _fail(f"arrays[{i}].name", f"expected a non-empty string, got {name!r}", key)
+    where = f"arrays[{name}]"
+    unknown = sorted(set(a) - set(ARRAY_FIELDS))
+    if unknown:
+        _fail(f"{where}.{unknown[0]}", "unknown array field", key)
+    for f in ARRAY_FIELDS:
+        if f not in a:
+            _fail(f"{where}.{f}", "missing", key)
+    return name
+
+
+def _check_layout(where: str, dtype, shape, offset, nbytes, payload_bytes: int, key: str | None) -> None:
+    """An array's dtype (allowed), shape, offset and size: within the payload."""
+    if not isinstance(dtype, str) or dtype not in ALLOWED_DTYPES:
+        _fail(f"{where}.dtype", f"dtype {dtype!r} is not allowed (allowed: {', '.join(sorted(ALLOWED_DTYPES))})", key)
+    if not isinstance(shape, list) or not all(_is_int(s) and s >= 0 for s in shape):
+        _fail(f"{where}.shape", f"expected a list of integers >= 0, got {shape!r}", key)
+    if len(shape) > MAX_NDIM:
+        _fail(f"{where}.shape", f"{len(shape)} axes (at most {MAX_NDIM})", key)
+    if not _is_int(offset) or offset < 0:
+        _fail(f"{where}.offset", f"expected an integer >= 0, got {offset!r}", key)
+    expected = math.prod(shape) * np.dtype(dtype).itemsize
+    if not _is_int(nbytes) or nbytes != expected:
+        _fail(f"{where}.nbytes", f"{nbytes!r} does not match shape {shape} of {dtype} ({expected} bytes)", key)
+    if offset + nbytes > payload_bytes:
+        _fail(f"{where}.offset", f"bytes {offset}..{offset + nbytes} lie beyond payload_bytes={payload_bytes}", key)
 
 
 def decode(
@@ -622,6 +661,24 @@ def decode(
     if actual != header.checksum:
         _fail("checksum", f"payload checksum {actual} does not match header {header.checksum}", key)
 
+    _check_expected(header, expect, key)
+    arrays: dict[str, np.ndarray] = {}
+    for spec in header.arrays:
+        arr = np.frombuffer(data, dtype=np.dtype(spec.dtype), count=math.prod(spec.shape), offset=spec.offset).reshape(
+            spec.shape
+        )
+        arrays[spec.name] = arr
+    _check_expected_arrays(header, arrays, expect, key)
+    checked = arrays if not expect.allow_nonfinite else {k: arrays[k] for k in expect.finite if k in arrays}
+    for name, arr in checked.items():
+        bad, first = _count_nonfinite(arr)
+        if bad:
+            _fail(f"arrays[{name}]", f"{bad} non-finite values (NaN or inf), first at flat index {first}", key)
+    return header, arrays
+
+
+def _check_expected(header: Header, expect: Expect, key: str | None) -> None:
+    """The run, index and channels the consumer expects."""
     if expect.run is not None and header.run != expect.run:
         _fail("run", f"message of run {header.run!r}, expected run {expect.run!r}", key)
     if expect.index is not None and header.index != expect.index:
@@ -629,13 +686,9 @@ def decode(
     if expect.channels is not None and tuple(header.channels) != tuple(expect.channels):
         _fail("channels", f"channels {list(header.channels)}, expected {list(expect.channels)}", key)
 
-    arrays: dict[str, np.ndarray] = {}
-    for spec in header.arrays:
-        arr = np.frombuffer(data, dtype=np.dtype(spec.dtype), count=math.prod(spec.shape), offset=spec.offset).reshape(
-            spec.shape
-        )
-        arrays[spec.name] = arr
 
+def _check_expected_arrays(header: Header, arrays: dict[str, np.ndarray], expect: Expect, key: str | None) -> None:
+    """Each array the consumer requires: present, of its dtype and shape (``None``: any length)."""
     for name, (dtype, shape) in (expect.arrays or {}).items():
         if name not in arrays:
             _fail(f"arrays[{name}]", f"missing (message has {list(arrays)})", key)
@@ -647,10 +700,3 @@ def decode(
             if not ok:
                 want = "(" + ", ".join("n" if e is None else str(e) for e in shape) + ")"
                 _fail(f"arrays[{name}].shape", f"{spec.shape}, expected {want}", key)
-
-    checked = arrays if not expect.allow_nonfinite else {k: arrays[k] for k in expect.finite if k in arrays}
-    for name, arr in checked.items():
-        bad, first = _count_nonfinite(arr)
-        if bad:
-            _fail(f"arrays[{name}]", f"{bad} non-finite values (NaN or inf), first at flat index {first}", key)
-    return header, arrays

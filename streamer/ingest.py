@@ -27,7 +27,7 @@ import traceback
 from collections.abc import Callable
 
 from .codec import CodecError, Expect, decode, parse_header
-from .keys import KeyExprError, SegmentKey, parse_stream_key, segment_key
+from .keys import KeyExprError, parse_stream_key, segment_key
 from .plan import Holdback, Rejected, Validator
 from .rangeset import RangeSet
 from .refetch_policy import RefetchBudget, ReportLimiter, refetch_refusal, sender, topic_owner
@@ -140,7 +140,7 @@ class Ingest:
         event: Callable[..., None],
         use: Callable[[str, object, dict, bytes], None],
         log,
-        refetch: Callable[[str, int, bytes, int], None] | None = None,
+        refetch: Callable[[str, int, bytes, int | None], None] | None = None,
     ):
         self.run = run
         self.validator = validator
@@ -212,33 +212,31 @@ class Ingest:
                     details["refetch_refused"] = why
             self._refused(topic, producer, "rejected", exc.what, index=index, key=key, field=exc.field, details=details)
             return
-        seg = SegmentKey(self.run, topic, index)
+        at = claimed.index  # the segment's index (the header parsed above holds it)
         try:
-            verdict = self.validator.check(seg.topic, header, arrays)
+            verdict = self.validator.check(topic, header, arrays)
         except Rejected as exc:
             self.rejections += 1
             details = {"producer": header.producer, "t0": header.t0, "fs": header.fs, "checksum": header.checksum}
             what = exc.what
             if exc.kind == "conflict" and exc.field == "payload":  # the first conflicting copy: the other goes too
-                held = self.held.withdraw(seg.topic, seg.index)
-                kept_out = self.withdraw(seg.topic, seg.index, held)
+                held = self.held.withdraw(topic, at)
+                kept_out = self.withdraw(topic, at, held)
                 details["first_copy"] = "withdrawn" if kept_out else "used"
                 what += (
                     "; the first copy is withdrawn, the segment is missing"
                     if kept_out
                     else "; the first copy had been used already"
                 )
-            self._refused(
-                seg.topic, header.producer, exc.kind, what, index=seg.index, key=key, field=exc.field, details=details
-            )
+            self._refused(topic, header.producer, exc.kind, what, index=at, key=key, field=exc.field, details=details)
             return
-        done = self.done.setdefault(seg.topic, RangeSet())
-        if verdict == "duplicate" or seg.index in done:
+        done = self.done.setdefault(topic, RangeSet())
+        if verdict == "duplicate" or at in done:
             self.log.info("%s: identical copy of a processed segment, ignored", key)
-            self.event("duplicate", index=seg.index, message=f"{key} already processed (identical copy)")
+            self.event("duplicate", index=at, message=f"{key} already processed (identical copy)")
             return
-        self.validator.accepted(seg.topic, header)  # from now on a different copy is a conflict
-        if not self.held.put(seg.topic, seg.index, (key, header, arrays, payload), time.monotonic()):
+        self.validator.accepted(topic, header)  # from now on a different copy is a conflict
+        if not self.held.put(topic, at, (key, header, arrays, payload), time.monotonic()):
             self.use(key, header, arrays, payload)
 
     def _refused(self, topic: str, producer, kind: str, what: str, **fields) -> None:

@@ -42,9 +42,17 @@ from pathlib import Path
 from ttlcore.io.atomic import write_json
 
 from .inspect_advice import advise
-from .inspect_model import LOOKBACK_DAYS, coefficient_trends, model_report, recorded_fits, truth_over_window
+from .inspect_interruptions import interruptions
+from .inspect_model import (
+    LOOKBACK_DAYS,
+    coefficient_trends,
+    model_report,
+    recorded_fits,
+    truth_over_window,
+    truth_test,
+)
 from .inspect_records import MAX_REFUSALS, InspectError, launcher_journal, read_plan, run_gaps, security_report
-from .inspect_text import MAX_LISTED, fmt_ranges, format_report
+from .inspect_text import MAX_LISTED, format_report
 from .inspect_timeline import model_timeline
 from .keys import to_ranges
 from .recorder import Recording, RecordingError, read_recording, read_stop_note, to_jsonable
@@ -86,7 +94,7 @@ def recording_files(run_dir) -> dict[str, list[Path]]:
         raise InspectError(f"{run_dir}: no such run directory")
     if not run_dir.is_dir():
         raise InspectError(f"{run_dir}: not a directory (give recordings/<run>)")
-    by_stage: dict[str, list[tuple[int, Path]]] = defaultdict(list)
+    by_stage: dict[str, list[tuple[float, Path]]] = defaultdict(list)  # (n, or inf for the current file)
     for path in run_dir.iterdir():
         m = _FILE.match(path.name)
         if m and path.is_file():
@@ -108,7 +116,7 @@ def _file_summary(path: Path, stage: str) -> tuple[dict, Recording | None]:
         return {"file": path.name, "readable": False, "complete": False, "problem": str(exc), "records": 0}, None
     events = rec.json("events")
     kinds = Counter(e.get("kind") for e in events if isinstance(e, dict))
-    times = [e.get("time") for e in events if isinstance(e, dict) and isinstance(e.get("time"), (int, float))]
+    times = [t for e in events if isinstance(e, dict) and isinstance(t := e.get("time"), (int, float))]
     meta = rec.metadata.get("ttl", {})
     info = {
         "file": path.name,
@@ -213,14 +221,47 @@ def inspect_run(run_dir, truth=None) -> dict:
         stages[stage], recs_of[stage] = _stage_report(stage, paths)
     totals = [s["segments_total"] for s in stages.values() if s["segments_total"]]
     total = max(totals) if totals else None
+    _mark_missing(stages, total)
+    runs = sorted({f.get("run") for s in stages.values() for f in s["files"] if f.get("run")})
+    errors = _recorded_errors(recs_of)
+    plan = read_plan(run_dir)
+    if plan is not None:
+        total = plan["segments_total"]
+    fitter = recs_of.get("fitter", [])
+    model = model_report(fitter)
+    # the command each recommendation is applied with: ttl control while the run is live, else ttl refit
+    model["run_state"] = advise(model, run_dir, runs[0] if len(runs) == 1 else run_dir.name)
+    return {
+        "run": runs[0] if len(runs) == 1 else (runs or [run_dir.name]),
+        "directory": str(run_dir),
+        "stages": stages,
+        "stages_missing": [s for s in STAGES if s not in stages],
+        "segments_total": total,
+        "fits": _fit_report(recorded_fits(fitter), truth),
+        "model": model,
+        "alerts": _recorded(recs_of, "alerts"),
+        "warnings": _recorded(recs_of, "warnings"),
+        "errors": errors,
+        "interruptions": interruptions(run_dir, stages, recs_of, errors, plan),
+        "gaps": run_gaps(recs_of, errors, plan),
+        "timeline": model_timeline(fitter, plan),
+        "security": security_report(run_dir),
+    }
+
+
+def _mark_missing(stages: dict[str, dict], total: int | None) -> None:
+    """Give every topic table of every stage its ``missing`` index ranges: those below the
+    run's ``total`` (else the highest index seen) it has not seen."""
     for s in stages.values():
         for table in (s["outputs"], s["inputs"]):
             for t in table.values():
                 seen = {i for a, b in t["indices"] for i in range(a, b + 1)}
                 top = (total - 1) if total else (max(seen) if seen else -1)
                 t["missing"] = to_ranges(set(range(top + 1)) - seen)
-    runs = sorted({f.get("run") for s in stages.values() for f in s["files"] if f.get("run")})
 
+
+def _recorded_errors(recs_of: dict[str, list[Recording]]) -> list[dict]:
+    """The errors every stage recorded, each with the file it is in."""
     errors = []
     for stage, recs in recs_of.items():
         for rec in recs:
@@ -238,133 +279,25 @@ def inspect_run(run_dir, truth=None) -> dict:
                             "time": e.get("time"),
                         }
                     )
-    alerts = [
-        {**a, "file": rec.path.name}
-        for stage, recs in recs_of.items()
+    return errors
+
+
+def _recorded(recs_of: dict[str, list[Recording]], topic: str) -> list[dict]:
+    """The JSON records of ``topic`` (``alerts``, ``warnings``) of every stage, each with its file."""
+    return [
+        {**r, "file": rec.path.name}
+        for recs in recs_of.values()
         for rec in recs
-        for a in rec.json("alerts")
-        if isinstance(a, dict)
-    ]
-    warnings = [
-        {**w, "file": rec.path.name}
-        for stage, recs in recs_of.items()
-        for rec in recs
-        for w in rec.json("warnings")
-        if isinstance(w, dict)
+        for r in rec.json(topic)
+        if isinstance(r, dict)
     ]
 
-    interruptions = []
-    for stage, s in stages.items():
-        names = [f["file"] for f in s["files"]]
-        if s["restarts"]:
-            interruptions.append(
-                {
-                    "stage": stage,
-                    "kind": "restart",
-                    "files": names,
-                    "message": f"{stage} ran {len(names)} times (recordings {', '.join(names)})",
-                }
-            )
-        for f in s["files"]:
-            if not f["readable"]:
-                interruptions.append({"stage": stage, "kind": "unreadable", "file": f["file"], "message": f["problem"]})
-                continue
-            note = f.get("stop_note") or {}
-            if note.get("reason") == "disk-full":  # the stage said why it stopped (Recorder.note_stop)
-                closed = "closed" if f["complete"] else f"not closed: salvaged {f['records']} records; {f['problem']}"
-                interruptions.append(
-                    {
-                        "stage": stage,
-                        "kind": "disk-full",
-                        "file": f["file"],
-                        "message": f"{f['file']}: stopped: {note.get('message')} ({closed})",
-                    }
-                )
-            elif not f["complete"]:
-                interruptions.append(
-                    {
-                        "stage": stage,
-                        "kind": "unfinished",
-                        "file": f["file"],
-                        "message": f"{f['file']} was not closed (process killed?): salvaged "
-                        f"{f['records']} records; {f['problem']}",
-                    }
-                )
-            elif f["problem"]:  # closed, then damaged (flipped bytes): read past the damage
-                interruptions.append(
-                    {
-                        "stage": stage,
-                        "kind": "damaged",
-                        "file": f["file"],
-                        "message": f"{f['file']} is damaged: salvaged {f['records']} records; {f['problem']}",
-                    }
-                )
-            if f["complete"] and not f["stopped"]:
-                interruptions.append(
-                    {
-                        "stage": stage,
-                        "kind": "no-stop",
-                        "file": f["file"],
-                        "message": f"{f['file']} is closed but has no 'stop' event",
-                    }
-                )
-            for seg in f["incomplete_segments"]:
-                interruptions.append(
-                    {
-                        "stage": stage,
-                        "kind": "incomplete-segment",
-                        "file": f["file"],
-                        "message": f"{f['file']}: {seg['topic']} segment {seg['index']} has a header "
-                        "but no payload (cut off while writing)",
-                    }
-                )
 
-        for f in s["files"]:
-            stop = f.get("stop_event") or {}
-            if (stop.get("details") or {}).get("orphaned"):
-                interruptions.append(
-                    {
-                        "stage": stage,
-                        "kind": "orphaned",
-                        "file": f["file"],
-                        "message": f"{f['file']}: stopped by itself: {stop.get('message')}",
-                    }
-                )
-        for rec in recs_of.get(stage, []):
-            for e in rec.json("events"):
-                if isinstance(e, dict) and e.get("kind") == "restored":
-                    interruptions.append(
-                        {"stage": stage, "kind": "restored", "file": rec.path.name, "message": e.get("message")}
-                    )
-    for e in errors:
-        if e["kind"] == "window-shortened":
-            interruptions.append(
-                {"stage": e["stage"], "kind": "window-shortened", "file": e["file"], "message": e["message"]}
-            )
-    plan = read_plan(run_dir)
-    if plan is not None:
-        total = plan["segments_total"]
-        for stage, s in stages.items():
-            out = next(iter(s["outputs"].values()), None) if s["outputs"] else None
-            last = s["files"][-1] if s["files"] else {}
-            if out is not None and out["missing"] and not last.get("completed"):
-                interruptions.append(
-                    {
-                        "stage": stage,
-                        "kind": "unfinished",
-                        "file": last.get("file"),
-                        "message": f"{stage} did not finish: segment(s) {fmt_ranges(out['missing'])} "
-                        f"of {total} not handled",
-                    }
-                )
-    interruptions.extend(launcher_journal(run_dir))
-    gaps = run_gaps(recs_of, errors, plan)
-
-    fits = recorded_fits(recs_of.get("fitter", []))
-    model = model_report(recs_of.get("fitter", []))
-    # the command each recommendation is applied with: ttl control while the run is live, else ttl refit
-    model["run_state"] = advise(model, run_dir, runs[0] if len(runs) == 1 else run_dir.name)
-    fit_report = {
+def _fit_report(fits: list[dict], truth) -> dict:
+    """The fitter's fits: count, indices, the table in m/rad, the coefficient trends in
+    mm/rad (:func:`streamer.inspect_model.coefficient_trends`) and, with a ``truth`` file,
+    the truth over the last fit's window and the error in sigmas."""
+    report = {
         "count": len(fits),
         "indices": to_ranges(f["index"] for f in fits),
         "names": fits[-1]["names"] if fits else [],
@@ -378,28 +311,14 @@ def inspect_run(run_dir, truth=None) -> dict:
     }
     if truth is not None and fits:
         last = fits[-1]
-        true = truth_over_window(truth, last["t_start"], last["t_stop"], fit_report["trends"])
-        for name, t in fit_report["trends"].items():
+        true = truth_over_window(truth, last["t_start"], last["t_stop"], report["trends"])
+        for name, t in report["trends"].items():
             if name in true:
                 t["truth_latest_window"] = true[name]
                 t["error_over_sigma"] = (t["latest"] - true[name]) / t["sigma"] if t["sigma"] > 0 else None
-        fit_report["truth_file"] = str(truth)
-    return {
-        "run": runs[0] if len(runs) == 1 else (runs or [run_dir.name]),
-        "directory": str(run_dir),
-        "stages": stages,
-        "stages_missing": [s for s in STAGES if s not in stages],
-        "segments_total": total,
-        "fits": fit_report,
-        "model": model,
-        "alerts": alerts,
-        "warnings": warnings,
-        "errors": errors,
-        "interruptions": interruptions,
-        "gaps": gaps,
-        "timeline": model_timeline(recs_of.get("fitter", []), plan),
-        "security": security_report(run_dir),
-    }
+        report["truth_file"] = str(truth)
+        report["truth_test"] = truth_test(last, truth)
+    return report
 
 
 # ---------------------------------------------------------------------------- view

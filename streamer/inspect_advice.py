@@ -24,6 +24,7 @@ import shlex
 import socket
 import time
 from pathlib import Path
+from typing import NotRequired, TypedDict
 
 from .reach import listening
 
@@ -67,13 +68,25 @@ def process_alive_since(pid, since: float | None) -> bool:
     return started <= float(since) + 2.0
 
 
-def _recorded(command: str | None) -> dict:
+class RunState(TypedDict):
+    """Whether a run is live now and how it is reached (:func:`run_state`)."""
+
+    live: bool
+    why: str
+    router: str | None
+    credentials: str | None
+    control: bool
+    checked: NotRequired[float]  # when (time.time()), set by :func:`advise`
+
+
+def _recorded(command: str | None) -> dict[str, str]:
     """``--run``, ``--connect``, ``--credentials`` and the stage of a recorded ``ttl control`` command."""
     try:
         words = shlex.split(command or "")
     except ValueError:
         return {}
-    out, rest, i = {}, [], 2
+    out: dict[str, str] = {}
+    rest, i = [], 2
     while i < len(words):
         if words[i] in ("--run", "--connect", "--credentials") and i + 1 < len(words):
             out.setdefault(words[i][2:], words[i + 1])
@@ -86,7 +99,7 @@ def _recorded(command: str | None) -> dict:
     return out
 
 
-def run_state(run_dir, recorded_command: str | None = None) -> dict:
+def run_state(run_dir, recorded_command: str | None = None) -> RunState:
     """Whether the run of ``run_dir`` is live now, and how it is reached.
 
     Returns ``{"live", "why", "router", "credentials", "control"}``: ``live`` the run goes on
@@ -105,7 +118,7 @@ def run_state(run_dir, recorded_command: str | None = None) -> dict:
     if start is not None:
         router = start.get("router") or router
         credentials = start.get("credentials", credentials)
-    state = {"live": False, "why": "", "router": router, "credentials": credentials, "control": False}
+    state: RunState = {"live": False, "why": "", "router": router, "credentials": credentials, "control": False}
     if end is not None:
         state["why"] = f"ttl run ended (exit status {end.get('status')})"
         return state
@@ -131,7 +144,7 @@ def run_state(run_dir, recorded_command: str | None = None) -> dict:
     return state
 
 
-def control_command(run: str, stage: str, state: dict, effects: list[str]) -> str:
+def control_command(run: str, stage: str, state: RunState, effects: list[str]) -> str:
     """``ttl control`` that puts ``effects`` in the model of the live fitter ``stage``."""
     parts = ["ttl", "control", "--run", run, "--connect", str(state["router"])]
     if state.get("credentials"):
@@ -150,7 +163,7 @@ def refit_command(run_dir, effects: list[str], baseline: list[str] | None, segme
     return shlex.join(parts)
 
 
-def advise(model: dict, run_dir, run: str) -> dict:
+def advise(model: dict, run_dir, run: str) -> RunState | dict:
     """Give each diagnosis of ``model`` (:func:`streamer.inspect_model.model_report`) the
     command to print (``advice``, and each proposed removal's), live or offline; returns
     the run's state (:func:`run_state`, with the time it was checked)."""

@@ -1,6 +1,7 @@
 """The fitter's coefficients and model over a run, from its recordings (for ``ttl inspect``,
 :func:`streamer.inspect.inspect_run`): the fits, their trends with the GLS drift rate of
-:mod:`ttlcore.diagnose.trends`, the truth over a fit window, the model's changes and the
+:mod:`ttlcore.diagnose.trends`, the truth over a fit window (and the last fit's sigmas tested
+against it), the model's changes and the
 live diagnoses."""
 
 from __future__ import annotations
@@ -10,8 +11,10 @@ import numpy as np
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.trends import TrendSettings, trend_estimates
 from ttlcore.estimate.monitoring import FileTruth
+from ttlcore.estimate.pulls import pull_summary
 
-from .recorder import Recording
+from .inspect_records import json_object
+from .recorder import RecordedSegment, Recording
 
 #: Span of the drift rate in the report [days] (ttlcore.diagnose.trends.TrendSettings.drift_lookback).
 LOOKBACK_DAYS = 3.0
@@ -23,50 +26,59 @@ def recorded_fits(recs: list[Recording]) -> list[dict]:
     for rec in recs:
         summaries = [d for d in rec.json("fit/summary") if isinstance(d, dict) and isinstance(d.get("index"), int)]
         if summaries:
-            for d in summaries:
-                fit = d.get("fit") if isinstance(d.get("fit"), dict) else {}
-                names = d.get("names") or fit.get("names")
-                coeffs, sigma = d.get("coefficients"), d.get("sigma")
-                if isinstance(coeffs, dict):  # FitResult.to_json layout
-                    coeffs = [coeffs[n] for n in names]
-                if isinstance(sigma, dict):
-                    sigma = [sigma[n] for n in names]
-                window = fit.get("window", {}) if isinstance(fit.get("window"), dict) else {}
-                fits[d["index"]] = {
-                    "index": d["index"],
-                    "names": list(names or []),
-                    "t_start": d.get("t_start", window.get("t_start")),
-                    "t_stop": d.get("t_end", d.get("t_stop", window.get("t_stop"))),
-                    "chi2_dof": d.get("chi2_dof", fit.get("chi2_dof")),
-                    "converged": fit.get("converged", d.get("converged")),
-                    "coefficients": coeffs,
-                    "sigma": sigma,
-                }
+            fits.update((d["index"], _summary_fit(d)) for d in summaries)
         else:  # no summaries: the fit segments themselves
-            for m in rec.segments("fit"):
-                a, meta = m.arrays, m.header.meta
-                if "coefficients" not in a:
-                    continue
-                fits[m.header.index] = {
-                    "index": m.header.index,
-                    "names": list(meta.get("names") or []),
-                    "t_start": meta.get("t_start"),
-                    "t_stop": meta.get("t_stop"),
-                    "chi2_dof": meta.get("chi2_dof"),
-                    "converged": meta.get("converged"),
-                    "coefficients": a["coefficients"].tolist(),
-                    "sigma": a["sigma"].tolist() if "sigma" in a else None,
-                }
-    good = []
-    for f in sorted(fits.values(), key=lambda f: f["index"]):
-        try:
-            c = np.asarray(f["coefficients"], dtype=float)
-            s = np.asarray(f["sigma"], dtype=float) if f["sigma"] is not None else np.full(c.shape, np.nan)
-        except (TypeError, ValueError):
-            continue
-        if c.ndim == 1 and c.shape == s.shape and c.size:
-            good.append(f)
-    return good
+            fits.update((m.header.index, _segment_fit(m)) for m in rec.segments("fit") if "coefficients" in m.arrays)
+    return [f for f in sorted(fits.values(), key=lambda f: f["index"]) if _usable(f)]
+
+
+def _summary_fit(d: dict) -> dict:
+    """The fit of a ``fit/summary`` record (its own layout, or FitResult.to_json's)."""
+    fit = json_object(d.get("fit"))
+    names = list(d.get("names") or fit.get("names") or [])
+    coeffs, sigma = d.get("coefficients"), d.get("sigma")
+    if isinstance(coeffs, dict):  # FitResult.to_json layout
+        coeffs = [coeffs[n] for n in names]
+    if isinstance(sigma, dict):
+        sigma = [sigma[n] for n in names]
+    window = json_object(fit.get("window"))
+    return {
+        "index": d["index"],
+        "names": names,
+        "t_start": d.get("t_start", window.get("t_start")),
+        "t_stop": d.get("t_end", d.get("t_stop", window.get("t_stop"))),
+        "chi2_dof": d.get("chi2_dof", fit.get("chi2_dof")),
+        "converged": fit.get("converged", d.get("converged")),
+        "coefficients": coeffs,
+        "sigma": sigma,
+        "covariance": d.get("covariance"),
+    }
+
+
+def _segment_fit(m: RecordedSegment) -> dict:
+    """The fit of a recorded ``fit`` segment (with its coefficients)."""
+    a, meta = m.arrays, m.header.meta
+    return {
+        "index": m.header.index,
+        "names": list(meta.get("names") or []),
+        "t_start": meta.get("t_start"),
+        "t_stop": meta.get("t_stop"),
+        "chi2_dof": meta.get("chi2_dof"),
+        "converged": meta.get("converged"),
+        "coefficients": a["coefficients"].tolist(),
+        "sigma": a["sigma"].tolist() if "sigma" in a else None,
+        "covariance": a["covariance"].tolist() if "covariance" in a else None,
+    }
+
+
+def _usable(f: dict) -> bool:
+    """Whether a fit has a vector of coefficients and sigma of the same shape (sigma may be missing)."""
+    try:
+        c = np.asarray(f["coefficients"], dtype=float)
+        s = np.asarray(f["sigma"], dtype=float) if f["sigma"] is not None else np.full(c.shape, np.nan)
+    except (TypeError, ValueError):
+        return False
+    return bool(c.ndim == 1 and c.shape == s.shape and c.size)
 
 
 def coefficient_trends(fits: list[dict]) -> dict:
@@ -123,8 +135,21 @@ def truth_over_window(truth_path, t_start: float, t_stop: float, names) -> dict:
     mean = FileTruth(truth_path).mean(t_start, t_stop)
     if mean is None:
         return {}
-    mean = dict(zip(COEFFICIENT_NAMES, mean * 1e3))
-    return {n: float(mean[n]) for n in names if n in mean}
+    by_name = dict(zip(COEFFICIENT_NAMES, mean * 1e3))
+    return {n: float(by_name[n]) for n in names if n in by_name}
+
+
+def truth_test(fit: dict, truth_path) -> dict | None:
+    """A recorded fit (:func:`recorded_fits`) against the truth averaged over its window:
+    its errors and whether its sigmas are honest (:func:`ttlcore.estimate.pulls.pull_summary`,
+    in m/rad); None without a covariance, a truth over the window or the 24 coefficients."""
+    mean = FileTruth(truth_path).mean(fit["t_start"], fit["t_stop"])
+    names, cov = fit.get("names") or [], fit.get("covariance")
+    if mean is None or cov is None or any(n not in names for n in COEFFICIENT_NAMES):
+        return None
+    k = [names.index(n) for n in COEFFICIENT_NAMES]
+    C = np.asarray(fit["coefficients"], dtype=float)[k]
+    return pull_summary(C, np.asarray(cov, dtype=float)[np.ix_(k, k)], mean).to_json()
 
 
 def model_report(recs: list[Recording]) -> dict:
@@ -154,7 +179,7 @@ def model_report(recs: list[Recording]) -> dict:
                 last_model = (d["index"], d["model"])
             diag = d.get("diagnosis")
             if isinstance(diag, dict):
-                rec_ = diag.get("recommendation") if isinstance(diag.get("recommendation"), dict) else {}
+                rec_ = json_object(diag.get("recommendation"))
                 diagnoses[d["index"]] = {
                     "index": d["index"],
                     "segments": diag.get("segments"),

@@ -16,6 +16,12 @@ class InspectError(ValueError):
     """The run cannot be inspected (message names the file or directory)."""
 
 
+def json_object(value: object) -> dict:
+    """``value`` when it is a JSON object (a dict), else an empty one: a recorded field that
+    is missing or of another type reads as empty."""
+    return value if isinstance(value, dict) else {}
+
+
 def launcher_journal(run_dir: Path) -> list[dict]:
     """The interruptions ``ttl run`` recorded in ``launcher.jsonl`` (:mod:`streamer.launcher`,
     "Journal and resuming"): every stage or router that died and was restarted, every
@@ -25,7 +31,8 @@ def launcher_journal(run_dir: Path) -> list[dict]:
         lines = path.read_text(errors="replace").splitlines()
     except OSError:
         return []
-    out, open_start = [], None
+    out: list[dict] = []
+    open_start: dict | None = None
     for n, line in enumerate(lines, 1):
         try:
             rec = json.loads(line)
@@ -92,7 +99,9 @@ def security_report(run_dir: Path) -> dict:
     damaged run is still reported).
     """
     path = Path(run_dir) / "security.jsonl"
-    out = {"file": str(path), "present": path.exists(), "count": 0, "kinds": {}, "unreadable": []}
+    kinds: dict[str, dict] = {}  # kind -> {"count", "first": the first MAX_REFUSALS records}
+    unreadable: list[int] = []  # line numbers
+    out = {"file": str(path), "present": path.exists(), "count": 0, "kinds": kinds, "unreadable": unreadable}
     if not out["present"]:
         return out
     try:
@@ -107,13 +116,13 @@ def security_report(run_dir: Path) -> dict:
         except ValueError:
             record = None
         if not isinstance(record, dict) or not isinstance(record.get("kind"), str):
-            out["unreadable"].append(n)
+            unreadable.append(n)
             continue
-        kind = out["kinds"].setdefault(record["kind"], {"count": 0, "first": []})
+        kind = kinds.setdefault(record["kind"], {"count": 0, "first": []})
         kind["count"] += 1
-        out["count"] += 1
         if len(kind["first"]) < MAX_REFUSALS:
             kind["first"].append(record)
+    out["count"] = sum(k["count"] for k in kinds.values())
     return out
 
 

@@ -129,132 +129,188 @@ def timeline_text(t: dict) -> list[str]:
     return lines
 
 
+def truth_test_lines(t: dict | None) -> list[str]:
+    """The last fit against the truth: errors and the tests of its sigmas
+    (:func:`ttlcore.estimate.pulls.pull_summary`)."""
+    if not t:
+        return []
+    lo, hi = t["pull_rms_range"] or (float("nan"), float("nan"))
+    return [
+        f"  last fit against the truth: max |error| {t['max_abs_error'] * 1e3:.4f} mm/rad, pull RMS "
+        f"{t['pull_rms']:.2f} ({lo:.2f}-{hi:.2f} for honest sigmas with this fit's correlations), "
+        f"errors' chi2 {t['chi2']:.1f} for {t['n']} (p {t['p_value']:.3g}): sigmas {t['verdict']}"
+    ]
+
+
 def format_report(r: dict) -> str:
     """The text of ``ttl inspect``."""
-    lines = []
+    lines = _stages_text(r) + _fits_text(r["fits"]) + _model_text(r)
+    lines += _alerts_text(r["alerts"]) + _warnings_text(r["warnings"]) + _errors_text(r["errors"])
+    lines += _gaps_text(r.get("gaps", []))
+    if r.get("security") is not None:
+        lines += _security_text(r["security"])
+    lines.append("")
+    lines.append(f"Interruptions: {len(r['interruptions'])}")
+    for i in r["interruptions"]:
+        lines.append(f"  {i['stage']}: {i['kind']}: {i['message']}")
+    return "\n".join(lines)
+
+
+def _stages_text(r: dict) -> list[str]:
+    """The run's line, then each stage's: its files and state, the topics it published and received."""
     run = r["run"] if isinstance(r["run"], str) else ", ".join(r["run"])
     total = f", {r['segments_total']} segments expected" if r["segments_total"] else ""
-    lines.append(f"run {run} ({r['directory']}): {len(r['stages'])} stage(s) recorded{total}")
+    lines = [f"run {run} ({r['directory']}): {len(r['stages'])} stage(s) recorded{total}"]
     if r["stages_missing"]:
         lines.append(f"  no recording of: {', '.join(r['stages_missing'])}")
     lines.append("")
     lines.append("Stages")
     for stage, s in r["stages"].items():
-        state = []
-        files = s["files"]
-        if s["restarts"]:
-            state.append(f"restarted {s['restarts']}x")
-        if any(not f["complete"] for f in files):
-            state.append("unfinished file")
-        if files and files[-1].get("completed"):
-            state.append("complete")
-        if files and files[-1].get("stopped"):
-            stop = files[-1].get("stop_event") or {}
-            details = stop.get("details") or {}
-            state.append(
-                "stopped: disk full"
-                if details.get("disk_full")
-                else "stopped: orphaned (launcher gone)"
-                if details.get("orphaned")
-                else "stopped"
-            )
+        state = _stage_state(s)
         lines.append(
-            f"  {stage:<12} {len(files)} file(s)  errors {s['errors']}  {', '.join(state) or 'running or killed'}"
+            f"  {stage:<12} {len(s['files'])} file(s)  errors {s['errors']}  {', '.join(state) or 'running or killed'}"
         )
         lines.append(f"  {'':<12} out: {topics_text(s['outputs'])}")
         if s["inputs"]:
             lines.append(f"  {'':<12} in:  {topics_text(s['inputs'])}")
+    return lines
 
-    f = r["fits"]
-    lines.append("")
-    if f["count"]:
-        last = f["table"][-1]
-        lines.append(
-            f"Coefficient trends (fitter fit JSON: {f['count']} fits [{fmt_ranges(f['indices'])}], "
-            f"last window {_days(last['t_start'])}..{_days(last['t_stop'])} d, "
-            f"chi2/dof {_num(last['chi2_dof'])})"
-        )
-        lines.append(
-            f"  {'coefficient':<12} {'latest [mm/rad]':>19} {'first':>8} {'min':>8} {'max':>8} "
-            f"{'rate [mm/rad/day]':>22}   (rate: GLS line over the last {LOOKBACK_DAYS:g} d of fits)"
-        )
-        with_truth = "truth_file" in f
-        if with_truth:
-            lines[-1] += "   truth(last window)  (latest-truth)/sigma"
-        for name, t in f["trends"].items():
-            rate = (
-                f"{t['rate']:+8.4f} ± {t['rate_se']:.4f}" + (" *" if abs(t["significance"]) >= 5 else "  ")
-                if t["rate"] is not None
-                else f"{'-':>20}"
-            )
-            line = (
-                f"  {name:<12} {t['latest']:+9.4f} ± {t['sigma']:.4f} {t['first']:+8.4f} "
-                f"{t['min']:+8.4f} {t['max']:+8.4f} {rate:>22}"
-            )
-            if with_truth and "truth_latest_window" in t:
-                line += f"   {t['truth_latest_window']:+9.4f}   {t['error_over_sigma']:+6.2f}"
-            lines.append(line)
-        lines.append("  (* rate significant at 5 sigma with the overlap covariance of the rolling windows)")
-        if with_truth:
-            lines.append(f"  truth: {f['truth_file']}, averaged over the last fit window")
-    else:
-        lines.append("Coefficient trends: no fits recorded")
 
+def _stage_state(s: dict) -> list[str]:
+    """A stage's state in words: restarts, an unfinished file, complete, how it stopped."""
+    state = []
+    files = s["files"]
+    if s["restarts"]:
+        state.append(f"restarted {s['restarts']}x")
+    if any(not f["complete"] for f in files):
+        state.append("unfinished file")
+    if files and files[-1].get("completed"):
+        state.append("complete")
+    if files and files[-1].get("stopped"):
+        stop = files[-1].get("stop_event") or {}
+        details = stop.get("details") or {}
+        state.append(
+            "stopped: disk full"
+            if details.get("disk_full")
+            else "stopped: orphaned (launcher gone)"
+            if details.get("orphaned")
+            else "stopped"
+        )
+    return state
+
+
+def _fits_text(f: dict) -> list[str]:
+    """The coefficient trends of the fits (with the truth over the last window when known)."""
+    if not f["count"]:
+        return ["", "Coefficient trends: no fits recorded"]
+    last = f["table"][-1]
+    lines = [
+        "",
+        f"Coefficient trends (fitter fit JSON: {f['count']} fits [{fmt_ranges(f['indices'])}], "
+        f"last window {_days(last['t_start'])}..{_days(last['t_stop'])} d, "
+        f"chi2/dof {_num(last['chi2_dof'])})",
+        f"  {'coefficient':<12} {'latest [mm/rad]':>19} {'first':>8} {'min':>8} {'max':>8} "
+        f"{'rate [mm/rad/day]':>22}   (rate: GLS line over the last {LOOKBACK_DAYS:g} d of fits)",
+    ]
+    with_truth = "truth_file" in f
+    if with_truth:
+        lines[-1] += "   truth(last window)  (latest-truth)/sigma"
+    for name, t in f["trends"].items():
+        rate = (
+            f"{t['rate']:+8.4f} ± {t['rate_se']:.4f}" + (" *" if abs(t["significance"]) >= 5 else "  ")
+            if t["rate"] is not None
+            else f"{'-':>20}"
+        )
+        line = (
+            f"  {name:<12} {t['latest']:+9.4f} ± {t['sigma']:.4f} {t['first']:+8.4f} "
+            f"{t['min']:+8.4f} {t['max']:+8.4f} {rate:>22}"
+        )
+        if with_truth and "truth_latest_window" in t:
+            line += f"   {t['truth_latest_window']:+9.4f}   {t['error_over_sigma']:+6.2f}"
+        lines.append(line)
+    lines.append("  (* rate significant at 5 sigma with the overlap covariance of the rolling windows)")
+    if with_truth:
+        lines.append(f"  truth: {f['truth_file']}, averaged over the last fit window")
+        lines += truth_test_lines(f.get("truth_test"))
+    return lines
+
+
+def _model_text(r: dict) -> list[str]:
+    """The fitter's model: in force, its timeline, and each live diagnosis with the command
+    that applies its advice (live or offline); nothing when no model was recorded."""
     m = r.get("model") or {}
-    if m.get("model") or m.get("changes") or m.get("diagnoses") or any((r.get("timeline") or {}).values()):
-        lines.append("")
-        current = m.get("model") or {}
+    if not (m.get("model") or m.get("changes") or m.get("diagnoses") or any((r.get("timeline") or {}).values())):
+        return []
+    current = m.get("model") or {}
+    lines = [
+        "",
+        f"Model (fitter): {','.join(current.get('effects') or ['?'])} at fit {current.get('index')}; "
+        f"{len(m['changes'])} change(s), {len(m['diagnoses'])} live diagnos{'i' if len(m['diagnoses']) == 1 else 'e'}s",
+    ]
+    lines += timeline_text(r.get("timeline") or {})
+    run_state = m.get("run_state") or {}
+    if any(d.get("advice") or d.get("removal") for d in m["diagnoses"]):
         lines.append(
-            f"Model (fitter): {','.join(current.get('effects') or ['?'])} at fit {current.get('index')}; "
-            f"{len(m['changes'])} change(s), {len(m['diagnoses'])} live diagnos{'i' if len(m['diagnoses']) == 1 else 'e'}s"
+            f"  the run is live ({run_state.get('why')}): the commands below change the live fitter's model"
+            if run_state.get("control")
+            else f"  the run is not live here ({run_state.get('why')}): the commands below refit the recordings "
+            "offline (ttl refit; ttl control works only while the run goes on)"
         )
-        lines += timeline_text(r.get("timeline") or {})
-        state = m.get("run_state") or {}
-        if any(d.get("advice") or d.get("removal") for d in m["diagnoses"]):
-            lines.append(
-                f"  the run is live ({state.get('why')}): the commands below change the live fitter's model"
-                if state.get("control")
-                else f"  the run is not live here ({state.get('why')}): the commands below refit the recordings "
-                "offline (ttl refit; ttl control works only while the run goes on)"
-            )
-        for d in m["diagnoses"]:
-            seg = d.get("segments") or ["?", "?"]
-            bands = ", ".join(f"{lo:.3g}-{hi:.3g} Hz ({chi:.3f})" for lo, hi, chi in d["failing_bands"]) or "none"
-            lines.append(
-                f"  diagnosis at segment {d['index']} (window {seg[0]}..{seg[1]}, model "
-                f"{','.join(d.get('model') or [])}): chi2/dof {_num(d.get('chi2_dof'))}, failing bands {bands}"
-            )
-            if d.get("recommendation"):
-                adopted = (d.get("adoption") or {}).get("adopted")
-                lines.append(f"    recommends {d['recommendation']}{_explains_text(d)}{': adopted' if adopted else ''}")
-                if d.get("advice") and not adopted:
-                    verb = "apply it" if state.get("control") else "refit with it offline"
-                    lines.append(f"    {verb}: {d['advice']}")
-            elif d.get("message"):
-                lines.append(f"    {d['message']}")
-            elif not d.get("fails"):
-                lines.append("    the model is adequate: nothing to add")
-            for x in d.get("removal") or []:
-                verb = "remove it" if state.get("control") else "refit without it offline"
-                lines.append(f"    evidence gone: {x.get('spec')} (p = {_num(x.get('p'))}); {verb}: {x.get('advice')}")
+    for d in m["diagnoses"]:
+        lines += _diagnosis_text(d, bool(run_state.get("control")))
+    return lines
 
-    lines.append("")
-    lines.append(f"Alerts (monitor): {len(r['alerts'])}")
-    for a in r["alerts"]:
+
+def _diagnosis_text(d: dict, live: bool) -> list[str]:
+    """One live diagnosis: its window, chi^2/dof and failing bands, what it recommends or
+    why not, the evidence gone for an effect, with the commands (``live``: ttl control)."""
+    seg = d.get("segments") or ["?", "?"]
+    bands = ", ".join(f"{lo:.3g}-{hi:.3g} Hz ({chi:.3f})" for lo, hi, chi in d["failing_bands"]) or "none"
+    lines = [
+        f"  diagnosis at segment {d['index']} (window {seg[0]}..{seg[1]}, model "
+        f"{','.join(d.get('model') or [])}): chi2/dof {_num(d.get('chi2_dof'))}, failing bands {bands}"
+    ]
+    if d.get("recommendation"):
+        adopted = (d.get("adoption") or {}).get("adopted")
+        lines.append(f"    recommends {d['recommendation']}{_explains_text(d)}{': adopted' if adopted else ''}")
+        if d.get("advice") and not adopted:
+            verb = "apply it" if live else "refit with it offline"
+            lines.append(f"    {verb}: {d['advice']}")
+    elif d.get("message"):
+        lines.append(f"    {d['message']}")
+    elif not d.get("fails"):
+        lines.append("    the model is adequate: nothing to add")
+    for x in d.get("removal") or []:
+        verb = "remove it" if live else "refit without it offline"
+        lines.append(f"    evidence gone: {x.get('spec')} (p = {_num(x.get('p'))}); {verb}: {x.get('advice')}")
+    return lines
+
+
+def _alerts_text(alerts: list[dict]) -> list[str]:
+    """The monitor's alerts (with the model epoch they belong to)."""
+    lines = ["", f"Alerts (monitor): {len(alerts)}"]
+    for a in alerts:
         epoch = (a.get("details") or {}).get("model_epoch") if isinstance(a.get("details"), dict) else None
         lines.append(f"  [{a.get('kind')}] {a.get('message')}" + (f" (model epoch {epoch})" if epoch else ""))
+    return lines
 
-    lines.append("")
-    lines.append(f"Warnings: {len(r['warnings'])}")
-    for w in r["warnings"][:MAX_LISTED]:
+
+def _warnings_text(warnings: list[dict]) -> list[str]:
+    """The stages' warnings (the first :data:`MAX_LISTED`)."""
+    lines = ["", f"Warnings: {len(warnings)}"]
+    for w in warnings[:MAX_LISTED]:
         lines.append(f"  {w.get('stage')} [{w.get('kind')}] {w.get('message')}")
+    return lines
 
-    lines.append("")
+
+def _errors_text(all_errors: list[dict]) -> list[str]:
+    """The stages' errors but the gap reports (listed under Gaps): counted by stage and kind,
+    the first :data:`MAX_LISTED` in full."""
     # a segment with no data is a gap of the data, reported with an error message so that the
     # stages downstream move on: listed under Gaps, not here
-    errors = [e for e in r["errors"] if e["kind"] != "gap"]
-    gap_reports = len(r["errors"]) - len(errors)
-    lines.append(f"Errors: {len(errors)}" + (f" ({gap_reports} gap report(s): under Gaps)" if gap_reports else ""))
+    errors = [e for e in all_errors if e["kind"] != "gap"]
+    gap_reports = len(all_errors) - len(errors)
+    lines = ["", f"Errors: {len(errors)}" + (f" ({gap_reports} gap report(s): under Gaps)" if gap_reports else "")]
     by = Counter((e["stage"], e["kind"]) for e in errors)
     if by:
         lines.append("  " + ", ".join(f"{stage} {kind} x{n}" for (stage, kind), n in sorted(by.items())))
@@ -264,40 +320,32 @@ def format_report(r: dict) -> str:
         lines.append(f"  {e['stage']} {e['kind']}{where}{field}: {e['message']}")
     if len(errors) > MAX_LISTED:
         lines.append(f"  ... {len(errors) - MAX_LISTED} more (--json FILE for all)")
+    return lines
 
-    lines.append("")
-    lines.append(f"Gaps: {len(r.get('gaps', []))}")
-    for g in r.get("gaps", [])[:MAX_LISTED]:
+
+def _gaps_text(gaps: list[dict]) -> list[str]:
+    """The gaps of the run (the first :data:`MAX_LISTED`)."""
+    lines = ["", f"Gaps: {len(gaps)}"]
+    for g in gaps[:MAX_LISTED]:
         span = f" ({g['seconds'] / 60:.1f} min of NaN)" if g.get("seconds") else ""
         lines.append(f"  {g['stage']} {g['kind']} segment {g['index']}{span}: {g['message']}")
+    return lines
 
-    sec = r.get("security")
-    if sec is not None:
-        lines.append("")
-        if not sec["present"]:
-            lines.append("Security: no security.jsonl (a run with --insecure, or its launcher did not end)")
-        else:
-            lines.append(
-                f"Security (security.jsonl): {sec['count']} refusal(s) by the router"
-                + (
-                    ", " + ", ".join(f"{k} x{v['count']}" for k, v in sorted(sec["kinds"].items()))
-                    if sec["kinds"]
-                    else ""
-                )
-            )
-            for kind, v in sorted(sec["kinds"].items()):
-                for rec in v["first"]:
-                    lines.append(f"  {kind}: {refusal_text(rec)}")
-                if v["count"] > len(v["first"]):
-                    lines.append(f"  {kind}: ... {v['count'] - len(v['first'])} more")
-            if sec["unreadable"]:
-                lines.append(f"  unreadable line(s) {fmt_ranges(to_ranges(sec['unreadable']))}")
 
-    lines.append("")
-    lines.append(f"Interruptions: {len(r['interruptions'])}")
-    for i in r["interruptions"]:
-        lines.append(f"  {i['stage']}: {i['kind']}: {i['message']}")
-    return "\n".join(lines)
+def _security_text(sec: dict) -> list[str]:
+    """The router's refusals (:func:`streamer.inspect_records.security_report`)."""
+    if not sec["present"]:
+        return ["", "Security: no security.jsonl (a run with --insecure, or its launcher did not end)"]
+    kinds = ", " + ", ".join(f"{k} x{v['count']}" for k, v in sorted(sec["kinds"].items())) if sec["kinds"] else ""
+    lines = ["", f"Security (security.jsonl): {sec['count']} refusal(s) by the router{kinds}"]
+    for kind, v in sorted(sec["kinds"].items()):
+        for rec in v["first"]:
+            lines.append(f"  {kind}: {refusal_text(rec)}")
+        if v["count"] > len(v["first"]):
+            lines.append(f"  {kind}: ... {v['count'] - len(v['first'])} more")
+    if sec["unreadable"]:
+        lines.append(f"  unreadable line(s) {fmt_ranges(to_ranges(sec['unreadable']))}")
+    return lines
 
 
 def _explains_text(d: dict) -> str:

@@ -24,6 +24,7 @@ a change of the transients ``glitch`` and ``gate`` only does not,
 
 from __future__ import annotations
 
+from .inspect_records import json_object
 from .keys import to_ranges
 from .model_timeline import SpanMerger, model_delta
 from .recorder import Recording
@@ -54,7 +55,7 @@ def _changes(recs: list[Recording]) -> list[dict]:
         for e in rec.json("events"):
             if not (isinstance(e, dict) and e.get("kind") == "model"):
                 continue
-            d = e.get("details") if isinstance(e.get("details"), dict) else {}
+            d = json_object(e.get("details"))
             start = d.get("from_index", e.get("index"))
             effects = d.get("effects")
             if not isinstance(start, int) or not isinstance(effects, list):
@@ -70,8 +71,10 @@ def _changes(recs: list[Recording]) -> list[dict]:
 def _segment_times(plan: dict | None, first: int, last: int) -> tuple[float | None, float | None]:
     """Mission time [s] from the start of segment ``first`` to the end of ``last`` (the
     run's plan, ``plan.json``; None without one)."""
+    if plan is None:
+        return None, None
     try:
-        table = plan.get("table") if plan else None
+        table = plan.get("table")
         if table:
             return float(table[first][0]), float(table[last][0]) + table[last][1] / float(plan["fs"])
         t0, n, fs = float(plan["t0"]), int(plan["samples"]), float(plan["fs"])
@@ -163,7 +166,7 @@ def excluded_spans(recs: list[Recording]) -> list[dict]:
             for r in rec.json(topic):
                 if not isinstance(r, dict) or r.get("kind") != kind or not isinstance(r.get("index"), int):
                     continue
-                d = r.get("details") if isinstance(r.get("details"), dict) else {}
+                d = json_object(r.get("details"))
                 if not all(isinstance(d.get(k), (int, float)) for k in ("t_start", "t_stop")):
                     continue
                 # the same FFT segment recorded again (a restarted fitter) counts once

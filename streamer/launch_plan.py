@@ -142,12 +142,32 @@ def expected_stages(o: RunOptions, say: Callable[[str], None]) -> list[str]:
         check_name(o.run_id, "run id")
     except ValueError as exc:
         raise LaunchError(f"--run-id: {exc}") from None
+    _check_stage_names(o)
+    _check_source(o)
+    _check_transport(o)
+    skipped = set(o.skip)
+    if "monitor" not in skipped and "monitor" not in o.external and not stage_module_exists("monitor"):
+        say("the monitor stage (stages/monitor.py) is not installed: running without it")
+        skipped.add("monitor")
+    for name in STAGES:
+        if name not in skipped and name not in o.external and not stage_module_exists(name):
+            raise LaunchError(f"stage {name!r}: module stages.{name} not found")
+    check_model(o)
+    return [n for n in STAGES if n not in skipped]
+
+
+def _check_stage_names(o: RunOptions) -> None:
+    """``--skip`` and ``--external`` name stages, and the replayer is not skipped."""
     for what, names in (("--skip", o.skip), ("--external", o.external)):
         for n in names:
             if n not in STAGES:
                 raise LaunchError(f"{what}: unknown stage {n!r} (stages: {', '.join(STAGES)})")
     if "replayer" in o.skip:
         raise LaunchError("--skip: the replayer cannot be skipped (run it elsewhere with --external replayer)")
+
+
+def _check_source(o: RunOptions) -> None:
+    """One telemetry source: files that exist, or a simulation (or an external replayer)."""
     if not o.telemetry and not o.simulate and "replayer" not in o.external:
         raise LaunchError('no telemetry source: give --telemetry FILE... or --simulate "<ttl simulate options>"')
     if o.telemetry and o.simulate:
@@ -155,6 +175,11 @@ def expected_stages(o: RunOptions, say: Callable[[str], None]) -> list[str]:
     for f in o.telemetry or ():
         if not Path(f).is_file():
             raise LaunchError(f"--telemetry: {f}: no such file")
+
+
+def _check_transport(o: RunOptions) -> None:
+    """TLS endpoints unless ``--insecure`` (not with credentials), and a window and cache
+    that let a restarted stage catch up."""
     secure = not o.insecure
     for e in o.listen:
         if secure and not str(e).startswith("tls/"):
@@ -171,15 +196,6 @@ def expected_stages(o: RunOptions, say: Callable[[str], None]) -> list[str]:
             f"--cache: {cache} segments is too few for --window {o.window} "
             f"(a restarted stage needs at least window + 2 = {o.window + 2})"
         )
-    skipped = set(o.skip)
-    if "monitor" not in skipped and "monitor" not in o.external and not stage_module_exists("monitor"):
-        say("the monitor stage (stages/monitor.py) is not installed: running without it")
-        skipped.add("monitor")
-    for name in STAGES:
-        if name not in skipped and name not in o.external and not stage_module_exists(name):
-            raise LaunchError(f"stage {name!r}: module stages.{name} not found")
-    check_model(o)
-    return [n for n in STAGES if n not in skipped]
 
 
 def check_model(o: RunOptions) -> None:

@@ -112,6 +112,7 @@ from .launch_plan import (
 from .lifecycle import LAUNCHER
 from .processes import SignalFlag
 from .progress import Progress, key_stage, parse_progress
+from .rangeset import RangeSet
 from .reach import zenoh_error_text
 from .recorder import stage_record
 from .run_journal import append_journal, check_resumed_inputs, cut_board, lock_run, read_board, save_board
@@ -378,9 +379,9 @@ class Launcher:
         totals = [p.segments_total for p in self.progress.values() if p.segments_total]
         return max(totals) if totals else None
 
-    def handled(self, stage: str) -> set:
+    def handled(self, stage: str) -> RangeSet:
         p = self.progress.get(stage)
-        return p.handled if p is not None else set()
+        return p.handled if p is not None else RangeSet()
 
     def stage_done(self, stage: str) -> bool:
         """``stage`` has handled every segment of the run."""

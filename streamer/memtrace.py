@@ -105,7 +105,7 @@ class MemoryTrace:
         self.every = int(every)
         self.log = logger or log
         self.count = 0
-        self._snapshot = None
+        self._snapshot: dict = {}  # the last snapshot (:meth:`_take`), when on
         if self.every > 0:
             if not tracemalloc.is_tracing():
                 tracemalloc.start(FRAMES)

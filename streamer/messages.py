@@ -58,11 +58,18 @@ def concatenate_telemetry(parts, source: str = "bus") -> Telemetry:
     parts = list(parts)
     if not parts:
         raise ValueError("no telemetry segments to join")
+
+    def joined(name: str) -> np.ndarray:  # one of TELEMETRY_ARRAYS
+        return np.concatenate([getattr(p, name) for p in parts], axis=1)
+
     return Telemetry(
         t0=parts[0].t0,
         fs=parts[0].fs,
+        eta=joined("eta"),
+        dws_phi=joined("dws_phi"),
+        dws_eta=joined("dws_eta"),
+        ltt=joined("ltt"),
         source=source,
-        **{k: np.concatenate([getattr(p, k) for p in parts], axis=1) for k in TELEMETRY_ARRAYS},
     )
 
 

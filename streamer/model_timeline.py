@@ -84,12 +84,12 @@ class SpanMerger:
 
     def add(self, kind: str, index: int, t_start: float, t_stop: float, *, gate=None, z=None) -> tuple[dict, bool]:
         """Add one item; returns its span and whether the span is new."""
-        span = self.spans[-1] if self.spans else None
+        last = self.spans[-1] if self.spans else None
         gate = gate if kind == "gated" else None
-        follows = span is not None and span["t_start"] - self.tolerance <= t_start <= span["t_stop"] + self.tolerance
-        new = not (span is not None and span["kind"] == kind and span.get("gate") == gate and follows)
-        if new:
-            span = {"kind": kind, "from_index": index, "to_index": index, "t_start": t_start, "t_stop": t_stop}
+        follows = last is not None and last["t_start"] - self.tolerance <= t_start <= last["t_stop"] + self.tolerance
+        new = not (last is not None and last["kind"] == kind and last.get("gate") == gate and follows)
+        if last is None or new:
+            span: dict = {"kind": kind, "from_index": index, "to_index": index, "t_start": t_start, "t_stop": t_stop}
             span["count"] = 1
             if kind == "gated":
                 span["gate"] = gate
@@ -97,6 +97,7 @@ class SpanMerger:
             if self.keep is not None and len(self.spans) > self.keep:
                 del self.spans[0]
         else:
+            span = last
             span["to_index"] = max(span["to_index"], index)
             span["t_stop"] = max(span["t_stop"], t_stop)
             span["count"] += 1

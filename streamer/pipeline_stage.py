@@ -23,6 +23,7 @@ from .keys import board_key, progress_key, progress_pattern, to_ranges
 from .memtrace import MemoryTrace
 from .plan import MAX_SEGMENTS
 from .progress import Progress, ProgressBoard, key_stage
+from .rangeset import RangeSet
 from .segment_stream import declare_segment_publisher
 from .stage import Stage, StageConfig, disk_full
 from .topology import OUTPUT_TOPIC, UPSTREAM
@@ -71,44 +72,52 @@ class InOrder:
         """Yield ``(index, item)`` in order; ``item`` is None for an index given up, with
         ``self.skipped_reason`` saying why."""
         now = time.monotonic()
-        if self.next is None:
-            if not self.pending:
-                return
-            if 0 not in self.pending and now - self._first_arrival < self.settle:
-                return
-            self.next = min(self.pending.keys() | self.withdrawn.keys())
-        while True:
-            if self.next in self.withdrawn:
-                self.skipped_reason = self.withdrawn.pop(self.next)
-                index = self.next
-                self.next += 1
-                yield index, None
-                continue
-            if self.next in self.pending:
-                self._gap_since = None
-                index = self.next
-                self.next += 1
-                yield index, self.pending.pop(index)
-                continue
-            if total is not None and self.next >= total:
-                return
-            if skip(self.next):
-                self.skipped_reason = "given up upstream"
-                index = self.next
-                self.next += 1
-                yield index, None
-                continue
-            if self.pending:
-                if self._gap_since is None:
-                    self._gap_since = now
-                if now - self._gap_since >= self.gap_timeout:
-                    self.skipped_reason = f"not received within {self.gap_timeout:g} s while later segments waited"
-                    self._gap_since = None
-                    index = self.next
-                    self.next += 1
-                    yield index, None
-                    continue
+        if not self._started(now):
             return
+        while (index := self.next) is not None:
+            if index in self.withdrawn:
+                self.skipped_reason = self.withdrawn.pop(index)
+                item = None
+            elif index in self.pending:
+                self._gap_since = None
+                item = self.pending.pop(index)
+            elif total is not None and index >= total:
+                return
+            else:
+                why = self._given_up(index, skip, now)
+                if why is None:
+                    return  # wait for it
+                self.skipped_reason, item = why, None
+            self.next = index + 1
+            yield index, item
+
+    def _started(self, now: float) -> bool:
+        """Whether the first index to hand out is known (set now when it is settled)."""
+        if self.next is not None:
+            return True
+        if not self.pending:
+            return False
+        first = self._first_arrival
+        if first is None:  # set by the add() that buffered the first pending segment
+            raise RuntimeError("in-order queue: segments pending with no arrival time")
+        if 0 not in self.pending and now - first < self.settle:
+            return False
+        self.next = min(self.pending.keys() | self.withdrawn.keys())
+        return True
+
+    def _given_up(self, index: int, skip: Callable[[int], bool], now: float) -> str | None:
+        """Why the missing ``index`` is skipped now (``skip`` says it will not come, or later
+        segments waited ``gap_timeout`` for it), or None to wait for it."""
+        if skip(index):
+            return "given up upstream"
+        if not self.pending:
+            return None
+        if self._gap_since is None:
+            self._gap_since = now
+        if now - self._gap_since >= self.gap_timeout:
+            self._gap_since = None
+            return f"not received within {self.gap_timeout:g} s while later segments waited"
+        return None
 
 
 class PipelineStage(Stage):
@@ -138,17 +147,17 @@ class PipelineStage(Stage):
         self.memtrace = MemoryTrace.from_env(self.log)
 
     @property
-    def done(self) -> set[int]:
+    def done(self) -> RangeSet:
         """Segments whose output this process published."""
         return self.progress.done
 
     @property
-    def failed(self) -> set[int]:
+    def failed(self) -> RangeSet:
         """Segments this process gave up (gaps included)."""
         return self.progress.failed
 
     @property
-    def gaps(self) -> set[int]:
+    def gaps(self) -> RangeSet:
         """Segments given up for lack of data upstream."""
         return self.progress.gaps
 
@@ -174,12 +183,13 @@ class PipelineStage(Stage):
 
     # ------------------------------------------------------------------ lifecycle
     def setup(self) -> None:
-        self._progress_pub = self.bus.track(
-            declare_segment_publisher(self.bus.session, progress_key(self.run_id, self.stage_name), cache=1)
+        bus = self.live_bus
+        self._progress_pub = bus.track(
+            declare_segment_publisher(bus.session, progress_key(self.run_id, self.stage_name), cache=1)
         )
         if self.follow:
             pattern = progress_pattern(self.run_id, board=self.config.progress_from == "launcher")
-            self.bus.segment_subscriber(pattern, self._on_progress, history=1)
+            bus.segment_subscriber(pattern, self._on_progress, history=1)
 
     def refresh_progress(self, stage: str) -> None:
         """Ask the cache of ``stage``'s progress (the launcher's board of it, when the stage

@@ -203,7 +203,7 @@ class Validator:
         self.segments_total: int | None = plan.segments_total if plan is not None else None
         self.digests: dict[tuple[str, int], tuple] = {}
         self.conflicted: dict[str, RangeSet] = {}
-        self._learned: dict[str, tuple[float, int]] = {}  # topic -> (fs, samples) without a plan
+        self._learned: dict[str, tuple[float, int | None]] = {}  # topic -> (fs, samples) without a plan
         self._producers: dict[str, str] = {}  # topic -> producer, learned without a plan
 
     def set_highest(self, index: int) -> None:
@@ -233,6 +233,29 @@ class Validator:
         if total is None:
             t = header.meta.get("segments_total") if isinstance(header.meta, dict) else None
             total = t if isinstance(t, int) and 0 < t <= MAX_SEGMENTS else None
+        self._check_index(index, total)
+        self._check_samples(topic, header, total)
+        _check_finite(topic, arrays)
+        if index in self.conflicted.get(topic, ()):
+            raise Rejected("conflict", "index", f"{topic} segment {index} had conflicting copies: all refused")
+        digest = content_digest(header)
+        seen = self.digests.get((topic, index))
+        if seen is not None:
+            if seen == digest:
+                return "duplicate"
+            self.conflicted.setdefault(topic, RangeSet()).add(index)
+            raise Rejected(
+                "conflict",
+                "payload",
+                f"{topic} segment {index} differs from the copy accepted "
+                f"before (producer {seen[0]!r}, checksum {seen[3]}): both copies "
+                "refused",
+            )
+        return "new"
+
+    def _check_index(self, index: int, total: int | None) -> None:
+        """``index`` within the run's ``total`` segments (None: not known) and the window
+        around the highest accepted segment."""
         if total is not None and index >= total:
             raise Rejected("rejected", "index", f"segment {index} is beyond the run's {total} segments")
         if self.highest >= 0 and index > self.highest + self.window:
@@ -249,8 +272,14 @@ class Validator:
                 f"highest accepted segment {self.highest}: too late (a copy that "
                 "old is not compared with the one accepted before)",
             )
-        if self.highest < 0 and plan is None and index > self.window and total is None:
+        if self.highest < 0 and self.plan is None and index > self.window and total is None:
             raise Rejected("rejected", "index", f"first segment {index} with no plan and no segments_total")
+
+    def _check_samples(self, topic: str, header, total: int | None) -> None:
+        """The segment's t0 (with a plan), rate and samples per time array: the plan's, else
+        those learned from the topic's first message (the run's last segment may be shorter)."""
+        plan, index = self.plan, header.index
+        n: int | None  # samples of the segment (None: not learned yet)
         if plan is not None:
             t0, n = plan.segment(index)
             fs = plan.fs
@@ -269,30 +298,6 @@ class Validator:
                 and not (plan is None and total is not None and index == total - 1 and m < n)
             ):
                 raise Rejected("rejected", f"arrays[{name}].shape", f"{m} samples, segment {index} has {n}")
-        for name in FINITE_SOMEWHERE.get(topic, ()):
-            a = arrays.get(name)
-            if a is not None and a.dtype.kind in "fc" and a.size and not np.isfinite(a).any():
-                raise Rejected("rejected", f"arrays[{name}]", "no finite sample (all NaN or inf)")
-        for name in FINITE_EVERYWHERE.get(topic, ()):
-            a = arrays.get(name)
-            if a is not None and a.dtype.kind in "fc" and not np.isfinite(a).all():
-                raise Rejected("rejected", f"arrays[{name}]", "non-finite values (must be finite everywhere)")
-        if index in self.conflicted.get(topic, ()):
-            raise Rejected("conflict", "index", f"{topic} segment {index} had conflicting copies: all refused")
-        digest = content_digest(header)
-        seen = self.digests.get((topic, index))
-        if seen is not None:
-            if seen == digest:
-                return "duplicate"
-            self.conflicted.setdefault(topic, RangeSet()).add(index)
-            raise Rejected(
-                "conflict",
-                "payload",
-                f"{topic} segment {index} differs from the copy accepted "
-                f"before (producer {seen[0]!r}, checksum {seen[3]}): both copies "
-                "refused",
-            )
-        return "new"
 
     def accepted(self, topic: str, header) -> None:
         self.digests[(topic, header.index)] = content_digest(header)
@@ -353,3 +358,15 @@ def _time_length(topic: str, header) -> int | None:
         if m is not None:
             return m
     return None
+
+
+def _check_finite(topic: str, arrays: Mapping[str, np.ndarray]) -> None:
+    """The arrays of ``topic`` that must hold a finite sample somewhere, or be finite everywhere."""
+    for name in FINITE_SOMEWHERE.get(topic, ()):
+        a = arrays.get(name)
+        if a is not None and a.dtype.kind in "fc" and a.size and not np.isfinite(a).any():
+            raise Rejected("rejected", f"arrays[{name}]", "no finite sample (all NaN or inf)")
+    for name in FINITE_EVERYWHERE.get(topic, ()):
+        a = arrays.get(name)
+        if a is not None and a.dtype.kind in "fc" and not np.isfinite(a).all():
+            raise Rejected("rejected", f"arrays[{name}]", "non-finite values (must be finite everywhere)")

@@ -209,7 +209,10 @@ class ProgressBoard:
             self.stages.setdefault(msg["stage"], Progress(msg["stage"])).update(msg)
         self.changed.set()
 
-    def get(self, stage: str) -> Progress | None:
+    def get(self, stage: str | None) -> Progress | None:
+        """The latest progress of ``stage`` (None: none heard, or no stage named)."""
+        if stage is None:
+            return None
         with self._lock:
             return self.stages.get(stage)
 

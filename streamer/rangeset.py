@@ -162,7 +162,7 @@ class RangeSet:
             return len(self) == len(other) and all(i in self for i in other)
         return NotImplemented
 
-    __hash__ = None
+    # unhashable (mutable): a class that defines __eq__ and not __hash__ has __hash__ = None
 
     def __repr__(self) -> str:
         return f"RangeSet({self.ranges()})"

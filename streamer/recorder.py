@@ -63,7 +63,7 @@ from .record_schemas import (
     stage_record,
     to_jsonable,
 )
-from .recording_reader import MAGIC, RecordedMessage, Recording, RecordingError, read_recording
+from .recording_reader import MAGIC, RecordedMessage, RecordedSegment, Recording, RecordingError, read_recording
 
 __all__ = [  # the reader's and the schemas' names too: stages, tools and tests import them from here
     "ALERT_SCHEMA",
@@ -80,6 +80,7 @@ __all__ = [  # the reader's and the schemas' names too: stages, tools and tests 
     "TOPIC_SCHEMAS",
     "WARNING_SCHEMA",
     "RecordedMessage",
+    "RecordedSegment",
     "Recorder",
     "Recording",
     "RecordingError",
@@ -237,8 +238,8 @@ class Recorder:
         """
         channel = self._json_channel(topic, schema)
         data = json.dumps(to_jsonable(obj), separators=(",", ":"), allow_nan=False).encode()
-        self._add(channel, data, log_time)
-        if topic in FLUSHED_TOPICS or time.monotonic() - self._chunk_opened >= self._max_chunk_age:
+        opened = self._add(channel, data, log_time)
+        if topic in FLUSHED_TOPICS or time.monotonic() - opened >= self._max_chunk_age:
             self.flush()
 
     def write_segment(self, topic: str, header: Header | Mapping, payload, log_time: int | None = None) -> None:
@@ -255,7 +256,8 @@ class Recorder:
         self._add(payload_channel, raw, log_time, new_sequence=False)
         self.flush()
 
-    def _add(self, channel: int, data: bytes, log_time: int | None, new_sequence: bool = True) -> None:
+    def _add(self, channel: int, data: bytes, log_time: int | None, new_sequence: bool = True) -> float:
+        """Add a message to the open chunk; returns when the chunk was opened (monotonic [s])."""
         if log_time is None:
             log_time = self.mission_time_ns
         else:
@@ -267,6 +269,7 @@ class Recorder:
         self._writer.add_message(
             channel_id=channel, log_time=int(log_time), publish_time=time.time_ns(), data=data, sequence=self._sequence
         )
+        return self._chunk_opened
 
     def flush(self) -> None:
         """Close the open chunk and push it to the OS (and to disk with ``fsync=True``)."""

@@ -79,6 +79,38 @@ class RecordedMessage:
     publish_time: int = 0
 
 
+@dataclass(frozen=True)
+class RecordedSegment:
+    """A complete segment of a recording (:meth:`Recording.segments`): a
+    :class:`RecordedMessage` of kind ``segment``, its header and arrays decoded (never None).
+
+    Attributes
+    ----------
+    topic : str
+    log_time : int
+    header : Header
+    arrays : dict of str to ndarray
+    data : dict or None
+        The header as a dict.
+    sequence, publish_time : int
+    """
+
+    topic: str
+    log_time: int
+    header: Header
+    arrays: dict
+    data: dict | None = None
+    sequence: int = 0
+    publish_time: int = 0
+
+    @classmethod
+    def of(cls, m: RecordedMessage) -> RecordedSegment:
+        """The segment ``m`` holds; a RecordingError if ``m`` is not a decoded segment."""
+        if m.kind != "segment" or m.header is None or m.arrays is None:
+            raise RecordingError(f"{m.topic}: a {m.kind} message, not a decoded segment")
+        return cls(m.topic, m.log_time, m.header, m.arrays, m.data, m.sequence, m.publish_time)
+
+
 @dataclass
 class Recording:
     """What :func:`read_recording` found.
@@ -115,9 +147,9 @@ class Recording:
         """The JSON messages of ``topic``."""
         return [m.data for m in self.messages if m.topic == topic and m.kind == "json"]
 
-    def segments(self, topic: str) -> list[RecordedMessage]:
+    def segments(self, topic: str) -> list[RecordedSegment]:
         """The complete segments of ``topic``."""
-        return [m for m in self.messages if m.topic == topic and m.kind == "segment"]
+        return [RecordedSegment.of(m) for m in self.messages if m.topic == topic and m.kind == "segment"]
 
     def topics(self) -> list[str]:
         return sorted({m.topic for m in self.messages})
@@ -343,19 +375,24 @@ def _salvage(path: Path, size: int) -> Recording:
                 rec.complete = True
                 break
     asm.finish()
-    parts = []
-    if rec.skipped:
-        lost = sum(s["stop"] - s["start"] for s in rec.skipped)
-        parts.append(
-            f"{len(rec.skipped)} corrupt stretch(es) skipped ({lost} bytes, first at byte "
-            f"{rec.skipped[0]['start']}: {rec.skipped[0]['why']})"
-        )
-    if end_problem:
-        parts.append(end_problem)
-    rec.problem = "; ".join(parts) or None
+    rec.problem = _salvage_problem(rec.skipped, end_problem)
     if rec.problem:
         log.warning("%s: salvaged %d records; %s", path, rec.records, rec.problem)
     return rec
+
+
+def _salvage_problem(skipped: list[dict], end_problem: str | None) -> str | None:
+    """What a salvaged file lost: its ``skipped`` stretches and why it ended early (None: nothing)."""
+    parts = []
+    if skipped:
+        lost = sum(s["stop"] - s["start"] for s in skipped)
+        parts.append(
+            f"{len(skipped)} corrupt stretch(es) skipped ({lost} bytes, first at byte "
+            f"{skipped[0]['start']}: {skipped[0]['why']})"
+        )
+    if end_problem:
+        parts.append(end_problem)
+    return "; ".join(parts) or None
 
 
 #: Longest record :func:`_resync` accepts as the next chunk [bytes] (the recorder closes a

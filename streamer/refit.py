@@ -13,6 +13,7 @@ and per band, delta chi^2 and log Bayes factor of the change, the coefficients.
 from __future__ import annotations
 
 import logging
+from dataclasses import replace
 from pathlib import Path
 
 import h5py
@@ -110,10 +111,10 @@ def load_run(run_dir, segments: tuple[int | None, int | None] = (None, None), so
             f"{run_dir}: no recorded telemetry, nor TDI segments with their regressors, to refit "
             "(a tdi_builder records X2, Y2, Z2 only: refit from the replayer's telemetry)"
         )
-    parts = [tdi_of(h, a) for h, a in _select(found, first, last)]
+    tdi = [tdi_of(h, a) for h, a in _select(found, first, last)]
     return (
-        parts,
-        f"TDI of {len(parts)} recorded segments ({sum(p.size / p.fs for p in parts) / 3600:g} h)",
+        tdi,
+        f"TDI of {len(tdi)} recorded segments ({sum(p.size / p.fs for p in tdi) / 3600:g} h)",
         found[min(found)][0].meta.get("dws_asd"),
     )
 
@@ -123,9 +124,8 @@ def refit_settings(dws_asd=None, band=None) -> DiagnoseSettings:
     noise the replayer passed down (None: the telemetry's or the paper's) and the band
     (None: the diagnosis default).  The live fitter uses the same, so that its window fits
     equal ``ttl refit``'s."""
-    return DiagnoseSettings(
-        dws_asd=None if dws_asd is None else float(dws_asd), **({"band": tuple(float(b) for b in band)} if band else {})
-    )
+    settings = DiagnoseSettings(dws_asd=None if dws_asd is None else float(dws_asd))
+    return replace(settings, band=tuple(float(b) for b in band)) if band else settings
 
 
 def refit_run(

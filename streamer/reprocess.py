@@ -87,37 +87,7 @@ def recorded_days(run_dir, out_dir, *, day_length: float = DAY) -> list[Path]:
     out_dir.mkdir(parents=True, exist_ok=True)
     paths = []
     for k, idx in sorted(days.items()):
-        parts = []
-        for i in idx:
-            h, a = found[i]
-            parts.append(
-                Telemetry(t0=h.t0, fs=h.fs, eta=a["eta"], dws_phi=a["dws_phi"], dws_eta=a["dws_eta"], ltt=a["ltt"])
-            )
-        for a, b in zip(parts[:-1], parts[1:]):
-            if abs(b.t0 - (a.t0 + a.size / a.fs)) > 0.5 / a.fs or b.fs != a.fs:
-                raise TTLError(
-                    f"{run_dir}: recorded segments of day {k} are not contiguous "
-                    f"(one ends at {a.t0 + a.size / a.fs:g} s, the next starts at {b.t0:g} s)"
-                )
-        meta = found[idx[0]][0].meta
-        dws = meta.get("dws_asd")
-        config = {
-            "source": "recording",
-            "run": run_dir.name,
-            "segments": [idx[0], idx[-1]],
-            "recorded_source": meta.get("source"),
-        }
-        if dws is not None:  # the fit's errors-in-variables level (ttlcore.estimate.fit.dws_asd_from_config)
-            config["jitter"] = {"dws": float(dws)}
-            config["noises"] = {"dws": float(dws) > 0}
-        tm = Telemetry(
-            t0=parts[0].t0,
-            fs=parts[0].fs,
-            config=config,
-            source=str(run_dir),
-            **{f: np.concatenate([getattr(p, f) for p in parts], axis=1) for f in ("eta", "dws_phi", "dws_eta", "ltt")},
-        )
-        del parts
+        tm = _day_telemetry(run_dir, k, [found[i] for i in idx], [idx[0], idx[-1]])
         paths.append(write_telemetry(out_dir / f"{run_dir.name}-day{k:03d}.h5", tm))
         log.info(
             "day %d of %s: segments %d-%d, %.3f h -> %s", k, run_dir, idx[0], idx[-1], tm.duration / 3600, paths[-1]
@@ -190,7 +160,36 @@ def _say(text: str) -> None:
     tqdm.write(text, file=sys.stderr)
 
 
-def run(args) -> int:
+def _day_telemetry(run_dir: Path, k: int, segments: list[tuple], span: list[int]) -> Telemetry:
+    """Day ``k``'s telemetry: its recorded ``segments`` ``(header, arrays)`` (indices
+    ``span`` = first, last) joined; a TTLError when two do not follow each other."""
+    parts = [
+        Telemetry(t0=h.t0, fs=h.fs, eta=a["eta"], dws_phi=a["dws_phi"], dws_eta=a["dws_eta"], ltt=a["ltt"])
+        for h, a in segments
+    ]
+    for a, b in zip(parts[:-1], parts[1:]):
+        if abs(b.t0 - (a.t0 + a.size / a.fs)) > 0.5 / a.fs or b.fs != a.fs:
+            raise TTLError(
+                f"{run_dir}: recorded segments of day {k} are not contiguous "
+                f"(one ends at {a.t0 + a.size / a.fs:g} s, the next starts at {b.t0:g} s)"
+            )
+    meta = segments[0][0].meta
+    dws = meta.get("dws_asd")
+    config: dict = {"source": "recording", "run": run_dir.name, "segments": span, "recorded_source": meta.get("source")}
+    if dws is not None:  # the fit's errors-in-variables level (ttlcore.estimate.fit.dws_asd_from_config)
+        config["jitter"] = {"dws": float(dws)}
+        config["noises"] = {"dws": float(dws) > 0}
+    return Telemetry(
+        t0=parts[0].t0,
+        fs=parts[0].fs,
+        config=config,
+        source=str(run_dir),
+        **{f: np.concatenate([getattr(p, f) for p in parts], axis=1) for f in ("eta", "dws_phi", "dws_eta", "ltt")},
+    )
+
+
+def _checked_out(args) -> Path:
+    """The output directory of ``ttl reprocess``, its arguments checked (TTLError naming the one at fault)."""
     if bool(args.days) == bool(args.from_recordings):
         raise TTLError("give either DAY files or --from-recordings RUN")
     if args.retries < 0:
@@ -198,17 +197,46 @@ def run(args) -> int:
     out = Path(args.out)
     if out.exists() and not out.is_dir():
         raise TTLError(f"--out: {out} exists and is not a directory")
-    opts = _job_options(args)
-    start = time.monotonic()
+    return out
+
+
+def _inputs(args, opts: dict, out: Path) -> tuple[list[Path], str]:
+    """The day files to process (the recorded run's reassembled under ``out/days``) and a title."""
     if args.from_recordings:
         day_length = parse_duration(args.day_length, "--day-length")
         if not args.quiet:
             print(f"ttl reprocess: reading the recordings of {args.from_recordings}", file=sys.stderr, flush=True)
         files = recorded_days(args.from_recordings, out / "days", day_length=day_length)
-        title = f"recorded run {args.from_recordings}"
-    else:
-        files = day_inputs(args.days, opts, quiet=args.quiet)
-        title = f"{len(files)} telemetry file(s)"
+        return files, f"recorded run {args.from_recordings}"
+    files = day_inputs(args.days, opts, quiet=args.quiet)
+    return files, f"{len(files)} telemetry file(s)"
+
+
+def _print_summary(summary: dict, opts: dict, out: Path, seconds: float) -> None:
+    """The run's outcome on stdout: alerts, days processed, the model's verdicts, failures, files."""
+    for a in summary["trends"]["alerts"]:
+        print(f"  {a['kind']}: {a['message']} (day {a['day']})")
+    print(
+        f"{summary['n_ok']} of {summary['n_days']} days processed in {seconds:.1f} s on "
+        f"{summary['cluster']['workers']} worker(s)"
+    )
+    verdicts = [r["diagnosis"]["fails"] for r in summary["days"] if r["status"] == "ok" and r.get("diagnosis")]
+    if verdicts:
+        f0, f1 = summary["settings"]["bands_hz"]["diagnosis"]
+        print(
+            f"  the model ({', '.join(opts['effects'])}) fails on {sum(verdicts)} of {len(verdicts)} day(s) "
+            f"against the instrument noise model in {f0:g}-{f1:g} Hz"
+        )
+    if summary["failed"]:
+        print(f"FAILED days: {', '.join(summary['failed'])} (errors in summary.json)")
+    print(f"  wrote {out / 'summary.md'}, {out / 'summary.json'}")
+
+
+def run(args) -> int:
+    out = _checked_out(args)
+    opts = _job_options(args)
+    start = time.monotonic()
+    files, title = _inputs(args, opts, out)
     jobs = jobs_for_files(files, out, truth_beside=args.truth_beside, **opts)
     level = dask_log_level(args.verbose)
     with progress_bar("ttl reprocess", quiet=args.quiet) as shown:  # in place on a terminal only
@@ -232,20 +260,5 @@ def run(args) -> int:
     write_report(args.json, summary)
     if args.quiet or to_stdout(args.json):  # the files (and the exit status) are the result
         return status
-    for a in summary["trends"]["alerts"]:
-        print(f"  {a['kind']}: {a['message']} (day {a['day']})")
-    print(
-        f"{summary['n_ok']} of {summary['n_days']} days processed in {time.monotonic() - start:.1f} s on "
-        f"{summary['cluster']['workers']} worker(s)"
-    )
-    verdicts = [r["diagnosis"]["fails"] for r in summary["days"] if r["status"] == "ok" and r.get("diagnosis")]
-    if verdicts:
-        f0, f1 = summary["settings"]["bands_hz"]["diagnosis"]
-        print(
-            f"  the model ({', '.join(opts['effects'])}) fails on {sum(verdicts)} of {len(verdicts)} day(s) "
-            f"against the instrument noise model in {f0:g}-{f1:g} Hz"
-        )
-    if summary["failed"]:
-        print(f"FAILED days: {', '.join(summary['failed'])} (errors in summary.json)")
-    print(f"  wrote {out / 'summary.md'}, {out / 'summary.json'}")
+    _print_summary(summary, opts, out, time.monotonic() - start)
     return status

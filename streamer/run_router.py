@@ -95,7 +95,7 @@ class Router:
         env.pop("RUST_LOG", None)
         with open(path, "ab") as logf:
             start = logf.tell()
-            self.proc = subprocess.Popen(
+            proc = self.proc = subprocess.Popen(
                 cmd,
                 stdout=logf,
                 stderr=subprocess.STDOUT,
@@ -112,14 +112,21 @@ class Router:
             text = path.read_text(errors="replace")[start:]
             if "ttl router: zenoh router" in text:
                 return
-            if self.proc.poll() is not None:
+            if proc.poll() is not None:
                 lines = [ln for ln in text.splitlines() if ln.strip()]
                 raise LaunchError(
                     f"cannot open the Zenoh router on {', '.join(listen)}: "
-                    f"{lines[-1] if lines else f'exit status {self.proc.returncode}'}"
+                    f"{lines[-1] if lines else f'exit status {proc.returncode}'}"
                 )
             time.sleep(0.05)
         raise LaunchError(f"the Zenoh router did not start within 60 s (log {path})")
+
+    @property
+    def process(self) -> subprocess.Popen:
+        """The router's process (a RuntimeError before :meth:`start`)."""
+        if self.proc is None:
+            raise RuntimeError("the Zenoh router is used before it was started")
+        return self.proc
 
     def died(self) -> bool:
         """The router was started and has exited."""
@@ -128,13 +135,13 @@ class Router:
     def restart(self) -> str | None:
         """The router died: start it again on the same endpoints (up to ``restart`` times);
         returns a reason to abort, or None.  Its clients reconnect by themselves."""
-        how = exit_description(self.proc.returncode)
+        how = exit_description(self.process.returncode)
         self.say(f"the Zenoh router died ({how}; log {self.run_dir / 'router.log'})")
         self.journal(
             "router-died",
-            f"the Zenoh router (pid {self.proc.pid}) died ({how})",
+            f"the Zenoh router (pid {self.process.pid}) died ({how})",
             stage="router",
-            pid=self.proc.pid,
+            pid=self.process.pid,
             how=how,
         )
         self.watch_refusals()  # what the old router logged, before the new watcher starts
@@ -151,9 +158,9 @@ class Router:
                 time.sleep(1.0)
         self.journal(
             "router-restarted",
-            f"the Zenoh router restarted (pid {self.proc.pid})",
+            f"the Zenoh router restarted (pid {self.process.pid})",
             stage="router",
-            pid=self.proc.pid,
+            pid=self.process.pid,
             start=self.starts,
         )
         return None

@@ -31,6 +31,7 @@ from ttlcore.conventions import parse_duration
 
 from .keys import to_ranges
 from .progress import Progress
+from .rangeset import RangeSet
 from .recording_reader import RecordingError, read_recording
 
 __all__ = ["EXIT_LOST", "conflicts", "fit_span", "lost_segments", "no_data_yet", "report", "spans"]
@@ -149,7 +150,7 @@ def lost_segments(
     no_residual: list[int] = []
     if "subtractor" in expected:
         sub = progress.get("subtractor")
-        done = sub.done if sub is not None else set()
+        done = sub.done if sub is not None else RangeSet()
         no_residual = [i for i in wanted if i not in done]
     lost = sorted(set(no_fit) | set(no_residual))
     return {"gaps": sorted(gaps), "no_fit": no_fit, "no_residual": no_residual, "lost": lost}

@@ -47,7 +47,8 @@ from pathlib import Path
 
 from cryptography import x509
 from cryptography.hazmat.primitives import hashes, serialization
-from cryptography.hazmat.primitives.asymmetric import ec
+from cryptography.hazmat.primitives.asymmetric import dsa, ec, ed448, ed25519, rsa
+from cryptography.hazmat.primitives.asymmetric.types import CertificateIssuerPrivateKeyTypes
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from ttlcore.errors import TTLError
@@ -63,6 +64,15 @@ VALIDITY_DAYS = 365
 #: RUST_LOG filter of a router process: TLS connections accepted or refused (zenoh_link_tls
 #: logs them at debug/warn) and ACL decisions (zenoh logs them at trace level).
 ROUTER_LOG_FILTER = "warn,zenoh_link_tls=debug,zenoh::net::routing::interceptor::access_control=trace"
+
+#: Private keys a CA key may be (ours is EC; a key of another kind cannot sign certificates).
+SIGNING_KEYS = (
+    ec.EllipticCurvePrivateKey,
+    rsa.RSAPrivateKey,
+    dsa.DSAPrivateKey,
+    ed25519.Ed25519PrivateKey,
+    ed448.Ed448PrivateKey,
+)
 
 
 class CredentialsError(TTLError):
@@ -96,7 +106,7 @@ def _name(common_name: str):
 
 
 def _san(hosts):
-    names = []
+    names: list[x509.GeneralName] = []
     for h in dict.fromkeys(hosts):
         try:
             names.append(x509.IPAddress(ipaddress.ip_address(h)))
@@ -169,33 +179,11 @@ def ensure_credentials(directory, hosts=(), roles=ROLES) -> Path:
     start, end = now - _dt.timedelta(minutes=10), now + _dt.timedelta(days=VALIDITY_DAYS)
     ca_pem, ca_key_path = d / "ca.pem", d / "ca.key"
     router_hosts = (*LOCAL_HOSTS, *hosts)
-    todo = []
-    for role in roles:
-        pem, key = d / f"{role}.pem", d / f"{role}.key"
-        if not pem.exists() or not key.exists():
-            todo.append(role)
-        elif role == "router" and not set(router_hosts) <= _cert_hosts(_load_cert(pem)):
-            todo.append(role)
+    todo = _to_issue(d, roles, router_hosts)
     if not todo and ca_pem.exists():
         return d
     if not ca_pem.exists():
-        if ca_key_path.exists():
-            raise CredentialsError(f"{ca_key_path}: a CA key without its certificate ca.pem")
-        ca_key = ec.generate_private_key(ec.SECP256R1())
-        ca = (
-            x509.CertificateBuilder()
-            .subject_name(_name("ttl-streamer CA"))
-            .issuer_name(_name("ttl-streamer CA"))
-            .public_key(ca_key.public_key())
-            .serial_number(x509.random_serial_number())
-            .not_valid_before(start)
-            .not_valid_after(end + _dt.timedelta(days=1))
-            .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
-            .add_extension(_key_usage(ca=True), critical=True)
-            .sign(ca_key, hashes.SHA256())
-        )
-        _write_private(ca_key_path, _pem_key(ca_key))
-        _write_private(ca_pem, ca.public_bytes(serialization.Encoding.PEM), 0o644)
+        _new_ca(ca_pem, ca_key_path, start, end)
     if not todo:
         return d
     if not ca_key_path.exists():
@@ -205,31 +193,86 @@ def ensure_credentials(directory, hosts=(), roles=ROLES) -> Path:
         )
     check_private(ca_key_path)
     ca = _load_cert(ca_pem)
-    try:
-        ca_key = serialization.load_pem_private_key(ca_key_path.read_bytes(), password=None)
-    except (OSError, ValueError) as exc:
-        raise CredentialsError(f"{ca_key_path}: not a readable private key ({exc})") from None
+    ca_key = _load_ca_key(ca_key_path)
     for role in todo:
-        key = ec.generate_private_key(ec.SECP256R1())
-        usage = [ExtendedKeyUsageOID.CLIENT_AUTH]
-        builder = (
-            x509.CertificateBuilder()
-            .subject_name(_name(role))
-            .issuer_name(ca.subject)
-            .public_key(key.public_key())
-            .serial_number(x509.random_serial_number())
-            .not_valid_before(start)
-            .not_valid_after(end)
-            .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
-            .add_extension(_key_usage(ca=False), critical=True)
-        )
-        if role == "router":  # the only identity that listens
-            usage.insert(0, ExtendedKeyUsageOID.SERVER_AUTH)
-            builder = builder.add_extension(_san(router_hosts), critical=False)
-        cert = builder.add_extension(x509.ExtendedKeyUsage(usage), critical=False).sign(ca_key, hashes.SHA256())
-        _write_private(d / f"{role}.key", _pem_key(key))
-        _write_private(d / f"{role}.pem", cert.public_bytes(serialization.Encoding.PEM), 0o644)
+        _issue(d, role, ca, ca_key, (start, end), router_hosts)
     return d
+
+
+def _to_issue(d: Path, roles, router_hosts: tuple[str, ...]) -> list[str]:
+    """The roles of ``roles`` whose certificate or key is missing from ``d``, and the router
+    when its certificate does not name every host of ``router_hosts``."""
+    todo = []
+    for role in roles:
+        pem, key = d / f"{role}.pem", d / f"{role}.key"
+        if not pem.exists() or not key.exists():
+            todo.append(role)
+        elif role == "router" and not set(router_hosts) <= _cert_hosts(_load_cert(pem)):
+            todo.append(role)
+    return todo
+
+
+def _new_ca(ca_pem: Path, ca_key_path: Path, start: _dt.datetime, end: _dt.datetime) -> None:
+    """A new CA: its key and self-signed certificate, valid from ``start`` to a day after ``end``."""
+    if ca_key_path.exists():
+        raise CredentialsError(f"{ca_key_path}: a CA key without its certificate ca.pem")
+    ca_key = ec.generate_private_key(ec.SECP256R1())
+    ca = (
+        x509.CertificateBuilder()
+        .subject_name(_name("ttl-streamer CA"))
+        .issuer_name(_name("ttl-streamer CA"))
+        .public_key(ca_key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(start)
+        .not_valid_after(end + _dt.timedelta(days=1))
+        .add_extension(x509.BasicConstraints(ca=True, path_length=0), critical=True)
+        .add_extension(_key_usage(ca=True), critical=True)
+        .sign(ca_key, hashes.SHA256())
+    )
+    _write_private(ca_key_path, _pem_key(ca_key))
+    _write_private(ca_pem, ca.public_bytes(serialization.Encoding.PEM), 0o644)
+
+
+def _load_ca_key(path: Path) -> CertificateIssuerPrivateKeyTypes:
+    """The CA key of ``path``; a CredentialsError when unreadable or unable to sign certificates."""
+    try:
+        loaded = serialization.load_pem_private_key(path.read_bytes(), password=None)
+    except (OSError, ValueError) as exc:
+        raise CredentialsError(f"{path}: not a readable private key ({exc})") from None
+    if not isinstance(loaded, SIGNING_KEYS):
+        raise CredentialsError(f"{path}: a {type(loaded).__name__}, which cannot sign certificates")
+    return loaded
+
+
+def _issue(
+    d: Path,
+    role: str,
+    ca: x509.Certificate,
+    ca_key: CertificateIssuerPrivateKeyTypes,
+    validity: tuple[_dt.datetime, _dt.datetime],
+    router_hosts: tuple[str, ...],
+) -> None:
+    """A new key and certificate for ``role`` in ``d``, signed by the CA (the router's for
+    TLS servers too, naming ``router_hosts``)."""
+    role_key = ec.generate_private_key(ec.SECP256R1())
+    usage = [ExtendedKeyUsageOID.CLIENT_AUTH]
+    builder = (
+        x509.CertificateBuilder()
+        .subject_name(_name(role))
+        .issuer_name(ca.subject)
+        .public_key(role_key.public_key())
+        .serial_number(x509.random_serial_number())
+        .not_valid_before(validity[0])
+        .not_valid_after(validity[1])
+        .add_extension(x509.BasicConstraints(ca=False, path_length=None), critical=True)
+        .add_extension(_key_usage(ca=False), critical=True)
+    )
+    if role == "router":  # the only identity that listens
+        usage.insert(0, ExtendedKeyUsageOID.SERVER_AUTH)
+        builder = builder.add_extension(_san(router_hosts), critical=False)
+    cert = builder.add_extension(x509.ExtendedKeyUsage(usage), critical=False).sign(ca_key, hashes.SHA256())
+    _write_private(d / f"{role}.key", _pem_key(role_key))
+    _write_private(d / f"{role}.pem", cert.public_bytes(serialization.Encoding.PEM), 0o644)
 
 
 def check_private(path: Path) -> Path:

@@ -30,6 +30,7 @@ from __future__ import annotations
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Protocol
 
 import zenoh
 from zenoh import ext
@@ -179,12 +180,18 @@ def refetch_segment(
 # ---------------------------------------------------------------------------- subscribers
 
 
+class Undeclarable(Protocol):
+    """A Zenoh entity (subscriber, miss listener) that can be undeclared."""
+
+    def undeclare(self) -> None: ...
+
+
 @dataclass
 class SegmentSubscription:
     """An advanced subscriber and its miss listener; :meth:`undeclare` removes both."""
 
-    subscriber: object
-    miss_listener: object | None = None
+    subscriber: Undeclarable | None
+    miss_listener: Undeclarable | None = None
 
     def undeclare(self) -> None:
         if self.miss_listener is not None:

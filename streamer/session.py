@@ -180,43 +180,14 @@ def make_config(settings: SessionSettings | None = None) -> zenoh.Config:
         If the file is unreadable or a value invalid; the message names the file or field.
     """
     s = settings or SessionSettings()
-    if s.config_file is not None:
-        path = Path(s.config_file)
-        try:
-            config = zenoh.Config.from_file(str(path))
-        except Exception as exc:  # zenoh raises ZError with the parser's message
-            raise SessionConfigError(f"{path}: invalid Zenoh configuration: {exc}") from exc
-    else:
-        config = zenoh.Config()
+    config = _base_config(s.config_file)
     try:
         mode = s.mode or _get(config, "mode") or "peer"
         if mode not in MODES:
             raise SessionConfigError(f"mode: {mode!r} is not one of {', '.join(MODES)}")
         _set(config, "mode", mode)
-        protocol = "tls" if s.credentials is not None else "tcp"
-        if s.listen is not None:
-            _set(config, "listen/endpoints", list(s.listen))
-        elif not isinstance(_get(config, "listen/endpoints"), list):
-            # unset in the file: Zenoh's default would listen on every interface
-            _set(config, "listen/endpoints", [] if mode == "client" else [loopback_endpoint(protocol=protocol)])
-        if s.connect is not None:
-            _set(config, "connect/endpoints", list(s.connect))
-        if s.multicast_scouting is not None:
-            _set(config, "scouting/multicast/enabled", bool(s.multicast_scouting))
-        elif _get(config, "scouting/multicast/enabled") is None:
-            _set(config, "scouting/multicast/enabled", False)
-        if s.shared_memory is not None:
-            _set(config, "transport/shared_memory/enabled", bool(s.shared_memory))
-        # Zenoh's defaults (5 s, 10 s) unless a configuration file changed them
-        wait_key = "transport/link/tx/queue/congestion_control/block/wait_before_close"
-        if _get(config, wait_key) == 5_000_000:
-            _set(config, wait_key, int(BLOCK_WAIT_BEFORE_CLOSE * 1e6))  # microseconds
-        if _get(config, "transport/link/tx/lease") == 10_000:
-            _set(config, "transport/link/tx/lease", int(LEASE * 1e3))  # milliseconds
-        if s.connect_timeout is not None:
-            _set(config, "connect/timeout_ms", int(s.connect_timeout * 1e3))
-        elif mode == "client" and _get(config, "connect/timeout_ms") is None:
-            _set(config, "connect/timeout_ms", int(CLIENT_CONNECT_TIMEOUT * 1e3))
+        _set_endpoints(config, s, mode)
+        _set_transport(config, s, mode)
         if s.credentials is not None:
             _secure(config, s, mode)
     except zenoh.ZError as exc:
@@ -227,11 +198,57 @@ def make_config(settings: SessionSettings | None = None) -> zenoh.Config:
     return config
 
 
+def _base_config(config_file: str | Path | None) -> zenoh.Config:
+    """The Zenoh configuration of ``config_file``, or Zenoh's default without one."""
+    if config_file is None:
+        return zenoh.Config()
+    path = Path(config_file)
+    try:
+        return zenoh.Config.from_file(str(path))
+    except Exception as exc:  # zenoh raises ZError with the parser's message
+        raise SessionConfigError(f"{path}: invalid Zenoh configuration: {exc}") from exc
+
+
+def _set_endpoints(config: zenoh.Config, s: SessionSettings, mode: str) -> None:
+    """Where the session listens (loopback only unless told: Zenoh's default would listen on
+    every interface), connects, and whether it scouts by multicast (not unless told)."""
+    protocol = "tls" if s.credentials is not None else "tcp"
+    if s.listen is not None:
+        _set(config, "listen/endpoints", list(s.listen))
+    elif not isinstance(_get(config, "listen/endpoints"), list):
+        # unset in the file: Zenoh's default would listen on every interface
+        _set(config, "listen/endpoints", [] if mode == "client" else [loopback_endpoint(protocol=protocol)])
+    if s.connect is not None:
+        _set(config, "connect/endpoints", list(s.connect))
+    if s.multicast_scouting is not None:
+        _set(config, "scouting/multicast/enabled", bool(s.multicast_scouting))
+    elif _get(config, "scouting/multicast/enabled") is None:
+        _set(config, "scouting/multicast/enabled", False)
+
+
+def _set_transport(config: zenoh.Config, s: SessionSettings, mode: str) -> None:
+    """Shared memory, the blocking-send wait, the lease and the client's connect timeout."""
+    if s.shared_memory is not None:
+        _set(config, "transport/shared_memory/enabled", bool(s.shared_memory))
+    # Zenoh's defaults (5 s, 10 s) unless a configuration file changed them
+    wait_key = "transport/link/tx/queue/congestion_control/block/wait_before_close"
+    if _get(config, wait_key) == 5_000_000:
+        _set(config, wait_key, int(BLOCK_WAIT_BEFORE_CLOSE * 1e6))  # microseconds
+    if _get(config, "transport/link/tx/lease") == 10_000:
+        _set(config, "transport/link/tx/lease", int(LEASE * 1e3))  # milliseconds
+    if s.connect_timeout is not None:
+        _set(config, "connect/timeout_ms", int(s.connect_timeout * 1e3))
+    elif mode == "client" and _get(config, "connect/timeout_ms") is None:
+        _set(config, "connect/timeout_ms", int(CLIENT_CONNECT_TIMEOUT * 1e3))
+
+
 def _secure(config: zenoh.Config, s: SessionSettings, mode: str) -> None:
     """Mutual TLS with the identity's certificate, TLS links only, and (router) the ACL."""
 
     if not s.identity:
         raise SessionConfigError("credentials given without an identity (the role whose certificate to use)")
+    if s.credentials is None:  # (called only with credentials)
+        raise SessionConfigError("an identity given without the credentials directory")
     try:
         tls = Identity(Path(s.credentials), s.identity).tls(listen=mode != "client")
     except CredentialsError as exc:

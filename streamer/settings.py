@@ -53,54 +53,67 @@ def _describe(tp) -> str:
     return getattr(tp, "__name__", str(tp))
 
 
+#: Whether a value is of each plain type of the settings (a bool is neither an int nor a float).
+_PLAIN: dict[type, Callable[[object], bool]] = {
+    bool: lambda v: isinstance(v, bool),
+    int: lambda v: isinstance(v, int) and not isinstance(v, bool),
+    float: lambda v: isinstance(v, (int, float)) and not isinstance(v, bool),
+    str: lambda v: isinstance(v, str),
+}
+
+
 def _convert(value, tp, error: Callable[[str], Exception]):
     """``value`` as type ``tp`` (or raises ``error(<what was expected>)``)."""
     origin, args = typing.get_origin(tp), typing.get_args(tp)
     if tp is Any:
         return value
     if origin in (Union, types.UnionType):
-        if value is None and type(None) in args:
-            return None
-        for option in (a for a in args if a is not type(None)):
-            try:
-                return _convert(value, option, error)
-            except SettingsError:
-                continue
-        raise error(f"expected {_describe(tp)}, got {value!r}")
+        return _convert_union(value, tp, args, error)
     if origin is Literal:
-        if value in args:
-            return value
-    elif tp is bool:
-        if isinstance(value, bool):
-            return value
-    elif tp is int:
-        if isinstance(value, int) and not isinstance(value, bool):
-            return value
-    elif tp is float:
-        if isinstance(value, (int, float)) and not isinstance(value, bool):
-            return value
-    elif tp is str:
-        if isinstance(value, str):
-            return value
-    elif tp is Path:
+        ok, out = value in args, value
+    elif tp in _PLAIN:
+        ok, out = _PLAIN[tp](value), value
+    else:
+        ok, out = _convert_structured(value, tp, origin, args, error)
+    if ok:
+        return out
+    raise error(f"expected {_describe(tp)}, got {value!r}")
+
+
+def _convert_union(value, tp, args: tuple, error: Callable[[str], Exception]):
+    """``value`` as the first option of the union ``tp`` (``args``) it converts to; None when allowed."""
+    if value is None and type(None) in args:
+        return None
+    for option in (a for a in args if a is not type(None)):
+        try:
+            return _convert(value, option, error)
+        except SettingsError:
+            continue
+    raise error(f"expected {_describe(tp)}, got {value!r}")
+
+
+def _convert_structured(value, tp, origin, args: tuple, error: Callable[[str], Exception]) -> tuple[bool, Any]:
+    """``(True, value as tp)`` for a path, mapping, list, tuple or settings dataclass ``tp``;
+    ``(False, None)`` when ``value`` is not one; a TypeError for a type not understood."""
+    if tp is Path:
         if isinstance(value, (str, os.PathLike)):
-            return value if isinstance(value, Path) else Path(value)
+            return True, value if isinstance(value, Path) else Path(value)
     elif tp is dict or origin is dict:
         if isinstance(value, Mapping):
-            return value if isinstance(value, dict) else dict(value)
+            return True, value if isinstance(value, dict) else dict(value)
     elif tp in (list, tuple) or origin in (list, tuple):
         if isinstance(value, (list, tuple)):
             item = args[0] if args and (origin is list or args[-1] is Ellipsis) else Any
             items = [_convert(v, item, error) for v in value]
-            return list(items) if list in (tp, origin) else tuple(items)
+            return True, list(items) if list in (tp, origin) else tuple(items)
     elif isinstance(tp, type) and dataclasses.is_dataclass(tp):
         if isinstance(value, tp):
-            return value
+            return True, value
         if isinstance(value, Mapping):
-            return tp.from_dict(value) if hasattr(tp, "from_dict") else from_dict(tp, value, tp.__name__)
+            return True, tp.from_dict(value) if hasattr(tp, "from_dict") else from_dict(tp, value, tp.__name__)
     else:
         raise TypeError(f"settings: type {tp!r} not understood")
-    raise error(f"expected {_describe(tp)}, got {value!r}")
+    return False, None
 
 
 def check_fields(obj, what: str) -> None:

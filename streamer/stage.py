@@ -52,6 +52,7 @@ from .codec import Expect, Header
 from .ingest import PREVIEW_CHARS, GapWatch, Ingest
 from .ingest import preview as _preview
 from .keys import (
+    KeyExprError,
     control_key,
     control_pattern,
     parse_segment_key,
@@ -139,7 +140,7 @@ class Stage:
             event=lambda *a, **k: self.event(*a, **k),
             use=lambda *item: self._use(*item),
             log=self.log,
-            refetch=lambda key, index, header, sn: self.transport.refetch(self.bus, key, index, header, sn),
+            refetch=lambda key, index, header, sn: self.transport.refetch(self.live_bus, key, index, header, sn),
         )
         #: Indices skipped on arrival (not for the topics in :attr:`reorders`).
         self.gap_watch = GapWatch(config.gap_grace, self.reorders)
@@ -167,6 +168,20 @@ class Stage:
     @recorder.setter
     def recorder(self, recorder: Recorder | None) -> None:
         self.reports.recorder = recorder
+
+    @property
+    def live_bus(self) -> Bus:
+        """The bus while the stage runs (inside :meth:`run`); a RuntimeError outside it."""
+        if self.reports.bus is None:
+            raise RuntimeError(f"stage {self.stage_name}: the bus is used outside run()")
+        return self.reports.bus
+
+    @property
+    def live_recorder(self) -> Recorder:
+        """The recorder while the stage runs (inside :meth:`run`); a RuntimeError outside it."""
+        if self.reports.recorder is None:
+            raise RuntimeError(f"stage {self.stage_name}: the recorder is used outside run()")
+        return self.reports.recorder
 
     @property
     def disk_full(self) -> str | None:
@@ -380,7 +395,7 @@ class Stage:
         owner = topic_owner(topic, v.plan) or topic
         if not self.ingest.budget.take(stream_key(self.run_id, topic), index, owner, v.floor):
             return False
-        self.transport.fetch(self.bus, stream_key(self.run_id, topic), index)
+        self.transport.fetch(self.live_bus, stream_key(self.run_id, topic), index)
         return True
 
     def _refetched(self, key: str, index: int, copies: int) -> None:
@@ -409,7 +424,9 @@ class Stage:
         except BoundedJSONError as exc:
             text = payload[:PREVIEW_CHARS].decode("utf-8", errors="replace")
             self.log.warning("control %s rejected: %s", command, exc)
-            self.recorder.write_json("control", {**record, "payload": text, "accepted": False, "message": str(exc)})
+            self.live_recorder.write_json(
+                "control", {**record, "payload": text, "accepted": False, "message": str(exc)}
+            )
             self.report_error("rejected", f"control message {command!r}: {exc}", key=key, field="payload")
             return
         record["payload"] = shown
@@ -417,10 +434,10 @@ class Stage:
             outputs = list(self.control(command, payload) or ())
         except Exception as exc:  # a bad command must not stop the stage
             self.log.warning("control %s rejected: %s", command, exc)
-            self.recorder.write_json("control", {**record, "accepted": False, "message": str(exc)})
+            self.live_recorder.write_json("control", {**record, "accepted": False, "message": str(exc)})
             self.report_error("rejected", f"control message {command!r}: {exc}", key=key, field="payload")
             return
-        self.recorder.write_json("control", {**record, "accepted": True})
+        self.live_recorder.write_json("control", {**record, "accepted": True})
         self.event("control", message=f"{command} accepted")
         for out in outputs:
             self.publish(out)
@@ -472,12 +489,15 @@ class Stage:
     def _use(self, key: str, header: Header, arrays: dict, payload: bytes) -> None:
         """Record an accepted input segment and hand it to :meth:`handle`."""
         seg = parse_segment_key(key)
+        index = seg.index
+        if index is None:  # only ttl/<run>/errors/unknown has none, never an input
+            raise KeyExprError(key, "an input segment key without a segment index")
         done = self.ingest.done.setdefault(seg.topic, RangeSet())
-        self.gap_watch.arrived(seg.topic, seg.index)
+        self.gap_watch.arrived(seg.topic, index)
         if self.config.record_inputs:
-            self.recorder.write_segment(seg.topic, header, payload)
+            self.live_recorder.write_segment(seg.topic, header, payload)
         else:  # a reference: the payload is in the producer's recording, named by its checksum
-            self.recorder.write_json(
+            self.live_recorder.write_json(
                 f"{seg.topic}/input", header.to_dict(), schema="ttl.SegmentHeader", log_time=mission_ns(header.t0)
             )
         try:
@@ -487,12 +507,12 @@ class Stage:
         except OSError as exc:
             if disk_full(exc):
                 raise
-            self._handle_failed(key, seg.index, exc)
+            self._handle_failed(key, index, exc)
             return
         except Exception as exc:
-            self._handle_failed(key, seg.index, exc)
+            self._handle_failed(key, index, exc)
             return
-        done.add(seg.index)
+        done.add(index)
         self.log.info("%s: processed, %d output(s)", key, len(outputs))
 
     def _handle_failed(self, key: str, index: int, exc: Exception) -> None:
@@ -520,12 +540,12 @@ class Stage:
     def publish(self, out: Output, source: Header | None = None) -> str:
         """Encode, publish and record one output; returns its key."""
         index, fields = output_fields(out, self.run_id, self.stage_name, source)
-        key, header, payload = self.transport.put(self.bus, out, index, fields)
+        key, header, payload = self.transport.put(self.live_bus, out, index, fields)
         if self.config.record_outputs:
             part = recorded_part(out, fields, header)
-            self.recorder.write_segment(out.topic, *(part or (header, payload)))
+            self.live_recorder.write_segment(out.topic, *(part or (header, payload)))
         if out.summary is not None:
-            self.recorder.write_json(
+            self.live_recorder.write_json(
                 f"{out.topic}/summary", out.summary, schema=out.summary_schema, log_time=mission_ns(header["t0"])
             )
         return key

@@ -101,6 +101,22 @@ def add_common_options(p: argparse.ArgumentParser) -> None:
     p.add_argument("--poll-interval", type=float, help="longest wait before checking timers [s]")
 
 
+def _set_common_options(config: StageConfig, args: argparse.Namespace, default_poll_interval: float) -> None:
+    """The options of :func:`add_common_options` given on the command line, into ``config``
+    (the poll interval the stage's default unless the command line or the ``--config`` file
+    sets it)."""
+    if args.cache is not None:
+        config.cache = args.cache
+    if args.history is not None:
+        config.history = args.history
+    if args.no_record_inputs:
+        config.record_inputs = False
+    if args.poll_interval is not None:
+        config.poll_interval = args.poll_interval
+    elif not (args.config and "poll_interval" in json.loads(args.config.read_text())):
+        config.poll_interval = default_poll_interval
+
+
 def stage_main(
     stage_class: StageProgram,
     argv: Sequence[str] | None = None,
@@ -135,16 +151,7 @@ def stage_main(
         if not args.config and not args.run:
             raise ValueError("--run (or --config with a 'run' field) is required")
         config = config_from_args(args)
-        if args.cache is not None:
-            config.cache = args.cache
-        if args.history is not None:
-            config.history = args.history
-        if args.no_record_inputs:
-            config.record_inputs = False
-        if args.poll_interval is not None:
-            config.poll_interval = args.poll_interval
-        elif not (args.config and "poll_interval" in json.loads(args.config.read_text())):
-            config.poll_interval = stage_class.default_poll_interval
+        _set_common_options(config, args, stage_class.default_poll_interval)
         if options is not None:
             config.options = {**config.options, **{k: v for k, v in options(args).items() if v is not None}}
         config.check()  # the fields set one by one above, checked like the file's

@@ -11,7 +11,7 @@ class StageLogger(logging.LoggerAdapter):
     """Attaches ``run`` and ``stage`` (and any ``extra``) to the records of a stage."""
 
     def process(self, msg, kwargs):
-        kwargs["extra"] = {**self.extra, **kwargs.get("extra", {})}
+        kwargs["extra"] = {**(self.extra or {}), **kwargs.get("extra", {})}
         return msg, kwargs
 
 

@@ -70,7 +70,8 @@ class Supervisor:
         self.children[name] = Child(name, config, log_path)
         self.start(name)
 
-    def start(self, name: str) -> None:
+    def start(self, name: str) -> subprocess.Popen:
+        """Start stage ``name`` (again); returns its process."""
         child = self.children[name]
         env = dict(os.environ, PYTHONUNBUFFERED="1")
         if name == "monitor":  # small linear algebra: threaded BLAS only fights the other stages for the cores
@@ -78,7 +79,7 @@ class Supervisor:
         with open(child.log, "ab") as logf:
             logf.write(f"--- start {child.starts + 1} of {name} at {time.ctime()} ---\n".encode())
             logf.flush()
-            child.proc = subprocess.Popen(
+            proc = child.proc = subprocess.Popen(
                 [
                     self.opts.python,
                     "-m",
@@ -100,9 +101,10 @@ class Supervisor:
                 process_group=0,
             )
         child.starts += 1
-        child.pids.add(child.proc.pid)
-        child.pids_order.append(child.proc.pid)
-        log.info("started %s (pid %d)", name, child.proc.pid)
+        child.pids.add(proc.pid)
+        child.pids_order.append(proc.pid)
+        log.info("started %s (pid %d)", name, proc.pid)
+        return proc
 
     def last_log_line(self, name: str) -> str:
         try:
@@ -133,46 +135,61 @@ class Supervisor:
             )
             if child.starts <= self.opts.restart:
                 self.say(f"restarting {name} ({child.starts}/{self.opts.restart})")
-                self.start(name)
+                proc = self.start(name)
                 self.journal(
                     "stage-restarted",
-                    f"stage {name} restarted (pid {child.proc.pid})",
+                    f"stage {name} restarted (pid {proc.pid})",
                     stage=name,
-                    pid=child.proc.pid,
+                    pid=proc.pid,
                     start=child.starts,
                 )
             else:
                 return f"stage {name} died ({how})"
         return None
 
-    def stop_all(self, bus: Bus, first: signal.Signals | None = None) -> None:
-        """Ask every stage to stop (``first``, e.g. the SIGINT of a Ctrl-C, passed on to every
-        stage running, and the stop message), wait, then terminate and kill what is left."""
-        for c in self.children.values():
-            if first is not None and c.proc is not None and c.proc.poll() is None:
-                c.proc.send_signal(first)
+    def _running(self) -> list[tuple[Child, subprocess.Popen]]:
+        """The stages whose process is running, with it."""
+        return [(c, c.proc) for c in self.children.values() if c.proc is not None and c.proc.poll() is None]
+
+    def _send_stop(self, bus: Bus) -> None:
+        """The run's stop message to every stage (logged when the session is closed)."""
         try:
             bus.session.put(
                 control_key(self.opts.run_id, "stop"), b"{}", congestion_control=zenoh.CongestionControl.BLOCK
             )
         except Exception as exc:  # session closed
             log.warning("could not send stop: %s", exc)
+
+    def stop_all(self, bus: Bus, first: signal.Signals | None = None) -> None:
+        """Ask every stage to stop (``first``, e.g. the SIGINT of a Ctrl-C, passed on to every
+        stage running, and the stop message), wait, then terminate and kill what is left."""
+        if first is not None:
+            for _, proc in self._running():
+                proc.send_signal(first)
+        self._send_stop(bus)
         deadline = time.monotonic() + self.opts.stop_timeout
-        for sig, wait in ((None, None), (signal.SIGTERM, 15.0), (signal.SIGKILL, 10.0)):
-            running = [c for c in self.children.values() if c.proc is not None and c.proc.poll() is None]
+        # the stop message, then SIGTERM with 15 s more, then SIGKILL with 10 s more
+        for sig, wait in ((None, 0.0), (signal.SIGTERM, 15.0), (signal.SIGKILL, 10.0)):
+            running = self._running()
             if not running:
                 break
             if sig is not None:
-                for c in running:
+                for c, proc in running:
                     self.say(f"stage {c.name} did not stop: sending {sig.name}")
-                    c.proc.send_signal(sig)
+                    proc.send_signal(sig)
                 deadline = time.monotonic() + wait
-            for c in running:
-                try:
-                    c.proc.wait(max(0.1, deadline - time.monotonic()))
-                except subprocess.TimeoutExpired:
-                    pass
+            _wait_all(running, deadline)
         for c in self.children.values():
             if c.proc is not None:
                 c.exit_codes.append(c.proc.returncode)
                 c.proc = None
+
+
+def _wait_all(running: list[tuple[Child, subprocess.Popen]], deadline: float) -> None:
+    """Wait for the processes of ``running`` to end, until ``deadline`` (monotonic [s]; at
+    least 0.1 s each)."""
+    for _, proc in running:
+        try:
+            proc.wait(max(0.1, deadline - time.monotonic()))
+        except subprocess.TimeoutExpired:
+            pass

@@ -65,7 +65,7 @@ def output_fields(out: Output, run: str, producer: str, source: Header | None = 
     index = out.index if out.index is not None else (source.index if source else None)
     if index is None:
         raise ValueError(f"output on {out.topic!r}: no index and no input segment to take it from")
-    fields = {"index": index}
+    fields: dict[str, Any] = {"index": index}
     if source is not None:
         fields.update(t0=source.t0, fs=source.fs)
     fields.update(out.fields)
@@ -138,7 +138,7 @@ class StageTransport:
     def on_miss(self, source: str, count: int) -> None:
         self.inbox.put(("miss", source, count))
 
-    def refetch(self, bus: Bus, key: str, index: int, header: bytes, sn: int) -> None:
+    def refetch(self, bus: Bus, key: str, index: int, header: bytes, sn: int | None) -> None:
         """Ask the publishers' caches of stream ``key`` again for segment ``index`` (the copy
         with ``header``, bytes, and sequence number ``sn``): the copies come in as samples, then
         ("refetched", key, index, copies)."""

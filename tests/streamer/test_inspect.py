@@ -713,3 +713,59 @@ def test_inspect_of_a_live_run_prints_ttl_control_with_the_live_router(tmp_path,
     assert "remove it: ttl control --run r1 --connect " + live in out and "ttl refit" not in out, out
     assert "tls/127.0.0.1:1 " not in out  # the recorded, dead address
     assert "the run is live (ttl run (pid" in out
+
+
+def test_inspect_tests_the_last_fits_sigmas_against_the_truth(tmp_path, capsys):
+    """``ttl inspect --truth``: the last fit's errors against the truth averaged over its
+    window, and whether its sigmas are honest (errors' chi^2 with the fit's covariance,
+    pull RMS with its range for that covariance's correlations).  The fits are written with
+    errors of known size against a simulated file's truth: 1 sigma each (honest: chi^2 24
+    for 24), 4 sigma each (sigmas too small: chi^2 384) and 0.3 sigma (too large: chi^2 2.2)."""
+    from ttlcore.estimate.monitoring import FileTruth
+    from ttlcore.estimate.pulls import pull_summary
+
+    data = tmp_path / "sim.h5"
+    r = subprocess.run(
+        [sys.executable, "-m", "ttlcore.cli.main", "simulate", "--duration", "1h", "--telemetry", data, "--quiet"],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+    )
+    assert r.returncode == 0, r.stderr
+    truth_file = data.with_name("sim.truth.h5")
+    t_start, t_stop = 0.0, 3000.0
+    true = FileTruth(truth_file).mean(t_start, t_stop)
+    sigma = np.full(24, 2e-5)
+    cov = np.diag(sigma**2)
+    for pulls, verdict in ((1.0, "honest"), (4.0, "too small"), (0.3, "too large")):
+        run_dir = tmp_path / f"rec{pulls}" / RUN
+        run_dir.mkdir(parents=True)
+        c = true + pulls * sigma * np.where(np.arange(24) % 2, 1, -1)
+        f = StageFile(run_dir, "fitter")
+        f.rec.write_json(
+            "fit/summary",
+            {
+                "run": RUN,
+                "index": 0,
+                "names": list(COEFFICIENT_NAMES),
+                "coefficients": c.tolist(),
+                "sigma": sigma.tolist(),
+                "covariance": cov.tolist(),
+                "t_start": t_start,
+                "t_end": t_stop,
+                "fit": {"converged": True},
+            },
+            schema="ttl.Fit",
+        )
+        f.close()
+        code, out, err = run_ttl(capsys, "inspect", run_dir, "--truth", truth_file, "--json", "-")
+        assert code == 0, err
+        t = json.loads(out)["fits"]["truth_test"]
+        expected = pull_summary(c, cov, true).to_json()
+        assert t == expected
+        assert t["pull_rms"] == pytest.approx(pulls) and t["chi2"] == pytest.approx(24 * pulls**2)
+        assert t["verdict"] == verdict
+        code, out, err = run_ttl(capsys, "inspect", run_dir, "--truth", truth_file)
+        line = next(x for x in out.splitlines() if "last fit against the truth" in x)
+        assert f"pull RMS {pulls:.2f}" in line and line.endswith(f"sigmas {verdict}"), line

@@ -372,7 +372,7 @@ def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> li
     tf0 = residual_map(data, residual) if events else None
     actions, spans, prior = [], [], list[Effect]()
     for i, e in enumerate(events):  # loudest first
-        if e["class"] == "missing-coupling":
+        if e["class"] in ("missing-coupling", "onset"):  # a change that has not ended is no transient
             continue
         span = (e["t_start"] - hop, e["t_stop"] + hop)
         if e["duration"] > MAX_GATE_FRACTION * analysed and e["class"] not in GLITCH_CLASSES:

@@ -41,6 +41,7 @@ from .gated_ranking import rank_on_gated, reordered
 from .gating import GatedGrid, gated_data, missing_data, with_gates
 from .model_fit import ModelFit
 from .noise_model import profile_noise_model
+from .onsets import add_onset_candidates
 from .report import (
     fine_band_table,
     model_json,
@@ -127,7 +128,8 @@ def diagnose(
         gated_model, model, fitted, ungated=ungated if gates or gaps else None, gates=gates, gaps=gaps
     )
     del ungated
-    _transients(report, model, refit, s, truth_coefficients)
+    onsets = functools.partial(add_onset_candidates, model, report, modules=effect_modules)
+    _transients(report, model, (refit, onsets), s, truth_coefficients)
     _lap(timings, "transients", clock)
     report["recommendation"] = recommendation(report, eff)
     report["settings"] = {
@@ -212,10 +214,13 @@ def _witness_extra(report: dict, s: DiagnoseSettings, effect_modules) -> list:
     return extra
 
 
-def _transients(report: dict, model: ModelFit, refit, s: DiagnoseSettings, truth_coefficients) -> None:
+def _transients(report: dict, model: ModelFit, hooks: tuple, s: DiagnoseSettings, truth_coefficients) -> None:
     """The report's ``transients`` (with their actions and the gated model) and, beside a
-    signal, the candidates ranked again on the data with it gated."""
-    report["transients"] = transient_report(model, report, refit=refit)
+    signal, the candidates ranked again on the data with it gated.  ``hooks``: the model
+    refitted with spans gated, and the onset candidates added
+    (:func:`~ttlcore.diagnose.excess.transient_report`'s ``refit`` and ``onsets``)."""
+    refit, onsets = hooks
+    report["transients"] = transient_report(model, report, refit=refit, onsets=onsets)
     residual = report["transients"].pop("_residual")
     report["transients"]["actions"] = transient_actions(model, report, residual)
     del residual

@@ -20,13 +20,13 @@ from ..errors import ConfigError
 from ..estimate.spectra import segment_fft, window
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 from .candidates import score
+from .event_class import _f, classify, event_json
 from .fitting import fit_resolved
+from .onsets import data_end, onset_events, reclassify_onsets
 from .transients import (
-    BROADBAND_FRACTION,
     CHANNELS,
     COHERENT_FRACTION,
     MAP_ALPHA,
-    NOISE_CHANGE_HOURS,
     NOT_AN_EFFECT,
     T_SHARE_FRACTION,
     T_SHARE_INSTRUMENTAL,
@@ -158,61 +158,6 @@ def instrumental_t_share(f, noise_csd, ltt_mean, f_lo: float, f_hi: float, slope
     return float(min(shares)) if shares else float("nan")
 
 
-def classify(event: Event) -> tuple[str, list[str]]:
-    """The class of an event and the evidence for it (module docstring)."""
-    ev = []
-    hours = event.duration / 3600.0
-    ev.append(
-        f"{hours:.2f} h long ({_clock(event.t_start)}-{_clock(event.t_stop)}), "
-        f"{_f(event.f_lo)}-{_f(event.f_hi)}, carried by {', '.join(event.channels) or 'no single channel'}"
-    )
-    thr = event.t_share_threshold
-    ev.append(
-        f"T carries {100 * event.t_share:.1f} % of its whitened excess "
-        f"({'instrumental' if event.t_share >= thr else 'T consistent with a null stream'}: threshold "
-        f"{100 * thr:.2g} %"
-        + (
-            ""
-            if event.t_share_expected is None
-            else f", a third of the {100 * event.t_share_expected:.2g} % a single link or test mass would give"
-        )
-        + ")"
-    )
-    coh = event.coherence or {}
-    if coh:
-        ev.append(
-            f"witnesses (24 TTL regressors) explain {100 * coh['explained_fraction']:.0f} % of the excess "
-            f"(delta chi2 {coh['delta_chi2']:.0f} for {coh['expected']:.0f} expected on noise)"
-        )
-    ev.append(
-        f"track: {event.track_kind}" + (f", {_f(event.track[0][2])} -> {_f(event.track[-1][2])}" if event.track else "")
-    )
-    nb = len(event.band_excess)
-    broad = len(event.significant_bands) >= BROADBAND_FRACTION * nb
-    if event.gap is not None:
-        ev.insert(0, f"overlaps missing data {_clock(event.gap[0])}-{_clock(event.gap[1])}")
-        return "gap", ev
-    if coh.get("coherent"):
-        return "missing-coupling", ev
-    if hours >= NOISE_CHANGE_HOURS and broad:
-        ev.append(f"broadband: excess significant in {len(event.significant_bands)} of {nb} bands")
-        return "noise-change", ev
-    ae = any(c in event.channels for c in ("A", "E"))
-    if ae and event.t_share < thr and event.track_kind != "falling":
-        return "gravitational-wave", ev
-    if event.t_share >= thr and hours < NOISE_CHANGE_HOURS:
-        return "glitch", ev
-    return "unclassified", ev
-
-
-def _clock(t: float) -> str:
-    return f"{t / 3600:.2f} h"
-
-
-def _f(f: float) -> str:
-    return f"{1e3 * f:.3g} mHz" if f < 0.1 else f"{f:.3g} Hz"
-
-
 # ---------------------------------------------------------------------------
 # the diagnosis' use: the model's residual, the quiet hours, the class of the excess
 # ---------------------------------------------------------------------------
@@ -330,32 +275,34 @@ def quiet_adequacy(tf: TimeFrequencyMap, events, alpha: float, spans=()) -> dict
     }
 
 
-def event_json(e: Event, cls: str, evidence: list) -> dict:
-    return {
-        "class": cls,
-        "evidence": evidence,
-        "t_start": e.t_start,
-        "t_stop": e.t_stop,
-        "t_peak": e.t_peak,
-        "duration": e.duration,
-        "channels": list(e.channels),
-        "channel_p": e.channel_p,
-        "f_lo": e.f_lo,
-        "f_hi": e.f_hi,
-        "track": [list(x) for x in e.track],
-        "track_kind": e.track_kind,
-        "t_share": e.t_share,
-        "t_share_expected": e.t_share_expected,
-        "t_share_threshold": e.t_share_threshold,
-        "excess": e.excess,
-        "snr": e.snr,
-        "coherence": e.coherence,
-        "gap": list(e.gap) if e.gap else None,
-    }
+def classified_events(data, resid: np.ndarray, tf: TimeFrequencyMap, events, gaps, alpha: float) -> list[dict]:
+    """The report entries of the map's ``events`` (loudest first): each with its coherence
+    with the witnesses, the run of missing data it overlaps, T's expected share, its class
+    and evidence (:func:`ttlcore.diagnose.event_class.classify`); those that last to the
+    data's end are onsets (:func:`ttlcore.diagnose.onsets.reclassify_onsets`)."""
+    grid = data.grid
+    psd = np.real(np.einsum("mii->mi", data.noise.csd))
+    keep = kept_like(grid.f, 1.0 / grid.seg_duration, 1.0 / tf.duration)
+    out = []
+    for e in events:
+        coh = witness_coherence(resid, data.tdi.regressor_series, grid.fs, tf, e, grid.f, psd, grid.t0, keep, alpha)
+        gap = next(((a, b) for a, b in gaps if a < e.t_stop and b > e.t_start), None)
+        expected = instrumental_t_share(grid.f, data.noise.csd, data.tdi.ltt_mean, e.f_lo, e.f_hi)
+        e = Event(
+            **{
+                **e.__dict__,
+                "coherence": coh,
+                "gap": gap,
+                "t_share_expected": expected if np.isfinite(expected) else None,
+            }
+        )
+        out.append(event_json(e, *classify(e)))
+    reclassify_onsets(out, data_end(data), tf.duration, tf.hop)
+    return out
 
 
 def transient_report(
-    model, report: dict | None = None, tile: float = TILE_DURATION, alpha: float = MAP_ALPHA, refit=None
+    model, report: dict | None = None, tile: float = TILE_DURATION, alpha: float = MAP_ALPHA, refit=None, onsets=None
 ) -> dict:
     """The ``transients`` part of a diagnosis report (docs/diagnostics.md): the
     time-frequency map of the model's residual, its events with their class and evidence,
@@ -374,15 +321,15 @@ def transient_report(
     None): when events read as signals or defects of the data (:data:`NOT_AN_EFFECT`) or
     data are missing, the quiet tiles are then read on that fit's residual, so that what a
     loud signal pulls the linear fit by is not taken for excess in every hour (``quiet.gated``);
-    ``_gated`` holds that fit.
+    ``_gated`` holds that fit.  Events that last to the data's end are onsets
+    (:func:`ttlcore.diagnose.onsets.reclassify_onsets`); ``onsets(events)``, optional, scores
+    their candidates into ``report`` before the excess is classed.
     """
     data = model.data
     grid = data.grid
     s = data.context.settings
     resid = model_residual(model)
     tf = residual_map(data, resid, tile)
-    psd = np.real(np.einsum("mii->mi", data.noise.csd))
-    keep = kept_like(grid.f, 1.0 / grid.seg_duration, 1.0 / tile)
     band = (max(s.band[0], 3.0 / tile), s.band[1])
     # a gated span reads as zeros: not missing data, the model's choice
     spans = getattr(data.grid, "gate_spans", ())
@@ -392,22 +339,10 @@ def transient_report(
         if not any(lo - 1.0 <= a and b <= hi + 1.0 for lo, hi in spans)
     ]
     events = find_events(tf, alpha)
-    out_events, classes = [], []
-    for e in events:
-        coh = witness_coherence(resid, data.tdi.regressor_series, grid.fs, tf, e, grid.f, psd, grid.t0, keep, alpha)
-        gap = next(((a, b) for a, b in gaps if a < e.t_stop and b > e.t_start), None)
-        expected = instrumental_t_share(grid.f, data.noise.csd, data.tdi.ltt_mean, e.f_lo, e.f_hi)
-        e = Event(
-            **{
-                **e.__dict__,
-                "coherence": coh,
-                "gap": gap,
-                "t_share_expected": expected if np.isfinite(expected) else None,
-            }
-        )
-        cls, evidence = classify(e)
-        classes.append(cls)
-        out_events.append(event_json(e, cls, evidence))
+    out_events = classified_events(data, resid, tf, events, gaps, alpha)
+    classes = [e["class"] for e in out_events]
+    if onsets is not None and onset_events(out_events):
+        onsets(out_events)
     signal_spans = [(e["t_start"] - tf.hop, e["t_stop"] + tf.hop) for e in out_events if e["class"] in NOT_AN_EFFECT]
     signal_spans += [(a, b) for a, b in gaps if not any(x[0] <= a and b <= x[1] for x in signal_spans)]
     # a loud signal pulls the linear fit, whose mis-subtracted TTL noise is then in every

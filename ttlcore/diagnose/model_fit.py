@@ -18,12 +18,13 @@ columns in, a :class:`ModelFit` out.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import TYPE_CHECKING
 
 import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES
-from ..estimate.gls import NormalEquations
+from ..estimate.gls import NormalEquations, sandwich, set_apart
 from ..estimate.gls import solve as gls_solve
 from .adequacy import band_table
 from .columns import ColumnSet, eiv, read_only
@@ -95,7 +96,9 @@ class ModelFit:
     theta : ndarray (P,)
         GLS estimates (column units: m/rad for TTL).
     covariance : ndarray (P, P)
-        ``kappa (2 (N - E))^-1``.
+        ``kappa (2 (N - E))^-1``: the model-based covariance, right where the noise model is
+        (the searches' and the evidences' covariance).  The sigmas a report gives are the
+        robust ones (:attr:`robust_covariance`, :attr:`robust_sigma`).
     chi2_seg_band : ndarray (S, G)
         chi^2 per segment and band against the noise model (plain ``N``: the residual's
         DWS-noise part is in the noise model).
@@ -151,6 +154,36 @@ class ModelFit:
     def sigma(self) -> np.ndarray:
         return np.sqrt(np.abs(np.diag(self.covariance)))
 
+    @cached_property
+    def robust_covariance(self) -> np.ndarray:
+        """The sandwich covariance of the estimate, honest where the noise model is not.
+
+        ``kappa (N - E)^-1 M (N - E)^-1`` with ``M = sum_{s,f} Re(u) Re(u)^T`` over the
+        bins of the bands and the segments, ``u = X^H r`` the per-bin scores of the whitened
+        columns ``X`` against the whitened residual ``r`` (the robust covariance of the batch
+        fit, :func:`ttlcore.estimate.fit.sandwich_covariance`, on the diagnosis' spectra).
+        Where the residual is the noise model's, ``E[M] = (N - E) / 2`` and it equals
+        :attr:`covariance` (measured on a lisainstrument day: 1-2 % above it); where the
+        residual holds more than the model's noise in some segments or bands (the tail of a
+        glitch, a noise the model lacks), it grows with that excess, as the scatter of the
+        estimate does.  Columns set apart by their prior keep an infinite variance.
+        """
+        x, wr = self.columns.x, self.residual_w.view(np.float64)  # (P, S, m, 6), (S, m, 6)
+        M = np.zeros((x.shape[0], x.shape[0]))
+        for a, b in self.data.grid.slices:
+            if b > a:
+                u = np.einsum("psmc,smc->psm", x[:, :, a:b], wr[:, a:b])
+                M += np.einsum("psm,qsm->pq", u, u)
+        N = self.normal[0].sum(axis=(0, 1)) - self.eiv_term.sum(axis=0)
+        cov = self.data.grid.kappa * sandwich(set_apart(N, np.asarray(self.columns.priors)), M)
+        read_only(cov)
+        return cov
+
+    @property
+    def robust_sigma(self) -> np.ndarray:
+        """Standard deviations of :attr:`robust_covariance` (what reports give)."""
+        return np.sqrt(np.abs(np.diag(self.robust_covariance)))
+
     @property
     def chi2(self) -> float:
         return float(self.chi2_seg_band.sum())
@@ -175,7 +208,8 @@ class ModelFit:
         return self._ttl(self.theta)
 
     def ttl_sigma(self) -> np.ndarray:
-        return self._ttl(self.sigma)
+        """The robust sigmas of the 24 linear coefficients (NaN for those not in the model)."""
+        return self._ttl(self.robust_sigma)
 
     def _ttl(self, values) -> np.ndarray:
         out = np.full(len(COEFFICIENT_NAMES), np.nan)
@@ -189,7 +223,7 @@ class ModelFit:
         """``"effect.group" -> (offset [s], sigma [s])`` of the shifted-witness effects."""
         return {
             n[:-3]: (total_offset(n, v, self.expansion), float(s))
-            for n, v, s in zip(self.names, self.theta, self.sigma)
+            for n, v, s in zip(self.names, self.theta, self.robust_sigma)
             if n.endswith(".d1")
         }
 

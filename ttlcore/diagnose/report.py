@@ -63,11 +63,11 @@ def adequacy_json(model: ModelFit) -> dict:
 
 
 def coefficients_json(model: ModelFit, truth=None) -> dict:
-    """The fitted columns (value, sigma) and, with truth, the errors of the 24 linear ones;
+    """The fitted columns (value, robust sigma: :attr:`ModelFit.robust_sigma`) and, with truth, the errors of the 24 linear ones;
     ``offsets``: the fitted offsets of linearised effects (expansion point + ``d1``)."""
     out: dict = {
         "values": {n: float(v) for n, v in zip(model.parameter_names, model.theta)},
-        "sigma": {n: float(v) for n, v in zip(model.parameter_names, model.sigma)},
+        "sigma": {n: float(v) for n, v in zip(model.parameter_names, model.robust_sigma)},
     }
     offsets = {k: {"value": v, "sigma": sg, "unit": "s"} for k, (v, sg) in model.offsets().items()}
     if offsets:
