@@ -74,7 +74,7 @@ from .fit_window import TelemetryWindow
 from .fitter_model import FitterModel, adoption_refused
 from .fitter_options import ADOPT_MODES, MODEL_UPDATES, add_options, one_of, options
 from .fitter_schedule import DiagnosisSchedule
-from .live_diagnosis import control_command, diagnosis_meta
+from .live_diagnosis import DiagnosisStopped, control_command, diagnosis_meta, stop_check
 from .live_model import LiveModel
 from .rolling_model import RollingModel, rolling_outputs
 from .window_refit import window_refit, window_refit_meta
@@ -275,9 +275,13 @@ class Fitter(FitterModel, OrderedStage):
                 self.effects,
                 settings=refit_settings(header.meta.get("dws_asd"), self.band),
                 effect_modules=self.effect_modules,
+                progress=stop_check(lambda: self.stopping),
             )
         except ConfigError as exc:
             self.log.info("no diagnosis yet: %s", exc)
+            return None
+        except DiagnosisStopped as exc:
+            self.log.info("fit %d: live diagnosis abandoned: %s", header.index, exc)
             return None
         self.model.diagnose_due = False
         self.schedule.done(header.index)

@@ -25,6 +25,26 @@ from ttlcore.effects import make_effects
 from ttlcore.effects.glitch import merge_gates, split_gates
 
 
+class DiagnosisStopped(Exception):
+    """The stage is stopping: its live diagnosis is abandoned between two of its steps
+    (raised by the ``progress`` callback :func:`ttlcore.diagnose.diagnoser.diagnose` calls
+    before each step; its candidate threads are cancelled on the way out)."""
+
+
+def stop_check(stopping) -> Callable[[str], None]:
+    """A ``progress`` callback for :func:`~ttlcore.diagnose.diagnoser.diagnose` that raises
+    :class:`DiagnosisStopped` once ``stopping()`` is true: a stage told to stop (SIGTERM, its
+    launcher gone, a stop message) leaves a day-long diagnosis within one of its steps
+    (seconds to a minute) instead of after all of them (minutes: a mission week's fitter
+    kept diagnosing for over 2 min after its launcher was gone)."""
+
+    def progress(step: str) -> None:
+        if stopping():
+            raise DiagnosisStopped(f"the stage is stopping (before the diagnosis' {step!r})")
+
+    return progress
+
+
 def transients_meta(transients: dict | None) -> dict | None:
     """The live diagnosis' reading of the window's transients (meta ``diagnosis.transients``):
     the class of the excess (gravitational-wave, glitch, gap, noise-change, missing-coupling...),
