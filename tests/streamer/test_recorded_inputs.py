@@ -32,7 +32,7 @@ def _write(path, topic: str, indices, close: bool = True, scale: float = 1.0) ->
 
 
 def test_the_wanted_segments_of_a_topic_are_read_back_from_every_process_file(tmp_path):
-    _write(tmp_path / "fitter.1.mcap", "fit", range(0, 6), close=True, scale=1.0)  # an earlier process
+    _write(tmp_path / "fitter.1.mcap", "fit", range(6), close=True, scale=1.0)  # an earlier process
     _write(tmp_path / "fitter.mcap", "fit", range(4, 12), close=False, scale=1.0)  # the live one, unclosed
     _write(tmp_path / "fitter_other.mcap", "fit", range(20), scale=-1.0)  # not the fitter's
     _write(tmp_path / "subtractor.mcap", "fit", range(20), scale=-1.0)  # another stage's copy
