@@ -107,48 +107,7 @@ def main() -> None:
         # a scheduler and workers started apart, as on a cluster (here on 127.0.0.1)
         sched_file = tmp / "scheduler.json"
         log = open(tmp / "dask.log", "wb")
-        procs.append(
-            subprocess.Popen(
-                [
-                    str(BIN / "dask"),
-                    "scheduler",
-                    "--host",
-                    "127.0.0.1",
-                    "--port",
-                    "0",
-                    "--no-dashboard",
-                    "--scheduler-file",
-                    str(sched_file),
-                ],
-                stdout=log,
-                stderr=subprocess.STDOUT,
-            )
-        )
-        deadline = time.monotonic() + 60
-        while not sched_file.exists() and time.monotonic() < deadline:
-            time.sleep(0.2)
-        procs.append(
-            subprocess.Popen(
-                [
-                    str(BIN / "dask"),
-                    "worker",
-                    "--scheduler-file",
-                    str(sched_file),
-                    "--nworkers",
-                    "2",
-                    "--nthreads",
-                    "1",
-                    "--host",
-                    "127.0.0.1",
-                    "--memory-limit",
-                    "3GiB",
-                    "--no-dashboard",
-                ],
-                stdout=log,
-                stderr=subprocess.STDOUT,
-                env=dict(os.environ, **WORKER_ENV),
-            )
-        )
+        _start_cluster(sched_file, log, procs)
         results["dask_scheduler_2_workers"] = run_config(
             "external", jobs_of, args.days, scheduler=str(sched_file), workers=2
         )
@@ -191,6 +150,54 @@ def main() -> None:
             except subprocess.TimeoutExpired:
                 p.kill()
         shutil.rmtree(tmp, ignore_errors=True)
+
+
+def _start_cluster(sched_file: Path, log, procs: list) -> None:
+    """A Dask scheduler on 127.0.0.1 (its address in ``sched_file``, once written, at most
+    60 s) and two single-thread workers apart from it, as on a cluster; their output to
+    ``log``, the processes appended to ``procs``."""
+    procs.append(
+        subprocess.Popen(
+            [
+                str(BIN / "dask"),
+                "scheduler",
+                "--host",
+                "127.0.0.1",
+                "--port",
+                "0",
+                "--no-dashboard",
+                "--scheduler-file",
+                str(sched_file),
+            ],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+        )
+    )
+    deadline = time.monotonic() + 60
+    while not sched_file.exists() and time.monotonic() < deadline:
+        time.sleep(0.2)
+    procs.append(
+        subprocess.Popen(
+            [
+                str(BIN / "dask"),
+                "worker",
+                "--scheduler-file",
+                str(sched_file),
+                "--nworkers",
+                "2",
+                "--nthreads",
+                "1",
+                "--host",
+                "127.0.0.1",
+                "--memory-limit",
+                "3GiB",
+                "--no-dashboard",
+            ],
+            stdout=log,
+            stderr=subprocess.STDOUT,
+            env=dict(os.environ, **WORKER_ENV),
+        )
+    )
 
 
 if __name__ == "__main__":

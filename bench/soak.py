@@ -148,27 +148,7 @@ def latencies(stage: str, done_at: dict[str, dict[int, float]]) -> dict[int, flo
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--days", type=float, default=7.0)
-    p.add_argument("--segment", default="1h")
-    p.add_argument(
-        "--warmup", default="1d", help="left out of the post-warm-up fits (default 1d: the fitter's window is full)"
-    )
-    p.add_argument("--seed", type=int, default=1)
-    p.add_argument("--interval", type=float, default=1.0, help="RSS sampling period [s]")
-    p.add_argument("--keep", type=Path, help="keep the recordings (and the stage logs) in this directory")
-    p.add_argument(
-        "--series",
-        type=Path,
-        help="write the per-segment RSS [MB] and latency [s] of every stage "
-        "here (JSON: stage -> {rss_mb, latency_s}: segment -> value)",
-    )
-    p.add_argument(
-        "--memtrace",
-        type=int,
-        default=None,
-        help=f"set {MEMTRACE_ENV}=N for the stages: memory lines in their logs (with --keep)",
-    )
+    p = _parser()
     args = p.parse_args(argv)
     segment_s = parse_duration(args.segment, "--segment")
     total = math.ceil(round(args.days * DAY / segment_s, 6))
@@ -177,22 +157,7 @@ def main(argv=None) -> int:
     rec = args.keep or Path(tempfile.mkdtemp(prefix="ttl-soak-"))
     port = free_port()
     run = "soak"
-    cmd = [
-        str(Path(sys.executable).with_name("ttl")),
-        "run",
-        "--simulate",
-        f"--duration {args.days * 24:g}h --orbit unequal --seed {args.seed}",
-        "--segment",
-        args.segment,
-        "--run-id",
-        run,
-        "--recordings",
-        str(rec),
-        "--listen",
-        f"tcp/127.0.0.1:{port}",
-        "--quiet",
-        "--insecure",
-    ]  # plain TCP on loopback: the bench's own client only reads
+    cmd = _run_command(args, run, rec, port)
     env = dict(os.environ)
     if args.memtrace is not None:
         env[MEMTRACE_ENV] = str(args.memtrace)
@@ -215,12 +180,7 @@ def main(argv=None) -> int:
 
     rss: dict[str, list[tuple[int, float]]] = {}
     loads: list[float] = []
-    bus = None
-    while bus is None and proc.poll() is None:
-        try:
-            bus = Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",)))
-        except Exception:  # noqa: BLE001 - the router is not up yet
-            time.sleep(1.0)
+    bus = _open_bus(proc, port)
     if bus is None:
         proc.wait()
         reader.join(5)
@@ -232,26 +192,7 @@ def main(argv=None) -> int:
         return 1
     with bus:
         bus.segment_subscriber(f"ttl/{run}/control/board/*", on_board, history=1)
-        while proc.poll() is None:
-            try:
-                kids = psutil.Process(proc.pid).children(recursive=True)
-            except psutil.NoSuchProcess:
-                break
-            loads.append(os.getloadavg()[0])
-            for k in kids:
-                try:
-                    cmdline = k.cmdline()
-                    name = next((w.split(".", 1)[1] for w in cmdline if w.startswith("stages.")), None)
-                    if name is None and cmdline[3:4] == ["router"]:  # python -c "..." router ...
-                        name = "router"  # the run's Zenoh router (ttl router): every segment goes through it
-                    if name:
-                        mb = k.memory_info().rss / 2**20
-                        with lock:
-                            index = max(done_at.get(CLOCK.get(name, name), {}), default=-1)
-                        rss.setdefault(name, []).append((index, mb))
-                except psutil.Error:
-                    continue
-            time.sleep(args.interval)
+        _sample_rss(proc, done_at, lock, (rss, loads), args.interval)
     reader.join(10)
     out = b"".join(out_chunks).decode(errors="replace")
     result = {
@@ -271,31 +212,130 @@ def main(argv=None) -> int:
     }
     series = {}
     for stage, samples in sorted(rss.items()):
-        mem = per_segment_rss(samples, total - 1)
-        lat = latencies(stage, done_at)
-        ks = sorted(mem)
-        result["stages"][stage] = {
-            "segments": len(done_at.get(CLOCK.get(stage, stage), {})),
-            "rss_mb": {
-                "first_segment": round(mem[ks[0]], 1) if ks else None,
-                "at_warmup": round(mem[min(ks, key=lambda k: abs(k - warmup))], 1) if ks else None,
-                "last_segment": round(mem[ks[-1]], 1) if ks else None,
-                "max": round(max(m for _, m in samples), 1) if samples else None,
-            },
-            "rss": assess(mem, warmup, total, "mb", 4),
-            "latency_s": {"median": round(float(np.median(list(lat.values()))), 3) if lat else None},
-            "latency": assess(lat, warmup, total, "s", 5),
-        }
-        series[stage] = {
-            "rss_mb": {k: round(v, 2) for k, v in sorted(mem.items())},
-            "latency_s": {k: round(v, 4) for k, v in sorted(lat.items())},
-        }
+        result["stages"][stage], series[stage] = _stage_result(stage, samples, done_at, total, warmup)
     if args.series:
         args.series.write_text(json.dumps(series))
     if proc.returncode != 0:
         result["output_tail"] = out[-2000:]
     print(json.dumps(result, indent=2))
     return 0 if proc.returncode == 0 else 1
+
+
+def _parser() -> argparse.ArgumentParser:
+    """The command line of the soak bench."""
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--days", type=float, default=7.0)
+    p.add_argument("--segment", default="1h")
+    p.add_argument(
+        "--warmup", default="1d", help="left out of the post-warm-up fits (default 1d: the fitter's window is full)"
+    )
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--interval", type=float, default=1.0, help="RSS sampling period [s]")
+    p.add_argument("--keep", type=Path, help="keep the recordings (and the stage logs) in this directory")
+    p.add_argument(
+        "--series",
+        type=Path,
+        help="write the per-segment RSS [MB] and latency [s] of every stage "
+        "here (JSON: stage -> {rss_mb, latency_s}: segment -> value)",
+    )
+    p.add_argument(
+        "--memtrace",
+        type=int,
+        default=None,
+        help=f"set {MEMTRACE_ENV}=N for the stages: memory lines in their logs (with --keep)",
+    )
+    return p
+
+
+def _run_command(args, run: str, rec: Path, port: int) -> list[str]:
+    """The ``ttl run`` of the soak: ``args.days`` simulated days in ``args.segment`` segments,
+    recorded in ``rec``, its router on loopback ``port`` (plain TCP: the bench's own client
+    only reads)."""
+    return [
+        str(Path(sys.executable).with_name("ttl")),
+        "run",
+        "--simulate",
+        f"--duration {args.days * 24:g}h --orbit unequal --seed {args.seed}",
+        "--segment",
+        args.segment,
+        "--run-id",
+        run,
+        "--recordings",
+        str(rec),
+        "--listen",
+        f"tcp/127.0.0.1:{port}",
+        "--quiet",
+        "--insecure",
+    ]
+
+
+def _open_bus(proc, port: int):
+    """A client session on the run's router once it is up (None if the run ended first)."""
+    bus = None
+    while bus is None and proc.poll() is None:
+        try:
+            bus = Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",)))
+        except Exception:  # noqa: BLE001 - the router is not up yet
+            time.sleep(1.0)
+    return bus
+
+
+def _stage_name(k) -> str | None:
+    """The stage (or ``router``) a child process of the run is, from its command line."""
+    cmdline = k.cmdline()
+    name = next((w.split(".", 1)[1] for w in cmdline if w.startswith("stages.")), None)
+    if name is None and cmdline[3:4] == ["router"]:  # python -c "..." router ...
+        name = "router"  # the run's Zenoh router (ttl router): every segment goes through it
+    return name
+
+
+def _sample_rss(proc, done_at: dict, lock, into: tuple, interval: float) -> None:
+    """Every ``interval`` [s] until the run ends: each stage's resident memory [MB] with the
+    last segment its clock stage has handled, and the load average (``into``: ``(rss,
+    loads)``)."""
+    rss, loads = into
+    while proc.poll() is None:
+        try:
+            kids = psutil.Process(proc.pid).children(recursive=True)
+        except psutil.NoSuchProcess:
+            break
+        loads.append(os.getloadavg()[0])
+        for k in kids:
+            try:
+                name = _stage_name(k)
+                if name:
+                    mb = k.memory_info().rss / 2**20
+                    with lock:
+                        index = max(done_at.get(CLOCK.get(name, name), {}), default=-1)
+                    rss.setdefault(name, []).append((index, mb))
+            except psutil.Error:
+                continue
+        time.sleep(interval)
+
+
+def _stage_result(stage: str, samples: list, done_at: dict, total: int, warmup: int) -> tuple[dict, dict]:
+    """One stage's summary (segments, RSS [MB] at the first, warm-up and last segment and its
+    maximum, latency [s], each assessed after the warm-up) and its per-segment curves."""
+    mem = per_segment_rss(samples, total - 1)
+    lat = latencies(stage, done_at)
+    ks = sorted(mem)
+    entry = {
+        "segments": len(done_at.get(CLOCK.get(stage, stage), {})),
+        "rss_mb": {
+            "first_segment": round(mem[ks[0]], 1) if ks else None,
+            "at_warmup": round(mem[min(ks, key=lambda k: abs(k - warmup))], 1) if ks else None,
+            "last_segment": round(mem[ks[-1]], 1) if ks else None,
+            "max": round(max(m for _, m in samples), 1) if samples else None,
+        },
+        "rss": assess(mem, warmup, total, "mb", 4),
+        "latency_s": {"median": round(float(np.median(list(lat.values()))), 3) if lat else None},
+        "latency": assess(lat, warmup, total, "s", 5),
+    }
+    curves = {
+        "rss_mb": {k: round(v, 2) for k, v in sorted(mem.items())},
+        "latency_s": {k: round(v, 4) for k, v in sorted(lat.items())},
+    }
+    return entry, curves
 
 
 if __name__ == "__main__":

@@ -196,15 +196,20 @@ class FitterModel(_Stage):
         """Transients of the model (glitches, gates) whose span has left the window leave the
         model from the next segment on (a ``model`` event ``by: window`` with the specs
         ``removed``; the recordings keep them for offline refits of their span), so that the
-        model's size stays bounded over any run."""
+        model's size stays bounded over any run; a coupling switched on before the window
+        becomes the plain coupling (``settled``: ``{old: new}``)."""
         model = self.model
         if self._catching_up or not len(self.window_tm) or not model.extended or model.change_due or model.pending:
             return  # (a change still to be reported or queued first: the transients go at the next segment)
         gone = model.expired(self.window_tm.t_start)
-        if not gone:
+        settled = model.settled(self.window_tm.t_start)
+        if not gone and not settled:
             return
-        kept = [e for e in model.effects if e not in gone]
-        self.change_model(kept, diagnose=False, by="window", removed=gone, decided_at=index)
+        kept = [settled.get(e, e) for e in model.effects if e not in gone]
+        why: dict[str, object] = {"removed": gone} if gone else {}
+        if settled:  # switched on before the window: the plain coupling from here on
+            why["settled"] = settled
+        self.change_model(kept, diagnose=False, by="window", decided_at=index, **why)
 
 
 def adoption_refused(out: dict, exc: Exception) -> None:

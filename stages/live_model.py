@@ -261,6 +261,17 @@ class LiveModel:
                 out.append(spec)
         return out
 
+    def settled(self, t_start: float) -> dict[str, str]:
+        """The model's effects that equal a simpler one on a window from ``t_start`` [s] on
+        (:meth:`~ttlcore.effects.base.Effect.settled`: a coupling switched on before the
+        window is the plain coupling there), as ``{spec: simpler spec}``."""
+        out = {}
+        for spec, effect in zip(self.effects, make_effects(self.effects, self.effect_modules), strict=True):
+            simpler = effect.settled(t_start)
+            if simpler is not None:
+                out[spec] = simpler.spec()
+        return out
+
     def parse_control(self, payload: bytes, window=None) -> list[str]:
         """The model a control message ``{"effects": [...]}`` asks for, validated (its
         columns built on ``window``, the newest telemetry, when given); ValueError saying

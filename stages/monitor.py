@@ -101,6 +101,7 @@ from ttlcore.estimate.fit import DEFAULT_BAND
 from . import monitor_views as views
 from .monitor_epochs import ModelEpochs, trend_estimate
 from .monitor_noise import NoiseCurves
+from .monitor_recovery import recover_evicted
 from .monitor_settling import Settling
 from .monitor_status import UNITS, drift_arrays, status_meta
 from .monitor_timeline import ModelTimeline
@@ -266,6 +267,7 @@ class Monitor(PipelineStage):
 
     def tick(self):
         self._drain_errors()
+        recover_evicted(self)  # what left the caches while this process was not there
         self._settle()
         return ()
 

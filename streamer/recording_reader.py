@@ -16,6 +16,7 @@ import logging
 import mmap
 import os
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -158,8 +159,10 @@ class Recording:
 class _Assembler:
     """Turns MCAP (schema, channel, message) records into :class:`RecordedMessage`."""
 
-    def __init__(self, recording: Recording):
+    def __init__(self, recording: Recording, keep: Keep | None = None):
         self.rec = recording
+        #: only the segments ``keep(topic, header)`` accepts are decoded and kept (nothing else)
+        self.keep = keep
         self.channels: dict[int, Channel] = {}
         self.schemas: dict[int, Schema] = {}
         self.pending: dict[str, RecordedMessage] = {}  # segment topic -> header waiting for payload
@@ -188,6 +191,10 @@ class _Assembler:
         )
 
     def message(self, msg: Message) -> None:
+        if self.keep is not None:
+            channel = self.channels.get(msg.channel_id)
+            if channel is None or not self._wanted(channel, msg):
+                return
         before = len(self.rec.messages)
         self._message(msg)
         for m in self.rec.messages[before:]:
@@ -266,6 +273,21 @@ class _Assembler:
                 RecordedMessage(topic, msg.log_time, "raw", sequence=msg.sequence, raw=bytes(msg.data))
             )
 
+    def _wanted(self, channel: Channel, msg: Message) -> bool:
+        """With a ``keep`` filter: a segment's header that it accepts, and the payload that
+        follows such a header; nothing else (no JSON topic, no other segment)."""
+        assert self.keep is not None
+        topic = channel.topic
+        if channel.message_encoding == "json" and topic.endswith("/header"):
+            try:
+                data = json.loads(msg.data)
+            except ValueError:
+                return False
+            return isinstance(data, dict) and bool(self.keep(topic[: -len("/header")], data))
+        if channel.message_encoding == PAYLOAD_ENCODING and topic.endswith("/payload"):
+            return topic[: -len("/payload")] in self.pending  # its header was kept
+        return False
+
     def _flush_pending(self, seg: str) -> None:
         head = self.pending.pop(seg, None)
         if head is not None:
@@ -276,8 +298,16 @@ class _Assembler:
             self._flush_pending(seg)
 
 
-def read_recording(path) -> Recording:
+#: A filter of the segments to read: ``keep(topic, header)`` (the header as a dict).
+Keep = Callable[[str, dict], bool]
+
+
+def read_recording(path, keep: Keep | None = None) -> Recording:
     """Read an MCAP recording written by :class:`Recorder`, salvaging unfinished files.
+
+    ``keep``, optional, reads only the segments it accepts (``keep(topic, header)``): the
+    others are skipped undecoded, so that a few segments of a week's recording cost their
+    own memory, not the file's (:mod:`streamer.recorded_inputs`).
 
     A complete file is read with mcap's streaming reader (CRCs checked).  A file without footer (the process was
     killed) is read record by record up to the first truncated or corrupt record;
@@ -302,18 +332,18 @@ def read_recording(path) -> Recording:
         raise RecordingError(f"{path}: not an MCAP file (bad magic {magic!r})")
     if size > 2 * len(MAGIC) and tail == MAGIC:
         try:
-            return _read_complete(path)
+            return _read_complete(path, keep)
         except Exception as exc:  # noqa: BLE001 - McapError, ZstdError, struct.error...: damaged
             log.warning(
                 "%s: reading the closed file failed (%s: %s); salvaging record by record", path, type(exc).__name__, exc
             )
-    return _salvage(path, size)
+    return _salvage(path, size, keep)
 
 
-def _read_complete(path: Path) -> Recording:
+def _read_complete(path: Path, keep: Keep | None = None) -> Recording:
     """Read a closed file with mcap's streaming reader (CRCs checked)."""
     rec = Recording(path, complete=True)
-    asm = _Assembler(rec)
+    asm = _Assembler(rec, keep)
     with open(path, "rb") as f:
         for record in StreamReader(f, validate_crcs=True).records:
             rec.records += 1
@@ -322,7 +352,7 @@ def _read_complete(path: Path) -> Recording:
     return rec
 
 
-def _salvage(path: Path, size: int) -> Recording:
+def _salvage(path: Path, size: int, keep: Keep | None = None) -> Recording:
     """Read ``path`` record by record, keeping every record that checks out.
 
     A record that does not parse (a chunk whose CRC or zstd frame fails: flipped bytes) is
@@ -332,7 +362,7 @@ def _salvage(path: Path, size: int) -> Recording:
     ends early (a killed process) stops at its last whole record, as before.
     """
     rec = Recording(path, complete=False)
-    asm = _Assembler(rec)
+    asm = _Assembler(rec, keep)
     with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
         pos = len(MAGIC)
         end_problem = None

@@ -184,51 +184,9 @@ def test_chaos_kills_change_nothing(tmp_path):
     procs = Procs(tmp_path)
     rec = tmp_path / "rec"
     try:
-        if os.environ.get("TTL_CHAOS_CLEAN"):
-            clean_dir = Path(os.environ["TTL_CHAOS_CLEAN"])
-        else:
-            proc = procs.ttl(
-                "run",
-                "--simulate",
-                SIM,
-                "--segment",
-                "10min",
-                "--run-id",
-                "clean",
-                "--recordings",
-                str(rec),
-                "--timeout",
-                "3600",
-                "--insecure",
-                "--quiet",
-                *NO_DIAGNOSIS,
-                name="clean",
-            )
-            assert finish(proc, 3700) == 0, output(proc)[-3000:]
-            clean_dir = rec / "clean"
+        clean_dir = _clean_reference(procs, rec)
         port = free_port()
-        args = [
-            "run",
-            "--simulate",
-            SIM,
-            "--segment",
-            "10min",
-            "--run-id",
-            "chaos",
-            "--recordings",
-            str(rec),
-            "--listen",
-            f"tcp/127.0.0.1:{port}",
-            "--insecure",
-            "--restart",
-            "1000",
-            "--pace",
-            f"{pace:g}",
-            "--timeout",
-            "7200",
-            "--quiet",
-            *NO_DIAGNOSIS,
-        ]
+        args = _chaos_args(rec, port, pace)
         code, out, kills, orphans, elapsed = kill_loop(procs, args, rng, tmp_path, seed)
         left = processes_of(tmp_path)
         for p in left:
@@ -257,6 +215,64 @@ def test_chaos_kills_change_nothing(tmp_path):
     assert_same_results(run_dir, clean_dir, why)
 
     # ttl inspect lists every kill and every restart
+    _check_interruptions_listed(run_dir, tmp_path, kills, why)
+
+
+def _clean_reference(procs: Procs, rec: Path) -> Path:
+    """The clean run's directory: ``TTL_CHAOS_CLEAN`` if set, else a run without kills made
+    here (run ``clean``)."""
+    if os.environ.get("TTL_CHAOS_CLEAN"):
+        return Path(os.environ["TTL_CHAOS_CLEAN"])
+    proc = procs.ttl(
+        "run",
+        "--simulate",
+        SIM,
+        "--segment",
+        "10min",
+        "--run-id",
+        "clean",
+        "--recordings",
+        str(rec),
+        "--timeout",
+        "3600",
+        "--insecure",
+        "--quiet",
+        *NO_DIAGNOSIS,
+        name="clean",
+    )
+    assert finish(proc, 3700) == 0, output(proc)[-3000:]
+    return rec / "clean"
+
+
+def _chaos_args(rec: Path, port: int, pace: float) -> list:
+    """The arguments of the chaos run's ``ttl run`` (run ``chaos`` in ``rec``, listening on ``port``,
+    restarted stages, replayed at ``pace`` times real time)."""
+    return [
+        "run",
+        "--simulate",
+        SIM,
+        "--segment",
+        "10min",
+        "--run-id",
+        "chaos",
+        "--recordings",
+        str(rec),
+        "--listen",
+        f"tcp/127.0.0.1:{port}",
+        "--insecure",
+        "--restart",
+        "1000",
+        "--pace",
+        f"{pace:g}",
+        "--timeout",
+        "7200",
+        "--quiet",
+        *NO_DIAGNOSIS,
+    ]
+
+
+def _check_interruptions_listed(run_dir: Path, tmp_path: Path, kills: list, why: str) -> None:
+    """``ttl inspect`` of the chaos run lists (and prints) every kill once and every restart."""
     report = tmp_path / "inspect.json"
     res = subprocess.run(
         ttl_command("inspect", str(run_dir), "--json", str(report)), capture_output=True, text=True, timeout=600
@@ -265,23 +281,7 @@ def test_chaos_kills_change_nothing(tmp_path):
     listed = json.loads(report.read_text())["interruptions"]
     text = res.stdout
     for k in kills:
-        if k["target"] == "launcher":
-            hit = [i for i in listed if i["kind"] == "launcher-killed" and f"pid {k['pid']})" in i["message"]]
-        elif k["target"] == "router":
-            hit = [
-                i
-                for i in listed
-                if i["kind"] == "router-died" and f"pid {k['pid']})" in i["message"] and "SIGKILL" in i["message"]
-            ]
-        else:
-            hit = [
-                i
-                for i in listed
-                if i["kind"] == "stage-died"
-                and i["stage"] == k["target"]
-                and f"pid {k['pid']})" in i["message"]
-                and "SIGKILL" in i["message"]
-            ]
+        hit = _kill_listed(listed, k)
         assert len(hit) == 1, (why, k, [i for i in listed if i["kind"] not in ("orphaned", "unfinished")][:40])
         assert hit[0]["message"] in text, (why, hit[0]["message"])
     n = {t: sum(k["target"] == t for k in kills) for t in TARGETS}
@@ -291,6 +291,27 @@ def test_chaos_kills_change_nothing(tmp_path):
         assert len(restarts) >= n[stage], (why, stage, len(restarts), n[stage])
     assert len([i for i in listed if i["kind"] == "router-restarted"]) == n["router"], why
     assert len([i for i in listed if i["kind"] == "resume"]) == n["launcher"], why
+
+
+def _kill_listed(listed: list, k: dict) -> list:
+    """The interruptions ``ttl inspect`` listed for the kill ``k`` (of the launcher, the
+    router or a stage, by its pid)."""
+    if k["target"] == "launcher":
+        return [i for i in listed if i["kind"] == "launcher-killed" and f"pid {k['pid']})" in i["message"]]
+    if k["target"] == "router":
+        return [
+            i
+            for i in listed
+            if i["kind"] == "router-died" and f"pid {k['pid']})" in i["message"] and "SIGKILL" in i["message"]
+        ]
+    return [
+        i
+        for i in listed
+        if i["kind"] == "stage-died"
+        and i["stage"] == k["target"]
+        and f"pid {k['pid']})" in i["message"]
+        and "SIGKILL" in i["message"]
+    ]
 
 
 # ---------------------------------------------------------------------------- with model changes

@@ -32,6 +32,17 @@ SEGMENTS = 8
 # is also exercised by tests/test_live_loop.py (the printed `ttl control`, science)
 @pytest.mark.ops
 def test_fitter_changes_model_on_control_message_and_monitor_shows_before_after(tmp_path):
+    _run_with_model_commands(tmp_path)
+    run = tmp_path / "rec" / "m1"
+    fits, k = _check_model_change(run)
+    if MONITOR:  # the monitor's Rerun recording: the excess before and after
+        _check_monitor_before_after(run, fits, k)
+    _check_refits(run, tmp_path)
+
+
+def _run_with_model_commands(tmp_path) -> None:
+    """A paced 8-h run of a drifting day (run ``m1``) sent a rejected model command after
+    its first fit (``ttl control``) and an accepted one after its fourth."""
     from test_pipeline import _progress_watch
 
     endpoint = f"tls/127.0.0.1:{free_port()}"
@@ -104,7 +115,10 @@ def test_fitter_changes_model_on_control_message_and_monitor_shows_before_after(
         procs.close()
     assert code == 0, output(proc)[-5000:]
 
-    run = tmp_path / "rec" / "m1"
+
+def _check_model_change(run) -> tuple:
+    """The fitter's recording: the commands, one model change with the window refitted with
+    both models, the models before and after it; returns the fits and the change's position."""
     fitter = read_recording(run / "fitter.mcap")
     assert [(c["command"], c["accepted"]) for c in fitter.json("control")] == [("model", False), ("model", True)]
     fits = sorted(fitter.segments("fit"), key=lambda s: s.header.index)
@@ -121,30 +135,38 @@ def test_fitter_changes_model_on_control_message_and_monitor_shows_before_after(
     assert all(f.header.meta["model"] == ["linear-ttl", "drift"] for f in fits[k:])
     assert all("extra_parameters" in f.header.meta for f in fits[k:])
     assert fits[k - 1].header.meta["adequacy"]["fails"] and not fits[-1].header.meta["adequacy"]["fails"]
+    return fits, k
 
-    if MONITOR:  # the monitor's Rerun recording: the excess before and after
-        from test_monitor import rrd_entities
 
-        ent = rrd_entities(run / "monitor.rrd")
-        series = {
-            row[0]["segment"]: row[1]["Scalars:scalars"][0]
-            for row in ent["/adequacy/instrument/chi2_dof"]
-            if "Scalars:scalars" in row[1]
-        }
-        assert sorted(series) == list(range(SEGMENTS))
-        # the monitor draws the fitter's adequacy (chi2/dof against the instrument noise model):
-        # with the noise levels fitted (docs/diagnostics.md, "Noise model") a TTL-shaped excess is
-        # partly taken up by the OMS level within its allowed +-5 %, so the drift's excess reads
-        # 1.03-1.07 here (1.1+ under the fixed levels); the failure flags asserted above are the test
-        for i in (k - 1, SEGMENTS - 1):
-            assert series[i] == pytest.approx(fits[i].header.meta["adequacy"]["chi2_dof"], rel=1e-12), (i, series)
-        assert series[k - 1] > 1.02 and series[k - 1] > series[SEGMENTS - 1], series
-        for part in ("before", "after"):
-            bars = [row[1] for row in ent[f"/model/{part}"] if any(c.startswith("BarChart:") for c in row[1])]
-            assert bars, part
-        log = [str(row[1]) for row in ent["/model/log"]]
-        assert any("linear-ttl -> linear-ttl,drift" in line for line in log), log
+def _check_monitor_before_after(run, fits: list, k: int) -> None:
+    """The monitor draws the fitter's adequacy, the excess before and after the change at
+    fit ``k``, and logs the change."""
+    from test_monitor import rrd_entities
 
+    ent = rrd_entities(run / "monitor.rrd")
+    series = {
+        row[0]["segment"]: row[1]["Scalars:scalars"][0]
+        for row in ent["/adequacy/instrument/chi2_dof"]
+        if "Scalars:scalars" in row[1]
+    }
+    assert sorted(series) == list(range(SEGMENTS))
+    # the monitor draws the fitter's adequacy (chi2/dof against the instrument noise model):
+    # with the noise levels fitted (docs/diagnostics.md, "Noise model") a TTL-shaped excess is
+    # partly taken up by the OMS level within its allowed +-5 %, so the drift's excess reads
+    # 1.03-1.07 here (1.1+ under the fixed levels); the failure flags asserted above are the test
+    for i in (k - 1, SEGMENTS - 1):
+        assert series[i] == pytest.approx(fits[i].header.meta["adequacy"]["chi2_dof"], rel=1e-12), (i, series)
+    assert series[k - 1] > 1.02 and series[k - 1] > series[SEGMENTS - 1], series
+    for part in ("before", "after"):
+        bars = [row[1] for row in ent[f"/model/{part}"] if any(c.startswith("BarChart:") for c in row[1])]
+        assert bars, part
+    log = [str(row[1]) for row in ent["/model/log"]]
+    assert any("linear-ttl -> linear-ttl,drift" in line for line in log), log
+
+
+def _check_refits(run, tmp_path) -> None:
+    """Offline: ``ttl refit`` of the recorded segments (not from the TDI, which lack the
+    regressors; from the telemetry), and its errors for an unknown effect or run."""
     # offline: ttl refit of the recorded segments from the replayer's telemetry (the tdi_builder
     # records X2, Y2, Z2 without the 72 regressor channels, so there is no TDI-only refit of a run)
     r = subprocess.run(

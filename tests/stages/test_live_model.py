@@ -198,3 +198,30 @@ def test_a_fit_that_took_in_no_data_is_flagged_stale(tmp_path):
     assert metas[2]["stale"] == {"since": 1, "no_data": True}
     assert [i for k, i, _ in warned if k == "no-data"] == [2], warned
     assert "stale" not in metas[3] and "stale" not in metas[4]  # the gate left: fresh fits again
+
+
+def test_a_coupling_switched_on_before_the_window_settles_into_the_plain_coupling():
+    """``witness:...,vary=step,t_step=T`` (an onset's advice) is the plain witness on data that
+    start an hour or more after ``T``: the live model puts the plain spec in its place then,
+    and only then.  Checked on the columns themselves: built on ten minutes of telemetry
+    after the switch, the switched-on column equals the plain one (the same series times 1)."""
+    from ttlcore.effects import effect_input_from_telemetry, make_effects
+
+    switched = "witness:source=12.eta,link=23,delay=1,vary=step,t_step=30600s"
+    resonance = "fd-coupling:source=32.phi,link=23,f0=0.048Hz,q=3.8,vary=step,t_step=43174.2s"
+    live = LiveModel(["linear-ttl", switched, resonance], ())
+    switched, resonance = live.effects[1:]  # as the model spells them
+    assert live.settled(30600.0 + 1800.0) == {}  # the switch inside the columns' history
+    assert live.settled(30600.0 + 3601.0) == {switched: "witness:source=12.eta,link=23,delay=1"}
+    assert live.settled(43174.2 + 3601.0) == {
+        switched: "witness:source=12.eta,link=23,delay=1",
+        resonance: make_effects(["fd-coupling:source=32.phi,link=23,f0=0.048Hz,q=3.8"])[0].spec(),
+    }
+    data = effect_input_from_telemetry(telemetry())  # t0 = 0: long after a switch at -2 h
+    on, plain = make_effects(
+        ["witness:source=12.eta,link=23,delay=1,vary=step,t_step=-7200s", "witness:source=12.eta,link=23,delay=1"]
+    )
+    (a,), (b,) = on.columns(data), plain.columns(data)
+    assert [(p.link, p.delayed, p.channel) for p in a.parts] == [(p.link, p.delayed, p.channel) for p in b.parts]
+    for pa, pb in zip(a.parts, b.parts, strict=True):
+        np.testing.assert_array_equal(pa.series, pb.series)  # the witness times H(t + 2 h) = 1

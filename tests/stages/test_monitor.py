@@ -238,6 +238,23 @@ def driver(tmp_path):
 
 def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
     t_begin = time.monotonic()
+    statuses = _drive_monitor(driver, procs, tmp_path)
+    rec_dir = tmp_path / "rec" / RUN
+    _check_monitor_mcap(rec_dir / "monitor.mcap", statuses)
+    # ---- the Rerun recording
+    rrd = rec_dir / "monitor.rrd"
+    ent = rrd_entities(rrd)
+    _check_coefficient_series(ent, driver)
+    _check_asd_plots(ent)
+    _check_monitor_texts(ent)
+    _check_rrd_layout(rrd, ent)
+    print(f"monitor test: {time.monotonic() - t_begin:.1f} s")
+
+
+def _drive_monitor(driver, procs, tmp_path) -> list:
+    """The monitor fed the fits of the day (ten from the publishers' caches before it starts),
+    a diagnosis, malformed messages and a duplicate, then stopped; returns the four statuses
+    it published (segments 0, 1, 2 and the last)."""
     # before the monitor starts: the first segment and ten fits (from the publishers' caches)
     driver.telemetry(0)
     driver.tdi_and_residual(0)
@@ -294,9 +311,13 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
     time.sleep(0.5)
     driver.bus.session.put(control_key(RUN, "stop"), b"")
     assert finish(proc, 30) == 0, output(proc)
+    return statuses
 
-    # ---- the MCAP recording: alerts as JSON, monitor messages, errors
-    rec = read_recording(rec_dir / "monitor.mcap")
+
+def _check_monitor_mcap(path, statuses) -> None:
+    """The monitor's MCAP recording: alerts as JSON, monitor messages, errors and events."""
+    last = N_FITS - 1
+    rec = read_recording(path)
     assert rec.complete
     alerts = rec.json("alerts")
     steps = [a for a in alerts if a["kind"] == "step"]
@@ -315,9 +336,10 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
     assert {e["kind"] for e in rec.json("errors")} >= {"rejected", "failed"}
     assert ("duplicate", 5) in [(e["kind"], e["index"]) for e in rec.json("events")]
 
-    # ---- the Rerun recording
-    rrd = rec_dir / "monitor.rrd"
-    ent = rrd_entities(rrd)
+
+def _check_coefficient_series(ent, driver) -> None:
+    """The Rerun recording's coefficient series: one entity per coefficient, the fit, fit +-
+    sigma and the truth averaged over each window, at the window's centre; chi2/dof per fit."""
     # one entity per coefficient, four series: the fit, fit + sigma, fit - sigma and the truth
     # (a fit drawn before the truth file was known is drawn again with it: the row with the truth counts)
     fit_rows = [row for row in ent["/coefficients/23/phi_tx"] if "Scalars:scalars" in row[1]]
@@ -346,6 +368,11 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
     chi2 = [row for row in ent["/adequacy/chi2_dof"] if "Scalars:scalars" in row[1]]
     assert len(chi2) == N_FITS
 
+
+def _check_asd_plots(ent) -> None:
+    """The Rerun recording's ASDs: log10 values against log10 frequency for each segment,
+    inside the fit band and the view's science range, the requirement across the band, the
+    data's slope."""
     # ASDs as log10 values vs log10 frequency, for each segment, inside the fit band and the
     # science range of the view (1e-13..1e-9 m/sqrt(Hz))
     lo, hi = np.log10(DEFAULT_BAND)
@@ -382,6 +409,12 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
     assert np.polyfit(data[high, 0], data[high, 1], 1)[0] == pytest.approx(-1.0, abs=0.3)
     assert "/asd/plot" in ent and "Transform3D:scale" in ent["/asd/plot"][0][1]
     assert "/asd/plot/grid" in ent and "/asd/plot/ticks" in ent and "/asd/plot/legend" in ent
+
+
+def _check_monitor_texts(ent) -> None:
+    """The Rerun recording's residual/expected series, alerts, log, run summary and the
+    diagnosis panel."""
+    last = N_FITS - 1
     ratio = [row for row in ent["/adequacy/log10_residual_over_expected"] if "Scalars:scalars" in row[1]]
     assert len(ratio) == 4
     texts = [row[1]["TextLog:text"][0] for row in ent["/alerts"] if "TextLog:text" in row[1]]
@@ -400,6 +433,9 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
     assert "No diagnosis yet" in diagnoses.pop(0) and list(diagnoses) == [N_FITS - 1], diagnoses
     assert DIAGNOSIS["text"] in diagnoses[N_FITS - 1] and DIAGNOSIS["recommendation"] in diagnoses[N_FITS - 1]
 
+
+def _check_rrd_layout(rrd, ent) -> None:
+    """The Rerun recording's blueprint views, footer, chunk batching and series styles."""
     views = blueprint_views(rrd)
     kinds = sorted(k for k, _ in views)
     # one plot per coefficient (24), chi2/dof, residual/expected, chi2/dof per band, the model timeline
@@ -425,7 +461,6 @@ def test_monitor_draws_asds_trends_truth_and_alerts(driver, procs, tmp_path):
     styled = [row for row in rows if row[1].get("SeriesLines:colors")]
     assert len(styled) == 1, styled
     assert styled[0][0]["mission_time"] == min(row[0]["mission_time"] for row in rows), styled
-    print(f"monitor test: {time.monotonic() - t_begin:.1f} s")
 
 
 def test_monitor_options_are_checked(procs, tmp_path):

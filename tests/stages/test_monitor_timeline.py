@@ -95,6 +95,25 @@ def fit_meta(k: int) -> dict:
 
 
 def test_monitor_draws_the_model_timeline_gaps_and_before_after(tmp_path):
+    rrd = _draw_timeline_run(tmp_path)
+    ent = rrd_entities(rrd)
+    centre = {k: 0.5 * (k + 1) * SEG for k in range(SEGMENTS) if k != GAP}
+    t_break = {
+        8: 0.5 * (centre[7] + centre[8]),
+        10: 0.5 * (centre[9] + centre[10]),
+        11: 0.5 * (centre[10] + centre[11]),
+    }
+    _check_model_lanes(ent, centre, t_break)
+    _check_gaps_and_left_out(ent)
+    _check_change_log(ent, t_break)
+    _check_before_after(ent, t_break)
+    _check_residual_before_after(ent)
+    _check_timeline_document(ent, rrd)
+
+
+def _draw_timeline_run(tmp_path):
+    """A monitor fed a run's segments (one a gap), fits whose model changes at 8, 10 and 11,
+    and residuals halved from fit 8 on; returns its Rerun recording's path."""
     # the run's plan: the gap segment holds half the samples of the others (its span from the plan)
     table = [[k * SEG, N // 2 if k == GAP else N] for k in range(SEGMENTS)]
     plan = {"segments_total": SEGMENTS, "fs": FS, "t0": 0.0, "samples": N, "samples_total": N * SEGMENTS}
@@ -121,45 +140,47 @@ def test_monitor_draws_the_model_timeline_gaps_and_before_after(tmp_path):
         res = {"residual": data * scale, "ttl_model": np.zeros((3, N))}
         m.on_residual(header("residual", k, res, {"fit_index": k}, k * SEG), res)
     m.rec.disconnect()
+    return m.rrd
 
-    ent = rrd_entities(m.rrd)
 
-    def scalars(entity):
-        rows = [(r[0]["mission_time"].total_seconds(), r[1].get("Scalars:scalars")) for r in ent.get(entity, [])]
-        return sorted((t, v) for t, v in rows if v is not None)
+def _scalars(ent, entity):
+    """The scalar rows of ``entity``: (mission time [s], values), in time order."""
+    rows = [(r[0]["mission_time"].total_seconds(), r[1].get("Scalars:scalars")) for r in ent.get(entity, [])]
+    return sorted((t, v) for t, v in rows if v is not None)
 
-    def clears(entity):
-        return [r[0]["mission_time"].total_seconds() for r in ent.get(entity, []) if "Clear:is_recursive" in r[1]]
 
-    centre = {k: 0.5 * (k + 1) * SEG for k in range(SEGMENTS) if k != GAP}
-    t_break = {
-        8: 0.5 * (centre[7] + centre[8]),
-        10: 0.5 * (centre[9] + centre[10]),
-        11: 0.5 * (centre[10] + centre[11]),
-    }
+def _clears(ent, entity):
+    """The mission times [s] of the recursive clears of ``entity``."""
+    return [r[0]["mission_time"].total_seconds() for r in ent.get(entity, []) if "Clear:is_recursive" in r[1]]
 
-    # ---- the lanes: linear-ttl throughout, the drift from the change at fit 8, the glitch between 10 and 11
+
+def _check_model_lanes(ent, centre, t_break):
+    """The lanes: linear-ttl throughout, the drift from the change at fit 8, the glitch between 10 and 11."""
     lanes = {}
     for k in range(3):
         rows = ent[f"/timeline/model/{k}"]
         names = {n for r in rows for n in r[1].get("SeriesLines:names") or ()}
         (name,) = names
-        lanes[name] = sorted(t for t, _ in scalars(f"/timeline/model/{k}"))
-        assert {v[0] for _, v in scalars(f"/timeline/model/{k}")} == {k + 1.0}, name
+        lanes[name] = sorted(t for t, _ in _scalars(ent, f"/timeline/model/{k}"))
+        assert {v[0] for _, v in _scalars(ent, f"/timeline/model/{k}")} == {k + 1.0}, name
     assert lanes["model: linear-ttl"][0] == centre[0] and lanes["model: linear-ttl"][-1] == centre[11]
     assert lanes["model: drift"] == sorted([t_break[8]] + [centre[k] for k in (8, 9, 10, 11)])
     assert lanes[f"model: {GLITCH}"] == [t_break[10], centre[10], t_break[11]]
     assert "/timeline/model/3" not in ent
 
-    # ---- gaps and hours left out: shaded spans over their mission time
-    gap = scalars("/timeline/gaps")
+
+def _check_gaps_and_left_out(ent):
+    """Gaps and hours left out: shaded spans over their mission time."""
+    gap = _scalars(ent, "/timeline/gaps")
     assert [t for t, _ in gap] == [GAP * SEG, (GAP + 0.5) * SEG] and {v[0] for _, v in gap} == {-1.0}
-    outliers = scalars("/timeline/excluded/outlier")
+    outliers = _scalars(ent, "/timeline/excluded/outlier")
     # two adjacent FFT segments: one span, no clear between them
     assert sorted({t for t, _ in outliers}) == [3 * SEG, 4 * SEG, 5 * SEG], outliers
-    assert clears("/timeline/excluded/outlier") == []
+    assert _clears(ent, "/timeline/excluded/outlier") == []
 
-    # ---- the log: at each change's time, who changed what
+
+def _check_change_log(ent, t_break):
+    """The log: at each change's time, who changed what."""
     log = {
         round(r[0]["mission_time"].total_seconds(), 3): r[1]["TextLog:text"][0]
         for r in ent["/model/log"]
@@ -172,8 +193,10 @@ def test_monitor_draws_the_model_timeline_gaps_and_before_after(tmp_path):
     assert f"+ {GLITCH} by control" in texts[1] and "[new model epoch]" not in texts[1]
     assert f"- {GLITCH} by window (it left the one-day window)" in texts[2]
 
-    # ---- chi2/dof per band before (crosses) and after (dots) each change, at its time
-    before, after = scalars("/adequacy/change/before"), scalars("/adequacy/change/after")
+
+def _check_before_after(ent, t_break):
+    """chi2/dof per band before (crosses) and after (dots) each change, at its time."""
+    before, after = _scalars(ent, "/adequacy/change/before"), _scalars(ent, "/adequacy/change/after")
     assert [t for t, _ in before] == [pytest.approx(t_break[k]) for k in (8, 10, 11)]
     assert [t for t, _ in after] == [t for t, _ in before]
     assert before[0][1] == [2.4, 1.5] and after[0][1] == pytest.approx([1.01, 0.98])  # the window refitted
@@ -181,7 +204,9 @@ def test_monitor_draws_the_model_timeline_gaps_and_before_after(tmp_path):
     styles = [r[1] for r in ent["/adequacy/change/before"] if "SeriesPoints:names" in r[1]]
     assert styles[0]["SeriesPoints:names"] == [f"{x} before" for x in LABELS], styles[0]
 
-    # ---- the residual's ASD before and after each change (noise view), labelled with their segments
+
+def _check_residual_before_after(ent):
+    """The residual's ASD before and after each change (noise view), labelled with their segments."""
     for part, segment in (("before", 7), ("after", 8)):
         rows = [r for r in ent[f"/asd/plot/X2/residual_{part}"] if "LineStrips2D:strips" in r[1]]
         assert rows, part
@@ -195,7 +220,9 @@ def test_monitor_draws_the_model_timeline_gaps_and_before_after(tmp_path):
     shift = np.median([lb[x] - la[x] for x in common])
     assert shift == pytest.approx(math.log10(2.0), abs=0.1)  # half the residual after the change
 
-    # ---- the document and the blueprint
+
+def _check_timeline_document(ent, rrd):
+    """The timeline document (its latest version holds every change) and the blueprint."""
     doc = [r for r in ent["/model/timeline"] if "TextDocument:text" in r[1]]
     # the viewer shows the latest row at the time cursor (of rows at one time, the last logged)
     last = max(enumerate(doc), key=lambda kr: (kr[1][0]["mission_time"], kr[1][0]["segment"], kr[0]))[1]
@@ -205,7 +232,7 @@ def test_monitor_draws_the_model_timeline_gaps_and_before_after(tmp_path):
     assert "0.003-0.01 Hz 2.400 → 1.010" in last and "residual / expected" in last
     assert f"- {GLITCH} by window" in last  # the latest version of the document holds every change
     assert "gap (no data)" in last and "left out: transient / outlier" in last and "up to 13 σ" in last
-    kinds = blueprint_views(m.rrd)
+    kinds = blueprint_views(rrd)
     assert ("TextDocument", f"/{views.TIMELINE_DOC}") in kinds, kinds
     assert sum(1 for k, _ in kinds if k == "TimeSeries") == 24 + 4
 

@@ -479,33 +479,7 @@ def open_in_browser(rrd: Path, tmp: Path, last_time: float, timeout: float):
         )
         browser.call("Emulation.setFocusEmulationEnabled", enabled=True)
         browser.call("Page.startScreencast", format="jpeg", quality=90, everyNthFrame=1)
-        target = int(round(last_time))
-        cpu0, cpu = process_tree_cpu(browser.proc.pid), []
-        start = time.monotonic()
-        browser.call("Page.navigate", url=url)
-        frames: list[tuple[float, bytes]] = []
-        checks: list[tuple[float, int | None, float]] = []
-        final = None
-        while time.monotonic() - start < timeout and final is None:
-            ev = browser.event(QUIET)
-            if ev is not None:
-                if ev.get("method") == "Page.screencastFrame":
-                    params = ev["params"]
-                    browser.settled("Page.screencastFrameAck", sessionId=params["sessionId"])
-                    frames.append((time.monotonic() - start, base64.b64decode(params["data"])))
-                    cpu.append(process_tree_cpu(browser.proc.pid) - cpu0)
-                    keep(f"{rrd.stem}-{frames[-1][0]:05.1f}s.jpg", frames[-1][1])  # how the view fills in
-                continue
-            if not frames:
-                continue
-            png = browser.screenshot()
-            img = pixels(png)
-            shown, differs = time_shown(img), float(np.abs(img - pixels(frames[-1][1])).mean())
-            checks.append((round(time.monotonic() - start, 1), shown, round(differs, 2)))
-            if shown == target and differs < JPEG_SAME:
-                final = png
-            else:  # not complete: a frame asked for, and the frames followed on
-                browser.settled("Input.dispatchMouseEvent", type="mouseMoved", x=WIDTH // 2 + len(checks) % 2, y=4)
+        frames, cpu, checks, final = _follow_frames(browser, url, rrd.stem, int(round(last_time)), timeout)
         browser.call("Page.stopScreencast")
         last = pixels(frames[-1][1]) if frames else None
         k = next((k for k, (_, data) in enumerate(frames) if same(pixels(data), last)), None) if final else None
@@ -527,6 +501,43 @@ def open_in_browser(rrd: Path, tmp: Path, last_time: float, timeout: float):
         except subprocess.TimeoutExpired:
             view.kill()
             view.wait(10)
+
+
+def _follow_frames(browser, url: str, stem: str, target: int, timeout: float):
+    """Navigate ``browser`` to ``url`` and follow the frames the page draws until the view
+    is complete (:func:`open_in_browser`): the time cursor at ``target`` [s] and a
+    screenshot showing what the last frame showed, at most ``timeout`` [s].
+
+    Returns the frames ``(seconds since the navigation, JPEG)``, Chromium's CPU seconds at
+    each, the checks made ``(s, time cursor, difference to the last frame)`` and the final
+    screenshot (None when the view did not complete)."""
+    cpu0, cpu = process_tree_cpu(browser.proc.pid), []
+    start = time.monotonic()
+    browser.call("Page.navigate", url=url)
+    frames: list[tuple[float, bytes]] = []
+    checks: list[tuple[float, int | None, float]] = []
+    final = None
+    while time.monotonic() - start < timeout and final is None:
+        ev = browser.event(QUIET)
+        if ev is not None:
+            if ev.get("method") == "Page.screencastFrame":
+                params = ev["params"]
+                browser.settled("Page.screencastFrameAck", sessionId=params["sessionId"])
+                frames.append((time.monotonic() - start, base64.b64decode(params["data"])))
+                cpu.append(process_tree_cpu(browser.proc.pid) - cpu0)
+                keep(f"{stem}-{frames[-1][0]:05.1f}s.jpg", frames[-1][1])  # how the view fills in
+            continue
+        if not frames:
+            continue
+        png = browser.screenshot()
+        img = pixels(png)
+        shown, differs = time_shown(img), float(np.abs(img - pixels(frames[-1][1])).mean())
+        checks.append((round(time.monotonic() - start, 1), shown, round(differs, 2)))
+        if shown == target and differs < JPEG_SAME:
+            final = png
+        else:  # not complete: a frame asked for, and the frames followed on
+            browser.settled("Input.dispatchMouseEvent", type="mouseMoved", x=WIDTH // 2 + len(checks) % 2, y=4)
+    return frames, cpu, checks, final
 
 
 #: Mean grey-level difference below which a screenshot and a JPEG screencast frame show the

@@ -65,64 +65,16 @@ def test_tdi_builder_ignores_duplicates_reports_malformed_and_goes_on(procs, tmp
         )
         bus.subscriber(f"ttl/{RUN}/errors/*", lambda s: errors.append(json.loads(s.payload.to_bytes())))
         pub = bus.segment_publisher(RUN, "telemetry", cache=8)
-        stage = procs.stage(
-            "tdi_builder",
-            "--run",
-            RUN,
-            "--connect",
-            f"tcp/127.0.0.1:{port}",
-            "--recordings",
-            tmp_path / "rec",
-            "--settle",
-            "0.3",
-        )
-        wait_for(
-            lambda: "tdi_builder" in bus.alive_stages(RUN, timeout=0.5) or stage.poll() is not None,
-            60,
-            "the tdi_builder's liveliness token",
-        )
-        assert stage.poll() is None, output(stage)
-        time.sleep(0.5)  # subscribers declared after the token
+        stage = _start_tdi_builder(procs, bus, port, tmp_path)
 
         def got(timeout=20):
             key, payload, attachment = outputs.get(timeout=timeout)
             return decode(payload, attachment, Expect(allow_nonfinite=True), key=key)
 
-        pub.put(0, *message(0))
-        h0, a0 = got()
-        pub.put(0, *message(0))  # duplicate: ignored
-        p1, att1 = message(1)
-        pub.put(1, p1, b'{"schema": "ttl-segment", broken')  # unreadable header
-        bad = telemetry(1)
-        pub.put(1, *message(1, arrays={"eta": bad.eta[:5]}, channel_axis={"eta": None}))  # wrong shape
-        nan = np.full_like(telemetry(1).eta, np.nan)
-        pub.put(1, *message(1, arrays={"eta": nan}))  # no finite eta: no data
-        pub.put(1, p1[:-8], att1)  # truncated payload
-        pub.put(1, *message(1, arrays={"ltt": bad.ltt[:, :-4]}))  # inconsistent lengths
-        pub.put(1, *message(1, fs=2.0))  # another sampling rate
-        pub.put(1, *message(1, producer="intruder"))  # another producer
-        pub.put(1, p1, att1)  # the good one
-        h1, a1 = got()
-        pub.put(3, *message(3))  # out of order: waits for 2
-        pub.put(2, *message(2))
-        h2, a2 = got()
-        h3, a3 = got()
+        got_all = _feed_good_bad_and_duplicates(pub, got)
         with pytest.raises(queue.Empty):
             got(timeout=1.0)  # nothing twice
-        assert [h.index for h in (h0, h1, h2, h3)] == [0, 1, 2, 3]
-
-        # the outputs are the streaming TDI of the four segments (tail carried between them)
-        ref = TDIStream()
-        for h, a, i in ((h0, a0, 0), (h1, a1, 1), (h2, a2, 2), (h3, a3, 3)):
-            td = ref.push(telemetry(i))
-            assert h.channels == ("X2", "Y2", "Z2") and h.producer == "tdi_builder"
-            assert h.t0 == i * N / FS and h.fs == FS
-            assert h.meta["names"] == list(COEFFICIENT_NAMES) and len(h.meta["ltt_mean"]) == 6
-            assert h.meta["segments_total"] == 4 and h.meta["continuous"] == (i > 0)
-            assert a["data"].shape == (3, N) and a["regressors"].shape == (3, 24, N)
-            np.testing.assert_array_equal(a["data"], td.data)
-            np.testing.assert_array_equal(a["regressors"], td.regressors)
-        assert np.isnan(a0["data"][:, 0]).all() and np.isfinite(a1["data"]).all()
+        _check_streaming_tdi(got_all)
 
         wait_for(lambda: len([e for e in errors if e["kind"] in ("rejected", "forged")]) >= 7, 10, "seven rejections")
         rejected = [(e["index"], e["field"]) for e in errors if e["kind"] in ("rejected", "forged")]
@@ -142,7 +94,78 @@ def test_tdi_builder_ignores_duplicates_reports_malformed_and_goes_on(procs, tmp
         stage.send_signal(signal.SIGTERM)
         assert stage.wait(30) == 0, output(stage)
 
-    rec = read_recording(tmp_path / "rec" / RUN / "tdi_builder.mcap")
+    _check_tdi_builder_recording(tmp_path / "rec" / RUN / "tdi_builder.mcap", rejected)
+
+
+def _start_tdi_builder(procs, bus, port: int, tmp_path):
+    """The tdi_builder started on the router at ``port``, once its liveliness token is seen."""
+    stage = procs.stage(
+        "tdi_builder",
+        "--run",
+        RUN,
+        "--connect",
+        f"tcp/127.0.0.1:{port}",
+        "--recordings",
+        tmp_path / "rec",
+        "--settle",
+        "0.3",
+    )
+    wait_for(
+        lambda: "tdi_builder" in bus.alive_stages(RUN, timeout=0.5) or stage.poll() is not None,
+        60,
+        "the tdi_builder's liveliness token",
+    )
+    assert stage.poll() is None, output(stage)
+    time.sleep(0.5)  # subscribers declared after the token
+    return stage
+
+
+def _feed_good_bad_and_duplicates(pub, got) -> list:
+    """Segments 0 to 3 published with a duplicate, seven malformed versions of segment 1
+    and 3 before 2; returns the four outputs ``(header, arrays)`` received, in order."""
+    pub.put(0, *message(0))
+    h0, a0 = got()
+    pub.put(0, *message(0))  # duplicate: ignored
+    p1, att1 = message(1)
+    pub.put(1, p1, b'{"schema": "ttl-segment", broken')  # unreadable header
+    bad = telemetry(1)
+    pub.put(1, *message(1, arrays={"eta": bad.eta[:5]}, channel_axis={"eta": None}))  # wrong shape
+    nan = np.full_like(telemetry(1).eta, np.nan)
+    pub.put(1, *message(1, arrays={"eta": nan}))  # no finite eta: no data
+    pub.put(1, p1[:-8], att1)  # truncated payload
+    pub.put(1, *message(1, arrays={"ltt": bad.ltt[:, :-4]}))  # inconsistent lengths
+    pub.put(1, *message(1, fs=2.0))  # another sampling rate
+    pub.put(1, *message(1, producer="intruder"))  # another producer
+    pub.put(1, p1, att1)  # the good one
+    h1, a1 = got()
+    pub.put(3, *message(3))  # out of order: waits for 2
+    pub.put(2, *message(2))
+    h2, a2 = got()
+    h3, a3 = got()
+    return [(h0, a0), (h1, a1), (h2, a2), (h3, a3)]
+
+
+def _check_streaming_tdi(outputs: list) -> None:
+    """The outputs are the streaming TDI of the four segments (tail carried between them)."""
+    (h0, a0), (h1, a1), (h2, a2), (h3, a3) = outputs
+    assert [h.index for h in (h0, h1, h2, h3)] == [0, 1, 2, 3]
+    ref = TDIStream()
+    for h, a, i in ((h0, a0, 0), (h1, a1, 1), (h2, a2, 2), (h3, a3, 3)):
+        td = ref.push(telemetry(i))
+        assert h.channels == ("X2", "Y2", "Z2") and h.producer == "tdi_builder"
+        assert h.t0 == i * N / FS and h.fs == FS
+        assert h.meta["names"] == list(COEFFICIENT_NAMES) and len(h.meta["ltt_mean"]) == 6
+        assert h.meta["segments_total"] == 4 and h.meta["continuous"] == (i > 0)
+        assert a["data"].shape == (3, N) and a["regressors"].shape == (3, 24, N)
+        np.testing.assert_array_equal(a["data"], td.data)
+        np.testing.assert_array_equal(a["regressors"], td.regressors)
+    assert np.isnan(a0["data"][:, 0]).all() and np.isfinite(a1["data"]).all()
+
+
+def _check_tdi_builder_recording(path, rejected: list) -> None:
+    """The stage's MCAP recording: the outputs, each accepted input once, the rejections, the
+    events, and JSON schemas on its JSON channels."""
+    rec = read_recording(path)
     assert rec.complete and rec.problem is None
     assert indices(rec, "tdi") == [0, 1, 2, 3]
     # accepted inputs are recorded: each segment once

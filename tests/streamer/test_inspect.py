@@ -449,13 +449,10 @@ def model_of(i):
     return next(m for start, m, _, _ in reversed(MODELS) if i >= start)
 
 
-def test_inspect_prints_the_model_timeline(tmp_path, capsys):
-    """The fitter's model from which segment to which and why (``model`` events: adopt auto
-    with its reason and recommendation, a transient taken out by ``window``, a control
-    message), its gaps and the FFT segments it left out (outliers, gated), in the text and
-    the JSON; a new coupling is a new model epoch of the monitor's trends, a transient is not."""
-    d = tmp_path / "recordings" / RUN
-    d.mkdir(parents=True)
+def _record_model_timeline(d) -> None:
+    """The fitter's and the monitor's recordings of a run in ``d`` whose model changes four
+    times (:data:`MODELS`), with a gap at segment 8, fits 2-3 left out as outliers, fit 9
+    gated, and a step alert in model epoch 2."""
     (d / "plan.json").write_text(json.dumps({"segments_total": N_TIMELINE, "fs": 4.0, "t0": 0.0, "samples": 14400}))
     f = StageFile(d, "fitter")
     changes = {start: (m, by, extra) for start, m, by, extra in MODELS[1:]}
@@ -528,6 +525,16 @@ def test_inspect_prints_the_model_timeline(tmp_path, capsys):
         },
     )
     f.close()
+
+
+def test_inspect_prints_the_model_timeline(tmp_path, capsys):
+    """The fitter's model from which segment to which and why (``model`` events: adopt auto
+    with its reason and recommendation, a transient taken out by ``window``, a control
+    message), its gaps and the FFT segments it left out (outliers, gated), in the text and
+    the JSON; a new coupling is a new model epoch of the monitor's trends, a transient is not."""
+    d = tmp_path / "recordings" / RUN
+    d.mkdir(parents=True)
+    _record_model_timeline(d)
 
     code, out, err = run_ttl(capsys, "inspect", d, "--json", "-")
     assert code == 0, err

@@ -438,8 +438,6 @@ def test_hostile_content_from_each_identity_changes_nothing(tmp_path):
     certificate, control messages of the same kind.  No stage crashes or stalls, every
     message is recorded by every stage it reached, the fits and residuals are the clean
     run's bit for bit, and ``ttl run`` exits 1 for the conflicting copies."""
-    from streamer.keys import control_key, errors_key, progress_key
-
     procs = Procs(tmp_path)
     rec = tmp_path / "rec"
     port = free_port()
@@ -451,68 +449,7 @@ def test_hostile_content_from_each_identity_changes_nothing(tmp_path):
         attacked = procs.start(run_cmd("hostile", rec, "--listen", f"tls/127.0.0.1:{port}", "--pace", "300"), "hostile")
         endpoint = f"tls/127.0.0.1:{port}"
         wait_for(lambda: "router on" in output(attacked) or attacked.poll() is not None, 120, "the run's router")
-        creds = rec / "hostile" / "credentials"
-        genuine: dict[str, dict] = {t: {} for t in CONSUMERS}
-
-        def keep(topic, sample) -> None:
-            """The first copy of each segment (this reader also sees the hostile ones sent
-            below, which the codec refuses: they are not kept)."""
-            try:
-                index = parse_header(sample.attachment, str(sample.key_expr)).index
-            except CodecError:
-                return
-            genuine[topic].setdefault(index, (sample.payload.to_bytes(), sample.attachment.to_bytes()))
-
-        with Bus.open(
-            SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="monitor")
-        ) as reader:
-            for topic in CONSUMERS:
-                reader.subscriber(f"ttl/hostile/{topic}", lambda s, t=topic: keep(t, s))
-            # segment 1 of every topic published, and (progress) used by every consumer
-            wait_for(
-                lambda: all(1 in g for g in genuine.values()) or attacked.poll() is not None,
-                600,
-                "segment 1 of every topic",
-            )
-            wait_for(
-                lambda: "monitor 2/" in output(attacked) or attacked.poll() is not None,
-                600,
-                "the monitor past segment 1",
-            )
-            assert attacked.poll() is None, output(attacked)[-3000:]
-            for stage, topic in (
-                ("replayer", "telemetry"),
-                ("tdi_builder", "tdi"),
-                ("fitter", "fit"),
-                ("subtractor", "residual"),
-            ):
-                with Bus.open(
-                    SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity=stage)
-                ) as bus:
-                    put = bus.session.put
-                    for kind, payload, attachment in hostile_variants(*genuine[topic][1]):
-                        put(
-                            f"ttl/hostile/{topic}",
-                            payload,
-                            attachment=attachment,
-                            congestion_control=zenoh.CongestionControl.BLOCK,
-                        )
-                        sent[topic] = sent.get(topic, 0) + 1
-                        sent[f"{topic}/{kind}"] = sent.get(f"{topic}/{kind}", 0) + 1
-                        time.sleep(0.002)
-                    bomb = b'{"stage":' + b"[" * 100_000 + b"]" * 100_000 + b"}"
-                    put(errors_key("hostile", 1), bomb)
-                    put(progress_key("hostile", stage), bomb)
-            with Bus.open(
-                SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="launcher")
-            ) as bus:
-                for payload in (
-                    b'{"effects":' + b"[" * 100_000 + b"]" * 100_000 + b"}",
-                    b'{"effects": [1e999999]}',
-                    b'{"effects": ["' + b"a" * 900_000 + b'"]}',
-                ):
-                    bus.session.put(control_key("hostile", "fitter", "model"), payload)
-            code = finish(attacked, 600)
+        code = _attack(attacked, endpoint, rec / "hostile" / "credentials", sent)
         out = output(attacked)
     finally:
         procs.close()
@@ -524,35 +461,120 @@ def test_hostile_content_from_each_identity_changes_nothing(tmp_path):
     run_dir = rec / "hostile"
     for topic, consumers in CONSUMERS.items():
         for stage in consumers:
-            r = read_recording(run_dir / f"{stage}.mcap")
-            assert r.complete and r.problem is None, stage
-            errors = r.json("errors")
-            on_topic = [
-                e
-                for e in errors
-                if (e.get("key") or "").split("/")[2:3] == [topic] and e["kind"] in ("rejected", "forged", "conflict")
-            ]
-            dups = [e for e in r.json("events") if e["kind"] == "duplicate" and f"/{topic}/" in e["message"]]
-            assert len(on_topic) + len(dups) >= sent[topic], (stage, topic, len(on_topic), len(dups), sent[topic])
-            assert not [e for e in errors if e["kind"] == "failed"], (
-                stage,
-                [e for e in errors if e["kind"] == "failed"][:3],
-            )
-            conflicts = [e for e in on_topic if e["kind"] == "conflict" and e["field"] == "payload"]
-            assert conflicts and all(e["details"]["first_copy"] == "used" for e in conflicts), (stage, conflicts[:3])
-            deep = [e for e in on_topic if "levels deep" in e["message"]]
-            assert deep, (stage, topic)
+            _check_hostile_recorded(run_dir / f"{stage}.mcap", stage, topic, sent[topic])
     control = read_recording(run_dir / "fitter.mcap").json("control")
     assert [c["accepted"] for c in control] == [False, False, False], control
-    a, b = fits(rec / "clean"), fits(run_dir)
+    _check_same_as_clean(rec / "clean", run_dir)
+
+
+def _attack(attacked, endpoint: str, creds, sent: dict) -> int:
+    """Once segment 1 of every topic is published and the monitor is past it, the hostile
+    content sent with each stage's certificate and the launcher's (``sent``: counts by topic
+    and by topic/kind); returns the exit code of the attacked run."""
+    from streamer.keys import control_key
+
+    genuine: dict[str, dict] = {t: {} for t in CONSUMERS}
+
+    def keep(topic, sample) -> None:
+        """The first copy of each segment (this reader also sees the hostile ones sent
+        below, which the codec refuses: they are not kept)."""
+        try:
+            index = parse_header(sample.attachment, str(sample.key_expr)).index
+        except CodecError:
+            return
+        genuine[topic].setdefault(index, (sample.payload.to_bytes(), sample.attachment.to_bytes()))
+
+    with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="monitor")) as reader:
+        for topic in CONSUMERS:
+            reader.subscriber(f"ttl/hostile/{topic}", lambda s, t=topic: keep(t, s))
+        # segment 1 of every topic published, and (progress) used by every consumer
+        wait_for(
+            lambda: all(1 in g for g in genuine.values()) or attacked.poll() is not None,
+            600,
+            "segment 1 of every topic",
+        )
+        wait_for(
+            lambda: "monitor 2/" in output(attacked) or attacked.poll() is not None,
+            600,
+            "the monitor past segment 1",
+        )
+        assert attacked.poll() is None, output(attacked)[-3000:]
+        for stage, topic in (
+            ("replayer", "telemetry"),
+            ("tdi_builder", "tdi"),
+            ("fitter", "fit"),
+            ("subtractor", "residual"),
+        ):
+            _send_hostile(endpoint, creds, stage, topic, genuine[topic][1], sent)
+        with Bus.open(
+            SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="launcher")
+        ) as bus:
+            for payload in (
+                b'{"effects":' + b"[" * 100_000 + b"]" * 100_000 + b"}",
+                b'{"effects": [1e999999]}',
+                b'{"effects": ["' + b"a" * 900_000 + b'"]}',
+            ):
+                bus.session.put(control_key("hostile", "fitter", "model"), payload)
+        return finish(attacked, 600)
+
+
+def _send_hostile(endpoint: str, creds, stage: str, topic: str, first: tuple, sent: dict) -> None:
+    """With ``stage``'s certificate, the hostile variants of segment 1 of ``topic`` (``first``:
+    its payload and attachment) and error and progress messages nested 100000 deep."""
+    from streamer.keys import errors_key, progress_key
+
+    with Bus.open(SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity=stage)) as bus:
+        put = bus.session.put
+        for kind, payload, attachment in hostile_variants(*first):
+            put(
+                f"ttl/hostile/{topic}",
+                payload,
+                attachment=attachment,
+                congestion_control=zenoh.CongestionControl.BLOCK,
+            )
+            sent[topic] = sent.get(topic, 0) + 1
+            sent[f"{topic}/{kind}"] = sent.get(f"{topic}/{kind}", 0) + 1
+            time.sleep(0.002)
+        bomb = b'{"stage":' + b"[" * 100_000 + b"]" * 100_000 + b"}"
+        put(errors_key("hostile", 1), bomb)
+        put(progress_key("hostile", stage), bomb)
+
+
+def _check_hostile_recorded(path, stage: str, topic: str, n_sent: int) -> None:
+    """A consumer's recording holds every hostile message on ``topic`` it reached (``n_sent``
+    sent) as a rejection, a conflict or a duplicate, no failure, the conflicting copies with
+    the first used, and the deep nesting named."""
+    r = read_recording(path)
+    assert r.complete and r.problem is None, stage
+    errors = r.json("errors")
+    on_topic = [
+        e
+        for e in errors
+        if (e.get("key") or "").split("/")[2:3] == [topic] and e["kind"] in ("rejected", "forged", "conflict")
+    ]
+    dups = [e for e in r.json("events") if e["kind"] == "duplicate" and f"/{topic}/" in e["message"]]
+    assert len(on_topic) + len(dups) >= n_sent, (stage, topic, len(on_topic), len(dups), n_sent)
+    assert not [e for e in errors if e["kind"] == "failed"], (
+        stage,
+        [e for e in errors if e["kind"] == "failed"][:3],
+    )
+    conflicts = [e for e in on_topic if e["kind"] == "conflict" and e["field"] == "payload"]
+    assert conflicts and all(e["details"]["first_copy"] == "used" for e in conflicts), (stage, conflicts[:3])
+    deep = [e for e in on_topic if "levels deep" in e["message"]]
+    assert deep, (stage, topic)
+
+
+def _check_same_as_clean(clean_dir, run_dir) -> None:
+    """The attacked run's fits and residuals are the clean run's bit for bit."""
+    a, b = fits(clean_dir), fits(run_dir)
     assert sorted(a) == sorted(b) == list(range(SEGMENTS))
     for i in a:
         for k in a[i]:
             np.testing.assert_array_equal(a[i][k], b[i][k], err_msg=f"fit {i} {k}")
     residual = {}
-    for name in ("clean", "hostile"):
+    for name, path in (("clean", clean_dir), ("hostile", run_dir)):
         residual[name] = {
-            s.header.index: s.arrays for s in read_recording(rec / name / "subtractor.mcap").segments("residual")
+            s.header.index: s.arrays for s in read_recording(path / "subtractor.mcap").segments("residual")
         }
     assert sorted(residual["clean"]) == sorted(residual["hostile"]) == list(range(SEGMENTS))
     for i, arrays in residual["clean"].items():

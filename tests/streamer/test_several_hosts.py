@@ -152,42 +152,7 @@ def test_three_hosts_with_a_cut_link_equal_one_host(network, tmp_path):
             tmp_path / "creds", hosts=[a for pair in LINKS.values() for _, _, a in pair]
         )
         # hosts B and C: routers (to the previous host) and their stages, up before the run starts
-        procs.start(
-            in_ns(
-                "B",
-                *ttl_command(
-                    "router",
-                    "--credentials",
-                    str(creds),
-                    "--listen",
-                    LOCAL,
-                    "--listen",
-                    endpoint("198.18.1.2"),
-                    "--listen",
-                    endpoint("198.18.2.2"),
-                    "--connect",
-                    endpoint("198.18.1.1"),
-                ),
-            ),
-            "router-B",
-        )
-        procs.start(
-            in_ns(
-                "C",
-                *ttl_command(
-                    "router",
-                    "--credentials",
-                    str(creds),
-                    "--listen",
-                    LOCAL,
-                    "--listen",
-                    endpoint("198.18.2.3"),
-                    "--connect",
-                    endpoint("198.18.2.2"),
-                ),
-            ),
-            "router-C",
-        )
+        _start_routers(procs, creds)
         remote = {"tdi_builder": "B", "fitter": "C", "subtractor": "C"}
         stages = {}
         for stage, host in remote.items():
@@ -237,22 +202,67 @@ def test_three_hosts_with_a_cut_link_equal_one_host(network, tmp_path):
             assert finish(proc, 60) == 0, (stage, output(proc)[-2000:])
 
         # every segment arrived everywhere, and the results are the one-host run's
-        three_dir, one_dir = rec / "three", rec / "one"
-        for stage, topic in {"tdi_builder": "tdi", "fitter": "fit", "subtractor": "residual"}.items():
-            got = sorted(m.header.index for m in read_recording(three_dir / f"{stage}.mcap").segments(topic))
-            assert got == list(range(SEGMENTS)), (stage, got)
-        a, b = fits(one_dir), fits(three_dir)
-        assert sorted(a) == sorted(b) == list(range(SEGMENTS))
-        for i in a:
-            for k in a[i]:
-                np.testing.assert_array_equal(a[i][k], b[i][k], err_msg=f"fit {i} {k}")
-        ra = read_recording(one_dir / "subtractor.mcap").segments("residual")
-        rb = read_recording(three_dir / "subtractor.mcap").segments("residual")
-        for x, y in zip(ra, rb):
-            for k in x.arrays:
-                np.testing.assert_array_equal(np.asarray(x.arrays[k]), np.asarray(y.arrays[k]))
-        # the routers refused nothing of the run's own stages
-        refused = (three_dir / "security.jsonl").read_text()
-        assert refused == "", refused[:2000]
+        _check_same_as_one_host(rec / "one", rec / "three")
     finally:
         procs.close()
+
+
+def _start_routers(procs: Procs, creds) -> None:
+    """The routers of hosts B (to A) and C (to B), listening on their links and loopback."""
+    procs.start(
+        in_ns(
+            "B",
+            *ttl_command(
+                "router",
+                "--credentials",
+                str(creds),
+                "--listen",
+                LOCAL,
+                "--listen",
+                endpoint("198.18.1.2"),
+                "--listen",
+                endpoint("198.18.2.2"),
+                "--connect",
+                endpoint("198.18.1.1"),
+            ),
+        ),
+        "router-B",
+    )
+    procs.start(
+        in_ns(
+            "C",
+            *ttl_command(
+                "router",
+                "--credentials",
+                str(creds),
+                "--listen",
+                LOCAL,
+                "--listen",
+                endpoint("198.18.2.3"),
+                "--connect",
+                endpoint("198.18.2.2"),
+            ),
+        ),
+        "router-C",
+    )
+
+
+def _check_same_as_one_host(one_dir, three_dir) -> None:
+    """Every segment arrived at every remote stage, the fits and residuals are the one-host
+    run's bit for bit, and the routers refused nothing of the run's own stages."""
+    for stage, topic in {"tdi_builder": "tdi", "fitter": "fit", "subtractor": "residual"}.items():
+        got = sorted(m.header.index for m in read_recording(three_dir / f"{stage}.mcap").segments(topic))
+        assert got == list(range(SEGMENTS)), (stage, got)
+    a, b = fits(one_dir), fits(three_dir)
+    assert sorted(a) == sorted(b) == list(range(SEGMENTS))
+    for i in a:
+        for k in a[i]:
+            np.testing.assert_array_equal(a[i][k], b[i][k], err_msg=f"fit {i} {k}")
+    ra = read_recording(one_dir / "subtractor.mcap").segments("residual")
+    rb = read_recording(three_dir / "subtractor.mcap").segments("residual")
+    for x, y in zip(ra, rb):
+        for k in x.arrays:
+            np.testing.assert_array_equal(np.asarray(x.arrays[k]), np.asarray(y.arrays[k]))
+    # the routers refused nothing of the run's own stages
+    refused = (three_dir / "security.jsonl").read_text()
+    assert refused == "", refused[:2000]

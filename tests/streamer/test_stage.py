@@ -94,13 +94,28 @@ def driver():
 
 def test_stage_validates_deduplicates_reports_and_stops_cleanly(driver, children, tmp_path):
     proc, mcap_path = driver.start_stage(children, tmp_path)
+    _check_loopback_only(proc)
+    data5 = _feed_good_bad_and_failing(driver)
+    kinds = _check_error_reports(driver)
+    proc.send_signal(signal.SIGTERM)
+    assert proc.wait(20) == 0, output_of(proc)
+    wait_for(lambda: ("doubler", False) in driver.alive, 10, "the stage's token to go")
+    assert ("doubler", True) in driver.alive
+    _check_stage_recording(mcap_path, kinds, data5)
 
-    # only loopback listening sockets in the default configuration
+
+def _check_loopback_only(proc) -> None:
+    """Only loopback listening sockets in the default configuration, no multicast scouting socket."""
     listening = [c for c in psutil.Process(proc.pid).net_connections(kind="inet") if c.status == psutil.CONN_LISTEN]
     assert listening and all(c.laddr.ip == "127.0.0.1" for c in listening), listening
     udp = [c for c in psutil.Process(proc.pid).net_connections(kind="udp")]
     assert all(c.laddr.ip == "127.0.0.1" for c in udp), udp  # no multicast scouting socket
 
+
+def _feed_good_bad_and_failing(driver):
+    """Segments 0 and 1 (a duplicate of 0, five bad copies of 1 and one on another key), 3
+    (2 missing), 4 (its handler raises) and 5, each good output checked; returns segment 5's
+    data."""
     data0, p0, a0 = good(0)
     driver.telemetry.put(0, p0, a0)
     header, arrays = driver.output()
@@ -134,7 +149,12 @@ def test_stage_validates_deduplicates_reports_and_stops_cleanly(driver, children
     np.testing.assert_array_equal(arrays["data"], 2 * data5)
     with pytest.raises(queue.Empty):
         driver.output(timeout=0.5)  # nothing for 0 again, 2 or 4
+    return data5
 
+
+def _check_error_reports(driver) -> list:
+    """The seven error reports, in order but for the copy on the wrong key; returns their
+    (kind, index, field) without it."""
     wait_for(lambda: len(driver.errors) >= 7, 10, "seven error reports")
     time.sleep(0.3)
     kinds = [(e["kind"], e["index"], e["field"]) for _, e in driver.errors]
@@ -154,12 +174,12 @@ def test_stage_validates_deduplicates_reports_and_stops_cleanly(driver, children
     assert [k for k, _ in driver.errors][:1] == [errors_key(RUN, None)]
     assert "RuntimeError: asked to fail on segment 4" in driver.errors[-2][1]["message"]
     assert "not received within 0.5 s" in driver.errors[-1][1]["message"]
+    return kinds
 
-    proc.send_signal(signal.SIGTERM)
-    assert proc.wait(20) == 0, output_of(proc)
-    wait_for(lambda: ("doubler", False) in driver.alive, 10, "the stage's token to go")
-    assert ("doubler", True) in driver.alive
 
+def _check_stage_recording(mcap_path, kinds: list, data5) -> None:
+    """The stage's MCAP recording: metadata, inputs and outputs, errors, events, summaries,
+    and JSON schemas on its JSON channels (mcap's own reader)."""
     rec = read_recording(mcap_path)
     assert rec.complete and rec.problem is None
     assert rec.metadata["ttl"]["stage"] == "doubler"

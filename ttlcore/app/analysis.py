@@ -251,35 +251,13 @@ def analyze(
     """
 
     say = progress or (lambda msg: None)
-    timings: dict[str, float] = {}
-    clock = time.monotonic()
-
-    def lap(name):
-        nonlocal clock
-        now = time.monotonic()
-        timings[name] = round(now - clock, 3)
-        clock = now
-
+    clock = _Laps()
     method = check_method(method)
     s = replace(settings or FitSettings(), band=tuple(float(b) for b in band))
-    if not (math.isfinite(s.segment_duration) and s.segment_duration > 0):
-        raise TTLError(f"--segment: must be a positive duration, got {s.segment_duration!r}")
-    check_band(s.band, segment_duration=s.segment_duration)
     data_path = Path(data_path)
     out_dir = Path(out_dir)
-    if out_dir.exists() and not out_dir.is_dir():
-        raise TTLError(f"--out: {out_dir} exists and is not a directory")
-
     # --- check the inputs before any work (and before any progress output)
-    data_kind = file_kind(data_path)
-    if data_kind == "truth":
-        raise TelemetryError(
-            data_path, "this is a truth file; analyse the telemetry file beside it (pass this one with --truth)"
-        )
-    if truth_path is not None:
-        file_kind(truth_path)
-    if data_kind == "ttl":  # our files tell their length without reading the series
-        _check_segment(s.segment_duration, read_header(data_path)["duration"], data_path)
+    data_kind = _check_inputs(data_path, truth_path, out_dir, s)
 
     # --- read
     say(f"reading {data_path}")
@@ -290,7 +268,7 @@ def analyze(
         # errors-in-variables term at the DWS noise level the data were made with (0 if off)
         s = replace(s, dws_asd=dws_asd_from_config(tm.config))
     truth = load_truth(truth_path, tm, data_kind, data_path) if truth_path is not None else None
-    lap("read")
+    clock.lap("read")
 
     # --- TDI
     say(f"TDI of data and 24 regressors ({tm.size} samples at {tm.fs:g} Hz)")
@@ -302,48 +280,22 @@ def analyze(
             f"{len(loss['stretches'])} stretch(es); {100 * loss['tdi_fraction_lost']:.2f} % of the TDI samples lost "
             "(the fit masks them)"
         )
-    lap("tdi")
+    clock.lap("tdi")
 
     # --- fit (truth never enters here)
     say(f"fit ({method}, {s.band[0]:g}-{s.band[1]:g} Hz, {s.segment_duration:g} s segments)")
-    try:
-        if method == "gls":
-            res, _ = fit_tdi(td, s, "gls")
-        else:
-            res = _fit_mcmc(td, s, say, mcmc_options)
-    except np.linalg.LinAlgError:
-        raise TTLError(
-            f"{data_path}: the fit's normal equations are singular (no jitter in the DWS readouts, "
-            "or too little data in the band?)"
-        ) from None
-    except ValueError as exc:
-        raise TTLError(f"{data_path}: fit failed: {exc}") from None
-    lap("fit")
+    res = _fit(td, s, method, say, mcmc_options, data_path)
+    clock.lap("fit")
 
     # --- truth over the fit window
-    notes: list[str] = []
-    truth_mean = None
-    if truth is not None:
-        truth_mean, varying = truth.mean_coefficients(res.t_start, res.t_stop)
-        if varying:
-            notes.append(
-                "true coefficients vary in time: 'truth' is their mean over the fit window, "
-                "and the residual with true coefficients uses that mean"
-            )
-        if truth.ttl is None:
-            notes.append(
-                "the truth (lisainstrument file) holds no TTL time series: TTL residual and "
-                "noise without TTL are not computed"
-            )
-    else:
-        notes.append("no truth given: coefficient errors, TTL residual and noise without TTL not computed")
+    truth_mean, notes = _truth_over_fit(truth, res)
 
     # --- subtraction
     say("subtraction in the time domain")
     sub = analyse_subtraction(
         td, res.coefficients, true_coefficients=truth_mean, ttl_truth=None if truth is None else truth.ttl, ltt=tm.ltt
     )
-    lap("subtraction")
+    clock.lap("subtraction")
 
     # --- fit.json
     paths = {"fit_json": out_dir / "fit.json"}
@@ -364,15 +316,7 @@ def analyze(
     content["truth_file"] = None if truth is None else str(truth.path)
     content["truth_source"] = None if truth is None else truth.source
     content["ttl_residual_available"] = sub.ttl_residual is not None
-    content["settings"] = {
-        "segment_duration": s.segment_duration,
-        "window": s.window,
-        "overlap": s.overlap,
-        "notch": s.notch,
-        "eiv": s.eiv,
-        "robust_covariance": s.robust_covariance,
-        "fit_fs": FIT_FS,
-    }
+    content["settings"] = _settings_json(s)
     content["notes"] = notes
     content["files"] = {k: str(v) for k, v in paths.items()}
     # made only now that the fit has succeeded: a failed analysis (all data NaN, a singular
@@ -382,21 +326,9 @@ def analyze(
     # --- figures
     if figures:
         say("ASDs and figures")
-        arm = C * float(np.mean(td.ltt_mean))
-        curves = asd_x_curves(sub, arm_length=arm)
-        content["asd_x_vs_requirement"] = requirement_summary(curves, s.band)
-        title = f"{data_path.name}: {method.upper()} fit {s.band[0]:g}-{s.band[1]:g} Hz"
-        plot_asd_x(sub, paths["asd_x"], band=s.band, arm_length=arm, title=title, curves=curves)
-        plot_coefficients(
-            res.names,
-            res.coefficients,
-            res.sigma,
-            paths["coefficients"],
-            truth=truth_mean,
-            title=f"{title}, chi2/dof {res.chi2_dof:.3f}",
-        )
-        lap("figures")
-    content["timings_s"] = timings
+        _figures(td, sub, res, s, truth_mean, paths, content, f"{data_path.name}: {method.upper()} fit")
+        clock.lap("figures")
+    content["timings_s"] = clock.timings
     write_json(paths["fit_json"], content)
     return {
         "fit": res,
@@ -404,9 +336,114 @@ def analyze(
         "subtraction": sub,
         "tdi": td,
         "paths": paths,
-        "timings": timings,
+        "timings": clock.timings,
         "notes": notes,
     }
+
+
+class _Laps:
+    """The wall time [s] of each step of the analysis (``timings``: step -> seconds, rounded
+    to ms), a step ending at each :meth:`lap`."""
+
+    def __init__(self):
+        self.timings: dict[str, float] = {}
+        self.clock = time.monotonic()
+
+    def lap(self, name: str) -> None:
+        now = time.monotonic()
+        self.timings[name] = round(now - self.clock, 3)
+        self.clock = now
+
+
+def _check_inputs(data_path: Path, truth_path, out_dir: Path, s: FitSettings) -> str:
+    """The checks of :func:`analyze` before any work: the segment length and band, the output
+    directory, the files' kinds (and for our files, the segment against the duration).
+    Returns the data file's kind; raises TTLError or TelemetryError naming the option or file."""
+    if not (math.isfinite(s.segment_duration) and s.segment_duration > 0):
+        raise TTLError(f"--segment: must be a positive duration, got {s.segment_duration!r}")
+    check_band(s.band, segment_duration=s.segment_duration)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise TTLError(f"--out: {out_dir} exists and is not a directory")
+    data_kind = file_kind(data_path)
+    if data_kind == "truth":
+        raise TelemetryError(
+            data_path, "this is a truth file; analyse the telemetry file beside it (pass this one with --truth)"
+        )
+    if truth_path is not None:
+        file_kind(truth_path)
+    if data_kind == "ttl":  # our files tell their length without reading the series
+        _check_segment(s.segment_duration, read_header(data_path)["duration"], data_path)
+    return data_kind
+
+
+def _fit(td, s: FitSettings, method: str, say, mcmc_options: dict | None, data_path: Path):
+    """The fit of :func:`analyze` (GLS or MCMC), its failures as TTLError naming the file."""
+    try:
+        if method == "gls":
+            res, _ = fit_tdi(td, s, "gls")
+        else:
+            res = _fit_mcmc(td, s, say, mcmc_options)
+    except np.linalg.LinAlgError:
+        raise TTLError(
+            f"{data_path}: the fit's normal equations are singular (no jitter in the DWS readouts, "
+            "or too little data in the band?)"
+        ) from None
+    except ValueError as exc:
+        raise TTLError(f"{data_path}: fit failed: {exc}") from None
+    return res
+
+
+def _truth_over_fit(truth: _Truth | None, res) -> tuple:
+    """The true coefficients averaged over the fit window of ``res`` (None without truth)
+    and the notes on what the truth allows."""
+    notes: list[str] = []
+    truth_mean = None
+    if truth is not None:
+        truth_mean, varying = truth.mean_coefficients(res.t_start, res.t_stop)
+        if varying:
+            notes.append(
+                "true coefficients vary in time: 'truth' is their mean over the fit window, "
+                "and the residual with true coefficients uses that mean"
+            )
+        if truth.ttl is None:
+            notes.append(
+                "the truth (lisainstrument file) holds no TTL time series: TTL residual and "
+                "noise without TTL are not computed"
+            )
+    else:
+        notes.append("no truth given: coefficient errors, TTL residual and noise without TTL not computed")
+    return truth_mean, notes
+
+
+def _settings_json(s: FitSettings) -> dict:
+    """The fit settings ``fit.json`` records."""
+    return {
+        "segment_duration": s.segment_duration,
+        "window": s.window,
+        "overlap": s.overlap,
+        "notch": s.notch,
+        "eiv": s.eiv,
+        "robust_covariance": s.robust_covariance,
+        "fit_fs": FIT_FS,
+    }
+
+
+def _figures(td, sub, res, s: FitSettings, truth_mean, paths: dict, content: dict, title: str) -> None:
+    """The X ASDs (and their ratios to the requirement, into ``content``) and the
+    coefficients drawn to ``paths``; ``title`` is completed with the band."""
+    arm = C * float(np.mean(td.ltt_mean))
+    curves = asd_x_curves(sub, arm_length=arm)
+    content["asd_x_vs_requirement"] = requirement_summary(curves, s.band)
+    title = f"{title} {s.band[0]:g}-{s.band[1]:g} Hz"
+    plot_asd_x(sub, paths["asd_x"], band=s.band, arm_length=arm, title=title, curves=curves)
+    plot_coefficients(
+        res.names,
+        res.coefficients,
+        res.sigma,
+        paths["coefficients"],
+        truth=truth_mean,
+        title=f"{title}, chi2/dof {res.chi2_dof:.3f}",
+    )
 
 
 def _fit_mcmc(td, s: FitSettings, say, options: dict | None):

@@ -261,6 +261,19 @@ def run_day(job: DayJob) -> dict:
         return failed_row(job, exc)
 
 
+def _check_jobs(jobs: list[DayJob], retries: int) -> None:
+    """TTLError, naming what is wrong, unless the days' names are unique, there is a day,
+    and ``retries`` is not negative."""
+    names = [j.name for j in jobs]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise TTLError(f"days: names must be unique, {', '.join(dup)} repeated")
+    if not jobs:
+        raise TTLError("no day to reprocess")
+    if retries < 0:
+        raise TTLError(f"--retries: must be >= 0, got {retries}")
+
+
 def _task_key(job: DayJob, i: int, attempt: int = 0) -> str:
     return f"day-{i:05d}-{job.name}" + (f"-retry{attempt}" if attempt else "")
 
@@ -303,14 +316,7 @@ def reprocess(
     from distributed import as_completed
 
     jobs = list(jobs)
-    names = [j.name for j in jobs]
-    dup = sorted({n for n in names if names.count(n) > 1})
-    if dup:
-        raise TTLError(f"days: names must be unique, {', '.join(dup)} repeated")
-    if not jobs:
-        raise TTLError("no day to reprocess")
-    if retries < 0:
-        raise TTLError(f"--retries: must be >= 0, got {retries}")
+    _check_jobs(jobs, retries)
     out_dir = Path(out_dir)
     start = time.monotonic()
     running: dict[str, tuple[int, int]] = {}  # task key -> (job index, attempt)

@@ -294,31 +294,9 @@ def analyse_case(
     f = welch["data"][0]
     P = {k: v[1] for k, v in welch.items()}
 
-    # GW intact (per Welch bin)
-    intact: dict = {
-        "n_bins": 0,
-        "max_relative_deviation": None,
-        "pass": None,
-        "factor": GW_INTACT_FACTOR,
-        "tolerance": GW_INTACT_TOLERANCE,
-    }
-    if case.gw:
-        sel = (f >= 1e-4) & (P["gw"] > GW_INTACT_FACTOR**2 * P["ttl_residual"]) & (P["gw"] > 0)
-        intact["n_bins"] = int(sel.sum())
-        if sel.any():
-            dev = np.abs(np.sqrt(P["ttl_plus_gw_residual"][sel] / P["gw"][sel]) - 1)
-            intact["max_relative_deviation"] = float(dev.max())
-            intact["f_range_hz"] = [float(f[sel].min()), float(f[sel].max())]
-            intact["pass"] = bool(dev.max() < GW_INTACT_TOLERANCE)
-
-    # requirement outside GW-dominated bins (log-averaged bins in the fit band)
-    fc, lp = log_average(f[1:], np.stack([P["residual"][1:], P["gw"][1:], P["reference_residual"][1:]]))
-    _, req = log_average(f[1:], requirement_x2(f[1:], C * float(np.mean(td.ltt_mean))))
+    intact = _gw_intact(f if case.gw else None, P)
+    fc, req, considered, gw_dom, frac = _above_requirement(f, P, band, td)
     inband = (fc >= band[0]) & (fc <= band[1])
-    gw_dom = lp[1] > lp[2]
-    considered = inband & ~gw_dom
-    above = considered & (lp[0] > req)
-    frac = float(above.sum() / considered.sum()) if considered.any() else float("nan")
 
     snr = _snr_band(f, P["gw"], P["reference_residual"], band, ok.sum() / fs) if case.gw else 0.0
     mm = 1e3
@@ -364,6 +342,43 @@ def analyse_case(
     return out
 
 
+def _gw_intact(f: np.ndarray | None, P: dict) -> dict:
+    """Whether the GW is intact after the subtraction, per Welch bin (frequencies ``f``
+    [Hz], None without GW; ``P``: the X2 PSDs by series): in the bins where the GW exceeds
+    ``GW_INTACT_FACTOR`` times the TTL residual, the largest relative deviation of the ASD
+    of (TTL + GW - fitted model) from the GW's."""
+    intact: dict = {
+        "n_bins": 0,
+        "max_relative_deviation": None,
+        "pass": None,
+        "factor": GW_INTACT_FACTOR,
+        "tolerance": GW_INTACT_TOLERANCE,
+    }
+    if f is not None:
+        sel = (f >= 1e-4) & (P["gw"] > GW_INTACT_FACTOR**2 * P["ttl_residual"]) & (P["gw"] > 0)
+        intact["n_bins"] = int(sel.sum())
+        if sel.any():
+            dev = np.abs(np.sqrt(P["ttl_plus_gw_residual"][sel] / P["gw"][sel]) - 1)
+            intact["max_relative_deviation"] = float(dev.max())
+            intact["f_range_hz"] = [float(f[sel].min()), float(f[sel].max())]
+            intact["pass"] = bool(dev.max() < GW_INTACT_TOLERANCE)
+    return intact
+
+
+def _above_requirement(f: np.ndarray, P: dict, band, td) -> tuple:
+    """The requirement outside GW-dominated bins (log-averaged bins in the fit ``band``
+    [Hz]): the bins' frequencies, the requirement there, the bins considered, the
+    GW-dominated ones and the fraction of those considered where the residual exceeds it."""
+    fc, lp = log_average(f[1:], np.stack([P["residual"][1:], P["gw"][1:], P["reference_residual"][1:]]))
+    _, req = log_average(f[1:], requirement_x2(f[1:], C * float(np.mean(td.ltt_mean))))
+    inband = (fc >= band[0]) & (fc <= band[1])
+    gw_dom = lp[1] > lp[2]
+    considered = inband & ~gw_dom
+    above = considered & (lp[0] > req)
+    frac = float(above.sum() / considered.sum()) if considered.any() else float("nan")
+    return fc, req, considered, gw_dom, frac
+
+
 def _md_table(rows: list[dict]) -> str:
     head = (
         "| case | GW | max err [mm/rad] | RMS err | limit | chi2/dof | frac > req | GW intact (bins, max dev) "
@@ -400,6 +415,63 @@ def _run_group(runner: _Runner, vname: str, names, vdir: Path, figures: bool) ->
         runner.say(f"[{vname}] case {c.name}")
         rows.append(analyse_case(c, base, runner, variant, vdir, figures=figures))
     return rows
+
+
+def _check_scenarios(cases: list, variants: list, by_name: dict, duration: float, fit_settings):
+    """The arguments of :func:`run_scenarios` checked (TTLError naming the option); returns
+    the fit settings, their segment shortened to ``duration`` [s] when longer."""
+    unknown = [c for c in cases if c not in by_name]
+    if unknown:
+        raise TTLError(f"--cases: unknown {', '.join(unknown)}; known: {', '.join(by_name)}")
+    bad = [v for v in variants if v not in VARIANTS]
+    if bad:
+        raise TTLError(f"--variants: unknown {', '.join(bad)}; known: {', '.join(VARIANTS)}")
+    if not (math.isfinite(duration) and duration > 0):
+        raise TTLError(f"--duration: must be positive, got {duration}")
+    seg = (fit_settings or FitSettings()).segment_duration
+    if duration < seg:
+        fit_settings = replace(fit_settings or FitSettings(), segment_duration=float(duration))
+    return fit_settings
+
+
+def _submit(client, variants: list, groups: dict, out_dir: Path, args: tuple) -> dict:
+    """One Dask task per (variant, base simulation) of :func:`run_scenarios` (``args``:
+    duration [s], seed, fit settings, figures); returns their futures by that pair."""
+    duration, seed, fit_settings, figures = args
+    futures = {}
+    for vname in variants:
+        (out_dir / vname).mkdir(exist_ok=True)
+        for key, names in groups.items():
+            futures[vname, key] = client.submit(
+                _group_task,
+                duration,
+                seed,
+                fit_settings,
+                vname,
+                names,
+                str(out_dir / vname),
+                figures,
+                pure=False,
+                retries=1,
+            )
+    return futures
+
+
+def _summary_md(summary: dict, duration: float, seed: int) -> list[str]:
+    """The parts of ``summary.md``: the legend and one table per variant."""
+    md = [
+        "# TTL subtraction with GW signals: scenario summary\n",
+        f"{duration:g} s per case, seed {seed}, total {summary['timings_s']['total']:.0f} s. "
+        "Errors in mm/rad; limit 0.06 mm/rad without merger, 0.1 with (the paper's). "
+        "'frac > req': fraction of log-spaced bins in the fit band, outside GW-dominated ones, where the X2 "
+        "residual exceeds the requirement. 'GW intact': bins where the GW ASD exceeds 10x the TTL residual, "
+        "and the largest relative deviation there of the ASD of (TTL + GW only - fitted model) from the GW's "
+        "(pass < 5 %). 'shift/sigma': largest (C with GW - C without) / sigma; 'SNR band': GW in-band SNR in X2.\n",
+    ]
+    for vname, v in summary["variants"].items():
+        md.append(f"\n## {vname}: {v['title']}\n\n")
+        md.append(_md_table(v["cases"]))
+    return md
 
 
 def _group_task(duration, seed, fit_settings, vname, names, vdir, figures) -> list[dict]:
@@ -445,18 +517,8 @@ def run_scenarios(
     """
     by_name = {c.name: c for c in PAPER_CASES}
     cases = list(by_name) if cases is None else list(cases)
-    unknown = [c for c in cases if c not in by_name]
-    if unknown:
-        raise TTLError(f"--cases: unknown {', '.join(unknown)}; known: {', '.join(by_name)}")
     variants = list(variants)
-    bad = [v for v in variants if v not in VARIANTS]
-    if bad:
-        raise TTLError(f"--variants: unknown {', '.join(bad)}; known: {', '.join(VARIANTS)}")
-    if not (math.isfinite(duration) and duration > 0):
-        raise TTLError(f"--duration: must be positive, got {duration}")
-    seg = (fit_settings or FitSettings()).segment_duration
-    if duration < seg:
-        fit_settings = replace(fit_settings or FitSettings(), segment_duration=float(duration))
+    fit_settings = _check_scenarios(cases, variants, by_name, duration, fit_settings)
     out_dir = Path(out_dir)
     if out_dir.exists() and not out_dir.is_dir():
         raise TTLError(f"--out: {out_dir} exists and is not a directory")
@@ -475,21 +537,7 @@ def run_scenarios(
         groups.setdefault((c.orbit, c.t0), []).append(c.name)
     futures = {}
     if client is not None:  # one task per (variant, base simulation), results gathered below
-        for vname in variants:
-            (out_dir / vname).mkdir(exist_ok=True)
-            for key, names in groups.items():
-                futures[vname, key] = client.submit(
-                    _group_task,
-                    duration,
-                    seed,
-                    fit_settings,
-                    vname,
-                    names,
-                    str(out_dir / vname),
-                    figures,
-                    pure=False,
-                    retries=1,
-                )
+        futures = _submit(client, variants, groups, out_dir, (duration, seed, fit_settings, figures))
         say(f"{len(futures)} tasks submitted to {client.scheduler.address}")
     for vname in variants:
         variant = VARIANTS[vname]
@@ -517,17 +565,6 @@ def run_scenarios(
         r["error_within_limit"] for v in summary["variants"].values() for r in v["cases"]
     )
     write_json(out_dir / "summary.json", summary, indent=1)
-    md = [
-        "# TTL subtraction with GW signals: scenario summary\n",
-        f"{duration:g} s per case, seed {seed}, total {summary['timings_s']['total']:.0f} s. "
-        "Errors in mm/rad; limit 0.06 mm/rad without merger, 0.1 with (the paper's). "
-        "'frac > req': fraction of log-spaced bins in the fit band, outside GW-dominated ones, where the X2 "
-        "residual exceeds the requirement. 'GW intact': bins where the GW ASD exceeds 10x the TTL residual, "
-        "and the largest relative deviation there of the ASD of (TTL + GW only - fitted model) from the GW's "
-        "(pass < 5 %). 'shift/sigma': largest (C with GW - C without) / sigma; 'SNR band': GW in-band SNR in X2.\n",
-    ]
-    for vname, v in summary["variants"].items():
-        md.append(f"\n## {vname}: {v['title']}\n\n")
-        md.append(_md_table(v["cases"]))
+    md = _summary_md(summary, duration, seed)
     write_text(out_dir / "summary.md", "".join(md))
     return summary

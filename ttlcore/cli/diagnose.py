@@ -59,30 +59,8 @@ def run(args) -> int:
         effects = make_effects(split_effects(args.effects), modules)
     except TTLError as exc:
         raise TTLError(f"--effects: {exc}") from None
-    candidates = None
-    if args.candidates:
-        known = available_effects(modules)
-        candidates = [c.strip() for c in args.candidates.split(",") if c.strip()]
-        bad = [c for c in candidates if c not in known]
-        if bad:
-            raise TTLError(f"--candidates: unknown effect(s) {bad}; known: {', '.join(sorted(known))}")
-    defaults = DiagnoseSettings()
-    band = defaults.band if args.band is None else check_band(args.band)
-    segment = None if args.segment is None else parse_duration(args.segment, "--segment")
-    tolerance = FIXED_MODEL_TOLERANCE if args.noise_model == "fixed" else defaults.tolerance
-    if args.tolerance is not None:
-        if not (0 <= args.tolerance < 1):
-            raise TTLError(f"--tolerance: expected a fraction in [0, 1), got {args.tolerance}")
-        tolerance = args.tolerance
-    # built once from the options (the settings are not changed afterwards)
-    s = replace(
-        defaults,
-        band=band,
-        segment_duration=segment,
-        noise_model=args.noise_model,
-        tolerance=tolerance,
-        workers=args.workers,
-    )
+    candidates = _candidates(args.candidates, modules)
+    s = _settings(args)
     with status_line("ttl diagnose", args.quiet) as say:  # in place on a terminal
         say(f"reading {data}")
         tm = read_telemetry(data)
@@ -106,27 +84,7 @@ def run(args) -> int:
     report["file"] = str(data)
     report["truth_file"] = str(args.truth) if args.truth else None
     if args.out:
-        out = Path(args.out)
-        out.mkdir(parents=True, exist_ok=True)
-
-        # the whitened data of the fit, not to be confused with ``data``, the file's path
-        whitened, model = internals["data"], internals["model"]
-        fits = {"model": model}
-        if "before" in report:
-            fits = {"linear-ttl": fit_model(whitened, make_effects(["linear-ttl"]), time_table=False), "model": model}
-        fine = {label: fine_band_table(fit) for label, fit in fits.items()}
-        paths = {
-            "residual_vs_noise": str(
-                plot_residual_vs_noise(whitened, fits, out / "residual_vs_noise.png", s.tolerance, fine)
-            )
-        }
-        if report.get("witnesses"):
-            paths["witness_coherence"] = str(plot_witness_coherence(report["witnesses"], out / "witness_coherence.png"))
-        if internals.get("transient_map") is not None:
-            paths["time_frequency"] = str(
-                plot_time_frequency(internals["transient_map"], report["transients"], out / "time_frequency.png")
-            )
-        report["figures"] = paths
+        report["figures"] = _figures(report, internals, Path(args.out), s.tolerance)
     written = write_report(args.json, report)
     if to_stdout(args.json):
         return 0
@@ -135,3 +93,59 @@ def run(args) -> int:
     if files and not args.quiet:  # a status line; the report above is the result
         print("  wrote " + ", ".join(files))
     return 0
+
+
+def _candidates(option: str | None, modules: list) -> list[str] | None:
+    """The effects of ``--candidates`` (None: every available one); TTLError naming the
+    unknown ones."""
+    if not option:
+        return None
+    known = available_effects(modules)
+    candidates = [c.strip() for c in option.split(",") if c.strip()]
+    bad = [c for c in candidates if c not in known]
+    if bad:
+        raise TTLError(f"--candidates: unknown effect(s) {bad}; known: {', '.join(sorted(known))}")
+    return candidates
+
+
+def _settings(args) -> DiagnoseSettings:
+    """The diagnosis settings, built once from the options (not changed afterwards)."""
+    defaults = DiagnoseSettings()
+    band = defaults.band if args.band is None else check_band(args.band)
+    segment = None if args.segment is None else parse_duration(args.segment, "--segment")
+    tolerance = FIXED_MODEL_TOLERANCE if args.noise_model == "fixed" else defaults.tolerance
+    if args.tolerance is not None:
+        if not (0 <= args.tolerance < 1):
+            raise TTLError(f"--tolerance: expected a fraction in [0, 1), got {args.tolerance}")
+        tolerance = args.tolerance
+    return replace(
+        defaults,
+        band=band,
+        segment_duration=segment,
+        noise_model=args.noise_model,
+        tolerance=tolerance,
+        workers=args.workers,
+    )
+
+
+def _figures(report: dict, internals: dict, out: Path, tolerance: float) -> dict[str, str]:
+    """The report's figures drawn into ``out`` (created): the residual against the noise
+    (and the linear-only model's, beside a changed model), the witnesses' coherence and the
+    time-frequency map of the transients, each where the report has it; name -> path."""
+    out.mkdir(parents=True, exist_ok=True)
+    # the whitened data of the fit, not to be confused with ``data``, the file's path
+    whitened, model = internals["data"], internals["model"]
+    fits = {"model": model}
+    if "before" in report:
+        fits = {"linear-ttl": fit_model(whitened, make_effects(["linear-ttl"]), time_table=False), "model": model}
+    fine = {label: fine_band_table(fit) for label, fit in fits.items()}
+    paths = {
+        "residual_vs_noise": str(plot_residual_vs_noise(whitened, fits, out / "residual_vs_noise.png", tolerance, fine))
+    }
+    if report.get("witnesses"):
+        paths["witness_coherence"] = str(plot_witness_coherence(report["witnesses"], out / "witness_coherence.png"))
+    if internals.get("transient_map") is not None:
+        paths["time_frequency"] = str(
+            plot_time_frequency(internals["transient_map"], report["transients"], out / "time_frequency.png")
+        )
+    return paths

@@ -99,14 +99,7 @@ def diagnose(
     s = settings or DiagnoseSettings()
     say = progress or (lambda msg: None)
     clock = time.monotonic()
-    timings = {}
-
-    def lap(name):
-        nonlocal clock
-        now = time.monotonic()
-        timings[name] = round(now - clock, 3)
-        clock = now
-
+    timings: dict[str, float] = {}
     eff = make_effects(list(effects), effect_modules)
     gates, fitted = split_gates(eff)  # gates change the data, not the columns
     if not any(e.name == "linear-ttl" for e in eff):
@@ -118,63 +111,116 @@ def diagnose(
         ungated = whiten_telemetry(tm, s, effect_modules)
         gaps = missing_data(ungated)  # gated before anything is fitted: the data's, not an effect
         data = gated_data(ungated, gates, gaps)
-        lap("tdi_and_spectra")
+        clock = _lap(timings, "tdi_and_spectra", clock)
         say("fit")
         fits = [fit_model(data, fitted)]
         if s.noise_model == "fitted":
             say("noise model")
         model = _with_noise_levels(fits) if s.noise_model == "fitted" else fits.pop()
-        lap("fit")
+        clock = _lap(timings, "fit", clock)
     report: dict = {"model": with_gates(model_json(model, truth_coefficients), gates)}
     report["adequacy"] = report["model"]["adequacy"]
     if len(eff) > 1 or eff[0].name != "linear-ttl":
-        before = fit_model(model.data, make_effects(["linear-ttl"]))
-        ev = change(before, model)
-        report["before"] = model_json(before, truth_coefficients)
-        report["change"] = {
-            "added": [e.spec() for e in eff if e.name != "linear-ttl"],
-            "delta_chi2": None if ev is None else ev.delta_chi2,
-            "log_bayes_factor": None if ev is None else ev.log_bayes_factor,
-            "chi2_dof_before": before.chi2_dof,
-            "chi2_dof_after": model.chi2_dof,
-            "bands_before": [b["chi2_dof"] for b in report["before"]["adequacy"]["bands"]],
-            "bands_after": [b["chi2_dof"] for b in report["adequacy"]["bands"]],
-        }
-        lap("before")
+        _before_after(report, model, eff, truth_coefficients)
+        clock = _lap(timings, "before", clock)
     use_witnesses = s.witnesses if witnesses is None else witnesses
-    # the named candidates are scored (by the pool's workers) while the witness search
-    # runs here; the witness candidates join them when it ends
-    with CandidatePool(model, s.n_workers()) as pool:
-        pool.submit(named_candidates(model, candidates))
-        if use_witnesses:
-            say("witness search")
-            report["witnesses"] = witness_search(tm, model.data, model, s.top_witnesses)
-            lap("witnesses")
-            # the searched ones (pole searches, seconds each) first, so that the threads end
-            # together instead of one running the last search alone
-            extra = witness_candidates(report["witnesses"], s.witness_candidates, effect_modules)
-            if not report["adequacy"]["fails"]:
-                # nothing to explain: the couplings with searched poles (seconds to a minute
-                # each, most of a null day's diagnosis) would only fit noise; the witnesses'
-                # own candidates still say how much each would take
-                # (a step's time is searched too, but in seconds: a witness step on one channel
-                # is kept, or the witness's coarse grid time would be all the report has)
-                costly = [e for e in extra if set(e.unresolved()) - {"t_step"}]
-                skipped = [e.spec() for e in costly]
-                extra = [e for e in extra if e not in costly]
-                report["witnesses"]["skipped_candidates"] = skipped
-                log.info("the model passes: %d witness candidates with searched parameters not tried", len(skipped))
-            pool.submit(sorted(extra, key=lambda e: not e.unresolved()))
-        else:
-            report["witnesses"] = None
-        say("candidates")
-        report["candidates"] = pool.ranked()
-    lap("candidates")
+    clock = _candidates(report, tm, model, s, candidates, effect_modules, use_witnesses, say, (timings, clock))
     refit = functools.partial(
         gated_model, model, fitted, ungated=ungated if gates or gaps else None, gates=gates, gaps=gaps
     )
     del ungated
     onsets = functools.partial(add_onset_candidates, model, report, modules=effect_modules)
+    _transients(report, model, (refit, onsets), s, truth_coefficients)
+    _lap(timings, "transients", clock)
+    report["recommendation"] = recommendation(report, eff)
+    report["settings"] = {
+        "band": list(map(float, s.band)),
+        "n_bands": s.n_bands,
+        "segment_duration": model.data.grid.seg_duration,
+        "time_segment": s.time_segment,
+        "tolerance": s.tolerance,
+        "alpha": s.alpha,
+        "log_bf_threshold": s.log_bf_threshold,
+        "dws_asd": model.data.tdi.dws_asd,
+    }
+    report["timings_s"] = timings
+    report["_internals"] = {"data": model.data, "model": model, "transient_map": report["transients"].pop("_map")}
+    return report
+
+
+def _lap(timings: dict, name: str, since: float) -> float:
+    """The step ``name`` of the diagnosis timed into ``timings`` [s, rounded to ms] from
+    ``since`` (a :func:`time.monotonic` reading); returns the reading at its end."""
+    now = time.monotonic()
+    timings[name] = round(now - since, 3)
+    return now
+
+
+def _before_after(report: dict, model: ModelFit, eff: list, truth_coefficients) -> None:
+    """The linear-only model fitted to the data of ``model`` (report's ``before``) and the
+    evidence for the change to ``model`` (``change``)."""
+    before = fit_model(model.data, make_effects(["linear-ttl"]))
+    ev = change(before, model)
+    report["before"] = model_json(before, truth_coefficients)
+    report["change"] = {
+        "added": [e.spec() for e in eff if e.name != "linear-ttl"],
+        "delta_chi2": None if ev is None else ev.delta_chi2,
+        "log_bayes_factor": None if ev is None else ev.log_bayes_factor,
+        "chi2_dof_before": before.chi2_dof,
+        "chi2_dof_after": model.chi2_dof,
+        "bands_before": [b["chi2_dof"] for b in report["before"]["adequacy"]["bands"]],
+        "bands_after": [b["chi2_dof"] for b in report["adequacy"]["bands"]],
+    }
+
+
+def _candidates(
+    report: dict, tm, model: ModelFit, s: DiagnoseSettings, candidates, effect_modules, use_witnesses: bool, say, laps
+) -> float:
+    """The report's ``witnesses`` and ranked ``candidates``: the named candidates are scored
+    (by the pool's workers) while the witness search runs here; the witness candidates join
+    them when it ends.  ``laps`` is ``(timings, since)``; returns the clock reading at the end."""
+    timings, clock = laps
+    with CandidatePool(model, s.n_workers()) as pool:
+        pool.submit(named_candidates(model, candidates))
+        if use_witnesses:
+            say("witness search")
+            report["witnesses"] = witness_search(tm, model.data, model, s.top_witnesses)
+            clock = _lap(timings, "witnesses", clock)
+            # the searched ones (pole searches, seconds each) first, so that the threads end
+            # together instead of one running the last search alone
+            extra = _witness_extra(report, s, effect_modules)
+            pool.submit(sorted(extra, key=lambda e: not e.unresolved()))
+        else:
+            report["witnesses"] = None
+        say("candidates")
+        report["candidates"] = pool.ranked()
+    return _lap(timings, "candidates", clock)
+
+
+def _witness_extra(report: dict, s: DiagnoseSettings, effect_modules) -> list:
+    """The candidates of the top witnesses; those with searched parameters left out (and
+    listed in ``witnesses.skipped_candidates``) when the model passes."""
+    extra = witness_candidates(report["witnesses"], s.witness_candidates, effect_modules)
+    if not report["adequacy"]["fails"]:
+        # nothing to explain: the couplings with searched poles (seconds to a minute
+        # each, most of a null day's diagnosis) would only fit noise; the witnesses'
+        # own candidates still say how much each would take
+        # (a step's time is searched too, but in seconds: a witness step on one channel
+        # is kept, or the witness's coarse grid time would be all the report has)
+        costly = [e for e in extra if set(e.unresolved()) - {"t_step"}]
+        skipped = [e.spec() for e in costly]
+        extra = [e for e in extra if e not in costly]
+        report["witnesses"]["skipped_candidates"] = skipped
+        log.info("the model passes: %d witness candidates with searched parameters not tried", len(skipped))
+    return extra
+
+
+def _transients(report: dict, model: ModelFit, hooks: tuple, s: DiagnoseSettings, truth_coefficients) -> None:
+    """The report's ``transients`` (with their actions and the gated model) and, beside a
+    signal, the candidates ranked again on the data with it gated.  ``hooks``: the model
+    refitted with spans gated, and the onset candidates added
+    (:func:`~ttlcore.diagnose.excess.transient_report`'s ``refit`` and ``onsets``)."""
+    refit, onsets = hooks
     report["transients"] = transient_report(model, report, refit=refit, onsets=onsets)
     residual = report["transients"].pop("_residual")
     report["transients"].update(transient_actions(model, report, residual))  # actions, not_advised
@@ -190,22 +236,6 @@ def diagnose(
         if ranking is not None:
             report["candidates"] = reordered(report["candidates"], ranking)
             report["candidates_gated"] = ranking.to_json()
-    del gated
-    lap("transients")
-    report["recommendation"] = recommendation(report, eff)
-    report["settings"] = {
-        "band": list(map(float, s.band)),
-        "n_bands": s.n_bands,
-        "segment_duration": model.data.grid.seg_duration,
-        "time_segment": s.time_segment,
-        "tolerance": s.tolerance,
-        "alpha": s.alpha,
-        "log_bf_threshold": s.log_bf_threshold,
-        "dws_asd": model.data.tdi.dws_asd,
-    }
-    report["timings_s"] = timings
-    report["_internals"] = {"data": model.data, "model": model, "transient_map": report["transients"].pop("_map")}
-    return report
 
 
 def gated_model(model: ModelFit, effects, spans, ungated=None, gates=(), gaps=()) -> ModelFit | None:

@@ -125,17 +125,7 @@ def model_columns(data, effects, coefficients=None, keep_series: bool = True) ->
     lin = [e for e in effects if e.needs_coefficients]
     expansion: dict = {}
     if lin:
-        C = coefficients
-        if C is None:
-            part = fit_model(data, plain, keep_series=False, time_table=False)
-            if part.data.noise.key != data.noise.key:  # a drifting model changed the noise model
-                sets = [rewhitened(cs, data.noise.Lh, part.data) for cs in sets]
-            data = part.data
-            C = part.ttl_coefficients()
-            if np.isnan(C).any():
-                raise ConfigError(
-                    "linearised effects (timing-offset, ltt-error) need all 24 linear-ttl coefficients in the model"
-                )
+        data, sets, C = _linear_coefficients(data, plain, sets, coefficients)
         first = list(names)
         for e in lin:  # their series (~400 MB a day through the derivatives) only when kept
             # the Taylor columns at zero do not depend on the given offsets (one cache entry)
@@ -159,6 +149,28 @@ def model_columns(data, effects, coefficients=None, keep_series: bool = True) ->
     if not names:
         return data, empty_set(data.noise.key), expansion, {}
     return data, assemble(names, *sets, series=keep_series), expansion, {}
+
+
+def _linear_coefficients(data, plain: list, sets: list, coefficients) -> tuple:
+    """The 24 linear coefficients linearised effects are expanded with: ``coefficients``
+    when given, else those of the model of the ``plain`` effects fitted to ``data``.
+
+    Returns ``(data, sets, coefficients)``: the data and the plain effects' column sets
+    ``sets`` whitened anew when that fit (a drifting model) changed the noise model.
+    Raises ConfigError when the model lacks some of the 24 coefficients.
+    """
+    C = coefficients
+    if C is None:
+        part = fit_model(data, plain, keep_series=False, time_table=False)
+        if part.data.noise.key != data.noise.key:  # a drifting model changed the noise model
+            sets = [rewhitened(cs, data.noise.Lh, part.data) for cs in sets]
+        data = part.data
+        C = part.ttl_coefficients()
+        if np.isnan(C).any():
+            raise ConfigError(
+                "linearised effects (timing-offset, ltt-error) need all 24 linear-ttl coefficients in the model"
+            )
+    return data, sets, C
 
 
 def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet | None, dict, dict]:
@@ -186,9 +198,31 @@ def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet | None, di
         The model's columns, the expansion points ``"effect.group" -> delta_0``, and the
         searches (the effect's ``--effects`` spec -> :meth:`SearchResult.to_json`).
     """
-    small = 0.05 / (2 * np.pi * data.context.settings.band[1])
+    shifts, moved_names = _given_shifts(lin)
+    C, searches = _searched_shifts(data, first, lin, shifts, moved_names)
+    if not moved_names:
+        return None, {}, searches
+    if C is None:
+        C = _given_coefficients(data, first, lin, shifts)
+    model, expansion, sets = first, dict[str, float](), [first]
+    for _ in range(max(1, data.context.settings.expansion_passes)):
+        model, expansion, sets, theta, sig = _expanded(data, first, lin, C, shifts)
+        C = _ttl_vector(theta)
+        step = {(e.name, g): theta[f"{e.name}.{g}.d1"] for e in lin for g in shifts[e.name]}
+        if all(abs(v) < 0.01 * sig[f"{e}.{g}.d1"] for (e, g), v in step.items()):
+            break
+        for (e, g), v in step.items():
+            shifts[e][g] += v
+    if first.series is not None:  # with series (time-domain adequacy) when ``first`` has them
+        model = assemble(model.names, *sets)
+    return model, expansion, searches
+
+
+def _given_shifts(lin) -> tuple[dict[str, dict], set[str]]:
+    """The given non-zero offsets of the linearised effects ``lin`` (effect name -> group ->
+    offset [s]) and the linear coefficients they shift; ConfigError when two shift the same."""
     shifts: dict[str, dict] = {e.name: {} for e in lin}
-    C, moved_names, searches = None, set[str](), {}
+    moved_names = set[str]()
     for e in lin:  # the given offsets
         for g, d0 in e.fixed_offsets().items():
             members = set(e.shifted_members()[g])
@@ -201,7 +235,20 @@ def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet | None, di
                 )
             moved_names |= members
             shifts[e.name][g] = d0
-    base = None
+    return shifts, moved_names
+
+
+def _searched_shifts(data, first: ColumnSet, lin, shifts: dict, moved_names: set) -> tuple:
+    """The open offsets of the linearised effects searched against the model of ``first``;
+    those clearly measured (delta chi^2 > 25) and large enough for the Taylor error to
+    matter (2 pi f delta > 0.05 at the band's top) join ``shifts`` (and their coefficients
+    ``moved_names``; both updated in place).
+
+    Returns the linear coefficients at the first search's optimum (None without a search)
+    and the searches (effect spec -> search JSON).
+    """
+    small = 0.05 / (2 * np.pi * data.context.settings.band[1])
+    C, searches, base = None, {}, None
     for e in lin:
         if not e.open_offsets():
             continue
@@ -222,37 +269,33 @@ def expand_linearised(data, first: ColumnSet, lin) -> tuple[ColumnSet | None, di
             if big:
                 moved_names |= set(members)
                 shifts[e.name][g] = found.estimates[k]
-    if not moved_names:
-        return None, {}, searches
-    if C is None:
-        # every offset given: the linear coefficients at the given offsets (the model with
-        # the shifted TTL columns, which do not depend on C, and without the d1 columns);
-        # those of the unshifted model are biased by large offsets and misdirect the d1 steps
-        names, sets = list(first.names), [first]
-        for e in lin:
-            repl, cs, _ = shifted_columns(data, e, np.zeros(len(COEFFICIENT_NAMES)), shifts[e.name])
-            names = [repl.get(n, n) for n in names]
-            sets.append(cs)
-        C = _ttl_vector(normal_solution(data, assemble(names, *sets, series=False))[0])
-    model, expansion = first, dict[str, float]()
-    for _ in range(max(1, data.context.settings.expansion_passes)):
-        names, sets, expansion = list(first.names), [first], {}
-        for e in lin:
-            repl, cs, exp = shifted_columns(data, e, C, shifts[e.name])
-            expansion.update(exp)
-            names = [repl.get(n, n) for n in names] + [n for n in cs.names if "@" not in n]
-            sets.append(cs)
-        model = assemble(names, *sets, series=False)
-        theta, sig = normal_solution(data, model)
-        C = _ttl_vector(theta)
-        step = {(e.name, g): theta[f"{e.name}.{g}.d1"] for e in lin for g in shifts[e.name]}
-        if all(abs(v) < 0.01 * sig[f"{e}.{g}.d1"] for (e, g), v in step.items()):
-            break
-        for (e, g), v in step.items():
-            shifts[e][g] += v
-    if first.series is not None:  # with series (time-domain adequacy) when ``first`` has them
-        model = assemble(model.names, *sets)
-    return model, expansion, searches
+    return C, searches
+
+
+def _given_coefficients(data, first: ColumnSet, lin, shifts: dict) -> np.ndarray:
+    """Every offset given: the linear coefficients at the given offsets (the model with the
+    shifted TTL columns, which do not depend on C, and without the d1 columns); those of the
+    unshifted model are biased by large offsets and misdirect the d1 steps."""
+    names, sets = list(first.names), [first]
+    for e in lin:
+        repl, cs, _ = shifted_columns(data, e, np.zeros(len(COEFFICIENT_NAMES)), shifts[e.name])
+        names = [repl.get(n, n) for n in names]
+        sets.append(cs)
+    return _ttl_vector(normal_solution(data, assemble(names, *sets, series=False))[0])
+
+
+def _expanded(data, first: ColumnSet, lin, C: np.ndarray, shifts: dict) -> tuple:
+    """The model expanded at the offsets ``shifts`` with the linear coefficients ``C``:
+    ``(columns, expansion points, column sets, fitted parameters, their sigmas)``."""
+    names, sets, expansion = list(first.names), [first], {}
+    for e in lin:
+        repl, cs, exp = shifted_columns(data, e, C, shifts[e.name])
+        expansion.update(exp)
+        names = [repl.get(n, n) for n in names] + [n for n in cs.names if "@" not in n]
+        sets.append(cs)
+    model = assemble(names, *sets, series=False)
+    theta, sig = normal_solution(data, model)
+    return model, expansion, sets, theta, sig
 
 
 def _ttl_vector(values: dict) -> np.ndarray:

@@ -350,37 +350,16 @@ def strip_internals(report: dict) -> dict:
 
 def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
     """The one-minute text report."""
-    lines = []
     m = report["model"]
     ad = report["adequacy"]
-    lines.append(
+    lines = [
         f"{source}: model {', '.join(m['effects'])} ({m['n_parameters']} parameters), "
         f"chi2/dof {ad['chi2_dof']:.3f} against the instrument noise model"
         f"{' (fitted levels)' if ad['noise_model'].get('kind') == 'fitted' else ''} "
         f"({1e3 * ad['band'][0]:.3g} mHz - {ad['band'][1]:.3g} Hz, tolerance {100 * ad['tolerance']:.0f} %)"
-    )
+    ]
     if "before" in report:
-        b = report["before"]
-        lines.append("  before -> after (" + ", ".join(report["change"]["added"]) + "):")
-        lines.append("    (both columns against the noise levels fitted with the new model; a report of the old model")
-        lines.append("    alone fits the levels to it, which then absorb part of its excess and read lower)")
-        lines.append("    band [Hz]            chi2/dof before   after")
-        for bb, ba in zip(b["adequacy"]["bands"], ad["bands"]):
-            lines.append(
-                f"    {bb['f_lo']:.4f} - {bb['f_hi']:.4f}      {bb['chi2_dof']:8.3f}{' FAIL' if bb['fails'] else '     '}"
-                f"  {ba['chi2_dof']:8.3f}{' FAIL' if ba['fails'] else ''}"
-            )
-        ch = report["change"]
-        if ch.get("delta_chi2") is not None:
-            lines.append(
-                f"    evidence for the change: delta chi2 {ch['delta_chi2']:.1f}, log Bayes factor {ch['log_bayes_factor']:.1f}"
-            )
-        if "max_abs_error" in b["coefficients"] and "max_abs_error" in m["coefficients"]:
-            lines.append(
-                f"    max |coefficient error|: {1e3 * b['coefficients']['max_abs_error']:.4f} -> "
-                f"{1e3 * m['coefficients']['max_abs_error']:.4f} mm/rad "
-                f"({b['coefficients']['max_abs_error_over_sigma']:.1f} -> {m['coefficients']['max_abs_error_over_sigma']:.1f} sigma)"
-            )
+        lines += _before_after_lines(report)
     elif "max_abs_error" in m["coefficients"]:
         c = m["coefficients"]
         lines.append(
@@ -388,36 +367,7 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
         )
     lines.append("  where the model fails:")
     lines += [f"    {x}" for x in ad["summary"]]
-    cands = report["candidates"]
-    lines.append("  candidates (effect: delta chi2 / dof, log Bayes factor, share of the excess, where):")
-    for c in cands[:max_candidates]:
-        where = c["where"]
-        bands = ", ".join(f"{lo:.3g}-{hi:.3g} Hz" for lo, hi in where["main_bands"][:3])
-        links = ", ".join(x["group"] for x in where["links"][:3])
-        extra = f", t_step {where['t_step'] / 3600:.2f} h" if "t_step" in where else ""
-        if "offsets" in where:
-            top = sorted(where["offsets"].items(), key=lambda kv: -abs(kv[1]))[:3]
-            intervals = c.get("searched", {}).get("offset_search", {}).get("intervals", {})
-            extra += ", offsets " + ", ".join(_offset_text(k[len(c["effect"]) + 1 :], v, intervals) for k, v in top)
-        if "search" in c.get("searched", {}):
-            est = c["searched"]["search"]["estimates"]
-            extra += ", " + ", ".join(_estimate_text(c["effect"], k, v) for k, v in est.items())
-        label = c["effect"] if c["cli_spec"] == c["effect"] else c["cli_spec"]
-        # a model that passes has no excess to share out: "-", not "0 %"
-        share = f"{100 * c['explained_fraction']:5.0f} %" if ad["fails"] else "    - "
-        lines.append(
-            f"    {'*' if c['significant'] else ' '} {label:<16} {c['delta_chi2']:10.1f} / {c['n_parameters']:<3d}"
-            f" logB {c['log_bayes_factor']:9.1f}  {share}  [{bands}; {links}{extra}]"
-        )
-    if not any(c["significant"] for c in cands):
-        lines.append("    no candidate is significant")
-    rg = report.get("candidates_gated")
-    if rg:
-        spans = ", ".join(f"{a / 3600:.2f}-{b / 3600:.2f} h" for a, b in rg["spans"][:4])
-        more = f" and {len(rg['spans']) - 4} more" if len(rg["spans"]) > 4 else ""
-        lines.append(
-            f"    scored again with {spans}{more} gated (the signals' hours): {rg['chosen']} first, {rg['reason']}"
-        )
+    lines += _candidate_lines(report, max_candidates)
     w = report.get("witnesses")
     if w:
         lines.append(
@@ -430,7 +380,79 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
     tr = report.get("transients")
     if tr:
         lines += transient_lines(tr)
-    rec = report.get("recommendation")
+    return "\n".join(lines + _recommendation_lines(report.get("recommendation"), source))
+
+
+def _before_after_lines(report: dict) -> list[str]:
+    """The text report's comparison of the model before and after a change."""
+    b, m, ad, ch = report["before"], report["model"], report["adequacy"], report["change"]
+    lines = [
+        "  before -> after (" + ", ".join(ch["added"]) + "):",
+        "    (both columns against the noise levels fitted with the new model; a report of the old model",
+        "    alone fits the levels to it, which then absorb part of its excess and read lower)",
+        "    band [Hz]            chi2/dof before   after",
+    ]
+    for bb, ba in zip(b["adequacy"]["bands"], ad["bands"]):
+        lines.append(
+            f"    {bb['f_lo']:.4f} - {bb['f_hi']:.4f}      {bb['chi2_dof']:8.3f}{' FAIL' if bb['fails'] else '     '}"
+            f"  {ba['chi2_dof']:8.3f}{' FAIL' if ba['fails'] else ''}"
+        )
+    if ch.get("delta_chi2") is not None:
+        lines.append(
+            f"    evidence for the change: delta chi2 {ch['delta_chi2']:.1f}, log Bayes factor {ch['log_bayes_factor']:.1f}"
+        )
+    if "max_abs_error" in b["coefficients"] and "max_abs_error" in m["coefficients"]:
+        lines.append(
+            f"    max |coefficient error|: {1e3 * b['coefficients']['max_abs_error']:.4f} -> "
+            f"{1e3 * m['coefficients']['max_abs_error']:.4f} mm/rad "
+            f"({b['coefficients']['max_abs_error_over_sigma']:.1f} -> {m['coefficients']['max_abs_error_over_sigma']:.1f} sigma)"
+        )
+    return lines
+
+
+def _candidate_lines(report: dict, max_candidates: int) -> list[str]:
+    """The text report's candidates (the first ``max_candidates``) and their gated rescoring."""
+    cands = report["candidates"]
+    fails = report["adequacy"]["fails"]
+    lines = ["  candidates (effect: delta chi2 / dof, log Bayes factor, share of the excess, where):"]
+    lines += [_candidate_line(c, fails) for c in cands[:max_candidates]]
+    if not any(c["significant"] for c in cands):
+        lines.append("    no candidate is significant")
+    rg = report.get("candidates_gated")
+    if rg:
+        spans = ", ".join(f"{a / 3600:.2f}-{b / 3600:.2f} h" for a, b in rg["spans"][:4])
+        more = f" and {len(rg['spans']) - 4} more" if len(rg["spans"]) > 4 else ""
+        lines.append(
+            f"    scored again with {spans}{more} gated (the signals' hours): {rg['chosen']} first, {rg['reason']}"
+        )
+    return lines
+
+
+def _candidate_line(c: dict, fails: bool) -> str:
+    """One candidate's line (``fails``: the model fails, so there is an excess to share out)."""
+    where = c["where"]
+    bands = ", ".join(f"{lo:.3g}-{hi:.3g} Hz" for lo, hi in where["main_bands"][:3])
+    links = ", ".join(x["group"] for x in where["links"][:3])
+    extra = f", t_step {where['t_step'] / 3600:.2f} h" if "t_step" in where else ""
+    if "offsets" in where:
+        top = sorted(where["offsets"].items(), key=lambda kv: -abs(kv[1]))[:3]
+        intervals = c.get("searched", {}).get("offset_search", {}).get("intervals", {})
+        extra += ", offsets " + ", ".join(_offset_text(k[len(c["effect"]) + 1 :], v, intervals) for k, v in top)
+    if "search" in c.get("searched", {}):
+        est = c["searched"]["search"]["estimates"]
+        extra += ", " + ", ".join(_estimate_text(c["effect"], k, v) for k, v in est.items())
+    label = c["effect"] if c["cli_spec"] == c["effect"] else c["cli_spec"]
+    # a model that passes has no excess to share out: "-", not "0 %"
+    share = f"{100 * c['explained_fraction']:5.0f} %" if fails else "    - "
+    return (
+        f"    {'*' if c['significant'] else ' '} {label:<16} {c['delta_chi2']:10.1f} / {c['n_parameters']:<3d}"
+        f" logB {c['log_bayes_factor']:9.1f}  {share}  [{bands}; {links}{extra}]"
+    )
+
+
+def _recommendation_lines(rec: dict | None, source: str) -> list[str]:
+    """The text report's best next step and the recommendation's message."""
+    lines = []
     if rec and rec.get("option") and rec.get("actions"):
         lines.append(
             f"  best next step: {'; '.join(a['text'].split(' (')[0] for a in rec['actions'])}:  "
@@ -440,50 +462,14 @@ def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
         lines.append(f"  best next step: add {rec['cli_spec']}:  ttl diagnose {source or 'DATA'} {rec['option']}")
     if rec and rec.get("message"):
         lines.append(f"  {rec['message']}")
-    return "\n".join(lines)
+    return lines
 
 
 def transient_lines(tr: dict) -> list[str]:
     """The text report's lines on transients (:mod:`ttlcore.diagnose.transients`)."""
-    lines = []
-    ev = tr.get("events") or []
-    q = tr.get("quiet") or {}
-    if ev or tr.get("gaps"):
-        lines.append(f"  transients ({tr['tile_duration']:.0f}-s tiles of the whitened residual per channel):")
-        for e in ev[:5]:
-            lines.append(
-                f"    {e['class']:<18} {e['t_start'] / 3600:6.2f}-{e['t_stop'] / 3600:.2f} h  "
-                f"{e['f_lo'] * 1e3:.3g}-{e['f_hi'] * 1e3:.3g} mHz  in {', '.join(e['channels']) or '-'}  "
-                f"T share {100 * e['t_share']:.1f} %  track {e['track_kind']}  SNR {e['snr']:.0f}  "
-                f"witnesses {100 * e['coherence'].get('explained_fraction', 0):.0f} %"
-            )
-        if len(ev) > 5:
-            lines.append(f"    ... {len(ev) - 5} more")
-        for a, b in tr.get("gaps") or []:
-            lines.append(f"    missing data {a / 3600:.2f}-{b / 3600:.2f} h (gated before the fit)")
-    if q.get("chi2_dof") is not None and (ev or tr.get("gaps")):
-        lines.append(
-            f"    outside them ({q['hours']:.1f} h{', the model refitted with them gated' if q.get('gated') else ''}): "
-            f"chi2/dof {q['chi2_dof']:.3f} against the noise model"
-            f" ({'fails' if q['fails'] else 'consistent'})"
-        )
+    lines = _event_lines(tr)
     for a in tr.get("actions") or []:
-        if a["kind"] == "glitch":
-            lines.append(
-                f"    -> {a['text']}: delta chi2 {a['delta_chi2']:.0f}, logB {a['log_bayes_factor']:.1f}, "
-                f"takes {100 * a['explained_fraction']:.0f} % of the transient's excess"
-            )
-        else:
-            tried = a.get("glitch_tried")
-            lines.append(
-                f"    -> {a['text']}"
-                + (
-                    f" (a glitch takes only {100 * tried['explained_fraction']:.0f} % of it: "
-                    f"{tried['text'].split(' (')[0][4:]})"
-                    if tried
-                    else ""
-                )
-            )
+        lines.append(_transient_action_line(a))
     for a in tr.get("not_advised") or []:  # detectable, but the TTL fit does not move
         lines.append(f"    (not advised: {a['text']}: {a['reason']})")
     verdict = tr.get("classification") or {}
@@ -513,3 +499,46 @@ def transient_lines(tr: dict) -> list[str]:
             + (f", the {len(hours)} hours outside them {np.mean(hours):.3f}" if hours else "")
         )
     return lines
+
+
+def _event_lines(tr: dict) -> list[str]:
+    """The transients' events (the first five), the data gaps and the residual outside them."""
+    lines = []
+    ev = tr.get("events") or []
+    q = tr.get("quiet") or {}
+    if ev or tr.get("gaps"):
+        lines.append(f"  transients ({tr['tile_duration']:.0f}-s tiles of the whitened residual per channel):")
+        for e in ev[:5]:
+            lines.append(
+                f"    {e['class']:<18} {e['t_start'] / 3600:6.2f}-{e['t_stop'] / 3600:.2f} h  "
+                f"{e['f_lo'] * 1e3:.3g}-{e['f_hi'] * 1e3:.3g} mHz  in {', '.join(e['channels']) or '-'}  "
+                f"T share {100 * e['t_share']:.1f} %  track {e['track_kind']}  SNR {e['snr']:.0f}  "
+                f"witnesses {100 * e['coherence'].get('explained_fraction', 0):.0f} %"
+            )
+        if len(ev) > 5:
+            lines.append(f"    ... {len(ev) - 5} more")
+        for a, b in tr.get("gaps") or []:
+            lines.append(f"    missing data {a / 3600:.2f}-{b / 3600:.2f} h (gated before the fit)")
+    if q.get("chi2_dof") is not None and (ev or tr.get("gaps")):
+        lines.append(
+            f"    outside them ({q['hours']:.1f} h{', the model refitted with them gated' if q.get('gated') else ''}): "
+            f"chi2/dof {q['chi2_dof']:.3f} against the noise model"
+            f" ({'fails' if q['fails'] else 'consistent'})"
+        )
+    return lines
+
+
+def _transient_action_line(a: dict) -> str:
+    """One action on a transient: a glitch with its evidence, or another action with the
+    share a glitch would have taken."""
+    if a["kind"] == "glitch":
+        return (
+            f"    -> {a['text']}: delta chi2 {a['delta_chi2']:.0f}, logB {a['log_bayes_factor']:.1f}, "
+            f"takes {100 * a['explained_fraction']:.0f} % of the transient's excess"
+        )
+    tried = a.get("glitch_tried")
+    return f"    -> {a['text']}" + (
+        f" (a glitch takes only {100 * tried['explained_fraction']:.0f} % of it: {tried['text'].split(' (')[0][4:]})"
+        if tried
+        else ""
+    )

@@ -292,60 +292,20 @@ def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
     data = model.data
     if data.context.tm is None:
         raise ConfigError(f"effect {effect.name!r}: searching {', '.join(names)} needs the telemetry")
-    ranges = search_ranges(data, effect)
+    return _grid_search(model, effect, names, coefficients)
+
+
+def _grid_search(model: ModelFit, effect, names: list[str], coefficients) -> SearchResult:
+    """The options ``names`` of ``effect`` searched against ``model`` on a grid refined
+    locally, with the evaluator the kind of column allows (:func:`profile_search`)."""
+    ranges = search_ranges(model.data, effect)
     lo, hi, fwd, back, is_log = _scaled(ranges, names)
-
-    def effect_at(x):
-        v = back(np.clip(np.asarray(x, dtype=float), lo, hi))
-        return effect.with_options(**{k: float(f"{float(val):.6g}") for k, val in zip(names, v)})
-
-    mid = effect_at(0.5 * (lo + hi))
-    cols0 = mid.columns(effect_input_from_telemetry(data.context.tm, coefficients))
-    spectral = (
-        all(c.response is not None for c in cols0)
-        and not mid.needs_coefficients
-        and not any(k.startswith("period") for k in names)
+    effect_at = _effect_at(effect, names, lo, hi, back)
+    spectral, evaluate, exact, modulated, per_decade = _evaluators(
+        model, effect, names, effect_at, 0.5 * (lo + hi), coefficients
     )
-    modulated = None
-    if spectral:
-        sp = _Spectral(model, cols0)
-        idx = [sp.base_names.index(base_column(data, c).names[0]) for c in cols0]
-        names_only = names_only_input()
-        # the responses of the columns at x: built on the names-only input (no series)
-        evaluate = lambda x: sp.evaluate(effect_at(x).columns(names_only), idx)  # noqa: E731
-        exact = lambda x: sp.evaluate(effect_at(x).columns(names_only), idx, exact=True)  # noqa: E731
-        per_decade = 30
-    else:
-        modulated = _modulated_evaluator(model, effect, effect_at) if names == ["period"] else None
-        evaluate = modulated or _generic_evaluator(model, effect_at)
-        per_decade = 12 if modulated else 6
-
-    def memoised(function):
-        """``function`` of the scaled parameters, clipped to the range, evaluated once per point."""
-        memo: dict = {}
-
-        def call(x):
-            key = tuple(np.round(np.clip(x, lo, hi), 9))
-            if key not in memo:
-                memo[key] = function(np.array(key))
-            return memo[key]
-
-        call.memo = memo  # type: ignore[attr-defined]  # the cache, read by the callers
-        return call
-
-    score = memoised(evaluate)
-
-    axes = []
-    for j in range(len(names)):
-        span = (hi[j] - lo[j]) / (math.log(10) if is_log[j] else 1.0)
-        if j == 0:
-            n = max(8, int(per_decade * span) + 1) if is_log[j] else 24
-        elif spectral and is_log[j]:  # a quality factor: 0.5 .. 300 in five steps
-            n = 5
-        else:
-            n = 5 if spectral else 4
-        axes.append(np.linspace(lo[j], hi[j], n))
-    grid = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(names))
+    score = _memoised(evaluate, lo, hi)
+    grid = _search_grid(lo, hi, is_log, spectral, per_decade)
     values = np.array([score(x)[0] for x in grid])
     order = np.argsort(-np.nan_to_num(values, nan=-np.inf))
     best_x, best = grid[order[0]], values[order[0]]
@@ -366,34 +326,151 @@ def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
         if -res.fun > best:
             best, best_x = -res.fun, np.clip(res.x, lo, hi)
     if spectral:
-        # the fast products miss the filter's ringing across the segment tapers: refine
-        # with the columns the fit uses (filtered in time, then windowed)
-        exact_score = memoised(exact)
-        res = optimize.minimize(
-            lambda x: -exact_score(x)[0],
-            best_x,
-            method="Nelder-Mead",
-            options={
-                "xatol": 1e-3,
-                "fatol": 1e-2,
-                "maxfev": 30 * len(names),
-                "initial_simplex": np.vstack([best_x, best_x + 0.01 * np.eye(len(names))]),
-            },
-        )
-        best_x = np.clip(res.x, lo, hi)
-        dchi2, lbf_best = exact_score(best_x)
-        n_exact = len(exact_score.memo)
+        best_x, dchi2, lbf_best, n_exact = _refine_exact(exact, best_x, lo, hi)
     elif modulated:
         # the estimate scored with the exact columns (the modulated TDI only located it)
-        exact_score = memoised(_generic_evaluator(model, effect_at))
+        exact_score = _memoised(_generic_evaluator(model, effect_at), lo, hi)
         dchi2, lbf_best = exact_score(best_x)
         n_exact = len(exact_score.memo)
     else:
         n_exact = 0
         dchi2, lbf_best = score(best_x)
-    # curvature of l = delta_chi2 / 2 in the scaled parameters (the fast profile for
-    # filters: its shape near the optimum is the exact one's to a few per cent)
-    d = len(names)
+    sig, marg = _laplace_evidence(score, best_x, lo, hi, lbf_best, grid)
+    est = back(best_x)
+    intervals = {}
+    for j, k in enumerate(names):
+        a, b = best_x[j] - sig[j], best_x[j] + sig[j]
+        intervals[k] = (float(np.exp(a)), float(np.exp(b))) if is_log[j] else (float(a), float(b))
+    found = effect_at(best_x)
+    log.debug("profile search %s: %s, delta chi2 %.1f", effect.name, dict(zip(names, est)), dchi2)
+    return SearchResult(
+        found,
+        {k: float(found.options[k]) for k in names},
+        intervals,
+        float(dchi2),
+        float(lbf_best),
+        marg,
+        len(score.memo) + n_exact,
+        grid=[(list(map(float, back(x))), float(v)) for x, v in zip(grid, values)],
+    )
+
+
+def _effect_at(effect, names: list[str], lo: np.ndarray, hi: np.ndarray, back):
+    """``effect_at(x)``: ``effect`` with the options ``names`` at the scaled parameters ``x``
+    (clipped to ``[lo, hi]``, 6 significant digits)."""
+
+    def effect_at(x):
+        v = back(np.clip(np.asarray(x, dtype=float), lo, hi))
+        return effect.with_options(**{k: float(f"{float(val):.6g}") for k, val in zip(names, v)})
+
+    return effect_at
+
+
+def _evaluators(model: ModelFit, effect, names: list[str], effect_at, mid_x: np.ndarray, coefficients):
+    """The evaluators of a point of the search, chosen by the kind of column (of the effect
+    at the scaled parameters ``mid_x``, the middle of the range).
+
+    Returns
+    -------
+    spectral : bool
+        Filters on fixed base columns (the fast products of :class:`_Spectral`).
+    evaluate : callable
+        Scaled parameters -> ``(delta_chi2, log Bayes factor)``.
+    exact : callable or None
+        For filters, the same with the columns the fit uses.
+    modulated : callable or None
+        The period of a ``vary=cycle`` witness effect's evaluator (``evaluate`` then).
+    per_decade : int
+        Grid points per decade of a log-scaled first parameter.
+    """
+    data = model.data
+    mid = effect_at(mid_x)
+    cols0 = mid.columns(effect_input_from_telemetry(data.context.tm, coefficients))
+    spectral = (
+        all(c.response is not None for c in cols0)
+        and not mid.needs_coefficients
+        and not any(k.startswith("period") for k in names)
+    )
+    if spectral:
+        sp = _Spectral(model, cols0)
+        idx = [sp.base_names.index(base_column(data, c).names[0]) for c in cols0]
+        names_only = names_only_input()
+        # the responses of the columns at x: built on the names-only input (no series)
+        evaluate = lambda x: sp.evaluate(effect_at(x).columns(names_only), idx)  # noqa: E731
+        exact = lambda x: sp.evaluate(effect_at(x).columns(names_only), idx, exact=True)  # noqa: E731
+        return True, evaluate, exact, None, 30
+    modulated = _modulated_evaluator(model, effect, effect_at) if names == ["period"] else None
+    return False, modulated or _generic_evaluator(model, effect_at), None, modulated, 12 if modulated else 6
+
+
+def _memoised(function, lo: np.ndarray, hi: np.ndarray):
+    """``function`` of the scaled parameters, clipped to the range ``[lo, hi]``, evaluated
+    once per point (the cache is the call's attribute ``memo``, read by the callers)."""
+    memo: dict = {}
+
+    def call(x):
+        key = tuple(np.round(np.clip(x, lo, hi), 9))
+        if key not in memo:
+            memo[key] = function(np.array(key))
+        return memo[key]
+
+    call.memo = memo  # type: ignore[attr-defined]  # the cache, read by the callers
+    return call
+
+
+def _search_grid(lo: np.ndarray, hi: np.ndarray, is_log, spectral: bool, per_decade: int) -> np.ndarray:
+    """The grid of scaled parameters (points, parameters): the first parameter
+    ``per_decade`` points per decade (at least 8) if log-scaled, else 24; a quality factor
+    of filters 5 (0.5 .. 300), other parameters 5 for filters, else 4."""
+    axes = []
+    for j in range(len(lo)):
+        span = (hi[j] - lo[j]) / (math.log(10) if is_log[j] else 1.0)
+        if j == 0:
+            n = max(8, int(per_decade * span) + 1) if is_log[j] else 24
+        elif spectral and is_log[j]:  # a quality factor: 0.5 .. 300 in five steps
+            n = 5
+        else:
+            n = 5 if spectral else 4
+        axes.append(np.linspace(lo[j], hi[j], n))
+    return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(lo))
+
+
+def _refine_exact(exact, best_x: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+    """Nelder-Mead refinement from ``best_x`` with the columns the fit uses (``exact``): the
+    fast products miss the filter's ringing across the segment tapers (filtered in time,
+    then windowed).
+
+    Returns the refined point, its delta chi^2 and log Bayes factor, and the number of
+    exact evaluations.
+    """
+    d = len(best_x)
+    exact_score = _memoised(exact, lo, hi)
+    res = optimize.minimize(
+        lambda x: -exact_score(x)[0],
+        best_x,
+        method="Nelder-Mead",
+        options={
+            "xatol": 1e-3,
+            "fatol": 1e-2,
+            "maxfev": 30 * d,
+            "initial_simplex": np.vstack([best_x, best_x + 0.01 * np.eye(d)]),
+        },
+    )
+    best_x = np.clip(res.x, lo, hi)
+    dchi2, lbf_best = exact_score(best_x)
+    return best_x, dchi2, lbf_best, len(exact_score.memo)
+
+
+def _laplace_evidence(score, best_x: np.ndarray, lo: np.ndarray, hi: np.ndarray, lbf_best, grid: np.ndarray):
+    """The 1-sigma errors of the scaled parameters and the marginal log Bayes factor.
+
+    The curvature of ``l = delta_chi2 / 2`` in the scaled parameters at ``best_x`` (the
+    fast profile ``score`` for filters: its shape near the optimum is the exact one's to a
+    few per cent) gives the covariance; the evidence is Laplace's around the optimum under a
+    uniform prior over ``[lo, hi]``, or the grid average where the curvature is not
+    positive definite (NaN errors then); never above ``lbf_best``.
+    """
+    d = len(best_x)
     h = 1e-3 * np.maximum(hi - lo, 1e-12)
     H = np.zeros((d, d))
     for i in range(d):
@@ -416,21 +493,4 @@ def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
     else:  # the grid average (uniform prior over the grid)
         lb = np.array([score(x)[1] for x in grid])
         marg = float(special.logsumexp(lb) - math.log(lb.size))
-    marg = float(min(marg, lbf_best))
-    est = back(best_x)
-    intervals = {}
-    for j, k in enumerate(names):
-        a, b = best_x[j] - sig[j], best_x[j] + sig[j]
-        intervals[k] = (float(np.exp(a)), float(np.exp(b))) if is_log[j] else (float(a), float(b))
-    found = effect_at(best_x)
-    log.debug("profile search %s: %s, delta chi2 %.1f", effect.name, dict(zip(names, est)), dchi2)
-    return SearchResult(
-        found,
-        {k: float(found.options[k]) for k in names},
-        intervals,
-        float(dchi2),
-        float(lbf_best),
-        marg,
-        len(score.memo) + n_exact,
-        grid=[(list(map(float, back(x))), float(v)) for x, v in zip(grid, values)],
-    )
+    return sig, float(min(marg, lbf_best))

@@ -289,25 +289,8 @@ def _prepare(times, coefficients, sigma, t_start, window, names, units):
         C = C[:, None]
     if C.ndim != 2 or C.shape[0] != k:
         raise ValueError(f"coefficients: expected shape ({k}, P), got {np.shape(coefficients)}")
-    S = np.asarray(sigma, dtype=float)
-    if S.ndim == 3:  # covariances
-        if S.shape != (k, C.shape[1], C.shape[1]):
-            raise ValueError(f"sigma: covariances of shape {S.shape}, expected ({k}, {C.shape[1]}, {C.shape[1]})")
-        S = np.sqrt(np.maximum(np.einsum("kii->ki", S), 0.0))
-    elif S.ndim == 1 and C.shape[1] == 1:
-        S = S[:, None]
-    if S.shape != C.shape:
-        raise ValueError(f"sigma: expected shape {C.shape} (or covariances), got {np.shape(sigma)}")
-    if t_start is not None:
-        ts = np.asarray(t_start, dtype=float).reshape(-1)
-        if ts.size != k:
-            raise ValueError(f"t_start: expected {k} values, got {ts.size}")
-    elif window is not None:
-        if not float(window) > 0:
-            raise ValueError(f"window: expected a positive length [s], got {window!r}")
-        ts = t_stop - float(window)
-    else:
-        raise ValueError("the windows are needed (t_start or window): overlapping windows are correlated")
+    S = _sigmas(sigma, C)
+    ts = _window_starts(t_start, window, t_stop)
     if not (np.all(np.isfinite(t_stop)) and np.all(np.isfinite(ts))):
         raise ValueError("times: non-finite window boundaries")
     if np.any(t_stop <= ts):
@@ -321,6 +304,37 @@ def _prepare(times, coefficients, sigma, t_start, window, names, units):
         raise ValueError(f"names: {len(names)} names for {C.shape[1]} coefficients")
     f = _scale(units)
     return ts, t_stop, C * f, S * f, names
+
+
+def _sigmas(sigma, C: np.ndarray) -> np.ndarray:
+    """The 1-sigma errors, shaped as the coefficients ``C`` (k, P), from ``sigma``: the
+    same shape, (k,) for one coefficient, or covariances (k, P, P)."""
+    k = C.shape[0]
+    S = np.asarray(sigma, dtype=float)
+    if S.ndim == 3:  # covariances
+        if S.shape != (k, C.shape[1], C.shape[1]):
+            raise ValueError(f"sigma: covariances of shape {S.shape}, expected ({k}, {C.shape[1]}, {C.shape[1]})")
+        S = np.sqrt(np.maximum(np.einsum("kii->ki", S), 0.0))
+    elif S.ndim == 1 and C.shape[1] == 1:
+        S = S[:, None]
+    if S.shape != C.shape:
+        raise ValueError(f"sigma: expected shape {C.shape} (or covariances), got {np.shape(sigma)}")
+    return S
+
+
+def _window_starts(t_start, window, t_stop: np.ndarray) -> np.ndarray:
+    """The windows' starts [s]: ``t_start``, else ``t_stop - window``; ValueError without either."""
+    if t_start is not None:
+        ts = np.asarray(t_start, dtype=float).reshape(-1)
+        if ts.size != t_stop.size:
+            raise ValueError(f"t_start: expected {t_stop.size} values, got {ts.size}")
+    elif window is not None:
+        if not float(window) > 0:
+            raise ValueError(f"window: expected a positive length [s], got {window!r}")
+        ts = t_stop - float(window)
+    else:
+        raise ValueError("the windows are needed (t_start or window): overlapping windows are correlated")
+    return ts
 
 
 def window_correlation(t_start, t_stop) -> np.ndarray:
@@ -435,61 +449,83 @@ class _StepScan:
         if self.excluded.shape[0] < n:
             self.excluded = np.vstack([self.excluded, np.zeros((n - self.excluded.shape[0], P), dtype=bool)])
         excluded, hold = self.excluded, self.hold
-        s_plus, s_minus, start_plus, start_minus = self.s_plus, self.s_minus, self.start_plus, self.start_minus
         alerts: list[Alert] = []
         h, k_allow, B = s.step_threshold, s.step_allowance, max(2, int(s.baseline_windows))
         for j in range(self.rows, n):
             if skip[j]:
                 excluded[j] = True
                 continue
-            lo = max(0, j - B)
-            past_d = np.where(excluded[lo:j], np.nan, d[lo:j])
-            count = np.sum(~np.isnan(past_d), axis=0)
-            enough = count >= s.min_history
-            mu = np.zeros(P)
-            factor = np.ones(P)
-            if np.any(enough):
-                with warnings.catch_warnings():
-                    warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns
-                    med_d = np.nanmedian(past_d, axis=0)
-                    wts = np.where(np.isnan(past_d), 0.0, 1.0 / sd[lo:j] ** 2)
-                    mean_d = np.sum(wts * np.nan_to_num(past_d), axis=0) / np.where(wts.sum(0) > 0, wts.sum(0), 1.0)
-                    zc = (past_d - med_d) / sd[lo:j]
-                    mad = _MAD * np.nanmedian(np.abs(zc - np.nanmedian(zc, axis=0)), axis=0)
-                mu = np.where(enough, mean_d, 0.0)
-                factor = np.where(enough & np.isfinite(mad), np.maximum(1.0, mad), 1.0)
+            mu, factor, enough = _baseline(d, sd, excluded, j, B, s.min_history)
             z = (d[j] - mu) / (factor * sd[j])
             for p in range(P):
                 if j > hold[p] and j > 0 and ts[j - 1] < self.hold_time[p]:
                     # the ramp of the last step has not passed (batch: j <= ramp_end): held off
                     excluded[j, p] = True
                     continue
-                if j <= hold[p] or not enough[p]:
+                if j <= hold[p] or not enough[p] or not self._cusum(p, j, z[p], h, k_allow):
                     continue
-                if s_plus[p] == 0.0:
-                    start_plus[p] = j
-                if s_minus[p] == 0.0:
-                    start_minus[p] = j
-                s_plus[p] = max(0.0, s_plus[p] + z[p] - k_allow)
-                s_minus[p] = max(0.0, s_minus[p] - z[p] - k_allow)
-                if s_plus[p] < h and s_minus[p] < h:
-                    continue
-                up = s_plus[p] >= h
-                run_start = int(start_plus[p] if up else start_minus[p])
-                stat = float(s_plus[p] if up else s_minus[p])
-                j0 = _change_point(ts, te, d, sd, mu, factor, p, run_start, j, skip)
-                alert = _step_alert(ts, te, d, sd, mu, factor, p, j0, j, names[p], idx, stat, k_allow, h, skip)
-                alerts.append(alert)
-                # hold off until the ramp has passed: until a window lies wholly after the
-                # latest possible step time (the end of the alarm's older window, te[j]):
-                # the rows up to the first window starting after it, those to come included
-                ramp_end = int(np.searchsorted(ts, te[j], side="left"))  # first window starting after it
-                hold[p] = max(j, min(n - 1, ramp_end))  # difference rows up to that window
-                self.hold_time[p] = te[j]
-                excluded[min(j0, run_start) : hold[p] + 1, p] = True
-                s_plus[p] = s_minus[p] = 0.0
+                alerts.append(self._alarm(p, j, (ts, te, d, sd, mu, factor, skip), names[p], idx, (k_allow, h)))
         self.rows = n
         return alerts
+
+    def _cusum(self, p: int, j: int, z: float, h: float, k_allow: float) -> bool:
+        """Row ``j`` of coefficient ``p`` (its normalised difference ``z``) into the two
+        one-sided sums (a run starts where a sum leaves zero); True when one reaches ``h``."""
+        s_plus, s_minus = self.s_plus, self.s_minus
+        if s_plus[p] == 0.0:
+            self.start_plus[p] = j
+        if s_minus[p] == 0.0:
+            self.start_minus[p] = j
+        s_plus[p] = max(0.0, s_plus[p] + z - k_allow)
+        s_minus[p] = max(0.0, s_minus[p] - z - k_allow)
+        return not (s_plus[p] < h and s_minus[p] < h)
+
+    def _alarm(self, p: int, j: int, rows: tuple, name: str, idx, bounds: tuple) -> Alert:
+        """The alert of coefficient ``p`` raised at row ``j`` (``rows``: ``(ts, te, d, sd, mu,
+        factor, skip)``; ``bounds``: ``(allowance, threshold)``), and the scan held off until
+        the step's ramp has passed, the sums reset."""
+        ts, te, d, sd, mu, factor, skip = rows
+        k_allow, h = bounds
+        n = d.shape[0]
+        up = self.s_plus[p] >= h
+        run_start = int(self.start_plus[p] if up else self.start_minus[p])
+        stat = float(self.s_plus[p] if up else self.s_minus[p])
+        j0 = _change_point(ts, te, d, sd, mu, factor, p, run_start, j, skip)
+        alert = _step_alert(ts, te, d, sd, mu, factor, p, j0, j, name, idx, stat, k_allow, h, skip)
+        # hold off until the ramp has passed: until a window lies wholly after the
+        # latest possible step time (the end of the alarm's older window, te[j]):
+        # the rows up to the first window starting after it, those to come included
+        ramp_end = int(np.searchsorted(ts, te[j], side="left"))  # first window starting after it
+        self.hold[p] = max(j, min(n - 1, ramp_end))  # difference rows up to that window
+        self.hold_time[p] = te[j]
+        self.excluded[min(j0, run_start) : self.hold[p] + 1, p] = True
+        self.s_plus[p] = self.s_minus[p] = 0.0
+        return alert
+
+
+def _baseline(d, sd, excluded, j: int, B: int, min_history: int) -> tuple:
+    """The baseline of difference row ``j``: over the ``B`` rows before it not excluded, the
+    weighted mean ``mu`` of each coefficient's differences and the robust scale ``factor``
+    of their normalised spread (at least 1), where there are ``min_history`` of them
+    (``enough``; elsewhere 0 and 1)."""
+    P = d.shape[1]
+    lo = max(0, j - B)
+    past_d = np.where(excluded[lo:j], np.nan, d[lo:j])
+    count = np.sum(~np.isnan(past_d), axis=0)
+    enough = count >= min_history
+    mu = np.zeros(P)
+    factor = np.ones(P)
+    if np.any(enough):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN columns
+            med_d = np.nanmedian(past_d, axis=0)
+            wts = np.where(np.isnan(past_d), 0.0, 1.0 / sd[lo:j] ** 2)
+            mean_d = np.sum(wts * np.nan_to_num(past_d), axis=0) / np.where(wts.sum(0) > 0, wts.sum(0), 1.0)
+            zc = (past_d - med_d) / sd[lo:j]
+            mad = _MAD * np.nanmedian(np.abs(zc - np.nanmedian(zc, axis=0)), axis=0)
+        mu = np.where(enough, mean_d, 0.0)
+        factor = np.where(enough & np.isfinite(mad), np.maximum(1.0, mad), 1.0)
+    return mu, factor, enough
 
 
 def _ramp(ts, te, j0: int, rows: slice) -> np.ndarray:
@@ -659,37 +695,56 @@ def trend_estimates(
             if np.ptp(col) > 1e-6:
                 cols.append(col)
                 modelled.setdefault(names[p], []).append(t_step)
-        X = np.stack(cols, axis=1)
-        if L_rho is not None and np.all(S[:, p] > 0):
-            Xw = solve_triangular(L_rho, X / S[:, p, None], lower=True)
-            yw = solve_triangular(L_rho, C[:, p] / S[:, p], lower=True)
-        else:
-            cov = rho * np.outer(S[:, p], S[:, p])
-            cov[np.diag_indices(n)] *= 1.0 + 1e-9
-            w, V = np.linalg.eigh(cov)
-            L = V * np.sqrt(np.clip(w, w.max() * 1e-12, None))
-            Xw = np.linalg.solve(L, X)
-            yw = np.linalg.solve(L, C[:, p])
-        beta, *_ = np.linalg.lstsq(Xw, yw, rcond=None)
-        A = Xw.T @ Xw
-        if np.linalg.cond(A) > 1e12:  # a step that cannot be told from the trend: drop steps
-            keep = 2 + len(levels)
-            Xw, A = Xw[:, :keep], (Xw[:, :keep]).T @ Xw[:, :keep]
-            if np.linalg.cond(A) > 1e12:  # nor a level (a break among the last fits): drop those too
-                Xw, A = Xw[:, :2], (Xw[:, :2]).T @ Xw[:, :2]
-            beta, *_ = np.linalg.lstsq(Xw, yw, rcond=None)
+        rate[p], se[p], chi2dof[p], dropped = _coefficient_trend(
+            np.stack(cols, axis=1), C[:, p], S[:, p], rho, L_rho, len(levels)
+        )
+        if dropped:
             modelled.pop(names[p], None)
-        resid = yw - Xw @ beta
-        dof = n - Xw.shape[1]
-        chi2 = float(resid @ resid)
-        cd = chi2 / dof if dof > 0 else float("nan")
-        inflate = math.sqrt(cd) if dof >= 5 and cd > 1 else 1.0
-        var = np.linalg.inv(A)[1, 1]
-        rate[p] = beta[1]
-        se[p] = math.sqrt(var) * inflate
         sig[p] = rate[p] / se[p]
-        chi2dof[p] = cd
     return TrendEstimates(tuple(names), rate, se, sig, chi2dof, n, float(te[0]), float(te[-1]), modelled)
+
+
+def _coefficient_trend(X: np.ndarray, y: np.ndarray, sp: np.ndarray, rho, L_rho, n_levels: int) -> tuple:
+    """GLS fit of one coefficient's estimates ``y`` (errors ``sp``, correlation ``rho``, its
+    Cholesky factor ``L_rho`` or None) on the columns ``X``: constant, line, ``n_levels``
+    levels, then steps.  Steps that cannot be told from the trend are dropped (then the
+    levels too if still ill-conditioned).
+
+    Returns
+    -------
+    (float, float, float, bool)
+        The rate (the line's coefficient, per day), its standard error (inflated by
+        ``sqrt(chi2/dof)`` when that exceeds 1 with 5 or more degrees of freedom),
+        ``chi2/dof`` and whether the steps were dropped.
+    """
+    n = y.size
+    if L_rho is not None and np.all(sp > 0):
+        Xw = solve_triangular(L_rho, X / sp[:, None], lower=True)
+        yw = solve_triangular(L_rho, y / sp, lower=True)
+    else:
+        cov = rho * np.outer(sp, sp)
+        cov[np.diag_indices(n)] *= 1.0 + 1e-9
+        w, V = np.linalg.eigh(cov)
+        L = V * np.sqrt(np.clip(w, w.max() * 1e-12, None))
+        Xw = np.linalg.solve(L, X)
+        yw = np.linalg.solve(L, y)
+    beta, *_ = np.linalg.lstsq(Xw, yw, rcond=None)
+    A = Xw.T @ Xw
+    dropped = False
+    if np.linalg.cond(A) > 1e12:  # a step that cannot be told from the trend: drop steps
+        keep = 2 + n_levels
+        Xw, A = Xw[:, :keep], (Xw[:, :keep]).T @ Xw[:, :keep]
+        if np.linalg.cond(A) > 1e12:  # nor a level (a break among the last fits): drop those too
+            Xw, A = Xw[:, :2], (Xw[:, :2]).T @ Xw[:, :2]
+        beta, *_ = np.linalg.lstsq(Xw, yw, rcond=None)
+        dropped = True
+    resid = yw - Xw @ beta
+    dof = n - Xw.shape[1]
+    chi2 = float(resid @ resid)
+    cd = chi2 / dof if dof > 0 else float("nan")
+    inflate = math.sqrt(cd) if dof >= 5 and cd > 1 else 1.0
+    var = np.linalg.inv(A)[1, 1]
+    return beta[1], math.sqrt(var) * inflate, cd, dropped
 
 
 def detect_drifts(
@@ -868,44 +923,14 @@ class TrendMonitor:
         """Store one fit and return the alerts it raises (possibly none).  ``model``: the
         effect specs the fit was estimated under (a fit message's meta ``model``; None: the
         model of the fit before it)."""
-        C = np.asarray(coefficients, dtype=float).reshape(-1)
-        S = np.asarray(sigma, dtype=float)
-        if S.ndim == 2:
-            S = np.sqrt(np.maximum(np.diag(S), 0.0))
-        S = S.reshape(-1)
-        if C.size != len(self.names) or S.size != len(self.names):
-            raise ValueError(f"fit {index}: {C.size} coefficients and {S.size} sigmas for {len(self.names)} names")
-        if not (math.isfinite(t_start) and math.isfinite(t_stop) and t_stop > t_start):
-            raise ValueError(f"fit {index}: window [{t_start}, {t_stop}] is not valid")
-        # one fit per window end (a refit of the same index replaces it)
-        for other, (_, stop, *_rest) in list(self._fits.items()):
-            if stop == t_stop and other != index:
-                del self._fits[other]
-        key = model_key(model)
-        self._fits[int(index)] = (float(t_start), float(t_stop), C, S, list(model) if key else None, key)
-        horizon = max(f[1] for f in self._fits.values()) - self.max_history
-        for other, (_, stop, *_rest) in list(self._fits.items()):
-            if stop < horizon:
-                del self._fits[other]
+        self._store(index, t_start, t_stop, coefficients, sigma, model)
         order, breaks = self._series()
         ts = np.array([self._fits[i][0] for i in order])
         te = np.array([self._fits[i][1] for i in order])
         Cs = np.array([self._fits[i][2] for i in order])
         Ss = np.array([self._fits[i][3] for i in order])
         new: list[Alert] = []
-        # steps: the causal scan goes on from the fits scanned before (O(baseline) per fit);
-        # from the start again when the history changed otherwise (a refit, trimmed history,
-        # a new epoch)
-        keys = [(i, self._fits[i][1], k in breaks) for k, i in enumerate(order)]
-        if self._scan is None or keys[: len(self._scanned)] != self._scanned or len(keys) < 2:
-            self._scan, self._scanned = _StepScan(len(self.names)), []
-        found = []
-        if len(keys) >= 2:
-            ts_, te_, C_, S_, names_ = _prepare(te, Cs, Ss, ts, None, self.names, self.units)
-            skip = np.array([k + 1 in breaks for k in range(len(order) - 1)])
-            found = self._scan.run(ts_, te_, C_, S_, names_, order, self.settings, skip)
-            self._scanned = keys
-        for a in found:
+        for a in self._steps(order, breaks, (ts, te, Cs, Ss)):
             a = self._in_epoch(a)
             if not self._known_step(a):
                 self.alerts.append(a)
@@ -947,6 +972,46 @@ class TrendMonitor:
             if name in self._drifting and z[p] < self.settings.drift_release:
                 self._drifting.discard(name)
         return new
+
+    def _store(self, index: int, t_start: float, t_stop: float, coefficients, sigma, model) -> None:
+        """One fit validated and stored (replacing one with the same window end), the
+        history trimmed to ``max_history``; ValueError naming the fit when it is not valid."""
+        C = np.asarray(coefficients, dtype=float).reshape(-1)
+        S = np.asarray(sigma, dtype=float)
+        if S.ndim == 2:
+            S = np.sqrt(np.maximum(np.diag(S), 0.0))
+        S = S.reshape(-1)
+        if C.size != len(self.names) or S.size != len(self.names):
+            raise ValueError(f"fit {index}: {C.size} coefficients and {S.size} sigmas for {len(self.names)} names")
+        if not (math.isfinite(t_start) and math.isfinite(t_stop) and t_stop > t_start):
+            raise ValueError(f"fit {index}: window [{t_start}, {t_stop}] is not valid")
+        # one fit per window end (a refit of the same index replaces it)
+        for other, (_, stop, *_rest) in list(self._fits.items()):
+            if stop == t_stop and other != index:
+                del self._fits[other]
+        key = model_key(model)
+        self._fits[int(index)] = (float(t_start), float(t_stop), C, S, list(model) if key else None, key)
+        horizon = max(f[1] for f in self._fits.values()) - self.max_history
+        for other, (_, stop, *_rest) in list(self._fits.items()):
+            if stop < horizon:
+                del self._fits[other]
+
+    def _steps(self, order: list[int], breaks: set[int], series: tuple) -> list[Alert]:
+        """The step alerts of the epoch's fits ``order`` (``series``: their window starts and
+        ends [s], coefficients and sigmas): the causal scan goes on from the fits scanned
+        before (O(baseline) per fit); from the start again when the history changed otherwise
+        (a refit, trimmed history, a new epoch)."""
+        ts, te, Cs, Ss = series
+        keys = [(i, self._fits[i][1], k in breaks) for k, i in enumerate(order)]
+        if self._scan is None or keys[: len(self._scanned)] != self._scanned or len(keys) < 2:
+            self._scan, self._scanned = _StepScan(len(self.names)), []
+        found = []
+        if len(keys) >= 2:
+            ts_, te_, C_, S_, names_ = _prepare(te, Cs, Ss, ts, None, self.names, self.units)
+            skip = np.array([k + 1 in breaks for k in range(len(order) - 1)])
+            found = self._scan.run(ts_, te_, C_, S_, names_, order, self.settings, skip)
+            self._scanned = keys
+        return found
 
     def _series(self) -> tuple[list[int], set[int]]:
         """The fits of the current model epoch in order of window end, and the positions in

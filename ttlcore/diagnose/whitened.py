@@ -351,6 +351,46 @@ def whiten_tdi(
     tda = td.to_aet()
     factor = max(1, int(round(tda.fs / 2.0)))
     dec = tda.decimated(factor) if factor > 1 else tda
+    grid = _analysis_grid(dec, tda, ltt_mean, s)
+    d = grid.spectra(dec.data[:, None, :])[..., 0]
+    R = grid.spectra(dec.regressors)
+    tdi = MeasuredTDI(
+        td_in=tda,
+        data_series=dec.data,
+        d=d,
+        regressor_names=tuple(dec.names),
+        regressor_series=dec.regressors,
+        ttl_names=tuple(nm for nm in dec.names if nm in COEFFICIENT_NAMES),
+        ltt_mean=ltt_mean,
+        dws_asd=dws,
+    )
+    C0 = _first_coefficients(grid, d, R, tdi, s, dws)
+    csd = instrument_noise_csd(grid.f, ltt_mean, C0, dws)
+    Lh = whitening(csd)
+    wd = np.matmul(Lh, d[..., None])[..., 0]  # (S, m, 3)
+    dd = np.zeros((len(grid.starts), grid.G))
+    for g in range(grid.G):
+        dd[:, g] = np.sum(np.abs(wd[:, grid.band_index == g]) ** 2, axis=(1, 2))
+    modules = tuple(effect_modules)
+    data = WhitenedData(
+        grid=grid,
+        tdi=tdi,
+        noise=Whitening(csd=csd, Lh=Lh, key=noise_digest(csd), wd=wd, dd=dd),
+        context=DiagnosisContext(settings=s, tm=tm, effect_modules=modules, registry=available_effects(modules)),
+    )
+    data.context.store.put(("regressors",), data, regressor_columns(data, R))
+    return data
+
+
+def _analysis_grid(dec: TDIData, tda: TDIData, ltt_mean: np.ndarray, s: DiagnoseSettings) -> AnalysisGrid:
+    """The segments and frequency bins of the diagnosis on the decimated TDI ``dec`` (of the
+    A, E, T outputs ``tda``): the valid samples less a 120-s margin at either end, segments
+    of ``s.segment_duration`` (default a quarter of the span, at most 6 h, shortened to a
+    fast FFT length), the band's bins less the notches, and the analysis bands.
+
+    Raises ConfigError when the data are too short.
+    """
+    factor = max(1, int(round(tda.fs / 2.0)))
     fs, t0, n = dec.fs, dec.t0, dec.size
     ok = np.isfinite(dec.data).all(axis=0) & np.isfinite(dec.regressors).all(axis=(0, 1))
     idx = np.flatnonzero(ok)
@@ -385,7 +425,7 @@ def whiten_tdi(
     G = len(edges) - 1
     band_index = np.clip(np.searchsorted(edges, f, side="right") - 1, 0, G - 1)
     w2 = np.stack([(win * mask[s0 : s0 + L]) ** 2 for s0 in starts])
-    grid = AnalysisGrid(
+    return AnalysisGrid(
         decimation=factor,
         fs_in=tda.fs,
         t0_in=tda.t0,
@@ -406,50 +446,30 @@ def whiten_tdi(
         kappa=variance_factor(s.window, 4096, 0.0),
         w2=w2 / w2.sum(axis=1, keepdims=True),
     )
-    d = grid.spectra(dec.data[:, None, :])[..., 0]
-    R = grid.spectra(dec.regressors)
-    tdi = MeasuredTDI(
-        td_in=tda,
-        data_series=dec.data,
-        d=d,
-        regressor_names=tuple(dec.names),
-        regressor_series=dec.regressors,
-        ttl_names=tuple(nm for nm in dec.names if nm in COEFFICIENT_NAMES),
-        ltt_mean=ltt_mean,
-        dws_asd=dws,
+
+
+def _first_coefficients(
+    grid: AnalysisGrid, d: np.ndarray, R: np.ndarray, tdi: MeasuredTDI, s: DiagnoseSettings, dws: float
+):
+    """A first estimate of the 24 linear coefficients (None unless the TDI hold all 24
+    regressors) from the segment spectra ``d`` of the data and ``R`` of the regressors.
+
+    The first GLS pass, under the analytic secondary-noise CSD (no re-estimation of the
+    CSD from the residual): C0 only sets the DWS readout-noise term, which it needs to a
+    few per cent; the ten passes of the standard fit moved the diagnosis' coefficients by
+    1e-3 sigma and chi^2/dof by 6e-7 (bench day with a witness, 1 day) and cost 40 % of a
+    window refit, which the live fitter makes every segment.
+    """
+    if len(tdi.ttl_names) != len(COEFFICIENT_NAMES):
+        return None
+    sp = [SegmentSpectra(t, grid.seg_duration, grid.f, d[i], R[i]) for i, t in enumerate(grid.seg_t0)]
+    res, _ = fit_spectra(
+        sp,
+        tdi.ltt_mean,
+        FitSettings(band=s.band, notch=False, dws_asd=dws, iterations=0, robust_covariance=False, n_bands=s.n_bands),
+        names=tdi.regressor_names,
     )
-    C0 = None
-    if len(tdi.ttl_names) == len(COEFFICIENT_NAMES):
-        sp = [SegmentSpectra(t, grid.seg_duration, f, d[i], R[i]) for i, t in enumerate(seg_t0)]
-        # the first GLS pass, under the analytic secondary-noise CSD (no re-estimation of the
-        # CSD from the residual): C0 only sets the DWS readout-noise term, which it needs to a
-        # few per cent; the ten passes of the standard fit moved the diagnosis' coefficients by
-        # 1e-3 sigma and chi^2/dof by 6e-7 (bench day with a witness, 1 day) and cost 40 % of a
-        # window refit, which the live fitter makes every segment
-        res, _ = fit_spectra(
-            sp,
-            ltt_mean,
-            FitSettings(
-                band=s.band, notch=False, dws_asd=dws, iterations=0, robust_covariance=False, n_bands=s.n_bands
-            ),
-            names=tuple(dec.names),
-        )
-        C0 = res.coefficients[[dec.names.index(nm) for nm in COEFFICIENT_NAMES]]
-    csd = instrument_noise_csd(f, ltt_mean, C0, dws)
-    Lh = whitening(csd)
-    wd = np.matmul(Lh, d[..., None])[..., 0]  # (S, m, 3)
-    dd = np.zeros((len(starts), G))
-    for g in range(G):
-        dd[:, g] = np.sum(np.abs(wd[:, band_index == g]) ** 2, axis=(1, 2))
-    modules = tuple(effect_modules)
-    data = WhitenedData(
-        grid=grid,
-        tdi=tdi,
-        noise=Whitening(csd=csd, Lh=Lh, key=noise_digest(csd), wd=wd, dd=dd),
-        context=DiagnosisContext(settings=s, tm=tm, effect_modules=modules, registry=available_effects(modules)),
-    )
-    data.context.store.put(("regressors",), data, regressor_columns(data, R))
-    return data
+    return res.coefficients[[tdi.regressor_names.index(nm) for nm in COEFFICIENT_NAMES]]
 
 
 def whiten_telemetry(

@@ -67,13 +67,75 @@ def witness_library(tm, dg) -> tuple[list[dict], dict]:
     grid = dg.grid
     fs = tm.fs
     t = tm.t0 + np.arange(tm.size) / fs
-    L = int(round(grid.seg_duration * fs))
-
-    win = window(dg.context.settings.window, L)
+    spectra = _spectra_on_segments(tm, dg, t)
     ltt = dict(zip(LINKS, dg.tdi.ltt_mean))
-    # the data's valid samples (its gaps, grown by the TDI's reach) at the telemetry's rate:
-    # a witness is windowed exactly as the data it is compared with, or a gap in the data
-    # would leave the witness' power there unmatched (and a NaN in it would blank the search)
+    raw: dict = {}
+    lib: list[dict] = []
+    # DWS gaps (NaN) at zero: the angles, integrated from the DWS, hold still over a gap
+    vel = {"phi": np.nan_to_num(np.asarray(tm.dws_phi)), "eta": np.nan_to_num(np.asarray(tm.dws_eta))}
+    angles = {a: np.cumsum(vel[a], axis=1) / fs for a in ANGLES}
+    t_mid = 0.5 * (t[0] + t[-1])
+    T = max(t[-1] - t[0], 1.0)
+    boundaries = list(grid.seg_t0[1:]) + [t0 + grid.seg_duration / 2 for t0 in grid.seg_t0]
+    for m in MOSAS:
+        k = MOSAS.index(m)
+        sides = (("rx", m, 0.0), ("tx", reverse(m), ltt[reverse(m)]))
+        for a in ANGLES:
+            key = f"{m}.{a}"
+            w = -vel[a][k] / C
+            raw[key] = spectra(w)
+            for link in LINKS:
+                lib += _dws_witnesses(key, link, ltt[link])
+            raw[f"time {key}"] = spectra((t - t_mid) / T * w)
+            for side, link, dl in sides:
+                lib.append(
+                    {
+                        "name": f"t x dws {key} ({side})",
+                        "family": "time",
+                        "series": f"time {key}",
+                        "link": link,
+                        "delay": dl,
+                        "derivative": False,
+                        "spec": Drift(mosas=m, angles=a, sides=side).spec(),
+                    }
+                )
+                for ts in boundaries:
+                    skey = f"step {ts:.0f} {key}"
+                    if skey not in raw:
+                        raw[skey] = spectra((t >= ts) * w)
+                    lib.append(_step_witness(key, (m, a, side), link, dl, ts, tm.t0))
+        for pair in ("phiphi", "etaeta", "phieta"):
+            a, b = pair[:3], pair[3:]
+            x = -(vel[a][k] * angles[b][k] + angles[a][k] * vel[b][k]) / C
+            key = f"{m}.{pair}"
+            raw[key] = spectra(x)
+            for side, link, dl in sides:
+                lib.append(
+                    {
+                        "name": f"d/dt({a} {b}) {m} ({side})",
+                        "family": "product",
+                        "series": key,
+                        "link": link,
+                        "delay": dl,
+                        "derivative": False,
+                        "spec": witness_spec(key, link, 0 if side == "rx" else 1),
+                    }
+                )
+    return lib, raw
+
+
+def _spectra_on_segments(tm, dg, t: np.ndarray):
+    """``spectra(x) -> (S, m)``: a telemetry-rate series ``x`` on the residual's segments,
+    windowed as the data (its valid samples: its gaps, grown by the TDI's reach), at the
+    residual's frequencies (interpolated).
+
+    A witness is windowed exactly as the data it is compared with, or a gap in the data
+    would leave the witness' power there unmatched (and a NaN in it would blank the search).
+    """
+    grid = dg.grid
+    fs = tm.fs
+    L = int(round(grid.seg_duration * fs))
+    win = window(dg.context.settings.window, L)
     k_dec = np.clip(np.round((t - grid.t0) * grid.fs).astype(int), 0, grid.mask.size - 1)
     valid = grid.mask[k_dec]
 
@@ -90,92 +152,54 @@ def witness_library(tm, dg) -> tuple[list[dict], dict]:
             out[i] = np.interp(grid.f, f, X.real) + 1j * np.interp(grid.f, f, X.imag)
         return out
 
-    raw: dict = {}
-    lib: list[dict] = []
-    # DWS gaps (NaN) at zero: the angles, integrated from the DWS, hold still over a gap
-    vel = {"phi": np.nan_to_num(np.asarray(tm.dws_phi)), "eta": np.nan_to_num(np.asarray(tm.dws_eta))}
-    angles = {a: np.cumsum(vel[a], axis=1) / fs for a in ANGLES}
-    t_mid = 0.5 * (t[0] + t[-1])
-    T = max(t[-1] - t[0], 1.0)
-    boundaries = list(grid.seg_t0[1:]) + [t0 + grid.seg_duration / 2 for t0 in grid.seg_t0]
-    for m in MOSAS:
-        k = MOSAS.index(m)
-        for a in ANGLES:
-            key = f"{m}.{a}"
-            w = -vel[a][k] / C
-            raw[key] = spectra(w)
-            for link in LINKS:
-                for n_delay in (0, 1, 2):
-                    lib.append(
-                        {
-                            "name": f"dws {key} on {link}" + (f" delayed {n_delay}L" if n_delay else ""),
-                            "family": "dws",
-                            "series": key,
-                            "link": link,
-                            "delay": n_delay * ltt[link],
-                            "derivative": False,
-                            "spec": witness_spec(key, link, n_delay),
-                        }
-                    )
-                for n_delay in (0, 1):
-                    lib.append(
-                        {
-                            "name": f"d/dt dws {key} on {link}" + (" delayed 1L" if n_delay else ""),
-                            "family": "derivative",
-                            "series": key,
-                            "link": link,
-                            "delay": n_delay * ltt[link],
-                            "derivative": True,
-                            "spec": witness_spec(key, link, n_delay, derivative=True),
-                        }
-                    )
-            raw[f"time {key}"] = spectra((t - t_mid) / T * w)
-            for side, link, dl in (("rx", m, 0.0), ("tx", reverse(m), ltt[reverse(m)])):
-                lib.append(
-                    {
-                        "name": f"t x dws {key} ({side})",
-                        "family": "time",
-                        "series": f"time {key}",
-                        "link": link,
-                        "delay": dl,
-                        "derivative": False,
-                        "spec": Drift(mosas=m, angles=a, sides=side).spec(),
-                    }
-                )
-                for ts in boundaries:
-                    skey = f"step {ts:.0f} {key}"
-                    if skey not in raw:
-                        raw[skey] = spectra((t >= ts) * w)
-                    lib.append(
-                        {
-                            "name": f"H(t - {(ts - tm.t0) / 3600:.1f} h) x dws {key} ({side})",
-                            "family": "step",
-                            "series": skey,
-                            "link": link,
-                            "delay": dl,
-                            "derivative": False,
-                            "t_step": float(ts),
-                            "spec": Step(mosas=m, angles=a, sides=side, t_step=float(round(ts))).spec(),
-                        }
-                    )
-        for pair in ("phiphi", "etaeta", "phieta"):
-            a, b = pair[:3], pair[3:]
-            x = -(vel[a][k] * angles[b][k] + angles[a][k] * vel[b][k]) / C
-            key = f"{m}.{pair}"
-            raw[key] = spectra(x)
-            for side, link, dl in (("rx", m, 0.0), ("tx", reverse(m), ltt[reverse(m)])):
-                lib.append(
-                    {
-                        "name": f"d/dt({a} {b}) {m} ({side})",
-                        "family": "product",
-                        "series": key,
-                        "link": link,
-                        "delay": dl,
-                        "derivative": False,
-                        "spec": witness_spec(key, link, 0 if side == "rx" else 1),
-                    }
-                )
-    return lib, raw
+    return spectra
+
+
+def _dws_witnesses(key: str, link: str, ltt: float) -> list[dict]:
+    """The DWS series ``key`` placed on ``link`` (light travel time ``ltt`` [s]): as is,
+    delayed one or two light travel times, and its derivative, as is or delayed once."""
+    lib = []
+    for n_delay in (0, 1, 2):
+        lib.append(
+            {
+                "name": f"dws {key} on {link}" + (f" delayed {n_delay}L" if n_delay else ""),
+                "family": "dws",
+                "series": key,
+                "link": link,
+                "delay": n_delay * ltt,
+                "derivative": False,
+                "spec": witness_spec(key, link, n_delay),
+            }
+        )
+    for n_delay in (0, 1):
+        lib.append(
+            {
+                "name": f"d/dt dws {key} on {link}" + (" delayed 1L" if n_delay else ""),
+                "family": "derivative",
+                "series": key,
+                "link": link,
+                "delay": n_delay * ltt,
+                "derivative": True,
+                "spec": witness_spec(key, link, n_delay, derivative=True),
+            }
+        )
+    return lib
+
+
+def _step_witness(key: str, place: tuple, link: str, dl: float, ts: float, t0: float) -> dict:
+    """The step witness of DWS series ``key`` at time ``ts`` [s] (``t0``: the telemetry's
+    start [s]) on one side ``place = (mosa, angle, side)``, read on ``link`` delayed ``dl`` [s]."""
+    m, a, side = place
+    return {
+        "name": f"H(t - {(ts - t0) / 3600:.1f} h) x dws {key} ({side})",
+        "family": "step",
+        "series": f"step {ts:.0f} {key}",
+        "link": link,
+        "delay": dl,
+        "derivative": False,
+        "t_step": float(ts),
+        "spec": Step(mosas=m, angles=a, sides=side, t_step=float(round(ts))).spec(),
+    }
 
 
 def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
@@ -211,39 +235,13 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
     for key, X in raw.items():  # the sums over segments, once per series and link
         per_series[key] = (np.einsum("sm,sml->ml", np.conj(X), g_link), np.sum(np.abs(X) ** 2, axis=0))
     for i, w in enumerate(lib):
-        B, P = per_series[w["series"]]
-        li = LINKS.index(w["link"])
-        b = B[:, li]
-        n = P * n_link[:, li]
-        if w["derivative"]:  # conj(i omega X) = -i omega conj(X)
-            b = b * (-1j * omega)
-            n = n * omega**2
-        if w["delay"]:  # conj(X exp(-i omega delay)) = conj(X) exp(+i omega delay)
-            b = b * np.exp(1j * omega * w["delay"])
+        b, n = _witness_products(w, per_series, n_link, omega)
         bsum = b @ onehot
         nsum = n @ onehot
         with np.errstate(invalid="ignore", divide="ignore"):
             dchi2[i] = np.where(nsum > 0, 2 * bsum.real**2 / nsum, 0.0) / dg.grid.kappa
             coh[i] = np.where(nsum > 0, np.abs(bsum) ** 2 / (nsum * rr), 0.0)
-    bands = []
-    for g in range(G):
-        order = np.argsort(-dchi2[:, g])[:top]
-        bands.append(
-            {
-                "f_lo": float(dg.grid.edges[g]),
-                "f_hi": float(dg.grid.edges[g + 1]),
-                "top": [
-                    {
-                        "name": lib[i]["name"],
-                        "family": lib[i]["family"],
-                        "spec": lib[i]["spec"],
-                        "delta_chi2": float(dchi2[i, g]),
-                        "coherence": float(coh[i, g]),
-                    }
-                    for i in order
-                ],
-            }
-        )
+    bands = _band_tops(lib, dchi2, coh, dg.grid.edges, top)
     total = dchi2.sum(axis=1)
     order = np.argsort(-total)[:top]
     overall = [
@@ -262,22 +260,13 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
     ]
     # coherence spectra of the top witnesses (running mean over ~2 % of f): the frequency of
     # each one's peak, and the curves of the first ``coherence_of`` for the figure
-    spectra = {}
     rrf = (np.abs(r) ** 2).sum(axis=(0, 2))
-    grid = _log_grid(dg.grid.f)
+    spectra = {}
     for k, i in enumerate(order):
         w = lib[i]
-        B, P = per_series[w["series"]]
-        li = LINKS.index(w["link"])
-        b, n = B[:, li], P * n_link[:, li]
-        if w["derivative"]:
-            b, n = b * (-1j * omega), n * omega**2
-        if w["delay"]:
-            b = b * np.exp(1j * omega * w["delay"])
+        b, n = _witness_products(w, per_series, n_link, omega)
         curve = _smoothed_coherence(dg.grid.f, b, n, rrf)
-        vals = np.array([-1.0 if v is None else v for v in curve])
-        overall[k]["peak_frequency"] = float(grid[int(np.argmax(vals))])
-        overall[k]["peak_coherence"] = float(vals.max())
+        overall[k].update(_coherence_peak(dg.grid.f, curve))
         if k < coherence_of:
             spectra[w["name"]] = curve
     return {
@@ -287,6 +276,52 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
         "overall": overall,
         "coherence_spectra": {"f": _log_grid(dg.grid.f).tolist(), "curves": spectra},
     }
+
+
+def _witness_products(w: dict, per_series: dict, n_link: np.ndarray, omega: np.ndarray) -> tuple:
+    """Per frequency bin, the products of witness ``w`` (placed on its link, derived and
+    delayed as it says) with the whitened residual, summed over segments, and its norm."""
+    B, P = per_series[w["series"]]
+    li = LINKS.index(w["link"])
+    b = B[:, li]
+    n = P * n_link[:, li]
+    if w["derivative"]:  # conj(i omega X) = -i omega conj(X)
+        b = b * (-1j * omega)
+        n = n * omega**2
+    if w["delay"]:  # conj(X exp(-i omega delay)) = conj(X) exp(+i omega delay)
+        b = b * np.exp(1j * omega * w["delay"])
+    return b, n
+
+
+def _band_tops(lib: list[dict], dchi2: np.ndarray, coh: np.ndarray, edges, top: int) -> list[dict]:
+    """Per band (``edges`` [Hz]), the ``top`` witnesses by delta chi^2 and their coherence."""
+    bands = []
+    for g in range(dchi2.shape[1]):
+        order = np.argsort(-dchi2[:, g])[:top]
+        bands.append(
+            {
+                "f_lo": float(edges[g]),
+                "f_hi": float(edges[g + 1]),
+                "top": [
+                    {
+                        "name": lib[i]["name"],
+                        "family": lib[i]["family"],
+                        "spec": lib[i]["spec"],
+                        "delta_chi2": float(dchi2[i, g]),
+                        "coherence": float(coh[i, g]),
+                    }
+                    for i in order
+                ],
+            }
+        )
+    return bands
+
+
+def _coherence_peak(f: np.ndarray, curve: list) -> dict:
+    """The frequency [Hz] (on the log grid of ``f``) and value of the peak of a smoothed
+    coherence ``curve`` (None where undefined)."""
+    vals = np.array([-1.0 if v is None else v for v in curve])
+    return {"peak_frequency": float(_log_grid(f)[int(np.argmax(vals))]), "peak_coherence": float(vals.max())}
 
 
 def witness_spec(source: str, link: str, n_delay: int = 0, derivative: bool = False) -> str:

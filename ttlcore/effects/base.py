@@ -185,6 +185,13 @@ class Effect:
         whose span has left its window (docs/diagnostics.md, "A model that lives for weeks")."""
         return None
 
+    def settled(self, t_start: float) -> Effect | None:
+        """The simpler effect this one equals on data from ``t_start`` [s] on, or None when
+        there is none: a coupling switched on (``vary=step``) well before ``t_start`` is the
+        plain coupling there.  A live model puts it in this one's place once its window
+        starts after the switch (docs/diagnostics.md, "Onsets")."""
+        return None
+
     def column_names(self) -> list[str]:
         """Names of the columns (without building them), for parsing injection values."""
         return [c.name for c in self.named_columns()]

@@ -76,6 +76,10 @@ def _int_option(effect, key, allowed) -> int:
     return v
 
 
+#: How long [s] after its switch-on a ``vary=step`` coupling's columns are the plain ones on
+#: data that start then (:meth:`_Placed.settled`): the columns' history (30 min) and more.
+SETTLED_AFTER = 3600.0
+
 #: Time variations of a placed effect's coupling (option ``vary``, :meth:`_Placed.modulations`).
 VARY = ("none", "drift", "step", "cycle")
 #: Searched range of the period [s] of ``vary=cycle``: 1 h to 4 days (clipped to twice the
@@ -123,6 +127,16 @@ class _Placed(Effect):
         if v not in VARY:
             raise ConfigError(f"effect {self.name!r} vary: expected one of {', '.join(VARY)}, got {v!r}")
         return v
+
+    def settled(self, t_start: float) -> Effect | None:
+        """With ``vary=step`` and ``t_step`` more than :data:`SETTLED_AFTER` before
+        ``t_start``: the same coupling without ``vary`` (its columns are the plain ones from
+        ``t_start`` on, the filters' ring-in after the switch long over); else None."""
+        t_step = self.options.get("t_step")
+        if self.vary != "step" or t_step is None or float(t_step) > t_start - SETTLED_AFTER:
+            return None
+        kept = {k: v for k, v in self.options.items() if k not in ("vary", "t_step") and v != self.parameters.get(k)}
+        return type(self)(**kept)
 
     @property
     def searched(self) -> dict:  # type: ignore[override]  # a class attribute in Effect (plugins set it so), computed here

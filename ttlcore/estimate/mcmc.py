@@ -319,60 +319,21 @@ def sample(
         scale = 0.5 * (scale + scale.T)
     post.set_whitening(x0, np.asarray(scale, dtype=float))
 
-    W = int(nwalkers or 4 * D)
-    W += W % 2
-    if W < 2 * D:
-        raise ValueError(f"need at least 2 * ndim = {2 * D} walkers, got {W}")
+    W = _walkers(nwalkers, D)
     rng = np.random.default_rng(seed)
     sampler = emcee.EnsembleSampler(W, D, post, moves=emcee.moves.DEMove(), vectorize=True)
     sampler.random_state = np.random.RandomState(seed).get_state()
     state = emcee.State(rng.standard_normal((W, D)))
 
-    stride = 1  # storage stride [steps]
-    kept_z, kept_lp = [], []
-    n_steps, accepted = 0, np.zeros(W)
-    chunk = min(max(500, 40 * D), max_steps)
-    tau = np.full(D, np.inf)
-    while True:
-        state = sampler.run_mcmc(state, chunk, progress=False)
-        z, lp = sampler.get_chain(), sampler.get_log_prob()
-        accepted += sampler.backend.accepted
-        steps = n_steps + 1 + np.arange(chunk)  # global step number of each row
-        keep = steps % stride == 0
-        kept_z.append(z[keep])
-        kept_lp.append(lp[keep])
-        n_steps += chunk
-        sampler.reset()
-        zs, lps = np.concatenate(kept_z), np.concatenate(kept_lp)
-        while zs.shape[0] > STORE_CAP:  # bound memory: keep every other stored step
-            sel = _stored_steps(n_steps, stride, zs.shape[0]) % (2 * stride) == 0
-            zs, lps, stride = zs[sel], lps[sel], 2 * stride
-        kept_z, kept_lp = [zs], [lps]
-        xs = post.to_natural(zs)
-        tau = stride * integrated_time(xs)
-        target = n_autocorr * float(np.max(tau))
-        log.debug("mcmc: %d steps, max tau %.1f, target %.0f", n_steps, np.max(tau), target)
-        if progress is not None:
-            progress(n_steps, float(np.max(tau)), target)
-        if n_steps >= target or n_steps >= max_steps:
-            break
-        chunk = int(min(max(1.2 * target - n_steps, 200), max_steps - n_steps))
-
+    zs, lps, stride, n_steps, accepted, tau = _run_chains(sampler, state, post, n_autocorr, max_steps, progress)
     tau_max = float(np.max(tau))
     converged = bool(n_steps >= n_autocorr * tau_max)
     if not converged:
         log.warning(
             "mcmc: not converged after %d steps (max tau %.1f, needs %.0f)", n_steps, tau_max, n_autocorr * tau_max
         )
-    zs, lps = kept_z[0], kept_lp[0]
-    steps = _stored_steps(n_steps, stride, zs.shape[0])
     burn = BURN_IN_TAU * tau_max
-    thin = max(stride, int(round(THIN_TAU * tau_max / stride)) * stride)
-    sel = (steps > burn) & ((steps - steps[-1]) % thin == 0)
-    if not np.any(sel):
-        sel = steps == steps[-1]
-    xs = post.to_natural(zs[sel]).reshape(-1, D)
-    lp_flat = lps[sel].reshape(-1)
+    xs, lp_flat = _thinned(post, zs, lps, (n_steps, stride), burn, tau_max)
 
     C_samples = xs[:, :P]
     mean = C_samples.mean(axis=0)
@@ -414,6 +375,75 @@ def sample(
         nwalkers=W,
         wall_time=wall,
     )
+
+
+def _walkers(nwalkers: int | None, D: int) -> int:
+    """The number of walkers: ``nwalkers`` (default ``4 D``) made even; ValueError below ``2 D``."""
+    W = int(nwalkers or 4 * D)
+    W += W % 2
+    if W < 2 * D:
+        raise ValueError(f"need at least 2 * ndim = {2 * D} walkers, got {W}")
+    return W
+
+
+def _run_chains(sampler, state, post, n_autocorr: float, max_steps: int, progress) -> tuple:
+    """Run ``sampler`` from ``state`` in chunks until the chain is ``n_autocorr``
+    autocorrelation times long or ``max_steps`` steps, keeping every ``stride``-th step (the
+    stride doubled whenever more than ``STORE_CAP`` steps are stored).
+
+    Returns
+    -------
+    tuple
+        The stored whitened positions ``(steps, W, D)`` and log probabilities, the stride,
+        the number of steps, the acceptances per walker and the integrated
+        autocorrelation times [steps] of the natural parameters.
+    """
+    D = post.ndim
+    W = sampler.nwalkers
+    stride = 1  # storage stride [steps]
+    kept_z, kept_lp = [], []
+    n_steps, accepted = 0, np.zeros(W)
+    chunk = min(max(500, 40 * D), max_steps)
+    tau = np.full(D, np.inf)
+    while True:
+        state = sampler.run_mcmc(state, chunk, progress=False)
+        z, lp = sampler.get_chain(), sampler.get_log_prob()
+        accepted += sampler.backend.accepted
+        steps = n_steps + 1 + np.arange(chunk)  # global step number of each row
+        keep = steps % stride == 0
+        kept_z.append(z[keep])
+        kept_lp.append(lp[keep])
+        n_steps += chunk
+        sampler.reset()
+        zs, lps = np.concatenate(kept_z), np.concatenate(kept_lp)
+        while zs.shape[0] > STORE_CAP:  # bound memory: keep every other stored step
+            sel = _stored_steps(n_steps, stride, zs.shape[0]) % (2 * stride) == 0
+            zs, lps, stride = zs[sel], lps[sel], 2 * stride
+        kept_z, kept_lp = [zs], [lps]
+        xs = post.to_natural(zs)
+        tau = stride * integrated_time(xs)
+        target = n_autocorr * float(np.max(tau))
+        log.debug("mcmc: %d steps, max tau %.1f, target %.0f", n_steps, np.max(tau), target)
+        if progress is not None:
+            progress(n_steps, float(np.max(tau)), target)
+        if n_steps >= target or n_steps >= max_steps:
+            break
+        chunk = int(min(max(1.2 * target - n_steps, 200), max_steps - n_steps))
+    return kept_z[0], kept_lp[0], stride, n_steps, accepted, tau
+
+
+def _thinned(post, zs: np.ndarray, lps: np.ndarray, counts: tuple, burn: float, tau_max: float) -> tuple:
+    """The stored steps after the burn-in ``burn`` [steps], thinned to one every
+    ``THIN_TAU`` autocorrelation times (at least the last step), as natural parameters
+    ``(samples, D)`` with their log probabilities; ``counts`` is ``(steps run, stride)``."""
+    n_steps, stride = counts
+    steps = _stored_steps(n_steps, stride, zs.shape[0])
+    thin = max(stride, int(round(THIN_TAU * tau_max / stride)) * stride)
+    sel = (steps > burn) & ((steps - steps[-1]) % thin == 0)
+    if not np.any(sel):
+        sel = steps == steps[-1]
+    xs = post.to_natural(zs[sel]).reshape(-1, post.ndim)
+    return xs, lps[sel].reshape(-1)
 
 
 def integrated_time(x: np.ndarray, c: float = 5.0) -> np.ndarray:

@@ -363,6 +363,28 @@ def parse_gw_spec(
     if not items:
         raise ConfigError(f"--gw: empty; use {', '.join(GW_SOURCES)} or a lisagwresponse FILE")
     t_c = t0 + duration / 2 if t_c is None else t_c
+    names, files = _gw_items(items)
+    out: list = []
+    seen = set()
+    for n in names:
+        if n in seen:
+            continue
+        seen.add(n)
+        out += _named_source(n, seed, t_c)
+    for item in files:
+        path, dataset = item, "tps/y"
+        if ":" in item and not Path(item).exists():
+            path, dataset = item.split(":", 1)
+        out.append(GWFileInjection(path, dataset))
+    names_out = [i.name for i in out]
+    if len(set(names_out)) != len(names_out):
+        raise ConfigError(f"--gw: two injections share a name: {names_out}")
+    return tuple(out)
+
+
+def _gw_items(items: list[str]) -> tuple[list[str], list[str]]:
+    """The items of ``--gw`` as source names (``all`` and ``vb`` expanded) and lisagwresponse
+    files (``FILE`` or ``FILE:dataset``); ConfigError naming an item that is neither."""
     names: list[str] = []
     files: list[str] = []
     for item in items:
@@ -383,31 +405,23 @@ def parse_gw_spec(
                     "lisagwresponse file (FILE or FILE:tcb/y)"
                 )
             files.append(item)
-    out: list = []
-    seen = set()
-    for n in names:
-        if n in seen:
-            continue
-        seen.add(n)
-        if n == "hmcnc":
-            out.append(BinariesInjection.catalogue(["HM Cnc"], name="hmcnc"))
-        elif n == "ztfj1539":
-            out.append(BinariesInjection.catalogue(["ZTF J1539"], name="ztfj1539"))
-        elif n == "galaxy":
-            out.append(GalaxyInjection())
-        elif n == "sgwb":
-            out.append(SGWBInjection(seed=seed))
-        elif n in ("mbhb1", "mbhb2"):
-            out.append(MBHBInjection.paper(n, t_c=t_c))
-    for item in files:
-        path, dataset = item, "tps/y"
-        if ":" in item and not Path(item).exists():
-            path, dataset = item.split(":", 1)
-        out.append(GWFileInjection(path, dataset))
-    names_out = [i.name for i in out]
-    if len(set(names_out)) != len(names_out):
-        raise ConfigError(f"--gw: two injections share a name: {names_out}")
-    return tuple(out)
+    return names, files
+
+
+def _named_source(n: str, seed: int, t_c: float) -> list:
+    """The injection of the named source ``n`` (a list of one; empty for a name without
+    one): the background's realisation follows ``seed``, a merger is at ``t_c`` [s]."""
+    if n == "hmcnc":
+        return [BinariesInjection.catalogue(["HM Cnc"], name="hmcnc")]
+    if n == "ztfj1539":
+        return [BinariesInjection.catalogue(["ZTF J1539"], name="ztfj1539")]
+    if n == "galaxy":
+        return [GalaxyInjection()]
+    if n == "sgwb":
+        return [SGWBInjection(seed=seed)]
+    if n in ("mbhb1", "mbhb2"):
+        return [MBHBInjection.paper(n, t_c=t_c)]
+    return []
 
 
 def is_gw(description_or_injection) -> bool:

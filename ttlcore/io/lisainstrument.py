@@ -297,22 +297,11 @@ class _DatasetReader:
         self.missing: dict[str, np.ndarray] = {}  # dataset -> where its samples are NaN (gaps)
 
     def read(self, group: str, mosa: str) -> np.ndarray:
+        """The samples of ``<group>/<mosa>`` (a scalar broadcast to ``size``); NaN is a gap
+        (recorded in ``missing``).  TelemetryError naming the dataset when it is missing,
+        not real, of another length or sample range, unreadable or infinite."""
         name = f"{group}/{mosa}"
-        if group not in self.f:
-            raise TelemetryError(self.path, "missing dataset group", group)
-        if name not in self.f:
-            raise TelemetryError(self.path, "missing dataset", name)
-        ds = self.f[name]
-        if not isinstance(ds, h5py.Dataset):
-            raise TelemetryError(self.path, "expected a dataset, found a group", name)
-        if ds.dtype.kind not in "fiu":
-            raise TelemetryError(self.path, f"expected real numbers, found dtype {ds.dtype}", name)
-        if ds.shape not in ((), (self.size,)):
-            raise TelemetryError(
-                self.path,
-                f"expected shape ({self.size},) from metadata size (or a scalar for a constant series), found {ds.shape}",
-                name,
-            )
+        ds = self._dataset(group, name)
         rng = self._range(ds, name)
         try:
             data = np.asarray(ds[()], dtype=float)
@@ -333,6 +322,25 @@ class _DatasetReader:
                 self.path, f"sample range {rng} differs from that of the other datasets {self.range}", name
             )
         return data
+
+    def _dataset(self, group: str, name: str) -> h5py.Dataset:
+        """The dataset ``name`` (in ``group``), checked to hold ``size`` real numbers or one."""
+        if group not in self.f:
+            raise TelemetryError(self.path, "missing dataset group", group)
+        if name not in self.f:
+            raise TelemetryError(self.path, "missing dataset", name)
+        ds = self.f[name]
+        if not isinstance(ds, h5py.Dataset):
+            raise TelemetryError(self.path, "expected a dataset, found a group", name)
+        if ds.dtype.kind not in "fiu":
+            raise TelemetryError(self.path, f"expected real numbers, found dtype {ds.dtype}", name)
+        if ds.shape not in ((), (self.size,)):
+            raise TelemetryError(
+                self.path,
+                f"expected shape ({self.size},) from metadata size (or a scalar for a constant series), found {ds.shape}",
+                name,
+            )
+        return ds
 
     def _range(self, ds: h5py.Dataset, name: str) -> tuple[int, int]:
         attrs = ds.attrs
@@ -590,17 +598,7 @@ def read_lisainstrument(path, *, order: int = 31, delay_order: int = 5):
             raise TelemetryError(
                 path, "not a lisainstrument measurement file (no lisainstrument version/git_url root attributes)"
             )
-        version_text = _str_attr(f, "version_format") or _str_attr(f, "version") or ""
-        version = _parse_version(version_text)
-        attr = "@version_format" if _str_attr(f, "version_format") else "@version"
-        if version is None:
-            raise TelemetryError(path, f"cannot parse the lisainstrument file version {version_text!r}", attr)
-        if version[0] != SUPPORTED_MAJOR:
-            raise TelemetryError(
-                path,
-                f"lisainstrument file format {version_text} is not supported (only 2.x; re-simulate or convert)",
-                attr,
-            )
+        _check_version(path, f)
         meta = _Metadata(path, f)
         t0, fs, size, nu0 = _sampling(path, meta)
 
@@ -609,36 +607,11 @@ def read_lisainstrument(path, *, order: int = 31, delay_order: int = 5):
         for ifo, group in BEATNOTE_DATASETS.items():
             for mosa in MOSAS:
                 beatnotes[f"{ifo}_{mosa}"] = reader.read(group, mosa)
-        raw_mprs = {mosa: reader.read(MPR_DATASET, mosa) for mosa in MOSAS}
-        mprs = {}
-        for mosa, d in raw_mprs.items():
-            name = f"{MPR_DATASET}/{mosa}"
-            if name in reader.missing:
-                d = _fill_mpr(path, name, d, reader.missing[name])
-            if np.any(d <= 0):
-                raise TelemetryError(
-                    path, f"measured pseudo-ranges must be positive delays [s], found min {d.min():g}", name
-                )
-            mprs[mosa] = d
+        mprs = _read_mprs(path, reader)
         dws_phi = np.stack([reader.read(DWS_PHI_DATASET, mosa) for mosa in MOSAS])
         dws_eta = np.stack([reader.read(DWS_ETA_DATASET, mosa) for mosa in MOSAS])
         index_start = reader.range[0] if reader.range else 0
-        # the leading (and trailing) samples whose delayed terms reach beyond the file, from
-        # the delays alone: a gap at the start of the file does not move t0
-        inside = np.all([_stencil_inside(mprs[link], fs, order) for link in LINKS], axis=0)
-        if not inside.any():
-            raise TelemetryError(
-                path,
-                f"too short for the eta reduction: no sample has its delayed terms (delays {max(d.max() for d in mprs.values()):.3g} s, order {order})",
-                MPR_DATASET,
-            )
-        first = int(np.argmax(inside))
-        last = size - int(np.argmax(inside[::-1]))  # one past the last valid sample
-        if not inside[first:last].all():
-            bad = first + int(np.argmin(inside[first:last]))
-            raise TelemetryError(
-                path, f"eta reduction undefined inside the data (sample {bad}); delays jump?", MPR_DATASET
-            )
+        first, last = _valid_span(path, mprs, fs, order, size)
         eta_hz = compute_etas_hz(beatnotes, mprs, fs, order)
         for row, link in enumerate(LINKS):
             # the delay of D_ij at sample k is d_ij[k] and its Doppler factor the centred
@@ -682,6 +655,57 @@ def read_lisainstrument(path, *, order: int = 31, delay_order: int = 5):
         config=config,
         source=str(path),
     )
+
+
+def _check_version(path: Path, f: h5py.File) -> None:
+    """TelemetryError naming the version attribute unless the file's format is 2.x."""
+    version_text = _str_attr(f, "version_format") or _str_attr(f, "version") or ""
+    version = _parse_version(version_text)
+    attr = "@version_format" if _str_attr(f, "version_format") else "@version"
+    if version is None:
+        raise TelemetryError(path, f"cannot parse the lisainstrument file version {version_text!r}", attr)
+    if version[0] != SUPPORTED_MAJOR:
+        raise TelemetryError(
+            path,
+            f"lisainstrument file format {version_text} is not supported (only 2.x; re-simulate or convert)",
+            attr,
+        )
+
+
+def _read_mprs(path: Path, reader: _DatasetReader) -> dict[str, np.ndarray]:
+    """The measured pseudo-ranges [s] per MOSA, interpolated across their gaps;
+    TelemetryError naming the dataset unless they are positive."""
+    raw_mprs = {mosa: reader.read(MPR_DATASET, mosa) for mosa in MOSAS}
+    mprs = {}
+    for mosa, d in raw_mprs.items():
+        name = f"{MPR_DATASET}/{mosa}"
+        if name in reader.missing:
+            d = _fill_mpr(path, name, d, reader.missing[name])
+        if np.any(d <= 0):
+            raise TelemetryError(
+                path, f"measured pseudo-ranges must be positive delays [s], found min {d.min():g}", name
+            )
+        mprs[mosa] = d
+    return mprs
+
+
+def _valid_span(path: Path, mprs: dict, fs: float, order: int, size: int) -> tuple[int, int]:
+    """The first sample and one past the last whose delayed terms lie inside the file, from
+    the delays alone (a gap at the start of the file does not move t0); TelemetryError when
+    there is none, or when a sample between them has not."""
+    inside = np.all([_stencil_inside(mprs[link], fs, order) for link in LINKS], axis=0)
+    if not inside.any():
+        raise TelemetryError(
+            path,
+            f"too short for the eta reduction: no sample has its delayed terms (delays {max(d.max() for d in mprs.values()):.3g} s, order {order})",
+            MPR_DATASET,
+        )
+    first = int(np.argmax(inside))
+    last = size - int(np.argmax(inside[::-1]))  # one past the last valid sample
+    if not inside[first:last].all():
+        bad = first + int(np.argmin(inside[first:last]))
+        raise TelemetryError(path, f"eta reduction undefined inside the data (sample {bad}); delays jump?", MPR_DATASET)
+    return first, last
 
 
 def gap_reach(mprs, fs: float, order: int) -> tuple[int, int]:

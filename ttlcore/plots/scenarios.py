@@ -11,6 +11,16 @@ from ..conventions import COEFFICIENT_NAMES, PAPER_ORDER, ffd_to_displacement_as
 from ..estimate.spectra import log_average
 from .batch import _save
 
+#: the X2 series of the ASD figures: label and line style
+_STYLES = {
+    "data": ("X with TTL (and GW)", dict(color="black", lw=1.3)),
+    "noise_without_ttl": ("X without TTL", dict(color="0.6", lw=3.0)),
+    "residual": ("residual, fitted coefficients", dict(color="tab:blue", lw=1.3)),
+    "ttl_residual": ("TTL residual", dict(color="tab:green", lw=1.3, ls="-.")),
+    "gw": ("GW response", dict(color="tab:purple", lw=1.3)),
+    "ttl_plus_gw_residual": ("TTL + GW only, after subtraction", dict(color="gold", lw=1.6, ls="--")),
+}
+
 
 def scenario_figures(
     case, summary, f, P, fc, req, band, arm, res, ref, truth, out_dir: Path, *, intact_factor: float
@@ -25,53 +35,20 @@ def scenario_figures(
     displacement scale); ``res``, ``ref``: the fits with and without GW; ``truth``: the true
     coefficients [m/rad]; ``intact_factor``: the GW-over-residual factor of the
     ``gw_intact`` bins (named in the close-up's title)."""
-    from matplotlib.figure import Figure
-
     paths = {}
     names = ["data", "noise_without_ttl", "residual", "ttl_residual", "gw", "ttl_plus_gw_residual"]
     fcl, lp = log_average(f[1:], np.stack([P[k][1:] for k in names]))
     asd = {k: ffd_to_displacement_asd(np.sqrt(lp[i]), fcl) for i, k in enumerate(names)}
-    req_x = ffd_to_displacement_asd(np.sqrt(req), fc)
-    styles = {
-        "data": ("X with TTL (and GW)", dict(color="black", lw=1.3)),
-        "noise_without_ttl": ("X without TTL", dict(color="0.6", lw=3.0)),
-        "residual": ("residual, fitted coefficients", dict(color="tab:blue", lw=1.3)),
-        "ttl_residual": ("TTL residual", dict(color="tab:green", lw=1.3, ls="-.")),
-        "gw": ("GW response", dict(color="tab:purple", lw=1.3)),
-        "ttl_plus_gw_residual": ("TTL + GW only, after subtraction", dict(color="gold", lw=1.6, ls="--")),
-    }
-
-    def draw(keys, path, fmin, fmax, title):
-        fig = Figure(figsize=(10.5, 5.4), layout="constrained")
-        ax = fig.add_subplot()
-        for k in keys:
-            if k == "gw" and not case.gw:
-                continue
-            label, st = styles[k]
-            ax.loglog(fcl, asd[k], label=label, **st)
-        ax.loglog(fc, req_x, label="LISA requirement", color="0.4", lw=1.2, ls="--")
-        ax.axvspan(band[0], band[1], color="tab:orange", alpha=0.07, lw=0, label=f"fit band {band[0]:g}-{band[1]:g} Hz")
-        ax.set_xlim(fmin, fmax)
-        sel = (fcl >= fmin) & (fcl <= fmax)
-        vals = np.concatenate(
-            [asd[k][sel] for k in keys if (k != "gw" or case.gw)] + [req_x[(fc >= fmin) & (fc <= fmax)]]
-        )
-        vals = vals[vals > 0]
-        ax.set_ylim(max(vals.min() / 2, vals.max() * 1e-9), vals.max() * 3)
-        ax.set_xlabel("Frequency [Hz]")
-        ax.set_ylabel("ASD of TDI X [m/√Hz]")
-        ax.grid(True, which="major", alpha=0.35)
-        ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8.5, borderaxespad=0)
-        ax.set_title(title, fontsize=10)
-        return _save(fig, path)
-
+    curves = (fcl, asd, fc, ffd_to_displacement_asd(np.sqrt(req), fc))
     title = f"{case.title}: max |error| {summary['max_abs_error_mm']:.4f} mm/rad, chi2/dof {summary['chi2_dof']:.3f}"
     paths["asd"] = str(
-        draw(
+        _asd_figure(
+            case,
+            curves,
+            band,
             ["data", "noise_without_ttl", "residual", "ttl_residual", "gw"],
             out_dir / f"{case.name}_asd.png",
-            1e-4,
-            1.0,
+            (1e-4, 1.0),
             title,
         )
     )
@@ -82,15 +59,56 @@ def scenario_figures(
             f"max deviation {100 * (gi['max_relative_deviation'] or 0):.2f} %"
         )
         paths["gw_intact"] = str(
-            draw(
+            _asd_figure(
+                case,
+                curves,
+                band,
                 ["data", "noise_without_ttl", "residual", "gw", "ttl_plus_gw_residual"],
                 out_dir / f"{case.name}_gw_intact.png",
-                1e-4,
-                3e-2,
+                (1e-4, 3e-2),
                 t2,
             )
         )
-    # coefficients: with GW (fit - truth) and the reference
+    paths["coefficients"] = str(
+        _coefficient_figure(case, summary["limit_mm"], res, ref, truth, out_dir / f"{case.name}_coefficients.png")
+    )
+    return paths
+
+
+def _asd_figure(case, curves: tuple, band, keys: list[str], path: Path, frange: tuple, title: str):
+    """The X2 ASDs ``keys`` (``curves``: their log-averaged frequencies [Hz] and
+    displacement ASDs by name, the requirement's frequencies and ASD) between ``frange``
+    [Hz], the fit ``band`` shaded; the GW only with a GW in ``case``."""
+    from matplotlib.figure import Figure
+
+    fcl, asd, fc, req_x = curves
+    fmin, fmax = frange
+    fig = Figure(figsize=(10.5, 5.4), layout="constrained")
+    ax = fig.add_subplot()
+    for k in keys:
+        if k == "gw" and not case.gw:
+            continue
+        label, st = _STYLES[k]
+        ax.loglog(fcl, asd[k], label=label, **st)
+    ax.loglog(fc, req_x, label="LISA requirement", color="0.4", lw=1.2, ls="--")
+    ax.axvspan(band[0], band[1], color="tab:orange", alpha=0.07, lw=0, label=f"fit band {band[0]:g}-{band[1]:g} Hz")
+    ax.set_xlim(fmin, fmax)
+    sel = (fcl >= fmin) & (fcl <= fmax)
+    vals = np.concatenate([asd[k][sel] for k in keys if (k != "gw" or case.gw)] + [req_x[(fc >= fmin) & (fc <= fmax)]])
+    vals = vals[vals > 0]
+    ax.set_ylim(max(vals.min() / 2, vals.max() * 1e-9), vals.max() * 3)
+    ax.set_xlabel("Frequency [Hz]")
+    ax.set_ylabel("ASD of TDI X [m/√Hz]")
+    ax.grid(True, which="major", alpha=0.35)
+    ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize=8.5, borderaxespad=0)
+    ax.set_title(title, fontsize=10)
+    return _save(fig, path)
+
+
+def _coefficient_figure(case, lim: float, res, ref, truth, path: Path):
+    """The coefficients' deviations from the truth with GW (``res``) and without (``ref``),
+    in the paper's order, against the limit ``lim`` [mm/rad]."""
+    from matplotlib.figure import Figure
 
     order = list(paper_ordered_names())
     idx = [COEFFICIENT_NAMES.index(n) for n in order]
@@ -98,7 +116,6 @@ def scenario_figures(
     fig = Figure(figsize=(10, 4.8), layout="constrained")
     ax = fig.add_subplot()
     ax.axhline(0, color="black", lw=0.8)
-    lim = summary["limit_mm"]
     ax.axhline(lim, color="tab:red", lw=1, ls="--", label=f"±{lim:g} mm/rad")
     ax.axhline(-lim, color="tab:red", lw=1, ls="--")
     e_ref = 1e3 * (ref.coefficients - truth)[idx]
@@ -123,5 +140,4 @@ def scenario_figures(
     ax.set_title(f"{case.title} (MOSAs {', '.join(PAPER_ORDER)})", fontsize=10, loc="left")
     ax.legend(fontsize=8.5, loc="lower right")
     ax.grid(True, axis="y", alpha=0.3)
-    paths["coefficients"] = str(_save(fig, out_dir / f"{case.name}_coefficients.png"))
-    return paths
+    return _save(fig, path)

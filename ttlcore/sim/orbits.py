@@ -831,6 +831,12 @@ def make_orbit(spec, **kwargs) -> Orbit:
     if key == "keplerian":
         _check_kwargs(key, kwargs, _KEPLERIAN_KEYS)
         return KeplerianOrbit(**kwargs)
+    return _orbit_file(text, kwargs)
+
+
+def _orbit_file(text: str, kwargs: dict) -> Orbit:
+    """The lisaorbits orbit file of spec ``text`` (``FILE`` or ``FILE:dataset``); ConfigError
+    when the dataset named disagrees with ``kwargs`` or there is no such file."""
     path, dataset = text, None
     for name in ORBIT_FILE_DATASETS:
         if text.endswith(":" + name):

@@ -206,30 +206,38 @@ def _printed_specs(report: dict) -> tuple[list[str], list[str], list[str]]:
     """(specs of one effect, comma-separated lists of effects, ``--effects`` options) of a
     JSON report: every ``spec``/``cli_spec``, every element of ``effects``/``added``/
     ``removed``, the keys of ``searched``, every ``cli_effects`` and ``option``."""
-    one, many, options = [], [], []
+    found: tuple[list[str], list[str], list[str]] = ([], [], [])
+    _walk(report, None, found)
+    return found
 
-    def walk(x, key=None):
-        if isinstance(x, dict):
-            if key == "searched":
-                one.extend(k for k in x if k.split(":")[0] in EFFECTS)
-            for k, v in x.items():
-                walk(v, k)
-        elif isinstance(x, list):
-            if key in ("effects", "added", "removed") and all(isinstance(v, str) for v in x):
-                one.extend(x)
-            else:
-                for v in x:
-                    walk(v, key)
-        elif isinstance(x, str) and x:
-            if key in ("spec", "cli_spec"):
-                one.append(x)
-            elif key == "cli_effects":
-                many.append(x)
-            elif key == "option":
-                options.append(x)
 
-    walk(report)
-    return one, many, options
+def _walk(x, key, found: tuple) -> None:
+    """The specs printed in ``x`` (under ``key``) into ``found`` (:func:`_printed_specs`)."""
+    if isinstance(x, dict):
+        if key == "searched":
+            found[0].extend(k for k in x if k.split(":")[0] in EFFECTS)
+        for k, v in x.items():
+            _walk(v, k, found)
+    elif isinstance(x, list):
+        if key in ("effects", "added", "removed") and all(isinstance(v, str) for v in x):
+            found[0].extend(x)
+        else:
+            for v in x:
+                _walk(v, key, found)
+    elif isinstance(x, str) and x:
+        _take_string(x, key, found)
+
+
+def _take_string(x: str, key, found: tuple) -> None:
+    """A string under ``key``: a spec (``spec``, ``cli_spec``), a list of effects
+    (``cli_effects``) or an ``--effects`` option (``option``); anything else is not a spec."""
+    one, many, options = found
+    if key in ("spec", "cli_spec"):
+        one.append(x)
+    elif key == "cli_effects":
+        many.append(x)
+    elif key == "option":
+        options.append(x)
 
 
 def test_a_real_diagnosis_prints_only_specs_that_paste_back(diagnosed, capsys):
