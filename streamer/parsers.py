@@ -123,6 +123,16 @@ def _add_run(sub) -> None:
         "router enforces who may publish what",
         "no TLS and no access control (plain TCP on loopback): any local process may publish into the run",
     )
+    _add_run_fitter_options(p)
+    p.add_argument("--timeout", type=float, help="give up after this many seconds")
+    p.add_argument("--log-level", help="log level of the stages (default INFO)")
+    p.add_argument("--quiet", action="store_true", help="no progress display")
+    p.set_defaults(handler="streamer.cli:_cmd_run")
+
+
+def _add_run_fitter_options(p) -> None:
+    """``ttl run``'s options for the fitter: its FFT segment, window and band, the model and
+    what the live diagnosis may do with it."""
     p.add_argument("--fit-segment", type=duration, help="fitter: FFT segment length (default: the segment length)")
     p.add_argument("--fit-window", type=duration, help="fitter: rolling window length (default 1d)")
     p.add_argument(
@@ -163,10 +173,6 @@ def _add_run(sub) -> None:
         "change): rolling (default: the rolling fit with the model's columns) or refit (the "
         "window refitted every segment, as ttl refit)",
     )
-    p.add_argument("--timeout", type=float, help="give up after this many seconds")
-    p.add_argument("--log-level", help="log level of the stages (default INFO)")
-    p.add_argument("--quiet", action="store_true", help="no progress display")
-    p.set_defaults(handler="streamer.cli:_cmd_run")
 
 
 # ---------------------------------------------------------------------------- ttl stage
