@@ -23,8 +23,16 @@ sys.path.insert(0, str(Path(__file__).parent))
 HOUR = 3600.0
 
 
-def _event(t_start, t_stop, cls="noise-change"):
-    return {"class": cls, "t_start": t_start, "t_stop": t_stop, "duration": t_stop - t_start, "evidence": []}
+def _event(t_start, t_stop, cls="noise-change", t_share=0.3):
+    return {
+        "class": cls,
+        "t_start": t_start,
+        "t_stop": t_stop,
+        "duration": t_stop - t_start,
+        "evidence": [],
+        "t_share": t_share,
+        "t_share_threshold": 0.006,
+    }
 
 
 def test_an_event_that_lasts_to_the_end_is_an_onset_and_others_keep_their_class():
@@ -36,9 +44,18 @@ def test_an_event_that_lasts_to_the_end_is_an_onset_and_others_keep_their_class(
         _event(12.0 * HOUR, end, "gravitational-wave"),  # a signal stays a signal
         _event(12.0 * HOUR, end, "gap"),  # so does missing data
         _event(end - ONSET_MIN_HOURS * HOUR - 60.0, end - 60.0, "unclassified"),  # just long enough
+        _event(9.0 * HOUR, end, "noise-change", t_share=0.001),  # T empty: an inspiral building up
     ]
     reclassify_onsets(events, end, tile, hop)
-    assert [e["class"] for e in events] == [ONSET, "noise-change", "glitch", "gravitational-wave", "gap", ONSET]
+    assert [e["class"] for e in events] == [
+        ONSET,
+        "noise-change",
+        "glitch",
+        "gravitational-wave",
+        "gap",
+        ONSET,
+        "noise-change",
+    ]
     assert "was noise-change" in events[0]["evidence"][-1] and events[1]["evidence"] == []
     assert onset_events(events) == [events[0], events[5]]
 
