@@ -34,6 +34,11 @@ from .model_fit import ModelFit, parameter_name, total_offset
 log = logging.getLogger(__name__)
 
 
+def rank_key(c: dict) -> tuple:
+    """The order of a ranking: significant candidates first, then by log Bayes factor."""
+    return (not c["significant"], -np.nan_to_num(c["log_bayes_factor"], nan=-np.inf))
+
+
 def candidates(model: ModelFit, names=None, extra=(), workers: int = 1) -> list[dict]:
     """Try every available effect not in ``model`` and the effect instances ``extra``
     (witness effects and frequency-dependent couplings of the top witnesses,
@@ -128,7 +133,7 @@ class CandidatePool:
         """Every submitted candidate that could be scored, best first (significant ones
         first, then by log Bayes factor)."""
         out = [r for r in (f.result() for f in self._futures) if r is not None]
-        out.sort(key=lambda c: (not c["significant"], -np.nan_to_num(c["log_bayes_factor"], nan=-np.inf)))
+        out.sort(key=rank_key)
         return out
 
     def score(self, effect) -> dict | None:

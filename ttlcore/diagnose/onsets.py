@@ -41,7 +41,7 @@ import numpy as np
 
 from ..effects import make_effects
 from ..errors import ConfigError
-from .candidates import CandidatePool, score
+from .candidates import CandidatePool, rank_key, score
 
 __all__ = ["ONSET", "ONSET_MIN_HOURS", "add_onset_candidates", "onset_events", "onset_time", "reclassify_onsets"]
 
@@ -153,6 +153,6 @@ def add_onset_candidates(model, report: dict, events: list[dict], modules=()) ->
             100 * c["explained_fraction"],
         )
     merged = list(report.get("candidates") or []) + new
-    merged.sort(key=lambda c: (not c["significant"], -np.nan_to_num(c["log_bayes_factor"], nan=-np.inf)))
+    merged.sort(key=rank_key)
     report["candidates"] = merged
     return new
