@@ -185,6 +185,7 @@ class Subtractor(PipelineStage):
 
     def tick(self):
         self.drain()
+        self.fetch_announced()
         self.give_up_gaps()
         self.check_complete()
         self._prune_fits()

@@ -28,6 +28,13 @@ from .segment_stream import declare_segment_publisher
 from .stage import Stage, StageConfig, disk_full
 from .topology import OUTPUT_TOPIC, UPSTREAM
 
+#: An input segment the upstream stage's progress announced (published) that has not come
+#: after this long [s] is asked for from its cache, once (:meth:`PipelineStage.fetch_announced`):
+#: a late joiner's history query can be lost on a loaded machine (CI, 2026-11-28: six tdi
+#: segments never reached a subtractor started half-way through the replay, and the run
+#: timed out waiting for them).
+ANNOUNCED_FETCH_AFTER = 10.0
+
 
 class InOrder:
     """Reorder buffer: hands out items in index order.
@@ -143,6 +150,9 @@ class PipelineStage(Stage):
         )
         self.board = ProgressBoard()
         self._progress_pub = None
+        #: Announced upstream segments not received: when first seen missing [monotonic s].
+        self._missing_since: dict[int, float] = {}
+        self._missing_fetched: set[int] = set()
         #: Memory per segment, logged when ``TTL_MEMTRACE`` is set (:mod:`streamer.memtrace`).
         self.memtrace = MemoryTrace.from_env(self.log)
 
@@ -219,6 +229,39 @@ class PipelineStage(Stage):
         if "*" in self.follow or stage in self.follow or stage == self.stage_name:
             plan = self.validator.plan
             self.board.feed(sample, self.run_id, plan.segments_total if plan is not None else None)
+
+    def fetch_announced(self, now: float | None = None) -> list[int]:
+        """Ask the upstream producer's cache, once each, for the segments its progress says it
+        published that have not come here after :data:`ANNOUNCED_FETCH_AFTER` seconds (not
+        received, not handled or given up here or by an earlier process of this stage, at or
+        above the validator's floor).  Nothing
+        else tells a stage that its history query was lost: the segment would be waited for
+        until the run times out.  Returns the indices asked for now
+        (:meth:`streamer.stage.Stage.fetch` applies the re-fetch budget)."""
+        up = self.upstream
+        peer = self.board.get(up)
+        topic = OUTPUT_TOPIC.get(up or "")
+        if peer is None or topic is None or topic not in self.inputs:
+            return []
+        now = time.monotonic() if now is None else now
+        floor = max(self.validator.floor, 0)
+        got = self.ingest.done.get(topic, RangeSet())
+        own = self.board.get(self.stage_name)  # an earlier process of this stage handled those
+        earlier = own.handled if own is not None else RangeSet()
+        missing = {
+            i
+            for i in peer.done - self.done - self.failed - got - earlier
+            if i >= floor and (topic, i) not in self.validator.digests
+        }
+        self._missing_since = {i: self._missing_since.get(i, now) for i in missing}
+        self._missing_fetched &= missing
+        asked = []
+        for i in sorted(missing - self._missing_fetched):
+            if now - self._missing_since[i] >= ANNOUNCED_FETCH_AFTER:
+                self._missing_fetched.add(i)
+                if self.fetch(topic, i):
+                    asked.append(i)
+        return asked
 
     def pending(self) -> int:
         """Segments received but not yet handled (override in buffering stages)."""
@@ -360,6 +403,7 @@ class OrderedStage(PipelineStage):
 
     def tick(self):
         self.drain()
+        self.fetch_announced()
         self.check_complete()
         return ()
 

@@ -12,6 +12,7 @@ from stages.subtractor import Subtractor
 from streamer.keys import from_ranges, to_ranges
 from streamer.pipeline_stage import InOrder
 from streamer.progress import Progress
+from streamer.rangeset import RangeSet
 from streamer.stage import StageConfig
 from ttlcore.cli.simulation import simulation_config
 from ttlcore.errors import ConfigError, TelemetryError
@@ -163,6 +164,32 @@ def test_subtractor_asks_the_fitter_cache_for_an_announced_fit_that_does_not_com
     assert s.choose(2) == ("wait", None) and asked == [("fit", 2)]  # asked once
     s.fits[2] = {"coefficients": {}, "t_start": 0.0, "t_stop": 1.0}
     assert s.choose(2) == ("apply", 2)
+
+
+def test_an_announced_input_that_never_comes_is_asked_of_the_producers_cache(tmp_path):
+    """CI, 2026-11-28: a subtractor started half-way through the replay never received tdi
+    segments 0-5 (its history query was lost under load) and the run timed out waiting for
+    them.  A segment the tdi_builder's progress says it published, not received here after
+    ANNOUNCED_FETCH_AFTER seconds, is asked of its cache, once; received, handled, or below
+    the validator's floor, it is not."""
+    from streamer.pipeline_stage import ANNOUNCED_FETCH_AFTER
+
+    s = Subtractor(StageConfig(run="u", recordings=tmp_path))
+    asked = []
+    s.fetch = lambda topic, index: asked.append((topic, index)) or True
+    s.board.feed(sample({"stage": "tdi_builder", "done": [[0, 7]]}))
+    s.ingest.done["tdi"] = RangeSet([6])  # received and used
+    s.validator.digests[("tdi", 7)] = ()  # received, held
+    s.mark_done(1)
+    t0 = time.monotonic()
+    assert s.fetch_announced(t0) == [] and asked == []  # just announced: on its way
+    assert s.fetch_announced(t0 + ANNOUNCED_FETCH_AFTER / 2) == []
+    assert s.fetch_announced(t0 + ANNOUNCED_FETCH_AFTER) == [0, 2, 3, 4, 5]
+    assert asked == [("tdi", i) for i in (0, 2, 3, 4, 5)]
+    assert s.fetch_announced(t0 + 3 * ANNOUNCED_FETCH_AFTER) == []  # once
+    s.board.feed(sample({"stage": "tdi_builder", "done": [[0, 8]]}))  # a new one: its own clock
+    assert s.fetch_announced(t0 + 3 * ANNOUNCED_FETCH_AFTER) == []
+    assert s.fetch_announced(t0 + 4 * ANNOUNCED_FETCH_AFTER) == [8]
 
 
 def test_subtractor_keeps_only_the_fits_segments_to_come_can_get(tmp_path):
