@@ -85,7 +85,7 @@ demo-batch: $(STAMP)
 ## runs without it.
 COV ?= --cov --cov-report=term:skip-covered
 test: lint $(STAMP) pip-check
-	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist worksteal $(COV)
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist worksteal --durations=25 $(COV)
 
 ## lint: ruff (lint rules and the formatting, checked not applied) over the tree and mypy over
 ## ttlcore, streamer and stages (configured in pyproject.toml: [tool.mypy] files); `ruff check --fix .

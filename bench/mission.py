@@ -16,13 +16,20 @@ memory at the end of day 1 and at the end (flat or growing), the live model's si
 alerts, the fits against the segments outside the gap, and the last fit against the truth
 (max |C_fit - C_true| [mm/rad], pull RMS).
 
-Usage: ``.venv/bin/python bench/mission.py [--days 7] [--seed 1] [--keep DIR]``
+``--source lisainstrument`` makes the week with outside code only (``tests/mission_week.py``:
+lisainstrument's days and its own TTL coefficients, a blind coupling the pipeline does not name
+switched on in day 3, lisaglitch's daily glitches, a lisagwresponse merger, a lisa-gap 7-h gap)
+and replays lisainstrument's file itself; the issue's blind-week test (``tests/test_mission_week.py``)
+runs it and checks the JSON.
+
+Usage: ``.venv/bin/python bench/mission.py [--days 7] [--seed 1] [--source simulator|lisainstrument] [--keep DIR [--reuse]]``
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import shutil
 import subprocess
 import sys
 import tempfile
@@ -83,48 +90,95 @@ def simulate(path: Path, days: float, seed: int) -> dict:
                 block = ds[:, i:j]
                 block[...] = np.nan
                 ds[:, i:j] = block
-    return {"coupling_on_s": t_on, "injections": injections, "gap_s": list(GAP) if b <= days * DAY else None}
+    return {
+        "coupling_on_s": t_on,
+        "injections": injections,
+        "gap_s": list(GAP) if b <= days * DAY else None,
+        "t0": 0.0,
+        "duration": days * DAY,
+    }
+
+
+def make_week(data: Path, source: str, days: float, seed: int) -> dict:
+    """Write the week at ``data``; returns its setup (what was injected where, see :func:`summarise`)."""
+    if source == "simulator":
+        return simulate(data, days, seed)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from mission_week import blind_week
+
+    return blind_week(data, days=int(days), seed=seed)
+
+
+def run_week(
+    tmp: Path, source: str = "simulator", days: float = 7.0, seed: int = 1, timeout: float = 14400, reuse: bool = False
+) -> dict:
+    """Make the week in ``tmp`` (``reuse``: the week an earlier call left there, ``mission.h5``
+    and ``mission.setup.json``, when both exist), replay it through ``ttl run --adopt auto`` at
+    the default cadence, and return the JSON report (module docstring); the recordings stay in
+    ``tmp / "rec" / "mission"`` (an earlier run's are removed)."""
+    load_before = psutil.getloadavg()
+    tmp.mkdir(parents=True, exist_ok=True)
+    data, saved = tmp / "mission.h5", tmp / "mission.setup.json"
+    t_sim = time.perf_counter()
+    if reuse and data.exists() and saved.exists():
+        setup = json.loads(saved.read_text())
+    else:
+        setup = make_week(data, source, days, seed)
+        saved.write_text(json.dumps(setup))
+    t_sim = time.perf_counter() - t_sim
+    shutil.rmtree(tmp / "rec", ignore_errors=True)
+    start = time.perf_counter()
+    cmd = [sys.executable, "-m", "streamer.cli", "run", "--telemetry", str(data), "--run-id", "mission"]
+    cmd += ["--recordings", str(tmp / "rec"), "--quiet", "--timeout", str(int(timeout)), "--adopt", "auto"]
+    launcher = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    cpu, rss = watch_stages(launcher, start)
+    wall = time.perf_counter() - start
+    output = launcher.stdout.read() if launcher.stdout else ""
+    result = summarise(tmp / "rec" / "mission", data, setup, wall, cpu, rss)
+    result.update(
+        {
+            "benchmark": "mission",
+            "source": source,
+            "run_exit_status": launcher.returncode,
+            "simulation_s": round(t_sim, 1),
+            "load_average_before": [round(x, 2) for x in load_before],
+            "load_average_after": [round(x, 2) for x in psutil.getloadavg()],
+        }
+    )
+    if launcher.returncode != 0:
+        result["run_output_tail"] = output[-3000:]
+    return result
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--days", type=float, default=7.0)
     ap.add_argument("--seed", type=int, default=1)
+    ap.add_argument("--source", choices=("simulator", "lisainstrument"), default="simulator")
     ap.add_argument("--keep", type=Path, help="keep the data and recordings in this directory")
+    ap.add_argument("--reuse", action="store_true", help="with --keep: replay the week kept there, if any")
     args = ap.parse_args()
-    load_before = psutil.getloadavg()
     with tempfile.TemporaryDirectory() as tmpdir:
-        tmp = args.keep or Path(tmpdir)
-        tmp.mkdir(parents=True, exist_ok=True)
-        data = tmp / "mission.h5"
-        t_sim = time.perf_counter()
-        setup = simulate(data, args.days, args.seed)
-        t_sim = time.perf_counter() - t_sim
-        start = time.perf_counter()
-        cmd = [sys.executable, "-m", "streamer.cli", "run", "--telemetry", str(data), "--run-id", "mission"]
-        cmd += ["--recordings", str(tmp / "rec"), "--quiet", "--timeout", "14400", "--adopt", "auto"]
-        launcher = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-        cpu, rss = watch_stages(launcher, start)
-        wall = time.perf_counter() - start
-        output = launcher.stdout.read() if launcher.stdout else ""
-        run_dir = tmp / "rec" / "mission"
-        result = summarise(run_dir, data, setup, args.days, wall, cpu, rss)
-        result.update(
-            {
-                "benchmark": "mission",
-                "run_exit_status": launcher.returncode,
-                "simulation_s": round(t_sim, 1),
-                "load_average_before": [round(x, 2) for x in load_before],
-                "load_average_after": [round(x, 2) for x in psutil.getloadavg()],
-            }
-        )
-        if launcher.returncode != 0:
-            result["run_output_tail"] = output[-3000:]
+        result = run_week(args.keep or Path(tmpdir), args.source, args.days, args.seed, reuse=args.reuse)
     print(json.dumps(result, indent=2))
-    return 0 if launcher.returncode == 0 else 1
+    return 0 if result["run_exit_status"] == 0 else 1
 
 
-def summarise(run_dir: Path, data: Path, setup: dict, days: float, wall: float, cpu: dict, rss: dict) -> dict:
+def _transient(effect: str) -> bool:
+    return effect.startswith(("glitch", "gate")) or effect == "linear-ttl"
+
+
+def _truth(data: Path, setup: dict, fit) -> np.ndarray:
+    """The true coefficients [m/rad] over the fit's window: lisainstrument's constant ones, or
+    our simulator's truth file's mean."""
+    if setup.get("truth") is not None:
+        return np.asarray(setup["truth"], dtype=float)
+    return FileTruth(data.with_name(data.stem + ".truth.h5")).mean(
+        fit.header.meta["t_start"], fit.header.meta["t_stop"]
+    )
+
+
+def summarise(run_dir: Path, data: Path, setup: dict, wall: float, cpu: dict, rss: dict) -> dict:
     """The JSON report of a finished run (see the module docstring)."""
     fits = {}
     events, alerts = [], []
@@ -135,28 +189,27 @@ def summarise(run_dir: Path, data: Path, setup: dict, days: float, wall: float, 
         events += [e for e in rec.json("events") if e.get("kind") in ("model", "excess")]
     if (run_dir / "monitor.mcap").exists():
         alerts = read_recording(run_dir / "monitor.mcap").json("alerts")
-    segments = int(round(days * 24))
+    t0, days = setup["t0"], setup["duration"] / DAY
+    segments = int(np.ceil(setup["duration"] / HOUR - 1e-9))
     gap = setup["gap_s"]
     in_gap = set()
-    if gap:
-        in_gap = {i for i in range(segments) if gap[0] <= i * HOUR and (i + 1) * HOUR <= gap[1]}
-    truth = data.with_name(data.stem + ".truth.h5")
+    if gap:  # wholly inside the gap (a segment partly in it is fitted on what it holds)
+        in_gap = {i for i in range(segments) if gap[0] <= t0 + i * HOUR and t0 + (i + 1) * HOUR <= gap[1]}
     last = fits[max(fits)] if fits else None
     error = pull = None
     if last is not None:
-        c_true = FileTruth(truth).mean(last.header.meta["t_start"], last.header.meta["t_stop"])
-        err = last.arrays["coefficients"] - c_true
+        err = last.arrays["coefficients"] - _truth(data, setup, last)
         error = float(np.max(np.abs(err)) * 1e3)
         pull = float(np.sqrt(np.mean((err / last.arrays["sigma"]) ** 2)))
     adopted = [e for e in events if e.get("kind") == "model" and (e.get("details") or {}).get("by") == "adopt auto"]
-    coupling_at = next(
-        (
-            e["details"]["from_index"]
-            for e in adopted
-            if any(str(s).startswith("witness:source=12.eta,link=23") for s in e["details"]["effects"])
-        ),
-        None,
-    )
+    on_segment = int((setup["coupling_on_s"] - t0) // HOUR)
+    # a coupling (not a glitch or gate) adopted: before the onset it is spurious
+    couplings = [
+        (e["details"]["from_index"], [str(x) for x in e["details"]["effects"] if not _transient(str(x))])
+        for e in adopted
+    ]
+    couplings = [(i, c) for i, c in couplings if c]
+    coupling_at = next((i for i, _ in couplings if i >= on_segment), None)
     per_stage_cpu = {s: round(sum(v for (n, _), v in cpu.items() if n == s), 1) for s in STAGES}
     day1 = wall / days  # the samples' wall clock at the end of the first day's worth of run time
 
@@ -186,12 +239,30 @@ def summarise(run_dir: Path, data: Path, setup: dict, days: float, wall: float, 
             if e.get("kind") == "model"
         ],
         "excess_events": [e.get("index") for e in events if e.get("kind") == "excess"],
-        "coupling_on_segment": int(setup["coupling_on_s"] // HOUR),
+        "coupling_on_segment": on_segment,
         "coupling_adopted_from_segment": coupling_at,
+        "couplings_adopted_before_the_onset": [c for i, c in couplings if i < on_segment],
+        "couplings_in_the_model_at_end": [
+            str(x) for x in (last.header.meta.get("model") or []) if not _transient(str(x))
+        ]
+        if last is not None
+        else None,
+        "glitches_in_the_model_at_end_older_than_a_day": [
+            str(x)
+            for x in (last.header.meta.get("model") or [])
+            if str(x).startswith("glitch") and _glitch_time(str(x)) < last.header.meta["t_stop"] - DAY
+        ]
+        if last is not None
+        else None,
         "alerts": [a.get("message") for a in alerts],
         "last_fit_max_error_mm_per_rad": error,
         "last_fit_pull_rms": pull,
     }
+
+
+def _glitch_time(spec: str) -> float:
+    """The ``t=`` of a glitch spec [s] (``glitch:t=...,``)."""
+    return float(spec.split("t=", 1)[1].split(",", 1)[0].rstrip("s"))
 
 
 if __name__ == "__main__":

@@ -61,7 +61,6 @@ from streamer.rangeset import RangeSet
 from streamer.recorder import to_jsonable
 from streamer.refit import refit_settings
 from streamer.stage import Output, stage_main
-from ttlcore.conventions import DAY, parse_duration
 from ttlcore.diagnose.diagnoser import diagnose
 from ttlcore.errors import ConfigError, TTLError
 from ttlcore.estimate.fit import FitSettings
@@ -72,7 +71,7 @@ from ttlcore.tdi.data import TDIData
 from .fit_message import UNITS, fit_meta, fit_summary, notices, rolling_estimate
 from .fit_window import TelemetryWindow
 from .fitter_model import FitterModel, adoption_refused
-from .fitter_options import ADOPT_MODES, MODEL_UPDATES, add_options, one_of, options
+from .fitter_options import FitterOptions, add_options, options
 from .fitter_schedule import DiagnosisSchedule
 from .live_diagnosis import DiagnosisStopped, control_command, diagnosis_meta, stop_check
 from .live_model import LiveModel
@@ -80,7 +79,7 @@ from .rolling_model import RollingModel, rolling_outputs
 from .window_refit import window_refit, window_refit_meta
 
 
-class Fitter(FitterModel, OrderedStage):
+class Fitter(FitterModel, OrderedStage[FitterOptions]):
     """Rolling-window fit of the TTL coefficients (ttlcore.estimate.rolling.RollingFit), and
     of any extended model on the window's telemetry (ttlcore.diagnose.diagnoser.refit).
 
@@ -95,33 +94,27 @@ class Fitter(FitterModel, OrderedStage):
     inputs = ("tdi",)
     follow = ("tdi_builder",)
     reorders = ("tdi",)
+    options_type = FitterOptions
 
     def __init__(self, config):
         super().__init__(config)
-        o = self.options
-        try:
-            self.fit_segment = parse_duration(o["fit_segment"]) if o.get("fit_segment") else None
-            self.window_duration = parse_duration(o.get("window_duration") or DAY)
-        except ValueError as exc:
-            raise ConfigError(f"fitter: {exc}") from None
-        band = o.get("band")
-        if band is not None and (len(band) != 2 or not 0 < float(band[0]) < float(band[1])):
-            raise ConfigError(f"--band: expected FMIN FMAX with 0 < FMIN < FMAX, got {band}")
-        self.band = tuple(float(b) for b in band) if band else None
+        o = self.options  # parsed and checked (FitterOptions)
+        self.fit_segment = o.fit_segment
+        self.window_duration = o.window_duration
+        self.band = o.band
         self.rolling: RollingFit | None = None
         self.fits = RangeSet()
         self._next_t0: float | None = None
-        self.effect_modules = tuple(o.get("effect_modules") or ())
+        self.effect_modules = o.effect_modules
         try:
-            self.model = LiveModel(o.get("effects") or ["linear-ttl"], self.effect_modules, self.window_duration)
+            self.model = LiveModel(o.effects, self.effect_modules, self.window_duration)
         except (ValueError, ConfigError) as exc:
             raise ConfigError(f"fitter --effects: {exc}") from None
-        self.adequacy_every = int(o.get("adequacy_every", 24) or 0)
-        self.candidates_every = int(o.get("candidates_every", 0) or 0)
-        self.diagnose_every = int(o.get("diagnose_every", 24) if o.get("diagnose_every") is not None else 24)
-        model_update = one_of("model-update", o.get("model_update") or "rolling", MODEL_UPDATES)
-        self.rolling_model = RollingModel(model_update, self.band, self.effect_modules)
-        self.adopt = one_of("adopt", o.get("adopt") or "ask", ADOPT_MODES)
+        self.adequacy_every = o.adequacy_every
+        self.candidates_every = o.candidates_every
+        self.diagnose_every = o.diagnose_every
+        self.rolling_model = RollingModel(o.model_update, self.band, self.effect_modules)
+        self.adopt = o.adopt
         self.schedule = DiagnosisSchedule(self.diagnose_every if self.adopt != "never" else 0)
         self._catching_up = False  # a restarted fitter pushing the recorded segments again
         #: the window's telemetry, (index, Telemetry) in index order

@@ -1,13 +1,27 @@
-"""The fitter's command-line options (``python -m stages.fitter``, ``ttl stage fitter``).
+"""The fitter's options: :class:`FitterOptions`, and its command line (``python -m
+stages.fitter``, ``ttl stage fitter``).
 
-They set the stage options of the same names (``StageConfig.options``, the ``[stages.fitter]``
-table of a run's configuration), which :class:`stages.fitter.Fitter` reads and checks
-(:func:`one_of` for the options with a few choices).
+The command line sets the stage options of the same names (``StageConfig.options``, the
+``[stages.fitter]`` table of a run's configuration, ``ttl run``'s fitter options), which
+:class:`stages.fitter.Fitter` parses once into a :class:`FitterOptions`.
 """
 
 from __future__ import annotations
 
-from ttlcore.errors import ConfigError
+from dataclasses import dataclass
+
+from streamer.stage_options import (
+    OrderedOptions,
+    band_hz,
+    duration_s,
+    names,
+    nonnegative_int,
+    one_of,
+    option,
+)
+from ttlcore.conventions import DAY
+
+__all__ = ["ADOPT_MODES", "MODEL_UPDATES", "FitterOptions", "add_options", "options"]
 
 #: Adoption modes of ``--adopt``.
 ADOPT_MODES = ("ask", "auto", "never")
@@ -15,11 +29,36 @@ ADOPT_MODES = ("ask", "auto", "never")
 MODEL_UPDATES = ("rolling", "refit")
 
 
-def one_of(option: str, value: str, choices: tuple[str, ...]) -> str:
-    """``value`` of the option ``--<option>`` when it is one of ``choices``; ConfigError otherwise."""
-    if value not in choices:
-        raise ConfigError(f"fitter --{option}: expected one of {', '.join(choices)}, got {value!r}")
-    return value
+def _effects(value) -> str | tuple[str, ...]:
+    """The model: one string in the grammar of ``--effects`` (read by
+    :func:`ttlcore.effects.registry.make_effects`), or a list of specs."""
+    return value if isinstance(value, str) else tuple(str(e) for e in value)
+
+
+@dataclass(frozen=True)
+class FitterOptions(OrderedOptions):
+    """The fitter's options (their command-line help in :func:`add_options`)."""
+
+    #: FFT segment length [s] (None: the telemetry segment's length).
+    fit_segment: float | None = option(None, duration_s)
+    #: Length of the rolling window [s].
+    window_duration: float = option(DAY, duration_s)
+    #: Fit band [Hz] (None: the fit's default).
+    band: tuple[float, float] | None = option(None, band_hz)
+    #: The model at start: effect specs.
+    effects: str | tuple[str, ...] = option(("linear-ttl",), _effects)
+    #: Plugin modules or .py files defining effects.
+    effect_modules: tuple[str, ...] = option((), names)
+    #: Window refit under the instrument noise model every N segments (0: never).
+    adequacy_every: int = option(24, nonnegative_int)
+    #: Rank the effects not in the model every N segments (0: on model changes only).
+    candidates_every: int = option(0, nonnegative_int)
+    #: Live diagnosis every N segments (0: never).
+    diagnose_every: int = option(24, nonnegative_int)
+    #: What to do with a recommendation (:data:`ADOPT_MODES`).
+    adopt: str = option("ask", one_of(*ADOPT_MODES))
+    #: How an extended model is fitted between window refits (:data:`MODEL_UPDATES`).
+    model_update: str = option("rolling", one_of(*MODEL_UPDATES))
 
 
 def add_options(p) -> None:

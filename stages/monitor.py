@@ -93,14 +93,14 @@ from streamer.pipeline_stage import PipelineStage
 from streamer.processes import stop_process
 from streamer.recorder import to_jsonable
 from streamer.stage import Output, set_aside, stage_main
-from streamer.viewer import LiveFanout, check_live, compact_rrd, start_live
+from streamer.viewer import LiveFanout, compact_rrd, start_live
 from ttlcore.conventions import COEFFICIENT_NAMES
-from ttlcore.diagnose.trends import Alert, TrendMonitor, TrendSettings
-from ttlcore.estimate.fit import DEFAULT_BAND
+from ttlcore.diagnose.trends import Alert, TrendMonitor
 
 from . import monitor_views as views
 from .monitor_epochs import ModelEpochs, trend_estimate
 from .monitor_noise import NoiseCurves
+from .monitor_options import MonitorOptions, add_options, options
 from .monitor_recovery import recover_evicted
 from .monitor_settling import Settling
 from .monitor_status import UNITS, drift_arrays, status_meta
@@ -120,10 +120,11 @@ def _opened(part: T | None, what: str) -> T:
     return part
 
 
-class Monitor(PipelineStage):
+class Monitor(PipelineStage[MonitorOptions]):
     """Draws ASDs, coefficient trends, chi^2/dof and alerts in Rerun (module docstring)."""
 
     name = "monitor"
+    options_type = MonitorOptions
     inputs = ("telemetry", "tdi", "fit", "residual")
     follow = ("tdi_builder", "fitter", "subtractor")
     # no gap reports on arrival: the monitor needs no order, and settles each segment from its
@@ -134,11 +135,10 @@ class Monitor(PipelineStage):
     def __init__(self, config):
         super().__init__(config)
         o = self.options
-        self.live = o.get("live")
-        check_live(self.live)
-        self.per_decade = int(o.get("asd_per_decade", 20))
-        self.band = tuple(float(x) for x in (o.get("band") or DEFAULT_BAND))
-        self.trends = TrendMonitor(settings=TrendSettings.from_dict(o.get("trends")))
+        self.live = o.live
+        self.per_decade = o.asd_per_decade
+        self.band = o.band
+        self.trends = TrendMonitor(settings=o.trends)
         self._rec: LiveFanout | None = None  # the Rerun recording (:meth:`open_recording`)
         self._rrd: Path | None = None  # its file (:meth:`setup`)
         self.viewer = None
@@ -156,8 +156,8 @@ class Monitor(PipelineStage):
         self._ratio: tuple | None = None
         self._segment_time: dict[int, tuple[float, float]] = {}
         # what was drawn, refused, could not be handled; when a segment is done
-        self.settling = Settling(self.inputs, float(o.get("settle_timeout", 60.0)))
-        self.trend_spacing = float(o.get("trend_spacing", 3600.0))
+        self.settling = Settling(self.inputs, o.settle_timeout)
+        self.trend_spacing = o.trend_spacing
         self._trend_t: deque = deque(maxlen=64)  # window ends given to the trends lately
         self._alert_lines: list[str] = []  # every alert so far, for the run summary
         self._band_labels: list[str] = []  # the adequacy bands, for the run summary's key
@@ -191,12 +191,12 @@ class Monitor(PipelineStage):
     # ------------------------------------------------------------------ lifecycle
     def setup(self) -> None:
         super().setup()
-        rrd = self.options.get("rrd") or Path(self.config.recordings) / self.run_id / "monitor.rrd"
+        rrd = self.options.rrd or Path(self.config.recordings) / self.run_id / "monitor.rrd"
         self._rrd = set_aside(Path(rrd))
         self._rrd.parent.mkdir(parents=True, exist_ok=True)
         # no display, no binary, nothing listening: the file is still written
         self.viewer, self.viewer_url, viewer_problem = start_live(
-            self.live, self.options.get("viewer_port"), self.options.get("rerun_binary")
+            self.live, self.options.viewer_port, self.options.rerun_binary
         )
         if viewer_problem:
             self.log.warning("%s", viewer_problem)
@@ -259,7 +259,7 @@ class Monitor(PipelineStage):
         finally:
             self.rec.disconnect()
         started = time.monotonic()
-        problem = compact_rrd(self.rrd, self.options.get("rerun_binary"))
+        problem = compact_rrd(self.rrd, self.options.rerun_binary)
         if problem:
             self.log.warning("%s: %s (the file is complete, its chunks not merged)", self.rrd, problem)
         else:
@@ -550,20 +550,6 @@ class Monitor(PipelineStage):
 
 
 # ---------------------------------------------------------------------------- entry point
-
-
-def add_options(p) -> None:
-    p.add_argument(
-        "--live",
-        help="also stream to a viewer: 'spawn' (start the rerun viewer on 127.0.0.1), "
-        "'serve' (headless rerun gRPC server on 127.0.0.1) or a rerun+http:// URL",
-    )
-    p.add_argument("--viewer-port", type=int, help="port of the spawned viewer or server (default: a free one)")
-    p.add_argument("--rrd", help="Rerun recording to write (default <recordings>/<run>/monitor.rrd)")
-
-
-def options(args) -> dict:
-    return {"live": args.live, "viewer_port": args.viewer_port, "rrd": args.rrd}
 
 
 def check(config) -> str:

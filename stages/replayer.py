@@ -48,6 +48,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -58,8 +59,9 @@ from streamer.pipeline_stage import PipelineStage
 from streamer.plan import Plan
 from streamer.progress import REPLAY_WINDOW
 from streamer.stage import Output, stage_main
+from streamer.stage_options import StageOptions, duration_s, names, nonnegative_float, option, positive_int
 from ttlcore.cli.simulation import simulation_config
-from ttlcore.conventions import LINKS, parse_duration
+from ttlcore.conventions import LINKS
 from ttlcore.errors import ConfigError, TelemetryError
 from ttlcore.estimate.fit import dws_asd_from_config
 from ttlcore.io.atomic import write_text
@@ -246,28 +248,56 @@ class SimulationSource:
         return tm, {"source": "simulation", "truth": truth, "file": None, "dws_asd": self.dws_asd}
 
 
-def make_source(options: dict, planned=None):
-    """The source described by the stage options (``telemetry`` or ``simulate``, ``segment``);
-    ``planned``: the pins of the run's plan (``Plan.inputs``) the files must match."""
-    segment = options.get("segment", DEFAULT_SEGMENT)
-    segment = parse_duration(segment, "--segment")
-    files, simulate = options.get("telemetry"), options.get("simulate")
-    if files and simulate:
-        raise ConfigError("give either --telemetry or --simulate, not both")
-    if simulate:
-        return SimulationSource(simulate, segment)
-    if files:
-        return FileSource([files] if isinstance(files, str) else files, segment, planned)
+def _files(value) -> tuple[str, ...]:
+    return (value,) if isinstance(value, str) else tuple(str(f) for f in value)
+
+
+@dataclass(frozen=True)
+class ReplayerOptions(StageOptions):
+    """The replayer's options (their command-line help in :func:`add_options`)."""
+
+    #: Telemetry files (ours or lisainstrument's), or None.
+    telemetry: tuple[str, ...] | None = option(None, _files)
+    #: ``ttl simulate`` options of a simulation replayed on the fly, or None.
+    simulate: str | None = option(None, str)
+    #: Segment length [s].
+    segment: float = option(DEFAULT_SEGMENT, duration_s)
+    #: Multiple of real time (0: as fast as the consumers take them).
+    pace: float = option(0.0, nonnegative_float)
+    #: Segments the replay may run ahead of the slowest stage.
+    window: int = option(REPLAY_WINDOW, positive_int)
+    #: Stages to wait for (liveliness) before the first segment.
+    wait_for: tuple[str, ...] = option((), names)
+    #: Stages reporting progress to stay within ``window`` of.
+    pace_on: tuple[str, ...] = option((), names)
+    #: With ``--check``: write the run's plan (JSON) to this file.
+    plan_out: str | None = option(None, str)
+
+    def __post_init__(self):
+        if self.telemetry and self.simulate:
+            raise ValueError("give either --telemetry or --simulate, not both")
+
+
+def make_source(options: ReplayerOptions | Mapping, planned=None):
+    """The source described by the replayer's options (``telemetry`` or ``simulate``,
+    ``segment``; a mapping is parsed first); ``planned``: the pins of the run's plan
+    (``Plan.inputs``) the files must match."""
+    o = options if isinstance(options, ReplayerOptions) else ReplayerOptions.parse(options, "replayer")
+    if o.simulate:
+        return SimulationSource(o.simulate, o.segment)
+    if o.telemetry:
+        return FileSource(list(o.telemetry), o.segment, planned)
     raise ConfigError('no telemetry source: give --telemetry FILE... or --simulate "<ttl simulate options>"')
 
 
 # ---------------------------------------------------------------------------- the stage
 
 
-class Replayer(PipelineStage):
+class Replayer(PipelineStage[ReplayerOptions]):
     """Publishes telemetry segments in mission-time order (files or simulation)."""
 
     name = "replayer"
+    options_type = ReplayerOptions
     inputs = ()
     follow = ("*",)
     default_poll_interval = 0.01
@@ -279,16 +309,10 @@ class Replayer(PipelineStage):
         self.source = make_source(o, (config.plan or {}).get("inputs"))
         self.segments_total = self.source.segments_total
         self.segment_duration = self.source.segment_duration
-        self.pace = float(o.get("pace") or 0.0)
-        if self.pace < 0 or not np.isfinite(self.pace):
-            raise ConfigError(
-                f"--pace: expected a multiple of real time > 0 (or 0: as fast as possible), got {self.pace}"
-            )
-        self.window = int(o.get("window", REPLAY_WINDOW))
-        if self.window < 1:
-            raise ConfigError(f"--window: expected >= 1, got {self.window}")
-        self.wait_for = tuple(o.get("wait_for") or ())
-        self.pace_on = tuple(o.get("pace_on") or ())
+        self.pace = o.pace
+        self.window = o.window
+        self.wait_for = o.wait_for
+        self.pace_on = o.pace_on
         self.next: int | None = None
         self.first = 0
         self._t_start = 0.0
@@ -482,9 +506,10 @@ def options(args) -> dict:
 def check(config) -> str:
     """Validate the source options (``--check``): one line describing the replay; with option
     ``plan_out`` the run's plan is written there as JSON (``ttl run`` gives it to every stage)."""
-    source = make_source(config.options)
-    if config.options.get("plan_out"):
-        write_text(Path(config.options["plan_out"]), json.dumps(source.plan().to_dict()))
+    options = ReplayerOptions.parse(config.options, "replayer")
+    source = make_source(options)
+    if options.plan_out:
+        write_text(Path(options.plan_out), json.dumps(source.plan().to_dict()))
     return source.describe()
 
 

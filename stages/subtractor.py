@@ -32,6 +32,7 @@ from __future__ import annotations
 
 import sys
 import time
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -41,6 +42,7 @@ from streamer.pipeline_stage import PipelineStage
 from streamer.rangeset import RangeSet
 from streamer.recorder import to_jsonable
 from streamer.stage import Output, stage_main
+from streamer.stage_options import StageOptions, nonnegative_float, option, positive_float
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.prediction import model_residual
 from ttlcore.tdi.combinations import XYZ
@@ -90,17 +92,28 @@ def fit_for(index: int, handled, announced: set[int], received: set[int]) -> tup
     return ("apply", best) if best in received else ("await", best)
 
 
-class Subtractor(PipelineStage):
+@dataclass(frozen=True)
+class SubtractorOptions(StageOptions):
+    """The subtractor's options (their command-line help in :func:`add_options`)."""
+
+    #: Seconds to wait for a fit the fitter announced before falling back to an earlier one.
+    fit_timeout: float = option(FIT_TIMEOUT, positive_float)
+    #: Seconds to collect cached history before the first segment (unless it is segment 0).
+    settle: float = option(1.0, nonnegative_float)
+
+
+class Subtractor(PipelineStage[SubtractorOptions]):
     """Subtracts the fitted TTL model from each TDI segment."""
 
     name = "subtractor"
     inputs = ("tdi", "fit")
     follow = ("fitter", "tdi_builder")
     reorders = ("tdi", "fit")  # no gap reports on arrival: which fit applies comes from the fitter's progress
+    options_type = SubtractorOptions
 
     def __init__(self, config):
         super().__init__(config)
-        self.fit_timeout = float(self.options.get("fit_timeout", FIT_TIMEOUT))
+        self.fit_timeout = self.options.fit_timeout
         self.tdi: dict[int, tuple] = {}
         self.fits: dict[int, dict] = {}  # the fits segments still to come may get (_prune_fits)
         self.applied = RangeSet()  # fits applied to a segment
@@ -113,7 +126,7 @@ class Subtractor(PipelineStage):
         self._board_asked = 0.0  # when the fitter's progress was last asked again (_board_silent)
         # a late joiner gets its history from several publisher caches in any order: collect
         # for `settle` seconds before the first segment (unless it is segment 0)
-        self.settle = float(self.options.get("settle", 1.0))
+        self.settle = self.options.settle
         self._first_arrival: float | None = None
 
     def expect(self, topic, index):

@@ -22,11 +22,13 @@ is a duplicate its consumers ignore, and it re-creates the tail the next segment
 from __future__ import annotations
 
 import sys
+from dataclasses import dataclass
 
 from streamer.codec import Expect
 from streamer.messages import TELEMETRY_ARRAYS, telemetry_of
 from streamer.pipeline_stage import OrderedStage
 from streamer.stage import Output, stage_main
+from streamer.stage_options import OrderedOptions, option, positive_int
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.io.telemetry import Telemetry
 from ttlcore.tdi.combinations import XYZ
@@ -49,21 +51,27 @@ UNITS = {
 CHANNEL_AXIS = {"data": 0, "regressors": 0, **dict.fromkeys(TELEMETRY_ARRAYS)}
 
 
-class TDIBuilder(OrderedStage):
+@dataclass(frozen=True)
+class TDIBuilderOptions(OrderedOptions):
+    """The tdi_builder's options (their command-line help in :func:`add_options`)."""
+
+    #: Lagrange interpolation order of the TDI delays (odd; None: TDIStream's default).
+    order: int | None = option(None, positive_int)
+
+
+class TDIBuilder(OrderedStage[TDIBuilderOptions]):
     """Builds TDI (X2, Y2, Z2) of the data and of the 24 regressors from telemetry segments."""
 
     name = "tdi_builder"
+    options_type = TDIBuilderOptions
     inputs = ("telemetry",)
     follow = ("replayer",)
     reorders = ("telemetry",)
 
     def __init__(self, config):
         super().__init__(config)
-        o = self.options
-        kwargs = {}
-        if o.get("order") is not None:
-            kwargs["order"] = int(o["order"])
-        self.stream = TDIStream(**kwargs)
+        order = self.options.order
+        self.stream = TDIStream() if order is None else TDIStream(order=order)
 
     def expect(self, topic, index):
         # NaN stretches in eta / DWS are data with a gap (the replayer flags them in meta.gaps);

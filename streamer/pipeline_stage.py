@@ -15,7 +15,7 @@ import json
 import os
 import time
 from collections.abc import Callable
-from typing import ClassVar
+from typing import ClassVar, Generic, TypeVar, cast
 
 import zenoh
 
@@ -26,6 +26,7 @@ from .progress import Progress, ProgressBoard, key_stage
 from .rangeset import RangeSet
 from .segment_stream import declare_segment_publisher
 from .stage import Stage, StageConfig, disk_full
+from .stage_options import OrderedOptions, StageOptions
 from .topology import OUTPUT_TOPIC, UPSTREAM
 
 #: An input segment the upstream stage's progress announced (published) that has not come
@@ -127,7 +128,11 @@ class InOrder:
         return None
 
 
-class PipelineStage(Stage):
+O = TypeVar("O", bound=StageOptions)
+OO = TypeVar("OO", bound=OrderedOptions)
+
+
+class PipelineStage(Stage, Generic[O]):
     """A :class:`streamer.stage.Stage` that reports progress and completion (module docstring).
 
     Subclasses call :meth:`mark_done` / :meth:`mark_failed` for every segment they handle,
@@ -140,10 +145,13 @@ class PipelineStage(Stage):
     follow: ClassVar[tuple[str, ...]] = ()
     #: Default poll interval of the pipeline stages [s].
     default_poll_interval: ClassVar[float] = 0.05
+    #: The stage's options: a frozen dataclass (:mod:`streamer.stage_options`).
+    options_type: ClassVar[type[StageOptions]] = StageOptions
 
     def __init__(self, config: StageConfig):
         super().__init__(config)
-        self.options = dict(config.options or {})
+        #: The stage's options, parsed once: an unknown or bad option stops the stage at start.
+        self.options: O = cast(O, self.options_type.parse(config.options, self.name))
         #: This process's progress (what it published and gave up), published after every segment.
         self.progress = Progress(
             self.stage_name, segments_total=self.validator.plan.segments_total if self.validator.plan else None
@@ -343,7 +351,7 @@ class PipelineStage(Stage):
             self.log.exception("could not publish progress")
 
 
-class OrderedStage(PipelineStage):
+class OrderedStage(PipelineStage[OO]):
     """A pipeline stage that processes its input segments one by one in index order.
 
     Subclasses implement :meth:`process` (one segment -> an output or None) and may
@@ -355,11 +363,11 @@ class OrderedStage(PipelineStage):
     up or they do not come within ``gap_timeout`` while later ones wait.
     """
 
+    options_type: ClassVar[type[StageOptions]] = OrderedOptions
+
     def __init__(self, config: StageConfig):
         super().__init__(config)
-        self.queue = InOrder(
-            settle=float(self.options.get("settle", 1.0)), gap_timeout=float(self.options.get("gap_timeout", 60.0))
-        )
+        self.queue = InOrder(settle=self.options.settle, gap_timeout=self.options.gap_timeout)
 
     def process(self, header, item):
         """Process the next segment in order; returns an :class:`streamer.stage.Output` or None."""

@@ -84,8 +84,8 @@ def write_orbits(path, duration: float) -> None:
     lisaorbits.KeplerianOrbits().write(str(path), dt=1.0e4, size=n, t0=-2.0e4, mode="w")
 
 
-def gw_link_responses(orbit_path, duration: float, fs: float, **source) -> np.ndarray:
-    """lisagwresponse's link responses (6, n) on ``t = arange(n) / fs`` of the chirp
+def gw_link_responses(orbit_path, duration: float, fs: float, t0: float = 0.0, **source) -> np.ndarray:
+    """lisagwresponse's link responses (6, n) on ``t = t0 + arange(n) / fs`` of the chirp
     ``source`` (``t_c``, ``m_total``, ``q``, ``distance_mpc``, ``iota``, ``beta``,
     ``lam``, ``psi``), links in lisagwresponse's order 12, 23, 31, 13, 32, 21 (ours)."""
     with warnings.catch_warnings():
@@ -93,7 +93,7 @@ def gw_link_responses(orbit_path, duration: float, fs: float, **source) -> np.nd
         import lisagwresponse
     src = dict(source)
     beta, lam, psi = src.pop("beta"), src.pop("lam"), src.pop("psi")
-    t_s = np.arange(-2000.0, duration + 2000.0, 1.0)
+    t_s = t0 + np.arange(-2000.0, duration + 2000.0, 1.0)
     hp, hc = chirp_strain(t_s, **src)
     # the polarisation angle rotates (h+, hx) by 2 psi (lisagwresponse's convention)
     c2, s2 = np.cos(2 * psi), np.sin(2 * psi)
@@ -101,7 +101,7 @@ def gw_link_responses(orbit_path, duration: float, fs: float, **source) -> np.nd
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         rs = lisagwresponse.ReadStrain(t_s, hp, hc, gw_beta=beta, gw_lambda=lam, orbits=str(orbit_path))
-        t = np.arange(int(duration * fs)) / fs
+        t = t0 + np.arange(int(duration * fs)) / fs
         y = rs.compute_gw_response(t).T
     return np.asarray(y)
 
