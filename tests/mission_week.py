@@ -24,7 +24,6 @@ adds them (``eta_ij`` holds ``sci_ij`` undelayed with factor 1: the eta signal t
 
 from __future__ import annotations
 
-import json
 import shutil
 import sys
 from pathlib import Path
@@ -38,16 +37,15 @@ sys.path.insert(0, str(HERE / "ttlcore" / "diagnose"))
 import blind_signals as bs  # noqa: E402
 from lisainstrument_sim import simulate_lisainstrument  # noqa: E402
 from test_diagnose_blind import blind_case  # noqa: E402
-from test_diagnose_blind_lisainstrument import injected_eta, scaled_to_a_random_level  # noqa: E402
-
-from ttlcore.conventions import COEFFICIENT_NAMES, DAY, LINKS, MOSAS  # noqa: E402
-from ttlcore.io.lisainstrument import (  # noqa: E402
-    BEATNOTE_DATASETS,
-    DWS_ETA_DATASET,
-    DWS_PHI_DATASET,
-    MPR_DATASET,
-    lisainstrument_truth,
+from test_diagnose_blind_lisainstrument import (  # noqa: E402
+    add_to_science_beatnotes,
+    gap_every_series,
+    injected_eta,
+    scaled_to_a_random_level,
 )
+
+from ttlcore.conventions import COEFFICIENT_NAMES, DAY, LINKS  # noqa: E402
+from ttlcore.io.lisainstrument import lisainstrument_truth  # noqa: E402
 from ttlcore.io.reader import read_telemetry  # noqa: E402
 
 HOUR = 3600.0
@@ -133,18 +131,9 @@ def blind_week(path, *, days: int = 7, seed: int = 1, clean=None) -> dict:
 
     shutil.copyfile(clean, path)
     with h5py.File(path, "r+") as f:
-        md = json.loads(f.attrs["metadata_json"])
-        t_file = md["t0"] + np.arange(md["size"]) / md["fs"]
-        first = int(tm.config["dropped_leading_samples"])
-        for k, link in enumerate(LINKS):
-            ds = f[f"{BEATNOTE_DATASETS['sci']}/{link}"]
-            x = ds[()]
-            x[first : first + n] += extra[k] * md["central_freq"]
-            ds[...] = x
+        t_file = add_to_science_beatnotes(f, tm, extra)
         mask, gap = _planned_gap(t_file, rng, seed)
-        for group in (*BEATNOTE_DATASETS.values(), MPR_DATASET, DWS_PHI_DATASET, DWS_ETA_DATASET):
-            for m in MOSAS:
-                f[f"{group}/{m}"][...] = f[f"{group}/{m}"][()] * mask
+        gap_every_series(f, mask)
     if own:
         clean.unlink()
     return {

@@ -32,8 +32,19 @@ from diagnose_helpers import injected_asd_ratio  # noqa: E402
 from test_diagnose_blind import MAX_ERROR, MAX_PULL_RMS, blind_case  # noqa: E402
 
 from ttlcore.cli.main import main  # noqa: E402
-from ttlcore.conventions import COEFFICIENT_NAMES, LINKS, C  # noqa: E402
-from ttlcore.io.lisainstrument import lisainstrument_truth  # noqa: E402
+from ttlcore.conventions import (  # noqa: E402
+    COEFFICIENT_NAMES,
+    LINKS,
+    MOSAS,  # noqa: E402
+    C,
+)
+from ttlcore.io.lisainstrument import (  # noqa: E402
+    BEATNOTE_DATASETS,
+    DWS_ETA_DATASET,
+    DWS_PHI_DATASET,
+    MPR_DATASET,
+    lisainstrument_truth,
+)
 from ttlcore.io.reader import read_telemetry  # noqa: E402
 from ttlcore.io.telemetry import write_telemetry  # noqa: E402
 from ttlcore.tdi.interpolation import timeshift  # noqa: E402
@@ -190,35 +201,44 @@ def test_lisainstrument_day_with_gaps_has_them_gated_and_no_effect_advised(lisai
     check_against_truth(last, truth)
 
 
+def add_to_science_beatnotes(f, tm, extra: np.ndarray) -> np.ndarray:
+    """Add the eta signal ``extra`` (6, n) [fractional frequency] on telemetry ``tm`` to the
+    science beat notes of the lisainstrument file ``f`` (open h5py.File, writable): ``eta_ij``
+    holds ``sci_ij`` undelayed with factor 1, so the signal goes in times ``central_freq`` in
+    Hz (zero over the reduction's dropped leading samples).  Returns the file's times [s]."""
+    md = json.loads(f.attrs["metadata_json"])
+    first = int(tm.config["dropped_leading_samples"])
+    for k, link in enumerate(LINKS):
+        ds = f[f"{BEATNOTE_DATASETS['sci']}/{link}"]
+        x = ds[()]
+        x[first : first + extra.shape[1]] += extra[k] * md["central_freq"]
+        ds[...] = x
+    return md["t0"] + np.arange(md["size"]) / md["fs"]
+
+
+def gap_every_series(f, mask: np.ndarray) -> None:
+    """Multiply every beat-note, MPR and DWS series of the lisainstrument file ``f`` by
+    ``mask`` (1, NaN in a gap: missing data, as lisa-gap marks it)."""
+    for group in (*BEATNOTE_DATASETS.values(), MPR_DATASET, DWS_PHI_DATASET, DWS_ETA_DATASET):
+        for m in MOSAS:
+            f[f"{group}/{m}"][...] = f[f"{group}/{m}"][()] * mask
+
+
 def gapped_lisainstrument_day_with_a_coupling(clean, tm, path, seed: int, gap_seed: int = 301) -> list[tuple]:
     """A copy of the lisainstrument file ``clean`` (read as ``tm``) at ``path`` with the blind
-    generator's case ``seed`` added to the science beat notes (``eta_ij`` holds ``sci_ij``
-    undelayed with factor 1: the eta signal times ``central_freq`` in Hz; zero over the
-    reduction's dropped leading samples) and lisa-gap's NaN gaps in every beat-note, MPR and
-    DWS series.  Returns the gaps' spans [s]."""
+    generator's case ``seed`` added to the science beat notes (:func:`add_to_science_beatnotes`)
+    and lisa-gap's NaN gaps in every beat-note, MPR and DWS series.  Returns the gaps' spans [s]."""
     import shutil
 
     import blind_signals as bs
     import h5py
 
-    from ttlcore.conventions import MOSAS
-    from ttlcore.io.lisainstrument import BEATNOTE_DATASETS, DWS_ETA_DATASET, DWS_PHI_DATASET, MPR_DATASET
-
     extra = scaled_to_a_random_level(tm, injected_eta(tm, blind_case(seed)), seed)
     shutil.copyfile(clean, path)
     with h5py.File(path, "r+") as f:
-        md = json.loads(f.attrs["metadata_json"])
-        t = md["t0"] + np.arange(md["size"]) / md["fs"]
-        first = int(tm.config["dropped_leading_samples"])
-        for k, link in enumerate(LINKS):
-            ds = f[f"{BEATNOTE_DATASETS['sci']}/{link}"]
-            x = ds[()]
-            x[first : first + tm.size] += extra[k] * md["central_freq"]
-            ds[...] = x
+        t = add_to_science_beatnotes(f, tm, extra)
         mask = bs.gap_mask(t, n_gaps_per_day=3.0, duration_hr=0.5, seed=gap_seed)  # NaN: missing data
-        for group in (*BEATNOTE_DATASETS.values(), MPR_DATASET, DWS_PHI_DATASET, DWS_ETA_DATASET):
-            for m in MOSAS:
-                f[f"{group}/{m}"][...] = f[f"{group}/{m}"][()] * mask
+        gap_every_series(f, mask)
     edges = np.flatnonzero(np.diff(np.concatenate([[0], np.isnan(mask).astype(np.int8), [0]])))
     return [(t[a], t[b - 1]) for a, b in zip(edges[::2], edges[1::2])]
 
