@@ -46,7 +46,7 @@ from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from ttlcore.diagnose.diagnoser import diagnose, strip_internals  # noqa: E402
+from ttlcore.diagnose.diagnoser import diagnose  # noqa: E402
 from ttlcore.diagnose.settings import DiagnoseSettings  # noqa: E402
 from ttlcore.effects import injection_from_spec  # noqa: E402
 from ttlcore.io.atomic import write_json  # noqa: E402
@@ -121,15 +121,16 @@ def main() -> int:
     load_before = os.getloadavg()[0]
     t = time.perf_counter()
     ru = resource.getrusage(resource.RUSAGE_SELF)
-    report = diagnose(tm, settings=DiagnoseSettings(workers=args.workers))
+    diagnosis = diagnose(tm, settings=DiagnoseSettings(workers=args.workers))
     wall = time.perf_counter() - t
     ru2 = resource.getrusage(resource.RUSAGE_SELF)
     cpu = (ru2.ru_utime - ru.ru_utime) + (ru2.ru_stime - ru.ru_stime)
     if prof:
         prof.disable()
+    report = diagnosis.to_json()  # the JSON report (what `ttl diagnose --json` writes) read below
     cands = report["candidates"]
     if args.report is not None:
-        write_json(args.report, strip_internals(report))
+        write_json(args.report, report)
     out = {
         "benchmark": "diagnose",
         "duration_s": args.duration,

@@ -2,7 +2,7 @@
 
 Every ``diagnose_every`` segments and on the first segment of a new model, the fitter
 diagnoses its window (:func:`ttlcore.diagnose.diagnoser.diagnose`, the witness search
-included).  :func:`diagnosis_meta` turns the report into the fit message's meta
+included).  :func:`diagnosis_meta` turns the diagnosis into the fit message's meta
 ``diagnosis``: the failing bands and hours, the top witnesses and candidates, the reading of
 the transients (:func:`transients_meta`), the text report, and the recommendation with the
 model it leads to and the ``ttl control`` command that applies it (:func:`control_command`).
@@ -15,12 +15,12 @@ from __future__ import annotations
 import json
 import math
 import shlex
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 
 from scipy import stats
 
 from ttlcore.conventions import format_time
-from ttlcore.diagnose.diagnoser import text_report
+from ttlcore.diagnose.diagnosis import Candidate, Coefficients, Diagnosis, Recommendation, TimeSlice, Transients
 from ttlcore.effects import make_effects
 from ttlcore.effects.glitch import merge_gates, split_gates
 
@@ -45,21 +45,20 @@ def stop_check(stopping) -> Callable[[str], None]:
     return progress
 
 
-def transients_meta(transients: dict | None) -> dict | None:
+def transients_meta(transients: Transients | None) -> dict | None:
     """The live diagnosis' reading of the window's transients (meta ``diagnosis.transients``):
     the class of the excess (gravitational-wave, glitch, gap, noise-change, missing-coupling...),
     whether it is a signal or a defect of the data, and each event's class and span [s]."""
-    if not transients:
+    if transients is None:
         return None
-    verdict = transients.get("classification") or {}
     return {
-        "class": verdict.get("class"),
-        "signal": bool(verdict.get("signal")),
+        "class": transients.excess_class,
+        "signal": transients.signal,
         "events": [
-            {k: e.get(k) for k in ("class", "t_start", "t_stop", "f_lo", "f_hi", "snr")}
-            for e in transients.get("events") or []
+            {"class": e.kind, "t_start": e.t_start, "t_stop": e.t_stop, "f_lo": e.f_lo, "f_hi": e.f_hi, "snr": e.snr}
+            for e in transients.events
         ],
-        "gaps": transients.get("gaps") or [],
+        "gaps": [[a, b] for a, b in transients.gaps],
     }
 
 
@@ -95,13 +94,12 @@ def adoptable(recommendation: dict | None, log_bf_threshold: float = 2.3) -> tup
 MIN_UNGATED = 0.5
 
 
-def enough_ungated(report: dict, effects: list[str], effect_modules, why: str) -> tuple[bool, str]:
-    """Whether the window the diagnosis read keeps :data:`MIN_UNGATED` of its span outside
-    the model's gates, and why not."""
-    rows = (report["adequacy"].get("time") or {}).get("segments") or []
+def enough_ungated(rows: Sequence[TimeSlice], effects: list[str], effect_modules, why: str) -> tuple[bool, str]:
+    """Whether the window the diagnosis read (its time slices ``rows``, the adequacy's
+    ``time``) keeps :data:`MIN_UNGATED` of its span outside the model's gates, and why not."""
     if not rows:
         return True, why
-    a, b = float(rows[0]["t_start"]), float(rows[-1]["t_stop"])
+    a, b = rows[0].t_start, rows[-1].t_stop
     gates, _ = split_gates(make_effects(list(effects), effect_modules))
     gated = sum(max(0.0, min(g.span[1], b) - max(g.span[0], a)) for g in merge_gates(gates))
     if b > a and 1.0 - gated / (b - a) < MIN_UNGATED:
@@ -112,12 +110,12 @@ def enough_ungated(report: dict, effects: list[str], effect_modules, why: str) -
     return True, why
 
 
-def outside_gaps(recommendation: dict, gaps, why: str, effect_modules=()) -> tuple[bool, str]:
+def outside_gaps(recommendation: Recommendation, gaps, why: str, effect_modules=()) -> tuple[bool, str]:
     """Whether the times a recommendation's effects name (a step's ``t_step``, a glitch's
     ``t``) lie outside the data's gaps ``[(start, stop), ...]`` [s], and why not: a time inside
     missing data is not determined by them (the mission week's planned gap had its edge
     adopted as a step inside it, and every coefficient after it came out 0)."""
-    specs = [a["spec"] for a in recommendation.get("actions") or []] or [recommendation.get("spec")]
+    specs: list[str | None] = [*recommendation.action_specs] or [recommendation.spec]
     for effect in make_effects([s for s in specs if s], effect_modules):
         for key in ("t_step", "t"):
             if effect.options.get(key) is None:
@@ -133,19 +131,18 @@ def outside_gaps(recommendation: dict, gaps, why: str, effect_modules=()) -> tup
 STALE_P = 0.01
 
 
-def stale_effects(report: dict, effects: list[str], effect_modules) -> list[dict]:
+def stale_effects(fitted: Coefficients, effects: list[str], effect_modules) -> list[dict]:
     """The effects of the model in force whose evidence is gone: those (not ``linear-ttl``,
-    not a transient) whose fitted parameters on the window are consistent with zero, the sum
+    not a transient) whose fitted parameters on the window (``fitted``) are consistent with zero, the sum
     of their ``(value / sigma)^2`` having p >= :data:`STALE_P` against chi^2 with one degree
     of freedom per parameter (a coupling that has switched off, or an adoption the data no
     longer support).  Each: ``spec``, ``chi2``, ``dof``, ``p``."""
-    fitted = (report.get("model") or {}).get("coefficients") or {}
-    values, sigma = dict(fitted.get("values") or {}), dict(fitted.get("sigma") or {})
+    values, sigma = dict(fitted.values), dict(fitted.sigma)
     # a shifted effect's ``<effect>.<group>.d1`` column is the offset beyond its expansion
     # point (~0 once the point is right): its evidence is the whole offset, value and sigma
-    for group, o in (fitted.get("offsets") or {}).items():
-        if f"{group}.d1" in values and isinstance(o, dict):
-            values[f"{group}.d1"], sigma[f"{group}.d1"] = o.get("value"), o.get("sigma")
+    for group, (value, sd) in fitted.offsets.items():
+        if f"{group}.d1" in values:
+            values[f"{group}.d1"], sigma[f"{group}.d1"] = value, sd
     out = []
     for spec, effect in zip(effects, make_effects(list(effects), effect_modules), strict=True):
         if effect.name == "linear-ttl" or effect.active_span() is not None or effect.name == "gate":
@@ -180,24 +177,28 @@ def control_command(run: str, stage: str, zenoh, effects: list[str]) -> str:
 
 
 def recommendation_meta(
-    report: dict, effects: list[str], effect_modules, command: Callable[[list[str]], str]
+    advice: Recommendation | None,
+    candidates: Sequence[Candidate],
+    effects: list[str],
+    effect_modules,
+    command: Callable[[list[str]], str],
 ) -> dict | None:
-    """The diagnosis' recommendation, with the evidence of its candidate (``log_bayes_factor``),
-    the model it leads to (``effects``: the model in force plus what it adds, a gate
-    overlapping one of the model's merged with it) and the command that applies it."""
-    rec = report.get("recommendation")
-    if not rec:
-        return rec
-    rec = dict(rec)
-    best = next((c for c in report["candidates"] if c.get("spec") == rec.get("spec")), None)
+    """The diagnosis' recommendation ``advice`` (its JSON), with the evidence of its candidate
+    among ``candidates`` (``log_bayes_factor``), the model it leads to (``effects``: the model
+    in force plus what it adds, a gate overlapping one of the model's merged with it) and the
+    command that applies it."""
+    if advice is None:
+        return None
+    rec = advice.to_json()
+    best = next((c for c in candidates if c.spec == advice.spec), None)
     if best is not None:
-        rec["log_bayes_factor"] = best.get("log_bayes_factor")
-    if rec.get("spec") and rec.get("option"):
+        rec["log_bayes_factor"] = best.log_bayes_factor
+    if advice.spec and advice.option:
         # only what is advised gets a model and a command (offline: an ``option``): a
         # candidate that explains nothing, or a signal's best fit, is named in the message
         # alone, never with a command that would add it
         # a transient's advice adds several glitches and gates at once (``actions``)
-        added = [a["spec"] for a in rec.get("actions") or []] or [rec["spec"]]
+        added = list(advice.action_specs) or [advice.spec]
         # a gate overlapping one of the model's (an ongoing signal, seen again) is merged
         model = make_effects([*effects, *added], effect_modules)
         rec["effects"] = [e.spec() for e in merge_gates(model)]
@@ -206,7 +207,7 @@ def recommendation_meta(
 
 
 def diagnosis_meta(
-    report: dict,
+    diagnosis: Diagnosis,
     *,
     index: int,
     window: tuple[int, int],
@@ -215,12 +216,12 @@ def diagnosis_meta(
     mode: str,
     command: Callable[[list[str]], str],
 ) -> tuple[dict, bool]:
-    """The fit message's meta ``diagnosis`` from a diagnosis report of the window.
+    """The fit message's meta ``diagnosis`` from a diagnosis of the window.
 
     Parameters
     ----------
-    report : dict
-        :func:`ttlcore.diagnose.diagnoser.diagnose`'s report.
+    diagnosis : Diagnosis
+        :func:`ttlcore.diagnose.diagnoser.diagnose`'s diagnosis.
     index : int
         The segment whose fit message carries it.
     window : (int, int)
@@ -241,36 +242,39 @@ def diagnosis_meta(
         the recommendation may be adopted (:func:`adoptable`, and not held by the model already).
     """
     first, last = window
-    adequacy = report["adequacy"]
-    out = {
+    adequacy, advice = diagnosis.adequacy, diagnosis.recommendation
+    out: dict = {
         "index": index,
         "segments": [first, last],
         "model": list(effects),
-        "chi2_dof": adequacy["chi2_dof"],
-        "fails": bool(adequacy["fails"]),
-        "bands": [{k: b[k] for k in ("f_lo", "f_hi", "chi2_dof", "fails")} for b in adequacy["bands"]],
-        "failing_hours": [
-            [s["t_start"], s["t_stop"]] for s in (adequacy.get("time") or {}).get("segments", []) if s.get("fails")
-        ],
-        "summary": adequacy["summary"],
+        "chi2_dof": adequacy.chi2_dof,
+        "fails": adequacy.fails,
+        "bands": [{"f_lo": b.f_lo, "f_hi": b.f_hi, "chi2_dof": b.chi2_dof, "fails": b.fails} for b in adequacy.bands],
+        "failing_hours": [[s.t_start, s.t_stop] for s in adequacy.time if s.fails],
+        "summary": list(adequacy.summary),
         "witnesses": [
-            {k: w.get(k) for k in ("name", "spec", "delta_chi2", "best_band")}
-            for w in ((report.get("witnesses") or {}).get("overall") or [])[:3]
+            {"name": w.name, "spec": w.spec, "delta_chi2": w.delta_chi2, "best_band": list(w.best_band)}
+            for w in (diagnosis.witnesses.overall if diagnosis.witnesses is not None else ())[:3]
         ],
         "candidates": [
             {
-                k: c.get(k)
-                for k in ("spec", "cli_spec", "delta_chi2", "log_bayes_factor", "explained_fraction", "significant")
+                "spec": c.spec,
+                "cli_spec": c.cli_spec,
+                "delta_chi2": c.delta_chi2,
+                "log_bayes_factor": c.log_bayes_factor,
+                "explained_fraction": c.explained_fraction,
+                "significant": c.significant,
             }
-            for c in report["candidates"][:5]
+            for c in diagnosis.candidates[:5]
         ],
-        "transients": transients_meta(report.get("transients")),
-        "text": text_report(report, source=f"window {first}..{last}"),
+        "transients": transients_meta(diagnosis.transients),
+        "text": diagnosis.text(source=f"window {first}..{last}"),
     }
-    rec = recommendation_meta(report, effects, effect_modules, command)
+    rec = recommendation_meta(advice, diagnosis.candidates, effects, effect_modules, command)
     out["recommendation"] = rec
     ok, why = adoptable(rec)
-    if ok and rec is not None and not rec.get("actions") and not adequacy["fails"]:
+    # (``advice`` is None exactly when ``rec`` is)
+    if ok and advice is not None and not advice.action_specs and not adequacy.fails:
         # the model passes the instrument noise model: a candidate "significant" against
         # hundreds tried (the witness scan picks the best of ~600) is no reason to change it
         # without a person (a clean simulated day adopted a witness at log B 4.5)
@@ -278,14 +282,15 @@ def diagnosis_meta(
             False,
             "the model is adequate (no failing band): an effect is adopted without a person only when it fails",
         )
-    if ok and rec is not None and not rec.get("actions"):
-        ok, why = enough_ungated(report, effects, effect_modules, why)
-    if ok and rec is not None:
-        ok, why = outside_gaps(rec, (report.get("transients") or {}).get("gaps") or [], why, effect_modules)
+    if ok and advice is not None and not advice.action_specs:
+        ok, why = enough_ungated(adequacy.time, effects, effect_modules, why)
+    if ok and advice is not None:
+        gaps = diagnosis.transients.gaps if diagnosis.transients is not None else ()
+        ok, why = outside_gaps(advice, gaps, why, effect_modules)
     if ok and rec is not None and rec.get("effects") == list(effects):
         ok, why = False, "the model already holds it"
     out["adoption"] = {"mode": mode, "adopted": False, "reason": why}
-    stale = stale_effects(report, effects, effect_modules)
+    stale = stale_effects(diagnosis.model.coefficients, effects, effect_modules)
     for s in stale:
         s["command"] = command([e for e in effects if e != s["spec"]])
         out["text"] += (

@@ -4,7 +4,7 @@ Every ``adequacy_every`` segments, on the first segment of a new model and on ev
 of an extended model the rolling fit cannot carry, the fitter refits its window's telemetry
 with the model under the instrument noise model (:func:`ttlcore.diagnose.diagnoser.refit`,
 searched parameters searched again on the window).  :func:`window_refit` runs it;
-:func:`window_refit_meta` turns its report into the fit message's meta: ``adequacy``
+:func:`window_refit_meta` turns the refit into the fit message's meta: ``adequacy``
 (chi^2/dof per band), for an extended model its coefficients, ``extra_parameters``,
 ``model_parts`` and ``model_update: "window refit"``, on a model change ``model_change``
 (both models on the same window), and the ranked ``candidates`` when asked for.
@@ -20,6 +20,7 @@ from streamer.refit import refit_settings
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.candidates import candidates
 from ttlcore.diagnose.diagnoser import refit
+from ttlcore.diagnose.diagnosis import Candidate, Refit
 from ttlcore.diagnose.prediction import effect_predictions
 from ttlcore.effects.glitch import Gate
 from ttlcore.errors import ConfigError
@@ -55,7 +56,7 @@ def window_refit(
     effect_modules=(),
     transients=(),
     log: logging.Logger | logging.LoggerAdapter | None = None,
-) -> dict | None:
+) -> Refit | None:
     """Refit the window's telemetry with the model ``effects`` (and ``baseline``) under the
     instrument noise model, as ``ttl refit`` does, the rolling fit's outlying FFT segments
     ``transients`` gated (:func:`transient_gates`); None when the window is still too short
@@ -79,19 +80,19 @@ def window_refit(
 
 
 def window_refit_meta(
-    r: dict,
+    r: Refit,
     *,
     change: dict | None,
     extended: bool,
     window: tuple[int, int, int],
     ranked: bool,
 ) -> dict:
-    """Meta (and, under ``arrays``, arrays) of a fit message from a window refit's report.
+    """Meta (and, under ``arrays``, arrays) of a fit message from a window refit.
 
     Parameters
     ----------
-    r : dict
-        The report of :func:`window_refit`.
+    r : Refit
+        The refit of :func:`window_refit`.
     change : dict or None
         The model change it reports (``before``, ``after``): ``model_change``.
     extended : bool
@@ -102,16 +103,20 @@ def window_refit_meta(
     ranked : bool
         The candidates not in the model are ranked (``candidates``; always on a change).
     """
-    model = r["_internals"]["fit"]
-    adequacy = r["model"]["adequacy"]
+    model = r.fit
+    adequacy = r.model.adequacy
     out: dict = {
         "adequacy": {
             "noise_model": "instrument (analytic secondary noises + DWS readout noise), not re-estimated",
-            "chi2_dof": adequacy["chi2_dof"],
-            "fails": adequacy["fails"],
-            "summary": adequacy["summary"],
-            "bands": [{k: b[k] for k in ("f_lo", "f_hi", "chi2_dof", "p_value", "fails")} for b in adequacy["bands"]],
-            "gates": r["model"].get("gates") or [],  # the model's, and the transients' (transient_gates)
+            "chi2_dof": adequacy.chi2_dof,
+            "fails": adequacy.fails,
+            "summary": list(adequacy.summary),
+            "bands": [
+                {"f_lo": b.f_lo, "f_hi": b.f_hi, "chi2_dof": b.chi2_dof, "p_value": b.p_value, "fails": b.fails}
+                for b in adequacy.bands
+            ],
+            # the model's, and the transients' (transient_gates)
+            "gates": [[a, b] for a, b in r.model.gates],
         }
     }
     if extended:
@@ -134,24 +139,29 @@ def window_refit_meta(
         out["window"] = {"first": first, "last": last}
         out["model_update"] = "window refit"
     if change is not None:
-        c = r["change"]
+        c = r.change
         out["model_change"] = {
             "before": change["before"],
             "after": change["after"],
-            "chi2_dof_before": c["chi2_dof_before"],
-            "chi2_dof_after": c["chi2_dof_after"],
-            "bands_before": c["bands_before"],
-            "bands_after": c["bands_after"],
-            "delta_chi2": c["delta_chi2"],
-            "log_bayes_factor": c["log_bayes_factor"],
-            "band_edges": [b["f_lo"] for b in adequacy["bands"]] + [adequacy["bands"][-1]["f_hi"]],
+            "chi2_dof_before": c.chi2_dof_before,
+            "chi2_dof_after": c.chi2_dof_after,
+            "bands_before": list(c.bands_before),
+            "bands_after": list(c.bands_after),
+            "delta_chi2": c.delta_chi2,
+            "log_bayes_factor": c.log_bayes_factor,
+            "band_edges": adequacy.band_edges,
         }
     if change is not None or ranked:
+        ranking = [Candidate.from_json(c) for c in candidates(model)[:TOP_CANDIDATES]]
         out["candidates"] = [
             {
-                k: c.get(k)
-                for k in ("effect", "spec", "delta_chi2", "log_bayes_factor", "explained_fraction", "significant")
+                "effect": c.effect,
+                "spec": c.spec,
+                "delta_chi2": c.delta_chi2,
+                "log_bayes_factor": c.log_bayes_factor,
+                "explained_fraction": c.explained_fraction,
+                "significant": c.significant,
             }
-            for c in candidates(model)[:TOP_CANDIDATES]
+            for c in ranking
         ]
     return out

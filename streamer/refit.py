@@ -13,7 +13,7 @@ and per band, delta chi^2 and log Bayes factor of the change, the coefficients.
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import h5py
@@ -23,6 +23,7 @@ from ttlcore.cli.progress import status_line
 from ttlcore.cli.report import to_stdout, write_report
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.diagnoser import DiagnoseSettings, refit
+from ttlcore.diagnose.diagnosis import Refit
 from ttlcore.diagnose.prediction import fit_residual
 from ttlcore.effects import make_effects
 from ttlcore.effects import split_effects as split
@@ -128,6 +129,35 @@ def refit_settings(dws_asd=None, band=None) -> DiagnoseSettings:
     return replace(settings, band=tuple(float(b) for b in band)) if band else settings
 
 
+@dataclass(frozen=True)
+class RunRefit:
+    """A recorded run refitted (:func:`refit_run`).
+
+    Attributes
+    ----------
+    refit : Refit
+        The model and the baseline on the run's data (:func:`ttlcore.diagnose.diagnoser.refit`).
+    run : str
+        The run directory.
+    data : str
+        What was refitted, in words (``"telemetry of 24 recorded segments (24 h)"``).
+    residual : tuple or None
+        With ``residual`` asked for: ``(t0, fs, residual (3, n) X2/Y2/Z2, predictions)``
+        (:func:`ttlcore.diagnose.prediction.fit_residual`).
+    """
+
+    refit: Refit
+    run: str
+    data: str
+    residual: tuple | None = None
+
+    def to_json(self) -> dict:
+        """The JSON report of ``ttl refit``: ``model``, ``baseline``, ``change``, ``source``."""
+        report = self.refit.to_json()
+        report["source"] = {"run": self.run, "data": self.data}
+        return report
+
+
 def refit_run(
     run_dir,
     effects,
@@ -139,13 +169,11 @@ def refit_run(
     band=None,
     residual: bool = False,
     progress=None,
-) -> dict:
-    """Refit a recorded run with ``effects`` against ``baseline`` (see the module docstring);
-    returns the JSON report (``source``, ``model``, ``baseline``, ``change``).  With
-    ``residual`` (telemetry only) the key ``"_residual"`` holds the whole model's residual
-    ``(t0, fs, residual (3, n) X2/Y2/Z2, predictions)``
-    (:func:`ttlcore.diagnose.prediction.fit_residual`): what the live subtractor publishes
-    for the last segment of the same window.  ``progress`` (a ``say(message)`` callable)
+) -> RunRefit:
+    """Refit a recorded run with ``effects`` against ``baseline`` (see the module docstring).
+    With ``residual`` (telemetry only) the result holds the whole model's residual
+    (:attr:`RunRefit.residual`): what the live subtractor publishes for the last segment of
+    the same window.  ``progress`` (a ``say(message)`` callable)
     hears of each step."""
 
     say = progress or (lambda msg: None)
@@ -162,7 +190,7 @@ def refit_run(
         f"band {settings.band[0]:g}-{settings.band[1]:g} Hz"
     )
     try:
-        report = refit(
+        result = refit(
             data,
             list(effects),
             settings=settings,
@@ -172,38 +200,37 @@ def refit_run(
         )
     except ValueError as exc:
         raise RefitError(str(exc)) from None
-    fit = report["_internals"]["fit"]
-    report = {k: v for k, v in report.items() if not k.startswith("_")}
-    report["source"] = {"run": str(run_dir), "data": what}
+    fit = result.fit
+    out = None
     if residual:
         if fit.data.context.tm is None:
             raise RefitError("--residual needs the recorded telemetry (the replayer's recording)")
-        report["_residual"] = fit_residual(fit)
-    return report
+        out = fit_residual(fit)
+    return RunRefit(result, run=str(run_dir), data=what, residual=out)
 
 
-def format_refit(report: dict) -> str:
+def format_refit(run: RunRefit) -> str:
     """The side-by-side text report of :func:`refit_run`."""
-    m, b, c = report["model"], report["baseline"], report["change"]
+    m, b, c = run.refit.model, run.refit.baseline, run.refit.change
 
     def fmt(x, spec=".3f"):
         return format(x, spec) if isinstance(x, (int, float)) else "-"
 
-    bands = m["adequacy"]["bands"]
-    band = f", band {bands[0]['f_lo']:.3g}-{bands[-1]['f_hi']:.3g} Hz" if bands else ""
+    bands = m.adequacy.bands
+    band = f", band {bands[0].f_lo:.3g}-{bands[-1].f_hi:.3g} Hz" if bands else ""
     lines = [
-        f"refit of {report['source']['run']}: {report['source']['data']}{band}",
-        f"  model     {','.join(m['effects'])}: {m['n_parameters']} parameters, chi2/dof {fmt(m['chi2_dof'])}",
-        f"  baseline  {','.join(b['effects'])}: {b['n_parameters']} parameters, chi2/dof {fmt(b['chi2_dof'])}",
-        f"  change    delta chi2 {fmt(c['delta_chi2'], '.1f')}, log Bayes factor {fmt(c['log_bayes_factor'], '.1f')}",
+        f"refit of {run.run}: {run.data}{band}",
+        f"  model     {','.join(m.effects)}: {m.n_parameters} parameters, chi2/dof {fmt(m.chi2_dof)}",
+        f"  baseline  {','.join(b.effects)}: {b.n_parameters} parameters, chi2/dof {fmt(b.chi2_dof)}",
+        f"  change    delta chi2 {fmt(c.delta_chi2, '.1f')}, log Bayes factor {fmt(c.log_bayes_factor, '.1f')}",
         "  chi2/dof against the instrument noise model per band:  baseline -> model",
     ]
-    for band, before, after in zip(m["adequacy"]["bands"], c["bands_before"], c["bands_after"]):
-        flag = "  FAILS" if band.get("fails") else ""
-        lines.append(f"    {band['f_lo']:.3g}-{band['f_hi']:.3g} Hz   {fmt(before)} -> {fmt(after)}{flag}")
-    lines += [f"  {s}" for s in m["adequacy"].get("summary", [])]
-    values, sigma = m["coefficients"]["values"], m["coefficients"]["sigma"]
-    base_values = b["coefficients"]["values"]
+    for row, before, after in zip(bands, c.bands_before, c.bands_after):
+        flag = "  FAILS" if row.fails else ""
+        lines.append(f"    {row.f_lo:.3g}-{row.f_hi:.3g} Hz   {fmt(before)} -> {fmt(after)}{flag}")
+    lines += [f"  {s}" for s in m.adequacy.summary]
+    values, sigma = m.coefficients.values, m.coefficients.sigma
+    base_values = b.coefficients.values
     shown = [n for n in COEFFICIENT_NAMES if n in values]
     if shown:
         lines.append("  linear coefficients [mm/rad]: baseline -> model (sigma)")
@@ -262,7 +289,7 @@ def _cmd_refit(args) -> int:
     segments = _parse_range(args.segments)
     try:
         with status_line("ttl refit", args.quiet) as say:  # in place on a terminal
-            report = refit_run(
+            run = refit_run(
                 args.run_dir,
                 split(args.effects),
                 baseline=split(args.baseline),
@@ -275,13 +302,12 @@ def _cmd_refit(args) -> int:
             )
     except InspectError as exc:
         raise RefitError(str(exc)) from None
-    residual = report.pop("_residual", None)
-    write_report(args.json, report)
+    write_report(args.json, run.to_json())
     text = not to_stdout(args.json)  # with --json -, standard output holds the JSON alone
     if text:
-        print(format_refit(report))
-    if residual is not None:
-        write_residual(args.residual, *residual)
+        print(format_refit(run))
+    if run.residual is not None:
+        write_residual(args.residual, *run.residual)
         if text and not args.quiet:
             print(f"wrote {args.residual}")
     return 0

@@ -252,7 +252,7 @@ def test_rolling_model_agrees_with_the_window_refit(tmp_path):
     last = fits[5]
     ((column, (value, sigma)),) = last.header.meta["extra_parameters"].items()
     tm, _, dws = load_run(run_dir, (0, 5), "telemetry")
-    offline = refit(tm, ["linear-ttl", witness], settings=refit_settings(dws, None))["_internals"]["fit"]
+    offline = refit(tm, ["linear-ttl", witness], settings=refit_settings(dws, None)).fit
     k = offline.names.index(column)
     # the injected gain, within the rolling fit's own sigma (measured: 0.33 sigma)
     assert abs(value - 5e-3) < 3 * sigma and 0.7 < sigma / offline.sigma[k] < 1.4, (value, sigma, offline.sigma[k])

@@ -7,6 +7,7 @@ import pytest
 
 from stages.fitter_schedule import SUSTAINED_OUTLIERS, DiagnosisSchedule
 from stages.live_model import LiveModel
+from ttlcore.diagnose.diagnosis import Coefficients, Recommendation
 from ttlcore.effects.glitch import GATE_TAPER, GLITCH_DAMPING_SPAN, TDI_REACH
 
 
@@ -84,7 +85,8 @@ def test_an_effect_whose_evidence_is_gone_is_proposed_for_removal():
             }
         }
     }
-    (stale,) = stale_effects(report, ["linear-ttl", witness, fd, "gate:start=0.0,stop=10.0"], ())
+    fitted = Coefficients.from_json(report["model"]["coefficients"])
+    (stale,) = stale_effects(fitted, ["linear-ttl", witness, fd, "gate:start=0.0,stop=10.0"], ())
     assert stale["spec"] == witness and stale["dof"] == 1
     assert stale["chi2"] == pytest.approx(0.16) and stale["p"] == pytest.approx(0.6892, abs=1e-4)
 
@@ -110,9 +112,10 @@ def test_an_adopted_offset_keeps_its_evidence():
             }
         }
     }
-    assert stale_effects(report, ["linear-ttl", spec], ()) == []
+    assert stale_effects(Coefficients.from_json(report["model"]["coefficients"]), ["linear-ttl", spec], ()) == []
     del report["model"]["coefficients"]["offsets"]  # the .d1 columns alone: wrongly stale
-    assert [s["spec"] for s in stale_effects(report, ["linear-ttl", spec], ())] == [spec]
+    stale = stale_effects(Coefficients.from_json(report["model"]["coefficients"]), ["linear-ttl", spec], ())
+    assert [s["spec"] for s in stale] == [spec]
 
 
 def test_a_model_that_only_gained_transients_is_diagnosed_a_little_later():
@@ -143,9 +146,13 @@ def test_a_time_inside_a_gap_is_not_adopted():
     from stages.live_diagnosis import outside_gaps
 
     gap = [[457890.0, 483224.0]]
-    ok, why = outside_gaps({"spec": "step:t_step=475424.5"}, gap, "explains")
+
+    def advice(spec, actions=()):
+        return Recommendation.from_json({"spec": spec, "actions": list(actions)})
+
+    ok, why = outside_gaps(advice("step:t_step=475424.5"), gap, "explains")
     assert not ok and "t_step=475424.5s lies in a gap" in why
     actions = [{"spec": "glitch:t=460000.0,tm=12,beta=3.0"}, {"spec": "gate:start=1,stop=2"}]
-    assert not outside_gaps({"spec": "x", "actions": actions}, gap, "")[0]
-    assert outside_gaps({"spec": "step:t_step=400000"}, gap, "explains") == (True, "explains")
-    assert outside_gaps({"spec": "witness:source=12.eta,link=23,delay=1"}, gap, "x") == (True, "x")
+    assert not outside_gaps(advice("x", actions), gap, "")[0]
+    assert outside_gaps(advice("step:t_step=400000"), gap, "explains") == (True, "explains")
+    assert outside_gaps(advice("witness:source=12.eta,link=23,delay=1"), gap, "x") == (True, "x")

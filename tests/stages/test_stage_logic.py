@@ -484,9 +484,9 @@ def test_an_effect_waits_while_the_models_gates_hide_most_of_the_window():
     11 h gated once adopted second-order from noise levels fitted on the 5 h left); counted on
     the gates merged and clipped to the window."""
     from stages.live_diagnosis import enough_ungated
+    from ttlcore.diagnose.diagnosis import TimeSlice
 
-    hours = [{"t_start": 3600.0 * h, "t_stop": 3600.0 * (h + 1)} for h in range(16)]
-    report = {"adequacy": {"time": {"segments": hours}}}
+    report = [TimeSlice(t_start=3600.0 * h, t_stop=3600.0 * (h + 1), chi2_dof=1.0, fails=False) for h in range(16)]
     ok, why = enough_ungated(report, ["linear-ttl", "gate:start=14400,stop=54000"], (), "explains")
     assert not ok and "5.0 h of the window's 16.0 h" in why
     # two touching gates (0-2 h, 2-6 h) and one reaching beyond the window (2 h of it): 8 h left of 16

@@ -66,7 +66,8 @@ from pathlib import Path
 import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES, DAY
-from ..diagnose.diagnoser import DiagnoseSettings, diagnose, strip_internals
+from ..diagnose.diagnoser import DiagnoseSettings, diagnose
+from ..diagnose.diagnosis import Diagnosis
 from ..diagnose.trends import TrendMonitor, TrendSettings
 from ..errors import TelemetryError, TTLError
 from ..estimate.fit import DEFAULT_BAND, FitSettings
@@ -179,7 +180,7 @@ def process_day(job: DayJob) -> dict:
     diagnosis = None
     if job.diagnosis:
         tm = read_telemetry(job.data)
-        report = diagnose(
+        diagnosis = diagnose(
             tm,
             list(job.effects),
             settings=diagnose_settings(job),
@@ -188,16 +189,15 @@ def process_day(job: DayJob) -> dict:
             witnesses=job.witnesses,
         )
         del tm
-        report = strip_internals(report)
+        report = diagnosis.to_json()
         report["file"] = str(job.data)
         write_json(out / "diagnosis.json", report)
-        diagnosis = report
     timings = {"analysis": round(t_analysis, 3), "total": round(time.monotonic() - start, 3)}
     return day_row(job, fit_json, diagnosis, timings)
 
 
-def day_row(job: DayJob, fit_json: dict, diagnosis: dict | None, timings: dict) -> dict:
-    """The summary row of a processed day from its ``fit.json`` and diagnosis report."""
+def day_row(job: DayJob, fit_json: dict, diagnosis: Diagnosis | None, timings: dict) -> dict:
+    """The summary row of a processed day from its ``fit.json`` and diagnosis."""
     row = {
         "day": job.name,
         "file": str(job.data),
@@ -216,14 +216,14 @@ def day_row(job: DayJob, fit_json: dict, diagnosis: dict | None, timings: dict) 
     if "error" in fit_json:
         row["max_abs_error"] = float(np.max(np.abs(list(fit_json["error"].values()))))
     if diagnosis is not None:
-        ad = diagnosis["adequacy"]
+        ad, rec = diagnosis.adequacy, diagnosis.recommendation
         row["diagnosis"] = {
-            "effects": diagnosis["model"]["effects"],
-            "chi2_dof": ad["chi2_dof"],
-            "fails": ad["fails"],
-            "bands_chi2_dof": [b["chi2_dof"] for b in ad["bands"]],
-            "summary": ad["summary"],
-            "recommendation": diagnosis.get("recommendation"),
+            "effects": list(diagnosis.model.effects),
+            "chi2_dof": ad.chi2_dof,
+            "fails": ad.fails,
+            "bands_chi2_dof": [b.chi2_dof for b in ad.bands],
+            "summary": list(ad.summary),
+            "recommendation": None if rec is None else rec.to_json(),
         }
         row["outputs"]["diagnosis_json"] = str(Path(job.out_dir) / "diagnosis.json")
     return row

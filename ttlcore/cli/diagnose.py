@@ -4,7 +4,7 @@
 
     ttl diagnose DATA.h5 [--effects linear-ttl,...] [--effect-module PATH] [--json FILE|-] [--out DIR]
 
-Prints the one-minute report (:func:`ttlcore.diagnose.diagnoser.text_report`), writes the JSON report
+Prints the one-minute report (:meth:`ttlcore.diagnose.diagnosis.Diagnosis.text`), writes the JSON report
 (schema in ``docs/diagnostics.md``; ``-``: to standard output instead of the text) and, with
 ``--out``, the figures ``residual_vs_noise.png`` and ``witness_coherence.png``.  The options are
 declared in :mod:`ttlcore.cli.main`, which checks the output paths before any work.  Never reads a truth file unless ``--truth`` names one, and
@@ -19,13 +19,8 @@ from pathlib import Path
 from ..app.analysis import check_band, load_truth
 from ..conventions import format_time, parse_duration
 from ..diagnose.adequacy import FIXED_MODEL_TOLERANCE
-from ..diagnose.diagnoser import (
-    DiagnoseSettings,
-    diagnose,
-    fine_band_table,
-    strip_internals,
-    text_report,
-)
+from ..diagnose.diagnoser import DiagnoseSettings, diagnose, fine_band_table
+from ..diagnose.diagnosis import Diagnosis
 from ..diagnose.fitting import fit_model
 from ..effects.registry import available_effects, make_effects, split_effects
 from ..errors import TTLError
@@ -69,7 +64,7 @@ def run(args) -> int:
         if args.truth:
             tr = load_truth(args.truth, tm, file_kind(data), data)
             truth, _ = tr.mean_coefficients(tm.t0, tm.t0 + tm.duration)
-        report = diagnose(
+        diagnosis = diagnose(
             tm,
             effects,
             settings=s,
@@ -79,17 +74,17 @@ def run(args) -> int:
             witnesses=not args.no_witnesses,
             progress=say,
         )
-    internals = report["_internals"]
-    report = strip_internals(report)
+    report = diagnosis.to_json()
     report["file"] = str(data)
     report["truth_file"] = str(args.truth) if args.truth else None
+    figures = _figures(diagnosis, Path(args.out), s.tolerance) if args.out else {}
     if args.out:
-        report["figures"] = _figures(report, internals, Path(args.out), s.tolerance)
+        report["figures"] = figures
     written = write_report(args.json, report)
     if to_stdout(args.json):
         return 0
-    print(text_report(report, str(data)))
-    files = ([written] if written else []) + list((report.get("figures") or {}).values())
+    print(diagnosis.text(str(data)))
+    files = ([written] if written else []) + list(figures.values())
     if files and not args.quiet:  # a status line; the report above is the result
         print("  wrote " + ", ".join(files))
     return 0
@@ -128,24 +123,26 @@ def _settings(args) -> DiagnoseSettings:
     )
 
 
-def _figures(report: dict, internals: dict, out: Path, tolerance: float) -> dict[str, str]:
-    """The report's figures drawn into ``out`` (created): the residual against the noise
+def _figures(diagnosis: Diagnosis, out: Path, tolerance: float) -> dict[str, str]:
+    """The diagnosis' figures drawn into ``out`` (created): the residual against the noise
     (and the linear-only model's, beside a changed model), the witnesses' coherence and the
-    time-frequency map of the transients, each where the report has it; name -> path."""
+    time-frequency map of the transients, each where the diagnosis has it; name -> path."""
     out.mkdir(parents=True, exist_ok=True)
     # the whitened data of the fit, not to be confused with ``data``, the file's path
-    whitened, model = internals["data"], internals["model"]
+    whitened, model = diagnosis.data, diagnosis.fit
     fits = {"model": model}
-    if "before" in report:
+    if diagnosis.before is not None:
         fits = {"linear-ttl": fit_model(whitened, make_effects(["linear-ttl"]), time_table=False), "model": model}
     fine = {label: fine_band_table(fit) for label, fit in fits.items()}
     paths = {
         "residual_vs_noise": str(plot_residual_vs_noise(whitened, fits, out / "residual_vs_noise.png", tolerance, fine))
     }
-    if report.get("witnesses"):
-        paths["witness_coherence"] = str(plot_witness_coherence(report["witnesses"], out / "witness_coherence.png"))
-    if internals.get("transient_map") is not None:
+    if diagnosis.witnesses is not None:
+        paths["witness_coherence"] = str(
+            plot_witness_coherence(diagnosis.witnesses.to_json(), out / "witness_coherence.png")
+        )
+    if diagnosis.transient_map is not None and diagnosis.transients is not None:
         paths["time_frequency"] = str(
-            plot_time_frequency(internals["transient_map"], report["transients"], out / "time_frequency.png")
+            plot_time_frequency(diagnosis.transient_map, diagnosis.transients.to_json(), out / "time_frequency.png")
         )
     return paths

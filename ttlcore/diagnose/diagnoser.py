@@ -34,6 +34,7 @@ from ..effects.registry import make_effects
 from ..errors import ConfigError
 from ..tdi.data import TDIData
 from .candidates import CandidatePool, named_candidates
+from .diagnosis import Diagnosis, Refit
 from .evidence import change
 from .excess import transient_report
 from .fitting import fit_model
@@ -46,7 +47,6 @@ from .report import (
     fine_band_table,
     model_json,
     recommendation,
-    strip_internals,
     text_report,
 )
 from .settings import DiagnoseSettings
@@ -57,10 +57,11 @@ from .witnesses import witness_candidates, witness_search
 
 __all__ = [
     "DiagnoseSettings",
+    "Diagnosis",
+    "Refit",
     "diagnose",
     "refit",
     "text_report",
-    "strip_internals",
     "fine_band_table",
     "concatenate_tdi",
     "ModelFit",
@@ -80,7 +81,7 @@ def diagnose(
     truth_coefficients=None,
     witnesses: bool | None = None,
     progress=None,
-) -> dict:
+) -> Diagnosis:
     """Full diagnosis of telemetry ``tm`` with a model (list of effect specs).
 
     Fits the model under the instrument noise model, tests its adequacy per band and per
@@ -91,10 +92,11 @@ def diagnose(
 
     Returns
     -------
-    dict
-        The JSON report (schema in ``docs/diagnostics.md``); the key ``"_internals"`` holds
-        the :class:`~ttlcore.diagnose.whitened.WhitenedData` (``"data"``, of the final noise
-        model) and the model's fit (``"model"``), removed before writing.
+    Diagnosis
+        The diagnosis (:class:`~ttlcore.diagnose.diagnosis.Diagnosis`): its parts by
+        attribute, the model's fit (``fit``, its whitened data ``data`` of the final noise
+        model) and the transient map; ``to_json()`` the JSON report (schema in
+        ``docs/diagnostics.md``).
     """
     s = settings or DiagnoseSettings()
     say = progress or (lambda msg: None)
@@ -144,8 +146,8 @@ def diagnose(
         "dws_asd": model.data.tdi.dws_asd,
     }
     report["timings_s"] = timings
-    report["_internals"] = {"data": model.data, "model": model, "transient_map": report["transients"].pop("_map")}
-    return report
+    transient_map = report["transients"].pop("_map")
+    return Diagnosis.from_report(report, fit=model, transient_map=transient_map)
 
 
 def _lap(timings: dict, name: str, since: float) -> float:
@@ -294,7 +296,7 @@ def refit(
     dws_asd: float | None = None,
     baseline=("linear-ttl",),
     time_table: bool = True,
-) -> dict:
+) -> Refit:
     """Refit already-computed data with a given list of effects and report the change.
 
     Parameters
@@ -319,17 +321,18 @@ def refit(
 
     Returns
     -------
-    dict
-        ``{"model": {effects, n_parameters, chi2_dof, adequacy, coefficients},
-        "baseline": {...}, "change": {"delta_chi2", "log_bayes_factor", "bands_before",
-        "bands_after"}, "_internals": {"data", "fit", "baseline_fit"}}`` (``data``: the
-        :class:`~ttlcore.diagnose.whitened.WhitenedData` of the model's final noise model).
+    Refit
+        The refit (:class:`~ttlcore.diagnose.diagnosis.Refit`): ``model`` and ``baseline``
+        (effects, n_parameters, chi2_dof, adequacy, coefficients), ``change`` (delta_chi2,
+        log_bayes_factor, bands_before, bands_after), their fits ``fit`` and
+        ``baseline_fit`` (``data``: the :class:`~ttlcore.diagnose.whitened.WhitenedData` of
+        the model's final noise model); ``to_json()`` the JSON report.
     """
     with sp_fft.set_workers(-1):  # serial: the FFTs on every core
         return _refit(source, effects, settings, effect_modules, dws_asd, baseline, time_table)
 
 
-def _refit(source, effects, settings, effect_modules, dws_asd, baseline, time_table=True) -> dict:
+def _refit(source, effects, settings, effect_modules, dws_asd, baseline, time_table=True) -> Refit:
     if isinstance(source, WhitenedData):
         data = source
     elif isinstance(source, TDIData):
@@ -350,7 +353,7 @@ def _refit(source, effects, settings, effect_modules, dws_asd, baseline, time_ta
     # needs one data set (a live model change from a shorter gate to a longer one, say)
     base = fit_model(model.data, split_gates(make_effects(list(baseline), modules))[1], time_table=time_table)
     ev = change(base, model)
-    return {
+    report = {
         "model": with_gates(model_json(model), gates),
         "baseline": model_json(base),
         "change": {
@@ -361,8 +364,8 @@ def _refit(source, effects, settings, effect_modules, dws_asd, baseline, time_ta
             "bands_before": [float(x) for x in base.bands.chi2_dof],
             "bands_after": [float(x) for x in model.bands.chi2_dof],
         },
-        "_internals": {"data": model.data, "fit": model, "baseline_fit": base},
     }
+    return Refit.from_report(report, fit=model, baseline_fit=base)
 
 
 def concatenate_tdi(segments) -> TDIData:

@@ -313,7 +313,7 @@ def transient_report(
     ``report`` (the diagnosis' report so far: adequacy, candidates) decides between a
     missing coupling and an unexplained stationary excess when the quiet tiles fail.
     The key ``_map`` holds the :class:`TimeFrequencyMap` (for the figure; the diagnosis moves
-    it to the report's ``_internals["transient_map"]``), ``_residual`` the model's residual
+    it to :attr:`~ttlcore.diagnose.diagnosis.Diagnosis.transient_map`), ``_residual`` the model's residual
     series (3, n) (the diagnosis scores the transients' glitches and gates on it,
     :func:`ttlcore.diagnose.transient_advice.transient_actions`, and drops it).
 

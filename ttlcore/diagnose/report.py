@@ -338,16 +338,6 @@ def _estimate_text(effect: str, option: str, value: float) -> str:
     return f"{option} {value:.4g}" + (f" {unit}" if unit in ("s", "Hz", "rad") else "")
 
 
-def strip_internals(report: dict) -> dict:
-    """The report without its in-memory objects (what ``--json`` writes): top-level keys
-    starting with ``_``, and those of its parts (``transients["_map"]``)."""
-    return {
-        k: ({kk: vv for kk, vv in v.items() if not kk.startswith("_")} if isinstance(v, dict) else v)
-        for k, v in report.items()
-        if not k.startswith("_")
-    }
-
-
 def text_report(report: dict, source: str = "", max_candidates: int = 5) -> str:
     """The one-minute text report."""
     m = report["model"]

@@ -41,15 +41,15 @@ def test_cycle_columns_are_named_and_the_period_is_searched():
 
 def test_cycle_period_found_and_the_model_passes(cycle_data):
     out = refit(cycle_data, ["linear-ttl", MODEL])
-    (found,) = out["model"]["searched"].values()
+    (found,) = out.to_json()["model"]["searched"].values()
     # the period: the search locates it on modulated TDI (2 pi 70 s / P ~ 6 % error on the
     # columns) and scores it exactly; it is within 1 % of the truth (0.4 % measured)
     assert found["estimates"]["period"] == pytest.approx(PERIOD, rel=0.01)
     lo, hi = found["intervals"]["period"]
     assert lo < found["estimates"]["period"] < hi
-    assert max(out["change"]["bands_before"]) > 2  # the cycle is well above the noise
-    assert not out["model"]["adequacy"]["fails"], out["change"]["bands_after"]
-    values, sigma = out["model"]["coefficients"]["values"], out["model"]["coefficients"]["sigma"]
+    assert max(out.change.bands_before) > 2  # the cycle is well above the noise
+    assert not out.model.adequacy.fails, out.change.bands_after
+    values, sigma = out.model.coefficients.values, out.model.coefficients.sigma
     (sin_name,) = [n for n in values if n.endswith(".sin")]
     (cos_name,) = [n for n in values if n.endswith(".cos")]
     # amplitude and phase are linear: within 5 sigma plus what the period's error mixes
@@ -60,5 +60,5 @@ def test_cycle_period_found_and_the_model_passes(cycle_data):
 
 def test_cycle_with_a_wrong_fixed_period_fails(cycle_data):
     wrong = refit(cycle_data, ["linear-ttl", MODEL + ",period=4000"])
-    assert wrong["model"]["adequacy"]["fails"]
-    assert np.min(wrong["change"]["bands_after"]) > 1.5
+    assert wrong.model.adequacy.fails
+    assert np.min(wrong.change.bands_after) > 1.5

@@ -179,10 +179,10 @@ def test_fd_coupling_with_wrong_fixed_poles_fails_the_adequacy_test_and_searched
     path, truth = simulate_case(tmp_path, spec, "3h", 3)
     dg = whiten_telemetry(read_telemetry(path))
     wrong = refit(dg, ["linear-ttl", "fd-coupling:source=23.eta,link=31,f0=0.06,q=15"])
-    assert wrong["model"]["adequacy"]["fails"]
+    assert wrong.model.adequacy.fails
     searched = refit(dg, ["linear-ttl", "fd-coupling:source=23.eta,link=31"])
-    assert not any(b["fails"] for b in searched["model"]["adequacy"]["bands"])
-    (found,) = searched["model"]["searched"].values()
+    assert not any(b.fails for b in searched.model.adequacy.bands)
+    (found,) = searched.to_json()["model"]["searched"].values()
     lo, hi = found["intervals"]["f0"]
     assert lo < 0.08 < hi or abs(found["estimates"]["f0"] - 0.08) < 0.002
     assert found["estimates"]["q"] == pytest.approx(15, rel=0.3)

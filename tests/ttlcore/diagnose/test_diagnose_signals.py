@@ -49,7 +49,7 @@ def follow(tm, C, max_steps=3, witnesses=False):
     """``diagnose`` and its printed ``--effects`` option, at most ``max_steps`` times."""
     effects, reports = ["linear-ttl"], []
     for _step in range(max_steps):
-        rep = diagnose(tm, effects, truth_coefficients=C, witnesses=witnesses)
+        rep = diagnose(tm, effects, truth_coefficients=C, witnesses=witnesses).to_json()
         reports.append(rep)
         opt = (rep["recommendation"] or {}).get("option")
         if not opt:

@@ -164,20 +164,20 @@ def test_gating_removes_the_glitch(glitch_day):
     assert pull_rms < MAX_PULL_RMS and max_err < 1.5 * MAX_ERROR, (max_err, pull_rms)
     # refit() takes the gate as the diagnosis does (its noise levels fitted: within 0.25 sigma)
     rep = refit(tm, ["linear-ttl", gate.spec()])
-    assert rep["model"]["gates"] == [list(gate.span)]
-    diff = np.abs(rep["_internals"]["fit"].ttl_coefficients() - fit.ttl_coefficients()) / fit.ttl_sigma()
+    assert [list(g) for g in rep.model.gates] == [list(gate.span)]
+    diff = np.abs(rep.fit.ttl_coefficients() - fit.ttl_coefficients()) / fit.ttl_sigma()
     assert diff.max() < 0.25, diff.max()
     # a baseline with a gate of its own (the live fitter's model change from a gate to a
     # longer one) is fitted on the model's gated data: the same numbers as the linear TTL
     # baseline there (it failed with "effect 'gate' produced no column")
     shorter = Gate(start=t_g - 600, stop=t_g + 600)
-    both = refit(rep["_internals"]["data"], ["linear-ttl", gate.spec()], baseline=["linear-ttl", shorter.spec()])
-    plain = refit(rep["_internals"]["data"], ["linear-ttl", gate.spec()])
-    for key, value in plain["change"].items():  # to rounding (the second refit reuses cached columns)
+    both = refit(rep.data, ["linear-ttl", gate.spec()], baseline=["linear-ttl", shorter.spec()]).change.to_json()
+    plain = refit(rep.data, ["linear-ttl", gate.spec()]).change.to_json()
+    for key, value in plain.items():  # to rounding (the second refit reuses cached columns)
         if value is None:
-            assert both["change"][key] is None, key
+            assert both[key] is None, key
         else:
-            np.testing.assert_allclose(both["change"][key], value, rtol=1e-9, err_msg=key)
+            np.testing.assert_allclose(both[key], value, rtol=1e-9, err_msg=key)
 
 
 # ---------------------------------------------------------------------------
@@ -192,7 +192,7 @@ def follow(tm, C, max_steps=3):
     at most ``max_steps`` times."""
     effects, reports = ["linear-ttl"], []
     for _ in range(max_steps):
-        rep = diagnose(tm, effects, truth_coefficients=C, witnesses=False)
+        rep = diagnose(tm, effects, truth_coefficients=C, witnesses=False).to_json()
         reports.append(rep)
         opt = (rep["recommendation"] or {}).get("option")
         if not opt:
@@ -320,7 +320,7 @@ def test_a_gated_transient_costs_the_fit_only_its_span(seed):
     gate = Gate(start=round(t_g - 900), stop=round(t_g + 12 * beta + 900))
 
     def fit(x, effects):
-        return refit(x, effects, time_table=False)["_internals"]["fit"]
+        return refit(x, effects, time_table=False).fit
 
     clean = fit(tm, ["linear-ttl"])
     glitchy = with_glitches(tm, [(mosa, t_g, dv, beta)])

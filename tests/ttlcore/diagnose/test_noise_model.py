@@ -118,7 +118,7 @@ def test_short_null_day_passes_at_two_percent(short_day):
     tm, _ = short_day
     s = DiagnoseSettings()
     assert s.noise_model == "fitted" and s.tolerance == 0.02
-    rep = diagnose(tm, settings=s, witnesses=False, candidates=["drift"])
+    rep = diagnose(tm, settings=s, witnesses=False, candidates=["drift"]).to_json()
     ad = rep["adequacy"]
     assert ad["noise_model"]["kind"] == "fitted" and ad["tolerance"] == 0.02
     assert set(ad["noise_model"]["parameters"]) == {"oms", "tm_acc", "tm_rise", "floor"}
@@ -134,7 +134,7 @@ def test_injected_effect_still_fails_with_the_fitted_noise_model():
     tm, _ = simulate(
         SimulationConfig(duration=6 * 3600.0, orbit="keplerian", seed=41, injections=(inj,)), chunk_size=6 * 3600 * 4
     )
-    rep = diagnose(tm, witnesses=False, candidates=["timing-offset"])
+    rep = diagnose(tm, witnesses=False, candidates=["timing-offset"]).to_json()
     assert rep["adequacy"]["noise_model"]["kind"] == "fitted"
     assert rep["adequacy"]["fails"], rep["adequacy"]["summary"]
     assert rep["candidates"][0]["significant"]
@@ -151,7 +151,7 @@ def test_lisainstrument_null_day_passes_at_two_percent(tmp_path):
 
     path = tmp_path / "null.h5"
     simulate_lisainstrument(path, duration=86400, orbits="keplerian", seed=6)
-    rep = diagnose(read_telemetry(path), witnesses=False, candidates=["drift"])
+    rep = diagnose(read_telemetry(path), witnesses=False, candidates=["drift"]).to_json()
     ad = rep["adequacy"]
     assert ad["noise_model"]["kind"] == "fitted" and ad["tolerance"] == 0.02
     assert not ad["fails"], ad["summary"]
@@ -163,7 +163,7 @@ def test_lisainstrument_null_day_passes_at_two_percent(tmp_path):
 @pytest.mark.science
 def test_simulator_null_day_passes_at_two_percent():
     tm, _ = simulate(SimulationConfig(duration=86400.0, orbit="keplerian", seed=32), chunk_size=86400 * 4)
-    rep = diagnose(tm, witnesses=False, candidates=["drift"])
+    rep = diagnose(tm, witnesses=False, candidates=["drift"]).to_json()
     ad = rep["adequacy"]
     assert not ad["fails"], ad["summary"]
     for b in ad["bands"]:

@@ -173,7 +173,7 @@ def test_candidate_with_offsets_runs_exactly_as_printed(late3h, tmp_path):
     tm, _, fit = late3h
     path = tmp_path / "late.h5"
     write_telemetry(path, tm)
-    rep = diagnose(tm, witnesses=False, candidates=["timing-offset", "ltt-error"])
+    rep = diagnose(tm, witnesses=False, candidates=["timing-offset", "ltt-error"]).to_json()
     top = rep["candidates"][0]
     assert top["effect"] == "timing-offset" and top["significant"]
     # the candidate's search, with intervals, where the other searches' results are

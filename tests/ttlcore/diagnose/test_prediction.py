@@ -65,7 +65,7 @@ def _day(inject: str, orbit: str = "keplerian", duration: float = 2 * 3600.0):
 def test_prediction_equals_the_tdi_of_the_injected_signal(inject, model, orbit):
     tm, injected = _day(inject, orbit)
     r = refit(tm, ["linear-ttl", model], settings=DiagnoseSettings(dws_asd=0.0))
-    fit = r["_internals"]["fit"]
+    fit = r.fit
     ((spec, predicted),) = effect_predictions(fit).items()
     assert spec.split(":")[0] == model.split(":")[0]
     truth, _ = tdi_in_blocks(tm.ltt, tm.fs, (), injected, order=31, delay_order=fit.data.context.settings.delay_order)
@@ -89,8 +89,8 @@ def test_fit_residual_is_the_data_less_the_whole_model():
     model's residual is the secondary noise, the linear model's is not."""
     tm, _ = _day("blind-witness:source=12.eta,link=23,delay=2,gain=1e-2", "equal")
     settings = DiagnoseSettings(dws_asd=0.0)
-    whole = refit(tm, ["linear-ttl", "witness:source=12.eta,link=23,delay=2"], settings=settings)["_internals"]["fit"]
-    linear = refit(tm, ["linear-ttl"], settings=settings)["_internals"]["fit"]
+    whole = refit(tm, ["linear-ttl", "witness:source=12.eta,link=23,delay=2"], settings=settings).fit
+    linear = refit(tm, ["linear-ttl"], settings=settings).fit
     t0, fs, r_whole, pred = fit_residual(whole)
     _, _, r_linear, none = fit_residual(linear)
     assert none == {} and list(pred) == ["witness:source=12.eta,link=23,delay=2"]
