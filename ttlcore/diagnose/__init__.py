@@ -10,14 +10,18 @@ whitened columns), ``model_fit`` (the GLS fit with errors in variables), ``fitti
 model of effects fitted), ``evidence`` (Bayes factors), ``search`` (profile likelihood over
 nonlinear parameters: step time, offsets, poles, periods), ``glitches`` (the glitch
 search), ``gating`` (gated data), ``transients`` (the time-frequency map, its events), ``excess`` (their class, the quiet tiles, the report), ``candidates``, ``report``, ``diagnoser``
-(``diagnose``, ``refit``), ``witnesses``, ``trends``, ``prediction``.
+(``diagnose``, ``refit``), ``diagnosis`` (what they return: ``Diagnosis``, ``Refit``), ``witnesses``, ``trends``, ``prediction``.
 
 ::
 
     from ttlcore.diagnose import DiagnoseSettings, diagnose, text_report
+
+    d = diagnose(tm)  # a Diagnosis: d.adequacy.fails, d.recommendation, d.fit, d.to_json()
+    print(d.text())  # the one-minute report; text_report(report) of a JSON report read back
 """
 
 from .diagnoser import diagnose, refit, text_report
+from .diagnosis import Diagnosis, Refit
 from .settings import DiagnoseSettings
 
-__all__ = ["DiagnoseSettings", "diagnose", "refit", "text_report"]
+__all__ = ["DiagnoseSettings", "Diagnosis", "Refit", "diagnose", "refit", "text_report"]
