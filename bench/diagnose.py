@@ -127,10 +127,9 @@ def main() -> int:
     cpu = (ru2.ru_utime - ru.ru_utime) + (ru2.ru_stime - ru.ru_stime)
     if prof:
         prof.disable()
-    report = diagnosis.to_json()  # the JSON report (what `ttl diagnose --json` writes) read below
-    cands = report["candidates"]
+    cands, advice, ad = diagnosis.candidates, diagnosis.recommendation, diagnosis.adequacy
     if args.report is not None:
-        write_json(args.report, report)
+        write_json(args.report, diagnosis.to_json())
     out = {
         "benchmark": "diagnose",
         "duration_s": args.duration,
@@ -147,33 +146,33 @@ def main() -> int:
         "workers": DiagnoseSettings(workers=args.workers).n_workers(),
         "target_s": target,
         "meets_target": wall < target and resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9 < 2.5,
-        "stages_s": report["timings_s"],
-        "candidate_seconds": {c["cli_spec"]: c["seconds"] for c in cands},
-        "recommendation": (report["recommendation"] or {}).get("option"),
+        "stages_s": diagnosis.timings,
+        "candidate_seconds": {c.cli_spec: c.seconds for c in cands},
+        "recommendation": None if advice is None else advice.option,
         # the process's peak resident memory (simulation and diagnosis; ru_maxrss in KiB)
         "peak_rss_gb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024 / 1e9, 2),
         "candidates_tried": len(cands),
-        "witnesses_tried": report["witnesses"]["n_witnesses"],
-        "segments": report["adequacy"]["segments"],
-        "chi2_dof": round(report["adequacy"]["chi2_dof"], 4),
-        "top_candidate": cands[0]["effect"] if cands else None,
-        "top_significant": bool(cands and cands[0]["significant"]),
+        "witnesses_tried": diagnosis.witnesses.n_witnesses if diagnosis.witnesses is not None else None,
+        "segments": ad.segments,
+        "chi2_dof": round(ad.chi2_dof, 4),
+        "top_candidate": cands[0].effect if cands else None,
+        "top_significant": bool(cands and cands[0].significant),
         "top_is_injected": (not args.clean)
         and not args.glitches
         and bool(cands)
         and (
-            cands[0]["cli_spec"].startswith("fd-coupling:source=23.eta,link=31,f0")
+            (cands[0].cli_spec or "").startswith("fd-coupling:source=23.eta,link=31,f0")
             if args.unknown
-            else cands[0]["effect"] == INJECTION.split(":")[0]
+            else cands[0].effect == INJECTION.split(":")[0]
         ),
     }
     if args.glitches:  # the advice: glitches (and gates), no effect
-        actions = (report["recommendation"] or {}).get("actions") or []
-        out["advised_glitches"] = sum(a["kind"] == "glitch" for a in actions)
-        out["advised_gates"] = sum(a["kind"] == "gate" for a in actions)
-        out["advice_adds_only_transients"] = all(a["kind"] in ("glitch", "gate") for a in actions) and bool(actions)
+        kinds = advice.action_kinds if advice is not None else ()
+        out["advised_glitches"] = sum(k == "glitch" for k in kinds)
+        out["advised_gates"] = sum(k == "gate" for k in kinds)
+        out["advice_adds_only_transients"] = all(k in ("glitch", "gate") for k in kinds) and bool(kinds)
         # detectable transients left in the data: they do not move the TTL fit (issue 32)
-        out["not_advised"] = [a["text"] for a in report["transients"].get("not_advised") or []]
+        out["not_advised"] = list(diagnosis.transients.not_advised) if diagnosis.transients is not None else []
     if prof:
         st = pstats.Stats(prof)
         rows = sorted(st.stats.items(), key=lambda kv: -kv[1][3])[:10]

@@ -127,6 +127,8 @@ class Adequacy:
         Per time slice (empty without the time table).
     noise_kind : str or None
         The noise model's kind (``"fitted"``, ``"fixed"``).
+    segments : int
+        FFT segments of the data.
     """
 
     chi2_dof: float
@@ -135,6 +137,7 @@ class Adequacy:
     bands: tuple[Band, ...]
     time: tuple[TimeSlice, ...]
     noise_kind: str | None
+    segments: int
     _json: Json = _json_field()
 
     @classmethod
@@ -147,6 +150,7 @@ class Adequacy:
             bands=tuple(Band.from_json(b) for b in d["bands"]),
             time=tuple(TimeSlice.from_json(r) for r in (d.get("time") or {}).get("segments", [])),
             noise_kind=(d.get("noise_model") or {}).get("kind"),
+            segments=int(d["segments"]),
             _json=d,
         )
 
@@ -278,7 +282,8 @@ class Change:
 class Candidate:
     """An effect not in the model, scored against it (``candidates[i]``): ``effect`` (its
     name), ``spec``/``cli_spec``, ``n_parameters``, ``delta_chi2``, ``log_bayes_factor``,
-    ``explained_fraction`` (of the excess) and whether it is ``significant``."""
+    ``explained_fraction`` (of the excess), whether it is ``significant`` and the ``seconds``
+    its scoring took."""
 
     effect: str | None
     spec: str | None
@@ -288,6 +293,7 @@ class Candidate:
     log_bayes_factor: float | None
     explained_fraction: float | None
     significant: bool
+    seconds: float | None
     _json: Json = _json_field()
 
     @classmethod
@@ -303,6 +309,7 @@ class Candidate:
             log_bayes_factor=_opt_float(d.get("log_bayes_factor")),
             explained_fraction=_opt_float(d.get("explained_fraction")),
             significant=bool(d.get("significant")),
+            seconds=_opt_float(d.get("seconds")),
             _json=d,
         )
 
@@ -331,15 +338,18 @@ class Witness:
 
 @dataclass(frozen=True)
 class Witnesses:
-    """The witness search (``witnesses``): the ``overall`` ranking, best first."""
+    """The witness search (``witnesses``): the ``overall`` ranking, best first, of the
+    ``n_witnesses`` tried."""
 
     overall: tuple[Witness, ...]
+    n_witnesses: int
     _json: Json = _json_field()
 
     @classmethod
     def from_json(cls, d: Json) -> Witnesses:
         """The witnesses of a report's ``witnesses`` part."""
-        return cls(tuple(Witness.from_json(w) for w in d.get("overall") or ()), _json=d)
+        overall = tuple(Witness.from_json(w) for w in d.get("overall") or ())
+        return cls(overall, int(d.get("n_witnesses") or 0), _json=d)
 
     def to_json(self) -> Json:
         """The report's ``witnesses`` part (a copy)."""
@@ -376,12 +386,14 @@ class TransientEvent:
 class Transients:
     """The transient finder's reading (``transients``): the class of the excess
     (``excess_class``), whether it is a ``signal`` or defect of the data (no effect then),
-    its ``events`` and the data's ``gaps`` ``(start, stop)`` [s]."""
+    its ``events``, the data's ``gaps`` ``(start, stop)`` [s] and, in words, the transients
+    found but ``not_advised`` (they do not move the TTL fit)."""
 
     excess_class: str | None
     signal: bool
     events: tuple[TransientEvent, ...]
     gaps: tuple[tuple[float, float], ...]
+    not_advised: tuple[str, ...]
     _json: Json = _json_field()
 
     @classmethod
@@ -393,6 +405,7 @@ class Transients:
             signal=bool(verdict.get("signal")),
             events=tuple(TransientEvent.from_json(e) for e in d.get("events") or ()),
             gaps=tuple((float(a), float(b)) for a, b in d.get("gaps") or ()),
+            not_advised=tuple(a["text"] for a in d.get("not_advised") or ()),
             _json=d,
         )
 
@@ -417,6 +430,8 @@ class Recommendation:
         The share of the excess the candidate takes.
     action_specs : tuple of str
         The glitches and gates it adds at once (empty for an effect).
+    action_kinds : tuple of str
+        Their kinds (``"glitch"``, ``"gate"``).
     message : str or None
         In words.
     """
@@ -428,6 +443,7 @@ class Recommendation:
     explains: bool
     explained_fraction: float | None
     action_specs: tuple[str, ...]
+    action_kinds: tuple[str, ...]
     message: str | None
     _json: Json = _json_field()
 
@@ -442,6 +458,7 @@ class Recommendation:
             explains=bool(d.get("explains")),
             explained_fraction=_opt_float(d.get("explained_fraction")),
             action_specs=tuple(a["spec"] for a in d.get("actions") or ()),
+            action_kinds=tuple(a["kind"] for a in d.get("actions") or ()),
             message=d.get("message"),
             _json=d,
         )
@@ -471,6 +488,8 @@ class Diagnosis:
         The transient finder's reading.
     recommendation : Recommendation or None
         The next step (None: the model is adequate and nothing is significant).
+    timings : mapping of str to float
+        Each step's wall time [s] (``timings_s``).
     fit : ModelFit
         The model's fit (its ``data``: the whitened data of the final noise model).
     transient_map : object or None
@@ -484,6 +503,7 @@ class Diagnosis:
     candidates: tuple[Candidate, ...]
     transients: Transients | None
     recommendation: Recommendation | None
+    timings: Mapping[str, float]
     fit: ModelFit = field(repr=False, compare=False)
     transient_map: Any = field(repr=False, compare=False)
     _json: Json = _json_field()
@@ -502,6 +522,7 @@ class Diagnosis:
             candidates=tuple(Candidate.from_json(c) for c in report["candidates"]),
             transients=None if tr is None else Transients.from_json(tr),
             recommendation=None if rec is None else Recommendation.from_json(rec),
+            timings=dict(report.get("timings_s") or {}),
             fit=fit,
             transient_map=transient_map,
             _json=report,

@@ -149,6 +149,13 @@ def test_the_diagnosis_is_read_by_attribute(diagnosed):
     values = d.model.coefficients.values
     assert np.allclose([values[n] for n in d.fit.parameter_names], d.fit.theta)
     assert (d.recommendation is None) == (rep["recommendation"] is None)
+    assert d.timings == rep["timings_s"] and [c.seconds for c in d.candidates] == [
+        c["seconds"] for c in rep["candidates"]
+    ]
+    assert (
+        d.adequacy.segments == rep["adequacy"]["segments"]
+        and d.witnesses.n_witnesses == rep["witnesses"]["n_witnesses"]
+    )
     assert d.text("3h").startswith("3h: model linear-ttl, drift")
 
 
