@@ -443,7 +443,7 @@ class Recommendation:
     explains: bool
     explained_fraction: float | None
     action_specs: tuple[str, ...]
-    action_kinds: tuple[str, ...]
+    action_kinds: tuple[str | None, ...]
     message: str | None
     _json: Json = _json_field()
 
@@ -458,7 +458,7 @@ class Recommendation:
             explains=bool(d.get("explains")),
             explained_fraction=_opt_float(d.get("explained_fraction")),
             action_specs=tuple(a["spec"] for a in d.get("actions") or ()),
-            action_kinds=tuple(a["kind"] for a in d.get("actions") or ()),
+            action_kinds=tuple(a.get("kind") for a in d.get("actions") or ()),
             message=d.get("message"),
             _json=d,
         )
