@@ -369,6 +369,9 @@ def transient_report(
         and not at_lower_bound(((report or {}).get("adequacy") or {}).get("noise_model") or {})
     ):  # only where excess_classification weighs it: a candidate scored again costs seconds
         quiet["best_delta_chi2_gated"] = _best_on_gated(report or {}, gated)
+        quiet["best_gated_spec"] = next(
+            (c["spec"] for c in (report or {}).get("candidates") or [] if c.get("significant")), None
+        )
     verdict = excess_classification(report or {}, out_events, quiet, gaps)
     robust = None
     if signal_spans and data.tdi.regressor_series is not None:

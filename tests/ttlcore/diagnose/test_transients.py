@@ -331,6 +331,32 @@ def test_coupling_beside_a_signal_is_recommended_on_the_excess_outside_it():
     assert rec["option"] == ""
 
 
+def test_beside_a_signal_what_a_candidate_explains_is_its_score_with_the_signal_gated():
+    """The live merger-and-glitches day (segment 9): 3.6 h of a chirp in the window, a
+    resonance scored delta chi2 8989 on the data as they are and 63 on the model with the
+    chirp gated, against a quiet excess of ~500.  The transient report classed the excess
+    stationary (63 is not half of it); the recommendation, which took the score with the
+    chirp (the gated ranking runs only for a missing coupling), advised the resonance as
+    explaining 100 % and the live fitter adopted it.  The two now read the same score."""
+    rep = _report(0.04, 10.0, signal=True)
+    rep["transients"]["classification"] = {"class": "stationary-excess", "signal": False}
+    rep["transients"]["quiet"].update(
+        {"fails": True, "gated": True, "excess_chi2_full_span": 500.0, "best_delta_chi2_gated": 63.2}
+    )
+    rep["transients"]["quiet"]["best_gated_spec"] = "drift"
+    rep["candidates"][0]["delta_chi2"] = 8988.6
+    rec = recommendation(rep, [_Lin()])
+    assert rec["explained_fraction_outside_transients"] == pytest.approx(63.2 / 500.0)
+    assert rec["option"] == "" and not rec["explains"]
+    # the score from the gated ranking, when it ran, decides
+    rep["candidates"][0]["delta_chi2_gated"] = 400.0
+    assert recommendation(rep, [_Lin()])["option"] == "--effects linear-ttl,drift"
+    # a gated score of another candidate is not this one's; scored on no gated data: as before
+    del rep["candidates"][0]["delta_chi2_gated"]
+    rep["transients"]["quiet"]["best_gated_spec"] = "second-order"
+    assert recommendation(rep, [_Lin()])["explained_fraction_outside_transients"] == 1.0
+
+
 def test_excess_classification_rules():
     quiet_ok = {"chi2_dof": 1.0, "hours": 10.0, "fails": False}
     quiet_bad = {"chi2_dof": 1.2, "hours": 10.0, "fails": True, "t_share": 0.3, "t_share_expected": 0.05}

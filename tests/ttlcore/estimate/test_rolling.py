@@ -5,7 +5,8 @@ import pytest
 
 from ttlcore.conventions import DAY
 from ttlcore.estimate.fit import FitSettings, fit_tdi
-from ttlcore.estimate.rolling import RollingFit, StreamingDecimator
+from ttlcore.estimate.gls import NormalEquations
+from ttlcore.estimate.rolling import RollingFit, StreamingDecimator, _own_fit_chi2_dof
 from ttlcore.sim.simulator import SimulationConfig, simulate
 from ttlcore.tdi.data import TDIStream, compute_tdi, lowpass_taps
 
@@ -43,6 +44,36 @@ def streamed():
     tm, _ = simulate(SimulationConfig(duration=1.25 * DAY, orbit="keplerian", seed=5))
     stream = TDIStream()
     return tm, [stream.push(tm.slice(k * 14400, (k + 1) * 14400)) for k in range(30)]
+
+
+def test_a_segments_own_fit_never_reads_more_than_its_data():
+    """The outlier statistic (chi^2/dof of one FFT segment at its own least-squares fit) is at
+    most the chi^2 at zero coefficients, whatever the columns: two glitches on one test mass
+    are, after their times, one constant velocity step, and normal equations whose null
+    direction rounds slightly negative (weights from an inverse CSD) with a right-hand side
+    a hair off their range made ``dd - b @ solve(N, b)`` read 1e5 here (1e16 on the live
+    merger-and-glitches day, hour 22-23) for a segment whose data read 1.7."""
+    rng = np.random.default_rng(3)
+    n = 2000
+    X = np.column_stack([rng.normal(size=(n, 4)), np.full((n, 2), 1e-3)])
+    y = X[:, :4] @ rng.normal(size=4) + rng.normal(size=n)
+    v = np.array([0, 0, 0, 0, 1.0, -1.0]) / np.sqrt(2)
+    N = X.T @ X - 1e-18 * np.trace(X.T @ X) * np.outer(v, v)
+    b = X.T @ y + 1e-6 * np.abs(X.T @ y).max() * v
+    neq = NormalEquations(
+        tuple("abcdef"),
+        np.array([0.0, 1.0]),
+        N[None] / 2,
+        b[None] / 2,
+        np.array([y @ y]) / 2,
+        np.zeros((1, 6, 6)),
+        np.array([n // 2]),
+        1,
+    )
+    r, dof = _own_fit_chi2_dof(neq)
+    resid = y - X[:, :5] @ np.linalg.lstsq(X[:, :5], y, rcond=None)[0]
+    assert dof == n - 6 and r <= y @ y / dof
+    assert r == pytest.approx(resid @ resid / dof, rel=1e-9)
 
 
 def test_rolling_window_over_a_day_equals_batch_analysis(streamed):
