@@ -244,9 +244,7 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
     omega = 2 * np.pi * dg.grid.f
     dchi2 = np.zeros((len(lib), G))
     coh = np.zeros((len(lib), G))
-    per_series: dict = {}
-    for key, X in raw.items():  # the sums over segments, once per series and link
-        per_series[key] = (np.einsum("sm,sml->ml", np.conj(X), g_link), np.sum(np.abs(X) ** 2, axis=0))
+    per_series = _SeriesProducts(raw, g_link)
     for i, w in enumerate(lib):
         b, n = _witness_products(w, per_series, n_link, omega)
         bsum = b @ onehot
@@ -291,7 +289,30 @@ def witness_search(tm, dg, model, top: int = 5, coherence_of: int = 4) -> dict:
     }
 
 
-def _witness_products(w: dict, per_series: dict, n_link: np.ndarray, omega: np.ndarray) -> tuple:
+class _SeriesProducts:
+    """``products[key]``: the sums over segments of the raw series ``key`` with the residual
+    on each link and its power, ``(B (m, 6), P (m,))``, computed when asked for and kept for
+    the last few keys only (the witnesses of one series follow each other in the library;
+    all 126 of a day's would hold ~200 MB through the search)."""
+
+    KEEP = 4
+
+    def __init__(self, raw: dict, g_link: np.ndarray):
+        self.raw, self.g_link = raw, g_link
+        self._kept: dict = {}
+
+    def __getitem__(self, key: str) -> tuple:
+        hit = self._kept.get(key)
+        if hit is None:
+            X = self.raw[key]
+            hit = (np.einsum("sm,sml->ml", np.conj(X), self.g_link), np.sum(np.abs(X) ** 2, axis=0))
+            if len(self._kept) >= self.KEEP:
+                self._kept.pop(next(iter(self._kept)))
+            self._kept[key] = hit
+        return hit
+
+
+def _witness_products(w: dict, per_series, n_link: np.ndarray, omega: np.ndarray) -> tuple:
     """Per frequency bin, the products of witness ``w`` (placed on its link, derived and
     delayed as it says) with the whitened residual, summed over segments, and its norm."""
     B, P = per_series[w["series"]]
