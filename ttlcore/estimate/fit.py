@@ -362,6 +362,7 @@ def accumulate(
     eiv_response: list | None = None,
     dws_psd: np.ndarray | None = None,
     stacked: tuple | None = None,
+    prepared: Whitener | None = None,
 ) -> NormalEquations:
     """Sum the normal equations of ``spectra`` with per-bin weights ``W = S^-1`` (m, c, c).
 
@@ -370,17 +371,18 @@ def accumulate(
     (:func:`eiv_responses`: per DWS channel, the regressors carrying its readout noise and
     their responses (m, c, q)) and ``dws_psd`` (m,) give the errors-in-variables term
     ``E_kl = sum_ch Re sum_f S_dws T_k,ch^H W T_l,ch``.  ``stacked`` may pass the already
-    stacked ``(d (S, m, c), R (S, m, c, P))``.
+    stacked ``(d (S, m, c), R (S, m, c, P))``; ``prepared`` the :func:`whitener` of these
+    weights (and of ``eiv_response``, ``dws_psd``), when many segments are summed with them
+    one by one (the rolling fit's per-segment sums): the same numbers, the factor taken once.
     """
     f = spectra[0].f
     c = spectra[0].d.shape[1]
     P = len(names)
     neq = NormalEquations.zeros(names, band_edges, nchan=c)
-    Lh, wd, wR = whiten(weights, *(stacked if stacked is not None else stack_spectra(spectra)))
-    groups = None
-    if eiv_response is not None and dws_psd is not None:
-        scale = np.sqrt(dws_psd)[:, None, None]
-        groups = [(np.ix_(idx, idx), np.matmul(Lh, T) * scale) for idx, T in eiv_response]
+    if prepared is None:
+        prepared = whitener(weights, eiv_response, dws_psd)
+    _, wd, wR = whiten(weights, *(stacked if stacked is not None else stack_spectra(spectra)), Lh=prepared.Lh)
+    groups = prepared.groups
     # f is sorted, so each band is a contiguous run of bins: slices, no copies
     for g, (m0, m1) in enumerate(band_slices(f, band_edges)):
         if m1 == m0:
@@ -407,14 +409,37 @@ def band_slices(f: np.ndarray, band_edges) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
 
 
-def whiten(weights: np.ndarray, d: np.ndarray, R: np.ndarray):
+@dataclass(frozen=True)
+class Whitener:
+    """The whitening of one set of weights: ``Lh`` (m, c, c), ``L^H`` of the Cholesky factor
+    ``W = L L^H``, and ``groups``, the errors-in-variables responses whitened with it
+    (``(index block, L^H T sqrt(S_dws))`` per DWS channel; None without the term)."""
+
+    Lh: np.ndarray
+    groups: list | None = None
+
+
+def whitener(weights: np.ndarray, eiv_response: list | None = None, dws_psd: np.ndarray | None = None) -> Whitener:
+    """The :class:`Whitener` of ``weights`` (m, c, c) and of the errors-in-variables
+    responses ``eiv_response`` with the readout PSD ``dws_psd`` (:func:`accumulate`)."""
+    Lh = np.conj(np.swapaxes(_cholesky(weights), -1, -2))
+    groups = None
+    if eiv_response is not None and dws_psd is not None:
+        scale = np.sqrt(dws_psd)[:, None, None]
+        groups = [(np.ix_(idx, idx), np.matmul(Lh, T) * scale) for idx, T in eiv_response]
+    return Whitener(Lh, groups)
+
+
+def whiten(weights: np.ndarray, d: np.ndarray, R: np.ndarray, Lh: np.ndarray | None = None):
     """Whiten stacked spectra with the Cholesky factor of the weights ``W = L L^H``.
 
     Returns ``L^H`` (m, c, c) and the whitened data ``L^H d`` (m, S, c) and regressors
     ``L^H R`` (m, S, c, P), bins first, for ``d`` (S, m, c) and ``R`` (S, m, c, P) as
-    :func:`stack_spectra` gives them.
+    :func:`stack_spectra` gives them.  ``Lh``: the factor, when already taken
+    (:attr:`Whitener.Lh` of these weights).
     """
-    Lh = np.conj(np.swapaxes(_cholesky(weights), -1, -2))
+    if Lh is None:
+        Lh = np.conj(np.swapaxes(_cholesky(weights), -1, -2))
     wd = np.matmul(Lh[:, None], np.swapaxes(d, 0, 1)[..., None])[..., 0]
     wR = np.matmul(Lh[:, None], np.swapaxes(R, 0, 1))
     return Lh, wd, wR
@@ -800,11 +825,16 @@ def sandwich_covariance(
 
 
 def score_matrix(
-    spectra: list[SegmentSpectra], weights: np.ndarray, C: np.ndarray, stacked: tuple | None = None
+    spectra: list[SegmentSpectra],
+    weights: np.ndarray,
+    C: np.ndarray,
+    stacked: tuple | None = None,
+    Lh: np.ndarray | None = None,
 ) -> np.ndarray:
     """``sum_{s,f} Re(u) Re(u)^T`` of the per-bin scores ``u = R^H W (d - R C)`` (the middle
-    of :func:`sandwich_covariance`; additive over segments)."""
-    _, wd, wR = whiten(weights, *(stacked if stacked is not None else stack_spectra(spectra)))
+    of :func:`sandwich_covariance`; additive over segments).  ``Lh``: :attr:`Whitener.Lh`
+    of ``weights``, when already taken."""
+    _, wd, wR = whiten(weights, *(stacked if stacked is not None else stack_spectra(spectra)), Lh=Lh)
     wr = wd - wR @ C  # whitened residual L^H r, (m, S, c)
     # Re(R^H W r) = Re((L^H R)^H L^H r), one row per bin and segment
     u = (np.einsum("mscp,msc->msp", wR.real, wr.real) + np.einsum("mscp,msc->msp", wR.imag, wr.imag)).reshape(
