@@ -381,7 +381,8 @@ def accumulate(
     neq = NormalEquations.zeros(names, band_edges, nchan=c)
     if prepared is None:
         prepared = whitener(weights, eiv_response, dws_psd)
-    _, wd, wR = whiten(weights, *(stacked if stacked is not None else stack_spectra(spectra)), Lh=prepared.Lh)
+    d, R = stacked if stacked is not None else stack_spectra(spectra)
+    _, wd, wR = whiten(weights, d, R, Lh=prepared.Lh)
     groups = prepared.groups
     # f is sorted, so each band is a contiguous run of bins: slices, no copies
     for g, (m0, m1) in enumerate(band_slices(f, band_edges)):
@@ -834,7 +835,8 @@ def score_matrix(
     """``sum_{s,f} Re(u) Re(u)^T`` of the per-bin scores ``u = R^H W (d - R C)`` (the middle
     of :func:`sandwich_covariance`; additive over segments).  ``Lh``: :attr:`Whitener.Lh`
     of ``weights``, when already taken."""
-    _, wd, wR = whiten(weights, *(stacked if stacked is not None else stack_spectra(spectra)), Lh=Lh)
+    d, R = stacked if stacked is not None else stack_spectra(spectra)
+    _, wd, wR = whiten(weights, d, R, Lh=Lh)
     wr = wd - wR @ C  # whitened residual L^H r, (m, S, c)
     # Re(R^H W r) = Re((L^H R)^H L^H r), one row per bin and segment
     u = (np.einsum("mscp,msc->msp", wR.real, wr.real) + np.einsum("mscp,msc->msp", wR.imag, wr.imag)).reshape(
