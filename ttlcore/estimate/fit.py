@@ -34,7 +34,7 @@ segment and drop the oldest, and the batch fit uses exactly the same sums.
 
 # size: the frequency-domain GLS fit as one pipeline - segment spectra, notches, noise CSD,
 # weights, errors in variables, the fit and its result - read top to bottom as docs/physics.md
-# describes it; the solver is in gls.py.
+# describes it; the solver is in gls.py, the whitening with the weights in whitening.py.
 
 from __future__ import annotations
 
@@ -52,6 +52,7 @@ from ..tdi.regressors import dws_channel, placement
 from .gls import NormalEquations, sandwich, set_apart, solve
 from .noise_psd import tdi_noise_csd
 from .spectra import segment_fft, smooth_csd, smooth_csd_variable, window
+from .whitening import Whitener, inverse_csd, whiten, whitener
 
 log = logging.getLogger(__name__)
 
@@ -408,85 +409,6 @@ def band_slices(f: np.ndarray, band_edges) -> list[tuple[int, int]]:
     cut = np.searchsorted(f, np.asarray(band_edges)[1:-1], side="left")
     bounds = np.concatenate([[0], cut, [f.size]])
     return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
-
-
-@dataclass(frozen=True)
-class Whitener:
-    """The whitening of one set of weights: ``Lh`` (m, c, c), ``L^H`` of the Cholesky factor
-    ``W = L L^H``, and ``groups``, the errors-in-variables responses whitened with it
-    (``(index block, L^H T sqrt(S_dws))`` per DWS channel; None without the term)."""
-
-    Lh: np.ndarray
-    groups: list | None = None
-
-
-def whitener(weights: np.ndarray, eiv_response: list | None = None, dws_psd: np.ndarray | None = None) -> Whitener:
-    """The :class:`Whitener` of ``weights`` (m, c, c) and of the errors-in-variables
-    responses ``eiv_response`` with the readout PSD ``dws_psd`` (:func:`accumulate`)."""
-    Lh = np.conj(np.swapaxes(_cholesky(weights), -1, -2))
-    groups = None
-    if eiv_response is not None and dws_psd is not None:
-        scale = np.sqrt(dws_psd)[:, None, None]
-        groups = [(np.ix_(idx, idx), np.matmul(Lh, T) * scale) for idx, T in eiv_response]
-    return Whitener(Lh, groups)
-
-
-def whiten(weights: np.ndarray, d: np.ndarray, R: np.ndarray, Lh: np.ndarray | None = None):
-    """Whiten stacked spectra with the Cholesky factor of the weights ``W = L L^H``.
-
-    Returns ``L^H`` (m, c, c) and the whitened data ``L^H d`` (m, S, c) and regressors
-    ``L^H R`` (m, S, c, P), bins first, for ``d`` (S, m, c) and ``R`` (S, m, c, P) as
-    :func:`stack_spectra` gives them.  ``Lh``: the factor, when already taken
-    (:attr:`Whitener.Lh` of these weights).
-    """
-    if Lh is None:
-        Lh = np.conj(np.swapaxes(_cholesky(weights), -1, -2))
-    wd = np.matmul(Lh[:, None], np.swapaxes(d, 0, 1)[..., None])[..., 0]
-    wR = np.matmul(Lh[:, None], np.swapaxes(R, 0, 1))
-    return Lh, wd, wR
-
-
-def inverse_csd(csd: np.ndarray) -> np.ndarray:
-    """The weights ``W = S^-1`` (m, c, c).  A bin whose CSD is singular to rounding (one
-    loud transient makes a residual CSD nearly of rank one) is inverted on its eigenvalues
-    clipped at 1e-12 of its largest; every other bin's inverse is unchanged."""
-    try:
-        return np.linalg.inv(csd)
-    except np.linalg.LinAlgError:
-        pass
-    out = np.empty_like(csd)
-    for m in range(csd.shape[0]):
-        try:
-            out[m] = np.linalg.inv(csd[m])
-        except np.linalg.LinAlgError:
-            S = 0.5 * (csd[m] + csd[m].conj().T)
-            lam, V = np.linalg.eigh(S)
-            lam = np.maximum(lam, 1e-12 * max(lam[-1], np.finfo(float).tiny))
-            out[m] = (V / lam) @ V.conj().T
-    return out
-
-
-def _cholesky(weights: np.ndarray) -> np.ndarray:
-    """``L`` with ``W = L L^H`` per bin.  Where rounding makes a bin's weights not positive
-    definite (a residual CSD dominated by one loud transient is nearly of rank one, and its
-    inverse loses the small eigenvalues), that bin's factor is taken from its eigenvalues,
-    clipped at 1e-12 of the largest: the weights of every other bin are the Cholesky
-    factor's, unchanged."""
-    try:
-        return np.linalg.cholesky(weights)
-    except np.linalg.LinAlgError:
-        pass
-    W = 0.5 * (weights + np.conj(np.swapaxes(weights, -1, -2)))
-    lam, V = np.linalg.eigh(W)
-    lam = np.maximum(lam, 1e-12 * lam[..., -1:])
-    L = V * np.sqrt(lam)[..., None, :]
-    out = np.empty_like(W)
-    for m in range(W.shape[0]):  # Cholesky where it works, the eigen-factor where not
-        try:
-            out[m] = np.linalg.cholesky(weights[m])
-        except np.linalg.LinAlgError:
-            out[m] = L[m]
-    return out
 
 
 def _real_stack(z: np.ndarray) -> np.ndarray:

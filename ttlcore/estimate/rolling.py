@@ -60,16 +60,15 @@ from .fit import (
     FitSettings,
     NormalEquations,
     SegmentSpectra,
-    Whitener,
     _result,
     accumulate,
     fit_spectra,
     score_matrix,
     solve,
     spectra_of_segment,
-    whitener,
 )
 from .gls import sandwich, set_apart
+from .whitening import Whitener, whitener
 
 log = logging.getLogger(__name__)
 

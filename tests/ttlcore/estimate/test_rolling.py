@@ -228,14 +228,15 @@ def test_incremental_updates_take_no_cholesky_factor_of_their_own(streamed, monk
     # sums its segment, scores it and tests it for an outlier with that factor - and gives
     # the same numbers as sums taken from scratch with those weights
     import ttlcore.estimate.fit as fit
+    import ttlcore.estimate.whitening as whitening
 
     _, tds = streamed
     rf = RollingFit(FitSettings(segment_duration=HOUR))
     for td in tds[:8]:
         rf.push(td)
     calls = []
-    cholesky = fit._cholesky
-    monkeypatch.setattr(fit, "_cholesky", lambda w: calls.append(1) or cholesky(w))
+    cholesky = whitening.cholesky_factor
+    monkeypatch.setattr(whitening, "cholesky_factor", lambda w: calls.append(1) or cholesky(w))
     res = rf.push(tds[8])
     assert res.extra["update"] == "incremental"
     assert calls == []
