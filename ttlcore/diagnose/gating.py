@@ -147,9 +147,11 @@ def gated_data(data: WhitenedData, gates: Iterable[Gate], gaps: Iterable[tuple[f
             "gap_spans": tuple(gaps),
         }
     )
-    # gated once; inside a span exactly zero (a gap's NaN there too)
+    # gated once; inside a span exactly zero (a gap's NaN there too); the regressors in
+    # place (a day's are 100 MB: no second copy for the zeros)
     series = np.where(inside, 0.0, data.tdi.data_series * g)
-    regs = np.where(inside, 0.0, data.tdi.regressor_series * g)
+    regs = data.tdi.regressor_series * g
+    regs[..., inside] = 0.0
     d = gated.spectra(series[:, None, :])[..., 0]
     R = gated.spectra(regs)
     wd = np.matmul(data.noise.Lh, d[..., None])[..., 0]

@@ -34,7 +34,7 @@ segment and drop the oldest, and the batch fit uses exactly the same sums.
 
 # size: the frequency-domain GLS fit as one pipeline - segment spectra, notches, noise CSD,
 # weights, errors in variables, the fit and its result - read top to bottom as docs/physics.md
-# describes it; the solver is in gls.py.
+# describes it; the solver is in gls.py, the whitening with the weights in whitening.py.
 
 from __future__ import annotations
 
@@ -52,6 +52,7 @@ from ..tdi.regressors import dws_channel, placement
 from .gls import NormalEquations, sandwich, set_apart, solve
 from .noise_psd import tdi_noise_csd
 from .spectra import segment_fft, smooth_csd, smooth_csd_variable, window
+from .whitening import Whitener, inverse_csd, whiten, whitener
 
 log = logging.getLogger(__name__)
 
@@ -362,6 +363,7 @@ def accumulate(
     eiv_response: list | None = None,
     dws_psd: np.ndarray | None = None,
     stacked: tuple | None = None,
+    prepared: Whitener | None = None,
 ) -> NormalEquations:
     """Sum the normal equations of ``spectra`` with per-bin weights ``W = S^-1`` (m, c, c).
 
@@ -370,17 +372,19 @@ def accumulate(
     (:func:`eiv_responses`: per DWS channel, the regressors carrying its readout noise and
     their responses (m, c, q)) and ``dws_psd`` (m,) give the errors-in-variables term
     ``E_kl = sum_ch Re sum_f S_dws T_k,ch^H W T_l,ch``.  ``stacked`` may pass the already
-    stacked ``(d (S, m, c), R (S, m, c, P))``.
+    stacked ``(d (S, m, c), R (S, m, c, P))``; ``prepared`` the :func:`whitener` of these
+    weights (and of ``eiv_response``, ``dws_psd``), when many segments are summed with them
+    one by one (the rolling fit's per-segment sums): the same numbers, the factor taken once.
     """
     f = spectra[0].f
     c = spectra[0].d.shape[1]
     P = len(names)
     neq = NormalEquations.zeros(names, band_edges, nchan=c)
-    Lh, wd, wR = whiten(weights, *(stacked if stacked is not None else stack_spectra(spectra)))
-    groups = None
-    if eiv_response is not None and dws_psd is not None:
-        scale = np.sqrt(dws_psd)[:, None, None]
-        groups = [(np.ix_(idx, idx), np.matmul(Lh, T) * scale) for idx, T in eiv_response]
+    if prepared is None:
+        prepared = whitener(weights, eiv_response, dws_psd)
+    d, R = stacked if stacked is not None else stack_spectra(spectra)
+    _, wd, wR = whiten(weights, d, R, Lh=prepared.Lh)
+    groups = prepared.groups
     # f is sorted, so each band is a contiguous run of bins: slices, no copies
     for g, (m0, m1) in enumerate(band_slices(f, band_edges)):
         if m1 == m0:
@@ -405,62 +409,6 @@ def band_slices(f: np.ndarray, band_edges) -> list[tuple[int, int]]:
     cut = np.searchsorted(f, np.asarray(band_edges)[1:-1], side="left")
     bounds = np.concatenate([[0], cut, [f.size]])
     return [(int(a), int(b)) for a, b in zip(bounds[:-1], bounds[1:])]
-
-
-def whiten(weights: np.ndarray, d: np.ndarray, R: np.ndarray):
-    """Whiten stacked spectra with the Cholesky factor of the weights ``W = L L^H``.
-
-    Returns ``L^H`` (m, c, c) and the whitened data ``L^H d`` (m, S, c) and regressors
-    ``L^H R`` (m, S, c, P), bins first, for ``d`` (S, m, c) and ``R`` (S, m, c, P) as
-    :func:`stack_spectra` gives them.
-    """
-    Lh = np.conj(np.swapaxes(_cholesky(weights), -1, -2))
-    wd = np.matmul(Lh[:, None], np.swapaxes(d, 0, 1)[..., None])[..., 0]
-    wR = np.matmul(Lh[:, None], np.swapaxes(R, 0, 1))
-    return Lh, wd, wR
-
-
-def inverse_csd(csd: np.ndarray) -> np.ndarray:
-    """The weights ``W = S^-1`` (m, c, c).  A bin whose CSD is singular to rounding (one
-    loud transient makes a residual CSD nearly of rank one) is inverted on its eigenvalues
-    clipped at 1e-12 of its largest; every other bin's inverse is unchanged."""
-    try:
-        return np.linalg.inv(csd)
-    except np.linalg.LinAlgError:
-        pass
-    out = np.empty_like(csd)
-    for m in range(csd.shape[0]):
-        try:
-            out[m] = np.linalg.inv(csd[m])
-        except np.linalg.LinAlgError:
-            S = 0.5 * (csd[m] + csd[m].conj().T)
-            lam, V = np.linalg.eigh(S)
-            lam = np.maximum(lam, 1e-12 * max(lam[-1], np.finfo(float).tiny))
-            out[m] = (V / lam) @ V.conj().T
-    return out
-
-
-def _cholesky(weights: np.ndarray) -> np.ndarray:
-    """``L`` with ``W = L L^H`` per bin.  Where rounding makes a bin's weights not positive
-    definite (a residual CSD dominated by one loud transient is nearly of rank one, and its
-    inverse loses the small eigenvalues), that bin's factor is taken from its eigenvalues,
-    clipped at 1e-12 of the largest: the weights of every other bin are the Cholesky
-    factor's, unchanged."""
-    try:
-        return np.linalg.cholesky(weights)
-    except np.linalg.LinAlgError:
-        pass
-    W = 0.5 * (weights + np.conj(np.swapaxes(weights, -1, -2)))
-    lam, V = np.linalg.eigh(W)
-    lam = np.maximum(lam, 1e-12 * lam[..., -1:])
-    L = V * np.sqrt(lam)[..., None, :]
-    out = np.empty_like(W)
-    for m in range(W.shape[0]):  # Cholesky where it works, the eigen-factor where not
-        try:
-            out[m] = np.linalg.cholesky(weights[m])
-        except np.linalg.LinAlgError:
-            out[m] = L[m]
-    return out
 
 
 def _real_stack(z: np.ndarray) -> np.ndarray:
@@ -800,11 +748,17 @@ def sandwich_covariance(
 
 
 def score_matrix(
-    spectra: list[SegmentSpectra], weights: np.ndarray, C: np.ndarray, stacked: tuple | None = None
+    spectra: list[SegmentSpectra],
+    weights: np.ndarray,
+    C: np.ndarray,
+    stacked: tuple | None = None,
+    Lh: np.ndarray | None = None,
 ) -> np.ndarray:
     """``sum_{s,f} Re(u) Re(u)^T`` of the per-bin scores ``u = R^H W (d - R C)`` (the middle
-    of :func:`sandwich_covariance`; additive over segments)."""
-    _, wd, wR = whiten(weights, *(stacked if stacked is not None else stack_spectra(spectra)))
+    of :func:`sandwich_covariance`; additive over segments).  ``Lh``: :attr:`Whitener.Lh`
+    of ``weights``, when already taken."""
+    d, R = stacked if stacked is not None else stack_spectra(spectra)
+    _, wd, wR = whiten(weights, d, R, Lh=Lh)
     wr = wd - wR @ C  # whitened residual L^H r, (m, S, c)
     # Re(R^H W r) = Re((L^H R)^H L^H r), one row per bin and segment
     u = (np.einsum("mscp,msc->msp", wR.real, wr.real) + np.einsum("mscp,msc->msp", wR.imag, wr.imag)).reshape(

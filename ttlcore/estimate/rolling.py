@@ -68,6 +68,7 @@ from .fit import (
     spectra_of_segment,
 )
 from .gls import sandwich, set_apart
+from .whitening import Whitener, whitener
 
 log = logging.getLogger(__name__)
 
@@ -414,7 +415,9 @@ class RollingFit:
         ):
             return None
         ref = float(np.median([_own_fit_chi2_dof(neq)[0] for neq, _ in self._sums]))
-        r, dof = _own_fit_chi2_dof(accumulate([self._masked(sp)], w["weights"], w["band_edges"], self.names))
+        r, dof = _own_fit_chi2_dof(
+            accumulate([self._masked(sp)], w["weights"], w["band_edges"], self.names, prepared=w["plain"])
+        )
         z = (r / ref - 1.0) / np.sqrt(2.0 / dof)
         if not z > self.outlier_z:
             return None
@@ -473,8 +476,10 @@ class RollingFit:
         """Normal equations and sandwich scores of one segment with the kept weights."""
         w = self._kept()
         sp = self._masked(sp)
-        neq = accumulate([sp], w["weights"], w["band_edges"], self.names, w["eiv_response"], w["dws_psd"])
-        return neq, score_matrix([sp], w["weights"], C)
+        neq = accumulate(
+            [sp], w["weights"], w["band_edges"], self.names, w["eiv_response"], w["dws_psd"], prepared=w["whitener"]
+        )
+        return neq, score_matrix([sp], w["weights"], C, Lh=w["whitener"].Lh)
 
     def _keep_weights(self, internals: dict, C: np.ndarray) -> None:
         """After a full refit: its weights, and the per-segment sums of the window with them."""
@@ -482,6 +487,12 @@ class RollingFit:
             k: internals[k] for k in ("weights", "notch", "eiv_response", "dws_psd", "band_edges", "variance_factor")
         }
         self._weights["f_size"] = self._spectra[-1].f.size
+        # the weights' Cholesky factor and whitened readout-noise responses, taken once for
+        # every segment summed with them (each segment's sums took them again: a quarter of
+        # the fitter's rolling updates)
+        prepared = whitener(internals["weights"], internals["eiv_response"], internals["dws_psd"])
+        self._weights["whitener"] = prepared
+        self._weights["plain"] = Whitener(prepared.Lh)  # the outlier test's sums: no readout-noise term
         self._sums = deque(self._segment_sums(sp, C) for sp in self._spectra)
 
     def _update(self) -> FitResult:

@@ -75,3 +75,37 @@ def test_every_library_witness_is_an_effect_spelled_as_the_report_prints_it():
         (effect,) = make_effects(split_effects(spec))
         assert effect.cli_spec() == spec
         assert len(effect.column_names()) == 1
+
+
+def test_step_witnesses_transform_only_the_segments_their_step_falls_in(monkeypatch):
+    # a step witness H(t - t_s) w equals w's own spectra after t_s and zero before: only the
+    # segment(s) t_s falls in are transformed, and the library's spectra are those of the
+    # switched series transformed whole
+    import ttlcore.diagnose.witnesses as witnesses
+
+    tm, _ = simulate(SimulationConfig(duration=2 * 3600.0, orbit="keplerian", seed=9))
+    dg = whiten_telemetry(tm)
+    calls = []
+    fft = witnesses.segment_fft
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        return fft(*args, **kwargs)
+
+    monkeypatch.setattr(witnesses, "segment_fft", counted)
+    _, raw = witnesses.witness_library(tm, dg)
+    monkeypatch.setattr(witnesses, "segment_fft", fft)
+    S = len(dg.grid.seg_t0)
+    steps = [k for k in raw if k.startswith("step ")]
+    assert len(steps) == 12 * (2 * S - 1)
+    # 42 whole series (12 channels, their time witnesses and 18 products) of S segments each,
+    # and at most two segments per step (not S: 126 x S transforms before)
+    assert len(calls) <= (len(raw) - len(steps)) * S + 2 * len(steps) < len(raw) * S
+    t = tm.t0 + np.arange(tm.size) / tm.fs
+    whole = witnesses._spectra_on_segments(tm, dg, t)
+    g = dg.grid
+    for ts in [*g.seg_t0[1:], *(t0 + g.seg_duration / 2 for t0 in g.seg_t0)]:
+        for m, a in (("12", "phi"), ("31", "eta")):
+            vel = np.nan_to_num(np.asarray(tm.dws_phi if a == "phi" else tm.dws_eta))
+            w = -vel[witnesses.MOSAS.index(m)] / witnesses.C
+            np.testing.assert_array_equal(raw[f"step {ts:.0f} {m}.{a}"], whole((t >= ts) * w))

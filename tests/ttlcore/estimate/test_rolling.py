@@ -252,3 +252,28 @@ def test_a_segment_mostly_gap_leaves_the_window_fit_standing(streamed):
     assert r is not None and r.extra["excluded"]["gap"] is True
     assert np.array_equal(r.coefficients, before.coefficients) and r.n_segments == before.n_segments
     assert rolling.excluded == []
+
+
+def test_incremental_updates_take_no_cholesky_factor_of_their_own(streamed, monkeypatch):
+    # the weights of the last full refit are factored once (with it); an incremental update
+    # sums its segment, scores it and tests it for an outlier with that factor - and gives
+    # the same numbers as sums taken from scratch with those weights
+    import ttlcore.estimate.fit as fit
+    import ttlcore.estimate.whitening as whitening
+
+    _, tds = streamed
+    rf = RollingFit(FitSettings(segment_duration=HOUR))
+    for td in tds[:8]:
+        rf.push(td)
+    calls = []
+    cholesky = whitening.cholesky_factor
+    monkeypatch.setattr(whitening, "cholesky_factor", lambda w: calls.append(1) or cholesky(w))
+    res = rf.push(tds[8])
+    assert res.extra["update"] == "incremental"
+    assert calls == []
+    w = rf._weights
+    sp = rf._masked(rf._spectra[-1])
+    neq, M = rf._sums[-1]
+    again = fit.accumulate([sp], w["weights"], w["band_edges"], rf.names, w["eiv_response"], w["dws_psd"])
+    np.testing.assert_array_equal(neq.N, again.N)
+    np.testing.assert_array_equal(neq.E, again.E)
