@@ -19,6 +19,7 @@ from collections.abc import Callable, Sequence
 
 from scipy import stats
 
+from streamer.inspect_text import explained_in_words
 from ttlcore.conventions import format_time
 from ttlcore.diagnose.diagnosis import Candidate, Coefficients, Diagnosis, Recommendation, TimeSlice, Transients
 from ttlcore.effects import make_effects
@@ -81,9 +82,8 @@ def adoptable(recommendation: dict | None, log_bf_threshold: float = 2.3) -> tup
     lbf = recommendation.get("log_bayes_factor")
     if lbf is not None and float(lbf) < log_bf_threshold:
         return False, f"log Bayes factor {float(lbf):.1f} below {log_bf_threshold:g}: not adopted"
-    return True, (
-        f"explains {100 * float(recommendation.get('explained_fraction') or 0):.0f} % of the excess"
-        + (f", log Bayes factor {float(lbf):.1f}" if lbf is not None else "")
+    return True, explained_in_words(recommendation) + (
+        f", log Bayes factor {float(lbf):.1f}" if lbf is not None else ""
     )
 
 

@@ -56,13 +56,26 @@ def _hours(t_start, t_stop) -> str:
     return f" ({_days(t_start)}-{_days(t_stop)} d)"
 
 
+def explained_in_words(recommendation: dict) -> str:
+    """The reason of an adoption, in words: the share of the excess the effect explains, or,
+    for glitches and gates, the share of their transients' excess they model (the share of
+    the whole excess reads 0 % there: a glitch explains its event, not the stationary rest;
+    the mission week's model timeline read "explains 0 % of the excess" for every glitch)."""
+    actions = [a for a in recommendation.get("actions") or () if a.get("kind") in ("glitch", "gate")]
+    shares = [float(a["explained_fraction"]) for a in actions if a.get("explained_fraction") is not None]
+    if actions and len(actions) == len(recommendation.get("actions") or ()):
+        what = f"models {len(actions)} transient(s)"
+        return what + (f", {100 * min(shares):.0f} % or more of each one's excess" if shares else "")
+    return f"explains {100 * float(recommendation.get('explained_fraction') or 0):.0f} % of the excess"
+
+
 def _recommended(rec) -> str:
     """What a model change's ``recommendation`` (the adopted advice) says, in a few words."""
     if not isinstance(rec, dict):
         return ""
     parts = [str(rec.get("spec") or "?")]
     if isinstance(rec.get("explained_fraction"), (int, float)):
-        parts.append(f"explains {100 * rec['explained_fraction']:.0f} % of the excess")
+        parts.append(explained_in_words(rec))
     if isinstance(rec.get("log_bayes_factor"), (int, float)):
         parts.append(f"log Bayes factor {rec['log_bayes_factor']:.3g}")
     return "recommended " + ", ".join(parts)

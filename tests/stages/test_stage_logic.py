@@ -477,6 +477,11 @@ def test_adoption_needs_a_recommendation_that_explains_the_excess():
     no, why = adoptable({**rec, "explains": False, "explained_fraction": 0.2})
     assert not no and "20 %" in why
     assert not adoptable({**rec, "log_bayes_factor": 1.0})[0]
+    assert adoptable(rec)[1] == "explains 93 % of the excess, log Bayes factor 40.0"
+    # glitches and gates: the share of their transients' excess, not of the whole (read 0 %)
+    glitch = {"kind": "glitch", "explained_fraction": 1.0}
+    transients = {**rec, "explained_fraction": 0.003, "actions": [glitch, {**glitch, "explained_fraction": 0.8}]}
+    assert adoptable(transients)[1] == "models 2 transient(s), 80 % or more of each one's excess, log Bayes factor 40.0"
 
 
 def test_an_effect_waits_while_the_models_gates_hide_most_of_the_window():
