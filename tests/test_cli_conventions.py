@@ -653,6 +653,8 @@ def test_view_web_interrupted_exits_130(tmp_path):
     assert not psutil.wait_procs(children, timeout=15)[1], "the rerun server outlived ttl view"
 
 
+# Ctrl-C at several moments of a live run (33 s): behind the ops marker, to keep `make test` near its 10-min budget (CI 2026-11-28: 812 s)
+@pytest.mark.ops
 def test_ctrl_c_on_ttl_run_is_always_an_interrupt(tmp_path):
     """Ctrl-C on ``ttl run`` (SIGINT to its process group, as a terminal sends it) while the
     stages start (a KeyboardInterrupt raised in the at-fork hook of a stage being started was

@@ -44,6 +44,8 @@ def test_a_killed_holder_leaves_no_stale_lock(tmp_path):
     lock_run(tmp_path).close()
 
 
+# two whole `ttl run`s (38 s): behind the ops marker, to keep `make test` near its 10-min budget (CI 2026-11-28: 812 s)
+@pytest.mark.ops
 def test_a_second_ttl_run_of_a_running_run_is_refused(tmp_path):
     """Two real launchers: the second ends at once with one error line, exit status 2, and
     writes nothing into the first one's directory (its journal holds one start)."""

@@ -127,6 +127,8 @@ def test_big_segments_across_processes_no_drops_and_late_joiner(children, tmp_pa
     assert pub.wait(20) == 0, output_of(pub)
 
 
+# a 12-s stall of a consumer of multi-megabyte segments (18 s): behind the ops marker, to keep `make test` near its 10-min budget (CI 2026-11-28: 812 s)
+@pytest.mark.ops
 def test_consumer_stalled_longer_than_zenohs_block_timeout_loses_nothing(children, tmp_path):
     """A consumer stopped (SIGSTOP) for 12 s mid-stream - longer than Zenoh's default 5 s
     BLOCK wait, after which Zenoh closed its link and, between peers, never re-opened it -
