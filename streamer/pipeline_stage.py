@@ -242,9 +242,8 @@ class PipelineStage(Stage, Generic[O]):
         """Ask the upstream producer's cache, once each, for the segments its progress says it
         published that have not come here after :data:`ANNOUNCED_FETCH_AFTER` seconds (not
         received, not handled or given up here or by an earlier process of this stage, at or
-        above the validator's floor).  Nothing
-        else tells a stage that its history query was lost: the segment would be waited for
-        until the run times out.  Returns the indices asked for now
+        above the validator's floor).  Nothing else tells a stage that its history query was
+        lost: the segment would be waited for until the run times out.  Returns the indices asked for now
         (:meth:`streamer.stage.Stage.fetch` applies the re-fetch budget)."""
         up = self.upstream
         peer = self.board.get(up)
