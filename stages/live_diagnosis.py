@@ -185,8 +185,8 @@ def recommendation_meta(
 ) -> dict | None:
     """The diagnosis' recommendation ``advice`` (its JSON), with the evidence of its candidate
     among ``candidates`` (``log_bayes_factor``), the model it leads to (``effects``: the model
-    in force plus what it adds, a gate overlapping one of the model's merged with it) and the
-    command that applies it."""
+    in force plus what it adds, a gate overlapping one of the model's merged with it, or with
+    the effect a reshaped candidate ``replaces`` in its place) and the command that applies it."""
     if advice is None:
         return None
     rec = advice.to_json()
@@ -198,12 +198,22 @@ def recommendation_meta(
         # candidate that explains nothing, or a signal's best fit, is named in the message
         # alone, never with a command that would add it
         # a transient's advice adds several glitches and gates at once (``actions``)
-        added = list(advice.action_specs) or [advice.spec]
+        specs = [*effects, *(advice.action_specs or [advice.spec])]
+        if advice.replaces and not advice.action_specs:  # a shape searched again: in the old one's place
+            specs = [advice.spec if same_effect(e, advice.replaces, effect_modules) else e for e in effects]
+            if specs == list(effects):  # not the model's effect: nothing to put it in place of
+                return rec
         # a gate overlapping one of the model's (an ongoing signal, seen again) is merged
-        model = make_effects([*effects, *added], effect_modules)
+        model = make_effects(specs, effect_modules)
         rec["effects"] = [e.spec() for e in merge_gates(model)]
         rec["command"] = command(rec["effects"])
     return rec
+
+
+def same_effect(spec: str, other: str, effect_modules) -> bool:
+    """Whether two effect specs name the same effect (one spelling, :meth:`Effect.spec`)."""
+    a, b = make_effects([spec, other], effect_modules)
+    return a.spec() == b.spec()
 
 
 def diagnosis_meta(
@@ -287,7 +297,7 @@ def diagnosis_meta(
     if ok and advice is not None:
         gaps = diagnosis.transients.gaps if diagnosis.transients is not None else ()
         ok, why = outside_gaps(advice, gaps, why, effect_modules)
-    if ok and rec is not None and rec.get("effects") == list(effects):
+    if ok and rec is not None and rec.get("effects") in (None, list(effects)):
         ok, why = False, "the model already holds it"
     out["adoption"] = {"mode": mode, "adopted": False, "reason": why}
     stale = stale_effects(diagnosis.model.coefficients, effects, effect_modules)

@@ -40,3 +40,26 @@ def test_an_advised_candidate_gets_its_model_and_command():
     assert rec["effects"] == ["linear-ttl", "second-order"]
     assert rec["command"] == "ttl control ... fitter model linear-ttl,second-order"
     assert rec["log_bayes_factor"] == 40.0
+
+
+def test_a_reshaped_coupling_takes_the_place_of_the_one_it_replaces():
+    # the live model holds the first-order path at the corner adopted from the first hours
+    # after its onset; the diagnosis searched the corner again on the window
+    old = "fd-coupling:source=23.phi,link=13,filter=pole1,fc=0.0714692Hz"
+    new = "fd-coupling:source=23.phi,link=13,filter=pole1,fc=0.0769062Hz"
+    effects = ["linear-ttl", old, "glitch:t=222327.41s,tm=12,beta=89.54s"]
+    advice = Recommendation.from_json(
+        {"effect": "fd-coupling", "spec": new, "cli_spec": new, "option": "--effects ...", "explains": True}
+        | {"replaces": old, "explained_fraction": 1.0}
+    )
+    rec = recommendation_meta(advice, [Candidate.from_json({"spec": new, "replaces": old})], effects, (), command)
+    assert rec["effects"] == ["linear-ttl", new, "glitch:t=222327.41s,tm=12,beta=89.54s"]
+    assert advice.replaces == old
+    # spelled otherwise (the corner in Hz without its unit), still the model's effect
+    advice = Recommendation.from_json(advice.to_json() | {"replaces": old.replace("Hz", "")})
+    rec = recommendation_meta(advice, [], effects, (), command)
+    assert rec["effects"] == ["linear-ttl", new, "glitch:t=222327.41s,tm=12,beta=89.54s"]
+    # one the model does not hold: no model, no command (it must not be added beside)
+    advice = Recommendation.from_json(advice.to_json() | {"replaces": old.replace("link=13", "link=12")})
+    rec = recommendation_meta(advice, [], effects, (), command)
+    assert "effects" not in rec and "command" not in rec

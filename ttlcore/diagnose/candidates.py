@@ -24,10 +24,11 @@ from scipy import stats
 from threadpoolctl import threadpool_limits
 
 from ..effects.base import Effect
+from ..effects.registry import make_effects
 from ..errors import ConfigError
 from .columns import effect_columns
 from .evidence import Evidence, added_evidence, laplace_evidence
-from .fitting import fit_resolved
+from .fitting import fit_model, fit_resolved
 from .glitches import effect_search
 from .model_fit import ModelFit, parameter_name, total_offset
 
@@ -122,12 +123,26 @@ class CandidatePool:
             if effect.spec() in self._seen:
                 continue
             self._seen.add(effect.spec())
-            if self._executor is None:  # serial: scored now, held as a finished future
-                done: Future = Future()
-                done.set_result(self.score(effect))
-                self._futures.append(done)
-            else:
-                self._futures.append(self._executor.submit(self.score, effect))
+            self._queue(effect)
+
+    def submit_reshapes(self) -> None:
+        """Queue every effect of the model whose shape can be searched again
+        (:meth:`~ttlcore.effects.base.Effect.reshaped`) as a candidate that replaces it
+        (:func:`replacement_evidence`; the entry's ``replaces`` names it)."""
+        for old in self.model.effects:
+            new = old.reshaped()
+            if new is None or "replaces " + old.spec() in self._seen:
+                continue
+            self._seen.add("replaces " + old.spec())
+            self._queue(new, old)
+
+    def _queue(self, effect, replaces=None) -> None:
+        if self._executor is None:  # serial: scored now, held as a finished future
+            done: Future = Future()
+            done.set_result(self.score(effect, replaces))
+            self._futures.append(done)
+        else:
+            self._futures.append(self._executor.submit(self.score, effect, replaces))
 
     def ranked(self) -> list[dict]:
         """Every submitted candidate that could be scored, best first (significant ones
@@ -136,14 +151,18 @@ class CandidatePool:
         out.sort(key=rank_key)
         return out
 
-    def score(self, effect) -> dict | None:
-        """One candidate's entry of the ranking (None when it cannot be scored here)."""
+    def score(self, effect, replaces=None) -> dict | None:
+        """One candidate's entry of the ranking (None when it cannot be scored here):
+        ``effect`` added to the model, or put in the place of its effect ``replaces``."""
         model, data = self.model, self.model.data
         s = data.context.settings
         cls, name = type(effect), effect.name
         t_start = time.monotonic()
         try:
-            ev, extra_json = score(model, effect, self.C)
+            if replaces is None:
+                ev, extra_json = score(model, effect, self.C)
+            else:
+                ev, extra_json = replacement_evidence(model, replaces, effect, self.C)
         except ConfigError as exc:
             log.info("candidate %s skipped: %s", name, exc)
             return None
@@ -172,6 +191,7 @@ class CandidatePool:
             "where": where(data, ev, extra_json),
             "parameters": top_parameters(ev),
             "seconds": round(time.monotonic() - t_start, 2),
+            **({"replaces": replaces.spec()} if replaces is not None else {}),
             **({"searched": extra_json} if extra_json else {}),
         }
 
@@ -214,6 +234,51 @@ def score(model: ModelFit, effect, C) -> tuple[Evidence, dict]:
     ):
         ev, extra = shifted_evidence(model, effect, ev)
     return ev, extra
+
+
+def replacement_evidence(model: ModelFit, old, new, C) -> tuple[Evidence, dict]:
+    """The evidence for putting ``new`` in the place of the model's effect ``old`` (the
+    same effect with its shape searched again on these data, :meth:`Effect.reshaped`), and
+    what the search found (as :func:`score`).
+
+    Both are scored against the model without ``old``, fitted on the same data: the
+    evidence of the change is the difference, ``delta chi^2`` and log Bayes factor of
+    ``new`` (marginal over its searched parameters) less those of ``old`` (at its
+    parameters), with no parameter added.  ConfigError when ``old`` is not in the model."""
+    rest = [e for e in model.effects if e.spec() != old.spec()]
+    if len(rest) == len(model.effects):
+        raise ConfigError(f"{old.spec()} is not in the model {[e.spec() for e in model.effects]}")
+    base = fit_model(model.data, rest, keep_series=False, time_table=False)
+    was, _ = score(base, old, C)
+    now, extra = score(base, new, C)
+
+    def less(a, b):
+        return None if a is None or b is None else a - b
+
+    ev = replace(
+        now,
+        delta_chi2=now.delta_chi2 - was.delta_chi2,
+        log_bayes_factor=now.log_bayes_factor - was.log_bayes_factor,
+        n_parameters=0,
+        band_delta=less(now.band_delta, was.band_delta),
+        segment_delta=less(now.segment_delta, was.segment_delta),
+        delta_bic=None,
+    )
+    return ev, extra
+
+
+def rescore(model: ModelFit, candidate: dict, C=None) -> Evidence:
+    """The evidence of a ranking's entry ``candidate`` on another fit of the model (the same
+    effects on other data: the signals' hours gated), at the parameters its search found:
+    its effect added, or put in the place of the one it ``replaces``.  ConfigError when it
+    cannot be scored there."""
+    modules = model.data.context.effect_modules
+    effect = make_effects([candidate["spec"]], modules)[0]
+    C = model.ttl_coefficients() if C is None else C
+    if candidate.get("replaces"):
+        old = make_effects([candidate["replaces"]], modules)[0]
+        return replacement_evidence(model, old, effect, C)[0]
+    return score(model, effect, C)[0]
 
 
 def shifted_evidence(model: ModelFit, effect, taylor: Evidence) -> tuple[Evidence, dict]:

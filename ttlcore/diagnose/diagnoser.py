@@ -184,6 +184,10 @@ def _candidates(
     timings, clock = laps
     with CandidatePool(model, s.n_workers()) as pool:
         pool.submit(named_candidates(model, candidates))
+        if report["adequacy"]["fails"]:
+            # the model's couplings with a searched shape, searched again on these data (a
+            # shape adopted from the first hours after an onset; Effect.reshaped)
+            pool.submit_reshapes()
         if use_witnesses:
             say("witness search")
             report["witnesses"] = witness_search(tm, model.data, model, s.top_witnesses)

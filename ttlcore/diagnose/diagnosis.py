@@ -282,8 +282,9 @@ class Change:
 class Candidate:
     """An effect not in the model, scored against it (``candidates[i]``): ``effect`` (its
     name), ``spec``/``cli_spec``, ``n_parameters``, ``delta_chi2``, ``log_bayes_factor``,
-    ``explained_fraction`` (of the excess), whether it is ``significant`` and the ``seconds``
-    its scoring took."""
+    ``explained_fraction`` (of the excess), whether it is ``significant``, the ``seconds``
+    its scoring took, and the spec of the model's effect it ``replaces`` (its shape searched
+    again) or None (it is added)."""
 
     effect: str | None
     spec: str | None
@@ -294,6 +295,7 @@ class Candidate:
     explained_fraction: float | None
     significant: bool
     seconds: float | None
+    replaces: str | None
     _json: Json = _json_field()
 
     @classmethod
@@ -310,6 +312,7 @@ class Candidate:
             explained_fraction=_opt_float(d.get("explained_fraction")),
             significant=bool(d.get("significant")),
             seconds=_opt_float(d.get("seconds")),
+            replaces=d.get("replaces"),
             _json=d,
         )
 
@@ -434,6 +437,9 @@ class Recommendation:
         Their kinds (``"glitch"``, ``"gate"``).
     message : str or None
         In words.
+    replaces : str or None
+        The model's effect the candidate takes the place of (its shape searched again), or
+        None when it is added.
     """
 
     effect: str | None
@@ -445,6 +451,7 @@ class Recommendation:
     action_specs: tuple[str, ...]
     action_kinds: tuple[str | None, ...]
     message: str | None
+    replaces: str | None
     _json: Json = _json_field()
 
     @classmethod
@@ -460,6 +467,7 @@ class Recommendation:
             action_specs=tuple(a["spec"] for a in d.get("actions") or ()),
             action_kinds=tuple(a.get("kind") for a in d.get("actions") or ()),
             message=d.get("message"),
+            replaces=d.get("replaces"),
             _json=d,
         )
 

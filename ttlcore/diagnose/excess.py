@@ -15,11 +15,10 @@ from scipy import stats
 
 from ..conventions import LINKS
 from ..effects.glitch import GATE_TAPER, gate
-from ..effects.registry import make_effects
 from ..errors import ConfigError
 from ..estimate.spectra import segment_fft, window
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
-from .candidates import score
+from .candidates import rescore
 from .event_class import _f, classify, event_json
 from .fitting import fit_resolved
 from .onsets import data_end, onset_events, reclassify_onsets
@@ -423,8 +422,7 @@ def _best_on_gated(report: dict, gated) -> float | None:
     if best is None or gated is None:
         return None
     try:
-        effect = make_effects([best["spec"]], gated.data.context.effect_modules)[0]
-        ev, _ = score(gated, effect, gated.ttl_coefficients())
+        ev = rescore(gated, best)
     except ConfigError as exc:
         log.info("best candidate not scored on the gated model: %s", exc)
         return None

@@ -28,9 +28,8 @@ from dataclasses import dataclass
 
 from scipy import stats
 
-from ..effects.registry import make_effects
 from ..errors import ConfigError
-from .candidates import score
+from .candidates import rescore
 from .model_fit import ModelFit
 
 __all__ = ["GatedRanking", "rank_on_gated", "simplest_alike", "reordered", "complexity"]
@@ -90,12 +89,10 @@ def rank_on_gated(candidates: list[dict], gated: ModelFit, alpha: float, toleran
     if len(significant) < 2:
         return None
     C = gated.ttl_coefficients()
-    modules = gated.data.context.effect_modules
     scored = []
     for c in significant:
         try:
-            effect = make_effects([c["spec"]], modules)[0]
-            ev, _ = score(gated, effect, C)
+            ev = rescore(gated, c, C)
         except ConfigError as exc:
             log.info("candidate %s not scored on the gated data: %s", c["cli_spec"], exc)
             continue

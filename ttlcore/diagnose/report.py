@@ -221,6 +221,15 @@ def recommendation(report: dict, effects) -> dict | None:
     return rec
 
 
+def with_candidate(specs: list[str], candidate: dict) -> list[str]:
+    """The model ``specs`` with a ranking's entry ``candidate`` in it: added at the end, or
+    in the place of the effect it ``replaces`` (a shape searched again)."""
+    old = candidate.get("replaces")
+    if old and old in specs:
+        return [candidate["cli_spec"] if s == old else s for s in specs]
+    return [*specs, candidate["cli_spec"]]
+
+
 def _taken_outside(best: dict, quiet: dict) -> float:
     """The delta chi^2 the best candidate takes of the data outside the signals: its score on
     the model with the signals gated - from the ranking there (``delta_chi2_gated``) or, when
@@ -280,7 +289,7 @@ def effect_recommendation(report: dict, effects) -> dict | None:
         msg += f"; {description}" if description else ""
         msg += f"; the witnesses point at: {point_text}" if pointers else ""
         return {"effect": None, "option": "", "explains": False, "pointers": pointers, "message": msg, **common}
-    specs = [e.cli_spec() for e in effects] + [best["cli_spec"]]
+    specs = with_candidate([e.cli_spec() for e in effects], best)
     value = ",".join(specs)
     option = "--effects " + shlex.quote(value)
     per_band = band_explained(report, best) if fails else []
@@ -308,6 +317,7 @@ def effect_recommendation(report: dict, effects) -> dict | None:
         "explained_fraction": best["explained_fraction"],
         "band_explained": per_band,
         "explained_fraction_outside_transients": frac_outside,
+        **({"replaces": best["replaces"]} if best.get("replaces") else {}),
         **common,
     }
     if not fails and not signal:
@@ -446,6 +456,8 @@ def _candidate_line(c: dict, fails: bool) -> str:
         est = c["searched"]["search"]["estimates"]
         extra += ", " + ", ".join(_estimate_text(c["effect"], k, v) for k, v in est.items())
     label = c["effect"] if c["cli_spec"] == c["effect"] else c["cli_spec"]
+    if c.get("replaces"):
+        extra += f", in the place of {c['replaces']}"
     # a model that passes has no excess to share out: "-", not "0 %"
     share = f"{100 * c['explained_fraction']:5.0f} %" if fails else "    - "
     return (
@@ -463,7 +475,12 @@ def _recommendation_lines(rec: dict | None, source: str) -> list[str]:
             f"ttl diagnose {source or 'DATA'} {rec['option']}"
         )
     elif rec and rec.get("option"):
-        lines.append(f"  best next step: add {rec['cli_spec']}:  ttl diagnose {source or 'DATA'} {rec['option']}")
+        verb = (
+            f"put {rec['cli_spec']} in the place of {rec['replaces']}"
+            if rec.get("replaces")
+            else f"add {rec['cli_spec']}"
+        )
+        lines.append(f"  best next step: {verb}:  ttl diagnose {source or 'DATA'} {rec['option']}")
     if rec and rec.get("message"):
         lines.append(f"  {rec['message']}")
     return lines

@@ -247,6 +247,21 @@ class Effect:
         """Searched options without a value (the diagnosis finds them)."""
         return [k for k in self.searched if self.options.get(k) is None]
 
+    def reshaped(self) -> Self | None:
+        """This effect with its searched options unset, for the diagnosis to search its shape
+        again on new data, or None when it has no shape to search again: no searched option,
+        one still unset, or a transient (a glitch's time and damping are searched where it
+        is found, :meth:`active_span`).
+
+        A live model adopts a coupling's shape (a pole's corner, a resonance's frequency and
+        quality factor, a cycle's period) from the hours after its onset; a day later the
+        window holds far more of it, and the shape is searched again as a candidate that
+        replaces the effect (:func:`ttlcore.diagnose.candidates.replacement_evidence`)."""
+        searched = list(self.searched)
+        if not searched or self.unresolved() or self.active_span() is not None:
+            return None
+        return self.with_options(**dict.fromkeys(searched))
+
     def with_options(self, **options) -> Self:
         """A copy with some options replaced (searched parameters filled in)."""
         new = type(self)(**{**{k: v for k, v in self.options.items() if v != self.parameters.get(k)}, **options})

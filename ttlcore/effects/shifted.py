@@ -90,6 +90,10 @@ class _Linearised(Effect):
         coefficients and the model's other columns; :meth:`open_offsets`)."""
         return [k for k in super().unresolved() if not k.startswith(OFFSET_OPTION)]
 
+    def reshaped(self) -> None:
+        """None: the offsets are searched again at every fit of the model (:meth:`unresolved`)."""
+        return None
+
     def fixed_offsets(self) -> dict[str, float]:
         """Group -> offset [s] given as an option (the group's expansion point)."""
         return {
