@@ -145,7 +145,7 @@ def stale_effects(fitted: Coefficients, effects: list[str], effect_modules) -> l
             values[f"{group}.d1"], sigma[f"{group}.d1"] = value, sd
     out = []
     for spec, effect in zip(effects, make_effects(list(effects), effect_modules), strict=True):
-        if effect.name == "linear-ttl" or effect.active_span() is not None or effect.name == "gate":
+        if effect.is_linear_ttl or effect.active_span() is not None:  # transients: their own rule
             continue
         try:
             names = effect.column_names()

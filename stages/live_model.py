@@ -189,7 +189,7 @@ class LiveModel:
         ValueError naming the effect whose columns cannot be built on it."""
         data = effect_input_from_telemetry(window)
         for e in effects:
-            if e.name == "linear-ttl" or e.active_span() is not None or e.needs_coefficients or e.unresolved():
+            if e.is_linear_ttl or e.active_span() is not None or e.needs_coefficients or e.unresolved():
                 # the 24 regressors; a transient's columns vanish outside its span; an effect
                 # whose columns need the fitted coefficients or searched parameters is built by
                 # the window refit (its search on the window)

@@ -88,7 +88,7 @@ class RollingModel:
         if self._key != key:
             gates, effects = split_gates(make_effects(list(model), self.effect_modules))
             ok = all(not e.needs_coefficients and not e.unresolved() for e in effects)
-            self.effects = [e for e in effects if e.name != "linear-ttl"] if ok else None
+            self.effects = [e for e in effects if not e.is_linear_ttl] if ok else None
             self.gates = [g.span for g in gates]
             self._key = key
         return self.effects

@@ -58,15 +58,12 @@ def named_candidates(model: ModelFit, names=None) -> list:
     as effect instances with their default options; the costly searches first (the step
     time, the offsets, any searched parameter), so that parallel scoring ends together."""
     data = model.data
+    registry = data.context.registry
     in_model = {e.name for e in model.effects}
     # witness effects need options; glitches and gates are tried where the transient
-    # finder localises an excess (:func:`transient_actions`)
-    todo = [
-        n
-        for n in (names or data.context.registry)
-        if n not in in_model and n not in ("witness", "fd-coupling", "glitch", "gate")
-    ]
-    effects = [data.context.registry[n]() for n in todo]
+    # finder localises an excess (:func:`transient_actions`): Effect.named_candidate
+    todo = [n for n in (names or registry) if n not in in_model and registry[n].named_candidate]
+    effects = [registry[n]() for n in todo]
     return sorted(effects, key=lambda e: not (e.unresolved() or hasattr(e, "shifted_members")))
 
 
@@ -221,9 +218,7 @@ def score(model: ModelFit, effect, C) -> tuple[Evidence, dict]:
         return ev, extra
     if effect.needs_coefficients and np.isnan(C).any():
         raise ConfigError(f"effect {effect.name!r} needs the 24 linear coefficients in the model")
-    trial = effect.name in ("witness", "fd-coupling") or any(
-        c.startswith(("witness.", "fd.")) for c in effect.column_names()
-    )
+    trial = effect.trial_columns
     # trial columns of witness effects are not kept; drift and step ranked from modulated
     # TDI regressors (exact=False)
     cs = effect_columns(data, effect, C if effect.needs_coefficients else None, exact=trial, cache=not trial)

@@ -374,7 +374,7 @@ def effect_columns(
         return cs
     if (
         not exact
-        and effect.name in ("drift", "step")
+        and effect.modulates_coefficients
         and all(f"{m}.{a}.{sd}" in names_in for m in effect.mosas for a in effect.angles for sd in effect.sides)
     ):
         key = ("approx", effect.name, _options_key(effect))
@@ -388,7 +388,7 @@ def effect_columns(
 def _exact_columns(data, effect, coefficients, keep_series, cache=True) -> ColumnSet:
     if isinstance(effect, Step) and effect.options.get("t_step") is None:
         raise ConfigError("effect 'step' needs t_step in a model (ttl diagnose reports the searched time)")
-    if effect.name == "linear-ttl":
+    if effect.is_linear_ttl:
         names = [c.name for c in effect.columns(names_only_input())]
         missing = [n for n in names if n not in data.tdi.regressor_names]
         if missing:
@@ -456,16 +456,12 @@ def column_eiv(data, column) -> tuple:
 
 
 def _modulated_regressors(data, effect) -> ColumnSet:
-    """Drift and step columns as time-modulated TDI regressors (no telemetry needed)."""
-    if effect.name not in ("drift", "step"):
-        raise ConfigError(f"effect {effect.name!r} needs the telemetry (DWS series); these segments carry TDI only")
+    """The columns of an effect that modulates the linear coefficients (drift, step:
+    :meth:`~ttlcore.effects.base.Effect.coefficient_modulation`) as time-modulated TDI
+    regressors (no telemetry needed)."""
     t = data.grid.t0 + np.arange(data.tdi.data_series.shape[-1]) / data.grid.fs
-    if effect.name == "drift":
-        t_ref = effect.options.get("t_ref")
-        t_ref = 0.5 * (t[data.grid.mask][0] + t[data.grid.mask][-1]) if t_ref is None else float(t_ref)
-        mod, prefix, unit = (t - t_ref) / 86400.0, "drift", "m/rad/day"
-    else:
-        mod, prefix, unit = (t >= float(effect.options["t_step"])).astype(float), "step", "m/rad"
+    t_mid = 0.5 * (t[data.grid.mask][0] + t[data.grid.mask][-1])
+    mod, prefix, unit = effect.coefficient_modulation(t, t_mid)
     base = ttl_columns(data)
     names, cols, eiv, mods = [], [], [], []
     for m in effect.mosas:

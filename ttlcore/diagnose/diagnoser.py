@@ -104,7 +104,7 @@ def diagnose(
     timings: dict[str, float] = {}
     eff = make_effects(list(effects), effect_modules)
     gates, fitted = split_gates(eff)  # gates change the data, not the columns
-    if not any(e.name == "linear-ttl" for e in eff):
+    if not any(e.is_linear_ttl for e in eff):
         log.warning("model without linear-ttl: the 24 linear coefficients are not fitted")
     # FFTs on every core while nothing else runs; one per thread once the candidates'
     # threads start (the diagnosis' transforms take the calling thread's default)
@@ -122,7 +122,7 @@ def diagnose(
         clock = _lap(timings, "fit", clock)
     report: dict = {"model": with_gates(model_json(model, truth_coefficients), gates)}
     report["adequacy"] = report["model"]["adequacy"]
-    if len(eff) > 1 or eff[0].name != "linear-ttl":
+    if len(eff) > 1 or not eff[0].is_linear_ttl:
         _before_after(report, model, eff, truth_coefficients)
         clock = _lap(timings, "before", clock)
     use_witnesses = s.witnesses if witnesses is None else witnesses
@@ -165,7 +165,7 @@ def _before_after(report: dict, model: ModelFit, eff: list, truth_coefficients) 
     ev = change(before, model)
     report["before"] = model_json(before, truth_coefficients)
     report["change"] = {
-        "added": [e.spec() for e in eff if e.name != "linear-ttl"],
+        "added": [e.spec() for e in eff if not e.is_linear_ttl],
         "delta_chi2": None if ev is None else ev.delta_chi2,
         "log_bayes_factor": None if ev is None else ev.log_bayes_factor,
         "chi2_dof_before": before.chi2_dof,

@@ -309,19 +309,16 @@ def coefficient_history(model: ModelFit, n_t: int = 97) -> np.ndarray | None:
     holds drift or step columns (None otherwise)."""
     data = model.data
     vals = dict(zip(model.names, model.theta))
-    if not any(n.startswith(("drift.", "step.")) for n in vals):
+    modulating = [e for e in model.effects if e.modulates_coefficients]
+    if not modulating:
         return None
     idx = np.flatnonzero(data.grid.mask)
     t = data.grid.t0 + np.linspace(idx[0], idx[-1], n_t) / data.grid.fs
-    t_ref = 0.5 * (t[0] + t[-1])
     C = np.tile(model.ttl_coefficients()[:, None], (1, n_t))
-    steps = {e.name: e for e in model.effects}
-    for k, name in enumerate(COEFFICIENT_NAMES):
-        if f"drift.{name}" in vals:
-            ref = steps["drift"].options.get("t_ref") if "drift" in steps else None
-            C[k] += vals[f"drift.{name}"] * (t - (t_ref if ref is None else float(ref))) / 86400.0
-        if f"step.{name}" in vals and "step" in steps:
-            C[k] += vals[f"step.{name}"] * (t >= float(steps["step"].options["t_step"]))
+    for effect in modulating:  # C(t) = C + sum of each effect's coefficients times its modulation
+        mod, prefix, _ = effect.coefficient_modulation(t, 0.5 * (t[0] + t[-1]))
+        for k, name in enumerate(COEFFICIENT_NAMES):
+            C[k] += vals.get(f"{prefix}.{name}", 0.0) * mod
     return C
 
 

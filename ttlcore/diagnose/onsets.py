@@ -97,7 +97,7 @@ def onset_time(model, spec: str, t_start: float, modules=()) -> float:
     def delta_chi2(t: float) -> float:
         t = round(float(t), 1)
         if t not in found:
-            effect = make_effects([f"{spec},vary=step,t_step={t:.1f}s"], modules)[0]
+            effect = switched_on(spec, t, modules)
             try:
                 found[t] = float(score(model, effect, C)[0].delta_chi2)
             except ConfigError as exc:  # a switch outside the data: no column
@@ -112,14 +112,24 @@ def onset_time(model, spec: str, t_start: float, modules=()) -> float:
     return float(best)
 
 
-def _switchable(report: dict) -> list[str]:
-    """What to try switched on: the ranking's best couplings of a witness (``witness``,
-    ``fd-coupling``, at their searched shapes: no search again) and the witness search's
+def switched_on(spec: str, t_step: float, modules=()):
+    """The coupling ``spec`` switched on at ``t_step`` [s] (to 0.1 s)."""
+    effect = make_effects([spec], modules)[0].switched_on(round(float(t_step), 1))
+    if effect is None:
+        raise ConfigError(f"{spec} cannot be switched on")
+    return effect
+
+
+def _switchable(report: dict, modules=()) -> list[str]:
+    """What to try switched on: the ranking's best couplings of a witness that can be
+    (:meth:`~ttlcore.effects.base.Effect.switched_on`; at their searched shapes: no search
+    again; not a shape searched again in the place of the model's) and the witness search's
     best DWS placements, as specs (best first, each family's first :data:`ONSET_PLACEMENTS`)."""
+    modules = modules or ()
     ranked = [
         c["spec"]
         for c in report.get("candidates") or []
-        if c["effect"] in ("witness", "fd-coupling") and "vary=" not in c["spec"]
+        if not c.get("replaces") and make_effects([c["spec"]], modules)[0].switched_on(0.0) is not None
     ]
     placed = [
         w["spec"]
@@ -134,11 +144,11 @@ def add_onset_candidates(model, report: dict, events: list[dict], modules=()) ->
     ``report["candidates"]`` (best first, as :meth:`CandidatePool.ranked` orders them);
     returns the new entries (empty without an onset or a DWS witness)."""
     onsets = onset_events(events)
-    switchable = _switchable(report)
+    switchable = _switchable(report, modules)
     specs = []
     for e in onsets if switchable else ():
         t = onset_time(model, switchable[0], float(e["t_start"]), modules)
-        specs += [f"{spec},vary=step,t_step={t:.1f}s" for spec in switchable]
+        specs += [switched_on(spec, t, modules).spec() for spec in switchable]
     if not specs:
         return []
     with CandidatePool(model, 1) as pool:

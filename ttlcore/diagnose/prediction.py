@@ -75,7 +75,7 @@ def effect_predictions(fit) -> dict[str, np.ndarray]:
     theta = dict(zip(fit.names, map(float, fit.theta)))
     out: dict[str, np.ndarray] = {}
     for effect in fit.effects:
-        if effect.name == "linear-ttl":
+        if effect.is_linear_ttl:
             continue
         if getattr(effect, "needs_coefficients", False):
             out[effect.spec()] = _shift_prediction(fit, effect, data)

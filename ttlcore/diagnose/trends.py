@@ -141,6 +141,7 @@ import numpy as np
 from scipy.linalg import solve_triangular
 
 from ..conventions import COEFFICIENT_NAMES, DAY
+from ..effects.registry import EFFECTS
 
 #: Alert kinds.
 STEP = "step"
@@ -820,8 +821,13 @@ def detect_drifts(
 
 # ---------------------------------------------------------------------------- streaming use
 
-#: Effects that are transients of a model: a change of these alone does not start a new epoch.
-TRANSIENT_EFFECTS = ("glitch", "gate")
+
+def is_transient(spec: str) -> bool:
+    """Whether an effect spec names a transient of a model (``Effect.transient``: a glitch, a
+    gate), whose change alone starts no new epoch; an effect this process does not know (a
+    plugin not loaded here) counts as a coupling."""
+    cls = EFFECTS.get(spec.partition(":")[0].strip())
+    return bool(cls is not None and cls.transient)
 
 
 def model_key(model) -> tuple[tuple[str, ...], tuple[str, ...]] | None:
@@ -832,7 +838,7 @@ def model_key(model) -> tuple[tuple[str, ...], tuple[str, ...]] | None:
     if not isinstance(model, (list, tuple)):
         return None
     specs = [str(spec).strip() for spec in model]
-    transient = [spec.partition(":")[0].strip() in TRANSIENT_EFFECTS for spec in specs]
+    transient = [is_transient(spec) for spec in specs]
     return (
         tuple(sorted(spec for spec, t in zip(specs, transient) if not t)),
         tuple(sorted(spec for spec, t in zip(specs, transient) if t)),

@@ -144,6 +144,21 @@ class Effect:
     integrates_angles = False
     #: where a plugin effect class was loaded from (:func:`load_effect_module`)
     _ttl_module_path: ClassVar[str]
+    #: the 24 linear TTL coefficients themselves (``linear-ttl``): the model every other
+    #: effect extends, fitted by the rolling fit and predicted by the subtraction as such
+    is_linear_ttl: ClassVar[bool] = False
+    #: the columns are the linear coefficients' TDI regressors times a function of time
+    #: (:meth:`coefficient_modulation`): they can be built from TDI outputs alone
+    modulates_coefficients: ClassVar[bool] = False
+    #: a transient of the data (a glitch, a gate), not a coupling: a live model drops it
+    #: when it leaves the window, and a change of transients alone starts no new series of
+    #: the coefficients (:func:`ttlcore.diagnose.trends.model_key`)
+    transient: ClassVar[bool] = False
+    #: tried as a candidate by its name, with its default options
+    #: (:func:`ttlcore.diagnose.candidates.named_candidates`); an effect that means nothing
+    #: without options (a witness's placement, a glitch's time) is tried where the diagnosis
+    #: finds them (the witness search, the transient finder)
+    named_candidate: ClassVar[bool] = True
 
     def __init__(self, **options):
         unknown = set(options) - set(self.parameters)
@@ -190,6 +205,26 @@ class Effect:
         there is none: a coupling switched on (``vary=step``) well before ``t_start`` is the
         plain coupling there.  A live model puts it in this one's place once its window
         starts after the switch (docs/diagnostics.md, "Onsets")."""
+        return None
+
+    def coefficient_modulation(self, t: np.ndarray, t_mid: float) -> tuple[np.ndarray, str, str]:
+        """The function of time [s] ``t`` that multiplies the linear coefficients' TDI
+        regressors to give this effect's columns (:attr:`modulates_coefficients`), with the
+        columns' name prefix and unit; ``t_mid`` [s] is the middle of the data.  ConfigError
+        for an effect whose columns need the DWS series."""
+        raise ConfigError(f"effect {self.name!r} needs the telemetry (DWS series); these segments carry TDI only")
+
+    @property
+    def trial_columns(self) -> bool:
+        """Columns of a witness (``witness.*``, ``fd.*``): such candidates are scored by the
+        hundred (the witness library), so their columns are built exactly, once, and never
+        kept in the column store."""
+        return any(c.startswith(("witness.", "fd.")) for c in self.column_names())
+
+    def switched_on(self, t_step: float) -> Effect | None:
+        """The same coupling switched on at ``t_step`` [s] (zero before, itself after), or
+        None for an effect that cannot be (it varies already, or is no coupling of a witness).
+        The diagnosis tries it where a coupling appears in the data (an onset)."""
         return None
 
     def column_names(self) -> list[str]:

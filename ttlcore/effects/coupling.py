@@ -36,6 +36,7 @@ class LinearTTL(Effect):
         "measured length, with one coefficient per MOSA, angle and side (paper eq. 3; docs/physics.md)."
     )
     parameters = {"mosas": "all", "angles": "all", "sides": "all"}
+    is_linear_ttl = True
 
     def columns(self, data):
         cols = []
@@ -60,6 +61,12 @@ class Drift(Effect):
     )
     parameters = {"mosas": "all", "angles": "all", "sides": "all", "t_ref": None}
     units = {"t_ref": "s"}
+    modulates_coefficients = True
+
+    def coefficient_modulation(self, t, t_mid):
+        """``(t - t_ref) / day`` (``t_ref`` default the middle of the data): the rate, per day."""
+        t_ref = t_mid if self.options.get("t_ref") is None else float(self.options["t_ref"])
+        return (t - t_ref) / DAY, "drift", "m/rad/day"
 
     def columns(self, data):
         t_ref = data.t_ref if self.options.get("t_ref") is None else float(self.options["t_ref"])
@@ -91,6 +98,13 @@ class Step(Effect):
     units = {"t_step": "s"}
     #: the step time [s], searched over the data (its own evaluator: :func:`ttlcore.diagnose.step_search.step_time_search`)
     searched = {"t_step": (-np.inf, np.inf, "linear")}
+    modulates_coefficients = True
+
+    def coefficient_modulation(self, t, t_mid):
+        """``H(t - t_step)``: the jump."""
+        if self.options.get("t_step") is None:
+            raise ConfigError("effect 'step' needs t_step in a model (ttl diagnose reports the searched time)")
+        return (t >= float(self.options["t_step"])).astype(float), "step", "m/rad"
 
     def columns(self, data):
         if self.options.get("t_step") is None and data.names_only:

@@ -133,6 +133,8 @@ PLACEMENTS = tuple(f"tm{m}" for m in MOSAS) + tuple(f"link{k}" for k in LINKS)
 
 class Glitch(Effect):
     name = "glitch"
+    transient = True
+    named_candidate = False
     title = "a test-mass (or link) glitch of the LISA Pathfinder shape"
     physics = (
         "A test mass kicked by outgassing, a discharge or a micrometeoroid changes velocity by dv over a "
@@ -210,6 +212,8 @@ class Glitch(Effect):
 
 class Gate(Effect):
     name = "gate"
+    transient = True
+    named_candidate = False
     title = "a span of the data gated out (tapered window, as lisa-gap smooths a gap)"
     physics = (
         "The data between start and stop (a loud transient, a gap with hard edges, hours of changed noise) "

@@ -138,6 +138,19 @@ class _Placed(Effect):
         kept = {k: v for k, v in self.options.items() if k not in ("vary", "t_step") and v != self.parameters.get(k)}
         return type(self)(**kept)
 
+    named_candidate = False  # a placement is needed: tried from the witness search
+
+    @property
+    def trial_columns(self) -> bool:
+        """True: a witness's coupling (:meth:`Effect.trial_columns`)."""
+        return True
+
+    def switched_on(self, t_step: float) -> Effect | None:
+        """This coupling with ``vary=step`` at ``t_step`` [s]; None when it varies already."""
+        if self.vary != "none":
+            return None
+        return self.with_options(vary="step", t_step=round(float(t_step), 1))
+
     @property
     def searched(self) -> dict:  # type: ignore[override]  # a class attribute in Effect (plugins set it so), computed here
         """The filter's searched poles (:meth:`filter_searched`) and, with ``vary=cycle``,
