@@ -29,15 +29,9 @@ from ..effects.glitch import Gate, gate
 from ..errors import ConfigError
 from .columns import ColumnStore, regressor_columns
 from .transients import data_gaps
-from .whitened import AnalysisGrid, WhitenedData, noise_digest
+from .whitened import MIN_KEPT, AnalysisGrid, WhitenedData, noise_digest
 
 log = logging.getLogger(__name__)
-
-#: Segments keeping less than this share of their taper's power under a gate are left out:
-#: a short remnant of a segment leaks the red noise below the band into it through the
-#: gate's ramps (4-h simulated day, 58-min segments, a 55-min gate: keeping a remnant of
-#: 0.3 read chi2/dof 1.43 and pull RMS 2.49; leaving it out, 0.993 and 0.88).
-MIN_KEPT = 0.6
 
 
 @dataclass(frozen=True, eq=False)
@@ -118,10 +112,14 @@ def gated_data(data: WhitenedData, gates: Iterable[Gate], gaps: Iterable[tuple[f
     if not mask.any():
         raise ConfigError("the gates leave no data")
     keep, scale = [], []
+    whole = float(np.sum(grid.win**2))
     for s0 in grid.starts:
         w = grid.win * grid.mask[s0 : s0 + grid.L]
         wg2 = float(np.sum((w * g[s0 : s0 + grid.L]) ** 2))
-        keep.append(wg2 >= MIN_KEPT * float(np.sum(w**2)))
+        # against the whole taper, not the samples the data hold: a segment inside a gap
+        # holds none, and 0 >= 0.6 x 0 kept it (a blind week's window over a 7-h gap: a
+        # segment of zeros divided by 1e-150 read chi2/dof 16080 and advised two glitches)
+        keep.append(wg2 >= MIN_KEPT * whole)
         # the spectra are normalised by the window's power over the samples kept
         # (``segment_fft`` of ``win * mask``, the span out of ``mask``): only the ramps'
         # share is left to restore.  Against the whole window, the span was restored twice:
