@@ -23,7 +23,7 @@ from streamer.inspect_text import explained_in_words
 from ttlcore.conventions import format_time
 from ttlcore.diagnose.diagnosis import Candidate, Coefficients, Diagnosis, Recommendation, TimeSlice, Transients
 from ttlcore.effects import make_effects
-from ttlcore.effects.glitch import merge_gates, split_gates
+from ttlcore.effects.gate import merge_gates, split_gates
 
 
 class DiagnosisStopped(Exception):

@@ -27,7 +27,7 @@ from typing import TypedDict
 from streamer.codec import MAX_HEADER_BYTES
 from ttlcore.conventions import DAY
 from ttlcore.effects import effect_input_from_telemetry, make_effects, split_effects
-from ttlcore.effects.glitch import split_gates
+from ttlcore.effects.gate import split_gates
 from ttlcore.errors import ConfigError
 
 

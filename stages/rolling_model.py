@@ -20,7 +20,7 @@ from streamer.messages import concatenate_telemetry
 from streamer.refit import refit_settings
 from ttlcore.diagnose.prediction import column_regressors
 from ttlcore.effects import effect_input_from_telemetry, make_effects
-from ttlcore.effects.glitch import split_gates
+from ttlcore.effects.gate import split_gates
 from ttlcore.estimate.fit import FitSettings, with_extra_regressors
 from ttlcore.estimate.rolling import RollingFit
 from ttlcore.io.telemetry import Telemetry

@@ -22,7 +22,7 @@ from ttlcore.diagnose.candidates import candidates
 from ttlcore.diagnose.diagnoser import refit
 from ttlcore.diagnose.diagnosis import Candidate, Refit
 from ttlcore.diagnose.prediction import effect_predictions
-from ttlcore.effects.glitch import Gate
+from ttlcore.effects.gate import Gate
 from ttlcore.errors import ConfigError
 from ttlcore.io.telemetry import Telemetry
 

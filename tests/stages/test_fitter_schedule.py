@@ -8,7 +8,8 @@ import pytest
 from stages.fitter_schedule import SUSTAINED_OUTLIERS, DiagnosisSchedule
 from stages.live_model import LiveModel
 from ttlcore.diagnose.diagnosis import Coefficients, Recommendation
-from ttlcore.effects.glitch import GATE_TAPER, GLITCH_DAMPING_SPAN, TDI_REACH
+from ttlcore.effects.gate import GATE_TAPER
+from ttlcore.effects.glitch import GLITCH_DAMPING_SPAN, TDI_REACH
 
 
 def test_a_one_day_file_is_diagnosed_at_half_a_day_and_at_its_end():

@@ -32,8 +32,8 @@ from ..conventions import COEFFICIENT_NAMES, LINKS
 from ..conventions import C as SPEED_OF_LIGHT
 from ..effects.column_tdi import effect_input_from_telemetry, tdi_in_blocks
 from ..effects.columns import Column, names_only_input
-from ..effects.coupling import Step
 from ..effects.filters import derivative, filtered_many, readout_noise_factor
+from ..effects.step import Step
 from ..errors import ConfigError
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 from ..tdi.interpolation import timeshift

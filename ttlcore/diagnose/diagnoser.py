@@ -29,7 +29,7 @@ from dataclasses import replace
 import numpy as np
 from scipy import fft as sp_fft
 
-from ..effects.glitch import Gate, split_gates
+from ..effects.gate import Gate, split_gates
 from ..effects.registry import make_effects
 from ..errors import ConfigError
 from ..tdi.data import TDIData

@@ -14,7 +14,7 @@ import numpy as np
 from scipy import stats
 
 from ..conventions import LINKS
-from ..effects.glitch import GATE_TAPER, gate
+from ..effects.gate import GATE_TAPER, gate
 from ..errors import ConfigError
 from ..estimate.spectra import segment_fft, window
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses

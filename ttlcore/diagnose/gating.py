@@ -1,8 +1,8 @@
 """Gated data: spans of the data down-weighted to zero (the ``gate`` effect).
 
 docs/diagnostics.md, "Glitches and gates".  The A, E, T series of the data and of every
-column are multiplied by the gate (:class:`ttlcore.effects.glitch.Gate`; the taper of
-:func:`ttlcore.effects.glitch.gate`)
+column are multiplied by the gate (:class:`ttlcore.effects.gate.Gate`; the taper of
+:func:`ttlcore.effects.gate.gate`)
 
     g(t) = 0 inside [start, stop],  1/2 - 1/2 cos(pi d / taper) for the distance d < taper
            outside it,  1 beyond,
@@ -25,7 +25,7 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from ..effects.glitch import Gate, gate
+from ..effects.gate import Gate, gate
 from ..errors import ConfigError
 from .columns import ColumnStore, regressor_columns
 from .transients import data_gaps
@@ -94,7 +94,7 @@ def gated_data(data: WhitenedData, gates: Iterable[Gate], gaps: Iterable[tuple[f
     """``data`` with the spans of ``gates`` (:class:`Gate`) and the runs of missing data
     ``gaps`` (``(start, stop)`` [s], :func:`missing_data`) gated out (its grid a
     :class:`GatedGrid`); ``data`` itself when there is neither.  A gap is gated like a gate
-    of the default taper (:data:`ttlcore.effects.glitch.GATE_TAPER`) and recorded as the
+    of the default taper (:data:`ttlcore.effects.gate.GATE_TAPER`) and recorded as the
     data's (``gap_spans``), not the model's.  The noise model is kept; the context is new,
     with an empty column store (columns built on ungated data do not apply)."""
     gates, gaps = list(gates), [(float(a), float(b)) for a, b in gaps]

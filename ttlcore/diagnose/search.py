@@ -53,8 +53,8 @@ from scipy import optimize, special
 
 from ..effects.column_tdi import effect_input_from_telemetry
 from ..effects.columns import names_only_input
-from ..effects.coupling import Step
 from ..effects.filters import filter_transform, readout_noise_factor
+from ..effects.step import Step
 from ..errors import ConfigError
 from .columns import (
     ColumnSet,

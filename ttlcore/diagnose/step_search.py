@@ -14,7 +14,8 @@ from scipy import fft as sp_fft
 from scipy import special
 
 from ..effects.column_tdi import columns_tdi, effect_input_from_telemetry
-from ..effects.coupling import LinearTTL, Step
+from ..effects.linear_ttl import LinearTTL
+from ..effects.step import Step
 from ..errors import ConfigError
 from ..estimate.spectra import psd_scale
 from ..tdi.combinations import MICHELSON, aet, build

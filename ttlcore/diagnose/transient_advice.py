@@ -19,7 +19,8 @@ import numpy as np
 from scipy import stats
 
 from ..effects.base import Effect
-from ..effects.glitch import Gate, Glitch
+from ..effects.gate import Gate
+from ..effects.glitch import Glitch
 from .adequacy import p_value
 from .columns import concat
 from .excess import gated_ttl_fit
@@ -138,7 +139,7 @@ def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> di
       ``glitch`` in the report);
     - any other event that is not a missing coupling and lasts at most
       :data:`MAX_GATE_FRACTION` of the analysed span, and every run of missing data not
-      gated yet: a :class:`~ttlcore.effects.glitch.Gate` over its span (the event's widened
+      gated yet: a :class:`~ttlcore.effects.gate.Gate` over its span (the event's widened
       by a hop), overlapping spans merged;
     - a glitch or gate for an event is advised only when it moves the TTL fit
       (:func:`moves_the_fit`: the glitches' fit against the model without them, the gated

@@ -38,7 +38,7 @@ import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES
 from ..effects.column_tdi import effect_input_from_telemetry, tdi_in_blocks
-from ..effects.coupling import LinearTTL
+from ..effects.linear_ttl import LinearTTL
 from ..effects.registry import available_effects
 from ..errors import ConfigError
 from ..estimate.fit import (

@@ -35,9 +35,10 @@ import re
 import numpy as np
 
 from ..conventions import ANGLES, LINKS, MOSAS, C, reverse
-from ..effects.coupling import Drift, Step
-from ..effects.placed import WitnessEffect
+from ..effects.drift import Drift
 from ..effects.registry import make_effects, parse_effect_spec
+from ..effects.step import Step
+from ..effects.witness import WitnessEffect
 from ..estimate.spectra import segment_fft, window
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 
@@ -359,7 +360,7 @@ def _coherence_peak(f: np.ndarray, curve: list) -> dict:
 
 
 def witness_spec(source: str, link: str, n_delay: int = 0, derivative: bool = False) -> str:
-    """The spec of a library witness as an effect (:class:`ttlcore.effects.placed.WitnessEffect`):
+    """The spec of a library witness as an effect (:class:`ttlcore.effects.witness.WitnessEffect`):
     ``witness:source=12.phi,link=23,delay=1``."""
     opts: dict = {"source": source}
     if link != source.split(".")[0]:

@@ -6,12 +6,16 @@ parameters, written as regressor columns (docs/diagnostics.md): the diagnosis fi
 concept per module:
 
 ``columns`` (:class:`Part`, :class:`Column`, :class:`EffectInput`), ``base`` (the
-:class:`Effect` base class), ``filters`` (filter and derivative numerics), ``coupling``
-(linear-ttl, drift, step, cross-coupling, second-order), ``shifted`` (timing-offset,
-ltt-error and their exact injection), ``placed`` (witness, fd-coupling), ``glitch`` (glitch
-and gate), ``injection`` (an effect injected into the simulator), ``column_tdi`` (TDI of
-columns) and ``registry`` (lookup by name, plugins, the one reader of effect specs:
+:class:`Effect` base class: what an effect is, asked of it), ``filters`` (filter and
+derivative numerics), ``injection`` (an effect injected into the simulator), ``column_tdi``
+(TDI of columns) and ``registry`` (lookup by name, plugins, the one reader of effect specs:
 ``NAME[:key=value,...]``, several separated by ``,``; docs/cli.md, "Effect specs").
+
+One effect per module, as emcee's moves: ``linear_ttl``, ``drift``, ``step``,
+``cross_coupling``, ``second_order``; ``witness`` and ``fd_coupling`` on the base ``placed``
+(a witness of the library placed on a link); ``timing_offset`` and ``ltt_error`` on the
+base ``shifted`` (a witness read at shifted times, and its exact injection); the transients
+``glitch`` and ``gate``.
 
 ::
 
@@ -23,7 +27,8 @@ columns) and ``registry`` (lookup by name, plugins, the one reader of effect spe
 from .base import Effect
 from .column_tdi import columns_tdi, effect_input_from_telemetry, tdi_in_blocks
 from .columns import Column, EffectInput, Part
-from .glitch import Gate, Glitch
+from .gate import Gate
+from .glitch import Glitch
 from .injection import EffectInjection
 from .registry import (
     EFFECTS,

@@ -1,4 +1,5 @@
-"""Effects placed on links from the witness library: ``witness`` and ``fd-coupling``.
+"""The base of the effects placed on links from the witness library (``witness``,
+:mod:`ttlcore.effects.witness`; ``fd-coupling``, :mod:`ttlcore.effects.fd_coupling`).
 
 Either one ``source`` (a library witness: channel, link, delay) or the standard placements of
 ``mosas``/``angles``/``sides``; a constant coupling (``witness``) or a frequency-dependent one
@@ -7,8 +8,6 @@ optionally varying in time (``vary``: drift, step, cycle).
 """
 
 from __future__ import annotations
-
-import functools
 
 import numpy as np
 
@@ -24,9 +23,9 @@ from ..conventions import (
 from ..errors import ConfigError
 from ..tdi.regressors import witness_placement as placement
 from .base import Effect, split_list
-from .columns import Column, EffectInput, Part
-from .coupling import SecondOrder
-from .filters import derivative, derivative_response, rational_basis
+from .columns import EffectInput
+from .filters import derivative
+from .second_order import SecondOrder
 
 
 def witness_series(data: EffectInput, source: str, derivative_order: int = 0) -> tuple[np.ndarray, tuple | None, str]:
@@ -80,8 +79,11 @@ def _int_option(effect, key, allowed) -> int:
 #: data that start then (:meth:`_Placed.settled`): the columns' history (30 min) and more.
 SETTLED_AFTER = 3600.0
 
+
 #: Time variations of a placed effect's coupling (option ``vary``, :meth:`_Placed.modulations`).
 VARY = ("none", "drift", "step", "cycle")
+
+
 #: Searched range of the period [s] of ``vary=cycle``: 1 h to 4 days (clipped to twice the
 #: analysed span; a longer period is a drift), log scale.
 CYCLE_PERIOD = (3600.0, 4 * DAY, "log")
@@ -215,175 +217,3 @@ class _Placed(Effect):
         return (
             label if vary == "none" else f"{label}~{vary}" + (f"@{format_time(at)}" if at is not None else "")
         ) + suffix
-
-
-class WitnessEffect(_Placed):
-    name = "witness"
-    title = "a witness series of the library, fitted with one coefficient each"
-    physics = (
-        "Any series of the witness library (ttlcore.witnesses: a DWS channel on any link, undelayed or "
-        "delayed by one or two light travel times, its time derivative, a product of angles) can couple "
-        "into the data with a constant coefficient. The column is the series placed on the link through "
-        "the exact time-varying TDI delays; a plain DWS channel carries its readout noise into the "
-        "errors-in-variables term."
-    )
-    parameters = {
-        "source": None,
-        "link": None,
-        "delay": 0,
-        "derivative": 0,
-        "mosas": None,
-        "angles": "all",
-        "sides": "rx",
-        "links": "all",
-        "vary": "none",
-        "t_ref": None,
-        "t_step": None,
-        "period": None,
-    }
-    units = {"delay": "count", "derivative": "count", "t_ref": "s", "t_step": "s", "period": "s"}
-
-    def columns(self, data):
-        der = _int_option(self, "derivative", (0, 1))
-        cols = []
-        for src, link, n in self.placements():
-            if der and src.split(".")[1] not in ANGLES:
-                raise ConfigError(f"effect 'witness' source {src!r}: products have no derivative option")
-            for suffix, mod in self.modulations(data):
-                series, channel, unit = self._series(data, src, mod)
-                label = self._label(("d/dt:" if der else "") + self.placement_label(src, link, n), suffix)
-                prior = {"m/rad": 1e-3, "m/rad^2": 1e3}[unit]
-                # the time derivative as the filter 2 pi i f: its readout noise follows exactly
-                cols.append(
-                    Column(
-                        f"witness.{label}",
-                        [Part(link, series, n, channel, mod)],
-                        "m s/rad" if der else unit,
-                        prior * 10 if der else prior,
-                        response=derivative_response if der else None,
-                    )
-                )
-        return cols
-
-
-class FrequencyCoupling(_Placed):
-    name = "fd-coupling"
-    title = "frequency-dependent coupling of a witness (resonance, first-order path)"
-    physics = (
-        "A witness couples through a path whose gain varies with frequency: a mechanical resonance of "
-        "unknown frequency and quality factor (filter=pole2, the default: 1/D, x/D, x^2/D with "
-        "D = 1 + x/q + x^2, x = i f/f0) or a first-order low- or high-pass path of unknown corner "
-        "(filter=pole1: 1/(1+x), x/(1+x), x = i f/fc). Linear in the numerator coefficients; the poles "
-        "(f0, q or fc) are searched by the diagnosis when not given. Place it with source=, link=, "
-        "delay= (a library witness) or mosas=, angles=, sides=, links=. On the placement of a linear TTL "
-        "coefficient (its own link undelayed, or the link it transmits on after one delay) the constant "
-        "coupling is that coefficient: the basis drops one column there (flat=auto, the default; "
-        "flat=keep for a model without linear-ttl)."
-    )
-    parameters = {
-        "source": None,
-        "link": None,
-        "delay": 0,
-        "mosas": None,
-        "angles": "all",
-        "sides": "rx",
-        "links": "all",
-        "filter": "pole2",
-        "f0": None,
-        "q": None,
-        "fc": None,
-        "vary": "none",
-        "t_ref": None,
-        "t_step": None,
-        "period": None,
-        "flat": "auto",
-    }
-    units = {"delay": "count", "t_ref": "s", "t_step": "s", "period": "s", "f0": "Hz", "q": "", "fc": "Hz"}
-
-    @property
-    def kind(self) -> str:
-        k = self.options.get("filter") or "pole2"
-        if k not in ("pole1", "pole2"):
-            raise ConfigError(f"effect 'fd-coupling' filter: expected pole1 or pole2, got {k!r}")
-        return k
-
-    def filter_searched(self) -> dict:
-        if self.kind == "pole1":
-            return {"fc": (1e-3, 2.0, "log")}
-        return {"f0": (1e-3, 2.0, "log"), "q": (0.5, 300.0, "log")}
-
-    def response_functions(self) -> list:
-        """The basis responses ``f -> complex`` for the current poles.  They share the
-        basis: computed once for the frequency array they are called with in turn (the same
-        array object, which must not change in place between the calls)."""
-        poles: tuple[float, ...]
-        if self.kind == "pole1":
-            poles, n = (float(self.options["fc"]),), 2
-        else:
-            poles, n = (float(self.options["f0"]), float(self.options["q"])), 3
-        last: list = []  # [(f, basis)]: the last frequency array and its basis
-
-        def basis(f):
-            if not (last and last[0][0] is f):
-                last[:] = [(f, rational_basis(self.kind, f, *poles))]
-            return last[0][1]
-
-        return [functools.partial(lambda f, j: basis(f)[j], j=j) for j in range(n)]
-
-    def holds_flat(self, source: str, link: str, n_delays: int) -> bool:
-        """Whether the basis keeps all its columns on this placement.
-
-        The basis spans the constant coupling (``1/(1+x) + x/(1+x) = 1``;
-        ``1/D + (x/D)/q + x^2/D = 1``).  On the placement of a linear TTL coefficient
-        (:func:`ttlcore.tdi.regressors.witness_placement`: rx on the MOSA's own link,
-        undelayed; tx on the link it transmits on, one delay) that constant coupling *is*
-        the coefficient's column, so with ``linear-ttl`` in the model the full basis would
-        be collinear with it: with ``flat=auto`` (default) and no time variation the last
-        basis column is dropped there (the remaining ones and the coefficient span the
-        same couplings); ``flat=keep`` keeps it (a model without ``linear-ttl``)."""
-        flat = self.options.get("flat") or "auto"
-        if flat not in ("auto", "keep"):
-            raise ConfigError(f"effect 'fd-coupling' flat: expected auto or keep, got {flat!r}")
-        if flat == "keep" or self.vary != "none":
-            return True
-        mosa, _, angle = source.partition(".")
-        return (
-            angle not in ANGLES
-            or (link, bool(n_delays)) not in (placement(mosa, "rx"), placement(mosa, "tx"))
-            or n_delays > 1
-        )
-
-    def columns(self, data):
-        n_basis = 2 if self.kind == "pole1" else 3
-        poles = [k for k in self.unresolved() if k != "period"]
-        if poles:
-            if not data.names_only:
-                raise ConfigError(
-                    f"effect 'fd-coupling': {', '.join(poles)} not given "
-                    "(the diagnosis searches them: ttl diagnose, refit)"
-                )
-            resp = [None] * n_basis
-        else:
-            resp = self.response_functions()
-        cols = []
-        for src, link, n in self.placements():
-            for suffix, mod in self.modulations(data):
-                if data.names_only:  # names and responses only (the searches evaluate many poles)
-                    series, channel = None, None
-                    unit = "m/rad" if src.partition(".")[2] in ANGLES else "m/rad^2"
-                else:
-                    series, channel, unit = self._series(data, src, mod)
-                label = self._label(self.placement_label(src, link, n), suffix)
-                parts = [Part(link, series, n, channel, mod)]
-                for j in range(n_basis if self.holds_flat(src, link, n) else n_basis - 1):
-                    cols.append(
-                        Column(
-                            f"fd.{label}.b{j}",
-                            parts,
-                            unit,
-                            1e-3 if unit == "m/rad" else 1e3,
-                            response=resp[j],
-                            base=label,
-                        )
-                    )
-        return cols

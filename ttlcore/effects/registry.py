@@ -22,11 +22,19 @@ from ..conventions import format_number
 from ..errors import ConfigError
 from ..sim.injection import load_module
 from .base import Effect
-from .coupling import CrossCoupling, Drift, LinearTTL, SecondOrder, Step
-from .glitch import Gate, Glitch
+from .cross_coupling import CrossCoupling
+from .drift import Drift
+from .fd_coupling import FrequencyCoupling
+from .gate import Gate
+from .glitch import Glitch
 from .injection import EffectInjection
-from .placed import FrequencyCoupling, WitnessEffect
-from .shifted import OFFSET_OPTION, LightTravelTimeError, TimingOffset, _Linearised
+from .linear_ttl import LinearTTL
+from .ltt_error import LightTravelTimeError
+from .second_order import SecondOrder
+from .shifted import OFFSET_OPTION, _Linearised
+from .step import Step
+from .timing_offset import TimingOffset
+from .witness import WitnessEffect
 
 log = logging.getLogger(__name__)
 

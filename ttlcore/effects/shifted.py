@@ -1,4 +1,5 @@
-"""The shifted-witness effects: ``timing-offset`` and ``ltt-error``.
+"""The base of the shifted-witness effects (``timing-offset``, :mod:`ttlcore.effects.timing_offset`;
+``ltt-error``, :mod:`ttlcore.effects.ltt_error`) and their exact injection.
 
 Their exact form ``w(t + epsilon)`` is nonlinear in the offset; the fit uses its Taylor
 expansion to second order (columns ``.d1``, ``.d2``), the simulator the exact injection
@@ -14,7 +15,6 @@ from ..conventions import (
     LINKS,
     MOSAS,
     C,
-    local_spacecraft,
     parse_time,
     reverse,
 )
@@ -22,12 +22,11 @@ from ..errors import ConfigError
 from ..sim.injection import ChunkContext
 from ..tdi.interpolation import apply_taps, shift_taps
 from ..tdi.regressors import witness_placement as placement
-from .base import Effect, split_list
+from .base import Effect
 from .columns import Column, Part
 from .filters import derivative
 from .injection import EffectInjection
 
-#: prefix of the option that gives a shifted-witness group's offset [s] (``offset.sc1``)
 OFFSET_OPTION = "offset."
 
 
@@ -180,67 +179,6 @@ class _Linearised(Effect):
         return out
 
 
-class TimingOffset(_Linearised):
-    name = "timing-offset"
-    title = "timing offset between DWS and phasemeter readouts"
-    physics = (
-        "The DWS samples of a spacecraft are time-stamped delta late with respect to the phasemeter "
-        "(a processing latency, a misaligned data stream): the length readout holds C DWS(t + delta). "
-        "To second order C [w + delta w' + delta^2/2 w''], with the fitted C."
-    )
-    parameters = {"per": "sc", **_offset_parameters(["sc1", "sc2", "sc3", *MOSAS, "all"])}
-
-    def _groups(self):
-        per = self.options.get("per", "sc")
-        if per not in ("sc", "mosa", "global"):
-            raise ConfigError("effect 'timing-offset' per: expected sc, mosa or global")
-        groups: dict = {}
-        for cname in COEFFICIENT_NAMES:
-            m = cname.split(".")[0]
-            key = {"sc": f"sc{local_spacecraft(m)}", "mosa": m, "global": "all"}[per]
-            groups.setdefault(key, []).append(cname)
-        return groups
-
-    def injection(self, values, name=None):
-        return ShiftInjection(self, values, name)
-
-
-class LightTravelTimeError(_Linearised):
-    name = "ltt-error"
-    title = "error in the light travel time of the delayed (tx) terms"
-    physics = (
-        "The tx jitter reaches the receiver one light travel time after emission; if the delay used to "
-        "place the tx witnesses (the telemetry's ranging) is off by eps on link ij, the fit misses "
-        "C D_ij [w(t - eps) - w] = C D_ij [-eps w' + eps^2/2 w'']. One eps per link."
-    )
-    parameters = {"links": "all", **_offset_parameters(LINKS)}
-
-    d1_sign = -1.0
-
-    def _shifts_delay(self):
-        return True
-
-    def _groups(self):
-        links = split_list(self.options.get("links"), LINKS, "effect 'ltt-error' links")
-        groups: dict = {}
-        for cname in COEFFICIENT_NAMES:
-            m, _, s = cname.split(".")
-            if s == "tx" and reverse(m) in links:
-                groups.setdefault(reverse(m), []).append(cname)
-        return groups
-
-    def columns(self, data):
-        cols = super().columns(data)
-        for c in cols:  # data hold w(t - eps): first order -eps w'
-            if c.name.endswith(".d1"):
-                for p in c.parts:
-                    p.series = -p.series
-        return cols
-
-    def injection(self, values, name=None):
-        return ShiftInjection(self, values, name)
-
-
 #: Lagrange order of the off-centre stencils at the end of a chunk (a high order would
 #: extrapolate wildly; cubic keeps the local error at a few per cent of the effect)
 FALLBACK_ORDER = 3
@@ -307,7 +245,7 @@ class ShiftInjection(EffectInjection):
             eps = shifts[g]
             if eps == 0.0:
                 continue
-            if isinstance(eff, LightTravelTimeError):
+            if eff._shifts_delay():  # ltt-error: the delay of the tx terms, not the DWS time
                 link = g
                 k = LINKS.index(link)
                 src = np.zeros(coeffs.shape[1])

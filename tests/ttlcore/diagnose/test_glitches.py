@@ -29,7 +29,8 @@ from ttlcore.diagnose.gating import GatedGrid, gated_data  # noqa: E402
 from ttlcore.diagnose.glitches import glitch_search  # noqa: E402
 from ttlcore.diagnose.whitened import whiten_telemetry  # noqa: E402
 from ttlcore.effects import Gate, Glitch, make_effects, parse_effect_spec, split_effects  # noqa: E402
-from ttlcore.effects.glitch import GATE_TAPER, _parse_span, glitch_velocity, merge_gates  # noqa: E402
+from ttlcore.effects.gate import GATE_TAPER, merge_gates  # noqa: E402
+from ttlcore.effects.glitch import _parse_span, glitch_velocity
 from ttlcore.errors import ConfigError  # noqa: E402
 from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
 

@@ -15,7 +15,7 @@ from ttlcore.diagnose import excess as X
 from ttlcore.diagnose import transients as T
 from ttlcore.diagnose.outliers import outlying_segments
 from ttlcore.diagnose.report import recommendation
-from ttlcore.effects.glitch import gate
+from ttlcore.effects.gate import gate
 from ttlcore.sim import noise_models
 from ttlcore.tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 

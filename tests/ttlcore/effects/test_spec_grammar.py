@@ -39,9 +39,9 @@ from ttlcore.effects import (
     parse_effect_spec,
     split_effects,
 )
-from ttlcore.effects.coupling import Step
-from ttlcore.effects.placed import FrequencyCoupling
-from ttlcore.effects.shifted import TimingOffset
+from ttlcore.effects.fd_coupling import FrequencyCoupling
+from ttlcore.effects.step import Step
+from ttlcore.effects.timing_offset import TimingOffset
 from ttlcore.errors import ConfigError
 
 #: Representative effects of every registered name: options given, searched options filled
