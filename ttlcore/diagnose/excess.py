@@ -274,9 +274,21 @@ def quiet_adequacy(tf: TimeFrequencyMap, events, alpha: float, spans=()) -> dict
     }
 
 
+def gap_of(t_start: float, t_stop: float, gaps, hop: float) -> tuple[float, float] | None:
+    """The run of missing data ``(a, b)`` [s] among ``gaps`` that an event over ``[t_start,
+    t_stop]`` [s] overlaps, its ramps included (or None).
+
+    A gap is gated with cosine ramps of :data:`~ttlcore.effects.gate.GATE_TAPER` each side:
+    the data there are the gap's, and an event within a ramp and a tile's ``hop`` of its edge
+    is that edge, not a transient of the instrument (a blind week's 7-h gap: an "event" 8-23
+    min after its end, T share 83 %, was advised as two 430-s glitches)."""
+    margin = GATE_TAPER + hop
+    return next(((a, b) for a, b in gaps if a - margin < t_stop and b + margin > t_start), None)
+
+
 def classified_events(data, resid: np.ndarray, tf: TimeFrequencyMap, events, gaps, alpha: float) -> list[dict]:
     """The report entries of the map's ``events`` (loudest first): each with its coherence
-    with the witnesses, the run of missing data it overlaps, T's expected share, its class
+    with the witnesses, the run of missing data it overlaps (its ramps included), T's expected share, its class
     and evidence (:func:`ttlcore.diagnose.event_class.classify`); those that last to the
     data's end are onsets (:func:`ttlcore.diagnose.onsets.reclassify_onsets`)."""
     grid = data.grid
@@ -285,7 +297,7 @@ def classified_events(data, resid: np.ndarray, tf: TimeFrequencyMap, events, gap
     out = []
     for e in events:
         coh = witness_coherence(resid, data.tdi.regressor_series, grid.fs, tf, e, grid.f, psd, grid.t0, keep, alpha)
-        gap = next(((a, b) for a, b in gaps if a < e.t_stop and b > e.t_start), None)
+        gap = gap_of(e.t_start, e.t_stop, gaps, tf.hop)
         expected = instrumental_t_share(grid.f, data.noise.csd, data.tdi.ltt_mean, e.f_lo, e.f_hi)
         e = Event(
             **{

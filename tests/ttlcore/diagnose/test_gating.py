@@ -57,3 +57,17 @@ def test_a_gapped_day_reads_one_per_degree_of_freedom(gapped_day):
     assert abs(fit.chi2_dof - 1.0) < 0.03, fit.chi2_dof
     z = np.abs(fit.ttl_coefficients() - C) / fit.ttl_sigma()
     assert z.max() < 4.0, z
+
+
+def test_an_event_in_a_gaps_ramps_is_the_gap():
+    from ttlcore.diagnose.excess import gap_of
+    from ttlcore.effects.gate import GATE_TAPER
+
+    gaps = [(422037.5, 447237.25)]  # the blind week's gap
+    hop = 225.0
+    # the week's "glitch" event, 124.36-124.61 h: 460 s after the gap's end, inside its 900-s ramp
+    assert gap_of(447700.0, 448600.0, gaps, hop) == gaps[0]
+    assert gap_of(421000.0, 421500.0, gaps, hop) == gaps[0]  # before its start, in the ramp
+    # beyond the ramp and a hop: an event of its own
+    assert gap_of(447237.25 + GATE_TAPER + hop + 1.0, 460000.0, gaps, hop) is None
+    assert gap_of(100.0, 200.0, [], hop) is None
