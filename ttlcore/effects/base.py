@@ -19,6 +19,7 @@ Subclass :class:`Effect` for a plugin (docs/diagnostics.md).
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from typing import ClassVar, Self
 
 import numpy as np
@@ -37,6 +38,7 @@ from ..conventions import (
     reverse,
 )
 from ..errors import ConfigError
+from ..tdi.regressors import witness_placement
 from .columns import Column, EffectInput
 from .filters import filtered
 from .injection import EffectInjection
@@ -188,6 +190,17 @@ class Effect:
     @property
     def sides(self) -> tuple:
         return split_list(self.options.get("sides"), SIDES, f"effect {self.name!r} sides")
+
+    def coefficient_placements(self) -> Iterator[tuple[str, str, str, str, bool]]:
+        """``(mosa, angle, side, link, delayed)`` of each linear coefficient the effect's
+        selection holds (:attr:`mosas`, :attr:`angles`, :attr:`sides`), in the coefficients'
+        order: where its witness enters the data (rx: its own link, undelayed; tx: the link
+        it transmits on, after one delay; :func:`ttlcore.tdi.regressors.witness_placement`)."""
+        for m in self.mosas:
+            for a in self.angles:
+                for s in self.sides:
+                    link, delayed = witness_placement(m, s)
+                    yield m, a, s, link, delayed
 
     def columns(self, data: EffectInput) -> list[Column]:
         """The regressor columns built from ``data``."""

@@ -6,7 +6,6 @@ from ..conventions import (
     MOSAS,
 )
 from ..errors import ConfigError
-from ..tdi.regressors import witness_placement as placement
 from .base import Effect
 from .columns import Column, Part
 
@@ -40,17 +39,9 @@ class CrossCoupling(Effect):
             )
 
     def columns(self, data):
-        cols = []
-        for m in self.mosas:
-            for a in self.angles:
-                for s in self.sides:
-                    link, delayed = placement(m, s)
-                    cols.append(
-                        Column(
-                            f"cross.{m}.{a}.{s}",
-                            [Part(link, data.witness(partner(m), a), delayed, (partner(m), a))],
-                            "m/rad",
-                            1e-3,
-                        )
-                    )
-        return cols
+        return [
+            Column(
+                f"cross.{m}.{a}.{s}", [Part(link, data.witness(partner(m), a), delayed, (partner(m), a))], "m/rad", 1e-3
+            )
+            for m, a, s, link, delayed in self.coefficient_placements()
+        ]

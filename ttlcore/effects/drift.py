@@ -5,7 +5,6 @@ from __future__ import annotations
 from ..conventions import (
     DAY,
 )
-from ..tdi.regressors import witness_placement as placement
 from .base import Effect
 from .columns import Column, Part
 
@@ -30,17 +29,9 @@ class Drift(Effect):
     def columns(self, data):
         t_ref = data.t_ref if self.options.get("t_ref") is None else float(self.options["t_ref"])
         tau = (data.t - t_ref) / DAY
-        cols = []
-        for m in self.mosas:
-            for a in self.angles:
-                for s in self.sides:
-                    link, delayed = placement(m, s)
-                    cols.append(
-                        Column(
-                            f"drift.{m}.{a}.{s}",
-                            [Part(link, tau * data.witness(m, a), delayed, (m, a), tau)],
-                            "m/rad/day",
-                            1e-3,
-                        )
-                    )
-        return cols
+        return [
+            Column(
+                f"drift.{m}.{a}.{s}", [Part(link, tau * data.witness(m, a), delayed, (m, a), tau)], "m/rad/day", 1e-3
+            )
+            for m, a, s, link, delayed in self.coefficient_placements()
+        ]

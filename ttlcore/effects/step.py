@@ -7,7 +7,6 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from ..tdi.regressors import witness_placement as placement
 from .base import Effect
 from .columns import Column, Part
 
@@ -46,14 +45,7 @@ class Step(Effect):
 
         ts = float(self.options["t_step"])  # seconds (read with its unit)
         h = (data.t >= ts).astype(float)
-        cols = []
-        for m in self.mosas:
-            for a in self.angles:
-                for s in self.sides:
-                    link, delayed = placement(m, s)
-                    cols.append(
-                        Column(
-                            f"step.{m}.{a}.{s}", [Part(link, h * data.witness(m, a), delayed, (m, a), h)], "m/rad", 1e-3
-                        )
-                    )
-        return cols
+        return [
+            Column(f"step.{m}.{a}.{s}", [Part(link, h * data.witness(m, a), delayed, (m, a), h)], "m/rad", 1e-3)
+            for m, a, s, link, delayed in self.coefficient_placements()
+        ]
