@@ -338,6 +338,7 @@ def test_stage_killed_and_restarted_mid_run_misses_nothing(t1, tmp_path):
     assert {("tdi_builder", "restart"), ("tdi_builder", "unfinished")} <= kinds, kinds
 
 
+@pytest.mark.ops  # 52 s of make test's 10 min: the announced-fetch rule has its unit test (tests/stages/test_stage_logic.py)
 def test_late_joiners_catch_up_from_the_caches(tmp_path):
     """The subtractor and the monitor started by hand (``ttl stage``), both late: the
     subtractor after half the replay (it catches up its tdi and fit inputs from the

@@ -75,6 +75,7 @@ def _flat(x, path=""):
     return {path: x}
 
 
+@pytest.mark.science  # a local Dask cluster, 19 s of make test's 10 min
 def test_cases_on_a_dask_cluster_equal_the_serial_run(short_merger, tmp_path):
     """The same command on a LocalCluster of two worker processes (one task per variant and
     base simulation): the rows are those of the serial run (same code, same seeds, same
