@@ -280,8 +280,8 @@ def gap_of(t_start: float, t_stop: float, gaps, hop: float) -> tuple[float, floa
 
     A gap is gated with cosine ramps of :data:`~ttlcore.effects.gate.GATE_TAPER` each side:
     the data there are the gap's, and an event within a ramp and a tile's ``hop`` of its edge
-    is that edge, not a transient of the instrument (a blind week's 7-h gap: an "event" 8-23
-    min after its end, T share 83 %, was advised as two 430-s glitches)."""
+    is that edge, not a transient of the instrument.  (Missing data at the ends of the data
+    are cut off before: :func:`ttlcore.diagnose.whitened.without_missing_ends`.)"""
     margin = GATE_TAPER + hop
     return next(((a, b) for a, b in gaps if a - margin < t_stop and b + margin > t_start), None)
 

@@ -487,6 +487,31 @@ def _first_coefficients(
     return res.coefficients[[tdi.regressor_names.index(nm) for nm in COEFFICIENT_NAMES]]
 
 
+def without_missing_ends(tm: Telemetry) -> Telemetry:
+    """``tm`` from its first to its last sample where every series (eta, both DWS angles)
+    is finite: missing data at either end are no gap between data, and are cut off
+    (``t0`` moved with them).
+
+    A live window that begins inside a long gap holds hours of NaN before its data: the
+    blind week's window 120..143 began with the last 4 h of a 7-h gap, and its analysis read
+    an "event" 8-23 min after the data began (T share 83 %, SNR 17000) that the same data
+    without those hours do not have (reproduced from the recording; advised as two 430-s
+    glitches).  A file that starts or ends with a gap is read the same way."""
+    ok = np.isfinite(tm.eta).all(axis=0) & np.isfinite(tm.dws_phi).all(axis=0) & np.isfinite(tm.dws_eta).all(axis=0)
+    idx = np.flatnonzero(ok)
+    if idx.size == 0 or (idx[0] == 0 and idx[-1] == tm.size - 1):
+        return tm
+    a, b = int(idx[0]), int(idx[-1]) + 1
+    return replace(
+        tm,
+        t0=float(tm.t0) + a / float(tm.fs),
+        eta=tm.eta[:, a:b],
+        dws_phi=tm.dws_phi[:, a:b],
+        dws_eta=tm.dws_eta[:, a:b],
+        ltt=tm.ltt[:, a:b],
+    )
+
+
 def whiten_telemetry(
     tm: Telemetry, settings: DiagnoseSettings | None = None, effect_modules: Iterable[str] = ()
 ) -> WhitenedData:
@@ -495,6 +520,7 @@ def whiten_telemetry(
     (:func:`ttlcore.effects.column_tdi.tdi_in_blocks`): the interpolation taps of a day would
     hold ~4 GB."""
     s = settings or DiagnoseSettings()
+    tm = without_missing_ends(tm)
     data, regs = tdi_in_blocks(
         tm.ltt,
         tm.fs,

@@ -65,9 +65,43 @@ def test_an_event_in_a_gaps_ramps_is_the_gap():
 
     gaps = [(422037.5, 447237.25)]  # the blind week's gap
     hop = 225.0
-    # the week's "glitch" event, 124.36-124.61 h: 460 s after the gap's end, inside its 900-s ramp
+    # an event 460 s after the gap's end, inside its 900-s ramp
     assert gap_of(447700.0, 448600.0, gaps, hop) == gaps[0]
     assert gap_of(421000.0, 421500.0, gaps, hop) == gaps[0]  # before its start, in the ramp
     # beyond the ramp and a hop: an event of its own
     assert gap_of(447237.25 + GATE_TAPER + hop + 1.0, 460000.0, gaps, hop) is None
     assert gap_of(100.0, 200.0, [], hop) is None
+
+
+def test_missing_data_at_the_ends_is_cut_off(gapped_day):
+    """A live window that begins inside a gap: hours of NaN before the data.  The analysis is
+    that of the data from their first valid sample (the blind week's window 120..143 read an
+    'event' at the data's start, SNR 17000, that the data without the leading NaN do not have)."""
+    from ttlcore.diagnose.whitened import without_missing_ends
+
+    tm, _, (a, b) = gapped_day
+    k = int(round((b - tm.t0) * tm.fs))  # from the end of the gap on: data only
+    data = replace(
+        tm,
+        t0=tm.t0 + k / tm.fs,
+        eta=tm.eta[:, k:],
+        dws_phi=tm.dws_phi[:, k:],
+        dws_eta=tm.dws_eta[:, k:],
+        ltt=tm.ltt[:, k:],
+    )
+    n = 4 * 3600  # an hour of NaN before them, the light travel times held (TelemetryWindow.add_gap)
+    blank = np.full((6, n), np.nan)
+    led = replace(
+        data,
+        t0=data.t0 - n / tm.fs,
+        eta=np.concatenate([blank, data.eta], axis=1),
+        dws_phi=np.concatenate([blank, data.dws_phi], axis=1),
+        dws_eta=np.concatenate([blank, data.dws_eta], axis=1),
+        ltt=np.concatenate([np.repeat(data.ltt[:, :1], n, axis=1), data.ltt], axis=1),
+    )
+    cut = without_missing_ends(led)
+    assert cut.t0 == data.t0 and cut.size == data.size
+    settings = DiagnoseSettings(segment_duration=1800.0)
+    one, two = (refit(x, ["linear-ttl"], settings=settings).fit for x in (data, led))
+    np.testing.assert_allclose(two.ttl_coefficients(), one.ttl_coefficients(), rtol=0, atol=1e-12)
+    assert two.chi2_dof == pytest.approx(one.chi2_dof, rel=1e-12)
