@@ -2,7 +2,7 @@
 
 A fit message ``ttl/<run>/fit/<i>`` carries the arrays ``coefficients``, ``sigma``,
 ``covariance`` (and ``model_parts`` for an extended model) with the meta of
-:func:`fit_meta` plus what the rolling model, the window refit and the live diagnosis add;
+:func:`fit_meta` (a :class:`streamer.fit_record.FitMessage`) plus what the rolling model, the window refit and the live diagnosis add;
 :func:`fit_summary` is what goes into the recording on ``fit/summary`` (schema ``ttl.Fit``).
 The texts of the warnings and events a fit raises (a left-out FFT segment, a model that
 fails against the instrument noise model) are :func:`excluded_message` and
@@ -13,29 +13,22 @@ from __future__ import annotations
 
 import logging
 
+from streamer.fit_record import SUMMARY_META, FitMessage
+
 log = logging.getLogger(__name__)
 
 #: Units of the fit message's arrays.
 UNITS = {"coefficients": "m/rad", "sigma": "m/rad", "covariance": "m^2/rad^2", "model_parts": "fractional frequency"}
-#: Meta of the fit message that the recorded summary repeats, when present.
-SUMMARY_META = (
-    "model",
-    "adequacy",
-    "model_change",
-    "candidates",
-    "extra_parameters",
-    "model_parts",
-    "diagnosis",
-    "model_update",
-    "rolling",
-)
+__all__ = ["SUMMARY_META", "UNITS", "fit_meta", "fit_summary", "notices", "rolling_estimate"]
 
 
-def fit_meta(res, *, window_duration: float, fft_segment: float, segments_total: int | None, model: list[str]) -> dict:
+def fit_meta(
+    res, *, window_duration: float, fft_segment: float, segments_total: int | None, model: list[str]
+) -> FitMessage:
     """The meta of a fit message from a rolling fit's result ``res``
     (:class:`ttlcore.estimate.fit.FitResult`): the window fitted, the fit's quality, the
     rolling fit's settings and the model in force."""
-    return {
+    fields = {
         "names": list(res.names),
         "chi2_dof": res.chi2_dof,
         "t_start": res.t_start,
@@ -52,6 +45,7 @@ def fit_meta(res, *, window_duration: float, fft_segment: float, segments_total:
         "segments_total": segments_total,
         "model": list(model),
     }
+    return FitMessage().with_fields(fields)
 
 
 def rolling_estimate(arrays: dict) -> dict:
@@ -63,14 +57,14 @@ def rolling_estimate(arrays: dict) -> dict:
     return {"coefficients": arrays["coefficients"].tolist(), "sigma": arrays["sigma"].tolist()}
 
 
-def fit_summary(run: str, index: int, res, meta: dict, arrays: dict) -> dict:
+def fit_summary(run: str, index: int, res, meta: FitMessage, arrays: dict) -> dict:
     """The recorded summary of the fit message of segment ``index`` (``fit/summary``): the
     coefficients published, the fit's quality, the whole result under ``fit``, and the
     model's meta (:data:`SUMMARY_META`)."""
     return {
         "run": run,
         "index": index,
-        "names": meta["names"],
+        "names": list(meta.names or ()),
         "coefficients": arrays["coefficients"],
         "sigma": arrays["sigma"],
         "covariance": arrays["covariance"],
@@ -81,7 +75,7 @@ def fit_summary(run: str, index: int, res, meta: dict, arrays: dict) -> dict:
         "t_end": res.t_stop,
         "segments": int(res.n_segments),
         "fit": res.to_json(),
-        **{k: meta[k] for k in SUMMARY_META if k in meta},
+        **meta.summary_fields(),
     }
 
 
@@ -108,25 +102,25 @@ def excluded_message(index: int, excluded: dict) -> str:
     )
 
 
-def inadequate_message(index: int, meta: dict) -> str:
+def inadequate_message(index: int, meta: FitMessage) -> str:
     """The warning of a fit whose model fails against the instrument noise model."""
+    assert meta.adequacy is not None
+    chi2 = meta.adequacy.chi2_dof if meta.adequacy.chi2_dof is not None else float("nan")
     return (
-        f"fit {index}: the model {','.join(meta['model'])} fails against "
-        f"the instrument noise model (chi2/dof {meta['adequacy']['chi2_dof']:.3f}; "
-        + "; ".join(meta["adequacy"]["summary"])
-        + ")"
+        f"fit {index}: the model {','.join(meta.model or ())} fails against "
+        f"the instrument noise model (chi2/dof {chi2:.3f}; " + "; ".join(meta.adequacy.summary) + ")"
     )
 
 
-def notices(index: int, res, meta: dict) -> list[tuple[str, str, str, dict]]:
+def notices(index: int, res, meta: FitMessage) -> tuple[list[tuple[str, str, str, dict]], FitMessage]:
     """What the fit of segment ``index`` says beyond its numbers, as ``(level, kind, message,
-    details)`` with level ``"event"`` or ``"warning"``: an FFT segment left out (copied to
-    ``meta["excluded"]``; an event for a gap or a gate, a warning for an outlier), no
+    details)`` with level ``"event"`` or ``"warning"``, and the meta with ``excluded``: an FFT
+    segment left out (copied to ``excluded``; an event for a gap or a gate, a warning for an outlier), no
     convergence, a model that fails against the instrument noise model."""
     out: list[tuple[str, str, str, dict]] = []
     excluded = res.extra.get("excluded")
     if excluded:
-        meta["excluded"] = excluded
+        meta = meta.with_fields({"excluded": excluded})
         kind = "segment-gap" if excluded.get("gap") else "segment-gated" if "gate" in excluded else "segment-excluded"
         level = "warning" if kind == "segment-excluded" else "event"
         out.append((level, kind, excluded_message(index, excluded), dict(excluded)))
@@ -141,17 +135,17 @@ def notices(index: int, res, meta: dict) -> list[tuple[str, str, str, dict]]:
                 {"iterations": int(res.iterations), "last_change_sigma": res.extra.get("last_change_sigma")},
             )
         )
-    adequacy = meta.get("adequacy")
+    adequacy = meta.adequacy
     if adequacy is not None:
         log.info(
-            "segment %d: model %s, chi2/dof against the instrument noise model %.3f%s",
+            "segment %d: model %s, chi2/dof against the instrument noise model %s%s",
             index,
-            ",".join(meta["model"]),
-            adequacy["chi2_dof"],
-            " (fails)" if adequacy["fails"] else "",
+            ",".join(meta.model or ()),
+            f"{adequacy.chi2_dof:.3f}" if adequacy.chi2_dof is not None else "nan",
+            " (fails)" if adequacy.fails else "",
         )
-        if adequacy["fails"]:
+        if adequacy.fails:
             out.append(
-                ("warning", "model-inadequate", inadequate_message(index, meta), {"chi2_dof": adequacy["chi2_dof"]})
+                ("warning", "model-inadequate", inadequate_message(index, meta), {"chi2_dof": adequacy.chi2_dof})
             )
-    return out
+    return out, meta

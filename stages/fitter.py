@@ -54,6 +54,7 @@ from dataclasses import replace
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from streamer.fit_record import FitMessage
 from streamer.memtrace import release_free_memory
 from streamer.messages import tdi_expect, tdi_of, telemetry_of
 from streamer.pipeline_stage import OrderedStage
@@ -442,22 +443,23 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
             model=self.effects,
         )
         if live is not None and live["adoption"]["adopted"]:
-            meta["model"] = live["model"]  # the model of this fit; the adopted one applies from the next segment
+            # the model of this fit; the adopted one applies from the next segment
+            meta = meta.with_fields({"model": live["model"]})
         arrays = {"coefficients": res.coefficients, "sigma": res.sigma, "covariance": res.covariance}
         if owners is not None:  # the rolling model: its 24 coefficients, the others and their parts
-            meta["names"] = list(td.names)
             arrays, more = rolling_outputs(res, td, owners, xyz)
-            meta.update(more)
+            meta = meta.with_fields({"names": list(td.names), **more})
         if window is not None:
-            if meta.get("model_update") == "rolling" and "coefficients" in window.get("arrays", {}):
-                meta["rolling"] = rolling_estimate(arrays)  # what the window refit replaces: for the trends
+            if meta.model_update == "rolling" and "coefficients" in window.get("arrays", {}):
+                # what the window refit replaces: for the trends
+                meta = meta.with_fields({"rolling": rolling_estimate(arrays)})
             arrays.update(window.pop("arrays", {}))
-            meta.update(window)
+            meta = meta.with_fields(window)
         if live is not None:
-            meta["diagnosis"] = live
+            meta = meta.with_fields({"diagnosis": live})
         stale = self.staleness(header.index, res)
         if stale is not None:
-            meta["stale"] = stale
+            meta = meta.with_fields({"stale": stale})
         summary = fit_summary(self.run_id, header.index, res, meta, arrays)
         self.log.info(
             "segment %d: fit over [%.0f, %.0f] s (%d FFT segments), chi2/dof %.3f",
@@ -467,11 +469,11 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
             res.n_segments,
             res.chi2_dof,
         )
-        self.record_notices(header.index, res, meta)
+        meta = self.record_notices(header.index, res, meta)
         out = Output(
             self.output_topic,
             arrays,
-            fields={"units": UNITS, "meta": to_jsonable(meta)},
+            fields={"units": UNITS, "meta": to_jsonable(meta.to_header())},
             summary=to_jsonable(summary),
             summary_schema="ttl.Fit",
             allow_nonfinite=True,
@@ -540,13 +542,16 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
             effects=others,
         )
 
-    def record_notices(self, index: int, res, meta: dict) -> None:
-        """The events and warnings of the fit of segment ``index`` (:func:`stages.fit_message.notices`)."""
-        for level, kind, message, details in notices(index, res, meta):
+    def record_notices(self, index: int, res, meta: FitMessage) -> FitMessage:
+        """The events and warnings of the fit of segment ``index`` (:func:`stages.fit_message.notices`);
+        returns the meta with the FFT segment left out (``excluded``)."""
+        said, meta = notices(index, res, meta)
+        for level, kind, message, details in said:
             if level == "event":
                 self.event(kind, index=index, message=message, **details)
             else:
                 self.warn(kind, message, index=index, **details)
+        return meta
 
 
 def main(argv=None) -> int:

@@ -88,6 +88,7 @@ from typing import TypeVar
 import numpy as np
 
 from streamer.codec import Expect
+from streamer.fit_record import FitMessage
 from streamer.keys import ERRORS, topic_pattern
 from streamer.pipeline_stage import PipelineStage
 from streamer.processes import stop_process
@@ -456,17 +457,18 @@ class Monitor(PipelineStage[MonitorOptions]):
 
     # ------------------------------------------------------------------ fits and trends
     def on_fit(self, header, arrays):
-        meta = header.meta
-        names = tuple(meta.get("names") or COEFFICIENT_NAMES)
+        meta = FitMessage.from_header(header.meta, f"fit {header.index}")
+        names = meta.names or COEFFICIENT_NAMES
         if names != COEFFICIENT_NAMES:
             raise ValueError(f"meta.names: expected the 24 canonical coefficient names, got {list(names)[:3]}...")
         C = arrays["coefficients"]
         S = arrays["sigma"]
-        t_start, t_stop = meta.get("t_start"), meta.get("t_stop")
+        t_start, t_stop = meta.t_start, meta.t_stop
         if not (isinstance(t_start, (int, float)) and isinstance(t_stop, (int, float)) and t_stop > t_start):
             raise ValueError(f"meta t_start/t_stop: the fitted window is needed, got {t_start!r}, {t_stop!r}")
         centre = 0.5 * (t_start + t_stop)
-        change, style = self.epochs.fit(header.index, meta.get("model"), centre, t_stop), None
+        model = list(meta.model) if meta.model is not None else None
+        change, style = self.epochs.fit(header.index, model, centre, t_stop), None
         # the model timeline: lanes, the change (who, what), left-out hours, before and after
         said = self.timeline.fit(header.index, meta, centre, change.t_break if change else None, t_stop)
         if change is not None:  # at the change's time (where the lanes switch)
@@ -482,11 +484,11 @@ class Monitor(PipelineStage[MonitorOptions]):
         # the fit and, in the same row, the truth averaged over its window (when known)
         views.fit_point(self.series, C, S, centre, self.truth.mean(t_start, t_stop), style)
         self.truth.add_fit(header.index, t_start, t_stop, C, S)
-        chi2 = meta.get("chi2_dof")
-        chi2 = float(chi2) if isinstance(chi2, (int, float)) and math.isfinite(chi2) else None
+        chi2 = meta.chi2_dof
+        chi2 = float(chi2) if chi2 is not None and math.isfinite(chi2) else None
         if chi2 is not None:
             self.series.log("adequacy/chi2_dof", chi2, centre)
-        if meta.get("converged") is False:  # the fitter records it in its MCAP too (warnings)
+        if meta.converged is False:  # the fitter records it in its MCAP too (warnings)
             self.text("alerts", f"fit {header.index}: did not converge", "WARN")
         self.draw_model(header.index, meta)
 
@@ -495,7 +497,7 @@ class Monitor(PipelineStage[MonitorOptions]):
         if not near:
             self._trend_t.append(float(t_stop))
             C_t, S_t = trend_estimate(meta, C, S)
-            alerts = self.trends.add(header.index, float(t_start), float(t_stop), C_t, S_t, meta.get("model"))
+            alerts = self.trends.add(header.index, float(t_start), float(t_stop), C_t, S_t, model)
         else:
             alerts = []
         self._time(t_stop, header.index)
@@ -511,27 +513,27 @@ class Monitor(PipelineStage[MonitorOptions]):
         self._last_fit = {"index": header.index, "chi2_dof": chi2, "t_start": t_start, "t_stop": t_stop}
         return ()
 
-    def draw_model(self, index: int, meta: dict) -> None:
+    def draw_model(self, index: int, meta: FitMessage) -> None:
         """Adequacy against the instrument noise model, model changes and candidates of a fit."""
-        adequacy = meta.get("adequacy")
-        if isinstance(adequacy, dict) and isinstance(adequacy.get("chi2_dof"), (int, float)):
-            self.series.log("adequacy/instrument/chi2_dof", float(adequacy["chi2_dof"]), self._now)
-            bands = [b for b in adequacy.get("bands") or () if isinstance(b, dict)]
+        adequacy = meta.adequacy
+        if adequacy is not None and adequacy.chi2_dof is not None:
+            self.series.log("adequacy/instrument/chi2_dof", float(adequacy.chi2_dof), self._now)
+            bands = [b.to_json() for b in adequacy.bands]
             views.band_series(self.series, bands, self._now)
             labels = [views.band_label(b) for b in bands]
             if labels and labels != self._band_labels:
                 self._band_labels = labels
                 self._summary()
-            if adequacy.get("fails"):
+            if adequacy.fails:
                 self.text(
                     "model/log",
-                    f"fit {index}: the model fails against the instrument noise model: "
-                    + "; ".join(map(str, adequacy.get("summary") or ())),
+                    f"fit {index}: the model fails against the instrument noise model: " + "; ".join(adequacy.summary),
                     "WARN",
                 )
-        views.diagnosis_document(self.rec, index, meta.get("diagnosis"))  # the live diagnosis, when there is one
-        views.model_change(self.rec, index, meta.get("model_change"))
-        views.candidate_ranking(self.rec, index, meta.get("candidates"))
+        # the live diagnosis, when there is one
+        views.diagnosis_document(self.rec, index, dict(meta.diagnosis) if meta.diagnosis is not None else None)
+        views.model_change(self.rec, index, dict(meta.model_change) if meta.model_change is not None else None)
+        views.candidate_ranking(self.rec, index, [dict(c) for c in meta.candidates] if meta.candidates else None)
 
     def status(self, index: int) -> Output:
         """The ``monitor/<i>`` message of segment ``i`` (:mod:`stages.monitor_status`): trend

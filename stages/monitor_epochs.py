@@ -23,6 +23,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from streamer.fit_record import FitMessage
 from streamer.model_timeline import model_delta
 from ttlcore.diagnose.trends import model_key
 
@@ -97,18 +98,15 @@ class ModelEpochs:
         return Change(index, couplings, self.number, t_break, message)
 
 
-def trend_estimate(meta: dict, coefficients: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def trend_estimate(meta: FitMessage, coefficients: np.ndarray, sigma: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The coefficients and sigmas [m/rad] the trend tests follow for a fit: the rolling fit's
     (meta ``rolling``, :func:`stages.fit_message.rolling_estimate`) when the published fit is a
     window refit that replaced it, so that the series holds one estimator (the daily switch
     between the two read as a step); the published ones otherwise."""
-    rolling = meta.get("rolling")
-    if isinstance(rolling, dict):
-        try:
-            c = np.asarray(rolling["coefficients"], dtype=float)
-            s = np.asarray(rolling["sigma"], dtype=float)
-        except (KeyError, TypeError, ValueError):
-            return coefficients, sigma
+    rolling = meta.rolling
+    if rolling is not None:
+        c = np.asarray(rolling.coefficients, dtype=float)
+        s = np.asarray(rolling.sigma, dtype=float)
         if c.shape == coefficients.shape and s.shape == sigma.shape:
             return c, s
     return coefficients, sigma

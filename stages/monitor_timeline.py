@@ -43,6 +43,7 @@ from typing import Literal
 import numpy as np
 import rerun as rr
 
+from streamer.fit_record import FitMessage
 from streamer.model_timeline import SpanMerger, change_text, excluded_kind, model_delta
 from ttlcore.diagnose.trends import model_key
 
@@ -121,12 +122,12 @@ class ModelTimeline:
             self.latest = (float(t), int(index))
 
     # ------------------------------------------------------------------ fits
-    def fit(self, index: int, meta: dict, centre: float, t_break: float | None, t_stop: float) -> str | None:
+    def fit(self, index: int, meta: FitMessage, centre: float, t_break: float | None, t_stop: float) -> str | None:
         """Fit ``index`` (its meta, window centre and end [s]; ``t_break`` from
         :class:`stages.monitor_epochs.ModelEpochs` when its model changed): the lanes, a change
         of model, the FFT segment it left out, its adequacy and diagnosis.  Returns the
         change's who-and-why text (for the model log line) when the model changed."""
-        model = meta.get("model")
+        model = meta.model
         said = None
         self.latest = max(self.latest, (float(t_stop), int(index)))
         late = self.centre is not None and centre <= self.centre
@@ -136,11 +137,10 @@ class ModelTimeline:
             self.centre = centre
             self.at(centre, index)
             self._lane_points(centre)
-        self._excluded(index, meta.get("excluded"))
+        self._excluded(index, dict(meta.excluded) if meta.excluded is not None else None)
         self._adequacy(index, meta, centre)
-        diagnosis = meta.get("diagnosis")
-        adoption = diagnosis.get("adoption") if isinstance(diagnosis, dict) else None
-        if isinstance(adoption, dict) and adoption.get("adopted") is True:
+        adoption = meta.adopted
+        if adoption is not None:
             self.adoption = {"index": index, "reason": adoption.get("reason")}
         self.at(t_stop, index)
         return said
@@ -171,12 +171,8 @@ class ModelTimeline:
             "residual_after": None,
             "bands": None,
         }
-        mc = meta.get("model_change")
-        if (
-            isinstance(mc, dict)
-            and isinstance(mc.get("bands_before"), list)
-            and isinstance(mc.get("bands_after"), list)
-        ):
+        mc = meta.model_change
+        if mc is not None and isinstance(mc.get("bands_before"), list) and isinstance(mc.get("bands_after"), list):
             change["bands"] = (self._labels(meta, mc), mc["bands_before"], mc["bands_after"], "the window refitted")
             change["chi2"] = (mc.get("chi2_dof_before"), mc.get("chi2_dof_after"))
         elif self.bands is not None:
@@ -215,10 +211,10 @@ class ModelTimeline:
             self.active.add(spec)
             self._lane_point(lane, t, style=True)
 
-    def _labels(self, meta, mc) -> list[str]:
-        bands = (meta.get("adequacy") or {}).get("bands") if isinstance(meta.get("adequacy"), dict) else None
-        if isinstance(bands, list) and len(bands) == len(mc["bands_after"]):
-            return [views.band_label(b) for b in bands if isinstance(b, dict)]
+    def _labels(self, meta: FitMessage, mc) -> list[str]:
+        bands = [b.to_json() for b in meta.adequacy.bands] if meta.adequacy is not None else None
+        if bands is not None and len(bands) == len(mc["bands_after"]):
+            return [views.band_label(b) for b in bands]
         edges = mc.get("band_edges")
         if isinstance(edges, list) and len(edges) == len(mc["bands_after"]) + 1:
             return [f"{a:.3g}-{b:.3g} Hz" for a, b in zip(edges[:-1], edges[1:])]
@@ -300,12 +296,11 @@ class ModelTimeline:
         self._document()
 
     # ------------------------------------------------------------------ before and after
-    def _adequacy(self, index: int, meta: dict, centre: float) -> None:
-        adequacy = meta.get("adequacy")
-        bands = adequacy.get("bands") if isinstance(adequacy, dict) else None
-        if not isinstance(bands, list) or not bands:
+    def _adequacy(self, index: int, meta: FitMessage, centre: float) -> None:
+        bands = [b.to_json() for b in meta.adequacy.bands] if meta.adequacy is not None else []
+        if not bands:
             return
-        values = [b.get("chi2_dof") if isinstance(b, dict) else None for b in bands]
+        values = [b["chi2_dof"] for b in bands]
         if not all(isinstance(v, (int, float)) for v in values):
             return
         labels = [views.band_label(b) for b in bands]
@@ -317,7 +312,7 @@ class ModelTimeline:
                 self._band_markers(change)
                 self.at(centre, index)
                 self._document()
-        if model_key(meta.get("model")) in (None, model_key(self.model)):
+        if model_key(list(meta.model) if meta.model is not None else None) in (None, model_key(self.model)):
             self.bands = (index, labels, values)
 
     def _band_markers(self, change: dict) -> None:

@@ -37,6 +37,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from streamer.codec import Expect
+from streamer.fit_record import FitMessage
 from streamer.messages import P, tdi_expect, tdi_of
 from streamer.pipeline_stage import PipelineStage
 from streamer.rangeset import RangeSet
@@ -161,31 +162,26 @@ class Subtractor(PipelineStage[SubtractorOptions]):
     def handle(self, header, arrays):
         self.note_meta(header.meta)
         if header.topic == "fit":
-            names = tuple(header.meta.get("names") or COEFFICIENT_NAMES)
+            fit = FitMessage.from_header(header.meta, f"fit {header.index}")
+            names = fit.names or COEFFICIENT_NAMES
             if len(names) != P:
                 raise ValueError(f"meta.names has {len(names)} names for {P} coefficients")
             if not np.isfinite(arrays["coefficients"]).all():
                 raise ValueError("arrays.coefficients: not all finite")
-            parts = header.meta.get("model_parts") or []
+            parts = list(fit.model_parts or ())
             x = arrays.get("model_parts")
             if parts or x is not None:
-                if (
-                    x is None
-                    or not isinstance(parts, list)
-                    or not all(isinstance(p, str) for p in parts)
-                    or x.ndim != 3
-                    or x.shape[:2] != (len(parts), 3)
-                ):
+                if x is None or x.ndim != 3 or x.shape[:2] != (len(parts), 3):
                     raise ValueError(
                         f"arrays.model_parts: expected (k, 3, n) with meta.model_parts naming k effects, "
                         f"got {None if x is None else x.shape} for {parts!r}"
                     )
             self.fits[header.index] = {
                 "coefficients": dict(zip(names, map(float, arrays["coefficients"]))),
-                "t_start": header.meta.get("t_start"),
-                "t_stop": header.meta.get("t_stop"),
+                "t_start": fit.t_start,
+                "t_stop": fit.t_stop,
                 "parts": dict(zip(parts, x)) if parts else {},
-                "stale": header.meta.get("stale"),  # a fit that took in no new data (stages/fitter.py)
+                "stale": fit.stale,  # a fit that took in no new data (stages/fitter.py)
             }
         else:
             if header.index in self.done:

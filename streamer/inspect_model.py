@@ -13,6 +13,7 @@ from ttlcore.diagnose.trends import TrendSettings, trend_estimates
 from ttlcore.estimate.monitoring import FileTruth
 from ttlcore.estimate.pulls import pull_summary
 
+from .fit_record import FitMessage
 from .inspect_records import json_object
 from .recorder import RecordedSegment, Recording
 
@@ -57,14 +58,14 @@ def _summary_fit(d: dict) -> dict:
 
 def _segment_fit(m: RecordedSegment) -> dict:
     """The fit of a recorded ``fit`` segment (with its coefficients)."""
-    a, meta = m.arrays, m.header.meta
+    a, meta = m.arrays, FitMessage.from_header(m.header.meta, f"fit {m.header.index}")
     return {
         "index": m.header.index,
-        "names": list(meta.get("names") or []),
-        "t_start": meta.get("t_start"),
-        "t_stop": meta.get("t_stop"),
-        "chi2_dof": meta.get("chi2_dof"),
-        "converged": meta.get("converged"),
+        "names": list(meta.names or []),
+        "t_start": meta.t_start,
+        "t_stop": meta.t_stop,
+        "chi2_dof": meta.chi2_dof,
+        "converged": meta.converged,
         "coefficients": a["coefficients"].tolist(),
         "sigma": a["sigma"].tolist() if "sigma" in a else None,
         "covariance": a["covariance"].tolist() if "covariance" in a else None,

@@ -24,6 +24,7 @@ a change of the transients ``glitch`` and ``gate`` only does not,
 
 from __future__ import annotations
 
+from .fit_record import FitMessage
 from .inspect_records import json_object
 from .keys import to_ranges
 from .model_timeline import SpanMerger, model_delta
@@ -41,9 +42,9 @@ def _fit_models(recs: list[Recording]) -> dict[int, list]:
                 models[d["index"]] = list(d["model"])
         if not summaries:
             for m in rec.segments("fit"):
-                meta = m.header.meta if isinstance(m.header.meta, dict) else {}
-                if isinstance(meta.get("model"), list):
-                    models[m.header.index] = list(meta["model"])
+                model = FitMessage.from_header(m.header.meta, f"fit {m.header.index}").model
+                if model is not None:
+                    models[m.header.index] = list(model)
     return models
 
 

@@ -272,8 +272,9 @@ def _drive_monitor(driver, procs, tmp_path) -> list:
         driver.telemetry(i)
         driver.tdi_and_residual(i)
     for k in range(10, N_FITS):
-        # the live diagnosis in a fit's meta: drawn when it has a text, ignored when malformed
-        extra = {"diagnosis": DIAGNOSIS} if k == N_FITS - 1 else {"diagnosis": "not a dict"} if k == 30 else {}
+        # the live diagnosis in a fit's meta: drawn when it has a text (a malformed one is a
+        # MessageError at the boundary: tests/streamer/test_fit_record.py)
+        extra = {"diagnosis": DIAGNOSIS} if k == N_FITS - 1 else {}
         driver.fit(k, **extra)
         time.sleep(0.01)
     # malformed messages: rejected or failed, reported, and the monitor goes on
@@ -739,14 +740,17 @@ def test_model_epochs_as_drawn():
 
 def test_the_trends_follow_the_rolling_estimate_through_a_window_refit():
     # a window refit that replaced the rolling model's estimate carries it (meta rolling): the
-    # trends take it, so that the daily switch of estimator is no step; a malformed one is
-    # ignored (the published estimate stands)
+    # trends take it, so that the daily switch of estimator is no step; one of another shape
+    # is ignored (the published estimate stands), a malformed one is refused at the boundary
     from stages.monitor_epochs import trend_estimate
+    from streamer.fit_record import FitMessage, MessageError
 
     C, S = np.full(24, 2.3e-3), np.full(24, 1e-5)
     rolling = {"coefficients": [2.28e-3] * 24, "sigma": [9e-6] * 24}
-    c, s = trend_estimate({"rolling": rolling}, C, S)
+    c, s = trend_estimate(FitMessage.from_header({"rolling": rolling}), C, S)
     assert np.all(c == 2.28e-3) and np.all(s == 9e-6)
-    for bad in ({"rolling": {"coefficients": [1.0] * 3, "sigma": [1.0] * 3}}, {"rolling": {"sigma": 1}}, {}):
-        c, s = trend_estimate(bad, C, S)
+    for bad in ({"rolling": {"coefficients": [1.0] * 3, "sigma": [1.0] * 3}}, {}):
+        c, s = trend_estimate(FitMessage.from_header(bad), C, S)
         assert c is C and s is S
+    with pytest.raises(MessageError, match="'rolling'"):
+        FitMessage.from_header({"rolling": {"sigma": 1}}, "fit 3")

@@ -242,6 +242,7 @@ def test_timeline_lanes_and_spans_are_broken_between_spans():
     ``rr.Clear`` just before it), a span that comes late is closed after it too, and a gap
     segment without a plan takes its span from the latest segment drawn."""
     from stages.monitor_timeline import EPS, ModelTimeline
+    from streamer.fit_record import FitMessage
 
     class Rec:
         def __init__(self):
@@ -254,7 +255,8 @@ def test_timeline_lanes_and_spans_are_broken_between_spans():
     tl = ModelTimeline(rec, lambda t, i: setattr(rec, "t", t), (3e-3, 0.9))
 
     def fit(k, model, **meta):
-        tl.fit(k, {"model": model, **meta}, k * 100.0, None if k == 0 else k * 100.0 - 50.0, k * 100.0 + 50.0)
+        fm = FitMessage.from_header({"model": model, **meta})
+        tl.fit(k, fm, k * 100.0, None if k == 0 else k * 100.0 - 50.0, k * 100.0 + 50.0)
 
     fit(0, ["linear-ttl", "drift"])
     fit(1, ["linear-ttl"])

@@ -1,0 +1,332 @@
+"""The fit message's meta as a value: :class:`FitMessage` (schema :data:`SCHEMA`).
+
+The fitter (``stages/fitter.py``, with ``stages/fit_message.py``, ``window_refit.py``,
+``rolling_model.py`` and ``live_diagnosis.py``) builds one :class:`FitMessage` per segment and
+puts :meth:`FitMessage.to_header` on the wire as the ``meta`` of ``ttl/<run>/fit/<i>``; every
+reader (the subtractor, the monitor, ``ttl inspect``, ``ttl refit``/``reprocess``, the planner)
+turns the ``meta`` it receives into a :class:`FitMessage` with :meth:`FitMessage.from_header`
+and reads attributes.
+
+Schema rule: :data:`SCHEMA` is the ``"schema"`` field of the header.  A header at the current
+schema is read strictly: a missing required field, an unknown field or a field of the wrong
+type is a :class:`MessageError` naming the message and the field.  A header without
+``"schema"`` (written before the field existed: the recordings on disk) is read as schema 0:
+the same fields, all optional (absent ones are None), unknown fields dropped (logged at debug
+level), types still checked.  Adding a field: add it to :class:`FitMessage` (optional, default
+None, and to :data:`_FIELDS` with its type) and bump :data:`SCHEMA` when a reader of the older
+schema would misread the new header; removing or renaming one always bumps it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from typing import Any
+
+from .record_schemas import to_jsonable
+
+log = logging.getLogger(__name__)
+
+#: The schema version written in the ``"schema"`` field of a fit message's meta.
+SCHEMA = 1
+
+#: Meta of the fit message that the recorded summary (``fit/summary``) repeats, when present.
+SUMMARY_META = (
+    "model",
+    "adequacy",
+    "model_change",
+    "candidates",
+    "extra_parameters",
+    "model_parts",
+    "diagnosis",
+    "model_update",
+    "rolling",
+)
+
+
+class MessageError(ValueError):
+    """A message's meta that is not what its schema says: names the message and the field."""
+
+    def __init__(self, message: str, field_name: str, what: str):
+        self.message = message
+        self.field = field_name
+        super().__init__(f"{message}: meta field {field_name!r}: {what}")
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool)
+
+
+def _check(where: str, name: str, kind: str, v) -> None:
+    """Raise a :class:`MessageError` when ``v`` is not of ``kind`` (None is checked by the caller)."""
+    ok = {
+        "number": _is_number(v),
+        "int": isinstance(v, int) and not isinstance(v, bool),
+        "bool": isinstance(v, bool),
+        "str": isinstance(v, str),
+        "strs": isinstance(v, (list, tuple)) and all(isinstance(x, str) for x in v),
+        "numbers": isinstance(v, (list, tuple)) and all(_is_number(x) or x is None for x in v),
+        "dict": isinstance(v, Mapping),
+        "list": isinstance(v, (list, tuple)),
+    }[kind]
+    if not ok:
+        raise MessageError(where, name, f"expected {kind}, got {type(v).__name__} {str(v)[:60]!r}")
+
+
+@dataclass(frozen=True)
+class AdequacyBand:
+    """The adequacy of a fit in one frequency band [Hz]."""
+
+    f_lo: float
+    f_hi: float
+    chi2_dof: float | None
+    p_value: float | None
+    fails: bool
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+@dataclass(frozen=True)
+class Adequacy:
+    """The fit's model against the instrument noise model (meta ``adequacy``)."""
+
+    chi2_dof: float | None
+    fails: bool
+    summary: tuple[str, ...] = ()
+    bands: tuple[AdequacyBand, ...] = ()
+    gates: tuple[tuple[float, float], ...] | None = None
+    noise_model: str | None = None
+
+    def to_json(self) -> dict:
+        out: dict[str, Any] = {}
+        if self.noise_model is not None:
+            out["noise_model"] = self.noise_model
+        out.update(chi2_dof=self.chi2_dof, fails=self.fails, summary=list(self.summary))
+        out["bands"] = [b.to_json() for b in self.bands]
+        if self.gates is not None:
+            out["gates"] = [list(g) for g in self.gates]
+        return out
+
+    @classmethod
+    def from_json(cls, obj, where: str) -> Adequacy:
+        name = "adequacy"
+        _check(where, name, "dict", obj)
+        unknown = set(obj) - {"noise_model", "chi2_dof", "fails", "summary", "bands", "gates"}
+        if unknown:
+            raise MessageError(where, name, f"unknown fields {sorted(unknown)}")
+        for key in ("chi2_dof", "fails"):
+            if key not in obj:
+                raise MessageError(where, f"{name}.{key}", "missing")
+        bands = []
+        for i, b in enumerate(obj.get("bands") or ()):
+            w = f"{name}.bands[{i}]"
+            _check(where, w, "dict", b)
+            try:
+                bands.append(AdequacyBand(**b))
+            except TypeError as exc:
+                raise MessageError(where, w, str(exc)) from None
+        gates = obj.get("gates")
+        if obj["chi2_dof"] is not None:
+            _check(where, f"{name}.chi2_dof", "number", obj["chi2_dof"])
+        _check(where, f"{name}.fails", "bool", obj["fails"])
+        _check(where, f"{name}.summary", "strs", obj.get("summary") or ())
+        return cls(
+            chi2_dof=obj["chi2_dof"],
+            fails=obj["fails"],
+            summary=tuple(obj.get("summary") or ()),
+            bands=tuple(bands),
+            gates=None if gates is None else tuple((float(a), float(b)) for a, b in gates),
+            noise_model=obj.get("noise_model"),
+        )
+
+
+@dataclass(frozen=True)
+class RollingEstimate:
+    """The rolling fit's coefficients and sigmas [m/rad] of a segment whose published fit is
+    the window refit's (meta ``rolling``): what the monitor's trends follow."""
+
+    coefficients: tuple[float, ...]
+    sigma: tuple[float, ...]
+
+    def to_json(self) -> dict:
+        return {"coefficients": list(self.coefficients), "sigma": list(self.sigma)}
+
+    @classmethod
+    def from_json(cls, obj, where: str) -> RollingEstimate:
+        _check(where, "rolling", "dict", obj)
+        if set(obj) != {"coefficients", "sigma"}:
+            raise MessageError(where, "rolling", f"expected coefficients and sigma, got {sorted(obj)}")
+        _check(where, "rolling.coefficients", "numbers", obj["coefficients"])
+        _check(where, "rolling.sigma", "numbers", obj["sigma"])
+        return cls(tuple(obj["coefficients"]), tuple(obj["sigma"]))
+
+
+#: The fields of :class:`FitMessage` on the wire: (type, required at the current schema).
+_FIELDS: dict[str, tuple[str, bool]] = {
+    "names": ("strs", True),
+    "chi2_dof": ("number", True),
+    "t_start": ("number", True),
+    "t_stop": ("number", True),
+    "segments": ("int", True),
+    "band": ("numbers", True),
+    "converged": ("bool", True),
+    "chi2": ("number", True),
+    "dof": ("number", True),
+    "iterations": ("int", True),
+    "method": ("str", True),
+    "window_duration": ("number", True),
+    "fft_segment": ("number", True),
+    "segments_total": ("int", True),
+    "model": ("strs", True),
+    "extra_parameters": ("dict", False),
+    "model_parts": ("strs", False),
+    "model_update": ("str", False),
+    "rolling": ("dict", False),
+    "adequacy": ("dict", False),
+    "window": ("dict", False),
+    "model_change": ("dict", False),
+    "candidates": ("list", False),
+    "diagnosis": ("dict", False),
+    "stale": ("dict", False),
+    "excluded": ("dict", False),
+    "recorded": ("dict", False),
+}
+
+
+@dataclass(frozen=True)
+class FitMessage:
+    """The meta of a fit message ``ttl/<run>/fit/<i>`` (see the module's docstring).
+
+    The required fields are the rolling fit's (names, quality, window, settings, model in
+    force); the optional ones (None when absent) are what the rolling model (``extra_parameters``,
+    ``model_parts``, ``model_update``), the window refit (``adequacy``, ``window``,
+    ``model_change``, ``candidates``, ``rolling``), the live diagnosis (``diagnosis``), the
+    staleness check (``stale``), the left-out FFT segment (``excluded``) and the recorder
+    (``recorded``) add.  Nested values a reader needs the fields of are values
+    (:class:`Adequacy`, :class:`RollingEstimate`); the others stay JSON (dicts and lists).
+    """
+
+    names: tuple[str, ...] | None = None
+    chi2_dof: float | None = None
+    t_start: float | None = None
+    t_stop: float | None = None
+    segments: int | None = None
+    band: tuple[float, ...] | None = None
+    converged: bool | None = None
+    chi2: float | None = None
+    dof: float | None = None
+    iterations: int | None = None
+    method: str | None = None
+    window_duration: float | None = None
+    fft_segment: float | None = None
+    segments_total: int | None = None
+    model: tuple[str, ...] | None = None
+    extra_parameters: Mapping[str, Any] | None = None
+    model_parts: tuple[str, ...] | None = None
+    model_update: str | None = None
+    rolling: RollingEstimate | None = None
+    adequacy: Adequacy | None = None
+    window: Mapping[str, Any] | None = None
+    model_change: Mapping[str, Any] | None = None
+    candidates: tuple[Mapping[str, Any], ...] | None = None
+    diagnosis: Mapping[str, Any] | None = None
+    stale: Mapping[str, Any] | None = None
+    excluded: Mapping[str, Any] | None = None
+    recorded: Mapping[str, Any] | None = None
+    schema: int = field(default=SCHEMA, compare=False)
+
+    # ------------------------------------------------------------------ reading
+    @classmethod
+    def from_header(cls, meta, message: str = "fit message") -> FitMessage:
+        """The value of a fit message's ``meta`` (``message`` names it in errors: its key or
+        index).  Raises :class:`MessageError` on a field missing, unknown or of the wrong type
+        (a header without ``schema`` is read leniently, see the module's docstring)."""
+        if not isinstance(meta, Mapping):
+            raise MessageError(message, "meta", f"expected a mapping, got {type(meta).__name__}")
+        schema = meta.get("schema", 0)
+        if not isinstance(schema, int) or isinstance(schema, bool) or not 0 <= schema <= SCHEMA:
+            raise MessageError(message, "schema", f"this reader knows schemas 0 to {SCHEMA}, got {schema!r}")
+        strict = schema >= 1
+        unknown = sorted(set(meta) - set(_FIELDS) - {"schema"})
+        if unknown and strict:
+            raise MessageError(message, unknown[0], "unknown field" + (f" (and {unknown[1:]})" if unknown[1:] else ""))
+        if unknown:
+            log.debug("%s: schema-0 meta fields not read: %s", message, unknown)
+        values: dict[str, Any] = {"schema": schema}
+        for name, (kind, required) in _FIELDS.items():
+            if name not in meta:
+                if strict and required:
+                    raise MessageError(message, name, "missing")
+                continue
+            v = meta[name]
+            if v is None:
+                continue
+            _check(message, name, kind, v)
+            values[name] = _value(name, v, message)
+        return cls(**values)
+
+    # ------------------------------------------------------------------ writing
+    def to_header(self) -> dict:
+        """The ``meta`` put on the wire: the fields in the order the fitter writes them (None
+        for an absent required field, optional ones left out when None), and ``schema``."""
+        out: dict[str, Any] = {}
+        for name, (_, required) in _FIELDS.items():
+            v = getattr(self, name)
+            if v is None and not required:
+                continue
+            out[name] = _json(v)
+        out["schema"] = SCHEMA
+        return out
+
+    def with_fields(self, fields: Mapping[str, Any], message: str = "fit message") -> FitMessage:
+        """A copy with the wire ``fields`` (as a producer builds them: JSON values) set,
+        checked as :meth:`from_header` checks them."""
+        unknown = sorted(set(fields) - set(_FIELDS))
+        if unknown:
+            raise MessageError(message, unknown[0], "unknown field")
+        values = {}
+        for name, v in fields.items():
+            v = to_jsonable(v)
+            if v is not None:
+                _check(message, name, _FIELDS[name][0], v)
+                v = _value(name, v, message)
+            values[name] = v
+        return dataclasses.replace(self, **values)
+
+    def summary_fields(self) -> dict:
+        """The meta the recorded summary repeats (:data:`SUMMARY_META`), as JSON."""
+        return {k: _json(getattr(self, k)) for k in SUMMARY_META if getattr(self, k) is not None}
+
+    # ------------------------------------------------------------------ derived
+    @property
+    def adopted(self) -> dict | None:
+        """The live diagnosis' adoption (``diagnosis.adoption``) when it adopted a model."""
+        adoption = self.diagnosis.get("adoption") if self.diagnosis is not None else None
+        return dict(adoption) if isinstance(adoption, Mapping) and adoption.get("adopted") is True else None
+
+
+def _value(name: str, v, message: str):
+    """A wire value as the attribute holds it."""
+    if name == "adequacy":
+        return Adequacy.from_json(v, message)
+    if name == "rolling":
+        return RollingEstimate.from_json(v, message)
+    if name in ("names", "model", "model_parts", "band"):
+        return tuple(v)
+    if name == "candidates":
+        for i, c in enumerate(v):
+            _check(message, f"candidates[{i}]", "dict", c)
+        return tuple(v)
+    return v
+
+
+def _json(v):
+    """An attribute's value on the wire."""
+    if isinstance(v, (Adequacy, RollingEstimate)):
+        return v.to_json()
+    if isinstance(v, tuple):
+        return [_json(x) for x in v]
+    return v

@@ -1,0 +1,107 @@
+"""The fit message's meta as a value (streamer/fit_record.py): round trip, the errors at the
+boundary, and a header as the fitter wrote it before the schema field (recordings on disk)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+
+from streamer.fit_record import SCHEMA, Adequacy, FitMessage, MessageError, RollingEstimate
+
+# the meta of a fit message as stages/fitter.py put it on the wire before ``schema`` (a window
+# refit of the rolling model, the live diagnosis, an FFT segment left out): what a recording
+# already on disk holds
+OLD = {
+    "names": ["a", "b"],
+    "chi2_dof": 1.02,
+    "t_start": 0.0,
+    "t_stop": 86400.0,
+    "segments": 23,
+    "band": [0.003, 0.9],
+    "converged": True,
+    "chi2": 1020.0,
+    "dof": 1000,
+    "iterations": 3,
+    "method": "gls",
+    "window_duration": 86400.0,
+    "fft_segment": 3600.0,
+    "segments_total": 48,
+    "model": ["linear-ttl", "drift"],
+    "extra_parameters": {"drift": [1e-9, 1e-10]},
+    "model_parts": ["drift"],
+    "model_update": "window refit",
+    "rolling": {"coefficients": [1.0, 2.0], "sigma": [0.1, 0.2]},
+    "adequacy": {
+        "noise_model": "instrument",
+        "chi2_dof": 1.1,
+        "fails": False,
+        "summary": [],
+        "bands": [{"f_lo": 0.003, "f_hi": 0.01, "chi2_dof": 1.1, "p_value": 0.2, "fails": False}],
+        "gates": [[10.0, 20.0]],
+    },
+    "window": {"first": 0, "last": 23},
+    "model_change": {"before": ["linear-ttl"], "after": ["linear-ttl", "drift"], "bands_before": [2.0]},
+    "candidates": [{"effect": "step", "spec": "step", "delta_chi2": 3.0}],
+    "diagnosis": {"adoption": {"adopted": True, "reason": "better"}},
+    "stale": {"since": 3, "no_data": True},
+    "excluded": {"t_start": 0.0, "t_stop": 3600.0, "gap": True},
+}
+
+
+def test_an_old_header_without_schema_is_read_and_written_back_with_it():
+    m = FitMessage.from_header(json.loads(json.dumps(OLD)))
+    assert m.schema == 0
+    assert m.names == ("a", "b") and m.model == ("linear-ttl", "drift") and m.segments_total == 48
+    assert isinstance(m.adequacy, Adequacy) and m.adequacy.bands[0].p_value == 0.2
+    assert m.adequacy.gates == ((10.0, 20.0),)
+    assert m.rolling == RollingEstimate((1.0, 2.0), (0.1, 0.2))
+    assert m.adopted == {"adopted": True, "reason": "better"}
+    header = m.to_header()
+    assert header == {**OLD, "schema": SCHEMA}  # the same fields and values, and the schema
+    assert FitMessage.from_header(header) == m
+
+
+def test_an_old_header_may_lack_fields_and_hold_ones_no_longer_read():
+    m = FitMessage.from_header({"names": ["a"], "t_start": 0.0, "t_stop": 1.0, "retired": 3})
+    assert m.model is None and m.adequacy is None and m.t_stop == 1.0
+
+
+def test_a_current_header_is_read_strictly():
+    header = {**OLD, "schema": SCHEMA}
+    assert FitMessage.from_header(header).to_header() == header
+    missing = dict(header)
+    del missing["fft_segment"]
+    with pytest.raises(MessageError, match=r"fit 7: meta field 'fft_segment': missing"):
+        FitMessage.from_header(missing, "fit 7")
+    with pytest.raises(MessageError, match=r"fit 7: meta field 'retired': unknown field"):
+        FitMessage.from_header({**header, "retired": 1}, "fit 7")
+    with pytest.raises(MessageError, match="knows schemas"):
+        FitMessage.from_header({**header, "schema": SCHEMA + 1}, "fit 7")
+
+
+@pytest.mark.parametrize(
+    ("field", "value", "where"),
+    [
+        ("names", "a", "'names'"),
+        ("converged", 1, "'converged'"),
+        ("segments", 2.5, "'segments'"),
+        ("t_stop", "late", "'t_stop'"),
+        ("adequacy", {"chi2_dof": 1.0}, "'adequacy.fails'"),
+        ("adequacy", {"chi2_dof": 1.0, "fails": False, "bands": [{"f_lo": 1}]}, r"'adequacy.bands\[0\]'"),
+        ("rolling", {"coefficients": [1.0]}, "'rolling'"),
+        ("candidates", [1], r"'candidates\[0\]'"),
+    ],
+)
+def test_a_field_of_the_wrong_type_is_an_error_naming_it(field, value, where):
+    for header in (OLD, {**OLD, "schema": SCHEMA}):
+        with pytest.raises(MessageError, match=f"fit 2: meta field {where}"):
+            FitMessage.from_header({**header, field: value}, "fit 2")
+
+
+def test_a_producer_sets_fields_checked_as_the_reader_checks_them():
+    m = FitMessage().with_fields({k: v for k, v in OLD.items() if k in ("names", "model")})
+    assert m.names == ("a", "b")
+    with pytest.raises(MessageError, match="'bogus': unknown field"):
+        m.with_fields({"bogus": 1})
+    assert "model" in m.summary_fields() and "names" not in m.summary_fields()
