@@ -288,9 +288,10 @@ def gap_of(t_start: float, t_stop: float, gaps, hop: float) -> tuple[float, floa
 
 def classified_events(data, resid: np.ndarray, tf: TimeFrequencyMap, events, gaps, alpha: float) -> list[dict]:
     """The report entries of the map's ``events`` (loudest first): each with its coherence
-    with the witnesses, the run of missing data it overlaps (its ramps included), T's expected share, its class
-    and evidence (:func:`ttlcore.diagnose.event_class.classify`); those that last to the
-    data's end are onsets (:func:`ttlcore.diagnose.onsets.reclassify_onsets`)."""
+    with the witnesses, the run of missing data it overlaps (its ramps included,
+    :func:`gap_of`), T's expected share, its class and evidence
+    (:func:`ttlcore.diagnose.event_class.classify`); those that last to the data's end are
+    onsets (:func:`ttlcore.diagnose.onsets.reclassify_onsets`)."""
     grid = data.grid
     psd = np.real(np.einsum("mii->mi", data.noise.csd))
     keep = kept_like(grid.f, 1.0 / grid.seg_duration, 1.0 / tf.duration)

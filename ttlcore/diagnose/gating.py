@@ -118,7 +118,7 @@ def gated_data(data: WhitenedData, gates: Iterable[Gate], gaps: Iterable[tuple[f
         wg2 = float(np.sum((w * g[s0 : s0 + grid.L]) ** 2))
         # against the whole taper, not the samples the data hold: a segment inside a gap
         # holds none, and 0 >= 0.6 x 0 kept it (a blind week's window over a 7-h gap: a
-        # segment of zeros divided by 1e-150 read chi2/dof 16080 and advised two glitches)
+        # segment of zeros divided by 1e-150 read chi2/dof 16080)
         keep.append(wg2 >= MIN_KEPT * whole)
         # the spectra are normalised by the window's power over the samples kept
         # (``segment_fft`` of ``win * mask``, the span out of ``mask``): only the ramps'
