@@ -33,7 +33,10 @@ machine may take minutes; a stage that is skipped or not started blocks nothing)
 segment whose fit or residual could not be drawn, or will not come (its producer gone for
 ``settle_timeout`` = 60 s, or a sample lost beyond recovery and ``settle_timeout`` passed),
 is a recorded failure (``failed`` error, ``failed`` in the progress: ``ttl run`` exits 1),
-never a silently incomplete "done" (the bookkeeping: :mod:`stages.monitor_settling`).  The
+never a silently incomplete "done" (the bookkeeping: :mod:`stages.monitor_settling`).  An
+input its producer announced that does not come (a monitor restarted after the caches moved
+on) is caught up as every stage's (:mod:`streamer.catch_up`): the producer's cache, then its
+recordings, else the segment fails with an ``input-lost`` warning.  The
 segment is then done for the progress protocol (:mod:`streamer.progress`), so the replayer
 paces on the monitor too and ``ttl run`` stops it only once it has drawn everything.
 Arrays ``drift_rate`` (24,) [mm/rad/day] and ``drift_significance`` (24,) of the latest
@@ -102,7 +105,6 @@ from . import monitor_views as views
 from .monitor_epochs import ModelEpochs, trend_estimate
 from .monitor_noise import NoiseCurves
 from .monitor_options import MonitorOptions, add_options, options
-from .monitor_recovery import recover_evicted
 from .monitor_settling import Settling
 from .monitor_status import UNITS, drift_arrays, status_meta
 from .monitor_timeline import ModelTimeline
@@ -268,7 +270,7 @@ class Monitor(PipelineStage[MonitorOptions]):
 
     def tick(self):
         self._drain_errors()
-        recover_evicted(self)  # what left the caches while this process was not there
+        self.fetch_announced()  # announced, not come: the caches, the recordings (streamer.catch_up)
         self._settle()
         return ()
 
@@ -312,6 +314,22 @@ class Monitor(PipelineStage[MonitorOptions]):
         if topic == "tdi" and index not in drawn["tdi"] and index not in self.done | self.failed:
             self.mark_failed(index)
         return index not in drawn[topic]
+
+    # ------------------------------------------------------------------ catching up (streamer.catch_up)
+    def announced_inputs(self):
+        return self.settling.announced(self.board)
+
+    def still_needed(self, topic: str, index: int) -> bool:
+        return self.settling.needed(topic, index)
+
+    def settle_lost(self, topic: str, index: int, why: str) -> None:
+        """A lost TDI segment is given up (failed); a lost fit or residual is not waited for:
+        its segment fails once its TDI is drawn (:meth:`Settling.ready`), with the reason."""
+        if topic != "tdi":
+            self.settling.unhandled[topic].add(index)
+            self.report_error("failed", f"segment {index}: its {topic} did not come: {why}", index=index)
+        elif index not in self.done | self.failed:
+            self.mark_failed(index)
 
     # ------------------------------------------------------------------ progress
     def _settle(self) -> None:

@@ -19,8 +19,8 @@ from streamer.rangeset import RangeSet
 
 #: Producer of each topic the monitor waits for.
 PRODUCERS = {"fit": "fitter", "residual": "subtractor"}
-#: Producer of each input topic the monitor may read back from the recordings
-#: (:meth:`Settling.evicted`).
+#: Producer of each input topic the monitor catches up when it does not come
+#: (:meth:`Settling.announced`: the cache, then the producer's recordings).
 RECORDED = {"tdi": "tdi_builder", "fit": "fitter", "residual": "subtractor"}
 
 
@@ -41,8 +41,6 @@ class Settling:
         whose drawing raised (the error recorded: not waited for).
     since : dict of int to float
         When (monotonic [s]) each segment began to wait with its producer gone or a loss seen.
-    asked : dict of str to set of int
-        Per topic, the segments read back from the recordings once (:meth:`evicted`).
     """
 
     def __init__(self, inputs, settle_timeout: float = 60.0):
@@ -51,8 +49,6 @@ class Settling:
         self.refused: dict[str, set[int]] = {t: set() for t in inputs}
         self.unhandled: dict[str, set[int]] = {t: set() for t in inputs}
         self.since: dict[int, float] = {}
-        #: per topic, the segments already asked for from the recordings (:meth:`evicted`)
-        self.asked: dict[str, set[int]] = {t: set() for t in inputs}
 
     def waiting_for(self, i: int, board: dict, alive: set[str]) -> str | None:
         """What segment ``i`` (its TDI drawn) still waits for before it is done, or None.
@@ -124,32 +120,21 @@ class Settling:
                 continue
             yield i, "done", None, None
 
-    def evicted(self, board: dict, handled: set[int], cache: int, own=None) -> dict[str, set[int]]:
-        """Per input topic, the segments gone from their producer's cache that the monitor
-        still needs: published by the producer (its progress on ``board``) with ``cache`` or
-        more published after them, so no cache holds them any more, and neither drawn,
-        refused nor failed to draw here, nor ``handled`` by this process or an earlier one
-        (``own``, this stage's progress on the board).  Each is asked for once
-        (:attr:`asked`); the monitor reads them from the recordings
-        (:mod:`streamer.recorded_inputs`)."""
-        out: dict[str, set[int]] = {}
-        earlier = set(own.handled) if own is not None else set()
+    def announced(self, board) -> dict[str, tuple[str, RangeSet]]:
+        """Per input topic the monitor catches up when a segment does not come
+        (:meth:`streamer.pipeline_stage.PipelineStage.fetch_announced`): its producer and what
+        the producer's progress on ``board`` says it published (the fitter's ``fits``)."""
+        out: dict[str, tuple[str, RangeSet]] = {}
         for topic, stage in RECORDED.items():
             peer = board.get(stage)
-            if peer is None or topic not in self.drawn:
-                continue
-            made = set(peer.extra.get("fits", set())) if topic == "fit" else set(peer.done)
-            if len(made) <= cache:
-                continue
-            cached_from = sorted(made)[-cache]  # the oldest segment a cache still holds
-            settled = self.drawn[topic] | self.refused[topic] | self.unhandled[topic] | self.asked[topic]
-            gone = {i for i in made if i < cached_from} - settled - handled - earlier
-            if topic != "tdi":  # a fit or residual is needed for a segment whose TDI is drawn
-                gone &= self.drawn["tdi"]
-            if gone:
-                self.asked[topic] |= gone
-                out[topic] = gone
+            if peer is not None and topic in self.drawn:
+                out[topic] = (stage, peer.extra.get("fits", RangeSet()) if topic == "fit" else peer.done)
         return out
+
+    def needed(self, topic: str, i: int) -> bool:
+        """Whether segment ``i`` of ``topic`` is still waited for: neither drawn, refused nor
+        failed to draw here."""
+        return i not in self.drawn[topic] and i not in self.refused[topic] and i not in self.unhandled[topic]
 
     def forget(self, i: int) -> None:
         """Segment ``i`` is settled: its bookkeeping goes (memory flat in a long run)."""

@@ -200,6 +200,26 @@ class Subtractor(PipelineStage[SubtractorOptions]):
         self._prune_fits()
         return ()
 
+    def announced_inputs(self):
+        """The tdi_builder's TDI segments and the fitter's fits (its ``fits`` progress): one
+        announced that does not come is caught up (:mod:`streamer.catch_up`)."""
+        out = super().announced_inputs()
+        fitter = self.board.get("fitter")
+        if fitter is not None:
+            out["fit"] = ("fitter", fitter.extra.get("fits", RangeSet()))
+        return out
+
+    def still_needed(self, topic: str, index: int) -> bool:
+        return topic != "fit" or (index not in self.refused_fits and index not in self.fits)
+
+    def settle_lost(self, topic: str, index: int, why: str) -> None:
+        """A lost TDI segment is given up (failed); a lost fit is waited for until
+        ``fit_timeout`` as any announced fit, then reported (``missing-fit``) and an earlier one
+        applied (:meth:`choose`)."""
+        if topic == "tdi" and index not in self.done | self.failed:
+            self.tdi.pop(index, None)
+            self.mark_failed(index)
+
     def mark_done(self, index: int, **extra) -> None:
         self._highest = max(self._highest, index)
         super().mark_done(index, **extra)

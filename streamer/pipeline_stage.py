@@ -15,26 +15,24 @@ import json
 import os
 import time
 from collections.abc import Callable
+from pathlib import Path
 from typing import ClassVar, Generic, TypeVar, cast
 
 import zenoh
 
-from .keys import board_key, progress_key, progress_pattern, to_ranges
+from .catch_up import ANNOUNCED_FETCH_AFTER, CatchUp
+from .keys import board_key, progress_key, progress_pattern, segment_key, stream_key, to_ranges
 from .memtrace import MemoryTrace
 from .plan import MAX_SEGMENTS
 from .progress import Progress, ProgressBoard, key_stage
 from .rangeset import RangeSet
+from .recorded_inputs import recorded_copies, wire_copy
 from .segment_stream import declare_segment_publisher
 from .stage import Stage, StageConfig, disk_full
 from .stage_options import OrderedOptions, StageOptions
-from .topology import OUTPUT_TOPIC, UPSTREAM
+from .topology import OUTPUT_TOPIC, PRODUCERS, UPSTREAM
 
-#: An input segment the upstream stage's progress announced (published) that has not come
-#: after this long [s] is asked for from its cache, once (:meth:`PipelineStage.fetch_announced`):
-#: a late joiner's history query can be lost on a loaded machine (CI, 2026-11-28: six tdi
-#: segments never reached a subtractor started half-way through the replay, and the run
-#: timed out waiting for them).
-ANNOUNCED_FETCH_AFTER = 10.0
+__all__ = ["ANNOUNCED_FETCH_AFTER", "InOrder", "OrderedStage", "PipelineStage"]
 
 
 class InOrder:
@@ -158,9 +156,8 @@ class PipelineStage(Stage, Generic[O]):
         )
         self.board = ProgressBoard()
         self._progress_pub = None
-        #: Announced upstream segments not received: when first seen missing [monotonic s].
-        self._missing_since: dict[int, float] = {}
-        self._missing_fetched: set[int] = set()
+        #: Announced input segments not received: the cache, the recordings, lost (:mod:`streamer.catch_up`).
+        self.late_inputs = CatchUp()
         #: Memory per segment, logged when ``TTL_MEMTRACE`` is set (:mod:`streamer.memtrace`).
         self.memtrace = MemoryTrace.from_env(self.log)
 
@@ -238,37 +235,109 @@ class PipelineStage(Stage, Generic[O]):
             plan = self.validator.plan
             self.board.feed(sample, self.run_id, plan.segments_total if plan is not None else None)
 
-    def fetch_announced(self, now: float | None = None) -> list[int]:
-        """Ask the upstream producer's cache, once each, for the segments its progress says it
-        published that have not come here after :data:`ANNOUNCED_FETCH_AFTER` seconds (not
-        received, not handled or given up here or by an earlier process of this stage, at or
-        above the validator's floor).  Nothing else tells a stage that its history query was
-        lost: the segment would be waited for until the run times out.  Returns the indices asked for now
-        (:meth:`streamer.stage.Stage.fetch` applies the re-fetch budget)."""
+    def announced_inputs(self) -> dict[str, tuple[str, RangeSet]]:
+        """Per input topic caught up when a segment does not come (:meth:`fetch_announced`): its
+        producer and the segments the producer's progress says it published.  Default: the
+        :attr:`upstream` stage's output; a stage with more inputs it waits for adds them."""
         up = self.upstream
-        peer = self.board.get(up)
+        peer = self.board.get(up) if up is not None else None
         topic = OUTPUT_TOPIC.get(up or "")
-        if peer is None or topic is None or topic not in self.inputs:
-            return []
+        if up is None or peer is None or topic is None or topic not in self.inputs:
+            return {}
+        return {topic: (up, peer.done)}
+
+    def fetch_announced(self, now: float | None = None) -> list[tuple[str, int]]:
+        """Catch up the input segments the producers' progress says they published that have
+        not come (:meth:`announced_inputs`; not received, not handled or given up here or by
+        an earlier process of this stage, at or above the validator's floor), by the rule of
+        :mod:`streamer.catch_up`: after :data:`ANNOUNCED_FETCH_AFTER` seconds asked of the
+        producer's cache once (:meth:`streamer.stage.Stage.fetch` applies the re-fetch
+        budget), then read from its recordings (:meth:`take_recorded`), else given up
+        (:meth:`input_lost`).  Nothing else tells a stage that its history query was lost, or
+        that its producer restarted since: the segment would be waited for until the run
+        times out.  Returns the ``(topic, index)`` asked of the cache now."""
         now = time.monotonic() if now is None else now
         floor = max(self.validator.floor, 0)
-        got = self.ingest.done.get(topic, RangeSet())
         own = self.board.get(self.stage_name)  # an earlier process of this stage handled those
-        earlier = own.handled if own is not None else RangeSet()
-        missing = {
-            i
-            for i in peer.done - self.done - self.failed - got - earlier
-            if i >= floor and (topic, i) not in self.validator.digests
-        }
-        self._missing_since = {i: self._missing_since.get(i, now) for i in missing}
-        self._missing_fetched &= missing
+        handled = self.done | self.failed | (own.handled if own is not None else RangeSet())
+        missing: dict[str, set[int]] = {}
+        for topic, (_, announced) in self.announced_inputs().items():
+            got = self.ingest.done.get(topic, RangeSet())
+            missing[topic] = {
+                i
+                for i in announced - handled - got
+                if i >= floor and (topic, i) not in self.validator.digests and self.still_needed(topic, i)
+            }
+        ask, read = self.late_inputs.step(missing, now)
         asked = []
-        for i in sorted(missing - self._missing_fetched):
-            if now - self._missing_since[i] >= ANNOUNCED_FETCH_AFTER:
-                self._missing_fetched.add(i)
-                if self.fetch(topic, i):
-                    asked.append(i)
+        for topic, i in ask:
+            sent = self.fetch(topic, i)
+            self.late_inputs.asked(topic, i, sent, now)
+            if sent:
+                asked.append((topic, i))
+        if read:
+            self.read_recorded(read)
         return asked
+
+    def still_needed(self, topic: str, index: int) -> bool:
+        """Whether input segment ``index`` of ``topic``, announced and not received, is still
+        waited for here (override: the default, always)."""
+        return True
+
+    def fetched(self, topic: str, index: int, copies: int) -> None:
+        """The cache query for an announced segment is over (:meth:`fetch_announced`)."""
+        self.late_inputs.answered(topic, index, copies)
+
+    def read_recorded(self, wanted: dict[str, set[int]]) -> None:
+        """Take the segments ``wanted`` (per topic) from their producers' recordings in the run
+        directory, each through the checks of a copy from the bus (:meth:`take_recorded`); one
+        no recording holds is lost (:meth:`input_lost`)."""
+        run_dir = Path(self.config.recordings) / self.run_id
+        producers = {t: p for t, (p, _) in self.announced_inputs().items()}
+        for topic, indices in sorted(wanted.items()):
+            producer = producers.get(topic) or PRODUCERS.get(topic, topic)
+            copies = recorded_copies(run_dir, producer, topic, indices)
+            for i in sorted(indices - copies.keys()):
+                self.input_lost(
+                    topic,
+                    i,
+                    f"{producer} published it, it did not come, no cache holds it (its producer restarted "
+                    f"or moved on) and no recording in {run_dir} holds it",
+                )
+            if not copies:
+                continue
+            self.event(
+                "recovered",
+                message=f"{len(copies)} {topic} segment(s) read back from {producer}'s recordings "
+                "(published, never received, in no cache)",
+                topic=topic,
+                indices=to_ranges(sorted(copies)),
+            )
+            for i in sorted(copies):
+                self.take_recorded(topic, copies[i])
+
+    def take_recorded(self, topic: str, seg) -> None:
+        """Hand a recorded segment (:class:`streamer.recording_reader.RecordedSegment`) to the
+        stage as if it had come on the bus: the same checks, recording and handling."""
+        try:
+            payload, attachment = wire_copy(seg)
+        except ValueError as exc:
+            self.input_lost(topic, seg.header.index, f"its recorded copy is unusable: {exc}")
+            return
+        self.ingest.take(stream_key(self.run_id, topic), payload, attachment)
+
+    def input_lost(self, topic: str, index: int, why: str) -> None:
+        """Input segment ``index`` of ``topic`` will not come (:mod:`streamer.catch_up`): an
+        ``input-lost`` warning, and the stage settles the segment without it
+        (:meth:`settle_lost`)."""
+        self.warn("input-lost", f"{segment_key(self.run_id, topic, index)} given up: {why}", index=index, topic=topic)
+        self.settle_lost(topic, index, why)
+
+    def settle_lost(self, topic: str, index: int, why: str) -> None:
+        """Go on without input segment ``index`` of ``topic`` (override; the default gives up
+        segment ``index`` here, as failed: ``ttl run`` then exits 1)."""
+        if index not in self.done | self.failed:
+            self.mark_failed(index)
 
     def pending(self) -> int:
         """Segments received but not yet handled (override in buffering stages)."""
@@ -391,6 +460,11 @@ class OrderedStage(PipelineStage[OO]):
 
     def published(self, index: int) -> None:
         """Segment ``index`` produced an output, now published."""
+
+    def settle_lost(self, topic: str, index: int, why: str) -> None:
+        """An input segment that will not come is skipped in its turn (a failed segment,
+        reported), so that the state carried from segment to segment sees it in order."""
+        self.queue.withdraw(index, f"lost ({why})")
 
     def pending(self) -> int:
         return len(self.queue.pending)

@@ -18,13 +18,16 @@ the segment is given up as lost.
 
 from __future__ import annotations
 
+import json
 import re
 from collections.abc import Iterable
 from pathlib import Path
 
+import numpy as np
+
 from .recording_reader import RecordedSegment, RecordingError, read_recording
 
-__all__ = ["recorded_copies", "recording_files"]
+__all__ = ["recorded_copies", "recording_files", "wire_copy"]
 
 
 def recording_files(run_dir: Path, stage: str) -> list[Path]:
@@ -54,3 +57,17 @@ def recorded_copies(run_dir: Path, stage: str, topic: str, indices: Iterable[int
         for m in rec.segments(topic):
             out.setdefault(m.header.index, m)
     return out
+
+
+def wire_copy(seg: RecordedSegment) -> tuple[bytes, bytes]:
+    """``(payload, attachment)`` of a recorded segment as it was published: its arrays' bytes
+    at their header offsets, and its wire header (which carries the payload's size and
+    checksum), so that a stage takes it through the checks any copy from the bus goes
+    through."""
+    if seg.data is None:
+        raise RecordingError(f"{seg.topic} segment {seg.header.index}: recorded without its header")
+    payload = bytearray(seg.header.payload_bytes)
+    for spec in seg.header.arrays:
+        raw = np.ascontiguousarray(seg.arrays[spec.name], dtype=np.dtype(spec.dtype)).tobytes()
+        payload[spec.offset : spec.offset + len(raw)] = raw
+    return bytes(payload), json.dumps(seg.data).encode()

@@ -360,6 +360,7 @@ class Stage:
             elif item[0] == "fetched":
                 _, key, index, copies = item
                 self.event("fetched", index=index, message=f"{copies} cached copy(ies) of {key} segment {index}")
+                self.fetched(parse_stream_key(key), index, copies)
             else:
                 self.ingest.take(*item[1:])
 
@@ -397,6 +398,10 @@ class Stage:
             return False
         self.transport.fetch(self.live_bus, stream_key(self.run_id, topic), index)
         return True
+
+    def fetched(self, topic: str, index: int, copies: int) -> None:
+        """The cache query of :meth:`fetch` for segment ``index`` of ``topic`` is over:
+        ``copies`` came (override; the default does nothing more)."""
 
     def _refetched(self, key: str, index: int, copies: int) -> None:
         """A re-fetch of a damaged segment is over: record it.  With no copy found, a warning

@@ -184,12 +184,12 @@ def test_an_announced_input_that_never_comes_is_asked_of_the_producers_cache(tmp
     t0 = time.monotonic()
     assert s.fetch_announced(t0) == [] and asked == []  # just announced: on its way
     assert s.fetch_announced(t0 + ANNOUNCED_FETCH_AFTER / 2) == []
-    assert s.fetch_announced(t0 + ANNOUNCED_FETCH_AFTER) == [0, 2, 3, 4, 5]
+    assert s.fetch_announced(t0 + ANNOUNCED_FETCH_AFTER) == [("tdi", i) for i in (0, 2, 3, 4, 5)]
     assert asked == [("tdi", i) for i in (0, 2, 3, 4, 5)]
     assert s.fetch_announced(t0 + 3 * ANNOUNCED_FETCH_AFTER) == []  # once
     s.board.feed(sample({"stage": "tdi_builder", "done": [[0, 8]]}))  # a new one: its own clock
     assert s.fetch_announced(t0 + 3 * ANNOUNCED_FETCH_AFTER) == []
-    assert s.fetch_announced(t0 + 4 * ANNOUNCED_FETCH_AFTER) == [8]
+    assert s.fetch_announced(t0 + 4 * ANNOUNCED_FETCH_AFTER) == [("tdi", 8)]
 
 
 def test_subtractor_keeps_only_the_fits_segments_to_come_can_get(tmp_path):

@@ -1,5 +1,5 @@
-"""Segments read back from their producers' recordings (streamer.recorded_inputs), and the
-monitor's bookkeeping of which it needs (stages.monitor_settling.Settling.evicted)."""
+"""Segments read back from their producers' recordings (streamer.recorded_inputs); when a
+stage reads them: tests/stages/test_catch_up.py."""
 
 from __future__ import annotations
 
@@ -7,10 +7,8 @@ import json
 
 import numpy as np
 
-from stages.monitor_settling import Settling
-from streamer.codec import encode
-from streamer.progress import Progress
-from streamer.recorded_inputs import recorded_copies, recording_files
+from streamer.codec import decode, encode
+from streamer.recorded_inputs import recorded_copies, recording_files, wire_copy
 from streamer.recorder import Recorder, read_recording
 
 RUN = "r1"
@@ -46,19 +44,12 @@ def test_the_wanted_segments_of_a_topic_are_read_back_from_every_process_file(tm
     assert [m.header.index for m in rec.messages] == [3]
 
 
-def test_the_monitor_asks_once_for_what_left_the_caches_and_it_still_needs():
-    s = Settling(("telemetry", "tdi", "fit", "residual"))
-    s.drawn["tdi"] |= {0, 1, 2, 3, 4, 7, 11, 12}
-    s.drawn["fit"] |= {0, 11}
-    board = {
-        "tdi_builder": Progress("tdi_builder", done=set(range(14))),
-        "fitter": Progress("fitter", done=set(range(14)), extra={"fits": set(range(14))}),
-        "subtractor": Progress("subtractor", done=set(range(6))),  # behind: all in its cache
-    }
-    own = Progress("monitor", done={0, 1})  # the earlier process drew 0 and 1
-    gone = s.evicted(board, handled=set(), cache=8, own=own)
-    # 14 published, the caches hold 6..13: of 0..5, TDI 5 was never drawn here; fits 2..4
-    # for the TDI drawn (0 and 1 were handled by the earlier process; 5's TDI comes first;
-    # 7's fit is still in the cache); the subtractor's cache still holds all it published
-    assert gone == {"tdi": {5}, "fit": {2, 3, 4}}
-    assert s.evicted(board, handled=set(), cache=8, own=own) == {}  # asked once
+def test_a_recorded_segment_is_published_again_byte_for_byte(tmp_path):
+    """What a stage takes from a recording goes through the checks of a copy from the bus:
+    its payload rebuilt from the arrays matches the recorded header's size and checksum."""
+    _write(tmp_path / "fitter.mcap", "fit", range(3))
+    seg = recorded_copies(tmp_path, "fitter", "fit", {2})[2]
+    payload, attachment = wire_copy(seg)
+    header, arrays = decode(payload, attachment, key=f"ttl/{RUN}/fit/2")
+    assert header.index == 2 and header.checksum == seg.header.checksum
+    assert np.array_equal(arrays["coefficients"], np.full(24, 2.0))
