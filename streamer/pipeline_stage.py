@@ -318,13 +318,17 @@ class PipelineStage(Stage, Generic[O]):
 
     def take_recorded(self, topic: str, seg) -> None:
         """Hand a recorded segment (:class:`streamer.recording_reader.RecordedSegment`) to the
-        stage as if it had come on the bus: the same checks, recording and handling."""
+        stage as if it had come on the bus: the same checks, recording and handling.  A copy
+        the checks refuse (reported as any refusal) leaves the segment lost, not waited for."""
+        index = seg.header.index
         try:
             payload, attachment = wire_copy(seg)
         except ValueError as exc:
-            self.input_lost(topic, seg.header.index, f"its recorded copy is unusable: {exc}")
+            self.input_lost(topic, index, f"its recorded copy is unusable: {exc}")
             return
         self.ingest.take(stream_key(self.run_id, topic), payload, attachment)
+        if (topic, index) not in self.validator.digests and index not in self.ingest.done.get(topic, ()):
+            self.input_lost(topic, index, "its recorded copy was refused (the rejection is reported)")
 
     def input_lost(self, topic: str, index: int, why: str) -> None:
         """Input segment ``index`` of ``topic`` will not come (:mod:`streamer.catch_up`): an

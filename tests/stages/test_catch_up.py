@@ -48,12 +48,13 @@ def test_the_rule_cache_then_recordings_once_each():
     assert c.step({"fit": {3}}, t0 + 300 + ANNOUNCED_FETCH_AFTER) == ([("fit", 3)], {})
 
 
-def _write_fits(path, indices, stage: str = "fitter") -> None:
-    """A fitter process's recording with the fits of ``indices`` (as it records them)."""
+def _write_fits(path, indices, stage: str = "fitter", bad=()) -> None:
+    """A fitter process's recording with the fits of ``indices`` (as it records them; those
+    in ``bad`` with NaN coefficients, which no stage accepts)."""
     rec = Recorder(path, metadata={"run": RUN, "stage": stage, "class": "Fitter", "config": "{}"})
     for i in indices:
         payload, attachment = encode(
-            {"coefficients": np.full(24, 1e-3 * (i + 1)), "sigma": np.full(24, 1e-5)},
+            {"coefficients": np.full(24, np.nan if i in bad else 1e-3 * (i + 1)), "sigma": np.full(24, 1e-5)},
             {
                 "run": RUN,
                 "index": i,
@@ -62,6 +63,7 @@ def _write_fits(path, indices, stage: str = "fitter") -> None:
                 "producer": "fitter",
                 "meta": {"t_start": 600.0 * (i - 2), "t_stop": 600.0 * (i + 1), "model": ["linear-ttl"]},
             },
+            allow_nonfinite=i in bad,
         )
         rec.write_segment("fit", json.loads(attachment), payload)
     rec.close()
@@ -76,10 +78,11 @@ def test_a_restarted_monitor_takes_the_fits_no_cache_holds_from_the_fitters_reco
     monitor waited for them as long as the fitter lived (its earlier rule thought the last 8
     fits cached).  Now: asked of the fitter's cache after ANNOUNCED_FETCH_AFTER, then read
     from its recordings and drawn as if they had come; fit 19 is given up with an
-    ``input-lost`` warning and segment 19 fails (``ttl run`` exits 1), so the monitor ends."""
+    ``input-lost`` warning and segment 19 fails (``ttl run`` exits 1), so the monitor ends;
+    so does 18, whose recorded copy the checks refuse."""
     run_dir = tmp_path / RUN
     run_dir.mkdir()
-    _write_fits(run_dir / "fitter.1.mcap", range(19))
+    _write_fits(run_dir / "fitter.1.mcap", range(19), bad={18})  # 18 damaged on disk
     _write_fits(run_dir / "fitter.mcap", [20, 21])
     _write_fits(run_dir / "subtractor.mcap", range(22), stage="subtractor")  # another stage's file: not read
 
@@ -108,19 +111,21 @@ def test_a_restarted_monitor_takes_the_fits_no_cache_holds_from_the_fitters_reco
     time.sleep(m.config.hold + 0.1)
     m._release_held()
 
-    assert m.settling.drawn["fit"] == set(range(15, 19)) | {20, 21}  # read back and drawn
+    assert m.settling.drawn["fit"] == {15, 16, 17, 20, 21}  # read back and drawn
     m._settle()
-    # settled: 15-18 and 20-21 done (their monitor message out), 19 failed (ttl run exits 1)
-    assert sorted(published) == [15, 16, 17, 18, 20, 21]
-    assert set(m.done) == {15, 16, 17, 18, 20, 21} and set(m.failed) == {19}
+    # settled: 15-17 and 20-21 done (their monitor message out), 18 and 19 failed (ttl run exits 1)
+    assert sorted(published) == [15, 16, 17, 20, 21]
+    assert set(m.done) == {15, 16, 17, 20, 21} and set(m.failed) == {18, 19}
     assert m.fetch_announced(t0 + 10 * CACHE_ANSWER_WITHIN) == []  # nothing asked twice
     m.recorder.close()
 
     rec = read_recording(run_dir / "monitor.mcap")
     events = [e for e in rec.json("events") if e.get("kind") == "recovered"]
     assert len(events) == 1 and events[0]["details"] == {"topic": "fit", "indices": [[15, 18]]}
-    lost = [w for w in rec.json("warnings") if w.get("kind") == "input-lost"]
-    assert [w["index"] for w in lost] == [19], lost
-    assert f"ttl/{RUN}/fit/19 given up" in lost[0]["message"] and "no recording" in lost[0]["message"]
+    lost = {w["index"]: w["message"] for w in rec.json("warnings") if w.get("kind") == "input-lost"}
+    assert sorted(lost) == [18, 19], lost
+    assert f"ttl/{RUN}/fit/19 given up" in lost[19] and "no recording" in lost[19]
+    assert "recorded copy was refused" in lost[18]
+    assert [(e["kind"], e["index"]) for e in rec.json("errors") if e["kind"] == "rejected"] == [("rejected", 18)]
     # each read-back fit is recorded as an input like one that came on the bus
-    assert sorted(s.header.index for s in rec.segments("fit")) == [15, 16, 17, 18]
+    assert sorted(s.header.index for s in rec.segments("fit")) == [15, 16, 17]
