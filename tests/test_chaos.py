@@ -435,11 +435,11 @@ def test_chaos_with_model_changes_and_adopt_auto(tmp_path):
     and every copy of every fit and residual of the chaos run equals its to 1e-9: the changes
     and the adoptions apply at segment boundaries and survive every restart exactly.
 
-    May fail until the fitter makes model changes exact across restarts (branch ``model``):
-    a change sent to a fitter killed before it recorded it would be lost.  Short run
-    (docs/operations.md, "The chaos test"): seed 33 with 60-90 s between kills did not end
-    (the monitor waited for segments gone from the caches); its fits and residuals equalled
-    the clean run's with the same changes."""
+    A change sent to a fitter killed before it recorded it would be lost (the fitter's
+    business).  Short run (docs/operations.md, "The chaos test"): seed 33 with 60-90 s between
+    kills once did not end: a restarted monitor waited for segments gone from every cache.
+    Such a segment is now taken from its producer's recordings (:mod:`streamer.catch_up`);
+    whether a draw needs that is luck, so tests/test_monitor_catch_up.py makes it happen."""
     seed = int(os.environ.get("TTL_CHAOS_SEED", random.SystemRandom().randrange(2**31)))
     rng = random.Random(seed)
     why = f"[chaos seed {seed}: TTL_CHAOS_SEED={seed} runs it again]"

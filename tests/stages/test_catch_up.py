@@ -129,3 +129,30 @@ def test_a_restarted_monitor_takes_the_fits_no_cache_holds_from_the_fitters_reco
     assert [(e["kind"], e["index"]) for e in rec.json("errors") if e["kind"] == "rejected"] == [("rejected", 18)]
     # each read-back fit is recorded as an input like one that came on the bus
     assert sorted(s.header.index for s in rec.segments("fit")) == [15, 16, 17]
+
+
+def test_an_ordered_stage_skips_a_lost_input_in_its_turn(tmp_path):
+    """A TDI builder whose telemetry segment 2 is in no cache and no recording (the replayer
+    said it published 0-3; 0, 1 and 3 came): 2 is skipped when its turn comes (failed,
+    reported), not waited for, and the state carried between segments sees the skip in
+    order."""
+    from stages.tdi_builder import TDIBuilder
+
+    s = TDIBuilder(StageConfig(run=RUN, recordings=tmp_path, stage="tdi_builder"))
+    handled: list = []
+    s.process = lambda header, item: handled.append(header.index)  # no TDI computed here
+    s.board.feed(sample({"stage": "replayer", "done": [[0, 3]]}))
+    for i in (0, 1, 3):
+        s.queue.add(i, (SimpleNamespace(index=i, key=None, meta={}), None))
+        s.ingest.done.setdefault("telemetry", RangeSet()).add(i)
+    s.drain(limit=10)
+    assert handled == [0, 1] and s.queue.next == 2  # 3 waits for 2
+    asked: list = []
+    s.fetch = lambda topic, index: asked.append((topic, index)) or True
+    t0 = time.monotonic()
+    assert s.fetch_announced(t0) == []
+    assert s.fetch_announced(t0 + ANNOUNCED_FETCH_AFTER) == [("telemetry", 2)]
+    s.fetched("telemetry", 2, 0)
+    s.fetch_announced(t0 + ANNOUNCED_FETCH_AFTER + 0.1)  # no replayer recording: lost
+    s.drain(limit=10)
+    assert handled == [0, 1, 3] and set(s.failed) == {2} and set(s.done) == {0, 1, 3}
