@@ -7,7 +7,15 @@ import json
 
 import pytest
 
-from streamer.fit_record import SCHEMA, Adequacy, FitMessage, MessageError, RollingEstimate
+from streamer.fit_record import (
+    SCHEMA,
+    Adequacy,
+    FitMessage,
+    MessageError,
+    ModelChange,
+    RankedCandidate,
+    RollingEstimate,
+)
 
 # the meta of a fit message as stages/fitter.py put it on the wire before ``schema`` (a window
 # refit of the rolling model, the live diagnosis, an FFT segment left out): what a recording
@@ -80,6 +88,54 @@ def test_a_current_header_is_read_strictly():
         FitMessage.from_header({**header, "schema": SCHEMA + 1}, "fit 7")
 
 
+# a model change and a ranking as stages/window_refit.py writes them (every key, null where
+# the models cannot be compared)
+CHANGE = {
+    "before": ["linear-ttl"],
+    "after": ["linear-ttl", "drift"],
+    "chi2_dof_before": 1.4,
+    "chi2_dof_after": 1.01,
+    "bands_before": [2.0, None],
+    "bands_after": [1.0, 1.02],
+    "delta_chi2": None,
+    "log_bayes_factor": None,
+    "band_edges": [0.003, 0.01, 0.9],
+}
+RANKING = [
+    {
+        "effect": "drift",
+        "spec": "drift",
+        "delta_chi2": 40.5,
+        "log_bayes_factor": 12.0,
+        "explained_fraction": 0.8,
+        "significant": True,
+    },
+    {
+        "effect": "step",
+        "spec": None,
+        "delta_chi2": None,
+        "log_bayes_factor": None,
+        "explained_fraction": None,
+        "significant": False,
+    },
+]
+
+
+def test_the_model_change_and_candidates_are_values_written_back_as_they_came():
+    header = {**OLD, "model_change": CHANGE, "candidates": RANKING, "schema": SCHEMA}
+    m = FitMessage.from_header(json.loads(json.dumps(header)), "fit 5")
+    mc = m.model_change
+    assert isinstance(mc, ModelChange) and mc.after == ("linear-ttl", "drift") and mc.bands_before == (2.0, None)
+    assert mc.delta_chi2 is None and mc.band_edges == (0.003, 0.01, 0.9)
+    assert m.candidates is not None and all(isinstance(c, RankedCandidate) for c in m.candidates)
+    assert [c.effect for c in m.candidates] == ["drift", "step"] and m.candidates[0].significant is True
+    # null and absent keys kept apart, in their order: the header's bytes come back
+    assert json.dumps(m.to_header()) == json.dumps(header)
+    assert json.dumps(m.summary_fields()["model_change"]) == json.dumps(CHANGE)
+    # built by the producer (stages/window_refit.py's dicts) as read by the reader
+    assert FitMessage().with_fields({"model_change": CHANGE, "candidates": RANKING}).model_change == mc
+
+
 @pytest.mark.parametrize(
     ("field", "value", "where"),
     [
@@ -91,6 +147,11 @@ def test_a_current_header_is_read_strictly():
         ("adequacy", {"chi2_dof": 1.0, "fails": False, "bands": [{"f_lo": 1}]}, r"'adequacy.bands\[0\]'"),
         ("rolling", {"coefficients": [1.0]}, "'rolling'"),
         ("candidates", [1], r"'candidates\[0\]'"),
+        ("candidates", [{"spec": "step"}], r"'candidates\[0\]\.effect': missing"),
+        ("candidates", [{"effect": "step", "significant": "yes"}], r"'candidates\[0\]\.significant'"),
+        ("model_change", {"after": ["linear-ttl"]}, r"'model_change\.before': missing"),
+        ("model_change", {**CHANGE, "bands_after": "high"}, r"'model_change\.bands_after'"),
+        ("model_change", {**CHANGE, "verdict": 1}, r"'model_change': unknown fields \['verdict'\]"),
     ],
 )
 def test_a_field_of_the_wrong_type_is_an_error_naming_it(field, value, where):
