@@ -533,7 +533,7 @@ class Monitor(PipelineStage[MonitorOptions]):
                     "WARN",
                 )
         # the live diagnosis, when there is one
-        views.diagnosis_document(self.rec, index, dict(meta.diagnosis) if meta.diagnosis is not None else None)
+        views.diagnosis_document(self.rec, index, meta.diagnosis)
         views.model_change(self.rec, index, meta.model_change)
         views.candidate_ranking(self.rec, index, meta.candidates)
 

@@ -141,7 +141,7 @@ class ModelTimeline:
         self._adequacy(index, meta, centre)
         adoption = meta.adopted
         if adoption is not None:
-            self.adoption = {"index": index, "reason": adoption.get("reason")}
+            self.adoption = {"index": index, "reason": adoption.reason}
         self.at(t_stop, index)
         return said
 

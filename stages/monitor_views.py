@@ -58,6 +58,7 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from streamer.diagnosis_record import LiveDiagnosis
 from streamer.fit_record import ModelChange, RankedCandidate
 from ttlcore.conventions import COEFFICIENT_NAMES, PAPER_ORDER
 
@@ -475,18 +476,15 @@ def summary_document(rec, progress: str, alerts: list[str], bands: list[str], ep
     rec.log(SUMMARY, rr.TextDocument("\n".join(lines), media_type="text/markdown"))
 
 
-def diagnosis_document(rec, index: int, diagnosis) -> bool:
+def diagnosis_document(rec, index: int, diagnosis: LiveDiagnosis | None) -> bool:
     """The live diagnosis of fit ``index`` (its meta ``diagnosis``: ``text`` and, when
     present, ``recommendation``) as a markdown document; False (nothing drawn) when the
     meta has no usable text."""
-    if not isinstance(diagnosis, dict) or not isinstance(diagnosis.get("text"), str) or not diagnosis["text"].strip():
+    if diagnosis is None or diagnosis.text is None or not diagnosis.text.strip():
         return False
-    lines = [f"**Fit {index}**", "", diagnosis["text"].strip()]
-    recommendation = diagnosis.get("recommendation")
-    if not isinstance(recommendation, str) and recommendation is not None:  # e.g. a model to refit with
-        recommendation = json.dumps(recommendation, default=str)
-    if recommendation and recommendation.strip():
-        lines += ["", f"**Recommendation:** {recommendation.strip()}"]
+    lines = [f"**Fit {index}**", "", diagnosis.text.strip()]
+    if diagnosis.recommendation is not None:
+        lines += ["", f"**Recommendation:** {json.dumps(diagnosis.recommendation.to_json(), default=str).strip()}"]
     rec.log(DIAGNOSIS, rr.TextDocument("\n".join(lines), media_type="text/markdown"))
     return True
 

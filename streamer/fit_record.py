@@ -25,6 +25,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
+from .diagnosis_record import Adoption, LiveDiagnosis
 from .message_schema import MessageError, WireObject, check, read_fields
 from .record_schemas import to_jsonable
 
@@ -234,7 +235,8 @@ class FitMessage:
     staleness check (``stale``), the left-out FFT segment (``excluded``) and the recorder
     (``recorded``) add.  Nested values a reader needs the fields of are values
     (:class:`Adequacy`, :class:`RollingEstimate`, :class:`ModelChange`,
-    :class:`RankedCandidate`); the others stay JSON (dicts and lists).
+    :class:`RankedCandidate`, :class:`streamer.diagnosis_record.LiveDiagnosis`); the others
+    stay JSON (dicts and lists).
     """
 
     names: tuple[str, ...] | None = None
@@ -260,7 +262,7 @@ class FitMessage:
     window: Mapping[str, Any] | None = None
     model_change: ModelChange | None = None
     candidates: tuple[RankedCandidate, ...] | None = None
-    diagnosis: Mapping[str, Any] | None = None
+    diagnosis: LiveDiagnosis | None = None
     stale: Mapping[str, Any] | None = None
     excluded: Mapping[str, Any] | None = None
     recorded: Mapping[str, Any] | None = None
@@ -309,10 +311,9 @@ class FitMessage:
 
     # ------------------------------------------------------------------ derived
     @property
-    def adopted(self) -> dict | None:
+    def adopted(self) -> Adoption | None:
         """The live diagnosis' adoption (``diagnosis.adoption``) when it adopted a model."""
-        adoption = self.diagnosis.get("adoption") if self.diagnosis is not None else None
-        return dict(adoption) if isinstance(adoption, Mapping) and adoption.get("adopted") is True else None
+        return self.diagnosis.adopted if self.diagnosis is not None else None
 
 
 def _value(name: str, v, message: str):
@@ -323,6 +324,8 @@ def _value(name: str, v, message: str):
         return RollingEstimate.from_json(v, message)
     if name in ("names", "model", "model_parts", "band"):
         return tuple(v)
+    if name == "diagnosis":
+        return LiveDiagnosis.from_json(v, message)
     if name == "model_change":
         return ModelChange.from_json(v, message)
     if name == "candidates":
@@ -332,8 +335,99 @@ def _value(name: str, v, message: str):
 
 def _json(v):
     """An attribute's value on the wire."""
-    if isinstance(v, (Adequacy, RollingEstimate, WireObject)):
+    if isinstance(v, (Adequacy, RollingEstimate, WireObject, LiveDiagnosis)):
         return v.to_json()
     if isinstance(v, tuple):
         return [_json(x) for x in v]
     return v
+
+
+@dataclass(frozen=True)
+class FitSummary:
+    """A recorded fit summary (``fit/summary``, JSON schema ``ttl.Fit``;
+    :func:`stages.fit_message.fit_summary` writes it): the fit published for segment
+    ``index`` and the model's meta.
+
+    Two layouts are read: the fitter's (``coefficients``/``sigma`` lists in the order of
+    ``names``, ``t_start``, ``t_end``, the whole result under ``fit``, then the meta of
+    :data:`SUMMARY_META`) and a bare :meth:`ttlcore.estimate.fit.FitResult.to_json`
+    (coefficients and sigma by name, the window under ``fit.window``).  :meth:`to_dict` gives
+    the record back as it was.
+
+    Attributes
+    ----------
+    index : int
+    names : tuple of str
+    coefficients, sigma : list of float or None
+        In the order of ``names`` [m/rad].
+    covariance : list of list of float or None
+    t_start, t_stop : float or None
+        The fitted window [s].
+    chi2_dof : float or None
+    converged : bool or None
+    meta : FitMessage
+        The model's meta the summary repeats (:data:`SUMMARY_META`: ``model``,
+        ``adequacy``, ``diagnosis``...), read as a fit message without a schema.
+    """
+
+    index: int
+    names: tuple[str, ...]
+    coefficients: list | None
+    sigma: list | None
+    covariance: list | None
+    t_start: float | None
+    t_stop: float | None
+    chi2_dof: float | None
+    converged: bool | None
+    meta: FitMessage
+    record: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)
+
+    @classmethod
+    def from_dict(cls, d, where: str = "fit/summary") -> FitSummary:
+        """The value of a recorded summary ``d``; a :class:`MessageError` naming ``where`` and
+        the field when ``d`` is not one (no integer ``index``, a field of the wrong type)."""
+        check(where, "record", "dict", d)
+        index = d.get("index")
+        check(where, "index", "int", index)
+        where = f"{where} {index}"
+        fit = _object(d.get("fit"))
+        names = d.get("names") or fit.get("names") or []
+        check(where, "names", "strs", names)
+        coefficients, sigma = d.get("coefficients"), d.get("sigma")
+        if isinstance(coefficients, Mapping):  # FitResult.to_json layout
+            coefficients = [coefficients.get(n) for n in names]
+        if isinstance(sigma, Mapping):
+            sigma = [sigma.get(n) for n in names]
+        window = _object(fit.get("window"))
+        values = {
+            "t_start": d.get("t_start", window.get("t_start")),
+            "t_stop": d.get("t_end", d.get("t_stop", window.get("t_stop"))),
+            "chi2_dof": d.get("chi2_dof", fit.get("chi2_dof")),
+        }
+        for name, v in values.items():
+            if v is not None:
+                check(where, name, "number", v)
+        converged = fit.get("converged", d.get("converged"))
+        if converged is not None:
+            check(where, "converged", "bool", converged)
+        meta = FitMessage.from_header({k: d[k] for k in SUMMARY_META if k in d}, where)
+        return cls(
+            index=index,
+            names=tuple(names),
+            coefficients=coefficients,
+            sigma=sigma,
+            covariance=d.get("covariance"),
+            converged=converged,
+            meta=meta,
+            record=d,
+            **values,
+        )
+
+    def to_dict(self) -> dict:
+        """The summary as it was recorded."""
+        return dict(self.record)
+
+
+def _object(v) -> Mapping[str, Any]:
+    """A JSON object, or an empty one for anything else."""
+    return v if isinstance(v, Mapping) else {}

@@ -41,7 +41,8 @@ SIGMA = 0.01e-3  # per-window uncertainty of a full window [m/rad]
 TRUTH_FS = 1 / 60.0
 DIAGNOSIS = {
     "text": "A step in 23.phi.tx explains the excess below 10 mHz.",
-    "recommendation": "refit with step:t_step=20h",
+    # as stages/live_diagnosis.py writes it: the report's recommendation (a JSON object)
+    "recommendation": {"spec": "step:t_step=20h", "message": "refit with step:t_step=20h"},
 }
 
 
@@ -434,7 +435,9 @@ def _check_monitor_texts(ent) -> None:
         row[0]["segment"]: row[1]["TextDocument:text"][0] for row in ent["/diagnosis"] if "TextDocument:text" in row[1]
     }
     assert "No diagnosis yet" in diagnoses.pop(0) and list(diagnoses) == [N_FITS - 1], diagnoses
-    assert DIAGNOSIS["text"] in diagnoses[N_FITS - 1] and DIAGNOSIS["recommendation"] in diagnoses[N_FITS - 1]
+    assert (
+        DIAGNOSIS["text"] in diagnoses[N_FITS - 1] and DIAGNOSIS["recommendation"]["message"] in diagnoses[N_FITS - 1]
+    )
 
 
 def _check_rrd_layout(rrd, ent) -> None:
