@@ -94,6 +94,7 @@ from streamer.pipeline_stage import PipelineStage
 from streamer.processes import stop_process
 from streamer.recorder import to_jsonable
 from streamer.residual_record import ResidualMessage
+from streamer.segment_record import segment_meta
 from streamer.stage import Output, set_aside, stage_main
 from streamer.viewer import LiveFanout, compact_rrd, start_live
 from ttlcore.conventions import COEFFICIENT_NAMES
@@ -403,12 +404,13 @@ class Monitor(PipelineStage[MonitorOptions]):
     # ------------------------------------------------------------------ telemetry
     def on_telemetry(self, header, arrays):
         self.noise.telemetry(header.index, arrays["ltt"])
-        truth = header.meta.get("truth")
+        meta = segment_meta(header)
+        truth = meta.truth
         if self.truth.is_new(truth):
             self.truth.source = truth
             self._time(header.t0, header.index)
             try:
-                self.truth.load(truth, block=float(header.meta.get("segment_duration") or 3600.0))
+                self.truth.load(truth, block=float(meta.segment_duration or 3600.0))
                 if isinstance(truth, dict):  # a simulation on the fly: its coefficient model
                     self.text("log", "simulated on the fly: the simulation's true coefficients drawn beside the fits")
                 else:

@@ -12,7 +12,8 @@ from collections.abc import Sequence
 
 import numpy as np
 
-from ttlcore.conventions import ARM_LENGTH, LINKS, C
+from streamer.segment_record import segment_meta
+from ttlcore.conventions import ARM_LENGTH, C
 from ttlcore.estimate.monitoring import MIN_SAMPLES, band_ratio, channel_asd, reference_curves
 from ttlcore.estimate.spectra import longest_run
 
@@ -53,9 +54,7 @@ class NoiseCurves:
     def ltt_of(self, header) -> np.ndarray:
         """Mean light travel times [s] of a segment: its meta ``ltt_mean``, else its telemetry's,
         else the latest segment's, else the nominal arms."""
-        v = header.meta.get("ltt_mean")
-        if isinstance(v, dict):
-            v = [v.get(link) for link in LINKS]
+        v = segment_meta(header).ltt_mean
         try:
             arr = np.asarray(v, dtype=float)
             if arr.shape == (6,) and np.all(np.isfinite(arr)):
