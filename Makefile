@@ -6,7 +6,7 @@ BIN    := $(VENV)/bin
 STAMP  := $(VENV)/.installed-stamp
 DEMO   := demo-output
 
-.PHONY: demo demo-batch lint test test-science test-ops bench clean lock pip-check
+.PHONY: demo demo-batch lint test coverage test-science test-ops bench clean lock pip-check
 
 # the project with its test and gw extras, every package at the version pinned in
 # constraints.txt (resolved by pip with dependencies; `pip check` must be clean)
@@ -78,14 +78,17 @@ demo-batch: $(STAMP)
 ## coverage: 519 s against 512 s for whole modules handed out longest first by such a table).
 ## One BLAS thread per process: the workers already fill the cores, and OpenBLAS threads that
 ## wait for a busy core spin (measured on a loaded machine: docs/diagnostics.md, "Measured")
-## The lint checks first (about a minute, mostly mypy), then the tests with line coverage of ttlcore,
-## streamer and stages measured in the test processes, not in the stage processes they start (a
-## summary of the files not fully covered, and the total). Coverage costs 30-40 % more CPU in
-## the in-process tests (measured on six ttlcore modules: 35-39 s -> 48-50 s user); `make test COV=`
-## runs without it.
-COV ?= --cov --cov-report=term:skip-covered
+## The lint checks first (about a minute, mostly mypy), then the tests. Line coverage is
+## `make coverage`'s: it costs 30-40 % more CPU in the in-process tests (measured on six ttlcore
+## modules: 35-39 s -> 48-50 s user), which took the suite past its 10 minutes on 2 cores.
 test: lint $(STAMP) pip-check
-	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist worksteal --durations=25 $(COV)
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist worksteal --durations=25
+
+## coverage: the fast suite with line coverage of ttlcore, streamer and stages measured in the
+## test processes, not in the stage processes they start (a summary of the files not fully
+## covered, and the total)
+coverage: $(STAMP)
+	OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 $(BIN)/python -m pytest -q -n auto --dist worksteal --cov --cov-report=term:skip-covered
 
 ## lint: ruff (lint rules and the formatting, checked not applied) over the tree and mypy over
 ## ttlcore, streamer and stages (configured in pyproject.toml: [tool.mypy] files); `ruff check --fix .

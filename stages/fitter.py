@@ -61,6 +61,7 @@ from streamer.pipeline_stage import OrderedStage
 from streamer.rangeset import RangeSet
 from streamer.recorder import to_jsonable
 from streamer.refit import refit_settings
+from streamer.segment_record import SegmentMeta, segment_meta
 from streamer.stage import Output, stage_main
 from ttlcore.diagnose.diagnoser import diagnose
 from ttlcore.errors import ConfigError, TTLError
@@ -157,11 +158,11 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         if self._restarted:
             self.restore_model()
 
-    def settings(self, meta: dict) -> FitSettings:
+    def settings(self, meta: SegmentMeta) -> FitSettings:
         """The rolling fit's settings: the fitter's FFT segment (else the message's
         ``segment_duration``, else 1 h) and band (else the default), the message's DWS ASD."""
-        segment = self.fit_segment or float(meta.get("segment_duration") or 3600.0)
-        dws_asd = float(meta["dws_asd"]) if meta.get("dws_asd") is not None else None
+        segment = self.fit_segment or float(meta.segment_duration or 3600.0)
+        dws_asd = float(meta.dws_asd) if meta.dws_asd is not None else None
         settings = FitSettings(segment_duration=segment, dws_asd=dws_asd)
         return replace(settings, band=self.band) if self.band else settings
 
@@ -227,7 +228,7 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
                 self.window_telemetry(),
                 self.effects,
                 change["before"] if change else ["linear-ttl"],
-                dws_asd=header.meta.get("dws_asd"),
+                dws_asd=segment_meta(header).dws_asd,
                 band=self.band,
                 effect_modules=self.effect_modules,
                 transients=self.rolling.excluded if self.rolling else (),
@@ -267,7 +268,7 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
             report = diagnose(
                 self.window_telemetry(),
                 self.effects,
-                settings=refit_settings(header.meta.get("dws_asd"), self.band),
+                settings=refit_settings(segment_meta(header).dws_asd, self.band),
                 effect_modules=self.effect_modules,
                 progress=stop_check(lambda: self.stopping),
             )
@@ -390,7 +391,9 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         if column_effects:
             push, owners, xyz = self.rolling_model.with_columns(td, self.window_tm.telemetry, tm)
         if self.rolling is None:
-            self.rolling = self.rolling_model.new_fit(self.settings(header.meta), self.window_duration, push.names)
+            self.rolling = self.rolling_model.new_fit(
+                self.settings(segment_meta(header)), self.window_duration, push.names
+            )
             self.log.info(
                 "rolling fit: FFT segment %g s, window %g s, band %s, %d regressors",
                 self.rolling.settings.segment_duration,
@@ -412,7 +415,9 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         (:meth:`stages.rolling_model.RollingModel.rebuilt`): when the rolling model's columns
         change (a model change)."""
         window = self.window_tm.telemetry
-        self.rolling = self.rolling_model.rebuilt(self.settings(header.meta), self.window_duration, names, window)
+        self.rolling = self.rolling_model.rebuilt(
+            self.settings(segment_meta(header)), self.window_duration, names, window
+        )
         self.event(
             "rolling-rebuilt",
             index=header.index,

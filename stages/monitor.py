@@ -96,6 +96,8 @@ from streamer.keys import ERRORS, topic_pattern
 from streamer.pipeline_stage import PipelineStage
 from streamer.processes import stop_process
 from streamer.recorder import to_jsonable
+from streamer.residual_record import ResidualMessage
+from streamer.segment_record import segment_meta
 from streamer.stage import Output, set_aside, stage_main
 from streamer.viewer import LiveFanout, compact_rrd, start_live
 from ttlcore.conventions import COEFFICIENT_NAMES
@@ -420,12 +422,13 @@ class Monitor(PipelineStage[MonitorOptions]):
     # ------------------------------------------------------------------ telemetry
     def on_telemetry(self, header, arrays):
         self.noise.telemetry(header.index, arrays["ltt"])
-        truth = header.meta.get("truth")
+        meta = segment_meta(header)
+        truth = meta.truth
         if self.truth.is_new(truth):
             self.truth.source = truth
             self._time(header.t0, header.index)
             try:
-                self.truth.load(truth, block=float(header.meta.get("segment_duration") or 3600.0))
+                self.truth.load(truth, block=float(meta.segment_duration or 3600.0))
                 if isinstance(truth, dict):  # a simulation on the fly: its coefficient model
                     self.text("log", "simulated on the fly: the simulation's true coefficients drawn beside the fits")
                 else:
@@ -466,11 +469,12 @@ class Monitor(PipelineStage[MonitorOptions]):
 
     def on_residual(self, header, arrays):
         self._time(header.t0, header.index)
-        f, asd, ratio = self.noise.residual(self.rec, header, arrays)
+        meta = ResidualMessage.from_header(header.meta, f"residual {header.index}")
+        f, asd, ratio = self.noise.residual(self.rec, header, arrays, meta.effects or ())
         if np.isfinite(ratio) and ratio > 0:
             self.series.log("adequacy/log10_residual_over_expected", math.log10(ratio), self._now)
         self._ratio = (header.index, ratio if math.isfinite(ratio) else None)
-        self.timeline.residual(header.index, header.meta.get("fit_index"), f, asd, ratio)
+        self.timeline.residual(header.index, meta.fit_index, f, asd, ratio)
         return ()
 
     # ------------------------------------------------------------------ fits and trends
@@ -549,9 +553,9 @@ class Monitor(PipelineStage[MonitorOptions]):
                     "WARN",
                 )
         # the live diagnosis, when there is one
-        views.diagnosis_document(self.rec, index, dict(meta.diagnosis) if meta.diagnosis is not None else None)
-        views.model_change(self.rec, index, dict(meta.model_change) if meta.model_change is not None else None)
-        views.candidate_ranking(self.rec, index, [dict(c) for c in meta.candidates] if meta.candidates else None)
+        views.diagnosis_document(self.rec, index, meta.diagnosis)
+        views.model_change(self.rec, index, meta.model_change)
+        views.candidate_ranking(self.rec, index, meta.candidates)
 
     def status(self, index: int) -> Output:
         """The ``monitor/<i>`` message of segment ``i`` (:mod:`stages.monitor_status`): trend
@@ -559,13 +563,13 @@ class Monitor(PipelineStage[MonitorOptions]):
         arrays = drift_arrays(self.trends)
         alerts, self._pending_alerts = self._pending_alerts, []
         t0, fs = self._segment_time.get(index, (0.0, 1.0))
-        meta = status_meta(self.trends, alerts, self._ratio, self._last_fit, self.segments_total)
+        meta = status_meta(self.trends, alerts, self._ratio, self._last_fit, self.segments_total, f"monitor {index}")
         return Output(
             self.output_topic,
             arrays,
             index=index,
-            fields={"t0": t0, "fs": fs, "units": UNITS, "meta": to_jsonable(meta)},
-            summary=to_jsonable({"run": self.run_id, "index": index, **meta, **arrays}),
+            fields={"t0": t0, "fs": fs, "units": UNITS, "meta": meta.to_header()},
+            summary=to_jsonable({"run": self.run_id, "index": index, **meta.summary_fields(), **arrays}),
         )
 
 

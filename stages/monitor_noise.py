@@ -8,9 +8,12 @@ come from :mod:`ttlcore.estimate.monitoring`, the drawing from :mod:`stages.moni
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 
-from ttlcore.conventions import ARM_LENGTH, LINKS, C
+from streamer.segment_record import segment_meta
+from ttlcore.conventions import ARM_LENGTH, C
 from ttlcore.estimate.monitoring import MIN_SAMPLES, band_ratio, channel_asd, reference_curves
 from ttlcore.estimate.spectra import longest_run
 
@@ -51,9 +54,7 @@ class NoiseCurves:
     def ltt_of(self, header) -> np.ndarray:
         """Mean light travel times [s] of a segment: its meta ``ltt_mean``, else its telemetry's,
         else the latest segment's, else the nominal arms."""
-        v = header.meta.get("ltt_mean")
-        if isinstance(v, dict):
-            v = [v.get(link) for link in LINKS]
+        v = segment_meta(header).ltt_mean
         try:
             arr = np.asarray(v, dtype=float)
             if arr.shape == (6,) and np.all(np.isfinite(arr)):
@@ -83,8 +84,9 @@ class NoiseCurves:
         views.noise_curve(rec, "data", f, asd, self.band)
         self.references(rec, header, f_welch)
 
-    def residual(self, rec, header, arrays) -> tuple[np.ndarray, np.ndarray, float]:
-        """The residual's, the fitted TTL's and the other effects' ASDs of a residual message;
+    def residual(self, rec, header, arrays, effects: Sequence[str] = ()) -> tuple[np.ndarray, np.ndarray, float]:
+        """The residual's, the fitted TTL's and the other effects' ASDs of a residual message
+        (``effects``: its meta's, :attr:`streamer.residual_record.ResidualMessage.effects`);
         returns the residual's ``(f, asd)`` and its in-band median ratio to the expected noise."""
         f, asd, f_welch = channel_asd(arrays["residual"][0], header.fs, self.per_decade)
         views.noise_curve(rec, "residual", f, asd, self.band)
@@ -93,15 +95,15 @@ class NoiseCurves:
         if model.size >= MIN_SAMPLES and np.any(model != 0):
             fm, am, _ = channel_asd(model, header.fs, self.per_decade)
             views.noise_curve(rec, "ttl_model", fm, am, self.band)
-        self.effect_curves(rec, header, arrays)
+        self.effect_curves(rec, header, arrays, effects)
         f_ref, expected = self.references(rec, header, f_welch)["expected"]
         return f, asd, band_ratio(f, asd, f_ref, expected, self.band)
 
-    def effect_curves(self, rec, header, arrays) -> None:
+    def effect_curves(self, rec, header, arrays, specs: Sequence[str]) -> None:
         """The X2 ASD of each effect of the model beyond the linear TTL that the subtractor
-        took away (array ``effect_model`` (k, 3, n), meta ``effects``), labelled with the
-        effect's name; at most :data:`views.EFFECT_COLORS` of them."""
-        parts, specs = arrays.get("effect_model"), header.meta.get("effects") or []
+        took away (array ``effect_model`` (k, 3, n), the residual's meta ``effects``
+        ``specs``), labelled with the effect's name; at most :data:`views.EFFECT_COLORS` of them."""
+        parts = arrays.get("effect_model")
         if parts is None or parts.ndim != 3 or parts.shape[0] != len(specs):
             return
         for k, spec in enumerate(specs[: len(views.EFFECT_COLORS)]):

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from streamer.monitor_record import MonitorMessage
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.trends import Alert, TrendMonitor
 
@@ -29,21 +30,28 @@ def drift_arrays(trends: TrendMonitor) -> dict[str, np.ndarray]:
 
 
 def status_meta(
-    trends: TrendMonitor, alerts: list[Alert], ratio: tuple | None, last_fit: dict | None, segments_total: int | None
-) -> dict:
-    """The meta of a monitor message: ``alerts`` (raised since the previous message),
-    ``drifting``, ``drift_windows``, ``model_epoch`` (the model epoch the trends are in:
+    trends: TrendMonitor,
+    alerts: list[Alert],
+    ratio: tuple | None,
+    last_fit: dict | None,
+    segments_total: int | None,
+    message: str = "monitor message",
+) -> MonitorMessage:
+    """The meta of a monitor message (:class:`streamer.monitor_record.MonitorMessage`):
+    ``alerts`` (raised since the previous message), ``drifting``, ``drift_windows``,
+    ``model_epoch`` (the model epoch the trends are in:
     :class:`ttlcore.diagnose.trends.ModelEpoch`, None before the first fit),
     ``residual_over_expected`` (the latest in-band median ASD ratio ``ratio`` = (segment,
     ratio)), ``fit`` (the latest fit: index, chi2_dof, window), ``segments_total``."""
     est = trends.estimates
-    return {
-        "names": list(COEFFICIENT_NAMES),
-        "alerts": [a.to_json() for a in alerts],
-        "drifting": sorted(trends.drifting),
-        "drift_windows": est.windows if est else 0,
-        "model_epoch": trends.epoch.to_json() if trends.epoch else None,
-        "residual_over_expected": {"index": ratio[0], "ratio": ratio[1]} if ratio else None,
-        "fit": last_fit,
-        "segments_total": segments_total,
-    }
+    return MonitorMessage.build(
+        message,
+        names=list(COEFFICIENT_NAMES),
+        alerts=[a.to_json() for a in alerts],
+        drifting=sorted(trends.drifting),
+        drift_windows=est.windows if est else 0,
+        model_epoch=trends.epoch.to_json() if trends.epoch else None,
+        residual_over_expected={"index": ratio[0], "ratio": ratio[1]} if ratio else None,
+        fit=last_fit,
+        segments_total=segments_total,
+    )

@@ -43,7 +43,7 @@ from typing import Literal
 import numpy as np
 import rerun as rr
 
-from streamer.fit_record import FitMessage
+from streamer.fit_record import FitMessage, ModelChange
 from streamer.model_timeline import SpanMerger, change_text, excluded_kind, model_delta
 from ttlcore.diagnose.trends import model_key
 
@@ -141,7 +141,7 @@ class ModelTimeline:
         self._adequacy(index, meta, centre)
         adoption = meta.adopted
         if adoption is not None:
-            self.adoption = {"index": index, "reason": adoption.get("reason")}
+            self.adoption = {"index": index, "reason": adoption.reason}
         self.at(t_stop, index)
         return said
 
@@ -172,9 +172,10 @@ class ModelTimeline:
             "bands": None,
         }
         mc = meta.model_change
-        if mc is not None and isinstance(mc.get("bands_before"), list) and isinstance(mc.get("bands_after"), list):
-            change["bands"] = (self._labels(meta, mc), mc["bands_before"], mc["bands_after"], "the window refitted")
-            change["chi2"] = (mc.get("chi2_dof_before"), mc.get("chi2_dof_after"))
+        if mc is not None and mc.bands_before is not None and mc.bands_after is not None:
+            before, after = list(mc.bands_before), list(mc.bands_after)
+            change["bands"] = (self._labels(meta, mc, len(after)), before, after, "the window refitted")
+            change["chi2"] = (mc.chi2_dof_before, mc.chi2_dof_after)
         elif self.bands is not None:
             change["bands_before"] = self.bands
         self.changes = (self.changes + [change])[-KEEP:]
@@ -211,14 +212,16 @@ class ModelTimeline:
             self.active.add(spec)
             self._lane_point(lane, t, style=True)
 
-    def _labels(self, meta: FitMessage, mc) -> list[str]:
+    def _labels(self, meta: FitMessage, mc: ModelChange, n: int) -> list[str]:
+        """The labels of the ``n`` bands of a model change: the fit's adequacy bands, else
+        the change's band edges."""
         bands = [b.to_json() for b in meta.adequacy.bands] if meta.adequacy is not None else None
-        if bands is not None and len(bands) == len(mc["bands_after"]):
+        if bands is not None and len(bands) == n:
             return [views.band_label(b) for b in bands]
-        edges = mc.get("band_edges")
-        if isinstance(edges, list) and len(edges) == len(mc["bands_after"]) + 1:
+        edges = mc.band_edges
+        if edges is not None and len(edges) == n + 1:
             return [f"{a:.3g}-{b:.3g} Hz" for a, b in zip(edges[:-1], edges[1:])]
-        return [f"band {g}" for g in range(len(mc["bands_after"]))]
+        return [f"band {g}" for g in range(n)]
 
     # ------------------------------------------------------------------ lanes
     def _lane_of(self, spec: str) -> int:

@@ -10,7 +10,7 @@ a window's average is dropped: no more truth is drawn.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Iterator, Mapping
 
 import numpy as np
 
@@ -38,7 +38,7 @@ class FitTruth:
     def __init__(self, warn: Callable[[str], None]):
         self.warn = warn
         self.truth: ModelTruth | FileTruth | None = None
-        self.source: str | dict | None = None
+        self.source: str | Mapping | None = None
         self.windows: dict[int, tuple[float, float, np.ndarray, np.ndarray]] = {}
 
     def is_new(self, named) -> bool:

@@ -58,6 +58,8 @@ import numpy as np
 import rerun as rr
 import rerun.blueprint as rrb
 
+from streamer.diagnosis_record import LiveDiagnosis
+from streamer.fit_record import ModelChange, RankedCandidate
 from ttlcore.conventions import COEFFICIENT_NAMES, PAPER_ORDER
 
 #: Curves of the noise view: name -> (legend label, RGB).
@@ -474,27 +476,24 @@ def summary_document(rec, progress: str, alerts: list[str], bands: list[str], ep
     rec.log(SUMMARY, rr.TextDocument("\n".join(lines), media_type="text/markdown"))
 
 
-def diagnosis_document(rec, index: int, diagnosis) -> bool:
+def diagnosis_document(rec, index: int, diagnosis: LiveDiagnosis | None) -> bool:
     """The live diagnosis of fit ``index`` (its meta ``diagnosis``: ``text`` and, when
     present, ``recommendation``) as a markdown document; False (nothing drawn) when the
     meta has no usable text."""
-    if not isinstance(diagnosis, dict) or not isinstance(diagnosis.get("text"), str) or not diagnosis["text"].strip():
+    if diagnosis is None or diagnosis.text is None or not diagnosis.text.strip():
         return False
-    lines = [f"**Fit {index}**", "", diagnosis["text"].strip()]
-    recommendation = diagnosis.get("recommendation")
-    if not isinstance(recommendation, str) and recommendation is not None:  # e.g. a model to refit with
-        recommendation = json.dumps(recommendation, default=str)
-    if recommendation and recommendation.strip():
-        lines += ["", f"**Recommendation:** {recommendation.strip()}"]
+    lines = [f"**Fit {index}**", "", diagnosis.text.strip()]
+    if diagnosis.recommendation is not None:
+        lines += ["", f"**Recommendation:** {json.dumps(diagnosis.recommendation.to_json(), default=str).strip()}"]
     rec.log(DIAGNOSIS, rr.TextDocument("\n".join(lines), media_type="text/markdown"))
     return True
 
 
-def model_change(rec, index: int, change) -> None:
+def model_change(rec, index: int, change: ModelChange | None) -> None:
     """A fit's ``model_change`` (meta): a line of the model log (the models, chi^2/dof before
     and after, delta chi^2, log Bayes factor) and the per-band chi^2/dof before and after as
-    bar charts (``model/before``, ``model/after``).  Nothing when ``change`` is not a dict."""
-    if not isinstance(change, dict):
+    bar charts (``model/before``, ``model/after``).  Nothing when there is none."""
+    if change is None:
         return
 
     def fmt(x):
@@ -503,33 +502,25 @@ def model_change(rec, index: int, change) -> None:
     text(
         rec,
         "model/log",
-        f"fit {index}: model {','.join(change.get('before') or ())} -> "
-        f"{','.join(change.get('after') or ())}: χ²/dof {fmt(change.get('chi2_dof_before'))}"
-        f" -> {fmt(change.get('chi2_dof_after'))}, Δχ² {fmt(change.get('delta_chi2'))}, "
-        f"log Bayes factor {fmt(change.get('log_bayes_factor'))}",
+        f"fit {index}: model {','.join(change.before)} -> "
+        f"{','.join(change.after)}: χ²/dof {fmt(change.chi2_dof_before)}"
+        f" -> {fmt(change.chi2_dof_after)}, Δχ² {fmt(change.delta_chi2)}, "
+        f"log Bayes factor {fmt(change.log_bayes_factor)}",
     )
-    for part in ("before", "after"):
-        values = change.get(f"bands_{part}")
-        if isinstance(values, list) and values:
-            rec.log(
-                f"model/{part}",
-                rr.BarChart(np.array([v if isinstance(v, (int, float)) else np.nan for v in values], dtype=float)),
-            )
+    for part, values in (("before", change.bands_before), ("after", change.bands_after)):
+        if values:
+            rec.log(f"model/{part}", rr.BarChart(np.array([np.nan if v is None else v for v in values], dtype=float)))
 
 
-def candidate_ranking(rec, index: int, candidates) -> None:
+def candidate_ranking(rec, index: int, candidates: tuple[RankedCandidate, ...] | None) -> None:
     """A fit's ``candidates`` (meta): a line of the model log and their delta chi^2 as a bar
     chart (``model/candidates``).  Nothing when there are none."""
-    if not isinstance(candidates, list) or not candidates:
+    if not candidates:
         return
     lines = [
-        f"{c.get('effect')}: Δχ² {c.get('delta_chi2', 0):.1f}, log BF {c.get('log_bayes_factor', 0):.1f}"
-        f"{' (significant)' if c.get('significant') else ''}"
+        f"{c.effect}: Δχ² {c.delta_chi2 or 0:.1f}, log BF {c.log_bayes_factor or 0:.1f}"
+        f"{' (significant)' if c.significant else ''}"
         for c in candidates
-        if isinstance(c, dict)
     ]
     text(rec, "model/log", f"fit {index}: top candidates: " + "; ".join(lines))
-    rec.log(
-        "model/candidates",
-        rr.BarChart(np.array([float(c.get("delta_chi2") or 0.0) for c in candidates if isinstance(c, dict)])),
-    )
+    rec.log("model/candidates", rr.BarChart(np.array([float(c.delta_chi2 or 0.0) for c in candidates])))

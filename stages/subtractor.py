@@ -42,6 +42,7 @@ from streamer.messages import P, tdi_expect, tdi_of
 from streamer.pipeline_stage import PipelineStage
 from streamer.rangeset import RangeSet
 from streamer.recorder import to_jsonable
+from streamer.residual_record import ResidualMessage
 from streamer.stage import Output, stage_main
 from streamer.stage_options import StageOptions, nonnegative_float, option, positive_float
 from ttlcore.conventions import COEFFICIENT_NAMES
@@ -359,17 +360,16 @@ class Subtractor(PipelineStage[SubtractorOptions]):
                 "data": np.sqrt(np.nanmean(td.data**2, axis=1)),
                 "residual": np.sqrt(np.nanmean(residual**2, axis=1)),
             }
-        meta = {
-            "fit_index": fit_index,
-            "coefficients_t_start": fit["t_start"],
-            "coefficients_t_stop": fit["t_stop"],
-            "segments_total": self.segments_total,
-            "effects": list(parts),
-        }
-        if missing:
-            meta["model_parts_missing"] = missing
-        if fit.get("stale"):
-            meta["fit_stale"] = fit["stale"]  # the fit applied is an earlier one's again, not fresh
+        meta = ResidualMessage.build(
+            f"residual {header.index}",
+            fit_index=fit_index,
+            coefficients_t_start=fit["t_start"],
+            coefficients_t_stop=fit["t_stop"],
+            segments_total=self.segments_total,
+            effects=list(parts),
+            model_parts_missing=missing or None,
+            fit_stale=fit.get("stale") or None,  # the fit applied is an earlier one's again, not fresh
+        )
         arrays = {"residual": residual, "ttl_model": model}
         if parts:
             arrays["effect_model"] = np.stack(list(parts.values()))
@@ -383,7 +383,7 @@ class Subtractor(PipelineStage[SubtractorOptions]):
                 "channels": list(XYZ),
                 "channel_axis": {"residual": 0, "ttl_model": 0, "effect_model": 1},
                 "units": UNITS,
-                "meta": to_jsonable(meta),
+                "meta": meta.to_header(),
             },
             summary=to_jsonable(
                 {

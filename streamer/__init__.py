@@ -11,6 +11,10 @@ codec
 session
     Zenoh sessions (loopback peer by default, routers, config files), segment
     publishers/subscribers (``zenoh.ext`` advanced pub/sub), liveliness, :class:`Bus`.
+fit_record, residual_record, monitor_record, segment_record, diagnosis_record
+    The messages' meta as values, read by attribute (``FitMessage``, ``ResidualMessage``,
+    ``MonitorMessage``, ``SegmentMeta``, ``LiveDiagnosis``); their schema rule and checks in
+    ``message_schema``.
 recorder
     MCAP recording and salvaging reader.
 stage

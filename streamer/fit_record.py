@@ -9,7 +9,8 @@ and reads attributes.
 
 Schema rule: :data:`SCHEMA` is the ``"schema"`` field of the header.  A header at the current
 schema is read strictly: a missing required field, an unknown field or a field of the wrong
-type is a :class:`MessageError` naming the message and the field.  A header without
+type is a :class:`MessageError` naming the message and the field (the rule and the checks
+are :mod:`streamer.message_schema`'s, shared with the residual and the monitor's status).  A header without
 ``"schema"`` (written before the field existed: the recordings on disk) is read as schema 0:
 the same fields, all optional (absent ones are None), unknown fields dropped (logged at debug
 level), types still checked.  Adding a field: add it to :class:`FitMessage` (optional, default
@@ -20,14 +21,13 @@ schema would misread the new header; removing or renaming one always bumps it.
 from __future__ import annotations
 
 import dataclasses
-import logging
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, ClassVar
 
+from .diagnosis_record import Adoption, LiveDiagnosis
+from .message_schema import MessageError, WireObject, check, read_fields
 from .record_schemas import to_jsonable
-
-log = logging.getLogger(__name__)
 
 #: The schema version written in the ``"schema"`` field of a fit message's meta.
 SCHEMA = 1
@@ -44,35 +44,6 @@ SUMMARY_META = (
     "model_update",
     "rolling",
 )
-
-
-class MessageError(ValueError):
-    """A message's meta that is not what its schema says: names the message and the field."""
-
-    def __init__(self, message: str, field_name: str, what: str):
-        self.message = message
-        self.field = field_name
-        super().__init__(f"{message}: meta field {field_name!r}: {what}")
-
-
-def _is_number(v) -> bool:
-    return isinstance(v, (int, float)) and not isinstance(v, bool)
-
-
-def _check(where: str, name: str, kind: str, v) -> None:
-    """Raise a :class:`MessageError` when ``v`` is not of ``kind`` (None is checked by the caller)."""
-    ok = {
-        "number": _is_number(v),
-        "int": isinstance(v, int) and not isinstance(v, bool),
-        "bool": isinstance(v, bool),
-        "str": isinstance(v, str),
-        "strs": isinstance(v, (list, tuple)) and all(isinstance(x, str) for x in v),
-        "numbers": isinstance(v, (list, tuple)) and all(_is_number(x) or x is None for x in v),
-        "dict": isinstance(v, Mapping),
-        "list": isinstance(v, (list, tuple)),
-    }[kind]
-    if not ok:
-        raise MessageError(where, name, f"expected {kind}, got {type(v).__name__} {str(v)[:60]!r}")
 
 
 @dataclass(frozen=True)
@@ -113,7 +84,7 @@ class Adequacy:
     @classmethod
     def from_json(cls, obj, where: str) -> Adequacy:
         name = "adequacy"
-        _check(where, name, "dict", obj)
+        check(where, name, "dict", obj)
         unknown = set(obj) - {"noise_model", "chi2_dof", "fails", "summary", "bands", "gates"}
         if unknown:
             raise MessageError(where, name, f"unknown fields {sorted(unknown)}")
@@ -123,16 +94,16 @@ class Adequacy:
         bands = []
         for i, b in enumerate(obj.get("bands") or ()):
             w = f"{name}.bands[{i}]"
-            _check(where, w, "dict", b)
+            check(where, w, "dict", b)
             try:
                 bands.append(AdequacyBand(**b))
             except TypeError as exc:
                 raise MessageError(where, w, str(exc)) from None
         gates = obj.get("gates")
         if obj["chi2_dof"] is not None:
-            _check(where, f"{name}.chi2_dof", "number", obj["chi2_dof"])
-        _check(where, f"{name}.fails", "bool", obj["fails"])
-        _check(where, f"{name}.summary", "strs", obj.get("summary") or ())
+            check(where, f"{name}.chi2_dof", "number", obj["chi2_dof"])
+        check(where, f"{name}.fails", "bool", obj["fails"])
+        check(where, f"{name}.summary", "strs", obj.get("summary") or ())
         return cls(
             chi2_dof=obj["chi2_dof"],
             fails=obj["fails"],
@@ -156,12 +127,69 @@ class RollingEstimate:
 
     @classmethod
     def from_json(cls, obj, where: str) -> RollingEstimate:
-        _check(where, "rolling", "dict", obj)
+        check(where, "rolling", "dict", obj)
         if set(obj) != {"coefficients", "sigma"}:
             raise MessageError(where, "rolling", f"expected coefficients and sigma, got {sorted(obj)}")
-        _check(where, "rolling.coefficients", "numbers", obj["coefficients"])
-        _check(where, "rolling.sigma", "numbers", obj["sigma"])
+        check(where, "rolling.coefficients", "numbers", obj["coefficients"])
+        check(where, "rolling.sigma", "numbers", obj["sigma"])
         return cls(tuple(obj["coefficients"]), tuple(obj["sigma"]))
+
+
+@dataclass(frozen=True)
+class ModelChange(WireObject):
+    """A model change the window refit reports (meta ``model_change``): the models
+    ``before`` and ``after`` (effect specs) refitted on the same window, their chi^2/dof
+    overall and per band (edges ``band_edges`` [Hz]), and the evidence for ``after``
+    (``delta_chi2``, ``log_bayes_factor``; None when the models cannot be compared)."""
+
+    NAME: ClassVar[str] = "model_change"
+    KINDS: ClassVar[dict[str, tuple[str, bool]]] = {
+        "before": ("strs", True),
+        "after": ("strs", True),
+        "chi2_dof_before": ("number", False),
+        "chi2_dof_after": ("number", False),
+        "bands_before": ("numbers", False),
+        "bands_after": ("numbers", False),
+        "delta_chi2": ("number", False),
+        "log_bayes_factor": ("number", False),
+        "band_edges": ("numbers", False),
+    }
+
+    before: tuple[str, ...]
+    after: tuple[str, ...]
+    chi2_dof_before: float | None = None
+    chi2_dof_after: float | None = None
+    bands_before: tuple[float | None, ...] | None = None
+    bands_after: tuple[float | None, ...] | None = None
+    delta_chi2: float | None = None
+    log_bayes_factor: float | None = None
+    band_edges: tuple[float, ...] | None = None
+    keys: tuple[str, ...] = field(default=(), compare=False, repr=False)
+
+
+@dataclass(frozen=True)
+class RankedCandidate(WireObject):
+    """An effect not in the model ranked by the window refit (an entry of meta
+    ``candidates``, best first): its name and spec, ``delta_chi2``, ``log_bayes_factor``,
+    the ``explained_fraction`` of the excess and whether it is ``significant``."""
+
+    NAME: ClassVar[str] = "candidates[]"
+    KINDS: ClassVar[dict[str, tuple[str, bool]]] = {
+        "effect": ("str", True),
+        "spec": ("str", False),
+        "delta_chi2": ("number", False),
+        "log_bayes_factor": ("number", False),
+        "explained_fraction": ("number", False),
+        "significant": ("bool", False),
+    }
+
+    effect: str
+    spec: str | None = None
+    delta_chi2: float | None = None
+    log_bayes_factor: float | None = None
+    explained_fraction: float | None = None
+    significant: bool | None = None
+    keys: tuple[str, ...] = field(default=(), compare=False, repr=False)
 
 
 #: The fields of :class:`FitMessage` on the wire: (type, required at the current schema).
@@ -206,7 +234,9 @@ class FitMessage:
     ``model_change``, ``candidates``, ``rolling``), the live diagnosis (``diagnosis``), the
     staleness check (``stale``), the left-out FFT segment (``excluded``) and the recorder
     (``recorded``) add.  Nested values a reader needs the fields of are values
-    (:class:`Adequacy`, :class:`RollingEstimate`); the others stay JSON (dicts and lists).
+    (:class:`Adequacy`, :class:`RollingEstimate`, :class:`ModelChange`,
+    :class:`RankedCandidate`, :class:`streamer.diagnosis_record.LiveDiagnosis`); the others
+    stay JSON (dicts and lists).
     """
 
     names: tuple[str, ...] | None = None
@@ -230,9 +260,9 @@ class FitMessage:
     rolling: RollingEstimate | None = None
     adequacy: Adequacy | None = None
     window: Mapping[str, Any] | None = None
-    model_change: Mapping[str, Any] | None = None
-    candidates: tuple[Mapping[str, Any], ...] | None = None
-    diagnosis: Mapping[str, Any] | None = None
+    model_change: ModelChange | None = None
+    candidates: tuple[RankedCandidate, ...] | None = None
+    diagnosis: LiveDiagnosis | None = None
     stale: Mapping[str, Any] | None = None
     excluded: Mapping[str, Any] | None = None
     recorded: Mapping[str, Any] | None = None
@@ -244,29 +274,8 @@ class FitMessage:
         """The value of a fit message's ``meta`` (``message`` names it in errors: its key or
         index).  Raises :class:`MessageError` on a field missing, unknown or of the wrong type
         (a header without ``schema`` is read leniently, see the module's docstring)."""
-        if not isinstance(meta, Mapping):
-            raise MessageError(message, "meta", f"expected a mapping, got {type(meta).__name__}")
-        schema = meta.get("schema", 0)
-        if not isinstance(schema, int) or isinstance(schema, bool) or not 0 <= schema <= SCHEMA:
-            raise MessageError(message, "schema", f"this reader knows schemas 0 to {SCHEMA}, got {schema!r}")
-        strict = schema >= 1
-        unknown = sorted(set(meta) - set(_FIELDS) - {"schema"})
-        if unknown and strict:
-            raise MessageError(message, unknown[0], "unknown field" + (f" (and {unknown[1:]})" if unknown[1:] else ""))
-        if unknown:
-            log.debug("%s: schema-0 meta fields not read: %s", message, unknown)
-        values: dict[str, Any] = {"schema": schema}
-        for name, (kind, required) in _FIELDS.items():
-            if name not in meta:
-                if strict and required:
-                    raise MessageError(message, name, "missing")
-                continue
-            v = meta[name]
-            if v is None:
-                continue
-            _check(message, name, kind, v)
-            values[name] = _value(name, v, message)
-        return cls(**values)
+        schema, raw = read_fields(meta, message, _FIELDS, SCHEMA)
+        return cls(schema=schema, **{name: _value(name, v, message) for name, v in raw.items()})
 
     # ------------------------------------------------------------------ writing
     def to_header(self) -> dict:
@@ -291,7 +300,7 @@ class FitMessage:
         for name, v in fields.items():
             v = to_jsonable(v)
             if v is not None:
-                _check(message, name, _FIELDS[name][0], v)
+                check(message, name, _FIELDS[name][0], v)
                 v = _value(name, v, message)
             values[name] = v
         return dataclasses.replace(self, **values)
@@ -302,10 +311,9 @@ class FitMessage:
 
     # ------------------------------------------------------------------ derived
     @property
-    def adopted(self) -> dict | None:
+    def adopted(self) -> Adoption | None:
         """The live diagnosis' adoption (``diagnosis.adoption``) when it adopted a model."""
-        adoption = self.diagnosis.get("adoption") if self.diagnosis is not None else None
-        return dict(adoption) if isinstance(adoption, Mapping) and adoption.get("adopted") is True else None
+        return self.diagnosis.adopted if self.diagnosis is not None else None
 
 
 def _value(name: str, v, message: str):
@@ -316,17 +324,110 @@ def _value(name: str, v, message: str):
         return RollingEstimate.from_json(v, message)
     if name in ("names", "model", "model_parts", "band"):
         return tuple(v)
+    if name == "diagnosis":
+        return LiveDiagnosis.from_json(v, message)
+    if name == "model_change":
+        return ModelChange.from_json(v, message)
     if name == "candidates":
-        for i, c in enumerate(v):
-            _check(message, f"candidates[{i}]", "dict", c)
-        return tuple(v)
+        return tuple(RankedCandidate.from_json(c, message, f"candidates[{i}]") for i, c in enumerate(v))
     return v
 
 
 def _json(v):
     """An attribute's value on the wire."""
-    if isinstance(v, (Adequacy, RollingEstimate)):
+    if isinstance(v, (Adequacy, RollingEstimate, WireObject, LiveDiagnosis)):
         return v.to_json()
     if isinstance(v, tuple):
         return [_json(x) for x in v]
     return v
+
+
+@dataclass(frozen=True)
+class FitSummary:
+    """A recorded fit summary (``fit/summary``, JSON schema ``ttl.Fit``;
+    :func:`stages.fit_message.fit_summary` writes it): the fit published for segment
+    ``index`` and the model's meta.
+
+    Two layouts are read: the fitter's (``coefficients``/``sigma`` lists in the order of
+    ``names``, ``t_start``, ``t_end``, the whole result under ``fit``, then the meta of
+    :data:`SUMMARY_META`) and a bare :meth:`ttlcore.estimate.fit.FitResult.to_json`
+    (coefficients and sigma by name, the window under ``fit.window``).  :meth:`to_dict` gives
+    the record back as it was.
+
+    Attributes
+    ----------
+    index : int
+    names : tuple of str
+    coefficients, sigma : list of float or None
+        In the order of ``names`` [m/rad].
+    covariance : list of list of float or None
+    t_start, t_stop : float or None
+        The fitted window [s].
+    chi2_dof : float or None
+    converged : bool or None
+    meta : FitMessage
+        The model's meta the summary repeats (:data:`SUMMARY_META`: ``model``,
+        ``adequacy``, ``diagnosis``...), read as a fit message without a schema.
+    """
+
+    index: int
+    names: tuple[str, ...]
+    coefficients: list | None
+    sigma: list | None
+    covariance: list | None
+    t_start: float | None
+    t_stop: float | None
+    chi2_dof: float | None
+    converged: bool | None
+    meta: FitMessage
+    record: Mapping[str, Any] = field(default_factory=dict, compare=False, repr=False)
+
+    @classmethod
+    def from_dict(cls, d, where: str = "fit/summary") -> FitSummary:
+        """The value of a recorded summary ``d``; a :class:`MessageError` naming ``where`` and
+        the field when ``d`` is not one (no integer ``index``, a field of the wrong type)."""
+        check(where, "record", "dict", d)
+        index = d.get("index")
+        check(where, "index", "int", index)
+        where = f"{where} {index}"
+        fit = _object(d.get("fit"))
+        names = d.get("names") or fit.get("names") or []
+        check(where, "names", "strs", names)
+        coefficients, sigma = d.get("coefficients"), d.get("sigma")
+        if isinstance(coefficients, Mapping):  # FitResult.to_json layout
+            coefficients = [coefficients.get(n) for n in names]
+        if isinstance(sigma, Mapping):
+            sigma = [sigma.get(n) for n in names]
+        window = _object(fit.get("window"))
+        values = {
+            "t_start": d.get("t_start", window.get("t_start")),
+            "t_stop": d.get("t_end", d.get("t_stop", window.get("t_stop"))),
+            "chi2_dof": d.get("chi2_dof", fit.get("chi2_dof")),
+        }
+        for name, v in values.items():
+            if v is not None:
+                check(where, name, "number", v)
+        converged = fit.get("converged", d.get("converged"))
+        if converged is not None:
+            check(where, "converged", "bool", converged)
+        meta = FitMessage.from_header({k: d[k] for k in SUMMARY_META if k in d}, where)
+        return cls(
+            index=index,
+            names=tuple(names),
+            coefficients=coefficients,
+            sigma=sigma,
+            covariance=d.get("covariance"),
+            converged=converged,
+            meta=meta,
+            record=d,
+            **values,
+        )
+
+    def to_dict(self) -> dict:
+        """The summary as it was recorded."""
+        return dict(self.record)
+
+
+def _object(v) -> Mapping[str, Any]:
+    """A JSON object, or an empty one for anything else."""
+    return v if isinstance(v, Mapping) else {}

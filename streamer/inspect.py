@@ -56,6 +56,7 @@ from .inspect_text import MAX_LISTED, format_report
 from .inspect_timeline import model_timeline
 from .keys import to_ranges
 from .recorder import Recording, RecordingError, read_recording, read_stop_note, to_jsonable
+from .segment_record import segments_total_of
 from .topology import STAGES
 from .viewer import no_display, rerun_binary, run_native_viewer
 from .webview import WebView
@@ -117,15 +118,15 @@ def _file_summary(path: Path, stage: str) -> tuple[dict, Recording | None]:
     events = rec.json("events")
     kinds = Counter(e.get("kind") for e in events if isinstance(e, dict))
     times = [t for e in events if isinstance(e, dict) and isinstance(t := e.get("time"), (int, float))]
-    meta = rec.metadata.get("ttl", {})
+    ttl_metadata = rec.metadata.get("ttl", {})  # the recording's metadata record, not a message's meta
     info = {
         "file": path.name,
         "readable": True,
         "complete": rec.complete,
         "problem": rec.problem,
         "records": rec.records,
-        "run": meta.get("run"),
-        "stage": meta.get("stage", stage),
+        "run": ttl_metadata.get("run"),
+        "stage": ttl_metadata.get("stage", stage),
         "started": min(times) if times else None,
         "last_event": max(times) if times else None,
         "stopped": "stop" in kinds,
@@ -173,8 +174,8 @@ def _stage_report(stage: str, files: list[Path]) -> tuple[dict, list[Recording]]
         for m in rec.messages:
             if m.kind == "segment":
                 (out_f if m.header.producer == name else in_f)[m.topic].append(m.header.index)
-                t = m.header.meta.get("segments_total") if isinstance(m.header.meta, dict) else None
-                if isinstance(t, int) and t > 0:
+                t = segments_total_of(m.header.meta)
+                if t is not None:
                     totals.add(t)
             elif (
                 m.kind == "json"

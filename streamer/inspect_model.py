@@ -6,6 +6,8 @@ live diagnoses."""
 
 from __future__ import annotations
 
+import logging
+
 import numpy as np
 
 from ttlcore.conventions import COEFFICIENT_NAMES
@@ -13,46 +15,53 @@ from ttlcore.diagnose.trends import TrendSettings, trend_estimates
 from ttlcore.estimate.monitoring import FileTruth
 from ttlcore.estimate.pulls import pull_summary
 
-from .fit_record import FitMessage
-from .inspect_records import json_object
+from .diagnosis_record import LiveRecommendation
+from .fit_record import FitMessage, FitSummary
+from .message_schema import MessageError
 from .recorder import RecordedSegment, Recording
+
+log = logging.getLogger(__name__)
 
 #: Span of the drift rate in the report [days] (ttlcore.diagnose.trends.TrendSettings.drift_lookback).
 LOOKBACK_DAYS = 3.0
+
+
+def fit_summaries(rec: Recording) -> list[FitSummary]:
+    """The fit summaries (``fit/summary``) of a recording as values; a record that is not one
+    (no integer index, a field of the wrong type) is left out and logged."""
+    out = []
+    for d in rec.json("fit/summary"):
+        try:
+            out.append(FitSummary.from_dict(d, f"{rec.path.name}: fit/summary"))
+        except MessageError as exc:
+            log.warning("%s: left out", exc)
+    return out
 
 
 def recorded_fits(recs: list[Recording]) -> list[dict]:
     """The fits of the fitter's recordings, one per index (a later file's fit wins)."""
     fits: dict[int, dict] = {}
     for rec in recs:
-        summaries = [d for d in rec.json("fit/summary") if isinstance(d, dict) and isinstance(d.get("index"), int)]
+        summaries = fit_summaries(rec)
         if summaries:
-            fits.update((d["index"], _summary_fit(d)) for d in summaries)
+            fits.update((s.index, _summary_fit(s)) for s in summaries)
         else:  # no summaries: the fit segments themselves
             fits.update((m.header.index, _segment_fit(m)) for m in rec.segments("fit") if "coefficients" in m.arrays)
     return [f for f in sorted(fits.values(), key=lambda f: f["index"]) if _usable(f)]
 
 
-def _summary_fit(d: dict) -> dict:
-    """The fit of a ``fit/summary`` record (its own layout, or FitResult.to_json's)."""
-    fit = json_object(d.get("fit"))
-    names = list(d.get("names") or fit.get("names") or [])
-    coeffs, sigma = d.get("coefficients"), d.get("sigma")
-    if isinstance(coeffs, dict):  # FitResult.to_json layout
-        coeffs = [coeffs[n] for n in names]
-    if isinstance(sigma, dict):
-        sigma = [sigma[n] for n in names]
-    window = json_object(fit.get("window"))
+def _summary_fit(s: FitSummary) -> dict:
+    """The fit of a ``fit/summary`` record."""
     return {
-        "index": d["index"],
-        "names": names,
-        "t_start": d.get("t_start", window.get("t_start")),
-        "t_stop": d.get("t_end", d.get("t_stop", window.get("t_stop"))),
-        "chi2_dof": d.get("chi2_dof", fit.get("chi2_dof")),
-        "converged": fit.get("converged", d.get("converged")),
-        "coefficients": coeffs,
-        "sigma": sigma,
-        "covariance": d.get("covariance"),
+        "index": s.index,
+        "names": list(s.names),
+        "t_start": s.t_start,
+        "t_stop": s.t_stop,
+        "chi2_dof": s.chi2_dof,
+        "converged": s.converged,
+        "coefficients": s.coefficients,
+        "sigma": s.sigma,
+        "covariance": s.covariance,
     }
 
 
@@ -173,40 +182,40 @@ def model_report(recs: list[Recording]) -> dict:
                         "file": rec.path.name,
                     }
                 )
-        for d in rec.json("fit/summary"):
-            if not isinstance(d, dict) or not isinstance(d.get("index"), int):
-                continue
-            if isinstance(d.get("model"), list):
-                last_model = (d["index"], d["model"])
-            diag = d.get("diagnosis")
-            if isinstance(diag, dict):
-                rec_ = json_object(diag.get("recommendation"))
-                diagnoses[d["index"]] = {
-                    "index": d["index"],
-                    "segments": diag.get("segments"),
-                    "model": diag.get("model"),
-                    "chi2_dof": diag.get("chi2_dof"),
-                    "fails": diag.get("fails"),
-                    "failing_bands": [
-                        [b.get("f_lo"), b.get("f_hi"), b.get("chi2_dof")]
-                        for b in diag.get("bands") or []
-                        if isinstance(b, dict) and b.get("fails")
-                    ],
-                    "failing_hours": diag.get("failing_hours"),
-                    "summary": diag.get("summary"),
+        for summary in fit_summaries(rec):
+            meta = summary.meta
+            if meta.model is not None:
+                last_model = (summary.index, list(meta.model))
+            diag = meta.diagnosis
+            if diag is not None:
+                rec_ = diag.recommendation or LiveRecommendation()
+                diagnoses[summary.index] = {
+                    "index": summary.index,
+                    "segments": _list(diag.segments),
+                    "model": _list(diag.model),
+                    "chi2_dof": diag.chi2_dof,
+                    "fails": diag.fails,
+                    "failing_bands": diag.failing_bands,
+                    "failing_hours": _list(diag.failing_hours),
+                    "summary": _list(diag.summary),
                     # advised only with an option (offline) or a command (live): a best
                     # candidate that explains nothing is in the message, not recommended
-                    "recommendation": rec_.get("spec") if rec_.get("option") or rec_.get("command") else None,
-                    "effects": rec_.get("effects"),
-                    "explains": rec_.get("explains"),
-                    "command": rec_.get("command"),
-                    "message": rec_.get("message"),
-                    "adoption": diag.get("adoption"),
-                    "removal": [x for x in diag.get("removal") or [] if isinstance(x, dict)],
-                    "text": diag.get("text"),
+                    "recommendation": rec_.advised,
+                    "effects": _list(rec_.effects),
+                    "explains": rec_.explains,
+                    "command": rec_.command,
+                    "message": rec_.message,
+                    "adoption": diag.adoption.to_json() if diag.adoption is not None else None,
+                    "removal": _list(diag.removal) or [],
+                    "text": diag.text,
                 }
     return {
         "model": None if last_model is None else {"index": last_model[0], "effects": last_model[1]},
         "changes": changes,
         "diagnoses": [diagnoses[i] for i in sorted(diagnoses)],
     }
+
+
+def _list(v) -> list | None:
+    """A tuple attribute as the report's list (None stays None)."""
+    return None if v is None else list(v)

@@ -25,6 +25,7 @@ a change of the transients ``glitch`` and ``gate`` only does not,
 from __future__ import annotations
 
 from .fit_record import FitMessage
+from .inspect_model import fit_summaries
 from .inspect_records import json_object
 from .keys import to_ranges
 from .model_timeline import SpanMerger, model_delta
@@ -36,10 +37,10 @@ def _fit_models(recs: list[Recording]) -> dict[int, list]:
     segments' meta), a later file's fit winning."""
     models: dict[int, list] = {}
     for rec in recs:
-        summaries = [d for d in rec.json("fit/summary") if isinstance(d, dict) and isinstance(d.get("index"), int)]
-        for d in summaries:
-            if isinstance(d.get("model"), list):
-                models[d["index"]] = list(d["model"])
+        summaries = fit_summaries(rec)
+        for s in summaries:
+            if s.meta.model is not None:
+                models[s.index] = list(s.meta.model)
         if not summaries:
             for m in rec.segments("fit"):
                 model = FitMessage.from_header(m.header.meta, f"fit {m.header.index}").model

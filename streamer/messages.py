@@ -17,6 +17,7 @@ from ttlcore.tdi.combinations import XYZ
 from ttlcore.tdi.data import TDIData
 
 from .codec import Expect
+from .segment_record import segment_meta
 
 #: Arrays of a telemetry message.
 TELEMETRY_ARRAYS = ("eta", "dws_phi", "dws_eta", "ltt")
@@ -46,7 +47,7 @@ def telemetry_of(header, arrays) -> Telemetry:
     return Telemetry(
         t0=header.t0,
         fs=header.fs,
-        source=str(header.meta.get("source", "bus")),
+        source=str(segment_meta(header).source or "bus"),
         **{k: arrays[k] for k in TELEMETRY_ARRAYS},
     )
 
@@ -75,11 +76,11 @@ def concatenate_telemetry(parts, source: str = "bus") -> Telemetry:
 
 def tdi_of(header, arrays) -> TDIData:
     """The :class:`~ttlcore.tdi.data.TDIData` of a ``tdi`` message (errors name the field)."""
-    meta = header.meta
-    names = tuple(meta.get("names") or COEFFICIENT_NAMES)
+    meta = segment_meta(header)
+    names = meta.names or COEFFICIENT_NAMES
     if len(names) != arrays["regressors"].shape[1]:
         raise ValueError(f"meta.names has {len(names)} names for {arrays['regressors'].shape[1]} regressors")
-    ltt = np.asarray(meta.get("ltt_mean", [np.nan] * 6), dtype=float)
+    ltt = np.asarray(meta.ltt_mean if meta.ltt_mean is not None else [np.nan] * 6, dtype=float)
     if ltt.shape != (6,):
         raise ValueError(f"meta.ltt_mean: expected 6 values, got shape {ltt.shape}")
     return TDIData(

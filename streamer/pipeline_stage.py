@@ -27,6 +27,7 @@ from .plan import MAX_SEGMENTS
 from .progress import Progress, ProgressBoard, key_stage
 from .rangeset import RangeSet
 from .recorded_inputs import recorded_copies, wire_copy
+from .segment_record import segments_total_of
 from .segment_stream import declare_segment_publisher
 from .stage import Stage, StageConfig, disk_full
 from .stage_options import OrderedOptions, StageOptions
@@ -360,8 +361,8 @@ class PipelineStage(Stage, Generic[O]):
         """Take ``segments_total`` from an input's meta."""
         if self.validator.plan is not None:
             return  # the plan says it
-        total = meta.get("segments_total") if isinstance(meta, dict) else None
-        if isinstance(total, int) and 0 < total <= MAX_SEGMENTS:
+        total = segments_total_of(meta)
+        if total is not None and total <= MAX_SEGMENTS:
             self.segments_total = total
 
     def mark_done(self, index: int, **extra) -> None:

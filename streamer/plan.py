@@ -43,6 +43,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .rangeset import RangeSet
+from .segment_record import segments_total_of
 from .topology import PRODUCERS
 
 __all__ = [
@@ -231,8 +232,8 @@ class Validator:
             raise Rejected("forged", "producer", f"{topic} is published by {owner!r}, not {header.producer!r}")
         total = self.segments_total
         if total is None:
-            t = header.meta.get("segments_total") if isinstance(header.meta, dict) else None
-            total = t if isinstance(t, int) and 0 < t <= MAX_SEGMENTS else None
+            t = segments_total_of(header.meta)
+            total = t if t is not None and t <= MAX_SEGMENTS else None
         self._check_index(index, total)
         self._check_samples(topic, header, total)
         _check_finite(topic, arrays)
@@ -306,8 +307,8 @@ class Validator:
         if self.plan is None:
             self._learned.setdefault(topic, (header.fs, _time_length(topic, header)))
             self._producers.setdefault(topic, header.producer)
-            t = header.meta.get("segments_total") if isinstance(header.meta, dict) else None
-            if self.segments_total is None and isinstance(t, int) and 0 < t <= MAX_SEGMENTS:
+            t = segments_total_of(header.meta)
+            if self.segments_total is None and t is not None and t <= MAX_SEGMENTS:
                 self.segments_total = t
 
 

@@ -32,6 +32,7 @@ from ttlcore.errors import TTLError
 from .inspect import InspectError, recording_files
 from .messages import concatenate_telemetry, tdi_of, telemetry_of
 from .recorder import RecordingError, read_recording
+from .segment_record import segment_meta
 from .topology import PRODUCERS, STAGES, UPSTREAM
 
 log = logging.getLogger(__name__)
@@ -98,7 +99,7 @@ def load_run(run_dir, segments: tuple[int | None, int | None] = (None, None), so
             return (
                 tm,
                 f"telemetry of {len(parts)} recorded segments ({tm.size / tm.fs / 3600:g} h)",
-                found[min(found)][0].meta.get("dws_asd"),
+                segment_meta(found[min(found)][0]).dws_asd,
             )
         if source == "telemetry":
             raise RefitError(f"{run_dir}: no recorded telemetry (replayer.mcap, or tdi_builder.mcap inputs)")
@@ -116,7 +117,7 @@ def load_run(run_dir, segments: tuple[int | None, int | None] = (None, None), so
     return (
         tdi,
         f"TDI of {len(tdi)} recorded segments ({sum(p.size / p.fs for p in tdi) / 3600:g} h)",
-        found[min(found)][0].meta.get("dws_asd"),
+        segment_meta(found[min(found)][0]).dws_asd,
     )
 
 

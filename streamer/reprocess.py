@@ -46,6 +46,7 @@ from ttlcore.estimate.fit import DEFAULT_BAND, FitSettings
 from ttlcore.io.telemetry import Telemetry, write_telemetry
 
 from .refit import recorded_segments
+from .segment_record import segment_meta
 
 log = logging.getLogger(__name__)
 
@@ -173,9 +174,9 @@ def _day_telemetry(run_dir: Path, k: int, segments: list[tuple], span: list[int]
                 f"{run_dir}: recorded segments of day {k} are not contiguous "
                 f"(one ends at {a.t0 + a.size / a.fs:g} s, the next starts at {b.t0:g} s)"
             )
-    meta = segments[0][0].meta
-    dws = meta.get("dws_asd")
-    config: dict = {"source": "recording", "run": run_dir.name, "segments": span, "recorded_source": meta.get("source")}
+    meta = segment_meta(segments[0][0])
+    dws = meta.dws_asd
+    config: dict = {"source": "recording", "run": run_dir.name, "segments": span, "recorded_source": meta.source}
     if dws is not None:  # the fit's errors-in-variables level (ttlcore.estimate.fit.dws_asd_from_config)
         config["jitter"] = {"dws": float(dws)}
         config["noises"] = {"dws": float(dws) > 0}

@@ -75,6 +75,13 @@ def live_run(
     return code, out, tmp_path / "rec" / run
 
 
+@pytest.fixture(scope="module")
+def ghost_hours(tmp_path_factory) -> tuple[Path, Path]:
+    """Three Keplerian hours (seed 3) with a round-trip ghost of 12.eta on link 23 (gain
+    5e-3), from the blind plugin; the day and its truth, shared by the two fast tests."""
+    return simulate(tmp_path_factory.mktemp("ghost"), "3h", 3, "blind-witness:source=12.eta,link=23,delay=2,gain=5e-3")
+
+
 def segments_of(run_dir: Path, stage: str, topic: str) -> dict:
     """The ``topic`` segments by index, from every process's recording of ``stage`` (a
     restarted stage leaves ``<stage>.<n>.mcap``; the first copy of an index kept)."""
@@ -149,12 +156,12 @@ def check_against_truth(fit, truth_path: Path) -> tuple[float, float]:
     return float(np.max(np.abs(err))), float(np.sqrt(np.mean(pull**2)))
 
 
-def test_live_loop_adopts_an_unnamed_effect_and_subtracts_the_whole_model(tmp_path):
+def test_live_loop_adopts_an_unnamed_effect_and_subtracts_the_whole_model(ghost_hours, tmp_path):
     """Three hours with a witness two light travel times away (a round-trip ghost): the first
     diagnosis (1.5 h) fails and recommends the witness effect, --adopt auto takes it, the
     fits after hold it with its prediction, and the subtractor's last residual equals
     ``ttl refit --residual`` of the same window to 1e-9."""
-    data, _ = simulate(tmp_path, "3h", 3, "blind-witness:source=12.eta,link=23,delay=2,gain=5e-3")
+    data, _ = ghost_hours
     # with the monitor: it reads the extended fits and draws the diagnosis
     # --model-update refit: every segment of the extended model is the window refit (the
     # default rolling update is checked by the next test)
@@ -219,7 +226,7 @@ def test_live_loop_adopts_an_unnamed_effect_and_subtracts_the_whole_model(tmp_pa
     assert [d["index"] for d in report["model"]["diagnoses"]] == [2, 3, 5]
 
 
-def test_rolling_model_agrees_with_the_window_refit(tmp_path):
+def test_rolling_model_agrees_with_the_window_refit(ghost_hours, tmp_path):
     """An extended model given from the start, updated by the default rolling fit (the
     model's columns from each segment's telemetry, the work of one segment): every fit holds
     the 24 coefficients, the witness' coefficient and its part of the TDI, which the
@@ -228,7 +235,7 @@ def test_rolling_model_agrees_with_the_window_refit(tmp_path):
     from streamer.refit import load_run, refit_settings
     from ttlcore.diagnose.diagnoser import refit
 
-    data, truth = simulate(tmp_path, "3h", 3, "blind-witness:source=12.eta,link=23,delay=2,gain=5e-3")
+    data, truth = ghost_hours
     witness = "witness:source=12.eta,link=23,delay=2"
     code, out, run_dir = live_run(
         tmp_path,

@@ -46,6 +46,8 @@ def test_lisainstrument_file_replayed_through_the_pipeline(tmp_path):
             tmp_path / "rec",
             "--timeout",
             "300",
+            "--adopt",
+            "never",  # the file's way through the stages; the live diagnosis is tests/test_live_loop.py's
             *([] if MONITOR else ["--skip", "monitor"]),
         )
         code = finish(proc, 300)

@@ -21,6 +21,7 @@ from ttl_testutil import finish, output, wait_for  # noqa: F401
 
 from streamer.codec import decode, encode
 from streamer.keys import control_key, topic_pattern
+from streamer.monitor_record import MonitorMessage
 from streamer.recorder import read_recording
 from streamer.session import Bus, SessionSettings, free_port
 from streamer.stage import StageConfig
@@ -40,7 +41,8 @@ SIGMA = 0.01e-3  # per-window uncertainty of a full window [m/rad]
 TRUTH_FS = 1 / 60.0
 DIAGNOSIS = {
     "text": "A step in 23.phi.tx explains the excess below 10 mHz.",
-    "recommendation": "refit with step:t_step=20h",
+    # as stages/live_diagnosis.py writes it: the report's recommendation (a JSON object)
+    "recommendation": {"spec": "step:t_step=20h", "message": "refit with step:t_step=20h"},
 }
 
 
@@ -332,8 +334,9 @@ def _check_monitor_mcap(path, statuses) -> None:
     status, arrays = next((h, a) for h, a in statuses if h.index == last)
     # each status carries the alerts raised since the previous one: the step's is in exactly one
     # of them (which one depends on when the held inputs were released: every input waits 1 s)
-    assert [a["coefficient"] for h, _ in statuses for a in h.meta["alerts"] if a["kind"] == "step"] == [STEP_COEF]
-    assert arrays["drift_rate"].shape == (24,) and status.meta["drifting"] == []
+    metas = [MonitorMessage.from_header(h.meta, f"monitor {h.index}") for h, _ in statuses]
+    assert [a["coefficient"] for m in metas for a in m.alerts or () if a["kind"] == "step"] == [STEP_COEF]
+    assert arrays["drift_rate"].shape == (24,) and MonitorMessage.from_header(status.meta).drifting == ()
     assert {e["kind"] for e in rec.json("errors")} >= {"rejected", "failed"}
     assert ("duplicate", 5) in [(e["kind"], e["index"]) for e in rec.json("events")]
 
@@ -432,7 +435,9 @@ def _check_monitor_texts(ent) -> None:
         row[0]["segment"]: row[1]["TextDocument:text"][0] for row in ent["/diagnosis"] if "TextDocument:text" in row[1]
     }
     assert "No diagnosis yet" in diagnoses.pop(0) and list(diagnoses) == [N_FITS - 1], diagnoses
-    assert DIAGNOSIS["text"] in diagnoses[N_FITS - 1] and DIAGNOSIS["recommendation"] in diagnoses[N_FITS - 1]
+    assert (
+        DIAGNOSIS["text"] in diagnoses[N_FITS - 1] and DIAGNOSIS["recommendation"]["message"] in diagnoses[N_FITS - 1]
+    )
 
 
 def _check_rrd_layout(rrd, ent) -> None:
@@ -677,9 +682,10 @@ def test_a_jump_at_a_model_change_starts_a_new_series_not_a_step_alert(driver, p
     wait_for(lambda: len(read_recording(rec_dir / "monitor.mcap").segments("fit")) >= N_FITS, 30, "every fit received")
     driver.tdi_and_residual(N_FITS - 1)  # its status carries the trends' model epoch
     status = next(h for h, _ in iter(lambda: driver.monitor.get(timeout=30), None) if h.index == N_FITS - 1)
-    assert status.meta["model_epoch"]["number"] == int(model_change), status.meta["model_epoch"]
+    epoch = MonitorMessage.from_header(status.meta).model_epoch
+    assert epoch is not None and epoch["number"] == int(model_change), epoch
     if model_change:
-        assert status.meta["model_epoch"]["index"] == JUMP_FIT and status.meta["model_epoch"]["model"] == GHOST_MODEL
+        assert epoch["index"] == JUMP_FIT and epoch["model"] == GHOST_MODEL
     driver.bus.session.put(control_key(RUN, "stop"), b"")
     assert finish(proc, 30) == 0, output(proc)
 

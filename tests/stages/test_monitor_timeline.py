@@ -22,6 +22,8 @@ from test_monitor import blueprint_views, rrd_entities
 from stages import monitor_views as views
 from stages.monitor import Monitor
 from streamer.codec import decode, encode
+from streamer.message_schema import MessageError
+from streamer.residual_record import SCHEMA as RESIDUAL_SCHEMA
 from streamer.stage import StageConfig
 from ttlcore.conventions import COEFFICIENT_NAMES, C
 
@@ -91,6 +93,16 @@ def fit_meta(k: int) -> dict:
             "log_bayes_factor": 240.0,
             "band_edges": [3e-3, 1e-2, 0.9],
         }
+        meta["candidates"] = [
+            {
+                "effect": "step",
+                "spec": "step",
+                "delta_chi2": 12.5,
+                "log_bayes_factor": 3.25,
+                "explained_fraction": 0.1,
+                "significant": False,
+            }
+        ]
     return meta
 
 
@@ -188,6 +200,10 @@ def _check_change_log(ent, t_break):
     }
     assert sorted(log) == [pytest.approx(t_break[k]) for k in (8, 10, 11)], log
     texts = [log[t] for t in sorted(log)]
+    lines = [r[1]["TextLog:text"][0] for r in ent["/model/log"] if "TextLog:text" in r[1]]
+    # the fit's model_change and candidates (typed values of the fit message) in the log
+    assert "fit 8: model linear-ttl -> " + ",".join(DRIFT) + ": χ²/dof 1.800 -> 1.010, Δχ² 500.000, " in " ".join(lines)
+    assert "fit 8: top candidates: step: Δχ² 12.5, log BF 3.2" in " ".join(lines)
     assert "+ drift by adopt auto after the diagnosis of segment 7: drift explains the excess" in texts[0]
     assert "[new model epoch]" in texts[0]
     assert f"+ {GLITCH} by control" in texts[1] and "[new model epoch]" not in texts[1]
@@ -286,3 +302,19 @@ def test_timeline_lanes_and_spans_are_broken_between_spans():
         (900.0, "Scalars"),
         (1000.0, "Scalars"),
     ]
+
+
+def test_a_residual_meta_not_of_its_schema_is_an_error_naming_the_message_and_field(tmp_path):
+    """The monitor reads a residual's meta as a :class:`ResidualMessage`: a field missing at
+    the current schema, or one of the wrong type, stops at the boundary with the field named."""
+    m = Monitor(StageConfig(run=RUN, recordings=tmp_path))
+    m.rrd = tmp_path / "monitor.rrd"
+    m.open_recording()
+    data = np.random.default_rng(4).normal(0.0, 1e-21, (3, N))
+    res = {"residual": data, "ttl_model": np.zeros((3, N))}
+    current = {"fit_index": 3, "segments_total": 5, "schema": RESIDUAL_SCHEMA}
+    with pytest.raises(MessageError, match=r"residual 3: meta field 'coefficients_t_start': missing"):
+        m.on_residual(header("residual", 3, res, current, 0.0), res)
+    with pytest.raises(MessageError, match=r"residual 3: meta field 'fit_index': expected int"):
+        m.on_residual(header("residual", 3, res, {"fit_index": "3"}, 0.0), res)
+    m.rec.disconnect()

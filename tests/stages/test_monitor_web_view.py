@@ -201,7 +201,7 @@ class WeekDriver:
                     f"The residual exceeds the instrument noise model in the lowest band since "
                     f"{self.step_at / DAY:.2f} d; a step in {STEP_COEF} explains it best."
                 ),
-                "recommendation": f"refit with step:t_step={self.step_at / DAY:.2f}d",
+                "recommendation": {"spec": f"step:t_step={self.step_at / DAY:.2f}d"},
             }
         arrays = {"coefficients": coefficients, "sigma": sigma, "covariance": np.diag(sigma**2)}
         self.pubs["fit"].put(k, *self._message("fit", k, arrays, meta, t_stop - HOUR, 1 / HOUR))

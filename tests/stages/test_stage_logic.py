@@ -13,12 +13,16 @@ from streamer.keys import from_ranges, to_ranges
 from streamer.pipeline_stage import InOrder
 from streamer.progress import Progress
 from streamer.rangeset import RangeSet
+from streamer.residual_record import SCHEMA as RESIDUAL_SCHEMA
+from streamer.residual_record import ResidualMessage
 from streamer.stage import StageConfig
 from ttlcore.cli.simulation import simulation_config
+from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.errors import ConfigError, TelemetryError
 from ttlcore.io.telemetry import Telemetry, write_telemetry
 from ttlcore.io.truth import truth_path
 from ttlcore.sim.simulator import Simulator
+from ttlcore.tdi.data import TDIData
 
 
 def sample(msg: dict):
@@ -516,3 +520,58 @@ def test_monitor_waits_for_an_alive_fitter_that_has_not_reported_yet(tmp_path):
     assert m.settling.waiting_for(0, {"fitter": fitter}, m.alive_peers) == "residual"
     m.alive_peers = {"fitter"}  # no subtractor after all
     assert m.settling.waiting_for(0, {"fitter": fitter}, m.alive_peers) is None
+
+
+def test_subtractor_publishes_the_residual_message_value(tmp_path):
+    """The residual's meta is a :class:`streamer.residual_record.ResidualMessage` header: the
+    fields the subtractor wrote before (same order) and ``schema``; read back by attribute."""
+    s = Subtractor(StageConfig(run="u", recordings=tmp_path))
+    s.segments_total = 12
+    n, p = 64, len(COEFFICIENT_NAMES)
+    rng = np.random.default_rng(1)
+    td = TDIData(
+        t0=0.0,
+        fs=1.0,
+        channels=("X2", "Y2", "Z2"),
+        data=rng.normal(size=(3, n)),
+        regressors=rng.normal(size=(3, p, n)),
+        names=COEFFICIENT_NAMES,
+        ltt_mean=np.full(6, 8.3),
+    )
+    header = SimpleNamespace(index=5)
+    coefficients = dict.fromkeys(COEFFICIENT_NAMES, 1e-3)
+    # fit 4's parts are for segment 4: not subtracted from segment 5; fit 4 is stale
+    s.fits[4] = {
+        "coefficients": coefficients,
+        "t_start": 0.0,
+        "t_stop": 18000.0,
+        "parts": {"drift": np.zeros((3, n))},
+        "stale": {"since": 3},
+    }
+    meta = s.subtract(header, td, 4).fields["meta"]
+    assert json.dumps(meta) == json.dumps(
+        {
+            "fit_index": 4,
+            "coefficients_t_start": 0.0,
+            "coefficients_t_stop": 18000.0,
+            "segments_total": 12,
+            "effects": [],
+            "model_parts_missing": ["drift"],
+            "fit_stale": {"since": 3},
+            "schema": RESIDUAL_SCHEMA,
+        }
+    )
+    m = ResidualMessage.from_header(meta, "residual 5")
+    assert m.fit_index == 4 and m.model_parts_missing == ("drift",) and m.fit_stale == {"since": 3}
+    # fit 5's parts are segment 5's: subtracted, named in ``effects``; no fit: nulls
+    s.fits[5] = {**s.fits[4], "stale": None}
+    meta = s.subtract(header, td, 5).fields["meta"]
+    assert ResidualMessage.from_header(meta).effects == ("drift",) and "model_parts_missing" not in meta
+    assert s.subtract(header, td, None).fields["meta"] == {
+        "fit_index": None,
+        "coefficients_t_start": None,
+        "coefficients_t_stop": None,
+        "segments_total": 12,
+        "effects": [],
+        "schema": RESIDUAL_SCHEMA,
+    }

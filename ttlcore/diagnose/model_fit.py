@@ -169,10 +169,14 @@ class ModelFit:
         estimate does.  Columns set apart by their prior keep an infinite variance.
         """
         x, wr = self.columns.x, self.residual_w.view(np.float64)  # (P, S, m, 6), (S, m, 6)
+        grid = self.data.grid
+        # a segment's scores count with its own variance factor (a gated segment's bins are
+        # more correlated: ``GatedGrid.seg_variance``); 1 for every segment of ungated data
+        per_segment = np.sqrt(grid.segment_kappa() / grid.kappa)
         M = np.zeros((x.shape[0], x.shape[0]))
-        for a, b in self.data.grid.slices:
+        for a, b in grid.slices:
             if b > a:
-                u = np.einsum("psmc,smc->psm", x[:, :, a:b], wr[:, a:b])
+                u = np.einsum("psmc,smc->psm", x[:, :, a:b], wr[:, a:b]) * per_segment[:, None]
                 M += np.einsum("psm,qsm->pq", u, u)
         N = self.normal[0].sum(axis=(0, 1)) - self.eiv_term.sum(axis=0)
         cov = self.data.grid.kappa * sandwich(set_apart(N, np.asarray(self.columns.priors)), M)
@@ -236,7 +240,7 @@ def solve(data, columns: ColumnSet, effects=(), expansion=None) -> ModelFit:
     dd = data.noise.dd
     E = eiv(data, columns)
     theta, cov = gls_solve(normal_equations(data, columns, N, b, E), prior_scale=np.asarray(columns.priors))
-    cov = data.grid.kappa * cov
+    cov = data.grid.kappa * cov + segment_variance(cov, N, data.grid.segment_kappa() - data.grid.kappa)
     btot = b.sum(axis=(0, 1))
     chi2_sg = 2 * (np.einsum("p,sgpq,q->sg", theta, N, theta) - 2 * b @ theta + dd)
     wr = data.noise.wd - np.tensordot(theta, columns.x.view(complex), axes=(0, 0))  # no (S, m, 3, P) copy
@@ -260,6 +264,25 @@ def solve(data, columns: ColumnSet, effects=(), expansion=None) -> ModelFit:
         eiv_term=E,
         expansion=dict(expansion or {}),
     )
+
+
+def segment_variance(cov: np.ndarray, N: np.ndarray, excess: np.ndarray) -> np.ndarray:
+    """The variance the segments whose variance factor exceeds the grid's add to the
+    model-based covariance: ``Cov (2 sum_s dk_s N_s) Cov`` with ``Cov = (2 (N - E))^-1`` the
+    plain one (``cov``), ``N_s`` segment ``s``'s normal matrix summed over the bands (``N``:
+    (S, G, P, P)) and ``dk_s`` its excess factor (``excess`` (S,)).  The estimate's statistic
+    is ``b = sum_s b_s`` with ``Var(b_s) = kappa_s N_s / 2``; all zeros (ungated data: zero
+    excess) where every ``kappa_s`` is the grid's.  Parameters without information (infinite
+    variance) are left as they are."""
+    P = cov.shape[0]
+    if not np.any(excess):
+        return np.zeros((P, P))
+    live = np.isfinite(np.diag(cov))
+    K = np.einsum("s,sgpq->pq", excess, N)
+    out = np.zeros((P, P))
+    block = np.ix_(live, live)
+    out[block] = 2.0 * cov[block] @ K[block] @ cov[block]
+    return 0.5 * (out + out.T)
 
 
 def normal_equations(data, columns: ColumnSet, N=None, b=None, E=None) -> NormalEquations:

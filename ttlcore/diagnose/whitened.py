@@ -163,6 +163,11 @@ class AnalysisGrid:
     def __post_init__(self) -> None:
         read_only(*(v for v in vars(self).values() if isinstance(v, np.ndarray)))
 
+    def segment_kappa(self) -> np.ndarray:
+        """The variance factor of each segment (S,): :attr:`kappa` for all of them here; a
+        gated segment's own in :class:`ttlcore.diagnose.gating.GatedGrid`."""
+        return np.full(len(self.starts), self.kappa)
+
     def spectra(self, x: np.ndarray) -> np.ndarray:
         """(3, k, n) decimated series -> band spectra (S, m, 3, k), masked like the data."""
         out = np.empty((len(self.starts), self.f.size, x.shape[0], x.shape[1]), dtype=complex)

@@ -364,9 +364,11 @@ def _add_group(spectra: dict, first_ok: dict, items: list, terms, taps: dict, sp
     i0, i1, L, j0, nb = span
     rows = np.stack([s[i0:i1] for _, s in items])
     finite = np.isfinite(rows)
-    bad = None if finite.all() else ~finite
-    if bad is not None:
+    counts = None  # per row, the non-finite inputs before each block index (once per row, not per term)
+    if not finite.all():
         rows = np.where(finite, rows, 0.0)
+        counts = np.zeros((rows.shape[0], rows.shape[1] + 1), dtype=np.int64)
+        np.cumsum(~finite, axis=1, out=counts[:, 1:])
     Xg = sp_fft.rfft(rows, L, axis=-1)
     for c, poly in terms:
         H, reach, read_shifts = _group_filter(poly, taps, L, st)
@@ -375,9 +377,10 @@ def _add_group(spectra: dict, first_ok: dict, items: list, terms, taps: dict, sp
             contrib = H * Xg[r]
             spectra[k] = contrib if k not in spectra else spectra[k] + contrib
             first_ok[k] = max(first_ok.get(k, 0), reach - j0)
-            if bad is not None:
-                nan_at = _non_finite_reads(bad[r], read_shifts, st.offsets, j0, nb)
-                first_ok[(k, "mask")] = nan_at | first_ok.get((k, "mask"), False)
+            if counts is not None and counts[r, -1]:
+                nan_at = _non_finite_reads(counts[r], read_shifts, st.offsets, j0, nb)
+                if nan_at is not None:
+                    first_ok[(k, "mask")] = nan_at | first_ok.get((k, "mask"), False)
 
 
 def _group_filter(poly, taps: dict, L: int, st: _Stencil) -> tuple[np.ndarray, int, list]:
@@ -398,13 +401,20 @@ def _group_filter(poly, taps: dict, L: int, st: _Stencil) -> tuple[np.ndarray, i
     return sp_fft.rfft(h, L, axis=-1), reach, read_shifts
 
 
-def _non_finite_reads(bad, shifts, offsets, j0, nb):
+def _non_finite_reads(counts, shifts, offsets, j0, nb):
     """Outputs (``nb`` from block index ``j0``) whose stencils at integer shifts ``shifts``
-    (0: the undelayed read) touch a non-finite input (``bad``, block input indices)."""
-    counts = np.concatenate([[0], np.cumsum(bad)])
+    (0: the undelayed read) touch a non-finite input; ``counts[i]``: the non-finite inputs
+    before block input index ``i`` (a running count, ``size + 1`` long).  None when no
+    stencil reaches one (a stream's tail holds the few NaN a delayed input starts with, far
+    before the reads of its outputs)."""
+    size = counts.size - 1
+    lo_read = j0 + min(shifts) + min(offsets[0], 0)  # the earliest input any output reads
+    hi_read = j0 + nb + max(shifts) + max(offsets[-1], 0)  # one past the latest
+    if counts[min(max(hi_read, 0), size)] == counts[min(max(lo_read, 0), size)]:
+        return None
     j = np.arange(j0, j0 + nb)
     hit = np.zeros(nb, dtype=bool)
     for s in shifts:
         lo, hi = (j + s, j + s + 1) if s == 0 else (j + s + offsets[0], j + s + offsets[-1] + 1)
-        hit |= counts[np.clip(hi, 0, bad.size)] > counts[np.clip(lo, 0, bad.size)]
+        hit |= counts[np.clip(hi, 0, size)] > counts[np.clip(lo, 0, size)]
     return hit

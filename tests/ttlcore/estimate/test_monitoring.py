@@ -67,3 +67,21 @@ def test_channel_asd_uses_the_longest_finite_stretch_and_refuses_too_few_samples
     short[10:60] = 1.0
     with pytest.raises(ValueError, match="too few finite samples"):
         channel_asd(short, fs)
+
+
+def test_file_truth_reads_each_block_once_under_a_sliding_window(tmp_path, monkeypatch):
+    """A window sliding by whole blocks with edges inside blocks (as the rolling fit's valid
+    span lies): every block of the file is read once, the edges come from memory."""
+    import ttlcore.estimate.monitoring as monitoring
+
+    path, coefficients = _truth_file(tmp_path / "d.truth.h5", 200)
+    reads = []
+    monkeypatch.setattr(monitoring, "read_truth", lambda p, a, b: reads.append((a, b)) or read_truth(p, a, b))
+    truth = FileTruth(path, block=300.0)  # 30 samples a block
+    for start in range(0, 150, 30):
+        a, b = start + 7, start + 53  # edges 7 samples into a block and 23 into the next
+        np.testing.assert_allclose(
+            truth.mean(100.0 + a / FS, 100.0 + b / FS), coefficients[:, a:b].mean(axis=1), rtol=1e-12
+        )
+    blocks = reads[1:]  # the first read is the head (t0, fs)
+    assert blocks == [(k * 30, (k + 1) * 30) for k in range(6)], blocks
