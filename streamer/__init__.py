@@ -25,6 +25,9 @@ progress
 pipeline_stage
     The base classes of the stage programs: ``PipelineStage`` (reports progress) and
     ``OrderedStage`` (handles its input in index order).
+catch_up, recorded_inputs
+    An input segment announced by its producer that never came: its cache, then its
+    recordings (read back by ``recorded_inputs``), else given up (``input-lost``).
 launcher
     ``ttl run``: starts and supervises the five stage processes around a loopback router.
 inspect
