@@ -54,7 +54,11 @@ def _write_fits(path, indices, stage: str = "fitter", bad=()) -> None:
     rec = Recorder(path, metadata={"run": RUN, "stage": stage, "class": "Fitter", "config": "{}"})
     for i in indices:
         payload, attachment = encode(
-            {"coefficients": np.full(24, np.nan if i in bad else 1e-3 * (i + 1)), "sigma": np.full(24, 1e-5)},
+            {
+                "coefficients": np.full(24, np.nan if i in bad else 1e-3 * (i + 1)),
+                "sigma": np.full(24, 1e-5),
+                "covariance": np.eye(24) * 1e-10,
+            },
             {
                 "run": RUN,
                 "index": i,
@@ -156,3 +160,29 @@ def test_an_ordered_stage_skips_a_lost_input_in_its_turn(tmp_path):
     s.fetch_announced(t0 + ANNOUNCED_FETCH_AFTER + 0.1)  # no replayer recording: lost
     s.drain(limit=10)
     assert handled == [0, 1, 3] and set(s.failed) == {2} and set(s.done) == {0, 1, 3}
+
+
+def test_a_restarted_subtractor_takes_fits_no_cache_holds_from_the_fitters_recordings(tmp_path):
+    """The subtractor waits for the fit of each segment by its index; fits 2-3 of a fitter
+    process killed since are in no cache.  Before, segments 2-3 got fit 1 after
+    ``fit_timeout`` (a ``missing-fit``: residuals unlike the clean run's); now the fits are
+    read from ``fitter.1.mcap`` and applied."""
+    from stages.subtractor import Subtractor
+
+    run_dir = tmp_path / RUN
+    run_dir.mkdir()
+    _write_fits(run_dir / "fitter.1.mcap", range(4))
+    s = Subtractor(StageConfig(run=RUN, recordings=tmp_path, stage="subtractor", hold=0.0))
+    s.recorder = Recorder(run_dir / "subtractor.mcap", metadata={"run": RUN, "stage": "subtractor", "class": "S"})
+    s.board.feed(sample({"stage": "fitter", "done": [[0, 3]], "fits_ranges": [[0, 3]]}))
+    s.board.feed(sample({"stage": "subtractor", "done": [[0, 1]]}))  # the earlier process
+    s.fetch = lambda topic, index: True
+    t0 = time.monotonic()
+    assert s.fetch_announced(t0) == []
+    assert s.fetch_announced(t0 + ANNOUNCED_FETCH_AFTER) == [("fit", 2), ("fit", 3)]
+    s.fetched("fit", 2, 0)
+    s.fetched("fit", 3, 0)
+    s.fetch_announced(t0 + ANNOUNCED_FETCH_AFTER + 0.1)
+    assert sorted(s.fits) == [2, 3]
+    assert s.choose(2) == ("apply", 2) and s.choose(3) == ("apply", 3)
+    s.recorder.close()
