@@ -11,6 +11,7 @@ and whom it follows by default comes from :mod:`streamer.topology`.
 
 from __future__ import annotations
 
+import itertools
 import json
 import os
 import time
@@ -41,7 +42,8 @@ class InOrder:
 
     The first index is 0 if it arrives first; otherwise (a stage joining late or restarted,
     whose history comes from several publisher caches in any order) the lowest index
-    received within ``settle`` seconds of the first arrival.  A missing index is skipped when
+    received within ``settle`` seconds of the first arrival, or :attr:`start_at` when lower
+    (a restarted stage: the segments after its earlier process's may be in no cache).  A missing index is skipped when
     ``skip(index)`` says it will not come (the producer gave it up), or after
     ``gap_timeout`` seconds while later indices wait, and at once when it was withdrawn
     (:meth:`withdraw`).
@@ -56,6 +58,9 @@ class InOrder:
         self._gap_since: float | None = None
         self.skipped_reason = ""
         self.withdrawn: dict[int, str] = {}  # index -> why it is skipped
+        #: The first index to hand out when known before any arrives (a restarted stage: the
+        #: first its earlier process did not handle); None: the lowest received (docstring).
+        self.start_at: int | None = None
 
     def withdraw(self, index: int, reason: str) -> bool:
         """Skip ``index`` (dropping its item if buffered) when its turn comes; False when it
@@ -110,6 +115,8 @@ class InOrder:
         if 0 not in self.pending and now - first < self.settle:
             return False
         self.next = min(self.pending.keys() | self.withdrawn.keys())
+        if self.start_at is not None and self.start_at < self.next:
+            self.next = self.start_at  # waited for (caught up, or skipped after gap_timeout)
         return True
 
     def _given_up(self, index: int, skip: Callable[[int], bool], now: float) -> str | None:
@@ -497,10 +504,21 @@ class OrderedStage(PipelineStage[OO]):
         peer = self.board.get(self.upstream)
         return peer is not None and index in peer.failed
 
+    def _resume_point(self) -> None:
+        """A restarted stage (its earlier process's progress on the board) starts its queue at
+        the first segment that process did not handle, not at the lowest received: the
+        segments in between may be in no cache (their producer restarted too) and come from
+        its recordings (:meth:`fetch_announced`), else are skipped after ``gap_timeout``."""
+        if self.queue.next is None and self.queue.start_at is None:
+            own = self.board.get(self.stage_name)
+            if own is not None and own.handled:
+                self.queue.start_at = next(i for i in itertools.count() if i not in own.handled)
+
     def drain(self, limit: int = 1) -> None:
         """Process up to ``limit`` segments that are next in order (or give up missing ones);
         one at a time by default, so that control messages are handled between segments."""
         done = 0
+        self._resume_point()
         for index, entry in self.queue.ready(self.upstream_failed, self.segments_total):
             done += 1
             if entry is None:

@@ -186,3 +186,25 @@ def test_a_restarted_subtractor_takes_fits_no_cache_holds_from_the_fitters_recor
     assert sorted(s.fits) == [2, 3]
     assert s.choose(2) == ("apply", 2) and s.choose(3) == ("apply", 3)
     s.recorder.close()
+
+
+def test_a_restarted_ordered_stage_starts_where_its_earlier_process_stopped(tmp_path):
+    """A fitter killed after segment 3 and restarted after the tdi_builder was restarted too:
+    TDI 4-5 (the tdi_builder's earlier process) are in no cache, the caches give 6-9.  The
+    queue used to start at 6, the lowest received: 4 and 5 were never handled by any
+    process and the run could not end.  It starts at 4, the first segment the earlier
+    process did not handle, and takes 4 and 5 when they come (from the recordings)."""
+    from stages.tdi_builder import TDIBuilder
+
+    s = TDIBuilder(StageConfig(run=RUN, recordings=tmp_path, stage="tdi_builder", options={"settle": 0.0}))
+    handled: list = []
+    s.process = lambda header, item: handled.append(header.index)
+    s.board.feed(sample({"stage": "tdi_builder", "done": [[0, 3]]}))  # the earlier process
+    for i in (6, 7, 8, 9):
+        s.queue.add(i, (SimpleNamespace(index=i, key=None, meta={}), None))
+    s.drain(limit=10)
+    assert handled == [] and s.queue.next == 4
+    for i in (5, 4):
+        s.queue.add(i, (SimpleNamespace(index=i, key=None, meta={}), None))
+    s.drain(limit=10)
+    assert handled == [4, 5, 6, 7, 8, 9]
