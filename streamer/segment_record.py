@@ -30,7 +30,7 @@ _FIELDS = {
     "segments_total": "int",
     "segment_duration": "number",
     "source": "str",
-    "file": "str",
+    "file": "int",
     "dws_asd": "number",
     "names": "strs",
     "gaps": "list",
@@ -50,8 +50,9 @@ class SegmentMeta:
         The segments' duration [s].
     source : str or None
         Where the data come from (``simulation``, a file, ``recording``...).
-    file : str or None
-        The telemetry file replayed.
+    file : int or None
+        Which of the run's telemetry files the segment was read from (its index among the
+        files given to the replayer, in order; None for a simulation).
     truth : str or dict or None
         The truth: a file's path, or the simulation's coefficient model.
     dws_asd : float or None
@@ -69,7 +70,7 @@ class SegmentMeta:
     segments_total: int | None = None
     segment_duration: float | None = None
     source: str | None = None
-    file: str | None = None
+    file: int | None = None
     truth: str | Mapping[str, Any] | None = None
     dws_asd: float | None = None
     names: tuple[str, ...] | None = None

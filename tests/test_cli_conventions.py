@@ -301,12 +301,11 @@ def simulated_days(tmp_path_factory) -> Path:
     injected, consecutive) and their truth files beside them."""
     d = tmp_path_factory.mktemp("mission")
     (d / "data").mkdir()
-    for name, seed, t0 in (("day1", 3, 0), ("day2", 4, 21600)):
-        r, _ = ttl(
-            "simulate", "--duration", "6h", "--seed", seed, "--t0", t0, "--telemetry", f"data/{name}.h5", "--quiet",
-            cwd=d,
-        )  # fmt: skip
-        assert r.returncode == 0, r.stderr
+    from ttlcore.cli.main import main
+
+    for name, seed, t0 in (("day1", 3, 0), ("day2", 4, 21600)):  # in this process: no process start each
+        args = ["simulate", "--duration", "6h", "--seed", str(seed), "--t0", str(t0), "--quiet"]
+        assert main([*args, "--telemetry", str(d / "data" / f"{name}.h5")]) == 0
     assert sorted(p.name for p in (d / "data").iterdir()) == ["day1.h5", "day1.truth.h5", "day2.h5", "day2.truth.h5"]
     return d
 

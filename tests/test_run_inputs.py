@@ -41,13 +41,12 @@ STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if M
 
 
 def simulate(path: Path, duration: str, seed: int = 1) -> Path:
-    res = subprocess.run(
-        ttl_command("simulate", "--duration", duration, "--orbit", "unequal", "--seed", str(seed), "--out", str(path)),
-        capture_output=True,
-        text=True,
-        timeout=600,
-    )
-    assert res.returncode == 0, res.stderr
+    """``ttl simulate`` in this process (the command's own entry point, without a process
+    start for each of the module's files)."""
+    from ttlcore.cli.main import main
+
+    args = ["simulate", "--duration", duration, "--orbit", "unequal", "--seed", str(seed), "--out", str(path), "--quiet"]
+    assert main(args) == 0
     return path
 
 

@@ -74,3 +74,20 @@ def test_segments_total_of_any_message():
     assert segments_total_of(TDI) == 12 and segments_total_of({"fit_index": 3, "segments_total": 7}) == 7
     for meta in ({}, {"segments_total": 0}, {"segments_total": True}, {"segments_total": "12"}, None, [12]):
         assert segments_total_of(meta) is None
+
+
+def test_the_replayers_meta_of_a_file_reads(tmp_path):
+    """The meta the replayer writes for a segment of a telemetry file (its path as source,
+    the file's index among the run's files, the truth beside it) reads as a SegmentMeta: the
+    producer and the value agree (the index was typed as a str, and every segment of
+    ``ttl run --telemetry`` failed in the tdi_builder)."""
+    from stages.replayer import FileSource
+    from ttlcore.cli.main import main
+
+    path = tmp_path / "day.h5"
+    assert main(["simulate", "--duration", "2h", "--seed", "3", "--out", str(path), "--quiet"]) == 0
+    source = FileSource([path], 3600.0)
+    for i in range(source.segments_total):
+        _, meta = source.segment(i)
+        m = SegmentMeta.from_header(meta, f"telemetry {i}")
+        assert m.file == 0 and m.source == str(path) and m.truth is not None, m
