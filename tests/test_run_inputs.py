@@ -45,7 +45,18 @@ def simulate(path: Path, duration: str, seed: int = 1) -> Path:
     start for each of the module's files)."""
     from ttlcore.cli.main import main
 
-    args = ["simulate", "--duration", duration, "--orbit", "unequal", "--seed", str(seed), "--out", str(path), "--quiet"]
+    args = [
+        "simulate",
+        "--duration",
+        duration,
+        "--orbit",
+        "unequal",
+        "--seed",
+        str(seed),
+        "--out",
+        str(path),
+        "--quiet",
+    ]
     assert main(args) == 0
     return path
 
