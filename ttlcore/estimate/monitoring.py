@@ -103,12 +103,12 @@ class ModelTruth:
 class FileTruth:
     """True coefficients averaged over time spans, read block by block from a truth file.
 
-    The file is read in blocks of ``block`` seconds (:func:`ttlcore.io.truth.read_truth`),
-    each once while the spans asked for move forward: a block's sum is kept for good (24
-    numbers), and the running sums of its samples for the last :attr:`RECENT` blocks read,
-    so that a span's partial edges come from memory.  A monitor that averages over a sliding
-    window reads each sample of the file about once (before: the two partial edges of every
-    span were read again, 0.165 s a fit on a 2-day bench).
+    The file is read in blocks of ``block`` seconds (:func:`ttlcore.io.truth.read_truth`): a
+    block's sum is kept for good (24 numbers), and the running sums of its samples for the
+    last :attr:`RECENT` blocks read, so that a span's partial edges inside those come from
+    memory.  Under a window sliding by a block at a time a block is read at most twice: as
+    the window's newest block, and again as its oldest when the window is longer than
+    :attr:`RECENT` blocks (before, every span read both of its partial edges again).
     """
 
     #: Blocks whose running sums are kept (a sliding window's two edges, and a block's worth of margin).
