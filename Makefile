@@ -45,7 +45,7 @@ lock:
 ## truth (ttl inspect), and the day around the flagged step refitted with a step in the model.
 ## The live fitter diagnoses its window at segments 23, 47 (the end of day 2, where the step is)
 ## and 71, the run's last (--diagnose-every 48: the first at half of it, then every 48, and the
-## last segment; stages/fitter_schedule.py). Measured 2026-11-27 on a fresh clone, the venv
+## last segment; stages/fitter/schedule.py). Measured 2026-11-27 on a fresh clone, the venv
 ## included: `time make demo` 5 min 9 s, 657 MB in demo-output/ (README.md).
 demo: $(STAMP) pip-check
 	rm -rf $(DEMO)/pipeline && mkdir -p $(DEMO)/pipeline

@@ -43,8 +43,8 @@ import psutil
 sys.path.insert(0, str(Path(__file__).parent))
 from pipeline import watch_stages  # noqa: E402
 
-from streamer.recorder import read_recording  # noqa: E402
-from streamer.topology import STAGES  # noqa: E402
+from streamer.bus.topology import STAGES  # noqa: E402
+from streamer.recording.recorder import read_recording  # noqa: E402
 from ttlcore.conventions import DAY  # noqa: E402
 from ttlcore.estimate.monitoring import FileTruth  # noqa: E402
 
@@ -128,7 +128,7 @@ def run_week(
     t_sim = time.perf_counter() - t_sim
     shutil.rmtree(tmp / "rec", ignore_errors=True)
     start = time.perf_counter()
-    cmd = [sys.executable, "-m", "streamer.cli", "run", "--telemetry", str(data), "--run-id", "mission"]
+    cmd = [sys.executable, "-m", "streamer.tools.cli", "run", "--telemetry", str(data), "--run-id", "mission"]
     cmd += ["--recordings", str(tmp / "rec"), "--quiet", "--timeout", str(int(timeout)), "--adopt", "auto"]
     launcher = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     cpu, rss = watch_stages(launcher, start)

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import psutil
 
-from streamer.topology import STAGES
+from streamer.bus.topology import STAGES
 
 #: The extended model of the live-loop issue's bench: a witness two light travel times away
 #: and a first-order frequency-dependent coupling, their parameters given (not searched).
@@ -137,7 +137,7 @@ def main() -> int:
             [
                 sys.executable,
                 "-m",
-                "streamer.cli",
+                "streamer.tools.cli",
                 "run",
                 "--telemetry",
                 str(data),

@@ -5,7 +5,7 @@ per stage: flat or growing.
     python bench/soak.py                      # 7 days, 1-h segments (168 segments)
     python bench/soak.py --days 3 --segment 10min
     python bench/soak.py --days 0.5           # a quick look (too short for a verdict)
-    TTL_MEMTRACE=24 python bench/soak.py --keep DIR   # what grows: see streamer/memtrace.py
+    TTL_MEMTRACE=24 python bench/soak.py --keep DIR   # what grows: see streamer/runtime/memtrace.py
 
 What is measured
 ----------------
@@ -69,9 +69,9 @@ import psutil
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from streamer.keys import from_ranges  # noqa: E402
-from streamer.memtrace import ENV as MEMTRACE_ENV  # noqa: E402
-from streamer.session import Bus, SessionSettings, free_port  # noqa: E402
+from streamer.bus.keys import from_ranges  # noqa: E402
+from streamer.bus.session import Bus, SessionSettings, free_port  # noqa: E402
+from streamer.runtime.memtrace import ENV as MEMTRACE_ENV  # noqa: E402
 from ttlcore.conventions import DAY, parse_duration  # noqa: E402
 
 UPSTREAM = {"tdi_builder": "replayer", "fitter": "tdi_builder", "subtractor": "fitter", "monitor": "subtractor"}

@@ -88,7 +88,7 @@ def synthetic(seed: int, jump: float, step=None):
 
 
 def recorded(run_dir: Path):
-    from streamer.recorder import read_recording
+    from streamer.recording.recorder import read_recording
 
     summaries = {}
     for path in sorted(run_dir.glob("fitter*.mcap")):

@@ -12,10 +12,10 @@ module          inputs -> output                  what
 
 Each is a thin program: parse a message, call :mod:`ttlcore` for the science, publish and
 record through :mod:`streamer`.  Each runs as its own process: ``python -m stages.<name>
-[options]`` or ``ttl stage <name> [options]`` (options: :func:`streamer.stage.stage_main`
-plus the stage's own).  Their base classes (:mod:`streamer.pipeline_stage`), the progress
-protocol (:mod:`streamer.progress`) and the shape of the pipeline (:mod:`streamer.topology`)
+[options]`` or ``ttl stage <name> [options]`` (options: :func:`streamer.runtime.stage.stage_main`
+plus the stage's own).  Their base classes (:mod:`streamer.runtime.pipeline_stage`), the progress
+protocol (:mod:`streamer.runtime.progress`) and the shape of the pipeline (:mod:`streamer.bus.topology`)
 are in :mod:`streamer`.  The fitter and the monitor are composed of parts, modules of this
-package named after them (:mod:`stages.live_model`, :mod:`stages.monitor_settling`, ...: see
+package named after them (:mod:`stages.fitter.live_model`, :mod:`stages.monitor.settling`, ...: see
 ``docs/architecture.md``); those are not programs.
 """

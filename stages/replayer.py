@@ -25,7 +25,7 @@ Pace
 Segments go out as fast as the consumers take them: congestion control BLOCK holds a put
 while a live subscriber's transport is full, and, on top, the replayer stays at most
 ``window`` segments ahead of the slowest stage that reports progress
-(:mod:`streamer.progress`), so that a stage that dies finds what it missed in the publishers' caches when
+(:mod:`streamer.runtime.progress`), so that a stage that dies finds what it missed in the publishers' caches when
 it is restarted (``cache`` > ``window`` + 1).  With ``pace`` X > 0, segment ``i`` goes
 out no earlier than ``i * segment_duration / X`` seconds after the first: X times real time.
 
@@ -35,7 +35,7 @@ some stage reporting progress still lacks.
 
 Pinned inputs
 -------------
-The files are pinned in the run's plan (``Plan.inputs``, :mod:`streamer.input_pins`): a
+The files are pinned in the run's plan (``Plan.inputs``, :mod:`streamer.launch.input_pins`): a
 replayer started or restarted with a plan refuses files that are not those, unchanged, and
 checks a file's size and modification time before and after reading each segment.  A file
 changed under the run is an ``input-changed`` error naming it and what changed, and the
@@ -54,12 +54,12 @@ from pathlib import Path
 
 import numpy as np
 
-from streamer.input_pins import InputChanged, check_pins, check_stat, pin
-from streamer.pipeline_stage import PipelineStage
-from streamer.plan import Plan
-from streamer.progress import REPLAY_WINDOW
-from streamer.stage import Output, stage_main
-from streamer.stage_options import StageOptions, duration_s, names, nonnegative_float, option, positive_int
+from streamer.launch.input_pins import InputChanged, check_pins, check_stat, pin
+from streamer.runtime.pipeline_stage import PipelineStage
+from streamer.runtime.plan import Plan
+from streamer.runtime.progress import REPLAY_WINDOW
+from streamer.runtime.stage import Output, stage_main
+from streamer.runtime.stage_options import StageOptions, duration_s, names, nonnegative_float, option, positive_int
 from ttlcore.cli.simulation import simulation_config
 from ttlcore.conventions import LINKS
 from ttlcore.errors import ConfigError, TelemetryError
@@ -129,10 +129,10 @@ def _file_entry(path: Path) -> dict:
 class FileSource:
     """Segments of one or more telemetry files, in mission-time order.
 
-    Every file is pinned when opened (:func:`streamer.input_pins.pin`: size, modification
+    Every file is pinned when opened (:func:`streamer.launch.input_pins.pin`: size, modification
     time, sampled digest); with ``planned`` (the pins of the run's plan) the files must be
     those, unchanged, and before each segment is read its file is checked again (one
-    ``stat``): :class:`streamer.input_pins.InputChanged` otherwise.
+    ``stat``): :class:`streamer.launch.input_pins.InputChanged` otherwise.
     """
 
     def __init__(self, paths, segment_duration: float, planned=None):
@@ -168,7 +168,7 @@ class FileSource:
         return len(self.pieces)
 
     def plan(self) -> Plan:
-        """The run's plan (:class:`streamer.plan.Plan`): regular for one file, a table of the
+        """The run's plan (:class:`streamer.runtime.plan.Plan`): regular for one file, a table of the
         segments' starts and lengths for several."""
         first = self.files[0]
         n = int(round(self.segment_duration * self.fs))
@@ -230,7 +230,7 @@ class SimulationSource:
         return -(-self.sim.size // self.n)
 
     def plan(self) -> Plan:
-        """The run's plan (:class:`streamer.plan.Plan`), regular."""
+        """The run's plan (:class:`streamer.runtime.plan.Plan`), regular."""
         return Plan(self.segments_total, self.fs, float(self.config.t0), self.n, int(self.sim.size))
 
     def describe(self) -> str:
@@ -322,7 +322,7 @@ class Replayer(PipelineStage[ReplayerOptions]):
         self.input_changed: InputChanged | None = None
 
     def run(self) -> int:
-        """:meth:`streamer.stage.Stage.run`; exit status 2 with one line naming the file when
+        """:meth:`streamer.runtime.stage.Stage.run`; exit status 2 with one line naming the file when
         an input file changed under the run (the recording closed as on any stop)."""
         code = super().run()
         if self.input_changed is not None:

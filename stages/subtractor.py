@@ -36,15 +36,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from streamer.codec import Expect
-from streamer.fit_record import FitMessage
-from streamer.messages import P, tdi_expect, tdi_of
-from streamer.pipeline_stage import PipelineStage
-from streamer.rangeset import RangeSet
-from streamer.recorder import to_jsonable
-from streamer.residual_record import ResidualMessage
-from streamer.stage import Output, stage_main
-from streamer.stage_options import StageOptions, nonnegative_float, option, positive_float
+from streamer.bus.codec import Expect
+from streamer.bus.fit_record import FitMessage
+from streamer.bus.message_schema import to_jsonable
+from streamer.bus.messages import P, tdi_expect, tdi_of
+from streamer.bus.residual_record import ResidualMessage
+from streamer.runtime.pipeline_stage import PipelineStage
+from streamer.runtime.rangeset import RangeSet
+from streamer.runtime.stage import Output, stage_main
+from streamer.runtime.stage_options import StageOptions, nonnegative_float, option, positive_float
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.diagnose.prediction import model_residual
 from ttlcore.tdi.combinations import XYZ
@@ -182,7 +182,7 @@ class Subtractor(PipelineStage[SubtractorOptions]):
                 "t_start": fit.t_start,
                 "t_stop": fit.t_stop,
                 "parts": dict(zip(parts, x)) if parts else {},
-                "stale": fit.stale,  # a fit that took in no new data (stages/fitter.py)
+                "stale": fit.stale,  # a fit that took in no new data (stages/fitter/fitter.py)
             }
         else:
             if header.index in self.done:
@@ -203,7 +203,7 @@ class Subtractor(PipelineStage[SubtractorOptions]):
 
     def announced_inputs(self):
         """The tdi_builder's TDI segments and the fitter's fits (its ``fits`` progress): one
-        announced that does not come is caught up (:mod:`streamer.catch_up`)."""
+        announced that does not come is caught up (:mod:`streamer.runtime.catch_up`)."""
         out = super().announced_inputs()
         fitter = self.board.get("fitter")
         if fitter is not None:

@@ -13,7 +13,7 @@ first segment).
 The delays and interpolation reach back about 70 s: :class:`ttlcore.tdi.data.TDIStream`
 keeps that tail of telemetry between segments, so the output for a day fed in segments
 equals the batch TDI of the whole day, and segments stay independent messages.  Segments
-are therefore processed in index order (:class:`streamer.pipeline_stage.OrderedStage`); a segment whose t0 does
+are therefore processed in index order (:class:`streamer.runtime.pipeline_stage.OrderedStage`); a segment whose t0 does
 not follow the previous one (files with a gap) restarts the stream, and so does a stage
 restarted mid-run, from the earliest segment the replayer's cache still holds (its output
 is a duplicate its consumers ignore, and it re-creates the tail the next segments need).
@@ -24,11 +24,11 @@ from __future__ import annotations
 import sys
 from dataclasses import dataclass
 
-from streamer.codec import Expect
-from streamer.messages import TELEMETRY_ARRAYS, telemetry_of
-from streamer.pipeline_stage import OrderedStage
-from streamer.stage import Output, stage_main
-from streamer.stage_options import OrderedOptions, option, positive_int
+from streamer.bus.codec import Expect
+from streamer.bus.messages import TELEMETRY_ARRAYS, telemetry_of
+from streamer.runtime.pipeline_stage import OrderedStage
+from streamer.runtime.stage import Output, stage_main
+from streamer.runtime.stage_options import OrderedOptions, option, positive_int
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.io.telemetry import Telemetry
 from ttlcore.tdi.combinations import XYZ
@@ -75,7 +75,7 @@ class TDIBuilder(OrderedStage[TDIBuilderOptions]):
 
     def expect(self, topic, index):
         # NaN stretches in eta / DWS are data with a gap (the replayer flags them in meta.gaps);
-        # ltt must be finite and eta finite somewhere (streamer.plan.Validator)
+        # ltt must be finite and eta finite somewhere (streamer.runtime.plan.Validator)
         return Expect(
             run=self.run_id, index=index, arrays={k: ("<f8", (6, None)) for k in TELEMETRY_ARRAYS}, allow_nonfinite=True
         )

@@ -1,37 +1,23 @@
-"""Operations plumbing of the streaming processor.
+"""Operations plumbing of the streaming processor, in five wings, from the bottom.
 
-Modules
--------
-topology
-    The shape of the pipeline, written once: stages in order, their output topics, upstreams.
-keys
-    Key expressions: ``ttl/<run>/<topic>`` (segment data), liveliness, control and progress keys.
-codec
-    The segment codec: JSON header (attachment) plus raw array bytes (payload).
-session
-    Zenoh sessions (loopback peer by default, routers, config files), segment
-    publishers/subscribers (``zenoh.ext`` advanced pub/sub), liveliness, :class:`Bus`.
-fit_record, residual_record, monitor_record, segment_record, diagnosis_record
-    The messages' meta as values, read by attribute (``FitMessage``, ``ResidualMessage``,
-    ``MonitorMessage``, ``SegmentMeta``, ``LiveDiagnosis``); their schema rule and checks in
-    ``message_schema``.
-recorder
-    MCAP recording and salvaging reader.
-stage
-    The stage base class: lifecycle, validation, idempotence, errors, recording; the entry
-    point of a stage process (``stage_main``).
-progress
-    The progress protocol and its bookkeeping (``Progress``), for the stages and the launcher.
-pipeline_stage
-    The base classes of the stage programs: ``PipelineStage`` (reports progress) and
-    ``OrderedStage`` (handles its input in index order).
-catch_up, recorded_inputs
-    An input segment announced by its producer that never came: its cache, then its
-    recordings (read back by ``recorded_inputs``), else given up (``input-lost``).
-launcher
-    ``ttl run``: starts and supervises the five stage processes around a loopback router.
-inspect
-    ``ttl inspect`` / ``ttl view``: a run from its MCAP files and Rerun recording alone.
-cli
-    The operations subcommands of ``ttl`` (run, stage, router, inspect, view).
+A wing imports its own modules and those of the wings below it, never one above
+(``tests/test_import_graph.py``, ``test_streamer_wings``); ``docs/architecture.md`` draws them.
+
+==============  ==============================================================================
+wing            what
+==============  ==============================================================================
+``bus``         what travels on Zenoh: the pipeline's shape, keys, the segment codec, sessions,
+                segment streams, credentials, and the messages' meta as typed values
+``recording``   the MCAP recordings: their record schemas, the recorder, the salvaging reader,
+                segments read back from them
+``runtime``     one stage process: the stage base, its command line, configuration and options,
+                ingest, progress, plan, catch-up, lifecycle, child processes, memory
+``launch``      ``ttl run``: the run's plan and options, its router, the supervision of the
+                stage processes, the journal and the final verdict
+``tools``       the commands around a run: ``ttl`` itself (entry point, parsers, cli),
+                ``ttl inspect`` / ``view`` / ``refit`` / ``reprocess``, the viewers, a bench
+==============  ==============================================================================
+
+Each wing's ``__init__`` lists its modules and imports nothing.  The stage programs
+(:mod:`stages`) stand above all five.
 """

@@ -46,8 +46,8 @@ import psutil
 import pytest
 from ttl_testutil import MONITOR, Procs, finish, output, stage_processes, ttl_command, wait_for
 
-from streamer.recorder import read_recording
-from streamer.session import Bus, SessionSettings, free_port
+from streamer.bus.session import Bus, SessionSettings, free_port
+from streamer.recording.recorder import read_recording
 
 pytestmark = pytest.mark.ops
 
@@ -438,7 +438,7 @@ def test_chaos_with_model_changes_and_adopt_auto(tmp_path):
     A change sent to a fitter killed before it recorded it would be lost (the fitter's
     business).  Short run (docs/operations.md, "The chaos test"): seed 33 with 60-90 s between
     kills once did not end: a restarted monitor waited for segments gone from every cache.
-    Such a segment is now taken from its producer's recordings (:mod:`streamer.catch_up`);
+    Such a segment is now taken from its producer's recordings (:mod:`streamer.runtime.catch_up`);
     whether a draw needs that is luck, so tests/test_monitor_catch_up.py makes it happen."""
     seed = int(os.environ.get("TTL_CHAOS_SEED", random.SystemRandom().randrange(2**31)))
     rng = random.Random(seed)

@@ -1,7 +1,7 @@
 """The command-line conventions of ``docs/cli.md``, over every subcommand of ``ttl``.
 
 Each subcommand's ``--help`` and one bad argument of each run in a fresh process (the real
-entry point, ``python -m streamer.main``): help answers with status 0, a bad argument with
+entry point, ``python -m streamer.tools.main``): help answers with status 0, a bad argument with
 status 2 and one line on standard error naming the fault, no traceback, nothing left in the
 working directory, and both well inside the start-up target (< 0.5 s on an idle machine;
 asserted at 2 s here because the test machine is shared, the measured maximum is printed).
@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from streamer.parsers import DEFAULT_MEMORY_LIMIT, register
+from streamer.tools.parsers import DEFAULT_MEMORY_LIMIT, register
 from ttlcore.cli.main import (
     ANALYZE_BAND,
     DIAGNOSE_BAND,
@@ -82,7 +82,12 @@ def ttl(*args, cwd=None, **kw):
     start = time.perf_counter()
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     r = subprocess.run(
-        [sys.executable, "-m", "streamer.main", *map(str, args)], capture_output=True, text=True, cwd=cwd, env=env, **kw
+        [sys.executable, "-m", "streamer.tools.main", *map(str, args)],
+        capture_output=True,
+        text=True,
+        cwd=cwd,
+        env=env,
+        **kw,
     )
     return r, time.perf_counter() - start
 
@@ -201,7 +206,7 @@ def test_closed_pipe_ends_quietly(tiny_file, extra):
     """``ttl info FILE | head -0``: the reader is gone before the first write."""
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     p = subprocess.Popen(
-        [sys.executable, "-m", "streamer.main", "info", str(tiny_file), *extra],
+        [sys.executable, "-m", "streamer.tools.main", "info", str(tiny_file), *extra],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         env=env,
@@ -322,7 +327,7 @@ def _ttl_on_path(tmp_path) -> dict:
     """An environment whose PATH has a ``ttl`` running this checkout (the shell runs the README's line)."""
     bin_dir = tmp_path / "bin"
     bin_dir.mkdir()
-    (bin_dir / "ttl").write_text(f'#!/bin/sh\nexec "{sys.executable}" -m streamer.main "$@"\n')
+    (bin_dir / "ttl").write_text(f'#!/bin/sh\nexec "{sys.executable}" -m streamer.tools.main "$@"\n')
     (bin_dir / "ttl").chmod(0o755)
     return {
         **os.environ,
@@ -468,7 +473,18 @@ def test_reprocess_interrupted_ends_with_one_line(simulated_days, tmp_path, targ
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     days = sorted(str(p) for p in (simulated_days / "data").glob("day*.h5"))
     p = subprocess.Popen(
-        [sys.executable, "-m", "streamer.main", "reprocess", *days, "--out", "out", "--workers", "1", "--no-figures"],
+        [
+            sys.executable,
+            "-m",
+            "streamer.tools.main",
+            "reprocess",
+            *days,
+            "--out",
+            "out",
+            "--workers",
+            "1",
+            "--no-figures",
+        ],
         cwd=tmp_path,
         env=env,
         stdout=subprocess.PIPE,
@@ -579,7 +595,7 @@ def test_control_with_credentials_of_another_ca_says_so(tmp_path):
             [
                 sys.executable,
                 "-m",
-                "streamer.main",
+                "streamer.tools.main",
                 "router",
                 "--credentials",
                 str(tmp_path / "run-ca"),
@@ -630,7 +646,7 @@ def test_view_web_interrupted_exits_130(tmp_path):
     (tmp_path / "monitor.rrd").write_bytes(b"")
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
     view = subprocess.Popen(
-        [sys.executable, "-m", "streamer.main", "view", str(tmp_path), "--web"],
+        [sys.executable, "-m", "streamer.tools.main", "view", str(tmp_path), "--web"],
         stdout=subprocess.PIPE,
         stderr=subprocess.PIPE,
         text=True,
@@ -673,7 +689,7 @@ def test_ctrl_c_on_ttl_run_is_always_an_interrupt(tmp_path):
     try:
         for n, moment in enumerate((r"router on ", r"replayer [1-9]\d*/12")):  # stages starting, working
             run = f"cc{n}"
-            cmd = [sys.executable, "-m", "streamer.main", "run", "--simulate", "--duration 2h --seed 1"]
+            cmd = [sys.executable, "-m", "streamer.tools.main", "run", "--simulate", "--duration 2h --seed 1"]
             cmd += ["--segment", "10min", "--run-id", run, "--recordings", str(tmp_path / "rec"), "--insecure"]
             proc = procs.start([*cmd, "--timeout", "600"], run, env=env)  # a session of its own, as a terminal's
             wait_for(lambda proc=proc, m=moment: re.search(m, output(proc)) or proc.poll() is not None, 300, moment)

@@ -14,7 +14,7 @@ parts on less data - every stage recording every segment once and streaming equa
 in ``tests/test_pipeline.py``, the rolling window against the batch fit of a day in
 ``tests/ttlcore/estimate/test_rolling.py``, the step and drift alerts on realistic fit
 sequences in ``tests/ttlcore/diagnose/test_trends.py`` and through a real monitor process in
-``tests/stages/test_monitor.py`` - and ``make demo`` runs this very scenario."""
+``tests/stages/monitor/test_monitor.py`` - and ``make demo`` runs this very scenario."""
 
 import subprocess
 import sys
@@ -24,7 +24,7 @@ import numpy as np
 import pytest
 from mcap.reader import make_reader
 
-from streamer.recorder import read_recording
+from streamer.recording.recorder import read_recording
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY
 from ttlcore.sim.coefficients import make_coefficients
 
@@ -37,7 +37,7 @@ pytestmark = [pytest.mark.science, pytest.mark.timeout(1800)]
 
 def ttl(*args, cwd=None):
     return subprocess.run(
-        [sys.executable, "-m", "streamer.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd
+        [sys.executable, "-m", "streamer.tools.cli", *map(str, args)], capture_output=True, text=True, cwd=cwd
     )
 
 

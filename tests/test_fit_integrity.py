@@ -32,10 +32,10 @@ import pytest
 import zenoh
 from ttl_testutil import Procs, finish, output, ttl_command, wait_for
 
-from streamer.codec import encode, parse_header
-from streamer.recorder import read_recording
-from streamer.refetch_policy import REPORTS_PER_CAUSE
-from streamer.session import Bus, SessionSettings, free_port
+from streamer.bus.codec import encode, parse_header
+from streamer.bus.session import Bus, SessionSettings, free_port
+from streamer.recording.recorder import read_recording
+from streamer.runtime.refetch_policy import REPORTS_PER_CAUSE
 
 pytestmark = pytest.mark.ops
 

@@ -15,7 +15,8 @@ imported *by name* (:func:`_imports_by_name`): a string naming a ttlcore module,
 ttlcore package (``importlib.import_module(f"ttlcore.{kind}.report")``).
 
 Each rule is checked twice: on the tree (``test_layers``, ``test_no_cycles``,
-``test_type_checking_cycles``, ``test_ttlcore_floors``) and on a small synthetic tree written to
+``test_type_checking_cycles``, ``test_ttlcore_floors``, ``test_streamer_wings``: streamer's five wings
+are floors too, :data:`WINGS`) and on a small synthetic tree written to
 ``tmp_path`` in which one module breaks it (``test_checker_sees_*``), so that a rule which sees
 nothing cannot pass unnoticed.
 """
@@ -186,7 +187,7 @@ def test_no_cycles():
 #: (a module joins it) or a new one fails the test, and so does an entry no longer needed.
 #: Fix a circle by naming the type where the lower module can see it (move the shared type
 #: down, or a Protocol in the lower module, as ``ttlcore.effects.injection.InjectedEffect`` and
-#: ``streamer.stage_cli.StageProgram`` do), not by a longer list.
+#: ``streamer.runtime.stage_cli.StageProgram`` do), not by a longer list.
 KNOWN_TYPE_CYCLES: dict[frozenset[str], str] = {
     frozenset(
         f"ttlcore.diagnose.{m}"
@@ -307,19 +308,20 @@ def _longest_module(name: str, modules: dict[str, Path]) -> str | None:
     return None
 
 
-#: ``"ttlcore.pkg.mod:function"`` (the form of an entry point or a command's handler)
-DISPATCH = re.compile(r"(ttlcore(?:\.\w+)+):\w+(?:\.\w+)*")
+#: ``"ttlcore.pkg.mod:function"`` (the form of an entry point or a command's handler; likewise
+#: ``"streamer.wing.mod:function"``)
+DISPATCH = re.compile(r"((?:ttlcore|streamer)(?:\.\w+)+):\w+(?:\.\w+)*")
 
 
-def _named_by_fstring(node: ast.JoinedStr, modules: dict[str, Path]) -> list[str]:
-    """The ttlcore modules an f-string whose constant start is ``ttlcore.`` could name.
+def _named_by_fstring(node: ast.JoinedStr, modules: dict[str, Path], package: str = "ttlcore") -> list[str]:
+    """The modules of ``package`` an f-string whose constant start is ``<package>.`` could name.
 
     Its constant parts are taken as they are and each ``{...}`` as any dotted name, up to a
     ``:`` (a dispatch string's function); every module that pattern matches is named, and
     when it matches none, the package its constant start names (``f"ttlcore.diagnose.{x}"``:
     ``ttlcore.diagnose``)."""
     first = node.values[0] if node.values else None
-    if not (isinstance(first, ast.Constant) and isinstance(first.value, str) and first.value.startswith("ttlcore.")):
+    if not (isinstance(first, ast.Constant) and isinstance(first.value, str) and first.value.startswith(package + ".")):
         return []
     pattern = ""
     for part in node.values:
@@ -338,23 +340,23 @@ def _named_by_fstring(node: ast.JoinedStr, modules: dict[str, Path]) -> list[str
     return [package] if package else []
 
 
-def _imports_by_name(modules: dict[str, Path]):
-    """(module, ttlcore module, line) for every string of a ttlcore module that names a ttlcore
-    module: ``importlib.import_module("ttlcore...")`` or a table of module names, a
+def _imports_by_name(modules: dict[str, Path], package: str = "ttlcore"):
+    """(module, module, line) for every string of a module of ``package`` that names a module
+    of it: ``importlib.import_module("ttlcore...")`` or a table of module names, a
     ``"ttlcore.pkg.mod:function"`` dispatch string, an f-string (:func:`_named_by_fstring`)."""
     for name, path in modules.items():
-        if not name.startswith("ttlcore"):
+        if name.split(".")[0] != package:
             continue
         tree = ast.parse(path.read_text(), str(path))
         in_fstring = {id(n) for f in ast.walk(tree) if isinstance(f, ast.JoinedStr) for n in ast.walk(f)}
         for node in ast.walk(tree):
             named: list[str | None] = []
             if isinstance(node, ast.JoinedStr):
-                named = list(_named_by_fstring(node, modules))
+                named = list(_named_by_fstring(node, modules, package))
             elif isinstance(node, ast.Constant) and isinstance(node.value, str) and id(node) not in in_fstring:
-                if node.value in modules and node.value.startswith("ttlcore."):
+                if node.value in modules and node.value.startswith(package + "."):
                     named = [node.value]
-                elif match := DISPATCH.fullmatch(node.value):
+                elif (match := DISPATCH.fullmatch(node.value)) and match.group(1).startswith(package + "."):
                     named = [_longest_module(match.group(1), modules)]
             for target in named:
                 if target is not None and target != name:
@@ -378,6 +380,48 @@ def _upward_imports(root: Path = ROOT) -> list[str]:
 def test_ttlcore_floors():
     upward = _upward_imports()
     assert not upward, "imports up the floors of ttlcore:\n" + "\n".join(upward)
+
+
+#: the wings of streamer, from the bottom (``streamer/__init__.py``, docs/architecture.md): a
+#: module may import its own wing and those below, never one above, neither by an import
+#: statement (under ``if TYPE_CHECKING:`` too) nor by name (a ``"streamer.tools.cli:_cmd_run"``
+#: dispatch string, a string or f-string naming a streamer module).  The bus carries the
+#: messages; the recordings store them; the runtime is one stage process on both; the launcher
+#: starts and supervises those processes; the tools (``ttl`` itself, inspect, refit, viewers)
+#: stand on all of them.  Every module of streamer lies in a wing (no flat module).
+WINGS = {
+    "streamer.bus": 0,
+    "streamer.recording": 1,
+    "streamer.runtime": 2,
+    "streamer.launch": 3,
+    "streamer.tools": 4,
+}
+
+
+def _wing(module: str) -> int | None:
+    parts = module.split(".")
+    return WINGS.get(".".join(parts[:2])) if len(parts) >= 2 else None
+
+
+def _wing_violations(root: Path = ROOT) -> list[str]:
+    modules = _modules(root)
+    wrong = {
+        (m, ""): f"{_where(modules, m, 1)}: {m} is in no wing of streamer ({', '.join(WINGS)})"
+        for m in modules
+        if m.startswith("streamer.") and _wing(m) is None
+    }
+    edges = [(m, t, line, " (under TYPE_CHECKING)" if tc else "") for m, t, line, _, tc in _imports(modules)]
+    edges += [(m, t, line, " (by name)") for m, t, line in _imports_by_name(modules, "streamer")]
+    for m, t, line, how in edges:
+        wm, wt = _wing(m), _wing(t)
+        if wm is not None and wt is not None and wt > wm:
+            wrong.setdefault((m, t), f"{_where(modules, m, line)} (wing {wm}) imports {t} (wing {wt}){how}")
+    return sorted(wrong.values())
+
+
+def test_streamer_wings():
+    wrong = _wing_violations()
+    assert not wrong, "imports up the wings of streamer:\n" + "\n".join(wrong)
 
 
 # --- the checker on synthetic trees: each rule sees what it is there for -----------------------
@@ -502,4 +546,30 @@ def test_checker_sees_cycles_through_type_checking(tmp_path):
     (tree / "ttlcore/sim/b.py").write_text("class B:\n    pass\n")
     assert _unexplained_type_cycles(_cycles(tree, type_checking=True), known) == [
         "no longer a circle (remove it from KNOWN_TYPE_CYCLES): ttlcore.sim.a <-> ttlcore.sim.b"
+    ]
+
+
+def test_checker_sees_streamer_wings(tmp_path):
+    tree = _tree(
+        tmp_path,
+        {
+            "streamer/tools/cli.py": "def _cmd_run():\n    return 0\n",
+            "streamer/runtime/stage.py": "from ..bus.keys import K\nfrom ..recording.recorder import R\n",
+            "streamer/bus/keys.py": "from ..runtime.stage import Stage\n",
+            "streamer/bus/codec.py": (
+                "from __future__ import annotations\n\nfrom typing import TYPE_CHECKING\n\n"
+                "if TYPE_CHECKING:\n    from ..launch.launcher import Launcher\n"
+            ),
+            "streamer/recording/recorder.py": 'HANDLER = "streamer.tools.cli:_cmd_run"\n',
+            "streamer/launch/launcher.py": 'import importlib\n\nM = importlib.import_module(f"streamer.tools.{1}")\n',
+            "streamer/flat.py": "",
+        },
+    )
+    assert _wing_violations(tree) == [
+        "streamer/bus/codec.py:6 (wing 0) imports streamer.launch.launcher (wing 3) (under TYPE_CHECKING)",
+        "streamer/bus/keys.py:1 (wing 0) imports streamer.runtime.stage (wing 2)",
+        "streamer/flat.py:1: streamer.flat is in no wing of streamer (streamer.bus, streamer.recording, "
+        "streamer.runtime, streamer.launch, streamer.tools)",
+        "streamer/launch/launcher.py:3 (wing 3) imports streamer.tools.cli (wing 4) (by name)",
+        "streamer/recording/recorder.py:1 (wing 1) imports streamer.tools.cli (wing 4) (by name)",
     ]

@@ -29,8 +29,8 @@ import numpy as np
 import pytest
 from ttl_testutil import MONITOR, Procs, finish, output, stage_processes, ttl_command, wait_for
 
-from streamer.recorder import RecordingError, read_recording
-from streamer.session import free_port
+from streamer.bus.session import free_port
+from streamer.recording.recorder import RecordingError, read_recording
 from ttlcore.conventions import LINKS
 from ttlcore.effects import make_effects
 from ttlcore.estimate.monitoring import FileTruth
@@ -232,7 +232,7 @@ def test_rolling_model_agrees_with_the_window_refit(ghost_hours, tmp_path):
     the 24 coefficients, the witness' coefficient and its part of the TDI, which the
     subtractor removes; the last fit agrees with ``ttl refit``'s fit of the same window
     within a fraction of sigma and with the truth."""
-    from streamer.refit import load_run, refit_settings
+    from streamer.tools.refit import load_run, refit_settings
     from ttlcore.diagnose.diagnoser import refit
 
     data, truth = ghost_hours

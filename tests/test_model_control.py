@@ -19,10 +19,10 @@ import time
 import pytest
 from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for
 
-from streamer.keys import control_key
-from streamer.recorder import read_recording
-from streamer.security import ensure_credentials
-from streamer.session import Bus, SessionSettings, free_port
+from streamer.bus.keys import control_key
+from streamer.bus.security import ensure_credentials
+from streamer.bus.session import Bus, SessionSettings, free_port
+from streamer.recording.recorder import read_recording
 
 SEGMENTS = 8
 

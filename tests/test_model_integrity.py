@@ -12,7 +12,7 @@ Real ``ttl run`` processes on a loopback Zenoh, real MCAP files read back:
 * SIGKILL of the fitter just after it published a fit: ``ttl inspect`` shows every fit.
 
 The refusals (bad option, limits), the queue of changes applied at segment boundaries and the
-restart's queue are unit-tested in tests/stages/test_live_model.py.
+restart's queue are unit-tested in tests/stages/fitter/test_live_model.py.
 """
 
 from __future__ import annotations
@@ -28,9 +28,9 @@ import numpy as np
 import pytest
 from ttl_testutil import Procs, finish, output, stage_processes, ttl_command, wait_for
 
-from streamer.keys import control_key
-from streamer.recorder import read_recording
-from streamer.session import Bus, SessionSettings, free_port
+from streamer.bus.keys import control_key
+from streamer.bus.session import Bus, SessionSettings, free_port
+from streamer.recording.recorder import read_recording
 
 pytestmark = pytest.mark.ops
 

@@ -7,7 +7,7 @@ is made to happen on purpose rather than by a lucky draw: the monitor is stopped
 after its first segment, the fitter is killed (restarted by the launcher: its new process's
 cache holds none of the fits its earlier process published) and goes on as far as the
 replayer's window lets it, then the stopped monitor is killed.  The restarted monitor must take the fits of the fitter's earlier
-process from its recordings (:mod:`streamer.catch_up`, a ``recovered`` event) and the run
+process from its recordings (:mod:`streamer.runtime.catch_up`, a ``recovered`` event) and the run
 must end with exit status 0 and every segment drawn.
 """
 
@@ -19,8 +19,8 @@ import signal
 import pytest
 from ttl_testutil import MONITOR, Procs, finish, output, stage_processes, wait_for
 
-from streamer.recorder import read_recording
-from streamer.session import Bus, SessionSettings, free_port
+from streamer.bus.session import Bus, SessionSettings, free_port
+from streamer.recording.recorder import read_recording
 
 pytestmark = [pytest.mark.ops, pytest.mark.skipif(not MONITOR, reason="no monitor stage")]
 

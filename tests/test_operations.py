@@ -9,7 +9,7 @@ processes on a loopback Zenoh, real MCAP files read back.
   rejected (or, an identical copy, as a duplicate) by every stage it reached, and the fits and
   residuals equal the clean run's bit for bit.  Altered duplicates are sent of segments every
   stage has handled (a conflict within the hold keeps the genuine copy out too, which
-  tests/streamer/test_stage.py checks): each is recorded as a conflict whose first copy
+  tests/streamer/runtime/test_stage.py checks): each is recorded as a conflict whose first copy
   had been used, and ``ttl run`` exits 1 for them.
 * NaN gap: ten minutes of NaN in eta: the run ends on its own, the gap is reported, and the
   fit after the gap is within 1 sigma of the clean run's.
@@ -35,9 +35,9 @@ import pytest
 import zenoh
 from ttl_testutil import MONITOR, Procs, finish, output, stage_processes, ttl_command, wait_for
 
-from streamer.codec import encode
-from streamer.recorder import read_recording
-from streamer.session import Bus, SessionSettings, free_port
+from streamer.bus.codec import encode
+from streamer.bus.session import Bus, SessionSettings, free_port
+from streamer.recording.recorder import read_recording
 
 pytestmark = pytest.mark.ops
 

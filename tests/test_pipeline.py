@@ -40,9 +40,9 @@ from ttl_testutil import (
     wait_for,
 )
 
-from streamer.recorder import read_recording
-from streamer.security import ensure_credentials
-from streamer.session import Bus, SessionSettings, free_port
+from streamer.bus.security import ensure_credentials
+from streamer.bus.session import Bus, SessionSettings, free_port
+from streamer.recording.recorder import read_recording
 
 SIM = "--duration 12h --orbit unequal --seed 1"
 SEGMENTS = 12
@@ -271,7 +271,7 @@ def test_message_contracts_and_streaming_equals_batch(t1):
 
 
 def _progress_watch(bus, run, stage):
-    from streamer.keys import progress_pattern
+    from streamer.bus.keys import progress_pattern
 
     seen = queue.Queue()
     bus.segment_subscriber(progress_pattern(run), lambda s: seen.put(json.loads(s.payload.to_bytes())), history=1)

@@ -13,7 +13,7 @@ import numpy as np
 from lisainstrument_sim import simulate_lisainstrument
 from ttl_testutil import MONITOR, Procs, finish, indices, output
 
-from streamer.recorder import read_recording
+from streamer.recording.recorder import read_recording
 
 STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if MONITOR else [])
 OUTPUT = {

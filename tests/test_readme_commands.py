@@ -87,7 +87,7 @@ def test_the_readme_has_the_commands_this_test_reads():
 
 
 def test_every_readme_command_parses_as_printed(tmp_path, monkeypatch):
-    from streamer.parsers import register
+    from streamer.tools.parsers import register
     from ttlcore.cli.main import build_parser
     from ttlcore.effects import make_effects
     from ttlcore.effects.registry import injection_from_spec

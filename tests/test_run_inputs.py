@@ -1,10 +1,10 @@
 """A run's inputs are pinned, and its exit status says what happened (issue 33).
 
 * The plan pins every telemetry file (size, modification time, sampled SHA-256:
-  ``streamer/input_pins.py``); the replayer refuses a file that is not that one, at open
+  ``streamer/launch/input_pins.py``); the replayer refuses a file that is not that one, at open
   and before reading each segment, and ``ttl run --resume`` refuses it too.
 * ``ttl run`` exits 3 when segments of the plan outside the gaps in the data got no fit or
-  no residual, and its summary line says how many and which (``streamer/run_verdict.py``).
+  no residual, and its summary line says how many and which (``streamer/launch/run_verdict.py``).
 * Ops (marker ``ops``): the telemetry file swapped for a shorter one mid-run stops the run
   with an error naming the file (it used to read segments 3-5 from the new file, report 6-11
   as gaps and exit 0 with 6/12 fits); a control payload nested 500 deep sent to every stage
@@ -27,14 +27,14 @@ import pytest
 from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for
 
 from stages.replayer import FileSource
-from streamer.input_pins import InputChanged, check_pins, check_stat, pin
-from streamer.launcher import Launcher, RunOptions
-from streamer.plan import Plan
-from streamer.progress import Progress
-from streamer.rangeset import RangeSet
-from streamer.recorder import read_recording
-from streamer.run_verdict import EXIT_LOST, fit_span, lost_segments
-from streamer.session import Bus, SessionSettings, free_port
+from streamer.bus.session import Bus, SessionSettings, free_port
+from streamer.launch.input_pins import InputChanged, check_pins, check_stat, pin
+from streamer.launch.launcher import Launcher, RunOptions
+from streamer.launch.run_verdict import EXIT_LOST, fit_span, lost_segments
+from streamer.recording.recorder import read_recording
+from streamer.runtime.plan import Plan
+from streamer.runtime.progress import Progress
+from streamer.runtime.rangeset import RangeSet
 from ttlcore.io.reader import read_telemetry
 
 STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if MONITOR else [])
@@ -400,7 +400,7 @@ def test_nested_control_payload_is_refused_by_every_stage(tmp_path):
 def test_a_segment_the_fitter_had_no_data_for_yet_is_not_lost(tmp_path):
     """Its ``no-fit`` warning (in the fitter's recording) says "no FFT segment with data yet"
     (the first segments gated or gapped): not a loss; a segment the window could not fit is."""
-    from streamer.recorder import Recorder, stage_record
+    from streamer.recording.recorder import Recorder, stage_record
 
     run_dir = tmp_path / "r1"
     run_dir.mkdir()

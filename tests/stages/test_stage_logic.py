@@ -9,13 +9,13 @@ import pytest
 
 from stages.replayer import FileSource, Replayer, make_source
 from stages.subtractor import Subtractor
-from streamer.keys import from_ranges, to_ranges
-from streamer.pipeline_stage import InOrder
-from streamer.progress import Progress
-from streamer.rangeset import RangeSet
-from streamer.residual_record import SCHEMA as RESIDUAL_SCHEMA
-from streamer.residual_record import ResidualMessage
-from streamer.stage import StageConfig
+from streamer.bus.keys import from_ranges, to_ranges
+from streamer.bus.residual_record import SCHEMA as RESIDUAL_SCHEMA
+from streamer.bus.residual_record import ResidualMessage
+from streamer.runtime.pipeline_stage import InOrder
+from streamer.runtime.progress import Progress
+from streamer.runtime.rangeset import RangeSet
+from streamer.runtime.stage import StageConfig
 from ttlcore.cli.simulation import simulation_config
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.errors import ConfigError, TelemetryError
@@ -176,7 +176,7 @@ def test_an_announced_input_that_never_comes_is_asked_of_the_producers_cache(tmp
     them.  A segment the tdi_builder's progress says it published, not received here after
     ANNOUNCED_FETCH_AFTER seconds, is asked of its cache, once; received, handled, or below
     the validator's floor, it is not."""
-    from streamer.pipeline_stage import ANNOUNCED_FETCH_AFTER
+    from streamer.runtime.pipeline_stage import ANNOUNCED_FETCH_AFTER
 
     s = Subtractor(StageConfig(run="u", recordings=tmp_path))
     asked = []
@@ -320,7 +320,7 @@ def test_replayer_paces_at_a_multiple_of_real_time(tmp_path, monkeypatch):
 def test_run_options_merge_config_file_and_command_line(tmp_path):
     from pathlib import Path
 
-    from streamer.cli import register, run_options
+    from streamer.tools.cli import register, run_options
     from ttlcore.cli.main import build_parser
 
     (tmp_path / "run.toml").write_text(
@@ -357,8 +357,8 @@ def test_restarted_fitter_recovers_the_model_in_force(tmp_path):
     """A model changed by a control message survives a restart: taken from the earlier
     process's recording, queued from its segment, its model_change still due when no fit
     followed it."""
-    from stages.fitter import Fitter
-    from streamer.recorder import Recorder
+    from stages.fitter.fitter import Fitter
+    from streamer.recording.recorder import Recorder
 
     run_dir = tmp_path / "u"
     first = Fitter(StageConfig(run="u", recordings=tmp_path))
@@ -421,8 +421,8 @@ def test_simulation_source_keeps_one_noise_block_and_equals_the_simulator():
 def test_fitter_window_keeps_one_window_of_telemetry(tmp_path):
     """The fitter's telemetry window (for the refits of extended models and the live
     diagnosis) holds the segments of one window and joins them as ``ttl refit`` would."""
-    from stages.fitter import Fitter
-    from streamer.messages import concatenate_telemetry
+    from stages.fitter.fitter import Fitter
+    from streamer.bus.messages import concatenate_telemetry
     from ttlcore.conventions import COEFFICIENT_NAMES
     from ttlcore.io.telemetry import Telemetry
     from ttlcore.tdi.data import TDIData
@@ -466,7 +466,7 @@ def test_fitter_window_keeps_one_window_of_telemetry(tmp_path):
 def test_adoption_needs_a_recommendation_that_explains_the_excess():
     """--adopt auto takes only what the diagnosis recommends, says explains the excess, with
     decisive evidence."""
-    from stages.live_diagnosis import adoptable
+    from stages.fitter.live_diagnosis import adoptable
 
     rec = {
         "option": "--effects linear-ttl,drift",
@@ -492,7 +492,7 @@ def test_an_effect_waits_while_the_models_gates_hide_most_of_the_window():
     """An effect is adopted only from a window whose gates leave half of it (a 16-h window with
     11 h gated once adopted second-order from noise levels fitted on the 5 h left); counted on
     the gates merged and clipped to the window."""
-    from stages.live_diagnosis import enough_ungated
+    from stages.fitter.live_diagnosis import enough_ungated
     from ttlcore.diagnose.diagnosis import TimeSlice
 
     report = [TimeSlice(t_start=3600.0 * h, t_stop=3600.0 * (h + 1), chi2_dof=1.0, fails=False) for h in range(16)]
@@ -508,7 +508,7 @@ def test_an_effect_waits_while_the_models_gates_hide_most_of_the_window():
 def test_monitor_waits_for_an_alive_fitter_that_has_not_reported_yet(tmp_path):
     """A fitter still on its first segment (alive, no progress yet) is waited for; one that is
     not running blocks nothing; one that reported is waited for until it passed the segment."""
-    from stages.monitor import Monitor
+    from stages.monitor.monitor import Monitor
 
     m = Monitor(StageConfig(run="u", recordings=tmp_path))
     assert m.settling.waiting_for(0, {}, m.alive_peers) is None  # neither fitter nor subtractor running
@@ -523,7 +523,7 @@ def test_monitor_waits_for_an_alive_fitter_that_has_not_reported_yet(tmp_path):
 
 
 def test_subtractor_publishes_the_residual_message_value(tmp_path):
-    """The residual's meta is a :class:`streamer.residual_record.ResidualMessage` header: the
+    """The residual's meta is a :class:`streamer.bus.residual_record.ResidualMessage` header: the
     fields the subtractor wrote before (same order) and ``schema``; read back by attribute."""
     s = Subtractor(StageConfig(run="u", recordings=tmp_path))
     s.segments_total = 12

@@ -10,10 +10,10 @@ import pytest
 from mcap.reader import make_reader
 from ttl_testutil import indices, output, wait_for
 
-from streamer.codec import Expect, decode, encode
-from streamer.keys import topic_pattern
-from streamer.recorder import read_recording
-from streamer.session import Bus, SessionSettings, free_port
+from streamer.bus.codec import Expect, decode, encode
+from streamer.bus.keys import topic_pattern
+from streamer.bus.session import Bus, SessionSettings, free_port
+from streamer.recording.recorder import read_recording
 from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
 from ttlcore.io.telemetry import Telemetry
 from ttlcore.tdi.data import TDIStream

@@ -10,7 +10,7 @@ from pathlib import Path
 import psutil
 from proc_testutil import ChildProcesses, finish, output, wait_for  # noqa: F401 - the tests import them from here
 
-from streamer.recorder import read_recording
+from streamer.recording.recorder import read_recording
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -20,8 +20,8 @@ MONITOR = (ROOT / "stages" / "monitor.py").exists()
 
 
 def ttl_command(*args: str) -> list[str]:
-    """The ``ttl`` command line (the installed script, else ``python -m streamer.cli``)."""
-    base = [str(_TTL)] if _TTL.exists() else [sys.executable, "-m", "streamer.cli"]
+    """The ``ttl`` command line (the installed script, else ``python -m streamer.tools.cli``)."""
+    base = [str(_TTL)] if _TTL.exists() else [sys.executable, "-m", "streamer.tools.cli"]
     return base + [str(a) for a in args]
 
 

@@ -21,9 +21,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 import zenoh  # noqa: E402
 
-from streamer.codec import encode  # noqa: E402
-from streamer.keys import control_key, stream_key  # noqa: E402
-from streamer.session import SessionSettings, make_config  # noqa: E402
+from streamer.bus.codec import encode  # noqa: E402
+from streamer.bus.keys import control_key, stream_key  # noqa: E402
+from streamer.bus.session import SessionSettings, make_config  # noqa: E402
 
 
 def config(args: dict) -> zenoh.Config:

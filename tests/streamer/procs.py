@@ -11,7 +11,7 @@ subscriber
     damaged copy is asked for again from the publishers' caches, as a stage does) and,
     after ``n`` distinct indices or ``timeout``, writes what it got to ``out``.
 stage
-    Runs :class:`Doubler` (a :class:`streamer.stage.Stage`) with the StageConfig ``config``.
+    Runs :class:`Doubler` (a :class:`streamer.runtime.stage.Stage`) with the StageConfig ``config``.
 """
 
 from __future__ import annotations
@@ -28,10 +28,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from streamer.codec import CodecError, Expect, decode, encode, parse_header  # noqa: E402
-from streamer.keys import control_key, topic_pattern  # noqa: E402
-from streamer.session import Bus, SessionSettings  # noqa: E402
-from streamer.stage import Output, Stage, StageConfig, configure_logging  # noqa: E402
+from streamer.bus.codec import CodecError, Expect, decode, encode, parse_header  # noqa: E402
+from streamer.bus.keys import control_key, topic_pattern  # noqa: E402
+from streamer.bus.session import Bus, SessionSettings  # noqa: E402
+from streamer.runtime.stage import Output, Stage, StageConfig, configure_logging  # noqa: E402
 
 log = logging.getLogger("procs")
 

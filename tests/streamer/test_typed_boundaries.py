@@ -10,10 +10,10 @@ import pytest
 from cryptography.hazmat.primitives import serialization
 from cryptography.hazmat.primitives.asymmetric import x25519
 
-from streamer import security
-from streamer.inspect_model import recorded_fits
-from streamer.recorder import RecordedMessage, RecordedSegment, Recording, RecordingError
-from streamer.stage import StageConfig
+from streamer.bus import security
+from streamer.recording.recorder import RecordedMessage, RecordedSegment, Recording, RecordingError
+from streamer.runtime.stage import StageConfig
+from streamer.tools.inspect_model import recorded_fits
 
 
 def test_a_ca_key_that_cannot_sign_is_refused_by_name(tmp_path):
@@ -48,8 +48,8 @@ def test_a_recorded_segment_is_a_decoded_one():
 
 
 def test_stage_parts_used_before_they_exist_are_named(tmp_path):
-    from stages.fitter import Fitter
-    from stages.monitor import Monitor
+    from stages.fitter.fitter import Fitter
+    from stages.monitor.monitor import Monitor
 
     fitter = Fitter(StageConfig(run="u", recordings=tmp_path))
     with pytest.raises(RuntimeError, match="the recorder is used outside run"):

@@ -1,7 +1,7 @@
 """The ``ttl`` command line: its parser, the science subcommands' options, and the dispatch.
 
-The ``ttl`` entry point is :func:`streamer.main.main`: it builds this parser with the
-operations subcommands added (``build_parser(streamer.parsers.register)``), so this package
+The ``ttl`` entry point is :func:`streamer.tools.main.main`: it builds this parser with the
+operations subcommands added (``build_parser(streamer.tools.parsers.register)``), so this package
 never imports the operations layer; ``python -m ttlcore.cli`` gives the science commands alone.
 
 This module imports no science: every subcommand's options are declared here (argparse

@@ -1,6 +1,6 @@
 """What a monitor of the subtraction computes: noise curves of a segment and the truth over a fit's window.
 
-The streaming pipeline's monitor (``stages/monitor.py``) draws these; ``ttl inspect`` reads
+The streaming pipeline's monitor (``stages/monitor/monitor.py``) draws these; ``ttl inspect`` reads
 the truth the same way.  Nothing here draws or talks to a bus.
 
 Noise curves (per segment of TDI X2, in displacement, :mod:`ttlcore.estimate.spectra`):

@@ -200,7 +200,7 @@ def test_refit_from_tdi_only_adds_a_drift():
     bands = np.array(out.change.bands_after)
     assert np.all((bands > 0.9) & (bands < 1.1)), bands
     assert max(out.change.bands_before) > 2
-    # the pipeline's candidates on TDI outputs (stages/fitter.py): the effects TDI allows
+    # the pipeline's candidates on TDI outputs (stages/fitter/fitter.py): the effects TDI allows
     # (drift and step from modulated regressors, the step time searched without telemetry;
     # the linearised effects from the regressors' derivatives), not those needing DWS series
     ranked = candidates(out.baseline_fit)

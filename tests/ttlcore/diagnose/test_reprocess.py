@@ -1,6 +1,6 @@
 """Tests of the science part of reprocessing (ttlcore.app.reprocessing): trends across days with
 the live monitor's step and drift tests (:mod:`ttlcore.diagnose.trends`).  The command itself, on
-real Dask clusters, is tested in tests/streamer/test_reprocess_command.py."""
+real Dask clusters, is tested in tests/streamer/tools/test_reprocess_command.py."""
 
 from __future__ import annotations
 

@@ -19,7 +19,7 @@ import shlex
 import numpy as np
 import pytest
 
-from streamer.parsers import register
+from streamer.tools.parsers import register
 from ttlcore.cli.main import build_parser, main
 from ttlcore.conventions import (
     COEFFICIENT_NAMES,
@@ -350,7 +350,7 @@ def _help_examples(parser: argparse.ArgumentParser) -> list[str]:
 
 
 def test_the_help_examples_of_effect_options_parse():
-    from stages.fitter_options import add_options
+    from stages.fitter.options import add_options
 
     fitter = argparse.ArgumentParser()
     add_options(fitter)

@@ -1,0 +1,93 @@
+"""The fitter's window of telemetry: the segments of the rolling window, for the model's refits.
+
+The rolling fit keeps the window's spectra; the window refit, the live diagnosis and the
+rolling model's columns need the window's telemetry itself.  :class:`TelemetryWindow` keeps
+it, segment by segment in index order, for one window duration; a missing segment is held
+as NaN readouts (the light travel times held), and the window joins into one series as
+``ttl refit`` builds it from the recorded segments (:meth:`TelemetryWindow.joined`).
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from collections.abc import Iterator
+
+import numpy as np
+
+from streamer.bus.messages import concatenate_telemetry
+from ttlcore.io.telemetry import Telemetry
+
+
+class TelemetryWindow:
+    """The telemetry of the segments of a rolling window, ``(index, Telemetry)`` in index order.
+
+    Parameters
+    ----------
+    duration : float
+        The window [s]: a segment that starts more than ``duration`` (+1 s) before the newest
+        one ends goes.
+    """
+
+    def __init__(self, duration: float):
+        self.duration = float(duration)
+        self.segments: deque[tuple[int, Telemetry]] = deque()
+
+    def __iter__(self) -> Iterator[tuple[int, Telemetry]]:
+        return iter(self.segments)
+
+    def __len__(self) -> int:
+        return len(self.segments)
+
+    @property
+    def telemetry(self) -> list[Telemetry]:
+        """The segments' telemetry, oldest first."""
+        return [tm for _, tm in self.segments]
+
+    @property
+    def first(self) -> int:
+        """Index of the oldest segment."""
+        return self.segments[0][0]
+
+    @property
+    def last(self) -> int:
+        """Index of the newest segment."""
+        return self.segments[-1][0]
+
+    @property
+    def t_start(self) -> float:
+        """Start [s] of the oldest segment."""
+        return float(self.segments[0][1].t0)
+
+    def clear(self) -> None:
+        """Forget every segment (a discontinuity: the window restarts)."""
+        self.segments.clear()
+
+    def add(self, index: int, tm: Telemetry) -> None:
+        """Segment ``index`` joins the window; the segments now out of it go."""
+        self.segments.append((index, tm))
+        end = tm.t0 + tm.size / tm.fs
+        while self.segments and self.segments[0][1].t0 < end - self.duration - 1.0:
+            self.segments.popleft()
+
+    def add_gap(self, index: int, t0: float, fs: float, n: int) -> None:
+        """Segment ``index`` will not come: ``n`` samples of NaN readouts from ``t0``, the
+        last light travel times held (nothing when the window is empty)."""
+        if not self.segments:
+            return
+        prev = self.segments[-1][1]
+        blank = np.full((6, n), np.nan)
+        gap = Telemetry(
+            t0=t0,
+            fs=fs,
+            eta=blank,
+            dws_phi=blank,
+            dws_eta=blank,
+            ltt=np.repeat(prev.ltt[:, -1:], n, axis=1),
+            source=prev.source,
+        )
+        self.segments.append((index, gap))
+
+    def joined(self, source: str) -> Telemetry:
+        """The window's telemetry, one series (:func:`streamer.bus.messages.concatenate_telemetry`:
+        the same as ``ttl refit`` builds from the recorded segments)."""
+        return concatenate_telemetry(self.telemetry, source=source)
