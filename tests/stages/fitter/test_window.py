@@ -1,0 +1,71 @@
+"""Unit tests of :mod:`stages.fitter.window`: the fitter's window of telemetry (no bus in it)."""
+
+import numpy as np
+import pytest
+
+from stages.fitter.window import TelemetryWindow
+from ttlcore.io.telemetry import Telemetry
+
+FS = 2.0
+N = 100  # samples of a segment: 50 s
+
+
+def segment(index: int) -> Telemetry:
+    values = np.full((6, N), float(index))
+    return Telemetry(
+        t0=index * N / FS,
+        fs=FS,
+        eta=values,
+        dws_phi=values + 0.5,
+        dws_eta=values - 0.5,
+        ltt=np.full((6, N), 8.3 + index),
+        source="test",
+    )
+
+
+def test_segments_older_than_the_window_go():
+    window = TelemetryWindow(duration=120.0)  # two segments and a bit
+    for i in range(5):
+        window.add(i, segment(i))
+    # the newest ends at 250 s: a segment starting before 250 - 120 - 1 = 129 s goes
+    assert [i for i, _ in window] == [3, 4]
+    assert (window.first, window.last, len(window)) == (3, 4, 2)
+    assert window.t_start == 150.0
+    assert [tm.t0 for tm in window.telemetry] == [150.0, 200.0]
+    window.clear()
+    assert len(window) == 0
+
+
+def test_a_gap_is_nan_readouts_with_the_light_travel_times_held():
+    window = TelemetryWindow(duration=1000.0)
+    window.add_gap(0, 0.0, FS, N)  # nothing before it: nothing to hold
+    assert len(window) == 0
+    window.add(0, segment(0))
+    window.add_gap(1, N / FS, FS, N)
+    window.add(2, segment(2))
+    assert [i for i, _ in window] == [0, 1, 2]
+    joined = window.joined(source="window")
+    assert joined.eta.shape == (6, 3 * N) and joined.t0 == 0.0 and joined.source == "window"
+    gap = slice(N, 2 * N)
+    assert np.isnan(joined.eta[:, gap]).all() and np.isnan(joined.dws_phi[:, gap]).all()
+    np.testing.assert_array_equal(joined.ltt[:, gap], 8.3)  # the last of segment 0, held
+    np.testing.assert_array_equal(joined.eta[:, 2 * N :], 2.0)
+    assert not np.isnan(joined.eta[:, :N]).any()
+
+
+def test_an_empty_window_does_not_join():
+    with pytest.raises(ValueError, match="no telemetry"):
+        TelemetryWindow(10.0).joined("window")
+
+
+def test_a_second_of_slack_at_the_window_edge():
+    # newest ends at 250 s: with a window of 149.5 s a segment that starts at 100 s, 0.5 s
+    # too early, stays (1 s of slack: rounding of t0 across segments does not drop one)
+    window = TelemetryWindow(duration=149.5)
+    for i in range(5):
+        window.add(i, segment(i))
+    assert [i for i, _ in window] == [2, 3, 4]
+    window = TelemetryWindow(duration=148.5)  # 1.5 s too early: it goes
+    for i in range(5):
+        window.add(i, segment(i))
+    assert [i for i, _ in window] == [3, 4]
