@@ -3,6 +3,7 @@ trends (a real :class:`ttlcore.diagnose.trends.TrendMonitor`; no bus in it)."""
 
 import numpy as np
 import pytest
+
 from stages.monitor.status import UNITS, drift_arrays, status_meta
 from streamer.bus.monitor_record import MonitorMessage
 from ttlcore.conventions import COEFFICIENT_NAMES

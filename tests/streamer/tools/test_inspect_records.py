@@ -4,6 +4,7 @@ files (the launcher's journal, the router's refusals, the plan), from files on d
 import json
 
 import pytest
+
 from streamer.tools.inspect_records import (
     MAX_REFUSALS,
     InspectError,
