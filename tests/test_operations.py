@@ -693,3 +693,43 @@ def test_nan_gap_ends_the_run_with_the_gap_reported(tmp_path):
     assert not np.allclose(last_gap["coefficients"], last_clean["coefficients"])  # the gap was seen
     res = subprocess.run(ttl_command("inspect", str(run_dir)), capture_output=True, text=True, timeout=300)
     assert "gap" in res.stdout and "segment 2" in res.stdout, res.stdout[-3000:]
+
+
+@pytest.mark.parametrize("stage", ["tdi_builder", "fitter", "monitor"])
+def test_a_stage_failing_every_segment_ends_the_run(stage, tmp_path):
+    """A stage whose ``handle`` raises on every input segment (injected by
+    tests/faults/sitecustomize.py) does not hold the run until its timeout: each segment that
+    failed there is given up once no good copy follows (streamer/catch_up.py), the run ends
+    by itself with exit status 1, and every segment is reported failed by that stage.
+
+    Before, nothing was missing (the segments had come) and nothing was handled: the replayer
+    waited at its window, an ordered stage's queue never started, and ``ttl run`` ran into its
+    ``--timeout``."""
+    env = dict(
+        os.environ,
+        TTL_TEST_FAIL_HANDLE=stage,
+        PYTHONPATH=os.pathsep.join([str(Path(__file__).parent / "faults"), os.environ.get("PYTHONPATH", "")]),
+    )
+    segments = 3
+    procs = Procs(tmp_path)
+    try:
+        start = time.monotonic()
+        proc = procs.start(
+            ttl_command(
+                *run_args("fails", tmp_path / "rec", "--timeout", "400", sim=f"--duration {segments}h --seed 2")
+            ),
+            "run",
+            env=env,
+        )
+        code = finish(proc, 450)
+        wall = time.monotonic() - start
+        out = output(proc)
+    finally:
+        procs.close()
+    assert code == 1, out[-3000:]
+    assert "timed out" not in out and wall < 240, (wall, out[-3000:])  # the timeout is 400 s
+    rec = read_recording(tmp_path / "rec" / "fails" / f"{stage}.mcap")
+    failed = {e["index"] for e in rec.json("errors") if e["kind"] == "failed" and "injected failure" in e["message"]}
+    assert failed == set(range(segments)), rec.json("errors")[:5]
+    lost = {w["index"] for w in rec.json("warnings") if w["kind"] == "input-lost"}
+    assert set(range(segments)) <= lost, rec.json("warnings")[:5]

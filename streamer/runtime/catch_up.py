@@ -24,12 +24,21 @@ run with model changes never ended).
    it (:meth:`streamer.runtime.pipeline_stage.PipelineStage.input_lost`: a failed segment, so ``ttl
    run`` does not exit 0).
 
+A segment that *came*, passed the checks of its copy and then failed here (the stage's
+``handle`` raised: reported as ``failed``) is neither missing nor handled: the cache and the
+recordings hold the same copy, which would fail again.  It waits :data:`ANNOUNCED_FETCH_AFTER`
+seconds for a good copy (a forged copy can come before the real one), and once its producer's
+progress has it as published, it is given up as in step 3 (:meth:`CatchUp.unusable`).  Before,
+a stage whose ``handle`` failed on every segment held the run until it timed out: nothing
+was missing, nothing was handled, and an ordered stage's queue never started.
+
 It holds the bookkeeping only (no bus, no file): the caller says what is missing now, and
 what happened to the questions it asked.
 """
 
 from __future__ import annotations
 
+from collections.abc import Container, Mapping
 from dataclasses import dataclass
 
 __all__ = ["ANNOUNCED_FETCH_AFTER", "CACHE_ANSWER_WITHIN", "CatchUp"]
@@ -58,6 +67,14 @@ class _Missing:
     recorded: bool = False
 
 
+@dataclass
+class _Unusable:
+    """A segment that came and failed here: since when [monotonic s] and why."""
+
+    since: float
+    why: str
+
+
 class CatchUp:
     """Which missing announced segments to ask of the cache and which to read from the
     recordings, and when (module docstring).
@@ -74,6 +91,7 @@ class CatchUp:
         self.fetch_after = float(fetch_after)
         self.answer_within = float(answer_within)
         self._missing: dict[tuple[str, int], _Missing] = {}
+        self._unusable: dict[tuple[str, int], _Unusable] = {}
 
     def step(self, missing: dict[str, set[int]], now: float) -> tuple[list[tuple[str, int]], dict[str, set[int]]]:
         """What to do now about the segments ``missing`` (per topic: announced by the producer,
@@ -114,3 +132,33 @@ class CatchUp:
     def waiting(self) -> int:
         """Segments missing and not yet read from the recordings."""
         return sum(not m.recorded for m in self._missing.values())
+
+    def failed_here(self, topic: str, index: int, why: str, now: float) -> None:
+        """Segment ``index`` of ``topic`` came and failed here (``why``): waited for a good copy
+        from now (the first failure), then given up (:meth:`unusable`)."""
+        key = (topic, index)
+        if key in self._unusable:
+            self._unusable[key].why = why
+        else:
+            self._unusable[key] = _Unusable(float(now), why)
+
+    def unusable(
+        self, published: Mapping[str, Container[int]], arrived: Mapping[str, Container[int]], now: float
+    ) -> list[tuple[str, int, str]]:
+        """The segments that failed here to give up now, ``(topic, index, why)``, each once.
+
+        A segment a good copy of which has since been handled (in ``arrived``, per topic) is
+        forgotten.  One is given up :attr:`fetch_after` seconds after its first failure, when
+        its producer's progress has it (``published``, per topic: a forged copy ahead of the real
+        segment is not a reason to give the real one up); a topic with no producer known here
+        is given up on time alone.
+        """
+        out = []
+        for key, u in sorted(self._unusable.items()):
+            topic, index = key
+            if index in arrived.get(topic, ()):
+                del self._unusable[key]
+            elif now - u.since >= self.fetch_after and (topic not in published or index in published[topic]):
+                del self._unusable[key]
+                out.append((topic, index, u.why))
+        return out

@@ -64,9 +64,12 @@ class InOrder:
 
     def withdraw(self, index: int, reason: str) -> bool:
         """Skip ``index`` (dropping its item if buffered) when its turn comes; False when it
-        was handed out already."""
+        was handed out already.  A withdrawn index counts as arrived for the queue's start:
+        a stream whose every segment is withdrawn still goes through them in order."""
         if self.next is not None and index < self.next:
             return False
+        if self._first_arrival is None:
+            self._first_arrival = time.monotonic()
         self.pending.pop(index, None)
         self.withdrawn[index] = reason
         return True
@@ -107,12 +110,12 @@ class InOrder:
         """Whether the first index to hand out is known (set now when it is settled)."""
         if self.next is not None:
             return True
-        if not self.pending:
+        if not self.pending and not self.withdrawn:
             return False
         first = self._first_arrival
-        if first is None:  # set by the add() that buffered the first pending segment
+        if first is None:  # set by the add() or withdraw() of the first index
             raise RuntimeError("in-order queue: segments pending with no arrival time")
-        if 0 not in self.pending and now - first < self.settle:
+        if 0 not in self.pending and 0 not in self.withdrawn and now - first < self.settle:
             return False
         self.next = min(self.pending.keys() | self.withdrawn.keys())
         if self.start_at is not None and self.start_at < self.next:
@@ -277,6 +280,15 @@ class PipelineStage(Stage, Generic[O]):
                 if i >= floor and (topic, i) not in self.validator.digests and self.still_needed(topic, i)
             }
         ask, read = self.late_inputs.step(missing, now)
+        published = {t: announced for t, (_, announced) in self.announced_inputs().items()}
+        for topic, index, why in self.late_inputs.unusable(published, self.ingest.done, now):
+            if index not in handled:
+                self.input_lost(
+                    topic,
+                    index,
+                    f"the copy that came failed here ({why}) and no good copy came within "
+                    f"{self.late_inputs.fetch_after:g} s",
+                )
         asked = []
         for topic, i in ask:
             sent = self.fetch(topic, i)
@@ -291,6 +303,11 @@ class PipelineStage(Stage, Generic[O]):
         """Whether input segment ``index`` of ``topic``, announced and not received, is still
         waited for here (override: the default, always)."""
         return True
+
+    def input_failed(self, topic: str, index: int, why: str) -> None:
+        """A segment that came and failed here: given up by :meth:`fetch_announced` when no
+        good copy follows (:meth:`streamer.catch_up.CatchUp.unusable`)."""
+        self.late_inputs.failed_here(topic, index, why, time.monotonic())
 
     def fetched(self, topic: str, index: int, copies: int) -> None:
         """The cache query for an announced segment is over (:meth:`fetch_announced`)."""
@@ -514,11 +531,31 @@ class OrderedStage(PipelineStage[OO]):
             if own is not None and own.handled:
                 self.queue.start_at = next(i for i in itertools.count() if i not in own.handled)
 
+    def _start_on_upstream_losses(self) -> None:
+        """A queue that has not started, with nothing buffered, starts on the segments its
+        upstream gave up: from the first one not handled here, as many in a row as the
+        upstream failed (each skipped in its turn).  Otherwise a stage whose every input was
+        given up upstream (nothing ever comes) waits until the run's timeout."""
+        if self.queue.next is not None or self.queue.pending:
+            return
+        peer = self.board.get(self.upstream)
+        if peer is None or not peer.failed:
+            return
+        own = self.board.get(self.stage_name)
+        handled = self.done | self.failed | (own.handled if own is not None else RangeSet())
+        index = self.queue.start_at if self.queue.start_at is not None else 0
+        while index in handled:
+            index += 1
+        while index in peer.failed and index not in self.queue.withdrawn:
+            self.queue.withdraw(index, "given up upstream")
+            index += 1
+
     def drain(self, limit: int = 1) -> None:
         """Process up to ``limit`` segments that are next in order (or give up missing ones);
         one at a time by default, so that control messages are handled between segments."""
         done = 0
         self._resume_point()
+        self._start_on_upstream_losses()
         for index, entry in self.queue.ready(self.upstream_failed, self.segments_total):
             done += 1
             if entry is None:

@@ -530,6 +530,12 @@ class Stage:
             key=key,
             details={"traceback": traceback.format_exc(limit=8)},
         )
+        self.input_failed(parse_segment_key(key).topic, index, f"{type(exc).__name__}: {exc}")
+
+    def input_failed(self, topic: str, index: int, why: str) -> None:
+        """Input segment ``index`` of ``topic`` came intact and :meth:`handle` raised (``why``;
+        reported as ``failed``).  It is not marked received: a good copy is still taken.
+        Override to settle it when none comes (the default does nothing more)."""
 
     def _report_gaps(self) -> None:
         grace = self.gap_watch.gap_grace

@@ -71,6 +71,11 @@ def test_in_order_settles_reorders_and_skips():
     q3.withdraw(0, "conflict")
     q3.add(1, "b")
     assert list(q3.ready()) == [(0, None), (1, "b")]  # a withdrawn first index is still accounted for
+    q4 = InOrder(settle=10)
+    q4.withdraw(1, "failed here")  # nothing buffered, every index withdrawn: the queue still starts
+    assert list(q4.ready()) == []  # 0 may still come: settling
+    q4.withdraw(0, "failed here")
+    assert [(i, q4.skipped_reason) for i, _ in q4.ready()] == [(0, "failed here"), (1, "failed here")]
 
 
 def test_subtractor_applies_the_latest_fit_covering_each_segment(tmp_path):

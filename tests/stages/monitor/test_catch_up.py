@@ -48,6 +48,23 @@ def test_the_rule_cache_then_recordings_once_each():
     assert c.step({"fit": {3}}, t0 + 300 + ANNOUNCED_FETCH_AFTER) == ([("fit", 3)], {})
 
 
+def test_a_segment_that_came_and_failed_here_is_given_up_once_published_and_no_good_copy_follows():
+    c = CatchUp()
+    t0 = 100.0
+    c.failed_here("tdi", 2, "ValueError: bad", t0)
+    c.failed_here("tdi", 3, "ValueError: bad", t0)
+    c.failed_here("tdi", 9, "ValueError: forged", t0)  # ahead of the producer: a forged copy
+    c.failed_here("fit", 4, "ValueError: bad", t0)
+    published = {"tdi": RangeSet(range(4))}
+    assert c.unusable(published, {}, t0 + ANNOUNCED_FETCH_AFTER - 1) == []  # a good copy may follow
+    c.failed_here("tdi", 2, "ValueError: worse", t0 + 5)  # failed again: the clock runs from the first
+    got = c.unusable(published, {"tdi": RangeSet([3])}, t0 + ANNOUNCED_FETCH_AFTER)  # a good 3 came
+    # 2 given up with its last reason; "fit" has no producer known here: on time alone; 9 waits
+    assert got == [("fit", 4, "ValueError: bad"), ("tdi", 2, "ValueError: worse")]
+    assert c.unusable(published, {}, t0 + 100) == []  # each once; 9 not published yet
+    assert c.unusable({"tdi": RangeSet(range(10))}, {}, t0 + 100) == [("tdi", 9, "ValueError: forged")]
+
+
 def _write_fits(path, indices, stage: str = "fitter", bad=()) -> None:
     """A fitter process's recording with the fits of ``indices`` (as it records them; those
     in ``bad`` with NaN coefficients, which no stage accepts)."""
@@ -160,6 +177,20 @@ def test_an_ordered_stage_skips_a_lost_input_in_its_turn(tmp_path):
     s.fetch_announced(t0 + ANNOUNCED_FETCH_AFTER + 0.1)  # no replayer recording: lost
     s.drain(limit=10)
     assert handled == [0, 1, 3] and set(s.failed) == {2} and set(s.done) == {0, 1, 3}
+
+
+def test_an_ordered_stage_whose_every_input_failed_upstream_settles_them():
+    """A fitter to which nothing ever comes, because the tdi_builder gave up segments 0-2 (its
+    handle failed on each): its queue starts on those losses and fails 0-2 in order, instead
+    of waiting for a first segment until the run's timeout.  A segment still on its way (3,
+    done upstream) is not skipped for it."""
+    from stages.tdi_builder import TDIBuilder
+
+    s = TDIBuilder(StageConfig(run=RUN, recordings="/nonexistent", stage="tdi_builder"))
+    s.process = lambda header, item: None
+    s.board.feed(sample({"stage": "replayer", "failed": [[0, 2]], "done": [[3, 3]]}))
+    s.drain(limit=10)
+    assert set(s.failed) == {0, 1, 2} and not s.done and s.queue.next == 3  # 3 is waited for
 
 
 def test_a_restarted_subtractor_takes_fits_no_cache_holds_from_the_fitters_recordings(tmp_path):
