@@ -699,7 +699,7 @@ def test_nan_gap_ends_the_run_with_the_gap_reported(tmp_path):
 def test_a_stage_failing_every_segment_ends_the_run(stage, tmp_path):
     """A stage whose ``handle`` raises on every input segment (injected by
     tests/faults/sitecustomize.py) does not hold the run until its timeout: each segment that
-    failed there is given up once no good copy follows (streamer/catch_up.py), the run ends
+    failed there is given up once no good copy follows (streamer/runtime/catch_up.py), the run ends
     by itself with exit status 1, and every segment is reported failed by that stage.
 
     Before, nothing was missing (the segments had come) and nothing was handled: the replayer

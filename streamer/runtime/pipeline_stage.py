@@ -306,7 +306,7 @@ class PipelineStage(Stage, Generic[O]):
 
     def input_failed(self, topic: str, index: int, why: str) -> None:
         """A segment that came and failed here: given up by :meth:`fetch_announced` when no
-        good copy follows (:meth:`streamer.catch_up.CatchUp.unusable`)."""
+        good copy follows (:meth:`streamer.runtime.catch_up.CatchUp.unusable`)."""
         self.late_inputs.failed_here(topic, index, why, time.monotonic())
 
     def fetched(self, topic: str, index: int, copies: int) -> None:

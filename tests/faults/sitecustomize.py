@@ -10,7 +10,7 @@ import os
 _FAIL = os.environ.get("TTL_TEST_FAIL_HANDLE")
 
 if _FAIL:
-    from streamer import stage as _stage
+    from streamer.runtime import stage as _stage
 
     _use = _stage.Stage._use
 
