@@ -291,11 +291,12 @@ FLOORS = {
 }
 
 
-def _floor(module: str) -> int | None:
+def _floor(module: str, floors: dict[str, int] = FLOORS) -> int | None:
+    """The floor of ``module`` in ``floors``: that of its longest prefix listed, or None."""
     parts = module.split(".")
     for k in range(len(parts), 0, -1):
-        if ".".join(parts[:k]) in FLOORS:
-            return FLOORS[".".join(parts[:k])]
+        if ".".join(parts[:k]) in floors:
+            return floors[".".join(parts[:k])]
     return None
 
 
@@ -363,18 +364,22 @@ def _imports_by_name(modules: dict[str, Path], package: str = "ttlcore"):
                     yield name, target, node.lineno
 
 
-def _upward_imports(root: Path = ROOT) -> list[str]:
+def _upward(root: Path, package: str, floors: dict[str, int], word: str) -> list[str]:
+    """The imports of ``package`` up its ``floors`` (a statement, ``TYPE_CHECKING`` or by name),
+    one line per (module, imported module), the floor called ``word``."""
     modules = _modules(root)
     edges = [(m, t, line, " (under TYPE_CHECKING)" if tc else "") for m, t, line, _, tc in _imports(modules)]
-    edges += [(m, t, line, " (by name)") for m, t, line in _imports_by_name(modules)]
+    edges += [(m, t, line, " (by name)") for m, t, line in _imports_by_name(modules, package)]
     upward = {}
     for m, t, line, how in edges:
-        if not (m.startswith("ttlcore") and t.startswith("ttlcore")):
-            continue
-        fm, ft = _floor(m), _floor(t)
+        fm, ft = _floor(m, floors), _floor(t, floors)
         if fm is not None and ft is not None and ft > fm:
-            upward.setdefault((m, t), f"{_where(modules, m, line)} (floor {fm}) imports {t} (floor {ft}){how}")
+            upward.setdefault((m, t), f"{_where(modules, m, line)} ({word} {fm}) imports {t} ({word} {ft}){how}")
     return sorted(upward.values())
+
+
+def _upward_imports(root: Path = ROOT) -> list[str]:
+    return _upward(root, "ttlcore", FLOORS, "floor")
 
 
 def test_ttlcore_floors():
@@ -399,24 +404,17 @@ WINGS = {
 
 
 def _wing(module: str) -> int | None:
-    parts = module.split(".")
-    return WINGS.get(".".join(parts[:2])) if len(parts) >= 2 else None
+    return _floor(module, WINGS)
 
 
 def _wing_violations(root: Path = ROOT) -> list[str]:
     modules = _modules(root)
-    wrong = {
-        (m, ""): f"{_where(modules, m, 1)}: {m} is in no wing of streamer ({', '.join(WINGS)})"
+    unplaced = [
+        f"{_where(modules, m, 1)}: {m} is in no wing of streamer ({', '.join(WINGS)})"
         for m in modules
         if m.startswith("streamer.") and _wing(m) is None
-    }
-    edges = [(m, t, line, " (under TYPE_CHECKING)" if tc else "") for m, t, line, _, tc in _imports(modules)]
-    edges += [(m, t, line, " (by name)") for m, t, line in _imports_by_name(modules, "streamer")]
-    for m, t, line, how in edges:
-        wm, wt = _wing(m), _wing(t)
-        if wm is not None and wt is not None and wt > wm:
-            wrong.setdefault((m, t), f"{_where(modules, m, line)} (wing {wm}) imports {t} (wing {wt}){how}")
-    return sorted(wrong.values())
+    ]
+    return sorted(unplaced + _upward(root, "streamer", WINGS, "wing"))
 
 
 def test_streamer_wings():
