@@ -8,6 +8,7 @@ come from :mod:`ttlcore.estimate.monitoring`, the drawing from :mod:`stages.moni
 
 from __future__ import annotations
 
+import warnings
 from collections.abc import Sequence
 
 import numpy as np
@@ -45,7 +46,8 @@ class NoiseCurves:
 
     def telemetry(self, index: int, ltt: np.ndarray) -> None:
         """A telemetry segment's light travel times (6, n) [s]: their means, kept for its curves."""
-        with np.errstate(all="ignore"):
+        with np.errstate(all="ignore"), warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all NaN (a gap): "Mean of empty slice"
             mean = np.nanmean(ltt, axis=1)
         if np.all(np.isfinite(mean)):
             self._ltt[index] = mean
