@@ -129,7 +129,7 @@ def test_every_stage_file_holds_every_segment_once_and_reads_back(run):
                 if channel.message_encoding == "json":
                     assert schema is not None and schema.encoding == "jsonschema", (stage, channel.topic)
     sys.path.insert(0, str(Path(__file__).with_name("stages")))
-    from test_monitor import rrd_entities  # Rerun's own reader
+    from rrd_testutil import rrd_entities  # Rerun's own reader
 
     ent = rrd_entities(run / "monitor.rrd")
     for name in ("12/phi_rx", "23/phi_tx", "13/eta_tx"):

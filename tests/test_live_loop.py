@@ -201,7 +201,7 @@ def test_live_loop_adopts_an_unnamed_effect_and_subtracts_the_whole_model(ghost_
     residuals = residuals_of(run_dir)
     assert residuals[5].header.meta["effects"] == [adopted] and residuals[1].header.meta["effects"] == []
     if MONITOR:  # the monitor drew every segment, and the live diagnosis in its text panel
-        from test_monitor import rrd_entities
+        from rrd_testutil import rrd_entities
 
         entities = rrd_entities(run_dir / "monitor.rrd")
         texts = [str(row[1]) for row in entities["/diagnosis"]]

@@ -141,7 +141,7 @@ def _check_model_change(run) -> tuple:
 def _check_monitor_before_after(run, fits: list, k: int) -> None:
     """The monitor draws the fitter's adequacy, the excess before and after the change at
     fit ``k``, and logs the change."""
-    from test_monitor import rrd_entities
+    from rrd_testutil import rrd_entities
 
     ent = rrd_entities(run / "monitor.rrd")
     series = {

@@ -451,7 +451,7 @@ def test_late_joiners_catch_up_from_the_caches(tmp_path):
         assert sorted(indices(recordings["monitor"], "monitor")) == list(range(SEGMENTS))
         # all from the caches: no segment waited for an input that did not come
         assert "did not come within" not in output(late["monitor"]), output(late["monitor"])[-3000:]
-        from test_monitor import rrd_entities  # tests/stages: reads a .rrd with Rerun's reader
+        from rrd_testutil import rrd_entities  # tests/stages: reads a .rrd with Rerun's reader
 
         ent = rrd_entities(rec / "t3" / "monitor.rrd")
         # one entity per coefficient: fit, fit +- sigma and the truth (a fit drawn before the truth

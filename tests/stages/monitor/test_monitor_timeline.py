@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 import pytest
-from test_monitor import blueprint_views, rrd_entities
+from rrd_testutil import blueprint_views, rrd_entities
 
 from stages.monitor.monitor import Monitor, views
 from streamer.bus.codec import decode, encode
