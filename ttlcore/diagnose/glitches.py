@@ -172,7 +172,8 @@ class _Scanner:
             half = np.zeros((1 + q.shape[1], L // 2 + 1), dtype=complex)
             half[0, grid.bins] = p
             half[1:, grid.bins] = q.T
-            z = sp_fft.irfft(half, n=L, axis=1) * (L / 2)
+            z = sp_fft.irfft(half, n=L, axis=1)
+            z *= L / 2
         else:
             full = np.zeros((1 + q.shape[1], L), dtype=complex)
             full[0, grid.bins] = p
