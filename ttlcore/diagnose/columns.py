@@ -228,6 +228,19 @@ class ColumnStore:
         self._sets[key] = (data.noise.Lh, cs)
         return cs
 
+    def mark(self) -> frozenset:
+        """The keys of the column sets stored now (for :meth:`release_since`)."""
+        return frozenset(self._sets)
+
+    def release_since(self, mark: frozenset) -> None:
+        """Drop the column sets stored after :meth:`mark` gave ``mark``: a phase's trial
+        columns (the candidates') that nothing after it asks for again.  One asked for
+        again is built again, the same numbers (a column set is a pure function of its key
+        and the data).  Not while other threads use the store."""
+        for key in [k for k in self._sets if k not in mark]:
+            self._sets.pop(key, None)
+        self._latest = {family: key for family, key in self._latest.items() if key in self._sets}
+
     def _link_responses(self, data, combination, extra: tuple) -> np.ndarray:
         """:func:`ttlcore.tdi.combinations.link_responses` of ``combination`` on ``data.grid.f``
         (every link), computed once per diagnosis and extra delays."""

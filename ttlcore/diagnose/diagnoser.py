@@ -126,7 +126,11 @@ def diagnose(
         _before_after(report, model, eff, truth_coefficients)
         clock = _lap(timings, "before", clock)
     use_witnesses = s.witnesses if witnesses is None else witnesses
+    mark = model.data.context.store.mark()
     clock = _candidates(report, tm, model, s, candidates, effect_modules, use_witnesses, say, (timings, clock))
+    # the candidates' columns (a day's: 0.4-0.5 GB) are not asked for again: not kept through
+    # the transient phase, the diagnosis' peak
+    model.data.context.store.release_since(mark)
     refit = functools.partial(
         gated_model, model, fitted, ungated=ungated if gates or gaps else None, gates=gates, gaps=gaps
     )

@@ -187,14 +187,12 @@ def gated_ttl_fit(data, spans, names=None) -> dict:
     names = list(names or data.tdi.ttl_names or data.tdi.regressor_names)
     cols = [list(data.tdi.regressor_names).index(n) for n in names]
     y = np.asarray(data.tdi.data_series, dtype=float)
-    R = np.asarray(data.tdi.regressor_series[:, cols], dtype=float)
     g = gate(y.shape[-1], data.grid.fs, data.grid.t0, spans)
     out = {}
     for label, w in (("full", None), ("gated", g)):
         yy = y if w is None else y * w
-        RR = R if w is None else R * w
         Y = data.noise.whiten(data.grid.spectra(yy[:, None, :]))[..., 0]  # (S, m, 3)
-        X = data.noise.whiten(data.grid.spectra(RR))  # (S, m, 3, P)
+        X = _whitened_columns(data, cols, w)  # (S, m, 3, P)
         Xf = X.reshape(-1, X.shape[-1])
         A = 2 * np.real(Xf.conj().T @ Xf)
         b = 2 * np.real(Xf.conj().T @ Y.reshape(-1))
@@ -213,6 +211,30 @@ def gated_ttl_fit(data, spans, names=None) -> dict:
         "max_abs_shift_sigma": float(np.max(np.abs(shift))),
         "spans": [[float(a), float(b)] for a, b in spans],
     }
+
+
+#: Regressor columns transformed at a time by :func:`_whitened_columns`.
+COLUMN_BLOCK = 6
+
+
+def _whitened_columns(data, cols: list[int], w: np.ndarray | None) -> np.ndarray:
+    """Whitened segment spectra (S, m, 3, len(cols)) of the decimated regressors ``cols``
+    times the gate ``w`` (None: not gated), :data:`COLUMN_BLOCK` columns at a time.
+
+    The same numbers as transforming them all at once, without a copy of the day's
+    regressors and another of them gated (2 x 100 MB for a day, at the diagnosis' peak:
+    the transient phase calls this once per event and per gate it weighs)."""
+    series = data.tdi.regressor_series
+    out: np.ndarray | None = None
+    for k0 in range(0, len(cols), COLUMN_BLOCK):
+        block = cols[k0 : k0 + COLUMN_BLOCK]
+        x = np.asarray(series[:, block], dtype=float)
+        X = data.noise.whiten(data.grid.spectra(x if w is None else x * w))
+        if out is None:
+            out = np.empty(X.shape[:3] + (len(cols),), dtype=complex)
+        out[..., k0 : k0 + len(block)] = X
+    assert out is not None, "no regressor column"
+    return out
 
 
 def model_residual(model) -> np.ndarray:

@@ -74,8 +74,9 @@ class GatedGrid(AnalysisGrid):
     gate_spans: tuple[tuple[float, float], ...] = ()
     gap_spans: tuple[tuple[float, float], ...] = ()
 
-    def spectra(self, x: np.ndarray) -> np.ndarray:
-        return super().spectra(x) * self.seg_scale[:, None, None, None]
+    def spectra_of(self, x: np.ndarray, offset: int = 0, segments: range | None = None) -> np.ndarray:
+        scale = self.seg_scale if segments is None else self.seg_scale[segments.start : segments.stop]
+        return super().spectra_of(x, offset, segments) * scale[:, None, None, None]
 
     def segment_kappa(self) -> np.ndarray:
         return self.kappa * self.seg_variance

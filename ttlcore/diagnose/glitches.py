@@ -46,14 +46,24 @@ def glitch_series(data, where, t_glitch: float, beta: float) -> np.ndarray:
     ``t_glitch`` with damping ``beta`` - (3, k, n) for a list of ``k`` placements: the
     exact TDI of its parts computed on a stretch of telemetry from the delays' history
     before ``t_glitch`` to ``12 beta + 300 s`` after it (beyond, TDI cancels the velocity
-    step that stays, to ``13 exp(-12)``), zero elsewhere.  The stretch starts on a multiple
-    of the decimation factor, so that its decimated samples are the data's; on gated data
-    the series is gated once placed."""
+    step that stays, to ``13 exp(-12)``), zero elsewhere (:func:`glitch_stretch`)."""
+    many = not isinstance(where, str)
+    k0, x = glitch_stretch(data, list(where) if many else [where], t_glitch, beta)
+    out = np.zeros((3, x.shape[1], data.grid.mask.size))
+    out[:, :, k0 : k0 + x.shape[-1]] = x
+    return out if many else out[:, 0]
+
+
+def glitch_stretch(data, wheres: list, t_glitch: float, beta: float) -> tuple[int, np.ndarray]:
+    """``(k0, x)``: the decimated A, E, T (3, k, n') of unit glitches at the ``k`` placements
+    ``wheres`` on the stretch of :func:`glitch_series` where they are not zero, from the
+    decimated sample ``k0``.  The stretch starts on a multiple of the decimation factor, so
+    that its decimated samples are the data's; on gated data the series is gated once
+    placed.  (A day's full-length series of twelve placements are 50 MB, made and
+    transformed for every template of a glitch search.)"""
     tm = data.context.tm
     if tm is None:
         raise ConfigError("effect 'glitch' needs the telemetry")
-    many = not isinstance(where, str)
-    wheres = list(where) if many else [where]
     fs = float(tm.fs)
     dec = int(data.grid.decimation)
     hist = history_samples(fs, float(np.nanmax(tm.ltt)))
@@ -62,32 +72,45 @@ def glitch_series(data, where, t_glitch: float, beta: float) -> np.ndarray:
     a -= a % dec
     b = min(max(i0, 0) + hist + int((12.0 * beta + 300.0) * fs), tm.size)
     n_dec = data.grid.mask.size
-    out = np.zeros((3, len(wheres), n_dec))
-    if b > a + hist:
-        sub = tm.slice(a, b)
-        inp = effect_input_from_telemetry(sub)
-        v = glitch_velocity(inp.t, t_glitch, beta) / C
-        cols = [Column(w, [Part(link, factor * v, n) for link, n, factor in placement_parts(w)]) for w in wheres]
-        _, xyz = tdi_in_blocks(
-            sub.ltt, fs, cols, order=data.context.settings.order, delay_order=data.context.settings.delay_order
-        )
-        # (3, k, m): global decimated samples a / dec + j, ungated (a stretch), gated once placed
-        x = AnalysisGrid.decimate(data.grid, np.nan_to_num(xyz))
-        k0 = a // dec
-        m = min(x.shape[-1], n_dec - k0)
-        out[:, :, k0 : k0 + m] = x[:, :, :m]
-        g = getattr(data.grid, "gate", None)
-        if g is not None:
-            out *= g
-    return out if many else out[:, 0]
+    if b <= a + hist:
+        return 0, np.zeros((3, len(wheres), 0))
+    sub = tm.slice(a, b)
+    inp = effect_input_from_telemetry(sub)
+    v = glitch_velocity(inp.t, t_glitch, beta) / C
+    cols = [Column(w, [Part(link, factor * v, n) for link, n, factor in placement_parts(w)]) for w in wheres]
+    _, xyz = tdi_in_blocks(
+        sub.ltt, fs, cols, order=data.context.settings.order, delay_order=data.context.settings.delay_order
+    )
+    # (3, k, m): global decimated samples a / dec + j, ungated (a stretch), gated once placed
+    x = AnalysisGrid.decimate(data.grid, np.nan_to_num(xyz))
+    k0 = a // dec
+    m = max(min(x.shape[-1], n_dec - k0), 0)
+    x = x[:, :, :m]
+    g = getattr(data.grid, "gate", None)
+    if g is not None:
+        x = x * g[k0 : k0 + m]
+    return k0, x
 
 
 def glitch_spectra(data, where, t_glitch: float, beta: float) -> np.ndarray:
     """Whitened segment spectra (S, m, 3) of a unit glitch (:func:`glitch_series`); (S, m,
     3, k) for a list of placements."""
-    x = glitch_series(data, where, t_glitch, beta)
-    w = data.noise.whiten(data.grid.spectra(x if x.ndim == 3 else x[:, None, :]))
-    return w if x.ndim == 3 else w[..., 0]
+    many = not isinstance(where, str)
+    first, w = glitch_spectra_of(data, list(where) if many else [where], t_glitch, beta)
+    out = np.zeros((len(data.grid.starts),) + w.shape[1:], dtype=complex)
+    out[first : first + w.shape[0]] = w
+    return out if many else out[..., 0]
+
+
+def glitch_spectra_of(data, wheres: list, t_glitch: float, beta: float) -> tuple[int, np.ndarray]:
+    """``(first, G)``: the whitened spectra (s, m, 3, k) of unit glitches at the placements
+    ``wheres`` (:func:`glitch_stretch`) in the ``s`` segments from ``first`` that their
+    stretch reaches (zero in the others: neither transformed nor whitened)."""
+    k0, x = glitch_stretch(data, wheres, t_glitch, beta)
+    segments = data.grid.segments_over(k0, k0 + x.shape[-1])
+    if not len(segments):
+        segments = range(1)  # nowhere in the segments: one segment of zeros
+    return segments.start, data.noise.whiten(data.grid.spectra_of(x, k0, segments))
 
 
 #: A template whose part the model's columns do not explain (``D`` of :class:`_Scanner`) is
@@ -123,15 +146,17 @@ class _Scanner:
         NM = model.normal[0].sum(axis=(0, 1)) - model.eiv_term.sum(axis=0)
         self.NMinv = np.linalg.inv(NM)
 
-    def products(self, G: np.ndarray) -> list[tuple]:
-        """``(p (m,), q (m, P), |g|^2)`` per template of ``G`` (S, m, 3, k): the per-bin
-        products ``sum conj(g) r``, ``sum conj(g) M``.  (Over every segment, the zeros of a
-        template's stretch included: numpy's batched product over 12 terms per bin is
-        faster than over the 3 of one segment.)"""
+    def products(self, G: np.ndarray, first: int = 0) -> list[tuple]:
+        """``(p (m,), q (m, P), |g|^2)`` per template of ``G`` (s, m, 3, k), the spectra of
+        the segments ``first .. first + s - 1`` (zero in the others,
+        :func:`glitch_spectra_of`): the per-bin products ``sum conj(g) r``, ``sum conj(g)
+        M``.  Over those segments only: the others add zeros (a day's four segments, a
+        template in one or two of them; the same numbers to rounding)."""
         S, m, _, k = G.shape
+        j0, j1 = 3 * first, 3 * (first + S)
         Gc = np.ascontiguousarray(G.conj().transpose(1, 3, 0, 2)).reshape(m, k, S * 3)
-        p = np.einsum("mkj,mj->mk", Gc, self.r)
-        q = np.matmul(Gc, self.M)  # (m, k, P)
+        p = np.einsum("mkj,mj->mk", Gc, self.r[:, j0:j1])
+        q = np.matmul(Gc, self.M[:, j0:j1])  # (m, k, P)
         ngg = np.sum(np.abs(G) ** 2, axis=(0, 1, 2))
         return [(p[:, j], q[:, j], float(ngg[j])) for j in range(k)]
 
@@ -147,7 +172,8 @@ class _Scanner:
             half = np.zeros((1 + q.shape[1], L // 2 + 1), dtype=complex)
             half[0, grid.bins] = p
             half[1:, grid.bins] = q.T
-            z = sp_fft.irfft(half, n=L, axis=1) * (L / 2)
+            z = sp_fft.irfft(half, n=L, axis=1)
+            z *= L / 2
         else:
             full = np.zeros((1 + q.shape[1], L), dtype=complex)
             full[0, grid.bins] = p
@@ -217,7 +243,7 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
         half = max(t_ref - a, b - t_ref)
         for beta in betas:
             # every placement in one TDI
-            prods = scanner.products(glitch_spectra(data, places, t_ref, beta))
+            prods = scanner.products(*glitch_spectra_of(data, places, t_ref, beta)[::-1])
             for j_place, where in enumerate(places):
                 tau, dchi2 = scanner.shifts(prods[j_place], half)
                 inside = (t_ref + tau >= a) & (t_ref + tau <= b)
@@ -232,7 +258,7 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
     def refine_time(beta_):
         """Best time [s] and delta chi2 near ``t_best`` for a damping (exact template there)."""
         nonlocal n_eval
-        pr = scanner.products(glitch_spectra(data, [where], t_best, beta_))[0]
+        pr = scanner.products(*glitch_spectra_of(data, [where], t_best, beta_)[::-1])[0]
         if fixed_t:
             n_eval += 1
             return t_best, scanner.at(pr, 0.0), pr
@@ -280,7 +306,10 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
         sig_t = 1.0 / math.sqrt(curv) if curv > 0 else float("nan")
     if effect.options.get("beta") is None:
         h = 0.05
-        prods = [scanner.products(glitch_spectra(data, [where], t_best, beta * math.exp(x)))[0] for x in (-h, 0.0, h)]
+        prods = [
+            scanner.products(*glitch_spectra_of(data, [where], t_best, beta * math.exp(x))[::-1])[0]
+            for x in (-h, 0.0, h)
+        ]
         vals = [scanner.at(pr, 0.0) for pr in prods]
         curv = -(vals[0] - 2 * vals[1] + vals[2]) / (2 * h * h)
         sig_lb = 1.0 / math.sqrt(curv) if curv > 0 else float("nan")

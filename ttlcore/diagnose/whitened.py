@@ -170,19 +170,38 @@ class AnalysisGrid:
 
     def spectra(self, x: np.ndarray) -> np.ndarray:
         """(3, k, n) decimated series -> band spectra (S, m, 3, k), masked like the data."""
-        out = np.empty((len(self.starts), self.f.size, x.shape[0], x.shape[1]), dtype=complex)
-        for i, s0 in enumerate(self.starts):
-            seg = x[:, :, s0 : s0 + self.L]
+        return self.spectra_of(x)
+
+    def segments_over(self, a: int, b: int) -> range:
+        """The segments that hold any of the decimated samples ``a .. b - 1`` (a range)."""
+        hit = [i for i, s0 in enumerate(self.starts) if s0 < b and s0 + self.L > a]
+        return range(hit[0], hit[-1] + 1) if hit else range(0)
+
+    def spectra_of(self, x: np.ndarray, offset: int = 0, segments: range | None = None) -> np.ndarray:
+        """Band spectra (len(segments), m, 3, k) of the ``segments`` (default all) of a
+        (3, k, n) decimated series whose first sample is the decimated sample ``offset``
+        (zero outside it): a stretch's spectra (a glitch's template) where it is not zero,
+        the same numbers as :meth:`spectra` of the series placed at full length."""
+        idx = range(len(self.starts)) if segments is None else segments
+        out = np.empty((len(idx), self.f.size, x.shape[0], x.shape[1]), dtype=complex)
+        for j, i in enumerate(idx):
+            s0 = self.starts[i]
+            a, b = max(s0 - offset, 0), max(min(s0 + self.L - offset, x.shape[-1]), 0)
+            seg = x[:, :, a:b]
             if not seg.any():  # a stretch's column (a glitch's template) is zero in most segments
-                out[i] = 0.0
+                out[j] = 0.0
                 continue
+            if b - a < self.L:  # the segment reaches past the stretch: zeros there
+                full = np.zeros(x.shape[:2] + (self.L,))
+                full[:, :, a + offset - s0 : b + offset - s0] = seg
+                seg = full
             m = self.mask[s0 : s0 + self.L]
+            bad = ~np.isfinite(seg) & m
             seg = np.where(m, np.nan_to_num(seg), 0.0)
-            bad = ~np.isfinite(x[:, :, s0 : s0 + self.L]) & m
             if bad.any():
                 raise ConfigError("a regressor column is not finite inside the analysed span")
             _, X = segment_fft(seg, self.fs, self.win * m, workers=None)
-            out[i] = np.moveaxis(X[:, :, self.bins], 2, 0)
+            out[j] = np.moveaxis(X[:, :, self.bins], 2, 0)
         return out
 
     def decimate(self, xyz: np.ndarray, is_aet: bool = False) -> np.ndarray:

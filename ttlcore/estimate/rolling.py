@@ -41,6 +41,13 @@ Keplerian day and a half (1-h FFT segments, one-day window), the CPU time of bot
 update and how far the incremental estimates are from full refits of the same windows
 (measured: 0.041 s against 0.39 s for a full refit, medians; within 0.31 sigma once the
 window holds half a day, 0.38 sigma while it fills; sigmas within 1.9 %).  No time series of the window are kept or re-transformed.
+
+A full refit hands its per-segment sums to the incremental updates from the spectra its
+last pass whitened (``fit_spectra(..., per_segment=True)``), and the errors-in-variables
+term of a set of weights is taken once (:func:`ttlcore.estimate.sums.eiv_bands`): a
+stream of 36 one-hour segments (1.5 Keplerian days, one-day window, a gate) took 7.06 s of
+CPU before and 6.09 s after, the same estimates to 5e-13 sigma (docs/operations.md, "A
+mission week").
 """
 
 from __future__ import annotations
@@ -68,7 +75,7 @@ from .fit import (
     spectra_of_segment,
 )
 from .gls import sandwich, set_apart
-from .whitening import Whitener, whitener
+from .whitening import Whitener, whiten
 
 log = logging.getLogger(__name__)
 
@@ -117,6 +124,32 @@ class _Pending:
     data: list
     regressors: list
     n: int = 0
+
+
+class _Sums:
+    """One FFT segment's sums in the window: its normal equations ``neq`` and sandwich
+    scores ``scores`` under the kept weights, and (taken when first asked for, then kept:
+    the outlier test asks for every segment of the window at every push)
+    :attr:`own_chi2_dof`."""
+
+    __slots__ = ("neq", "scores", "_own")
+
+    def __init__(self, neq: NormalEquations, scores: np.ndarray):
+        self.neq, self.scores = neq, scores
+        self._own: float | None = None
+
+    def __iter__(self):  # unpacks as the ``(neq, scores)`` pair it was
+        return iter((self.neq, self.scores))
+
+    def __getitem__(self, k: int):
+        return (self.neq, self.scores)[k]
+
+    @property
+    def own_chi2_dof(self) -> float:
+        """chi^2/dof of the segment at its own least-squares fit (:func:`_own_fit_chi2_dof`)."""
+        if self._own is None:
+            self._own = _own_fit_chi2_dof(self.neq)[0]
+        return self._own
 
 
 def _own_fit_chi2_dof(neq: NormalEquations) -> tuple[float, float]:
@@ -225,7 +258,7 @@ class RollingFit:
         self._spectra: deque[SegmentSpectra] = deque()
         self._ltt: deque[np.ndarray] = deque()
         self._ltt_blocks: list = []
-        self._sums: deque[tuple[NormalEquations, np.ndarray]] = deque()  # per segment, lagged weights
+        self._sums: deque[_Sums] = deque()  # per segment, lagged weights
         self._weights: dict | None = None  # internals of the last full refit
         self.last: FitResult | None = None
         self.last_decimated: TDIData | None = None
@@ -414,7 +447,7 @@ class RollingFit:
             or sp.f.size != w["f_size"]
         ):
             return None
-        ref = float(np.median([_own_fit_chi2_dof(neq)[0] for neq, _ in self._sums]))
+        ref = float(np.median([sums.own_chi2_dof for sums in self._sums]))
         r, dof = _own_fit_chi2_dof(
             accumulate([self._masked(sp)], w["weights"], w["band_edges"], self.names, prepared=w["plain"])
         )
@@ -450,10 +483,11 @@ class RollingFit:
                 self.names,
                 eiv_extra=self.eiv_extra,
                 prior_scale=self.prior_scale,
+                per_segment=self.full_every is not None,
             )
             res.extra["update"] = "full"
             if self.full_every is not None:
-                self._keep_weights(internals, res.coefficients)
+                self._keep_weights(internals)
         else:
             res = self._update()
         self.last = res
@@ -472,38 +506,40 @@ class RollingFit:
             return sp
         return SegmentSpectra(sp.t0, sp.duration, sp.f[keep], sp.d[keep], sp.R[keep], sp.valid_fraction)
 
-    def _segment_sums(self, sp: SegmentSpectra, C: np.ndarray) -> tuple[NormalEquations, np.ndarray]:
+    def _segment_sums(self, sp: SegmentSpectra, C: np.ndarray) -> _Sums:
         """Normal equations and sandwich scores of one segment with the kept weights."""
         w = self._kept()
         sp = self._masked(sp)
-        neq = accumulate(
-            [sp], w["weights"], w["band_edges"], self.names, w["eiv_response"], w["dws_psd"], prepared=w["whitener"]
-        )
-        return neq, score_matrix([sp], w["weights"], C, Lh=w["whitener"].Lh)
+        prepared = w["whitener"]
+        _, wd, wR = whiten(w["weights"], sp.d[None], sp.R[None], Lh=prepared.Lh)
+        neq = accumulate([sp], w["weights"], w["band_edges"], self.names, prepared=prepared, whitened=(wd, wR))
+        return _Sums(neq, score_matrix([sp], w["weights"], C, whitened=(wd, wR)))
 
-    def _keep_weights(self, internals: dict, C: np.ndarray) -> None:
-        """After a full refit: its weights, and the per-segment sums of the window with them."""
+    def _keep_weights(self, internals: dict) -> None:
+        """After a full refit: its weights, and the per-segment sums of the window with them
+        (``internals["segment_sums"]``: summed from the spectra the refit whitened with its
+        last weights; whitening and summing every segment again here took a third of the
+        fitter's rolling updates)."""
         self._weights = {
             k: internals[k] for k in ("weights", "notch", "eiv_response", "dws_psd", "band_edges", "variance_factor")
         }
         self._weights["f_size"] = self._spectra[-1].f.size
-        # the weights' Cholesky factor and whitened readout-noise responses, taken once for
-        # every segment summed with them (each segment's sums took them again: a quarter of
-        # the fitter's rolling updates)
-        prepared = whitener(internals["weights"], internals["eiv_response"], internals["dws_psd"])
+        # the weights' Cholesky factor, whitened readout-noise responses and their
+        # errors-in-variables term, taken once for every segment summed with them
+        prepared = internals["whitener"]
         self._weights["whitener"] = prepared
         self._weights["plain"] = Whitener(prepared.Lh)  # the outlier test's sums: no readout-noise term
-        self._sums = deque(self._segment_sums(sp, C) for sp in self._spectra)
+        self._sums = deque(_Sums(neq, M) for neq, M in internals["segment_sums"])
 
     def _update(self) -> FitResult:
         """GLS of the window from the per-segment sums with the lagged weights (one segment's work)."""
         s, w = self.settings, self._kept()
         C_prev = self.last.coefficients if self.last is not None else np.zeros(len(self.names))
         self._sums.append(self._segment_sums(self._spectra[-1], C_prev))
-        total = self._sums[0][0]
-        M = self._sums[0][1]
-        for neq, m in list(self._sums)[1:]:
-            total, M = total + neq, M + m
+        total = self._sums[0].neq
+        M = self._sums[0].scores
+        for sums in list(self._sums)[1:]:
+            total, M = total + sums.neq, M + sums.scores
         C, cov = solve(total, eiv=s.eiv, prior_scale=self.prior_scale)
         kappa = w["variance_factor"]
         cov_model = kappa * cov

@@ -8,7 +8,7 @@ same weights (the rolling fit's per-segment sums) takes them once.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -17,10 +17,12 @@ import numpy as np
 class Whitener:
     """The whitening of one set of weights: ``Lh`` (m, c, c), ``L^H`` of the Cholesky factor
     ``W = L L^H``, and ``groups``, the errors-in-variables responses whitened with it
-    (``(index block, L^H T sqrt(S_dws))`` per DWS channel; None without the term)."""
+    (``(index block, L^H T sqrt(S_dws))`` per DWS channel; None without the term);
+    ``cache`` what is taken once per set of weights (:func:`ttlcore.estimate.sums.eiv_bands`)."""
 
     Lh: np.ndarray
     groups: list | None = None
+    cache: dict = field(default_factory=dict, compare=False, repr=False)
 
 
 def whitener(weights: np.ndarray, eiv_response: list | None = None, dws_psd: np.ndarray | None = None) -> Whitener:

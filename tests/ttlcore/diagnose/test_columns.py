@@ -10,10 +10,12 @@ equations they give (ttlcore.diagnose.model_fit), each against an independent co
 - :func:`assemble` as a selection (values, order, no copy for the whole set).
 """
 
+from types import SimpleNamespace
+
 import numpy as np
 import pytest
 
-from ttlcore.diagnose.columns import assemble, effect_columns, rewhitened, ttl_columns
+from ttlcore.diagnose.columns import ColumnStore, assemble, effect_columns, empty_set, rewhitened, ttl_columns
 from ttlcore.diagnose.model_fit import gram, normal_equations, rhs
 from ttlcore.diagnose.prediction import column_regressors
 from ttlcore.diagnose.settings import DiagnoseSettings
@@ -75,3 +77,23 @@ def test_assemble_selects_and_keeps_a_whole_set(data):
     np.testing.assert_array_equal(pick.x[0], cs.x[cs.names.index("31.eta.tx")])
     with pytest.raises(Exception, match="not built"):
         assemble(["no.such.column"], cs)
+
+
+def test_the_store_releases_what_a_phase_stored_and_keeps_the_rest():
+    # the diagnosis drops the candidates' columns after their phase (ColumnStore.release_since):
+    # what was stored before stays, under its family too; what came after is gone
+    data = SimpleNamespace(noise=SimpleNamespace(Lh=np.eye(3)[None], key="k"))
+    store = ColumnStore()
+    store.put(("regressors",), data, empty_set("k"))
+    store.put(("model", "C0"), data, empty_set("k"), family=("model",))
+    mark = store.mark()
+    store.put(("candidate", "a"), data, empty_set("k"))
+    store.put(("trial", "C1"), data, empty_set("k"), family=("trial",))
+    store.release_since(mark)
+    assert store.get(("regressors",), data) is not None
+    assert store.get(("model", "C0"), data) is not None
+    assert store.get(("candidate", "a"), data) is None
+    assert store.get(("trial", "C1"), data) is None
+    # a family whose entry was dropped starts again; the kept family still drops its old entry
+    store.put(("model", "C1"), data, empty_set("k"), family=("model",))
+    assert store.get(("model", "C0"), data) is None

@@ -24,12 +24,13 @@ import blind_signals as bs  # noqa: E402
 
 from ttlcore.conventions import COEFFICIENT_NAMES, LINKS  # noqa: E402
 from ttlcore.diagnose.diagnoser import diagnose, refit, text_report  # noqa: E402
+from ttlcore.diagnose.excess import _whitened_columns  # noqa: E402
 from ttlcore.diagnose.fitting import fit_model  # noqa: E402
 from ttlcore.diagnose.gating import GatedGrid, gated_data  # noqa: E402
-from ttlcore.diagnose.glitches import glitch_search  # noqa: E402
+from ttlcore.diagnose.glitches import _Scanner, glitch_search, glitch_series, glitch_spectra_of  # noqa: E402
 from ttlcore.diagnose.whitened import whiten_telemetry  # noqa: E402
 from ttlcore.effects import Gate, Glitch, make_effects, parse_effect_spec, split_effects  # noqa: E402
-from ttlcore.effects.gate import GATE_TAPER, merge_gates  # noqa: E402
+from ttlcore.effects.gate import GATE_TAPER, gate, merge_gates  # noqa: E402
 from ttlcore.effects.glitch import _parse_span, glitch_velocity
 from ttlcore.errors import ConfigError  # noqa: E402
 from ttlcore.sim.simulator import SimulationConfig, simulate  # noqa: E402
@@ -143,6 +144,48 @@ def test_search_finds_the_injected_glitch(glitch_day):
     fit = fit_model(data, make_effects(["linear-ttl"]) + [eff])
     max_err, pull_rms = model_errors(fit, C)
     assert max_err < MAX_ERROR and pull_rms < MAX_PULL_RMS, (max_err, pull_rms, msg)
+
+
+@pytest.mark.timeout(300)
+def test_a_templates_spectra_are_taken_only_where_its_stretch_reaches(glitch_day):
+    # glitch_spectra_of transforms the segments a template's stretch reaches, and the scan's
+    # products use those only: the same numbers as the full-length template's spectra (zero
+    # elsewhere) and products, ungated and gated, a template inside one segment and one
+    # across a segment boundary (a 200-s damping reaches 45 min)
+    tm, C, (mosa, t_g, dv, beta), data, model = glitch_day
+    places = ["tm12", "link23", "tm31"]
+    g0 = data.grid.seg_t0[1]
+    gated = gated_data(data, [Gate(start=g0 + 600.0, stop=g0 + 900.0)])
+    reached = set()
+    for d in (data, gated):
+        fit = model if d is data else fit_model(d, make_effects(["linear-ttl"]))
+        scanner = _Scanner(fit)
+        for t, b in ((t_g, beta), (g0 - 300.0, 200.0), (g0 + 700.0, 20.0)):
+            full = d.noise.whiten(d.grid.spectra(glitch_series(d, places, t, b)))
+            first, G = glitch_spectra_of(d, places, t, b)
+            assert 1 <= len(G) < len(d.grid.starts)
+            reached.add(len(G))
+            assert np.allclose(G, full[first : first + len(G)], rtol=1e-13, atol=1e-13 * np.abs(full).max())
+            rest = np.ones(len(full), dtype=bool)
+            rest[first : first + len(G)] = False
+            assert not full[rest].any()
+            for (p, q, n), (p0, q0, n0) in zip(scanner.products(G, first), scanner.products(full)):
+                assert np.allclose(p, p0, rtol=1e-12, atol=1e-12 * np.abs(p0).max())
+                assert np.allclose(q, q0, rtol=1e-12, atol=1e-12 * np.abs(q0).max())
+                assert n == pytest.approx(n0, rel=1e-12)
+    assert reached == {1, 2}
+
+
+def test_the_regressors_whitened_in_blocks_equal_them_whitened_at_once(glitch_day):
+    # gated_ttl_fit's columns, a few at a time without a copy of the day's regressors
+    data = glitch_day[3]
+    R = data.tdi.regressor_series
+    w = gate(R.shape[-1], data.grid.fs, data.grid.t0, [(data.grid.t0 + 5000.0, data.grid.t0 + 6000.0)])
+    cols = [3, 0, 7, 8, 9, 10, 11, 12, 2]  # more than a block, in any order
+    for g in (None, w):
+        at_once = data.noise.whiten(data.grid.spectra(R[:, cols] if g is None else R[:, cols] * g))
+        blocks = _whitened_columns(data, cols, g)
+        assert np.allclose(blocks, at_once, rtol=1e-13, atol=1e-13 * np.abs(at_once).max())
 
 
 @pytest.mark.timeout(300)
