@@ -7,10 +7,12 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import psutil
 from proc_testutil import ChildProcesses, finish, output, wait_for  # noqa: F401 - the tests import them from here
 
 from streamer.recording.recorder import read_recording
+from ttlcore.io.telemetry import Telemetry
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -74,3 +76,19 @@ def recordings_of(run_dir: Path, stage: str) -> list:
 
 def progress_messages(sample) -> dict:
     return json.loads(sample.payload.to_bytes())
+
+
+def noise_telemetry(t0: float, seconds: float, fs: float, seed: int) -> Telemetry:
+    """Telemetry of white noise (readouts of LISA-like sizes, arms of 8.34-8.39 s held): the
+    input of the fitter's parts' unit tests, where what matters is the arithmetic, not the physics."""
+    rng = np.random.default_rng(seed)
+    n = int(seconds * fs)
+    return Telemetry(
+        t0=t0,
+        fs=fs,
+        eta=1e-12 * rng.standard_normal((6, n)),
+        dws_phi=1e-9 * rng.standard_normal((6, n)),
+        dws_eta=1e-9 * rng.standard_normal((6, n)),
+        ltt=np.full((6, n), 8.34) + 0.01 * np.arange(6)[:, None],
+        source="test",
+    )

@@ -5,6 +5,7 @@ import json
 import logging
 
 import numpy as np
+from ttl_testutil import noise_telemetry
 
 from stages.fitter.recordings import pushed_again, recorded_models, recorded_telemetry
 from streamer.bus.codec import encode
@@ -39,16 +40,7 @@ def fitter_file(path, fits, summaries, models) -> None:
 
 
 def telemetry(index: int, t0: float) -> Telemetry:
-    rng = np.random.default_rng(index)
-    return Telemetry(
-        t0=t0,
-        fs=FS,
-        eta=1e-12 * rng.standard_normal((6, N)),
-        dws_phi=1e-9 * rng.standard_normal((6, N)),
-        dws_eta=1e-9 * rng.standard_normal((6, N)),
-        ltt=np.full((6, N), 8.34),
-        source="test",
-    )
+    return noise_telemetry(t0, N / FS, FS, index)
 
 
 def replayer_file(path, segments: dict[int, Telemetry]) -> None:

@@ -3,6 +3,7 @@ rolling fit (real effects and TDI on synthetic telemetry; no bus in it)."""
 
 import numpy as np
 import pytest
+from ttl_testutil import noise_telemetry
 
 from stages.fitter.rolling_model import RollingModel, rolling_outputs
 from ttlcore.conventions import COEFFICIENT_NAMES
@@ -15,18 +16,7 @@ FS = 4.0
 
 
 def telemetry(t0: float, seconds: float, seed: int) -> Telemetry:
-    rng = np.random.default_rng(seed)
-    n = int(seconds * FS)
-    ltt = np.full((6, n), 8.34) + 0.01 * np.arange(6)[:, None]
-    return Telemetry(
-        t0=t0,
-        fs=FS,
-        eta=1e-12 * rng.standard_normal((6, n)),
-        dws_phi=1e-9 * rng.standard_normal((6, n)),
-        dws_eta=1e-9 * rng.standard_normal((6, n)),
-        ltt=ltt,
-        source="test",
-    )
+    return noise_telemetry(t0, seconds, FS, seed)
 
 
 def test_which_models_the_rolling_fit_carries():
