@@ -271,8 +271,9 @@ class PipelineStage(Stage, Generic[O]):
         floor = max(self.validator.floor, 0)
         own = self.board.get(self.stage_name)  # an earlier process of this stage handled those
         handled = self.done | self.failed | (own.handled if own is not None else RangeSet())
+        published = {topic: announced for topic, (_, announced) in self.announced_inputs().items()}
         missing: dict[str, set[int]] = {}
-        for topic, (_, announced) in self.announced_inputs().items():
+        for topic, announced in published.items():
             got = self.ingest.done.get(topic, RangeSet())
             missing[topic] = {
                 i
@@ -280,7 +281,6 @@ class PipelineStage(Stage, Generic[O]):
                 if i >= floor and (topic, i) not in self.validator.digests and self.still_needed(topic, i)
             }
         ask, read = self.late_inputs.step(missing, now)
-        published = {t: announced for t, (_, announced) in self.announced_inputs().items()}
         for topic, index, why in self.late_inputs.unusable(published, self.ingest.done, now):
             if index not in handled:
                 self.input_lost(
