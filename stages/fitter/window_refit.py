@@ -22,6 +22,7 @@ from ttlcore.diagnose.candidates import candidates
 from ttlcore.diagnose.diagnoser import refit
 from ttlcore.diagnose.diagnosis import Candidate, Refit
 from ttlcore.diagnose.prediction import effect_predictions
+from ttlcore.diagnose.whitened import WhitenedData
 from ttlcore.effects.gate import Gate
 from ttlcore.errors import ConfigError
 from ttlcore.io.telemetry import Telemetry
@@ -56,17 +57,19 @@ def window_refit(
     effect_modules=(),
     transients=(),
     log: logging.Logger | logging.LoggerAdapter | None = None,
+    whitened: WhitenedData | None = None,
 ) -> Refit | None:
     """Refit the window's telemetry with the model ``effects`` (and ``baseline``) under the
     instrument noise model, as ``ttl refit`` does, the rolling fit's outlying FFT segments
     ``transients`` gated (:func:`transient_gates`); None when the window is still too short
-    for it (logged on ``log``)."""
+    for it (logged on ``log``).  ``whitened``: the window's whitened data under the same
+    settings, when built already (the refit starts from them)."""
     effects = list(effects) + transient_gates(window, transients)
     try:
         # no time table: the live diagnosis gives the failing hours; without it the refit
         # keeps no column series (~110 MB less at its peak for a day, the same numbers)
         return refit(
-            window,
+            window if whitened is None else whitened,
             effects,
             settings=refit_settings(dws_asd, band),
             effect_modules=effect_modules,
