@@ -104,7 +104,9 @@ def window_refit_meta(
     window : (int, int, int)
         The first and last segment of the window, and the newest segment's samples.
     ranked : bool
-        The candidates not in the model are ranked (``candidates``; always on a change).
+        The candidates not in the model are ranked (``candidates``): every
+        ``--candidates-every`` segments, and on a change when no live diagnosis ranks them
+        (the fitter's :meth:`~stages.fitter.fitter.Fitter.window_fit`).
     """
     model = r.fit
     adequacy = r.model.adequacy
@@ -154,7 +156,7 @@ def window_refit_meta(
             "log_bayes_factor": c.log_bayes_factor,
             "band_edges": adequacy.band_edges,
         }
-    if change is not None or ranked:
+    if ranked:
         ranking = [Candidate.from_json(c) for c in candidates(model)[:TOP_CANDIDATES]]
         out["candidates"] = [
             {

@@ -54,7 +54,7 @@ def test_the_refit_of_an_extended_model_and_its_meta(window):
     r = window_refit(window, ["linear-ttl", "drift"], ["linear-ttl"], dws_asd=None, band=None)
     assert r is not None
     change = {"before": ["linear-ttl"], "after": ["linear-ttl", "drift"]}
-    meta = window_refit_meta(r, change=change, extended=True, window=(0, 5, 3600 * 4), ranked=False)
+    meta = window_refit_meta(r, change=change, extended=True, window=(0, 5, 3600 * 4), ranked=True)
     arrays = meta.pop("arrays")
     assert arrays["coefficients"].shape == (24,) and arrays["covariance"].shape == (24, 24)
     np.testing.assert_allclose(arrays["sigma"], np.sqrt(np.diag(arrays["covariance"])), rtol=1e-6)
@@ -75,6 +75,9 @@ def test_the_refit_of_an_extended_model_and_its_meta(window):
     assert (
         window_refit_meta(plain, change=None, extended=False, window=(0, 5, 1), ranked=True)["candidates"] is not None
     )
+    # a change not ranked (the live diagnosis ranks them): both models, no candidates
+    unranked = window_refit_meta(r, change=change, extended=True, window=(0, 5, 3600 * 4), ranked=False)
+    assert "model_change" in unranked and "candidates" not in unranked
 
 
 def test_the_refit_from_the_shared_whitened_window_is_the_refit_of_its_telemetry(window):
