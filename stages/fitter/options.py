@@ -51,7 +51,8 @@ class FitterOptions(OrderedOptions):
     effect_modules: tuple[str, ...] = option((), names)
     #: Window refit under the instrument noise model every N segments (0: never).
     adequacy_every: int = option(24, nonnegative_int)
-    #: Rank the effects not in the model every N segments (0: on model changes only).
+    #: Rank the effects not in the model every N segments in the window refit (0: on model
+    #: changes only, and only without the live diagnosis, which ranks them itself).
     candidates_every: int = option(0, nonnegative_int)
     #: Live diagnosis every N segments (0: never).
     diagnose_every: int = option(24, nonnegative_int)
@@ -81,7 +82,8 @@ def add_options(p) -> None:
     p.add_argument(
         "--candidates-every",
         type=int,
-        help="rank the effects not in the model every N segments (default 0: on model changes only)",
+        help="rank the effects not in the model every N segments (default 0: on model changes only, when "
+        "the live diagnosis is off; with it, each diagnosis ranks them)",
     )
     p.add_argument(
         "--diagnose-every",
