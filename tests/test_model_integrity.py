@@ -26,7 +26,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ttl_testutil import Procs, finish, output, stage_processes, ttl_command, wait_for
+from ttl_testutil import Procs, finish, fits_and_residuals, output, stage_processes, ttl_command, wait_for
+from ttl_testutil import run_args as ttl_run_args
 
 from streamer.bus.keys import control_key
 from streamer.bus.session import Bus, SessionSettings, free_port
@@ -38,33 +39,8 @@ SEGMENTS = 6
 SIM = f"--duration {SEGMENTS}h --orbit unequal --seed 1"
 
 
-def run_args(run_id: str, rec: Path, *extra, sim: str = SIM) -> list[str]:
-    return [
-        "run",
-        "--simulate",
-        sim,
-        "--segment",
-        "1h",
-        "--run-id",
-        run_id,
-        "--recordings",
-        str(rec),
-        "--timeout",
-        "900",
-        "--insecure",
-        *extra,
-    ]
-
-
-def results(run_dir: Path) -> dict:
-    """Fits and residuals of a run by index, from every process's recording."""
-    out: dict = {}
-    for stage, topic in (("fitter", "fit"), ("subtractor", "residual")):
-        out[topic] = {}
-        for path in sorted(run_dir.glob(f"{stage}*.mcap")):
-            for s in read_recording(path).segments(topic):
-                out[topic].setdefault(s.header.index, s.arrays)
-    return out
+def run_args(run_id: str, rec: Path, *extra, sim: str = SIM) -> list:
+    return ttl_run_args(run_id, rec, "--insecure", *extra, sim=sim)
 
 
 def assert_same(a: dict, b: dict, topics=("fit", "residual"), rtol: float = 0.0) -> None:
@@ -165,7 +141,7 @@ def test_bad_models_are_refused_and_change_nothing(clean, tmp_path):
     assert len(controls) == len(BAD_MODELS) and not any(c["accepted"] for c in controls), controls
     for (_, needle, _), c in zip(BAD_MODELS.values(), controls, strict=True):
         assert needle in c["message"], c["message"]
-    assert_same(results(clean), results(run_dir))
+    assert_same(fits_and_residuals(clean), fits_and_residuals(run_dir))
 
 
 @pytest.mark.timeout(1800)
@@ -232,16 +208,7 @@ def _adopting_run(tmp_path: Path, data: Path, run: str, kill: bytes | None) -> P
     run_dir = tmp_path / "rec" / run
     try:
         proc = procs.ttl(
-            "run",
-            "--telemetry",
-            data,
-            "--run-id",
-            run,
-            "--recordings",
-            tmp_path / "rec",
-            "--timeout",
-            "900",
-            "--insecure",
+            *ttl_run_args(run, tmp_path / "rec", "--insecure", telemetry=data, segment=None),
             "--segment",
             "30min",
             "--adopt",
@@ -303,7 +270,7 @@ def test_fitter_killed_after_an_adoption_restarts_exactly(adoption, kill, tmp_pa
     data, ref = adoption
     killed = _adopting_run(tmp_path, data, "killed", kill)
     assert (killed / "fitter.1.mcap").exists(), "the fitter was not killed before the run ended"
-    assert_same(results(ref), results(killed), topics=("fit",), rtol=1e-9)
+    assert_same(fits_and_residuals(ref), fits_and_residuals(killed), topics=("fit",), rtol=1e-9)
     models = fit_models(ref)
     assert fit_models(killed) == models
     assert models[2] == ["linear-ttl"] and models[5] != ["linear-ttl"], models

@@ -29,6 +29,8 @@ import pytest
 from mcap.reader import make_reader
 from ttl_testutil import (
     MONITOR,
+    OUTPUT,
+    STAGES,
     Procs,
     finish,
     indices,
@@ -39,6 +41,7 @@ from ttl_testutil import (
     ttl_command,
     wait_for,
 )
+from ttl_testutil import run_args as ttl_run_args
 
 from streamer.bus.security import ensure_credentials
 from streamer.bus.session import Bus, SessionSettings, free_port
@@ -46,37 +49,13 @@ from streamer.recording.recorder import read_recording
 
 SIM = "--duration 12h --orbit unequal --seed 1"
 SEGMENTS = 12
-STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if MONITOR else [])
-OUTPUT = {
-    "replayer": "telemetry",
-    "tdi_builder": "tdi",
-    "fitter": "fit",
-    "subtractor": "residual",
-    "monitor": "monitor",
-}
 NO_MONITOR = [] if MONITOR else ["--skip", "monitor"]  # the monitor is written separately
 
 
-def run_args(run_id: str, rec: Path, *extra) -> list[str]:
-    return [
-        "run",
-        "--simulate",
-        SIM,
-        "--segment",
-        "1h",
-        "--run-id",
-        run_id,
-        "--recordings",
-        str(rec),
-        "--timeout",
-        "200",
-        # the pipeline's mechanics, not the live diagnosis (tests/test_live_loop.py): its
-        # diagnosis of the last segment took 10 s of the run's 50
-        "--adopt",
-        "never",
-        *NO_MONITOR,
-        *extra,
-    ]
+def run_args(run_id: str, rec: Path, *extra) -> list:
+    # --adopt never: the pipeline's mechanics, not the live diagnosis (tests/test_live_loop.py):
+    # its diagnosis of the last segment took 10 s of the run's 50
+    return ttl_run_args(run_id, rec, "--adopt", "never", *NO_MONITOR, *extra, sim=SIM, timeout=200)
 
 
 @pytest.fixture(scope="module")
@@ -359,15 +338,7 @@ def test_late_joiners_catch_up_from_the_caches(tmp_path):
     late = {}
     try:
         proc = procs.ttl(
-            "run",
-            "--simulate",
-            "--duration 6h --orbit unequal --seed 2",
-            "--segment",
-            "30min",
-            "--run-id",
-            "t3",
-            "--recordings",
-            str(rec),
+            *ttl_run_args("t3", rec, sim="--duration 6h --orbit unequal --seed 2", segment="30min", timeout=200),
             *[a for s in late_stages for a in ("--external", s)],
             "--cache",
             "16",
@@ -375,8 +346,6 @@ def test_late_joiners_catch_up_from_the_caches(tmp_path):
             endpoint,
             "--credentials",
             creds,
-            "--timeout",
-            "200",
             *NO_MONITOR,
         )
         with Bus.open(

@@ -19,6 +19,15 @@ ROOT = Path(__file__).resolve().parents[2]
 _TTL = Path(sys.executable).with_name("ttl")
 #: The monitor stage is written separately; the pipeline tests run without it until it exists.
 MONITOR = (ROOT / "stages" / "monitor" / "__main__.py").exists()
+#: The stages a ``ttl run`` starts, in the pipeline's order, and the topic each publishes.
+STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if MONITOR else [])
+OUTPUT = {
+    "replayer": "telemetry",
+    "tdi_builder": "tdi",
+    "fitter": "fit",
+    "subtractor": "residual",
+    "monitor": "monitor",
+}
 
 
 def ttl_command(*args: str) -> list[str]:
@@ -35,6 +44,55 @@ class Procs(ChildProcesses):
 
     def stage(self, stage: str, *args: str) -> subprocess.Popen:
         return self.start([sys.executable, "-m", f"stages.{stage}", *map(str, args)], stage)
+
+
+def run_args(
+    run_id: str,
+    rec,
+    *extra,
+    sim: str | None = None,
+    telemetry=None,
+    segment: str | None = "1h",
+    timeout: float | None = 900,
+) -> list:
+    """The arguments of a ``ttl run`` of a simulation (``sim``: ``ttl simulate`` options) or of
+    ``telemetry`` files, in ``segment`` segments, recorded in ``rec/run_id``, given ``timeout``
+    seconds (``segment``, ``timeout`` None: ttl run's defaults); ``extra`` after them."""
+    source = ["--telemetry", telemetry] if sim is None else ["--simulate", sim]
+    segments = [] if segment is None else ["--segment", segment]
+    timeouts = [] if timeout is None else ["--timeout", str(timeout)]
+    return ["run", *source, *segments, "--run-id", run_id, "--recordings", str(rec), *timeouts, *extra]
+
+
+def fits_and_residuals(run_dir: Path) -> dict:
+    """``{"fit": {index: arrays}, "residual": {index: arrays}}`` of a run, from every process's
+    recording (a restarted stage leaves ``<stage>.<n>.mcap``; the first copy of an index wins)."""
+    out: dict = {}
+    for stage, topic in (("fitter", "fit"), ("subtractor", "residual")):
+        out[topic] = {}
+        for path in sorted(run_dir.glob(f"{stage}*.mcap")):
+            for s in read_recording(path).segments(topic):
+                out[topic].setdefault(s.header.index, s.arrays)
+    return out
+
+
+def watch_board(bus, run: str) -> dict:
+    """stage -> its latest board message (``ttl/<run>/control/board/<stage>``), kept up to date
+    by a subscriber on ``bus``."""
+    board: dict = {}
+
+    def on_sample(sample):
+        msg = json.loads(sample.payload.to_bytes())
+        board[msg["stage"]] = msg
+
+    bus.segment_subscriber(f"ttl/{run}/control/board/*", on_sample, history=1)
+    return board
+
+
+def handled_count(board: dict, stage: str) -> int:
+    """How many segments ``stage`` has handled, by its latest board message (:func:`watch_board`)."""
+    msg = board.get(stage)
+    return sum(b - a + 1 for a, b in (msg or {}).get("done", ())) if msg else 0
 
 
 def stage_processes(proc) -> dict[str, psutil.Process]:
