@@ -49,6 +49,7 @@ from ttl_testutil import (
     Procs,
     finish,
     output,
+    router_process,
     run_args,
     stage_processes,
     ttl_command,
@@ -99,21 +100,6 @@ def assert_same_results(run_dir: Path, clean_dir: Path, why: str) -> None:
                     np.testing.assert_allclose(
                         arrays[k], arr, rtol=1e-9, atol=0, equal_nan=True, err_msg=f"{why} {topic} {i} {k} in {name}"
                     )
-
-
-def router_process(launcher: subprocess.Popen) -> psutil.Process | None:
-    """The ``ttl router`` child of a ``ttl run`` process."""
-    try:
-        kids = psutil.Process(launcher.pid).children()
-    except psutil.NoSuchProcess:
-        return None
-    for p in kids:
-        try:
-            if "router" in p.cmdline():
-                return p
-        except psutil.Error:
-            continue
-    return None
 
 
 def processes_of(tmp_path: Path) -> list[psutil.Process]:

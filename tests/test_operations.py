@@ -40,6 +40,8 @@ from ttl_testutil import (
     fits_and_residuals,
     handled_count,
     output,
+    router_process,
+    run_to_the_end,
     stage_processes,
     ttl_command,
     wait_for,
@@ -83,14 +85,8 @@ def assert_same_results(a: dict, b: dict, rtol: float = 0.0) -> None:
 @pytest.fixture(scope="module")
 def clean(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("clean")
-    procs = Procs(tmp)
-    try:
-        proc = procs.ttl(*run_args("clean", tmp / "rec"))
-        code = finish(proc, 900)
-        assert code == 0, output(proc)[-3000:]
-        yield tmp / "rec" / "clean"
-    finally:
-        procs.close()
+    run_to_the_end(tmp, run_args("clean", tmp / "rec"))
+    return tmp / "rec" / "clean"
 
 
 # ---------------------------------------------------------------------------- the hostile client
@@ -387,16 +383,6 @@ def test_stage_killed_mid_run_restarts_exactly(stage, clean, tmp_path):
     assert not [p for p in psutil.process_iter(["cmdline"]) if run in " ".join(p.info["cmdline"] or ())]
 
 
-def _router_of(proc) -> psutil.Process | None:
-    for p in psutil.Process(proc.pid).children():
-        try:
-            if "router" in p.cmdline():
-                return p
-        except psutil.Error:
-            continue
-    return None
-
-
 def _journal(run_dir: Path) -> list[dict]:
     return [json.loads(line) for line in (run_dir / "launcher.jsonl").read_text().splitlines()]
 
@@ -419,7 +405,7 @@ def test_router_killed_mid_run_is_restarted(clean, tmp_path):
         with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
             board = watch_board(bus, run)
             wait_for(lambda: handled_count(board, "fitter") >= 2 or proc.poll() is not None, 600, "fitter at segment 2")
-        router = _router_of(proc)
+        router = router_process(proc)
         assert router is not None, output(proc)[-2000:]
         router.kill()
         code = finish(proc, 900)

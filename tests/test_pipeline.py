@@ -336,6 +336,12 @@ def test_late_joiners_catch_up_from_the_caches(tmp_path):
     rec = tmp_path / "rec"
     procs = Procs(tmp_path)
     late = {}
+
+    def late_stage(stage: str, *extra):
+        """``ttl stage STAGE`` joining run t3 late (its output in STAGE.out)."""
+        joining = ("--run", "t3", "--connect", endpoint, "--recordings", str(rec), "--credentials", creds)
+        return procs.ttl("stage", stage, *joining, *extra, name=stage)
+
     try:
         proc = procs.ttl(
             *ttl_run_args("t3", rec, sim="--duration 6h --orbit unequal --seed 2", segment="30min", timeout=200),
@@ -357,21 +363,7 @@ def test_late_joiners_catch_up_from_the_caches(tmp_path):
             wait_for(lambda: replayed() >= SEGMENTS // 2 or proc.poll() is not None, 90, "half the replay")
             assert proc.poll() is None, output(proc)[-3000:]
             # its cache holds every residual, so that the late monitor gets them all from history
-            late["subtractor"] = procs.ttl(
-                "stage",
-                "subtractor",
-                "--run",
-                "t3",
-                "--connect",
-                endpoint,
-                "--recordings",
-                str(rec),
-                "--credentials",
-                creds,
-                "--cache",
-                "16",
-                name="subtractor",
-            )
+            late["subtractor"] = late_stage("subtractor", "--cache", "16")
             if MONITOR:
                 # (51 s alone for the whole test; on the fresh clone under the suite's load the
                 # late subtractor, which waits for the board to say the fitter handled each
@@ -382,19 +374,7 @@ def test_late_joiners_catch_up_from_the_caches(tmp_path):
                     "every segment through the late subtractor",
                 )
                 assert proc.poll() is None, output(proc)[-3000:]
-                late["monitor"] = procs.ttl(
-                    "stage",
-                    "monitor",
-                    "--run",
-                    "t3",
-                    "--connect",
-                    endpoint,
-                    "--recordings",
-                    str(rec),
-                    "--credentials",
-                    creds,
-                    name="monitor",
-                )
+                late["monitor"] = late_stage("monitor")
             code = finish(proc, 240)
             for stage, p in late.items():
                 assert finish(p, 60) == 0, (stage, output(p)[-3000:])

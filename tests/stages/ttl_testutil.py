@@ -113,6 +113,32 @@ def stage_processes(proc) -> dict[str, psutil.Process]:
     return out
 
 
+def router_process(launcher: subprocess.Popen) -> psutil.Process | None:
+    """The ``ttl router`` child of a ``ttl run`` process (None: none, or the launcher is gone)."""
+    try:
+        kids = psutil.Process(launcher.pid).children()
+    except psutil.NoSuchProcess:
+        return None
+    for p in kids:
+        try:
+            if "router" in p.cmdline():
+                return p
+        except psutil.Error:
+            continue
+    return None
+
+
+def run_to_the_end(tmp: Path, args: list, timeout: float = 900) -> None:
+    """``ttl *args`` (its output in ``tmp``) to its end, exit status 0 asserted."""
+    procs = Procs(tmp)
+    try:
+        proc = procs.ttl(*args)
+        code = finish(proc, timeout)
+        assert code == 0, output(proc)[-3000:]
+    finally:
+        procs.close()
+
+
 def listening(proc: psutil.Process) -> tuple[list, list]:
     """(TCP listening sockets, UDP sockets) of a process."""
     conns = proc.net_connections(kind="inet")

@@ -184,42 +184,13 @@ def test_three_hosts_with_a_cut_link_equal_one_host(network, tmp_path):
 
 def _start_routers(procs: Procs, creds) -> None:
     """The routers of hosts B (to A) and C (to B), listening on their links and loopback."""
-    procs.start(
-        in_ns(
-            "B",
-            *ttl_command(
-                "router",
-                "--credentials",
-                str(creds),
-                "--listen",
-                LOCAL,
-                "--listen",
-                endpoint("198.18.1.2"),
-                "--listen",
-                endpoint("198.18.2.2"),
-                "--connect",
-                endpoint("198.18.1.1"),
-            ),
-        ),
-        "router-B",
-    )
-    procs.start(
-        in_ns(
-            "C",
-            *ttl_command(
-                "router",
-                "--credentials",
-                str(creds),
-                "--listen",
-                LOCAL,
-                "--listen",
-                endpoint("198.18.2.3"),
-                "--connect",
-                endpoint("198.18.2.2"),
-            ),
-        ),
-        "router-C",
-    )
+    for host, listen, connect in (
+        ("B", ("198.18.1.2", "198.18.2.2"), "198.18.1.1"),
+        ("C", ("198.18.2.3",), "198.18.2.2"),
+    ):
+        listens = [a for address in (LOCAL, *map(endpoint, listen)) for a in ("--listen", address)]
+        router = ttl_command("router", "--credentials", str(creds), *listens, "--connect", endpoint(connect))
+        procs.start(in_ns(host, *router), f"router-{host}")
 
 
 def _check_same_as_one_host(one_dir, three_dir) -> None:
