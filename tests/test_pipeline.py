@@ -32,6 +32,7 @@ from ttl_testutil import (
     OUTPUT,
     STAGES,
     Procs,
+    control_session,
     finish,
     indices,
     listening,
@@ -44,7 +45,7 @@ from ttl_testutil import (
 from ttl_testutil import run_args as ttl_run_args
 
 from streamer.bus.security import ensure_credentials
-from streamer.bus.session import Bus, SessionSettings, free_port
+from streamer.bus.session import free_port
 from streamer.recording.recorder import read_recording
 
 SIM = "--duration 12h --orbit unequal --seed 1"
@@ -280,10 +281,7 @@ def test_stage_killed_and_restarted_mid_run_misses_nothing(t1, tmp_path):
         proc = procs.ttl(
             *run_args("t2", tmp_path / "rec", "--restart", "1", "--listen", endpoint, "--credentials", creds)
         )
-        with Bus.open(
-            SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="control")
-        ) as bus:
-            time.sleep(0.5)
+        with control_session(endpoint, creds) as bus:
             done = _progress_watch(bus, "t2", "tdi_builder")
             wait_for(lambda: done() >= 4 or proc.poll() is not None, 90, "4 segments through the tdi_builder")
             assert proc.poll() is None, output(proc)[-3000:]
@@ -354,10 +352,7 @@ def test_late_joiners_catch_up_from_the_caches(tmp_path):
             creds,
             *NO_MONITOR,
         )
-        with Bus.open(
-            SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="control")
-        ) as bus:
-            time.sleep(0.5)
+        with control_session(endpoint, creds) as bus:
             replayed = _progress_watch(bus, "t3", "replayer")
             subtracted = _progress_watch(bus, "t3", "subtractor")
             wait_for(lambda: replayed() >= SEGMENTS // 2 or proc.poll() is not None, 90, "half the replay")
