@@ -63,6 +63,7 @@ from streamer.runtime.rangeset import RangeSet
 from streamer.runtime.stage import Output, stage_main
 from streamer.tools.refit import refit_settings
 from ttlcore.diagnose.diagnoser import diagnose
+from ttlcore.diagnose.whitened import WhitenedData
 from ttlcore.errors import ConfigError, TTLError
 from ttlcore.estimate.fit import FitSettings
 from ttlcore.estimate.rolling import RollingFit
@@ -208,6 +209,14 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         the same as ``ttl refit`` builds from the recorded segments)."""
         return self.window_tm.joined(source=str(self.config.recordings / self.run_id))
 
+    def window_whitened(self, header, *, keep: bool) -> tuple[Telemetry, WhitenedData]:
+        """The window's telemetry and its whitened data under the instrument noise model,
+        shared by the window refit and the live diagnosis of a segment
+        (:meth:`stages.fitter.window.TelemetryWindow.whitened`; ``keep`` False: not kept after)."""
+        settings = refit_settings(segment_meta(header).dws_asd, self.band)
+        source = str(self.config.recordings / self.run_id)
+        return self.window_tm.whitened(source, settings, self.effect_modules, keep=keep)
+
     def window_fit(self, header) -> dict | None:
         """Meta (and arrays) of the window refitted under the instrument noise model, when due:
         on a model change, on every segment of an extended model the rolling fit does not
@@ -223,8 +232,10 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         if not due:
             return None
         try:
+            # kept for the live diagnosis when it runs on this segment too
+            tm, data = self.window_whitened(header, keep=self.diagnosis_due(header.index))
             r = window_refit(
-                self.window_telemetry(),
+                tm,
                 self.effects,
                 change["before"] if change else ["linear-ttl"],
                 dws_asd=segment_meta(header).dws_asd,
@@ -232,7 +243,11 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
                 effect_modules=self.effect_modules,
                 transients=self.rolling.excluded if self.rolling else (),
                 log=self.log,
+                whitened=data,
             )
+        except ConfigError as exc:  # the window too short for its spectra
+            self.log.info("no window refit yet: %s", exc)
+            return None
         except (TTLError, ValueError, ArithmeticError, np.linalg.LinAlgError) as exc:
             # the rolling fit of this segment stands; the refit is tried again when next due
             if isinstance(exc, np.linalg.LinAlgError):
@@ -250,6 +265,12 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         if change is not None:
             self.model.change_due = None
         ranked = self.candidates_every > 0 and self._segments_seen % self.candidates_every == 0
+        # a change's candidates: ranked here only without the live diagnosis, which ranks
+        # them on the new model's first segment (an adoption's, a control message's) or at
+        # its next slot; a change that only lets transients go needs none.  Ranked on every
+        # change, they cost a whole candidate phase per change (docs/operations.md, the
+        # mission week's fifth run: 67 s of wall for such a refit at segments 24 and 40)
+        ranked = ranked or (change is not None and self.schedule.every <= 0)
         window = (self.window_tm.first, self.window_tm.last, self.window_tm.telemetry[-1].size)
         return window_refit_meta(r, change=change, extended=extended, window=window, ranked=ranked)
 
@@ -264,12 +285,14 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         recommendation adopted when :func:`stages.fitter.live_diagnosis.adoptable`.  None when the
         window is too short for a diagnosis."""
         try:
+            tm, data = self.window_whitened(header, keep=False)
             report = diagnose(
-                self.window_telemetry(),
+                tm,
                 self.effects,
-                settings=refit_settings(segment_meta(header).dws_asd, self.band),
+                settings=data.context.settings,
                 effect_modules=self.effect_modules,
                 progress=stop_check(lambda: self.stopping),
+                whitened=data,
             )
         except ConfigError as exc:
             self.log.info("no diagnosis yet: %s", exc)
@@ -438,6 +461,7 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
             self.warn_if_not_fitted(header.index)
         live = None if replayed else self.diagnosis_if_due(header)
         if window is not None or live is not None:
+            self.window_tm.release()
             release_free_memory()  # the refit's and the diagnosis' temporaries: not kept for the next peak
         meta = fit_meta(
             res,

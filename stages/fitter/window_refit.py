@@ -22,6 +22,7 @@ from ttlcore.diagnose.candidates import candidates
 from ttlcore.diagnose.diagnoser import refit
 from ttlcore.diagnose.diagnosis import Candidate, Refit
 from ttlcore.diagnose.prediction import effect_predictions
+from ttlcore.diagnose.whitened import WhitenedData
 from ttlcore.effects.gate import Gate
 from ttlcore.errors import ConfigError
 from ttlcore.io.telemetry import Telemetry
@@ -56,17 +57,19 @@ def window_refit(
     effect_modules=(),
     transients=(),
     log: logging.Logger | logging.LoggerAdapter | None = None,
+    whitened: WhitenedData | None = None,
 ) -> Refit | None:
     """Refit the window's telemetry with the model ``effects`` (and ``baseline``) under the
     instrument noise model, as ``ttl refit`` does, the rolling fit's outlying FFT segments
     ``transients`` gated (:func:`transient_gates`); None when the window is still too short
-    for it (logged on ``log``)."""
+    for it (logged on ``log``).  ``whitened``: the window's whitened data under the same
+    settings, when built already (the refit starts from them)."""
     effects = list(effects) + transient_gates(window, transients)
     try:
         # no time table: the live diagnosis gives the failing hours; without it the refit
         # keeps no column series (~110 MB less at its peak for a day, the same numbers)
         return refit(
-            window,
+            window if whitened is None else whitened,
             effects,
             settings=refit_settings(dws_asd, band),
             effect_modules=effect_modules,
@@ -101,7 +104,9 @@ def window_refit_meta(
     window : (int, int, int)
         The first and last segment of the window, and the newest segment's samples.
     ranked : bool
-        The candidates not in the model are ranked (``candidates``; always on a change).
+        The candidates not in the model are ranked (``candidates``): every
+        ``--candidates-every`` segments, and on a change when no live diagnosis ranks them
+        (the fitter's :meth:`~stages.fitter.fitter.Fitter.window_fit`).
     """
     model = r.fit
     adequacy = r.model.adequacy
@@ -151,7 +156,7 @@ def window_refit_meta(
             "log_bayes_factor": c.log_bayes_factor,
             "band_edges": adequacy.band_edges,
         }
-    if change is not None or ranked:
+    if ranked:
         ranking = [Candidate.from_json(c) for c in candidates(model)[:TOP_CANDIDATES]]
         out["candidates"] = [
             {

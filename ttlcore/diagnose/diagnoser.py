@@ -81,6 +81,7 @@ def diagnose(
     truth_coefficients=None,
     witnesses: bool | None = None,
     progress=None,
+    whitened: WhitenedData | None = None,
 ) -> Diagnosis:
     """Full diagnosis of telemetry ``tm`` with a model (list of effect specs).
 
@@ -89,6 +90,9 @@ def diagnose(
     and the witness library.  If the model holds more than ``linear-ttl``, the linear-only
     model is fitted too and reported as ``before``, with the evidence for the change.
     ``truth_coefficients`` (24,) only adds coefficient errors; nothing else reads truth.
+    ``whitened``: the whitened data of ``tm`` under ``settings``, when built already
+    (:func:`~ttlcore.diagnose.whitened.whiten_telemetry`; the live fitter's window refit and
+    diagnosis of one segment share them); a :class:`ConfigError` when built under other settings.
 
     Returns
     -------
@@ -110,7 +114,10 @@ def diagnose(
     # threads start (the diagnosis' transforms take the calling thread's default)
     with sp_fft.set_workers(-1):
         say("TDI and spectra")
-        ungated = whiten_telemetry(tm, s, effect_modules)
+        if whitened is not None and whitened.context.settings != s:
+            raise ConfigError("diagnose: the whitened data given were built under other settings")
+        ungated = whitened if whitened is not None else whiten_telemetry(tm, s, effect_modules)
+        del whitened  # (``ungated`` is let go before the transient phase)
         gaps = missing_data(ungated)  # gated before anything is fitted: the data's, not an effect
         data = gated_data(ungated, gates, gaps)
         clock = _lap(timings, "tdi_and_spectra", clock)

@@ -338,19 +338,8 @@ def _event_glitches(model: ModelFit, residual: np.ndarray, tf0, event: dict, spa
         taken = share
         if share >= GLITCH_DONE:
             break
-    for _ in range(REFINE_PASSES if len(found) > 1 else 0):  # each again, the others in the model
-        for j in range(len(found)):
-            others = list(prior) + found[:j] + found[j + 1 :]
-            g = found[j]
-            t = float(g.options["t"])
-            assert g.where is not None  # placed by its search
-            again = Glitch(
-                span=f"{t - REFINE_SPAN:.1f}-{t + REFINE_SPAN:.1f}",
-                **{("tm" if g.where.startswith("tm") else "link"): g.where[-2:]},
-            )
-            res = glitch_search(_with_glitches(model, others), again)
-            assert isinstance(res.effect, Glitch)  # glitch_search's
-            found[j], results[j] = res.effect, res
+    if len(found) > 1:
+        _refine(model, prior, found, results)
     if not found:
         res = results[0]
         assert isinstance(res.effect, Glitch)  # glitch_search's
@@ -374,28 +363,7 @@ def _event_glitches(model: ModelFit, residual: np.ndarray, tf0, event: dict, spa
     names = [g.column_name() for g in found]
     dv = {n: float(fit.theta[list(fit.names).index(n)]) for n in names}
     sdv = {n: float(fit.sigma[list(fit.names).index(n)]) for n in names}
-    acts: list[dict] = []
-    for g, res in zip(found, results):
-        n = g.column_name()
-        acts.append(
-            {
-                "kind": "glitch",
-                "spec": g.spec(),
-                "cli_spec": g.cli_spec(),
-                "text": f"add {g.describe_text()} (dv {dv[n]:.3g} +- {sdv[n]:.2g} m/s, beta "
-                f"{float(g.options['beta']):.3g} s)",
-                "dv": dv[n],
-                "sigma_dv": sdv[n],
-                "beta": float(g.options["beta"]),
-                "t": float(g.options["t"]),
-                "where": g.where,
-                "delta_chi2": float(res.delta_chi2),
-                "p_value": float(stats.chi2.sf(max(res.delta_chi2, 0.0), 4)),
-                "log_bayes_factor": float(res.log_bayes_factor),
-                "search": res.to_json(),
-                "shift": moved,
-            }
-        )
+    acts = [_glitch_action(g, res, dv[g.column_name()], sdv[g.column_name()], moved) for g, res in zip(found, results)]
     log.info(
         "glitches for the event at %.2f h: %s, together %.0f %% of its excess, moving the TTL fit by %.2f sigma",
         event["t_start"] / 3600,
@@ -413,6 +381,47 @@ def _event_glitches(model: ModelFit, residual: np.ndarray, tf0, event: dict, spa
         "shift": acts[0]["shift"],
         "text": "; ".join(a["text"] for a in acts),
         "cli_spec": ",".join(a["cli_spec"] for a in acts),
+    }
+
+
+def _refine(model: ModelFit, prior, found: list, results: list) -> None:
+    """Each glitch of ``found`` searched again with the others (and ``prior``) in the model,
+    on its placement, within :data:`REFINE_SPAN` of its time (:data:`REFINE_PASSES` passes):
+    ``found`` and their search ``results`` replaced in place."""
+    for _ in range(REFINE_PASSES):
+        for j in range(len(found)):
+            others = list(prior) + found[:j] + found[j + 1 :]
+            g = found[j]
+            t = float(g.options["t"])
+            assert g.where is not None  # placed by its search
+            again = Glitch(
+                span=f"{t - REFINE_SPAN:.1f}-{t + REFINE_SPAN:.1f}",
+                **{("tm" if g.where.startswith("tm") else "link"): g.where[-2:]},
+            )
+            res = glitch_search(_with_glitches(model, others), again)
+            assert isinstance(res.effect, Glitch)  # glitch_search's
+            found[j], results[j] = res.effect, res
+
+
+def _glitch_action(g: Glitch, res, dv: float, sdv: float, moved: dict) -> dict:
+    """One glitch of an event's set as an action of the advice: its spec, its fitted
+    velocity step ``dv`` +- ``sdv`` [m/s] and damping, its search ``res`` and the set's
+    ``moved`` (the shift of the TTL fit and whether it fails a band without them)."""
+    return {
+        "kind": "glitch",
+        "spec": g.spec(),
+        "cli_spec": g.cli_spec(),
+        "text": f"add {g.describe_text()} (dv {dv:.3g} +- {sdv:.2g} m/s, beta {float(g.options['beta']):.3g} s)",
+        "dv": dv,
+        "sigma_dv": sdv,
+        "beta": float(g.options["beta"]),
+        "t": float(g.options["t"]),
+        "where": g.where,
+        "delta_chi2": float(res.delta_chi2),
+        "p_value": float(stats.chi2.sf(max(res.delta_chi2, 0.0), 4)),
+        "log_bayes_factor": float(res.log_bayes_factor),
+        "search": res.to_json(),
+        "shift": moved,
     }
 
 

@@ -157,3 +157,29 @@ def test_a_time_inside_a_gap_is_not_adopted():
     assert not outside_gaps(advice("x", actions), gap, "")[0]
     assert outside_gaps(advice("step:t_step=400000"), gap, "explains") == (True, "explains")
     assert outside_gaps(advice("witness:source=12.eta,link=23,delay=1"), gap, "x") == (True, "x")
+
+
+@pytest.mark.parametrize("diagnose_every, adopt, ranked", [(24, "ask", False), (24, "never", True), (0, "ask", True)])
+def test_a_change_is_ranked_by_the_window_refit_only_without_the_live_diagnosis(
+    tmp_path, monkeypatch, diagnose_every, adopt, ranked
+):
+    """The window refit of a model change compares both models; the candidates not in the
+    model are ranked there only when no live diagnosis will rank them (its first segment's
+    diagnosis, or the next slot): a whole candidate phase per change otherwise (55-65 s of a
+    day's window; 14 changes in the mission week)."""
+    from types import SimpleNamespace
+
+    import stages.fitter.fitter as fitter_module
+    from streamer.runtime.stage import StageConfig
+
+    options = {"diagnose_every": diagnose_every, "adopt": adopt, "adequacy_every": 0}
+    fitter = fitter_module.Fitter(StageConfig(run="u", recordings=tmp_path, options=options))
+    seen = {}
+    monkeypatch.setattr(fitter, "window_whitened", lambda header, keep: (None, None))
+    monkeypatch.setattr(fitter_module, "window_refit", lambda *a, **kw: "refit")
+    monkeypatch.setattr(fitter_module, "window_refit_meta", lambda r, **kw: seen.update(kw) or {})
+    monkeypatch.setattr(fitter.window_tm, "segments", [(3, SimpleNamespace(size=10))])
+    fitter.model.change_due = {"before": ["linear-ttl"], "after": ["linear-ttl", "drift"], "from_index": 3}
+    header = SimpleNamespace(index=3, t0=0.0, meta={"segment_duration": 3600.0})
+    assert fitter.window_fit(header) == {}
+    assert seen["change"] is not None and seen["ranked"] is ranked

@@ -69,3 +69,35 @@ def test_a_second_of_slack_at_the_window_edge():
     for i in range(5):
         window.add(i, segment(i))
     assert [i for i, _ in window] == [3, 4]
+
+
+def test_the_whitened_window_is_built_once_while_the_window_stands(monkeypatch):
+    built = []
+
+    def whiten(tm, settings, modules):  # stands in for whiten_telemetry: counts the builds
+        built.append((tm.t0, tm.size, settings, modules))
+        return object()
+
+    monkeypatch.setattr("stages.fitter.window.whiten_telemetry", whiten)
+    window = TelemetryWindow(duration=1000.0)
+    window.add(0, segment(0))
+    window.add(1, segment(1))
+    tm, first = window.whitened("w", "settings-a")
+    assert (tm.t0, tm.size) == (0.0, 2 * N) and len(built) == 1
+    assert window.whitened("w", "settings-a")[1] is first and len(built) == 1  # the same window
+    assert window.whitened("w", "settings-b")[1] is not first and len(built) == 2  # other settings
+    # a new segment, a gap or a cleared window: built again
+    window.add(2, segment(2))
+    assert window.whitened("w", "settings-b")[0].size == 3 * N and len(built) == 3
+    window.add_gap(3, 3 * N / FS, FS, N)
+    assert window.whitened("w", "settings-b")[0].size == 4 * N and len(built) == 4
+    # keep=False: handed over, not kept; release() lets the kept one go
+    window.whitened("w", "settings-b", keep=False)
+    window.whitened("w", "settings-b")
+    assert len(built) == 5
+    window.release()
+    window.whitened("w", "settings-b")
+    assert len(built) == 6
+    window.clear()
+    window.add(7, segment(7))
+    assert window.whitened("w", "settings-b")[0].t0 == 7 * N / FS and len(built) == 7

@@ -54,7 +54,7 @@ def test_the_refit_of_an_extended_model_and_its_meta(window):
     r = window_refit(window, ["linear-ttl", "drift"], ["linear-ttl"], dws_asd=None, band=None)
     assert r is not None
     change = {"before": ["linear-ttl"], "after": ["linear-ttl", "drift"]}
-    meta = window_refit_meta(r, change=change, extended=True, window=(0, 5, 3600 * 4), ranked=False)
+    meta = window_refit_meta(r, change=change, extended=True, window=(0, 5, 3600 * 4), ranked=True)
     arrays = meta.pop("arrays")
     assert arrays["coefficients"].shape == (24,) and arrays["covariance"].shape == (24, 24)
     np.testing.assert_allclose(arrays["sigma"], np.sqrt(np.diag(arrays["covariance"])), rtol=1e-6)
@@ -75,3 +75,24 @@ def test_the_refit_of_an_extended_model_and_its_meta(window):
     assert (
         window_refit_meta(plain, change=None, extended=False, window=(0, 5, 1), ranked=True)["candidates"] is not None
     )
+    # a change not ranked (the live diagnosis ranks them): both models, no candidates
+    unranked = window_refit_meta(r, change=change, extended=True, window=(0, 5, 3600 * 4), ranked=False)
+    assert "model_change" in unranked and "candidates" not in unranked
+
+
+def test_the_refit_from_the_shared_whitened_window_is_the_refit_of_its_telemetry(window):
+    """The fitter hands the window's whitened data to the refit and then to the live diagnosis
+    (:meth:`stages.fitter.window.TelemetryWindow.whitened`): the refit from them is the refit
+    built from the telemetry, to rounding (the same arithmetic on the same arrays)."""
+    from streamer.tools.refit import refit_settings
+    from ttlcore.diagnose.whitened import whiten_telemetry
+
+    effects, gates = ["linear-ttl", "drift"], [{"t_start": 3 * HOUR, "t_stop": 3.5 * HOUR, "z": 9.0}]
+    alone = window_refit(window, effects, ["linear-ttl"], dws_asd=None, band=None, transients=gates)
+    data = whiten_telemetry(window, refit_settings(None, None))
+    shared = window_refit(window, effects, ["linear-ttl"], dws_asd=None, band=None, transients=gates, whitened=data)
+    assert alone is not None and shared is not None
+    np.testing.assert_allclose(shared.fit.theta, alone.fit.theta, rtol=0, atol=1e-12 * np.abs(alone.fit.theta).max())
+    np.testing.assert_allclose(shared.fit.robust_sigma, alone.fit.robust_sigma, rtol=1e-10)
+    assert shared.model.adequacy.chi2_dof == pytest.approx(alone.model.adequacy.chi2_dof, rel=1e-12)
+    assert shared.model.gates == alone.model.gates
