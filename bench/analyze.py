@@ -23,6 +23,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench_ttl import TTL, simulate_command
+
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -31,7 +33,6 @@ def main() -> int:
     ap.add_argument("--keep", type=Path, help="directory for the simulated day and the outputs (kept)")
     args = ap.parse_args()
 
-    ttl = [sys.executable, "-m", "ttlcore.cli.main"]  # the `ttl` command of this interpreter's ttlcore
     tmp = tempfile.TemporaryDirectory(prefix="bench-analyze-") if args.keep is None else None
     work = Path(tmp.name) if tmp else args.keep
     work.mkdir(parents=True, exist_ok=True)
@@ -39,24 +40,9 @@ def main() -> int:
     if data is None:
         data = work / "day.h5"
         if not data.exists():
-            subprocess.run(
-                [
-                    *ttl,
-                    "simulate",
-                    "--duration",
-                    args.duration,
-                    "--orbit",
-                    "keplerian",
-                    "--seed",
-                    "1",
-                    "--out",
-                    str(data),
-                    "--quiet",
-                ],
-                check=True,
-            )
+            subprocess.run(simulate_command(data, args.duration), check=True)
     truth = data.with_name(data.name.replace(".h5", ".truth.h5"))
-    cmd = [*ttl, "analyze", str(data), "--out", str(work / "analysis")]
+    cmd = [*TTL, "analyze", str(data), "--out", str(work / "analysis")]
     if truth.exists():
         cmd += ["--truth", str(truth)]
     start = time.perf_counter()

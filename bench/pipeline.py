@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import psutil
+from bench_ttl import simulate_command
 
 from streamer.bus.topology import STAGES
 
@@ -114,24 +115,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         tmp = Path(tmp)
         data = tmp / "mission.h5"
-        subprocess.run(
-            [
-                sys.executable,
-                "-m",
-                "ttlcore.cli.main",
-                "simulate",
-                "--duration",
-                f"{args.days}d",
-                "--orbit",
-                "keplerian",
-                "--seed",
-                "1",
-                "--out",
-                str(data),
-                "--quiet",
-            ],
-            check=True,
-        )
+        subprocess.run(simulate_command(data, f"{args.days}d"), check=True)
         start = time.perf_counter()
         launcher = subprocess.Popen(
             [

@@ -26,27 +26,13 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench_ttl import simulate_command
+
 HERE = Path(__file__).resolve().parent
 
 
 def run_ours(out: Path, duration: float) -> dict:
-    cmd = [
-        sys.executable,
-        "-m",
-        "ttlcore.cli.main",
-        "simulate",
-        "--duration",
-        str(duration),
-        "--orbit",
-        "keplerian",
-        "--coeffs",
-        "paper",
-        "--seed",
-        "1",
-        "--out",
-        str(out),
-        "--quiet",
-    ]
+    cmd = simulate_command(out, str(duration), "--coeffs", "paper")
     before = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss
     start = time.perf_counter()
     subprocess.run(cmd, check=True, capture_output=True)

@@ -44,7 +44,18 @@ from pathlib import Path
 import numpy as np
 import psutil
 import pytest
-from ttl_testutil import MONITOR, Procs, finish, output, stage_processes, ttl_command, wait_for
+from ttl_testutil import (
+    STAGES,
+    Procs,
+    finish,
+    output,
+    router_process,
+    run_args,
+    stage_processes,
+    ttl_command,
+    wait_for,
+    watch_board,
+)
 
 from streamer.bus.session import Bus, SessionSettings, free_port
 from streamer.recording.recorder import read_recording
@@ -56,7 +67,6 @@ KILLS = int(os.environ.get("TTL_CHAOS_KILLS", "20"))
 INTERVAL = tuple(float(x) for x in os.environ.get("TTL_CHAOS_INTERVAL", "30,90").split(","))
 SEGMENT_S = 600.0
 SIM = f"--duration {DAYS:g}d --orbit unequal --seed 1"
-STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if MONITOR else [])
 TARGETS = STAGES + ["router", "launcher"]
 #: No live diagnosis (``--adopt never``) in either run: the fitter's diagnosis every 24
 #: segments took 1-2 min of CPU each on the loaded 2-core machine and changes no fit (with
@@ -90,21 +100,6 @@ def assert_same_results(run_dir: Path, clean_dir: Path, why: str) -> None:
                     np.testing.assert_allclose(
                         arrays[k], arr, rtol=1e-9, atol=0, equal_nan=True, err_msg=f"{why} {topic} {i} {k} in {name}"
                     )
-
-
-def router_process(launcher: subprocess.Popen) -> psutil.Process | None:
-    """The ``ttl router`` child of a ``ttl run`` process."""
-    try:
-        kids = psutil.Process(launcher.pid).children()
-    except psutil.NoSuchProcess:
-        return None
-    for p in kids:
-        try:
-            if "router" in p.cmdline():
-                return p
-        except psutil.Error:
-            continue
-    return None
 
 
 def processes_of(tmp_path: Path) -> list[psutil.Process]:
@@ -223,23 +218,8 @@ def _clean_reference(procs: Procs, rec: Path) -> Path:
     here (run ``clean``)."""
     if os.environ.get("TTL_CHAOS_CLEAN"):
         return Path(os.environ["TTL_CHAOS_CLEAN"])
-    proc = procs.ttl(
-        "run",
-        "--simulate",
-        SIM,
-        "--segment",
-        "10min",
-        "--run-id",
-        "clean",
-        "--recordings",
-        str(rec),
-        "--timeout",
-        "3600",
-        "--insecure",
-        "--quiet",
-        *NO_DIAGNOSIS,
-        name="clean",
-    )
+    args = run_args("clean", rec, "--insecure", "--quiet", *NO_DIAGNOSIS, sim=SIM, segment="10min", timeout=3600)
+    proc = procs.ttl(*args, name="clean")
     assert finish(proc, 3700) == 0, output(proc)[-3000:]
     return rec / "clean"
 
@@ -247,28 +227,9 @@ def _clean_reference(procs: Procs, rec: Path) -> Path:
 def _chaos_args(rec: Path, port: int, pace: float) -> list:
     """The arguments of the chaos run's ``ttl run`` (run ``chaos`` in ``rec``, listening on ``port``,
     restarted stages, replayed at ``pace`` times real time)."""
-    return [
-        "run",
-        "--simulate",
-        SIM,
-        "--segment",
-        "10min",
-        "--run-id",
-        "chaos",
-        "--recordings",
-        str(rec),
-        "--listen",
-        f"tcp/127.0.0.1:{port}",
-        "--insecure",
-        "--restart",
-        "1000",
-        "--pace",
-        f"{pace:g}",
-        "--timeout",
-        "7200",
-        "--quiet",
-        *NO_DIAGNOSIS,
-    ]
+    listen = ["--listen", f"tcp/127.0.0.1:{port}", "--insecure"]
+    restarts = ["--restart", "1000", "--pace", f"{pace:g}"]
+    return run_args("chaos", rec, *listen, *restarts, "--quiet", *NO_DIAGNOSIS, sim=SIM, segment="10min", timeout=7200)
 
 
 def _check_interruptions_listed(run_dir: Path, tmp_path: Path, kills: list, why: str) -> None:
@@ -339,18 +300,6 @@ def control_changes(run_dir: Path) -> list[tuple[int, list]]:
     return [(k, effects) for _, k, effects in sorted(found, key=lambda r: r[0])]
 
 
-def board_watch(bus, run: str) -> dict:
-    """stage -> its latest board message (``ttl/<run>/control/board/<stage>``)."""
-    seen: dict = {}
-
-    def on_sample(sample):
-        msg = json.loads(sample.payload.to_bytes())
-        seen[msg["stage"]] = msg
-
-    bus.segment_subscriber(f"ttl/{run}/control/board/*", on_sample, history=1)
-    return seen
-
-
 def handled(seen: dict, stage: str) -> set:
     return {i for a, b in (seen.get(stage) or {}).get("done", ()) for i in range(a, b + 1)} | {
         i for a, b in (seen.get(stage) or {}).get("failed", ()) for i in range(a, b + 1)
@@ -387,7 +336,7 @@ def clean_run_with(procs: Procs, rec: Path, schedule: list[tuple[int, list]], wh
     )  # fmt: skip
     run_dir = rec / "clean"
     with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
-        seen = board_watch(bus, "clean")
+        seen = watch_board(bus, "clean")
         made = 0  # changes recorded so far
         for k, group in itertools.groupby(schedule, key=lambda c: c[0]):
             wait_for(

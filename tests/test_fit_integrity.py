@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import zenoh
-from ttl_testutil import Procs, finish, output, ttl_command, wait_for
+from ttl_testutil import Procs, finish, output, run_args, ttl_command, wait_for
 
 from streamer.bus.codec import encode, parse_header
 from streamer.bus.session import Bus, SessionSettings, free_port
@@ -46,22 +46,7 @@ SLOWER = 1.5
 
 
 def run_cmd(run: str, rec: Path, *extra) -> list[str]:
-    return ttl_command(
-        "run",
-        "--simulate",
-        SIM,
-        "--segment",
-        "30min",
-        "--run-id",
-        run,
-        "--recordings",
-        str(rec),
-        "--timeout",
-        "900",
-        "--skip",
-        "monitor",
-        *extra,
-    )
+    return ttl_command(*run_args(run, rec, "--skip", "monitor", *extra, sim=SIM, segment="30min"))
 
 
 def residuals(run_dir: Path) -> dict[int, tuple[dict, dict]]:

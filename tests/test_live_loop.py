@@ -27,7 +27,7 @@ import blind_signals as bs
 import h5py
 import numpy as np
 import pytest
-from ttl_testutil import MONITOR, Procs, finish, output, stage_processes, ttl_command, wait_for
+from ttl_testutil import MONITOR, Procs, finish, output, run_args, stage_processes, ttl_command, wait_for
 
 from streamer.bus.session import free_port
 from streamer.recording.recorder import RecordingError, read_recording
@@ -54,19 +54,9 @@ def live_run(
 ) -> tuple[int, str, Path]:
     procs = Procs(tmp_path)
     try:
+        quiet = ["--quiet", *([] if monitor else ["--skip", "monitor"])]
         proc = procs.ttl(
-            "run",
-            "--telemetry",
-            data,
-            "--run-id",
-            run,
-            "--recordings",
-            tmp_path / "rec",
-            "--timeout",
-            str(timeout),
-            "--quiet",
-            *([] if monitor else ["--skip", "monitor"]),
-            *extra,
+            *run_args(run, tmp_path / "rec", *quiet, *extra, telemetry=data, segment=None, timeout=timeout)
         )
         code = finish(proc, timeout + 60)
         out = output(proc)
@@ -365,15 +355,7 @@ def test_live_loop_applies_the_printed_control_command(tmp_path):
     run_dir = tmp_path / "rec" / "ask"
     try:
         proc = procs.ttl(
-            "run",
-            "--telemetry",
-            data,
-            "--run-id",
-            "ask",
-            "--recordings",
-            tmp_path / "rec",
-            "--timeout",
-            "3000",
+            *run_args("ask", tmp_path / "rec", telemetry=data, segment=None, timeout=3000),
             "--quiet",
             "--skip",
             "monitor",
@@ -521,15 +503,7 @@ def test_kill_with_an_extended_model_changes_nothing(extended_day, tmp_path, sta
     procs = Procs(tmp_path)
     try:
         proc = procs.ttl(
-            "run",
-            "--telemetry",
-            data,
-            "--run-id",
-            "killed",
-            "--recordings",
-            tmp_path / "rec",
-            "--timeout",
-            "3000",
+            *run_args("killed", tmp_path / "rec", telemetry=data, segment=None, timeout=3000),
             "--quiet",
             "--skip",
             "monitor",

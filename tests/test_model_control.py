@@ -14,14 +14,13 @@ from __future__ import annotations
 
 import json
 import subprocess
-import time
 
 import pytest
-from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for
+from ttl_testutil import MONITOR, Procs, control_session, finish, output, ttl_command, wait_for
 
 from streamer.bus.keys import control_key
 from streamer.bus.security import ensure_credentials
-from streamer.bus.session import Bus, SessionSettings, free_port
+from streamer.bus.session import free_port
 from streamer.recording.recorder import read_recording
 
 SEGMENTS = 8
@@ -80,10 +79,7 @@ def _run_with_model_commands(tmp_path) -> None:
             "400",
             *([] if MONITOR else ["--skip", "monitor"]),
         )
-        with Bus.open(
-            SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="control")
-        ) as bus:
-            time.sleep(0.5)
+        with control_session(endpoint, creds) as bus:
             fitted = _progress_watch(bus, "m1", "fitter")
             wait_for(lambda: fitted() >= 1 or proc.poll() is not None, 180, "the first fit")
             bad = subprocess.run(

@@ -26,7 +26,19 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ttl_testutil import Procs, finish, output, stage_processes, ttl_command, wait_for
+from ttl_testutil import (
+    Procs,
+    finish,
+    fits_and_residuals,
+    handled_count,
+    output,
+    run_to_the_end,
+    stage_processes,
+    ttl_command,
+    wait_for,
+    watch_board,
+)
+from ttl_testutil import run_args as ttl_run_args
 
 from streamer.bus.keys import control_key
 from streamer.bus.session import Bus, SessionSettings, free_port
@@ -38,33 +50,8 @@ SEGMENTS = 6
 SIM = f"--duration {SEGMENTS}h --orbit unequal --seed 1"
 
 
-def run_args(run_id: str, rec: Path, *extra, sim: str = SIM) -> list[str]:
-    return [
-        "run",
-        "--simulate",
-        sim,
-        "--segment",
-        "1h",
-        "--run-id",
-        run_id,
-        "--recordings",
-        str(rec),
-        "--timeout",
-        "900",
-        "--insecure",
-        *extra,
-    ]
-
-
-def results(run_dir: Path) -> dict:
-    """Fits and residuals of a run by index, from every process's recording."""
-    out: dict = {}
-    for stage, topic in (("fitter", "fit"), ("subtractor", "residual")):
-        out[topic] = {}
-        for path in sorted(run_dir.glob(f"{stage}*.mcap")):
-            for s in read_recording(path).segments(topic):
-                out[topic].setdefault(s.header.index, s.arrays)
-    return out
+def run_args(run_id: str, rec: Path, *extra, sim: str = SIM) -> list:
+    return ttl_run_args(run_id, rec, "--insecure", *extra, sim=sim)
 
 
 def assert_same(a: dict, b: dict, topics=("fit", "residual"), rtol: float = 0.0) -> None:
@@ -77,23 +64,6 @@ def assert_same(a: dict, b: dict, topics=("fit", "residual"), rtol: float = 0.0)
                 )
 
 
-def watch_fits(bus: Bus, run: str) -> dict:
-    """The fitter's latest progress message, kept up to date."""
-    board: dict = {}
-
-    def on_sample(sample):
-        msg = json.loads(sample.payload.to_bytes())
-        board[msg["stage"]] = msg
-
-    bus.segment_subscriber(f"ttl/{run}/control/board/*", on_sample, history=1)
-    return board
-
-
-def handled(board: dict, stage: str = "fitter") -> int:
-    msg = board.get(stage)
-    return sum(b - a + 1 for a, b in (msg or {}).get("done", ())) if msg else 0
-
-
 def model_events(run_dir: Path) -> list[dict]:
     try:
         return [e for e in read_recording(run_dir / "fitter.mcap").json("events") if e["kind"] == "model"]
@@ -104,14 +74,8 @@ def model_events(run_dir: Path) -> list[dict]:
 @pytest.fixture(scope="module")
 def clean(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("clean")
-    procs = Procs(tmp)
-    try:
-        proc = procs.ttl(*run_args("clean", tmp / "rec"))
-        code = finish(proc, 900)
-        assert code == 0, output(proc)[-3000:]
-        yield tmp / "rec" / "clean"
-    finally:
-        procs.close()
+    run_to_the_end(tmp, run_args("clean", tmp / "rec"))
+    return tmp / "rec" / "clean"
 
 
 #: name -> (effects, what the refusal says, sent by ``ttl control``): the large ones exceed
@@ -136,8 +100,8 @@ def test_bad_models_are_refused_and_change_nothing(clean, tmp_path):
     try:
         proc = procs.ttl(*run_args(run, tmp_path / "rec", "--listen", endpoint, "--pace", "120"))
         with Bus.open(SessionSettings(mode="client", connect=(endpoint,))) as bus:
-            board = watch_fits(bus, run)
-            wait_for(lambda: handled(board) >= 1 or proc.poll() is not None, 600, "the first fit")
+            board = watch_board(bus, run)
+            wait_for(lambda: handled_count(board, "fitter") >= 1 or proc.poll() is not None, 600, "the first fit")
             for name, (effects, _, by_command) in BAD_MODELS.items():
                 payload = json.dumps({"effects": effects})
                 if not by_command:
@@ -151,7 +115,9 @@ def test_bad_models_are_refused_and_change_nothing(clean, tmp_path):
                     text=True,
                     timeout=120,
                 )
-            assert proc.poll() is None and handled(board) < SEGMENTS, "the run ended before the bad models were sent"
+            assert proc.poll() is None and handled_count(board, "fitter") < SEGMENTS, (
+                "the run ended before the bad models were sent"
+            )
             code = finish(proc, 900)
     finally:
         procs.close()
@@ -165,7 +131,7 @@ def test_bad_models_are_refused_and_change_nothing(clean, tmp_path):
     assert len(controls) == len(BAD_MODELS) and not any(c["accepted"] for c in controls), controls
     for (_, needle, _), c in zip(BAD_MODELS.values(), controls, strict=True):
         assert needle in c["message"], c["message"]
-    assert_same(results(clean), results(run_dir))
+    assert_same(fits_and_residuals(clean), fits_and_residuals(run_dir))
 
 
 @pytest.mark.timeout(1800)
@@ -196,8 +162,8 @@ def test_a_model_change_every_second_breaks_no_fit(tmp_path):
             tmp_path / "run.toml",
         )
         with Bus.open(SessionSettings(mode="client", connect=(endpoint,))) as bus:
-            board = watch_fits(bus, run)
-            wait_for(lambda: handled(board) >= 1 or proc.poll() is not None, 600, "the first fit")
+            board = watch_board(bus, run)
+            wait_for(lambda: handled_count(board, "fitter") >= 1 or proc.poll() is not None, 600, "the first fit")
 
             def churn():
                 t_end = time.monotonic() + 60
@@ -232,26 +198,9 @@ def _adopting_run(tmp_path: Path, data: Path, run: str, kill: bytes | None) -> P
     run_dir = tmp_path / "rec" / run
     try:
         proc = procs.ttl(
-            "run",
-            "--telemetry",
-            data,
-            "--run-id",
-            run,
-            "--recordings",
-            tmp_path / "rec",
-            "--timeout",
-            "900",
-            "--insecure",
-            "--segment",
-            "30min",
-            "--adopt",
-            "auto",
-            "--diagnose-every",
-            "3",
-            "--restart",
-            "1",
-            "--skip",
-            "monitor",
+            *ttl_run_args(run, tmp_path / "rec", "--insecure", telemetry=data, segment="30min"),
+            *("--adopt", "auto", "--diagnose-every", "3"),
+            *("--restart", "1", "--skip", "monitor"),
         )
         if kill is not None:
             log = run_dir / "fitter.log"
@@ -303,7 +252,7 @@ def test_fitter_killed_after_an_adoption_restarts_exactly(adoption, kill, tmp_pa
     data, ref = adoption
     killed = _adopting_run(tmp_path, data, "killed", kill)
     assert (killed / "fitter.1.mcap").exists(), "the fitter was not killed before the run ended"
-    assert_same(results(ref), results(killed), topics=("fit",), rtol=1e-9)
+    assert_same(fits_and_residuals(ref), fits_and_residuals(killed), topics=("fit",), rtol=1e-9)
     models = fit_models(ref)
     assert fit_models(killed) == models
     assert models[2] == ["linear-ttl"] and models[5] != ["linear-ttl"], models
@@ -324,8 +273,8 @@ def test_fitter_killed_after_publishing_a_fit_leaves_every_fit_recorded(tmp_path
     try:
         proc = procs.ttl(*run_args(run, tmp_path / "rec", "--listen", endpoint, "--pace", "450", "--restart", "1"))
         with Bus.open(SessionSettings(mode="client", connect=(endpoint,))) as bus:
-            board = watch_fits(bus, run)
-            wait_for(lambda: handled(board) >= 3 or proc.poll() is not None, 600, "the third fit")
+            board = watch_board(bus, run)
+            wait_for(lambda: handled_count(board, "fitter") >= 3 or proc.poll() is not None, 600, "the third fit")
             stage_processes(proc)["fitter"].send_signal(signal.SIGKILL)
             code = finish(proc, 900)
     finally:

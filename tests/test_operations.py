@@ -33,7 +33,21 @@ import numpy as np
 import psutil
 import pytest
 import zenoh
-from ttl_testutil import MONITOR, Procs, finish, output, stage_processes, ttl_command, wait_for
+from ttl_testutil import (
+    STAGES,
+    Procs,
+    finish,
+    fits_and_residuals,
+    handled_count,
+    output,
+    router_process,
+    run_to_the_end,
+    stage_processes,
+    ttl_command,
+    wait_for,
+    watch_board,
+)
+from ttl_testutil import run_args as ttl_run_args
 
 from streamer.bus.codec import encode
 from streamer.bus.session import Bus, SessionSettings, free_port
@@ -43,7 +57,6 @@ pytestmark = pytest.mark.ops
 
 SEGMENTS = 6
 SIM = f"--duration {SEGMENTS}h --orbit unequal --seed 1"
-STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if MONITOR else [])
 INPUTS = {
     "tdi_builder": ("telemetry",),
     "fitter": ("tdi",),
@@ -56,33 +69,7 @@ REFUSALS = ("rejected", "forged", "conflict")
 def run_args(run_id: str, rec: Path, *extra, sim: str = SIM) -> list[str]:
     # plain TCP (--insecure): the plan checks must hold without the access control, and the
     # hostile client of the fuzz must reach the stages
-    return [
-        "run",
-        "--simulate",
-        sim,
-        "--segment",
-        "1h",
-        "--run-id",
-        run_id,
-        "--recordings",
-        str(rec),
-        "--timeout",
-        "600",
-        "--insecure",
-        *extra,
-    ]
-
-
-def results(run_dir: Path) -> dict:
-    """Fits and residuals of a run, by index, from every process's recording (a restarted
-    stage leaves ``<stage>.<n>.mcap``)."""
-    out = {}
-    for stage, topic in (("fitter", "fit"), ("subtractor", "residual")):
-        out[topic] = {}
-        for path in sorted(run_dir.glob(f"{stage}*.mcap")):
-            for s in read_recording(path).segments(topic):
-                out[topic].setdefault(s.header.index, s.arrays)
-    return out
+    return ttl_run_args(run_id, rec, "--insecure", *extra, sim=sim, timeout=600)
 
 
 def assert_same_results(a: dict, b: dict, rtol: float = 0.0) -> None:
@@ -98,14 +85,8 @@ def assert_same_results(a: dict, b: dict, rtol: float = 0.0) -> None:
 @pytest.fixture(scope="module")
 def clean(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("clean")
-    procs = Procs(tmp)
-    try:
-        proc = procs.ttl(*run_args("clean", tmp / "rec"))
-        code = finish(proc, 900)
-        assert code == 0, output(proc)[-3000:]
-        yield tmp / "rec" / "clean"
-    finally:
-        procs.close()
+    run_to_the_end(tmp, run_args("clean", tmp / "rec"))
+    return tmp / "rec" / "clean"
 
 
 # ---------------------------------------------------------------------------- the hostile client
@@ -143,7 +124,7 @@ class Fuzzer:
         self.mine: set = set()
         self.by_kind: dict[str, int] = {}
         self.kind = ""
-        self.board = _watch_board(bus, run)
+        self.board = watch_board(bus, run)
         for topic in self.genuine:
             bus.subscriber(f"ttl/{run}/{topic}", self._keep(topic))
 
@@ -236,7 +217,7 @@ class Fuzzer:
 
     def settled(self) -> int:
         """Highest index every stage has handled (-1: none yet)."""
-        return min(_handled(self.board, s) for s in STAGES) - 1
+        return min(handled_count(self.board, s) for s in STAGES) - 1
 
     def altered_duplicate(self, topic, index, payload, header):
         # of a segment every stage has handled: the genuine copy was used (a conflict within
@@ -362,27 +343,11 @@ def test_fuzz_of_hostile_messages_changes_nothing(clean, tmp_path):
     m = re.search(r"(\d+) progress message\(s\) refused", out)
     assert m and int(m.group(1)) >= fuzz.progress, out[-2000:]
     # and the science is untouched
-    assert_same_results(results(clean), results(run_dir))
+    assert_same_results(fits_and_residuals(clean), fits_and_residuals(run_dir))
     print(json.dumps({"hostile": fuzz.sent, "identical": fuzz.identical, "forged_progress": fuzz.progress}))
 
 
 # ---------------------------------------------------------------------------- kills and restarts
-
-
-def _handled(board: dict, stage: str) -> int:
-    msg = board.get(stage)
-    return sum(b - a + 1 for a, b in (msg or {}).get("done", ())) if msg else 0
-
-
-def _watch_board(bus: Bus, run: str) -> dict:
-    board: dict = {}
-
-    def on_sample(sample):
-        msg = json.loads(sample.payload.to_bytes())
-        board[msg["stage"]] = msg
-
-    bus.segment_subscriber(f"ttl/{run}/control/board/*", on_sample, history=1)
-    return board
 
 
 @pytest.mark.parametrize("stage", STAGES)
@@ -398,8 +363,8 @@ def test_stage_killed_mid_run_restarts_exactly(stage, clean, tmp_path):
             *run_args(run, tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--restart", "1", "--pace", "450")
         )
         with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
-            board = _watch_board(bus, run)
-            wait_for(lambda: _handled(board, stage) >= 3 or proc.poll() is not None, 600, f"{stage} at segment 3")
+            board = watch_board(bus, run)
+            wait_for(lambda: handled_count(board, stage) >= 3 or proc.poll() is not None, 600, f"{stage} at segment 3")
             victim = stage_processes(proc)[stage]
             victim.send_signal(signal.SIGKILL)
             code = finish(proc, 900)
@@ -410,22 +375,12 @@ def test_stage_killed_mid_run_restarts_exactly(stage, clean, tmp_path):
     assert f"stage {stage} died (killed by SIGKILL)" in out and f"restarting {stage}" in out
     run_dir = tmp_path / "rec" / run
     assert (run_dir / f"{stage}.1.mcap").exists() and read_recording(run_dir / f"{stage}.mcap").complete
-    assert_same_results(results(clean), results(run_dir), rtol=1e-9)
+    assert_same_results(fits_and_residuals(clean), fits_and_residuals(run_dir), rtol=1e-9)
     if stage == "fitter":  # its window rebuilt: from the caches (a short run) or the tdi_builder's recordings
         events = [e["kind"] for e in read_recording(run_dir / "fitter.mcap").json("events")]
         assert "restored" in events or "replayed" in events, events
     # nothing orphaned: no stage process of this run is left
     assert not [p for p in psutil.process_iter(["cmdline"]) if run in " ".join(p.info["cmdline"] or ())]
-
-
-def _router_of(proc) -> psutil.Process | None:
-    for p in psutil.Process(proc.pid).children():
-        try:
-            if "router" in p.cmdline():
-                return p
-        except psutil.Error:
-            continue
-    return None
 
 
 def _journal(run_dir: Path) -> list[dict]:
@@ -448,9 +403,9 @@ def test_router_killed_mid_run_is_restarted(clean, tmp_path):
             *run_args(run, tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--restart", "1", "--pace", "450")
         )
         with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
-            board = _watch_board(bus, run)
-            wait_for(lambda: _handled(board, "fitter") >= 2 or proc.poll() is not None, 600, "fitter at segment 2")
-        router = _router_of(proc)
+            board = watch_board(bus, run)
+            wait_for(lambda: handled_count(board, "fitter") >= 2 or proc.poll() is not None, 600, "fitter at segment 2")
+        router = router_process(proc)
         assert router is not None, output(proc)[-2000:]
         router.kill()
         code = finish(proc, 900)
@@ -459,7 +414,7 @@ def test_router_killed_mid_run_is_restarted(clean, tmp_path):
         procs.close()
     assert code == 0 and "restarting the Zenoh router (1/1)" in out, out[-4000:]
     run_dir = tmp_path / "rec" / run
-    assert_same_results(results(clean), results(run_dir), rtol=1e-9)
+    assert_same_results(fits_and_residuals(clean), fits_and_residuals(run_dir), rtol=1e-9)
     kinds = [j["kind"] for j in _journal(run_dir)]
     assert kinds[0] == "start" and kinds[-1] == "end" and "router-died" in kinds and "router-restarted" in kinds, kinds
     res = subprocess.run(ttl_command("inspect", str(run_dir)), capture_output=True, text=True, timeout=300)
@@ -482,10 +437,10 @@ def test_launcher_killed_then_resumed_completes_the_run(clean, tmp_path):
     try:
         proc = procs.ttl(*args)
         with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
-            board = _watch_board(bus, run)
+            board = watch_board(bus, run)
             # every stage past segment 1 (the monitor comes last): the resume starts at 2 or later
             wait_for(
-                lambda: min(_handled(board, s) for s in STAGES) >= 2 or proc.poll() is not None,
+                lambda: min(handled_count(board, s) for s in STAGES) >= 2 or proc.poll() is not None,
                 600,
                 "every stage at segment 2",
             )
@@ -504,7 +459,7 @@ def test_launcher_killed_then_resumed_completes_the_run(clean, tmp_path):
     run_dir = tmp_path / "rec" / run
     resumed = [j for j in _journal(run_dir) if j["kind"] == "resume"]
     assert len(resumed) == 1 and resumed[0]["first"] >= 2, resumed
-    reference = results(clean)
+    reference = fits_and_residuals(clean)
     for stage, topic in (("fitter", "fit"), ("subtractor", "residual")):
         copies: dict = {}
         for path in sorted(run_dir.glob(f"{stage}*.mcap")):
@@ -537,8 +492,8 @@ def test_restarted_fitter_keeps_the_model_changed_by_control(tmp_path):
             *run_args(run, tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--restart", "1", "--pace", "450")
         )
         with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
-            board = _watch_board(bus, run)
-            wait_for(lambda: _handled(board, "fitter") >= 2 or proc.poll() is not None, 600, "fitter at segment 2")
+            board = watch_board(bus, run)
+            wait_for(lambda: handled_count(board, "fitter") >= 2 or proc.poll() is not None, 600, "fitter at segment 2")
             sent = subprocess.run(
                 ttl_command(
                     "control",
@@ -566,7 +521,7 @@ def test_restarted_fitter_keeps_the_model_changed_by_control(tmp_path):
             start = model_event()
             assert start is not None and start < SEGMENTS - 1, (start, output(proc)[-3000:])
             wait_for(
-                lambda: _handled(board, "fitter") >= start + 1 or proc.poll() is not None,
+                lambda: handled_count(board, "fitter") >= start + 1 or proc.poll() is not None,
                 600,
                 f"fitter past segment {start}",
             )
@@ -601,8 +556,8 @@ def test_launcher_killed_stages_stop_with_a_clear_error(clean, tmp_path):
     try:
         proc = procs.ttl(*run_args("orphans", tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--pace", "450"))
         with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
-            board = _watch_board(bus, "orphans")
-            wait_for(lambda: _handled(board, "fitter") >= 1 or proc.poll() is not None, 600, "the first fit")
+            board = watch_board(bus, "orphans")
+            wait_for(lambda: handled_count(board, "fitter") >= 1 or proc.poll() is not None, 600, "the first fit")
         children = stage_processes(proc)
         assert set(children) == set(STAGES), children
         everything = psutil.Process(proc.pid).children(recursive=True)  # the router too
@@ -627,7 +582,7 @@ def test_launcher_killed_stages_stop_with_a_clear_error(clean, tmp_path):
     )
     assert "orphaned" in res.stdout and "launcher" in res.stdout, res.stdout[-3000:]
     # what the run produced before it stopped is the clean run's
-    partial, reference = results(run_dir), results(clean)
+    partial, reference = fits_and_residuals(run_dir), fits_and_residuals(clean)
     assert partial["fit"], "no fit recorded before the launcher died"
     for topic in ("fit", "residual"):
         assert set(partial[topic]) <= set(reference[topic]), topic

@@ -29,7 +29,10 @@ import pytest
 from mcap.reader import make_reader
 from ttl_testutil import (
     MONITOR,
+    OUTPUT,
+    STAGES,
     Procs,
+    control_session,
     finish,
     indices,
     listening,
@@ -39,44 +42,21 @@ from ttl_testutil import (
     ttl_command,
     wait_for,
 )
+from ttl_testutil import run_args as ttl_run_args
 
 from streamer.bus.security import ensure_credentials
-from streamer.bus.session import Bus, SessionSettings, free_port
+from streamer.bus.session import free_port
 from streamer.recording.recorder import read_recording
 
 SIM = "--duration 12h --orbit unequal --seed 1"
 SEGMENTS = 12
-STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if MONITOR else [])
-OUTPUT = {
-    "replayer": "telemetry",
-    "tdi_builder": "tdi",
-    "fitter": "fit",
-    "subtractor": "residual",
-    "monitor": "monitor",
-}
 NO_MONITOR = [] if MONITOR else ["--skip", "monitor"]  # the monitor is written separately
 
 
-def run_args(run_id: str, rec: Path, *extra) -> list[str]:
-    return [
-        "run",
-        "--simulate",
-        SIM,
-        "--segment",
-        "1h",
-        "--run-id",
-        run_id,
-        "--recordings",
-        str(rec),
-        "--timeout",
-        "200",
-        # the pipeline's mechanics, not the live diagnosis (tests/test_live_loop.py): its
-        # diagnosis of the last segment took 10 s of the run's 50
-        "--adopt",
-        "never",
-        *NO_MONITOR,
-        *extra,
-    ]
+def run_args(run_id: str, rec: Path, *extra) -> list:
+    # --adopt never: the pipeline's mechanics, not the live diagnosis (tests/test_live_loop.py):
+    # its diagnosis of the last segment took 10 s of the run's 50
+    return ttl_run_args(run_id, rec, "--adopt", "never", *NO_MONITOR, *extra, sim=SIM, timeout=200)
 
 
 @pytest.fixture(scope="module")
@@ -301,10 +281,7 @@ def test_stage_killed_and_restarted_mid_run_misses_nothing(t1, tmp_path):
         proc = procs.ttl(
             *run_args("t2", tmp_path / "rec", "--restart", "1", "--listen", endpoint, "--credentials", creds)
         )
-        with Bus.open(
-            SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="control")
-        ) as bus:
-            time.sleep(0.5)
+        with control_session(endpoint, creds) as bus:
             done = _progress_watch(bus, "t2", "tdi_builder")
             wait_for(lambda: done() >= 4 or proc.poll() is not None, 90, "4 segments through the tdi_builder")
             assert proc.poll() is None, output(proc)[-3000:]
@@ -357,17 +334,15 @@ def test_late_joiners_catch_up_from_the_caches(tmp_path):
     rec = tmp_path / "rec"
     procs = Procs(tmp_path)
     late = {}
+
+    def late_stage(stage: str, *extra):
+        """``ttl stage STAGE`` joining run t3 late (its output in STAGE.out)."""
+        joining = ("--run", "t3", "--connect", endpoint, "--recordings", str(rec), "--credentials", creds)
+        return procs.ttl("stage", stage, *joining, *extra, name=stage)
+
     try:
         proc = procs.ttl(
-            "run",
-            "--simulate",
-            "--duration 6h --orbit unequal --seed 2",
-            "--segment",
-            "30min",
-            "--run-id",
-            "t3",
-            "--recordings",
-            str(rec),
+            *ttl_run_args("t3", rec, sim="--duration 6h --orbit unequal --seed 2", segment="30min", timeout=200),
             *[a for s in late_stages for a in ("--external", s)],
             "--cache",
             "16",
@@ -375,34 +350,15 @@ def test_late_joiners_catch_up_from_the_caches(tmp_path):
             endpoint,
             "--credentials",
             creds,
-            "--timeout",
-            "200",
             *NO_MONITOR,
         )
-        with Bus.open(
-            SessionSettings(mode="client", connect=(endpoint,), credentials=creds, identity="control")
-        ) as bus:
-            time.sleep(0.5)
+        with control_session(endpoint, creds) as bus:
             replayed = _progress_watch(bus, "t3", "replayer")
             subtracted = _progress_watch(bus, "t3", "subtractor")
             wait_for(lambda: replayed() >= SEGMENTS // 2 or proc.poll() is not None, 90, "half the replay")
             assert proc.poll() is None, output(proc)[-3000:]
             # its cache holds every residual, so that the late monitor gets them all from history
-            late["subtractor"] = procs.ttl(
-                "stage",
-                "subtractor",
-                "--run",
-                "t3",
-                "--connect",
-                endpoint,
-                "--recordings",
-                str(rec),
-                "--credentials",
-                creds,
-                "--cache",
-                "16",
-                name="subtractor",
-            )
+            late["subtractor"] = late_stage("subtractor", "--cache", "16")
             if MONITOR:
                 # (51 s alone for the whole test; on the fresh clone under the suite's load the
                 # late subtractor, which waits for the board to say the fitter handled each
@@ -413,19 +369,7 @@ def test_late_joiners_catch_up_from_the_caches(tmp_path):
                     "every segment through the late subtractor",
                 )
                 assert proc.poll() is None, output(proc)[-3000:]
-                late["monitor"] = procs.ttl(
-                    "stage",
-                    "monitor",
-                    "--run",
-                    "t3",
-                    "--connect",
-                    endpoint,
-                    "--recordings",
-                    str(rec),
-                    "--credentials",
-                    creds,
-                    name="monitor",
-                )
+                late["monitor"] = late_stage("monitor")
             code = finish(proc, 240)
             for stage, p in late.items():
                 assert finish(p, 60) == 0, (stage, output(p)[-3000:])

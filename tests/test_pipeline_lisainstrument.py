@@ -11,18 +11,9 @@ from __future__ import annotations
 
 import numpy as np
 from lisainstrument_sim import simulate_lisainstrument
-from ttl_testutil import MONITOR, Procs, finish, indices, output
+from ttl_testutil import MONITOR, OUTPUT, STAGES, Procs, finish, indices, output, run_args
 
 from streamer.recording.recorder import read_recording
-
-STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if MONITOR else [])
-OUTPUT = {
-    "replayer": "telemetry",
-    "tdi_builder": "tdi",
-    "fitter": "fit",
-    "subtractor": "residual",
-    "monitor": "monitor",
-}
 
 
 def test_lisainstrument_file_replayed_through_the_pipeline(tmp_path):
@@ -35,17 +26,7 @@ def test_lisainstrument_file_replayed_through_the_pipeline(tmp_path):
     procs = Procs(tmp_path)
     try:
         proc = procs.ttl(
-            "run",
-            "--telemetry",
-            li,
-            "--segment",
-            "30min",
-            "--run-id",
-            "li",
-            "--recordings",
-            tmp_path / "rec",
-            "--timeout",
-            "300",
+            *run_args("li", tmp_path / "rec", telemetry=li, segment="30min", timeout=300),
             "--adopt",
             "never",  # the file's way through the stages; the live diagnosis is tests/test_live_loop.py's
             *([] if MONITOR else ["--skip", "monitor"]),

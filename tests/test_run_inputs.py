@@ -24,7 +24,18 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for
+from ttl_testutil import (
+    STAGES,
+    Procs,
+    finish,
+    fits_and_residuals,
+    handled_count,
+    output,
+    run_args,
+    ttl_command,
+    wait_for,
+    watch_board,
+)
 
 from stages.replayer import FileSource
 from streamer.bus.session import Bus, SessionSettings, free_port
@@ -36,8 +47,6 @@ from streamer.runtime.plan import Plan
 from streamer.runtime.progress import Progress
 from streamer.runtime.rangeset import RangeSet
 from ttlcore.io.reader import read_telemetry
-
-STAGES = ["replayer", "tdi_builder", "fitter", "subtractor"] + (["monitor"] if MONITOR else [])
 
 
 def simulate(path: Path, duration: str, seed: int = 1) -> Path:
@@ -137,17 +146,7 @@ def test_resume_refuses_a_file_changed_since_the_run_was_planned(files, tmp_path
     shutil.copy(files["2h-seed2"], f)  # the same size, another content, a new modification time
     res = subprocess.run(
         ttl_command(
-            "run",
-            "--telemetry",
-            str(f),
-            "--segment",
-            "10min",
-            "--run-id",
-            "r1",
-            "--recordings",
-            str(tmp_path / "rec"),
-            "--insecure",
-            "--resume",
+            *run_args("r1", tmp_path / "rec", "--insecure", "--resume", telemetry=f, segment="10min", timeout=None)
         ),
         capture_output=True,
         text=True,
@@ -225,22 +224,6 @@ def test_a_longer_fft_segment_fits_every_other_segment_without_loss(tmp_path):
 # ---------------------------------------------------------------------------- ops: live runs
 
 
-def _handled(board: dict, stage: str) -> int:
-    msg = board.get(stage)
-    return sum(b - a + 1 for a, b in (msg or {}).get("done", ())) if msg else 0
-
-
-def _watch_board(bus: Bus, run: str) -> dict:
-    seen: dict = {}
-
-    def on_sample(sample):
-        msg = json.loads(sample.payload.to_bytes())
-        seen[msg["stage"]] = msg
-
-    bus.segment_subscriber(f"ttl/{run}/control/board/*", on_sample, history=1)
-    return seen
-
-
 @pytest.mark.ops
 def test_telemetry_file_swapped_mid_run_stops_the_run(files, tmp_path):
     """The measured failure: ``mission.h5`` (2 h, 12 segments of 10 min) replaced by a 1-h file
@@ -252,32 +235,17 @@ def test_telemetry_file_swapped_mid_run_stops_the_run(files, tmp_path):
     f = tmp_path / "mission.h5"
     shutil.copy2(files["2h"], f)
     port = free_port()
-    args = [
-        "run",
-        "--telemetry",
-        str(f),
-        "--segment",
-        "10min",
-        "--run-id",
-        "swap",
-        "--recordings",
-        str(tmp_path / "rec"),
-        "--listen",
-        f"tcp/127.0.0.1:{port}",
-        "--insecure",
-        "--timeout",
-        "600",
-        "--pace",
-        "150",  # a segment every 4 s
-        "--restart",
-        "1",
-    ]
+    listen = ["--listen", f"tcp/127.0.0.1:{port}", "--insecure"]
+    # --pace 150: a segment every 4 s
+    args = run_args(
+        "swap", tmp_path / "rec", *listen, "--pace", "150", "--restart", "1", telemetry=f, segment="10min", timeout=600
+    )
     procs = Procs(tmp_path)
     try:
         proc = procs.ttl(*args)
         with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
-            seen = _watch_board(bus, "swap")
-            wait_for(lambda: _handled(seen, "replayer") >= 3 or proc.poll() is not None, 600, "segment 2 replayed")
+            seen = watch_board(bus, "swap")
+            wait_for(lambda: handled_count(seen, "replayer") >= 3 or proc.poll() is not None, 600, "segment 2 replayed")
             os.replace(shutil.copy(files["1h"], tmp_path / "new.h5"), f)
             code = finish(proc, 600)
         out = output(proc)
@@ -313,35 +281,6 @@ SIM = "--duration 6h --orbit unequal --seed 1"
 NESTED = '{"effects": ' + "[" * 500 + "]" * 500 + "}"
 
 
-def run_args(run_id: str, rec: Path, *extra) -> list[str]:
-    return [
-        "run",
-        "--simulate",
-        SIM,
-        "--segment",
-        "1h",
-        "--run-id",
-        run_id,
-        "--recordings",
-        str(rec),
-        "--timeout",
-        "900",
-    ] + [
-        "--insecure",
-        *extra,
-    ]
-
-
-def results(run_dir: Path) -> dict:
-    out: dict = {}
-    for stage, topic in (("fitter", "fit"), ("subtractor", "residual")):
-        out[topic] = {}
-        for path in sorted(run_dir.glob(f"{stage}*.mcap")):
-            for s in read_recording(path).segments(topic):
-                out[topic].setdefault(s.header.index, s.arrays)
-    return out
-
-
 @pytest.mark.ops
 def test_nested_control_payload_is_refused_by_every_stage(tmp_path):
     """``ttl control <stage> model '{"effects": [[[...500 deep...]]]}'`` to every stage of a live
@@ -352,12 +291,16 @@ def test_nested_control_payload_is_refused_by_every_stage(tmp_path):
     port = free_port()
     sent = {}
     try:
-        clean = procs.ttl(*run_args("clean", tmp_path / "rec"), name="clean")
+        clean = procs.ttl(*run_args("clean", tmp_path / "rec", "--insecure", sim=SIM), name="clean")
         assert finish(clean, 900) == 0, output(clean)[-3000:]
-        proc = procs.ttl(*run_args("nested", tmp_path / "rec", "--listen", f"tcp/127.0.0.1:{port}", "--pace", "300"))
+        proc = procs.ttl(
+            *run_args(
+                "nested", tmp_path / "rec", "--insecure", "--listen", f"tcp/127.0.0.1:{port}", "--pace", "300", sim=SIM
+            )
+        )
         with Bus.open(SessionSettings(mode="client", connect=(f"tcp/127.0.0.1:{port}",))) as bus:
-            seen = _watch_board(bus, "nested")
-            wait_for(lambda: _handled(seen, "fitter") >= 1 or proc.poll() is not None, 600, "the first fit")
+            seen = watch_board(bus, "nested")
+            wait_for(lambda: handled_count(seen, "fitter") >= 1 or proc.poll() is not None, 600, "the first fit")
         for stage in STAGES:
             sent[stage] = subprocess.run(
                 ttl_command(
@@ -389,7 +332,7 @@ def test_nested_control_payload_is_refused_by_every_stage(tmp_path):
         rec = read_recording(run_dir / f"{stage}.mcap")
         refused = [c for c in rec.json("control") if not c["accepted"]]
         assert len(refused) == 1 and "nested" in refused[0]["message"], (stage, rec.json("control"))
-    got, ref = results(run_dir), results(tmp_path / "rec" / "clean")
+    got, ref = fits_and_residuals(run_dir), fits_and_residuals(tmp_path / "rec" / "clean")
     for topic in ("fit", "residual"):
         assert sorted(got[topic]) == sorted(ref[topic]) == list(range(6)), topic
         for i, arrays in ref[topic].items():

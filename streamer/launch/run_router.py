@@ -17,7 +17,7 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from ..bus import security
-from ..runtime.processes import stop_process, tied_to_parent
+from ..runtime.processes import start_child, stop_process
 from .launch_plan import LaunchError, RunOptions
 
 
@@ -95,16 +95,8 @@ class Router:
         env.pop("RUST_LOG", None)
         with open(path, "ab") as logf:
             start = logf.tell()
-            proc = self.proc = subprocess.Popen(
-                cmd,
-                stdout=logf,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                env=env,
-                preexec_fn=tied_to_parent(signal.SIGKILL),
-                # not the terminal's Ctrl-C: the launcher stops it after the stages
-                process_group=0,
-            )
+            # SIGKILL: nothing to save; the launcher stops it after the stages
+            proc = self.proc = start_child(cmd, logf, env, signal.SIGKILL)
         self.starts += 1
         self.watcher = security.RefusalWatcher(path, offset=start)
         deadline = time.monotonic() + 60.0

@@ -23,7 +23,7 @@ import zenoh
 from ..bus.keys import control_key
 from ..bus.session import Bus
 from ..bus.topology import stage_module
-from ..runtime.processes import tied_to_parent
+from ..runtime.processes import start_child
 from .launch_plan import RunOptions
 from .run_router import exit_description
 
@@ -79,27 +79,11 @@ class Supervisor:
         with open(child.log, "ab") as logf:
             logf.write(f"--- start {child.starts + 1} of {name} at {time.ctime()} ---\n".encode())
             logf.flush()
-            proc = child.proc = subprocess.Popen(
-                [
-                    self.opts.python,
-                    "-m",
-                    stage_module(name),
-                    "--config",
-                    str(child.config),
-                    "--log-level",
-                    self.opts.log_level,
-                ],
-                stdout=logf,
-                stderr=subprocess.STDOUT,
-                stdin=subprocess.DEVNULL,
-                env=env,
-                # SIGTERM when the launcher dies, even while importing or opening its session
-                # (the stage then closes its recording, saying it was orphaned)
-                preexec_fn=tied_to_parent(signal.SIGTERM),
-                # a process group of its own: the terminal's Ctrl-C reaches the launcher alone,
-                # which passes it on (stop_all) once it has recorded the interrupt
-                process_group=0,
-            )
+            cmd = [self.opts.python, "-m", stage_module(name), "--config", str(child.config)]
+            # SIGTERM when the launcher dies, even while importing or opening its session (the
+            # stage then closes its recording, saying it was orphaned); the terminal's Ctrl-C
+            # the launcher passes on (stop_all) once it has recorded the interrupt
+            proc = child.proc = start_child([*cmd, "--log-level", self.opts.log_level], logf, env, signal.SIGTERM)
         child.starts += 1
         child.pids.add(proc.pid)
         child.pids_order.append(proc.pid)

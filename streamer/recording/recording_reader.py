@@ -205,16 +205,7 @@ class _Assembler:
     def _message(self, msg: Message) -> None:
         channel = self.channels.get(msg.channel_id)
         if channel is None:
-            self.rec.messages.append(
-                RecordedMessage(
-                    f"<channel {msg.channel_id}>",
-                    msg.log_time,
-                    "raw",
-                    sequence=msg.sequence,
-                    raw=bytes(msg.data),
-                    error="unknown channel",
-                )
-            )
+            self._keep_bytes(f"<channel {msg.channel_id}>", msg, "raw", "unknown channel")
             return
         topic = channel.topic
         if channel.message_encoding == "json" and topic.endswith("/header"):
@@ -236,16 +227,7 @@ class _Assembler:
             if head is None or head.sequence != msg.sequence:
                 if head is not None:
                     self.rec.messages.append(head)
-                self.rec.messages.append(
-                    RecordedMessage(
-                        seg,
-                        msg.log_time,
-                        "invalid",
-                        sequence=msg.sequence,
-                        raw=bytes(msg.data),
-                        error="payload without its header",
-                    )
-                )
+                self._keep_bytes(seg, msg, "invalid", "payload without its header")
                 return
             try:
                 header, arrays = decode(msg.data, json.dumps(head.data).encode(), Expect(allow_nonfinite=True))
@@ -258,20 +240,15 @@ class _Assembler:
                 data = json.loads(msg.data)
                 self.rec.messages.append(RecordedMessage(topic, msg.log_time, "json", data=data, sequence=msg.sequence))
             except ValueError as exc:
-                self.rec.messages.append(
-                    RecordedMessage(
-                        topic,
-                        msg.log_time,
-                        "invalid",
-                        sequence=msg.sequence,
-                        raw=bytes(msg.data),
-                        error=f"not JSON: {exc}",
-                    )
-                )
+                self._keep_bytes(topic, msg, "invalid", f"not JSON: {exc}")
         else:
-            self.rec.messages.append(
-                RecordedMessage(topic, msg.log_time, "raw", sequence=msg.sequence, raw=bytes(msg.data))
-            )
+            self._keep_bytes(topic, msg, "raw")
+
+    def _keep_bytes(self, topic: str, msg: Message, kind: str, error: str | None = None) -> None:
+        """Add ``msg`` to the recording as its bytes (``kind`` raw or invalid, and why)."""
+        self.rec.messages.append(
+            RecordedMessage(topic, msg.log_time, kind, sequence=msg.sequence, raw=bytes(msg.data), error=error)
+        )
 
     def _wanted(self, channel: Channel, msg: Message) -> bool:
         """With a ``keep`` filter: a segment's header that it accepts, and the payload that

@@ -71,6 +71,22 @@ def tied_to_parent(sig: int = signal.SIGTERM):
     return preexec
 
 
+def start_child(cmd: list[str], log, env: dict, sig: int) -> subprocess.Popen:
+    """Start ``cmd`` as a child the launcher supervises: its output to the open file ``log``, no
+    standard input, ``sig`` when this process dies (:func:`tied_to_parent`), and a process
+    group of its own, so that the terminal's Ctrl-C reaches the launcher alone, which stops
+    the child in its own time."""
+    return subprocess.Popen(
+        cmd,
+        stdout=log,
+        stderr=subprocess.STDOUT,
+        stdin=subprocess.DEVNULL,
+        env=env,
+        preexec_fn=tied_to_parent(sig),
+        process_group=0,
+    )
+
+
 class SignalFlag:
     """SIGINT and SIGTERM noted by a handler that takes no lock.
 

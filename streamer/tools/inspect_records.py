@@ -51,16 +51,7 @@ def launcher_journal(run_dir: Path) -> list[dict]:
         kind, when = rec.get("kind"), rec.get("time")
         if kind == "start":
             if open_start is not None:
-                out.append(
-                    {
-                        "stage": "launcher",
-                        "kind": "launcher-killed",
-                        "file": path.name,
-                        "time": open_start.get("time"),
-                        "message": f"ttl run (pid {open_start.get('launcher_pid')}) ended without its end record "
-                        "(killed)",
-                    }
-                )
+                out.append(_launcher_killed(open_start, path, "ended without its end record (killed)"))
             open_start = rec
         elif kind == "end":
             open_start = None
@@ -75,17 +66,19 @@ def launcher_journal(run_dir: Path) -> list[dict]:
                 }
             )
     if open_start is not None:
-        out.append(
-            {
-                "stage": "launcher",
-                "kind": "launcher-killed",
-                "file": path.name,
-                "time": open_start.get("time"),
-                "message": f"ttl run (pid {open_start.get('launcher_pid')}) has no end record (killed, or still "
-                "running)",
-            }
-        )
+        out.append(_launcher_killed(open_start, path, "has no end record (killed, or still running)"))
     return out
+
+
+def _launcher_killed(start: dict, path: Path, what: str) -> dict:
+    """The interruption of a ``ttl run`` whose journal ``path`` has its ``start`` record and no end."""
+    return {
+        "stage": "launcher",
+        "kind": "launcher-killed",
+        "file": path.name,
+        "time": start.get("time"),
+        "message": f"ttl run (pid {start.get('launcher_pid')}) {what}",
+    }
 
 
 def security_report(run_dir: Path) -> dict:

@@ -15,11 +15,15 @@ from ttlcore.cli.main import (
     ANALYZE_BAND,
     DIAGNOSE_BAND,
     add_band,
+    add_candidates,
     add_json,
+    add_model,
+    add_out_dir,
     add_quiet,
-    frequency,
+    add_scheduler,
+    add_segment,
+    add_truth,
     input_file,
-    output_dir,
     output_file,
     positive_int,
 )
@@ -135,13 +139,7 @@ def _add_run_fitter_options(p) -> None:
     what the live diagnosis may do with it."""
     p.add_argument("--fit-segment", type=duration, help="fitter: FFT segment length (default: the segment length)")
     p.add_argument("--fit-window", type=duration, help="fitter: rolling window length (default 1d)")
-    p.add_argument(
-        "--band",
-        nargs=2,
-        type=frequency,
-        metavar=("FMIN", "FMAX"),
-        help="fitter: fit band [Hz] (default 0.003 0.9, as ttl analyze)",
-    )
+    add_band(p, ANALYZE_BAND, "fitter: fit band")
     p.add_argument(
         "--effects",
         help="fitter: the model, effect specs and their options comma-separated, as ttl diagnose "
@@ -306,20 +304,8 @@ def _add_refit(sub) -> None:
         "and compare with the baseline model under the instrument noise model.",
     )
     p.add_argument("run_dir", metavar="recordings/NAME", help="run directory")
-    p.add_argument(
-        "--effects",
-        required=True,
-        help="the model, comma-separated effect specs as ttl diagnose --effects (e.g. linear-ttl,drift,"
-        "gate:start=15.2h,stop=15.8h; docs/cli.md, Effect specs)",
-    )
+    add_model(p, required=True)
     p.add_argument("--baseline", default="linear-ttl", help="the model to compare with (default linear-ttl)")
-    p.add_argument(
-        "--effect-module",
-        action="append",
-        default=[],
-        metavar="PATH",
-        help="plugin module or .py file defining effects (repeatable)",
-    )
     p.add_argument("--segments", metavar="A:B", help="segment indices to refit (default all, contiguous)")
     p.add_argument(
         "--source",
@@ -371,43 +357,15 @@ def _add_reprocess(sub) -> None:
     p.add_argument(
         "--day-length", default="1d", type=duration, help="length of a day cut from --from-recordings (default 1d)"
     )
-    p.add_argument("--out", required=True, metavar="DIR", type=output_dir, help="output directory (created)")
-    p.add_argument(
-        "--effects",
-        default="linear-ttl",
-        metavar="EFFECT[:opt=v,...],...",
-        help="the diagnosis model, as ttl diagnose --effects (default linear-ttl)",
-    )
-    p.add_argument(
-        "--effect-module",
-        action="append",
-        default=[],
-        metavar="PATH",
-        help="Python file (or module) defining user effects; repeatable (must be readable by the workers)",
-    )
-    p.add_argument("--candidates", default=None, metavar="EFFECT,...", help="effects the diagnosis ranks (default all)")
-    p.add_argument(
-        "--band",
-        nargs=2,
-        type=frequency,
-        metavar=("FMIN", "FMAX"),
-        default=None,
-        help=f"band of the fit in Hz (default that of ttl analyze, {ANALYZE_BAND[0]:g} {ANALYZE_BAND[1]:g})",
-    )
-    p.add_argument(
-        "--diagnose-band",
-        nargs=2,
-        type=frequency,
-        metavar=("FMIN", "FMAX"),
-        default=None,
-        help=f"band of the diagnosis in Hz (default that of ttl diagnose, {DIAGNOSE_BAND[0]:g} {DIAGNOSE_BAND[1]:g}: "
-        "the noise model it tests against lacks TDI's residual laser noise above 0.8 Hz)",
-    )
-    p.add_argument(
-        "--segment",
-        default=None,
-        type=duration,
-        help="FFT segment length of the fit and the diagnosis, e.g. 6h or 15min (default that of "
+    add_out_dir(p)
+    add_model(p, "the diagnosis model")
+    add_candidates(p)
+    add_band(p, ANALYZE_BAND, "band of the fit (ttl analyze's)")
+    # the noise model the diagnosis tests against lacks TDI's residual laser noise above 0.8 Hz
+    add_band(p, DIAGNOSE_BAND, "band of the diagnosis (ttl diagnose's)", "--diagnose-band")
+    add_segment(
+        p,
+        "FFT segment length of the fit and the diagnosis, e.g. 6h or 15min (default that of "
         "ttl analyze, 6 h, and of ttl diagnose; give a shorter one for days shorter than 6 h)",
     )
     p.add_argument(
@@ -418,13 +376,7 @@ def _add_reprocess(sub) -> None:
     p.add_argument("--no-diagnosis", action="store_true", help="analysis only")
     p.add_argument("--no-witnesses", action="store_true", help="skip the diagnosis' witness search")
     p.add_argument("--no-figures", action="store_true", help="skip the figures of the analysis")
-    p.add_argument(
-        "--scheduler",
-        default=None,
-        metavar="ADDRESS",
-        help="a running Dask scheduler (tcp://host:8786, or its --scheduler-file); default: a "
-        "LocalCluster on 127.0.0.1",
-    )
+    add_scheduler(p, "a LocalCluster on 127.0.0.1")
     p.add_argument("--workers", type=positive_int, default=2, help="worker processes of the LocalCluster (default 2)")
     p.add_argument(
         "--memory-limit",
@@ -458,13 +410,7 @@ def _add_inspect(sub) -> None:
     )
     p.add_argument("run_dir", metavar="recordings/NAME", help="run directory")
     add_json(p, "the report")
-    p.add_argument(
-        "--truth",
-        default=None,
-        metavar="TRUTH.h5",
-        type=input_file,
-        help="a simulation's truth file: show the true coefficients over the last fit window",
-    )
+    add_truth(p, "a simulation's truth file: show the true coefficients over the last fit window")
     add_quiet(p, "accepted for uniformity (inspect shows no progress)")
     p.set_defaults(handler="streamer.tools.inspect:_cmd_inspect")
 

@@ -426,11 +426,11 @@ def test_simulation_source_keeps_one_noise_block_and_equals_the_simulator():
 def test_fitter_window_keeps_one_window_of_telemetry(tmp_path):
     """The fitter's telemetry window (for the refits of extended models and the live
     diagnosis) holds the segments of one window and joins them as ``ttl refit`` would."""
+    from ttl_testutil import noise_tdi_segment
+
     from stages.fitter.fitter import Fitter
     from streamer.bus.messages import concatenate_telemetry
-    from ttlcore.conventions import COEFFICIENT_NAMES
     from ttlcore.io.telemetry import Telemetry
-    from ttlcore.tdi.data import TDIData
 
     fitter = Fitter(
         StageConfig(
@@ -441,15 +441,7 @@ def test_fitter_window_keeps_one_window_of_telemetry(tmp_path):
     fs, n = 4.0, 2400
     segments = []
     for i in range(6):
-        header = SimpleNamespace(index=i, t0=i * n / fs, meta={"segment_duration": n / fs})
-        td = TDIData(
-            t0=header.t0,
-            fs=fs,
-            channels=("X2", "Y2", "Z2"),
-            data=rng.standard_normal((3, n)),
-            regressors=rng.standard_normal((3, len(COEFFICIENT_NAMES), n)),
-            ltt_mean=np.full(6, 8.3),
-        )
+        header, td = noise_tdi_segment(rng, i, n, fs)
         tm = Telemetry(
             t0=header.t0,
             fs=fs,

@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 from mcap.reader import make_reader
-from ttl_testutil import indices, output, wait_for
+from ttl_testutil import indices, output, wait_alive, wait_for
 
 from streamer.bus.codec import Expect, decode, encode
 from streamer.bus.keys import topic_pattern
@@ -110,11 +110,7 @@ def _start_tdi_builder(procs, bus, port: int, tmp_path):
         "--settle",
         "0.3",
     )
-    wait_for(
-        lambda: "tdi_builder" in bus.alive_stages(RUN, timeout=0.5) or stage.poll() is not None,
-        60,
-        "the tdi_builder's liveliness token",
-    )
+    wait_alive(bus, RUN, "tdi_builder", stage, 60)
     assert stage.poll() is None, output(stage)
     time.sleep(0.5)  # subscribers declared after the token
     return stage

@@ -140,14 +140,75 @@ def add_quiet(p, what: str = "no progress display, no status lines ('wrote ...')
     p.add_argument("--quiet", action="store_true", help=what)
 
 
-def add_band(p, default) -> None:
+def add_band(p, default, what: str = "band", option: str = "--band") -> None:
+    """``--band FMIN FMAX`` [Hz] (or ``option``), None unless given: the command's ``default`` then."""
     p.add_argument(
-        "--band",
+        option,
         nargs=2,
         type=frequency,
         metavar=("FMIN", "FMAX"),
         default=None,
-        help=f"band in Hz (default {default[0]:g} {default[1]:g})",
+        help=f"{what} in Hz (default {default[0]:g} {default[1]:g})",
+    )
+
+
+def add_out_dir(p, what: str = "output directory (created)", required: bool = True) -> None:
+    """``--out DIR``, the directory a command writes into, checked before any work."""
+    p.add_argument("--out", required=required, default=None, metavar="DIR", type=output_dir, help=what)
+
+
+def add_truth(p, what: str) -> None:
+    """``--truth FILE``, a truth file (or lisainstrument file) used for comparisons only."""
+    p.add_argument("--truth", default=None, metavar="TRUTH.h5", type=input_file, help=what)
+
+
+def add_segment(p, what: str) -> None:
+    """``--segment DURATION``, the FFT segment length of a fit (``6h``, ``15min`` or seconds)."""
+    p.add_argument("--segment", default=None, type=duration, help=what)
+
+
+def add_model(p, what: str = "the model", required: bool = False) -> None:
+    """``--effects`` and ``--effect-module``: the model to fit (effect specs, docs/cli.md) and
+    the plugins defining user effects; the same in ttl diagnose, refit and reprocess.
+    Not ``required``: the default model is linear-ttl."""
+    p.add_argument(
+        "--effects",
+        required=required,
+        default=None if required else "linear-ttl",
+        metavar="EFFECT[:opt=v,...],...",
+        help=f"{what}: effects and their options after ':', all separated by ',' (e.g. linear-ttl,drift,"
+        "step:t_step=14h,mosas=12+13 or linear-ttl,gate:start=15.2h,stop=15.8h; docs/cli.md, Effect specs)"
+        + ("" if required else "; default linear-ttl"),
+    )
+    p.add_argument(
+        "--effect-module",
+        action="append",
+        default=[],
+        metavar="PATH",
+        help="Python file (or importable module) defining user effects; repeatable (ttl reprocess: "
+        "readable by its workers)",
+    )
+
+
+def add_candidates(p) -> None:
+    """``--candidates``: the effects a diagnosis ranks beside the model."""
+    p.add_argument(
+        "--candidates",
+        default=None,
+        metavar="EFFECT,...",
+        help="named effects and plugins to try (default: all available); the witness effects and "
+        "frequency-dependent couplings of the top witnesses are tried as well",
+    )
+
+
+def add_scheduler(p, otherwise: str) -> None:
+    """``--scheduler ADDRESS``: a running Dask scheduler to run on; ``otherwise`` says where the
+    command runs without it."""
+    p.add_argument(
+        "--scheduler",
+        default=None,
+        metavar="ADDRESS",
+        help=f"a running Dask scheduler (tcp://host:8786, or its --scheduler-file) to run on; default: {otherwise}",
     )
 
 
@@ -208,22 +269,15 @@ def _add_analyze(sub) -> None:
         "file itself) is only used for comparisons, never by the fit.",
     )
     p.add_argument("data", type=input_file, help="telemetry file (HDF5: ours or a lisainstrument measurement file)")
-    p.add_argument(
-        "--truth",
-        default=None,
-        type=input_file,
-        help="truth file (day.truth.h5), or for lisainstrument data the "
+    add_truth(
+        p,
+        "truth file (day.truth.h5), or for lisainstrument data the "
         "lisainstrument file (its static coefficients; no TTL residual then)",
     )
     add_band(p, ANALYZE_BAND)
     p.add_argument("--method", default="gls", choices=("gls", "mcmc"), help="gls (default) | mcmc")
-    p.add_argument(
-        "--segment",
-        default=None,
-        type=duration,
-        help="FFT segment length of the fit, e.g. 6h, 1h or seconds (default 21600 s)",
-    )
-    p.add_argument("--out", required=True, metavar="DIR", type=output_dir, help="output directory (created)")
+    add_segment(p, "FFT segment length of the fit, e.g. 6h, 1h or seconds (default 21600 s)")
+    add_out_dir(p)
     add_json(p, "fit.json")
     add_quiet(p)
     p.set_defaults(handler="ttlcore.cli.analyze:run")
@@ -239,37 +293,11 @@ def _add_diagnose(sub) -> None:
         "Works on our telemetry and on lisainstrument files. See docs/diagnostics.md.",
     )
     p.add_argument("data", type=input_file, help="telemetry file (ours or a lisainstrument measurement file)")
-    p.add_argument(
-        "--effects",
-        default="linear-ttl",
-        metavar="EFFECT[:opt=v,...],...",
-        help="the model: effects and their options after ':', all separated by ',' "
-        "(e.g. linear-ttl,drift,step:t_step=14h,mosas=12+13; docs/cli.md, Effect specs); default linear-ttl",
-    )
-    p.add_argument(
-        "--effect-module",
-        action="append",
-        default=[],
-        metavar="PATH",
-        help="Python file (or importable module) defining user effects; repeatable",
-    )
-    p.add_argument(
-        "--candidates",
-        default=None,
-        metavar="EFFECT,...",
-        help="named effects and plugins to try (default: all available); the witness effects and "
-        "frequency-dependent couplings of the top witnesses are tried as well",
-    )
-    p.add_argument(
-        "--truth",
-        default=None,
-        type=input_file,
-        help="truth file (or the lisainstrument file itself): adds coefficient errors only",
-    )
+    add_model(p)
+    add_candidates(p)
+    add_truth(p, "truth file (or the lisainstrument file itself): adds coefficient errors only")
     add_band(p, DIAGNOSE_BAND)
-    p.add_argument(
-        "--segment", default=None, type=duration, help="FFT segment length (default 6 h, or a quarter of shorter data)"
-    )
+    add_segment(p, "FFT segment length (default 6 h, or a quarter of shorter data)")
     p.add_argument(
         "--tolerance",
         type=float,
@@ -284,7 +312,7 @@ def _add_diagnose(sub) -> None:
     )
     p.add_argument("--no-witnesses", action="store_true", help="skip the witness search")
     add_json(p, "the report")
-    p.add_argument("--out", default=None, metavar="DIR", type=output_dir, help="directory for the figures (created)")
+    add_out_dir(p, "directory for the figures (created)", required=False)
     p.add_argument(
         "--workers",
         type=positive_int,
@@ -307,7 +335,7 @@ def _add_scenarios(sub) -> None:
         "(lisainstrument's coefficient set, coloured jitter). Writes DIR/summary.json, DIR/summary.md and "
         "DIR/<variant>/<case>_*.png.",
     )
-    p.add_argument("--out", required=True, metavar="DIR", type=output_dir, help="output directory (created)")
+    add_out_dir(p)
     p.add_argument(
         "--cases", default="all-cases", help="comma-separated cases (default all): " + ", ".join(SCENARIO_CASES)
     )
@@ -321,12 +349,7 @@ def _add_scenarios(sub) -> None:
     )
     p.add_argument("--seed", type=int, default=1, help="noise seed shared by all cases (default 1)")
     p.add_argument("--no-figures", action="store_true", help="skip the figures")
-    p.add_argument(
-        "--scheduler",
-        default=None,
-        metavar="ADDRESS",
-        help="run the cases on this Dask scheduler (tcp://host:8786 or its --scheduler-file)",
-    )
+    add_scheduler(p, "this process, or a local cluster of --workers processes")
     p.add_argument(
         "--workers",
         type=int,

@@ -69,8 +69,8 @@ boundary crosses ``h`` after two differences in about 55 % of simulations, three
 four in 6 %, and is dated to the right segment in 96 % of them (within two segments in
 all of 200).
 
-Drifts (:func:`detect_drifts`, :func:`trend_estimates`)
-------------------------------------------------------
+Drifts (:func:`detect_drifts`, :func:`trend_estimates`, :func:`drift_alerts`)
+-----------------------------------------------------------------------------
 Over the fits whose window ends within the last :attr:`TrendSettings.drift_lookback`
 (default three days; all fits while fewer exist), a generalised least-squares line ``C(t) = a + b t`` (``t`` the window
 centre) is fitted with the full overlap covariance above, plus, for every step already
@@ -748,41 +748,25 @@ def _coefficient_trend(X: np.ndarray, y: np.ndarray, sp: np.ndarray, rho, L_rho,
     return beta[1], math.sqrt(var) * inflate, cd, dropped
 
 
-def detect_drifts(
-    times,
-    coefficients,
-    sigma,
-    *,
-    t_start=None,
-    window: float | None = None,
-    names: Sequence[str] | None = None,
-    units: str = "m/rad",
-    steps: Sequence[Alert] = (),
-    at: float | None = None,
-    indices: Sequence[int] | None = None,
-    settings: TrendSettings | None = None,
-    breaks: Sequence[float] = (),
-) -> list[Alert]:
+def detect_drifts(times, coefficients, sigma, *, indices: Sequence[int] | None = None, **options) -> list[Alert]:
     """Drift alerts: coefficients whose linear trend over the last ``drift_lookback`` is
     significant (``|rate| / se >= drift_threshold``), evaluated at the last fit (or ``at``).
 
-    Parameters are those of :func:`trend_estimates`.  Returns the alerts, most significant
-    first.
+    ``times``, ``coefficients``, ``sigma`` and the keyword ``options`` are those of
+    :func:`trend_estimates`; ``indices`` the segment index of each fit (the alerts').
+    Returns the alerts, most significant first (:func:`drift_alerts`).
     """
+    est = trend_estimates(times, coefficients, sigma, **options)
+    return drift_alerts(est, times, indices, options.get("settings"))
+
+
+def drift_alerts(
+    est: TrendEstimates, times, indices: Sequence[int] | None = None, settings: TrendSettings | None = None
+) -> list[Alert]:
+    """The drift alerts of trend estimates ``est`` (:func:`trend_estimates` of fits ending at
+    ``times`` [s], with segment ``indices``): the coefficients whose trend is significant
+    (``|rate| / se >= drift_threshold``), most significant first."""
     s = settings or TrendSettings()
-    est = trend_estimates(
-        times,
-        coefficients,
-        sigma,
-        t_start=t_start,
-        window=window,
-        names=names,
-        units=units,
-        steps=steps,
-        at=at,
-        settings=s,
-        breaks=breaks,
-    )
     t_stop = np.asarray(times, dtype=float).reshape(-1)
     last = int(np.searchsorted(t_stop, est.t_last, side="right") - 1) if t_stop.size else 0
     index = None if indices is None or not len(indices) else int(list(indices)[max(0, last)])
@@ -956,18 +940,7 @@ class TrendMonitor:
             breaks=at_breaks,
         )
         z = np.nan_to_num(np.abs(self.estimates.significance), nan=0.0)
-        for a in detect_drifts(
-            te,
-            Cs,
-            Ss,
-            t_start=ts,
-            names=self.names,
-            units=self.units,
-            steps=steps,
-            indices=order,
-            settings=self.settings,
-            breaks=at_breaks,
-        ):
+        for a in drift_alerts(self.estimates, te, order, self.settings):
             if a.coefficient not in self._drifting:
                 a = self._in_epoch(a)
                 self._drifting.add(a.coefficient)

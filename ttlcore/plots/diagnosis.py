@@ -20,6 +20,14 @@ def _band_stairs(ax, chi2_dof, edges, fails, marker: str, **style) -> float:
     return float(np.nanmax(chi2_dof))
 
 
+def _frequency_axes(ax, ylabel: str) -> None:
+    """Label, grid and legend of a spectrum's axes (frequency [Hz] along x)."""
+    ax.set_xlabel("frequency [Hz]")
+    ax.set_ylabel(ylabel)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7)
+
+
 def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.02, fine: dict | None = None) -> Path:
     """Residual ASD of A, E and T (displacement) against the noise model (fitted or fixed),
     and chi^2/dof per band, for each fitted model in ``fits`` (label -> ModelFit); ``fine``
@@ -61,10 +69,7 @@ def plot_residual_vs_noise(dg, fits: dict, path, tolerance: float = 0.02, fine: 
     ax.set_ylim(0.8, top)
     if top > 5:
         ax.set_yscale("log")
-    ax.set_xlabel("frequency [Hz]")
-    ax.set_ylabel("chi2/dof per band")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
+    _frequency_axes(ax, "chi2/dof per band")
     fig.suptitle("Fit residual against the noise model (x, +: failing band)")
     fig.tight_layout()
     return _save(fig, path)
@@ -82,10 +87,7 @@ def plot_witness_coherence(witnesses: dict, path) -> Path:
         y = np.array([np.nan if v is None else v for v in curve])
         ax.semilogx(f, y, lw=1, label=name)
     ax.set_ylim(0, 1)
-    ax.set_xlabel("frequency [Hz]")
-    ax.set_ylabel("coherence with the residual")
-    ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
+    _frequency_axes(ax, "coherence with the residual")
     ax.set_title("Top witnesses (whitened, A+E+T)")
     fig.tight_layout()
     return _save(fig, path)

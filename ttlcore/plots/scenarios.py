@@ -41,16 +41,12 @@ def scenario_figures(
     asd = {k: ffd_to_displacement_asd(np.sqrt(lp[i]), fcl) for i, k in enumerate(names)}
     curves = (fcl, asd, fc, ffd_to_displacement_asd(np.sqrt(req), fc))
     title = f"{case.title}: max |error| {summary['max_abs_error_mm']:.4f} mm/rad, chi2/dof {summary['chi2_dof']:.3f}"
-    paths["asd"] = str(
-        _asd_figure(
-            case,
-            curves,
-            band,
-            ["data", "noise_without_ttl", "residual", "ttl_residual", "gw"],
-            out_dir / f"{case.name}_asd.png",
-            (1e-4, 1.0),
-            title,
-        )
+
+    def asd_figure(name: str, keys: list[str], frange: tuple, title: str) -> str:
+        return str(_asd_figure(case, curves, band, keys, out_dir / f"{case.name}_{name}.png", frange, title))
+
+    paths["asd"] = asd_figure(
+        "asd", ["data", "noise_without_ttl", "residual", "ttl_residual", "gw"], (1e-4, 1.0), title
     )
     if case.gw:
         gi = summary["gw_intact"]
@@ -58,17 +54,8 @@ def scenario_figures(
             f"{case.title}: GW intact: {gi['n_bins']} bins with GW > {intact_factor:g} x TTL residual, "
             f"max deviation {100 * (gi['max_relative_deviation'] or 0):.2f} %"
         )
-        paths["gw_intact"] = str(
-            _asd_figure(
-                case,
-                curves,
-                band,
-                ["data", "noise_without_ttl", "residual", "gw", "ttl_plus_gw_residual"],
-                out_dir / f"{case.name}_gw_intact.png",
-                (1e-4, 3e-2),
-                t2,
-            )
-        )
+        keys = ["data", "noise_without_ttl", "residual", "gw", "ttl_plus_gw_residual"]
+        paths["gw_intact"] = asd_figure("gw_intact", keys, (1e-4, 3e-2), t2)
     paths["coefficients"] = str(
         _coefficient_figure(case, summary["limit_mm"], res, ref, truth, out_dir / f"{case.name}_coefficients.png")
     )

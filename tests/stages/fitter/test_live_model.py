@@ -162,12 +162,10 @@ def test_a_fit_that_took_in_no_data_is_flagged_stale(tmp_path):
     gates leave the window without any FFT segment, ``no_data`` and a ``no-data`` warning
     naming the segment.  (Before, such fits went out as fresh: a gate over the whole day
     made fits 3-11 bit-identical copies of fit 2.)"""
-    from types import SimpleNamespace
+    from ttl_testutil import noise_tdi_segment
 
     from stages.fitter.fitter import Fitter
     from streamer.runtime.stage import StageConfig
-    from ttlcore.conventions import COEFFICIENT_NAMES
-    from ttlcore.tdi.data import TDIData
 
     fitter = Fitter(StageConfig(run="u", recordings=tmp_path, options={"adequacy_every": 0, "diagnose_every": 0}))
     warned = []
@@ -181,15 +179,7 @@ def test_a_fit_that_took_in_no_data_is_flagged_stale(tmp_path):
             fitter.model.change(["linear-ttl", "gate:start=0s,stop=2400s,taper=1s"], 2)
         if i == 3:
             fitter.model.change(["linear-ttl"], 3)
-        header = SimpleNamespace(index=i, t0=i * n / fs, meta={"segment_duration": n / fs})
-        td = TDIData(
-            t0=header.t0,
-            fs=fs,
-            channels=("X2", "Y2", "Z2"),
-            data=rng.standard_normal((3, n)),
-            regressors=rng.standard_normal((3, len(COEFFICIENT_NAMES), n)),
-            ltt_mean=np.full(6, 8.3),
-        )
+        header, td = noise_tdi_segment(rng, i, n, fs)
         tm = telemetry(n)
         tm.t0 = header.t0
         out = fitter.process(header, (td, tm))

@@ -18,14 +18,13 @@ import numpy as np
 import psutil
 import pytest
 from rrd_testutil import blueprint_views, rrd_chunks, rrd_entities, rrd_footer
-from ttl_testutil import finish, output, wait_for  # noqa: F401
+from ttl_testutil import finish, output, start_monitor_stage, wait_alive, wait_for  # noqa: F401
 
 from streamer.bus.codec import decode, encode
 from streamer.bus.keys import control_key, topic_pattern
 from streamer.bus.monitor_record import MonitorMessage
 from streamer.bus.session import Bus, SessionSettings, free_port
 from streamer.recording.recorder import read_recording
-from streamer.runtime.stage import StageConfig
 from ttlcore.conventions import COEFFICIENT_NAMES, MOSAS, C
 from ttlcore.estimate.fit import DEFAULT_BAND
 from ttlcore.io.truth import CORE_DATASETS, TruthWriter
@@ -169,21 +168,8 @@ class Driver:
 
 def start_monitor(driver, procs, tmp_path):
     """A monitor stage process on the driver's router, up once its liveliness token is seen."""
-    config = StageConfig(
-        run=RUN,
-        zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
-        recordings=tmp_path / "rec",
-        history=64,
-        poll_interval=0.05,
-    )
-    cfg = tmp_path / "monitor.json"
-    cfg.write_text(json.dumps(config.to_dict()))
-    proc = procs.stage("monitor", "--config", cfg)
-    wait_for(
-        lambda: "monitor" in driver.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
-        60,
-        "the monitor's liveliness token",
-    )
+    proc = start_monitor_stage(procs, RUN, driver.port, tmp_path, history=64)
+    wait_alive(driver.bus, RUN, "monitor", proc, 60)
     return proc
 
 
@@ -549,18 +535,8 @@ def test_monitor_waits_for_an_alive_producer_and_fails_what_will_not_come(driver
         driver.fit(0)  # fit 1 announced below, published late
         driver.fit(9)  # far ahead of the others (a forged copy sent ahead would be)
         progress({0, 1})
-        config = StageConfig(
-            run=RUN,
-            zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
-            recordings=tmp_path / "rec",
-            history=64,
-            poll_interval=0.05,
-            gap_grace=0.5,
-            options={"settle_timeout": settle},
-        )
-        cfg = tmp_path / "monitor.json"
-        cfg.write_text(json.dumps(config.to_dict()))
-        proc = procs.stage("monitor", "--config", cfg)
+        options = {"settle_timeout": settle}
+        proc = start_monitor_stage(procs, RUN, driver.port, tmp_path, history=64, gap_grace=0.5, options=options)
         assert driver.monitor.get(timeout=60)[0].index == 0
         with pytest.raises(queue.Empty):  # fit 1 is announced by a live fitter: segment 1 waits
             driver.monitor.get(timeout=3 * settle)

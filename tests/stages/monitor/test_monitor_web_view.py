@@ -44,14 +44,13 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ttl_testutil import finish, output, wait_for  # noqa: F401  (also puts the project first on sys.path)
+from ttl_testutil import finish, output, start_monitor_stage, wait_alive, wait_for  # noqa: F401  (also puts the project first on sys.path)
 
 from streamer.bus.codec import decode, encode
 from streamer.bus.keys import control_key, topic_pattern
 from streamer.bus.session import Bus, SessionSettings, free_port
 from streamer.recording.recorder import read_recording
 from streamer.runtime.processes import stop_process
-from streamer.runtime.stage import StageConfig
 from ttlcore.conventions import COEFFICIENT_NAMES, C
 from ttlcore.io.truth import CORE_DATASETS, TruthWriter
 
@@ -215,21 +214,8 @@ def monitor_recording(procs, tmp: Path, segments: int, step_at: float) -> tuple[
     and the alerts it raised (from its MCAP file)."""
     driver = WeekDriver(tmp, segments, step_at)
     try:
-        config = StageConfig(
-            run=RUN,
-            zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
-            recordings=tmp / "rec",
-            history=16,
-            poll_interval=0.05,
-        )
-        cfg = tmp / "monitor.json"
-        cfg.write_text(json.dumps(config.to_dict()))
-        proc = procs.stage("monitor", "--config", cfg)
-        wait_for(
-            lambda: "monitor" in driver.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
-            60,
-            "the monitor's liveliness token",
-        )
+        proc = start_monitor_stage(procs, RUN, driver.port, tmp, history=16)
+        wait_alive(driver.bus, RUN, "monitor", proc, 60)
         assert proc.poll() is None, output(proc)
         started = time.monotonic()
         for i in range(segments):

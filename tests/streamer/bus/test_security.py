@@ -28,7 +28,7 @@ import pytest
 import zenoh
 from cryptography import x509
 from cryptography.x509.oid import NameOID
-from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for
+from ttl_testutil import MONITOR, Procs, finish, output, run_args, ttl_command, wait_for
 
 from streamer.bus import security
 from streamer.bus.codec import CodecError, parse_header
@@ -191,21 +191,7 @@ NO_MONITOR = [] if MONITOR else ["--skip", "monitor"]
 
 
 def run_cmd(run: str, rec: Path, *extra) -> list[str]:
-    return ttl_command(
-        "run",
-        "--simulate",
-        SIM,
-        "--segment",
-        "1h",
-        "--run-id",
-        run,
-        "--recordings",
-        str(rec),
-        "--timeout",
-        "400",
-        *NO_MONITOR,
-        *extra,
-    )
+    return ttl_command(*run_args(run, rec, *NO_MONITOR, *extra, sim=SIM, timeout=400))
 
 
 def fits(run_dir: Path) -> dict[int, dict]:

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from ttl_testutil import MONITOR, Procs, finish, output, ttl_command, wait_for
+from ttl_testutil import MONITOR, Procs, finish, output, run_args, ttl_command, wait_for
 
 from streamer.bus import security
 from streamer.recording.recorder import read_recording
@@ -130,20 +130,7 @@ def test_three_hosts_with_a_cut_link_equal_one_host(network, tmp_path):
     try:
         # the reference: every stage on one host (the root namespace, loopback)
         one = procs.start(
-            ttl_command(
-                "run",
-                "--simulate",
-                SIM,
-                "--segment",
-                "1h",
-                "--run-id",
-                "one",
-                "--recordings",
-                str(rec),
-                "--timeout",
-                "500",
-                *skip,
-            ),
+            ttl_command(*run_args("one", rec, *skip, sim=SIM, timeout=500)),
             "one",
         )
         assert finish(one, 600) == 0, output(one)[-3000:]
@@ -162,25 +149,13 @@ def test_three_hosts_with_a_cut_link_equal_one_host(network, tmp_path):
             in_ns(
                 "A",
                 *ttl_command(
-                    "run",
-                    "--simulate",
-                    SIM,
-                    "--segment",
-                    "1h",
-                    "--run-id",
-                    "three",
-                    "--recordings",
-                    str(rec),
-                    "--credentials",
-                    str(creds),
+                    *run_args("three", rec, "--credentials", str(creds), sim=SIM, timeout=500),
                     "--listen",
                     LOCAL,
                     "--listen",
                     endpoint("198.18.1.1"),
                     "--external",
                     ",".join(remote),
-                    "--timeout",
-                    "500",
                     *skip,
                 ),
             ),
@@ -209,42 +184,13 @@ def test_three_hosts_with_a_cut_link_equal_one_host(network, tmp_path):
 
 def _start_routers(procs: Procs, creds) -> None:
     """The routers of hosts B (to A) and C (to B), listening on their links and loopback."""
-    procs.start(
-        in_ns(
-            "B",
-            *ttl_command(
-                "router",
-                "--credentials",
-                str(creds),
-                "--listen",
-                LOCAL,
-                "--listen",
-                endpoint("198.18.1.2"),
-                "--listen",
-                endpoint("198.18.2.2"),
-                "--connect",
-                endpoint("198.18.1.1"),
-            ),
-        ),
-        "router-B",
-    )
-    procs.start(
-        in_ns(
-            "C",
-            *ttl_command(
-                "router",
-                "--credentials",
-                str(creds),
-                "--listen",
-                LOCAL,
-                "--listen",
-                endpoint("198.18.2.3"),
-                "--connect",
-                endpoint("198.18.2.2"),
-            ),
-        ),
-        "router-C",
-    )
+    for host, listen, connect in (
+        ("B", ("198.18.1.2", "198.18.2.2"), "198.18.1.1"),
+        ("C", ("198.18.2.3",), "198.18.2.2"),
+    ):
+        listens = [a for address in (LOCAL, *map(endpoint, listen)) for a in ("--listen", address)]
+        router = ttl_command("router", "--credentials", str(creds), *listens, "--connect", endpoint(connect))
+        procs.start(in_ns(host, *router), f"router-{host}")
 
 
 def _check_same_as_one_host(one_dir, three_dir) -> None:

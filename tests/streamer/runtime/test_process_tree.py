@@ -16,6 +16,7 @@ from pathlib import Path
 import psutil
 import pytest
 from proc_testutil import ChildProcesses, output, wait_for
+from ttl_testutil import run_args
 
 from streamer.bus.session import free_port
 from streamer.recording.recorder import read_recording
@@ -116,20 +117,15 @@ def test_killed_launcher_leaves_nothing_alive(when, tmp_path):
     sim = "--duration 30d --orbit equal --seed 1" if when == "planning" else "--duration 2h --orbit equal --seed 1"
     proc = children.start(
         ttl(
-            "run",
-            "--simulate",
-            sim,
-            "--segment",
-            "1h",
-            "--run-id",
-            f"kill-{when}",
-            "--recordings",
-            str(tmp_path / "rec"),
-            "--insecure",
-            "--listen",
-            f"tcp/127.0.0.1:{port}",
-            "--timeout",
-            "300",
+            *run_args(
+                f"kill-{when}",
+                tmp_path / "rec",
+                "--insecure",
+                "--listen",
+                f"tcp/127.0.0.1:{port}",
+                sim=sim,
+                timeout=300,
+            )
         ),
         "ttl-run",
         cwd=ROOT,

@@ -11,12 +11,12 @@ import pytest
 import zenoh
 from mcap.reader import make_reader
 from streamer_testutil import output_of, wait_for
+from ttl_testutil import local_stage_config, wait_alive
 
 from streamer.bus.codec import encode
 from streamer.bus.keys import errors_key, topic_pattern
 from streamer.bus.session import Bus, SessionSettings, free_port
 from streamer.recording.recorder import read_recording
-from streamer.runtime.stage import StageConfig
 
 RUN = "stage-test"
 
@@ -59,20 +59,9 @@ class Driver:
         self.telemetry = self.bus.segment_publisher(RUN, "telemetry", cache=8)
 
     def start_stage(self, children, tmp_path, **fields):
-        config = StageConfig(
-            run=RUN,
-            zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{self.port}",)),
-            recordings=tmp_path / "recordings",
-            poll_interval=0.05,
-            gap_grace=0.5,
-            **fields,
-        )
+        config = local_stage_config(RUN, self.port, tmp_path / "recordings", gap_grace=0.5, **fields)
         proc = children.start("stage", config=config.to_dict())
-        wait_for(
-            lambda: "doubler" in self.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
-            30,
-            "the stage's liveliness token",
-        )
+        wait_alive(self.bus, RUN, "doubler", proc, 30)
         assert proc.poll() is None, output_of(proc)
         return proc, tmp_path / "recordings" / RUN / "doubler.mcap"
 
@@ -387,19 +376,9 @@ def test_full_disk_stops_the_stage_and_says_so(driver, children, small_disk):
     the cause ("disk full"), not "process killed?"."""
     from streamer.tools.inspect import format_report, inspect_run
 
-    config = StageConfig(
-        run=RUN,
-        zenoh=SessionSettings(connect=(f"tcp/127.0.0.1:{driver.port}",)),
-        recordings=small_disk / "recordings",
-        poll_interval=0.05,
-        hold=0.0,
-    )
+    config = local_stage_config(RUN, driver.port, small_disk / "recordings", hold=0.0)
     proc = children.start("stage", config=config.to_dict())
-    wait_for(
-        lambda: "doubler" in driver.bus.alive_stages(RUN, timeout=0.5) or proc.poll() is not None,
-        30,
-        "the stage's liveliness token",
-    )
+    wait_alive(driver.bus, RUN, "doubler", proc, 30)
     for i in range(60):  # 128 kB recorded per segment (input and output): 2 MB free
         if proc.poll() is not None:
             break

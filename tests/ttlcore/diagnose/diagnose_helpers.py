@@ -1,9 +1,14 @@
-"""Helpers shared by the diagnosis tests: injected level against the noise model."""
+"""Helpers shared by the diagnosis tests: injected level against the noise model, the advice
+followed as printed."""
 
 from __future__ import annotations
 
+import shlex
+
 import numpy as np
 
+from ttlcore.diagnose.diagnoser import diagnose
+from ttlcore.effects import split_effects
 from ttlcore.estimate.fit import default_band_edges
 from ttlcore.estimate.noise_psd import tdi_noise_csd
 from ttlcore.estimate.spectra import welch_asd
@@ -28,3 +33,17 @@ def injected_asd_ratio(tm, injected: np.ndarray, band=(3e-3, 0.8), n_bands: int 
         b = (f[sel] >= edges[g]) & (f[sel] < edges[g + 1])
         out[g] = np.sqrt(np.max(np.mean(ratio[:, b], axis=1))) if b.any() else 0.0
     return out
+
+
+def follow(tm, C, max_steps: int = 3, witnesses: bool = False) -> list[dict]:
+    """``diagnose`` of ``tm`` (true coefficients ``C``) and its printed ``--effects`` option
+    (split as the command line does), at most ``max_steps`` times: the reports (JSON)."""
+    effects, reports = ["linear-ttl"], []
+    for _ in range(max_steps):
+        rep = diagnose(tm, effects, truth_coefficients=C, witnesses=witnesses).to_json()
+        reports.append(rep)
+        opt = (rep["recommendation"] or {}).get("option")
+        if not opt:
+            break
+        effects = split_effects(shlex.split(opt)[1])
+    return reports

@@ -310,24 +310,13 @@ def test_plugin_through_the_command_line(tmp_path, capsys):
     from ttlcore.io.truth import read_truth
 
     assert "stray-12-on-23" in read_truth(tmp_path / "day.truth.h5").injections
+
+    def diagnose_with_plugin(*options: str) -> int:
+        return main(["diagnose", str(data), "--effect-module", str(plugin), *options])
+
     report = tmp_path / "r.json"
     capsys.readouterr()
-    assert (
-        main(
-            [
-                "diagnose",
-                str(data),
-                "--effect-module",
-                str(plugin),
-                "--json",
-                str(report),
-                "--out",
-                str(tmp_path / "fig"),
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    assert diagnose_with_plugin("--json", str(report), "--out", str(tmp_path / "fig"), "--quiet") == 0
     text = capsys.readouterr().out
     rep = json.loads(report.read_text())
     assert rep["candidates"][0]["effect"] == "stray-12-on-23" and rep["candidates"][0]["significant"]
@@ -337,25 +326,8 @@ def test_plugin_through_the_command_line(tmp_path, capsys):
     assert (tmp_path / "fig" / "residual_vs_noise.png").stat().st_size > 0
     assert (tmp_path / "fig" / "witness_coherence.png").stat().st_size > 0
     after = tmp_path / "after.json"
-    assert (
-        main(
-            [
-                "diagnose",
-                str(data),
-                "--effect-module",
-                str(plugin),
-                "--effects",
-                "linear-ttl,stray-12-on-23",
-                "--truth",
-                str(tmp_path / "day.truth.h5"),
-                "--json",
-                str(after),
-                "--no-witnesses",
-                "--quiet",
-            ]
-        )
-        == 0
-    )
+    model = ("--effects", "linear-ttl,stray-12-on-23", "--truth", str(tmp_path / "day.truth.h5"))
+    assert diagnose_with_plugin(*model, "--json", str(after), "--no-witnesses", "--quiet") == 0
     out = capsys.readouterr().out
     assert "before -> after" in out
     rep2 = json.loads(after.read_text())

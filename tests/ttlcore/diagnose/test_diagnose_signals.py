@@ -23,9 +23,10 @@ from dataclasses import replace
 import blind_signals as bs
 import numpy as np
 import pytest
+from diagnose_helpers import follow
 
 from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
-from ttlcore.diagnose.diagnoser import diagnose, text_report
+from ttlcore.diagnose.diagnoser import text_report
 from ttlcore.effects import injection_from_spec, split_effects
 from ttlcore.sim.simulator import SimulationConfig, simulate
 
@@ -43,19 +44,6 @@ def day(seed, spec=None):
         SimulationConfig(duration=DURATION, orbit="keplerian", seed=seed, injections=inj), chunk_size=int(DURATION * 4)
     )
     return tm, truth["coefficients"].mean(axis=1)
-
-
-def follow(tm, C, max_steps=3, witnesses=False):
-    """``diagnose`` and its printed ``--effects`` option, at most ``max_steps`` times."""
-    effects, reports = ["linear-ttl"], []
-    for _step in range(max_steps):
-        rep = diagnose(tm, effects, truth_coefficients=C, witnesses=witnesses).to_json()
-        reports.append(rep)
-        opt = (rep["recommendation"] or {}).get("option")
-        if not opt:
-            break
-        effects = split_effects(shlex.split(opt)[1])
-    return reports
 
 
 def quiet_hours(rep):

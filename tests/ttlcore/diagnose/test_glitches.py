@@ -10,7 +10,6 @@ test mass (or gates the gap), and following it brings the 24 coefficients within
 0.05 mm/rad of the truth with pull RMS < 1.5.
 """
 
-import shlex
 import sys
 from dataclasses import replace
 from pathlib import Path
@@ -21,9 +20,10 @@ import pytest
 sys.path.insert(0, str(Path(__file__).parent))
 
 import blind_signals as bs  # noqa: E402
+from diagnose_helpers import follow  # noqa: E402
 
 from ttlcore.conventions import COEFFICIENT_NAMES, LINKS  # noqa: E402
-from ttlcore.diagnose.diagnoser import diagnose, refit, text_report  # noqa: E402
+from ttlcore.diagnose.diagnoser import refit, text_report  # noqa: E402
 from ttlcore.diagnose.excess import _whitened_columns  # noqa: E402
 from ttlcore.diagnose.fitting import fit_model  # noqa: E402
 from ttlcore.diagnose.gating import GatedGrid, gated_data  # noqa: E402
@@ -229,20 +229,6 @@ def test_gating_removes_the_glitch(glitch_day):
 # ---------------------------------------------------------------------------
 
 HOURS = 12
-
-
-def follow(tm, C, max_steps=3):
-    """``diagnose`` and its printed ``--effects`` option (split as the command line does),
-    at most ``max_steps`` times."""
-    effects, reports = ["linear-ttl"], []
-    for _ in range(max_steps):
-        rep = diagnose(tm, effects, truth_coefficients=C, witnesses=False).to_json()
-        reports.append(rep)
-        opt = (rep["recommendation"] or {}).get("option")
-        if not opt:
-            break
-        effects = split_effects(shlex.split(opt)[1])
-    return reports
 
 
 def check_final(reports, C):

@@ -9,6 +9,7 @@ from pytdi.dsp import timeshift as pytdi_timeshift
 from scipy import signal
 
 from ttlcore.conventions import COEFFICIENT_NAMES, DAY, LINKS, C, reverse
+from ttlcore.io.truth import NOISE_COMPONENTS
 from ttlcore.sim import noise_models
 from ttlcore.sim.coefficients import make_coefficients
 from ttlcore.sim.simulator import NoiseSwitches, SimulationConfig, Simulator, simulate
@@ -82,12 +83,7 @@ def test_laser_chunking_is_invisible():
 
 
 def test_components_add_up_to_eta():
-    cfg = SimulationConfig(
-        duration=HOUR,
-        orbit="keplerian",
-        seed=2,
-        truth_noises=("laser", "oms", "backlink", "telescope", "test_mass", "dws_phi", "dws_eta"),
-    )
+    cfg = SimulationConfig(duration=HOUR, orbit="keplerian", seed=2, truth_noises=tuple(NOISE_COMPONENTS))
     tm, truth = simulate(cfg)
     total = truth["ttl"] + sum(truth[f"noises/{k}"] for k in ("laser", "oms", "backlink", "telescope", "test_mass"))
     assert np.max(np.abs(total - tm.eta)) <= 1e-12 * np.max(np.abs(tm.eta))
@@ -146,12 +142,7 @@ def assert_matches(series, fs, model_psd, label, sources=None):
 
 @pytest.fixture(scope="module")
 def noise_day():
-    cfg = SimulationConfig(
-        duration=DAY,
-        orbit="equal",
-        seed=11,
-        truth_noises=("laser", "oms", "backlink", "telescope", "test_mass", "dws_phi", "dws_eta"),
-    )
+    cfg = SimulationConfig(duration=DAY, orbit="equal", seed=11, truth_noises=tuple(NOISE_COMPONENTS))
     tm, truth = simulate(cfg)
     return cfg, tm, truth
 
