@@ -269,7 +269,7 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         # them on the new model's first segment (an adoption's, a control message's) or at
         # its next slot; a change that only lets transients go needs none.  Ranked on every
         # change, they cost a whole candidate phase per change (docs/operations.md, the
-        # mission week's fifth run: 67 s of wall for such a refit at segments 24 and 40)
+        # mission week's fifth run: a change's segment about 40 % shorter without it)
         ranked = ranked or (change is not None and self.schedule.every <= 0)
         window = (self.window_tm.first, self.window_tm.last, self.window_tm.telemetry[-1].size)
         return window_refit_meta(r, change=change, extended=extended, window=window, ranked=ranked)
