@@ -460,8 +460,8 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         if window is None and not replayed:
             self.warn_if_not_fitted(header.index)
         live = None if replayed else self.diagnosis_if_due(header)
+        self.window_tm.release()  # kept for this segment only (a failed diagnosis did not take it)
         if window is not None or live is not None:
-            self.window_tm.release()
             release_free_memory()  # the refit's and the diagnosis' temporaries: not kept for the next peak
         meta = fit_meta(
             res,

@@ -562,10 +562,19 @@ class Stage:
             )
         return key
 
-    def report_error(self, kind: str, message: str, **where) -> dict:
-        """Publish an error on ``ttl/<run>/errors/<index>``, record it, log it; returns it.
-        ``where``: the keywords of :meth:`StageReports.error` (index, key, field, details)."""
-        return self.reports.error(kind, message, **where)
+    def report_error(
+        self,
+        kind: str,
+        message: str,
+        *,
+        index: int | None = None,
+        key: str | None = None,
+        field: str | None = None,
+        details: dict | None = None,
+    ) -> dict:
+        """Publish an error on ``ttl/<run>/errors/<index>``, record it, log it; returns it
+        (:meth:`StageReports.error`; its keywords typed here, so that callers are checked)."""
+        return self.reports.error(kind, message, index=index, key=key, field=field, details=details)
 
     def warn(self, kind: str, message: str, *, index: int | None = None, **details) -> None:
         """Log and record a warning (topic ``warnings``): not an error, but for the operator's eyes."""

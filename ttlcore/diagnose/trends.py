@@ -748,16 +748,42 @@ def _coefficient_trend(X: np.ndarray, y: np.ndarray, sp: np.ndarray, rho, L_rho,
     return beta[1], math.sqrt(var) * inflate, cd, dropped
 
 
-def detect_drifts(times, coefficients, sigma, *, indices: Sequence[int] | None = None, **options) -> list[Alert]:
+def detect_drifts(
+    times,
+    coefficients,
+    sigma,
+    *,
+    t_start=None,
+    window: float | None = None,
+    names: Sequence[str] | None = None,
+    units: str = "m/rad",
+    steps: Sequence[Alert] = (),
+    at: float | None = None,
+    indices: Sequence[int] | None = None,
+    settings: TrendSettings | None = None,
+    breaks: Sequence[float] = (),
+) -> list[Alert]:
     """Drift alerts: coefficients whose linear trend over the last ``drift_lookback`` is
     significant (``|rate| / se >= drift_threshold``), evaluated at the last fit (or ``at``).
 
-    ``times``, ``coefficients``, ``sigma`` and the keyword ``options`` are those of
-    :func:`trend_estimates`; ``indices`` the segment index of each fit (the alerts').
-    Returns the alerts, most significant first (:func:`drift_alerts`).
+    Parameters are those of :func:`trend_estimates` (typed here too, so that callers are
+    checked); ``indices`` the segment index of each fit (the alerts').  Returns the alerts,
+    most significant first (:func:`drift_alerts`).
     """
-    est = trend_estimates(times, coefficients, sigma, **options)
-    return drift_alerts(est, times, indices, options.get("settings"))
+    est = trend_estimates(
+        times,
+        coefficients,
+        sigma,
+        t_start=t_start,
+        window=window,
+        names=names,
+        units=units,
+        steps=steps,
+        at=at,
+        settings=settings,
+        breaks=breaks,
+    )
+    return drift_alerts(est, times, indices, settings)
 
 
 def drift_alerts(
