@@ -308,6 +308,13 @@ def test_transients_leave_the_model_with_the_window(tmp_path):
     d = event["details"]
     assert d["by"] == "window" and d["removed"] == [glitch, gate] and d["from_index"] == 3, d
     assert "model_parts" not in fits[3].header.meta or not fits[3].header.meta["model_parts"]
+    # the glitch's column dropped from the rolling fit, its window kept: not rebuilt from the
+    # window's telemetry (RollingFit.drop)
+    events = [
+        e for e in read_recording(run_dir / "fitter.mcap").json("events") if e.get("kind", "").startswith("rolling-")
+    ]
+    assert [(e["kind"], e["index"]) for e in events] == [("rolling-reduced", 3)], events
+    assert events[0]["details"]["dropped"] == list(fits[2].header.meta["extra_parameters"]), events
 
 
 # ---------------------------------------------------------------------------- a day, blind

@@ -75,7 +75,7 @@ from .live_model import LiveModel
 from .message import UNITS, fit_meta, fit_summary, notices, rolling_estimate
 from .model import FitterModel, adoption_refused
 from .options import FitterOptions, add_options, options
-from .rolling_model import RollingModel, rolling_outputs
+from .rolling_model import RollingModel, dropped_columns, rolling_outputs
 from .schedule import DiagnosisSchedule
 from .window import TelemetryWindow
 from .window_refit import window_refit, window_refit_meta
@@ -105,6 +105,8 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         self.window_duration = o.window_duration
         self.band = o.band
         self.rolling: RollingFit | None = None
+        #: the rolling fit's model columns: effect spec -> its columns' names
+        self._owners: dict[str, tuple] = {}
         self.fits = RangeSet()
         self._next_t0: float | None = None
         self.effect_modules = o.effect_modules
@@ -424,30 +426,18 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
                 len(push.names),
             )
         elif self.rolling.names != push.names:
-            self.rebuild_rolling(header, push.names)
+            gone = dropped_columns(self._owners, owners or {}, self.rolling.names, push.names)
+            if gone:
+                self.drop_columns(header, gone)
+            else:
+                self.rebuild_rolling(header, push.names)
+        self._owners = dict(owners or {})
         self._next_t0 = td.t0 + td.size / td.fs
         self._last_td = td
         self._segments_seen = header.index + 1  # by index: the same after a restart
         # a model's gates leave their hours out of the rolling fit (whole FFT segments)
         self.rolling.set_gates(self.rolling_model.gates if column_effects is not None else ())
         return self.rolling.push(push), owners, xyz
-
-    def rebuild_rolling(self, header, names: tuple) -> None:
-        """A new rolling fit for the regressors ``names``, rebuilt from the window's telemetry
-        (:meth:`stages.fitter.rolling_model.RollingModel.rebuilt`): when the rolling model's columns
-        change (a model change)."""
-        window = self.window_tm.telemetry
-        self.rolling = self.rolling_model.rebuilt(
-            self.settings(segment_meta(header)), self.window_duration, names, window
-        )
-        self.event(
-            "rolling-rebuilt",
-            index=header.index,
-            message=f"rolling fit rebuilt for {len(names)} regressors from the window's {len(window)} "
-            f"telemetry segments",
-            names=list(names),
-            segments=len(window),
-        )
 
     def publish_fit(self, header, td: TDIData, res, owners: dict | None, xyz) -> Output:
         """The fit message of a segment: the rolling fit's (or the rolling model's), the

@@ -23,6 +23,7 @@ from typing import TYPE_CHECKING
 from streamer.bus.codec import encode
 from streamer.bus.keys import to_ranges
 from streamer.bus.message_schema import to_jsonable
+from streamer.bus.segment_record import segment_meta
 from streamer.bus.transport import Output, output_fields
 from streamer.recording.recorder import mission_ns
 from ttlcore.errors import ConfigError
@@ -31,9 +32,15 @@ from .recordings import pushed_again, recorded_models, recorded_telemetry
 from .schedule import TRANSIENT_SPACING
 
 if TYPE_CHECKING:  # the mixin is checked as the ordered stage it is mixed into
+    from collections.abc import Callable
+
+    from streamer.bus.segment_record import SegmentMeta
     from streamer.runtime.pipeline_stage import OrderedStage
+    from ttlcore.estimate.fit import FitSettings
+    from ttlcore.estimate.rolling import RollingFit
 
     from .live_model import LiveModel
+    from .rolling_model import RollingModel
     from .schedule import DiagnosisSchedule
     from .window import TelemetryWindow
 
@@ -50,6 +57,10 @@ class FitterModel(_Stage):
     model: LiveModel
     schedule: DiagnosisSchedule
     window_tm: TelemetryWindow
+    rolling: RollingFit | None
+    rolling_model: RollingModel
+    window_duration: float
+    settings: Callable[[SegmentMeta], FitSettings]
     _catching_up: bool
     _restarted: bool
 
@@ -191,6 +202,38 @@ class FitterModel(_Stage):
             index=index,
             message=f"fit {index} was published by the earlier process, which was killed before recording "
             "it: recomputed and recorded (not published again)",
+        )
+
+    def drop_columns(self, header, gone: list[str]) -> None:
+        """The columns ``gone`` dropped from the rolling fit, its window kept
+        (:meth:`ttlcore.estimate.rolling.RollingFit.drop`): a model change that only removes
+        effects (a transient that left with the window, an effect removed by hand) needs no
+        rebuild of the window (:func:`stages.fitter.rolling_model.dropped_columns`)."""
+        assert self.rolling is not None  # a change of the rolling fit's columns
+        self.rolling.drop(gone)
+        self.event(
+            "rolling-reduced",
+            index=header.index,
+            message=f"rolling fit: the columns {', '.join(gone)} dropped, its window of "
+            f"{self.rolling.n_segments} FFT segments kept",
+            dropped=list(gone),
+        )
+
+    def rebuild_rolling(self, header, names: tuple) -> None:
+        """A new rolling fit for the regressors ``names``, rebuilt from the window's telemetry
+        (:meth:`stages.fitter.rolling_model.RollingModel.rebuilt`): when a model change adds or
+        alters the rolling model's columns."""
+        window = self.window_tm.telemetry
+        self.rolling = self.rolling_model.rebuilt(
+            self.settings(segment_meta(header)), self.window_duration, names, window
+        )
+        self.event(
+            "rolling-rebuilt",
+            index=header.index,
+            message=f"rolling fit rebuilt for {len(names)} regressors from the window's {len(window)} "
+            f"telemetry segments",
+            names=list(names),
+            segments=len(window),
         )
 
     def drop_expired(self, index: int) -> None:

@@ -172,3 +172,18 @@ def rolling_outputs(res, td: TDIData, owners: dict, xyz: np.ndarray) -> tuple[di
     ]
     arrays["model_parts"] = np.stack(parts)
     return arrays, {"extra_parameters": extra, "model_parts": list(owners), "model_update": "rolling"}
+
+
+def dropped_columns(old: dict, new: dict, rolling_names: tuple, names: tuple) -> list[str]:
+    """The columns a model change only removes from the rolling fit, or none when it adds or
+    alters one.
+
+    ``old`` and ``new`` map each column effect's spec to its columns' names (the rolling
+    fit's, the new model's); ``rolling_names`` are the rolling fit's regressors, ``names``
+    the new model's.  The columns of the effects gone are returned when every effect left
+    has the same columns and ``names`` are ``rolling_names`` without them
+    (:meth:`ttlcore.estimate.rolling.RollingFit.drop` then keeps the window)."""
+    if any(old.get(spec) != cols for spec, cols in new.items()):
+        return []
+    gone = [n for spec, cols in old.items() if spec not in new for n in cols]
+    return gone if tuple(n for n in rolling_names if n not in gone) == tuple(names) else []

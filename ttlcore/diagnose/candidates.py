@@ -200,7 +200,7 @@ def score(model: ModelFit, effect, C) -> tuple[Evidence, dict]:
     data = model.data
     extra: dict = {}
     if effect.unresolved():
-        found = effect_search(model, effect, C)
+        found = effect_search(model, effect, C, screen=True)  # refined only where it could matter
         effect = found.effect
         if found.evidence is not None and "t_step" in found.estimates:
             # the step time: the evidence with the exact step near t_s

@@ -362,10 +362,10 @@ def _evidence(model, effect: Glitch, g: np.ndarray):
     return added_evidence(model, glitch_columns(model.data, effect, g))
 
 
-def effect_search(model, effect, coefficients=None) -> SearchResult:
+def effect_search(model, effect, coefficients=None, *, screen: bool = False) -> SearchResult:
     """The search of ``effect``'s unset parameters against ``model``: a glitch's by
     :func:`glitch_search` (its own evaluator, templates on stretches), any other's by
-    :func:`ttlcore.diagnose.search.profile_search`."""
+    :func:`ttlcore.diagnose.search.profile_search` (``screen``: a candidate's search)."""
     if isinstance(effect, Glitch):
         return glitch_search(model, effect)
-    return profile_search(model, effect, coefficients)
+    return profile_search(model, effect, coefficients, screen=screen)

@@ -266,7 +266,7 @@ def _modulated_evaluator(model: ModelFit, effect, effect_at):
     return evaluate
 
 
-def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
+def profile_search(model: ModelFit, effect, coefficients=None, *, screen: bool = False) -> SearchResult:
     """Search the unset :attr:`~ttlcore.effects.base.Effect.searched` options of
     ``effect`` against ``model`` (see the module docstring): the step time by
     :func:`step_time_search`, the open offsets of a shifted-witness effect
@@ -278,6 +278,11 @@ def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
     plugin's effect) is searched by it; a glitch goes to
     :func:`ttlcore.diagnose.glitches.glitch_search` (:func:`ttlcore.diagnose.glitches.effect_search`).
 
+    ``screen``: a candidate's search (:func:`ttlcore.diagnose.candidates.score`), whose
+    local refinements are skipped where they cannot make it significant (a filter's exact
+    refinement, :data:`REFINE_MARGIN`; a step time below the coarse grid,
+    :func:`step_time_search`); a model's effect is always refined.
+
     Raises ConfigError when the data have no telemetry and the columns need DWS series."""
     own = getattr(effect, "profile_search", None)
     if callable(own):
@@ -288,14 +293,14 @@ def profile_search(model: ModelFit, effect, coefficients=None) -> SearchResult:
     if not names:
         raise ConfigError(f"effect {effect.name!r}: nothing to search")
     if isinstance(effect, Step):
-        return step_time_search(model, effect)
+        return step_time_search(model, effect, screen=screen)
     data = model.data
     if data.context.tm is None:
         raise ConfigError(f"effect {effect.name!r}: searching {', '.join(names)} needs the telemetry")
-    return _grid_search(model, effect, names, coefficients)
+    return _grid_search(model, effect, names, coefficients, screen)
 
 
-def _grid_search(model: ModelFit, effect, names: list[str], coefficients) -> SearchResult:
+def _grid_search(model: ModelFit, effect, names: list[str], coefficients, screen: bool = False) -> SearchResult:
     """The options ``names`` of ``effect`` searched against ``model`` on a grid refined
     locally, with the evaluator the kind of column allows (:func:`profile_search`)."""
     ranges = search_ranges(model.data, effect)
@@ -326,7 +331,12 @@ def _grid_search(model: ModelFit, effect, names: list[str], coefficients) -> Sea
         if -res.fun > best:
             best, best_x = -res.fun, np.clip(res.x, lo, hi)
     if spectral:
-        best_x, dchi2, lbf_best, n_exact = _refine_exact(exact, best_x, lo, hi)
+        threshold = model.data.context.settings.log_bf_threshold
+
+        def worth(x, lbf):  # could a refinement make the marginal evidence significant
+            return _laplace_evidence(score, x, lo, hi, lbf, grid)[1] + REFINE_MARGIN >= threshold
+
+        best_x, dchi2, lbf_best, n_exact = _refine_exact(exact, best_x, lo, hi, worth if screen else None)
     elif modulated:
         # the estimate scored with the exact columns (the modulated TDI only located it)
         exact_score = _memoised(_generic_evaluator(model, effect_at), lo, hi)
@@ -435,16 +445,32 @@ def _search_grid(lo: np.ndarray, hi: np.ndarray, is_log, spectral: bool, per_dec
     return np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, len(lo))
 
 
-def _refine_exact(exact, best_x: np.ndarray, lo: np.ndarray, hi: np.ndarray):
+#: The exact refinement of a filter's search (:func:`_refine_exact`) is skipped when the
+#: marginal log Bayes factor at the fast optimum (exact evidence there, the fast profile's
+#: Occam factor) is this far below the significance threshold: a refinement from there
+#: lifted log B at the optimum by 0-7 (the mission week's window 76..99, 2026-11-28:
+#: -4.3 -> -1.7 for a resonance of 32.eta, 0 to 2.6 elsewhere; a q = 300 resonance of noise
+#: on 6 h, tests/ttlcore/diagnose/test_search.py: -12.5 -> -5.5, marginal -12.5 -> -14.3).
+#: Its 30-60 exact evaluations (0.15 s each for a day, three columns) were most of a live
+#: diagnosis' candidate phase, spent on candidates no refinement could make significant
+#: (docs/operations.md, "The diagnosis' searches").
+REFINE_MARGIN = 10.0
+
+
+def _refine_exact(exact, best_x: np.ndarray, lo: np.ndarray, hi: np.ndarray, worth=None):
     """Nelder-Mead refinement from ``best_x`` with the columns the fit uses (``exact``): the
     fast products miss the filter's ringing across the segment tapers (filtered in time,
-    then windowed).
+    then windowed).  Not refined when ``worth(best_x, log_bf)`` (the exact log Bayes factor
+    at ``best_x``) is false: the point is then the fast profile's optimum, scored exactly.
 
     Returns the refined point, its delta chi^2 and log Bayes factor, and the number of
     exact evaluations.
     """
     d = len(best_x)
     exact_score = _memoised(exact, lo, hi)
+    dchi2, lbf_best = exact_score(best_x)
+    if worth is not None and not worth(best_x, lbf_best):
+        return np.clip(best_x, lo, hi), dchi2, lbf_best, 1
     res = optimize.minimize(
         lambda x: -exact_score(x)[0],
         best_x,

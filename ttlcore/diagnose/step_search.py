@@ -39,12 +39,17 @@ log = logging.getLogger(__name__)
 # ---------------------------------------------------------------------------
 
 
-def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
+def step_time_search(model: ModelFit, step: Step | None = None, *, screen: bool = False) -> SearchResult:
     """Search the step time of ``step`` against ``model``: step columns approximated as
     ``H(t - t_s)`` times the TDI of the TTL regressors (exact but for the ~70 s the TDI
     delays span, which :func:`_step_correction` patches in from the telemetry), Bayes factor
     marginalised over the coarse grid (uniform prior); the evidence at the best time is
-    :attr:`SearchResult.evidence`."""
+    :attr:`SearchResult.evidence`.
+
+    ``screen``: a candidate's search (:func:`ttlcore.diagnose.candidates.score`): when the
+    marginal log Bayes factor of the coarse grid is below the significance threshold, the
+    time is not refined below the coarse grid - the refinement cannot change that evidence,
+    so the candidate stays insignificant, and it is most of the search (3-4 s of a day's)."""
     data = model.data
     grid = data.grid
     s = data.context.settings
@@ -63,7 +68,12 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
         coarse = np.array([0.5 * (t_lo + t_hi)])
     results = [(ts, evaluate_at(ts)) for ts in coarse]
     lbfs = np.array([r.log_bayes_factor for _, r in results])
+    good = lbfs[np.isfinite(lbfs)]
+    marg = float(special.logsumexp(good) - math.log(len(good))) if good.size else float("nan")
     best = coarse[int(np.nanargmax(lbfs))]
+    if screen and not marg >= s.log_bf_threshold:
+        ev = results[int(np.nanargmax(lbfs))][1]
+        return _step_result(step, best, ev, marg, results)
     fine = np.arange(best - s.step_grid + s.step_refine, best + s.step_grid, s.step_refine)
     fine = fine[(fine > t_lo) & (fine < t_hi)]
     results += [(ts, evaluate_at(ts)) for ts in fine if not np.any(np.isclose(ts, coarse))]
@@ -84,8 +94,12 @@ def step_time_search(model: ModelFit, step: Step | None = None) -> SearchResult:
         ts_best, ev = _try_times(evaluate_at, results, centre + np.arange(-2.0, 2.01, 0.25), ts_best, ev, (t_lo, t_hi))
         if ts_best == centre:
             break
-    good = lbfs[np.isfinite(lbfs)]
-    marg = float(special.logsumexp(good) - math.log(len(good))) if good.size else float("nan")
+    return _step_result(step, ts_best, ev, marg, results)
+
+
+def _step_result(step: Step, ts_best: float, ev: Evidence, marg: float, results: list) -> SearchResult:
+    """The search's result: the step at ``ts_best`` [s] with its evidence ``ev``, the
+    marginal log Bayes factor ``marg`` and every point evaluated (``results``)."""
     found = step.with_options(t_step=round(float(ts_best), 3))
     log.debug("step time search: %.3f s, delta chi2 %.1f", ts_best, ev.delta_chi2)
     return SearchResult(

@@ -400,6 +400,42 @@ class RollingFit:
             result = self._refit()
         return result
 
+    def drop(self, names) -> FitResult | None:
+        """Drop the regressors ``names`` from the window (a model's columns that left it: a
+        transient whose span is out of the window, an effect removed by hand).
+
+        The FFT segments keep their data and the other regressors' spectra, which do not
+        depend on the ones dropped: what is left is the window a new fit pushed the same
+        segments without them would hold, but for its history of outliers (decided with
+        them) and of weights.  The window is refitted in full now (the fit that stands for
+        an FFT segment left out next is of the regressors left).  Rebuilding the fit from the
+        window's telemetry instead (the TDI of a day and the columns again) took a live
+        fitter 15-20 s for each transient leaving a week's model.
+
+        Returns the refit (None when the window holds no FFT segment)."""
+        gone = set(names)
+        keep = [j for j, n in enumerate(self.names) if n not in gone]
+        if len(keep) == len(self.names):
+            return self.last
+        self.names = tuple(self.names[j] for j in keep)
+        if self.prior_scale is not None:
+            ps = self.prior_scale[keep]
+            self.prior_scale = ps if np.isfinite(ps).any() else None
+        if self.eiv_extra is not None:
+            self.eiv_extra = {k: v for k, v in self.eiv_extra.items() if k not in gone} or None
+        self._spectra = deque(replace(sp, R=sp.R[:, :, keep]) for sp in self._spectra)
+        self._pending = _Pending(self._pending.data, [r[:, keep] for r in self._pending.regressors], self._pending.n)
+        dec = self._decimator
+        if dec is not None and dec._tail is not None:  # (3, 1 + P, L - 1): the data, then the regressors
+            dec._tail = dec._tail[:, [0, *(1 + j for j in keep)]]
+        if self.last_decimated is not None:
+            ld = self.last_decimated
+            self.last_decimated = replace(ld, regressors=ld.regressors[:, keep], names=self.names)
+        self._sums.clear()
+        self._weights = None
+        self.last = self._refit() if self._spectra else None
+        return self.last
+
     def set_gates(self, spans) -> None:
         """Leave out the FFT segments that overlap any of ``spans`` (``(start, stop)`` [s] of
         mission time: a model's ``gate`` effects): those in the window now (the next fit is a

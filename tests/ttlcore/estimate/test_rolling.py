@@ -277,3 +277,49 @@ def test_incremental_updates_take_no_cholesky_factor_of_their_own(streamed, monk
     again = fit.accumulate([sp], w["weights"], w["band_edges"], rf.names, w["eiv_response"], w["dws_psd"])
     np.testing.assert_array_equal(neq.N, again.N)
     np.testing.assert_array_equal(neq.E, again.E)
+
+
+def test_dropping_a_models_columns_keeps_the_window(streamed):
+    # A model's columns leaving it (a transient out of the window, an effect removed):
+    # dropped from the rolling fit, whose window is kept and refitted in full - the fit of
+    # a window that never had them, to rounding (the data's and the other regressors'
+    # spectra do not depend on them); then it rolls on as that one does.
+    from dataclasses import replace
+
+    from ttlcore.conventions import COEFFICIENT_NAMES
+    from ttlcore.estimate.fit import with_extra_regressors
+
+    _, segments = streamed
+    settings = FitSettings(segment_duration=HOUR)
+    rng = np.random.default_rng(7)
+    extra_names = ("g.a", "g.b")
+
+    def with_columns(td):
+        scale = np.nanstd(td.regressors[:, :2], axis=-1, keepdims=True)  # (3, 2, 1): their size
+        cols = scale * rng.standard_normal((3, 2, td.size))
+        return with_extra_regressors(td, replace(td, regressors=cols, names=extra_names))
+
+    wide = RollingFit(settings, window_duration=DAY, names=COEFFICIENT_NAMES + extra_names, outlier_z=None)
+    never = RollingFit(settings, window_duration=DAY, outlier_z=None)
+    always_full = RollingFit(settings, window_duration=DAY, outlier_z=None, full_every=None)
+    for td in segments[:10]:
+        wide.push(with_columns(td))
+        never.push(td)
+        always_full.push(td)
+    dropped = wide.drop(list(extra_names))
+    assert wide.names == COEFFICIENT_NAMES and dropped.extra["update"] == "full" and dropped.n_segments == 10
+    ref = always_full.last
+    np.testing.assert_allclose(dropped.coefficients, ref.coefficients, rtol=0, atol=1e-9 * np.max(ref.sigma))
+    np.testing.assert_allclose(dropped.sigma, ref.sigma, rtol=1e-9)
+    assert wide.drop(list(extra_names)) is dropped  # nothing left to drop: the fit stands
+    kinds = []
+    for td in segments[10:16]:  # pushed on without the columns, as the fit that never had them
+        a, b = wide.push(td), never.push(td)
+        kinds.append((a.extra["update"], b.extra["update"]))
+        assert a.names == b.names and a.n_segments == b.n_segments
+        if kinds[-1] == ("full", "full"):  # the same window, both refitted in full
+            np.testing.assert_allclose(a.coefficients, b.coefficients, rtol=0, atol=1e-9 * np.max(b.sigma))
+        else:  # weights of different full refits (test_incremental_updates_track_the_full_refits)
+            assert np.max(np.abs(a.coefficients - b.coefficients) / b.sigma) < (0.5 if b.n_segments >= 12 else 1.0)
+    # the incremental updates from the drop's weights, and the full refit at 12 h of data
+    assert kinds == [("incremental", "incremental"), ("full", "full")] + [("incremental", "incremental")] * 4
