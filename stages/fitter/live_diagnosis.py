@@ -274,11 +274,14 @@ def diagnosis_meta(
                 "log_bayes_factor": c.log_bayes_factor,
                 "explained_fraction": c.explained_fraction,
                 "significant": c.significant,
+                "seconds": c.seconds,
             }
             for c in diagnosis.candidates[:5]
         ],
         "transients": transients_meta(diagnosis.transients),
         "text": diagnosis.text(source=f"window {first}..{last}"),
+        # where the diagnosis' minutes went: each step's wall time [s] (the fitter's cost)
+        "timings_s": dict(diagnosis.timings),
     }
     rec = recommendation_meta(advice, diagnosis.candidates, effects, effect_modules, command)
     out["recommendation"] = rec

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from ttl_testutil import noise_telemetry
 
-from stages.fitter.rolling_model import RollingModel, rolling_outputs
+from stages.fitter.rolling_model import RollingModel, dropped_columns, rolling_outputs
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.estimate.fit import FitResult
 from ttlcore.io.telemetry import Telemetry
@@ -86,3 +86,19 @@ def test_rolling_outputs_split_the_fit_into_coefficients_and_model_parts():
         "model_parts": [WITNESS],
         "model_update": "rolling",
     }
+
+
+def test_a_change_that_only_removes_effects_drops_their_columns():
+    glitch, step = "glitch:t=900s,tm=12,beta=10s", "witness:source=12.eta,link=23,vary=step,t_step=500s"
+    old = {WITNESS: ("w.a",), glitch: ("g.dv",), step: ("s.a", "s.b")}
+    names = COEFFICIENT_NAMES + ("w.a", "g.dv", "s.a", "s.b")
+    # the glitch gone, the others as they were: its column only
+    assert dropped_columns(old, {WITNESS: ("w.a",), step: ("s.a", "s.b")}, names, names[:25] + names[26:]) == ["g.dv"]
+    # back to the 24: every column
+    assert dropped_columns(old, {}, names, COEFFICIENT_NAMES) == ["w.a", "g.dv", "s.a", "s.b"]
+    # an effect added, or one whose columns changed (a coupling settled into the plain one,
+    # another corner): rebuilt, nothing dropped
+    assert dropped_columns(old, {**old, "drift": ("d.a",)}, names, names + ("d.a",)) == []
+    assert dropped_columns(old, {WITNESS: ("w.a",), step: ("s.x",)}, names, COEFFICIENT_NAMES + ("w.a", "s.x")) == []
+    # the names given are not the rolling fit's without the columns gone (another order)
+    assert dropped_columns(old, {WITNESS: ("w.a",)}, names, ("w.a",) + COEFFICIENT_NAMES) == []
