@@ -404,15 +404,11 @@ class RollingFit:
         """Drop the regressors ``names`` from the window (a model's columns that left it: a
         transient whose span is out of the window, an effect removed by hand).
 
-        The FFT segments keep their data and the other regressors' spectra, which do not
-        depend on the ones dropped: what is left is the window a new fit pushed the same
-        segments without them would hold, but for its history of outliers (decided with
-        them) and of weights.  The window is refitted in full now (the fit that stands for
-        an FFT segment left out next is of the regressors left).  Rebuilding the fit from the
-        window's telemetry instead (the TDI of a day and the columns again) took a live
-        fitter 15-20 s for each transient leaving a week's model.
-
-        Returns the refit (None when the window holds no FFT segment)."""
+        The FFT segments keep the data's and the other regressors' spectra (independent of
+        the ones dropped): the window of a fit that never had them, but for the outliers and
+        weights decided with them.  Refitted in full now (the fit that stands for an FFT
+        segment left out next is of the regressors left); returns it (None: no FFT segment).
+        Rebuilding from the window's telemetry took a live fitter 15-20 s a transient."""
         gone = set(names)
         keep = [j for j, n in enumerate(self.names) if n not in gone]
         if len(keep) == len(self.names):
