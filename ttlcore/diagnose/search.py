@@ -453,7 +453,7 @@ def _search_grid(lo: np.ndarray, hi: np.ndarray, is_log, spectral: bool, per_dec
 #: on 6 h, tests/ttlcore/diagnose/test_search.py: -12.5 -> -5.5, marginal -12.5 -> -14.3).
 #: Its 30-60 exact evaluations (0.15 s each for a day, three columns) were most of a live
 #: diagnosis' candidate phase, spent on candidates no refinement could make significant
-#: (docs/operations.md, "The diagnosis' searches").
+#: (docs/diagnostics.md, "Searched parameters"; docs/operations.md, the mission week's sixth run).
 REFINE_MARGIN = 10.0
 
 

@@ -95,3 +95,20 @@ def test_a_coupled_witness_is_refined_and_an_uncoupled_one_is_not(coupled_model,
     # what the refinement is worth there (measured: log B at the optimum -12.5 -> -5.5 at
     # q = 300, the marginal -12.5 -> -14.3): inside the margin
     assert refined["lbf"] - skipped["lbf"] < margin and refined["lbf_best"] - skipped["lbf_best"] < margin
+
+
+def test_an_insignificant_step_time_is_not_refined_below_the_coarse_grid(coupled_model):
+    # no step in these data: the coarse grid's marginal log B (the candidate's evidence) is
+    # below the threshold, and a candidate's search stops there - with the same evidence
+    from ttlcore.diagnose.step_search import step_time_search
+    from ttlcore.effects.step import Step
+
+    threshold = coupled_model.data.context.settings.log_bf_threshold
+    refined = step_time_search(coupled_model, Step())
+    screened = step_time_search(coupled_model, Step(), screen=True)
+    assert screened.log_bayes_factor == refined.log_bayes_factor < threshold
+    assert screened.n_evaluations < refined.n_evaluations / 2, (screened.n_evaluations, refined.n_evaluations)
+    # the coarse grid's best time: the refinement searches within a coarse step of it (and
+    # the echoes four light travel times, ~35 s, further)
+    step = coupled_model.data.context.settings.step_grid
+    assert abs(screened.estimates["t_step"] - refined.estimates["t_step"]) <= step + 60.0
