@@ -70,10 +70,10 @@ def step_time_search(model: ModelFit, step: Step | None = None, *, screen: bool 
     lbfs = np.array([r.log_bayes_factor for _, r in results])
     good = lbfs[np.isfinite(lbfs)]
     marg = float(special.logsumexp(good) - math.log(len(good))) if good.size else float("nan")
-    best = coarse[int(np.nanargmax(lbfs))]
+    k = int(np.nanargmax(lbfs))
+    best = coarse[k]
     if screen and not marg >= s.log_bf_threshold:
-        ev = results[int(np.nanargmax(lbfs))][1]
-        return _step_result(step, best, ev, marg, results)
+        return _step_result(step, best, results[k][1], marg, results)
     fine = np.arange(best - s.step_grid + s.step_refine, best + s.step_grid, s.step_refine)
     fine = fine[(fine > t_lo) & (fine < t_hi)]
     results += [(ts, evaluate_at(ts)) for ts in fine if not np.any(np.isclose(ts, coarse))]

@@ -95,6 +95,11 @@ class StreamingDecimator:
         self._tail: np.ndarray | None = None  # last len(h) - 1 inputs (zeros before the start)
         self._bad_tail: np.ndarray | None = None
 
+    def keep_rows(self, rows) -> None:
+        """Keep the filter history of the rows ``rows`` (axis -2) only: the next blocks have those."""
+        if self._tail is not None:
+            self._tail = self._tail[..., rows, :]
+
     def push(self, x: np.ndarray) -> np.ndarray:
         """Filter the block ``x`` (shape ``(..., m)``); returns its decimated outputs."""
         x = np.asarray(x, dtype=float)
@@ -401,14 +406,10 @@ class RollingFit:
         return result
 
     def drop(self, names) -> FitResult | None:
-        """Drop the regressors ``names`` from the window (a model's columns that left it: a
-        transient whose span is out of the window, an effect removed by hand).
-
-        The FFT segments keep the data's and the other regressors' spectra (independent of
-        the ones dropped): the window of a fit that never had them, but for the outliers and
-        weights decided with them.  Refitted in full now (the fit that stands for an FFT
-        segment left out next is of the regressors left); returns it (None: no FFT segment).
-        Rebuilding from the window's telemetry took a live fitter 15-20 s a transient."""
+        """Drop the regressors ``names`` (a transient's columns out of the window, an effect
+        removed): the FFT segments keep the other spectra, the window of a fit that never had
+        them but for the outliers and weights decided with them; refitted in full now, and
+        returned (None: no FFT segment).  A rebuild from the telemetry took 15-20 s."""
         gone = set(names)
         keep = [j for j, n in enumerate(self.names) if n not in gone]
         if len(keep) == len(self.names):
@@ -421,9 +422,8 @@ class RollingFit:
             self.eiv_extra = {k: v for k, v in self.eiv_extra.items() if k not in gone} or None
         self._spectra = deque(replace(sp, R=sp.R[:, :, keep]) for sp in self._spectra)
         self._pending = _Pending(self._pending.data, [r[:, keep] for r in self._pending.regressors], self._pending.n)
-        dec = self._decimator
-        if dec is not None and dec._tail is not None:  # (3, 1 + P, L - 1): the data, then the regressors
-            dec._tail = dec._tail[:, [0, *(1 + j for j in keep)]]
+        if self._decimator is not None:  # its rows: the data, then the regressors
+            self._decimator.keep_rows([0, *(1 + j for j in keep)])
         if self.last_decimated is not None:
             ld = self.last_decimated
             self.last_decimated = replace(ld, regressors=ld.regressors[:, keep], names=self.names)
