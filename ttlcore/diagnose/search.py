@@ -138,16 +138,21 @@ class _Spectral:
 
     def _products(self, idx) -> tuple:
         """The per-bin products of the bases ``idx`` (fixed during a search), taken once:
-        ``(N_MB, N_BB, b_B)`` with the readout-noise terms subtracted, the model's whitened
-        columns conjugated as a matrix (S m 3, P) for the exact path."""
+        for the fast path, those of each distinct base (``u`` in order of first use, and
+        the column -> base map ``inv``): ``N_MB`` (u, P, m), ``N_BB`` (u, u, m) and ``b_B``
+        (u, m) with the readout-noise terms subtracted; for the exact path, the readout-noise
+        terms of each column (k, P, m) and (m, k, k)."""
         key = tuple(idx)
         if key not in self._cache:
+            u = list(dict.fromkeys(idx))
+            inv = np.array([u.index(i) for i in idx])
+            NMB = np.ascontiguousarray((self.PM[:, :, u] - self.eMB[:, :, u]).transpose(2, 1, 0))  # (u, P, m)
+            NBB = np.ascontiguousarray((self.Puu[:, u][:, :, u] - self.eBB[:, u][:, :, u]).transpose(1, 2, 0))
+            Pud = np.ascontiguousarray(self.Pud[:, u].T)  # (u, m)
             i = list(idx)
-            NMB = np.ascontiguousarray((self.PM[:, :, i] - self.eMB[:, :, i]).transpose(2, 1, 0))  # (k, P, m)
-            NBB = np.ascontiguousarray(self.Puu[:, i][:, :, i] - self.eBB[:, i][:, :, i])  # (m, k, k)
             eMB = np.ascontiguousarray(self.eMB[:, :, i].transpose(2, 1, 0))  # (k, P, m)
             eBB = np.ascontiguousarray(self.eBB[:, i][:, :, i])
-            self._cache[key] = (NMB, NBB, np.ascontiguousarray(self.Pud[:, i].T), eMB, eBB)
+            self._cache[key] = (inv, NMB, NBB, Pud, eMB, eBB)
         return self._cache[key]
 
     def evaluate(self, cols, idx, exact: bool = False) -> tuple[float, float]:
@@ -156,30 +161,36 @@ class _Spectral:
         spectra (products over bins only); ``exact``: the base series filtered in time and
         then windowed (:func:`ttlcore.diagnose.columns.filtered_spectra`, as the fit)."""
         data = self.data
-        R = np.stack(
+        RT = np.stack(
             [
                 np.ones(data.grid.f.size, complex)
                 if c.response is None
                 else np.asarray(c.response(data.grid.f), complex)
                 for c in cols
-            ],
-            axis=1,
-        )  # (m, k)
-        Rc = R.conj()
-        NMB, NBB, Pud, eMB, eBB = self._products(idx)
-        k = R.shape[1]
+            ]
+        )  # (k, m)
+        RTc = RT.conj()
+        inv, NMB, NBB, Pud, eMB, eBB = self._products(idx)
+        k = RT.shape[0]
         if exact:
-            eMK = np.stack([(eMB[j] @ R[:, j]).real for j in range(k)], axis=1)
-            eKK = np.einsum("mj,mjk,mk->jk", Rc, eBB, R).real
+            eMK = np.stack([(eMB[j] @ RT[j]).real for j in range(k)], axis=1)
+            eKK = np.einsum("jm,mjk,km->jk", RTc, eBB, RT).real
             wK = self._exact_spectra(cols, idx)  # (S m 3, k)
             NMK = (self.wMc @ wK).real - eMK
             NKK = (wK.conj().T @ wK).real - eKK
             bK = (wK.T @ self.wdc).real
         else:
-            RT = np.ascontiguousarray(R.T)  # (k, m): the same products as with the strided columns
-            NMK = np.stack([(NMB[j] @ RT[j]).real for j in range(k)], axis=1)
-            NKK = np.einsum("mj,mjk,mk->jk", Rc, NBB, R).real
-            bK = np.einsum("km,mk->k", Pud, Rc).real
+            # products over bins, each base's (P, m) products read once for all its columns
+            # (the three of a resonance's basis share one base)
+            NMK = np.empty((NMB.shape[1], k))
+            NKK = np.empty((k, k))
+            bK = np.empty(k)
+            of = [np.flatnonzero(inv == a) for a in range(len(NMB))]
+            for a, ja in enumerate(of):
+                NMK[:, ja] = (NMB[a] @ RT[ja].T).real
+                bK[ja] = (RTc[ja] @ Pud[a]).real
+                for b, jb in enumerate(of):
+                    NKK[np.ix_(ja, jb)] = ((RTc[ja] * NBB[a, b]) @ RT[jb].T).real
         P = self.NM.shape[0]
         N = np.block([[self.NM, NMK], [NMK.T, NKK]])
         b = np.r_[self.bM, bK]

@@ -198,8 +198,9 @@ class _StepProfile:
             + [w2]
         )
         self.tail = np.concatenate([np.cumsum(prof[:, ::-1], axis=1)[:, ::-1], np.zeros((nM + 1, 1))], axis=1)
-        self.stack = np.nan_to_num(
-            np.stack([data.tdi.regressor_series[:, data.tdi.regressor_names.index(n)] for n in base], axis=1)
+        self.stack = np.nan_to_num(  # the stack's own array, converted in place (a day: 0.1 GB)
+            np.stack([data.tdi.regressor_series[:, data.tdi.regressor_names.index(n)] for n in base], axis=1),
+            copy=False,
         )
         self.names = [f"step.{n}" for n in base]
         self.t_dec = grid.t0 + np.arange(grid.mask.size) / grid.fs  # as _evaluate, eiv_at, _step_correction

@@ -88,12 +88,13 @@ def rational_basis(kind: str, f: np.ndarray, f0: float, q: float | None = None) 
     """
     x = 1j * np.asarray(f, dtype=float) / float(f0)
     if kind == "pole1":
-        D = 1.0 + x
-        return [1.0 / D, x / D]
+        inv = 1.0 / (1.0 + x)
+        return [inv, x * inv]
     if q is None:
         raise ValueError(f"a {kind!r} basis needs q")
-    D = 1.0 + x / float(q) + x * x
-    return [1.0 / D, x / D, x * x / D]
+    inv = 1.0 / (1.0 + x / float(q) + x * x)  # 1/D: one division, the others products
+    x_inv = x * inv
+    return [inv, x_inv, x * x_inv]
 
 
 def readout_noise_factor(f, shift):

@@ -112,3 +112,45 @@ def test_an_insignificant_step_time_is_not_refined_below_the_coarse_grid(coupled
     # the echoes four light travel times, ~35 s, further)
     step = coupled_model.data.context.settings.step_grid
     assert abs(screened.estimates["t_step"] - refined.estimates["t_step"]) <= step + 60.0
+
+
+@pytest.mark.parametrize(
+    "spec", [f"fd-coupling:{COUPLED},f0=0.04,q=3", "fd-coupling:source=21.phi,link=12,filter=pole1,fc=0.3,vary=drift"]
+)
+def test_the_fast_products_are_the_evidence_of_the_columns_filtered_bin_by_bin(coupled_model, spec):
+    # the search's fast path (_Spectral.evaluate) sums per-bin products of each base column
+    # once for all its filters; the reference here builds each filtered column on the bins
+    # (the base's whitened spectra times the response, its readout noise likewise, as
+    # columns.filtered_columns does) and takes the evidence of adding them to the model
+    # (evidence.added_evidence).  Equal but for the order of the sums: 1e-9 relative.
+    from ttlcore.diagnose.columns import ColumnSet, base_column
+    from ttlcore.diagnose.evidence import added_evidence
+    from ttlcore.effects.column_tdi import effect_input_from_telemetry
+    from ttlcore.effects.columns import names_only_input
+
+    model = coupled_model
+    data = model.data
+    effect = make_effects([spec])[0]
+    cols = effect.columns(effect_input_from_telemetry(data.context.tm))
+    sp = search._Spectral(model, cols)
+    idx = [sp.base_names.index(base_column(data, c).names[0]) for c in cols]
+    assert len(cols) > 1 and len(set(idx)) < len(idx)  # the columns share bases
+    fast = sp.evaluate(effect.columns(names_only_input()), idx)
+    x, eiv = [], []
+    for c in cols:
+        base = base_column(data, c)
+        resp = np.asarray(c.response(data.grid.f), complex)
+        x.append(base.w[..., 0] * resp[None, :, None])
+        eiv.append(tuple((ch, link, extra, resp) for ch, link, extra, *_ in base.eiv[0]))
+    cs = ColumnSet(
+        tuple(c.name for c in cols),
+        np.stack(x).view(np.float64),
+        data.noise.key,
+        tuple(c.unit for c in cols),
+        tuple(c.prior_scale for c in cols),
+        tuple(eiv),
+        tuple(base_column(data, c).modulation[0] for c in cols),
+    )
+    ref = added_evidence(model, cs)
+    assert fast[0] == pytest.approx(ref.delta_chi2, rel=1e-9, abs=1e-6), (fast, ref)
+    assert fast[1] == pytest.approx(ref.log_bayes_factor, rel=1e-9, abs=1e-6), (fast, ref)
