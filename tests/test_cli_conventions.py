@@ -629,7 +629,8 @@ def test_view_without_a_display_names_web(tmp_path, monkeypatch):
     for name in ("DISPLAY", "WAYLAND_DISPLAY", "WAYLAND_SOCKET"):
         monkeypatch.delenv(name, raising=False)
     r, elapsed = ttl("view", tmp_path)
-    assert r.returncode == 2 and elapsed < 10 and "--web" in one_line_error(r, "view"), r.stderr
+    # at once, not after a hang (a bound, not a timing: 10.2 s under load 6.5 on 2 cores)
+    assert r.returncode == 2 and elapsed < 60 and "--web" in one_line_error(r, "view"), r.stderr
     assert r.stdout == ""
     # a bad directory: one line naming it, with --quiet too
     r, _ = ttl("view", tmp_path / "nope", "--quiet")

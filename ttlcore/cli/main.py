@@ -18,10 +18,13 @@ a closed pipe.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import importlib
 import logging
 import os
+import signal
 import sys
+import threading
 from pathlib import Path
 
 from .. import __version__
@@ -424,17 +427,47 @@ def main(argv=None, registrars=()) -> int:
         level=[logging.WARNING, logging.INFO, logging.DEBUG][min(args.verbose, 2)],
         format="%(asctime)s %(levelname)s %(name)s: %(message)s",
     )
+    interrupts: list = []
     try:
-        return int(handler(args)(args) or 0)
+        with _interrupts_noted(interrupts):
+            return int(handler(args)(args) or 0)
     except BrokenPipeError:
         _quiet_stdout()
         return 0
     except (TTLError, ValueError, OSError) as exc:
+        if interrupts:  # Ctrl-C reached the command's helpers first (a Dask worker died of it)
+            print(f"ttl {args.command}: interrupted", file=sys.stderr)
+            return 130
         print(f"ttl {args.command}: error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
         print(f"ttl {args.command}: interrupted", file=sys.stderr)
         return 130
+
+
+@contextlib.contextmanager
+def _interrupts_noted(interrupts: list):
+    """SIGINT noted in ``interrupts`` and raised as KeyboardInterrupt, as Python's default
+    handler does: Ctrl-C at a terminal reaches the whole process group at once, and a
+    helper process that died of it (a ``ttl reprocess`` worker) could otherwise surface as
+    the command's error before the interrupt does (exit 2 instead of 130 on a loaded
+    machine).  Only in the main thread, where signal handlers live; the previous handler
+    is restored."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is not (
+        signal.default_int_handler
+    ):
+        yield
+        return
+
+    def noted(signum, frame):
+        interrupts.append(signum)
+        raise KeyboardInterrupt
+
+    previous = signal.signal(signal.SIGINT, noted)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
 
 
 if __name__ == "__main__":

@@ -191,3 +191,36 @@ def test_the_same_effect_injected_twice_keeps_both(tmp_path):
     settled = int(1200 * 4)  # between the two glitches: only the first has moved eta
     assert np.abs(eta[0, settled]) > 5e-20 and eta[1, settled] == 0  # eta_12 moved, eta_23 not yet
     assert np.abs(eta[1, -1]) > 5e-20  # the second one, on tm 23, moved eta_23
+
+
+def test_an_error_after_ctrl_c_is_the_interrupt(monkeypatch, capsys, tmp_path):
+    """Ctrl-C reaches a whole process group at once: a helper that died of it (a ``ttl
+    reprocess`` Dask worker) may surface as the command's error (an OSError of its lost
+    connection) before the KeyboardInterrupt does.  The exit status is still 130, with the one
+    line ``interrupted``; an error with no Ctrl-C before it stays an error (2)."""
+    import os
+    import signal
+    import time
+
+    from ttlcore.cli import main as cli
+
+    def interrupted_then_failed(args):
+        try:
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(1.0)  # the handler runs here
+        except KeyboardInterrupt:
+            pass  # swallowed on the way, as a library's cleanup may
+        raise OSError("connection to the worker lost")
+
+    def failed(args):
+        raise OSError("connection to the worker lost")
+
+    day = tmp_path / "day.h5"
+    day.write_bytes(b"")  # the parser checks that it exists; the handler never opens it
+    day = str(day)
+    for run, status, line in ((interrupted_then_failed, 130, "interrupted"), (failed, 2, "error: connection")):
+        monkeypatch.setattr(cli, "handler", lambda args, run=run: run)
+        assert cli.main(["info", day]) == status
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith(f"ttl info: {line}"), err
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
