@@ -218,9 +218,15 @@ def test_an_error_after_ctrl_c_is_the_interrupt(monkeypatch, capsys, tmp_path):
     day = tmp_path / "day.h5"
     day.write_bytes(b"")  # the parser checks that it exists; the handler never opens it
     day = str(day)
-    for run, status, line in ((interrupted_then_failed, 130, "interrupted"), (failed, 2, "error: connection")):
-        monkeypatch.setattr(cli, "handler", lambda args, run=run: run)
-        assert cli.main(["info", day]) == status
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and err[0].startswith(f"ttl info: {line}"), err
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    # Python's own SIGINT handler, as in a command started at a terminal (a pytest-xdist
+    # worker ignores SIGINT)
+    before = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        for run, status, line in ((interrupted_then_failed, 130, "interrupted"), (failed, 2, "error: connection")):
+            monkeypatch.setattr(cli, "handler", lambda args, run=run: run)
+            assert cli.main(["info", day]) == status
+            err = capsys.readouterr().err.strip().splitlines()
+            assert len(err) == 1 and err[0].startswith(f"ttl info: {line}"), err
+            assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    finally:
+        signal.signal(signal.SIGINT, before)
