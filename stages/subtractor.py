@@ -36,6 +36,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from stages.tdi_builder import rebuilt_copy
 from streamer.bus.codec import Expect
 from streamer.bus.fit_record import FitMessage
 from streamer.bus.message_schema import to_jsonable
@@ -111,6 +112,7 @@ class Subtractor(PipelineStage[SubtractorOptions]):
     inputs = ("tdi", "fit")
     follow = ("fitter", "tdi_builder")
     reorders = ("tdi", "fit")  # no gap reports on arrival: which fit applies comes from the fitter's progress
+    rebuilds = {"tdi": rebuilt_copy}  # a tdi segment read back from the recordings lacks its regressors
     options_type = SubtractorOptions
 
     def __init__(self, config):

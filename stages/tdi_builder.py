@@ -21,21 +21,26 @@ is a duplicate its consumers ignore, and it re-creates the tail the next segment
 
 from __future__ import annotations
 
+import json
+import math
 import sys
 from dataclasses import dataclass
+from pathlib import Path
 
-from streamer.bus.codec import Expect
+from streamer.bus.codec import Expect, encode
 from streamer.bus.messages import TELEMETRY_ARRAYS, telemetry_of
+from streamer.recording.recorded_inputs import recorded_copies
+from streamer.recording.recording_reader import RecordedSegment, RecordingError
 from streamer.runtime.pipeline_stage import OrderedStage
 from streamer.runtime.stage import Output, stage_main
 from streamer.runtime.stage_options import OrderedOptions, option, positive_int
 from ttlcore.conventions import COEFFICIENT_NAMES
 from ttlcore.io.telemetry import Telemetry
 from ttlcore.tdi.combinations import XYZ
-from ttlcore.tdi.data import TDIStream
+from ttlcore.tdi.data import TDIStream, history_samples
 
 #: Arrays kept in the recording: the regressors (72 channels, two thirds of a day's MCAP)
-#: are rebuilt from the replayer's recorded telemetry by :func:`ttlcore` TDI when needed,
+#: are rebuilt from the replayer's recorded telemetry when needed (:func:`rebuilt_copy`),
 #: and the forwarded telemetry is the replayer's (recorded there).
 RECORDED = ("data",)
 #: Units of the output arrays.
@@ -105,7 +110,12 @@ class TDIBuilder(OrderedStage[TDIBuilderOptions]):
         meta = {
             k: header.meta.get(k) for k in ("segments_total", "segment_duration", "source", "truth", "dws_asd", "gaps")
         }
-        meta.update(names=list(td.names), ltt_mean=[float(x) for x in td.ltt_mean], continuous=continuous)
+        meta.update(
+            names=list(td.names),
+            ltt_mean=[float(x) for x in td.ltt_mean],
+            continuous=continuous,
+            tdi_order=self.stream.order,
+        )
         if tuple(td.names) != tuple(COEFFICIENT_NAMES) or tuple(td.channels) != XYZ:
             raise ValueError(
                 f"TDIStream gave channels {td.channels} and names {td.names[:2]}...; "
@@ -118,6 +128,69 @@ class TDIBuilder(OrderedStage[TDIBuilderOptions]):
             allow_nonfinite=True,
             record_arrays=RECORDED,
         )
+
+
+def rebuilt_copy(run_dir: Path, seg: RecordedSegment) -> tuple[bytes, bytes]:
+    """The published ``(payload, attachment)`` of tdi segment ``seg``, recorded with its
+    ``data`` only (:data:`RECORDED`), rebuilt from the replayer's recorded telemetry.
+
+    The TDI stream is pushed again, as the TDI builder pushed it: the segment alone when its
+    stream restarted there (``meta.continuous`` false), else from the recorded segments
+    before it that reach back over the stream's tail (:func:`ttlcore.tdi.data.history_samples`,
+    back to a break in time).  The copy is bit-identical or refused: its payload checksum
+    must be the published one (``meta.recorded.published_checksum``).
+
+    Raises
+    ------
+    RecordingError
+        If the telemetry is not in the replayer's recordings, or the rebuilt payload is not
+        the published one (the message names the segment and why).
+    """
+    header, data = seg.header, seg.data or {}
+    meta = dict(header.meta or {})
+    recorded = meta.pop("recorded", None)
+    index, fs = header.index, header.fs
+    if not isinstance(recorded, dict) or not isinstance(recorded.get("published_checksum"), str):
+        raise RecordingError(f"tdi segment {index}: not a partly recorded copy (no meta.recorded)")
+    # the segments before it that the stream's tail can reach (twice the tail, to be safe)
+    before = 0
+    if meta.get("continuous"):
+        reach_s = history_samples(fs, 2 * max(8.6, *(meta.get("ltt_mean") or [0.0]))) / fs
+        before = math.ceil(reach_s / float(meta.get("segment_duration") or reach_s)) + 1
+    copies = recorded_copies(run_dir, "replayer", "telemetry", range(index - before, index + 1))
+    if index not in copies:
+        raise RecordingError(f"tdi segment {index}: its telemetry is not in the replayer's recordings in {run_dir}")
+    telemetry = {i: telemetry_of(m.header, m.arrays) for i, m in copies.items()}
+    start = index
+    while (
+        start - 1 in telemetry
+        and abs(telemetry[start - 1].t0 + telemetry[start - 1].duration - telemetry[start].t0) < 0.5 / fs
+    ):
+        start -= 1
+    order = meta.get("tdi_order")
+    stream = TDIStream() if order is None else TDIStream(order=int(order))
+    for i in range(start, index + 1):
+        td = stream.push(telemetry[i])
+    tm = telemetry[index]
+    arrays = {"data": td.data, "regressors": td.regressors, **{k: getattr(tm, k) for k in TELEMETRY_ARRAYS}}
+    fields = {k: data[k] for k in ("run", "index", "t0", "fs", "channels", "producer") if k in data}
+    fields.update(units=UNITS, channel_axis=CHANNEL_AXIS, meta=meta)
+    published, names = recorded["published_checksum"], recorded.get("published_arrays", list(arrays))
+    if not set(names) <= arrays.keys():
+        raise RecordingError(f"tdi segment {index}: published arrays {names}, the TDI builder's are {list(arrays)}")
+    payload, attachment = encode(
+        {k: arrays[k] for k in names},
+        fields,
+        checksum=published.partition(":")[0],
+        allow_nonfinite=True,
+    )
+    checksum = json.loads(attachment)["checksum"]
+    if checksum != published:
+        raise RecordingError(
+            f"tdi segment {index}: rebuilt from the replayer's telemetry (segments {start}..{index}), its "
+            f"checksum {checksum} is not the published {published}"
+        )
+    return payload, attachment
 
 
 def add_options(p) -> None:

@@ -53,6 +53,7 @@ from dataclasses import replace
 import numpy as np
 from threadpoolctl import threadpool_limits
 
+from stages.tdi_builder import rebuilt_copy
 from streamer.bus.fit_record import FitMessage
 from streamer.bus.message_schema import to_jsonable
 from streamer.bus.messages import tdi_expect, tdi_of, telemetry_of
@@ -94,6 +95,7 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
 
     name = "fitter"
     inputs = ("tdi",)
+    rebuilds = {"tdi": rebuilt_copy}  # a tdi segment read back from the recordings lacks its regressors
     follow = ("tdi_builder",)
     reorders = ("tdi",)
     options_type = FitterOptions

@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import json
 import re
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 from pathlib import Path
 
 import numpy as np
@@ -59,11 +59,20 @@ def recorded_copies(run_dir: Path, stage: str, topic: str, indices: Iterable[int
     return out
 
 
-def wire_copy(seg: RecordedSegment) -> tuple[bytes, bytes]:
+def wire_copy(
+    seg: RecordedSegment,
+    rebuild: Callable[[Path, RecordedSegment], tuple[bytes, bytes]] | None = None,
+    run_dir: Path | None = None,
+) -> tuple[bytes, bytes]:
     """``(payload, attachment)`` of a recorded segment as it was published: its arrays' bytes
     at their header offsets, and its wire header (which carries the payload's size and
     checksum), so that a stage takes it through the checks any copy from the bus goes
-    through."""
+    through.  A segment its producer recorded in part (``meta.recorded``: the arrays left out
+    by :attr:`streamer.bus.transport.Output.record_arrays`) is ``rebuild(run_dir, seg)`` when
+    given (the producer's own rule, e.g. :func:`stages.tdi_builder.rebuilt_copy`), else the
+    recorded part (which a consumer that needs the rest refuses)."""
+    if rebuild is not None and run_dir is not None and (seg.header.meta or {}).get("recorded"):
+        return rebuild(run_dir, seg)
     if seg.data is None:
         raise RecordingError(f"{seg.topic} segment {seg.header.index}: recorded without its header")
     payload = bytearray(seg.header.payload_bytes)

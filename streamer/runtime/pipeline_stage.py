@@ -26,6 +26,7 @@ from ..bus.segment_record import segments_total_of
 from ..bus.segment_stream import declare_segment_publisher
 from ..bus.topology import OUTPUT_TOPIC, PRODUCERS, UPSTREAM
 from ..recording.recorded_inputs import recorded_copies, wire_copy
+from ..recording.recording_reader import RecordedSegment
 from .catch_up import ANNOUNCED_FETCH_AFTER, CatchUp
 from .memtrace import MemoryTrace
 from .plan import MAX_SEGMENTS
@@ -152,6 +153,9 @@ class PipelineStage(Stage, Generic[O]):
 
     #: Stages whose progress messages this stage subscribes to ("*": all).
     follow: ClassVar[tuple[str, ...]] = ()
+    #: Per input topic, ``f(run_dir, segment) -> (payload, attachment)``: the published copy of a
+    #: segment recorded in part (``Output.record_arrays``), bit for bit, or a ValueError.
+    rebuilds: ClassVar[dict[str, Callable[[Path, RecordedSegment], tuple[bytes, bytes]]]] = {}
     #: Default poll interval of the pipeline stages [s].
     default_poll_interval: ClassVar[float] = 0.05
     #: The stage's options: a frozen dataclass (:mod:`streamer.runtime.stage_options`).
@@ -341,13 +345,13 @@ class PipelineStage(Stage, Generic[O]):
             for i in sorted(copies):
                 self.take_recorded(topic, copies[i])
 
-    def take_recorded(self, topic: str, seg) -> None:
-        """Hand a recorded segment (:class:`streamer.recording.recording_reader.RecordedSegment`) to the
-        stage as if it had come on the bus: the same checks, recording and handling.  A copy
-        the checks refuse (reported as any refusal) leaves the segment lost, not waited for."""
+    def take_recorded(self, topic: str, seg: RecordedSegment) -> None:
+        """Hand recorded segment ``seg`` to the stage as if it had come on the bus: the same
+        checks, recording and handling (a copy recorded in part made whole by :attr:`rebuilds`).
+        A copy the checks refuse (reported) leaves the segment lost, not waited for."""
         index = seg.header.index
         try:
-            payload, attachment = wire_copy(seg)
+            payload, attachment = wire_copy(seg, self.rebuilds.get(topic), Path(self.config.recordings) / self.run_id)
         except ValueError as exc:
             self.input_lost(topic, index, f"its recorded copy is unusable: {exc}")
             return

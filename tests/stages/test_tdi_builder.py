@@ -10,10 +10,13 @@ import pytest
 from mcap.reader import make_reader
 from ttl_testutil import indices, output, wait_alive, wait_for
 
+from stages.tdi_builder import rebuilt_copy
 from streamer.bus.codec import Expect, decode, encode
 from streamer.bus.keys import topic_pattern
 from streamer.bus.session import Bus, SessionSettings, free_port
-from streamer.recording.recorder import read_recording
+from streamer.recording.recorded_inputs import recorded_copies, wire_copy
+from streamer.recording.recorder import Recorder, read_recording
+from streamer.recording.recording_reader import RecordingError
 from ttlcore.conventions import COEFFICIENT_NAMES, LINKS
 from ttlcore.io.telemetry import Telemetry
 from ttlcore.tdi.data import TDIStream
@@ -95,6 +98,7 @@ def test_tdi_builder_ignores_duplicates_reports_malformed_and_goes_on(procs, tmp
         assert stage.wait(30) == 0, output(stage)
 
     _check_tdi_builder_recording(tmp_path / "rec" / RUN / "tdi_builder.mcap", rejected)
+    _check_rebuilt_copies(tmp_path / "rec" / RUN, got_all)
 
 
 def _start_tdi_builder(procs, bus, port: int, tmp_path):
@@ -173,3 +177,39 @@ def _check_tdi_builder_recording(path, rejected: list) -> None:
         for schema, channel, _ in make_reader(f).iter_messages():
             if channel.message_encoding == "json":
                 assert schema is not None and schema.encoding == "jsonschema", channel.topic
+
+
+def _check_rebuilt_copies(run_dir, published: list) -> None:
+    """The tdi segments recorded without their regressors and telemetry are rebuilt from the
+    replayer's recorded telemetry into the published copies, byte for byte (their checksum
+    is the published one); a rebuild from other telemetry, or without it, is refused."""
+    replayer = Recorder(run_dir / "replayer.mcap", metadata={"run": RUN, "stage": "replayer", "class": "Replayer"})
+    for i in range(4):
+        payload, attachment = message(i)
+        replayer.write_segment("telemetry", json.loads(attachment), payload)
+    replayer.close()
+    recorded = recorded_copies(run_dir, "tdi_builder", "tdi", range(4))
+    assert sorted(recorded) == [0, 1, 2, 3]
+    for (h, a), i in zip(published, range(4), strict=True):
+        seg = recorded[i]
+        assert set(seg.arrays) == {"data"}  # the recording keeps the data only
+        payload, attachment = wire_copy(seg, rebuilt_copy, run_dir)
+        header, arrays = decode(payload, attachment, Expect(allow_nonfinite=True), key=f"ttl/{RUN}/tdi/{i}")
+        assert header.checksum == h.checksum and header.meta == h.meta and header.arrays == h.arrays
+        for name in a:
+            np.testing.assert_array_equal(arrays[name], a[name])
+    # segment 2's TDI reaches back into segment 1: other telemetry there gives another payload
+    bad = run_dir / "other"
+    bad.mkdir()
+    other = Recorder(bad / "replayer.mcap", metadata={"run": RUN, "stage": "replayer", "class": "Replayer"})
+    for i in (1, 2):
+        tm = telemetry(i)
+        if i == 1:
+            tm.eta[2, -10] *= 1.5
+        payload, attachment = message(i, tm)
+        other.write_segment("telemetry", json.loads(attachment), payload)
+    other.close()
+    with pytest.raises(RecordingError, match=r"tdi segment 2: rebuilt .*\(segments 1\.\.2\).* not the published"):
+        rebuilt_copy(bad, recorded[2])
+    with pytest.raises(RecordingError, match="tdi segment 3: its telemetry is not in the replayer's recordings"):
+        rebuilt_copy(bad, recorded[3])
