@@ -355,6 +355,7 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
             self._caught_up = True
             self.catch_up(header.index)
         self.model.apply(header.index)  # the changes queued for this segment: at its start only
+        self.schedule.arrive(header.index)
         if self.rolling is not None and self._next_t0 is not None and abs(td.t0 - self._next_t0) > 0.5 / td.fs:
             self.event(
                 "discontinuity",

@@ -42,6 +42,9 @@ class DiagnosisSchedule:
         A diagnosis put off to this segment (:meth:`later`).
     last_done : int or None
         The segment of the last diagnosis (:meth:`done`).
+    previous, current : int or None
+        The segment before the one in hand, and the one in hand (:meth:`arrive`): a slot that
+        fell in between (in a gap, or segments stepped over) is kept at the first segment after.
     """
 
     every: int
@@ -49,6 +52,13 @@ class DiagnosisSchedule:
     outlier_run: int = 0
     pending_from: int | None = None
     last_done: int | None = None
+    previous: int | None = None
+    current: int | None = None
+
+    def arrive(self, index: int) -> None:
+        """Segment ``index`` is in hand (once per segment, before :meth:`due` is asked)."""
+        if index != self.current:
+            self.previous, self.current = self.current, index
 
     def later(self, index: int) -> None:
         """Diagnose at segment ``index`` (or at the slot before it): a model that only gained
@@ -61,17 +71,20 @@ class DiagnosisSchedule:
         self.last_done = index
 
     def due(self, index: int, *, last: bool, new_model: bool) -> bool:
-        """Whether segment ``index`` is diagnosed: on the cadence above, on the first
-        segment of a new model or a sustained excess (``new_model``: the model's own flag),
-        from a segment put off to (:meth:`later`), and on the run's ``last`` segment when half a
-        cadence or more has passed since the last diagnosis (its advice stands in the
+        """Whether segment ``index`` is diagnosed: on the cadence above (a slot passed since
+        the previous segment in hand, in a gap or segments stepped over, falls on this one), on
+        the first segment of a new model or a sustained excess (``new_model``: the model's own
+        flag), from a segment put off to (:meth:`later`), and on the run's ``last`` segment when
+        half a cadence or more has passed since the last diagnosis (its advice stands in the
         recordings; a short run is not diagnosed at its end)."""
         if self.every <= 0:
             return False
+        before = self.previous if self.current == index and self.previous is not None else index - 1
+        half = self.every // 2
         return (
             new_model
-            or (index + 1) % self.every == 0
-            or (self.every // 2 >= MIN_FIRST and index + 1 == self.every // 2)
+            or (index + 1) // self.every > (before + 1) // self.every
+            or (half >= MIN_FIRST and before + 1 < half <= index + 1)
             or (self.pending_from is not None and index >= self.pending_from)
             or (last and index - (-1 if self.last_done is None else self.last_done) >= max(1, self.every // 2))
         )

@@ -32,6 +32,30 @@ def test_a_one_day_file_is_diagnosed_at_half_a_day_and_at_its_end():
     assert not DiagnosisSchedule(24).due(3, last=True, new_model=False)
 
 
+def _slots(s: DiagnosisSchedule, segments, last: int) -> list[int]:
+    """The segments diagnosed of ``segments`` (in hand one by one, each asked twice as the
+    fitter does: for the window refit and for the diagnosis)."""
+    out = []
+    for i in segments:
+        s.arrive(i)
+        if s.due(i, last=i == last, new_model=False) and s.due(i, last=i == last, new_model=False):
+            out.append(i)
+            s.done(i)
+    return out
+
+
+def test_a_slot_inside_a_gap_falls_on_the_first_segment_after_it():
+    # the mission week's planned 7-h gap covered segments 118-123: the daily slot 119 never
+    # came, and the window 96..119 was diagnosed at no slot; now at segment 124
+    week = [i for i in range(168) if not 118 <= i <= 123]
+    assert _slots(DiagnosisSchedule(24), week, 167) == [11, 23, 47, 71, 95, 124, 143, 167]
+    # the first diagnosis at half a day, in a gap of hours 9-14: at hour 15
+    assert _slots(DiagnosisSchedule(24), [*range(9), *range(15, 30)], 29) == [15, 23]
+    # a gap that holds no slot moves none; segments in order keep the cadence
+    assert _slots(DiagnosisSchedule(24), [*range(30), *range(40, 48)], 47) == [11, 23, 47]
+    assert _slots(DiagnosisSchedule(24), range(48), 47) == [11, 23, 47]
+
+
 def test_a_sustained_excess_brings_the_diagnosis_forward_once():
     s = DiagnosisSchedule(24)
     outlier = {"t_start": 0.0, "t_stop": 3600.0, "chi2_dof": 1.5, "reference": 1.0, "z": 40.0}
