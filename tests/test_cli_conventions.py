@@ -553,7 +553,9 @@ def test_control_without_a_router_fails_at_once_naming_the_address(tmp_path):
     endpoint = f"tcp/127.0.0.1:{free_loopback_port()}"
     r, elapsed = ttl("control", "--run", "r1", "--connect", endpoint, "fitter", "model", '{"effects": ["drift"]}')
     line = one_line_error(r, "control")
-    assert r.returncode == 2 and elapsed < 10, (r.returncode, elapsed)
+    # "at once": well under the 31 s of the old wait; 20 s, not 10, for a process start and its
+    # imports on a loaded 2-core machine (10 s was passed at load 6 with the ops tests beside)
+    assert r.returncode == 2 and elapsed < 20, (r.returncode, elapsed)
     assert endpoint in line and "has the run ended" in line and "ttl refit" in line, line
     assert "orchestrator" not in line and "Timeout" not in line
     # --quiet: the error's one line still, nothing else (standard output empty)
@@ -561,7 +563,7 @@ def test_control_without_a_router_fails_at_once_naming_the_address(tmp_path):
     assert r.returncode == 2 and r.stdout == "" and endpoint in one_line_error(r, "control"), r.stderr
     # a TLS router without credentials: said before anything is tried
     r, elapsed = ttl("control", "--run", "r1", "--connect", endpoint.replace("tcp/", "tls/"), "fitter", "stop")
-    assert r.returncode == 2 and elapsed < 10 and "--credentials" in one_line_error(r, "control"), r.stderr
+    assert r.returncode == 2 and elapsed < 20 and "--credentials" in one_line_error(r, "control"), r.stderr
     # credentials that are not there
     r, _ = ttl(
         "control",

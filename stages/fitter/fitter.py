@@ -119,6 +119,7 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         self.adequacy_every = o.adequacy_every
         self.candidates_every = o.candidates_every
         self.diagnose_every = o.diagnose_every
+        self.diagnosis_workers = o.diagnosis_workers
         self.rolling_model = RollingModel(o.model_update, self.band, self.effect_modules)
         self.adopt = o.adopt
         self.schedule = DiagnosisSchedule(self.diagnose_every if self.adopt != "never" else 0)
@@ -217,7 +218,7 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         """The window's telemetry and its whitened data under the instrument noise model,
         shared by the window refit and the live diagnosis of a segment
         (:meth:`stages.fitter.window.TelemetryWindow.whitened`; ``keep`` False: not kept after)."""
-        settings = refit_settings(segment_meta(header).dws_asd, self.band)
+        settings = replace(refit_settings(segment_meta(header).dws_asd, self.band), workers=self.diagnosis_workers)
         source = str(self.config.recordings / self.run_id)
         return self.window_tm.whitened(source, settings, self.effect_modules, keep=keep)
 

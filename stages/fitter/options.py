@@ -18,6 +18,7 @@ from streamer.runtime.stage_options import (
     nonnegative_int,
     one_of,
     option,
+    positive_int,
 )
 from ttlcore.conventions import DAY
 
@@ -33,6 +34,13 @@ def _effects(value) -> str | tuple[str, ...]:
     """The model: one string in the grammar of ``--effects`` (read by
     :func:`ttlcore.effects.registry.make_effects`), or a list of specs."""
     return value if isinstance(value, str) else tuple(str(e) for e in value)
+
+
+#: The live diagnosis' candidate threads: one.  The fitter shares the machine's cores with
+#: four stages; on two cores a second thread bought no time (the candidates' products are
+#: memory-bound), cost 15 % more CPU and 0.25 GB, and kept every candidate's columns to the
+#: end of the phase (docs/operations.md, "Where the fitter's memory goes").
+DIAGNOSIS_WORKERS = 1
 
 
 @dataclass(frozen=True)
@@ -60,6 +68,8 @@ class FitterOptions(OrderedOptions):
     adopt: str = option("ask", one_of(*ADOPT_MODES))
     #: How an extended model is fitted between window refits (:data:`MODEL_UPDATES`).
     model_update: str = option("rolling", one_of(*MODEL_UPDATES))
+    #: Threads scoring the candidates of the live diagnosis and the window refit.
+    diagnosis_workers: int = option(DIAGNOSIS_WORKERS, positive_int)
 
 
 def add_options(p) -> None:
@@ -103,6 +113,12 @@ def add_options(p) -> None:
         "model change): rolling (default: the rolling fit with the model's columns, the work of one "
         "segment) or refit (the window refitted every segment, as ttl refit)",
     )
+    p.add_argument(
+        "--diagnosis-workers",
+        type=int,
+        help=f"threads scoring the live diagnosis' candidates (default {DIAGNOSIS_WORKERS}: the fitter "
+        "shares the cores with the other stages; the result does not depend on it)",
+    )
 
 
 def options(args) -> dict:
@@ -119,4 +135,5 @@ def options(args) -> dict:
         "diagnose_every": args.diagnose_every,
         "adopt": args.adopt,
         "model_update": args.model_update,
+        "diagnosis_workers": args.diagnosis_workers,
     }

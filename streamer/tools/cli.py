@@ -86,6 +86,7 @@ FITTER_OPTIONS = {
     "adopt": "adopt",
     "diagnose_every": "diagnose_every",
     "model_update": "model_update",
+    "diagnosis_workers": "diagnosis_workers",
 }
 
 

@@ -171,6 +171,13 @@ def _add_run_fitter_options(p) -> None:
         "change): rolling (default: the rolling fit with the model's columns) or refit (the "
         "window refitted every segment, as ttl refit)",
     )
+    p.add_argument(
+        "--diagnosis-workers",
+        type=int,
+        metavar="N",
+        help="fitter: threads scoring the live diagnosis' candidates (default 1: the fitter shares the "
+        "cores with the other stages; the result does not depend on it)",
+    )
 
 
 # ---------------------------------------------------------------------------- ttl stage

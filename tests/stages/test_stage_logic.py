@@ -345,12 +345,15 @@ def test_run_options_merge_config_file_and_command_line(tmp_path):
             "0.5",
             "--external",
             "subtractor,fitter",
+            "--diagnosis-workers",
+            "2",
         ]
     )
     o = run_options(args)
     assert (o.run_id, o.simulate, o.segment, o.window, o.skip) == ("from-file", "--duration 6h", "1h", 3, ("monitor",))
     assert o.external == ("subtractor", "fitter") and o.recordings == Path("recordings")
-    assert o.stage_options == {"monitor": {"live": "serve"}, "fitter": {"window_duration": "6h", "band": [0.004, 0.5]}}
+    fitter = {"window_duration": "6h", "band": [0.004, 0.5], "diagnosis_workers": 2}
+    assert o.stage_options == {"monitor": {"live": "serve"}, "fitter": fitter}
     (tmp_path / "bad.json").write_text('{"run_id": "x", "colour": "red"}')
     with pytest.raises(Exception, match="colour"):
         run_options(build_parser(register).parse_args(["run", "--config", str(tmp_path / "bad.json")]))

@@ -34,6 +34,12 @@ from .model_fit import ModelFit, parameter_name, total_offset
 
 log = logging.getLogger(__name__)
 
+#: Column sets of the store (:class:`ttlcore.diagnose.columns.ColumnStore`, by the first item
+#: of their key) that several candidates ask for: the TDI regressors, their derivatives (the
+#: timing offsets'), the base columns of the pole searches.  The others a candidate builds
+#: are its own, dropped once it is scored when candidates are scored one at a time.
+SHARED_SETS = ("regressors", "derivatives", "base")
+
 
 def rank_key(c: dict) -> tuple:
     """The order of a ranking: significant candidates first, then by log Bayes factor."""
@@ -136,7 +142,12 @@ class CandidatePool:
     def _queue(self, effect, replaces=None) -> None:
         if self._executor is None:  # serial: scored now, held as a finished future
             done: Future = Future()
+            store = self.model.data.context.store
+            mark = store.mark()
             done.set_result(self.score(effect, replaces))
+            # its trial columns are no other candidate's: not kept through the phase (a day's
+            # drift candidate holds 80 MB); the sets candidates share are
+            store.release_since(mark, keep=SHARED_SETS)
             self._futures.append(done)
         else:
             self._futures.append(self._executor.submit(self.score, effect, replaces))

@@ -232,12 +232,13 @@ class ColumnStore:
         """The keys of the column sets stored now (for :meth:`release_since`)."""
         return frozenset(self._sets)
 
-    def release_since(self, mark: frozenset) -> None:
-        """Drop the column sets stored after :meth:`mark` gave ``mark``: a phase's trial
-        columns (the candidates') that nothing after it asks for again.  One asked for
-        again is built again, the same numbers (a column set is a pure function of its key
-        and the data).  Not while other threads use the store."""
-        for key in [k for k in self._sets if k not in mark]:
+    def release_since(self, mark: frozenset, keep: tuple = ()) -> None:
+        """Drop the column sets stored after :meth:`mark` gave ``mark`` (but those whose key
+        starts with one of ``keep``): a phase's trial columns (the candidates') that nothing
+        after it asks for again.  One asked for again is built again, the same numbers (a
+        column set is a pure function of its key and the data).  Not while other threads use
+        the store."""
+        for key in [k for k in self._sets if k not in mark and k[0] not in keep]:
             self._sets.pop(key, None)
         self._latest = {family: key for family, key in self._latest.items() if key in self._sets}
 

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Iterator
 
 import numpy as np
 from scipy import fft as sp_fft
@@ -118,6 +119,8 @@ def glitch_spectra_of(data, wheres: list, t_glitch: float, beta: float) -> tuple
 #: gated out or left out: a zero column, or one collinear with the model's): its gain is 0.
 #: Before, ``0 / 1e-300`` there could be the best of the scan, at a time with no data.
 DEGENERATE = 1e-9
+#: Bytes of the template-model products :class:`_Scanner` holds at once (a few templates').
+PRODUCTS_BYTES = 24e6
 
 
 class _Scanner:
@@ -159,6 +162,15 @@ class _Scanner:
         q = np.matmul(Gc, self.M[:, j0:j1])  # (m, k, P)
         ngg = np.sum(np.abs(G) ** 2, axis=(0, 1, 2))
         return [(p[:, j], q[:, j], float(ngg[j])) for j in range(k)]
+
+    def each_product(self, G: np.ndarray, first: int = 0) -> Iterator[tuple]:
+        """:meth:`products` one template after the other, computed for a few templates at a
+        time (their ``q`` about :data:`PRODUCTS_BYTES`): twelve placements' ``q`` at once
+        were 90 MB of a day's diagnosis, twice over while the next piece's were computed."""
+        m, k = G.shape[1], G.shape[-1]
+        step = max(1, int(PRODUCTS_BYTES // (16 * m * max(1, self.M.shape[-1]))))
+        for j0 in range(0, k, step):
+            yield from self.products(G[..., j0 : j0 + step], first)
 
     def shifts(self, prods, max_shift: float) -> tuple[np.ndarray, np.ndarray]:
         """``(tau [s], delta chi2)`` of one template's products on the decimated grid,
@@ -243,9 +255,9 @@ def glitch_search(model, effect: Glitch) -> SearchResult:
         half = max(t_ref - a, b - t_ref)
         for beta in betas:
             # every placement in one TDI
-            prods = scanner.products(*glitch_spectra_of(data, places, t_ref, beta)[::-1])
-            for j_place, where in enumerate(places):
-                tau, dchi2 = scanner.shifts(prods[j_place], half)
+            products = scanner.each_product(*glitch_spectra_of(data, places, t_ref, beta)[::-1])
+            for where, place_products in zip(places, products, strict=True):
+                tau, dchi2 = scanner.shifts(place_products, half)
                 inside = (t_ref + tau >= a) & (t_ref + tau <= b)
                 n_eval += int(inside.sum())
                 j = int(np.argmax(np.where(inside, dchi2, -np.inf)))

@@ -24,6 +24,7 @@ def test_defaults_and_given_values_are_read_once_with_their_units():
     )
     assert o.window_duration == 43200.0 and o.band == (1e-3, 0.5) and o.effect_modules == ("a.py", "b")
     assert o.adopt == "ask" and o.diagnose_every == 24 and o.settle == 1.0 and o.effects == ("linear-ttl",)
+    assert o.diagnosis_workers == 1 and FitterOptions.parse({"diagnosis_workers": 2}, "fitter").diagnosis_workers == 2
     assert FitterOptions.parse({}, "fitter").window_duration == DAY
     assert isinstance(FitterOptions.parse({}, "fitter"), OrderedOptions)
     with pytest.raises(dataclasses.FrozenInstanceError):

@@ -15,6 +15,7 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
+from ttlcore.diagnose.candidates import SHARED_SETS
 from ttlcore.diagnose.columns import ColumnStore, assemble, effect_columns, empty_set, rewhitened, ttl_columns
 from ttlcore.diagnose.model_fit import gram, normal_equations, rhs
 from ttlcore.diagnose.prediction import column_regressors
@@ -97,3 +98,10 @@ def test_the_store_releases_what_a_phase_stored_and_keeps_the_rest():
     # a family whose entry was dropped starts again; the kept family still drops its old entry
     store.put(("model", "C1"), data, empty_set("k"), family=("model",))
     assert store.get(("model", "C0"), data) is None
+    # one candidate scored at a time (CandidatePool, one thread): its own sets go, those the
+    # candidates share (by the first item of their key) stay
+    mark = store.mark()
+    store.put(("derivatives",), data, empty_set("k"))
+    store.put(("approx", "drift", ()), data, empty_set("k"))
+    store.release_since(mark, keep=SHARED_SETS)
+    assert store.get(("derivatives",), data) is not None and store.get(("approx", "drift", ()), data) is None

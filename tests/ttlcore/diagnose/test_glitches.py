@@ -23,6 +23,7 @@ import blind_signals as bs  # noqa: E402
 from diagnose_helpers import follow  # noqa: E402
 
 from ttlcore.conventions import COEFFICIENT_NAMES, LINKS  # noqa: E402
+from ttlcore.diagnose import glitches  # noqa: E402
 from ttlcore.diagnose.diagnoser import refit, text_report  # noqa: E402
 from ttlcore.diagnose.excess import _whitened_columns  # noqa: E402
 from ttlcore.diagnose.fitting import fit_model  # noqa: E402
@@ -172,6 +173,14 @@ def test_a_templates_spectra_are_taken_only_where_its_stretch_reaches(glitch_day
             for (p, q, n), (p0, q0, n0) in zip(scanner.products(G, first), scanner.products(full)):
                 assert np.allclose(p, p0, rtol=1e-12, atol=1e-12 * np.abs(p0).max())
                 assert np.allclose(q, q0, rtol=1e-12, atol=1e-12 * np.abs(q0).max())
+                assert n == pytest.approx(n0, rel=1e-12)
+            # a few templates at a time (here one: PRODUCTS_BYTES below one template's q), in order
+            with pytest.MonkeyPatch.context() as mp:
+                mp.setattr(glitches, "PRODUCTS_BYTES", 1.0)
+                each = list(scanner.each_product(G, first))
+            assert len(each) == len(places)
+            for (p, q, n), (p0, q0, n0) in zip(each, scanner.products(G, first), strict=True):
+                assert np.allclose(p, p0, rtol=1e-12, atol=0) and np.allclose(q, q0, rtol=1e-12, atol=0)
                 assert n == pytest.approx(n0, rel=1e-12)
     assert reached == {1, 2}
 
