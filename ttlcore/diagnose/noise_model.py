@@ -523,7 +523,9 @@ def profile_noise_model(
         )
         if np.all(moved < 0.1):
             break
-    return nm, fit_model(fit.data, effects, time_table=time_table)
+    last = fit.data
+    fit = None  # nor the last pass's fit (its columns and their series) while the final one is made
+    return nm, fit_model(last, effects, time_table=time_table)
 
 
 def noise_model_json(model: NoiseModel | None) -> dict:
