@@ -296,7 +296,7 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
                 self.effects,
                 settings=data.context.settings,
                 effect_modules=self.effect_modules,
-                progress=stop_check(lambda: self.stopping),
+                checkpoint=stop_check(lambda: self.stopping),
                 whitened=data,
             )
         except ConfigError as exc:

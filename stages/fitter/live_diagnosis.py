@@ -27,13 +27,14 @@ from ttlcore.effects.gate import merge_gates, split_gates
 
 
 class DiagnosisStopped(Exception):
-    """The stage is stopping: its live diagnosis is abandoned between two of its steps
-    (raised by the ``progress`` callback :func:`ttlcore.diagnose.diagnoser.diagnose` calls
-    before each step; its candidate threads are cancelled on the way out)."""
+    """The stage is stopping: its live diagnosis is abandoned between two of its steps, two
+    candidates or two transient events (raised by the ``checkpoint`` callback
+    :func:`ttlcore.diagnose.diagnoser.diagnose` calls there; its candidate threads are
+    cancelled on the way out)."""
 
 
 def stop_check(stopping) -> Callable[[str], None]:
-    """A ``progress`` callback for :func:`~ttlcore.diagnose.diagnoser.diagnose` that raises
+    """A ``checkpoint`` callback for :func:`~ttlcore.diagnose.diagnoser.diagnose` that raises
     :class:`DiagnosisStopped` once ``stopping()`` is true: a stage told to stop (SIGTERM, its
     launcher gone, a stop message) leaves a day-long diagnosis within one of its steps
     (seconds to a minute) instead of after all of them (minutes: a mission week's fitter

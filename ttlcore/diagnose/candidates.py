@@ -87,8 +87,11 @@ class CandidatePool:
     being scored - then :meth:`ranked`.
     """
 
-    def __init__(self, model: ModelFit, workers: int = 1):
+    def __init__(self, model: ModelFit, workers: int = 1, checkpoint=None):
         self.model = model
+        # called before each candidate is scored; may raise to abandon the ranking (a stage
+        # told to stop): ttlcore.diagnose.diagnoser.diagnose's ``checkpoint``
+        self.checkpoint = checkpoint or (lambda step: None)
         data = model.data
         s = data.context.settings
         self.C = model.ttl_coefficients()
@@ -162,6 +165,7 @@ class CandidatePool:
     def score(self, effect, replaces=None) -> dict | None:
         """One candidate's entry of the ranking (None when it cannot be scored here):
         ``effect`` added to the model, or put in the place of its effect ``replaces``."""
+        self.checkpoint(f"candidate {effect.spec()}")
         model, data = self.model, self.model.data
         s = data.context.settings
         cls, name = type(effect), effect.name

@@ -82,6 +82,7 @@ def diagnose(
     witnesses: bool | None = None,
     progress=None,
     whitened: WhitenedData | None = None,
+    checkpoint=None,
 ) -> Diagnosis:
     """Full diagnosis of telemetry ``tm`` with a model (list of effect specs).
 
@@ -93,6 +94,9 @@ def diagnose(
     ``whitened``: the whitened data of ``tm`` under ``settings``, when built already
     (:func:`~ttlcore.diagnose.whitened.whiten_telemetry`; the live fitter's window refit and
     diagnosis of one segment share them); a :class:`ConfigError` when built under other settings.
+    ``progress(step)`` is told each step; ``checkpoint(step)`` is called before each step and
+    at finer points (each candidate, each transient event) and may raise to abandon the
+    diagnosis (a live fitter told to stop leaves within seconds, not after a whole step).
 
     Returns
     -------
@@ -103,7 +107,13 @@ def diagnose(
         ``docs/diagnostics.md``).
     """
     s = settings or DiagnoseSettings()
-    say = progress or (lambda msg: None)
+    check = checkpoint or (lambda step: None)
+
+    def say(step: str) -> None:
+        check(step)
+        if progress is not None:
+            progress(step)
+
     clock = time.monotonic()
     timings: dict[str, float] = {}
     eff = make_effects(list(effects), effect_modules)
@@ -134,7 +144,7 @@ def diagnose(
         clock = _lap(timings, "before", clock)
     use_witnesses = s.witnesses if witnesses is None else witnesses
     mark = model.data.context.store.mark()
-    clock = _candidates(report, tm, model, s, candidates, effect_modules, use_witnesses, say, (timings, clock))
+    clock = _candidates(report, tm, model, s, candidates, effect_modules, use_witnesses, (say, check), (timings, clock))
     # the candidates' columns (a day's: 0.4-0.5 GB) are not asked for again: not kept through
     # the transient phase, the diagnosis' peak
     model.data.context.store.release_since(mark)
@@ -143,7 +153,7 @@ def diagnose(
     )
     del ungated
     onsets = functools.partial(add_onset_candidates, model, report, modules=effect_modules)
-    _transients(report, model, (refit, onsets), s, truth_coefficients)
+    _transients(report, model, (refit, onsets, check), s, truth_coefficients)
     _lap(timings, "transients", clock)
     report["recommendation"] = recommendation(report, eff)
     report["settings"] = {
@@ -187,13 +197,15 @@ def _before_after(report: dict, model: ModelFit, eff: list, truth_coefficients) 
 
 
 def _candidates(
-    report: dict, tm, model: ModelFit, s: DiagnoseSettings, candidates, effect_modules, use_witnesses: bool, say, laps
+    report: dict, tm, model: ModelFit, s: DiagnoseSettings, candidates, effect_modules, use_witnesses: bool, says, laps
 ) -> float:
     """The report's ``witnesses`` and ranked ``candidates``: the named candidates are scored
     (by the pool's workers) while the witness search runs here; the witness candidates join
-    them when it ends.  ``laps`` is ``(timings, since)``; returns the clock reading at the end."""
+    them when it ends.  ``says`` is ``(progress, checkpoint)`` (:func:`diagnose`), ``laps``
+    ``(timings, since)``; returns the clock reading at the end."""
     timings, clock = laps
-    with CandidatePool(model, s.n_workers()) as pool:
+    say, check = says
+    with CandidatePool(model, s.n_workers(), checkpoint=check) as pool:
         pool.submit(named_candidates(model, candidates))
         if report["adequacy"]["fails"]:
             # the model's couplings with a searched shape, searched again on these data (a
@@ -236,11 +248,13 @@ def _transients(report: dict, model: ModelFit, hooks: tuple, s: DiagnoseSettings
     """The report's ``transients`` (with their actions and the gated model) and, beside a
     signal, the candidates ranked again on the data with it gated.  ``hooks``: the model
     refitted with spans gated, and the onset candidates added
-    (:func:`~ttlcore.diagnose.excess.transient_report`'s ``refit`` and ``onsets``)."""
-    refit, onsets = hooks
+    (:func:`~ttlcore.diagnose.excess.transient_report`'s ``refit`` and ``onsets``), and the
+    :func:`diagnose` ``checkpoint``."""
+    refit, onsets, check = hooks
     report["transients"] = transient_report(model, report, refit=refit, onsets=onsets)
     residual = report["transients"].pop("_residual")
-    report["transients"].update(transient_actions(model, report, residual))  # actions, not_advised
+    # actions, not_advised
+    report["transients"].update(transient_actions(model, report, residual, checkpoint=check))
     del residual
     gated = report["transients"].pop("_gated")
     report["transients"]["gated_model"] = None if gated is None else gated_model_json(gated, truth_coefficients)

@@ -121,7 +121,7 @@ def moves_the_fit(kind: str, shift: dict) -> bool:
     return kind != "gate" or shift["max_z"] >= GATE_Z
 
 
-def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> dict:
+def transient_actions(model: ModelFit, report: dict, residual: np.ndarray, checkpoint=None) -> dict:
     """What to add to the model for the transients and gaps the finder reported
     (``report["transients"]``, :func:`ttlcore.diagnose.excess.transient_report`):
 
@@ -162,7 +162,7 @@ def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> di
     gaps = tr.get("gaps") or []
     if not events and not gaps:
         return {"actions": [], "not_advised": []}
-    actions, spans, skipped = _event_actions(model, tr, residual)
+    actions, spans, skipped = _event_actions(model, tr, residual, checkpoint or (lambda step: None))
     spans += [[float(a), float(b), [], None] for a, b in gaps]
     for act in _gates(model.data, spans):
         gap = any(x < act["stop"] and y > act["start"] for x, y in gaps)
@@ -180,10 +180,11 @@ def transient_actions(model: ModelFit, report: dict, residual: np.ndarray) -> di
     return {"actions": actions, "not_advised": skipped}
 
 
-def _event_actions(model: ModelFit, tr: dict, residual: np.ndarray) -> tuple[list, list, list]:
+def _event_actions(model: ModelFit, tr: dict, residual: np.ndarray, checkpoint) -> tuple[list, list, list]:
     """The glitches of the events (:func:`transient_actions`), loudest first (each searched
     with the louder events' glitches in the model): ``(actions, spans to gate [start, stop,
-    events, glitch tried], not advised)``."""
+    events, glitch tried], not advised)``; ``checkpoint(step)`` before each event (it may
+    raise: :func:`ttlcore.diagnose.diagnoser.diagnose`)."""
     data = model.data
     s = data.context.settings
     events = tr["events"]
@@ -192,6 +193,7 @@ def _event_actions(model: ModelFit, tr: dict, residual: np.ndarray) -> tuple[lis
     tf0 = residual_map(data, residual) if events else None
     actions, spans, prior, skipped = [], [], list[Effect](), []
     for i, e in enumerate(events):  # loudest first
+        checkpoint(f"transient event {i + 1} of {len(events)}")
         if e["class"] in ("missing-coupling", "onset"):  # a change that has not ended is no transient
             continue
         span = (e["t_start"] - hop, e["t_stop"] + hop)
