@@ -37,9 +37,9 @@ def _effects(value) -> str | tuple[str, ...]:
 
 
 #: The live diagnosis' candidate threads: one.  The fitter shares the machine's cores with
-#: four stages; on two cores a second thread bought no time (the candidates' products are
-#: memory-bound), cost 15 % more CPU and 0.25 GB, and kept every candidate's columns to the
-#: end of the phase (docs/operations.md, "Where the fitter's memory goes").
+#: four stages; on a loaded two-core machine (load 1-6.5; not yet measured idle) a second
+#: thread bought no wall time, cost 15 % more CPU and 0.25 GB, and kept every candidate's
+#: columns to the end of the phase (docs/operations.md, "Where the fitter's memory goes").
 DIAGNOSIS_WORKERS = 1
 
 
