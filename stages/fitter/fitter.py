@@ -163,6 +163,11 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         if self._restarted:
             self.restore_model()
 
+    def controls_ready(self) -> bool:
+        """A restarted fitter handles control commands once it knows its first segment (a
+        model change applies from the segment after the one in hand)."""
+        return not self._restarted or self.queue.next is not None
+
     def settings(self, meta: SegmentMeta) -> FitSettings:
         """The rolling fit's settings: the fitter's FFT segment (else the message's
         ``segment_duration``, else 1 h) and band (else the default), the message's DWS ASD."""
@@ -296,7 +301,9 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
                 self.effects,
                 settings=data.context.settings,
                 effect_modules=self.effect_modules,
-                checkpoint=stop_check(lambda: self.stopping),
+                checkpoint=stop_check(
+                    lambda: self.stopping, lambda: self.controls.defer(f"diagnosing segment {header.index}")
+                ),
                 whitened=data,
             )
         except ConfigError as exc:

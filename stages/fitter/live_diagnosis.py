@@ -33,16 +33,20 @@ class DiagnosisStopped(Exception):
     cancelled on the way out)."""
 
 
-def stop_check(stopping) -> Callable[[str], None]:
+def stop_check(stopping, between: Callable[[], None] | None = None) -> Callable[[str], None]:
     """A ``checkpoint`` callback for :func:`~ttlcore.diagnose.diagnoser.diagnose` that raises
     :class:`DiagnosisStopped` once ``stopping()`` is true: a stage told to stop (SIGTERM, its
     launcher gone, a stop message) leaves a day-long diagnosis within one of its steps
     (seconds to a minute) instead of after all of them (minutes: a mission week's fitter
-    kept diagnosing for over 2 min after its launcher was gone)."""
+    kept diagnosing for over 2 min after its launcher was gone).  Otherwise ``between()``
+    runs: the fitter queues the control commands come meanwhile (recorded, their senders
+    told; :meth:`streamer.runtime.controls.ControlDesk.defer`)."""
 
     def progress(step: str) -> None:
         if stopping():
             raise DiagnosisStopped(f"the stage is stopping (before the diagnosis' {step!r})")
+        if between is not None:
+            between()
 
     return progress
 

@@ -53,6 +53,8 @@ class FitterModel(_Stage):
     """The model-change and restart part of :class:`stages.fitter.fitter.Fitter` (a mixin: it uses
     the stage's ``model``, ``queue``, ``schedule``, ``window_tm``, recorder and events)."""
 
+    #: ``ttl control fitter model '{"effects": [...]}'`` (:meth:`control`)
+    commands = ("model",)
     #: the fitter's state this part works on (set by :class:`stages.fitter.fitter.Fitter`)
     model: LiveModel
     schedule: DiagnosisSchedule

@@ -185,6 +185,12 @@ def control_pattern(run: str) -> str:
     return f"{PREFIX}/{check_name(run, 'run id')}/{CONTROL}/**"
 
 
+def stage_control_pattern(run: str, stage: str) -> str:
+    """``ttl/<run>/control/<stage>/*``: the commands of one stage (its queryable: the
+    verdict goes back to the sender, :mod:`streamer.runtime.controls`)."""
+    return f"{PREFIX}/{check_name(run, 'run id')}/{CONTROL}/{check_name(stage, 'stage')}/*"
+
+
 def progress_key(run: str, stage: str) -> str:
     """``ttl/<run>/control/progress/<stage>``: the progress ``stage`` reports."""
     return control_key(run, PROGRESS, stage)

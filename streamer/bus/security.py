@@ -9,18 +9,22 @@ certificate's common name (``access_control`` of Zenoh's configuration, see
 ``replayer``, ``tdi_builder``, ``fitter``, ``subtractor``, ``monitor``
     a stage: may publish its own output topic (``ttl/<run>/<topic>``), its own progress
     (``ttl/<run>/control/progress/<stage>``), its own liveliness token
-    (``ttl/<run>/alive/<stage>``) and errors (``ttl/<run>/errors/<i>``);
+    (``ttl/<run>/alive/<stage>``) and errors (``ttl/<run>/errors/<i>``), and answer the
+    commands sent to it (a queryable on ``ttl/<run>/control/<stage>/*``); it may not ask
+    another stage's commands (a query there is a command);
 ``launcher``
     ``ttl run``: may publish commands (``ttl/<run>/control/...``, progress excepted), the
     progress it verified (``ttl/<run>/control/board/<stage>``, advanced publishers) and its
     own liveliness token ``ttl/<run>/alive/launcher``;
 ``control``
-    ``ttl control`` (an operator): commands to stages, progress excepted;
+    ``ttl control`` (an operator): commands to stages (puts, and queries answered with the
+    stage's verdict), progress excepted;
 ``router``
     the routers (``ttl router``, the router started by ``ttl run``): a router forwards what
     the stages behind it published, so it may publish everything of the project.
 
-Every identity may subscribe and query (read); nothing else is allowed (default deny).
+Every identity may subscribe and query (read), a stage's command keys excepted for the
+stages; nothing else is allowed (default deny).
 A router refuses a peer whose certificate is missing or not signed by the run's CA (the
 TLS handshake fails) and drops a publication its ACL forbids; both are written to the
 router's log (:data:`ROUTER_LOG_FILTER`), which :func:`refusals` reads back.
@@ -399,6 +403,14 @@ def access_control(run: str = "*") -> dict:
             "permission": "deny",
             "key_exprs": _keys(f"{r}/control/board/*"),
         },
+        # a query on a stage's command key is a command: not from another stage
+        {
+            "id": "no-asked-commands",
+            "messages": ["query"],
+            "flows": ["ingress"],
+            "permission": "deny",
+            "key_exprs": [f"{r}/control/{stage}/*" for stage in STAGES],
+        },
     ]
     # one subject per common name: a transport matches exactly one subject, so the router
     # logs one decision per message (refusals() relies on it)
@@ -419,7 +431,17 @@ def access_control(run: str = "*") -> dict:
                 + [f"{r}/alive/{stage}"],
             }
         )
-        grants[stage] = [f"{stage}-publishes"]
+        # its commands come as queries (ttl control waits for the verdict): it answers them
+        rules.append(
+            {
+                "id": f"{stage}-answers",
+                "messages": ["declare_queryable", "reply"],
+                "flows": ["ingress"],
+                "permission": "allow",
+                "key_exprs": [f"{r}/control/{stage}/*"],
+            }
+        )
+        grants[stage] = [f"{stage}-publishes", f"{stage}-answers", "no-asked-commands"]
     subjects = [{"id": role, "cert_common_names": [role]} for role in ROLES]
     policies = [{"id": role, "rules": common + grants[role], "subjects": [role]} for role in ROLES]
     return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}

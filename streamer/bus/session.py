@@ -36,7 +36,7 @@ from __future__ import annotations
 import json
 import logging
 import socket
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -404,6 +404,28 @@ class Bus:
     def subscriber(self, key_expr: str, callback):
         """A plain subscriber (control messages, errors)."""
         return self.track(self.session.declare_subscriber(key_expr, callback))
+
+    def queryable(self, key_expr: str, callback):
+        """A queryable (control commands answered with their verdict); ``callback(query)``
+        runs on a Zenoh thread; the query is answered once it is dropped
+        (:class:`streamer.bus.transport.ControlReply`)."""
+        return self.track(self.session.declare_queryable(key_expr, callback))
+
+    def ask(self, key: str, payload: bytes, *, attachment: bytes, timeout: float) -> Iterator[tuple[bool, bytes]]:
+        """Query ``key`` with ``payload``: ``(ok, payload)`` of every reply as it comes (not
+        merged: a stage may answer twice, queued then accepted), until every queryable
+        reached has finished answering or ``timeout`` seconds have passed."""
+        replies = self.session.get(
+            key,
+            payload=payload,
+            attachment=attachment,
+            timeout=timeout,
+            consolidation=zenoh.ConsolidationMode.NONE,
+            target=zenoh.QueryTarget.ALL,
+        )
+        for reply in replies:
+            sample = reply.ok if reply.ok is not None else reply.err
+            yield reply.ok is not None, (sample.payload.to_bytes() if sample is not None else b"")
 
     def declare_alive(self, run: str, stage: str):
         return self.track(declare_alive(self.session, run, stage))

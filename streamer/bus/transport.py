@@ -9,8 +9,11 @@ commands have their own queue, emptied before the next segment.
 from __future__ import annotations
 
 import json
+import logging
 import queue
+import re
 import threading
+import uuid
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
@@ -95,6 +98,68 @@ def recorded_part(out: Output, fields: dict, header: dict) -> tuple[dict, bytes]
     return json.loads(attachment), part
 
 
+#: Characters of a sender's control id (``ttl control`` sends a UUID); another is replaced.
+_CONTROL_ID = re.compile(r"[A-Za-z0-9_.:-]{1,64}")
+
+
+def control_id(attachment) -> str:
+    """The sender's id of a control command (its attachment: ``ttl control`` sends a UUID),
+    else a new one: the id names the command in the stage's records
+    (``control`` topic), which a restarted stage reads to finish what it queued."""
+    try:
+        text = attachment.to_bytes().decode("ascii") if attachment is not None else ""
+    except (UnicodeDecodeError, AttributeError):
+        text = ""
+    return text if _CONTROL_ID.fullmatch(text) else uuid.uuid4().hex
+
+
+class ControlReply:
+    """The query a control command came on: the stage's answers go back to the sender.
+
+    :meth:`answer` sends a verdict (a JSON object with ``state``: ``queued``, then
+    ``accepted`` or ``rejected``); the final one ends the query.  A sender gone (its query
+    timed out) loses the answer, never the command: the stage records every verdict.
+    """
+
+    def __init__(self, query):
+        self.query = query
+
+    def answer(self, verdict: dict, final: bool = True) -> None:
+        if self.query is None:
+            return
+        try:
+            self.query.reply(self.query.key_expr, json.dumps(verdict, default=str).encode())
+        except Exception as exc:  # noqa: BLE001 - the sender has gone: the record stays
+            logging.getLogger(__name__).info("control answer not delivered: %s", exc)
+        if final:
+            try:
+                self.query.drop()
+            finally:
+                self.query = None
+
+
+@dataclass
+class Control:
+    """One control command for a stage: ``ttl/<run>/control/<stage>/<command>``.
+
+    Attributes
+    ----------
+    command : str
+        The command (``model``...).
+    payload : bytes
+        Its payload (JSON; parsed by the stage with the bounded parser).
+    id : str
+        The sender's id (:func:`control_id`).
+    reply : ControlReply, optional
+        Where the verdict goes (None: put on the bus, or restored from a recording).
+    """
+
+    command: str
+    payload: bytes
+    id: str
+    reply: ControlReply | None = None
+
+
 def sequence_number(sample) -> int | None:
     """The advanced publisher's sequence number of ``sample`` (None: a sample of a plain
     ``put``, which has none)."""
@@ -127,7 +192,7 @@ class StageTransport:
         #: ("sample", key, payload, attachment, sn), ("miss", source, count) and ("refetched",
         #: key, index, copies), in arrival order.
         self.inbox: queue.Queue = queue.Queue()
-        #: (command, payload) of ``control/<stage>/<command>``: handled before queued segments.
+        #: :class:`Control` of ``control/<stage>/<command>``: handled before queued segments.
         self.controls: queue.Queue = queue.Queue()
         self._publishers: dict = {}
 
@@ -153,6 +218,7 @@ class StageTransport:
         bus.refetch(key, index, None, self.on_sample, on_done=lambda n: self.inbox.put(("fetched", key, index, n)))
 
     def on_control(self, sample) -> None:
+        """A command put on the bus (no answer goes back: the launcher's stop, old senders)."""
         try:
             _, parts = parse_control_key(str(sample.key_expr))
         except KeyExprError:
@@ -162,11 +228,31 @@ class StageTransport:
             self.stop.set()
         elif len(parts) == 2 and parts[0] == self.stage:
             payload = sample.payload.to_bytes() if sample.payload is not None else b""
-            self.controls.put((parts[1], payload))
+            self.controls.put(Control(parts[1], payload, control_id(sample.attachment)))
+
+    def on_control_query(self, query) -> None:
+        """A command asked as a query (``ttl control``): its verdict goes back on the query
+        (:class:`ControlReply`); a stop is answered at once."""
+        try:
+            _, parts = parse_control_key(str(query.key_expr))
+        except KeyExprError:
+            query.drop()
+            return
+        if len(parts) != 2 or parts[0] != self.stage:
+            query.drop()
+            return
+        reply = ControlReply(query)
+        if parts[1] == "stop":
+            self.log.info("stop requested on %s", query.key_expr)
+            self.stop.set()
+            reply.answer({"stage": self.stage, "command": "stop", "state": "accepted", "message": "stopping"})
+            return
+        payload = query.payload.to_bytes() if query.payload is not None else b""
+        self.controls.put(Control(parts[1], payload, control_id(query.attachment), reply))
 
     # ------------------------------------------------------------------ main thread
     def pending_controls(self):
-        """The control commands queued so far, (command, payload) in order (taken out)."""
+        """The control commands queued so far (:class:`Control`), in order (taken out)."""
         while not self.controls.empty():
             yield self.controls.get_nowait()
 

@@ -26,7 +26,7 @@ mission time the recorder has seen for messages without one), so Foxglove and th
 tools plot mission days; ``publish_time`` is the wall-clock time of the write [ns since epoch].
 
 The file is chunked and compressed (zstd by default).  A chunk is closed after every
-segment, after every message on :data:`FLUSHED_TOPICS` (errors, events, warnings) and whenever it has been open for :data:`MAX_CHUNK_AGE` seconds at a write, so a
+segment, after every message on :data:`FLUSHED_TOPICS` (errors, events, warnings, control) and whenever it has been open for :data:`MAX_CHUNK_AGE` seconds at a write, so a
 killed process loses at most the chunk it was filling; :func:`read_recording` salvages
 such files (no summary, no footer, maybe a truncated last chunk).
 
@@ -101,7 +101,7 @@ CHUNK_SIZE = 1 << 20
 #: A chunk open for longer than this is closed at the next write [s].
 MAX_CHUNK_AGE = 2.0
 #: JSON topics whose messages close the chunk at once (rare, and wanted after a kill).
-FLUSHED_TOPICS = frozenset({"errors", "events", "warnings"})
+FLUSHED_TOPICS = frozenset({"errors", "events", "warnings", "control"})
 _COMPRESSION = {
     "zstd": CompressionType.ZSTD,
     "lz4": CompressionType.LZ4,

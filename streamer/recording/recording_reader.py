@@ -16,7 +16,7 @@ import logging
 import mmap
 import os
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Collection
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -159,8 +159,10 @@ class Recording:
 class _Assembler:
     """Turns MCAP (schema, channel, message) records into :class:`RecordedMessage`."""
 
-    def __init__(self, recording: Recording, keep: Keep | None = None):
+    def __init__(self, recording: Recording, keep: Keep | None = None, topics: Collection[str] = ()):
         self.rec = recording
+        #: with ``keep``: the JSON topics read too (the others are skipped)
+        self.topics = frozenset(topics)
         #: only the segments ``keep(topic, header)`` accepts are decoded and kept (nothing else)
         self.keep = keep
         self.channels: dict[int, Channel] = {}
@@ -252,9 +254,11 @@ class _Assembler:
 
     def _wanted(self, channel: Channel, msg: Message) -> bool:
         """With a ``keep`` filter: a segment's header that it accepts, and the payload that
-        follows such a header; nothing else (no JSON topic, no other segment)."""
+        follows such a header, and the JSON messages of ``topics``; nothing else."""
         assert self.keep is not None
         topic = channel.topic
+        if channel.message_encoding == "json" and topic in self.topics:
+            return True
         if channel.message_encoding == "json" and topic.endswith("/header"):
             try:
                 data = json.loads(msg.data)
@@ -279,12 +283,13 @@ class _Assembler:
 Keep = Callable[[str, dict], bool]
 
 
-def read_recording(path, keep: Keep | None = None) -> Recording:
+def read_recording(path, keep: Keep | None = None, topics: Collection[str] = ()) -> Recording:
     """Read an MCAP recording written by :class:`Recorder`, salvaging unfinished files.
 
     ``keep``, optional, reads only the segments it accepts (``keep(topic, header)``): the
     others are skipped undecoded, so that a few segments of a week's recording cost their
-    own memory, not the file's (:mod:`streamer.recording.recorded_inputs`).
+    own memory, not the file's (:mod:`streamer.recording.recorded_inputs`); with it, the
+    JSON messages of ``topics`` are read too, and no other.
 
     A complete file is read with mcap's streaming reader (CRCs checked).  A file without footer (the process was
     killed) is read record by record up to the first truncated or corrupt record;
@@ -309,18 +314,18 @@ def read_recording(path, keep: Keep | None = None) -> Recording:
         raise RecordingError(f"{path}: not an MCAP file (bad magic {magic!r})")
     if size > 2 * len(MAGIC) and tail == MAGIC:
         try:
-            return _read_complete(path, keep)
+            return _read_complete(path, keep, topics)
         except Exception as exc:  # noqa: BLE001 - McapError, ZstdError, struct.error...: damaged
             log.warning(
                 "%s: reading the closed file failed (%s: %s); salvaging record by record", path, type(exc).__name__, exc
             )
-    return _salvage(path, size, keep)
+    return _salvage(path, size, keep, topics)
 
 
-def _read_complete(path: Path, keep: Keep | None = None) -> Recording:
+def _read_complete(path: Path, keep: Keep | None = None, topics: Collection[str] = ()) -> Recording:
     """Read a closed file with mcap's streaming reader (CRCs checked)."""
     rec = Recording(path, complete=True)
-    asm = _Assembler(rec, keep)
+    asm = _Assembler(rec, keep, topics)
     with open(path, "rb") as f:
         for record in StreamReader(f, validate_crcs=True).records:
             rec.records += 1
@@ -329,7 +334,7 @@ def _read_complete(path: Path, keep: Keep | None = None) -> Recording:
     return rec
 
 
-def _salvage(path: Path, size: int, keep: Keep | None = None) -> Recording:
+def _salvage(path: Path, size: int, keep: Keep | None = None, topics: Collection[str] = ()) -> Recording:
     """Read ``path`` record by record, keeping every record that checks out.
 
     A record that does not parse (a chunk whose CRC or zstd frame fails: flipped bytes) is
@@ -339,7 +344,7 @@ def _salvage(path: Path, size: int, keep: Keep | None = None) -> Recording:
     ends early (a killed process) stops at its last whole record, as before.
     """
     rec = Recording(path, complete=False)
-    asm = _Assembler(rec, keep)
+    asm = _Assembler(rec, keep, topics)
     with open(path, "rb") as f, mmap.mmap(f.fileno(), 0, access=mmap.ACCESS_READ) as data:
         pos = len(MAGIC)
         end_problem = None

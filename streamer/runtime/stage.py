@@ -47,21 +47,21 @@ from typing import ClassVar
 
 import numpy as np
 
-from ..bus.bounded_json import BoundedJSONError, load_bounded
 from ..bus.codec import Expect, Header
 from ..bus.keys import (
     KeyExprError,
-    control_key,
     control_pattern,
     parse_segment_key,
     parse_stream_key,
     segment_key,
+    stage_control_pattern,
     stream_key,
     topic_pattern,
 )
 from ..bus.session import Bus
 from ..bus.transport import Output, StageTransport, output_fields, recorded_part
 from ..recording.recorder import Recorder, mission_ns
+from .controls import ControlDesk, due_controls, recorded_controls
 from .ingest import PREVIEW_CHARS, GapWatch, Ingest
 from .ingest import preview as _preview
 from .lifecycle import LAUNCHER, LauncherWatch, disk_full, install_signal_flag
@@ -112,6 +112,9 @@ class Stage:
     inputs: ClassVar[tuple[str, ...]] = ()
     #: Poll interval [s] when neither the command line nor the configuration file sets one.
     default_poll_interval: ClassVar[float] = StageConfig.poll_interval
+    #: The control commands :meth:`control` knows (stop excepted): a restarted stage with
+    #: any reads the commands its earlier process queued and did not handle.
+    commands: ClassVar[tuple[str, ...]] = ()
 
     def __init__(self, config: StageConfig):
         self.stage_name = config.stage or self.name
@@ -130,6 +133,18 @@ class Stage:
         self.reports = StageReports(self.run_id, self.stage_name, self.log)
         #: Queues filled by the Zenoh callbacks; output publishers.
         self.transport = StageTransport(self.run_id, self.stage_name, config.cache, self._stop, self.log)
+        #: Control commands: handled between segments, recorded, answered (:mod:`.controls`).
+        self.controls = ControlDesk(
+            self.run_id,
+            self.stage_name,
+            self.transport,
+            record=lambda obj: self.live_recorder.write_json("control", obj),
+            apply=lambda command, payload: self.control(command, payload),
+            publish=lambda out: self.publish(out),
+            event=lambda kind, **kw: self.event(kind, **kw),
+            report_error=lambda *a, **kw: self.report_error(*a, **kw),
+            log=self.log,
+        )
         #: Validation and hold-back of input messages.
         self.ingest = Ingest(
             self.run_id,
@@ -276,7 +291,12 @@ class Stage:
                 self.bus, self.recorder = bus, recorder
                 bus.declare_alive(self.run_id, self.stage_name)
                 bus.subscriber(control_pattern(self.run_id), self.transport.on_control)
+                bus.queryable(stage_control_pattern(self.run_id, self.stage_name), self.transport.on_control_query)
                 bus.watch_alive(self.run_id, self._on_alive)
+                if self.commands:  # commands an earlier process queued and did not handle: first
+                    self.controls.restore(
+                        due_controls(recorded_controls(cfg.recordings / self.run_id, self.stage_name, self.log))
+                    )
                 self.setup()
                 for topic in self.inputs:
                     bus.segment_subscriber(
@@ -346,8 +366,8 @@ class Stage:
             self._check_orphaned()
             self._release_held()
             self._report_suppressed()
-            for command, payload in self.transport.pending_controls():
-                self._control(command, payload)
+            if self.controls_ready():
+                self.controls.handle_pending()
             item = self.transport.next(self.config.poll_interval)
             if item is None:
                 self._run_tick()
@@ -418,35 +438,10 @@ class Stage:
                 index=index,
             )
 
-    def _control(self, command: str, payload: bytes) -> None:
-        """Handle ``ttl/<run>/control/<stage>/<command>`` on the main thread: record it, call
-        :meth:`control`; a rejected command is reported on ``errors`` and changes nothing."""
-        key = control_key(self.run_id, self.stage_name, command)
-        record = {"run": self.run_id, "stage": self.stage_name, "command": command, "time": time.time()}
-        try:
-            # the bounded parser of the segment headers: a payload nested 500 deep, or with
-            # a 5000-digit number, is refused here, before any parser or recorder walks it
-            shown = load_bounded(payload, root="payload") if payload.strip() else None
-        except BoundedJSONError as exc:
-            text = payload[:PREVIEW_CHARS].decode("utf-8", errors="replace")
-            self.log.warning("control %s rejected: %s", command, exc)
-            self.live_recorder.write_json(
-                "control", {**record, "payload": text, "accepted": False, "message": str(exc)}
-            )
-            self.report_error("rejected", f"control message {command!r}: {exc}", key=key, field="payload")
-            return
-        record["payload"] = shown
-        try:
-            outputs = list(self.control(command, payload) or ())
-        except Exception as exc:  # a bad command must not stop the stage
-            self.log.warning("control %s rejected: %s", command, exc)
-            self.live_recorder.write_json("control", {**record, "accepted": False, "message": str(exc)})
-            self.report_error("rejected", f"control message {command!r}: {exc}", key=key, field="payload")
-            return
-        self.live_recorder.write_json("control", {**record, "accepted": True})
-        self.event("control", message=f"{command} accepted")
-        for out in outputs:
-            self.publish(out)
+    def controls_ready(self) -> bool:
+        """Whether control commands can be handled now (override: a restarted fitter waits
+        until it knows its first segment, from which a model change applies)."""
+        return True
 
     def control(self, command: str, payload: bytes):
         """A control command for this stage (override; may return outputs to publish).

@@ -24,9 +24,9 @@ import importlib
 import json
 import json as _json
 import logging
-import queue
 import sys
 import tomllib
+import uuid
 from pathlib import Path
 from types import ModuleType
 
@@ -34,7 +34,7 @@ import zenoh
 
 from ttlcore.errors import TTLError
 
-from ..bus.keys import ERRORS, check_name, control_key, topic_pattern
+from ..bus.keys import check_name, control_key
 from ..bus.reach import listening, zenoh_error_text
 from ..bus.security import ROLES, ROUTER_LOG_FILTER, ensure_credentials, filter_log
 from ..bus.session import (
@@ -77,6 +77,10 @@ def _read_config(path: Path) -> dict:
 
 
 #: ``ttl run`` options (and ``--config`` keys) that go to the fitter: option -> fitter option.
+#: Exit status of ``ttl control`` when the stage queued the command (busy inside a segment)
+#: and gave no verdict within ``--wait``: it will be handled (0: accepted; 2: rejected).
+CONTROL_QUEUED = 3
+
 FITTER_OPTIONS = {
     "fit_segment": "fit_segment",
     "fit_window": "window_duration",
@@ -260,6 +264,31 @@ def _control_bus(args) -> Bus:
         ) from None
 
 
+def _control_verdict(bus: Bus, key: str, args, cid: str) -> dict:
+    """Ask ``key`` with the payload (query id ``cid``); the stage's final verdict
+    (``accepted``/``rejected``), else its ``queued`` answer, else ``{}`` (no answer within
+    ``--wait``)."""
+    queued: dict = {}
+    for ok, body in bus.ask(key, args.payload.encode(), attachment=cid.encode(), timeout=max(0.1, args.wait)):
+        try:
+            verdict = _json.loads(body)
+        except ValueError:
+            continue
+        if not ok or not isinstance(verdict, dict) or verdict.get("id") not in (cid, None):
+            continue
+        if verdict.get("state") in ("accepted", "rejected"):
+            return verdict
+        if verdict.get("state") == "queued" and not queued:
+            queued = verdict
+            if not args.quiet:
+                print(
+                    f"ttl control: {args.stage} queued {args.stage_command} ({verdict.get('message') or ''}); "
+                    "waiting for its verdict",
+                    flush=True,
+                )
+    return queued
+
+
 def _cmd_control(args) -> int:
 
     key = control_key(
@@ -270,30 +299,31 @@ def _cmd_control(args) -> int:
             _json.loads(args.payload)
         except ValueError as exc:
             raise TTLError(f"payload: not JSON ({exc})") from None
-    rejections: queue.Queue = queue.Queue()
+    cid = uuid.uuid4().hex
     with _control_bus(args) as bus:
-
-        def on_error(sample):
-            try:
-                err = _json.loads(sample.payload.to_bytes())
-            except ValueError:
-                return
-            if err.get("key") == key:
-                rejections.put(err)
-
-        bus.subscriber(topic_pattern(args.run, ERRORS), on_error)
         if args.stage not in bus.alive_stages(args.run, timeout=1.0):
             raise TTLError(
                 f"no stage {args.stage!r} alive in run {args.run!r} (the router at {', '.join(args.connect)} answers)"
             )
-        bus.session.put(key, args.payload.encode())
-        try:
-            err = rejections.get(timeout=max(0.0, args.wait))
-        except queue.Empty:
-            if not args.quiet:
-                print(f"ttl control: sent {key}; no rejection within {args.wait:g} s")
-            return 0
-    raise TTLError(f"{args.stage} rejected {args.stage_command}: {err.get('message')}")
+        verdict = _control_verdict(bus, key, args, cid)
+    state = verdict.get("state")
+    if state == "accepted":
+        if not args.quiet:
+            print(f"ttl control: {args.stage} accepted {args.stage_command} (id {cid})")
+        return 0
+    if state == "rejected":
+        raise TTLError(f"{args.stage} rejected {args.stage_command}: {verdict.get('message') or ''}")
+    if state == "queued":
+        print(
+            f"ttl control: {args.stage} queued {args.stage_command} (id {cid}) and has not handled it within "
+            f"{args.wait:g} s: it will (a restarted {args.stage} too); 'ttl inspect' shows the verdict",
+            file=sys.stderr,
+        )
+        return CONTROL_QUEUED
+    raise TTLError(
+        f"{args.stage} did not answer {args.stage_command} within {args.wait:g} s (stopped or restarted "
+        f"since, or busy past --wait): not queued; 'ttl inspect' says whether it was handled before sending it again"
+    )
 
 
 # ---------------------------------------------------------------------------- ttl credentials

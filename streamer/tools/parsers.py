@@ -206,10 +206,12 @@ def _add_control(sub) -> None:
         help="send a command to a stage of a running pipeline",
         description="Publish ttl/<run>/control/<stage>/<command> (for example the fitter's model: "
         "ttl control --run day3 --connect tcp/127.0.0.1:PORT fitter model "
-        '\'{"effects": ["linear-ttl", "drift"]}\'), then report a rejection the '
-        "stage publishes on errors within --wait seconds. A router that is not there (the run has "
-        "ended: ttl refit works offline) or that refuses the credentials is one line, exit status 2, "
-        "within a few seconds.",
+        '\'{"effects": ["linear-ttl", "drift"]}\') '
+        "and wait up to --wait seconds for the stage's "
+        "verdict. Exit status 0: accepted (recorded, in force from the next segment); 2: rejected "
+        "(the reason is printed), no answer, or no router there (the run has ended: ttl refit works "
+        "offline) or one that refuses the credentials; 3: queued by a stage busy inside a segment "
+        "(the fitter's diagnosis), which handles it after that segment, a restarted one too.",
     )
     p.add_argument("stage", help="stage name")
     # not dest "command": that is the subcommand's name (the "ttl control:" of its messages)
@@ -234,7 +236,8 @@ def _add_control(sub) -> None:
         "--wait",
         type=float,
         default=10.0,
-        help="seconds to listen for a rejection (default 10; a stage answers between segments)",
+        help="seconds to wait for the stage's verdict (default 10; a stage answers between segments, "
+        "a busy fitter says 'queued' at once)",
     )
     add_quiet(p, "no status line (the sent command is not confirmed on standard output)")
     p.set_defaults(handler="streamer.tools.cli:_cmd_control")

@@ -5,7 +5,9 @@ run's CA for another role; ``ca_only``: the run's CA but no certificate of its o
 ``plain``: TCP without TLS to the TLS port; ``foreign``: a certificate of another CA) and,
 for ``duration`` seconds, publishes forged telemetry segments (eta x3), forged fits,
 a forged ``control/progress/replayer`` claiming the run is 3 segments long and a forged
-``control/stop``.  Writes ``{"connected": bool, "error": str, "puts": n}`` to ``out``.
+``control/stop``, and asks the fitter for a model change as ``ttl control`` does (a query on
+``control/fitter/model``).  Writes ``{"connected": bool, "error": str, "puts": n,
+"answers": n}`` to ``out`` (``answers``: verdicts the fitter sent back).
 """
 
 from __future__ import annotations
@@ -51,7 +53,7 @@ def main(args: dict) -> None:
     run, out = args["run"], Path(args["out"])
     cfg = config(args)
     cfg.insert_json5("connect/timeout_ms", "3000")
-    report = {"connected": False, "error": None, "puts": 0}
+    report = {"connected": False, "error": None, "puts": 0, "answers": 0}
     try:
         session = zenoh.open(cfg)
     except Exception as exc:  # refused: that is the point
@@ -81,6 +83,10 @@ def main(args: dict) -> None:
             )
             session.put(control_key(run, "stop"), b"{}")
             report["puts"] += 4
+            for reply in session.get(
+                control_key(run, "fitter", "model"), payload=b'{"effects": ["linear-ttl", "drift"]}', timeout=0.5
+            ):
+                report["answers"] += reply.ok is not None
             i += 1
             time.sleep(0.5)
     finally:

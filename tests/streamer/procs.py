@@ -147,6 +147,7 @@ class Doubler(Stage):
         return Expect(run=self.run_id, index=index, arrays={"data": ("<f8", (2, None))})
 
     factor = 2.0
+    commands = ("factor",)
 
     def control(self, command, payload):
         if command != "factor":
@@ -159,6 +160,12 @@ class Doubler(Stage):
     def handle(self, header, arrays):
         if header.meta.get("fail"):
             raise RuntimeError(f"asked to fail on segment {header.index}")
+        # meta.busy [s]: a long step with checkpoints (as the fitter's live diagnosis), at
+        # which the control commands come meanwhile are queued, not handled
+        end = time.monotonic() + float(header.meta.get("busy") or 0.0)
+        while time.monotonic() < end and not self.stopping:
+            self.controls.defer(f"busy with segment {header.index}")
+            time.sleep(0.05)
         return [
             Output(
                 "tdi",

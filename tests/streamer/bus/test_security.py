@@ -121,6 +121,7 @@ def check_intruders(started: dict) -> dict:
         reports[name] = json.loads(report.read_text())
     # only the holder of a certificate of the run's CA gets in (and is then bound by the ACL)
     assert reports["other-stage"]["connected"] and reports["other-stage"]["puts"] > 0
+    assert reports["other-stage"]["answers"] == 0  # its commands to the fitter never reached it
     for name in ("no-certificate", "foreign-ca", "plain-tcp", "trusts-foreign-ca", "trusts-stranger-ca"):
         assert not reports[name]["connected"], (name, reports[name])
     return reports
@@ -133,6 +134,7 @@ def check_refusals(refused: list[dict], run: str) -> None:
         f"ttl/{run}/fit",
         f"ttl/{run}/control/progress/replayer",
         f"ttl/{run}/control/stop",
+        f"ttl/{run}/control/fitter/model",  # asked as ttl control asks: a command all the same
     ):
         assert ("subtractor", key) in forbidden, (key, sorted(forbidden)[:20])
     assert {s for s, _ in forbidden} == {"subtractor"}, forbidden  # no genuine message refused
