@@ -392,7 +392,8 @@ def test_live_loop_applies_the_printed_control_command(tmp_path):
         argv = command["argv"]
         assert argv[:2] == ["ttl", "control"]
         r = subprocess.run(ttl_command(*argv[1:]), capture_output=True, text=True, timeout=120)
-        assert r.returncode == 0, r.stderr
+        # accepted, or queued by the fitter inside its diagnosis (handled after the segment)
+        assert r.returncode in (0, 3), (r.stdout, r.stderr)
         code = finish(proc, 3000)
     finally:
         procs.close()

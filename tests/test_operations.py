@@ -509,7 +509,8 @@ def test_restarted_fitter_keeps_the_model_changed_by_control(tmp_path):
                 text=True,
                 timeout=90,
             )
-            assert sent.returncode == 0, (sent.stdout, sent.stderr)
+            # accepted, or queued by a fitter inside its diagnosis (handled after the segment)
+            assert sent.returncode in (0, 3), (sent.stdout, sent.stderr)
             # the segment the change applies from (its 'model' event), then one fit beyond it
             run_dir = tmp_path / "rec" / run
 
