@@ -148,7 +148,8 @@ class FitterModel(_Stage):
         the publishers' caches alone.  From the start of the run when the recordings have it,
         so that the state (window, weights of the full refits) is the uninterrupted run's;
         each segment with the model in force for it (the queued changes take effect at their
-        own segments)."""
+        own segments).  Control commands come meanwhile are queued (recorded, their senders
+        told) and handled once it has caught up."""
         segments = recorded_telemetry(self.config.recordings / self.run_id, first, self.log)
         start = first
         while start - 1 in segments:
@@ -164,6 +165,7 @@ class FitterModel(_Stage):
         self._catching_up = True
         try:
             for header, item in pushed_again(segments, start, first):
+                self.controls.defer(f"rebuilding its window after a restart, segment {header.index} of {first - 1}")
                 self.process(header, item)
         finally:
             self._catching_up = False

@@ -321,8 +321,9 @@ def _cmd_control(args) -> int:
         )
         return CONTROL_QUEUED
     raise TTLError(
-        f"{args.stage} did not answer {args.stage_command} within {args.wait:g} s (stopped or restarted "
-        f"since, or busy past --wait): not queued; 'ttl inspect' says whether it was handled before sending it again"
+        f"{args.stage} did not answer {args.stage_command} within {args.wait:g} s: busy (it handles the "
+        f"command when free, unless it stops first) or stopped; 'ttl inspect' says whether it was "
+        f"handled: look before sending it again"
     )
 
 
