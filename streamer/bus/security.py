@@ -3,7 +3,8 @@
 Every session of a run talks TLS with a certificate of the run's own certificate
 authority (CA), and every router checks the certificate of each peer (mutual TLS,
 ``transport/link/tls/enable_mtls``) and applies an access-control list keyed by the
-certificate's common name (``access_control`` of Zenoh's configuration, see
+certificate's common name (``access_control`` of Zenoh's configuration, built by
+:func:`streamer.bus.access_control.access_control`; see
 ``DEFAULT_CONFIG.json5`` of eclipse-zenoh).  Identities (common names, :data:`ROLES`):
 
 ``replayer``, ``tdi_builder``, ``fitter``, ``subtractor``, ``monitor``
@@ -57,10 +58,8 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from ttlcore.errors import TTLError
 
-from .topology import OUTPUT_TOPIC, STAGES
+from .access_control import ROLES  # every identity a credentials directory holds a certificate for
 
-#: Every identity a credentials directory holds a certificate for.
-ROLES = (*STAGES, "launcher", "control", "router")
 #: Addresses always in the router certificate.
 LOCAL_HOSTS = ("127.0.0.1", "localhost")
 #: Validity of generated certificates [days].
@@ -332,119 +331,6 @@ class Identity:
         if listen:
             tls.update(listen_certificate=str(self.certificate.resolve()), listen_private_key=str(self.key.resolve()))
         return tls
-
-
-# ---------------------------------------------------------------------------- access control
-
-#: Messages of a reader (subscribers, queries, liveliness watchers).
-_READ = ["declare_subscriber", "query", "declare_liveliness_subscriber", "liveliness_query"]
-#: Messages of a writer: puts, cache replies and queryables, liveliness tokens.
-_WRITE = ["put", "delete", "reply", "declare_queryable", "liveliness_token"]
-_ALL = _READ + _WRITE
-
-
-def _keys(*keys: str) -> list[str]:
-    """Each key and its advanced-publisher keys (``<key>/@adv/**``: caches, heartbeats,
-    publisher tokens; ``@`` chunks are matched by no wildcard)."""
-    return [k for key in keys for k in (key, f"{key}/@adv/**")]
-
-
-def access_control(run: str = "*") -> dict:
-    """The ``access_control`` section of a router's Zenoh configuration (see the module
-    docstring for who may publish what); ``run``: the run id, or ``*`` for every run."""
-    r = f"ttl/{run}"
-    everything = _keys(f"{r}/**")
-    rules = [
-        {"id": "read", "messages": _READ, "flows": ["ingress"], "permission": "allow", "key_exprs": everything},
-        # subscriber-detection tokens of advanced subscribers
-        {
-            "id": "subscriber-tokens",
-            "messages": ["liveliness_token"],
-            "flows": ["ingress"],
-            "permission": "allow",
-            "key_exprs": [f"{r}/**/@adv/sub/**"],
-        },
-        {"id": "deliver", "messages": _ALL, "flows": ["egress"], "permission": "allow", "key_exprs": everything},
-        {"id": "forward", "messages": _ALL, "flows": ["ingress"], "permission": "allow", "key_exprs": everything},
-        {
-            "id": "commands",
-            "messages": ["put"],
-            "flows": ["ingress"],
-            "permission": "allow",
-            "key_exprs": [f"{r}/control/**"],
-        },
-        # (the subscriber tokens of a progress subscriber, .../@adv/sub/..., stay allowed)
-        {
-            "id": "no-forged-progress",
-            "messages": _WRITE,
-            "flows": ["ingress"],
-            "permission": "deny",
-            "key_exprs": [f"{r}/control/progress/**", f"{r}/control/progress/**/@adv/pub/**"],
-        },
-        {
-            "id": "launcher-token",
-            "messages": ["liveliness_token"],
-            "flows": ["ingress"],
-            "permission": "allow",
-            "key_exprs": [f"{r}/alive/launcher"],
-        },
-        # the progress the launcher verified, which the stages follow (docs/operations.md)
-        {
-            "id": "launcher-board",
-            "messages": _WRITE,
-            "flows": ["ingress"],
-            "permission": "allow",
-            "key_exprs": _keys(f"{r}/control/board/*"),
-        },
-        {
-            "id": "no-forged-board",
-            "messages": _WRITE,
-            "flows": ["ingress"],
-            "permission": "deny",
-            "key_exprs": _keys(f"{r}/control/board/*"),
-        },
-        # a query on a stage's command key is a command: not from another stage
-        {
-            "id": "no-asked-commands",
-            "messages": ["query"],
-            "flows": ["ingress"],
-            "permission": "deny",
-            "key_exprs": [f"{r}/control/{stage}/*" for stage in STAGES],
-        },
-    ]
-    # one subject per common name: a transport matches exactly one subject, so the router
-    # logs one decision per message (refusals() relies on it)
-    common = ["read", "subscriber-tokens", "deliver"]
-    grants = {
-        "router": ["forward"],
-        "launcher": ["commands", "no-forged-progress", "launcher-token", "launcher-board"],
-        "control": ["commands", "no-forged-progress", "no-forged-board"],
-    }
-    for stage, topic in OUTPUT_TOPIC.items():
-        rules.append(
-            {
-                "id": f"{stage}-publishes",
-                "messages": _WRITE,
-                "flows": ["ingress"],
-                "permission": "allow",
-                "key_exprs": _keys(f"{r}/{topic}", f"{r}/errors/*", f"{r}/control/progress/{stage}")
-                + [f"{r}/alive/{stage}"],
-            }
-        )
-        # its commands come as queries (ttl control waits for the verdict): it answers them
-        rules.append(
-            {
-                "id": f"{stage}-answers",
-                "messages": ["declare_queryable", "reply"],
-                "flows": ["ingress"],
-                "permission": "allow",
-                "key_exprs": [f"{r}/control/{stage}/*"],
-            }
-        )
-        grants[stage] = [f"{stage}-publishes", f"{stage}-answers", "no-asked-commands"]
-    subjects = [{"id": role, "cert_common_names": [role]} for role in ROLES]
-    policies = [{"id": role, "rules": common + grants[role], "subjects": [role]} for role in ROLES]
-    return {"enabled": True, "default_permission": "deny", "rules": rules, "subjects": subjects, "policies": policies}
 
 
 # ---------------------------------------------------------------------------- refusals in a router log

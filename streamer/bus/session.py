@@ -42,8 +42,9 @@ from pathlib import Path
 
 import zenoh
 
+from .access_control import access_control
 from .keys import alive_key, alive_pattern, parse_alive_key
-from .security import CredentialsError, Identity, access_control
+from .security import CredentialsError, Identity
 from .segment_stream import (
     DEFAULT_CACHE,
     SegmentPublisher,
@@ -103,7 +104,7 @@ class SessionSettings:
         Credentials directory (:mod:`streamer.bus.security`): the session talks mutual TLS
         only (``tls/`` endpoints; default listen ``tls/127.0.0.1:<free port>``) with the
         certificate of ``identity``; a router also enforces the access-control list of
-        :func:`streamer.bus.security.access_control` (unless the file sets ``access_control``).
+        :func:`streamer.bus.access_control.access_control` (unless the file sets ``access_control``).
     identity : str, optional
         Role whose certificate the session presents (``fitter``, ``launcher``, ``router``...);
         required with ``credentials``.
