@@ -294,6 +294,8 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         :func:`stages.fitter.live_diagnosis.diagnosis_meta`); with ``adopt`` auto, its
         recommendation adopted when :func:`stages.fitter.live_diagnosis.adoptable`.  None when the
         window is too short for a diagnosis."""
+        if self.stopping:  # the window's whitening alone takes a minute under load
+            return None
         try:
             tm, data = self.window_whitened(header, keep=False)
             report = diagnose(

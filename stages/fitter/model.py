@@ -26,6 +26,7 @@ from streamer.bus.message_schema import to_jsonable
 from streamer.bus.segment_record import segment_meta
 from streamer.bus.transport import Output, output_fields
 from streamer.recording.recorder import mission_ns
+from streamer.runtime.lifecycle import StageStopping
 from ttlcore.errors import ConfigError
 
 from .recordings import pushed_again, recorded_models, recorded_telemetry
@@ -77,6 +78,12 @@ class FitterModel(_Stage):
         first segment diagnosed unless ``diagnose`` is False.  The model already planned for
         the next segment changes nothing (no event)."""
         start = self.queue.next if self.queue.next is not None else 0
+        # never before a change already queued (the order asked is the order in force), nor
+        # on a segment an earlier process handled (a restarted fitter replaying it: its fit is
+        # out): a change applies from a segment still to be published
+        start = max([start, *(c["from_index"] for c in self.model.pending)])
+        while self.handled_before(start):
+            start += 1
         before = self.model.planned
         if diagnose and self.model.only_transients_added(new):  # diagnosed a little later
             diagnose = False
@@ -165,6 +172,8 @@ class FitterModel(_Stage):
         self._catching_up = True
         try:
             for header, item in pushed_again(segments, start, first):
+                if self.stopping:  # minutes of pushing: a stage told to stop leaves now
+                    raise StageStopping(f"stopping while rebuilding the window (at segment {header.index})")
                 self.controls.defer(f"rebuilding its window after a restart, segment {header.index} of {first - 1}")
                 self.process(header, item)
         finally:

@@ -23,6 +23,11 @@ from .processes import SignalFlag, set_parent_death_signal
 LAUNCHER = "launcher"
 
 
+class StageStopping(Exception):
+    """Raised inside a segment's processing by a stage told to stop (its launcher gone, a
+    signal): the segment is left unhandled, for its successor (not a failure)."""
+
+
 def disk_full(exc: BaseException) -> bool:
     """True for the error of a write to a full disk (or a full quota)."""
     return isinstance(exc, OSError) and exc.errno in (errno.ENOSPC, errno.EDQUOT)

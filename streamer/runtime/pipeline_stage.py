@@ -1,12 +1,11 @@
 """Pipeline stages: stages that report progress, and stages that handle segments in index order.
 
-A :class:`PipelineStage` is a :class:`streamer.runtime.stage.Stage` that publishes its progress after
-every segment it handles (published or given up) and follows the progress of the stages it
-names in :attr:`PipelineStage.follow` (:mod:`streamer.runtime.progress`: the protocol, and the
-:class:`~streamer.runtime.progress.Progress` bookkeeping).  An :class:`OrderedStage` puts its input
-back in index order (:class:`InOrder`) before processing it, as TDI with history and the
-rolling fit need.  The stage programs (:mod:`stages`) subclass these; what a stage publishes
-and whom it follows by default comes from :mod:`streamer.bus.topology`.
+A :class:`PipelineStage` is a :class:`streamer.runtime.stage.Stage` that publishes its progress
+after every segment it handles (published or given up) and follows the progress of the stages
+it names in :attr:`PipelineStage.follow` (:mod:`streamer.runtime.progress`).  An
+:class:`OrderedStage` puts its input back in index order (:class:`InOrder`) before processing
+it, as TDI with history and the rolling fit need.  The stage programs (:mod:`stages`) subclass
+these; what a stage publishes and whom it follows comes from :mod:`streamer.bus.topology`.
 """
 
 from __future__ import annotations
@@ -28,11 +27,12 @@ from ..bus.topology import OUTPUT_TOPIC, PRODUCERS, UPSTREAM
 from ..recording.recorded_inputs import recorded_copies, wire_copy
 from ..recording.recording_reader import RecordedSegment
 from .catch_up import ANNOUNCED_FETCH_AFTER, CatchUp
+from .lifecycle import StageStopping, disk_full
 from .memtrace import MemoryTrace
 from .plan import MAX_SEGMENTS
 from .progress import Progress, ProgressBoard, key_stage
 from .rangeset import RangeSet
-from .stage import Stage, StageConfig, disk_full
+from .stage import Stage, StageConfig
 from .stage_options import OrderedOptions, StageOptions
 
 __all__ = ["ANNOUNCED_FETCH_AFTER", "InOrder", "OrderedStage", "PipelineStage"]
@@ -578,18 +578,16 @@ class OrderedStage(PipelineStage[OO]):
                 again = self.handled_before(index)
                 out = self.process(header, item)
                 if again:
-                    self.event(
-                        "replayed",
-                        index=index,
-                        message=f"segment {index} processed again to rebuild the "
-                        "state after a restart; its output was out already",
-                    )
+                    why = "processed again to rebuild the state after a restart; its output was out already"
+                    self.event("replayed", index=index, message=f"segment {index} {why}")
                 elif out is not None:
                     self.publish(out, source=header)
                     self.published(index)
             except Exception as exc:
                 if disk_full(exc):  # not the segment's doing: the stage stops (Stage.run)
                     raise
+                if isinstance(exc, StageStopping):  # left unhandled, for the successor
+                    return self.log.info("segment %d left unhandled: %s", index, exc)
                 self.log.exception("segment %d failed", index)
                 self.report_error("failed", f"{type(exc).__name__}: {exc}", index=index, key=header.key)
                 self.fill_gap(index)
