@@ -16,15 +16,8 @@ from pathlib import Path
 
 from streamer.bus.messages import telemetry_of
 from streamer.recording.recorder import read_recording
+from streamer.runtime.stage_reports import earlier_recordings
 from ttlcore.tdi.data import TDIStream
-
-
-def _file_number(path: Path, stage: str) -> int:
-    """``n`` of ``<stage>.<n>.mcap`` (the order the processes ran in)."""
-    try:
-        return int(path.name[len(stage) + 1 : -len(".mcap")])
-    except ValueError:
-        return 0
 
 
 def recorded_models(
@@ -34,7 +27,7 @@ def recorded_models(
     segments they recorded a fit of (the fit message or its summary: a kill between the two
     leaves only the former), and those whose summary is recorded (what ``ttl inspect``
     lists)."""
-    files = sorted(Path(run_dir).glob(f"{stage}.*.mcap"), key=lambda p: _file_number(p, stage))
+    files = earlier_recordings(run_dir, stage)
     models: list[dict] = []
     segments: set[int] = set()
     summaries: set[int] = set()

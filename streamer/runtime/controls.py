@@ -29,6 +29,7 @@ from ..bus.keys import control_key
 from ..bus.transport import Control, StageTransport
 from ..recording.recording_reader import read_recording
 from .ingest import PREVIEW_CHARS
+from .stage_reports import earlier_recordings
 
 __all__ = ["ControlDesk", "due_controls", "recorded_controls"]
 
@@ -40,15 +41,8 @@ def recorded_controls(run_dir: Path, stage: str, log: logging.Logger | logging.L
     """The ``control`` records of the earlier processes of ``stage`` (``<stage>.<n>.mcap``
     in ``run_dir``, oldest first; their segments are not decoded).  A damaged or unreadable
     file is skipped (warned): the others are used."""
-
-    def number(path: Path) -> int:
-        try:
-            return int(path.name[len(stage) + 1 : -len(".mcap")])
-        except ValueError:
-            return 0
-
     records: list[dict] = []
-    for path in sorted(Path(run_dir).glob(f"{stage}.*.mcap"), key=number):
+    for path in earlier_recordings(run_dir, stage):
         try:
             records += read_recording(path, keep=lambda topic, header: False, topics=("control",)).json("control")
         except Exception as exc:  # noqa: BLE001 - a damaged file: use what the others have

@@ -38,6 +38,19 @@ def set_aside(path: Path) -> Path:
     return path
 
 
+def earlier_recordings(run_dir: Path, stage: str) -> list[Path]:
+    """The recordings :func:`set_aside` kept of the earlier processes of ``stage``
+    (``<stage>.<n>.mcap`` in ``run_dir``), in the order they ran (``n`` ascending)."""
+
+    def number(path: Path) -> int:
+        try:
+            return int(path.name[len(stage) + 1 : -len(".mcap")])
+        except ValueError:
+            return 0
+
+    return sorted(Path(run_dir).glob(f"{stage}.*.mcap"), key=number)
+
+
 def recording_path(recordings: Path, run: str, stage: str) -> Path:
     """``<recordings>/<run>/<stage>.mcap``; an existing file is first renamed ``<stage>.<n>.mcap``."""
     return set_aside(Path(recordings) / run / f"{stage}.mcap")
