@@ -305,15 +305,16 @@ def derivative_columns(data, series: bool = False) -> ColumnSet:
     if cs is not None and (not series or cs.series is not None):
         return cs
     td = data.tdi.td_in
-    k = len(td.names)
-    names = [f"d{order}:{n}" for order in (1, 2) for n in td.names]
+    regs = data.tdi.regressor_names
+    k = len(regs)
+    names = [f"d{order}:{n}" for order in (1, 2) for n in regs]
     # filled order by order, no concatenation (a day's 48 columns: ~160 MB of spectra)
     x = np.empty((2 * k, len(data.grid.starts), data.grid.f.size, 6))
     kept = np.empty((3, 2 * k, data.grid.mask.size)) if series else None
     for o, order in enumerate((1, 2)):
         s = np.concatenate(
             [
-                data.grid.decimate(derivative(td.regressors[:, j0 : j0 + 8], td.fs, order), is_aet=True)
+                data.grid.decimate(derivative(data.tdi.input_regressors(regs[j0 : j0 + 8]), td.fs, order), is_aet=True)
                 for j0 in range(0, k, 8)
             ],
             axis=1,
@@ -594,7 +595,7 @@ def shifted_columns(data, effect, C, shifts: dict) -> tuple[dict, ColumnSet, dic
     for g, members in effect.shifted_members().items():
         d0 = float(shifts.get(g, 0.0))
         expansion[f"{effect.name}.{g}"] = d0
-        R = np.stack([td.regressors[:, td.names.index(k)] for k in members], axis=1)  # (3, k, n)
+        R = data.tdi.input_regressors(members)  # (3, k, n)
         if d0:
             R = timeshift(R, sgn * d0 * td.fs)
             for cname in members:

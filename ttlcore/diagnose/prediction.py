@@ -39,13 +39,12 @@ __all__ = ["column_regressors", "effect_predictions", "fit_residual", "model_res
 log = logging.getLogger(__name__)
 
 
-def xyz_regressors(data) -> np.ndarray:
-    """The 24 TTL regressors' X2, Y2, Z2 (3, 24, n) on the telemetry samples of a
-    :class:`~ttlcore.diagnose.whitened.WhitenedData` (its ``td_in`` holds A, E, T; the
-    A, E, T matrix is orthogonal, so X, Y, Z are its transpose times A, E, T)."""
-    td = data.tdi.td_in
-    R = np.stack([td.regressors[:, td.names.index(n)] for n in COEFFICIENT_NAMES], axis=1)
-    return np.einsum("ac,akn->ckn", AET_MATRIX, R)
+def xyz_regressors(data, names=COEFFICIENT_NAMES) -> np.ndarray:
+    """The TTL regressors' X2, Y2, Z2 (3, k, n) on the telemetry samples of a
+    :class:`~ttlcore.diagnose.whitened.WhitenedData`, the 24 in their order or those
+    ``names`` (:meth:`~ttlcore.diagnose.whitened.MeasuredTDI.input_regressors` are A, E, T;
+    the A, E, T matrix is orthogonal, so X, Y, Z are its transpose times A, E, T)."""
+    return np.einsum("ac,akn->ckn", AET_MATRIX, data.tdi.input_regressors(names))
 
 
 def effect_predictions(fit) -> dict[str, np.ndarray]:
@@ -157,18 +156,17 @@ def _column_prediction(effect, theta: dict, data, tm) -> np.ndarray:
 
 def _shift_prediction(fit, effect, data) -> np.ndarray:
     """``sum_k C_k [R_k(t + s delta_g) - R_k(t)]`` over the groups of a shifted-witness effect."""
-    R = xyz_regressors(data)
     C = fit.ttl_coefficients()
     offsets = fit.offsets()
     fs = float(data.tdi.td_in.fs)
     sign = float(effect.d1_sign)
-    total = np.zeros(R[:, 0].shape)
+    total = np.zeros((3, data.tdi.td_in.size))
     for group, members in effect.shifted_members().items():
         delta = offsets.get(f"{effect.name}.{group}", (0.0, 0.0))[0]
         if not delta:
             continue
         k = [COEFFICIENT_NAMES.index(m) for m in members]
-        A = np.einsum("k,ckn->cn", C[k], R[:, k])
+        A = np.einsum("k,ckn->cn", C[k], xyz_regressors(data, members))
         total += timeshift(A, sign * delta * fs, order=data.context.settings.order) - A
     return total
 

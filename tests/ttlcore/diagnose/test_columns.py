@@ -8,6 +8,8 @@ equations they give (ttlcore.diagnose.model_fit), each against an independent co
   ``a`` scales the whitened spectra by ``a^-1/2``, exactly);
 - the Gram matrix of the real interleaved layout against ``Re sum conj(a) b`` in complex;
 - :func:`assemble` as a selection (values, order, no copy for the whole set).
+- the input-rate regressors built again from the telemetry against ``compute_tdi`` of the
+  whole stretch, and the derivative columns from them against those from kept regressors.
 """
 
 from types import SimpleNamespace
@@ -16,13 +18,22 @@ import numpy as np
 import pytest
 
 from ttlcore.diagnose.candidates import SHARED_SETS
-from ttlcore.diagnose.columns import ColumnStore, assemble, effect_columns, empty_set, rewhitened, ttl_columns
+from ttlcore.diagnose.columns import (
+    ColumnStore,
+    assemble,
+    derivative_columns,
+    effect_columns,
+    empty_set,
+    rewhitened,
+    ttl_columns,
+)
 from ttlcore.diagnose.model_fit import gram, normal_equations, rhs
 from ttlcore.diagnose.prediction import column_regressors
 from ttlcore.diagnose.settings import DiagnoseSettings
-from ttlcore.diagnose.whitened import whiten_telemetry
+from ttlcore.diagnose.whitened import whiten_tdi, whiten_telemetry
 from ttlcore.effects import make_effects
 from ttlcore.sim.simulator import SimulationConfig, simulate
+from ttlcore.tdi.data import compute_tdi
 
 
 @pytest.fixture(scope="module")
@@ -105,3 +116,30 @@ def test_the_store_releases_what_a_phase_stored_and_keeps_the_rest():
     store.put(("approx", "drift", ()), data, empty_set("k"))
     store.release_since(mark, keep=SHARED_SETS)
     assert store.get(("derivatives",), data) is not None and store.get(("approx", "drift", ()), data) is None
+
+
+def test_input_rate_regressors_are_built_again_from_the_telemetry_not_kept(data):
+    # whiten_telemetry keeps no input-rate regressors (a day's 24 at 4 Hz: 199 MB); those
+    # asked for are built again from the telemetry. Against compute_tdi, the TDI of the whole
+    # stretch in one call of the engine (its own witness construction and part layout): the
+    # same interpolation of the same samples, so equal to rounding (1e-12 of the largest value)
+    td = data.tdi.td_in
+    assert td.names == () and td.regressors.shape == (3, 0, td.size)
+    names = ("12.phi.rx", "31.eta.tx", "23.phi.tx")
+    got = data.tdi.input_regressors(names)
+    ref = compute_tdi(data.context.tm, names=names).to_aet().regressors
+    ok = np.isfinite(ref).all(axis=(0, 1))
+    assert ok.sum() > 0.9 * td.size and np.isfinite(got[..., ok]).all()
+    np.testing.assert_allclose(got[..., ok], ref[..., ok], rtol=0, atol=1e-12 * np.abs(ref[..., ok]).max())
+    with pytest.raises(KeyError, match="not a TTL regressor"):
+        data.tdi.input_regressors(["12.phi.rx", "dws-x"])
+
+
+def test_derivative_columns_from_rebuilt_regressors_equal_those_from_kept_ones(data):
+    # the same whitened data built from the kept TDI (whiten_tdi of compute_tdi: the regressors
+    # held, as before they were rebuilt): the derivative columns agree to rounding
+    tm = data.context.tm
+    held = whiten_tdi(compute_tdi(tm).to_aet(), data.context.settings, tm=tm)
+    assert held.tdi.rebuild is None and held.tdi.td_in.regressors.shape[1] == 24
+    a, b = derivative_columns(data).x, derivative_columns(held).x
+    np.testing.assert_allclose(a, b, rtol=0, atol=1e-9 * np.abs(b).max())
