@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections import deque
 from collections.abc import Iterator
+from dataclasses import replace
 
 import numpy as np
 
@@ -113,11 +114,27 @@ class TelemetryWindow:
         if self._whitened is None or self._whitened[0] != key:
             self._whitened = None  # the old window's freed before the new one is built
             tm = self.joined(source)
+            self._share(tm)
             self._whitened = (key, tm, whiten_telemetry(tm, settings, effect_modules))
         _, tm, data = self._whitened
         if not keep:
             self._whitened = None
         return tm, data
+
+    def _share(self, tm: Telemetry) -> None:
+        """The segments become views of the joined window ``tm``: the window's telemetry is
+        held once through a diagnosis, not twice (a day's: 66 MB).  The old series go when
+        nothing else holds them; a later join copies from the views, the same numbers."""
+        a = 0
+        for i, (index, seg) in enumerate(self.segments):
+            b = a + seg.size
+            self.segments[i] = (
+                index,
+                replace(
+                    seg, eta=tm.eta[:, a:b], dws_phi=tm.dws_phi[:, a:b], dws_eta=tm.dws_eta[:, a:b], ltt=tm.ltt[:, a:b]
+                ),
+            )
+            a = b
 
     def release(self) -> None:
         """Let the whitened window of :meth:`whitened` go (after the segment that used it)."""

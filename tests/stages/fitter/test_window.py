@@ -101,3 +101,22 @@ def test_the_whitened_window_is_built_once_while_the_window_stands(monkeypatch):
     window.clear()
     window.add(7, segment(7))
     assert window.whitened("w", "settings-b")[0].t0 == 7 * N / FS and len(built) == 7
+
+
+def test_segments_are_held_once_with_the_joined_window(monkeypatch):
+    # after a join the segments are views of the joined series (the window's telemetry held
+    # once through a diagnosis, not twice); their values and a later join are unchanged
+    monkeypatch.setattr("stages.fitter.window.whiten_telemetry", lambda tm, settings, modules: object())
+    window = TelemetryWindow(duration=1000.0)
+    segments = [segment(i) for i in range(3)]
+    for i, seg in enumerate(segments):
+        window.add(i, seg)
+    tm, _ = window.whitened("w", "s")
+    for (_, held), seg in zip(window, segments):
+        for name in ("eta", "dws_phi", "dws_eta", "ltt"):
+            assert np.shares_memory(getattr(held, name), getattr(tm, name))
+            np.testing.assert_array_equal(getattr(held, name), getattr(seg, name))
+    window.add(3, segment(3))
+    again, _ = window.whitened("w", "s")
+    np.testing.assert_array_equal(again.eta[:, : 3 * N], tm.eta)
+    assert not np.shares_memory(again.eta, tm.eta)
