@@ -37,16 +37,20 @@ if TYPE_CHECKING:
 
 def gram_x(XA: np.ndarray, XB: np.ndarray, slices) -> np.ndarray:
     """``Re sum conj(A) B`` per segment and band from real layouts (p, S, m, 6) and
-    (q, S, m, 6) -> (S, G, p, q)."""
+    (q, S, m, 6) -> (S, G, p, q).
+
+    One product per segment and band on views of the layouts: a band's bins of one segment
+    are contiguous in each column, so no column is copied (a batched product over the
+    segments copied each band of both layouts: a day's model with its transients, ~30
+    columns, 100 MB a side, at the peak of a live diagnosis)."""
     p, S = XA.shape[:2]
     q = XB.shape[0]
     out = np.zeros((S, len(slices), p, q))
     for g, (a, b) in enumerate(slices):
         if b <= a:
             continue
-        A = XA[:, :, a:b].reshape(p, S, -1).transpose(1, 0, 2)
-        B = XB[:, :, a:b].reshape(q, S, -1).transpose(1, 2, 0)
-        out[:, g] = np.matmul(A, B)
+        for s in range(S):
+            out[s, g] = XA[:, s, a:b].reshape(p, -1) @ XB[:, s, a:b].reshape(q, -1).T
     return out
 
 
