@@ -364,7 +364,9 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         if self.rolling is None and header.index > 0 and self._restarted and not self._caught_up:
             self._caught_up = True
             self.catch_up(header.index)
-        self.model.apply(header.index)  # the changes queued for this segment: at its start only
+        # the changes queued for this segment: at its start only; a restored one reported
+        # again when the segment is computed whole, as publish_fit does
+        self.model.apply(header.index, recomputed=self.computed_whole(header.index))
         self.schedule.arrive(header.index)
         if self.rolling is not None and self._next_t0 is not None and abs(td.t0 - self._next_t0) > 0.5 / td.fs:
             self.event(
@@ -451,6 +453,11 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         # a model's gates leave their hours out of the rolling fit (whole FFT segments)
         self.rolling.set_gates(self.rolling_model.gates if column_effects is not None else ())
         return self.rolling.push(push), owners, xyz
+
+    def computed_whole(self, index: int) -> bool:
+        """Whether segment ``index``'s fit is computed whole (its window refit and diagnosis
+        when due): not one an earlier process published, unless it did not record it."""
+        return not self.handled_before(index) or self.unrecorded(index)
 
     def publish_fit(self, header, td: TDIData, res, owners: dict | None, xyz) -> Output:
         """The fit message of a segment: the rolling fit's (or the rolling model's), the

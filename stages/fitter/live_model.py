@@ -38,6 +38,7 @@ class PendingChange(TypedDict):
     from_index: int  # the segment it applies from
     due: bool  # its ``model_change`` is still to be reported
     diagnose: bool  # the new model's first segment is diagnosed
+    restored: bool  # queued again after a restart (an earlier process reported it, or not)
 
 
 #: Most effects a live model may hold (a day of glitches and gates, with room): a control
@@ -206,7 +207,9 @@ class LiveModel:
         after = self.pending[-1]["effects"] if self.pending else self.effects
         if list(new) == list(after):
             return False
-        self.pending.append({"effects": list(new), "from_index": int(start), "due": due, "diagnose": diagnose})
+        self.pending.append(
+            {"effects": list(new), "from_index": int(start), "due": due, "diagnose": diagnose, "restored": False}
+        )
         return True
 
     @property
@@ -214,11 +217,16 @@ class LiveModel:
         """The model of the next segment (the last change queued, else the model in force)."""
         return list(self.pending[-1]["effects"]) if self.pending else list(self.effects)
 
-    def apply(self, index: int) -> list[PendingChange]:
+    def apply(self, index: int, recomputed: bool = False) -> list[PendingChange]:
         """Segment ``index`` is about to be processed: the changes queued for it (from
         ``index`` or earlier) take effect, in the order they were asked for; their change is
         due in the next fit message (one ``model_change``, from the model before the first
         to the model after the last) and the new model is diagnosed on its first segment.
+        A restored change an earlier process reported is due again when its segment is
+        ``recomputed`` whole (published again: the board did not know it was out, or
+        recorded again): the fit then is the earlier one, its window refit and
+        ``model_change`` included (the chaos test, seed 825968289: a restarted fitter
+        published fit 140 again, the first of a restored change, without its window refit).
         Returns the changes applied."""
         applied = [c for c in self.pending if c["from_index"] <= index]
         if not applied:
@@ -228,7 +236,7 @@ class LiveModel:
         for c in applied:
             self.effects = list(c["effects"])
             self.diagnose_due = self.diagnose_due or c["diagnose"]
-        if any(c["due"] for c in applied) and self.effects != before:
+        if any(c["due"] or (recomputed and c.get("restored")) for c in applied) and self.effects != before:
             self.change_due = {"before": before, "after": list(self.effects), "from_index": index}
         else:  # back to the model last reported, or changes an earlier process reported
             self.change_due = None
@@ -325,7 +333,7 @@ class LiveModel:
             except (KeyError, TypeError, ValueError, ConfigError):
                 continue  # a change that cannot be restored: the segments from it keep the model before
             due_e = not any(j >= i for j in fits)
-            queued.append({"effects": effects, "from_index": i, "due": due_e, "diagnose": True})
+            queued.append({"effects": effects, "from_index": i, "due": due_e, "diagnose": True, "restored": True})
         # by the segment each applies from; in the order asked among those of one segment
         self.pending = sorted(queued, key=lambda c: c["from_index"])
         due = not any(i >= start for i in fits)

@@ -215,3 +215,28 @@ def test_a_coupling_switched_on_before_the_window_settles_into_the_plain_couplin
     assert [(p.link, p.delayed, p.channel) for p in a.parts] == [(p.link, p.delayed, p.channel) for p in b.parts]
     for pa, pb in zip(a.parts, b.parts, strict=True):
         np.testing.assert_array_equal(pa.series, pb.series)  # the witness times H(t + 2 h) = 1
+
+
+def test_a_restored_change_published_again_is_reported_again():
+    """A restarted fitter that publishes again the first segment of a change an earlier
+    process reported (the board had not learned that segment was out: the chaos test, seed
+    825968289, fit 140) computes it whole, its window refit and ``model_change`` included,
+    as the earlier process did; a segment only replayed to rebuild the state reports nothing."""
+    events = [
+        {"details": {"effects": ["linear-ttl", "drift"], "before": ["linear-ttl"], "from_index": 3}},
+        {"details": {"effects": ["linear-ttl"], "before": ["linear-ttl", "drift"], "from_index": 5}},
+    ]
+    for recomputed, reported in ((True, True), (False, False)):
+        m = model()
+        assert m.restore(events, fits=set(range(6))) == (5, False)
+        for i in range(3):
+            m.apply(i, recomputed=recomputed)
+            assert m.change_due is None
+        m.apply(3, recomputed=recomputed)
+        want = {"before": ["linear-ttl"], "after": ["linear-ttl", "drift"], "from_index": 3}
+        assert m.effects == ["linear-ttl", "drift"] and m.change_due == (want if reported else None)
+    # a change asked for live is reported whatever the segment
+    m = model()
+    m.request(["linear-ttl", "drift"], 2)
+    m.apply(2, recomputed=False)
+    assert m.change_due is not None
