@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 from ..conventions import COEFFICIENT_NAMES
-from ..effects.column_tdi import effect_input_from_telemetry, tdi_in_blocks
+from ..effects.column_tdi import TelemetryRegressors, effect_input_from_telemetry, tdi_in_blocks
 from ..effects.linear_ttl import LinearTTL
 from ..effects.registry import available_effects
 from ..errors import ConfigError
@@ -261,32 +261,6 @@ class MeasuredTDI:
         if self.rebuild is not None:
             return self.rebuild(names)
         return self.td_in.regressors[:, [self.td_in.names.index(n) for n in names]]
-
-
-@dataclass(frozen=True)
-class TelemetryRegressors:
-    """The input-rate A, E, T of the 24 TTL regressors of a telemetry, built on demand
-    (:meth:`MeasuredTDI.input_regressors`): the TDI of their columns
-    (:func:`ttlcore.effects.column_tdi.tdi_in_blocks`, as :func:`whiten_telemetry` builds
-    them) with the diagnosis' Lagrange orders."""
-
-    tm: Telemetry
-    order: int
-    delay_order: int
-
-    def __call__(self, names: tuple[str, ...]) -> np.ndarray:
-        columns = dict(zip(COEFFICIENT_NAMES, LinearTTL().columns(effect_input_from_telemetry(self.tm))))
-        missing = [n for n in names if n not in columns]
-        if missing:
-            raise KeyError(f"not a TTL regressor of the telemetry: {', '.join(missing)}")
-        _, xyz = tdi_in_blocks(
-            self.tm.ltt,
-            self.tm.fs,
-            [columns[n] for n in names],
-            order=self.order,
-            delay_order=self.delay_order,
-        )
-        return aet(xyz)
 
 
 @dataclass(frozen=True, eq=False)

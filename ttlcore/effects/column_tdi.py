@@ -3,20 +3,26 @@
 Each column is the sum of its parts placed on their links, through the block engine
 :func:`ttlcore.tdi.engine.tdi_columns` (:func:`columns_tdi`, :func:`tdi_in_blocks`); the
 diagnosis builds its columns from the telemetry's DWS readouts
-(:func:`effect_input_from_telemetry`).
+(:func:`effect_input_from_telemetry`); :class:`TelemetryRegressors` builds the 24
+regressors' TDI again from a telemetry on demand.
 """
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
 import numpy as np
 
-from ..conventions import (
-    LINKS,
-)
-from ..tdi.combinations import MICHELSON
+from ..conventions import COEFFICIENT_NAMES, LINKS
+from ..tdi.combinations import MICHELSON, aet
 from ..tdi.engine import Part as EnginePart
 from ..tdi.engine import tdi_columns
 from .columns import Column, EffectInput
+from .linear_ttl import LinearTTL
+
+if TYPE_CHECKING:
+    from ..io.telemetry import Telemetry
 
 
 def effect_input_from_telemetry(tm, coefficients=None) -> EffectInput:
@@ -110,3 +116,29 @@ def columns_tdi(columns: list[Column], built) -> np.ndarray:
         order=b.order,
         delay_order=b.delay_order,
     )
+
+
+@dataclass(frozen=True)
+class TelemetryRegressors:
+    """The input-rate A, E, T of the 24 TTL regressors of a telemetry, built on demand
+    (:meth:`ttlcore.diagnose.whitened.MeasuredTDI.input_regressors`): the TDI of their columns
+    (:func:`tdi_in_blocks`, as :func:`ttlcore.diagnose.whitened.whiten_telemetry` builds
+    them) with the diagnosis' Lagrange orders."""
+
+    tm: Telemetry
+    order: int
+    delay_order: int
+
+    def __call__(self, names: tuple[str, ...]) -> np.ndarray:
+        columns = dict(zip(COEFFICIENT_NAMES, LinearTTL().columns(effect_input_from_telemetry(self.tm))))
+        missing = [n for n in names if n not in columns]
+        if missing:
+            raise KeyError(f"not a TTL regressor of the telemetry: {', '.join(missing)}")
+        _, xyz = tdi_in_blocks(
+            self.tm.ltt,
+            self.tm.fs,
+            [columns[n] for n in names],
+            order=self.order,
+            delay_order=self.delay_order,
+        )
+        return aet(xyz)
