@@ -289,9 +289,12 @@ class Stage:
                 self._signals = install_signal_flag()
                 restore = self._signals.restore
                 self.bus, self.recorder = bus, recorder
-                bus.declare_alive(self.run_id, self.stage_name)
                 bus.subscriber(control_pattern(self.run_id), self.transport.on_control)
                 bus.queryable(stage_control_pattern(self.run_id, self.stage_name), self.transport.on_control_query)
+                # alive once it takes commands: a sender that waits for the token and then
+                # sends is not lost to a subscriber not yet declared (declarations reach the
+                # router in order; a fresh clone's make test lost four control messages so)
+                bus.declare_alive(self.run_id, self.stage_name)
                 bus.watch_alive(self.run_id, self._on_alive)
                 if self.commands:  # commands an earlier process queued and did not handle: first
                     self.controls.restore(
