@@ -307,6 +307,8 @@ def test_transients_leave_the_model_with_the_window(tmp_path):
     (event,) = model_events(run_dir)
     d = event["details"]
     assert d["by"] == "window" and d["removed"] == [glitch, gate] and d["from_index"] == 3, d
+    # both models are the same on the window: the removal is not reported by a window refit
+    assert d["report"] is False and "model_change" not in fits[3].header.meta, fits[3].header.meta
     assert "model_parts" not in fits[3].header.meta or not fits[3].header.meta["model_parts"]
     # the glitch's column dropped from the rolling fit, its window kept: not rebuilt from the
     # window's telemetry (RollingFit.drop)

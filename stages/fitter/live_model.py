@@ -37,6 +37,7 @@ class PendingChange(TypedDict):
     effects: list[str]  # the validated specs of the new model
     from_index: int  # the segment it applies from
     due: bool  # its ``model_change`` is still to be reported
+    report: bool  # reported at all (a window refit of both models); not a transient's expiry
     diagnose: bool  # the new model's first segment is diagnosed
     restored: bool  # queued again after a restart (an earlier process reported it, or not)
 
@@ -200,15 +201,25 @@ class LiveModel:
             except (ValueError, TypeError, KeyError, IndexError, ArithmeticError) as exc:
                 raise ValueError(f"effects: {e.spec()}: its columns cannot be built on the window ({exc})") from None
 
-    def request(self, new: list[str], start: int, *, diagnose: bool = True, due: bool = True) -> bool:
+    def request(
+        self, new: list[str], start: int, *, diagnose: bool = True, due: bool = True, report: bool = True
+    ) -> bool:
         """Queue the model ``new`` (validated) from segment ``start`` on (:meth:`apply` puts
         it in force); False when it is the model already in force or queued for ``start``
-        (nothing to record)."""
+        (nothing to record).  ``report`` False: the change is never reported by a window refit
+        (transients that left the window: both models are the same on it)."""
         after = self.pending[-1]["effects"] if self.pending else self.effects
         if list(new) == list(after):
             return False
         self.pending.append(
-            {"effects": list(new), "from_index": int(start), "due": due, "diagnose": diagnose, "restored": False}
+            {
+                "effects": list(new),
+                "from_index": int(start),
+                "due": due and report,
+                "report": report,
+                "diagnose": diagnose,
+                "restored": False,
+            }
         )
         return True
 
@@ -236,7 +247,8 @@ class LiveModel:
         for c in applied:
             self.effects = list(c["effects"])
             self.diagnose_due = self.diagnose_due or c["diagnose"]
-        if any(c["due"] or (recomputed and c.get("restored")) for c in applied) and self.effects != before:
+        reported = any(c["report"] and (c["due"] or (recomputed and c["restored"])) for c in applied)
+        if (reported or self.change_due is not None) and self.effects != before:
             self.change_due = {"before": before, "after": list(self.effects), "from_index": index}
         else:  # back to the model last reported, or changes an earlier process reported
             self.change_due = None
@@ -251,11 +263,19 @@ class LiveModel:
     def only_transients_added(self, new: list[str]) -> bool:
         """Whether the model ``new`` differs from the one in force by transients alone (gates,
         glitches: effects with an :meth:`~ttlcore.effects.base.Effect.active_span`)."""
+        return self.transients_added_until(new) is not None
+
+    def transients_added_until(self, new: list[str]) -> float | None:
+        """The end [s] of the latest span among the transients the model ``new`` adds, when
+        it differs from the one in force by transients alone (else None)."""
         new = [e.spec() for e in make_effects(list(new), self.effect_modules)]  # as the model prints them
         added = [e for e in new if e not in self.effects]
         removed = [e for e in self.effects if e not in new]
-        effects = make_effects([*added, *removed], self.effect_modules)
-        return bool(added) and all(e.active_span() is not None for e in effects)
+        spans = [e.active_span() for e in make_effects([*added, *removed], self.effect_modules)]
+        ends = [span[1] for span in spans if span is not None]
+        if not added or len(ends) < len(spans):
+            return None
+        return max(ends[: len(added)])
 
     def expired(self, t_start: float) -> list[str]:
         """The transients of the model (effects with an
@@ -332,11 +352,23 @@ class LiveModel:
                 effects = self.check(d_e["effects"])
             except (KeyError, TypeError, ValueError, ConfigError):
                 continue  # a change that cannot be restored: the segments from it keep the model before
-            due_e = not any(j >= i for j in fits)
-            queued.append({"effects": effects, "from_index": i, "due": due_e, "diagnose": True, "restored": True})
+            # as the earlier process made it: reported (a transient's expiry is not) and
+            # diagnosed on its first segment, or not
+            report = bool(d_e.get("report", True))
+            due_e = report and not any(j >= i for j in fits)
+            queued.append(
+                {
+                    "effects": effects,
+                    "from_index": i,
+                    "due": due_e,
+                    "report": report,
+                    "diagnose": bool(d_e.get("diagnose", True)),
+                    "restored": True,
+                }
+            )
         # by the segment each applies from; in the order asked among those of one segment
         self.pending = sorted(queued, key=lambda c: c["from_index"])
-        due = not any(i >= start for i in fits)
+        due = self.pending[-1]["report"] and not any(i >= start for i in fits) if self.pending else False
         if not self.pending or self.pending[-1]["effects"] != last:
             raise ValueError(f"the last recorded change {last} cannot be queued again")
         return start, due

@@ -72,11 +72,12 @@ class FitterModel(_Stage):
     recorded_fits: set[int]
     summarised_fits: set[int]
 
-    def change_model(self, new: list[str], *, diagnose: bool = True, **why) -> None:
+    def change_model(self, new: list[str], *, diagnose: bool = True, report: bool = True, **why) -> None:
         """The model ``new`` (validated) from the next segment on: queued (it takes effect
         when that segment is processed) and recorded as a ``model`` event saying why; its
-        first segment diagnosed unless ``diagnose`` is False.  The model already planned for
-        the next segment changes nothing (no event)."""
+        first segment diagnosed unless ``diagnose`` is False, and its first fit a window refit
+        of both models (``model_change``) unless ``report`` is False.  The model already
+        planned for the next segment changes nothing (no event)."""
         start = self.queue.next if self.queue.next is not None else 0
         # never before a change already queued (the order asked is the order in force), nor
         # on a segment an earlier process handled (a restarted fitter replaying it: its fit is
@@ -85,10 +86,12 @@ class FitterModel(_Stage):
         while self.handled_before(start):
             start += 1
         before = self.model.planned
-        if diagnose and self.model.only_transients_added(new):  # diagnosed a little later
+        until = self.model.transients_added_until(new) if diagnose else None
+        if until is not None:  # transients alone: diagnosed a little later, or at the next slot
             diagnose = False
-            self.schedule.later(start + TRANSIENT_SPACING)
-        if not self.model.request(new, start, diagnose=diagnose):
+            if self.transient_at_window_end(until):
+                self.schedule.later(start + TRANSIENT_SPACING)
+        if not self.model.request(new, start, diagnose=diagnose, report=report):
             self.log.info("model %s already planned from segment %d: nothing to change", ",".join(new), start)
             return
         self.log.info("model change: %s -> %s from segment %d", ",".join(before), ",".join(new), start)
@@ -99,8 +102,22 @@ class FitterModel(_Stage):
             effects=new,
             before=before,
             from_index=start,
+            diagnose=diagnose,
+            report=report,
             **why,
         )
+
+    def transient_at_window_end(self, until: float) -> bool:
+        """Whether a transient whose span ends at ``until`` [s] reaches the last
+        :data:`~stages.fitter.schedule.TRANSIENT_SPACING` segments of the window: an excess
+        that may go on past the window's end (a coupling switched on an hour ago, gated as a
+        transient), diagnosed again a little later.  One inside the window was seen whole and
+        waits for the next slot (the mission week: five diagnoses of ~70 s of CPU each, after
+        glitches adopted half a day back, found nothing new)."""
+        if not len(self.window_tm):
+            return True
+        newest = self.window_tm.telemetry[-1]
+        return until > self.window_tm.t_stop - TRANSIENT_SPACING * newest.size / newest.fs
 
     def control(self, command: str, payload: bytes):
         """``model``: ``{"effects": [...]}`` changes the model from the next segment on, once
@@ -254,7 +271,8 @@ class FitterModel(_Stage):
         model from the next segment on (a ``model`` event ``by: window`` with the specs
         ``removed``; the recordings keep them for offline refits of their span), so that the
         model's size stays bounded over any run; a coupling switched on before the window
-        becomes the plain coupling (``settled``: ``{old: new}``)."""
+        becomes the plain coupling (``settled``: ``{old: new}``).  A removal alone is not
+        reported by a window refit (``report`` False in its event)."""
         model = self.model
         if self._catching_up or not len(self.window_tm) or not model.extended or model.change_due or model.pending:
             return  # (a change still to be reported or queued first: the transients go at the next segment)
@@ -266,7 +284,11 @@ class FitterModel(_Stage):
         why: dict[str, object] = {"removed": gone} if gone else {}
         if settled:  # switched on before the window: the plain coupling from here on
             why["settled"] = settled
-        self.change_model(kept, diagnose=False, by="window", decided_at=index, **why)
+        # a removal alone is not reported by a window refit: the effects gone are zero over
+        # the window, both models the same on it (a refit of the window per transient was
+        # ~25 s of the fitter's CPU, ten of them in the mission week); the rolling fit drops
+        # their columns and keeps its window (RollingFit.drop)
+        self.change_model(kept, diagnose=False, report=bool(settled), by="window", decided_at=index, **why)
 
 
 def adoption_refused(out: dict, exc: Exception) -> None:

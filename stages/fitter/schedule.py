@@ -17,6 +17,8 @@ MIN_FIRST = 6
 #: its first, not on it: an excess that goes on to the window's end (a coupling that switched
 #: on an hour ago) was otherwise gated again at every segment, each time by a diagnosis of
 #: several minutes (bench/mission.py: segments 72-74 of a week took 2, 5.5 and 8+ min).
+#: Only when a transient added reaches the window's last that many segments: one seen whole
+#: inside the window waits for the next slot.
 TRANSIENT_SPACING = 3
 
 

@@ -64,6 +64,12 @@ class TelemetryWindow:
         """Start [s] of the oldest segment."""
         return float(self.segments[0][1].t0)
 
+    @property
+    def t_stop(self) -> float:
+        """End [s] of the newest segment."""
+        tm = self.segments[-1][1]
+        return float(tm.t0 + tm.size / tm.fs)
+
     def clear(self) -> None:
         """Forget every segment (a discontinuity: the window restarts)."""
         self.segments.clear()

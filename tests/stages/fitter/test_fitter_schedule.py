@@ -207,3 +207,28 @@ def test_a_change_is_ranked_by_the_window_refit_only_without_the_live_diagnosis(
     header = SimpleNamespace(index=3, t0=0.0, meta={"segment_duration": 3600.0})
     assert fitter.window_fit(header) == {}
     assert seen["change"] is not None and seen["ranked"] is ranked
+
+
+@pytest.mark.parametrize("t_glitch_h, later", [(12.5, False), (21.2, True), (20.5, False)])
+def test_transients_adopted_inside_the_window_wait_for_the_next_slot(tmp_path, monkeypatch, t_glitch_h, later):
+    """A glitch adopted from a diagnosis of the window 0-24 h is diagnosed again 3 segments
+    later only when its span reaches the window's last TRANSIENT_SPACING (3) hours (an
+    excess that may go on past the end); one half a day back waits for the next slot.  The
+    glitch at 20.5 h with beta = 10 s ends 20.5 h + GLITCH_DAMPING_SPAN * 10 s + TDI_REACH,
+    before 21 h; the one at 21.2 h ends after it."""
+    from types import SimpleNamespace
+
+    import stages.fitter.fitter as fitter_module
+    from stages.fitter.schedule import TRANSIENT_SPACING
+    from streamer.runtime.stage import StageConfig
+
+    assert 20.5 * 3600 + GLITCH_DAMPING_SPAN * 10.0 + TDI_REACH < 21 * 3600
+    options = {"diagnose_every": 24, "adopt": "auto", "adequacy_every": 0}
+    fitter = fitter_module.Fitter(StageConfig(run="u", recordings=tmp_path, options=options))
+    segments = [(i, SimpleNamespace(t0=i * 3600.0, size=14400, fs=4.0)) for i in range(24)]
+    monkeypatch.setattr(fitter.window_tm, "segments", segments)
+    monkeypatch.setattr(fitter, "event", lambda *a, **kw: None)
+    fitter.queue.next = 24
+    fitter.change_model(["linear-ttl", f"glitch:t={t_glitch_h * 3600}s,tm=12,beta=10s"], by="adopt auto")
+    assert fitter.schedule.pending_from == (24 + TRANSIENT_SPACING if later else None)
+    assert not fitter.model.pending[-1]["diagnose"]

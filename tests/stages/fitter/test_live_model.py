@@ -7,6 +7,7 @@ import pytest
 
 from stages.fitter.live_model import MAX_COLUMNS, MAX_EFFECTS, MAX_GATES, LiveModel, header_bytes
 from ttlcore.conventions import DAY
+from ttlcore.effects.glitch import GLITCH_DAMPING_SPAN, TDI_REACH
 from ttlcore.io.telemetry import Telemetry
 
 
@@ -240,3 +241,44 @@ def test_a_restored_change_published_again_is_reported_again():
     m.request(["linear-ttl", "drift"], 2)
     m.apply(2, recomputed=False)
     assert m.change_due is not None
+
+
+def test_a_transient_leaving_the_window_is_not_reported_and_a_restart_keeps_it_so():
+    """A transient's expiry (``report`` False: both models are the same on the window) makes no
+    window refit, before a restart or after it; a restart diagnoses a change's first segment
+    only when the earlier process did (``diagnose`` in its event)."""
+    glitch = "glitch:t=900s,tm=12,beta=10s"
+    m = LiveModel(["linear-ttl", glitch])
+    assert m.request(["linear-ttl"], 4, diagnose=False, report=False)
+    m.apply(4)
+    assert m.effects == ["linear-ttl"] and m.change_due is None and not m.diagnose_due
+    # a reported change queued with an expiry behind it in one segment is still reported
+    m = LiveModel(["linear-ttl", glitch])
+    m.request(["linear-ttl", glitch, "drift"], 4)
+    m.request(["linear-ttl", "drift"], 4, diagnose=False, report=False)
+    m.apply(4)
+    assert m.change_due == {"before": ["linear-ttl", glitch], "after": ["linear-ttl", "drift"], "from_index": 4}
+    events = [
+        {"details": {"effects": ["linear-ttl", glitch, "drift"], "from_index": 3, "diagnose": True, "report": True}},
+        {"details": {"effects": ["linear-ttl", "drift"], "from_index": 5, "diagnose": False, "report": False}},
+    ]
+    for recomputed in (True, False):
+        m = LiveModel(["linear-ttl"])
+        assert m.restore(events, fits=set(range(3))) == (5, False)  # the last change: never reported
+        m.apply(3, recomputed=recomputed)
+        assert m.change_due is not None and m.diagnose_due
+        m.change_due, m.diagnose_due = None, False  # reported and diagnosed at segment 3
+        m.apply(5, recomputed=recomputed)
+        assert m.effects == ["linear-ttl", "drift"] and m.change_due is None and not m.diagnose_due
+
+
+def test_the_span_of_the_transients_a_model_adds():
+    m = LiveModel(["linear-ttl", "drift"])
+    gate, glitch = "gate:start=1000s,stop=2000s,taper=100s", "glitch:t=5000s,tm=12,beta=10s"
+    # the gate with its taper; the glitch to its damping span and the TDI's reach after it
+    assert m.transients_added_until(["linear-ttl", "drift", gate]) == pytest.approx(2100.0)
+    until = m.transients_added_until(["linear-ttl", "drift", gate, glitch])
+    assert until == pytest.approx(5000.0 + GLITCH_DAMPING_SPAN * 10.0 + TDI_REACH)
+    assert m.transients_added_until(["linear-ttl", "drift", "witness:source=12.eta,link=23,delay=1"]) is None
+    assert m.transients_added_until(["linear-ttl", gate]) is None  # a coupling removed
+    assert m.transients_added_until(["linear-ttl", "drift"]) is None
