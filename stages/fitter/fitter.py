@@ -297,16 +297,20 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         if self.stopping:  # the window's whitening alone takes a minute under load
             return None
         try:
+            # the whitened window handed over, not held here: the diagnosis lets the ungated
+            # data go once gated (a day's: 220 MB) and whitens them again if it needs them
             tm, data = self.window_whitened(header, keep=False)
+            settings, handed = data.context.settings, [data]
+            del data
             report = diagnose(
                 tm,
                 self.effects,
-                settings=data.context.settings,
+                settings=settings,
                 effect_modules=self.effect_modules,
                 checkpoint=stop_check(
                     lambda: self.stopping, lambda: self.controls.defer(f"diagnosing segment {header.index}")
                 ),
-                whitened=data,
+                whitened=handed.pop(),
             )
         except ConfigError as exc:
             self.log.info("no diagnosis yet: %s", exc)

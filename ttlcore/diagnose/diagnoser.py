@@ -24,6 +24,7 @@ from __future__ import annotations
 import functools
 import logging
 import time
+from collections.abc import Callable
 from dataclasses import replace
 
 import numpy as np
@@ -127,9 +128,14 @@ def diagnose(
         if whitened is not None and whitened.context.settings != s:
             raise ConfigError("diagnose: the whitened data given were built under other settings")
         ungated = whitened if whitened is not None else whiten_telemetry(tm, s, effect_modules)
-        del whitened  # (``ungated`` is let go before the transient phase)
+        del whitened
         gaps = missing_data(ungated)  # gated before anything is fitted: the data's, not an effect
         data = gated_data(ungated, gates, gaps)
+        # the ungated data a refit of the transient phase gates anew: whitened again from
+        # ``tm`` when asked for (the same numbers), not held through the candidates (a day's:
+        # 220 MB, the mission week's peak)
+        regate = _ungated_source(ungated, tm, s, effect_modules) if data is not ungated else None
+        del ungated
         clock = _lap(timings, "tdi_and_spectra", clock)
         say("fit")
         fits = [fit_model(data, fitted)]
@@ -148,10 +154,7 @@ def diagnose(
     # the candidates' columns (a day's: 0.4-0.5 GB) are not asked for again: not kept through
     # the transient phase, the diagnosis' peak
     model.data.context.store.release_since(mark)
-    refit = functools.partial(
-        gated_model, model, fitted, ungated=ungated if gates or gaps else None, gates=gates, gaps=gaps
-    )
-    del ungated
+    refit = functools.partial(gated_model, model, fitted, ungated=regate, gates=gates, gaps=gaps)
     onsets = functools.partial(add_onset_candidates, model, report, modules=effect_modules)
     _transients(report, model, (refit, onsets, check), s, truth_coefficients)
     _lap(timings, "transients", clock)
@@ -269,11 +272,20 @@ def _transients(report: dict, model: ModelFit, hooks: tuple, s: DiagnoseSettings
             report["candidates_gated"] = ranking.to_json()
 
 
+def _ungated_source(ungated: WhitenedData, tm, s: DiagnoseSettings, effect_modules) -> Callable[[], WhitenedData]:
+    """The ungated data, whitened again from the telemetry ``tm`` the first time they are
+    asked for (and kept from then on); ``ungated`` itself when there is no telemetry to
+    whiten again (a diagnosis of whitened data alone)."""
+    if tm is None:
+        return lambda: ungated
+    return functools.cache(lambda: whiten_telemetry(tm, s, effect_modules))
+
+
 def gated_model(model: ModelFit, effects, spans, ungated=None, gates=(), gaps=()) -> ModelFit | None:
     """``model`` refitted with the ``(start, stop)`` spans [s] gated out (a signal's hours, a
     gap), its noise levels profiled again when they were fitted; None when the gates leave
-    too little data.  A model with gates of its own (``gates``) is gated anew from its
-    ``ungated`` data, its gates and the spans together.
+    too little data.  A model with gates of its own (``gates``) or gated gaps is gated anew
+    from its ungated data (``ungated()``), its gates and the spans together.
 
     A loud signal pulls the linear fit (a chirp: by several sigma, ``transients.robustness``)
     and, through the whole day's mis-subtracted TTL noise, everything read outside it. With
@@ -285,7 +297,7 @@ def gated_model(model: ModelFit, effects, spans, ungated=None, gates=(), gaps=()
     """
     new = [Gate(start=float(a), stop=float(b)) for a, b in spans]
     try:
-        data = gated_data(model.data, new) if ungated is None else gated_data(ungated, [*gates, *new], gaps)
+        data = gated_data(model.data, new) if ungated is None else gated_data(ungated(), [*gates, *new], gaps)
     except ConfigError as err:  # the gates leave too little data
         log.info("no gated model: %s", err)
         return None
