@@ -273,12 +273,13 @@ def _transients(report: dict, model: ModelFit, hooks: tuple, s: DiagnoseSettings
 
 
 def _ungated_source(ungated: WhitenedData, tm, s: DiagnoseSettings, effect_modules) -> Callable[[], WhitenedData]:
-    """The ungated data, whitened again from the telemetry ``tm`` the first time they are
-    asked for (and kept from then on); ``ungated`` itself when there is no telemetry to
-    whiten again (a diagnosis of whitened data alone)."""
+    """The ungated data, whitened again from the telemetry ``tm`` each time they are asked
+    for (the transient refit gates them once, and lets them go: its peak holds two copies of
+    the day's regressors, not three); ``ungated`` itself when there is no telemetry to whiten
+    again (a diagnosis of whitened data alone)."""
     if tm is None:
         return lambda: ungated
-    return functools.cache(lambda: whiten_telemetry(tm, s, effect_modules))
+    return lambda: whiten_telemetry(tm, s, effect_modules)
 
 
 def gated_model(model: ModelFit, effects, spans, ungated=None, gates=(), gaps=()) -> ModelFit | None:

@@ -142,3 +142,37 @@ def test_missing_data_at_the_ends_is_cut_off(gapped_day):
     one, two = (refit(x, ["linear-ttl"], settings=settings).fit for x in (data, led))
     np.testing.assert_allclose(two.ttl_coefficients(), one.ttl_coefficients(), rtol=0, atol=1e-12)
     assert two.chi2_dof == pytest.approx(one.chi2_dof, rel=1e-12)
+
+
+def test_the_ungated_data_are_not_held_through_a_gapped_diagnosis(gapped_day, monkeypatch):
+    """Once a gapped window is gated, the diagnosis lets its ungated whitened data go (a day's:
+    220 MB, held through the candidates and the transient phase before); the transient refit
+    whitens the telemetry again and gets the same fit as gating it from scratch."""
+    import weakref
+
+    import ttlcore.diagnose.diagnoser as diagnoser
+
+    class Stop(Exception):
+        pass
+
+    tm, _, _ = gapped_day
+    s = DiagnoseSettings(segment_duration=3600.0, workers=1)
+    handed = [whiten_telemetry(tm, s)]
+    alive = weakref.ref(handed[0])
+    gaps = missing_data(handed[0])
+    seen = {}
+
+    held = whiten_telemetry(tm, s)  # the same data, held as the diagnosis held them before
+
+    def finder(model, report, refit=None, onsets=None):
+        seen["alive"] = alive() is not None
+        seen["refit"] = refit([(7000.0, 7600.0)])
+        seen["held"] = diagnoser.gated_model(model, list(model.effects), [(7000.0, 7600.0)], lambda: held, gaps=gaps)
+        raise Stop
+
+    monkeypatch.setattr(diagnoser, "transient_report", finder)
+    with pytest.raises(Stop):
+        diagnoser.diagnose(tm, ["linear-ttl"], settings=s, candidates=["drift"], witnesses=False, whitened=handed.pop())
+    assert seen["alive"] is False
+    assert np.array_equal(seen["refit"].theta, seen["held"].theta)
+    assert seen["refit"].data.grid.gap_spans == tuple(gaps) and len(seen["refit"].data.grid.gates) == 1
