@@ -71,7 +71,10 @@ def test_the_verdict_goes_back_to_the_sender(driver, children, tmp_path):
 
 def test_a_busy_stage_queues_a_command_and_handles_it_after_the_segment(driver, children, tmp_path):
     proc, mcap_path = driver.start_stage(children, tmp_path)
-    segment(driver, 0, busy=10.0)
+    # busy long enough to outlast the recording's poll and the sender's start-up under load
+    # (10 s was not: a fresh clone's make test at load 7 found the segment done, the command
+    # accepted at once)
+    segment(driver, 0, busy=25.0)
     wait_for(lambda: read_recording(mcap_path).segments("telemetry"), 30, "segment 0 taken in")
     res = send(driver, "factor", '{"factor": 3}', wait=1.0)
     # queued at once (the stage's checkpoint), no verdict within the wait: exit status 3
@@ -89,7 +92,7 @@ def test_a_busy_stage_queues_a_command_and_handles_it_after_the_segment(driver, 
 
 def test_a_command_queued_by_a_stage_killed_before_handling_it_is_handled_by_its_successor(driver, children, tmp_path):
     proc, mcap_path = driver.start_stage(children, tmp_path)
-    data0 = segment(driver, 0, busy=15.0)
+    data0 = segment(driver, 0, busy=25.0)
     wait_for(lambda: read_recording(mcap_path).segments("telemetry"), 30, "segment 0 taken in")
     res = send(driver, "factor", '{"factor": 5}', wait=1.0)
     assert res.returncode == 3, res
