@@ -42,3 +42,15 @@ def test_a_change_never_applies_before_one_already_queued(tmp_path):
     assert [(c["effects"], c["from_index"]) for c in f.model.pending] == [(DRIFT, 82), (LINEAR, 82)]
     applied = f.model.apply(82)  # both at 82, in the order asked: the last is in force
     assert [c["effects"] for c in applied] == [DRIFT, LINEAR] and f.model.effects == LINEAR
+
+
+def test_a_change_applies_after_segments_an_earlier_process_recorded_the_fits_of(tmp_path):
+    # the chaos run of seed 825968289: a fitter published and recorded fits 136-139 and went
+    # with its launcher before the board learned of 138-139; its successor, started at 138
+    # and told of a change there, made it from 139 - a second fit 139 with another model
+    f = fitter(tmp_path)
+    f.board.stages["fitter"] = Progress("fitter", done=RangeSet.from_ranges([[0, 137]]))
+    f.recorded_fits = set(range(136, 140))  # the predecessor's recording (restore_model reads it)
+    f.queue.next = 139  # 138 in hand again
+    f.change_model(DRIFT, by="control")
+    assert [c["from_index"] for c in f.model.pending] == [140]
