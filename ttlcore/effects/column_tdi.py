@@ -122,8 +122,9 @@ def columns_tdi(columns: list[Column], built) -> np.ndarray:
 class TelemetryRegressors:
     """The input-rate A, E, T of the 24 TTL regressors of a telemetry, built on demand
     (:meth:`ttlcore.diagnose.whitened.MeasuredTDI.input_regressors`): the TDI of their columns
-    (:func:`tdi_in_blocks`, as :func:`ttlcore.diagnose.whitened.whiten_telemetry` builds
-    them) with the diagnosis' Lagrange orders."""
+    by the block engine with the diagnosis' Lagrange orders - the numbers of
+    :func:`tdi_in_blocks`, as :func:`ttlcore.diagnose.whitened.whiten_telemetry` builds them,
+    to the bit."""
 
     tm: Telemetry
     order: int
