@@ -595,9 +595,9 @@ def shifted_columns(data, effect, C, shifts: dict) -> tuple[dict, ColumnSet, dic
     for g, members in effect.shifted_members().items():
         d0 = float(shifts.get(g, 0.0))
         expansion[f"{effect.name}.{g}"] = d0
-        R = data.tdi.input_regressors(members)  # (3, k, n)
+        weights = [float(C[COEFFICIENT_NAMES.index(k)]) for k in members]
         if d0:
-            R = timeshift(R, sgn * d0 * td.fs)
+            R = timeshift(data.tdi.input_regressors(members), sgn * d0 * td.fs)  # (3, k, n)
             for cname in members:
                 new = f"{cname}@{effect.name}.{g}"
                 replaced[cname] = new
@@ -607,11 +607,14 @@ def shifted_columns(data, effect, C, shifts: dict) -> tuple[dict, ColumnSet, dic
                 priors.append(base.priors[i])
                 eiv.append(tuple((ch, link, extra, sgn * d0) for ch, link, extra, *_ in base.eiv[i]))
             blocks.append(data.grid.decimate(R, is_aet=True))
-        A = np.einsum("k,ckn->cn", [float(C[COEFFICIENT_NAMES.index(k)]) for k in members], R)
+            A = np.einsum("k,ckn->cn", weights, R)
+            del R
+        else:  # only the sum is needed: one column's TDI (TDI is linear), not k
+            A = data.tdi.input_combination(members, weights)
         cols = {"d1": sgn * derivative(A, td.fs, 1)}
         if not d0:
             cols["d2"] = 0.5 * derivative(A, td.fs, 2)
-        del R, A
+        del A
         for kind in cols:
             names.append(f"{effect.name}.{g}.{kind}")
             units.append({"d1": "s", "d2": "s^2"}[kind])

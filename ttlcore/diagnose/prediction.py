@@ -166,7 +166,7 @@ def _shift_prediction(fit, effect, data) -> np.ndarray:
         if not delta:
             continue
         k = [COEFFICIENT_NAMES.index(m) for m in members]
-        A = np.einsum("k,ckn->cn", C[k], xyz_regressors(data, members))
+        A = AET_MATRIX.T @ data.tdi.input_combination(members, C[k])  # X, Y, Z of sum_k C_k R_k
         total += timeshift(A, sign * delta * fs, order=data.context.settings.order) - A
     return total
 

@@ -262,6 +262,17 @@ class MeasuredTDI:
             return self.rebuild(names)
         return self.td_in.regressors[:, [self.td_in.names.index(n) for n in names]]
 
+    def input_combination(self, names: Iterable[str], weights) -> np.ndarray:
+        """A, E, T (3, n_in) of ``sum_k weights_k R_k`` over the named regressors at the
+        input rate (a shifted effect's ``sum_k C_k R_k``): from ``td_in``, or built by
+        ``rebuild`` as the TDI of the weighted witnesses - one column's TDI instead of k,
+        equal to the sum of :meth:`input_regressors` to rounding."""
+        names = tuple(names)
+        w = np.asarray(weights, dtype=float)
+        if self.rebuild is not None:
+            return self.rebuild(names, w)[:, 0]
+        return np.einsum("k,ckn->cn", w, self.input_regressors(names))
+
 
 @dataclass(frozen=True, eq=False)
 class Whitening:

@@ -130,17 +130,24 @@ class TelemetryRegressors:
     order: int
     delay_order: int
 
-    def __call__(self, names: tuple[str, ...]) -> np.ndarray:
+    def __call__(self, names: tuple[str, ...], weights=None) -> np.ndarray:
+        """A, E, T (3, k, n) of the regressors ``names``; with ``weights`` (k,) the one
+        column ``sum_k w_k R_k`` (3, 1, n), built as the TDI of the weighted witnesses (TDI
+        is linear: one column's work instead of k, equal to rounding)."""
         columns = dict(zip(COEFFICIENT_NAMES, LinearTTL().columns(effect_input_from_telemetry(self.tm))))
         missing = [n for n in names if n not in columns]
         if missing:
             raise KeyError(f"not a TTL regressor of the telemetry: {', '.join(missing)}")
+        if weights is None:
+            parts = _engine_parts([columns[n] for n in names])
+        else:
+            parts = _weighted_parts([columns[n] for n in names], weights)
         # the columns alone (no data column), turned into A, E, T in place one column at a
         # time: the TDI of 8 regressors of a day (66 MB) took 271 MB at its peak, a copy for
         # the data column's slice and one for A, E, T beside the X, Y, Z
         out = tdi_columns(
-            _engine_parts([columns[n] for n in names]),
-            len(names),
+            parts,
+            len(names) if weights is None else 1,
             self.tm.ltt,
             self.tm.fs,
             combinations=MICHELSON,
@@ -150,3 +157,14 @@ class TelemetryRegressors:
         for k in range(out.shape[1]):
             out[:, k] = aet(out[:, k])
         return out
+
+
+def _weighted_parts(columns, weights) -> list:
+    """The parts of ``columns`` scaled by ``weights`` as one column (0), those on the same
+    link after the same delays summed (one series for the engine to transform)."""
+    summed: dict = {}
+    for w, col in zip(np.asarray(weights, dtype=float), columns, strict=True):
+        for p in col.parts:
+            key = (p.link, p.extra)
+            summed[key] = w * p.series if key not in summed else summed[key] + w * p.series
+    return [EnginePart(0, link, extra, series) for (link, extra), series in summed.items()]

@@ -143,3 +143,23 @@ def test_derivative_columns_from_rebuilt_regressors_equal_those_from_kept_ones(d
     assert held.tdi.rebuild is None and held.tdi.td_in.regressors.shape[1] == 24
     a, b = derivative_columns(data).x, derivative_columns(held).x
     np.testing.assert_allclose(a, b, rtol=0, atol=1e-9 * np.abs(b).max())
+
+
+def test_a_weighted_sum_of_regressors_is_one_tdi_equal_to_the_sum_of_their_tdi(data):
+    # TDI is linear: the TDI of the weighted witnesses (one column, what a shifted effect's
+    # unshifted group needs) equals the weighted sum of the regressors' TDI built one by one,
+    # to rounding (1e-12 of the largest value: the same interpolation of the same samples);
+    # the held path (td_in keeps the regressors) is the plain weighted sum
+    tm = data.context.tm
+    names = ("12.phi.rx", "12.eta.rx", "21.phi.tx", "21.eta.tx")  # parts on two links, one shared
+    w = np.array([1.3e-3, -2.1e-3, 0.7e-3, 2.5e-3])
+    ref = np.einsum("k,ckn->cn", w, data.tdi.input_regressors(names))
+    got = data.tdi.input_combination(names, w)
+    ok = np.isfinite(ref).all(axis=0)
+    assert ok.sum() > 0.9 * ref.shape[1] and np.array_equal(np.isfinite(got), np.isfinite(ref))
+    np.testing.assert_allclose(got[:, ok], ref[:, ok], rtol=0, atol=1e-12 * np.abs(ref[:, ok]).max())
+    held = whiten_tdi(compute_tdi(tm).to_aet(), data.context.settings, tm=tm)
+    got_held = held.tdi.input_combination(names, w)
+    np.testing.assert_allclose(got_held[:, ok], ref[:, ok], rtol=0, atol=1e-9 * np.abs(ref[:, ok]).max())
+    with pytest.raises(KeyError, match="not a TTL regressor"):
+        data.tdi.input_combination(["12.phi.rx", "dws-x"], [1.0, 1.0])
