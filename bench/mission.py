@@ -3,8 +3,8 @@
 Seven days (``--days``) are simulated by our simulator (Keplerian arms, all noises, the paper's
 coefficients) with what LISA delivers: one glitch a day at a random time on a random test mass
 (sizes drawn log-uniformly between LISA Pathfinder's, 1e-12 m/s, and a hundred times larger,
-damping 5-300 s), the paper's MBHB1 merger in mid-run, a planned 7-h gap (NaN in every series
-of the written file) and a coupling outside the 24 - a witness of MOSA 12's DWS on link 23,
+damping 5-300 s), the paper's MBHB1 merger in mid-run, a planned 7-h gap (NaN in eta and the
+DWS readouts of the written file) and a coupling outside the 24 - a witness of MOSA 12's DWS on link 23,
 one light travel time away - that switches on at day 3 (``witness:...;vary=step``).  The week
 is replayed in 1-h segments through the five stage processes at the default cadence with
 ``--adopt auto``; every stage process is sampled with psutil while it runs.

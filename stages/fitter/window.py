@@ -18,7 +18,7 @@ import numpy as np
 from streamer.bus.messages import concatenate_telemetry
 from ttlcore.diagnose.settings import DiagnoseSettings
 from ttlcore.diagnose.whitened import WhitenedData, whiten_telemetry
-from ttlcore.io.telemetry import Telemetry
+from ttlcore.io.telemetry import Telemetry, bridged_ltt
 
 
 class TelemetryWindow:
@@ -34,6 +34,8 @@ class TelemetryWindow:
     def __init__(self, duration: float):
         self.duration = float(duration)
         self.segments: deque[tuple[int, Telemetry]] = deque()
+        #: indices of the segments that did not come (:meth:`add_gap`)
+        self._gaps: set[int] = set()
         #: (source, settings, effect modules) -> the window joined and whitened, while the
         #: window stays as it is (:meth:`whitened`)
         self._whitened: tuple[tuple, Telemetry, WhitenedData] | None = None
@@ -73,15 +75,17 @@ class TelemetryWindow:
     def clear(self) -> None:
         """Forget every segment (a discontinuity: the window restarts)."""
         self.segments.clear()
+        self._gaps.clear()
         self._whitened = None
 
     def add(self, index: int, tm: Telemetry) -> None:
         """Segment ``index`` joins the window; the segments now out of it go."""
         self._whitened = None
         self.segments.append((index, tm))
+        self._gaps.discard(index)
         end = tm.t0 + tm.size / tm.fs
         while self.segments and self.segments[0][1].t0 < end - self.duration - 1.0:
-            self.segments.popleft()
+            self._gaps.discard(self.segments.popleft()[0])
 
     def add_gap(self, index: int, t0: float, fs: float, n: int) -> None:
         """Segment ``index`` will not come: ``n`` samples of NaN readouts from ``t0``, the
@@ -101,11 +105,19 @@ class TelemetryWindow:
             source=prev.source,
         )
         self.segments.append((index, gap))
+        self._gaps.add(index)
 
     def joined(self, source: str) -> Telemetry:
         """The window's telemetry, one series (:func:`streamer.bus.messages.concatenate_telemetry`:
-        the same as ``ttl refit`` builds from the recorded segments)."""
-        return concatenate_telemetry(self.telemetry, source=source)
+        the same as ``ttl refit`` builds from the recorded segments); the light travel times
+        of the segments that did not come bridged between those around them
+        (:func:`ttlcore.io.telemetry.bridged_ltt`: held, they step at the gap's end and spoil
+        the TDI of the hours after it)."""
+        tm = concatenate_telemetry(self.telemetry, source=source)
+        missing = np.concatenate([np.full(seg.size, index in self._gaps) for index, seg in self.segments])
+        if not missing.any():
+            return tm
+        return replace(tm, ltt=bridged_ltt(tm.ltt, missing))
 
     def whitened(
         self, source: str, settings: DiagnoseSettings, effect_modules=(), *, keep: bool = True

@@ -206,11 +206,91 @@ def read_ttl_telemetry(path, start: int = 0, stop: int | None = None) -> Telemet
         size = head["size"]
         start, stop, _ = slice(start, stop).indices(size)
         # NaN in eta and the DWS series is a gap in the data (no sample): read as such, the
-        # consumers mask it; the light travel times must be finite
+        # consumers mask it; NaN light travel times are bridged (bridged_ltt), as the
+        # lisainstrument reader fills the MPRs
         arrays = {
-            fieldname: read_series(f, path, name, 6, size, start, stop, allow_nan=fieldname != "ltt")
+            fieldname: read_series(f, path, name, 6, size, start, stop, allow_nan=True)
             for name, fieldname in _FIELDS.items()
         }
+    arrays["ltt"] = _finite_ltt(path, arrays["ltt"])
     return Telemetry(
         t0=head["t0"] + start / head["fs"], fs=head["fs"], config=head["config"], source=str(path), **arrays
     )
+
+
+def _finite_ltt(path, ltt: np.ndarray) -> np.ndarray:
+    """The light travel times read, each link's NaN bridged (:func:`bridged_ltt`); a link
+    with none finite is a :class:`TelemetryError` naming the dataset."""
+    bad = ~np.isfinite(ltt)
+    if not bad.any():
+        return ltt
+    out = np.array(ltt, dtype=float)
+    for row, link in enumerate(LINKS):
+        if bad[row].all():
+            raise TelemetryError(
+                path, f"no finite light travel time on link {link}: the delays cannot be bridged", "ltt"
+            )
+        if bad[row].any():
+            out[row] = bridged_ltt(out[row : row + 1], bad[row])[0]
+            log.info("%s: %d NaN light travel times of link %s bridged", path, int(bad[row].sum()), link)
+    return out
+
+
+def bridged_ltt(ltt: np.ndarray, missing: np.ndarray) -> np.ndarray:
+    """Light travel times [s] (6, n) with the samples ``missing`` (n,) bridged: a straight
+    line between the valid samples on either side; before the first valid sample and after
+    the last, the line of the trend of the valid stretch there (its 14400 samples nearest
+    the edge at most: an hour at 4 Hz).
+
+    A stretch whose readouts are missing (a gap the pipeline steps over) must still carry
+    delays that join those on either side: TDI interpolates the delays smoothly over its
+    blocks (~2.2 h, :mod:`ttlcore.tdi.engine`), and a step in them - the last value held
+    over the mission week's 7-h gap (``bench/mission.py``) steps by 21 us - spoils the delays of
+    the valid samples the block shares with the gap, leaving laser noise in hours of data
+    after the gap (chi2/dof ~100 in every band).  The delays curve slowly (~1e-15 s/s^2 on a
+    Keplerian orbit), so a chord across a gap of T misses by ~1e-15 T^2 / 8: 8 ns over 2 h,
+    0.1 us over 7 h - in samples whose readouts are missing anyway.
+
+    Parameters
+    ----------
+    ltt : ndarray (6, n)
+        Light travel times [s]; the values at ``missing`` are not read.
+    missing : ndarray of bool (n,)
+        Samples to bridge.
+
+    Returns
+    -------
+    ndarray (6, n)
+        A copy; ``ltt`` itself when nothing is missing.
+
+    Raises
+    ------
+    ValueError
+        When every sample is missing (nothing to bridge from).
+    """
+    missing = np.asarray(missing, dtype=bool)
+    if not missing.any():
+        return ltt
+    good = np.flatnonzero(~missing)
+    if good.size == 0:
+        raise ValueError("bridged_ltt: every sample is missing, nothing to bridge the light travel times from")
+    out = np.array(ltt, dtype=float)
+    k = np.arange(out.shape[-1])
+    inside = missing & (k > good[0]) & (k < good[-1])
+    for row in out:
+        row[inside] = np.interp(k[inside], good, row[good])
+    # before the first valid sample and after the last: the trend of the valid stretch there
+    first_stop = good[0] + np.argmax(missing[good[0] :]) if missing[good[0] :].any() else k.size
+    last_start = good[-1] + 1 - np.argmax(missing[good[-1] :: -1])  # after the last gap before it
+    if not missing[: good[-1]].any():
+        last_start = 0
+    edges = (
+        (k[: good[0]], np.arange(good[0], min(first_stop, good[0] + 14400))),
+        (k[good[-1] + 1 :], np.arange(max(last_start, good[-1] - 14399), good[-1] + 1)),
+    )
+    for outside, stretch in edges:
+        if outside.size:
+            slope = np.zeros(out.shape[0]) if stretch.size < 2 else np.polyfit(stretch, out[:, stretch].T, 1)[0]
+            anchor = stretch[0] if outside[0] < stretch[0] else stretch[-1]
+            out[:, outside] = out[:, anchor, None] + slope[:, None] * (outside - anchor)[None]
+    return out
