@@ -52,7 +52,7 @@ from ..estimate.fit import (
     variance_factor,
 )
 from ..estimate.spectra import segment_fft, window
-from ..tdi.combinations import MICHELSON, aet
+from ..tdi.combinations import AET, aet
 from ..tdi.data import TDIData, lowpass_decimate, lowpass_taps
 from .adequacy import instrument_noise_csd, merged_band_edges
 from .columns import ColumnStore, read_only, regressor_columns
@@ -402,6 +402,7 @@ def whiten_tdi(
     dws = float(dws_asd if dws_asd is not None else (s.dws_asd if s.dws_asd is not None else DWS_ASD))
     ltt_mean = np.asarray(td.ltt_mean, dtype=float)
     tda = td.to_aet()
+    del td  # with rebuild, the input-rate regressors go once decimated (the caller hands td over)
     factor = max(1, int(round(tda.fs / 2.0)))
     dec = tda.decimated(factor) if factor > 1 else tda
     grid = _analysis_grid(dec, tda, ltt_mean, s)
@@ -585,18 +586,26 @@ def whiten_telemetry(
         order=s.order,
         delay_order=s.delay_order,
     )
-    # A, E, T here, X2, Y2, Z2 freed before the whitening: a day's 24 regressors are 200 MB
-    # in each (what whiten_tdi does first, with the same numbers)
+    # A, E, T here, in place one column at a time (what whiten_tdi does first, with the same
+    # numbers): a day's data and 24 regressors are 207 MB, and TDIData.to_aet held X2, Y2, Z2
+    # and A, E, T at once - the peak of a diagnosis that whitens its window again
+    data = aet(data)  # its own array: a view would hold the regressors' with it
+    for k in range(regs.shape[1]):
+        regs[:, k] = aet(regs[:, k])
     td = TDIData(
         t0=float(tm.t0),
         fs=float(tm.fs),
-        channels=tuple(c.name for c in MICHELSON),
+        channels=AET,
         data=data,
         regressors=regs,
         names=COEFFICIENT_NAMES,
         ltt_mean=np.nanmean(np.asarray(tm.ltt), axis=-1),
-    ).to_aet()
+    )
     del data, regs
     dws = s.dws_asd if s.dws_asd is not None else dws_asd_from_config(tm.config)
     rebuild = TelemetryRegressors(tm, s.order, s.delay_order)
-    return whiten_tdi(td, s, tm=tm, effect_modules=effect_modules, dws_asd=dws, rebuild=rebuild)
+    # handed over, not held here: whiten_tdi lets the input-rate regressors go once they are
+    # decimated (a day's: 200 MB, held through the first fit's spectra before)
+    handed = [td]
+    del td
+    return whiten_tdi(handed.pop(), s, tm=tm, effect_modules=effect_modules, dws_asd=dws, rebuild=rebuild)
