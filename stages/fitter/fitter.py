@@ -365,9 +365,8 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
         """Push one segment into the rolling fit and the telemetry window; the fit message if
         it refitted."""
         td, tm = item
-        if self.rolling is None and header.index > 0 and self._restarted and not self._caught_up:
-            self._caught_up = True
-            self.catch_up(header.index)
+        if self._restarted and not self._caught_up and not self._catching_up:
+            self.catch_up(header.index)  # caught up only once the window is rebuilt whole
         # the changes queued for this segment: at its start only; a restored one reported
         # again when the segment is computed whole, as publish_fit does
         self.model.apply(header.index, recomputed=self.computed_whole(header.index))

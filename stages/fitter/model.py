@@ -65,6 +65,7 @@ class FitterModel(_Stage):
     window_duration: float
     settings: Callable[[SegmentMeta], FitSettings]
     _catching_up: bool
+    _caught_up: bool
     _restarted: bool
 
     #: segments an earlier process of this stage recorded a fit of (a restarted fitter), and
@@ -176,7 +177,13 @@ class FitterModel(_Stage):
         so that the state (window, weights of the full refits) is the uninterrupted run's;
         each segment with the model in force for it (the queued changes take effect at their
         own segments).  Control commands come meanwhile are queued (recorded, their senders
-        told) and handled once it has caught up."""
+        told) and handled once it has caught up.  Told to stop, it leaves the segment (and
+        any later one: the window half rebuilt) to its successor (``StageStopping``)."""
+        if first == 0:  # the run's first segment: nothing before it
+            self._caught_up = True
+            return
+        if self.stopping:
+            raise StageStopping(f"stopping before the window is rebuilt (segment {first})")
         segments = recorded_telemetry(self.config.recordings / self.run_id, first, self.log)
         start = first
         while start - 1 in segments:
@@ -198,6 +205,7 @@ class FitterModel(_Stage):
                 self.process(header, item)
         finally:
             self._catching_up = False
+        self._caught_up = True
         self.event(
             "restored",
             index=first,

@@ -263,10 +263,8 @@ class MeasuredTDI:
         return self.td_in.regressors[:, [self.td_in.names.index(n) for n in names]]
 
     def input_combination(self, names: Iterable[str], weights) -> np.ndarray:
-        """A, E, T (3, n_in) of ``sum_k weights_k R_k`` over the named regressors at the
-        input rate (a shifted effect's ``sum_k C_k R_k``): from ``td_in``, or built by
-        ``rebuild`` as the TDI of the weighted witnesses - one column's TDI instead of k,
-        equal to the sum of :meth:`input_regressors` to rounding."""
+        """A, E, T (3, n_in) of ``sum_k weights_k R_k`` over the named regressors at the input
+        rate: by ``rebuild``, the TDI of the weighted witnesses (one column's, not k)."""
         names = tuple(names)
         w = np.asarray(weights, dtype=float)
         if self.rebuild is not None:
@@ -586,26 +584,14 @@ def whiten_telemetry(
         order=s.order,
         delay_order=s.delay_order,
     )
-    # A, E, T here, in place one column at a time (what whiten_tdi does first, with the same
-    # numbers): a day's data and 24 regressors are 207 MB, and TDIData.to_aet held X2, Y2, Z2
-    # and A, E, T at once - the peak of a diagnosis that whitens its window again
+    # A, E, T in place, one column at a time (TDIData.to_aet held X2, Y2, Z2 and A, E, T of a
+    # day at once: 2 x 207 MB), handed over (whiten_tdi lets them go once decimated)
     data = aet(data)  # its own array: a view would hold the regressors' with it
     for k in range(regs.shape[1]):
         regs[:, k] = aet(regs[:, k])
-    td = TDIData(
-        t0=float(tm.t0),
-        fs=float(tm.fs),
-        channels=AET,
-        data=data,
-        regressors=regs,
-        names=COEFFICIENT_NAMES,
-        ltt_mean=np.nanmean(np.asarray(tm.ltt), axis=-1),
-    )
+    ltt_mean = np.nanmean(np.asarray(tm.ltt), axis=-1)
+    handed = [TDIData(float(tm.t0), float(tm.fs), AET, data, regs, COEFFICIENT_NAMES, ltt_mean)]
     del data, regs
     dws = s.dws_asd if s.dws_asd is not None else dws_asd_from_config(tm.config)
     rebuild = TelemetryRegressors(tm, s.order, s.delay_order)
-    # handed over, not held here: whiten_tdi lets the input-rate regressors go once they are
-    # decimated (a day's: 200 MB, held through the first fit's spectra before)
-    handed = [td]
-    del td
     return whiten_tdi(handed.pop(), s, tm=tm, effect_modules=effect_modules, dws_asd=dws, rebuild=rebuild)
