@@ -119,7 +119,7 @@ import numpy as np
 from .._lagrange import Taps, apply_taps, shift_taps
 from ..conventions import COEFFICIENT_NAMES, LINKS, MOSAS
 from ..errors import TelemetryError
-from .telemetry import Telemetry
+from .telemetry import Telemetry, bridged_ltt
 
 #: ``git_url`` root attribute that lisainstrument writes.
 GIT_URL_MARK = "lisa-simulation/instrument"
@@ -408,20 +408,17 @@ def _grown(mask: np.ndarray, before: int, after: int) -> np.ndarray:
 
 
 def _fill_mpr(path: Path, name: str, d: np.ndarray, missing: np.ndarray) -> np.ndarray:
-    """The MPR ``d`` with its missing samples interpolated linearly from the valid ones.
+    """The MPR ``d`` with its missing samples bridged (:func:`ttlcore.io.telemetry.bridged_ltt`:
+    a straight line between the valid ones, their trend beyond the first or last).
 
     MPRs vary smoothly (the arm lengths change by metres per second over 2.5 Gm): across a
-    gap of an hour a straight line misses the true delay by well under a nanosecond (the
-    second derivative is ~1e-13 s/s^2), so the light travel times stay finite and usable;
-    the eta samples that read the missing MPR are marked missing by the caller.
+    gap of an hour a straight line misses the true delay by nanoseconds, so the light travel
+    times stay finite and usable; the eta samples that read the missing MPR are marked
+    missing by the caller.
     """
-    good = ~missing
-    if not good.any():
+    if missing.all():
         raise TelemetryError(path, "no valid sample (all NaN): the delays cannot be interpolated", name)
-    k = np.arange(d.size)
-    out = d.copy()
-    out[missing] = np.interp(k[missing], k[good], d[good])
-    return out
+    return bridged_ltt(d[None], missing)[0]
 
 
 def compute_etas_hz(
