@@ -108,10 +108,10 @@ class CatchUp:
             if m.recorded:
                 continue
             if m.asked_at is None:
-                if now - m.since >= self.fetch_after:
+                if now >= m.since + self.fetch_after:  # deadlines, not differences: exact at the deadline
                     ask.append((topic, index))
                 continue
-            if not m.asked or m.copies == 0 or now - m.asked_at >= self.answer_within:
+            if not m.asked or m.copies == 0 or now >= m.asked_at + self.answer_within:
                 m.recorded = True
                 read.setdefault(topic, set()).add(index)
         return ask, read
@@ -158,7 +158,7 @@ class CatchUp:
             topic, index = key
             if index in arrived.get(topic, ()):
                 del self._unusable[key]
-            elif now - u.since >= self.fetch_after and (topic not in published or index in published[topic]):
+            elif now >= u.since + self.fetch_after and (topic not in published or index in published[topic]):
                 del self._unusable[key]
                 out.append((topic, index, u.why))
         return out

@@ -132,7 +132,7 @@ class InOrder:
             return None
         if self._gap_since is None:
             self._gap_since = now
-        if now - self._gap_since >= self.gap_timeout:
+        if now >= self._gap_since + self.gap_timeout:
             self._gap_since = None
             return f"not received within {self.gap_timeout:g} s while later segments waited"
         return None

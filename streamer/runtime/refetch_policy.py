@@ -178,7 +178,7 @@ class ReportLimiter:
         now = self.clock()
         out = []
         for cause, (count, last) in list(self.pending.items()):
-            if count and (final or now - last >= self.every):
+            if count and (final or now >= last + self.every):
                 out.append((*cause, count))
                 self.pending[cause] = (0, now)
         return out
