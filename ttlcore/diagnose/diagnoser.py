@@ -256,20 +256,26 @@ def _transients(report: dict, model: ModelFit, hooks: tuple, s: DiagnoseSettings
     refit, onsets, check = hooks
     report["transients"] = transient_report(model, report, refit=refit, onsets=onsets)
     residual = report["transients"].pop("_residual")
-    # actions, not_advised
-    report["transients"].update(transient_actions(model, report, residual, checkpoint=check))
-    del residual
+    # The gated model is read (its JSON, the candidates ranked on it) and let go before the
+    # glitch searches of the actions: held through them, its data and columns were ~0.3 GB
+    # of a day's diagnosis at its peak.  The actions only re-class events as glitches (a
+    # signal, never a missing coupling): the verdict stays, the signals can only grow.
     gated = report["transients"].pop("_gated")
-    report["transients"]["gated_model"] = None if gated is None else gated_model_json(gated, truth_coefficients)
-    verdict = report["transients"]["classification"]
-    signals = [e for e in report["transients"]["events"] if e["class"] in NOT_AN_EFFECT]
-    if gated is not None and signals and verdict["class"] == "missing-coupling":
+    gated_json = None if gated is None else gated_model_json(gated, truth_coefficients)
+    ranking = None
+    if gated is not None and report["transients"]["classification"]["class"] == "missing-coupling":
         # beside a signal, the candidates are ranked again on the data with it gated: the
         # simplest that explains the quiet data, not the shape that also takes the signal
         ranking = rank_on_gated(report["candidates"], gated, s.alpha, s.tolerance)
-        if ranking is not None:
-            report["candidates"] = reordered(report["candidates"], ranking)
-            report["candidates_gated"] = ranking.to_json()
+    del gated
+    # actions, not_advised
+    report["transients"].update(transient_actions(model, report, residual, checkpoint=check))
+    del residual
+    report["transients"]["gated_model"] = gated_json
+    signals = [e for e in report["transients"]["events"] if e["class"] in NOT_AN_EFFECT]
+    if ranking is not None and signals:
+        report["candidates"] = reordered(report["candidates"], ranking)
+        report["candidates_gated"] = ranking.to_json()
 
 
 def _ungated_source(ungated: WhitenedData, tm, s: DiagnoseSettings, effect_modules) -> Callable[[], WhitenedData]:
