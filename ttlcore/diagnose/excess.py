@@ -19,6 +19,7 @@ from ..errors import ConfigError
 from ..estimate.spectra import segment_fft, window
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 from .candidates import rescore
+from .columns import effect_columns
 from .event_class import _f, classify, event_json
 from .fitting import fit_resolved
 from .onsets import data_end, onset_events, reclassify_onsets
@@ -239,12 +240,39 @@ def _whitened_columns(data, cols: list[int], w: np.ndarray | None) -> np.ndarray
 
 def model_residual(model) -> np.ndarray:
     """The model's residual series (3, n): decimated A, E, T of the data minus the fitted
-    columns (``ModelFit.columns.series``; when the fit kept no series, the model refitted
-    with them, :func:`ttlcore.diagnose.fitting.fit_resolved`)."""
+    columns (``ModelFit.columns.series``; when the fit kept no series, the series the
+    column store holds for the model's effects (:func:`stored_residual`), else the model
+    refitted with them, :func:`ttlcore.diagnose.fitting.fit_resolved`)."""
     data = model.data
     if model.columns.series is None:  # a fitted model keeps its whitened columns only
+        resid = stored_residual(model)
+        if resid is not None:
+            return resid
         model = fit_resolved(data, list(model.effects), None, True)
     return data.tdi.data_series - np.einsum("p,cpn->cn", model.theta, model.columns.series)
+
+
+def stored_residual(model) -> np.ndarray | None:
+    """The residual of :func:`model_residual` from the series of the model's columns the
+    column store holds (:func:`~ttlcore.diagnose.columns.effect_columns`, built with the
+    model's fit), column by column, with the model's own coefficients; None for a model with
+    a linearised effect (refitted instead).  The refit gave the same coefficients, but held
+    a second copy of the columns and series (a day's gated model: 0.18 GB at the peak)."""
+    effects = list(model.effects)
+    if any(e.needs_coefficients for e in effects):
+        return None
+    series = {}
+    for e in effects:  # a name in several sets: the last set's (as the fit assembles them)
+        cs = effect_columns(model.data, e, keep_series=True)
+        if cs.series is None:
+            return None
+        series.update({n: cs.series[:, i] for i, n in enumerate(cs.names)})  # views
+    if any(n not in series for n in model.columns.names):
+        return None
+    resid = np.array(model.data.tdi.data_series, dtype=float)
+    for n, theta in zip(model.columns.names, model.theta, strict=True):
+        resid -= theta * series[n]
+    return resid
 
 
 def quiet_adequacy(tf: TimeFrequencyMap, events, alpha: float, spans=()) -> dict:
