@@ -7,14 +7,20 @@
   :func:`die_with_launcher`) and also stops when its parent is no longer the launcher or the
   launcher's liveliness token has been gone ``orphan_grace`` seconds (:class:`LauncherWatch`;
   exit status 3).
+* A stage still busy :data:`ORPHAN_EXIT_AFTER` seconds after it lost its launcher (a
+  computation that does not look at the stop: a window refit on a loaded machine) exits at
+  once (:class:`OrphanWatchdog`), its recording left unclosed (salvageable): nothing of a
+  killed run outlives it by more than that.
 * A full disk (:func:`disk_full`) stops the stage with exit status 4.
 """
 
 from __future__ import annotations
 
 import errno
+import logging
 import os
 import signal
+import threading
 import time
 
 from .processes import SignalFlag, set_parent_death_signal
@@ -113,3 +119,46 @@ class LauncherWatch:
             if os.getppid() != self.launcher_pid:
                 return self.orphaned()
         return None
+
+
+#: Seconds a stage that has lost its launcher may go on computing before it exits without
+#: closing (:class:`OrphanWatchdog`).  The chaos test's fitter, in a window refit of a new
+#: model when its launcher was killed at load 13, was still busy 60 s later (an orphan).
+ORPHAN_EXIT_AFTER = 30.0
+
+
+class OrphanWatchdog:
+    """A thread that ends the process (exit status 3, ``os._exit``) when the stage has lost
+    its launcher (:meth:`LauncherWatch.orphaned`) and is still running ``after`` seconds
+    later.  The stage's loop notices the loss itself between two segments and stops cleanly;
+    this is for a segment whose processing does not return in time.  :meth:`disarm` once the
+    stage is stopping (its teardown closes the recording).  Only the stage's log says why:
+    the recording, written by the busy thread, is left as it is (salvaged when read)."""
+
+    def __init__(
+        self, watch: LauncherWatch, log: logging.Logger | logging.LoggerAdapter, after: float = ORPHAN_EXIT_AFTER
+    ):
+        self.watch, self.log, self.after = watch, log, float(after)
+        self._disarmed = threading.Event()
+        self._thread = threading.Thread(target=self._run, name="orphan-watchdog", daemon=True)
+
+    def start(self) -> OrphanWatchdog:
+        if self.watch.launcher_pid is not None:
+            self._thread.start()
+        return self
+
+    def disarm(self) -> None:
+        self._disarmed.set()
+
+    def _run(self) -> None:
+        since = None
+        while not self._disarmed.wait(1.0):
+            if since is None:
+                since = time.monotonic() if self.watch.orphaned() else None
+            elif time.monotonic() >= since + self.after and not self._disarmed.is_set():
+                self.log.error(
+                    "the launcher is gone and the stage is still busy %.0f s later: exiting now "
+                    "(exit status 3; the recording is left unclosed, salvaged when read)",
+                    self.after,
+                )
+                os._exit(3)

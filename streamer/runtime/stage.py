@@ -64,7 +64,7 @@ from ..recording.recorder import Recorder, mission_ns
 from .controls import ControlDesk, due_controls, recorded_controls
 from .ingest import PREVIEW_CHARS, GapWatch, Ingest
 from .ingest import preview as _preview
-from .lifecycle import LAUNCHER, LauncherWatch, disk_full, install_signal_flag
+from .lifecycle import LAUNCHER, LauncherWatch, OrphanWatchdog, disk_full, install_signal_flag
 from .plan import Holdback, Plan, Validator
 from .processes import SignalFlag
 from .rangeset import RangeSet
@@ -270,6 +270,7 @@ class Stage:
         cfg = self.config
         self.recording_path = recording_path(cfg.recordings, self.run_id, self.stage_name)
         restore = None
+        watchdog = OrphanWatchdog(self.launcher_watch, self.log)
         try:
             with (
                 Bus.open(cfg.zenoh) as bus,
@@ -288,6 +289,7 @@ class Stage:
                 # signal's default action ends the process, which has nothing to close yet
                 self._signals = install_signal_flag()
                 restore = self._signals.restore
+                watchdog.start()  # a segment still computing 30 s after the launcher is gone: exit
                 self.bus, self.recorder = bus, recorder
                 bus.subscriber(control_pattern(self.run_id), self.transport.on_control)
                 bus.queryable(stage_control_pattern(self.run_id, self.stage_name), self.transport.on_control_query)
@@ -324,6 +326,7 @@ class Stage:
                     self.exit_reason = why
                     self.log.error("%s: stopping (exit status 3)", why)
                     self.report_error("orphaned", f"{why}: stage stops")
+                watchdog.disarm()
                 self.log.info("stopping")
                 self.reports.last_words(self.teardown)
                 self.reports.last_words(lambda: self._report_suppressed(final=True))
@@ -340,6 +343,7 @@ class Stage:
             if not self.reports.closing_failed(exc):
                 raise
         finally:
+            watchdog.disarm()
             self.bus = self.recorder = None
             if restore is not None:
                 restore()
