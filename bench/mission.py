@@ -247,7 +247,7 @@ def summarise(
         "per_stage_peak_memory_gb": {s: round(max((r for _, r in rss[s]), default=0) / 1e9, 3) for s in STAGES},
         "per_stage_memory_gb_after_day_1_and_at_end": {s: [at(rss[s], day1), at(rss[s], wall)] for s in STAGES},
         "target_peak_memory_gb": 1.5,
-        "per_stage_peak_memory_during_fit": _peak_segments(rss, fits, started),
+        "per_stage_peak_memory_segment": _peak_segments(rss, fits, started),
         "fits": len(fits),
         "segments_outside_gap": segments - len(in_gap),
         "segments_outside_gap_without_fit": sorted(set(range(segments)) - in_gap - set(fits)),
