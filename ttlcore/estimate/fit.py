@@ -49,7 +49,7 @@ from ..conventions import C as C_LIGHT
 from ..tdi.combinations import AET_MATRIX, MICHELSON, link_responses
 from ..tdi.data import TDIData
 from ..tdi.regressors import dws_channel, placement
-from .gls import NormalEquations, sandwich, set_apart, solve
+from .gls import NormalEquations, sandwich, set_apart, sigma_ratio, solve
 from .noise_psd import tdi_noise_csd
 from .spectra import segment_fft, smooth_csd, smooth_csd_variable, window
 from .sums import band_slices, band_sums, eiv_bands, segment_sums
@@ -695,7 +695,7 @@ def fit_spectra(
     res.extra["variance_factor"] = kappa
     res.extra["last_change_sigma"] = float(change)
     res.extra["covariance_model_based"] = cov_model.tolist()
-    res.extra["sigma_ratio_robust_to_model"] = float(np.median(np.sqrt(np.diag(cov_robust) / np.diag(cov_model))))
+    res.extra["sigma_ratio_robust_to_model"] = sigma_ratio(cov_robust, cov_model)
     internals = {
         "normal_equations": neq,
         "weights": W,

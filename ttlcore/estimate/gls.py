@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-__all__ = ["NormalEquations", "sandwich", "set_apart", "solve"]
+__all__ = ["NormalEquations", "sandwich", "set_apart", "sigma_ratio", "solve"]
 
 
 @dataclass
@@ -187,3 +187,17 @@ def sandwich(N: np.ndarray, M: np.ndarray) -> np.ndarray:
     block = np.ix_(live, live)
     cov[block] = Ninv[block] @ M[block] @ Ninv[block]
     return 0.5 * (cov + cov.T)
+
+
+def sigma_ratio(cov_robust: np.ndarray, cov_model: np.ndarray) -> float:
+    """Median over the determined parameters of ``sigma_robust / sigma_model``: how far the
+    sandwich covariance (:func:`sandwich`) widens the model-based one.
+
+    A parameter the data do not determine (infinite variance, :func:`inverse`) is left
+    out; NaN when no parameter is determined.
+    """
+    robust, model = np.real(np.diag(cov_robust)), np.real(np.diag(cov_model))
+    determined = np.isfinite(robust) & np.isfinite(model) & (model > 0.0) & (robust >= 0.0)
+    if not determined.any():
+        return float("nan")
+    return float(np.median(np.sqrt(robust[determined] / model[determined])))

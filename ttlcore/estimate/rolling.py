@@ -74,7 +74,7 @@ from .fit import (
     solve,
     spectra_of_segment,
 )
-from .gls import sandwich, set_apart
+from .gls import sandwich, set_apart, sigma_ratio
 from .whitening import Whitener, whiten
 
 log = logging.getLogger(__name__)
@@ -595,6 +595,6 @@ class RollingFit:
             update="incremental",
             variance_factor=kappa,
             covariance_model_based=cov_model.tolist(),
-            sigma_ratio_robust_to_model=float(np.median(np.sqrt(np.diag(cov_robust) / np.diag(cov_model)))),
+            sigma_ratio_robust_to_model=sigma_ratio(cov_robust, cov_model),
         )
         return res

@@ -3,10 +3,12 @@ its covariance against the scatter of estimates, and the errors-in-variables ter
 the attenuation bias it removes (analytic: a regressor read with noise of variance s2 per
 complex bin has E[N] = N_true + n s2 I)."""
 
+import warnings
+
 import numpy as np
 import pytest
 
-from ttlcore.estimate.gls import NormalEquations, solve
+from ttlcore.estimate.gls import NormalEquations, inverse, sandwich, sigma_ratio, solve
 
 
 def normal_equations(X: np.ndarray, y: np.ndarray, E: np.ndarray | None = None) -> NormalEquations:
@@ -148,3 +150,20 @@ def test_a_regressor_known_worse_than_its_prior_is_set_apart():
     # a prior scale above the standard deviation: the plain solve, to the bit
     C2, cov2 = solve(neq, eiv=False, prior_scale=np.array([np.inf, np.inf, np.inf, 1e6]))
     assert np.array_equal(C2, plain) and np.array_equal(cov2, plain_cov)
+
+
+def test_sigma_ratio_leaves_out_the_undetermined_parameters():
+    """The robust-to-model sigma ratio of a normal matrix with one empty regressor: the
+    median over the determined ones, by hand (N diagonal, so sandwich = M_kk / N_kk^2 and
+    the ratio of parameter k is sqrt(M_kk / N_kk)); no warning from the inf/inf of the
+    empty one (it used to give NaN and an 'invalid value' RuntimeWarning)."""
+    N = np.diag([4.0, 1.0, 9.0, 0.0])
+    M = np.diag([16.0, 4.0, 9.0, 0.0])
+    cov_model = inverse(N)
+    cov_robust = sandwich(N, M)
+    assert np.isinf(cov_model[3, 3]) and np.isinf(cov_robust[3, 3])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ratio = sigma_ratio(cov_robust, cov_model)
+    assert ratio == pytest.approx(np.median([2.0, 2.0, 1.0]), rel=1e-12)
+    assert np.isnan(sigma_ratio(np.diag([np.inf]), np.diag([np.inf])))
