@@ -319,7 +319,7 @@ class Fitter(FitterModel, OrderedStage[FitterOptions]):
             self.log.info("fit %d: live diagnosis abandoned: %s", header.index, exc)
             return None
         self.model.diagnose_due = False
-        self.schedule.done(header.index)
+        self.diagnosis_done(header.index)
         out, ok = diagnosis_meta(
             report,
             index=header.index,

@@ -18,6 +18,7 @@ process published but did not get to record before it was killed
 from __future__ import annotations
 
 import json
+import shlex
 from typing import TYPE_CHECKING
 
 from streamer.bus.codec import encode
@@ -109,6 +110,25 @@ class FitterModel(_Stage):
             diagnose=diagnose,
             report=report,
             **why,
+        )
+
+    def diagnosis_done(self, index: int) -> None:
+        """The live diagnosis of segment ``index`` ran (:meth:`DiagnosisSchedule.done`).  The
+        segments after the previous diagnosis that its window no longer held - a slot that
+        fell in a gap is taken after it, on a window that starts after them - are an
+        ``undiagnosed`` warning with the command that looks at them offline."""
+        missed = to_ranges(self.schedule.done(index, first=self.window_tm.first))
+        if not missed:
+            return
+        run, model = shlex.quote(str(self.config.recordings / self.run_id)), shlex.quote(",".join(self.model.effects))
+        spans = ", ".join(f"{a}-{b}" if b > a else f"{a}" for a, b in missed)
+        commands = "; ".join(f"ttl refit {run} --segments {a}:{b} --effects {model}" for a, b in missed)
+        self.warn(
+            "undiagnosed",
+            f"fit {index}: segment(s) {spans} in no diagnosed window (this diagnosis came late, after a gap "
+            f"or a stop, on a window from segment {self.window_tm.first}); look at them offline: {commands}",
+            index=index,
+            segments=missed,
         )
 
     def transient_at_window_end(self, until: float) -> bool:

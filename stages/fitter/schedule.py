@@ -4,7 +4,7 @@ for weeks").  A state object with no bus in it: the stage records what it decide
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 __all__ = ["MIN_FIRST", "SUSTAINED_OUTLIERS", "TRANSIENT_SPACING", "DiagnosisSchedule"]
 
@@ -47,6 +47,8 @@ class DiagnosisSchedule:
     previous, current : int or None
         The segment before the one in hand, and the one in hand (:meth:`arrive`): a slot that
         fell in between (in a gap, or segments stepped over) is kept at the first segment after.
+    since_done : set of int
+        The segments in hand since the last diagnosis (:meth:`arrive`, :meth:`done`).
     """
 
     every: int
@@ -56,21 +58,30 @@ class DiagnosisSchedule:
     last_done: int | None = None
     previous: int | None = None
     current: int | None = None
+    since_done: set[int] = field(default_factory=set)
 
     def arrive(self, index: int) -> None:
         """Segment ``index`` is in hand (once per segment, before :meth:`due` is asked)."""
         if index != self.current:
             self.previous, self.current = self.current, index
+        if self.every > 0:
+            self.since_done.add(index)
 
     def later(self, index: int) -> None:
         """Diagnose at segment ``index`` (or at the slot before it): a model that only gained
         transients waits :data:`TRANSIENT_SPACING` segments."""
         self.pending_from = index if self.pending_from is None else min(self.pending_from, index)
 
-    def done(self, index: int) -> None:
-        """A diagnosis ran at segment ``index``: what was put off is done."""
+    def done(self, index: int, first: int | None = None) -> list[int]:
+        """A diagnosis ran at segment ``index`` on a window from segment ``first``: what was
+        put off is done.  Returns the segments in hand since the previous diagnosis that the
+        window no longer held: they were in no diagnosed window (a slot that fell in a gap is
+        taken at the first segment after it, whose window starts after them)."""
+        missed = sorted(i for i in self.since_done if first is not None and i < first)
+        self.since_done.clear()
         self.pending_from = None
         self.last_done = index
+        return missed
 
     def due(self, index: int, *, last: bool, new_model: bool) -> bool:
         """Whether segment ``index`` is diagnosed: on the cadence above (a slot passed since

@@ -3,9 +3,12 @@ leaving it (stages/fitter/live_model.py): parts of the fitter with no bus in the
 
 from __future__ import annotations
 
+from types import SimpleNamespace
+
 import pytest
 
 from stages.fitter.live_model import LiveModel
+from stages.fitter.model import FitterModel
 from stages.fitter.schedule import SUSTAINED_OUTLIERS, DiagnosisSchedule
 from ttlcore.diagnose.diagnosis import Coefficients, Recommendation
 from ttlcore.effects.gate import GATE_TAPER
@@ -54,6 +57,58 @@ def test_a_slot_inside_a_gap_falls_on_the_first_segment_after_it():
     # a gap that holds no slot moves none; segments in order keep the cadence
     assert _slots(DiagnosisSchedule(24), [*range(30), *range(40, 48)], 47) == [11, 23, 47]
     assert _slots(DiagnosisSchedule(24), range(48), 47) == [11, 23, 47]
+
+
+def test_the_segments_a_late_diagnosis_no_longer_holds_are_named():
+    # the blind week: the slot 119 fell in the gap 118-123 and was taken at 124, whose one-day
+    # window (101..124, the gap held as NaN) starts after segments 96-100: those were in no
+    # diagnosed window (a 4.8e-11 m/s glitch at 98.8 h among them), and done() names them;
+    # a diagnosis on time names none, and neither do the gap's segments (never in hand)
+    s, missed = DiagnosisSchedule(24), {}
+    for i in (i for i in range(168) if not 118 <= i <= 123):
+        s.arrive(i)
+        if s.due(i, last=i == 167, new_model=False):
+            missed[i] = s.done(i, first=max(0, i - 23))
+    assert missed == {11: [], 23: [], 47: [], 71: [], 95: [], 124: [96, 97, 98, 99, 100], 143: [], 167: []}
+    # a gap right after a diagnosis leaves nothing undiagnosed but the gap itself
+    s = DiagnosisSchedule(24)
+    for i in [*range(24), *range(40, 48)]:
+        s.arrive(i)
+        if s.due(i, last=False, new_model=False):
+            assert s.done(i, first=max(0, i - 23)) == [], i
+    # without a cadence nothing is counted
+    s = DiagnosisSchedule(0)
+    s.arrive(3)
+    assert s.since_done == set() and s.done(3, first=10) == []
+
+
+def test_the_fitter_warns_of_the_segments_no_diagnosis_saw(tmp_path):
+    """FitterModel.diagnosis_done on a stand-in for the stage (the schedule above, a window
+    from 101): one ``undiagnosed`` warning naming 96-100 and the ``ttl refit`` that looks at
+    them; none when nothing was missed."""
+    s = DiagnosisSchedule(24)
+    for i in range(96, 118):
+        s.arrive(i)
+    s.arrive(124)
+    warnings = []
+    stage = SimpleNamespace(
+        schedule=s,
+        window_tm=SimpleNamespace(first=101),
+        config=SimpleNamespace(recordings=tmp_path),
+        run_id="week",
+        model=SimpleNamespace(effects=["linear-ttl", "fd-coupling:source=23.phi,link=13"]),
+        warn=lambda kind, message, **details: warnings.append((kind, message, details)),
+    )
+    FitterModel.diagnosis_done(stage, 124)
+    [(kind, message, details)] = warnings
+    assert kind == "undiagnosed" and details == {"index": 124, "segments": [[96, 100]]}
+    assert "segment(s) 96-100 in no diagnosed window" in message
+    assert (
+        f"ttl refit {tmp_path / 'week'} --segments 96:100 --effects linear-ttl,fd-coupling:source=23.phi,link=13"
+        in message
+    )
+    FitterModel.diagnosis_done(stage, 143)
+    assert len(warnings) == 1
 
 
 def test_a_sustained_excess_brings_the_diagnosis_forward_once():
