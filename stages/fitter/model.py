@@ -125,8 +125,9 @@ class FitterModel(_Stage):
         commands = "; ".join(f"ttl refit {run} --segments {a}:{b} --effects {model}" for a, b in missed)
         self.warn(
             "undiagnosed",
-            f"fit {index}: segment(s) {spans} in no diagnosed window (this diagnosis came late, after a gap "
-            f"or a stop, on a window from segment {self.window_tm.first}); look at them offline: {commands}",
+            f"fit {index}: segment(s) {spans} in no diagnosed window (this diagnosis came late - its slot fell in "
+            f"a gap, or the ones before could not run - on a window from segment {self.window_tm.first}); "
+            f"look at them offline: {commands}",
             index=index,
             segments=missed,
         )
